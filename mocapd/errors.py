@@ -1,0 +1,51 @@
+"""The one exception hierarchy of mocapd.
+
+::
+
+    MocapdError
+    ├── InputError            a caller passed a mis-shaped or non-finite array (names the input and shape)
+    ├── ConfigError           a configuration key or value is invalid (names the key, value and what is allowed)
+    ├── CalibrationError      a calibration could not be computed or loaded
+    ├── ModelError            a model (pose prior, detector) is missing, malformed or incompatible
+    ├── ProtocolError         a wire protocol was violated in a way a parser cannot just count and skip
+    └── DeviceError           a camera, IMU or port failed (open, configure, stream)
+        └── DeviceTimeout     a device did not answer in time
+
+Parsers never raise on bad bytes: they count and resynchronise. Solvers never raise on numerical failure: they
+report it in their summary and keep the previous pose. These exceptions are for callers that passed something
+that cannot be used at all.
+"""
+
+from __future__ import annotations
+
+
+class MocapdError(Exception):
+    """Base class of every error raised by mocapd."""
+
+
+class InputError(MocapdError, ValueError):
+    """An array argument has the wrong shape, dtype or non-finite values."""
+
+
+class ConfigError(MocapdError, ValueError):
+    """A configuration key or value is invalid."""
+
+
+class CalibrationError(MocapdError):
+    """A calibration could not be computed or loaded."""
+
+
+class ModelError(MocapdError):
+    """A model file is missing, malformed or incompatible."""
+
+
+class ProtocolError(MocapdError):
+    """A wire protocol was violated beyond what a parser can count and skip."""
+
+
+class DeviceError(MocapdError):
+    """A hardware device (camera, IMU, port) failed."""
+
+
+class DeviceTimeout(DeviceError, TimeoutError):
+    """A device did not answer within its time-out."""

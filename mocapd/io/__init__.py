@@ -1,0 +1,1 @@
+"""The I/O edge: thin adapters for cameras, serial ports, sockets and files."""

@@ -1,0 +1,1 @@
+"""Configuration, the asyncio application, HTTP status/metrics and the command line."""
