@@ -286,3 +286,15 @@ def test_summary_reports_costs_per_term(scene: Scene) -> None:
     }
     assert res.summary.final_cost == pytest.approx(sum(res.summary.term_costs.values()))
     assert BONE_NAMES[0] == "Hips"
+
+
+def test_acceleration_term_needs_an_absolute_position_reference(scene: Scene) -> None:
+    """E_A is gated on views (acceleration_min_views): IMU-only it would integrate sensor noise into the body."""
+    frame = 16
+    imu_only = _imu_only(scene.observations[frame])
+    gated = _with_history(_solver(scene, cameras=[]), scene, frame)
+    assert "acceleration" not in gated.solve(imu_only, theta0=scene.truth[frame]).summary.term_costs
+    always = _with_history(_solver(scene, cameras=[], cost=CostOptions(acceleration_min_views=0)), scene, frame)
+    assert "acceleration" in always.solve(imu_only, theta0=scene.truth[frame]).summary.term_costs
+    seen = _with_history(_solver(scene), scene, frame)
+    assert "acceleration" in seen.solve(scene.observations[frame], theta0=scene.truth[frame]).summary.term_costs

@@ -307,6 +307,8 @@ class PoseSolver:
         )
         self.theta = skeleton.rest_pose()
         self._history: list[FloatArray] = []  # solved IMU sites at t-1 (last) and t-2
+        self._prev_root: FloatArray | None = None  # root translation of the solve before the last one
+        self._has_solved = False
         self._kernel_static = self._pack_static() if backend == "compiled" else None
         self._H = np.zeros((POSE_DIM, POSE_DIM))
         self._g = np.zeros(POSE_DIM)
@@ -421,6 +423,19 @@ class PoseSolver:
         """Forget the warm start and the acceleration history; optionally set the pose to start from."""
         self.theta = self.skeleton.rest_pose() if theta is None else _check_theta(theta)
         self._history.clear()
+        self._prev_root = None
+        self._has_solved = False
+
+    def _prediction(self) -> FloatArray:
+        """Warm start: the previous pose, with the root translation extrapolated at constant velocity.
+
+        Joint rotations start from the previous solve (seed 003 §3.2.6). Holding the root still instead would
+        start every frame with a spurious deceleration of v/Δt in the acceleration term.
+        """
+        theta = self.theta.copy()
+        if self._prev_root is not None:
+            theta[:3] += theta[:3] - self._prev_root
+        return theta
 
     def imu_sites(self, theta: FloatArray) -> FloatArray:
         """World positions of the IMU sites for θ, shape (n_imu, 3)."""
@@ -450,12 +465,22 @@ class PoseSolver:
             "position": o.use_position and self.n_cams > 0 and bool(np.any(v.conf > 0)),
             "orientation": o.use_orientation and v.has_orientation and bool(np.any(v.mask)),
             "acceleration": (
-                o.use_acceleration and v.has_acceleration and bool(np.any(v.mask)) and len(self._history) == 2
+                o.use_acceleration
+                and v.has_acceleration
+                and bool(np.any(v.mask))
+                and len(self._history) == 2
+                and self._views(v) >= o.acceleration_min_views
             ),
             "prior_projection": o.use_prior_projection and self._prior_mats is not None,
             "prior_deviation": o.use_prior_deviation and self._prior_mats is not None,
             "floor": o.use_floor,
         }
+
+    def _views(self, v: _Validated) -> int:
+        """Cameras that see the person (at least one keypoint with confidence > 0) this frame."""
+        return (
+            int(np.count_nonzero(np.any(v.conf > 0, axis=1))) if self.n_cams and self.cost_options.use_position else 0
+        )
 
     def _losses(self) -> dict[str, Loss]:
         o = self.cost_options
@@ -653,9 +678,11 @@ class PoseSolver:
             Keep the result as the next warm start and push it into the acceleration history.
         """
         v = _Validated(obs, self.n_cams, self.n_kp, self.n_imu)
-        start = self.theta if theta0 is None else _check_theta(theta0)
+        start = self._prediction() if theta0 is None else _check_theta(theta0)
         result = self._minimize(start.copy(), v)
         if update_state:
+            self._prev_root = self.theta[:3].copy() if self._has_solved else None
+            self._has_solved = True
             self.theta = result.theta
             self.push_history(result.theta)
         return result

@@ -70,13 +70,17 @@ def moving_sequence(
     seed: int = 0,
     speed: float = 1.0,
     amplitude: float = 1.0,
+    start_still_s: float = 0.0,
 ) -> FloatArray:
     """A smooth, human-scaled motion with coordinated joints, the root walking a circle.
 
     Joint angles are driven by a few latent oscillations through a fixed mixing matrix (shared by all seeds,
     like the coordination of real movement, so a PCA prior fitted on one seed describes another), plus a
     small independent jitter per joint. The seed picks the latent frequencies and phases; ``amplitude``
-    scales all joint excursions (e.g. to sample a broad pose pool for a prior).
+    scales all joint excursions (e.g. to sample a broad pose pool for a prior). With ``start_still_s > 0`` time
+    is warped as ``τ = t²/(2R)`` for ``t < R`` so the motion starts at rest and reaches full speed after R
+    seconds, like a capture that begins from a calibration pose (IMU-only tracking needs a known start
+    velocity).
 
     Returns
     -------
@@ -84,7 +88,10 @@ def moving_sequence(
     """
     rng = np.random.default_rng(seed)
     mix_rng = np.random.default_rng(_MIXING_SEED)
-    t = np.arange(n_frames)[:, None] / fps * speed
+    t = np.arange(n_frames)[:, None] / fps
+    if start_still_s > 0.0:
+        t = np.where(t < start_still_s, t * t / (2.0 * start_still_s), t - 0.5 * start_still_s)
+    t = t * speed
     amp = np.array([_AMPLITUDES[n] for n in BONE_INDEX]).reshape(-1)
     bias = np.array([_BIAS.get(n, (0.0, 0.0, 0.0)) for n in BONE_INDEX]).reshape(-1)
     mixing = mix_rng.normal(size=(3 * N_BONES, _N_LATENT))
