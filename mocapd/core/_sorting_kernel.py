@@ -2,7 +2,8 @@
 
 One call per frame: undistort every keypoint, triangulate every pair of 2D people across every pair of views
 (two-ray midpoint on keypoints confident in both), keep pairs whose mean reprojection error is under the limit,
-and cluster them in order (each pair joins the first earlier *leader* within the same-person distance).
+and cluster them in order of increasing reprojection error (each pair joins the first earlier *leader* within
+the same-person distance that does not already hold a different 2D person of one of its cameras).
 :mod:`mocapd.core.sorting` turns the result into candidates; its tests exercise this kernel end to end.
 """
 
@@ -88,6 +89,8 @@ def candidate_pairs(
     errors = np.empty((m_max, 2))
     leader = np.empty(m_max, dtype=np.int64)
     leaders = np.empty(m_max, dtype=np.int64)
+    # Per cluster, the 2D person it holds in each camera (-1: none): one camera sees a person only once.
+    members = np.full((m_max, n_cams), -1, dtype=np.int64)
     n_leaders = 0
     m = 0
     X = np.empty(3)
@@ -152,28 +155,40 @@ def candidate_pairs(
             sources[m, 3] = person_of[pb]
             errors[m, 0] = ea / shared
             errors[m, 1] = eb / shared
-            # Join the first leader within the same-person distance (mean over shared keypoints).
-            joined = -1
-            for q in range(n_leaders):
-                L = leaders[q]
-                total = 0.0
-                cnt = 0
-                for j in range(k):
-                    if np.isnan(points[m, j, 0]) or np.isnan(points[L, j, 0]):
-                        continue
-                    total += math.sqrt(
-                        (points[m, j, 0] - points[L, j, 0]) ** 2
-                        + (points[m, j, 1] - points[L, j, 1]) ** 2
-                        + (points[m, j, 2] - points[L, j, 2]) ** 2
-                    )
-                    cnt += 1
-                if cnt > 0 and total / cnt < same_person:
-                    joined = L
-                    break
-            if joined < 0:
-                leaders[n_leaders] = m
-                n_leaders += 1
-                joined = m
-            leader[m] = joined
             m += 1
-    return points[:m], sources[:m], errors[:m], leader[:m]
+    # Cluster in order of increasing reprojection error: true pairings (consistent to a pixel or two) form
+    # the clusters first; a mismatched pairing of two different people comes later and, contradicting them
+    # in a view, stays on its own (and is dropped when detections are claimed).
+    order = np.argsort(errors[:m, 0] + errors[:m, 1])
+    points, sources, errors = points[order], sources[order], errors[order]
+    for u in range(m):
+        a, pa, b, pb = sources[u, 0], sources[u, 1], sources[u, 2], sources[u, 3]
+        joined = -1
+        for q in range(n_leaders):
+            L = leaders[q]
+            if (members[q, a] >= 0 and members[q, a] != pa) or (members[q, b] >= 0 and members[q, b] != pb):
+                continue  # a different person of camera a or b is already in this cluster
+            total = 0.0
+            cnt = 0
+            for j in range(k):
+                if np.isnan(points[u, j, 0]) or np.isnan(points[L, j, 0]):
+                    continue
+                total += math.sqrt(
+                    (points[u, j, 0] - points[L, j, 0]) ** 2
+                    + (points[u, j, 1] - points[L, j, 1]) ** 2
+                    + (points[u, j, 2] - points[L, j, 2]) ** 2
+                )
+                cnt += 1
+            if cnt > 0 and total / cnt < same_person:
+                joined = L
+                members[q, a] = pa
+                members[q, b] = pb
+                break
+        if joined < 0:
+            leaders[n_leaders] = u
+            members[n_leaders, a] = pa
+            members[n_leaders, b] = pb
+            n_leaders += 1
+            joined = u
+        leader[u] = joined
+    return points, sources, errors, leader[:m]

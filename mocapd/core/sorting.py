@@ -7,10 +7,12 @@ keypoints) to an existing candidate are merged into it; the others start new can
 then takes the nearest unused candidate within ``max_interframe_movement`` of its last position (subjects in
 the order given). The solver uses the 2D detections of each subject's candidate, not the triangulation.
 
-Beyond the pseudo-code: (1) a merged candidate can hold two detections of one view (a bystander in line with
-the subject); the one that reprojects better is kept. (2) Each 2D detection is finally given to one candidate
-only, the one supported by most views (see :func:`_resolve_claims`): with the seed's loose threshold, two
-different people seen by two facing cameras otherwise pair into spurious 2-view candidates. Triangulation is the
+Beyond the pseudo-code, each measured on the close-interaction scene of ``mocapd eval tracking``:
+(1) a pair never joins a candidate that already holds a *different* 2D person of one of its cameras — one camera
+sees a person once, so two people standing closer than the same-person distance stay apart; (2) each 2D detection
+is finally given to one candidate only, the one supported by most views (:func:`_resolve_claims`): with the seed's
+loose threshold, two different people seen by two facing cameras otherwise pair into spurious 2-view candidates;
+(3) subjects take candidates by an optimal assignment rather than in subject order. Triangulation is the
 two-ray midpoint, all the association needs; reprojection errors are measured in the undistorted image. The
 per-pair work runs in one compiled call (:mod:`mocapd.core._sorting_kernel`).
 """
@@ -21,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
 
 from mocapd.core import _sorting_kernel
 from mocapd.core.camera import MIN_DEPTH, Camera, stack_cameras
@@ -175,24 +178,28 @@ class DetectionSorter:
 
     # -- assignment ----------------------------------------------------------------------------------------
     def assign(self, cands: list[Candidate], last_positions: list[FloatArray | None]) -> list[Candidate | None]:
-        """Lines 18–30: each subject (in order) takes the nearest unused candidate within the movement limit.
+        """Lines 18–30, with one change: subjects and candidates are matched optimally, not in subject order.
+
+        Each subject gets at most one candidate within ``max_interframe_movement`` of its last position, and
+        the pairing minimises the total distance (Hungarian) — the seed's greedy order lets the first subject
+        take the other person's candidate when two people stand close.
 
         Parameters
         ----------
         last_positions : per subject, its last seen keypoints (n_kp, 3) or None if never seen.
         """
-        used = [False] * len(cands)
-        out: list[Candidate | None] = []
-        for last in last_positions:
-            best, best_d = -1, np.inf
+        out: list[Candidate | None] = [None] * len(last_positions)
+        if not cands or not last_positions:
+            return out
+        limit = self.options.max_interframe_movement
+        dist = np.full((len(last_positions), len(cands)), np.inf)
+        for i, last in enumerate(last_positions):
             if last is not None:
-                for i, c in enumerate(cands):
-                    d = _mean_distance(c.points, last)
-                    if not used[i] and d < best_d:
-                        best, best_d = i, d
-            if best >= 0 and best_d < self.options.max_interframe_movement:
-                used[best] = True
-                out.append(cands[best])
-            else:
-                out.append(None)
+                for j, c in enumerate(cands):
+                    dist[i, j] = _mean_distance(c.points, last)
+        usable = dist < limit
+        rows, cols = linear_sum_assignment(np.where(usable, dist, 1e6))
+        for i, j in zip(rows, cols, strict=True):
+            if usable[i, j]:
+                out[i] = cands[j]
         return out

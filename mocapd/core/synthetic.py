@@ -246,3 +246,15 @@ def walking_path(
     theta[:, 0] = xz[:, 0]
     theta[:, 2] = xz[:, 1]
     return theta
+
+
+def waypoint_path(
+    skeleton: Skeleton, n_frames: int, waypoints: list[tuple[float, float, float]], seed: int, fps: float = 60.0
+) -> FloatArray:
+    """A person moving through ``(time fraction, x, z)`` waypoints (piecewise linear), limbs moving throughout."""
+    theta = moving_sequence(skeleton, n_frames, fps=fps, seed=seed)
+    w = np.asarray(waypoints, dtype=np.float64)
+    s = np.linspace(0.0, 1.0, n_frames)
+    theta[:, 0] = np.interp(s, w[:, 0], w[:, 1])
+    theta[:, 2] = np.interp(s, w[:, 0], w[:, 2])
+    return theta

@@ -17,6 +17,20 @@ def _cmd_bench_solver(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_sorting(args: argparse.Namespace) -> int:
+    from mocapd.service import eval_tracking
+
+    print(json.dumps(eval_tracking.bench_sorting(frames=args.frames), indent=2))
+    return 0
+
+
+def _cmd_eval_tracking(args: argparse.Namespace) -> int:
+    from mocapd.service import eval_tracking
+
+    print(json.dumps(eval_tracking.evaluate(seconds=args.seconds, seed=args.seed), indent=2))
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from mocapd.service import demo_solver
 
@@ -39,6 +53,16 @@ def build_parser() -> argparse.ArgumentParser:
     solver.add_argument("--scipy-frames", type=int, default=30, help="frames for the scipy baseline (default 30)")
     solver.add_argument("--seed", type=int, default=0)
     solver.set_defaults(func=_cmd_bench_solver)
+    sorting = bench_sub.add_parser("sorting", help="detection sorting time per frame (issue: multi-person)")
+    sorting.add_argument("--frames", type=int, default=60)
+    sorting.set_defaults(func=_cmd_bench_sorting)
+
+    ev = sub.add_parser("eval", help="evaluations that print JSON")
+    ev_sub = ev.add_subparsers(dest="eval", metavar="EVAL", required=True)
+    tracking = ev_sub.add_parser("tracking", help="multi-person tracking on synthetic scenes")
+    tracking.add_argument("--seconds", type=float, default=8.0, help="length of each scene (default 8)")
+    tracking.add_argument("--seed", type=int, default=0)
+    tracking.set_defaults(func=_cmd_eval_tracking)
     return parser
 
 
