@@ -135,6 +135,11 @@ class FakeGigECamera:
         self._callback = _FILL(self._fill)  # kept alive as long as the camera: C holds only the pointer
         self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, self._callback, None)
 
+    def prepare(self, fmt_name: str) -> None:
+        """Encode the whole frames in ``fmt_name`` now, so the first acquisition does not stall on it."""
+        h, w, _ = self.frames[0].shape
+        self._encoded(PIXEL_FORMATS[fmt_name], 0, 0, w, h)
+
     def _encoded(self, fmt: PixelFormat, x: int, y: int, w: int, h: int) -> list[NDArray[np.uint8]]:
         key = (fmt.name, x, y, w, h)
         if key not in self._cache:
@@ -189,10 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--serial", default="MOCAPD-FAKE", help="serial number reported by the camera")
     parser.add_argument("--max-frames", type=int, default=None, help="serve only the first N frames (looped)")
     parser.add_argument("--size", default=None, help="resize frames to WIDTHxHEIGHT")
+    parser.add_argument("--prepare", default="RGB8", help="pixel format to pre-encode the full frames in")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     frames = load_video_rgb(args.video, args.max_frames, size)  # type: ignore[arg-type]
     camera = FakeGigECamera(frames, args.address, args.serial)
+    camera.prepare(args.prepare)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

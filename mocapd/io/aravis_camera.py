@@ -21,6 +21,7 @@ Disappearance
 from __future__ import annotations
 
 import ctypes
+import logging
 import socket
 import threading
 import time
@@ -34,6 +35,8 @@ from mocapd.errors import ConfigError, DeviceError
 from mocapd.io.frame_source import ThreadedSource
 from mocapd.io.pixels import PixelFormat, convert_into, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
+
+log = logging.getLogger(__name__)
 
 
 def load_aravis() -> Any:
@@ -54,6 +57,25 @@ def load_aravis() -> Any:
             f"Aravis 0.8 is not available ({exc}); run `make setup` (installs gir1.2-aravis-0.8 and PyGObject)"
         ) from exc
     return Aravis
+
+
+def _warm_up_introspection() -> None:
+    """Resolve the GI classes used by capture threads once, in the calling thread.
+
+    PyGObject creates wrapper classes lazily on first attribute access; doing that from several capture threads at
+    once corrupts reference counts (seen as ``g_atomic_ref_count_dec`` assertions and failed opens).
+    """
+    aravis = load_aravis()
+    from gi.repository import Gio
+
+    for name in ("Camera", "GvDevice", "Buffer", "BufferStatus", "GvStreamSocketBuffer", "Stream", "GvStream"):
+        getattr(aravis, name)
+    Gio.InetAddress.new_from_string("127.0.0.1")
+
+
+# Opening and configuring cameras is rare and goes through GenICam state shared inside Aravis/PyGObject:
+# one camera at a time.
+_OPEN_LOCK = threading.Lock()
 
 
 class _Lib:
@@ -265,6 +287,7 @@ class AravisSource(ThreadedSource):
             _, _, w, h = config.region
             ring = FrameRing(config.name, config.ring_slots, h, w, fmt.channels)
         super().__init__(config.name, ring, **kw)
+        _warm_up_introspection()
         self.config = config
         self.format: PixelFormat = fmt
         self._camera: Any = None
@@ -276,6 +299,11 @@ class AravisSource(ThreadedSource):
         self._stream_base = (0, 0)  # counters before this opening, added to the stream's own
 
     def _open(self) -> None:
+        with _OPEN_LOCK:
+            self._open_locked()
+        self._last_frame_ns = time.monotonic_ns()
+
+    def _open_locked(self) -> None:
         aravis = load_aravis()
         from gi.repository import GLib
 
@@ -310,7 +338,6 @@ class AravisSource(ThreadedSource):
             camera.start_acquisition()
         except GLib.Error as exc:
             raise DeviceError(f"camera {self.name!r} cannot start streaming: {exc.message}") from exc
-        self._last_frame_ns = time.monotonic_ns()
 
     def _update_stream_counters(self) -> None:
         stream = self._stream
@@ -338,8 +365,9 @@ class AravisSource(ThreadedSource):
             width, height = self._size
             convert_into(self.format, view, height, width, self.ring.next_slot())
             ref = self.ring.publish(now, int(buffer.get_timestamp()), int(buffer.get_frame_id()))
-            # Frame completion (Aravis' system timestamp, wall clock) to publication in the ring.
+            # Aravis' system timestamp (host wall clock when the stream received the frame) to publication.
             self.latency.add(time.time_ns() - int(buffer.get_system_timestamp()))
+            self.convert.add(time.monotonic_ns() - now)
         finally:
             self._stream.push_buffer(buffer)
         self.counters.frames += 1
@@ -360,9 +388,10 @@ class AravisSource(ThreadedSource):
             self._update_stream_counters()
         if self._camera is not None:
             try:
-                self._camera.stop_acquisition()
-            except GLib.Error:
-                pass  # the camera is gone; nothing left to stop
+                with _OPEN_LOCK:
+                    self._camera.stop_acquisition()
+            except GLib.Error as exc:  # the camera is gone: nothing left to stop
+                log.debug("camera %s: stop_acquisition failed: %s", self.name, exc.message)
         self._stream = None
         self._camera = None
         self._views.clear()

@@ -64,7 +64,7 @@ class CaptureCounters:
 
 @dataclass
 class LatencyLog:
-    """The last ``size`` capture-to-ring latencies in ns (time from frame completion to ring publish)."""
+    """The last ``size`` latencies of a capture step, in ns."""
 
     size: int = 1024
     values: NDArray[np.int64] = field(init=False)
@@ -103,7 +103,9 @@ class ThreadedSource:
         self.counters = CaptureCounters()
         self.latency = LatencyLog()
         self.backoff_s = backoff_s
+        self.convert = LatencyLog()
         self.opened = threading.Event()  # set while the device is open and streaming
+        self.thread_id: int | None = None  # native id of the current capture thread (for CPU accounting)
 
     # -- to implement ---------------------------------------------------------------------------------------
     def _open(self) -> None:
@@ -131,6 +133,7 @@ class ThreadedSource:
         done: asyncio.Future[DeviceError | None],
     ) -> None:
         result: DeviceError | None = None
+        self.thread_id = threading.get_native_id()
         try:
             self._open()
             self.opened.set()
