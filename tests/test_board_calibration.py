@@ -78,7 +78,9 @@ def test_charuco_on_rendered_views() -> None:
     dets = []
     for i in range(8):
         rvec = rng.normal(0, 0.35, 3)
-        tvec = np.array([-0.14 + rng.normal(0, 0.03), -0.1 + rng.normal(0, 0.03), 0.55 + rng.uniform(0, 0.15)])
+        tvec = np.array(
+            [-0.14 + rng.normal(0, 0.03), -0.1 + rng.normal(0, 0.03), 0.55 + rng.uniform(0, 0.15)]
+        )
         det = detect_board(_render_charuco(board, K, rvec, tvec), board, f"v{i}")
         if det is not None:
             dets.append(det)

@@ -12,11 +12,28 @@ from mocapd.io.calibration_files import read_mocapd_toml, read_pose2sim_toml
 from mocapd.service.cli import main
 
 
-def test_calibrate_intrinsics_of_demo(pose2sim_demo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_calibrate_intrinsics_of_demo(
+    pose2sim_demo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     intr = pose2sim_demo / "Demo_SinglePerson" / "calibration" / "intrinsics"
     out = tmp_path / "calib.toml"
-    code = main(["calibrate", "cameras", "--cols", "4", "--rows", "7", "--square-mm", "60", "--intrinsics", str(intr),
-                 "--fix-k3", "--output", str(out)])
+    code = main(
+        [
+            "calibrate",
+            "cameras",
+            "--cols",
+            "4",
+            "--rows",
+            "7",
+            "--square-mm",
+            "60",
+            "--intrinsics",
+            str(intr),
+            "--fix-k3",
+            "--output",
+            str(out),
+        ]
+    )
     assert code == 0
     report = json.loads(capsys.readouterr().out)
     assert sorted(report["intrinsics"]) == ["cam01", "cam02", "cam03", "cam04"]
@@ -25,11 +42,27 @@ def test_calibrate_intrinsics_of_demo(pose2sim_demo: Path, tmp_path: Path, capsy
     assert calib.names == ["cam01", "cam02", "cam03", "cam04"]
 
 
-def test_no_board_found_says_what_to_do(pose2sim_demo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_no_board_found_says_what_to_do(
+    pose2sim_demo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     src = pose2sim_demo / "Demo_SinglePerson" / "calibration" / "intrinsics" / "int_cam01_img"
     shutil.copytree(src, tmp_path / "imgs" / "int_cam01_img")
-    code = main(["calibrate", "cameras", "--cols", "6", "--rows", "9", "--square-mm", "60", "--intrinsics",
-                 str(tmp_path / "imgs"), "--output", str(tmp_path / "c.toml")])
+    code = main(
+        [
+            "calibrate",
+            "cameras",
+            "--cols",
+            "6",
+            "--rows",
+            "9",
+            "--square-mm",
+            "60",
+            "--intrinsics",
+            str(tmp_path / "imgs"),
+            "--output",
+            str(tmp_path / "c.toml"),
+        ]
+    )
     assert code == 1
     err = capsys.readouterr().err
     assert "cam01" in err and "found in none" in err and "--cols/--rows" in err

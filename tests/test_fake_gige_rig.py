@@ -29,8 +29,19 @@ def test_four_fake_cameras_deliver_bit_identical_frames(pose2sim_demo: Path) -> 
     # streams within what a loaded 2-core machine moves without loss; full-resolution frames are checked by the
     # single-camera tests below and measured by tools/bench_capture.py.
     result = _run(
-        ["tools.fake_rig", "--videos", *videos, "--max-frames", "8", "--duration", "3", "--fps", "10",
-         "--size", "544x960"]
+        [
+            "tools.fake_rig",
+            "--videos",
+            *videos,
+            "--max-frames",
+            "8",
+            "--duration",
+            "3",
+            "--fps",
+            "10",
+            "--size",
+            "544x960",
+        ]
     )
     assert len(result["cameras"]) == 4
     assert result["size"] == [544, 960]
@@ -41,7 +52,12 @@ def test_four_fake_cameras_deliver_bit_identical_frames(pose2sim_demo: Path) -> 
         assert cam["in_order"] == cam["frames"], f"{name}: frames out of order"
         assert cam["host_ts_increasing"] and cam["device_ts_increasing"], name
         assert cam["frame_ids_consecutive"], name
-        assert (cam["missing_frames"], cam["resent_packets"], cam["bad_buffers"], cam["failures"]) == (0, 0, 0, 0)
+        assert (cam["missing_frames"], cam["resent_packets"], cam["bad_buffers"], cam["failures"]) == (
+            0,
+            0,
+            0,
+            0,
+        )
 
 
 def test_bayer_capture_is_demosaiced_in_rgb_order(pose2sim_demo: Path) -> None:

@@ -15,7 +15,13 @@ def test_publish_and_read_back() -> None:
     for i in range(5):
         ring.next_slot()[:] = i
         ref = ring.publish(100 + i, 1000 + i, 7 + i)
-        assert (ref.seq, ref.host_ns, ref.device_ns, ref.frame_id, ref.source) == (i, 100 + i, 1000 + i, 7 + i, "cam")
+        assert (ref.seq, ref.host_ns, ref.device_ns, ref.frame_id, ref.source) == (
+            i,
+            100 + i,
+            1000 + i,
+            7 + i,
+            "cam",
+        )
     assert ring.count == 5
     latest = ring.latest()
     assert latest is not None and latest.seq == 4 and latest.frame_id == 11

@@ -35,8 +35,11 @@ def _observe(truth: CalibrationSet, seed: int, n_frames: int = 15) -> list[Obser
             if (px < 0).any() or (px[:, 0] >= cam.size[0]).any() or (px[:, 1] >= cam.size[1]).any():
                 continue
             noisy = px + rng.normal(0, 0.3, px.shape)
-            obs.append(Observation(cam.name, frame, Detection(f"{cam.name}/{frame}", np.arange(len(obj)), noisy,
-                                                              cam.size)))
+            obs.append(
+                Observation(
+                    cam.name, frame, Detection(f"{cam.name}/{frame}", np.arange(len(obj)), noisy, cam.size)
+                )
+            )
     return obs
 
 
@@ -70,7 +73,9 @@ def test_unlinked_camera_and_bad_input(truth: CalibrationSet) -> None:
     # cam03 only sees frames nobody else sees: it cannot be placed.
     shared = {o.frame for o in obs if o.camera != "cam03"}
     lonely = [o for o in obs if o.camera != "cam03" or o.frame not in shared]
-    lonely = [o if o.camera != "cam03" else Observation("cam03", "alone-" + o.frame, o.detection) for o in lonely]
+    lonely = [
+        o if o.camera != "cam03" else Observation("cam03", "alone-" + o.frame, o.detection) for o in lonely
+    ]
     with pytest.raises(CalibrationError, match=r"\['cam03'\] never see the board"):
         calibrate_rig(intr, lonely, BOARD, origin_frame="f00")
     with pytest.raises(CalibrationError, match="no board observation"):

@@ -26,7 +26,9 @@ def _decode(path: Path, n: int) -> list[np.ndarray]:  # type: ignore[type-arg]
     return frames
 
 
-async def _collect(source: VideoFileSource | ImageFolderSource, limit: int) -> list[tuple[FrameRef, np.ndarray]]:  # type: ignore[type-arg]
+async def _collect(
+    source: VideoFileSource | ImageFolderSource, limit: int
+) -> list[tuple[FrameRef, np.ndarray]]:  # type: ignore[type-arg]
     got: list[tuple[FrameRef, np.ndarray]] = []  # type: ignore[type-arg]
     done = asyncio.Event()
 

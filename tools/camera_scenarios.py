@@ -34,8 +34,19 @@ from tools.fake_gige import add_loopback_aliases, load_video_rgb
 
 
 def start_server(video: Path, address: str, max_frames: int, prepare: str) -> subprocess.Popen[str]:
-    cmd = [sys.executable, "-m", "tools.fake_gige", "--video", str(video), "--address", address,
-           "--max-frames", str(max_frames), "--prepare", prepare]
+    cmd = [
+        sys.executable,
+        "-m",
+        "tools.fake_gige",
+        "--video",
+        str(video),
+        "--address",
+        address,
+        "--max-frames",
+        str(max_frames),
+        "--prepare",
+        prepare,
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
     assert proc.stdout is not None
     json.loads(proc.stdout.readline())
@@ -57,8 +68,15 @@ async def reconnect(video: Path) -> dict[str, Any]:
     servers = [start_server(video, a, 4, "RGB8") for a in ("127.0.0.1", "127.0.0.2")]
     sources = [
         AravisSource(
-            AravisCameraConfig(f"cam{i + 1}", address=a, pixel_format="RGB8", region=(0, 0, w, h), frame_rate=10,
-                               packet_size=8192, lost_after_s=1.0),
+            AravisCameraConfig(
+                f"cam{i + 1}",
+                address=a,
+                pixel_format="RGB8",
+                region=(0, 0, w, h),
+                frame_rate=10,
+                packet_size=8192,
+                lost_after_s=1.0,
+            ),
             backoff_s=(0.2, 1.0),
         )
         for i, a in enumerate(("127.0.0.1", "127.0.0.2"))
@@ -86,9 +104,13 @@ async def reconnect(video: Path) -> dict[str, Any]:
         mid = list(counts)
         result["recovered"] = await wait_for(lambda: counts[0] >= mid[0] + 5, 20)
         result.update(
-            frames_before=before, frames_during_outage=during, frames_after=[counts[0] - mid[0], counts[1] - mid[1]],
-            failures=sources[0].counters.failures, reopens=sources[0].counters.reopens,
-            last_error=sources[0].counters.last_error, other_failures=sources[1].counters.failures,
+            frames_before=before,
+            frames_during_outage=during,
+            frames_after=[counts[0] - mid[0], counts[1] - mid[1]],
+            failures=sources[0].counters.failures,
+            reopens=sources[0].counters.reopens,
+            last_error=sources[0].counters.last_error,
+            other_failures=sources[1].counters.failures,
         )
     finally:
         for t in tasks:
@@ -110,8 +132,16 @@ async def one_format(video: Path, fmt_name: str) -> dict[str, Any]:
         out = np.empty((h, w, fmt.channels), np.uint8)
         convert_into(fmt, from_rgb(rgb, fmt), h, w, out)
         expected.append(out)
-    source = AravisSource(AravisCameraConfig("cam", address="127.0.0.1", pixel_format=fmt_name,
-                                             region=(0, 0, w, h), frame_rate=10, packet_size=8192))
+    source = AravisSource(
+        AravisCameraConfig(
+            "cam",
+            address="127.0.0.1",
+            pixel_format=fmt_name,
+            region=(0, 0, w, h),
+            frame_rate=10,
+            packet_size=8192,
+        )
+    )
     got: list[np.ndarray[Any, Any]] = []
 
     def on_frame(ref: FrameRef) -> None:
@@ -128,13 +158,18 @@ async def one_format(video: Path, fmt_name: str) -> dict[str, Any]:
         server.terminate()
         server.wait()
     matches = [any(np.array_equal(g, e) for e in expected) for g in got]
-    result: dict[str, Any] = {"frames": len(got), "identical_to_expected": sum(matches),
-                              "shape": list(got[0].shape) if got else None,
-                              "missing_frames": source.counters.missing_frames}
+    result: dict[str, Any] = {
+        "frames": len(got),
+        "identical_to_expected": sum(matches),
+        "shape": list(got[0].shape) if got else None,
+        "missing_frames": source.counters.missing_frames,
+    }
     if fmt.channels == 3 and got:
         # Closest source frame, compared as RGB and with R/B swapped: demosaicing must keep the channel order.
         errors = [min(float(np.abs(g.astype(int) - f.astype(int)).mean()) for f in frames) for g in got]
-        swapped = [min(float(np.abs(g[..., ::-1].astype(int) - f.astype(int)).mean()) for f in frames) for g in got]
+        swapped = [
+            min(float(np.abs(g[..., ::-1].astype(int) - f.astype(int)).mean()) for f in frames) for g in got
+        ]
         result.update(mean_abs_error_rgb=max(errors), mean_abs_error_swapped=min(swapped))
     if fmt.channels == 1 and got:
         gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY)[:, :, None] for f in frames]
@@ -150,7 +185,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--in-netns", action="store_true", help="already inside a private network namespace")
     args = parser.parse_args(argv)
     if not args.in_netns:
-        cmd = ["unshare", "-rn", sys.executable, "-m", "tools.camera_scenarios", *(argv or sys.argv[1:]), "--in-netns"]
+        cmd = [
+            "unshare",
+            "-rn",
+            sys.executable,
+            "-m",
+            "tools.camera_scenarios",
+            *(argv or sys.argv[1:]),
+            "--in-netns",
+        ]
         return subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], check=False).returncode
     add_loopback_aliases(2)
     if args.scenario == "reconnect":

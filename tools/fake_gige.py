@@ -55,10 +55,14 @@ _PFNC = {
     0x0108000A: "BayerGB8",
 }
 
-_FILL = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32)
+_FILL = ctypes.CFUNCTYPE(
+    None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32
+)
 
 
-def load_video_rgb(path: Path, max_frames: int | None = None, size: tuple[int, int] | None = None) -> list[Any]:
+def load_video_rgb(
+    path: Path, max_frames: int | None = None, size: tuple[int, int] | None = None
+) -> list[Any]:
     """Decode a video into RGB frames, each shape (h, w, 3) uint8.
 
     Parameters
@@ -206,8 +210,14 @@ def main(argv: list[str] | None = None) -> int:
     h, w, _ = frames[0].shape
     print(
         json.dumps(
-            {"ready": True, "address": args.address, "serial": args.serial, "n_frames": len(frames),
-             "width": w, "height": h}
+            {
+                "ready": True,
+                "address": args.address,
+                "serial": args.serial,
+                "n_frames": len(frames),
+                "width": w,
+                "height": h,
+            }
         ),
         flush=True,
     )

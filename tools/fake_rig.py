@@ -141,9 +141,21 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     servers = []
     for i, (video, address) in enumerate(zip(args.videos, addresses, strict=True)):
-        cmd = [sys.executable, "-m", "tools.fake_gige", "--video", str(video), "--address", address,
-               "--serial", f"FAKE{i + 1:02d}", "--max-frames", str(args.max_frames),
-               "--prepare", args.format]
+        cmd = [
+            sys.executable,
+            "-m",
+            "tools.fake_gige",
+            "--video",
+            str(video),
+            "--address",
+            address,
+            "--serial",
+            f"FAKE{i + 1:02d}",
+            "--max-frames",
+            str(args.max_frames),
+            "--prepare",
+            args.format,
+        ]
         if args.size:
             cmd += ["--size", args.size]
         servers.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True))
@@ -154,12 +166,19 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
         for i, (video, info) in enumerate(zip(args.videos, infos, strict=True)):
             w, h = info["width"], info["height"]
             config = AravisCameraConfig(
-                f"cam{i + 1:02d}", address=info["address"], pixel_format=fmt.name, region=(0, 0, w, h),
-                frame_rate=args.fps, packet_size=args.packet_size, ring_slots=8,
+                f"cam{i + 1:02d}",
+                address=info["address"],
+                pixel_format=fmt.name,
+                region=(0, 0, w, h),
+                frame_rate=args.fps,
+                packet_size=args.packet_size,
+                ring_slots=8,
             )
             sources.append(AravisSource(config))
             frames = load_video_rgb(Path(video), args.max_frames, size) if args.verify else []  # type: ignore[arg-type]
-            checks.append(CameraCheck(expected_hashes(frames, fmt.name) if args.verify else [], debug_frames=frames))
+            checks.append(
+                CameraCheck(expected_hashes(frames, fmt.name) if args.verify else [], debug_frames=frames)
+            )
         server_cpu0 = [cpu_seconds(s.pid) for s in servers]
         wall0, cpu0 = time.monotonic(), time.process_time()
         thread_cpu: dict[str, float] = {}
@@ -187,21 +206,38 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
     cameras = []
     for s, c in zip(sources, checks, strict=True):
         lat, conv = s.latency.recent(), s.convert.recent()
-        cameras.append({
-            "name": s.name, "frames": c.frames, "expected_frames_approx": round(args.fps * args.duration),
-            "missing_frames": s.counters.missing_frames, "resent_packets": s.counters.resent_packets,
-            "bad_buffers": s.counters.bad_buffers, "failures": s.counters.failures,
-            "last_error": s.counters.last_error, "timeouts": s.counters.timeouts,
-            "verified": c.identical if args.verify else None, "in_order": c.in_order if args.verify else None,
-            "mismatched": len(c.mismatched), "out_of_order": c.out_of_order[:10], "debug": c.debug, "host_ts_increasing": c.host_increasing,
-            "device_ts_increasing": c.device_increasing, "frame_ids_consecutive": c.ids_increasing,
-            "latency_ms_median": percentile_ms(lat, 50), "latency_ms_p95": percentile_ms(lat, 95),
-            "convert_ms_median": percentile_ms(conv, 50), "convert_ms_p95": percentile_ms(conv, 95),
-            "capture_thread_cpu_pct": round(100 * thread_cpu.get(s.name, float("nan")), 2),
-        })
+        cameras.append(
+            {
+                "name": s.name,
+                "frames": c.frames,
+                "expected_frames_approx": round(args.fps * args.duration),
+                "missing_frames": s.counters.missing_frames,
+                "resent_packets": s.counters.resent_packets,
+                "bad_buffers": s.counters.bad_buffers,
+                "failures": s.counters.failures,
+                "last_error": s.counters.last_error,
+                "timeouts": s.counters.timeouts,
+                "verified": c.identical if args.verify else None,
+                "in_order": c.in_order if args.verify else None,
+                "mismatched": len(c.mismatched),
+                "out_of_order": c.out_of_order[:10],
+                "debug": c.debug,
+                "host_ts_increasing": c.host_increasing,
+                "device_ts_increasing": c.device_increasing,
+                "frame_ids_consecutive": c.ids_increasing,
+                "latency_ms_median": percentile_ms(lat, 50),
+                "latency_ms_p95": percentile_ms(lat, 95),
+                "convert_ms_median": percentile_ms(conv, 50),
+                "convert_ms_p95": percentile_ms(conv, 95),
+                "capture_thread_cpu_pct": round(100 * thread_cpu.get(s.name, float("nan")), 2),
+            }
+        )
     return {
-        "format": args.format, "fps": args.fps, "duration_s": args.duration,
-        "size": [infos[0]["width"], infos[0]["height"]], "cameras": cameras,
+        "format": args.format,
+        "fps": args.fps,
+        "duration_s": args.duration,
+        "size": [infos[0]["width"], infos[0]["height"]],
+        "cameras": cameras,
         "capture_process_cpu_pct": round(100 * process_cpu / wall, 1),
         "fake_server_cpu_pct": [round(100 * c, 1) for c in server_cpu],
     }
@@ -216,7 +252,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--fps", type=float, default=30.0, help="acquisition frame rate, Hz")
     parser.add_argument("--duration", type=float, default=3.0, help="capture time, s")
     parser.add_argument("--packet-size", type=int, default=8192, help="GigE stream packet size, bytes")
-    parser.add_argument("--no-verify", dest="verify", action="store_false", help="skip the bit-identity check")
+    parser.add_argument(
+        "--no-verify", dest="verify", action="store_false", help="skip the bit-identity check"
+    )
     parser.add_argument("--in-netns", action="store_true", help="already inside a private network namespace")
     parser.add_argument("--json", type=Path, default=None, help="also write the result here")
     return parser.parse_args(argv)
@@ -226,7 +264,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if not args.in_netns:
         # Aravis must never talk to a real network: re-run inside a private network namespace.
-        cmd = ["unshare", "-rn", sys.executable, "-m", "tools.fake_rig", *(argv or sys.argv[1:]), "--in-netns"]
+        cmd = [
+            "unshare",
+            "-rn",
+            sys.executable,
+            "-m",
+            "tools.fake_rig",
+            *(argv or sys.argv[1:]),
+            "--in-netns",
+        ]
         return subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], check=False).returncode
     result = run_rig(args)
     text = json.dumps(result, indent=1)

@@ -68,7 +68,15 @@ def _warm_up_introspection() -> None:
     aravis = load_aravis()
     from gi.repository import Gio
 
-    for name in ("Camera", "GvDevice", "Buffer", "BufferStatus", "GvStreamSocketBuffer", "Stream", "GvStream"):
+    for name in (
+        "Camera",
+        "GvDevice",
+        "Buffer",
+        "BufferStatus",
+        "GvStreamSocketBuffer",
+        "Stream",
+        "GvStream",
+    ):
         getattr(aravis, name)
     Gio.InetAddress.new_from_string("127.0.0.1")
 
@@ -239,7 +247,9 @@ def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]
     """
     from gi.repository import GLib
 
-    steps: list[tuple[str, Any]] = [("pixel format", lambda: camera.set_pixel_format_from_string(config.pixel_format))]
+    steps: list[tuple[str, Any]] = [
+        ("pixel format", lambda: camera.set_pixel_format_from_string(config.pixel_format))
+    ]
     if config.binning is not None:
         steps.append(("binning", lambda: camera.set_binning(*config.binning)))
     if config.region is not None:

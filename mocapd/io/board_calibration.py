@@ -159,7 +159,11 @@ class IntrinsicsResult:
 
 
 def _view_errors(
-    dets: list[Detection], obj: list[FloatArray], K: FloatArray, dist: FloatArray, rvecs: tuple[FloatArray, ...],
+    dets: list[Detection],
+    obj: list[FloatArray],
+    K: FloatArray,
+    dist: FloatArray,
+    rvecs: tuple[FloatArray, ...],
     tvecs: tuple[FloatArray, ...],
 ) -> list[float]:
     errors = []
@@ -213,7 +217,9 @@ def calibrate_intrinsics(
         )
     sizes = {d.size for d in detections}
     if len(sizes) != 1:
-        raise CalibrationError(f"views have different image sizes {sorted(sizes)}: calibrate each camera mode apart")
+        raise CalibrationError(
+            f"views have different image sizes {sorted(sizes)}: calibrate each camera mode apart"
+        )
     size = sizes.pop()
     all_obj = board.object_points()
     dets = list(detections)

@@ -104,7 +104,9 @@ class CameraCalibration:
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             raise CalibrationError(f"camera {self.name!r}: non-finite calibration values")
         if abs(np.linalg.det(R) - 1.0) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
-            raise CalibrationError(f"camera {self.name!r}: R is not a rotation matrix (det={np.linalg.det(R):.4f})")
+            raise CalibrationError(
+                f"camera {self.name!r}: R is not a rotation matrix (det={np.linalg.det(R):.4f})"
+            )
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "R", R)
@@ -119,7 +121,9 @@ class CameraCalibration:
     def project(self, points: FloatArray) -> FloatArray:
         """Project world points, shape (n, 3), to pixels, shape (n, 2), with distortion."""
         rvec, _ = cv2.Rodrigues(self.R)
-        pixels, _ = cv2.projectPoints(np.asarray(points, np.float64).reshape(-1, 1, 3), rvec, self.t, self.K, self.dist)
+        pixels, _ = cv2.projectPoints(
+            np.asarray(points, np.float64).reshape(-1, 1, 3), rvec, self.t, self.K, self.dist
+        )
         return np.asarray(pixels, np.float64).reshape(-1, 2)
 
 
@@ -221,8 +225,13 @@ def read_mocapd_toml(path: Path) -> CalibrationSet:
         try:
             cams.append(
                 CameraCalibration(
-                    c["name"], tuple(c["size"]), np.array(c["K"]), np.array(c["dist"]), np.array(c["R"]),
-                    np.array(c["t"]), c.get("reprojection_error_px"),
+                    c["name"],
+                    tuple(c["size"]),
+                    np.array(c["K"]),
+                    np.array(c["dist"]),
+                    np.array(c["R"]),
+                    np.array(c["t"]),
+                    c.get("reprojection_error_px"),
                 )
             )
         except KeyError as exc:
@@ -248,8 +257,12 @@ def read_pose2sim_toml(path: Path, world_up: WorldUp = "z") -> CalibrationSet:
             R, _ = cv2.Rodrigues(np.array(c["rotation"], np.float64))
             cams.append(
                 CameraCalibration(
-                    str(c.get("name", key)), (round(c["size"][0]), round(c["size"][1])), np.array(c["matrix"]),
-                    np.array(c["distortions"]), R, np.array(c["translation"]),
+                    str(c.get("name", key)),
+                    (round(c["size"][0]), round(c["size"][1])),
+                    np.array(c["matrix"]),
+                    np.array(c["distortions"]),
+                    R,
+                    np.array(c["translation"]),
                 )
             )
         except KeyError as exc:
@@ -328,8 +341,13 @@ def read_qca(
                 ]
             )
             dist = np.array(
-                [g["radialDistortion1"], g["radialDistortion2"], g["tangentalDistortion1"],
-                 g["tangentalDistortion2"], 0.0]
+                [
+                    g["radialDistortion1"],
+                    g["radialDistortion2"],
+                    g["tangentalDistortion1"],
+                    g["tangentalDistortion2"],
+                    0.0,
+                ]
             ) / (64 * b if pose2sim_distortion else 1.0)
             # r11..r33 read row by row: the camera's axes in world coordinates are the rows; position in mm.
             R_file = np.array([[g[f"r{i}{j}"] for j in (1, 2, 3)] for i in (1, 2, 3)])

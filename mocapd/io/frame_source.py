@@ -112,7 +112,7 @@ class ThreadedSource:
         """Open and start the device (blocking). Raise DeviceError on failure."""
         raise NotImplementedError
 
-    def _grab(self) -> FrameRef | None | bool:
+    def _grab(self) -> FrameRef | bool | None:
         """Wait for one frame and publish it into the ring.
 
         Returns the frame's reference, None when no frame came (time-out; the caller loops) or False when the
@@ -187,7 +187,11 @@ class ThreadedSource:
             log.warning("camera %s failed (%s); reopening in %.1f s", self.name, error, delay)
             await asyncio.sleep(delay)
             # A source that streamed before failing starts the back-off again from the initial delay.
-            delay = self.backoff_s[0] if self.counters.frames > frames_before else min(delay * 2, self.backoff_s[1])
+            delay = (
+                self.backoff_s[0]
+                if self.counters.frames > frames_before
+                else min(delay * 2, self.backoff_s[1])
+            )
 
 
 def _resolve(done: asyncio.Future[DeviceError | None], result: DeviceError | None) -> None:

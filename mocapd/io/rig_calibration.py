@@ -89,7 +89,10 @@ def _pnp(intr: Intrinsics, det: Detection, board: Board) -> tuple[FloatArray, Fl
 
 
 def _chain(
-    cams: list[str], frames: list[str], pnp: dict[tuple[str, str], tuple[FloatArray, FloatArray]], origin: str,
+    cams: list[str],
+    frames: list[str],
+    pnp: dict[tuple[str, str], tuple[FloatArray, FloatArray]],
+    origin: str,
     floor: FloatArray,
 ) -> tuple[dict[str, tuple[FloatArray, FloatArray]], dict[str, tuple[FloatArray, FloatArray]]]:
     """Initial world→camera and board→world poses by breadth-first chaining from the origin frame."""
@@ -199,7 +202,10 @@ def calibrate_rig(
     data = _stack(used, cams, [origin_frame, *free_frames], intrinsics, board)
     x0 = np.concatenate(
         [np.concatenate([rotvec_from_matrix(world_to_cam[c][0]), world_to_cam[c][1]]) for c in cams]
-        + [np.concatenate([rotvec_from_matrix(board_to_world[f][0]), board_to_world[f][1]]) for f in free_frames]
+        + [
+            np.concatenate([rotvec_from_matrix(board_to_world[f][0]), board_to_world[f][1]])
+            for f in free_frames
+        ]
     )
     fixed = board_to_world[origin_frame]
     r0 = _project(x0, len(cams), fixed, data)
@@ -207,8 +213,15 @@ def calibrate_rig(
     x = x0
     if refine:
         sol = least_squares(
-            _project, x0, jac_sparsity=_sparsity(data, len(cams), len(free_frames)), method="trf", x_scale="jac",
-            loss="soft_l1", f_scale=1.0, args=(len(cams), fixed, data), max_nfev=200,
+            _project,
+            x0,
+            jac_sparsity=_sparsity(data, len(cams), len(free_frames)),
+            method="trf",
+            x_scale="jac",
+            loss="soft_l1",
+            f_scale=1.0,
+            args=(len(cams), fixed, data),
+            max_nfev=200,
         )
         x = sol.x
     after = _rms_per_camera(_project(x, len(cams), fixed, data), data["cam"], cams)
@@ -216,8 +229,13 @@ def calibrate_rig(
     calib = CalibrationSet(
         tuple(
             CameraCalibration(
-                c, intrinsics[c].size, intrinsics[c].K, intrinsics[c].dist, matrix_from_rotvec(cam_p[i, :3]),
-                cam_p[i, 3:], after[c],
+                c,
+                intrinsics[c].size,
+                intrinsics[c].K,
+                intrinsics[c].dist,
+                matrix_from_rotvec(cam_p[i, :3]),
+                cam_p[i, 3:],
+                after[c],
             )
             for i, c in enumerate(cams)
         ),
@@ -259,9 +277,15 @@ def _stack(
         dist.append(np.repeat(intr[o.camera].dist[None], n, axis=0))
     Ks = np.concatenate(K)
     return {
-        "cam": np.concatenate(cam_idx), "frame": np.concatenate(frame_idx), "obj": np.concatenate(obj),
-        "px": np.concatenate(px), "dist": np.concatenate(dist), "fx": Ks[:, 0, 0], "fy": Ks[:, 1, 1],
-        "cx": Ks[:, 0, 2], "cy": Ks[:, 1, 2],
+        "cam": np.concatenate(cam_idx),
+        "frame": np.concatenate(frame_idx),
+        "obj": np.concatenate(obj),
+        "px": np.concatenate(px),
+        "dist": np.concatenate(dist),
+        "fx": Ks[:, 0, 0],
+        "fy": Ks[:, 1, 1],
+        "cx": Ks[:, 0, 2],
+        "cy": Ks[:, 1, 2],
     }
 
 

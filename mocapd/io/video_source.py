@@ -32,8 +32,18 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 class _ReplaySource(ThreadedSource):
     """Pacing and publishing shared by the file and folder sources."""
 
-    def __init__(self, name: str, height: int, width: int, *, gray: bool, realtime: bool, loop: bool,
-                 ring_slots: int, **kw: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        height: int,
+        width: int,
+        *,
+        gray: bool,
+        realtime: bool,
+        loop: bool,
+        ring_slots: int,
+        **kw: Any,
+    ) -> None:
         super().__init__(name, FrameRing(name, ring_slots, height, width, 1 if gray else 3), **kw)
         self.gray = gray
         self.realtime = realtime
@@ -43,7 +53,9 @@ class _ReplaySource(ThreadedSource):
 
     def _publish(self, bgr: NDArray[np.uint8], index: int, pts_ns: int) -> FrameRef:
         if bgr.shape[:2] != self.ring.shape[:2]:
-            raise DeviceError(f"{self.name}: frame {index} is {bgr.shape[1]}x{bgr.shape[0]}, not like the first")
+            raise DeviceError(
+                f"{self.name}: frame {index} is {bgr.shape[1]}x{bgr.shape[0]}, not like the first"
+            )
         pts_ns += self._offset_ns
         if self._start_ns == 0:  # the clock starts with the first frame, once it is decoded
             self._start_ns = time.monotonic_ns() - pts_ns
@@ -80,8 +92,17 @@ class VideoFileSource(_ReplaySource):
     ring_slots : int
     """
 
-    def __init__(self, name: str, path: Path, *, realtime: bool = True, loop: bool = False, gray: bool = False,
-                 ring_slots: int = 16, **kw: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        path: Path,
+        *,
+        realtime: bool = True,
+        loop: bool = False,
+        gray: bool = False,
+        ring_slots: int = 16,
+        **kw: Any,
+    ) -> None:
         self.path = Path(path)
         cap = cv2.VideoCapture(str(self.path))
         ok, first = cap.read() if cap.isOpened() else (False, None)
@@ -89,8 +110,16 @@ class VideoFileSource(_ReplaySource):
         cap.release()
         if not ok or first is None:
             raise InputError(f"cannot decode a frame of video {self.path}")
-        super().__init__(name, first.shape[0], first.shape[1], gray=gray, realtime=realtime, loop=loop,
-                         ring_slots=ring_slots, **kw)
+        super().__init__(
+            name,
+            first.shape[0],
+            first.shape[1],
+            gray=gray,
+            realtime=realtime,
+            loop=loop,
+            ring_slots=ring_slots,
+            **kw,
+        )
         self._cap: Any = None
         self._index = 0
 
@@ -101,7 +130,7 @@ class VideoFileSource(_ReplaySource):
         self._index = 0
         self._start_ns = 0
 
-    def _grab(self) -> FrameRef | None | bool:
+    def _grab(self) -> FrameRef | bool | None:
         ok, bgr = self._cap.read()
         if not ok:
             if not self.loop or self._index == 0:
@@ -134,8 +163,18 @@ class ImageFolderSource(_ReplaySource):
         As for :class:`VideoFileSource`.
     """
 
-    def __init__(self, name: str, folder: Path, *, fps: float = 30.0, realtime: bool = True, loop: bool = False,
-                 gray: bool = False, ring_slots: int = 16, **kw: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        folder: Path,
+        *,
+        fps: float = 30.0,
+        realtime: bool = True,
+        loop: bool = False,
+        gray: bool = False,
+        ring_slots: int = 16,
+        **kw: Any,
+    ) -> None:
         self.files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not self.files:
             raise InputError(f"{folder} holds no image ({', '.join(IMAGE_SUFFIXES)})")
@@ -144,8 +183,16 @@ class ImageFolderSource(_ReplaySource):
             raise InputError(f"cannot read image {self.files[0]}")
         if fps <= 0:
             raise InputError(f"fps must be positive, got {fps}")
-        super().__init__(name, first.shape[0], first.shape[1], gray=gray, realtime=realtime, loop=loop,
-                         ring_slots=ring_slots, **kw)
+        super().__init__(
+            name,
+            first.shape[0],
+            first.shape[1],
+            gray=gray,
+            realtime=realtime,
+            loop=loop,
+            ring_slots=ring_slots,
+            **kw,
+        )
         self.fps = fps
         self._index = 0
 
@@ -153,7 +200,7 @@ class ImageFolderSource(_ReplaySource):
         self._index = 0
         self._start_ns = 0
 
-    def _grab(self) -> FrameRef | None | bool:
+    def _grab(self) -> FrameRef | bool | None:
         if self._index == len(self.files):
             if not self.loop:
                 return False
