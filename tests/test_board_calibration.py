@@ -13,6 +13,7 @@ from mocapd.core.rotations import matrix_from_rotvec
 from mocapd.errors import CalibrationError
 from mocapd.io.board_calibration import Board, Detection, calibrate_intrinsics, detect_board, detect_in_files
 from mocapd.io.calibration_files import read_qca
+from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
 
 DEMO_BOARD = Board("checkerboard", 4, 7, 0.060)  # Pose2Sim demo Config.toml: corners_nb [4, 7], 60 mm
 

@@ -9,6 +9,7 @@ import pytest
 
 from mocapd.errors import CalibrationError
 from mocapd.io.calibration_files import (
+from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
     CalibrationSet,
     CameraCalibration,
     read_any,

@@ -10,6 +10,7 @@ import pytest
 
 from mocapd.io.calibration_files import read_mocapd_toml, read_pose2sim_toml
 from mocapd.service.cli import main
+from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
 
 
 def test_calibrate_intrinsics_of_demo(

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
 
 ROOT = Path(__file__).resolve().parents[1]
 

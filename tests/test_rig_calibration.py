@@ -13,6 +13,7 @@ from mocapd.errors import CalibrationError
 from mocapd.io.board_calibration import Board, Detection
 from mocapd.io.calibration_files import CalibrationSet, read_qca
 from mocapd.io.rig_calibration import Intrinsics, Observation, calibrate_rig
+from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
 
 BOARD = Board("checkerboard", 5, 8, 0.1)
 FLOOR = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # board z points down into the floor

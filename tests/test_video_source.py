@@ -12,6 +12,7 @@ import pytest
 from mocapd.errors import InputError
 from mocapd.io.video_source import ImageFolderSource, VideoFileSource
 from mocapd.pipeline.frame_ring import FrameRef
+from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
 
 
 def _decode(path: Path, n: int) -> list[np.ndarray]:  # type: ignore[type-arg]

@@ -1,4 +1,4 @@
-"""Shared fixtures: the Pose2Sim demo data fetched by setup/steps/21-pose2sim-demo.sh."""
+"""Fixture for the Pose2Sim demo data fetched by setup/steps/21-pose2sim-demo.sh (import it into a test module)."""
 
 from __future__ import annotations
 
