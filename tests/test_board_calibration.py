@@ -13,7 +13,13 @@ from mocapd.core.rotations import matrix_from_rotvec
 from mocapd.errors import CalibrationError
 from mocapd.io.board_calibration import Board, Detection, calibrate_intrinsics, detect_board, detect_in_files
 from mocapd.io.calibration_files import read_qca
-from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
+from tests.pose2sim_data import demo_root
+
+
+@pytest.fixture(scope="module")
+def pose2sim_demo() -> Path:
+    return demo_root()
+
 
 DEMO_BOARD = Board("checkerboard", 4, 7, 0.060)  # Pose2Sim demo Config.toml: corners_nb [4, 7], 60 mm
 
@@ -60,7 +66,7 @@ def test_too_few_views_and_no_board(pose2sim_demo: Path) -> None:
     assert dets == [] and len(missed) == 2
 
 
-def _render_charuco(board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:  # type: ignore[type-arg]
+def _render_charuco(board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     ppm = 2000  # board image pixels per metre
     w, h = round(board.cols * board.square_m * ppm), round(board.rows * board.square_m * ppm)
     flat = board.charuco().generateImage((w, h), marginSize=0)
@@ -79,9 +85,7 @@ def test_charuco_on_rendered_views() -> None:
     dets = []
     for i in range(8):
         rvec = rng.normal(0, 0.35, 3)
-        tvec = np.array(
-            [-0.14 + rng.normal(0, 0.03), -0.1 + rng.normal(0, 0.03), 0.55 + rng.uniform(0, 0.15)]
-        )
+        tvec = np.array([-0.14 + rng.normal(0, 0.03), -0.1 + rng.normal(0, 0.03), 0.55 + rng.uniform(0, 0.15)])
         det = detect_board(_render_charuco(board, K, rvec, tvec), board, f"v{i}")
         if det is not None:
             dets.append(det)

@@ -9,7 +9,6 @@ import pytest
 
 from mocapd.errors import CalibrationError
 from mocapd.io.calibration_files import (
-from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
     CalibrationSet,
     CameraCalibration,
     read_any,
@@ -21,6 +20,12 @@ from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
     write_opencv_yaml,
     write_pose2sim_toml,
 )
+from tests.pose2sim_data import demo_root
+
+
+@pytest.fixture(scope="module")
+def pose2sim_demo() -> Path:
+    return demo_root()
 
 
 @pytest.fixture()
@@ -36,9 +41,7 @@ def test_qca_values_and_units(demo_qca: CalibrationSet, pose2sim_demo: Path) -> 
     assert cam.K[1, 2] == pytest.approx(60680.792969 / 64)
     # Distortion is dimensionless: kept as in the file (Pose2Sim's /64 only on request).
     assert cam.dist[:2] == pytest.approx([-0.046183, 0.139983])
-    p2s = read_qca(
-        pose2sim_demo / "Demo_SinglePerson" / "calibration" / "Calib.qca.txt", pose2sim_distortion=True
-    )
+    p2s = read_qca(pose2sim_demo / "Demo_SinglePerson" / "calibration" / "Calib.qca.txt", pose2sim_distortion=True)
     assert p2s["cam01"].dist[0] == pytest.approx(-0.046183 / 64)
     # Position in mm -> metres, Z-up -> Y-up: file (1460.2, -1909.2, 1896.5) mm is (1.460, 1.897, 1.909) m.
     assert cam.center == pytest.approx([1.4602324, 1.8965059, 1.9091590], abs=1e-6)

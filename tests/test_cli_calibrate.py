@@ -10,12 +10,15 @@ import pytest
 
 from mocapd.io.calibration_files import read_mocapd_toml, read_pose2sim_toml
 from mocapd.service.cli import main
-from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
+from tests.pose2sim_data import demo_root
 
 
-def test_calibrate_intrinsics_of_demo(
-    pose2sim_demo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+@pytest.fixture(scope="module")
+def pose2sim_demo() -> Path:
+    return demo_root()
+
+
+def test_calibrate_intrinsics_of_demo(pose2sim_demo: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     intr = pose2sim_demo / "Demo_SinglePerson" / "calibration" / "intrinsics"
     out = tmp_path / "calib.toml"
     code = main(

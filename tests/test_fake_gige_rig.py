@@ -9,7 +9,16 @@ import subprocess
 import sys
 from pathlib import Path
 from typing import Any
-from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
+
+import pytest
+
+from tests.pose2sim_data import demo_root
+
+
+@pytest.fixture(scope="module")
+def pose2sim_demo() -> Path:
+    return demo_root()
+
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -13,7 +13,13 @@ from mocapd.errors import CalibrationError
 from mocapd.io.board_calibration import Board, Detection
 from mocapd.io.calibration_files import CalibrationSet, read_qca
 from mocapd.io.rig_calibration import Intrinsics, Observation, calibrate_rig
-from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
+from tests.pose2sim_data import demo_root
+
+
+@pytest.fixture(scope="module")
+def pose2sim_demo() -> Path:
+    return demo_root()
+
 
 BOARD = Board("checkerboard", 5, 8, 0.1)
 FLOOR = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # board z points down into the floor
@@ -37,9 +43,7 @@ def _observe(truth: CalibrationSet, seed: int, n_frames: int = 15) -> list[Obser
                 continue
             noisy = px + rng.normal(0, 0.3, px.shape)
             obs.append(
-                Observation(
-                    cam.name, frame, Detection(f"{cam.name}/{frame}", np.arange(len(obj)), noisy, cam.size)
-                )
+                Observation(cam.name, frame, Detection(f"{cam.name}/{frame}", np.arange(len(obj)), noisy, cam.size))
             )
     return obs
 
@@ -74,9 +78,7 @@ def test_unlinked_camera_and_bad_input(truth: CalibrationSet) -> None:
     # cam03 only sees frames nobody else sees: it cannot be placed.
     shared = {o.frame for o in obs if o.camera != "cam03"}
     lonely = [o for o in obs if o.camera != "cam03" or o.frame not in shared]
-    lonely = [
-        o if o.camera != "cam03" else Observation("cam03", "alone-" + o.frame, o.detection) for o in lonely
-    ]
+    lonely = [o if o.camera != "cam03" else Observation("cam03", "alone-" + o.frame, o.detection) for o in lonely]
     with pytest.raises(CalibrationError, match=r"\['cam03'\] never see the board"):
         calibrate_rig(intr, lonely, BOARD, origin_frame="f00")
     with pytest.raises(CalibrationError, match="no board observation"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 from pathlib import Path
 
 import cv2
@@ -12,12 +13,17 @@ import pytest
 from mocapd.errors import InputError
 from mocapd.io.video_source import ImageFolderSource, VideoFileSource
 from mocapd.pipeline.frame_ring import FrameRef
-from tests.pose2sim_data import pose2sim_demo  # noqa: F401 - pytest fixture
+from tests.pose2sim_data import demo_root
 
 
-def _decode(path: Path, n: int) -> list[np.ndarray]:  # type: ignore[type-arg]
+@pytest.fixture(scope="module")
+def pose2sim_demo() -> Path:
+    return demo_root()
+
+
+def _decode(path: Path, n: int) -> list[np.ndarray]:
     cap = cv2.VideoCapture(str(path))
-    frames = []
+    frames: list[np.ndarray] = []
     while len(frames) < n:
         ok, bgr = cap.read()
         if not ok:
@@ -27,10 +33,8 @@ def _decode(path: Path, n: int) -> list[np.ndarray]:  # type: ignore[type-arg]
     return frames
 
 
-async def _collect(
-    source: VideoFileSource | ImageFolderSource, limit: int
-) -> list[tuple[FrameRef, np.ndarray]]:  # type: ignore[type-arg]
-    got: list[tuple[FrameRef, np.ndarray]] = []  # type: ignore[type-arg]
+async def _collect(source: VideoFileSource | ImageFolderSource, limit: int) -> list[tuple[FrameRef, np.ndarray]]:
+    got: list[tuple[FrameRef, np.ndarray]] = []
     done = asyncio.Event()
 
     def on_frame(ref: FrameRef) -> None:
@@ -59,7 +63,7 @@ def test_video_file_as_fast_as_possible_matches_decoder(pose2sim_demo: Path) -> 
         assert ref.frame_id == i and ref.seq == i
         assert ref.device_ns == round(i * 1e9 / source.fps)
         assert np.array_equal(image, expected[i])
-    assert all(b[0].host_ns > a[0].host_ns for a, b in zip(got, got[1:], strict=False))
+    assert all(b[0].host_ns > a[0].host_ns for a, b in itertools.pairwise(got))
 
 
 def test_video_file_realtime_is_never_early(pose2sim_demo: Path) -> None:
@@ -78,11 +82,11 @@ def test_image_folder_source(pose2sim_demo: Path, tmp_path: Path) -> None:
     source = ImageFolderSource("imgs", folder, fps=50.0, realtime=False, loop=True)
     n = len(source.files)
     got = asyncio.run(_collect(source, n + 2))
-    first = cv2.cvtColor(cv2.imread(str(source.files[0])), cv2.COLOR_BGR2RGB)
+    first = cv2.cvtColor(np.asarray(cv2.imread(str(source.files[0])), np.uint8), cv2.COLOR_BGR2RGB)
     assert np.array_equal(got[0][1], first)
     assert [r.frame_id for r, _ in got] == [*range(n), 0, 1]
     # Looping keeps presentation times increasing.
-    assert all(b[0].device_ns > a[0].device_ns for a, b in zip(got, got[1:], strict=False))
+    assert all(b[0].device_ns > a[0].device_ns for a, b in itertools.pairwise(got))
     with pytest.raises(InputError, match="no image"):
         ImageFolderSource("empty", tmp_path)
 

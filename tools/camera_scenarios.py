@@ -167,9 +167,7 @@ async def one_format(video: Path, fmt_name: str) -> dict[str, Any]:
     if fmt.channels == 3 and got:
         # Closest source frame, compared as RGB and with R/B swapped: demosaicing must keep the channel order.
         errors = [min(float(np.abs(g.astype(int) - f.astype(int)).mean()) for f in frames) for g in got]
-        swapped = [
-            min(float(np.abs(g[..., ::-1].astype(int) - f.astype(int)).mean()) for f in frames) for g in got
-        ]
+        swapped = [min(float(np.abs(g[..., ::-1].astype(int) - f.astype(int)).mean()) for f in frames) for g in got]
         result.update(mean_abs_error_rgb=max(errors), mean_abs_error_swapped=min(swapped))
     if fmt.channels == 1 and got:
         gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY)[:, :, None] for f in frames]

@@ -55,14 +55,10 @@ _PFNC = {
     0x0108000A: "BayerGB8",
 }
 
-_FILL = ctypes.CFUNCTYPE(
-    None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32
-)
+_FILL = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32)
 
 
-def load_video_rgb(
-    path: Path, max_frames: int | None = None, size: tuple[int, int] | None = None
-) -> list[Any]:
+def load_video_rgb(path: Path, max_frames: int | None = None, size: tuple[int, int] | None = None) -> list[Any]:
     """Decode a video into RGB frames, each shape (h, w, 3) uint8.
 
     Parameters

@@ -115,9 +115,7 @@ def expected_hashes(frames: list[Any], fmt_name: str) -> list[str]:
     return out
 
 
-async def capture(
-    sources: list[AravisSource], checks: list[CameraCheck], duration_s: float, verify: bool
-) -> None:
+async def capture(sources: list[AravisSource], checks: list[CameraCheck], duration_s: float, verify: bool) -> None:
     def make_handler(source: AravisSource, check: CameraCheck) -> Any:
         def on_frame(ref: FrameRef) -> None:
             check.add(ref, source.ring.read(ref.seq) if verify else None, verify)
@@ -176,9 +174,7 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
             )
             sources.append(AravisSource(config))
             frames = load_video_rgb(Path(video), args.max_frames, size) if args.verify else []  # type: ignore[arg-type]
-            checks.append(
-                CameraCheck(expected_hashes(frames, fmt.name) if args.verify else [], debug_frames=frames)
-            )
+            checks.append(CameraCheck(expected_hashes(frames, fmt.name) if args.verify else [], debug_frames=frames))
         server_cpu0 = [cpu_seconds(s.pid) for s in servers]
         wall0, cpu0 = time.monotonic(), time.process_time()
         thread_cpu: dict[str, float] = {}
@@ -252,9 +248,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--fps", type=float, default=30.0, help="acquisition frame rate, Hz")
     parser.add_argument("--duration", type=float, default=3.0, help="capture time, s")
     parser.add_argument("--packet-size", type=int, default=8192, help="GigE stream packet size, bytes")
-    parser.add_argument(
-        "--no-verify", dest="verify", action="store_false", help="skip the bit-identity check"
-    )
+    parser.add_argument("--no-verify", dest="verify", action="store_false", help="skip the bit-identity check")
     parser.add_argument("--in-netns", action="store_true", help="already inside a private network namespace")
     parser.add_argument("--json", type=Path, default=None, help="also write the result here")
     return parser.parse_args(argv)

@@ -247,9 +247,7 @@ def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]
     """
     from gi.repository import GLib
 
-    steps: list[tuple[str, Any]] = [
-        ("pixel format", lambda: camera.set_pixel_format_from_string(config.pixel_format))
-    ]
+    steps: list[tuple[str, Any]] = [("pixel format", lambda: camera.set_pixel_format_from_string(config.pixel_format))]
     if config.binning is not None:
         steps.append(("binning", lambda: camera.set_binning(*config.binning)))
     if config.region is not None:
@@ -266,7 +264,7 @@ def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]
         steps.append(("gain", lambda: camera.set_gain(config.gain_db)))
     if config.packet_size is not None and camera.is_gv_device():
         if config.packet_size == 0:
-            steps.append(("packet size", lambda: camera.gv_auto_packet_size()))
+            steps.append(("packet size", camera.gv_auto_packet_size))
         else:
             steps.append(("packet size", lambda: camera.gv_set_packet_size(config.packet_size)))
     for what, step in steps:
@@ -323,9 +321,7 @@ class AravisSource(ThreadedSource):
         width, height = configure_camera(camera, self.config)
         h, w, c = self.ring.shape
         if (height, width, c) != (h, w, self.format.channels):
-            raise DeviceError(
-                f"camera {self.name!r} delivers {width}x{height} {self.format.name}, ring is {w}x{h}x{c}"
-            )
+            raise DeviceError(f"camera {self.name!r} delivers {width}x{height} {self.format.name}, ring is {w}x{h}x{c}")
         self._size = (width, height)
         try:
             camera.get_device().connect("control-lost", lambda *_: self._control_lost.set())

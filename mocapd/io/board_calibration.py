@@ -124,7 +124,7 @@ def detect_in_files(paths: Iterable[Path], board: Board) -> tuple[list[Detection
         image = cv2.imread(str(path))
         if image is None:
             raise CalibrationError(f"cannot read image {path}")
-        det = detect_board(image, board, Path(path).name)
+        det = detect_board(np.asarray(image, np.uint8), board, Path(path).name)
         if det is None:
             missed.append(Path(path).name)
         else:
@@ -217,9 +217,7 @@ def calibrate_intrinsics(
         )
     sizes = {d.size for d in detections}
     if len(sizes) != 1:
-        raise CalibrationError(
-            f"views have different image sizes {sorted(sizes)}: calibrate each camera mode apart"
-        )
+        raise CalibrationError(f"views have different image sizes {sorted(sizes)}: calibrate each camera mode apart")
     size = sizes.pop()
     all_obj = board.object_points()
     dets = list(detections)
@@ -228,7 +226,10 @@ def calibrate_intrinsics(
     while True:
         obj = [all_obj[d.ids].astype(np.float32) for d in dets]
         img = [d.pixels.astype(np.float32) for d in dets]
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
+        rms, K_cv, dist_cv, rvecs_cv, tvecs_cv = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
+        K, dist = np.asarray(K_cv, np.float64), np.asarray(dist_cv, np.float64)
+        rvecs = tuple(np.asarray(r, np.float64) for r in rvecs_cv)
+        tvecs = tuple(np.asarray(t, np.float64) for t in tvecs_cv)
         errors = _view_errors(dets, [o.astype(np.float64) for o in obj], K, dist, rvecs, tvecs)
         worst = int(np.argmax(errors))
         limit = max(max_view_error_px, 3.0 * float(np.median(errors)))

@@ -25,7 +25,8 @@ Foreign conventions handled on import/export:
   (Rodrigues vector, world→camera), ``translation`` (metres); its world is Z-up.
 * Qualisys ``.qca.txt`` (as shipped with Pose2Sim): focal lengths and principal points in 1/64 pixel, principal
   point relative to the sensor (minus the video field-of-view offset), camera position in mm and camera
-  orientation (rows: the camera's axes in the world) with the camera looking along -Z and +Y up in the image; world Z-up.
+  orientation (rows: the camera's axes in the world) with the camera looking along -Z and +Y up in the image;
+  world Z-up.
   Converted as Pose2Sim's ``calib_qca_fun`` does (world→camera, then rotate by π about the camera's x axis), except
   for the distortion coefficients: Pose2Sim divides them by 64 like the pixel values, but they are dimensionless.
   Calibrating the four demo cameras from their own checkerboard images gives k1 ≈ -0.03…-0.05, k2 ≈ 0.01…0.15,
@@ -104,9 +105,7 @@ class CameraCalibration:
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             raise CalibrationError(f"camera {self.name!r}: non-finite calibration values")
         if abs(np.linalg.det(R) - 1.0) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
-            raise CalibrationError(
-                f"camera {self.name!r}: R is not a rotation matrix (det={np.linalg.det(R):.4f})"
-            )
+            raise CalibrationError(f"camera {self.name!r}: R is not a rotation matrix (det={np.linalg.det(R):.4f})")
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "R", R)
@@ -121,9 +120,7 @@ class CameraCalibration:
     def project(self, points: FloatArray) -> FloatArray:
         """Project world points, shape (n, 3), to pixels, shape (n, 2), with distortion."""
         rvec, _ = cv2.Rodrigues(self.R)
-        pixels, _ = cv2.projectPoints(
-            np.asarray(points, np.float64).reshape(-1, 1, 3), rvec, self.t, self.K, self.dist
-        )
+        pixels, _ = cv2.projectPoints(np.asarray(points, np.float64).reshape(-1, 1, 3), rvec, self.t, self.K, self.dist)
         return np.asarray(pixels, np.float64).reshape(-1, 2)
 
 
@@ -259,10 +256,10 @@ def read_pose2sim_toml(path: Path, world_up: WorldUp = "z") -> CalibrationSet:
                 CameraCalibration(
                     str(c.get("name", key)),
                     (round(c["size"][0]), round(c["size"][1])),
-                    np.array(c["matrix"]),
-                    np.array(c["distortions"]),
-                    R,
-                    np.array(c["translation"]),
+                    np.array(c["matrix"], np.float64),
+                    np.array(c["distortions"], np.float64),
+                    np.asarray(R, np.float64),
+                    np.array(c["translation"], np.float64),
                 )
             )
         except KeyError as exc:
@@ -320,7 +317,7 @@ def read_qca(
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError) as exc:
         raise CalibrationError(f"cannot read Qualisys calibration {path}: {exc}") from exc
-    cams = []
+    cams: list[CameraCalibration] = []
     for node in root.findall("cameras/camera"):
         name = node.get("serial", f"cam{len(cams) + 1}")
         fov, intr, tr = node.find("fov_video"), node.find("intrinsic"), node.find("transform")
@@ -412,7 +409,16 @@ def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
             rvec, tvec = fs.getNode("rvec").mat(), fs.getNode("tvec").mat()
             R = cv2.Rodrigues(rvec.reshape(3))[0] if rvec is not None else np.eye(3)
             t = tvec.reshape(3) if tvec is not None else np.zeros(3)
-            cams.append(CameraCalibration(Path(path).stem, (int(w), int(h)), K, dist.reshape(-1), R, t))
+            cams.append(
+                CameraCalibration(
+                    Path(path).stem,
+                    (int(w), int(h)),
+                    np.asarray(K, np.float64),
+                    np.asarray(dist, np.float64),
+                    np.asarray(R, np.float64),
+                    np.asarray(t, np.float64),
+                )
+            )
     finally:
         fs.release()
     return CalibrationSet(_to_y_up(cams, world_up), f"opencv-yaml:{Path(path).name}")

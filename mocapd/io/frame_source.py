@@ -187,11 +187,7 @@ class ThreadedSource:
             log.warning("camera %s failed (%s); reopening in %.1f s", self.name, error, delay)
             await asyncio.sleep(delay)
             # A source that streamed before failing starts the back-off again from the initial delay.
-            delay = (
-                self.backoff_s[0]
-                if self.counters.frames > frames_before
-                else min(delay * 2, self.backoff_s[1])
-            )
+            delay = self.backoff_s[0] if self.counters.frames > frames_before else min(delay * 2, self.backoff_s[1])
 
 
 def _resolve(done: asyncio.Future[DeviceError | None], result: DeviceError | None) -> None:

@@ -62,14 +62,10 @@ def pixel_format(name: str) -> PixelFormat:
     try:
         return PIXEL_FORMATS[name]
     except KeyError:
-        raise ConfigError(
-            f"pixel format {name!r} is not supported; use one of {sorted(PIXEL_FORMATS)}"
-        ) from None
+        raise ConfigError(f"pixel format {name!r} is not supported; use one of {sorted(PIXEL_FORMATS)}") from None
 
 
-def convert_into(
-    fmt: PixelFormat, raw: NDArray[np.uint8], height: int, width: int, out: NDArray[np.uint8]
-) -> None:
+def convert_into(fmt: PixelFormat, raw: NDArray[np.uint8], height: int, width: int, out: NDArray[np.uint8]) -> None:
     """Convert one raw camera buffer into a ring slot (the frame's only copy).
 
     Parameters
@@ -128,5 +124,5 @@ def from_rgb(rgb: NDArray[np.uint8], fmt: PixelFormat) -> NDArray[np.uint8]:
     if fmt.name == "RGB8":
         return np.ascontiguousarray(rgb).reshape(-1)
     if fmt.name == "Mono8":
-        return np.ascontiguousarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)).reshape(-1)
+        return np.ascontiguousarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8).reshape(-1)
     return mosaic(rgb, fmt).reshape(-1)

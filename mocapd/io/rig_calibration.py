@@ -85,7 +85,7 @@ def _pnp(intr: Intrinsics, det: Detection, board: Board) -> tuple[FloatArray, Fl
     ok, rvec, tvec = cv2.solvePnP(obj, det.pixels, intr.K, intr.dist, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
         raise CalibrationError(f"board pose in view {det.view!r} cannot be computed: retake it")
-    return cv2.Rodrigues(rvec)[0], tvec.reshape(3)
+    return np.asarray(cv2.Rodrigues(rvec)[0], np.float64), np.asarray(tvec, np.float64).reshape(3)
 
 
 def _chain(
@@ -202,10 +202,7 @@ def calibrate_rig(
     data = _stack(used, cams, [origin_frame, *free_frames], intrinsics, board)
     x0 = np.concatenate(
         [np.concatenate([rotvec_from_matrix(world_to_cam[c][0]), world_to_cam[c][1]]) for c in cams]
-        + [
-            np.concatenate([rotvec_from_matrix(board_to_world[f][0]), board_to_world[f][1]])
-            for f in free_frames
-        ]
+        + [np.concatenate([rotvec_from_matrix(board_to_world[f][0]), board_to_world[f][1]]) for f in free_frames]
     )
     fixed = board_to_world[origin_frame]
     r0 = _project(x0, len(cams), fixed, data)

@@ -53,9 +53,7 @@ class _ReplaySource(ThreadedSource):
 
     def _publish(self, bgr: NDArray[np.uint8], index: int, pts_ns: int) -> FrameRef:
         if bgr.shape[:2] != self.ring.shape[:2]:
-            raise DeviceError(
-                f"{self.name}: frame {index} is {bgr.shape[1]}x{bgr.shape[0]}, not like the first"
-            )
+            raise DeviceError(f"{self.name}: frame {index} is {bgr.shape[1]}x{bgr.shape[0]}, not like the first")
         pts_ns += self._offset_ns
         if self._start_ns == 0:  # the clock starts with the first frame, once it is decoded
             self._start_ns = time.monotonic_ns() - pts_ns
@@ -210,7 +208,7 @@ class ImageFolderSource(_ReplaySource):
         bgr = cv2.imread(str(path))
         if bgr is None:
             raise DeviceError(f"cannot read image {path}")
-        ref = self._publish(bgr, self._index, round(self._index * 1e9 / self.fps))
+        ref = self._publish(np.asarray(bgr, np.uint8), self._index, round(self._index * 1e9 / self.fps))
         self._index += 1
         return ref
 

@@ -90,7 +90,8 @@ class FrameRing:
 
         Write into it, then call :meth:`publish`. Until then readers never see the slot as the newest frame.
         """
-        return self.images[self._count % self.n_slots]
+        slot: NDArray[np.uint8] = self.images[self._count % self.n_slots]
+        return slot
 
     def publish(self, host_ns: int, device_ns: int, frame_id: int) -> FrameRef:
         """Mark the slot returned by :meth:`next_slot` as written and return its reference."""
@@ -122,7 +123,8 @@ class FrameRing:
         """
         if not self.is_valid(seq):
             raise InputError(f"frame {seq} of {self.name!r} is not in the ring (count={self._count})")
-        return self.images[seq % self.n_slots]
+        image: NDArray[np.uint8] = self.images[seq % self.n_slots]
+        return image
 
     def read(self, seq: int) -> NDArray[np.uint8] | None:
         """A copy of frame ``seq``, or None if the writer overtook the reader during the copy."""

@@ -47,9 +47,7 @@ def camera_name(folder: Path) -> str:
 
 def _camera_folders(root: Path) -> dict[str, Path]:
     if not root.is_dir():
-        raise CalibrationError(
-            f"{root} is not a folder: give a folder with one sub-folder of pictures per camera"
-        )
+        raise CalibrationError(f"{root} is not a folder: give a folder with one sub-folder of pictures per camera")
     folders = {camera_name(p): p for p in sorted(root.iterdir()) if p.is_dir()}
     if not folders:
         raise CalibrationError(f"{root} has no sub-folder: put each camera's pictures in its own sub-folder")
@@ -85,9 +83,7 @@ def calibrate_cameras(
                     f"{len(missed)} pictures in {folder}; check --cols/--rows (inner corners) and that the whole "
                     "board is visible and sharp"
                 )
-            res = calibrate_intrinsics(
-                dets, board, max_view_error_px=max_view_error_px, rational_k3=not fix_k3
-            )
+            res = calibrate_intrinsics(dets, board, max_view_error_px=max_view_error_px, rational_k3=not fix_k3)
             intr[name] = Intrinsics(res.K, res.dist, res.size)
             report["intrinsics"][name] = {
                 "rms_px": round(res.rms_px, 4),
@@ -125,9 +121,7 @@ def calibrate_cameras(
 
 
 def _board(args: argparse.Namespace) -> Board:
-    return Board(
-        args.board, args.cols, args.rows, args.square_mm / 1000.0, args.marker_mm / 1000.0, args.dictionary
-    )
+    return Board(args.board, args.cols, args.rows, args.square_mm / 1000.0, args.marker_mm / 1000.0, args.dictionary)
 
 
 def _run_cameras(args: argparse.Namespace) -> int:
@@ -172,9 +166,7 @@ def register(subparsers: Any) -> None:
     sub = parser.add_subparsers(dest="calibrate_command", metavar="WHAT", required=True)
     cams = sub.add_parser("cameras", help="intrinsics and extrinsics from board pictures")
     cams.add_argument("--board", choices=["checkerboard", "charuco"], default="checkerboard")
-    cams.add_argument(
-        "--cols", type=int, required=True, help="checkerboard: inner corners per row; charuco: squares"
-    )
+    cams.add_argument("--cols", type=int, required=True, help="checkerboard: inner corners per row; charuco: squares")
     cams.add_argument(
         "--rows", type=int, required=True, help="checkerboard: inner corners per column; charuco: squares"
     )
@@ -183,15 +175,9 @@ def register(subparsers: Any) -> None:
     cams.add_argument("--dictionary", default="DICT_4X4_50", help="ChArUco ArUco dictionary")
     cams.add_argument("--intrinsics", type=Path, help="folder with one picture sub-folder per camera")
     cams.add_argument("--intrinsics-from", type=Path, help="reuse intrinsics from a calibration file")
-    cams.add_argument(
-        "--extrinsics", type=Path, help="folder with one sub-folder per camera, same stem = same moment"
-    )
-    cams.add_argument(
-        "--origin-frame", help="file stem of the moment the board lies on the floor at the origin"
-    )
-    cams.add_argument(
-        "--max-view-error-px", type=float, default=1.0, help="reject views above this RMS error, px"
-    )
+    cams.add_argument("--extrinsics", type=Path, help="folder with one sub-folder per camera, same stem = same moment")
+    cams.add_argument("--origin-frame", help="file stem of the moment the board lies on the floor at the origin")
+    cams.add_argument("--max-view-error-px", type=float, default=1.0, help="reject views above this RMS error, px")
     cams.add_argument("--fix-k3", action="store_true", help="keep k3 = 0 (as Qualisys/Pose2Sim)")
     cams.add_argument("--output", type=Path, required=True, help="mocapd calibration TOML to write")
     cams.set_defaults(func=_run_cameras)
