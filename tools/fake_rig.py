@@ -86,11 +86,27 @@ class CameraCheck:
         digest = hashlib.blake2b(image.tobytes(), digest_size=16).hexdigest()
         if digest not in self.hashes:
             self.mismatched.append(ref.seq)
-            if self.debug_frames is not None:
-                fr = self.debug_frames
-                eq = [float(np.mean(image.reshape(-1) == f.reshape(-1))) for f in fr]
-                zero = float(np.mean(image == 0))
-                self.debug.append({"seq": ref.seq, "fid": ref.frame_id, "best_equal": max(eq), "zero": zero})
+            if self.debug_frames:
+                flat = image.reshape(-1)
+                eq = [float(np.mean(flat == f.reshape(-1))) for f in self.debug_frames]
+                best = int(np.argmax(eq))
+                diff = np.flatnonzero(flat != self.debug_frames[best].reshape(-1))
+                others = [
+                    j
+                    for j, f in enumerate(self.debug_frames)
+                    if j != best and np.array_equal(flat[diff], f.reshape(-1)[diff])
+                ]
+                self.debug.append(
+                    {
+                        "seq": ref.seq,
+                        "fid": ref.frame_id,
+                        "best": best,
+                        "best_equal": round(max(eq), 5),
+                        "diff_first": int(diff[0]),
+                        "diff_last": int(diff[-1]),
+                        "diff_is_frame": others,
+                    }
+                )
             return
         self.identical += 1
         if self.first_index is None:

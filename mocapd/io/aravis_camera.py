@@ -160,6 +160,9 @@ class AravisCameraConfig:
         How long the capture thread waits for one frame before checking for stop / loss, in seconds.
     lost_after_s : float
         A free-running camera that delivers nothing for this long is declared lost, in seconds.
+    socket_frames : int
+        GigE only: the stream socket's receive buffer holds this many frames, so a capture process descheduled
+        for a few frame periods loses nothing (the kernel caps it at ``net.core.rmem_max``).
     """
 
     name: str
@@ -178,6 +181,7 @@ class AravisCameraConfig:
     ring_slots: int = 16
     pop_timeout_s: float = 0.2
     lost_after_s: float = 3.0
+    socket_frames: int = 4
 
     def __post_init__(self) -> None:
         chosen = [k for k in ("address", "serial", "device_id") if getattr(self, k)]
@@ -328,10 +332,12 @@ class AravisSource(ThreadedSource):
             stream = camera.create_stream(None, None)
             if stream is None:
                 raise DeviceError(f"camera {self.name!r}: Aravis could not create a stream")
-            if camera.is_gv_device():
-                # Ask the kernel for a socket buffer as large as a frame, so bursts are not dropped.
-                stream.set_property("socket-buffer", aravis.GvStreamSocketBuffer.AUTO)
             payload = camera.get_payload()
+            if camera.is_gv_device():
+                # A frame arrives as a burst of packets; a receive buffer of several frames rides out scheduling
+                # stalls of the stream thread on a loaded machine.
+                stream.set_property("socket-buffer", aravis.GvStreamSocketBuffer.FIXED)
+                stream.set_property("socket-buffer-size", min(payload * self.config.socket_frames, 1 << 30))
             lib = _lib()
             self._views.clear()
             for _ in range(self.config.n_buffers):
