@@ -8,8 +8,8 @@ Configurations: 640x480 and the videos' own 1088x1920, RGB8, ``--fps`` each. Per
 capture-thread CPU (% of one core), frames, missing frames / resent packets / bad buffers, and latencies (ms,
 median and p95):
 
-* ``latency``: Aravis' host timestamp of the frame (set by its stream thread when the frame was received) to the
-  frame's publication in the ring buffer: the capture path's delay;
+* ``latency``: Aravis' host timestamp of the frame (wall clock when its GVSP leader packet arrived) to the frame's
+  publication in the ring buffer: the transfer of the frame's packets plus mocapd's capture path;
 * ``convert``: pop from the Aravis pool to publication (zero-copy view + one conversion/copy into the slot).
 
 The fake servers run on the same cores, so the numbers include their load. ``baseline_copy_ms`` is the median
@@ -99,6 +99,7 @@ def summarise(rig: dict[str, Any]) -> dict[str, Any]:
         "frames_expected_per_camera": round(rig["fps"] * rig["duration_s"]),
         "baseline_copy_ms": baseline_copy_ms(*rig["size"]),
         "capture_process_cpu_pct": rig["capture_process_cpu_pct"],
+        "capture_process_cpu_pct_by_thread_name": rig["capture_process_cpu_pct_by_thread_name"],
         "fake_server_cpu_pct": rig["fake_server_cpu_pct"],
     }
 

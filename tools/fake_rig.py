@@ -21,6 +21,7 @@ import argparse
 import asyncio
 import hashlib
 import json
+import math
 import os
 import subprocess
 import sys
@@ -50,6 +51,20 @@ def cpu_seconds(pid: int, tid: int | None = None) -> float:
     except FileNotFoundError:  # the thread ended (camera reopened): no figure rather than a wrong one
         return float("nan")
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def cpu_by_thread_name(capture_tids: set[int]) -> dict[str, float]:
+    """CPU seconds of this process's threads summed by kind: mocapd capture threads, Aravis stream threads
+    (``arv_gv_stream``), the rest (``python``: event loop, checks)."""
+    out: dict[str, float] = {}
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+        except FileNotFoundError:
+            continue
+        name = "mocapd_capture" if int(task.name) in capture_tids else name
+        out[name] = out.get(name, 0.0) + cpu_seconds(os.getpid(), int(task.name))
+    return {k: v for k, v in out.items() if not math.isnan(v)}  # threads that ended meanwhile
 
 
 @dataclass
@@ -194,14 +209,20 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
         server_cpu0 = [cpu_seconds(s.pid) for s in servers]
         wall0, cpu0 = time.monotonic(), time.process_time()
         thread_cpu: dict[str, float] = {}
+        thread_names: dict[str, float] = {}
 
         async def main() -> None:
             task = asyncio.create_task(capture(sources, checks, args.duration, args.verify))
             await asyncio.sleep(min(1.0, args.duration / 2))
             start = {s.name: cpu_seconds(os.getpid(), s.thread_id) for s in sources}
+            tids = {s.thread_id for s in sources if s.thread_id is not None}
+            by_name0 = cpu_by_thread_name(tids)
             t_start = time.monotonic()
             await asyncio.sleep(max(0.0, args.duration - min(1.0, args.duration / 2) - 0.2))
             span = time.monotonic() - t_start
+            by_name1 = cpu_by_thread_name(tids)
+            for k, v in by_name1.items():
+                thread_names[k] = round(100 * (v - by_name0.get(k, 0.0)) / span, 2)
             for s in sources:
                 thread_cpu[s.name] = (cpu_seconds(os.getpid(), s.thread_id) - start[s.name]) / span
             await task
@@ -251,6 +272,7 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
         "size": [infos[0]["width"], infos[0]["height"]],
         "cameras": cameras,
         "capture_process_cpu_pct": round(100 * process_cpu / wall, 1),
+        "capture_process_cpu_pct_by_thread_name": thread_names,
         "fake_server_cpu_pct": [round(100 * c, 1) for c in server_cpu],
     }
 

@@ -377,7 +377,8 @@ class AravisSource(ThreadedSource):
             width, height = self._size
             convert_into(self.format, view, height, width, self.ring.next_slot())
             ref = self.ring.publish(now, int(buffer.get_timestamp()), int(buffer.get_frame_id()))
-            # Aravis' system timestamp (host wall clock when the stream received the frame) to publication.
+            # Aravis' system timestamp (host wall clock when the frame's leader packet arrived) to publication:
+            # the frame's transfer plus mocapd's capture path.
             self.latency.add(time.time_ns() - int(buffer.get_system_timestamp()))
             self.convert.add(time.monotonic_ns() - now)
         finally:
