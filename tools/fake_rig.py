@@ -36,7 +36,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
-from mocapd.io.pixels import pixel_format
+from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
 from tools.fake_gige import add_loopback_aliases, load_video_rgb
 
@@ -77,6 +77,7 @@ class CameraCheck:
     in_order: int = 0
     first_index: int | None = None
     sent_index: int = 0
+    overtaken: int = 0
     debug_frames: list[Any] | None = None
     debug: list[dict[str, Any]] = field(default_factory=list)
     last: FrameRef | None = None
@@ -96,7 +97,10 @@ class CameraCheck:
             self.ids_increasing &= step == 1
             self.sent_index += step
         self.last = ref
-        if not verify or image is None:
+        if not verify:
+            return
+        if image is None:  # the capture thread overwrote the slot before the check could copy it
+            self.overtaken += 1
             return
         digest = hashlib.blake2b(image.tobytes(), digest_size=16).hexdigest()
         if digest not in self.hashes:
@@ -136,13 +140,17 @@ class CameraCheck:
 
 
 def expected_hashes(frames: list[Any], fmt_name: str) -> list[str]:
-    """Digests of the ring images mocapd must produce from each source frame (RGB8 or Mono8)."""
-    import cv2
+    """Digests of the ring images mocapd must produce from each source frame.
 
+    RGB8 and Mono8 frames are the decoded video (converted to gray); Bayer frames are the demosaiced mosaic.
+    """
+    fmt = pixel_format(fmt_name)
     out = []
     for rgb in frames:
-        image = rgb if fmt_name == "RGB8" else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)[:, :, None]
-        out.append(hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=16).hexdigest())
+        h, w, _ = rgb.shape
+        image = np.empty((h, w, fmt.channels), np.uint8)
+        convert_into(fmt, from_rgb(rgb, fmt), h, w, image)
+        out.append(hashlib.blake2b(image.tobytes(), digest_size=16).hexdigest())
     return out
 
 
@@ -201,7 +209,8 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
                 region=(0, 0, w, h),
                 frame_rate=args.fps,
                 packet_size=args.packet_size,
-                ring_slots=8,
+                # Verification copies and hashes every frame on the event loop: give it slack on a busy machine.
+                ring_slots=32 if args.verify else 8,
             )
             sources.append(AravisSource(config))
             frames = load_video_rgb(Path(video), args.max_frames, size) if args.verify else []  # type: ignore[arg-type]
@@ -253,6 +262,7 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
                 "verified": c.identical if args.verify else None,
                 "in_order": c.in_order if args.verify else None,
                 "mismatched": len(c.mismatched),
+                "overtaken": c.overtaken,
                 "out_of_order": c.out_of_order[:10],
                 "debug": c.debug,
                 "host_ts_increasing": c.host_increasing,
@@ -282,7 +292,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--videos", nargs="+", required=True, help="one video per fake camera")
     parser.add_argument("--max-frames", type=int, default=20, help="frames of each video served (looped)")
     parser.add_argument("--size", default=None, help="resize videos to WIDTHxHEIGHT")
-    parser.add_argument("--format", default="RGB8", choices=["RGB8", "Mono8"], help="camera pixel format")
+    parser.add_argument("--format", default="RGB8", choices=["RGB8", "Mono8", "BayerRG8"], help="camera pixel format")
     parser.add_argument("--fps", type=float, default=30.0, help="acquisition frame rate, Hz")
     parser.add_argument("--duration", type=float, default=3.0, help="capture time, s")
     parser.add_argument("--packet-size", type=int, default=8192, help="GigE stream packet size, bytes")
