@@ -392,6 +392,7 @@ class AravisSource(ThreadedSource):
             raise DeviceError(f"camera {self.name!r} lost its control connection (heartbeat)")
         silent_s = (now - self._last_frame_ns) / 1e9
         if self.config.trigger is None and silent_s > self.config.lost_after_s:
+            self._control_lost.set()  # treat as gone: do not wait for protocol time-outs when closing
             raise DeviceError(f"camera {self.name!r} sent no frame for {silent_s:.1f} s")
 
     def _close(self) -> None:
@@ -399,7 +400,7 @@ class AravisSource(ThreadedSource):
 
         if self._stream is not None:
             self._update_stream_counters()
-        if self._camera is not None:
+        if self._camera is not None and not self._control_lost.is_set():
             try:
                 with _OPEN_LOCK:
                     self._camera.stop_acquisition()

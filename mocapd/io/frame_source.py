@@ -144,7 +144,11 @@ class ThreadedSource:
                 if isinstance(ref, FrameRef):
                     loop.call_soon_threadsafe(on_frame, ref)
         except DeviceError as exc:
+            # Count and report at once: closing a vanished device can take seconds of protocol time-outs.
             result = exc
+            self.counters.failures += 1
+            self.counters.last_error = str(exc)
+            log.warning("camera %s failed: %s", self.name, exc)
         finally:
             self.opened.clear()
             self._close()
@@ -182,9 +186,7 @@ class ThreadedSource:
             await asyncio.to_thread(thread.join)
             if error is None:
                 return
-            self.counters.failures += 1
-            self.counters.last_error = str(error)
-            log.warning("camera %s failed (%s); reopening in %.1f s", self.name, error, delay)
+            log.warning("camera %s: reopening in %.1f s", self.name, delay)
             await asyncio.sleep(delay)
             # A source that streamed before failing starts the back-off again from the initial delay.
             delay = self.backoff_s[0] if self.counters.frames > frames_before else min(delay * 2, self.backoff_s[1])
