@@ -309,6 +309,7 @@ class AravisSource(ThreadedSource):
         self._size = (0, 0)
         self._last_frame_ns = 0
         self._stream_base = (0, 0)  # counters before this opening, added to the stream's own
+        self._success = load_aravis().BufferStatus.SUCCESS  # looked up once, not per frame
 
     def _open(self) -> None:
         with _OPEN_LOCK:
@@ -358,7 +359,6 @@ class AravisSource(ThreadedSource):
         self.counters.resent_packets = base_resent + int(stream.get_info_uint64_by_name("n_resent_packets"))
 
     def _grab(self) -> FrameRef | None:
-        aravis = load_aravis()
         buffer = self._stream.timeout_pop_buffer(int(self.config.pop_timeout_s * 1e6))
         now = time.monotonic_ns()
         if buffer is None:
@@ -366,7 +366,7 @@ class AravisSource(ThreadedSource):
             self._check_alive(now)
             return None
         try:
-            if buffer.get_status() != aravis.BufferStatus.SUCCESS:
+            if buffer.get_status() != self._success:
                 self.counters.bad_buffers += 1
                 return None
             self._last_frame_ns = now
