@@ -94,3 +94,18 @@ def test_image_folder_source(pose2sim_demo: Path, tmp_path: Path) -> None:
 def test_video_ends() -> None:
     with pytest.raises(InputError, match="cannot decode"):
         VideoFileSource("x", Path("/nonexistent.mp4"))
+
+
+def test_unexpected_error_in_the_thread_reaches_the_task(pose2sim_demo: Path) -> None:
+    # A bug in a source must not look like a normal end of capture.
+    class Broken(VideoFileSource):
+        def _grab(self) -> FrameRef | bool | None:
+            raise ZeroDivisionError("bug")
+
+    source = Broken("b", pose2sim_demo / "Demo_SinglePerson" / "videos" / "cam01.mp4", realtime=False)
+
+    async def main() -> None:
+        await source.run(lambda ref: None)
+
+    with pytest.raises(ZeroDivisionError, match="bug"):
+        asyncio.run(main())

@@ -257,7 +257,7 @@ def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]
     if config.region is not None:
         steps.append(("region", lambda: camera.set_region(*config.region)))
     if config.trigger is None:
-        steps.append(("free-running mode", lambda: camera.set_string("TriggerMode", "Off")))
+        steps.append(("free-running mode", camera.clear_triggers))
         if config.frame_rate is not None:
             steps.append(("frame rate", lambda: camera.set_frame_rate(config.frame_rate)))
     else:

@@ -132,7 +132,7 @@ class ThreadedSource:
         stop: threading.Event,
         done: asyncio.Future[DeviceError | None],
     ) -> None:
-        result: DeviceError | None = None
+        result: DeviceError | BaseException | None = None
         self.thread_id = threading.get_native_id()
         try:
             self._open()
@@ -149,6 +149,10 @@ class ThreadedSource:
             self.counters.failures += 1
             self.counters.last_error = str(exc)
             log.warning("camera %s failed: %s", self.name, exc)
+        except BaseException as exc:
+            # Anything else is a bug or a bad configuration: it must reach the task (and its TaskGroup), not end
+            # the capture silently. run() raises it.
+            result = exc
         finally:
             self.opened.clear()
             self._close()
@@ -192,6 +196,10 @@ class ThreadedSource:
             delay = self.backoff_s[0] if self.counters.frames > frames_before else min(delay * 2, self.backoff_s[1])
 
 
-def _resolve(done: asyncio.Future[DeviceError | None], result: DeviceError | None) -> None:
-    if not done.done():
+def _resolve(done: asyncio.Future[DeviceError | None], result: DeviceError | BaseException | None) -> None:
+    if done.done():
+        return
+    if result is None or isinstance(result, DeviceError):
         done.set_result(result)
+    else:
+        done.set_exception(result)
