@@ -108,7 +108,7 @@ def pair_sums(imu: FloatArray, vis: FloatArray) -> _Sums:
     sin ψ s + Σ a_y b_y`` where ``c = Σ a_x b_x + a_z b_z`` and ``s = Σ a_z b_x - a_x b_z``: its maximum over ψ
     is ``sqrt(c² + s²) + Σ a_y b_y``, so a window of evidence reduces to four running sums.
     """
-    return all_pair_sums(imu[None], vis[None])[0, 0]
+    return np.asarray(all_pair_sums(imu[None], vis[None])[0, 0])
 
 
 def all_pair_sums(imu: FloatArray, vis: FloatArray) -> FloatArray:

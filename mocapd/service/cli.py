@@ -8,6 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
+from mocapd.service import cmd_calibrate
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -63,6 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
     tracking.add_argument("--seconds", type=float, default=8.0, help="length of each scene (default 8)")
     tracking.add_argument("--seed", type=int, default=0)
     tracking.set_defaults(func=_cmd_eval_tracking)
+
+    cmd_calibrate.register(sub)
     return parser
 
 
