@@ -211,6 +211,10 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
                 packet_size=args.packet_size,
                 # Verification copies and hashes every frame on the event loop: give it slack on a busy machine.
                 ring_slots=32 if args.verify else 8,
+                # Loopback on a shared 2-core machine: the fake servers and this process can be descheduled for
+                # longer than a real camera link would stall, so resent packets get more time to arrive.
+                frame_retention_ms=1000.0 if args.verify else 100.0,
+                packet_timeout_ms=50.0 if args.verify else 20.0,
             )
             sources.append(AravisSource(config))
             frames = load_video_rgb(Path(video), args.max_frames, size) if args.verify else []  # type: ignore[arg-type]

@@ -163,6 +163,11 @@ class AravisCameraConfig:
     socket_frames : int
         GigE only: the stream socket's receive buffer holds this many frames, so a capture process descheduled
         for a few frame periods loses nothing (the kernel caps it at ``net.core.rmem_max``).
+    packet_timeout_ms : float
+        GigE only: how long a missing packet is waited for before a resend is requested (Aravis default 20).
+    frame_retention_ms : float
+        GigE only: how long an incomplete frame waits for resent packets before it is given up as incomplete
+        (Aravis default 100). A loaded host (or a camera far away on the network) needs more.
     """
 
     name: str
@@ -182,6 +187,8 @@ class AravisCameraConfig:
     pop_timeout_s: float = 0.2
     lost_after_s: float = 3.0
     socket_frames: int = 4
+    packet_timeout_ms: float = 20.0
+    frame_retention_ms: float = 100.0
 
     def __post_init__(self) -> None:
         chosen = [k for k in ("address", "serial", "device_id") if getattr(self, k)]
@@ -192,6 +199,11 @@ class AravisCameraConfig:
         pixel_format(self.pixel_format)
         if self.n_buffers < 2 or self.ring_slots < 2:
             raise ConfigError(f"camera {self.name!r}: n_buffers and ring_slots must be >= 2")
+        if not (0 < self.packet_timeout_ms <= self.frame_retention_ms):
+            raise ConfigError(
+                f"camera {self.name!r}: need 0 < packet_timeout_ms <= frame_retention_ms, got "
+                f"{self.packet_timeout_ms} and {self.frame_retention_ms}"
+            )
 
 
 def local_address_for(address: str) -> str:
@@ -339,6 +351,8 @@ class AravisSource(ThreadedSource):
                 # stalls of the stream thread on a loaded machine.
                 stream.set_property("socket-buffer", aravis.GvStreamSocketBuffer.FIXED)
                 stream.set_property("socket-buffer-size", min(payload * self.config.socket_frames, 1 << 30))
+                stream.set_property("packet-timeout", round(self.config.packet_timeout_ms * 1000))
+                stream.set_property("frame-retention", round(self.config.frame_retention_ms * 1000))
             lib = _lib()
             self._views.clear()
             for _ in range(self.config.n_buffers):
