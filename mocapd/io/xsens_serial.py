@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 
 from mocapd.errors import ConfigError, DeviceError, DeviceTimeout
 from mocapd.io.serial_transport import SerialTransport, create_serial_connection
-from mocapd.protocols.mtdata2 import CoordFrame, DataId, Precision
+from mocapd.protocols.awinda import AwindaConfig, SnapshotIntegrator, station_steps
+from mocapd.protocols.mtdata2 import AwindaSnapshot, CoordFrame, DataId, MtData2, Precision
 from mocapd.protocols.xsens_session import (
     BringUpFailed,
     DeviceInfo,
@@ -129,7 +130,11 @@ class _SessionProtocol(asyncio.Protocol):
 
 
 class XsensSerialDevice:
-    """Runs one serial device until :meth:`stop`; samples go to ``on_sample``."""
+    """Runs one serial device until :meth:`stop`; samples go to ``on_sample``.
+
+    With ``awinda`` the device is an Awinda station (EXPERIMENTAL, see :mod:`mocapd.protocols.awinda`): it is
+    brought up with the station steps and each MTw's snapshots are integrated into samples.
+    """
 
     def __init__(
         self,
@@ -137,7 +142,16 @@ class XsensSerialDevice:
         on_sample: Callable[[ImuSample], None],
         *,
         clock: Callable[[], int] = time.monotonic_ns,
+        awinda: AwindaConfig | None = None,
     ) -> None:
+        self.awinda = awinda
+        self._integrator: SnapshotIntegrator | None = None
+        if awinda is not None:
+            awinda.check()
+            assert awinda.delta_q_scale is not None and awinda.delta_v_scale is not None
+            self._integrator = SnapshotIntegrator(
+                awinda.delta_q_scale, awinda.delta_v_scale, awinda.update_rate_hz
+            )
         self.config = config
         self._on_sample = on_sample
         self._clock = clock
@@ -186,6 +200,7 @@ class XsensSerialDevice:
             output_settings(cfg.rate_hz, precision=cfg.precision, frame=CoordFrame.ENU),
             response_timeout_ns=round(cfg.response_timeout_s * 1e9),
             attempts=cfg.attempts,
+            steps=None if self.awinda is None else station_steps(self.awinda),
         )
         self.session = session
         failure: list[str] = []
@@ -246,20 +261,18 @@ class XsensSerialDevice:
     def _dispatch(self, session: XsensSession, failure: list[str], now: int) -> None:
         for ev in session.events_received():
             if isinstance(ev, Sample):
-                d = ev.data
                 self.stats.samples += 1
+                if self._integrator is not None:
+                    self._snapshot_samples(ev.data, now)
+                    continue
+                d = ev.data
                 sensor = self.info.serial if self.info is not None else self.config.path
-                self._on_sample(
-                    ImuSample(
-                        sensor,
-                        now,
-                        d.sample_time_fine,
-                        d.packet_counter,
-                        d.quaternion,
-                        d.acceleration,
-                        (item.frame if (item := d.items.get(DataId.QUATERNION)) is not None else None),
-                    )
+                quat_item = d.items.get(DataId.QUATERNION)
+                frame = quat_item.frame if quat_item is not None else None
+                sample = ImuSample(
+                    sensor, now, d.sample_time_fine, d.packet_counter, d.quaternion, d.acceleration, frame
                 )
+                self._on_sample(sample)
             elif isinstance(ev, Streaming):
                 self.info = ev.info
                 self.last_error = None
@@ -276,3 +289,14 @@ class XsensSerialDevice:
                 self.stats.device_errors.append(f"0x{ev.report.code:02X} {ev.report.description}")
             elif isinstance(ev, BringUpFailed):
                 failure.append(ev.reason)
+
+    def _snapshot_samples(self, data: MtData2, now: int) -> None:
+        assert self._integrator is not None
+        item = data.items.get(DataId.AWINDA_SNAPSHOT)
+        if item is None or not isinstance(item.value, AwindaSnapshot):
+            return
+        s = self._integrator.add(item.value)
+        if s is not None:
+            self._on_sample(
+                ImuSample(s.sensor, now, s.device_ticks, s.frame_number & 0xFFFF, s.quat, s.acc, None)
+            )

@@ -107,11 +107,30 @@ Event = Streaming | Sample | DeviceReportedError | BringUpFailed
 
 
 @dataclass(frozen=True, slots=True)
-class _Step:
+class Step:
+    """One bring-up request and the message id of the reply that completes it."""
+
     name: str
     request: int
     payload: bytes
     reply: int
+
+
+def standard_steps(settings: list[OutputSetting]) -> list[Step]:
+    """Bring-up of an MTi / MTw on its own serial link (the table in the module docstring)."""
+    return [
+        Step("GoToConfig", MID.GOTO_CONFIG, b"", MID.GOTO_CONFIG_ACK),
+        Step("ReqDID", MID.REQ_DID, b"", MID.DEVICE_ID),
+        Step("ReqProductCode", MID.REQ_PRODUCT_CODE, b"", MID.PRODUCT_CODE),
+        Step("ReqFWRev", MID.REQ_FW_REV, b"", MID.FIRMWARE_REV),
+        Step(
+            "SetOutputConfiguration",
+            MID.SET_OUTPUT_CONFIGURATION,
+            xbus.encode_output_configuration(settings),
+            MID.SET_OUTPUT_CONFIGURATION_ACK,
+        ),
+        Step("GoToMeasurement", MID.GOTO_MEASUREMENT, b"", MID.GOTO_MEASUREMENT_ACK),
+    ]
 
 
 @dataclass(slots=True)
@@ -137,25 +156,20 @@ class XsensSession:
         How long to wait for each reply.
     attempts : int
         Sends per request before giving up.
+    steps : list of Step, optional
+        Replaces :func:`standard_steps` (the experimental Awinda station uses its own).
     """
 
     def __init__(
-        self, settings: list[OutputSetting], *, response_timeout_ns: int = 500_000_000, attempts: int = 3
+        self,
+        settings: list[OutputSetting],
+        *,
+        response_timeout_ns: int = 500_000_000,
+        attempts: int = 3,
+        steps: list[Step] | None = None,
     ) -> None:
         self.parser = xbus.XbusParser()
-        self._steps = [
-            _Step("GoToConfig", MID.GOTO_CONFIG, b"", MID.GOTO_CONFIG_ACK),
-            _Step("ReqDID", MID.REQ_DID, b"", MID.DEVICE_ID),
-            _Step("ReqProductCode", MID.REQ_PRODUCT_CODE, b"", MID.PRODUCT_CODE),
-            _Step("ReqFWRev", MID.REQ_FW_REV, b"", MID.FIRMWARE_REV),
-            _Step(
-                "SetOutputConfiguration",
-                MID.SET_OUTPUT_CONFIGURATION,
-                xbus.encode_output_configuration(settings),
-                MID.SET_OUTPUT_CONFIGURATION_ACK,
-            ),
-            _Step("GoToMeasurement", MID.GOTO_MEASUREMENT, b"", MID.GOTO_MEASUREMENT_ACK),
-        ]
+        self._steps = standard_steps(settings) if steps is None else list(steps)
         self._timeout = response_timeout_ns
         self._attempts = attempts
         self.state = State.IDLE
