@@ -92,6 +92,15 @@ def synthetic_motion(n: int = 2400, rate_hz: float = 100.0, device_id: int = 0x0
     return Motion(quat, acc, rate_hz, device_id)
 
 
+def still_motion(
+    quat: NDArray[np.float64], n: int = 600, rate_hz: float = 100.0, device_id: int = 0x00B40001
+) -> Motion:
+    """A sensor held still at orientation ``quat`` (w, x, y, z; ENU), measuring only gravity."""
+    q = np.broadcast_to(quat_normalize(np.asarray(quat, dtype=np.float64)), (n, 4)).copy()
+    acc = np.einsum("nji,j->ni", matrix_from_quat(q), np.array([0.0, 0.0, 9.81]))
+    return Motion(q, acc, rate_hz, device_id)
+
+
 # ENU coordinates → other device frames (rows: target axes in ENU).
 _FRAME_FROM_ENU = {
     CoordFrame.ENU: np.eye(3),
