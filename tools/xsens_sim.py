@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import selectors
 import signal
@@ -424,6 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dropout", type=float, default=0.0, help="probability of a dropped sample")
     ap.add_argument("--unplug-every", type=float, default=0.0, help="seconds between unplug/replug cycles")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--write-log", type=Path, help="on exit, write {device id: {counter: write ns}} as JSON")
     args = ap.parse_args(argv)
     sims = []
     for k, link in enumerate(args.link):
@@ -449,6 +451,9 @@ def main(argv: list[str] | None = None) -> int:
         pass
     for sim in sims:
         sim.stop()
+    if args.write_log:
+        log = {f"{s.device.motion.device_id:08X}": s.device.write_times for s in sims}
+        args.write_log.write_text(json.dumps(log))
     return 0
 
 

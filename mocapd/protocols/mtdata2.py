@@ -270,18 +270,6 @@ class MtData2:
         return self.floats(DataId.ACCELERATION)
 
 
-def _decode_floats(type_id: int, precision: int, data: bytes | memoryview) -> tuple[float, ...] | None:
-    st = _FLOAT_STRUCTS[(type_id, precision)]
-    if len(data) != st.size:
-        return None
-    raw = st.unpack(data)
-    if precision in (Precision.FLOAT32, Precision.FLOAT64):
-        return raw
-    if precision == Precision.FP1220:
-        return tuple(v * _FP1220_SCALE for v in raw)
-    return tuple(raw[i + 1] + raw[i] * _FP1632_SCALE for i in range(0, len(raw), 2))
-
-
 def _decode_utc(data: bytes | memoryview, data_id: int) -> Value | None:
     return UtcTime(*_UTC.unpack(data)) if len(data) == _UTC.size else None
 
@@ -318,21 +306,38 @@ _SPECIAL: dict[int, Callable[[bytes | memoryview, int], Value | None]] = {
 }
 
 
-def _decode_special(type_id: int, data_id: int, data: bytes | memoryview) -> Value | None:
-    special = _SPECIAL.get(type_id)
-    if special is not None:
-        return special(data, data_id)
-    st = _INT_STRUCTS.get(type_id)
-    if st is None or len(data) != st.size:
+# How a data identifier is decoded; built once per identifier seen (at most 65 536, in practice a dozen).
+_RAW, _FIXED1220, _FIXED1632, _SCALAR, _TUPLE, _SPECIAL_KIND = range(6)
+
+
+# (type id, kind, struct or None, size or -1, frame, precision): a plain tuple, unpacked in the hot loop.
+_Spec = tuple[int, int, struct.Struct | None, int, CoordFrame | None, Precision | None]
+
+
+def _type_of(data_id: int) -> int:
+    if data_id & 0xFF00 == SNAPSHOT_GROUP:
+        return data_id & ~RETRANSMISSION_FLAG & 0xFFFF
+    return data_id & TYPE_MASK
+
+
+def _build_spec(data_id: int) -> _Spec | None:
+    type_id = _type_of(data_id)
+    if type_id in _FLOAT_COMPONENTS:
+        precision = Precision(data_id & PRECISION_MASK)
+        frame_bits = data_id & FRAME_MASK
+        frame = CoordFrame(frame_bits) if frame_bits != 0xC else None
+        kind = {Precision.FP1220: _FIXED1220, Precision.FP1632: _FIXED1632}.get(precision, _RAW)
+        st = _FLOAT_STRUCTS[(type_id, precision)]
+        return (type_id, kind, st, st.size, frame, precision)
+    if type_id in _SPECIAL:
+        return (type_id, _SPECIAL_KIND, None, -1, None, None)
+    int_st = _INT_STRUCTS.get(type_id)
+    if int_st is None:
         return None
-    vals: tuple[int, ...] = st.unpack(data)
-    return vals[0] if len(vals) == 1 else vals
+    return (type_id, _SCALAR if len(int_st.format) == 2 else _TUPLE, int_st, int_st.size, None, None)
 
 
-def _is_known(type_id: int) -> bool:
-    return type_id in _FLOAT_COMPONENTS or type_id in _INT_STRUCTS or type_id in _SPECIAL
-
-
+_SPECS: dict[int, _Spec | None] = {}
 _HEADER = struct.Struct(">HB")
 
 
@@ -345,39 +350,49 @@ def decode_mtdata2(payload: bytes | memoryview) -> MtData2:
     items = out.items
     n = len(payload)
     pos = 0
+    header = _HEADER.unpack_from
+    specs = _SPECS
     while pos < n:
         if n - pos < 3:
             out.malformed += 1
             break
-        data_id, size = _HEADER.unpack_from(payload, pos)
+        data_id, size = header(payload, pos)
         start = pos + 3
         pos = start + size
         if pos > n:
             out.malformed += 1
             break
-        data = payload[start:pos]
-        if data_id & 0xFF00 == SNAPSHOT_GROUP:
-            type_id = data_id & ~RETRANSMISSION_FLAG & 0xFFFF
-        else:
-            type_id = data_id & TYPE_MASK
-        if type_id in _FLOAT_COMPONENTS:
-            precision = data_id & PRECISION_MASK
-            floats = _decode_floats(type_id, precision, data)
-            if floats is None:
-                out.malformed += 1
-                continue
-            frame_bits = data_id & FRAME_MASK
-            frame = CoordFrame(frame_bits) if frame_bits != 0xC else None
-            items[type_id] = DataItem(data_id, floats, frame, Precision(precision))
-        elif _is_known(type_id):
-            value = _decode_special(type_id, data_id, data)
+        spec = specs.get(data_id, _SPEC_MISSING)
+        if spec is _SPEC_MISSING:
+            spec = specs[data_id] = _build_spec(data_id)
+        if spec is None:
+            out.unknown += 1
+            continue
+        type_id, kind, st, st_size, frame, precision = spec
+        value: Value | None
+        if st is None:
+            value = _SPECIAL[type_id](payload[start:pos], data_id)
             if value is None:
                 out.malformed += 1
                 continue
-            items[type_id] = DataItem(data_id, value)
         else:
-            out.unknown += 1
+            if size != st_size:
+                out.malformed += 1
+                continue
+            raw = st.unpack_from(payload, start)
+            if kind in (_RAW, _TUPLE):
+                value = raw
+            elif kind == _SCALAR:
+                value = raw[0]
+            elif kind == _FIXED1220:
+                value = tuple(v * _FP1220_SCALE for v in raw)
+            else:
+                value = tuple(raw[i + 1] + raw[i] * _FP1632_SCALE for i in range(0, len(raw), 2))
+        items[type_id] = DataItem(data_id, value, frame, precision)
     return out
+
+
+_SPEC_MISSING: _Spec = (-1, -1, None, -1, None, None)
 
 
 # ---------------------------------------------------------------------------------------------- encoding
