@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import tracemalloc
+
 import numpy as np
 import pytest
 
@@ -105,3 +107,17 @@ def test_bad_layouts_raise() -> None:
         RingBuffer(4, [FieldSpec("x", 1), FieldSpec("x", 2)])
     with pytest.raises(InputError, match="width 4"):
         RingBuffer(4, [FieldSpec("q", 3, "slerp")])
+
+
+def test_push_does_not_grow_memory() -> None:
+    buf = RingBuffer(256, IMU_FIELDS)
+    row = np.array([1.0, 0, 0, 0, 0, 0, 9.81, 0, 0])
+    for i in range(512):  # wrap once so every slot has been written
+        buf.push(i, row)
+    tracemalloc.start()
+    before, _ = tracemalloc.get_traced_memory()
+    for i in range(512, 20_512):
+        buf.push(i, row)
+    after, _ = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert after - before < 4096  # fixed storage: 20 000 pushes leave nothing behind

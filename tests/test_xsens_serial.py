@@ -157,3 +157,28 @@ async def test_missing_port_is_a_device_error(tmp_path: Path) -> None:
     dev = XsensSerialDevice(XsensPortConfig(str(tmp_path / "nothing")), lambda s: None)
     with pytest.raises(DeviceError, match="cannot open serial port"):
         await dev.run_once()
+
+
+@pytest.mark.asyncio
+async def test_silent_stream_is_detected_as_a_stall_and_reopened(tmp_path: Path) -> None:
+    sim = xsens_sim.XsensSimulator(
+        tmp_path / "imu", xsens_sim.SimDevice(xsens_sim.synthetic_motion())
+    ).start()
+    samples: list[ImuSample] = []
+    dev = XsensSerialDevice(
+        XsensPortConfig(str(sim.link), stall_timeout_s=0.3, reconnect_min_s=0.05, reconnect_max_s=0.1),
+        samples.append,
+    )
+    task = asyncio.create_task(dev.run())
+    try:
+        await _until(lambda: len(samples) >= 5)
+        sim.device.faults.dropout = 1.0  # the device still answers but stops sending samples
+        await _until(lambda: dev.stats.stalls >= 1 and dev.stats.connects >= 2)
+        assert any("no data for 0.3 s while streaming" in f for f in dev.stats.failures)
+        sim.device.faults.dropout = 0.0
+        before = len(samples)
+        await _until(lambda: len(samples) >= before + 5)
+    finally:
+        dev.stop()
+        await task
+        sim.stop()

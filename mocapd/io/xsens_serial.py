@@ -95,6 +95,8 @@ class DeviceStats:
     samples: int = 0
     stalls: int = 0
     device_errors: list[str] = field(default_factory=list)
+    #: the most recent connection failures (open, bring-up, link lost, stall), newest last, at most 20
+    failures: list[str] = field(default_factory=list)
 
 
 class _SessionProtocol(asyncio.Protocol):
@@ -179,7 +181,8 @@ class XsensSerialDevice:
                 backoff = self.config.reconnect_min_s  # streamed successfully: start the back-off over
             except DeviceError as exc:
                 self.last_error = str(exc)
-                log.warning("imu %s: %s; retrying in %.1f s", self.config.path, exc, backoff)
+                self.stats.failures = [*self.stats.failures[-19:], str(exc)]
+                log.warning("%s; retrying in %.1f s", exc, backoff)
             if self._stopping:
                 break
             await asyncio.sleep(backoff)
