@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
+from collections.abc import Callable
+from pathlib import Path
 
+import numpy as np
 import pytest
+from _sim import xsens_sim
 
+from mocapd.core.rotations import quat_angle, quat_conjugate, quat_multiply
 from mocapd.errors import ConfigError
-from mocapd.io.xsens_serial import XsensPortConfig, XsensSerialDevice
+from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.protocols import xbus
 from mocapd.protocols.awinda import AwindaConfig, SnapshotIntegrator, station_steps
 from mocapd.protocols.mtdata2 import AwindaSnapshot, decode_mtdata2, encode_packet
@@ -80,3 +86,45 @@ def test_snapshot_integration_of_a_constant_turn() -> None:
     assert angle == pytest.approx(math.radians(90.0), abs=1e-6)
     assert out.acc[2] == pytest.approx(9.81, abs=1e-3)
     assert integ.add(snap) is None and integ.duplicates == 1  # retransmitted / repeated frame
+
+
+@pytest.mark.asyncio
+async def test_station_path_end_to_end_on_a_pty(tmp_path: Path) -> None:
+    """The experimental station path against a simulated station built on the same unverified assumptions."""
+    children = [xsens_sim.synthetic_motion(device_id=0x00B40100 + k) for k in range(3)]
+    station = xsens_sim.SimStation(children, delta_q_scale=1e-9, delta_v_scale=1e-6)
+    sim = xsens_sim.XsensSimulator(tmp_path / "station", station).start()
+    cfg = AwindaConfig(
+        experimental=True, update_rate_hz=100, radio_channel=15, delta_q_scale=1e-9, delta_v_scale=1e-6
+    )
+    samples: list[ImuSample] = []
+    dev = XsensSerialDevice(XsensPortConfig(str(sim.link)), samples.append, awinda=cfg)
+    task = asyncio.create_task(dev.run())
+    try:
+        await _until(lambda: len({s.sensor for s in samples}) == 3 and len(samples) >= 90)
+    finally:
+        dev.stop()
+        await task
+        sim.stop()
+    assert station.radio_channel == 15 and station.station_rate == 100
+    assert dev.info is not None and dev.info.serial == "12300001"
+    for motion in children:
+        mine = [s for s in samples if s.sensor == f"{motion.device_id:08X}"]
+        assert len(mine) >= 20
+        # Integrated orientation relative to the first snapshot equals the motion's relative rotation.
+        first, last = mine[0], mine[-1]
+        assert first.packet_counter is not None and last.packet_counter is not None
+        k0, k1 = first.packet_counter - 1, last.packet_counter - 1
+        expected = quat_multiply(quat_conjugate(motion.quat[k0]), motion.quat[k1])
+        got = quat_multiply(quat_conjugate(np.array(first.quat)), np.array(last.quat))
+        assert quat_angle(got, expected) < 1e-4
+        assert last.acc is not None and np.allclose(last.acc, motion.acc[k1], atol=1e-3)
+
+
+async def _until(cond: Callable[[], bool], timeout: float = 10.0) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while not cond():
+        if loop.time() > end:
+            raise AssertionError("condition not reached in time")
+        await asyncio.sleep(0.01)

@@ -35,9 +35,15 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.rotations import matrix_from_quat, quat_from_matrix, quat_normalize
+from mocapd.core.rotations import (
+    matrix_from_quat,
+    quat_conjugate,
+    quat_from_matrix,
+    quat_multiply,
+    quat_normalize,
+)
 from mocapd.protocols import xbus
-from mocapd.protocols.mtdata2 import TYPE_MASK, CoordFrame, DataId, encode_packet
+from mocapd.protocols.mtdata2 import TYPE_MASK, AwindaSnapshot, CoordFrame, DataId, encode_packet
 from mocapd.protocols.xbus import MID, OutputSetting
 
 TICK_HZ = 10_000
@@ -242,8 +248,7 @@ class SimDevice:
         self.index += 1
         self.counter = (self.counter + 1) & 0xFFFF
         ticks = (self._ticks0 + (self.index * TICK_HZ) // self.rate_hz) & 0xFFFFFFFF
-        payload = b"".join(self._packet(s.data_id, i, ticks) for s in self.settings)
-        frame = xbus.encode(MID.MTDATA2, payload)
+        frame = self._build_frame(i, ticks)
         f = self.faults
         if f.dropout and self.rng.random() < f.dropout:
             self.stats.dropped += 1
@@ -258,6 +263,11 @@ class SimDevice:
             self.stats.bad_checksums += 1
         self.stats.sent += 1
         return out + frame
+
+    def _build_frame(self, i: int, ticks: int) -> bytes:
+        """The MTData2 message(s) of motion sample ``i``."""
+        payload = b"".join(self._packet(s.data_id, i, ticks) for s in self.settings)
+        return xbus.encode(MID.MTDATA2, payload)
 
     def _packet(self, data_id: int, i: int, ticks: int) -> bytes:
         kind = data_id & TYPE_MASK
@@ -286,6 +296,72 @@ def _euler_xyz(rot: NDArray[np.float64]) -> NDArray[np.float64]:
     pitch = -np.arcsin(np.clip(rot[2, 0], -1.0, 1.0))
     yaw = np.arctan2(rot[1, 0], rot[0, 0])
     return np.array([roll, pitch, yaw])
+
+
+class SimStation(SimDevice):
+    """An Awinda station with wireless MTws, as mocapd's EXPERIMENTAL station path assumes it to be.
+
+    It answers the station steps of :func:`mocapd.protocols.awinda.station_steps` (update rate at message id
+    ``update_rate_mid``, EnableMaster) and streams, per frame, one MTData2 message per MTw carrying an Awinda
+    snapshot whose SDI increments are the motion's orientation and velocity changes divided by the given
+    scale factors. The real station's payloads and scales are not public: this checks mocapd's plumbing
+    against its own assumptions, not against a real station.
+    """
+
+    def __init__(
+        self,
+        children: list[Motion],
+        *,
+        station_id: int = 0x12300001,
+        delta_q_scale: float = 1e-9,
+        delta_v_scale: float = 1e-6,
+        update_rate_mid: int = 0x04,
+        faults: Faults | None = None,
+    ) -> None:
+        super().__init__(Motion(children[0].quat, children[0].acc, 60.0, station_id), faults=faults)
+        self.children = children
+        self.delta_q_scale = delta_q_scale
+        self.delta_v_scale = delta_v_scale
+        self.update_rate_mid = update_rate_mid
+        self.station_rate = 60
+        self.radio_channel: int | None = None
+        self.measuring = False
+
+    @property
+    def rate_hz(self) -> int:
+        return self.station_rate
+
+    def _answer(self, msg: xbus.XbusMessage, now_ns: int) -> bytes:
+        if msg.mid == self.update_rate_mid and len(msg.payload) == 2:
+            self.station_rate = int.from_bytes(msg.payload, "big")
+            return xbus.encode(self.update_rate_mid + 1)
+        if msg.mid == MID.ENABLE_MASTER and len(msg.payload) == 2:
+            self.radio_channel = int.from_bytes(msg.payload, "big")
+            return xbus.encode(MID.ENABLE_MASTER_ACK)
+        return super()._answer(msg, now_ns)
+
+    def _build_frame(self, i: int, ticks: int) -> bytes:
+        out = b""
+        for motion in self.children:
+            k = i % len(motion.quat)
+            prev = motion.quat[k - 1] if k > 0 else motion.quat[k]
+            dq = quat_multiply(quat_conjugate(prev), motion.quat[k])
+            dq = dq if dq[0] >= 0 else -dq
+            dv = motion.acc[k] / self.station_rate
+            snap = AwindaSnapshot(
+                motion.device_id,
+                self.index,
+                tuple(round(v / self.delta_q_scale) for v in dq[1:]),
+                tuple(round(v / self.delta_v_scale) for v in dv),
+                (0, 0, 0),
+                101325,
+                0,
+                0,
+                0,
+                False,
+            )
+            out += xbus.encode(MID.MTDATA2, encode_packet(0xC810, snap))
+        return out
 
 
 # ----------------------------------------------------------------------------------------- pty plumbing
