@@ -19,6 +19,7 @@ from mocapd.core.imu_calibration import (
     heading_alignment,
     parse_assignment,
     quat_average,
+    quat_to_enu,
     stillest_window,
     yaw_quat,
 )
@@ -26,12 +27,13 @@ from mocapd.core.rotations import (
     matrix_from_quat,
     quat_angle,
     quat_conjugate,
+    quat_from_matrix,
     quat_from_rotvec,
     quat_multiply,
     random_quat,
     random_rotvec,
 )
-from mocapd.errors import CalibrationError, ConfigError
+from mocapd.errors import CalibrationError, ConfigError, InputError
 
 RNG_SEED = 0
 
@@ -157,3 +159,17 @@ def test_facing_heading_from_a_forward_axis() -> None:
     assert facing_heading_from_sensor(turned, np.array([1.0, 0, 0])) == pytest.approx(0.0, abs=1e-9)
     with pytest.raises(CalibrationError, match="vertical"):
         facing_heading_from_sensor(q_i, np.array([0, 0, 1.0]))
+
+
+def test_quat_to_enu_from_ned_and_nwu() -> None:
+    rng = np.random.default_rng(9)
+    q_enu = random_quat(rng)
+    r_enu = matrix_from_quat(q_enu)
+    ned_from_enu = np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])
+    nwu_from_enu = np.array([[0.0, 1, 0], [-1, 0, 0], [0, 0, 1]])
+    for name, m in (("NED", ned_from_enu), ("NWU", nwu_from_enu)):
+        q_other = quat_from_matrix(m @ r_enu)
+        assert quat_angle(quat_to_enu(q_other, name), q_enu) < 1e-9
+    assert quat_angle(quat_to_enu(q_enu, "ENU"), q_enu) == 0.0
+    with pytest.raises(InputError, match="ENU, NED or NWU"):
+        quat_to_enu(q_enu, "XYZ")

@@ -46,4 +46,6 @@ def test_gaps_incomplete_and_no_device_time() -> None:
     ingest.add("a", 5 * MS, device_ticks=None, packet_counter=0, quat=Q, acc=A)  # wraps: no gap
     stream = ingest.streams["a"]
     assert stream.counter_gaps == 2 and stream.incomplete == 1
-    assert ingest.add("a", 5 * MS, device_ticks=None, packet_counter=1, quat=Q, acc=A) is None  # not after
+    # Host time not after the newest sample: kept, 1 ns after it, and counted.
+    assert ingest.add("a", 5 * MS, device_ticks=None, packet_counter=1, quat=Q, acc=A) == 5 * MS + 1
+    assert stream.clock_steps_back == 1

@@ -62,6 +62,29 @@ IMU_SET_6 = ("Hips", "Head", "LeftLowerArm", "RightLowerArm", "LeftLowerLeg", "R
 ENU_TO_WORLD = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 
 
+#: Rotations taking NED / NWU device-frame coordinates to ENU (rows: ENU axes in the source frame).
+_TO_ENU = {
+    "ENU": np.eye(3),
+    "NED": np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),
+    "NWU": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+}
+
+
+def quat_to_enu(q: FloatArray, frame: str) -> FloatArray:
+    """Re-express device orientations given in ``frame`` ("ENU", "NED" or "NWU") in ENU; shape (..., 4).
+
+    Raises
+    ------
+    InputError
+        For an unknown frame name.
+    """
+    if frame not in _TO_ENU:
+        raise InputError(f"device frame must be ENU, NED or NWU, got {frame!r}")
+    if frame == "ENU":
+        return np.asarray(q, dtype=np.float64)
+    return quat_multiply(quat_from_matrix(_TO_ENU[frame]), np.asarray(q, dtype=np.float64))
+
+
 def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) -> dict[str, str]:
     """Validate a sensor → bone assignment (``{"00B421E6": "Hips", ...}``).
 

@@ -3,7 +3,9 @@
 Each sensor gets a :class:`~mocapd.pipeline.clocksync.ClockSync` (device counter → host ns) and a
 :class:`~mocapd.pipeline.ringbuffer.RingBuffer` with :data:`~mocapd.pipeline.ringbuffer.IMU_FIELDS`. A
 sample's buffer time is its device time mapped to the host clock when the device sends SampleTimeFine,
-otherwise its host arrival time. Samples without an orientation or acceleration are counted and dropped.
+otherwise its host arrival time. Buffer times are kept strictly increasing: when a refit of the clock map
+steps back (a new least-delayed sample lowers the envelope), the sample is placed 1 ns after the previous
+one and counted. Samples without an orientation or acceleration are counted and dropped.
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ class SensorStream:
     incomplete: int = 0
     counter_gaps: int = 0
     last_counter: int | None = None
+    #: samples whose mapped time was moved just after the previous one because a refit of the clock map
+    #: stepped backwards (a new least-delayed sample lowered the envelope)
+    clock_steps_back: int = 0
 
 
 class ImuIngest:
@@ -81,6 +86,11 @@ class ImuIngest:
             mapped = s.clock.to_host_ns(device_ticks)
             t = mapped if mapped is not None else host_ns
             device_s = device_ticks / TICK_HZ
+        newest = s.buffer.time_range()
+        if newest is not None and t <= newest[1]:
+            # Keep the buffer time monotonic: a refit may step the map back by a fraction of a sample period.
+            s.clock_steps_back += 1
+            t = newest[1] + 1
         row = self._row
         row[0:4] = quat
         row[4:7] = acc
