@@ -182,3 +182,15 @@ async def test_silent_stream_is_detected_as_a_stall_and_reopened(tmp_path: Path)
         dev.stop()
         await task
         sim.stop()
+
+
+@pytest.mark.asyncio
+async def test_stop_interrupts_the_back_off(tmp_path: Path) -> None:
+    dev = XsensSerialDevice(
+        XsensPortConfig(str(tmp_path / "absent"), reconnect_min_s=30.0, reconnect_max_s=30.0), lambda s: None
+    )
+    task = asyncio.create_task(dev.run())
+    await _until(lambda: dev.last_error is not None)
+    dev.stop()
+    await asyncio.wait_for(task, timeout=5.0)  # far shorter than the 30 s back-off it was sleeping
+    assert "cannot open serial port" in (dev.last_error or "")

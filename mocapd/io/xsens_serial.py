@@ -162,6 +162,7 @@ class XsensSerialDevice:
         self.last_error: str | None = None
         self.streaming = asyncio.Event()
         self._stopping = False
+        self._stop_requested = asyncio.Event()
         self._proto: _SessionProtocol | None = None
         #: the current (or last) session, for its parser and session counters
         self.session: XsensSession | None = None
@@ -169,6 +170,7 @@ class XsensSerialDevice:
     def stop(self) -> None:
         """Ask :meth:`run` to return after closing the port."""
         self._stopping = True
+        self._stop_requested.set()
         if self._proto is not None and self._proto.transport is not None:
             self._proto.transport.close()
 
@@ -185,7 +187,8 @@ class XsensSerialDevice:
                 log.warning("%s; retrying in %.1f s", exc, backoff)
             if self._stopping:
                 break
-            await asyncio.sleep(backoff)
+            with contextlib.suppress(TimeoutError):  # sleep the back-off, but wake up at once on stop()
+                await asyncio.wait_for(self._stop_requested.wait(), timeout=backoff)
             backoff = min(backoff * 2.0, self.config.reconnect_max_s)
 
     async def run_once(self) -> None:
