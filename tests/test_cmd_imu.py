@@ -10,7 +10,7 @@ import pytest
 from _sim import xsens_sim
 
 from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, heading_alignment
-from mocapd.core.rotations import quat_angle, quat_conjugate, quat_multiply, random_quat
+from mocapd.core.rotations import quat_angle, quat_conjugate, quat_from_rotvec, quat_multiply, random_quat
 from mocapd.errors import ConfigError
 from mocapd.service.cli import main
 from mocapd.service.imu_config import load_imu_config, parse_imu_config
@@ -70,6 +70,41 @@ def test_calibrate_imu_writes_a_calibration_that_reproduces_the_tpose(
         assert quat_angle(calib.q_ib[sid], mountings[sid]) < 1e-5
         q_i = quat_multiply(quat_conjugate(q_ig), mountings[sid])
         assert quat_angle(bone_orientation(calib.q_ig, q_i, calib.q_ib[sid]), np.array([1.0, 0, 0, 0])) < 1e-5
+
+
+def test_facing_heading_from_a_sensor_axis(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # The pelvis sensor's -z axis points forward; the subject faces 75° (east-north-east).
+    heading = 75.0
+    q_ig = heading_alignment(heading)
+    # Mounting: sensor -z along the bone's forward (+Z world in the T-pose), i.e. a half turn about y.
+    q_ib = quat_from_rotvec(np.array([0.0, np.pi, 0.0]))
+    q_i = quat_multiply(quat_conjugate(q_ig), q_ib)
+    sim = xsens_sim.XsensSimulator(
+        tmp_path / "imu0", xsens_sim.SimDevice(xsens_sim.still_motion(q_i, device_id=0x00B40011))
+    ).start()
+    config = tmp_path / "config.toml"
+    config.write_text(f'[imu]\nports = ["{sim.link}"]\n[imu.assignment]\n"00B40011" = "Hips"\n')
+    out = tmp_path / "bob.imu.json"
+    try:
+        args = [
+            "calibrate",
+            "imu",
+            "--config",
+            str(config),
+            "--person",
+            "bob",
+            "--facing-from",
+            "00b40011:-z",
+        ]
+        status = main([*args, "--seconds", "0.5", "--window", "0.3", "--out", str(out)])
+    finally:
+        sim.stop()
+    assert status == 0, capsys.readouterr().out
+    calib = ImuCalibration.from_json_dict(json.loads(out.read_text()))
+    assert calib.facing_heading_deg == pytest.approx(heading, abs=1e-3)
+    assert quat_angle(calib.q_ib["00B40011"], q_ib) < 1e-5
+    bad = main(["calibrate", "imu", "--config", str(config), "--person", "x", "--facing-from", "00B40011:w"])
+    assert bad == 1
 
 
 def test_calibrate_imu_reports_missing_sensors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from mocapd.core.imu_calibration import calibrate_tpose
+from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
 from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
 from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
@@ -43,11 +43,16 @@ def register(subparsers: Any) -> None:
         "--config", type=Path, default=Path("config.toml"), help="config file with an [imu] section"
     )
     p.add_argument("--person", required=True, help="name of the subject (file name of the calibration)")
-    p.add_argument(
+    facing = p.add_mutually_exclusive_group(required=True)
+    facing.add_argument(
         "--facing-heading",
         type=float,
-        required=True,
         help="compass heading the subject faces, degrees clockwise from magnetic north",
+    )
+    facing.add_argument(
+        "--facing-from",
+        metavar="SENSOR:AXIS",
+        help="derive the heading from a sensor axis known to point forward, e.g. 00B421E6:-z",
     )
     p.add_argument(
         "--world-heading", choices=("subject", "north"), default="subject", help="what world +Z is"
@@ -109,6 +114,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
             config = dataclasses.replace(config, ports=ports)
         if not config.assignment:
             raise ConfigError("imu.assignment is empty: say which sensor sits on which bone")
+        if args.facing_from is not None:
+            _parse_facing(args.facing_from)  # reject a malformed option before recording
         samples = asyncio.run(record(config, args.seconds, args.connect_timeout))
         rate = max(len(v) for v in samples.values()) / args.seconds if samples else 0.0
         recordings = {
@@ -119,11 +126,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
             for sid in config.assignment
             if sid in samples
         }
+        heading = args.facing_heading
+        if heading is None:
+            heading = _heading_from(args.facing_from, recordings)
         calib = calibrate_tpose(
             args.person,
             recordings,
             config.assignment,
-            facing_heading_deg=args.facing_heading,
+            facing_heading_deg=heading,
             world_heading=args.world_heading,
             window=max(2, int(args.window * rate)),
         )
@@ -137,6 +147,28 @@ def run_calibrate(args: argparse.Namespace) -> int:
         print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg")
     print(f"wrote {out}")
     return 0
+
+
+_AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+def _parse_facing(spec: str) -> tuple[str, np.ndarray]:
+    """``SENSOR:[+-]AXIS`` → (sensor id, unit axis in the sensor frame)."""
+    sensor, _, axis = spec.partition(":")
+    sign = -1.0 if axis.startswith("-") else 1.0
+    vec = _AXES.get(axis.lstrip("+-").lower())
+    if vec is None or not sensor:
+        raise ConfigError(f"--facing-from {spec!r}: expected SENSOR:AXIS, AXIS one of x, y, z, -x, -y, -z")
+    return sensor.upper(), sign * np.array(vec)
+
+
+def _heading_from(spec: str, recordings: dict[str, tuple[np.ndarray, np.ndarray]]) -> float:
+    """Heading from ``SENSOR:[+-]AXIS`` and that sensor's mean T-pose orientation."""
+    sensor, axis = _parse_facing(spec)
+    quats = recordings.get(sensor)
+    if quats is None or len(quats[0]) == 0:
+        raise ConfigError(f"--facing-from {spec!r}: no samples from sensor {sensor}")
+    return facing_heading_from_sensor(quat_average(quats[0]), axis)
 
 
 def _fields(port: XsensPortConfig) -> dict[str, Any]:
