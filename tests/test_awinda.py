@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _sim import xsens_sim
 
 from mocapd.core.rotations import quat_angle, quat_conjugate, quat_multiply
 from mocapd.errors import ConfigError
@@ -19,6 +18,7 @@ from mocapd.protocols.awinda import AwindaConfig, SnapshotIntegrator, station_st
 from mocapd.protocols.mtdata2 import AwindaSnapshot, decode_mtdata2, encode_packet
 from mocapd.protocols.xbus import MID
 from mocapd.protocols.xsens_session import State, Streaming, XsensSession, output_settings
+from tests._sim import xsens_sim
 
 
 def test_experimental_gate_and_unknown_constants() -> None:
@@ -33,9 +33,7 @@ def test_experimental_gate_and_unknown_constants() -> None:
 
 
 def test_station_bring_up_sends_the_configured_requests() -> None:
-    cfg = AwindaConfig(
-        experimental=True, radio_channel=21, update_rate_hz=60, delta_q_scale=1.0, delta_v_scale=1.0
-    )
+    cfg = AwindaConfig(experimental=True, radio_channel=21, update_rate_hz=60, delta_q_scale=1.0, delta_v_scale=1.0)
     session = XsensSession(output_settings(60), steps=station_steps(cfg))
     session.start(0)
     replies = {
@@ -94,9 +92,7 @@ async def test_station_path_end_to_end_on_a_pty(tmp_path: Path) -> None:
     children = [xsens_sim.synthetic_motion(device_id=0x00B40100 + k) for k in range(3)]
     station = xsens_sim.SimStation(children, delta_q_scale=1e-9, delta_v_scale=1e-6)
     sim = xsens_sim.XsensSimulator(tmp_path / "station", station).start()
-    cfg = AwindaConfig(
-        experimental=True, update_rate_hz=100, radio_channel=15, delta_q_scale=1e-9, delta_v_scale=1e-6
-    )
+    cfg = AwindaConfig(experimental=True, update_rate_hz=100, radio_channel=15, delta_q_scale=1e-9, delta_v_scale=1e-6)
     samples: list[ImuSample] = []
     dev = XsensSerialDevice(XsensPortConfig(str(sim.link)), samples.append, awinda=cfg)
     task = asyncio.create_task(dev.run())

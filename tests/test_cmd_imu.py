@@ -7,13 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _sim import xsens_sim
 
 from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, heading_alignment
 from mocapd.core.rotations import quat_angle, quat_conjugate, quat_from_rotvec, quat_multiply, random_quat
 from mocapd.errors import ConfigError
 from mocapd.service.cli import main
 from mocapd.service.imu_config import load_imu_config, parse_imu_config
+from tests._sim import xsens_sim
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -31,9 +31,7 @@ def test_calibrate_imu_writes_a_calibration_that_reproduces_the_tpose(
         xsens_sim.XsensSimulator(
             tmp_path / f"imu{k}",
             xsens_sim.SimDevice(
-                xsens_sim.still_motion(
-                    quat_multiply(quat_conjugate(q_ig), mountings[sid]), device_id=int(sid, 16)
-                )
+                xsens_sim.still_motion(quat_multiply(quat_conjugate(q_ig), mountings[sid]), device_id=int(sid, 16))
             ),
         ).start()
         for k, sid in enumerate(bones)

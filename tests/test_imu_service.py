@@ -11,7 +11,6 @@ from typing import cast
 
 import numpy as np
 import pytest
-from _sim import xsens_sim
 
 from mocapd.core.imu_calibration import calibrate_tpose
 from mocapd.core.rotations import matrix_from_quat, quat_angle, quat_from_matrix, quat_from_rotvec
@@ -21,6 +20,7 @@ from mocapd.protocols.imu_bridge import BridgeRecord, encode_records
 from mocapd.protocols.mtdata2 import CoordFrame
 from mocapd.service.imu_config import BridgeConfig, ImuConfig
 from mocapd.service.imu_service import ImuInputs
+from tests._sim import xsens_sim
 
 
 async def _until(cond: Callable[[], bool], timeout: float = 10.0) -> None:
@@ -66,10 +66,7 @@ async def test_serial_and_bridge_inputs_feed_one_ingest(tmp_path: Path) -> None:
             sender.sendto(encode_records([rec]), ("127.0.0.1", port))
             await asyncio.sleep(1 / 60)
         await _until(
-            lambda: (
-                len(inputs.ingest.streams) == 3
-                and all(len(s.buffer) >= 20 for s in inputs.ingest.streams.values())
-            )
+            lambda: len(inputs.ingest.streams) == 3 and all(len(s.buffer) >= 20 for s in inputs.ingest.streams.values())
         )
         status = inputs.status()
         devices = cast(list[dict[str, object]], status["devices"])

@@ -199,9 +199,7 @@ def test_awinda_snapshot_round_trip_and_retransmission_flag() -> None:
 
 @pytest.mark.parametrize("precision", list(Precision))
 @pytest.mark.parametrize("frame", list(CoordFrame))
-def test_float_outputs_round_trip_in_every_precision_and_frame(
-    precision: Precision, frame: CoordFrame
-) -> None:
+def test_float_outputs_round_trip_in_every_precision_and_frame(precision: Precision, frame: CoordFrame) -> None:
     rng = np.random.default_rng(int(precision) * 16 + int(frame))
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
@@ -216,9 +214,7 @@ def test_float_outputs_round_trip_in_every_precision_and_frame(
 def test_negative_fixed_point_values() -> None:
     for precision in (Precision.FP1220, Precision.FP1632):
         values = (-1.5, -0.0009765625, -2047.25)
-        item = decode_mtdata2(encode_packet(DataId.ACCELERATION | precision, values)).items[
-            DataId.ACCELERATION
-        ]
+        item = decode_mtdata2(encode_packet(DataId.ACCELERATION | precision, values)).items[DataId.ACCELERATION]
         assert item.value == values
 
 

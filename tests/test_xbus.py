@@ -159,9 +159,7 @@ def test_arbitrary_bytes_never_raise(stream: bytes, sizes: list[int]) -> None:
         pos += size
     parser.receive_data(stream[pos:])
     for msg in parser.events_received():
-        assert checksum(
-            bytes((msg.bid, msg.mid)) + len(msg.payload).to_bytes(1, "big") + msg.payload
-        ) in range(256)
+        assert checksum(bytes((msg.bid, msg.mid)) + len(msg.payload).to_bytes(1, "big") + msg.payload) in range(256)
     c = parser.counters
     assert c.discarded_bytes + parser.buffered <= len(stream)
 

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _sim import xsens_sim
 
 from mocapd.core.rotations import quat_angle
 from mocapd.errors import DeviceError, DeviceTimeout
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.ringbuffer import LookupStatus
+from tests._sim import xsens_sim
 
 MTW = Path(__file__).parent / "data" / "opensense_mtw"
 
@@ -136,9 +136,7 @@ async def test_silent_port_fails_bring_up_with_a_clear_error(tmp_path: Path) -> 
     link = tmp_path / "silent"
     link.symlink_to(os.ttyname(slave))
     try:
-        dev = XsensSerialDevice(
-            XsensPortConfig(str(link), response_timeout_s=0.05, attempts=2), lambda s: None
-        )
+        dev = XsensSerialDevice(XsensPortConfig(str(link), response_timeout_s=0.05, attempts=2), lambda s: None)
         with pytest.raises(DeviceTimeout, match="GoToConfig failed after 2 attempts"):
             await dev.run_once()
         assert dev.stats.bringup_failures == 1
@@ -161,9 +159,7 @@ async def test_missing_port_is_a_device_error(tmp_path: Path) -> None:
 
 @pytest.mark.asyncio
 async def test_silent_stream_is_detected_as_a_stall_and_reopened(tmp_path: Path) -> None:
-    sim = xsens_sim.XsensSimulator(
-        tmp_path / "imu", xsens_sim.SimDevice(xsens_sim.synthetic_motion())
-    ).start()
+    sim = xsens_sim.XsensSimulator(tmp_path / "imu", xsens_sim.SimDevice(xsens_sim.synthetic_motion())).start()
     samples: list[ImuSample] = []
     dev = XsensSerialDevice(
         XsensPortConfig(str(sim.link), stall_timeout_s=0.3, reconnect_min_s=0.05, reconnect_max_s=0.1),

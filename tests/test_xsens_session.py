@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-from _sim import xsens_sim
 
 from mocapd.errors import ConfigError
 from mocapd.protocols import xbus
@@ -18,6 +17,7 @@ from mocapd.protocols.xsens_session import (
     XsensSession,
     output_settings,
 )
+from tests._sim import xsens_sim
 
 MS = 1_000_000
 

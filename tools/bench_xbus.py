@@ -167,9 +167,7 @@ def latency_bench(sensors: int, rate: int, seconds: float) -> dict[str, object]:
         cmd = [sys.executable, str(REPO / "tools" / "xsens_sim.py"), "--write-log", str(log)]
         for link in links:
             cmd += ["--link", str(link)]
-        sim = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}
-        )
+        sim = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
         try:
             assert sim.stdout is not None
             for _ in links:
@@ -178,9 +176,7 @@ def latency_bench(sensors: int, rate: int, seconds: float) -> dict[str, object]:
         finally:
             sim.send_signal(signal.SIGTERM)
             sim.wait(timeout=10)
-        writes = {
-            dev: {int(c): t for c, t in table.items()} for dev, table in json.loads(log.read_text()).items()
-        }
+        writes = {dev: {int(c): t for c, t in table.items()} for dev, table in json.loads(log.read_text()).items()}
     lat = sorted((t_push - writes[s][c]) / 1e6 for s, c, t_push in pushed if c in writes.get(s, {}))
     return {
         "sensors": sensors,

@@ -505,11 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     sims = []
     for k, link in enumerate(args.link):
-        motion = (
-            load_opensense(args.motion[k])
-            if k < len(args.motion)
-            else synthetic_motion(device_id=0xB40000 + k)
-        )
+        motion = load_opensense(args.motion[k]) if k < len(args.motion) else synthetic_motion(device_id=0xB40000 + k)
         faults = Faults(args.garbage, args.bad_checksum, args.dropout, args.seed + k)
         sims.append(XsensSimulator(link, SimDevice(motion, faults=faults)).start())
         print(f"{link} -> {os.readlink(link)} (device {motion.device_id:08X})", flush=True)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.imu import IMU_SET_6, IMU_SET_13, measured_bone_orientation
 from mocapd.core.rotations import (
     matrix_from_quat,
     quat_angle,
@@ -37,26 +38,13 @@ from mocapd.core.rotations import (
     quat_from_rotvec,
     quat_multiply,
 )
+from mocapd.core.skeleton import BONE_NAMES
 from mocapd.errors import CalibrationError, ConfigError, InputError
 
 FloatArray = NDArray[np.float64]
 
-#: The 21 bones of DESIGN.md, in order. Must equal ``mocapd.core.skeleton.BONE_NAMES`` (checked by a test once
-#: both exist on main; this module only needs the names).
-BONE_NAMES = (
-    "Hips", "Spine", "Spine1", "Spine2", "Spine3", "Neck", "Head",
-    "LeftUpperArm", "LeftLowerArm", "LeftHand", "RightUpperArm", "RightLowerArm", "RightHand",
-    "LeftUpperLeg", "LeftLowerLeg", "LeftFoot", "LeftToes",
-    "RightUpperLeg", "RightLowerLeg", "RightFoot", "RightToes",
-)  # fmt: skip
-
-#: 13-sensor set: pelvis, sternum, head, upper arms, forearms, thighs, shanks, feet.
-IMU_SET_13 = (
-    "Hips", "Spine3", "Head", "LeftUpperArm", "RightUpperArm", "LeftLowerArm", "RightLowerArm",
-    "LeftUpperLeg", "RightUpperLeg", "LeftLowerLeg", "RightLowerLeg", "LeftFoot", "RightFoot",
-)  # fmt: skip
-#: 6-sensor set: pelvis, head, forearms, shanks.
-IMU_SET_6 = ("Hips", "Head", "LeftLowerArm", "RightLowerArm", "LeftLowerLeg", "RightLowerLeg")
+# The 21 bone names (DESIGN.md order) and the 13/6-sensor sets, re-exported for the assignment checks.
+__all__ = ["BONE_NAMES", "IMU_SET_6", "IMU_SET_13"]
 
 #: Rotation of ENU device coordinates into world coordinates (x west, y up, z north), as a matrix.
 ENU_TO_WORLD = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
@@ -122,9 +110,7 @@ def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) 
         missing = sorted(set(expected) - set(out.values()))
         extra = sorted(set(out.values()) - set(expected))
         if missing or extra:
-            raise ConfigError(
-                f"imu assignment for the {imu_set}-sensor set: missing {missing}, unexpected {extra}"
-            )
+            raise ConfigError(f"imu assignment for the {imu_set}-sensor set: missing {missing}, unexpected {extra}")
     return out
 
 
@@ -201,11 +187,7 @@ def stillest_window(
         mean = quat_average(chunk)
         spread = float(np.degrees(np.max(quat_angle(chunk, mean))))
         if best is None or spread < best.spread_deg:
-            acc_std = (
-                float(np.std(np.linalg.norm(acc[start : start + window], axis=1)))
-                if acc is not None
-                else np.nan
-            )
+            acc_std = float(np.std(np.linalg.norm(acc[start : start + window], axis=1))) if acc is not None else np.nan
             best = StillWindow(start, start + window, mean, spread, acc_std)
     assert best is not None
     if best.spread_deg > max_spread_deg:
@@ -221,17 +203,15 @@ def stillest_window(
     return best
 
 
-def mounting_rotation(
-    q_i: FloatArray, q_ig_tpose: FloatArray, q_rest: FloatArray | None = None
-) -> FloatArray:
+def mounting_rotation(q_i: FloatArray, q_ig_tpose: FloatArray, q_rest: FloatArray | None = None) -> FloatArray:
     """R_ib = R_rest⁻¹ · R_ig · R_i as a quaternion, shape (4,) (see the module docstring)."""
     rest = np.array([1.0, 0.0, 0.0, 0.0]) if q_rest is None else np.asarray(q_rest, dtype=np.float64)
     return quat_canonical(quat_multiply(quat_conjugate(rest), quat_multiply(q_ig_tpose, q_i)))
 
 
 def bone_orientation(q_ig: FloatArray, q_i: FloatArray, q_ib: FloatArray) -> FloatArray:
-    """R_gb = R_ig · R_i · R_ib⁻¹ (seed 003 Eq. 8); broadcasts over leading dimensions of ``q_i``."""
-    return quat_multiply(quat_multiply(q_ig, q_i), quat_conjugate(q_ib))
+    """R_gb = R_ig · R_i · R_ib⁻¹ (seed 003 Eq. 8); see :func:`mocapd.core.imu.measured_bone_orientation`."""
+    return measured_bone_orientation(q_ig, q_i, q_ib)
 
 
 @dataclass(frozen=True, slots=True)
@@ -282,9 +262,7 @@ class ImuCalibration:
                 q_ig=q_ig,
                 bones=parse_assignment({sid: str(s["bone"]) for sid, s in sensors.items()}),
                 q_ib={sid.upper(): _unit_quat(s["R_ib"], f"{sid} R_ib") for sid, s in sensors.items()},
-                spread_deg={
-                    sid.upper(): float(s.get("still_spread_deg", np.nan)) for sid, s in sensors.items()
-                },
+                spread_deg={sid.upper(): float(s.get("still_spread_deg", np.nan)) for sid, s in sensors.items()},
             )
         except (KeyError, TypeError, ValueError, AssertionError) as exc:
             raise CalibrationError(f"malformed IMU calibration file: {exc!r}") from exc

@@ -28,9 +28,7 @@ class BridgeStats:
 
 
 class _BridgeProtocol(asyncio.DatagramProtocol):
-    def __init__(
-        self, on_sample: Callable[[ImuSample], None], stats: BridgeStats, clock: Callable[[], int]
-    ) -> None:
+    def __init__(self, on_sample: Callable[[ImuSample], None], stats: BridgeStats, clock: Callable[[], int]) -> None:
         self._on_sample = on_sample
         self._stats = stats
         self._clock = clock

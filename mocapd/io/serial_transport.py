@@ -22,9 +22,7 @@ _READ_SIZE = 65536
 class SerialTransport(asyncio.Transport):
     """Transport over an open :class:`serial.Serial` (POSIX file descriptor)."""
 
-    def __init__(
-        self, loop: asyncio.AbstractEventLoop, protocol: asyncio.Protocol, port: serial.Serial
-    ) -> None:
+    def __init__(self, loop: asyncio.AbstractEventLoop, protocol: asyncio.Protocol, port: serial.Serial) -> None:
         super().__init__()
         self._loop = loop
         self._protocol = protocol

@@ -100,9 +100,7 @@ class DeviceStats:
 
 
 class _SessionProtocol(asyncio.Protocol):
-    def __init__(
-        self, session: XsensSession, on_events: Callable[[int], None], clock: Callable[[], int]
-    ) -> None:
+    def __init__(self, session: XsensSession, on_events: Callable[[int], None], clock: Callable[[], int]) -> None:
         self.session = session
         self.transport: SerialTransport | None = None
         self.lost: asyncio.Future[Exception | None] = asyncio.get_running_loop().create_future()
@@ -151,9 +149,7 @@ class XsensSerialDevice:
         if awinda is not None:
             awinda.check()
             assert awinda.delta_q_scale is not None and awinda.delta_v_scale is not None
-            self._integrator = SnapshotIntegrator(
-                awinda.delta_q_scale, awinda.delta_v_scale, awinda.update_rate_hz
-            )
+            self._integrator = SnapshotIntegrator(awinda.delta_q_scale, awinda.delta_v_scale, awinda.update_rate_hz)
         self.config = config
         self._on_sample = on_sample
         self._clock = clock
@@ -249,9 +245,7 @@ class XsensSerialDevice:
         stall_ns = round(self.config.stall_timeout_s * 1e9)
         while True:
             try:
-                exc = await asyncio.wait_for(
-                    asyncio.shield(proto.lost), timeout=self.config.stall_timeout_s / 4
-                )
+                exc = await asyncio.wait_for(asyncio.shield(proto.lost), timeout=self.config.stall_timeout_s / 4)
             except TimeoutError:
                 if self._clock() - proto.last_rx_ns > stall_ns:
                     self.stats.stalls += 1
@@ -303,6 +297,4 @@ class XsensSerialDevice:
             return
         s = self._integrator.add(item.value)
         if s is not None:
-            self._on_sample(
-                ImuSample(s.sensor, now, s.device_ticks, s.frame_number & 0xFFFF, s.quat, s.acc, None)
-            )
+            self._on_sample(ImuSample(s.sensor, now, s.device_ticks, s.frame_number & 0xFFFF, s.quat, s.acc, None))

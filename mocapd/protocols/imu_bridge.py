@@ -71,12 +71,7 @@ def _record(item: object) -> BridgeRecord | None:
     if not isinstance(item, dict) or item.get("v") != VERSION:
         return None
     sensor, t = item.get("id"), item.get("t")
-    if (
-        not isinstance(sensor, str)
-        or not isinstance(t, int | float)
-        or isinstance(t, bool)
-        or not math.isfinite(t)
-    ):
+    if not isinstance(sensor, str) or not isinstance(t, int | float) or isinstance(t, bool) or not math.isfinite(t):
         return None
     q, a = _floats(item.get("q"), 4), _floats(item.get("a"), 3)
     frame = _FRAMES.get(str(item.get("frame", "ENU")))

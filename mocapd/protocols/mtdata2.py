@@ -424,10 +424,7 @@ def encode_packet(data_id: int, value: Value | list[float]) -> bytes:
     ValueError
         If the identifier is unknown or the value does not fit it (a caller bug, not device data).
     """
-    if data_id & 0xFF00 == SNAPSHOT_GROUP:
-        type_id = data_id & ~RETRANSMISSION_FLAG & 0xFFFF
-    else:
-        type_id = data_id & TYPE_MASK
+    type_id = _type_of(data_id)
     if type_id in _FLOAT_COMPONENTS and isinstance(value, tuple | list):
         data = _encode_floats(data_id, [float(v) for v in value])
     elif isinstance(value, UtcTime):

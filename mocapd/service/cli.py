@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Sequence
 
@@ -10,10 +11,36 @@ from mocapd import __version__
 from mocapd.service import cmd_imu
 
 
+def _cmd_bench_solver(args: argparse.Namespace) -> int:
+    from mocapd.service import bench_solver
+
+    print(json.dumps(bench_solver.run(frames=args.frames, scipy_frames=args.scipy_frames, seed=args.seed), indent=2))
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from mocapd.service import demo_solver
+
+    return demo_solver.run(seconds=args.seconds)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="mocapd", description=__doc__)
+    parser = argparse.ArgumentParser(prog="mocapd", description="Real-time multi-person motion capture daemon.")
     parser.add_argument("--version", action="version", version=f"mocapd {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    demo = sub.add_parser("demo", help="run the live demo on an embedded default rig (no hardware needed)")
+    demo.add_argument("--seconds", type=float, default=10.0, help="how long to run (default 10)")
+    demo.set_defaults(func=_cmd_demo)
+
+    bench = sub.add_parser("bench", help="benchmarks that print JSON")
+    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    solver = bench_sub.add_parser("solver", help="per-frame solver cost (issue: kinematic core)")
+    solver.add_argument("--frames", type=int, default=600, help="frames per configuration (default 600)")
+    solver.add_argument("--scipy-frames", type=int, default=30, help="frames for the scipy baseline (default 30)")
+    solver.add_argument("--seed", type=int, default=0)
+    solver.set_defaults(func=_cmd_bench_solver)
+
     cmd_imu.register(sub)
     return parser
 
@@ -24,8 +51,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    func = getattr(args, "func", None)
-    return int(func(args)) if func is not None else 0
+    result: int = args.func(args)
+    return result
 
 
 if __name__ == "__main__":

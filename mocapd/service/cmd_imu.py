@@ -39,9 +39,7 @@ def register(subparsers: Any) -> None:
     """Add ``calibrate imu`` to the CLI's subcommands."""
     group = _subcommand_group(subparsers, "calibrate", "calibration procedures", "calibrate_what")
     p = group.add_parser("imu", help="T-pose calibration of the IMU mountings (writes <person>.imu.json)")
-    p.add_argument(
-        "--config", type=Path, default=Path("config.toml"), help="config file with an [imu] section"
-    )
+    p.add_argument("--config", type=Path, default=Path("config.toml"), help="config file with an [imu] section")
     p.add_argument("--person", required=True, help="name of the subject (file name of the calibration)")
     facing = p.add_mutually_exclusive_group(required=True)
     facing.add_argument(
@@ -54,9 +52,7 @@ def register(subparsers: Any) -> None:
         metavar="SENSOR:AXIS",
         help="derive the heading from a sensor axis known to point forward, e.g. 00B421E6:-z",
     )
-    p.add_argument(
-        "--world-heading", choices=("subject", "north"), default="subject", help="what world +Z is"
-    )
+    p.add_argument("--world-heading", choices=("subject", "north"), default="subject", help="what world +Z is")
     p.add_argument("--seconds", type=float, default=3.0, help="recording length (s)")
     p.add_argument("--window", type=float, default=1.0, help="still window searched in the recording (s)")
     p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")

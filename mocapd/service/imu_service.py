@@ -136,9 +136,5 @@ class ImuInputs:
                 out.append(BoneSample(bone, sid, r.status, None))
                 continue
             q_i = stream.buffer.field(r.row, "quat")
-            out.append(
-                BoneSample(
-                    bone, sid, r.status, bone_orientation(calibration.q_ig, q_i, calibration.q_ib[sid])
-                )
-            )
+            out.append(BoneSample(bone, sid, r.status, bone_orientation(calibration.q_ig, q_i, calibration.q_ib[sid])))
         return out

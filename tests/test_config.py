@@ -1,0 +1,88 @@
+"""config.toml: the shipped file is complete and loads to the defaults; bad keys and values are named."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import fields
+from pathlib import Path
+
+import pytest
+
+from mocapd.core.loss import CauchyLoss, HuberLoss
+from mocapd.core.solver import TERM_NAMES, LMOptions
+from mocapd.core.terms import CostOptions
+from mocapd.errors import ConfigError
+from mocapd.service.config import DEFAULT_CONFIG, load_config, parse_config
+
+
+def test_shipped_config_equals_the_defaults() -> None:
+    cfg = load_config()
+    assert cfg.solver.cost == CostOptions()
+    assert cfg.solver.lm == LMOptions()
+    assert cfg.solver.backend == "compiled"
+
+
+def test_shipped_config_documents_every_solver_option() -> None:
+    data = tomllib.loads(DEFAULT_CONFIG.read_text(encoding="utf-8"))
+    solver = data["solver"]
+    assert set(solver["lm"]) == {f.name for f in fields(LMOptions)}
+    assert set(solver["terms"]) == set(TERM_NAMES)
+    for term in TERM_NAMES:
+        assert {"enabled", "weight", "loss"} <= set(solver["terms"][term])
+    for key, line in (
+        (k, ln)
+        for ln in DEFAULT_CONFIG.read_text(encoding="utf-8").splitlines()
+        for k in solver["lm"]
+        if ln.startswith(f"{k} =")
+    ):
+        assert "#" in line, f"solver.lm.{key} has no comment"
+
+
+def test_overrides_are_applied(tmp_path: Path) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text(
+        '[solver]\nbackend = "numpy"\n[solver.terms.position]\nweight = 2e-3\nloss = "huber"\nloss_scale = 3.0\n'
+        "[solver.terms.floor]\nenabled = false\n[solver.lm]\nmax_iterations = 7\n",
+        encoding="utf-8",
+    )
+    cfg = load_config(p)
+    assert cfg.solver.backend == "numpy"
+    assert cfg.solver.cost.lambda_position == 2e-3
+    assert cfg.solver.cost.loss_position == HuberLoss(3.0)
+    assert cfg.solver.cost.loss_acceleration == CauchyLoss(1.0)
+    assert cfg.solver.cost.use_floor is False
+    assert cfg.solver.lm.max_iterations == 7
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"solvr": {}}, r"unknown section\(s\) \['solvr'\]"),
+        ({"solver": {"backend": "gpu"}}, r"solver.backend = 'gpu'; allowed: \['compiled', 'numpy'\]"),
+        (
+            {"solver": {"terms": {"position": {"wieght": 1}}}},
+            r"unknown key\(s\) \['wieght'\] in \[solver.terms.position\]",
+        ),
+        (
+            {"solver": {"terms": {"position": {"weight": -1}}}},
+            r"solver.terms.position.weight = -1; allowed: a number >= 0",
+        ),
+        ({"solver": {"terms": {"floor": {"loss": "l1"}}}}, r"solver.terms.floor.loss = 'l1'"),
+        ({"solver": {"terms": {"floor": {"enabled": "yes"}}}}, r"enabled = 'yes'; allowed: true or false"),
+        ({"solver": {"lm": {"max_iterations": 0}}}, r"solver.lm.max_iterations = 0; allowed: an integer >= 1"),
+        ({"solver": {"lm": {"function_tolerance": "small"}}}, r"solver.lm.function_tolerance = 'small'"),
+        ({"solver": {"terms": []}}, r"solver.terms must be a table"),
+    ],
+)
+def test_bad_config_is_rejected_with_the_key(data: dict[str, object], message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        parse_config(data)
+
+
+def test_missing_or_broken_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[solver\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
