@@ -9,6 +9,8 @@ Prints one JSON object:
   sends it; the median of ``--repeats`` runs, fed in 4 KiB chunks. ``baseline_slices_per_s`` is a plain
   Python loop that only slices the same stream message by message, measured in the same process, so that
   results from different machines can be compared as ratios. ``target`` is the issue's 20 000 messages/s.
+- ``path_cost``: CPU time per sample of the in-process streaming path (Xbus session decode, clock map,
+  ring-buffer push) without any I/O or scheduling: what one sample costs the reader.
 - ``latency``: ``--sensors`` simulated devices (a separate process, ``tools/xsens_sim.py``) stream at
   ``--rate`` Hz through real ptys into mocapd's serial path (pyserial + asyncio), the bring-up session, the
   clock map and the ring buffers; the latency of a sample is the monotonic time after its ring-buffer push
@@ -191,6 +193,36 @@ def latency_bench(sensors: int, rate: int, seconds: float) -> dict[str, object]:
     }
 
 
+def path_cost_bench(repeats: int) -> dict[str, object]:
+    """CPU cost per sample of the in-process path (session decode + clock map + ring buffer), no I/O."""
+    from mocapd.protocols.xsens_session import Sample, State, XsensSession, output_settings
+
+    stream = _mocapd_stream(2000)
+    per_sample = []
+    for _ in range(repeats):
+        session = XsensSession(output_settings(120))
+        session.state = State.MEASURING  # skip the bring-up handshake: only the streaming path is timed
+        ingest = ImuIngest()
+        host = 0
+        t0 = time.perf_counter()
+        for i in range(0, len(stream), 51):
+            host += 8_333_333
+            session.receive_data(stream[i : i + 51], host)
+            for ev in session.events_received():
+                if isinstance(ev, Sample):
+                    d = ev.data
+                    ingest.add(
+                        "s",
+                        host,
+                        device_ticks=d.sample_time_fine,
+                        packet_counter=d.packet_counter,
+                        quat=d.quaternion,
+                        acc=d.acceleration,
+                    )
+        per_sample.append((time.perf_counter() - t0) / 2000 * 1e6)
+    return {"per_sample_us": round(statistics.median(per_sample), 2), "samples": 2000}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=5)
@@ -203,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         "python": sys.version.split()[0],
         "cpu_count": os.cpu_count(),
         "parser": parser_bench(args.repeats),
+        "path_cost": path_cost_bench(args.repeats),
         "latency": latency_bench(args.sensors, args.rate, args.seconds),
     }
     print(json.dumps(result, indent=2))
