@@ -230,14 +230,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=int, default=120)
     ap.add_argument("--seconds", type=float, default=5.0)
     args = ap.parse_args(argv)
+    load_before = os.getloadavg()[0]
     result = {
         "bench": "xbus",
         "python": sys.version.split()[0],
         "cpu_count": os.cpu_count(),
+        "loadavg_1min_before": round(load_before, 2),
         "parser": parser_bench(args.repeats),
         "path_cost": path_cost_bench(args.repeats),
         "latency": latency_bench(args.sensors, args.rate, args.seconds),
     }
+    result["loadavg_1min_after"] = round(os.getloadavg()[0], 2)  # the machine is shared: say how busy it was
     print(json.dumps(result, indent=2))
     return 0
 
