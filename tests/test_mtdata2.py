@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mocapd.protocols.mtdata2 import (
@@ -218,6 +218,7 @@ def test_negative_fixed_point_values() -> None:
         assert item.value == values
 
 
+@settings(deadline=None)  # the machine is shared: no per-example wall-clock limit
 @given(st.binary(max_size=300))
 def test_decode_never_raises_on_arbitrary_payloads(payload: bytes) -> None:
     packet = decode_mtdata2(payload)
