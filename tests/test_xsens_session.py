@@ -11,6 +11,7 @@ from mocapd.protocols.xbus import MID
 from mocapd.protocols.xsens_session import (
     BringUpFailed,
     DeviceReportedError,
+    DeviceReportedWarning,
     Sample,
     State,
     Streaming,
@@ -105,6 +106,17 @@ def test_device_error_reply_is_reported_and_retried() -> None:
     failed = session.events_received()[-1]
     assert isinstance(failed, BringUpFailed)
     assert failed.reason == "ReqDID failed after 2 attempts: device error 0x04 (message sent is invalid)"
+
+
+def test_warnings_are_reported_without_stopping_the_stream() -> None:
+    session = XsensSession(output_settings(100))
+    session.state = State.MEASURING
+    session.receive_data(xbus.encode(MID.WARNING, (0x42).to_bytes(4, "big") + b"low battery"), 0)
+    (ev,) = session.events_received()
+    assert isinstance(ev, DeviceReportedWarning)
+    assert ev.warning == xbus.XbusWarning(0x42, "low battery")
+    assert session.counters.device_warnings == 1 and session.state is State.MEASURING
+    assert xbus.decode_warning(b"\x01").code == -1
 
 
 def test_rate_outside_60_to_120_is_a_config_error() -> None:

@@ -31,6 +31,7 @@ from mocapd.protocols.xsens_session import (
     BringUpFailed,
     DeviceInfo,
     DeviceReportedError,
+    DeviceReportedWarning,
     Sample,
     State,
     Streaming,
@@ -287,6 +288,8 @@ class XsensSerialDevice:
                 )
             elif isinstance(ev, DeviceReportedError):
                 self.stats.device_errors.append(f"0x{ev.report.code:02X} {ev.report.description}")
+            elif isinstance(ev, DeviceReportedWarning):
+                log.warning("imu %s: device warning %d %s", self.config.path, ev.warning.code, ev.warning.text)
             elif isinstance(ev, BringUpFailed):
                 failure.append(ev.reason)
 

@@ -301,6 +301,21 @@ class XbusErrorReport:
     extra: bytes = field(default=b"")
 
 
+@dataclass(frozen=True, slots=True)
+class XbusWarning:
+    """A decoded WARNING message: a 32-bit code and optional text."""
+
+    code: int
+    text: str
+
+
+def decode_warning(payload: bytes) -> XbusWarning:
+    """Decode a WARNING payload (uint32 code + optional ASCII text); a short payload gives code -1."""
+    if len(payload) < 4:
+        return XbusWarning(-1, payload.hex())
+    return XbusWarning(int.from_bytes(payload[:4], "big"), payload[4:].decode("ascii", errors="replace").rstrip("\x00"))
+
+
 def decode_error(payload: bytes) -> XbusErrorReport:
     """Decode an ERROR payload; an empty payload gives code -1 rather than raising."""
     if not payload:

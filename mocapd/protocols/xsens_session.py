@@ -97,13 +97,20 @@ class DeviceReportedError:
 
 
 @dataclass(frozen=True, slots=True)
+class DeviceReportedWarning:
+    """The device sent a Warning message (streaming continues)."""
+
+    warning: xbus.XbusWarning
+
+
+@dataclass(frozen=True, slots=True)
 class BringUpFailed:
     """Bring-up gave up; ``reason`` names the step and what went wrong."""
 
     reason: str
 
 
-Event = Streaming | Sample | DeviceReportedError | BringUpFailed
+Event = Streaming | Sample | DeviceReportedError | DeviceReportedWarning | BringUpFailed
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,6 +147,7 @@ class SessionCounters:
     samples: int = 0
     retries: int = 0
     device_errors: int = 0
+    device_warnings: int = 0
     ignored_messages: int = 0
     unknown_data_ids: int = 0
     malformed_packets: int = 0
@@ -253,6 +261,10 @@ class XsensSession:
             return
         if mid == MID.WAKE_UP:
             self._out += xbus.encode(MID.WAKE_UP_ACK)
+            return
+        if mid == MID.WARNING:
+            self.counters.device_warnings += 1
+            self._events.append(DeviceReportedWarning(xbus.decode_warning(msg.payload)))
             return
         if mid == MID.ERROR:
             report = xbus.decode_error(msg.payload)
