@@ -64,6 +64,7 @@ def register(subparsers: Any) -> None:
 async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> dict[str, list[ImuSample]]:
     """Stream from every configured input until each assigned sensor delivered ``seconds`` of samples."""
     samples: dict[str, list[ImuSample]] = {}
+    seen: set[str] = set()
     recording = False
 
     def on_sample(s: ImuSample) -> None:
@@ -72,7 +73,6 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
         else:
             seen.add(s.sensor)
 
-    seen: set[str] = set()
     devices = [XsensSerialDevice(p, on_sample) for p in config.ports]
     tasks = [asyncio.create_task(d.run()) for d in devices]
     bridge = ImuBridgeListener(on_sample, host=config.bridge.host, port=config.bridge.port)
