@@ -192,3 +192,25 @@ async def test_stop_interrupts_the_back_off(tmp_path: Path) -> None:
     dev.stop()
     await asyncio.wait_for(task, timeout=5.0)  # far shorter than the 30 s back-off it was sleeping
     assert "cannot open serial port" in (dev.last_error or "")
+
+
+@pytest.mark.asyncio
+async def test_immediate_replug_on_reused_descriptors(tmp_path: Path) -> None:
+    """Unplug and replug back to back: the new pty usually gets the old descriptor numbers."""
+    sim = xsens_sim.XsensSimulator(tmp_path / "imu", xsens_sim.SimDevice(xsens_sim.synthetic_motion())).start()
+    samples: list[ImuSample] = []
+    dev = XsensSerialDevice(XsensPortConfig(str(sim.link), reconnect_min_s=0.05), samples.append)
+    task = asyncio.create_task(dev.run())
+    try:
+        await _until(lambda: len(samples) >= 5)
+        for cycle in range(1, 4):
+            sim.unplug()
+            sim.replug()
+            await _until(lambda c=cycle: dev.stats.connects == c + 1 and dev.streaming.is_set())  # type: ignore[misc]
+            before = len(samples)
+            await _until(lambda b=before: len(samples) >= b + 5)  # type: ignore[misc]
+        assert sim.generation == 4 and dev.stats.disconnects == 3
+    finally:
+        dev.stop()
+        await task
+        sim.stop()

@@ -368,17 +368,21 @@ class SimStation(SimDevice):
 
 
 class XsensSimulator:
-    """One simulated device on a pty, reachable at ``link`` (a symlink to the slave end), run in a thread."""
+    """One simulated device on a pty, reachable at ``link`` (a symlink to the slave end).
+
+    ``start()`` runs it in its own :class:`SimulatorLoop`; several simulators can share one loop (one thread,
+    one selector), which is what the command line does.
+    """
 
     def __init__(self, link: Path, device: SimDevice) -> None:
         self.link = Path(link)
         self.device = device
         self._master = -1
         self._slave = -1
+        self.generation = 0  # incremented on every plug: a new pty may reuse the old descriptor numbers
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._wake_r, self._wake_w = os.pipe()
+        self._loop: SimulatorLoop | None = None
+        self._own_loop = False
         self.plugged = False
 
     # -- plug / unplug
@@ -394,8 +398,9 @@ class XsensSimulator:
             tmp.symlink_to(os.ttyname(slave))
             tmp.replace(self.link)
             self._master, self._slave = master, slave
+            self.generation += 1
             self.plugged = True
-        os.write(self._wake_w, b"p")
+        self._wake()
 
     def unplug(self) -> None:
         """Remove the link and close the pty: the host's reads fail like on a USB unplug."""
@@ -411,73 +416,53 @@ class XsensSimulator:
             # A re-powered device comes back streaming its stored configuration.
             self.device.measuring = True
             self.device._next_ns = None
-        os.write(self._wake_w, b"u")
+        self._wake()
 
     def replug(self) -> None:
+        """Plug in again and announce power-up with WakeUp, like a device after a USB re-plug."""
         self.plug()
         with self._lock:
             self._write(xbus.encode(MID.WAKE_UP))
 
-    # -- thread
+    def _wake(self) -> None:
+        if self._loop is not None:
+            self._loop.wake()
+
+    # -- running
     def start(self) -> XsensSimulator:
-        self.plug()
-        self._thread = threading.Thread(target=self._run, name=f"xsens-sim-{self.link.name}", daemon=True)
-        self._thread.start()
+        """Plug in and run in a loop of its own (a thread)."""
+        self._own_loop = True
+        SimulatorLoop([self]).start()
         return self
 
     def stop(self) -> None:
-        self._stop.set()
-        os.write(self._wake_w, b"s")
-        if self._thread is not None:
-            self._thread.join(timeout=5)
+        """Stop its own loop (if :meth:`start` made one) and unplug."""
+        if self._own_loop and self._loop is not None:
+            self._loop.stop()
         self.unplug()
-        os.close(self._wake_r)
-        os.close(self._wake_w)
 
-    def _write(self, data: bytes) -> None:
-        if not data or self._master < 0:
-            return
-        try:
-            os.write(self._master, data)
-        except BlockingIOError:
-            self.device.stats.overflowed += 1  # nobody is reading: the pty buffer is full, like a real UART
-        except OSError:
-            self.device.stats.overflowed += 1
+    def poll_fd(self) -> tuple[int, int]:
+        """(master descriptor or -1, plug generation) for the loop's selector."""
+        with self._lock:
+            return self._master, self.generation
 
-    def _run(self) -> None:
-        sel = selectors.DefaultSelector()
-        sel.register(self._wake_r, selectors.EVENT_READ)
-        registered = -1
-        while not self._stop.is_set():
-            with self._lock:
-                master = self._master
-            if master != registered:
-                if registered >= 0:
-                    with contextlib.suppress(KeyError, ValueError):
-                        sel.unregister(registered)
-                if master >= 0:
-                    sel.register(master, selectors.EVENT_READ)
-                registered = master
-            now = time.monotonic_ns()
-            due = self.device.due_ns(now) if master >= 0 else None
-            timeout = 0.05 if due is None else max(0.0, (due - now) / 1e9)
-            for key, _ in sel.select(timeout):
-                if key.fd == self._wake_r:
-                    os.read(self._wake_r, 64)
-                    continue
-                self._read_host(key.fd)
-            now = time.monotonic_ns()
-            with self._lock:
-                due = self.device.due_ns(now) if self._master >= 0 else None
-                while due is not None and due <= now:
-                    counter = (self.device.counter + 1) & 0xFFFF
-                    data = self.device.next_message(now)
-                    self.device.write_times[counter] = time.monotonic_ns()
-                    self._write(data)
-                    due = self.device.due_ns(now)
-        sel.close()
+    def due_ns(self, now_ns: int) -> int | None:
+        with self._lock:
+            return self.device.due_ns(now_ns) if self._master >= 0 else None
 
-    def _read_host(self, fd: int) -> None:
+    def emit_due(self, now_ns: int) -> None:
+        """Write every sample that is due (several if the loop fell behind, like a device's UART buffer)."""
+        with self._lock:
+            due = self.device.due_ns(now_ns) if self._master >= 0 else None
+            while due is not None and due <= now_ns:
+                counter = (self.device.counter + 1) & 0xFFFF
+                data = self.device.next_message(now_ns)
+                self._write(data)
+                self.device.write_times[counter] = time.monotonic_ns()
+                due = self.device.due_ns(now_ns)
+
+    def read_host(self, fd: int) -> None:
+        """Answer what the host wrote (called by the loop when the master end is readable)."""
         with self._lock:
             if fd != self._master:
                 return
@@ -488,8 +473,80 @@ class XsensSimulator:
             except OSError:
                 # EIO: no process has the slave open any more (we keep it open, so this is rare).
                 return
-            reply = self.device.receive(data, time.monotonic_ns())
-            self._write(reply)
+            self._write(self.device.receive(data, time.monotonic_ns()))
+
+    def _write(self, data: bytes) -> None:
+        if not data or self._master < 0:
+            return
+        try:
+            os.write(self._master, data)
+        except OSError:
+            # Full pty buffer (nobody reading, like a real UART) or a closing pty: the bytes are lost.
+            self.device.stats.overflowed += 1
+
+
+class SimulatorLoop:
+    """Runs several simulators in one thread: one selector over their pty masters, one sample scheduler."""
+
+    def __init__(self, sims: list[XsensSimulator]) -> None:
+        self.sims = sims
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        for sim in sims:
+            sim._loop = self
+
+    def start(self) -> SimulatorLoop:
+        for sim in self.sims:
+            if not sim.plugged:
+                sim.plug()
+        self._thread = threading.Thread(target=self._run, name="xsens-sim", daemon=True)
+        self._thread.start()
+        return self
+
+    def wake(self) -> None:
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"w")
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.wake()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        for sim in self.sims:
+            sim._loop = None
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+
+    def _run(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self._wake_r, selectors.EVENT_READ, None)
+        registered: dict[int, tuple[int, int]] = {}  # sim index -> (fd, generation)
+        while not self._stop.is_set():
+            for k, sim in enumerate(self.sims):
+                fd, gen = sim.poll_fd()
+                old = registered.get(k, (-1, -1))
+                if (fd, gen) != old:
+                    if old[0] >= 0:
+                        with contextlib.suppress(KeyError, ValueError, OSError):
+                            sel.unregister(old[0])
+                    if fd >= 0:
+                        sel.register(fd, selectors.EVENT_READ, sim)
+                    registered[k] = (fd, gen)
+            now = time.monotonic_ns()
+            dues = [d for sim in self.sims if (d := sim.due_ns(now)) is not None]
+            timeout = 0.05 if not dues else max(0.0, (min(dues) - now) / 1e9)
+            for key, _ in sel.select(timeout):
+                if key.data is None:
+                    with contextlib.suppress(BlockingIOError):
+                        os.read(self._wake_r, 4096)
+                else:
+                    key.data.read_host(key.fd)
+            now = time.monotonic_ns()
+            for sim in self.sims:
+                sim.emit_due(now)
+        sel.close()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -507,8 +564,10 @@ def main(argv: list[str] | None = None) -> int:
     for k, link in enumerate(args.link):
         motion = load_opensense(args.motion[k]) if k < len(args.motion) else synthetic_motion(device_id=0xB40000 + k)
         faults = Faults(args.garbage, args.bad_checksum, args.dropout, args.seed + k)
-        sims.append(XsensSimulator(link, SimDevice(motion, faults=faults)).start())
-        print(f"{link} -> {os.readlink(link)} (device {motion.device_id:08X})", flush=True)
+        sims.append(XsensSimulator(link, SimDevice(motion, faults=faults)))
+    loop = SimulatorLoop(sims).start()
+    for sim in sims:
+        print(f"{sim.link} -> {os.readlink(sim.link)} (device {sim.device.motion.device_id:08X})", flush=True)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
@@ -521,8 +580,9 @@ def main(argv: list[str] | None = None) -> int:
                     sim.replug()
     except KeyboardInterrupt:
         pass
+    loop.stop()
     for sim in sims:
-        sim.stop()
+        sim.unplug()
     if args.write_log:
         log = {f"{s.device.motion.device_id:08X}": s.device.write_times for s in sims}
         args.write_log.write_text(json.dumps(log))
