@@ -14,7 +14,7 @@ Prints one JSON object:
 - ``latency``: ``--sensors`` simulated devices (a separate process, ``tools/xsens_sim.py``) stream at
   ``--rate`` Hz through real ptys into mocapd's serial path (pyserial + asyncio), the bring-up session, the
   clock map and the ring buffers; the latency of a sample is the monotonic time after its ring-buffer push
-  minus the simulator's monotonic time just after its ``write()``. Median, 95th percentile and max, ms.
+  minus the simulator's monotonic time just before its ``write()``. Median, 95th percentile and max, ms.
 
 Usage: ``python tools/bench_xbus.py [--sensors 13] [--rate 120] [--seconds 5]``
 """

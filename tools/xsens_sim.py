@@ -171,8 +171,9 @@ class SimDevice:
         self._next_ns: int | None = None
         self._ticks0 = int(self.rng.integers(0, 1 << 31))
         self._start_ns = 0
-        #: monotonic write time per packet counter (the benchmark reads it)
+        #: monotonic time just before the write, per packet counter (the benchmark reads it)
         self.write_times: dict[int, int] = {}
+        self._packet_cache: dict[tuple[int, int], bytes] = {}
 
     @property
     def rate_hz(self) -> int:
@@ -278,6 +279,14 @@ class SimDevice:
         }
         if kind in counters:
             return encode_packet(data_id, counters[kind])
+        # Motion packets depend only on (output, row): encode each once, the motion repeats in a loop.
+        key = (data_id, i)
+        cached = self._packet_cache.get(key)
+        if cached is None:
+            cached = self._packet_cache[key] = self._motion_packet(data_id, kind, i)
+        return cached
+
+    def _motion_packet(self, data_id: int, kind: int, i: int) -> bytes:
         if kind == DataId.ACCELERATION:
             return encode_packet(data_id, tuple(self.motion.acc[i]))
         rot = _FRAME_FROM_ENU[CoordFrame(data_id & 0x0C)] @ matrix_from_quat(self.motion.quat[i])
@@ -457,8 +466,8 @@ class XsensSimulator:
             while due is not None and due <= now_ns:
                 counter = (self.device.counter + 1) & 0xFFFF
                 data = self.device.next_message(now_ns)
-                self._write(data)
                 self.device.write_times[counter] = time.monotonic_ns()
+                self._write(data)
                 due = self.device.due_ns(now_ns)
 
     def read_host(self, fd: int) -> None:
