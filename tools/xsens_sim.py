@@ -174,6 +174,7 @@ class SimDevice:
         #: monotonic time just before the write, per packet counter (the benchmark reads it)
         self.write_times: dict[int, int] = {}
         self._packet_cache: dict[tuple[int, int], bytes] = {}
+        self._frames: dict[CoordFrame, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
 
     @property
     def rate_hz(self) -> int:
@@ -288,15 +289,26 @@ class SimDevice:
 
     def _motion_packet(self, data_id: int, kind: int, i: int) -> bytes:
         if kind == DataId.ACCELERATION:
-            return encode_packet(data_id, tuple(self.motion.acc[i]))
-        rot = _FRAME_FROM_ENU[CoordFrame(data_id & 0x0C)] @ matrix_from_quat(self.motion.quat[i])
+            return encode_packet(data_id, tuple(self.motion.acc[i].tolist()))
+        quats, mats = self._in_frame(CoordFrame(data_id & 0x0C))
         if kind == DataId.QUATERNION:
-            value = tuple(quat_normalize(quat_from_matrix(rot)))
+            value = tuple(quats[i].tolist())
         elif kind == DataId.ROTATION_MATRIX:
-            value = tuple(rot.T.reshape(-1))  # Xsens sends the matrix column-major
+            value = tuple(mats[i].T.reshape(-1).tolist())  # Xsens sends the matrix column-major
         else:
-            value = tuple(np.degrees(_euler_xyz(rot)))
+            value = tuple(np.degrees(_euler_xyz(mats[i])).tolist())
         return encode_packet(data_id, value)
+
+    def _in_frame(self, frame: CoordFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The whole motion's orientations in a device frame, as quaternions (n, 4) and matrices (n, 3, 3).
+
+        Computed once per frame, vectorised: per-sample conversions cost more than the rest of the simulator.
+        """
+        cached = self._frames.get(frame)
+        if cached is None:
+            mats = _FRAME_FROM_ENU[frame] @ matrix_from_quat(self.motion.quat)
+            cached = self._frames[frame] = (quat_normalize(quat_from_matrix(mats)), mats)
+        return cached
 
 
 def _euler_xyz(rot: NDArray[np.float64]) -> NDArray[np.float64]:
