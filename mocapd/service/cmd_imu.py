@@ -23,7 +23,8 @@ from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sen
 from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
 from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
-from mocapd.service.imu_config import ImuConfig, load_imu_config
+from mocapd.service.config import load_config
+from mocapd.service.imu_config import ImuConfig
 
 
 def _subcommand_group(subparsers: Any, name: str, help_text: str, dest: str) -> Any:
@@ -103,7 +104,7 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
 def run_calibrate(args: argparse.Namespace) -> int:
     """Entry point of ``mocapd calibrate imu``; returns the process exit status."""
     try:
-        config = load_imu_config(args.config)
+        config = load_config(args.config).imu  # validates the whole file, like the daemon
         if args.port:
             base = config.ports[0] if config.ports else XsensPortConfig(path="")
             ports = tuple(XsensPortConfig(**{**_fields(base), "path": p}) for p in args.port)

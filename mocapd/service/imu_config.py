@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from pathlib import Path
 from typing import Any
 
 from mocapd.core.imu_calibration import parse_assignment
@@ -83,12 +81,3 @@ def parse_imu_config(table: Mapping[str, Any]) -> ImuConfig:
         bridge=bridge,
         awinda=awinda,
     )
-
-
-def load_imu_config(path: Path) -> ImuConfig:
-    """Read config.toml and parse its ``[imu]`` section (defaults when absent)."""
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"cannot read {path}: {exc}") from exc
-    return parse_imu_config(data.get("imu", {}))
