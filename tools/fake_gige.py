@@ -168,7 +168,7 @@ class FakeGigECamera:
             self.errors += 1  # a pixel format we cannot produce: the client gets the buffer as it was
 
     def close(self) -> None:
-        self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, ctypes.cast(None, _FILL), None)
+        self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, _FILL(), None)  # NULL callback
         self._gv = None
 
 

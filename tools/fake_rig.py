@@ -243,12 +243,12 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
         asyncio.run(main())
         wall = time.monotonic() - wall0
         process_cpu = time.process_time() - cpu0
-        server_cpu = [(cpu_seconds(s.pid) - c) / wall for s, c in zip(servers, server_cpu0, strict=True)]
+        server_cpu = [(cpu_seconds(p.pid) - c) / wall for p, c in zip(servers, server_cpu0, strict=True)]
     finally:
-        for s in servers:
-            s.terminate()
-        for s in servers:
-            s.wait(timeout=10)
+        for proc in servers:
+            proc.terminate()
+        for proc in servers:
+            proc.wait(timeout=10)
     cameras = []
     for s, c in zip(sources, checks, strict=True):
         lat, conv = s.latency.recent(), s.convert.recent()

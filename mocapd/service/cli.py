@@ -8,7 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
-from mocapd.service import cmd_calibrate
+from mocapd.service import cmd_calibrate, cmd_imu
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -66,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     tracking.set_defaults(func=_cmd_eval_tracking)
 
     cmd_calibrate.register(sub)
+    cmd_imu.register(sub)  # adds "imu" to the calibrate group
     return parser
 
 

@@ -16,6 +16,7 @@ from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss
 from mocapd.core.solver import TERM_NAMES, LMOptions
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
+from mocapd.service.imu_config import ImuConfig, parse_imu_config
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
 
@@ -36,11 +37,12 @@ class SolverConfig:
 @dataclass(frozen=True)
 class Config:
     solver: SolverConfig = field(default_factory=SolverConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole parsed file, for sections whose loaders live elsewhere."""
 
 
-KNOWN_SECTIONS = {"solver"}
+KNOWN_SECTIONS = {"solver", "imu"}
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -60,7 +62,7 @@ def parse_config(data: dict[str, Any]) -> Config:
     unknown = set(data) - KNOWN_SECTIONS
     if unknown:
         raise ConfigError(f"unknown section(s) {sorted(unknown)}; allowed: {sorted(KNOWN_SECTIONS)}")
-    return Config(solver=_parse_solver(_table(data, "solver")), raw=data)
+    return Config(solver=_parse_solver(_table(data, "solver")), imu=parse_imu_config(_table(data, "imu")), raw=data)
 
 
 def _table(data: dict[str, Any], key: str, prefix: str = "") -> dict[str, Any]:
