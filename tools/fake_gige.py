@@ -172,6 +172,19 @@ class FakeGigECamera:
         self._gv = None
 
 
+def server_command(
+    video: Path | str, address: str, max_frames: int, prepare: str, serial: str | None = None, size: str | None = None
+) -> list[str]:
+    """The command line that runs one fake camera server (this module) in its own process."""
+    cmd = [sys.executable, "-m", "tools.fake_gige", "--video", str(video), "--address", address,
+           "--max-frames", str(max_frames), "--prepare", prepare]  # fmt: skip
+    if serial is not None:
+        cmd += ["--serial", serial]
+    if size is not None:
+        cmd += ["--size", size]
+    return cmd
+
+
 def add_loopback_aliases(n: int) -> list[str]:
     """Bring lo up and give it the addresses 127.0.0.1 .. 127.0.0.n (inside a private network namespace!).
 
