@@ -7,12 +7,14 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
+from mocapd.service import cmd_model
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mocapd", description=__doc__)
     parser.add_argument("--version", action="version", version=f"mocapd {__version__}")
-    parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    cmd_model.register(sub)
     return parser
 
 
@@ -22,7 +24,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    return 0
+    func = getattr(args, "func", None)
+    return int(func(args)) if func is not None else 0
 
 
 if __name__ == "__main__":

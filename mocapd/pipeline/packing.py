@@ -1,0 +1,195 @@
+"""Packed multi-camera detection: ROIs of several cameras (and frames) on shared detector images.
+
+:class:`PackedDetector` keeps, per camera, the ROIs around the people it found last time (seed 000 §3.3.1),
+plans canvases with :func:`mocapd.core.roi_packing.plan_canvases`, copies the ROIs into them, runs the
+detector once per canvas and maps every detection back to its camera and frame. A camera that found nobody
+looks at its whole frame again on the next call.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mocapd.core.pose2d import FloatArray, PoseDetections
+from mocapd.core.pose2d import letterbox_geometry
+from mocapd.core.roi_packing import (
+    AlignedRoi,
+    Packing,
+    Roi,
+    full_roi,
+    plan_aligned_canvases,
+    plan_canvases,
+    rois_from_boxes,
+    unpack_detections,
+)
+from mocapd.errors import InputError
+from mocapd.pipeline.detector import Image, OnnxPoseDetector
+from mocapd.pipeline.detector_config import PackingConfig
+
+
+@dataclass
+class PackingStats:
+    """Counters since construction."""
+
+    calls: int = 0
+    canvases: int = 0
+    camera_frames: int = 0
+    tiles: int = 0
+    full_frame_tiles: int = 0
+
+
+def _box_area(b: FloatArray) -> float:
+    return float(max(b[2] - b[0], 0.0) * max(b[3] - b[1], 0.0))
+
+
+def _intersection(a: FloatArray, b: FloatArray) -> float:
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    return float(max(w, 0.0) * max(h, 0.0))
+
+
+def render_canvas(packing: Packing, images: Sequence[Image], pad_value: int) -> Image:
+    """Copy every tile's ROI of ``images[tile.index]`` into a fresh ``(H, W, 3)`` canvas.
+
+    Bilinear sampling with pixel centres at ``i + 0.5``, like ``cv2.resize`` in the whole-frame letterbox,
+    so that a tile at the letterbox's scale and phase holds the letterbox's very pixels.
+    """
+    canvas = np.full((packing.canvas_h, packing.canvas_w, 3), pad_value, dtype=np.uint8)
+    for t in packing.tiles:
+        r = t.roi
+        fx, fy = math.floor(t.x), math.floor(t.y)
+        x1 = min(packing.canvas_w, math.ceil(t.x + t.w))
+        y1 = min(packing.canvas_h, math.ceil(t.y + t.h))
+        crop = images[t.index][r.y0 : r.y1, r.x0 : r.x1]
+        m = np.array(
+            [[t.sx, 0.0, t.x - fx + 0.5 * t.sx - 0.5], [0.0, t.sy, t.y - fy + 0.5 * t.sy - 0.5]], dtype=np.float64
+        )
+        canvas[fy:y1, fx:x1] = cv2.warpAffine(
+            crop, m, (x1 - fx, y1 - fy), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+    return canvas
+
+
+class PackedDetector:
+    """Detects people in groups of camera frames through ROI packing.
+
+    Parameters
+    ----------
+    detector : OnnxPoseDetector
+        The model; its input size is the canvas size.
+    image_sizes : sequence of (int, int)
+        (width, height) of each camera's images.
+    cfg : PackingConfig
+        Margin, gap and the minimum scale ratio.
+    """
+
+    def __init__(self, detector: OnnxPoseDetector, image_sizes: Sequence[tuple[int, int]], cfg: PackingConfig) -> None:
+        self.detector = detector
+        self.cfg = cfg
+        self.image_sizes = [(int(w), int(h)) for w, h in image_sizes]
+        self.rois: list[list[Roi]] = [[full_roi(w, h)] for w, h in self.image_sizes]
+        cw, ch = detector.input_size
+        # The scale a whole-frame letterbox pass gives each camera: packing must not go below ratio × that.
+        full_scales = [min(cw / w, ch / h) for w, h in self.image_sizes]
+        self._min_scales = [cfg.min_scale_ratio * s for s in full_scales]
+        # Upper bound of tile scales; never above 1 (no up-sampling).
+        self._max_scale = min(1.0, cfg.max_scale_ratio * max(full_scales))
+        self._letterboxes = [letterbox_geometry(w, h, cw, ch) for w, h in self.image_sizes]
+        self.stats = PackingStats()
+        self.last_packings: list[Packing] = []
+
+    @property
+    def n_cameras(self) -> int:
+        return len(self.image_sizes)
+
+    def reset(self) -> None:
+        """Forget the ROIs: every camera looks at its whole frame next time."""
+        self.rois = [[full_roi(w, h)] for w, h in self.image_sizes]
+
+    def detect(self, frames: Sequence[Sequence[Image]]) -> list[list[PoseDetections]]:
+        """Detect people in ``frames[slot][camera]`` (BGR images), all slots sharing the current ROIs.
+
+        Parameters
+        ----------
+        frames : sequence of sequence of ndarray
+            One or more consecutive frames (slots), each with one image per camera.
+
+        Returns
+        -------
+        list of list of PoseDetections
+            ``[slot][camera]``, in each camera's pixels. The ROIs are then updated from the last slot.
+        """
+        n_kp = self.detector.format.n_keypoints
+        items: list[tuple[int, int, Roi]] = []
+        for slot, cams in enumerate(frames):
+            if len(cams) != self.n_cameras:
+                raise InputError(f"slot {slot} has {len(cams)} images, expected {self.n_cameras} cameras")
+            for cam, img in enumerate(cams):
+                w, h = self.image_sizes[cam]
+                if img.shape[:2] != (h, w):
+                    raise InputError(f"camera {cam} image is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
+                items.extend((slot, cam, roi) for roi in self.rois[cam])
+        rois = [it[2] for it in items]
+        min_scales = [self._min_scales[it[1]] for it in items]
+        images = [frames[it[0]][it[1]] for it in items]
+        cw, ch = self.detector.input_size
+        if self.cfg.align_stride > 0:
+            aligned = []
+            for _, cam, roi in items:
+                lb = self._letterboxes[cam]
+                aligned.append(AlignedRoi(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y))
+            packings = plan_aligned_canvases(aligned, cw, ch, gap=self.cfg.gap, stride=self.cfg.align_stride)
+        else:
+            packings = plan_canvases(rois, min_scales, cw, ch, gap=self.cfg.gap, max_scale=self._max_scale)
+        parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
+        for packing in packings:
+            canvas = render_canvas(packing, images, self.detector.spec.pad_value)
+            found = unpack_detections(self.detector.run_canvas(canvas), packing)
+            for tile, det in zip(packing.tiles, found, strict=True):
+                slot, cam, _ = items[tile.index]
+                parts[slot][cam].append(det)
+        out = [[self._merge(p, n_kp) for p in slot_parts] for slot_parts in parts]
+        self._update_rois(out[-1])
+        self.last_packings = packings
+        self.stats.calls += 1
+        self.stats.canvases += len(packings)
+        self.stats.camera_frames += len(frames) * self.n_cameras
+        self.stats.tiles += len(items)
+        self.stats.full_frame_tiles += sum(
+            1 for _, cam, r in items if (r.width, r.height) == self.image_sizes[cam] and r.x0 == 0 and r.y0 == 0
+        )
+        return out
+
+    def _merge(self, parts: list[PoseDetections], n_kp: int) -> PoseDetections:
+        det = PoseDetections.concatenate(parts, n_kp)
+        if len(parts) <= 1 or len(det) <= 1:
+            return det
+        # Overlapping ROIs of one camera show the same person twice, once maybe cut by a tile edge: drop a
+        # detection from another tile that overlaps a better one, or lies mostly inside it.
+        source = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
+        order = np.argsort(-det.scores, kind="stable")
+        keep: list[int] = []
+        for i in order:
+            dup = False
+            for k in keep:
+                if source[k] == source[i]:
+                    continue
+                inter = _intersection(det.boxes[i], det.boxes[k])
+                small = min(_box_area(det.boxes[i]), _box_area(det.boxes[k]))
+                union = _box_area(det.boxes[i]) + _box_area(det.boxes[k]) - inter
+                if inter > self.detector.spec.iou_threshold * union or inter > 0.8 * small:
+                    dup = True
+                    break
+            if not dup:
+                keep.append(int(i))
+        return det.select(np.asarray(sorted(keep, key=lambda j: -det.scores[j]), dtype=np.int64))
+
+    def _update_rois(self, last: list[PoseDetections]) -> None:
+        for cam, det in enumerate(last):
+            w, h = self.image_sizes[cam]
+            self.rois[cam] = rois_from_boxes(det.boxes, w, h, margin=self.cfg.roi_margin)
