@@ -47,5 +47,5 @@ class DeviceError(MocapdError):
     """A hardware device (camera, IMU, port) failed."""
 
 
-class DeviceTimeout(DeviceError, TimeoutError):
+class DeviceTimeout(DeviceError, TimeoutError):  # noqa: N818 (reads as a state, like TimeoutError)
     """A device did not answer within its time-out."""

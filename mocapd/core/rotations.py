@@ -55,13 +55,13 @@ def quat_identity(shape: tuple[int, ...] = ()) -> FloatArray:
 def quat_normalize(q: FloatArray) -> FloatArray:
     """Unit quaternions, shape (..., 4)."""
     q = np.asarray(q, dtype=np.float64)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True))
 
 
 def quat_conjugate(q: FloatArray) -> FloatArray:
     """Conjugate (= inverse for unit quaternions), shape (..., 4)."""
     q = np.asarray(q, dtype=np.float64)
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
+    return np.asarray(q * np.array([1.0, -1.0, -1.0, -1.0]))
 
 
 def quat_multiply(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -132,26 +132,42 @@ def quat_from_matrix(R: FloatArray) -> FloatArray:
     # Each branch computes all four components from the dominant one; evaluate all, then select.
     s0 = np.sqrt(np.maximum(1.0 + trace, 1e-300)) * 2.0
     b0 = np.stack(
-        (0.25 * s0, (R[..., 2, 1] - R[..., 1, 2]) / s0, (R[..., 0, 2] - R[..., 2, 0]) / s0,
-         (R[..., 1, 0] - R[..., 0, 1]) / s0),
+        (
+            0.25 * s0,
+            (R[..., 2, 1] - R[..., 1, 2]) / s0,
+            (R[..., 0, 2] - R[..., 2, 0]) / s0,
+            (R[..., 1, 0] - R[..., 0, 1]) / s0,
+        ),
         axis=-1,
     )
     s1 = np.sqrt(np.maximum(1.0 + m00 - m11 - m22, 1e-300)) * 2.0
     b1 = np.stack(
-        ((R[..., 2, 1] - R[..., 1, 2]) / s1, 0.25 * s1, (R[..., 0, 1] + R[..., 1, 0]) / s1,
-         (R[..., 0, 2] + R[..., 2, 0]) / s1),
+        (
+            (R[..., 2, 1] - R[..., 1, 2]) / s1,
+            0.25 * s1,
+            (R[..., 0, 1] + R[..., 1, 0]) / s1,
+            (R[..., 0, 2] + R[..., 2, 0]) / s1,
+        ),
         axis=-1,
     )
     s2 = np.sqrt(np.maximum(1.0 + m11 - m00 - m22, 1e-300)) * 2.0
     b2 = np.stack(
-        ((R[..., 0, 2] - R[..., 2, 0]) / s2, (R[..., 0, 1] + R[..., 1, 0]) / s2, 0.25 * s2,
-         (R[..., 1, 2] + R[..., 2, 1]) / s2),
+        (
+            (R[..., 0, 2] - R[..., 2, 0]) / s2,
+            (R[..., 0, 1] + R[..., 1, 0]) / s2,
+            0.25 * s2,
+            (R[..., 1, 2] + R[..., 2, 1]) / s2,
+        ),
         axis=-1,
     )
     s3 = np.sqrt(np.maximum(1.0 + m22 - m00 - m11, 1e-300)) * 2.0
     b3 = np.stack(
-        ((R[..., 1, 0] - R[..., 0, 1]) / s3, (R[..., 0, 2] + R[..., 2, 0]) / s3,
-         (R[..., 1, 2] + R[..., 2, 1]) / s3, 0.25 * s3),
+        (
+            (R[..., 1, 0] - R[..., 0, 1]) / s3,
+            (R[..., 0, 2] + R[..., 2, 0]) / s3,
+            (R[..., 1, 2] + R[..., 2, 1]) / s3,
+            0.25 * s3,
+        ),
         axis=-1,
     )
     c = choice[..., None]
@@ -182,7 +198,7 @@ def rotvec_from_quat(q: FloatArray) -> FloatArray:
     safe = np.where(small, 1.0, s)
     # angle / sin(angle/2) -> 2 / w * (1 + s^2 / (3 w^2)) near zero.
     k = np.where(small, 2.0 / w * (1.0 + s * s / (3.0 * w * w)), angle / safe)
-    return k * v
+    return np.asarray(k * v)
 
 
 def matrix_from_rotvec(r: FloatArray) -> FloatArray:
@@ -195,7 +211,7 @@ def matrix_from_rotvec(r: FloatArray) -> FloatArray:
     a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
     b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
     K = skew(r)
-    return np.eye(3) + a * K + b * (K @ K)
+    return np.asarray(np.eye(3) + a * K + b * (K @ K))
 
 
 def rotvec_from_matrix(R: FloatArray) -> FloatArray:
@@ -228,7 +244,7 @@ def so3_right_jacobian(r: FloatArray) -> FloatArray:
     a = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
     b = np.where(small, 1.0 / 6.0 - theta2 / 120.0, (safe - np.sin(safe)) / (safe * safe * safe))
     K = skew(r)
-    return np.eye(3) - a * K + b * (K @ K)
+    return np.asarray(np.eye(3) - a * K + b * (K @ K))
 
 
 def so3_left_jacobian(r: FloatArray) -> FloatArray:
@@ -247,7 +263,9 @@ def so3_right_jacobian_inv(r: FloatArray) -> FloatArray:
     small = theta < 1e-4
     safe = np.where(small, 1.0, theta)
     c = np.where(
-        small, 1.0 / 12.0 + theta2 / 720.0, 1.0 / (safe * safe) - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe))
+        small,
+        1.0 / 12.0 + theta2 / 720.0,
+        1.0 / (safe * safe) - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)),
     )
     K = skew(r)
     return np.eye(3) + 0.5 * K + c * (K @ K)
@@ -283,7 +301,7 @@ def quat_slerp(q0: FloatArray, q1: FloatArray, t: FloatArray | float) -> FloatAr
 def quat_angle(a: FloatArray, b: FloatArray) -> FloatArray:
     """Angle (radians, in [0, π]) of the relative rotation between two quaternion arrays (..., 4)."""
     d = np.abs(np.sum(quat_normalize(a) * quat_normalize(b), axis=-1))
-    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+    return np.asarray(2.0 * np.arccos(np.clip(d, 0.0, 1.0)))
 
 
 def random_quat(rng: np.random.Generator, shape: tuple[int, ...] = ()) -> FloatArray:
