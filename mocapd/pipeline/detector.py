@@ -37,7 +37,11 @@ R = TypeVar("R")
 
 # Preference order of "auto": the fastest provider this onnxruntime build offers comes first.
 _AUTO_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
-_SHORT_NAMES = {"tensorrt": "TensorrtExecutionProvider", "cuda": "CUDAExecutionProvider", "cpu": "CPUExecutionProvider"}
+_SHORT_NAMES = {
+    "tensorrt": "TensorrtExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "cpu": "CPUExecutionProvider",
+}
 
 
 def resolve_providers(requested: Sequence[str]) -> list[str]:
@@ -218,4 +222,3 @@ class AsyncPoseDetector:
 
     async def __aexit__(self, *exc: object) -> None:
         await asyncio.get_running_loop().run_in_executor(None, self.close)
-

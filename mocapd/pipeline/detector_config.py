@@ -155,7 +155,8 @@ def _build(cls: type[T], section: str, raw: Mapping[str, Any], nested: Mapping[s
         if isinstance(default, tuple):
             if not isinstance(value, list | tuple):
                 raise ConfigError(f"[{section}] {name} must be a list, got {value!r}")
-            value = tuple(value)
+            kwargs[name] = tuple(value)
+            continue
         elif isinstance(default, bool):
             if not isinstance(value, bool):
                 raise ConfigError(f"[{section}] {name} must be true or false, got {value!r}")
@@ -165,7 +166,8 @@ def _build(cls: type[T], section: str, raw: Mapping[str, Any], nested: Mapping[s
         elif isinstance(default, float):
             if not isinstance(value, int | float) or isinstance(value, bool):
                 raise ConfigError(f"[{section}] {name} must be a number, got {value!r}")
-            value = float(value)
+            kwargs[name] = float(value)
+            continue
         elif isinstance(default, str) and not isinstance(value, str):
             raise ConfigError(f"[{section}] {name} must be a string, got {value!r}")
         kwargs[name] = value

@@ -15,8 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mocapd.core.pose2d import FloatArray, PoseDetections
-from mocapd.core.pose2d import letterbox_geometry
+from mocapd.core.pose2d import FloatArray, PoseDetections, letterbox_geometry
 from mocapd.core.roi_packing import (
     AlignedRoi,
     Packing,
@@ -67,7 +66,8 @@ def render_canvas(packing: Packing, images: Sequence[Image], pad_value: int) -> 
         y1 = min(packing.canvas_h, math.ceil(t.y + t.h))
         crop = images[t.index][r.y0 : r.y1, r.x0 : r.x1]
         m = np.array(
-            [[t.sx, 0.0, t.x - fx + 0.5 * t.sx - 0.5], [0.0, t.sy, t.y - fy + 0.5 * t.sy - 0.5]], dtype=np.float64
+            [[t.sx, 0.0, t.x - fx + 0.5 * t.sx - 0.5], [0.0, t.sy, t.y - fy + 0.5 * t.sy - 0.5]],
+            dtype=np.float64,
         )
         canvas[fy:y1, fx:x1] = cv2.warpAffine(
             crop, m, (x1 - fx, y1 - fy), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
