@@ -17,6 +17,7 @@ pixels), the person score (already sigmoid-ed), then ``K`` keypoints as x, y, vi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,12 +52,14 @@ class Letterbox:
     def to_model(self, xy: FloatArray) -> FloatArray:
         """Source pixels ``(..., 2)`` to model-input pixels ``(..., 2)``."""
         out: FloatArray = np.asarray(xy, dtype=np.float64) * np.array([self.sx, self.sy])
-        return out + np.array([self.pad_x, self.pad_y])
+        res: FloatArray = out + np.array([self.pad_x, self.pad_y])
+        return res
 
     def to_source(self, xy: FloatArray) -> FloatArray:
         """Model-input pixels ``(..., 2)`` to source pixels ``(..., 2)``."""
         out: FloatArray = np.asarray(xy, dtype=np.float64) - np.array([self.pad_x, self.pad_y])
-        return out / np.array([self.sx, self.sy])
+        res: FloatArray = out / np.array([self.sx, self.sy])
+        return res
 
 
 def letterbox_geometry(src_w: int, src_h: int, dst_w: int, dst_h: int, *, center: bool = True) -> Letterbox:
@@ -185,7 +188,7 @@ def nms(boxes: FloatArray, scores: FloatArray, iou_threshold: float, max_keep: i
 
 
 def decode_yolo_pose(
-    output: FloatArray,
+    output: NDArray[np.floating[Any]],
     n_keypoints: int,
     *,
     score_threshold: float = 0.25,

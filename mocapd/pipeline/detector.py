@@ -37,6 +37,13 @@ R = TypeVar("R")
 
 # Preference order of "auto": the fastest provider this onnxruntime build offers comes first.
 _AUTO_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+# onnxruntime's load errors derive from Exception directly, not from RuntimeError.
+_ORT_LOAD_ERRORS: tuple[type[Exception], ...] = tuple(
+    getattr(ort.capi.onnxruntime_pybind11_state, name)
+    for name in ("Fail", "InvalidArgument", "InvalidGraph", "InvalidProtobuf", "NoSuchFile", "NotImplemented")
+    if hasattr(ort.capi.onnxruntime_pybind11_state, name)
+)
+_LOAD_ERRORS: tuple[type[Exception], ...] = (RuntimeError, ValueError, *_ORT_LOAD_ERRORS)
 _SHORT_NAMES = {
     "tensorrt": "TensorrtExecutionProvider",
     "cuda": "CUDAExecutionProvider",
@@ -109,7 +116,7 @@ class OnnxPoseDetector:
         self.providers = resolve_providers(providers)
         try:
             self.session = ort.InferenceSession(str(path), sess_options=opts, providers=self.providers)
-        except (RuntimeError, ValueError, ort.capi.onnxruntime_pybind11_state.Fail) as exc:
+        except _LOAD_ERRORS as exc:
             raise ModelError(f"onnxruntime cannot load {path}: {exc}") from exc
         self.intra_op_threads = intra_op_threads
         self._check_shapes()
