@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -13,14 +14,14 @@ import pytest
 
 from mocapd.core.keypoint_formats import COCO17
 from mocapd.core.pose2d import PoseDetections, letterbox_geometry
-from mocapd.core.roi_packing import AlignedRoi, Roi, match_people, plan_aligned_canvases
+from mocapd.core.roi_packing import AlignedRoi, Roi, SubsampleSchedule, match_people, plan_aligned_canvases
 from mocapd.errors import ConfigError, InputError, ModelError
 from mocapd.io.model_build import LICENCE, model_is_current, sha256, sidecar_path
 from mocapd.io.model_cache import default_model_path
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import AsyncPoseDetector, OnnxPoseDetector, letterbox_image, resolve_providers
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig, detector_config_from_mapping
-from mocapd.pipeline.packing import PackedDetector, render_canvas
+from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, render_canvas
 
 Image = np.ndarray
 
@@ -192,3 +193,41 @@ def test_config_parsing() -> None:
     for bad, msg in cases:
         with pytest.raises(ConfigError, match=msg):
             detector_config_from_mapping(bad)
+
+
+def test_shipped_config_section_parses_to_the_defaults() -> None:
+    root = Path(__file__).resolve().parents[1]
+    with (root / "config.toml").open("rb") as f:
+        raw = tomllib.load(f)["detector"]
+    assert detector_config_from_mapping(raw) == DetectorConfig()
+
+
+def test_scheduled_detector_detects_n_o_of_every_n_p_frames(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig())
+    sched = ScheduledDetector(packer, SubsampleSchedule(2, 4))
+    done: list[int] = []
+    for f in range(10):
+        for idx, dets in sched.push(f, frames[f % 2]):
+            done.append(idx)
+            assert len(dets) == 4 and all(len(d) >= 1 for d in dets)
+    assert done == [0, 1, 4, 5, 8, 9]
+    assert packer.stats.calls == 3  # each pair of detected frames in one packed call
+    # A group cut short by a dropped frame is detected with what it has.
+    assert sched.push(12, frames[0]) == []
+    assert [i for i, _ in sched.push(14, frames[0])] == [12]
+    assert sched.flush() == []
+
+
+def test_packing_disabled_detects_each_camera_frame_alone(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(enabled=False))
+    out = packer.detect(frames[:1])
+    assert packer.stats.canvases == 4
+    for got, img in zip(out[0], frames[0], strict=True):
+        want = detector.detect(img)
+        np.testing.assert_allclose(got.keypoints, want.keypoints)

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -123,3 +126,22 @@ def test_offsets_file_round_trip_and_validation() -> None:
     ]:
         with pytest.raises(CalibrationError, match=msg):
             offsets_from_json(bad, COCO17)
+
+
+def test_calibrate_offsets_tool_writes_the_offsets_file(tmp_path: Path) -> None:
+    rng = np.random.default_rng(10)
+    P, kp, R, pos, _, true_off = _scene(rng, 30, outlier_rate=0.05)
+    npz = tmp_path / "session.npz"
+    np.savez(npz, P=P, keypoints=kp, bone_rot=R, bone_pos=pos)
+    out = tmp_path / "offsets.json"
+    tool = Path(__file__).resolve().parents[1] / "tools" / "calibrate_offsets.py"
+    proc = subprocess.run([sys.executable, str(tool), str(npz), "--out", str(out)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    targets = offsets_from_json(out.read_text(), COCO17)
+    for k, name in enumerate(COCO17.keypoints):
+        np.testing.assert_allclose(targets[name].offset, true_off[k], atol=0.015)
+    assert json.loads(proc.stdout)["keypoints"]["nose"]["frames"] == 30
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, P=P)
+    proc = subprocess.run([sys.executable, str(tool), str(bad), "--out", str(out)], capture_output=True, text=True)
+    assert proc.returncode == 1 and "lacks arrays" in proc.stderr

@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
             ok, img = cap.read()
             if not ok:
                 return None
-            imgs.append(img)
+            imgs.append(np.asarray(img, dtype=np.uint8))
         return imgs
 
     first = read()
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     scales: list[float] = []
     dis: list[float] = []
     people_naive = people_packed = 0
-    frame = first
+    frame: list[Image] | None = first
     for k in range(args.pairs):
         nxt = read()
         if frame is None or nxt is None:

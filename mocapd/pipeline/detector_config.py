@@ -75,7 +75,7 @@ class PackingConfig:
 
     enabled: bool = True
     """Pack camera ROIs into shared detector images (False: one image per camera frame)."""
-    roi_margin: float = 0.1
+    roi_margin: float = 0.05
     """ROI = union box of the last detections grown on each side by this fraction of its larger side."""
     gap: int = 4
     """Canvas pixels between packed tiles."""

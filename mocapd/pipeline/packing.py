@@ -20,6 +20,7 @@ from mocapd.core.roi_packing import (
     AlignedRoi,
     Packing,
     Roi,
+    SubsampleSchedule,
     full_roi,
     plan_aligned_canvases,
     plan_canvases,
@@ -125,6 +126,11 @@ class PackedDetector:
             ``[slot][camera]``, in each camera's pixels. The ROIs are then updated from the last slot.
         """
         n_kp = self.detector.format.n_keypoints
+        if not self.cfg.enabled:
+            self.stats.calls += 1
+            self.stats.camera_frames += len(frames) * self.n_cameras
+            self.stats.canvases += len(frames) * self.n_cameras
+            return [[self.detector.detect(img) for img in cams] for cams in frames]
         items: list[tuple[int, int, Roi]] = []
         for slot, cams in enumerate(frames):
             if len(cams) != self.n_cameras:
@@ -193,3 +199,39 @@ class PackedDetector:
         for cam, det in enumerate(last):
             w, h = self.image_sizes[cam]
             self.rois[cam] = rois_from_boxes(det.boxes, w, h, margin=self.cfg.roi_margin)
+
+
+class ScheduledDetector:
+    """Temporal sub-sampling ``N_o/N_p`` in front of a :class:`PackedDetector` (seed 000 §3.3.2).
+
+    Frames arrive one by one (all cameras of one frame index at a time). Frames the schedule skips are
+    dropped; the ``N_o`` consecutive detected frames of a period are gathered and detected together, their
+    ROIs packed into shared canvases (seed 003 §3.4: 2 frames x 4 cameras).
+    """
+
+    def __init__(self, packer: PackedDetector, schedule: SubsampleSchedule) -> None:
+        self.packer = packer
+        self.schedule = schedule
+        self._pending: list[tuple[int, Sequence[Image]]] = []
+
+    def push(self, frame_index: int, images: Sequence[Image]) -> list[tuple[int, list[PoseDetections]]]:
+        """Offer frame ``frame_index``; returns ``(frame_index, detections per camera)`` of every frame whose
+        detection completed with this call (none while a group is still filling or the frame is skipped)."""
+        slot = self.schedule.slot(frame_index)
+        out: list[tuple[int, list[PoseDetections]]] = []
+        if self._pending and (slot <= 0 or frame_index != self._pending[-1][0] + 1):
+            out.extend(self.flush())  # a group was interrupted (dropped frames): detect what it has
+        if slot < 0:
+            return out
+        self._pending.append((frame_index, images))
+        if slot == self.schedule.n_o - 1:
+            out.extend(self.flush())
+        return out
+
+    def flush(self) -> list[tuple[int, list[PoseDetections]]]:
+        """Detect the frames gathered so far (e.g. at the end of a stream)."""
+        if not self._pending:
+            return []
+        pending, self._pending = self._pending, []
+        dets = self.packer.detect([imgs for _, imgs in pending])
+        return [(idx, d) for (idx, _), d in zip(pending, dets, strict=True)]
