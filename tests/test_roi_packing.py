@@ -18,6 +18,7 @@ from mocapd.core.roi_packing import (
     plan_canvases,
     roi_from_boxes,
     rois_from_boxes,
+    snap_roi_to_grid,
     unpack_detections,
 )
 from mocapd.errors import ConfigError, InputError
@@ -179,3 +180,20 @@ def test_subsample_schedule(n_o: int, n_p: int, expected: list[int]) -> None:
 def test_subsample_schedule_rejects_bad_ratios(n_o: int, n_p: int) -> None:
     with pytest.raises(ConfigError):
         SubsampleSchedule(n_o, n_p)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_snapped_rois_contain_the_roi_and_sit_on_the_stride_grid(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    lb = letterbox_geometry(1088, 1920, 640, 640)
+    for roi in _random_rois(rng, 20):
+        s = snap_roi_to_grid(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y, 32, 1088, 1920)
+        assert s.x0 <= roi.x0 and s.y0 <= roi.y0 and s.x1 >= roi.x1 and s.y1 >= roi.y1
+        assert s.x0 >= 0 and s.y0 >= 0 and s.x1 <= 1088 and s.y1 <= 1920
+        for edge, sc, pad, lo in ((s.x0, lb.sx, lb.pad_x, 0), (s.y0, lb.sy, lb.pad_y, 0)):
+            phase = (edge * sc + pad) % 32
+            assert edge == lo or phase < 1.0  # just after a grid line (or clipped at the image edge)
+        # Packed alone next to nothing, a snapped ROI costs no slack: it lands on a grid line.
+        (p,) = plan_aligned_canvases([AlignedRoi(s, lb.sx, lb.sy, lb.pad_x, lb.pad_y)], 640, 640, gap=0)
+        if s.x0 > 0:
+            assert p.tiles[0].x < 1.0

@@ -156,13 +156,29 @@ def run_demo(
     return results, frames, sample_canvas
 
 
+def _errors(cams: list[QcaCamera], X: F64, raw: F64, views: NDArray[np.bool_]) -> F64:
+    out = np.full(len(cams), np.nan)
+    for c, cam in enumerate(cams):
+        if views[c]:
+            rvec = cv2.Rodrigues(cam.R)[0]
+            proj = cv2.projectPoints(X[None], rvec, cam.t, cam.K, cam.dist)[0][0, 0]
+            out[c] = float(np.linalg.norm(proj - raw[c]))
+    return out
+
+
 def reprojection(
-    cams: list[QcaCamera], results: list[list[PoseDetections]], subject: list[dict[int, int]]
+    cams: list[QcaCamera], results: list[list[PoseDetections]], subject: list[dict[int, int]], reject_px: float = 20.0
 ) -> dict[str, Any]:
-    """Median reprojection error (px) of the subject triangulated per frame and keypoint."""
+    """Reprojection error (px) of the subject triangulated per frame and keypoint from its confident views.
+
+    ``all_views``: one confidence-weighted DLT over every confident view. ``robust``: while the worst view's
+    error exceeds ``reject_px`` and more than 2 views remain, that view is dropped and the point
+    re-triangulated (as Pose2Sim does); the share of views dropped is reported.
+    """
     P = np.stack([c.projection for c in cams])
     errs: list[float] = []
-    n_points = 0
+    robust: list[float] = []
+    n_points = dropped = 0
     for f in range(len(results)):
         uv = np.full((len(cams), 17, 2), np.nan)
         w = np.zeros((len(cams), 17))
@@ -177,24 +193,32 @@ def reprojection(
             raw[c] = kp[:, :2]
             w[c] = np.where(kp[:, 2] >= CONF, kp[:, 2], 0.0)
         for k in range(17):
-            if np.count_nonzero(w[:, k]) < 2:
+            views = w[:, k] > 0
+            if views.sum() < 2:
                 continue
             X = triangulate_weighted(P, uv[:, k], w[:, k])
             if not np.all(np.isfinite(X)):
                 continue
             n_points += 1
-            for c, cam in enumerate(cams):
-                if w[c, k] <= 0:
-                    continue
-                rvec = cv2.Rodrigues(cam.R)[0]
-                proj = cv2.projectPoints(X[None], rvec, cam.t, cam.K, cam.dist)[0][0, 0]
-                errs.append(float(np.linalg.norm(proj - raw[c, k])))
-    e = np.array(errs)
+            e = _errors(cams, X, raw[:, k], views)
+            errs.extend(e[views].tolist())
+            while views.sum() > 2 and np.nanmax(e) > reject_px:
+                views[int(np.nanargmax(e))] = False
+                dropped += 1
+                X = triangulate_weighted(P, uv[:, k], np.where(views, w[:, k], 0.0))
+                e = _errors(cams, X, raw[:, k], views)
+            robust.extend(e[views].tolist())
+    a, r = np.array(errs), np.array(robust)
+    if not a.size:
+        return {"triangulated_points": 0}
     return {
-        "reprojection_px_median": round(float(np.median(e)), 2) if e.size else None,
-        "reprojection_px_p90": round(float(np.percentile(e, 90)), 2) if e.size else None,
+        "reprojection_px_median_all_views": round(float(np.median(a)), 2),
+        "reprojection_px_p90_all_views": round(float(np.percentile(a, 90)), 2),
+        "reprojection_px_median_robust": round(float(np.median(r)), 2),
+        "reprojection_px_p90_robust": round(float(np.percentile(r, 90)), 2),
+        "robust_views_dropped_fraction": round(dropped / a.size, 3),
         "triangulated_points": n_points,
-        "views_used": int(e.size),
+        "views": int(a.size),
     }
 
 
@@ -245,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
             f = min(50, n - 1)
             sub_idx = {t.dets[f] for t in subs if f in t.dets}
             img = draw(frames[f][c], results[f][c], sub_idx)
-            cv2.imwrite(str(args.out / f"{demo}_{cam}_f{f:03d}_{args.mode}.jpg"), cv2.resize(img, None, fx=0.5, fy=0.5))
+            cv2.imwrite(str(args.out / f"{demo}_{cam}_f{f:03d}_{args.mode}.png"), cv2.resize(img, None, fx=0.5, fy=0.5))
         entry: dict[str, Any] = {"frames": n, "cameras": per_cam}
         if n_subjects == 1:
             entry.update(reprojection(read_qca(demo_calibration(demo)), results, subject_maps))

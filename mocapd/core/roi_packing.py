@@ -97,7 +97,7 @@ def rois_from_boxes(
     *,
     margin: float = 0.1,
     min_size: int = 64,
-    merge_cost: float = 1.2,
+    merge_cost: float = 1.0,
 ) -> list[Roi]:
     """One expanded ROI per person, cheaply mergeable ones merged; ``[whole image]`` when there is nobody.
 
@@ -343,6 +343,28 @@ class AlignedRoi:
     def phase(self) -> tuple[float, float]:
         """Canvas position of the ROI's origin in the whole-frame letterbox."""
         return self.roi.x0 * self.sx + self.pad_x, self.roi.y0 * self.sy + self.pad_y
+
+
+def snap_roi_to_grid(roi: Roi, item_sx: float, item_sy: float, pad_x: float, pad_y: float, stride: int,
+                     img_w: int, img_h: int) -> Roi:  # fmt: skip
+    """Grow ``roi`` outward so that its whole-frame letterbox edges fall on the ``stride`` grid.
+
+    Aligned tiles must sit at their letterbox position modulo the stride; a ROI whose edges are already on
+    that grid packs with no slack at all, and the slack it would have cost is filled with image context
+    instead. The left/top edges land within a fraction of a pixel after a grid line (never before it, which
+    would cost a whole stride); the result is clipped to the image.
+    """
+
+    def grow(lo: int, hi: int, s: float, pad: float, size: int) -> tuple[int, int]:
+        g_lo = math.floor((lo * s + pad) / stride) * stride
+        g_hi = math.ceil((hi * s + pad) / stride) * stride
+        new_lo = max(0, math.ceil((g_lo - pad) / s - 1e-9))
+        new_hi = min(size, math.floor((g_hi - pad) / s + 1e-9))
+        return min(new_lo, lo), max(new_hi, hi)
+
+    x0, x1 = grow(roi.x0, roi.x1, item_sx, pad_x, img_w)
+    y0, y1 = grow(roi.y0, roi.y1, item_sy, pad_y, img_h)
+    return Roi(x0, y0, x1, y1)
 
 
 def _shelf_aligned(

@@ -25,6 +25,7 @@ from mocapd.core.roi_packing import (
     plan_aligned_canvases,
     plan_canvases,
     rois_from_boxes,
+    snap_roi_to_grid,
     unpack_detections,
 )
 from mocapd.errors import InputError
@@ -196,9 +197,14 @@ class PackedDetector:
         return det.select(np.asarray(sorted(keep, key=lambda j: -det.scores[j]), dtype=np.int64))
 
     def _update_rois(self, last: list[PoseDetections]) -> None:
+        stride = self.cfg.align_stride
         for cam, det in enumerate(last):
             w, h = self.image_sizes[cam]
-            self.rois[cam] = rois_from_boxes(det.boxes, w, h, margin=self.cfg.roi_margin)
+            rois = rois_from_boxes(det.boxes, w, h, margin=self.cfg.roi_margin)
+            if stride > 0:
+                lb = self._letterboxes[cam]
+                rois = [snap_roi_to_grid(r, lb.sx, lb.sy, lb.pad_x, lb.pad_y, stride, w, h) for r in rois]
+            self.rois[cam] = rois
 
 
 class ScheduledDetector:
