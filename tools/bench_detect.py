@@ -42,7 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--demo", default="Demo_MultiPerson", help="Demo_SinglePerson or Demo_MultiPerson")
     ap.add_argument("--pairs", type=int, default=30, help="frame pairs to time (each: 8 camera frames)")
     ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
-    ap.add_argument("--margin", type=float, default=0.1, help="ROI margin (fraction of the larger box side)")
+    defaults = PackingConfig()
+    ap.add_argument("--margin", type=float, default=defaults.roi_margin, help="ROI margin (fraction of box side)")
+    ap.add_argument("--gap", type=int, default=defaults.gap, help="canvas pixels between tiles")
     ap.add_argument("--min-scale-ratio", type=float, default=1.0, help="packed tile scale / naive scale, minimum")
     ap.add_argument("--max-scale-ratio", type=float, default=1.0, help="packed tile scale / naive scale, maximum")
     ap.add_argument("--align-stride", type=int, default=32, help="0: common-scale packing; >0: aligned tiles")
@@ -69,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         sizes,
         PackingConfig(
             roi_margin=args.margin,
+            gap=args.gap,
             align_stride=args.align_stride,
             min_scale_ratio=args.min_scale_ratio,
             max_scale_ratio=args.max_scale_ratio,
@@ -127,6 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         "providers": det.providers,
         "intra_op_threads": args.threads,
         "roi_margin": args.margin,
+        "gap": args.gap,
         "align_stride": args.align_stride,
         "min_scale_ratio": args.min_scale_ratio,
         "max_scale_ratio": args.max_scale_ratio,

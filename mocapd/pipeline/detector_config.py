@@ -77,8 +77,9 @@ class PackingConfig:
     """Pack camera ROIs into shared detector images (False: one image per camera frame)."""
     roi_margin: float = 0.05
     """ROI = union box of the last detections grown on each side by this fraction of its larger side."""
-    gap: int = 4
-    """Canvas pixels between packed tiles."""
+    gap: int = 0
+    """Canvas pixels between packed tiles (0: tiles touch; each ROI's margin already keeps its people away from
+    its edges, and a gap that is not a multiple of align_stride would cost alignment slack)."""
     align_stride: int = 32
     """> 0: place every tile at its camera's whole-frame letterbox scale, its pixels shifted by a multiple of
     this many pixels (the network's largest stride), so that packed detection sees exactly the pixels
