@@ -21,7 +21,7 @@ from mocapd.io.model_cache import default_model_path
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import AsyncPoseDetector, OnnxPoseDetector, letterbox_image, resolve_providers
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig, detector_config_from_mapping
-from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, render_canvas
+from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, packed_detector_from_config, render_canvas
 
 Image = np.ndarray
 
@@ -231,3 +231,24 @@ def test_packing_disabled_detects_each_camera_frame_alone(
     for got, img in zip(out[0], frames[0], strict=True):
         want = detector.detect(img)
         np.testing.assert_allclose(got.keypoints, want.keypoints)
+
+
+def test_larger_canvas_model_packs_more_camera_frames_per_run(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    cfg = DetectorConfig(intra_op_threads=2, packing=PackingConfig(canvas_width=960, canvas_height=960))
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = packed_detector_from_config(cfg, sizes)
+    assert packer.canvas_detector.input_size == (960, 960) and packer.detector.input_size == (640, 640)
+    packer.detect(frames)
+    out = packer.detect(frames)
+    assert len(packer.last_packings) <= 2  # 8 camera frames of one person each in at most 2 runs
+    for slot in range(2):
+        for cam, img in enumerate(frames[slot]):
+            _plausible(out[slot][cam], img.shape[0])
+            naive = detector.detect(img)
+            pairs = match_people(naive, out[slot][cam])
+            subject = int(np.argmax(naive.boxes[:, 3] - naive.boxes[:, 1]))
+            assert any(i == subject for i, _ in pairs)
+    with pytest.raises(ConfigError, match="multiple of 32"):
+        PackingConfig(canvas_width=1000)

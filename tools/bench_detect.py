@@ -48,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-scale-ratio", type=float, default=1.0, help="packed tile scale / naive scale, minimum")
     ap.add_argument("--max-scale-ratio", type=float, default=1.0, help="packed tile scale / naive scale, maximum")
     ap.add_argument("--align-stride", type=int, default=32, help="0: common-scale packing; >0: aligned tiles")
+    ap.add_argument("--canvas", default="", help="packed canvas size WxH (default: the model's 640x640)")
     args = ap.parse_args(argv)
 
     det = OnnxPoseDetector(ModelSpec(), intra_op_threads=args.threads, inter_op_threads=1)
@@ -66,6 +67,13 @@ def main(argv: list[str] | None = None) -> int:
     if first is None:
         raise SystemExit("cannot read the demo videos")
     sizes = [(im.shape[1], im.shape[0]) for im in first]
+    canvas_det = None
+    if args.canvas:
+        cw, ch = (int(v) for v in args.canvas.split("x"))
+        canvas_det = OnnxPoseDetector(
+            ModelSpec(input_width=cw, input_height=ch), intra_op_threads=args.threads, inter_op_threads=1
+        )
+        canvas_det.run_canvas(np.full((ch, cw, 3), 114, dtype=np.uint8))  # warm-up
     packer = PackedDetector(
         det,
         sizes,
@@ -78,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             n_o=2,
             n_p=2,
         ),
+        canvas_detector=canvas_det,
     )
     det.detect(first[0])  # warm-up: first run allocates
     t_naive: list[float] = []
@@ -127,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         "camera_frames_per_pair": n_cf,
         "image_size": sizes[0],
         "model_input": list(det.input_size),
+        "packed_canvas": list(packer.canvas_detector.input_size),
         "providers": det.providers,
         "intra_op_threads": args.threads,
         "roi_margin": args.margin,

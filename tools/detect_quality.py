@@ -13,6 +13,7 @@ Pose2Sim converts it) and the median reprojection error is reported.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import xml.etree.ElementTree as ET
@@ -29,8 +30,8 @@ from mocapd.core.offset_calibration import triangulate_weighted
 from mocapd.core.pose2d import PoseDetections, box_iou
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
-from mocapd.pipeline.detector_config import ModelSpec, PackingConfig
-from mocapd.pipeline.packing import PackedDetector, render_canvas
+from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.packing import packed_detector_from_config, render_canvas
 
 CONF = 0.5
 MIN_KP = 12
@@ -126,7 +127,7 @@ def _add(t: Track, f: int, i: int, det: PoseDetections) -> None:
 
 
 def run_demo(
-    demo: str, det: OnnxPoseDetector, mode: str, n_frames: int
+    demo: str, det: OnnxPoseDetector, cfg: DetectorConfig, mode: str, n_frames: int
 ) -> tuple[list[list[PoseDetections]], list[list[np.ndarray]], Any]:
     caps = [cv2.VideoCapture(str(demo_video(demo, c))) for c in CAMERAS]
     frames: list[list[np.ndarray]] = []
@@ -142,7 +143,7 @@ def run_demo(
         frames.append(imgs)
     sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
     results: list[list[PoseDetections]] = []  # [frame][camera]
-    packer = PackedDetector(det, sizes, PackingConfig(roi_margin=0.05, n_o=2, n_p=2))
+    packer = packed_detector_from_config(cfg, sizes)
     sample_canvas = None
     for f in range(0, len(frames), 2):
         group = frames[f : f + 2]
@@ -151,8 +152,7 @@ def run_demo(
         else:
             results.extend(packer.detect(group))
             if f == 50 and len(group) == 2:
-                items = [group[s][c] for s in range(2) for c in range(len(CAMERAS))]
-                sample_canvas = (packer.last_packings, items)
+                sample_canvas = (packer.last_packings, packer.last_tile_images)
     return results, frames, sample_canvas
 
 
@@ -247,10 +247,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("results/detection"))
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    det = OnnxPoseDetector(ModelSpec(), intra_op_threads=args.threads)
+    cfg = DetectorConfig(intra_op_threads=args.threads)  # the shipped defaults (config.toml)
+    det = OnnxPoseDetector.from_config(cfg)
     report: dict[str, Any] = {"mode": args.mode, "confident": CONF, "min_keypoints": MIN_KP}
+    if args.mode == "packed":
+        report["packing"] = dataclasses.asdict(cfg.packing)
     for demo, n_subjects in (("Demo_SinglePerson", 1), ("Demo_MultiPerson", 2)):
-        results, frames, sample = run_demo(demo, det, args.mode, args.frames)
+        results, frames, sample = run_demo(demo, det, cfg, args.mode, args.frames)
         n = len(results)
         per_cam: dict[str, Any] = {}
         subject_maps: list[dict[int, int]] = []

@@ -80,6 +80,14 @@ class PackingConfig:
     gap: int = 0
     """Canvas pixels between packed tiles (0: tiles touch; each ROI's margin already keeps its people away from
     its edges, and a gap that is not a multiple of align_stride would cost alignment slack)."""
+    canvas_width: int = 0
+    """Width of the packed canvases in pixels (0 = the model's input width). A larger size runs the same
+    network exported at that size (``mocapd model fetch --size WxH``) on canvases that hold more tiles."""
+    canvas_height: int = 0
+    """Height of the packed canvases (0 = the model's input height)."""
+    canvas_model_path: str = ""
+    """ONNX file of the canvas-sized model when the canvas size differs from the model's ("" = the default
+    YOLO11n-pose export for that size)."""
     align_stride: int = 32
     """> 0: place every tile at its camera's whole-frame letterbox scale, its pixels shifted by a multiple of
     this many pixels (the network's largest stride), so that packed detection sees exactly the pixels
@@ -99,6 +107,10 @@ class PackingConfig:
         SubsampleSchedule(self.n_o, self.n_p)  # validates
         if not 0.0 <= self.roi_margin <= 2.0:
             raise ConfigError(f"detector.packing.roi_margin must be in [0, 2], got {self.roi_margin}")
+        for key in ("canvas_width", "canvas_height"):
+            v = getattr(self, key)
+            if v != 0 and (v < 32 or v % 32):
+                raise ConfigError(f"detector.packing.{key} must be 0 or a multiple of 32, got {v}")
         if self.align_stride < 0 or self.align_stride > 256:
             raise ConfigError(f"detector.packing.align_stride must be in [0, 256], got {self.align_stride}")
         if not 0 <= self.gap <= 64:

@@ -8,6 +8,7 @@ looks at its whole frame again on the next call.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -30,7 +31,7 @@ from mocapd.core.roi_packing import (
 )
 from mocapd.errors import InputError
 from mocapd.pipeline.detector import Image, OnnxPoseDetector
-from mocapd.pipeline.detector_config import PackingConfig
+from mocapd.pipeline.detector_config import DetectorConfig, PackingConfig
 
 
 @dataclass
@@ -83,15 +84,28 @@ class PackedDetector:
     Parameters
     ----------
     detector : OnnxPoseDetector
-        The model; its input size is the canvas size.
+        The reference model: its input size defines the whole-frame scale (and, when aligned, the stride phase)
+        of every tile, and it detects whole frames when packing is disabled.
     image_sizes : sequence of (int, int)
         (width, height) of each camera's images.
     cfg : PackingConfig
-        Margin, gap and the minimum scale ratio.
+        Margin, gap, alignment and scale ratios.
+    canvas_detector : OnnxPoseDetector, optional
+        The same network exported at a larger fixed size, to run the packed canvases on (default: ``detector``).
+        A larger canvas fits tall person tiles in more rows and wastes less of each inference.
     """
 
-    def __init__(self, detector: OnnxPoseDetector, image_sizes: Sequence[tuple[int, int]], cfg: PackingConfig) -> None:
+    def __init__(
+        self,
+        detector: OnnxPoseDetector,
+        image_sizes: Sequence[tuple[int, int]],
+        cfg: PackingConfig,
+        canvas_detector: OnnxPoseDetector | None = None,
+    ) -> None:
         self.detector = detector
+        self.canvas_detector = canvas_detector if canvas_detector is not None else detector
+        if self.canvas_detector.format != detector.format:
+            raise InputError("the canvas model must output the same keypoint format as the reference model")
         self.cfg = cfg
         self.image_sizes = [(int(w), int(h)) for w, h in image_sizes]
         self.rois: list[list[Roi]] = [[full_roi(w, h)] for w, h in self.image_sizes]
@@ -104,6 +118,7 @@ class PackedDetector:
         self._letterboxes = [letterbox_geometry(w, h, cw, ch) for w, h in self.image_sizes]
         self.stats = PackingStats()
         self.last_packings: list[Packing] = []
+        self.last_tile_images: list[Image] = []
 
     @property
     def n_cameras(self) -> int:
@@ -144,7 +159,7 @@ class PackedDetector:
         rois = [it[2] for it in items]
         min_scales = [self._min_scales[it[1]] for it in items]
         images = [frames[it[0]][it[1]] for it in items]
-        cw, ch = self.detector.input_size
+        cw, ch = self.canvas_detector.input_size
         if self.cfg.align_stride > 0:
             aligned = []
             for _, cam, roi in items:
@@ -156,13 +171,14 @@ class PackedDetector:
         parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
         for packing in packings:
             canvas = render_canvas(packing, images, self.detector.spec.pad_value)
-            found = unpack_detections(self.detector.run_canvas(canvas), packing)
+            found = unpack_detections(self.canvas_detector.run_canvas(canvas), packing)
             for tile, det in zip(packing.tiles, found, strict=True):
                 slot, cam, _ = items[tile.index]
                 parts[slot][cam].append(det)
         out = [[self._merge(p, n_kp) for p in slot_parts] for slot_parts in parts]
         self._update_rois(out[-1])
         self.last_packings = packings
+        self.last_tile_images = images  # tile.index → its source image (for drawing the canvases)
         self.stats.calls += 1
         self.stats.canvases += len(packings)
         self.stats.camera_frames += len(frames) * self.n_cameras
@@ -241,3 +257,22 @@ class ScheduledDetector:
         pending, self._pending = self._pending, []
         dets = self.packer.detect([imgs for _, imgs in pending])
         return [(idx, d) for (idx, _), d in zip(pending, dets, strict=True)]
+
+
+def packed_detector_from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]]) -> PackedDetector:
+    """A :class:`PackedDetector` for the ``[detector]`` section, with a canvas-sized session when
+    ``[detector.packing]`` asks for canvases of another size than the model's input."""
+    ref = OnnxPoseDetector.from_config(cfg)
+    pk = cfg.packing
+    cw = pk.canvas_width or cfg.model.input_width
+    ch = pk.canvas_height or cfg.model.input_height
+    canvas = None
+    if (cw, ch) != (cfg.model.input_width, cfg.model.input_height):
+        spec = dataclasses.replace(cfg.model, path=pk.canvas_model_path, input_width=cw, input_height=ch)
+        canvas = OnnxPoseDetector(
+            spec,
+            providers=cfg.providers,
+            intra_op_threads=cfg.intra_op_threads,
+            inter_op_threads=cfg.inter_op_threads,
+        )
+    return PackedDetector(ref, image_sizes, pk, canvas_detector=canvas)
