@@ -405,20 +405,30 @@ def plan_aligned_canvases(
     relative to its stride grid. Placing every tile so that its pixels are the whole-frame letterbox's pixels
     moved by a multiple of ``stride`` makes packed detection see exactly what whole-frame detection sees
     (up to the context outside the ROI), at the cost of up to ``stride`` pixels of slack per tile and axis.
-    First-fit decreasing by area. A ROI always fits alone (it lies inside its letterboxed frame).
+    Grouping is first-fit decreasing, tried in three orders (area, height, width) keeping the plan with the
+    fewest canvases; each canvas is laid out in row shelves or, failing that, column shelves. A ROI always fits
+    alone (it lies inside its letterboxed frame).
     """
-    order = sorted(range(len(items)), key=lambda i: -items[i].roi.width * items[i].roi.height)
-    groups: list[list[int]] = []
-    for i in order:
-        for g in groups:
-            if _shelf_aligned([items[m] for m in [*g, i]], canvas_w, canvas_h, gap, stride) is not None:
-                g.append(i)
-                break
-        else:
-            groups.append([i])
+    keys = (
+        lambda i: -items[i].roi.width * items[i].roi.height,
+        lambda i: -items[i].roi.height * items[i].sy,
+        lambda i: -items[i].roi.width * items[i].sx,
+    )
+    best: list[list[int]] | None = None
+    for key in keys:
+        groups: list[list[int]] = []
+        for i in sorted(range(len(items)), key=key):
+            for g in groups:
+                if _layout_aligned([items[m] for m in [*g, i]], canvas_w, canvas_h, gap, stride) is not None:
+                    g.append(i)
+                    break
+            else:
+                groups.append([i])
+        if best is None or len(groups) < len(best):
+            best = groups
     packings = []
-    for g in groups:
-        pos = _shelf_aligned([items[m] for m in g], canvas_w, canvas_h, gap, stride)
+    for g in best or []:
+        pos = _layout_aligned([items[m] for m in g], canvas_w, canvas_h, gap, stride)
         if pos is None:  # only possible for a ROI outside its frame: a caller bug
             raise InputError(f"ROI {items[g[0]].roi} does not fit its own letterbox")
         tiles = tuple(
@@ -427,6 +437,20 @@ def plan_aligned_canvases(
         )
         packings.append(Packing(canvas_w, canvas_h, items[g[0]].sx, tiles))
     return packings
+
+
+def _layout_aligned(
+    items: Sequence[AlignedRoi], W: int, H: int, gap: int, stride: int
+) -> list[tuple[float, float]] | None:
+    """Row shelves, else column shelves (the same packing on transposed geometry)."""
+    pos = _shelf_aligned(items, W, H, gap, stride)
+    if pos is not None:
+        return pos
+    flipped = [
+        AlignedRoi(Roi(it.roi.y0, it.roi.x0, it.roi.y1, it.roi.x1), it.sy, it.sx, it.pad_y, it.pad_x) for it in items
+    ]
+    tpos = _shelf_aligned(flipped, H, W, gap, stride)
+    return None if tpos is None else [(y, x) for x, y in tpos]
 
 
 def unpack_detections(det: PoseDetections, packing: Packing, *, min_inside: float = 0.5) -> list[PoseDetections]:

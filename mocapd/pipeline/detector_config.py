@@ -75,7 +75,7 @@ class PackingConfig:
 
     enabled: bool = True
     """Pack camera ROIs into shared detector images (False: one image per camera frame)."""
-    roi_margin: float = 0.1
+    roi_margin: float = 0.075
     """ROI = union box of the last detections grown on each side by this fraction of its larger side."""
     gap: int = 0
     """Canvas pixels between packed tiles (0: tiles touch; each ROI's margin already keeps its people away from
