@@ -12,6 +12,7 @@ from mocapd.core.roi_packing import (
     Roi,
     SubsampleSchedule,
     full_roi,
+    grow_cut_boxes,
     match_people,
     pack_rois,
     plan_aligned_canvases,
@@ -197,3 +198,21 @@ def test_snapped_rois_contain_the_roi_and_sit_on_the_stride_grid(seed: int) -> N
         (p,) = plan_aligned_canvases([AlignedRoi(s, lb.sx, lb.sy, lb.pad_x, lb.pad_y)], 640, 640, gap=0)
         if s.x0 > 0:
             assert p.tiles[0].x < 1.0
+
+
+def test_boxes_cut_by_an_inner_roi_edge_grow_past_it() -> None:
+    roi = Roi(100, 200, 600, 1200)
+    boxes = np.array(
+        [
+            [200.0, 400.0, 400.0, 1199.0],  # cut at the ROI's bottom edge (inside the image)
+            [250.0, 400.0, 450.0, 1000.0],  # well inside: unchanged
+            [0.0, 300.0, 150.0, 900.0],  # outside every ROI's centre test: unchanged
+        ]
+    )
+    out = grow_cut_boxes(boxes, [roi], 1088, 1920, margin=0.1)
+    np.testing.assert_allclose(out[0], [200.0, 400.0, 400.0, 1199.0 + 0.5 * 799.0])
+    np.testing.assert_allclose(out[1:], boxes[1:])
+    # At the image border there is nothing more to see: no growth.
+    edge = Roi(0, 0, 1088, 1920)
+    np.testing.assert_allclose(grow_cut_boxes(np.array([[0.0, 0.0, 300.0, 1920.0]]), [edge], 1088, 1920, margin=0.1),
+                               [[0.0, 0.0, 300.0, 1920.0]])  # fmt: skip

@@ -138,6 +138,53 @@ def rois_from_boxes(
     return rois
 
 
+def grow_cut_boxes(
+    boxes: FloatArray, rois: Sequence[Roi], img_w: int, img_h: int, *, margin: float, grow: float = 0.5
+) -> FloatArray:
+    """Boxes that end at an inner edge of the ROI they were found in, grown past that edge.
+
+    A person cut by a ROI edge (they moved faster than the margin, or a previous detection was partial) is
+    detected only up to the edge; an ROI built from that box would cut them again, for ever. A box whose side
+    lies closer to an inner ROI edge (one that is not the image border) than half the ROI margin is therefore
+    extended by ``grow`` of its size on that side, so that the next ROI takes in the rest of the person.
+
+    Parameters
+    ----------
+    boxes : ndarray, shape (n, 4)
+        Detections of one camera (x0, y0, x1, y1, image pixels).
+    rois : sequence of Roi
+        The ROIs this camera was detected through.
+    img_w, img_h : int
+        Image size.
+    margin : float
+        The ROI margin (fraction of the box's larger side) the ROIs were built with.
+    grow : float
+        Growth, as a fraction of the box's width (left/right) or height (top/bottom).
+
+    Returns
+    -------
+    ndarray, shape (n, 4)
+    """
+    out = np.array(boxes, dtype=np.float64).reshape(-1, 4)
+    for b in out:
+        cx, cy = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
+        w, h = b[2] - b[0], b[3] - b[1]
+        tol = max(4.0, 0.5 * margin * max(w, h))
+        for r in rois:
+            if not (r.x0 <= cx <= r.x1 and r.y0 <= cy <= r.y1):
+                continue
+            if r.x0 > 0 and b[0] - r.x0 < tol:
+                b[0] -= grow * w
+            if r.x1 < img_w and r.x1 - b[2] < tol:
+                b[2] += grow * w
+            if r.y0 > 0 and b[1] - r.y0 < tol:
+                b[1] -= grow * h
+            if r.y1 < img_h and r.y1 - b[3] < tol:
+                b[3] += grow * h
+            break
+    return out
+
+
 @dataclass(frozen=True)
 class Tile:
     """Where one ROI went on the canvas: source pixel ``p`` lands at ``(p - roi origin) * (sx, sy) + (x, y)``.

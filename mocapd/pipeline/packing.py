@@ -23,6 +23,7 @@ from mocapd.core.roi_packing import (
     Roi,
     SubsampleSchedule,
     full_roi,
+    grow_cut_boxes,
     plan_aligned_canvases,
     plan_canvases,
     rois_from_boxes,
@@ -216,7 +217,8 @@ class PackedDetector:
         stride = self.cfg.align_stride
         for cam, det in enumerate(last):
             w, h = self.image_sizes[cam]
-            rois = rois_from_boxes(det.boxes, w, h, margin=self.cfg.roi_margin)
+            boxes = grow_cut_boxes(det.boxes, self.rois[cam], w, h, margin=self.cfg.roi_margin)
+            rois = rois_from_boxes(boxes, w, h, margin=self.cfg.roi_margin)
             if stride > 0:
                 lb = self._letterboxes[cam]
                 rois = [snap_roi_to_grid(r, lb.sx, lb.sy, lb.pad_x, lb.pad_y, stride, w, h) for r in rois]
