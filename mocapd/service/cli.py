@@ -8,7 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
-from mocapd.service import cmd_calibrate, cmd_imu
+from mocapd.service import cmd_calibrate, cmd_imu, cmd_model
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -67,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     cmd_calibrate.register(sub)
     cmd_imu.register(sub)  # adds "imu" to the calibrate group
+    cmd_model.register(sub)
     return parser
 
 

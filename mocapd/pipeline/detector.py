@@ -1,0 +1,231 @@
+"""The 2D pose detector on onnxruntime, and an asyncio-friendly wrapper that runs it in worker threads.
+
+:class:`OnnxPoseDetector` owns one ``onnxruntime.InferenceSession``; it letterboxes an image (padding grey
+114, like the Ultralytics training pipeline), runs the network and decodes the output with the pure functions
+of :mod:`mocapd.core.pose2d`. onnxruntime releases the GIL while it computes, so a small thread pool
+(:class:`AsyncPoseDetector`) keeps the event loop free without pickling images across processes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import queue
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import TypeVar
+
+import cv2
+import numpy as np
+import onnxruntime as ort
+from numpy.typing import NDArray
+
+from mocapd.core.keypoint_formats import KeypointFormat, keypoint_format
+from mocapd.core.pose2d import (
+    Letterbox,
+    PoseDetections,
+    decode_yolo_pose,
+    detections_to_source,
+    letterbox_geometry,
+)
+from mocapd.errors import InputError, ModelError
+from mocapd.io.model_cache import default_model_path
+from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec
+
+Image = NDArray[np.uint8]
+R = TypeVar("R")
+
+# Preference order of "auto": the fastest provider this onnxruntime build offers comes first.
+_AUTO_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+# onnxruntime's load errors derive from Exception directly, not from RuntimeError.
+_ORT_LOAD_ERRORS: tuple[type[Exception], ...] = tuple(
+    getattr(ort.capi.onnxruntime_pybind11_state, name)
+    for name in ("Fail", "InvalidArgument", "InvalidGraph", "InvalidProtobuf", "NoSuchFile", "NotImplemented")
+    if hasattr(ort.capi.onnxruntime_pybind11_state, name)
+)
+_LOAD_ERRORS: tuple[type[Exception], ...] = (RuntimeError, ValueError, *_ORT_LOAD_ERRORS)
+_SHORT_NAMES = {
+    "tensorrt": "TensorrtExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "cpu": "CPUExecutionProvider",
+}
+
+
+def resolve_providers(requested: Sequence[str]) -> list[str]:
+    """Execution provider names for onnxruntime from config names ("auto", "cuda", "cpu", or full names).
+
+    Providers this onnxruntime build lacks are left out; the CPU provider is always last as a fallback.
+    """
+    available = set(ort.get_available_providers())
+    out: list[str] = []
+    for name in requested:
+        names = _AUTO_PROVIDERS if name == "auto" else (_SHORT_NAMES.get(name.lower(), name),)
+        for full in names:
+            if full in available and full not in out:
+                out.append(full)
+    if "CPUExecutionProvider" not in out:
+        out.append("CPUExecutionProvider")
+    return out
+
+
+def letterbox_image(image: Image, lb: Letterbox, dst_w: int, dst_h: int, pad_value: int) -> Image:
+    """Resize ``image (H, W, 3)`` by ``lb`` and pad to ``(dst_h, dst_w, 3)`` with grey ``pad_value``."""
+    canvas = np.full((dst_h, dst_w, 3), pad_value, dtype=np.uint8)
+    resized = cv2.resize(image, (lb.new_w, lb.new_h), interpolation=cv2.INTER_LINEAR)
+    x, y = int(lb.pad_x), int(lb.pad_y)
+    canvas[y : y + lb.new_h, x : x + lb.new_w] = resized
+    return canvas
+
+
+class OnnxPoseDetector:
+    """One onnxruntime session of a pose model described by a :class:`ModelSpec`.
+
+    Parameters
+    ----------
+    spec : ModelSpec
+        Model file, input size, layout and decoding.
+    providers : sequence of str
+        Config provider names (see :func:`resolve_providers`).
+    intra_op_threads, inter_op_threads : int
+        onnxruntime thread counts (0 = its default).
+
+    Raises
+    ------
+    ModelError
+        The file is missing, is not a loadable ONNX model, or its input/output shapes contradict ``spec``.
+    """
+
+    def __init__(
+        self,
+        spec: ModelSpec,
+        *,
+        providers: Sequence[str] = ("auto",),
+        intra_op_threads: int = 0,
+        inter_op_threads: int = 1,
+    ) -> None:
+        self.spec = spec
+        self.format: KeypointFormat = keypoint_format(spec.keypoint_format)
+        path = Path(spec.path) if spec.path else default_model_path(spec.input_width, spec.input_height)
+        if not path.is_file():
+            raise ModelError(f"detector model {path} not found; run `mocapd model fetch` (or set detector.model.path)")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = intra_op_threads
+        opts.inter_op_num_threads = inter_op_threads
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        self.providers = resolve_providers(providers)
+        try:
+            self.session = ort.InferenceSession(str(path), sess_options=opts, providers=self.providers)
+        except _LOAD_ERRORS as exc:
+            raise ModelError(f"onnxruntime cannot load {path}: {exc}") from exc
+        self.intra_op_threads = intra_op_threads
+        self._check_shapes()
+        inp = self.session.get_inputs()[0]
+        self._input_name: str = inp.name
+        self._input_dtype = np.float16 if "float16" in inp.type else np.float32
+        self._scale = (np.float32(spec.pixel_scale) / np.asarray(spec.std, dtype=np.float32)).astype(np.float32)
+        self._mean = np.asarray(spec.mean, dtype=np.float32)
+
+    @staticmethod
+    def from_config(cfg: DetectorConfig) -> OnnxPoseDetector:
+        """A detector built from the ``[detector]`` section."""
+        return OnnxPoseDetector(
+            cfg.model,
+            providers=cfg.providers,
+            intra_op_threads=cfg.intra_op_threads,
+            inter_op_threads=cfg.inter_op_threads,
+        )
+
+    def _check_shapes(self) -> None:
+        spec = self.spec
+        shape = list(self.session.get_inputs()[0].shape)
+        if len(shape) != 4:
+            raise ModelError(f"{spec.path}: expected a 4-D image input, got shape {shape}")
+        hw = shape[2:4] if spec.layout == "NCHW" else shape[1:3]
+        for got, want, what in zip(hw, (spec.input_height, spec.input_width), ("height", "width"), strict=True):
+            if isinstance(got, int) and got != want:
+                raise ModelError(f"{spec.path}: input {what} is {got} but detector.model says {want}")
+        out = list(self.session.get_outputs()[0].shape)
+        rows = 5 + 3 * self.format.n_keypoints
+        if len(out) != 3 or (isinstance(out[1], int) and out[1] != rows):
+            raise ModelError(
+                f"{spec.path}: output shape {out} does not match {spec.decoder} with "
+                f"{self.format.n_keypoints} keypoints ({spec.keypoint_format}): expected (1, {rows}, N)"
+            )
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        """(width, height) of the model input."""
+        return self.spec.input_width, self.spec.input_height
+
+    def to_tensor(self, canvas: Image) -> NDArray[np.float32]:
+        """A model-sized BGR ``(H, W, 3)`` uint8 image → the network input tensor."""
+        w, h = self.input_size
+        if canvas.shape != (h, w, 3) or canvas.dtype != np.uint8:
+            raise InputError(f"detector canvas must be uint8 ({h}, {w}, 3), got {canvas.dtype} {canvas.shape}")
+        img = canvas[..., ::-1] if self.spec.channel_order == "RGB" else canvas
+        x = (img.astype(np.float32) - self._mean) * self._scale
+        if self.spec.layout == "NCHW":
+            x = x.transpose(2, 0, 1)
+        return np.ascontiguousarray(x[None]).astype(self._input_dtype, copy=False)
+
+    def run_canvas(self, canvas: Image) -> PoseDetections:
+        """Detect people on a model-sized image; coordinates in that image's pixels."""
+        (out,) = self.session.run(None, {self._input_name: self.to_tensor(canvas)})[:1]
+        spec = self.spec
+        return decode_yolo_pose(
+            np.asarray(out),
+            self.format.n_keypoints,
+            score_threshold=spec.score_threshold,
+            iou_threshold=spec.iou_threshold,
+            max_people=spec.max_people,
+        )
+
+    def detect(self, image: Image) -> PoseDetections:
+        """Detect people in a BGR image of any size (letterboxed to the model); source-image pixels."""
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise InputError(f"detector input must be a uint8 (H, W, 3) BGR image, got {image.dtype} {image.shape}")
+        w, h = self.input_size
+        lb = letterbox_geometry(image.shape[1], image.shape[0], w, h)
+        canvas = letterbox_image(image, lb, w, h, self.spec.pad_value)
+        return detections_to_source(self.run_canvas(canvas), lb)
+
+
+class AsyncPoseDetector:
+    """Runs detection in worker threads so that the asyncio event loop never blocks on inference.
+
+    Each worker thread has its own :class:`OnnxPoseDetector` (sessions are not shared between concurrent
+    runs); ``await detect(image)`` hands the image to a free one.
+    """
+
+    def __init__(self, cfg: DetectorConfig) -> None:
+        self._pool: queue.SimpleQueue[OnnxPoseDetector] = queue.SimpleQueue()
+        for _ in range(cfg.workers):
+            self._pool.put(OnnxPoseDetector.from_config(cfg))
+        self._executor = ThreadPoolExecutor(max_workers=cfg.workers, thread_name_prefix="mocapd-detect")
+
+    def _with_detector(self, fn: Callable[[OnnxPoseDetector], R]) -> R:
+        det = self._pool.get()
+        try:
+            return fn(det)
+        finally:
+            self._pool.put(det)
+
+    async def call(self, fn: Callable[[OnnxPoseDetector], R]) -> R:
+        """Run ``fn(detector)`` on a worker thread with a free detector (e.g. a packed detection)."""
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self._executor, self._with_detector, fn)
+
+    async def detect(self, image: Image) -> PoseDetections:
+        """Detect people in ``image`` (BGR) on a worker thread; source-image pixels."""
+        return await self.call(lambda det: det.detect(image))
+
+    def close(self) -> None:
+        """Wait for running detections and stop the workers."""
+        self._executor.shutdown(wait=True)
+
+    async def __aenter__(self) -> AsyncPoseDetector:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await asyncio.get_running_loop().run_in_executor(None, self.close)

@@ -1,0 +1,206 @@
+"""Typed configuration of the 2D keypoint detector: ``[detector]``, ``[detector.model]``, ``[detector.packing]``.
+
+Parsed once from the mapping that ``config.toml`` gives; unknown keys are rejected with the key's name, so
+that a typo never falls back to a default silently. ``config.toml`` documents every key.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any, TypeVar
+
+from mocapd.core.keypoint_formats import FORMATS
+from mocapd.core.roi_packing import SubsampleSchedule
+from mocapd.errors import ConfigError
+
+DECODERS = ("yolo_pose",)
+LAYOUTS = ("NCHW", "NHWC")
+CHANNEL_ORDERS = ("RGB", "BGR")
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What the runtime must know about an ONNX pose model to feed it and read its output."""
+
+    path: str = ""
+    """ONNX file; "" = the default YOLO11n-pose export for this input size in the cache (mocapd model fetch)."""
+    input_width: int = 640
+    """Model input width in pixels (the export's fixed size)."""
+    input_height: int = 640
+    """Model input height in pixels."""
+    layout: str = "NCHW"
+    """Input tensor layout: NCHW or NHWC."""
+    channel_order: str = "RGB"
+    """Channel order the model was trained on: RGB or BGR."""
+    pixel_scale: float = 1.0 / 255.0
+    """Input = (pixel - mean) * pixel_scale / std, per channel, after channel reordering."""
+    mean: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    std: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    pad_value: int = 114
+    """Grey level of letterbox and packing padding (0..255)."""
+    decoder: str = "yolo_pose"
+    """Output decoding: yolo_pose = (1, 5 + 3K, N) boxes cx,cy,w,h + score + K × (x, y, conf)."""
+    keypoint_format: str = "coco17"
+    """coco17, body25 or halpe26."""
+    score_threshold: float = 0.25
+    """Person score below which candidates are dropped (0..1)."""
+    iou_threshold: float = 0.65
+    """NMS IoU threshold (0..1)."""
+    max_people: int = 20
+    """At most this many people per detector image."""
+
+    def __post_init__(self) -> None:
+        _choice("detector.model.decoder", self.decoder, DECODERS)
+        _choice("detector.model.layout", self.layout, LAYOUTS)
+        _choice("detector.model.channel_order", self.channel_order, CHANNEL_ORDERS)
+        _choice("detector.model.keypoint_format", self.keypoint_format, tuple(FORMATS))
+        if self.input_width < 32 or self.input_height < 32:
+            raise ConfigError(f"detector.model input size must be >= 32, got {self.input_width}x{self.input_height}")
+        if not 0 <= self.pad_value <= 255:
+            raise ConfigError(f"detector.model.pad_value must be 0..255, got {self.pad_value}")
+        for key in ("score_threshold", "iou_threshold"):
+            v = getattr(self, key)
+            if not 0.0 <= v <= 1.0:
+                raise ConfigError(f"detector.model.{key} must be in [0, 1], got {v}")
+        if self.max_people < 1:
+            raise ConfigError(f"detector.model.max_people must be >= 1, got {self.max_people}")
+        if len(self.mean) != 3 or len(self.std) != 3 or min(self.std) <= 0:
+            raise ConfigError(f"detector.model mean/std need 3 values with std > 0, got {self.mean} {self.std}")
+
+
+@dataclass(frozen=True)
+class PackingConfig:
+    """ROI packing and temporal sub-sampling (seed 000 §3.3)."""
+
+    enabled: bool = True
+    """Pack camera ROIs into shared detector images (False: one image per camera frame)."""
+    roi_margin: float = 0.075
+    """ROI = union box of the last detections grown on each side by this fraction of its larger side."""
+    gap: int = 0
+    """Canvas pixels between packed tiles (0: tiles touch; each ROI's margin already keeps its people away from
+    its edges, and a gap that is not a multiple of align_stride would cost alignment slack)."""
+    canvas_width: int = 0
+    """Width of the packed canvases in pixels (0 = the model's input width). A larger size runs the same
+    network exported at that size (``mocapd model fetch --size WxH``) on canvases that hold more tiles."""
+    canvas_height: int = 0
+    """Height of the packed canvases (0 = the model's input height)."""
+    canvas_model_path: str = ""
+    """ONNX file of the canvas-sized model when the canvas size differs from the model's ("" = the default
+    YOLO11n-pose export for that size)."""
+    align_stride: int = 32
+    """> 0: place every tile at its camera's whole-frame letterbox scale, its pixels shifted by a multiple of
+    this many pixels (the network's largest stride), so that packed detection sees exactly the pixels
+    whole-frame detection sees; min/max_scale_ratio are then unused. 0: one common scale per canvas."""
+    min_scale_ratio: float = 1.0
+    """A packed tile is never scaled below this × the scale a whole-frame pass of that camera would get;
+    ROIs that do not fit at that scale go to a further canvas (1.0: packing never loses resolution)."""
+    max_scale_ratio: float = 1.0
+    """A packed tile is never scaled above this × the whole-frame scale (1.0 with min_scale_ratio 1.0: tiles
+    at exactly the whole-frame scale, so packed and unpacked detection see people at the same size)."""
+    n_o: int = 2
+    """Temporal sub-sampling: detect the first N_o frames of every N_p (seed 000 §4.1.2)."""
+    n_p: int = 2
+    """See n_o; 2/2 detects every frame and packs frame pairs, 2/8 detects a quarter of them."""
+
+    def __post_init__(self) -> None:
+        SubsampleSchedule(self.n_o, self.n_p)  # validates
+        if not 0.0 <= self.roi_margin <= 2.0:
+            raise ConfigError(f"detector.packing.roi_margin must be in [0, 2], got {self.roi_margin}")
+        for key in ("canvas_width", "canvas_height"):
+            v = getattr(self, key)
+            if v != 0 and (v < 32 or v % 32):
+                raise ConfigError(f"detector.packing.{key} must be 0 or a multiple of 32, got {v}")
+        if self.align_stride < 0 or self.align_stride > 256:
+            raise ConfigError(f"detector.packing.align_stride must be in [0, 256], got {self.align_stride}")
+        if not 0 <= self.gap <= 64:
+            raise ConfigError(f"detector.packing.gap must be in [0, 64], got {self.gap}")
+        if not 0.1 <= self.min_scale_ratio <= self.max_scale_ratio <= 4.0:
+            raise ConfigError(
+                "detector.packing needs 0.1 <= min_scale_ratio <= max_scale_ratio <= 4, got "
+                f"{self.min_scale_ratio} and {self.max_scale_ratio}"
+            )
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """The ``[detector]`` section."""
+
+    providers: tuple[str, ...] = ("auto",)
+    """onnxruntime execution providers in order of preference; "auto" = TensorRT, CUDA, then CPU, whichever
+    this onnxruntime build has."""
+    intra_op_threads: int = 0
+    """Threads inside one inference (0 = onnxruntime's default, one per core)."""
+    inter_op_threads: int = 1
+    """Threads across graph branches (1 is best for these sequential networks)."""
+    workers: int = 1
+    """Inference worker threads behind the async wrapper (each owns a session)."""
+    model: ModelSpec = field(default_factory=ModelSpec)
+    packing: PackingConfig = field(default_factory=PackingConfig)
+
+    def __post_init__(self) -> None:
+        if self.intra_op_threads < 0 or self.inter_op_threads < 0 or self.workers < 1:
+            raise ConfigError(
+                "detector threads must be >= 0 and workers >= 1, got "
+                f"intra={self.intra_op_threads} inter={self.inter_op_threads} workers={self.workers}"
+            )
+
+
+def _choice(key: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{key} = {value!r} is not one of {list(allowed)}")
+
+
+T = TypeVar("T")
+
+
+def _build(cls: type[T], section: str, raw: Mapping[str, Any], nested: Mapping[str, Any] | None = None) -> T:
+    known = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(raw) - set(known))
+    if unknown:
+        raise ConfigError(f"unknown key(s) in [{section}]: {unknown}; allowed: {sorted(known)}")
+    kwargs: dict[str, Any] = {}
+    for name, value in raw.items():
+        if nested is not None and name in nested:
+            kwargs[name] = nested[name]
+            continue
+        default = getattr(cls(), name)
+        if isinstance(default, tuple):
+            if not isinstance(value, list | tuple):
+                raise ConfigError(f"[{section}] {name} must be a list, got {value!r}")
+            kwargs[name] = tuple(value)
+            continue
+        elif isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ConfigError(f"[{section}] {name} must be true or false, got {value!r}")
+        elif isinstance(default, int):
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise ConfigError(f"[{section}] {name} must be an integer, got {value!r}")
+        elif isinstance(default, float):
+            if not isinstance(value, int | float) or isinstance(value, bool):
+                raise ConfigError(f"[{section}] {name} must be a number, got {value!r}")
+            kwargs[name] = float(value)
+            continue
+        elif isinstance(default, str) and not isinstance(value, str):
+            raise ConfigError(f"[{section}] {name} must be a string, got {value!r}")
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def detector_config_from_mapping(raw: Mapping[str, Any]) -> DetectorConfig:
+    """Build a :class:`DetectorConfig` from the ``[detector]`` table of ``config.toml``.
+
+    Raises
+    ------
+    ConfigError
+        On an unknown key, a wrong type or a value out of range (the message names the key).
+    """
+    raw = dict(raw)
+    model_raw = raw.pop("model", {})
+    packing_raw = raw.pop("packing", {})
+    if not isinstance(model_raw, Mapping) or not isinstance(packing_raw, Mapping):
+        raise ConfigError("[detector.model] and [detector.packing] must be tables")
+    model = _build(ModelSpec, "detector.model", model_raw)
+    packing = _build(PackingConfig, "detector.packing", packing_raw)
+    raw_top = {**raw, "model": None, "packing": None}
+    return _build(DetectorConfig, "detector", raw_top, nested={"model": model, "packing": packing})

