@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.rotations import matrix_from_quat, quat_normalize, quat_slerp
+from mocapd.core.rotations import matrix_from_quat, quat_normalize
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -98,16 +98,36 @@ class SourceMotion:
         return G, x
 
     def resample(self, fps: float = 60.0) -> SourceMotion:
-        """The clip at another frame rate: translations linear, rotations slerp, same duration."""
+        """The clip at another frame rate, same duration.
+
+        Translations and (sign-continuous) rotation quaternions are interpolated with Catmull-Rom cubics, then
+        the quaternions renormalised: unlike linear interpolation / slerp, this keeps velocities continuous, so
+        the second differences that simulate accelerometers have no spikes at the original samples.
+        """
         if not (np.isfinite(fps) and fps > 0):
             raise InputError(f"resample: frame rate must be positive, got {fps!r}")
         if self.n_frames < 2 or abs(fps - self.fps) < 1e-9:
             return self
         duration = (self.n_frames - 1) / self.fps
         t = np.arange(int(np.floor(duration * fps + 1e-9)) + 1) / fps
-        s = t * self.fps
-        i0 = np.clip(np.floor(s).astype(np.intp), 0, self.n_frames - 2)
-        a = (s - i0)[:, None]
-        tr = (1 - a[..., None]) * self.translations[i0] + a[..., None] * self.translations[i0 + 1]
-        rot = quat_slerp(self.rotations[i0], self.rotations[i0 + 1], np.broadcast_to(a, (len(t), self.n_joints)))
+        q = self.rotations.copy()
+        for i in range(1, self.n_frames):  # sign continuity along time
+            flip = np.sum(q[i] * q[i - 1], axis=-1) < 0
+            q[i, flip] *= -1.0
+        tr = _catmull_rom(self.translations, t * self.fps)
+        rot = quat_normalize(_catmull_rom(q, t * self.fps))
         return SourceMotion(self.name, self.joint_names, self.parents, tr, rot, self.end_sites, fps)
+
+
+def _catmull_rom(y: FloatArray, s: FloatArray) -> FloatArray:
+    """Samples ``y`` (n, ...) evaluated at fractional indices ``s`` (m,) with a Catmull-Rom spline."""
+    n = y.shape[0]
+    i1 = np.clip(np.floor(s).astype(np.intp), 0, n - 2)
+    u = (s - i1).reshape(-1, *([1] * (y.ndim - 1)))
+    p0, p1 = y[np.maximum(i1 - 1, 0)], y[i1]
+    p2, p3 = y[i1 + 1], y[np.minimum(i1 + 2, n - 1)]
+    m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
+    u2, u3 = u * u, u * u * u
+    return np.asarray(
+        (2 * u3 - 3 * u2 + 1) * p1 + (u3 - 2 * u2 + u) * m1 + (-2 * u3 + 3 * u2) * p2 + (u3 - u2) * m2
+    )

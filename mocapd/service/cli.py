@@ -8,6 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
+from mocapd.eval import cli as eval_cli
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -39,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     solver.add_argument("--scipy-frames", type=int, default=30, help="frames for the scipy baseline (default 30)")
     solver.add_argument("--seed", type=int, default=0)
     solver.set_defaults(func=_cmd_bench_solver)
+    eval_cli.register(sub)
     return parser
 
 
