@@ -128,6 +128,4 @@ def _catmull_rom(y: FloatArray, s: FloatArray) -> FloatArray:
     p2, p3 = y[i1 + 1], y[np.minimum(i1 + 2, n - 1)]
     m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
     u2, u3 = u * u, u * u * u
-    return np.asarray(
-        (2 * u3 - 3 * u2 + 1) * p1 + (u3 - 2 * u2 + u) * m1 + (-2 * u3 + 3 * u2) * p2 + (u3 - u2) * m2
-    )
+    return np.asarray((2 * u3 - 3 * u2 + 1) * p1 + (u3 - 2 * u2 + u) * m1 + (-2 * u3 + 3 * u2) * p2 + (u3 - u2) * m2)

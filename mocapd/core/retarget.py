@@ -151,6 +151,8 @@ def _spine_points(x: FloatArray, chain: list[int], fractions: FloatArray) -> tup
         while seg[k] <= 1e-9 and k < len(seg) - 1:
             k += 1
         a = (s - cum[k]) / max(seg[k], 1e-9)
+        if a > 1.0 - 1e-6 and k < len(seg) - 1:  # on a joint: the segment below it drives the point
+            k, a = k + 1, 0.0
         pts.append((1 - a) * x[:, chain[k]] + a * x[:, chain[k + 1]])
         drivers.append(chain[k])
     return np.stack(pts, axis=1), drivers
@@ -195,7 +197,7 @@ def retarget(motion: SourceMotion, floor_clearance: float = 0.05) -> Retargeted:
         put(f"{S}Foot", x[:, J[side + "ankle"]], J[side + "ankle"])
         put(f"{S}Toes", x[:, J[side + "toe"]], J[side + "toe"])
 
-    def P(name: str) -> FloatArray:
+    def P(name: str) -> FloatArray:  # noqa: N802 (reads as the position symbol)
         return src[:, BONE_INDEX[name]]
 
     hip_line = P("LeftUpperLeg") - P("RightUpperLeg")

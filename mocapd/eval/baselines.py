@@ -88,7 +88,9 @@ def joints_from_keypoints(kp: FloatArray, ok: NDArray[np.bool_], skeleton: Skele
     J[BONE_INDEX["Neck"]] = spine3 + np.linalg.norm(d["Neck"]) * s * up
     head_kp = [k for k in range(5) if ok[k]]
     if head_kp:  # the head keypoints' centre sits ~7 cm above the head joint (default offsets, upright head)
-        offs = np.array([[0.0, 0.06, 0.10], [0.035, 0.09, 0.08], [-0.035, 0.09, 0.08], [0.075, 0.07, 0.0], [-0.075, 0.07, 0.0]])
+        offs = np.array(
+            [[0.0, 0.06, 0.10], [0.035, 0.09, 0.08], [-0.035, 0.09, 0.08], [0.075, 0.07, 0.0], [-0.075, 0.07, 0.0]]
+        )
         J[BONE_INDEX["Head"]] = kp[head_kp].mean(axis=0) - offs[head_kp, 1].mean() * s * np.array([0.0, 1.0, 0.0])
     left = lh - rh
     left[1] = 0.0

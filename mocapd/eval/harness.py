@@ -26,7 +26,7 @@ from mocapd.core.prior import PcaPrior
 from mocapd.core.retarget import Retargeted
 from mocapd.core.solver import TERM_NAMES, LMOptions, Observations, PoseSolver
 from mocapd.core.terms import CostOptions
-from mocapd.eval.baselines import LIMB_JOINTS, imu_only_theta, joints_from_keypoints, robust_triangulate
+from mocapd.eval.baselines import imu_only_theta, joints_from_keypoints, robust_triangulate
 from mocapd.eval.metrics import orientation_errors, position_errors, stats
 from mocapd.eval.simulate import (
     DetectionNoise,

@@ -84,5 +84,7 @@ def summarize(
     """All Table-1 statistics of one method on one or more concatenated sequences."""
     errs = position_errors(pos, truth_pos)
     out: dict[str, Any] = {k: stats(v) for k, v in errs.items()}
-    out["orientation_deg"] = stats(orientation_errors(rot, truth_rot)) if rot is not None and truth_rot is not None else None
+    out["orientation_deg"] = (
+        stats(orientation_errors(rot, truth_rot)) if rot is not None and truth_rot is not None else None
+    )
     return out

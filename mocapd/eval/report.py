@@ -85,7 +85,10 @@ def markdown(res: dict[str, Any]) -> str:
         "|---|---|---|---|---|",
     ]
     for k, r in res["ablation"]["relative"].items():
-        cells = [f"{r[m]['mean']:.2f} ({r[m]['std']:.2f})" for m in ("global_mm", "root_relative_mm", "procrustes_mm", "orientation_deg")]
+        cells = [
+            f"{r[m]['mean']:.2f} ({r[m]['std']:.2f})"
+            for m in ("global_mm", "root_relative_mm", "procrustes_mm", "orientation_deg")
+        ]
         lines.append(f"| {k.removeprefix('without ')} | " + " | ".join(cells) + " |")
     full = res["ablation"]["absolute"]["full"]
     lines += [

@@ -161,7 +161,8 @@ def run_eval(opts: EvalOptions, out_dir: Path, data_root: Path | None = None) ->
     abl: dict[str, Any] = {"full": base}
     for term in ABLATION_TERMS:
         bar.label = f"ablation -{term}"
-        c2 = replace(cost, **{f"use_{term}": False})
+        off: dict[str, Any] = {f"use_{term}": False}
+        c2 = replace(cost, **off)
         abl[f"without {term}"] = solver_errors(short, RunConfig(8, 13, cost=c2), prior, cost, bar).table()
     results["ablation"] = {"absolute": abl, "relative": _relative(abl)}
 
@@ -209,7 +210,7 @@ def _targets(r: dict[str, Any]) -> dict[str, Any]:
     m, l12 = r["main"], r["main_limb12"]
 
     def ratio(tab: dict[str, Any], a: str, b: str) -> float:
-        return round(tab[a]["global_mm"]["mean"] / tab[b]["global_mm"]["mean"], 3)
+        return round(float(tab[a]["global_mm"]["mean"]) / float(tab[b]["global_mm"]["mean"]), 3)
 
     out = {
         "8c13i_vs_triangulation_8c_global_mean_ratio": ratio(m, "solver 8 cams + 13 IMUs", "triangulation 8 cams"),

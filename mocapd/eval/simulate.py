@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.camera import Camera, look_at, stack_cameras, project_points
+from mocapd.core.camera import Camera, look_at, project_points, stack_cameras
 from mocapd.core.imu import (
     ImuMount,
     measured_bone_orientation,
@@ -48,7 +48,7 @@ BoolArray = NDArray[np.bool_]
 
 
 def _hfov_focal(width: int, hfov_deg: float) -> float:
-    return 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2.0)
+    return float(0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2.0))
 
 
 def totalcapture_ring(n: int = 8, radius: float = 4.5, height: float = 2.5, hfov_deg: float = 60.0) -> list[Camera]:
@@ -126,7 +126,9 @@ _CAPSULES: tuple[tuple[str, str, float], ...] = (
 _SWAP_LIMBS = (((5, 6), (7, 8), (9, 10)), ((11, 12), (13, 14), (15, 16)))
 
 
-def _occluded(cam_center: FloatArray, pts: FloatArray, kp_bones: NDArray[np.intp], joints: FloatArray, s: float) -> BoolArray:
+def _occluded(
+    cam_center: FloatArray, pts: FloatArray, kp_bones: NDArray[np.intp], joints: FloatArray, s: float
+) -> BoolArray:
     """Which keypoints a body capsule hides from a camera.
 
     Parameters

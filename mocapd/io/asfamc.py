@@ -132,11 +132,11 @@ def parse_asf(text: str, name: str = "asf") -> AsfSkeleton:
     order: list[int] = [0]
     frontier = [0]
     while frontier:
-        nxt = []
+        nxt: list[int] = []
         for i in frontier:
-            kids = sorted(k for k, p in parent_of.items() if p == i)
-            order.extend(kids)
-            nxt.extend(kids)
+            children = sorted(c for c, p in parent_of.items() if p == i)
+            order.extend(children)
+            nxt.extend(children)
         frontier = nxt
     remap = {old: new for new, old in enumerate(order)}
     ordered = tuple(all_bones[i] for i in order)

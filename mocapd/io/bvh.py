@@ -135,14 +135,12 @@ def _leg_length(names: list[str], offsets: np.ndarray, parents: list[int]) -> fl
     """Hip-to-ankle length in file units: the lengths of the two joints below the first left thigh joint."""
     low = [n.lower() for n in names]
     for i, n in enumerate(low):
-        if n.startswith("l") or "left" in n or n.endswith("_l"):
-            if any(n.endswith(k) or k in n for k in _LEG_NAMES[0]) and "hipjoint" not in n:
-                kids = [c for c, p in enumerate(parents) if p == i]
-                if kids:
-                    k = kids[0]
-                    grand = [c for c, p in enumerate(parents) if p == k]
-                    if grand:
-                        return float(np.linalg.norm(offsets[k]) + np.linalg.norm(offsets[grand[0]]))
+        left = n.startswith("l") or "left" in n or n.endswith("_l")
+        if left and any(k in n for k in _LEG_NAMES[0]) and "hipjoint" not in n:
+            kids = [c for c, p in enumerate(parents) if p == i]
+            grand = [c for c, p in enumerate(parents) if kids and p == kids[0]]
+            if kids and grand:
+                return float(np.linalg.norm(offsets[kids[0]]) + np.linalg.norm(offsets[grand[0]]))
     return float("nan")
 
 

@@ -65,7 +65,7 @@ class MvnxRecording:
         """The segments as a joint tree (each segment's origin a joint) for retargeting."""
         G = matrix_from_quat(self.segment_orientation)
         x = self.segment_position
-        f, n = x.shape[:2]
+        _f, n = x.shape[:2]
         tr = np.empty_like(x)
         rot = np.empty_like(self.segment_orientation)
         for j, p in enumerate(self.segment_parents):
