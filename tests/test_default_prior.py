@@ -48,3 +48,14 @@ def test_config_prior_key() -> None:
     assert isinstance(resolve_prior("default"), PcaPrior)
     with pytest.raises(ConfigError):
         parse_config({"solver": {"prior": 3}})
+
+
+def test_tuned_preset_changes_only_the_documented_weights() -> None:
+    from dataclasses import replace
+
+    from mocapd.core.terms import CostOptions
+    from mocapd.service.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "presets" / "accuracy-tuned.toml")
+    assert cfg.solver.cost == replace(CostOptions(), lambda_orientation=100.0, lambda_acceleration=1e-4)
+    assert cfg.solver.prior == "default"

@@ -40,11 +40,14 @@ def robust_triangulate(
 
     Parameters
     ----------
-    uv : (n_cams, n_kp, 2); conf : (n_cams, n_kp); height_px : (n_cams,) person height in pixels per view.
+    uv : (n_cams, n_kp, 2); conf : (n_cams, n_kp)
+    height_px : (n_cams,) or (n_cams, n_kp)
+        Person height in pixels per view (per keypoint when several frames are stacked as keypoints).
     """
     K, dist, R, t = stack_cameras(cameras)
     w = conf.copy()
-    thr = max_reprojection * height_px[:, None]
+    h = np.asarray(height_px, dtype=np.float64)
+    thr = max_reprojection * (h[:, None] if h.ndim == 1 else h)
     X, ok = triangulate(cameras, uv, w)
     for _ in range(len(cameras)):
         if not np.any(ok):

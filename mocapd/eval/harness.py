@@ -163,14 +163,23 @@ def run_solver(
 
 
 def run_triangulation(seq: Sequence, n_cams: int, rig: str = "ring") -> FloatArray:
-    """Baseline (i): joints (f, 21, 3) from robust per-frame triangulation (previous value where missing)."""
+    """Baseline (i): joints (f, 21, 3) from robust per-frame triangulation (previous value where missing).
+
+    Frames are independent for the triangulation itself, so all of them go through one vectorised call; only
+    the carry-forward of joints not seen in a frame runs in time order.
+    """
     cams, uv, conf, hpx = _cameras(seq, RunConfig(n_cams, 0, rig))
     clip = seq.clip
+    f, _, k = conf.shape
+    flat_uv = np.swapaxes(uv, 0, 1).reshape(n_cams, f * k, 2)
+    flat_w = np.swapaxes(conf, 0, 1).reshape(n_cams, f * k)
+    flat_h = np.repeat(hpx[:, :n_cams].T, k, axis=1)  # (n_cams, f * k)
+    kp, ok = robust_triangulate(cams, flat_uv, flat_w, flat_h)
+    kp, ok = kp.reshape(f, k, 3), ok.reshape(f, k)
     prev = clip.positions[0].copy()  # the same known start as the solver
-    out = np.zeros((clip.n_frames, 21, 3))
-    for t in range(clip.n_frames):
-        kp, ok = robust_triangulate(cams, uv[t], conf[t], hpx[t, : len(cams)])
-        prev = joints_from_keypoints(kp, ok, clip.skeleton, prev)
+    out = np.zeros((f, 21, 3))
+    for t in range(f):
+        prev = joints_from_keypoints(kp[t], ok[t], clip.skeleton, prev)
         out[t] = prev
     return out
 

@@ -105,6 +105,17 @@ def markdown(res: dict[str, Any]) -> str:
             f"| {k} | {r['N_o'] / r['N_p']:.3f} | {_s(r['global_mm'])} | {_s(r['procrustes_mm'])} | "
             f"{_s(r['orientation_deg'])} |"
         )
+    lines += ["", "## Per sequence: solver global mean mm / Procrustes mean mm / orientation mean deg", ""]
+    configs = list(res.get("per_sequence", {}))
+    if configs:
+        lines += ["| sequence | frames | " + " | ".join(configs) + " |", "|---|---|" + "---|" * len(configs)]
+        for seq in res["per_sequence"][configs[0]]:
+            cells = []
+            for c in configs:
+                r = res["per_sequence"][c][seq]
+                g, p, o = r["global_mm"]["mean"], r["procrustes_mm"]["mean"], r["orientation_deg"]["mean"]
+                cells.append(f"{g:.0f} / {p:.0f} / {o:.1f}")
+            lines.append(f"| {seq} | {res['per_sequence'][configs[0]][seq]['frames']} | " + " | ".join(cells) + " |")
     lines += [
         "",
         f"Solver: {setup['solver_ms_per_frame_main']} ms per frame (main table, whole loop incl. Python);"

@@ -44,7 +44,7 @@ class EvalOptions:
     split: str = "evaluation"
     max_frames: int | None = None
     """Cap per sequence for the main table (None: whole sequences)."""
-    sweep_frames: int = 150
+    sweep_frames: int = 120
     """Cap per sequence for the sweep, the ablation and the sub-sampling study."""
     sweep_cams: tuple[int, ...] = tuple(range(9))
     sweep_imus: tuple[int, ...] = (0, 6, 13)
