@@ -1,4 +1,4 @@
-"""The accuracy harness end to end on a few short sequences (the CI smoke of `mocapd eval --quick`, smaller)."""
+"""The accuracy harness end to end on a few short sequences (a smaller `mocapd eval accuracy --quick`)."""
 
 from __future__ import annotations
 
@@ -79,6 +79,6 @@ def test_quick_run_writes_results(tmp_path: Path) -> None:
 
 def test_cli_has_eval() -> None:
     try:
-        main(["eval", "--help"])
+        main(["eval", "accuracy", "--help"])
     except SystemExit as exc:
         assert exc.code == 0

@@ -67,7 +67,7 @@ def test_every_term_jacobian_matches_finite_differences(scene: Scene, seed: int)
 
 def test_compiled_kernel_equals_numpy_reference(scene: Scene) -> None:
     """Cost, per-term costs, gradient and JᵀJ of the compiled backend equal the tested numpy reference."""
-    from mocapd.core.solver import _Validated
+    from mocapd.core.observations import ValidatedObservations
 
     rng = np.random.default_rng(7)
     frame = 9
@@ -79,7 +79,7 @@ def test_compiled_kernel_equals_numpy_reference(scene: Scene) -> None:
     obs = _noisy(scene, frame, rng)
     for _ in range(3):
         theta = _into_floor(fast, perturb_pose(scene.truth[frame], rng, 20.0))
-        v = _Validated(obs, fast.n_cams, fast.n_kp, fast.n_imu)
+        v = ValidatedObservations(obs, fast.n_cams, fast.n_kp, fast.n_imu)
         on = fast._enabled(v)
         c1, t1, H1, g1 = ref._linearize(theta, v, on)
         c2, t2, H2, g2 = fast._linearize(theta, v, on)

@@ -214,6 +214,53 @@ def _spread_row(
 
 
 @nb.njit(cache=True)
+def _forward(
+    theta: FloatArray,
+    parents: FloatArray,
+    offsets: FloatArray,
+    Rl: FloatArray,
+    Jr: FloatArray,
+    Q: FloatArray,
+    X: FloatArray,
+    need_jr: bool,
+) -> None:
+    """Forward kinematics into preallocated arrays (bones topologically ordered: parents first).
+
+    Rl, Jr, Q : (n_bones, 3, 3) local rotations, their right Jacobians (if ``need_jr``), global rotations;
+    X : (n_bones, 3) joint positions.
+    """
+    for b in range(parents.shape[0]):
+        _rodrigues(theta[3 + 3 * b : 6 + 3 * b], Rl[b], Jr[b], need_jr)
+        p = int(parents[b])
+        if p < 0:
+            Q[b] = Rl[b]
+            X[b, 0] = theta[0]
+            X[b, 1] = theta[1]
+            X[b, 2] = theta[2]
+        else:
+            for i in range(3):
+                X[b, i] = X[p, i] + Q[p, i, 0] * offsets[b, 0] + Q[p, i, 1] * offsets[b, 1] + Q[p, i, 2] * offsets[b, 2]
+                for j in range(3):
+                    Q[b, i, j] = Q[p, i, 0] * Rl[b, 0, j] + Q[p, i, 1] * Rl[b, 1, j] + Q[p, i, 2] * Rl[b, 2, j]
+
+
+@nb.njit(cache=True)
+def _attach(Q: FloatArray, X: FloatArray, bones: FloatArray, point_offsets: FloatArray) -> FloatArray:
+    """World positions of points ``(bone, offset)``: X_b + Q_b c, shape (n, 3)."""
+    out = np.empty((bones.shape[0], 3))
+    for r in range(bones.shape[0]):
+        b = int(bones[r])
+        for i in range(3):
+            out[r, i] = (
+                X[b, i]
+                + Q[b, i, 0] * point_offsets[r, 0]
+                + Q[b, i, 1] * point_offsets[r, 1]
+                + Q[b, i, 2] * point_offsets[r, 2]
+            )
+    return out
+
+
+@nb.njit(cache=True)
 def evaluate(
     theta: FloatArray,
     jac: bool,
@@ -257,34 +304,12 @@ def evaluate(
     """
     nb_ = parents.shape[0]
     n_pts = point_bones.shape[0]
-    # -- forward kinematics (bones are topologically ordered: parents first)
     Rl = np.empty((nb_, 3, 3))
     Jr = np.empty((nb_, 3, 3))
     Q = np.empty((nb_, 3, 3))
     X = np.empty((nb_, 3))
-    for b in range(nb_):
-        _rodrigues(theta[3 + 3 * b : 6 + 3 * b], Rl[b], Jr[b], jac)
-        p = int(parents[b])
-        if p < 0:
-            Q[b] = Rl[b]
-            X[b, 0] = theta[0]
-            X[b, 1] = theta[1]
-            X[b, 2] = theta[2]
-        else:
-            for i in range(3):
-                X[b, i] = X[p, i] + Q[p, i, 0] * offsets[b, 0] + Q[p, i, 1] * offsets[b, 1] + Q[p, i, 2] * offsets[b, 2]
-                for j in range(3):
-                    Q[b, i, j] = Q[p, i, 0] * Rl[b, 0, j] + Q[p, i, 1] * Rl[b, 1, j] + Q[p, i, 2] * Rl[b, 2, j]
-    P = np.empty((n_pts, 3))
-    for r in range(n_pts):
-        b = int(point_bones[r])
-        for i in range(3):
-            P[r, i] = (
-                X[b, i]
-                + Q[b, i, 0] * point_offsets[r, 0]
-                + Q[b, i, 1] * point_offsets[r, 1]
-                + Q[b, i, 2] * point_offsets[r, 2]
-            )
+    _forward(theta, parents, offsets, Rl, Jr, Q, X, jac)
+    P = _attach(Q, X, point_bones, point_offsets)
 
     for i in range(6):
         term_costs[i] = 0.0
@@ -539,29 +564,9 @@ def skeleton_points(
 ) -> FloatArray:
     """World positions of points ``(bone, offset)`` for θ, shape (n, 3) (forward kinematics only)."""
     nb_ = parents.shape[0]
-    R = np.empty((3, 3))
-    Jr = np.empty((3, 3))
+    Rl = np.empty((nb_, 3, 3))
+    Jr = np.empty((nb_, 3, 3))
     Q = np.empty((nb_, 3, 3))
     X = np.empty((nb_, 3))
-    for b in range(nb_):
-        _rodrigues(theta[3 + 3 * b : 6 + 3 * b], R, Jr, False)
-        p = int(parents[b])
-        if p < 0:
-            Q[b] = R
-            X[b] = theta[0:3]
-        else:
-            for i in range(3):
-                X[b, i] = X[p, i] + Q[p, i, 0] * offsets[b, 0] + Q[p, i, 1] * offsets[b, 1] + Q[p, i, 2] * offsets[b, 2]
-                for j in range(3):
-                    Q[b, i, j] = Q[p, i, 0] * R[0, j] + Q[p, i, 1] * R[1, j] + Q[p, i, 2] * R[2, j]
-    out = np.empty((bones.shape[0], 3))
-    for r in range(bones.shape[0]):
-        b = int(bones[r])
-        for i in range(3):
-            out[r, i] = (
-                X[b, i]
-                + Q[b, i, 0] * point_offsets[r, 0]
-                + Q[b, i, 1] * point_offsets[r, 1]
-                + Q[b, i, 2] * point_offsets[r, 2]
-            )
-    return out
+    _forward(theta, parents, offsets, Rl, Jr, Q, X, False)
+    return _attach(Q, X, bones, point_offsets)

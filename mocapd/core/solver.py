@@ -5,16 +5,13 @@ mounts, prior, options) and preallocated buffers, and the warm-start state (prev
 solved IMU sites for the acceleration term). Each frame, :meth:`PoseSolver.solve` takes that frame's
 :class:`Observations` and returns the new θ and a :class:`SolveSummary`.
 
-The minimiser follows Ceres's trust-region Levenberg–Marquardt (``levenberg_marquardt_strategy.cc``,
-``trust_region_minimizer.cc``): the step solves ``(JᵀJ + diag(D)/radius) δ = -Jᵀf`` with D the clamped diagonal of
-``JᵀJ``; a step is accepted when its actual/model cost reduction ratio exceeds ``min_relative_decrease``,
-after which ``radius /= max(1/3, 1 - (2ρ - 1)³)``; a rejected step divides the radius by a factor that doubles
-with each consecutive rejection. Robust losses enter through Ceres's corrector (see :mod:`mocapd.core.loss`).
+The minimiser is :func:`mocapd.core.lm.levenberg_marquardt` (Ceres's trust-region LM). Robust losses enter through
+Ceres's corrector (see :mod:`mocapd.core.loss`). Cost and normal equations come from the compiled kernel
+(:mod:`mocapd.core._kernel`) or from the vectorised numpy reference in this module and :mod:`mocapd.core.terms`.
 """
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -26,7 +23,9 @@ from mocapd.core.camera import Camera, stack_cameras
 from mocapd.core.imu import ImuMount
 from mocapd.core.keypoints import TrackTargets, coco17_targets, floor_targets
 from mocapd.core.kinematics import FKState, Kinematics
+from mocapd.core.lm import LMOptions, Termination, levenberg_marquardt
 from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss, corrector_weights
+from mocapd.core.observations import Observations, ValidatedObservations
 from mocapd.core.prior import PcaPrior
 from mocapd.core.skeleton import POSE_DIM, Skeleton
 from mocapd.core.terms import (
@@ -42,39 +41,18 @@ from mocapd.errors import InputError
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
+__all__ = [
+    "TERM_NAMES",
+    "LMOptions",
+    "Observations",
+    "PoseSolver",
+    "SolveResult",
+    "SolveSummary",
+    "Termination",
+    "solve_many",
+]
+
 TERM_NAMES = ("position", "orientation", "acceleration", "prior_projection", "prior_deviation", "floor")
-
-
-@dataclass(frozen=True)
-class LMOptions:
-    """Levenberg–Marquardt settings (names and defaults after Ceres, with a real-time iteration cap)."""
-
-    max_iterations: int = 20
-    """Cap on iterations (accepted and rejected steps), which bounds the per-frame cost."""
-    function_tolerance: float = 1e-6
-    """Stop when an accepted step reduces the cost by less than this fraction of it."""
-    gradient_tolerance: float = 1e-10
-    """Stop when the largest gradient component is below this."""
-    parameter_tolerance: float = 1e-8
-    """Stop when ``||δ|| <= tol (||θ|| + tol)``."""
-    initial_trust_region_radius: float = 1e4
-    max_trust_region_radius: float = 1e16
-    min_trust_region_radius: float = 1e-32
-    min_relative_decrease: float = 1e-3
-    """Accept a step when actual/predicted cost reduction exceeds this."""
-    min_lm_diagonal: float = 1e-6
-    max_lm_diagonal: float = 1e32
-
-
-class Termination(enum.Enum):
-    """Why a solve stopped."""
-
-    FUNCTION_TOLERANCE = "function_tolerance"
-    GRADIENT_TOLERANCE = "gradient_tolerance"
-    PARAMETER_TOLERANCE = "parameter_tolerance"
-    MAX_ITERATIONS = "max_iterations"
-    TRUST_REGION_COLLAPSED = "trust_region_collapsed"
-    NUMERICAL_FAILURE = "numerical_failure"
 
 
 @dataclass(frozen=True)
@@ -103,95 +81,6 @@ class SolveResult:
     theta: FloatArray
     """Solved pose, shape (66,)."""
     summary: SolveSummary
-
-
-@dataclass(frozen=True)
-class Observations:
-    """One person's measurements at one solve time.
-
-    Attributes
-    ----------
-    keypoints : array, shape (n_cams, n_kp, 2), optional
-        Distorted pixel positions of the track targets per camera. Rows with confidence 0 are missing and may
-        hold NaN.
-    confidences : array, shape (n_cams, n_kp), optional
-        Detector confidences w_cp in [0, 1]; 0 = missing.
-    imu_orientations : array, shape (n_imu, 4), optional
-        Measured global bone orientations R_gb (Eq. 8), quaternions (w, x, y, z).
-    imu_accelerations : array, shape (n_imu, 3), optional
-        Measured global accelerations at the *previous* frame t-1 (Eq. 12), m/s², gravity removed.
-    imu_mask : bool array, shape (n_imu,), optional
-        Which IMUs have a measurement (default: all). Masked rows may hold NaN.
-    dt : float
-        Frame period Δt (seconds) for the acceleration term.
-    """
-
-    keypoints: FloatArray | None = None
-    confidences: FloatArray | None = None
-    imu_orientations: FloatArray | None = None
-    imu_accelerations: FloatArray | None = None
-    imu_mask: BoolArray | None = None
-    dt: float = 1.0 / 60.0
-
-
-class _Validated:
-    """Observations checked and converted to dense arrays for a given problem size."""
-
-    def __init__(self, obs: Observations, n_cams: int, n_kp: int, n_imu: int) -> None:
-        if not (np.isfinite(obs.dt) and obs.dt > 0):
-            raise InputError(f"observations: dt must be a positive finite period in seconds, got {obs.dt!r}")
-        self.dt = float(obs.dt)
-        if obs.keypoints is None and obs.confidences is None:
-            self.uv = np.zeros((n_cams, n_kp, 2))
-            self.conf = np.zeros((n_cams, n_kp))
-        else:
-            uv = _array("keypoints", obs.keypoints, (n_cams, n_kp, 2))
-            conf = _array("confidences", obs.confidences, (n_cams, n_kp))
-            if not np.all(np.isfinite(conf)) or np.any(conf < 0) or np.any(conf > 1):
-                raise InputError("observations: confidences must be finite and within [0, 1]")
-            used = conf > 0
-            if not np.all(np.isfinite(uv[used])):
-                raise InputError(
-                    "observations: keypoints with confidence > 0 must be finite (use confidence 0 "
-                    "for missing keypoints)"
-                )
-            self.uv = np.where(used[..., None], uv, 0.0)
-            self.conf = conf
-        mask = np.ones(n_imu, dtype=bool) if obs.imu_mask is None else _bool_array("imu_mask", obs.imu_mask, (n_imu,))
-        self.has_orientation = obs.imu_orientations is not None and n_imu > 0
-        self.has_acceleration = obs.imu_accelerations is not None and n_imu > 0
-        self.q = np.tile([1.0, 0.0, 0.0, 0.0], (n_imu, 1))
-        self.acc = np.zeros((n_imu, 3))
-        self.mask = mask
-        if obs.imu_orientations is not None:
-            q = _array("imu_orientations", obs.imu_orientations, (n_imu, 4))
-            if not np.all(np.isfinite(q[mask])):
-                raise InputError("observations: imu_orientations must be finite where imu_mask is set")
-            norms = np.linalg.norm(q[mask], axis=-1)
-            if np.any(np.abs(norms - 1.0) > 1e-3):
-                raise InputError("observations: imu_orientations must be unit quaternions (w, x, y, z)")
-            self.q[mask] = q[mask] / norms[:, None]
-        if obs.imu_accelerations is not None:
-            a = _array("imu_accelerations", obs.imu_accelerations, (n_imu, 3))
-            if not np.all(np.isfinite(a[mask])):
-                raise InputError("observations: imu_accelerations must be finite where imu_mask is set")
-            self.acc[mask] = a[mask]
-
-
-def _array(name: str, value: object, shape: tuple[int, ...]) -> FloatArray:
-    if value is None:
-        raise InputError(f"observations: {name} is missing (expected shape {shape})")
-    a = np.asarray(value, dtype=np.float64)
-    if a.shape != shape:
-        raise InputError(f"observations: {name} must have shape {shape}, got {a.shape}")
-    return a
-
-
-def _bool_array(name: str, value: object, shape: tuple[int, ...]) -> BoolArray:
-    a = np.asarray(value)
-    if a.shape != shape or a.dtype != np.bool_:
-        raise InputError(f"observations: {name} must be a boolean array of shape {shape}, got {a.dtype} {a.shape}")
-    return a
 
 
 @dataclass(frozen=True)
@@ -351,7 +240,7 @@ class PoseSolver:
             floor_height=float(o.floor_height),
         )
 
-    def _kernel_call(self, theta: FloatArray, v: _Validated, on: dict[str, bool], jac: bool) -> float:
+    def _kernel_call(self, theta: FloatArray, v: ValidatedObservations, on: dict[str, bool], jac: bool) -> float:
         kp = self._kernel_static
         assert kp is not None
         zeros = np.zeros((self.n_imu, 3))
@@ -397,7 +286,9 @@ class PoseSolver:
             )
         )
 
-    def _cost_only(self, theta: FloatArray, v: _Validated, on: dict[str, bool]) -> tuple[float, dict[str, float]]:
+    def _cost_only(
+        self, theta: FloatArray, v: ValidatedObservations, on: dict[str, bool]
+    ) -> tuple[float, dict[str, float]]:
         if self._kernel_static is None:
             ev = self._evaluate(theta, v, on)
             return ev.cost, ev.term_costs
@@ -405,7 +296,7 @@ class PoseSolver:
         return c, self._term_dict(on)
 
     def _linearize(
-        self, theta: FloatArray, v: _Validated, on: dict[str, bool]
+        self, theta: FloatArray, v: ValidatedObservations, on: dict[str, bool]
     ) -> tuple[float, dict[str, float], FloatArray, FloatArray]:
         """Cost, per-term costs and the corrected normal equations (H (66, 66), g (66,)) at θ."""
         if self._kernel_static is None:
@@ -459,7 +350,7 @@ class PoseSolver:
         del self._history[2:]
 
     # -- evaluation ----------------------------------------------------------------------------------------
-    def _enabled(self, v: _Validated) -> dict[str, bool]:
+    def _enabled(self, v: ValidatedObservations) -> dict[str, bool]:
         o = self.cost_options
         return {
             "position": o.use_position and self.n_cams > 0 and bool(np.any(v.conf > 0)),
@@ -476,7 +367,7 @@ class PoseSolver:
             "floor": o.use_floor,
         }
 
-    def _views(self, v: _Validated) -> int:
+    def _views(self, v: ValidatedObservations) -> int:
         """Cameras that see the person (at least one keypoint with confidence > 0) this frame."""
         return (
             int(np.count_nonzero(np.any(v.conf > 0, axis=1))) if self.n_cams and self.cost_options.use_position else 0
@@ -498,7 +389,7 @@ class PoseSolver:
         theta: FloatArray,
         fk: FKState,
         points: FloatArray,
-        v: _Validated,
+        v: ValidatedObservations,
         on: dict[str, bool],
         jac: bool,
     ) -> dict[str, tuple[FloatArray, FloatArray | None]]:
@@ -544,7 +435,7 @@ class PoseSolver:
                 out["prior_deviation"] = ((pm.A_pd @ d)[None, :], pm.A_pd[None] if jac else None)
         return out
 
-    def _evaluate(self, theta: FloatArray, v: _Validated, on: dict[str, bool]) -> _Evaluation:
+    def _evaluate(self, theta: FloatArray, v: ValidatedObservations, on: dict[str, bool]) -> _Evaluation:
         fk = self.kin.forward(theta)
         points = self.kin.targets(fk, self._point_bones, self._point_offsets)
         terms = self._linearize_terms(theta, fk, points, v, on, jac=False)
@@ -561,7 +452,9 @@ class PoseSolver:
             total += c
         return _Evaluation(theta, fk, points, total, term_costs, blocks)
 
-    def _normal_equations(self, ev: _Evaluation, v: _Validated, on: dict[str, bool]) -> tuple[FloatArray, FloatArray]:
+    def _normal_equations(
+        self, ev: _Evaluation, v: ValidatedObservations, on: dict[str, bool]
+    ) -> tuple[FloatArray, FloatArray]:
         """``H = J~ᵀJ~`` (66, 66) and ``g = J~ᵀf~`` (66,) at the evaluated pose."""
         theta, fk = ev.theta, ev.fk
         terms = self._linearize_terms(theta, fk, ev.points, v, on, jac=True)
@@ -630,7 +523,7 @@ class PoseSolver:
         dict term name -> (f (n, k), J (n, k, 66))
         """
         theta = _check_theta(theta)
-        v = _Validated(obs, self.n_cams, self.n_kp, self.n_imu)
+        v = ValidatedObservations(obs, self.n_cams, self.n_kp, self.n_imu)
         on = self._enabled(v)
         fk = self.kin.forward(theta)
         points = self.kin.targets(fk, self._point_bones, self._point_offsets)
@@ -656,13 +549,13 @@ class PoseSolver:
     def term_residuals(self, theta: FloatArray, obs: Observations) -> dict[str, FloatArray]:
         """Each enabled term's residual blocks at θ, shape (n, k) per term."""
         theta = _check_theta(theta)
-        v = _Validated(obs, self.n_cams, self.n_kp, self.n_imu)
+        v = ValidatedObservations(obs, self.n_cams, self.n_kp, self.n_imu)
         return {k: f for k, (f, _) in self._evaluate(theta, v, self._enabled(v)).blocks.items()}
 
     def cost(self, theta: FloatArray, obs: Observations) -> tuple[float, dict[str, float]]:
         """Total cost ``½ Σ ρ(||f||²)`` and its split per term at θ."""
         theta = _check_theta(theta)
-        v = _Validated(obs, self.n_cams, self.n_kp, self.n_imu)
+        v = ValidatedObservations(obs, self.n_cams, self.n_kp, self.n_imu)
         ev = self._evaluate(theta, v, self._enabled(v))
         return ev.cost, ev.term_costs
 
@@ -677,7 +570,7 @@ class PoseSolver:
         update_state : bool
             Keep the result as the next warm start and push it into the acceleration history.
         """
-        v = _Validated(obs, self.n_cams, self.n_kp, self.n_imu)
+        v = ValidatedObservations(obs, self.n_cams, self.n_kp, self.n_imu)
         start = self._prediction() if theta0 is None else _check_theta(theta0)
         result = self._minimize(start.copy(), v)
         if update_state:
@@ -687,83 +580,28 @@ class PoseSolver:
             self.push_history(result.theta)
         return result
 
-    def _minimize(self, x: FloatArray, v: _Validated) -> SolveResult:
-        lm = self.lm
+    def _minimize(self, x: FloatArray, v: ValidatedObservations) -> SolveResult:
         on = self._enabled(v)
-        cost, term_costs, H, g = self._linearize(x, v, on)
-        initial = cost
-        if not np.isfinite(initial):
-            return SolveResult(
-                x,
-                SolveSummary(
-                    initial,
-                    initial,
-                    0,
-                    0,
-                    Termination.NUMERICAL_FAILURE,
-                    "cost is not finite at the start pose; previous pose kept",
-                ),
-            )
-        radius = lm.initial_trust_region_radius
-        decrease = 2.0
-        iterations = successful = 0
-        reason = Termination.MAX_ITERATIONS
-        message = ""
-        while iterations < lm.max_iterations:
-            if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
-                reason, message = Termination.NUMERICAL_FAILURE, "non-finite Jacobian"
-                break
-            if float(np.max(np.abs(g))) <= lm.gradient_tolerance:
-                reason = Termination.GRADIENT_TOLERANCE
-                break
-            iterations += 1
-            # (H + diag(clip(diag H)) / radius) δ = -g, Cholesky; not positive definite -> more damping.
-            step, model_reduction, ok = _kernel.lm_step(H, g, radius, lm.min_lm_diagonal, lm.max_lm_diagonal)
-            if not (ok and np.all(np.isfinite(step))):
-                radius /= decrease
-                decrease *= 2.0
-                if radius < lm.min_trust_region_radius:
-                    reason, message = Termination.NUMERICAL_FAILURE, "linear solve failed repeatedly"
-                    break
-                continue
-            if float(np.linalg.norm(step)) <= lm.parameter_tolerance * (
-                float(np.linalg.norm(x)) + lm.parameter_tolerance
-            ):
-                reason = Termination.PARAMETER_TOLERANCE
-                break
-            trial = x + step
-            trial_cost, trial_terms = self._cost_only(trial, v, on)
-            actual = cost - trial_cost
-            rel = actual / model_reduction if model_reduction > 0 else -1.0
-            # A step counts only when it is accepted: rejected steps change the damping, not the pose.
-            if np.isfinite(trial_cost) and rel > lm.min_relative_decrease:
-                successful += 1
-                x, cost, term_costs = trial, trial_cost, trial_terms
-                radius = min(radius / max(1.0 / 3.0, 1.0 - (2.0 * rel - 1.0) ** 3), lm.max_trust_region_radius)
-                decrease = 2.0
-                if actual <= lm.function_tolerance * (cost + actual):
-                    reason = Termination.FUNCTION_TOLERANCE
-                    break
-                cost, term_costs, H, g = self._linearize(x, v, on)
-            else:
-                radius /= decrease
-                decrease *= 2.0
-                if radius < lm.min_trust_region_radius:
-                    reason = Termination.TRUST_REGION_COLLAPSED
-                    break
-        if reason is Termination.NUMERICAL_FAILURE or not np.all(np.isfinite(x)):
-            return SolveResult(
-                self.theta.copy(),
-                SolveSummary(
-                    initial,
-                    initial,
-                    iterations,
-                    successful,
-                    Termination.NUMERICAL_FAILURE,
-                    message or "non-finite pose; previous pose kept",
-                ),
-            )
-        return SolveResult(x, SolveSummary(initial, cost, iterations, successful, reason, message, term_costs))
+
+        def linearize(theta: FloatArray) -> tuple[float, FloatArray, FloatArray, dict[str, float]]:
+            cost, terms, H, g = self._linearize(theta, v, on)
+            return cost, H, g, terms
+
+        def cost_only(theta: FloatArray) -> tuple[float, dict[str, float]]:
+            return self._cost_only(theta, v, on)
+
+        r = levenberg_marquardt(x, linearize, cost_only, self.lm)
+        failed = r.termination is Termination.NUMERICAL_FAILURE
+        summary = SolveSummary(
+            initial_cost=r.initial_cost,
+            final_cost=r.final_cost,
+            iterations=r.iterations,
+            successful_iterations=r.successful_iterations,
+            termination=r.termination,
+            message=f"{r.message}; previous pose kept" if failed else r.message,
+            term_costs={} if failed else r.info,
+        )
+        return SolveResult(self.theta.copy() if failed else r.x, summary)
 
 
 def _loss_code(loss: Loss, term: str) -> tuple[int, float]:

@@ -16,6 +16,7 @@ from mocapd.core.kinematics import Kinematics
 from mocapd.core.rotations import quat_from_matrix
 from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
 from mocapd.core.solver import Observations
+from mocapd.core.sorting import Detections2D
 
 FloatArray = NDArray[np.float64]
 
@@ -173,3 +174,87 @@ def exact_observations(
             )
         )
     return out
+
+
+def scene_detections(
+    cameras: list[Camera],
+    targets: TrackTargets,
+    skeleton: Skeleton,
+    people: list[FloatArray],
+    rng: np.random.Generator,
+    noise_px: float = 0.0,
+) -> tuple[list[list[Detections2D]], list[list[NDArray[np.intp]]]]:
+    """Per frame and camera, the 2D people as a detector would report them: unordered, labels kept apart.
+
+    Parameters
+    ----------
+    people : list of arrays, shape (n_frames, 66)
+        Each person's pose sequence (same length).
+
+    Returns
+    -------
+    detections : [frame][camera] Detections2D, people in a random order per camera and frame; keypoints outside
+        the image or behind the camera have confidence 0, people with fewer than 5 visible keypoints are omitted.
+    labels : [frame][camera] int array mapping each detection index to its person index in ``people``.
+    """
+    kin = Kinematics(skeleton)
+    pts = [kin.targets(kin.forward(p), targets.bones, targets.offsets) for p in people]  # (n_frames, n_kp, 3)
+    K, dist, R, t = stack_cameras(cameras)
+    n_frames = people[0].shape[0]
+    dets: list[list[Detections2D]] = []
+    labels: list[list[NDArray[np.intp]]] = []
+    w = np.array([c.width for c in cameras])[:, None]
+    h = np.array([c.height for c in cameras])[:, None]
+    for f in range(n_frames):
+        per_cam_kp: list[list[FloatArray]] = [[] for _ in cameras]
+        per_cam_cf: list[list[FloatArray]] = [[] for _ in cameras]
+        per_cam_lb: list[list[int]] = [[] for _ in cameras]
+        for p, X in enumerate(pts):
+            uv, _, valid = project_points(K, dist, R, t, X[f], jacobian=False)
+            uv = uv + rng.normal(scale=noise_px, size=uv.shape) if noise_px > 0 else uv
+            inside = valid & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+            for c in range(len(cameras)):
+                if inside[c].sum() >= 5:
+                    per_cam_kp[c].append(np.where(inside[c][:, None], uv[c], 0.0))
+                    per_cam_cf[c].append(inside[c].astype(np.float64) * 0.9)
+                    per_cam_lb[c].append(p)
+        frame_dets, frame_labels = [], []
+        for c in range(len(cameras)):
+            order = rng.permutation(len(per_cam_lb[c]))
+            n_kp = len(targets)
+            kp = np.array(per_cam_kp[c]).reshape(-1, n_kp, 2)[order]
+            cf = np.array(per_cam_cf[c]).reshape(-1, n_kp)[order]
+            frame_dets.append(Detections2D(kp, cf))
+            frame_labels.append(np.array(per_cam_lb[c], dtype=np.intp).reshape(-1)[order])
+        dets.append(frame_dets)
+        labels.append(frame_labels)
+    return dets, labels
+
+
+def walking_path(
+    skeleton: Skeleton,
+    n_frames: int,
+    start: tuple[float, float],
+    end: tuple[float, float],
+    seed: int,
+    fps: float = 60.0,
+) -> FloatArray:
+    """A person moving (limbs as :func:`moving_sequence`) in a straight line from ``start`` to ``end`` (x, z)."""
+    theta = moving_sequence(skeleton, n_frames, fps=fps, seed=seed)
+    s = np.linspace(0.0, 1.0, n_frames)[:, None]
+    xz = (1 - s) * np.asarray(start) + s * np.asarray(end)
+    theta[:, 0] = xz[:, 0]
+    theta[:, 2] = xz[:, 1]
+    return theta
+
+
+def waypoint_path(
+    skeleton: Skeleton, n_frames: int, waypoints: list[tuple[float, float, float]], seed: int, fps: float = 60.0
+) -> FloatArray:
+    """A person moving through ``(time fraction, x, z)`` waypoints (piecewise linear), limbs moving throughout."""
+    theta = moving_sequence(skeleton, n_frames, fps=fps, seed=seed)
+    w = np.asarray(waypoints, dtype=np.float64)
+    s = np.linspace(0.0, 1.0, n_frames)
+    theta[:, 0] = np.interp(s, w[:, 0], w[:, 1])
+    theta[:, 2] = np.interp(s, w[:, 0], w[:, 2])
+    return theta

@@ -1,4 +1,4 @@
-"""``mocapd eval``: the accuracy harness from the command line (registered by ``mocapd.service.cli``)."""
+"""``mocapd eval accuracy``: the accuracy harness from the command line (registered by ``mocapd.service.cli``)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from typing import Any
 
 
 def register(sub: Any) -> None:
-    """Add the ``eval`` subcommand to the CLI's subparsers."""
-    p = sub.add_parser("eval", help="accuracy harness on real recorded motion (docs/accuracy.md)")
+    """Add ``accuracy`` to the subparsers of ``mocapd eval``."""
+    p = sub.add_parser("accuracy", help="accuracy on real recorded motion vs baselines (docs/accuracy.md)")
     p.add_argument("--quick", action="store_true", help="CI smoke run: a few short sequences (< 2 minutes)")
     p.add_argument("--split", default=None, help="evaluation (default), development or quick")
     p.add_argument("--out", type=Path, default=Path("results/accuracy"), help="results directory")

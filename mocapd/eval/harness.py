@@ -1,4 +1,4 @@
-"""``mocapd eval``: the accuracy harness (issue 3 §4).
+"""``mocapd eval accuracy``: the accuracy harness (issue 3 §4).
 
 For every evaluation sequence (a retargeted clip cut into windows that stay inside the capture volume) the
 simulator produces one set of detections for the 8-camera ring (and the 120° arc) and one set of 13 IMU readings;

@@ -39,7 +39,7 @@ SUBSAMPLING = ((1, 1), (1, 2), (2, 4), (3, 6), (1, 4), (2, 8), (3, 12), (1, 8), 
 
 @dataclass(frozen=True)
 class EvalOptions:
-    """What ``mocapd eval`` runs."""
+    """What ``mocapd eval accuracy`` runs."""
 
     split: str = "evaluation"
     max_frames: int | None = None

@@ -9,12 +9,27 @@ from collections.abc import Sequence
 
 from mocapd import __version__
 from mocapd.eval import cli as eval_cli
+from mocapd.service import cmd_calibrate
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
     from mocapd.service import bench_solver
 
     print(json.dumps(bench_solver.run(frames=args.frames, scipy_frames=args.scipy_frames, seed=args.seed), indent=2))
+    return 0
+
+
+def _cmd_bench_sorting(args: argparse.Namespace) -> int:
+    from mocapd.service import eval_tracking
+
+    print(json.dumps(eval_tracking.bench_sorting(frames=args.frames), indent=2))
+    return 0
+
+
+def _cmd_eval_tracking(args: argparse.Namespace) -> int:
+    from mocapd.service import eval_tracking
+
+    print(json.dumps(eval_tracking.evaluate(seconds=args.seconds, seed=args.seed), indent=2))
     return 0
 
 
@@ -40,7 +55,19 @@ def build_parser() -> argparse.ArgumentParser:
     solver.add_argument("--scipy-frames", type=int, default=30, help="frames for the scipy baseline (default 30)")
     solver.add_argument("--seed", type=int, default=0)
     solver.set_defaults(func=_cmd_bench_solver)
-    eval_cli.register(sub)
+    sorting = bench_sub.add_parser("sorting", help="detection sorting time per frame (issue: multi-person)")
+    sorting.add_argument("--frames", type=int, default=60)
+    sorting.set_defaults(func=_cmd_bench_sorting)
+
+    ev = sub.add_parser("eval", help="evaluations that print JSON")
+    ev_sub = ev.add_subparsers(dest="eval", metavar="EVAL", required=True)
+    tracking = ev_sub.add_parser("tracking", help="multi-person tracking on synthetic scenes")
+    tracking.add_argument("--seconds", type=float, default=8.0, help="length of each scene (default 8)")
+    tracking.add_argument("--seed", type=int, default=0)
+    tracking.set_defaults(func=_cmd_eval_tracking)
+    eval_cli.register(ev_sub)
+
+    cmd_calibrate.register(sub)
     return parser
 
 

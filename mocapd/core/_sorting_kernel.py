@@ -1,0 +1,194 @@
+"""Compiled candidate generation for detection sorting (Algorithm 1, lines 1–17).
+
+One call per frame: undistort every keypoint, triangulate every pair of 2D people across every pair of views
+(two-ray midpoint on keypoints confident in both), keep pairs whose mean reprojection error is under the limit,
+and cluster them in order of increasing reprojection error (each pair joins the first earlier *leader* within
+the same-person distance that does not already hold a different 2D person of one of its cameras).
+:mod:`mocapd.core.sorting` turns the result into candidates; its tests exercise this kernel end to end.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@nb.njit(cache=True)
+def _undistort(K: FloatArray, dist: FloatArray, u: float, v: float) -> tuple[float, float]:
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    xd = (u - K[0, 2]) / K[0, 0]
+    yd = (v - K[1, 2]) / K[1, 1]
+    x, y = xd, yd
+    for _ in range(10):  # fixed-point iteration, as OpenCV's undistortPoints
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        x = (xd - dx) / radial
+        y = (yd - dy) / radial
+    return x, y
+
+
+@nb.njit(cache=True)
+def candidate_pairs(
+    keypoints: FloatArray,
+    usable: NDArray[np.bool_],
+    camera_of: IntArray,
+    person_of: IntArray,
+    K: FloatArray,
+    dist: FloatArray,
+    R: FloatArray,
+    t: FloatArray,
+    widths: FloatArray,
+    max_error_fraction: float,
+    min_shared: int,
+    same_person: float,
+    min_depth: float,
+) -> tuple[FloatArray, IntArray, FloatArray, IntArray]:
+    """All viable cross-view pairs of 2D people, clustered.
+
+    Parameters
+    ----------
+    keypoints : (n, k, 2) pixels of all 2D people of all cameras; usable : (n, k) confident keypoints;
+    camera_of, person_of : (n,) camera index and per-camera person index of each 2D person;
+    K, dist, R, t : stacked cameras; widths : (n_cams,) image widths.
+
+    Returns
+    -------
+    points : (m, k, 3) triangulated keypoints (NaN where not both usable);
+    sources : (m, 4) (camera a, person a, camera b, person b);
+    errors : (m, 2) mean reprojection error in views a and b (px, undistorted image);
+    leader : (m,) index of the pair whose cluster this pair joins (itself for a new cluster).
+    """
+    n, k = keypoints.shape[0], keypoints.shape[1]
+    n_cams = K.shape[0]
+    # Normalised undistorted image points and world rays.
+    xy = np.empty((n, k, 2))
+    rays = np.empty((n, k, 3))
+    centres = np.empty((n_cams, 3))
+    for c in range(n_cams):
+        for i in range(3):
+            centres[c, i] = -(R[c, 0, i] * t[c, 0] + R[c, 1, i] * t[c, 1] + R[c, 2, i] * t[c, 2])
+    for p in range(n):
+        c = camera_of[p]
+        for j in range(k):
+            x, y = _undistort(K[c], dist[c], keypoints[p, j, 0], keypoints[p, j, 1])
+            xy[p, j, 0] = x
+            xy[p, j, 1] = y
+            for i in range(3):  # Rᵀ (x, y, 1)
+                rays[p, j, i] = R[c, 0, i] * x + R[c, 1, i] * y + R[c, 2, i]
+    m_max = n * n
+    points = np.full((m_max, k, 3), np.nan)
+    sources = np.empty((m_max, 4), dtype=np.int64)
+    errors = np.empty((m_max, 2))
+    leader = np.empty(m_max, dtype=np.int64)
+    leaders = np.empty(m_max, dtype=np.int64)
+    # Per cluster, the 2D person it holds in each camera (-1: none): one camera sees a person only once.
+    members = np.full((m_max, n_cams), -1, dtype=np.int64)
+    n_leaders = 0
+    m = 0
+    X = np.empty(3)
+    for pa in range(n):
+        a = camera_of[pa]
+        for pb in range(n):
+            b = camera_of[pb]
+            if b <= a:
+                continue
+            shared = 0
+            ea = 0.0
+            eb = 0.0
+            for j in range(k):
+                if not (usable[pa, j] and usable[pb, j]):
+                    continue
+                # closest approach of the two rays
+                da = rays[pa, j]
+                db = rays[pb, j]
+                w0 = centres[a] - centres[b]
+                A = da[0] * da[0] + da[1] * da[1] + da[2] * da[2]
+                B = da[0] * db[0] + da[1] * db[1] + da[2] * db[2]
+                C = db[0] * db[0] + db[1] * db[1] + db[2] * db[2]
+                D = da[0] * w0[0] + da[1] * w0[1] + da[2] * w0[2]
+                E = db[0] * w0[0] + db[1] * w0[1] + db[2] * w0[2]
+                den = A * C - B * B
+                if abs(den) < 1e-12:
+                    continue
+                s = (B * E - C * D) / den
+                u = (A * E - B * D) / den
+                for i in range(3):
+                    X[i] = 0.5 * (centres[a, i] + s * da[i] + centres[b, i] + u * db[i])
+                ok = True
+                errs = (0.0, 0.0)
+                for side in range(2):
+                    c = a if side == 0 else b
+                    p = pa if side == 0 else pb
+                    xc0 = R[c, 0, 0] * X[0] + R[c, 0, 1] * X[1] + R[c, 0, 2] * X[2] + t[c, 0]
+                    xc1 = R[c, 1, 0] * X[0] + R[c, 1, 1] * X[1] + R[c, 1, 2] * X[2] + t[c, 1]
+                    xc2 = R[c, 2, 0] * X[0] + R[c, 2, 1] * X[1] + R[c, 2, 2] * X[2] + t[c, 2]
+                    if xc2 <= min_depth:
+                        ok = False
+                        break
+                    e = math.hypot(xc0 / xc2 - xy[p, j, 0], xc1 / xc2 - xy[p, j, 1]) * 0.5 * (K[c, 0, 0] + K[c, 1, 1])
+                    errs = (e, errs[1]) if side == 0 else (errs[0], e)
+                if not ok:
+                    continue
+                shared += 1
+                ea += errs[0]
+                eb += errs[1]
+                for i in range(3):
+                    points[m, j, i] = X[i]
+            limit = max_error_fraction * 0.5 * (widths[a] + widths[b])
+            if shared < min_shared or 0.5 * (ea + eb) / shared >= limit:
+                for j in range(k):
+                    points[m, j, 0] = np.nan
+                    points[m, j, 1] = np.nan
+                    points[m, j, 2] = np.nan
+                continue
+            sources[m, 0] = a
+            sources[m, 1] = person_of[pa]
+            sources[m, 2] = b
+            sources[m, 3] = person_of[pb]
+            errors[m, 0] = ea / shared
+            errors[m, 1] = eb / shared
+            m += 1
+    # Cluster in order of increasing reprojection error: true pairings (consistent to a pixel or two) form
+    # the clusters first; a mismatched pairing of two different people comes later and, contradicting them
+    # in a view, stays on its own (and is dropped when detections are claimed).
+    order = np.argsort(errors[:m, 0] + errors[:m, 1])
+    points, sources, errors = points[order], sources[order], errors[order]
+    for u in range(m):
+        a, pa, b, pb = sources[u, 0], sources[u, 1], sources[u, 2], sources[u, 3]
+        joined = -1
+        for q in range(n_leaders):
+            L = leaders[q]
+            if (members[q, a] >= 0 and members[q, a] != pa) or (members[q, b] >= 0 and members[q, b] != pb):
+                continue  # a different person of camera a or b is already in this cluster
+            total = 0.0
+            cnt = 0
+            for j in range(k):
+                if np.isnan(points[u, j, 0]) or np.isnan(points[L, j, 0]):
+                    continue
+                total += math.sqrt(
+                    (points[u, j, 0] - points[L, j, 0]) ** 2
+                    + (points[u, j, 1] - points[L, j, 1]) ** 2
+                    + (points[u, j, 2] - points[L, j, 2]) ** 2
+                )
+                cnt += 1
+            if cnt > 0 and total / cnt < same_person:
+                joined = L
+                members[q, a] = pa
+                members[q, b] = pb
+                break
+        if joined < 0:
+            leaders[n_leaders] = u
+            members[n_leaders, a] = pa
+            members[n_leaders, b] = pb
+            n_leaders += 1
+            joined = u
+        leader[u] = joined
+    return points, sources, errors, leader[:m]

@@ -1,0 +1,102 @@
+"""One person's measurements at one solve time, and their validation against a problem's size."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.errors import InputError
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class Observations:
+    """One person's measurements at one solve time.
+
+    Attributes
+    ----------
+    keypoints : array, shape (n_cams, n_kp, 2), optional
+        Distorted pixel positions of the track targets per camera. Rows with confidence 0 are missing and may
+        hold NaN.
+    confidences : array, shape (n_cams, n_kp), optional
+        Detector confidences w_cp in [0, 1]; 0 = missing.
+    imu_orientations : array, shape (n_imu, 4), optional
+        Measured global bone orientations R_gb (Eq. 8), quaternions (w, x, y, z).
+    imu_accelerations : array, shape (n_imu, 3), optional
+        Measured global accelerations at the *previous* frame t-1 (Eq. 12), m/s², gravity removed.
+    imu_mask : bool array, shape (n_imu,), optional
+        Which IMUs have a measurement (default: all). Masked rows may hold NaN.
+    dt : float
+        Frame period Δt (seconds) for the acceleration term.
+    """
+
+    keypoints: FloatArray | None = None
+    confidences: FloatArray | None = None
+    imu_orientations: FloatArray | None = None
+    imu_accelerations: FloatArray | None = None
+    imu_mask: BoolArray | None = None
+    dt: float = 1.0 / 60.0
+
+
+class ValidatedObservations:
+    """Observations checked and converted to dense arrays for a given problem size."""
+
+    def __init__(self, obs: Observations, n_cams: int, n_kp: int, n_imu: int) -> None:
+        if not (np.isfinite(obs.dt) and obs.dt > 0):
+            raise InputError(f"observations: dt must be a positive finite period in seconds, got {obs.dt!r}")
+        self.dt = float(obs.dt)
+        if obs.keypoints is None and obs.confidences is None:
+            self.uv = np.zeros((n_cams, n_kp, 2))
+            self.conf = np.zeros((n_cams, n_kp))
+        else:
+            uv = _array("keypoints", obs.keypoints, (n_cams, n_kp, 2))
+            conf = _array("confidences", obs.confidences, (n_cams, n_kp))
+            if not np.all(np.isfinite(conf)) or np.any(conf < 0) or np.any(conf > 1):
+                raise InputError("observations: confidences must be finite and within [0, 1]")
+            used = conf > 0
+            if not np.all(np.isfinite(uv[used])):
+                raise InputError(
+                    "observations: keypoints with confidence > 0 must be finite (use confidence 0 "
+                    "for missing keypoints)"
+                )
+            self.uv = np.where(used[..., None], uv, 0.0)
+            self.conf = conf
+        mask = np.ones(n_imu, dtype=bool) if obs.imu_mask is None else _bool_array("imu_mask", obs.imu_mask, (n_imu,))
+        self.has_orientation = obs.imu_orientations is not None and n_imu > 0
+        self.has_acceleration = obs.imu_accelerations is not None and n_imu > 0
+        self.q = np.tile([1.0, 0.0, 0.0, 0.0], (n_imu, 1))
+        self.acc = np.zeros((n_imu, 3))
+        self.mask = mask
+        if obs.imu_orientations is not None:
+            q = _array("imu_orientations", obs.imu_orientations, (n_imu, 4))
+            if not np.all(np.isfinite(q[mask])):
+                raise InputError("observations: imu_orientations must be finite where imu_mask is set")
+            norms = np.linalg.norm(q[mask], axis=-1)
+            if np.any(np.abs(norms - 1.0) > 1e-3):
+                raise InputError("observations: imu_orientations must be unit quaternions (w, x, y, z)")
+            self.q[mask] = q[mask] / norms[:, None]
+        if obs.imu_accelerations is not None:
+            a = _array("imu_accelerations", obs.imu_accelerations, (n_imu, 3))
+            if not np.all(np.isfinite(a[mask])):
+                raise InputError("observations: imu_accelerations must be finite where imu_mask is set")
+            self.acc[mask] = a[mask]
+
+
+def _array(name: str, value: object, shape: tuple[int, ...]) -> FloatArray:
+    if value is None:
+        raise InputError(f"observations: {name} is missing (expected shape {shape})")
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape != shape:
+        raise InputError(f"observations: {name} must have shape {shape}, got {a.shape}")
+    return a
+
+
+def _bool_array(name: str, value: object, shape: tuple[int, ...]) -> BoolArray:
+    a = np.asarray(value)
+    if a.shape != shape or a.dtype != np.bool_:
+        raise InputError(f"observations: {name} must be a boolean array of shape {shape}, got {a.dtype} {a.shape}")
+    return a

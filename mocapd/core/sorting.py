@@ -1,0 +1,205 @@
+"""Sorting unordered 2D person detections from all views into tracked subjects (seed 003 §3.3.1, Algorithm 1).
+
+Per frame, every pair of 2D people across every pair of views is triangulated on the keypoints confident in
+both; a pair whose mean reprojection error exceeds ``max_reprojection_error`` (fraction of image width) is
+rejected as two different people. Surviving 3D candidates closer than ``same_person_distance`` (mean over shared
+keypoints) to an existing candidate are merged into it; the others start new candidates. Each tracked subject
+then takes the nearest unused candidate within ``max_interframe_movement`` of its last position (subjects in
+the order given). The solver uses the 2D detections of each subject's candidate, not the triangulation.
+
+Beyond the pseudo-code, each measured on the close-interaction scene of ``mocapd eval tracking``:
+(1) a pair never joins a candidate that already holds a *different* 2D person of one of its cameras — one camera
+sees a person once, so two people standing closer than the same-person distance stay apart; (2) each 2D detection
+is finally given to one candidate only, the one supported by most views (:func:`_resolve_claims`): with the seed's
+loose threshold, two different people seen by two facing cameras otherwise pair into spurious 2-view candidates;
+(3) subjects take candidates by an optimal assignment rather than in subject order. Triangulation is the
+two-ray midpoint, all the association needs; reprojection errors are measured in the undistorted image. The
+per-pair work runs in one compiled call (:mod:`mocapd.core._sorting_kernel`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from mocapd.core import _sorting_kernel
+from mocapd.core.camera import MIN_DEPTH, Camera, stack_cameras
+from mocapd.errors import InputError
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SortingOptions:
+    """Thresholds of Algorithm 1 (defaults: the seed's empirical values)."""
+
+    min_confidence: float = 0.3
+    """A keypoint counts when its detector confidence is at least this."""
+    min_shared_keypoints: int = 5
+    """A pair of 2D people must share this many confident keypoints to be triangulated."""
+    max_reprojection_error: float = 0.015
+    """ThreshTriError: mean reprojection error, as a fraction of the image width."""
+    same_person_distance: float = 0.30
+    """ThreshDistSamePerson: mean keypoint distance (m) under which two candidates are one person."""
+    max_interframe_movement: float = 1.0
+    """ThreshInterFrameMovement: how far (m) a subject may move between the frames it is seen in."""
+
+
+@dataclass(frozen=True)
+class Detections2D:
+    """The 2D people one camera detected in one frame.
+
+    Attributes
+    ----------
+    keypoints : array, shape (n_people, n_kp, 2)
+        Pixels (distorted, as detected).
+    confidences : array, shape (n_people, n_kp)
+    """
+
+    keypoints: FloatArray
+    confidences: FloatArray
+
+    def __post_init__(self) -> None:
+        kp = np.asarray(self.keypoints, dtype=np.float64)
+        cf = np.asarray(self.confidences, dtype=np.float64)
+        if kp.ndim != 3 or kp.shape[2] != 2 or cf.shape != kp.shape[:2]:
+            raise InputError(f"detections: keypoints (n, n_kp, 2) and confidences (n, n_kp) expected, "
+                             f"got {kp.shape} and {cf.shape}")  # fmt: skip
+        object.__setattr__(self, "keypoints", kp)
+        object.__setattr__(self, "confidences", cf)
+
+    @classmethod
+    def empty(cls, n_kp: int) -> Detections2D:
+        return cls(np.zeros((0, n_kp, 2)), np.zeros((0, n_kp)))
+
+    def __len__(self) -> int:
+        return int(self.keypoints.shape[0])
+
+
+@dataclass
+class Candidate:
+    """A 3D person candidate: its keypoints and the 2D detections (camera -> person index) it came from."""
+
+    points: FloatArray  # (n_kp, 3), NaN where not triangulated
+    sources: dict[int, int] = field(default_factory=dict)
+    errors: dict[int, float] = field(default_factory=dict)  # camera -> reprojection error of its detection (px)
+
+    @property
+    def centre(self) -> FloatArray:
+        return np.asarray(np.nanmean(self.points, axis=0))
+
+
+def _mean_distance(a: FloatArray, b: FloatArray) -> float:
+    """Mean distance over keypoints present in both (inf when none are)."""
+    d = np.linalg.norm(a - b, axis=-1)
+    ok = np.isfinite(d)
+    return float(d[ok].mean()) if np.any(ok) else np.inf
+
+
+def _resolve_claims(cands: list[Candidate]) -> list[Candidate]:
+    """Give each 2D detection to one candidate: the one seen in most views, then with the lowest error.
+
+    With the seed's loose reprojection threshold, two *different* people can pair up across a near-degenerate
+    view pair (e.g. two cameras facing each other) into a spurious 2-view candidate. A real person is supported by
+    every view that sees them, so support decides; candidates left with fewer than two views are dropped.
+    """
+
+    def rank(c: Candidate) -> tuple[int, float]:
+        return (-len(c.sources), float(np.mean(list(c.errors.values()))))
+
+    owner: dict[tuple[int, int], int] = {}
+    order = sorted(range(len(cands)), key=lambda k: rank(cands[k]))
+    kept: list[Candidate] = []
+    for k in order:
+        c = cands[k]
+        free = {cam: p for cam, p in c.sources.items() if (cam, p) not in owner}
+        if len(free) < 2:
+            continue
+        for cam, p in free.items():
+            owner[(cam, p)] = k
+        kept.append(Candidate(c.points, free, {cam: c.errors[cam] for cam in free}))
+    return kept
+
+
+class DetectionSorter:
+    """Algorithm 1 for a fixed camera rig.
+
+    Parameters
+    ----------
+    cameras : list of Camera
+        At least two (the seed's method needs triangulation).
+    options : SortingOptions
+    """
+
+    def __init__(self, cameras: list[Camera], options: SortingOptions | None = None) -> None:
+        if len(cameras) < 2:
+            raise InputError("detection sorting needs at least two cameras (it triangulates across views)")
+        self.cameras = list(cameras)
+        self.options = options if options is not None else SortingOptions()
+        self._K, self._dist, self._R, self._t = (np.ascontiguousarray(a) for a in stack_cameras(self.cameras))
+        self._widths = np.array([c.width for c in cameras], dtype=np.float64)
+
+    # -- candidates ----------------------------------------------------------------------------------------
+    def candidates(self, detections: list[Detections2D]) -> list[Candidate]:
+        """Lines 1–17 of Algorithm 1: the viable 3D candidates of this frame (then claims resolved)."""
+        if len(detections) != len(self.cameras):
+            raise InputError(f"sorting: {len(self.cameras)} cameras but detections for {len(detections)}")
+        o = self.options
+        counts = [len(d) for d in detections]
+        if sum(1 for n in counts if n) < 2:
+            return []
+        n_kp = detections[0].keypoints.shape[1]
+        kp = np.concatenate([d.keypoints for d in detections]).reshape(-1, n_kp, 2)
+        usable = np.concatenate([d.confidences for d in detections]).reshape(-1, n_kp) >= o.min_confidence
+        camera_of = np.repeat(np.arange(len(counts)), counts).astype(np.int64)
+        person_of = np.concatenate([np.arange(n) for n in counts]).astype(np.int64)
+        points, sources, errors, leader = _sorting_kernel.candidate_pairs(
+            np.ascontiguousarray(kp), usable, camera_of, person_of, self._K, self._dist, self._R, self._t,
+            self._widths, o.max_reprojection_error, o.min_shared_keypoints, o.same_person_distance, MIN_DEPTH,
+        )  # fmt: skip
+        by_leader: dict[int, Candidate] = {}
+        for u in range(points.shape[0]):
+            a, pa, b, pb = (int(x) for x in sources[u])
+            c = by_leader.get(int(leader[u]))
+            if c is None:
+                by_leader[int(leader[u])] = Candidate(points[u].copy(), {a: pa, b: pb},
+                                                      {a: float(errors[u, 0]), b: float(errors[u, 1])})  # fmt: skip
+                continue
+            for cam, person, err in ((a, pa, errors[u, 0]), (b, pb, errors[u, 1])):
+                # Two detections of one view in one candidate: keep the one that reprojects better.
+                if cam not in c.sources or err < c.errors[cam]:
+                    c.sources[cam] = person
+                    c.errors[cam] = float(err)
+            c.points = np.where(np.isnan(c.points), points[u], c.points)
+        return _resolve_claims(list(by_leader.values()))
+
+    # -- assignment ----------------------------------------------------------------------------------------
+    def assign(self, cands: list[Candidate], last_positions: list[FloatArray | None]) -> list[Candidate | None]:
+        """Lines 18–30, with one change: subjects and candidates are matched optimally, not in subject order.
+
+        Each subject gets at most one candidate within ``max_interframe_movement`` of its last position, and
+        the pairing minimises the total distance (Hungarian) — the seed's greedy order lets the first subject
+        take the other person's candidate when two people stand close.
+
+        Parameters
+        ----------
+        last_positions : per subject, its last seen keypoints (n_kp, 3) or None if never seen.
+        """
+        out: list[Candidate | None] = [None] * len(last_positions)
+        if not cands or not last_positions:
+            return out
+        limit = self.options.max_interframe_movement
+        dist = np.full((len(last_positions), len(cands)), np.inf)
+        for i, last in enumerate(last_positions):
+            if last is not None:
+                for j, c in enumerate(cands):
+                    dist[i, j] = _mean_distance(c.points, last)
+        usable = dist < limit
+        rows, cols = linear_sum_assignment(np.where(usable, dist, 1e6))
+        for i, j in zip(rows, cols, strict=True):
+            if usable[i, j]:
+                out[i] = cands[j]
+        return out

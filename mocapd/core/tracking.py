@@ -1,0 +1,190 @@
+"""Tracked subjects over time: enrolment, bystander rejection and release (seed 003 §3.3.1 and beyond).
+
+Each frame the :class:`~mocapd.core.sorting.DetectionSorter` gives 3D candidates; enrolled subjects take theirs
+(Algorithm 1). Candidates no subject took are *tentative* people, followed frame to frame by proximity:
+
+- with designated start positions (the seed's way) a tentative person standing within ``start_radius`` of a
+  free start position for ``enrol_after_s`` becomes a subject;
+- without them, a tentative person seen inside the capture volume for ``enrol_after_s`` (allowing gaps of at
+  most ``tentative_gap_s``) becomes a subject, up to ``max_subjects``.
+
+Everyone else is a bystander. A subject not seen for ``grace_period_s`` is released. Time is passed in (int64
+nanoseconds); nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.sorting import Candidate, Detections2D, DetectionSorter, _mean_distance
+from mocapd.errors import InputError
+
+FloatArray = NDArray[np.float64]
+
+_NS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class TrackingOptions:
+    """Enrolment and release of subjects."""
+
+    max_subjects: int = 4
+    """At most this many subjects are tracked; further people are bystanders."""
+    volume_min: tuple[float, float] = (-2.5, -2.5)
+    """Capture volume, floor rectangle (x, z) minimum corner (m). People outside it are never enrolled."""
+    volume_max: tuple[float, float] = (2.5, 2.5)
+    """Capture volume (x, z) maximum corner (m)."""
+    enrol_after_s: float = 1.0
+    """A person must be seen this long (inside the volume / at a start position) to become a subject."""
+    tentative_gap_s: float = 0.3
+    """A tentative person unseen for longer than this starts over."""
+    grace_period_s: float = 2.0
+    """A subject unseen for longer than this is released."""
+    start_positions: tuple[tuple[float, float], ...] = ()
+    """Designated start positions (x, z) (m). When given, subjects enrol only there (the seed's way)."""
+    start_radius: float = 0.5
+    """How close (m, on the floor) to a start position a person must stand to enrol there."""
+
+
+@dataclass
+class Subject:
+    """A tracked person."""
+
+    id: int
+    last_points: FloatArray  # (n_kp, 3)
+    last_seen_ns: int
+    enrolled_ns: int
+    detections: dict[int, int] = field(default_factory=dict)  # this frame: camera -> 2D person index
+    seen: bool = False  # seen this frame
+
+
+@dataclass
+class _Tentative:
+    points: FloatArray
+    first_ns: int
+    last_ns: int
+    start_index: int  # designated start position it stands at, or -1
+
+
+@dataclass(frozen=True)
+class TrackingEvent:
+    """Something the operator should see in status: ``kind`` is ``enrolled`` or ``released``."""
+
+    t_ns: int
+    kind: str
+    subject: int
+
+
+@dataclass(frozen=True)
+class FrameAssignment:
+    """The result of one frame.
+
+    Attributes
+    ----------
+    subjects : list of Subject
+        Every tracked subject (``seen`` tells whether it was assigned this frame; ``detections`` its 2D people).
+    bystanders : int
+        3D candidates this frame that belong to no subject.
+    events : list of TrackingEvent
+    """
+
+    subjects: list[Subject]
+    bystanders: int
+    events: list[TrackingEvent]
+
+
+class SubjectTracker:
+    """Sorts each frame's detections into enrolled subjects and manages enrolment and release."""
+
+    def __init__(self, sorter: DetectionSorter, options: TrackingOptions | None = None) -> None:
+        self.sorter = sorter
+        self.options = options if options is not None else TrackingOptions()
+        if self.options.max_subjects < 0 or self.options.enrol_after_s < 0 or self.options.grace_period_s < 0:
+            raise InputError("tracking options must be non-negative")
+        self.subjects: list[Subject] = []
+        self._tentative: list[_Tentative] = []
+        self._next_id = 1
+
+    def update(self, t_ns: int, detections: list[Detections2D]) -> FrameAssignment:
+        """Process one frame's detections (one :class:`Detections2D` per camera) at time ``t_ns``."""
+        cands = self.sorter.candidates(detections)
+        for s in self.subjects:
+            s.seen = False
+            s.detections = {}
+        taken = self.sorter.assign(cands, [s.last_points for s in self.subjects])
+        for s, c in zip(self.subjects, taken, strict=True):
+            if c is not None:
+                s.last_points, s.last_seen_ns, s.seen = c.points, t_ns, True
+                s.detections = dict(c.sources)
+        events = self._release(t_ns)
+        free = [c for c, used in zip(cands, self._used_mask(cands, taken), strict=True) if not used]
+        enrolled = self._enrol(t_ns, free)
+        events += enrolled
+        return FrameAssignment(list(self.subjects), len(free) - len(enrolled), events)
+
+    @staticmethod
+    def _used_mask(cands: list[Candidate], taken: list[Candidate | None]) -> list[bool]:
+        ids = {id(c) for c in taken if c is not None}
+        return [id(c) in ids for c in cands]
+
+    def _release(self, t_ns: int) -> list[TrackingEvent]:
+        keep, events = [], []
+        for s in self.subjects:
+            if (t_ns - s.last_seen_ns) > self.options.grace_period_s * _NS:
+                events.append(TrackingEvent(t_ns, "released", s.id))
+            else:
+                keep.append(s)
+        self.subjects = keep
+        return events
+
+    def _inside(self, c: Candidate) -> bool:
+        x, _, z = c.centre
+        (x0, z0), (x1, z1) = self.options.volume_min, self.options.volume_max
+        return bool(x0 <= x <= x1 and z0 <= z <= z1)
+
+    def _start_index(self, c: Candidate) -> int:
+        """The free designated start position the candidate stands at, or -1."""
+        o = self.options
+        taken = {t.start_index for t in self._tentative}
+        x, _, z = c.centre
+        for i, (sx, sz) in enumerate(o.start_positions):
+            if np.hypot(x - sx, z - sz) <= o.start_radius and i not in taken:
+                return i
+        return -1
+
+    def _enrol(self, t_ns: int, free: list[Candidate]) -> list[TrackingEvent]:
+        o = self.options
+        gap = o.tentative_gap_s * _NS
+        self._tentative = [t for t in self._tentative if t_ns - t.last_ns <= gap]
+        events: list[TrackingEvent] = []
+        matched: set[int] = set()
+        for c in free:
+            eligible = self._inside(c)
+            if o.start_positions:  # at a free start position, or still standing where a tentative one began
+                near = any(_mean_distance(t.points, c.points) < o.start_radius for t in self._tentative)
+                eligible = eligible and (self._start_index(c) >= 0 or near)
+            if not eligible:
+                continue
+            best, best_d = None, np.inf
+            for t in self._tentative:
+                d = _mean_distance(t.points, c.points)
+                if id(t) not in matched and d < best_d:
+                    best, best_d = t, d
+            if best is not None and best_d < self.sorter.options.max_interframe_movement:
+                best.points, best.last_ns = c.points, t_ns
+                matched.add(id(best))
+            else:
+                start = self._start_index(c) if o.start_positions else -1
+                self._tentative.append(_Tentative(c.points, t_ns, t_ns, start))
+                matched.add(id(self._tentative[-1]))
+                best = self._tentative[-1]
+            if best.last_ns - best.first_ns >= o.enrol_after_s * _NS and len(self.subjects) < o.max_subjects:
+                s = Subject(self._next_id, c.points, t_ns, t_ns, dict(c.sources), True)
+                self._next_id += 1
+                self.subjects.append(s)
+                self._tentative = [t for t in self._tentative if t is not best]
+                events.append(TrackingEvent(t_ns, "enrolled", s.id))
+        return events

@@ -1,0 +1,459 @@
+"""Camera calibration files: mocapd's own TOML, Pose2Sim/OpenCV TOML, Qualisys ``Calib.qca.txt``, OpenCV YAML.
+
+Everything is read into a :class:`CalibrationSet` in mocapd's conventions (DESIGN.md): world right-handed, +Y up,
+metres; per camera ``x_cam = R @ X_world + t`` (world→camera, OpenCV camera axes: x right, y down, z forward),
+pixel intrinsics ``K`` and OpenCV distortion ``(k1, k2, p1, p2, k3)``.
+
+mocapd calibration TOML (``format = "mocapd-calibration"``, ``version = 1``)::
+
+    format = "mocapd-calibration"
+    version = 1
+    world = "right-handed, +Y up, metres, floor y=0"
+
+    [[camera]]
+    name = "cam01"
+    size = [1088, 1920]                  # width, height in pixels
+    K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    dist = [k1, k2, p1, p2, k3]          # OpenCV model
+    R = [[...], [...], [...]]            # world -> camera rotation
+    t = [tx, ty, tz]                     # world -> camera translation, metres
+    reprojection_error_px = 0.41         # optional: RMS from the calibration that produced it
+
+Foreign conventions handled on import/export:
+
+* Pose2Sim TOML: one table per camera with ``size``, ``matrix``, ``distortions`` (k1 k2 p1 p2), ``rotation``
+  (Rodrigues vector, world→camera), ``translation`` (metres); its world is Z-up.
+* Qualisys ``.qca.txt`` (as shipped with Pose2Sim): focal lengths and principal points in 1/64 pixel, principal
+  point relative to the sensor (minus the video field-of-view offset), camera position in mm and camera
+  orientation (rows: the camera's axes in the world) with the camera looking along -Z and +Y up in the image;
+  world Z-up.
+  Converted as Pose2Sim's ``calib_qca_fun`` does (world→camera, then rotate by π about the camera's x axis), except
+  for the distortion coefficients: Pose2Sim divides them by 64 like the pixel values, but they are dimensionless.
+  Calibrating the four demo cameras from their own checkerboard images gives k1 ≈ -0.03…-0.05, k2 ≈ 0.01…0.15,
+  the file holds k1 ≈ -0.047, k2 ≈ 0.137 (``tests/test_board_calibration.py``). Pass
+  ``pose2sim_distortion=True`` to reproduce Pose2Sim's numbers.
+* OpenCV YAML (``cv2.FileStorage``): Pose2Sim's ``names`` + ``K_<name>``, ``dist_<name>``, ``R_<name>``
+  (Rodrigues), ``T_<name>`` layout, or a single camera as ``camera_matrix``, ``distortion_coefficients``,
+  ``image_width``, ``image_height`` (+ optional ``rvec``/``tvec``).
+
+Z-up worlds are turned +Y up by ``X_y = (x, z, -y)`` of ``X_z = (x, y, z)`` (a rotation, so handedness is kept).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+import xml.etree.ElementTree as ET
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.errors import CalibrationError
+
+FloatArray = NDArray[np.float64]
+WorldUp = Literal["y", "z"]
+
+# Z-up world -> mocapd's Y-up world: X_y = Z_TO_Y @ X_z.
+Z_TO_Y: FloatArray = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """One calibrated camera in mocapd's conventions.
+
+    Attributes
+    ----------
+    name : str
+    size : (width, height)
+        Image size in pixels.
+    K : ndarray, shape (3, 3)
+        Intrinsic matrix (pixels).
+    dist : ndarray, shape (5,)
+        OpenCV distortion (k1, k2, p1, p2, k3).
+    R : ndarray, shape (3, 3)
+        World→camera rotation.
+    t : ndarray, shape (3,)
+        World→camera translation in metres.
+    error_px : float or None
+        RMS reprojection error of the calibration that produced it.
+    """
+
+    name: str
+    size: tuple[int, int]
+    K: FloatArray
+    dist: FloatArray = field(default_factory=lambda: np.zeros(5))
+    R: FloatArray = field(default_factory=lambda: np.eye(3))
+    t: FloatArray = field(default_factory=lambda: np.zeros(3))
+    error_px: float | None = None
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, np.float64)
+        dist = np.zeros(5)
+        d = np.asarray(self.dist, np.float64).reshape(-1)[:5]
+        dist[: d.size] = d
+        R = np.asarray(self.R, np.float64)
+        t = np.asarray(self.t, np.float64).reshape(-1)
+        if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
+            raise CalibrationError(
+                f"camera {self.name!r}: K and R must be 3x3 and t has 3 values (got {K.shape}, {R.shape}, {t.shape})"
+            )
+        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise CalibrationError(f"camera {self.name!r}: non-finite calibration values")
+        if abs(np.linalg.det(R) - 1.0) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+            raise CalibrationError(f"camera {self.name!r}: R is not a rotation matrix (det={np.linalg.det(R):.4f})")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist)
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "size", (int(self.size[0]), int(self.size[1])))
+
+    @property
+    def center(self) -> FloatArray:
+        """Camera centre in world coordinates, shape (3,), metres."""
+        return -self.R.T @ self.t
+
+    def project(self, points: FloatArray) -> FloatArray:
+        """Project world points, shape (n, 3), to pixels, shape (n, 2), with distortion."""
+        rvec, _ = cv2.Rodrigues(self.R)
+        pixels, _ = cv2.projectPoints(np.asarray(points, np.float64).reshape(-1, 1, 3), rvec, self.t, self.K, self.dist)
+        return np.asarray(pixels, np.float64).reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class CalibrationSet:
+    """The calibration of a camera rig, world right-handed, +Y up, metres."""
+
+    cameras: tuple[CameraCalibration, ...]
+    source: str = ""
+
+    def __getitem__(self, name: str) -> CameraCalibration:
+        for cam in self.cameras:
+            if cam.name == name:
+                return cam
+        raise KeyError(name)
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+
+def world_z_up_to_y_up(cam: CameraCalibration) -> CameraCalibration:
+    """Re-express a camera calibrated in a Z-up world in mocapd's Y-up world (same camera, same pixels)."""
+    return replace(cam, R=cam.R @ Z_TO_Y.T)
+
+
+def world_y_up_to_z_up(cam: CameraCalibration) -> CameraCalibration:
+    """Inverse of :func:`world_z_up_to_y_up`."""
+    return replace(cam, R=cam.R @ Z_TO_Y)
+
+
+def _to_y_up(cams: Sequence[CameraCalibration], world_up: WorldUp) -> tuple[CameraCalibration, ...]:
+    if world_up not in ("y", "z"):
+        raise CalibrationError(f"world_up must be 'y' or 'z', got {world_up!r}")
+    return tuple(world_z_up_to_y_up(c) if world_up == "z" else c for c in cams)
+
+
+# -- mocapd TOML -------------------------------------------------------------------------------------------------
+
+
+def _fmt(values: Any) -> str:
+    arr = np.asarray(values, np.float64)
+    if arr.ndim == 1:
+        return "[" + ", ".join(repr(float(v)) for v in arr) + "]"
+    return "[" + ", ".join(_fmt(row) for row in arr) + "]"
+
+
+def write_mocapd_toml(calib: CalibrationSet, path: Path) -> None:
+    """Write ``calib`` as mocapd's calibration TOML (see module docstring)."""
+    lines = [
+        'format = "mocapd-calibration"',
+        "version = 1",
+        'world = "right-handed, +Y up, metres, floor y=0"',
+        f"source = {_quote(calib.source)}",
+    ]
+    for cam in calib.cameras:
+        lines += [
+            "",
+            "[[camera]]",
+            f"name = {_quote(cam.name)}",
+            f"size = [{cam.size[0]}, {cam.size[1]}]  # width, height in pixels",
+            f"K = {_fmt(cam.K)}",
+            f"dist = {_fmt(cam.dist)}  # k1, k2, p1, p2, k3",
+            f"R = {_fmt(cam.R)}  # world -> camera",
+            f"t = {_fmt(cam.t)}  # world -> camera, metres",
+        ]
+        if cam.error_px is not None:
+            lines.append(f"reprojection_error_px = {cam.error_px!r}")
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _quote(text: str) -> str:
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def _load_toml(path: Path) -> dict[str, Any]:
+    try:
+        with Path(path).open("rb") as f:
+            return tomllib.load(f)
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise CalibrationError(f"cannot read calibration {path}: {exc}") from exc
+
+
+def read_mocapd_toml(path: Path) -> CalibrationSet:
+    """Read mocapd's calibration TOML.
+
+    Raises
+    ------
+    CalibrationError
+        If the file is not a mocapd calibration, has an unknown version or a malformed camera.
+    """
+    data = _load_toml(path)
+    if data.get("format") != "mocapd-calibration":
+        raise CalibrationError(f"{path} is not a mocapd calibration (format = {data.get('format')!r})")
+    if data.get("version") != 1:
+        raise CalibrationError(f"{path}: calibration version {data.get('version')!r} is not supported (1 is)")
+    cams = []
+    for i, c in enumerate(data.get("camera", [])):
+        try:
+            cams.append(
+                CameraCalibration(
+                    c["name"],
+                    tuple(c["size"]),
+                    np.array(c["K"]),
+                    np.array(c["dist"]),
+                    np.array(c["R"]),
+                    np.array(c["t"]),
+                    c.get("reprojection_error_px"),
+                )
+            )
+        except KeyError as exc:
+            raise CalibrationError(f"{path}: camera #{i} lacks key {exc}") from exc
+    if not cams:
+        raise CalibrationError(f"{path} holds no [[camera]]")
+    return CalibrationSet(tuple(cams), str(data.get("source", "")))
+
+
+# -- Pose2Sim TOML ------------------------------------------------------------------------------------------------
+
+
+def read_pose2sim_toml(path: Path, world_up: WorldUp = "z") -> CalibrationSet:
+    """Read a Pose2Sim (OpenCV convention) calibration TOML; its world is Z-up unless ``world_up='y'``."""
+    data = _load_toml(path)
+    if "cameras" in data and isinstance(data["cameras"], dict):
+        data = data["cameras"]
+    cams = []
+    for key, c in data.items():
+        if key == "metadata" or not isinstance(c, dict):
+            continue
+        try:
+            R, _ = cv2.Rodrigues(np.array(c["rotation"], np.float64))
+            cams.append(
+                CameraCalibration(
+                    str(c.get("name", key)),
+                    (round(c["size"][0]), round(c["size"][1])),
+                    np.array(c["matrix"], np.float64),
+                    np.array(c["distortions"], np.float64),
+                    np.asarray(R, np.float64),
+                    np.array(c["translation"], np.float64),
+                )
+            )
+        except KeyError as exc:
+            raise CalibrationError(f"{path}: camera [{key}] lacks key {exc}") from exc
+    if not cams:
+        raise CalibrationError(f"{path} holds no camera table")
+    return CalibrationSet(_to_y_up(cams, world_up), f"pose2sim-toml:{Path(path).name}")
+
+
+def write_pose2sim_toml(calib: CalibrationSet, path: Path, world_up: WorldUp = "z") -> None:
+    """Write ``calib`` as Pose2Sim TOML (world Z-up by default; k3 is dropped, Pose2Sim keeps four terms)."""
+    lines = []
+    for cam in calib.cameras:
+        c = world_y_up_to_z_up(cam) if world_up == "z" else cam
+        rvec = cv2.Rodrigues(c.R)[0].reshape(3)
+        lines += [
+            f"[{c.name}]",
+            f"name = {_quote(c.name)}",
+            f"size = [{float(c.size[0])}, {float(c.size[1])}]",
+            f"matrix = {_fmt(c.K)}",
+            f"distortions = {_fmt(c.dist[:4])}",
+            f"rotation = {_fmt(rvec)}",
+            f"translation = {_fmt(c.t)}",
+            "fisheye = false",
+            "",
+        ]
+    lines += ["[metadata]", "adjusted = false", "error = 0.0", ""]
+    Path(path).write_text("\n".join(lines), encoding="utf-8")
+
+
+# -- Qualisys .qca.txt ----------------------------------------------------------------------------------------------
+
+
+def _rot_x(angle: float) -> FloatArray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def read_qca(
+    path: Path, binning_factor: int = 1, world_up: WorldUp = "z", *, pose2sim_distortion: bool = False
+) -> CalibrationSet:
+    """Read a Qualisys ``Calib.qca.txt`` (world Z-up in Qualisys/Pose2Sim practice).
+
+    Parameters
+    ----------
+    path : Path
+    binning_factor : int
+        1, or 2 when the videos were filmed binned (Pose2Sim's ``binning_factor``).
+    world_up : {'z', 'y'}
+        Up axis of the file's world.
+    pose2sim_distortion : bool
+        Divide the distortion coefficients by 64 (and the binning factor) as Pose2Sim does.
+    """
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError) as exc:
+        raise CalibrationError(f"cannot read Qualisys calibration {path}: {exc}") from exc
+    cams: list[CameraCalibration] = []
+    for node in root.findall("cameras/camera"):
+        name = node.get("serial", f"cam{len(cams) + 1}")
+        fov, intr, tr = node.find("fov_video"), node.find("intrinsic"), node.find("transform")
+        if fov is None or intr is None or tr is None:
+            raise CalibrationError(f"{path}: camera {name} lacks fov_video, intrinsic or transform")
+        try:
+            g = {k: float(v) for k, v in {**fov.attrib, **intr.attrib, **tr.attrib}.items() if _is_float(v)}
+            b = binning_factor
+            size = (
+                round((g["right"] - g["left"] + 1) / b),
+                round((g["bottom"] - g["top"] + 1) / b),
+            )
+            K = np.array(
+                [
+                    [g["focalLengthU"] / 64 / b, 0.0, g["centerPointU"] / 64 / b - g["left"]],
+                    [0.0, g["focalLengthV"] / 64 / b, g["centerPointV"] / 64 / b - g["top"]],
+                    [0.0, 0.0, 1.0],
+                ]
+            )
+            dist = np.array(
+                [
+                    g["radialDistortion1"],
+                    g["radialDistortion2"],
+                    g["tangentalDistortion1"],
+                    g["tangentalDistortion2"],
+                    0.0,
+                ]
+            ) / (64 * b if pose2sim_distortion else 1.0)
+            # r11..r33 read row by row: the camera's axes in world coordinates are the rows; position in mm.
+            R_file = np.array([[g[f"r{i}{j}"] for j in (1, 2, 3)] for i in (1, 2, 3)])
+            position = np.array([g["x"], g["y"], g["z"]]) / 1000.0
+        except KeyError as exc:
+            raise CalibrationError(f"{path}: camera {name} lacks attribute {exc}") from exc
+        # Same steps as Pose2Sim: world->camera, then turn the Qualisys camera (looking along -Z, image +Y up)
+        # into an OpenCV camera (looking along +Z, image +Y down) by a rotation of pi about its x axis.
+        R = R_file
+        t = -R @ position
+        flip = _rot_x(math.pi)
+        cams.append(CameraCalibration(name, size, K, dist, flip @ R, flip @ t, None))
+    if not cams:
+        raise CalibrationError(f"{path} holds no camera")
+    return CalibrationSet(_to_y_up(cams, world_up), f"qca:{Path(path).name}")
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+# -- OpenCV YAML --------------------------------------------------------------------------------------------------
+
+
+def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
+    """Read OpenCV ``FileStorage`` YAML (Pose2Sim multi-camera layout or one camera); see module docstring."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise CalibrationError(f"cannot open OpenCV YAML {path}")
+    try:
+        names_node = fs.getNode("names")
+        cams = []
+        if not names_node.empty():
+            for i in range(names_node.size()):
+                name = names_node.at(i).string()
+                K = fs.getNode(f"K_{name}").mat()
+                dist = fs.getNode(f"dist_{name}").mat()
+                rvec, tvec = fs.getNode(f"R_{name}").mat(), fs.getNode(f"T_{name}").mat()
+                size_node = fs.getNode(f"size_{name}")
+                if K is None or dist is None:
+                    raise CalibrationError(f"{path}: camera {name} lacks K_{name} or dist_{name}")
+                size = (
+                    tuple(int(v) for v in size_node.mat().reshape(-1)[:2])
+                    if not size_node.empty()
+                    else (round(2 * K[0, 2]), round(2 * K[1, 2]))  # as Pose2Sim: twice the principal point
+                )
+                R = cv2.Rodrigues(rvec.reshape(3))[0] if rvec is not None else np.eye(3)
+                t = tvec.reshape(3) if tvec is not None else np.zeros(3)
+                cams.append(CameraCalibration(name, size, K, dist.reshape(-1), R, t))  # type: ignore[arg-type]
+        else:
+            K = fs.getNode("camera_matrix").mat()
+            dist = fs.getNode("distortion_coefficients").mat()
+            if K is None or dist is None:
+                raise CalibrationError(
+                    f"{path}: neither a Pose2Sim 'names' list nor camera_matrix/distortion_coefficients found"
+                )
+            w, h = fs.getNode("image_width").real(), fs.getNode("image_height").real()
+            rvec, tvec = fs.getNode("rvec").mat(), fs.getNode("tvec").mat()
+            R = cv2.Rodrigues(rvec.reshape(3))[0] if rvec is not None else np.eye(3)
+            t = tvec.reshape(3) if tvec is not None else np.zeros(3)
+            cams.append(
+                CameraCalibration(
+                    Path(path).stem,
+                    (int(w), int(h)),
+                    np.asarray(K, np.float64),
+                    np.asarray(dist, np.float64),
+                    np.asarray(R, np.float64),
+                    np.asarray(t, np.float64),
+                )
+            )
+    finally:
+        fs.release()
+    return CalibrationSet(_to_y_up(cams, world_up), f"opencv-yaml:{Path(path).name}")
+
+
+def write_opencv_yaml(calib: CalibrationSet, path: Path, world_up: WorldUp = "y") -> None:
+    """Write ``calib`` in the Pose2Sim multi-camera OpenCV YAML layout (plus ``size_<name>``)."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("names", calib.names)
+        for cam in calib.cameras:
+            c = world_y_up_to_z_up(cam) if world_up == "z" else cam
+            fs.write(f"size_{c.name}", np.array(c.size, np.float64))
+            fs.write(f"K_{c.name}", c.K)
+            fs.write(f"dist_{c.name}", c.dist.reshape(1, 5))
+            fs.write(f"R_{c.name}", cv2.Rodrigues(c.R)[0])
+            fs.write(f"T_{c.name}", c.t.reshape(3, 1))
+    finally:
+        fs.release()
+
+
+def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:
+    """Read a calibration in any supported format, chosen from its name and content.
+
+    ``world_up`` overrides the format's default world up axis (Z for Qualisys/Pose2Sim, Y for mocapd/OpenCV YAML).
+    """
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith(".qca.txt") or name.endswith(".qca"):
+        return read_qca(path, world_up=world_up or "z")
+    if name.endswith((".yml", ".yaml")):
+        return read_opencv_yaml(path, world_up=world_up or "y")
+    if name.endswith(".toml"):
+        data = _load_toml(path)
+        if data.get("format") == "mocapd-calibration":
+            return read_mocapd_toml(path)
+        return read_pose2sim_toml(path, world_up=world_up or "z")
+    raise CalibrationError(f"{path}: unknown calibration format (use .toml, .qca.txt, .yml or .yaml)")

@@ -1,0 +1,128 @@
+"""Camera pixel formats and their one-copy conversion into a ring slot.
+
+Supported formats (GenICam PFNC names): ``Mono8`` → 1 channel; ``RGB8`` → 3 channels (R, G, B);
+``BayerRG8``, ``BayerBG8``, ``BayerGR8``, ``BayerGB8`` → demosaiced by OpenCV into 3 channels (R, G, B).
+
+OpenCV names a Bayer pattern after the second row's first two pixels, GenICam after the first row's: GenICam
+``BayerRG8`` (R at pixel (0, 0)) is OpenCV's ``COLOR_BayerBG2RGB``. ``tests/test_pixels.py`` checks this on a
+mosaic made by hand.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.errors import ConfigError, InputError
+
+
+@dataclass(frozen=True)
+class PixelFormat:
+    """A pixel format mocapd can capture.
+
+    Attributes
+    ----------
+    name : str
+        GenICam name, e.g. ``"BayerRG8"``.
+    bytes_per_pixel : int
+        Bytes per pixel in the camera buffer.
+    channels : int
+        Channels per pixel in the ring buffer (1 or 3).
+    cv_code : int or None
+        OpenCV demosaicing code for Bayer formats, None otherwise.
+    """
+
+    name: str
+    bytes_per_pixel: int
+    channels: int
+    cv_code: int | None = None
+
+
+PIXEL_FORMATS: dict[str, PixelFormat] = {
+    "Mono8": PixelFormat("Mono8", 1, 1),
+    "RGB8": PixelFormat("RGB8", 3, 3),
+    "BayerRG8": PixelFormat("BayerRG8", 1, 3, cv2.COLOR_BayerBG2RGB),
+    "BayerBG8": PixelFormat("BayerBG8", 1, 3, cv2.COLOR_BayerRG2RGB),
+    "BayerGR8": PixelFormat("BayerGR8", 1, 3, cv2.COLOR_BayerGB2RGB),
+    "BayerGB8": PixelFormat("BayerGB8", 1, 3, cv2.COLOR_BayerGR2RGB),
+}
+
+
+def pixel_format(name: str) -> PixelFormat:
+    """Look up a supported pixel format by its GenICam name.
+
+    Raises
+    ------
+    ConfigError
+        If the format is not supported, listing the supported ones.
+    """
+    try:
+        return PIXEL_FORMATS[name]
+    except KeyError:
+        raise ConfigError(f"pixel format {name!r} is not supported; use one of {sorted(PIXEL_FORMATS)}") from None
+
+
+def convert_into(fmt: PixelFormat, raw: NDArray[np.uint8], height: int, width: int, out: NDArray[np.uint8]) -> None:
+    """Convert one raw camera buffer into a ring slot (the frame's only copy).
+
+    Parameters
+    ----------
+    fmt : PixelFormat
+        Format of ``raw``.
+    raw : ndarray, shape (n_bytes,), uint8
+        The camera buffer (a zero-copy view); at least ``height * width * fmt.bytes_per_pixel`` bytes.
+    height, width : int
+        Image size in pixels.
+    out : ndarray, shape (height, width, fmt.channels), uint8
+        Destination slot, written in place.
+    """
+    n = height * width * fmt.bytes_per_pixel
+    if raw.size < n or out.shape != (height, width, fmt.channels):
+        raise InputError(
+            f"{fmt.name}: buffer of {raw.size} bytes / slot {out.shape} do not fit a {width}x{height} image"
+        )
+    if fmt.cv_code is None:
+        np.copyto(out, raw[:n].reshape(height, width, fmt.channels))
+    else:
+        cv2.cvtColor(raw[:n].reshape(height, width), fmt.cv_code, dst=out)
+
+
+def mosaic(rgb: NDArray[np.uint8], fmt: PixelFormat) -> NDArray[np.uint8]:
+    """Sample an RGB image into a Bayer mosaic (what a Bayer sensor would deliver), for fakes and tests.
+
+    Parameters
+    ----------
+    rgb : ndarray, shape (h, w, 3), uint8
+    fmt : PixelFormat
+        A Bayer format.
+
+    Returns
+    -------
+    ndarray, shape (h, w), uint8
+    """
+    if fmt.cv_code is None:
+        raise InputError(f"{fmt.name} is not a Bayer format")
+    pattern = fmt.name[5:7] + {"RG": "GB", "BG": "GR", "GR": "BG", "GB": "RG"}[fmt.name[5:7]]
+    channel = {"R": 0, "G": 1, "B": 2}
+    out = np.empty(rgb.shape[:2], np.uint8)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            out[dy::2, dx::2] = rgb[dy::2, dx::2, channel[pattern[2 * dy + dx]]]
+    return out
+
+
+def from_rgb(rgb: NDArray[np.uint8], fmt: PixelFormat) -> NDArray[np.uint8]:
+    """Encode an RGB image, shape (h, w, 3), as the raw bytes a camera sends in format ``fmt``.
+
+    Returns
+    -------
+    ndarray, shape (h * w * fmt.bytes_per_pixel,), uint8
+    """
+    if fmt.name == "RGB8":
+        return np.ascontiguousarray(rgb).reshape(-1)
+    if fmt.name == "Mono8":
+        return np.ascontiguousarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8).reshape(-1)
+    return mosaic(rgb, fmt).reshape(-1)

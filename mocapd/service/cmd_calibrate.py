@@ -1,0 +1,189 @@
+"""``mocapd calibrate``: camera calibration and calibration-file conversion.
+
+``mocapd calibrate cameras``
+    Intrinsics of every camera from board pictures (``--intrinsics DIR``: one sub-folder per camera), then, when
+    ``--extrinsics DIR`` is given (one sub-folder per camera, the same file stem in several folders = the same
+    moment), the rig's extrinsics with the board of ``--origin-frame`` lying on the floor at the world origin,
+    refined by bundle adjustment. Writes mocapd's calibration TOML and prints a JSON report (per-view and
+    per-camera reprojection errors, rejected views). ``--intrinsics-from FILE`` reuses existing intrinsics.
+
+``mocapd calibrate convert IN OUT``
+    Converts between Qualisys ``.qca.txt``, Pose2Sim TOML, OpenCV YAML and mocapd TOML (format from the names;
+    ``--to pose2sim`` writes Pose2Sim TOML).
+
+Sub-folder names become camera names, without Pose2Sim's ``int_``/``ext_`` prefix and ``_img`` suffix.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from mocapd.errors import CalibrationError
+from mocapd.io.board_calibration import Board, calibrate_intrinsics, detect_in_files
+from mocapd.io.calibration_files import (
+    CalibrationSet,
+    CameraCalibration,
+    read_any,
+    write_mocapd_toml,
+    write_opencv_yaml,
+    write_pose2sim_toml,
+)
+from mocapd.io.rig_calibration import Intrinsics, Observation, calibrate_rig
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
+
+
+def camera_name(folder: Path) -> str:
+    """Camera name of a picture folder: ``int_cam01_img`` → ``cam01``."""
+    name = folder.name
+    for prefix in ("int_", "ext_"):
+        name = name.removeprefix(prefix)
+    return name.removesuffix("_img")
+
+
+def _camera_folders(root: Path) -> dict[str, Path]:
+    if not root.is_dir():
+        raise CalibrationError(f"{root} is not a folder: give a folder with one sub-folder of pictures per camera")
+    folders = {camera_name(p): p for p in sorted(root.iterdir()) if p.is_dir()}
+    if not folders:
+        raise CalibrationError(f"{root} has no sub-folder: put each camera's pictures in its own sub-folder")
+    return folders
+
+
+def _images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def calibrate_cameras(
+    board: Board,
+    intrinsics_dir: Path | None,
+    extrinsics_dir: Path | None = None,
+    *,
+    intrinsics_from: Path | None = None,
+    origin_frame: str | None = None,
+    max_view_error_px: float = 1.0,
+    fix_k3: bool = False,
+) -> tuple[CalibrationSet, dict[str, Any]]:
+    """Run the calibration described in the module docstring; returns the calibration and the report."""
+    report: dict[str, Any] = {"intrinsics": {}, "extrinsics": None}
+    intr: dict[str, Intrinsics] = {}
+    if intrinsics_from is not None:
+        for cam in read_any(intrinsics_from).cameras:
+            intr[cam.name] = Intrinsics(cam.K, cam.dist, cam.size)
+    if intrinsics_dir is not None:
+        for name, folder in _camera_folders(intrinsics_dir).items():
+            dets, missed = detect_in_files(_images(folder), board)
+            if not dets:
+                raise CalibrationError(
+                    f"camera {name}: the {board.cols}x{board.rows} {board.kind} was found in none of the "
+                    f"{len(missed)} pictures in {folder}; check --cols/--rows (inner corners) and that the whole "
+                    "board is visible and sharp"
+                )
+            res = calibrate_intrinsics(dets, board, max_view_error_px=max_view_error_px, rational_k3=not fix_k3)
+            intr[name] = Intrinsics(res.K, res.dist, res.size)
+            report["intrinsics"][name] = {
+                "rms_px": round(res.rms_px, 4),
+                "fx": res.K[0, 0],
+                "fy": res.K[1, 1],
+                "cx": res.K[0, 2],
+                "cy": res.K[1, 2],
+                "dist": res.dist.tolist(),
+                "view_errors_px": res.view_errors_px,
+                "rejected": res.rejected,
+                "no_board_found": missed,
+            }
+    if not intr:
+        raise CalibrationError("no intrinsics: give --intrinsics DIR or --intrinsics-from FILE")
+    if extrinsics_dir is None:
+        cams = tuple(CameraCalibration(n, i.size, i.K, i.dist) for n, i in sorted(intr.items()))
+        return CalibrationSet(cams, "mocapd calibrate cameras (intrinsics only)"), report
+    observations = []
+    for name, folder in _camera_folders(extrinsics_dir).items():
+        dets, _ = detect_in_files(_images(folder), board)
+        observations += [Observation(name, Path(d.view).stem, d) for d in dets]
+    rig = calibrate_rig(
+        {n: i for n, i in intr.items() if any(o.camera == n for o in observations)},
+        observations,
+        board,
+        origin_frame=origin_frame,
+    )
+    report["extrinsics"] = {
+        "rms_before_px": rig.rms_before_px,
+        "rms_after_px": rig.rms_after_px,
+        "n_views": rig.n_observations,
+        "origin_frame": origin_frame or "(frame seen by the most cameras)",
+    }
+    return rig.calibration, report
+
+
+def _board(args: argparse.Namespace) -> Board:
+    return Board(args.board, args.cols, args.rows, args.square_mm / 1000.0, args.marker_mm / 1000.0, args.dictionary)
+
+
+def _run_cameras(args: argparse.Namespace) -> int:
+    try:
+        calib, report = calibrate_cameras(
+            _board(args),
+            args.intrinsics,
+            args.extrinsics,
+            intrinsics_from=args.intrinsics_from,
+            origin_frame=args.origin_frame,
+            max_view_error_px=args.max_view_error_px,
+            fix_k3=args.fix_k3,
+        )
+    except CalibrationError as exc:
+        print(f"calibration failed: {exc}", file=sys.stderr)
+        return 1
+    write_mocapd_toml(calib, args.output)
+    print(json.dumps(report, indent=1, default=float))
+    return 0
+
+
+def _run_convert(args: argparse.Namespace) -> int:
+    try:
+        calib = read_any(args.input, world_up=args.world_up)
+    except CalibrationError as exc:
+        print(f"cannot read {args.input}: {exc}", file=sys.stderr)
+        return 1
+    target = args.to or ("opencv-yaml" if args.output.suffix in (".yml", ".yaml") else "mocapd")
+    if target == "pose2sim":
+        write_pose2sim_toml(calib, args.output)
+    elif target == "opencv-yaml":
+        write_opencv_yaml(calib, args.output)
+    else:
+        write_mocapd_toml(calib, args.output)
+    print(f"wrote {len(calib.cameras)} camera(s) to {args.output} ({target})")
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    """Add ``mocapd calibrate ...`` to the CLI."""
+    parser = subparsers.add_parser("calibrate", help="calibrate cameras, convert calibration files")
+    sub = parser.add_subparsers(dest="calibrate_command", metavar="WHAT", required=True)
+    cams = sub.add_parser("cameras", help="intrinsics and extrinsics from board pictures")
+    cams.add_argument("--board", choices=["checkerboard", "charuco"], default="checkerboard")
+    cams.add_argument("--cols", type=int, required=True, help="checkerboard: inner corners per row; charuco: squares")
+    cams.add_argument(
+        "--rows", type=int, required=True, help="checkerboard: inner corners per column; charuco: squares"
+    )
+    cams.add_argument("--square-mm", type=float, required=True, help="square side, mm")
+    cams.add_argument("--marker-mm", type=float, default=0.0, help="ChArUco marker side, mm")
+    cams.add_argument("--dictionary", default="DICT_4X4_50", help="ChArUco ArUco dictionary")
+    cams.add_argument("--intrinsics", type=Path, help="folder with one picture sub-folder per camera")
+    cams.add_argument("--intrinsics-from", type=Path, help="reuse intrinsics from a calibration file")
+    cams.add_argument("--extrinsics", type=Path, help="folder with one sub-folder per camera, same stem = same moment")
+    cams.add_argument("--origin-frame", help="file stem of the moment the board lies on the floor at the origin")
+    cams.add_argument("--max-view-error-px", type=float, default=1.0, help="reject views above this RMS error, px")
+    cams.add_argument("--fix-k3", action="store_true", help="keep k3 = 0 (as Qualisys/Pose2Sim)")
+    cams.add_argument("--output", type=Path, required=True, help="mocapd calibration TOML to write")
+    cams.set_defaults(func=_run_cameras)
+    conv = sub.add_parser("convert", help="convert qca.txt / Pose2Sim TOML / OpenCV YAML / mocapd TOML")
+    conv.add_argument("input", type=Path)
+    conv.add_argument("output", type=Path)
+    conv.add_argument("--to", choices=["mocapd", "pose2sim", "opencv-yaml"], default=None)
+    conv.add_argument("--world-up", choices=["y", "z"], default=None, help="up axis of the input's world")
+    conv.set_defaults(func=_run_convert)

@@ -1,0 +1,43 @@
+"""Body size estimated from triangulated joints recovers known bone lengths."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocapd.core.body_size import estimate_skeleton
+from mocapd.core.keypoints import coco17_targets
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.skeleton import BONE_INDEX, Skeleton
+from mocapd.core.synthetic import moving_sequence
+from mocapd.errors import InputError
+
+
+def test_recovers_limb_lengths_and_height_from_noisy_joints() -> None:
+    rng = np.random.default_rng(0)
+    base = Skeleton.from_height(1.62)
+    truth = Skeleton.from_bone_lengths(
+        {"LeftLowerLeg": 0.41, "RightLowerLeg": 0.41, "LeftFoot": 0.39, "RightFoot": 0.39,
+         "LeftLowerArm": 0.27, "RightLowerArm": 0.27, "LeftHand": 0.23, "RightHand": 0.23},
+        height=base.height,
+    )  # fmt: skip
+    kin = Kinematics(truth)
+    targets = coco17_targets(truth)
+    kp = kin.targets(kin.forward(moving_sequence(truth, 120, seed=4)), targets.bones, targets.offsets)
+    kp = kp + rng.normal(scale=0.02, size=kp.shape)
+    kp[rng.uniform(size=kp.shape[:2]) < 0.1] = np.nan  # missed keypoints
+    kp[5, 9] += 0.5  # a gross outlier
+    est = estimate_skeleton(kp)
+    for bone in ("LeftLowerLeg", "LeftFoot", "LeftLowerArm", "LeftHand"):
+        assert est.bone_length(bone) == pytest.approx(truth.bone_length(bone), abs=0.01), bone
+    assert est.height == pytest.approx(1.75 * 0.80 / 0.86, abs=0.02)
+    assert abs(est.offsets[BONE_INDEX["LeftUpperArm"], 0]) == pytest.approx(
+        abs(truth.offsets[BONE_INDEX["LeftUpperArm"], 0]), abs=0.02
+    )
+
+
+def test_too_few_frames_is_an_error() -> None:
+    with pytest.raises(InputError, match="at least 10 frames"):
+        estimate_skeleton(np.full((30, 17, 3), np.nan))
+    with pytest.raises(InputError, match="shape"):
+        estimate_skeleton(np.zeros((30, 12, 3)))

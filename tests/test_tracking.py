@@ -1,0 +1,110 @@
+"""Detection sorting (seed 003 Algorithm 1), enrolment, bystanders and release on synthetic multi-person scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocapd.core.keypoints import coco17_targets
+from mocapd.core.skeleton import Skeleton
+from mocapd.core.sorting import Detections2D, DetectionSorter
+from mocapd.core.synthetic import ring_rig, scene_detections, walking_path
+from mocapd.core.tracking import SubjectTracker, TrackingOptions
+from mocapd.errors import InputError
+
+FPS = 30.0
+NS = int(1e9 / FPS)
+
+
+def _scene(n_frames: int, noise_px: float = 1.5, seed: int = 0):  # type: ignore[no-untyped-def]
+    sk = Skeleton.from_height(1.75)
+    cams = ring_rig(4, radius=4.5)
+    people = [
+        walking_path(sk, n_frames, (-0.8, -0.8), (-0.6, 0.9), seed=1, fps=FPS),
+        walking_path(sk, n_frames, (0.9, 0.6), (0.7, -0.9), seed=2, fps=FPS),
+        walking_path(sk, n_frames, (3.0, -2.5), (3.0, 2.5), seed=3, fps=FPS),  # bystander, outside the volume
+    ]
+    dets, labels = scene_detections(cams, coco17_targets(sk), sk, people, np.random.default_rng(seed), noise_px)
+    return cams, dets, labels
+
+
+def _true_person(subject_detections: dict[int, int], labels: list[np.ndarray]) -> set[int]:
+    return {int(labels[cam][idx]) for cam, idx in subject_detections.items()}
+
+
+def test_candidates_group_views_of_the_same_person() -> None:
+    cams, dets, labels = _scene(3)
+    cands = DetectionSorter(cams).candidates(dets[0])
+    assert len(cands) == 3  # two subjects and the bystander
+    for c in cands:
+        assert len(_true_person(c.sources, labels[0])) == 1  # never mixes people
+        assert len(c.sources) >= 2
+
+
+def test_subjects_enrol_and_keep_their_identity_bystander_rejected() -> None:
+    cams, dets, labels = _scene(120)
+    tracker = SubjectTracker(DetectionSorter(cams), TrackingOptions(enrol_after_s=0.5))
+    identity: dict[int, int] = {}
+    bystander_frames = 0
+    for f, frame in enumerate(dets):
+        out = tracker.update(f * NS, frame)
+        bystander_frames += out.bystanders > 0
+        for s in out.subjects:
+            if not s.seen:
+                continue
+            truth = _true_person(s.detections, labels[f])
+            assert len(truth) == 1, f"frame {f}: subject {s.id} mixes people {truth}"
+            identity.setdefault(s.id, truth.pop())
+            assert identity[s.id] == _true_person(s.detections, labels[f]).pop(), "identity switch"
+    assert sorted(identity.values()) == [0, 1]  # both subjects, never the bystander (person 2)
+    assert len(tracker.subjects) == 2
+    assert bystander_frames > 100
+
+
+def test_enrolment_waits_and_respects_max_subjects() -> None:
+    cams, dets, _ = _scene(40)
+    tracker = SubjectTracker(DetectionSorter(cams), TrackingOptions(enrol_after_s=0.5, max_subjects=1))
+    n_before = [len(tracker.update(f * NS, dets[f]).subjects) for f in range(14)]
+    assert n_before[0] == 0 and n_before[13] == 0  # 13 frames at 30 Hz < 0.5 s
+    for f in range(14, 40):
+        out = tracker.update(f * NS, dets[f])
+    assert len(out.subjects) == 1 and out.bystanders == 2
+
+
+def test_designated_start_positions() -> None:
+    cams, dets, labels = _scene(60)
+    opts = TrackingOptions(enrol_after_s=0.3, start_positions=((0.9, 0.6),))
+    tracker = SubjectTracker(DetectionSorter(cams), opts)
+    for f in range(60):
+        out = tracker.update(f * NS, dets[f])
+    assert len(out.subjects) == 1
+    assert _true_person(out.subjects[0].detections, labels[59]) == {1}
+
+
+def test_lost_subject_is_kept_for_the_grace_period_then_released() -> None:
+    cams, dets, labels = _scene(60)
+    tracker = SubjectTracker(DetectionSorter(cams), TrackingOptions(enrol_after_s=0.3, grace_period_s=0.5))
+    for f in range(30):
+        out = tracker.update(f * NS, dets[f])
+    assert len(out.subjects) == 2
+    gone = next(s.id for s in out.subjects if _true_person(s.detections, labels[29]) == {1})
+    events = []
+    for f in range(30, 60):  # person 1 disappears from every view
+        frame = [
+            Detections2D(d.keypoints[lb != 1], d.confidences[lb != 1]) for d, lb in zip(dets[f], labels[f], strict=True)
+        ]
+        out = tracker.update(f * NS, frame)
+        events += out.events
+        if f < 30 + 14:
+            assert any(s.id == gone for s in out.subjects)  # within 0.5 s: kept
+    assert [e.kind for e in events if e.subject == gone] == ["released"]
+    assert [s.id for s in out.subjects] != [gone] and len(out.subjects) == 1
+
+
+def test_sorter_needs_two_cameras_and_matching_input() -> None:
+    cams = ring_rig(3)
+    with pytest.raises(InputError, match="at least two cameras"):
+        DetectionSorter(cams[:1])
+    with pytest.raises(InputError, match="3 cameras but detections for 2"):
+        DetectionSorter(cams).candidates([Detections2D.empty(17)] * 2)
+    assert DetectionSorter(cams).candidates([Detections2D.empty(17)] * 3) == []

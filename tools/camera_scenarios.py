@@ -1,0 +1,206 @@
+"""Single-purpose fake-camera scenarios, run inside a private network namespace; each prints one JSON object.
+
+    python -m tools.camera_scenarios reconnect --video cam01.mp4
+    python -m tools.camera_scenarios bayer --video cam01.mp4 --format BayerRG8
+
+``reconnect``: two fake cameras; one server is killed and later restarted. Reports frames of each camera before,
+during and after the outage, the failure/reopen counters and the error that was reported.
+
+``bayer`` / ``mono``: one camera in a Bayer or Mono8 format; compares what mocapd's ring holds with the expected
+conversion of the source frames (and, for Bayer, with the source RGB itself, to catch swapped channels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
+from mocapd.io.pixels import convert_into, from_rgb, pixel_format
+from mocapd.pipeline.frame_ring import FrameRef
+from tools.fake_gige import add_loopback_aliases, load_video_rgb
+
+
+def start_server(video: Path, address: str, max_frames: int, prepare: str) -> subprocess.Popen[str]:
+    cmd = [
+        sys.executable,
+        "-m",
+        "tools.fake_gige",
+        "--video",
+        str(video),
+        "--address",
+        address,
+        "--max-frames",
+        str(max_frames),
+        "--prepare",
+        prepare,
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    json.loads(proc.stdout.readline())
+    return proc
+
+
+async def wait_for(predicate: Any, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        await asyncio.sleep(0.05)
+    return False
+
+
+async def reconnect(video: Path) -> dict[str, Any]:
+    frames = load_video_rgb(video, 4)
+    h, w, _ = frames[0].shape
+    servers = [start_server(video, a, 4, "RGB8") for a in ("127.0.0.1", "127.0.0.2")]
+    sources = [
+        AravisSource(
+            AravisCameraConfig(
+                f"cam{i + 1}",
+                address=a,
+                pixel_format="RGB8",
+                region=(0, 0, w, h),
+                frame_rate=10,
+                packet_size=8192,
+                lost_after_s=1.0,
+            ),
+            backoff_s=(0.2, 1.0),
+        )
+        for i, a in enumerate(("127.0.0.1", "127.0.0.2"))
+    ]
+    counts = [0, 0]
+
+    def handler(i: int) -> Any:
+        def on_frame(_ref: FrameRef) -> None:
+            counts[i] += 1
+
+        return on_frame
+
+    tasks = [asyncio.create_task(s.run(handler(i))) for i, s in enumerate(sources)]
+    result: dict[str, Any] = {}
+    try:
+        result["started"] = await wait_for(lambda: min(counts) >= 5, 15)
+        servers[0].kill()
+        servers[0].wait()
+        await asyncio.sleep(0.5)  # let frames already handed to the loop be counted
+        before = list(counts)
+        result["failure_reported"] = await wait_for(lambda: sources[0].counters.failures >= 1, 15)
+        await asyncio.sleep(1.0)
+        during = [counts[0] - before[0], counts[1] - before[1]]
+        servers[0] = start_server(video, "127.0.0.1", 4, "RGB8")
+        mid = list(counts)
+        result["recovered"] = await wait_for(lambda: counts[0] >= mid[0] + 5, 20)
+        result.update(
+            frames_before=before,
+            frames_during_outage=during,
+            frames_after=[counts[0] - mid[0], counts[1] - mid[1]],
+            failures=sources[0].counters.failures,
+            reopens=sources[0].counters.reopens,
+            last_error=sources[0].counters.last_error,
+            other_failures=sources[1].counters.failures,
+        )
+    finally:
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for s in servers:
+            s.terminate()
+            s.wait()
+    return result
+
+
+async def one_format(video: Path, fmt_name: str) -> dict[str, Any]:
+    fmt = pixel_format(fmt_name)
+    frames = load_video_rgb(video, 4)
+    h, w, _ = frames[0].shape
+    server = start_server(video, "127.0.0.1", 4, fmt_name)
+    expected = []
+    for rgb in frames:
+        out = np.empty((h, w, fmt.channels), np.uint8)
+        convert_into(fmt, from_rgb(rgb, fmt), h, w, out)
+        expected.append(out)
+    source = AravisSource(
+        AravisCameraConfig(
+            "cam",
+            address="127.0.0.1",
+            pixel_format=fmt_name,
+            region=(0, 0, w, h),
+            frame_rate=10,
+            packet_size=8192,
+        )
+    )
+    got: list[np.ndarray[Any, Any]] = []
+
+    def on_frame(ref: FrameRef) -> None:
+        image = source.ring.read(ref.seq)
+        if image is not None:
+            got.append(image)
+
+    task = asyncio.create_task(source.run(on_frame))
+    try:
+        await wait_for(lambda: len(got) >= 8, 15)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        server.terminate()
+        server.wait()
+    matches = [any(np.array_equal(g, e) for e in expected) for g in got]
+    result: dict[str, Any] = {
+        "frames": len(got),
+        "identical_to_expected": sum(matches),
+        "shape": list(got[0].shape) if got else None,
+        "missing_frames": source.counters.missing_frames,
+    }
+    if fmt.channels == 3 and got:
+        # Closest source frame, compared as RGB and with R/B swapped: demosaicing must keep the channel order.
+        errors = [min(float(np.abs(g.astype(int) - f.astype(int)).mean()) for f in frames) for g in got]
+        swapped = [min(float(np.abs(g[..., ::-1].astype(int) - f.astype(int)).mean()) for f in frames) for g in got]
+        result.update(mean_abs_error_rgb=max(errors), mean_abs_error_swapped=min(swapped))
+    if fmt.channels == 1 and got:
+        gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY)[:, :, None] for f in frames]
+        result["identical_to_gray_source"] = sum(any(np.array_equal(g, e) for e in gray) for g in got)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("scenario", choices=["reconnect", "bayer", "mono"])
+    parser.add_argument("--video", type=Path, required=True)
+    parser.add_argument("--format", default="BayerRG8")
+    parser.add_argument("--in-netns", action="store_true", help="already inside a private network namespace")
+    args = parser.parse_args(argv)
+    if not args.in_netns:
+        cmd = [
+            "unshare",
+            "-rn",
+            sys.executable,
+            "-m",
+            "tools.camera_scenarios",
+            *(argv or sys.argv[1:]),
+            "--in-netns",
+        ]
+        return subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], check=False).returncode
+    add_loopback_aliases(2)
+    if args.scenario == "reconnect":
+        result = asyncio.run(reconnect(args.video))
+    else:
+        result = asyncio.run(one_format(args.video, "Mono8" if args.scenario == "mono" else args.format))
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,332 @@
+"""A multi-camera GigE Vision rig without hardware: fake cameras serving videos, captured by mocapd.
+
+Runs inside a private network namespace (re-executes itself under ``unshare -rn`` unless ``--in-netns``), gives
+lo one address per camera (127.0.0.1, 127.0.0.2, ...), starts one :mod:`tools.fake_gige` server process per
+video, captures every camera with :class:`mocapd.io.aravis_camera.AravisSource` (the real capture path) for
+``--duration`` seconds and prints one JSON object:
+
+* per camera: frames captured, transport counters (missing frames, resent packets, bad buffers), whether every
+  frame is bit-identical to the decoded source frame it should be (in order), whether host/camera timestamps and
+  frame ids increase, latency statistics (ms) and the capture thread's CPU use (% of one core);
+* the fake servers' CPU use.
+
+Used by the integration tests and by ``tools/bench_capture.py``::
+
+    python -m tools.fake_rig --videos a.mp4 b.mp4 --max-frames 20 --duration 3 --fps 30 --format RGB8
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import hashlib
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
+from mocapd.io.pixels import convert_into, from_rgb, pixel_format
+from mocapd.pipeline.frame_ring import FrameRef
+from tools.fake_gige import add_loopback_aliases, load_video_rgb
+
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid: int, tid: int | None = None) -> float:
+    """User + system CPU time of a process (or one of its threads) from /proc, in seconds (NaN if gone)."""
+    path = f"/proc/{pid}/task/{tid}/stat" if tid is not None else f"/proc/{pid}/stat"
+    try:
+        fields = Path(path).read_text().rsplit(")", 1)[1].split()
+    except FileNotFoundError:  # the thread ended (camera reopened): no figure rather than a wrong one
+        return float("nan")
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def cpu_by_thread_name(capture_tids: set[int]) -> dict[str, float]:
+    """CPU seconds of this process's threads summed by kind: mocapd capture threads, Aravis stream threads
+    (``arv_gv_stream``), the rest (``python``: event loop, checks)."""
+    out: dict[str, float] = {}
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+        except FileNotFoundError:
+            continue
+        name = "mocapd_capture" if int(task.name) in capture_tids else name
+        out[name] = out.get(name, 0.0) + cpu_seconds(os.getpid(), int(task.name))
+    return {k: v for k, v in out.items() if not math.isnan(v)}  # threads that ended meanwhile
+
+
+@dataclass
+class CameraCheck:
+    """What the rig checks for one camera while it captures."""
+
+    hashes: list[str]
+    frames: int = 0
+    identical: int = 0
+    in_order: int = 0
+    first_index: int | None = None
+    sent_index: int = 0
+    overtaken: int = 0
+    debug_frames: list[Any] | None = None
+    debug: list[dict[str, Any]] = field(default_factory=list)
+    last: FrameRef | None = None
+    host_increasing: bool = True
+    device_increasing: bool = True
+    ids_increasing: bool = True
+    mismatched: list[int] = field(default_factory=list)
+    out_of_order: list[tuple[int, int]] = field(default_factory=list)
+
+    def add(self, ref: FrameRef, image: np.ndarray[Any, Any] | None, verify: bool) -> None:
+        self.frames += 1
+        if self.last is not None:
+            self.host_increasing &= ref.host_ns > self.last.host_ns
+            self.device_increasing &= ref.device_ns > self.last.device_ns
+            # GigE Vision block ids are 16-bit and skip 0 when they wrap: 65535 is followed by 1.
+            step = (ref.frame_id - self.last.frame_id) % 65535
+            self.ids_increasing &= step == 1
+            self.sent_index += step
+        self.last = ref
+        if not verify:
+            return
+        if image is None:  # the capture thread overwrote the slot before the check could copy it
+            self.overtaken += 1
+            return
+        digest = hashlib.blake2b(image.tobytes(), digest_size=16).hexdigest()
+        if digest not in self.hashes:
+            self.mismatched.append(ref.seq)
+            if self.debug_frames:
+                flat = image.reshape(-1)
+                eq = [float(np.mean(flat == f.reshape(-1))) for f in self.debug_frames]
+                best = int(np.argmax(eq))
+                diff = np.flatnonzero(flat != self.debug_frames[best].reshape(-1))
+                others = [
+                    j
+                    for j, f in enumerate(self.debug_frames)
+                    if j != best and np.array_equal(flat[diff], f.reshape(-1)[diff])
+                ]
+                self.debug.append(
+                    {
+                        "seq": ref.seq,
+                        "fid": ref.frame_id,
+                        "best": best,
+                        "best_equal": round(max(eq), 5),
+                        "diff_first": int(diff[0]),
+                        "diff_last": int(diff[-1]),
+                        "diff_is_frame": others,
+                    }
+                )
+            return
+        self.identical += 1
+        if self.first_index is None:
+            self.first_index = self.hashes.index(digest) - self.sent_index
+        # The server sends video frame k % n as its k-th frame; frame ids count the frames sent, so the
+        # expected video frame follows from the frame id even when a frame was lost. Compare digests, not
+        # indices: a video may hold identical consecutive frames.
+        if self.hashes[(self.first_index + self.sent_index) % len(self.hashes)] == digest:
+            self.in_order += 1
+        else:
+            self.out_of_order.append((ref.seq, self.hashes.index(digest)))
+
+
+def expected_hashes(frames: list[Any], fmt_name: str) -> list[str]:
+    """Digests of the ring images mocapd must produce from each source frame.
+
+    RGB8 and Mono8 frames are the decoded video (converted to gray); Bayer frames are the demosaiced mosaic.
+    """
+    fmt = pixel_format(fmt_name)
+    out = []
+    for rgb in frames:
+        h, w, _ = rgb.shape
+        image = np.empty((h, w, fmt.channels), np.uint8)
+        convert_into(fmt, from_rgb(rgb, fmt), h, w, image)
+        out.append(hashlib.blake2b(image.tobytes(), digest_size=16).hexdigest())
+    return out
+
+
+async def capture(sources: list[AravisSource], checks: list[CameraCheck], duration_s: float, verify: bool) -> None:
+    def make_handler(source: AravisSource, check: CameraCheck) -> Any:
+        def on_frame(ref: FrameRef) -> None:
+            check.add(ref, source.ring.read(ref.seq) if verify else None, verify)
+
+        return on_frame
+
+    tasks = [asyncio.create_task(s.run(make_handler(s, c))) for s, c in zip(sources, checks, strict=True)]
+    await asyncio.sleep(duration_s)
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+
+
+def percentile_ms(values: np.ndarray[Any, Any], q: float) -> float | None:
+    return round(float(np.percentile(values, q)) / 1e6, 3) if values.size else None
+
+
+def run_rig(args: argparse.Namespace) -> dict[str, Any]:
+    n = len(args.videos)
+    addresses = add_loopback_aliases(n)
+    size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
+    servers = []
+    for i, (video, address) in enumerate(zip(args.videos, addresses, strict=True)):
+        cmd = [
+            sys.executable,
+            "-m",
+            "tools.fake_gige",
+            "--video",
+            str(video),
+            "--address",
+            address,
+            "--serial",
+            f"FAKE{i + 1:02d}",
+            "--max-frames",
+            str(args.max_frames),
+            "--prepare",
+            args.format,
+        ]
+        if args.size:
+            cmd += ["--size", args.size]
+        servers.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True))
+    try:
+        infos = [json.loads(s.stdout.readline()) for s in servers if s.stdout is not None]
+        fmt = pixel_format(args.format)
+        sources, checks = [], []
+        for i, (video, info) in enumerate(zip(args.videos, infos, strict=True)):
+            w, h = info["width"], info["height"]
+            config = AravisCameraConfig(
+                f"cam{i + 1:02d}",
+                address=info["address"],
+                pixel_format=fmt.name,
+                region=(0, 0, w, h),
+                frame_rate=args.fps,
+                packet_size=args.packet_size,
+                # Verification copies and hashes every frame on the event loop: give it slack on a busy machine.
+                ring_slots=32 if args.verify else 8,
+                # Loopback on a shared 2-core machine: the fake servers and this process can be descheduled for
+                # longer than a real camera link would stall, so resent packets get more time to arrive.
+                frame_retention_ms=1000.0 if args.verify else 100.0,
+                packet_timeout_ms=50.0 if args.verify else 20.0,
+            )
+            sources.append(AravisSource(config))
+            frames = load_video_rgb(Path(video), args.max_frames, size) if args.verify else []  # type: ignore[arg-type]
+            checks.append(CameraCheck(expected_hashes(frames, fmt.name) if args.verify else [], debug_frames=frames))
+        server_cpu0 = [cpu_seconds(s.pid) for s in servers]
+        wall0, cpu0 = time.monotonic(), time.process_time()
+        thread_cpu: dict[str, float] = {}
+        thread_names: dict[str, float] = {}
+
+        async def main() -> None:
+            task = asyncio.create_task(capture(sources, checks, args.duration, args.verify))
+            await asyncio.sleep(min(1.0, args.duration / 2))
+            start = {s.name: cpu_seconds(os.getpid(), s.thread_id) for s in sources}
+            tids = {s.thread_id for s in sources if s.thread_id is not None}
+            by_name0 = cpu_by_thread_name(tids)
+            t_start = time.monotonic()
+            await asyncio.sleep(max(0.0, args.duration - min(1.0, args.duration / 2) - 0.2))
+            span = time.monotonic() - t_start
+            by_name1 = cpu_by_thread_name(tids)
+            for k, v in by_name1.items():
+                thread_names[k] = round(100 * (v - by_name0.get(k, 0.0)) / span, 2)
+            for s in sources:
+                thread_cpu[s.name] = (cpu_seconds(os.getpid(), s.thread_id) - start[s.name]) / span
+            await task
+
+        asyncio.run(main())
+        wall = time.monotonic() - wall0
+        process_cpu = time.process_time() - cpu0
+        server_cpu = [(cpu_seconds(s.pid) - c) / wall for s, c in zip(servers, server_cpu0, strict=True)]
+    finally:
+        for s in servers:
+            s.terminate()
+        for s in servers:
+            s.wait(timeout=10)
+    cameras = []
+    for s, c in zip(sources, checks, strict=True):
+        lat, conv = s.latency.recent(), s.convert.recent()
+        cameras.append(
+            {
+                "name": s.name,
+                "frames": c.frames,
+                "expected_frames_approx": round(args.fps * args.duration),
+                "missing_frames": s.counters.missing_frames,
+                "resent_packets": s.counters.resent_packets,
+                "bad_buffers": s.counters.bad_buffers,
+                "failures": s.counters.failures,
+                "last_error": s.counters.last_error,
+                "timeouts": s.counters.timeouts,
+                "verified": c.identical if args.verify else None,
+                "in_order": c.in_order if args.verify else None,
+                "mismatched": len(c.mismatched),
+                "overtaken": c.overtaken,
+                "out_of_order": c.out_of_order[:10],
+                "debug": c.debug,
+                "host_ts_increasing": c.host_increasing,
+                "device_ts_increasing": c.device_increasing,
+                "frame_ids_consecutive": c.ids_increasing,
+                "latency_ms_median": percentile_ms(lat, 50),
+                "latency_ms_p95": percentile_ms(lat, 95),
+                "convert_ms_median": percentile_ms(conv, 50),
+                "convert_ms_p95": percentile_ms(conv, 95),
+                "capture_thread_cpu_pct": round(100 * thread_cpu.get(s.name, float("nan")), 2),
+            }
+        )
+    return {
+        "format": args.format,
+        "fps": args.fps,
+        "duration_s": args.duration,
+        "size": [infos[0]["width"], infos[0]["height"]],
+        "cameras": cameras,
+        "capture_process_cpu_pct": round(100 * process_cpu / wall, 1),
+        "capture_process_cpu_pct_by_thread_name": thread_names,
+        "fake_server_cpu_pct": [round(100 * c, 1) for c in server_cpu],
+    }
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--videos", nargs="+", required=True, help="one video per fake camera")
+    parser.add_argument("--max-frames", type=int, default=20, help="frames of each video served (looped)")
+    parser.add_argument("--size", default=None, help="resize videos to WIDTHxHEIGHT")
+    parser.add_argument("--format", default="RGB8", choices=["RGB8", "Mono8", "BayerRG8"], help="camera pixel format")
+    parser.add_argument("--fps", type=float, default=30.0, help="acquisition frame rate, Hz")
+    parser.add_argument("--duration", type=float, default=3.0, help="capture time, s")
+    parser.add_argument("--packet-size", type=int, default=8192, help="GigE stream packet size, bytes")
+    parser.add_argument("--no-verify", dest="verify", action="store_false", help="skip the bit-identity check")
+    parser.add_argument("--in-netns", action="store_true", help="already inside a private network namespace")
+    parser.add_argument("--json", type=Path, default=None, help="also write the result here")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if not args.in_netns:
+        # Aravis must never talk to a real network: re-run inside a private network namespace.
+        cmd = [
+            "unshare",
+            "-rn",
+            sys.executable,
+            "-m",
+            "tools.fake_rig",
+            *(argv or sys.argv[1:]),
+            "--in-netns",
+        ]
+        return subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], check=False).returncode
+    result = run_rig(args)
+    text = json.dumps(result, indent=1)
+    print(text, flush=True)
+    if args.json is not None:
+        args.json.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
