@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from mocapd.core.camera import Camera
 from mocapd.core.imu import IMU_SET_13, ImuMount, default_mounts
@@ -14,6 +16,11 @@ from mocapd.core.prior import PcaPrior
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.solver import Observations
 from mocapd.core.synthetic import exact_observations, moving_sequence, ring_rig
+
+# CI runs are reproducible (the same examples every run); local runs keep exploring new ones.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 
 @dataclass

@@ -86,3 +86,24 @@ def test_missing_or_broken_file(tmp_path: Path) -> None:
     bad.write_text("[solver\n", encoding="utf-8")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(bad)
+
+
+def test_tracking_section_maps_onto_the_core_options() -> None:
+    from mocapd.core.sorting import SortingOptions
+    from mocapd.core.suit_binding import BindingOptions
+    from mocapd.core.tracking import TrackingOptions
+
+    cfg = load_config()
+    assert cfg.tracking.sorting == SortingOptions()
+    assert cfg.tracking.enrolment == TrackingOptions()
+    assert cfg.tracking.binding == BindingOptions()
+    custom = parse_config(
+        {"tracking": {"enrolment": {"start_positions": [[0.5, 1.0], [-0.5, 1.0]], "max_subjects": 2}}}
+    )
+    assert custom.tracking.enrolment.start_positions == ((0.5, 1.0), (-0.5, 1.0))
+    with pytest.raises(ConfigError, match=r"tracking.enrolment.max_subjects = 2.5; allowed: an integer"):
+        parse_config({"tracking": {"enrolment": {"max_subjects": 2.5}}})
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['radius'\] in \[tracking.sorting\]"):
+        parse_config({"tracking": {"sorting": {"radius": 1}}})
+    with pytest.raises(ConfigError, match=r"volume_min = \[1\]; allowed: a pair"):
+        parse_config({"tracking": {"enrolment": {"volume_min": [1]}}})

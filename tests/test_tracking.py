@@ -108,3 +108,26 @@ def test_sorter_needs_two_cameras_and_matching_input() -> None:
     with pytest.raises(InputError, match="3 cameras but detections for 2"):
         DetectionSorter(cams).candidates([Detections2D.empty(17)] * 2)
     assert DetectionSorter(cams).candidates([Detections2D.empty(17)] * 3) == []
+
+
+def test_people_tracker_reports_pairing_and_events_in_status() -> None:
+    import json
+
+    from mocapd.core.people import PeopleTracker
+    from mocapd.core.suit_binding import SuitBinder
+    from mocapd.service.eval_tracking import _suit_measurements
+
+    cams, dets, labels = _scene(60)
+    sk = Skeleton.from_height(1.75)
+    people = [walking_path(sk, 60, (-0.8, -0.8), (-0.6, 0.9), seed=1, fps=FPS)]  # person 0 wears suit "A"
+    tracker = PeopleTracker(SubjectTracker(DetectionSorter(cams), TrackingOptions(enrol_after_s=0.3)), SuitBinder(sk))
+    rng = np.random.default_rng(5)
+    for f in range(60):
+        out = tracker.update(f * NS, dets[f], {"A": _suit_measurements(sk, people[0][f], 20.0, rng)})
+    status = json.loads(json.dumps(tracker.status()))  # JSON-able
+    suited = next(p for p in out.people if p.suit == "A")
+    assert suited.identity == "suit:A" and _true_person(suited.detections, labels[59]) == {0}
+    assert status["suits"]["A"]["track"] == suited.track and status["suits"]["A"]["confidence"] > 0.5
+    kinds = [e["kind"] for e in status["events"]]
+    assert kinds.count("enrolled") == 2 and kinds.count("paired") == 1
+    assert len(status["subjects"]) == 2 and status["bystanders"] == 1

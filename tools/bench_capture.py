@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         "1088x1920_RGB8": (None, "RGB8"),
         "1088x1920_BayerRG8": (None, "BayerRG8"),
     }
-    result = {
+    result: dict[str, Any] = {
         "machine": {
             "cpus": len(__import__("os").sched_getaffinity(0)),
             "loadavg_start": Path("/proc/loadavg").read_text().split()[:3],

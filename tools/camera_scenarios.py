@@ -30,24 +30,11 @@ if __package__ in (None, ""):
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
-from tools.fake_gige import add_loopback_aliases, load_video_rgb
+from tools.fake_gige import add_loopback_aliases, load_video_rgb, server_command
 
 
 def start_server(video: Path, address: str, max_frames: int, prepare: str) -> subprocess.Popen[str]:
-    cmd = [
-        sys.executable,
-        "-m",
-        "tools.fake_gige",
-        "--video",
-        str(video),
-        "--address",
-        address,
-        "--max-frames",
-        str(max_frames),
-        "--prepare",
-        prepare,
-    ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(server_command(video, address, max_frames, prepare), stdout=subprocess.PIPE, text=True)
     assert proc.stdout is not None
     json.loads(proc.stdout.readline())
     return proc

@@ -168,8 +168,21 @@ class FakeGigECamera:
             self.errors += 1  # a pixel format we cannot produce: the client gets the buffer as it was
 
     def close(self) -> None:
-        self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, ctypes.cast(None, _FILL), None)
+        self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, _FILL(), None)  # NULL callback
         self._gv = None
+
+
+def server_command(
+    video: Path | str, address: str, max_frames: int, prepare: str, serial: str | None = None, size: str | None = None
+) -> list[str]:
+    """The command line that runs one fake camera server (this module) in its own process."""
+    cmd = [sys.executable, "-m", "tools.fake_gige", "--video", str(video), "--address", address,
+           "--max-frames", str(max_frames), "--prepare", prepare]  # fmt: skip
+    if serial is not None:
+        cmd += ["--serial", serial]
+    if size is not None:
+        cmd += ["--size", size]
+    return cmd
 
 
 def add_loopback_aliases(n: int) -> list[str]:

@@ -38,7 +38,7 @@ if __package__ in (None, ""):
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
-from tools.fake_gige import add_loopback_aliases, load_video_rgb
+from tools.fake_gige import add_loopback_aliases, load_video_rgb, server_command
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -178,23 +178,7 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     servers = []
     for i, (video, address) in enumerate(zip(args.videos, addresses, strict=True)):
-        cmd = [
-            sys.executable,
-            "-m",
-            "tools.fake_gige",
-            "--video",
-            str(video),
-            "--address",
-            address,
-            "--serial",
-            f"FAKE{i + 1:02d}",
-            "--max-frames",
-            str(args.max_frames),
-            "--prepare",
-            args.format,
-        ]
-        if args.size:
-            cmd += ["--size", args.size]
+        cmd = server_command(video, address, args.max_frames, args.format, f"FAKE{i + 1:02d}", args.size or None)
         servers.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True))
     try:
         infos = [json.loads(s.stdout.readline()) for s in servers if s.stdout is not None]
@@ -243,12 +227,12 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
         asyncio.run(main())
         wall = time.monotonic() - wall0
         process_cpu = time.process_time() - cpu0
-        server_cpu = [(cpu_seconds(s.pid) - c) / wall for s, c in zip(servers, server_cpu0, strict=True)]
+        server_cpu = [(cpu_seconds(p.pid) - c) / wall for p, c in zip(servers, server_cpu0, strict=True)]
     finally:
-        for s in servers:
-            s.terminate()
-        for s in servers:
-            s.wait(timeout=10)
+        for proc in servers:
+            proc.terminate()
+        for proc in servers:
+            proc.wait(timeout=10)
     cameras = []
     for s, c in zip(sources, checks, strict=True):
         lat, conv = s.latency.recent(), s.convert.recent()

@@ -50,8 +50,8 @@ def candidate_pairs(
     min_shared: int,
     same_person: float,
     min_depth: float,
-) -> tuple[FloatArray, IntArray, FloatArray, IntArray]:
-    """All viable cross-view pairs of 2D people, clustered.
+) -> tuple[FloatArray, IntArray, FloatArray]:
+    """All viable cross-view pairs of 2D people, clustered into 3D person candidates.
 
     Parameters
     ----------
@@ -61,10 +61,9 @@ def candidate_pairs(
 
     Returns
     -------
-    points : (m, k, 3) triangulated keypoints (NaN where not both usable);
-    sources : (m, 4) (camera a, person a, camera b, person b);
-    errors : (m, 2) mean reprojection error in views a and b (px, undistorted image);
-    leader : (m,) index of the pair whose cluster this pair joins (itself for a new cluster).
+    points : (n_clusters, k, 3) keypoints of each candidate (its first pair's, gaps filled by later pairs);
+    members : (n_clusters, n_cams) the 2D person of each camera in the candidate (-1: none);
+    member_errors : (n_clusters, n_cams) mean reprojection error of that person's view (px, undistorted).
     """
     n, k = keypoints.shape[0], keypoints.shape[1]
     n_cams = K.shape[0]
@@ -87,8 +86,6 @@ def candidate_pairs(
     points = np.full((m_max, k, 3), np.nan)
     sources = np.empty((m_max, 4), dtype=np.int64)
     errors = np.empty((m_max, 2))
-    leader = np.empty(m_max, dtype=np.int64)
-    leaders = np.empty(m_max, dtype=np.int64)
     # Per cluster, the 2D person it holds in each camera (-1: none): one camera sees a person only once.
     members = np.full((m_max, n_cams), -1, dtype=np.int64)
     n_leaders = 0
@@ -161,34 +158,37 @@ def candidate_pairs(
     # in a view, stays on its own (and is dropped when detections are claimed).
     order = np.argsort(errors[:m, 0] + errors[:m, 1])
     points, sources, errors = points[order], sources[order], errors[order]
+    cluster_points = np.full((m, k, 3), np.nan)
+    member_errors = np.full((m, n_cams), np.inf)
     for u in range(m):
         a, pa, b, pb = sources[u, 0], sources[u, 1], sources[u, 2], sources[u, 3]
         joined = -1
         for q in range(n_leaders):
-            L = leaders[q]
             if (members[q, a] >= 0 and members[q, a] != pa) or (members[q, b] >= 0 and members[q, b] != pb):
                 continue  # a different person of camera a or b is already in this cluster
             total = 0.0
             cnt = 0
             for j in range(k):
-                if np.isnan(points[u, j, 0]) or np.isnan(points[L, j, 0]):
+                if np.isnan(points[u, j, 0]) or np.isnan(cluster_points[q, j, 0]):
                     continue
                 total += math.sqrt(
-                    (points[u, j, 0] - points[L, j, 0]) ** 2
-                    + (points[u, j, 1] - points[L, j, 1]) ** 2
-                    + (points[u, j, 2] - points[L, j, 2]) ** 2
+                    (points[u, j, 0] - cluster_points[q, j, 0]) ** 2
+                    + (points[u, j, 1] - cluster_points[q, j, 1]) ** 2
+                    + (points[u, j, 2] - cluster_points[q, j, 2]) ** 2
                 )
                 cnt += 1
             if cnt > 0 and total / cnt < same_person:
-                joined = L
-                members[q, a] = pa
-                members[q, b] = pb
+                joined = q
                 break
         if joined < 0:
-            leaders[n_leaders] = u
-            members[n_leaders, a] = pa
-            members[n_leaders, b] = pb
+            joined = n_leaders
             n_leaders += 1
-            joined = u
-        leader[u] = joined
-    return points, sources, errors, leader[:m]
+        q = joined
+        members[q, a] = pa
+        members[q, b] = pb
+        member_errors[q, a] = min(member_errors[q, a], errors[u, 0])
+        member_errors[q, b] = min(member_errors[q, b], errors[u, 1])
+        for j in range(k):
+            if np.isnan(cluster_points[q, j, 0]):
+                cluster_points[q, j] = points[u, j]
+    return cluster_points[:n_leaders], members[:n_leaders], member_errors[:n_leaders]

@@ -7,7 +7,9 @@ A track without a suit keeps the tracker's identity (``track:<id>``).
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,9 +44,11 @@ class PeopleFrame:
 class PeopleTracker:
     """Detection sorting + enrolment, then (optionally) suit binding, one frame at a time."""
 
-    def __init__(self, tracker: SubjectTracker, binder: SuitBinder | None = None) -> None:
+    def __init__(self, tracker: SubjectTracker, binder: SuitBinder | None = None, history: int = 100) -> None:
         self.tracker = tracker
         self.binder = binder
+        self.events: deque[TrackingEvent | BindingEvent] = deque(maxlen=history)
+        self._bystanders = 0
 
     def update(
         self, t_ns: int, detections: list[Detections2D], suits: dict[str, dict[str, FloatArray]] | None = None
@@ -67,4 +71,32 @@ class PeopleTracker:
                 track=k, suit=suit, detections=dict(s.detections), keypoints=s.last_points,
                 binding_confidence=confidence.get(suit) if suit is not None else None,
             ))  # fmt: skip
+        self.events.extend(frame.events)
+        self.events.extend(binding_events)
+        self._bystanders = frame.bystanders
         return PeopleFrame(people, frame.bystanders, frame.events, binding_events)
+
+    def status(self) -> dict[str, Any]:
+        """JSON-able state for the daemon's status: subjects, the suit pairing with its confidence, and the
+        recent enrolments, releases, pairings and re-pairings."""
+        binding = self.binder.state if self.binder is not None else None
+        return {
+            "subjects": [
+                {"id": s.id, "seen": s.seen, "last_seen_ns": s.last_seen_ns, "enrolled_ns": s.enrolled_ns,
+                 "views": len(s.detections)}
+                for s in self.tracker.subjects
+            ],
+            "bystanders": self._bystanders,
+            "suits": None if binding is None else {
+                suit: {"track": track, "confidence": round(binding.confidence.get(suit, 0.0), 3),
+                       "mean_angle_deg": round(binding.mean_angle_deg.get(suit, float("nan")), 2)}
+                for suit, track in binding.pairs.items()
+            },
+            "events": [_event_dict(e) for e in self.events],
+        }  # fmt: skip
+
+
+def _event_dict(e: TrackingEvent | BindingEvent) -> dict[str, Any]:
+    if isinstance(e, TrackingEvent):
+        return {"t_ns": e.t_ns, "kind": e.kind, "subject": e.subject}
+    return {"t_ns": e.t_ns, "kind": e.kind, "suit": e.suit, "track": e.track, "previous_track": e.previous_track}

@@ -8,8 +8,9 @@ then takes the nearest unused candidate within ``max_interframe_movement`` of it
 the order given). The solver uses the 2D detections of each subject's candidate, not the triangulation.
 
 Beyond the pseudo-code, each measured on the close-interaction scene of ``mocapd eval tracking``:
-(1) a pair never joins a candidate that already holds a *different* 2D person of one of its cameras — one camera
-sees a person once, so two people standing closer than the same-person distance stay apart; (2) each 2D detection
+(1) pairs are clustered in order of reprojection error, and a pair never joins a candidate that already holds a
+*different* 2D person of one of its cameras — one camera sees a person once, so two people standing closer than
+the same-person distance stay apart (a candidate therefore holds at most one detection per view); (2) each 2D detection
 is finally given to one candidate only, the one supported by most views (:func:`_resolve_claims`): with the seed's
 loose threshold, two different people seen by two facing cameras otherwise pair into spurious 2-view candidates;
 (3) subjects take candidates by an optimal assignment rather than in subject order. Triangulation is the
@@ -156,25 +157,16 @@ class DetectionSorter:
         usable = np.concatenate([d.confidences for d in detections]).reshape(-1, n_kp) >= o.min_confidence
         camera_of = np.repeat(np.arange(len(counts)), counts).astype(np.int64)
         person_of = np.concatenate([np.arange(n) for n in counts]).astype(np.int64)
-        points, sources, errors, leader = _sorting_kernel.candidate_pairs(
+        points, members, member_errors = _sorting_kernel.candidate_pairs(
             np.ascontiguousarray(kp), usable, camera_of, person_of, self._K, self._dist, self._R, self._t,
             self._widths, o.max_reprojection_error, o.min_shared_keypoints, o.same_person_distance, MIN_DEPTH,
         )  # fmt: skip
-        by_leader: dict[int, Candidate] = {}
-        for u in range(points.shape[0]):
-            a, pa, b, pb = (int(x) for x in sources[u])
-            c = by_leader.get(int(leader[u]))
-            if c is None:
-                by_leader[int(leader[u])] = Candidate(points[u].copy(), {a: pa, b: pb},
-                                                      {a: float(errors[u, 0]), b: float(errors[u, 1])})  # fmt: skip
-                continue
-            for cam, person, err in ((a, pa, errors[u, 0]), (b, pb, errors[u, 1])):
-                # Two detections of one view in one candidate: keep the one that reprojects better.
-                if cam not in c.sources or err < c.errors[cam]:
-                    c.sources[cam] = person
-                    c.errors[cam] = float(err)
-            c.points = np.where(np.isnan(c.points), points[u], c.points)
-        return _resolve_claims(list(by_leader.values()))
+        cands = []
+        for q in range(points.shape[0]):
+            cams = np.flatnonzero(members[q] >= 0)
+            cands.append(Candidate(points[q], {int(c): int(members[q, c]) for c in cams},
+                                   {int(c): float(member_errors[q, c]) for c in cams}))  # fmt: skip
+        return _resolve_claims(cands)
 
     # -- assignment ----------------------------------------------------------------------------------------
     def assign(self, cands: list[Candidate], last_positions: list[FloatArray | None]) -> list[Candidate | None]:

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 from mocapd import __version__
 from mocapd.eval import cli as eval_cli
-from mocapd.service import cmd_calibrate
+from mocapd.service import cmd_calibrate, cmd_imu
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -68,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     eval_cli.register(ev_sub)
 
     cmd_calibrate.register(sub)
+    cmd_imu.register(sub)  # adds "imu" to the calibrate group
     return parser
 
 

@@ -16,6 +16,8 @@ from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss
 from mocapd.core.solver import TERM_NAMES, LMOptions
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
+from mocapd.service.imu_config import ImuConfig, parse_imu_config
+from mocapd.service.tracking_config import TrackingConfig, parse_tracking_config
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
 
@@ -38,11 +40,13 @@ class SolverConfig:
 @dataclass(frozen=True)
 class Config:
     solver: SolverConfig = field(default_factory=SolverConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole parsed file, for sections whose loaders live elsewhere."""
 
 
-KNOWN_SECTIONS = {"solver"}
+KNOWN_SECTIONS = {"solver", "imu", "tracking"}
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -62,7 +66,12 @@ def parse_config(data: dict[str, Any]) -> Config:
     unknown = set(data) - KNOWN_SECTIONS
     if unknown:
         raise ConfigError(f"unknown section(s) {sorted(unknown)}; allowed: {sorted(KNOWN_SECTIONS)}")
-    return Config(solver=_parse_solver(_table(data, "solver")), raw=data)
+    return Config(
+        solver=_parse_solver(_table(data, "solver")),
+        imu=parse_imu_config(_table(data, "imu")),
+        tracking=parse_tracking_config(_table(data, "tracking")),
+        raw=data,
+    )
 
 
 def _table(data: dict[str, Any], key: str, prefix: str = "") -> dict[str, Any]:

@@ -24,3 +24,15 @@ if ! .venv/bin/python -c 'import gi; gi.require_version("Aravis", "0.8"); from g
     echo "installing PyGObject (<3.51) into .venv" >&2
     .venv/bin/python -m pip install -q "pygobject>=3.42,<3.51"
 fi
+# GigE Vision streams arrive as bursts of UDP packets: the receive buffer must hold several frames or a
+# descheduled capture thread loses whole frames (Aravis and camera vendors recommend raising rmem_max).
+# Raised here (until reboot) where we may; persistent installs: /etc/sysctl.d/ (see docs/cameras.md).
+want_rmem=26214400
+have_rmem=$(cat /proc/sys/net/core/rmem_max 2>/dev/null || echo 0)
+if [ "$have_rmem" -lt "$want_rmem" ]; then
+    if (echo "$want_rmem" > /proc/sys/net/core/rmem_max) 2>/dev/null; then
+        echo "raised net.core.rmem_max from $have_rmem to $want_rmem (GigE Vision socket buffers)" >&2
+    else
+        echo "warning: net.core.rmem_max is $have_rmem and cannot be raised here; GigE cameras may lose frames" >&2
+    fi
+fi

@@ -1,0 +1,340 @@
+"""IMU-to-bone calibration from a T-pose: mounting rotations R_ib and heading alignment R_ig (pure).
+
+Convention (seed 003, Eq. 8): the world orientation of a bone is ``R_gb = R_ig · R_i · R_ib⁻¹`` where
+
+- ``R_i`` is the IMU's measured orientation (sensor frame → the device's global frame, ENU for Xsens),
+- ``R_ib`` the mounting rotation of the IMU on its bone (sensor frame → bone frame), constant,
+- ``R_ig`` the heading alignment (device global frame → mocapd world: right-handed, +Y up, metres).
+
+The device frame ENU (x east, y north, z up) maps to world axes by :data:`ENU_TO_WORLD`: world +Y is up,
++Z is north and +X west. During the T-pose the subject faces compass heading ``h`` (degrees clockwise from
+north); rotating the world about +Y by ``h`` makes the subject face +Z, the rest pose's facing direction, so
+``R_ig = Ry(h) · ENU_TO_WORLD``. (With ``world_heading="north"`` R_ig stays ``ENU_TO_WORLD`` and the rest
+pose is turned by ``Ry(-h)`` instead; R_ib is the same either way.) In the T-pose every bone's world
+orientation is its rest orientation ``R_rest`` (identity for a T-pose rest skeleton), hence
+``R_ib = R_rest⁻¹ · R_ig_T · R_i`` with ``R_ig_T`` the T-pose-facing alignment.
+
+``R_i`` is the average over the stillest window of the recording; windows where a sensor turns more than
+``max_spread_deg`` or its acceleration norm varies more than ``max_acc_std`` are rejected as motion.
+
+All quaternions are (w, x, y, z), Hamilton, unit norm.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.imu import IMU_SET_6, IMU_SET_13, measured_bone_orientation
+from mocapd.core.rotations import (
+    matrix_from_quat,
+    quat_angle,
+    quat_canonical,
+    quat_conjugate,
+    quat_from_matrix,
+    quat_from_rotvec,
+    quat_multiply,
+)
+from mocapd.core.skeleton import BONE_NAMES
+from mocapd.errors import CalibrationError, ConfigError, InputError
+
+FloatArray = NDArray[np.float64]
+
+# The 21 bone names (DESIGN.md order) and the 13/6-sensor sets, re-exported for the assignment checks.
+__all__ = ["BONE_NAMES", "IMU_SET_6", "IMU_SET_13"]
+
+#: Rotation of ENU device coordinates into world coordinates (x west, y up, z north), as a matrix.
+ENU_TO_WORLD = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+
+
+#: Rotations taking NED / NWU device-frame coordinates to ENU (rows: ENU axes in the source frame).
+_TO_ENU = {
+    "ENU": np.eye(3),
+    "NED": np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),
+    "NWU": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+}
+
+
+def quat_to_enu(q: FloatArray, frame: str) -> FloatArray:
+    """Re-express device orientations given in ``frame`` ("ENU", "NED" or "NWU") in ENU; shape (..., 4).
+
+    Raises
+    ------
+    InputError
+        For an unknown frame name.
+    """
+    if frame not in _TO_ENU:
+        raise InputError(f"device frame must be ENU, NED or NWU, got {frame!r}")
+    if frame == "ENU":
+        return np.asarray(q, dtype=np.float64)
+    return quat_multiply(quat_from_matrix(_TO_ENU[frame]), np.asarray(q, dtype=np.float64))
+
+
+def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) -> dict[str, str]:
+    """Validate a sensor → bone assignment (``{"00B421E6": "Hips", ...}``).
+
+    Parameters
+    ----------
+    mapping : mapping of str to str
+        Sensor id (8 hex digits, as printed on the case; case-insensitive) to bone name.
+    imu_set : {"13", "6", None}
+        If given, the assigned bones must be exactly that set.
+
+    Returns
+    -------
+    dict
+        Upper-case sensor ids to bone names.
+
+    Raises
+    ------
+    ConfigError
+        Unknown bone, malformed id, a bone used twice, or a set mismatch (the message lists what is wrong).
+    """
+    out: dict[str, str] = {}
+    for sensor, bone in mapping.items():
+        sid = sensor.upper()
+        if len(sid) != 8 or any(c not in "0123456789ABCDEF" for c in sid):
+            raise ConfigError(f"imu assignment: sensor id {sensor!r} is not 8 hex digits")
+        if bone not in BONE_NAMES:
+            raise ConfigError(f"imu assignment: {sensor} -> {bone!r} is not a bone; use one of {BONE_NAMES}")
+        if bone in out.values():
+            raise ConfigError(f"imu assignment: bone {bone} has more than one sensor")
+        out[sid] = bone
+    if imu_set is not None:
+        expected = {"13": IMU_SET_13, "6": IMU_SET_6}.get(imu_set)
+        if expected is None:
+            raise ConfigError(f"imu assignment: imu_set must be '13' or '6', got {imu_set!r}")
+        missing = sorted(set(expected) - set(out.values()))
+        extra = sorted(set(out.values()) - set(expected))
+        if missing or extra:
+            raise ConfigError(f"imu assignment for the {imu_set}-sensor set: missing {missing}, unexpected {extra}")
+    return out
+
+
+def quat_average(q: FloatArray) -> FloatArray:
+    """Average orientation of quaternions ``(n, 4)`` (sign-invariant; largest eigenvector of Σ q qᵀ)."""
+    q = np.asarray(q, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] != 4 or len(q) == 0:
+        raise InputError(f"quat_average needs shape (n, 4) with n >= 1, got {q.shape}")
+    _, vecs = np.linalg.eigh(q.T @ q)
+    return quat_canonical(vecs[:, -1])
+
+
+def yaw_quat(angle_rad: float) -> FloatArray:
+    """Rotation about world +Y (up) by ``angle_rad``, shape (4,)."""
+    return quat_from_rotvec(np.array([0.0, angle_rad, 0.0]))
+
+
+def heading_alignment(facing_heading_deg: float, *, world_heading: str = "subject") -> FloatArray:
+    """R_ig (device ENU → world) as a quaternion, shape (4,).
+
+    ``world_heading="subject"``: world +Z is where the subject faced in the T-pose.
+    ``world_heading="north"``: world +Z is magnetic north (the T-pose heading only enters R_ib).
+    """
+    base = quat_from_matrix(ENU_TO_WORLD)
+    if world_heading == "north":
+        return base
+    if world_heading != "subject":
+        raise ConfigError(f"world_heading must be 'subject' or 'north', got {world_heading!r}")
+    return quat_canonical(quat_multiply(yaw_quat(np.radians(facing_heading_deg)), base))
+
+
+@dataclass(frozen=True, slots=True)
+class StillWindow:
+    """Result of :func:`stillest_window` for one sensor."""
+
+    start: int
+    stop: int
+    mean: FloatArray  # (4,)
+    spread_deg: float  # largest angle of a window sample from the window mean
+    acc_std: float  # std of the acceleration norm in the window (m/s²), NaN without acceleration
+
+
+def stillest_window(
+    quat: FloatArray,
+    acc: FloatArray | None,
+    window: int,
+    *,
+    max_spread_deg: float = 2.0,
+    max_acc_std: float = 0.3,
+    sensor: str = "imu",
+) -> StillWindow:
+    """Find the window of ``window`` samples with the least rotation and accept it if it is still enough.
+
+    Parameters
+    ----------
+    quat : array, shape (n, 4)
+    acc : array, shape (n, 3), or None
+    window : int
+        Window length in samples (e.g. 1 s worth).
+
+    Raises
+    ------
+    CalibrationError
+        Fewer than ``window`` samples, or the stillest window still moves (names the sensor and numbers).
+    """
+    quat = np.asarray(quat, dtype=np.float64)
+    n = len(quat)
+    if n < window or window < 2:
+        raise CalibrationError(f"{sensor}: {n} samples, need at least {max(window, 2)} for the T-pose window")
+    best: StillWindow | None = None
+    step = max(1, window // 4)
+    for start in range(0, n - window + 1, step):
+        chunk = quat[start : start + window]
+        mean = quat_average(chunk)
+        spread = float(np.degrees(np.max(quat_angle(chunk, mean))))
+        if best is None or spread < best.spread_deg:
+            acc_std = float(np.std(np.linalg.norm(acc[start : start + window], axis=1))) if acc is not None else np.nan
+            best = StillWindow(start, start + window, mean, spread, acc_std)
+    assert best is not None
+    if best.spread_deg > max_spread_deg:
+        raise CalibrationError(
+            f"{sensor} moved during the T-pose: its stillest {window}-sample window turns "
+            f"{best.spread_deg:.1f}° (limit {max_spread_deg}°); stand still and repeat"
+        )
+    if not np.isnan(best.acc_std) and best.acc_std > max_acc_std:
+        raise CalibrationError(
+            f"{sensor} accelerated during the T-pose: |acc| std {best.acc_std:.2f} m/s² "
+            f"(limit {max_acc_std}); stand still and repeat"
+        )
+    return best
+
+
+def mounting_rotation(q_i: FloatArray, q_ig_tpose: FloatArray, q_rest: FloatArray | None = None) -> FloatArray:
+    """R_ib = R_rest⁻¹ · R_ig · R_i as a quaternion, shape (4,) (see the module docstring)."""
+    rest = np.array([1.0, 0.0, 0.0, 0.0]) if q_rest is None else np.asarray(q_rest, dtype=np.float64)
+    return quat_canonical(quat_multiply(quat_conjugate(rest), quat_multiply(q_ig_tpose, q_i)))
+
+
+def bone_orientation(q_ig: FloatArray, q_i: FloatArray, q_ib: FloatArray) -> FloatArray:
+    """R_gb = R_ig · R_i · R_ib⁻¹ (seed 003 Eq. 8); see :func:`mocapd.core.imu.measured_bone_orientation`."""
+    return measured_bone_orientation(q_ig, q_i, q_ib)
+
+
+@dataclass(frozen=True, slots=True)
+class ImuCalibration:
+    """Calibration of one person: R_ig and, per sensor, its bone and R_ib."""
+
+    person: str
+    facing_heading_deg: float
+    world_heading: str
+    q_ig: FloatArray  # (4,)
+    bones: dict[str, str]  # sensor id -> bone
+    q_ib: dict[str, FloatArray]  # sensor id -> (4,)
+    spread_deg: dict[str, float]  # sensor id -> stillness of the window used
+
+    def to_json_dict(self) -> dict[str, object]:
+        """Plain data for the calibration file (version 1)."""
+        return {
+            "format": "mocapd-imu-calibration",
+            "version": 1,
+            "person": self.person,
+            "convention": "R_gb = R_ig * R_i * R_ib^-1; quaternions (w, x, y, z); world +Y up",
+            "facing_heading_deg": self.facing_heading_deg,
+            "world_heading": self.world_heading,
+            "R_ig": [float(v) for v in self.q_ig],
+            "sensors": {
+                sid: {
+                    "bone": self.bones[sid],
+                    "R_ib": [float(v) for v in q],
+                    "still_spread_deg": self.spread_deg[sid],
+                }
+                for sid, q in self.q_ib.items()
+            },
+        }
+
+    @staticmethod
+    def from_json_dict(data: Mapping[str, object]) -> ImuCalibration:
+        """Inverse of :meth:`to_json_dict`. Raises CalibrationError on a wrong format or version."""
+        if data.get("format") != "mocapd-imu-calibration" or data.get("version") != 1:
+            raise CalibrationError("not a version-1 mocapd IMU calibration file")
+        try:
+            sensors = data["sensors"]
+            assert isinstance(sensors, dict)
+            q_ig = _unit_quat(data["R_ig"], "R_ig")
+            return ImuCalibration(
+                person=str(data["person"]),
+                facing_heading_deg=float(data["facing_heading_deg"]),  # type: ignore[arg-type]
+                world_heading=str(data["world_heading"]),
+                q_ig=q_ig,
+                bones=parse_assignment({sid: str(s["bone"]) for sid, s in sensors.items()}),
+                q_ib={sid.upper(): _unit_quat(s["R_ib"], f"{sid} R_ib") for sid, s in sensors.items()},
+                spread_deg={sid.upper(): float(s.get("still_spread_deg", np.nan)) for sid, s in sensors.items()},
+            )
+        except (KeyError, TypeError, ValueError, AssertionError) as exc:
+            raise CalibrationError(f"malformed IMU calibration file: {exc!r}") from exc
+
+
+def _unit_quat(value: object, name: str) -> FloatArray:
+    q = np.asarray(value, dtype=np.float64)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-6:
+        raise CalibrationError(f"{name} must be a unit quaternion [w, x, y, z], got {value!r}")
+    return q
+
+
+def calibrate_tpose(
+    person: str,
+    recordings: Mapping[str, tuple[FloatArray, FloatArray | None]],
+    bones: Mapping[str, str],
+    *,
+    facing_heading_deg: float,
+    world_heading: str = "subject",
+    window: int = 60,
+    rest: Mapping[str, FloatArray] | None = None,
+    max_spread_deg: float = 2.0,
+    max_acc_std: float = 0.3,
+) -> ImuCalibration:
+    """T-pose calibration of every assigned sensor.
+
+    Parameters
+    ----------
+    recordings : mapping of sensor id to (quat (n, 4), acc (n, 3) or None)
+        Device-frame (ENU) orientations recorded while the subject held the T-pose.
+    bones : mapping of sensor id to bone name
+        From :func:`parse_assignment`; every assigned sensor must have a recording.
+    facing_heading_deg : float
+        Compass heading the subject faced (degrees clockwise from magnetic north).
+    rest : mapping of bone name to quaternion (4,), optional
+        Rest-pose world orientation of each bone (identity when absent: the T-pose rest skeleton).
+
+    Raises
+    ------
+    CalibrationError
+        A sensor is missing or moved (the message names it).
+    """
+    missing = sorted(set(bones) - set(recordings))
+    if missing:
+        raise CalibrationError(f"no samples from assigned sensors {missing}")
+    q_ig_tpose = heading_alignment(facing_heading_deg, world_heading="subject")
+    q_ib: dict[str, FloatArray] = {}
+    spread: dict[str, float] = {}
+    for sid, bone in bones.items():
+        quat, acc = recordings[sid]
+        still = stillest_window(
+            quat,
+            acc,
+            window,
+            max_spread_deg=max_spread_deg,
+            max_acc_std=max_acc_std,
+            sensor=f"{sid} ({bone})",
+        )
+        q_rest = None if rest is None else rest.get(bone)
+        q_ib[sid] = mounting_rotation(still.mean, q_ig_tpose, q_rest)
+        spread[sid] = still.spread_deg
+    q_ig = heading_alignment(facing_heading_deg, world_heading=world_heading)
+    return ImuCalibration(person, facing_heading_deg, world_heading, q_ig, dict(bones), q_ib, spread)
+
+
+def facing_heading_from_sensor(q_i: FloatArray, forward_axis: FloatArray) -> float:
+    """Compass heading (degrees from north, clockwise) of a sensor axis known to point forward.
+
+    Useful when the pelvis sensor's mounting is known roughly (e.g. its -z axis points forward on the back of
+    the pelvis): the horizontal projection of that axis in ENU gives the subject's facing heading.
+    """
+    fwd = matrix_from_quat(np.asarray(q_i, dtype=np.float64)) @ np.asarray(forward_axis, dtype=np.float64)
+    if np.hypot(fwd[0], fwd[1]) < 1e-3:
+        raise CalibrationError("the forward axis is vertical: cannot derive a heading from it")
+    return float(np.degrees(np.arctan2(fwd[0], fwd[1])) % 360.0)

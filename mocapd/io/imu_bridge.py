@@ -1,0 +1,85 @@
+"""UDP listener for the IMU bridge input (format: :mod:`mocapd.protocols.imu_bridge`).
+
+Binds 127.0.0.1 by default (the forwarding script runs on the same machine); every record becomes an
+:class:`~mocapd.io.xsens_serial.ImuSample` stamped with ``time.monotonic_ns()`` on arrival. The device time is
+converted to 10 kHz ticks so that the same clock mapping as for serial devices applies.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from mocapd.errors import ConfigError, DeviceError
+from mocapd.io.xsens_serial import ImuSample
+from mocapd.protocols.imu_bridge import decode_datagram
+
+DEFAULT_PORT = 9763
+_TICK_HZ = 10_000
+
+
+@dataclass(slots=True)
+class BridgeStats:
+    datagrams: int = 0
+    records: int = 0
+    rejected: int = 0
+
+
+class _BridgeProtocol(asyncio.DatagramProtocol):
+    def __init__(self, on_sample: Callable[[ImuSample], None], stats: BridgeStats, clock: Callable[[], int]) -> None:
+        self._on_sample = on_sample
+        self._stats = stats
+        self._clock = clock
+
+    def datagram_received(self, data: bytes, addr: tuple[str | object, ...]) -> None:
+        now = self._clock()
+        records, rejected = decode_datagram(data)
+        self._stats.datagrams += 1
+        self._stats.rejected += rejected
+        for r in records:
+            self._stats.records += 1
+            ticks = round(r.device_time_s * _TICK_HZ) & 0xFFFFFFFF
+            self._on_sample(ImuSample(r.sensor, now, ticks, r.packet_counter, r.quat, r.acc, r.frame))
+
+
+class ImuBridgeListener:
+    """Receives bridge datagrams until closed."""
+
+    def __init__(
+        self,
+        on_sample: Callable[[ImuSample], None],
+        *,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        if host not in ("127.0.0.1", "::1", "localhost"):
+            raise ConfigError(f"imu.bridge.host={host!r}: the bridge listens on loopback only")
+        self.host = host
+        self.port = port
+        self.stats = BridgeStats()
+        self._on_sample = on_sample
+        self._clock = clock
+        self._transport: asyncio.DatagramTransport | None = None
+
+    async def start(self) -> int:
+        """Bind and start receiving; returns the bound port (useful with port 0)."""
+        loop = asyncio.get_running_loop()
+        try:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _BridgeProtocol(self._on_sample, self.stats, self._clock),
+                local_addr=(self.host, self.port),
+            )
+        except OSError as exc:
+            raise DeviceError(f"imu bridge: cannot bind udp {self.host}:{self.port}: {exc}") from exc
+        self._transport = transport
+        sockname = transport.get_extra_info("sockname")
+        self.port = int(sockname[1])
+        return self.port
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None

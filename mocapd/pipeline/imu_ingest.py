@@ -1,0 +1,101 @@
+"""IMU samples → per-sensor clock mapping → per-sensor ring buffers (pure: no clock reads here).
+
+Each sensor gets a :class:`~mocapd.pipeline.clocksync.ClockSync` (device counter → host ns) and a
+:class:`~mocapd.pipeline.ringbuffer.RingBuffer` with :data:`~mocapd.pipeline.ringbuffer.IMU_FIELDS`. A
+sample's buffer time is its device time mapped to the host clock when the device sends SampleTimeFine,
+otherwise its host arrival time. Buffer times are kept strictly increasing: when a refit of the clock map
+steps back (a new least-delayed sample lowers the envelope), the sample is placed 1 ns after the previous
+one and counted. Samples without an orientation or acceleration are counted and dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocapd.pipeline.clocksync import ClockSync
+from mocapd.pipeline.ringbuffer import IMU_FIELDS, RingBuffer
+
+TICK_HZ = 10_000.0
+
+
+@dataclass(slots=True)
+class SensorStream:
+    """Clock map and buffer of one sensor."""
+
+    clock: ClockSync
+    buffer: RingBuffer
+    incomplete: int = 0
+    counter_gaps: int = 0
+    last_counter: int | None = None
+    #: samples whose mapped time was moved just after the previous one because a refit of the clock map
+    #: stepped backwards (a new least-delayed sample lowered the envelope)
+    clock_steps_back: int = 0
+
+
+class ImuIngest:
+    """Routes samples into per-sensor ring buffers.
+
+    Parameters
+    ----------
+    capacity : int
+        Samples kept per sensor (e.g. 4 s at 120 Hz = 480).
+    max_gap_ns : int
+        Look-ups do not interpolate across a larger hole (dropouts).
+    """
+
+    def __init__(self, *, capacity: int = 512, max_gap_ns: int = 100_000_000) -> None:
+        self.capacity = capacity
+        self.max_gap_ns = max_gap_ns
+        self.streams: dict[str, SensorStream] = {}
+        self._row = np.empty(sum(f.width for f in IMU_FIELDS))
+
+    def stream(self, sensor: str) -> SensorStream:
+        """The stream of a sensor, created on first use."""
+        s = self.streams.get(sensor)
+        if s is None:
+            buffer = RingBuffer(self.capacity, IMU_FIELDS, max_gap_ns=self.max_gap_ns)
+            s = SensorStream(ClockSync(tick_hz=TICK_HZ), buffer)
+            self.streams[sensor] = s
+        return s
+
+    def add(
+        self,
+        sensor: str,
+        host_ns: int,
+        *,
+        device_ticks: int | None,
+        packet_counter: int | None,
+        quat: tuple[float, ...] | None,
+        acc: tuple[float, ...] | None,
+    ) -> int | None:
+        """Buffer one sample; returns its buffer time (ns) or None if it was dropped."""
+        s = self.stream(sensor)
+        if quat is None or acc is None:
+            s.incomplete += 1
+            return None
+        if packet_counter is not None:
+            if s.last_counter is not None and packet_counter != (s.last_counter + 1) & 0xFFFF:
+                s.counter_gaps += 1
+            s.last_counter = packet_counter
+        t = host_ns
+        device_s = np.nan
+        if device_ticks is not None:
+            s.clock.update(device_ticks, host_ns)
+            mapped = s.clock.to_host_ns(device_ticks)
+            t = mapped if mapped is not None else host_ns
+            device_s = device_ticks / TICK_HZ
+        newest = s.buffer.time_range()
+        if newest is not None and t <= newest[1]:
+            # Keep the buffer time monotonic: a refit may step the map back by a fraction of a sample period.
+            s.clock_steps_back += 1
+            t = newest[1] + 1
+        row = self._row
+        row[0:4] = quat
+        row[4:7] = acc
+        row[7] = device_s
+        row[8] = np.nan if packet_counter is None else packet_counter
+        if not s.buffer.push(t, row):
+            return None
+        return t

@@ -1,0 +1,172 @@
+"""``mocapd calibrate imu``: record a T-pose from the configured IMUs and write a per-person calibration file.
+
+The subject stands still in the T-pose (arms horizontal, facing one direction) for the whole recording. The
+command connects to every configured serial IMU (and the bridge input if enabled), waits until every
+assigned sensor streams, records ``--seconds``, then computes R_ib per sensor and R_ig
+(:func:`mocapd.core.imu_calibration.calibrate_tpose`) and writes
+``<calibration_dir>/<person>.imu.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
+from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
+from mocapd.io.imu_bridge import ImuBridgeListener
+from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
+from mocapd.service.config import load_config
+from mocapd.service.imu_config import ImuConfig
+
+
+def _subcommand_group(subparsers: Any, name: str, help_text: str, dest: str) -> Any:
+    """The nested sub-command group ``mocapd NAME ...``, shared with other modules that add to it."""
+    parser = subparsers.choices.get(name)
+    if parser is None:
+        parser = subparsers.add_parser(name, help=help_text)
+        parser.add_subparsers(dest=dest, metavar="WHAT", required=True)
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+
+
+def register(subparsers: Any) -> None:
+    """Add ``calibrate imu`` to the CLI's subcommands."""
+    group = _subcommand_group(subparsers, "calibrate", "calibration procedures", "calibrate_what")
+    p = group.add_parser("imu", help="T-pose calibration of the IMU mountings (writes <person>.imu.json)")
+    p.add_argument("--config", type=Path, default=Path("config.toml"), help="config file with an [imu] section")
+    p.add_argument("--person", required=True, help="name of the subject (file name of the calibration)")
+    facing = p.add_mutually_exclusive_group(required=True)
+    facing.add_argument(
+        "--facing-heading",
+        type=float,
+        help="compass heading the subject faces, degrees clockwise from magnetic north",
+    )
+    facing.add_argument(
+        "--facing-from",
+        metavar="SENSOR:AXIS",
+        help="derive the heading from a sensor axis known to point forward, e.g. 00B421E6:-z",
+    )
+    p.add_argument("--world-heading", choices=("subject", "north"), default="subject", help="what world +Z is")
+    p.add_argument("--seconds", type=float, default=3.0, help="recording length (s)")
+    p.add_argument("--window", type=float, default=1.0, help="still window searched in the recording (s)")
+    p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")
+    p.add_argument("--connect-timeout", type=float, default=15.0, help="wait for all sensors (s)")
+    p.add_argument("--out", type=Path, help="output file (default <calibration_dir>/<person>.imu.json)")
+    p.set_defaults(func=run_calibrate)
+
+
+async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> dict[str, list[ImuSample]]:
+    """Stream from every configured input until each assigned sensor delivered ``seconds`` of samples."""
+    samples: dict[str, list[ImuSample]] = {}
+    seen: set[str] = set()
+    recording = False
+
+    def on_sample(s: ImuSample) -> None:
+        if recording:
+            samples.setdefault(s.sensor, []).append(s)
+        else:
+            seen.add(s.sensor)
+
+    devices = [XsensSerialDevice(p, on_sample) for p in config.ports]
+    tasks = [asyncio.create_task(d.run()) for d in devices]
+    bridge = ImuBridgeListener(on_sample, host=config.bridge.host, port=config.bridge.port)
+    if config.bridge.enabled:
+        await bridge.start()
+    wanted = set(config.assignment)
+    try:
+        deadline = time.monotonic() + connect_timeout
+        while not wanted <= seen:
+            if time.monotonic() > deadline:
+                errors = "; ".join(d.last_error for d in devices if d.last_error)
+                raise DeviceTimeout(
+                    f"sensors {sorted(wanted - seen)} sent nothing within {connect_timeout} s"
+                    + (f" ({errors})" if errors else "")
+                )
+            await asyncio.sleep(0.05)
+        recording = True
+        await asyncio.sleep(seconds)
+        recording = False
+    finally:
+        for d in devices:
+            d.stop()
+        await asyncio.gather(*tasks)
+        bridge.close()
+    return samples
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    """Entry point of ``mocapd calibrate imu``; returns the process exit status."""
+    try:
+        config = load_config(args.config).imu  # validates the whole file, like the daemon
+        if args.port:
+            base = config.ports[0] if config.ports else XsensPortConfig(path="")
+            ports = tuple(XsensPortConfig(**{**_fields(base), "path": p}) for p in args.port)
+            config = dataclasses.replace(config, ports=ports)
+        if not config.assignment:
+            raise ConfigError("imu.assignment is empty: say which sensor sits on which bone")
+        if args.facing_from is not None:
+            _parse_facing(args.facing_from)  # reject a malformed option before recording
+        samples = asyncio.run(record(config, args.seconds, args.connect_timeout))
+        rate = max(len(v) for v in samples.values()) / args.seconds if samples else 0.0
+        recordings = {
+            sid: (
+                np.array([s.quat for s in samples[sid] if s.quat is not None]),
+                np.array([s.acc for s in samples[sid] if s.acc is not None]),
+            )
+            for sid in config.assignment
+            if sid in samples
+        }
+        heading = args.facing_heading
+        if heading is None:
+            heading = _heading_from(args.facing_from, recordings)
+        calib = calibrate_tpose(
+            args.person,
+            recordings,
+            config.assignment,
+            facing_heading_deg=heading,
+            world_heading=args.world_heading,
+            window=max(2, int(args.window * rate)),
+        )
+    except MocapdError as exc:
+        print(f"mocapd calibrate imu: {exc}")
+        return 1
+    out = args.out or Path(config.calibration_dir) / f"{args.person}.imu.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
+    for sid, bone in calib.bones.items():
+        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg")
+    print(f"wrote {out}")
+    return 0
+
+
+_AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+def _parse_facing(spec: str) -> tuple[str, np.ndarray]:
+    """``SENSOR:[+-]AXIS`` → (sensor id, unit axis in the sensor frame)."""
+    sensor, _, axis = spec.partition(":")
+    sign = -1.0 if axis.startswith("-") else 1.0
+    vec = _AXES.get(axis.lstrip("+-").lower())
+    if vec is None or not sensor:
+        raise ConfigError(f"--facing-from {spec!r}: expected SENSOR:AXIS, AXIS one of x, y, z, -x, -y, -z")
+    return sensor.upper(), sign * np.array(vec)
+
+
+def _heading_from(spec: str, recordings: dict[str, tuple[np.ndarray, np.ndarray]]) -> float:
+    """Heading from ``SENSOR:[+-]AXIS`` and that sensor's mean T-pose orientation."""
+    sensor, axis = _parse_facing(spec)
+    quats = recordings.get(sensor)
+    if quats is None or len(quats[0]) == 0:
+        raise ConfigError(f"--facing-from {spec!r}: no samples from sensor {sensor}")
+    return facing_heading_from_sensor(quat_average(quats[0]), axis)
+
+
+def _fields(port: XsensPortConfig) -> dict[str, Any]:
+    return {name: getattr(port, name) for name in port.__dataclass_fields__}

@@ -1,0 +1,140 @@
+"""All configured IMU inputs feeding one :class:`~mocapd.pipeline.imu_ingest.ImuIngest`, for the asyncio app.
+
+``ImuInputs.run()`` supervises every serial device, the experimental Awinda station and the bridge listener
+in one ``asyncio.TaskGroup``; each sample is re-expressed in ENU and buffered. ``status()`` is what the HTTP
+status page shows per input; ``bone_orientations(t_ns, calibration)`` turns buffered sensor orientations into
+world bone orientations with a person's calibration (``R_gb = R_ig · R_i · R_ib⁻¹``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, quat_to_enu
+from mocapd.io.imu_bridge import ImuBridgeListener
+from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
+from mocapd.pipeline.imu_ingest import ImuIngest
+from mocapd.pipeline.ringbuffer import LookupStatus
+from mocapd.service.imu_config import ImuConfig
+
+
+@dataclass(frozen=True, slots=True)
+class BoneSample:
+    """A bone's world orientation at the requested time, or why there is none."""
+
+    bone: str
+    sensor: str
+    status: LookupStatus
+    quat: np.ndarray | None  # (4,) R_gb, (w, x, y, z)
+
+
+class ImuInputs:
+    """Runs the IMU inputs of an :class:`ImuConfig` until :meth:`stop`."""
+
+    def __init__(self, config: ImuConfig, ingest: ImuIngest | None = None) -> None:
+        self.config = config
+        self.ingest = ingest or ImuIngest(capacity=config.buffer_capacity)
+        self.devices = [XsensSerialDevice(p, self.on_sample) for p in config.ports]
+        if config.awinda.experimental:
+            station_port = XsensPortConfig(path=config.awinda.path)
+            self.devices.append(XsensSerialDevice(station_port, self.on_sample, awinda=config.awinda))
+        self.bridge = (
+            ImuBridgeListener(self.on_sample, host=config.bridge.host, port=config.bridge.port)
+            if config.bridge.enabled
+            else None
+        )
+        self._stop = asyncio.Event()
+
+    def on_sample(self, s: ImuSample) -> None:
+        """Buffer one sample (re-expressed in ENU)."""
+        quat = s.quat
+        if quat is not None and s.frame is not None and s.frame.name != "ENU":
+            quat = tuple(quat_to_enu(np.array(quat), s.frame.name))
+        self.ingest.add(
+            s.sensor,
+            s.host_ns,
+            device_ticks=s.device_ticks,
+            packet_counter=s.packet_counter,
+            quat=quat,
+            acc=s.acc,
+        )
+
+    async def run(self) -> None:
+        """Run every input until :meth:`stop`; device failures are retried inside each device's own loop."""
+        if self.bridge is not None:
+            await self.bridge.start()
+        try:
+            async with asyncio.TaskGroup() as tg:
+                for device in self.devices:
+                    tg.create_task(device.run())
+                await self._stop.wait()
+                for device in self.devices:
+                    device.stop()
+        finally:
+            if self.bridge is not None:
+                self.bridge.close()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def status(self) -> dict[str, object]:
+        """Per-input health for the status page and metrics."""
+        devices = []
+        for d in self.devices:
+            counters = d.session.parser.counters if d.session is not None else None
+            devices.append(
+                {
+                    "path": d.config.path,
+                    "serial": d.info.serial if d.info else None,
+                    "product": d.info.product_code if d.info else None,
+                    "firmware": d.info.firmware if d.info else None,
+                    "awinda_experimental": d.awinda is not None,
+                    "streaming": d.streaming.is_set(),
+                    "samples": d.stats.samples,
+                    "connects": d.stats.connects,
+                    "disconnects": d.stats.disconnects,
+                    "stalls": d.stats.stalls,
+                    "checksum_errors": counters.checksum_errors if counters else 0,
+                    "discarded_bytes": counters.discarded_bytes if counters else 0,
+                    "last_error": d.last_error,
+                }
+            )
+        streams = {
+            sid: {
+                "buffered": len(s.buffer),
+                "counter_gaps": s.counter_gaps,
+                "incomplete": s.incomplete,
+                "clock_skew_ppm": round(s.clock.skew_ppm, 1),
+                "clock_steps_back": s.clock_steps_back,
+            }
+            for sid, s in self.ingest.streams.items()
+        }
+        bridge = None
+        if self.bridge is not None:
+            st = self.bridge.stats
+            bridge = {
+                "port": self.bridge.port,
+                "datagrams": st.datagrams,
+                "records": st.records,
+                "rejected": st.rejected,
+            }
+        return {"devices": devices, "bridge": bridge, "sensors": streams}
+
+    def bone_orientations(self, t_ns: int, calibration: ImuCalibration) -> list[BoneSample]:
+        """World orientation of every calibrated bone at ``t_ns`` (slerped between samples)."""
+        out = []
+        for sid, bone in calibration.bones.items():
+            stream = self.ingest.streams.get(sid)
+            if stream is None:
+                out.append(BoneSample(bone, sid, LookupStatus.EMPTY, None))
+                continue
+            r = stream.buffer.sample(t_ns)
+            if r.status is not LookupStatus.OK:
+                out.append(BoneSample(bone, sid, r.status, None))
+                continue
+            q_i = stream.buffer.field(r.row, "quat")
+            out.append(BoneSample(bone, sid, r.status, bone_orientation(calibration.q_ig, q_i, calibration.q_ib[sid])))
+        return out
