@@ -163,7 +163,11 @@ def synthetic_prior() -> PcaPrior:
 def run(frames: int = 600, scipy_frames: int = 30, seed: int = 0) -> dict[str, Any]:
     """Run every configuration and return the JSON-able report."""
     load0 = os.getloadavg()
-    prior = synthetic_prior()
+    from mocapd.io.prior import resolve_prior
+    from mocapd.service.config import load_config
+
+    # The configured prior (the shipped CMU prior by default); the synthetic one only if config says "none".
+    prior = resolve_prior(load_config().solver.prior) or synthetic_prior()
     import scipy.optimize  # noqa: F401  (load scipy's own BLAS before limiting threads, so the limit covers it)
 
     with threadpool_limits(limits=1):

@@ -8,6 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
+from mocapd.eval import cli as eval_cli
 from mocapd.service import cmd_calibrate, cmd_imu, cmd_model
 
 
@@ -64,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     tracking.add_argument("--seconds", type=float, default=8.0, help="length of each scene (default 8)")
     tracking.add_argument("--seed", type=int, default=0)
     tracking.set_defaults(func=_cmd_eval_tracking)
+    eval_cli.register(ev_sub)
 
     cmd_calibrate.register(sub)
     cmd_imu.register(sub)  # adds "imu" to the calibrate group

@@ -34,6 +34,8 @@ class SolverConfig:
     cost: CostOptions = field(default_factory=CostOptions)
     lm: LMOptions = field(default_factory=LMOptions)
     backend: str = "compiled"
+    prior: str = "default"
+    """Pose prior: "default" (the shipped CMU prior, mocapd/data/prior_cmu.npz), "none" or a .npz path."""
 
 
 @dataclass(frozen=True)
@@ -83,7 +85,12 @@ def _table(data: dict[str, Any], key: str, prefix: str = "") -> dict[str, Any]:
 
 
 def _parse_solver(t: dict[str, Any]) -> SolverConfig:
-    _reject_unknown(t, {"backend", "floor_radius", "floor_height", "acceleration_min_views", "terms", "lm"}, "solver")
+    _reject_unknown(
+        t, {"backend", "floor_radius", "floor_height", "acceleration_min_views", "terms", "lm", "prior"}, "solver"
+    )
+    prior = t.get("prior", "default")
+    if not isinstance(prior, str) or not prior:
+        raise ConfigError(f'solver.prior = {prior!r}; allowed: "default", "none" or a path to a .npz prior')
     backend = t.get("backend", "compiled")
     if backend not in _BACKENDS:
         raise ConfigError(f"solver.backend = {backend!r}; allowed: {list(_BACKENDS)}")
@@ -102,7 +109,7 @@ def _parse_solver(t: dict[str, Any]) -> SolverConfig:
     for name in TERM_NAMES:
         updates.update(_parse_term(name, _table(terms, name, "solver.terms.")))
     cost = replace(cost, **updates)
-    return SolverConfig(cost=cost, lm=_parse_lm(_table(t, "lm", "solver.")), backend=str(backend))
+    return SolverConfig(cost=cost, lm=_parse_lm(_table(t, "lm", "solver.")), backend=str(backend), prior=prior)
 
 
 def _parse_term(name: str, t: dict[str, Any]) -> dict[str, Any]:

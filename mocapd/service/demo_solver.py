@@ -13,14 +13,19 @@ import numpy as np
 
 from mocapd.core.imu import IMU_SET_13
 from mocapd.core.kinematics import Kinematics
-from mocapd.service.bench_solver import synthetic_case, synthetic_prior
+from mocapd.io.prior import resolve_prior
+from mocapd.service.bench_solver import synthetic_case
+from mocapd.service.config import load_config
 
 
 def run(seconds: float = 10.0, rate_hz: float = 60.0, people: int = 2) -> int:
     frames = int(seconds * rate_hz)
     print(f"mocapd demo: {people} people, 8 cameras and 13 IMUs each, {rate_hz:.0f} Hz for {seconds:.0f} s")
     print("preparing the synthetic rig and the solver kernel ...", flush=True)
-    case = synthetic_case(8, IMU_SET_13, people, frames, synthetic_prior(), seed=1)
+    prior = resolve_prior(load_config().solver.prior)  # the shipped CMU prior unless config.toml says otherwise
+    if prior is None:
+        raise SystemExit("mocapd demo needs a pose prior: set [solver] prior in config.toml")
+    case = synthetic_case(8, IMU_SET_13, people, frames, prior, seed=1)
     kin = Kinematics(case.solvers[0].skeleton)
     case.solvers[0].solve(case.observations[0][0], update_state=False)  # compile / load the kernel now
     period = 1.0 / rate_hz

@@ -1,0 +1,54 @@
+"""``mocapd eval accuracy``: the accuracy harness from the command line (registered by ``mocapd.service.cli``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    """Add ``accuracy`` to the subparsers of ``mocapd eval``."""
+    p = sub.add_parser("accuracy", help="accuracy on real recorded motion vs baselines (docs/accuracy.md)")
+    p.add_argument("--quick", action="store_true", help="CI smoke run: a few short sequences (< 2 minutes)")
+    p.add_argument("--split", default=None, help="evaluation (default), development or quick")
+    p.add_argument("--out", type=Path, default=Path("results/accuracy"), help="results directory")
+    p.add_argument("--data-root", type=Path, default=None, help="shared data root (default ../shared/data)")
+    p.add_argument("--config", type=Path, default=None, help="config.toml whose [solver] weights to use")
+    p.add_argument("--prior", default=None, help='"default", "none" or a .npz path (default: the config\'s)')
+    p.add_argument("--max-frames", type=int, default=None, help="cap per sequence for the main table")
+    p.add_argument("--sweep-frames", type=int, default=None, help="cap per sequence for sweep/ablation")
+    p.add_argument("--clean", action="store_true", help="clean detections and IMUs (debugging)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from mocapd.eval.runner import EvalOptions, run_eval
+    from mocapd.eval.simulate import DetectionNoise, ImuNoise
+    from mocapd.service.config import load_config
+
+    opts = EvalOptions.quick() if args.quick else EvalOptions()
+    cfg = load_config(args.config)
+    opts = replace(
+        opts,
+        cost=cfg.solver.cost,
+        cost_label=f"[solver] of {args.config or 'the shipped config.toml'}",
+        prior=args.prior or cfg.solver.prior,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
+    if args.split:
+        opts = replace(opts, split=args.split)
+    if args.max_frames is not None:
+        opts = replace(opts, max_frames=args.max_frames)
+    if args.sweep_frames is not None:
+        opts = replace(opts, sweep_frames=args.sweep_frames)
+    if args.clean:
+        opts = replace(opts, detections=DetectionNoise.clean(), imus=ImuNoise.clean())
+    res = run_eval(opts, args.out, args.data_root)
+    print(json.dumps({"out": str(args.out), "targets": res["targets"], "setup": res["setup"]}, indent=2))
+    return 0
