@@ -131,3 +131,15 @@ def test_people_tracker_reports_pairing_and_events_in_status() -> None:
     kinds = [e["kind"] for e in status["events"]]
     assert kinds.count("enrolled") == 2 and kinds.count("paired") == 1
     assert len(status["subjects"]) == 2 and status["bystanders"] == 1
+
+
+def test_close_interaction_on_recorded_motion_keeps_identities() -> None:
+    """The evaluation's hardest scene, on real clips (short): no switch, no bystander enrolled, solves finite."""
+    from mocapd.service.eval_tracking import SCENES, run_scene
+
+    scene = next(s for s in SCENES if s.name == "close_interaction")
+    for suits in (True, False):
+        r = run_scene(scene, with_suits=suits, seconds=4.0, motion="real")
+        assert r["motion"] == "real" and r["identity_switches"] == 0 and r["bystanders_enrolled"] == 0
+        assert r["correct_fraction"] > 0.8
+        assert all(v is not None and v < 60.0 for v in r["joint_error_mm"].values())

@@ -6,6 +6,8 @@ motion); it produces *exact* measurements of a known pose so a solver's behaviou
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -178,8 +180,8 @@ def exact_observations(
 
 def scene_detections(
     cameras: list[Camera],
-    targets: TrackTargets,
-    skeleton: Skeleton,
+    targets: TrackTargets | Sequence[TrackTargets],
+    skeleton: Skeleton | Sequence[Skeleton],
     people: list[FloatArray],
     rng: np.random.Generator,
     noise_px: float = 0.0,
@@ -188,6 +190,7 @@ def scene_detections(
 
     Parameters
     ----------
+    targets, skeleton : one for everybody, or one per person.
     people : list of arrays, shape (n_frames, 66)
         Each person's pose sequence (same length).
 
@@ -197,8 +200,13 @@ def scene_detections(
         the image or behind the camera have confidence 0, people with fewer than 5 visible keypoints are omitted.
     labels : [frame][camera] int array mapping each detection index to its person index in ``people``.
     """
-    kin = Kinematics(skeleton)
-    pts = [kin.targets(kin.forward(p), targets.bones, targets.offsets) for p in people]  # (n_frames, n_kp, 3)
+    sks = [skeleton] * len(people) if isinstance(skeleton, Skeleton) else list(skeleton)
+    tgs = [targets] * len(people) if isinstance(targets, TrackTargets) else list(targets)
+    pts = []
+    for p, theta in enumerate(people):  # (n_frames, n_kp, 3) per person
+        kin = Kinematics(sks[p])
+        pts.append(kin.targets(kin.forward(theta), tgs[p].bones, tgs[p].offsets))
+    n_kp = len(tgs[0])
     K, dist, R, t = stack_cameras(cameras)
     n_frames = people[0].shape[0]
     dets: list[list[Detections2D]] = []
@@ -221,7 +229,6 @@ def scene_detections(
         frame_dets, frame_labels = [], []
         for c in range(len(cameras)):
             order = rng.permutation(len(per_cam_lb[c]))
-            n_kp = len(targets)
             kp = np.array(per_cam_kp[c]).reshape(-1, n_kp, 2)[order]
             cf = np.array(per_cam_cf[c]).reshape(-1, n_kp)[order]
             frame_dets.append(Detections2D(kp, cf))

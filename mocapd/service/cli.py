@@ -29,7 +29,8 @@ def _cmd_bench_sorting(args: argparse.Namespace) -> int:
 def _cmd_eval_tracking(args: argparse.Namespace) -> int:
     from mocapd.service import eval_tracking
 
-    print(json.dumps(eval_tracking.evaluate(seconds=args.seconds, seed=args.seed), indent=2))
+    motion = "synthetic" if args.synthetic else "real"
+    print(json.dumps(eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion), indent=2))
     return 0
 
 
@@ -64,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     tracking = ev_sub.add_parser("tracking", help="multi-person tracking on synthetic scenes")
     tracking.add_argument("--seconds", type=float, default=8.0, help="length of each scene (default 8)")
     tracking.add_argument("--seed", type=int, default=0)
+    tracking.add_argument("--synthetic", action="store_true", help="generated motion instead of recorded clips")
     tracking.set_defaults(func=_cmd_eval_tracking)
     eval_cli.register(ev_sub)
 

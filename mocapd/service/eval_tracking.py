@@ -1,7 +1,10 @@
 """``mocapd eval tracking`` and ``mocapd bench sorting``: multi-person tracking on synthetic scenes.
 
-Scenes: people walking through a camera ring, passing close to each other (the seed's failure case), plus
-bystanders walking along the edge outside the capture volume. Detections are projected keypoints with pixel
+Scenes: people moving through a camera ring, passing close to each other (the seed's failure case), plus
+bystanders walking along the edge outside the capture volume. Motion is real by default: recorded clips of the
+accuracy harness's evaluation split (CMU, Bandai), retargeted with their own skeletons; the clip gives every joint
+rotation and the root height, the scene gives the path on the floor (x, z). ``synthetic`` uses the generator of
+``mocapd.core.synthetic`` instead. Detections are projected keypoints with pixel
 noise, missed keypoints and random order per camera; suits give measured bone orientations (2° noise, a
 heading misalignment per suit). Each scene runs with suits and without.
 
@@ -37,6 +40,7 @@ from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import LIMBS, SuitBinder
 from mocapd.core.synthetic import ring_rig, scene_detections, walking_path, waypoint_path
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
+from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
 FPS = 30.0
@@ -93,21 +97,54 @@ def _drop_keypoints(dets: list[list[Detections2D]], rng: np.random.Generator, p:
             d.confidences[rng.uniform(size=d.confidences.shape) < p] = 0.0
 
 
-def run_scene(scene: Scene, with_suits: bool, seconds: float = 8.0, seed: int = 0) -> dict[str, Any]:
+# Evaluation-split clips of at least 8 s (CMU subjects 02 and 131, Bandai walks), one per person of a scene.
+REAL_CLIPS = (
+    "02_10.amc", "131_03.bvh", "dataset-1_walk_old_001.bvh", "dataset-1_walk-back_old_001.bvh", "02_09.amc",
+    "dataset-1_walk_tired_001.bvh", "dataset-1_walk-back_angry_001.bvh",
+)  # fmt: skip
+
+
+def _real_people(paths: list[Waypoints], n: int) -> tuple[list[Skeleton], list[FloatArray]]:
+    from mocapd.eval.data import load_clip, load_splits
+
+    files = {p.name: p for p in load_splits()["evaluation"]}
+    skeletons, people = [], []
+    for i, w in enumerate(paths):
+        clip = load_clip(files[REAL_CLIPS[i % len(REAL_CLIPS)]])
+        step = round(clip.fps / FPS)
+        theta = clip.theta[::step][:n].copy()
+        if theta.shape[0] < n:
+            raise InputError(f"clip {clip.name} is shorter than {n / FPS:.1f} s at {FPS:.0f} Hz")
+        wp = np.asarray(w, dtype=np.float64)
+        s = np.linspace(0.0, 1.0, n)
+        theta[:, 0] = np.interp(s, wp[:, 0], wp[:, 1])
+        theta[:, 2] = np.interp(s, wp[:, 0], wp[:, 2])
+        skeletons.append(clip.skeleton)
+        people.append(theta)
+    return skeletons, people
+
+
+def run_scene(
+    scene: Scene, with_suits: bool, seconds: float = 8.0, seed: int = 0, motion: str = "real"
+) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
-    sk = Skeleton.from_height(1.75)
     n = int(seconds * FPS)
     cams = ring_rig(scene.n_cams, radius=4.5)
     paths = scene.subjects + scene.bystanders
-    people = [waypoint_path(sk, n, w, seed=seed + 10 + i, fps=FPS) for i, w in enumerate(paths)]
+    if motion == "real":
+        skeletons, people = _real_people(paths, n)
+    else:
+        sk0 = Skeleton.from_height(1.75)
+        skeletons = [sk0] * len(paths)
+        people = [waypoint_path(sk0, n, w, seed=seed + 10 + i, fps=FPS) for i, w in enumerate(paths)]
     n_subj = len(scene.subjects)
-    targets = coco17_targets(sk)
-    dets, labels = scene_detections(cams, targets, sk, people, rng, noise_px=2.0)
+    targets = [coco17_targets(sk) for sk in skeletons]
+    dets, labels = scene_detections(cams, targets, skeletons, people, rng, noise_px=2.0)
     _drop_keypoints(dets, rng, 0.05)
     tracker = PeopleTracker(
         SubjectTracker(DetectionSorter(cams), TrackingOptions(max_subjects=n_subj, enrol_after_s=0.5,
                                                               volume_min=(-2.2, -2.2), volume_max=(2.2, 2.2))),
-        SuitBinder(sk) if with_suits else None,
+        SuitBinder(skeletons[0]) if with_suits else None,
     )  # fmt: skip
     yaw = rng.uniform(-90, 90, size=n_subj)
     follows: dict[str, list[tuple[int, int]]] = {}  # identity -> (frame, true person)
@@ -116,7 +153,9 @@ def run_scene(scene: Scene, with_suits: bool, seconds: float = 8.0, seed: int = 
     sort_ms = []
     for f in range(n):
         suits = (
-            {f"S{p}": _suit_measurements(sk, people[p][f], yaw[p], rng) for p in range(n_subj)} if with_suits else None
+            {f"S{p}": _suit_measurements(skeletons[p], people[p][f], yaw[p], rng) for p in range(n_subj)}
+            if with_suits
+            else None
         )
         t0 = time.perf_counter()
         out = tracker.update(int(f * 1e9 / FPS), dets[f], suits)
@@ -141,9 +180,10 @@ def run_scene(scene: Scene, with_suits: bool, seconds: float = 8.0, seed: int = 
                 continue
             visible += 1
             correct += any((f, p) in follows.get(ident, []) and ident == owner[p] for ident in follows)
-    errors = _solve_errors(sk, cams, targets, people, dets, frames_out, owner, with_suits, rng, yaw)
+    errors = _solve_errors(skeletons, cams, targets, people, dets, frames_out, owner, with_suits, rng)
     return {
-        "scene": scene.name, "cameras": scene.n_cams, "subjects": n_subj, "bystanders": len(scene.bystanders),
+        "scene": scene.name, "motion": motion, "cameras": scene.n_cams, "subjects": n_subj,
+        "bystanders": len(scene.bystanders),
         "suits": with_suits, "frames": n,
         "identity_switches": switches,
         "correct_fraction": round(correct / max(visible, 1), 4),
@@ -155,40 +195,41 @@ def run_scene(scene: Scene, with_suits: bool, seconds: float = 8.0, seed: int = 
 
 
 def _solve_errors(
-    sk: Skeleton,
+    skeletons: list[Skeleton],
     cams: list[Any],
-    targets: Any,
+    targets: list[Any],
     people: list[FloatArray],
     dets: list[list[Detections2D]],
     frames_out: list[Any],
     owner: dict[int, str | None],
     with_suits: bool,
     rng: np.random.Generator,
-    yaw: FloatArray,
 ) -> dict[str, float | None]:
     """Per subject: solve its main identity's sorted detections (and suit IMUs) every frame; mean joint error."""
-    kin = Kinematics(sk)
     imus = tuple(ImuMount(b) for b, _, _, _ in LIMBS) if with_suits else ()
     out: dict[str, float | None] = {}
     for p, ident in owner.items():
         if ident is None:
             out[f"subject_{p}"] = None
             continue
-        solver = PoseSolver(sk, cams, targets, imus)
+        sk = skeletons[p]
+        kin = Kinematics(sk)
+        solver = PoseSolver(sk, cams, targets[p], imus)
         errs = []
         started = False
         for f, frame in enumerate(frames_out):
             person = next((x for x in frame.people if x.identity == ident), None)
             if person is None:
                 continue
-            uv = np.zeros((len(cams), len(targets), 2))
-            conf = np.zeros((len(cams), len(targets)))
+            uv = np.zeros((len(cams), len(targets[p]), 2))
+            conf = np.zeros((len(cams), len(targets[p])))
             for cam, i in person.detections.items():
                 uv[cam] = dets[f][cam].keypoints[i]
                 conf[cam] = dets[f][cam].confidences[i]
             q = None
             if with_suits and person.suit is not None:
-                meas = _suit_measurements(sk, people[int(person.suit[1:])][f], 0.0, rng)
+                wearer = int(person.suit[1:])
+                meas = _suit_measurements(skeletons[wearer], people[wearer][f], 0.0, rng)
                 q = np.stack([meas[m.bone] for m in imus])
             if not started:  # start from the rest pose at the triangulated position
                 theta0 = sk.rest_pose()
@@ -203,8 +244,8 @@ def _solve_errors(
     return out
 
 
-def evaluate(seconds: float = 8.0, seed: int = 0) -> dict[str, Any]:
-    results = [run_scene(s, suits, seconds, seed) for s in SCENES for suits in (True, False)]
+def evaluate(seconds: float = 8.0, seed: int = 0, motion: str = "real") -> dict[str, Any]:
+    results = [run_scene(s, suits, seconds, seed, motion) for s in SCENES for suits in (True, False)]
     return {"scenes": results}
 
 
