@@ -16,6 +16,7 @@ from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss
 from mocapd.core.solver import TERM_NAMES, LMOptions
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
+from mocapd.service.daemon_config import DaemonConfig, parse_daemon_config
 from mocapd.service.imu_config import ImuConfig, parse_imu_config
 from mocapd.service.tracking_config import TrackingConfig, parse_tracking_config
 
@@ -40,11 +41,12 @@ class Config:
     solver: SolverConfig = field(default_factory=SolverConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    daemon: DaemonConfig = field(default_factory=DaemonConfig)
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole parsed file, for sections whose loaders live elsewhere."""
 
 
-KNOWN_SECTIONS = {"solver", "imu", "tracking"}
+KNOWN_SECTIONS = {"solver", "imu", "tracking", "daemon"}
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -68,6 +70,7 @@ def parse_config(data: dict[str, Any]) -> Config:
         solver=_parse_solver(_table(data, "solver")),
         imu=parse_imu_config(_table(data, "imu")),
         tracking=parse_tracking_config(_table(data, "tracking")),
+        daemon=parse_daemon_config(_table(data, "daemon")),
         raw=data,
     )
 

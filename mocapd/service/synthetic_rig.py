@@ -15,7 +15,11 @@ the same truth:
 
 from __future__ import annotations
 
+import asyncio
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,6 +40,7 @@ from mocapd.core.rotations import (
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D
 from mocapd.core.synthetic import moving_sequence, ring_rig
+from mocapd.pipeline.keypoint_source import KeypointSink
 
 FloatArray = NDArray[np.float64]
 
@@ -185,3 +190,53 @@ class SyntheticWorld:
             q_ib={sid: q for sid, q in zip(ids, suit.q_ib, strict=True)},
             spread_deg=dict.fromkeys(ids, 0.0),
         )
+
+
+class SyntheticKeypointSource:
+    """A detector's output for camera ``camera`` of a :class:`SyntheticWorld` (world time 0 at ``epoch_ns``)."""
+
+    def __init__(
+        self,
+        world: SyntheticWorld,
+        camera: int,
+        *,
+        epoch_ns: int,
+        rate_hz: float = 30.0,
+        delay_s: float = 0.05,
+        noise_px: float = 1.0,
+        seed: int = 0,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.world = world
+        self.camera = camera
+        self.name = world.cameras[camera].name
+        self.epoch_ns = epoch_ns
+        self.period_ns = round(1e9 / rate_hz)
+        # Unsynchronised cameras: phases spread over one frame interval.
+        self.phase_ns = camera * self.period_ns // max(len(world.cameras), 1)
+        self.delay_ns = round(delay_s * 1e9)
+        self.noise_px = noise_px
+        self.rng = np.random.default_rng(seed * 1000 + camera)
+        self.clock = clock
+        self.frames = 0
+        self.skipped = 0
+        self.paused = False  # a test's "unplugged camera": frames are captured but nothing is delivered
+
+    async def run(self, sink: KeypointSink) -> None:
+        now = self.clock()
+        k = (now - self.epoch_ns - self.phase_ns) // self.period_ns + 1
+        while True:
+            capture = self.epoch_ns + self.phase_ns + k * self.period_ns
+            await asyncio.sleep(max(0.0, (capture + self.delay_ns - self.clock()) / 1e9))
+            if not self.paused:
+                dets = self.world.detections(self.camera, (capture - self.epoch_ns) / 1e9, self.rng, self.noise_px)
+                sink(self.camera, capture, dets, self.clock())
+                self.frames += 1
+            # A detector that fell behind skips to the newest frame rather than queueing old ones.
+            behind = (self.clock() - self.delay_ns - capture) // self.period_ns
+            self.skipped += max(0, behind - 1) if behind > 1 else 0
+            k += max(1, behind)
+
+    def status(self) -> dict[str, Any]:
+        return {"name": self.name, "kind": "synthetic", "frames": self.frames, "skipped": self.skipped,
+                "paused": self.paused}  # fmt: skip
