@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from mocapd.core.kinematics import Kinematics
 from mocapd.core.people import PeopleTracker
 from mocapd.core.prior import PcaPrior
 from mocapd.core.sorting import DetectionSorter
@@ -106,6 +107,8 @@ def test_two_people_one_suit_solved_with_bounded_error(prior: PcaPrior) -> None:
     assert "suit:suit0" in identities
     suited = [p for f, _ in late for p in f.people if p.suit == "suit0"]
     assert all(p.imus == 13 for p in suited)
+    kin = Kinematics(ls.world.skeleton)
+    np.testing.assert_allclose(suited[-1].joints, kin.forward(suited[-1].theta).positions, atol=1e-9)
     errors = np.array([e for _, errs in late for e in errs])
     assert np.median(errors) < 0.015 and errors.max() < 0.05  # metres, mean over joints
     st = ls.scheduler.status()

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core import _kernel
 from mocapd.core.camera import Camera
 from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
@@ -34,8 +35,8 @@ from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.people import PeopleTracker, Person
 from mocapd.core.prior import PcaPrior
-from mocapd.core.rotations import matrix_from_quat, quat_multiply
-from mocapd.core.skeleton import POSE_DIM, Skeleton
+from mocapd.core.rotations import matrix_from_quat, quat_multiply, quat_normalize, quat_slerp
+from mocapd.core.skeleton import N_BONES, POSE_DIM, Skeleton
 from mocapd.core.solver import LMOptions, Observations, PoseSolver
 from mocapd.core.sorting import Detections2D
 from mocapd.core.terms import CostOptions
@@ -43,7 +44,7 @@ from mocapd.errors import InputError
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
 from mocapd.pipeline.latency import LatencyStats
-from mocapd.pipeline.ringbuffer import LookupStatus
+from mocapd.pipeline.ringbuffer import IMU_FIELDS, LookupStatus, RingBuffer
 
 FloatArray = NDArray[np.float64]
 GRAVITY = 9.81
@@ -220,7 +221,10 @@ class FixedLatencyScheduler:
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0}
         self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
+        self._imu_width = sum(f.width for f in IMU_FIELDS)  # quat 0:4, acc 4:7 (IMU_FIELDS order)
         self._previous_acc: dict[str, tuple[int, FloatArray, NDArray[np.bool_]]] = {}
+        self._bone_ids = np.arange(N_BONES, dtype=np.float64)
+        self._zero_offsets = np.zeros((N_BONES, 3))
         self._wall = wall_clock
         self._cpu = cpu_clock
 
@@ -286,11 +290,15 @@ class FixedLatencyScheduler:
 
     def _sample_suit(self, suit: Suit, t: int) -> SuitSample:
         """Bone orientations at ``t`` (slerp) and accelerations at ``t - dt`` (kept from the previous tick when
-        it was exactly one period earlier, else sampled), for the sensors whose buffers cover ``t``."""
+        it was exactly one period earlier, else left out this frame), for the sensors whose buffers cover ``t``.
+
+        The look-ups follow :meth:`RingBuffer.sample`'s rules; the blending is done for all sensors at once.
+        """
         assert self.ingest is not None
         n = len(suit.mounts)
-        q_i = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
-        acc_s = np.zeros((n, 3))
+        a = np.zeros((n, self._imu_width))
+        b = np.zeros((n, self._imu_width))
+        alpha = np.zeros(n)
         mask = np.zeros(n, dtype=bool)
         for i, sid in enumerate(suit.sensors):
             counts = self.imu_status.setdefault(sid, dict.fromkeys((s.value for s in LookupStatus), 0))
@@ -298,12 +306,12 @@ class FixedLatencyScheduler:
             if stream is None:
                 counts[LookupStatus.EMPTY.value] += 1
                 continue
-            r = stream.buffer.sample(t + self.options.imu_offsets_ns.get(sid, 0))
-            counts[r.status.value] += 1
-            if r.status is LookupStatus.OK:
-                q_i[i] = stream.buffer.field(r.row, "quat")
-                acc_s[i] = stream.buffer.field(r.row, "acc")
-                mask[i] = True
+            status = _bracket(stream.buffer, t + self.options.imu_offsets_ns.get(sid, 0), a[i], b[i], alpha, i)
+            counts[status.value] += 1
+            mask[i] = status is LookupStatus.OK
+        a[~mask, 0], b[~mask, 0] = 1.0, 1.0  # identity rows where nothing was measured (masked out below)
+        q_i = quat_slerp(quat_normalize(a[:, 0:4]), quat_normalize(b[:, 0:4]), alpha)
+        acc_s = a[:, 4:7] + alpha[:, None] * (b[:, 4:7] - a[:, 4:7])
         q_gi = quat_multiply(suit.calibration.q_ig[None], q_i)  # world <- sensor
         q = quat_multiply(q_gi, _conj(self._q_ib[suit.id]))
         acc = np.einsum("nij,nj->ni", matrix_from_quat(q_gi), acc_s) - np.array([0.0, GRAVITY, 0.0])
@@ -361,11 +369,21 @@ class FixedLatencyScheduler:
         views = len(person.detections)
         used = conf[conf > 0]
         confidence = float(used.mean()) * min(1.0, views / 2.0) if used.size else 0.0
-        joints = self.kin.forward(result.theta).positions
+        joints = self._joints(solver, result.theta)
         return PersonPose(
             person.identity, person.track, person.suit, result.theta, joints, confidence, views, n_imu,
             result.summary.iterations, result.summary.converged,
         )  # fmt: skip
+
+    def _joints(self, solver: PoseSolver, theta: FloatArray) -> FloatArray:
+        """Global joint positions (21, 3): the solver's compiled forward kinematics when it has one."""
+        static = solver._kernel_static
+        if static is None:
+            positions: FloatArray = self.kin.forward(theta).positions
+            return positions
+        return np.asarray(
+            _kernel.skeleton_points(theta, static.parents, static.offsets, self._bone_ids, self._zero_offsets)
+        )
 
     def _forget_released(self, seen: set[str]) -> None:
         """Drop the solvers of identities the tracker no longer knows (released subjects)."""
@@ -392,6 +410,31 @@ class FixedLatencyScheduler:
             "people": self.people.status(),
             "solvers": sorted(self.solvers),
         }
+
+
+def _bracket(buf: RingBuffer, t: int, a: FloatArray, b: FloatArray, alpha: FloatArray, i: int) -> LookupStatus:
+    """The two samples around ``t`` (into ``a`` and ``b``) and the blend weight (into ``alpha[i]``), with the
+    outcomes of :meth:`RingBuffer.sample` (OK, EMPTY, BEFORE, AFTER, GAP)."""
+    times = buf.times()
+    if times.size == 0:
+        return LookupStatus.EMPTY
+    if t < times[0]:
+        return LookupStatus.BEFORE
+    if t > times[-1]:
+        return LookupStatus.AFTER
+    k = int(np.searchsorted(times, t, side="right")) - 1
+    rows = buf.rows()
+    if times[k] == t:
+        a[:] = b[:] = rows[k]
+        alpha[i] = 0.0
+        return LookupStatus.OK
+    t0, t1 = int(times[k]), int(times[k + 1])
+    if t1 - t0 > buf.max_gap_ns:
+        return LookupStatus.GAP
+    a[:] = rows[k]
+    b[:] = rows[k + 1]
+    alpha[i] = (t - t0) / (t1 - t0)
+    return LookupStatus.OK
 
 
 def _conj(q: FloatArray) -> FloatArray:
