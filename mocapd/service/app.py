@@ -128,22 +128,11 @@ class Daemon:
         await self.http.start()
         self.notifier.notify("STATUS=starting inputs")
         try:
-            async with asyncio.TaskGroup() as tg:
-                tasks = [tg.create_task(self.supervisor.supervise("imu", self.imu.run))]
-                for src in self.rig.sources:
-                    tasks.append(tg.create_task(self.supervisor.supervise(f"keypoints:{src.name}", self._source(src))))
-                tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop)))
-                tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop)))
-                self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
-                self.ready.set()
-                await self._stop.wait()
-                self.stopping = True
-                self.notifier.notify("STOPPING=1", "STATUS=stopping")
-                self.imu.stop()
-                for device in self.imu.devices:
-                    device.stop()  # closes the serial ports now
-                for t in tasks:
-                    t.cancel()
+            async with asyncio.timeout(None) as deadline:
+                await self._serve(deadline)
+        except TimeoutError:
+            # A task ignored its cancellation for shutdown_timeout_s: leave it behind rather than hang the stop.
+            log.error("shutdown: tasks still running after %.1f s, abandoned", self.config.daemon.shutdown_timeout_s)
         finally:
             for sink in self.sinks:
                 sink.close()
@@ -153,6 +142,25 @@ class Daemon:
                     loop.remove_signal_handler(sig)
             self.notifier.close()
         return 0
+
+    async def _serve(self, deadline: asyncio.Timeout) -> None:
+        async with asyncio.TaskGroup() as tg:
+            tasks = [tg.create_task(self.supervisor.supervise("imu", self.imu.run))]
+            for src in self.rig.sources:
+                tasks.append(tg.create_task(self.supervisor.supervise(f"keypoints:{src.name}", self._source(src))))
+            tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop)))
+            tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop)))
+            self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
+            self.ready.set()
+            await self._stop.wait()
+            self.stopping = True
+            deadline.reschedule(asyncio.get_running_loop().time() + self.config.daemon.shutdown_timeout_s)
+            self.notifier.notify("STOPPING=1", "STATUS=stopping")
+            self.imu.stop()
+            for device in self.imu.devices:
+                device.stop()  # closes the serial ports now
+            for t in tasks:
+                t.cancel()
 
     def _warm_up(self) -> None:
         """Load (or compile, the first time on a machine) the solver kernel before serving."""
@@ -171,7 +179,9 @@ class Daemon:
 
     async def _tick_loop(self) -> None:
         period = self.scheduler.options.period_ns
+        previous = self.plan
         plan = self.plan = TickPlan(period, self.clock() + period)
+        plan.missed = previous.missed if previous is not None else 0  # a restarted loop keeps the count
         watchdog_every = self.notifier.watchdog_s / 2 if self.notifier.watchdog_s else None
         last_ping = 0
         while True:
