@@ -16,7 +16,14 @@ from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
 from mocapd.errors import InputError
 from mocapd.pipeline.imu_ingest import ImuIngest
-from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, SchedulerOptions, Suit, TickPlan
+from mocapd.pipeline.scheduler import (
+    FixedLatencyScheduler,
+    PoseFrame,
+    SchedulerOptions,
+    Suit,
+    TickPlan,
+    estimate_camera_offsets,
+)
 from mocapd.service.bench_solver import synthetic_prior
 from mocapd.service.synthetic_rig import SyntheticWorld
 
@@ -136,11 +143,19 @@ def test_a_camera_that_stops_is_dropped_and_counted(prior: PcaPrior) -> None:
 
 def test_configured_camera_offset_realigns_a_shifted_clock(prior: PcaPrior) -> None:
     shift = [0, 40 * MS, 0, 0]  # camera 1's clock runs 40 ms ahead
-    good = _lockstep(prior, 1, 0, SchedulerOptions(camera_offsets_ns=(0, 40 * MS, 0, 0)), shift).run(2.0)
-    bad = _lockstep(prior, 1, 0, SchedulerOptions(), shift).run(2.0)
+    good_ls = _lockstep(prior, 1, 0, SchedulerOptions(camera_offsets_ns=(0, 40 * MS, 0, 0)), shift)
+    bad_ls = _lockstep(prior, 1, 0, SchedulerOptions(), shift)
+    good, bad = good_ls.run(3.0), bad_ls.run(3.0)
     err_good = np.mean([e for _, errs in good[60:] for e in errs])
     err_bad = np.mean([e for _, errs in bad[60:] for e in errs])
     assert err_good < 0.01 < err_bad
+    # The keypoint speeds say the same: camera 1 runs ~40 ms ahead of camera 0 (the configured one: ~0 left).
+    names = [c.name for c in good_ls.world.cameras]
+    bad_est = estimate_camera_offsets(names, bad_ls.scheduler.camera_frames(), ())
+    assert abs(bad_est["cam1"]["offset_ms"] - 40.0) < 10.0 and bad_est["cam1"]["quality"] > 0.3
+    assert abs(bad_est["cam2"]["offset_ms"]) < 10.0
+    good_est = estimate_camera_offsets(names, good_ls.scheduler.camera_frames(), (0, 40 * MS, 0, 0))
+    assert abs(good_est["cam1"]["offset_ms"] - 40.0) < 10.0
 
 
 def test_tick_plan_counts_missed_ticks_instead_of_bursting() -> None:

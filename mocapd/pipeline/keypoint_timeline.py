@@ -76,7 +76,7 @@ class DetectionTimeline:
         self,
         n_kp: int,
         *,
-        capacity: int = 64,
+        capacity: int = 256,
         max_age_ns: int = 100_000_000,
         max_gap_ns: int = 200_000_000,
         match_px: float = 80.0,
@@ -100,6 +100,11 @@ class DetectionTimeline:
         self._frames.append((t_ns, detections))
         self.frames_received += 1
         return True
+
+    def frames(self) -> tuple[list[int], list[Detections2D]]:
+        """A copy of the kept frames, oldest first: (times, detections)."""
+        frames = list(self._frames)
+        return [t for t, _ in frames], [d for _, d in frames]
 
     def newest_ns(self) -> int | None:
         return self._frames[-1][0] if self._frames else None

@@ -45,6 +45,7 @@ from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
 from mocapd.pipeline.latency import LatencyStats
 from mocapd.pipeline.ringbuffer import IMU_FIELDS, LookupStatus, RingBuffer
+from mocapd.pipeline.time_alignment import estimate_lag, keypoint_speed
 
 FloatArray = NDArray[np.float64]
 GRAVITY = 9.81
@@ -223,6 +224,7 @@ class FixedLatencyScheduler:
         self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
         self._imu_width = sum(f.width for f in IMU_FIELDS)  # quat 0:4, acc 4:7 (IMU_FIELDS order)
         self._previous_acc: dict[str, tuple[int, FloatArray, NDArray[np.bool_]]] = {}
+        self.suggested_offsets: dict[str, dict[str, float]] | None = None  # see estimate_camera_offsets
         self._bone_ids = np.arange(N_BONES, dtype=np.float64)
         self._zero_offsets = np.zeros((N_BONES, 3))
         self._wall = wall_clock
@@ -394,6 +396,10 @@ class FixedLatencyScheduler:
             if identity not in known and identity not in seen:
                 del self.solvers[identity]
 
+    def camera_frames(self) -> list[tuple[list[int], list[Detections2D]]]:
+        """A copy of every camera's kept frames (for offset estimation off the event loop)."""
+        return [tl.frames() for tl in self.timelines]
+
     # ------------------------------------------------------------------------------------------- status
     def status(self) -> dict[str, Any]:
         """JSON-able counters and latency percentiles."""
@@ -409,6 +415,7 @@ class FixedLatencyScheduler:
             "imu_samples": {k: dict(v) for k, v in self.imu_status.items()},
             "people": self.people.status(),
             "solvers": sorted(self.solvers),
+            "suggested_camera_offsets_ms": self.suggested_offsets,
         }
 
 
@@ -460,3 +467,20 @@ def initial_pose(skeleton: Skeleton, keypoints: FloatArray) -> FloatArray:
     theta[3:6] = [0.0, float(np.arctan2(-d[2], d[0])), 0.0]
     assert theta.shape == (POSE_DIM,)
     return theta
+
+
+def estimate_camera_offsets(
+    names: list[str], frames: list[tuple[list[int], list[Detections2D]]], current_ns: tuple[int, ...]
+) -> dict[str, dict[str, float]]:
+    """Per camera (the first is the reference): the offset that would align its keypoint speeds with the first
+    camera's, in ms, in the convention of ``[daemon.offsets]`` (added to what is configured), with the
+    correlation peak as quality. Cameras without enough moving data are left out."""
+    ref_t, ref_v = keypoint_speed(np.asarray(frames[0][0], dtype=np.int64), frames[0][1])
+    out: dict[str, dict[str, float]] = {}
+    offsets = current_ns[1:] or (0,) * (len(names) - 1)
+    for name, (times, dets), offset in zip(names[1:], frames[1:], offsets, strict=True):
+        t, v = keypoint_speed(np.asarray(times, dtype=np.int64), dets)
+        est = estimate_lag(ref_t, ref_v, t, v)
+        if est is not None:
+            out[name] = {"offset_ms": round((offset + est.lag_ns) / 1e6, 1), "quality": round(est.quality, 3)}
+    return out

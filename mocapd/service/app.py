@@ -32,7 +32,7 @@ from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.keypoint_source import KeypointSource
-from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, Suit, TickPlan
+from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, Suit, TickPlan, estimate_camera_offsets
 from mocapd.service.config import Config
 from mocapd.service.http_status import StatusServer
 from mocapd.service.imu_service import ImuInputs
@@ -201,8 +201,18 @@ class Daemon:
             plan.advance(self.clock())
 
     async def _status_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        names = [c.name for c in self.rig.cameras]
+        ticks = 0
         while True:
             await asyncio.sleep(1.0)
+            ticks += 1
+            if ticks % 10 == 0:  # offset suggestions from the last seconds of keypoints, computed off the loop
+                frames = self.scheduler.camera_frames()
+                offsets = self.scheduler.options.camera_offsets_ns
+                self.scheduler.suggested_offsets = await loop.run_in_executor(
+                    None, estimate_camera_offsets, names, frames, offsets
+                )
             line = self.status_line_text()
             self.notifier.notify(f"STATUS={line}")
             if self.status_line is not None:

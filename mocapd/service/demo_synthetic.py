@@ -178,6 +178,7 @@ def run(config: Config, seconds: float | None, sinks: list[PoseSink] | None = No
         f"{syn.suits} wearing 13 simulated Xsens IMUs on pseudo-terminals",
         flush=True,
     )
+    print("starting: solver kernel (compiled once per machine, up to a minute the first time), inputs ...", flush=True)
     holder: dict[str, SyntheticDemo] = {}
 
     def line(text: str) -> None:
