@@ -255,6 +255,13 @@ class Daemon:
             "imu_lookups": s["imu_samples"],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "subjects": s["people"],
+            "time_alignment": {
+                "configured_camera_offsets_ms": {
+                    c.name: o / 1e6
+                    for c, o in zip(self.rig.cameras, self.scheduler.options.camera_offsets_ns, strict=False)
+                },
+                "suggested_camera_offsets_ms": s["suggested_camera_offsets_ms"],
+            },
             "frame": None if frame is None else {
                 "frame": frame.frame,
                 "t_solve_ns": frame.t_solve_ns,
