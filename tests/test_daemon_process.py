@@ -87,3 +87,27 @@ def test_notifier_speaks_the_datagram_protocol(tmp_path: Path) -> None:
     abstract.close()
     m.close()
     assert not SdNotifier({}).notify("READY=1")
+
+
+def test_run_serves_until_sigint(tmp_path: Path) -> None:
+    notify_path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(notify_path))
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_path)}
+    env.pop("WATCHDOG_USEC", None)
+    cmd = [sys.executable, "-m", "mocapd.service.cli", "run", "--http-port", "0", "--verbose"]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        ready = _recv_until(sock, "READY=1", 180)
+        assert any("STATUS=serving http://127.0.0.1:" in m for m in ready)
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=10)
+        _recv_until(sock, "STOPPING=1", 1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sock.close()
+    out = proc.stdout.read() if proc.stdout else ""
+    assert rc == 0, out
+    assert "output" in out and "people [" in out  # the per-second status line
