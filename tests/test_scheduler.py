@@ -11,6 +11,7 @@ import pytest
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.people import PeopleTracker
 from mocapd.core.prior import PcaPrior
+from mocapd.core.rotations import quat_rotate
 from mocapd.core.sorting import DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
@@ -174,3 +175,34 @@ def test_bad_set_up_is_rejected(prior: PcaPrior) -> None:
     suit = Suit.from_calibration("s", world.calibration(world.suits[0]), world.skeleton)
     with pytest.raises(InputError, match="ingest"):
         FixedLatencyScheduler(world.cameras, world.skeleton, world.targets, tracker, suits=[suit])
+
+
+def test_imu_orientations_are_slerped_and_accelerations_taken_from_the_previous_tick() -> None:
+    from mocapd.core.imu_calibration import ImuCalibration
+    from mocapd.core.rotations import quat_from_rotvec, quat_slerp
+
+    world = SyntheticWorld(n_cams=4, n_people=1, n_suits=0)
+    ident = np.array([1.0, 0.0, 0.0, 0.0])
+    cal = ImuCalibration("p", 0.0, "north", ident, {"S1": "Hips"}, {"S1": ident}, {"S1": 0.0})
+    suit = Suit.from_calibration("p", cal, world.skeleton)
+    ingest = ImuIngest()
+    tracker = PeopleTracker(SubjectTracker(DetectionSorter(world.cameras)))
+    opts = SchedulerOptions(rate_hz=50.0, imu_offsets_ns={"S1": 5 * MS})
+    sched = FixedLatencyScheduler(world.cameras, world.skeleton, world.targets, tracker, ingest=ingest,
+                                  suits=[suit], options=opts)  # fmt: skip
+    q0, q1 = ident, quat_from_rotvec(np.array([0.0, 0.0, 1.0]))
+    g = (0.0, 9.81, 0.0)  # still sensor: specific force = +g in the world frame (here R_ig = I)
+    ingest.add("S1", 0, device_ticks=None, packet_counter=None, quat=tuple(q0), acc=(1.0, 9.81, 0.0))
+    ingest.add("S1", 100 * MS, device_ticks=None, packet_counter=None, quat=tuple(q1), acc=g)
+    first = sched._sample_suit(suit, 20 * MS)  # looked up at 25 ms (the sensor's offset)
+    np.testing.assert_allclose(first.orientations[0], quat_slerp(q0, q1, 0.25), atol=1e-12)
+    assert first.mask[0] and not first.has_acceleration  # no previous tick yet
+    second = sched._sample_suit(suit, 40 * MS)
+    assert second.has_acceleration
+    # The previous tick's acceleration (at 25 ms: a quarter of the way from (1, 0, 0) to 0, gravity removed),
+    # rotated by that tick's orientation.
+    expected = quat_rotate(quat_slerp(q0, q1, 0.25), np.array([0.75, 9.81, 0.0])) - np.array(g)
+    np.testing.assert_allclose(second.accelerations[0], expected, atol=1e-9)
+    late = sched._sample_suit(suit, 200 * MS)  # after the newest sample: not extrapolated
+    assert not late.mask[0]
+    assert sched.imu_status["S1"] == {"ok": 2, "empty": 0, "before": 0, "after": 1, "gap": 0}
