@@ -136,7 +136,7 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
     assert len(rec.frames) + (d.plan.missed if d.plan else 0) == (t[-1] - t[0]) // period + 1
     # Bounded error against the synthetic truth once both people are tracked.
     assert demo.truth.recent_mm(300) is not None
-    assert float(np.median(demo.truth.errors[-300:])) < 0.02
+    assert float(np.median(list(demo.truth.errors)[-300:])) < 0.02
 
 
 @pytest.mark.asyncio

@@ -51,6 +51,7 @@ def run(seconds: float = 60.0, cameras: int = 4, people: int = 2) -> dict[str, A
                 (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime) / wall, 3
             )
             run_stats["wall_s"] = round(wall, 1)
+            run_stats["imu_streaming"] = sum(1 for x in d.imu.devices if x.streaming.is_set())
             d.request_stop()
             await task
 
@@ -81,7 +82,8 @@ def run(seconds: float = 60.0, cameras: int = 4, people: int = 2) -> dict[str, A
                 "warm_up_s": WARM_UP_S,
             },
             "median_joint_error_mm": None if err is None else round(err, 2),
-            "imu_devices_streaming": sum(1 for x in st["imu"]["devices"] if x["streaming"]),
+            "imu_devices_streaming_at_end": run_stats["imu_streaming"],
+            "imu_disconnects": sum(x["disconnects"] for x in st["imu"]["devices"]),
             "task_failures": {k: v["failures"] for k, v in st["tasks"].items()},
             "machine": {"cpus": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load0],
                         "python": platform.python_version()},
