@@ -10,7 +10,7 @@ setup:
 	@bash setup/setup.sh
 
 demo: setup
-	$(BIN)/mocapd demo
+	$(BIN)/mocapd demo --synthetic
 
 test: setup lint typecheck unit
 

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 from mocapd import __version__
 from mocapd.eval import cli as eval_cli
-from mocapd.service import cmd_calibrate, cmd_imu, cmd_model
+from mocapd.service import cmd_calibrate, cmd_daemon, cmd_imu, cmd_model
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -34,20 +34,10 @@ def _cmd_eval_tracking(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    from mocapd.service import demo_solver
-
-    return demo_solver.run(seconds=args.seconds)
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mocapd", description="Real-time multi-person motion capture daemon.")
     parser.add_argument("--version", action="version", version=f"mocapd {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
-    demo = sub.add_parser("demo", help="run the live demo on an embedded default rig (no hardware needed)")
-    demo.add_argument("--seconds", type=float, default=10.0, help="how long to run (default 10)")
-    demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("bench", help="benchmarks that print JSON")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
@@ -72,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     cmd_calibrate.register(sub)
     cmd_imu.register(sub)  # adds "imu" to the calibrate group
     cmd_model.register(sub)
+    cmd_daemon.register(sub)  # run, demo, check-config, bench latency
     return parser
 
 

@@ -17,6 +17,7 @@ from mocapd.core.solver import TERM_NAMES, LMOptions
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
 from mocapd.pipeline.detector_config import DetectorConfig, detector_config_from_mapping
+from mocapd.service.daemon_config import DaemonConfig, parse_daemon_config
 from mocapd.service.imu_config import ImuConfig, parse_imu_config
 from mocapd.service.tracking_config import TrackingConfig, parse_tracking_config
 
@@ -44,11 +45,12 @@ class Config:
     imu: ImuConfig = field(default_factory=ImuConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
+    daemon: DaemonConfig = field(default_factory=DaemonConfig)
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole parsed file, for sections whose loaders live elsewhere."""
 
 
-KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector"}
+KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon"}
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -73,6 +75,7 @@ def parse_config(data: dict[str, Any]) -> Config:
         imu=parse_imu_config(_table(data, "imu")),
         tracking=parse_tracking_config(_table(data, "tracking")),
         detector=detector_config_from_mapping(_table(data, "detector")),
+        daemon=parse_daemon_config(_table(data, "daemon")),
         raw=data,
     )
 

@@ -1,0 +1,189 @@
+"""Per-camera timeline of 2D detections, sampled at a solve time by linear interpolation (seed 003 §3.4.2).
+
+A detector reports, per camera frame, an unordered set of 2D people (:class:`~mocapd.core.sorting.Detections2D`)
+stamped with the frame's capture time. The fixed-latency scheduler asks for the detections at a solve time ``t``
+that generally falls between two detected frames (cameras are not synchronised and the detector sub-samples):
+
+- between two frames ``a`` (t_a <= t) and ``b`` (t_b > t), the people of ``b`` are matched to those of ``a`` by
+  mean keypoint distance (Hungarian assignment, accepted below ``match_px``) and each matched pair is blended
+  linearly; people seen only in the nearer frame are passed through unchanged, the others are left out;
+- after the newest frame (the detector is late): the newest frame is *held* while it is at most ``max_age_ns``
+  old, and nothing is returned once it is older (the camera then counts as missing: never extrapolated);
+- before the oldest frame, or across a hole longer than ``max_gap_ns``: the nearer frame when it is within
+  ``max_age_ns`` of ``t``, otherwise nothing.
+
+Pure: time is an argument; nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from mocapd.core.sorting import Detections2D
+
+FloatArray = NDArray[np.float64]
+
+
+class SampleStatus(enum.Enum):
+    """How a timeline answered a look-up."""
+
+    INTERPOLATED = "interpolated"  # between two frames
+    EXACT = "exact"  # t is a frame's time
+    HELD = "held"  # after the newest frame, which is still young enough
+    NEAREST = "nearest"  # before the oldest frame or across a gap: the nearer frame, young enough
+    STALE = "stale"  # the data around t is older than max_age: nothing returned
+    EMPTY = "empty"  # no frame yet
+
+
+#: statuses that return detections
+USABLE = frozenset({SampleStatus.INTERPOLATED, SampleStatus.EXACT, SampleStatus.HELD, SampleStatus.NEAREST})
+
+
+@dataclass(frozen=True, slots=True)
+class TimelineSample:
+    """Detections at the requested time (empty unless the status is usable) and the frame times used."""
+
+    status: SampleStatus
+    detections: Detections2D
+    t_before: int
+    t_after: int
+
+
+class DetectionTimeline:
+    """The last ``capacity`` detected frames of one camera.
+
+    Parameters
+    ----------
+    n_kp : int
+        Keypoints per person.
+    capacity : int
+        Frames kept (a few seconds' worth is plenty; the scheduler only looks ``latency`` back).
+    max_age_ns : int
+        Largest distance between ``t`` and the frame used when holding (no newer frame) or taking the nearest.
+    max_gap_ns : int
+        Largest spacing of two frames across which people are interpolated.
+    match_px : float
+        Largest mean keypoint distance (pixels) at which a person of one frame is the same as one of the next.
+    """
+
+    def __init__(
+        self,
+        n_kp: int,
+        *,
+        capacity: int = 256,
+        max_age_ns: int = 100_000_000,
+        max_gap_ns: int = 200_000_000,
+        match_px: float = 80.0,
+    ) -> None:
+        self.n_kp = n_kp
+        self.max_age_ns = max_age_ns
+        self.max_gap_ns = max_gap_ns
+        self.match_px = match_px
+        self._frames: deque[tuple[int, Detections2D]] = deque(maxlen=capacity)
+        self.rejected_out_of_order = 0
+        self.frames_received = 0
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def push(self, t_ns: int, detections: Detections2D) -> bool:
+        """Add a frame; returns False (and counts it) unless it is newer than the newest frame."""
+        if self._frames and t_ns <= self._frames[-1][0]:
+            self.rejected_out_of_order += 1
+            return False
+        self._frames.append((t_ns, detections))
+        self.frames_received += 1
+        return True
+
+    def frames(self) -> tuple[list[int], list[Detections2D]]:
+        """A copy of the kept frames, oldest first: (times, detections)."""
+        frames = list(self._frames)
+        return [t for t, _ in frames], [d for _, d in frames]
+
+    def newest_ns(self) -> int | None:
+        return self._frames[-1][0] if self._frames else None
+
+    def sample(self, t_ns: int) -> TimelineSample:  # noqa: PLR0911 (one return per documented outcome)
+        """The detections at ``t_ns`` (see the module docstring for the rules)."""
+        empty = Detections2D.empty(self.n_kp)
+        if not self._frames:
+            return TimelineSample(SampleStatus.EMPTY, empty, 0, 0)
+        first_t, first = self._frames[0]
+        last_t, last = self._frames[-1]
+        if t_ns >= last_t:
+            if t_ns == last_t:
+                return TimelineSample(SampleStatus.EXACT, last, last_t, last_t)
+            if t_ns - last_t <= self.max_age_ns:
+                return TimelineSample(SampleStatus.HELD, last, last_t, last_t)
+            return TimelineSample(SampleStatus.STALE, empty, last_t, last_t)
+        if t_ns < first_t:
+            if first_t - t_ns <= self.max_age_ns:
+                return TimelineSample(SampleStatus.NEAREST, first, first_t, first_t)
+            return TimelineSample(SampleStatus.STALE, empty, first_t, first_t)
+        # Newest first: the scheduler looks a fixed latency back, so the bracket is near the end.
+        k = len(self._frames) - 2
+        while self._frames[k][0] > t_ns:
+            k -= 1
+        t0, a = self._frames[k]
+        t1, b = self._frames[k + 1]
+        if t0 == t_ns:
+            return TimelineSample(SampleStatus.EXACT, a, t0, t0)
+        if t1 - t0 > self.max_gap_ns:
+            near_t, near = (t0, a) if t_ns - t0 <= t1 - t_ns else (t1, b)
+            if abs(t_ns - near_t) <= self.max_age_ns:
+                return TimelineSample(SampleStatus.NEAREST, near, t0, t1)
+            return TimelineSample(SampleStatus.STALE, empty, t0, t1)
+        alpha = (t_ns - t0) / (t1 - t0)
+        return TimelineSample(SampleStatus.INTERPOLATED, interpolate_people(a, b, alpha, self.match_px), t0, t1)
+
+
+def person_distances(a: Detections2D, b: Detections2D, min_confidence: float = 0.0) -> FloatArray:
+    """Mean pixel distance over keypoints both people have, shape ``(len(a), len(b))`` (inf: none shared)."""
+    na, nb = a.keypoints.shape[0], b.keypoints.shape[0]
+    if na == 0 or nb == 0:
+        return np.zeros((na, nb))
+    shared = (a.confidences[:, None, :] > min_confidence) & (b.confidences[None, :, :] > min_confidence)
+    d = np.linalg.norm(a.keypoints[:, None] - b.keypoints[None, :], axis=-1)  # (na, nb, n_kp)
+    n = shared.sum(axis=-1)
+    total = np.where(shared, d, 0.0).sum(axis=-1)
+    return np.where(n > 0, total / np.maximum(n, 1), np.inf)
+
+
+def interpolate_people(a: Detections2D, b: Detections2D, alpha: float, match_px: float) -> Detections2D:
+    """People of two frames blended at ``alpha`` in [0, 1] (0 = ``a``).
+
+    Matched people: keypoints seen in both frames are blended linearly, with blended confidence; a keypoint seen
+    in one frame only keeps that frame's position with its confidence scaled by that frame's weight. Unmatched
+    people of the nearer frame are passed through; those of the farther frame are left out.
+    """
+    near = a if alpha <= 0.5 else b
+    d = person_distances(a, b)
+    pairs: list[tuple[int, int]] = []
+    if d.size:
+        rows, cols = linear_sum_assignment(np.where(np.isfinite(d), d, 1e12))
+        pairs = [(int(i), int(j)) for i, j in zip(rows, cols, strict=True) if d[i, j] <= match_px]
+    kps: list[FloatArray] = []
+    cfs: list[FloatArray] = []
+    for i, j in pairs:
+        ka, kb = a.keypoints[i], b.keypoints[j]
+        ca, cb = a.confidences[i], b.confidences[j]
+        both = (ca > 0) & (cb > 0)
+        kp = np.where(both[:, None], ka + alpha * (kb - ka), np.where((ca > 0)[:, None], ka, kb))
+        cf = np.where(both, ca + alpha * (cb - ca), np.where(ca > 0, ca * (1.0 - alpha), cb * alpha))
+        kps.append(kp)
+        cfs.append(cf)
+    matched_near = {i for i, _ in pairs} if near is a else {j for _, j in pairs}
+    for p in range(near.keypoints.shape[0]):
+        if p not in matched_near:
+            kps.append(near.keypoints[p])
+            cfs.append(near.confidences[p])
+    n_kp = a.keypoints.shape[1]
+    if not kps:
+        return Detections2D.empty(n_kp)
+    return Detections2D(np.stack(kps), np.stack(cfs))

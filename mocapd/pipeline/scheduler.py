@@ -1,0 +1,486 @@
+"""The fixed-latency scheduler (seed 003 §3.4.2): sample every buffer at ``t = now - latency``, sort, solve, publish.
+
+Cameras are not synchronised with each other or with the IMUs, and the detector runs slower than the solver, so
+the solver runs at its own output rate a fixed delay behind wall time. At each tick:
+
+1. **sample**: every camera's :class:`~mocapd.pipeline.keypoint_timeline.DetectionTimeline` at ``t`` (linear
+   interpolation; detections older than ``keypoint_max_age`` are dropped, never extrapolated) and every suit's
+   IMU ring buffers at ``t`` (slerp) and at ``t - dt`` (accelerations, which the solver wants for the previous
+   frame); each look-up's outcome is counted per device;
+2. **sort**: the sampled 2D people into tracked people (:class:`~mocapd.core.people.PeopleTracker`: detection
+   sorting, enrolment, suit binding);
+3. **solve**: one warm-started :class:`~mocapd.core.solver.PoseSolver` per identity;
+4. **publish**: a :class:`PoseFrame` (frame counter, solve time, per person θ, joint positions, confidence).
+
+Each device has a configured time offset (its clock runs ``offset`` ahead of the host's: its samples are filed at
+``t_device - offset``). Time is passed in (``now_ns``); the stage timer is injected (wall and CPU clocks), so the
+scheduler runs the same in the daemon and in tests on synthetic timelines.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core import _kernel
+from mocapd.core.camera import Camera
+from mocapd.core.imu import ImuMount
+from mocapd.core.imu_calibration import ImuCalibration
+from mocapd.core.keypoints import TrackTargets
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.people import PeopleTracker, Person
+from mocapd.core.prior import PcaPrior
+from mocapd.core.rotations import matrix_from_quat, quat_multiply, quat_normalize, quat_slerp
+from mocapd.core.skeleton import N_BONES, POSE_DIM, Skeleton
+from mocapd.core.solver import LMOptions, Observations, PoseSolver
+from mocapd.core.sorting import Detections2D
+from mocapd.core.terms import CostOptions
+from mocapd.errors import InputError
+from mocapd.pipeline.imu_ingest import ImuIngest
+from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
+from mocapd.pipeline.latency import LatencyStats
+from mocapd.pipeline.ringbuffer import IMU_FIELDS, LookupStatus, RingBuffer
+from mocapd.pipeline.time_alignment import estimate_lag, keypoint_speed
+
+FloatArray = NDArray[np.float64]
+GRAVITY = 9.81
+STAGES = ("detect", "sample", "sort", "solve", "publish", "end_to_end")
+
+
+@dataclass(frozen=True)
+class SchedulerOptions:
+    """How the scheduler samples and solves (the ``[daemon]`` section of config.toml)."""
+
+    rate_hz: float = 60.0
+    """Output rate (ticks per second)."""
+    latency_ns: int = 150_000_000
+    """Fixed delay between wall time and solve time."""
+    keypoint_max_age_ns: int = 100_000_000
+    """Detections further than this from the solve time are not used (held or nearest frame)."""
+    keypoint_max_gap_ns: int = 250_000_000
+    """Two detected frames further apart than this are not interpolated across."""
+    match_px: float = 80.0
+    """Largest mean keypoint motion (pixels) of one person between two detected frames of a camera."""
+    camera_offsets_ns: tuple[int, ...] = ()
+    """Per camera: how far its time stamps run ahead of the host clock (empty: all zero)."""
+    imu_offsets_ns: dict[str, int] = field(default_factory=dict)
+    """Per IMU sensor id: how far its buffered times run ahead of the host clock."""
+
+    @property
+    def period_ns(self) -> int:
+        return round(1e9 / self.rate_hz)
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+@dataclass(frozen=True)
+class Suit:
+    """One person's IMU suit: its calibration and the solver's IMU mounts in the order measurements are given."""
+
+    id: str
+    calibration: ImuCalibration
+    mounts: tuple[ImuMount, ...]
+    sensors: tuple[str, ...]  # sensor id per mount
+
+    @staticmethod
+    def from_calibration(suit_id: str, calibration: ImuCalibration, skeleton: Skeleton) -> Suit:
+        """Mounts at the default sensor sites of the calibrated bones (orientation comes from the calibration)."""
+        from mocapd.core.imu import default_mounts
+
+        sensors = tuple(sorted(calibration.bones))
+        mounts = default_mounts(tuple(calibration.bones[s] for s in sensors), skeleton)
+        return Suit(suit_id, calibration, mounts, sensors)
+
+
+@dataclass(frozen=True)
+class PersonPose:
+    """One solved person."""
+
+    identity: str
+    track: int
+    suit: str | None
+    theta: FloatArray  # (66,)
+    joints: FloatArray  # (21, 3) global joint positions, metres
+    confidence: float  # mean detector confidence of the keypoints used, scaled down below two views
+    views: int
+    imus: int  # IMUs with a measurement this frame
+    iterations: int
+    converged: bool
+
+
+@dataclass(frozen=True)
+class PoseFrame:
+    """What one tick publishes."""
+
+    frame: int
+    t_solve_ns: int
+    tick_ns: int  # the wall time the tick was scheduled for
+    people: list[PersonPose]
+    missing_cameras: int
+
+
+class TickPlan:
+    """The output clock: tick times ``start + k · period``; ticks that could not run in time are counted, not
+    run late in a burst (a late solve is worth less than the next one on time)."""
+
+    def __init__(self, period_ns: int, start_ns: int) -> None:
+        self.period_ns = period_ns
+        self.next_ns = start_ns
+        self.missed = 0
+
+    def advance(self, now_ns: int) -> int:
+        """After running the tick due at :attr:`next_ns`: schedule the next one; returns ticks skipped now."""
+        self.next_ns += self.period_ns
+        skipped = 0
+        if now_ns >= self.next_ns:
+            skipped = (now_ns - self.next_ns) // self.period_ns + 1
+            self.next_ns += skipped * self.period_ns
+        self.missed += skipped
+        return skipped
+
+
+@dataclass
+class SuitSample:
+    orientations: FloatArray  # (n_imu, 4) measured global bone orientations
+    accelerations: FloatArray  # (n_imu, 3) global accelerations at t - dt, gravity removed
+    mask: NDArray[np.bool_]  # (n_imu,)
+    has_acceleration: bool  # accelerations of the previous frame are known for every masked IMU
+
+
+class FixedLatencyScheduler:
+    """Samples, sorts, solves and publishes one frame per :meth:`tick`.
+
+    Parameters
+    ----------
+    cameras : list of Camera
+        The rig; camera ``i``'s detections arrive through :meth:`add_detections` with index ``i``.
+    skeleton, targets, prior, cost, lm, backend
+        The per-person solver's set-up (see :class:`~mocapd.core.solver.PoseSolver`).
+    people : PeopleTracker
+        Detection sorting and suit binding.
+    ingest : ImuIngest, optional
+        The IMU buffers (filled by the IMU inputs); needed when ``suits`` are given.
+    suits : list of Suit
+    options : SchedulerOptions
+    wall_clock, cpu_clock : callables returning int ns
+        Stage timers (defaults: ``time.perf_counter_ns`` and the thread's CPU time). The solve time itself is
+        always the ``now_ns`` given to :meth:`tick`.
+    """
+
+    def __init__(
+        self,
+        cameras: list[Camera],
+        skeleton: Skeleton,
+        targets: TrackTargets,
+        people: PeopleTracker,
+        *,
+        prior: PcaPrior | None = None,
+        ingest: ImuIngest | None = None,
+        suits: list[Suit] | None = None,
+        options: SchedulerOptions | None = None,
+        cost: CostOptions | None = None,
+        lm: LMOptions | None = None,
+        backend: str = "compiled",
+        wall_clock: Callable[[], int] = time.perf_counter_ns,
+        cpu_clock: Callable[[], int] = time.thread_time_ns,
+    ) -> None:
+        self.options = options if options is not None else SchedulerOptions()
+        o = self.options
+        if o.camera_offsets_ns and len(o.camera_offsets_ns) != len(cameras):
+            raise InputError(f"camera_offsets_ns: {len(o.camera_offsets_ns)} offsets for {len(cameras)} cameras")
+        if suits and ingest is None:
+            raise InputError("suits need the IMU ingest that buffers their sensors")
+        self.cameras = cameras
+        self.skeleton = skeleton
+        self.targets = targets
+        self.people = people
+        self.prior = prior
+        self.ingest = ingest
+        self.suits = {s.id: s for s in suits or []}
+        self.cost = cost
+        self.lm = lm
+        self.backend = backend
+        self.kin = Kinematics(skeleton)
+        self.timelines = [
+            DetectionTimeline(
+                len(targets), max_age_ns=o.keypoint_max_age_ns, max_gap_ns=o.keypoint_max_gap_ns, match_px=o.match_px
+            )
+            for _ in cameras
+        ]
+        self.solvers: dict[str, PoseSolver] = {}
+        self.frame = 0
+        self.latency = {s: LatencyStats() for s in STAGES}
+        self.cpu_ns = dict.fromkeys(STAGES[1:5], 0)
+        self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
+        self.imu_status: dict[str, dict[str, int]] = {}
+        self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0}
+        self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
+        self._imu_width = sum(f.width for f in IMU_FIELDS)  # quat 0:4, acc 4:7 (IMU_FIELDS order)
+        self._previous_acc: dict[str, tuple[int, FloatArray, NDArray[np.bool_]]] = {}
+        self.suggested_offsets: dict[str, dict[str, float]] | None = None  # see estimate_camera_offsets
+        self._bone_ids = np.arange(N_BONES, dtype=np.float64)
+        self._zero_offsets = np.zeros((N_BONES, 3))
+        self._wall = wall_clock
+        self._cpu = cpu_clock
+
+    # ------------------------------------------------------------------------------------------- inputs
+    def add_detections(self, camera: int, capture_ns: int, detections: Detections2D, arrival_ns: int) -> bool:
+        """File one detected frame of ``camera`` captured at ``capture_ns`` (device clock) and received (detector
+        done) at ``arrival_ns`` (host clock). Returns False when it was rejected (out of order)."""
+        offsets = self.options.camera_offsets_ns
+        t = capture_ns - (offsets[camera] if offsets else 0)
+        if not self.timelines[camera].push(t, detections):
+            self.counters["detections_rejected"] += 1
+            return False
+        self.latency["detect"].add(arrival_ns - t)
+        return True
+
+    # ------------------------------------------------------------------------------------------- the tick
+    def tick(self, now_ns: int) -> PoseFrame:
+        """Solve and return the frame at ``now_ns - latency``."""
+        t = now_ns - self.options.latency_ns
+        w0, c0 = self._wall(), self._cpu()
+        detections, missing = self._sample_cameras(t)
+        suits = {sid: self._sample_suit(suit, t) for sid, suit in self.suits.items()}
+        w1, c1 = self._stage("sample", w0, c0)
+        suit_bones = {
+            sid: {suit.mounts[i].bone: s.orientations[i] for i in range(len(suit.mounts)) if s.mask[i]}
+            for sid, (suit, s) in ((k, (self.suits[k], v)) for k, v in suits.items())
+        }
+        frame = self.people.update(t, detections, {k: v for k, v in suit_bones.items() if v})
+        w2, c2 = self._stage("sort", w1, c1)
+        poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None) for p in frame.people]
+        self._forget_released({p.identity for p in frame.people})
+        self._stage("solve", w2, c2)
+        self.frame += 1
+        self.counters["ticks"] += 1
+        return PoseFrame(self.frame, t, now_ns, poses, missing)
+
+    def record_publish(self, frame: PoseFrame, wall_start_ns: int, cpu_start_ns: int, published_ns: int) -> None:
+        """Account the publishing stage (run by the caller) and the end-to-end latency of ``frame``: from the
+        solve time (the capture instant it represents) to ``published_ns`` on the host clock."""
+        self._stage("publish", wall_start_ns, cpu_start_ns)
+        self.latency["end_to_end"].add(published_ns - frame.t_solve_ns)
+
+    def stage_clocks(self) -> tuple[int, int]:
+        """(wall, CPU) now, for timing a stage run outside the scheduler."""
+        return self._wall(), self._cpu()
+
+    def _stage(self, name: str, w0: int, c0: int) -> tuple[int, int]:
+        w, c = self._wall(), self._cpu()
+        self.latency[name].add(w - w0)
+        self.cpu_ns[name] += c - c0
+        return w, c
+
+    def _sample_cameras(self, t: int) -> tuple[list[Detections2D], int]:
+        out = []
+        missing = 0
+        for c, tl in enumerate(self.timelines):
+            s = tl.sample(t)
+            self.keypoint_status[c][s.status.value] += 1
+            if s.status not in USABLE:
+                missing += 1
+            out.append(s.detections)
+        return out, missing
+
+    def _sample_suit(self, suit: Suit, t: int) -> SuitSample:
+        """Bone orientations at ``t`` (slerp) and accelerations at ``t - dt`` (kept from the previous tick when
+        it was exactly one period earlier, else left out this frame), for the sensors whose buffers cover ``t``.
+
+        The look-ups follow :meth:`RingBuffer.sample`'s rules; the blending is done for all sensors at once.
+        """
+        assert self.ingest is not None
+        n = len(suit.mounts)
+        a = np.zeros((n, self._imu_width))
+        b = np.zeros((n, self._imu_width))
+        alpha = np.zeros(n)
+        mask = np.zeros(n, dtype=bool)
+        for i, sid in enumerate(suit.sensors):
+            counts = self.imu_status.setdefault(sid, dict.fromkeys((s.value for s in LookupStatus), 0))
+            stream = self.ingest.streams.get(sid)
+            if stream is None:
+                counts[LookupStatus.EMPTY.value] += 1
+                continue
+            status = _bracket(stream.buffer, t + self.options.imu_offsets_ns.get(sid, 0), a[i], b[i], alpha, i)
+            counts[status.value] += 1
+            mask[i] = status is LookupStatus.OK
+        a[~mask, 0], b[~mask, 0] = 1.0, 1.0  # identity rows where nothing was measured (masked out below)
+        q_i = quat_slerp(quat_normalize(a[:, 0:4]), quat_normalize(b[:, 0:4]), alpha)
+        acc_s = a[:, 4:7] + alpha[:, None] * (b[:, 4:7] - a[:, 4:7])
+        q_gi = quat_multiply(suit.calibration.q_ig[None], q_i)  # world <- sensor
+        q = quat_multiply(q_gi, _conj(self._q_ib[suit.id]))
+        acc = np.einsum("nij,nj->ni", matrix_from_quat(q_gi), acc_s) - np.array([0.0, GRAVITY, 0.0])
+        prev = self._previous_acc.get(suit.id)
+        self._previous_acc[suit.id] = (t, acc, mask)
+        period = self.options.period_ns
+        if prev is not None and abs(t - period - prev[0]) <= period // 4 and np.all(prev[2][mask]):
+            return SuitSample(q, prev[1], mask, True)
+        return SuitSample(q, acc, mask, False)  # no previous frame: the acceleration term sits this one out
+
+    def _solver_for(self, person: Person, with_suit: Suit | None) -> PoseSolver:
+        solver = self.solvers.get(person.identity)
+        if solver is not None:
+            return solver
+        solver = PoseSolver(
+            self.skeleton,
+            self.cameras,
+            self.targets,
+            with_suit.mounts if with_suit is not None else (),
+            self.prior,
+            self.cost,
+            self.lm,
+            backend="numpy" if self.backend == "numpy" else "compiled",
+        )
+        # Warm start: from this track's previous identity (a suit was just paired with it), else from the
+        # triangulated keypoints.
+        previous = self.solvers.pop(f"track:{person.track}", None)
+        solver.reset(previous.theta if previous is not None else initial_pose(self.skeleton, person.keypoints))
+        self.solvers[person.identity] = solver
+        return solver
+
+    def _solve(self, person: Person, detections: list[Detections2D], suit_sample: SuitSample | None) -> PersonPose:
+        suit = self.suits.get(person.suit) if person.suit else None
+        solver = self._solver_for(person, suit)
+        n_cams, n_kp = len(self.cameras), len(self.targets)
+        kp = np.zeros((n_cams, n_kp, 2))
+        conf = np.zeros((n_cams, n_kp))
+        for cam, idx in person.detections.items():
+            kp[cam] = detections[cam].keypoints[idx]
+            conf[cam] = np.clip(detections[cam].confidences[idx], 0.0, 1.0)
+        imu_kw: dict[str, Any] = {}
+        n_imu = 0
+        if suit is not None and suit_sample is not None:
+            imu_kw = {
+                "imu_orientations": suit_sample.orientations,
+                "imu_accelerations": suit_sample.accelerations if suit_sample.has_acceleration else None,
+                "imu_mask": suit_sample.mask,
+            }
+            n_imu = int(suit_sample.mask.sum())
+        obs = Observations(keypoints=kp, confidences=conf, dt=self.options.dt, **imu_kw)
+        result = solver.solve(obs)
+        self.counters["person_solves"] += 1
+        if not result.summary.converged:
+            self.counters["not_converged"] += 1
+        views = len(person.detections)
+        used = conf[conf > 0]
+        confidence = float(used.mean()) * min(1.0, views / 2.0) if used.size else 0.0
+        joints = self._joints(solver, result.theta)
+        return PersonPose(
+            person.identity, person.track, person.suit, result.theta, joints, confidence, views, n_imu,
+            result.summary.iterations, result.summary.converged,
+        )  # fmt: skip
+
+    def _joints(self, solver: PoseSolver, theta: FloatArray) -> FloatArray:
+        """Global joint positions (21, 3): the solver's compiled forward kinematics when it has one."""
+        static = solver._kernel_static
+        if static is None:
+            positions: FloatArray = self.kin.forward(theta).positions
+            return positions
+        return np.asarray(
+            _kernel.skeleton_points(theta, static.parents, static.offsets, self._bone_ids, self._zero_offsets)
+        )
+
+    def _forget_released(self, seen: set[str]) -> None:
+        """Drop the solvers of identities the tracker no longer knows (released subjects)."""
+        known = {f"track:{s.id}" for s in self.people.tracker.subjects}
+        if self.people.binder is not None:
+            known |= {f"suit:{s}" for s in self.people.binder.state.pairs}
+        for identity in list(self.solvers):
+            if identity not in known and identity not in seen:
+                del self.solvers[identity]
+
+    def camera_frames(self) -> list[tuple[list[int], list[Detections2D]]]:
+        """A copy of every camera's kept frames (for offset estimation off the event loop)."""
+        return [tl.frames() for tl in self.timelines]
+
+    # ------------------------------------------------------------------------------------------- status
+    def status(self) -> dict[str, Any]:
+        """JSON-able counters and latency percentiles."""
+        return {
+            "frame": self.frame,
+            "counters": dict(self.counters),
+            "latency_ms": {k: v.summary() for k, v in self.latency.items()},
+            "cpu_s": {k: round(v / 1e9, 3) for k, v in self.cpu_ns.items()},
+            "cameras": [
+                {"frames": tl.frames_received, "rejected": tl.rejected_out_of_order, "samples": dict(st)}
+                for tl, st in zip(self.timelines, self.keypoint_status, strict=True)
+            ],
+            "imu_samples": {k: dict(v) for k, v in self.imu_status.items()},
+            "people": self.people.status(),
+            "solvers": sorted(self.solvers),
+            "suggested_camera_offsets_ms": self.suggested_offsets,
+        }
+
+
+def _bracket(buf: RingBuffer, t: int, a: FloatArray, b: FloatArray, alpha: FloatArray, i: int) -> LookupStatus:
+    """The two samples around ``t`` (into ``a`` and ``b``) and the blend weight (into ``alpha[i]``), with the
+    outcomes of :meth:`RingBuffer.sample` (OK, EMPTY, BEFORE, AFTER, GAP)."""
+    times = buf.times()
+    if times.size == 0:
+        return LookupStatus.EMPTY
+    if t < times[0]:
+        return LookupStatus.BEFORE
+    if t > times[-1]:
+        return LookupStatus.AFTER
+    k = int(np.searchsorted(times, t, side="right")) - 1
+    rows = buf.rows()
+    if times[k] == t:
+        a[:] = b[:] = rows[k]
+        alpha[i] = 0.0
+        return LookupStatus.OK
+    t0, t1 = int(times[k]), int(times[k + 1])
+    if t1 - t0 > buf.max_gap_ns:
+        return LookupStatus.GAP
+    a[:] = rows[k]
+    b[:] = rows[k + 1]
+    alpha[i] = (t - t0) / (t1 - t0)
+    return LookupStatus.OK
+
+
+def _conj(q: FloatArray) -> FloatArray:
+    out: FloatArray = q * np.array([1.0, -1.0, -1.0, -1.0])
+    return out
+
+
+# COCO-17 indices used to place a new person
+_L_HIP, _R_HIP = 11, 12
+
+
+def initial_pose(skeleton: Skeleton, keypoints: FloatArray) -> FloatArray:
+    """A warm start from triangulated COCO-17 keypoints (17, 3): rest pose at the mid-hip, facing away from the
+    hip line (the solver then converges over the next frames). Rest pose when the hips are not known."""
+    theta = skeleton.rest_pose()
+    kp = np.asarray(keypoints, dtype=np.float64)
+    if kp.shape != (17, 3) or not np.all(np.isfinite(kp[[_L_HIP, _R_HIP]])):
+        return theta
+    left, right = kp[_L_HIP], kp[_R_HIP]
+    mid = 0.5 * (left + right)
+    theta[0:3] = mid
+    d = left - right  # the person's left, +X in the rest pose (facing +Z)
+    theta[3:6] = [0.0, float(np.arctan2(-d[2], d[0])), 0.0]
+    assert theta.shape == (POSE_DIM,)
+    return theta
+
+
+def estimate_camera_offsets(
+    names: list[str], frames: list[tuple[list[int], list[Detections2D]]], current_ns: tuple[int, ...]
+) -> dict[str, dict[str, float]]:
+    """Per camera (the first is the reference): the offset that would align its keypoint speeds with the first
+    camera's, in ms, in the convention of ``[daemon.offsets]`` (added to what is configured), with the
+    correlation peak as quality. Cameras without enough moving data are left out."""
+    ref_t, ref_v = keypoint_speed(np.asarray(frames[0][0], dtype=np.int64), frames[0][1])
+    out: dict[str, dict[str, float]] = {}
+    offsets = current_ns[1:] or (0,) * (len(names) - 1)
+    for name, (times, dets), offset in zip(names[1:], frames[1:], offsets, strict=True):
+        t, v = keypoint_speed(np.asarray(times, dtype=np.int64), dets)
+        est = estimate_lag(ref_t, ref_v, t, v)
+        if est is not None:
+            out[name] = {"offset_ms": round((offset + est.lag_ns) / 1e6, 1), "quality": round(est.quality, 3)}
+    return out

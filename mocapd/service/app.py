@@ -1,0 +1,280 @@
+"""The daemon: IMU inputs, keypoint sources, the fixed-latency scheduler and the status server under one
+``asyncio.TaskGroup``, each long-running task supervised (failure logged, counted, restarted with back-off).
+
+Life cycle: the solver kernel is loaded (off the event loop), the HTTP server listens, every task starts, then
+``READY=1`` goes to systemd. SIGINT/SIGTERM set the stop event: ``STOPPING=1``, serial devices close their ports,
+tasks are cancelled, pose sinks are flushed and closed, and :meth:`Daemon.run` returns (within
+``shutdown_timeout_s``). With ``WatchdogSec`` set, ``WATCHDOG=1`` is sent from the tick loop, so a stuck solver
+stops the pings and systemd restarts the service.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from mocapd.core.camera import Camera
+from mocapd.core.keypoints import TrackTargets
+from mocapd.core.people import PeopleTracker
+from mocapd.core.prior import PcaPrior
+from mocapd.core.skeleton import Skeleton
+from mocapd.core.solver import Observations, PoseSolver
+from mocapd.core.sorting import Detections2D, DetectionSorter
+from mocapd.core.suit_binding import SuitBinder
+from mocapd.core.tracking import SubjectTracker
+from mocapd.io.sd_notify import SdNotifier
+from mocapd.pipeline.keypoint_source import KeypointSource
+from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, Suit, TickPlan, estimate_camera_offsets
+from mocapd.service.config import Config
+from mocapd.service.http_status import StatusServer
+from mocapd.service.imu_service import ImuInputs
+from mocapd.service.metrics import render_metrics
+from mocapd.service.supervisor import Supervisor
+
+log = logging.getLogger(__name__)
+
+
+class PoseSink(Protocol):
+    """Where published frames go (the streaming issue adds WebSocket / MVN / VMC sinks)."""
+
+    def publish(self, frame: PoseFrame) -> None: ...
+
+    def close(self) -> None:
+        """Flush and release; called once at shutdown."""
+        ...
+
+
+@dataclass
+class Rig:
+    """What the daemon captures with: cameras with their keypoint sources, the people's model, the suits."""
+
+    cameras: list[Camera]
+    sources: list[KeypointSource]
+    skeleton: Skeleton
+    targets: TrackTargets
+    prior: PcaPrior | None = None
+    suits: list[Suit] = field(default_factory=list)
+
+
+class Daemon:
+    """The running service. ``await run()``; ``request_stop()`` (or a signal) ends it."""
+
+    def __init__(
+        self,
+        config: Config,
+        rig: Rig,
+        *,
+        sinks: list[PoseSink] | None = None,
+        clock: Callable[[], int] = time.monotonic_ns,
+        notifier: SdNotifier | None = None,
+        status_line: Callable[[str], None] | None = None,
+    ) -> None:
+        self.config = config
+        self.rig = rig
+        self.sinks = list(sinks or [])
+        self.clock = clock
+        self.notifier = notifier if notifier is not None else SdNotifier()
+        self.status_line = status_line
+        d = config.daemon
+        self.imu = ImuInputs(config.imu)
+        tracker = PeopleTracker(
+            SubjectTracker(DetectionSorter(rig.cameras, config.tracking.sorting), config.tracking.enrolment),
+            SuitBinder(rig.skeleton, config.tracking.binding) if rig.suits else None,
+        )
+        self.scheduler = FixedLatencyScheduler(
+            rig.cameras,
+            rig.skeleton,
+            rig.targets,
+            tracker,
+            prior=rig.prior,
+            ingest=self.imu.ingest,
+            suits=rig.suits,
+            options=d.scheduler_options([c.name for c in rig.cameras]),
+            cost=config.solver.cost,
+            lm=config.solver.lm,
+            backend=config.solver.backend,
+        )
+        self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
+        self.http = StatusServer(self.status, self.metrics, d.http_host, d.http_port)
+        self.plan: TickPlan | None = None
+        self.latest: PoseFrame | None = None
+        self.started_ns = clock()
+        self.ready = asyncio.Event()
+        self._stop = asyncio.Event()
+        self._rate_window: list[int] = []  # tick times of the last second, for the achieved rate
+        self.stopping = False
+
+    # ------------------------------------------------------------------------------------------ control
+    def request_stop(self) -> None:
+        """Begin a clean shutdown (signal handlers call this)."""
+        self._stop.set()
+
+    async def run(self) -> int:
+        """Serve until stopped; returns the process exit status."""
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):  # not the main thread: caller's job
+                loop.add_signal_handler(sig, self.request_stop)
+        self.notifier.notify("STATUS=loading the solver kernel")
+        await loop.run_in_executor(None, self._warm_up)
+        await self.http.start()
+        self.notifier.notify("STATUS=starting inputs")
+        try:
+            async with asyncio.timeout(None) as deadline:
+                await self._serve(deadline)
+        except TimeoutError:
+            # A task ignored its cancellation for shutdown_timeout_s: leave it behind rather than hang the stop.
+            log.error("shutdown: tasks still running after %.1f s, abandoned", self.config.daemon.shutdown_timeout_s)
+        finally:
+            for sink in self.sinks:
+                sink.close()
+            await self.http.close()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                with contextlib.suppress(NotImplementedError, RuntimeError):
+                    loop.remove_signal_handler(sig)
+            self.notifier.close()
+        return 0
+
+    async def _serve(self, deadline: asyncio.Timeout) -> None:
+        async with asyncio.TaskGroup() as tg:
+            tasks = [tg.create_task(self.supervisor.supervise("imu", self.imu.run))]
+            for src in self.rig.sources:
+                tasks.append(tg.create_task(self.supervisor.supervise(f"keypoints:{src.name}", self._source(src))))
+            tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop)))
+            tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop)))
+            self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
+            self.ready.set()
+            await self._stop.wait()
+            self.stopping = True
+            deadline.reschedule(asyncio.get_running_loop().time() + self.config.daemon.shutdown_timeout_s)
+            self.notifier.notify("STOPPING=1", "STATUS=stopping")
+            self.imu.stop()
+            for device in self.imu.devices:
+                device.stop()  # closes the serial ports now
+            for t in tasks:
+                t.cancel()
+
+    def _warm_up(self) -> None:
+        """Load (or compile, the first time on a machine) the solver kernel before serving."""
+        mounts = self.rig.suits[0].mounts if self.rig.suits else ()
+        s = PoseSolver(self.rig.skeleton, self.rig.cameras, self.rig.targets, mounts, self.rig.prior,
+                       self.config.solver.cost, self.config.solver.lm,
+                       backend="numpy" if self.config.solver.backend == "numpy" else "compiled")  # fmt: skip
+        n_cams, n_kp = len(self.rig.cameras), len(self.rig.targets)
+        s.solve(Observations(np.zeros((n_cams, n_kp, 2)), np.zeros((n_cams, n_kp))), update_state=False)
+
+    def _source(self, src: KeypointSource) -> Callable[[], Any]:
+        def sink(camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:
+            self.scheduler.add_detections(camera, capture_ns, dets, arrival_ns)
+
+        return lambda: src.run(sink)
+
+    async def _tick_loop(self) -> None:
+        period = self.scheduler.options.period_ns
+        previous = self.plan
+        plan = self.plan = TickPlan(period, self.clock() + period)
+        plan.missed = previous.missed if previous is not None else 0  # a restarted loop keeps the count
+        watchdog_every = self.notifier.watchdog_s / 2 if self.notifier.watchdog_s else None
+        last_ping = 0
+        while True:
+            await asyncio.sleep(max(0.0, (plan.next_ns - self.clock()) / 1e9))
+            # Solve for the scheduled tick time, not the (jittery) wake-up time: output frames stay evenly spaced.
+            frame = self.scheduler.tick(plan.next_ns)
+            w0, c0 = self.scheduler.stage_clocks()
+            for sink in self.sinks:
+                sink.publish(frame)
+            self.latest = frame
+            published = self.clock()
+            self.scheduler.record_publish(frame, w0, c0, published)
+            self._rate_window = [t for t in self._rate_window if t > published - 1_000_000_000] + [published]
+            if watchdog_every is not None and published - last_ping > watchdog_every * 1e9:
+                self.notifier.notify("WATCHDOG=1")
+                last_ping = published
+            plan.advance(self.clock())
+
+    async def _status_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        names = [c.name for c in self.rig.cameras]
+        ticks = 0
+        while True:
+            await asyncio.sleep(1.0)
+            ticks += 1
+            if ticks % 10 == 0:  # offset suggestions from the last seconds of keypoints, computed off the loop
+                frames = self.scheduler.camera_frames()
+                offsets = self.scheduler.options.camera_offsets_ns
+                self.scheduler.suggested_offsets = await loop.run_in_executor(
+                    None, estimate_camera_offsets, names, frames, offsets
+                )
+            line = self.status_line_text()
+            self.notifier.notify(f"STATUS={line}")
+            if self.status_line is not None:
+                self.status_line(line)
+
+    # ------------------------------------------------------------------------------------------ health
+    def status_line_text(self) -> str:
+        s = self.scheduler.status()
+        e2e = s["latency_ms"]["end_to_end"]
+        streaming = sum(1 for d in self.imu.devices if d.streaming.is_set())
+        people = ", ".join(p.identity for p in self.latest.people) if self.latest else ""
+        return (
+            f"t={(self.clock() - self.started_ns) / 1e9:6.1f} s  output {len(self._rate_window):3d} Hz  "
+            f"missed {self.plan.missed if self.plan else 0}  e2e p50 {e2e['p50']} ms  "
+            f"IMUs {streaming}/{len(self.imu.devices)}  people [{people}]"
+        )
+
+    def status(self) -> dict[str, Any]:
+        """The /status document."""
+        s = self.scheduler.status()
+        frame = self.latest
+        return {
+            "uptime_s": round((self.clock() - self.started_ns) / 1e9, 3),
+            "ready": self.ready.is_set(),
+            "stopping": self.stopping,
+            "output": {
+                "configured_hz": self.scheduler.options.rate_hz,
+                "achieved_hz": len(self._rate_window),
+                "frames": s["frame"],
+                "missed_ticks": self.plan.missed if self.plan else 0,
+                "latency_s": self.scheduler.options.latency_ns / 1e9,
+            },
+            "latency_ms": s["latency_ms"],
+            "cpu_s": s["cpu_s"],
+            "counters": s["counters"],
+            "cameras": [
+                {**src.status(), **cam} for src, cam in zip(self.rig.sources, s["cameras"], strict=False)
+            ],
+            "imu": self.imu.status(),
+            "imu_lookups": s["imu_samples"],
+            "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
+            "subjects": s["people"],
+            "time_alignment": {
+                "configured_camera_offsets_ms": {
+                    c.name: o / 1e6
+                    for c, o in zip(self.rig.cameras, self.scheduler.options.camera_offsets_ns, strict=False)
+                },
+                "suggested_camera_offsets_ms": s["suggested_camera_offsets_ms"],
+            },
+            "frame": None if frame is None else {
+                "frame": frame.frame,
+                "t_solve_ns": frame.t_solve_ns,
+                "missing_cameras": frame.missing_cameras,
+                "people": [
+                    {"identity": p.identity, "suit": p.suit, "root_m": [round(float(v), 4) for v in p.theta[:3]],
+                     "confidence": round(p.confidence, 3), "views": p.views, "imus": p.imus,
+                     "iterations": p.iterations}
+                    for p in frame.people
+                ],
+            },
+        }  # fmt: skip
+
+    def metrics(self) -> str:
+        """The /metrics document (Prometheus text format 0.0.4)."""
+        return render_metrics(self)

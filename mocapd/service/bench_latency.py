@@ -1,0 +1,90 @@
+"""``mocapd bench latency``: the synthetic demo daemon run for a while, measured from inside, as JSON.
+
+Reports the end-to-end latency (solve instant -> frame published; it includes the configured fixed latency),
+per-stage latency and CPU, the output rate achieved against the configured one (missed ticks), the detector
+delay, the process CPU, resident memory over the run (growth after the warm-up, when the motion loop and every
+cache have been filled once) and the joint error against the synthetic truth.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import platform
+import resource
+import time
+from dataclasses import replace
+from typing import Any
+
+from mocapd.service.config import load_config
+from mocapd.service.demo_synthetic import running_demo
+
+WARM_UP_S = 15.0  # > one motion loop (12 s): the simulators' packet caches are full
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as fh:
+        pages = int(fh.read().split()[1])
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def run(seconds: float = 60.0, cameras: int = 4, people: int = 2) -> dict[str, Any]:
+    cfg = load_config()
+    syn = replace(cfg.daemon.synthetic, cameras=cameras, people=people, suits=min(1, people))
+    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, synthetic=syn))
+    load0 = os.getloadavg()
+    rss: list[tuple[float, float]] = []
+    with running_demo(cfg) as demo:
+        d = demo.daemon
+
+        async def main() -> None:
+            task = asyncio.create_task(d.run())
+            await d.ready.wait()
+            t0 = time.monotonic()
+            cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+            while time.monotonic() - t0 < seconds:
+                await asyncio.sleep(1.0)
+                rss.append((round(time.monotonic() - t0, 1), round(_rss_mb(), 1)))
+            cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+            wall = time.monotonic() - t0
+            run_stats["process_cpu_fraction_of_one_core"] = round(
+                (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime) / wall, 3
+            )
+            run_stats["wall_s"] = round(wall, 1)
+            run_stats["imu_streaming"] = sum(1 for x in d.imu.devices if x.streaming.is_set())
+            d.request_stop()
+            await task
+
+        run_stats: dict[str, Any] = {}
+        asyncio.run(main())
+        st = d.status()
+        frames = st["output"]["frames"]
+        after = [m for t, m in rss if t >= WARM_UP_S]
+        err = demo.truth.recent_mm(10**9)
+        return {
+            "rig": {"cameras": cameras, "people": people, "suits": syn.suits, "imus": 13 * syn.suits,
+                    "camera_rate_hz": syn.camera_rate_hz, "detection_delay_ms": 1e3 * syn.detection_delay_s,
+                    "imu_rate_hz": syn.imu_rate_hz, "transport": "Xbus over pseudo-terminals (tools/xsens_sim)"},
+            "duration_s": run_stats["wall_s"],
+            "configured": {"output_rate_hz": cfg.daemon.output_rate_hz, "latency_ms": 1e3 * cfg.daemon.latency_s},
+            "output": {"frames": frames, "achieved_hz": round(frames / run_stats["wall_s"], 2),
+                       "missed_ticks": st["output"]["missed_ticks"]},
+            "end_to_end_ms": st["latency_ms"]["end_to_end"],
+            "stage_latency_ms": {k: v for k, v in st["latency_ms"].items() if k != "end_to_end"},
+            "stage_cpu_s": st["cpu_s"],
+            "stage_cpu_ms_per_frame": {k: round(1e3 * v / max(frames, 1), 3) for k, v in st["cpu_s"].items()},
+            "process_cpu_fraction_of_one_core": run_stats["process_cpu_fraction_of_one_core"],
+            "memory_mb": {
+                "rss_samples": rss[:: max(1, len(rss) // 12)],
+                "after_warm_up_first": after[0] if after else None,
+                "after_warm_up_last": after[-1] if after else None,
+                "growth_after_warm_up": round(after[-1] - after[0], 1) if len(after) > 1 else None,
+                "warm_up_s": WARM_UP_S,
+            },
+            "median_joint_error_mm": None if err is None else round(err, 2),
+            "imu_devices_streaming_at_end": run_stats["imu_streaming"],
+            "imu_disconnects": sum(x["disconnects"] for x in st["imu"]["devices"]),
+            "task_failures": {k: v["failures"] for k, v in st["tasks"].items()},
+            "machine": {"cpus": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load0],
+                        "python": platform.python_version()},
+        }  # fmt: skip

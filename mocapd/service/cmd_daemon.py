@@ -1,0 +1,143 @@
+"""``mocapd run``, ``mocapd demo``, ``mocapd check-config`` and ``mocapd bench latency``."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from mocapd.errors import ConfigError
+from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
+
+
+def _subcommand_group(subparsers: Any, name: str) -> Any:
+    """The sub-subparsers of an existing command group (e.g. ``bench``)."""
+    parser = subparsers.choices[name]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return action
+    raise LookupError(name)  # a programming error: the group must exist before register() runs
+
+
+def _load(path: Path | None, http_port: int | None = None) -> Config:
+    cfg = load_config(path)
+    if http_port is not None:
+        cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=http_port))
+    return cfg
+
+
+def _sinks(args: argparse.Namespace) -> list[Any]:
+    if getattr(args, "poses", None) is None:
+        return []
+    from mocapd.io.pose_file import JsonLinesPoseSink
+
+    return [JsonLinesPoseSink(args.poses)]
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    path = args.path if args.path is not None else DEFAULT_CONFIG
+    try:
+        cfg = load_config(path)
+        cfg.daemon.scheduler_options([f"cam{i}" for i in range(cfg.daemon.synthetic.cameras)])
+    except ConfigError as exc:
+        print(f"{path}: error: {exc}", file=sys.stderr)
+        return 2
+    d = cfg.daemon
+    print(
+        f"{path}: ok (rig {d.rig}, output {d.output_rate_hz:g} Hz, latency {1e3 * d.latency_s:g} ms, "
+        f"{len(cfg.imu.ports)} serial IMU port(s), status http://{d.http_host}:{d.http_port}/status)"
+    )
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from mocapd.service import demo_synthetic
+
+    if not args.synthetic:
+        print(
+            "note: the camera demo (fake GigE cameras streaming the Pose2Sim videos through the detector) needs "
+            "the detector, which is not in this build yet; running the synthetic rig instead.",
+            flush=True,
+        )
+    try:
+        cfg = _load(args.config, args.http_port)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, sinks=_sinks(args))
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from mocapd.service.app import Daemon, Rig
+    from mocapd.service.bench_solver import synthetic_prior
+    from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
+
+    try:
+        cfg = _load(args.config, args.http_port)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    syn = cfg.daemon.synthetic
+    world = SyntheticWorld(syn.cameras, syn.people, 0, seed=syn.seed)
+    import time
+
+    epoch = time.monotonic_ns()
+    sources = [
+        SyntheticKeypointSource(world, c, epoch_ns=epoch, rate_hz=syn.camera_rate_hz, delay_s=syn.detection_delay_s,
+                                noise_px=syn.noise_px, seed=syn.seed)
+        for c in range(len(world.cameras))
+    ]  # fmt: skip
+    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, synthetic_prior())
+    daemon = Daemon(
+        cfg, rig, sinks=_sinks(args), status_line=(lambda s: print(s, flush=True)) if args.verbose else None
+    )
+    print(f"mocapd run: status http://{cfg.daemon.http_host}:{cfg.daemon.http_port}/status", flush=True)
+    return asyncio.run(daemon.run())
+
+
+def cmd_bench_latency(args: argparse.Namespace) -> int:
+    from mocapd.service import bench_latency
+
+    print(json.dumps(bench_latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    """Add run, demo, check-config and ``bench latency`` to the CLI."""
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    run = subparsers.add_parser("run", help="run the daemon (config.toml; rig 'synthetic' until the detector lands)")
+    run.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
+    run.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
+    run.add_argument(
+        "--poses", type=Path, default=None, help="also write every published frame to this JSON-lines file"
+    )
+    run.add_argument("--verbose", action="store_true", help="print a status line per second")
+    run.set_defaults(func=cmd_run)
+
+    demo = subparsers.add_parser("demo", help="the full daemon on an embedded rig, no hardware needed")
+    demo.add_argument(
+        "--synthetic", action="store_true", help="synthetic motion: simulated keypoints + Xsens IMUs on ptys"
+    )
+    demo.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: until Ctrl-C)")
+    demo.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
+    demo.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
+    demo.add_argument(
+        "--poses", type=Path, default=None, help="also write every published frame to this JSON-lines file"
+    )
+    demo.set_defaults(func=cmd_demo)
+
+    check = subparsers.add_parser("check-config", help="validate a config file and say what is wrong")
+    check.add_argument("path", nargs="?", type=Path, default=None, help="config file (default: the shipped one)")
+    check.set_defaults(func=cmd_check_config)
+
+    bench = _subcommand_group(subparsers, "bench")
+    lat = bench.add_parser("latency", help="daemon end-to-end latency, output rate, CPU and memory (synthetic rig)")
+    lat.add_argument("--seconds", type=float, default=60.0, help="run length (default 60)")
+    lat.add_argument("--cameras", type=int, default=4)
+    lat.add_argument("--people", type=int, default=2)
+    lat.set_defaults(func=cmd_bench_latency)

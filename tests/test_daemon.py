@@ -1,0 +1,167 @@
+"""The daemon on the synthetic rig, in-process: real simulated Xsens devices on ptys through mocapd's serial path,
+synthetic keypoint sources, the scheduler, the supervisor and the HTTP status server queried over loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mocapd.errors import DeviceError
+from mocapd.pipeline.keypoint_source import KeypointSink, KeypointSource
+from mocapd.pipeline.scheduler import PoseFrame
+from mocapd.service.config import load_config
+from mocapd.service.demo_synthetic import running_demo
+from mocapd.service.supervisor import Supervisor
+
+
+async def http_get(port: int, target: str, method: str = "GET") -> tuple[int, dict[str, str], bytes]:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(f"{method} {target} HTTP/1.1\r\nHost: localhost\r\n\r\n".encode())
+    await writer.drain()
+    data = await reader.read()
+    writer.close()
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode().split("\r\n")
+    headers = dict(line.split(": ", 1) for line in lines[1:])
+    assert int(headers["Content-Length"]) == len(body)
+    return int(lines[0].split(" ")[1]), headers, body
+
+
+class FlakySource:
+    """A keypoint source that fails once (like a camera that drops off the network), then works."""
+
+    def __init__(self, inner: KeypointSource) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.camera = inner.camera
+        self.failed = False
+
+    async def run(self, sink: KeypointSink) -> None:
+        if not self.failed:
+            await asyncio.sleep(0.5)
+            self.failed = True
+            raise DeviceError(f"camera {self.name}: link lost (test)")
+        await self.inner.run(sink)
+
+    def status(self) -> dict[str, Any]:
+        return self.inner.status()
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.frames: list[PoseFrame] = []
+
+    def publish(self, frame: PoseFrame) -> None:
+        self.frames.append(frame)
+
+    def close(self) -> None:
+        return None
+
+
+async def wait_for(cond: Callable[[], bool], timeout: float, what: str) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while not cond():
+        if loop.time() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+@pytest.mark.asyncio
+async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug() -> None:
+    cfg = load_config()
+    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, restart_min_s=0.1, restart_max_s=0.2))
+    rec = Recorder()
+    with running_demo(cfg, sinks=[rec]) as demo:
+        d = demo.daemon
+        d.rig.sources[1] = FlakySource(d.rig.sources[1])
+        task = asyncio.create_task(d.run())
+        await asyncio.wait_for(d.ready.wait(), 120)
+
+        def suited(n_imu: int) -> bool:
+            return bool(rec.frames) and any(p.suit == "suit0" and p.imus == n_imu for p in rec.frames[-1].people)
+
+        await wait_for(lambda: suited(13) and len(rec.frames[-1].people) == 2, 30, "both people, suit bound")
+        port = d.http.port
+
+        code, headers, body = await http_get(port, "/status")
+        assert code == 200 and headers["Content-Type"] == "application/json"
+        st = json.loads(body)
+        assert st["ready"] and st["output"]["configured_hz"] == 60.0
+        assert sum(1 for x in st["imu"]["devices"] if x["streaming"]) == 13
+        assert st["tasks"]["keypoints:cam1"]["failures"] == 1  # the flaky camera failed, was restarted
+        assert st["tasks"]["keypoints:cam1"]["running"] and st["cameras"][1]["frames"] > 0
+        assert st["latency_ms"]["end_to_end"]["p50"] >= 150.0  # includes the configured fixed latency
+        assert {p["identity"] for p in st["frame"]["people"]} >= {"suit:suit0"}
+        assert st["subjects"]["suits"]["suit0"]["confidence"] > 0.5
+
+        code, headers, body = await http_get(port, "/metrics")
+        text = body.decode()
+        assert code == 200 and headers["Content-Type"].startswith("text/plain; version=0.0.4")
+        assert "# TYPE mocapd_latency_seconds histogram" in text
+        assert 'mocapd_latency_seconds_bucket{stage="end_to_end",le="+Inf"}' in text
+        assert 'mocapd_task_failures_total{task="keypoints:cam1"} 1' in text
+        assert text.count("mocapd_imu_device_streaming{") == 13
+        assert (await http_get(port, "/nope"))[0] == 404
+        assert (await http_get(port, "/status", method="POST"))[0] == 405
+
+        # Unplug one simulated IMU: the daemon keeps publishing, reports it, and recovers when it returns.
+        sim = demo.simulators[0]
+        frames_before = len(rec.frames)
+        sim.unplug()
+        device = next(x for x in d.imu.devices if x.config.path == str(sim.link))
+        await wait_for(lambda: not device.streaming.is_set(), 10, "the unplug to be noticed")
+        await wait_for(lambda: suited(12), 10, "the suit solved with 12 IMUs")
+        st = json.loads((await http_get(port, "/status"))[2])
+        dev = next(x for x in st["imu"]["devices"] if x["path"] == str(sim.link))
+        assert not dev["streaming"] and dev["disconnects"] >= 1
+        assert len(rec.frames) > frames_before
+        sim.replug()
+        await wait_for(lambda: device.streaming.is_set() and suited(13), 20, "the replugged IMU to stream")
+
+        d.request_stop()
+        assert await asyncio.wait_for(task, 5) == 0
+
+    # Poses at the configured rate: solve times on the 60 Hz grid, every missed slot counted.
+    t = np.array([f.t_solve_ns for f in rec.frames])
+    period = d.scheduler.options.period_ns
+    steps = np.diff(t)
+    assert np.all(steps % period == 0) and np.all(steps > 0)
+    assert d.plan is not None
+    # Every output slot from the first frame up to the next scheduled one was either published or counted missed.
+    assert len(rec.frames) + d.plan.missed == (d.plan.next_ns - rec.frames[0].tick_ns) // period
+    # Bounded error against the synthetic truth once both people are tracked.
+    assert demo.truth.recent_mm(300) is not None
+    assert float(np.median(list(demo.truth.errors)[-300:])) < 0.02
+
+
+@pytest.mark.asyncio
+async def test_supervisor_restarts_with_back_off_and_lets_cancellation_through() -> None:
+    sup = Supervisor(restart_min_s=0.01, restart_max_s=0.04)
+    runs: list[float] = []
+
+    async def failing() -> None:
+        runs.append(asyncio.get_running_loop().time())
+        raise DeviceError("boom")
+
+    task = asyncio.create_task(sup.supervise("x", failing))
+    await wait_for(lambda: len(runs) >= 5, 5, "five attempts")
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    h = sup.tasks["x"]
+    assert h.failures >= 5 and h.last_error == "DeviceError: boom" and not h.running
+    gaps = np.diff(runs[:5])
+    assert gaps[-1] >= 0.04 - 1e-3  # capped doubling: 0.01, 0.02, 0.04, 0.04
+
+    async def done() -> None:
+        return None
+
+    await asyncio.wait_for(sup.supervise("once", done, restart_on_exit=False), 1)
+    assert sup.tasks["once"].starts == 1

@@ -1,0 +1,113 @@
+"""The daemon as a process: sd_notify over a real datagram socket, SIGTERM shutdown within 2 s with the pose
+file flushed, and the sd_notify client on its own."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from mocapd.io.sd_notify import SdNotifier
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _recv_until(sock: socket.socket, needle: str, timeout: float) -> list[str]:
+    got: list[str] = []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        sock.settimeout(max(0.01, end - time.monotonic()))
+        try:
+            msg = sock.recv(4096).decode()
+        except TimeoutError:
+            break
+        got.append(msg)
+        if needle in msg.split("\n"):
+            return got
+    raise AssertionError(f"no {needle} within {timeout} s; got {got}")
+
+
+def test_sigterm_stops_the_daemon_within_two_seconds_with_poses_flushed(tmp_path: Path) -> None:
+    notify_path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(notify_path))
+    poses = tmp_path / "poses.jsonl"
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "1000000"}
+    env.pop("WATCHDOG_PID", None)
+    cmd = [sys.executable, "-m", "mocapd.service.cli", "demo", "--synthetic", "--http-port", "0",
+           "--poses", str(poses)]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        _recv_until(sock, "READY=1", 180)
+        messages = _recv_until(sock, "WATCHDOG=1", 5)  # pinged at half of WatchdogSec
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=10)
+        elapsed = time.monotonic() - t0
+        messages += _recv_until(sock, "STOPPING=1", 1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sock.close()
+    out = proc.stdout.read() if proc.stdout else ""
+    assert rc == 0, out
+    assert elapsed < 2.0, f"shutdown took {elapsed:.2f} s"
+    assert "ready: status http://127.0.0.1:" in out
+    lines = poses.read_text().splitlines()
+    assert len(lines) > 30
+    last = json.loads(lines[-1])  # complete: the buffer was flushed, not cut mid-line
+    assert last["v"] == 1 and last["frame"] == len(lines)
+    assert any(m.startswith("STATUS=") for m in messages)
+
+
+def test_notifier_speaks_the_datagram_protocol(tmp_path: Path) -> None:
+    path = tmp_path / "n.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    n = SdNotifier({"NOTIFY_SOCKET": str(path), "WATCHDOG_USEC": "3000000", "WATCHDOG_PID": str(os.getpid())})
+    assert n.enabled and n.watchdog_s == 3.0
+    assert n.notify("READY=1", "STATUS=hello")
+    assert sock.recv(100) == b"READY=1\nSTATUS=hello"
+    sock.close()
+    assert not n.notify("WATCHDOG=1")  # the manager went away: counted, not raised
+    assert n.errors == 1
+    n.close()
+    abstract = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    name = f"mocapd-test-{os.getpid()}"
+    abstract.bind("\0" + name)
+    m = SdNotifier({"NOTIFY_SOCKET": "@" + name, "WATCHDOG_USEC": "5", "WATCHDOG_PID": "1"})
+    assert m.watchdog_s is None  # the watchdog is someone else's
+    assert m.notify("STOPPING=1") and abstract.recv(100) == b"STOPPING=1"
+    abstract.close()
+    m.close()
+    assert not SdNotifier({}).notify("READY=1")
+
+
+def test_run_serves_until_sigint(tmp_path: Path) -> None:
+    notify_path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(notify_path))
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_path)}
+    env.pop("WATCHDOG_USEC", None)
+    cmd = [sys.executable, "-m", "mocapd.service.cli", "run", "--http-port", "0", "--verbose"]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        ready = _recv_until(sock, "READY=1", 180)
+        assert any("STATUS=serving http://127.0.0.1:" in m for m in ready)
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=10)
+        _recv_until(sock, "STOPPING=1", 1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sock.close()
+    out = proc.stdout.read() if proc.stdout else ""
+    assert rc == 0, out
+    assert "output" in out and "people [" in out  # the per-second status line
