@@ -11,6 +11,7 @@ sources keep running. ``run`` returns when the source ends (end of a file) and s
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import logging
 import threading
@@ -82,7 +83,7 @@ class LatencyLog:
         return self.values[: min(self.count, self.size)].copy()
 
 
-class ThreadedSource:
+class ThreadedSource(abc.ABC):
     """Base class: a frame source read by one thread and supervised by an asyncio task.
 
     Subclasses implement :meth:`_open`, :meth:`_grab` and :meth:`_close`, all called in the capture thread.
@@ -107,22 +108,22 @@ class ThreadedSource:
         self.opened = threading.Event()  # set while the device is open and streaming
         self.thread_id: int | None = None  # native id of the current capture thread (for CPU accounting)
 
-    # -- to implement ---------------------------------------------------------------------------------------
+    # -- subclasses implement -----------------------------------------------------------------------------
+    @abc.abstractmethod
     def _open(self) -> None:
         """Open and start the device (blocking). Raise DeviceError on failure."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _grab(self) -> FrameRef | bool | None:
         """Wait for one frame and publish it into the ring.
 
         Returns the frame's reference, None when no frame came (time-out; the caller loops) or False when the
         source has ended (end of file). Raise DeviceError when the device failed.
         """
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _close(self) -> None:
         """Stop and release the device. Must not raise."""
-        raise NotImplementedError
 
     # -- supervision ----------------------------------------------------------------------------------------
     def _thread_main(
