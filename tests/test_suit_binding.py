@@ -6,10 +6,9 @@ import numpy as np
 
 from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.rotations import quat_from_matrix, quat_from_rotvec, quat_multiply
-from mocapd.core.skeleton import BONE_INDEX, Skeleton
-from mocapd.core.suit_binding import LIMBS, BindingOptions, SuitBinder, yaw_aligned_angle
-from mocapd.core.synthetic import walking_path
+from mocapd.core.skeleton import Skeleton
+from mocapd.core.suit_binding import BindingOptions, SuitBinder, yaw_aligned_angle
+from mocapd.core.synthetic import suit_orientations, walking_path
 
 FPS = 30.0
 NS = int(1e9 / FPS)
@@ -30,18 +29,6 @@ def _keypoints(sk: Skeleton, theta: np.ndarray, rng: np.random.Generator) -> np.
     return kin.targets(kin.forward(theta), t.bones, t.offsets) + rng.normal(scale=0.02, size=(len(t), 3))
 
 
-def _suit(sk: Skeleton, theta: np.ndarray, yaw_deg: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Measured bone orientations with a heading misalignment and 2° noise."""
-    R = Kinematics(sk).forward(theta).rotations
-    q_ig = quat_from_rotvec(np.array([0.0, np.radians(yaw_deg), 0.0]))
-    out = {}
-    for bone, _, _, _ in LIMBS:
-        q = quat_from_matrix(R[BONE_INDEX[bone]])
-        noise = quat_from_rotvec(rng.normal(scale=np.radians(2.0), size=3))
-        out[bone] = quat_multiply(noise, quat_multiply(q_ig, q))
-    return out
-
-
 def test_yaw_aligned_angle_ignores_heading() -> None:
     rng = np.random.default_rng(0)
     d = rng.normal(size=(40, 3))
@@ -60,7 +47,10 @@ def test_suits_pair_with_their_wearers_despite_heading_offsets() -> None:
     events = []
     for f in range(90):
         tracks = {10 + p: _keypoints(sk, people[p][f], rng) for p in range(3)}  # track 12 has no suit
-        suits = {"A": _suit(sk, people[0][f], 35.0, rng), "B": _suit(sk, people[1][f], -60.0, rng)}
+        suits = {
+            "A": suit_orientations(sk, people[0][f], 35.0, rng),
+            "B": suit_orientations(sk, people[1][f], -60.0, rng),
+        }
         events += binder.update(f * NS, tracks, suits)
     assert binder.state.pairs == {"A": 10, "B": 11}
     assert all(c > 0.5 for c in binder.state.confidence.values())
@@ -76,7 +66,10 @@ def test_identity_swap_of_the_tracks_is_repaired() -> None:
     for f in range(150):
         a, b = (0, 1) if f < 75 else (1, 0)  # after frame 75 track 1 follows person 1 and track 2 person 0
         tracks = {1: _keypoints(sk, people[a][f], rng), 2: _keypoints(sk, people[b][f], rng)}
-        suits = {"A": _suit(sk, people[0][f], 10.0, rng), "B": _suit(sk, people[1][f], 10.0, rng)}
+        suits = {
+            "A": suit_orientations(sk, people[0][f], 10.0, rng),
+            "B": suit_orientations(sk, people[1][f], 10.0, rng),
+        }
         events += binder.update(f * NS, tracks, suits)
         if f == 74:
             assert binder.state.pairs == {"A": 1, "B": 2}
@@ -91,5 +84,7 @@ def test_a_suit_matching_no_track_stays_unpaired() -> None:
     sk, people = _people(60)
     binder = SuitBinder(sk)
     for f in range(60):
-        binder.update(f * NS, {1: _keypoints(sk, people[0][f], rng)}, {"B": _suit(sk, people[1][f], 0.0, rng)})
+        binder.update(
+            f * NS, {1: _keypoints(sk, people[0][f], rng)}, {"B": suit_orientations(sk, people[1][f], 0.0, rng)}
+        )
     assert binder.state.pairs == {}

@@ -115,7 +115,7 @@ def test_people_tracker_reports_pairing_and_events_in_status() -> None:
 
     from mocapd.core.people import PeopleTracker
     from mocapd.core.suit_binding import SuitBinder
-    from mocapd.service.eval_tracking import _suit_measurements
+    from mocapd.core.synthetic import suit_orientations
 
     cams, dets, labels = _scene(60)
     sk = Skeleton.from_height(1.75)
@@ -123,7 +123,7 @@ def test_people_tracker_reports_pairing_and_events_in_status() -> None:
     tracker = PeopleTracker(SubjectTracker(DetectionSorter(cams), TrackingOptions(enrol_after_s=0.3)), SuitBinder(sk))
     rng = np.random.default_rng(5)
     for f in range(60):
-        out = tracker.update(f * NS, dets[f], {"A": _suit_measurements(sk, people[0][f], 20.0, rng)})
+        out = tracker.update(f * NS, dets[f], {"A": suit_orientations(sk, people[0][f], 20.0, rng)})
     status = json.loads(json.dumps(tracker.status()))  # JSON-able
     suited = next(p for p in out.people if p.suit == "A")
     assert suited.identity == "suit:A" and _true_person(suited.detections, labels[59]) == {0}

@@ -15,10 +15,11 @@ from mocapd.core.camera import Camera, look_at, project_points, stack_cameras
 from mocapd.core.imu import ImuMount
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.rotations import quat_from_matrix
+from mocapd.core.rotations import quat_from_matrix, quat_from_rotvec, quat_multiply
 from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
 from mocapd.core.solver import Observations
 from mocapd.core.sorting import Detections2D
+from mocapd.core.suit_binding import LIMBS
 
 FloatArray = NDArray[np.float64]
 
@@ -265,3 +266,20 @@ def waypoint_path(
     theta[:, 0] = np.interp(s, w[:, 0], w[:, 1])
     theta[:, 2] = np.interp(s, w[:, 0], w[:, 2])
     return theta
+
+
+def suit_orientations(
+    skeleton: Skeleton, theta: FloatArray, yaw_deg: float, rng: np.random.Generator, noise_deg: float = 2.0
+) -> dict[str, FloatArray]:
+    """A simulated IMU suit: measured global orientations of the limb bones of ``theta`` (66,).
+
+    Each limb bone of :data:`mocapd.core.suit_binding.LIMBS` gets its solved orientation, rotated by a heading
+    misalignment of ``yaw_deg`` about +Y (an uncalibrated R_ig) and by ``noise_deg`` RMS-per-axis random rotation.
+    """
+    R = Kinematics(skeleton).forward(theta).rotations
+    q_ig = quat_from_rotvec(np.array([0.0, np.radians(yaw_deg), 0.0]))
+    out = {}
+    for bone, _, _, _ in LIMBS:
+        noise = quat_from_rotvec(rng.normal(scale=np.radians(noise_deg), size=3))
+        out[bone] = quat_multiply(noise, quat_multiply(q_ig, quat_from_matrix(R[BONE_INDEX[bone]])))
+    return out

@@ -33,12 +33,11 @@ from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.observations import Observations
 from mocapd.core.people import PeopleTracker
-from mocapd.core.rotations import quat_from_matrix, quat_from_rotvec, quat_multiply
-from mocapd.core.skeleton import BONE_INDEX, Skeleton
+from mocapd.core.skeleton import Skeleton
 from mocapd.core.solver import PoseSolver
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import LIMBS, SuitBinder
-from mocapd.core.synthetic import ring_rig, scene_detections, walking_path, waypoint_path
+from mocapd.core.synthetic import ring_rig, scene_detections, suit_orientations, walking_path, waypoint_path
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
 from mocapd.errors import InputError
 
@@ -77,18 +76,6 @@ SCENES = (
            _line((0.6, -1.5), (0.4, 1.5))],
           [_line((3.0, -2.5), (3.0, 2.5)), _line((-2.5, -3.0), (2.5, -3.0))]),
 )  # fmt: skip
-
-
-def _suit_measurements(
-    sk: Skeleton, theta: FloatArray, yaw_deg: float, rng: np.random.Generator
-) -> dict[str, FloatArray]:
-    R = Kinematics(sk).forward(theta).rotations
-    q_ig = quat_from_rotvec(np.array([0.0, np.radians(yaw_deg), 0.0]))
-    out = {}
-    for bone, _, _, _ in LIMBS:
-        noise = quat_from_rotvec(rng.normal(scale=np.radians(2.0), size=3))
-        out[bone] = quat_multiply(noise, quat_multiply(q_ig, quat_from_matrix(R[BONE_INDEX[bone]])))
-    return out
 
 
 def _drop_keypoints(dets: list[list[Detections2D]], rng: np.random.Generator, p: float) -> None:
@@ -153,7 +140,7 @@ def run_scene(
     sort_ms = []
     for f in range(n):
         suits = (
-            {f"S{p}": _suit_measurements(skeletons[p], people[p][f], yaw[p], rng) for p in range(n_subj)}
+            {f"S{p}": suit_orientations(skeletons[p], people[p][f], yaw[p], rng) for p in range(n_subj)}
             if with_suits
             else None
         )
@@ -229,7 +216,7 @@ def _solve_errors(
             q = None
             if with_suits and person.suit is not None:
                 wearer = int(person.suit[1:])
-                meas = _suit_measurements(skeletons[wearer], people[wearer][f], 0.0, rng)
+                meas = suit_orientations(skeletons[wearer], people[wearer][f], 0.0, rng)
                 q = np.stack([meas[m.bone] for m in imus])
             if not started:  # start from the rest pose at the triangulated position
                 theta0 = sk.rest_pose()
