@@ -203,8 +203,3 @@ class Kinematics:
             J.fill(0.0)
         J.reshape(n, 3, N_BONES + 1, 3)[rows, :, ks + 1, :] = axes[ks]
         return J
-
-
-def forward_kinematics(skeleton: Skeleton, theta: FloatArray) -> FKState:
-    """Convenience wrapper: FK for one θ (66,) or a batch (..., 66)."""
-    return Kinematics(skeleton).forward(theta)

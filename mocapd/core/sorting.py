@@ -93,7 +93,7 @@ class Candidate:
         return np.asarray(np.nanmean(self.points, axis=0))
 
 
-def _mean_distance(a: FloatArray, b: FloatArray) -> float:
+def mean_keypoint_distance(a: FloatArray, b: FloatArray) -> float:
     """Mean distance over keypoints present in both (inf when none are)."""
     d = np.linalg.norm(a - b, axis=-1)
     ok = np.isfinite(d)
@@ -188,7 +188,7 @@ class DetectionSorter:
         for i, last in enumerate(last_positions):
             if last is not None:
                 for j, c in enumerate(cands):
-                    dist[i, j] = _mean_distance(c.points, last)
+                    dist[i, j] = mean_keypoint_distance(c.points, last)
         usable = dist < limit
         rows, cols = linear_sum_assignment(np.where(usable, dist, 1e6))
         for i, j in zip(rows, cols, strict=True):

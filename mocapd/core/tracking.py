@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.sorting import Candidate, Detections2D, DetectionSorter, _mean_distance
+from mocapd.core.sorting import Candidate, Detections2D, DetectionSorter, mean_keypoint_distance
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -164,13 +164,13 @@ class SubjectTracker:
         for c in free:
             eligible = self._inside(c)
             if o.start_positions:  # at a free start position, or still standing where a tentative one began
-                near = any(_mean_distance(t.points, c.points) < o.start_radius for t in self._tentative)
+                near = any(mean_keypoint_distance(t.points, c.points) < o.start_radius for t in self._tentative)
                 eligible = eligible and (self._start_index(c) >= 0 or near)
             if not eligible:
                 continue
             best, best_d = None, np.inf
             for t in self._tentative:
-                d = _mean_distance(t.points, c.points)
+                d = mean_keypoint_distance(t.points, c.points)
                 if id(t) not in matched and d < best_d:
                     best, best_d = t, d
             if best is not None and best_d < self.sorter.options.max_interframe_movement:
