@@ -60,7 +60,10 @@ class Recorder:
     def publish(self, frame: PoseFrame) -> None:
         self.frames.append(frame)
 
-    def close(self) -> None:
+    async def start(self) -> None:
+        return None
+
+    async def aclose(self) -> None:
         return None
 
 

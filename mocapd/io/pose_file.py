@@ -31,7 +31,10 @@ class JsonLinesPoseSink:
         self._fh.write("\n")
         self.frames += 1
 
-    def close(self) -> None:
+    async def start(self) -> None:
+        return None
+
+    async def aclose(self) -> None:
         if not self._fh.closed:
             self._fh.flush()
             self._fh.close()

@@ -43,13 +43,18 @@ log = logging.getLogger(__name__)
 
 
 class PoseSink(Protocol):
-    """Where published frames go (the streaming issue adds WebSocket / MVN / VMC sinks)."""
+    """Where published frames go: files, WebSocket / UDP streams, session recorders.
+
+    ``start`` runs once on the event loop before the first tick (bind sockets, open files); ``publish`` is called
+    from the tick loop and must not block (hand the frame to a bounded queue, or write to a buffer); ``aclose``
+    flushes and releases, once, at shutdown.
+    """
+
+    async def start(self) -> None: ...
 
     def publish(self, frame: PoseFrame) -> None: ...
 
-    def close(self) -> None:
-        """Flush and release; called once at shutdown."""
-        ...
+    async def aclose(self) -> None: ...
 
 
 @dataclass
@@ -126,6 +131,8 @@ class Daemon:
         self.notifier.notify("STATUS=loading the solver kernel")
         await loop.run_in_executor(None, self._warm_up)
         await self.http.start()
+        for sink in self.sinks:
+            await sink.start()
         self.notifier.notify("STATUS=starting inputs")
         try:
             async with asyncio.timeout(None) as deadline:
@@ -135,7 +142,7 @@ class Daemon:
             log.error("shutdown: tasks still running after %.1f s, abandoned", self.config.daemon.shutdown_timeout_s)
         finally:
             for sink in self.sinks:
-                sink.close()
+                await sink.aclose()
             await self.http.close()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):

@@ -66,7 +66,10 @@ class TruthError:
     def recent_mm(self, n: int = 120) -> float | None:
         return 1e3 * float(np.median(list(self.errors)[-n:])) if self.errors else None
 
-    def close(self) -> None:
+    async def start(self) -> None:
+        return None
+
+    async def aclose(self) -> None:
         return None
 
 
