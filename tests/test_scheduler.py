@@ -94,7 +94,7 @@ class Lockstep:
 
 
 def _lockstep(prior: PcaPrior, n_people: int, n_suits: int, options: SchedulerOptions, shift: list[int]) -> Lockstep:
-    world = SyntheticWorld(n_cams=4, n_people=n_people, n_suits=n_suits, seed=3)
+    world = SyntheticWorld(n_cams=4, n_people=n_people, n_suits=n_suits, seed=3, motion="procedural")
     ingest = ImuIngest()
     tracker = PeopleTracker(
         SubjectTracker(DetectionSorter(world.cameras), TrackingOptions(enrol_after_s=0.3)), SuitBinder(world.skeleton)
@@ -166,8 +166,19 @@ def test_tick_plan_counts_missed_ticks_instead_of_bursting() -> None:
     assert plan.missed == 2
 
 
+def test_tick_plan_catches_up_within_the_bound_then_skips() -> None:
+    plan = TickPlan(period_ns=10, start_ns=100, max_late_ns=25)
+    # Woke up 23 ns late: ticks 110 and 120 are due but within 25 ns, so they run back to back (late), no skip.
+    assert plan.advance(now_ns=123) == 0 and plan.next_ns == 110 and plan.late == 1
+    assert plan.advance(now_ns=124) == 0 and plan.next_ns == 120 and plan.late == 2
+    assert plan.advance(now_ns=125) == 0 and plan.next_ns == 130 and plan.late == 2  # back on time
+    # A 60 ns stall: only the ticks more than 25 ns behind are dropped.
+    assert plan.advance(now_ns=190) == 3 and plan.next_ns == 170 and plan.missed == 3
+    assert plan.late == 3
+
+
 def test_bad_set_up_is_rejected(prior: PcaPrior) -> None:
-    world = SyntheticWorld(n_cams=4, n_people=1, n_suits=1)
+    world = SyntheticWorld(n_cams=4, n_people=1, n_suits=1, motion="procedural")
     tracker = PeopleTracker(SubjectTracker(DetectionSorter(world.cameras)))
     with pytest.raises(InputError, match="camera_offsets_ns"):
         FixedLatencyScheduler(world.cameras, world.skeleton, world.targets, tracker,
@@ -181,7 +192,7 @@ def test_imu_orientations_are_slerped_and_accelerations_taken_from_the_previous_
     from mocapd.core.imu_calibration import ImuCalibration
     from mocapd.core.rotations import quat_from_rotvec, quat_slerp
 
-    world = SyntheticWorld(n_cams=4, n_people=1, n_suits=0)
+    world = SyntheticWorld(n_cams=4, n_people=1, n_suits=0, motion="procedural")
     ident = np.array([1.0, 0.0, 0.0, 0.0])
     cal = ImuCalibration("p", 0.0, "north", ident, {"S1": "Hips"}, {"S1": ident}, {"S1": 0.0})
     suit = Suit.from_calibration("p", cal, world.skeleton)

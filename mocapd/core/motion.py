@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.rotations import matrix_from_quat, quat_normalize
+from mocapd.core.rotations import matrix_from_quat, quat_from_rotvec, quat_normalize, rotvec_from_quat
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -129,3 +129,39 @@ def _catmull_rom(y: FloatArray, s: FloatArray) -> FloatArray:
     m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
     u2, u3 = u * u, u * u * u
     return np.asarray((2 * u3 - 3 * u2 + 1) * p1 + (u3 - 2 * u2 + u) * m1 + (-2 * u3 + 3 * u2) * p2 + (u3 - u2) * m2)
+
+
+def resample_poses(theta: FloatArray, fps_in: float, fps_out: float) -> FloatArray:
+    """A θ sequence at another frame rate, same duration, with continuous velocities.
+
+    Like :meth:`SourceMotion.resample`: root translation with a Catmull-Rom cubic, every bone's rotation as a
+    sign-continuous quaternion with a Catmull-Rom cubic then renormalised, so the second differences of the
+    result (what simulated accelerometers measure) have no spikes at the input samples.
+
+    Parameters
+    ----------
+    theta : array, shape (n, 66)
+        Pose vectors: root translation + 21 local rotation vectors.
+    fps_in, fps_out : float
+
+    Returns
+    -------
+    array, shape (m, 66)
+        ``m = floor((n - 1) / fps_in · fps_out) + 1`` samples from the first input frame on.
+    """
+    theta = np.asarray(theta, dtype=np.float64)
+    if theta.ndim != 2 or theta.shape[1] % 3 != 0 or theta.shape[0] < 2:
+        raise InputError(f"resample_poses: theta must have shape (n >= 2, 3 + 3k), got {theta.shape}")
+    if not (np.isfinite(fps_in) and fps_in > 0 and np.isfinite(fps_out) and fps_out > 0):
+        raise InputError(f"resample_poses: frame rates must be positive, got {fps_in!r} -> {fps_out!r}")
+    n = theta.shape[0]
+    duration = (n - 1) / fps_in
+    s = np.arange(int(np.floor(duration * fps_out + 1e-9)) + 1) / fps_out * fps_in
+    q = quat_from_rotvec(theta[:, 3:].reshape(n, -1, 3))
+    for i in range(1, n):
+        flip = np.sum(q[i] * q[i - 1], axis=-1) < 0
+        q[i, flip] *= -1.0
+    out = np.empty((s.shape[0], theta.shape[1]))
+    out[:, :3] = _catmull_rom(theta[:, :3], s)
+    out[:, 3:] = rotvec_from_quat(quat_normalize(_catmull_rom(q, s))).reshape(s.shape[0], -1)
+    return out

@@ -187,8 +187,9 @@ class Daemon:
     async def _tick_loop(self) -> None:
         period = self.scheduler.options.period_ns
         previous = self.plan
-        plan = self.plan = TickPlan(period, self.clock() + period)
-        plan.missed = previous.missed if previous is not None else 0  # a restarted loop keeps the count
+        plan = self.plan = TickPlan(period, self.clock() + period, round(self.config.daemon.max_catch_up_s * 1e9))
+        if previous is not None:  # a restarted loop keeps the counts
+            plan.missed, plan.late = previous.missed, previous.late
         watchdog_every = self.notifier.watchdog_s / 2 if self.notifier.watchdog_s else None
         last_ping = 0
         while True:
@@ -233,7 +234,8 @@ class Daemon:
         people = ", ".join(p.identity for p in self.latest.people) if self.latest else ""
         return (
             f"t={(self.clock() - self.started_ns) / 1e9:6.1f} s  output {len(self._rate_window):3d} Hz  "
-            f"missed {self.plan.missed if self.plan else 0}  e2e p50 {e2e['p50']} ms  "
+            f"missed {self.plan.missed if self.plan else 0} late {self.plan.late if self.plan else 0}  "
+            f"e2e p50 {e2e['p50']} ms  "
             f"IMUs {streaming}/{len(self.imu.devices)}  people [{people}]"
         )
 
@@ -250,6 +252,7 @@ class Daemon:
                 "achieved_hz": len(self._rate_window),
                 "frames": s["frame"],
                 "missed_ticks": self.plan.missed if self.plan else 0,
+                "late_ticks": self.plan.late if self.plan else 0,
                 "latency_s": self.scheduler.options.latency_ns / 1e9,
             },
             "latency_ms": s["latency_ms"],

@@ -68,7 +68,7 @@ def run(seconds: float = 60.0, cameras: int = 4, people: int = 2) -> dict[str, A
             "duration_s": run_stats["wall_s"],
             "configured": {"output_rate_hz": cfg.daemon.output_rate_hz, "latency_ms": 1e3 * cfg.daemon.latency_s},
             "output": {"frames": frames, "achieved_hz": round(frames / run_stats["wall_s"], 2),
-                       "missed_ticks": st["output"]["missed_ticks"]},
+                       "missed_ticks": st["output"]["missed_ticks"], "late_ticks": st["output"]["late_ticks"]},
             "end_to_end_ms": st["latency_ms"]["end_to_end"],
             "stage_latency_ms": {k: v for k, v in st["latency_ms"].items() if k != "end_to_end"},
             "stage_cpu_s": st["cpu_s"],

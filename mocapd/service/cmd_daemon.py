@@ -73,8 +73,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from mocapd.io.prior import resolve_prior
     from mocapd.service.app import Daemon, Rig
-    from mocapd.service.bench_solver import synthetic_prior
     from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
 
     try:
@@ -83,7 +83,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     syn = cfg.daemon.synthetic
-    world = SyntheticWorld(syn.cameras, syn.people, 0, seed=syn.seed)
+    world = SyntheticWorld(syn.cameras, syn.people, 0, seed=syn.seed, motion=syn.motion)
     import time
 
     epoch = time.monotonic_ns()
@@ -92,7 +92,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                 noise_px=syn.noise_px, seed=syn.seed)
         for c in range(len(world.cameras))
     ]  # fmt: skip
-    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, synthetic_prior())
+    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(cfg.solver.prior))
     daemon = Daemon(
         cfg, rig, sinks=_sinks(args), status_line=(lambda s: print(s, flush=True)) if args.verbose else None
     )

@@ -24,6 +24,7 @@ class SyntheticRigConfig:
     noise_px: float = 1.0
     imu_rate_hz: int = 100
     seed: int = 0
+    motion: str = "recorded"
 
 
 @dataclass(frozen=True, slots=True)
@@ -33,6 +34,7 @@ class DaemonConfig:
     rig: str = "synthetic"
     output_rate_hz: float = 60.0
     latency_s: float = 0.15
+    max_catch_up_s: float = 0.05
     keypoint_max_age_s: float = 0.1
     keypoint_max_gap_s: float = 0.25
     match_px: float = 80.0
@@ -119,6 +121,7 @@ def parse_daemon_config(t: dict[str, Any]) -> DaemonConfig:
         rig=rig,
         output_rate_hz=_num(t, "output_rate_hz", w, 60.0, 1.0, 500.0),
         latency_s=_num(t, "latency_s", w, 0.15, 0.0, 2.0),
+        max_catch_up_s=_num(t, "max_catch_up_s", w, 0.05, 0.0, 1.0),
         keypoint_max_age_s=_num(t, "keypoint_max_age_s", w, 0.1, 0.0, 2.0),
         keypoint_max_gap_s=_num(t, "keypoint_max_gap_s", w, 0.25, 0.0, 5.0),
         match_px=_num(t, "match_px", w, 80.0, 1.0, 10000.0),
@@ -151,4 +154,11 @@ def _parse_synthetic(t: object) -> SyntheticRigConfig:
         noise_px=_num(t, "noise_px", w, 1.0, 0.0, 50.0),
         imu_rate_hz=_num(t, "imu_rate_hz", w, 100, 60, 120, integer=True),
         seed=_num(t, "seed", w, 0, 0, 2**31, integer=True),
+        motion=_motion(t.get("motion", "recorded"), w),
     )
+
+
+def _motion(value: object, w: str) -> str:
+    if value not in ("recorded", "procedural"):
+        raise ConfigError(f"{w}.motion = {value!r}; allowed: 'recorded' or 'procedural'")
+    return str(value)

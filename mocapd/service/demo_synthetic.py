@@ -28,10 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from mocapd.io.prior import resolve_prior
 from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.pipeline.scheduler import PoseFrame, Suit
 from mocapd.service.app import Daemon, PoseSink, Rig
-from mocapd.service.bench_solver import synthetic_prior
 from mocapd.service.config import Config
 from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
 
@@ -99,7 +99,7 @@ def build_demo(
     """Start the simulated IMUs and build (not run) the daemon of ``config.daemon.synthetic``."""
     sim = _tools()
     syn = config.daemon.synthetic
-    world = SyntheticWorld(syn.cameras, syn.people, syn.suits, seed=syn.seed)
+    world = SyntheticWorld(syn.cameras, syn.people, syn.suits, seed=syn.seed, motion=syn.motion)
     epoch = clock()
     workdir = Path(tempfile.mkdtemp(prefix="mocapd-demo-"))
 
@@ -149,7 +149,7 @@ def build_demo(
         for c in range(len(world.cameras))
     ]  # fmt: skip
     truth = TruthError(world, epoch)
-    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, synthetic_prior(), suits)
+    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(config.solver.prior), suits)
     daemon = Daemon(config, rig, sinks=[truth, *(sinks or [])], clock=clock, status_line=status_line)
     return SyntheticDemo(daemon, world, simulators, truth, workdir, loop)
 

@@ -26,6 +26,8 @@ def render_metrics(d: Daemon) -> str:
     metric("mocapd_frames_published_total", "counter", "Pose frames published.", [("", s["frame"])])
     metric("mocapd_missed_ticks_total", "counter", "Output ticks skipped because the previous one overran.",
            [("", d.plan.missed if d.plan else 0)])  # fmt: skip
+    metric("mocapd_late_ticks_total", "counter", "Output ticks run late (within daemon.max_catch_up_s).",
+           [("", d.plan.late if d.plan else 0)])  # fmt: skip
     metric("mocapd_output_rate_hz", "gauge", "Frames published in the last second.", [("", len(d._rate_window))])
     metric("mocapd_output_rate_configured_hz", "gauge", "Configured output rate.", [("", d.scheduler.options.rate_hz)])
     people = len(d.latest.people) if d.latest else 0

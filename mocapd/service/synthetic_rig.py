@@ -1,7 +1,9 @@
 """A synthetic capture world for ``mocapd demo --synthetic``, the latency benchmark and the daemon's tests.
 
-People move (:func:`~mocapd.core.synthetic.moving_sequence`, offset so they keep apart) in a ring rig. The motion
-is a loop played forwards then backwards (continuous, so tracking and warm starts never see a jump) and is a
+People move in a ring rig, offset so they keep apart: by default with real recorded motion (CMU clips shipped as
+``mocapd/data/demo_motion_cmu.npz``, built by ``tools/build_demo_motion.py``), or with the procedural
+:func:`~mocapd.core.synthetic.moving_sequence` (``motion="procedural"``). The motion is a loop played forwards then
+backwards (continuous, so tracking and warm starts never see a jump) and is a
 function of host time, so every simulated device (keypoints per camera, each IMU) measures the same instant of
 the same truth:
 
@@ -19,6 +21,8 @@ import asyncio
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,6 +33,7 @@ from mocapd.core.imu import IMU_SET_13, ImuMount, default_mounts
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets, coco17_targets
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.motion import resample_poses
 from mocapd.core.rotations import (
     matrix_from_quat,
     quat_conjugate,
@@ -40,6 +45,7 @@ from mocapd.core.rotations import (
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D
 from mocapd.core.synthetic import moving_sequence, ring_rig
+from mocapd.errors import ConfigError, ModelError
 from mocapd.pipeline.keypoint_source import KeypointSink
 
 FloatArray = NDArray[np.float64]
@@ -49,6 +55,7 @@ R_WORLD_FROM_ENU = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
 Q_WORLD_FROM_ENU = quat_from_matrix(R_WORLD_FROM_ENU)
 GRAVITY_WORLD = np.array([0.0, 9.81, 0.0])
 TRUTH_FPS = 240.0
+DEMO_MOTION = "demo_motion_cmu.npz"
 
 
 @dataclass(frozen=True)
@@ -76,19 +83,42 @@ class SyntheticWorld:
     loop_s : float
         Duration of the motion before it plays backwards (the period is twice this).
     seed : int
+    motion : {"recorded", "procedural"}
+        Recorded CMU clips (person ``p`` plays clip ``p mod 4``, later laps start half-way through), or the
+        procedural walk (each person a 1 m circle around their centre; ``loop_s`` applies to it only, recorded
+        clips loop over their own length).
     """
 
-    def __init__(self, n_cams: int = 4, n_people: int = 2, n_suits: int = 1, loop_s: float = 6.0, seed: int = 0):
-        self.skeleton = Skeleton.from_height(1.75)
+    def __init__(
+        self,
+        n_cams: int = 4,
+        n_people: int = 2,
+        n_suits: int = 1,
+        loop_s: float = 6.0,
+        seed: int = 0,
+        motion: str = "recorded",
+    ) -> None:
         self.cameras: list[Camera] = ring_rig(n_cams)
+        if motion == "recorded":
+            clips, self.skeleton = load_demo_motion()
+            self.loop_s = min(c.shape[0] for c in clips) / TRUTH_FPS
+            n = int(self.loop_s * TRUTH_FPS)
+            sequences = [
+                np.roll(clips[p % len(clips)], (p // len(clips)) * n // 2, axis=0)[:n] for p in range(n_people)
+            ]
+        elif motion == "procedural":
+            self.skeleton = Skeleton.from_height(1.75)
+            self.loop_s = loop_s
+            n = int(loop_s * TRUTH_FPS) + 1
+            sequences = [moving_sequence(self.skeleton, n, fps=TRUTH_FPS, seed=seed + 17 * p) for p in range(n_people)]
+        else:
+            raise ConfigError(f"synthetic motion must be 'recorded' or 'procedural', got {motion!r}")
         self.targets: TrackTargets = coco17_targets(self.skeleton)
         self.kin = Kinematics(self.skeleton)
-        self.loop_s = loop_s
-        n = int(loop_s * TRUTH_FPS) + 1
         self.truth: list[FloatArray] = []
-        for p in range(n_people):
-            seq = moving_sequence(self.skeleton, n, fps=TRUTH_FPS, seed=seed + 17 * p)
-            # Each person walks a 1 m circle around their own centre, centres 1.6 m apart.
+        for p, motion_p in enumerate(sequences):
+            seq = motion_p.copy()
+            # Centres 1.3 m from the middle of the volume, spread around it.
             angle = 2 * np.pi * p / max(n_people, 1)
             seq[:, [0, 2]] += (1.3 * np.sin(angle), 1.3 * np.cos(angle) + 1.0) if n_people > 1 else (0.0, 1.0)
             self.truth.append(seq)
@@ -190,6 +220,26 @@ class SyntheticWorld:
             q_ib={sid: q for sid, q in zip(ids, suit.q_ib, strict=True)},
             spread_deg=dict.fromkeys(ids, 0.0),
         )
+
+
+def load_demo_motion() -> tuple[list[FloatArray], Skeleton]:
+    """The shipped recorded clips, resampled to :data:`TRUTH_FPS`, and the skeleton they were retargeted to.
+
+    Returns
+    -------
+    clips : list of arrays, shape (n_i, 66)
+    skeleton : Skeleton
+    """
+    path = Path(str(resources.files("mocapd").joinpath("data", DEMO_MOTION)))
+    try:
+        with np.load(path) as z:
+            fps = float(z["fps"])
+            clips = [resample_poses(z[k].astype(np.float64), fps, TRUTH_FPS) for k in sorted(z.files)
+                     if k.startswith("theta_")]  # fmt: skip
+            skeleton = Skeleton(offsets=z["offsets"], root_height=float(z["root_height"]))
+    except (OSError, KeyError, ValueError) as exc:
+        raise ModelError(f"cannot load the synthetic rig's recorded motion {path}: {exc}") from exc
+    return clips, skeleton
 
 
 class SyntheticKeypointSource:
