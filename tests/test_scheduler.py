@@ -24,6 +24,7 @@ from mocapd.pipeline.scheduler import (
     Suit,
     TickPlan,
     estimate_camera_offsets,
+    estimate_imu_offsets,
 )
 from mocapd.service.bench_solver import synthetic_prior
 from mocapd.service.synthetic_rig import SyntheticWorld
@@ -45,6 +46,7 @@ class Lockstep:
     scheduler: FixedLatencyScheduler
     ingest: ImuIngest
     camera_shift_ns: list[int]
+    imu_shift_ns: int = 0
     dead_after_ns: dict[int, int] = field(default_factory=dict)
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
 
@@ -88,7 +90,7 @@ class Lockstep:
             for suit, (q, a) in zip(self.world.suits, self.imu, strict=True):
                 for j, sid in enumerate(suit.sensor_ids):
                     n = i % q.shape[1]
-                    self.ingest.add(f"{sid:08X}", self.imu_next, device_ticks=None, packet_counter=None,
+                    self.ingest.add(f"{sid:08X}", self.imu_next + self.imu_shift_ns, device_ticks=None, packet_counter=None,
                                     quat=tuple(q[j, n]), acc=tuple(a[j, n]))  # fmt: skip
             self.imu_next += 10 * MS
 
@@ -157,6 +159,24 @@ def test_configured_camera_offset_realigns_a_shifted_clock(prior: PcaPrior) -> N
     assert abs(bad_est["cam2"]["offset_ms"]) < 10.0
     good_est = estimate_camera_offsets(names, good_ls.scheduler.camera_frames(), (0, 40 * MS, 0, 0))
     assert abs(good_est["cam1"]["offset_ms"] - 40.0) < 10.0
+
+
+def test_imu_offset_estimated_from_vertical_motion(prior: PcaPrior) -> None:
+    """An IMU suit whose time stamps run 40 ms ahead: the estimate from hips acceleration vs the solved hips
+    height finds it; with the offset configured, the estimate is the configured value (nothing left to fix)."""
+    found = {}
+    for configured in (0, 40 * MS):
+        options = SchedulerOptions(imu_offsets_ns=dict.fromkeys((f"{s:08X}" for s in range(0x00B42000, 0x00B42010)),
+                                                                configured))  # fmt: skip
+        ls = _lockstep(prior, 1, 1, options, [0, 0, 0, 0])
+        ls.imu_shift_ns = 40 * MS
+        ls.run(7.0)
+        est = estimate_imu_offsets(ls.scheduler.imu_alignment_inputs(), ls.scheduler.options.imu_offsets_ns)
+        found[configured] = est["suit0"]
+        assert est["suit0"]["sensor"] in est["suit0"]["sensors"] and len(est["suit0"]["sensors"]) == 13
+    for configured, est in found.items():
+        assert abs(est["offset_ms"] - 40.0) < 5.0 and est["quality"] > 0.9, est
+        assert est["configured_ms"] == configured / 1e6
 
 
 def test_tick_plan_counts_missed_ticks_instead_of_bursting() -> None:

@@ -20,6 +20,7 @@ scheduler runs the same in the daemon and in tests on synthetic timelines.
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core import _kernel
-from mocapd.core.camera import Camera
+from mocapd.core.camera import Camera, triangulate
 from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
@@ -45,10 +46,12 @@ from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
 from mocapd.pipeline.latency import LatencyStats
 from mocapd.pipeline.ringbuffer import IMU_FIELDS, LookupStatus, RingBuffer
-from mocapd.pipeline.time_alignment import estimate_lag, keypoint_speed
+from mocapd.pipeline.time_alignment import estimate_imu_lag, estimate_lag, keypoint_speed
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 GRAVITY = 9.81
+HEIGHT_HISTORY_S = 12.0  # solved heights kept per suit for the IMU offset estimate (the IMU buffers hold ~5 s)
 STAGES = ("detect", "sample", "sort", "solve", "publish", "end_to_end")
 
 
@@ -236,6 +239,13 @@ class FixedLatencyScheduler:
         self._imu_width = sum(f.width for f in IMU_FIELDS)  # quat 0:4, acc 4:7 (IMU_FIELDS order)
         self._previous_acc: dict[str, tuple[int, FloatArray, NDArray[np.bool_]]] = {}
         self.suggested_offsets: dict[str, dict[str, float]] | None = None  # see estimate_camera_offsets
+        self.suggested_imu_offsets: dict[str, dict[str, Any]] | None = None  # see estimate_imu_offsets
+        # Solved hips height of each suit's wearer per tick: the camera side of the IMU offset estimate.
+        self._heights: dict[str, deque[tuple[int, float]]] = {}
+        names = list(getattr(targets, "names", ()))
+        self._hips = (
+            [names.index("left_hip"), names.index("right_hip")] if {"left_hip", "right_hip"} <= set(names) else None
+        )
         self._bone_ids = np.arange(N_BONES, dtype=np.float64)
         self._zero_offsets = np.zeros((N_BONES, 3))
         self._wall = wall_clock
@@ -267,7 +277,7 @@ class FixedLatencyScheduler:
         }
         frame = self.people.update(t, detections, {k: v for k, v in suit_bones.items() if v})
         w2, c2 = self._stage("sort", w1, c1)
-        poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None) for p in frame.people]
+        poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in frame.people]
         self._forget_released({p.identity for p in frame.people})
         self._stage("solve", w2, c2)
         self.frame += 1
@@ -356,7 +366,9 @@ class FixedLatencyScheduler:
         self.solvers[person.identity] = solver
         return solver
 
-    def _solve(self, person: Person, detections: list[Detections2D], suit_sample: SuitSample | None) -> PersonPose:
+    def _solve(
+        self, person: Person, detections: list[Detections2D], suit_sample: SuitSample | None, t: int
+    ) -> PersonPose:
         suit = self.suits.get(person.suit) if person.suit else None
         solver = self._solver_for(person, suit)
         n_cams, n_kp = len(self.cameras), len(self.targets)
@@ -374,6 +386,8 @@ class FixedLatencyScheduler:
                 "imu_mask": suit_sample.mask,
             }
             n_imu = int(suit_sample.mask.sum())
+        if suit is not None:
+            self._record_height(suit.id, t, kp, conf)
         obs = Observations(keypoints=kp, confidences=conf, dt=self.options.dt, **imu_kw)
         result = solver.solve(obs)
         self.counters["person_solves"] += 1
@@ -387,6 +401,16 @@ class FixedLatencyScheduler:
             person.identity, person.track, person.suit, result.theta, joints, confidence, views, n_imu,
             result.summary.iterations, result.summary.converged,
         )  # fmt: skip
+
+    def _record_height(self, suit: str, t: int, kp: FloatArray, conf: FloatArray) -> None:
+        """Hips height of a suit's wearer triangulated from the cameras alone: the camera side of the IMU offset
+        estimate (the fused solve would not do — it follows the very IMU data whose timing is in question)."""
+        if self._hips is None:
+            return
+        X, ok = triangulate(self.cameras, kp[:, self._hips], conf[:, self._hips])
+        if ok.all():
+            keep = self._heights.setdefault(suit, deque(maxlen=round(HEIGHT_HISTORY_S * self.options.rate_hz)))
+            keep.append((t, float(X[:, 1].mean())))
 
     def _joints(self, solver: PoseSolver, theta: FloatArray) -> FloatArray:
         """Global joint positions (21, 3): the solver's compiled forward kinematics when it has one."""
@@ -406,6 +430,23 @@ class FixedLatencyScheduler:
         for identity in list(self.solvers):
             if identity not in known and identity not in seen:
                 del self.solvers[identity]
+
+    def imu_alignment_inputs(self) -> list[ImuAlignmentInput]:
+        """Copies of what :func:`estimate_imu_offsets` needs, per suit with a hips sensor and a solved wearer."""
+        out = []
+        for sid, suit in self.suits.items():
+            heights = self._heights.get(sid)
+            hips = [s for s, m in zip(suit.sensors, suit.mounts, strict=True) if m.bone == "Hips"]
+            if not heights or not hips or self.ingest is None or hips[0] not in self.ingest.streams:
+                continue
+            buf = self.ingest.streams[hips[0]].buffer
+            rows = buf.rows().copy()
+            out.append(ImuAlignmentInput(
+                suit=sid, sensor=hips[0], sensors=suit.sensors,
+                cam_t_ns=np.array([h[0] for h in heights], dtype=np.int64), height_m=np.array([h[1] for h in heights]),
+                imu_t_ns=buf.times().copy(), quat=rows[:, 0:4], acc=rows[:, 4:7], q_ig=suit.calibration.q_ig,
+            ))  # fmt: skip
+        return out
 
     def camera_frames(self) -> list[tuple[list[int], list[Detections2D]]]:
         """A copy of every camera's kept frames (for offset estimation off the event loop)."""
@@ -478,6 +519,41 @@ def initial_pose(skeleton: Skeleton, keypoints: FloatArray) -> FloatArray:
     theta[3:6] = [0.0, float(np.arctan2(-d[2], d[0])), 0.0]
     assert theta.shape == (POSE_DIM,)
     return theta
+
+
+@dataclass(frozen=True)
+class ImuAlignmentInput:
+    """One suit's records for the IMU ↔ camera offset estimate (copied off the tick loop)."""
+
+    suit: str
+    sensor: str  # the hips sensor whose acceleration is used
+    sensors: tuple[str, ...]  # every sensor of the suit (one clock path: the estimate applies to all)
+    cam_t_ns: IntArray  # (n,) solve times
+    height_m: FloatArray  # (n,) solved hips height of the wearer
+    imu_t_ns: IntArray  # (m,) buffered sample times
+    quat: FloatArray  # (m, 4) sensor orientation in the suit's global frame
+    acc: FloatArray  # (m, 3) specific force, sensor frame
+    q_ig: FloatArray  # (4,) world <- suit global frame
+
+
+def estimate_imu_offsets(inputs: list[ImuAlignmentInput], current_ns: dict[str, int]) -> dict[str, dict[str, Any]]:
+    """Per suit: the offset (ms, ``[daemon.offsets.imus]`` convention, for every sensor of the suit) that aligns
+    its hips sensor's vertical motion with the wearer's hips height as solved from the cameras, with the
+    correlation peak as quality (see :func:`~mocapd.pipeline.time_alignment.estimate_imu_lag`). Suits without
+    enough moving data are left out."""
+    out: dict[str, dict[str, Any]] = {}
+    for x in inputs:
+        q_world = quat_multiply(np.asarray(x.q_ig)[None], quat_normalize(x.quat))
+        vertical = np.einsum("nij,nj->ni", matrix_from_quat(q_world), x.acc)[:, 1] - GRAVITY
+        est = estimate_imu_lag(x.cam_t_ns, x.height_m, x.imu_t_ns, vertical)
+        if est is not None:
+            # Buffered times are raw (offsets are applied at look-up), so the lag is the whole offset.
+            out[x.suit] = {
+                "offset_ms": round(est.lag_ns / 1e6, 1), "quality": round(est.quality, 3),
+                "configured_ms": round(current_ns.get(x.sensor, 0) / 1e6, 1), "sensor": x.sensor,
+                "sensors": list(x.sensors),
+            }  # fmt: skip
+    return out
 
 
 def estimate_camera_offsets(

@@ -32,7 +32,14 @@ from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.keypoint_source import KeypointSource
-from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, Suit, TickPlan, estimate_camera_offsets
+from mocapd.pipeline.scheduler import (
+    FixedLatencyScheduler,
+    PoseFrame,
+    Suit,
+    TickPlan,
+    estimate_camera_offsets,
+    estimate_imu_offsets,
+)
 from mocapd.service.config import Config
 from mocapd.service.http_status import StatusServer
 from mocapd.service.imu_service import ImuInputs
@@ -221,6 +228,12 @@ class Daemon:
                 self.scheduler.suggested_offsets = await loop.run_in_executor(
                     None, estimate_camera_offsets, names, frames, offsets
                 )
+                self.scheduler.suggested_imu_offsets = await loop.run_in_executor(
+                    None,
+                    estimate_imu_offsets,
+                    self.scheduler.imu_alignment_inputs(),
+                    dict(self.scheduler.options.imu_offsets_ns),
+                )
             line = self.status_line_text()
             self.notifier.notify(f"STATUS={line}")
             if self.status_line is not None:
@@ -271,6 +284,8 @@ class Daemon:
                     for c, o in zip(self.rig.cameras, self.scheduler.options.camera_offsets_ns, strict=False)
                 },
                 "suggested_camera_offsets_ms": s["suggested_camera_offsets_ms"],
+                "configured_imu_offsets_ms": {k: v / 1e6 for k, v in self.scheduler.options.imu_offsets_ns.items()},
+                "suggested_imu_offsets_ms": self.scheduler.suggested_imu_offsets,
             },
             "frame": None if frame is None else {
                 "frame": frame.frame,
