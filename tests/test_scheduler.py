@@ -90,8 +90,8 @@ class Lockstep:
             for suit, (q, a) in zip(self.world.suits, self.imu, strict=True):
                 for j, sid in enumerate(suit.sensor_ids):
                     n = i % q.shape[1]
-                    self.ingest.add(f"{sid:08X}", self.imu_next + self.imu_shift_ns, device_ticks=None, packet_counter=None,
-                                    quat=tuple(q[j, n]), acc=tuple(a[j, n]))  # fmt: skip
+                    self.ingest.add(f"{sid:08X}", self.imu_next + self.imu_shift_ns, device_ticks=None,
+                                    packet_counter=None, quat=tuple(q[j, n]), acc=tuple(a[j, n]))  # fmt: skip
             self.imu_next += 10 * MS
 
 

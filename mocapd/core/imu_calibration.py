@@ -249,6 +249,8 @@ class ImuCalibration:
     @staticmethod
     def from_json_dict(data: Mapping[str, object]) -> ImuCalibration:
         """Inverse of :meth:`to_json_dict`. Raises CalibrationError on a wrong format or version."""
+        if not isinstance(data, Mapping):
+            raise CalibrationError(f"not a version-1 mocapd IMU calibration file (a {type(data).__name__})")
         if data.get("format") != "mocapd-imu-calibration" or data.get("version") != 1:
             raise CalibrationError("not a version-1 mocapd IMU calibration file")
         try:

@@ -75,6 +75,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from mocapd.io.prior import resolve_prior
     from mocapd.service.app import Daemon, Rig
+    from mocapd.service.suits import load_suits
     from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
 
     try:
@@ -92,7 +93,12 @@ def cmd_run(args: argparse.Namespace) -> int:
                                 noise_px=syn.noise_px, seed=syn.seed)
         for c in range(len(world.cameras))
     ]  # fmt: skip
-    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(cfg.solver.prior))
+    try:
+        suits = load_suits(cfg.imu, world.skeleton)  # the IMU suits calibrated with `mocapd calibrate imu`
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(cfg.solver.prior), suits)
     daemon = Daemon(
         cfg, rig, sinks=_sinks(args), status_line=(lambda s: print(s, flush=True)) if args.verbose else None
     )

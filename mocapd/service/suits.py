@@ -1,0 +1,54 @@
+"""The IMU suits the daemon fuses: one per ``<person>.imu.json`` written by ``mocapd calibrate imu``.
+
+Every calibration file in ``[imu] calibration_dir`` is a suit (its id is the person's name in the file). A file
+that cannot be read is a start-up error naming it — running on without a suit the technician calibrated would be
+a silent wrong answer. A missing directory means no suits (cameras only).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from mocapd.core.imu_calibration import ImuCalibration
+from mocapd.core.skeleton import Skeleton
+from mocapd.errors import CalibrationError, ConfigError
+from mocapd.pipeline.scheduler import Suit
+from mocapd.service.imu_config import ImuConfig
+
+log = logging.getLogger(__name__)
+
+
+def load_suits(config: ImuConfig, skeleton: Skeleton, base: Path | None = None) -> list[Suit]:
+    """Suits from ``config.calibration_dir`` (relative paths from ``base``, default the working directory).
+
+    Raises
+    ------
+    ConfigError
+        A calibration file is unreadable or malformed, two files name the same person, or one sensor is in two
+        suits.
+    """
+    folder = Path(config.calibration_dir)
+    if not folder.is_absolute() and base is not None:
+        folder = base / folder
+    if not folder.is_dir():
+        return []
+    suits: list[Suit] = []
+    owner: dict[str, str] = {}
+    for path in sorted(folder.glob("*.imu.json")):
+        try:
+            calibration = ImuCalibration.from_json_dict(json.loads(path.read_text(encoding="utf-8")))
+        except (OSError, ValueError, CalibrationError) as exc:
+            raise ConfigError(f"IMU calibration {path}: {exc}") from exc
+        if any(s.id == calibration.person for s in suits):
+            raise ConfigError(f"IMU calibration {path}: person {calibration.person!r} is calibrated twice")
+        for sensor in calibration.bones:
+            if sensor in owner:
+                raise ConfigError(f"IMU calibration {path}: sensor {sensor} is already in suit {owner[sensor]!r}")
+            owner[sensor] = calibration.person
+        unassigned = sorted(set(calibration.bones) - set(config.assignment)) if config.assignment else []
+        if unassigned:
+            log.warning("suit %s: sensors %s are not in [imu.assignment]", calibration.person, unassigned)
+        suits.append(Suit.from_calibration(calibration.person, calibration, skeleton))
+    return suits
