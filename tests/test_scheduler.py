@@ -4,6 +4,7 @@ IMUs give poses with bounded error; late or missing cameras are counted and drop
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pytest
@@ -164,7 +165,7 @@ def test_configured_camera_offset_realigns_a_shifted_clock(prior: PcaPrior) -> N
 def test_imu_offset_estimated_from_vertical_motion(prior: PcaPrior) -> None:
     """An IMU suit whose time stamps run 40 ms ahead: the estimate from hips acceleration vs the solved hips
     height finds it; with the offset configured, the estimate is the configured value (nothing left to fix)."""
-    found = {}
+    found: dict[int, dict[str, Any]] = {}
     for configured in (0, 40 * MS):
         options = SchedulerOptions(imu_offsets_ns=dict.fromkeys((f"{s:08X}" for s in range(0x00B42000, 0x00B42010)),
                                                                 configured))  # fmt: skip
@@ -174,9 +175,9 @@ def test_imu_offset_estimated_from_vertical_motion(prior: PcaPrior) -> None:
         est = estimate_imu_offsets(ls.scheduler.imu_alignment_inputs(), ls.scheduler.options.imu_offsets_ns)
         found[configured] = est["suit0"]
         assert est["suit0"]["sensor"] in est["suit0"]["sensors"] and len(est["suit0"]["sensors"]) == 13
-    for configured, est in found.items():
-        assert abs(est["offset_ms"] - 40.0) < 5.0 and est["quality"] > 0.9, est
-        assert est["configured_ms"] == configured / 1e6
+    for configured, suit in found.items():
+        assert abs(suit["offset_ms"] - 40.0) < 5.0 and suit["quality"] > 0.9, suit
+        assert suit["configured_ms"] == configured / 1e6
 
 
 def test_tick_plan_counts_missed_ticks_instead_of_bursting() -> None:
