@@ -13,6 +13,7 @@ from mocapd.core.kinematics import Kinematics
 from mocapd.core.people import PeopleTracker
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import quat_rotate
+from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
@@ -178,6 +179,28 @@ def test_imu_offset_estimated_from_vertical_motion(prior: PcaPrior) -> None:
     for configured, suit in found.items():
         assert abs(suit["offset_ms"] - 40.0) < 5.0 and suit["quality"] > 0.9, suit
         assert suit["configured_ms"] == configured / 1e6
+
+
+def test_body_size_estimated_per_track(prior: PcaPrior) -> None:
+    """The rig is configured for a 1.55 m person while the person is 1.75 m: sizing the track's skeleton from
+    its first second of keypoints brings the height back and the joint error down."""
+    results = {}
+    for frames in (0, 60):
+        ls = _lockstep(prior, 1, 0, SchedulerOptions(body_size_frames=frames), [0, 0, 0, 0])
+        ls.scheduler = FixedLatencyScheduler(
+            ls.world.cameras, Skeleton.from_height(1.55), ls.world.targets, ls.scheduler.people, prior=prior,
+            ingest=ls.ingest, options=SchedulerOptions(body_size_frames=frames),
+        )  # fmt: skip
+        out = ls.run(4.0)
+        results[frames] = (np.median([e for _, errs in out[150:] for e in errs]), ls.scheduler.status(), out[-1][0])
+    (err_off, st_off, _), (err_on, st_on, last) = results[0], results[60]
+    assert st_off["body_heights_m"] == {} and st_on["counters"]["bodies_sized"] == 1
+    (height,) = st_on["body_heights_m"].values()
+    assert abs(height - 1.75) < 0.07
+    print(f"body size: height {height:.3f} m, median joint error {err_off * 1e3:.1f} -> {err_on * 1e3:.1f} mm")
+    assert err_on < 0.6 * err_off, (err_on, err_off)
+    sized = last.people[0].skeleton
+    assert sized is not None and abs(sized.height - height) < 1e-3
 
 
 def test_tick_plan_counts_missed_ticks_instead_of_bursting() -> None:

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core import _kernel
+from mocapd.core.body_size import estimate_skeleton
 from mocapd.core.camera import Camera, triangulate
 from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
@@ -73,6 +74,9 @@ class SchedulerOptions:
     """Per camera: how far its time stamps run ahead of the host clock (empty: all zero)."""
     imu_offsets_ns: dict[str, int] = field(default_factory=dict)
     """Per IMU sensor id: how far its buffered times run ahead of the host clock."""
+    body_size_frames: int = 0
+    """Size each tracked person's skeleton from this many ticks of their triangulated keypoints (0: everyone
+    keeps the configured skeleton)."""
 
     @property
     def period_ns(self) -> int:
@@ -116,6 +120,7 @@ class PersonPose:
     imus: int  # IMUs with a measurement this frame
     iterations: int
     converged: bool
+    skeleton: Skeleton | None = None  # the skeleton theta is on (None: the rig's)
 
 
 @dataclass(frozen=True)
@@ -234,7 +239,8 @@ class FixedLatencyScheduler:
         self.cpu_ns = dict.fromkeys(STAGES[1:5], 0)
         self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
         self.imu_status: dict[str, dict[str, int]] = {}
-        self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0}
+        self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
+                         "bodies_sized": 0, "body_size_failed": 0}  # fmt: skip
         self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
         self._imu_width = sum(f.width for f in IMU_FIELDS)  # quat 0:4, acc 4:7 (IMU_FIELDS order)
         self._previous_acc: dict[str, tuple[int, FloatArray, NDArray[np.bool_]]] = {}
@@ -242,6 +248,10 @@ class FixedLatencyScheduler:
         self.suggested_imu_offsets: dict[str, dict[str, Any]] | None = None  # see estimate_imu_offsets
         # Solved hips height of each suit's wearer per tick: the camera side of the IMU offset estimate.
         self._heights: dict[str, deque[tuple[int, float]]] = {}
+        # Body size per track: keypoints gathered until there are enough, then the track's own skeleton.
+        self._sizing: dict[int, list[FloatArray]] = {}
+        self.skeletons: dict[int, Skeleton] = {}
+        self._restart: dict[int, FloatArray] = {}
         names = list(getattr(targets, "names", ()))
         self._hips = (
             [names.index("left_hip"), names.index("right_hip")] if {"left_hip", "right_hip"} <= set(names) else None
@@ -277,6 +287,8 @@ class FixedLatencyScheduler:
         }
         frame = self.people.update(t, detections, {k: v for k, v in suit_bones.items() if v})
         w2, c2 = self._stage("sort", w1, c1)
+        for person in frame.people:
+            self._size_body(person)
         poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in frame.people]
         self._forget_released({p.identity for p in frame.people})
         self._stage("solve", w2, c2)
@@ -350,7 +362,7 @@ class FixedLatencyScheduler:
         if solver is not None:
             return solver
         solver = PoseSolver(
-            self.skeleton,
+            self.skeletons.get(person.track, self.skeleton),
             self.cameras,
             self.targets,
             with_suit.mounts if with_suit is not None else (),
@@ -362,7 +374,8 @@ class FixedLatencyScheduler:
         # Warm start: from this track's previous identity (a suit was just paired with it), else from the
         # triangulated keypoints.
         previous = self.solvers.pop(f"track:{person.track}", None)
-        solver.reset(previous.theta if previous is not None else initial_pose(self.skeleton, person.keypoints))
+        start = previous.theta if previous is not None else self._restart.pop(person.track, None)
+        solver.reset(start if start is not None else initial_pose(solver.skeleton, person.keypoints))
         self.solvers[person.identity] = solver
         return solver
 
@@ -399,8 +412,31 @@ class FixedLatencyScheduler:
         joints = self._joints(solver, result.theta)
         return PersonPose(
             person.identity, person.track, person.suit, result.theta, joints, confidence, views, n_imu,
-            result.summary.iterations, result.summary.converged,
+            result.summary.iterations, result.summary.converged, solver.skeleton,
         )  # fmt: skip
+
+    def _size_body(self, person: Person) -> None:
+        """Gather a track's triangulated keypoints; once there are enough, give it its own skeleton (its solver
+        is rebuilt on it at the next solve, warm-started from the current pose)."""
+        n = self.options.body_size_frames
+        if n <= 0 or person.track in self.skeletons or person.keypoints.shape != (17, 3):
+            return
+        frames = self._sizing.setdefault(person.track, [])
+        frames.append(person.keypoints)
+        if len(frames) < n:
+            return
+        try:
+            skeleton = estimate_skeleton(np.stack(frames), min_frames=n // 2)
+        except InputError:
+            self.counters["body_size_failed"] += 1
+            del frames[: n // 2]  # legs not seen well enough yet: keep trying with newer frames
+            return
+        self.skeletons[person.track] = skeleton
+        del self._sizing[person.track]
+        self.counters["bodies_sized"] += 1
+        solver = self.solvers.pop(person.identity, None)
+        if solver is not None:  # the next solve builds a solver on the new skeleton, from this pose (same θ layout)
+            self._restart[person.track] = solver.theta.copy()
 
     def _record_height(self, suit: str, t: int, kp: FloatArray, conf: FloatArray) -> None:
         """Hips height of a suit's wearer triangulated from the cameras alone: the camera side of the IMU offset
@@ -416,7 +452,7 @@ class FixedLatencyScheduler:
         """Global joint positions (21, 3): the solver's compiled forward kinematics when it has one."""
         static = solver._kernel_static
         if static is None:
-            positions: FloatArray = self.kin.forward(theta).positions
+            positions: FloatArray = solver.kin.forward(theta).positions
             return positions
         return np.asarray(
             _kernel.skeleton_points(theta, static.parents, static.offsets, self._bone_ids, self._zero_offsets)
@@ -430,6 +466,10 @@ class FixedLatencyScheduler:
         for identity in list(self.solvers):
             if identity not in known and identity not in seen:
                 del self.solvers[identity]
+        tracks = {s.id for s in self.people.tracker.subjects}
+        for table in (self.skeletons, self._sizing, self._restart):
+            for track in [k for k in table if k not in tracks]:
+                del table[track]
 
     def imu_alignment_inputs(self) -> list[ImuAlignmentInput]:
         """Copies of what :func:`estimate_imu_offsets` needs, per suit with a hips sensor and a solved wearer."""
@@ -458,6 +498,7 @@ class FixedLatencyScheduler:
         return {
             "frame": self.frame,
             "counters": dict(self.counters),
+            "body_heights_m": {str(k): round(v.height, 3) for k, v in self.skeletons.items()},
             "latency_ms": {k: v.summary() for k, v in self.latency.items()},
             "cpu_s": {k: round(v / 1e9, 3) for k, v in self.cpu_ns.items()},
             "cameras": [

@@ -35,6 +35,7 @@ class DaemonConfig:
     output_rate_hz: float = 60.0
     latency_s: float = 0.15
     max_catch_up_s: float = 0.05
+    body_size_s: float = 2.0
     keypoint_max_age_s: float = 0.1
     keypoint_max_gap_s: float = 0.25
     match_px: float = 80.0
@@ -60,6 +61,7 @@ class DaemonConfig:
             match_px=self.match_px,
             camera_offsets_ns=tuple(round(self.camera_offsets_s.get(n, 0.0) * 1e9) for n in camera_names),
             imu_offsets_ns={k: round(v * 1e9) for k, v in self.imu_offsets_s.items()},
+            body_size_frames=round(self.body_size_s * self.output_rate_hz),
         )
 
 
@@ -122,6 +124,7 @@ def parse_daemon_config(t: dict[str, Any]) -> DaemonConfig:
         output_rate_hz=_num(t, "output_rate_hz", w, 60.0, 1.0, 500.0),
         latency_s=_num(t, "latency_s", w, 0.15, 0.0, 2.0),
         max_catch_up_s=_num(t, "max_catch_up_s", w, 0.05, 0.0, 1.0),
+        body_size_s=_num(t, "body_size_s", w, 2.0, 0.0, 60.0),
         keypoint_max_age_s=_num(t, "keypoint_max_age_s", w, 0.1, 0.0, 2.0),
         keypoint_max_gap_s=_num(t, "keypoint_max_gap_s", w, 0.25, 0.0, 5.0),
         match_px=_num(t, "match_px", w, 80.0, 1.0, 10000.0),
