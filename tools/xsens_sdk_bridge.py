@@ -8,7 +8,7 @@ the Awinda example that ships with the SDK; check the names against your SDK ver
 
 Usage (on the machine that has the Awinda station, next to mocapd)::
 
-    python tools/xsens_sdk_bridge.py --rate 60 --channel 19 --port 9763
+    python tools/xsens_sdk_bridge.py --rate 60 --channel 19 --port 9773
 
 Each live packet becomes one record ``{"v": 1, "id", "t", "q", "a", "frame": "ENU", "pc"}`` (see
 ``mocapd/protocols/imu_bridge.py``), sent to 127.0.0.1 only.
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rate", type=int, default=60, help="Awinda update rate, Hz (60, 75, 80, 100, 120 ...)")
     ap.add_argument("--channel", type=int, default=19, help="radio channel 11..25")
-    ap.add_argument("--port", type=int, default=9763, help="mocapd imu.bridge.port")
+    ap.add_argument("--port", type=int, default=9773, help="mocapd imu.bridge.port")
     ap.add_argument("--sensors", type=int, default=0, help="wait until this many MTws are connected")
     args = ap.parse_args(argv)
 

@@ -16,7 +16,7 @@ from mocapd.errors import ConfigError, DeviceError
 from mocapd.io.xsens_serial import ImuSample
 from mocapd.protocols.imu_bridge import decode_datagram
 
-DEFAULT_PORT = 9763
+DEFAULT_PORT = 9773  # not 9763: that is MVN network streaming, which mocapd sends
 _TICK_HZ = 10_000
 
 

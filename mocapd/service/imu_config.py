@@ -20,7 +20,7 @@ class BridgeConfig:
 
     enabled: bool = False
     host: str = "127.0.0.1"
-    port: int = 9763
+    port: int = 9773
 
 
 @dataclass(frozen=True, slots=True)
