@@ -41,3 +41,25 @@ def test_too_few_frames_is_an_error() -> None:
         estimate_skeleton(np.full((30, 17, 3), np.nan))
     with pytest.raises(InputError, match="shape"):
         estimate_skeleton(np.zeros((30, 12, 3)))
+
+
+def test_torso_length_is_measured_not_assumed() -> None:
+    """A person whose spine is 25 % shorter than the default for their legs: the sized skeleton puts the
+    shoulders at the measured distance above the hips, which height scaling alone would miss by centimetres."""
+    base = Skeleton.from_height(1.8)
+    off = base.offsets.copy()
+    for b in ("Spine", "Spine1", "Spine2", "Spine3"):
+        off[BONE_INDEX[b]] *= 0.75
+    person = Skeleton(offsets=off, root_height=base.root_height, height=1.8)
+
+    def rest_sites(sk: Skeleton) -> np.ndarray:
+        kin, targets = Kinematics(sk), coco17_targets(sk)
+        return np.asarray(kin.targets(kin.forward(np.zeros(66)), targets.bones, targets.offsets))
+
+    def torso(x: np.ndarray) -> float:  # hip midpoint to shoulder midpoint (COCO 5, 6, 11, 12)
+        return float(np.linalg.norm(0.5 * (x[5] + x[6]) - 0.5 * (x[11] + x[12])))
+
+    truth = torso(rest_sites(person))
+    sized = estimate_skeleton(np.repeat(rest_sites(person)[None], 20, axis=0))
+    assert abs(torso(rest_sites(sized)) - truth) < 1e-3
+    assert abs(torso(rest_sites(Skeleton.from_height(sized.height))) - truth) > 0.05

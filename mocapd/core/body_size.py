@@ -68,4 +68,28 @@ def estimate_skeleton(keypoints: FloatArray, min_frames: int = 10) -> Skeleton:
             lateral = abs(ref.offsets[BONE_INDEX[bone], 0]) * s
             if np.isfinite(half) and lateral > 0:
                 lengths[bone] = float(np.linalg.norm(ref.offsets[BONE_INDEX[bone]]) * s * half / lateral)
-    return Skeleton.from_bone_lengths(lengths, height=height)
+    return _fit_torso(Skeleton.from_bone_lengths(lengths, height=height), kp)
+
+
+_SPINE = [BONE_INDEX[b] for b in ("Spine", "Spine1", "Spine2", "Spine3")]
+_UPPER_ARMS = [BONE_INDEX["LeftUpperArm"], BONE_INDEX["RightUpperArm"]]
+_UPPER_LEGS = [BONE_INDEX["LeftUpperLeg"], BONE_INDEX["RightUpperLeg"]]
+
+
+def _fit_torso(skeleton: Skeleton, kp: FloatArray) -> Skeleton:
+    """Scale the spine chain so the rest-pose distance from the hip midpoint up to the shoulder midpoint is the
+    measured one (the median over frames). Torso proportions vary between people far more than the height-scaled
+    default assumes (a CMU subject's is ~30 % shorter than the default for his leg length)."""
+    mid_hip = 0.5 * (kp[:, _KP["left_hip"]] + kp[:, _KP["right_hip"]])
+    mid_shoulder = 0.5 * (kp[:, _KP["left_shoulder"]] + kp[:, _KP["right_shoulder"]])
+    torso = float(np.nanmedian(np.linalg.norm(mid_shoulder - mid_hip, axis=-1)))
+    off = skeleton.offsets.copy()
+    # Rest pose, vertical: shoulders at Σ spine + upper-arm offset above the root, hips at the upper-leg offset.
+    spine = off[_SPINE, 1].sum() + off[_UPPER_ARMS, 1].mean()
+    below = off[_UPPER_LEGS, 1].mean()  # negative: the hip joints sit below the root
+    if not np.isfinite(torso) or spine <= 0:
+        return skeleton
+    k = float(np.clip((torso + below) / spine, 0.5, 1.5))
+    off[_SPINE] *= k
+    off[_UPPER_ARMS, 1] *= k
+    return Skeleton(offsets=off, root_height=skeleton.root_height, height=skeleton.height)

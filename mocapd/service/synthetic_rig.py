@@ -157,6 +157,13 @@ class SyntheticWorld:
         out: FloatArray = (1 - w) * seq[a] + w * seq[b]
         return out
 
+    def sites_at(self, person: int, t_s: float) -> FloatArray:
+        """Person's 17 keypoint sites (17, 3) at ``t_s``: what the simulated cameras observe."""
+        a, b, w = self._frame(t_s)
+        seq = self._target_seq[person]
+        out: FloatArray = (1 - w) * seq[a] + w * seq[b]
+        return out
+
     def joints_at(self, person: int, t_s: float) -> FloatArray:
         """Person's global joint positions (21, 3) at ``t_s``."""
         positions: FloatArray = self.kin.forward(self.theta_at(person, t_s)).positions
