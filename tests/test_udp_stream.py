@@ -126,3 +126,12 @@ def test_subject_slots() -> None:
         SubjectSlots(4, pinned={"a": 1, "b": 1})
     with pytest.raises(InputError, match="outside"):
         SubjectSlots(2, pinned={"a": 2})
+
+
+def test_benchmark_reports_sizes_and_costs() -> None:
+    from tools.bench_udp import run
+
+    r = run(subjects=2, rate=60.0, n_frames=20)
+    assert r["mvn"]["bytes_per_frame"] == 2 * 760 and r["mvn"]["datagrams_per_frame"] == 2
+    assert r["vmc"]["datagrams_per_frame"] == 4 and r["mvn"]["dropped"] == 0 and r["vmc"]["dropped"] == 0
+    assert r["mvn"]["publish_us"]["median"] > 0 and r["baseline"]["json_lines_us"]["median"] > 0
