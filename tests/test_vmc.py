@@ -166,3 +166,18 @@ def test_one_avatar_per_destination_in_order_of_appearance() -> None:
     finally:
         for s in socks:
             s.close()
+
+
+def test_bone_message_bytes_as_documented() -> None:
+    theta = np.zeros(66)
+    raw = b"".join(VmcEncoder(SKELETON).encode(0, theta))
+    prefix = bytes.fromhex(
+        "2F 56 4D 43 2F 45 78 74 2F 42 6F 6E 65 2F 50 6F 73 00 00 00"  # "/VMC/Ext/Bone/Pos" + 3 NUL
+        "2C 73 66 66 66 66 66 66 66 00 00 00"  # ",sfffffff" + 3 NUL
+        "4C 65 66 74 55 70 70 65 72 41 72 6D 00 00 00 00"  # "LeftUpperArm" + 4 NUL
+    )
+    at = raw.index(prefix)
+    assert raw[at - 4 : at] == (76).to_bytes(4, "big")  # the bundle element's size field
+    values = np.frombuffer(raw[at + 48 : at + 76], dtype=">f4")
+    o = SKELETON.offsets[BONE_INDEX["LeftUpperArm"]]
+    np.testing.assert_allclose(values, [-o[0], 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], atol=1e-7)  # x mirrored, then xyzw

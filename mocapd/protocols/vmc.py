@@ -15,7 +15,7 @@ Every output frame of one subject becomes one or more OSC bundles (time tag 1, "
     /VMC/Ext/T         f seconds since the stream started (the first frame sent)
 
 OK and T come last, in the last bundle, so receivers that apply a frame when they see them (VRM4U) apply it
-after all its bones. A bone message is 80 bytes for "LeftUpperArm": address "/VMC/Ext/Bone/Pos" + 3 NUL (20),
+after all its bones. A bone message is 76 bytes for "LeftUpperArm": address "/VMC/Ext/Bone/Pos" + 3 NUL (20),
 type tags ",sfffffff" + 3 NUL (12), name + NULs (16), seven float32 (28), all big-endian; a frame is ~1.9 kB, so
 at the default 1472-byte limit it is two bundles.
 
