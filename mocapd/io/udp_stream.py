@@ -174,6 +174,9 @@ class MvnUdpSink(_UdpPoseSink):
         if not self._due():
             return
         chars = [(slot, p.theta) for slot, p in self._subjects(frame)]
+        self.encoder.time_code_ms(frame.t_solve_ns)  # the stream's clock starts with the first frame, subjects or not
+        if not chars:
+            return
         try:
             datagrams = self.encoder.encode(frame.frame, frame.t_solve_ns, chars)
         except MocapdError:
