@@ -3,11 +3,13 @@ allowed; non-loopback destinations only with udp.allow_remote."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from mocapd.errors import ConfigError
+from mocapd.service.cli import main
 from mocapd.service.config import load_config, parse_config
 from mocapd.service.udp_config import Destination, UdpConfig, parse_udp_config
 
@@ -82,3 +84,13 @@ def test_udp_is_a_known_section() -> None:
         parse_config({"udp": {"mvn": {"rate_divisor": -1}}})
     with pytest.raises(ConfigError, match=r"udp must be a table"):
         parse_config({"udp": 3})
+
+
+def test_mocapd_refuses_to_start_with_a_remote_destination(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "remote.toml"
+    path.write_text('[udp.vmc]\nenabled = true\ndestinations = ["10.0.0.7:39539"]\n', encoding="utf-8")
+    assert main(["run", "--config", str(path), "--http-port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "udp.vmc.destinations entry '10.0.0.7:39539' is not a loopback address" in err
+    assert "udp.allow_remote = true" in err
+    assert main(["check-config", str(path)]) == 2
