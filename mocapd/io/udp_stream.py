@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from mocapd.core.skeleton import Skeleton
-from mocapd.errors import MocapdError
+from mocapd.errors import InputError, MocapdError
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols.mvn import MvnEncoder
 from mocapd.protocols.subjects import SubjectSlots
@@ -86,9 +86,9 @@ class _UdpPoseSink:
         release_after_frames: int = 120,
     ) -> None:
         if not destinations:
-            raise ValueError("a UDP sink needs at least one destination")
+            raise InputError("a UDP sink needs at least one destination")
         if rate_divisor < 1:
-            raise ValueError(f"rate_divisor must be >= 1, got {rate_divisor}")
+            raise InputError(f"rate_divisor must be >= 1, got {rate_divisor}")
         self.destinations = [(str(h), int(p)) for h, p in destinations]
         self.rate_divisor = rate_divisor
         self.slots = SubjectSlots(capacity, pinned, subjects, release_after_frames)

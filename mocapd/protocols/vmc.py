@@ -43,9 +43,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.kinematics import Kinematics
-from mocapd.core.rotations import quat_from_matrix
-from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
+from mocapd.core.rotations import quat_conjugate, quat_from_rotvec, quat_multiply, quat_rotate
+from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.conventions import UNITY
 from mocapd.protocols.osc import encode_message, message_prefix, osc_string, pack_bundles
@@ -90,21 +89,39 @@ BONES: tuple[tuple[str, str | None, str, str | None], ...] = (
 BONE_NAMES: tuple[str, ...] = tuple(b[0] for b in BONES)
 N_VMC_BONES = len(BONES)
 _NAME_INDEX = {b[0]: i for i, b in enumerate(BONES)}
-_PARENT = np.array([-1 if p is None else _NAME_INDEX[p] for _, p, _, _ in BONES], dtype=np.intp)
-_ROT_SRC = np.array([BONE_INDEX[r] for _, _, r, _ in BONES], dtype=np.intp)
-_POS_SRC = np.array([BONE_INDEX[o] if o is not None else BONE_INDEX["Spine3"] for *_, o in BONES], dtype=np.intp)
+_ROT_SRC = np.array([BONE_INDEX[r] for _, _, r, _ in BONES], dtype=np.intp)  # the local rotation's bone
 _CLAVICLE_ARM = {_NAME_INDEX["LeftShoulder"]: "LeftUpperArm", _NAME_INDEX["RightShoulder"]: "RightUpperArm"}
+_SHOULDER_IDX = np.array(sorted(_CLAVICLE_ARM), dtype=np.intp)
+_UPPER_CHEST = _NAME_INDEX["UpperChest"]
 _FLOATS = np.dtype(">f4")
 
 
 class VmcBones:
-    """Local bone transforms (Unity frame) of the VMC bone list from pose vectors of one sized skeleton."""
+    """Local bone transforms (Unity frame) of the VMC bone list from pose vectors of one sized skeleton.
+
+    VMC is local, like θ, so no forward kinematics is needed: a bone's local rotation is its θ rotation (UpperChest:
+    Spine2's then Spine3's; the shoulders: identity) and its local position is its rest offset, except where the
+    merged UpperChest moves a child's joint: with the UpperChest transform at Spine2's joint and rotated by
+    ``R_Spine3`` relative to Spine2, a child attached to Spine3 at offset ``o`` sits at ``R_Spine3ᵀ o_Spine3 + o``.
+    """
 
     def __init__(self, skeleton: Skeleton) -> None:
-        self.kinematics = Kinematics(skeleton)
         off = skeleton.offsets
-        self._clavicles = [(i, np.array([0.0, off[BONE_INDEX[arm], 1], off[BONE_INDEX[arm], 2]]))
-                           for i, arm in _CLAVICLE_ARM.items()]  # fmt: skip
+        const = np.zeros((N_VMC_BONES, 3))
+        self._after_spine3: list[tuple[int, FloatArray]] = []  # children of UpperChest: (VMC index, offset o)
+        for i, (_, parent, _, origin) in enumerate(BONES):
+            if origin is None:  # a shoulder: the mid-line point at the upper arm's height and depth
+                o = off[BONE_INDEX[_CLAVICLE_ARM[i]]]
+                self._after_spine3.append((i, np.array([0.0, o[1], o[2]])))
+            elif parent == "UpperChest":
+                self._after_spine3.append((i, off[BONE_INDEX[origin]].copy()))
+            elif parent is not None and BONES[_NAME_INDEX[parent]][3] is None:  # an upper arm, from its shoulder
+                o = off[BONE_INDEX[origin]]
+                const[i] = [o[0], 0.0, 0.0]
+            elif parent is not None:
+                const[i] = off[BONE_INDEX[origin]]
+        self._const = const
+        self._o_spine3 = off[BONE_INDEX["Spine3"]].copy()
 
     def compute(self, thetas: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Local positions and rotations of the 22 VMC bones.
@@ -123,22 +140,18 @@ class VmcBones:
         thetas = np.asarray(thetas, dtype=np.float64)
         if thetas.ndim != 2 or thetas.shape[1] != POSE_DIM:
             raise InputError(f"thetas must have shape (n, {POSE_DIM}), got {thetas.shape}")
-        fk = self.kinematics.forward(thetas)
-        Q = fk.rotations[:, _ROT_SRC]
-        x = fk.positions[:, _POS_SRC].copy()
-        spine3 = BONE_INDEX["Spine3"]
-        for i, c in self._clavicles:
-            x[:, i] = fk.positions[:, spine3] + fk.rotations[:, spine3] @ c
         n = thetas.shape[0]
-        Qp = np.broadcast_to(np.eye(3), (n, N_VMC_BONES, 3, 3)).copy()
-        xp = np.zeros((n, N_VMC_BONES, 3))
-        has = _PARENT >= 0
-        Qp[:, has] = Q[:, _PARENT[has]]
-        xp[:, has] = x[:, _PARENT[has]]
-        QpT = np.swapaxes(Qp, -1, -2)
-        local_R = QpT @ Q
-        local_p = np.einsum("...ij,...j->...i", QpT, x - xp)
-        return UNITY.positions(local_p), UNITY.quaternions(quat_from_matrix(local_R))
+        q = quat_from_rotvec(thetas[:, 3:].reshape(n, N_BONES, 3))
+        quats = q[:, _ROT_SRC]
+        quats[:, _UPPER_CHEST] = quat_multiply(q[:, BONE_INDEX["Spine2"]], q[:, BONE_INDEX["Spine3"]])
+        quats[:, _SHOULDER_IDX] = (1.0, 0.0, 0.0, 0.0)
+        pos = np.broadcast_to(self._const, (n, N_VMC_BONES, 3)).copy()
+        pos[:, 0] = thetas[:, :3]
+        # R_Spine3ᵀ o_Spine3: Spine3's joint seen from the UpperChest transform.
+        lifted = quat_rotate(quat_conjugate(q[:, BONE_INDEX["Spine3"]]), self._o_spine3)
+        for i, o in self._after_spine3:
+            pos[:, i] = lifted + o
+        return UNITY.positions(pos), UNITY.quaternions(quats)
 
 
 class VmcEncoder:
