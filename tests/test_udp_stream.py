@@ -15,7 +15,6 @@ from mocapd.errors import InputError
 from mocapd.io.udp_stream import MvnUdpSink, UdpSender, VmcUdpSink
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols.mvn import parse_header
-from mocapd.protocols.subjects import SubjectSlots
 
 SKELETON = Skeleton.from_height(1.75)
 
@@ -113,21 +112,6 @@ def test_non_finite_poses_are_skipped_and_counted(receiver: socket.socket) -> No
     assert sink.status()["skipped_subjects"] == 1
 
 
-def test_subject_slots() -> None:
-    slots = SubjectSlots(3, pinned={"suit:p": 2}, release_after=2)
-    assert slots.assign(["track:1", "suit:p", "track:2"]) == [0, 2, 1]
-    assert slots.assign(["track:3", "track:2"]) == [None, 1]  # 0 still held by track:1 (absent 1 frame)
-    assert slots.unassigned == 1
-    assert slots.assign(["track:3", "track:2"]) == [0, 1]  # track:1 absent 2 frames: released
-    assert slots.held() == {"track:3": 0, "track:2": 1, "suit:p": 2}
-    only = SubjectSlots(4, allowed={"suit:a"})
-    assert only.assign(["track:1", "suit:a"]) == [None, 0]
-    with pytest.raises(InputError, match="distinct"):
-        SubjectSlots(4, pinned={"a": 1, "b": 1})
-    with pytest.raises(InputError, match="outside"):
-        SubjectSlots(2, pinned={"a": 2})
-
-
 def test_benchmark_reports_sizes_and_costs() -> None:
     from tools.bench_udp import run
 
@@ -135,3 +119,12 @@ def test_benchmark_reports_sizes_and_costs() -> None:
     assert r["mvn"]["bytes_per_frame"] == 2 * 760 and r["mvn"]["datagrams_per_frame"] == 2
     assert r["vmc"]["datagrams_per_frame"] == 4 and r["mvn"]["dropped"] == 0 and r["vmc"]["dropped"] == 0
     assert r["mvn"]["publish_us"]["median"] > 0 and r["baseline"]["json_lines_us"]["median"] > 0
+
+
+def test_sink_arguments_are_checked() -> None:
+    with pytest.raises(InputError, match="at least one destination"):
+        MvnUdpSink(SKELETON, [])
+    with pytest.raises(InputError, match="rate_divisor"):
+        VmcUdpSink(SKELETON, [("127.0.0.1", 39539)], rate_divisor=0)
+    with pytest.raises(InputError, match="does not fit"):
+        VmcUdpSink(SKELETON, [("127.0.0.1", 39539)], max_datagram_bytes=64)
