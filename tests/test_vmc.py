@@ -122,7 +122,12 @@ async def test_vmc_bundles_over_udp_decode_and_round_trip(receiver: socket.socke
     np.testing.assert_allclose(world["Chest"][1], fk.rotations[BONE_INDEX["Spine1"]], atol=3e-6)
     np.testing.assert_allclose(world["UpperChest"][0], fk.positions[BONE_INDEX["Spine2"]], atol=3e-6)
     np.testing.assert_allclose(world["UpperChest"][1], fk.rotations[BONE_INDEX["Spine3"]], atol=3e-6)
-    np.testing.assert_allclose(world["LeftShoulder"][1], fk.rotations[BONE_INDEX["Spine3"]], atol=3e-6)
+    s3 = BONE_INDEX["Spine3"]
+    for side in ("Left", "Right"):  # the shoulder rule: rigid with the chest, mid-line at the upper arm's height
+        o = SKELETON.offsets[BONE_INDEX[f"{side}UpperArm"]]
+        want = fk.positions[s3] + fk.rotations[s3] @ np.array([0.0, o[1], o[2]])
+        np.testing.assert_allclose(world[f"{side}Shoulder"][0], want, atol=3e-6)
+        np.testing.assert_allclose(world[f"{side}Shoulder"][1], fk.rotations[s3], atol=3e-6)
     st = sink.status()
     assert st["datagrams_sent"] == 4 and st["frames_sent"] == 2 and st["datagrams_dropped"] == 0
 
