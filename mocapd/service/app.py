@@ -17,7 +17,7 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -62,6 +62,15 @@ class PoseSink(Protocol):
     def publish(self, frame: PoseFrame) -> None: ...
 
     async def aclose(self) -> None: ...
+
+
+@runtime_checkable
+class ReportingSink(Protocol):
+    """A pose sink with counters for /status (under ``sinks.<name>``), e.g. the UDP streams."""
+
+    name: str
+
+    def status(self) -> dict[str, Any]: ...
 
 
 @dataclass
@@ -277,6 +286,7 @@ class Daemon:
             "imu": self.imu.status(),
             "imu_lookups": s["imu_samples"],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
+            "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},
             "subjects": s["people"],
             "time_alignment": {
                 "configured_camera_offsets_ms": {

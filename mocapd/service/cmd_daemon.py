@@ -13,6 +13,7 @@ from typing import Any
 
 from mocapd.errors import ConfigError
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
+from mocapd.service.udp_config import build_udp_sinks
 
 
 def _subcommand_group(subparsers: Any, name: str) -> Any:
@@ -102,6 +103,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     daemon = Daemon(
         cfg, rig, sinks=_sinks(args), status_line=(lambda s: print(s, flush=True)) if args.verbose else None
     )
+    daemon.sinks.extend(build_udp_sinks(cfg, daemon))
     print(f"mocapd run: status http://{cfg.daemon.http_host}:{cfg.daemon.http_port}/status", flush=True)
     return asyncio.run(daemon.run())
 

@@ -38,6 +38,7 @@ from mocapd.pipeline.scheduler import PersonPose, PoseFrame, Suit
 from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.config import Config
 from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
+from mocapd.service.udp_config import build_udp_sinks
 
 REPO = Path(__file__).resolve().parents[2]
 FloatArray = NDArray[np.float64]
@@ -172,6 +173,7 @@ def build_demo(
     truth = TruthError(world, epoch)
     rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(config.solver.prior), suits)
     daemon = Daemon(config, rig, sinks=[truth, *(sinks or [])], clock=clock, status_line=status_line)
+    daemon.sinks.extend(build_udp_sinks(config, daemon))
     return SyntheticDemo(daemon, world, simulators, truth, workdir, loop)
 
 

@@ -1,0 +1,243 @@
+"""UDP pose sinks: the MVN (``MXTP02``) and VMC (OSC) streams of :mod:`mocapd.protocols.mvn` / ``.vmc``.
+
+Each sink owns one non-blocking, unconnected IPv4 UDP socket (opened in :meth:`start`, on the event loop) and
+sends from :meth:`publish`, which the daemon calls from its tick loop: a send never blocks and never raises. A full
+socket buffer (``EAGAIN``) or an error the kernel reports for an earlier datagram (``ECONNREFUSED`` after an ICMP
+port-unreachable, ``ENETUNREACH``, ...) drops that datagram and is counted by errno name in :meth:`status`; UDP
+has no delivery guarantee anyway and the next frame supersedes this one. Destinations come only from the
+configuration (``[udp]`` in config.toml, validated by :mod:`mocapd.service.udp_config`).
+"""
+
+from __future__ import annotations
+
+import errno
+import socket
+from collections import Counter
+from collections.abc import Collection, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from mocapd.core.skeleton import Skeleton
+from mocapd.errors import InputError, MocapdError
+from mocapd.pipeline.scheduler import PersonPose, PoseFrame
+from mocapd.protocols.mvn import MvnEncoder
+from mocapd.protocols.subjects import SubjectSlots
+from mocapd.protocols.vmc import VmcEncoder
+
+Destination = tuple[str, int]
+
+
+class UdpSender:
+    """A non-blocking UDP socket that counts what it sent and what it dropped."""
+
+    def __init__(self) -> None:
+        self._sock: socket.socket | None = None
+        self.datagrams_sent = 0
+        self.bytes_sent = 0
+        self.errors: Counter[str] = Counter()
+
+    def open(self) -> None:
+        if self._sock is None:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            sock.setblocking(False)
+            self._sock = sock
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def send(self, data: bytes, destination: Destination) -> bool:
+        """Send one datagram now; False (and counted) when it was dropped."""
+        if self._sock is None:
+            self.errors["not_started"] += 1
+            return False
+        try:
+            n = self._sock.sendto(data, destination)
+        except BlockingIOError:
+            self.errors["EAGAIN"] += 1
+            return False
+        except OSError as exc:  # ECONNREFUSED from an earlier ICMP error, ENETUNREACH, EMSGSIZE, ...
+            self.errors[errno.errorcode.get(exc.errno or 0, "OSError")] += 1
+            return False
+        self.datagrams_sent += 1
+        self.bytes_sent += n
+        return True
+
+    def counters(self) -> dict[str, Any]:
+        return {"datagrams_sent": self.datagrams_sent, "bytes_sent": self.bytes_sent,
+                "datagrams_dropped": sum(self.errors.values()), "errors": dict(self.errors)}  # fmt: skip
+
+
+class _UdpPoseSink:
+    """What the MVN and VMC sinks share: decimation, subject slots, the socket and the counters."""
+
+    name = "udp"
+
+    def __init__(
+        self,
+        destinations: Sequence[Destination],
+        *,
+        capacity: int,
+        rate_divisor: int = 1,
+        pinned: Mapping[str, int] | None = None,
+        subjects: Collection[str] | None = None,
+        release_after_frames: int = 120,
+    ) -> None:
+        if not destinations:
+            raise InputError("a UDP sink needs at least one destination")
+        if rate_divisor < 1:
+            raise InputError(f"rate_divisor must be >= 1, got {rate_divisor}")
+        self.destinations = [(str(h), int(p)) for h, p in destinations]
+        self.rate_divisor = rate_divisor
+        self.slots = SubjectSlots(capacity, pinned, subjects, release_after_frames)
+        self.sender = UdpSender()
+        self.frames_seen = 0
+        self.frames_sent = 0
+        self.skipped_subjects = 0  # non-finite pose or an encoder refusal (counted, never raised)
+
+    async def start(self) -> None:
+        self.sender.open()
+
+    async def aclose(self) -> None:
+        self.sender.close()
+
+    def _due(self) -> bool:
+        self.frames_seen += 1
+        return (self.frames_seen - 1) % self.rate_divisor == 0
+
+    def _subjects(self, frame: PoseFrame) -> list[tuple[int, PersonPose]]:
+        """This frame's streamed subjects with their slots."""
+        out = []
+        for slot, person in zip(self.slots.assign([p.identity for p in frame.people]), frame.people, strict=True):
+            if slot is None:
+                continue
+            if not np.all(np.isfinite(person.theta)):
+                self.skipped_subjects += 1
+                continue
+            out.append((slot, person))
+        return out
+
+    def status(self) -> dict[str, Any]:
+        """Counters for /status."""
+        return {
+            "destinations": [f"{h}:{p}" for h, p in self.destinations],
+            "rate_divisor": self.rate_divisor,
+            "frames_seen": self.frames_seen,
+            "frames_sent": self.frames_sent,
+            **self.sender.counters(),
+            "skipped_subjects": self.skipped_subjects,
+            "unassigned_subjects": self.slots.unassigned,
+            "slots": self.slots.held(),
+        }
+
+
+class MvnUdpSink(_UdpPoseSink):
+    """MVN network streaming: every streamed subject, as its own character id, to every destination.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The sized skeleton of the solved pose vectors.
+    destinations : sequence of (host, port)
+    rate_divisor : int
+        Send every n-th output frame.
+    character_ids : mapping identity -> character id, optional
+        Pinned ids; other subjects get the lowest free id (0 .. 255).
+    subjects : collection of identities, optional
+        Stream only these (default: everyone).
+    max_datagram_bytes : int
+        Split a character over several datagrams above this size.
+    release_after_frames : int
+        Sent frames of absence after which an automatic character id is freed.
+    """
+
+    name = "mvn"
+
+    def __init__(
+        self,
+        skeleton: Skeleton,
+        destinations: Sequence[Destination],
+        *,
+        rate_divisor: int = 1,
+        character_ids: Mapping[str, int] | None = None,
+        subjects: Collection[str] | None = None,
+        max_datagram_bytes: int = 1472,
+        release_after_frames: int = 120,
+    ) -> None:
+        super().__init__(destinations, capacity=256, rate_divisor=rate_divisor, pinned=character_ids,
+                         subjects=subjects, release_after_frames=release_after_frames)  # fmt: skip
+        self.encoder = MvnEncoder(skeleton, max_datagram_bytes=max_datagram_bytes)
+
+    def publish(self, frame: PoseFrame) -> None:
+        if not self._due():
+            return
+        subjects = self._subjects(frame)
+        chars = [(slot, p.theta) for slot, p in subjects]
+        self.encoder.time_code_ms(frame.t_solve_ns)  # the stream's clock starts with the first frame, subjects or not
+        if not chars:
+            return
+        try:
+            datagrams = self.encoder.encode(frame.frame, frame.t_solve_ns, chars, [p.skeleton for _, p in subjects])
+        except MocapdError:
+            self.skipped_subjects += len(chars)
+            return
+        for d in datagrams:
+            for dest in self.destinations:
+                self.sender.send(d, dest)
+        self.frames_sent += 1
+
+
+class VmcUdpSink(_UdpPoseSink):
+    """VMC protocol: one avatar per destination; the subject in slot k drives the avatar at destination k.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    destinations : sequence of (host, port)
+        One per avatar (Marionette).
+    rate_divisor : int
+    subjects : sequence of identities, optional
+        ``subjects[k]`` drives ``destinations[k]``; default: subjects take destinations in order of appearance.
+    max_datagram_bytes : int
+        Split a frame over several bundles above this size.
+    release_after_frames : int
+    """
+
+    name = "vmc"
+
+    def __init__(
+        self,
+        skeleton: Skeleton,
+        destinations: Sequence[Destination],
+        *,
+        rate_divisor: int = 1,
+        subjects: Sequence[str] | None = None,
+        max_datagram_bytes: int = 1472,
+        release_after_frames: int = 120,
+    ) -> None:
+        pinned = None if subjects is None else {s: k for k, s in enumerate(subjects)}
+        super().__init__(destinations, capacity=len(destinations), rate_divisor=rate_divisor, pinned=pinned,
+                         subjects=subjects, release_after_frames=release_after_frames)  # fmt: skip
+        self.encoder = VmcEncoder(skeleton, max_datagram_bytes=max_datagram_bytes)
+
+    def publish(self, frame: PoseFrame) -> None:
+        if not self._due():
+            return
+        subjects = self._subjects(frame)
+        t = frame.t_solve_ns
+        self.encoder.seconds(t)  # the stream's clock starts with the first frame sent, subjects or not
+        if not subjects:
+            return
+        thetas = np.stack([p.theta for _, p in subjects])
+        tracked = [p.views > 0 or p.imus > 0 for _, p in subjects]
+        try:
+            bundles = self.encoder.encode_many(t, thetas, tracked, [p.skeleton for _, p in subjects])
+        except MocapdError:
+            self.skipped_subjects += len(subjects)
+            return
+        for (slot, _), per_subject in zip(subjects, bundles, strict=True):
+            for b in per_subject:
+                self.sender.send(b, self.destinations[slot])
+        self.frames_sent += 1

@@ -1,0 +1,108 @@
+"""The real daemon on the synthetic rig streaming MVN and VMC to loopback receivers; what arrives decodes to the
+published frames' poses, and /status reports the streams' counters."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from pythonosc.osc_bundle import OscBundle
+from pythonosc.osc_message import OscMessage
+
+from mocapd.core.rotations import matrix_from_quat, matrix_from_rotvec
+from mocapd.core.skeleton import BONE_INDEX
+from mocapd.protocols.conventions import MVN, UNITY
+from mocapd.service.config import load_config
+from mocapd.service.demo_synthetic import running_demo
+from mocapd.service.udp_config import Destination, MvnStreamConfig, UdpConfig, VmcStreamConfig
+from tests.test_daemon import Recorder, http_get, wait_for
+from tests.test_mvn import read_datagram
+
+SUIT = "suit:suit0"
+
+
+class Collect(asyncio.DatagramProtocol):
+    def __init__(self) -> None:
+        self.datagrams: list[bytes] = []
+
+    def datagram_received(self, data: bytes, addr: tuple[str | object, int]) -> None:
+        self.datagrams.append(data)
+
+
+@pytest.mark.asyncio
+async def test_daemon_streams_mvn_and_vmc_on_loopback() -> None:
+    loop = asyncio.get_running_loop()
+    mvn_t, mvn_rx = await loop.create_datagram_endpoint(Collect, local_addr=("127.0.0.1", 0))
+    vmc_t, vmc_rx = await loop.create_datagram_endpoint(Collect, local_addr=("127.0.0.1", 0))
+    mvn_port = mvn_t.get_extra_info("sockname")[1]
+    vmc_port = vmc_t.get_extra_info("sockname")[1]
+    udp = UdpConfig(  # the suited person is pinned to MVN character 0 and drives the one VMC avatar
+        mvn=MvnStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", mvn_port),),
+                            character_ids=(("suit:suit0", 0),)),
+        vmc=VmcStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", vmc_port),),
+                            subjects=("suit:suit0",)),
+    )  # fmt: skip
+    cfg = load_config()
+    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0), udp=udp)
+    rec = Recorder()
+    try:
+        with running_demo(cfg, sinks=[rec]) as demo:
+            d = demo.daemon
+            task = asyncio.create_task(d.run())
+            await asyncio.wait_for(d.ready.wait(), 180)
+            await wait_for(lambda: bool(rec.frames) and {p.identity for p in rec.frames[-1].people} >= {SUIT}
+                           and len(rec.frames[-1].people) == 2, 120, "two people, one suited")  # fmt: skip
+            n_mvn = len(mvn_rx.datagrams)
+            await wait_for(lambda: len(mvn_rx.datagrams) > n_mvn + 20, 30, "MVN datagrams with two people")
+            st = json.loads((await http_get(d.http.port, "/status"))[2])
+            d.request_stop()
+            assert await asyncio.wait_for(task, 5) == 0
+    finally:
+        mvn_t.close()
+        vmc_t.close()
+
+    frames = {f.frame: f for f in rec.frames}
+    for name in ("mvn", "vmc"):
+        assert st["sinks"][name]["datagrams_sent"] > 0 and st["sinks"][name]["datagrams_dropped"] == 0
+    assert st["sinks"]["mvn"]["slots"][SUIT] == 0 and st["sinks"]["vmc"]["slots"] == {SUIT: 0}
+
+    # MVN: the sample counter is the frame number; each character's segments are one person's solved joints,
+    # character 0 the suited person's.
+    per_sample: dict[int, list[int]] = {}
+    for raw in mvn_rx.datagrams[-20:]:
+        dg = read_datagram(raw)
+        assert dg.counter == 0x80 and dg.items == 23 and dg.body == 23
+        pos = np.array([s[1] for s in dg.segments]) @ MVN.basis  # p_mvn = C p: back to mocapd axes
+        f = frames[dg.sample]
+        matches = [p for p in f.people if np.allclose(pos[0], p.joints[BONE_INDEX["Hips"]], atol=1e-5)]
+        assert len(matches) == 1
+        p = matches[0]
+        np.testing.assert_allclose(pos[6], p.joints[BONE_INDEX["Head"]], atol=1e-5)
+        np.testing.assert_allclose(pos[22], p.joints[BONE_INDEX["LeftToes"]], atol=1e-5)
+        assert (dg.character == 0) == (p.identity == SUIT)
+        per_sample.setdefault(dg.sample, []).append(dg.character)
+    assert all(len(set(c)) == len(c) for c in per_sample.values())
+    assert max(len(c) for c in per_sample.values()) == 2
+
+    # VMC: the suited person's avatar; /VMC/Ext/T is seconds since the first published frame.
+    t0 = rec.frames[0].t_solve_ns
+    by_t = {round((f.t_solve_ns - t0) / 1e6): f for f in rec.frames}
+    msgs = [m for raw in vmc_rx.datagrams[-40:] for m in OscBundle(raw) if isinstance(m, OscMessage)]
+    hips: list[float] | None = None
+    matched = 0
+    for m in msgs:
+        if m.address == "/VMC/Ext/Bone/Pos" and m.params[0] == "Hips":
+            hips = [float(v) for v in m.params[1:]]
+        elif m.address == "/VMC/Ext/T" and hips is not None:
+            f = by_t[round(float(m.params[0]) * 1e3)]
+            p = next(x for x in f.people if x.identity == SUIT)
+            np.testing.assert_allclose(UNITY.positions(np.array(hips[:3])), p.theta[:3], atol=1e-5)
+            x, y, z, w = hips[3:]
+            R = UNITY.matrices(matrix_from_quat(np.array([w, x, y, z])))
+            np.testing.assert_allclose(R, matrix_from_rotvec(p.theta[3:6]), atol=1e-5)
+            matched += 1
+            hips = None
+    assert matched >= 10
