@@ -33,6 +33,7 @@ from mocapd.pipeline.scheduler import PoseFrame, Suit
 from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.bench_solver import synthetic_prior
 from mocapd.service.config import Config
+from mocapd.service.recorder import attach_recorder, synthetic_extra
 from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
 
 REPO = Path(__file__).resolve().parents[2]
@@ -95,6 +96,7 @@ def build_demo(
     sinks: list[PoseSink] | None = None,
     status_line: Callable[[str], None] | None = None,
     clock: Callable[[], int] = time.monotonic_ns,
+    record: str | Path | None = None,
 ) -> SyntheticDemo:
     """Start the simulated IMUs and build (not run) the daemon of ``config.daemon.synthetic``."""
     sim = _tools()
@@ -151,6 +153,7 @@ def build_demo(
     truth = TruthError(world, epoch)
     rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, synthetic_prior(), suits)
     daemon = Daemon(config, rig, sinks=[truth, *(sinks or [])], clock=clock, status_line=status_line)
+    attach_recorder(config, daemon, record, extra={"synthetic": synthetic_extra(syn, epoch)})
     return SyntheticDemo(daemon, world, simulators, truth, workdir, loop)
 
 
@@ -178,7 +181,9 @@ async def _run_for(demo: SyntheticDemo, seconds: float | None) -> int:
     return await task
 
 
-def run(config: Config, seconds: float | None, sinks: list[PoseSink] | None = None) -> int:
+def run(
+    config: Config, seconds: float | None, sinks: list[PoseSink] | None = None, record: str | Path | None = None
+) -> int:
     """Run the synthetic demo for ``seconds`` (None: until SIGINT/SIGTERM), printing a status line per second."""
     syn = config.daemon.synthetic
     print(
@@ -194,7 +199,7 @@ def run(config: Config, seconds: float | None, sinks: list[PoseSink] | None = No
         err = holder["demo"].truth.recent_mm() if "demo" in holder else None
         print(f"{text}  joint error {'-' if err is None else f'{err:.1f}'} mm", flush=True)
 
-    with running_demo(config, sinks=sinks, status_line=line) as demo:
+    with running_demo(config, sinks=sinks, status_line=line, record=record) as demo:
         holder["demo"] = demo
 
         async def main() -> int:
