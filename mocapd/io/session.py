@@ -24,6 +24,7 @@ import json
 import logging
 import os
 import queue
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -58,6 +59,9 @@ STREAMS = ("imu", "keypoints", "poses")
 RESOLVED = "poses-resolved"
 MAX_FLUSH_INTERVAL_S = 1.0
 _CHUNK = 1 << 20
+BLOCK = 1 << 16
+"""The writer hands the OS whole 64 KiB blocks as they fill (whatever record boundaries fall inside them) and
+the rest at each flush: large writes, and a crash between two of them leaves a partial record at the end."""
 _STOP = object()
 
 
@@ -87,6 +91,9 @@ class WriterCounters:
     bytes: int = 0
     flushes: int = 0
     write_errors: int = 0
+    encode_errors: int = 0
+    lost_bytes: int = 0
+    """Bytes given up after write errors (kept for a retry up to 4 MiB per stream)."""
     max_queue: int = 0
 
 
@@ -129,6 +136,7 @@ class SessionWriter:
         self.counters = WriterCounters()
         self._queue: queue.Queue[object] = queue.Queue(maxsize=queue_size)
         self._files: dict[str, Any] = {}
+        self._pending: dict[str, bytearray] = {}
         self._thread: threading.Thread | None = None
         self._closed = False
 
@@ -144,9 +152,8 @@ class SessionWriter:
         self.manifest["closed"] = False
         write_json_atomic(self.directory / MANIFEST, self.manifest)
         for name in self.streams:
-            fh = (self.directory / f"{name}{SUFFIX}").open("xb", buffering=1 << 16)
-            fh.write(encode_record(T_HEADER, encode_header(name)))
-            self._files[name] = fh
+            self._files[name] = (self.directory / f"{name}{SUFFIX}").open("xb", buffering=0)
+            self._pending[name] = bytearray(encode_record(T_HEADER, encode_header(name)))
         self._sync()
         self._thread = threading.Thread(target=self._run, name=f"session-writer:{self.directory.name}", daemon=True)
         self._thread.start()
@@ -211,11 +218,22 @@ class SessionWriter:
         stream, rtype, encode, args = item  # type: ignore[misc]
         try:
             data = encode_record(rtype, encode(*args))
-            self._files[stream].write(data)
+        except (InputError, ValueError, struct.error) as exc:  # a value the format cannot hold: counted, skipped
+            self.counters.encode_errors += 1
+            log.warning("session %s: record not encodable for %s: %s", self.directory, stream, exc)
+            return
+        pending = self._pending[stream]
+        pending += data
+        try:
+            if len(pending) >= BLOCK:
+                _write_all(self._files[stream], pending, len(pending) - len(pending) % BLOCK)
         except OSError as exc:
             self.counters.write_errors += 1
             if self.counters.write_errors == 1:
                 log.error("session %s: cannot write %s: %s (further errors counted)", self.directory, stream, exc)
+            if len(pending) > 64 * BLOCK:  # the disk is not coming back soon: bound the memory, count the loss
+                self.counters.lost_bytes += len(pending)
+                pending.clear()
             return
         self.counters.written += 1
         self.counters.bytes += len(data)
@@ -223,13 +241,26 @@ class SessionWriter:
     def _sync(self) -> None:
         for name, fh in self._files.items():
             try:
-                fh.flush()
+                pending = self._pending[name]
+                _write_all(fh, pending, len(pending))
                 if self.fsync:
                     os.fsync(fh.fileno())
             except OSError as exc:
                 self.counters.write_errors += 1
                 log.error("session %s: cannot flush %s: %s", self.directory, name, exc)
         self.counters.flushes += 1
+
+
+def _write_all(fh: Any, pending: bytearray, n: int) -> None:
+    """Write the first ``n`` bytes of ``pending`` (all of them, across short writes) and drop them from it."""
+    view = memoryview(pending)
+    done = 0
+    try:
+        while done < n:
+            done += fh.write(view[done:n])
+    finally:
+        view.release()
+        del pending[:done]
 
 
 # ---------------------------------------------------------------------------------------------- reading

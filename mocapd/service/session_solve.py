@@ -5,8 +5,9 @@ Two passes over the recorded raw inputs:
 1. **Forward re-solve.** The same :class:`~mocapd.pipeline.scheduler.FixedLatencyScheduler`, tracker, suit binding
    and per-person solver the daemon ran, rebuilt from the manifest, fed every recorded keypoint frame and IMU sample
    (none skipped: live, a detector that falls behind drops frames and a late tick is counted missed, not solved),
-   at every output tick of the recording (those the live daemon missed included), with a much larger LM budget (:attr:`ResolveOptions.max_iterations`, tighter
-   tolerances). Offline nothing arrives late, so every solve sees the detections on both sides of its time.
+   at every output tick of the recording (those the live daemon missed included), with a much larger LM budget
+   (:attr:`ResolveOptions.max_iterations`, tighter tolerances). Offline nothing arrives late, so every solve sees the
+   detections on both sides of its time.
 2. **Forward-backward smoothing.** Per subject, a Rauch–Tung–Striebel smoother (a Kalman filter forward, then
    the RTS pass backward) with a constant-velocity model over the root translation and over each bone's local
    rotation as a sign-continuous quaternion (renormalised after smoothing). The per-frame solves are the
@@ -61,13 +62,13 @@ class ResolveOptions:
     """Function and parameter tolerance of LM (live: 1e-6 and 1e-8)."""
     smooth: bool = True
     """Run the RTS smoother after the forward re-solve."""
-    root_sigma_m: float = 0.004
+    root_sigma_m: float = 0.006
     """Measurement noise of a solved root position (m, standard deviation)."""
-    root_accel: float = 40.0
+    root_accel: float = 20.0
     """Process noise of the root: white-acceleration spectral density (m²/s³)."""
-    rot_sigma: float = 0.006
+    rot_sigma: float = 0.01
     """Measurement noise of a solved local-rotation quaternion component (standard deviation)."""
-    rot_accel: float = 60.0
+    rot_accel: float = 30.0
     """Process noise of the quaternion components: white-acceleration spectral density (1/s³)."""
     max_gap_s: float = 0.25
     """A subject unseen for longer than this starts a new smoothing segment."""
