@@ -72,8 +72,8 @@ def resample(track: SubjectTrack, rate_hz: float = 60.0) -> SubjectTrack:
     t = track.t_ns
     if t.size == 1:
         return track
-    period = 1e9 / rate_hz
-    grid = t[0] + np.round(np.arange(int(np.floor((t[-1] - t[0]) / period + 1e-6)) + 1) * period).astype(np.int64)
+    period = round(1e9 / rate_hz)  # the daemon's tick period (integer ns), so a 60 Hz session keeps its times
+    grid = t[0] + np.arange((t[-1] - t[0]) // period + 1, dtype=np.int64) * period
     k = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 2)
     alpha = np.clip((grid - t[k]) / np.maximum(t[k + 1] - t[k], 1), 0.0, 1.0)
     th = track.thetas
