@@ -14,7 +14,7 @@ little-endian. One record::
 Payloads (struct formats; ``f4``/``f8`` arrays are little-endian float32/float64, C order):
 
 - ``T_HEADER``: UTF-8 JSON object ``{"format": "mocapd-session-stream", "version": 1, "stream": name}``.
-- ``T_IMU`` (one sample of one sensor, 72 + len(sensor) bytes): ``<qqqiH`` t_ns (buffer time: device time mapped
+- ``T_IMU`` (one sample of one sensor, 86 + len(sensor) bytes): ``<qqqiH`` t_ns (buffer time: device time mapped
   to the host clock, as the solver used it), host_ns (host receive time), device_ticks (SampleTimeFine, 10 kHz;
   -1 = none), packet_counter (-1 = none), sensor id length m; then m bytes of UTF-8 sensor id; then ``<4f8 3f8``
   quaternion (w, x, y, z) of the sensor in ENU and specific force in the sensor frame (m/s², gravity included).
