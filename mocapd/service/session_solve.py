@@ -6,7 +6,8 @@ Two passes over the recorded raw inputs:
    and per-person solver the daemon ran, rebuilt from the manifest, fed every recorded keypoint frame and IMU sample
    (none skipped: live, a detector that falls behind drops frames and a late tick is counted missed, not solved),
    at every output tick of the recording (those the live daemon missed included), with a much larger LM budget
-   (:attr:`ResolveOptions.max_iterations`, tighter tolerances). Offline nothing arrives late, so every solve sees the
+   (:attr:`ResolveOptions.max_iterations`, tighter tolerances), the IMU samples re-timed by one clock fit over
+   the whole session (:func:`imu_times`). Offline nothing arrives late, so every solve sees the
    detections on both sides of its time.
 2. **Forward-backward smoothing.** Per subject, a Rauch–Tung–Striebel smoother (a Kalman filter forward, then
    the RTS pass backward) with a constant-velocity model over the root translation and over each bone's local
@@ -43,9 +44,10 @@ from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
 from mocapd.io.session import Session
-from mocapd.pipeline.imu_ingest import ImuIngest
+from mocapd.pipeline.clocksync import offline_clock_map
+from mocapd.pipeline.imu_ingest import TICK_HZ, ImuIngest
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, SchedulerOptions, Suit
-from mocapd.protocols.session_format import PersonRecord, PoseRecord
+from mocapd.protocols.session_format import ImuRecord, PersonRecord, PoseRecord
 from mocapd.service.config import Config, parse_config
 from mocapd.service.recorder import camera_from_dict
 
@@ -72,6 +74,9 @@ class ResolveOptions:
     """Process noise of the quaternion components: white-acceleration spectral density (1/s³)."""
     max_gap_s: float = 0.25
     """A subject unseen for longer than this starts a new smoothing segment."""
+    refit_imu_clock: bool = True
+    """Re-map every IMU sample's device time to the host clock with one fit over the whole session, instead of
+    the buffer time the live (causal) clock map gave it."""
 
 
 @dataclass
@@ -140,13 +145,38 @@ def solve_times(session: Session, rate_hz: float) -> NDArray[np.int64]:
     return np.arange(int(t.min()), int(t.max()) + 1, period, dtype=np.int64)
 
 
+def imu_times(records: list[ImuRecord], refit: bool = True) -> list[tuple[int, ImuRecord]]:
+    """(host time, sample) of every usable IMU sample, sorted by time.
+
+    With ``refit``, a sensor's samples that carry a device counter are re-timed by one
+    fit over all of its (device counter, host arrival) pairs (:func:`~mocapd.pipeline.clocksync.offline_clock_map`:
+    the lower envelope of the arrival delays over the whole session), where the live map only had the last
+    seconds (and a starved host delays arrivals by up to seconds). Sensors without a counter, or whose counter
+    reset during the session, keep their recorded buffer times.
+    """
+    by_sensor: dict[str, list[ImuRecord]] = defaultdict(list)
+    for r in records:
+        by_sensor[r.sensor].append(r)
+    out: list[tuple[int, ImuRecord]] = []
+    for recs in by_sensor.values():
+        times = [r.t_ns for r in recs]
+        if refit and all(r.device_ticks is not None for r in recs):
+            ticks = np.array([r.device_ticks for r in recs], dtype=np.int64)
+            mapped = offline_clock_map(ticks, np.array([r.host_ns for r in recs], dtype=np.int64), tick_hz=TICK_HZ)
+            if mapped is not None:
+                times = mapped.tolist()
+        out.extend((t, r) for t, r in zip(times, recs, strict=True) if t >= 0)
+    out.sort(key=lambda x: x[0])
+    return out
+
+
 def forward_resolve(session: Session, opts: ResolveOptions) -> list[PoseRecord]:
     """Pass 1: every recorded input through the daemon's scheduler at the recorded solve times."""
     rig = session_rig(session)
     sched, ingest = _scheduler(rig, opts)
     o = rig.options
     kps = sorted(session.keypoints(), key=lambda k: (k.capture_ns, k.camera))
-    imu = sorted((r for r in session.imu() if r.t_ns >= 0), key=lambda r: r.t_ns)
+    imu = imu_times(session.imu(), opts.refit_imu_clock)
     ahead = o.keypoint_max_gap_ns + o.period_ns
     ik = ii = 0
     row = np.full(9, np.nan)
@@ -156,10 +186,10 @@ def forward_resolve(session: Session, opts: ResolveOptions) -> list[PoseRecord]:
             k = kps[ik]
             sched.add_detections(k.camera, k.capture_ns, Detections2D(k.keypoints, k.confidences), k.arrival_ns)
             ik += 1
-        while ii < len(imu) and imu[ii].t_ns <= t + ahead:
-            r = imu[ii]
+        while ii < len(imu) and imu[ii][0] <= t + ahead:
+            ti, r = imu[ii]
             row[0:4], row[4:7] = r.quat, r.acc
-            ingest.stream(r.sensor).buffer.push(r.t_ns, row)
+            ingest.stream(r.sensor).buffer.push(ti, row)
             ii += 1
         frame = sched.tick(int(t) + o.latency_ns)
         people = tuple(
