@@ -33,12 +33,16 @@ def person_errors(world: SyntheticWorld, epoch_ns: int, frames: list[PoseRecord]
     return out
 
 
-def truth_report(session: Session, streams: dict[str, list[PoseRecord]], skip_s: float = 1.0) -> dict[str, Any]:
-    """Median, mean and p95 joint error (mm) of each pose stream, over the person-frames after the first
-    ``skip_s`` of the session (start-up: enrolment and convergence) that every stream solved."""
+def truth_report(
+    session: Session, streams: dict[str, list[PoseRecord]], skip_s: float = 1.0, from_ns: int | None = None
+) -> dict[str, Any]:
+    """Median, mean and p95 joint error (mm) of each pose stream, over the person-frames that every stream
+    solved after the first ``skip_s`` of the session (start-up: enrolment and convergence), or after the solve
+    time ``from_ns`` when given."""
     world, epoch = world_of(session)
     starts = [f[0].t_solve_ns for f in streams.values() if f]
-    t0 = min(starts) if starts else 0
+    t0 = from_ns if from_ns is not None else min(starts) if starts else 0
+    skip_s = 0.0 if from_ns is not None else skip_s
     errs = {
         name: {k: v for k, v in person_errors(world, epoch, frames).items() if k[0] - t0 >= skip_s * 1e9}
         for name, frames in streams.items()
