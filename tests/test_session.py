@@ -79,12 +79,12 @@ def test_sigkill_mid_write_loses_at_most_the_last_flush_interval(tmp_path: Path)
     frames = session.poses()
     report = session.reports["poses"]
     assert not session.closed_cleanly
-    assert report.torn_tail_bytes > 0 and report.corrupt == 0
+    assert report.torn_tail_bytes > 0 and report.corrupt == 0, report
     assert any("torn tail" in line for line in session.recovery_lines())
     assert any("not closed cleanly" in line for line in session.recovery_lines())
     # Every frame up to the last one on disk is there, intact, in order ...
     assert [f.frame for f in frames] == list(range(1, len(frames) + 1))
-    assert len(frames) > 100
+    assert len(frames) > 100, len(frames)
     expected = frame(len(frames), frames[-1].t_solve_ns)
     assert np.array_equal(frames[-1].people[3].theta, expected.people[3].theta)
     # ... and the last one on disk was published at most one flush interval (0.25 s, plus scheduling slack,

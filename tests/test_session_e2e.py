@@ -50,7 +50,8 @@ async def _record(path: Path, seconds: float) -> list[PoseFrame]:
         await asyncio.wait_for(demo.daemon.ready.wait(), 120)
         loop = asyncio.get_running_loop()
         end = loop.time() + 60
-        while not (live.frames and len(live.frames[-1].people) == 2 and live.frames[-1].people[0].imus == 13):
+        while not (live.frames and len(live.frames[-1].people) == 2
+                   and any(p.suit == "suit0" and p.imus == 13 for p in live.frames[-1].people)):  # fmt: skip
             assert loop.time() < end, "both people never tracked"
             await asyncio.sleep(0.05)
         await asyncio.sleep(seconds)
