@@ -73,3 +73,24 @@ def test_device_reset_restarts_the_estimate() -> None:
     mapped = sync.to_host_ns(10)
     assert mapped == 9_000_000_000_000
     assert sync.to_host_ns(110) == 9_000_000_000_000 + 10_000_000  # rate 1 until enough points
+
+
+def test_offline_map_recovers_measurement_times_through_a_stalled_host() -> None:
+    from mocapd.pipeline.clocksync import offline_clock_map
+
+    rng = np.random.default_rng(3)
+    n = 6000  # 60 s at 100 Hz
+    ticks0 = (1 << 32) - 150_000  # wraps after 15 s
+    raw = ticks0 + np.arange(n) * 100
+    truth = 5_000_000_000 + np.round(np.arange(n) * 10_000_000 * (1 + 40e-6)).astype(np.int64)  # 40 ppm skew
+    delay = 800_000 + rng.exponential(2_000_000, n)
+    stall = slice(2000, 2600)  # 6 s of a starved host: arrivals up to a second late, growing
+    delay[stall] += np.linspace(0, 1e9, 600)
+    host = truth + delay.astype(np.int64)
+    mapped = offline_clock_map(raw & 0xFFFFFFFF, host)
+    assert mapped is not None
+    err = mapped - truth
+    assert np.abs(err - 800_000).max() < 300_000  # measurement + minimum delay, to a fraction of a ms
+    assert offline_clock_map(np.array([5, 3, 4]), np.array([1, 2, 3])) is None  # counter reset
+    assert offline_clock_map(np.array([5]), np.array([1])) is None
+    assert offline_clock_map(np.arange(10) * 100, np.arange(10) * 20_000_000) is None  # rate off by 100 %

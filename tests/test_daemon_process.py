@@ -1,9 +1,8 @@
-"""The daemon as a process: sd_notify over a real datagram socket, SIGTERM shutdown within 2 s with the pose
-file flushed, and the sd_notify client on its own."""
+"""The daemon as a process: sd_notify over a real datagram socket, SIGTERM shutdown within 2 s with the recorded
+session flushed and closed, and the sd_notify client on its own."""
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -13,6 +12,7 @@ import time
 from pathlib import Path
 
 from mocapd.io.sd_notify import SdNotifier
+from mocapd.io.session import open_session
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -32,15 +32,15 @@ def _recv_until(sock: socket.socket, needle: str, timeout: float) -> list[str]:
     raise AssertionError(f"no {needle} within {timeout} s; got {got}")
 
 
-def test_sigterm_stops_the_daemon_within_two_seconds_with_poses_flushed(tmp_path: Path) -> None:
+def test_sigterm_stops_the_daemon_within_two_seconds_with_the_session_closed(tmp_path: Path) -> None:
     notify_path = tmp_path / "notify.sock"
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(str(notify_path))
-    poses = tmp_path / "poses.jsonl"
+    session_dir = tmp_path / "session"
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "1000000"}
     env.pop("WATCHDOG_PID", None)
     cmd = [sys.executable, "-m", "mocapd.service.cli", "demo", "--synthetic", "--http-port", "0",
-           "--poses", str(poses)]  # fmt: skip
+           "--record", str(session_dir)]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         _recv_until(sock, "READY=1", 180)
@@ -59,10 +59,13 @@ def test_sigterm_stops_the_daemon_within_two_seconds_with_poses_flushed(tmp_path
     assert rc == 0, out
     assert elapsed < 2.0, f"shutdown took {elapsed:.2f} s"
     assert "ready: status http://127.0.0.1:" in out
-    lines = poses.read_text().splitlines()
-    assert len(lines) > 10
-    last = json.loads(lines[-1])  # complete: the buffer was flushed, not cut mid-line
-    assert last["v"] == 1 and last["frame"] == len(lines)
+    session = open_session(session_dir)
+    frames = session.poses()
+    assert session.closed_cleanly and not session.reports["poses"].damaged  # flushed and closed, not cut
+    # every published frame is in the session (a starved machine publishes fewer than 60 a second: > 10)
+    assert len(frames) > 10 and [f.frame for f in frames] == list(range(1, len(frames) + 1))
+    assert len(session.imu()) > 100 and len(session.keypoints()) > 30
+    assert session.manifest["writer"]["dropped"] == 0
     assert any(m.startswith("STATUS=") for m in messages)
 
 

@@ -201,6 +201,7 @@ def test_body_size_estimated_per_track(prior: PcaPrior) -> None:
     assert err_on < 0.6 * err_off, (err_on, err_off)
     sized = last.people[0].skeleton
     assert sized is not None and abs(sized.height - height) < 1e-3
+    assert results[0][2].people[0].skeleton is None  # unsized: on the rig's skeleton
 
 
 def test_tick_plan_counts_missed_ticks_instead_of_bursting() -> None:

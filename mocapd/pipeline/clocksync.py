@@ -162,3 +162,63 @@ def _lstsq_line(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, 
     denom = float(dx @ dx)
     slope = float(dx @ (y - ym)) / denom if denom > 0.0 else 1.0
     return slope, ym - slope * xm
+
+
+def offline_clock_map(
+    device_ticks: NDArray[np.int64], host_ns: NDArray[np.int64], *, tick_hz: float = 10_000.0, wrap_bits: int = 32
+) -> NDArray[np.int64] | None:
+    """Host time of every sample of a whole recording, from one fit over all of it (non-causal).
+
+    The arrival times lie on or above the line ``host = offset + rate · device`` (arrival = measurement + a
+    delay ≥ the minimum delay). The line that touches them from below with the smallest total delay is the
+    support line of their lower convex hull at the mean device time (the linear programme "maximise
+    ``offset + rate · mean(device)`` with every residual ≥ 0"). Unlike the live estimate of
+    :class:`ClockSync` (a recent window, quantile-based), it is not biased by delays that change over the
+    recording, e.g. a host that falls behind for seconds.
+
+    Parameters
+    ----------
+    device_ticks : int array, shape (n,)
+        The device counter of each sample, in arrival order (wraps of ``wrap_bits`` are unwrapped).
+    host_ns : int array, shape (n,)
+        Host arrival times.
+
+    Returns
+    -------
+    int array, shape (n,), or None
+        Measurement time + minimum delay on the host clock; None when the counter went backwards (a device
+        reset), fewer than 2 samples were given, or the fitted rate is not within 1 % of the nominal one.
+    """
+    ticks = np.asarray(device_ticks, dtype=np.int64)
+    host = np.asarray(host_ns, dtype=np.int64)
+    if ticks.size < 2:
+        return None
+    period = 1 << wrap_bits
+    step = np.diff(ticks)
+    wraps = step < -(period // 2)
+    if np.any((step < 0) & ~wraps):
+        return None
+    unwrapped = ticks + period * np.concatenate(([0], np.cumsum(wraps)))
+    x = (unwrapped - unwrapped[0]) / tick_hz
+    y = (host - host[0]) * 1e-9
+    hull: list[int] = []
+    for i in np.lexsort((y, x)):  # by device time, lowest arrival first
+        if hull and x[hull[-1]] == x[i]:
+            continue
+        while len(hull) >= 2:
+            a, b = hull[-2], hull[-1]
+            # keep b only if it lies strictly below the segment a -> i
+            if (x[b] - x[a]) * (y[i] - y[a]) - (y[b] - y[a]) * (x[i] - x[a]) > 0:
+                break
+            hull.pop()
+        hull.append(int(i))
+    if len(hull) < 2:
+        return None
+    hx = x[hull]
+    k = int(np.clip(np.searchsorted(hx, x.mean(), side="right") - 1, 0, len(hull) - 2))
+    a, b = hull[k], hull[k + 1]
+    rate = (y[b] - y[a]) / (x[b] - x[a])
+    if not abs(rate - 1.0) < 0.01:
+        return None
+    out: NDArray[np.int64] = host[0] + np.round((y[a] + rate * (x - x[a])) * 1e9).astype(np.int64)
+    return out

@@ -413,7 +413,8 @@ class FixedLatencyScheduler:
         joints = self._joints(solver, result.theta)
         return PersonPose(
             person.identity, person.track, person.suit, result.theta, joints, confidence, views, n_imu,
-            result.summary.iterations, result.summary.converged, solver.skeleton,
+            result.summary.iterations, result.summary.converged,
+            solver.skeleton if solver.skeleton is not self.skeleton else None,
         )  # fmt: skip
 
     def _size_body(self, person: Person) -> None:

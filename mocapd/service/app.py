@@ -101,6 +101,9 @@ class Daemon:
         self.config = config
         self.rig = rig
         self.sinks = list(sinks or [])
+        #: observers of every detected camera frame as it arrives (camera, capture_ns, detections, arrival_ns),
+        #: e.g. the session recorder; called on the event loop, so they must not block
+        self.detection_taps: list[Callable[[int, int, Detections2D, int], None]] = []
         self.clock = clock
         self.notifier = notifier if notifier is not None else SdNotifier()
         self.status_line = status_line
@@ -197,6 +200,8 @@ class Daemon:
     def _source(self, src: KeypointSource) -> Callable[[], Any]:
         def sink(camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:
             self.scheduler.add_detections(camera, capture_ns, dets, arrival_ns)
+            for tap in self.detection_taps:
+                tap(camera, capture_ns, dets, arrival_ns)
 
         return lambda: src.run(sink)
 

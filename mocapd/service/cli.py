@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 from mocapd import __version__
 from mocapd.eval import cli as eval_cli
-from mocapd.service import cmd_calibrate, cmd_daemon, cmd_imu, cmd_model
+from mocapd.service import cmd_calibrate, cmd_daemon, cmd_imu, cmd_model, cmd_session
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -63,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     cmd_imu.register(sub)  # adds "imu" to the calibrate group
     cmd_model.register(sub)
     cmd_daemon.register(sub)  # run, demo, check-config, bench latency
+    cmd_session.register(sub)  # replay, resolve, export, session
     return parser
 
 

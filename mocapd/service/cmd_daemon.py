@@ -32,14 +32,6 @@ def _load(path: Path | None, http_port: int | None = None) -> Config:
     return cfg
 
 
-def _sinks(args: argparse.Namespace) -> list[Any]:
-    if getattr(args, "poses", None) is None:
-        return []
-    from mocapd.io.pose_file import JsonLinesPoseSink
-
-    return [JsonLinesPoseSink(args.poses)]
-
-
 def cmd_check_config(args: argparse.Namespace) -> int:
     path = args.path if args.path is not None else DEFAULT_CONFIG
     try:
@@ -70,12 +62,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, sinks=_sinks(args))
+    return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from mocapd.io.prior import resolve_prior
     from mocapd.service.app import Daemon, Rig
+    from mocapd.service.recorder import attach_recorder, synthetic_extra
     from mocapd.service.suits import load_suits
     from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
 
@@ -100,10 +93,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(cfg.solver.prior), suits)
-    daemon = Daemon(
-        cfg, rig, sinks=_sinks(args), status_line=(lambda s: print(s, flush=True)) if args.verbose else None
-    )
+    daemon = Daemon(cfg, rig, status_line=(lambda s: print(s, flush=True)) if args.verbose else None)
     daemon.sinks.extend(build_udp_sinks(cfg, daemon))
+    attach_recorder(cfg, daemon, args.record, extra={"synthetic": synthetic_extra(syn, epoch, suits=0)})
     print(f"mocapd run: status http://{cfg.daemon.http_host}:{cfg.daemon.http_port}/status", flush=True)
     return asyncio.run(daemon.run())
 
@@ -115,15 +107,16 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
     return 0
 
 
+_RECORD_HELP = "record this run as a session into this new directory (docs/sessions.md)"
+
+
 def register(subparsers: Any) -> None:
     """Add run, demo, check-config and ``bench latency`` to the CLI."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     run = subparsers.add_parser("run", help="run the daemon (config.toml; rig 'synthetic' until the detector lands)")
     run.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     run.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
-    run.add_argument(
-        "--poses", type=Path, default=None, help="also write every published frame to this JSON-lines file"
-    )
+    run.add_argument("--record", type=Path, default=None, help=_RECORD_HELP)
     run.add_argument("--verbose", action="store_true", help="print a status line per second")
     run.set_defaults(func=cmd_run)
 
@@ -134,9 +127,7 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: until Ctrl-C)")
     demo.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     demo.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
-    demo.add_argument(
-        "--poses", type=Path, default=None, help="also write every published frame to this JSON-lines file"
-    )
+    demo.add_argument("--record", type=Path, default=None, help=_RECORD_HELP)
     demo.set_defaults(func=cmd_demo)
 
     check = subparsers.add_parser("check-config", help="validate a config file and say what is wrong")

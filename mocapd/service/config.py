@@ -19,6 +19,7 @@ from mocapd.errors import ConfigError
 from mocapd.pipeline.detector_config import DetectorConfig, detector_config_from_mapping
 from mocapd.service.daemon_config import DaemonConfig, parse_daemon_config
 from mocapd.service.imu_config import ImuConfig, parse_imu_config
+from mocapd.service.record_config import RecordConfig, parse_record_config
 from mocapd.service.tracking_config import TrackingConfig, parse_tracking_config
 from mocapd.service.udp_config import UdpConfig, parse_udp_config
 
@@ -48,11 +49,12 @@ class Config:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     udp: UdpConfig = field(default_factory=UdpConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole parsed file, for sections whose loaders live elsewhere."""
 
 
-KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon", "udp"}
+KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon", "udp", "record"}
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -79,6 +81,7 @@ def parse_config(data: dict[str, Any]) -> Config:
         detector=detector_config_from_mapping(_table(data, "detector")),
         daemon=parse_daemon_config(_table(data, "daemon")),
         udp=parse_udp_config(_table(data, "udp")),
+        record=parse_record_config(_table(data, "record")),
         raw=data,
     )
 

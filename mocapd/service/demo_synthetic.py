@@ -37,6 +37,7 @@ from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame, Suit
 from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.config import Config
+from mocapd.service.recorder import attach_recorder, synthetic_extra
 from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
 from mocapd.service.udp_config import build_udp_sinks
 
@@ -117,6 +118,7 @@ def build_demo(
     sinks: list[PoseSink] | None = None,
     status_line: Callable[[str], None] | None = None,
     clock: Callable[[], int] = time.monotonic_ns,
+    record: str | Path | None = None,
 ) -> SyntheticDemo:
     """Start the simulated IMUs and build (not run) the daemon of ``config.daemon.synthetic``."""
     sim = _tools()
@@ -174,6 +176,7 @@ def build_demo(
     rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(config.solver.prior), suits)
     daemon = Daemon(config, rig, sinks=[truth, *(sinks or [])], clock=clock, status_line=status_line)
     daemon.sinks.extend(build_udp_sinks(config, daemon))
+    attach_recorder(config, daemon, record, extra={"synthetic": synthetic_extra(syn, epoch)})
     return SyntheticDemo(daemon, world, simulators, truth, workdir, loop)
 
 
@@ -201,7 +204,9 @@ async def _run_for(demo: SyntheticDemo, seconds: float | None) -> int:
     return await task
 
 
-def run(config: Config, seconds: float | None, sinks: list[PoseSink] | None = None) -> int:
+def run(
+    config: Config, seconds: float | None, sinks: list[PoseSink] | None = None, record: str | Path | None = None
+) -> int:
     """Run the synthetic demo for ``seconds`` (None: until SIGINT/SIGTERM), printing a status line per second."""
     syn = config.daemon.synthetic
     print(
@@ -217,7 +222,7 @@ def run(config: Config, seconds: float | None, sinks: list[PoseSink] | None = No
         err = holder["demo"].truth.recent_mm() if "demo" in holder else None
         print(f"{text}  keypoint error {'-' if err is None else f'{err:.1f}'} mm", flush=True)
 
-    with running_demo(config, sinks=sinks, status_line=line) as demo:
+    with running_demo(config, sinks=sinks, status_line=line, record=record) as demo:
         holder["demo"] = demo
 
         async def main() -> int:

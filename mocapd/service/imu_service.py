@@ -9,6 +9,7 @@ world bone orientations with a person's calibration (``R_gb = R_ig · R_i · R_i
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +47,9 @@ class ImuInputs:
             if config.bridge.enabled
             else None
         )
+        #: observers of every sample (the sample, its quaternion in ENU, its buffer time or None when it was
+        #: dropped), e.g. the session recorder; called where samples arrive, so they must not block
+        self.taps: list[Callable[[ImuSample, tuple[float, ...] | None, int | None], None]] = []
         self._stop = asyncio.Event()
 
     def on_sample(self, s: ImuSample) -> None:
@@ -53,7 +57,7 @@ class ImuInputs:
         quat = s.quat
         if quat is not None and s.frame is not None and s.frame.name != "ENU":
             quat = tuple(quat_to_enu(np.array(quat), s.frame.name))
-        self.ingest.add(
+        t = self.ingest.add(
             s.sensor,
             s.host_ns,
             device_ticks=s.device_ticks,
@@ -61,6 +65,8 @@ class ImuInputs:
             quat=quat,
             acc=s.acc,
         )
+        for tap in self.taps:
+            tap(s, quat, t)
 
     async def run(self) -> None:
         """Run every input until :meth:`stop`; device failures are retried inside each device's own loop."""

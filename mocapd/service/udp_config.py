@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from mocapd.errors import ConfigError
 
 if TYPE_CHECKING:
+    from mocapd.core.skeleton import Skeleton
     from mocapd.service.app import Daemon, PoseSink
     from mocapd.service.config import Config
 
@@ -120,10 +121,15 @@ def parse_udp_config(table: Mapping[str, Any]) -> UdpConfig:
 
 def build_udp_sinks(config: Config, daemon: Daemon) -> list[PoseSink]:
     """The enabled UDP streams of ``config.udp`` as pose sinks for ``daemon`` (its rig's skeleton and rate)."""
+    return udp_sinks(config, daemon.rig.skeleton)
+
+
+def udp_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
+    """The enabled UDP streams of ``config.udp`` for poses on ``skeleton`` (people carrying their own sized
+    skeleton are sent on theirs), at ``config.daemon.output_rate_hz``; a replay has no daemon but the same needs."""
     from mocapd.io.udp_stream import MvnUdpSink, VmcUdpSink
 
     u = config.udp
-    skeleton = daemon.rig.skeleton
     rate = config.daemon.output_rate_hz
 
     def release(divisor: int) -> int:

@@ -1,0 +1,396 @@
+"""Session directories on disk: a writer thread with a bounded queue, and a reader that recovers torn tails.
+
+A session directory holds ``manifest.json`` and one append-only stream file per kind of record
+(:data:`STREAMS`: ``imu.mcs``, ``keypoints.mcs``, ``poses.mcs``; ``mocapd resolve`` adds ``poses-resolved.mcs``),
+framed as :mod:`mocapd.protocols.session_format` describes. ``docs/sessions.md`` has the whole layout.
+
+Durability: :class:`SessionWriter` encodes and writes records on its own thread and flushes every stream to the
+OS, then ``fsync``\\s it, every ``flush_interval_s`` (at most 1 s). A crash of the process loses only what was
+still queued or buffered, a power cut what was not yet fsynced: in both cases at most the last flush interval.
+The manifest is written atomically (temporary file, fsync, rename) at the start and again at a clean close, with
+``"closed": true`` and the writer's counters; a session whose manifest still says ``"closed": false`` ended
+without a clean close.
+
+Recovery: :func:`open_session` reads every stream with :class:`~mocapd.protocols.session_format.StreamDecoder`;
+records failing their CRC are counted and skipped (decoding resynchronises on the next record), and a partial
+record at the end of a file (the write the crash interrupted) is reported as the torn tail. Everything before it
+is returned.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import queue
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from mocapd.errors import InputError
+from mocapd.protocols.session_format import (
+    T_HEADER,
+    T_IMU,
+    T_KEYPOINTS,
+    T_POSE,
+    ImuRecord,
+    KeypointRecord,
+    PoseRecord,
+    Record,
+    StreamDecoder,
+    decode_header,
+    decode_imu,
+    decode_keypoints,
+    decode_pose,
+    encode_header,
+    encode_record,
+)
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+SUFFIX = ".mcs"
+STREAMS = ("imu", "keypoints", "poses")
+RESOLVED = "poses-resolved"
+MAX_FLUSH_INTERVAL_S = 1.0
+_CHUNK = 1 << 20
+BLOCK = 1 << 16
+"""The writer hands the OS whole 64 KiB blocks as they fill (whatever record boundaries fall inside them) and
+the rest at each flush: large writes, and a crash between two of them leaves a partial record at the end."""
+_STOP = object()
+
+
+def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+    """Write JSON to ``path`` so that a reader sees the old or the new file, never a partial one."""
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=1, default=str)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+@dataclass
+class WriterCounters:
+    """What the writer did (in the manifest at close, and in the recorder's status)."""
+
+    queued: int = 0
+    dropped: int = 0
+    """Records refused because the queue was full (the disk could not keep up): never blocks the caller."""
+    written: int = 0
+    bytes: int = 0
+    flushes: int = 0
+    write_errors: int = 0
+    encode_errors: int = 0
+    lost_bytes: int = 0
+    """Bytes given up after write errors (kept for a retry up to 4 MiB per stream)."""
+    max_queue: int = 0
+
+
+class SessionWriter:
+    """Appends records to the streams of one session directory from a writer thread.
+
+    Parameters
+    ----------
+    directory : path
+        The session directory; created (with parents). Existing stream files in it are refused.
+    manifest : dict
+        JSON-able description of the session (written as ``manifest.json`` with ``"closed": false``).
+    streams : sequence of str
+        Stream names (files ``<name>.mcs``).
+    flush_interval_s : float
+        Flush (and fsync) cadence, in (0, 1] seconds.
+    fsync : bool
+        fsync after each flush (power-cut safety) or only flush to the OS (crash safety).
+    queue_size : int
+        Records the queue holds before :meth:`put` starts dropping (and counting) them.
+    """
+
+    def __init__(
+        self,
+        directory: str | Path,
+        manifest: dict[str, Any],
+        *,
+        streams: tuple[str, ...] = STREAMS,
+        flush_interval_s: float = 0.25,
+        fsync: bool = True,
+        queue_size: int = 100_000,
+    ) -> None:
+        if not (0 < flush_interval_s <= MAX_FLUSH_INTERVAL_S):
+            raise InputError(f"flush_interval_s must be in (0, {MAX_FLUSH_INTERVAL_S}], got {flush_interval_s!r}")
+        self.directory = Path(directory)
+        self.manifest = dict(manifest)
+        self.streams = streams
+        self.flush_interval_s = flush_interval_s
+        self.fsync = fsync
+        self.counters = WriterCounters()
+        self._queue: queue.Queue[object] = queue.Queue(maxsize=queue_size)
+        self._files: dict[str, Any] = {}
+        self._pending: dict[str, bytearray] = {}
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    # ------------------------------------------------------------------------------------------ life cycle
+    def open(self) -> None:
+        """Create the directory, the manifest and the stream files (with their header records); start the
+        writer thread."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+        for name in self.streams:
+            path = self.directory / f"{name}{SUFFIX}"
+            if path.exists():
+                raise InputError(f"session stream {path} exists already: record into a new directory")
+        self.manifest["closed"] = False
+        write_json_atomic(self.directory / MANIFEST, self.manifest)
+        for name in self.streams:
+            self._files[name] = (self.directory / f"{name}{SUFFIX}").open("xb", buffering=0)
+            self._pending[name] = bytearray(encode_record(T_HEADER, encode_header(name)))
+        self._sync()
+        self._thread = threading.Thread(target=self._run, name=f"session-writer:{self.directory.name}", daemon=True)
+        self._thread.start()
+
+    def put(self, stream: str, rtype: int, encode: Callable[..., bytes], *args: Any) -> bool:
+        """Queue one record (``encode(*args)`` runs on the writer thread); never blocks. False when dropped."""
+        if self._closed:
+            return False
+        try:
+            self._queue.put_nowait((stream, rtype, encode, args))
+        except queue.Full:
+            self.counters.dropped += 1
+            return False
+        self.counters.queued += 1
+        return True
+
+    def close(self, update: dict[str, Any] | None = None) -> None:
+        """Write what is queued, flush, fsync, close the files and mark the manifest closed (with ``update``)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._thread is not None:
+            self._queue.put(_STOP)
+            self._thread.join()
+        for fh in self._files.values():
+            fh.close()
+        self.manifest.update(update or {})
+        self.manifest["closed"] = True
+        self.manifest["writer"] = asdict(self.counters)
+        write_json_atomic(self.directory / MANIFEST, self.manifest)
+
+    # ------------------------------------------------------------------------------------------ the thread
+    def _run(self) -> None:
+        next_flush = time.monotonic() + self.flush_interval_s
+        while True:
+            try:
+                item = self._queue.get(timeout=max(0.0, next_flush - time.monotonic()))
+            except queue.Empty:
+                item = None
+            if item is _STOP:
+                break
+            if item is not None:
+                self._write(item)
+                self.counters.max_queue = max(self.counters.max_queue, self._queue.qsize())
+            if time.monotonic() >= next_flush:
+                self._sync()
+                next_flush = time.monotonic() + self.flush_interval_s
+        while True:  # anything put before the stop marker was already taken; drain what raced with it
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item is not _STOP:
+                self._write(item)
+        self._sync()
+
+    def _write(self, item: object) -> None:
+        stream: str
+        rtype: int
+        encode: Callable[..., bytes]
+        args: tuple[Any, ...]
+        stream, rtype, encode, args = item  # type: ignore[misc]
+        try:
+            data = encode_record(rtype, encode(*args))
+        except (InputError, ValueError, struct.error) as exc:  # a value the format cannot hold: counted, skipped
+            self.counters.encode_errors += 1
+            log.warning("session %s: record not encodable for %s: %s", self.directory, stream, exc)
+            return
+        pending = self._pending[stream]
+        pending += data
+        try:
+            if len(pending) >= BLOCK:
+                _write_all(self._files[stream], pending, len(pending) - len(pending) % BLOCK)
+        except OSError as exc:
+            self.counters.write_errors += 1
+            if self.counters.write_errors == 1:
+                log.error("session %s: cannot write %s: %s (further errors counted)", self.directory, stream, exc)
+            if len(pending) > 64 * BLOCK:  # the disk is not coming back soon: bound the memory, count the loss
+                self.counters.lost_bytes += len(pending)
+                pending.clear()
+            return
+        self.counters.written += 1
+        self.counters.bytes += len(data)
+
+    def _sync(self) -> None:
+        for name, fh in self._files.items():
+            try:
+                pending = self._pending[name]
+                _write_all(fh, pending, len(pending))
+                if self.fsync:
+                    os.fsync(fh.fileno())
+            except OSError as exc:
+                self.counters.write_errors += 1
+                log.error("session %s: cannot flush %s: %s", self.directory, name, exc)
+        self.counters.flushes += 1
+
+
+def _write_all(fh: Any, pending: bytearray, n: int) -> None:
+    """Write the first ``n`` bytes of ``pending`` (all of them, across short writes) and drop them from it."""
+    view = memoryview(pending)
+    done = 0
+    try:
+        while done < n:
+            done += fh.write(view[done:n])
+    finally:
+        view.release()
+        del pending[:done]
+
+
+# ---------------------------------------------------------------------------------------------- reading
+@dataclass
+class StreamReport:
+    """What reading one stream found."""
+
+    name: str
+    records: int = 0
+    corrupt: int = 0
+    skipped_bytes: int = 0
+    torn_tail_bytes: int = 0
+    missing: bool = False
+
+    @property
+    def damaged(self) -> bool:
+        return self.corrupt > 0 or self.torn_tail_bytes > 0
+
+
+def read_stream(path: Path) -> tuple[list[Record], StreamReport]:
+    """Every intact record of one stream file (header first) and what was recovered."""
+    report = StreamReport(path.name.removesuffix(SUFFIX))
+    if not path.exists():
+        report.missing = True
+        return [], report
+    dec = StreamDecoder()
+    records: list[Record] = []
+    with path.open("rb") as fh:
+        while chunk := fh.read(_CHUNK):
+            dec.receive_data(chunk)
+            records.extend(dec.records_received())
+    report.torn_tail_bytes = dec.finish()
+    records.extend(dec.records_received())
+    c = dec.counters
+    report.records, report.corrupt, report.skipped_bytes = c.records, c.corrupt, c.skipped_bytes
+    if records and records[0].rtype == T_HEADER:
+        decode_header(records[0].payload)
+    return records, report
+
+
+class Session:
+    """An opened session directory: its manifest, and its streams decoded on demand."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self.manifest: dict[str, Any] = json.loads((self.path / MANIFEST).read_text(encoding="utf-8"))
+        except FileNotFoundError as exc:
+            raise InputError(f"{self.path} is not a session directory (no {MANIFEST})") from exc
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{self.path / MANIFEST}: not JSON: {exc}") from exc
+        if self.manifest.get("format") != "mocapd-session":
+            raise InputError(f"{self.path / MANIFEST}: not a mocapd session manifest")
+        self.reports: dict[str, StreamReport] = {}
+
+    @property
+    def closed_cleanly(self) -> bool:
+        return bool(self.manifest.get("closed"))
+
+    def _records(self, stream: str, rtype: int) -> Iterator[Record]:
+        records, report = read_stream(self.path / f"{stream}{SUFFIX}")
+        self.reports[stream] = report
+        return (r for r in records if r.rtype == rtype)
+
+    def has_stream(self, stream: str) -> bool:
+        return (self.path / f"{stream}{SUFFIX}").exists()
+
+    def poses(self, stream: str = "poses") -> list[PoseRecord]:
+        """The recorded frames of a pose stream (``poses`` or ``poses-resolved``), in order."""
+        return [decode_pose(r.payload) for r in self._records(stream, T_POSE)]
+
+    def keypoints(self) -> list[KeypointRecord]:
+        return [decode_keypoints(r.payload) for r in self._records("keypoints", T_KEYPOINTS)]
+
+    def imu(self) -> list[ImuRecord]:
+        return [decode_imu(r.payload) for r in self._records("imu", T_IMU)]
+
+    def check(self) -> dict[str, StreamReport]:
+        """Read every stream file present and report what was recovered."""
+        for path in sorted(self.path.glob(f"*{SUFFIX}")):
+            self.reports[path.name.removesuffix(SUFFIX)] = read_stream(path)[1]
+        return dict(self.reports)
+
+    def recovery_lines(self) -> list[str]:
+        """Human-readable notes on damaged streams and an unclean end."""
+        lines = [] if self.closed_cleanly else [f"{self.path}: not closed cleanly (the recorder was interrupted)"]
+        for r in self.reports.values():
+            if r.damaged:
+                lines.append(
+                    f"{self.path}/{r.name}{SUFFIX}: recovered {r.records} records; {r.corrupt} corrupt "
+                    f"({r.skipped_bytes} bytes skipped), torn tail of {r.torn_tail_bytes} bytes dropped"
+                )
+        return lines
+
+
+def open_session(path: str | Path) -> Session:
+    """Open a session directory (reads the manifest; streams are read on demand)."""
+    return Session(path)
+
+
+def write_pose_stream(directory: Path, stream: str, payloads: list[bytes]) -> Path:
+    """Write a whole pose stream (e.g. ``poses-resolved``) in one go: temporary file, fsync, rename."""
+    path = directory / f"{stream}{SUFFIX}"
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("wb") as fh:
+        fh.write(encode_record(T_HEADER, encode_header(stream)))
+        for p in payloads:
+            fh.write(encode_record(T_POSE, p))
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    with contextlib.suppress(OSError):
+        fd = os.open(directory, os.O_RDONLY)
+        os.fsync(fd)
+        os.close(fd)
+    return path
+
+
+__all__ = [
+    "MANIFEST",
+    "RESOLVED",
+    "STREAMS",
+    "T_IMU",
+    "T_KEYPOINTS",
+    "T_POSE",
+    "Session",
+    "SessionWriter",
+    "StreamReport",
+    "open_session",
+    "read_stream",
+    "write_json_atomic",
+    "write_pose_stream",
+]

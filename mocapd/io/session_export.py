@@ -1,0 +1,120 @@
+"""Export a recorded subject as BVH (:mod:`mocapd.protocols.bvh_writer`) and CSV, on a uniform 60 Hz grid.
+
+The subject's recorded frames (their solve times need not be uniform: missed ticks, another output rate) are
+resampled to ``rate`` Hz from its first to its last frame: root translation linearly, every bone's local rotation
+by slerp, between the two recorded frames around each output time.
+
+CSV columns (one row per output frame, header row first; lengths in metres, quaternions (w, x, y, z))::
+
+    frame, time_s, t_solve_ns, subject, root_x, root_y, root_z,
+    <Bone>_qw, <Bone>_qx, <Bone>_qy, <Bone>_qz    for the 21 bones in skeleton order (local rotations)
+    <Bone>_x, <Bone>_y, <Bone>_z                  for the 21 bones in skeleton order (global joint positions)
+
+``time_s`` is seconds since the first exported frame, ``t_solve_ns`` the host-clock solve time it stands for.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.rotations import quat_from_rotvec, quat_slerp, rotvec_from_quat
+from mocapd.core.skeleton import BONE_NAMES, N_BONES, Skeleton
+from mocapd.errors import InputError
+from mocapd.protocols.bvh_writer import bvh_text
+from mocapd.protocols.session_format import PoseRecord
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class SubjectTrack:
+    """One subject's poses over time: solve times (n,) ns and θ (n, 66)."""
+
+    subject: str
+    t_ns: IntArray
+    thetas: FloatArray
+    skeleton: Skeleton | None = None  # the subject's own sized skeleton, as last recorded (None: the rig's)
+
+
+def subjects(poses: list[PoseRecord]) -> Counter[str]:
+    """Frames per identity."""
+    return Counter(p.identity for f in poses for p in f.people)
+
+
+def subject_track(poses: list[PoseRecord], subject: str | None = None) -> SubjectTrack:
+    """The frames of ``subject`` (default: the identity seen in most frames)."""
+    counts = subjects(poses)
+    if not counts:
+        raise InputError("the session has no solved person to export")
+    if subject is None:
+        subject = counts.most_common(1)[0][0]
+    elif subject not in counts:
+        raise InputError(f"no subject {subject!r} in the session; recorded: {sorted(counts)}")
+    t, th = [], []
+    skeleton = None
+    for f in poses:
+        for p in f.people:
+            if p.identity == subject:
+                t.append(f.t_solve_ns)
+                th.append(p.theta)
+                skeleton = p.skeleton if p.skeleton is not None else skeleton
+    order = np.argsort(np.array(t), kind="stable")
+    return SubjectTrack(subject, np.array(t, dtype=np.int64)[order], np.array(th)[order], skeleton)
+
+
+def resample(track: SubjectTrack, rate_hz: float = 60.0) -> SubjectTrack:
+    """The track on a uniform grid of ``rate_hz`` from its first frame (root: linear; rotations: slerp)."""
+    t = track.t_ns
+    if t.size == 1:
+        return track
+    period = round(1e9 / rate_hz)  # the daemon's tick period (integer ns), so a 60 Hz session keeps its times
+    grid = t[0] + np.arange((t[-1] - t[0]) // period + 1, dtype=np.int64) * period
+    k = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 2)
+    alpha = np.clip((grid - t[k]) / np.maximum(t[k + 1] - t[k], 1), 0.0, 1.0)
+    th = track.thetas
+    out = np.empty((grid.size, th.shape[1]))
+    out[:, 0:3] = th[k, 0:3] + alpha[:, None] * (th[k + 1, 0:3] - th[k, 0:3])
+    q0 = quat_from_rotvec(th[k, 3:].reshape(-1, N_BONES, 3))
+    q1 = quat_from_rotvec(th[k + 1, 3:].reshape(-1, N_BONES, 3))
+    q = quat_slerp(q0, q1, np.repeat(alpha[:, None], N_BONES, axis=1))
+    out[:, 3:] = rotvec_from_quat(q).reshape(grid.size, -1)
+    return SubjectTrack(track.subject, grid, out, track.skeleton)
+
+
+def write_bvh(path: str | Path, skeleton: Skeleton, track: SubjectTrack, rate_hz: float = 60.0) -> int:
+    """Write ``track`` (already on a ``rate_hz`` grid) as BVH; returns the frame count."""
+    Path(path).write_text(bvh_text(skeleton.offsets, track.thetas, rate_hz), encoding="utf-8")
+    return int(track.thetas.shape[0])
+
+
+def csv_header() -> list[str]:
+    cols = ["frame", "time_s", "t_solve_ns", "subject", "root_x", "root_y", "root_z"]
+    cols += [f"{b}_{c}" for b in BONE_NAMES for c in ("qw", "qx", "qy", "qz")]
+    cols += [f"{b}_{c}" for b in BONE_NAMES for c in ("x", "y", "z")]
+    return cols
+
+
+def write_csv(path: str | Path, skeleton: Skeleton, track: SubjectTrack) -> int:
+    """Write ``track`` as CSV (columns in the module docstring); returns the row count."""
+    n = int(track.thetas.shape[0])
+    q = quat_from_rotvec(track.thetas[:, 3:].reshape(n, N_BONES, 3)).reshape(n, -1)
+    x = Kinematics(skeleton).forward(track.thetas).positions.reshape(n, -1)
+    with Path(path).open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(csv_header())
+        for i in range(n):
+            w.writerow(
+                [i, f"{(track.t_ns[i] - track.t_ns[0]) / 1e9:.6f}", int(track.t_ns[i]), track.subject]
+                + [f"{v:.6f}" for v in track.thetas[i, 0:3]]
+                + [f"{v:.7f}" for v in q[i]]
+                + [f"{v:.6f}" for v in x[i]]
+            )
+    return n

@@ -1,0 +1,193 @@
+"""The session recorder: a :class:`~mocapd.service.app.PoseSink` that also taps the daemon's raw inputs.
+
+:func:`attach_recorder` (config, daemon) builds one, registers it on the daemon's detection and IMU taps and
+adds it to the daemon's sinks. Everything it is given on the event loop (published frames, detected camera frames,
+IMU samples) goes into the bounded queue of a :class:`~mocapd.io.session.SessionWriter` as is; encoding, writing
+and fsync happen on the writer's thread. When the queue is full a record is dropped and counted, never waited for.
+
+The manifest describes everything :mod:`mocapd.service.session_solve` needs to re-solve the session offline: the
+parsed config, the cameras, the skeleton and keypoint targets, the suits' calibrations, the scheduler's timing and
+the pose prior (``prior.npz`` beside it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as dt
+import platform
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+import mocapd
+from mocapd.core.camera import Camera
+from mocapd.core.sorting import Detections2D
+from mocapd.io.session import STREAMS, SessionWriter
+from mocapd.io.xsens_serial import ImuSample
+from mocapd.pipeline.scheduler import PoseFrame
+from mocapd.protocols.session_format import (
+    T_IMU,
+    T_KEYPOINTS,
+    T_POSE,
+    ImuRecord,
+    PersonRecord,
+    PoseRecord,
+    encode_imu,
+    encode_keypoints,
+    encode_pose,
+)
+from mocapd.service.daemon_config import SyntheticRigConfig
+from mocapd.service.record_config import RecordConfig
+
+if TYPE_CHECKING:
+    from mocapd.service.app import Daemon
+    from mocapd.service.config import Config
+
+
+def pose_record(frame: PoseFrame) -> PoseRecord:
+    """A published frame as a recorded one (same fields)."""
+    people = tuple(
+        PersonRecord(p.identity, p.suit, p.track, p.views, p.imus, p.iterations, p.converged, p.confidence,
+                     p.theta, p.joints, p.skeleton)
+        for p in frame.people
+    )  # fmt: skip
+    return PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people)
+
+
+def _encode_frame(frame: PoseFrame) -> bytes:
+    return encode_pose(pose_record(frame))
+
+
+def _encode_detections(camera: int, capture_ns: int, arrival_ns: int, dets: Detections2D) -> bytes:
+    return encode_keypoints(camera, capture_ns, arrival_ns, dets.keypoints, dets.confidences)
+
+
+def _encode_sample(s: ImuSample, quat: tuple[float, ...], acc: tuple[float, ...], t: int | None) -> bytes:
+    q = (float(quat[0]), float(quat[1]), float(quat[2]), float(quat[3]))
+    a = (float(acc[0]), float(acc[1]), float(acc[2]))
+    return encode_imu(ImuRecord(s.sensor, -1 if t is None else t, s.host_ns, s.device_ticks, s.packet_counter, q, a))
+
+
+class SessionRecorder:
+    """Records one session (see the module docstring); a pose sink plus two input taps."""
+
+    def __init__(self, writer: SessionWriter) -> None:
+        self.writer = writer
+        self.frames = 0
+
+    # ------------------------------------------------------------------------------------------ PoseSink
+    async def start(self) -> None:
+        await asyncio.get_running_loop().run_in_executor(None, self.writer.open)
+
+    def publish(self, frame: PoseFrame) -> None:
+        self.writer.put("poses", T_POSE, _encode_frame, frame)
+        self.frames += 1
+
+    async def aclose(self, update: dict[str, Any] | None = None) -> None:
+        info = {"ended_utc": dt.datetime.now(dt.UTC).isoformat(), "ended_monotonic_ns": time.monotonic_ns()}
+        await asyncio.get_running_loop().run_in_executor(None, self.writer.close, {**info, **(update or {})})
+
+    # ------------------------------------------------------------------------------------------ taps
+    def on_detections(self, camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:
+        self.writer.put("keypoints", T_KEYPOINTS, _encode_detections, camera, capture_ns, arrival_ns, dets)
+
+    def on_imu(self, s: ImuSample, quat: tuple[float, ...] | None, t: int | None) -> None:
+        if quat is None or s.acc is None:
+            return  # incomplete samples are counted by the ingest and carry nothing to re-solve with
+        self.writer.put("imu", T_IMU, _encode_sample, s, quat, s.acc, t)
+
+    def status(self) -> dict[str, Any]:
+        c = self.writer.counters
+        return {"directory": str(self.writer.directory), "queued": c.queued, "written": c.written,
+                "dropped": c.dropped, "bytes": c.bytes, "write_errors": c.write_errors}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------- manifest
+def camera_dict(c: Camera) -> dict[str, Any]:
+    return {"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(), "R": c.R.tolist(),
+            "t": c.t.tolist(), "dist": c.dist.tolist()}  # fmt: skip
+
+
+def camera_from_dict(d: dict[str, Any]) -> Camera:
+    return Camera(str(d["name"]), int(d["width"]), int(d["height"]), np.array(d["K"]), np.array(d["R"]),
+                  np.array(d["t"]), np.array(d["dist"]))  # fmt: skip
+
+
+def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What a session records about the run it comes from (see ``docs/sessions.md``)."""
+    rig = daemon.rig
+    o = daemon.scheduler.options
+    return {
+        "format": "mocapd-session",
+        "version": 1,
+        "software": {"mocapd": mocapd.__version__, "python": platform.python_version(), "numpy": np.__version__},
+        "started_utc": dt.datetime.now(dt.UTC).isoformat(),
+        "started_monotonic_ns": time.monotonic_ns(),
+        "host": platform.node(),
+        "streams": list(STREAMS),
+        "config": config.raw,
+        "scheduler": {
+            "rate_hz": o.rate_hz, "latency_ns": o.latency_ns, "keypoint_max_age_ns": o.keypoint_max_age_ns,
+            "keypoint_max_gap_ns": o.keypoint_max_gap_ns, "match_px": o.match_px,
+            "camera_offsets_ns": list(o.camera_offsets_ns), "imu_offsets_ns": dict(o.imu_offsets_ns),
+            "body_size_frames": o.body_size_frames,
+        },
+        "cameras": [camera_dict(c) for c in rig.cameras],
+        "skeleton": {"offsets": rig.skeleton.offsets.tolist(), "root_height": rig.skeleton.root_height,
+                     "height": rig.skeleton.height},
+        "targets": {"names": list(rig.targets.names), "bones": rig.targets.bones.tolist(),
+                    "offsets": rig.targets.offsets.tolist()},
+        "prior": "prior.npz" if rig.prior is not None else None,
+        "suits": [{"id": s.id, "sensors": list(s.sensors), "calibration": s.calibration.to_json_dict()}
+                  for s in rig.suits],
+        "devices": {"imu": [{"path": d.config.path} for d in daemon.imu.devices],
+                    "keypoint_sources": [src.name for src in rig.sources]},
+        **({"extra": extra} if extra else {}),
+    }  # fmt: skip
+
+
+def synthetic_extra(syn: SyntheticRigConfig, epoch_ns: int, suits: int | None = None) -> dict[str, Any]:
+    """The manifest's description of a synthetic world (rebuilt by the resolve measurement to score against
+    the truth): its size, seed and the host time of its t = 0."""
+    return {"epoch_ns": epoch_ns, "cameras": syn.cameras, "people": syn.people,
+            "suits": syn.suits if suits is None else suits, "seed": syn.seed, "motion": syn.motion}  # fmt: skip
+
+
+def session_directory(cfg: RecordConfig, directory: str | Path | None) -> Path:
+    """The explicit directory, else a new ``session-YYYYmmdd-HHMMSS[-n]`` under ``cfg.directory``."""
+    if directory is not None:
+        return Path(directory)
+    base = Path(cfg.directory) / dt.datetime.now(dt.UTC).strftime("session-%Y%m%d-%H%M%S")
+    path, n = base, 1
+    while path.exists():
+        n += 1
+        path = base.with_name(f"{base.name}-{n}")
+    return path
+
+
+def attach_recorder(
+    config: Config, daemon: Daemon, directory: str | Path | None = None, extra: dict[str, Any] | None = None
+) -> SessionRecorder | None:
+    """Record ``daemon``'s session when ``config.record.enabled`` or a ``directory`` is given (else None).
+
+    The recorder is appended to ``daemon.sinks`` and to its detection and IMU taps; its files are created when
+    the daemon starts its sinks.
+    """
+    rc = config.record
+    if directory is None and not rc.enabled:
+        return None
+    path = session_directory(rc, directory)
+    manifest = session_manifest(config, daemon, extra)
+    writer = SessionWriter(path, manifest, flush_interval_s=rc.flush_interval_s, fsync=rc.fsync,
+                           queue_size=rc.queue_size)  # fmt: skip
+    rec = SessionRecorder(writer)
+    prior = daemon.rig.prior
+    if prior is not None:
+        path.mkdir(parents=True, exist_ok=True)
+        np.savez(path / "prior.npz", M=prior.M, mu=prior.mu, sigma=prior.sigma)
+    daemon.sinks.append(rec)
+    daemon.detection_taps.append(rec.on_detections)
+    daemon.imu.taps.append(rec.on_imu)
+    return rec

@@ -1,0 +1,75 @@
+"""Error of a synthetic session's poses against the synthetic world's known truth (resolve measurement).
+
+The error is the mean 3D distance of the 17 COCO keypoint sites (what the cameras observe), like the synthetic
+demo's: with per-person body sizing a person's skeleton differs from the world's, and joints no camera sees sit
+at different places on two skeletons by definition.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from mocapd.core.keypoints import TrackTargets, coco17_targets
+from mocapd.core.kinematics import Kinematics
+from mocapd.io.session import Session
+from mocapd.protocols.session_format import PoseRecord
+from mocapd.service.synthetic_rig import SyntheticWorld
+
+
+def world_of(session: Session) -> tuple[SyntheticWorld, int]:
+    """The synthetic world a session was recorded in, and its epoch (host ns of world time 0)."""
+    s = session.manifest["extra"]["synthetic"]
+    world = SyntheticWorld(
+        int(s["cameras"]),
+        int(s["people"]),
+        int(s["suits"]),
+        seed=int(s["seed"]),
+        motion=str(s.get("motion", "procedural")),
+    )  # sessions before the recorded motion
+    return world, int(s["epoch_ns"])
+
+
+def person_errors(world: SyntheticWorld, epoch_ns: int, frames: list[PoseRecord]) -> dict[tuple[int, int], float]:
+    """Mean keypoint-site error (m) of every solved person against the nearest true person, keyed by (solve
+    time, index of that true person), so that streams whose people come in another order compare on the same
+    people."""
+    out: dict[tuple[int, int], float] = {}
+    models: dict[int, tuple[Kinematics, TrackTargets]] = {}
+    for f in frames:
+        if not f.people:
+            continue
+        t = (f.t_solve_ns - epoch_ns) / 1e9
+        truth = [world.sites_at(p, t) for p in range(len(world.truth))]
+        for p in f.people:
+            skeleton = p.skeleton if p.skeleton is not None else world.skeleton
+            kin, targets = models.setdefault(id(skeleton), (Kinematics(skeleton), coco17_targets(skeleton)))
+            sites = kin.targets(kin.forward(p.theta), targets.bones, targets.offsets)
+            e = [float(np.linalg.norm(sites - x, axis=1).mean()) for x in truth]
+            k = int(np.argmin(e))
+            out[(f.t_solve_ns, k)] = min(e[k], out.get((f.t_solve_ns, k), np.inf))
+    return out
+
+
+def truth_report(
+    session: Session, streams: dict[str, list[PoseRecord]], skip_s: float = 1.0, from_ns: int | None = None
+) -> dict[str, Any]:
+    """Median, mean and p95 keypoint-site error (mm) of each pose stream, over the person-frames that every stream
+    solved after the first ``skip_s`` of the session (start-up: enrolment and convergence), or after the solve
+    time ``from_ns`` when given."""
+    world, epoch = world_of(session)
+    starts = [f[0].t_solve_ns for f in streams.values() if f]
+    t0 = from_ns if from_ns is not None else min(starts) if starts else 0
+    skip_s = 0.0 if from_ns is not None else skip_s
+    errs = {
+        name: {k: v for k, v in person_errors(world, epoch, frames).items() if k[0] - t0 >= skip_s * 1e9}
+        for name, frames in streams.items()
+    }
+    common = sorted(set.intersection(*(set(e) for e in errs.values()))) if errs else []
+    out: dict[str, Any] = {"person_frames": len(common)}
+    for name, e in errs.items():
+        v = np.array([e[k] for k in common]) * 1e3
+        out[name] = {"median": round(float(np.median(v)), 2), "mean": round(float(v.mean()), 2),
+                     "p95": round(float(np.percentile(v, 95)), 2)} if v.size else None  # fmt: skip
+    return out

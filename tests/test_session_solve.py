@@ -1,0 +1,65 @@
+"""The resolve smoother and the export resampling on known signals (the whole resolve runs in
+test_session_e2e.py against the synthetic truth)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocapd.core.rotations import quat_angle, quat_from_rotvec
+from mocapd.core.skeleton import Skeleton
+from mocapd.core.synthetic import moving_sequence
+from mocapd.errors import InputError
+from mocapd.io.session_export import SubjectTrack, resample, subject_track
+from mocapd.protocols.session_format import PersonRecord, PoseRecord
+from mocapd.service.session_solve import ResolveOptions, rts_smooth, smooth_thetas
+
+
+def test_rts_smoother_removes_most_of_the_noise_of_a_smooth_signal() -> None:
+    rng = np.random.default_rng(0)
+    t = np.arange(600) / 60.0
+    truth = np.stack([np.sin(1.3 * t), 0.2 * t, np.cos(0.7 * t) ** 2], axis=1)
+    z = truth + rng.normal(scale=0.01, size=truth.shape)
+    sm = rts_smooth(t, z, np.full(3, 0.01), np.full(3, 5.0))
+    assert np.sqrt(np.mean((sm - truth) ** 2)) < 0.5 * np.sqrt(np.mean((z - truth) ** 2))
+    assert np.array_equal(rts_smooth(t[:2], z[:2], np.full(3, 0.01), np.full(3, 5.0)), z[:2])
+
+
+def test_smoothing_poses_keeps_a_clean_motion_and_splits_at_gaps() -> None:
+    sk = Skeleton.from_height()
+    th = moving_sequence(sk, 240, fps=60.0, seed=2)
+    t = (np.arange(240) * 1e9 / 60).astype(np.int64)
+    t[120:] += 2_000_000_000  # a 2 s gap: two segments
+    sm = smooth_thetas(t, th, ResolveOptions())
+    n = th.shape[0]
+    err = quat_angle(quat_from_rotvec(sm[:, 3:].reshape(n, 21, 3)), quat_from_rotvec(th[:, 3:].reshape(n, 21, 3)))
+    assert np.degrees(err).max() < 1.0 and np.abs(sm[:, :3] - th[:, :3]).max() < 0.003
+
+
+def _poses(subject: str, times: list[int], thetas: np.ndarray) -> list[PoseRecord]:
+    return [
+        PoseRecord(i, t, t, 0, (PersonRecord(subject, None, 1, 4, 0, 3, True, 0.9, thetas[i], np.zeros((21, 3))),))
+        for i, t in enumerate(times)
+    ]
+
+
+def test_resampling_fills_missed_ticks_on_a_uniform_grid() -> None:
+    sk = Skeleton.from_height()
+    th = moving_sequence(sk, 61, fps=60.0, seed=4)
+    period = round(1e9 / 60)
+    keep = [i for i in range(61) if i % 7 != 3]  # missed ticks
+    track = subject_track(_poses("track:1", [i * period for i in keep], th[keep]), None)
+    out = resample(track, 60.0)
+    assert out.subject == "track:1" and out.thetas.shape == (61, 66)
+    assert np.all(np.diff(out.t_ns) == period)
+    assert np.allclose(out.thetas[keep], th[keep], atol=1e-9)  # recorded frames unchanged
+    q = quat_angle(
+        quat_from_rotvec(out.thetas[:, 3:].reshape(61, 21, 3)), quat_from_rotvec(th[:, 3:].reshape(61, 21, 3))
+    )
+    assert np.degrees(q).max() < 2.0  # interpolated ones close to the motion
+    one = SubjectTrack("x", np.array([5]), th[:1])
+    assert resample(one) is one
+    with pytest.raises(InputError):
+        subject_track(_poses("track:1", [0], th[:1]), "track:9")
+    with pytest.raises(InputError):
+        subject_track([], None)
