@@ -96,7 +96,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     daemon = Daemon(
         cfg, rig, sinks=_sinks(args), status_line=(lambda s: print(s, flush=True)) if args.verbose else None
     )
+    from mocapd.service.websocket_service import build_websocket_sinks
+
+    daemon.sinks.extend(build_websocket_sinks(cfg, daemon))
     print(f"mocapd run: status http://{cfg.daemon.http_host}:{cfg.daemon.http_port}/status", flush=True)
+    if cfg.websocket.enabled:
+        print(f"mocapd run: viewer http://{cfg.websocket.host}:{cfg.websocket.port}/ (stream ws://same)", flush=True)
     return asyncio.run(daemon.run())
 
 

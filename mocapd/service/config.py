@@ -20,6 +20,7 @@ from mocapd.pipeline.detector_config import DetectorConfig, detector_config_from
 from mocapd.service.daemon_config import DaemonConfig, parse_daemon_config
 from mocapd.service.imu_config import ImuConfig, parse_imu_config
 from mocapd.service.tracking_config import TrackingConfig, parse_tracking_config
+from mocapd.service.websocket_config import WebSocketConfig, parse_websocket_config
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
 
@@ -46,11 +47,12 @@ class Config:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
+    websocket: WebSocketConfig = field(default_factory=WebSocketConfig)
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole parsed file, for sections whose loaders live elsewhere."""
 
 
-KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon"}
+KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon", "websocket"}
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -76,6 +78,7 @@ def parse_config(data: dict[str, Any]) -> Config:
         tracking=parse_tracking_config(_table(data, "tracking")),
         detector=detector_config_from_mapping(_table(data, "detector")),
         daemon=parse_daemon_config(_table(data, "daemon")),
+        websocket=parse_websocket_config(_table(data, "websocket")),
         raw=data,
     )
 

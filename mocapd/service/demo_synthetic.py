@@ -34,6 +34,7 @@ from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.bench_solver import synthetic_prior
 from mocapd.service.config import Config
 from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
+from mocapd.service.websocket_service import build_websocket_sinks
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -196,6 +197,8 @@ def run(config: Config, seconds: float | None, sinks: list[PoseSink] | None = No
 
     with running_demo(config, sinks=sinks, status_line=line) as demo:
         holder["demo"] = demo
+        streams = build_websocket_sinks(config, demo.daemon)
+        demo.daemon.sinks.extend(streams)
 
         async def main() -> int:
             task = asyncio.create_task(_run_for(demo, seconds))
@@ -204,6 +207,8 @@ def run(config: Config, seconds: float | None, sinks: list[PoseSink] | None = No
             if ready.done():
                 url = demo.daemon.http.url
                 print(f"ready: status {url}/status  metrics {url}/metrics  (Ctrl-C stops)", flush=True)
+                for ws in streams:
+                    print(f"viewer {ws.viewer_url}  pose stream {ws.url}", flush=True)
             else:
                 ready.cancel()
             return await task
