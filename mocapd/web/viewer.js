@@ -12,7 +12,7 @@
 
   const state = {
     connected: false, connects: 0, hellos: 0, frames: 0, statusMessages: 0, errors: 0,
-    hello: null, frame: null, status: null, colours: {}, rate: 0, lastError: null,
+    hello: null, frame: null, shown: null, paused: false, status: null, colours: {}, rate: 0, lastError: null,
   };
   const cam = { yaw: 0.6, pitch: 0.35, dist: 7.0, target: [0, 0.9, 0] };
   let socket = null, retryMs = 250, drawPending = false, frameTimes = [];
@@ -98,7 +98,7 @@
       line(project([k, 0, -5], b), project([k, 0, 5], b), k === 0 ? "#3b4350" : "#262b33", 1);
       line(project([-5, 0, k], b), project([5, 0, k], b), k === 0 ? "#3b4350" : "#262b33", 1);
     }
-    const f = state.frame, parents = state.hello ? state.hello.parents : null;
+    const f = state.shown, parents = state.hello ? state.hello.parents : null;
     if (f && parents) {
       ctx.lineCap = "round";
       for (const s of f.subjects) {
@@ -136,7 +136,8 @@
 
   function updatePanel() {
     const conn = document.getElementById("conn");
-    conn.textContent = state.connected ? `connected · ${state.frames} frames` : "disconnected · reconnecting…";
+    conn.textContent = state.connected ? `connected · ${state.frames} frames${state.paused ? " · paused" : ""}`
+      : "disconnected · reconnecting…";
     conn.className = state.connected ? "ok" : "bad";
     const subjects = state.frame ? state.frame.subjects : [];
     rows("subjects", subjects.map((s) => {
@@ -179,6 +180,7 @@
       if (m.type === "hello") { state.hello = m; state.hellos += 1; }
       else if (m.type === "frame") {
         state.frame = m; state.frames += 1;
+        if (!state.paused) state.shown = m;
         const now = performance.now();
         frameTimes.push(now);
         while (frameTimes.length && frameTimes[0] < now - 1000) frameTimes.shift();
@@ -189,7 +191,7 @@
     };
     ws.onclose = () => {
       if (socket !== ws) return;
-      state.connected = false; state.frame = null;
+      state.connected = false; state.frame = null; state.shown = null;
       updatePanel(); scheduleDraw();
       setTimeout(connect, retryMs);
       retryMs = Math.min(2000, retryMs * 2);
@@ -214,10 +216,16 @@
   }, { passive: false });
   canvas.addEventListener("dblclick", () => { Object.assign(cam, { yaw: 0.6, pitch: 0.35, dist: 7.0 }); scheduleDraw(); });
   window.addEventListener("resize", scheduleDraw);
+  function pause(on) { state.paused = on; if (!on) state.shown = state.frame; scheduleDraw(); updatePanel(); }
+  window.addEventListener("keydown", (e) => { if (e.key === " ") { e.preventDefault(); pause(!state.paused); } });
 
   window.mocapdViewer = {
     state, cam, palette: PALETTE,
     project: (p) => project(p),
+    pause,
+    // What is on screen: per subject its colour and the canvas pixels of its joints.
+    drawn: () => (state.shown && state.hello ? state.shown.subjects.map((s) => ({
+      id: s.id, colour: colourOf(s.id), points: jointsOf(s).map((p) => project(p)) })) : []),
     colourOf,
     get frames() { return state.frames; }, get connects() { return state.connects; },
     get connected() { return state.connected; },
