@@ -92,6 +92,13 @@ def test_each_option_set_is_encoded_once_per_frame() -> None:
     assert "joints" not in decode(m1)["subjects"][0]
 
 
+@pytest.mark.parametrize("encoding", ["msgpack", "json"])
+def test_a_frame_without_subjects(encoding: str) -> None:
+    frame = random_frame(np.random.default_rng(6), 9, [], SKEL)
+    f = decode(FrameEncoder(frame, 5, description()).message(StreamOptions(encoding=encoding, globals=True)))
+    assert f["frame"] == 9 and f["subjects"] == []
+
+
 def test_non_finite_subjects_are_left_out_and_counted() -> None:
     frame = random_frame(np.random.default_rng(3), 5, ["a", "b"], SKEL)
     bad = frame.people[0].theta.copy()

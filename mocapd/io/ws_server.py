@@ -147,14 +147,17 @@ class WebSocketStreamServer:
 
     def publish(self, frame: FramePoses) -> None:
         """Queue ``frame`` for every client whose options select it; never waits."""
-        enc = FrameEncoder(frame, self.clock(), self.description)
         self.frames_published += 1
-        self.non_finite += enc.non_finite
-        self._latest_subjects = enc.subject_ids
+        self._latest_subjects = tuple(p.identity for p in frame.people)
+        wanted = [c for c in self.clients if c.session.wants(frame.frame)]
         for c in self.clients:
-            c.session.latest_subjects = enc.subject_ids
-            if c.session.wants(frame.frame):
-                c.push(enc)
+            c.session.latest_subjects = self._latest_subjects
+        if not wanted:
+            return  # nobody to convert for
+        enc = FrameEncoder(frame, self.clock(), self.description)
+        self.non_finite += enc.non_finite
+        for c in wanted:
+            c.push(enc)
 
     async def aclose(self) -> None:
         """Stop status messages, close every connection (going away, 1001) and stop listening."""

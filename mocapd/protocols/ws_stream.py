@@ -116,7 +116,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.rotations import quat_from_rotvec
-from mocapd.core.skeleton import BONE_NAMES, N_BONES, PARENTS, Skeleton
+from mocapd.core.skeleton import BONE_NAMES, N_BONES, PARENTS, POSE_DIM, Skeleton
 from mocapd.protocols.conventions import Convention, convention
 
 FloatArray = NDArray[np.float64]
@@ -225,29 +225,28 @@ def decode(message: Message) -> Any:
     return json.loads(message)
 
 
-def _floats(a: FloatArray, encoding: str) -> list[float]:
-    flat = np.asarray(a, dtype=np.float64).ravel()
+def _rows(a: FloatArray, encoding: str) -> list[list[float]]:
+    """``(n, ...)`` → n flat lists of floats (rounded for JSON, where digits are bytes)."""
+    if len(a) == 0:
+        return []
+    flat = np.asarray(a, dtype=np.float64).reshape(len(a), -1)
     if encoding == "json":
         flat = np.round(flat, _JSON_DECIMALS)
-    out: list[float] = flat.tolist()
+    out: list[list[float]] = flat.tolist()
     return out
+
+
+def _floats(a: FloatArray, encoding: str) -> list[float]:
+    return _rows(np.asarray(a, dtype=np.float64).reshape(1, -1), encoding)[0]
 
 
 @dataclass(frozen=True)
 class _Converted:
-    """One subject in one convention: root (3,), local quaternions (84,), global joints (63,)."""
+    """Every subject of a frame in one convention: root (n, 3), local quaternions (n, 84), joints (n, 63)."""
 
     root: FloatArray
     rot: FloatArray
     joints: FloatArray
-
-
-def _convert(person: SubjectPose, conv: Convention) -> _Converted:
-    theta = np.asarray(person.theta, dtype=np.float64)
-    quats = quat_from_rotvec(theta[3:].reshape(N_BONES, 3))
-    return _Converted(
-        conv.positions(theta[:3]), conv.quaternions(quats).ravel(), conv.positions(np.asarray(person.joints)).ravel()
-    )
 
 
 class FrameEncoder:
@@ -268,10 +267,22 @@ class FrameEncoder:
         self.t_publish_ns = int(t_publish_ns)
         self.description = description
         # A subject with a non-finite value is left out (JSON cannot carry NaN; no engine wants one) and counted.
-        self.people = [p for p in frame.people if np.all(np.isfinite(p.theta)) and np.all(np.isfinite(p.joints))]
-        self.non_finite = len(frame.people) - len(self.people)
+        people = list(frame.people)
+        n = len(people)
+        theta = np.array([p.theta for p in people], dtype=np.float64).reshape(n, POSE_DIM)
+        joints = np.array([p.joints for p in people], dtype=np.float64).reshape(n, N_BONES, 3)
+        ok: NDArray[np.bool_] = np.ones(n, dtype=bool)
+        if n:
+            ok = np.asarray(np.isfinite(theta).all(axis=1) & np.isfinite(joints).all(axis=(1, 2)), dtype=bool)
+        self.people = [p for p, good in zip(people, ok.tolist(), strict=True) if good]
+        self.non_finite = n - len(self.people)
         self.subject_ids = tuple(p.identity for p in self.people)
-        self._converted: dict[str, list[_Converted]] = {}
+        # All subjects at once: one quaternion conversion per frame, one change of basis per convention.
+        self._root = theta[ok, :3]
+        self._quats = quat_from_rotvec(theta[ok, 3:].reshape(-1, N_BONES, 3))
+        self._joints = joints[ok]
+        self._converted: dict[str, _Converted] = {}
+        self._lists: dict[tuple[str, str], tuple[list[list[float]], list[list[float]], list[list[float]]]] = {}
         self._messages: dict[tuple[str, str, bool, frozenset[str] | None], Message] = {}
         self.encodings = 0
         """How many messages were actually encoded (the rest came from the cache)."""
@@ -282,25 +293,21 @@ class FrameEncoder:
         cached = self._messages.get(key)
         if cached is not None:
             return cached
-        conv = options.convention
-        converted = self._converted.get(conv)
-        if converted is None:
-            c = convention(conv)
-            converted = self._converted[conv] = [_convert(p, c) for p in self.people]
         enc = options.encoding
+        roots, rots, joints = self._values(options.convention, enc)
         subjects = []
-        for person, cv in zip(self.people, converted, strict=True):
+        for k, person in enumerate(self.people):
             if options.subjects is not None and person.identity not in options.subjects:
                 continue
             s: dict[str, Any] = {
                 "id": person.identity,
                 "skeleton": self.description.skeleton_key(person.identity),
                 "suit": person.suit,
-                "root": _floats(cv.root, enc),
-                "rot": _floats(cv.rot, enc),
+                "root": roots[k],
+                "rot": rots[k],
             }
             if options.globals:
-                s["joints"] = _floats(cv.joints, enc)
+                s["joints"] = joints[k]
             conf = float(person.confidence)
             s["confidence"] = round(conf, 4) if math.isfinite(conf) else 0.0
             s["views"] = int(person.views)
@@ -314,6 +321,23 @@ class FrameEncoder:
         self._messages[key] = msg
         self.encodings += 1
         return msg
+
+    def _values(self, conv_name: str, encoding: str) -> tuple[list[list[float]], ...]:
+        """Per subject: root, rotations and joints as float lists in a convention (converted once each)."""
+        lists = self._lists.get((conv_name, encoding))
+        if lists is None:
+            cv = self._converted.get(conv_name)
+            if cv is None:
+                c = convention(conv_name)
+                cv = self._converted[conv_name] = _Converted(
+                    c.positions(self._root), c.quaternions(self._quats), c.positions(self._joints)
+                )
+            lists = self._lists[(conv_name, encoding)] = (
+                _rows(cv.root, encoding),
+                _rows(cv.rot, encoding),
+                _rows(cv.joints, encoding),
+            )
+        return lists
 
 
 def skeleton_map(skeleton: Skeleton, conv: Convention, encoding: str) -> dict[str, Any]:
