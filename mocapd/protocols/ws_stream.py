@@ -7,8 +7,10 @@ JSON object in a *text* message) whose ``"type"`` key says what it is. Both enco
 Encodings
 ---------
 ``msgpack`` (default): map keys are msgpack str; every float is a float32 (``0xca`` + 4 bytes big-endian);
-integers use msgpack's smallest int/uint form (time stamps are int64/uint64, ``0xd3``/``0xcf``); absent optional
-values are nil (``0xc0``); lists are msgpack arrays. ``json``: UTF-8 JSON, floats rounded to 6 decimals; integer
+integers use msgpack's smallest int/uint form (host time stamps are usually uint64, ``0xcf`` + 8 bytes); absent
+optional values are nil (``0xc0``); lists are msgpack arrays. Keys are written in the order listed below, e.g. a
+frame starts ``85`` (map of 5) ``a4 "type"`` ``a5 "frame"`` ``a5 "frame"`` ``cd 01 2c`` (frame 300)
+``aa "t_solve_ns"`` ``cf`` + 8 bytes ...; read keys by name, not position. ``json``: UTF-8 JSON, floats rounded to 6 decimals; integer
 time stamps are exact in JSON but a JavaScript ``Number`` keeps them only to 2^53 ns (104 days of host uptime).
 
 Coordinate conventions (:mod:`mocapd.protocols.conventions`, the only conversion): ``native`` (mocapd: right-
@@ -52,7 +54,7 @@ Server → client messages
     t_publish_ns    int     host CLOCK_MONOTONIC nanoseconds when the daemon published the frame; a client on
                             the same host may subtract it from its own monotonic clock to get delivery latency
     subjects        [subject]   the tracked subjects (only the requested ones), each:
-        id          str     stable identity ("suit:<id>" for a suit wearer, "person:<n>" otherwise)
+        id          str     stable identity ("suit:<id>" for a suit wearer, "track:<n>" otherwise)
         skeleton    str     key into hello.skeletons
         suit        str | nil   the IMU suit bound to this subject
         root        [float × 3]   root (Hips) joint position, convention units
