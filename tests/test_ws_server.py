@@ -263,6 +263,13 @@ async def test_viewer_files_client_limit_and_status_messages() -> None:
         await srv.aclose()
 
 
+@pytest.mark.asyncio
+async def test_a_port_in_use_is_a_clear_error(server: WebSocketStreamServer) -> None:
+    other = WebSocketStreamServer(ServerSettings(port=server.port), StreamDescription(60.0, {"d": SKEL}))
+    with pytest.raises(ConfigError, match=f"cannot listen on 127.0.0.1:{server.port}.*\\[websocket\\] port"):
+        await other.start()
+
+
 def test_config_defaults_and_errors() -> None:
     d = parse_websocket_config({})
     assert d.enabled and d.host == "127.0.0.1" and d.port == 8766 and d.encoding == "msgpack"

@@ -35,6 +35,7 @@ from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
+from mocapd.errors import ConfigError
 from mocapd.protocols.ws_stream import (
     ClientSession,
     FrameEncoder,
@@ -137,10 +138,16 @@ class WebSocketStreamServer:
     async def start(self) -> None:
         """Listen (port 0: any free port, then :attr:`port` is the bound one) and start status messages."""
         s = self.settings
-        self._server = await serve(
-            self._handler, s.host, s.port, process_request=self._process_request, max_size=s.max_message_bytes,
-            max_queue=4, compression=None, close_timeout=CLOSE_TIMEOUT_S,
-        )  # fmt: skip
+        try:
+            self._server = await serve(
+                self._handler, s.host, s.port, process_request=self._process_request, max_size=s.max_message_bytes,
+                max_queue=4, compression=None, close_timeout=CLOSE_TIMEOUT_S,
+            )  # fmt: skip
+        except OSError as exc:
+            raise ConfigError(
+                f"websocket: cannot listen on {s.host}:{s.port} ({exc.strerror or exc}); "
+                "choose another [websocket] port (0 = any free port) or stop the other program"
+            ) from exc
         self.port = int(next(iter(self._server.sockets)).getsockname()[1])
         if self._status is not None and s.status_hz > 0:
             self._status_task = asyncio.create_task(self._status_loop(1.0 / s.status_hz))

@@ -10,8 +10,9 @@ Encodings
 integers use msgpack's smallest int/uint form (host time stamps are usually uint64, ``0xcf`` + 8 bytes); absent
 optional values are nil (``0xc0``); lists are msgpack arrays. Keys are written in the order listed below, e.g. a
 frame starts ``85`` (map of 5) ``a4 "type"`` ``a5 "frame"`` ``a5 "frame"`` ``cd 01 2c`` (frame 300)
-``aa "t_solve_ns"`` ``cf`` + 8 bytes ...; read keys by name, not position. ``json``: UTF-8 JSON, floats rounded to 6 decimals; integer
-time stamps are exact in JSON but a JavaScript ``Number`` keeps them only to 2^53 ns (104 days of host uptime).
+``aa "t_solve_ns"`` ``cf`` + 8 bytes ...; read keys by name, not position. ``json``: UTF-8 JSON, floats
+rounded to 6 decimals; integer time stamps are exact in JSON, but a JavaScript ``Number`` keeps them only to
+2^53 ns (104 days of host uptime).
 
 Coordinate conventions (:mod:`mocapd.protocols.conventions`, the only conversion): ``native`` (mocapd: right-
 handed, +Y up, metres), ``unity`` (left-handed, +Y up, metres), ``unreal`` (left-handed, +Z up, centimetres),
