@@ -9,7 +9,9 @@
    stalled: it completes the handshake and never reads) in a separate process, then a second baseline. Reports
    missed solver ticks per phase (streaming's share = streaming phase minus baseline), the cost of the sink's
    ``publish`` inside the tick, per-client delivery latency (daemon publish → client receive, both on the host's
-   CLOCK_MONOTONIC) p50/p95 and what the stalled client lost.
+   CLOCK_MONOTONIC) p50/p95 and what the stalled client lost. The client process runs at ``nice 10`` by default,
+   so what is measured is the server side's effect on the tick loop rather than the clients' own CPU competing
+   for the 2 cores (a game engine on the same laptop would compete too: ``--client-nice 0`` measures that).
 
     .venv/bin/python tools/bench_stream.py [--seconds 30] [--people 4] [--clients 50]
 
@@ -186,7 +188,9 @@ def _pct(values: list[int], q: float, scale: float) -> float | None:
     return round(float(np.percentile(np.asarray(values, dtype=np.float64), q)) / scale, 3) if values else None
 
 
-def fan_out(seconds: float, people: int, clients: int, warm_up_s: float, repeats: int) -> dict[str, Any]:
+def fan_out(
+    seconds: float, people: int, clients: int, warm_up_s: float, repeats: int, client_nice: int
+) -> dict[str, Any]:
     from mocapd.service.config import load_config
     from mocapd.service.demo_synthetic import running_demo
     from mocapd.service.websocket_service import build_websocket_sinks
@@ -242,7 +246,8 @@ def fan_out(seconds: float, people: int, clients: int, warm_up_s: float, repeats
             task = asyncio.create_task(d.run())
             await asyncio.wait_for(d.ready.wait(), 300)
             proc = await asyncio.create_subprocess_exec(
-                sys.executable, __file__, "--child", str(ws.port), str(clients), str(seconds),
+                "nice", "-n", str(client_nice), sys.executable, __file__, "--child", str(ws.port), str(clients),
+                str(seconds),
                 stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
             )  # fmt: skip
             assert proc.stdout is not None and proc.stdin is not None
@@ -268,6 +273,7 @@ def fan_out(seconds: float, people: int, clients: int, warm_up_s: float, repeats
     return {
         "rig": {"people": people, "cameras": syn.cameras, "suits": 0, "output_rate_hz": cfg.daemon.output_rate_hz},
         "clients": clients,
+        "client_process_nice": client_nice,
         "phase_s": seconds,
         "summary": {
             "missed_ticks_median": {"baseline": med("baseline", "missed_ticks"),
@@ -296,6 +302,12 @@ def main() -> int:
     p.add_argument("--people", type=int, default=4)
     p.add_argument("--clients", type=int, default=50, help="including the stalled one")
     p.add_argument("--warm-up", type=float, default=10.0)
+    p.add_argument(
+        "--client-nice",
+        type=int,
+        default=10,
+        help="niceness of the client process, so its own CPU does not starve the daemon (0: none)",
+    )
     p.add_argument("--child", nargs=3, metavar=("PORT", "N", "SECONDS"), help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.child:
@@ -304,7 +316,7 @@ def main() -> int:
     out = {
         "machine": {"cpus": os.cpu_count(), "load_avg_at_start": [round(x, 2) for x in os.getloadavg()]},
         "serialisation_per_frame": {"subjects": a.people, **serialisation(a.people)},
-        "fan_out": fan_out(a.seconds, a.people, a.clients, a.warm_up, a.repeats),
+        "fan_out": fan_out(a.seconds, a.people, a.clients, a.warm_up, a.repeats, a.client_nice),
     }
     out["machine"]["load_avg_at_end"] = [round(x, 2) for x in os.getloadavg()]
     print(json.dumps(out, indent=2))

@@ -161,8 +161,7 @@ class WebSocketStreamServer:
             c.session.latest_subjects = self._latest_subjects
         if not wanted:
             return  # nobody to convert for
-        enc = FrameEncoder(frame, self.clock(), self.description)
-        self.non_finite += enc.non_finite
+        enc = FrameEncoder(frame, self.clock(), self.description)  # converted lazily, by the first sender
         for c in wanted:
             c.push(enc)
 
@@ -282,7 +281,13 @@ class WebSocketStreamServer:
                         msg = client.control.popleft()
                     else:
                         item = client.queue.popleft()
-                        msg = item.message(client.session.options) if isinstance(item, FrameEncoder) else item
+                        if isinstance(item, FrameEncoder):
+                            first = not item.prepared
+                            msg = item.message(client.session.options)
+                            if first:
+                                self.non_finite += item.non_finite
+                        else:
+                            msg = item
                     await conn.send(msg)  # waits only for this client's socket
                     client.sent += 1
         except ConnectionClosed:

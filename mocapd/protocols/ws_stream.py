@@ -266,29 +266,51 @@ class FrameEncoder:
     """
 
     def __init__(self, frame: FramePoses, t_publish_ns: int, description: StreamDescription) -> None:
+        # Nothing is converted here: the publisher (the solver's tick) only pays for this object; the first
+        # message() call, in some client's sender, does the numeric work.
         self.frame = frame
         self.t_publish_ns = int(t_publish_ns)
         self.description = description
+        self.prepared = False
+        self._people: list[SubjectPose] = []
+        self._non_finite = 0
+        self._root = self._quats = self._joints = np.zeros(0)
+        self._converted: dict[str, _Converted] = {}
+        self._lists: dict[tuple[str, str], tuple[list[list[float]], list[list[float]], list[list[float]]]] = {}
+        self._messages: dict[tuple[str, str, bool, frozenset[str] | None], Message] = {}
+        self.encodings = 0
+        """How many messages were actually encoded (the rest came from the cache)."""
+
+    def _prepare(self) -> None:
+        if self.prepared:
+            return
+        self.prepared = True
         # A subject with a non-finite value is left out (JSON cannot carry NaN; no engine wants one) and counted.
-        people = list(frame.people)
+        people = list(self.frame.people)
         n = len(people)
         theta = np.array([p.theta for p in people], dtype=np.float64).reshape(n, POSE_DIM)
         joints = np.array([p.joints for p in people], dtype=np.float64).reshape(n, N_BONES, 3)
         ok: NDArray[np.bool_] = np.ones(n, dtype=bool)
         if n:
             ok = np.asarray(np.isfinite(theta).all(axis=1) & np.isfinite(joints).all(axis=(1, 2)), dtype=bool)
-        self.people = [p for p, good in zip(people, ok.tolist(), strict=True) if good]
-        self.non_finite = n - len(self.people)
-        self.subject_ids = tuple(p.identity for p in self.people)
+        self._people = [p for p, good in zip(people, ok.tolist(), strict=True) if good]
+        self._non_finite = n - len(self._people)
         # All subjects at once: one quaternion conversion per frame, one change of basis per convention.
         self._root = theta[ok, :3]
         self._quats = quat_from_rotvec(theta[ok, 3:].reshape(-1, N_BONES, 3))
         self._joints = joints[ok]
-        self._converted: dict[str, _Converted] = {}
-        self._lists: dict[tuple[str, str], tuple[list[list[float]], list[list[float]], list[list[float]]]] = {}
-        self._messages: dict[tuple[str, str, bool, frozenset[str] | None], Message] = {}
-        self.encodings = 0
-        """How many messages were actually encoded (the rest came from the cache)."""
+
+    @property
+    def people(self) -> list[SubjectPose]:
+        """The subjects that are sent (finite values only)."""
+        self._prepare()
+        return self._people
+
+    @property
+    def non_finite(self) -> int:
+        """Subjects left out because a value was NaN or infinite."""
+        self._prepare()
+        return self._non_finite
 
     def message(self, options: StreamOptions) -> Message:
         """The frame message for a client with these options (encoded at most once per option set)."""
@@ -296,6 +318,7 @@ class FrameEncoder:
         cached = self._messages.get(key)
         if cached is not None:
             return cached
+        self._prepare()
         enc = options.encoding
         roots, rots, joints = self._values(options.convention, enc)
         subjects = []
