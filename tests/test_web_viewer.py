@@ -95,6 +95,16 @@ async def test_viewer_draws_the_daemons_subjects_and_reconnects_after_a_restart(
             assert "cam0" in panel and "end_to_end" in panel and "streaming" in panel, panel
             palette = [hex_bgr(c) for c in await page.evaluate("mocapdViewer.palette")]
 
+            # Orbit (drag) and zoom (wheel) with real input events; the skeletons follow the new view.
+            yaw, dist = await page.evaluate("[mocapdViewer.cam.yaw, mocapdViewer.cam.dist]")
+            for kind, x in (("mousePressed", 300), ("mouseMoved", 360), ("mouseMoved", 420), ("mouseReleased", 420)):
+                await page.call("Input.dispatchMouseEvent", type=kind, x=x, y=300, button="left",
+                                buttons=0 if kind == "mouseReleased" else 1, clickCount=1)  # fmt: skip
+            await page.call("Input.dispatchMouseEvent", type="mouseWheel", x=400, y=300, deltaX=0, deltaY=-300)
+            yaw2, dist2 = await page.evaluate("[mocapdViewer.cam.yaw, mocapdViewer.cam.dist]")
+            assert yaw2 == pytest.approx(yaw - 1.2) and dist2 < dist
+            await check_skeletons_drawn(page)
+
             # The daemon stops: the page says so and draws no skeleton.
             await first.aclose()
             await page.wait_for("!mocapdViewer.connected", 10, "the page to notice the daemon stopped")
