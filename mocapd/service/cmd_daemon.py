@@ -69,7 +69,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, sinks=_sinks(args))
+    try:
+        return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, sinks=_sinks(args))
+    except ConfigError as exc:  # e.g. a stream's port already in use, found when the sinks start
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -102,7 +106,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(f"mocapd run: status http://{cfg.daemon.http_host}:{cfg.daemon.http_port}/status", flush=True)
     if cfg.websocket.enabled:
         print(f"mocapd run: viewer http://{cfg.websocket.host}:{cfg.websocket.port}/ (stream ws://same)", flush=True)
-    return asyncio.run(daemon.run())
+    try:
+        return asyncio.run(daemon.run())
+    except ConfigError as exc:  # e.g. a stream's port already in use, found when the sinks start
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
 
 def cmd_bench_latency(args: argparse.Namespace) -> int:
