@@ -2,11 +2,12 @@
 
 The protocol (messages, options, encoding) is :mod:`mocapd.protocols.ws_stream`; this module only moves its
 messages. ``publish`` runs in the solver's tick loop and never waits: it wraps the frame in one shared
-:class:`~mocapd.protocols.ws_stream.FrameEncoder` and appends it to each interested client's bounded queue. Each
-client has its own sender task, which pops the queue and encodes lazily through the shared encoder (so each
-distinct option set is encoded once per frame, and frames a slow client never gets are never encoded). A full
-queue drops its oldest message and counts it: a client that reads slowly, or not at all, gets fewer frames
-while the tick loop and every other client carry on.
+:class:`~mocapd.protocols.ws_stream.FrameEncoder` (each distinct option set is encoded once per frame). A client
+that keeps up (nothing queued, its socket taking data) gets the bytes written at once, without a task switch
+(websockets' ``broadcast``); any other client gets the frame appended to its bounded queue, which its own sender
+task drains with awaited sends, encoding lazily through the shared encoder. A full queue drops its oldest message
+and counts it: a client that reads slowly, or not at all, gets fewer frames while the tick loop and every other
+client carry on.
 
 Replies to client requests (hello, errors) go on a separate small control queue that is sent first and never
 dropped; a client that floods requests without reading the replies is closed (1008).
@@ -31,9 +32,10 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs
 
-from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.asyncio.server import Server, ServerConnection, broadcast, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
+from websockets.protocol import State
 
 from mocapd.errors import ConfigError
 from mocapd.protocols.ws_stream import (
@@ -73,6 +75,17 @@ class _Client:
         self.wake = asyncio.Event()
         self.sent = 0
         self.dropped = 0
+        self.sending = False
+
+    def idle(self) -> bool:
+        """Nothing queued or in flight and the socket takes data now: a message may be written directly."""
+        return (
+            not self.queue
+            and not self.control
+            and not self.sending
+            and self.conn.protocol.state is State.OPEN
+            and self.conn.transport.get_write_buffer_size() == 0
+        )
 
     def push(self, item: FrameEncoder | Message) -> None:
         if len(self.queue) == self.queue.maxlen:
@@ -161,9 +174,22 @@ class WebSocketStreamServer:
             c.session.latest_subjects = self._latest_subjects
         if not wanted:
             return  # nobody to convert for
-        enc = FrameEncoder(frame, self.clock(), self.description)  # converted lazily, by the first sender
+        enc = FrameEncoder(frame, self.clock(), self.description)  # converted lazily, once
+        direct: dict[tuple[Any, ...], list[_Client]] = {}
         for c in wanted:
-            c.push(enc)
+            if c.idle():
+                direct.setdefault(c.session.options.encoding_key, []).append(c)
+            else:
+                c.push(enc)  # behind a queue: its sender task writes it (or drops the oldest)
+        # Fast path: clients keeping up get the bytes written now, synchronously (websockets' broadcast: no task
+        # switch, no await), one encoding per option set. A socket that stops taking data sends that client down
+        # the queued path above on the next frame, so nothing here can grow without bound.
+        for group in direct.values():
+            broadcast([c.conn for c in group], enc.message(group[0].session.options))
+            for c in group:
+                c.sent += 1
+        if direct:
+            self.non_finite += enc.non_finite
 
     async def aclose(self) -> None:
         """Stop status messages, close every connection (going away, 1001) and stop listening."""
@@ -276,6 +302,7 @@ class WebSocketStreamServer:
             while True:
                 await client.wake.wait()
                 client.wake.clear()
+                client.sending = True
                 while client.control or client.queue:
                     if client.control:
                         msg = client.control.popleft()
@@ -290,6 +317,7 @@ class WebSocketStreamServer:
                             msg = item
                     await conn.send(msg)  # waits only for this client's socket
                     client.sent += 1
+                client.sending = False
         except ConnectionClosed:
             return
 
