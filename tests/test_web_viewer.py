@@ -55,8 +55,13 @@ def near(img: NDArray[np.uint8], bgr: NDArray[np.int32], tol: int = 40) -> NDArr
 
 
 async def check_skeletons_drawn(page: Page) -> list[dict[str, Any]]:
-    """Pause the view, then every subject's colour must be on the screenshot at its projected joints."""
-    await page.evaluate("mocapdViewer.pause(true)")
+    """Pause the view on a frame with both people; each one's colour must be on the screenshot at its joints."""
+    # Pause on a frame with both people (atomic in the page: under load the tracker may briefly lose someone).
+    pause_on_two = (
+        "(() => { const s = mocapdViewer.state; const ok = s.shown && s.shown.subjects.length == 2;"
+        " if (ok) mocapdViewer.pause(true); return ok; })()"
+    )
+    await page.wait_for(pause_on_two, 30, "a frame with both people")
     await asyncio.sleep(0.3)  # the paused frame is drawn
     drawn = await page.evaluate("mocapdViewer.drawn()")
     img = await page.screenshot()
