@@ -62,7 +62,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
+    try:
+        return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
+    except ConfigError as exc:  # e.g. a stream's port already in use, found when the sinks start
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -71,6 +75,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mocapd.service.recorder import attach_recorder, synthetic_extra
     from mocapd.service.suits import load_suits
     from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
+    from mocapd.service.websocket_service import build_websocket_sinks
 
     try:
         cfg = _load(args.config, args.http_port)
@@ -95,9 +100,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(cfg.solver.prior), suits)
     daemon = Daemon(cfg, rig, status_line=(lambda s: print(s, flush=True)) if args.verbose else None)
     daemon.sinks.extend(build_udp_sinks(cfg, daemon))
+    daemon.sinks.extend(build_websocket_sinks(cfg, daemon))
     attach_recorder(cfg, daemon, args.record, extra={"synthetic": synthetic_extra(syn, epoch, suits=0)})
     print(f"mocapd run: status http://{cfg.daemon.http_host}:{cfg.daemon.http_port}/status", flush=True)
-    return asyncio.run(daemon.run())
+    if cfg.websocket.enabled:
+        print(f"mocapd run: viewer http://{cfg.websocket.host}:{cfg.websocket.port}/ (stream ws://same)", flush=True)
+    try:
+        return asyncio.run(daemon.run())
+    except ConfigError as exc:  # e.g. a stream's port already in use, found when the sinks start
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
 
 def cmd_bench_latency(args: argparse.Namespace) -> int:

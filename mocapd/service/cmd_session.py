@@ -22,8 +22,9 @@ def stream_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
     """The streaming sinks a replay publishes through: the streams configured in ``config``, for poses on the
     session's ``skeleton``."""
     from mocapd.service.udp_config import udp_sinks
+    from mocapd.service.websocket_service import websocket_sinks
 
-    return udp_sinks(config, skeleton)
+    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton)]
 
 
 def _open(path: Path) -> Session:

@@ -22,6 +22,7 @@ from mocapd.service.imu_config import ImuConfig, parse_imu_config
 from mocapd.service.record_config import RecordConfig, parse_record_config
 from mocapd.service.tracking_config import TrackingConfig, parse_tracking_config
 from mocapd.service.udp_config import UdpConfig, parse_udp_config
+from mocapd.service.websocket_config import WebSocketConfig, parse_websocket_config
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
 
@@ -50,11 +51,12 @@ class Config:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     udp: UdpConfig = field(default_factory=UdpConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
+    websocket: WebSocketConfig = field(default_factory=WebSocketConfig)
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole parsed file, for sections whose loaders live elsewhere."""
 
 
-KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon", "udp", "record"}
+KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon", "udp", "record", "websocket"}
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -82,6 +84,7 @@ def parse_config(data: dict[str, Any]) -> Config:
         daemon=parse_daemon_config(_table(data, "daemon")),
         udp=parse_udp_config(_table(data, "udp")),
         record=parse_record_config(_table(data, "record")),
+        websocket=parse_websocket_config(_table(data, "websocket")),
         raw=data,
     )
 

@@ -40,6 +40,7 @@ from mocapd.service.config import Config
 from mocapd.service.recorder import attach_recorder, synthetic_extra
 from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
 from mocapd.service.udp_config import build_udp_sinks
+from mocapd.service.websocket_service import build_websocket_sinks
 
 REPO = Path(__file__).resolve().parents[2]
 FloatArray = NDArray[np.float64]
@@ -224,6 +225,8 @@ def run(
 
     with running_demo(config, sinks=sinks, status_line=line, record=record) as demo:
         holder["demo"] = demo
+        streams = build_websocket_sinks(config, demo.daemon)
+        demo.daemon.sinks.extend(streams)
 
         async def main() -> int:
             task = asyncio.create_task(_run_for(demo, seconds))
@@ -232,6 +235,8 @@ def run(
             if ready.done():
                 url = demo.daemon.http.url
                 print(f"ready: status {url}/status  metrics {url}/metrics  (Ctrl-C stops)", flush=True)
+                for ws in streams:
+                    print(f"viewer {ws.viewer_url}  pose stream {ws.url}", flush=True)
             else:
                 ready.cancel()
             return await task

@@ -1,0 +1,377 @@
+"""The WebSocket pose stream server (a daemon pose sink) and the live web viewer page, on one port.
+
+The protocol (messages, options, encoding) is :mod:`mocapd.protocols.ws_stream`; this module only moves its
+messages. ``publish`` runs in the solver's tick loop and never waits: it wraps the frame in one shared
+:class:`~mocapd.protocols.ws_stream.FrameEncoder` (each distinct option set is encoded once per frame). A client
+that keeps up (nothing queued, its socket taking data) gets the bytes written at once, without a task switch
+(websockets' ``broadcast``); any other client gets the frame appended to its bounded queue, which its own sender
+task drains with awaited sends, encoding lazily through the shared encoder. A full queue drops its oldest message
+and counts it: a client that reads slowly, or not at all, gets fewer frames while the tick loop and every other
+client carry on.
+
+Replies to client requests (hello, errors) go on a separate small control queue that is sent first and never
+dropped; a client that floods requests without reading the replies is closed (1008).
+
+Plain HTTP GETs on the same port (no ``Upgrade: websocket``) serve the viewer (``/`` and ``/viewer.js`` from
+``mocapd/web/``); everything else is 404. With a token configured, both the page and the stream need it
+(``?token=...`` in the URL or ``Authorization: Bearer ...``), checked in constant time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import hmac
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from http import HTTPStatus
+from importlib import resources
+from typing import Any
+from urllib.parse import parse_qs
+
+from websockets.asyncio.server import Server, ServerConnection, broadcast, serve
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+from websockets.protocol import State
+
+from mocapd.core.skeleton import Skeleton
+from mocapd.errors import ConfigError
+from mocapd.protocols.ws_stream import (
+    ClientSession,
+    FrameEncoder,
+    FramePoses,
+    Message,
+    StreamDescription,
+    StreamOptions,
+)
+
+log = logging.getLogger(__name__)
+
+CONTROL_LIMIT = 32
+"""Unsent replies a client may accumulate before it is closed as abusive."""
+CLOSE_TIMEOUT_S = 1.0
+"""How long a closing handshake may take before the TCP connection is dropped (a stalled client never answers)."""
+
+WEB_FILES = {"/": ("viewer.html", "text/html; charset=utf-8"), "/viewer.js": ("viewer.js", "text/javascript")}
+
+
+def load_web_files() -> dict[str, tuple[str, bytes]]:
+    """The viewer's files from package data: URL path -> (content type, body)."""
+    root = resources.files("mocapd.web")
+    return {path: (ctype, root.joinpath(name).read_bytes()) for path, (name, ctype) in WEB_FILES.items()}
+
+
+MAX_SKELETONS = 64  # per-person skeletons kept for the hello before old ones are forgotten
+
+
+class _Client:
+    """One connection: its protocol session, queues and counters."""
+
+    def __init__(self, conn: ServerConnection, session: ClientSession, queue_messages: int, number: int) -> None:
+        self.conn = conn
+        self.session = session
+        self.number = number
+        self.queue: deque[FrameEncoder | Message] = deque(maxlen=queue_messages)
+        self.control: deque[Message] = deque()
+        self.wake = asyncio.Event()
+        self.sent = 0
+        self.dropped = 0
+        self.sending = False
+
+    def idle(self) -> bool:
+        """Nothing queued or in flight and the socket takes data now: a message may be written directly."""
+        return (
+            not self.queue
+            and not self.control
+            and not self.sending
+            and self.conn.protocol.state is State.OPEN
+            and self.conn.transport.get_write_buffer_size() == 0
+        )
+
+    def push(self, item: FrameEncoder | Message) -> None:
+        if len(self.queue) == self.queue.maxlen:
+            self.dropped += 1  # deque(maxlen) drops the oldest on append
+        self.queue.append(item)
+        self.wake.set()
+
+
+@dataclasses.dataclass(frozen=True)
+class ServerSettings:
+    """What :class:`WebSocketStreamServer` needs from ``[websocket]`` (see :mod:`mocapd.service.websocket_config`)."""
+
+    host: str = "127.0.0.1"
+    port: int = 0
+    token: str = ""
+    max_clients: int = 64
+    queue_messages: int = 8
+    max_message_bytes: int = 4096
+    status_hz: float = 1.0
+    viewer: bool = True
+    defaults: StreamOptions = dataclasses.field(default_factory=StreamOptions)
+
+
+class WebSocketStreamServer:
+    """Streams published pose frames to WebSocket clients; serves the viewer page on the same port.
+
+    Parameters
+    ----------
+    settings : ServerSettings
+        Address, limits and client defaults.
+    description : StreamDescription
+        Output rate and skeletons, for the hello.
+    status : callable, optional
+        Returns the daemon's health document (``Daemon.status``) for status messages.
+    clock : callable
+        Host monotonic nanoseconds (the ``t_publish_ns`` of frames).
+    """
+
+    def __init__(
+        self,
+        settings: ServerSettings,
+        description: StreamDescription,
+        *,
+        status: Callable[[], Mapping[str, Any]] | None = None,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.settings = settings
+        # Per-person skeletons (body sizing) join the hello's skeletons as they appear: a live registry.
+        self._skeletons: dict[str, Skeleton] = dict(description.skeletons)
+        self._default_key = description.skeleton_key  # subjects on the rig's skeleton
+        self._key_of: dict[str, str] = {}  # subject id -> skeleton key
+        self._key_by_object: dict[int, tuple[Skeleton, str]] = {}
+        self.description = dataclasses.replace(
+            description, skeletons=self._skeletons, skeleton_of=self._skeleton_key,
+            max_message_bytes=settings.max_message_bytes,
+        )  # fmt: skip
+        self._status = status
+        self.clock = clock
+        self.port = settings.port
+        self.clients: set[_Client] = set()
+        self.frames_published = 0
+        self.non_finite = 0
+        self.refused = {"unauthorised": 0, "full": 0, "not_found": 0}
+        self._connections = 0
+        self._latest_subjects: tuple[str, ...] = ()
+        self._server: Server | None = None
+        self._status_task: asyncio.Task[None] | None = None
+        self._web = load_web_files() if settings.viewer else {}
+
+    # ------------------------------------------------------------------------------------------ sink API
+    async def start(self) -> None:
+        """Listen (port 0: any free port, then :attr:`port` is the bound one) and start status messages."""
+        s = self.settings
+        try:
+            self._server = await serve(
+                self._handler, s.host, s.port, process_request=self._process_request, max_size=s.max_message_bytes,
+                max_queue=4, compression=None, close_timeout=CLOSE_TIMEOUT_S,
+            )  # fmt: skip
+        except OSError as exc:
+            raise ConfigError(
+                f"websocket: cannot listen on {s.host}:{s.port} ({exc.strerror or exc}); "
+                "choose another [websocket] port (0 = any free port) or stop the other program"
+            ) from exc
+        self.port = int(next(iter(self._server.sockets)).getsockname()[1])
+        if self._status is not None and s.status_hz > 0:
+            self._status_task = asyncio.create_task(self._status_loop(1.0 / s.status_hz))
+
+    def publish(self, frame: FramePoses) -> None:
+        """Queue ``frame`` for every client whose options select it; never waits."""
+        self.frames_published += 1
+        if self._register_skeletons(frame):
+            for c in self.clients:  # a new skeleton: every client gets a fresh hello before the frame that uses it
+                c.control.append(c.session.hello())
+                c.wake.set()
+        self._latest_subjects = tuple(p.identity for p in frame.people)
+        wanted = [c for c in self.clients if c.session.wants(frame.frame)]
+        for c in self.clients:
+            c.session.latest_subjects = self._latest_subjects
+        if not wanted:
+            return  # nobody to convert for
+        enc = FrameEncoder(frame, self.clock(), self.description)  # converted lazily, once
+        direct: dict[tuple[Any, ...], list[_Client]] = {}
+        for c in wanted:
+            if c.idle():
+                direct.setdefault(c.session.options.encoding_key, []).append(c)
+            else:
+                c.push(enc)  # behind a queue: its sender task writes it (or drops the oldest)
+        # Fast path: clients keeping up get the bytes written now, synchronously (websockets' broadcast: no task
+        # switch, no await), one encoding per option set. A socket that stops taking data sends that client down
+        # the queued path above on the next frame, so nothing here can grow without bound.
+        for group in direct.values():
+            broadcast([c.conn for c in group], enc.message(group[0].session.options))
+            for c in group:
+                c.sent += 1
+        if direct:
+            self.non_finite += enc.non_finite
+
+    def _skeleton_key(self, subject_id: str) -> str:
+        return self._key_of.get(subject_id) or self._default_key(subject_id)
+
+    def _register_skeletons(self, frame: FramePoses) -> bool:
+        """Give every subject's own skeleton a key; True when a skeleton is new (the hello must be resent)."""
+        new = False
+        for p in frame.people:
+            sk = p.skeleton
+            if sk is None:
+                self._key_of.pop(p.identity, None)
+                continue
+            hit = self._key_by_object.get(id(sk))
+            if hit is None or hit[0] is not sk:
+                if len(self._key_by_object) >= MAX_SKELETONS:  # people come and go: forget the old ones
+                    live = {self._key_of.get(q.identity) for q in frame.people}
+                    for obj, (_, key) in list(self._key_by_object.items()):
+                        if key not in live:
+                            del self._key_by_object[obj]
+                            self._skeletons.pop(key, None)
+                key = f"{p.identity}#{self.frames_published}"
+                self._skeletons[key] = sk
+                hit = self._key_by_object[id(sk)] = (sk, key)
+                new = True
+            self._key_of[p.identity] = hit[1]
+        return new
+
+    async def aclose(self) -> None:
+        """Stop status messages, close every connection (going away, 1001) and stop listening."""
+        if self._status_task is not None:
+            self._status_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._status_task
+            self._status_task = None
+        if self._server is not None:
+            self._server.close()
+            with contextlib.suppress(TimeoutError):  # a stalled client's close is bounded by CLOSE_TIMEOUT_S
+                await asyncio.wait_for(self._server.wait_closed(), 2 * CLOSE_TIMEOUT_S + 1.0)
+            self._server = None
+
+    # ------------------------------------------------------------------------------------------ info
+    @property
+    def url(self) -> str:
+        return f"ws://{self._host_for_url()}:{self.port}/"
+
+    @property
+    def viewer_url(self) -> str:
+        q = f"?token={self.settings.token}" if self.settings.token else ""
+        return f"http://{self._host_for_url()}:{self.port}/{q}"
+
+    def _host_for_url(self) -> str:
+        h = self.settings.host
+        return f"[{h}]" if ":" in h else h
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for status pages and benchmarks."""
+        return {
+            "clients": len(self.clients),
+            "frames_published": self.frames_published,
+            "non_finite_subjects": self.non_finite,
+            "refused": dict(self.refused),
+            "per_client": [
+                {"client": c.number, "sent": c.sent, "dropped": c.dropped, "queued": len(c.queue),
+                 "requests": c.session.requests, "errors": c.session.errors}
+                for c in sorted(self.clients, key=lambda c: c.number)
+            ],
+        }  # fmt: skip
+
+    # ------------------------------------------------------------------------------------------ HTTP side
+    def _authorised(self, request: Request) -> bool:
+        token = self.settings.token
+        if not token:
+            return True
+        query = parse_qs(request.path.partition("?")[2])
+        offered = query.get("token", [""])[0]
+        auth = request.headers.get("Authorization", "")
+        if auth.startswith("Bearer "):
+            offered = auth[len("Bearer ") :]
+        return hmac.compare_digest(offered.encode(), token.encode())
+
+    def _process_request(self, conn: ServerConnection, request: Request) -> Response | None:
+        if not self._authorised(request):
+            self.refused["unauthorised"] += 1
+            return conn.respond(HTTPStatus.UNAUTHORIZED, "a token is required: ?token=... or Authorization: Bearer\n")
+        if request.headers.get("Upgrade", "").lower() != "websocket":
+            page = self._web.get(request.path.partition("?")[0])
+            if page is None:
+                self.refused["not_found"] += 1
+                return conn.respond(HTTPStatus.NOT_FOUND, "not found: the viewer is at /, the stream at ws://.../\n")
+            ctype, body = page
+            r = conn.respond(HTTPStatus.OK, "")
+            del r.headers["Content-Type"]
+            del r.headers["Content-Length"]
+            r.headers["Content-Type"] = ctype
+            r.headers["Content-Length"] = str(len(body))
+            r.headers["Cache-Control"] = "no-store"
+            return dataclasses.replace(r, body=body)
+        if len(self.clients) >= self.settings.max_clients:
+            self.refused["full"] += 1
+            return conn.respond(HTTPStatus.SERVICE_UNAVAILABLE, "too many clients\n")
+        return None
+
+    # ------------------------------------------------------------------------------------------ WebSocket side
+    async def _handler(self, conn: ServerConnection) -> None:
+        if len(self.clients) >= self.settings.max_clients:  # handshakes in flight together passed the HTTP check
+            self.refused["full"] += 1
+            await conn.close(1013, "too many clients")
+            return
+        self._connections += 1
+        session = ClientSession(self.description, self.settings.defaults)
+        session.latest_subjects = self._latest_subjects
+        client = _Client(conn, session, self.settings.queue_messages, self._connections)
+        client.control.append(session.hello())
+        self.clients.add(client)
+        sender = asyncio.create_task(self._send_loop(client))
+        client.wake.set()
+        try:
+            async for message in conn:
+                session.receive_message(message)
+                client.control.extend(session.messages_to_send())
+                if len(client.control) > CONTROL_LIMIT:
+                    await conn.close(1008, "too many unanswered requests")
+                    break
+                client.wake.set()
+        except ConnectionClosed:
+            pass  # oversized message (1009), reset, or going away: this client only
+        finally:
+            self.clients.discard(client)
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sender
+
+    async def _send_loop(self, client: _Client) -> None:
+        conn = client.conn
+        try:
+            while True:
+                await client.wake.wait()
+                client.wake.clear()
+                client.sending = True
+                while client.control or client.queue:
+                    if client.control:
+                        msg = client.control.popleft()
+                    else:
+                        item = client.queue.popleft()
+                        if isinstance(item, FrameEncoder):
+                            first = not item.prepared
+                            msg = item.message(client.session.options)
+                            if first:
+                                self.non_finite += item.non_finite
+                        else:
+                            msg = item
+                    await conn.send(msg)  # waits only for this client's socket
+                    client.sent += 1
+                client.sending = False
+        except ConnectionClosed:
+            return
+
+    async def _status_loop(self, period_s: float) -> None:
+        assert self._status is not None
+        while True:
+            await asyncio.sleep(period_s)
+            if not self.clients:
+                continue
+            health = self._status()
+            now = self.clock()
+            for c in list(self.clients):
+                if c.session.options.status:
+                    stream = {"clients": len(self.clients), "sent": c.sent, "dropped": c.dropped}
+                    c.push(c.session.status(health, now, stream))

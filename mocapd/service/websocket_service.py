@@ -1,0 +1,45 @@
+"""Wires the WebSocket stream (and the viewer on its port) into the daemon from ``[websocket]``."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
+
+from mocapd.core.skeleton import Skeleton
+from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
+from mocapd.protocols.ws_stream import StreamDescription, StreamOptions
+from mocapd.service.config import Config
+
+if TYPE_CHECKING:
+    from mocapd.service.app import Daemon
+
+
+def build_websocket_sinks(config: Config, daemon: Daemon) -> list[WebSocketStreamServer]:
+    """The WebSocket stream server of ``config.websocket`` for ``daemon`` (none when disabled).
+
+    Add the result to ``daemon.sinks`` before ``daemon.run()``; the server listens when the daemon starts its
+    sinks. Subjects on the rig's skeleton share the key ``"default"``; a body-sized person's own skeleton gets a
+    key of its own, announced in a fresh hello before the first frame that uses it.
+    """
+    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock)
+
+
+def websocket_sinks(
+    config: Config,
+    skeleton: Skeleton,
+    *,
+    status: Callable[[], Mapping[str, Any]] | None = None,
+    clock: Callable[[], int] = time.monotonic_ns,
+) -> list[WebSocketStreamServer]:
+    """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health)."""
+    ws = config.websocket
+    if not ws.enabled:
+        return []
+    settings = ServerSettings(
+        host=ws.host, port=ws.port, token=ws.token, max_clients=ws.max_clients, queue_messages=ws.queue_messages,
+        max_message_bytes=ws.max_message_bytes, status_hz=ws.status_hz, viewer=ws.viewer,
+        defaults=StreamOptions(encoding=ws.encoding, convention=ws.convention, globals=ws.globals),
+    )  # fmt: skip
+    description = StreamDescription(rate_hz=config.daemon.output_rate_hz, skeletons={"default": skeleton})
+    return [WebSocketStreamServer(settings, description, status=status, clock=clock)]

@@ -1,0 +1,235 @@
+// mocapd live viewer. Connects to the WebSocket pose stream of the daemon that served this page, asks for JSON
+// frames in mocapd's native convention (right-handed, +Y up, metres) with global joint positions and status
+// messages, and draws every subject's skeleton on a 2D canvas with its own small perspective camera.
+// Reconnects by itself when the daemon goes away and comes back. State for tests: window.mocapdViewer.
+"use strict";
+
+(function () {
+  const PALETTE = ["#ff3b30", "#30d158", "#0a84ff", "#ffd60a", "#bf5af2", "#ff9f0a", "#64d2ff", "#ff375f"];
+  const canvas = document.getElementById("view");
+  const ctx = canvas.getContext("2d");
+  const token = new URLSearchParams(location.search).get("token");
+
+  const state = {
+    connected: false, connects: 0, hellos: 0, frames: 0, statusMessages: 0, errors: 0,
+    hello: null, frame: null, shown: null, paused: false, status: null, colours: {}, rate: 0, lastError: null,
+  };
+  const cam = { yaw: 0.6, pitch: 0.35, dist: 7.0, target: [0, 0.9, 0] };
+  let socket = null, retryMs = 250, drawPending = false, frameTimes = [];
+
+  // ------------------------------------------------------------------------------------------ camera
+  function basis() {
+    // Camera position on a sphere around the target; returns eye and the right/up/forward axes.
+    const cp = Math.cos(cam.pitch), sp = Math.sin(cam.pitch), cy = Math.cos(cam.yaw), sy = Math.sin(cam.yaw);
+    const fwd = [-cp * sy, -sp, -cp * cy];  // from the eye towards the target
+    const eye = [cam.target[0] - fwd[0] * cam.dist, cam.target[1] - fwd[1] * cam.dist,
+                 cam.target[2] - fwd[2] * cam.dist];
+    // right = fwd x up(0,1,0), normalised; up = right x fwd
+    let right = [-fwd[2], 0, fwd[0]];
+    const n = Math.hypot(right[0], right[2]) || 1;
+    right = [right[0] / n, 0, right[2] / n];
+    const up = [right[1] * fwd[2] - right[2] * fwd[1], right[2] * fwd[0] - right[0] * fwd[2],
+                right[0] * fwd[1] - right[1] * fwd[0]];
+    return { eye, right, up, fwd };
+  }
+
+  function project(p, b) {
+    // World point (metres) -> canvas CSS pixels, or null behind the camera.
+    b = b || basis();
+    const d = [p[0] - b.eye[0], p[1] - b.eye[1], p[2] - b.eye[2]];
+    const z = d[0] * b.fwd[0] + d[1] * b.fwd[1] + d[2] * b.fwd[2];
+    if (z < 0.05) return null;
+    const x = d[0] * b.right[0] + d[1] * b.right[1] + d[2] * b.right[2];
+    const y = d[0] * b.up[0] + d[1] * b.up[1] + d[2] * b.up[2];
+    const w = canvas.clientWidth, h = canvas.clientHeight, f = 0.9 * Math.min(w, h);
+    return [w / 2 + f * x / z, h / 2 - f * y / z];
+  }
+
+  // ------------------------------------------------------------------------------------------ drawing
+  function colourOf(id) {
+    if (!(id in state.colours)) state.colours[id] = PALETTE[Object.keys(state.colours).length % PALETTE.length];
+    return state.colours[id];
+  }
+
+  function jointsOf(s) {
+    // Global joints from the frame, or forward kinematics from root + local quaternions + rest offsets.
+    const out = [];
+    if (s.joints) {
+      for (let i = 0; i < s.joints.length; i += 3) out.push([s.joints[i], s.joints[i + 1], s.joints[i + 2]]);
+      return out;
+    }
+    const sk = state.hello && state.hello.skeletons[s.skeleton];
+    if (!sk) return out;
+    const glob = [];
+    for (let b = 0; b < sk.parents.length; b++) {
+      const q = s.rot.slice(4 * b, 4 * b + 4), p = sk.parents[b];
+      if (p < 0) { glob.push(q); out.push(s.root.slice()); continue; }
+      const o = sk.offsets.slice(3 * b, 3 * b + 3), r = rotate(glob[p], o);
+      glob.push(qmul(glob[p], q));
+      out.push([out[p][0] + r[0], out[p][1] + r[1], out[p][2] + r[2]]);
+    }
+    return out;
+  }
+  function qmul(a, b) {
+    return [a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3], a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+            a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1], a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0]];
+  }
+  function rotate(q, v) {
+    const r = qmul(qmul(q, [0, v[0], v[1], v[2]]), [q[0], -q[1], -q[2], -q[3]]);
+    return [r[1], r[2], r[3]];
+  }
+
+  function line(a, b, colour, width) {
+    if (!a || !b) return;
+    ctx.strokeStyle = colour; ctx.lineWidth = width;
+    ctx.beginPath(); ctx.moveTo(a[0], a[1]); ctx.lineTo(b[0], b[1]); ctx.stroke();
+  }
+
+  function draw() {
+    drawPending = false;
+    const dpr = window.devicePixelRatio || 1, w = canvas.clientWidth, h = canvas.clientHeight;
+    if (canvas.width !== Math.round(w * dpr) || canvas.height !== Math.round(h * dpr)) {
+      canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr);
+    }
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.fillStyle = "#111418"; ctx.fillRect(0, 0, w, h);
+    const b = basis();
+    for (let k = -5; k <= 5; k++) {  // floor grid, 1 m
+      line(project([k, 0, -5], b), project([k, 0, 5], b), k === 0 ? "#3b4350" : "#262b33", 1);
+      line(project([-5, 0, k], b), project([5, 0, k], b), k === 0 ? "#3b4350" : "#262b33", 1);
+    }
+    const f = state.shown, parents = state.hello ? state.hello.parents : null;
+    if (f && parents) {
+      ctx.lineCap = "round";
+      for (const s of f.subjects) {
+        const colour = colourOf(s.id), pts = jointsOf(s).map((p) => project(p, b));
+        for (let i = 1; i < pts.length; i++) line(pts[parents[i]], pts[i], colour, 4);
+        ctx.fillStyle = colour;
+        for (const p of pts) if (p) { ctx.beginPath(); ctx.arc(p[0], p[1], 3.5, 0, 2 * Math.PI); ctx.fill(); }
+        const head = pts[6];
+        if (head) { ctx.font = "12px system-ui, sans-serif"; ctx.fillText(s.id, head[0] + 8, head[1] - 8); }
+      }
+    }
+    ctx.fillStyle = "#8a94a3"; ctx.font = "12px system-ui, sans-serif";
+    ctx.fillText(f ? `frame ${f.frame} · ${state.rate.toFixed(0)} Hz received` : "no frames yet", 10, h - 10);
+  }
+
+  function scheduleDraw() {
+    if (drawPending) return;
+    drawPending = true;
+    // requestAnimationFrame pauses in hidden tabs; the timer keeps the state current for screenshots anyway.
+    requestAnimationFrame(draw);
+    setTimeout(() => { if (drawPending) draw(); }, 100);
+  }
+
+  // ------------------------------------------------------------------------------------------ panel
+  function rows(id, entries) {
+    const t = document.getElementById(id);
+    t.innerHTML = "";
+    for (const [k, v, cls] of entries) {
+      const tr = t.insertRow(), a = tr.insertCell(), c = tr.insertCell();
+      if (k instanceof Node) a.appendChild(k); else a.textContent = k;
+      c.textContent = v; c.className = "v " + (cls || "");
+    }
+  }
+  const fmt = (x, d = 1) => (x === null || x === undefined ? "–" : Number(x).toFixed(d));
+
+  function updatePanel() {
+    const conn = document.getElementById("conn");
+    conn.textContent = state.connected ? `connected · ${state.frames} frames${state.paused ? " · paused" : ""}`
+      : "disconnected · reconnecting…";
+    conn.className = state.connected ? "ok" : "bad";
+    const subjects = state.frame ? state.frame.subjects : [];
+    rows("subjects", subjects.map((s) => {
+      const label = document.createElement("span"), sw = document.createElement("span");
+      sw.className = "swatch"; sw.style.background = colourOf(s.id);
+      label.appendChild(sw); label.appendChild(document.createTextNode(s.id));
+      return [label, `${fmt(s.confidence, 2)} · ${s.views} cams · ${s.imus} IMUs`];
+    }));
+    const st = state.status;
+    if (!st) return;
+    const o = st.output || {};
+    rows("output", [["rate (Hz)", `${o.achieved_hz ?? "–"} / ${o.configured_hz ?? "–"}`],
+                    ["frames", o.frames ?? "–"], ["missed ticks", o.missed_ticks ?? "–", o.missed_ticks ? "bad" : ""],
+                    ["uptime (s)", fmt(st.uptime_s, 0)],
+                    ["stream clients", st.stream ? st.stream.clients : "–"],
+                    ["dropped (this page)", st.stream ? st.stream.dropped : "–"]]);
+    rows("latency", Object.entries(st.latency_ms || {}).map(([k, v]) => [k, `${fmt(v.p50)} / ${fmt(v.p95)}`]));
+    rows("cameras", (st.cameras || []).map((c) => [c.name, `${c.frames} frames`]));
+    const imus = st.imus || [];
+    rows("imus", imus.length ? imus.map((d) => [d.path.split("/").pop(), d.streaming ? "streaming" : "down",
+                                                d.streaming ? "ok" : "bad"]) : [["none", ""]]);
+  }
+
+  // ------------------------------------------------------------------------------------------ stream
+  function connect() {
+    const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/` +
+      (token ? `?token=${encodeURIComponent(token)}` : "");
+    const ws = new WebSocket(url);
+    socket = ws;
+    ws.binaryType = "arraybuffer";
+    ws.onopen = () => {
+      state.connected = true; state.connects += 1; retryMs = 250;
+      ws.send(JSON.stringify({ type: "subscribe", encoding: "json", convention: "native", globals: true,
+                               status: true }));
+      updatePanel();
+    };
+    ws.onmessage = (ev) => {
+      if (typeof ev.data !== "string") return;  // the first hello comes in the server's default (msgpack)
+      const m = JSON.parse(ev.data);
+      if (m.type === "hello") { state.hello = m; state.hellos += 1; }
+      else if (m.type === "frame") {
+        state.frame = m; state.frames += 1;
+        if (!state.paused) state.shown = m;
+        const now = performance.now();
+        frameTimes.push(now);
+        while (frameTimes.length && frameTimes[0] < now - 1000) frameTimes.shift();
+        state.rate = frameTimes.length;
+        scheduleDraw();
+      } else if (m.type === "status") { state.status = m; state.statusMessages += 1; updatePanel(); }
+      else if (m.type === "error") { state.errors += 1; state.lastError = m.message; }
+    };
+    ws.onclose = () => {
+      if (socket !== ws) return;
+      state.connected = false; state.frame = null; state.shown = null;
+      updatePanel(); scheduleDraw();
+      setTimeout(connect, retryMs);
+      retryMs = Math.min(2000, retryMs * 2);
+    };
+  }
+
+  // ------------------------------------------------------------------------------------------ input
+  let drag = null;
+  canvas.addEventListener("mousedown", (e) => { drag = [e.clientX, e.clientY]; canvas.style.cursor = "grabbing"; });
+  window.addEventListener("mouseup", () => { drag = null; canvas.style.cursor = "grab"; });
+  window.addEventListener("mousemove", (e) => {
+    if (!drag) return;
+    cam.yaw -= (e.clientX - drag[0]) * 0.01;
+    cam.pitch = Math.max(-1.4, Math.min(1.4, cam.pitch + (e.clientY - drag[1]) * 0.01));
+    drag = [e.clientX, e.clientY];
+    scheduleDraw();
+  });
+  canvas.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    cam.dist = Math.max(1.0, Math.min(40.0, cam.dist * Math.exp(e.deltaY * 0.001)));
+    scheduleDraw();
+  }, { passive: false });
+  canvas.addEventListener("dblclick", () => { Object.assign(cam, { yaw: 0.6, pitch: 0.35, dist: 7.0 }); scheduleDraw(); });
+  window.addEventListener("resize", scheduleDraw);
+  function pause(on) { state.paused = on; if (!on) state.shown = state.frame; scheduleDraw(); updatePanel(); }
+  window.addEventListener("keydown", (e) => { if (e.key === " ") { e.preventDefault(); pause(!state.paused); } });
+
+  window.mocapdViewer = {
+    state, cam, palette: PALETTE,
+    project: (p) => project(p),
+    pause,
+    // What is on screen: per subject its colour and the canvas pixels of its joints.
+    drawn: () => (state.shown && state.hello ? state.shown.subjects.map((s) => ({
+      id: s.id, colour: colourOf(s.id), points: jointsOf(s).map((p) => project(p)) })) : []),
+    colourOf,
+    get frames() { return state.frames; }, get connects() { return state.connects; },
+    get connected() { return state.connected; },
+  };
+  connect();
+  scheduleDraw();
+})();
