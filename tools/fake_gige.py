@@ -31,6 +31,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -118,11 +119,27 @@ class FakeGigECamera:
         Local IPv4 address to serve on (e.g. 127.0.0.1, or a lo alias inside a network namespace).
     serial : str
         Serial number the camera reports.
+    video_fps : float or None
+        Real pace: the frame sent at host time t is video frame ``floor((t - t_first) * video_fps) % n`` (the
+        video plays at its own rate whatever the acquisition rate, and a send the camera misses skips frames as
+        a real camera would). None: the k-th frame sent is video frame ``k % n``.
+    epoch_ns : int or None
+        ``t_first`` above, on the host's ``time.monotonic_ns()`` clock: cameras given the same epoch show the
+        same instant of their (synchronised) videos, as real cameras filming one scene do. None: the first send.
     """
 
-    def __init__(self, frames: list[Any], address: str, serial: str) -> None:
+    def __init__(
+        self,
+        frames: list[Any],
+        address: str,
+        serial: str,
+        video_fps: float | None = None,
+        epoch_ns: int | None = None,
+    ) -> None:
         aravis = load_aravis()
         self.frames = frames
+        self.video_fps = video_fps
+        self._t0_ns = epoch_ns
         self.n_sent = 0
         self.errors = 0
         self._cache: dict[tuple[str, int, int, int, int], list[NDArray[np.uint8]]] = {}
@@ -159,7 +176,7 @@ class FakeGigECamera:
             fmt = PIXEL_FORMATS[_PFNC[pixel_format]]
             w, h = lib.arv_buffer_get_image_width(buffer), lib.arv_buffer_get_image_height(buffer)
             x, y = lib.arv_buffer_get_image_x(buffer), lib.arv_buffer_get_image_y(buffer)
-            frame = self._encoded(fmt, x, y, w, h)[self.n_sent % len(self.frames)]
+            frame = self._encoded(fmt, x, y, w, h)[self._index()]
             payload = lib.arv_fake_camera_get_payload(self._fake_ptr)
             address = lib.arv_buffer_get_data(buffer, None)
             ctypes.memmove(address, frame.ctypes.data, min(payload, frame.nbytes))
@@ -167,13 +184,28 @@ class FakeGigECamera:
         except KeyError:
             self.errors += 1  # a pixel format we cannot produce: the client gets the buffer as it was
 
+    def _index(self) -> int:
+        if self.video_fps is None:
+            return self.n_sent % len(self.frames)
+        now = time.monotonic_ns()
+        if self._t0_ns is None:
+            self._t0_ns = now
+        return int((now - self._t0_ns) * self.video_fps // 1_000_000_000) % len(self.frames)
+
     def close(self) -> None:
         self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, _FILL(), None)  # NULL callback
         self._gv = None
 
 
 def server_command(
-    video: Path | str, address: str, max_frames: int, prepare: str, serial: str | None = None, size: str | None = None
+    video: Path | str,
+    address: str,
+    max_frames: int,
+    prepare: str,
+    serial: str | None = None,
+    size: str | None = None,
+    video_fps: float | None = None,
+    epoch_ns: int | None = None,
 ) -> list[str]:
     """The command line that runs one fake camera server (this module) in its own process."""
     cmd = [sys.executable, "-m", "tools.fake_gige", "--video", str(video), "--address", address,
@@ -182,6 +214,10 @@ def server_command(
         cmd += ["--serial", serial]
     if size is not None:
         cmd += ["--size", size]
+    if video_fps is not None:
+        cmd += ["--video-fps", f"{video_fps:g}"]
+    if epoch_ns is not None:
+        cmd += ["--epoch-ns", str(epoch_ns)]
     return cmd
 
 
@@ -208,10 +244,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-frames", type=int, default=None, help="serve only the first N frames (looped)")
     parser.add_argument("--size", default=None, help="resize frames to WIDTHxHEIGHT")
     parser.add_argument("--prepare", default="RGB8", help="pixel format to pre-encode the full frames in")
+    parser.add_argument(
+        "--video-fps", type=float, default=None, help="real pace: send the video frame due at the emission time"
+    )
+    parser.add_argument("--epoch-ns", type=int, default=None, help="time.monotonic_ns() of video frame 0")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     frames = load_video_rgb(args.video, args.max_frames, size)  # type: ignore[arg-type]
-    camera = FakeGigECamera(frames, args.address, args.serial)
+    camera = FakeGigECamera(frames, args.address, args.serial, args.video_fps, args.epoch_ns)
     camera.prepare(args.prepare)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -58,17 +58,18 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from mocapd.service import demo_synthetic
 
-    if not args.synthetic:
-        print(
-            "note: the camera demo (fake GigE cameras streaming the Pose2Sim videos through the detector) needs "
-            "the detector, which is not in this build yet; running the synthetic rig instead.",
-            flush=True,
-        )
     try:
         cfg = _load(args.config, args.http_port)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if not args.synthetic:
+        from mocapd.service import demo_cameras
+        from mocapd.service.camera_rig import CameraDemoOptions
+
+        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency)
+        return demo_cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
+                                poses=args.poses)  # fmt: skip
     return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, sinks=_sinks(args))
 
 
@@ -129,6 +130,8 @@ def register(subparsers: Any) -> None:
     demo.add_argument(
         "--poses", type=Path, default=None, help="also write every published frame to this JSON-lines file"
     )
+    demo.add_argument("--scale", type=float, default=0.5, help="camera rig: image size / 1088x1920 (default 0.5)")
+    demo.add_argument("--latency", type=float, default=0.5, help="camera rig: fixed latency, s (default 0.5)")
     demo.set_defaults(func=cmd_demo)
 
     check = subparsers.add_parser("check-config", help="validate a config file and say what is wrong")
