@@ -126,6 +126,9 @@ class FakeGigECamera:
     epoch_ns : int or None
         ``t_first`` above, on the host's ``time.monotonic_ns()`` clock: cameras given the same epoch show the
         same instant of their (synchronised) videos, as real cameras filming one scene do. None: the first send.
+    bounce : bool
+        With ``video_fps``: play the video forwards then backwards (0 … n-1 … 1, 0 …) instead of jumping back to
+        its start, so people in a short clip never teleport (tracking would lose them at every loop).
     """
 
     def __init__(
@@ -135,10 +138,12 @@ class FakeGigECamera:
         serial: str,
         video_fps: float | None = None,
         epoch_ns: int | None = None,
+        bounce: bool = False,
     ) -> None:
         aravis = load_aravis()
         self.frames = frames
         self.video_fps = video_fps
+        self.bounce = bounce
         self._t0_ns = epoch_ns
         self.n_sent = 0
         self.errors = 0
@@ -190,7 +195,12 @@ class FakeGigECamera:
         now = time.monotonic_ns()
         if self._t0_ns is None:
             self._t0_ns = now
-        return int((now - self._t0_ns) * self.video_fps // 1_000_000_000) % len(self.frames)
+        k = int((now - self._t0_ns) * self.video_fps // 1_000_000_000)
+        n = len(self.frames)
+        if not self.bounce or n < 2:
+            return k % n
+        m = k % (2 * n - 2)
+        return m if m < n else 2 * n - 2 - m
 
     def close(self) -> None:
         self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, _FILL(), None)  # NULL callback
@@ -206,6 +216,7 @@ def server_command(
     size: str | None = None,
     video_fps: float | None = None,
     epoch_ns: int | None = None,
+    bounce: bool = False,
 ) -> list[str]:
     """The command line that runs one fake camera server (this module) in its own process."""
     cmd = [sys.executable, "-m", "tools.fake_gige", "--video", str(video), "--address", address,
@@ -218,6 +229,8 @@ def server_command(
         cmd += ["--video-fps", f"{video_fps:g}"]
     if epoch_ns is not None:
         cmd += ["--epoch-ns", str(epoch_ns)]
+    if bounce:
+        cmd += ["--bounce"]
     return cmd
 
 
@@ -248,10 +261,11 @@ def main(argv: list[str] | None = None) -> int:
         "--video-fps", type=float, default=None, help="real pace: send the video frame due at the emission time"
     )
     parser.add_argument("--epoch-ns", type=int, default=None, help="time.monotonic_ns() of video frame 0")
+    parser.add_argument("--bounce", action="store_true", help="with --video-fps: play forwards then backwards")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     frames = load_video_rgb(args.video, args.max_frames, size)  # type: ignore[arg-type]
-    camera = FakeGigECamera(frames, args.address, args.serial, args.video_fps, args.epoch_ns)
+    camera = FakeGigECamera(frames, args.address, args.serial, args.video_fps, args.epoch_ns, args.bounce)
     camera.prepare(args.prepare)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

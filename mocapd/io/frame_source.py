@@ -108,6 +108,7 @@ class ThreadedSource(abc.ABC):
         self.convert = LatencyLog()
         self.opened = threading.Event()  # set while the device is open and streaming
         self.retry_in_s: float | None = None  # the back-off being waited before reopening (None: not waiting)
+        self.last_backoff_s: float | None = None  # the last back-off waited (it doubles while reopening fails)
         self.thread_id: int | None = None  # native id of the current capture thread (for CPU accounting)
 
     # -- subclasses implement -----------------------------------------------------------------------------
@@ -132,7 +133,8 @@ class ThreadedSource(abc.ABC):
         c = self.counters
         state = "streaming" if self.opened.is_set() else ("waiting to reopen" if self.retry_in_s else "opening")
         return {"state": state, "up": self.opened.is_set(), "frames": c.frames, "failures": c.failures,
-                "reopens": c.reopens, "retry_in_s": self.retry_in_s, "missing_frames": c.missing_frames,
+                "reopens": c.reopens, "retry_in_s": self.retry_in_s, "last_backoff_s": self.last_backoff_s,
+                "missing_frames": c.missing_frames,
                 "bad_buffers": c.bad_buffers, "timeouts": c.timeouts, "last_error": c.last_error}  # fmt: skip
 
     # -- supervision ----------------------------------------------------------------------------------------
@@ -202,7 +204,7 @@ class ThreadedSource(abc.ABC):
             if error is None:
                 return
             log.warning("camera %s: reopening in %.1f s", self.name, delay)
-            self.retry_in_s = delay
+            self.retry_in_s = self.last_backoff_s = delay
             try:
                 await asyncio.sleep(delay)
             finally:

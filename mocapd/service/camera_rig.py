@@ -116,9 +116,11 @@ class PooledDetector:
 
     def __init__(self, cfg: DetectorConfig) -> None:
         self._pool: queue.SimpleQueue[OnnxPoseDetector] = queue.SimpleQueue()
-        for _ in range(cfg.workers):
-            self._pool.put(OnnxPoseDetector.from_config(cfg))
         self.executor = ThreadPoolExecutor(max_workers=cfg.workers, thread_name_prefix="mocapd-detect")
+        for _ in range(cfg.workers):
+            # Made in a worker thread: onnxruntime's own threads inherit its name, so CPU accounting by thread
+            # name (mocapd bench latency --rig cameras) sees the detector's whole cost.
+            self._pool.put(self.executor.submit(OnnxPoseDetector.from_config, cfg).result())
 
     def __call__(self, rgb: NDArray[np.uint8]) -> Detections2D:
         det = self._pool.get()

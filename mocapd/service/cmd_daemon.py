@@ -104,6 +104,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_bench_latency(args: argparse.Namespace) -> int:
     from mocapd.service import bench_latency
 
+    if args.rig == "cameras":
+        from mocapd.service import bench_cameras
+        from mocapd.service.camera_rig import CameraDemoOptions
+
+        return bench_cameras.run(args.seconds, CameraDemoOptions(scale=args.scale, latency_s=args.latency))
     print(json.dumps(bench_latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
     return 0
 
@@ -143,4 +148,8 @@ def register(subparsers: Any) -> None:
     lat.add_argument("--seconds", type=float, default=60.0, help="run length (default 60)")
     lat.add_argument("--cameras", type=int, default=4)
     lat.add_argument("--people", type=int, default=2)
+    lat.add_argument("--rig", choices=["synthetic", "cameras"], default="synthetic",
+                     help="cameras: the camera demo (fake GigE cameras, real detector) in a private netns")  # fmt: skip
+    lat.add_argument("--scale", type=float, default=0.5, help="cameras: image size / 1088x1920")
+    lat.add_argument("--latency", type=float, default=0.5, help="cameras: fixed latency, s")
     lat.set_defaults(func=cmd_bench_latency)

@@ -56,6 +56,12 @@ class CameraDemoDaemon(Daemon):
         out["fake_cameras"] = self.fleet.status()
         return out
 
+    def status_line_text(self) -> str:
+        cams = [s.status() for s in self.rig.sources]
+        up = sum(1 for c in cams if c.get("capture", {}).get("up"))
+        detected = sum(int(c["detected"]) for c in cams)
+        return f"{super().status_line_text()}  cameras up {up}/{len(cams)}  detected {detected}"
+
 
 class PeopleCount:
     """A pose sink counting what was solved: frames with people, the most people in a frame, identities."""

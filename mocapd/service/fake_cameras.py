@@ -2,7 +2,8 @@
 
 Each camera serves its video at the video's own pace from a shared epoch (``--video-fps``, ``--epoch-ns``), so the
 four cameras show the same instant of the synchronised Pose2Sim videos, and a frame the server misses is skipped
-as a real camera would skip it. A server process that ends (crashed, or killed to simulate unplugging the cable) is
+as a real camera would skip it. The short clips play forwards then backwards (``--bounce``): no teleporting.
+A server process that ends (crashed, or killed to simulate unplugging the cable) is
 counted and started again after ``replug_after_s``: the camera is "plugged back in", and mocapd's capture path has
 to find it again on its own.
 
@@ -106,7 +107,7 @@ class FakeCameraFleet:
     def _command(self, spec: FakeCameraSpec) -> list[str]:
         cmd: list[str] = tools_module().server_command(
             spec.video, spec.address, spec.max_frames, spec.pixel_format, serial=spec.name.upper(),
-            size=f"{spec.size[0]}x{spec.size[1]}", video_fps=spec.video_fps, epoch_ns=self.epoch_ns,
+            size=f"{spec.size[0]}x{spec.size[1]}", video_fps=spec.video_fps, epoch_ns=self.epoch_ns, bounce=True,
         )  # fmt: skip
         return cmd
 
