@@ -106,9 +106,7 @@ class DetectorKeypointSource:
             while True:
                 await wake.wait()
                 wake.clear()
-                # The frame is chosen when a worker is free, not when it was queued: with several cameras sharing
-                # the workers, a frame chosen at queueing time would be stale (or overwritten) by then.
-                done = await loop.run_in_executor(self.executor, self._detect_newest)
+                done = await self._detection(loop)
                 if done is None:
                     continue
                 ref, dets = done
@@ -127,8 +125,14 @@ class DetectorKeypointSource:
         mapped = self.device_clock.to_host_ns(ref.device_ns) if self.device_clock is not None else None
         return ref.host_ns if mapped is None else min(mapped, ref.host_ns)
 
-    def _detect_newest(self) -> tuple[FrameRef, Detections2D] | None:
-        """In a worker: detect the newest frame not detected yet (None if there is none)."""
+    async def _detection(self, loop: asyncio.AbstractEventLoop) -> tuple[FrameRef, Detections2D] | None:
+        # The frame is chosen when a worker is free, not when it was queued: with several cameras sharing the
+        # workers, a frame chosen at queueing time would be stale (or overwritten) by then.
+        return await loop.run_in_executor(self.executor, self._detect_newest)
+
+    def take_newest(self) -> tuple[FrameRef, NDArray[np.uint8]] | None:
+        """The newest frame not taken yet, copied out of the ring (None if there is none); counts the frames
+        skipped since the last one taken. Called by one worker at a time."""
         ring = self.frames.ring
         for _ in range(3):  # the writer may overtake the copy; then the newer frame is the one to take
             ref = ring.latest()
@@ -141,8 +145,13 @@ class DetectorKeypointSource:
             if self._last_seq >= 0:
                 self.skipped += ref.seq - self._last_seq - 1
             self._last_seq = ref.seq
-            return ref, self.detector(image)
+            return ref, image
         return None
+
+    def _detect_newest(self) -> tuple[FrameRef, Detections2D] | None:
+        """In a worker: detect the newest frame not detected yet (None if there is none)."""
+        got = self.take_newest()
+        return None if got is None else (got[0], self.detector(got[1]))
 
     def status(self) -> dict[str, Any]:
         out: dict[str, Any] = {

@@ -34,6 +34,8 @@ from mocapd.pipeline.clocksync import ClockSync
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource
+from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
+from mocapd.pipeline.packing import packed_detector_from_config
 from mocapd.service.app import Rig
 from mocapd.service.config import Config
 from mocapd.service.fake_cameras import FakeCameraSpec
@@ -57,6 +59,10 @@ class CameraDemoOptions:
         A fake camera whose process ends is started again after this long.
     lost_after_s : float
         A camera silent this long is declared lost and reopened with back-off.
+    packed : bool
+        Detect the newest frames of all cameras together, their people's regions packed onto shared canvases
+        (``[detector.packing]``, :mod:`mocapd.pipeline.packed_source`); False: one whole-frame inference per
+        camera frame, the cameras taking turns on ``[detector] workers``.
     latency_s : float
         The daemon's fixed delay between solve time and wall time. A CPU detector shared by four cameras
         delivers each camera's detections late and far apart, and the scheduler interpolates only between
@@ -71,6 +77,7 @@ class CameraDemoOptions:
     replug_after_s: float = 3.0
     lost_after_s: float = 2.0
     latency_s: float = 0.5
+    packed: bool = True
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.scale <= 1.0:
@@ -153,16 +160,28 @@ class PooledDetector:
         self.executor.shutdown(wait=True)
 
 
+def make_detector(cfg: DetectorConfig, opts: CameraDemoOptions, cameras: list[Camera]) -> AnyDetector:
+    """The demo's detector (blocking: loads the model): one packed detector for all cameras on one named worker
+    thread, or a pool of whole-frame detectors."""
+    if not opts.packed:
+        return PooledDetector(cfg)
+    executor = ThreadPoolExecutor(1, thread_name_prefix="mocapd-detect", initializer=name_os_thread,
+                                  initargs=("mocapd-detect",))  # fmt: skip
+    sizes = [(c.width, c.height) for c in cameras]
+    return PackedDetectionGroup(executor.submit(packed_detector_from_config, cfg, sizes).result(), executor)
+
+
 def build_rig(
     config: Config,
     opts: CameraDemoOptions,
     cameras: list[Camera],
     specs: list[FakeCameraSpec],
-    detector: PooledDetector,
+    detector: AnyDetector,
 ) -> tuple[Rig, list[AravisSource]]:
     """Capture sources, keypoint sources and the people model of the camera rig (blocking: loads the prior)."""
     d = config.daemon
-    captures, sources = [], []
+    captures: list[AravisSource] = []
+    sources: list[DetectorKeypointSource] = []
     for i, (cam, spec) in enumerate(zip(cameras, specs, strict=True)):
         capture = AravisSource(
             AravisCameraConfig(
@@ -172,8 +191,14 @@ def build_rig(
             backoff_s=(d.restart_min_s, d.restart_max_s),
         )  # fmt: skip
         captures.append(capture)
-        sources.append(DetectorKeypointSource(i, capture, detector, executor=detector.executor,
-                                              device_clock=ClockSync(tick_hz=1e9, wrap_bits=64)))  # fmt: skip
+        clock = ClockSync(tick_hz=1e9, wrap_bits=64)
+        if isinstance(detector, PackedDetectionGroup):
+            sources.append(PackedKeypointSource(i, capture, detector, device_clock=clock))
+        else:
+            sources.append(DetectorKeypointSource(i, capture, detector, executor=detector.executor, device_clock=clock))
     skeleton = Skeleton.from_height(1.75)
     rig = Rig(cameras, list(sources), skeleton, coco17_targets(skeleton), resolve_prior(config.solver.prior))
     return rig, captures
+
+
+AnyDetector = PooledDetector | PackedDetectionGroup

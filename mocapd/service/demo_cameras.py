@@ -34,7 +34,7 @@ from typing import Any
 
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service.app import Daemon, PoseSink, Rig
-from mocapd.service.camera_rig import CameraDemoOptions, PooledDetector, build_rig, demo_cameras
+from mocapd.service.camera_rig import AnyDetector, CameraDemoOptions, build_rig, demo_cameras, make_detector
 from mocapd.service.config import Config, load_config
 from mocapd.service.fake_cameras import FakeCameraFleet, tools_module
 from mocapd.service.http_status import StatusServer
@@ -109,9 +109,9 @@ async def run_camera_demo(
         loop.add_signal_handler(sig, stop.set)
     started = asyncio.Event()
     fleet_task = asyncio.create_task(fleet.run(started))
-    detector: PooledDetector | None = None
+    detector: AnyDetector | None = None
     try:
-        detector = await loop.run_in_executor(None, PooledDetector, config.detector)
+        detector = await loop.run_in_executor(None, make_detector, config.detector, opts, cameras)
         rig, _ = await loop.run_in_executor(None, build_rig, config, opts, cameras, specs, detector)
         waits = {asyncio.create_task(w) for w in (started.wait(), stop.wait())} | {fleet_task}
         await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
@@ -236,7 +236,7 @@ def run(
         f"mocapd demo: 4 fake GigE Vision cameras ({opts.pixel_format}, {opts.scale:g} x 1088x1920) streaming the "
         f"Pose2Sim {opts.demo} videos at their own 60 fps pace, in a private network namespace; detector "
         f"{config.detector.model.input_width}x{config.detector.model.input_height} on "
-        f"{config.detector.workers} worker(s)",
+        f"{'packed (all cameras per pass)' if opts.packed else f'{config.detector.workers} worker(s)'}",
         flush=True,
     )
     print(f"status: http://{d.http_host}:{sock.getsockname()[1]}/status  (starting cameras and models ...)", flush=True)
