@@ -32,6 +32,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from mocapd.errors import MocapdError
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.camera_rig import AnyDetector, CameraDemoOptions, build_rig, demo_cameras, make_detector
@@ -189,11 +190,14 @@ def child_main(argv: list[str] | None = None) -> int:
         holder.append(daemon)
         await _demo_monitor(None if args.seconds <= 0 else args.seconds)(daemon)
 
-    code = asyncio.run(
-        run_camera_demo(
-            config, opts, monitor, http_socket=sock, sinks=sinks, status_line=lambda s: print(s, flush=True)
-        )
-    )
+    try:
+        code = asyncio.run(
+            run_camera_demo(config, opts, monitor, http_socket=sock, sinks=sinks,
+                            status_line=lambda s: print(s, flush=True))
+        )  # fmt: skip
+    except MocapdError as exc:  # missing model or demo data, a camera that never started: say what, no traceback
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
     summary = _summary(holder[0] if holder else None, people)
     who = ", ".join(summary["identities"]) or "nobody"
     print(f"done: {summary['frames']} frames, {summary['frames_with_people']} with people solved "
@@ -231,7 +235,11 @@ def run(
 ) -> int:
     """``mocapd demo``: bind the status port here, run the demo in a private network namespace."""
     d = config.daemon
-    sock = socket.create_server((d.http_host, d.http_port))
+    try:
+        sock = socket.create_server((d.http_host, d.http_port))
+    except OSError as exc:
+        print(f"error: cannot listen on {d.http_host}:{d.http_port} ({exc}); try --http-port", file=sys.stderr)
+        return 2
     print(
         f"mocapd demo: 4 fake GigE Vision cameras ({opts.pixel_format}, {opts.scale:g} x 1088x1920) streaming the "
         f"Pose2Sim {opts.demo} videos at their own 60 fps pace, in a private network namespace; detector "
