@@ -89,6 +89,16 @@ def load_video_rgb(path: Path, max_frames: int | None = None, size: tuple[int, i
     return frames
 
 
+def video_frame_index(elapsed_ns: int, fps: float, n: int, bounce: bool) -> int:
+    """The frame of an ``n``-frame video due ``elapsed_ns`` after its start at ``fps``, looped (0 … n-1, 0 …) or,
+    with ``bounce``, played forwards then backwards (0 … n-1 … 1, 0 …)."""
+    k = int(elapsed_ns * fps // 1_000_000_000)
+    if not bounce or n < 2:
+        return k % n
+    m = k % (2 * n - 2)
+    return m if m < n else 2 * n - 2 - m
+
+
 class _CLib:
     def __init__(self) -> None:
         lib = ctypes.CDLL("libaravis-0.8.so.0")
@@ -195,12 +205,7 @@ class FakeGigECamera:
         now = time.monotonic_ns()
         if self._t0_ns is None:
             self._t0_ns = now
-        k = int((now - self._t0_ns) * self.video_fps // 1_000_000_000)
-        n = len(self.frames)
-        if not self.bounce or n < 2:
-            return k % n
-        m = k % (2 * n - 2)
-        return m if m < n else 2 * n - 2 - m
+        return video_frame_index(now - self._t0_ns, self.video_fps, len(self.frames), self.bounce)
 
     def close(self) -> None:
         self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, _FILL(), None)  # NULL callback
