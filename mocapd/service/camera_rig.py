@@ -61,8 +61,10 @@ class CameraDemoOptions:
         A camera silent this long is declared lost and reopened with back-off.
     packed : bool
         Detect the newest frames of all cameras together, their people's regions packed onto shared canvases
-        (``[detector.packing]``, :mod:`mocapd.pipeline.packed_source`); False: one whole-frame inference per
-        camera frame, the cameras taking turns on ``[detector] workers``.
+        (``[detector.packing]``, :mod:`mocapd.pipeline.packed_source`); False (default): one whole-frame
+        inference per camera frame, the cameras taking turns on ``[detector] workers``. Packing detects more
+        camera-frames per second, but each camera's detections wait for the whole pass: on this CPU they arrive
+        three times later, so fewer are in time for the fixed latency (docs/daemon.md, Numbers).
     latency_s : float
         The daemon's fixed delay between solve time and wall time. A CPU detector shared by four cameras
         delivers each camera's detections late and far apart, and the scheduler interpolates only between
@@ -77,7 +79,7 @@ class CameraDemoOptions:
     replug_after_s: float = 3.0
     lost_after_s: float = 2.0
     latency_s: float = 0.5
-    packed: bool = True
+    packed: bool = False
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.scale <= 1.0:

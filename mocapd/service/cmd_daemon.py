@@ -67,7 +67,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         from mocapd.service import demo_cameras
         from mocapd.service.camera_rig import CameraDemoOptions
 
-        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=not args.whole_frames)
+        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
         return demo_cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
                                 poses=args.poses)  # fmt: skip
     return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, sinks=_sinks(args))
@@ -108,7 +108,7 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
         from mocapd.service import bench_cameras
         from mocapd.service.camera_rig import CameraDemoOptions
 
-        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=not args.whole_frames)
+        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
         return bench_cameras.run(args.seconds, opts)
     print(json.dumps(bench_latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
     return 0
@@ -138,7 +138,7 @@ def register(subparsers: Any) -> None:
     )
     demo.add_argument("--scale", type=float, default=0.5, help="camera rig: image size / 1088x1920 (default 0.5)")
     demo.add_argument("--latency", type=float, default=0.5, help="camera rig: fixed latency, s (default 0.5)")
-    demo.add_argument("--whole-frames", action="store_true", help="camera rig: no ROI packing, one frame per pass")
+    demo.add_argument("--packed", action="store_true", help="camera rig: all cameras' ROIs packed per detector pass")
     demo.set_defaults(func=cmd_demo)
 
     check = subparsers.add_parser("check-config", help="validate a config file and say what is wrong")
@@ -154,5 +154,5 @@ def register(subparsers: Any) -> None:
                      help="cameras: the camera demo (fake GigE cameras, real detector) in a private netns")  # fmt: skip
     lat.add_argument("--scale", type=float, default=0.5, help="cameras: image size / 1088x1920")
     lat.add_argument("--latency", type=float, default=0.5, help="cameras: fixed latency, s")
-    lat.add_argument("--whole-frames", action="store_true", help="cameras: no ROI packing, one frame per pass")
+    lat.add_argument("--packed", action="store_true", help="cameras: all cameras' ROIs packed per detector pass")
     lat.set_defaults(func=cmd_bench_latency)
