@@ -78,7 +78,7 @@ class CameraDemoOptions:
     max_frames: int = 100
     replug_after_s: float = 3.0
     lost_after_s: float = 2.0
-    latency_s: float = 0.5
+    latency_s: float = 1.0
     packed: bool = False
 
     def __post_init__(self) -> None:

@@ -137,7 +137,7 @@ def register(subparsers: Any) -> None:
         "--poses", type=Path, default=None, help="also write every published frame to this JSON-lines file"
     )
     demo.add_argument("--scale", type=float, default=0.5, help="camera rig: image size / 1088x1920 (default 0.5)")
-    demo.add_argument("--latency", type=float, default=0.5, help="camera rig: fixed latency, s (default 0.5)")
+    demo.add_argument("--latency", type=float, default=1.0, help="camera rig: fixed latency, s (default 1.0)")
     demo.add_argument("--packed", action="store_true", help="camera rig: all cameras' ROIs packed per detector pass")
     demo.set_defaults(func=cmd_demo)
 
@@ -153,6 +153,6 @@ def register(subparsers: Any) -> None:
     lat.add_argument("--rig", choices=["synthetic", "cameras"], default="synthetic",
                      help="cameras: the camera demo (fake GigE cameras, real detector) in a private netns")  # fmt: skip
     lat.add_argument("--scale", type=float, default=0.5, help="cameras: image size / 1088x1920")
-    lat.add_argument("--latency", type=float, default=0.5, help="cameras: fixed latency, s")
+    lat.add_argument("--latency", type=float, default=1.0, help="cameras: fixed latency, s (default 1.0)")
     lat.add_argument("--packed", action="store_true", help="cameras: all cameras' ROIs packed per detector pass")
     lat.set_defaults(func=cmd_bench_latency)

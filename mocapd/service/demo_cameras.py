@@ -32,7 +32,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import MocapdError
+from mocapd.errors import DeviceError, MocapdError
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.camera_rig import AnyDetector, CameraDemoOptions, build_rig, demo_cameras, make_detector
@@ -136,7 +136,7 @@ async def run_camera_demo(
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         fleet_task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
+        with contextlib.suppress(asyncio.CancelledError, DeviceError):  # a start failure was raised above
             await fleet_task
         if detector is not None:
             await loop.run_in_executor(None, detector.close)
