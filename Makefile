@@ -10,7 +10,7 @@ setup:
 	@bash setup/setup.sh
 
 demo: setup
-	$(BIN)/mocapd demo --synthetic
+	$(BIN)/mocapd demo
 
 test: setup lint typecheck unit
 

@@ -11,6 +11,7 @@ from mocapd.errors import CalibrationError
 from mocapd.io.calibration_files import (
     CalibrationSet,
     CameraCalibration,
+    core_cameras,
     read_any,
     read_mocapd_toml,
     read_opencv_yaml,
@@ -101,3 +102,17 @@ def test_bad_files(tmp_path: Path) -> None:
         read_any(tmp_path / "c.json")
     with pytest.raises(CalibrationError, match="not a rotation"):
         CameraCalibration("c", (10, 10), np.eye(3), R=np.diag([1.0, 1.0, -1.0]))
+
+
+def test_core_cameras_scaled_to_resized_images(pose2sim_demo: Path) -> None:
+    calib = read_qca(pose2sim_demo / "Demo_MultiPerson" / "calibration" / "Calib.qca.txt")
+    full, half = core_cameras(calib), core_cameras(calib, 0.5)
+    assert [c.name for c in half] == calib.names
+    assert (half[0].width, half[0].height) == (round(calib.cameras[0].size[0] / 2), round(calib.cameras[0].size[1] / 2))
+    X = np.array([[0.3, 1.0, 0.5], [-0.5, 1.5, -0.2]])
+    for f, h, c in zip(full, half, calib.cameras, strict=True):
+        assert np.allclose(f.project(X), c.project(X), atol=1e-6)  # same camera as the calibration's own projection
+        # A pixel centre u of the full image lies at (u + 0.5) / 2 - 0.5 in the half-size one (cv2.resize).
+        assert np.allclose(h.project(X), (f.project(X) + 0.5) * 0.5 - 0.5, atol=1e-6)
+    with pytest.raises(CalibrationError):
+        core_cameras(calib, 0.0)

@@ -97,3 +97,14 @@ def test_lost_camera_is_reported_and_reopened_while_the_other_keeps_running(pose
     assert result["failures"] >= 1 and result["reopens"] >= 1
     assert "cam1" in result["last_error"]
     assert result["other_failures"] == 0
+
+
+def test_real_pace_frame_index_loops_or_bounces() -> None:
+    from tools.fake_gige import video_frame_index
+
+    period = 1_000_000_000 // 60
+    looped = [video_frame_index(k * period + 1000, 60.0, 4, bounce=False) for k in range(10)]
+    bounced = [video_frame_index(k * period + 1000, 60.0, 4, bounce=True) for k in range(10)]
+    assert looped == [0, 1, 2, 3, 0, 1, 2, 3, 0, 1]
+    assert bounced == [0, 1, 2, 3, 2, 1, 0, 1, 2, 3]
+    assert video_frame_index(-period + 1000, 60.0, 4, bounce=False) == 3  # before the epoch: still a frame

@@ -31,6 +31,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +89,16 @@ def load_video_rgb(path: Path, max_frames: int | None = None, size: tuple[int, i
     return frames
 
 
+def video_frame_index(elapsed_ns: int, fps: float, n: int, bounce: bool) -> int:
+    """The frame of an ``n``-frame video due ``elapsed_ns`` after its start at ``fps``, looped (0 … n-1, 0 …) or,
+    with ``bounce``, played forwards then backwards (0 … n-1 … 1, 0 …)."""
+    k = int(elapsed_ns * fps // 1_000_000_000)
+    if not bounce or n < 2:
+        return k % n
+    m = k % (2 * n - 2)
+    return m if m < n else 2 * n - 2 - m
+
+
 class _CLib:
     def __init__(self) -> None:
         lib = ctypes.CDLL("libaravis-0.8.so.0")
@@ -118,11 +129,32 @@ class FakeGigECamera:
         Local IPv4 address to serve on (e.g. 127.0.0.1, or a lo alias inside a network namespace).
     serial : str
         Serial number the camera reports.
+    video_fps : float or None
+        Real pace: the frame sent at host time t is video frame ``floor((t - t_first) * video_fps) % n`` (the
+        video plays at its own rate whatever the acquisition rate, and a send the camera misses skips frames as
+        a real camera would). None: the k-th frame sent is video frame ``k % n``.
+    epoch_ns : int or None
+        ``t_first`` above, on the host's ``time.monotonic_ns()`` clock: cameras given the same epoch show the
+        same instant of their (synchronised) videos, as real cameras filming one scene do. None: the first send.
+    bounce : bool
+        With ``video_fps``: play the video forwards then backwards (0 … n-1 … 1, 0 …) instead of jumping back to
+        its start, so people in a short clip never teleport (tracking would lose them at every loop).
     """
 
-    def __init__(self, frames: list[Any], address: str, serial: str) -> None:
+    def __init__(
+        self,
+        frames: list[Any],
+        address: str,
+        serial: str,
+        video_fps: float | None = None,
+        epoch_ns: int | None = None,
+        bounce: bool = False,
+    ) -> None:
         aravis = load_aravis()
         self.frames = frames
+        self.video_fps = video_fps
+        self.bounce = bounce
+        self._t0_ns = epoch_ns
         self.n_sent = 0
         self.errors = 0
         self._cache: dict[tuple[str, int, int, int, int], list[NDArray[np.uint8]]] = {}
@@ -159,7 +191,7 @@ class FakeGigECamera:
             fmt = PIXEL_FORMATS[_PFNC[pixel_format]]
             w, h = lib.arv_buffer_get_image_width(buffer), lib.arv_buffer_get_image_height(buffer)
             x, y = lib.arv_buffer_get_image_x(buffer), lib.arv_buffer_get_image_y(buffer)
-            frame = self._encoded(fmt, x, y, w, h)[self.n_sent % len(self.frames)]
+            frame = self._encoded(fmt, x, y, w, h)[self._index()]
             payload = lib.arv_fake_camera_get_payload(self._fake_ptr)
             address = lib.arv_buffer_get_data(buffer, None)
             ctypes.memmove(address, frame.ctypes.data, min(payload, frame.nbytes))
@@ -167,13 +199,29 @@ class FakeGigECamera:
         except KeyError:
             self.errors += 1  # a pixel format we cannot produce: the client gets the buffer as it was
 
+    def _index(self) -> int:
+        if self.video_fps is None:
+            return self.n_sent % len(self.frames)
+        now = time.monotonic_ns()
+        if self._t0_ns is None:
+            self._t0_ns = now
+        return video_frame_index(now - self._t0_ns, self.video_fps, len(self.frames), self.bounce)
+
     def close(self) -> None:
         self._c.lib.arv_fake_camera_set_fill_pattern(self._fake_ptr, _FILL(), None)  # NULL callback
         self._gv = None
 
 
 def server_command(
-    video: Path | str, address: str, max_frames: int, prepare: str, serial: str | None = None, size: str | None = None
+    video: Path | str,
+    address: str,
+    max_frames: int,
+    prepare: str,
+    serial: str | None = None,
+    size: str | None = None,
+    video_fps: float | None = None,
+    epoch_ns: int | None = None,
+    bounce: bool = False,
 ) -> list[str]:
     """The command line that runs one fake camera server (this module) in its own process."""
     cmd = [sys.executable, "-m", "tools.fake_gige", "--video", str(video), "--address", address,
@@ -182,6 +230,12 @@ def server_command(
         cmd += ["--serial", serial]
     if size is not None:
         cmd += ["--size", size]
+    if video_fps is not None:
+        cmd += ["--video-fps", f"{video_fps:g}"]
+    if epoch_ns is not None:
+        cmd += ["--epoch-ns", str(epoch_ns)]
+    if bounce:
+        cmd += ["--bounce"]
     return cmd
 
 
@@ -208,10 +262,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-frames", type=int, default=None, help="serve only the first N frames (looped)")
     parser.add_argument("--size", default=None, help="resize frames to WIDTHxHEIGHT")
     parser.add_argument("--prepare", default="RGB8", help="pixel format to pre-encode the full frames in")
+    parser.add_argument(
+        "--video-fps", type=float, default=None, help="real pace: send the video frame due at the emission time"
+    )
+    parser.add_argument("--epoch-ns", type=int, default=None, help="time.monotonic_ns() of video frame 0")
+    parser.add_argument("--bounce", action="store_true", help="with --video-fps: play forwards then backwards")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     frames = load_video_rgb(args.video, args.max_frames, size)  # type: ignore[arg-type]
-    camera = FakeGigECamera(frames, args.address, args.serial)
+    camera = FakeGigECamera(frames, args.address, args.serial, args.video_fps, args.epoch_ns, args.bounce)
     camera.prepare(args.prepare)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -22,7 +22,7 @@ import numpy as np
 from mocapd.core.camera import Camera
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
-from mocapd.io.calibration_files import read_qca
+from mocapd.io.calibration_files import core_cameras, read_qca
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.service.config import load_config
@@ -31,8 +31,7 @@ COLOURS = ((0, 200, 255), (255, 80, 0), (0, 220, 0), (200, 0, 200))
 
 
 def cameras(demo: str) -> list[Camera]:
-    calib = read_qca(demo_calibration(demo))
-    return [Camera(c.name, c.size[0], c.size[1], c.K, c.R, c.t, c.dist) for c in calib.cameras]
+    return core_cameras(read_qca(demo_calibration(demo)))
 
 
 def detect_all(demo: str, max_frames: int) -> tuple[list[list[Detections2D]], list[list[np.ndarray]]]:

@@ -53,6 +53,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.camera import Camera
 from mocapd.errors import CalibrationError
 
 FloatArray = NDArray[np.float64]
@@ -457,3 +458,32 @@ def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:
             return read_mocapd_toml(path)
         return read_pose2sim_toml(path, world_up=world_up or "z")
     raise CalibrationError(f"{path}: unknown calibration format (use .toml, .qca.txt, .yml or .yaml)")
+
+
+def core_cameras(calib: CalibrationSet, scale: float = 1.0) -> list[Camera]:
+    """The rig as the solver's :class:`~mocapd.core.camera.Camera` objects, for images resized by ``scale``.
+
+    Parameters
+    ----------
+    calib : CalibrationSet
+    scale : float
+        Image scale factor (0.5: half-size images, as ``cv2.resize`` makes them): focal lengths scale by it and
+        the principal point follows pixel centres, ``c' = (c + 0.5) * scale - 0.5``; the size is rounded.
+
+    Returns
+    -------
+    list of Camera
+        In the calibration's order.
+    """
+    if not scale > 0:
+        raise CalibrationError(f"image scale must be positive, got {scale}")
+    out = []
+    for c in calib.cameras:
+        K = c.K.copy()
+        K[0, 0] *= scale
+        K[1, 1] *= scale
+        K[0, 2] = (K[0, 2] + 0.5) * scale - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * scale - 0.5
+        w, h = round(c.size[0] * scale), round(c.size[1] * scale)
+        out.append(Camera(c.name, w, h, K, c.R, c.t, c.dist))
+    return out

@@ -17,6 +17,7 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -106,6 +107,8 @@ class ThreadedSource(abc.ABC):
         self.backoff_s = backoff_s
         self.convert = LatencyLog()
         self.opened = threading.Event()  # set while the device is open and streaming
+        self.retry_in_s: float | None = None  # the back-off being waited before reopening (None: not waiting)
+        self.last_backoff_s: float | None = None  # the last back-off waited (it doubles while reopening fails)
         self.thread_id: int | None = None  # native id of the current capture thread (for CPU accounting)
 
     # -- subclasses implement -----------------------------------------------------------------------------
@@ -124,6 +127,15 @@ class ThreadedSource(abc.ABC):
     @abc.abstractmethod
     def _close(self) -> None:
         """Stop and release the device. Must not raise."""
+
+    def capture_status(self) -> dict[str, Any]:
+        """JSON-able state of the device: up or down, counters, the back-off before the next reopen."""
+        c = self.counters
+        state = "streaming" if self.opened.is_set() else ("waiting to reopen" if self.retry_in_s else "opening")
+        return {"state": state, "up": self.opened.is_set(), "frames": c.frames, "failures": c.failures,
+                "reopens": c.reopens, "retry_in_s": self.retry_in_s, "last_backoff_s": self.last_backoff_s,
+                "missing_frames": c.missing_frames,
+                "bad_buffers": c.bad_buffers, "timeouts": c.timeouts, "last_error": c.last_error}  # fmt: skip
 
     # -- supervision ----------------------------------------------------------------------------------------
     def _thread_main(
@@ -192,7 +204,11 @@ class ThreadedSource(abc.ABC):
             if error is None:
                 return
             log.warning("camera %s: reopening in %.1f s", self.name, delay)
-            await asyncio.sleep(delay)
+            self.retry_in_s = self.last_backoff_s = delay
+            try:
+                await asyncio.sleep(delay)
+            finally:
+                self.retry_in_s = None
             # A source that streamed before failing starts the back-off again from the initial delay.
             delay = self.backoff_s[0] if self.counters.frames > frames_before else min(delay * 2, self.backoff_s[1])
 

@@ -11,6 +11,7 @@ configuration (``[udp]`` in config.toml, validated by :mod:`mocapd.service.udp_c
 from __future__ import annotations
 
 import errno
+import os
 import socket
 from collections import Counter
 from collections.abc import Collection, Mapping, Sequence
@@ -31,15 +32,19 @@ Destination = tuple[str, int]
 class UdpSender:
     """A non-blocking UDP socket that counts what it sent and what it dropped."""
 
-    def __init__(self) -> None:
+    def __init__(self, fileno: int | None = None) -> None:
         self._sock: socket.socket | None = None
+        self._fileno = fileno  # an inherited UDP socket to send from (the camera demo's, made outside its netns)
         self.datagrams_sent = 0
         self.bytes_sent = 0
         self.errors: Counter[str] = Counter()
 
     def open(self) -> None:
         if self._sock is None:
-            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            if self._fileno is not None:
+                sock = socket.socket(fileno=os.dup(self._fileno))  # our own descriptor: close() leaves the original
+            else:
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             sock.setblocking(False)
             self._sock = sock
 
@@ -84,6 +89,7 @@ class _UdpPoseSink:
         pinned: Mapping[str, int] | None = None,
         subjects: Collection[str] | None = None,
         release_after_frames: int = 120,
+        fileno: int | None = None,
     ) -> None:
         if not destinations:
             raise InputError("a UDP sink needs at least one destination")
@@ -92,7 +98,7 @@ class _UdpPoseSink:
         self.destinations = [(str(h), int(p)) for h, p in destinations]
         self.rate_divisor = rate_divisor
         self.slots = SubjectSlots(capacity, pinned, subjects, release_after_frames)
-        self.sender = UdpSender()
+        self.sender = UdpSender(fileno)
         self.frames_seen = 0
         self.frames_sent = 0
         self.skipped_subjects = 0  # non-finite pose or an encoder refusal (counted, never raised)
@@ -165,9 +171,10 @@ class MvnUdpSink(_UdpPoseSink):
         subjects: Collection[str] | None = None,
         max_datagram_bytes: int = 1472,
         release_after_frames: int = 120,
+        fileno: int | None = None,
     ) -> None:
         super().__init__(destinations, capacity=256, rate_divisor=rate_divisor, pinned=character_ids,
-                         subjects=subjects, release_after_frames=release_after_frames)  # fmt: skip
+                         subjects=subjects, release_after_frames=release_after_frames, fileno=fileno)  # fmt: skip
         self.encoder = MvnEncoder(skeleton, max_datagram_bytes=max_datagram_bytes)
 
     def publish(self, frame: PoseFrame) -> None:
@@ -216,10 +223,11 @@ class VmcUdpSink(_UdpPoseSink):
         subjects: Sequence[str] | None = None,
         max_datagram_bytes: int = 1472,
         release_after_frames: int = 120,
+        fileno: int | None = None,
     ) -> None:
         pinned = None if subjects is None else {s: k for k, s in enumerate(subjects)}
         super().__init__(destinations, capacity=len(destinations), rate_divisor=rate_divisor, pinned=pinned,
-                         subjects=subjects, release_after_frames=release_after_frames)  # fmt: skip
+                         subjects=subjects, release_after_frames=release_after_frames, fileno=fileno)  # fmt: skip
         self.encoder = VmcEncoder(skeleton, max_datagram_bytes=max_datagram_bytes)
 
     def publish(self, frame: PoseFrame) -> None:

@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import hmac
 import logging
+import socket
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -126,6 +127,8 @@ class WebSocketStreamServer:
         Returns the daemon's health document (``Daemon.status``) for status messages.
     clock : callable
         Host monotonic nanoseconds (the ``t_publish_ns`` of frames).
+    sock : socket, optional
+        Serve on this listening socket instead of binding ``settings.host:port``.
     """
 
     def __init__(
@@ -135,8 +138,10 @@ class WebSocketStreamServer:
         *,
         status: Callable[[], Mapping[str, Any]] | None = None,
         clock: Callable[[], int] = time.monotonic_ns,
+        sock: socket.socket | None = None,
     ) -> None:
         self.settings = settings
+        self._sock = sock  # an inherited listening socket (the camera demo's, bound outside its netns)
         # Per-person skeletons (body sizing) join the hello's skeletons as they appear: a live registry.
         self._skeletons: dict[str, Skeleton] = dict(description.skeletons)
         self._default_key = description.skeleton_key  # subjects on the rig's skeleton
@@ -164,9 +169,10 @@ class WebSocketStreamServer:
         """Listen (port 0: any free port, then :attr:`port` is the bound one) and start status messages."""
         s = self.settings
         try:
+            where: dict[str, Any] = {"sock": self._sock} if self._sock is not None else {"host": s.host, "port": s.port}
             self._server = await serve(
-                self._handler, s.host, s.port, process_request=self._process_request, max_size=s.max_message_bytes,
-                max_queue=4, compression=None, close_timeout=CLOSE_TIMEOUT_S,
+                self._handler, process_request=self._process_request, max_size=s.max_message_bytes,
+                max_queue=4, compression=None, close_timeout=CLOSE_TIMEOUT_S, **where,
             )  # fmt: skip
         except OSError as exc:
             raise ConfigError(

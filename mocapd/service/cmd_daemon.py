@@ -51,18 +51,19 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from mocapd.service import demo_synthetic
 
-    if not args.synthetic:
-        print(
-            "note: the camera demo (fake GigE cameras streaming the Pose2Sim videos through the detector) needs "
-            "the detector, which is not in this build yet; running the synthetic rig instead.",
-            flush=True,
-        )
     try:
         cfg = _load(args.config, args.http_port)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
+        if not args.synthetic:
+            from mocapd.service import demo_cameras
+            from mocapd.service.camera_rig import CameraDemoOptions
+
+            opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
+            return demo_cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
+                                    record=args.record)  # fmt: skip
         return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
     except ConfigError as exc:  # e.g. a stream's port already in use, found when the sinks start
         print(f"error: {exc}", file=sys.stderr)
@@ -115,6 +116,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_bench_latency(args: argparse.Namespace) -> int:
     from mocapd.service import bench_latency
 
+    if args.rig == "cameras":
+        from mocapd.service import bench_cameras
+        from mocapd.service.camera_rig import CameraDemoOptions
+
+        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
+        return bench_cameras.run(args.seconds, opts)
     print(json.dumps(bench_latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
     return 0
 
@@ -140,6 +147,9 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     demo.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
     demo.add_argument("--record", type=Path, default=None, help=_RECORD_HELP)
+    demo.add_argument("--scale", type=float, default=0.5, help="camera rig: image size / 1088x1920 (default 0.5)")
+    demo.add_argument("--latency", type=float, default=1.0, help="camera rig: fixed latency, s (default 1.0)")
+    demo.add_argument("--packed", action="store_true", help="camera rig: all cameras' ROIs packed per detector pass")
     demo.set_defaults(func=cmd_demo)
 
     check = subparsers.add_parser("check-config", help="validate a config file and say what is wrong")
@@ -151,4 +161,9 @@ def register(subparsers: Any) -> None:
     lat.add_argument("--seconds", type=float, default=60.0, help="run length (default 60)")
     lat.add_argument("--cameras", type=int, default=4)
     lat.add_argument("--people", type=int, default=2)
+    lat.add_argument("--rig", choices=["synthetic", "cameras"], default="synthetic",
+                     help="cameras: the camera demo (fake GigE cameras, real detector) in a private netns")  # fmt: skip
+    lat.add_argument("--scale", type=float, default=0.5, help="cameras: image size / 1088x1920")
+    lat.add_argument("--latency", type=float, default=1.0, help="cameras: fixed latency, s (default 1.0)")
+    lat.add_argument("--packed", action="store_true", help="cameras: all cameras' ROIs packed per detector pass")
     lat.set_defaults(func=cmd_bench_latency)

@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import socket
 from collections.abc import Callable
 from typing import Any
 
@@ -20,22 +21,35 @@ READ_TIMEOUT_S = 2.0
 
 
 class StatusServer:
-    """Serves ``status()`` as JSON at /status and ``metrics()`` as text at /metrics."""
+    """Serves ``status()`` as JSON at /status and ``metrics()`` as text at /metrics.
+
+    ``sock``: serve on this already listening TCP socket instead of binding ``host:port`` (the camera demo's
+    daemon runs in a private network namespace and serves on a socket its parent bound in the host's).
+    """
 
     def __init__(
-        self, status: Callable[[], dict[str, Any]], metrics: Callable[[], str], host: str = "127.0.0.1", port: int = 0
+        self,
+        status: Callable[[], dict[str, Any]],
+        metrics: Callable[[], str],
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        sock: socket.socket | None = None,
     ) -> None:
         self._status = status
         self._metrics = metrics
-        self.host = host
-        self.port = port
+        self._sock = sock
+        self.host, self.port = (str(sock.getsockname()[0]), int(sock.getsockname()[1])) if sock else (host, port)
         self.requests = 0
         self.bad_requests = 0
         self._server: asyncio.Server | None = None
 
     async def start(self) -> int:
         """Listen; returns the bound port (useful with port 0)."""
-        self._server = await asyncio.start_server(self._handle, self.host, self.port)
+        if self._sock is not None:
+            self._server = await asyncio.start_server(self._handle, sock=self._sock)
+        else:
+            self._server = await asyncio.start_server(self._handle, self.host, self.port)
         self.port = int(self._server.sockets[0].getsockname()[1])
         return self.port
 

@@ -119,14 +119,15 @@ def parse_udp_config(table: Mapping[str, Any]) -> UdpConfig:
     return UdpConfig(allow_remote=allow_remote, mvn=mvn, vmc=vmc)
 
 
-def build_udp_sinks(config: Config, daemon: Daemon) -> list[PoseSink]:
+def build_udp_sinks(config: Config, daemon: Daemon, fileno: int | None = None) -> list[PoseSink]:
     """The enabled UDP streams of ``config.udp`` as pose sinks for ``daemon`` (its rig's skeleton and rate)."""
-    return udp_sinks(config, daemon.rig.skeleton)
+    return udp_sinks(config, daemon.rig.skeleton, fileno)
 
 
-def udp_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
+def udp_sinks(config: Config, skeleton: Skeleton, fileno: int | None = None) -> list[PoseSink]:
     """The enabled UDP streams of ``config.udp`` for poses on ``skeleton`` (people carrying their own sized
-    skeleton are sent on theirs), at ``config.daemon.output_rate_hz``; a replay has no daemon but the same needs."""
+    skeleton are sent on theirs), at ``config.daemon.output_rate_hz``; a replay has no daemon but the same needs.
+    ``fileno``: an inherited UDP socket to send from (the camera demo runs in a private network namespace)."""
     from mocapd.io.udp_stream import MvnUdpSink, VmcUdpSink
 
     u = config.udp
@@ -146,6 +147,7 @@ def udp_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
             subjects=m.subjects,
             max_datagram_bytes=m.max_datagram_bytes,
             release_after_frames=release(m.rate_divisor),
+            fileno=fileno,
         )
         sinks.append(mvn)
     if u.vmc.enabled:
@@ -157,6 +159,7 @@ def udp_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
             subjects=v.subjects,
             max_datagram_bytes=v.max_datagram_bytes,
             release_after_frames=release(v.rate_divisor),
+            fileno=fileno,
         )
         sinks.append(vmc)
     return sinks

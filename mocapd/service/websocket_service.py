@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
@@ -15,14 +16,16 @@ if TYPE_CHECKING:
     from mocapd.service.app import Daemon
 
 
-def build_websocket_sinks(config: Config, daemon: Daemon) -> list[WebSocketStreamServer]:
+def build_websocket_sinks(
+    config: Config, daemon: Daemon, sock: socket.socket | None = None
+) -> list[WebSocketStreamServer]:
     """The WebSocket stream server of ``config.websocket`` for ``daemon`` (none when disabled).
 
     Add the result to ``daemon.sinks`` before ``daemon.run()``; the server listens when the daemon starts its
     sinks. Subjects on the rig's skeleton share the key ``"default"``; a body-sized person's own skeleton gets a
     key of its own, announced in a fresh hello before the first frame that uses it.
     """
-    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock)
+    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock)
 
 
 def websocket_sinks(
@@ -31,6 +34,7 @@ def websocket_sinks(
     *,
     status: Callable[[], Mapping[str, Any]] | None = None,
     clock: Callable[[], int] = time.monotonic_ns,
+    sock: socket.socket | None = None,
 ) -> list[WebSocketStreamServer]:
     """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health)."""
     ws = config.websocket
@@ -42,4 +46,4 @@ def websocket_sinks(
         defaults=StreamOptions(encoding=ws.encoding, convention=ws.convention, globals=ws.globals),
     )  # fmt: skip
     description = StreamDescription(rate_hz=config.daemon.output_rate_hz, skeletons={"default": skeleton})
-    return [WebSocketStreamServer(settings, description, status=status, clock=clock)]
+    return [WebSocketStreamServer(settings, description, status=status, clock=clock, sock=sock)]

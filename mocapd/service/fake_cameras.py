@@ -1,0 +1,178 @@
+"""The camera demo's fake GigE Vision cameras: one ``tools/fake_gige.py`` server process per camera, kept running.
+
+Each camera serves its video at the video's own pace from a shared epoch (``--video-fps``, ``--epoch-ns``), so the
+four cameras show the same instant of the synchronised Pose2Sim videos, and a frame the server misses is skipped
+as a real camera would skip it. The short clips play forwards then backwards (``--bounce``): no teleporting.
+A server process that ends (crashed, or killed to simulate unplugging the cable) is
+counted and started again after ``replug_after_s``: the camera is "plugged back in", and mocapd's capture path has
+to find it again on its own.
+
+Must run inside a private network namespace with one loopback alias per camera (Aravis broadcasts otherwise).
+The servers run from the source tree (``tools/`` is not installed), as ``mocapd demo --synthetic``'s simulators do.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mocapd.errors import DeviceError
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[2]
+START_TIMEOUT_S = 120.0  # decoding and pre-encoding a video on a loaded 2-core machine
+
+
+def tools_module() -> Any:
+    """``tools.fake_gige`` from the source tree."""
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    from tools import fake_gige
+
+    return fake_gige
+
+
+@dataclass(frozen=True)
+class FakeCameraSpec:
+    """One fake camera: what it serves, where, and how.
+
+    Attributes
+    ----------
+    name : str
+        The camera's name (the calibration's).
+    video : Path
+    address : str
+        Loopback alias it serves on (127.0.0.x).
+    size : (int, int)
+        (width, height) the video is resized to.
+    video_fps : float
+        The video's frame rate (real pace).
+    pixel_format : str
+        Format pre-encoded at start (the one the capture asks for).
+    max_frames : int
+        Frames of the video served, looped.
+    """
+
+    name: str
+    video: Path
+    address: str
+    size: tuple[int, int]
+    video_fps: float
+    pixel_format: str = "BayerRG8"
+    max_frames: int = 100
+
+
+@dataclass
+class FakeCameraState:
+    """Health of one fake camera process."""
+
+    spec: FakeCameraSpec
+    pid: int | None = None
+    running: bool = False
+    starts: int = 0
+    exits: int = 0
+    last_exit_code: int | None = None
+    ready: asyncio.Event = field(default_factory=asyncio.Event)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.spec.name, "address": self.spec.address, "pid": self.pid, "running": self.running,
+                "starts": self.starts, "exits": self.exits, "last_exit_code": self.last_exit_code}  # fmt: skip
+
+
+class FakeCameraFleet:
+    """Starts the fake cameras, restarts any that ends after ``replug_after_s``, stops them all at the end.
+
+    Parameters
+    ----------
+    specs : sequence of FakeCameraSpec
+    epoch_ns : int
+        ``time.monotonic_ns()`` of video frame 0, shared by all cameras.
+    replug_after_s : float
+        Pause between a server's end and its restart (the cable is out for that long).
+    """
+
+    def __init__(self, specs: list[FakeCameraSpec], epoch_ns: int, replug_after_s: float = 3.0) -> None:
+        self.cameras = [FakeCameraState(s) for s in specs]
+        self.epoch_ns = epoch_ns
+        self.replug_after_s = replug_after_s
+        self._procs: dict[str, asyncio.subprocess.Process] = {}
+
+    def _command(self, spec: FakeCameraSpec) -> list[str]:
+        cmd: list[str] = tools_module().server_command(
+            spec.video, spec.address, spec.max_frames, spec.pixel_format, serial=spec.name.upper(),
+            size=f"{spec.size[0]}x{spec.size[1]}", video_fps=spec.video_fps, epoch_ns=self.epoch_ns, bounce=True,
+        )  # fmt: skip
+        return cmd
+
+    async def _start(self, cam: FakeCameraState) -> asyncio.subprocess.Process:
+        proc = await asyncio.create_subprocess_exec(
+            *self._command(cam.spec), cwd=REPO, stdout=asyncio.subprocess.PIPE, stdin=asyncio.subprocess.DEVNULL
+        )
+        self._procs[cam.spec.name] = proc  # known at once, so a stop while it starts terminates it too
+        assert proc.stdout is not None
+        try:
+            line = await asyncio.wait_for(proc.stdout.readline(), START_TIMEOUT_S)
+            info = json.loads(line) if line else {}
+        except (TimeoutError, ValueError) as exc:
+            info = {"error": str(exc)}
+        if not info.get("ready"):
+            with contextlib.suppress(ProcessLookupError):
+                proc.kill()
+            await proc.wait()
+            raise DeviceError(f"fake camera {cam.spec.name} did not start ({info or 'no output'})")
+        cam.pid, cam.running = proc.pid, True
+        cam.starts += 1
+        cam.ready.set()
+        return proc
+
+    async def _keep(self, cam: FakeCameraState, proc: asyncio.subprocess.Process) -> None:
+        while True:
+            code = await proc.wait()
+            cam.running, cam.exits, cam.last_exit_code = False, cam.exits + 1, code
+            cam.ready.clear()
+            log.warning("fake camera %s (pid %s) ended with %s; plugged back in after %.1f s",
+                        cam.spec.name, cam.pid, code, self.replug_after_s)  # fmt: skip
+            await asyncio.sleep(self.replug_after_s)
+            try:
+                proc = await self._start(cam)
+            except DeviceError as exc:
+                log.error("%s", exc)
+                continue
+
+    async def run(self, started: asyncio.Event) -> None:
+        """Start every camera (in parallel), set ``started``, then keep them running until cancelled."""
+        try:
+            procs = await asyncio.gather(*(self._start(c) for c in self.cameras))
+            started.set()
+            async with asyncio.TaskGroup() as tg:
+                for cam, proc in zip(self.cameras, procs, strict=True):
+                    tg.create_task(self._keep(cam, proc))
+        finally:
+            await self.stop()
+
+    async def stop(self) -> None:
+        """Terminate every server (SIGTERM, then SIGKILL after 3 s)."""
+        procs, self._procs = list(self._procs.values()), {}
+        for p in procs:
+            if p.returncode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    p.terminate()
+        for p in procs:
+            try:
+                await asyncio.wait_for(p.wait(), 3.0)
+            except TimeoutError:
+                with contextlib.suppress(ProcessLookupError):
+                    p.kill()
+                await p.wait()
+        for cam in self.cameras:
+            cam.running = False
+
+    def status(self) -> list[dict[str, Any]]:
+        return [c.as_dict() for c in self.cameras]
