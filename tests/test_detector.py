@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mocapd.core.keypoint_formats import COCO17
+from mocapd.core.keypoints import COCO17_FORMAT as COCO17
 from mocapd.core.pose2d import PoseDetections, letterbox_geometry
 from mocapd.core.roi_packing import AlignedRoi, Roi, SubsampleSchedule, match_people, plan_aligned_canvases
 from mocapd.errors import ConfigError, InputError, ModelError

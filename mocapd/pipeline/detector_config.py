@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any, TypeVar
 
-from mocapd.core.keypoint_formats import FORMATS
+from mocapd.core.keypoints import FORMATS
 from mocapd.core.roi_packing import SubsampleSchedule
 from mocapd.errors import ConfigError
 
