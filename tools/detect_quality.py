@@ -252,14 +252,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("results/detection"))
+    ap.add_argument("--demo", choices=("both", "Demo_SinglePerson", "Demo_MultiPerson"), default="both")
+    packing = DetectorConfig().packing
+    ap.add_argument("--refresh-every", type=int, default=packing.refresh_every, help="0: no whole-frame refresh")
+    ap.add_argument("--max-tile-height", type=float, default=packing.max_tile_height, help="0: no tile cap")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    cfg = DetectorConfig(intra_op_threads=args.threads)  # the shipped defaults (config.toml)
+    packing = dataclasses.replace(packing, refresh_every=args.refresh_every, max_tile_height=args.max_tile_height)
+    # The shipped defaults (config.toml) unless overridden above.
+    cfg = DetectorConfig(intra_op_threads=args.threads, packing=packing)
     det = OnnxPoseDetector.from_config(cfg)
     report: dict[str, Any] = {"mode": args.mode, "confident": CONF, "min_keypoints": MIN_KP}
     if args.mode == "packed":
         report["packing"] = dataclasses.asdict(cfg.packing)
     for demo, n_subjects in (("Demo_SinglePerson", 1), ("Demo_MultiPerson", 2)):
+        if args.demo not in ("both", demo):
+            continue
         results, frames, sample = run_demo(demo, det, cfg, args.mode, args.frames)
         n = len(results)
         per_cam: dict[str, Any] = {}

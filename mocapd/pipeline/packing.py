@@ -44,6 +44,7 @@ class PackingStats:
     camera_frames: int = 0
     tiles: int = 0
     full_frame_tiles: int = 0
+    refresh_tiles: int = 0
 
 
 def _box_area(b: FloatArray) -> float:
@@ -157,37 +158,102 @@ class PackedDetector:
                 if img.shape[:2] != (h, w):
                     raise InputError(f"camera {cam} image is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
                 items.extend((slot, cam, roi) for roi in self.rois[cam])
+        # Refresh tiles come last: item index >= n_roi_items marks them.
+        n_roi_items = len(items)
+        refresh = self.refresh_cameras(self.stats.calls)
+        items.extend((len(frames) - 1, cam, full_roi(*self.image_sizes[cam])) for cam in refresh)
         rois = [it[2] for it in items]
         min_scales = [self._min_scales[it[1]] for it in items]
         images = [frames[it[0]][it[1]] for it in items]
         cw, ch = self.canvas_detector.input_size
         if self.cfg.align_stride > 0:
-            aligned = []
-            for _, cam, roi in items:
-                lb = self._letterboxes[cam]
-                aligned.append(AlignedRoi(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y))
+            aligned = [self._aligned(cam, roi, k >= n_roi_items) for k, (_, cam, roi) in enumerate(items)]
             packings = plan_aligned_canvases(aligned, cw, ch, gap=self.cfg.gap, stride=self.cfg.align_stride)
         else:
             packings = plan_canvases(rois, min_scales, cw, ch, gap=self.cfg.gap, max_scale=self._max_scale)
         parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
+        refreshed: list[PoseDetections | None] = [None] * self.n_cameras
         for packing in packings:
             canvas = render_canvas(packing, images, self.detector.spec.pad_value)
             found = unpack_detections(self.canvas_detector.run_canvas(canvas), packing)
             for tile, det in zip(packing.tiles, found, strict=True):
                 slot, cam, _ = items[tile.index]
-                parts[slot][cam].append(det)
+                if tile.index >= n_roi_items:
+                    refreshed[cam] = det
+                else:
+                    parts[slot][cam].append(det)
         out = [[self._merge(p, n_kp) for p in slot_parts] for slot_parts in parts]
-        self._update_rois(out[-1])
+        seeds = list(out[-1])
+        for cam, extra in enumerate(refreshed):
+            if extra is not None:
+                out[-1][cam], seeds[cam] = self._add_refreshed(out[-1][cam], extra, n_kp)
+        self._update_rois(seeds)
         self.last_packings = packings
         self.last_tile_images = images  # tile.index → its source image (for drawing the canvases)
         self.stats.calls += 1
         self.stats.canvases += len(packings)
         self.stats.camera_frames += len(frames) * self.n_cameras
         self.stats.tiles += len(items)
-        self.stats.full_frame_tiles += sum(
-            1 for _, cam, r in items if (r.width, r.height) == self.image_sizes[cam] and r.x0 == 0 and r.y0 == 0
-        )
+        self.stats.full_frame_tiles += sum(1 for _, cam, r in items[:n_roi_items] if self._is_full(cam, r))
+        self.stats.refresh_tiles += len(refresh)
         return out
+
+    def _is_full(self, cam: int, roi: Roi) -> bool:
+        return roi == full_roi(*self.image_sizes[cam])
+
+    def refresh_cameras(self, call: int) -> list[int]:
+        """Cameras that get a whole-frame refresh tile on packed call number ``call`` (0-based).
+
+        Camera ``c`` refreshes on calls ``c * refresh_every // n_cameras + k * refresh_every``: the refreshes
+        of a rig are spread evenly over the period, so their cost is too. A camera that looks at its whole
+        frame anyway (it found nobody) is skipped.
+        """
+        period = self.cfg.refresh_every
+        if period <= 0:
+            return []
+        return [
+            cam
+            for cam in range(self.n_cameras)
+            if (call - cam * period // self.n_cameras) % period == 0
+            and not any(self._is_full(cam, r) for r in self.rois[cam])
+        ]
+
+    def _aligned(self, cam: int, roi: Roi, refresh: bool) -> AlignedRoi:
+        """How one ROI goes on a canvas: its whole-frame letterbox transform, or its own smaller scale.
+
+        A refresh tile is scaled by ``refresh_scale_ratio``; a person ROI taller than ``max_tile_height`` of the
+        canvas is scaled down to that height. Either is placed on the stride grid (phase 0): with a scale of
+        its own, no placement reproduces the whole-frame pixels, so alignment buys nothing there.
+        """
+        lb = self._letterboxes[cam]
+        ratio = 1.0
+        if refresh:
+            ratio = self.cfg.refresh_scale_ratio
+        elif self.cfg.max_tile_height > 0 and not self._is_full(cam, roi):
+            cap = self.cfg.max_tile_height * self.canvas_detector.input_size[1]
+            ratio = min(1.0, cap / (roi.height * lb.sy))
+        if ratio >= 1.0:
+            return AlignedRoi(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y)
+        sx, sy = lb.sx * ratio, lb.sy * ratio
+        return AlignedRoi(roi, sx, sy, -roi.x0 * sx, -roi.y0 * sy)
+
+    def _add_refreshed(
+        self, found: PoseDetections, extra: PoseDetections, n_kp: int
+    ) -> tuple[PoseDetections, PoseDetections]:
+        """Output and ROI seeds of a camera that also had a whole-frame refresh tile.
+
+        The output keeps the ROI detections (full resolution) and adds refresh detections of people no ROI
+        found. The seeds take every refresh detection too, so that a person whom a ROI showed only in part
+        (a cut-off upper body) gets a ROI around the whole body next time: the overlapping ROIs merge.
+        """
+        new = [j for j in range(len(extra)) if not any(self._same_person(extra.boxes[j], b) for b in found.boxes)]
+        out = PoseDetections.concatenate([found, extra.select(np.asarray(new, dtype=np.int64))], n_kp)
+        return out, PoseDetections.concatenate([found, extra], n_kp)
+
+    def _same_person(self, a: FloatArray, b: FloatArray) -> bool:
+        inter = _intersection(a, b)
+        union = _box_area(a) + _box_area(b) - inter
+        return inter > self.detector.spec.iou_threshold * union or inter > 0.8 * min(_box_area(a), _box_area(b))
 
     def _merge(self, parts: list[PoseDetections], n_kp: int) -> PoseDetections:
         det = PoseDetections.concatenate(parts, n_kp)
@@ -201,12 +267,7 @@ class PackedDetector:
         for i in order:
             dup = False
             for k in keep:
-                if source[k] == source[i]:
-                    continue
-                inter = _intersection(det.boxes[i], det.boxes[k])
-                small = min(_box_area(det.boxes[i]), _box_area(det.boxes[k]))
-                union = _box_area(det.boxes[i]) + _box_area(det.boxes[k]) - inter
-                if inter > self.detector.spec.iou_threshold * union or inter > 0.8 * small:
+                if source[k] != source[i] and self._same_person(det.boxes[i], det.boxes[k]):
                     dup = True
                     break
             if not dup:
