@@ -250,3 +250,14 @@ def test_grid_planner_keeps_phase_and_never_needs_more_canvases(seed: int) -> No
             px, py = items[t.index].phase
             assert min((t.x - px) % 32, 32 - (t.x - px) % 32) == pytest.approx(0.0, abs=1e-6)
             assert min((t.y - py) % 32, 32 - (t.y - py) % 32) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_box_is_judged_by_the_roi_holding_most_of_it() -> None:
+    # Two people side by side with overlapping ROIs; the right one's centre lies in the left ROI too, whose
+    # right edge runs through them. They were found in their own ROI, which does not cut them: no growth.
+    left, right = Roi(100, 200, 650, 1300), Roi(380, 200, 900, 1300)
+    box = np.array([[450.0, 300.0, 750.0, 1200.0]])
+    np.testing.assert_allclose(grow_cut_boxes(box, [left, right], 1088, 1920, margin=0.1), box)
+    # Cut by its own ROI's bottom edge, it still grows.
+    cut = np.array([[450.0, 300.0, 750.0, 1299.0]])
+    assert grow_cut_boxes(cut, [left, right], 1088, 1920, margin=0.1)[0, 3] > 1299.0

@@ -139,7 +139,13 @@ def rois_from_boxes(
 
 
 def grow_cut_boxes(
-    boxes: FloatArray, rois: Sequence[Roi], img_w: int, img_h: int, *, margin: float, grow: float = 0.5
+    boxes: FloatArray,
+    rois: Sequence[Roi],
+    img_w: int,
+    img_h: int,
+    *,
+    margin: float,
+    grow: float = 0.5,
 ) -> FloatArray:
     """Boxes that end at an inner edge of the ROI they were found in, grown past that edge.
 
@@ -160,7 +166,6 @@ def grow_cut_boxes(
         The ROI margin (fraction of the box's larger side) the ROIs were built with.
     grow : float
         Growth, as a fraction of the box's width (left/right) or height (top/bottom).
-
     Returns
     -------
     ndarray, shape (n, 4)
@@ -170,18 +175,26 @@ def grow_cut_boxes(
         cx, cy = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
         w, h = b[2] - b[0], b[3] - b[1]
         tol = max(4.0, 0.5 * margin * max(w, h))
-        for r in rois:
-            if not (r.x0 <= cx <= r.x1 and r.y0 <= cy <= r.y1):
-                continue
-            if r.x0 > 0 and b[0] - r.x0 < tol:
-                b[0] -= grow * w
-            if r.x1 < img_w and r.x1 - b[2] < tol:
-                b[2] += grow * w
-            if r.y0 > 0 and b[1] - r.y0 < tol:
-                b[1] -= grow * h
-            if r.y1 < img_h and r.y1 - b[3] < tol:
-                b[3] += grow * h
-            break
+        # The ROI the person was found in: the one holding most of the box (as unpack_detections assigns
+        # detections to tiles). Testing only "contains the centre" would take a neighbour's overlapping ROI,
+        # whose edge runs through this person, and grow boxes that were never cut.
+        inside = [
+            (min(r.x1, b[2]) - max(r.x0, b[0])) * (min(r.y1, b[3]) - max(r.y0, b[1]))
+            if r.x0 <= cx <= r.x1 and r.y0 <= cy <= r.y1
+            else -1.0
+            for r in rois
+        ]
+        if not inside or max(inside) < 0:
+            continue
+        r = rois[int(np.argmax(inside))]
+        if r.x0 > 0 and b[0] - r.x0 < tol:
+            b[0] -= grow * w
+        if r.x1 < img_w and r.x1 - b[2] < tol:
+            b[2] += grow * w
+        if r.y0 > 0 and b[1] - r.y0 < tol:
+            b[1] -= grow * h
+        if r.y1 < img_h and r.y1 - b[3] < tol:
+            b[3] += grow * h
     return out
 
 
