@@ -295,3 +295,29 @@ def test_tall_tiles_are_capped_and_still_find_the_subject(
     for slot in range(2):
         for cam, img in enumerate(frames[slot]):
             _plausible(out[slot][cam], img.shape[0])
+
+
+def test_a_person_cut_by_a_neighbours_tile_is_reported_from_their_own_tile(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(refresh_every=0))
+    naive = detector.detect(frames[1][1])
+    box = naive.boxes[int(np.argmax(naive.boxes[:, 3] - naive.boxes[:, 1]))]
+    x0, y0, x1, y1 = (int(v) for v in box)
+    w, h = sizes[1]
+    # A neighbour's ROI showing the subject's upper half, and the subject's own ROI with a margin.
+    upper = Roi(max(0, x0 - 40), max(0, y0 - 40), min(w, x1 + 40), (y0 + y1) // 2)
+    own = Roi(max(0, x0 - 60), max(0, y0 - 60), min(w, x1 + 60), min(h, y1 + 60))
+    packer.rois = [[Roi(0, 0, 64, 64)] for _ in sizes]
+    packer.rois[1] = [upper, own]
+    out = packer.detect(frames)[1][1]
+    best = max(_iou(b, box) for b in out.boxes)
+    assert best > 0.8  # the whole subject, not their upper half
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = iw * ih
+    return float(inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter))

@@ -172,6 +172,7 @@ class PackedDetector:
         else:
             packings = plan_canvases(rois, min_scales, cw, ch, gap=self.cfg.gap, max_scale=self._max_scale)
         parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
+        part_rois: list[list[list[Roi]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
         refreshed: list[PoseDetections | None] = [None] * self.n_cameras
         for packing in packings:
             canvas = render_canvas(packing, images, self.detector.spec.pad_value)
@@ -182,7 +183,11 @@ class PackedDetector:
                     refreshed[cam] = det
                 else:
                     parts[slot][cam].append(det)
-        out = [[self._merge(p, n_kp) for p in slot_parts] for slot_parts in parts]
+                    part_rois[slot][cam].append(items[tile.index][2])
+        out = [
+            [self._merge(p, n_kp, cam, r) for cam, (p, r) in enumerate(zip(slot_parts, slot_rois, strict=True))]
+            for slot_parts, slot_rois in zip(parts, part_rois, strict=True)
+        ]
         seeds = list(out[-1])
         for cam, extra in enumerate(refreshed):
             if extra is not None:
@@ -250,19 +255,37 @@ class PackedDetector:
         out = PoseDetections.concatenate([found, extra.select(np.asarray(new, dtype=np.int64))], n_kp)
         return out, PoseDetections.concatenate([found, extra], n_kp)
 
+    def _is_cut(self, box: FloatArray, roi: Roi, img_w: int, img_h: int) -> bool:
+        """Whether ``box`` ends at an inner edge of ``roi`` (one that is not the image border), within the
+        tolerance :func:`mocapd.core.roi_packing.grow_cut_boxes` uses."""
+        tol = max(4.0, 0.5 * self.cfg.roi_margin * max(box[2] - box[0], box[3] - box[1]))
+        return bool(
+            (roi.x0 > 0 and box[0] - roi.x0 < tol)
+            or (roi.x1 < img_w and roi.x1 - box[2] < tol)
+            or (roi.y0 > 0 and box[1] - roi.y0 < tol)
+            or (roi.y1 < img_h and roi.y1 - box[3] < tol)
+        )
+
     def _same_person(self, a: FloatArray, b: FloatArray) -> bool:
         inter = _intersection(a, b)
         union = _box_area(a) + _box_area(b) - inter
         return inter > self.detector.spec.iou_threshold * union or inter > 0.8 * min(_box_area(a), _box_area(b))
 
-    def _merge(self, parts: list[PoseDetections], n_kp: int) -> PoseDetections:
+    def _merge(self, parts: list[PoseDetections], n_kp: int, cam: int = 0, rois: Sequence[Roi] = ()) -> PoseDetections:
         det = PoseDetections.concatenate(parts, n_kp)
         if len(parts) <= 1 or len(det) <= 1:
             return det
         # Overlapping ROIs of one camera show the same person twice, once maybe cut by a tile edge: drop a
-        # detection from another tile that overlaps a better one, or lies mostly inside it.
+        # detection from another tile that overlaps a better one, or lies mostly inside it. "Better" is first
+        # "not cut by its own tile's inner edge", then the score: a neighbour's tile often shows a person's
+        # upper half with a confident score, and keeping that would drop the whole person seen in their own tile.
         source = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
-        order = np.argsort(-det.scores, kind="stable")
+        cut = np.zeros(len(det), dtype=np.bool_)
+        if len(rois) == len(parts):
+            w, h = self.image_sizes[cam]
+            for i in range(len(det)):
+                cut[i] = self._is_cut(det.boxes[i], rois[int(source[i])], w, h)
+        order = np.lexsort((-det.scores, cut))
         keep: list[int] = []
         for i in order:
             dup = False
