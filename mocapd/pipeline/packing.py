@@ -119,6 +119,7 @@ class PackedDetector:
         self._max_scale = min(1.0, cfg.max_scale_ratio * max(full_scales))
         self._letterboxes = [letterbox_geometry(w, h, cw, ch) for w, h in self.image_sizes]
         self.stats = PackingStats()
+        self._refresh_due: dict[int, int] = {}  # camera → the call its refresh fell due
         self.last_packings: list[Packing] = []
         self.last_tile_images: list[Image] = []
 
@@ -160,17 +161,26 @@ class PackedDetector:
                 items.extend((slot, cam, roi) for roi in self.rois[cam])
         # Refresh tiles come last: item index >= n_roi_items marks them.
         n_roi_items = len(items)
-        refresh = self.refresh_cameras(self.stats.calls)
-        items.extend((len(frames) - 1, cam, full_roi(*self.image_sizes[cam])) for cam in refresh)
-        rois = [it[2] for it in items]
-        min_scales = [self._min_scales[it[1]] for it in items]
+        call = self.stats.calls
+        for cam in self.refresh_cameras(call):
+            self._refresh_due.setdefault(cam, call)
+        due = sorted(c for c in self._refresh_due if not any(self._is_full(c, r) for r in self.rois[c]))
+        # A due refresh rides along when it fits the canvases this call needs anyway; one that would open a
+        # canvas of its own waits, at most one period (then it is forced, alone, keeping the stagger).
+        forced = [c for c in due if call - self._refresh_due[c] >= self.cfg.refresh_every]
+        refresh = forced
+        items = [*items, *((len(frames) - 1, c, full_roi(*self.image_sizes[c])) for c in forced)]
+        packings = self._plan(items, n_roi_items)
+        optional = [c for c in due if c not in forced]
+        if optional:
+            more = [*items, *((len(frames) - 1, c, full_roi(*self.image_sizes[c])) for c in optional)]
+            plan = self._plan(more, n_roi_items)
+            if len(plan) <= len(packings):
+                items, packings, refresh = more, plan, due
+        for cam in list(self._refresh_due):
+            if cam in refresh or any(self._is_full(cam, r) for r in self.rois[cam]):
+                del self._refresh_due[cam]
         images = [frames[it[0]][it[1]] for it in items]
-        cw, ch = self.canvas_detector.input_size
-        if self.cfg.align_stride > 0:
-            aligned = [self._aligned(cam, roi, k >= n_roi_items) for k, (_, cam, roi) in enumerate(items)]
-            packings = plan_aligned_canvases(aligned, cw, ch, gap=self.cfg.gap, stride=self.cfg.align_stride)
-        else:
-            packings = plan_canvases(rois, min_scales, cw, ch, gap=self.cfg.gap, max_scale=self._max_scale)
         parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
         part_rois: list[list[list[Roi]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
         refreshed: list[PoseDetections | None] = [None] * self.n_cameras
@@ -203,15 +213,26 @@ class PackedDetector:
         self.stats.refresh_tiles += len(refresh)
         return out
 
+    def _plan(self, items: Sequence[tuple[int, int, Roi]], n_roi_items: int) -> list[Packing]:
+        """Canvases for ``items`` (``(slot, camera, roi)``; those from ``n_roi_items`` on are refresh tiles)."""
+        cw, ch = self.canvas_detector.input_size
+        if self.cfg.align_stride > 0:
+            aligned = [self._aligned(cam, roi, k >= n_roi_items) for k, (_, cam, roi) in enumerate(items)]
+            return plan_aligned_canvases(aligned, cw, ch, gap=self.cfg.gap, stride=self.cfg.align_stride)
+        rois = [it[2] for it in items]
+        min_scales = [self._min_scales[it[1]] for it in items]
+        return plan_canvases(rois, min_scales, cw, ch, gap=self.cfg.gap, max_scale=self._max_scale)
+
     def _is_full(self, cam: int, roi: Roi) -> bool:
         return roi == full_roi(*self.image_sizes[cam])
 
     def refresh_cameras(self, call: int) -> list[int]:
         """Cameras that get a whole-frame refresh tile on packed call number ``call`` (0-based).
 
-        Camera ``c`` refreshes on calls ``c * refresh_every // n_cameras + k * refresh_every``: the refreshes
+        Camera ``c`` falls due on calls ``c * refresh_every // n_cameras + k * refresh_every``: the refreshes
         of a rig are spread evenly over the period, so their cost is too. A camera that looks at its whole
-        frame anyway (it found nobody) is skipped.
+        frame anyway (it found nobody) is skipped. :meth:`detect` then adds a due refresh tile as soon as it
+        fits the canvases that call needs anyway, or when it has waited a whole period.
         """
         period = self.cfg.refresh_every
         if period <= 0:
