@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mocapd.core.keypoint_formats import COCO17
+from mocapd.core.keypoints import COCO17_FORMAT as COCO17
 from mocapd.core.pose2d import PoseDetections, letterbox_geometry
 from mocapd.core.roi_packing import AlignedRoi, Roi, SubsampleSchedule, match_people, plan_aligned_canvases
 from mocapd.errors import ConfigError, InputError, ModelError
@@ -252,3 +252,77 @@ def test_larger_canvas_model_packs_more_camera_frames_per_run(
             assert any(i == subject for i, _ in pairs)
     with pytest.raises(ConfigError, match="multiple of 32"):
         PackingConfig(canvas_width=1000)
+
+
+def test_refreshes_are_staggered_across_cameras(detector: OnnxPoseDetector) -> None:
+    packer = PackedDetector(detector, [(1088, 1920)] * 4, PackingConfig(refresh_every=8))
+    assert all(packer.refresh_cameras(k) == [] for k in range(8))  # whole frames anyway: nothing to refresh
+    packer.rois = [[Roi(100, 100, 400, 900)] for _ in range(4)]
+    assert [packer.refresh_cameras(k) for k in range(10)] == [[0], [], [1], [], [2], [], [3], [], [0], []]
+    off = PackedDetector(detector, [(1088, 1920)] * 4, PackingConfig(refresh_every=0))
+    off.rois = packer.rois
+    assert all(off.refresh_cameras(k) == [] for k in range(8))
+
+
+def test_refresh_tile_regrows_a_roi_that_cuts_the_subject(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(refresh_every=4))
+    packer.detect(frames)  # call 0: whole frames, ROIs around the people
+    naive = detector.detect(frames[1][1])
+    x0, y0, x1, y1 = naive.boxes[int(np.argmax(naive.boxes[:, 3] - naive.boxes[:, 1]))]
+    # Camera 1's ROI now shows the subject's upper half only, as after a partial detection.
+    cut = Roi(max(0, int(x0) - 20), max(0, int(y0) - 20), min(sizes[1][0], int(x1) + 20), int((y0 + y1) / 2))
+    # Camera 1 falls due on call 1; its refresh rides along once it fits the canvases of a call, and is forced
+    # after one period (4 calls) at the latest. Until then its ROI keeps cutting the subject.
+    for _ in range(6):
+        packer.rois[1] = [cut]
+        out = packer.detect(frames)
+        if packer.stats.refresh_tiles:
+            break
+    assert packer.stats.refresh_tiles >= 1 and packer.stats.calls <= 1 + 4 + 1
+    assert any(t.roi == Roi(0, 0, *sizes[1]) for p in packer.last_packings for t in p.tiles)
+    # The next ROI takes in the whole subject again, and this frame's output has them.
+    assert any(r.x0 <= x0 + 8 and r.y0 <= y0 + 8 and r.x1 >= x1 - 8 and r.y1 >= y1 - 8 for r in packer.rois[1])
+    assert any(match_people(naive, out[1][1]))
+
+
+def test_tall_tiles_are_capped_and_still_find_the_subject(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(max_tile_height=0.25, refresh_every=0))
+    packer.detect(frames)
+    out = packer.detect(frames)
+    tiles = [t for p in packer.last_packings for t in p.tiles]
+    assert tiles and all(t.h <= 0.25 * 640 + 1e-6 for t in tiles)
+    for slot in range(2):
+        for cam, img in enumerate(frames[slot]):
+            _plausible(out[slot][cam], img.shape[0])
+
+
+def test_a_person_cut_by_a_neighbours_tile_is_reported_from_their_own_tile(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(refresh_every=0))
+    naive = detector.detect(frames[1][1])
+    box = naive.boxes[int(np.argmax(naive.boxes[:, 3] - naive.boxes[:, 1]))]
+    x0, y0, x1, y1 = (int(v) for v in box)
+    w, h = sizes[1]
+    # A neighbour's ROI showing the subject's upper half, and the subject's own ROI with a margin.
+    upper = Roi(max(0, x0 - 40), max(0, y0 - 40), min(w, x1 + 40), (y0 + y1) // 2)
+    own = Roi(max(0, x0 - 60), max(0, y0 - 60), min(w, x1 + 60), min(h, y1 + 60))
+    packer.rois = [[Roi(0, 0, 64, 64)] for _ in sizes]
+    packer.rois[1] = [upper, own]
+    out = packer.detect(frames)[1][1]
+    best = max(_iou(b, box) for b in out.boxes)
+    assert best > 0.8  # the whole subject, not their upper half
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = iw * ih
+    return float(inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter))

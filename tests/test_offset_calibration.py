@@ -10,17 +10,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mocapd.core.camera import look_at
-from mocapd.core.keypoint_formats import BONE_NAMES, COCO17
+from mocapd.core.camera import look_at, triangulate_projections
+from mocapd.core.keypoints import COCO17_FORMAT as COCO17
 from mocapd.core.offset_calibration import (
     calibrate_offsets,
     offsets_from_json,
     offsets_to_json,
     project,
     to_bone_space,
-    triangulate_weighted,
 )
 from mocapd.core.rotations import matrix_from_rotvec, random_rotvec
+from mocapd.core.skeleton import BONE_NAMES
 from mocapd.errors import CalibrationError, InputError
 
 
@@ -31,6 +31,13 @@ def _rig(n: int = 4) -> np.ndarray:
         cam = look_at(f"c{k}", np.array([4 * np.sin(a), 1.8, 4 * np.cos(a)]), np.array([0, 1.0, 0]), 1088, 1920, 1600)
         Ps.append(cam.K @ np.hstack([cam.R, cam.t[:, None]]))
     return np.stack(Ps)
+
+
+def triangulate_weighted(P: np.ndarray, uv: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """One point through the core DLT the calibration uses: uv (n_cams, 2), w (n_cams,) → (3,)."""
+    X, _ = triangulate_projections(P, uv[:, None], w[:, None])
+    point: np.ndarray = X[0]
+    return point
 
 
 def test_triangulate_weighted_is_exact_on_clean_views_and_ignores_zero_weight() -> None:

@@ -216,3 +216,48 @@ def test_boxes_cut_by_an_inner_roi_edge_grow_past_it() -> None:
     edge = Roi(0, 0, 1088, 1920)
     np.testing.assert_allclose(grow_cut_boxes(np.array([[0.0, 0.0, 300.0, 1920.0]]), [edge], 1088, 1920, margin=0.1),
                                [[0.0, 0.0, 300.0, 1920.0]])  # fmt: skip
+
+
+def _cells(cols: int, rows: int, x0: int = 0, y0: int = 0) -> AlignedRoi:
+    """A ROI of exactly ``cols x rows`` stride cells at scale 1 and phase 0."""
+    return AlignedRoi(Roi(x0, y0, x0 + 32 * cols, y0 + 32 * rows), 1.0, 1.0, 0.0, 0.0)
+
+
+def test_grid_planner_fills_the_space_beside_tall_tiles() -> None:
+    # On a 20 x 20-cell canvas: a 7x12 tile, then 10x9 beside it, leave no room on the 12-high row shelf for
+    # the last 7x9 tile, and 12 + 9 rows do not stack (columns fail alike): shelves need 2 canvases. Whole
+    # cells placed top-left first fit put the 7x9 tile under the 10x9 one, beside the tall tile.
+    items = [_cells(7, 12), _cells(10, 9), _cells(7, 9)]
+    packs = plan_aligned_canvases(items, 640, 640, gap=0, stride=32)
+    assert len(packs) == 1
+    _no_overlap(packs[0])
+    assert sorted(t.index for t in packs[0].tiles) == list(range(3))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_grid_planner_keeps_phase_and_never_needs_more_canvases(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    lb = letterbox_geometry(1088, 1920, 640, 640)
+    rois = [snap_roi_to_grid(r, lb.sx, lb.sy, lb.pad_x, lb.pad_y, 32, 1088, 1920) for r in _random_rois(rng, 14)]
+    items = [AlignedRoi(r, lb.sx, lb.sy, lb.pad_x, lb.pad_y) for r in rois]
+    packs = plan_aligned_canvases(items, 640, 640, gap=0, stride=32)
+    area = sum(it.roi.width * it.sx * it.roi.height * it.sy for it in items)
+    assert len(packs) >= area / 640**2
+    assert sorted(t.index for p in packs for t in p.tiles) == list(range(14))
+    for p in packs:
+        _no_overlap(p)
+        for t in p.tiles:
+            px, py = items[t.index].phase
+            assert min((t.x - px) % 32, 32 - (t.x - px) % 32) == pytest.approx(0.0, abs=1e-6)
+            assert min((t.y - py) % 32, 32 - (t.y - py) % 32) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_box_is_judged_by_the_roi_holding_most_of_it() -> None:
+    # Two people side by side with overlapping ROIs; the right one's centre lies in the left ROI too, whose
+    # right edge runs through them. They were found in their own ROI, which does not cut them: no growth.
+    left, right = Roi(100, 200, 650, 1300), Roi(380, 200, 900, 1300)
+    box = np.array([[450.0, 300.0, 750.0, 1200.0]])
+    np.testing.assert_allclose(grow_cut_boxes(box, [left, right], 1088, 1920, margin=0.1), box)
+    # Cut by its own ROI's bottom edge, it still grows.
+    cut = np.array([[450.0, 300.0, 750.0, 1299.0]])
+    assert grow_cut_boxes(cut, [left, right], 1088, 1920, margin=0.1)[0, 3] > 1299.0

@@ -48,6 +48,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-scale-ratio", type=float, default=1.0, help="packed tile scale / naive scale, minimum")
     ap.add_argument("--max-scale-ratio", type=float, default=1.0, help="packed tile scale / naive scale, maximum")
     ap.add_argument("--align-stride", type=int, default=32, help="0: common-scale packing; >0: aligned tiles")
+    ap.add_argument(
+        "--max-tile-height", type=float, default=defaults.max_tile_height, help="tallest tile / canvas height (0: off)"
+    )
+    ap.add_argument("--refresh-every", type=int, default=defaults.refresh_every, help="whole-frame refresh period")
+    ap.add_argument("--refresh-scale-ratio", type=float, default=defaults.refresh_scale_ratio, help="refresh scale")
     ap.add_argument("--canvas", default="", help="packed canvas size WxH (default: the model's 640x640)")
     args = ap.parse_args(argv)
 
@@ -83,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
             align_stride=args.align_stride,
             min_scale_ratio=args.min_scale_ratio,
             max_scale_ratio=args.max_scale_ratio,
+            max_tile_height=args.max_tile_height,
+            refresh_every=args.refresh_every,
+            refresh_scale_ratio=args.refresh_scale_ratio,
             n_o=2,
             n_p=2,
         ),
@@ -144,10 +152,15 @@ def main(argv: list[str] | None = None) -> int:
         "align_stride": args.align_stride,
         "min_scale_ratio": args.min_scale_ratio,
         "max_scale_ratio": args.max_scale_ratio,
+        "max_tile_height": args.max_tile_height,
+        "refresh_every": args.refresh_every,
+        "refresh_scale_ratio": args.refresh_scale_ratio,
         "naive_camera_frames_per_s_median": round(float(np.median(n_cf / tn_a)), 2),
         "packed_camera_frames_per_s_median": round(float(np.median(n_cf / tp_a)), 2),
         "speedup_median": round(float(np.median(tn_a / tp_a)), 2),
         "packed_canvases_per_pair_median": float(np.median(canvases)),
+        "packed_canvases_per_pair_mean": round(float(np.mean(canvases)), 2),
+        "refresh_tiles": packer.stats.refresh_tiles,
         "packed_scale_median": round(float(np.median(scales)), 3),
         "naive_scale": round(min(det.input_size[0] / sizes[0][0], det.input_size[1] / sizes[0][1]), 3),
         "disagreement_px_median": round(float(np.median(dis)), 2) if dis else None,

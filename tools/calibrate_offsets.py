@@ -26,8 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mocapd.core.keypoint_formats import BONE_NAMES, keypoint_format
+from mocapd.core.keypoints import keypoint_format
 from mocapd.core.offset_calibration import calibrate_offsets, offsets_to_json
+from mocapd.core.skeleton import BONE_INDEX
 from mocapd.errors import MocapdError
 
 
@@ -44,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
             missing = {"P", "keypoints", "bone_rot", "bone_pos"} - set(data.files)
             if missing:
                 raise MocapdError(f"{args.inputs} lacks arrays {sorted(missing)}")
-            bones = [BONE_NAMES.index(fmt.targets[k].bone) if k in fmt.targets else -1 for k in fmt.keypoints]
+            bones = [BONE_INDEX[fmt.targets[k].bone] if k in fmt.targets else -1 for k in fmt.keypoints]
             est = calibrate_offsets(
                 data["P"], data["keypoints"], data["bone_rot"], data["bone_pos"], bones,
                 min_confidence=args.min_confidence,

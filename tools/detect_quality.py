@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.keypoint_formats import COCO17
-from mocapd.core.offset_calibration import triangulate_weighted
+from mocapd.core.camera import triangulate_projections
+from mocapd.core.keypoints import COCO17_FORMAT
 from mocapd.core.pose2d import PoseDetections, box_iou
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
@@ -156,6 +156,13 @@ def run_demo(
     return results, frames, sample_canvas
 
 
+def _triangulate(P: F64, uv: F64, w: F64) -> F64:
+    """One keypoint from its views: P (n_cams, 3, 4), undistorted uv (n_cams, 2), weights (n_cams,)."""
+    X, _ = triangulate_projections(P, uv[:, None], w[:, None])
+    point: F64 = X[0]
+    return point
+
+
 def _errors(cams: list[QcaCamera], X: F64, raw: F64, views: NDArray[np.bool_]) -> F64:
     out = np.full(len(cams), np.nan)
     for c, cam in enumerate(cams):
@@ -196,7 +203,7 @@ def reprojection(
             views = w[:, k] > 0
             if views.sum() < 2:
                 continue
-            X = triangulate_weighted(P, uv[:, k], w[:, k])
+            X = _triangulate(P, uv[:, k], w[:, k])
             if not np.all(np.isfinite(X)):
                 continue
             n_points += 1
@@ -205,7 +212,7 @@ def reprojection(
             while views.sum() > 2 and np.nanmax(e) > reject_px:
                 views[int(np.nanargmax(e))] = False
                 dropped += 1
-                X = triangulate_weighted(P, uv[:, k], np.where(views, w[:, k], 0.0))
+                X = _triangulate(P, uv[:, k], np.where(views, w[:, k], 0.0))
                 e = _errors(cams, X, raw[:, k], views)
             robust.extend(e[views].tolist())
     a, r = np.array(errs), np.array(robust)
@@ -229,7 +236,7 @@ def draw(img: np.ndarray, det: PoseDetections, subjects: set[int]) -> np.ndarray
         x0, y0, x1, y1 = det.boxes[i].astype(int)
         cv2.rectangle(out, (x0, y0), (x1, y1), color, 3)
         kp = det.keypoints[i]
-        for a, b in COCO17.edges:
+        for a, b in COCO17_FORMAT.edges:
             if kp[a, 2] >= CONF and kp[b, 2] >= CONF:
                 cv2.line(out, tuple(kp[a, :2].astype(int)), tuple(kp[b, :2].astype(int)), color, 4)
         for x, y, c in kp:
@@ -245,14 +252,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("results/detection"))
+    ap.add_argument("--demo", choices=("both", "Demo_SinglePerson", "Demo_MultiPerson"), default="both")
+    packing = DetectorConfig().packing
+    ap.add_argument("--refresh-every", type=int, default=packing.refresh_every, help="0: no whole-frame refresh")
+    ap.add_argument("--max-tile-height", type=float, default=packing.max_tile_height, help="0: no tile cap")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    cfg = DetectorConfig(intra_op_threads=args.threads)  # the shipped defaults (config.toml)
+    packing = dataclasses.replace(packing, refresh_every=args.refresh_every, max_tile_height=args.max_tile_height)
+    # The shipped defaults (config.toml) unless overridden above.
+    cfg = DetectorConfig(intra_op_threads=args.threads, packing=packing)
     det = OnnxPoseDetector.from_config(cfg)
     report: dict[str, Any] = {"mode": args.mode, "confident": CONF, "min_keypoints": MIN_KP}
     if args.mode == "packed":
         report["packing"] = dataclasses.asdict(cfg.packing)
     for demo, n_subjects in (("Demo_SinglePerson", 1), ("Demo_MultiPerson", 2)):
+        if args.demo not in ("both", demo):
+            continue
         results, frames, sample = run_demo(demo, det, cfg, args.mode, args.frames)
         n = len(results)
         per_cam: dict[str, Any] = {}

@@ -228,15 +228,50 @@ def triangulate(
         raise InputError(f"uv must have shape ({n_cams}, n_pts, 2), got {uv.shape}")
     if w.shape != uv.shape[:2]:
         raise InputError(f"weights must have shape {uv.shape[:2]}, got {w.shape}")
-    n_pts = uv.shape[1]
     finite = np.all(np.isfinite(uv), axis=-1) & np.isfinite(w) & (w > 0)
     w = np.where(finite, w, 0.0)
     uv = np.where(finite[..., None], uv, 0.0)
     und = np.stack([c.undistort_points(uv[i]) for i, c in enumerate(cameras)]) if n_cams else uv
     P = np.stack([c.projection_matrix for c in cameras]) if n_cams else np.zeros((0, 3, 4))
+    return triangulate_projections(P, und, w, min_views)
+
+
+def triangulate_projections(
+    P: FloatArray, uv: FloatArray, weights: FloatArray, min_views: int = 2
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The DLT of :func:`triangulate` on projection matrices and undistorted pixels.
+
+    Parameters
+    ----------
+    P : array, shape (n_cams, 3, 4)
+        Projection matrices (undistorted pixels = dehom(P @ [X, 1])).
+    uv : array, shape (n_cams, n_pts, 2)
+        Undistorted pixel observations.
+    weights : array, shape (n_cams, n_pts)
+        Confidence; 0 (or a non-finite uv) excludes the view.
+    min_views : int
+        Points seen (weight > 0) in fewer views are returned as NaN.
+
+    Returns
+    -------
+    X : array, shape (n_pts, 3)
+    ok : bool array, shape (n_pts,)
+    """
+    P = np.asarray(P, dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    n_cams = P.shape[0] if P.ndim == 3 else -1
+    if P.ndim != 3 or P.shape[1:] != (3, 4) or uv.ndim != 3 or uv.shape[0] != n_cams or uv.shape[2] != 2:
+        raise InputError(f"P must be (n_cams, 3, 4) and uv (n_cams, n_pts, 2), got {P.shape} and {uv.shape}")
+    if w.shape != uv.shape[:2]:
+        raise InputError(f"weights must have shape {uv.shape[:2]}, got {w.shape}")
+    n_pts = uv.shape[1]
+    finite = np.all(np.isfinite(uv), axis=-1) & np.isfinite(w) & (w > 0)
+    w = np.where(finite, w, 0.0)
+    uv = np.where(finite[..., None], uv, 0.0)
     # rows: (n_pts, 2 * n_cams, 4)
-    r1 = und[..., 0, None] * P[:, None, 2, :] - P[:, None, 0, :]
-    r2 = und[..., 1, None] * P[:, None, 2, :] - P[:, None, 1, :]
+    r1 = uv[..., 0, None] * P[:, None, 2, :] - P[:, None, 0, :]
+    r2 = uv[..., 1, None] * P[:, None, 2, :] - P[:, None, 1, :]
     A = np.concatenate((r1, r2), axis=0).transpose(1, 0, 2)
     # Unit-norm rows first (conditioning: pixel-sized rows would dominate), then the confidence weight.
     norms = np.linalg.norm(A, axis=-1, keepdims=True)

@@ -1,19 +1,36 @@
-"""Keypoints as track targets ``(bone, offset t_pb)`` (seed 003 §3.1, §3.3.2).
+"""Keypoint sets of 2D detectors and their track targets ``(bone, offset t_pb)`` (seed 003 §3.1, §3.3.2).
 
 A 2D detector outputs a named keypoint set; each keypoint is tied to a skeleton bone and an offset in that
 bone's frame. Joint keypoints sit on a bone's joint (zero offset by default); surface keypoints (nose, eyes,
 ears) have non-zero offsets. Calibrated offsets (seed 003 §3.3.2) replace the defaults.
+
+Bone frames coincide with the world axes in the rest pose (T-pose facing +Z, +Y up, right-handed, so +X is
+the subject's left), with the origin at the bone's proximal joint: a keypoint at a joint centre sits at the
+origin of the child bone (elbow → LowerArm), and face keypoints at offsets from the Head bone's origin (the
+top of the neck). Default offsets are anthropometric for a 1.75 m adult.
+
+Two views of the same data live here:
+
+* :class:`KeypointFormat` (``coco17``, ``body25``, ``halpe26``): a detector's keypoint names in output order,
+  a :class:`TrackTarget` per keypoint and the stick-figure edges; chosen by name in config, written to and
+  read from offsets files (:mod:`mocapd.core.offset_calibration`);
+* :class:`TrackTargets`: the solver's arrays (bone indices, offsets), from
+  :meth:`KeypointFormat.track_targets` or :func:`coco17_targets`.
+
+``COCO17`` (name, bone, offset) is the one table of COCO-17 defaults; the formats take their COCO-17
+keypoints from it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.skeleton import BONE_INDEX, REFERENCE_HEIGHT, Skeleton
-from mocapd.errors import InputError
+from mocapd.errors import ConfigError, InputError
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -101,3 +118,215 @@ def floor_targets() -> TrackTargets:
         bones=np.array([BONE_INDEX[b] for b in FLOOR_TARGET_BONES], dtype=np.intp),
         offsets=np.zeros((len(FLOOR_TARGET_BONES), 3)),
     )
+
+
+# ------------------------------------------------------------------------------------ detector formats
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class TrackTarget:
+    """A point on a bone: the bone's name and the offset (metres, bone frame) from its origin."""
+
+    bone: str
+    offset: Vec3 = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class KeypointFormat:
+    """A detector's keypoint list and where each keypoint lives on the skeleton.
+
+    Attributes
+    ----------
+    name : str
+        Format name used in config (``coco17``, ``body25``, ``halpe26``).
+    keypoints : tuple of str
+        Keypoint names in the detector's output order.
+    targets : dict
+        Keypoint name → TrackTarget, for every keypoint the solver should use.
+    edges : tuple of (int, int)
+        Keypoint index pairs to draw as a stick figure.
+    """
+
+    name: str
+    keypoints: tuple[str, ...]
+    targets: Mapping[str, TrackTarget]
+    edges: tuple[tuple[int, int], ...]
+
+    def __post_init__(self) -> None:
+        for kp, tt in self.targets.items():
+            if kp not in self.keypoints:
+                raise ConfigError(f"{self.name}: track target for unknown keypoint {kp!r}")
+            if tt.bone not in BONE_INDEX:
+                raise ConfigError(f"{self.name}: keypoint {kp!r} on unknown bone {tt.bone!r}")
+
+    @property
+    def n_keypoints(self) -> int:
+        return len(self.keypoints)
+
+    def index(self, name: str) -> int:
+        """Position of keypoint ``name`` in the detector output."""
+        try:
+            return self.keypoints.index(name)
+        except ValueError:
+            raise ConfigError(f"{self.name} has no keypoint {name!r}; it has {list(self.keypoints)}") from None
+
+    def with_offsets(self, offsets: Mapping[str, TrackTarget]) -> KeypointFormat:
+        """A copy whose targets are replaced by ``offsets`` where given (e.g. from a calibration file)."""
+        merged = dict(self.targets)
+        merged.update(offsets)
+        return KeypointFormat(self.name, self.keypoints, merged, self.edges)
+
+    def track_targets(self, skeleton: Skeleton | None = None) -> TrackTargets:
+        """The solver's arrays for the keypoints that have a target, in output order; offsets scaled to the
+        skeleton's height (as :func:`coco17_targets`)."""
+        s = (skeleton.height if skeleton is not None else REFERENCE_HEIGHT) / REFERENCE_HEIGHT
+        names = tuple(k for k in self.keypoints if k in self.targets)
+        return TrackTargets(
+            names=names,
+            bones=np.array([BONE_INDEX[self.targets[k].bone] for k in names], dtype=np.intp),
+            offsets=np.array([self.targets[k].offset for k in names], dtype=np.float64).reshape(-1, 3) * s,
+        )
+
+
+def _both_sides(left: dict[str, TrackTarget]) -> dict[str, TrackTarget]:
+    """Left-side targets and their right-side twins (name and bone Left→Right, x negated)."""
+    out = dict(left)
+    for name, tt in left.items():
+        x, y, z = tt.offset
+        out[name.replace("left", "right")] = TrackTarget(tt.bone.replace("Left", "Right"), (-x, y, z))
+    return out
+
+
+_COCO17_TARGETS: dict[str, TrackTarget] = {name: TrackTarget(bone, off) for name, bone, off in COCO17}
+_LEFT_FOOT: dict[str, TrackTarget] = {
+    # Toes bone origin = ball of the foot; big toe tip is forward and medial (-x on the left foot).
+    "left_big_toe": TrackTarget("LeftToes", (-0.02, -0.01, 0.05)),
+    "left_small_toe": TrackTarget("LeftToes", (0.03, -0.01, 0.02)),
+    # Foot bone origin = ankle centre, about 7 cm above the floor; the heel is behind and below it.
+    "left_heel": TrackTarget("LeftFoot", (0.0, -0.07, -0.05)),
+}
+_COCO17_EDGES = (
+    (0, 1), (0, 2), (1, 3), (2, 4), (5, 6), (5, 7), (7, 9), (6, 8), (8, 10), (5, 11), (6, 12),
+    (11, 12), (11, 13), (13, 15), (12, 14), (14, 16),
+)  # fmt: skip
+
+COCO17_FORMAT = KeypointFormat(
+    name="coco17",
+    keypoints=tuple(_COCO17_TARGETS),
+    targets=_COCO17_TARGETS,
+    edges=_COCO17_EDGES,
+)
+"""COCO-17 (Ultralytics YOLO-pose, MMPose, RTMPose)."""
+
+BODY25_FORMAT = KeypointFormat(
+    name="body25",
+    keypoints=(
+        "nose",
+        "neck",
+        "right_shoulder",
+        "right_elbow",
+        "right_wrist",
+        "left_shoulder",
+        "left_elbow",
+        "left_wrist",
+        "mid_hip",
+        "right_hip",
+        "right_knee",
+        "right_ankle",
+        "left_hip",
+        "left_knee",
+        "left_ankle",
+        "right_eye",
+        "left_eye",
+        "right_ear",
+        "left_ear",
+        "left_big_toe",
+        "left_small_toe",
+        "left_heel",
+        "right_big_toe",
+        "right_small_toe",
+        "right_heel",
+    ),
+    targets={
+        **_COCO17_TARGETS,
+        "neck": TrackTarget("Neck"),
+        "mid_hip": TrackTarget("Hips"),
+        **_both_sides(_LEFT_FOOT),
+    },
+    edges=(
+        (0, 1),
+        (1, 2),
+        (2, 3),
+        (3, 4),
+        (1, 5),
+        (5, 6),
+        (6, 7),
+        (1, 8),
+        (8, 9),
+        (9, 10),
+        (10, 11),
+        (8, 12),
+        (12, 13),
+        (13, 14),
+        (0, 15),
+        (15, 17),
+        (0, 16),
+        (16, 18),
+        (14, 19),
+        (19, 20),
+        (14, 21),
+        (11, 22),
+        (22, 23),
+        (11, 24),
+    ),
+)
+"""OpenPose BODY_25."""
+
+HALPE26_FORMAT = KeypointFormat(
+    name="halpe26",
+    keypoints=(
+        *_COCO17_TARGETS,
+        "head",
+        "neck",
+        "hip",
+        "left_big_toe",
+        "right_big_toe",
+        "left_small_toe",
+        "right_small_toe",
+        "left_heel",
+        "right_heel",
+    ),
+    targets={
+        **_COCO17_TARGETS,
+        "head": TrackTarget("Head", (0.0, 0.20, 0.02)),
+        "neck": TrackTarget("Neck"),
+        "hip": TrackTarget("Hips"),
+        **_both_sides(_LEFT_FOOT),
+    },
+    edges=(
+        *_COCO17_EDGES,
+        (17, 18),
+        (18, 19),
+        (19, 11),
+        (19, 12),
+        (15, 20),
+        (15, 22),
+        (15, 24),
+        (16, 21),
+        (16, 23),
+        (16, 25),
+    ),
+)
+"""AlphaPose / RTMPose Halpe-26."""
+
+FORMATS: Mapping[str, KeypointFormat] = {f.name: f for f in (COCO17_FORMAT, BODY25_FORMAT, HALPE26_FORMAT)}
+
+
+def keypoint_format(name: str) -> KeypointFormat:
+    """The format called ``name`` (``coco17``, ``body25``, ``halpe26``)."""
+    try:
+        return FORMATS[name]
+    except KeyError:
+        raise ConfigError(f"unknown keypoint format {name!r}; known: {sorted(FORMATS)}") from None

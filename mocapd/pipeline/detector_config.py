@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any, TypeVar
 
-from mocapd.core.keypoint_formats import FORMATS
+from mocapd.core.keypoints import FORMATS
 from mocapd.core.roi_packing import SubsampleSchedule
 from mocapd.errors import ConfigError
 
@@ -98,6 +98,19 @@ class PackingConfig:
     max_scale_ratio: float = 1.0
     """A packed tile is never scaled above this × the whole-frame scale (1.0 with min_scale_ratio 1.0: tiles
     at exactly the whole-frame scale, so packed and unpacked detection see people at the same size)."""
+    max_tile_height: float = 0.0
+    """A person's tile is never taller than this fraction of the canvas height: a taller ROI is scaled down
+    to that height (keeping its aspect) instead of its whole-frame scale, so that two large people stack on
+    one canvas. The model still sees such a person over ``max_tile_height`` x canvas height pixels, far above
+    what it needs; only these tiles lose stride alignment. 0 = off (every tile at its whole-frame scale)."""
+    refresh_every: int = 8
+    """Every this many packed calls, each camera also sees its whole frame once (cameras staggered, so a
+    4-camera rig refreshes one camera every other call with the default): people who are new, or whom a
+    partial detection's ROI keeps cutting, are found there and re-seed the ROIs. 0 = never."""
+    refresh_scale_ratio: float = 0.5
+    """Scale of that whole-frame refresh tile, as a multiple of the whole-frame letterbox scale (0.1..1):
+    it only has to find people, not to place their keypoints (its detections are used where no ROI found
+    the person)."""
     n_o: int = 2
     """Temporal sub-sampling: detect the first N_o frames of every N_p (seed 000 §4.1.2)."""
     n_p: int = 2
@@ -113,6 +126,14 @@ class PackingConfig:
                 raise ConfigError(f"detector.packing.{key} must be 0 or a multiple of 32, got {v}")
         if self.align_stride < 0 or self.align_stride > 256:
             raise ConfigError(f"detector.packing.align_stride must be in [0, 256], got {self.align_stride}")
+        if not (self.max_tile_height == 0.0 or 0.1 <= self.max_tile_height <= 1.0):
+            raise ConfigError(f"detector.packing.max_tile_height must be 0 or in [0.1, 1], got {self.max_tile_height}")
+        if self.refresh_every < 0:
+            raise ConfigError(f"detector.packing.refresh_every must be >= 0, got {self.refresh_every}")
+        if not 0.1 <= self.refresh_scale_ratio <= 1.0:
+            raise ConfigError(
+                f"detector.packing.refresh_scale_ratio must be in [0.1, 1], got {self.refresh_scale_ratio}"
+            )
         if not 0 <= self.gap <= 64:
             raise ConfigError(f"detector.packing.gap must be in [0, 64], got {self.gap}")
         if not 0.1 <= self.min_scale_ratio <= self.max_scale_ratio <= 4.0:

@@ -44,6 +44,7 @@ class PackingStats:
     camera_frames: int = 0
     tiles: int = 0
     full_frame_tiles: int = 0
+    refresh_tiles: int = 0
 
 
 def _box_area(b: FloatArray) -> float:
@@ -118,6 +119,7 @@ class PackedDetector:
         self._max_scale = min(1.0, cfg.max_scale_ratio * max(full_scales))
         self._letterboxes = [letterbox_geometry(w, h, cw, ch) for w, h in self.image_sizes]
         self.stats = PackingStats()
+        self._refresh_due: dict[int, int] = {}  # camera → the call its refresh fell due
         self.last_packings: list[Packing] = []
         self.last_tile_images: list[Image] = []
 
@@ -157,56 +159,159 @@ class PackedDetector:
                 if img.shape[:2] != (h, w):
                     raise InputError(f"camera {cam} image is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
                 items.extend((slot, cam, roi) for roi in self.rois[cam])
-        rois = [it[2] for it in items]
-        min_scales = [self._min_scales[it[1]] for it in items]
+        # Refresh tiles come last: item index >= n_roi_items marks them.
+        n_roi_items = len(items)
+        call = self.stats.calls
+        for cam in self.refresh_cameras(call):
+            self._refresh_due.setdefault(cam, call)
+        due = sorted(c for c in self._refresh_due if not any(self._is_full(c, r) for r in self.rois[c]))
+        # A due refresh rides along when it fits the canvases this call needs anyway; one that would open a
+        # canvas of its own waits, at most one period (then it is forced, alone, keeping the stagger).
+        forced = [c for c in due if call - self._refresh_due[c] >= self.cfg.refresh_every]
+        refresh = forced
+        items = [*items, *((len(frames) - 1, c, full_roi(*self.image_sizes[c])) for c in forced)]
+        packings = self._plan(items, n_roi_items)
+        optional = [c for c in due if c not in forced]
+        if optional:
+            more = [*items, *((len(frames) - 1, c, full_roi(*self.image_sizes[c])) for c in optional)]
+            plan = self._plan(more, n_roi_items)
+            if len(plan) <= len(packings):
+                items, packings, refresh = more, plan, due
+        for cam in list(self._refresh_due):
+            if cam in refresh or any(self._is_full(cam, r) for r in self.rois[cam]):
+                del self._refresh_due[cam]
         images = [frames[it[0]][it[1]] for it in items]
-        cw, ch = self.canvas_detector.input_size
-        if self.cfg.align_stride > 0:
-            aligned = []
-            for _, cam, roi in items:
-                lb = self._letterboxes[cam]
-                aligned.append(AlignedRoi(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y))
-            packings = plan_aligned_canvases(aligned, cw, ch, gap=self.cfg.gap, stride=self.cfg.align_stride)
-        else:
-            packings = plan_canvases(rois, min_scales, cw, ch, gap=self.cfg.gap, max_scale=self._max_scale)
         parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
+        part_rois: list[list[list[Roi]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
+        refreshed: list[PoseDetections | None] = [None] * self.n_cameras
         for packing in packings:
             canvas = render_canvas(packing, images, self.detector.spec.pad_value)
             found = unpack_detections(self.canvas_detector.run_canvas(canvas), packing)
             for tile, det in zip(packing.tiles, found, strict=True):
                 slot, cam, _ = items[tile.index]
-                parts[slot][cam].append(det)
-        out = [[self._merge(p, n_kp) for p in slot_parts] for slot_parts in parts]
-        self._update_rois(out[-1])
+                if tile.index >= n_roi_items:
+                    refreshed[cam] = det
+                else:
+                    parts[slot][cam].append(det)
+                    part_rois[slot][cam].append(items[tile.index][2])
+        out = [
+            [self._merge(p, n_kp, cam, r) for cam, (p, r) in enumerate(zip(slot_parts, slot_rois, strict=True))]
+            for slot_parts, slot_rois in zip(parts, part_rois, strict=True)
+        ]
+        seeds = list(out[-1])
+        for cam, extra in enumerate(refreshed):
+            if extra is not None:
+                out[-1][cam], seeds[cam] = self._add_refreshed(out[-1][cam], extra, n_kp)
+        self._update_rois(seeds)
         self.last_packings = packings
         self.last_tile_images = images  # tile.index → its source image (for drawing the canvases)
         self.stats.calls += 1
         self.stats.canvases += len(packings)
         self.stats.camera_frames += len(frames) * self.n_cameras
         self.stats.tiles += len(items)
-        self.stats.full_frame_tiles += sum(
-            1 for _, cam, r in items if (r.width, r.height) == self.image_sizes[cam] and r.x0 == 0 and r.y0 == 0
-        )
+        self.stats.full_frame_tiles += sum(1 for _, cam, r in items[:n_roi_items] if self._is_full(cam, r))
+        self.stats.refresh_tiles += len(refresh)
         return out
 
-    def _merge(self, parts: list[PoseDetections], n_kp: int) -> PoseDetections:
+    def _plan(self, items: Sequence[tuple[int, int, Roi]], n_roi_items: int) -> list[Packing]:
+        """Canvases for ``items`` (``(slot, camera, roi)``; those from ``n_roi_items`` on are refresh tiles)."""
+        cw, ch = self.canvas_detector.input_size
+        if self.cfg.align_stride > 0:
+            aligned = [self._aligned(cam, roi, k >= n_roi_items) for k, (_, cam, roi) in enumerate(items)]
+            return plan_aligned_canvases(aligned, cw, ch, gap=self.cfg.gap, stride=self.cfg.align_stride)
+        rois = [it[2] for it in items]
+        min_scales = [self._min_scales[it[1]] for it in items]
+        return plan_canvases(rois, min_scales, cw, ch, gap=self.cfg.gap, max_scale=self._max_scale)
+
+    def _is_full(self, cam: int, roi: Roi) -> bool:
+        return roi == full_roi(*self.image_sizes[cam])
+
+    def refresh_cameras(self, call: int) -> list[int]:
+        """Cameras that get a whole-frame refresh tile on packed call number ``call`` (0-based).
+
+        Camera ``c`` falls due on calls ``c * refresh_every // n_cameras + k * refresh_every``: the refreshes
+        of a rig are spread evenly over the period, so their cost is too. A camera that looks at its whole
+        frame anyway (it found nobody) is skipped. :meth:`detect` then adds a due refresh tile as soon as it
+        fits the canvases that call needs anyway, or when it has waited a whole period.
+        """
+        period = self.cfg.refresh_every
+        if period <= 0:
+            return []
+        return [
+            cam
+            for cam in range(self.n_cameras)
+            if (call - cam * period // self.n_cameras) % period == 0
+            and not any(self._is_full(cam, r) for r in self.rois[cam])
+        ]
+
+    def _aligned(self, cam: int, roi: Roi, refresh: bool) -> AlignedRoi:
+        """How one ROI goes on a canvas: its whole-frame letterbox transform, or its own smaller scale.
+
+        A refresh tile is scaled by ``refresh_scale_ratio``; a person ROI taller than ``max_tile_height`` of the
+        canvas is scaled down to that height. Either is placed on the stride grid (phase 0): with a scale of
+        its own, no placement reproduces the whole-frame pixels, so alignment buys nothing there.
+        """
+        lb = self._letterboxes[cam]
+        ratio = 1.0
+        if refresh:
+            ratio = self.cfg.refresh_scale_ratio
+        elif self.cfg.max_tile_height > 0 and not self._is_full(cam, roi):
+            cap = self.cfg.max_tile_height * self.canvas_detector.input_size[1]
+            ratio = min(1.0, cap / (roi.height * lb.sy))
+        if ratio >= 1.0:
+            return AlignedRoi(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y)
+        sx, sy = lb.sx * ratio, lb.sy * ratio
+        return AlignedRoi(roi, sx, sy, -roi.x0 * sx, -roi.y0 * sy)
+
+    def _add_refreshed(
+        self, found: PoseDetections, extra: PoseDetections, n_kp: int
+    ) -> tuple[PoseDetections, PoseDetections]:
+        """Output and ROI seeds of a camera that also had a whole-frame refresh tile.
+
+        The output keeps the ROI detections (full resolution) and adds refresh detections of people no ROI
+        found. The seeds take every refresh detection too, so that a person whom a ROI showed only in part
+        (a cut-off upper body) gets a ROI around the whole body next time: the overlapping ROIs merge.
+        """
+        new = [j for j in range(len(extra)) if not any(self._same_person(extra.boxes[j], b) for b in found.boxes)]
+        out = PoseDetections.concatenate([found, extra.select(np.asarray(new, dtype=np.int64))], n_kp)
+        return out, PoseDetections.concatenate([found, extra], n_kp)
+
+    def _is_cut(self, box: FloatArray, roi: Roi, img_w: int, img_h: int) -> bool:
+        """Whether ``box`` ends at an inner edge of ``roi`` (one that is not the image border), within the
+        tolerance :func:`mocapd.core.roi_packing.grow_cut_boxes` uses."""
+        tol = max(4.0, 0.5 * self.cfg.roi_margin * max(box[2] - box[0], box[3] - box[1]))
+        return bool(
+            (roi.x0 > 0 and box[0] - roi.x0 < tol)
+            or (roi.x1 < img_w and roi.x1 - box[2] < tol)
+            or (roi.y0 > 0 and box[1] - roi.y0 < tol)
+            or (roi.y1 < img_h and roi.y1 - box[3] < tol)
+        )
+
+    def _same_person(self, a: FloatArray, b: FloatArray) -> bool:
+        inter = _intersection(a, b)
+        union = _box_area(a) + _box_area(b) - inter
+        return inter > self.detector.spec.iou_threshold * union or inter > 0.8 * min(_box_area(a), _box_area(b))
+
+    def _merge(self, parts: list[PoseDetections], n_kp: int, cam: int = 0, rois: Sequence[Roi] = ()) -> PoseDetections:
         det = PoseDetections.concatenate(parts, n_kp)
         if len(parts) <= 1 or len(det) <= 1:
             return det
         # Overlapping ROIs of one camera show the same person twice, once maybe cut by a tile edge: drop a
-        # detection from another tile that overlaps a better one, or lies mostly inside it.
+        # detection from another tile that overlaps a better one, or lies mostly inside it. "Better" is first
+        # "not cut by its own tile's inner edge", then the score: a neighbour's tile often shows a person's
+        # upper half with a confident score, and keeping that would drop the whole person seen in their own tile.
         source = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
-        order = np.argsort(-det.scores, kind="stable")
+        cut = np.zeros(len(det), dtype=np.bool_)
+        if len(rois) == len(parts):
+            w, h = self.image_sizes[cam]
+            for i in range(len(det)):
+                cut[i] = self._is_cut(det.boxes[i], rois[int(source[i])], w, h)
+        order = np.lexsort((-det.scores, cut))
         keep: list[int] = []
         for i in order:
             dup = False
             for k in keep:
-                if source[k] == source[i]:
-                    continue
-                inter = _intersection(det.boxes[i], det.boxes[k])
-                small = min(_box_area(det.boxes[i]), _box_area(det.boxes[k]))
-                union = _box_area(det.boxes[i]) + _box_area(det.boxes[k]) - inter
-                if inter > self.detector.spec.iou_threshold * union or inter > 0.8 * small:
+                if source[k] != source[i] and self._same_person(det.boxes[i], det.boxes[k]):
                     dup = True
                     break
             if not dup:

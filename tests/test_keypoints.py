@@ -1,25 +1,29 @@
-"""Keypoint formats (COCO-17, Body25, Halpe-26) and their default track targets."""
+"""Keypoint formats (COCO-17, Body25, Halpe-26), their default track targets and the solver's COCO-17 table."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from mocapd.core.keypoint_formats import (
-    BODY25,
-    BONE_NAMES,
-    COCO17,
-    FORMATS,
-    HALPE26,
-    KeypointFormat,
-    TrackTarget,
-    keypoint_format,
-)
-from mocapd.core.skeleton import BONE_NAMES as SKELETON_BONES
+from mocapd.core.keypoints import BODY25_FORMAT as BODY25
+from mocapd.core.keypoints import COCO17 as COCO17_TABLE
+from mocapd.core.keypoints import COCO17_FORMAT as COCO17
+from mocapd.core.keypoints import FORMATS, KeypointFormat, TrackTarget, coco17_targets, keypoint_format
+from mocapd.core.keypoints import HALPE26_FORMAT as HALPE26
+from mocapd.core.skeleton import BONE_NAMES, Skeleton
 from mocapd.errors import ConfigError
 
 
-def test_bone_names_match_the_skeleton() -> None:
-    assert tuple(SKELETON_BONES) == BONE_NAMES
+def test_the_coco17_format_is_the_solvers_coco17_table() -> None:
+    # One set of COCO-17 defaults: the format and the solver's targets agree name by name.
+    assert COCO17.keypoints == tuple(n for n, _, _ in COCO17_TABLE)
+    for name, bone, offset in COCO17_TABLE:
+        assert COCO17.targets[name] == TrackTarget(bone, offset)
+    for sk in (None, Skeleton.from_height(1.6)):
+        a, b = COCO17.track_targets(sk), coco17_targets(sk)
+        assert a.names == b.names
+        np.testing.assert_array_equal(a.bones, b.bones)
+        np.testing.assert_allclose(a.offsets, b.offsets)
 
 
 @pytest.mark.parametrize(("fmt", "n"), [(COCO17, 17), (BODY25, 25), (HALPE26, 26)])
