@@ -25,26 +25,13 @@ from mocapd.service.demo_synthetic import running_demo
 from mocapd.service.session_replay import pose_frame, replay
 from mocapd.service.session_solve import resolve, session_rig
 from mocapd.service.session_truth import truth_report
-
-
-class Collect:
-    def __init__(self) -> None:
-        self.frames: list[PoseFrame] = []
-
-    def publish(self, frame: PoseFrame) -> None:
-        self.frames.append(frame)
-
-    async def start(self) -> None:
-        return None
-
-    async def aclose(self) -> None:
-        return None
+from tests.test_daemon import Recorder
 
 
 async def _record(path: Path, seconds: float) -> list[PoseFrame]:
     cfg = load_config()
     cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0))
-    live = Collect()
+    live = Recorder()
     with running_demo(cfg, sinks=[live], record=path) as demo:
         task = asyncio.create_task(demo.daemon.run())
         await asyncio.wait_for(demo.daemon.ready.wait(), 120)
@@ -100,7 +87,7 @@ def test_the_daemon_records_a_session_that_opens_intact(recorded: tuple[Path, li
 def test_replay_publishes_the_same_frames_at_the_recorded_pace(recorded: tuple[Path, list[PoseFrame]]) -> None:
     path, live = recorded
     frames = open_session(path).poses()
-    out = Collect()
+    out = Recorder()
     stats = asyncio.run(replay(frames, [out], speed=4.0))
     assert stats.frames == len(live) and all(_same(a, b) for a, b in zip(live, out.frames, strict=True))
     recorded_s = (frames[-1].t_solve_ns - frames[0].t_solve_ns) / 1e9

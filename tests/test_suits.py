@@ -75,3 +75,19 @@ def test_run_refuses_to_start_with_a_broken_calibration(tmp_path: Path, capsys: 
     cfg.write_text(text, encoding="utf-8")
     assert main(["run", "--config", str(cfg), "--http-port", "0"]) == 2
     assert "anna.imu.json" in capsys.readouterr().err
+
+
+def test_run_into_an_existing_session_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Recording over a session would destroy a take: the run refuses, names the file, exits 2, no traceback."""
+    from mocapd.service.cli import main
+
+    session = tmp_path / "take1"
+    session.mkdir()
+    (session / "poses.mcs").write_bytes(b"")
+    from mocapd.service.config import DEFAULT_CONFIG
+
+    cfg = tmp_path / "config.toml"  # the stream on any free port: the test must not depend on 8766 being free
+    cfg.write_text(DEFAULT_CONFIG.read_text(encoding="utf-8").replace("port = 8766 ", "port = 0 ", 1), encoding="utf-8")
+    assert main(["run", "--config", str(cfg), "--http-port", "0", "--record", str(session)]) == 2
+    err = capsys.readouterr().err
+    assert "exists already" in err and "Traceback" not in err

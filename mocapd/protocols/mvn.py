@@ -72,6 +72,7 @@ from mocapd.core.rotations import quat_from_matrix
 from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.conventions import MVN
+from mocapd.protocols.per_skeleton import PerSkeleton
 
 FloatArray = NDArray[np.float64]
 
@@ -196,7 +197,7 @@ class MvnEncoder:
             raise InputError(f"max_datagram_bytes = {max_datagram_bytes} would need more than {MAX_DATAGRAMS} "
                              "datagrams per character")  # fmt: skip
         self.segments = MvnSegments(skeleton)
-        self._sized: dict[int, tuple[Skeleton, MvnSegments]] = {}  # per-person skeletons (body sizing), by id()
+        self._sized = PerSkeleton(self.segments, MvnSegments)  # per-person skeletons (body sizing)
         self.items_per_datagram = per
         self._t0_ns: int | None = None
 
@@ -205,16 +206,6 @@ class MvnEncoder:
         if self._t0_ns is None:
             self._t0_ns = t_ns
         return ((t_ns - self._t0_ns) // 1_000_000) & 0xFFFFFFFF
-
-    def _segments_for(self, skeleton: Skeleton | None) -> MvnSegments:
-        if skeleton is None:
-            return self.segments
-        hit = self._sized.get(id(skeleton))
-        if hit is None or hit[0] is not skeleton:
-            if len(self._sized) > 64:  # people come and go: do not keep every skeleton ever seen
-                self._sized.clear()
-            hit = self._sized[id(skeleton)] = (skeleton, MvnSegments(skeleton))
-        return hit[1]
 
     def encode(
         self,
@@ -251,7 +242,7 @@ class MvnEncoder:
         if skeletons is None or all(sk is None for sk in skeletons):
             pos, quat = self.segments.compute(thetas)
         else:
-            parts = [self._segments_for(sk).compute(th[None]) for sk, th in zip(skeletons, thetas, strict=True)]
+            parts = [self._sized.get(sk).compute(th[None]) for sk, th in zip(skeletons, thetas, strict=True)]
             pos, quat = np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
         items = np.empty((len(characters), N_SEGMENTS), dtype=ITEM_DTYPE)
         items["id"] = SEGMENT_IDS

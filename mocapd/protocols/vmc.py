@@ -50,6 +50,7 @@ from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.conventions import UNITY
 from mocapd.protocols.osc import encode_message, message_prefix, osc_string, pack_bundles
+from mocapd.protocols.per_skeleton import PerSkeleton
 
 FloatArray = NDArray[np.float64]
 
@@ -168,7 +169,7 @@ class VmcEncoder:
 
     def __init__(self, skeleton: Skeleton, *, max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM) -> None:
         self.bones = VmcBones(skeleton)
-        self._sized: dict[int, tuple[Skeleton, VmcBones]] = {}  # per-person skeletons (body sizing), by id()
+        self._sized = PerSkeleton(self.bones, VmcBones)  # per-person skeletons (body sizing)
         self.max_datagram_bytes = max_datagram_bytes
         self._prefixes = [message_prefix(BONE_ADDRESS, "sfffffff") + osc_string(name) for name in BONE_NAMES]
         self._root = encode_message(ROOT_ADDRESS, ["root", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
@@ -181,16 +182,6 @@ class VmcEncoder:
         if self._t0_ns is None:
             self._t0_ns = t_ns
         return (t_ns - self._t0_ns) / 1e9
-
-    def _bones_for(self, skeleton: Skeleton | None) -> VmcBones:
-        if skeleton is None:
-            return self.bones
-        hit = self._sized.get(id(skeleton))
-        if hit is None or hit[0] is not skeleton:
-            if len(self._sized) > 64:  # people come and go: do not keep every skeleton ever seen
-                self._sized.clear()
-            hit = self._sized[id(skeleton)] = (skeleton, VmcBones(skeleton))
-        return hit[1]
 
     def encode_many(
         self,
@@ -220,7 +211,7 @@ class VmcEncoder:
         if skeletons is None or all(sk is None for sk in skeletons):
             pos, quat = self.bones.compute(thetas)
         else:
-            parts = [self._bones_for(sk).compute(th[None]) for sk, th in zip(skeletons, thetas, strict=True)]
+            parts = [self._sized.get(sk).compute(th[None]) for sk, th in zip(skeletons, thetas, strict=True)]
             pos, quat = np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
         values = np.empty((thetas.shape[0], N_VMC_BONES, 7), dtype=_FLOATS)
         values[..., 0:3] = pos

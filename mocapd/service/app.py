@@ -149,18 +149,20 @@ class Daemon:
                 loop.add_signal_handler(sig, self.request_stop)
         self.notifier.notify("STATUS=loading the solver kernel")
         await loop.run_in_executor(None, self._warm_up)
-        await self.http.start()
-        for sink in self.sinks:
-            await sink.start()
-        self.notifier.notify("STATUS=starting inputs")
+        started: list[PoseSink] = []
         try:
+            await self.http.start()
+            for sink in self.sinks:
+                await sink.start()  # a stream that cannot listen, a session that exists: the run stops here, cleanly
+                started.append(sink)
+            self.notifier.notify("STATUS=starting inputs")
             async with asyncio.timeout(None) as deadline:
                 await self._serve(deadline)
         except TimeoutError:
             # A task ignored its cancellation for shutdown_timeout_s: leave it behind rather than hang the stop.
             log.error("shutdown: tasks still running after %.1f s, abandoned", self.config.daemon.shutdown_timeout_s)
         finally:
-            for sink in self.sinks:
+            for sink in started:
                 await sink.aclose()
             await self.http.close()
             for sig in (signal.SIGINT, signal.SIGTERM):

@@ -11,7 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import ConfigError
+from mocapd.errors import ConfigError, MocapdError
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
 from mocapd.service.udp_config import build_udp_sinks
 
@@ -65,7 +65,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             return demo_cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
                                     record=args.record)  # fmt: skip
         return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
-    except ConfigError as exc:  # e.g. a stream's port already in use, found when the sinks start
+    except MocapdError as exc:  # found when the sinks start: a stream's port in use, a session that exists
         print(f"error: {exc}", file=sys.stderr)
         return 2
 
@@ -108,7 +108,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"mocapd run: viewer http://{cfg.websocket.host}:{cfg.websocket.port}/ (stream ws://same)", flush=True)
     try:
         return asyncio.run(daemon.run())
-    except ConfigError as exc:  # e.g. a stream's port already in use, found when the sinks start
+    except MocapdError as exc:  # found when the sinks start: a stream's port in use, a session that exists
         print(f"error: {exc}", file=sys.stderr)
         return 2
 
