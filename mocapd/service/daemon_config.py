@@ -107,7 +107,10 @@ def parse_daemon_config(t: dict[str, Any]) -> DaemonConfig:
     _reject_unknown(t, keys | {"offsets"}, w)
     rig = t.get("rig", "synthetic")
     if rig not in _RIGS:
-        raise ConfigError(f"daemon.rig = {rig!r}; allowed: {list(_RIGS)} (camera rigs arrive with the detector)")
+        raise ConfigError(
+            f"daemon.rig = {rig!r}; allowed: {list(_RIGS)} "
+            "(the camera rig runs as `mocapd demo`; a configured camera rig is not in this build)"
+        )
     host = t.get("http_host", "127.0.0.1")
     if host not in ("127.0.0.1", "::1", "localhost"):
         raise ConfigError(f"daemon.http_host = {host!r}; allowed: a loopback address ('127.0.0.1', '::1')")
