@@ -107,6 +107,7 @@ def test_resolve_does_not_worsen_the_error_against_the_truth(recorded: tuple[Pat
     # two runs enrol and bind at different moments, and a binding transient is not what resolve is for.
     bound = next(f.t_solve_ns for f in live if any(p.suit is not None for p in f.people))
     report = truth_report(s, {"live": live, "resolved": frames}, from_ns=bound + 500_000_000)
+    print("resolve vs live:", report)
     assert report["person_frames"] > 100
     assert report["resolved"]["median"] <= report["live"]["median"] * 1.02, report
     assert report["resolved"]["mean"] <= report["live"]["mean"] * 1.02, report

@@ -278,10 +278,13 @@ def smooth_thetas(t_ns: NDArray[np.int64], thetas: FloatArray, opts: ResolveOpti
 
 def smooth_frames(frames: list[PoseRecord], skeleton: Skeleton, opts: ResolveOptions) -> list[PoseRecord]:
     """Pass 2: every subject's θ smoothed over time; joints recomputed from the smoothed θ."""
-    where: dict[str, list[tuple[int, int]]] = defaultdict(list)  # identity -> (frame index, person index)
+    # One smoothing run per identity and skeleton: when body sizing gives a person their skeleton, θ changes meaning
+    # (the root moves to the new hips), and smoothing across that step would smear it over both sides.
+    where: dict[tuple[str, bytes], list[tuple[int, int]]] = defaultdict(list)  # -> (frame index, person index)
     for i, f in enumerate(frames):
         for j, p in enumerate(f.people):
-            where[p.identity].append((i, j))
+            shape = b"" if p.skeleton is None else p.skeleton.offsets.tobytes()  # by value: decoded records are copies
+            where[(p.identity, shape)].append((i, j))
     new_theta: dict[tuple[int, int], FloatArray] = {}
     for idx in where.values():
         t = np.array([frames[i].t_solve_ns for i, _ in idx], dtype=np.int64)
