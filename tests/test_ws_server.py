@@ -5,9 +5,7 @@ status messages and the viewer files on the same port."""
 from __future__ import annotations
 
 import asyncio
-import base64
 import json
-import os
 import socket
 from collections.abc import AsyncIterator
 from dataclasses import replace
@@ -26,6 +24,7 @@ from mocapd.protocols.conventions import convention
 from mocapd.protocols.ws_stream import StreamDescription, StreamOptions, decode
 from mocapd.service.websocket_config import parse_websocket_config
 from tests.ws_support import fk_from_message, random_frame
+from tools.bench_stream import stalled_handshake
 
 SKEL = Skeleton.from_height(1.75)
 IDS = ["suit:suit0", "person:1", "person:2", "person:3"]
@@ -149,17 +148,7 @@ async def test_an_oversized_message_closes_that_client_only(server: WebSocketStr
 
 def stalled_client(port: int) -> socket.socket:
     """A real WebSocket client that completes the handshake and then never reads (tiny receive buffer)."""
-    s = socket.socket()
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    s.connect(("127.0.0.1", port))
-    key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall(f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-              f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())  # fmt: skip
-    head = b""
-    while b"\r\n\r\n" not in head:
-        head += s.recv(1)  # byte by byte: leave every WebSocket frame unread
-    assert head.startswith(b"HTTP/1.1 101")
-    return s
+    return stalled_handshake(port)
 
 
 @pytest.mark.asyncio

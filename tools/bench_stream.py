@@ -96,8 +96,8 @@ def serialisation(people: int, n: int = 600) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------------- client process
-def _stalled(port: int) -> socket.socket:
-    """Handshake, ask for the largest frames (JSON with global joints), then never read."""
+def stalled_handshake(port: int) -> socket.socket:
+    """A real WebSocket client that completes the handshake and then never reads (tiny receive buffer)."""
     s = socket.socket()
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     s.connect(("127.0.0.1", port))
@@ -106,7 +106,15 @@ def _stalled(port: int) -> socket.socket:
               f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())  # fmt: skip
     head = b""
     while b"\r\n\r\n" not in head:
-        head += s.recv(1)
+        head += s.recv(1)  # byte by byte: leave every WebSocket frame unread
+    if not head.startswith(b"HTTP/1.1 101"):
+        raise ConnectionError(f"websocket handshake refused: {head[:40]!r}")
+    return s
+
+
+def _stalled(port: int) -> socket.socket:
+    """Handshake, ask for the largest frames (JSON with global joints), then never read."""
+    s = stalled_handshake(port)
     payload = json.dumps({"type": "subscribe", "encoding": "json", "globals": True}).encode()
     mask = os.urandom(4)
     masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
