@@ -65,6 +65,14 @@ def load_web_files() -> dict[str, tuple[str, bytes]]:
     return {path: (ctype, root.joinpath(name).read_bytes()) for path, (name, ctype) in WEB_FILES.items()}
 
 
+def listen_error(host: str, port: int, exc: OSError) -> ConfigError:
+    """What to tell the user when the stream's port cannot be bound (also where the socket is made elsewhere)."""
+    return ConfigError(
+        f"websocket: cannot listen on {host}:{port} ({exc.strerror or exc}); "
+        "choose another [websocket] port (0 = any free port) or stop the other program"
+    )
+
+
 MAX_SKELETONS = 64  # per-person skeletons kept for the hello before old ones are forgotten
 
 
@@ -175,10 +183,7 @@ class WebSocketStreamServer:
                 max_queue=4, compression=None, close_timeout=CLOSE_TIMEOUT_S, **where,
             )  # fmt: skip
         except OSError as exc:
-            raise ConfigError(
-                f"websocket: cannot listen on {s.host}:{s.port} ({exc.strerror or exc}); "
-                "choose another [websocket] port (0 = any free port) or stop the other program"
-            ) from exc
+            raise listen_error(s.host, s.port, exc) from exc
         self.port = int(next(iter(self._server.sockets)).getsockname()[1])
         if self._status is not None and s.status_hz > 0:
             self._status_task = asyncio.create_task(self._status_loop(1.0 / s.status_hz))

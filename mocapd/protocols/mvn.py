@@ -68,11 +68,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.rotations import quat_from_matrix
 from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.conventions import MVN
-from mocapd.protocols.per_skeleton import PerSkeleton
 
 FloatArray = NDArray[np.float64]
 

@@ -45,12 +45,12 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.rotations import quat_conjugate, quat_from_rotvec, quat_multiply, quat_rotate
 from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.conventions import UNITY
 from mocapd.protocols.osc import encode_message, message_prefix, osc_string, pack_bundles
-from mocapd.protocols.per_skeleton import PerSkeleton
 
 FloatArray = NDArray[np.float64]
 

@@ -145,7 +145,8 @@ class Daemon:
         """Serve until stopped; returns the process exit status."""
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError, RuntimeError):  # not the main thread: caller's job
+            # add_signal_handler raises RuntimeError off the main thread: then signals are the caller's job.
+            with contextlib.suppress(RuntimeError):
                 loop.add_signal_handler(sig, self.request_stop)
         self.notifier.notify("STATUS=loading the solver kernel")
         await loop.run_in_executor(None, self._warm_up)
@@ -166,7 +167,7 @@ class Daemon:
                 await sink.aclose()
             await self.http.close()
             for sig in (signal.SIGINT, signal.SIGTERM):
-                with contextlib.suppress(NotImplementedError, RuntimeError):
+                with contextlib.suppress(RuntimeError):
                     loop.remove_signal_handler(sig)
             self.notifier.close()
         return 0

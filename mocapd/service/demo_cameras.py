@@ -32,7 +32,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import ConfigError, DeviceError, MocapdError
+from mocapd.errors import DeviceError, MocapdError
+from mocapd.io.ws_server import listen_error
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.camera_rig import AnyDetector, CameraDemoOptions, build_rig, demo_cameras, make_detector
@@ -291,10 +292,7 @@ def _stream_sockets(config: Config) -> dict[str, socket.socket]:
         try:
             out["ws-fd"] = socket.create_server((ws.host, ws.port))
         except OSError as exc:
-            raise ConfigError(
-                f"websocket: cannot listen on {ws.host}:{ws.port} ({exc.strerror or exc}); choose "
-                "another [websocket] port (0 = any free port) or stop the other program"
-            ) from exc
+            raise listen_error(ws.host, ws.port, exc) from exc
     if config.udp.mvn.enabled or config.udp.vmc.enabled:
         out["udp-fd"] = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     return out

@@ -30,11 +30,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.keypoints import TrackTargets, coco17_targets
-from mocapd.core.kinematics import Kinematics
 from mocapd.io.prior import resolve_prior
 from mocapd.io.xsens_serial import XsensPortConfig
-from mocapd.pipeline.scheduler import PersonPose, PoseFrame, Suit
+from mocapd.pipeline.scheduler import PoseFrame, Suit
 from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.config import Config
 from mocapd.service.recorder import attach_recorder, synthetic_extra
@@ -57,38 +55,22 @@ def _tools() -> Any:
 
 
 class TruthError:
-    """A pose sink that scores each published person against the nearest true person.
-
-    The score is the mean 3D distance of the 17 COCO keypoint sites (what the cameras observe), not of the 21
-    joints: with per-person body sizing a person's skeleton differs from the world's, and joints the cameras never
-    see (the spine chain, the root inside the pelvis) sit at different places on the two skeletons by definition.
-    """
+    """A pose sink that scores each published person against the nearest true person: the mean distance of the 17
+    keypoint sites (:meth:`SyntheticWorld.nearest_site_error`)."""
 
     def __init__(self, world: SyntheticWorld, epoch_ns: int) -> None:
         self.world = world
         self.epoch_ns = epoch_ns
         self.errors: deque[float] = deque(maxlen=54_000)  # the last hour of scored frames at 60 Hz
         self.frames = 0
-        self._sites: dict[int, tuple[Kinematics, TrackTargets]] = {}
 
     def publish(self, frame: PoseFrame) -> None:
         self.frames += 1
         if self.frames % SCORE_EVERY:
             return  # a sample of frames is plenty for a median, and scoring every one costs the tick ~1 ms
         t = (frame.t_solve_ns - self.epoch_ns) / 1e9
-        truth = [self.world.sites_at(p, t) for p in range(len(self.world.truth))]
         for person in frame.people:
-            sites = self._solved_sites(person)
-            self.errors.append(min(float(np.linalg.norm(sites - x, axis=1).mean()) for x in truth))
-
-    def _solved_sites(self, person: PersonPose) -> FloatArray:
-        skeleton = person.skeleton if person.skeleton is not None else self.world.skeleton
-        model = self._sites.get(id(skeleton))
-        if model is None:
-            model = self._sites[id(skeleton)] = (Kinematics(skeleton), coco17_targets(skeleton))
-        kin, targets = model
-        sites: FloatArray = kin.targets(kin.forward(person.theta), targets.bones, targets.offsets)
-        return sites
+            self.errors.append(self.world.nearest_site_error(person.theta, person.skeleton, t)[0])
 
     def recent_mm(self, n: int = 30) -> float | None:
         return 1e3 * float(np.median(list(self.errors)[-n:])) if self.errors else None

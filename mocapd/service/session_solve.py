@@ -37,6 +37,7 @@ from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.people import PeopleTracker
+from mocapd.core.per_skeleton import PerSkeleton, skeleton_key
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import quat_from_rotvec, quat_normalize, rotvec_from_quat
 from mocapd.core.skeleton import N_BONES, Skeleton
@@ -283,7 +284,7 @@ def smooth_frames(frames: list[PoseRecord], skeleton: Skeleton, opts: ResolveOpt
     where: dict[tuple[str, bytes], list[tuple[int, int]]] = defaultdict(list)  # -> (frame index, person index)
     for i, f in enumerate(frames):
         for j, p in enumerate(f.people):
-            shape = b"" if p.skeleton is None else p.skeleton.offsets.tobytes()  # by value: decoded records are copies
+            shape = b"" if p.skeleton is None else skeleton_key(p.skeleton)  # by value: decoded records are copies
             where[(p.identity, shape)].append((i, j))
     new_theta: dict[tuple[int, int], FloatArray] = {}
     for idx in where.values():
@@ -291,12 +292,10 @@ def smooth_frames(frames: list[PoseRecord], skeleton: Skeleton, opts: ResolveOpt
         th = np.array([frames[i].people[j].theta for i, j in idx])
         sm = smooth_thetas(t, th, opts)
         new_theta.update({key: sm[k] for k, key in enumerate(idx)})
-    kins: dict[int, Kinematics] = {}
+    kins = PerSkeleton(Kinematics(skeleton), Kinematics)  # each person on their own (sized) skeleton
 
     def joints(p: PersonRecord, theta: FloatArray) -> FloatArray:
-        sk = p.skeleton if p.skeleton is not None else skeleton  # each person on their own (sized) skeleton
-        kin = kins.setdefault(id(sk), Kinematics(sk))
-        positions: FloatArray = kin.forward(theta).positions
+        positions: FloatArray = kins.get(p.skeleton).forward(theta).positions
         return positions
 
     out = []

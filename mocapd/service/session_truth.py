@@ -11,8 +11,6 @@ from typing import Any
 
 import numpy as np
 
-from mocapd.core.keypoints import TrackTargets, coco17_targets
-from mocapd.core.kinematics import Kinematics
 from mocapd.io.session import Session
 from mocapd.protocols.session_format import PoseRecord
 from mocapd.service.synthetic_rig import SyntheticWorld
@@ -36,19 +34,11 @@ def person_errors(world: SyntheticWorld, epoch_ns: int, frames: list[PoseRecord]
     time, index of that true person), so that streams whose people come in another order compare on the same
     people."""
     out: dict[tuple[int, int], float] = {}
-    models: dict[int, tuple[Kinematics, TrackTargets]] = {}
     for f in frames:
-        if not f.people:
-            continue
         t = (f.t_solve_ns - epoch_ns) / 1e9
-        truth = [world.sites_at(p, t) for p in range(len(world.truth))]
         for p in f.people:
-            skeleton = p.skeleton if p.skeleton is not None else world.skeleton
-            kin, targets = models.setdefault(id(skeleton), (Kinematics(skeleton), coco17_targets(skeleton)))
-            sites = kin.targets(kin.forward(p.theta), targets.bones, targets.offsets)
-            e = [float(np.linalg.norm(sites - x, axis=1).mean()) for x in truth]
-            k = int(np.argmin(e))
-            out[(f.t_solve_ns, k)] = min(e[k], out.get((f.t_solve_ns, k), np.inf))
+            e, k = world.nearest_site_error(p.theta, p.skeleton, t)
+            out[(f.t_solve_ns, k)] = min(e, out.get((f.t_solve_ns, k), np.inf))
     return out
 
 

@@ -34,6 +34,7 @@ from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets, coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.motion import resample_poses
+from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.rotations import (
     matrix_from_quat,
     quat_conjugate,
@@ -115,6 +116,7 @@ class SyntheticWorld:
             raise ConfigError(f"synthetic motion must be 'recorded' or 'procedural', got {motion!r}")
         self.targets: TrackTargets = coco17_targets(self.skeleton)
         self.kin = Kinematics(self.skeleton)
+        self._site_models = PerSkeleton((self.kin, self.targets), lambda sk: (Kinematics(sk), coco17_targets(sk)))
         self.truth: list[FloatArray] = []
         for p, motion_p in enumerate(sequences):
             seq = motion_p.copy()
@@ -163,6 +165,20 @@ class SyntheticWorld:
         seq = self._target_seq[person]
         out: FloatArray = (1 - w) * seq[a] + w * seq[b]
         return out
+
+    def nearest_site_error(self, theta: FloatArray, skeleton: Skeleton | None, t_s: float) -> tuple[float, int]:
+        """Mean 3D distance (m) of a solved pose's 17 keypoint sites from the nearest true person's at ``t_s``, and
+        that person's index.
+
+        Sites, not joints: with per-person body sizing a solved skeleton differs from the world's, and joints no
+        camera sees (the spine chain, the root inside the pelvis) sit at different places on two skeletons by
+        definition. ``skeleton`` is the pose's own (None: the world's).
+        """
+        kin, targets = self._site_models.get(skeleton)
+        sites = kin.targets(kin.forward(theta), targets.bones, targets.offsets)
+        errors = [float(np.linalg.norm(sites - self.sites_at(p, t_s), axis=1).mean()) for p in range(len(self.truth))]
+        k = int(np.argmin(errors))
+        return errors[k], k
 
     def joints_at(self, person: int, t_s: float) -> FloatArray:
         """Person's global joint positions (21, 3) at ``t_s``."""
