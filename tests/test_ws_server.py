@@ -301,3 +301,7 @@ async def test_a_persons_sized_skeleton_arrives_in_a_new_hello_before_its_frames
         np.testing.assert_allclose(np.reshape(offsets, (21, 3)), tall.offsets, atol=1e-5)
         server.publish(replace(sized, frame=3))  # the same skeleton again: no further hello
         assert decode(await ws.recv())["type"] == "frame"
+        copy = Skeleton(offsets=tall.offsets.copy(), root_height=tall.root_height, height=tall.height)
+        server.publish(replace(sized, frame=4, people=[replace(sized.people[0], skeleton=copy)]))  # a replayed copy
+        again = decode(await ws.recv())
+        assert again["type"] == "frame" and again["subjects"][0]["skeleton"] == key

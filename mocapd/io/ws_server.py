@@ -38,6 +38,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 from websockets.protocol import State
 
+from mocapd.core.per_skeleton import skeleton_key
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError
 from mocapd.protocols.ws_stream import (
@@ -154,7 +155,7 @@ class WebSocketStreamServer:
         self._skeletons: dict[str, Skeleton] = dict(description.skeletons)
         self._default_key = description.skeleton_key  # subjects on the rig's skeleton
         self._key_of: dict[str, str] = {}  # subject id -> skeleton key
-        self._key_by_object: dict[int, tuple[Skeleton, str]] = {}
+        self._key_by_value: dict[bytes, str] = {}  # skeleton_key -> key in the hello (replayed poses are copies)
         self.description = dataclasses.replace(
             description, skeletons=self._skeletons, skeleton_of=self._skeleton_key,
             max_message_bytes=settings.max_message_bytes,
@@ -229,19 +230,19 @@ class WebSocketStreamServer:
             if sk is None:
                 self._key_of.pop(p.identity, None)
                 continue
-            hit = self._key_by_object.get(id(sk))
-            if hit is None or hit[0] is not sk:
-                if len(self._key_by_object) >= MAX_SKELETONS:  # people come and go: forget the old ones
+            value = skeleton_key(sk)
+            key = self._key_by_value.get(value)
+            if key is None:
+                if len(self._key_by_value) >= MAX_SKELETONS:  # people come and go: forget the old ones
                     live = {self._key_of.get(q.identity) for q in frame.people}
-                    for obj, (_, key) in list(self._key_by_object.items()):
-                        if key not in live:
-                            del self._key_by_object[obj]
-                            self._skeletons.pop(key, None)
-                key = f"{p.identity}#{self.frames_published}"
+                    for v, k in list(self._key_by_value.items()):
+                        if k not in live:
+                            del self._key_by_value[v]
+                            self._skeletons.pop(k, None)
+                key = self._key_by_value[value] = f"{p.identity}#{self.frames_published}"
                 self._skeletons[key] = sk
-                hit = self._key_by_object[id(sk)] = (sk, key)
                 new = True
-            self._key_of[p.identity] = hit[1]
+            self._key_of[p.identity] = key
         return new
 
     async def aclose(self) -> None:
