@@ -18,7 +18,7 @@ from mocapd.protocols.awinda import AwindaConfig, SnapshotIntegrator, station_st
 from mocapd.protocols.mtdata2 import AwindaSnapshot, decode_mtdata2, encode_packet
 from mocapd.protocols.xbus import MID
 from mocapd.protocols.xsens_session import State, Streaming, XsensSession, output_settings
-from tools import xsens_sim
+from mocapd.sim import xsens as xsens_sim
 
 
 def test_experimental_gate_and_unknown_constants() -> None:

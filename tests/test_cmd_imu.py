@@ -12,9 +12,9 @@ from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, headin
 from mocapd.core.rotations import quat_angle, quat_conjugate, quat_from_rotvec, quat_multiply, random_quat
 from mocapd.errors import ConfigError
 from mocapd.service.cli import main
-from mocapd.service.config import load_config
-from mocapd.service.imu_config import parse_imu_config
-from tools import xsens_sim
+from mocapd.service.config import DEFAULT_CONFIG, load_config
+from mocapd.service.config.imu import parse_imu_config
+from mocapd.sim import xsens as xsens_sim
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -117,7 +117,7 @@ def test_calibrate_imu_reports_missing_sensors(tmp_path: Path, capsys: pytest.Ca
 
 
 def test_shipped_config_parses() -> None:
-    cfg = load_config(REPO / "config.toml").imu
+    cfg = load_config(DEFAULT_CONFIG).imu
     assert cfg.ports == () and not cfg.bridge.enabled and not cfg.awinda.experimental
 
 

@@ -16,7 +16,7 @@ from mocapd.errors import DeviceError
 from mocapd.pipeline.keypoint_source import KeypointSink, KeypointSource
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service.config import load_config
-from mocapd.service.demo_synthetic import running_demo
+from mocapd.service.demo.synthetic import running_demo
 from mocapd.service.supervisor import Supervisor
 
 

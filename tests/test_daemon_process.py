@@ -39,7 +39,7 @@ def test_sigterm_stops_the_daemon_within_two_seconds_with_the_session_closed(tmp
     session_dir = tmp_path / "session"
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "1000000"}
     env.pop("WATCHDOG_PID", None)
-    cmd = [sys.executable, "-m", "mocapd.service.cli", "demo", "--synthetic", "--http-port", "0",
+    cmd = [sys.executable, "-m", "mocapd", "demo", "--synthetic", "--http-port", "0",
            "--record", str(session_dir)]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -98,7 +98,7 @@ def test_run_serves_until_sigint(tmp_path: Path) -> None:
     sock.bind(str(notify_path))
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_path)}
     env.pop("WATCHDOG_USEC", None)
-    cmd = [sys.executable, "-m", "mocapd.service.cli", "run", "--http-port", "0", "--verbose"]
+    cmd = [sys.executable, "-m", "mocapd", "run", "--http-port", "0", "--verbose"]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         ready = _recv_until(sock, "READY=1", 180)

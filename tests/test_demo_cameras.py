@@ -29,6 +29,7 @@ from websockets.asyncio.client import connect
 
 from mocapd.io.session import open_session
 from mocapd.protocols.ws_stream import decode
+from mocapd.service.config import DEFAULT_CONFIG
 from tests.pose2sim_data import demo_root
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,7 +82,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DemoProcess]:
     udp.settimeout(5.0)
     # The shipped config, with the WebSocket stream on any free port and MVN streaming to our socket: both leave
     # the demo's private network namespace through sockets its parent made on the host.
-    text = (ROOT / "config.toml").read_text(encoding="utf-8")
+    text = DEFAULT_CONFIG.read_text(encoding="utf-8")
     text = text.replace("port = 8766 ", "port = 0 ", 1)
     mvn = text.index("[udp.mvn]")
     text = text[:mvn] + text[mvn:].replace("enabled = false", "enabled = true", 1).replace(

@@ -22,6 +22,7 @@ from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import AsyncPoseDetector, OnnxPoseDetector, letterbox_image, resolve_providers
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig, detector_config_from_mapping
 from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, packed_detector_from_config, render_canvas
+from mocapd.service.config import DEFAULT_CONFIG
 
 Image = np.ndarray
 
@@ -196,8 +197,7 @@ def test_config_parsing() -> None:
 
 
 def test_shipped_config_section_parses_to_the_defaults() -> None:
-    root = Path(__file__).resolve().parents[1]
-    with (root / "config.toml").open("rb") as f:
+    with DEFAULT_CONFIG.open("rb") as f:
         raw = tomllib.load(f)["detector"]
     assert detector_config_from_mapping(raw) == DetectorConfig()
 

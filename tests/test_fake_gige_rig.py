@@ -100,7 +100,7 @@ def test_lost_camera_is_reported_and_reopened_while_the_other_keeps_running(pose
 
 
 def test_real_pace_frame_index_loops_or_bounces() -> None:
-    from tools.fake_gige import video_frame_index
+    from mocapd.sim.fake_gige import video_frame_index
 
     period = 1_000_000_000 // 60
     looped = [video_frame_index(k * period + 1000, 60.0, 4, bounce=False) for k in range(10)]

@@ -18,9 +18,9 @@ from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.pipeline.ringbuffer import LookupStatus
 from mocapd.protocols.imu_bridge import BridgeRecord, encode_records
 from mocapd.protocols.mtdata2 import CoordFrame
-from mocapd.service.imu_config import BridgeConfig, ImuConfig
-from mocapd.service.imu_service import ImuInputs
-from tools import xsens_sim
+from mocapd.service.config.imu import BridgeConfig, ImuConfig
+from mocapd.service.imu_inputs import ImuInputs
+from mocapd.sim import xsens as xsens_sim
 
 
 async def _until(cond: Callable[[], bool], timeout: float = 10.0) -> None:

@@ -6,7 +6,7 @@ import pytest
 
 from mocapd.errors import ConfigError
 from mocapd.service.config import load_config, parse_config
-from mocapd.service.record_config import RecordConfig, parse_record_config
+from mocapd.service.config.record import RecordConfig, parse_record_config
 
 
 def test_shipped_file_and_defaults() -> None:

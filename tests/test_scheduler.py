@@ -28,8 +28,8 @@ from mocapd.pipeline.scheduler import (
     estimate_camera_offsets,
     estimate_imu_offsets,
 )
-from mocapd.service.bench_solver import synthetic_prior
-from mocapd.service.synthetic_rig import SyntheticWorld
+from mocapd.service.bench.solver import synthetic_prior
+from mocapd.sim.world import SyntheticWorld
 
 S = 1_000_000_000
 MS = 1_000_000

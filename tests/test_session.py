@@ -17,7 +17,7 @@ from mocapd.errors import InputError
 from mocapd.io.session import SessionWriter, open_session, read_stream
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols import session_format as sf
-from mocapd.service.recorder import SessionRecorder
+from mocapd.service.outputs.recorder import SessionRecorder
 
 MANIFEST = {"format": "mocapd-session", "version": 1}
 
@@ -39,7 +39,7 @@ import sys, time
 sys.path.insert(0, {tests!r})
 from test_session import frame, MANIFEST
 from mocapd.io.session import SessionWriter
-from mocapd.service.recorder import SessionRecorder
+from mocapd.service.outputs.recorder import SessionRecorder
 rec = SessionRecorder(SessionWriter({path!r}, MANIFEST, flush_interval_s=0.25))
 rec.writer.open()
 print("ready", flush=True)
@@ -135,7 +135,7 @@ def test_hand_truncated_and_corrupted_files_recover_everything_before_the_damage
 
 
 def _record(i: int) -> sf.PoseRecord:
-    from mocapd.service.recorder import pose_record
+    from mocapd.service.outputs.recorder import pose_record
 
     return pose_record(frame(i, 1000 * i, people=2))
 

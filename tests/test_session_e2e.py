@@ -21,10 +21,10 @@ from mocapd.io.session_export import resample, subject_track
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service import cli
 from mocapd.service.config import load_config
-from mocapd.service.demo_synthetic import running_demo
-from mocapd.service.session_replay import pose_frame, replay
-from mocapd.service.session_solve import resolve, session_rig
-from mocapd.service.session_truth import truth_report
+from mocapd.service.demo.synthetic import running_demo
+from mocapd.service.session.replay import pose_frame, replay
+from mocapd.service.session.solve import resolve, session_rig
+from mocapd.service.session.truth import truth_report
 from tests.test_daemon import Recorder
 
 

@@ -12,7 +12,7 @@ from mocapd.core.synthetic import moving_sequence
 from mocapd.errors import InputError
 from mocapd.io.session_export import SubjectTrack, resample, subject_track
 from mocapd.protocols.session_format import PersonRecord, PoseRecord
-from mocapd.service.session_solve import ResolveOptions, rts_smooth, smooth_thetas
+from mocapd.service.session.solve import ResolveOptions, rts_smooth, smooth_thetas
 
 
 def test_rts_smoother_removes_most_of_the_noise_of_a_smooth_signal() -> None:

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from mocapd.errors import ConfigError
-from mocapd.service.imu_config import ImuConfig
+from mocapd.service.config.imu import ImuConfig
 from mocapd.service.suits import load_suits
-from mocapd.service.synthetic_rig import SyntheticWorld
+from mocapd.sim.world import SyntheticWorld
 
 
 def _write(folder: Path, world: SyntheticWorld, suit: int, person: str | None = None) -> Path:

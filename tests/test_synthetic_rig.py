@@ -9,7 +9,7 @@ from mocapd.core.kinematics import Kinematics
 from mocapd.core.motion import resample_poses
 from mocapd.core.rotations import quat_angle, quat_from_rotvec, rotvec_from_quat
 from mocapd.errors import ConfigError, InputError
-from mocapd.service.synthetic_rig import TRUTH_FPS, SyntheticWorld, load_demo_motion
+from mocapd.sim.world import TRUTH_FPS, SyntheticWorld, load_demo_motion
 
 
 def test_resample_poses_keeps_the_samples_and_interpolates_rotations() -> None:

@@ -135,7 +135,7 @@ def test_people_tracker_reports_pairing_and_events_in_status() -> None:
 
 def test_close_interaction_on_recorded_motion_keeps_identities() -> None:
     """The evaluation's hardest scene, on real clips (short): no switch, no bystander enrolled, solves finite."""
-    from mocapd.service.eval_tracking import SCENES, run_scene
+    from mocapd.eval.tracking import SCENES, run_scene
 
     scene = next(s for s in SCENES if s.name == "close_interaction")
     for suits in (True, False):

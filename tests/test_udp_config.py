@@ -11,7 +11,7 @@ import pytest
 from mocapd.errors import ConfigError
 from mocapd.service.cli import main
 from mocapd.service.config import load_config, parse_config
-from mocapd.service.udp_config import Destination, UdpConfig, parse_udp_config
+from mocapd.service.config.udp import Destination, UdpConfig, parse_udp_config
 
 
 def test_shipped_file_and_defaults() -> None:

@@ -16,8 +16,8 @@ from mocapd.core.rotations import matrix_from_quat, matrix_from_rotvec
 from mocapd.core.skeleton import BONE_INDEX
 from mocapd.protocols.conventions import MVN, UNITY
 from mocapd.service.config import load_config
-from mocapd.service.demo_synthetic import running_demo
-from mocapd.service.udp_config import Destination, MvnStreamConfig, UdpConfig, VmcStreamConfig
+from mocapd.service.config.udp import Destination, MvnStreamConfig, UdpConfig, VmcStreamConfig
+from mocapd.service.demo.synthetic import running_demo
 from tests.test_daemon import Recorder, http_get, wait_for
 from tests.test_mvn import read_datagram
 

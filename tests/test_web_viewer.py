@@ -17,8 +17,8 @@ import pytest
 from numpy.typing import NDArray
 
 from mocapd.service.config import Config, load_config
-from mocapd.service.demo_synthetic import running_demo
-from mocapd.service.websocket_service import build_websocket_sinks
+from mocapd.service.demo.synthetic import running_demo
+from mocapd.service.outputs.websocket import build_websocket_sinks
 from tests.cdp import Page, chromium_page
 
 PANEL_PX = 300  # the status panel on the right of the canvas

@@ -22,7 +22,7 @@ from mocapd.errors import ConfigError
 from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
 from mocapd.protocols.conventions import convention
 from mocapd.protocols.ws_stream import StreamDescription, StreamOptions, decode
-from mocapd.service.websocket_config import parse_websocket_config
+from mocapd.service.config.websocket import parse_websocket_config
 from tests.ws_support import fk_from_message, random_frame
 from tools.bench_stream import stalled_handshake
 

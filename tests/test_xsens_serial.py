@@ -17,7 +17,7 @@ from mocapd.errors import DeviceError, DeviceTimeout
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.ringbuffer import LookupStatus
-from tools import xsens_sim
+from mocapd.sim import xsens as xsens_sim
 
 MTW = Path(__file__).parent / "data" / "opensense_mtw"
 

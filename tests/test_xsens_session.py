@@ -18,7 +18,7 @@ from mocapd.protocols.xsens_session import (
     XsensSession,
     output_settings,
 )
-from tools import xsens_sim
+from mocapd.sim import xsens as xsens_sim
 
 MS = 1_000_000
 

@@ -2,9 +2,10 @@
 
 A 4-subject synthetic session (4 cameras at 30 Hz, 4 suits of 13 IMUs at 100 Hz, poses of 4 people at 60 Hz):
 
-- ``realtime``: the session's inputs are given to a real :class:`~mocapd.service.recorder.SessionRecorder` at their
-  real pace for ``--seconds``, each call (``publish`` of a frame, the keypoint and IMU taps) timed; the baseline is
-  the same calls on a sink that only appends to a list, timed in the same loop. Also: bytes per minute per stream,
+- ``realtime``: the session's inputs are given to a real
+  :class:`~mocapd.service.outputs.recorder.SessionRecorder` at their real pace for ``--seconds``, each call
+  (``publish`` of a frame, the keypoint and IMU taps) timed; the baseline is the same calls on a sink that only
+  appends to a list, timed in the same loop. Also: bytes per minute per stream,
   records dropped (0 expected), the writer's deepest queue.
 - ``throughput``: the same records given as fast as possible to a writer with a large queue, until it has written
   them all (flushes and fsyncs included): records/s and MB/s the writer thread sustains.
@@ -36,12 +37,12 @@ from mocapd.core.sorting import Detections2D  # noqa: E402
 from mocapd.io.session import SessionWriter, open_session  # noqa: E402
 from mocapd.io.xsens_serial import ImuSample  # noqa: E402
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame, Suit  # noqa: E402
-from mocapd.service.app import Daemon, Rig  # noqa: E402
-from mocapd.service.bench_solver import synthetic_prior  # noqa: E402
+from mocapd.service.bench.solver import synthetic_prior  # noqa: E402
 from mocapd.service.config import load_config  # noqa: E402
-from mocapd.service.recorder import attach_recorder, synthetic_extra  # noqa: E402
-from mocapd.service.session_solve import resolve  # noqa: E402
-from mocapd.service.synthetic_rig import SyntheticWorld  # noqa: E402
+from mocapd.service.daemon import Daemon, Rig  # noqa: E402
+from mocapd.service.outputs.recorder import attach_recorder, synthetic_extra  # noqa: E402
+from mocapd.service.session.solve import resolve  # noqa: E402
+from mocapd.sim.world import SyntheticWorld  # noqa: E402
 
 PEOPLE, CAMERAS, CAMERA_HZ, IMU_HZ, POSE_HZ = 4, 4, 30.0, 100.0, 60.0
 
@@ -163,7 +164,7 @@ def _pct(ns: list[int]) -> dict[str, float]:
 
 
 def throughput(events: list[Event], path: Path, copies: int) -> dict[str, float]:
-    from mocapd.service.recorder import SessionRecorder
+    from mocapd.service.outputs.recorder import SessionRecorder
 
     w = SessionWriter(path, {"format": "mocapd-session", "version": 1}, queue_size=10_000_000)
     rec = SessionRecorder(w)

@@ -200,8 +200,8 @@ def fan_out(
     seconds: float, people: int, clients: int, warm_up_s: float, repeats: int, client_nice: int
 ) -> dict[str, Any]:
     from mocapd.service.config import load_config
-    from mocapd.service.demo_synthetic import running_demo
-    from mocapd.service.websocket_service import build_websocket_sinks
+    from mocapd.service.demo.synthetic import running_demo
+    from mocapd.service.outputs.websocket import build_websocket_sinks
 
     cfg = load_config()
     syn = replace(cfg.daemon.synthetic, people=people, suits=0)

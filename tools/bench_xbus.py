@@ -11,7 +11,7 @@ Prints one JSON object:
   results from different machines can be compared as ratios. ``target`` is the issue's 20 000 messages/s.
 - ``path_cost``: CPU time per sample of the in-process streaming path (Xbus session decode, clock map,
   ring-buffer push) without any I/O or scheduling: what one sample costs the reader.
-- ``latency``: ``--sensors`` simulated devices (a separate process, ``tools/xsens_sim.py``) stream at
+- ``latency``: ``--sensors`` simulated devices (a separate process, ``mocapd/sim/xsens.py``) stream at
   ``--rate`` Hz through real ptys into mocapd's serial path (pyserial + asyncio), the bring-up session, the
   clock map and the ring buffers; the latency of a sample is the monotonic time after its ring-buffer push
   minus the simulator's monotonic time just before its ``write()``. Median, 95th percentile and max, ms.
@@ -50,7 +50,7 @@ def _einride_stream() -> bytes:
 def _mocapd_stream(n: int) -> bytes:
     if str(REPO) not in sys.path:  # run as a script: make the repository's tools package importable
         sys.path.insert(0, str(REPO))
-    from tools import xsens_sim
+    from mocapd.sim import xsens as xsens_sim
 
     device = xsens_sim.SimDevice(xsens_sim.synthetic_motion(n=n))
     device.settings = [

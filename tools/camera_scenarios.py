@@ -30,7 +30,7 @@ if __package__ in (None, ""):
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
-from tools.fake_gige import add_loopback_aliases, load_video_rgb, server_command
+from mocapd.sim.fake_gige import add_loopback_aliases, load_video_rgb, server_command
 
 
 def start_server(video: Path, address: str, max_frames: int, prepare: str) -> subprocess.Popen[str]:

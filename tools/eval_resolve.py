@@ -30,8 +30,8 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from mocapd.io.session import open_session  # noqa: E402
-from mocapd.service.session_solve import ResolveOptions, forward_resolve, session_rig, smooth_frames  # noqa: E402
-from mocapd.service.session_truth import truth_report  # noqa: E402
+from mocapd.service.session.solve import ResolveOptions, forward_resolve, session_rig, smooth_frames  # noqa: E402
+from mocapd.service.session.truth import truth_report  # noqa: E402
 
 
 def main() -> None:
@@ -42,7 +42,7 @@ def main() -> None:
     path = args.session
     if path is None:
         path = Path(tempfile.mkdtemp(prefix="eval-resolve-")) / "session"
-        cmd = [sys.executable, "-m", "mocapd.service.cli", "demo", "--synthetic", "--http-port", "0",
+        cmd = [sys.executable, "-m", "mocapd", "demo", "--synthetic", "--http-port", "0",
                "--seconds", str(args.seconds), "--record", str(path)]  # fmt: skip
         subprocess.run(cmd, cwd=REPO, check=True, stdout=subprocess.DEVNULL)
     s = open_session(path)

@@ -1,7 +1,7 @@
 """A multi-camera GigE Vision rig without hardware: fake cameras serving videos, captured by mocapd.
 
 Runs inside a private network namespace (re-executes itself under ``unshare -rn`` unless ``--in-netns``), gives
-lo one address per camera (127.0.0.1, 127.0.0.2, ...), starts one :mod:`tools.fake_gige` server process per
+lo one address per camera (127.0.0.1, 127.0.0.2, ...), starts one :mod:`mocapd.sim.fake_gige` server process per
 video, captures every camera with :class:`mocapd.io.aravis_camera.AravisSource` (the real capture path) for
 ``--duration`` seconds and prints one JSON object:
 
@@ -38,7 +38,7 @@ if __package__ in (None, ""):
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
-from tools.fake_gige import add_loopback_aliases, load_video_rgb, server_command
+from mocapd.sim.fake_gige import add_loopback_aliases, load_video_rgb, server_command
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 

@@ -5,7 +5,7 @@ sends from :meth:`publish`, which the daemon calls from its tick loop: a send ne
 socket buffer (``EAGAIN``) or an error the kernel reports for an earlier datagram (``ECONNREFUSED`` after an ICMP
 port-unreachable, ``ENETUNREACH``, ...) drops that datagram and is counted by errno name in :meth:`status`; UDP
 has no delivery guarantee anyway and the next frame supersedes this one. Destinations come only from the
-configuration (``[udp]`` in config.toml, validated by :mod:`mocapd.service.udp_config`).
+configuration (``[udp]`` in config.toml, validated by :mod:`mocapd.service.config.udp`).
 """
 
 from __future__ import annotations

@@ -110,7 +110,7 @@ class _Client:
 
 @dataclasses.dataclass(frozen=True)
 class ServerSettings:
-    """What :class:`WebSocketStreamServer` needs from ``[websocket]`` (see :mod:`mocapd.service.websocket_config`)."""
+    """What :class:`WebSocketStreamServer` needs from ``[websocket]`` (see :mod:`mocapd.service.config.websocket`)."""
 
     host: str = "127.0.0.1"
     port: int = 0

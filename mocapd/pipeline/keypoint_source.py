@@ -3,7 +3,7 @@
 A source is one camera's "frames in, timestamped 2D people out" stage. :class:`DetectorKeypointSource` runs any
 :data:`Detector` (the onnxruntime detector of issue 6 plugs in here) on the frames of an Aravis or replay source
 in a worker thread, so it never blocks the event loop; until the detector lands,
-:class:`mocapd.service.synthetic_rig.SyntheticKeypointSource` plays a detector's output for a
+:class:`mocapd.sim.world.SyntheticKeypointSource` plays a detector's output for a
 synthetic world: frames captured at the camera rate (cameras unsynchronised: each has its own phase), detections
 delivered ``detection_delay_s`` after capture, stamped with the capture time.
 """

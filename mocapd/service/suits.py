@@ -15,7 +15,7 @@ from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import CalibrationError, ConfigError
 from mocapd.pipeline.scheduler import Suit
-from mocapd.service.imu_config import ImuConfig
+from mocapd.service.config.imu import ImuConfig
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,7 @@ from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
 from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.service.config import load_config
-from mocapd.service.imu_config import ImuConfig
+from mocapd.service.config.imu import ImuConfig
 
 
 def _subcommand_group(subparsers: Any, name: str, help_text: str, dest: str) -> Any:

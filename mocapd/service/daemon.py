@@ -42,7 +42,7 @@ from mocapd.pipeline.scheduler import (
 )
 from mocapd.service.config import Config
 from mocapd.service.http_status import StatusServer
-from mocapd.service.imu_service import ImuInputs
+from mocapd.service.imu_inputs import ImuInputs
 from mocapd.service.metrics import render_metrics
 from mocapd.service.supervisor import Supervisor
 
@@ -320,4 +320,4 @@ class Daemon:
 
     def metrics(self) -> str:
         """The /metrics document (Prometheus text format 0.0.4)."""
-        return render_metrics(self)
+        return render_metrics(self.status(), self.scheduler.latency)

@@ -13,7 +13,7 @@ import numpy as np
 
 from mocapd.io.session import Session
 from mocapd.protocols.session_format import PoseRecord
-from mocapd.service.synthetic_rig import SyntheticWorld
+from mocapd.sim.world import SyntheticWorld
 
 
 def world_of(session: Session) -> tuple[SyntheticWorld, int]:

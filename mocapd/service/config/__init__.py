@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import dataclass, field, fields, replace
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -17,14 +18,15 @@ from mocapd.core.solver import TERM_NAMES, LMOptions
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
 from mocapd.pipeline.detector_config import DetectorConfig, detector_config_from_mapping
-from mocapd.service.daemon_config import DaemonConfig, parse_daemon_config
-from mocapd.service.imu_config import ImuConfig, parse_imu_config
-from mocapd.service.record_config import RecordConfig, parse_record_config
-from mocapd.service.tracking_config import TrackingConfig, parse_tracking_config
-from mocapd.service.udp_config import UdpConfig, parse_udp_config
-from mocapd.service.websocket_config import WebSocketConfig, parse_websocket_config
+from mocapd.service.config.daemon import DaemonConfig, parse_daemon_config
+from mocapd.service.config.imu import ImuConfig, parse_imu_config
+from mocapd.service.config.record import RecordConfig, parse_record_config
+from mocapd.service.config.tracking import TrackingConfig, parse_tracking_config
+from mocapd.service.config.udp import UdpConfig, parse_udp_config
+from mocapd.service.config.websocket import WebSocketConfig, parse_websocket_config
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
+DEFAULT_CONFIG = Path(str(resources.files("mocapd").joinpath("config.toml")))
+"""The shipped config.toml (inside the package, so an installed wheel has it): every key, documented."""
 
 _LOSSES = ("trivial", "cauchy", "huber")
 _TERM_KEYS = {"enabled", "weight", "loss", "loss_scale"}

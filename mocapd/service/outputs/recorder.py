@@ -1,11 +1,11 @@
-"""The session recorder: a :class:`~mocapd.service.app.PoseSink` that also taps the daemon's raw inputs.
+"""The session recorder: a :class:`~mocapd.service.daemon.PoseSink` that also taps the daemon's raw inputs.
 
 :func:`attach_recorder` (config, daemon) builds one, registers it on the daemon's detection and IMU taps and
 adds it to the daemon's sinks. Everything it is given on the event loop (published frames, detected camera frames,
 IMU samples) goes into the bounded queue of a :class:`~mocapd.io.session.SessionWriter` as is; encoding, writing
 and fsync happen on the writer's thread. When the queue is full a record is dropped and counted, never waited for.
 
-The manifest describes everything :mod:`mocapd.service.session_solve` needs to re-solve the session offline: the
+The manifest describes everything :mod:`mocapd.service.session.solve` needs to re-solve the session offline: the
 parsed config, the cameras, the skeleton and keypoint targets, the suits' calibrations, the scheduler's timing and
 the pose prior (``prior.npz`` beside it).
 """
@@ -38,12 +38,12 @@ from mocapd.protocols.session_format import (
     encode_keypoints,
     encode_pose,
 )
-from mocapd.service.daemon_config import SyntheticRigConfig
-from mocapd.service.record_config import RecordConfig
+from mocapd.service.config.daemon import SyntheticRigConfig
+from mocapd.service.config.record import RecordConfig
 
 if TYPE_CHECKING:
-    from mocapd.service.app import Daemon
     from mocapd.service.config import Config
+    from mocapd.service.daemon import Daemon
 
 
 def pose_record(frame: PoseFrame) -> PoseRecord:

@@ -1,4 +1,4 @@
-"""The camera demo's fake GigE Vision cameras: one ``tools/fake_gige.py`` server process per camera, kept running.
+"""The camera demo's fake GigE Vision cameras: one ``mocapd/sim/fake_gige.py`` server process per camera, kept running.
 
 Each camera serves its video at the video's own pace from a shared epoch (``--video-fps``, ``--epoch-ns``), so the
 four cameras show the same instant of the synchronised Pose2Sim videos, and a frame the server misses is skipped
@@ -17,26 +17,16 @@ import asyncio
 import contextlib
 import json
 import logging
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from mocapd.errors import DeviceError
+from mocapd.sim import fake_gige
 
 log = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parents[2]
 START_TIMEOUT_S = 120.0  # decoding and pre-encoding a video on a loaded 2-core machine
-
-
-def tools_module() -> Any:
-    """``tools.fake_gige`` from the source tree."""
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    from tools import fake_gige
-
-    return fake_gige
 
 
 @dataclass(frozen=True)
@@ -105,7 +95,7 @@ class FakeCameraFleet:
         self._procs: dict[str, asyncio.subprocess.Process] = {}
 
     def _command(self, spec: FakeCameraSpec) -> list[str]:
-        cmd: list[str] = tools_module().server_command(
+        cmd: list[str] = fake_gige.server_command(
             spec.video, spec.address, spec.max_frames, spec.pixel_format, serial=spec.name.upper(),
             size=f"{spec.size[0]}x{spec.size[1]}", video_fps=spec.video_fps, epoch_ns=self.epoch_ns, bounce=True,
         )  # fmt: skip
@@ -113,7 +103,7 @@ class FakeCameraFleet:
 
     async def _start(self, cam: FakeCameraState) -> asyncio.subprocess.Process:
         proc = await asyncio.create_subprocess_exec(
-            *self._command(cam.spec), cwd=REPO, stdout=asyncio.subprocess.PIPE, stdin=asyncio.subprocess.DEVNULL
+            *self._command(cam.spec), stdout=asyncio.subprocess.PIPE, stdin=asyncio.subprocess.DEVNULL
         )
         self._procs[cam.spec.name] = proc  # known at once, so a stop while it starts terminates it too
         assert proc.stdout is not None

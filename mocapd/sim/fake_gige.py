@@ -3,7 +3,7 @@
 Each process serves one camera at one address; clients (mocapd, ``arv-viewer``) open it by IP and receive the
 video's frames, one per acquisition period, through the real GVCP/GVSP protocol stack::
 
-    python tools/fake_gige.py --video cam01.mp4 --address 127.0.0.1 --serial CAM01 [--max-frames 60]
+    python -m mocapd.sim.fake_gige --video cam01.mp4 --address 127.0.0.1 --serial CAM01 [--max-frames 60]
 
 The client chooses pixel format (Mono8, RGB8, Bayer*8), region and frame rate; frames are converted from the
 decoded video (RGB) into that format, cropped to the region, and looped. Frame ``k`` sent (k = 0, 1, ...) is
@@ -38,9 +38,6 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mocapd.errors import DeviceError, InputError
 from mocapd.io.aravis_camera import load_aravis
@@ -224,7 +221,7 @@ def server_command(
     bounce: bool = False,
 ) -> list[str]:
     """The command line that runs one fake camera server (this module) in its own process."""
-    cmd = [sys.executable, "-m", "tools.fake_gige", "--video", str(video), "--address", address,
+    cmd = [sys.executable, "-m", "mocapd.sim.fake_gige", "--video", str(video), "--address", address,
            "--max-frames", str(max_frames), "--prepare", prepare]  # fmt: skip
     if serial is not None:
         cmd += ["--serial", serial]

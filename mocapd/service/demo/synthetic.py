@@ -1,9 +1,9 @@
 """``mocapd demo --synthetic``: the full daemon on a rig built from synthetic motion, no hardware needed.
 
-- keypoints: one :class:`~mocapd.service.synthetic_rig.SyntheticKeypointSource` per camera of a ring rig
+- keypoints: one :class:`~mocapd.sim.world.SyntheticKeypointSource` per camera of a ring rig
   (unsynchronised cameras at the camera rate, detections arriving after a detection delay, stamped with the
   capture time), as the detector will deliver them;
-- IMUs: every suit sensor is a simulated Xsens device (``tools/xsens_sim.py``) on its own pseudo-terminal,
+- IMUs: every suit sensor is a simulated Xsens device (``mocapd/sim/xsens.py``) on its own pseudo-terminal,
   speaking real Xbus/MTData2 that mocapd's real serial path opens, brings up, parses, clock-maps and buffers;
   the suit calibration is the one that matches the simulated mounting, so IMU fusion runs end to end;
 - the truth is known, so a sink measures the published poses' keypoint error (3D, the 17 observed sites) and
@@ -18,7 +18,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import shutil
-import sys
 import tempfile
 import time
 from collections import deque
@@ -33,25 +32,16 @@ from numpy.typing import NDArray
 from mocapd.io.prior import resolve_prior
 from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.pipeline.scheduler import PoseFrame, Suit
-from mocapd.service.app import Daemon, PoseSink, Rig
 from mocapd.service.config import Config
-from mocapd.service.recorder import attach_recorder, synthetic_extra
-from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
-from mocapd.service.udp_config import build_udp_sinks
-from mocapd.service.websocket_service import build_websocket_sinks
+from mocapd.service.daemon import Daemon, PoseSink, Rig
+from mocapd.service.outputs.recorder import attach_recorder, synthetic_extra
+from mocapd.service.outputs.udp import build_udp_sinks
+from mocapd.service.outputs.websocket import build_websocket_sinks
+from mocapd.sim import xsens as sim
+from mocapd.sim.world import SyntheticKeypointSource, SyntheticWorld
 
-REPO = Path(__file__).resolve().parents[2]
 FloatArray = NDArray[np.float64]
 SCORE_EVERY = 4  # the truth sink scores every n-th published frame
-
-
-def _tools() -> Any:
-    """The simulator module from the source tree."""
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    import tools.xsens_sim as sim
-
-    return sim
 
 
 class TruthError:
@@ -88,7 +78,7 @@ class SyntheticDemo:
 
     daemon: Daemon
     world: SyntheticWorld
-    simulators: list[Any]  # tools.xsens_sim.XsensSimulator
+    simulators: list[Any]  # mocapd.sim.xsens.XsensSimulator
     truth: TruthError
     workdir: Path
     _loop: Any
@@ -107,13 +97,12 @@ def build_demo(
     record: str | Path | None = None,
 ) -> SyntheticDemo:
     """Start the simulated IMUs and build (not run) the daemon of ``config.daemon.synthetic``."""
-    sim = _tools()
     syn = config.daemon.synthetic
     world = SyntheticWorld(syn.cameras, syn.people, syn.suits, seed=syn.seed, motion=syn.motion)
     epoch = clock()
     workdir = Path(tempfile.mkdtemp(prefix="mocapd-demo-"))
 
-    class TimedDevice(sim.SimDevice):  # type: ignore[misc, name-defined]
+    class TimedDevice(sim.SimDevice):
         """A simulated device whose motion sample is the world's at the emission time (shared host clock)."""
 
         _next_ns: int | None

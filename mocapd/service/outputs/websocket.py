@@ -13,7 +13,7 @@ from mocapd.protocols.ws_stream import StreamDescription, StreamOptions
 from mocapd.service.config import Config
 
 if TYPE_CHECKING:
-    from mocapd.service.app import Daemon
+    from mocapd.service.daemon import Daemon
 
 
 def build_websocket_sinks(

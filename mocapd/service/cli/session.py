@@ -14,15 +14,15 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError, InputError
 from mocapd.io.session import RESOLVED, Session, open_session
 from mocapd.pipeline.scheduler import PoseFrame
-from mocapd.service.app import PoseSink
 from mocapd.service.config import Config, load_config
+from mocapd.service.daemon import PoseSink
 
 
 def stream_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
     """The streaming sinks a replay publishes through: the streams configured in ``config``, for poses on the
     session's ``skeleton``."""
-    from mocapd.service.udp_config import udp_sinks
-    from mocapd.service.websocket_service import websocket_sinks
+    from mocapd.service.outputs.udp import udp_sinks
+    from mocapd.service.outputs.websocket import websocket_sinks
 
     return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton)]
 
@@ -42,8 +42,8 @@ def _pose_stream(session: Session, resolved: bool) -> str:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from mocapd.service.session_replay import replay
-    from mocapd.service.session_solve import session_rig
+    from mocapd.service.session.replay import replay
+    from mocapd.service.session.solve import session_rig
 
     cfg = load_config(args.config)
     session = _open(args.session)
@@ -65,8 +65,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_resolve(args: argparse.Namespace) -> int:
-    from mocapd.service.session_solve import ResolveOptions, resolve, write_resolved
-    from mocapd.service.session_truth import truth_report
+    from mocapd.service.session.solve import ResolveOptions, resolve, write_resolved
+    from mocapd.service.session.truth import truth_report
 
     session = _open(args.session)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
@@ -81,7 +81,7 @@ def cmd_resolve(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from mocapd.io.session_export import resample, subject_track, write_bvh, write_csv
-    from mocapd.service.session_solve import session_rig
+    from mocapd.service.session.solve import session_rig
 
     if args.bvh is None and args.csv is None:
         print("error: nothing to export: give --bvh FILE and/or --csv FILE", file=sys.stderr)

@@ -50,7 +50,7 @@ from mocapd.pipeline.imu_ingest import TICK_HZ, ImuIngest
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, SchedulerOptions, Suit
 from mocapd.protocols.session_format import ImuRecord, PersonRecord, PoseRecord
 from mocapd.service.config import Config, parse_config
-from mocapd.service.recorder import camera_from_dict
+from mocapd.service.outputs.recorder import camera_from_dict
 
 FloatArray = NDArray[np.float64]
 

@@ -1,6 +1,6 @@
 """``mocapd replay``: publish a recorded session's pose frames through pose sinks at the recorded pace.
 
-The sinks are the daemon's :class:`~mocapd.service.app.PoseSink` s (WebSocket, UDP, ... whatever
+The sinks are the daemon's :class:`~mocapd.service.daemon.PoseSink` s (WebSocket, UDP, ... whatever
 :func:`stream_sinks` builds from the config), so clients see a replay exactly as they see a live session:
 same frame counters, solve times, identities and poses. Frame ``i`` goes out at ``start + (t_i - t_0) / speed``
 on the host clock (``t`` the recorded solve time); a replay that falls behind publishes late rather than
@@ -19,7 +19,7 @@ import numpy as np
 from mocapd.errors import InputError
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols.session_format import PoseRecord
-from mocapd.service.app import PoseSink
+from mocapd.service.daemon import PoseSink
 
 
 def pose_frame(r: PoseRecord) -> PoseFrame:

@@ -13,7 +13,7 @@ stable symlink, like ``/dev/serial/by-id/...``) and talks Xbus to it. The simula
 - injects faults on request: random garbage between messages, corrupted checksums, dropped samples, and an
   unplug (pty closed, symlink removed) followed by a replug (new pty, symlink recreated, WakeUp sent).
 
-Run several at once: ``python tools/xsens_sim.py --link /tmp/imu0 --link /tmp/imu1 --motion FILE ...``.
+Run several at once: ``python -m mocapd.sim.xsens --link /tmp/imu0 --link /tmp/imu1 --motion FILE ...``.
 ``XsensSimulator`` (one device on one pty, in a thread) is what the integration tests and the benchmark use.
 """
 

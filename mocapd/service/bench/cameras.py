@@ -23,9 +23,9 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
-from mocapd.service.camera_rig import CameraDemoOptions
 from mocapd.service.config import load_config
-from mocapd.service.demo_cameras import CameraDemoDaemon, in_private_netns, run_camera_demo
+from mocapd.service.demo.camera_rig import CameraDemoOptions
+from mocapd.service.demo.cameras import CameraDemoDaemon, in_private_netns, run_camera_demo
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 WARM_UP_S = 20.0  # model sessions, numba kernel and every ring / buffer pool touched once
@@ -187,7 +187,7 @@ def child_main(argv: list[str] | None = None) -> int:
 def run(seconds: float, opts: CameraDemoOptions) -> int:
     """``mocapd bench latency --rig cameras``: re-run this module in a private network namespace."""
     return in_private_netns(
-        "mocapd.service.bench_cameras", ["--seconds", str(seconds), "--options", json.dumps(asdict(opts))]
+        "mocapd.service.bench.cameras", ["--seconds", str(seconds), "--options", json.dumps(asdict(opts))]
     )
 
 

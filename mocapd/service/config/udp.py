@@ -1,5 +1,5 @@
-"""The ``[udp]`` section of config.toml (MVN and VMC streams), parsed into frozen dataclasses, and the builder
-that turns it into pose sinks for the daemon.
+"""The ``[udp]`` section of config.toml (MVN and VMC streams), parsed into frozen dataclasses
+(:mod:`mocapd.service.outputs.udp` turns it into pose sinks).
 
 Destinations come only from here. They must be loopback addresses unless ``udp.allow_remote = true``: streaming
 poses to another machine is an explicit choice, never a default or a typo. Hosts are IPv4 literals (or
@@ -11,14 +11,9 @@ from __future__ import annotations
 import ipaddress
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from mocapd.errors import ConfigError
-
-if TYPE_CHECKING:
-    from mocapd.core.skeleton import Skeleton
-    from mocapd.service.app import Daemon, PoseSink
-    from mocapd.service.config import Config
 
 MIN_DATAGRAM = 256
 MAX_DATAGRAM = 65507  # the largest UDP payload over IPv4
@@ -119,53 +114,6 @@ def parse_udp_config(table: Mapping[str, Any]) -> UdpConfig:
     return UdpConfig(allow_remote=allow_remote, mvn=mvn, vmc=vmc)
 
 
-def build_udp_sinks(config: Config, daemon: Daemon, fileno: int | None = None) -> list[PoseSink]:
-    """The enabled UDP streams of ``config.udp`` as pose sinks for ``daemon`` (its rig's skeleton and rate)."""
-    return udp_sinks(config, daemon.rig.skeleton, fileno)
-
-
-def udp_sinks(config: Config, skeleton: Skeleton, fileno: int | None = None) -> list[PoseSink]:
-    """The enabled UDP streams of ``config.udp`` for poses on ``skeleton`` (people carrying their own sized
-    skeleton are sent on theirs), at ``config.daemon.output_rate_hz``; a replay has no daemon but the same needs.
-    ``fileno``: an inherited UDP socket to send from (the camera demo runs in a private network namespace)."""
-    from mocapd.io.udp_stream import MvnUdpSink, VmcUdpSink
-
-    u = config.udp
-    rate = config.daemon.output_rate_hz
-
-    def release(divisor: int) -> int:
-        return max(1, round(RELEASE_AFTER_S * rate / divisor))
-
-    sinks: list[PoseSink] = []
-    if u.mvn.enabled:
-        m = u.mvn
-        mvn = MvnUdpSink(
-            skeleton,
-            [(d.host, d.port) for d in m.destinations],
-            rate_divisor=m.rate_divisor,
-            character_ids=dict(m.character_ids),
-            subjects=m.subjects,
-            max_datagram_bytes=m.max_datagram_bytes,
-            release_after_frames=release(m.rate_divisor),
-            fileno=fileno,
-        )
-        sinks.append(mvn)
-    if u.vmc.enabled:
-        v = u.vmc
-        vmc = VmcUdpSink(
-            skeleton,
-            [(d.host, d.port) for d in v.destinations],
-            rate_divisor=v.rate_divisor,
-            subjects=v.subjects,
-            max_datagram_bytes=v.max_datagram_bytes,
-            release_after_frames=release(v.rate_divisor),
-            fileno=fileno,
-        )
-        sinks.append(vmc)
-    return sinks
-
-
-# ---------------------------------------------------------------------------------------------- helpers
 def _reject_unknown(t: Mapping[str, Any], allowed: set[str], where: str) -> None:
     unknown = sorted(set(t) - allowed)
     if unknown:

@@ -7,7 +7,7 @@ page must be reachable from the user's browser, in the host's namespace. A socke
 created in, whatever process later uses it, so:
 
 1. the parent (``mocapd demo``, host namespace) binds and listens on ``daemon.http_host:http_port``;
-2. it starts ``unshare -rn python -m mocapd.service.demo_cameras --http-fd N ...`` with that socket inherited
+2. it starts ``unshare -rn python -m mocapd.service.demo.cameras --http-fd N ...`` with that socket inherited
    (``pass_fds``) and closes its own copy;
 3. the child (new namespace) brings ``lo`` up with aliases 127.0.0.2-4, starts the four fake cameras there, builds
    the rig and runs the daemon, whose status server accepts on the inherited socket: connections from the host
@@ -35,14 +35,15 @@ from typing import Any
 from mocapd.errors import DeviceError, MocapdError
 from mocapd.io.ws_server import listen_error
 from mocapd.pipeline.scheduler import PoseFrame
-from mocapd.service.app import Daemon, PoseSink, Rig
-from mocapd.service.camera_rig import AnyDetector, CameraDemoOptions, build_rig, demo_cameras, make_detector
 from mocapd.service.config import Config, load_config
-from mocapd.service.fake_cameras import FakeCameraFleet, tools_module
+from mocapd.service.daemon import Daemon, PoseSink, Rig
+from mocapd.service.demo.camera_rig import AnyDetector, CameraDemoOptions, build_rig, demo_cameras, make_detector
 from mocapd.service.http_status import StatusServer
-from mocapd.service.recorder import attach_recorder
-from mocapd.service.udp_config import build_udp_sinks
-from mocapd.service.websocket_service import build_websocket_sinks
+from mocapd.service.outputs.recorder import attach_recorder
+from mocapd.service.outputs.udp import build_udp_sinks
+from mocapd.service.outputs.websocket import build_websocket_sinks
+from mocapd.sim.fake_cameras import FakeCameraFleet
+from mocapd.sim.fake_gige import add_loopback_aliases
 
 
 class CameraDemoDaemon(Daemon):
@@ -108,7 +109,7 @@ async def run_camera_demo(
     ``monitor(daemon)`` once the daemon is ready, and stop everything when it returns or on SIGINT/SIGTERM.
     ``configure(daemon)`` runs once the daemon is built, before it starts (streams, recorder)."""
     loop = asyncio.get_running_loop()
-    addresses = tools_module().add_loopback_aliases(4)
+    addresses = add_loopback_aliases(4)
     cameras, specs = demo_cameras(opts, addresses)
     fleet = FakeCameraFleet(specs, time.monotonic_ns(), opts.replug_after_s)
     stop = asyncio.Event()
@@ -175,7 +176,7 @@ def _summary(daemon: CameraDemoDaemon | None, people: PeopleCount) -> dict[str, 
 
 
 def child_main(argv: list[str] | None = None) -> int:
-    """Entry point inside the private network namespace (``python -m mocapd.service.demo_cameras``)."""
+    """Entry point inside the private network namespace (``python -m mocapd.service.demo.cameras``)."""
     p = argparse.ArgumentParser(description="mocapd camera demo (inside a private network namespace)")
     p.add_argument("--config", type=Path, default=None)
     p.add_argument("--seconds", type=float, default=0.0)
@@ -280,7 +281,7 @@ def run(
         port = inherited["ws-fd"].getsockname()[1]
         print(f"viewer: http://{config.websocket.host}:{port}/  pose stream ws://{config.websocket.host}:{port}/",
               flush=True)  # fmt: skip
-    return in_private_netns("mocapd.service.demo_cameras", args, http_socket=sock, inherited=inherited)
+    return in_private_netns("mocapd.service.demo.cameras", args, http_socket=sock, inherited=inherited)
 
 
 def _stream_sockets(config: Config) -> dict[str, socket.socket]:

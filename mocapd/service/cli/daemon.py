@@ -13,7 +13,7 @@ from typing import Any
 
 from mocapd.errors import ConfigError, MocapdError
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
-from mocapd.service.udp_config import build_udp_sinks
+from mocapd.service.outputs.udp import build_udp_sinks
 
 
 def _subcommand_group(subparsers: Any, name: str) -> Any:
@@ -49,7 +49,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from mocapd.service import demo_synthetic
+    from mocapd.service.demo import synthetic as demo_synthetic
 
     try:
         cfg = _load(args.config, args.http_port)
@@ -58,8 +58,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return 2
     try:
         if not args.synthetic:
-            from mocapd.service import demo_cameras
-            from mocapd.service.camera_rig import CameraDemoOptions
+            from mocapd.service.demo import cameras as demo_cameras
+            from mocapd.service.demo.camera_rig import CameraDemoOptions
 
             opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
             return demo_cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
@@ -72,11 +72,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from mocapd.io.prior import resolve_prior
-    from mocapd.service.app import Daemon, Rig
-    from mocapd.service.recorder import attach_recorder, synthetic_extra
+    from mocapd.service.daemon import Daemon, Rig
+    from mocapd.service.outputs.recorder import attach_recorder, synthetic_extra
+    from mocapd.service.outputs.websocket import build_websocket_sinks
     from mocapd.service.suits import load_suits
-    from mocapd.service.synthetic_rig import SyntheticKeypointSource, SyntheticWorld
-    from mocapd.service.websocket_service import build_websocket_sinks
+    from mocapd.sim.world import SyntheticKeypointSource, SyntheticWorld
 
     try:
         cfg = _load(args.config, args.http_port)
@@ -114,11 +114,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_latency(args: argparse.Namespace) -> int:
-    from mocapd.service import bench_latency
+    from mocapd.service.bench import latency as bench_latency
 
     if args.rig == "cameras":
-        from mocapd.service import bench_cameras
-        from mocapd.service.camera_rig import CameraDemoOptions
+        from mocapd.service.bench import cameras as bench_cameras
+        from mocapd.service.demo.camera_rig import CameraDemoOptions
 
         opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
         return bench_cameras.run(args.seconds, opts)

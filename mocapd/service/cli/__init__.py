@@ -8,26 +8,30 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
-from mocapd.eval import cli as eval_cli
-from mocapd.service import cmd_calibrate, cmd_daemon, cmd_imu, cmd_model, cmd_session
+from mocapd.service.cli import calibrate as cmd_calibrate
+from mocapd.service.cli import daemon as cmd_daemon
+from mocapd.service.cli import eval as eval_cli
+from mocapd.service.cli import imu as cmd_imu
+from mocapd.service.cli import model as cmd_model
+from mocapd.service.cli import session as cmd_session
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
-    from mocapd.service import bench_solver
+    from mocapd.service.bench import solver as bench_solver
 
     print(json.dumps(bench_solver.run(frames=args.frames, scipy_frames=args.scipy_frames, seed=args.seed), indent=2))
     return 0
 
 
 def _cmd_bench_sorting(args: argparse.Namespace) -> int:
-    from mocapd.service import eval_tracking
+    from mocapd.eval import tracking as eval_tracking
 
     print(json.dumps(eval_tracking.bench_sorting(frames=args.frames), indent=2))
     return 0
 
 
 def _cmd_eval_tracking(args: argparse.Namespace) -> int:
-    from mocapd.service import eval_tracking
+    from mocapd.eval import tracking as eval_tracking
 
     motion = "synthetic" if args.synthetic else "real"
     print(json.dumps(eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion), indent=2))

@@ -19,7 +19,7 @@ from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.ringbuffer import LookupStatus
-from mocapd.service.imu_config import ImuConfig
+from mocapd.service.config.imu import ImuConfig
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,7 +17,7 @@ from dataclasses import replace
 from typing import Any
 
 from mocapd.service.config import load_config
-from mocapd.service.demo_synthetic import running_demo
+from mocapd.service.demo.synthetic import running_demo
 
 WARM_UP_S = 15.0  # > one motion loop (12 s): the simulators' packet caches are full
 

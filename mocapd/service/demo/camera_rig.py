@@ -1,7 +1,7 @@
 """The camera demo's rig: the Pose2Sim multi-person demo seen by four GigE Vision cameras, through the detector.
 
 Per camera: an :class:`~mocapd.io.aravis_camera.AravisSource` opened by IP (the fake camera serving that camera's
-video, :mod:`mocapd.service.fake_cameras`), Bayer frames demosaiced into its ring, and a
+video, :mod:`mocapd.sim.fake_cameras`), Bayer frames demosaiced into its ring, and a
 :class:`~mocapd.pipeline.keypoint_source.DetectorKeypointSource` running the onnxruntime pose detector on the
 newest frame whenever a detector worker is free (the four cameras share ``[detector] workers`` threads, so the
 detection rate per camera is what the CPU gives; skipped frames are counted), its detections stamped with the
@@ -36,9 +36,9 @@ from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource
 from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.pipeline.packing import packed_detector_from_config
-from mocapd.service.app import Rig
 from mocapd.service.config import Config
-from mocapd.service.fake_cameras import FakeCameraSpec
+from mocapd.service.daemon import Rig
+from mocapd.sim.fake_cameras import FakeCameraSpec
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,7 @@
+"""``python -m mocapd``: the ``mocapd`` command."""
+
+import sys
+
+from mocapd.service.cli import main
+
+sys.exit(main())
