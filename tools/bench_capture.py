@@ -28,8 +28,10 @@ from pathlib import Path
 from statistics import median
 from typing import Any
 
+from mocapd.io.pose2sim_demo import demo_root
+
 ROOT = Path(__file__).resolve().parents[1]
-VIDEOS = ROOT / ".cache" / "pose2sim" / "Pose2Sim" / "Demo_MultiPerson" / "videos"
+VIDEOS = demo_root() / "Demo_MultiPerson" / "videos"
 
 
 def run_config(size: str | None, fmt: str, fps: float, duration: float, max_frames: int) -> dict[str, Any]:

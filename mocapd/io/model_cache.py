@@ -1,7 +1,8 @@
-"""Where fetched artefacts live: the project's cache directory (never committed).
+"""Where fetched artefacts live: the user's cache directory (never the package, never committed).
 
-``$MOCAPD_CACHE`` when set, else ``.cache/`` at the root of the checkout. Models go to ``models/``, the
-Pose2Sim demo wheel to ``pose2sim/``.
+``$MOCAPD_CACHE`` when set, else ``$XDG_CACHE_HOME/mocapd``, else ``~/.cache/mocapd`` (the XDG base directory
+default), so an installed wheel, a checkout and a system service each find their own. Models go to ``models/``,
+the Pose2Sim demo data to ``pose2sim/``.
 """
 
 from __future__ import annotations
@@ -9,13 +10,16 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-_REPO_ROOT = Path(__file__).resolve().parents[2]
-
 
 def cache_dir() -> Path:
     """The cache root (not created)."""
     env = os.environ.get("MOCAPD_CACHE")
-    return Path(env) if env else _REPO_ROOT / ".cache"
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    # The XDG spec: a relative $XDG_CACHE_HOME is invalid and must be ignored.
+    base = Path(xdg) if xdg and os.path.isabs(xdg) else Path.home() / ".cache"
+    return base / "mocapd"
 
 
 def model_dir() -> Path:

