@@ -18,9 +18,22 @@ from mocapd.service.config import DEFAULT_CONFIG, load_config, parse_config
 def test_shipped_config_equals_the_defaults() -> None:
     """The seed's weights everywhere but λ_R and λ_A, which the development split re-tuned (docs/accuracy.md)."""
     cfg = load_config()
-    assert cfg.solver.cost == replace(CostOptions(), lambda_orientation=100.0, lambda_acceleration=1e-4)
+    assert cfg.solver.cost == replace(CostOptions.seed_003(), lambda_orientation=100.0, lambda_acceleration=1e-4)
     assert cfg.solver.lm == LMOptions()
     assert cfg.solver.backend == "compiled"
+
+
+def test_library_defaults_are_the_shipped_config() -> None:
+    """One source of truth (issue 14): a PoseSolver built with no options solves the daemon's problem. Before,
+    ``CostOptions()`` had the seed's λ_R = 1 against the shipped 100 (18-20° knee error instead of 4-6°)."""
+    from mocapd.core.skeleton import Skeleton
+    from mocapd.core.solver import PoseSolver
+
+    shipped = load_config().solver
+    assert CostOptions() == shipped.cost
+    assert CostOptions().lambda_orientation == 100.0
+    solver = PoseSolver(Skeleton.from_height(1.75))
+    assert solver.cost_options == shipped.cost and solver.lm == shipped.lm
 
 
 def test_shipped_config_documents_every_solver_option() -> None:

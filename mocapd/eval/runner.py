@@ -52,8 +52,8 @@ class EvalOptions:
     seed: int = 0
     detections: DetectionNoise = field(default_factory=DetectionNoise.realistic)
     imus: ImuNoise = field(default_factory=ImuNoise)
-    cost: CostOptions = field(default_factory=CostOptions)
-    cost_label: str = "CostOptions() defaults (seed 003)"
+    cost: CostOptions = field(default_factory=CostOptions.seed_003)
+    cost_label: str = "CostOptions.seed_003() (seed 003's weights)"
     prior: str = "default"
     progress: bool = True
 
