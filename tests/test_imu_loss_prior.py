@@ -51,8 +51,17 @@ def test_eq12_gravity_and_inverse() -> None:
 def test_imu_mount_validation() -> None:
     with pytest.raises(InputError, match="not one of"):
         ImuMount("Tail")
-    with pytest.raises(InputError, match="unit quaternion"):
-        ImuMount("Head", q_ib=np.array([2.0, 0, 0, 0]))
+    with pytest.raises(InputError, match="finite"):
+        ImuMount("Head", t_ib=np.array([0.0, np.nan, 0.0]))
+
+
+def test_imu_mount_takes_no_mounting_rotation() -> None:
+    """The solver works on bone orientations: a mounting rotation given to it was silently ignored (issue 14).
+    It is no longer accepted at all; the calibration applies R_ib (Eq. 8) where sensor readings become bone
+    orientations."""
+    with pytest.raises(TypeError, match="q_ib"):
+        ImuMount("Head", q_ib=np.array([0.0, 1.0, 0.0, 0.0]))  # type: ignore[call-arg]
+    assert not hasattr(ImuMount("Head"), "q_ib")
 
 
 @pytest.mark.parametrize("loss", [TrivialLoss(), CauchyLoss(), CauchyLoss(3.0), HuberLoss(2.0)])

@@ -64,32 +64,32 @@ _DEFAULT_SENSOR_POSITIONS: dict[str, tuple[float, float, float]] = {
 
 @dataclass(frozen=True)
 class ImuMount:
-    """One IMU attached to a bone.
+    """Where one IMU sits on the solver's skeleton: its bone and its position on it.
+
+    The mounting *rotation* ``R_ib`` is deliberately not part of a mount: the solver takes measured **bone**
+    orientations (``Observations.imu_orientations``, Eq. 8 already applied), so it has nothing to apply a
+    rotation to. The calibration (:class:`mocapd.core.imu_calibration.ImuCalibration`) holds ``R_ig`` and each
+    sensor's ``R_ib``, and whoever turns sensor readings into observations applies them
+    (:func:`measured_bone_orientation`; the scheduler does it for every suit). An earlier ``q_ib`` field here was
+    accepted and silently ignored, so raw sensor quaternions gave ~97° knee errors without any error (issue 14).
 
     Attributes
     ----------
     bone : str
         One of the 21 bone names.
-    q_ib : array, shape (4,)
-        Sensor orientation in the bone frame (sensor → bone), unit quaternion.
     t_ib : array, shape (3,)
-        Sensor position in the bone frame (metres).
+        Sensor position in the bone frame (metres): where the acceleration term's site is.
     """
 
     bone: str
-    q_ib: FloatArray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
     t_ib: FloatArray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
         if self.bone not in BONE_INDEX:
             raise InputError(f"IMU bone {self.bone!r} is not one of {BONE_NAMES}")
-        q = np.asarray(self.q_ib, dtype=np.float64)
         t = np.asarray(self.t_ib, dtype=np.float64)
-        if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-6:
-            raise InputError(f"IMU on {self.bone}: q_ib must be a unit quaternion (4,), got {q!r}")
         if t.shape != (3,) or not np.all(np.isfinite(t)):
             raise InputError(f"IMU on {self.bone}: t_ib must be a finite (3,) vector, got {t!r}")
-        object.__setattr__(self, "q_ib", q)
         object.__setattr__(self, "t_ib", t)
 
     @property

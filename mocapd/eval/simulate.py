@@ -253,7 +253,7 @@ def simulate_imus(
     bones = np.array([m.bone_index for m in mounts], dtype=np.intp)
     q_gb = quat_from_matrix(fk.rotations[:, bones])  # (f, n, 4)
     sites = kin.targets(fk, bones, np.array([m.t_ib for m in mounts]))
-    q_cal = np.array([m.q_ib for m in mounts])
+    q_cal = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))  # the calibrated mounting R_ib (any value: it cancels)
     q_true = quat_multiply(q_cal, quat_from_rotvec(_random_rotvecs(rng, (n,), noise.calibration_deg)))
     step = np.deg2rad(noise.heading_walk_deg_per_sqrt_min) * np.sqrt(dt / 60.0)
     heading = np.cumsum(rng.normal(scale=step, size=(f, n)), axis=0)
