@@ -173,15 +173,25 @@ def test_cameras_alone_fix_the_pose(scene: Scene) -> None:
     start = perturb_pose(scene.truth[frame], np.random.default_rng(4), 10.0)
     start[:3] += [0.3, 0.0, 0.2]
     o = scene.observations[frame]
-    res = solver.solve(Observations(keypoints=o.keypoints, confidences=o.confidences), theta0=start)
+    res = solver.solve(Observations(keypoints=o.keypoints, confidences=o.confidences, dt=o.dt), theta0=start)
     err = _joint_errors_mm(scene, res.theta, frame)
     assert err[0] < 2.0  # the root, including its global position
     assert err[OBSERVED_JOINTS].mean() < 5.0
 
 
+def test_observations_require_the_frame_period() -> None:
+    """Δt scales every measured acceleration in E_A; a silent 1/60 s default on 100 Hz data was a trap (issue 14).
+    It has no default now, and fields are keyword-only so a positional call cannot shift into it."""
+    with pytest.raises(TypeError, match="dt"):
+        Observations(imu_orientations=np.array([[1.0, 0.0, 0.0, 0.0]]))  # type: ignore[call-arg]
+    with pytest.raises(TypeError):
+        Observations(np.zeros((0, 17, 2)), np.zeros((0, 17)), dt=0.01)  # type: ignore[call-arg]
+    assert Observations(dt=0.01).dt == 0.01
+
+
 def test_no_sensors_at_all_is_finite(scene: Scene) -> None:
     solver = _solver(scene, cameras=[], imus=())
-    res = solver.solve(Observations())
+    res = solver.solve(Observations(dt=1 / 60))
     assert res.summary.converged and np.all(np.isfinite(res.theta))
 
 

@@ -198,7 +198,14 @@ class Daemon:
                        self.config.solver.cost, self.config.solver.lm,
                        backend="numpy" if self.config.solver.backend == "numpy" else "compiled")  # fmt: skip
         n_cams, n_kp = len(self.rig.cameras), len(self.rig.targets)
-        s.solve(Observations(np.zeros((n_cams, n_kp, 2)), np.zeros((n_cams, n_kp))), update_state=False)
+        s.solve(
+            Observations(
+                keypoints=np.zeros((n_cams, n_kp, 2)),
+                confidences=np.zeros((n_cams, n_kp)),
+                dt=self.scheduler.options.dt,
+            ),
+            update_state=False,
+        )
 
     def _source(self, src: KeypointSource) -> Callable[[], Any]:
         def sink(camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:
