@@ -19,7 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core import _kernel
-from mocapd.core.camera import Camera, stack_cameras
+from mocapd.core.camera import Camera, stack_cameras, triangulate
+from mocapd.core.ground import FOOT_POINTS, FOOT_SENSOR_BONES, GroundOptions, GroundTracker, standing_heights
 from mocapd.core.imu import ImuMount
 from mocapd.core.keypoints import TrackTargets, coco17_targets, floor_targets
 from mocapd.core.kinematics import FKState, Kinematics
@@ -27,7 +28,7 @@ from mocapd.core.lm import LMOptions, Termination, levenberg_marquardt
 from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss, corrector_weights
 from mocapd.core.observations import Observations, ValidatedObservations
 from mocapd.core.prior import PcaPrior
-from mocapd.core.skeleton import POSE_DIM, Skeleton
+from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
 from mocapd.core.terms import (
     CostOptions,
     PriorMatrices,
@@ -140,6 +141,9 @@ class PoseSolver:
     backend : "compiled" or "numpy"
         ``compiled`` (default) evaluates cost and normal equations in one numba kernel; ``numpy`` is the
         vectorised reference implementation the kernel is tested against. Both give the same iterates.
+    ground : GroundOptions, optional
+        How the root is placed when fewer than ``ground.reference_views`` cameras see the person (foot
+        contacts, :mod:`mocapd.core.ground`); default on. ``GroundOptions(enabled=False)``: the LM's root.
     """
 
     def __init__(
@@ -152,6 +156,7 @@ class PoseSolver:
         cost: CostOptions | None = None,
         lm: LMOptions | None = None,
         backend: Literal["compiled", "numpy"] = "compiled",
+        ground: GroundOptions | None = None,
     ) -> None:
         if backend not in ("compiled", "numpy"):
             raise InputError(f"solver backend must be 'compiled' or 'numpy', got {backend!r}")
@@ -198,7 +203,21 @@ class PoseSolver:
         self._history: list[FloatArray] = []  # solved IMU sites at t-1 (last) and t-2
         self._prev_root: FloatArray | None = None  # root translation of the solve before the last one
         self._has_solved = False
+        self._had_reference = False  # the last solve had an absolute position reference (enough cameras)
         self._kernel_static = self._pack_static() if backend == "compiled" else None
+        self.ground_options = ground if ground is not None else GroundOptions()
+        self._foot_bones = np.array([BONE_INDEX[b] for pair in FOOT_POINTS for b in pair], dtype=np.intp)
+        self._hips_imu = next((i for i, m in enumerate(self.imus) if m.bone == "Hips"), None)
+        self._foot_imus = [next((i for i, m in enumerate(self.imus) if m.bone == b), None) for b in FOOT_SENSOR_BONES]
+        self.ground = (
+            GroundTracker(
+                standing_heights(self._foot_points(skeleton.rest_pose())),
+                self.cost_options.floor_height,
+                self.ground_options,
+            )
+            if self.ground_options.enabled
+            else None
+        )
         self._H = np.zeros((POSE_DIM, POSE_DIM))
         self._g = np.zeros(POSE_DIM)
         self._tc = np.zeros(len(TERM_NAMES))
@@ -316,17 +335,81 @@ class PoseSolver:
         self._history.clear()
         self._prev_root = None
         self._has_solved = False
+        self._had_reference = False
+        if self.ground is not None:
+            self.ground.reset()
 
     def _prediction(self) -> FloatArray:
         """Warm start: the previous pose, with the root translation extrapolated at constant velocity.
 
         Joint rotations start from the previous solve (seed 003 §3.2.6). Holding the root still instead would
-        start every frame with a spurious deceleration of v/Δt in the acceleration term.
+        start every frame with a spurious deceleration of v/Δt in the acceleration term. The velocity is only
+        extrapolated between two solves that both had an absolute position reference (enough cameras): without
+        one, nothing in the cost corrects the root, and a velocity fed back frame after frame never decays (the
+        floor term's upward pushes ran a real recording's root up by 1.6 m in 25 s).
         """
         theta = self.theta.copy()
         if self._prev_root is not None:
             theta[:3] += theta[:3] - self._prev_root
         return theta
+
+    def _recentre(self, theta: FloatArray, v: ValidatedObservations) -> FloatArray:
+        """Cameras see the person again after a stretch without them: move the warm start's root so that its
+        keypoint targets sit on the triangulated keypoints (median shift). The root may have drifted by decimetres
+        meanwhile, further than the robust reprojection term pulls back in one frame's iterations; the published
+        root still moves there gradually (:class:`~mocapd.core.ground.GroundTracker`)."""
+        X, ok = triangulate(self.cameras, v.uv, v.conf)
+        if int(ok.sum()) < 3:
+            return theta
+        fk = self.kin.forward(theta)
+        pred = self.kin.targets(fk, self.targets.bones, self.targets.offsets)
+        out = theta.copy()
+        out[:3] += np.median(X[ok] - pred[ok], axis=0)
+        return out
+
+    def _foot_points(self, theta: FloatArray) -> FloatArray:
+        """Ankle and toe joints of both feet, world positions, shape (2, 2, 3)."""
+        if self._kernel_static is not None:
+            kp = self._kernel_static
+            pts = _kernel.skeleton_points(
+                np.ascontiguousarray(theta, dtype=np.float64),
+                kp.parents,
+                kp.offsets,
+                self._foot_bones.astype(np.float64),
+                np.zeros((len(self._foot_bones), 3)),
+            )
+        else:
+            pts = self.kin.forward(theta).positions[self._foot_bones]
+        return np.asarray(pts).reshape(2, 2, 3)
+
+    def _foot_accelerations(self, v: ValidatedObservations) -> FloatArray:
+        """|free acceleration| of each foot's sensor (m/s², the previous frame's), NaN without one; shape (2,)."""
+        out = np.full(2, np.nan)
+        if not v.has_acceleration:
+            return out
+        for f, i in enumerate(self._foot_imus):
+            if i is not None and v.mask[i]:
+                out[f] = float(np.linalg.norm(v.acc[i]))
+        return out
+
+    def _hips_acceleration(self, v: ValidatedObservations) -> FloatArray | None:
+        """The hips sensor's free acceleration (world, m/s², the previous frame's), or None."""
+        i = self._hips_imu
+        if i is None or not v.has_acceleration or not v.mask[i]:
+            return None
+        return np.asarray(v.acc[i].copy())
+
+    def _place_root(self, tracker: GroundTracker, theta: FloatArray, v: ValidatedObservations) -> FloatArray:
+        """The ground tracker's step for a solved θ: returns the published θ, and sets θ's root (in place) to
+        the one to keep."""
+        feet = self._foot_points(theta)
+        root, published = tracker.step(
+            theta[:3], feet - theta[:3], self._views(v), v.dt, self._foot_accelerations(v), self._hips_acceleration(v)
+        )
+        theta[:3] = root
+        out = theta.copy()
+        out[:3] = published
+        return out
 
     def imu_sites(self, theta: FloatArray) -> FloatArray:
         """World positions of the IMU sites for θ, shape (n_imu, 3)."""
@@ -572,13 +655,27 @@ class PoseSolver:
         """
         v = ValidatedObservations(obs, self.n_cams, self.n_kp, self.n_imu)
         start = self._prediction() if theta0 is None else _check_theta(theta0)
+        if self._has_solved and not self._had_reference and self._views(v) >= self.ground_options.reference_views:
+            # Cameras see the person again: the acceleration history holds the sites of solves without a position
+            # reference (drifted); E_A would pull the root along that path. It restarts from this solve.
+            self._history.clear()
+            if theta0 is None:
+                start = self._recentre(start, v)
         result = self._minimize(start.copy(), v)
+        theta = result.theta
+        published = theta
+        if self.ground is not None and result.summary.converged:
+            tracker = self.ground if update_state else self.ground.copy()
+            theta = theta.copy()
+            published = self._place_root(tracker, theta, v)
         if update_state:
-            self._prev_root = self.theta[:3].copy() if self._has_solved else None
+            reference = self._views(v) >= self.ground_options.reference_views
+            self._prev_root = self.theta[:3].copy() if self._has_solved and reference and self._had_reference else None
             self._has_solved = True
-            self.theta = result.theta
-            self.push_history(result.theta)
-        return result
+            self._had_reference = reference
+            self.theta = theta
+            self.push_history(theta)
+        return SolveResult(published, result.summary)
 
     def _minimize(self, x: FloatArray, v: ValidatedObservations) -> SolveResult:
         on = self._enabled(v)

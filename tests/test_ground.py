@@ -1,0 +1,167 @@
+"""A root that stays on the ground without cameras (mocapd.core.ground, issue 14 item 2)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from mocapd.core.camera import project_points, stack_cameras
+from mocapd.core.ground import GroundOptions, GroundTracker
+from mocapd.core.imu import IMU_SET_13, default_mounts
+from mocapd.core.keypoints import coco17_targets
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.observations import Observations
+from mocapd.core.solver import PoseSolver
+from mocapd.core.synthetic import ring_rig
+from mocapd.errors import InputError
+from mocapd.eval.ground import drift_metrics, imu_only_observations, make_clip, synthetic_rig_clips
+from mocapd.eval.simulate import ImuNoise
+
+HEIGHTS = np.array([[0.07, 0.05], [0.07, 0.05]])
+
+
+def _feet(left: tuple[float, float, float], right: tuple[float, float, float]) -> np.ndarray:
+    """Ankle and toe of each foot relative to the root (toe 12 cm ahead of the ankle, 2 cm lower)."""
+    out = np.zeros((2, 2, 3))
+    for f, (x, y, z) in enumerate((left, right)):
+        out[f, 0] = (x, y, z)
+        out[f, 1] = (x, y - 0.02, z + 0.12)
+    return out
+
+
+def test_options_are_validated() -> None:
+    with pytest.raises(InputError, match="reference_views"):
+        GroundOptions(reference_views=0)
+    with pytest.raises(InputError, match="height_scale"):
+        GroundOptions(height_scale=float("nan"))
+    with pytest.raises(InputError, match="free_weight"):
+        GroundOptions(free_weight=0.5, lock_weight=0.3)
+    with pytest.raises(InputError, match="standing heights"):
+        GroundTracker(np.zeros(3), 0.0, GroundOptions())
+
+
+def test_standing_feet_hold_the_root_and_the_floor_is_two_sided() -> None:
+    """Both feet on the floor, every joint jittering by 4 mm for a minute: the root neither drifts nor floats, and its
+    height is whatever puts the feet on the floor (not where the solve left it)."""
+    rng = np.random.default_rng(0)
+    g = GroundTracker(HEIGHTS, 0.0, GroundOptions())
+    rel = _feet((0.1, -0.93, 0.0), (-0.1, -0.93, 0.0))
+    nan2 = np.full(2, np.nan)
+    root, _ = g.step(np.array([0.3, 1.5, 0.2]), rel, 0, 1 / 60, nan2)
+    assert root[1] == pytest.approx(1.0, abs=1e-9)  # the ankle 0.93 m below the root at its standing height 0.07
+    start = root.copy()
+    for _ in range(3600):
+        noisy = rel + rng.normal(scale=0.004, size=rel.shape)
+        root, published = g.step(root + np.array([0.0, 0.3, 0.0]), noisy, 0, 1 / 60, nan2)
+        assert np.array_equal(root, published)
+    assert np.linalg.norm((root - start)[[0, 2]]) < 0.02
+    assert abs(root[1] - start[1]) < 0.02
+    assert g.planted == (True, True)
+
+
+def test_a_step_hands_the_weight_to_the_landing_foot() -> None:
+    """The left foot stands; the right swings forward 60 cm and lands lower: the root follows the stance foot, then
+    the right foot takes over where it landed, and the left lifts."""
+    g = GroundTracker(HEIGHTS, 0.0, GroundOptions())
+    nan2 = np.full(2, np.nan)
+    root, _ = g.step(np.zeros(3), _feet((0.1, -0.93, 0.0), (-0.1, -0.93, 0.0)), 0, 1 / 60, nan2)
+    # The body moves forward over the planted left foot (its foot goes back relative to the root).
+    for k in range(1, 31):
+        s = 0.3 * k / 30
+        root, _ = g.step(root, _feet((0.1, -0.93, -s), (-0.1, -0.88, -0.3 + 2 * s)), 0, 1 / 60, nan2)
+    assert root[2] == pytest.approx(0.3, abs=1e-6)  # the left foot has not moved: the root went 30 cm
+    assert g.planted == (True, False)
+    for _ in range(5):  # the right foot comes down (lower than the left: the left heel rises)
+        root, _ = g.step(root, _feet((0.1, -0.90, -0.3), (-0.1, -0.93, 0.3)), 0, 1 / 60, nan2)
+    assert g.planted[1]
+    right_anchor = root + _feet((0.1, -0.90, -0.3), (-0.1, -0.93, 0.3))[1, 0]
+    for k in range(1, 31):  # now the body moves over the right foot
+        s = 0.3 * k / 30
+        root, _ = g.step(root, _feet((0.1, -0.80, -0.3 - 2 * s), (-0.1, -0.93, 0.3 - s)), 0, 1 / 60, nan2)
+    assert g.planted == (False, True)
+    np.testing.assert_allclose((root + _feet((0.1, -0.8, -0.9), (-0.1, -0.93, 0.0))[1, 0])[[0, 2]],
+                               right_anchor[[0, 2]], atol=1e-6)  # fmt: skip
+    assert root[2] == pytest.approx(0.6, abs=0.01)
+
+
+def test_cameras_coming_back_blend_the_published_root() -> None:
+    """After an IMU-only stretch the solve's root jumps to the cameras' position; the published one moves there
+    by at most ``blend_step`` per frame, and the kept (warm-start) root is the cameras' at once."""
+    g = GroundTracker(HEIGHTS, 0.0, GroundOptions(blend_step=0.01))
+    rel = _feet((0.1, -0.93, 0.0), (-0.1, -0.93, 0.0))
+    nan2 = np.full(2, np.nan)
+    root, pub = g.step(np.zeros(3), rel, 0, 1 / 60, nan2)
+    camera_root = root + np.array([0.2, 0.0, -0.1])
+    last = pub
+    for _ in range(40):
+        root, pub = g.step(camera_root, rel, 4, 1 / 60, nan2)
+        np.testing.assert_allclose(root, camera_root)
+        assert np.linalg.norm(pub - last) <= 0.01 + 1e-9
+        last = pub
+    np.testing.assert_allclose(pub, camera_root, atol=1e-9)
+
+
+def _rig_case(seconds: float, seed: int) -> tuple[PoseSolver, np.ndarray, list[Observations]]:
+    clips, skeleton = synthetic_rig_clips()
+    truth = clips[2][1][: round(seconds * 60)]  # 02_06: punching with deep crouches
+    clip = make_clip("02_06", skeleton, truth, 60.0)
+    obs = imu_only_observations(clip, default_mounts(IMU_SET_13, skeleton), ImuNoise(), np.random.default_rng(seed))
+    solver = PoseSolver(skeleton, [], None, default_mounts(IMU_SET_13, skeleton))
+    return solver, truth, obs
+
+
+def test_imu_only_root_stays_on_the_ground_on_recorded_motion() -> None:
+    """0 cameras + 13 noisy IMUs on the synthetic rig's recorded motion: the root height stays within 3 cm of the
+    truth (p95) and drifts little; with the LM's root alone it is off by decimetres in the crouches."""
+    solver, truth, obs = _rig_case(6.0, 1)
+    solver.reset(truth[0])
+    with_contacts = drift_metrics(np.array([solver.solve(o).theta for o in obs]), truth, 60.0)
+    assert with_contacts["height_error_p95_cm"] < 3.0
+    assert with_contacts["horizontal_drift_max_cm"] < 10.0
+    off = PoseSolver(solver.skeleton, [], None, solver.imus, ground=GroundOptions(enabled=False))
+    off.reset(truth[0])
+    without = drift_metrics(np.array([off.solve(o).theta for o in obs]), truth, 60.0)
+    assert without["height_error_p95_cm"] > 10.0
+
+
+def test_no_runaway_vertical_velocity_without_cameras() -> None:
+    """The warm start used to extrapolate the root's velocity whatever the cameras: an IMU-only body started
+    10 cm into the floor is pushed up by the floor term, and that push was fed back as a velocity every frame
+    (a real recording's root rose 1.6 m in 25 s). With the LM's root (contacts off) it now stops at the floor."""
+    solver, truth, obs = _rig_case(1.0, 2)
+    off = PoseSolver(solver.skeleton, [], None, solver.imus, ground=GroundOptions(enabled=False))
+    start = truth[0].copy()
+    start[1] -= 0.10
+    off.reset(start)
+    still = replace(obs[10], imu_accelerations=None)
+    heights = [off.solve(still).theta[1] for _ in range(300)]
+    assert max(heights) < truth[0][1] + 0.05
+    assert abs(heights[-1] - heights[-60]) < 1e-3
+
+
+def test_solver_blends_to_the_cameras_after_a_dark_stretch() -> None:
+    """4 cameras, dark from 1 s to 2.5 s: the published root never jumps more than 2 cm per frame beyond the true
+    motion, and is back within 2 cm of the truth 1 s after the cameras return."""
+    solver0, truth, obs = _rig_case(4.0, 3)
+    sk = solver0.skeleton
+    cams = ring_rig(4)
+    targets = coco17_targets(sk)
+    kin = Kinematics(sk)
+    sites = kin.targets(kin.forward(truth), targets.bones, targets.offsets)
+    K, dist, R, t = stack_cameras(cams)
+    solver = PoseSolver(sk, cams, targets, solver0.imus)
+    solver.reset(truth[0])
+    rng = np.random.default_rng(4)
+    roots = []
+    for f, o in enumerate(obs):
+        uv, _, valid = project_points(K, dist, R, t, sites[f], jacobian=False)
+        conf = np.where(valid, 0.9, 0.0) * (not 1.0 <= f / 60 < 2.5)
+        res = solver.solve(replace(o, keypoints=uv + rng.normal(size=uv.shape), confidences=conf))
+        roots.append(res.theta[:3])
+    r = np.array(roots)
+    jump = np.linalg.norm(np.diff(r, axis=0) - np.diff(truth[:, :3], axis=0), axis=1)
+    back = 150
+    assert jump[back - 1 : back + 60].max() < 0.02
+    assert np.linalg.norm(r[back + 60] - truth[back + 60, :3]) < 0.02
