@@ -16,35 +16,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.rotations import matrix_from_quat, quat_from_matrix, quat_normalize
-from mocapd.errors import InputError
+from mocapd.io.mt_export import read_mt_export
 
 FloatArray = NDArray[np.float64]
 
 
 def read_mtw_text(path: Path) -> tuple[float, FloatArray, FloatArray]:
-    """Rate (Hz), accelerations (n, 3) and orientation matrices (n, 3, 3) of an MTw text export."""
-    rate = 100.0
-    header: list[str] | None = None
-    rows: list[list[str]] = []
-    for line in Path(path).read_text(encoding="utf-8", errors="replace").splitlines():
-        if line.startswith("//"):
-            if "Update Rate" in line:
-                rate = float(line.split(":")[1].strip().rstrip("Hz"))
-            continue
-        parts = line.split("\t")
-        if header is None:
-            header = parts
-            continue
-        rows.append(parts)
-    if header is None or not rows:
-        raise InputError(f"{path}: no data")
-    col = {h.strip(): i for i, h in enumerate(header)}
-    try:
-        acc = np.array([[float(r[col[f"Acc_{a}"]]) for a in "XYZ"] for r in rows])
-        mat = np.array([[[float(r[col[f"Mat[{i}][{j}]"]]) for j in (1, 2, 3)] for i in (1, 2, 3)] for r in rows])
-    except (KeyError, ValueError, IndexError) as exc:
-        raise InputError(f"{path}: missing or bad Acc/Mat columns: {exc}") from exc
-    return rate, acc, mat
+    """Rate (Hz), accelerations (n, 3) and orientation matrices (n, 3, 3, sensor → ENU) of an MT Manager export
+    (:func:`mocapd.io.mt_export.read_mt_export`)."""
+    e = read_mt_export(path)
+    return e.rate_hz, e.acc, matrix_from_quat(e.quat)
 
 
 def static_noise(path: Path, window_s: float = 1.0, windows: int = 3) -> dict[str, Any]:

@@ -42,6 +42,7 @@ from mocapd.core.rotations import (
     quat_multiply,
     quat_normalize,
 )
+from mocapd.io.mt_export import read_mt_export
 from mocapd.protocols import xbus
 from mocapd.protocols.mtdata2 import TYPE_MASK, AwindaSnapshot, CoordFrame, DataId, encode_packet
 from mocapd.protocols.xbus import MID, OutputSetting
@@ -63,28 +64,10 @@ class Motion:
 
 
 def load_opensense(path: Path) -> Motion:
-    """Read an Xsens MT Manager text export (OpenSense example data): Acc_X..Z and the orientation matrix.
-
-    The matrix columns are listed column-major: ``Mat[1][1] Mat[2][1] Mat[3][1] Mat[1][2] ...``.
-    """
-    lines = path.read_text().splitlines()
-    header_row = next(i for i, line in enumerate(lines) if line.startswith("PacketCounter"))
-    names = lines[header_row].split("\t")
-    rate = 100.0
-    for line in lines[:header_row]:
-        if line.startswith("// Update Rate:"):
-            rate = float(line.split(":")[1].strip().rstrip("Hz"))
-    acc_cols = [names.index(c) for c in ("Acc_X", "Acc_Y", "Acc_Z")]
-    mat_cols = [names.index(f"Mat[{r}][{c}]") for c in (1, 2, 3) for r in (1, 2, 3)]
-    rows = [line.rstrip("\r").split("\t") for line in lines[header_row + 1 :] if line.strip()]
-    acc = np.array([[float(r[c]) for c in acc_cols] for r in rows])
-    mats = np.array([[float(r[c]) for c in mat_cols] for r in rows]).reshape(-1, 3, 3).transpose(0, 2, 1)
-    # Exported matrices are rounded to 6 decimals: re-orthonormalise before converting.
-    u, _, vt = np.linalg.svd(mats)
-    quat = quat_from_matrix(u @ vt)
-    stem = path.stem.rsplit("_", 1)[-1]
-    device_id = int(stem, 16) if all(ch in "0123456789abcdefABCDEF" for ch in stem) else 0x00B40000
-    return Motion(quat, acc, rate, device_id)
+    """Read an Xsens MT Manager text export (OpenSense example data) with :func:`mocapd.io.mt_export.read_mt_export`:
+    its orientation in ENU and its sensor-frame acceleration."""
+    e = read_mt_export(path)
+    return Motion(e.quat, e.acc, e.rate_hz, int(e.sensor, 16))
 
 
 def synthetic_motion(n: int = 2400, rate_hz: float = 100.0, device_id: int = 0x00B40001) -> Motion:
