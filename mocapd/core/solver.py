@@ -143,7 +143,8 @@ class PoseSolver:
         vectorised reference implementation the kernel is tested against. Both give the same iterates.
     ground : GroundOptions, optional
         How the root is placed when fewer than ``ground.reference_views`` cameras see the person (foot
-        contacts, :mod:`mocapd.core.ground`); default on. ``GroundOptions(enabled=False)``: the LM's root.
+        contacts, :mod:`mocapd.core.ground`); default on when both legs wear a sensor below the knee.
+        ``GroundOptions(enabled=False)``: the LM's root.
     """
 
     def __init__(
@@ -215,7 +216,7 @@ class PoseSolver:
                 self.cost_options.floor_height,
                 self.ground_options,
             )
-            if self.ground_options.enabled
+            if self.ground_options.enabled and _legs_measured(self.imus)
             else None
         )
         self._H = np.zeros((POSE_DIM, POSE_DIM))
@@ -668,6 +669,17 @@ class PoseSolver:
             tracker = self.ground if update_state else self.ground.copy()
             theta = theta.copy()
             published = self._place_root(tracker, theta, v)
+        elif (
+            self.ground_options.enabled
+            and self._has_solved
+            and result.summary.converged
+            and self._views(v) < self.ground_options.reference_views
+        ):
+            # Legs without sensors and no cameras: nothing measures where the feet are, so nothing may move the
+            # root (the floor term would push it up whenever the prior folds the legs under the floor).
+            theta = theta.copy()
+            theta[:3] = self.theta[:3]
+            published = theta
         if update_state:
             reference = self._views(v) >= self.ground_options.reference_views
             self._prev_root = self.theta[:3].copy() if self._has_solved and reference and self._had_reference else None
@@ -699,6 +711,14 @@ class PoseSolver:
             term_costs={} if failed else r.info,
         )
         return SolveResult(self.theta.copy() if failed else r.x, summary)
+
+
+def _legs_measured(imus: tuple[ImuMount, ...]) -> bool:
+    """Whether both legs wear a sensor below the knee (shank or foot): only then are the feet where the solve puts
+    them, and only then can foot contacts place the root (an upper-body suit's legs follow the prior, a seated
+    musician's folded legs would walk the root away)."""
+    bones = {m.bone for m in imus}
+    return all(bool({f"{side}LowerLeg", f"{side}Foot"} & bones) for side in ("Left", "Right"))
 
 
 def _loss_code(loss: Loss, term: str) -> tuple[int, float]:
