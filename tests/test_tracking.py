@@ -108,6 +108,7 @@ def test_sorter_needs_two_cameras_and_matching_input() -> None:
     with pytest.raises(InputError, match="3 cameras but detections for 2"):
         DetectionSorter(cams).candidates([Detections2D.empty(17)] * 2)
     assert DetectionSorter(cams).candidates([Detections2D.empty(17)] * 3) == []
+    assert DetectionSorter([]).candidates([]) == []  # a rig of IMU suits alone: nobody is ever found
 
 
 def test_people_tracker_reports_pairing_and_events_in_status() -> None:

@@ -131,13 +131,14 @@ class DetectionSorter:
     Parameters
     ----------
     cameras : list of Camera
-        At least two (the seed's method needs triangulation).
+        At least two (the seed's method needs triangulation), or none: a rig of IMU suits alone, where no one is
+        ever found (the scheduler solves the suits by themselves).
     options : SortingOptions
     """
 
     def __init__(self, cameras: list[Camera], options: SortingOptions | None = None) -> None:
-        if len(cameras) < 2:
-            raise InputError("detection sorting needs at least two cameras (it triangulates across views)")
+        if len(cameras) == 1:
+            raise InputError("detection sorting needs at least two cameras (it triangulates across views), or none")
         self.cameras = list(cameras)
         self.options = options if options is not None else SortingOptions()
         self._K, self._dist, self._R, self._t = (np.ascontiguousarray(a) for a in stack_cameras(self.cameras))

@@ -290,8 +290,9 @@ class FixedLatencyScheduler:
         w2, c2 = self._stage("sort", w1, c1)
         for person in frame.people:
             self._size_body(person)
-        poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in frame.people]
-        self._forget_released({p.identity for p in frame.people})
+        people = [*frame.people, *self._imu_only_people(frame.people, suits)]
+        poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in people]
+        self._forget_released({p.identity for p in people})
         self._stage("solve", w2, c2)
         self.frame += 1
         self.counters["ticks"] += 1
@@ -357,6 +358,19 @@ class FixedLatencyScheduler:
         if prev is not None and abs(t - period - prev[0]) <= period // 4 and np.all(prev[2][mask]):
             return SuitSample(q, prev[1], mask, True)
         return SuitSample(q, acc, mask, False)  # no previous frame: the acceleration term sits this one out
+
+    def _imu_only_people(self, seen: list[Person], suits: dict[str, SuitSample]) -> list[Person]:
+        """Suits streaming without a person the cameras see: solved from their IMUs alone (the solver keeps their
+        root on the ground, :mod:`mocapd.core.ground`). With no cameras at all, every streaming suit; with cameras,
+        a suit already solved as a person (its wearer walked out of view, or the cameras lost them), so that its
+        identity, warm start and contacts carry on; a suit the cameras never saw waits for its binding."""
+        bound = {p.suit for p in seen if p.suit}
+        nan = np.full((17, 3), np.nan)
+        return [
+            Person(identity=f"suit:{sid}", track=-1, suit=sid, detections={}, keypoints=nan)
+            for sid, sample in suits.items()
+            if sid not in bound and sample.mask.any() and (not self.cameras or f"suit:{sid}" in self.solvers)
+        ]
 
     def _solver_for(self, person: Person, with_suit: Suit | None) -> PoseSolver:
         solver = self.solvers.get(person.identity)

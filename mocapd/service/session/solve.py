@@ -137,11 +137,14 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
 
 def solve_times(session: Session, rate_hz: float) -> NDArray[np.int64]:
     """Every output tick from the first to the last recorded frame, the ticks the live daemon missed included;
-    a grid at ``rate_hz`` over the keypoints when no frame was recorded."""
+    a grid at ``rate_hz`` over the keypoints when no frame was recorded, over the IMU samples when there are no
+    keypoints either (an imported IMU recording: ``mocapd import``)."""
     period = round(1e9 / rate_hz)
     t = np.array([f.t_solve_ns for f in session.poses()], dtype=np.int64)
     if t.size == 0:
         t = np.array([k.capture_ns for k in session.keypoints()], dtype=np.int64)
+    if t.size == 0:
+        t = np.array([r.t_ns for r in session.imu() if r.t_ns >= 0], dtype=np.int64)
         if t.size == 0:
             return t
     return np.arange(int(t.min()), int(t.max()) + 1, period, dtype=np.int64)
