@@ -44,6 +44,14 @@ IMU_SET_6: tuple[str, ...] = (
 )
 """Pelvis, head, forearms, shanks (DESIGN.md)."""
 
+IMU_SET_LOWER: tuple[str, ...] = (
+    "Hips", "LeftUpperLeg", "RightUpperLeg", "LeftLowerLeg", "RightLowerLeg", "LeftFoot", "RightFoot",
+)  # fmt: skip
+"""A lower-body suit: pelvis, thighs, shanks, feet (gait set-ups such as OpenSense's). A trunk sensor
+(:data:`IMU_SET_LOWER_OPTIONAL`) may come with it; the arms and head then follow the pose prior."""
+
+IMU_SET_LOWER_OPTIONAL: tuple[str, ...] = ("Spine", "Spine1", "Spine2", "Spine3")
+
 # Where on each bone a strapped sensor sits by default (bone frame, metres, for a 1.75 m person): on the
 # surface, roughly mid-segment. Refined by calibration where available.
 _DEFAULT_SENSOR_POSITIONS: dict[str, tuple[float, float, float]] = {

@@ -28,7 +28,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.imu import IMU_SET_6, IMU_SET_13, measured_bone_orientation
+from mocapd.core.imu import (
+    IMU_SET_6,
+    IMU_SET_13,
+    IMU_SET_LOWER,
+    IMU_SET_LOWER_OPTIONAL,
+    measured_bone_orientation,
+)
 from mocapd.core.rotations import (
     matrix_from_quat,
     quat_angle,
@@ -44,7 +50,7 @@ from mocapd.errors import CalibrationError, ConfigError, InputError
 FloatArray = NDArray[np.float64]
 
 # The 21 bone names (DESIGN.md order) and the 13/6-sensor sets, re-exported for the assignment checks.
-__all__ = ["BONE_NAMES", "IMU_SET_6", "IMU_SET_13"]
+__all__ = ["BONE_NAMES", "IMU_SET_6", "IMU_SET_13", "IMU_SET_LOWER"]
 
 #: Rotation of ENU device coordinates into world coordinates (x west, y up, z north), as a matrix.
 ENU_TO_WORLD = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
@@ -80,8 +86,9 @@ def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) 
     ----------
     mapping : mapping of str to str
         Sensor id (8 hex digits, as printed on the case; case-insensitive) to bone name.
-    imu_set : {"13", "6", None}
-        If given, the assigned bones must be exactly that set.
+    imu_set : {"13", "6", "lower", None}
+        If given, the assigned bones must be exactly that set ("lower": pelvis, thighs, shanks and feet, plus at
+        most one trunk sensor on Spine..Spine3).
 
     Returns
     -------
@@ -104,11 +111,14 @@ def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) 
             raise ConfigError(f"imu assignment: bone {bone} has more than one sensor")
         out[sid] = bone
     if imu_set is not None:
-        expected = {"13": IMU_SET_13, "6": IMU_SET_6}.get(imu_set)
+        expected = {"13": IMU_SET_13, "6": IMU_SET_6, "lower": IMU_SET_LOWER}.get(imu_set)
         if expected is None:
-            raise ConfigError(f"imu assignment: imu_set must be '13' or '6', got {imu_set!r}")
+            raise ConfigError(f"imu assignment: imu_set must be '13', '6' or 'lower', got {imu_set!r}")
         missing = sorted(set(expected) - set(out.values()))
         extra = sorted(set(out.values()) - set(expected))
+        if imu_set == "lower":
+            trunk = [b for b in extra if b in IMU_SET_LOWER_OPTIONAL]
+            extra = [b for b in extra if b not in IMU_SET_LOWER_OPTIONAL] + trunk[1:]
         if missing or extra:
             raise ConfigError(f"imu assignment for the {imu_set}-sensor set: missing {missing}, unexpected {extra}")
     return out
@@ -340,3 +350,110 @@ def facing_heading_from_sensor(q_i: FloatArray, forward_axis: FloatArray) -> flo
     if np.hypot(fwd[0], fwd[1]) < 1e-3:
         raise CalibrationError("the forward axis is vertical: cannot derive a heading from it")
     return float(np.degrees(np.arctan2(fwd[0], fwd[1])) % 360.0)
+
+
+# ------------------------------------------------------------------------------ calibration from a recording
+CALIBRATION_POSES = ("t-pose", "arms-down")
+_ARM_SIDE = {
+    "LeftUpperArm": -1.0, "LeftLowerArm": -1.0, "LeftHand": -1.0,
+    "RightUpperArm": 1.0, "RightLowerArm": 1.0, "RightHand": 1.0,
+}  # fmt: skip
+
+
+def rest_orientations(pose: str) -> dict[str, FloatArray] | None:
+    """World orientation of each bone in a calibration posture, for :func:`calibrate_tpose` (None: the T-pose).
+
+    ``"t-pose"`` is the solver's rest pose (arms horizontal); ``"arms-down"`` has the arms hanging at the sides,
+    palms in: upper arms, forearms and hands turned 90° down about the body's forward axis (+Z).
+    """
+    if pose == "t-pose":
+        return None
+    if pose != "arms-down":
+        raise ConfigError(f"calibration pose must be one of {CALIBRATION_POSES}, got {pose!r}")
+    # The left arm along +X in the T-pose, down (-Y) at the side: -90° about +Z; the right arm (-X): +90°.
+    return {b: quat_from_rotvec(np.array([0.0, 0.0, s * np.pi / 2])) for b, s in _ARM_SIDE.items()}
+
+
+Samples = Mapping[str, tuple[FloatArray, FloatArray, FloatArray]]
+"""Per sensor id: times (s, shape (n,)), orientations (n, 4) and accelerations (n, 3) of a recording."""
+
+
+def stillest_common_window(samples: Samples, window_s: float, span: tuple[float, float] | None) -> tuple[float, float]:
+    """The ``window_s`` window (start, end in s) where the sensors are jointly stillest: the largest turn of any
+    sensor from its window mean is smallest. Searched in steps of a quarter window over ``span`` (default: where
+    every sensor recorded)."""
+    t_begin = max(float(t[0]) for t, _, _ in samples.values())
+    t_end = min(float(t[-1]) for t, _, _ in samples.values())
+    lo, hi = (t_begin, t_end) if span is None else (max(t_begin, span[0]), min(t_end, span[1]))
+    if hi - lo < window_s:
+        raise CalibrationError(
+            f"the calibration span {lo:.2f}-{hi:.2f} s is shorter than the {window_s} s window (all sensors must "
+            "record through it)"
+        )
+    best: tuple[float, float] | None = None
+    for start in np.arange(lo, hi - window_s + 1e-9, window_s / 4):
+        worst = 0.0
+        for t, q, _ in samples.values():
+            sel = (t >= start) & (t < start + window_s)
+            if sel.sum() < 2:
+                worst = np.inf
+                break
+            worst = max(worst, float(np.degrees(quat_angle(q[sel], quat_average(q[sel])).max())))
+        if best is None or worst < best[0]:
+            best = (worst, float(start))
+    assert best is not None
+    return best[1], best[1] + window_s
+
+
+def calibrate_recording(
+    person: str,
+    samples: Samples,
+    bones: Mapping[str, str],
+    *,
+    facing_heading_deg: float | None = None,
+    facing_from: tuple[str, FloatArray] | None = None,
+    world_heading: str = "subject",
+    window_s: float = 1.0,
+    span: tuple[float, float] | None = None,
+    pose: str = "t-pose",
+) -> tuple[ImuCalibration, tuple[float, float]]:
+    """:func:`calibrate_tpose` on the stillest moment of a recording where every assigned sensor stands still.
+
+    The posture held there is ``pose`` (:func:`rest_orientations`). Exactly one of ``facing_heading_deg`` and
+    ``facing_from`` (sensor id, unit axis in the sensor frame that points forward) gives the heading. Returns the
+    calibration and the window used (s).
+
+    Raises
+    ------
+    CalibrationError, ConfigError
+        A sensor missing or moving, no facing direction, a bad pose.
+    """
+    if (facing_heading_deg is None) == (facing_from is None):
+        raise ConfigError("give the facing direction: a compass heading or a sensor axis that points forward")
+    missing = sorted(set(bones) - set(samples))
+    if missing:
+        raise CalibrationError(f"assigned sensor(s) {missing} have no samples")
+    start, end = stillest_common_window({s: samples[s] for s in bones}, window_s, span)
+    chunks = {}
+    for sid in bones:
+        t, q, a = samples[sid]
+        sel = (t >= start) & (t < end)
+        chunks[sid] = (q[sel], a[sel])
+    n = min(len(q) for q, _ in chunks.values())
+    if facing_from is not None:
+        sid, axis = facing_from
+        if sid not in samples:
+            raise ConfigError(f"--facing-from: no samples from sensor {sid}")
+        t, q, _ = samples[sid]
+        facing_heading_deg = facing_heading_from_sensor(quat_average(q[(t >= start) & (t < end)]), axis)
+    assert facing_heading_deg is not None
+    calib = calibrate_tpose(
+        person,
+        {sid: (q[:n], a[:n]) for sid, (q, a) in chunks.items()},
+        bones,
+        facing_heading_deg=facing_heading_deg,
+        world_heading=world_heading,
+        window=n,
+        rest=rest_orientations(pose),
+    )
+    return calib, (start, end)

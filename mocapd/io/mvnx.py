@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.imu import STANDARD_GRAVITY
 from mocapd.core.motion import SourceMotion
 from mocapd.core.rotations import matrix_from_quat, quat_from_matrix, quat_normalize
 from mocapd.errors import InputError
@@ -60,6 +61,24 @@ class MvnxRecording:
     sensor_orientation: FloatArray
     sensor_free_acceleration: FloatArray
     tpose_orientation: FloatArray | None
+
+    def sensor_readings(self) -> tuple[FloatArray, FloatArray]:
+        """Each sensor's orientation and specific force as the device frames have them (MVN's Z-up global frame,
+        the sensor's own axes), for sessions and calibration: the inverse of the axis change applied on reading.
+
+        Returns
+        -------
+        quat : array, shape (n_frames, n_sen, 4)
+            Sensor → MVN global frame (w, x, y, z).
+        specific_force : array, shape (n_frames, n_sen, 3)
+            In the sensor frame, gravity included (m/s²): ``R_iᵀ (a_free + g ẑ)``.
+        """
+        q = self.sensor_orientation.copy()
+        q[..., 1:] = q[..., 1:] @ _PERM  # the vector part back to MVN axes (_PERM is orthogonal)
+        free = self.sensor_free_acceleration @ _PERM
+        R = matrix_from_quat(quat_normalize(q))
+        f = np.einsum("...ji,...j->...i", R, free + np.array([0.0, 0.0, STANDARD_GRAVITY]))
+        return quat_normalize(q), np.asarray(f)
 
     def to_motion(self, name: str = "mvnx") -> SourceMotion:
         """The segments as a joint tree (each segment's origin a joint) for retargeting."""

@@ -13,6 +13,7 @@ from mocapd.service.cli import daemon as cmd_daemon
 from mocapd.service.cli import eval as eval_cli
 from mocapd.service.cli import imu as cmd_imu
 from mocapd.service.cli import model as cmd_model
+from mocapd.service.cli import recordings as cmd_recordings
 from mocapd.service.cli import session as cmd_session
 
 
@@ -68,6 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     cmd_model.register(sub)
     cmd_daemon.register(sub)  # run, demo, check-config, bench latency
     cmd_session.register(sub)  # replay, resolve, export, session
+    cmd_recordings.register(sub)  # import mtw, import mvnx
     return parser
 
 

@@ -5,6 +5,9 @@ command connects to every configured serial IMU (and the bridge input if enabled
 assigned sensor streams, records ``--seconds``, then computes R_ib per sensor and R_ig
 (:func:`mocapd.core.imu_calibration.calibrate_tpose`) and writes
 ``<calibration_dir>/<person>.imu.json``.
+
+With ``--from SESSION`` nothing is recorded: the stillest standing window of a recorded or imported session is
+used instead and the calibration is also stored in the session (:mod:`mocapd.service.session.calibrate`).
 """
 
 from __future__ import annotations
@@ -41,7 +44,21 @@ def register(subparsers: Any) -> None:
     group = _subcommand_group(subparsers, "calibrate", "calibration procedures", "calibrate_what")
     p = group.add_parser("imu", help="T-pose calibration of the IMU mountings (writes <person>.imu.json)")
     p.add_argument("--config", type=Path, default=Path("config.toml"), help="config file with an [imu] section")
-    p.add_argument("--person", required=True, help="name of the subject (file name of the calibration)")
+    p.add_argument("--person", help="name of the subject (file name of the calibration; required when recording)")
+    p.add_argument(
+        "--from",
+        dest="from_session",
+        type=Path,
+        metavar="SESSION",
+        help="calibrate from a recorded or imported session's stillest standing window instead of recording",
+    )
+    p.add_argument(
+        "--pose",
+        choices=("t-pose", "arms-down"),
+        default="t-pose",
+        help="the posture held (the solver's rest pose is the T-pose; arms-down: arms hanging at the sides)",
+    )
+    p.add_argument("--suit", help="with --from: the suit name in the session (default: the import's, or the person)")
     facing = p.add_mutually_exclusive_group(required=True)
     facing.add_argument(
         "--facing-heading",
@@ -55,7 +72,12 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--world-heading", choices=("subject", "north"), default="subject", help="what world +Z is")
     p.add_argument("--seconds", type=float, default=3.0, help="recording length (s)")
-    p.add_argument("--window", type=float, default=1.0, help="still window searched in the recording (s)")
+    p.add_argument(
+        "--window",
+        default="1.0",
+        help="length of the still window searched (s, default 1); with --from also START:END, the seconds of the "
+        "session to search in (a 1 s window)",
+    )
     p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")
     p.add_argument("--connect-timeout", type=float, default=15.0, help="wait for all sensors (s)")
     p.add_argument("--out", type=Path, help="output file (default <calibration_dir>/<person>.imu.json)")
@@ -103,7 +125,14 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Entry point of ``mocapd calibrate imu``; returns the process exit status."""
+    if args.from_session is not None:
+        from mocapd.service.cli.recordings import calibrate_from_session
+
+        return calibrate_from_session(args)
     try:
+        if not args.person:
+            raise ConfigError("--person is required (the name of the calibration file)")
+        window_s = float(args.window)
         config = load_config(args.config).imu  # validates the whole file, like the daemon
         if args.port:
             base = config.ports[0] if config.ports else XsensPortConfig(path="")
@@ -112,7 +141,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         if not config.assignment:
             raise ConfigError("imu.assignment is empty: say which sensor sits on which bone")
         if args.facing_from is not None:
-            _parse_facing(args.facing_from)  # reject a malformed option before recording
+            parse_facing(args.facing_from)  # reject a malformed option before recording
         samples = asyncio.run(record(config, args.seconds, args.connect_timeout))
         rate = max(len(v) for v in samples.values()) / args.seconds if samples else 0.0
         recordings = {
@@ -132,8 +161,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
             config.assignment,
             facing_heading_deg=heading,
             world_heading=args.world_heading,
-            window=max(2, int(args.window * rate)),
+            window=max(2, int(window_s * rate)),
         )
+    except ValueError:
+        print(f"mocapd calibrate imu: --window {args.window!r}: give seconds (START:END only with --from)")
+        return 1
     except MocapdError as exc:
         print(f"mocapd calibrate imu: {exc}")
         return 1
@@ -149,7 +181,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 
-def _parse_facing(spec: str) -> tuple[str, np.ndarray]:
+def parse_facing(spec: str) -> tuple[str, np.ndarray]:
     """``SENSOR:[+-]AXIS`` → (sensor id, unit axis in the sensor frame)."""
     sensor, _, axis = spec.partition(":")
     sign = -1.0 if axis.startswith("-") else 1.0
@@ -161,7 +193,7 @@ def _parse_facing(spec: str) -> tuple[str, np.ndarray]:
 
 def _heading_from(spec: str, recordings: dict[str, tuple[np.ndarray, np.ndarray]]) -> float:
     """Heading from ``SENSOR:[+-]AXIS`` and that sensor's mean T-pose orientation."""
-    sensor, axis = _parse_facing(spec)
+    sensor, axis = parse_facing(spec)
     quats = recordings.get(sensor)
     if quats is None or len(quats[0]) == 0:
         raise ConfigError(f"--facing-from {spec!r}: no samples from sensor {sensor}")

@@ -1,0 +1,188 @@
+"""``mocapd import mtw|mvnx`` (existing recordings as sessions) and ``mocapd calibrate imu --from SESSION``.
+
+::
+
+    mocapd import mtw FILE... -o SESSION --assign SENSOR=BONE... [--suit NAME] [--height M] [--imu-set lower]
+    mocapd import mvnx FILE -o SESSION [--assign SENSOR=BONE...] [--suit NAME] [--height M]
+    mocapd calibrate imu --from SESSION (--facing-heading DEG | --facing-from SENSOR:AXIS)
+                         [--window START:END] [--pose t-pose|arms-down] [--person NAME] [--suit NAME]
+    mocapd resolve SESSION          # solves the suit IMU-only
+    mocapd export SESSION --resolved --bvh take.bvh --csv take.csv
+
+``import mtw`` takes MT Manager text exports, one file per sensor (:mod:`mocapd.io.mt_export`), ``import mvnx``
+an MVN export (its sensors are assigned from their segment labels unless ``--assign`` says otherwise). Both print
+a JSON summary. See ``docs/imu.md`` ("Existing recordings") and :mod:`mocapd.service.session.importer`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from mocapd.errors import MocapdError
+
+
+def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    imp = manifest["imported"]
+    return {
+        "session": str(path),
+        "from": imp["from"],
+        "suit": imp["suit"],
+        "duration_s": imp["duration_s"],
+        "sensors": {
+            sid: {
+                k: v
+                for k, v in info.items()
+                if k in ("file", "label", "samples", "rate_hz", "orientation", "acceleration")
+            }
+            for sid, info in imp["sensors"].items()
+        },
+        "assignment": imp["assignment"],
+        "next": f"mocapd calibrate imu --from {path} --facing-from SENSOR:AXIS (or --facing-heading DEG)",
+    }
+
+
+def cmd_import_mtw(args: argparse.Namespace) -> int:
+    from mocapd.io.mt_export import read_mt_export
+    from mocapd.service.session.importer import (
+        imported_manifest,
+        parse_assign_pairs,
+        streams_from_mt_exports,
+        write_imported_session,
+    )
+
+    exports = [(p.name, read_mt_export(p, rate_hz=args.rate)) for p in args.files]
+    streams = streams_from_mt_exports(exports)
+    manifest = imported_manifest(
+        streams, parse_assign_pairs(args.assign), source="mt-manager", suit=args.suit, height=args.height,
+        imu_set=args.imu_set or None,
+    )  # fmt: skip
+    path = write_imported_session(args.output, streams, manifest)
+    print(json.dumps(_summary(path, manifest), indent=2))
+    return 0
+
+
+def cmd_import_mvnx(args: argparse.Namespace) -> int:
+    from mocapd.io.mvnx import read_mvnx
+    from mocapd.service.session.importer import (
+        imported_manifest,
+        mvnx_assignment,
+        parse_assign_pairs,
+        streams_from_mvnx,
+        write_imported_session,
+    )
+
+    streams = streams_from_mvnx(read_mvnx(args.file), args.file.name)
+    assignment = parse_assign_pairs(args.assign) if args.assign else mvnx_assignment(streams)
+    manifest = imported_manifest(
+        streams, assignment, source="mvnx", suit=args.suit, height=args.height, imu_set=args.imu_set or None
+    )
+    path = write_imported_session(args.output, streams, manifest)
+    print(json.dumps(_summary(path, manifest), indent=2))
+    return 0
+
+
+def calibrate_from_session(args: argparse.Namespace) -> int:
+    """``mocapd calibrate imu --from SESSION``: see :mod:`mocapd.service.session.calibrate`."""
+    from mocapd.core.imu_calibration import ImuCalibration
+    from mocapd.io.session import open_session
+    from mocapd.service.cli.imu import parse_facing
+    from mocapd.service.config import load_config
+    from mocapd.service.session.calibrate import calibrate_session, store_in_session
+
+    try:
+        session = open_session(args.from_session)
+        span, window_s = _window(args.window)
+        suit = args.suit or session.manifest.get("imported", {}).get("suit") or args.person
+        if not suit:
+            raise MocapdError("name the suit (--suit) or the person (--person)")
+        person = args.person or suit
+        result = calibrate_session(
+            session,
+            person=person,
+            facing_heading_deg=args.facing_heading,
+            facing_from=parse_facing(args.facing_from) if args.facing_from else None,
+            world_heading=args.world_heading,
+            window_s=window_s,
+            span=span,
+            pose=args.pose,
+        )
+        calib: ImuCalibration = result.calibration
+        info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,
+                "facing_heading_deg": round(calib.facing_heading_deg, 2)}  # fmt: skip
+        store_in_session(session, suit, calib, info)
+        out = args.out or Path(load_config(args.config if args.config.exists() else None).imu.calibration_dir) / (
+            f"{person}.imu.json"
+        )
+    except MocapdError as exc:
+        print(f"mocapd calibrate imu: {exc}", file=sys.stderr)
+        return 1
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
+    print(json.dumps({"session": str(session.path), "suit": suit, "calibration": str(out), "posture": result.pose,
+                      "window_s": info["window_s"], "facing_heading_deg": info["facing_heading_deg"],
+                      "still_spread_deg": {s: round(v, 2) for s, v in calib.spread_deg.items()},
+                      "next": f"mocapd resolve {session.path}"}, indent=2))  # fmt: skip
+    return 0
+
+
+def _window(spec: str) -> tuple[tuple[float, float] | None, float]:
+    """``--window``: ``START:END`` (span, 1 s window) or ``SECONDS`` (window length, whole session)."""
+    start, sep, end = str(spec).partition(":")
+    try:
+        if sep:
+            span = (float(start) if start else 0.0, float(end) if end else float("inf"))
+            if not span[0] < span[1]:
+                raise ValueError
+            return span, 1.0
+        length = float(spec)
+        if not length > 0:
+            raise ValueError
+        return None, length
+    except ValueError:
+        raise MocapdError(f"--window {spec!r}: expected START:END (seconds of the session) or SECONDS") from None
+
+
+def _guard(func: Any) -> Any:
+    def run(args: argparse.Namespace) -> int:
+        try:
+            result: int = func(args)
+        except MocapdError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        return result
+
+    return run
+
+
+def register(subparsers: Any) -> None:
+    """Add ``import mtw`` and ``import mvnx`` to the CLI."""
+    imp = subparsers.add_parser("import", help="existing IMU recordings (MT Manager exports, MVNX) as sessions")
+    what = imp.add_subparsers(dest="import_what", metavar="FORMAT", required=True)
+
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument("-o", "--output", type=Path, required=True, help="session directory to create")
+        p.add_argument("--assign", action="append", default=[], metavar="SENSOR=BONE",
+                       help="which sensor sits on which bone, e.g. 00B42279=Hips (repeat)")  # fmt: skip
+        p.add_argument("--suit", default="suit0", help="the suit's name in the session (default suit0)")
+        p.add_argument("--height", type=float, default=1.75, help="the wearer's height in m (sizes the skeleton)")
+        p.add_argument(
+            "--imu-set",
+            default="",
+            choices=("", "13", "6", "lower"),
+            help="check that the assignment forms this sensor set (lower: pelvis, thighs, shanks, feet)",
+        )
+
+    mtw = what.add_parser("mtw", help="MT Manager text exports, one file per sensor (the id in its name)")
+    mtw.add_argument("files", type=Path, nargs="+", help="export files (.txt/.csv), all of one recording")
+    mtw.add_argument("--rate", type=float, default=None, help="update rate (Hz) when the files do not say it")
+    common(mtw)
+    mtw.set_defaults(func=_guard(cmd_import_mtw))
+
+    mvnx = what.add_parser("mvnx", help="an Xsens MVN export (.mvnx)")
+    mvnx.add_argument("file", type=Path, help="the .mvnx file")
+    common(mvnx)
+    mvnx.set_defaults(func=_guard(cmd_import_mvnx))

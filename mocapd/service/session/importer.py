@@ -1,0 +1,115 @@
+"""Existing IMU recordings as mocapd sessions: ``mocapd import mtw`` and ``mocapd import mvnx``.
+
+An imported session is an ordinary session directory (``docs/sessions.md``) with no cameras: ``imu.mcs`` holds
+every sample of every sensor, ``keypoints.mcs`` and ``poses.mcs`` are empty, and ``manifest.json`` describes a rig
+without cameras (the shipped config with the sensor assignment in ``[imu.assignment]``, the default skeleton at
+``--height``, the default pose prior) plus an ``imported`` section: where the data came from, each sensor's
+samples, rate, orientation and acceleration source, and the suit name. Its ``suits`` list is empty until
+``mocapd calibrate imu --from SESSION`` calibrates it; then ``mocapd resolve`` solves it (IMU-only) and
+``mocapd export`` writes BVH/CSV.
+
+Reading and time alignment of the recordings, sensor ids of MVNX sensors and writing the streams:
+:mod:`mocapd.io.imu_recordings`; this module adds the manifest (it needs the shipped config).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import platform
+from typing import Any
+
+import numpy as np
+
+import mocapd
+from mocapd.core.imu_calibration import parse_assignment
+from mocapd.core.keypoints import coco17_targets
+from mocapd.core.skeleton import Skeleton
+from mocapd.errors import InputError
+from mocapd.io.imu_recordings import (
+    MVN_SENSOR_BONES,
+    T0_NS,
+    SensorStream,
+    mvnx_assignment,
+    streams_from_mt_exports,
+    streams_from_mvnx,
+    write_imported_session,
+)
+from mocapd.io.session import STREAMS
+from mocapd.service.config import DEFAULT_CONFIG, load_config
+
+__all__ = [
+    "MVN_SENSOR_BONES",
+    "imported_manifest",
+    "mvnx_assignment",
+    "parse_assign_pairs",
+    "streams_from_mt_exports",
+    "streams_from_mvnx",
+    "write_imported_session",
+]
+
+
+def imported_manifest(
+    streams: list[SensorStream],
+    assignment: dict[str, str],
+    *,
+    source: str,
+    suit: str,
+    height: float,
+    imu_set: str | None = None,
+) -> dict[str, Any]:
+    """The manifest of an imported session (see the module docstring)."""
+    missing = sorted(set(assignment) - {s.sensor for s in streams})
+    if missing:
+        raise InputError(
+            f"assigned sensor(s) {missing} are not in the recording; it has {sorted(s.sensor for s in streams)}"
+        )
+    checked = parse_assignment(assignment, imu_set=imu_set)
+    if not checked:
+        raise InputError("no sensor is assigned to a bone: give SENSOR=BONE pairs (--assign)")
+    cfg = load_config()
+    raw = dict(cfg.raw)
+    imu = dict(raw.get("imu", {}))
+    imu["assignment"] = checked
+    imu["imu_set"] = imu_set or ""
+    raw["imu"] = imu
+    o = cfg.daemon.scheduler_options([])
+    skeleton = Skeleton.from_height(height)
+    targets = coco17_targets(skeleton)
+    return {
+        "format": "mocapd-session",
+        "version": 1,
+        "software": {"mocapd": mocapd.__version__, "python": platform.python_version(), "numpy": np.__version__},
+        "started_utc": dt.datetime.now(dt.UTC).isoformat(),
+        "started_monotonic_ns": T0_NS,
+        "host": platform.node(),
+        "streams": list(STREAMS),
+        "config": raw,
+        "scheduler": {
+            "rate_hz": o.rate_hz, "latency_ns": o.latency_ns, "keypoint_max_age_ns": o.keypoint_max_age_ns,
+            "keypoint_max_gap_ns": o.keypoint_max_gap_ns, "match_px": o.match_px, "camera_offsets_ns": [],
+            "imu_offsets_ns": {}, "body_size_frames": 0,
+        },
+        "cameras": [],
+        "skeleton": {"offsets": skeleton.offsets.tolist(), "root_height": skeleton.root_height,
+                     "height": skeleton.height},
+        "targets": {"names": list(targets.names), "bones": targets.bones.tolist(), "offsets": targets.offsets.tolist()},
+        "prior": "prior.npz",
+        "suits": [],
+        "devices": {"imu": [], "keypoint_sources": []},
+        "imported": {
+            "from": source, "config_file": str(DEFAULT_CONFIG), "suit": suit, "assignment": checked,
+            "sensors": {s.sensor: s.info for s in streams},
+            "duration_s": round(max(float(s.time_ns[-1]) for s in streams if s.time_ns.size) / 1e9, 3),
+        },
+    }  # fmt: skip
+
+
+def parse_assign_pairs(pairs: list[str]) -> dict[str, str]:
+    """``["00B42279=Hips", ...]`` → ``{"00B42279": "Hips"}`` (validated later against the recording)."""
+    out: dict[str, str] = {}
+    for p in pairs:
+        sensor, sep, bone = p.partition("=")
+        if not sep or not sensor.strip() or not bone.strip():
+            raise InputError(f"--assign {p!r}: expected SENSOR=BONE, e.g. 00B42279=Hips")
+        out[sensor.strip().upper()] = bone.strip()
+    return out

@@ -1,0 +1,163 @@
+"""Existing recordings as sessions: ``mocapd import mtw|mvnx``, ``calibrate imu --from``, ``resolve``, ``export``.
+
+The MT Manager files are written here from recorded motion (the synthetic rig's CMU clip) through the sensor model
+(random mountings, ENU orientations, sensor-frame specific force), after 1.5 s of standing in the T-pose, so the
+truth is known: the calibration must recover every mounting, and the resolved take must follow the motion with
+its root on the ground. The real MTw and MVNX files go through the same commands.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mocapd.core.imu import (
+    IMU_SET_LOWER,
+    default_mounts,
+    sensor_orientation_from_bone,
+    specific_force_from_acceleration,
+)
+from mocapd.core.imu_calibration import ImuCalibration, heading_alignment, parse_assignment
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.motion import resample_poses
+from mocapd.core.rotations import quat_angle, quat_from_matrix, random_quat
+from mocapd.core.skeleton import Skeleton
+from mocapd.errors import ConfigError
+from mocapd.eval.data import default_data_root
+from mocapd.io.session import RESOLVED, open_session
+from mocapd.service.cli import main
+from mocapd.sim.world import TRUTH_FPS, load_demo_motion
+
+RATE = 100.0
+SUIT = (*IMU_SET_LOWER, "Spine3")
+MVNX = default_data_root() / "imu" / "mvnx" / "mpiea_upperbody_test_mocap.mvnx"
+
+
+def _write_exports(folder: Path, seconds: float = 3.0) -> tuple[dict[str, str], dict[str, np.ndarray], np.ndarray]:
+    """MT Manager exports of a lower-body suit; returns the assignment, the true mountings and the truth θ."""
+    clips, skeleton = load_demo_motion()
+    motion = resample_poses(clips[0][: round(seconds * TRUTH_FPS)], TRUTH_FPS, RATE)
+    rest = np.repeat(skeleton.rest_pose()[None], round(1.5 * RATE), axis=0)
+    rest[:, :3] = motion[0, :3]
+    theta = np.concatenate([rest, motion])
+    kin = Kinematics(skeleton)
+    fk = kin.forward(theta)
+    mounts = default_mounts(SUIT, skeleton)
+    bones = np.array([m.bone_index for m in mounts])
+    sites = kin.targets(fk, bones, np.array([m.t_ib for m in mounts]))
+    acc = np.zeros_like(sites)
+    acc[1:-1] = (sites[2:] - 2 * sites[1:-1] + sites[:-2]) * RATE**2
+    q_gb = quat_from_matrix(fk.rotations[:, bones])
+    q_ig = heading_alignment(0.0)  # ENU -> world when the subject faces north
+    rng = np.random.default_rng(3)
+    assignment, mountings = {}, {}
+    for k, m in enumerate(mounts):
+        sid = f"00B4{0x2100 + k:04X}"
+        q_ib = random_quat(rng)
+        q_i = sensor_orientation_from_bone(q_ig, q_gb[:, k], q_ib)
+        f = specific_force_from_acceleration(q_ig, q_i, acc[:, k])
+        rows = [
+            "\t".join([f"{472 + i:05d}", str(10_000 + 100 * i), *(f"{v:.6f}" for v in (*f[i], *q_i[i]))])
+            for i in range(len(theta))
+        ]
+        cols = "PacketCounter\tSampleTimeFine\tAcc_X\tAcc_Y\tAcc_Z\tQuat_q0\tQuat_q1\tQuat_q2\tQuat_q3"
+        text = "// Start Time: Unknown\n// Update Rate: 100.0Hz\n" + cols + "\n" + "\n".join(rows) + "\n"
+        (folder / f"MT_012005D6_009-001_{sid}.txt").write_text(text)
+        assignment[sid], mountings[sid] = m.bone, q_ib
+    return assignment, mountings, theta
+
+
+def test_mt_manager_take_imports_calibrates_resolves_and_exports(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assignment, mountings, truth = _write_exports(tmp_path)
+    session = tmp_path / "take"
+    files = sorted(str(p) for p in tmp_path.glob("MT_*.txt"))
+    assign = [a for sid, bone in assignment.items() for a in ("--assign", f"{sid}={bone}")]
+    assert main(["import", "mtw", *files, "-o", str(session), "--imu-set", "lower", *assign]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["assignment"] == assignment and len(summary["sensors"]) == len(SUIT)
+
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "0",
+                 "--out", str(tmp_path / "cal.json")]) == 0  # fmt: skip
+    report = json.loads(capsys.readouterr().out)
+    assert report["posture"] == "t-pose" and report["window_s"][1] <= 1.5
+    calib = ImuCalibration.from_json_dict(json.loads((tmp_path / "cal.json").read_text()))
+    for sid, q in mountings.items():
+        assert np.degrees(quat_angle(calib.q_ib[sid], q)) < 0.5
+    assert open_session(session).manifest["suits"][0]["id"] == "suit0"
+
+    assert main(["resolve", str(session), "--iterations", "10"]) == 0
+    capsys.readouterr()
+    frames = open_session(session).poses(RESOLVED)
+    assert frames and all([p.identity for p in f.people] == ["suit:suit0"] for f in frames)
+    theta = np.array([f.people[0].theta for f in frames])
+    t = np.array([f.t_solve_ns for f in frames]) - frames[0].t_solve_ns
+    true = truth[np.clip(np.round(t / 1e7).astype(int), 0, len(truth) - 1)]
+    kin = Kinematics(Skeleton.from_height(1.75))  # the imported session's skeleton
+    legs = [14, 18]  # the knees follow the shank sensors
+    q_s = quat_from_matrix(kin.forward(theta).rotations[:, legs])
+    q_t = quat_from_matrix(kin.forward(true).rotations[:, legs])
+    assert np.median(np.degrees(quat_angle(q_s, q_t))) < 5.0
+    assert np.ptp(theta[:, 1]) < 0.15  # on the ground: no float (the session skeleton is 1.75 m tall)
+
+    csv, bvh = tmp_path / "take.csv", tmp_path / "take.bvh"
+    assert main(["export", str(session), "--resolved", "--csv", str(csv), "--bvh", str(bvh)]) == 0
+    assert csv.read_text().count("\n") > 100 and bvh.read_text().startswith("HIERARCHY")
+
+
+def test_lower_body_suit_check() -> None:
+    ok = {f"00B4{i:04X}": b for i, b in enumerate(SUIT)}
+    assert parse_assignment(ok, imu_set="lower") == ok
+    with pytest.raises(ConfigError, match="missing \\['RightFoot'\\]"):
+        parse_assignment({k: v for k, v in ok.items() if v != "RightFoot"}, imu_set="lower")
+    with pytest.raises(ConfigError, match="unexpected \\['Head'\\]"):
+        parse_assignment({**ok, "00B4FFFF": "Head"}, imu_set="lower")
+
+
+def test_calibration_needs_a_facing_direction_and_names_bad_windows(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assignment, _, _ = _write_exports(tmp_path, seconds=1.0)
+    session = tmp_path / "take"
+    files = sorted(str(p) for p in tmp_path.glob("MT_*.txt"))
+    assign = [a for sid, bone in assignment.items() for a in ("--assign", f"{sid}={bone}")]
+    assert main(["import", "mtw", *files, "-o", str(session), *assign]) == 0
+    assert main(["import", "mtw", *files, "-o", str(session), *assign]) == 2  # never over an existing session
+    capsys.readouterr()
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "0", "--window", "1.2:2.4",
+                 "--out", str(tmp_path / "c.json")]) == 1  # fmt: skip
+    assert "during the T-pose" in capsys.readouterr().err  # the window holds the jump into the motion
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "0", "--window", "0.2:0.1"]) == 1
+    assert "--window" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a heading or a forward sensor axis is required
+        main(["calibrate", "imu", "--from", str(session)])
+
+
+def test_mvnx_imports_with_its_segment_labels(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    session = tmp_path / "mvn"
+    assert main(["import", "mvnx", str(MVNX), "-o", str(session)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    labels = {v["label"]: sid for sid, v in summary["sensors"].items()}
+    assert summary["assignment"][labels["Pelvis"]] == "Hips" and labels["RightShoulder"] not in summary["assignment"]
+    records = open_session(session).imu()
+    assert len({r.sensor for r in records}) == 11 and len(records) == 11 * 112
+
+
+def test_arms_down_posture() -> None:
+    """The solver's rest pose is the T-pose; ``--pose arms-down`` calibrates the arms as hanging at the sides."""
+    from mocapd.core.imu_calibration import rest_orientations
+    from mocapd.core.rotations import matrix_from_quat
+
+    assert rest_orientations("t-pose") is None
+    rest = rest_orientations("arms-down")
+    assert rest is not None and set(rest) == {
+        f"{s}{b}" for s in ("Left", "Right") for b in ("UpperArm", "LowerArm", "Hand")
+    }
+    np.testing.assert_allclose(matrix_from_quat(rest["LeftUpperArm"]) @ [1.0, 0, 0], [0, -1.0, 0], atol=1e-12)
+    np.testing.assert_allclose(matrix_from_quat(rest["RightHand"]) @ [-1.0, 0, 0], [0, -1.0, 0], atol=1e-12)
+    with pytest.raises(ConfigError, match="pose"):
+        rest_orientations("a-pose")
