@@ -237,7 +237,7 @@ def run_cameras_back(prior: PcaPrior | None, seed: int, dark: tuple[float, float
 class GroundEvalOptions:
     seed: int = 0
     split: str = "evaluation"
-    parts: tuple[str, ...] = ("synthetic", "walking", "standing", "cameras_back")
+    parts: tuple[str, ...] = ("synthetic", "walking", "standing", "cameras_back", "mtw", "mvnx")
     standing_s: float = 60.0
 
 
@@ -260,6 +260,13 @@ def run(opts: GroundEvalOptions, data_root: Path | None = None) -> dict[str, Any
         out["standing"] = run_standing(prior, opts.seed, noise, opts.standing_s)
     if "cameras_back" in opts.parts:
         out["cameras_back"] = run_cameras_back(prior, opts.seed)
+    if "mtw" in opts.parts or "mvnx" in opts.parts:
+        from mocapd.eval.ground_real import run_mtw, run_mvnx
+
+        if "mtw" in opts.parts:
+            out["mtw"] = run_mtw(prior, data_root)
+        if "mvnx" in opts.parts:
+            out["mvnx"] = run_mvnx(prior, data_root)
     out["machine"] = {"cpus": os.cpu_count(), "seconds": round(time.perf_counter() - t0, 1),
                       "loadavg_start": [round(x, 2) for x in load0],
                       "loadavg_end": [round(x, 2) for x in os.getloadavg()]}  # fmt: skip

@@ -8,6 +8,7 @@
                          [--window START:END] [--pose t-pose|arms-down] [--person NAME] [--suit NAME]
     mocapd resolve SESSION          # solves the suit IMU-only
     mocapd export SESSION --resolved --bvh take.bvh --csv take.csv
+    mocapd eval ground [--parts synthetic,standing,...]   # root drift without cameras, JSON (docs/imu.md)
 
 ``import mtw`` takes MT Manager text exports, one file per sensor (:mod:`mocapd.io.mt_export`), ``import mvnx``
 an MVN export (its sensors are assigned from their segment labels unless ``--assign`` says otherwise). Both print
@@ -158,8 +159,30 @@ def _guard(func: Any) -> Any:
     return run
 
 
+def cmd_eval_ground(args: argparse.Namespace) -> int:
+    from mocapd.eval.ground import GroundEvalOptions, run
+
+    parts = tuple(args.parts.split(",")) if args.parts else GroundEvalOptions().parts
+    opts = GroundEvalOptions(seed=args.seed, split=args.split, parts=parts, standing_s=args.standing_seconds)
+    print(json.dumps(run(opts, args.data_root), indent=2))
+    return 0
+
+
 def register(subparsers: Any) -> None:
-    """Add ``import mtw`` and ``import mvnx`` to the CLI."""
+    """Add ``import mtw``, ``import mvnx`` and ``eval ground`` to the CLI."""
+    from mocapd.service.cli.imu import _subcommand_group
+
+    ev = _subcommand_group(subparsers, "eval", "evaluations that print JSON", "eval")
+    g = ev.add_parser("ground", help="root drift without cameras: synthetic rig, walking clips, real MTw/MVNX")
+    g.add_argument(
+        "--parts", default="", help="comma-separated subset of synthetic,walking,standing,cameras_back,mtw,mvnx"
+    )
+    g.add_argument("--split", default="evaluation", help="clip split for the walking part (default evaluation)")
+    g.add_argument("--standing-seconds", type=float, default=60.0, help="length of the standing-still test")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--data-root", type=Path, default=None, help="recorded data (default ../shared/data, $MOCAPD_DATA)")
+    g.set_defaults(func=_guard(cmd_eval_ground))
+
     imp = subparsers.add_parser("import", help="existing IMU recordings (MT Manager exports, MVNX) as sessions")
     what = imp.add_subparsers(dest="import_what", metavar="FORMAT", required=True)
 
