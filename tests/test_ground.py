@@ -181,3 +181,26 @@ def test_without_leg_sensors_nothing_moves_the_root() -> None:
         assert q is not None
         theta = s.solve(Observations(imu_orientations=q[rows], dt=o.dt)).theta
         np.testing.assert_array_equal(theta[:3], truth[0][:3])
+
+
+def test_a_person_without_a_suit_seen_by_one_camera_is_not_held() -> None:
+    """Holding the root is for suits without leg sensors and no camera at all: a person the cameras track alone,
+    seen by a single camera for a while, still moves with what that camera sees."""
+    solver0, truth, _ = _rig_case(0.5, 6)
+    sk = solver0.skeleton
+    cams = ring_rig(4)
+    targets = coco17_targets(sk)
+    kin = Kinematics(sk)
+    sites = kin.targets(kin.forward(truth), targets.bones, targets.offsets)
+    K, dist, R, t = stack_cameras(cams)
+    solver = PoseSolver(sk, cams, targets)
+    start = truth[0].copy()
+    start[0] += 0.05
+    solver.reset(start)
+    roots = []
+    for f in range(10):
+        uv, _, valid = project_points(K, dist, R, t, sites[f], jacobian=False)
+        conf = np.where(valid, 0.9, 0.0)
+        conf[1:] = 0.0  # only the first camera sees the person
+        roots.append(solver.solve(Observations(keypoints=uv, confidences=conf, dt=1 / 60)).theta[:3])
+    assert not np.array_equal(roots[-1], roots[-2])

@@ -671,12 +671,13 @@ class PoseSolver:
             published = self._place_root(tracker, theta, v)
         elif (
             self.ground_options.enabled
+            and self.n_imu > 0
             and self._has_solved
             and result.summary.converged
-            and self._views(v) < self.ground_options.reference_views
+            and self._views(v) == 0
         ):
-            # Legs without sensors and no cameras: nothing measures where the feet are, so nothing may move the
-            # root (the floor term would push it up whenever the prior folds the legs under the floor).
+            # A suit with legs without sensors and no camera: nothing measures where the feet are, so nothing may
+            # move the root (the floor term would push it up whenever the prior folds the legs under the floor).
             theta = theta.copy()
             theta[:3] = self.theta[:3]
             published = theta
