@@ -13,10 +13,12 @@ import numpy as np
 import pytest
 
 from mocapd.errors import DeviceError
+from mocapd.io.device_state import OpenState
 from mocapd.pipeline.keypoint_source import KeypointSink, KeypointSource
 from mocapd.pipeline.scheduler import PoseFrame
+from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import load_config
-from mocapd.service.demo.synthetic import running_demo
+from mocapd.service.demo.synthetic import synthetic_config
 from mocapd.service.supervisor import Supervisor
 
 
@@ -52,6 +54,9 @@ class FlakySource:
     def status(self) -> dict[str, Any]:
         return self.inner.status()
 
+    def open_state(self) -> OpenState:
+        return self.inner.open_state()
+
 
 class Recorder:
     def __init__(self) -> None:
@@ -79,9 +84,10 @@ async def wait_for(cond: Callable[[], bool], timeout: float, what: str) -> None:
 @pytest.mark.asyncio
 async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug() -> None:
     cfg = load_config()
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, restart_min_s=0.1, restart_max_s=0.2))
+    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, restart_min_s=0.1, restart_max_s=0.2),
+                  websocket=replace(cfg.websocket, enabled=False))  # fmt: skip
     rec = Recorder()
-    with running_demo(cfg, sinks=[rec]) as demo:
+    with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:
         d = demo.daemon
         d.rig.sources[1] = FlakySource(d.rig.sources[1])
         task = asyncio.create_task(d.run())
@@ -115,7 +121,8 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
         assert (await http_get(port, "/status", method="POST"))[0] == 405
 
         # Unplug one simulated IMU: the daemon keeps publishing, reports it, and recovers when it returns.
-        sim = demo.simulators[0]
+        assert demo.built.simulated is not None
+        sim = demo.built.simulated.simulators[0]
         frames_before = len(rec.frames)
         sim.unplug()
         device = next(x for x in d.imu.devices if x.config.path == str(sim.link))
@@ -140,7 +147,7 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
     # Every output slot from the first frame up to the next scheduled one was either published or counted missed.
     assert len(rec.frames) + d.plan.missed == (d.plan.next_ns - rec.frames[0].tick_ns) // period
     # Bounded error against the synthetic truth once both people are tracked.
-    assert demo.truth.recent_mm(75) is not None  # the last ~5 s (every 4th frame is scored)
+    assert demo.truth is not None and demo.truth.recent_mm(75) is not None  # the last ~5 s (every 4th frame is scored)
     assert float(np.median(list(demo.truth.errors)[-75:])) < 0.02
 
 

@@ -9,13 +9,20 @@ import pytest
 from mocapd.errors import ConfigError
 from mocapd.service.cli import main
 from mocapd.service.config import DEFAULT_CONFIG, load_config, parse_config
+from tests.rigs import synthetic_toml, write
 
 
-def test_shipped_config_is_valid_and_check_config_says_so(capsys: pytest.CaptureFixture[str]) -> None:
+def test_shipped_config_is_valid_and_check_config_asks_for_cameras(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     cfg = load_config()
-    assert cfg.daemon.output_rate_hz == 60.0 and cfg.daemon.http_host == "127.0.0.1"
-    assert main(["check-config"]) == 0
-    assert f"{DEFAULT_CONFIG}: ok" in capsys.readouterr().out
+    assert cfg.daemon.output_rate_hz == 60.0 and cfg.daemon.http_host == "127.0.0.1" and cfg.cameras == ()
+    # Valid, but it describes no rig: what `mocapd run` would say, said before starting anything.
+    assert main(["check-config"]) == 2
+    assert f"{DEFAULT_CONFIG}: error: no cameras: add [[cameras]]" in capsys.readouterr().err
+    config = write(tmp_path / "synthetic.toml", synthetic_toml())
+    assert main(["check-config", str(config)]) == 0
+    assert f"{config}: ok (4 camera(s): cam0 (synthetic simulated);" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
@@ -26,12 +33,12 @@ def test_shipped_config_is_valid_and_check_config_says_so(capsys: pytest.Capture
         ("[daemon]\noutput_rate_hz = true\n", "daemon.output_rate_hz = True; allowed: a number"),
         ("[daemon]\nhttp_port = 70000\n", "daemon.http_port = 70000; allowed: an integer in [0, 65535]"),
         ('[daemon]\nhttp_host = "0.0.0.0"\n', "allowed: a loopback address"),
-        ('[daemon]\nrig = "cameras"\n', "daemon.rig = 'cameras'; allowed: ['synthetic']"),
+        ('[daemon]\nrig = "synthetic"\n', "unknown key(s) ['rig'] in [daemon]"),
         ("[daemon]\nrestart_min_s = 5.0\nrestart_max_s = 1.0\n", "must be >= daemon.restart_min_s"),
         ("[daemon.offsets]\ncameras = { cam1 = 3.0 }\n", "daemon.offsets.cameras.cam1 = 3.0; allowed:"),
         ("[daemon.offsets]\nclocks = {}\n", "unknown key(s) ['clocks'] in [daemon.offsets]"),
-        ("[daemon.synthetic]\npeople = 1\nsuits = 2\n", "daemon.synthetic.suits = 2; allowed: at most"),
-        ("[daemon.synthetic]\ncameras = 1.5\n", "daemon.synthetic.cameras = 1.5; allowed: an integer"),
+        ("[synthetic]\npeople = 1\nsuits = 2\n", "synthetic: suits = 2 must be <= people = 1"),
+        ("[synthetic]\npeople = 1.5\n", "synthetic.people = 1.5: must be an integer"),
         ("[deamon]\n", "unknown section(s) ['deamon']"),
     ],
 )

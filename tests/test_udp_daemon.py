@@ -15,9 +15,10 @@ from pythonosc.osc_message import OscMessage
 from mocapd.core.rotations import matrix_from_quat, matrix_from_rotvec
 from mocapd.core.skeleton import BONE_INDEX
 from mocapd.protocols.conventions import MVN, UNITY
+from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import load_config
 from mocapd.service.config.udp import Destination, MvnStreamConfig, UdpConfig, VmcStreamConfig
-from mocapd.service.demo.synthetic import running_demo
+from mocapd.service.demo.synthetic import synthetic_config
 from tests.test_daemon import Recorder, http_get, wait_for
 from tests.test_mvn import read_datagram
 
@@ -46,10 +47,12 @@ async def test_daemon_streams_mvn_and_vmc_on_loopback() -> None:
                             subjects=("suit:suit0",)),
     )  # fmt: skip
     cfg = load_config()
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0), udp=udp)
+    cfg = replace(
+        cfg, daemon=replace(cfg.daemon, http_port=0), websocket=replace(cfg.websocket, enabled=False), udp=udp
+    )
     rec = Recorder()
     try:
-        with running_demo(cfg, sinks=[rec]) as demo:
+        with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:
             d = demo.daemon
             task = asyncio.create_task(d.run())
             await asyncio.wait_for(d.ready.wait(), 180)

@@ -199,18 +199,21 @@ def _pct(values: list[int], q: float, scale: float) -> float | None:
 def fan_out(
     seconds: float, people: int, clients: int, warm_up_s: float, repeats: int, client_nice: int
 ) -> dict[str, Any]:
+    from mocapd.service.assembly import assembled
     from mocapd.service.config import load_config
-    from mocapd.service.demo.synthetic import running_demo
+    from mocapd.service.demo.synthetic import synthetic_config
     from mocapd.service.outputs.websocket import build_websocket_sinks
 
     cfg = load_config()
-    syn = replace(cfg.daemon.synthetic, people=people, suits=0)
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, synthetic=syn),
+    syn = cfg.synthetic.model_copy(update={"people": people, "suits": 0})
+    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0), synthetic=syn,
                   websocket=replace(cfg.websocket, port=0, max_clients=max(64, clients + 4)))  # fmt: skip
     runs: list[dict[str, Any]] = []
-    with running_demo(cfg) as demo:
+    # The stream server is the daemon's own, timed from outside: its publish() measured on the real tick loop.
+    cfg = replace(cfg, websocket=replace(cfg.websocket, enabled=False))
+    with assembled(synthetic_config(cfg)) as demo:
         d = demo.daemon
-        (ws,) = build_websocket_sinks(cfg, d)
+        (ws,) = build_websocket_sinks(replace(cfg, websocket=replace(cfg.websocket, enabled=True)), d)
         timed = TimedSink(ws)
         d.sinks.append(timed)
 
@@ -283,7 +286,7 @@ def fan_out(
 
     streaming = [r for r in runs if r["phase"] == "streaming"]
     return {
-        "rig": {"people": people, "cameras": syn.cameras, "suits": 0, "output_rate_hz": cfg.daemon.output_rate_hz},
+        "rig": {"people": people, "cameras": len(cfg.cameras), "suits": 0, "output_rate_hz": cfg.daemon.output_rate_hz},
         "clients": clients,
         "client_process_nice": client_nice,
         "phase_s": seconds,

@@ -168,6 +168,15 @@ class AravisCameraConfig:
     frame_retention_ms : float
         GigE only: how long an incomplete frame waits for resent packets before it is given up as incomplete
         (Aravis default 100). A loaded host (or a camera far away on the network) needs more.
+    packet_delay_ns : int or None
+        GigE only: inter-packet delay (GevSCPD) in ns, which spreads each frame's burst so that several cameras
+        sharing one link do not overflow the switch or the NIC; None keeps the camera's.
+    ptp : bool
+        Enable IEEE 1588 PTP on the camera (``PtpEnable``, or ``GevIEEE1588`` on GigE Vision 2.0 cameras): its
+        frame timestamps then come from the PTP clock. A camera without either feature fails to open.
+    features : tuple of (str, value)
+        Any other GenICam feature by name, set last, in order: a bool, int, float or str (enumeration entries
+        by name).
     """
 
     name: str
@@ -189,6 +198,9 @@ class AravisCameraConfig:
     socket_frames: int = 4
     packet_timeout_ms: float = 20.0
     frame_retention_ms: float = 100.0
+    packet_delay_ns: int | None = None
+    ptp: bool = False
+    features: tuple[tuple[str, bool | int | float | str], ...] = ()
 
     def __post_init__(self) -> None:
         chosen = [k for k in ("address", "serial", "device_id") if getattr(self, k)]
@@ -283,6 +295,12 @@ def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]
             steps.append(("packet size", camera.gv_auto_packet_size))
         else:
             steps.append(("packet size", lambda: camera.gv_set_packet_size(config.packet_size)))
+    if config.packet_delay_ns is not None and camera.is_gv_device():
+        steps.append(("inter-packet delay", lambda: camera.gv_set_packet_delay(config.packet_delay_ns)))
+    if config.ptp:
+        steps.append(("PTP", lambda: _enable_ptp(camera, config.name)))
+    for name, value in config.features:
+        steps.append((f"feature {name} = {value!r}", _feature_setter(camera, config.name, name, value)))
     for what, step in steps:
         try:
             step()
@@ -290,6 +308,35 @@ def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]
             raise DeviceError(f"camera {config.name!r} rejected {what}: {exc.message}") from exc
     region = camera.get_region()
     return int(region.width), int(region.height)
+
+
+PTP_FEATURES = ("PtpEnable", "GevIEEE1588")  # SFNC 2.x name first, then GigE Vision 2.0's
+
+
+def _enable_ptp(camera: Any, name: str) -> None:
+    for feature in PTP_FEATURES:
+        if camera.is_feature_available(feature):
+            camera.set_boolean(feature, True)
+            return
+    raise DeviceError(f"camera {name!r} offers no PTP (none of {', '.join(PTP_FEATURES)}); set ptp = false")
+
+
+def _feature_setter(camera: Any, name: str, feature: str, value: bool | int | float | str) -> Any:
+    """The call that sets one GenICam feature by name, chosen by the value's type."""
+
+    def apply() -> None:
+        if not camera.is_feature_available(feature):
+            raise DeviceError(f"camera {name!r} has no GenICam feature {feature!r} (or it is not available now)")
+        if isinstance(value, bool):
+            camera.set_boolean(feature, value)
+        elif isinstance(value, int):
+            camera.set_integer(feature, value)
+        elif isinstance(value, float):
+            camera.set_float(feature, value)
+        else:
+            camera.set_string(feature, value)
+
+    return apply
 
 
 class AravisSource(ThreadedSource):

@@ -18,8 +18,9 @@ the same truth:
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -47,6 +48,7 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D
 from mocapd.core.synthetic import moving_sequence, ring_rig
 from mocapd.errors import ConfigError, ModelError
+from mocapd.io.device_state import OpenState
 from mocapd.pipeline.keypoint_source import KeypointSink
 
 FloatArray = NDArray[np.float64]
@@ -84,6 +86,8 @@ class SyntheticWorld:
     loop_s : float
         Duration of the motion before it plays backwards (the period is twice this).
     seed : int
+    camera_names : sequence of str, optional
+        The cameras' names (default ``cam0``, ``cam1``, ...).
     motion : {"recorded", "procedural"}
         Recorded CMU clips (person ``p`` plays clip ``p mod 4``, later laps start half-way through), or the
         procedural walk (each person a 1 m circle around their centre; ``loop_s`` applies to it only, recorded
@@ -98,8 +102,11 @@ class SyntheticWorld:
         loop_s: float = 6.0,
         seed: int = 0,
         motion: str = "recorded",
+        camera_names: Sequence[str] | None = None,
     ) -> None:
         self.cameras: list[Camera] = ring_rig(n_cams)
+        if camera_names is not None:
+            self.cameras = [dataclasses.replace(c, name=n) for c, n in zip(self.cameras, camera_names, strict=True)]
         if motion == "recorded":
             clips, self.skeleton = load_demo_motion()
             self.loop_s = min(c.shape[0] for c in clips) / TRUTH_FPS
@@ -309,6 +316,9 @@ class SyntheticKeypointSource:
             behind = (self.clock() - self.delay_ns - capture) // self.period_ns
             self.skipped += max(0, behind - 1) if behind > 1 else 0
             k += max(1, behind)
+
+    def open_state(self) -> OpenState:
+        return OpenState("open", "")  # nothing to open: the detections are computed
 
     def status(self) -> dict[str, Any]:
         return {"name": self.name, "kind": "synthetic", "frames": self.frames, "skipped": self.skipped,

@@ -14,6 +14,7 @@ from mocapd.service.cli import eval as eval_cli
 from mocapd.service.cli import imu as cmd_imu
 from mocapd.service.cli import model as cmd_model
 from mocapd.service.cli import session as cmd_session
+from mocapd.service.process import exit_now
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -71,15 +72,32 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _dispatch(argv: Sequence[str] | None) -> tuple[int, bool]:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
-        return 2
+        return 2, False
     result: int = args.func(args)
-    return result
+    return result, bool(getattr(args, "fast_exit", False))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command and return its exit status (what tests call, in-process)."""
+    return _dispatch(argv)[0]
+
+
+def entry() -> None:
+    """The ``mocapd`` program (console script and ``python -m mocapd``).
+
+    The long-running commands (``run``, ``demo``) end with :func:`~mocapd.service.process.exit_now` once they
+    have closed everything they opened; other commands exit normally.
+    """
+    code, fast = _dispatch(None)
+    if fast:
+        exit_now(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -18,9 +18,19 @@ from mocapd.core.solver import TERM_NAMES, LMOptions
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
 from mocapd.pipeline.detector_config import DetectorConfig, detector_config_from_mapping
+from mocapd.service.config.cameras import (
+    CalibrationConfig,
+    CameraConfig,
+    ImagesCamera,
+    SyntheticConfig,
+    UvcCamera,
+    VideoCamera,
+    parse_cameras,
+)
 from mocapd.service.config.daemon import DaemonConfig, parse_daemon_config
 from mocapd.service.config.imu import ImuConfig, parse_imu_config
 from mocapd.service.config.record import RecordConfig, parse_record_config
+from mocapd.service.config.schema import validate
 from mocapd.service.config.tracking import TrackingConfig, parse_tracking_config
 from mocapd.service.config.udp import UdpConfig, parse_udp_config
 from mocapd.service.config.websocket import WebSocketConfig, parse_websocket_config
@@ -54,11 +64,18 @@ class Config:
     udp: UdpConfig = field(default_factory=UdpConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     websocket: WebSocketConfig = field(default_factory=WebSocketConfig)
+    cameras: tuple[CameraConfig, ...] = ()
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    source: Path | None = None
+    """The file this config was read from (None: built in code); relative paths in it were resolved from its
+    folder."""
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole parsed file, for sections whose loaders live elsewhere."""
 
 
-KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon", "udp", "record", "websocket"}
+KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon", "udp", "record", "websocket", "cameras",
+                  "calibration", "synthetic"}  # fmt: skip
 
 
 def load_config(path: str | Path | None = None) -> Config:
@@ -71,7 +88,7 @@ def load_config(path: str | Path | None = None) -> Config:
         raise ConfigError(f"config file not found: {p}") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
-    return parse_config(data)
+    return replace(resolve_paths(parse_config(data), p.resolve().parent), source=p)
 
 
 def parse_config(data: dict[str, Any]) -> Config:
@@ -87,8 +104,31 @@ def parse_config(data: dict[str, Any]) -> Config:
         udp=parse_udp_config(_table(data, "udp")),
         record=parse_record_config(_table(data, "record")),
         websocket=parse_websocket_config(_table(data, "websocket")),
+        cameras=parse_cameras(data.get("cameras", [])),
+        calibration=validate(CalibrationConfig, data.get("calibration", {}), "calibration"),
+        synthetic=validate(SyntheticConfig, data.get("synthetic", {}), "synthetic"),
         raw=data,
     )
+
+
+def resolve_paths(config: Config, base: Path) -> Config:
+    """``config`` with the rig's relative file paths (calibration file, replayed videos and image folders, a
+    webcam given as a file) made absolute from ``base``, the config file's folder: a config and the files it
+    names travel together, whatever the working directory."""
+
+    def absolute(path: str) -> str:
+        return path if not path or Path(path).is_absolute() else str(base / path)
+
+    cameras: list[CameraConfig] = []
+    for cam in config.cameras:
+        if isinstance(cam, VideoCamera | ImagesCamera):
+            cameras.append(cam.model_copy(update={"path": absolute(cam.path)}))
+        elif isinstance(cam, UvcCamera) and isinstance(cam.device, str) and not cam.device.startswith("/dev/"):
+            cameras.append(cam.model_copy(update={"device": absolute(cam.device)}))
+        else:
+            cameras.append(cam)
+    calibration = config.calibration.model_copy(update={"file": absolute(config.calibration.file)})
+    return replace(config, cameras=tuple(cameras), calibration=calibration)
 
 
 def _table(data: dict[str, Any], key: str, prefix: str = "") -> dict[str, Any]:

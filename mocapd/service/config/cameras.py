@@ -54,16 +54,21 @@ Name = Annotated[str, AfterValidator(_name)]
 class _Camera(Section):
     name: Name
     """mocapd's name for the camera: the calibration's name for it, and the key of daemon.offsets.cameras."""
-    lost_after_s: float = Field(3.0, gt=0.0, le=60.0)
-    """A camera that delivers nothing for this long is declared lost and reopened with back-off (s)."""
+
+
+class _Captured(_Camera):
+    """A camera whose frames mocapd captures (every kind but the simulated one)."""
+
     ring_slots: int = Field(8, ge=2, le=256)
     """Frames kept in the camera's ring buffer."""
 
 
-class AravisCamera(_Camera):
+class AravisCamera(_Captured):
     """A GigE Vision or USB3 Vision camera opened through Aravis."""
 
     source: Literal["aravis"]
+    lost_after_s: float = Field(3.0, gt=0.0, le=60.0)
+    """A camera that delivers nothing for this long is declared lost and reopened with back-off (s)."""
     address: str = ""
     """IPv4 address of a GigE Vision camera: opened directly, no discovery broadcast."""
     serial: str = ""
@@ -111,7 +116,7 @@ class AravisCamera(_Camera):
         return self
 
 
-class UvcCamera(_Camera):
+class UvcCamera(_Captured):
     """A USB webcam (UVC) through OpenCV."""
 
     source: Literal["uvc"]
@@ -137,7 +142,7 @@ class UvcCamera(_Camera):
         return self
 
 
-class VideoCamera(_Camera):
+class VideoCamera(_Captured):
     """A video file replayed through the live pipeline at its own frame rate."""
 
     source: Literal["video"]
@@ -146,7 +151,7 @@ class VideoCamera(_Camera):
     """Start again at the end (a daemon keeps running); false: the camera ends with the file."""
 
 
-class ImagesCamera(_Camera):
+class ImagesCamera(_Captured):
     """A folder of images (sorted by name) replayed as a camera."""
 
     source: Literal["images"]

@@ -1,5 +1,5 @@
 """The ``[daemon]`` section of config.toml: output rate, latency, late-data limits, HTTP, time offsets, supervision,
-and the synthetic rig (``[daemon.synthetic]``), parsed once into frozen dataclasses (unknown keys are errors)."""
+parsed once into frozen dataclasses (unknown keys are errors)."""
 
 from __future__ import annotations
 
@@ -9,29 +9,11 @@ from typing import Any
 from mocapd.errors import ConfigError
 from mocapd.pipeline.scheduler import SchedulerOptions
 
-_RIGS = ("synthetic",)
-
-
-@dataclass(frozen=True, slots=True)
-class SyntheticRigConfig:
-    """``[daemon.synthetic]``: the rig ``mocapd demo --synthetic`` (and ``rig = "synthetic"``) runs."""
-
-    cameras: int = 4
-    people: int = 2
-    suits: int = 1
-    camera_rate_hz: float = 30.0
-    detection_delay_s: float = 0.05
-    noise_px: float = 1.0
-    imu_rate_hz: int = 100
-    seed: int = 0
-    motion: str = "recorded"
-
 
 @dataclass(frozen=True, slots=True)
 class DaemonConfig:
     """``[daemon]``."""
 
-    rig: str = "synthetic"
     output_rate_hz: float = 60.0
     latency_s: float = 0.15
     max_catch_up_s: float = 0.05
@@ -44,9 +26,9 @@ class DaemonConfig:
     restart_min_s: float = 0.5
     restart_max_s: float = 10.0
     shutdown_timeout_s: float = 1.5
+    open_timeout_s: float = 30.0
     camera_offsets_s: dict[str, float] = field(default_factory=dict)
     imu_offsets_s: dict[str, float] = field(default_factory=dict)
-    synthetic: SyntheticRigConfig = field(default_factory=SyntheticRigConfig)
 
     def scheduler_options(self, camera_names: list[str]) -> SchedulerOptions:
         """Scheduler options for a rig whose cameras have these names (offsets looked up by name)."""
@@ -105,12 +87,6 @@ def parse_daemon_config(t: dict[str, Any]) -> DaemonConfig:
     w = "daemon"
     keys = {f for f in DaemonConfig.__dataclass_fields__ if f not in ("camera_offsets_s", "imu_offsets_s")}
     _reject_unknown(t, keys | {"offsets"}, w)
-    rig = t.get("rig", "synthetic")
-    if rig not in _RIGS:
-        raise ConfigError(
-            f"daemon.rig = {rig!r}; allowed: {list(_RIGS)} "
-            "(the camera rig runs as `mocapd demo`; a configured camera rig is not in this build)"
-        )
     host = t.get("http_host", "127.0.0.1")
     if host not in ("127.0.0.1", "::1", "localhost"):
         raise ConfigError(f"daemon.http_host = {host!r}; allowed: a loopback address ('127.0.0.1', '::1')")
@@ -123,7 +99,6 @@ def parse_daemon_config(t: dict[str, Any]) -> DaemonConfig:
     if restart_max < restart_min:
         raise ConfigError(f"daemon.restart_max_s = {restart_max} must be >= daemon.restart_min_s = {restart_min}")
     return DaemonConfig(
-        rig=rig,
         output_rate_hz=_num(t, "output_rate_hz", w, 60.0, 1.0, 500.0),
         latency_s=_num(t, "latency_s", w, 0.15, 0.0, 2.0),
         max_catch_up_s=_num(t, "max_catch_up_s", w, 0.05, 0.0, 1.0),
@@ -136,35 +111,7 @@ def parse_daemon_config(t: dict[str, Any]) -> DaemonConfig:
         restart_min_s=restart_min,
         restart_max_s=restart_max,
         shutdown_timeout_s=_num(t, "shutdown_timeout_s", w, 1.5, 0.1, 10.0),
+        open_timeout_s=_num(t, "open_timeout_s", w, 30.0, 1.0, 600.0),
         camera_offsets_s=_offsets(offsets.get("cameras", {}), "daemon.offsets.cameras"),
         imu_offsets_s=_offsets(offsets.get("imus", {}), "daemon.offsets.imus"),
-        synthetic=_parse_synthetic(t.get("synthetic", {})),
     )
-
-
-def _parse_synthetic(t: object) -> SyntheticRigConfig:
-    w = "daemon.synthetic"
-    if not isinstance(t, dict):
-        raise ConfigError(f"{w} must be a table, got {t!r}")
-    _reject_unknown(t, set(SyntheticRigConfig.__dataclass_fields__), w)
-    people = _num(t, "people", w, 2, 1, 4, integer=True)
-    suits = _num(t, "suits", w, 1, 0, 4, integer=True)
-    if suits > people:
-        raise ConfigError(f"{w}.suits = {suits}; allowed: at most daemon.synthetic.people = {people}")
-    return SyntheticRigConfig(
-        cameras=_num(t, "cameras", w, 4, 2, 16, integer=True),
-        people=people,
-        suits=suits,
-        camera_rate_hz=_num(t, "camera_rate_hz", w, 30.0, 1.0, 240.0),
-        detection_delay_s=_num(t, "detection_delay_s", w, 0.05, 0.0, 1.0),
-        noise_px=_num(t, "noise_px", w, 1.0, 0.0, 50.0),
-        imu_rate_hz=_num(t, "imu_rate_hz", w, 100, 60, 120, integer=True),
-        seed=_num(t, "seed", w, 0, 0, 2**31, integer=True),
-        motion=_motion(t.get("motion", "recorded"), w),
-    )
-
-
-def _motion(value: object, w: str) -> str:
-    if value not in ("recorded", "procedural"):
-        raise ConfigError(f"{w}.motion = {value!r}; allowed: 'recorded' or 'procedural'")
-    return str(value)

@@ -38,7 +38,7 @@ from mocapd.protocols.session_format import (
     encode_keypoints,
     encode_pose,
 )
-from mocapd.service.config.daemon import SyntheticRigConfig
+from mocapd.service.config.cameras import SyntheticConfig
 from mocapd.service.config.record import RecordConfig
 
 if TYPE_CHECKING:
@@ -148,11 +148,11 @@ def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | Non
     }  # fmt: skip
 
 
-def synthetic_extra(syn: SyntheticRigConfig, epoch_ns: int, suits: int | None = None) -> dict[str, Any]:
+def synthetic_extra(syn: SyntheticConfig, cameras: list[str], epoch_ns: int) -> dict[str, Any]:
     """The manifest's description of a synthetic world (rebuilt by the resolve measurement to score against
-    the truth): its size, seed and the host time of its t = 0."""
-    return {"epoch_ns": epoch_ns, "cameras": syn.cameras, "people": syn.people,
-            "suits": syn.suits if suits is None else suits, "seed": syn.seed, "motion": syn.motion}  # fmt: skip
+    the truth): its cameras, size, seed and the host time of its t = 0."""
+    return {"epoch_ns": epoch_ns, "cameras": len(cameras), "camera_names": cameras, "people": syn.people,
+            "suits": syn.suits, "seed": syn.seed, "motion": syn.motion}  # fmt: skip
 
 
 def session_directory(cfg: RecordConfig, directory: str | Path | None) -> Path:

@@ -24,8 +24,9 @@ def world_of(session: Session) -> tuple[SyntheticWorld, int]:
         int(s["people"]),
         int(s["suits"]),
         seed=int(s["seed"]),
-        motion=str(s.get("motion", "procedural")),
-    )  # sessions before the recorded motion
+        motion=str(s.get("motion", "procedural")),  # sessions before the recorded motion
+        camera_names=s.get("camera_names"),  # sessions before named synthetic cameras: cam0, cam1, ...
+    )
     return world, int(s["epoch_ns"])
 
 
