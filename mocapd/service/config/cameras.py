@@ -185,6 +185,8 @@ class CalibrationConfig(Section):
 class SyntheticConfig(Section):
     """``[synthetic]``: the simulated rig that ``source = "synthetic"`` cameras belong to."""
 
+    ordered = (("suits", "<=", "people"),)
+
     people: int = Field(2, ge=1, le=4)
     suits: int = Field(1, ge=0, le=4)
     """How many of the people (the first ones) wear 13 simulated Xsens IMUs on pseudo-terminals."""
@@ -194,12 +196,6 @@ class SyntheticConfig(Section):
     imu_rate_hz: int = Field(100, ge=60, le=120)
     seed: int = Field(0, ge=0, le=2**31)
     motion: Literal["recorded", "procedural"] = "recorded"
-
-    @model_validator(mode="after")
-    def _suits_fit(self) -> SyntheticConfig:
-        if self.suits > self.people:
-            raise ValueError(f"suits = {self.suits} must be <= people = {self.people}")
-        return self
 
 
 def parse_cameras(value: object) -> tuple[CameraConfig, ...]:
