@@ -29,7 +29,6 @@ import resource
 import socket
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -204,9 +203,11 @@ def fan_out(
     from mocapd.service.outputs.websocket import build_websocket_sinks
 
     cfg = load_config()
-    syn = replace(cfg.daemon.synthetic, people=people, suits=0)
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, synthetic=syn),
-                  websocket=replace(cfg.websocket, port=0, max_clients=max(64, clients + 4)))  # fmt: skip
+    syn = cfg.daemon.synthetic.model_copy(update={"people": people, "suits": 0})
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0, "synthetic": syn}),
+        "websocket": cfg.websocket.model_copy(update={"port": 0, "max_clients": max(64, clients + 4)}),
+    })  # fmt: skip
     runs: list[dict[str, Any]] = []
     with running_demo(cfg) as demo:
         d = demo.daemon

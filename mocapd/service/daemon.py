@@ -110,8 +110,10 @@ class Daemon:
         d = config.daemon
         self.imu = ImuInputs(config.imu)
         tracker = PeopleTracker(
-            SubjectTracker(DetectionSorter(rig.cameras, config.tracking.sorting), config.tracking.enrolment),
-            SuitBinder(rig.skeleton, config.tracking.binding) if rig.suits else None,
+            SubjectTracker(
+                DetectionSorter(rig.cameras, config.tracking.sorting.options()), config.tracking.enrolment.options()
+            ),
+            SuitBinder(rig.skeleton, config.tracking.binding.options()) if rig.suits else None,
         )
         self.scheduler = FixedLatencyScheduler(
             rig.cameras,
@@ -123,7 +125,7 @@ class Daemon:
             suits=rig.suits,
             options=d.scheduler_options([c.name for c in rig.cameras]),
             cost=config.solver.cost,
-            lm=config.solver.lm,
+            lm=config.solver.lm.options(),
             backend=config.solver.backend,
         )
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
@@ -195,7 +197,7 @@ class Daemon:
         """Load (or compile, the first time on a machine) the solver kernel before serving."""
         mounts = self.rig.suits[0].mounts if self.rig.suits else ()
         s = PoseSolver(self.rig.skeleton, self.rig.cameras, self.rig.targets, mounts, self.rig.prior,
-                       self.config.solver.cost, self.config.solver.lm,
+                       self.config.solver.cost, self.config.solver.lm.options(),
                        backend="numpy" if self.config.solver.backend == "numpy" else "compiled")  # fmt: skip
         n_cams, n_kp = len(self.rig.cameras), len(self.rig.targets)
         s.solve(Observations(np.zeros((n_cams, n_kp, 2)), np.zeros((n_cams, n_kp))), update_state=False)

@@ -19,7 +19,7 @@ import platform
 import sys
 import threading
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -166,7 +166,9 @@ def child_main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     opts = CameraDemoOptions(**json.loads(args.options))
     config = opts.apply(load_config())
-    config = replace(config, daemon=replace(config.daemon, http_port=0))  # inside the namespace: any free port
+    config = config.model_copy(
+        update={"daemon": config.daemon.model_copy(update={"http_port": 0})}
+    )  # inside the namespace: any free port
     m = config.detector.model
     load0 = os.getloadavg()
     measure = Measure(args.seconds)

@@ -13,7 +13,6 @@ import os
 import platform
 import resource
 import time
-from dataclasses import replace
 from typing import Any
 
 from mocapd.service.config import load_config
@@ -42,8 +41,8 @@ def _after_warm_up(warm: tuple[int, int, int] | None, st: dict[str, Any], wall_s
 
 def run(seconds: float = 60.0, cameras: int = 4, people: int = 2) -> dict[str, Any]:
     cfg = load_config()
-    syn = replace(cfg.daemon.synthetic, cameras=cameras, people=people, suits=min(1, people))
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, synthetic=syn))
+    syn = cfg.daemon.synthetic.model_copy(update={"cameras": cameras, "people": people, "suits": min(1, people)})
+    cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0, "synthetic": syn})})
     load0 = os.getloadavg()
     rss: list[tuple[float, float]] = []
     with running_demo(cfg) as demo:

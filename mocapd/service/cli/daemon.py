@@ -7,7 +7,6 @@ import asyncio
 import json
 import logging
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +27,7 @@ def _subcommand_group(subparsers: Any, name: str) -> Any:
 def _load(path: Path | None, http_port: int | None = None) -> Config:
     cfg = load_config(path)
     if http_port is not None:
-        cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=http_port))
+        cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": http_port})})
     return cfg
 
 
@@ -37,8 +36,8 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(path)
         cfg.daemon.scheduler_options([f"cam{i}" for i in range(cfg.daemon.synthetic.cameras)])
-    except ConfigError as exc:
-        print(f"{path}: error: {exc}", file=sys.stderr)
+    except ConfigError as exc:  # a file-level message names the file already
+        print(f"{path}: error: {str(exc).removeprefix(f'{path}: ')}", file=sys.stderr)
         return 2
     d = cfg.daemon
     print(

@@ -14,7 +14,7 @@ from __future__ import annotations
 import ctypes
 import queue
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -92,8 +92,10 @@ class CameraDemoOptions:
     def apply(self, config: Config) -> Config:
         """``config`` with this demo's scheduler timing."""
         lat = self.latency_s
-        daemon = replace(config.daemon, latency_s=lat, keypoint_max_age_s=lat / 2, keypoint_max_gap_s=2 * lat)
-        return replace(config, daemon=daemon)
+        daemon = config.daemon.model_copy(
+            update={"latency_s": lat, "keypoint_max_age_s": lat / 2, "keypoint_max_gap_s": 2 * lat}
+        )
+        return config.model_copy(update={"daemon": daemon})
 
 
 def video_fps(path: Path) -> float:

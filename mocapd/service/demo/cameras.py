@@ -119,7 +119,7 @@ async def run_camera_demo(
     fleet_task = asyncio.create_task(fleet.run(started))
     detector: AnyDetector | None = None
     try:
-        detector = await loop.run_in_executor(None, make_detector, config.detector, opts, cameras)
+        detector = await loop.run_in_executor(None, make_detector, config.detector.options(), opts, cameras)
         rig, _ = await loop.run_in_executor(None, build_rig, config, opts, cameras, specs, detector)
         waits = {asyncio.create_task(w) for w in (started.wait(), stop.wait())} | {fleet_task}
         await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)

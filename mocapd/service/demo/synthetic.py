@@ -22,7 +22,7 @@ import tempfile
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +30,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.io.prior import resolve_prior
-from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.pipeline.scheduler import PoseFrame, Suit
 from mocapd.service.config import Config
 from mocapd.service.daemon import Daemon, PoseSink, Rig
@@ -135,12 +134,16 @@ def build_demo(
             motion = sim.Motion(quats[k], accs[k], float(syn.imu_rate_hz), device_id)
             simulators.append(sim.XsensSimulator(workdir / f"imu-{device_id:08X}", TimedDevice(motion)))
     loop = sim.SimulatorLoop(simulators).start() if simulators else _NoLoop()
-    ports = tuple(
-        XsensPortConfig(path=str(s.link), rate_hz=syn.imu_rate_hz, reconnect_min_s=0.2, reconnect_max_s=1.0,
-                        stall_timeout_s=1.0)
-        for s in simulators
-    )  # fmt: skip
-    config = replace(config, imu=replace(config.imu, ports=ports))
+    imu = config.imu.model_copy(
+        update={
+            "ports": tuple(str(s.link) for s in simulators),
+            "rate_hz": syn.imu_rate_hz,
+            "reconnect_min_s": 0.2,
+            "reconnect_max_s": 1.0,
+            "stall_timeout_s": 1.0,
+        }
+    )
+    config = config.model_copy(update={"imu": imu})
     suits = [Suit.from_calibration(s.id, world.calibration(s), world.skeleton) for s in world.suits]
     sources = [
         SyntheticKeypointSource(world, c, epoch_ns=epoch, rate_hz=syn.camera_rate_hz, delay_s=syn.detection_delay_s,
