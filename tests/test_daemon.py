@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -84,8 +83,10 @@ async def wait_for(cond: Callable[[], bool], timeout: float, what: str) -> None:
 @pytest.mark.asyncio
 async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug() -> None:
     cfg = load_config()
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, restart_min_s=0.1, restart_max_s=0.2),
-                  websocket=replace(cfg.websocket, enabled=False))  # fmt: skip
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0, "restart_min_s": 0.1, "restart_max_s": 0.2}),
+        "websocket": cfg.websocket.model_copy(update={"enabled": False}),
+    })  # fmt: skip
     rec = Recorder()
     with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:
         d = demo.daemon

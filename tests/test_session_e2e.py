@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import csv
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,8 @@ from tests.test_daemon import Recorder
 
 async def _record(path: Path, seconds: float) -> list[PoseFrame]:
     cfg = load_config()
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0), websocket=replace(cfg.websocket, enabled=False))
+    cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+                                 "websocket": cfg.websocket.model_copy(update={"enabled": False})})  # fmt: skip
     live = Recorder()
     with assembled(synthetic_config(cfg), RunOptions(sinks=[live], record=path)) as demo:
         task = asyncio.create_task(demo.daemon.run())

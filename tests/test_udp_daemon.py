@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -42,14 +41,13 @@ async def test_daemon_streams_mvn_and_vmc_on_loopback() -> None:
     vmc_port = vmc_t.get_extra_info("sockname")[1]
     udp = UdpConfig(  # the suited person is pinned to MVN character 0 and drives the one VMC avatar
         mvn=MvnStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", mvn_port),),
-                            character_ids=(("suit:suit0", 0),)),
+                            character_ids={"suit:suit0": 0}),
         vmc=VmcStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", vmc_port),),
                             subjects=("suit:suit0",)),
     )  # fmt: skip
     cfg = load_config()
-    cfg = replace(
-        cfg, daemon=replace(cfg.daemon, http_port=0), websocket=replace(cfg.websocket, enabled=False), udp=udp
-    )
+    cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0}), "udp": udp,
+                                 "websocket": cfg.websocket.model_copy(update={"enabled": False})})  # fmt: skip
     rec = Recorder()
     try:
         with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:

@@ -9,7 +9,6 @@ import asyncio
 import contextlib
 import socket
 from collections.abc import AsyncIterator
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -82,10 +81,11 @@ async def check_skeletons_drawn(page: Page) -> list[dict[str, Any]]:
 async def test_viewer_draws_the_daemons_subjects_and_reconnects_after_a_restart() -> None:
     cfg = load_config()
     port = free_port()
-    cfg = replace(
-        cfg,
-        daemon=replace(cfg.daemon, http_port=0),
-        websocket=replace(cfg.websocket, port=port, status_hz=5.0),
+    cfg = cfg.model_copy(
+        update={
+            "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+            "websocket": cfg.websocket.model_copy(update={"port": port, "status_hz": 5.0}),
+        }
     )
     first = contextlib.AsyncExitStack()
     try:

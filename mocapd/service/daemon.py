@@ -173,8 +173,10 @@ class Daemon:
         #: more fields of the status line, e.g. the synthetic rig's keypoint error
         self.status_line_extras: list[Callable[[], str]] = []
         tracker = PeopleTracker(
-            SubjectTracker(DetectionSorter(rig.cameras, config.tracking.sorting), config.tracking.enrolment),
-            SuitBinder(rig.skeleton, config.tracking.binding) if rig.suits else None,
+            SubjectTracker(
+                DetectionSorter(rig.cameras, config.tracking.sorting.options()), config.tracking.enrolment.options()
+            ),
+            SuitBinder(rig.skeleton, config.tracking.binding.options()) if rig.suits else None,
         )
         self.scheduler = FixedLatencyScheduler(
             rig.cameras,
@@ -186,7 +188,7 @@ class Daemon:
             suits=rig.suits,
             options=d.scheduler_options([c.name for c in rig.cameras]),
             cost=config.solver.cost,
-            lm=config.solver.lm,
+            lm=config.solver.lm.options(),
             backend=config.solver.backend,
         )
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
@@ -295,12 +297,12 @@ class Daemon:
         compile takes seconds, which inside a live tick would be seconds of missed output."""
         mounts = self.rig.suits[0].mounts if self.rig.suits else ()
         s = PoseSolver(self.rig.skeleton, self.rig.cameras, self.rig.targets, mounts, self.rig.prior,
-                       self.config.solver.cost, self.config.solver.lm,
+                       self.config.solver.cost, self.config.solver.lm.options(),
                        backend="numpy" if self.config.solver.backend == "numpy" else "compiled")  # fmt: skip
         n_cams, n_kp = len(self.rig.cameras), len(self.rig.targets)
         s.solve(Observations(np.zeros((n_cams, n_kp, 2)), np.zeros((n_cams, n_kp))), update_state=False)
         if n_cams >= 2:
-            DetectionSorter(self.rig.cameras, self.config.tracking.sorting).warm_up(n_kp)
+            DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options()).warm_up(n_kp)
 
     def _source(self, src: KeypointSource) -> Callable[[], Any]:
         def sink(camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:

@@ -38,10 +38,10 @@ class ImuInputs:
     def __init__(self, config: ImuConfig, ingest: ImuIngest | None = None) -> None:
         self.config = config
         self.ingest = ingest or ImuIngest(capacity=config.buffer_capacity)
-        self.devices = [XsensSerialDevice(p, self.on_sample) for p in config.ports]
+        self.devices = [XsensSerialDevice(p, self.on_sample) for p in config.port_configs()]
         if config.awinda.experimental:
             station_port = XsensPortConfig(path=config.awinda.path)
-            self.devices.append(XsensSerialDevice(station_port, self.on_sample, awinda=config.awinda))
+            self.devices.append(XsensSerialDevice(station_port, self.on_sample, awinda=config.awinda.options()))
         self.bridge = (
             ImuBridgeListener(self.on_sample, host=config.bridge.host, port=config.bridge.port)
             if config.bridge.enabled

@@ -208,8 +208,9 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     targets = fmt.track_targets(skeleton)
     backoff = (config.daemon.restart_min_s, config.daemon.restart_max_s)
     captures = [frame_source(c, cam, backoff) for c, cam in zip(config.cameras, plan.cameras, strict=True)]
-    detector = make_detector(config.detector, [(c.width, c.height) for c in plan.cameras],
-                             target_columns(config.detector, targets.names))  # fmt: skip
+    detector_config = config.detector.options()
+    detector = make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],
+                             target_columns(detector_config, targets.names))  # fmt: skip
     sources: list[KeypointSource] = []
     try:
         for i, (cam, capture) in enumerate(zip(config.cameras, captures, strict=True)):
@@ -270,5 +271,9 @@ def _build_synthetic(config: Config, plan: RigPlan, prior: PcaPrior | None, cloc
     ]  # fmt: skip
     suits = [Suit.from_calibration(s.id, world.calibration(s), world.skeleton) for s in world.suits]
     rig = Rig(world.cameras, sources, world.skeleton, world.targets, prior, suits)
-    imu = dataclasses.replace(config.imu, ports=(*config.imu.ports, *simulated.ports))
+    # The simulated devices reconnect and stall-detect faster than real ones need: they restart in milliseconds.
+    imu = config.imu.model_copy(update={
+        "ports": (*config.imu.ports, *simulated.ports), "rate_hz": syn.imu_rate_hz,
+        "reconnect_min_s": 0.2, "reconnect_max_s": 1.0, "stall_timeout_s": 1.0,
+    })  # fmt: skip
     return BuiltRig(rig, imu, world=world, epoch_ns=epoch, simulated=simulated)

@@ -14,7 +14,6 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.sim import xsens as sim
 from mocapd.sim.world import SyntheticWorld
 
@@ -50,7 +49,8 @@ class SimulatedSuits:
     pseudo-terminal links."""
 
     simulators: list[sim.XsensSimulator]
-    ports: tuple[XsensPortConfig, ...]
+    ports: tuple[str, ...]
+    """The devices' paths (symlinks to their pseudo-terminals), for ``[imu] ports``."""
     workdir: Path
     _loop: sim.SimulatorLoop | None = field(default=None, repr=False)
 
@@ -66,12 +66,7 @@ class SimulatedSuits:
                 device = _WorldClockedDevice(motion, epoch_ns)
                 simulators.append(sim.XsensSimulator(workdir / f"imu-{device_id:08X}", device))
         loop = sim.SimulatorLoop(simulators).start() if simulators else None
-        ports = tuple(
-            XsensPortConfig(path=str(s.link), rate_hz=rate_hz, reconnect_min_s=0.2, reconnect_max_s=1.0,
-                            stall_timeout_s=1.0)
-            for s in simulators
-        )  # fmt: skip
-        return cls(simulators, ports, workdir, loop)
+        return cls(simulators, tuple(str(s.link) for s in simulators), workdir, loop)
 
     def close(self) -> None:
         if self._loop is not None:

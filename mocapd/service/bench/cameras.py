@@ -19,7 +19,7 @@ import platform
 import sys
 import threading
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -168,7 +168,8 @@ def child_main(argv: list[str] | None = None) -> int:
     opts = CameraDemoOptions(**json.loads(args.options))
     config = load_config()
     # Inside the namespace: any free port (nothing outside it reads them).
-    config = replace(config, daemon=replace(config.daemon, http_port=0), websocket=replace(config.websocket, port=0))
+    config = config.model_copy(update={"daemon": config.daemon.model_copy(update={"http_port": 0}),
+                                       "websocket": config.websocket.model_copy(update={"port": 0})})  # fmt: skip
     m = config.detector.model
     load0 = os.getloadavg()
     measure = Measure(args.seconds)

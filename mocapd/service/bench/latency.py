@@ -14,7 +14,6 @@ import os
 import platform
 import resource
 import time
-from dataclasses import replace
 from typing import Any
 
 from mocapd.service import assembly
@@ -48,9 +47,11 @@ def run(seconds: float = 60.0, cameras: int = 4, people: int = 2) -> dict[str, A
     """Run the synthetic rig (``mocapd demo --synthetic``'s generated config, through the one assembly path) for
     ``seconds`` after READY and report what it did."""
     base = load_config()
-    base = replace(base, daemon=replace(base.daemon, http_port=0), websocket=replace(base.websocket, port=0))
+    synthetic = base.synthetic.model_copy(update={"people": people, "suits": min(1, people)})
+    base = base.model_copy(update={"daemon": base.daemon.model_copy(update={"http_port": 0}),
+                                   "websocket": base.websocket.model_copy(update={"port": 0}),
+                                   "synthetic": synthetic})  # fmt: skip
     cfg = synthetic_config(base, cameras)
-    cfg = replace(cfg, synthetic=cfg.synthetic.model_copy(update={"people": people, "suits": min(1, people)}))
     syn = cfg.synthetic
     load0 = os.getloadavg()
     rss: list[tuple[float, float]] = []

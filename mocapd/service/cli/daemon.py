@@ -11,7 +11,6 @@ import asyncio
 import json
 import logging
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,7 +35,7 @@ def _subcommand_group(subparsers: Any, name: str) -> Any:
 def _load(path: Path | None, http_port: int | None = None) -> Config:
     cfg = load_config(path)
     if http_port is not None:
-        cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=http_port))
+        cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": http_port})})
     return cfg
 
 
@@ -67,8 +66,8 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(path)
         check(cfg)
-    except ConfigError as exc:
-        for line in str(exc).splitlines():
+    except ConfigError as exc:  # a file-level message names the file already
+        for line in str(exc).removeprefix(f"{path}: ").splitlines():
             print(f"{path}: error: {line}", file=sys.stderr)
         return 2
     print(f"{path}: ok ({_rig_summary(cfg)})")

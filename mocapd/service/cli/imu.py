@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -22,9 +21,10 @@ import numpy as np
 from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
 from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
 from mocapd.io.imu_bridge import ImuBridgeListener
-from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
+from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
 from mocapd.service.config import load_config
 from mocapd.service.config.imu import ImuConfig
+from mocapd.service.config.schema import validate
 
 
 def _subcommand_group(subparsers: Any, name: str, help_text: str, dest: str) -> Any:
@@ -74,7 +74,7 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
         else:
             seen.add(s.sensor)
 
-    devices = [XsensSerialDevice(p, on_sample) for p in config.ports]
+    devices = [XsensSerialDevice(p, on_sample) for p in config.port_configs()]
     tasks = [asyncio.create_task(d.run()) for d in devices]
     bridge = ImuBridgeListener(on_sample, host=config.bridge.host, port=config.bridge.port)
     if config.bridge.enabled:
@@ -105,10 +105,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     """Entry point of ``mocapd calibrate imu``; returns the process exit status."""
     try:
         config = load_config(args.config).imu  # validates the whole file, like the daemon
-        if args.port:
-            base = config.ports[0] if config.ports else XsensPortConfig(path="")
-            ports = tuple(XsensPortConfig(**{**_fields(base), "path": p}) for p in args.port)
-            config = dataclasses.replace(config, ports=ports)
+        if args.port:  # --port replaces imu.ports, validated like the file's
+            config = validate(ImuConfig, {**config.model_dump(), "ports": list(args.port)}, "imu")
         if not config.assignment:
             raise ConfigError("imu.assignment is empty: say which sensor sits on which bone")
         if args.facing_from is not None:
@@ -166,7 +164,3 @@ def _heading_from(spec: str, recordings: dict[str, tuple[np.ndarray, np.ndarray]
     if quats is None or len(quats[0]) == 0:
         raise ConfigError(f"--facing-from {spec!r}: no samples from sensor {sensor}")
     return facing_heading_from_sensor(quat_average(quats[0]), axis)
-
-
-def _fields(port: XsensPortConfig) -> dict[str, Any]:
-    return {name: getattr(port, name) for name in port.__dataclass_fields__}

@@ -29,15 +29,24 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, Field, PlainValidator, model_validator
 
 from mocapd.errors import ConfigError
-from mocapd.service.config.schema import Section, Seq, validate
+from mocapd.service.config.schema import MAX_TEXT, PathStr, Section, Seq, Text, validate
 
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,32}$")
 
 
 def _feature_value(value: object) -> bool | int | float | str:
-    if isinstance(value, bool | int | str) or (isinstance(value, float) and math.isfinite(value)):
-        return value
-    raise ValueError("a GenICam feature value must be true/false, an integer, a finite number or a string")
+    ok = (
+        isinstance(value, bool)
+        or (isinstance(value, int) and -(2**63) <= value < 2**63)  # GenICam integers are 64-bit
+        or (isinstance(value, float) and math.isfinite(value))
+        or (isinstance(value, str) and len(value) <= MAX_TEXT and "\x00" not in value)
+    )
+    if not ok:
+        raise ValueError(
+            "a GenICam feature value must be true/false, a 64-bit integer, a finite number or a string of at most "
+            f"{MAX_TEXT} characters"
+        )
+    return value  # type: ignore[return-value]
 
 
 def _name(value: str) -> str:
@@ -69,33 +78,33 @@ class AravisCamera(_Captured):
     source: Literal["aravis"]
     lost_after_s: float = Field(3.0, gt=0.0, le=60.0)
     """A camera that delivers nothing for this long is declared lost and reopened with back-off (s)."""
-    address: str = ""
+    address: Text = ""
     """IPv4 address of a GigE Vision camera: opened directly, no discovery broadcast."""
-    serial: str = ""
+    serial: Text = ""
     """Serial number: found by discovery (USB3 Vision; GigE Vision only on ``interface``)."""
-    device_id: str = ""
+    device_id: Text = ""
     """Aravis device id as ``mocapd devices`` or ``arv-tool-0.8`` lists it: found by discovery."""
-    interface: str = ""
+    interface: Text = ""
     """Network interface GigE Vision discovery may broadcast on (``serial``/``device_id`` of a GigE camera);
     "" = no GigE discovery at all (USB3 Vision cameras need none)."""
-    pixel_format: str = "Mono8"
+    pixel_format: Literal["Mono8", "RGB8", "BayerRG8", "BayerBG8", "BayerGR8", "BayerGB8"] = "Mono8"
     """Mono8, RGB8, BayerRG8, BayerBG8, BayerGR8 or BayerGB8 (Bayer is demosaiced by mocapd)."""
     frame_rate: float | None = Field(None, gt=0.0, le=1000.0)
     exposure_us: float | None = Field(None, gt=0.0, le=10_000_000.0)
     gain_db: float | None = Field(None, ge=-50.0, le=100.0)
-    region: Seq[int] | None = None
+    region: Annotated[Seq[Annotated[int, Field(ge=0, le=65535)]], Field(min_length=4, max_length=4)] | None = None
     """[x, y, width, height] in pixels (after binning); unset keeps the camera's."""
-    binning: Seq[int] | None = None
+    binning: Annotated[Seq[Annotated[int, Field(ge=1, le=16)]], Field(min_length=2, max_length=2)] | None = None
     """[horizontal, vertical]."""
     packet_size: int | None = Field(None, ge=0, le=16_384)
     """GigE Vision stream packet size in bytes (0 = negotiate; jumbo frames 8192/9000)."""
     packet_delay_ns: int | None = Field(None, ge=0, le=1_000_000_000)
     """GigE Vision inter-packet delay in ns (spreads the bursts of several cameras on one link)."""
-    trigger: str = ""
+    trigger: Text = ""
     """Hardware/software trigger source (Line0, Line1, Software...); "" = free-running."""
     ptp: bool = False
     """Enable IEEE 1588 PTP on the camera (GevIEEE1588 / PtpEnable) and stamp frames with its clock."""
-    features: dict[str, FeatureValue] = Field(default_factory=dict)
+    features: dict[Text, FeatureValue] = Field(default_factory=dict, max_length=256)
     """Any other GenICam feature by name, set after the ones above: {ExposureAuto = "Off", ...}."""
     n_buffers: int = Field(8, ge=2, le=256)
     socket_frames: int = Field(4, ge=1, le=64)
@@ -107,10 +116,8 @@ class AravisCamera(_Captured):
         chosen = [k for k in ("address", "serial", "device_id") if getattr(self, k)]
         if len(chosen) != 1:
             raise ValueError(f"set exactly one of address, serial, device_id (got {chosen or 'none'})")
-        if self.region is not None and (len(self.region) != 4 or min(self.region[2:]) < 1 or min(self.region) < 0):
-            raise ValueError(f"region = {list(self.region)}: must be [x, y, width, height], width/height >= 1")
-        if self.binning is not None and (len(self.binning) != 2 or min(self.binning) < 1):
-            raise ValueError(f"binning = {list(self.binning)}: must be [horizontal, vertical], each >= 1")
+        if self.region is not None and min(self.region[2:]) < 1:
+            raise ValueError(f"region = {list(self.region)}: must be [x, y, width, height] with width, height >= 1")
         if self.packet_timeout_ms > self.frame_retention_ms:
             raise ValueError("packet_timeout_ms must be <= frame_retention_ms")
         return self
@@ -120,12 +127,12 @@ class UvcCamera(_Captured):
     """A USB webcam (UVC) through OpenCV."""
 
     source: Literal["uvc"]
-    device: int | str
+    device: Annotated[int, Field(ge=0, le=255)] | PathStr
     """Device index (0 = /dev/video0) or a path (/dev/video2, /dev/v4l/by-id/...)."""
     width: int | None = Field(None, ge=16, le=16_384)
     height: int | None = Field(None, ge=16, le=16_384)
     fps: float | None = Field(None, gt=0.0, le=1000.0)
-    fourcc: str = ""
+    fourcc: Text = ""
     """Pixel format the camera sends, 4 characters: MJPG (most webcams above 640x480 at 30 fps), YUYV ...;
     "" = the driver's default."""
 
@@ -146,7 +153,7 @@ class VideoCamera(_Captured):
     """A video file replayed through the live pipeline at its own frame rate."""
 
     source: Literal["video"]
-    path: str
+    path: PathStr
     loop: bool = True
     """Start again at the end (a daemon keeps running); false: the camera ends with the file."""
 
@@ -155,7 +162,7 @@ class ImagesCamera(_Captured):
     """A folder of images (sorted by name) replayed as a camera."""
 
     source: Literal["images"]
-    path: str
+    path: PathStr
     fps: float = Field(30.0, gt=0.0, le=1000.0)
     loop: bool = True
 
@@ -179,7 +186,7 @@ CAMERA_KINDS: dict[str, type[_Camera]] = {
 class CalibrationConfig(Section):
     """``[calibration]``: where the cameras' intrinsics and extrinsics come from."""
 
-    file: str = ""
+    file: PathStr = ""
     """A calibration in any format ``mocapd calibrate convert`` reads (mocapd TOML, Pose2Sim TOML, Qualisys
     .qca.txt, OpenCV YAML); every camera of [[cameras]] must be in it under its name, at the image size it
     delivers. "" = none (only a synthetic rig needs none)."""
@@ -190,6 +197,8 @@ class CalibrationConfig(Section):
 class SyntheticConfig(Section):
     """``[synthetic]``: the simulated rig that ``source = "synthetic"`` cameras belong to."""
 
+    ordered = (("suits", "<=", "people"),)
+
     people: int = Field(2, ge=1, le=4)
     suits: int = Field(1, ge=0, le=4)
     """How many of the people (the first ones) wear 13 simulated Xsens IMUs on pseudo-terminals."""
@@ -199,12 +208,6 @@ class SyntheticConfig(Section):
     imu_rate_hz: int = Field(100, ge=60, le=120)
     seed: int = Field(0, ge=0, le=2**31)
     motion: Literal["recorded", "procedural"] = "recorded"
-
-    @model_validator(mode="after")
-    def _suits_fit(self) -> SyntheticConfig:
-        if self.suits > self.people:
-            raise ValueError(f"suits = {self.suits} must be <= people = {self.people}")
-        return self
 
 
 def parse_cameras(value: object) -> tuple[CameraConfig, ...]:

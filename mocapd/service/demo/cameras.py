@@ -35,7 +35,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -150,13 +150,15 @@ def demo_config(base: Config, opts: CameraDemoOptions, specs: list[FakeCameraSpe
          "lost_after_s": opts.lost_after_s}
         for s in specs
     ]  # fmt: skip
-    calib = {"file": str(calibration)}
     lat = opts.latency_s
-    daemon = replace(base.daemon, latency_s=lat, keypoint_max_age_s=lat / 2, keypoint_max_gap_s=2 * lat)
-    detector = replace(base.detector, packing=replace(base.detector.packing, enabled=opts.packed))
-    raw = base.raw | {"cameras": tables, "calibration": calib}
-    return replace(base, cameras=parse_cameras(tables), calibration=validate(CalibrationConfig, calib, "calibration"),
-                   daemon=daemon, detector=detector, raw=raw)  # fmt: skip
+    daemon = base.daemon.model_copy(update={"latency_s": lat, "keypoint_max_age_s": lat / 2,
+                                            "keypoint_max_gap_s": 2 * lat})  # fmt: skip
+    packing = base.detector.packing.model_copy(update={"enabled": opts.packed})
+    return base.model_copy(update={
+        "cameras": parse_cameras(tables), "daemon": daemon,
+        "calibration": validate(CalibrationConfig, {"file": str(calibration)}, "calibration"),
+        "detector": base.detector.model_copy(update={"packing": packing}),
+    })  # fmt: skip
 
 
 async def run_camera_demo(

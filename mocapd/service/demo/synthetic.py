@@ -19,7 +19,6 @@ tables (see :func:`synthetic_config`).
 from __future__ import annotations
 
 import asyncio
-from dataclasses import replace
 from pathlib import Path
 
 from mocapd.service import assembly
@@ -34,8 +33,7 @@ def synthetic_config(base: Config, cameras: int = DEFAULT_CAMERAS) -> Config:
     """``base`` with ``cameras`` synthetic cameras (``cam0``, ``cam1``, ...) in place of its own cameras and
     calibration: the tables a user would write, checked by the same rules."""
     tables = [{"name": f"cam{i}", "source": "synthetic"} for i in range(cameras)]
-    raw = {k: v for k, v in base.raw.items() if k != "calibration"} | {"cameras": tables}
-    return replace(base, cameras=parse_cameras(tables), calibration=CalibrationConfig(), raw=raw)
+    return base.model_copy(update={"cameras": parse_cameras(tables), "calibration": CalibrationConfig()})
 
 
 async def run_synthetic(

@@ -38,6 +38,7 @@ from mocapd.protocols.session_format import (
     encode_keypoints,
     encode_pose,
 )
+from mocapd.service.config import config_document
 from mocapd.service.config.cameras import SyntheticConfig
 from mocapd.service.config.record import RecordConfig
 
@@ -127,7 +128,7 @@ def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | Non
         "started_monotonic_ns": time.monotonic_ns(),
         "host": platform.node(),
         "streams": list(STREAMS),
-        "config": config.raw,
+        "config": config_document(config),
         "scheduler": {
             "rate_hz": o.rate_hz, "latency_ns": o.latency_ns, "keypoint_max_age_ns": o.keypoint_max_age_ns,
             "keypoint_max_gap_ns": o.keypoint_max_gap_ns, "match_px": o.match_px,

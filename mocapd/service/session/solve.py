@@ -121,12 +121,12 @@ def session_rig(session: Session) -> SessionRig:
 
 def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencyScheduler, ImuIngest]:
     cfg = rig.config
-    lm = replace(cfg.solver.lm, max_iterations=opts.max_iterations, function_tolerance=opts.tolerance,
+    lm = replace(cfg.solver.lm.options(), max_iterations=opts.max_iterations, function_tolerance=opts.tolerance,
                  parameter_tolerance=opts.tolerance)  # fmt: skip
     ingest = ImuIngest(capacity=max(cfg.imu.buffer_capacity, 1024))
     tracker = PeopleTracker(
-        SubjectTracker(DetectionSorter(rig.cameras, cfg.tracking.sorting), cfg.tracking.enrolment),
-        SuitBinder(rig.skeleton, cfg.tracking.binding) if rig.suits else None,
+        SubjectTracker(DetectionSorter(rig.cameras, cfg.tracking.sorting.options()), cfg.tracking.enrolment.options()),
+        SuitBinder(rig.skeleton, cfg.tracking.binding.options()) if rig.suits else None,
     )
     sched = FixedLatencyScheduler(
         rig.cameras, rig.skeleton, rig.targets, tracker, prior=rig.prior, ingest=ingest, suits=rig.suits,
