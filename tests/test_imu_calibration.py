@@ -173,3 +173,11 @@ def test_quat_to_enu_from_ned_and_nwu() -> None:
     assert quat_angle(quat_to_enu(q_enu, "ENU"), q_enu) == 0.0
     with pytest.raises(InputError, match="ENU, NED or NWU"):
         quat_to_enu(q_enu, "XYZ")
+
+
+def test_slimevr_sensor_ids_are_assignable() -> None:
+    ok = parse_assignment({"a1:b2:c3:d4:e5:f6/0": "Hips", "A1:B2:C3:D4:E5:F6/1": "Spine1", "00B421E6": "Head"})
+    assert ok == {"A1:B2:C3:D4:E5:F6/0": "Hips", "A1:B2:C3:D4:E5:F6/1": "Spine1", "00B421E6": "Head"}
+    for bad in ("A1:B2:C3:D4:E5/0", "A1:B2:C3:D4:E5:F6", "A1:B2:C3:D4:E5:F6/255", "A1:B2:C3:D4:E5:G6/0", "1/2"):
+        with pytest.raises(ConfigError, match="SlimeVR"):
+            parse_assignment({bad: "Hips"})

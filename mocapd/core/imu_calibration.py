@@ -73,13 +73,34 @@ def quat_to_enu(q: FloatArray, frame: str) -> FloatArray:
     return quat_multiply(quat_from_matrix(_TO_ENU[frame]), np.asarray(q, dtype=np.float64))
 
 
+_HEX = frozenset("0123456789ABCDEF")
+
+
+def is_sensor_id(sid: str) -> bool:
+    """Whether an upper-case string is a sensor id: an Xsens device id (8 hex digits, as printed on the case) or a
+    SlimeVR tracker's sensor, ``"<MAC>/<index>"`` (``"AA:BB:CC:DD:EE:FF/0"``, index 0..254)."""
+    if len(sid) == 8:
+        return all(c in _HEX for c in sid)
+    mac, slash, index = sid.partition("/")
+    octets = mac.split(":")
+    return (
+        slash == "/"
+        and len(octets) == 6
+        and all(len(o) == 2 and all(c in _HEX for c in o) for o in octets)
+        and index.isdigit()
+        and len(index) <= 3
+        and int(index) < 255
+    )
+
+
 def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) -> dict[str, str]:
-    """Validate a sensor → bone assignment (``{"00B421E6": "Hips", ...}``).
+    """Validate a sensor → bone assignment (``{"00B421E6": "Hips", "AA:BB:CC:DD:EE:FF/0": "Head", ...}``).
 
     Parameters
     ----------
     mapping : mapping of str to str
-        Sensor id (8 hex digits, as printed on the case; case-insensitive) to bone name.
+        Sensor id (:func:`is_sensor_id`: 8 hex digits as printed on an Xsens case, or a SlimeVR
+        ``"<MAC>/<sensor index>"``; case-insensitive) to bone name.
     imu_set : {"13", "6", None}
         If given, the assigned bones must be exactly that set.
 
@@ -96,8 +117,11 @@ def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) 
     out: dict[str, str] = {}
     for sensor, bone in mapping.items():
         sid = sensor.upper()
-        if len(sid) != 8 or any(c not in "0123456789ABCDEF" for c in sid):
-            raise ConfigError(f"imu assignment: sensor id {sensor!r} is not 8 hex digits")
+        if not is_sensor_id(sid):
+            raise ConfigError(
+                f"imu assignment: sensor id {sensor!r} is neither 8 hex digits (Xsens) nor a SlimeVR "
+                "'<MAC>/<sensor index>' such as 'AA:BB:CC:DD:EE:FF/0'"
+            )
         if bone not in BONE_NAMES:
             raise ConfigError(f"imu assignment: {sensor} -> {bone!r} is not a bone; use one of {BONE_NAMES}")
         if bone in out.values():
