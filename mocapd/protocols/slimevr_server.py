@@ -137,8 +137,7 @@ class TrackerState:
     battery_level: float | None = None
     rssi_dbm: int | None = None
     rtt_ms: float | None = None
-    ping_id: int = 0
-    ping_sent_ns: int | None = None
+    pings: dict[int, int] = field(default_factory=dict)  # ping id -> sent at (the last few, a late echo still counts)
     next_keepalive_ns: int = 0
     firmware_features: bytes | None = None
     errors: int = 0
@@ -261,8 +260,10 @@ class SlimeVrServer:
                 t.next_keepalive_ns = now_ns + o.heartbeat_interval_ns
                 self._out.append((encode_heartbeat(), t.address))
                 self._ping_counter = (self._ping_counter + 1) & 0xFFFFFFFF
-                t.ping_id, t.ping_sent_ns = self._ping_counter, now_ns
-                self._out.append((encode_ping(t.ping_id), t.address))
+                t.pings[self._ping_counter] = now_ns
+                if len(t.pings) > 8:
+                    del t.pings[next(iter(t.pings))]
+                self._out.append((encode_ping(self._ping_counter), t.address))
             if not t.timed_out and now_ns - t.last_packet_ns > o.timeout_ns:
                 t.timed_out = True
                 self._events.append(TrackerTimedOut(t.key))
@@ -330,8 +331,11 @@ class SlimeVrServer:
             s.status, s.imu_type = p.status, p.imu_type
             self._out.append((encode_sensor_info_ack(p.sensor, p.status), t.address))
         elif isinstance(p, PingPong):
-            if p.ping_id == t.ping_id and t.ping_sent_ns is not None:
-                t.rtt_ms = (now_ns - t.ping_sent_ns) / 1e6
+            sent = t.pings.pop(p.ping_id, None)
+            if sent is not None:
+                t.rtt_ms = (now_ns - sent) / 1e6
+            else:
+                self.counters.ignored["unknown ping id"] += 1
         elif isinstance(p, Battery):
             t.battery_voltage, t.battery_level = p.voltage, p.level
         elif isinstance(p, SignalStrength):

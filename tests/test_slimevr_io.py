@@ -1,0 +1,118 @@
+"""The SlimeVR server socket on loopback, driven by a client no one here wrote: the PyPI package
+``slimevr-tracker-emulator`` (0.0.2, MIT), plus hostile datagrams from a plain socket."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import socket
+from collections.abc import AsyncIterator, Callable
+
+import pytest
+from slimevr_tracker_emulator.async_tracker_emulator import SlimeVRTrackerEmulatorAsync
+from slimevr_tracker_emulator.tracker_types import (
+    ImuType,
+    SensorAcceleration,
+    SensorData,
+    SensorPosition,
+    SensorRotationQuat,
+    SensorState,
+)
+
+from mocapd.io.slimevr import SlimeVrListener
+from mocapd.io.xsens_serial import ImuSample
+from mocapd.protocols.mtdata2 import CoordFrame
+
+# The emulator's handshake writes its firmware string with a NUL the length byte does not count, so a SlimeVR
+# server (and mocapd, reading it the same way) sees its MAC 78:78:78:78:78:78 one byte early.
+EMULATOR_MAC = "00:78:78:78:78:78"
+
+
+def sensor(k: int) -> SensorData:
+    return SensorData(k, SensorState.SENSOR_OK, ImuType.BNO080, SensorRotationQuat(0.0, 0.0, 0.0, 1.0),
+                      SensorAcceleration(0.0, 0.0, 0.0), SensorPosition(0.0, 0.0, 0.0))  # fmt: skip
+
+
+async def wait_for(cond: Callable[[], bool], timeout: float, what: str) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while not cond():
+        if loop.time() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.02)
+
+
+@contextlib.asynccontextmanager
+async def emulator(port: int, n_sensors: int) -> AsyncIterator[SlimeVRTrackerEmulatorAsync]:
+    emu = SlimeVRTrackerEmulatorAsync()
+    for k in range(n_sensors):
+        await emu.set_tracker(sensor(k))
+    task = asyncio.create_task(emu.run(("127.0.0.1", port)))
+    try:
+        yield emu
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        if emu.sock is not None:
+            emu.sock.close()
+
+
+@pytest.mark.asyncio
+async def test_emulated_tracker_connects_and_streams_every_sensor() -> None:
+    got: list[ImuSample] = []
+    listener = SlimeVrListener(got.append, port=0)
+    port = await listener.start()
+    runner = asyncio.create_task(listener.run())
+    try:
+        async with emulator(port, 3) as emu:
+            await wait_for(lambda: len(listener.server.trackers) == 1, 5, "the handshake")
+            # A quarter turn about +Z for sensor 2, as the emulator's x, y, z, w.
+            s = math.sqrt(0.5)
+            await emu.set_tracker_rotation(2, SensorRotationQuat(0.0, 0.0, s, s))
+            await emu.set_tracker_acceleration(2, SensorAcceleration(0.5, 0.0, 0.0))
+            want = f"{EMULATOR_MAC}/2"
+
+            def turned() -> bool:
+                return any(x.sensor == want and x.quat is not None and abs(x.quat[3] - s) < 1e-6 for x in got)
+
+            await wait_for(turned, 10, "the turned orientation")
+            await wait_for(lambda: listener.server.trackers[EMULATOR_MAC].rtt_ms is not None, 5, "a ping echo")
+        st = listener.status()
+        (tracker,) = st["trackers"]
+        assert tracker["id"] == EMULATOR_MAC and tracker["protocol_version"] == 17 and tracker["firmware"] == "0.4.0"
+        assert [x["id"] for x in tracker["sensors"]] == [f"{EMULATOR_MAC}/{k}" for k in range(3)]
+        assert tracker["lost"] == 0 and tracker["reordered"] == 0
+        assert st["bad_datagrams"] == 0 and st["unknown_source"] == 0
+        assert {x.sensor for x in got} == {f"{EMULATOR_MAC}/{k}" for k in range(3)}
+        assert all(x.frame is CoordFrame.ENU and x.device_ticks is None for x in got)
+        assert any(x.sensor == want and x.quat == pytest.approx((s, 0.0, 0.0, s)) for x in got)
+    finally:
+        listener.close()
+        await asyncio.wait_for(runner, 2)
+
+
+@pytest.mark.asyncio
+async def test_hostile_datagrams_are_counted_and_the_server_goes_on() -> None:
+    got: list[ImuSample] = []
+    listener = SlimeVrListener(got.append, port=0)
+    port = await listener.start()
+    runner = asyncio.create_task(listener.run())
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.bind(("127.0.0.1", 0))
+        sock.sendto(b"\x00\x00\x00\x03" + bytes(8) + b"\x00\x00\x00\x02", ("127.0.0.1", port))  # a short handshake
+        for junk in (b"", b"\x01", bytes(11), b"\xff" * 40, bytes.fromhex("00000011" + "00" * 8 + "0001") + bytes(17)):
+            sock.sendto(junk, ("127.0.0.1", port))
+        await wait_for(lambda: listener.server.counters.datagrams >= 6, 5, "the datagrams")
+        st = listener.status()
+        assert st["bad_datagrams"] == 5 and len(st["trackers"]) == 1
+        # The reply went back to the sender.
+        sock.settimeout(2)
+        reply, _ = sock.recvfrom(100)
+        assert reply.startswith(b"\x03Hey OVR =D 5")
+    finally:
+        sock.close()
+        listener.close()
+        await asyncio.wait_for(runner, 2)
