@@ -1,8 +1,8 @@
 """All configured IMU inputs feeding one :class:`~mocapd.pipeline.imu_ingest.ImuIngest`, for the asyncio app.
 
-``ImuInputs.run()`` supervises every serial device, the experimental Awinda station and the bridge listener
-in one ``asyncio.TaskGroup``; each sample is re-expressed in ENU and buffered. ``status()`` is what the HTTP
-status page shows per input; ``bone_orientations(t_ns, calibration)`` turns buffered sensor orientations into
+``ImuInputs.run()`` supervises every serial device, the experimental Awinda station, the bridge listener and the
+SlimeVR server in one ``asyncio.TaskGroup``; each sample is re-expressed in ENU and buffered. ``status()`` is what
+the HTTP status page shows per input; ``bone_orientations(t_ns, calibration)`` turns buffered sensor orientations into
 world bone orientations with a person's calibration (``R_gb = R_ig · R_i · R_ib⁻¹``).
 """
 
@@ -16,6 +16,7 @@ import numpy as np
 
 from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, quat_to_enu
 from mocapd.io.imu_bridge import ImuBridgeListener
+from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.ringbuffer import LookupStatus
@@ -47,6 +48,8 @@ class ImuInputs:
             if config.bridge.enabled
             else None
         )
+        sv = config.slimevr
+        self.slimevr = SlimeVrListener(self.on_sample, host=sv.host, port=sv.port) if sv.enabled else None
         #: observers of every sample (the sample, its quaternion in ENU, its buffer time or None when it was
         #: dropped), e.g. the session recorder; called where samples arrive, so they must not block
         self.taps: list[Callable[[ImuSample, tuple[float, ...] | None, int | None], None]] = []
@@ -73,15 +76,23 @@ class ImuInputs:
         if self.bridge is not None:
             await self.bridge.start()
         try:
+            if self.slimevr is not None:
+                await self.slimevr.start()
             async with asyncio.TaskGroup() as tg:
                 for device in self.devices:
                     tg.create_task(device.run())
+                if self.slimevr is not None:
+                    tg.create_task(self.slimevr.run())
                 await self._stop.wait()
                 for device in self.devices:
                     device.stop()
+                if self.slimevr is not None:
+                    self.slimevr.stop()
         finally:
             if self.bridge is not None:
                 self.bridge.close()
+            if self.slimevr is not None:
+                self.slimevr.close()
 
     def stop(self) -> None:
         self._stop.set()
@@ -127,7 +138,8 @@ class ImuInputs:
                 "records": st.records,
                 "rejected": st.rejected,
             }
-        return {"devices": devices, "bridge": bridge, "sensors": streams}
+        slimevr = self.slimevr.status() if self.slimevr is not None else None
+        return {"devices": devices, "bridge": bridge, "slimevr": slimevr, "sensors": streams}
 
     def bone_orientations(self, t_ns: int, calibration: ImuCalibration) -> list[BoneSample]:
         """World orientation of every calibrated bone at ``t_ns`` (slerped between samples)."""

@@ -1,7 +1,7 @@
 """``mocapd calibrate imu``: record a T-pose from the configured IMUs and write a per-person calibration file.
 
 The subject stands still in the T-pose (arms horizontal, facing one direction) for the whole recording. The
-command connects to every configured serial IMU (and the bridge input if enabled), waits until every
+command connects to every configured serial IMU (and the bridge input and SlimeVR server if enabled), waits until every
 assigned sensor streams, records ``--seconds``, then computes R_ib per sensor and R_ig
 (:func:`mocapd.core.imu_calibration.calibrate_tpose`) and writes
 ``<calibration_dir>/<person>.imu.json``.
@@ -22,6 +22,7 @@ import numpy as np
 from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
 from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
 from mocapd.io.imu_bridge import ImuBridgeListener
+from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.service.config import load_config
 from mocapd.service.config.imu import ImuConfig
@@ -79,6 +80,15 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
     bridge = ImuBridgeListener(on_sample, host=config.bridge.host, port=config.bridge.port)
     if config.bridge.enabled:
         await bridge.start()
+    sv = config.slimevr
+    slimevr = SlimeVrListener(on_sample, host=sv.host, port=sv.port) if sv.enabled else None
+    if slimevr is not None:
+        try:
+            await slimevr.start()
+        except MocapdError:
+            bridge.close()
+            raise
+        tasks.append(asyncio.create_task(slimevr.run()))
     wanted = set(config.assignment)
     try:
         deadline = time.monotonic() + connect_timeout
@@ -96,8 +106,12 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
     finally:
         for d in devices:
             d.stop()
+        if slimevr is not None:
+            slimevr.stop()
         await asyncio.gather(*tasks)
         bridge.close()
+        if slimevr is not None:
+            slimevr.close()
     return samples
 
 

@@ -8,6 +8,7 @@ from typing import Any
 
 from mocapd.core.imu_calibration import parse_assignment
 from mocapd.errors import ConfigError
+from mocapd.io.slimevr import SlimeVrConfig
 from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.protocols.awinda import AwindaConfig
 
@@ -34,6 +35,7 @@ class ImuConfig:
     buffer_capacity: int = 512
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
     awinda: AwindaConfig = field(default_factory=AwindaConfig)
+    slimevr: SlimeVrConfig = field(default_factory=SlimeVrConfig)
 
 
 def _take(table: Mapping[str, Any], allowed: set[str], where: str) -> dict[str, Any]:

@@ -63,6 +63,23 @@ class VmcStreamConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class VrChatStreamConfig:
+    """``[udp.vrchat]``: VRChat OSC trackers (:mod:`mocapd.protocols.vrchat`) for one subject."""
+
+    enabled: bool = False
+    destination: Destination = Destination("127.0.0.1", 9000)
+    """VRChat's OSC input port (9000) on the machine running VRChat."""
+    subject: str | None = None
+    """The identity streamed (``suit:<id>``, ``track:<k>``); None: the first subject to appear."""
+    trackers: tuple[str, ...] = ("hip", "chest", "left_foot", "right_foot", "left_knee", "right_knee", "left_elbow",
+                                 "right_elbow", "head")  # fmt: skip
+    """Which trackers to send (VRChat's documentation: fewer, e.g. hip and feet, can work better)."""
+    user_height_m: float | None = None
+    """The user's real height; positions are scaled by it over the solved skeleton's height (None: 1)."""
+    rate_divisor: int = 1
+
+
+@dataclass(frozen=True, slots=True)
 class UdpConfig:
     """The ``[udp]`` section."""
 
@@ -70,6 +87,7 @@ class UdpConfig:
     """Allow non-loopback destinations."""
     mvn: MvnStreamConfig = field(default_factory=MvnStreamConfig)
     vmc: VmcStreamConfig = field(default_factory=VmcStreamConfig)
+    vrchat: VrChatStreamConfig = field(default_factory=VrChatStreamConfig)
 
 
 def parse_udp_config(table: Mapping[str, Any]) -> UdpConfig:
