@@ -116,3 +116,23 @@ async def test_hostile_datagrams_are_counted_and_the_server_goes_on() -> None:
         sock.close()
         listener.close()
         await asyncio.wait_for(runner, 2)
+
+
+@pytest.mark.asyncio
+async def test_calibration_recording_hears_slimevr_sensors() -> None:
+    from mocapd.io.slimevr import SlimeVrConfig
+    from mocapd.service.cli.imu import record
+    from mocapd.service.config.imu import ImuConfig
+
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    ids = [f"{EMULATOR_MAC}/{k}" for k in range(2)]
+    config = ImuConfig(assignment=dict(zip(ids, ["Hips", "Head"], strict=True)),
+                       slimevr=SlimeVrConfig(enabled=True, port=port))  # fmt: skip
+    async with emulator(port, 2):
+        samples = await record(config, 1.0, 10.0)
+    assert set(samples) == set(ids)
+    # Still trackers go quiet; the server's holding keeps the recording dense enough for the still window.
+    assert all(len(v) >= 20 for v in samples.values())
