@@ -16,6 +16,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import socket
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -95,6 +96,9 @@ class SlimeVrListener:
         except OSError as exc:
             raise DeviceError(f"slimevr: cannot bind udp {self.host}:{self.port}: {exc}") from exc
         self._transport = transport
+        sock = transport.get_extra_info("socket")
+        with contextlib.suppress(OSError):  # a burst of a dozen trackers must survive a busy event loop: ask for
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)  # 1 MiB (the kernel caps it at rmem_max)
         self.port = int(transport.get_extra_info("sockname")[1])
         return self.port
 
