@@ -9,6 +9,7 @@ import math
 import socket
 from collections.abc import AsyncIterator, Callable
 
+import numpy as np
 import pytest
 from slimevr_tracker_emulator.async_tracker_emulator import SlimeVRTrackerEmulatorAsync
 from slimevr_tracker_emulator.tracker_types import (
@@ -136,3 +137,34 @@ async def test_calibration_recording_hears_slimevr_sensors() -> None:
     assert set(samples) == set(ids)
     # Still trackers go quiet; the server's holding keeps the recording dense enough for the still window.
     assert all(len(v) >= 20 for v in samples.values())
+
+
+def test_calibrated_heading_resets_apply_to_buffered_samples() -> None:
+    from mocapd.core.imu_calibration import ImuCalibration
+    from mocapd.service.config.imu import ImuConfig
+    from mocapd.service.imu_inputs import ImuInputs
+
+    sid = f"{EMULATOR_MAC}/0"
+    ident = (1.0, 0.0, 0.0, 0.0)
+    calib = ImuCalibration("p", 0.0, "subject", np.array(ident), {sid: "Hips"}, {sid: np.array(ident)}, {sid: 0.0},
+                           device_heading_deg={sid: 90.0})  # fmt: skip
+    inputs = ImuInputs(ImuConfig())
+    inputs.use_calibrations([calib])
+    for k, other in enumerate((sid, "00B421E6")):
+        inputs.on_sample(ImuSample(other, 1_000 + k, None, None, ident, (0.0, 0.0, 9.8), CoordFrame.ENU))
+    s = math.sqrt(0.5)
+    assert inputs.ingest.streams[sid].buffer.rows()[0, 0:4] == pytest.approx((s, 0.0, 0.0, s))  # Rz(90°)
+    assert inputs.ingest.streams["00B421E6"].buffer.rows()[0, 0:4] == pytest.approx(ident)
+
+
+def test_mount_yaw_option_covers_slimevr_sensors_only() -> None:
+    from mocapd.errors import ConfigError
+    from mocapd.service.cli.imu import _own_heading
+    from mocapd.service.config.imu import ImuConfig
+
+    a, b = f"{EMULATOR_MAC}/0", f"{EMULATOR_MAC}/1"
+    config = ImuConfig(assignment={a: "Hips", b: "LeftFoot", "00B421E6": "Head"})
+    assert _own_heading(config, [f"{b.lower()}=-90"]) == {a: 0.0, b: -90.0}
+    for bad in ("00B421E6=90", f"{a}=left", "90"):
+        with pytest.raises(ConfigError, match="--mount-yaw"):
+            _own_heading(config, [bad])

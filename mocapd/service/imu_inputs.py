@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, quat_to_enu
+from mocapd.core.rotations import quat_multiply
 from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
@@ -50,6 +51,9 @@ class ImuInputs:
         )
         sv = config.slimevr
         self.slimevr = SlimeVrListener(self.on_sample, host=sv.host, port=sv.port) if sv.enabled else None
+        #: per-sensor device headings (``Rz(δ)``, from the suits' calibrations) applied to each sample before it
+        #: is buffered: sensors without a shared heading reference (SlimeVR trackers)
+        self.device_headings: dict[str, np.ndarray] = {}
         #: observers of every sample (the sample, its quaternion in ENU, its buffer time or None when it was
         #: dropped), e.g. the session recorder; called where samples arrive, so they must not block
         self.taps: list[Callable[[ImuSample, tuple[float, ...] | None, int | None], None]] = []
@@ -60,6 +64,9 @@ class ImuInputs:
         quat = s.quat
         if quat is not None and s.frame is not None and s.frame.name != "ENU":
             quat = tuple(quat_to_enu(np.array(quat), s.frame.name))
+        heading = self.device_headings.get(s.sensor)
+        if quat is not None and heading is not None:
+            quat = tuple(float(v) for v in quat_multiply(heading, np.array(quat)))
         t = self.ingest.add(
             s.sensor,
             s.host_ns,
@@ -70,6 +77,10 @@ class ImuInputs:
         )
         for tap in self.taps:
             tap(s, quat, t)
+
+    def use_calibrations(self, calibrations: list[ImuCalibration]) -> None:
+        """Apply the device headings of these calibrations to their sensors' samples from now on."""
+        self.device_headings = {sid: q for c in calibrations for sid, q in c.device_heading_quats().items()}
 
     async def run(self) -> None:
         """Run every input until :meth:`stop`; device failures are retried inside each device's own loop."""

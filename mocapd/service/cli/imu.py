@@ -60,6 +60,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")
     p.add_argument("--connect-timeout", type=float, default=15.0, help="wait for all sensors (s)")
     p.add_argument("--out", type=Path, help="output file (default <calibration_dir>/<person>.imu.json)")
+    p.add_argument(
+        "--mount-yaw",
+        action="append",
+        default=[],
+        metavar="SENSOR=DEG",
+        help="SlimeVR trackers (no shared heading): which way a tracker faces, degrees to the subject's left "
+        "(default 0: on the front or back of its segment; 90: on the left side, -90: on the right)",
+    )
     p.set_defaults(func=run_calibrate)
 
 
@@ -147,6 +155,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             facing_heading_deg=heading,
             world_heading=args.world_heading,
             window=max(2, int(args.window * rate)),
+            own_heading=_own_heading(config, args.mount_yaw),
         )
     except MocapdError as exc:
         print(f"mocapd calibrate imu: {exc}")
@@ -155,12 +164,29 @@ def run_calibrate(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
     for sid, bone in calib.bones.items():
-        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg")
+        own = f"  heading reset {calib.device_heading_deg[sid]:+.1f} deg" if sid in calib.device_heading_deg else ""
+        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg{own}")
     print(f"wrote {out}")
     return 0
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+def _own_heading(config: ImuConfig, specs: list[str]) -> dict[str, float]:
+    """Mounting yaw of every SlimeVR sensor of the assignment (0 unless ``--mount-yaw SENSOR=DEG`` says)."""
+    out = {sid: 0.0 for sid in config.assignment if "/" in sid}  # "<MAC>/<index>": a SlimeVR sensor
+    for spec in specs:
+        sensor, _, value = spec.rpartition("=")
+        sid = sensor.upper()
+        try:
+            yaw = float(value)
+        except ValueError:
+            raise ConfigError(f"--mount-yaw {spec!r}: expected SENSOR=DEGREES") from None
+        if sid not in out:
+            raise ConfigError(f"--mount-yaw {spec!r}: {sensor!r} is not an assigned SlimeVR sensor")
+        out[sid] = yaw
+    return out
 
 
 def _parse_facing(spec: str) -> tuple[str, np.ndarray]:
