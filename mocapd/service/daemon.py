@@ -168,6 +168,7 @@ class Daemon:
         self.status_line = status_line
         d = config.daemon
         self.imu = ImuInputs(imu if imu is not None else config.imu)
+        self.imu.use_calibrations([s.calibration for s in rig.suits])  # SlimeVR trackers' own headings
         #: more sections of /status (name -> provider), e.g. the camera demo's fake cameras
         self.status_extras: dict[str, Callable[[], Any]] = {}
         #: more fields of the status line, e.g. the synthetic rig's keypoint error
