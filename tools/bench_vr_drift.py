@@ -2,7 +2,8 @@
 """Yaw drift of a SlimeVR suit on the synthetic rig, with whatever heading handling the config has.
 
 One person walks (procedural motion) in a ring of ``--cameras`` synthetic cameras wearing 13 emulated SlimeVR
-sensors (``tools/slimevr_rig.py``: the PyPI ``slimevr-tracker-emulator`` talking to the daemon's SlimeVR server).
+sensors (``tools/slimevr_rig.py``: the PyPI ``slimevr-tracker-emulator``, in a process of its own, talking to the
+daemon's SlimeVR server over loopback UDP).
 Each sensor's heading reference drifts at its own rate, drawn once from ``--drift`` degrees per minute with a
 random sign (seeded), as gyroscope bias makes 6-axis trackers drift. Every 6th published frame (10 Hz) the
 heading error of each of the 13 suit bones is measured against the truth at the frame's solve time:
@@ -42,7 +43,7 @@ from mocapd.core.skeleton import BONE_INDEX
 from mocapd.pipeline.ringbuffer import LookupStatus
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service.config import load_config
-from tools.slimevr_rig import SlimeVrRig, build_slimevr_daemon, emulated_suit
+from tools.slimevr_rig import SlimeVrRig, build_slimevr_daemon, emulator_process
 
 
 def heading_deg(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
@@ -133,9 +134,12 @@ async def run(args: argparse.Namespace) -> dict[str, Any]:
     while d.imu.slimevr is None or d.imu.slimevr.port == 0:
         await asyncio.sleep(0.05)
     t_start = time.monotonic()
-    async with emulated_suit(rig, d.imu.slimevr.port):
-        await asyncio.sleep(args.seconds)
-        status = d.status()
+    proc = emulator_process(rig, d.imu.slimevr.port, args.seconds + 5, cameras=args.cameras, motion="procedural",
+                            seed=args.seed, pace=args.emulator_pace)  # fmt: skip
+    await asyncio.sleep(args.seconds)
+    status = d.status()
+    proc.terminate()
+    proc.join(5)
     d.request_stop()
     await asyncio.wait_for(task, 10)
     elapsed = time.monotonic() - t_start
@@ -146,6 +150,7 @@ async def run(args: argparse.Namespace) -> dict[str, Any]:
         "seconds": args.seconds,
         "elapsed_s": round(elapsed, 1),
         "cameras": args.cameras,
+        "emulator_pace": args.emulator_pace,
         "drift_deg_per_min": [round(float(v), 2) for v in drift],
         "injected_heading_offset_at_end_deg_median_abs": round(float(np.median(np.abs(drift))) * args.seconds / 60, 1),
         **summarise(probe.samples, args.seconds),
@@ -166,6 +171,9 @@ def main() -> None:
     p.add_argument("--drift", type=float, nargs=2, default=(1.0, 3.0), metavar=("MIN", "MAX"),
                    help="per-sensor drift magnitude range, degrees per minute")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--emulator-pace", type=float, default=0.1,
+                   help="scale of the emulator's own sleeps (1: as published, ~10 updates/s per sensor; 0.1: ~50-100, "
+                   "a real tracker's rate)")  # fmt: skip
     args = p.parse_args()
     chatter = io.StringIO()  # the emulator prints every packet it does not expect
     with contextlib.redirect_stdout(chatter):

@@ -12,10 +12,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import io
 import math
+import multiprocessing
+import multiprocessing.process
 import time
-from collections.abc import AsyncIterator
+import types
+from collections.abc import AsyncIterator, Coroutine
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from slimevr_tracker_emulator.async_tracker_emulator import SlimeVRTrackerEmulatorAsync
@@ -102,7 +107,15 @@ _OLD_FIRMWARE_ACC = np.array([math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)])
 @contextlib.asynccontextmanager
 async def emulated_suit(rig: SlimeVrRig, port: int, period_s: float = 0.02) -> AsyncIterator[None]:
     """Run the emulator against ``port`` with every suit sensor following the world (and its drift) until exit."""
-    world, suit = rig.world, rig.world.suits[0]
+    async with _emulated(rig.world, rig.epoch_ns, rig.drift_deg_per_min, port, rig.sent, period_s):
+        yield
+
+
+@contextlib.asynccontextmanager
+async def _emulated(world: SyntheticWorld, epoch_ns: int, drift_deg_per_min: np.ndarray, port: int,
+                    sent_log: list[dict[int, tuple[float, float, float, float]]],
+                    period_s: float) -> AsyncIterator[None]:  # fmt: skip
+    suit = world.suits[0]
     quats, accs = world.imu_motion(suit, RATE_HZ)  # (n, m, 4), (n, m, 3): ENU orientation, specific force
     emu = SlimeVRTrackerEmulatorAsync()
     for k in range(len(suit.sensor_ids)):
@@ -111,11 +124,11 @@ async def emulated_suit(rig: SlimeVrRig, port: int, period_s: float = 0.02) -> A
 
     async def drive() -> None:
         while True:
-            t = (time.monotonic_ns() - rig.epoch_ns) / 1e9
+            t = (time.monotonic_ns() - epoch_ns) / 1e9
             i = round(t * RATE_HZ) % quats.shape[1]
             sent = {}
             for k in range(quats.shape[0]):
-                yaw = quat_from_rotvec(np.array([0.0, 0.0, math.radians(rig.drift_deg_per_min[k] * t / 60.0)]))
+                yaw = quat_from_rotvec(np.array([0.0, 0.0, math.radians(drift_deg_per_min[k] * t / 60.0)]))
                 q = quat_multiply(yaw, quats[k, i])  # drift: the tracker's heading reference turns
                 lin = accs[k, i] - quat_rotate(quat_conjugate(quats[k, i]), up)  # the firmware sends it gravity-free
                 a = quat_rotate(_OLD_FIRMWARE_ACC, lin)
@@ -123,8 +136,8 @@ async def emulated_suit(rig: SlimeVrRig, port: int, period_s: float = 0.02) -> A
                 await emu.set_tracker_rotation(k, SensorRotationQuat(x, y, z, w))
                 await emu.set_tracker_acceleration(k, SensorAcceleration(float(a[0]), float(a[1]), float(a[2])))
                 sent[k] = (w, x, y, z)
-            rig.sent.append(sent)
-            del rig.sent[:-500]
+            sent_log.append(sent)
+            del sent_log[:-500]
             await asyncio.sleep(period_s)
 
     runner = asyncio.create_task(emu.run(("127.0.0.1", port)))
@@ -138,3 +151,38 @@ async def emulated_suit(rig: SlimeVrRig, port: int, period_s: float = 0.02) -> A
                 await task
         if emu.sock is not None:
             emu.sock.close()
+
+
+def _child(port: int, epoch_ns: int, cameras: int, motion: str, seed: int, drift: list[float], seconds: float,
+           pace: float) -> None:  # fmt: skip
+    world = SyntheticWorld(cameras, 1, 1, seed=seed, motion=motion)  # the same world: same seed, same motion
+    if pace != 1.0:
+        # The emulator paces itself with two 0.1 s sleeps per received packet (about 10 updates a second); scale
+        # them so that sensors update at a real tracker's rate. Only its module's view of asyncio changes.
+        import slimevr_tracker_emulator.async_tracker_emulator as emulator_module
+
+        def sleep(delay: float) -> Coroutine[Any, Any, None]:
+            return asyncio.sleep(delay * pace)
+
+        emulator_module.asyncio = types.SimpleNamespace(**{**vars(asyncio), "sleep": sleep})
+
+    async def main() -> None:
+        async with _emulated(world, epoch_ns, np.array(drift), port, [], 0.01):
+            await asyncio.sleep(seconds)
+
+    with contextlib.redirect_stdout(io.StringIO()):  # the emulator prints every packet it does not expect
+        asyncio.run(main())
+
+
+def emulator_process(rig: SlimeVrRig, port: int, seconds: float, *, cameras: int, motion: str, seed: int,
+                     pace: float = 1.0) -> multiprocessing.process.BaseProcess:  # fmt: skip
+    """The emulated suit in a process of its own (as trackers are devices of their own): started, runs ``seconds``.
+
+    ``pace`` scales the emulator's own sleeps (0.1: about ten times as many updates, a real tracker's rate).
+    """
+    ctx = multiprocessing.get_context("spawn")
+    drift = [float(v) for v in rig.drift_deg_per_min]
+    proc = ctx.Process(target=_child, args=(port, rig.epoch_ns, cameras, motion, seed, drift, seconds, pace),
+                       daemon=True)  # fmt: skip
+    proc.start()
+    return proc

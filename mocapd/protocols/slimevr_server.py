@@ -33,15 +33,11 @@ that sent no MAC. Nothing here reads a clock: every call takes the host time ``n
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
-from mocapd.core.rotations import quat_conjugate, quat_rotate
 from mocapd.protocols.slimevr import (
     DATA_TYPE_NORMAL,
     HANDSHAKE_REPLY,
@@ -71,9 +67,6 @@ from mocapd.protocols.slimevr import (
 
 Address = tuple[str, int]
 STANDARD_GRAVITY = 9.80665
-_SIN45 = math.sqrt(0.5)
-#: −90° about +Z, (w, x, y, z): the server's acceleration correction for protocol versions below 22.
-_OLD_ACC_CORRECTION = np.array([_SIN45, 0.0, 0.0, -_SIN45])
 SERVER_FEATURES = ServerFeature.BUNDLE | ServerFeature.BUNDLE_COMPACT
 
 
@@ -357,18 +350,22 @@ class SlimeVrServer:
         else:  # a second handshake inside a bundle is refused by the decoder; nothing else is left
             self.counters.ignored[type(p).__name__] += 1
 
+    # Per-datagram arithmetic is written out on floats: numpy costs ~100 µs per tiny array call here, and a suit
+    # of trackers sends thousands of datagrams a second into the daemon's event loop.
     def _acc(self, t: TrackerState, acc: Vec3) -> Vec3:
         if t.protocol_version >= 22:
             return acc
-        a = quat_rotate(_OLD_ACC_CORRECTION, np.array(acc))
-        return (float(a[0]), float(a[1]), float(a[2]))
+        return (acc[1], -acc[0], acc[2])  # turned by −90° about +Z
 
     def _specific_force(self, quat: Quat, linear: Vec3 | None) -> Vec3:
         """Sensor-frame specific force: gravity-free acceleration + ``R_iᵀ (0, 0, g)`` (at rest without one)."""
-        up = quat_rotate(quat_conjugate(np.array(quat)), np.array([0.0, 0.0, self.options.gravity]))
+        w, x, y, z = quat
+        g = self.options.gravity
+        # R_iᵀ e_z is the third row of R_i.
+        fx, fy, fz = 2.0 * (x * z - w * y) * g, 2.0 * (y * z + w * x) * g, (1.0 - 2.0 * (x * x + y * y)) * g
         if linear is not None:
-            up = up + np.array(linear)
-        return (float(up[0]), float(up[1]), float(up[2]))
+            fx, fy, fz = fx + linear[0], fy + linear[1], fz + linear[2]
+        return (fx, fy, fz)
 
     def _sample(self, t: TrackerState, index: int, rot: Rotation, acc: Vec3 | None, now_ns: int) -> None:
         s = t.sensors[index]
