@@ -21,6 +21,7 @@ from slimevr_tracker_emulator.tracker_types import (
     SensorState,
 )
 
+from mocapd.errors import DeviceError
 from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample
 from mocapd.protocols.mtdata2 import CoordFrame
@@ -168,3 +169,19 @@ def test_mount_yaw_option_covers_slimevr_sensors_only() -> None:
     for bad in ("00B421E6=90", f"{a}=left", "90"):
         with pytest.raises(ConfigError, match="--mount-yaw"):
             _own_heading(config, [bad])
+
+
+@pytest.mark.asyncio
+async def test_a_taken_port_is_a_named_opening_failure() -> None:
+    first = SlimeVrListener(lambda s: None, port=0)
+    port = await first.start()
+    second = SlimeVrListener(lambda s: None, port=port)
+    assert second.open_state().state == "opening"
+    try:
+        with pytest.raises(DeviceError, match=f"cannot bind udp 127.0.0.1:{port}"):
+            await second.start()
+        assert first.open_state().state == "open"
+        state = second.open_state()
+        assert state.state == "failed" and f"127.0.0.1:{port}" in state.error
+    finally:
+        first.close()

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from mocapd.errors import DeviceError
+from mocapd.io.device_state import OpenState
 from mocapd.io.xsens_serial import ImuSample
 from mocapd.protocols.mtdata2 import CoordFrame
 from mocapd.protocols.slimevr import PORT
@@ -84,6 +85,8 @@ class SlimeVrListener:
         self._on_sample = on_sample
         self._clock = clock
         self._transport: asyncio.DatagramTransport | None = None
+        self._bound = False
+        self._bind_error = ""
         self._stop = asyncio.Event()
 
     async def start(self) -> int:
@@ -94,13 +97,21 @@ class SlimeVrListener:
                 lambda: _ServerProtocol(self), local_addr=(self.host, self.port)
             )
         except OSError as exc:
-            raise DeviceError(f"slimevr: cannot bind udp {self.host}:{self.port}: {exc}") from exc
+            self._bind_error = f"slimevr: cannot bind udp {self.host}:{self.port}: {exc}"
+            raise DeviceError(self._bind_error) from exc
         self._transport = transport
+        self._bound = True
         sock = transport.get_extra_info("socket")
         with contextlib.suppress(OSError):  # a burst of a dozen trackers must survive a busy event loop: ask for
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)  # 1 MiB (the kernel caps it at rmem_max)
         self.port = int(transport.get_extra_info("sockname")[1])
         return self.port
+
+    def open_state(self) -> OpenState:
+        """Whether the socket has been bound (what the daemon waits for before READY)."""
+        if self._bound:
+            return OpenState("open", "")
+        return OpenState("failed", self._bind_error) if self._bind_error else OpenState("opening", "")
 
     async def run(self) -> None:
         """Tick until :meth:`stop` (heartbeats, time-outs, held orientations)."""
