@@ -271,6 +271,8 @@ class Daemon:
         """Every device of the rig with its opening state: cameras (``camera <name>``), IMU ports (``IMU <path>``)."""
         out = [(f"camera {src.name}", src.open_state()) for src in self.rig.sources]
         out += [(f"IMU {d.config.path}", d.open_state()) for d in self.imu.devices]
+        if self.imu.slimevr is not None:
+            out.append((f"SlimeVR server {self.imu.slimevr.host}", self.imu.slimevr.open_state()))
         return out
 
     async def _open_devices(self) -> StartupError | None:
