@@ -45,7 +45,7 @@ def test_remote_destinations_need_allow_remote() -> None:
 @pytest.mark.parametrize(
     ("table", "message"),
     [
-        ({"mvm": {}}, r"unknown key\(s\) \['mvm'\] in \[udp\]; allowed: \['allow_remote', 'mvn', 'vmc'\]"),
+        ({"mvm": {}}, r"unknown key\(s\) \['mvm'\] in \[udp\]; allowed: \['allow_remote', 'mvn', 'vmc', 'vrchat'\]"),
         ({"mvn": {"port": 1}}, r"unknown key\(s\) \['port'\] in \[udp.mvn\]"),
         ({"vmc": {"character_ids": {}}}, r"unknown key\(s\) \['character_ids'\] in \[udp.vmc\]"),
         ({"allow_remote": "yes"}, r"udp.allow_remote = 'yes'; allowed: true or false"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -53,7 +54,7 @@ def parse_imu_config(table: Mapping[str, Any]) -> ImuConfig:
     ConfigError
         Unknown keys, wrong types or values (the message names the key).
     """
-    general = {"ports", "imu_set", "calibration_dir", "buffer_capacity", "assignment", "bridge", "awinda"}
+    general = {"ports", "imu_set", "calibration_dir", "buffer_capacity", "assignment", "bridge", "awinda", "slimevr"}
     t = _take(table, general | _PORT_KEYS, "imu")
     port_opts = {k: t[k] for k in _PORT_KEYS if k in t}
     ports_raw = t.get("ports", [])
@@ -66,7 +67,15 @@ def parse_imu_config(table: Mapping[str, Any]) -> ImuConfig:
     except TypeError as exc:
         raise ConfigError(f"imu: {exc}") from exc
     imu_set = str(t.get("imu_set", "")) or None
-    assignment = parse_assignment(t.get("assignment", {}), imu_set=imu_set)
+    slimevr = _slimevr(t.get("slimevr", {}))
+    xsens = t.get("assignment", {})
+    if not isinstance(xsens, Mapping):
+        raise ConfigError(f"imu.assignment must be a table of sensor id = bone, got {xsens!r}")
+    both = {str(k).upper() for k in xsens} & set(slimevr.assignment)
+    if both:
+        raise ConfigError(f"imu: sensors {sorted(both)} are in both [imu.assignment] and [imu.slimevr.assignment]")
+    # One assignment for calibration, suits and the set check, whatever transport each sensor uses.
+    assignment = parse_assignment({**xsens, **slimevr.assignment}, imu_set=imu_set)
     bridge = BridgeConfig(**_take(t.get("bridge", {}), {f.name for f in fields(BridgeConfig)}, "imu.bridge"))
     if bridge.host not in ("127.0.0.1", "::1", "localhost"):
         raise ConfigError(f"imu.bridge.host={bridge.host!r}: the bridge listens on loopback only")
@@ -82,4 +91,36 @@ def parse_imu_config(table: Mapping[str, Any]) -> ImuConfig:
         buffer_capacity=capacity,
         bridge=bridge,
         awinda=awinda,
+        slimevr=slimevr,
     )
+
+
+def _slimevr(table: object) -> SlimeVrConfig:
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"imu.slimevr must be a table, got {table!r}")
+    t = _take(table, {f.name for f in fields(SlimeVrConfig)}, "imu.slimevr")
+    enabled = t.get("enabled", False)
+    if not isinstance(enabled, bool):
+        raise ConfigError(f"imu.slimevr.enabled = {enabled!r}; allowed: true or false")
+    host = t.get("host", "127.0.0.1")
+    try:
+        ipaddress.ip_address(host if host != "localhost" else "127.0.0.1")
+    except (ValueError, TypeError):
+        raise ConfigError(
+            f'imu.slimevr.host = {host!r}; allowed: an IP address literal ("127.0.0.1" keeps it on this machine; '
+            'trackers on the network need this machine\'s address or "0.0.0.0")'
+        ) from None
+    port = t.get("port", 6969)
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ConfigError(f"imu.slimevr.port = {port!r}; allowed: an integer 0..65535 (6969: SlimeVR's port)")
+    raw = t.get("assignment", {})
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f'imu.slimevr.assignment must be a table of "<MAC>/<sensor>" = bone, got {raw!r}')
+    assignment = parse_assignment(raw)
+    xsens_ids = sorted(s for s in assignment if "/" not in s)
+    if xsens_ids:
+        raise ConfigError(
+            f'imu.slimevr.assignment: {xsens_ids} are Xsens ids; SlimeVR sensors are "<MAC>/<sensor index>", '
+            'e.g. "AA:BB:CC:DD:EE:FF/0"'
+        )
+    return SlimeVrConfig(enabled=enabled, host=str(host), port=port, assignment=assignment)

@@ -1,4 +1,4 @@
-"""The ``[udp]`` section of config.toml (MVN and VMC streams), parsed into frozen dataclasses
+"""The ``[udp]`` section of config.toml (MVN, VMC and VRChat OSC trackers streams), parsed into frozen dataclasses
 (:mod:`mocapd.service.outputs.udp` turns it into pose sinks).
 
 Destinations come only from here. They must be loopback addresses unless ``udp.allow_remote = true``: streaming
@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from mocapd.errors import ConfigError
+from mocapd.protocols.vrchat import ROLES
 
 MIN_DATAGRAM = 256
 MAX_DATAGRAM = 65507  # the largest UDP payload over IPv4
@@ -99,7 +100,7 @@ def parse_udp_config(table: Mapping[str, Any]) -> UdpConfig:
         Unknown keys, wrong types or values, or a non-loopback destination without ``allow_remote`` (the message
         names the key, the value and what is allowed).
     """
-    _reject_unknown(table, {"allow_remote", "mvn", "vmc"}, "udp")
+    _reject_unknown(table, {"allow_remote", "mvn", "vmc", "vrchat"}, "udp")
     allow_remote = _bool(table.get("allow_remote", False), "udp.allow_remote")
     mvn_t = _subtable(table, "mvn")
     vmc_t = _subtable(table, "vmc")
@@ -129,7 +130,36 @@ def parse_udp_config(table: Mapping[str, Any]) -> UdpConfig:
             f"udp.vmc.subjects = {list(vmc.subjects)!r} has {len(vmc.subjects)} entries for "
             f'{len(vmc.destinations)} destination(s); allowed: "all" or one identity per destination'
         )
-    return UdpConfig(allow_remote=allow_remote, mvn=mvn, vmc=vmc)
+    vrchat = _vrchat(_subtable(table, "vrchat"), allow_remote)
+    return UdpConfig(allow_remote=allow_remote, mvn=mvn, vmc=vmc, vrchat=vrchat)
+
+
+def _vrchat(t: Mapping[str, Any], allow_remote: bool) -> VrChatStreamConfig:
+    w = "udp.vrchat"
+    _reject_unknown(t, {"enabled", "destination", "subject", "trackers", "user_height_m", "rate_divisor"}, w)
+    d = VrChatStreamConfig()
+    destination = d.destination
+    if "destination" in t:
+        destination = _destination(t["destination"], f"{w}.destination", allow_remote)
+    subject = t.get("subject", "")
+    if not isinstance(subject, str) or subject == "all":
+        raise ConfigError(f'{w}.subject = {subject!r}; allowed: "" (the first subject seen) or an identity such as '
+                          '"suit:suit0"')  # fmt: skip
+    trackers = t.get("trackers", list(d.trackers))
+    if (not isinstance(trackers, list) or not trackers or not all(isinstance(x, str) and x in ROLES for x in trackers)
+            or len(set(trackers)) != len(trackers)):  # fmt: skip
+        raise ConfigError(f"{w}.trackers = {trackers!r}; allowed: a non-empty list of distinct names of {list(ROLES)}")
+    height = t.get("user_height_m", 0.0)
+    if isinstance(height, bool) or not isinstance(height, int | float) or not (height == 0 or 0.5 <= height <= 2.5):
+        raise ConfigError(f"{w}.user_height_m = {height!r}; allowed: 0 (no scaling) or metres in 0.5..2.5")
+    return VrChatStreamConfig(
+        enabled=_bool(t.get("enabled", False), f"{w}.enabled"),
+        destination=destination,
+        subject=subject or None,
+        trackers=tuple(trackers),
+        user_height_m=float(height) or None,
+        rate_divisor=_int(t.get("rate_divisor", 1), f"{w}.rate_divisor", 1, 1000),
+    )
 
 
 def _reject_unknown(t: Mapping[str, Any], allowed: set[str], where: str) -> None:
