@@ -351,6 +351,20 @@ CROSS_CASES: dict[tuple[str, str], list[Case]] = {
         ),
         Case({"imu.bridge.enabled": True, "udp.vmc.enabled": True, "udp.vmc.destinations": ["127.0.0.1:9774"]}, ()),
     ],
+    ("ImuConfig", "_one_bone_per_sensor"): [
+        Case(
+            {
+                "imu.assignment": {"AA:BB:CC:DD:EE:FF/0": "Hips"},
+                "imu.slimevr.assignment": {"AA:BB:CC:DD:EE:FF/0": "Head"},
+            },
+            ("imu.assignment", "imu.slimevr.assignment"),
+        ),
+        Case({"imu.assignment": {"00B40011": "Hips"}, "imu.slimevr.assignment": {"AA:BB:CC:DD:EE:FF/0": "Head"}}, ()),
+    ],
+    ("VrChatStreamConfig", "_an_identity"): [
+        Case({"udp.vrchat.subject": "all"}, ("udp.vrchat.subject",)),
+        Case({"udp.vrchat.subject": "suit:suit0"}, ()),
+    ],
     ("ImuConfig", "_assignment_forms_the_set"): [
         Case({"imu.imu_set": "6", "imu.assignment": {"00B40011": "Hips"}}, ("imu.assignment", "imu.imu_set")),
         Case({"imu.imu_set": "", "imu.assignment": {"00B40011": "Hips"}}, ()),
@@ -438,6 +452,13 @@ FORMAT_CASES: dict[str, list[tuple[str, Any]]] = {
         ("imu.assignment", {"00B40011": "Hips", "00B40012": "Hips"}),
     ],
     "_sensor_id": [("daemon.offsets.imus", {"xyz": 0.1}), ("daemon.offsets.imus", {"00B4001Z": 0.1})],
+    "_user_height": [("udp.vrchat.user_height_m", 0.3), ("udp.vrchat.user_height_m", 0.49)],
+    "_ip_literal": [("imu.slimevr.host", "my-laptop"), ("imu.slimevr.host", "192.168.1")],
+    "_role": [("udp.vrchat.trackers", ["hips"]), ("udp.vrchat.trackers", ["left_hand"])],
+    "_slimevr_assignment": [
+        ("imu.slimevr.assignment", {"00B421E6": "Hips"}),
+        ("imu.slimevr.assignment", {"AA:BB:CC:DD:EE:FF/0": "Pelvis"}),
+    ],
     "_name": [("daemon.offsets.cameras", {"cam 1": 0.1}), ("daemon.offsets.cameras", {"c" * 33: 0.1})],
     "_destination": [
         ("udp.mvn.destinations", ["127.0.0.1"]),

@@ -88,3 +88,16 @@ def test_a_suit_matching_no_track_stays_unpaired() -> None:
             f * NS, {1: _keypoints(sk, people[0][f], rng)}, {"B": suit_orientations(sk, people[1][f], 0.0, rng)}
         )
     assert binder.state.pairs == {}
+
+
+def test_frames_without_usable_evidence_leave_the_window_cleanly() -> None:
+    # A frame whose pairs carry no valid limb (keypoints all NaN: count 0) is pruned from the totals at once; when
+    # it leaves the window later it must not be subtracted from a total that no longer exists (it raised KeyError,
+    # restarting the scheduler task, when a SlimeVR suit's sensors dropped out).
+    skeleton = Skeleton.from_height(1.75)
+    binder = SuitBinder(skeleton, BindingOptions(window_s=0.5))
+    suit = {"suit0": suit_orientations(skeleton, np.zeros(66), 0.0, np.random.default_rng(0))}
+    blind = np.full((17, 3), np.nan)
+    binder.update(0, {1: blind}, suit)
+    binder.update(1_000_000_000, {2: blind}, suit)  # track 1 is gone; its frame leaves the window
+    assert binder.cost_matrix(["suit0"], [1, 2])[1].tolist() == [[0, 0]]

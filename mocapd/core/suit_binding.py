@@ -184,7 +184,9 @@ class SuitBinder:
             self._totals[key] = self._totals.get(key, np.zeros(4)) + v
         while self._frames and t_ns - self._frames[0][0] > self.options.window_s * 1e9:
             for key, v in self._frames.popleft()[1].items():
-                self._totals[key] = self._totals[key] - v
+                total = self._totals.get(key)
+                if total is not None:  # None: pruned below as evidence-free, so this frame added nothing to it
+                    self._totals[key] = total - v
         self._totals = {key: v for key, v in self._totals.items() if v[3] > 0.5}
         return self._decide(t_ns, sorted(tracks), sorted(suits))
 

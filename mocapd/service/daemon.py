@@ -168,6 +168,7 @@ class Daemon:
         self.status_line = status_line
         d = config.daemon
         self.imu = ImuInputs(imu if imu is not None else config.imu)
+        self.imu.use_calibrations([s.calibration for s in rig.suits])  # SlimeVR trackers' own headings
         #: more sections of /status (name -> provider), e.g. the camera demo's fake cameras
         self.status_extras: dict[str, Callable[[], Any]] = {}
         #: more fields of the status line, e.g. the synthetic rig's keypoint error
@@ -272,6 +273,8 @@ class Daemon:
         """Every device of the rig with its opening state: cameras (``camera <name>``), IMU ports (``IMU <path>``)."""
         out = [(f"camera {src.name}", src.open_state()) for src in self.rig.sources]
         out += [(f"IMU {d.config.path}", d.open_state()) for d in self.imu.devices]
+        if self.imu.slimevr is not None:
+            out.append((f"SlimeVR server {self.imu.slimevr.host}", self.imu.slimevr.open_state()))
         return out
 
     async def _open_devices(self) -> StartupError | None:

@@ -1,7 +1,7 @@
 """``mocapd calibrate imu``: record a T-pose from the configured IMUs and write a per-person calibration file.
 
 The subject stands still in the T-pose (arms horizontal, facing one direction) for the whole recording. The
-command connects to every configured serial IMU (and the bridge input if enabled), waits until every
+command connects to every configured serial IMU (and the bridge input and SlimeVR server if enabled), waits until every
 assigned sensor streams, records ``--seconds``, then computes R_ib per sensor and R_ig
 (:func:`mocapd.core.imu_calibration.calibrate_tpose`) and writes
 ``<calibration_dir>/<person>.imu.json``.
@@ -21,6 +21,7 @@ import numpy as np
 from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
 from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
 from mocapd.io.imu_bridge import ImuBridgeListener
+from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
 from mocapd.service.config import load_config
 from mocapd.service.config.imu import ImuConfig
@@ -59,6 +60,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")
     p.add_argument("--connect-timeout", type=float, default=15.0, help="wait for all sensors (s)")
     p.add_argument("--out", type=Path, help="output file (default <calibration_dir>/<person>.imu.json)")
+    p.add_argument(
+        "--mount-yaw",
+        action="append",
+        default=[],
+        metavar="SENSOR=DEG",
+        help="SlimeVR trackers (no shared heading): which way a tracker faces, degrees to the subject's left "
+        "(default 0: on the front or back of its segment; 90: on the left side, -90: on the right)",
+    )
     p.set_defaults(func=run_calibrate)
 
 
@@ -79,7 +88,16 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
     bridge = ImuBridgeListener(on_sample, host=config.bridge.host, port=config.bridge.port)
     if config.bridge.enabled:
         await bridge.start()
-    wanted = set(config.assignment)
+    sv = config.slimevr
+    slimevr = SlimeVrListener(on_sample, host=sv.host, port=sv.port) if sv.enabled else None
+    if slimevr is not None:
+        try:
+            await slimevr.start()
+        except MocapdError:
+            bridge.close()
+            raise
+        tasks.append(asyncio.create_task(slimevr.run()))
+    wanted = set(config.sensors)
     try:
         deadline = time.monotonic() + connect_timeout
         while not wanted <= seen:
@@ -96,8 +114,12 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
     finally:
         for d in devices:
             d.stop()
+        if slimevr is not None:
+            slimevr.stop()
         await asyncio.gather(*tasks)
         bridge.close()
+        if slimevr is not None:
+            slimevr.close()
     return samples
 
 
@@ -107,7 +129,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         config = load_config(args.config).imu  # validates the whole file, like the daemon
         if args.port:  # --port replaces imu.ports, validated like the file's
             config = validate(ImuConfig, {**config.model_dump(), "ports": list(args.port)}, "imu")
-        if not config.assignment:
+        if not config.sensors:
             raise ConfigError("imu.assignment is empty: say which sensor sits on which bone")
         if args.facing_from is not None:
             _parse_facing(args.facing_from)  # reject a malformed option before recording
@@ -118,7 +140,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 np.array([s.quat for s in samples[sid] if s.quat is not None]),
                 np.array([s.acc for s in samples[sid] if s.acc is not None]),
             )
-            for sid in config.assignment
+            for sid in config.sensors
             if sid in samples
         }
         heading = args.facing_heading
@@ -127,10 +149,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
         calib = calibrate_tpose(
             args.person,
             recordings,
-            config.assignment,
+            config.sensors,
             facing_heading_deg=heading,
             world_heading=args.world_heading,
             window=max(2, int(args.window * rate)),
+            own_heading=_own_heading(config, args.mount_yaw),
         )
     except MocapdError as exc:
         print(f"mocapd calibrate imu: {exc}")
@@ -139,12 +162,29 @@ def run_calibrate(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
     for sid, bone in calib.bones.items():
-        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg")
+        own = f"  heading reset {calib.device_heading_deg[sid]:+.1f} deg" if sid in calib.device_heading_deg else ""
+        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg{own}")
     print(f"wrote {out}")
     return 0
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+def _own_heading(config: ImuConfig, specs: list[str]) -> dict[str, float]:
+    """Mounting yaw of every SlimeVR sensor of the assignment (0 unless ``--mount-yaw SENSOR=DEG`` says)."""
+    out = {sid: 0.0 for sid in config.sensors if "/" in sid}  # "<MAC>/<index>": a SlimeVR sensor
+    for spec in specs:
+        sensor, _, value = spec.rpartition("=")
+        sid = sensor.upper()
+        try:
+            yaw = float(value)
+        except ValueError:
+            raise ConfigError(f"--mount-yaw {spec!r}: expected SENSOR=DEGREES") from None
+        if sid not in out:
+            raise ConfigError(f"--mount-yaw {spec!r}: {sensor!r} is not an assigned SlimeVR sensor")
+        out[sid] = yaw
+    return out
 
 
 def _parse_facing(spec: str) -> tuple[str, np.ndarray]:

@@ -4,14 +4,17 @@ the protocol layer's :class:`~mocapd.protocols.awinda.AwindaConfig` are built fr
 
 from __future__ import annotations
 
+import ipaddress
 from typing import Annotated, Literal, Self
 
 from pydantic import AfterValidator, Field, model_validator
 
 from mocapd.core.imu_calibration import parse_assignment
 from mocapd.errors import ConfigError
+from mocapd.io.slimevr import SlimeVrConfig
 from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.protocols.awinda import AwindaConfig
+from mocapd.protocols.slimevr import PORT
 from mocapd.protocols.xsens_session import MAX_RATE_HZ, MIN_RATE_HZ
 from mocapd.service.config.schema import PathStr, RuleError, Section, Seq, Text, unique
 
@@ -80,6 +83,43 @@ class AwindaSection(Section):
         )
 
 
+def _ip_literal(host: str) -> str:
+    try:
+        ipaddress.ip_address("127.0.0.1" if host == "localhost" else host)
+    except ValueError:
+        raise ValueError(
+            'must be an IP address literal ("127.0.0.1" keeps it on this machine; trackers on the network need '
+            'this machine\'s address or "0.0.0.0")'
+        ) from None
+    return host
+
+
+def _slimevr_assignment(mapping: dict[str, str]) -> dict[str, str]:
+    parsed = _assignment(mapping)
+    xsens = sorted(s for s in parsed if "/" not in s)
+    if xsens:
+        raise ValueError(
+            f'{xsens} are Xsens ids; SlimeVR sensors are "<MAC>/<sensor index>", e.g. "AA:BB:CC:DD:EE:FF/0"'
+        )
+    return parsed
+
+
+class SlimeVrSection(Section):
+    """``[imu.slimevr]``: mocapd as the SlimeVR server of SlimeVR trackers on the local network (UDP)."""
+
+    enabled: bool = False
+    host: Annotated[Text, AfterValidator(_ip_literal)] = "127.0.0.1"
+    """Listening address: loopback unless set; trackers on the network need this machine's address or 0.0.0.0."""
+    port: int = Field(PORT, ge=0, le=65535)
+    assignment: Annotated[dict[Text, Text], Field(max_length=64), AfterValidator(_slimevr_assignment)] = Field(
+        default_factory=dict
+    )
+    """``"<MAC>/<sensor index>"`` -> bone."""
+
+    def options(self) -> SlimeVrConfig:
+        return SlimeVrConfig(enabled=self.enabled, host=self.host, port=self.port, assignment=dict(self.assignment))
+
+
 class ImuConfig(Section):
     """``[imu]``: everything mocapd needs to know about its IMUs."""
 
@@ -104,18 +144,40 @@ class ImuConfig(Section):
     """Sensor id (8 hex digits, stored upper-case) -> bone."""
     bridge: BridgeConfig = Field(default_factory=BridgeConfig)
     awinda: AwindaSection = Field(default_factory=AwindaSection)
+    slimevr: SlimeVrSection = Field(default_factory=SlimeVrSection)
+
+    @property
+    def sensors(self) -> dict[str, str]:
+        """Every sensor's bone, whatever carries it (Xsens ``assignment`` and ``slimevr.assignment``): one IMU
+        model for calibration, suits and the sensor-set check."""
+        return {**self.assignment, **self.slimevr.assignment}
+
+    @model_validator(mode="after")
+    def _one_bone_per_sensor(self) -> Self:
+        """A sensor in both tables, or two sensors (of either transport) on one bone, is an error."""
+        both = sorted(set(self.assignment) & set(self.slimevr.assignment))
+        problem = f"both name {both} (a sensor in both tables)" if both else ""
+        if not problem:
+            try:
+                parse_assignment(self.sensors)
+            except ConfigError as exc:
+                problem = str(exc).removeprefix("imu assignment: ")
+        if problem:
+            raise RuleError("{0} and {1}: " + problem.replace("{", "{{").replace("}", "}}"), "assignment",
+                            "slimevr.assignment", values=(self.assignment, self.slimevr.assignment))  # fmt: skip
+        return self
 
     @model_validator(mode="after")
     def _assignment_forms_the_set(self) -> Self:
         if self.imu_set:
             try:
-                parse_assignment(self.assignment, imu_set=self.imu_set)
+                parse_assignment(self.sensors, imu_set=self.imu_set)
             except ConfigError as exc:
                 raise RuleError(
                     f"{{0}} does not form {{1}}: {str(exc).removeprefix('imu assignment ')}",
                     "assignment",
                     "imu_set",
-                    values=(self.assignment, self.imu_set),
+                    values=(self.sensors, self.imu_set),
                 ) from None
         return self
 

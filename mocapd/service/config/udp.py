@@ -12,8 +12,18 @@ import ipaddress
 from dataclasses import dataclass
 from typing import Annotated, Self
 
-from pydantic import AfterValidator, BeforeValidator, Field, PlainSerializer, PlainValidator, model_validator
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    Field,
+    PlainSerializer,
+    PlainValidator,
+    WithJsonSchema,
+    model_validator,
+)
 
+from mocapd.protocols.vrchat import DEFAULT_PORT as VRCHAT_PORT
+from mocapd.protocols.vrchat import ROLES
 from mocapd.service.config.schema import Allowed, RuleError, Section, Text, as_tuple, show, unique
 
 MIN_DATAGRAM = 256
@@ -79,7 +89,13 @@ def _distinct_ids(ids: dict[str, int]) -> dict[str, int]:
     return ids
 
 
-Dest = Annotated[Destination, PlainValidator(_destination), PlainSerializer(str, return_type=str), Allowed(_HOST_PORT)]
+Dest = Annotated[
+    Destination,
+    PlainValidator(_destination),
+    PlainSerializer(str, return_type=str),
+    WithJsonSchema({"type": "string", "maxLength": 32}),  # "255.255.255.255:65535" at most, as the file writes it
+    Allowed(_HOST_PORT),
+]
 Destinations = Annotated[
     tuple[Dest, ...],
     BeforeValidator(as_tuple),
@@ -140,6 +156,45 @@ class VmcStreamConfig(Section):
         return self
 
 
+def _role(value: str) -> str:
+    if value not in ROLES:
+        raise ValueError(f"allowed: {', '.join(ROLES)}")
+    return value
+
+
+def _user_height(value: float) -> float:
+    if value != 0 and not 0.5 <= value <= 2.5:
+        raise ValueError("allowed: 0 (no scaling) or metres in [0.5, 2.5]")
+    return value
+
+
+class VrChatStreamConfig(Section):
+    """``[udp.vrchat]``: VRChat's OSC trackers (:mod:`mocapd.protocols.vrchat`) for one subject."""
+
+    enabled: bool = False
+    destination: Dest = Destination("127.0.0.1", VRCHAT_PORT)
+    """VRChat's OSC input port (9000) on the machine running VRChat."""
+    subject: Annotated[Text, Allowed('"" (the first subject seen) or an identity such as "suit:suit0"')] = ""
+    """The identity streamed; "": the first subject to appear."""
+    trackers: Annotated[
+        tuple[Annotated[Text, AfterValidator(_role)], ...],
+        BeforeValidator(as_tuple),
+        Field(min_length=1, max_length=len(ROLES)),
+        AfterValidator(unique),
+        Allowed(f"a non-empty array of distinct names of {', '.join(ROLES)}"),
+    ] = ROLES
+    """Which trackers to send (VRChat's documentation: fewer, e.g. hip and feet, can work better)."""
+    user_height_m: Annotated[float, Field(ge=0.0, le=2.5), AfterValidator(_user_height)] = 0.0
+    """The user's real height; positions are scaled by it over the solved skeleton's height (0: no scaling)."""
+    rate_divisor: int = Field(1, ge=1, le=1000)
+
+    @model_validator(mode="after")
+    def _an_identity(self) -> Self:
+        if self.subject == "all":
+            raise RuleError('{0}: one subject drives the trackers, not "all"', "subject", values=(self.subject,))
+        return self
+
+
 class UdpConfig(Section):
     """The ``[udp]`` section."""
 
@@ -147,19 +202,21 @@ class UdpConfig(Section):
     """Allow non-loopback destinations."""
     mvn: MvnStreamConfig = Field(default_factory=MvnStreamConfig)
     vmc: VmcStreamConfig = Field(default_factory=VmcStreamConfig)
+    vrchat: VrChatStreamConfig = Field(default_factory=VrChatStreamConfig)
 
     @model_validator(mode="after")
     def _loopback_unless_allowed(self) -> Self:
         if self.allow_remote:
             return self
-        for stream in ("mvn", "vmc"):
-            dests: tuple[Destination, ...] = getattr(self, stream).destinations
+        for stream in ("mvn", "vmc", "vrchat"):
+            s = getattr(self, stream)
+            dests: tuple[Destination, ...] = s.destinations if stream != "vrchat" else (s.destination,)
             for d in dests:
                 if not ipaddress.IPv4Address(d.host).is_loopback:
                     raise RuleError(
                         f"{{0}}: {show(str(d))} is not a loopback address; poses go to another machine only when "
                         "{1} (allowed without it: 127.0.0.0/8)",
-                        f"{stream}.destinations",
+                        f"{stream}.destinations" if stream != "vrchat" else "vrchat.destination",
                         "allow_remote",
                         values=([str(x) for x in dests], True),
                     )
