@@ -65,12 +65,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_resolve(args: argparse.Namespace) -> int:
-    from mocapd.service.session.solve import ResolveOptions, resolve, write_resolved
+    from mocapd.io.progress import Progress
+    from mocapd.service.session.solve import ResolveOptions, resolve, session_rig, solve_times, write_resolved
     from mocapd.service.session.truth import truth_report
 
     session = _open(args.session)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
-    frames, summary = resolve(session, opts)
+    n_frames = len(solve_times(session, session_rig(session).options.rate_hz))
+    with Progress(n_frames, "resolve") as bar:
+        frames, summary = resolve(session, opts, bar)
     path = write_resolved(session, frames, args.output)
     summary["written"] = str(path)
     if "synthetic" in session.manifest.get("extra", {}):
