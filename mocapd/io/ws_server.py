@@ -49,7 +49,7 @@ from websockets.protocol import State
 from mocapd.core.per_skeleton import skeleton_key
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError
-from mocapd.pipeline.camera_views import CameraView, CameraViews
+from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
 from mocapd.protocols.ws_stream import (
     ClientSession,
     FrameEncoder,
@@ -428,7 +428,7 @@ class WebSocketStreamServer:
             if not wanted:
                 return
             rate = max(c.session.options.camera_rate_hz for c in wanted)
-            panels = await asyncio.to_thread(_panels, views, self.clock())
+            panels = await asyncio.to_thread(_panels, views, views.now())
             now = self.clock()
             for panel, jpeg, size in panels:
                 cache: dict[str, Message] = {}
@@ -447,7 +447,6 @@ class WebSocketStreamServer:
 def _panels(views: CameraViews, now_ns: int) -> list[tuple[CameraView, bytes | None, tuple[int, int]]]:
     """In a worker thread: the ready camera views with their JPEG bytes and the JPEG's (width, height)."""
     out = []
-    quality = [int(cv2.IMWRITE_JPEG_QUALITY), views.options.jpeg_quality]
     for view in views.views(now_ns):
         snap = view.snapshot
         jpeg: bytes | None = None
@@ -456,10 +455,8 @@ def _panels(views: CameraViews, now_ns: int) -> list[tuple[CameraView, bytes | N
             jpeg = snap.jpeg
             size = _jpeg_size(jpeg)
         elif snap is not None and snap.image is not None:
-            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(snap.image, cv2.COLOR_RGB2BGR), quality)
-            if ok:
-                jpeg = bytes(np.asarray(buf).tobytes())
-                size = (int(snap.image.shape[1]), int(snap.image.shape[0]))
+            jpeg = encode_jpeg(snap.image, views.options.jpeg_quality)
+            size = (int(snap.image.shape[1]), int(snap.image.shape[0]))
         out.append((view, jpeg, size))
     return out
 

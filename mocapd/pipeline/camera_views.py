@@ -21,6 +21,7 @@ rate: detection sets delivered per second over the last two seconds.
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -109,6 +110,14 @@ def downscale(image: NDArray[np.uint8], max_width: int) -> NDArray[np.uint8]:
     if image.ndim == 2 or image.shape[2] == 1:
         image = np.asarray(cv2.cvtColor(image.reshape(image.shape[:2]), cv2.COLOR_GRAY2RGB), dtype=np.uint8)
     return image
+
+
+def encode_jpeg(image: NDArray[np.uint8], quality: int) -> bytes:
+    """An RGB image (h, w, 3) as baseline JPEG bytes."""
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [int(cv2.IMWRITE_JPEG_QUALITY), quality])
+    if not ok:
+        raise ValueError(f"JPEG encoding failed for an image of shape {image.shape}")
+    return bytes(np.asarray(buf).tobytes())
 
 
 class RingSnapshots:
@@ -207,6 +216,8 @@ class CameraViews:
     sources : list of SnapshotSource or None
         Per camera, where its frames come from (None: no frames).
     options : CameraViewOptions
+    now : callable
+        Host monotonic ns now, in the time base of the stamps (for the detection rate's window).
     """
 
     def __init__(
@@ -216,6 +227,7 @@ class CameraViews:
         skeleton: Skeleton,
         sources: Sequence[SnapshotSource | None],
         options: CameraViewOptions | None = None,
+        now: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         if len(sources) != len(cameras):
             raise ConfigError(f"camera views: {len(cameras)} cameras but {len(sources)} frame sources")
@@ -232,6 +244,8 @@ class CameraViews:
         self._newest = [-1] * len(cameras)  # capture time of the newest frame queued per camera
         self._kin: PerSkeleton[Kinematics] = PerSkeleton(Kinematics(skeleton), Kinematics)
         self.name = "camera-views"
+        self.now = now
+        """The time base of the taps' time stamps, now (a replay sets the recorded clock's)."""
 
     # ------------------------------------------------------------------------------------------ taps
     def on_detections(self, camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:
@@ -377,4 +391,5 @@ __all__ = [
     "SnapshotSource",
     "SubjectOverlay",
     "downscale",
+    "encode_jpeg",
 ]

@@ -14,18 +14,19 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError, InputError
 from mocapd.io.session import RESOLVED, Session, open_session
 from mocapd.io.session_export import SubjectTrack
+from mocapd.pipeline.camera_views import CameraViews
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import PoseSink
 
 
-def stream_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
+def stream_sinks(config: Config, skeleton: Skeleton, camera_views: CameraViews | None = None) -> list[PoseSink]:
     """The streaming sinks a replay publishes through: the streams configured in ``config``, for poses on the
-    session's ``skeleton``."""
+    session's ``skeleton`` (the WebSocket stream with the session's camera panels when ``camera_views``)."""
     from mocapd.service.outputs.udp import udp_sinks
     from mocapd.service.outputs.websocket import websocket_sinks
 
-    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton)]
+    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton, camera_views=camera_views)]
 
 
 def _open(path: Path) -> Session:
@@ -43,13 +44,15 @@ def _pose_stream(session: Session, resolved: bool) -> str:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from mocapd.service.session.replay import replay
+    from mocapd.service.session.replay import replay, replay_camera_views
     from mocapd.service.session.solve import session_rig
 
     cfg = load_config(args.config)
     session = _open(args.session)
     frames = session.poses(_pose_stream(session, args.resolved))
-    sinks = stream_sinks(cfg, session_rig(session).skeleton)
+    rig = session_rig(session)
+    views, events = replay_camera_views(session, rig, frames)
+    sinks: list[PoseSink] = [views, *stream_sinks(cfg, rig.skeleton, views)]
     last = [0.0]
 
     def progress(frame: PoseFrame) -> None:
@@ -59,8 +62,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
             print(f"t={t:6.1f} s  frame {frame.frame}  people [{', '.join(p.identity for p in frame.people)}]",
                   flush=True)  # fmt: skip
 
-    print(f"mocapd replay: {len(frames)} frames through {len(sinks)} sink(s) at {args.speed:g}x", flush=True)
-    stats = asyncio.run(replay(frames, sinks, speed=args.speed, on_frame=progress))
+    print(f"mocapd replay: {len(frames)} frames through {len(sinks) - 1} sink(s) at {args.speed:g}x", flush=True)
+    stats = asyncio.run(replay(frames, sinks, speed=args.speed, on_frame=progress, events=events))
     print(json.dumps(asdict(stats)))
     return 0
 
