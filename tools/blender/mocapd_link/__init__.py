@@ -6,9 +6,10 @@ Edit > Preferences > Add-ons > Install from Disk. Then the 3D view's sidebar (N)
 URL, Connect/Disconnect, Record/Stop, and what arrives.
 
 While connected, a timer on Blender's main thread takes the newest frame the reader thread received (older ones
-are skipped, never queued) and poses every subject's armature (:mod:`.rig`); while recording it also keys them
-at the frame of the scene's timeline that the frame's solve time falls on (scene fps, from the first recorded
-frame at the scene's start frame).
+are skipped, never queued) and poses every subject's armature (:mod:`.rig`); while recording it also keeps each
+pose for the frame of the scene's timeline that its solve time falls on (scene fps, from the first recorded frame
+at the scene's start frame), and keys the whole take when recording stops (one F-curve write per channel: keying
+bone by bone as frames arrive is far too slow for 60 Hz).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ class Link:
         self.lag_frames = 0  # newest received - applied, measured right after applying
         self.record_t0_ns: int | None = None
         self.recorded_frames = 0
+        self.take: dict[str, tuple[list[int], list[list[float]]]] = {}  # armature -> (frames, channel rows)
 
 
 class _Current:
@@ -90,7 +92,9 @@ def apply_frame(state: Link, msg: dict[str, Any], skeletons: dict[str, Any]) -> 
         ob = rig.ensure_armature(subject["id"], subject["skeleton"], skeleton)
         rig.pose(ob, subject, skeleton["bones"])
         if recording:
-            rig.keyframe(ob, frame_no)
+            frames, rows = state.take.setdefault(ob.name, ([], []))
+            frames.append(frame_no)
+            rows.append(rig.sample(ob))
     if recording:
         state.recorded_frames += 1
         scene.frame_end = max(frame_no, scene.frame_start)  # the take so far
@@ -120,12 +124,14 @@ class MOCAPD_OT_connect(bpy.types.Operator):  # type: ignore[misc]  # noqa: N801
 
 
 class MOCAPD_OT_disconnect(bpy.types.Operator):  # type: ignore[misc]  # noqa: N801 (Blender's CATEGORY_OT_name)
-    """Stop following the stream (the armatures keep their last pose)"""
+    """Stop following the stream (the armatures keep their last pose; a take being recorded is keyed)"""
 
     bl_idname = "mocapd.disconnect"
     bl_label = "Disconnect"
 
     def execute(self, context: Any) -> set[str]:
+        if context.scene.mocapd_recording and _Current.link is not None:
+            write_takes(_Current.link)
         _drop_link()
         context.scene.mocapd_recording = False
         return {"FINISHED"}
@@ -141,12 +147,23 @@ class MOCAPD_OT_record(bpy.types.Operator):  # type: ignore[misc]  # noqa: N801 
 
     def execute(self, context: Any) -> set[str]:
         scene = context.scene
-        scene.mocapd_recording = bool(self.start)
         state = _Current.link
-        if state is not None and self.start:
-            state.record_t0_ns = None
-            state.recorded_frames = 0
+        if self.start:
+            if state is not None:
+                state.record_t0_ns, state.recorded_frames, state.take = None, 0, {}
+        elif scene.mocapd_recording and state is not None:
+            write_takes(state)
+        scene.mocapd_recording = bool(self.start)
         return {"FINISHED"}
+
+
+def write_takes(state: Link) -> None:
+    """Key the buffered take of every armature (the subjects' keyframes are written when recording stops)."""
+    for name, (frames, rows) in state.take.items():
+        ob = bpy.data.objects.get(name)
+        if ob is not None:
+            rig.write_take(ob, frames, rows)
+    state.take = {}
 
 
 class MOCAPD_PT_panel(bpy.types.Panel):  # type: ignore[misc]  # noqa: N801 (Blender's CATEGORY_PT_name)
