@@ -108,9 +108,9 @@ async def test_camera_panels_draw_the_overlays_where_the_calibration_projects() 
                     caption = p["caption"]
                     rep = float(caption.split("reprojection ")[1].split(" px")[0])
                     rate = float(caption.split("detections ")[1].split(" Hz")[0])
-                    # A few pixels of 1920 when the solve is settled; more for a person close to the camera or
-                    # while the loaded machine misses ticks. The synthetic cameras detect at 30 Hz.
-                    assert 0.0 <= rep < 50.0 and 10.0 < rate < 60.0, caption
+                    # A few pixels of 1920 when the solve is settled; tens for a person close to the camera or
+                    # while a loaded machine misses ticks. The synthetic cameras detect at 30 Hz.
+                    assert 0.0 <= rep < 0.1 * cam.width and 5.0 < rate < 60.0, caption
                 assert checked == 8
 
                 # Off: the page stops asking and the server stops sending.
