@@ -81,9 +81,10 @@ async def test_armatures_follow_the_stream_and_record(tmp_path: Path) -> None:
     # Recording: every armature that was in the take has one keyframe per streamed frame it was in (a loaded
     # machine's tracker may drop or rename someone for a moment), on every channel, and the scene ends with it.
     actions = {k: a for k, a in report["actions"].items() if a["keyframes"]}
-    assert len(actions) >= 2 and report["recorded_frames"] >= 5, report["actions"]
+    recorded = report["recorded_frames"]
+    assert recorded >= 5 and sum(a["keyframes"] >= 0.5 * recorded for a in actions.values()) >= 2, actions
     for a in actions.values():
-        assert 0.5 * report["recorded_frames"] <= a["keyframes"] <= report["recorded_frames"], a
+        assert a["keyframes"] <= recorded, a
         assert a["curves"] == 21 * 4 + 3  # a quaternion per bone + the root's location
         assert a["bones"] == list(BONE_NAMES)
     assert report["frame_end"] == max(a["last"] for a in actions.values())
