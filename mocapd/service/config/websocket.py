@@ -13,7 +13,7 @@ from mocapd.protocols.ws_stream import ENCODINGS, STREAM_CONVENTIONS
 
 _KEYS = {
     "enabled", "host", "port", "token", "max_clients", "queue_messages", "max_message_bytes", "encoding",
-    "convention", "globals", "status_hz", "viewer",
+    "convention", "globals", "status_hz", "viewer", "cameras", "camera_rate_hz", "camera_width", "camera_quality",
 }  # fmt: skip
 
 
@@ -45,6 +45,14 @@ class WebSocketConfig:
     """Status messages per second (0: none)."""
     viewer: bool = True
     """Serve the live web viewer at http://host:port/."""
+    cameras: bool = True
+    """Offer camera views (the viewer's camera panels; sent only to clients that ask)."""
+    camera_rate_hz: float = 4.0
+    """Most camera messages per second per camera a client may ask for."""
+    camera_width: int = 320
+    """Width (pixels) the camera panels' frames are downscaled to."""
+    camera_quality: int = 70
+    """JPEG quality of the camera panels' frames (1..100)."""
 
     @property
     def loopback(self) -> bool:
@@ -68,7 +76,7 @@ def parse_websocket_config(t: dict[str, Any]) -> WebSocketConfig:
         raise ConfigError(f"unknown key(s) {sorted(unknown)} in [websocket]; allowed: {sorted(_KEYS)}")
     d = WebSocketConfig()
     out: dict[str, Any] = {}
-    for key in ("enabled", "globals", "viewer"):
+    for key in ("enabled", "globals", "viewer", "cameras"):
         if key in t:
             if not isinstance(t[key], bool):
                 raise ConfigError(f"websocket.{key} = {t[key]!r}; allowed: true or false")
@@ -88,7 +96,8 @@ def parse_websocket_config(t: dict[str, Any]) -> WebSocketConfig:
         )
     out["token"] = token
     for key, lo, hi in (("port", 0, 65535), ("max_clients", 1, 10_000), ("queue_messages", 1, 10_000),
-                        ("max_message_bytes", 256, 1 << 20)):  # fmt: skip
+                        ("max_message_bytes", 256, 1 << 20), ("camera_width", 16, 4096),
+                        ("camera_quality", 1, 100)):  # fmt: skip
         if key in t:
             v = t[key]
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
@@ -107,4 +116,9 @@ def parse_websocket_config(t: dict[str, Any]) -> WebSocketConfig:
         if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and 0 <= v <= 60):
             raise ConfigError(f"websocket.status_hz = {v!r}; allowed: a number 0..60 (0 = no status messages)")
         out["status_hz"] = float(v)
+    if "camera_rate_hz" in t:
+        v = t["camera_rate_hz"]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and 0.1 <= v <= 30):
+            raise ConfigError(f"websocket.camera_rate_hz = {v!r}; allowed: a number 0.1..30")
+        out["camera_rate_hz"] = float(v)
     return WebSocketConfig(**{**{k: getattr(d, k) for k in _KEYS}, **out})

@@ -253,13 +253,14 @@ def attach_recorder(
     """Record ``daemon``'s session when ``config.record.enabled`` or a ``directory`` is given (else None).
 
     The recorder is appended to ``daemon.sinks`` and to its detection and IMU taps; its files are created when
-    the daemon starts its sinks. With ``frames`` enabled it also records downscaled camera frames from the
-    rig's frame sources.
+    the daemon starts its sinks. With ``frames`` enabled (default: ``[record] frames``) it also records
+    downscaled camera frames from the rig's frame sources.
     """
     rc = config.record
     if directory is None and not rc.enabled:
         return None
-    frames = frames or FrameRecordOptions()
+    if frames is None:
+        frames = FrameRecordOptions(rc.frames, rc.frames_hz, rc.frames_width, rc.frames_quality)
     path = session_directory(rc, directory)
     manifest = session_manifest(config, daemon, extra)
     streams = (*STREAMS, FRAMES) if frames.enabled else STREAMS

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from mocapd.core.skeleton import Skeleton
 from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
-from mocapd.pipeline.camera_views import CameraViews
+from mocapd.pipeline.camera_views import CameraViewOptions, CameraViews
 from mocapd.protocols.ws_stream import StreamDescription, StreamOptions
 from mocapd.service.config import Config
 from mocapd.service.outputs.camera_views import attach_camera_views
@@ -28,9 +28,15 @@ def build_websocket_sinks(
     key of its own, announced in a fresh hello before the first frame that uses it. The server also sends the
     viewer's camera panels: their taps are attached to ``daemon`` here.
     """
-    if not config.websocket.enabled:
+    ws = config.websocket
+    if not ws.enabled:
         return []
-    views = attach_camera_views(daemon)
+    views = None
+    if ws.cameras:
+        options = CameraViewOptions(
+            max_width=ws.camera_width, rate_hz=ws.camera_rate_hz, jpeg_quality=ws.camera_quality
+        )
+        views = attach_camera_views(daemon, options)
     return websocket_sinks(
         config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock, camera_views=views
     )
