@@ -1,4 +1,5 @@
-"""Export a recorded subject as BVH (:mod:`mocapd.protocols.bvh_writer`) and CSV, on a uniform 60 Hz grid.
+"""Export recorded subjects as BVH (:mod:`mocapd.protocols.bvh_writer`), CSV and glTF 2.0 binary
+(:mod:`mocapd.protocols.gltf_writer`: every subject, one animation each), on a uniform 60 Hz grid.
 
 The subject's recorded frames (their solve times need not be uniform: missed ticks, another output rate) are
 resampled to ``rate`` Hz from its first to its last frame: root translation linearly, every bone's local rotation
@@ -28,6 +29,7 @@ from mocapd.core.rotations import quat_from_rotvec, quat_slerp, rotvec_from_quat
 from mocapd.core.skeleton import BONE_NAMES, N_BONES, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.bvh_writer import bvh_text
+from mocapd.protocols.gltf_writer import GltfSubject, glb_bytes
 from mocapd.protocols.session_format import PoseRecord
 
 FloatArray = NDArray[np.float64]
@@ -93,6 +95,19 @@ def write_bvh(path: str | Path, skeleton: Skeleton, track: SubjectTrack, rate_hz
     """Write ``track`` (already on a ``rate_hz`` grid) as BVH; returns the frame count."""
     Path(path).write_text(bvh_text(skeleton.offsets, track.thetas, rate_hz), encoding="utf-8")
     return int(track.thetas.shape[0])
+
+
+def write_gltf(path: str | Path, tracks: list[tuple[SubjectTrack, Skeleton]], generator: str = "mocapd") -> int:
+    """Write resampled tracks, each with its skeleton, as one ``.glb``; returns the number of animations.
+
+    Times are seconds from the earliest first frame of all tracks, so the subjects' animations stay in sync.
+    """
+    if not tracks:
+        raise InputError("no subject to export")
+    t0 = min(int(t.t_ns[0]) for t, _ in tracks)
+    subjects = [GltfSubject(t.subject, sk.offsets, sk.root_height, (t.t_ns - t0) / 1e9, t.thetas) for t, sk in tracks]
+    Path(path).write_bytes(glb_bytes(subjects, generator))
+    return len(subjects)
 
 
 def csv_header() -> list[str]:

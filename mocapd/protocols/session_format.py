@@ -5,7 +5,7 @@ little-endian. One record::
 
     offset  size  field
     0       2     sync        b"MR" (0x4D 0x52): where to look for the next record after a corrupt one
-    2       1     type        T_HEADER=0, T_IMU=1, T_KEYPOINTS=2, T_POSE=3
+    2       1     type        T_HEADER=0, T_IMU=1, T_KEYPOINTS=2, T_POSE=3, T_FRAME=4
     3       1     version     payload version of this type (1)
     4       4     length      n, payload bytes (uint32, at most MAX_PAYLOAD)
     8       n     payload     see below
@@ -27,6 +27,9 @@ Payloads (struct formats; ``f4``/``f8`` arrays are little-endian float32/float64
   21 local rotation vectors) and the 21 global joint positions as 63 float32 (metres); then ``<B`` 1 if the
   person's own (body-sized) skeleton follows, 0 if θ is on the session's rig skeleton (manifest); if 1, ``<ff``
   root height and height (m) and the 21 bone offsets as 63 float32 (m) — θ means nothing without them.
+- ``T_FRAME`` (one downscaled camera frame, optional ``frames`` stream): ``<qHHHI`` capture_ns (host clock, as
+  the camera's detections), camera index, image width, image height, JPEG length m; then the m bytes of the
+  baseline JPEG (the image as the camera panels show it, not the camera's full resolution).
 
 Decoding never raises on bad bytes: :class:`StreamDecoder` (sans-I/O: ``receive_data(bytes)``,
 ``records_received()``) counts a record whose CRC does not match, or whose length is impossible, as corrupt and
@@ -50,8 +53,8 @@ from mocapd.errors import InputError
 FloatArray = NDArray[np.float64]
 
 SYNC = b"MR"
-T_HEADER, T_IMU, T_KEYPOINTS, T_POSE = 0, 1, 2, 3
-RECORD_TYPES = (T_HEADER, T_IMU, T_KEYPOINTS, T_POSE)
+T_HEADER, T_IMU, T_KEYPOINTS, T_POSE, T_FRAME = 0, 1, 2, 3, 4
+RECORD_TYPES = (T_HEADER, T_IMU, T_KEYPOINTS, T_POSE, T_FRAME)
 PAYLOAD_VERSION = 1
 FORMAT_VERSION = 1
 MAX_PAYLOAD = 1 << 24
@@ -68,6 +71,7 @@ _KP = struct.Struct("<qqHHH")
 _POSE = struct.Struct("<qqqHH")
 _PERSON = struct.Struct("<iHHHBf")
 _SIZES = struct.Struct("<ff")
+_FRAME = struct.Struct("<qHHHI")
 _NO_SUIT = 255
 
 
@@ -262,6 +266,29 @@ def decode_keypoints(p: bytes) -> KeypointRecord:
     kp = np.frombuffer(p, "<f4", n * k * 2, o).reshape(n, k, 2).astype(np.float64)
     cf = np.frombuffer(p, "<f4", n * k, o + 8 * n * k).reshape(n, k).astype(np.float64)
     return KeypointRecord(camera, capture, arrival, kp, cf)
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One recorded camera frame: ``jpeg`` of ``width`` x ``height`` pixels, captured at ``capture_ns``."""
+
+    camera: int
+    capture_ns: int
+    width: int
+    height: int
+    jpeg: bytes
+
+
+def encode_frame(r: FrameRecord) -> bytes:
+    """A ``T_FRAME`` payload."""
+    return _FRAME.pack(r.capture_ns, r.camera, r.width, r.height, len(r.jpeg)) + r.jpeg
+
+
+def decode_frame(p: bytes) -> FrameRecord:
+    capture, camera, w, h, n = _FRAME.unpack_from(p, 0)
+    if len(p) != _FRAME.size + n:
+        raise InputError(f"frame record: {len(p)} bytes for a {n}-byte image")
+    return FrameRecord(camera, capture, w, h, bytes(p[_FRAME.size :]))
 
 
 @dataclass(frozen=True)

@@ -33,9 +33,12 @@ def _cmd_bench_sorting(args: argparse.Namespace) -> int:
 
 def _cmd_eval_tracking(args: argparse.Namespace) -> int:
     from mocapd.eval import tracking as eval_tracking
+    from mocapd.io.progress import Progress
 
     motion = "synthetic" if args.synthetic else "real"
-    print(json.dumps(eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion), indent=2))
+    with Progress(2 * len(eval_tracking.SCENES), "eval tracking") as bar:
+        result = eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion, progress=bar)
+    print(json.dumps(result, indent=2))
     return 0
 
 

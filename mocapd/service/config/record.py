@@ -26,4 +26,12 @@ class RecordConfig(Section):
     queue_size: int = Field(100_000, ge=100, le=MAX_QUEUE)
     """Records waiting for the writer thread before new ones are dropped (and counted)."""
     video: Annotated[Literal[False], Allowed("false (recording camera frames as video is not supported yet)")] = False
-    """Camera frames as video: not supported yet (true is rejected)."""
+    """Camera frames as video: not supported yet (true is rejected); ``frames`` records downscaled stills."""
+    frames: bool = False
+    """Record downscaled camera frames (JPEG, ``frames`` stream) for the camera panels of ``mocapd replay``."""
+    frames_hz: float = Field(2.0, ge=0.1, le=30.0)
+    """Recorded frames per second per camera."""
+    frames_width: int = Field(320, ge=16, le=4096)
+    """Width (pixels) recorded frames are downscaled to."""
+    frames_quality: int = Field(70, ge=1, le=100)
+    """JPEG quality of recorded frames."""

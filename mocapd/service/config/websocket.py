@@ -70,6 +70,14 @@ class WebSocketConfig(Section):
     """Status messages per second (0: none)."""
     viewer: bool = True
     """Serve the live web viewer at http://host:port/."""
+    cameras: bool = True
+    """Offer camera views (the viewer's camera panels; sent only to clients that ask)."""
+    camera_rate_hz: float = Field(4.0, ge=0.1, le=30.0)
+    """Most camera messages per second per camera a client may ask for."""
+    camera_width: int = Field(320, ge=16, le=4096)
+    """Width (pixels) the camera panels' frames are downscaled to."""
+    camera_quality: int = Field(70, ge=1, le=100)
+    """JPEG quality of the camera panels' frames."""
 
     @model_validator(mode="after")
     def _token_off_loopback(self) -> Self:

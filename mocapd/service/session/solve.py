@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -172,8 +173,11 @@ def imu_times(records: list[ImuRecord], refit: bool = True) -> list[tuple[int, I
     return out
 
 
-def forward_resolve(session: Session, opts: ResolveOptions) -> list[PoseRecord]:
-    """Pass 1: every recorded input through the daemon's scheduler at the recorded solve times."""
+def forward_resolve(
+    session: Session, opts: ResolveOptions, progress: Callable[[int], None] | None = None
+) -> list[PoseRecord]:
+    """Pass 1: every recorded input through the daemon's scheduler at the recorded solve times; ``progress`` is
+    called with 1 after each frame."""
     rig = session_rig(session)
     sched, ingest = _scheduler(rig, opts)
     o = rig.options
@@ -200,6 +204,8 @@ def forward_resolve(session: Session, opts: ResolveOptions) -> list[PoseRecord]:
             for p in frame.people
         )  # fmt: skip
         out.append(PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people))
+        if progress is not None:
+            progress(1)
     return out
 
 
@@ -307,10 +313,13 @@ def smooth_frames(frames: list[PoseRecord], skeleton: Skeleton, opts: ResolveOpt
     return out
 
 
-def resolve(session: Session, opts: ResolveOptions | None = None) -> tuple[list[PoseRecord], dict[str, Any]]:
-    """Both passes; returns the frames and a summary (frames, people solves, inputs used)."""
+def resolve(
+    session: Session, opts: ResolveOptions | None = None, progress: Callable[[int], None] | None = None
+) -> tuple[list[PoseRecord], dict[str, Any]]:
+    """Both passes; returns the frames and a summary (frames, people solves, inputs used). ``progress`` is called
+    with 1 per frame of the forward pass."""
     opts = opts or ResolveOptions()
-    frames = forward_resolve(session, opts)
+    frames = forward_resolve(session, opts, progress)
     if opts.smooth:
         frames = smooth_frames(frames, session_rig(session).skeleton, opts)
     summary = {
