@@ -237,6 +237,7 @@ def frame_source(cam: CameraConfig, calibrated: Camera, backoff_s: tuple[float, 
         fmt = pixel_format(cam.pixel_format)
         cfg = AravisCameraConfig(
             cam.name, address=cam.address or None, serial=cam.serial or None, device_id=cam.device_id or None,
+            interface=cam.interface,
             pixel_format=cam.pixel_format, region=None if cam.region is None else tuple(cam.region),  # type: ignore[arg-type]
             binning=None if cam.binning is None else tuple(cam.binning),  # type: ignore[arg-type]
             frame_rate=cam.frame_rate, exposure_us=cam.exposure_us, gain_db=cam.gain_db,
