@@ -29,6 +29,7 @@ from mocapd.io.gige_discovery import (
 )
 from mocapd.protocols.gvcp import DiscoveryAck, parse_discovery_ack
 from mocapd.service.config.cameras import parse_cameras
+from tests.config_support import check_config
 
 ROOT = Path(__file__).resolve().parents[1]
 ACK = parse_discovery_ack((ROOT / "tests" / "data" / "gvcp" / "aravis_fake_discovery_ack.bin").read_bytes())
@@ -109,7 +110,7 @@ def test_devices_command_without_interface_lists_usb_only_and_sends_nothing(netn
     assert [(c.name, c.source, getattr(c, "device_id", None)) for c in cameras] == [("Fake-1", "aravis", "Fake_1")]
 
 
-def test_devices_command_with_interfaces_lists_each_link(netns: dict[str, Any]) -> None:
+def test_devices_command_with_interfaces_lists_each_link(netns: dict[str, Any], tmp_path: Path) -> None:
     gige = netns["cli_gige"]
     assert gige["code"] == 0
     assert gige["sent"]["gige1"] >= 2 and gige["sent"]["gige2"] >= 2
@@ -120,6 +121,8 @@ def test_devices_command_with_interfaces_lists_each_link(netns: dict[str, Any]) 
         ("gige2", "CAM-C", "10.77.2.2", "Aravis-Fake-CAM-C"),
     ]
     assert gige["json"]["gige_counters"]["gige1"]["local_answers"] == 1
+    code, printed = check_config(gige["json"]["snippet"], tmp_path)
+    assert code == 0, printed
     cameras = parse_cameras(_snippet_cameras(gige["json"]["snippet"]))
     assert [(c.name, getattr(c, "address", "")) for c in cameras] == [
         ("Fake-1", ""), ("Fake-CAM-A", "10.77.1.2"), ("Fake-CAM-B", "10.77.1.3"), ("Fake-CAM-C", "10.77.2.2")

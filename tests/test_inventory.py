@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import tomllib
+from pathlib import Path
 from typing import Any
 
 from mocapd.io.aravis_devices import AravisDevice
@@ -17,6 +18,7 @@ from mocapd.service.cli.devices import render_tables
 from mocapd.service.config import parse_config
 from mocapd.service.config.cameras import AravisCamera, UvcCamera, parse_cameras
 from mocapd.service.inventory import Inventory, camera_name, config_snippet, inventory_json
+from tests.config_support import check_config
 
 ETH1 = InterfaceAddress("eth1", "192.168.10.1", "255.255.255.0", "192.168.10.255")
 
@@ -83,6 +85,12 @@ def test_snippet_parses_and_opens_each_camera_the_right_way() -> None:
     # The other way to open each GigE camera is there, commented out.
     assert '# serial = "40012345"\n# interface = "eth1"' in snippet
     assert '# address = "169.254.3.7"' in snippet
+
+
+def test_check_config_accepts_the_snippet(tmp_path: Path) -> None:
+    code, printed = check_config(config_snippet(_inventory()), tmp_path)
+    assert code == 0, printed
+    assert "7 camera(s)" in printed and "2 serial IMU port(s)" in printed
 
 
 def test_snippet_imu_section_loads_with_the_config_loader() -> None:
