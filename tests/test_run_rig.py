@@ -270,6 +270,9 @@ BAD_RIGS: list[tuple[str, str, str, str]] = [
      "cameras[0].exposure_us = nan; allowed: a number in (0, 1e+07]"),
     ("unknown key", GIGE.format(name="cam01", w=544, h=960) + "exposure = 10\n", "",
      "unknown key cameras[0].exposure; allowed:"),
+    ("no such interface",
+     GIGE.format(name="cam01", w=544, h=960).replace('address = "127.0.0.1"', 'serial = "X"\ninterface = "gige9"'),
+     "", "cameras[0].interface = 'gige9': no such network interface"),
     ("no cameras", "", "", "no cameras: add [[cameras]]"),
 ]  # fmt: skip
 

@@ -9,8 +9,12 @@ reference to asyncio.
 Opening
     * by IP address (``address``): ``ArvGvDevice`` is created directly between the host interface address that
       routes to the camera and the camera's address. No discovery broadcast is sent. Use this on shared networks.
-    * by serial number or Aravis device id (``serial`` / ``device_id``): needs Aravis discovery, which broadcasts
-      on every interface; only use it on a dedicated camera network (or in a private network namespace).
+    * by serial number or Aravis device id (``serial`` / ``device_id``) of a GigE Vision camera on a named network
+      ``interface``: mocapd's own discovery (:mod:`mocapd.io.gige_discovery`) broadcasts on that interface only,
+      then the camera is opened by the address it reported;
+    * by serial number or Aravis device id without an ``interface``: a USB3 Vision camera, looked up by Aravis
+      with its GigE Vision interface disabled. Aravis' GigE discovery broadcasts on every interface of the host
+      (0.8.26 cannot restrict it), so mocapd never lets it run (:func:`aravis_without_gige_discovery`).
 
 Disappearance
     A camera is declared lost when the GigE heartbeat reports ``control-lost`` or when a free-running camera sends
@@ -33,6 +37,7 @@ from numpy.typing import NDArray
 
 from mocapd.errors import ConfigError, DeviceError
 from mocapd.io.frame_source import ThreadedSource
+from mocapd.io.gige_discovery import find_camera
 from mocapd.io.pixels import PixelFormat, convert_into, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
@@ -134,7 +139,10 @@ class AravisCameraConfig:
     serial : str or None
         Serial number (needs discovery).
     device_id : str or None
-        Aravis device id, as listed by ``arv-tool-0.8`` (needs discovery).
+        Aravis device id, as listed by ``mocapd devices`` or ``arv-tool-0.8`` (needs discovery).
+    interface : str
+        Network interface on which GigE Vision discovery may broadcast to find a camera by ``serial`` or
+        ``device_id``; "" = none (the camera is then looked for among USB3 Vision devices only).
     pixel_format : str
         ``Mono8``, ``RGB8`` or ``BayerRG8``/``BayerBG8``/``BayerGR8``/``BayerGB8`` (demosaiced to RGB).
     region : (x, y, width, height) or None
@@ -183,6 +191,7 @@ class AravisCameraConfig:
     address: str | None = None
     serial: str | None = None
     device_id: str | None = None
+    interface: str = ""
     pixel_format: str = "Mono8"
     region: tuple[int, int, int, int] | None = None
     binning: tuple[int, int] | None = None
@@ -234,25 +243,41 @@ def local_address_for(address: str) -> str:
         return str(s.getsockname()[0])
 
 
+def aravis_without_gige_discovery() -> Any:
+    """Aravis with its GigE Vision interface disabled (for the whole process): listing or opening devices by
+    name then never broadcasts. GigE Vision cameras are opened by address, or found by
+    :mod:`mocapd.io.gige_discovery` on one named interface.
+
+    Raises
+    ------
+    DeviceError
+        If Aravis is not available.
+    """
+    aravis = load_aravis()
+    aravis.disable_interface("GigEVision")
+    return aravis
+
+
 def open_camera(config: AravisCameraConfig) -> Any:
-    """Open an ``Aravis.Camera`` as ``config`` says (blocking).
+    """Open an ``Aravis.Camera`` as ``config`` says (blocking; GigE discovery on ``config.interface`` waits up to
+    :data:`~mocapd.io.gige_discovery.DEFAULT_TIMEOUT_S`).
 
     Raises
     ------
     DeviceError
         If the camera cannot be found or opened; the message names how it was looked for.
     """
-    aravis = load_aravis()
+    aravis = aravis_without_gige_discovery()
     from gi.repository import Gio, GLib
 
+    what = config.address or config.device_id or config.serial
     try:
         if config.address:
-            local = Gio.InetAddress.new_from_string(local_address_for(config.address))
-            remote = Gio.InetAddress.new_from_string(config.address)
-            if remote is None:
-                raise ConfigError(f"camera {config.name!r}: {config.address!r} is not an IPv4 address")
-            device = aravis.GvDevice.new(local, remote)
-            return aravis.Camera.new_with_device(device)
+            return _open_gige(aravis, Gio, config, local_address_for(config.address), config.address)
+        if config.interface:
+            found = find_camera(config.interface, serial=config.serial or "", device_id=config.device_id or "")
+            what = f"{what} at {found.address} on {config.interface}"
+            return _open_gige(aravis, Gio, config, found.interface.address, found.address)
         if config.device_id:
             return aravis.Camera.new(config.device_id)
         aravis.update_device_list()
@@ -260,9 +285,19 @@ def open_camera(config: AravisCameraConfig) -> Any:
             if aravis.get_device_serial_nbr(i) == config.serial:
                 return aravis.Camera.new(aravis.get_device_id(i))
     except GLib.Error as exc:
-        what = config.address or config.device_id or config.serial
         raise DeviceError(f"camera {config.name!r} ({what}) cannot be opened: {exc.message}") from exc
-    raise DeviceError(f"camera {config.name!r}: no device with serial {config.serial!r} was discovered")
+    raise DeviceError(
+        f"camera {config.name!r}: no USB3 Vision device with serial {config.serial!r} (a GigE Vision camera needs "
+        "its address, or the network interface to discover it on)"
+    )
+
+
+def _open_gige(aravis: Any, gio: Any, config: AravisCameraConfig, local: str, remote: str) -> Any:
+    remote_address = gio.InetAddress.new_from_string(remote)
+    if remote_address is None:
+        raise ConfigError(f"camera {config.name!r}: {remote!r} is not an IPv4 address")
+    device = aravis.GvDevice.new(gio.InetAddress.new_from_string(local), remote_address)
+    return aravis.Camera.new_with_device(device)
 
 
 def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]:

@@ -21,7 +21,6 @@ import os
 import stat
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -156,41 +155,3 @@ class UvcSource(ThreadedSource):
         if self._cap is not None:
             self._cap.release()
         self._cap = None
-
-
-def list_video_devices(sysfs: Path = Path("/sys/class/video4linux")) -> list[dict[str, Any]]:
-    """The V4L2 capture devices the kernel knows: ``[{"device": "/dev/video0", "name": ..., "index": 0,
-    "by_id": "/dev/v4l/by-id/..."}]`` (a UVC camera registers a metadata node beside its capture node; only
-    index 0 of each physical device captures images). Reads sysfs only: nothing is opened.
-
-    Parameters
-    ----------
-    sysfs : Path
-        The ``video4linux`` class folder (a test may point it at a tree of its own).
-    """
-    out: list[dict[str, Any]] = []
-    if not sysfs.is_dir():
-        return out
-    by_id = _by_id_links(Path("/dev/v4l/by-id"))
-    for node in sorted(sysfs.iterdir(), key=lambda p: (len(p.name), p.name)):
-        try:
-            name = (node / "name").read_text(encoding="utf-8", errors="replace").strip()
-            index = int((node / "index").read_text().strip()) if (node / "index").exists() else 0
-        except (OSError, ValueError):
-            continue
-        if index != 0:
-            continue
-        dev = f"/dev/{node.name}"
-        out.append({"device": dev, "name": name, "by_id": by_id.get(dev, "")})
-    return out
-
-
-def _by_id_links(folder: Path) -> dict[str, str]:
-    links: dict[str, str] = {}
-    if folder.is_dir():
-        for link in sorted(folder.iterdir()):
-            try:
-                links.setdefault(str(link.resolve()), str(link))
-            except OSError:
-                continue
-    return links

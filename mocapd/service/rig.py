@@ -15,6 +15,7 @@ Two steps, so that ``mocapd check-config`` says everything that can be said with
 from __future__ import annotations
 
 import dataclasses
+import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -100,6 +101,12 @@ def plan_rig(config: Config) -> RigPlan:
                 f"(it has {', '.join(sorted(calibrated)) or 'no camera'})"
             )
             continue
+        if isinstance(cam, AravisCamera) and cam.interface and cam.interface not in _interfaces():
+            problems.append(
+                f"{where}.interface = {cam.interface!r}: no such network interface on this machine "
+                f"(it has {', '.join(sorted(_interfaces()))})"
+            )
+            continue
         try:
             size = expected_size(cam)
         except (ConfigError, InputError) as exc:
@@ -114,6 +121,11 @@ def plan_rig(config: Config) -> RigPlan:
     if problems:
         raise ConfigError("\n".join(problems))
     return RigPlan(cameras, synthetic=False)
+
+
+def _interfaces() -> set[str]:
+    """The network interfaces of this machine (names only; nothing is sent)."""
+    return {name for _, name in socket.if_nameindex()}
 
 
 def synthetic_cameras(names: list[str]) -> list[Camera]:
@@ -237,6 +249,7 @@ def frame_source(cam: CameraConfig, calibrated: Camera, backoff_s: tuple[float, 
         fmt = pixel_format(cam.pixel_format)
         cfg = AravisCameraConfig(
             cam.name, address=cam.address or None, serial=cam.serial or None, device_id=cam.device_id or None,
+            interface=cam.interface,
             pixel_format=cam.pixel_format, region=None if cam.region is None else tuple(cam.region),  # type: ignore[arg-type]
             binning=None if cam.binning is None else tuple(cam.binning),  # type: ignore[arg-type]
             frame_rate=cam.frame_rate, exposure_us=cam.exposure_us, gain_db=cam.gain_db,

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from mocapd import __version__
 from mocapd.service.cli import calibrate as cmd_calibrate
 from mocapd.service.cli import daemon as cmd_daemon
+from mocapd.service.cli import devices as cmd_devices
 from mocapd.service.cli import eval as eval_cli
 from mocapd.service.cli import imu as cmd_imu
 from mocapd.service.cli import model as cmd_model
@@ -71,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     cmd_imu.register(sub)  # adds "imu" to the calibrate group
     cmd_model.register(sub)
     cmd_daemon.register(sub)  # run, demo, check-config, bench latency
+    cmd_devices.register(sub)
     cmd_session.register(sub)  # replay, resolve, export, session
     return parser
 
