@@ -18,13 +18,13 @@ from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import PoseSink
 
 
-def stream_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
+def stream_sinks(config: Config, skeleton: Skeleton, output: str = "delayed") -> list[PoseSink]:
     """The streaming sinks a replay publishes through: the streams configured in ``config``, for poses on the
-    session's ``skeleton``."""
+    session's ``skeleton``, announcing the recorded ``output`` mode."""
     from mocapd.service.outputs.udp import udp_sinks
     from mocapd.service.outputs.websocket import websocket_sinks
 
-    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton)]
+    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton, output=output)]
 
 
 def _open(path: Path) -> Session:
@@ -48,7 +48,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     session = _open(args.session)
     frames = session.poses(_pose_stream(session, args.resolved))
-    sinks = stream_sinks(cfg, session_rig(session).skeleton)
+    sinks = stream_sinks(cfg, session_rig(session).skeleton, frames[0].output if frames else "delayed")
     last = [0.0]
 
     def progress(frame: PoseFrame) -> None:

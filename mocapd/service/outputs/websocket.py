@@ -25,7 +25,8 @@ def build_websocket_sinks(
     sinks. Subjects on the rig's skeleton share the key ``"default"``; a body-sized person's own skeleton gets a
     key of its own, announced in a fresh hello before the first frame that uses it.
     """
-    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock)
+    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock,
+                           output=daemon.scheduler.options.prediction.output)  # fmt: skip
 
 
 def websocket_sinks(
@@ -35,8 +36,10 @@ def websocket_sinks(
     status: Callable[[], Mapping[str, Any]] | None = None,
     clock: Callable[[], int] = time.monotonic_ns,
     sock: socket.socket | None = None,
+    output: str = "delayed",
 ) -> list[WebSocketStreamServer]:
-    """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health)."""
+    """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health);
+    ``output`` is the output mode the hello announces (the daemon's, or the recorded session's)."""
     ws = config.websocket
     if not ws.enabled:
         return []
@@ -45,5 +48,5 @@ def websocket_sinks(
         max_message_bytes=ws.max_message_bytes, status_hz=ws.status_hz, viewer=ws.viewer,
         defaults=StreamOptions(encoding=ws.encoding, convention=ws.convention, globals=ws.globals),
     )  # fmt: skip
-    description = StreamDescription(rate_hz=config.daemon.output_rate_hz, skeletons={"default": skeleton})
+    description = StreamDescription(config.daemon.output_rate_hz, {"default": skeleton}, output=output)
     return [WebSocketStreamServer(settings, description, status=status, clock=clock, sock=sock)]
