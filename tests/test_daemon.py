@@ -103,6 +103,14 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
         assert st["latency_ms"]["end_to_end"]["p50"] >= 150.0  # includes the configured fixed latency
         assert {p["identity"] for p in st["frame"]["people"]} >= {"suit:suit0"}
         assert st["subjects"]["suits"]["suit0"]["confidence"] > 0.5
+        assert st["output"]["mode"] == "delayed"
+        assert all(p["t_pose_ns"] == st["frame"]["t_solve_ns"] for p in st["frame"]["people"])
+        # Heading correction: every suit sensor reported; with COCO-17 the feet cannot be observed; the simulated
+        # sensors have no heading error, so what is estimated stays near zero.
+        heading = st["imu_heading"]["suit0"]
+        assert len(heading) == 13
+        assert {h["bone"] for h in heading.values() if h["state"] == "unobservable"} == {"LeftFoot", "RightFoot"}
+        assert all(abs(h["offset_deg"]) < 3.0 for h in heading.values())
 
         code, headers, body = await http_get(port, "/metrics")
         text = body.decode()

@@ -284,6 +284,7 @@ class Daemon:
                 "missed_ticks": self.plan.missed if self.plan else 0,
                 "late_ticks": self.plan.late if self.plan else 0,
                 "latency_s": self.scheduler.options.latency_ns / 1e9,
+                "mode": s["output"],
             },
             "latency_ms": s["latency_ms"],
             "cpu_s": s["cpu_s"],
@@ -293,6 +294,7 @@ class Daemon:
             ],
             "imu": self.imu.status(),
             "imu_lookups": s["imu_samples"],
+            "imu_heading": s["heading"],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},
             "subjects": s["people"],
@@ -312,7 +314,7 @@ class Daemon:
                 "people": [
                     {"identity": p.identity, "suit": p.suit, "root_m": [round(float(v), 4) for v in p.theta[:3]],
                      "confidence": round(p.confidence, 3), "views": p.views, "imus": p.imus,
-                     "iterations": p.iterations}
+                     "iterations": p.iterations, "t_pose_ns": frame.pose_time_ns(p)}
                     for p in frame.people
                 ],
             },
