@@ -206,6 +206,25 @@ def test_predicted_output_is_closer_to_the_truth_at_publish_time() -> None:
     assert lat.summary()["count"] == 1
 
 
+def test_prediction_can_wait_for_the_samples_that_arrive_while_solving() -> None:
+    """The daemon solves first (``tick(predict=False)``), lets the IMU inputs buffer what arrived meanwhile, then
+    carries the frame to the newest of it (``predict``): here 30 ms of samples arrive in between."""
+    ls = suit_lockstep(SchedulerOptions(prediction=PredictionOptions(output="predicted")))
+    ls.run(1.5)
+    now = ls.now_ns
+    ls._feed(now)
+    frame = ls.scheduler.tick(now, predict=False)
+    (wearer,) = [p for p in frame.people if p.suit is not None]
+    assert wearer.solved is None and frame.pose_time_ns(wearer) == frame.t_solve_ns  # not carried yet
+    ls._feed(now + 30 * MS)
+    carried = ls.scheduler.predict(frame)
+    (p,) = [p for p in carried.people if p.suit is not None]
+    assert p.solved is not None and p.solved.theta is wearer.theta and carried.pose_time_ns(p) == now + 30 * MS
+    ls.ticks += 1
+    ls.tick()
+    assert ls.scheduler.predict(frame) is frame  # an older frame is not carried again
+
+
 def test_delayed_output_publishes_the_solve() -> None:
     ls = suit_lockstep(n_people=1)
     frames = ls.run(1.5)

@@ -70,7 +70,7 @@ HEIGHT_EVERY = 3  # ticks between two of them: 20 Hz at 60 Hz output covers the 
 HEIGHT_HISTORY_S = 12.0  # solved heights kept per suit for the IMU offset estimate (the IMU buffers hold ~5 s)
 HEADING_EVERY_NS = 50_000_000  # at least this between two heading observations of a suit (20 Hz: plenty for a
 # window of seconds; every tick would triangulate and observe three times as often for nothing)
-STAGES = ("detect", "sample", "sort", "solve", "publish", "end_to_end", "imu_to_publish")
+STAGES = ("detect", "sample", "sort", "solve", "predict", "publish", "end_to_end", "imu_to_publish")
 
 
 @dataclass(frozen=True)
@@ -266,7 +266,7 @@ class FixedLatencyScheduler:
         self.solvers: dict[str, PoseSolver] = {}
         self.frame = 0
         self.latency = {s: LatencyStats() for s in STAGES}
-        self.cpu_ns = dict.fromkeys(STAGES[1:5], 0)
+        self.cpu_ns = dict.fromkeys(STAGES[1:6], 0)
         self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
@@ -280,6 +280,7 @@ class FixedLatencyScheduler:
         }
         self._seen_suits: set[str] = set()  # suits whose wearer enough cameras saw this tick
         self._heading_at: dict[str, int] = {}  # solve time of each suit's last heading observation
+        self._suit_samples: dict[str, SuitSample] = {}  # the latest tick's, where predict() starts from
         self._imu_width = sum(f.width for f in IMU_FIELDS)  # quat 0:4, acc 4:7 (IMU_FIELDS order)
         self._previous_acc: dict[str, tuple[int, FloatArray, NDArray[np.bool_]]] = {}
         self.suggested_offsets: dict[str, dict[str, float]] | None = None  # see estimate_camera_offsets
@@ -312,8 +313,14 @@ class FixedLatencyScheduler:
         return True
 
     # ------------------------------------------------------------------------------------------- the tick
-    def tick(self, now_ns: int) -> PoseFrame:
-        """Solve and return the frame at ``now_ns - latency``."""
+    def tick(self, now_ns: int, *, predict: bool = True) -> PoseFrame:
+        """Solve and return the frame at ``now_ns - latency``.
+
+        In predicted output the suit wearers are carried forward (:meth:`predict`) before it returns, unless
+        ``predict`` is False: then the caller calls :meth:`predict` itself right before publishing, after letting
+        the IMU inputs buffer what arrived while this tick solved (the daemon does; the IMU samples are read on the
+        same event loop, so none is buffered during the tick).
+        """
         t = now_ns - self.options.latency_ns
         w0, c0 = self._wall(), self._cpu()
         detections, missing = self._sample_cameras(t)
@@ -332,13 +339,26 @@ class FixedLatencyScheduler:
         for sid, suit in self.suits.items():
             if sid not in self._seen_suits:
                 self.heading.freeze(suit.sensors)  # the cameras lost the wearer: offsets stay as they are
-        if self.options.prediction.predicted:
-            poses = [self._predict(p, suits[p.suit], t) if p.suit in suits else p for p in poses]
         self._forget_released({p.identity for p in frame.people})
         self._stage("solve", w2, c2)
         self.frame += 1
         self.counters["ticks"] += 1
-        return PoseFrame(self.frame, t, now_ns, poses, missing, self.options.prediction.output)
+        self._suit_samples = suits
+        out = PoseFrame(self.frame, t, now_ns, poses, missing, self.options.prediction.output)
+        return self.predict(out) if predict else out
+
+    def predict(self, frame: PoseFrame) -> PoseFrame:
+        """In predicted output, ``frame`` (this scheduler's latest, from :meth:`tick`) with each suit wearer
+        carried from the solve instant to the newest instant the suit's live IMUs have buffered now; the frame
+        unchanged in delayed output, or when it is not the latest."""
+        if not self.options.prediction.predicted or frame.frame != self.frame:
+            return frame
+        w0, c0 = self._wall(), self._cpu()
+        samples = self._suit_samples
+        people = [self._predict(p, samples[p.suit], frame.t_solve_ns) if p.suit in samples else p
+                  for p in frame.people]  # fmt: skip
+        self._stage("predict", w0, c0)
+        return replace(frame, people=people)
 
     def record_publish(self, frame: PoseFrame, wall_start_ns: int, cpu_start_ns: int, published_ns: int) -> None:
         """Account the publishing stage (run by the caller), the end-to-end latency of ``frame`` (from the solve
