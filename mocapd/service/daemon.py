@@ -219,7 +219,14 @@ class Daemon:
         while True:
             await asyncio.sleep(max(0.0, (plan.next_ns - self.clock()) / 1e9))
             # Solve for the scheduled tick time, not the (jittery) wake-up time: output frames stay evenly spaced.
-            frame = self.scheduler.tick(plan.next_ns)
+            frame = self.scheduler.tick(plan.next_ns, predict=False)
+            if self.scheduler.options.prediction.predicted:
+                # Two loop iterations: the first polls the serial ports and queues their readers after this task,
+                # the second runs them, so the IMU samples that arrived while solving are buffered; then the
+                # suit wearers are carried to the newest of them.
+                await asyncio.sleep(0)
+                await asyncio.sleep(0)
+                frame = self.scheduler.predict(frame)
             w0, c0 = self.scheduler.stage_clocks()
             for sink in self.sinks:
                 sink.publish(frame)
