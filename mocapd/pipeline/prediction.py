@@ -22,8 +22,9 @@ sample than ``t``, the delayed pose is published unchanged (``t' = t``).
 
 from __future__ import annotations
 
+import math
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,10 +34,8 @@ from mocapd.core.prediction import CarryPlan, carry_forward, carry_plan
 from mocapd.core.rotations import (
     matrix_from_quat,
     quat_conjugate,
-    quat_from_rotvec,
     quat_multiply,
     quat_normalize,
-    quat_rotate,
     quat_slerp,
 )
 from mocapd.core.skeleton import N_BONES
@@ -170,13 +169,13 @@ class PosePredictor:
         out = carry_forward(theta, parents, plan, deltas, np.zeros(3))
         # Root: move the pelvis sensor's site, then hang the root from it with the carried pelvis rotation.
         s1 = site + self._site_displacement(identity, t_ns, t1, suit)
-        out[0:3] = s1 - quat_rotate(quat_from_rotvec(out[3:6]), suit.hips_site)
+        out[0:3] = s1 - _rotate(out[3:6], suit.hips_site)
         return Prediction(out, t1, int(live.sum()))
 
     # ------------------------------------------------------------------------------------------ root
     def _record(self, identity: str, theta: FloatArray, t_ns: int, suit: SuitState) -> FloatArray:
         """The solved pelvis-sensor site at ``t_ns`` (world), kept for the velocity fit."""
-        site: FloatArray = theta[0:3] + quat_rotate(quat_from_rotvec(theta[3:6]), suit.hips_site)
+        site = theta[0:3] + _rotate(theta[3:6], suit.hips_site)
         hist = self._sites.setdefault(identity, deque(maxlen=64))
         if hist and t_ns <= hist[-1][0]:
             hist.clear()  # a replay restarted, or a re-solve of the same instant: start over
@@ -203,10 +202,12 @@ class PosePredictor:
         acc = self._free_acceleration(suit, t0, t0 + round(ts[0] * 1e9), t1)
         disp = np.zeros(3)
         if acc is not None:
-            back = np.linspace(ts[0], 0.0, _points(-ts[0]))
-            xs = xs - _interp_rows(ts, back, _double_integral(back, acc(back)))
-            ahead = np.linspace(0.0, dt, _points(dt))
-            disp = _double_integral(ahead, acc(ahead) * np.exp(-ahead / o.acceleration_decay_s)[:, None])[-1]
+            grid, a = acc
+            back, ahead = grid <= 0.0, grid >= 0.0
+            d_back = _double_integral(grid[back], a[back])
+            xs = xs - np.stack([np.interp(ts, grid[back], d_back[:, k]) for k in range(3)], axis=1)
+            tau = grid[ahead]
+            disp = _double_integral(tau, a[ahead] * np.exp(-tau / o.acceleration_decay_s)[:, None])[-1]
             norm = float(np.linalg.norm(disp))
             if norm > o.max_acceleration_displacement_m:
                 disp *= o.max_acceleration_displacement_m / norm
@@ -218,11 +219,10 @@ class PosePredictor:
         out: FloatArray = v * dt + disp
         return out
 
-    def _free_acceleration(
-        self, suit: SuitState, t0: int, t_a: int, t_b: int
-    ) -> Callable[[FloatArray], FloatArray] | None:
-        """The pelvis sensor's free acceleration (world, m/s², gravity removed) between ``t_a`` and ``t_b``, as a
-        function of time in seconds since ``t0`` (linear between samples); None when not buffered over it."""
+    def _free_acceleration(self, suit: SuitState, t0: int, t_a: int, t_b: int) -> tuple[FloatArray, FloatArray] | None:
+        """The pelvis sensor's free acceleration (world, m/s², gravity removed) from ``t_a`` to ``t_b``: on the
+        buffered samples' times plus ``t_a``, ``t0`` and ``t_b`` (linear between samples), times in seconds since
+        ``t0``; None when the buffer does not cover the interval."""
         h = suit.hips
         buf = suit.buffers[h] if h is not None and suit.mask[h] else None
         if h is None or buf is None or len(buf) < 2:
@@ -238,11 +238,25 @@ class PosePredictor:
         world = quat_multiply(suit.q_wg[h][None], quat_normalize(rows[:, 0:4]))
         acc = np.einsum("nij,nj->ni", matrix_from_quat(world), rows[:, 4:7]) - self.gravity
         t = (times[lo:hi] - t0) / 1e9
+        ends = np.array([(t_a - t0) / 1e9, 0.0, (t_b - t0) / 1e9])
+        inside = t[(t > ends[0]) & (t < ends[2]) & (t != 0.0)]
+        grid = np.sort(np.concatenate([inside, ends]))
+        return grid, np.stack([np.interp(grid, t, acc[:, k]) for k in range(3)], axis=1)
 
-        def at(x: FloatArray) -> FloatArray:
-            return np.stack([np.interp(x, t, acc[:, k]) for k in range(3)], axis=1)
 
-        return at
+def _rotate(rotvec: FloatArray, v: FloatArray) -> FloatArray:
+    """``v`` (3,) turned by the rotation vector ``rotvec`` (3,) (Rodrigues on plain floats: one vector, where
+    numpy's per-call overhead would dominate)."""
+    x, y, z = (float(c) for c in rotvec)
+    vx, vy, vz = (float(c) for c in v)
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle < 1e-12:
+        return np.array([vx, vy, vz])
+    kx, ky, kz = x / angle, y / angle, z / angle
+    c, s = math.cos(angle), math.sin(angle)
+    dot = (kx * vx + ky * vy + kz * vz) * (1.0 - c)
+    cx, cy, cz = ky * vz - kz * vy, kz * vx - kx * vz, kx * vy - ky * vx
+    return np.array([vx * c + cx * s + kx * dot, vy * c + cy * s + ky * dot, vz * c + cz * s + kz * dot])
 
 
 def _orientations_at(
@@ -275,20 +289,11 @@ def _orientations_at(
 
 
 def _double_integral(grid: FloatArray, a: FloatArray) -> FloatArray:
-    """``D(τ) = ∫∫ a`` on ``grid`` (m,) for ``a`` (m, 3), zero value and zero slope at ``τ = 0`` (trapezoidal)."""
+    """``D(τ) = ∫∫ a`` on ``grid`` (m,) for ``a`` (m, 3), zero value and zero slope at ``τ = 0``, which is one
+    end of the grid (trapezoidal)."""
     step = np.diff(grid)[:, None]
     vel = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (a[1:] + a[:-1]) * step, axis=0)])
     pos = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (vel[1:] + vel[:-1]) * step, axis=0)])
     k = int(np.argmin(np.abs(grid)))  # τ = 0 is an end of the grid
     out: FloatArray = pos - pos[k] - vel[k] * (grid - grid[k])[:, None]
     return out
-
-
-def _interp_rows(x: FloatArray, grid: FloatArray, values: FloatArray) -> FloatArray:
-    """``values`` (m, 3) on ``grid`` (m,) interpolated at ``x`` (n,) -> (n, 3)."""
-    return np.stack([np.interp(x, grid, values[:, k]) for k in range(values.shape[1])], axis=1)
-
-
-def _points(span_s: float, step_s: float = 0.0025) -> int:
-    """Grid points for integrating over ``span_s`` seconds (at least both ends)."""
-    return max(2, int(np.ceil(abs(span_s) / step_s)) + 1)
