@@ -196,7 +196,10 @@ class SuitBinder:
             ])  # fmt: skip
             imu = np.stack([imu_directions(suits[s], self._axes) for s in suit_ids])
             sums = all_pair_sums(imu, vis)
-            frame = {(s, k): sums[i, j] for i, s in enumerate(suit_ids) for j, k in enumerate(track_ids)}
+            # Only pairs with a limb seen by both: a zero-count entry would be pruned from the totals below while
+            # still in this frame, and its removal at the end of the window would find nothing to subtract from.
+            frame = {(s, k): sums[i, j] for i, s in enumerate(suit_ids) for j, k in enumerate(track_ids)
+                     if sums[i, j, 3] > 0}  # fmt: skip
         self._frames.append((t_ns, frame))
         for key, v in frame.items():
             self._totals[key] = self._totals.get(key, np.zeros(4)) + v
