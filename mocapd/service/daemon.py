@@ -111,7 +111,7 @@ class Daemon:
         self.imu = ImuInputs(config.imu)
         tracker = PeopleTracker(
             SubjectTracker(DetectionSorter(rig.cameras, config.tracking.sorting), config.tracking.enrolment),
-            SuitBinder(rig.skeleton, config.tracking.binding) if rig.suits else None,
+            SuitBinder(rig.skeleton, config.tracking.binding, names=rig.targets.names) if rig.suits else None,
         )
         self.scheduler = FixedLatencyScheduler(
             rig.cameras,
