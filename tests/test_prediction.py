@@ -212,11 +212,11 @@ def test_prediction_can_wait_for_the_samples_that_arrive_while_solving() -> None
     ls = suit_lockstep(SchedulerOptions(prediction=PredictionOptions(output="predicted")))
     ls.run(1.5)
     now = ls.now_ns
-    ls._feed(now)
+    ls.feed(now)
     frame = ls.scheduler.tick(now, predict=False)
     (wearer,) = [p for p in frame.people if p.suit is not None]
     assert wearer.solved is None and frame.pose_time_ns(wearer) == frame.t_solve_ns  # not carried yet
-    ls._feed(now + 30 * MS)
+    ls.feed(now + 30 * MS)
     carried = ls.scheduler.predict(frame)
     (p,) = [p for p in carried.people if p.suit is not None]
     assert p.solved is not None and p.solved.theta is wearer.theta and carried.pose_time_ns(p) == now + 30 * MS

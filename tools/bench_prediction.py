@@ -8,7 +8,8 @@ the IMUs' newest instant, so both are measured on the same frames, under the sam
 frame with the host time at which it is published; afterwards each pose is scored against the truth **at that
 moment**:
 
-- bone orientation error: mean angle over the 21 bones between the pose's global rotations and the truth's;
+- bone orientation error: mean angle over the 21 bones between the pose's global rotations and the truth's (and
+  over the 13 bones that carry a sensor: the others are only as good as the solve makes them);
 - joint position error: mean distance over the 21 joints (the pose on its own body-sized skeleton);
 - IMU-sample -> publish latency: publish time minus the instant the pose is for (the solve instant when delayed;
   the newest IMU sample every live sensor of the suit has, as mapped to the host clock, when predicted).
@@ -20,6 +21,11 @@ bone orientations) over time.
 
     .venv/bin/python tools/bench_prediction.py [--seconds 60] [--latency 0.15] [--rate 60]
                                                [--heading-error 45 --heading-drift 10]
+    .venv/bin/python tools/bench_prediction.py --lockstep [--seconds 60]
+
+``--lockstep`` runs the same world and scheduler tick by tick without clocks or ptys (:mod:`mocapd.sim.lockstep`:
+every detection and IMU sample delivered on time, each frame published at its tick): what the method gives,
+independent of the machine's load; the default run adds what a real-time daemon on this machine adds.
 
 The machine is shared: the JSON records the load average before and after; both modes are measured on the same
 frames, so their ratio does not depend on it.
@@ -48,10 +54,12 @@ from mocapd.core.kinematics import Kinematics  # noqa: E402
 from mocapd.core.per_skeleton import PerSkeleton  # noqa: E402
 from mocapd.core.rotations import quat_angle, quat_from_matrix  # noqa: E402
 from mocapd.core.skeleton import Skeleton  # noqa: E402
+from mocapd.io.prior import resolve_prior  # noqa: E402
 from mocapd.pipeline.prediction import PredictionOptions  # noqa: E402
 from mocapd.pipeline.scheduler import PoseFrame  # noqa: E402
 from mocapd.service.config import load_config  # noqa: E402
 from mocapd.service.demo.synthetic import SyntheticDemo, running_demo  # noqa: E402
+from mocapd.sim.lockstep import S, suit_lockstep  # noqa: E402
 from mocapd.sim.world import SyntheticWorld  # noqa: E402
 from mocapd.sim.xsens import HeadingFault  # noqa: E402
 
@@ -101,30 +109,71 @@ def _summary(values: list[float], digits: int = 2) -> dict[str, float]:
 
 
 def score(world: SyntheticWorld, person: int, epoch_ns: int, frames: list[Published]) -> dict[str, Any]:
-    """Both modes against the truth at the moment of publishing (and, for reference, at their own instant)."""
+    """Both modes against the truth at the moment of publishing, and at the instant each pose is for (what the
+    solve and the prediction themselves get wrong, without the lag)."""
     models = PerSkeleton(world.kin, Kinematics)
-    keys = ("orientation_deg", "joint_mm", "own_instant_joint_mm", "imu_to_publish_ms")
+    keys = (
+        "orientation_deg",
+        "sensor_bones_orientation_deg",
+        "joint_mm",
+        "own_instant_orientation_deg",
+        "own_instant_joint_mm",
+        "imu_to_publish_ms",
+    )
+    sensor_bones = [m.bone_index for m in world.suits[0].mounts]
     out: dict[str, dict[str, list[float]]] = {m: {k: [] for k in keys} for m in ("delayed", "predicted")}
     for f in frames:
         truth = world.kin.forward(world.theta_at(person, (f.published_ns - epoch_ns) / 1e9))
         for mode, theta, t_pose in (("delayed", f.delayed, f.t_solve_ns), ("predicted", f.predicted, f.t_pose_ns)):
             fk = models.get(f.skeleton).forward(theta)
             own = world.kin.forward(world.theta_at(person, (t_pose - epoch_ns) / 1e9))
+            got = quat_from_matrix(fk.rotations)
+            angles = np.degrees(quat_angle(got, quat_from_matrix(truth.rotations)))
             r = out[mode]
-            r["orientation_deg"].append(
-                float(np.degrees(quat_angle(quat_from_matrix(fk.rotations), quat_from_matrix(truth.rotations))).mean())
-            )
+            r["orientation_deg"].append(float(angles.mean()))
+            r["sensor_bones_orientation_deg"].append(float(angles[sensor_bones].mean()))
             r["joint_mm"].append(1e3 * float(np.linalg.norm(fk.positions - truth.positions, axis=1).mean()))
+            r["own_instant_orientation_deg"].append(
+                float(np.degrees(quat_angle(got, quat_from_matrix(own.rotations))).mean())
+            )
             r["own_instant_joint_mm"].append(1e3 * float(np.linalg.norm(fk.positions - own.positions, axis=1).mean()))
-            r["imu_to_publish_ms"].append((f.published_ns - t_pose) / 1e6)  # fmt: skip
+            r["imu_to_publish_ms"].append((f.published_ns - t_pose) / 1e6)
     result: dict[str, Any] = {m: {k: _summary(v) for k, v in r.items()} for m, r in out.items()}
     d, p = result["delayed"], result["predicted"]
     result["predicted_over_delayed"] = {
         "orientation_p50": round(p["orientation_deg"]["p50"] / d["orientation_deg"]["p50"], 3),
         "orientation_mean": round(p["orientation_deg"]["mean"] / d["orientation_deg"]["mean"], 3),
+        "sensor_bones_orientation_p50": round(
+            p["sensor_bones_orientation_deg"]["p50"] / d["sensor_bones_orientation_deg"]["p50"], 3
+        ),
         "joint_p50": round(p["joint_mm"]["p50"] / d["joint_mm"]["p50"], 3),
     }
     return result
+
+
+def run_lockstep(args: argparse.Namespace) -> dict[str, Any]:
+    """The scheduler in lockstep (2 people, one suit): each frame published at its tick, scored there."""
+    cfg = load_config()
+    base = cfg.daemon.scheduler_options([f"cam{i}" for i in range(4)])
+    options = replace(base, rate_hz=args.rate, latency_ns=round(args.latency * 1e9),
+                      prediction=PredictionOptions(output="predicted"))  # fmt: skip
+    ls = suit_lockstep(options, cost=cfg.solver.cost, lm=cfg.solver.lm, prior=resolve_prior(cfg.solver.prior),
+                       n_people=2)  # fmt: skip
+    frames: list[Published] = []
+    for _ in range(round((args.warm_up + args.seconds) * args.rate)):
+        now = ls.now_ns
+        frame = ls.tick()
+        if now < S + round(args.warm_up * 1e9):
+            continue
+        for p in frame.people:
+            if p.suit is not None:
+                solved = p.solved if p.solved is not None else p
+                frames.append(Published(now, frame.t_solve_ns, frame.pose_time_ns(p), solved.theta, p.theta,
+                                        p.skeleton))  # fmt: skip
+    return {
+        "lockstep": True, "latency_s": args.latency, "rate_hz": args.rate, "warm_up_s": args.warm_up,
+        "seconds": args.seconds, "frames_scored": len(frames), **score(ls.world, 0, 0, frames),
+    }  # fmt: skip
 
 
 def heading_track(demo: SyntheticDemo, faults: dict[str, HeadingFault], t_s: float) -> dict[str, float]:
@@ -211,7 +260,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=60.0, help="output rate, Hz")
     ap.add_argument("--heading-error", type=float, default=0.0, help="per-sensor heading offsets over ±this, deg")
     ap.add_argument("--heading-drift", type=float, default=0.0, help="heading drift of every sensor, deg/min")
-    print(json.dumps(run(ap.parse_args(argv)), indent=1))
+    ap.add_argument("--lockstep", action="store_true", help="the scheduler tick by tick, no clocks (see above)")
+    args = ap.parse_args(argv)
+    print(json.dumps(run_lockstep(args) if args.lockstep else run(args), indent=1))
     return 0
 
 
