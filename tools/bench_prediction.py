@@ -57,7 +57,7 @@ from mocapd.core.skeleton import Skeleton  # noqa: E402
 from mocapd.io.prior import resolve_prior  # noqa: E402
 from mocapd.pipeline.prediction import PredictionOptions  # noqa: E402
 from mocapd.pipeline.scheduler import PoseFrame  # noqa: E402
-from mocapd.service.config import load_config  # noqa: E402
+from mocapd.service.config import Config, load_config  # noqa: E402
 from mocapd.service.demo.synthetic import SyntheticDemo, running_demo  # noqa: E402
 from mocapd.sim.lockstep import S, suit_lockstep  # noqa: E402
 from mocapd.sim.world import SyntheticWorld  # noqa: E402
@@ -151,9 +151,16 @@ def score(world: SyntheticWorld, person: int, epoch_ns: int, frames: list[Publis
     return result
 
 
+def _config(args: argparse.Namespace) -> Config:
+    cfg = load_config()
+    if args.body_size_s is not None:
+        cfg = replace(cfg, daemon=replace(cfg.daemon, body_size_s=args.body_size_s))
+    return cfg
+
+
 def run_lockstep(args: argparse.Namespace) -> dict[str, Any]:
     """The scheduler in lockstep (2 people, one suit): each frame published at its tick, scored there."""
-    cfg = load_config()
+    cfg = _config(args)
     base = cfg.daemon.scheduler_options([f"cam{i}" for i in range(4)])
     options = replace(base, rate_hz=args.rate, latency_ns=round(args.latency * 1e9),
                       prediction=PredictionOptions(output="predicted"))  # fmt: skip
@@ -172,6 +179,7 @@ def run_lockstep(args: argparse.Namespace) -> dict[str, Any]:
                                         p.skeleton))  # fmt: skip
     return {
         "lockstep": True, "latency_s": args.latency, "rate_hz": args.rate, "warm_up_s": args.warm_up,
+        "body_size_s": cfg.daemon.body_size_s,
         "seconds": args.seconds, "frames_scored": len(frames), **score(ls.world, 0, 0, frames),
     }  # fmt: skip
 
@@ -185,7 +193,7 @@ def heading_track(demo: SyntheticDemo, faults: dict[str, HeadingFault], t_s: flo
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    cfg = load_config()
+    cfg = _config(args)
     cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, latency_s=args.latency, output_rate_hz=args.rate),
                   websocket=replace(cfg.websocket, enabled=False))  # fmt: skip
     load0 = os.getloadavg()
@@ -223,7 +231,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "rig": {"cameras": 4, "people": 2, "suit_imus": 13, "imu_rate_hz": cfg.daemon.synthetic.imu_rate_hz,
                 "motion": cfg.daemon.synthetic.motion},
         "latency_s": args.latency, "rate_hz": args.rate, "warm_up_s": args.warm_up, "seconds": args.seconds,
-        "frames_scored": len(log.frames),
+        "body_size_s": cfg.daemon.body_size_s, "frames_scored": len(log.frames),
         "output": {k: st["output"][k] for k in ("achieved_hz", "frames", "missed_ticks", "late_ticks")},
         "daemon_latency_ms": {k: st["latency_ms"][k] for k in ("end_to_end", "imu_to_publish", "solve", "publish")},
         **score(world, world.suits[0].person, epoch, log.frames),
@@ -258,6 +266,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warm-up", type=float, default=15.0, help="seconds before measuring (enrolment, sizing)")
     ap.add_argument("--latency", type=float, default=0.15, help="fixed latency of the delayed solve, s")
     ap.add_argument("--rate", type=float, default=60.0, help="output rate, Hz")
+    ap.add_argument(
+        "--body-size-s",
+        type=float,
+        default=None,
+        help="[daemon] body_size_s (default config.toml's; 0: everyone on the world's skeleton)",
+    )
     ap.add_argument("--heading-error", type=float, default=0.0, help="per-sensor heading offsets over ±this, deg")
     ap.add_argument("--heading-drift", type=float, default=0.0, help="heading drift of every sensor, deg/min")
     ap.add_argument("--lockstep", action="store_true", help="the scheduler tick by tick, no clocks (see above)")
