@@ -63,3 +63,14 @@ def test_missing_and_malformed_files(tmp_path: Path, capsys: pytest.CaptureFixtu
     bad.write_text("[daemon\n")
     assert main(["check-config", str(bad)]) == 2
     assert "not valid TOML" in capsys.readouterr().err
+
+
+def test_output_mode_and_heading_correction() -> None:
+    opts = parse_config({"daemon": {"output": "predicted", "heading_correction": False}}).daemon.scheduler_options([])
+    assert opts.prediction.predicted and not opts.heading.enabled
+    shipped = load_config().daemon.scheduler_options([])
+    assert shipped.prediction.output == "delayed" and shipped.heading.enabled
+    with pytest.raises(ConfigError, match=r"daemon.output = 'future'; allowed: \['delayed', 'predicted'\]"):
+        parse_config({"daemon": {"output": "future"}})
+    with pytest.raises(ConfigError, match=r"daemon\.heading_correction = 1; allowed: true or false"):
+        parse_config({"daemon": {"heading_correction": 1}})

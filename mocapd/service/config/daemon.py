@@ -6,7 +6,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from mocapd.core.heading import HeadingOptions
 from mocapd.errors import ConfigError
+from mocapd.pipeline.prediction import OUTPUTS, PredictionOptions
 from mocapd.pipeline.scheduler import SchedulerOptions
 
 _RIGS = ("synthetic",)
@@ -34,6 +36,8 @@ class DaemonConfig:
     rig: str = "synthetic"
     output_rate_hz: float = 60.0
     latency_s: float = 0.15
+    output: str = "delayed"
+    heading_correction: bool = True
     max_catch_up_s: float = 0.05
     body_size_s: float = 2.0
     keypoint_max_age_s: float = 0.1
@@ -62,6 +66,8 @@ class DaemonConfig:
             camera_offsets_ns=tuple(round(self.camera_offsets_s.get(n, 0.0) * 1e9) for n in camera_names),
             imu_offsets_ns={k: round(v * 1e9) for k, v in self.imu_offsets_s.items()},
             body_size_frames=round(self.body_size_s * self.output_rate_hz),
+            prediction=PredictionOptions(output=self.output),
+            heading=HeadingOptions(enabled=self.heading_correction),
         )
 
 
@@ -80,6 +86,20 @@ def _num(
         kind = "an integer" if integer else "a number"
         raise ConfigError(f"{where}.{key} = {v!r}; allowed: {kind} in [{lo:g}, {hi:g}]")
     return v if integer else float(v)
+
+
+def _choice(t: dict[str, Any], key: str, where: str, default: str, allowed: tuple[str, ...]) -> str:
+    v = t.get(key, default)
+    if v not in allowed:
+        raise ConfigError(f"{where}.{key} = {v!r}; allowed: {list(allowed)}")
+    return str(v)
+
+
+def _bool(t: dict[str, Any], key: str, where: str, default: bool) -> bool:
+    v = t.get(key, default)
+    if not isinstance(v, bool):
+        raise ConfigError(f"{where}.{key} = {v!r}; allowed: true or false")
+    return v
 
 
 def _offsets(t: object, where: str) -> dict[str, float]:
@@ -126,6 +146,8 @@ def parse_daemon_config(t: dict[str, Any]) -> DaemonConfig:
         rig=rig,
         output_rate_hz=_num(t, "output_rate_hz", w, 60.0, 1.0, 500.0),
         latency_s=_num(t, "latency_s", w, 0.15, 0.0, 2.0),
+        output=_choice(t, "output", w, "delayed", OUTPUTS),
+        heading_correction=_bool(t, "heading_correction", w, True),
         max_catch_up_s=_num(t, "max_catch_up_s", w, 0.05, 0.0, 1.0),
         body_size_s=_num(t, "body_size_s", w, 2.0, 0.0, 60.0),
         keypoint_max_age_s=_num(t, "keypoint_max_age_s", w, 0.1, 0.0, 2.0),
