@@ -28,7 +28,10 @@ def test_shipped_config_is_valid_and_check_config_asks_for_cameras(
 @pytest.mark.parametrize(
     ("toml", "message"),
     [
-        ("[daemon]\nlatncy_s = 0.1\n", "unknown key daemon.latncy_s; allowed: body_size_s, http_host,"),
+        (
+            "[daemon]\nlatncy_s = 0.1\n",
+            "unknown key daemon.latncy_s; allowed: body_size_s, heading_correction, http_host,",
+        ),
         ("[daemon]\nlatency_s = -1\n", "daemon.latency_s = -1; allowed: a number in [0, 2]"),
         ("[daemon]\noutput_rate_hz = true\n", "daemon.output_rate_hz = true; allowed: a number in [1, 500]"),
         ("[daemon]\nhttp_port = 70000\n", "daemon.http_port = 70000; allowed: an integer in [0, 65535]"),
@@ -79,3 +82,14 @@ def test_missing_and_malformed_files(tmp_path: Path, capsys: pytest.CaptureFixtu
     bad.write_text("[daemon\n")
     assert main(["check-config", str(bad)]) == 2
     assert "not valid TOML" in capsys.readouterr().err
+
+
+def test_output_mode_and_heading_correction() -> None:
+    opts = parse_config({"daemon": {"output": "predicted", "heading_correction": False}}).daemon.scheduler_options([])
+    assert opts.prediction.predicted and not opts.heading.enabled
+    shipped = load_config().daemon.scheduler_options([])
+    assert shipped.prediction.output == "delayed" and shipped.heading.enabled
+    with pytest.raises(ConfigError, match=r'daemon.output = .future.; allowed: "delayed" or "predicted"'):
+        parse_config({"daemon": {"output": "future"}})
+    with pytest.raises(ConfigError, match=r"daemon\.heading_correction = 1; allowed: true or false"):
+        parse_config({"daemon": {"heading_correction": 1}})

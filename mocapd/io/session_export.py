@@ -11,7 +11,8 @@ CSV columns (one row per output frame, header row first; lengths in metres, quat
     <Bone>_qw, <Bone>_qx, <Bone>_qy, <Bone>_qz    for the 21 bones in skeleton order (local rotations)
     <Bone>_x, <Bone>_y, <Bone>_z                  for the 21 bones in skeleton order (global joint positions)
 
-``time_s`` is seconds since the first exported frame, ``t_solve_ns`` the host-clock solve time it stands for.
+``time_s`` is seconds since the first exported frame, ``t_solve_ns`` the host-clock instant it stands for (the
+solve time; in a session recorded with predicted output, the instants the suit wearer's poses were carried to).
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ def subject_track(poses: list[PoseRecord], subject: str | None = None) -> Subjec
     for f in poses:
         for p in f.people:
             if p.identity == subject:
-                t.append(f.t_solve_ns)
+                t.append(f.t_solve_ns if p.t_pose_ns is None else p.t_pose_ns)  # a predicted pose: its own instant
                 th.append(p.theta)
                 skeleton = p.skeleton if p.skeleton is not None else skeleton
     order = np.argsort(np.array(t), kind="stable")

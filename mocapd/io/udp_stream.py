@@ -188,7 +188,8 @@ class MvnUdpSink(_UdpPoseSink):
         if not chars:
             return
         try:
-            datagrams = self.encoder.encode(frame.frame, frame.t_solve_ns, chars, [p.skeleton for _, p in subjects])
+            datagrams = self.encoder.encode(frame.frame, frame.t_solve_ns, chars, [p.skeleton for _, p in subjects],
+                                            [frame.pose_time_ns(p) for _, p in subjects])  # fmt: skip
         except MocapdError:
             self.skipped_subjects += len(chars)
             return
@@ -243,7 +244,8 @@ class VmcUdpSink(_UdpPoseSink):
         thetas = np.stack([p.theta for _, p in subjects])
         tracked = [p.views > 0 or p.imus > 0 for _, p in subjects]
         try:
-            bundles = self.encoder.encode_many(t, thetas, tracked, [p.skeleton for _, p in subjects])
+            bundles = self.encoder.encode_many(t, thetas, tracked, [p.skeleton for _, p in subjects],
+                                               [frame.pose_time_ns(p) for _, p in subjects])  # fmt: skip
         except MocapdError:
             self.skipped_subjects += len(subjects)
             return

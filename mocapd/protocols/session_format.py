@@ -27,6 +27,9 @@ Payloads (struct formats; ``f4``/``f8`` arrays are little-endian float32/float64
   21 local rotation vectors) and the 21 global joint positions as 63 float32 (metres); then ``<B`` 1 if the
   person's own (body-sized) skeleton follows, 0 if θ is on the session's rig skeleton (manifest); if 1, ``<ff``
   root height and height (m) and the 21 bone offsets as 63 float32 (m) — θ means nothing without them.
+  Then an optional tail (absent in records written before the daemon had a predicted output, which are read as
+  delayed): ``<B`` output mode (0 delayed, 1 predicted) and per person ``<q`` the instant its pose is for
+  (host ns: t_solve_ns, or the IMUs' newest instant for a predicted pose).
 - ``T_FRAME`` (one downscaled camera frame, optional ``frames`` stream): ``<qHHHI`` capture_ns (host clock, as
   the camera's detections), camera index, image width, image height, JPEG length m; then the m bytes of the
   baseline JPEG (the image as the camera panels show it, not the camera's full resolution).
@@ -42,7 +45,7 @@ from __future__ import annotations
 import json
 import struct
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -73,6 +76,7 @@ _PERSON = struct.Struct("<iHHHBf")
 _SIZES = struct.Struct("<ff")
 _FRAME = struct.Struct("<qHHHI")
 _NO_SUIT = 255
+OUTPUT_MODES = ("delayed", "predicted")
 
 
 # ----------------------------------------------------------------------------------------------- framing
@@ -306,6 +310,7 @@ class PersonRecord:
     theta: FloatArray
     joints: FloatArray
     skeleton: Skeleton | None = None  # the person's own sized skeleton (None: the rig's, from the manifest)
+    t_pose_ns: int | None = None  # the instant the pose is for (None: the frame's t_solve_ns)
 
 
 @dataclass(frozen=True)
@@ -317,6 +322,7 @@ class PoseRecord:
     tick_ns: int
     missing_cameras: int
     people: tuple[PersonRecord, ...]
+    output: str = "delayed"  # the daemon's output mode: "delayed" or "predicted"
 
 
 def _short(text: str | None) -> bytes:
@@ -348,6 +354,11 @@ def encode_pose(r: PoseRecord) -> bytes:
         else:
             parts.append(b"\x01" + _SIZES.pack(p.skeleton.root_height, p.skeleton.height))
             parts.append(np.ascontiguousarray(p.skeleton.offsets, dtype="<f4").tobytes())
+    if r.output not in OUTPUT_MODES:
+        raise InputError(f"pose record output {r.output!r}; allowed: {list(OUTPUT_MODES)}")
+    parts.append(bytes([OUTPUT_MODES.index(r.output)]))
+    parts.append(struct.pack(f"<{len(r.people)}q", *(r.t_solve_ns if p.t_pose_ns is None else p.t_pose_ns
+                                                      for p in r.people)))  # fmt: skip
     return b"".join(parts)
 
 
@@ -382,6 +393,14 @@ def decode_pose(p: bytes) -> PoseRecord:
             o += 1
         people.append(PersonRecord(identity or "", suit, track, views, imus, iters, bool(conv), conf, theta, joints,
                                    skeleton))  # fmt: skip
+    output = "delayed"
+    if len(p) - o == 1 + 8 * n:  # the tail: output mode and each pose's instant
+        if p[o] >= len(OUTPUT_MODES):
+            raise InputError(f"pose record: output mode {p[o]} unknown")
+        output = OUTPUT_MODES[p[o]]
+        times = struct.unpack_from(f"<{n}q", p, o + 1)
+        people = [replace(person, t_pose_ns=tp) for person, tp in zip(people, times, strict=True)]
+        o = len(p)
     if o != len(p):
         raise InputError(f"pose record: {len(p) - o} bytes left after {n} people")
-    return PoseRecord(frame, t, tick, missing, tuple(people))
+    return PoseRecord(frame, t, tick, missing, tuple(people), output)

@@ -34,6 +34,9 @@ Server → client messages
     encodings       [str]   encodings the server speaks
     conventions     [str]   conventions the server speaks
     stream_rate_hz  float   the solver's output rate
+    output          str     "delayed": every pose is the solve at the fixed latency (t_solve_ns); "predicted":
+                            the poses of suit wearers are carried forward to their IMUs' newest instant (each
+                            subject's t_pose_ns), the others stay delayed
     decimation      int     this client gets frames whose counter is a multiple of this
     rate_hz         float   stream_rate_hz / decimation
     globals         bool    whether frames carry global joint positions
@@ -69,6 +72,8 @@ Server → client messages
         confidence  float   0..1, detector confidence of the keypoints used (reduced below two views)
         views       int     cameras that saw the subject this frame
         imus        int     IMUs that measured the subject this frame
+        t_pose_ns   int     the instant this subject's pose describes (host CLOCK_MONOTONIC ns): t_solve_ns, or
+                            later for a predicted pose (hello.output "predicted", suit wearers)
 
 ``status`` (at the configured status rate, when the client's ``status`` option is on)::
 
@@ -184,6 +189,8 @@ class SubjectPose(Protocol):
     def imus(self) -> int: ...
     @property
     def skeleton(self) -> Skeleton | None: ...  # the subject's own sized skeleton (None: the stream's default)
+    @property
+    def t_pose_ns(self) -> int | None: ...  # the instant the pose describes (None: the frame's t_solve_ns)
 
 
 class FramePoses(Protocol):
@@ -240,12 +247,16 @@ class StreamDescription:
     """(name, width, height) of each camera whose views the server sends (empty: no camera messages)."""
     camera_rate_hz: float = 4.0
     """The most camera messages per second per camera a client may ask for."""
+    output: str = "delayed"
+    """The daemon's output mode, announced in the hello ("delayed" or "predicted")."""
 
     def __post_init__(self) -> None:
         if not self.skeletons:
             raise ValueError("a stream needs at least one skeleton")
         if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
             raise ValueError(f"stream rate must be > 0 Hz, got {self.rate_hz!r}")
+        if self.output not in ("delayed", "predicted"):
+            raise ValueError(f"output must be 'delayed' or 'predicted', got {self.output!r}")
 
     def skeleton_key(self, subject_id: str) -> str:
         if self.skeleton_of is None:
@@ -378,6 +389,7 @@ class FrameEncoder:
             s["confidence"] = round(conf, 4) if math.isfinite(conf) else 0.0
             s["views"] = int(person.views)
             s["imus"] = int(person.imus)
+            s["t_pose_ns"] = int(self.frame.t_solve_ns if person.t_pose_ns is None else person.t_pose_ns)
             subjects.append(s)
         msg = encode(
             {"type": "frame", "frame": int(self.frame.frame), "t_solve_ns": int(self.frame.t_solve_ns),
@@ -549,7 +561,8 @@ class ClientSession:
                 "convention": o.convention, "units": "cm" if conv.scale == 100.0 else "m",
                 "left_handed": conv.left_handed, "encoding": o.encoding,
                 "encodings": list(ENCODINGS), "conventions": list(STREAM_CONVENTIONS),
-                "stream_rate_hz": rate, "decimation": o.decimation, "rate_hz": rate / o.decimation,
+                "stream_rate_hz": rate, "output": self.description.output, "decimation": o.decimation,
+                "rate_hz": rate / o.decimation,
                 "globals": o.globals,
                 "subjects_filter": None if o.subjects is None else sorted(o.subjects),
                 "status": o.status, "max_message_bytes": self.description.max_message_bytes,

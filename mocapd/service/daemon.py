@@ -177,7 +177,7 @@ class Daemon:
             SubjectTracker(
                 DetectionSorter(rig.cameras, config.tracking.sorting.options()), config.tracking.enrolment.options()
             ),
-            SuitBinder(rig.skeleton, config.tracking.binding.options()) if rig.suits else None,
+            SuitBinder(rig.skeleton, config.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
         )
         self.scheduler = FixedLatencyScheduler(
             rig.cameras,
@@ -326,7 +326,14 @@ class Daemon:
         while True:
             await asyncio.sleep(max(0.0, (plan.next_ns - self.clock()) / 1e9))
             # Solve for the scheduled tick time, not the (jittery) wake-up time: output frames stay evenly spaced.
-            frame = self.scheduler.tick(plan.next_ns)
+            frame = self.scheduler.tick(plan.next_ns, predict=False)
+            if self.scheduler.options.prediction.predicted:
+                # Two loop iterations: the first polls the serial ports and queues their readers after this task,
+                # the second runs them, so the IMU samples that arrived while solving are buffered; then the
+                # suit wearers are carried to the newest of them.
+                await asyncio.sleep(0)
+                await asyncio.sleep(0)
+                frame = self.scheduler.predict(frame)
             w0, c0 = self.scheduler.stage_clocks()
             for sink in self.sinks:
                 sink.publish(frame)
@@ -396,6 +403,7 @@ class Daemon:
                 "missed_ticks": self.plan.missed if self.plan else 0,
                 "late_ticks": self.plan.late if self.plan else 0,
                 "latency_s": self.scheduler.options.latency_ns / 1e9,
+                "mode": s["output"],
             },
             "latency_ms": s["latency_ms"],
             "cpu_s": s["cpu_s"],
@@ -405,6 +413,7 @@ class Daemon:
             ],
             "imu": self.imu.status(),
             "imu_lookups": s["imu_samples"],
+            "imu_heading": s["heading"],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},
             "subjects": s["people"],
@@ -425,7 +434,7 @@ class Daemon:
                 "people": [
                     {"identity": p.identity, "suit": p.suit, "root_m": [round(float(v), 4) for v in p.theta[:3]],
                      "confidence": round(p.confidence, 3), "views": p.views, "imus": p.imus,
-                     "iterations": p.iterations}
+                     "iterations": p.iterations, "t_pose_ns": frame.pose_time_ns(p)}
                     for p in frame.people
                 ],
             },

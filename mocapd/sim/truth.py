@@ -28,8 +28,8 @@ class TruthError:
         self.frames += 1
         if self.frames % SCORE_EVERY:
             return
-        t = (frame.t_solve_ns - self.epoch_ns) / 1e9
-        for person in frame.people:
+        for person in frame.people:  # each pose against the truth at its own instant (later when predicted)
+            t = (frame.pose_time_ns(person) - self.epoch_ns) / 1e9
             self.errors.append(self.world.nearest_site_error(person.theta, person.skeleton, t)[0])
 
     def recent_mm(self, n: int = 30) -> float | None:

@@ -20,13 +20,16 @@ from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import PoseSink
 
 
-def stream_sinks(config: Config, skeleton: Skeleton, camera_views: CameraViews | None = None) -> list[PoseSink]:
+def stream_sinks(
+    config: Config, skeleton: Skeleton, camera_views: CameraViews | None = None, output: str = "delayed"
+) -> list[PoseSink]:
     """The streaming sinks a replay publishes through: the streams configured in ``config``, for poses on the
-    session's ``skeleton`` (the WebSocket stream with the session's camera panels when ``camera_views``)."""
+    session's ``skeleton`` (the WebSocket stream with the session's camera panels when ``camera_views``),
+    announcing the recorded ``output`` mode."""
     from mocapd.service.outputs.udp import udp_sinks
     from mocapd.service.outputs.websocket import websocket_sinks
 
-    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton, camera_views=camera_views)]
+    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton, camera_views=camera_views, output=output)]
 
 
 def _open(path: Path) -> Session:
@@ -52,7 +55,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     frames = session.poses(_pose_stream(session, args.resolved))
     rig = session_rig(session)
     views, events = replay_camera_views(session, rig, frames)
-    sinks: list[PoseSink] = [views, *stream_sinks(cfg, rig.skeleton, views)]
+    output = frames[0].output if frames else "delayed"
+    sinks: list[PoseSink] = [views, *stream_sinks(cfg, rig.skeleton, views, output)]
     last = [0.0]
 
     def progress(frame: PoseFrame) -> None:

@@ -8,7 +8,9 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field
 
+from mocapd.core.heading import HeadingOptions
 from mocapd.errors import ConfigError
+from mocapd.pipeline.prediction import PredictionOptions
 from mocapd.pipeline.scheduler import SchedulerOptions
 from mocapd.service.config.cameras import Name
 from mocapd.service.config.schema import Allowed, Section
@@ -41,6 +43,11 @@ class DaemonConfig(Section):
 
     output_rate_hz: float = Field(60.0, ge=1.0, le=500.0)
     latency_s: float = Field(0.15, ge=0.0, le=2.0)
+    output: Literal["delayed", "predicted"] = "delayed"
+    """Publish the solve of ``now - latency_s`` ("delayed"), or carry suit wearers forward to the newest IMU
+    samples ("predicted", docs/daemon.md "Predicted output")."""
+    heading_correction: bool = True
+    """Correct each IMU's heading from the cameras while at least two see its wearer."""
     max_catch_up_s: float = Field(0.05, ge=0.0, le=1.0)
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
     keypoint_max_age_s: float = Field(0.1, ge=0.0, le=2.0)
@@ -79,4 +86,6 @@ class DaemonConfig(Section):
             camera_offsets_ns=tuple(round(self.offsets.cameras.get(n, 0.0) * 1e9) for n in camera_names),
             imu_offsets_ns={k: round(v * 1e9) for k, v in self.offsets.imus.items()},
             body_size_frames=round(self.body_size_s * self.output_rate_hz),
+            prediction=PredictionOptions(output=self.output),
+            heading=HeadingOptions(enabled=self.heading_correction),
         )

@@ -61,13 +61,13 @@ if TYPE_CHECKING:
 
 
 def pose_record(frame: PoseFrame) -> PoseRecord:
-    """A published frame as a recorded one (same fields)."""
+    """A published frame as a recorded one (same fields, and the instant each pose is for)."""
     people = tuple(
         PersonRecord(p.identity, p.suit, p.track, p.views, p.imus, p.iterations, p.converged, p.confidence,
-                     p.theta, p.joints, p.skeleton)
+                     p.theta, p.joints, p.skeleton, frame.pose_time_ns(p))
         for p in frame.people
     )  # fmt: skip
-    return PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people)
+    return PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people, frame.output)
 
 
 def _encode_frame(frame: PoseFrame) -> bytes:
@@ -209,7 +209,8 @@ def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | Non
             "rate_hz": o.rate_hz, "latency_ns": o.latency_ns, "keypoint_max_age_ns": o.keypoint_max_age_ns,
             "keypoint_max_gap_ns": o.keypoint_max_gap_ns, "match_px": o.match_px,
             "camera_offsets_ns": list(o.camera_offsets_ns), "imu_offsets_ns": dict(o.imu_offsets_ns),
-            "body_size_frames": o.body_size_frames,
+            "body_size_frames": o.body_size_frames, "output": o.prediction.output,
+            "heading_correction": o.heading.enabled,
         },
         "cameras": [camera_dict(c) for c in rig.cameras],
         "skeleton": {"offsets": rig.skeleton.offsets.tolist(), "root_height": rig.skeleton.root_height,

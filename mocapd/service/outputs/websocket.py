@@ -37,9 +37,8 @@ def build_websocket_sinks(
             max_width=ws.camera_width, rate_hz=ws.camera_rate_hz, jpeg_quality=ws.camera_quality
         )
         views = attach_camera_views(daemon, options)
-    return websocket_sinks(
-        config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock, camera_views=views
-    )
+    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock,
+                           camera_views=views, output=daemon.scheduler.options.prediction.output)  # fmt: skip
 
 
 def websocket_sinks(
@@ -50,9 +49,11 @@ def websocket_sinks(
     clock: Callable[[], int] = time.monotonic_ns,
     sock: socket.socket | None = None,
     camera_views: CameraViews | None = None,
+    output: str = "delayed",
 ) -> list[WebSocketStreamServer]:
     """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health), with
-    camera panels from ``camera_views`` when given."""
+    camera panels from ``camera_views`` when given; ``output`` is the output mode the hello announces (the
+    daemon's, or the recorded session's)."""
     ws = config.websocket
     if not ws.enabled:
         return []
@@ -61,7 +62,7 @@ def websocket_sinks(
         max_message_bytes=ws.max_message_bytes, status_hz=ws.status_hz, viewer=ws.viewer,
         defaults=StreamOptions(encoding=ws.encoding, convention=ws.convention, globals=ws.globals),
     )  # fmt: skip
-    description = StreamDescription(rate_hz=config.daemon.output_rate_hz, skeletons={"default": skeleton})
+    description = StreamDescription(config.daemon.output_rate_hz, {"default": skeleton}, output=output)
     return [
         WebSocketStreamServer(settings, description, status=status, clock=clock, sock=sock, camera_views=camera_views)
     ]

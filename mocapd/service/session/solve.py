@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.camera import Camera
+from mocapd.core.heading import HeadingOptions
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
@@ -116,6 +117,9 @@ def session_rig(session: Session) -> SessionRig:
         camera_offsets_ns=tuple(int(v) for v in s["camera_offsets_ns"]),
         imu_offsets_ns={k: int(v) for k, v in s["imu_offsets_ns"].items()},
         body_size_frames=int(s.get("body_size_frames", 0)),
+        # Offline there is nothing to predict: always the delayed solve. Heading correction as recorded (on for
+        # sessions from before it existed: it only ever uses the session's own keypoints and IMUs).
+        heading=HeadingOptions(enabled=bool(s.get("heading_correction", True))),
     )  # fmt: skip
     return SessionRig(config, cameras, skeleton, targets, prior, suits, options)
 
@@ -127,7 +131,7 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
     ingest = ImuIngest(capacity=max(cfg.imu.buffer_capacity, 1024))
     tracker = PeopleTracker(
         SubjectTracker(DetectionSorter(rig.cameras, cfg.tracking.sorting.options()), cfg.tracking.enrolment.options()),
-        SuitBinder(rig.skeleton, cfg.tracking.binding.options()) if rig.suits else None,
+        SuitBinder(rig.skeleton, cfg.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
     )
     sched = FixedLatencyScheduler(
         rig.cameras, rig.skeleton, rig.targets, tracker, prior=rig.prior, ingest=ingest, suits=rig.suits,
