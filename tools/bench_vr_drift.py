@@ -8,9 +8,11 @@ Each sensor's heading reference drifts at its own rate, drawn once from ``--drif
 random sign (seeded), as gyroscope bias makes 6-axis trackers drift. Every 6th published frame (10 Hz) the
 heading error of each of the 13 suit bones is measured against the truth at the frame's solve time:
 
-- ``imu``: the bone orientation the suit gives (``R_ig R_i R_ib⁻¹`` from the ring buffers: what the solver is
-  told), the heading part of ``R · R_trueᵀ`` (its twist about world up), in degrees; measured whether or not the
-  suit is bound to the person this frame;
+- ``imu``: the bone orientation the suit gives (``R_ig R_i R_ib⁻¹`` from the ring buffers, before any heading
+  correction), the heading part of ``R · R_trueᵀ`` (its twist about world up), in degrees; measured whether or not
+  the suit is bound to the person this frame;
+- ``imu_corrected``: the same after the scheduler's camera-based heading correction (``R_y(offset) · R``, the
+  offsets in use at that moment: what the solver is told; equal to ``imu`` when the correction is off);
 - ``solved``: the same for the solved skeleton's bone, in frames where the suit is bound (``suit_bound_fraction``).
 
 Prints one JSON object: per-minute medians over bones and samples of ``|heading error|``, the last 30 s, the injected
@@ -29,20 +31,26 @@ import io
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mocapd.core.kinematics import Kinematics
-from mocapd.core.per_skeleton import PerSkeleton
-from mocapd.core.rotations import quat_conjugate, quat_from_matrix, quat_multiply
-from mocapd.core.skeleton import BONE_INDEX
-from mocapd.pipeline.ringbuffer import LookupStatus
-from mocapd.pipeline.scheduler import PoseFrame
-from mocapd.service.config import load_config
-from tools.slimevr_rig import SlimeVrRig, build_slimevr_daemon, emulator_process
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # run as `python tools/bench_vr_drift.py` from a checkout
+    sys.path.insert(0, str(REPO))
+
+from mocapd.core.heading import yaw_quat  # noqa: E402
+from mocapd.core.kinematics import Kinematics  # noqa: E402
+from mocapd.core.per_skeleton import PerSkeleton  # noqa: E402
+from mocapd.core.rotations import quat_conjugate, quat_from_matrix, quat_multiply  # noqa: E402
+from mocapd.core.skeleton import BONE_INDEX  # noqa: E402
+from mocapd.pipeline.ringbuffer import LookupStatus  # noqa: E402
+from mocapd.pipeline.scheduler import PoseFrame  # noqa: E402
+from mocapd.service.config import load_config  # noqa: E402
+from tools.slimevr_rig import SlimeVrRig, build_slimevr_daemon, emulator_process  # noqa: E402
 
 
 def heading_deg(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
@@ -58,7 +66,8 @@ class DriftProbe:
     def __init__(self, every: int = 6) -> None:
         self.every = every
         self.rig: SlimeVrRig | None = None
-        self.samples: list[tuple[float, float, float]] = []  # (t_s, median |imu| error, median |solved| error)
+        # (t_s, median |imu| error, median |solved| error, median |corrected imu| error)
+        self.samples: list[tuple[float, float, float, float]] = []
         self.frames = 0
         self._kin: PerSkeleton[Kinematics] | None = None
 
@@ -78,6 +87,8 @@ class DriftProbe:
             by_sensor[s].quat if by_sensor[s].status is LookupStatus.OK else [np.nan] * 4 for s in suit.sensors
         ])  # fmt: skip
         e_imu = float(np.nanmedian(np.abs(heading_deg(q_imu, q_true)))) if np.isfinite(q_imu).any() else np.nan
+        q_corr = quat_multiply(yaw_quat(rig.daemon.scheduler.heading.offsets(suit.sensors)), q_imu)
+        e_corr = float(np.nanmedian(np.abs(heading_deg(q_corr, q_true)))) if np.isfinite(q_corr).any() else np.nan
         person = next((p for p in frame.people if p.suit == "suit0"), None)
         e_solved = np.nan
         if person is not None:
@@ -85,7 +96,7 @@ class DriftProbe:
                 self._kin = PerSkeleton(Kinematics(world.skeleton), Kinematics)
             q_solved = quat_from_matrix(self._kin.get(person.skeleton).forward(person.theta).rotations[bones])
             e_solved = float(np.median(np.abs(heading_deg(q_solved, q_true))))
-        self.samples.append((t, e_imu, e_solved))
+        self.samples.append((t, e_imu, e_solved, e_corr))
 
     async def start(self) -> None:
         return None
@@ -104,12 +115,13 @@ def _window(sel: np.ndarray) -> dict[str, Any]:
         "samples": len(sel),
         "suit_bound_fraction": round(float(np.isfinite(sel[:, 2]).mean()), 3) if len(sel) else None,
         "imu_heading_error_deg_median": _median(sel[:, 1]),
+        "imu_corrected_heading_error_deg_median": _median(sel[:, 3]),
         "solved_heading_error_deg_median": _median(sel[:, 2]),
     }
 
 
-def summarise(samples: list[tuple[float, float, float]], seconds: float) -> dict[str, Any]:
-    a = np.array(samples) if samples else np.zeros((0, 3))
+def summarise(samples: list[tuple[float, float, float, float]], seconds: float) -> dict[str, Any]:
+    a = np.array(samples) if samples else np.zeros((0, 4))
     per_minute = [
         {"minute": m + 1, **_window(a[(a[:, 0] >= 60 * m) & (a[:, 0] < 60 * (m + 1))])}
         for m in range(int(np.ceil(seconds / 60.0)))
@@ -147,6 +159,7 @@ async def run(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "benchmark": "vr_drift",
         "config": str(args.config or "shipped config.toml"),
+        "heading_correction": cfg.daemon.heading_correction,
         "seconds": args.seconds,
         "elapsed_s": round(elapsed, 1),
         "cameras": args.cameras,
