@@ -1,7 +1,5 @@
 """``python -m mocapd``: the ``mocapd`` command."""
 
-import sys
+from mocapd.service.cli import entry
 
-from mocapd.service.cli import main
-
-sys.exit(main())
+entry()

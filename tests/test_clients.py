@@ -8,7 +8,6 @@ import asyncio
 import itertools
 import re
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -48,7 +47,8 @@ def check_output(out: str, convention: str, units: str, rate: str) -> None:
 @pytest.mark.asyncio
 async def test_node_and_python_receivers_against_the_daemon() -> None:
     cfg = load_config()
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0), websocket=replace(cfg.websocket, port=free_port()))
+    cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+                                 "websocket": cfg.websocket.model_copy(update={"port": free_port()})})  # fmt: skip
     async with daemon(cfg):
         url = f"ws://127.0.0.1:{cfg.websocket.port}/"
         # Wait until both people are tracked, so the clients' frames carry subjects.

@@ -12,8 +12,8 @@ from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, headin
 from mocapd.core.rotations import quat_angle, quat_conjugate, quat_from_rotvec, quat_multiply, random_quat
 from mocapd.errors import ConfigError
 from mocapd.service.cli import main
-from mocapd.service.config import DEFAULT_CONFIG, load_config
-from mocapd.service.config.imu import parse_imu_config
+from mocapd.service.config import DEFAULT_CONFIG, load_config, parse_config
+from mocapd.service.config.imu import ImuConfig
 from mocapd.sim import xsens as xsens_sim
 
 REPO = Path(__file__).resolve().parents[1]
@@ -122,17 +122,26 @@ def test_shipped_config_parses() -> None:
 
 
 def test_config_errors_name_the_key() -> None:
-    with pytest.raises(ConfigError, match=r"unknown keys \['rate'\]"):
-        parse_imu_config({"rate": 100})
-    with pytest.raises(ConfigError, match=r"60\.\.120"):
-        parse_imu_config({"rate_hz": 200})
-    with pytest.raises(ConfigError, match="loopback"):
-        parse_imu_config({"bridge": {"enabled": True, "host": "0.0.0.0"}})
-    with pytest.raises(ConfigError, match=r"imu.awinda\]: unknown keys"):
-        parse_imu_config({"awinda": {"scale": 1}})
-    with pytest.raises(ConfigError, match="list of device paths"):
-        parse_imu_config({"ports": "/dev/ttyUSB0"})
-    with pytest.raises(ConfigError, match="not a bone"):
-        parse_imu_config({"assignment": {"00B40011": "Pelvis"}})
-    cfg = parse_imu_config({"ports": ["/dev/a", "/dev/b"], "rate_hz": 120, "attempts": 5})
-    assert [p.path for p in cfg.ports] == ["/dev/a", "/dev/b"] and cfg.ports[1].attempts == 5
+    with pytest.raises(ConfigError, match=r"unknown key imu.rate; allowed: assignment, attempts, awinda"):
+        imu({"rate": 100})
+    with pytest.raises(ConfigError, match=r"imu.rate_hz = 200; allowed: an integer in \[60, 120\]"):
+        imu({"rate_hz": 200})
+    with pytest.raises(
+        ConfigError, match=r"imu.bridge.host = '0.0.0.0'; allowed: \"127.0.0.1\", \"::1\" or \"localhost\""
+    ):
+        imu({"bridge": {"enabled": True, "host": "0.0.0.0"}})
+    with pytest.raises(ConfigError, match=r"unknown key imu.awinda.scale; allowed: delta_q_scale"):
+        imu({"awinda": {"scale": 1}})
+    with pytest.raises(ConfigError, match=r"imu\.ports = '/dev/ttyUSB0'; allowed: an array of at most 64 items"):
+        imu({"ports": "/dev/ttyUSB0"})
+    with pytest.raises(
+        ConfigError, match=r"imu.assignment = \{'00B40011': 'Pelvis'\}: 00B40011 -> 'Pelvis' is not a bone"
+    ):
+        imu({"assignment": {"00B40011": "Pelvis"}})
+    cfg = imu({"ports": ["/dev/a", "/dev/b"], "rate_hz": 120, "attempts": 5})
+    ports = cfg.port_configs()
+    assert [p.path for p in ports] == ["/dev/a", "/dev/b"] and ports[1].attempts == 5 and ports[0].rate_hz == 120
+
+
+def imu(table: dict[str, object]) -> ImuConfig:
+    return parse_config({"imu": table}).imu

@@ -6,17 +6,19 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import pytest
 
 from mocapd.errors import DeviceError
+from mocapd.io.device_state import OpenState
+from mocapd.pipeline.imu_ingest import SensorStream
 from mocapd.pipeline.keypoint_source import KeypointSink, KeypointSource
 from mocapd.pipeline.scheduler import PoseFrame
+from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import load_config
-from mocapd.service.demo.synthetic import running_demo
+from mocapd.service.demo.synthetic import synthetic_config
 from mocapd.service.supervisor import Supervisor
 
 
@@ -52,6 +54,9 @@ class FlakySource:
     def status(self) -> dict[str, Any]:
         return self.inner.status()
 
+    def open_state(self) -> OpenState:
+        return self.inner.open_state()
+
 
 class Recorder:
     def __init__(self) -> None:
@@ -79,9 +84,12 @@ async def wait_for(cond: Callable[[], bool], timeout: float, what: str) -> None:
 @pytest.mark.asyncio
 async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug() -> None:
     cfg = load_config()
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, restart_min_s=0.1, restart_max_s=0.2))
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0, "restart_min_s": 0.1, "restart_max_s": 0.2}),
+        "websocket": cfg.websocket.model_copy(update={"enabled": False}),
+    })  # fmt: skip
     rec = Recorder()
-    with running_demo(cfg, sinks=[rec]) as demo:
+    with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:
         d = demo.daemon
         d.rig.sources[1] = FlakySource(d.rig.sources[1])
         task = asyncio.create_task(d.run())
@@ -103,6 +111,14 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
         assert st["latency_ms"]["end_to_end"]["p50"] >= 150.0  # includes the configured fixed latency
         assert {p["identity"] for p in st["frame"]["people"]} >= {"suit:suit0"}
         assert st["subjects"]["suits"]["suit0"]["confidence"] > 0.5
+        assert st["output"]["mode"] == "delayed"
+        assert all(p["t_pose_ns"] == st["frame"]["t_solve_ns"] for p in st["frame"]["people"])
+        # Heading correction: every suit sensor reported; with COCO-17 the feet cannot be observed; the simulated
+        # sensors have no heading error, so what is estimated stays near zero.
+        heading = st["imu_heading"]["suit0"]
+        assert len(heading) == 13
+        assert {h["bone"] for h in heading.values() if h["state"] == "unobservable"} == {"LeftFoot", "RightFoot"}
+        assert all(abs(h["offset_deg"]) < 3.0 for h in heading.values())
 
         code, headers, body = await http_get(port, "/metrics")
         text = body.decode()
@@ -115,7 +131,8 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
         assert (await http_get(port, "/status", method="POST"))[0] == 405
 
         # Unplug one simulated IMU: the daemon keeps publishing, reports it, and recovers when it returns.
-        sim = demo.simulators[0]
+        assert demo.built.simulated is not None
+        sim = demo.built.simulated.simulators[0]
         frames_before = len(rec.frames)
         sim.unplug()
         device = next(x for x in d.imu.devices if x.config.path == str(sim.link))
@@ -140,8 +157,58 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
     # Every output slot from the first frame up to the next scheduled one was either published or counted missed.
     assert len(rec.frames) + d.plan.missed == (d.plan.next_ns - rec.frames[0].tick_ns) // period
     # Bounded error against the synthetic truth once both people are tracked.
-    assert demo.truth.recent_mm(75) is not None  # the last ~5 s (every 4th frame is scored)
+    assert demo.truth is not None and demo.truth.recent_mm(75) is not None  # the last ~5 s (every 4th frame is scored)
     assert float(np.median(list(demo.truth.errors)[-75:])) < 0.02
+
+
+class NewestSampleRecorder(Recorder):
+    """Also notes, at each publish, the newest sample time any IMU has buffered."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.streams: dict[str, SensorStream] = {}
+        self.newest_ns: list[int] = []
+
+    def publish(self, frame: PoseFrame) -> None:
+        super().publish(frame)
+        times = [int(s.buffer.times()[-1]) for s in self.streams.values() if len(s.buffer)]
+        self.newest_ns.append(max(times, default=0))
+
+
+@pytest.mark.asyncio
+async def test_predicted_output_publishes_the_suit_wearer_at_imu_latency() -> None:
+    """``[daemon] output = "predicted"``: the suit wearer is carried from the solve instant to its IMUs' newest
+    sample, published with that instant and the delayed solve it came from; the other person stays delayed."""
+    cfg = load_config()
+    cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0, "output": "predicted"})})
+    rec = NewestSampleRecorder()
+    with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:
+        d = demo.daemon
+        rec.streams = d.imu.ingest.streams
+        task = asyncio.create_task(d.run())
+        await asyncio.wait_for(d.ready.wait(), 120)
+
+        def carried() -> bool:
+            return bool(rec.frames) and any(p.solved is not None for p in rec.frames[-1].people)
+
+        await wait_for(carried, 30, "a predicted suit wearer")
+        start = len(rec.frames)
+        await asyncio.sleep(2.0)
+        st = json.loads((await http_get(d.http.port, "/status"))[2])
+        d.request_stop()
+        assert await asyncio.wait_for(task, 5) == 0
+    assert st["output"]["mode"] == "predicted"
+    frames = rec.frames[start:]
+    assert frames and all(f.output == "predicted" for f in frames)
+    suited = [(f, p) for f in frames for p in f.people if p.suit is not None]
+    others = [(f, p) for f in frames for p in f.people if p.suit is None]
+    assert others and all(p.solved is None and f.pose_time_ns(p) == f.t_solve_ns for f, p in others)
+    ahead = [(f.pose_time_ns(p) - f.t_solve_ns) / 1e6 for f, p in suited if p.solved is not None]
+    assert len(ahead) >= 0.9 * len(suited) and np.median(ahead) > 100.0  # of the 150 ms fixed latency
+    measured = dict(zip((id(f) for f in rec.frames), rec.newest_ns, strict=True))
+    assert all(f.pose_time_ns(p) <= measured[id(f)] for f, p in suited)  # never past what was measured
+    lat = st["latency_ms"]
+    assert lat["imu_to_publish"]["p50"] < lat["end_to_end"]["p50"] - 100.0
 
 
 @pytest.mark.asyncio

@@ -9,30 +9,49 @@ import pytest
 from mocapd.errors import ConfigError
 from mocapd.service.cli import main
 from mocapd.service.config import DEFAULT_CONFIG, load_config, parse_config
+from tests.rigs import synthetic_toml, write
 
 
-def test_shipped_config_is_valid_and_check_config_says_so(capsys: pytest.CaptureFixture[str]) -> None:
+def test_shipped_config_is_valid_and_check_config_asks_for_cameras(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     cfg = load_config()
-    assert cfg.daemon.output_rate_hz == 60.0 and cfg.daemon.http_host == "127.0.0.1"
-    assert main(["check-config"]) == 0
-    assert f"{DEFAULT_CONFIG}: ok" in capsys.readouterr().out
+    assert cfg.daemon.output_rate_hz == 60.0 and cfg.daemon.http_host == "127.0.0.1" and cfg.cameras == ()
+    # Valid, but it describes no rig: what `mocapd run` would say, said before starting anything.
+    assert main(["check-config"]) == 2
+    assert f"{DEFAULT_CONFIG}: error: no cameras: add [[cameras]]" in capsys.readouterr().err
+    config = write(tmp_path / "synthetic.toml", synthetic_toml())
+    assert main(["check-config", str(config)]) == 0
+    assert f"{config}: ok (4 camera(s): cam0 (synthetic simulated);" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
     ("toml", "message"),
     [
-        ("[daemon]\nlatncy_s = 0.1\n", "unknown key(s) ['latncy_s'] in [daemon]; allowed:"),
+        (
+            "[daemon]\nlatncy_s = 0.1\n",
+            "unknown key daemon.latncy_s; allowed: body_size_s, heading_correction, http_host,",
+        ),
         ("[daemon]\nlatency_s = -1\n", "daemon.latency_s = -1; allowed: a number in [0, 2]"),
-        ("[daemon]\noutput_rate_hz = true\n", "daemon.output_rate_hz = True; allowed: a number"),
+        ("[daemon]\noutput_rate_hz = true\n", "daemon.output_rate_hz = true; allowed: a number in [1, 500]"),
         ("[daemon]\nhttp_port = 70000\n", "daemon.http_port = 70000; allowed: an integer in [0, 65535]"),
-        ('[daemon]\nhttp_host = "0.0.0.0"\n', "allowed: a loopback address"),
-        ('[daemon]\nrig = "cameras"\n', "daemon.rig = 'cameras'; allowed: ['synthetic']"),
-        ("[daemon]\nrestart_min_s = 5.0\nrestart_max_s = 1.0\n", "must be >= daemon.restart_min_s"),
-        ("[daemon.offsets]\ncameras = { cam1 = 3.0 }\n", "daemon.offsets.cameras.cam1 = 3.0; allowed:"),
-        ("[daemon.offsets]\nclocks = {}\n", "unknown key(s) ['clocks'] in [daemon.offsets]"),
-        ("[daemon.synthetic]\npeople = 1\nsuits = 2\n", "daemon.synthetic.suits = 2; allowed: at most"),
-        ("[daemon.synthetic]\ncameras = 1.5\n", "daemon.synthetic.cameras = 1.5; allowed: an integer"),
-        ("[deamon]\n", "unknown section(s) ['deamon']"),
+        (
+            '[daemon]\nhttp_host = "0.0.0.0"\n',
+            'daemon.http_host = \'0.0.0.0\'; allowed: "127.0.0.1", "::1" or "localhost"',
+        ),
+        ('[daemon]\nrig = "synthetic"\n', "unknown key daemon.rig; allowed:"),
+        (
+            "[daemon]\nrestart_min_s = 5.0\nrestart_max_s = 1.0\n",
+            "daemon.restart_min_s = 5.0 must be <= daemon.restart_max_s = 1.0",
+        ),
+        (
+            "[daemon.offsets]\ncameras = { cam1 = 3.0 }\n",
+            "daemon.offsets.cameras.cam1 = 3.0; allowed: a number in [-1, 1]",
+        ),
+        ("[daemon.offsets]\nclocks = {}\n", "unknown key daemon.offsets.clocks; allowed: cameras, imus"),
+        ("[synthetic]\npeople = 1\nsuits = 2\n", "synthetic.suits = 2 must be <= synthetic.people = 1"),
+        ("[synthetic]\npeople = 1.5\n", "synthetic.people = 1.5; allowed: an integer in [1, 4]"),
+        ("[deamon]\n", "unknown section deamon; allowed:"),
     ],
 )
 def test_bad_daemon_config_is_rejected_with_a_clear_message(
@@ -63,3 +82,14 @@ def test_missing_and_malformed_files(tmp_path: Path, capsys: pytest.CaptureFixtu
     bad.write_text("[daemon\n")
     assert main(["check-config", str(bad)]) == 2
     assert "not valid TOML" in capsys.readouterr().err
+
+
+def test_output_mode_and_heading_correction() -> None:
+    opts = parse_config({"daemon": {"output": "predicted", "heading_correction": False}}).daemon.scheduler_options([])
+    assert opts.prediction.predicted and not opts.heading.enabled
+    shipped = load_config().daemon.scheduler_options([])
+    assert shipped.prediction.output == "delayed" and shipped.heading.enabled
+    with pytest.raises(ConfigError, match=r'daemon.output = .future.; allowed: "delayed" or "predicted"'):
+        parse_config({"daemon": {"output": "future"}})
+    with pytest.raises(ConfigError, match=r"daemon\.heading_correction = 1; allowed: true or false"):
+        parse_config({"daemon": {"heading_correction": 1}})

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.io.session import open_session
+from tests.rigs import synthetic_toml, write
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -98,7 +99,8 @@ def test_run_serves_until_sigint(tmp_path: Path) -> None:
     sock.bind(str(notify_path))
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_path)}
     env.pop("WATCHDOG_USEC", None)
-    cmd = [sys.executable, "-m", "mocapd", "run", "--http-port", "0", "--verbose"]
+    config = write(tmp_path / "synthetic.toml", synthetic_toml())
+    cmd = [sys.executable, "-m", "mocapd", "run", "--config", str(config), "--verbose"]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         ready = _recv_until(sock, "READY=1", 180)

@@ -11,6 +11,7 @@ fixed latency of 2 s lets a CPU detector starved by other jobs still deliver eve
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import os
 import signal
@@ -24,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
@@ -186,6 +189,25 @@ def test_streams_leave_the_private_namespace(demo: DemoProcess) -> None:
         return got
 
     assert all(m["subjects"][0]["root"] for m in asyncio.run(frames()))
+
+    async def camera_views() -> dict[int, dict[str, Any]]:
+        """The camera panels of the real video: the fake GigE cameras' frames, downscaled JPEG."""
+        got: dict[int, dict[str, Any]] = {}
+        async with connect(demo.viewer.replace("http://", "ws://")) as ws:
+            await ws.send(json.dumps({"type": "subscribe", "encoding": "json", "cameras": True}))
+            async with asyncio.timeout(60):
+                while len(got) < 4 or not any(m["subjects"] for m in got.values()):
+                    m = decode(await ws.recv())
+                    if m["type"] == "camera" and m["image"]:
+                        got[m["camera"]] = m
+        return got
+
+    views = asyncio.run(camera_views())
+    for m in views.values():
+        img = cv2.imdecode(np.frombuffer(base64.b64decode(m["image"]), np.uint8), cv2.IMREAD_COLOR)
+        assert img is not None and img.shape[1] == m["image_width"] == min(320, m["width"])  # never upscaled
+        assert abs(img.shape[0] / img.shape[1] - m["height"] / m["width"]) < 0.01
+        assert float(img.std()) > 10.0  # a video frame, not a blank image
     data, _ = demo.udp.recvfrom(65536)
     assert data[:6] == b"MXTP02"
 

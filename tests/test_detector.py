@@ -20,9 +20,9 @@ from mocapd.io.model_build import LICENCE, model_is_current, sha256, sidecar_pat
 from mocapd.io.model_cache import default_model_path
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import AsyncPoseDetector, OnnxPoseDetector, letterbox_image, resolve_providers
-from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig, detector_config_from_mapping
+from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
 from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, packed_detector_from_config, render_canvas
-from mocapd.service.config import DEFAULT_CONFIG
+from mocapd.service.config import DEFAULT_CONFIG, parse_config
 
 Image = np.ndarray
 
@@ -167,6 +167,10 @@ def test_providers_resolution() -> None:
     assert resolve_providers(["cuda"])[-1] == "CPUExecutionProvider"  # CUDA only where the build has it
 
 
+def detector_config_from_mapping(raw: dict[str, Any]) -> DetectorConfig:
+    return parse_config({"detector": raw}).detector.options()
+
+
 def test_config_parsing() -> None:
     cfg = detector_config_from_mapping(
         {
@@ -180,16 +184,21 @@ def test_config_parsing() -> None:
     assert cfg.model.score_threshold == 0.3 and cfg.packing.n_p == 8
     assert detector_config_from_mapping({}) == DetectorConfig()
     cases: list[tuple[dict[str, Any], str]] = [
-        ({"threads": 2}, "unknown key"),
-        ({"model": {"inputwidth": 640}}, "unknown key"),
-        ({"model": {"layout": "CHW"}}, "layout"),
-        ({"model": {"keypoint_format": "mpi"}}, "keypoint_format"),
-        ({"model": {"score_threshold": 2}}, "score_threshold"),
-        ({"model": {"input_width": "640"}}, "integer"),
-        ({"packing": {"n_o": 3, "n_p": 2}}, "N_o"),
-        ({"packing": {"enabled": 1}}, "true or false"),
-        ({"workers": 0}, "workers"),
-        ({"providers": "cpu"}, "list"),
+        ({"threads": 2}, "^unknown key detector.threads; allowed: inter_op_threads"),
+        ({"model": {"inputwidth": 640}}, "^unknown key detector.model.inputwidth; allowed: channel_order"),
+        ({"model": {"layout": "CHW"}}, '^detector.model.layout = \'CHW\'; allowed: "NCHW" or "NHWC"$'),
+        ({"model": {"keypoint_format": "mpi"}}, "^detector.model.keypoint_format = 'mpi'; allowed: \"coco17\""),
+        ({"model": {"score_threshold": 2}}, r"^detector.model.score_threshold = 2; allowed: a number in \[0, 1\]$"),
+        (
+            {"model": {"input_width": "640"}},
+            r"^detector.model.input_width = '640'; allowed: an integer in \[32, 8192\]$",
+        ),
+        ({"model": {"pixel_scale": 0}}, r"^detector.model.pixel_scale = 0; allowed: a number in \(0, 1000\]$"),
+        ({"packing": {"n_o": 3, "n_p": 2}}, "^detector.packing.n_o = 3 must be <= detector.packing.n_p = 2$"),
+        ({"packing": {"enabled": 1}}, "^detector.packing.enabled = 1; allowed: true or false$"),
+        ({"workers": 0}, r"^detector.workers = 0; allowed: an integer in \[1, 64\]$"),
+        ({"providers": "cpu"}, "^detector.providers = 'cpu'; allowed: a non-empty array of at most 8 items"),
+        ({"providers": ["cdua"]}, r"^detector.providers\[0\] = 'cdua': not a provider"),
     ]
     for bad, msg in cases:
         with pytest.raises(ConfigError, match=msg):
@@ -199,7 +208,7 @@ def test_config_parsing() -> None:
 def test_shipped_config_section_parses_to_the_defaults() -> None:
     with DEFAULT_CONFIG.open("rb") as f:
         raw = tomllib.load(f)["detector"]
-    assert detector_config_from_mapping(raw) == DetectorConfig()
+    assert detector_config_from_mapping(raw) == DetectorConfig() == detector_config_from_mapping({})
 
 
 def test_scheduled_detector_detects_n_o_of_every_n_p_frames(

@@ -173,3 +173,53 @@ def test_quat_to_enu_from_ned_and_nwu() -> None:
     assert quat_angle(quat_to_enu(q_enu, "ENU"), q_enu) == 0.0
     with pytest.raises(InputError, match="ENU, NED or NWU"):
         quat_to_enu(q_enu, "XYZ")
+
+
+def test_slimevr_sensor_ids_are_assignable() -> None:
+    ok = parse_assignment({"a1:b2:c3:d4:e5:f6/0": "Hips", "A1:B2:C3:D4:E5:F6/1": "Spine1", "00B421E6": "Head"})
+    assert ok == {"A1:B2:C3:D4:E5:F6/0": "Hips", "A1:B2:C3:D4:E5:F6/1": "Spine1", "00B421E6": "Head"}
+    for bad in ("A1:B2:C3:D4:E5/0", "A1:B2:C3:D4:E5:F6", "A1:B2:C3:D4:E5:F6/255", "A1:B2:C3:D4:E5:G6/0", "1/2"):
+        with pytest.raises(ConfigError, match="SlimeVR"):
+            parse_assignment({bad: "Hips"})
+
+
+def test_sensors_with_their_own_heading_get_a_heading_reset() -> None:
+    from mocapd.core.imu_calibration import device_heading_quat, twist_about_up_deg
+    from mocapd.core.rotations import quat_angle, quat_conjugate, quat_from_rotvec, quat_multiply
+
+    rng = np.random.default_rng(4)
+    facing = 30.0
+    q_ig = heading_alignment(facing)  # world_heading "subject": the T-pose alignment is the runtime one
+    ids = ["A1:B2:C3:D4:E5:F6/0", "A1:B2:C3:D4:E5:F6/1", "00B421E6"]
+    bones = dict(zip(ids, ["LeftUpperLeg", "LeftLowerLeg", "Hips"], strict=True))
+    mount_yaw = {ids[0]: 0.0, ids[1]: 90.0}
+    psi = {ids[0]: 123.0, ids[1]: -61.0, ids[2]: 0.0}  # each tracker's own heading reference (Xsens: shared)
+    q_ib = {}
+    recordings = {}
+    for sid in ids:
+        # A mounting whose own yaw is the stated one: a swing (horizontal axis) then the yaw.
+        axis = np.array([rng.normal(), 0.0, rng.normal()])
+        swing = quat_from_rotvec(axis / np.linalg.norm(axis) * rng.uniform(0.3, 1.5))
+        q_ib[sid] = quat_multiply(quat_from_rotvec(np.array([0.0, np.radians(mount_yaw.get(sid, 0.0)), 0.0])), swing)
+        true_i = quat_multiply(quat_conjugate(q_ig), q_ib[sid])  # R_i at the T-pose (rest = identity)
+        measured = quat_multiply(device_heading_quat(psi[sid]), true_i)
+        recordings[sid] = (np.repeat(measured[None], 80, axis=0), None)
+    calib = calibrate_tpose("p", recordings, bones, facing_heading_deg=facing, own_heading=mount_yaw, window=60)
+    assert set(calib.device_heading_deg) == set(mount_yaw)
+    for sid, yaw in mount_yaw.items():
+        assert calib.device_heading_deg[sid] == pytest.approx(-psi[sid])
+        assert twist_about_up_deg(calib.q_ib[sid]) == pytest.approx(yaw, abs=1e-6)
+    # Later, in any pose, the reset sensor gives its bone's true orientation; without the reset it would not.
+    q_gb = quat_from_rotvec(np.array([0.4, -0.7, 0.2]))
+    sid = ids[0]
+    measured = quat_multiply(device_heading_quat(psi[sid]), quat_multiply(quat_conjugate(q_ig),
+                                                                          quat_multiply(q_gb, q_ib[sid])))  # fmt: skip
+    reset = quat_multiply(calib.device_heading_quats()[sid], measured)
+    assert float(quat_angle(bone_orientation(calib.q_ig, reset, calib.q_ib[sid]), q_gb)) < 1e-6
+    plain = calibrate_tpose("p", recordings, bones, facing_heading_deg=facing, window=60)
+    assert float(np.degrees(quat_angle(bone_orientation(plain.q_ig, measured, plain.q_ib[sid]), q_gb))) > 20.0
+    # The file keeps it.
+    again = ImuCalibration.from_json_dict(json.loads(json.dumps(calib.to_json_dict())))
+    assert again.device_heading_deg == pytest.approx(calib.device_heading_deg)
+    with pytest.raises(CalibrationError, match="not in the assignment"):
+        calibrate_tpose("p", recordings, bones, facing_heading_deg=facing, own_heading={"00B421ED": 0.0})

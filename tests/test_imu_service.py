@@ -14,7 +14,6 @@ import pytest
 
 from mocapd.core.imu_calibration import calibrate_tpose
 from mocapd.core.rotations import matrix_from_quat, quat_angle, quat_from_matrix, quat_from_rotvec
-from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.pipeline.ringbuffer import LookupStatus
 from mocapd.protocols.imu_bridge import BridgeRecord, encode_records
 from mocapd.protocols.mtdata2 import CoordFrame
@@ -49,7 +48,7 @@ async def test_serial_and_bridge_inputs_feed_one_ingest(tmp_path: Path) -> None:
     ]
     port = _free_udp_port()
     config = ImuConfig(
-        ports=tuple(XsensPortConfig(str(s.link)) for s in sims),
+        ports=tuple(str(s.link) for s in sims),
         bridge=BridgeConfig(enabled=True, port=port),
     )
     inputs = ImuInputs(config)

@@ -190,3 +190,15 @@ def test_per_character_skeletons_match_an_encoder_built_on_each() -> None:
     alone_tall = MvnEncoder(tall).encode(5, 1_000, [(1, thetas[1])])
     assert mixed == alone_small + alone_tall
     assert alone_tall != MvnEncoder(small).encode(5, 1_000, [(1, thetas[1])])
+
+
+def test_each_character_carries_the_instant_of_its_pose() -> None:
+    """A predicted pose is for a later instant than the frame's solve time: its time code says so."""
+    enc = MvnEncoder(SKELETON)
+    theta = random_poses(2, 1)
+    t0 = 5_000_000_000
+    enc.encode(1, t0, [(0, theta[0])])
+    out = enc.encode(2, t0 + 16_000_000, [(0, theta[0]), (1, theta[1])], times_ns=[t0 + 150_000_000, t0 + 16_000_000])
+    assert [read_datagram(d).time_code for d in out] == [150, 16]
+    with pytest.raises(InputError, match="time stamps"):
+        enc.encode(3, t0, [(0, theta[0])], times_ns=[t0, t0])

@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import csv
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +19,9 @@ from mocapd.io.session import open_session
 from mocapd.io.session_export import resample, subject_track
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service import cli
+from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import load_config
-from mocapd.service.demo.synthetic import running_demo
+from mocapd.service.demo.synthetic import synthetic_config
 from mocapd.service.session.replay import pose_frame, replay
 from mocapd.service.session.solve import resolve, session_rig
 from mocapd.service.session.truth import truth_report
@@ -30,9 +30,10 @@ from tests.test_daemon import Recorder
 
 async def _record(path: Path, seconds: float) -> list[PoseFrame]:
     cfg = load_config()
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0))
+    cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+                                 "websocket": cfg.websocket.model_copy(update={"enabled": False})})  # fmt: skip
     live = Recorder()
-    with running_demo(cfg, sinks=[live], record=path) as demo:
+    with assembled(synthetic_config(cfg), RunOptions(sinks=[live], record=path)) as demo:
         task = asyncio.create_task(demo.daemon.run())
         await asyncio.wait_for(demo.daemon.ready.wait(), 120)
         loop = asyncio.get_running_loop()

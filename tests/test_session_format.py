@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -161,3 +162,20 @@ def test_pose_records_carry_each_persons_sized_skeleton() -> None:
     np.testing.assert_allclose(got.offsets, tall.offsets, atol=1e-6)  # float32 on disk
     assert abs(got.height - 1.93) < 1e-6 and abs(got.root_height - tall.root_height) < 1e-6
     assert len(sf.encode_pose(sized)) == len(sf.encode_pose(p)) + 8 + 63 * 4
+
+
+def test_pose_records_carry_the_output_mode_and_each_poses_instant() -> None:
+    p = _pose(4, n_people=3)
+    people = (replace(p.people[0], t_pose_ns=p.t_solve_ns + 140_000_000), *p.people[1:])
+    predicted = replace(p, people=people, output="predicted")
+    q = sf.decode_pose(sf.encode_pose(predicted))
+    assert q.output == "predicted"
+    assert [x.t_pose_ns for x in q.people] == [p.t_solve_ns + 140_000_000, p.t_solve_ns, p.t_solve_ns]
+    # A record written before the tail existed (no output byte, no instants) reads as delayed.
+    old = sf.encode_pose(p)[: -(1 + 8 * 3)]
+    r = sf.decode_pose(old)
+    assert r.output == "delayed" and all(x.t_pose_ns is None for x in r.people)
+    with pytest.raises(InputError, match="output"):
+        sf.encode_pose(replace(p, output="early"))
+    with pytest.raises(InputError, match="output mode"):
+        sf.decode_pose(old + bytes([7]) + bytes(24))

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from mocapd.core.keypoints import coco17_targets
+from mocapd.core.keypoints import coco17_targets, keypoint_format
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.suit_binding import BindingOptions, SuitBinder, yaw_aligned_angle
 from mocapd.core.synthetic import suit_orientations, walking_path
+from mocapd.errors import InputError
 
 FPS = 30.0
 NS = int(1e9 / FPS)
@@ -88,3 +90,49 @@ def test_a_suit_matching_no_track_stays_unpaired() -> None:
             f * NS, {1: _keypoints(sk, people[0][f], rng)}, {"B": suit_orientations(sk, people[1][f], 0.0, rng)}
         )
     assert binder.state.pairs == {}
+
+
+def test_frames_without_usable_evidence_leave_the_window_cleanly() -> None:
+    # A frame whose pairs carry no valid limb (keypoints all NaN: count 0) is pruned from the totals at once; when
+    # it leaves the window later it must not be subtracted from a total that no longer exists (it raised KeyError,
+    # restarting the scheduler task, when a SlimeVR suit's sensors dropped out).
+    skeleton = Skeleton.from_height(1.75)
+    binder = SuitBinder(skeleton, BindingOptions(window_s=0.5))
+    suit = {"suit0": suit_orientations(skeleton, np.zeros(66), 0.0, np.random.default_rng(0))}
+    blind = np.full((17, 3), np.nan)
+    binder.update(0, {1: blind}, suit)
+    binder.update(1_000_000_000, {2: blind}, suit)  # track 1 is gone; its frame leaves the window
+    assert binder.cost_matrix(["suit0"], [1, 2])[1].tolist() == [[0, 0]]
+
+
+def test_frames_without_a_common_limb_do_not_break_the_window() -> None:
+    """A suit whose streaming sensors include no limb for a while adds no evidence, then stops streaming at all:
+    when the frames without evidence leave the window nothing fails (they used to keep a zero-count entry whose
+    total was pruned once the frames with evidence had left, and subtracting it raised a KeyError)."""
+    rng = np.random.default_rng(2)
+    sk, people = _people(180)
+    binder = SuitBinder(sk)
+    for f in range(180):  # window 2 s = 60 frames
+        suit = suit_orientations(sk, people[0][f], 10.0, rng)
+        if 20 <= f < 50:
+            suit = {"Head": np.array([1.0, 0.0, 0.0, 0.0])}  # the limb sensors stalled, the head streams
+        suits = {} if 50 <= f < 120 else {"A": suit}  # then the whole suit is silent
+        binder.update(f * NS, {10: _keypoints(sk, people[0][f], rng)}, suits)
+    assert binder.state.pairs == {"A": 10}
+
+
+def test_keypoint_sets_holding_coco17_are_read_by_name() -> None:
+    rng = np.random.default_rng(3)
+    sk, people = _people(40)
+    halpe = keypoint_format("halpe26")
+    targets = halpe.track_targets(sk)
+    kin = Kinematics(sk)
+    binder = SuitBinder(sk, names=targets.names)
+    for f in range(40):
+        kp = kin.targets(kin.forward(people[0][f]), targets.bones, targets.offsets)
+        binder.update(f * NS, {7: kp}, {"A": suit_orientations(sk, people[0][f], -20.0, rng)})
+    assert binder.state.pairs == {"A": 7}
+    with pytest.raises(InputError, match="must have shape"):
+        binder.update(41 * NS, {7: kp[:17]}, {})
+    with pytest.raises(InputError, match="lacks the COCO-17 keypoints"):
+        SuitBinder(sk, names=("nose", "neck"))

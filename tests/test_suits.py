@@ -12,6 +12,7 @@ from mocapd.errors import ConfigError
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.suits import load_suits
 from mocapd.sim.world import SyntheticWorld
+from tests.rigs import synthetic_toml, video_rig_toml, write
 
 
 def _write(folder: Path, world: SyntheticWorld, suit: int, person: str | None = None) -> Path:
@@ -64,15 +65,12 @@ def test_bad_files_are_errors_naming_the_file(tmp_path: Path) -> None:
 
 def test_run_refuses_to_start_with_a_broken_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from mocapd.service.cli import main
-    from mocapd.service.config import DEFAULT_CONFIG
 
     (tmp_path / "cal").mkdir()
     (tmp_path / "cal" / "anna.imu.json").write_text("[]", encoding="utf-8")
-    text = DEFAULT_CONFIG.read_text(encoding="utf-8").replace(
-        'calibration_dir = "calibration"', f'calibration_dir = "{tmp_path / "cal"}"'
-    )
-    cfg = tmp_path / "config.toml"
-    cfg.write_text(text, encoding="utf-8")
+    cfg = write(tmp_path / "config.toml", video_rig_toml(f'[imu]\ncalibration_dir = "{tmp_path / "cal"}"\n'))
+    assert main(["check-config", str(cfg)]) == 2
+    assert "anna.imu.json" in capsys.readouterr().err
     assert main(["run", "--config", str(cfg), "--http-port", "0"]) == 2
     assert "anna.imu.json" in capsys.readouterr().err
 
@@ -84,10 +82,7 @@ def test_run_into_an_existing_session_is_a_clear_error(tmp_path: Path, capsys: p
     session = tmp_path / "take1"
     session.mkdir()
     (session / "poses.mcs").write_bytes(b"")
-    from mocapd.service.config import DEFAULT_CONFIG
-
-    cfg = tmp_path / "config.toml"  # the stream on any free port: the test must not depend on 8766 being free
-    cfg.write_text(DEFAULT_CONFIG.read_text(encoding="utf-8").replace("port = 8766 ", "port = 0 ", 1), encoding="utf-8")
+    cfg = write(tmp_path / "config.toml", synthetic_toml())  # on free ports: 8766 may be in use
     assert main(["run", "--config", str(cfg), "--http-port", "0", "--record", str(session)]) == 2
     err = capsys.readouterr().err
     assert "exists already" in err and "Traceback" not in err

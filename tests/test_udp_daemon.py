@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,9 +14,10 @@ from pythonosc.osc_message import OscMessage
 from mocapd.core.rotations import matrix_from_quat, matrix_from_rotvec
 from mocapd.core.skeleton import BONE_INDEX
 from mocapd.protocols.conventions import MVN, UNITY
+from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import load_config
 from mocapd.service.config.udp import Destination, MvnStreamConfig, UdpConfig, VmcStreamConfig
-from mocapd.service.demo.synthetic import running_demo
+from mocapd.service.demo.synthetic import synthetic_config
 from tests.test_daemon import Recorder, http_get, wait_for
 from tests.test_mvn import read_datagram
 
@@ -41,15 +41,16 @@ async def test_daemon_streams_mvn_and_vmc_on_loopback() -> None:
     vmc_port = vmc_t.get_extra_info("sockname")[1]
     udp = UdpConfig(  # the suited person is pinned to MVN character 0 and drives the one VMC avatar
         mvn=MvnStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", mvn_port),),
-                            character_ids=(("suit:suit0", 0),)),
+                            character_ids={"suit:suit0": 0}),
         vmc=VmcStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", vmc_port),),
                             subjects=("suit:suit0",)),
     )  # fmt: skip
     cfg = load_config()
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0), udp=udp)
+    cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0}), "udp": udp,
+                                 "websocket": cfg.websocket.model_copy(update={"enabled": False})})  # fmt: skip
     rec = Recorder()
     try:
-        with running_demo(cfg, sinks=[rec]) as demo:
+        with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:
             d = demo.daemon
             task = asyncio.create_task(d.run())
             await asyncio.wait_for(d.ready.wait(), 180)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import socket
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from pythonosc.osc_message import OscMessage
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.rotations import matrix_from_quat, random_rotvec
 from mocapd.core.skeleton import BONE_INDEX, Skeleton
+from mocapd.errors import InputError
 from mocapd.io.udp_stream import VmcUdpSink
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols.conventions import UNITY
@@ -199,3 +201,19 @@ def test_per_subject_skeletons_match_an_encoder_built_on_each() -> None:
     assert mixed[0] == VmcEncoder(tall).encode_many(1_000, thetas[:1], [True])[0]
     assert mixed[1] == VmcEncoder(small).encode_many(1_000, thetas[1:], [True])[0]
     assert mixed[0] != VmcEncoder(small).encode_many(1_000, thetas[:1], [True])[0]
+
+
+def test_each_avatar_gets_the_instant_of_its_pose(receiver: socket.socket) -> None:
+    """Through the real sink: a predicted subject's /VMC/Ext/T is its own pose instant, not the frame's solve
+    time (which the delayed subject keeps)."""
+    dest = ("127.0.0.1", receiver.getsockname()[1])
+    sink = VmcUdpSink(SKELETON, [dest, dest], max_datagram_bytes=4096)
+    sink.sender.open()
+    t0 = 2_000_000_000
+    sink.publish(frame(0, t0, []))  # the stream's clock starts here
+    ahead = replace(person("suit:s", random_pose(1)), t_pose_ns=t0 + 500_000_000)
+    sink.publish(replace(frame(1, t0 + 250_000_000, [ahead, person("track:2", random_pose(2))]), output="predicted"))
+    times = sorted(m.params[0] for m in messages(drain(receiver, 2)) if m.address == "/VMC/Ext/T")
+    assert times == pytest.approx([0.25, 0.5])
+    with pytest.raises(InputError, match="time stamps"):
+        VmcEncoder(SKELETON).encode_many(t0, np.stack([random_pose(1)]), [True], times_ns=[t0, t0])

@@ -9,16 +9,16 @@ import asyncio
 import contextlib
 import socket
 from collections.abc import AsyncIterator
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from mocapd.io.ws_server import WebSocketStreamServer
+from mocapd.service.assembly import assembled
 from mocapd.service.config import Config, load_config
-from mocapd.service.demo.synthetic import running_demo
-from mocapd.service.outputs.websocket import build_websocket_sinks
+from mocapd.service.demo.synthetic import synthetic_config
 from tests.cdp import Page, chromium_page
 
 PANEL_PX = 300  # the status panel on the right of the canvas
@@ -33,9 +33,8 @@ def free_port() -> int:
 @contextlib.asynccontextmanager
 async def daemon(cfg: Config) -> AsyncIterator[str]:
     """The synthetic-rig daemon with its WebSocket stream, running; yields the viewer URL."""
-    with running_demo(cfg) as demo:
-        streams = build_websocket_sinks(cfg, demo.daemon)
-        demo.daemon.sinks.extend(streams)
+    with assembled(synthetic_config(cfg)) as demo:
+        streams = [s for s in demo.daemon.sinks if isinstance(s, WebSocketStreamServer)]
         task = asyncio.create_task(demo.daemon.run())
         try:
             await asyncio.wait_for(demo.daemon.ready.wait(), 120)
@@ -82,10 +81,11 @@ async def check_skeletons_drawn(page: Page) -> list[dict[str, Any]]:
 async def test_viewer_draws_the_daemons_subjects_and_reconnects_after_a_restart() -> None:
     cfg = load_config()
     port = free_port()
-    cfg = replace(
-        cfg,
-        daemon=replace(cfg.daemon, http_port=0),
-        websocket=replace(cfg.websocket, port=port, status_hz=5.0),
+    cfg = cfg.model_copy(
+        update={
+            "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+            "websocket": cfg.websocket.model_copy(update={"port": port, "status_hz": 5.0}),
+        }
     )
     first = contextlib.AsyncExitStack()
     try:

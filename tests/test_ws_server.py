@@ -22,7 +22,8 @@ from mocapd.errors import ConfigError
 from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
 from mocapd.protocols.conventions import convention
 from mocapd.protocols.ws_stream import StreamDescription, StreamOptions, decode
-from mocapd.service.config.websocket import parse_websocket_config
+from mocapd.service.config import parse_config
+from mocapd.service.config.websocket import WebSocketConfig
 from tests.ws_support import fk_from_message, random_frame
 from tools.bench_stream import stalled_handshake
 
@@ -187,12 +188,14 @@ async def test_a_stalled_client_loses_frames_while_others_get_every_one() -> Non
 
 @pytest.mark.asyncio
 async def test_token_required_off_loopback_and_enforced_when_set() -> None:
-    with pytest.raises(ConfigError, match="token must then be set"):
-        parse_websocket_config({"host": "0.0.0.0"})
+    with pytest.raises(
+        ConfigError, match=r"websocket\.host = '0\.0\.0\.0' is not loopback: websocket\.token = '' must then be set"
+    ):
+        websocket({"host": "0.0.0.0"})
     with pytest.raises(ConfigError, match="at least 16"):
-        parse_websocket_config({"host": "192.168.1.5", "token": "short"})
-    cfg = parse_websocket_config({"host": "0.0.0.0", "token": "a-long-enough-secret"})
-    assert not cfg.loopback and parse_websocket_config({"host": "127.0.0.2"}).loopback
+        websocket({"host": "192.168.1.5", "token": "short"})
+    cfg = websocket({"host": "0.0.0.0", "token": "a-long-enough-secret"})
+    assert not cfg.loopback and websocket({"host": "127.0.0.2"}).loopback
     # The server enforces a configured token on any address (bound to loopback here: tests never leave it).
     srv = WebSocketStreamServer(ServerSettings(port=0, token=cfg.token), StreamDescription(60.0, {"d": SKEL}))
     await srv.start()
@@ -260,14 +263,19 @@ async def test_a_port_in_use_is_a_clear_error(server: WebSocketStreamServer) -> 
 
 
 def test_config_defaults_and_errors() -> None:
-    d = parse_websocket_config({})
+    d = websocket({})
     assert d.enabled and d.host == "127.0.0.1" and d.port == 8766 and d.encoding == "msgpack"
-    assert replace(d, port=1).port == 1
-    for bad, says in (({"port": 70000}, "0..65535"), ({"encoding": "xml"}, "'xml'"), ({"colour": 1}, "colour"),
-                      ({"status_hz": -1}, "0..60"), ({"globals": "yes"}, "true or false"),
-                      ({"convention": "maya"}, "'maya'")):  # fmt: skip
+    assert d.model_copy(update={"port": 1}).port == 1
+    for bad, says in (({"port": 70000}, r"websocket.port = 70000; allowed: an integer in \[0, 65535\]"),
+                      ({"encoding": "xml"}, "websocket.encoding = 'xml'; allowed: \"msgpack\" or \"json\""),
+                      ({"colour": 1}, "unknown key websocket.colour"),
+                      ({"status_hz": -1}, r"websocket.status_hz = -1; allowed: a number in \[0, 60\]"),
+                      ({"globals": "yes"}, "websocket.globals = 'yes'; allowed: true or false"),
+                      ({"convention": "maya"}, "websocket.convention = 'maya'; allowed: \"native\", \"unity\""),
+                      ({"host": "example.com"}, "websocket.host = 'example.com': allowed: an IP address"),
+                      ({"token": "a b"}, "websocket.token = 'a b': allowed: printable ASCII")):  # fmt: skip
         with pytest.raises(ConfigError, match=says):
-            parse_websocket_config(bad)
+            websocket(bad)
 
 
 @pytest.mark.asyncio
@@ -305,3 +313,7 @@ async def test_a_persons_sized_skeleton_arrives_in_a_new_hello_before_its_frames
         server.publish(replace(sized, frame=4, people=[replace(sized.people[0], skeleton=copy)]))  # a replayed copy
         again = decode(await ws.recv())
         assert again["type"] == "frame" and again["subjects"][0]["skeleton"] == key
+
+
+def websocket(table: dict[str, Any]) -> WebSocketConfig:
+    return parse_config({"websocket": table}).websocket

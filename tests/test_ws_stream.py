@@ -5,6 +5,7 @@ error replies to bad ones, and the status subset."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from typing import Any
 
 import msgpack
@@ -179,3 +180,19 @@ def test_description_validates() -> None:
         StreamDescription(60.0, {})
     with pytest.raises(ValueError, match="> 0 Hz"):
         StreamDescription(0.0, {"d": SKEL})
+
+
+@pytest.mark.parametrize("encoding", ["msgpack", "json"])
+def test_the_output_mode_and_each_poses_instant_are_carried(encoding: str) -> None:
+    """``hello.output`` says whether suit wearers are predicted; every subject says which instant its pose is for
+    (a predicted one later than the solve time, the others at it)."""
+    frame = random_frame(np.random.default_rng(2), 7, ["suit:suit0", "track:1"], SKEL)
+    ahead = frame.t_solve_ns + 137_000_000
+    frame.people[0] = replace(frame.people[0], t_pose_ns=ahead)
+    session = ClientSession(description(output="predicted"), StreamOptions(encoding=encoding))
+    assert decode(session.hello())["output"] == "predicted"
+    assert decode(ClientSession(description()).hello())["output"] == "delayed"
+    msg = decode(FrameEncoder(replace(frame, output="predicted"), 0, description()).message(session.options))
+    assert [s["t_pose_ns"] for s in msg["subjects"]] == [ahead, frame.t_solve_ns]
+    with pytest.raises(ValueError, match="output"):
+        description(output="early")

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
+from mocapd.core.rotations import quat_conjugate, quat_from_matrix, quat_multiply
 from mocapd.errors import ConfigError
 from mocapd.protocols import xbus
 from mocapd.protocols.mtdata2 import CoordFrame, DataId, Precision
@@ -122,3 +124,31 @@ def test_warnings_are_reported_without_stopping_the_stream() -> None:
 def test_rate_outside_60_to_120_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match=r"60\.\.120"):
         output_settings(200)
+
+
+@pytest.mark.parametrize("frame", [CoordFrame.ENU, CoordFrame.NED])
+def test_heading_fault_turns_the_reported_orientation_about_the_vertical(frame: CoordFrame) -> None:
+    """A simulated heading error (offset + drift) turns what the device reports about ENU +z by exactly the
+    fault's angle at each sample's time; the acceleration (sensor frame) is unchanged."""
+    motion = xsens_sim.synthetic_motion(n=300)
+    fault = xsens_sim.HeadingFault(offset_deg=30.0, drift_deg_per_min=600.0)  # 10°/s, to see it move
+    reported = {}
+    for name, heading in (("clean", None), ("faulty", fault)):
+        device = xsens_sim.SimDevice(motion, heading=heading)
+        session = XsensSession(output_settings(100, frame=frame))
+        session.start(0)
+        _pump(session, device, 0)
+        chunks = b"".join(device.next_message(device.due_ns(0) or 0) for _ in range(150))
+        session.receive_data(chunks, 0)
+        reported[name] = [e.data for e in session.events_received() if isinstance(e, Sample)]
+    assert len(reported["clean"]) == len(reported["faulty"]) == 150
+    to_enu = quat_from_matrix(np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])) if frame is CoordFrame.NED else None
+    for k in (0, 75, 149):
+        clean, faulty = (np.array(reported[n][k].quaternion) for n in ("clean", "faulty"))
+        if to_enu is not None:
+            clean, faulty = quat_multiply(to_enu, clean), quat_multiply(to_enu, faulty)
+        turn = quat_multiply(faulty, quat_conjugate(clean))  # about ENU +z by the fault's angle
+        angle = 2.0 * np.arctan2(turn[3], turn[0])
+        assert abs(turn[1]) < 1e-6 and abs(turn[2]) < 1e-6
+        assert np.degrees(angle) == pytest.approx(np.degrees(fault.angle_rad(k / 100.0)), abs=1e-3)
+        assert reported["faulty"][k].acceleration == reported["clean"][k].acceleration

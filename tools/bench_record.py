@@ -23,7 +23,7 @@ import shutil
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -120,8 +120,9 @@ def _daemon(world: SyntheticWorld) -> Daemon:
 
 def realtime(world: SyntheticWorld, epoch: int, events: list[Event], seconds: float, path: Path) -> dict[str, Any]:
     daemon = _daemon(world)
-    syn = replace(daemon.config.daemon.synthetic, cameras=CAMERAS, people=PEOPLE, suits=PEOPLE)
-    rec = attach_recorder(daemon.config, daemon, path, extra={"synthetic": synthetic_extra(syn, epoch)})
+    syn = daemon.config.synthetic.model_copy(update={"people": PEOPLE, "suits": PEOPLE})
+    names = [c.name for c in world.cameras]
+    rec = attach_recorder(daemon.config, daemon, path, extra={"synthetic": synthetic_extra(syn, names, epoch)})
     assert rec is not None
     rec.writer.open()
     base = ListSink()

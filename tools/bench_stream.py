@@ -29,7 +29,6 @@ import resource
 import socket
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -199,16 +198,22 @@ def _pct(values: list[int], q: float, scale: float) -> float | None:
 def fan_out(
     seconds: float, people: int, clients: int, warm_up_s: float, repeats: int, client_nice: int
 ) -> dict[str, Any]:
+    from mocapd.service.assembly import assembled
     from mocapd.service.config import load_config
-    from mocapd.service.demo.synthetic import running_demo
+    from mocapd.service.demo.synthetic import synthetic_config
     from mocapd.service.outputs.websocket import build_websocket_sinks
 
     cfg = load_config()
-    syn = replace(cfg.daemon.synthetic, people=people, suits=0)
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, synthetic=syn),
-                  websocket=replace(cfg.websocket, port=0, max_clients=max(64, clients + 4)))  # fmt: skip
+    syn = cfg.synthetic.model_copy(update={"people": people, "suits": 0})
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0}), "synthetic": syn,
+        "websocket": cfg.websocket.model_copy(update={"port": 0, "max_clients": max(64, clients + 4)}),
+    })  # fmt: skip
     runs: list[dict[str, Any]] = []
-    with running_demo(cfg) as demo:
+    # The daemon without its own stream server: the benchmark adds one wrapped in a timer, so that its publish()
+    # is measured on the real tick loop.
+    quiet = cfg.model_copy(update={"websocket": cfg.websocket.model_copy(update={"enabled": False})})
+    with assembled(synthetic_config(quiet)) as demo:
         d = demo.daemon
         (ws,) = build_websocket_sinks(cfg, d)
         timed = TimedSink(ws)
@@ -283,7 +288,7 @@ def fan_out(
 
     streaming = [r for r in runs if r["phase"] == "streaming"]
     return {
-        "rig": {"people": people, "cameras": syn.cameras, "suits": 0, "output_rate_hz": cfg.daemon.output_rate_hz},
+        "rig": {"people": people, "cameras": len(cfg.cameras), "suits": 0, "output_rate_hz": cfg.daemon.output_rate_hz},
         "clients": clients,
         "client_process_nice": client_nice,
         "phase_s": seconds,

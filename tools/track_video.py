@@ -36,7 +36,7 @@ def cameras(demo: str) -> list[Camera]:
 
 def detect_all(demo: str, max_frames: int) -> tuple[list[list[Detections2D]], list[list[np.ndarray]]]:
     """Per frame and camera, the detector's 2D people (and the images, for annotation)."""
-    det = OnnxPoseDetector.from_config(load_config().detector)
+    det = OnnxPoseDetector.from_config(load_config().detector.options())
     caps = [cv2.VideoCapture(str(demo_video(demo, c))) for c in CAMERAS]
     frames: list[list[Detections2D]] = []
     images: list[list[np.ndarray]] = []

@@ -17,13 +17,21 @@ orientation is its rest orientation ``R_rest`` (identity for a T-pose rest skele
 ``R_i`` is the average over the stillest window of the recording; windows where a sensor turns more than
 ``max_spread_deg`` or its acceleration norm varies more than ``max_acc_std`` are rejected as motion.
 
+Sensors without a shared heading reference (SlimeVR trackers: each 6-axis tracker's yaw is wherever its gyroscope
+started) get a heading of their own, ``δ``, a rotation about the device's up axis applied to every sample before
+Eq. 8 (``R_i ← Rz(δ) · R_i``, what SlimeVR calls a yaw reset). One T-pose cannot tell a sensor's heading from its
+mounting (4 unknowns, 3 equations), so ``δ`` assumes the mounting's own yaw: with it the T-pose orientation
+``R_ig_T · Rz(δ) · R_i`` turns about world up by ``mount_yaw`` (0 for a tracker on the front or back of a body
+segment, its face forward or backward; +90° for one on the subject's left side, −90° on the right). A wrong
+mounting yaw shows as a heading error of the same size, which the cameras' heading correction can take out.
+
 All quaternions are (w, x, y, z), Hamilton, unit norm.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -79,13 +87,34 @@ def quat_to_enu(q: FloatArray, frame: str) -> FloatArray:
     return quat_multiply(quat_from_matrix(_TO_ENU[frame]), np.asarray(q, dtype=np.float64))
 
 
+_HEX = frozenset("0123456789ABCDEF")
+
+
+def is_sensor_id(sid: str) -> bool:
+    """Whether an upper-case string is a sensor id: an Xsens device id (8 hex digits, as printed on the case) or a
+    SlimeVR tracker's sensor, ``"<MAC>/<index>"`` (``"AA:BB:CC:DD:EE:FF/0"``, index 0..254)."""
+    if len(sid) == 8:
+        return all(c in _HEX for c in sid)
+    mac, slash, index = sid.partition("/")
+    octets = mac.split(":")
+    return (
+        slash == "/"
+        and len(octets) == 6
+        and all(len(o) == 2 and all(c in _HEX for c in o) for o in octets)
+        and index.isdigit()
+        and len(index) <= 3
+        and int(index) < 255
+    )
+
+
 def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) -> dict[str, str]:
-    """Validate a sensor → bone assignment (``{"00B421E6": "Hips", ...}``).
+    """Validate a sensor → bone assignment (``{"00B421E6": "Hips", "AA:BB:CC:DD:EE:FF/0": "Head", ...}``).
 
     Parameters
     ----------
     mapping : mapping of str to str
-        Sensor id (8 hex digits, as printed on the case; case-insensitive) to bone name.
+        Sensor id (:func:`is_sensor_id`: 8 hex digits as printed on an Xsens case, or a SlimeVR
+        ``"<MAC>/<sensor index>"``; case-insensitive) to bone name.
     imu_set : {"13", "6", "lower", None}
         If given, the assigned bones must be exactly that set ("lower": pelvis, thighs, shanks and feet, plus at
         most one trunk sensor on Spine..Spine3).
@@ -103,8 +132,11 @@ def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) 
     out: dict[str, str] = {}
     for sensor, bone in mapping.items():
         sid = sensor.upper()
-        if len(sid) != 8 or any(c not in "0123456789ABCDEF" for c in sid):
-            raise ConfigError(f"imu assignment: sensor id {sensor!r} is not 8 hex digits")
+        if not is_sensor_id(sid):
+            raise ConfigError(
+                f"imu assignment: sensor id {sensor!r} is neither 8 hex digits (Xsens) nor a SlimeVR "
+                "'<MAC>/<sensor index>' such as 'AA:BB:CC:DD:EE:FF/0'"
+            )
         if bone not in BONE_NAMES:
             raise ConfigError(f"imu assignment: {sensor} -> {bone!r} is not a bone; use one of {BONE_NAMES}")
         if bone in out.values():
@@ -235,6 +267,12 @@ class ImuCalibration:
     bones: dict[str, str]  # sensor id -> bone
     q_ib: dict[str, FloatArray]  # sensor id -> (4,)
     spread_deg: dict[str, float]  # sensor id -> stillness of the window used
+    device_heading_deg: dict[str, float] = field(default_factory=dict)
+    """Sensor id -> δ (degrees) for sensors with a heading of their own (see the module docstring)."""
+
+    def device_heading_quats(self) -> dict[str, FloatArray]:
+        """Sensor id -> ``Rz(δ)`` (4,), to apply to that sensor's device-frame samples before Eq. 8."""
+        return {sid: device_heading_quat(d) for sid, d in self.device_heading_deg.items()}
 
     def to_json_dict(self) -> dict[str, object]:
         """Plain data for the calibration file (version 1)."""
@@ -251,6 +289,7 @@ class ImuCalibration:
                     "bone": self.bones[sid],
                     "R_ib": [float(v) for v in q],
                     "still_spread_deg": self.spread_deg[sid],
+                    **({"device_heading_deg": self.device_heading_deg[sid]} if sid in self.device_heading_deg else {}),
                 }
                 for sid, q in self.q_ib.items()
             },
@@ -275,9 +314,31 @@ class ImuCalibration:
                 bones=parse_assignment({sid: str(s["bone"]) for sid, s in sensors.items()}),
                 q_ib={sid.upper(): _unit_quat(s["R_ib"], f"{sid} R_ib") for sid, s in sensors.items()},
                 spread_deg={sid.upper(): float(s.get("still_spread_deg", np.nan)) for sid, s in sensors.items()},
+                device_heading_deg={
+                    sid.upper(): _finite_float(s["device_heading_deg"], f"{sid} device_heading_deg")
+                    for sid, s in sensors.items()
+                    if "device_heading_deg" in s
+                },
             )
         except (KeyError, TypeError, ValueError, AssertionError) as exc:
             raise CalibrationError(f"malformed IMU calibration file: {exc!r}") from exc
+
+
+def _finite_float(value: object, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+        raise CalibrationError(f"{name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def device_heading_quat(delta_deg: float) -> FloatArray:
+    """``Rz(δ)``: a turn about the device frame's up axis (ENU z), shape (4,)."""
+    return quat_from_rotvec(np.array([0.0, 0.0, np.radians(delta_deg)]))
+
+
+def twist_about_up_deg(q: FloatArray) -> float:
+    """Angle (degrees) of the twist about world +Y in the swing-twist split ``q = twist · swing``."""
+    q = np.asarray(q, dtype=np.float64)
+    return float((np.degrees(2.0 * np.arctan2(q[2], q[0])) + 180.0) % 360.0 - 180.0)
 
 
 def _unit_quat(value: object, name: str) -> FloatArray:
@@ -298,6 +359,7 @@ def calibrate_tpose(
     rest: Mapping[str, FloatArray] | None = None,
     max_spread_deg: float = 2.0,
     max_acc_std: float = 0.3,
+    own_heading: Mapping[str, float] | None = None,
 ) -> ImuCalibration:
     """T-pose calibration of every assigned sensor.
 
@@ -311,6 +373,9 @@ def calibrate_tpose(
         Compass heading the subject faced (degrees clockwise from magnetic north).
     rest : mapping of bone name to quaternion (4,), optional
         Rest-pose world orientation of each bone (identity when absent: the T-pose rest skeleton).
+    own_heading : mapping of sensor id to degrees, optional
+        Sensors with a heading reference of their own (SlimeVR trackers) and their mounting yaw (0: on the front
+        or back of the segment; +90: on the subject's left side): each gets a device heading δ (module docstring).
 
     Raises
     ------
@@ -321,8 +386,12 @@ def calibrate_tpose(
     if missing:
         raise CalibrationError(f"no samples from assigned sensors {missing}")
     q_ig_tpose = heading_alignment(facing_heading_deg, world_heading="subject")
+    unknown = sorted(set(own_heading or ()) - set(bones))
+    if unknown:
+        raise CalibrationError(f"own-heading sensors {unknown} are not in the assignment")
     q_ib: dict[str, FloatArray] = {}
     spread: dict[str, float] = {}
+    headings: dict[str, float] = {}
     for sid, bone in bones.items():
         quat, acc = recordings[sid]
         still = stillest_window(
@@ -334,10 +403,18 @@ def calibrate_tpose(
             sensor=f"{sid} ({bone})",
         )
         q_rest = None if rest is None else rest.get(bone)
-        q_ib[sid] = mounting_rotation(still.mean, q_ig_tpose, q_rest)
+        q_i = still.mean
+        if own_heading is not None and sid in own_heading:
+            # Turn the sensor's frame about up so that its T-pose orientation twists by the mounting yaw; the
+            # twist of (R_ig_T · R_i) adds to a turn about world up, which is a turn about device up.
+            twist = twist_about_up_deg(quat_multiply(q_ig_tpose, q_i))
+            delta = (own_heading[sid] - twist + 180.0) % 360.0 - 180.0
+            headings[sid] = delta
+            q_i = quat_multiply(device_heading_quat(delta), q_i)
+        q_ib[sid] = mounting_rotation(q_i, q_ig_tpose, q_rest)
         spread[sid] = still.spread_deg
     q_ig = heading_alignment(facing_heading_deg, world_heading=world_heading)
-    return ImuCalibration(person, facing_heading_deg, world_heading, q_ig, dict(bones), q_ib, spread)
+    return ImuCalibration(person, facing_heading_deg, world_heading, q_ig, dict(bones), q_ib, spread, headings)
 
 
 def facing_heading_from_sensor(q_i: FloatArray, forward_axis: FloatArray) -> float:

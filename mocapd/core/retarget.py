@@ -5,9 +5,10 @@ a per-clip sized :class:`Skeleton`, θ per frame, and the skeleton's global join
 
 Method (name mapping + rest-pose alignment):
 
-1. **Name mapping.** Each of our joints is matched to a source joint by a list of known names (CMU ASF, CMU BVH
-   variants, Bandai, Mixamo-like). Our four spine joints have no single counterpart: they are placed along the
-   source's spine polyline (hips → neck base) at our default arc-length fractions.
+1. **Name mapping.** Each of our joints is matched to a source joint through the file's naming convention
+   (:mod:`mocapd.core.naming`: CMU ASF and BVH, Mixamo, HumanIK, Bandai, Xsens MVN, DAZ/Poser, SMPL); a foot
+   without a toe joint uses its end site. Our four spine joints have no single counterpart: they are placed along
+   the source's spine polyline (hips → neck base) at our default arc-length fractions.
 2. **Rest-pose alignment.** Each of our bones is driven by one source joint's global rotation ``G_s(t)`` through
    a constant alignment ``C_b``: ``Q_b(t) = G_s(t) · C_b``. ``C_b`` maps our T-pose bone axes to the source
    joint's local frame; it is found from the data, not from the source's rest pose (which may be a T-pose,
@@ -31,28 +32,13 @@ from numpy.typing import NDArray
 
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.motion import SourceMotion
+from mocapd.core.naming import CONVENTIONS, match_roles
 from mocapd.core.rotations import rotvec_from_matrix
 from mocapd.core.skeleton import _DEFAULT_OFFSETS, BONE_INDEX, BONE_NAMES, N_BONES, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
-
-# Source joint names per role, most specific first (matched case-insensitively). ``{s}`` is "left"/"right",
-# ``{c}`` is "l"/"r", ``{u}`` is "L"/"R" in Bandai's "UpperArm_L" style (lower-cased when matched).
-ROLE_NAMES: dict[str, tuple[str, ...]] = {
-    "hips": ("hips", "hip", "root", "pelvis"),
-    "neck_base": ("lowerneck", "neck"),
-    "head": ("head",),
-    "shoulder": ("{s}arm", "upperarm_{c}", "{c}humerus", "{s}upperarm", "{s}shoulder"),
-    "elbow": ("{s}forearm", "lowerarm_{c}", "{c}radius", "{s}elbow", "{s}lowerarm"),
-    "wrist": ("{s}hand", "hand_{c}", "{c}wrist", "{s}wrist"),
-    "hand_tip": ("{c}fingers", "{s}handfingers", "{s}handmiddle1"),
-    "hip": ("{s}upleg", "upperleg_{c}", "{c}femur", "{s}hip", "{s}upperleg", "{s}thigh"),
-    "knee": ("{s}leg", "lowerleg_{c}", "{c}tibia", "{s}knee", "{s}lowerleg", "{s}shin"),
-    "ankle": ("{s}foot", "foot_{c}", "{c}foot", "{s}ankle"),
-    "toe": ("{s}toebase", "toes_{c}", "{c}toes", "{s}toe", "{s}toes"),
-}
 
 MIN_HINGE_DEG = 20.0
 """Elbow/knee bend (degrees) above which the hinge axis of a frame is used for the limb's twist."""
@@ -92,24 +78,6 @@ class Retargeted:
     def joint_error(self) -> FloatArray:
         """Distance (m) of each retargeted joint from its mapped source joint, shape (n_frames, 21)."""
         return np.asarray(np.linalg.norm(self.positions - self.source_positions, axis=-1))
-
-
-def _find(motion: SourceMotion, role: str, side: str | None = None) -> int | None:
-    low = {n.lower(): i for i, n in enumerate(motion.joint_names)}
-    for pat in ROLE_NAMES[role]:
-        key = pat
-        if side is not None:
-            key = pat.format(s="left" if side == "l" else "right", c=side)
-        if key.lower() in low:
-            return low[key.lower()]
-    return None
-
-
-def _need(motion: SourceMotion, role: str, side: str | None = None) -> int:
-    j = _find(motion, role, side)
-    if j is None:
-        raise InputError(f"retarget {motion.name!r}: no source joint for {side or ''}{role} among {motion.joint_names}")
-    return j
 
 
 def _unit(v: FloatArray) -> FloatArray:
@@ -162,13 +130,8 @@ def retarget(motion: SourceMotion, floor_clearance: float = 0.05) -> Retargeted:
     """Retarget a clip (see the module doc). The clip should already be at the wanted frame rate."""
     G, x = motion.forward()
     f = motion.n_frames
-    J = {r: _need(motion, r) for r in ("hips", "neck_base", "head")}
-    for side in "lr":
-        for r in ("shoulder", "elbow", "wrist", "hip", "knee", "ankle", "toe"):
-            J[side + r] = _need(motion, r, side)
-        tip = _find(motion, "hand_tip", side)
-        if tip is not None:
-            J[side + "hand_tip"] = tip
+    J = match_roles(motion.joint_names, motion.name).joints
+    toe_x = {side: _toe_positions(motion, J, G, x, side) for side in "lr"}
     # Our spine joints at our default arc-length fractions between the hips and the neck base.
     d = _DEFAULT_OFFSETS
     lens = np.array([np.linalg.norm(d[n]) for n in ("Spine", "Spine1", "Spine2", "Spine3", "Neck")])
@@ -195,7 +158,7 @@ def retarget(motion: SourceMotion, floor_clearance: float = 0.05) -> Retargeted:
         put(f"{S}UpperLeg", x[:, J[side + "hip"]], J[side + "hip"])
         put(f"{S}LowerLeg", x[:, J[side + "knee"]], J[side + "knee"])
         put(f"{S}Foot", x[:, J[side + "ankle"]], J[side + "ankle"])
-        put(f"{S}Toes", x[:, J[side + "toe"]], J[side + "toe"])
+        put(f"{S}Toes", toe_x[side], J.get(side + "toe", J[side + "ankle"]))
 
     def P(name: str) -> FloatArray:  # noqa: N802 (reads as the position symbol)
         return src[:, BONE_INDEX[name]]
@@ -246,7 +209,7 @@ def retarget(motion: SourceMotion, floor_clearance: float = 0.05) -> Retargeted:
         specs.append((f"{S}LowerLeg", an - kn, -Y, leg2, X, leg_ok))
         foot_rest = _unit(np.asarray(d[f"{S}Toes"]))
         specs.append((f"{S}Foot", toe - an, foot_rest, leg2, X, leg_ok))
-        toe_end = motion.end_sites[J[side + "toe"]]
+        toe_end = motion.end_sites[J[side + "toe"]] if side + "toe" in J else np.zeros(3)
         if np.linalg.norm(toe_end) > 1e-4:
             toe_dir = np.einsum("fij,j->fi", G[:, J[side + "toe"]], toe_end)
             specs.append((f"{S}Toes", toe_dir, Z, leg2, X, leg_ok))
@@ -288,6 +251,19 @@ def retarget(motion: SourceMotion, floor_clearance: float = 0.05) -> Retargeted:
     return Retargeted(motion.name, skeleton, theta, fk.positions, fk.rotations, src, motion.fps)
 
 
+def _toe_positions(motion: SourceMotion, J: dict[str, int], G: FloatArray, x: FloatArray, side: str) -> FloatArray:
+    """World positions of a side's toe joint, shape (n_frames, 3): the toe joint, or the ankle's end site."""
+    if side + "toe" in J:
+        return np.asarray(x[:, J[side + "toe"]])
+    ankle = J[side + "ankle"]
+    end = motion.end_sites[ankle]
+    if np.linalg.norm(end) <= 1e-4:
+        raise InputError(
+            f"retarget {motion.name!r}: no {side} toe joint and the {motion.joint_names[ankle]} joint has no end site"
+        )
+    return np.asarray(x[:, ankle] + np.einsum("fij,j->fi", G[:, ankle], end))
+
+
 def _hinge(a: FloatArray, b: FloatArray) -> tuple[FloatArray, BoolArray]:
     """Hinge axis ``a × b`` of a two-segment limb per frame and where the bend exceeds MIN_HINGE_DEG."""
     ua, ub = _unit(a), _unit(b)
@@ -307,4 +283,4 @@ def _sized_skeleton(offsets: FloatArray, clearance: float) -> Skeleton:
     return Skeleton(offsets=offsets, root_height=root_height, height=float(np.clip(head * 1.75 / 1.60, 0.5, 2.6)))
 
 
-__all__ = ["BONE_NAMES", "ROLE_NAMES", "Retargeted", "retarget"]
+__all__ = ["BONE_NAMES", "CONVENTIONS", "Retargeted", "retarget"]

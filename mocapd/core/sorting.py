@@ -144,6 +144,12 @@ class DetectionSorter:
         self._K, self._dist, self._R, self._t = (np.ascontiguousarray(a) for a in stack_cameras(self.cameras))
         self._widths = np.array([c.width for c in cameras], dtype=np.float64)
 
+    def warm_up(self, n_keypoints: int) -> None:
+        """Compile (or load from numba's cache) the pairing kernel now, not when the first two people appear in
+        the live tick: one made-up person in every camera."""
+        one = Detections2D(np.zeros((1, n_keypoints, 2)), np.ones((1, n_keypoints)))
+        self.candidates([one] * len(self.cameras))
+
     # -- candidates ----------------------------------------------------------------------------------------
     def candidates(self, detections: list[Detections2D]) -> list[Candidate]:
         """Lines 1–17 of Algorithm 1: the viable 3D candidates of this frame (then claims resolved)."""

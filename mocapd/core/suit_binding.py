@@ -14,6 +14,7 @@ does not depend on the IMUs' heading alignment R_ig, the least reliable part of 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -147,11 +148,23 @@ class SuitBinder:
     skeleton : Skeleton
         Gives the limb axes in the bone frames.
     options : BindingOptions
+    names : sequence of str, optional
+        The keypoint names of the tracks' keypoints, in order (default: COCO-17). Any format that has the
+        COCO-17 keypoints among its own (Body25, Halpe-26) works: they are picked out by name.
     """
 
-    def __init__(self, skeleton: Skeleton, options: BindingOptions | None = None) -> None:
+    def __init__(
+        self, skeleton: Skeleton, options: BindingOptions | None = None, names: Sequence[str] | None = None
+    ) -> None:
         self.options = options if options is not None else BindingOptions()
         self._axes = limb_axes(skeleton)
+        self._n_kp = len(COCO17) if names is None else len(names)
+        self._coco: NDArray[np.intp] | None = None
+        if names is not None:
+            missing = [n for n in _KP if n not in names]
+            if missing:
+                raise InputError(f"suit binding: the keypoint set lacks the COCO-17 keypoints {missing}")
+            self._coco = np.array([list(names).index(n) for n in _KP], dtype=np.intp)
         # Per frame, its contribution to each (suit, track) pair's sums; and the window's totals.
         self._frames: deque[tuple[int, dict[tuple[str, int], _Sums]]] = deque()
         self._totals: dict[tuple[str, int], _Sums] = {}
@@ -166,19 +179,27 @@ class SuitBinder:
 
         Parameters
         ----------
-        tracks : track id -> triangulated COCO-17 keypoints (17, 3) (NaN rows allowed) of tracks seen now.
+        tracks : track id -> triangulated keypoints (n_kp, 3) (NaN rows allowed) of tracks seen now, in the
+            order of ``names`` (COCO-17 by default).
         suits : suit id -> {bone name: measured global bone orientation (4,)} of suits streaming now.
         """
         for k, kp in tracks.items():
-            if np.asarray(kp).shape != (len(COCO17), 3):
-                raise InputError(f"suit binding: track {k} keypoints must have shape ({len(COCO17)}, 3)")
+            if np.asarray(kp).shape != (self._n_kp, 3):
+                raise InputError(f"suit binding: track {k} keypoints must have shape ({self._n_kp}, 3)")
         track_ids, suit_ids = list(tracks), list(suits)
         frame: dict[tuple[str, int], _Sums] = {}
         if track_ids and suit_ids:
-            vis = np.stack([visual_directions(np.asarray(tracks[k], dtype=np.float64)) for k in track_ids])
+            pick = self._coco
+            vis = np.stack([
+                visual_directions(np.asarray(tracks[k] if pick is None else tracks[k][pick], dtype=np.float64))
+                for k in track_ids
+            ])  # fmt: skip
             imu = np.stack([imu_directions(suits[s], self._axes) for s in suit_ids])
             sums = all_pair_sums(imu, vis)
-            frame = {(s, k): sums[i, j] for i, s in enumerate(suit_ids) for j, k in enumerate(track_ids)}
+            # Only pairs with a limb seen by both: a zero-count entry would be pruned from the totals below while
+            # still in this frame, and its removal at the end of the window would find nothing to subtract from.
+            frame = {(s, k): sums[i, j] for i, s in enumerate(suit_ids) for j, k in enumerate(track_ids)
+                     if sums[i, j, 3] > 0}  # fmt: skip
         self._frames.append((t_ns, frame))
         for key, v in frame.items():
             self._totals[key] = self._totals.get(key, np.zeros(4)) + v

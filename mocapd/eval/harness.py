@@ -9,8 +9,6 @@ after a calibration). The baselines see the same detections and IMU readings.
 
 from __future__ import annotations
 
-import sys
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any
@@ -254,36 +252,6 @@ def solver_errors(
             per_sequence[s.name] = one.table()
         tick(s.clip.n_frames)
     return err
-
-
-class Progress:
-    """A one-line text progress bar on stderr (frames solved / planned, rate, ETA)."""
-
-    def __init__(self, total: int, enabled: bool = True) -> None:
-        self.total = max(total, 1)
-        self.done = 0
-        self.t0 = time.perf_counter()
-        self.enabled = enabled
-        self.label = ""
-
-    def __call__(self, n: int) -> None:
-        self.done += n
-        if not self.enabled:
-            return
-        el = time.perf_counter() - self.t0
-        rate = self.done / el if el > 0 else 0.0
-        eta = (self.total - self.done) / rate if rate > 0 else 0.0
-        frac = min(self.done / self.total, 1.0)
-        bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
-        sys.stderr.write(
-            f"\r[{bar}] {100 * frac:5.1f}% {self.done}/{self.total} frames  {rate:6.0f} fr/s  "
-            f"ETA {eta:5.0f} s  {self.label:<28}"
-        )
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            sys.stderr.write("\n")
 
 
 def iterate_terms() -> Iterator[str]:

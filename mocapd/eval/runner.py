@@ -20,7 +20,6 @@ from mocapd.eval.baselines import LIMB_JOINTS
 from mocapd.eval.data import load_clip, load_splits
 from mocapd.eval.harness import (
     Errors,
-    Progress,
     RunConfig,
     Sequence,
     make_sequence,
@@ -32,6 +31,7 @@ from mocapd.eval.harness import (
 from mocapd.eval.report import write_report
 from mocapd.eval.simulate import DetectionNoise, ImuNoise
 from mocapd.io.prior import resolve_prior
+from mocapd.io.progress import Progress
 
 ABLATION_TERMS = ("position", "orientation", "acceleration", "prior_projection", "prior_deviation", "floor")
 SUBSAMPLING = ((1, 1), (1, 2), (2, 4), (3, 6), (1, 4), (2, 8), (3, 12), (1, 8), (2, 16), (3, 24))
@@ -111,7 +111,7 @@ def run_eval(opts: EvalOptions, out_dir: Path, data_root: Path | None = None) ->
     n_short = sum(s.clip.n_frames for s in short)
     sweep_cfgs = [(c, i) for i in opts.sweep_imus for c in opts.sweep_cams]
     total = n_main * 6 + n_short * (len(sweep_cfgs) + len(ABLATION_TERMS) + len(SUBSAMPLING))
-    bar = Progress(total, opts.progress)
+    bar = Progress(total, "accuracy", enabled=opts.progress)
     cost = opts.cost
     results: dict[str, Any] = {}
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import pairwise
 from typing import Any
@@ -231,8 +232,16 @@ def _solve_errors(
     return out
 
 
-def evaluate(seconds: float = 8.0, seed: int = 0, motion: str = "real") -> dict[str, Any]:
-    results = [run_scene(s, suits, seconds, seed, motion) for s in SCENES for suits in (True, False)]
+def evaluate(
+    seconds: float = 8.0, seed: int = 0, motion: str = "real", progress: Callable[[int], None] | None = None
+) -> dict[str, Any]:
+    """Every scene with and without suits; ``progress`` is called with 1 after each run (``2 * len(SCENES)``)."""
+    results = []
+    for s in SCENES:
+        for suits in (True, False):
+            results.append(run_scene(s, suits, seconds, seed, motion))
+            if progress is not None:
+                progress(1)
     return {"scenes": results}
 
 

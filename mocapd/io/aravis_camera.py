@@ -9,8 +9,12 @@ reference to asyncio.
 Opening
     * by IP address (``address``): ``ArvGvDevice`` is created directly between the host interface address that
       routes to the camera and the camera's address. No discovery broadcast is sent. Use this on shared networks.
-    * by serial number or Aravis device id (``serial`` / ``device_id``): needs Aravis discovery, which broadcasts
-      on every interface; only use it on a dedicated camera network (or in a private network namespace).
+    * by serial number or Aravis device id (``serial`` / ``device_id``) of a GigE Vision camera on a named network
+      ``interface``: mocapd's own discovery (:mod:`mocapd.io.gige_discovery`) broadcasts on that interface only,
+      then the camera is opened by the address it reported;
+    * by serial number or Aravis device id without an ``interface``: a USB3 Vision camera, looked up by Aravis
+      with its GigE Vision interface disabled. Aravis' GigE discovery broadcasts on every interface of the host
+      (0.8.26 cannot restrict it), so mocapd never lets it run (:func:`aravis_without_gige_discovery`).
 
 Disappearance
     A camera is declared lost when the GigE heartbeat reports ``control-lost`` or when a free-running camera sends
@@ -33,6 +37,7 @@ from numpy.typing import NDArray
 
 from mocapd.errors import ConfigError, DeviceError
 from mocapd.io.frame_source import ThreadedSource
+from mocapd.io.gige_discovery import find_camera
 from mocapd.io.pixels import PixelFormat, convert_into, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
@@ -134,7 +139,10 @@ class AravisCameraConfig:
     serial : str or None
         Serial number (needs discovery).
     device_id : str or None
-        Aravis device id, as listed by ``arv-tool-0.8`` (needs discovery).
+        Aravis device id, as listed by ``mocapd devices`` or ``arv-tool-0.8`` (needs discovery).
+    interface : str
+        Network interface on which GigE Vision discovery may broadcast to find a camera by ``serial`` or
+        ``device_id``; "" = none (the camera is then looked for among USB3 Vision devices only).
     pixel_format : str
         ``Mono8``, ``RGB8`` or ``BayerRG8``/``BayerBG8``/``BayerGR8``/``BayerGB8`` (demosaiced to RGB).
     region : (x, y, width, height) or None
@@ -168,12 +176,22 @@ class AravisCameraConfig:
     frame_retention_ms : float
         GigE only: how long an incomplete frame waits for resent packets before it is given up as incomplete
         (Aravis default 100). A loaded host (or a camera far away on the network) needs more.
+    packet_delay_ns : int or None
+        GigE only: inter-packet delay (GevSCPD) in ns, which spreads each frame's burst so that several cameras
+        sharing one link do not overflow the switch or the NIC; None keeps the camera's.
+    ptp : bool
+        Enable IEEE 1588 PTP on the camera (``PtpEnable``, or ``GevIEEE1588`` on GigE Vision 2.0 cameras): its
+        frame timestamps then come from the PTP clock. A camera without either feature fails to open.
+    features : tuple of (str, value)
+        Any other GenICam feature by name, set last, in order: a bool, int, float or str (enumeration entries
+        by name).
     """
 
     name: str
     address: str | None = None
     serial: str | None = None
     device_id: str | None = None
+    interface: str = ""
     pixel_format: str = "Mono8"
     region: tuple[int, int, int, int] | None = None
     binning: tuple[int, int] | None = None
@@ -189,6 +207,9 @@ class AravisCameraConfig:
     socket_frames: int = 4
     packet_timeout_ms: float = 20.0
     frame_retention_ms: float = 100.0
+    packet_delay_ns: int | None = None
+    ptp: bool = False
+    features: tuple[tuple[str, bool | int | float | str], ...] = ()
 
     def __post_init__(self) -> None:
         chosen = [k for k in ("address", "serial", "device_id") if getattr(self, k)]
@@ -222,25 +243,41 @@ def local_address_for(address: str) -> str:
         return str(s.getsockname()[0])
 
 
+def aravis_without_gige_discovery() -> Any:
+    """Aravis with its GigE Vision interface disabled (for the whole process): listing or opening devices by
+    name then never broadcasts. GigE Vision cameras are opened by address, or found by
+    :mod:`mocapd.io.gige_discovery` on one named interface.
+
+    Raises
+    ------
+    DeviceError
+        If Aravis is not available.
+    """
+    aravis = load_aravis()
+    aravis.disable_interface("GigEVision")
+    return aravis
+
+
 def open_camera(config: AravisCameraConfig) -> Any:
-    """Open an ``Aravis.Camera`` as ``config`` says (blocking).
+    """Open an ``Aravis.Camera`` as ``config`` says (blocking; GigE discovery on ``config.interface`` waits up to
+    :data:`~mocapd.io.gige_discovery.DEFAULT_TIMEOUT_S`).
 
     Raises
     ------
     DeviceError
         If the camera cannot be found or opened; the message names how it was looked for.
     """
-    aravis = load_aravis()
+    aravis = aravis_without_gige_discovery()
     from gi.repository import Gio, GLib
 
+    what = config.address or config.device_id or config.serial
     try:
         if config.address:
-            local = Gio.InetAddress.new_from_string(local_address_for(config.address))
-            remote = Gio.InetAddress.new_from_string(config.address)
-            if remote is None:
-                raise ConfigError(f"camera {config.name!r}: {config.address!r} is not an IPv4 address")
-            device = aravis.GvDevice.new(local, remote)
-            return aravis.Camera.new_with_device(device)
+            return _open_gige(aravis, Gio, config, local_address_for(config.address), config.address)
+        if config.interface:
+            found = find_camera(config.interface, serial=config.serial or "", device_id=config.device_id or "")
+            what = f"{what} at {found.address} on {config.interface}"
+            return _open_gige(aravis, Gio, config, found.interface.address, found.address)
         if config.device_id:
             return aravis.Camera.new(config.device_id)
         aravis.update_device_list()
@@ -248,9 +285,19 @@ def open_camera(config: AravisCameraConfig) -> Any:
             if aravis.get_device_serial_nbr(i) == config.serial:
                 return aravis.Camera.new(aravis.get_device_id(i))
     except GLib.Error as exc:
-        what = config.address or config.device_id or config.serial
         raise DeviceError(f"camera {config.name!r} ({what}) cannot be opened: {exc.message}") from exc
-    raise DeviceError(f"camera {config.name!r}: no device with serial {config.serial!r} was discovered")
+    raise DeviceError(
+        f"camera {config.name!r}: no USB3 Vision device with serial {config.serial!r} (a GigE Vision camera needs "
+        "its address, or the network interface to discover it on)"
+    )
+
+
+def _open_gige(aravis: Any, gio: Any, config: AravisCameraConfig, local: str, remote: str) -> Any:
+    remote_address = gio.InetAddress.new_from_string(remote)
+    if remote_address is None:
+        raise ConfigError(f"camera {config.name!r}: {remote!r} is not an IPv4 address")
+    device = aravis.GvDevice.new(gio.InetAddress.new_from_string(local), remote_address)
+    return aravis.Camera.new_with_device(device)
 
 
 def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]:
@@ -283,6 +330,12 @@ def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]
             steps.append(("packet size", camera.gv_auto_packet_size))
         else:
             steps.append(("packet size", lambda: camera.gv_set_packet_size(config.packet_size)))
+    if config.packet_delay_ns is not None and camera.is_gv_device():
+        steps.append(("inter-packet delay", lambda: camera.gv_set_packet_delay(config.packet_delay_ns)))
+    if config.ptp:
+        steps.append(("PTP", lambda: _enable_ptp(camera, config.name)))
+    for name, value in config.features:
+        steps.append((f"feature {name} = {value!r}", _feature_setter(camera, config.name, name, value)))
     for what, step in steps:
         try:
             step()
@@ -290,6 +343,35 @@ def configure_camera(camera: Any, config: AravisCameraConfig) -> tuple[int, int]
             raise DeviceError(f"camera {config.name!r} rejected {what}: {exc.message}") from exc
     region = camera.get_region()
     return int(region.width), int(region.height)
+
+
+PTP_FEATURES = ("PtpEnable", "GevIEEE1588")  # SFNC 2.x name first, then GigE Vision 2.0's
+
+
+def _enable_ptp(camera: Any, name: str) -> None:
+    for feature in PTP_FEATURES:
+        if camera.is_feature_available(feature):
+            camera.set_boolean(feature, True)
+            return
+    raise DeviceError(f"camera {name!r} offers no PTP (none of {', '.join(PTP_FEATURES)}); set ptp = false")
+
+
+def _feature_setter(camera: Any, name: str, feature: str, value: bool | int | float | str) -> Any:
+    """The call that sets one GenICam feature by name, chosen by the value's type."""
+
+    def apply() -> None:
+        if not camera.is_feature_available(feature):
+            raise DeviceError(f"camera {name!r} has no GenICam feature {feature!r} (or it is not available now)")
+        if isinstance(value, bool):
+            camera.set_boolean(feature, value)
+        elif isinstance(value, int):
+            camera.set_integer(feature, value)
+        elif isinstance(value, float):
+            camera.set_float(feature, value)
+        else:
+            camera.set_string(feature, value)
+
+    return apply
 
 
 class AravisSource(ThreadedSource):

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from mocapd.core.motion import SourceMotion
+from mocapd.core.naming import match_roles
 from mocapd.errors import InputError
 from mocapd.io.mocap_units import CANDIDATE_UNITS, detect_unit, quat_from_euler
 
@@ -132,7 +133,19 @@ def parse_bvh(text: str, name: str = "bvh", unit: str | None = None) -> SourceMo
 
 
 def _leg_length(names: list[str], offsets: np.ndarray, parents: list[int]) -> float:
-    """Hip-to-ankle length in file units: the lengths of the two joints below the first left thigh joint."""
+    """Hip-to-ankle length in file units: along the left leg of the file's naming convention, else the lengths of
+    the two joints below the first left thigh-like joint."""
+    try:
+        roles = match_roles(names).joints
+    except InputError:
+        roles = {}
+    if "lhip" in roles:
+        j, total = roles["lankle"], 0.0
+        while j not in (roles["lhip"], -1):
+            total += float(np.linalg.norm(offsets[j]))
+            j = parents[j]
+        if j >= 0:
+            return total
     low = [n.lower() for n in names]
     for i, n in enumerate(low):
         left = n.startswith("l") or "left" in n or n.endswith("_l")

@@ -460,20 +460,15 @@ def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:
     raise CalibrationError(f"{path}: unknown calibration format (use .toml, .qca.txt, .yml or .yaml)")
 
 
-def core_cameras(calib: CalibrationSet, scale: float = 1.0) -> list[Camera]:
-    """The rig as the solver's :class:`~mocapd.core.camera.Camera` objects, for images resized by ``scale``.
+def scale_calibration(calib: CalibrationSet, scale: float) -> CalibrationSet:
+    """The rig's calibration for images resized by ``scale`` (0.5: half-size images, as ``cv2.resize`` or 2x2
+    binning makes them): focal lengths scale by it and the principal point follows pixel centres,
+    ``c' = (c + 0.5) * scale - 0.5``; the size is rounded. Extrinsics and distortion are unchanged.
 
-    Parameters
-    ----------
-    calib : CalibrationSet
-    scale : float
-        Image scale factor (0.5: half-size images, as ``cv2.resize`` makes them): focal lengths scale by it and
-        the principal point follows pixel centres, ``c' = (c + 0.5) * scale - 0.5``; the size is rounded.
-
-    Returns
-    -------
-    list of Camera
-        In the calibration's order.
+    Raises
+    ------
+    CalibrationError
+        ``scale`` is not positive.
     """
     if not scale > 0:
         raise CalibrationError(f"image scale must be positive, got {scale}")
@@ -484,6 +479,14 @@ def core_cameras(calib: CalibrationSet, scale: float = 1.0) -> list[Camera]:
         K[1, 1] *= scale
         K[0, 2] = (K[0, 2] + 0.5) * scale - 0.5
         K[1, 2] = (K[1, 2] + 0.5) * scale - 0.5
-        w, h = round(c.size[0] * scale), round(c.size[1] * scale)
-        out.append(Camera(c.name, w, h, K, c.R, c.t, c.dist))
-    return out
+        size = (round(c.size[0] * scale), round(c.size[1] * scale))
+        out.append(CameraCalibration(c.name, size, K, c.dist, c.R, c.t, c.error_px))
+    source = f"{calib.source} scaled by {scale:g}" if calib.source else f"scaled by {scale:g}"
+    return CalibrationSet(tuple(out), source=source)
+
+
+def core_cameras(calib: CalibrationSet, scale: float = 1.0) -> list[Camera]:
+    """The rig as the solver's :class:`~mocapd.core.camera.Camera` objects, for images resized by ``scale``
+    (:func:`scale_calibration`), in the calibration's order."""
+    scaled = scale_calibration(calib, scale) if scale != 1.0 else calib
+    return [Camera(c.name, c.size[0], c.size[1], c.K, c.R, c.t, c.dist) for c in scaled.cameras]

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.errors import DeviceError
+from mocapd.io.device_state import OpenState
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
 log = logging.getLogger(__name__)
@@ -110,6 +111,7 @@ class ThreadedSource(abc.ABC):
         self.retry_in_s: float | None = None  # the back-off being waited before reopening (None: not waiting)
         self.last_backoff_s: float | None = None  # the last back-off waited (it doubles while reopening fails)
         self.thread_id: int | None = None  # native id of the current capture thread (for CPU accounting)
+        self.ever_opened = False  # the device opened at least once (a later failure is retried, not fatal)
 
     # -- subclasses implement -----------------------------------------------------------------------------
     @abc.abstractmethod
@@ -137,6 +139,14 @@ class ThreadedSource(abc.ABC):
                 "missing_frames": c.missing_frames,
                 "bad_buffers": c.bad_buffers, "timeouts": c.timeouts, "last_error": c.last_error}  # fmt: skip
 
+    def open_state(self) -> OpenState:
+        """Whether the first opening succeeded, failed (with the reason) or is still under way."""
+        if self.ever_opened:
+            return OpenState("open", "")
+        if self.counters.failures:
+            return OpenState("failed", self.counters.last_error)
+        return OpenState("opening", "")
+
     # -- supervision ----------------------------------------------------------------------------------------
     def _thread_main(
         self,
@@ -149,6 +159,7 @@ class ThreadedSource(abc.ABC):
         self.thread_id = threading.get_native_id()
         try:
             self._open()
+            self.ever_opened = True
             self.opened.set()
             while not stop.is_set():
                 ref = self._grab()

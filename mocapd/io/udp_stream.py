@@ -1,4 +1,5 @@
-"""UDP pose sinks: the MVN (``MXTP02``) and VMC (OSC) streams of :mod:`mocapd.protocols.mvn` / ``.vmc``.
+"""UDP pose sinks: the MVN (``MXTP02``), VMC (OSC) and VRChat OSC trackers streams of :mod:`mocapd.protocols.mvn`,
+``.vmc`` and ``.vrchat``.
 
 Each sink owns one non-blocking, unconnected IPv4 UDP socket (opened in :meth:`start`, on the event loop) and
 sends from :meth:`publish`, which the daemon calls from its tick loop: a send never blocks and never raises. A full
@@ -25,6 +26,7 @@ from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols.mvn import MvnEncoder
 from mocapd.protocols.subjects import SubjectSlots
 from mocapd.protocols.vmc import VmcEncoder
+from mocapd.protocols.vrchat import ROLES, VrChatEncoder
 
 Destination = tuple[str, int]
 
@@ -186,7 +188,8 @@ class MvnUdpSink(_UdpPoseSink):
         if not chars:
             return
         try:
-            datagrams = self.encoder.encode(frame.frame, frame.t_solve_ns, chars, [p.skeleton for _, p in subjects])
+            datagrams = self.encoder.encode(frame.frame, frame.t_solve_ns, chars, [p.skeleton for _, p in subjects],
+                                            [frame.pose_time_ns(p) for _, p in subjects])  # fmt: skip
         except MocapdError:
             self.skipped_subjects += len(chars)
             return
@@ -241,7 +244,8 @@ class VmcUdpSink(_UdpPoseSink):
         thetas = np.stack([p.theta for _, p in subjects])
         tracked = [p.views > 0 or p.imus > 0 for _, p in subjects]
         try:
-            bundles = self.encoder.encode_many(t, thetas, tracked, [p.skeleton for _, p in subjects])
+            bundles = self.encoder.encode_many(t, thetas, tracked, [p.skeleton for _, p in subjects],
+                                               [frame.pose_time_ns(p) for _, p in subjects])  # fmt: skip
         except MocapdError:
             self.skipped_subjects += len(subjects)
             return
@@ -249,3 +253,55 @@ class VmcUdpSink(_UdpPoseSink):
             for b in per_subject:
                 self.sender.send(b, self.destinations[slot])
         self.frames_sent += 1
+
+
+class VrChatUdpSink(_UdpPoseSink):
+    """VRChat OSC trackers: one subject's body as up to eight trackers and a head, to one destination.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    destination : (host, port)
+        VRChat's OSC input (default port 9000).
+    subject : str or None
+        The identity streamed (``suit:<id>``, ``track:<k>``); None: the first subject to appear, until it has been
+        gone for ``release_after_frames``.
+    roles : sequence of str
+        Trackers sent (:data:`mocapd.protocols.vrchat.ROLES`).
+    user_height_m : float or None
+        Positions are scaled by this over the skeleton's height (None: 1).
+    rate_divisor, release_after_frames, fileno
+        As for the other UDP streams.
+    """
+
+    name = "vrchat"
+
+    def __init__(
+        self,
+        skeleton: Skeleton,
+        destination: Destination,
+        *,
+        subject: str | None = None,
+        roles: Sequence[str] = ROLES,
+        user_height_m: float | None = None,
+        rate_divisor: int = 1,
+        release_after_frames: int = 120,
+        fileno: int | None = None,
+    ) -> None:
+        pinned = None if subject is None else {subject: 0}
+        subjects = None if subject is None else [subject]
+        super().__init__([destination], capacity=1, rate_divisor=rate_divisor, pinned=pinned, subjects=subjects,
+                         release_after_frames=release_after_frames, fileno=fileno)  # fmt: skip
+        self.encoder = VrChatEncoder(skeleton, roles=roles, user_height_m=user_height_m)
+
+    def publish(self, frame: PoseFrame) -> None:
+        if not self._due():
+            return
+        for _, person in self._subjects(frame):
+            try:
+                bundle = self.encoder.encode(person.theta, person.skeleton)
+            except MocapdError:
+                self.skipped_subjects += 1
+                continue
+            self.sender.send(bundle, self.destinations[0])
+            self.frames_sent += 1

@@ -12,6 +12,12 @@ client carry on.
 Replies to client requests (hello, errors) go on a separate small control queue that is sent first and never
 dropped; a client that floods requests without reading the replies is closed (1008).
 
+Camera panels: with a :class:`~mocapd.pipeline.camera_views.CameraViews`, a client that subscribes with
+``cameras: true`` gets ``camera`` messages. One task runs only while some client asks: at the highest rate asked
+it assembles the panels and encodes their JPEGs in a worker thread (``asyncio.to_thread``: the copies,
+projections and encoding never run on the event loop the solver ticks on), then queues each message for the
+clients due one, on their ordinary bounded queues (a slow client loses its own oldest messages).
+
 Plain HTTP GETs on the same port (no ``Upgrade: websocket``) serve the viewer (``/`` and ``/viewer.js`` from
 ``mocapd/web/``); everything else is 404. With a token configured, both the page and the stream need it
 (``?token=...`` in the URL or ``Authorization: Bearer ...``), checked in constant time.
@@ -33,6 +39,8 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs
 
+import cv2
+import numpy as np
 from websockets.asyncio.server import Server, ServerConnection, broadcast, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
@@ -41,6 +49,7 @@ from websockets.protocol import State
 from mocapd.core.per_skeleton import skeleton_key
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError
+from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
 from mocapd.protocols.ws_stream import (
     ClientSession,
     FrameEncoder,
@@ -48,6 +57,7 @@ from mocapd.protocols.ws_stream import (
     Message,
     StreamDescription,
     StreamOptions,
+    camera_message,
 )
 
 log = logging.getLogger(__name__)
@@ -90,6 +100,7 @@ class _Client:
         self.sent = 0
         self.dropped = 0
         self.sending = False
+        self.camera_due_ns: dict[int, int] = {}  # camera -> earliest time of its next camera message
 
     def idle(self) -> bool:
         """Nothing queued or in flight and the socket takes data now: a message may be written directly."""
@@ -148,8 +159,15 @@ class WebSocketStreamServer:
         status: Callable[[], Mapping[str, Any]] | None = None,
         clock: Callable[[], int] = time.monotonic_ns,
         sock: socket.socket | None = None,
+        camera_views: CameraViews | None = None,
     ) -> None:
         self.settings = settings
+        self.camera_views = camera_views
+        if camera_views is not None:
+            description = dataclasses.replace(
+                description, cameras=tuple((c.name, c.width, c.height) for c in camera_views.cameras),
+                camera_rate_hz=camera_views.options.rate_hz,
+            )  # fmt: skip
         self._sock = sock  # an inherited listening socket (the camera demo's, bound outside its netns)
         # Per-person skeletons (body sizing) join the hello's skeletons as they appear: a live registry.
         self._skeletons: dict[str, Skeleton] = dict(description.skeletons)
@@ -171,6 +189,8 @@ class WebSocketStreamServer:
         self._latest_subjects: tuple[str, ...] = ()
         self._server: Server | None = None
         self._status_task: asyncio.Task[None] | None = None
+        self._camera_task: asyncio.Task[None] | None = None
+        self.camera_messages = 0
         self._web = load_web_files() if settings.viewer else {}
 
     # ------------------------------------------------------------------------------------------ sink API
@@ -247,6 +267,11 @@ class WebSocketStreamServer:
 
     async def aclose(self) -> None:
         """Stop status messages, close every connection (going away, 1001) and stop listening."""
+        if self._camera_task is not None:
+            self._camera_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._camera_task
+            self._camera_task = None
         if self._status_task is not None:
             self._status_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -342,6 +367,8 @@ class WebSocketStreamServer:
                     await conn.close(1008, "too many unanswered requests")
                     break
                 client.wake.set()
+                if session.options.cameras and (self._camera_task is None or self._camera_task.done()):
+                    self._camera_task = asyncio.create_task(self._camera_loop())
         except ConnectionClosed:
             pass  # oversized message (1009), reset, or going away: this client only
         finally:
@@ -387,3 +414,54 @@ class WebSocketStreamServer:
                 if c.session.options.status:
                     stream = {"clients": len(self.clients), "sent": c.sent, "dropped": c.dropped}
                     c.push(c.session.status(health, now, stream))
+
+    # ------------------------------------------------------------------------------------------ camera panels
+    def _camera_clients(self) -> list[_Client]:
+        return [c for c in self.clients if c.session.options.cameras]
+
+    async def _camera_loop(self) -> None:
+        """Camera messages while some client asks for them (then the task ends)."""
+        views = self.camera_views
+        assert views is not None
+        while True:
+            wanted = self._camera_clients()
+            if not wanted:
+                return
+            rate = max(c.session.options.camera_rate_hz for c in wanted)
+            panels = await asyncio.to_thread(_panels, views, views.now())
+            now = self.clock()
+            for panel, jpeg, size in panels:
+                cache: dict[str, Message] = {}
+                for c in self._camera_clients():
+                    if now < c.camera_due_ns.get(panel.camera, 0):
+                        continue
+                    c.camera_due_ns[panel.camera] = now + round(0.9e9 / c.session.options.camera_rate_hz)
+                    enc = c.session.options.encoding
+                    if enc not in cache:
+                        cache[enc] = camera_message(panel, jpeg, size, enc)
+                    c.push(cache[enc])
+                    self.camera_messages += 1
+            await asyncio.sleep(1.0 / rate)
+
+
+def _panels(views: CameraViews, now_ns: int) -> list[tuple[CameraView, bytes | None, tuple[int, int]]]:
+    """In a worker thread: the ready camera views with their JPEG bytes and the JPEG's (width, height)."""
+    out = []
+    for view in views.views(now_ns):
+        snap = view.snapshot
+        jpeg: bytes | None = None
+        size = (0, 0)
+        if snap is not None and snap.jpeg is not None:
+            jpeg = snap.jpeg
+            size = _jpeg_size(jpeg)
+        elif snap is not None and snap.image is not None:
+            jpeg = encode_jpeg(snap.image, views.options.jpeg_quality)
+            size = (int(snap.image.shape[1]), int(snap.image.shape[0]))
+        out.append((view, jpeg, size))
+    return out
+
+
+def _jpeg_size(jpeg: bytes) -> tuple[int, int]:
+    """(width, height) of a JPEG (decoded header and all: recorded frames are small)."""
+    img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_UNCHANGED)
+    return (0, 0) if img is None else (int(img.shape[1]), int(img.shape[0]))

@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from mocapd.errors import ConfigError, DeviceError, DeviceTimeout
+from mocapd.io.device_state import OpenState
 from mocapd.io.serial_transport import SerialTransport, create_serial_connection
 from mocapd.protocols.awinda import AwindaConfig, SnapshotIntegrator, station_steps
 from mocapd.protocols.mtdata2 import AwindaSnapshot, CoordFrame, DataId, MtData2, Precision
@@ -163,6 +164,14 @@ class XsensSerialDevice:
         self._proto: _SessionProtocol | None = None
         #: the current (or last) session, for its parser and session counters
         self.session: XsensSession | None = None
+
+    def open_state(self) -> OpenState:
+        """Whether the device has streamed yet, or its first connection failed (with the reason)."""
+        if self.stats.samples or self.streaming.is_set():
+            return OpenState("open", "")
+        if self.stats.failures:
+            return OpenState("failed", self.stats.failures[-1])
+        return OpenState("opening", "")
 
     def stop(self) -> None:
         """Ask :meth:`run` to return after closing the port."""

@@ -125,6 +125,13 @@ class OnnxPoseDetector:
         self._input_dtype = np.float16 if "float16" in inp.type else np.float32
         self._scale = (np.float32(spec.pixel_scale) / np.asarray(spec.std, dtype=np.float32)).astype(np.float32)
         self._mean = np.asarray(spec.mean, dtype=np.float32)
+        # One RunOptions for every run: terminate() sets its flag, and a run in flight stops at its next node
+        # (a CPU inference takes up to a second; a daemon stopping must not wait for it).
+        self._run_options = ort.RunOptions()
+
+    def terminate(self) -> None:
+        """Abort the inference in flight (it raises in its thread) and refuse further runs: at shutdown."""
+        self._run_options.terminate = True
 
     @staticmethod
     def from_config(cfg: DetectorConfig) -> OnnxPoseDetector:
@@ -171,7 +178,7 @@ class OnnxPoseDetector:
 
     def run_canvas(self, canvas: Image) -> PoseDetections:
         """Detect people on a model-sized image; coordinates in that image's pixels."""
-        (out,) = self.session.run(None, {self._input_name: self.to_tensor(canvas)})[:1]
+        (out,) = self.session.run(None, {self._input_name: self.to_tensor(canvas)}, self._run_options)[:1]
         spec = self.spec
         return decode_yolo_pose(
             np.asarray(out),

@@ -1,14 +1,13 @@
 """Typed configuration of the 2D keypoint detector: ``[detector]``, ``[detector.model]``, ``[detector.packing]``.
 
-Parsed once from the mapping that ``config.toml`` gives; unknown keys are rejected with the key's name, so
-that a typo never falls back to a default silently. ``config.toml`` documents every key.
+Plain frozen dataclasses, built from ``config.toml`` by the schema in :mod:`mocapd.service.config.detector`
+(which declares each key's type and range and names bad keys); the checks here guard programmatic
+construction (tools, tests) with the same rules. ``config.toml`` documents every key.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
-from typing import Any, TypeVar
+from dataclasses import dataclass, field
 
 from mocapd.core.keypoints import FORMATS
 from mocapd.core.roi_packing import SubsampleSchedule
@@ -170,58 +169,3 @@ class DetectorConfig:
 def _choice(key: str, value: str, allowed: tuple[str, ...]) -> None:
     if value not in allowed:
         raise ConfigError(f"{key} = {value!r} is not one of {list(allowed)}")
-
-
-T = TypeVar("T")
-
-
-def _build(cls: type[T], section: str, raw: Mapping[str, Any], nested: Mapping[str, Any] | None = None) -> T:
-    known = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
-    unknown = sorted(set(raw) - set(known))
-    if unknown:
-        raise ConfigError(f"unknown key(s) in [{section}]: {unknown}; allowed: {sorted(known)}")
-    kwargs: dict[str, Any] = {}
-    for name, value in raw.items():
-        if nested is not None and name in nested:
-            kwargs[name] = nested[name]
-            continue
-        default = getattr(cls(), name)
-        if isinstance(default, tuple):
-            if not isinstance(value, list | tuple):
-                raise ConfigError(f"[{section}] {name} must be a list, got {value!r}")
-            kwargs[name] = tuple(value)
-            continue
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise ConfigError(f"[{section}] {name} must be true or false, got {value!r}")
-        elif isinstance(default, int):
-            if not isinstance(value, int) or isinstance(value, bool):
-                raise ConfigError(f"[{section}] {name} must be an integer, got {value!r}")
-        elif isinstance(default, float):
-            if not isinstance(value, int | float) or isinstance(value, bool):
-                raise ConfigError(f"[{section}] {name} must be a number, got {value!r}")
-            kwargs[name] = float(value)
-            continue
-        elif isinstance(default, str) and not isinstance(value, str):
-            raise ConfigError(f"[{section}] {name} must be a string, got {value!r}")
-        kwargs[name] = value
-    return cls(**kwargs)
-
-
-def detector_config_from_mapping(raw: Mapping[str, Any]) -> DetectorConfig:
-    """Build a :class:`DetectorConfig` from the ``[detector]`` table of ``config.toml``.
-
-    Raises
-    ------
-    ConfigError
-        On an unknown key, a wrong type or a value out of range (the message names the key).
-    """
-    raw = dict(raw)
-    model_raw = raw.pop("model", {})
-    packing_raw = raw.pop("packing", {})
-    if not isinstance(model_raw, Mapping) or not isinstance(packing_raw, Mapping):
-        raise ConfigError("[detector.model] and [detector.packing] must be tables")
-    model = _build(ModelSpec, "detector.model", model_raw)
-    packing = _build(PackingConfig, "detector.packing", packing_raw)
-    raw_top = {**raw, "model": None, "packing": None}
-    return _build(DetectorConfig, "detector", raw_top, nested={"model": model, "packing": packing})

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.sorting import Detections2D
+from mocapd.io.device_state import OpenState
 from mocapd.pipeline.clocksync import ClockSync
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
@@ -42,6 +43,10 @@ class KeypointSource(Protocol):
         """JSON-able health for /status."""
         ...
 
+    def open_state(self) -> OpenState:
+        """Whether the source's device has opened (the daemon waits for every device before READY)."""
+        ...
+
 
 class FrameProducer(Protocol):
     """A frame source (:class:`mocapd.io.frame_source.ThreadedSource`: Aravis camera, video, image folder)."""
@@ -50,6 +55,8 @@ class FrameProducer(Protocol):
     ring: FrameRing
 
     async def run(self, on_frame: Callable[[FrameRef], None]) -> None: ...
+
+    def open_state(self) -> OpenState: ...
 
 
 #: a 2D detector: one image (height, width, channels) uint8 in, the people it sees out (called in a worker thread)
@@ -152,6 +159,9 @@ class DetectorKeypointSource:
         """In a worker: detect the newest frame not detected yet (None if there is none)."""
         got = self.take_newest()
         return None if got is None else (got[0], self.detector(got[1]))
+
+    def open_state(self) -> OpenState:
+        return self.frames.open_state()
 
     def status(self) -> dict[str, Any]:
         out: dict[str, Any] = {

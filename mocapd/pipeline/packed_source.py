@@ -31,9 +31,10 @@ from mocapd.pipeline.packing import PackedDetector
 Image = NDArray[np.uint8]
 
 
-def to_detections2d(people: PoseDetections) -> Detections2D:
-    """Detector output (boxes, scores, keypoints (n, K, 3)) → the sorter's 2D people."""
-    kp = people.keypoints
+def to_detections2d(people: PoseDetections, columns: NDArray[np.intp] | None = None) -> Detections2D:
+    """Detector output (boxes, scores, keypoints (n, K, 3)) → the sorter's 2D people (only ``columns`` of the K
+    keypoints when given: those with a track target, in the targets' order)."""
+    kp = people.keypoints if columns is None else people.keypoints[:, columns]
     return Detections2D(kp[..., :2], kp[..., 2])
 
 
@@ -46,11 +47,14 @@ class PackedDetectionGroup:
         Its ``image_sizes`` are the cameras' (in camera index order).
     executor : Executor
         One worker thread (the packer keeps per-camera ROI state between passes).
+    columns : array of int, optional
+        Keypoint columns to deliver (see :func:`to_detections2d`).
     """
 
-    def __init__(self, packer: PackedDetector, executor: Executor) -> None:
+    def __init__(self, packer: PackedDetector, executor: Executor, columns: NDArray[np.intp] | None = None) -> None:
         self.packer = packer
         self.executor = executor
+        self.columns = columns
         self.sources: dict[int, PackedKeypointSource] = {}
         self.passes = 0
         self.replaced = 0  # results a newer pass overwrote before their camera collected them
@@ -88,11 +92,13 @@ class PackedDetectionGroup:
         for cam, ref in new.items():
             if cam in self._results:
                 self.replaced += 1
-            self._results[cam] = (ref, to_detections2d(found[cam]))
+            self._results[cam] = (ref, to_detections2d(found[cam], self.columns))
 
     def close(self) -> None:
-        """Wait for the pass in flight and stop the worker."""
-        self.executor.shutdown(wait=True)
+        """Abort the pass in flight and stop the worker (at once: nobody waits for its results)."""
+        self.packer.detector.terminate()
+        self.packer.canvas_detector.terminate()
+        self.executor.shutdown(wait=True, cancel_futures=True)
 
     def status(self) -> dict[str, Any]:
         st = self.packer.stats

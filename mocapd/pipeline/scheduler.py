@@ -10,7 +10,18 @@ the solver runs at its own output rate a fixed delay behind wall time. At each t
 2. **sort**: the sampled 2D people into tracked people (:class:`~mocapd.core.people.PeopleTracker`: detection
    sorting, enrolment, suit binding);
 3. **solve**: one warm-started :class:`~mocapd.core.solver.PoseSolver` per identity;
-4. **publish**: a :class:`PoseFrame` (frame counter, solve time, per person θ, joint positions, confidence).
+4. **publish**: a :class:`PoseFrame` (frame counter, solve time, per person θ, joint positions, confidence, and
+   the instant each pose is for).
+
+Two things happen around the solve for people wearing a suit:
+
+- **heading correction** (:mod:`mocapd.core.heading`): while at least two cameras see the wearer, each sensor's
+  heading offset is estimated from the triangulated keypoints and applied to its bone orientations (and the
+  accelerations rotated with them); while they do not, the offsets stay frozen;
+- **predicted output** (``options.prediction.output == "predicted"``, :mod:`mocapd.pipeline.prediction`): the
+  solved pose is carried forward from ``t`` to the suit's newest IMU instant with what the IMUs measured since;
+  the published person carries that instant (``t_pose_ns``) and the solve it came from (``solved``). People
+  without a suit keep the delayed pose.
 
 Each device has a configured time offset (its clock runs ``offset`` ahead of the host's: its samples are filed at
 ``t_device - offset``). Time is passed in (``now_ns``); the stage timer is injected (wall and CPU clocks), so the
@@ -22,7 +33,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -31,11 +42,13 @@ from numpy.typing import NDArray
 from mocapd.core import _kernel
 from mocapd.core.body_size import estimate_skeleton
 from mocapd.core.camera import Camera, triangulate
+from mocapd.core.heading import BoneVectors, HeadingEstimator, HeadingOptions, bone_vectors, observe_headings, yaw_quat
 from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.people import PeopleTracker, Person
+from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import matrix_from_quat, quat_multiply, quat_normalize, quat_slerp
 from mocapd.core.skeleton import N_BONES, POSE_DIM, Skeleton
@@ -46,6 +59,7 @@ from mocapd.errors import InputError
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
 from mocapd.pipeline.latency import LatencyStats
+from mocapd.pipeline.prediction import PosePredictor, PredictionOptions, SuitState
 from mocapd.pipeline.ringbuffer import IMU_FIELDS, LookupStatus, RingBuffer
 from mocapd.pipeline.time_alignment import estimate_imu_lag, estimate_lag, keypoint_speed
 
@@ -54,7 +68,9 @@ IntArray = NDArray[np.int64]
 GRAVITY = 9.81
 HEIGHT_EVERY = 3  # ticks between two of them: 20 Hz at 60 Hz output covers the 0.3-5 Hz band it is compared in
 HEIGHT_HISTORY_S = 12.0  # solved heights kept per suit for the IMU offset estimate (the IMU buffers hold ~5 s)
-STAGES = ("detect", "sample", "sort", "solve", "publish", "end_to_end")
+HEADING_EVERY_NS = 50_000_000  # at least this between two heading observations of a suit (20 Hz: plenty for a
+# window of seconds; every tick would triangulate and observe three times as often for nothing)
+STAGES = ("detect", "sample", "sort", "solve", "predict", "publish", "end_to_end", "imu_to_publish")
 
 
 @dataclass(frozen=True)
@@ -78,6 +94,10 @@ class SchedulerOptions:
     body_size_frames: int = 0
     """Size each tracked person's skeleton from this many ticks of their triangulated keypoints (0: everyone
     keeps the configured skeleton)."""
+    prediction: PredictionOptions = field(default_factory=PredictionOptions)
+    """What is published for suit wearers: the delayed solve, or it carried to the IMUs' newest instant."""
+    heading: HeadingOptions = field(default_factory=HeadingOptions)
+    """Per-sensor heading correction from the cameras."""
 
     @property
     def period_ns(self) -> int:
@@ -122,6 +142,8 @@ class PersonPose:
     iterations: int
     converged: bool
     skeleton: Skeleton | None = None  # the skeleton theta is on (None: the rig's)
+    t_pose_ns: int | None = None  # the instant the pose is for (None: the frame's t_solve_ns)
+    solved: PersonPose | None = None  # a predicted pose: the delayed solve it was carried from (else None)
 
 
 @dataclass(frozen=True)
@@ -133,6 +155,11 @@ class PoseFrame:
     tick_ns: int  # the wall time the tick was scheduled for
     people: list[PersonPose]
     missing_cameras: int
+    output: str = "delayed"  # the output mode: "delayed" or "predicted" (suit wearers carried forward)
+
+    def pose_time_ns(self, person: PersonPose) -> int:
+        """The instant ``person``'s pose is for (its own when predicted, else the solve time)."""
+        return self.t_solve_ns if person.t_pose_ns is None else person.t_pose_ns
 
 
 class TickPlan:
@@ -168,7 +195,9 @@ class TickPlan:
 
 @dataclass
 class SuitSample:
-    orientations: FloatArray  # (n_imu, 4) measured global bone orientations
+    orientations: FloatArray  # (n_imu, 4) measured global bone orientations (heading-corrected)
+    raw: FloatArray  # (n_imu, 4) the same before heading correction (what the heading estimate is made from)
+    sensor_quats: FloatArray  # (n_imu, 4) sensor orientations at t, device frame (where the prediction starts)
     accelerations: FloatArray  # (n_imu, 3) global accelerations at t - dt, gravity removed
     mask: NDArray[np.bool_]  # (n_imu,)
     has_acceleration: bool  # accelerations of the previous frame are known for every masked IMU
@@ -237,12 +266,21 @@ class FixedLatencyScheduler:
         self.solvers: dict[str, PoseSolver] = {}
         self.frame = 0
         self.latency = {s: LatencyStats() for s in STAGES}
-        self.cpu_ns = dict.fromkeys(STAGES[1:5], 0)
+        self.cpu_ns = dict.fromkeys(STAGES[1:6], 0)
         self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
                          "bodies_sized": 0, "body_size_failed": 0}  # fmt: skip
         self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
+        self.heading = HeadingEstimator(o.heading)
+        self.predictor = PosePredictor(o.prediction)
+        # Per suit: the keypoint pairs rigid with each sensor's bone (on the person's own skeleton once sized).
+        self._heading_vectors = {
+            s.id: _vectors_per_skeleton(skeleton, targets, tuple(m.bone for m in s.mounts)) for s in suits or []
+        }
+        self._seen_suits: set[str] = set()  # suits whose wearer enough cameras saw this tick
+        self._heading_at: dict[str, int] = {}  # solve time of each suit's last heading observation
+        self._suit_samples: dict[str, SuitSample] = {}  # the latest tick's, where predict() starts from
         self._imu_width = sum(f.width for f in IMU_FIELDS)  # quat 0:4, acc 4:7 (IMU_FIELDS order)
         self._previous_acc: dict[str, tuple[int, FloatArray, NDArray[np.bool_]]] = {}
         self.suggested_offsets: dict[str, dict[str, float]] | None = None  # see estimate_camera_offsets
@@ -275,8 +313,14 @@ class FixedLatencyScheduler:
         return True
 
     # ------------------------------------------------------------------------------------------- the tick
-    def tick(self, now_ns: int) -> PoseFrame:
-        """Solve and return the frame at ``now_ns - latency``."""
+    def tick(self, now_ns: int, *, predict: bool = True) -> PoseFrame:
+        """Solve and return the frame at ``now_ns - latency``.
+
+        In predicted output the suit wearers are carried forward (:meth:`predict`) before it returns, unless
+        ``predict`` is False: then the caller calls :meth:`predict` itself right before publishing, after letting
+        the IMU inputs buffer what arrived while this tick solved (the daemon does; the IMU samples are read on the
+        same event loop, so none is buffered during the tick).
+        """
         t = now_ns - self.options.latency_ns
         w0, c0 = self._wall(), self._cpu()
         detections, missing = self._sample_cameras(t)
@@ -290,19 +334,42 @@ class FixedLatencyScheduler:
         w2, c2 = self._stage("sort", w1, c1)
         for person in frame.people:
             self._size_body(person)
+        self._seen_suits.clear()
         people = [*frame.people, *self._imu_only_people(frame.people, suits)]
         poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in people]
+        for sid, suit in self.suits.items():
+            if sid not in self._seen_suits:
+                self.heading.freeze(suit.sensors)  # the cameras lost the wearer: offsets stay as they are
         self._forget_released({p.identity for p in people})
         self._stage("solve", w2, c2)
         self.frame += 1
         self.counters["ticks"] += 1
-        return PoseFrame(self.frame, t, now_ns, poses, missing)
+        self._suit_samples = suits
+        out = PoseFrame(self.frame, t, now_ns, poses, missing, self.options.prediction.output)
+        return self.predict(out) if predict else out
+
+    def predict(self, frame: PoseFrame) -> PoseFrame:
+        """In predicted output, ``frame`` (this scheduler's latest, from :meth:`tick`) with each suit wearer
+        carried from the solve instant to the newest instant the suit's live IMUs have buffered now; the frame
+        unchanged in delayed output, or when it is not the latest."""
+        if not self.options.prediction.predicted or frame.frame != self.frame:
+            return frame
+        w0, c0 = self._wall(), self._cpu()
+        samples = self._suit_samples
+        people = [self._predict(p, samples[p.suit], frame.t_solve_ns) if p.suit in samples else p
+                  for p in frame.people]  # fmt: skip
+        self._stage("predict", w0, c0)
+        return replace(frame, people=people)
 
     def record_publish(self, frame: PoseFrame, wall_start_ns: int, cpu_start_ns: int, published_ns: int) -> None:
-        """Account the publishing stage (run by the caller) and the end-to-end latency of ``frame``: from the
-        solve time (the capture instant it represents) to ``published_ns`` on the host clock."""
+        """Account the publishing stage (run by the caller), the end-to-end latency of ``frame`` (from the solve
+        time, the capture instant it represents, to ``published_ns`` on the host clock) and, per suit wearer, the
+        IMU-sample-to-publish latency (from the instant the pose is for: the newest IMU sample it used)."""
         self._stage("publish", wall_start_ns, cpu_start_ns)
         self.latency["end_to_end"].add(published_ns - frame.t_solve_ns)
+        for p in frame.people:
+            if p.suit is not None:
+                self.latency["imu_to_publish"].add(published_ns - frame.pose_time_ns(p))
 
     def stage_clocks(self) -> tuple[int, int]:
         """(wall, CPU) now, for timing a stage run outside the scheduler."""
@@ -350,14 +417,17 @@ class FixedLatencyScheduler:
         q_i = quat_slerp(quat_normalize(a[:, 0:4]), quat_normalize(b[:, 0:4]), alpha)
         acc_s = a[:, 4:7] + alpha[:, None] * (b[:, 4:7] - a[:, 4:7])
         q_gi = quat_multiply(suit.calibration.q_ig[None], q_i)  # world <- sensor
-        q = quat_multiply(q_gi, _conj(self._q_ib[suit.id]))
+        raw = quat_multiply(q_gi, _conj(self._q_ib[suit.id]))
+        turn = yaw_quat(self.heading.offsets(suit.sensors))  # heading correction, about world up
+        q_gi = quat_multiply(turn, q_gi)
+        q = quat_multiply(turn, raw)
         acc = np.einsum("nij,nj->ni", matrix_from_quat(q_gi), acc_s) - np.array([0.0, GRAVITY, 0.0])
         prev = self._previous_acc.get(suit.id)
         self._previous_acc[suit.id] = (t, acc, mask)
         period = self.options.period_ns
         if prev is not None and abs(t - period - prev[0]) <= period // 4 and np.all(prev[2][mask]):
-            return SuitSample(q, prev[1], mask, True)
-        return SuitSample(q, acc, mask, False)  # no previous frame: the acceleration term sits this one out
+            return SuitSample(q, raw, q_i, prev[1], mask, True)
+        return SuitSample(q, raw, q_i, acc, mask, False)  # no previous frame: the acceleration term sits this one out
 
     def _imu_only_people(self, seen: list[Person], suits: dict[str, SuitSample]) -> list[Person]:
         """Suits streaming without a person the cameras see: solved from their IMUs alone (the solver keeps their
@@ -416,6 +486,14 @@ class FixedLatencyScheduler:
             n_imu = int(suit_sample.mask.sum())
         if suit is not None and self.frame % HEIGHT_EVERY == 0:
             self._record_height(suit.id, t, kp, conf)
+        if suit is not None and suit_sample is not None and len(person.detections) >= self.heading.options.min_views:
+            self._seen_suits.add(suit.id)
+            if (
+                self.heading.options.enabled
+                and t - self._heading_at.get(suit.id, t - HEADING_EVERY_NS) >= HEADING_EVERY_NS
+            ):
+                self._heading_at[suit.id] = t
+                self._observe_heading(suit, suit_sample, solver.skeleton, kp, conf, t)
         obs = Observations(keypoints=kp, confidences=conf, dt=self.options.dt, **imu_kw)
         result = solver.solve(obs)
         self.counters["person_solves"] += 1
@@ -430,6 +508,39 @@ class FixedLatencyScheduler:
             result.summary.iterations, result.summary.converged,
             solver.skeleton if solver.skeleton is not self.skeleton else None,
         )  # fmt: skip
+
+    def _observe_heading(
+        self, suit: Suit, sample: SuitSample, skeleton: Skeleton, kp: FloatArray, conf: FloatArray, t: int
+    ) -> None:
+        """One heading observation of every measured sensor of ``suit`` from its wearer's keypoints, triangulated
+        from every camera that sees them (not the fused solve: it follows the very IMUs under test)."""
+        points, ok = triangulate(self.cameras, kp, conf)
+        vectors = self._heading_vectors[suit.id].get(None if skeleton is self.skeleton else skeleton)
+        idx = np.flatnonzero(sample.mask)
+        yaw, evidence = observe_headings(sample.raw[idx], [vectors[i] for i in idx], points, ok)
+        self.heading.observe(t, [suit.sensors[i] for i in idx], yaw, evidence)
+
+    def _predict(self, pose: PersonPose, sample: SuitSample, t: int) -> PersonPose:
+        """A suit wearer's solved pose carried to the suit's newest IMU instant (see module docstring)."""
+        assert pose.suit is not None and self.ingest is not None
+        suit = self.suits[pose.suit]
+        solver = self.solvers[pose.identity]
+        hips = next((i for i, m in enumerate(suit.mounts) if m.bone == "Hips"), None)
+        streams = [self.ingest.streams.get(sid) for sid in suit.sensors]
+        state = SuitState(
+            bones=np.array([m.bone_index for m in suit.mounts], dtype=np.intp),
+            q_ib=self._q_ib[suit.id],
+            q_wg=quat_multiply(yaw_quat(self.heading.offsets(suit.sensors)), suit.calibration.q_ig[None]),
+            q_i=sample.sensor_quats, mask=sample.mask,
+            buffers=[st.buffer if st is not None else None for st in streams],
+            offsets_ns=np.array([self.options.imu_offsets_ns.get(sid, 0) for sid in suit.sensors], dtype=np.int64),
+            hips=hips, hips_site=suit.mounts[hips].t_ib if hips is not None else np.zeros(3),
+        )  # fmt: skip
+        pred = self.predictor.predict(pose.identity, pose.theta, solver.skeleton.parents, t, state)
+        if pred.t_ns == t:
+            return replace(pose, t_pose_ns=t)  # nothing newer measured: the delayed pose, for its own instant
+        return replace(pose, theta=pred.theta, joints=self._joints(solver, pred.theta), t_pose_ns=pred.t_ns,
+                       solved=replace(pose, t_pose_ns=t))  # fmt: skip
 
     def _size_body(self, person: Person) -> None:
         """Gather a track's triangulated keypoints; once there are enough, give it its own skeleton (its solver
@@ -488,6 +599,7 @@ class FixedLatencyScheduler:
         for table in (self.skeletons, self._sizing, self._restart):
             for track in [k for k in table if k not in tracks]:
                 del table[track]
+        self.predictor.forget(known | seen)
 
     def imu_alignment_inputs(self) -> list[ImuAlignmentInput]:
         """Copies of what :func:`estimate_imu_offsets` needs, per suit with a hips sensor and a solved wearer."""
@@ -527,7 +639,32 @@ class FixedLatencyScheduler:
             "people": self.people.status(),
             "solvers": sorted(self.solvers),
             "suggested_camera_offsets_ms": self.suggested_offsets,
+            "output": self.options.prediction.output,
+            "heading": self.heading_status(),
         }
+
+    def heading_status(self) -> dict[str, dict[str, dict[str, Any]]]:
+        """Per suit, per sensor: its bone, whether the cameras can observe its heading with this keypoint set,
+        and the estimator's state (:meth:`HeadingEstimator.status`: applied offset, window estimate, samples;
+        state "unobservable" for a sensor whose bone has no keypoint pair, "unobserved" before any observation)."""
+        est = self.heading.status()
+        out: dict[str, dict[str, dict[str, Any]]] = {}
+        for sid, suit in self.suits.items():
+            vectors = self._heading_vectors[sid].default
+            never = {"offset_deg": 0.0, "estimate_deg": None, "samples": 0, "inliers": 0, "rejected": 0}
+            out[sid] = {
+                sensor: {"bone": m.bone, "observable": v.observable,
+                         **est.get(sensor, {**never, "state": "unobserved"}),
+                         **({} if v.observable else {"state": "unobservable"})}
+                for sensor, m, v in zip(suit.sensors, suit.mounts, vectors, strict=True)
+            }  # fmt: skip
+        return out
+
+
+def _vectors_per_skeleton(
+    skeleton: Skeleton, targets: TrackTargets, bones: tuple[str, ...]
+) -> PerSkeleton[tuple[BoneVectors, ...]]:
+    return PerSkeleton(bone_vectors(skeleton, targets, bones), lambda sk: bone_vectors(sk, targets, bones))
 
 
 def _bracket(buf: RingBuffer, t: int, a: FloatArray, b: FloatArray, alpha: FloatArray, i: int) -> LookupStatus:

@@ -14,7 +14,9 @@ Datagram (all multi-byte fields big-endian, "network byte order")::
     10     1    uint8     datagram counter: bits 0-6 = index of this datagram within the sample (0, 1, ...),
                           bit 7 set on the last datagram of the sample (a sample in one datagram: 0x80)
     11     1    uint8     number of items (segments) in THIS datagram
-    12     4    uint32    time code: milliseconds since the stream started (the first frame sent), mod 2**32
+    12     4    uint32    time code: milliseconds since the stream started (the first frame sent), mod 2**32, of
+                          the instant this character's pose is for (later than the frame's solve time for a
+                          predicted pose: mocapd's ``[daemon] output = "predicted"``)
     16     1    uint8     character id (0 for the first character; see the subject mapping below)
     17     1    uint8     number of body segments of the character: 23
     18     1    uint8     number of props: 0
@@ -213,6 +215,7 @@ class MvnEncoder:
         t_ns: int,
         characters: Sequence[tuple[int, FloatArray]],
         skeletons: Sequence[Skeleton | None] | None = None,
+        times_ns: Sequence[int] | None = None,
     ) -> list[bytes]:
         """Datagrams for one output frame.
 
@@ -226,6 +229,8 @@ class MvnEncoder:
             The subjects to send, each with its character id (0 .. 255).
         skeletons : sequence of Skeleton or None, optional
             Each character's own sized skeleton (None, or no sequence: the encoder's).
+        times_ns : sequence of int, optional
+            The instant each character's pose is for (host ns; default: ``t_ns`` for all), sent as its time code.
 
         Returns
         -------
@@ -251,12 +256,15 @@ class MvnEncoder:
         sample = sample_counter & 0xFFFFFFFF
         per = self.items_per_datagram
         out: list[bytes] = []
+        codes = [tc] * len(ids) if times_ns is None else [self.time_code_ms(t) for t in times_ns]
+        if len(codes) != len(ids):
+            raise InputError(f"MVN: {len(codes)} time stamps for {len(ids)} characters")
         for k, char in enumerate(ids):
             starts = range(0, N_SEGMENTS, per)
             for index, start in enumerate(starts):
                 chunk = items[k, start : start + per]
                 last = LAST_DATAGRAM if start + per >= N_SEGMENTS else 0
-                head = HEADER.pack(ID_STRING, sample, index | last, len(chunk), tc, char, N_SEGMENTS, 0, 0,
+                head = HEADER.pack(ID_STRING, sample, index | last, len(chunk), codes[k], char, N_SEGMENTS, 0, 0,
                                    len(chunk) * ITEM_SIZE)  # fmt: skip
                 out.append(head + chunk.tobytes())
         return out

@@ -5,7 +5,7 @@ little-endian. One record::
 
     offset  size  field
     0       2     sync        b"MR" (0x4D 0x52): where to look for the next record after a corrupt one
-    2       1     type        T_HEADER=0, T_IMU=1, T_KEYPOINTS=2, T_POSE=3
+    2       1     type        T_HEADER=0, T_IMU=1, T_KEYPOINTS=2, T_POSE=3, T_FRAME=4
     3       1     version     payload version of this type (1)
     4       4     length      n, payload bytes (uint32, at most MAX_PAYLOAD)
     8       n     payload     see below
@@ -27,6 +27,12 @@ Payloads (struct formats; ``f4``/``f8`` arrays are little-endian float32/float64
   21 local rotation vectors) and the 21 global joint positions as 63 float32 (metres); then ``<B`` 1 if the
   person's own (body-sized) skeleton follows, 0 if θ is on the session's rig skeleton (manifest); if 1, ``<ff``
   root height and height (m) and the 21 bone offsets as 63 float32 (m) — θ means nothing without them.
+  Then an optional tail (absent in records written before the daemon had a predicted output, which are read as
+  delayed): ``<B`` output mode (0 delayed, 1 predicted) and per person ``<q`` the instant its pose is for
+  (host ns: t_solve_ns, or the IMUs' newest instant for a predicted pose).
+- ``T_FRAME`` (one downscaled camera frame, optional ``frames`` stream): ``<qHHHI`` capture_ns (host clock, as
+  the camera's detections), camera index, image width, image height, JPEG length m; then the m bytes of the
+  baseline JPEG (the image as the camera panels show it, not the camera's full resolution).
 
 Decoding never raises on bad bytes: :class:`StreamDecoder` (sans-I/O: ``receive_data(bytes)``,
 ``records_received()``) counts a record whose CRC does not match, or whose length is impossible, as corrupt and
@@ -39,7 +45,7 @@ from __future__ import annotations
 import json
 import struct
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,8 +56,8 @@ from mocapd.errors import InputError
 FloatArray = NDArray[np.float64]
 
 SYNC = b"MR"
-T_HEADER, T_IMU, T_KEYPOINTS, T_POSE = 0, 1, 2, 3
-RECORD_TYPES = (T_HEADER, T_IMU, T_KEYPOINTS, T_POSE)
+T_HEADER, T_IMU, T_KEYPOINTS, T_POSE, T_FRAME = 0, 1, 2, 3, 4
+RECORD_TYPES = (T_HEADER, T_IMU, T_KEYPOINTS, T_POSE, T_FRAME)
 PAYLOAD_VERSION = 1
 FORMAT_VERSION = 1
 MAX_PAYLOAD = 1 << 24
@@ -68,7 +74,9 @@ _KP = struct.Struct("<qqHHH")
 _POSE = struct.Struct("<qqqHH")
 _PERSON = struct.Struct("<iHHHBf")
 _SIZES = struct.Struct("<ff")
+_FRAME = struct.Struct("<qHHHI")
 _NO_SUIT = 255
+OUTPUT_MODES = ("delayed", "predicted")
 
 
 # ----------------------------------------------------------------------------------------------- framing
@@ -265,6 +273,29 @@ def decode_keypoints(p: bytes) -> KeypointRecord:
 
 
 @dataclass(frozen=True)
+class FrameRecord:
+    """One recorded camera frame: ``jpeg`` of ``width`` x ``height`` pixels, captured at ``capture_ns``."""
+
+    camera: int
+    capture_ns: int
+    width: int
+    height: int
+    jpeg: bytes
+
+
+def encode_frame(r: FrameRecord) -> bytes:
+    """A ``T_FRAME`` payload."""
+    return _FRAME.pack(r.capture_ns, r.camera, r.width, r.height, len(r.jpeg)) + r.jpeg
+
+
+def decode_frame(p: bytes) -> FrameRecord:
+    capture, camera, w, h, n = _FRAME.unpack_from(p, 0)
+    if len(p) != _FRAME.size + n:
+        raise InputError(f"frame record: {len(p)} bytes for a {n}-byte image")
+    return FrameRecord(camera, capture, w, h, bytes(p[_FRAME.size :]))
+
+
+@dataclass(frozen=True)
 class PersonRecord:
     """One solved person of a recorded frame (theta (66,), joints (21, 3))."""
 
@@ -279,6 +310,7 @@ class PersonRecord:
     theta: FloatArray
     joints: FloatArray
     skeleton: Skeleton | None = None  # the person's own sized skeleton (None: the rig's, from the manifest)
+    t_pose_ns: int | None = None  # the instant the pose is for (None: the frame's t_solve_ns)
 
 
 @dataclass(frozen=True)
@@ -290,6 +322,7 @@ class PoseRecord:
     tick_ns: int
     missing_cameras: int
     people: tuple[PersonRecord, ...]
+    output: str = "delayed"  # the daemon's output mode: "delayed" or "predicted"
 
 
 def _short(text: str | None) -> bytes:
@@ -321,6 +354,11 @@ def encode_pose(r: PoseRecord) -> bytes:
         else:
             parts.append(b"\x01" + _SIZES.pack(p.skeleton.root_height, p.skeleton.height))
             parts.append(np.ascontiguousarray(p.skeleton.offsets, dtype="<f4").tobytes())
+    if r.output not in OUTPUT_MODES:
+        raise InputError(f"pose record output {r.output!r}; allowed: {list(OUTPUT_MODES)}")
+    parts.append(bytes([OUTPUT_MODES.index(r.output)]))
+    parts.append(struct.pack(f"<{len(r.people)}q", *(r.t_solve_ns if p.t_pose_ns is None else p.t_pose_ns
+                                                      for p in r.people)))  # fmt: skip
     return b"".join(parts)
 
 
@@ -355,6 +393,14 @@ def decode_pose(p: bytes) -> PoseRecord:
             o += 1
         people.append(PersonRecord(identity or "", suit, track, views, imus, iters, bool(conv), conf, theta, joints,
                                    skeleton))  # fmt: skip
+    output = "delayed"
+    if len(p) - o == 1 + 8 * n:  # the tail: output mode and each pose's instant
+        if p[o] >= len(OUTPUT_MODES):
+            raise InputError(f"pose record: output mode {p[o]} unknown")
+        output = OUTPUT_MODES[p[o]]
+        times = struct.unpack_from(f"<{n}q", p, o + 1)
+        people = [replace(person, t_pose_ns=tp) for person, tp in zip(people, times, strict=True)]
+        o = len(p)
     if o != len(p):
         raise InputError(f"pose record: {len(p) - o} bytes left after {n} people")
-    return PoseRecord(frame, t, tick, missing, tuple(people))
+    return PoseRecord(frame, t, tick, missing, tuple(people), output)

@@ -12,7 +12,8 @@ Every output frame of one subject becomes one or more OSC bundles (time tag 1, "
     /VMC/Ext/Bone/Pos  s <HumanBodyBones name>  f p.x p.y p.z  f q.x q.y q.z q.w     × 22 bones (list below)
     /VMC/Ext/OK        i loaded=1  i calibration state=3 (calibrated)  i calibration mode=0 (normal)
                        i tracking status (1 = tracked this frame, 0 = not)         (the V2.7 form)
-    /VMC/Ext/T         f seconds since the stream started (the first frame sent)
+    /VMC/Ext/T         f seconds since the stream started (the first frame sent) of the instant this avatar's
+                       pose is for (later than the frame's solve time for a predicted pose)
 
 OK and T come last, in the last bundle, so receivers that apply a frame when they see them (VRM4U) apply it
 after all its bones. A bone message is 76 bytes for "LeftUpperArm": address "/VMC/Ext/Bone/Pos" + 3 NUL (20),
@@ -189,6 +190,7 @@ class VmcEncoder:
         thetas: FloatArray,
         tracked: list[bool],
         skeletons: Sequence[Skeleton | None] | None = None,
+        times_ns: Sequence[int] | None = None,
     ) -> list[list[bytes]]:
         """Bundles for several subjects of one frame (one list of bundles per subject, each for its own avatar).
 
@@ -201,6 +203,8 @@ class VmcEncoder:
             The tracking status sent in /VMC/Ext/OK.
         skeletons : sequence of Skeleton or None, optional
             Each subject's own sized skeleton (None, or no sequence: the encoder's).
+        times_ns : sequence of int, optional
+            The instant each subject's pose is for (host ns; default ``t_ns``), sent as its ``/VMC/Ext/T``.
         """
         t = self.seconds(t_ns)
         thetas = np.asarray(thetas, dtype=np.float64).reshape(-1, POSE_DIM)
@@ -217,9 +221,11 @@ class VmcEncoder:
         values[..., 0:3] = pos
         values[..., 3:6] = quat[..., 1:4]
         values[..., 6] = quat[..., 0]
-        time_msg = encode_message(TIME_ADDRESS, [t])
+        if times_ns is not None and len(times_ns) != thetas.shape[0]:
+            raise InputError(f"VMC: {len(times_ns)} time stamps for {thetas.shape[0]} subjects")
         out = []
         for k in range(thetas.shape[0]):
+            time_msg = encode_message(TIME_ADDRESS, [t if times_ns is None else self.seconds(times_ns[k])])
             raw = values[k].tobytes()
             msgs = [self._root]
             msgs += [p + raw[28 * i : 28 * i + 28] for i, p in enumerate(self._prefixes)]

@@ -34,6 +34,9 @@ Server → client messages
     encodings       [str]   encodings the server speaks
     conventions     [str]   conventions the server speaks
     stream_rate_hz  float   the solver's output rate
+    output          str     "delayed": every pose is the solve at the fixed latency (t_solve_ns); "predicted":
+                            the poses of suit wearers are carried forward to their IMUs' newest instant (each
+                            subject's t_pose_ns), the others stay delayed
     decimation      int     this client gets frames whose counter is a multiple of this
     rate_hz         float   stream_rate_hz / decimation
     globals         bool    whether frames carry global joint positions
@@ -46,6 +49,10 @@ Server → client messages
                             rest offsets per skeleton: joint position of bone i in its parent's frame in the
                             T-pose, x,y,z of bone 0..20 flattened (row 0 is zero), in this convention's units
     subjects        [{"id": str, "skeleton": str}]   the subjects of the latest frame
+    cameras         [{"name": str, "width": int, "height": int}]   the rig's cameras whose views this server
+                            can send (empty: none; a replay without recorded frames still has detections)
+    camera_views    bool    whether this client receives camera messages
+    camera_rate_hz  float   at most this many camera messages per second per camera for this client
 
 ``frame`` (one per output frame the client's options select)::
 
@@ -65,6 +72,8 @@ Server → client messages
         confidence  float   0..1, detector confidence of the keypoints used (reduced below two views)
         views       int     cameras that saw the subject this frame
         imus        int     IMUs that measured the subject this frame
+        t_pose_ns   int     the instant this subject's pose describes (host CLOCK_MONOTONIC ns): t_solve_ns, or
+                            later for a predicted pose (hello.output "predicted", suit wearers)
 
 ``status`` (at the configured status rate, when the client's ``status`` option is on)::
 
@@ -79,6 +88,27 @@ Server → client messages
     tasks           {str: int}   supervised task -> failures so far
     stream          map     clients (connected now), sent (messages sent to this client), dropped (messages
                             dropped for this client because it read too slowly)
+
+``camera`` (while the client's ``cameras`` option is on, at most ``camera_rate_hz`` per camera): what one
+camera sees, for a camera panel. Pixel coordinates are in the camera's full resolution (``width`` x
+``height``; origin at the top-left pixel corner, x right, y down), whatever the image's size::
+
+    type            str     "camera"
+    camera          int     index of the camera in hello.cameras
+    name            str
+    width, height   int     the camera's resolution
+    t_capture_ns    int     host CLOCK_MONOTONIC ns of the frame (without an image: of the pose drawn)
+    frame           int     counter of the pose frame drawn (the one solved nearest t_capture_ns; -1: none)
+    t_solve_ns      int     its solve time
+    image           bytes | str | nil   the frame, downscaled, as JPEG: msgpack bin, or base64 in JSON; nil when
+                            the camera has no frames (a synthetic rig, a session recorded without frames)
+    image_width, image_height  int   the JPEG's size (0 without an image)
+    detections      [[float × 3K]]   per detected person, x, y, confidence of its K keypoints
+    subjects        [{"id": str, "joints": [float|nil × 42]}]   every solved subject's 21 joints projected through
+                            the camera's calibration (with its distortion), x, y per joint; nil behind the camera
+    reprojection_px float | nil   mean distance between detected keypoints and the same keypoints of the
+                            nearest solved subject, projected (nil: no detected person matched)
+    detection_hz    float   detection sets received from this camera per second (last two seconds)
 
 ``error`` (the answer to a client message that could not be used; the connection stays open)::
 
@@ -98,6 +128,8 @@ A text message is read as JSON, a binary one as msgpack; at most ``max_message_b
     encoding        str     "msgpack" | "json"
     globals         bool    add global joint positions to frames
     status          bool    receive status messages
+    cameras         bool    receive camera messages (needs hello.cameras)
+    camera_rate_hz  float | nil   camera messages per second per camera, at most the server's rate (nil: it)
 
 Every key but ``type`` is optional (absent keys keep their current value); unknown keys, wrong types or values
 are answered with an ``error`` and change nothing. An accepted request is answered with a new ``hello``.
@@ -108,6 +140,7 @@ Encoding cost: :class:`FrameEncoder` converts each subject once per convention a
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -131,7 +164,9 @@ ENCODINGS = ("msgpack", "json")
 STREAM_CONVENTIONS = ("native", "unity", "unreal", "mvn")
 MAX_SUBJECTS_PER_REQUEST = 64
 MAX_ID_CHARS = 128
-_SUBSCRIBE_KEYS = frozenset({"type", "subjects", "rate_hz", "convention", "encoding", "globals", "status"})
+_SUBSCRIBE_KEYS = frozenset(
+    {"type", "subjects", "rate_hz", "convention", "encoding", "globals", "status", "cameras", "camera_rate_hz"}
+)
 _JSON_DECIMALS = 6
 
 
@@ -154,6 +189,8 @@ class SubjectPose(Protocol):
     def imus(self) -> int: ...
     @property
     def skeleton(self) -> Skeleton | None: ...  # the subject's own sized skeleton (None: the stream's default)
+    @property
+    def t_pose_ns(self) -> int | None: ...  # the instant the pose describes (None: the frame's t_solve_ns)
 
 
 class FramePoses(Protocol):
@@ -183,6 +220,10 @@ class StreamOptions:
     """Send frames whose counter is a multiple of this (1: every frame)."""
     status: bool = True
     """Whether status messages are sent."""
+    cameras: bool = False
+    """Whether camera messages are sent (camera panels)."""
+    camera_rate_hz: float = 4.0
+    """Camera messages per second per camera (at most the description's ``camera_rate_hz``)."""
 
     @property
     def encoding_key(self) -> tuple[str, str, bool, frozenset[str] | None]:
@@ -202,12 +243,20 @@ class StreamDescription:
     skeletons: Mapping[str, Skeleton]
     skeleton_of: Callable[[str], str] | None = None
     max_message_bytes: int = 4096
+    cameras: tuple[tuple[str, int, int], ...] = ()
+    """(name, width, height) of each camera whose views the server sends (empty: no camera messages)."""
+    camera_rate_hz: float = 4.0
+    """The most camera messages per second per camera a client may ask for."""
+    output: str = "delayed"
+    """The daemon's output mode, announced in the hello ("delayed" or "predicted")."""
 
     def __post_init__(self) -> None:
         if not self.skeletons:
             raise ValueError("a stream needs at least one skeleton")
         if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
             raise ValueError(f"stream rate must be > 0 Hz, got {self.rate_hz!r}")
+        if self.output not in ("delayed", "predicted"):
+            raise ValueError(f"output must be 'delayed' or 'predicted', got {self.output!r}")
 
     def skeleton_key(self, subject_id: str) -> str:
         if self.skeleton_of is None:
@@ -340,6 +389,7 @@ class FrameEncoder:
             s["confidence"] = round(conf, 4) if math.isfinite(conf) else 0.0
             s["views"] = int(person.views)
             s["imus"] = int(person.imus)
+            s["t_pose_ns"] = int(self.frame.t_solve_ns if person.t_pose_ns is None else person.t_pose_ns)
             subjects.append(s)
         msg = encode(
             {"type": "frame", "frame": int(self.frame.frame), "t_solve_ns": int(self.frame.t_solve_ns),
@@ -413,6 +463,63 @@ def health_subset(health: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+class CameraPanel(Protocol):
+    """What a camera message needs (:class:`mocapd.pipeline.camera_views.CameraView` has it)."""
+
+    @property
+    def camera(self) -> int: ...
+    @property
+    def name(self) -> str: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
+    @property
+    def capture_ns(self) -> int: ...
+    @property
+    def frame(self) -> int: ...
+    @property
+    def t_solve_ns(self) -> int: ...
+    @property
+    def detections(self) -> FloatArray: ...  # (n_people, n_kp, 3)
+    @property
+    def subjects(self) -> Sequence[Any]: ...  # each with .id (str) and .joints (21, 2)
+    @property
+    def reprojection_px(self) -> float | None: ...
+    @property
+    def detection_hz(self) -> float: ...
+
+
+def _maybe(values: FloatArray, encoding: str) -> list[float | None]:
+    """Floats with NaN as nil (JSON has no NaN), rounded to 2 decimals for JSON (hundredths of a pixel)."""
+    flat = np.asarray(values, dtype=np.float64).reshape(-1)
+    if encoding == "json":
+        flat = np.round(flat, 2)
+    return [None if not math.isfinite(v) else v for v in flat.tolist()]
+
+
+def camera_message(panel: CameraPanel, jpeg: bytes | None, image_size: tuple[int, int], encoding: str) -> Message:
+    """The ``camera`` message of one panel (see the module doc); ``image_size`` is the JPEG's (width, height)."""
+    image: bytes | str | None = jpeg
+    if jpeg is not None and encoding == "json":
+        image = base64.b64encode(jpeg).decode("ascii")
+    rep = panel.reprojection_px
+    return encode(
+        {
+            "type": "camera", "camera": int(panel.camera), "name": panel.name,
+            "width": int(panel.width), "height": int(panel.height), "t_capture_ns": int(panel.capture_ns),
+            "frame": int(panel.frame), "t_solve_ns": int(panel.t_solve_ns),
+            "image": image, "image_width": int(image_size[0]) if jpeg is not None else 0,
+            "image_height": int(image_size[1]) if jpeg is not None else 0,
+            "detections": [_maybe(d, encoding) for d in panel.detections],
+            "subjects": [{"id": s.id, "joints": _maybe(s.joints, encoding)} for s in panel.subjects],
+            "reprojection_px": None if rep is None or not math.isfinite(rep) else round(float(rep), 2),
+            "detection_hz": round(float(panel.detection_hz), 2),
+        },
+        encoding,
+    )  # fmt: skip
+
+
 class RequestError(ValueError):
     """A client message that cannot be used; ``code`` goes into the error reply."""
 
@@ -454,7 +561,8 @@ class ClientSession:
                 "convention": o.convention, "units": "cm" if conv.scale == 100.0 else "m",
                 "left_handed": conv.left_handed, "encoding": o.encoding,
                 "encodings": list(ENCODINGS), "conventions": list(STREAM_CONVENTIONS),
-                "stream_rate_hz": rate, "decimation": o.decimation, "rate_hz": rate / o.decimation,
+                "stream_rate_hz": rate, "output": self.description.output, "decimation": o.decimation,
+                "rate_hz": rate / o.decimation,
                 "globals": o.globals,
                 "subjects_filter": None if o.subjects is None else sorted(o.subjects),
                 "status": o.status, "max_message_bytes": self.description.max_message_bytes,
@@ -463,6 +571,8 @@ class ClientSession:
                 "subjects": [
                     {"id": s, "skeleton": self.description.skeleton_key(s)} for s in self.latest_subjects
                 ],
+                "cameras": [{"name": n, "width": w, "height": h} for n, w, h in self.description.cameras],
+                "camera_views": o.cameras, "camera_rate_hz": o.camera_rate_hz,
             },
             o.encoding,
         )  # fmt: skip
@@ -533,6 +643,20 @@ class ClientSession:
                 updates[key] = r[key]
         if "subjects" in r:
             updates["subjects"] = _subjects(r["subjects"])
+        if "cameras" in r:
+            if not isinstance(r["cameras"], bool):
+                raise RequestError("bad_field", f"cameras = {r['cameras']!r}; allowed: true or false")
+            if r["cameras"] and not self.description.cameras:
+                raise RequestError("bad_field", "cameras: this server has no camera views")
+            updates["cameras"] = r["cameras"]
+        if "camera_rate_hz" in r:
+            top = self.description.camera_rate_hz
+            rate = r["camera_rate_hz"]
+            if rate is not None and (
+                isinstance(rate, bool) or not isinstance(rate, int | float) or not math.isfinite(rate) or rate <= 0
+            ):
+                raise RequestError("bad_field", f"camera_rate_hz = {rate!r}; allowed: a number > 0, or nil for {top}")
+            updates["camera_rate_hz"] = top if rate is None else min(float(rate), top)
         if "rate_hz" in r:
             rate = r["rate_hz"]
             if rate is not None and (

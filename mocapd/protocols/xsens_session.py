@@ -123,13 +123,22 @@ class Step:
     reply: int
 
 
-def standard_steps(settings: list[OutputSetting]) -> list[Step]:
-    """Bring-up of an MTi / MTw on its own serial link (the table in the module docstring)."""
+def identify_steps() -> list[Step]:
+    """The first four steps of bring-up: into configuration mode, then what the device is. A session of only
+    these ends in :class:`Streaming` with the :class:`DeviceInfo` and leaves the device in configuration mode
+    (``mocapd devices`` identifies devices this way)."""
     return [
         Step("GoToConfig", MID.GOTO_CONFIG, b"", MID.GOTO_CONFIG_ACK),
         Step("ReqDID", MID.REQ_DID, b"", MID.DEVICE_ID),
         Step("ReqProductCode", MID.REQ_PRODUCT_CODE, b"", MID.PRODUCT_CODE),
         Step("ReqFWRev", MID.REQ_FW_REV, b"", MID.FIRMWARE_REV),
+    ]
+
+
+def standard_steps(settings: list[OutputSetting]) -> list[Step]:
+    """Bring-up of an MTi / MTw on its own serial link (the table in the module docstring)."""
+    return [
+        *identify_steps(),
         Step(
             "SetOutputConfiguration",
             MID.SET_OUTPUT_CONFIGURATION,

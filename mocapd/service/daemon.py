@@ -1,11 +1,14 @@
 """The daemon: IMU inputs, keypoint sources, the fixed-latency scheduler and the status server under one
 ``asyncio.TaskGroup``, each long-running task supervised (failure logged, counted, restarted with back-off).
 
-Life cycle: the solver kernel is loaded (off the event loop), the HTTP server listens, every task starts, then
+Life cycle: the solver kernel is loaded (off the event loop), the HTTP server listens, the pose sinks start, the
+inputs start and every device is opened — every camera and every IMU port must open within
+``daemon.open_timeout_s``, or the run stops there with :class:`StartupError` naming the device and why (a device
+that fails *later* is reopened with back-off while the others keep running) — then the scheduler starts and
 ``READY=1`` goes to systemd. SIGINT/SIGTERM set the stop event: ``STOPPING=1``, serial devices close their ports,
-tasks are cancelled, pose sinks are flushed and closed, and :meth:`Daemon.run` returns (within
-``shutdown_timeout_s``). With ``WatchdogSec`` set, ``WATCHDOG=1`` is sent from the tick loop, so a stuck solver
-stops the pings and systemd restarts the service.
+tasks are cancelled (capture threads stop and close their cameras), pose sinks are flushed and closed, and
+:meth:`Daemon.run` returns (within ``shutdown_timeout_s``). With ``WatchdogSec`` set, ``WATCHDOG=1`` is sent from
+the tick loop, so a stuck solver stops the pings and systemd restarts the service.
 """
 
 from __future__ import annotations
@@ -14,10 +17,11 @@ import asyncio
 import contextlib
 import logging
 import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
@@ -30,6 +34,8 @@ from mocapd.core.solver import Observations, PoseSolver
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
+from mocapd.errors import DeviceError
+from mocapd.io.device_state import OpenState
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.keypoint_source import KeypointSource
 from mocapd.pipeline.scheduler import (
@@ -41,12 +47,14 @@ from mocapd.pipeline.scheduler import (
     estimate_imu_offsets,
 )
 from mocapd.service.config import Config
+from mocapd.service.config.imu import ImuConfig
 from mocapd.service.http_status import StatusServer
 from mocapd.service.imu_inputs import ImuInputs
 from mocapd.service.metrics import render_metrics
 from mocapd.service.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 class PoseSink(Protocol):
@@ -85,14 +93,65 @@ class Rig:
     suits: list[Suit] = field(default_factory=list)
 
 
+def in_daemon_thread(fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
+    """``fn(*args)`` (a pure computation of advisory results, such as the offset estimates) in a daemon thread.
+
+    Not the loop's default executor: its threads are joined when the process exits, so a second of estimation
+    still running at Ctrl-C would delay the stop by that second. A daemon thread is abandoned instead, and its
+    result with it.
+    """
+    loop = asyncio.get_running_loop()
+    future: asyncio.Future[T] = loop.create_future()
+
+    def deliver(result: T | None, exc: BaseException | None) -> None:
+        if future.done():  # cancelled: the waiting task was stopped
+            return
+        if exc is not None:
+            future.set_exception(exc)
+        else:
+            future.set_result(result)  # type: ignore[arg-type]
+
+    def work() -> None:
+        result: T | None = None
+        error: BaseException | None = None
+        try:
+            result = fn(*args)
+        except Exception as exc:  # handed to the awaiting task, which reports it (the supervisor counts it)
+            error = exc
+        if not loop.is_closed():
+            with contextlib.suppress(RuntimeError):  # the loop closed between the check and the call: nobody waits
+                loop.call_soon_threadsafe(deliver, result, error)
+
+    threading.Thread(target=work, name="mocapd-estimate", daemon=True).start()
+    return future
+
+
+class StartupError(DeviceError):
+    """A device did not open when the daemon started (the message names each one and why)."""
+
+
 class Daemon:
-    """The running service. ``await run()``; ``request_stop()`` (or a signal) ends it."""
+    """The running service. ``await run()``; ``request_stop()`` (or a signal) ends it.
+
+    Parameters
+    ----------
+    config : Config
+    rig : Rig
+    imu : ImuConfig, optional
+        The IMU inputs (default ``config.imu``; a synthetic rig adds its simulated devices' ports).
+    sinks : list of PoseSink
+    clock : callable
+    notifier : SdNotifier
+    status_line : callable, optional
+        Called with a one-line summary every second.
+    """
 
     def __init__(
         self,
         config: Config,
         rig: Rig,
         *,
+        imu: ImuConfig | None = None,
         sinks: list[PoseSink] | None = None,
         clock: Callable[[], int] = time.monotonic_ns,
         notifier: SdNotifier | None = None,
@@ -108,10 +167,17 @@ class Daemon:
         self.notifier = notifier if notifier is not None else SdNotifier()
         self.status_line = status_line
         d = config.daemon
-        self.imu = ImuInputs(config.imu)
+        self.imu = ImuInputs(imu if imu is not None else config.imu)
+        self.imu.use_calibrations([s.calibration for s in rig.suits])  # SlimeVR trackers' own headings
+        #: more sections of /status (name -> provider), e.g. the camera demo's fake cameras
+        self.status_extras: dict[str, Callable[[], Any]] = {}
+        #: more fields of the status line, e.g. the synthetic rig's keypoint error
+        self.status_line_extras: list[Callable[[], str]] = []
         tracker = PeopleTracker(
-            SubjectTracker(DetectionSorter(rig.cameras, config.tracking.sorting), config.tracking.enrolment),
-            SuitBinder(rig.skeleton, config.tracking.binding) if rig.suits else None,
+            SubjectTracker(
+                DetectionSorter(rig.cameras, config.tracking.sorting.options()), config.tracking.enrolment.options()
+            ),
+            SuitBinder(rig.skeleton, config.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
         )
         self.scheduler = FixedLatencyScheduler(
             rig.cameras,
@@ -123,7 +189,7 @@ class Daemon:
             suits=rig.suits,
             options=d.scheduler_options([c.name for c in rig.cameras]),
             cost=config.solver.cost,
-            lm=config.solver.lm,
+            lm=config.solver.lm.options(),
             backend=config.solver.backend,
         )
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
@@ -135,6 +201,9 @@ class Daemon:
         self._stop = asyncio.Event()
         self._rate_window: list[int] = []  # tick times of the last second, for the achieved rate
         self.stopping = False
+        self._startup_error: StartupError | None = None
+        #: run() installs SIGINT/SIGTERM handlers (False: the caller owns signals, see assembly.stop_on_signals)
+        self.handle_signals = True
 
     # ------------------------------------------------------------------------------------------ control
     def request_stop(self) -> None:
@@ -144,7 +213,8 @@ class Daemon:
     async def run(self) -> int:
         """Serve until stopped; returns the process exit status."""
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        signals = (signal.SIGINT, signal.SIGTERM) if self.handle_signals else ()
+        for sig in signals:
             # add_signal_handler raises RuntimeError off the main thread: then signals are the caller's job.
             with contextlib.suppress(RuntimeError):
                 loop.add_signal_handler(sig, self.request_stop)
@@ -161,27 +231,35 @@ class Daemon:
                 await self._serve(deadline)
         except TimeoutError:
             # A task ignored its cancellation for shutdown_timeout_s: leave it behind rather than hang the stop.
-            log.error("shutdown: tasks still running after %.1f s, abandoned", self.config.daemon.shutdown_timeout_s)
+            pending = [t.get_name() for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+            log.error("shutdown: tasks still running after %.1f s, abandoned: %s",
+                      self.config.daemon.shutdown_timeout_s, ", ".join(sorted(pending)))  # fmt: skip
         finally:
             for sink in started:
                 await sink.aclose()
             await self.http.close()
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in signals:
                 with contextlib.suppress(RuntimeError):
                     loop.remove_signal_handler(sig)
             self.notifier.close()
+        if self._startup_error is not None:
+            raise self._startup_error
         return 0
 
     async def _serve(self, deadline: asyncio.Timeout) -> None:
         async with asyncio.TaskGroup() as tg:
-            tasks = [tg.create_task(self.supervisor.supervise("imu", self.imu.run))]
+            tasks = [tg.create_task(self.supervisor.supervise("imu", self.imu.run), name="imu")]
             for src in self.rig.sources:
-                tasks.append(tg.create_task(self.supervisor.supervise(f"keypoints:{src.name}", self._source(src))))
-            tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop)))
-            tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop)))
-            self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
-            self.ready.set()
-            await self._stop.wait()
+                name = f"keypoints:{src.name}"
+                tasks.append(tg.create_task(self.supervisor.supervise(name, self._source(src)), name=name))
+            self.notifier.notify("STATUS=opening devices")
+            self._startup_error = await self._open_devices()
+            if self._startup_error is None:
+                tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop), name="scheduler"))
+                tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop), name="status"))
+                self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
+                self.ready.set()
+                await self._stop.wait()
             self.stopping = True
             deadline.reschedule(asyncio.get_running_loop().time() + self.config.daemon.shutdown_timeout_s)
             self.notifier.notify("STOPPING=1", "STATUS=stopping")
@@ -191,11 +269,38 @@ class Daemon:
             for t in tasks:
                 t.cancel()
 
+    def devices(self) -> list[tuple[str, OpenState]]:
+        """Every device of the rig with its opening state: cameras (``camera <name>``), IMU ports (``IMU <path>``)."""
+        out = [(f"camera {src.name}", src.open_state()) for src in self.rig.sources]
+        out += [(f"IMU {d.config.path}", d.open_state()) for d in self.imu.devices]
+        if self.imu.slimevr is not None:
+            out.append((f"SlimeVR server {self.imu.slimevr.host}", self.imu.slimevr.open_state()))
+        return out
+
+    async def _open_devices(self) -> StartupError | None:
+        """Wait until every device has opened; the first openings that fail (or time out) stop the start-up."""
+        timeout = self.config.daemon.open_timeout_s
+        deadline = self.clock() + round(timeout * 1e9)
+        while not self._stop.is_set():
+            states = self.devices()
+            failed = [f"{name}: {state.error}" for name, state in states if state.state == "failed"]
+            if failed:
+                return StartupError("; ".join(failed))
+            pending = [name for name, state in states if state.state != "open"]
+            if not pending:
+                return None
+            if self.clock() > deadline:
+                return StartupError(f"{', '.join(pending)} did not open within {timeout:g} s (daemon.open_timeout_s)")
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), 0.05)
+        return None
+
     def _warm_up(self) -> None:
-        """Load (or compile, the first time on a machine) the solver kernel before serving."""
+        """Load (or compile, the first time on a machine) the solver and sorting kernels before serving: a first
+        compile takes seconds, which inside a live tick would be seconds of missed output."""
         mounts = self.rig.suits[0].mounts if self.rig.suits else ()
         s = PoseSolver(self.rig.skeleton, self.rig.cameras, self.rig.targets, mounts, self.rig.prior,
-                       self.config.solver.cost, self.config.solver.lm,
+                       self.config.solver.cost, self.config.solver.lm.options(),
                        backend="numpy" if self.config.solver.backend == "numpy" else "compiled")  # fmt: skip
         n_cams, n_kp = len(self.rig.cameras), len(self.rig.targets)
         s.solve(
@@ -206,6 +311,8 @@ class Daemon:
             ),
             update_state=False,
         )
+        if n_cams >= 2:
+            DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options()).warm_up(n_kp)
 
     def _source(self, src: KeypointSource) -> Callable[[], Any]:
         def sink(camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:
@@ -226,7 +333,14 @@ class Daemon:
         while True:
             await asyncio.sleep(max(0.0, (plan.next_ns - self.clock()) / 1e9))
             # Solve for the scheduled tick time, not the (jittery) wake-up time: output frames stay evenly spaced.
-            frame = self.scheduler.tick(plan.next_ns)
+            frame = self.scheduler.tick(plan.next_ns, predict=False)
+            if self.scheduler.options.prediction.predicted:
+                # Two loop iterations: the first polls the serial ports and queues their readers after this task,
+                # the second runs them, so the IMU samples that arrived while solving are buffered; then the
+                # suit wearers are carried to the newest of them.
+                await asyncio.sleep(0)
+                await asyncio.sleep(0)
+                frame = self.scheduler.predict(frame)
             w0, c0 = self.scheduler.stage_clocks()
             for sink in self.sinks:
                 sink.publish(frame)
@@ -240,7 +354,6 @@ class Daemon:
             plan.advance(self.clock())
 
     async def _status_loop(self) -> None:
-        loop = asyncio.get_running_loop()
         names = [c.name for c in self.rig.cameras]
         ticks = 0
         while True:
@@ -249,11 +362,10 @@ class Daemon:
             if ticks % 10 == 0:  # offset suggestions from the last seconds of keypoints, computed off the loop
                 frames = self.scheduler.camera_frames()
                 offsets = self.scheduler.options.camera_offsets_ns
-                self.scheduler.suggested_offsets = await loop.run_in_executor(
-                    None, estimate_camera_offsets, names, frames, offsets
+                self.scheduler.suggested_offsets = await in_daemon_thread(
+                    estimate_camera_offsets, names, frames, offsets
                 )
-                self.scheduler.suggested_imu_offsets = await loop.run_in_executor(
-                    None,
+                self.scheduler.suggested_imu_offsets = await in_daemon_thread(
                     estimate_imu_offsets,
                     self.scheduler.imu_alignment_inputs(),
                     dict(self.scheduler.options.imu_offsets_ns),
@@ -267,14 +379,21 @@ class Daemon:
     def status_line_text(self) -> str:
         s = self.scheduler.status()
         e2e = s["latency_ms"]["end_to_end"]
-        streaming = sum(1 for d in self.imu.devices if d.streaming.is_set())
         people = ", ".join(p.identity for p in self.latest.people) if self.latest else ""
-        return (
+        line = (
             f"t={(self.clock() - self.started_ns) / 1e9:6.1f} s  output {len(self._rate_window):3d} Hz  "
             f"missed {self.plan.missed if self.plan else 0} late {self.plan.late if self.plan else 0}  "
-            f"e2e p50 {e2e['p50']} ms  "
-            f"IMUs {streaming}/{len(self.imu.devices)}  people [{people}]"
+            f"e2e p50 {e2e['p50']} ms  people [{people}]"
         )
+        if self.imu.devices:
+            streaming = sum(1 for d in self.imu.devices if d.streaming.is_set())
+            line += f"  IMUs {streaming}/{len(self.imu.devices)}"
+        cams = [s.status() for s in self.rig.sources]
+        if any("capture" in c for c in cams):
+            up = sum(1 for c in cams if c.get("capture", {}).get("up"))
+            detected = sum(int(c.get("detected", 0)) for c in cams)
+            line += f"  cameras up {up}/{len(cams)}  detected {detected}"
+        return "  ".join([line, *(extra() for extra in self.status_line_extras)])
 
     def status(self) -> dict[str, Any]:
         """The /status document."""
@@ -291,6 +410,7 @@ class Daemon:
                 "missed_ticks": self.plan.missed if self.plan else 0,
                 "late_ticks": self.plan.late if self.plan else 0,
                 "latency_s": self.scheduler.options.latency_ns / 1e9,
+                "mode": s["output"],
             },
             "latency_ms": s["latency_ms"],
             "cpu_s": s["cpu_s"],
@@ -300,6 +420,7 @@ class Daemon:
             ],
             "imu": self.imu.status(),
             "imu_lookups": s["imu_samples"],
+            "imu_heading": s["heading"],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},
             "subjects": s["people"],
@@ -312,6 +433,7 @@ class Daemon:
                 "configured_imu_offsets_ms": {k: v / 1e6 for k, v in self.scheduler.options.imu_offsets_ns.items()},
                 "suggested_imu_offsets_ms": self.scheduler.suggested_imu_offsets,
             },
+            **{name: provider() for name, provider in self.status_extras.items()},
             "frame": None if frame is None else {
                 "frame": frame.frame,
                 "t_solve_ns": frame.t_solve_ns,
@@ -319,7 +441,7 @@ class Daemon:
                 "people": [
                     {"identity": p.identity, "suit": p.suit, "root_m": [round(float(v), 4) for v in p.theta[:3]],
                      "confidence": round(p.confidence, 3), "views": p.views, "imus": p.imus,
-                     "iterations": p.iterations}
+                     "iterations": p.iterations, "t_pose_ns": frame.pose_time_ns(p)}
                     for p in frame.people
                 ],
             },

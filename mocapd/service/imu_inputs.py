@@ -1,8 +1,8 @@
 """All configured IMU inputs feeding one :class:`~mocapd.pipeline.imu_ingest.ImuIngest`, for the asyncio app.
 
-``ImuInputs.run()`` supervises every serial device, the experimental Awinda station and the bridge listener
-in one ``asyncio.TaskGroup``; each sample is re-expressed in ENU and buffered. ``status()`` is what the HTTP
-status page shows per input; ``bone_orientations(t_ns, calibration)`` turns buffered sensor orientations into
+``ImuInputs.run()`` supervises every serial device, the experimental Awinda station, the bridge listener and the
+SlimeVR server in one ``asyncio.TaskGroup``; each sample is re-expressed in ENU and buffered. ``status()`` is what
+the HTTP status page shows per input; ``bone_orientations(t_ns, calibration)`` turns buffered sensor orientations into
 world bone orientations with a person's calibration (``R_gb = R_ig · R_i · R_ib⁻¹``).
 """
 
@@ -15,7 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, quat_to_enu
+from mocapd.core.rotations import quat_multiply
 from mocapd.io.imu_bridge import ImuBridgeListener
+from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.ringbuffer import LookupStatus
@@ -38,15 +40,20 @@ class ImuInputs:
     def __init__(self, config: ImuConfig, ingest: ImuIngest | None = None) -> None:
         self.config = config
         self.ingest = ingest or ImuIngest(capacity=config.buffer_capacity)
-        self.devices = [XsensSerialDevice(p, self.on_sample) for p in config.ports]
+        self.devices = [XsensSerialDevice(p, self.on_sample) for p in config.port_configs()]
         if config.awinda.experimental:
             station_port = XsensPortConfig(path=config.awinda.path)
-            self.devices.append(XsensSerialDevice(station_port, self.on_sample, awinda=config.awinda))
+            self.devices.append(XsensSerialDevice(station_port, self.on_sample, awinda=config.awinda.options()))
         self.bridge = (
             ImuBridgeListener(self.on_sample, host=config.bridge.host, port=config.bridge.port)
             if config.bridge.enabled
             else None
         )
+        sv = config.slimevr
+        self.slimevr = SlimeVrListener(self.on_sample, host=sv.host, port=sv.port) if sv.enabled else None
+        #: per-sensor device headings (``Rz(δ)``, from the suits' calibrations) applied to each sample before it
+        #: is buffered: sensors without a shared heading reference (SlimeVR trackers)
+        self.device_headings: dict[str, np.ndarray] = {}
         #: observers of every sample (the sample, its quaternion in ENU, its buffer time or None when it was
         #: dropped), e.g. the session recorder; called where samples arrive, so they must not block
         self.taps: list[Callable[[ImuSample, tuple[float, ...] | None, int | None], None]] = []
@@ -57,6 +64,9 @@ class ImuInputs:
         quat = s.quat
         if quat is not None and s.frame is not None and s.frame.name != "ENU":
             quat = tuple(quat_to_enu(np.array(quat), s.frame.name))
+        heading = self.device_headings.get(s.sensor)
+        if quat is not None and heading is not None:
+            quat = tuple(float(v) for v in quat_multiply(heading, np.array(quat)))
         t = self.ingest.add(
             s.sensor,
             s.host_ns,
@@ -68,20 +78,32 @@ class ImuInputs:
         for tap in self.taps:
             tap(s, quat, t)
 
+    def use_calibrations(self, calibrations: list[ImuCalibration]) -> None:
+        """Apply the device headings of these calibrations to their sensors' samples from now on."""
+        self.device_headings = {sid: q for c in calibrations for sid, q in c.device_heading_quats().items()}
+
     async def run(self) -> None:
         """Run every input until :meth:`stop`; device failures are retried inside each device's own loop."""
         if self.bridge is not None:
             await self.bridge.start()
         try:
+            if self.slimevr is not None:
+                await self.slimevr.start()
             async with asyncio.TaskGroup() as tg:
                 for device in self.devices:
                     tg.create_task(device.run())
+                if self.slimevr is not None:
+                    tg.create_task(self.slimevr.run())
                 await self._stop.wait()
                 for device in self.devices:
                     device.stop()
+                if self.slimevr is not None:
+                    self.slimevr.stop()
         finally:
             if self.bridge is not None:
                 self.bridge.close()
+            if self.slimevr is not None:
+                self.slimevr.close()
 
     def stop(self) -> None:
         self._stop.set()
@@ -127,7 +149,8 @@ class ImuInputs:
                 "records": st.records,
                 "rejected": st.rejected,
             }
-        return {"devices": devices, "bridge": bridge, "sensors": streams}
+        slimevr = self.slimevr.status() if self.slimevr is not None else None
+        return {"devices": devices, "bridge": bridge, "slimevr": slimevr, "sensors": streams}
 
     def bone_orientations(self, t_ns: int, calibration: ImuCalibration) -> list[BoneSample]:
         """World orientation of every calibrated bone at ``t_ns`` (slerped between samples)."""

@@ -62,7 +62,10 @@ def render_metrics(status: Mapping[str, Any], latency: Mapping[str, LatencyStats
            [(f'task="{_label(k)}"', 1 if t["running"] else 0) for k, t in tasks.items()])  # fmt: skip
     metric("mocapd_stage_cpu_seconds_total", "counter", "CPU time spent per scheduler stage.",
            [(f'stage="{k}"', v) for k, v in status["cpu_s"].items()])  # fmt: skip
-    out.append("# HELP mocapd_latency_seconds Latency per stage; end_to_end = solve instant -> frame published.")
+    out.append(
+        "# HELP mocapd_latency_seconds Latency per stage; end_to_end = solve instant -> frame published; "
+        "imu_to_publish = instant a suit wearer's pose is for (newest IMU sample when predicted) -> published."
+    )
     out.append("# TYPE mocapd_latency_seconds histogram")
     for stage, stats in latency.items():
         out.extend(stats.prometheus("mocapd_latency_seconds", f'stage="{stage}"'))

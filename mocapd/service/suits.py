@@ -47,7 +47,7 @@ def load_suits(config: ImuConfig, skeleton: Skeleton, base: Path | None = None) 
             if sensor in owner:
                 raise ConfigError(f"IMU calibration {path}: sensor {sensor} is already in suit {owner[sensor]!r}")
             owner[sensor] = calibration.person
-        unassigned = sorted(set(calibration.bones) - set(config.assignment)) if config.assignment else []
+        unassigned = sorted(set(calibration.bones) - set(config.sensors)) if config.sensors else []
         if unassigned:
             log.warning("suit %s: sensors %s are not in [imu.assignment]", calibration.person, unassigned)
         suits.append(Suit.from_calibration(calibration.person, calibration, skeleton))

@@ -93,6 +93,7 @@ class FakeCameraFleet:
         self.epoch_ns = epoch_ns
         self.replug_after_s = replug_after_s
         self._procs: dict[str, asyncio.subprocess.Process] = {}
+        self.stopping = False  # set by stop(): a server ending now was stopped, not unplugged
 
     def _command(self, spec: FakeCameraSpec) -> list[str]:
         cmd: list[str] = fake_gige.server_command(
@@ -102,8 +103,13 @@ class FakeCameraFleet:
         return cmd
 
     async def _start(self, cam: FakeCameraState) -> asyncio.subprocess.Process:
+        # Its own session: a terminal's Ctrl-C goes to the daemon, not to the cameras, which stay up (as real
+        # cameras would) until stop() ends them after the daemon has closed its streams.
         proc = await asyncio.create_subprocess_exec(
-            *self._command(cam.spec), stdout=asyncio.subprocess.PIPE, stdin=asyncio.subprocess.DEVNULL
+            *self._command(cam.spec),
+            stdout=asyncio.subprocess.PIPE,
+            stdin=asyncio.subprocess.DEVNULL,
+            start_new_session=True,
         )
         self._procs[cam.spec.name] = proc  # known at once, so a stop while it starts terminates it too
         assert proc.stdout is not None
@@ -127,9 +133,13 @@ class FakeCameraFleet:
             code = await proc.wait()
             cam.running, cam.exits, cam.last_exit_code = False, cam.exits + 1, code
             cam.ready.clear()
+            if self.stopping:
+                return
             log.warning("fake camera %s (pid %s) ended with %s; plugged back in after %.1f s",
                         cam.spec.name, cam.pid, code, self.replug_after_s)  # fmt: skip
             await asyncio.sleep(self.replug_after_s)
+            if self.stopping:
+                return
             try:
                 proc = await self._start(cam)
             except DeviceError as exc:
@@ -148,7 +158,8 @@ class FakeCameraFleet:
             await self.stop()
 
     async def stop(self) -> None:
-        """Terminate every server (SIGTERM, then SIGKILL after 3 s)."""
+        """Terminate every server (SIGTERM, then SIGKILL after 3 s); none is restarted from now on."""
+        self.stopping = True
         procs, self._procs = list(self._procs.values()), {}
         for p in procs:
             if p.returncode is None:

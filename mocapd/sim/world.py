@@ -7,19 +7,22 @@ backwards (continuous, so tracking and warm starts never see a jump) and is a
 function of host time, so every simulated device (keypoints per camera, each IMU) measures the same instant of
 the same truth:
 
-- :meth:`SyntheticWorld.detections` projects every person's COCO-17 targets into a camera at a time, adds pixel
-  noise: what a detector reports for the frame captured then;
+- :meth:`SyntheticWorld.detections` projects every person's keypoint targets (COCO-17 by default) into a
+  camera at a time, adds pixel noise: what a detector reports for the frame captured then;
 - :meth:`SyntheticWorld.imu_motion` gives each suit sensor's orientation (ENU, as a real Xsens device reports it)
   and sensor-frame specific force, sampled at the device rate over one loop: what the Xsens simulator streams;
 - :meth:`SyntheticWorld.calibration` is the suit's calibration (R_ig from ENU to the +Y-up world, a random
-  mounting R_ib per sensor) that turns those readings back into bone orientations (Eq. 8).
+  mounting R_ib per sensor) that turns those readings back into bone orientations (Eq. 8);
+- :meth:`SyntheticWorld.heading_faults` draws per-sensor heading errors (offset + drift) for the simulated
+  devices, which the calibration does not know about.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -31,7 +34,7 @@ from numpy.typing import NDArray
 from mocapd.core.camera import Camera, project_points, stack_cameras
 from mocapd.core.imu import IMU_SET_13, ImuMount, default_mounts
 from mocapd.core.imu_calibration import ImuCalibration
-from mocapd.core.keypoints import TrackTargets, coco17_targets
+from mocapd.core.keypoints import TrackTargets, keypoint_format
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.motion import resample_poses
 from mocapd.core.per_skeleton import PerSkeleton
@@ -47,7 +50,9 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D
 from mocapd.core.synthetic import moving_sequence, ring_rig
 from mocapd.errors import ConfigError, ModelError
+from mocapd.io.device_state import OpenState
 from mocapd.pipeline.keypoint_source import KeypointSink
+from mocapd.sim.xsens import HeadingFault
 
 FloatArray = NDArray[np.float64]
 
@@ -84,10 +89,14 @@ class SyntheticWorld:
     loop_s : float
         Duration of the motion before it plays backwards (the period is twice this).
     seed : int
+    camera_names : sequence of str, optional
+        The cameras' names (default ``cam0``, ``cam1``, ...).
     motion : {"recorded", "procedural"}
         Recorded CMU clips (person ``p`` plays clip ``p mod 4``, later laps start half-way through), or the
         procedural walk (each person a 1 m circle around their centre; ``loop_s`` applies to it only, recorded
         clips loop over their own length).
+    keypoints : str
+        The detector's keypoint format the cameras report ("coco17", "body25", "halpe26").
     """
 
     def __init__(
@@ -98,8 +107,13 @@ class SyntheticWorld:
         loop_s: float = 6.0,
         seed: int = 0,
         motion: str = "recorded",
+        camera_names: Sequence[str] | None = None,
+        keypoints: str = "coco17",
     ) -> None:
         self.cameras: list[Camera] = ring_rig(n_cams)
+        if camera_names is not None:
+            self.cameras = [dataclasses.replace(c, name=n) for c, n in zip(self.cameras, camera_names, strict=True)]
+        fmt = keypoint_format(keypoints)
         if motion == "recorded":
             clips, self.skeleton = load_demo_motion()
             self.loop_s = min(c.shape[0] for c in clips) / TRUTH_FPS
@@ -114,9 +128,9 @@ class SyntheticWorld:
             sequences = [moving_sequence(self.skeleton, n, fps=TRUTH_FPS, seed=seed + 17 * p) for p in range(n_people)]
         else:
             raise ConfigError(f"synthetic motion must be 'recorded' or 'procedural', got {motion!r}")
-        self.targets: TrackTargets = coco17_targets(self.skeleton)
+        self.targets: TrackTargets = fmt.track_targets(self.skeleton)
         self.kin = Kinematics(self.skeleton)
-        self._site_models = PerSkeleton((self.kin, self.targets), lambda sk: (Kinematics(sk), coco17_targets(sk)))
+        self._site_models = PerSkeleton((self.kin, self.targets), lambda sk: (Kinematics(sk), fmt.track_targets(sk)))
         self.truth: list[FloatArray] = []
         for p, motion_p in enumerate(sequences):
             seq = motion_p.copy()
@@ -231,6 +245,22 @@ class SyntheticWorld:
         acc_sensor = np.einsum("nkji,nkj->nki", R_gi, acc_world + GRAVITY_WORLD)
         return np.transpose(q_i, (1, 0, 2)), np.transpose(acc_sensor, (1, 0, 2))
 
+    @staticmethod
+    def heading_faults(
+        suit: SuitTruth, max_offset_deg: float = 45.0, drift_deg_per_min: float = 10.0, seed: int = 0
+    ) -> dict[str, HeadingFault]:
+        """Per sensor id of ``suit``: a heading error its simulated device reports and its calibration ignores.
+
+        The offsets are spread evenly over ``±max_offset_deg`` (both extremes included) in a random order, each
+        drifting by ``drift_deg_per_min`` in a random direction.
+        """
+        rng = np.random.default_rng(seed)
+        n = len(suit.sensor_ids)
+        offsets = rng.permutation(np.linspace(-max_offset_deg, max_offset_deg, n))
+        signs = rng.choice((-1.0, 1.0), size=n)
+        return {f"{sid:08X}": HeadingFault(float(o), float(s) * drift_deg_per_min)
+                for sid, o, s in zip(suit.sensor_ids, offsets, signs, strict=True)}  # fmt: skip
+
     def calibration(self, suit: SuitTruth) -> ImuCalibration:
         """The suit's calibration: what ``mocapd calibrate imu`` would have produced for it."""
         ids = [f"{s:08X}" for s in suit.sensor_ids]
@@ -309,6 +339,9 @@ class SyntheticKeypointSource:
             behind = (self.clock() - self.delay_ns - capture) // self.period_ns
             self.skipped += max(0, behind - 1) if behind > 1 else 0
             k += max(1, behind)
+
+    def open_state(self) -> OpenState:
+        return OpenState("open", "")  # nothing to open: the detections are computed
 
     def status(self) -> dict[str, Any]:
         return {"name": self.name, "kind": "synthetic", "frames": self.frames, "skipped": self.skipped,

@@ -10,8 +10,10 @@ stable symlink, like ``/dev/serial/by-id/...``) and talks Xbus to it. The simula
   SampleTimeCoarse, quaternion / rotation matrix / Euler angles in any precision and frame, acceleration)
   taken from a motion file: a real Xsens MTw export (``../shared/data/imu/opensense_mtw/*.txt``) or a
   synthetic motion,
-- injects faults on request: random garbage between messages, corrupted checksums, dropped samples, and an
-  unplug (pty closed, symlink removed) followed by a replug (new pty, symlink recreated, WakeUp sent).
+- injects faults on request: random garbage between messages, corrupted checksums, dropped samples, an unplug
+  (pty closed, symlink removed) followed by a replug (new pty, symlink recreated, WakeUp sent), and a heading
+  error (:class:`HeadingFault`: a constant offset plus a drift about the vertical, as a magnetically disturbed
+  or magnetometer-free sensor reports).
 
 Run several at once: ``python -m mocapd.sim.xsens --link /tmp/imu0 --link /tmp/imu1 --motion FILE ...``.
 ``XsensSimulator`` (one device on one pty, in a thread) is what the integration tests and the benchmark use.
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import selectors
 import signal
@@ -48,6 +51,7 @@ from mocapd.protocols.mtdata2 import TYPE_MASK, AwindaSnapshot, CoordFrame, Data
 from mocapd.protocols.xbus import MID, OutputSetting
 
 TICK_HZ = 10_000
+FloatArray = NDArray[np.float64]
 
 
 # ------------------------------------------------------------------------------------------------ motion
@@ -99,6 +103,31 @@ _FRAME_FROM_ENU = {
 }
 
 
+@dataclass(frozen=True)
+class HeadingFault:
+    """A sensor whose heading is wrong: its reported orientation is turned about the vertical (ENU +z) by
+    ``offset_deg + drift_deg_per_min · t / 60`` at sample time ``t`` (seconds since the device's first sample).
+
+    A magnetic disturbance bends the field a magnetometer-aided filter takes as north (an offset); a filter
+    without magnetometer integrates gyro bias into its heading (a drift). Gravity still gives the vertical, so
+    only the rotation about it is wrong, and the accelerometer (sensor frame) is unaffected.
+    """
+
+    offset_deg: float = 0.0
+    drift_deg_per_min: float = 0.0
+
+    def angle_rad(self, t_s: FloatArray | float) -> FloatArray:
+        """The heading error at ``t_s`` (radians)."""
+        return np.radians(self.offset_deg + self.drift_deg_per_min * np.asarray(t_s, dtype=np.float64) / 60.0)
+
+    def apply(self, quat: FloatArray, t_s: FloatArray | float) -> FloatArray:
+        """Sensor orientations (ENU, (..., 4)) at ``t_s`` as the faulty sensor reports them."""
+        half = 0.5 * self.angle_rad(t_s)
+        turn = np.zeros((*np.shape(half), 4))
+        turn[..., 0], turn[..., 3] = np.cos(half), np.sin(half)
+        return quat_normalize(quat_multiply(turn, np.asarray(quat, dtype=np.float64)))
+
+
 # ------------------------------------------------------------------------------------------ device logic
 
 
@@ -134,8 +163,11 @@ class SimDevice:
         product_code: str = "MTw2-3A7G6",
         firmware: tuple[int, int, int] = (4, 6, 0),
         faults: Faults | None = None,
+        heading: HeadingFault | None = None,
     ) -> None:
         self.motion = motion
+        #: a heading error of the reported orientation (None: the motion's orientation as is)
+        self.heading = heading
         self.product_code = product_code
         self.firmware = firmware
         self.faults = faults or Faults()
@@ -256,6 +288,9 @@ class SimDevice:
 
     def _packet(self, data_id: int, i: int, ticks: int) -> bytes:
         kind = data_id & TYPE_MASK
+        if self.heading is not None and kind in (DataId.QUATERNION, DataId.ROTATION_MATRIX, DataId.EULER_ANGLES):
+            # Sample index = samples since the device started: the error keeps drifting over motion loops.
+            return self._faulty_packet(data_id, kind, i, float(self.heading.angle_rad((self.index - 1) / self.rate_hz)))
         counters: dict[int, int] = {
             DataId.PACKET_COUNTER: self.counter,
             DataId.SAMPLE_TIME_FINE: ticks,
@@ -274,13 +309,24 @@ class SimDevice:
         if kind == DataId.ACCELERATION:
             return encode_packet(data_id, tuple(self.motion.acc[i].tolist()))
         quats, mats = self._in_frame(CoordFrame(data_id & 0x0C))
-        if kind == DataId.QUATERNION:
-            value = tuple(quats[i].tolist())
-        elif kind == DataId.ROTATION_MATRIX:
-            value = tuple(mats[i].T.reshape(-1).tolist())  # Xsens sends the matrix column-major
-        else:
-            value = tuple(np.degrees(_euler_xyz(mats[i])).tolist())
-        return encode_packet(data_id, value)
+        return _orientation_packet(data_id, kind, quats[i], mats[i])
+
+    def _faulty_packet(self, data_id: int, kind: int, i: int, angle: float) -> bytes:
+        """An orientation output of sample ``i`` turned about the vertical by ``angle`` (radians, about ENU +z).
+
+        The cached sample in the output's frame is turned about that frame's vertical (+z for ENU and NWU, -z for
+        NED) on plain floats: the simulator thread streams 13 devices at 100 Hz, and per-sample numpy conversions
+        cost ten times more than the rest of a message.
+        """
+        frame = CoordFrame(data_id & 0x0C)
+        quats, mats = self._in_frame(frame)
+        phi = angle if frame is not CoordFrame.NED else -angle
+        c, s = math.cos(0.5 * phi), math.sin(0.5 * phi)
+        w, x, y, z = (float(v) for v in quats[i])
+        quat = np.array([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w])
+        cz, sz = math.cos(phi), math.sin(phi)
+        turn = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+        return _orientation_packet(data_id, kind, quat, turn @ mats[i])
 
     def _in_frame(self, frame: CoordFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The whole motion's orientations in a device frame, as quaternions (n, 4) and matrices (n, 3, 3).
@@ -292,6 +338,17 @@ class SimDevice:
             mats = _FRAME_FROM_ENU[frame] @ matrix_from_quat(self.motion.quat)
             cached = self._frames[frame] = (quat_normalize(quat_from_matrix(mats)), mats)
         return cached
+
+
+def _orientation_packet(data_id: int, kind: int, quat: FloatArray, mat: FloatArray) -> bytes:
+    """An orientation output of one sample, from its quaternion (4,) and matrix (3, 3) in the output's frame."""
+    if kind == DataId.QUATERNION:
+        value = tuple(quat.tolist())
+    elif kind == DataId.ROTATION_MATRIX:
+        value = tuple(mat.T.reshape(-1).tolist())  # Xsens sends the matrix column-major
+    else:
+        value = tuple(np.degrees(_euler_xyz(mat)).tolist())
+    return encode_packet(data_id, value)
 
 
 def _euler_xyz(rot: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -561,6 +618,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bad-checksum", type=float, default=0.0, help="probability of a corrupted checksum")
     ap.add_argument("--dropout", type=float, default=0.0, help="probability of a dropped sample")
     ap.add_argument("--unplug-every", type=float, default=0.0, help="seconds between unplug/replug cycles")
+    ap.add_argument("--heading-error", type=float, default=0.0, help="heading offset of every device, degrees")
+    ap.add_argument("--heading-drift", type=float, default=0.0, help="heading drift of every device, degrees/min")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--write-log", type=Path, help="on exit, write {device id: {counter: write ns}} as JSON")
     args = ap.parse_args(argv)
@@ -568,7 +627,9 @@ def main(argv: list[str] | None = None) -> int:
     for k, link in enumerate(args.link):
         motion = load_opensense(args.motion[k]) if k < len(args.motion) else synthetic_motion(device_id=0xB40000 + k)
         faults = Faults(args.garbage, args.bad_checksum, args.dropout, args.seed + k)
-        sims.append(XsensSimulator(link, SimDevice(motion, faults=faults)))
+        heading = HeadingFault(args.heading_error, args.heading_drift)
+        device = SimDevice(motion, faults=faults, heading=heading if heading != HeadingFault() else None)
+        sims.append(XsensSimulator(link, device))
     loop = SimulatorLoop(sims).start()
     for sim in sims:
         print(f"{sim.link} -> {os.readlink(sim.link)} (device {sim.device.motion.device_id:08X})", flush=True)

@@ -2,17 +2,23 @@
 // frames in mocapd's native convention (right-handed, +Y up, metres) with global joint positions and status
 // messages, and draws every subject's skeleton on a 2D canvas with its own small perspective camera.
 // Reconnects by itself when the daemon goes away and comes back. State for tests: window.mocapdViewer.
+// Camera views (the "Camera views" button, or ?cameras=1): one panel per camera with its latest frame, the 2D
+// detections (white dots) and every solved subject reprojected through that camera's calibration (lines in the
+// subject's colour), with the reprojection error and detection rate; the server sends them only while asked.
 "use strict";
 
 (function () {
   const PALETTE = ["#ff3b30", "#30d158", "#0a84ff", "#ffd60a", "#bf5af2", "#ff9f0a", "#64d2ff", "#ff375f"];
   const canvas = document.getElementById("view");
   const ctx = canvas.getContext("2d");
-  const token = new URLSearchParams(location.search).get("token");
+  const params = new URLSearchParams(location.search);
+  const token = params.get("token");
+  const CAM_GAP = 6, CAM_CAPTION = 18;  // CSS px between panels and under each canvas
 
   const state = {
     connected: false, connects: 0, hellos: 0, frames: 0, statusMessages: 0, errors: 0,
     hello: null, frame: null, shown: null, paused: false, status: null, colours: {}, rate: 0, lastError: null,
+    camerasOn: params.get("cameras") === "1", cameraMessages: 0, cams: {},
   };
   const cam = { yaw: 0.6, pitch: 0.35, dist: 7.0, target: [0, 0.9, 0] };
   let socket = null, retryMs = 250, drawPending = false, frameTimes = [];
@@ -161,6 +167,108 @@
                                                 d.streaming ? "ok" : "bad"]) : [["none", ""]]);
   }
 
+  // ------------------------------------------------------------------------------------------ camera panels
+  function cameraPanel(m) {
+    // The panel of camera m.camera (created on its first message): a canvas sized to the camera's aspect ratio.
+    let p = state.cams[m.camera];
+    if (p) return p;
+    const div = document.createElement("div"), canvas = document.createElement("canvas"),
+      cap = document.createElement("div");
+    div.className = "cam"; cap.className = "cap";
+    canvas.dataset.aspect = m.width / m.height;
+    div.appendChild(canvas); div.appendChild(cap);
+    const list = document.getElementById("cams"), after = [...list.children].find((c) => +c.dataset.camera > m.camera);
+    div.dataset.camera = m.camera;
+    list.insertBefore(div, after || null);
+    p = state.cams[m.camera] = { canvas, cap, msg: null, shown: null, img: null, pending: null, messages: 0 };
+    layoutCameras();
+    return p;
+  }
+
+  function layoutCameras() {
+    // The largest panel height with which every panel fits in the width, in at most half the window's height.
+    const panels = Object.values(state.cams);
+    if (!panels.length) return;
+    const W = document.getElementById("main").clientWidth - CAM_GAP, H = 0.5 * window.innerHeight;
+    const aspect = Math.max(...panels.map((p) => +p.canvas.dataset.aspect));
+    let best = 0;
+    for (let cols = 1; cols <= panels.length; cols++) {
+      const rows = Math.ceil(panels.length / cols);
+      best = Math.max(best, Math.min((W / cols - CAM_GAP) / aspect, H / rows - CAM_GAP - CAM_CAPTION));
+    }
+    const h = Math.max(40, Math.floor(best));
+    for (const p of panels) {
+      p.canvas.style.height = h + "px"; p.canvas.style.width = Math.floor(h * p.canvas.dataset.aspect) + "px";
+      if (p.shown) drawCamera(p);
+    }
+  }
+
+  function onCamera(m) {
+    state.cameraMessages += 1;
+    const p = cameraPanel(m);
+    p.msg = m; p.messages += 1;
+    if (state.paused) return;
+    showCamera(p, m);
+  }
+
+  function showCamera(p, m) {
+    // Decode the JPEG (if any), then draw the frame and its overlays together.
+    if (m.image) {
+      const img = new Image();
+      img.onload = () => { if (p.pending === m) { p.img = img; p.shown = m; p.pending = null; drawCamera(p); } };
+      p.pending = m;
+      img.src = "data:image/jpeg;base64," + m.image;
+    } else { p.img = null; p.shown = m; drawCamera(p); }
+  }
+
+  function drawCamera(p) {
+    const m = p.shown, c = p.canvas, g = c.getContext("2d"), dpr = window.devicePixelRatio || 1;
+    const w = c.clientWidth, h = c.clientHeight;
+    if (c.width !== Math.round(w * dpr) || c.height !== Math.round(h * dpr)) {
+      c.width = Math.round(w * dpr); c.height = Math.round(h * dpr);
+    }
+    g.setTransform(dpr, 0, 0, dpr, 0, 0);
+    g.fillStyle = "#000"; g.fillRect(0, 0, w, h);
+    if (!m) return;
+    const sx = w / m.width, sy = h / m.height;  // full-resolution pixel -> CSS pixel
+    if (p.img) g.drawImage(p.img, 0, 0, w, h);
+    const parents = state.hello ? state.hello.parents : [];
+    g.lineCap = "round";
+    for (const subj of m.subjects) {
+      const colour = colourOf(subj.id), j = subj.joints, pt = (i) => (j[2 * i] === null || j[2 * i + 1] === null
+        ? null : [j[2 * i] * sx, j[2 * i + 1] * sy]);
+      g.strokeStyle = colour; g.lineWidth = 2.5;
+      for (let i = 1; i < parents.length; i++) {
+        const a = pt(parents[i]), b = pt(i);
+        if (a && b) { g.beginPath(); g.moveTo(a[0], a[1]); g.lineTo(b[0], b[1]); g.stroke(); }
+      }
+      g.fillStyle = colour;
+      for (let i = 0; i < j.length / 2; i++) {
+        const a = pt(i);
+        if (a) { g.beginPath(); g.arc(a[0], a[1], 2.5, 0, 2 * Math.PI); g.fill(); }
+      }
+    }
+    g.fillStyle = "#ffffff"; g.strokeStyle = "#000000"; g.lineWidth = 1;
+    for (const d of m.detections) {
+      for (let k = 0; k + 2 < d.length; k += 3) {
+        if (d[k] === null || d[k + 2] < 0.3) continue;
+        g.beginPath(); g.arc(d[k] * sx, d[k + 1] * sy, 2, 0, 2 * Math.PI); g.fill(); g.stroke();
+      }
+    }
+    const rep = m.reprojection_px === null ? "–" : m.reprojection_px.toFixed(1);
+    p.cap.textContent = `${m.name} · reprojection ${rep} px · detections ${m.detection_hz.toFixed(1)} Hz`;
+  }
+
+  function setCameras(on) {
+    state.camerasOn = on;
+    document.getElementById("cams").className = on ? "on" : "";
+    document.getElementById("camsButton").className = on ? "on" : "";
+    if (!on) { document.getElementById("cams").innerHTML = ""; state.cams = {}; }
+    if (socket && socket.readyState === WebSocket.OPEN) socket.send(JSON.stringify({ type: "subscribe", cameras: on }));
+    scheduleDraw();
+  }
+  document.getElementById("camsButton").addEventListener("click", () => setCameras(!state.camerasOn));
+
   // ------------------------------------------------------------------------------------------ stream
   function connect() {
     const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/` +
@@ -172,6 +280,7 @@
       state.connected = true; state.connects += 1; retryMs = 250;
       ws.send(JSON.stringify({ type: "subscribe", encoding: "json", convention: "native", globals: true,
                                status: true }));
+      if (state.camerasOn) setCameras(true);
       updatePanel();
     };
     ws.onmessage = (ev) => {
@@ -186,7 +295,8 @@
         while (frameTimes.length && frameTimes[0] < now - 1000) frameTimes.shift();
         state.rate = frameTimes.length;
         scheduleDraw();
-      } else if (m.type === "status") { state.status = m; state.statusMessages += 1; updatePanel(); }
+      } else if (m.type === "camera") { onCamera(m); }
+      else if (m.type === "status") { state.status = m; state.statusMessages += 1; updatePanel(); }
       else if (m.type === "error") { state.errors += 1; state.lastError = m.message; }
     };
     ws.onclose = () => {
@@ -215,8 +325,15 @@
     scheduleDraw();
   }, { passive: false });
   canvas.addEventListener("dblclick", () => { Object.assign(cam, { yaw: 0.6, pitch: 0.35, dist: 7.0 }); scheduleDraw(); });
-  window.addEventListener("resize", scheduleDraw);
-  function pause(on) { state.paused = on; if (!on) state.shown = state.frame; scheduleDraw(); updatePanel(); }
+  window.addEventListener("resize", () => { layoutCameras(); scheduleDraw(); });
+  function pause(on) {
+    state.paused = on;
+    if (!on) {
+      state.shown = state.frame;
+      for (const p of Object.values(state.cams)) if (p.msg) showCamera(p, p.msg);
+    }
+    scheduleDraw(); updatePanel();
+  }
   window.addEventListener("keydown", (e) => { if (e.key === " ") { e.preventDefault(); pause(!state.paused); } });
 
   window.mocapdViewer = {
@@ -229,7 +346,19 @@
     colourOf,
     get frames() { return state.frames; }, get connects() { return state.connects; },
     get connected() { return state.connected; },
+    setCameras,
+    // Camera panels on screen: per camera the message drawn (and whether its image is drawn) and where its
+    // canvas is (CSS px), so a test can map full-resolution pixels to the screen: x_css = left + x * scale_x.
+    cameraPanels: () => Object.values(state.cams).filter((p) => p.shown).map((p) => {
+      const r = p.canvas.getBoundingClientRect(), m = p.shown;
+      return { camera: m.camera, name: m.name, frame: m.frame, t_solve_ns: m.t_solve_ns, left: r.left, top: r.top,
+               scale_x: r.width / m.width, scale_y: r.height / m.height, width: r.width, height: r.height,
+               image: !!p.img,
+               subjects: m.subjects.map((s) => ({ id: s.id, colour: colourOf(s.id), joints: s.joints })),
+               detections: m.detections, caption: p.cap.textContent };
+    }),
   };
+  if (state.camerasOn) setCameras(true);
   connect();
   scheduleDraw();
 })();

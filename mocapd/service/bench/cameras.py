@@ -19,13 +19,14 @@ import platform
 import sys
 import threading
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from mocapd.service.assembly import RunOptions
 from mocapd.service.config import load_config
-from mocapd.service.demo.camera_rig import CameraDemoOptions
-from mocapd.service.demo.cameras import CameraDemoDaemon, in_private_netns, run_camera_demo
+from mocapd.service.daemon import Daemon
+from mocapd.service.demo.cameras import CameraDemoOptions, in_private_netns, run_camera_demo
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 WARM_UP_S = 20.0  # model sessions, numba kernel and every ring / buffer pool touched once
@@ -81,7 +82,7 @@ class Measure:
         self.seconds = seconds
         self.result: dict[str, Any] = {}
 
-    def _snapshot(self, daemon: CameraDemoDaemon) -> dict[str, Any]:
+    def _snapshot(self, daemon: Daemon) -> dict[str, Any]:
         st = daemon.status()
         frames = [getattr(s, "frames", None) for s in daemon.rig.sources]  # DetectorKeypointSource's capture
         tids = {t for f in frames if isinstance(t := getattr(f, "thread_id", None), int)}
@@ -89,7 +90,7 @@ class Measure:
         return {"t": time.monotonic(), "status": st, "threads": thread_cpu_by_kind(tids),
                 "process_cpu": time.process_time(), "servers": servers}  # fmt: skip
 
-    async def __call__(self, daemon: CameraDemoDaemon) -> None:
+    async def __call__(self, daemon: Daemon) -> None:
         rss: list[tuple[float, float]] = []
         t0 = time.monotonic()
         percentiles: list[dict[str, Any]] = []
@@ -165,12 +166,14 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--options", default="{}")
     args = p.parse_args(argv)
     opts = CameraDemoOptions(**json.loads(args.options))
-    config = opts.apply(load_config())
-    config = replace(config, daemon=replace(config.daemon, http_port=0))  # inside the namespace: any free port
+    config = load_config()
+    # Inside the namespace: any free port (nothing outside it reads them).
+    config = config.model_copy(update={"daemon": config.daemon.model_copy(update={"http_port": 0}),
+                                       "websocket": config.websocket.model_copy(update={"port": 0})})  # fmt: skip
     m = config.detector.model
     load0 = os.getloadavg()
     measure = Measure(args.seconds)
-    code = asyncio.run(run_camera_demo(config, opts, measure))
+    code = asyncio.run(run_camera_demo(config, opts, RunOptions(), monitor=measure))
     report = {
         "rig": {"cameras": 4, "source": f"Pose2Sim {opts.demo} videos, fake GigE Vision cameras in a private netns",
                 "image": [round(1088 * opts.scale), round(1920 * opts.scale)], "pixel_format": opts.pixel_format,

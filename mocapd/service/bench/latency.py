@@ -1,4 +1,5 @@
-"""``mocapd bench latency``: the synthetic demo daemon run for a while, measured from inside, as JSON.
+"""``mocapd bench latency``: the synthetic rig run through the one assembly path for a while, measured from
+inside by a monitor, as JSON.
 
 Reports the end-to-end latency (solve instant -> frame published; it includes the configured fixed latency),
 per-stage latency and CPU, the output rate achieved against the configured one (missed ticks), the detector
@@ -13,11 +14,13 @@ import os
 import platform
 import resource
 import time
-from dataclasses import replace
 from typing import Any
 
+from mocapd.service import assembly
+from mocapd.service.assembly import RunOptions
 from mocapd.service.config import load_config
-from mocapd.service.demo.synthetic import running_demo
+from mocapd.service.daemon import Daemon
+from mocapd.service.demo.synthetic import synthetic_config
 
 WARM_UP_S = 15.0  # > one motion loop (12 s): the simulators' packet caches are full
 
@@ -41,66 +44,72 @@ def _after_warm_up(warm: tuple[int, int, int] | None, st: dict[str, Any], wall_s
 
 
 def run(seconds: float = 60.0, cameras: int = 4, people: int = 2) -> dict[str, Any]:
-    cfg = load_config()
-    syn = replace(cfg.daemon.synthetic, cameras=cameras, people=people, suits=min(1, people))
-    cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=0, synthetic=syn))
+    """Run the synthetic rig (``mocapd demo --synthetic``'s generated config, through the one assembly path) for
+    ``seconds`` after READY and report what it did."""
+    base = load_config()
+    synthetic = base.synthetic.model_copy(update={"people": people, "suits": min(1, people)})
+    base = base.model_copy(update={"daemon": base.daemon.model_copy(update={"http_port": 0}),
+                                   "websocket": base.websocket.model_copy(update={"port": 0}),
+                                   "synthetic": synthetic})  # fmt: skip
+    cfg = synthetic_config(base, cameras)
+    syn = cfg.synthetic
     load0 = os.getloadavg()
     rss: list[tuple[float, float]] = []
-    with running_demo(cfg) as demo:
-        d = demo.daemon
+    run_stats: dict[str, Any] = {}
 
-        async def main() -> None:
-            task = asyncio.create_task(d.run())
-            await d.ready.wait()
-            t0 = time.monotonic()
-            cpu0 = resource.getrusage(resource.RUSAGE_SELF)
-            while time.monotonic() - t0 < seconds:
-                await asyncio.sleep(1.0)
-                rss.append((round(time.monotonic() - t0, 1), round(_rss_mb(), 1)))
-                if "warm" not in run_stats and time.monotonic() - t0 >= WARM_UP_S and d.plan is not None:
-                    # Ticks missed while people enrol and their solvers are first built are start-up, not rate.
-                    run_stats["warm"] = (d.plan.missed, d.plan.late, d.scheduler.frame)
-            cpu1 = resource.getrusage(resource.RUSAGE_SELF)
-            wall = time.monotonic() - t0
-            run_stats["process_cpu_fraction_of_one_core"] = round(
-                (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime) / wall, 3
-            )
-            run_stats["wall_s"] = round(wall, 1)
-            run_stats["imu_streaming"] = sum(1 for x in d.imu.devices if x.streaming.is_set())
-            d.request_stop()
-            await task
+    async def measure(d: Daemon) -> None:
+        t0 = time.monotonic()
+        cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+        while time.monotonic() - t0 < seconds:
+            await asyncio.sleep(1.0)
+            rss.append((round(time.monotonic() - t0, 1), round(_rss_mb(), 1)))
+            if "warm" not in run_stats and time.monotonic() - t0 >= WARM_UP_S and d.plan is not None:
+                # Ticks missed while people enrol and their solvers are first built are start-up, not rate.
+                run_stats["warm"] = (d.plan.missed, d.plan.late, d.scheduler.frame)
+        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+        wall = time.monotonic() - t0
+        run_stats["process_cpu_fraction_of_one_core"] = round(
+            (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime) / wall, 3
+        )
+        run_stats["wall_s"] = round(wall, 1)
+        run_stats["imu_streaming"] = sum(1 for x in d.imu.devices if x.streaming.is_set())
+        run_stats["status"] = d.status()
 
-        run_stats: dict[str, Any] = {}
-        asyncio.run(main())
-        st = d.status()
-        frames = st["output"]["frames"]
-        after = [m for t, m in rss if t >= WARM_UP_S]
-        err = demo.truth.recent_mm(10**9)
-        return {
-            "rig": {"cameras": cameras, "people": people, "suits": syn.suits, "imus": 13 * syn.suits,
-                    "camera_rate_hz": syn.camera_rate_hz, "detection_delay_ms": 1e3 * syn.detection_delay_s,
-                    "imu_rate_hz": syn.imu_rate_hz, "transport": "Xbus over pseudo-terminals (tools/xsens_sim)"},
-            "duration_s": run_stats["wall_s"],
-            "configured": {"output_rate_hz": cfg.daemon.output_rate_hz, "latency_ms": 1e3 * cfg.daemon.latency_s},
-            "output": {"frames": frames, "achieved_hz": round(frames / run_stats["wall_s"], 2),
-                       "missed_ticks": st["output"]["missed_ticks"], "late_ticks": st["output"]["late_ticks"],
-                       **_after_warm_up(run_stats.get("warm"), st, run_stats["wall_s"])},
-            "end_to_end_ms": st["latency_ms"]["end_to_end"],
-            "stage_latency_ms": {k: v for k, v in st["latency_ms"].items() if k != "end_to_end"},
-            "stage_cpu_s": st["cpu_s"],
-            "stage_cpu_ms_per_frame": {k: round(1e3 * v / max(frames, 1), 3) for k, v in st["cpu_s"].items()},
-            "process_cpu_fraction_of_one_core": run_stats["process_cpu_fraction_of_one_core"],
-            "memory_mb": {
-                "rss_samples": rss[:: max(1, len(rss) // 12)],
-                "after_warm_up_first": after[0] if after else None,
-                "after_warm_up_last": after[-1] if after else None,
-                "growth_after_warm_up": round(after[-1] - after[0], 1) if len(after) > 1 else None,
-                "warm_up_s": WARM_UP_S,
-            },
-            "median_keypoint_error_mm": None if err is None else round(err, 2),
-            "imu_devices_streaming_at_end": run_stats["imu_streaming"],
-            "imu_disconnects": sum(x["disconnects"] for x in st["imu"]["devices"]),
-            "task_failures": {k: v["failures"] for k, v in st["tasks"].items()},
-            "machine": {"cpus": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load0],
-                        "python": platform.python_version()},
-        }  # fmt: skip
+    async def main() -> assembly.Assembly | None:
+        holder: list[assembly.Assembly] = []
+        await assembly.run(cfg, RunOptions(), monitor=measure, on_ready=holder.append)
+        return holder[0] if holder else None
+
+    done = asyncio.run(main())
+    st = run_stats["status"]
+    frames = st["output"]["frames"]
+    after = [m for t, m in rss if t >= WARM_UP_S]
+    err = done.truth.recent_mm(10**9) if done is not None and done.truth is not None else None
+    return {
+        "rig": {"cameras": cameras, "people": people, "suits": syn.suits, "imus": 13 * syn.suits,
+                "camera_rate_hz": syn.camera_rate_hz, "detection_delay_ms": 1e3 * syn.detection_delay_s,
+                "imu_rate_hz": syn.imu_rate_hz, "transport": "Xbus over pseudo-terminals (mocapd.sim.suits)"},
+        "duration_s": run_stats["wall_s"],
+        "configured": {"output_rate_hz": cfg.daemon.output_rate_hz, "latency_ms": 1e3 * cfg.daemon.latency_s},
+        "output": {"frames": frames, "achieved_hz": round(frames / run_stats["wall_s"], 2),
+                   "missed_ticks": st["output"]["missed_ticks"], "late_ticks": st["output"]["late_ticks"],
+                   **_after_warm_up(run_stats.get("warm"), st, run_stats["wall_s"])},
+        "end_to_end_ms": st["latency_ms"]["end_to_end"],
+        "stage_latency_ms": {k: v for k, v in st["latency_ms"].items() if k != "end_to_end"},
+        "stage_cpu_s": st["cpu_s"],
+        "stage_cpu_ms_per_frame": {k: round(1e3 * v / max(frames, 1), 3) for k, v in st["cpu_s"].items()},
+        "process_cpu_fraction_of_one_core": run_stats["process_cpu_fraction_of_one_core"],
+        "memory_mb": {
+            "rss_samples": rss[:: max(1, len(rss) // 12)],
+            "after_warm_up_first": after[0] if after else None,
+            "after_warm_up_last": after[-1] if after else None,
+            "growth_after_warm_up": round(after[-1] - after[0], 1) if len(after) > 1 else None,
+            "warm_up_s": WARM_UP_S,
+        },
+        "median_keypoint_error_mm": None if err is None else round(err, 2),
+        "imu_devices_streaming_at_end": run_stats["imu_streaming"],
+        "imu_disconnects": sum(x["disconnects"] for x in st["imu"]["devices"]),
+        "task_failures": {k: v["failures"] for k, v in st["tasks"].items()},
+        "machine": {"cpus": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load0],
+                    "python": platform.python_version()},
+    }  # fmt: skip

@@ -10,11 +10,13 @@ from collections.abc import Sequence
 from mocapd import __version__
 from mocapd.service.cli import calibrate as cmd_calibrate
 from mocapd.service.cli import daemon as cmd_daemon
+from mocapd.service.cli import devices as cmd_devices
 from mocapd.service.cli import eval as eval_cli
 from mocapd.service.cli import imu as cmd_imu
 from mocapd.service.cli import model as cmd_model
 from mocapd.service.cli import recordings as cmd_recordings
 from mocapd.service.cli import session as cmd_session
+from mocapd.service.process import exit_now
 
 
 def _cmd_bench_solver(args: argparse.Namespace) -> int:
@@ -33,9 +35,12 @@ def _cmd_bench_sorting(args: argparse.Namespace) -> int:
 
 def _cmd_eval_tracking(args: argparse.Namespace) -> int:
     from mocapd.eval import tracking as eval_tracking
+    from mocapd.io.progress import Progress
 
     motion = "synthetic" if args.synthetic else "real"
-    print(json.dumps(eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion), indent=2))
+    with Progress(2 * len(eval_tracking.SCENES), "eval tracking") as bar:
+        result = eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion, progress=bar)
+    print(json.dumps(result, indent=2))
     return 0
 
 
@@ -68,20 +73,38 @@ def build_parser() -> argparse.ArgumentParser:
     cmd_imu.register(sub)  # adds "imu" to the calibrate group
     cmd_model.register(sub)
     cmd_daemon.register(sub)  # run, demo, check-config, bench latency
+    cmd_devices.register(sub)
     cmd_session.register(sub)  # replay, resolve, export, session
     cmd_recordings.register(sub)  # import mtw, import mvnx
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _dispatch(argv: Sequence[str] | None) -> tuple[int, bool]:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
-        return 2
+        return 2, False
     result: int = args.func(args)
-    return result
+    return result, bool(getattr(args, "fast_exit", False))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command and return its exit status (what tests call, in-process)."""
+    return _dispatch(argv)[0]
+
+
+def entry() -> None:
+    """The ``mocapd`` program (console script and ``python -m mocapd``).
+
+    The long-running commands (``run``, ``demo``) end with :func:`~mocapd.service.process.exit_now` once they
+    have closed everything they opened; other commands exit normally.
+    """
+    code, fast = _dispatch(None)
+    if fast:
+        exit_now(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -28,6 +28,7 @@ from mocapd.io.calibration_files import (
     CalibrationSet,
     CameraCalibration,
     read_any,
+    scale_calibration,
     write_mocapd_toml,
     write_opencv_yaml,
     write_pose2sim_toml,
@@ -146,6 +147,8 @@ def _run_cameras(args: argparse.Namespace) -> int:
 def _run_convert(args: argparse.Namespace) -> int:
     try:
         calib = read_any(args.input, world_up=args.world_up)
+        if args.scale != 1.0:
+            calib = scale_calibration(calib, args.scale)
     except CalibrationError as exc:
         print(f"cannot read {args.input}: {exc}", file=sys.stderr)
         return 1
@@ -186,4 +189,6 @@ def register(subparsers: Any) -> None:
     conv.add_argument("output", type=Path)
     conv.add_argument("--to", choices=["mocapd", "pose2sim", "opencv-yaml"], default=None)
     conv.add_argument("--world-up", choices=["y", "z"], default=None, help="up axis of the input's world")
+    conv.add_argument("--scale", type=float, default=1.0,
+                      help="for images resized by this factor (0.5: half-size, or 2x2 binning); default 1")  # fmt: skip
     conv.set_defaults(func=_run_convert)

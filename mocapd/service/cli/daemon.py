@@ -1,4 +1,8 @@
-"""``mocapd run``, ``mocapd demo``, ``mocapd check-config`` and ``mocapd bench latency``."""
+"""``mocapd run``, ``mocapd demo``, ``mocapd check-config`` and ``mocapd bench latency``.
+
+All of them build the daemon through :mod:`mocapd.service.assembly`: ``run`` from the user's config, ``demo``
+and the benchmark from a generated one.
+"""
 
 from __future__ import annotations
 
@@ -7,13 +11,16 @@ import asyncio
 import json
 import logging
 import sys
-from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mocapd.errors import ConfigError, MocapdError
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
-from mocapd.service.outputs.udp import build_udp_sinks
+from mocapd.service.config.cameras import describe
+
+if TYPE_CHECKING:
+    from mocapd.service import assembly
+    from mocapd.service.rig import RigPlan
 
 
 def _subcommand_group(subparsers: Any, name: str) -> Any:
@@ -28,101 +35,110 @@ def _subcommand_group(subparsers: Any, name: str) -> Any:
 def _load(path: Path | None, http_port: int | None = None) -> Config:
     cfg = load_config(path)
     if http_port is not None:
-        cfg = replace(cfg, daemon=replace(cfg.daemon, http_port=http_port))
+        cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": http_port})})
     return cfg
+
+
+def check(cfg: Config) -> RigPlan:
+    """Everything ``mocapd run`` checks before it opens a device: the rig against its calibration and files, and
+    the IMU suits' calibration files."""
+    from mocapd.core.skeleton import Skeleton
+    from mocapd.service.rig import plan_rig
+    from mocapd.service.suits import load_suits
+
+    plan = plan_rig(cfg)
+    if not plan.synthetic:
+        load_suits(cfg.imu, Skeleton.from_height(1.75))
+    return plan
+
+
+def _rig_summary(cfg: Config) -> str:
+    cams = "; ".join(f"{c.name} ({describe(c)})" for c in cfg.cameras)
+    d = cfg.daemon
+    return (
+        f"{len(cfg.cameras)} camera(s): {cams}; {len(cfg.imu.ports)} serial IMU port(s); output "
+        f"{d.output_rate_hz:g} Hz, latency {1e3 * d.latency_s:g} ms; status http://{d.http_host}:{d.http_port}/status"
+    )
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
     path = args.path if args.path is not None else DEFAULT_CONFIG
     try:
         cfg = load_config(path)
-        cfg.daemon.scheduler_options([f"cam{i}" for i in range(cfg.daemon.synthetic.cameras)])
-    except ConfigError as exc:
-        print(f"{path}: error: {exc}", file=sys.stderr)
+        check(cfg)
+    except ConfigError as exc:  # a file-level message names the file already
+        for line in str(exc).removeprefix(f"{path}: ").splitlines():
+            print(f"{path}: error: {line}", file=sys.stderr)
         return 2
-    d = cfg.daemon
-    print(
-        f"{path}: ok (rig {d.rig}, output {d.output_rate_hz:g} Hz, latency {1e3 * d.latency_s:g} ms, "
-        f"{len(cfg.imu.ports)} serial IMU port(s), status http://{d.http_host}:{d.http_port}/status)"
-    )
+    print(f"{path}: ok ({_rig_summary(cfg)})")
     return 0
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    from mocapd.service.demo import synthetic as demo_synthetic
-
-    try:
-        cfg = _load(args.config, args.http_port)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    try:
-        if not args.synthetic:
-            from mocapd.service.demo import cameras as demo_cameras
-            from mocapd.service.demo.camera_rig import CameraDemoOptions
-
-            opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
-            return demo_cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
-                                    record=args.record)  # fmt: skip
-        return demo_synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
-    except MocapdError as exc:  # found when the sinks start: a stream's port in use, a session that exists
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-
-
 def cmd_run(args: argparse.Namespace) -> int:
-    from mocapd.io.prior import resolve_prior
-    from mocapd.service.daemon import Daemon, Rig
-    from mocapd.service.outputs.recorder import attach_recorder, synthetic_extra
-    from mocapd.service.outputs.websocket import build_websocket_sinks
-    from mocapd.service.suits import load_suits
-    from mocapd.sim.world import SyntheticKeypointSource, SyntheticWorld
-
+    path = args.config if args.config is not None else DEFAULT_CONFIG
     try:
         cfg = _load(args.config, args.http_port)
+        check(cfg)
     except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        for line in str(exc).splitlines():
+            print(f"{path}: error: {line}", file=sys.stderr)
         return 2
-    syn = cfg.daemon.synthetic
-    world = SyntheticWorld(syn.cameras, syn.people, 0, seed=syn.seed, motion=syn.motion)
-    import time
+    from mocapd.service import assembly
+    from mocapd.service.assembly import RunOptions
 
-    epoch = time.monotonic_ns()
-    sources = [
-        SyntheticKeypointSource(world, c, epoch_ns=epoch, rate_hz=syn.camera_rate_hz, delay_s=syn.detection_delay_s,
-                                noise_px=syn.noise_px, seed=syn.seed)
-        for c in range(len(world.cameras))
-    ]  # fmt: skip
+    print(f"mocapd run: {_rig_summary(cfg)}", flush=True)
+    print("mocapd run: loading models, opening every device ...", flush=True)
+
+    def ready(a: assembly.Assembly) -> None:
+        print(f"ready: status {a.daemon.http.url}/status  metrics {a.daemon.http.url}/metrics  (Ctrl-C stops)",
+              flush=True)  # fmt: skip
+        for sink in a.daemon.sinks:
+            viewer = getattr(sink, "viewer_url", None)
+            if viewer is not None:
+                print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
+
+    async def main() -> int:
+        stop = asyncio.Event()
+        with assembly.stop_on_signals(stop):
+            status_line = (lambda s: print(s, flush=True)) if args.verbose else None
+            options = RunOptions(record=args.record, status_line=status_line)
+            return await assembly.run(cfg, options, stop=stop, on_ready=ready)
+
     try:
-        suits = load_suits(cfg.imu, world.skeleton)  # the IMU suits calibrated with `mocapd calibrate imu`
-    except ConfigError as exc:
+        return asyncio.run(main())
+    except MocapdError as exc:  # a device that did not open, a stream that cannot listen, a session that exists
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(cfg.solver.prior), suits)
-    daemon = Daemon(cfg, rig, status_line=(lambda s: print(s, flush=True)) if args.verbose else None)
-    daemon.sinks.extend(build_udp_sinks(cfg, daemon))
-    daemon.sinks.extend(build_websocket_sinks(cfg, daemon))
-    attach_recorder(cfg, daemon, args.record, extra={"synthetic": synthetic_extra(syn, epoch, suits=0)})
-    print(f"mocapd run: status http://{cfg.daemon.http_host}:{cfg.daemon.http_port}/status", flush=True)
-    if cfg.websocket.enabled:
-        print(f"mocapd run: viewer http://{cfg.websocket.host}:{cfg.websocket.port}/ (stream ws://same)", flush=True)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
     try:
-        return asyncio.run(daemon.run())
-    except MocapdError as exc:  # found when the sinks start: a stream's port in use, a session that exists
-        print(f"error: {exc}", file=sys.stderr)
+        cfg = _load(args.config, args.http_port)
+        if args.synthetic:
+            from mocapd.service.demo import synthetic
+
+            return synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
+        from mocapd.service.demo import cameras
+
+        opts = cameras.CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
+        return cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
+                           record=args.record)  # fmt: skip
+    except MocapdError as exc:  # bad config, a port in use, a session that exists, a device that did not open
+        for line in str(exc).splitlines():
+            print(f"error: {line}", file=sys.stderr)
         return 2
 
 
 def cmd_bench_latency(args: argparse.Namespace) -> int:
-    from mocapd.service.bench import latency as bench_latency
-
     if args.rig == "cameras":
-        from mocapd.service.bench import cameras as bench_cameras
-        from mocapd.service.demo.camera_rig import CameraDemoOptions
+        from mocapd.service.bench import cameras
+        from mocapd.service.demo.cameras import CameraDemoOptions
 
         opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
-        return bench_cameras.run(args.seconds, opts)
-    print(json.dumps(bench_latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
+        return cameras.run(args.seconds, opts)
+    from mocapd.service.bench import latency
+
+    print(json.dumps(latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
     return 0
 
 
@@ -132,12 +148,12 @@ _RECORD_HELP = "record this run as a session into this new directory (docs/sessi
 def register(subparsers: Any) -> None:
     """Add run, demo, check-config and ``bench latency`` to the CLI."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    run = subparsers.add_parser("run", help="run the daemon (config.toml; rig 'synthetic' until the detector lands)")
+    run = subparsers.add_parser("run", help="run the daemon on the rig of a config file ([[cameras]], [imu])")
     run.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     run.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
     run.add_argument("--record", type=Path, default=None, help=_RECORD_HELP)
     run.add_argument("--verbose", action="store_true", help="print a status line per second")
-    run.set_defaults(func=cmd_run)
+    run.set_defaults(func=cmd_run, fast_exit=True)
 
     demo = subparsers.add_parser("demo", help="the full daemon on an embedded rig, no hardware needed")
     demo.add_argument(
@@ -150,11 +166,11 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--scale", type=float, default=0.5, help="camera rig: image size / 1088x1920 (default 0.5)")
     demo.add_argument("--latency", type=float, default=1.0, help="camera rig: fixed latency, s (default 1.0)")
     demo.add_argument("--packed", action="store_true", help="camera rig: all cameras' ROIs packed per detector pass")
-    demo.set_defaults(func=cmd_demo)
+    demo.set_defaults(func=cmd_demo, fast_exit=True)
 
-    check = subparsers.add_parser("check-config", help="validate a config file and say what is wrong")
-    check.add_argument("path", nargs="?", type=Path, default=None, help="config file (default: the shipped one)")
-    check.set_defaults(func=cmd_check_config)
+    check_ = subparsers.add_parser("check-config", help="validate a config file and its rig, and say what is wrong")
+    check_.add_argument("path", nargs="?", type=Path, default=None, help="config file (default: the shipped one)")
+    check_.set_defaults(func=cmd_check_config)
 
     bench = _subcommand_group(subparsers, "bench")
     lat = bench.add_parser("latency", help="daemon end-to-end latency, output rate, CPU and memory (synthetic rig)")

@@ -22,7 +22,7 @@ def register(sub: Any) -> None:
     p.add_argument("--sweep-frames", type=int, default=None, help="cap per sequence for sweep/ablation")
     p.add_argument("--clean", action="store_true", help="clean detections and IMUs (debugging)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (it is drawn only on a terminal)")
     p.set_defaults(func=_run)
 
 

@@ -1,7 +1,7 @@
 """``mocapd calibrate imu``: record a T-pose from the configured IMUs and write a per-person calibration file.
 
 The subject stands still in the T-pose (arms horizontal, facing one direction) for the whole recording. The
-command connects to every configured serial IMU (and the bridge input if enabled), waits until every
+command connects to every configured serial IMU (and the bridge input and SlimeVR server if enabled), waits until every
 assigned sensor streams, records ``--seconds``, then computes R_ib per sensor and R_ig
 (:func:`mocapd.core.imu_calibration.calibrate_tpose`) and writes
 ``<calibration_dir>/<person>.imu.json``.
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -25,9 +24,11 @@ import numpy as np
 from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
 from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
 from mocapd.io.imu_bridge import ImuBridgeListener
-from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
+from mocapd.io.slimevr import SlimeVrListener
+from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
 from mocapd.service.config import load_config
 from mocapd.service.config.imu import ImuConfig
+from mocapd.service.config.schema import validate
 
 
 def _subcommand_group(subparsers: Any, name: str, help_text: str, dest: str) -> Any:
@@ -81,6 +82,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")
     p.add_argument("--connect-timeout", type=float, default=15.0, help="wait for all sensors (s)")
     p.add_argument("--out", type=Path, help="output file (default <calibration_dir>/<person>.imu.json)")
+    p.add_argument(
+        "--mount-yaw",
+        action="append",
+        default=[],
+        metavar="SENSOR=DEG",
+        help="SlimeVR trackers (no shared heading): which way a tracker faces, degrees to the subject's left "
+        "(default 0: on the front or back of its segment; 90: on the left side, -90: on the right)",
+    )
     p.set_defaults(func=run_calibrate)
 
 
@@ -96,12 +105,21 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
         else:
             seen.add(s.sensor)
 
-    devices = [XsensSerialDevice(p, on_sample) for p in config.ports]
+    devices = [XsensSerialDevice(p, on_sample) for p in config.port_configs()]
     tasks = [asyncio.create_task(d.run()) for d in devices]
     bridge = ImuBridgeListener(on_sample, host=config.bridge.host, port=config.bridge.port)
     if config.bridge.enabled:
         await bridge.start()
-    wanted = set(config.assignment)
+    sv = config.slimevr
+    slimevr = SlimeVrListener(on_sample, host=sv.host, port=sv.port) if sv.enabled else None
+    if slimevr is not None:
+        try:
+            await slimevr.start()
+        except MocapdError:
+            bridge.close()
+            raise
+        tasks.append(asyncio.create_task(slimevr.run()))
+    wanted = set(config.sensors)
     try:
         deadline = time.monotonic() + connect_timeout
         while not wanted <= seen:
@@ -118,8 +136,12 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
     finally:
         for d in devices:
             d.stop()
+        if slimevr is not None:
+            slimevr.stop()
         await asyncio.gather(*tasks)
         bridge.close()
+        if slimevr is not None:
+            slimevr.close()
     return samples
 
 
@@ -134,11 +156,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise ConfigError("--person is required (the name of the calibration file)")
         window_s = float(args.window)
         config = load_config(args.config).imu  # validates the whole file, like the daemon
-        if args.port:
-            base = config.ports[0] if config.ports else XsensPortConfig(path="")
-            ports = tuple(XsensPortConfig(**{**_fields(base), "path": p}) for p in args.port)
-            config = dataclasses.replace(config, ports=ports)
-        if not config.assignment:
+        if args.port:  # --port replaces imu.ports, validated like the file's
+            config = validate(ImuConfig, {**config.model_dump(), "ports": list(args.port)}, "imu")
+        if not config.sensors:
             raise ConfigError("imu.assignment is empty: say which sensor sits on which bone")
         if args.facing_from is not None:
             parse_facing(args.facing_from)  # reject a malformed option before recording
@@ -149,7 +169,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 np.array([s.quat for s in samples[sid] if s.quat is not None]),
                 np.array([s.acc for s in samples[sid] if s.acc is not None]),
             )
-            for sid in config.assignment
+            for sid in config.sensors
             if sid in samples
         }
         heading = args.facing_heading
@@ -158,10 +178,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
         calib = calibrate_tpose(
             args.person,
             recordings,
-            config.assignment,
+            config.sensors,
             facing_heading_deg=heading,
             world_heading=args.world_heading,
             window=max(2, int(window_s * rate)),
+            own_heading=_own_heading(config, args.mount_yaw),
         )
     except ValueError:
         print(f"mocapd calibrate imu: --window {args.window!r}: give seconds (START:END only with --from)")
@@ -173,12 +194,29 @@ def run_calibrate(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
     for sid, bone in calib.bones.items():
-        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg")
+        own = f"  heading reset {calib.device_heading_deg[sid]:+.1f} deg" if sid in calib.device_heading_deg else ""
+        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg{own}")
     print(f"wrote {out}")
     return 0
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+
+
+def _own_heading(config: ImuConfig, specs: list[str]) -> dict[str, float]:
+    """Mounting yaw of every SlimeVR sensor of the assignment (0 unless ``--mount-yaw SENSOR=DEG`` says)."""
+    out = {sid: 0.0 for sid in config.sensors if "/" in sid}  # "<MAC>/<index>": a SlimeVR sensor
+    for spec in specs:
+        sensor, _, value = spec.rpartition("=")
+        sid = sensor.upper()
+        try:
+            yaw = float(value)
+        except ValueError:
+            raise ConfigError(f"--mount-yaw {spec!r}: expected SENSOR=DEGREES") from None
+        if sid not in out:
+            raise ConfigError(f"--mount-yaw {spec!r}: {sensor!r} is not an assigned SlimeVR sensor")
+        out[sid] = yaw
+    return out
 
 
 def parse_facing(spec: str) -> tuple[str, np.ndarray]:
@@ -198,7 +236,3 @@ def _heading_from(spec: str, recordings: dict[str, tuple[np.ndarray, np.ndarray]
     if quats is None or len(quats[0]) == 0:
         raise ConfigError(f"--facing-from {spec!r}: no samples from sensor {sensor}")
     return facing_heading_from_sensor(quat_average(quats[0]), axis)
-
-
-def _fields(port: XsensPortConfig) -> dict[str, Any]:
-    return {name: getattr(port, name) for name in port.__dataclass_fields__}

@@ -23,10 +23,12 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def _fetch(args: argparse.Namespace) -> int:
     from mocapd.io.model_build import build_default_model
+    from mocapd.io.progress import Progress
 
     sizes = args.size or [(640, 640)]
     try:
-        build_default_model(sizes, force=args.force)
+        with Progress(1, "model fetch") as bar:
+            build_default_model(sizes, force=args.force, steps=bar.update)
     except MocapdError as exc:
         print(f"mocapd model fetch: {exc}")
         return 1

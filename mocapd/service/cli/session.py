@@ -13,18 +13,23 @@ from typing import Any
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError, InputError
 from mocapd.io.session import RESOLVED, Session, open_session
+from mocapd.io.session_export import SubjectTrack
+from mocapd.pipeline.camera_views import CameraViews
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import PoseSink
 
 
-def stream_sinks(config: Config, skeleton: Skeleton) -> list[PoseSink]:
+def stream_sinks(
+    config: Config, skeleton: Skeleton, camera_views: CameraViews | None = None, output: str = "delayed"
+) -> list[PoseSink]:
     """The streaming sinks a replay publishes through: the streams configured in ``config``, for poses on the
-    session's ``skeleton``."""
+    session's ``skeleton`` (the WebSocket stream with the session's camera panels when ``camera_views``),
+    announcing the recorded ``output`` mode."""
     from mocapd.service.outputs.udp import udp_sinks
     from mocapd.service.outputs.websocket import websocket_sinks
 
-    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton)]
+    return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton, camera_views=camera_views, output=output)]
 
 
 def _open(path: Path) -> Session:
@@ -42,13 +47,16 @@ def _pose_stream(session: Session, resolved: bool) -> str:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from mocapd.service.session.replay import replay
+    from mocapd.service.session.replay import replay, replay_camera_views
     from mocapd.service.session.solve import session_rig
 
     cfg = load_config(args.config)
     session = _open(args.session)
     frames = session.poses(_pose_stream(session, args.resolved))
-    sinks = stream_sinks(cfg, session_rig(session).skeleton)
+    rig = session_rig(session)
+    views, events = replay_camera_views(session, rig, frames)
+    output = frames[0].output if frames else "delayed"
+    sinks: list[PoseSink] = [views, *stream_sinks(cfg, rig.skeleton, views, output)]
     last = [0.0]
 
     def progress(frame: PoseFrame) -> None:
@@ -58,19 +66,22 @@ def cmd_replay(args: argparse.Namespace) -> int:
             print(f"t={t:6.1f} s  frame {frame.frame}  people [{', '.join(p.identity for p in frame.people)}]",
                   flush=True)  # fmt: skip
 
-    print(f"mocapd replay: {len(frames)} frames through {len(sinks)} sink(s) at {args.speed:g}x", flush=True)
-    stats = asyncio.run(replay(frames, sinks, speed=args.speed, on_frame=progress))
+    print(f"mocapd replay: {len(frames)} frames through {len(sinks) - 1} sink(s) at {args.speed:g}x", flush=True)
+    stats = asyncio.run(replay(frames, sinks, speed=args.speed, on_frame=progress, events=events))
     print(json.dumps(asdict(stats)))
     return 0
 
 
 def cmd_resolve(args: argparse.Namespace) -> int:
-    from mocapd.service.session.solve import ResolveOptions, resolve, write_resolved
+    from mocapd.io.progress import Progress
+    from mocapd.service.session.solve import ResolveOptions, resolve, session_rig, solve_times, write_resolved
     from mocapd.service.session.truth import truth_report
 
     session = _open(args.session)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
-    frames, summary = resolve(session, opts)
+    n_frames = len(solve_times(session, session_rig(session).options.rate_hz))
+    with Progress(n_frames, "resolve") as bar:
+        frames, summary = resolve(session, opts, bar)
     path = write_resolved(session, frames, args.output)
     summary["written"] = str(path)
     if "synthetic" in session.manifest.get("extra", {}):
@@ -80,24 +91,53 @@ def cmd_resolve(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from mocapd.io.session_export import resample, subject_track, write_bvh, write_csv
+    from mocapd import __version__
+    from mocapd.io.progress import Progress
+    from mocapd.io.session_export import resample, subject_track, subjects, write_bvh, write_csv, write_gltf
     from mocapd.service.session.solve import session_rig
 
-    if args.bvh is None and args.csv is None:
-        print("error: nothing to export: give --bvh FILE and/or --csv FILE", file=sys.stderr)
+    if args.bvh is None and args.csv is None and args.gltf is None:
+        print("error: nothing to export: give --bvh FILE, --csv FILE and/or --gltf FILE", file=sys.stderr)
         return 2
     session = _open(args.session)
-    track = resample(subject_track(session.poses(_pose_stream(session, args.resolved)), args.subject), args.rate)
-    # The subject's body-sized skeleton when one was recorded (the first seconds of a track, before sizing,
-    # were solved on the rig's; their joint angles export on the sized one), else the rig's.
-    skeleton = track.skeleton if track.skeleton is not None else session_rig(session).skeleton
-    out: dict[str, Any] = {"subject": track.subject, "frames": int(track.thetas.shape[0]), "rate_hz": args.rate}
-    if args.bvh is not None:
-        write_bvh(args.bvh, skeleton, track, args.rate)
-        out["bvh"] = str(args.bvh)
-    if args.csv is not None:
-        write_csv(args.csv, skeleton, track)
-        out["csv"] = str(args.csv)
+    poses = session.poses(_pose_stream(session, args.resolved))
+    rig: list[Skeleton] = []
+
+    def skeleton_of(track: SubjectTrack) -> Skeleton:
+        # The subject's body-sized skeleton when one was recorded (the first seconds of a track, before sizing,
+        # were solved on the rig's; their joint angles export on the sized one), else the rig's.
+        if track.skeleton is not None:
+            return track.skeleton
+        if not rig:
+            rig.append(session_rig(session).skeleton)
+        return rig[0]
+
+    # glTF: every subject unless one is named; BVH and CSV: one subject (default: the one seen most).
+    everyone = [args.subject] if args.subject is not None else sorted(subjects(poses))
+    steps = 1 + sum(f is not None for f in (args.bvh, args.csv)) + (len(everyone) + 1 if args.gltf else 0)
+    with Progress(steps, "export") as bar:
+        track = resample(subject_track(poses, args.subject), args.rate)
+        bar(1)
+        skeleton = skeleton_of(track)
+        out: dict[str, Any] = {"subject": track.subject, "frames": int(track.thetas.shape[0]), "rate_hz": args.rate}
+        if args.bvh is not None:
+            write_bvh(args.bvh, skeleton, track, args.rate)
+            out["bvh"] = str(args.bvh)
+            bar(1)
+        if args.csv is not None:
+            write_csv(args.csv, skeleton, track)
+            out["csv"] = str(args.csv)
+            bar(1)
+        if args.gltf is not None:
+            tracks = []
+            for who in everyone:
+                t = resample(subject_track(poses, who), args.rate)
+                tracks.append((t, skeleton_of(t)))
+                bar(1)
+            write_gltf(args.gltf, tracks, f"mocapd {__version__}")
+            out["gltf"] = str(args.gltf)
+            out["gltf_subjects"] = {t.subject: int(t.thetas.shape[0]) for t, _ in tracks}
+            bar(1)
     print(json.dumps(out))
     return 0
 
@@ -152,11 +192,14 @@ def register(subparsers: Any) -> None:
     rs.add_argument("--no-smooth", action="store_true", help="skip the forward-backward (RTS) smoother")
     rs.set_defaults(func=_guard(cmd_resolve))
 
-    ex = subparsers.add_parser("export", help="export one subject of a session as BVH and/or CSV")
+    ex = subparsers.add_parser("export", help="export a session's subjects as glTF, one of them as BVH and/or CSV")
     ex.add_argument("session", type=Path, help="session directory")
     ex.add_argument("--bvh", type=Path, default=None, help="BVH file to write (21-bone skeleton, cm)")
     ex.add_argument("--csv", type=Path, default=None, help="CSV file to write (columns in docs/sessions.md)")
-    ex.add_argument("--subject", default=None, help="identity, e.g. suit:suit0 or track:1 (default: most seen)")
+    ex.add_argument("--gltf", type=Path, default=None,
+                    help="glTF 2.0 binary (.glb) to write: skinned armature + one animation per subject")  # fmt: skip
+    ex.add_argument("--subject", default=None,
+                    help="identity, e.g. suit:suit0 or track:1 (BVH/CSV default: most seen; glTF: all)")  # fmt: skip
     ex.add_argument("--rate", type=float, default=60.0, help="output frame rate, Hz (default 60)")
     ex.add_argument("--resolved", action="store_true", help="export the resolved poses instead of the live ones")
     ex.set_defaults(func=_guard(cmd_export))

@@ -1,175 +1,315 @@
-"""``config.toml``: parsed once at start-up into frozen, typed objects; unknown keys and bad values rejected.
+"""``config.toml``: read once at start-up into one frozen, typed :class:`Config`; unknown keys and bad values rejected.
 
-Every error names the key (dotted path), the value and what is allowed. Sections are validated by the module
-that owns them; this module owns ``[solver]``. Sections another part of mocapd documents in the shipped file
-are listed in ``KNOWN_SECTIONS`` until their loaders exist, so a typo in a section name is still an error.
+Every section is a :class:`~mocapd.service.config.schema.Section` model whose fields are the keys of its table,
+with each key's type, range and the rules across keys declared beside it. Every error names the dotted key, the
+value and what is allowed (:mod:`mocapd.service.config.schema`). The models convert to the plain option
+dataclasses of the layers below (``.options()``, ``SolverConfig.cost``): core, pipeline and io know nothing of
+pydantic or of the file. This module owns ``[solver]`` and the file itself (:func:`load_config`).
+
+The rig's tables (``[[cameras]]``, ``[calibration]``, ``[synthetic]``) are in :mod:`.cameras`; relative paths of
+the rig are resolved from the config file's folder when it is read (:func:`resolve_paths`).
 """
 
 from __future__ import annotations
 
+import stat
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import fields
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Self
+
+from pydantic import Field, model_validator
 
 from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss
 from mocapd.core.solver import TERM_NAMES, LMOptions
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
-from mocapd.pipeline.detector_config import DetectorConfig, detector_config_from_mapping
-from mocapd.service.config.daemon import DaemonConfig, parse_daemon_config
-from mocapd.service.config.imu import ImuConfig, parse_imu_config
-from mocapd.service.config.record import RecordConfig, parse_record_config
-from mocapd.service.config.tracking import TrackingConfig, parse_tracking_config
-from mocapd.service.config.udp import UdpConfig, parse_udp_config
-from mocapd.service.config.websocket import WebSocketConfig, parse_websocket_config
+from mocapd.service.config.cameras import (
+    CalibrationConfig,
+    CameraConfig,
+    ImagesCamera,
+    SyntheticConfig,
+    UvcCamera,
+    VideoCamera,
+    parse_cameras,
+)
+from mocapd.service.config.daemon import DaemonConfig
+from mocapd.service.config.detector import DetectorSection
+from mocapd.service.config.imu import ImuConfig
+from mocapd.service.config.record import RecordConfig
+from mocapd.service.config.schema import PathStr, RuleError, Section, Seq, validate
+from mocapd.service.config.tracking import TrackingConfig
+from mocapd.service.config.udp import UdpConfig
+from mocapd.service.config.websocket import WebSocketConfig, is_loopback
 
 DEFAULT_CONFIG = Path(str(resources.files("mocapd").joinpath("config.toml")))
 """The shipped config.toml (inside the package, so an installed wheel has it): every key, documented."""
 
-_LOSSES = ("trivial", "cauchy", "huber")
-_TERM_KEYS = {"enabled", "weight", "loss", "loss_scale"}
-_BACKENDS = ("compiled", "numpy")
+MAX_FILE_BYTES = 1 << 20
+"""A config file is a few KB of text; anything above this is refused unread (a device, a log, a wrong file)."""
+
+LossName = Literal["trivial", "cauchy", "huber"]
+_LOSSES: dict[str, type[TrivialLoss | CauchyLoss | HuberLoss]] = {
+    "trivial": TrivialLoss,
+    "cauchy": CauchyLoss,
+    "huber": HuberLoss,
+}
 
 
-@dataclass(frozen=True)
-class SolverConfig:
+class TermConfig(Section):
+    """``[solver.terms.<name>]``: one cost term. Keys left out keep ``CostOptions``' default for that term."""
+
+    enabled: bool = True
+    weight: float = Field(1.0, ge=0.0, le=1e6)
+    """λ of the term."""
+    loss: LossName = "cauchy"
+    loss_scale: float = Field(1.0, gt=0.0, le=1e6)
+    """a of the robust loss, in the units of sqrt(λ w) · residual (unused with loss = "trivial")."""
+
+    def loss_function(self) -> Loss:
+        if self.loss == "trivial":
+            return TrivialLoss()
+        return CauchyLoss(self.loss_scale) if self.loss == "cauchy" else HuberLoss(self.loss_scale)
+
+
+TUNED_WEIGHTS = {"orientation": 100.0, "acceleration": 1e-4}
+"""λ_R and λ_A as tuned on the accuracy harness's development split (docs/accuracy.md "Tuning"): the config's
+defaults, where ``CostOptions`` keeps the seed's values (with which the solver is worse than triangulation)."""
+
+
+def _term_defaults(name: str) -> dict[str, Any]:
+    """The keys of ``[solver.terms.<name>]`` when the file leaves them out: ``CostOptions``' defaults but the
+    tuned weights (the shipped config.toml's values)."""
+    d = CostOptions()
+    loss = getattr(d, f"loss_{name}")
+    kind = next(k for k, cls in _LOSSES.items() if isinstance(loss, cls))
+    return {
+        "enabled": getattr(d, f"use_{name}"),
+        "weight": TUNED_WEIGHTS.get(name, getattr(d, f"lambda_{name}")),
+        "loss": kind,
+        "loss_scale": getattr(loss, "scale", 1.0),
+    }
+
+
+def _term(name: str) -> Any:
+    return Field(default_factory=lambda: TermConfig(**_term_defaults(name)))
+
+
+class TermsConfig(Section):
+    """``[solver.terms]``: one table per cost term (seed 003 §3.2)."""
+
+    position: TermConfig = _term("position")
+    orientation: TermConfig = _term("orientation")
+    acceleration: TermConfig = _term("acceleration")
+    prior_projection: TermConfig = _term("prior_projection")
+    prior_deviation: TermConfig = _term("prior_deviation")
+    floor: TermConfig = _term("floor")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_term_defaults(cls, data: Any) -> Any:
+        """A term's table that leaves keys out gets that term's defaults, not the generic TermConfig ones."""
+        if not isinstance(data, dict):
+            return data
+        return {
+            k: {**_term_defaults(k), **v} if k in TERM_NAMES and isinstance(v, dict) else v for k, v in data.items()
+        }
+
+
+class LmConfig(Section):
+    """``[solver.lm]``: Levenberg–Marquardt settings (:class:`~mocapd.core.lm.LMOptions`)."""
+
+    ordered = (
+        ("min_trust_region_radius", "<=", "initial_trust_region_radius"),
+        ("initial_trust_region_radius", "<=", "max_trust_region_radius"),
+        ("min_lm_diagonal", "<=", "max_lm_diagonal"),
+    )
+
+    max_iterations: int = Field(LMOptions.max_iterations, ge=1, le=1000)
+    function_tolerance: float = Field(LMOptions.function_tolerance, ge=0.0, le=1.0)
+    gradient_tolerance: float = Field(LMOptions.gradient_tolerance, ge=0.0, le=1e6)
+    parameter_tolerance: float = Field(LMOptions.parameter_tolerance, ge=0.0, le=1.0)
+    initial_trust_region_radius: float = Field(LMOptions.initial_trust_region_radius, gt=0.0, le=1e32)
+    max_trust_region_radius: float = Field(LMOptions.max_trust_region_radius, gt=0.0, le=1e32)
+    min_trust_region_radius: float = Field(LMOptions.min_trust_region_radius, ge=0.0, le=1e32)
+    min_relative_decrease: float = Field(LMOptions.min_relative_decrease, ge=0.0, lt=1.0)
+    min_lm_diagonal: float = Field(LMOptions.min_lm_diagonal, ge=0.0, le=1e64)
+    max_lm_diagonal: float = Field(LMOptions.max_lm_diagonal, gt=0.0, le=1e64)
+
+    def options(self) -> LMOptions:
+        return LMOptions(**{f.name: getattr(self, f.name) for f in fields(LMOptions)})
+
+
+class SolverConfig(Section):
     """The ``[solver]`` section."""
 
-    cost: CostOptions = field(default_factory=CostOptions)
-    lm: LMOptions = field(default_factory=LMOptions)
-    backend: str = "compiled"
-    prior: str = "default"
+    backend: Literal["compiled", "numpy"] = "compiled"
+    floor_radius: float = Field(CostOptions.floor_radius, ge=0.0, le=1.0)
+    """Collision radius of the floor term's targets (m)."""
+    floor_height: float = Field(CostOptions.floor_height, ge=-100.0, le=100.0)
+    """World y of the floor (m)."""
+    acceleration_min_views: int = Field(CostOptions.acceleration_min_views, ge=0, le=64)
+    prior: PathStr = Field("default", min_length=1)
     """Pose prior: "default" (the shipped CMU prior, mocapd/data/prior_cmu.npz), "none" or a .npz path."""
+    terms: TermsConfig = Field(default_factory=TermsConfig)
+    lm: LmConfig = Field(default_factory=LmConfig)
+
+    @property
+    def cost(self) -> CostOptions:
+        """The cost terms' weights, losses and switches as the solver takes them."""
+        per_term: dict[str, Any] = {}
+        for name in TERM_NAMES:
+            term: TermConfig = getattr(self.terms, name)
+            per_term |= {
+                f"use_{name}": term.enabled,
+                f"lambda_{name}": term.weight,
+                f"loss_{name}": term.loss_function(),
+            }
+        return CostOptions(
+            **per_term,
+            floor_radius=self.floor_radius,
+            floor_height=self.floor_height,
+            acceleration_min_views=self.acceleration_min_views,
+        )
 
 
-@dataclass(frozen=True)
-class Config:
-    solver: SolverConfig = field(default_factory=SolverConfig)
-    imu: ImuConfig = field(default_factory=ImuConfig)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
-    detector: DetectorConfig = field(default_factory=DetectorConfig)
-    daemon: DaemonConfig = field(default_factory=DaemonConfig)
-    udp: UdpConfig = field(default_factory=UdpConfig)
-    record: RecordConfig = field(default_factory=RecordConfig)
-    websocket: WebSocketConfig = field(default_factory=WebSocketConfig)
-    raw: dict[str, Any] = field(default_factory=dict, repr=False)
-    """The whole parsed file, for sections whose loaders live elsewhere."""
+MAX_CAMERAS = 64
+"""More cameras than one daemon can detect and solve; a rig this large needs camera hosts (docs/scaling.md)."""
+
+_PORT_CLASH = "{0} and {1} are one loopback port: the status server and the WebSocket server cannot share it"
 
 
-KNOWN_SECTIONS = {"solver", "imu", "tracking", "detector", "daemon", "udp", "record", "websocket"}
+class Config(Section):
+    """The whole of ``config.toml``: every section, each with its defaults when the file leaves it out."""
+
+    solver: SolverConfig = Field(default_factory=SolverConfig)
+    imu: ImuConfig = Field(default_factory=ImuConfig)
+    tracking: TrackingConfig = Field(default_factory=TrackingConfig)
+    detector: DetectorSection = Field(default_factory=DetectorSection)
+    daemon: DaemonConfig = Field(default_factory=DaemonConfig)
+    udp: UdpConfig = Field(default_factory=UdpConfig)
+    record: RecordConfig = Field(default_factory=RecordConfig)
+    websocket: WebSocketConfig = Field(default_factory=WebSocketConfig)
+    cameras: Seq[CameraConfig] = Field((), max_length=MAX_CAMERAS)
+    """``[[cameras]]``: validated entry by entry against each one's ``source`` kind (:func:`parse_config`)."""
+    calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+    synthetic: SyntheticConfig = Field(default_factory=SyntheticConfig)
+
+    @model_validator(mode="after")
+    def _ports_apart(self) -> Self:
+        """Two servers of one daemon on one port: the second would fail at start-up, after everything opened."""
+        ws, d = self.websocket, self.daemon
+        if ws.enabled and d.http_port != 0 and ws.port == d.http_port and (is_loopback(ws.host) or _any(ws.host)):
+            raise RuleError(_PORT_CLASH, "daemon.http_port", "websocket.port", values=(d.http_port, ws.port))
+        bridge = self.imu.bridge
+        if bridge.enabled:
+            for stream in ("mvn", "vmc"):
+                s = getattr(self.udp, stream)
+                if s.enabled and any(dst.port == bridge.port and is_loopback(dst.host) for dst in s.destinations):
+                    raise RuleError(
+                        "{0} is a destination of {1}: mocapd would receive its own poses as IMU data",
+                        "imu.bridge.port",
+                        f"udp.{stream}.destinations",
+                        values=(bridge.port, [str(x) for x in s.destinations]),
+                    )
+        return self
+
+
+def _any(host: str) -> bool:
+    return host in ("0.0.0.0", "::")
 
 
 def load_config(path: str | Path | None = None) -> Config:
-    """Read and validate a config file (default: the shipped ``config.toml``)."""
+    """Read and validate a config file (default: the shipped ``config.toml``).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file and what is wrong with it (missing, a directory or device, unreadable, too
+        large, binary, not UTF-8, not TOML), or one line per bad key.
+    """
     p = Path(path) if path is not None else DEFAULT_CONFIG
+    return resolve_paths(parse_config(read_toml(p)), p.resolve().parent)
+
+
+def read_toml(p: Path) -> dict[str, Any]:
+    """The TOML document of config file ``p``, or ConfigError saying in one line why it is not one."""
     try:
+        mode = p.stat().st_mode  # before opening: opening a FIFO would wait for a writer
+        if stat.S_ISDIR(mode):
+            raise ConfigError(f"{p}: is a directory, not a config file")
+        if not stat.S_ISREG(mode):
+            raise ConfigError(f"{p}: not a regular file (a device, pipe or socket), not a config file")
         with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError as exc:
-        raise ConfigError(f"config file not found: {p}") from exc
+            data = fh.read(MAX_FILE_BYTES + 1)
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {p}") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise ConfigError(f"{p}: larger than {MAX_FILE_BYTES >> 10} KiB; a config file is a few KB of TOML text")
+    if b"\x00" in data:
+        line, col = _position(data, data.index(b"\x00"))
+        raise ConfigError(f"{p}: a binary file, not TOML text (a NUL byte at line {line}, column {col})")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line, col = _position(data, exc.start)
+        start = data.rfind(b"\n", 0, exc.start) + 1
+        before = data[start : exc.start].decode("utf-8", errors="replace")
+        raise ConfigError(
+            f"{p}: line {line}, column {col}: byte 0x{data[exc.start]:02x} is not UTF-8 "
+            f"(TOML files are UTF-8 text), after {before[-60:]!r}"
+        ) from None
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
-    return parse_config(data)
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{p}: not valid TOML: arrays or tables nested too deeply") from None
 
 
-def parse_config(data: dict[str, Any]) -> Config:
-    unknown = set(data) - KNOWN_SECTIONS
-    if unknown:
-        raise ConfigError(f"unknown section(s) {sorted(unknown)}; allowed: {sorted(KNOWN_SECTIONS)}")
-    return Config(
-        solver=_parse_solver(_table(data, "solver")),
-        imu=parse_imu_config(_table(data, "imu")),
-        tracking=parse_tracking_config(_table(data, "tracking")),
-        detector=detector_config_from_mapping(_table(data, "detector")),
-        daemon=parse_daemon_config(_table(data, "daemon")),
-        udp=parse_udp_config(_table(data, "udp")),
-        record=parse_record_config(_table(data, "record")),
-        websocket=parse_websocket_config(_table(data, "websocket")),
-        raw=data,
-    )
+def _position(data: bytes, offset: int) -> tuple[int, int]:
+    """1-based line and column of byte ``offset``."""
+    line = data.count(b"\n", 0, offset) + 1
+    return line, offset - (data.rfind(b"\n", 0, offset) + 1) + 1
 
 
-def _table(data: dict[str, Any], key: str, prefix: str = "") -> dict[str, Any]:
-    value = data.get(key, {})
-    if not isinstance(value, dict):
-        raise ConfigError(f"{prefix}{key} must be a table, got {value!r}")
-    return value
+def parse_config(data: object) -> Config:
+    """A parsed config (a TOML document, or a session manifest's copy of one) as :class:`Config`.
+
+    ``[[cameras]]`` entries are validated one by one against the model of their ``source`` kind (a message
+    names ``cameras[i].key``, and an unknown kind lists the kinds), then the rest of the document.
+    """
+    if not isinstance(data, dict):
+        raise ConfigError(f"a config is a TOML table of sections, got {type(data).__name__}")
+    cameras = parse_cameras(data.get("cameras", []))
+    config = validate(Config, {k: v for k, v in data.items() if k != "cameras"})
+    return config.model_copy(update={"cameras": cameras})
 
 
-def _parse_solver(t: dict[str, Any]) -> SolverConfig:
-    _reject_unknown(
-        t, {"backend", "floor_radius", "floor_height", "acceleration_min_views", "terms", "lm", "prior"}, "solver"
-    )
-    prior = t.get("prior", "default")
-    if not isinstance(prior, str) or not prior:
-        raise ConfigError(f'solver.prior = {prior!r}; allowed: "default", "none" or a path to a .npz prior')
-    backend = t.get("backend", "compiled")
-    if backend not in _BACKENDS:
-        raise ConfigError(f"solver.backend = {backend!r}; allowed: {list(_BACKENDS)}")
-    cost = CostOptions()
-    updates: dict[str, Any] = {}
-    for key in ("floor_radius", "floor_height"):
-        if key in t:
-            updates[key] = _number(t[key], f"solver.{key}", minimum=0.0 if key == "floor_radius" else None)
-    if "acceleration_min_views" in t:
-        v = t["acceleration_min_views"]
-        if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-            raise ConfigError(f"solver.acceleration_min_views = {v!r}; allowed: an integer >= 0")
-        updates["acceleration_min_views"] = v
-    terms = _table(t, "terms", "solver.")
-    _reject_unknown(terms, set(TERM_NAMES), "solver.terms")
-    for name in TERM_NAMES:
-        updates.update(_parse_term(name, _table(terms, name, "solver.terms.")))
-    cost = replace(cost, **updates)
-    return SolverConfig(cost=cost, lm=_parse_lm(_table(t, "lm", "solver.")), backend=str(backend), prior=prior)
+def resolve_paths(config: Config, base: Path) -> Config:
+    """``config`` with the rig's relative file paths (calibration file, replayed videos and image folders, a
+    webcam given as a file) made absolute from ``base``, the config file's folder: a config and the files it
+    names travel together, whatever the working directory."""
 
+    def absolute(path: str) -> str:
+        return path if not path or Path(path).is_absolute() else str(base / path)
 
-def _parse_term(name: str, t: dict[str, Any]) -> dict[str, Any]:
-    where = f"solver.terms.{name}"
-    _reject_unknown(t, _TERM_KEYS, where)
-    out: dict[str, Any] = {}
-    if "enabled" in t:
-        if not isinstance(t["enabled"], bool):
-            raise ConfigError(f"{where}.enabled = {t['enabled']!r}; allowed: true or false")
-        out[f"use_{name}"] = t["enabled"]
-    if "weight" in t:
-        out[f"lambda_{name}"] = _number(t["weight"], f"{where}.weight", minimum=0.0)
-    if "loss" in t or "loss_scale" in t:
-        kind = t.get("loss", "cauchy")
-        if kind not in _LOSSES:
-            raise ConfigError(f"{where}.loss = {kind!r}; allowed: {list(_LOSSES)}")
-        scale = _number(t.get("loss_scale", 1.0), f"{where}.loss_scale", minimum=1e-12)
-        loss: Loss = TrivialLoss() if kind == "trivial" else CauchyLoss(scale) if kind == "cauchy" else HuberLoss(scale)
-        out[f"loss_{name}"] = loss
-    return out
-
-
-def _parse_lm(t: dict[str, Any]) -> LMOptions:
-    allowed = {f.name for f in fields(LMOptions)}
-    _reject_unknown(t, allowed, "solver.lm")
-    updates: dict[str, Any] = {}
-    for key, value in t.items():
-        if key == "max_iterations":
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ConfigError(f"solver.lm.max_iterations = {value!r}; allowed: an integer >= 1")
-            updates[key] = value
+    cameras: list[CameraConfig] = []
+    for cam in config.cameras:
+        if isinstance(cam, VideoCamera | ImagesCamera):
+            cameras.append(cam.model_copy(update={"path": absolute(cam.path)}))
+        elif isinstance(cam, UvcCamera) and isinstance(cam.device, str) and not cam.device.startswith("/dev/"):
+            cameras.append(cam.model_copy(update={"device": absolute(cam.device)}))
         else:
-            updates[key] = _number(value, f"solver.lm.{key}", minimum=0.0)
-    return replace(LMOptions(), **updates)
+            cameras.append(cam)
+    calibration = config.calibration.model_copy(update={"file": absolute(config.calibration.file)})
+    return config.model_copy(update={"cameras": tuple(cameras), "calibration": calibration})
 
 
-def _number(value: object, key: str, minimum: float | None = None) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ConfigError(f"{key} = {value!r}; allowed: a number")
-    v = float(value)
-    if minimum is not None and not v >= minimum:
-        raise ConfigError(f"{key} = {value!r}; allowed: a number >= {minimum}")
-    return v
-
-
-def _reject_unknown(t: dict[str, Any], allowed: set[str], where: str) -> None:
-    unknown = set(t) - allowed
-    if unknown:
-        raise ConfigError(f"unknown key(s) {sorted(unknown)} in [{where}]; allowed: {sorted(allowed)}")
+def config_document(config: Config) -> dict[str, Any]:
+    """``config`` as a JSON-able document that :func:`parse_config` reads back to an equal Config (sessions
+    record the configuration they ran with)."""
+    return config.model_dump(mode="json", exclude_none=True)

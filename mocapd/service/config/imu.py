@@ -1,83 +1,198 @@
-"""The ``[imu]`` section of config.toml, parsed once into frozen dataclasses (unknown keys are errors)."""
+"""The ``[imu]`` section: serial Xsens devices, the sensor-to-bone assignment, the bridge input and the
+experimental Awinda station. The io layer's :class:`~mocapd.io.xsens_serial.XsensPortConfig` (one per port) and
+the protocol layer's :class:`~mocapd.protocols.awinda.AwindaConfig` are built from it."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
-from typing import Any
+import ipaddress
+from typing import Annotated, Literal, Self
+
+from pydantic import AfterValidator, Field, model_validator
 
 from mocapd.core.imu_calibration import parse_assignment
 from mocapd.errors import ConfigError
+from mocapd.io.slimevr import SlimeVrConfig
 from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.protocols.awinda import AwindaConfig
+from mocapd.protocols.slimevr import PORT
+from mocapd.protocols.xsens_session import MAX_RATE_HZ, MIN_RATE_HZ
+from mocapd.service.config.schema import PathStr, RuleError, Section, Seq, Text, unique
 
-_PORT_KEYS = {f.name for f in fields(XsensPortConfig)} - {"path", "precision"}
+MAX_PORTS = 64
+"""Serial devices one daemon opens at most (4 suits of 13 sensors, cabled, and then some)."""
+MAX_BUFFER = 8192
+"""Most samples kept per sensor: 68 s at 120 Hz, ~1.3 MB per sensor (each slot is stored twice, 80 bytes)."""
 
 
-@dataclass(frozen=True, slots=True)
-class BridgeConfig:
+def _assignment(mapping: dict[str, str]) -> dict[str, str]:
+    """Ids upper-cased; a bad id, an unknown or repeated bone is an error."""
+    try:
+        return parse_assignment(mapping)
+    except ConfigError as exc:
+        raise ValueError(str(exc).removeprefix("imu assignment: ")) from None
+
+
+Port = Annotated[PathStr, Field(min_length=1)]
+
+
+class BridgeConfig(Section):
     """``[imu.bridge]``: the UDP msgpack input for vendor-SDK forwarders."""
 
     enabled: bool = False
-    host: str = "127.0.0.1"
-    port: int = 9773
+    host: Literal["127.0.0.1", "::1", "localhost"] = "127.0.0.1"
+    """The bridge listens on loopback only."""
+    port: int = Field(9773, ge=1, le=65535)
 
 
-@dataclass(frozen=True, slots=True)
-class ImuConfig:
-    """Everything mocapd needs to know about its IMUs."""
+class AwindaSection(Section):
+    """``[imu.awinda]``: the EXPERIMENTAL Awinda station path (:class:`~mocapd.protocols.awinda.AwindaConfig`)."""
 
-    ports: tuple[XsensPortConfig, ...] = ()
-    assignment: dict[str, str] = field(default_factory=dict)
-    imu_set: str | None = None
-    calibration_dir: str = "calibration"
-    buffer_capacity: int = 512
-    bridge: BridgeConfig = field(default_factory=BridgeConfig)
-    awinda: AwindaConfig = field(default_factory=AwindaConfig)
+    experimental: bool = False
+    path: PathStr = ""
+    radio_channel: int = Field(19, ge=11, le=25)
+    update_rate_hz: int = Field(60, ge=1, le=120)
+    update_rate_mid: int = Field(0x04, ge=0, le=254)
+    """Xbus message id that sets the update rate; the reply is id + 1, so at most 254."""
+    delta_q_scale: float | None = Field(None, gt=0.0, le=1.0)
+    """Radians per SDI delta-q unit: not publicly documented, no default."""
+    delta_v_scale: float | None = Field(None, gt=0.0, le=1.0)
+    """m/s per SDI delta-v unit: not publicly documented, no default."""
+
+    @model_validator(mode="after")
+    def _complete_when_enabled(self) -> Self:
+        if self.experimental:
+            for key in ("path", "delta_q_scale", "delta_v_scale"):
+                if getattr(self, key) in ("", None):
+                    raise RuleError(
+                        "{0} needs {1}: set it (the scale factors are not publicly documented, see docs/imu.md)",
+                        "experimental",
+                        key,
+                        values=(True, getattr(self, key)),
+                    )
+        return self
+
+    def options(self) -> AwindaConfig:
+        return AwindaConfig(
+            experimental=self.experimental,
+            path=self.path,
+            radio_channel=self.radio_channel,
+            update_rate_hz=self.update_rate_hz,
+            update_rate_mid=self.update_rate_mid,
+            delta_q_scale=self.delta_q_scale,
+            delta_v_scale=self.delta_v_scale,
+        )
 
 
-def _take(table: Mapping[str, Any], allowed: set[str], where: str) -> dict[str, Any]:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"[{where}]: unknown keys {unknown}; allowed: {sorted(allowed)}")
-    return dict(table)
-
-
-def parse_imu_config(table: Mapping[str, Any]) -> ImuConfig:
-    """Build an :class:`ImuConfig` from the ``imu`` table of a parsed config.toml.
-
-    Raises
-    ------
-    ConfigError
-        Unknown keys, wrong types or values (the message names the key).
-    """
-    general = {"ports", "imu_set", "calibration_dir", "buffer_capacity", "assignment", "bridge", "awinda"}
-    t = _take(table, general | _PORT_KEYS, "imu")
-    port_opts = {k: t[k] for k in _PORT_KEYS if k in t}
-    ports_raw = t.get("ports", [])
-    if not isinstance(ports_raw, list) or not all(isinstance(p, str) for p in ports_raw):
-        raise ConfigError(f"imu.ports must be a list of device paths, got {ports_raw!r}")
+def _ip_literal(host: str) -> str:
     try:
-        ports = tuple(XsensPortConfig(path=p, **port_opts) for p in ports_raw)
-        # Validate the shared options even when no port is listed (e.g. bridge-only set-ups).
-        XsensPortConfig(path="", **port_opts)
-    except TypeError as exc:
-        raise ConfigError(f"imu: {exc}") from exc
-    imu_set = str(t.get("imu_set", "")) or None
-    assignment = parse_assignment(t.get("assignment", {}), imu_set=imu_set)
-    bridge = BridgeConfig(**_take(t.get("bridge", {}), {f.name for f in fields(BridgeConfig)}, "imu.bridge"))
-    if bridge.host not in ("127.0.0.1", "::1", "localhost"):
-        raise ConfigError(f"imu.bridge.host={bridge.host!r}: the bridge listens on loopback only")
-    awinda = AwindaConfig(**_take(t.get("awinda", {}), {f.name for f in fields(AwindaConfig)}, "imu.awinda"))
-    capacity = t.get("buffer_capacity", 512)
-    if not isinstance(capacity, int) or capacity < 16:
-        raise ConfigError(f"imu.buffer_capacity must be an integer >= 16, got {capacity!r}")
-    return ImuConfig(
-        ports=ports,
-        assignment=assignment,
-        imu_set=imu_set,
-        calibration_dir=str(t.get("calibration_dir", "calibration")),
-        buffer_capacity=capacity,
-        bridge=bridge,
-        awinda=awinda,
+        ipaddress.ip_address("127.0.0.1" if host == "localhost" else host)
+    except ValueError:
+        raise ValueError(
+            'must be an IP address literal ("127.0.0.1" keeps it on this machine; trackers on the network need '
+            'this machine\'s address or "0.0.0.0")'
+        ) from None
+    return host
+
+
+def _slimevr_assignment(mapping: dict[str, str]) -> dict[str, str]:
+    parsed = _assignment(mapping)
+    xsens = sorted(s for s in parsed if "/" not in s)
+    if xsens:
+        raise ValueError(
+            f'{xsens} are Xsens ids; SlimeVR sensors are "<MAC>/<sensor index>", e.g. "AA:BB:CC:DD:EE:FF/0"'
+        )
+    return parsed
+
+
+class SlimeVrSection(Section):
+    """``[imu.slimevr]``: mocapd as the SlimeVR server of SlimeVR trackers on the local network (UDP)."""
+
+    enabled: bool = False
+    host: Annotated[Text, AfterValidator(_ip_literal)] = "127.0.0.1"
+    """Listening address: loopback unless set; trackers on the network need this machine's address or 0.0.0.0."""
+    port: int = Field(PORT, ge=0, le=65535)
+    assignment: Annotated[dict[Text, Text], Field(max_length=64), AfterValidator(_slimevr_assignment)] = Field(
+        default_factory=dict
     )
+    """``"<MAC>/<sensor index>"`` -> bone."""
+
+    def options(self) -> SlimeVrConfig:
+        return SlimeVrConfig(enabled=self.enabled, host=self.host, port=self.port, assignment=dict(self.assignment))
+
+
+class ImuConfig(Section):
+    """``[imu]``: everything mocapd needs to know about its IMUs."""
+
+    ordered = (("reconnect_min_s", "<=", "reconnect_max_s"),)
+
+    ports: Annotated[Seq[Port], Field(max_length=MAX_PORTS), AfterValidator(unique)] = ()
+    """Serial device paths, one per Xsens device."""
+    rate_hz: int = Field(100, ge=MIN_RATE_HZ, le=MAX_RATE_HZ)
+    baudrate: int = Field(921_600, ge=1200, le=4_000_000)
+    response_timeout_s: float = Field(0.5, gt=0.0, le=60.0)
+    attempts: int = Field(3, ge=1, le=100)
+    reconnect_min_s: float = Field(0.2, gt=0.0, le=600.0)
+    reconnect_max_s: float = Field(5.0, gt=0.0, le=3600.0)
+    stall_timeout_s: float = Field(2.0, gt=0.0, le=600.0)
+    imu_set: Literal["", "13", "6", "lower"] = ""
+    """The sensor set the assignment must form ("" = no check)."""
+    calibration_dir: PathStr = "calibration"
+    buffer_capacity: int = Field(512, ge=16, le=MAX_BUFFER)
+    assignment: Annotated[dict[Text, Text], Field(max_length=64), AfterValidator(_assignment)] = Field(
+        default_factory=dict
+    )
+    """Sensor id (8 hex digits, stored upper-case) -> bone."""
+    bridge: BridgeConfig = Field(default_factory=BridgeConfig)
+    awinda: AwindaSection = Field(default_factory=AwindaSection)
+    slimevr: SlimeVrSection = Field(default_factory=SlimeVrSection)
+
+    @property
+    def sensors(self) -> dict[str, str]:
+        """Every sensor's bone, whatever carries it (Xsens ``assignment`` and ``slimevr.assignment``): one IMU
+        model for calibration, suits and the sensor-set check."""
+        return {**self.assignment, **self.slimevr.assignment}
+
+    @model_validator(mode="after")
+    def _one_bone_per_sensor(self) -> Self:
+        """A sensor in both tables, or two sensors (of either transport) on one bone, is an error."""
+        both = sorted(set(self.assignment) & set(self.slimevr.assignment))
+        problem = f"both name {both} (a sensor in both tables)" if both else ""
+        if not problem:
+            try:
+                parse_assignment(self.sensors)
+            except ConfigError as exc:
+                problem = str(exc).removeprefix("imu assignment: ")
+        if problem:
+            raise RuleError("{0} and {1}: " + problem.replace("{", "{{").replace("}", "}}"), "assignment",
+                            "slimevr.assignment", values=(self.assignment, self.slimevr.assignment))  # fmt: skip
+        return self
+
+    @model_validator(mode="after")
+    def _assignment_forms_the_set(self) -> Self:
+        if self.imu_set:
+            try:
+                parse_assignment(self.sensors, imu_set=self.imu_set)
+            except ConfigError as exc:
+                raise RuleError(
+                    f"{{0}} does not form {{1}}: {str(exc).removeprefix('imu assignment ')}",
+                    "assignment",
+                    "imu_set",
+                    values=(self.sensors, self.imu_set),
+                ) from None
+        return self
+
+    def port_configs(self) -> tuple[XsensPortConfig, ...]:
+        """One :class:`XsensPortConfig` per entry of ``ports``, each with this section's settings."""
+        return tuple(
+            XsensPortConfig(
+                path=p,
+                baudrate=self.baudrate,
+                rate_hz=self.rate_hz,
+                response_timeout_s=self.response_timeout_s,
+                attempts=self.attempts,
+                reconnect_min_s=self.reconnect_min_s,
+                reconnect_max_s=self.reconnect_max_s,
+                stall_timeout_s=self.stall_timeout_s,
+            )
+            for p in self.ports
+        )

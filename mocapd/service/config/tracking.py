@@ -1,85 +1,81 @@
 """The ``[tracking]`` section: detection sorting, enrolment and suit-binding options.
 
-Each sub-table maps one-to-one onto a frozen options dataclass of ``mocapd.core``; keys are the field names, and
-values are checked against the field's type (number, integer, boolean, a pair of numbers, a list of pairs).
+Each sub-table mirrors one frozen options dataclass of ``mocapd.core`` (same key names and defaults), which
+``.options()`` builds: :class:`~mocapd.core.sorting.SortingOptions`, :class:`~mocapd.core.tracking.TrackingOptions`
+and :class:`~mocapd.core.suit_binding.BindingOptions`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import typing
-from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Annotated, Any
+
+from pydantic import AfterValidator, Field
 
 from mocapd.core.sorting import SortingOptions
 from mocapd.core.suit_binding import BindingOptions
 from mocapd.core.tracking import TrackingOptions
-from mocapd.errors import ConfigError
+from mocapd.service.config.schema import Pair, Section, Seq, unique
 
-T = TypeVar("T")
-
-
-@dataclass(frozen=True)
-class TrackingConfig:
-    sorting: SortingOptions = field(default_factory=SortingOptions)
-    enrolment: TrackingOptions = field(default_factory=TrackingOptions)
-    binding: BindingOptions = field(default_factory=BindingOptions)
+_S, _T, _B = SortingOptions(), TrackingOptions(), BindingOptions()
 
 
-def parse_tracking_config(t: dict[str, Any]) -> TrackingConfig:
-    allowed = {"sorting", "enrolment", "binding"}
-    unknown = set(t) - allowed
-    if unknown:
-        raise ConfigError(f"unknown key(s) {sorted(unknown)} in [tracking]; allowed: {sorted(allowed)}")
-    return TrackingConfig(
-        sorting=parse_options(SortingOptions, t.get("sorting", {}), "tracking.sorting"),
-        enrolment=parse_options(TrackingOptions, t.get("enrolment", {}), "tracking.enrolment"),
-        binding=parse_options(BindingOptions, t.get("binding", {}), "tracking.binding"),
-    )
+def _as(cls: type[Any], section: Section) -> Any:
+    return cls(**{f.name: getattr(section, f.name) for f in dataclasses.fields(cls)})
 
 
-def parse_options(cls: type[T], table: object, where: str) -> T:
-    """A frozen options dataclass from a TOML table; unknown keys and ill-typed or negative values rejected."""
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where} must be a table, got {table!r}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = set(table) - names
-    if unknown:
-        raise ConfigError(f"unknown key(s) {sorted(unknown)} in [{where}]; allowed: {sorted(names)}")
-    values = {k: _convert(v, hints[k], f"{where}.{k}") for k, v in table.items()}
-    return cls(**values)
+class SortingConfig(Section):
+    """``[tracking.sorting]``: thresholds of Algorithm 1 (seed 003 §3.3.1)."""
+
+    min_confidence: float = Field(_S.min_confidence, ge=0.0, le=1.0)
+    min_shared_keypoints: int = Field(_S.min_shared_keypoints, ge=1, le=100)
+    max_reprojection_error: float = Field(_S.max_reprojection_error, gt=0.0, le=1.0)
+    """Fraction of the image width."""
+    same_person_distance: float = Field(_S.same_person_distance, gt=0.0, le=10.0)
+    max_interframe_movement: float = Field(_S.max_interframe_movement, gt=0.0, le=100.0)
+
+    def options(self) -> SortingOptions:
+        result: SortingOptions = _as(SortingOptions, self)
+        return result
 
 
-def _number(v: object, key: str, integer: bool = False) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float) or (integer and not isinstance(v, int)):
-        raise ConfigError(f"{key} = {v!r}; allowed: {'an integer' if integer else 'a number'} >= 0")
-    if v < 0:
-        raise ConfigError(f"{key} = {v!r}; allowed: {'an integer' if integer else 'a number'} >= 0")
-    return v
+class EnrolmentConfig(Section):
+    """``[tracking.enrolment]``: who becomes a subject."""
+
+    ordered = (("volume_min", "<", "volume_max"),)
+
+    max_subjects: int = Field(_T.max_subjects, ge=1, le=64)
+    volume_min: Pair = _T.volume_min
+    """Floor rectangle [x, z] minimum corner (m)."""
+    volume_max: Pair = _T.volume_max
+    enrol_after_s: float = Field(_T.enrol_after_s, ge=0.0, le=60.0)
+    tentative_gap_s: float = Field(_T.tentative_gap_s, ge=0.0, le=60.0)
+    grace_period_s: float = Field(_T.grace_period_s, ge=0.0, le=3600.0)
+    start_positions: Annotated[Seq[Pair], Field(max_length=64), AfterValidator(unique)] = ()
+    start_radius: float = Field(_T.start_radius, gt=0.0, le=100.0)
+
+    def options(self) -> TrackingOptions:
+        result: TrackingOptions = _as(TrackingOptions, self)
+        return result
 
 
-def _pair(v: object, key: str) -> tuple[float, float]:
-    if not (
-        isinstance(v, list) and len(v) == 2 and all(isinstance(x, int | float) and not isinstance(x, bool) for x in v)
-    ):
-        raise ConfigError(f"{key} = {v!r}; allowed: a pair of numbers [x, z] (metres)")
-    return float(v[0]), float(v[1])
+class BindingConfig(Section):
+    """``[tracking.binding]``: which IMU suit belongs to which tracked person."""
+
+    window_s: float = Field(_B.window_s, gt=0.0, le=60.0)
+    min_samples: int = Field(_B.min_samples, ge=1, le=100_000)
+    max_mean_angle_deg: float = Field(_B.max_mean_angle_deg, ge=0.0, le=180.0)
+    switch_margin_deg: float = Field(_B.switch_margin_deg, ge=0.0, le=180.0)
+    switch_after_s: float = Field(_B.switch_after_s, ge=0.0, le=60.0)
+
+    def options(self) -> BindingOptions:
+        result: BindingOptions = _as(BindingOptions, self)
+        return result
 
 
-def _convert(v: object, hint: object, key: str) -> object:
-    if hint is float:
-        return float(_number(v, key))
-    if hint is int:
-        return int(_number(v, key, integer=True))
-    if hint is bool:
-        if not isinstance(v, bool):
-            raise ConfigError(f"{key} = {v!r}; allowed: true or false")
-        return v
-    if hint == tuple[float, float]:
-        return _pair(v, key)
-    if hint == tuple[tuple[float, float], ...]:
-        if not isinstance(v, list):
-            raise ConfigError(f"{key} = {v!r}; allowed: a list of [x, z] pairs (metres)")
-        return tuple(_pair(x, key) for x in v)
-    raise ConfigError(f"{key}: unsupported option type {hint!r}")  # a programming error, named clearly
+class TrackingConfig(Section):
+    """The ``[tracking]`` section."""
+
+    sorting: SortingConfig = Field(default_factory=SortingConfig)
+    enrolment: EnrolmentConfig = Field(default_factory=EnrolmentConfig)
+    binding: BindingConfig = Field(default_factory=BindingConfig)

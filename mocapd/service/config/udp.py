@@ -1,5 +1,5 @@
-"""The ``[udp]`` section of config.toml (MVN and VMC streams), parsed into frozen dataclasses
-(:mod:`mocapd.service.outputs.udp` turns it into pose sinks).
+"""The ``[udp]`` section of config.toml (MVN and VMC streams); :mod:`mocapd.service.outputs.udp` turns it into
+pose sinks.
 
 Destinations come only from here. They must be loopback addresses unless ``udp.allow_remote = true``: streaming
 poses to another machine is an explicit choice, never a default or a typo. Hosts are IPv4 literals (or
@@ -9,15 +9,27 @@ poses to another machine is an explicit choice, never a default or a typo. Hosts
 from __future__ import annotations
 
 import ipaddress
-from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Annotated, Self
 
-from mocapd.errors import ConfigError
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    Field,
+    PlainSerializer,
+    PlainValidator,
+    WithJsonSchema,
+    model_validator,
+)
+
+from mocapd.protocols.vrchat import DEFAULT_PORT as VRCHAT_PORT
+from mocapd.protocols.vrchat import ROLES
+from mocapd.service.config.schema import Allowed, RuleError, Section, Text, as_tuple, show, unique
 
 MIN_DATAGRAM = 256
 MAX_DATAGRAM = 65507  # the largest UDP payload over IPv4
 RELEASE_AFTER_S = 2.0  # an automatic character id / avatar is freed after this long without its subject
+MAX_DESTINATIONS = 64
 
 
 @dataclass(frozen=True, slots=True)
@@ -31,171 +43,181 @@ class Destination:
         return f"{self.host}:{self.port}"
 
 
-@dataclass(frozen=True, slots=True)
-class MvnStreamConfig:
-    """``[udp.mvn]``: MVN network streaming (``MXTP02`` datagrams)."""
-
-    enabled: bool = False
-    destinations: tuple[Destination, ...] = (Destination("127.0.0.1", 9763),)
-    """Every destination receives every streamed character."""
-    rate_divisor: int = 1
-    """Send every n-th output frame (60 Hz output / 2 = 30 Hz)."""
-    subjects: tuple[str, ...] | None = None
-    """Identities to stream (``suit:<id>``, ``track:<k>``); None: everyone."""
-    character_ids: tuple[tuple[str, int], ...] = ()
-    """Pinned character ids (identity, 0..255); other subjects get the lowest free id in order of appearance."""
-    max_datagram_bytes: int = 1472
-    """Split a character over several datagrams above this size (bytes, header included)."""
+_HOST_PORT = '"host:port" with an IPv4 address (or "localhost") and a port in 1..65535'
 
 
-@dataclass(frozen=True, slots=True)
-class VmcStreamConfig:
-    """``[udp.vmc]``: VMC protocol (OSC bundles), one avatar per destination."""
-
-    enabled: bool = False
-    destinations: tuple[Destination, ...] = (Destination("127.0.0.1", 39539),)
-    """Destination k is the avatar driven by subject k."""
-    rate_divisor: int = 1
-    subjects: tuple[str, ...] | None = None
-    """``subjects[k]`` drives ``destinations[k]`` (same length); None: subjects take avatars in order of appearance."""
-    max_datagram_bytes: int = 1472
-    """Split a frame over several bundles above this size (bytes)."""
-
-
-@dataclass(frozen=True, slots=True)
-class UdpConfig:
-    """The ``[udp]`` section."""
-
-    allow_remote: bool = False
-    """Allow non-loopback destinations."""
-    mvn: MvnStreamConfig = field(default_factory=MvnStreamConfig)
-    vmc: VmcStreamConfig = field(default_factory=VmcStreamConfig)
-
-
-def parse_udp_config(table: Mapping[str, Any]) -> UdpConfig:
-    """Build a :class:`UdpConfig` from the ``udp`` table of a parsed config.toml.
-
-    Raises
-    ------
-    ConfigError
-        Unknown keys, wrong types or values, or a non-loopback destination without ``allow_remote`` (the message
-        names the key, the value and what is allowed).
-    """
-    _reject_unknown(table, {"allow_remote", "mvn", "vmc"}, "udp")
-    allow_remote = _bool(table.get("allow_remote", False), "udp.allow_remote")
-    mvn_t = _subtable(table, "mvn")
-    vmc_t = _subtable(table, "vmc")
-    common = {"enabled", "destinations", "rate_divisor", "subjects", "max_datagram_bytes"}
-    _reject_unknown(mvn_t, common | {"character_ids"}, "udp.mvn")
-    _reject_unknown(vmc_t, common, "udp.vmc")
-    d_mvn, d_vmc = MvnStreamConfig(), VmcStreamConfig()
-    mvn = MvnStreamConfig(
-        enabled=_bool(mvn_t.get("enabled", d_mvn.enabled), "udp.mvn.enabled"),
-        destinations=_destinations(mvn_t, "udp.mvn", d_mvn.destinations, allow_remote),
-        rate_divisor=_int(mvn_t.get("rate_divisor", 1), "udp.mvn.rate_divisor", 1, 1000),
-        subjects=_subjects(mvn_t.get("subjects", "all"), "udp.mvn.subjects"),
-        character_ids=_character_ids(mvn_t.get("character_ids", {})),
-        max_datagram_bytes=_int(mvn_t.get("max_datagram_bytes", 1472), "udp.mvn.max_datagram_bytes", MIN_DATAGRAM,
-                                MAX_DATAGRAM),
-    )  # fmt: skip
-    vmc = VmcStreamConfig(
-        enabled=_bool(vmc_t.get("enabled", d_vmc.enabled), "udp.vmc.enabled"),
-        destinations=_destinations(vmc_t, "udp.vmc", d_vmc.destinations, allow_remote),
-        rate_divisor=_int(vmc_t.get("rate_divisor", 1), "udp.vmc.rate_divisor", 1, 1000),
-        subjects=_subjects(vmc_t.get("subjects", "all"), "udp.vmc.subjects"),
-        max_datagram_bytes=_int(vmc_t.get("max_datagram_bytes", 1472), "udp.vmc.max_datagram_bytes", MIN_DATAGRAM,
-                                MAX_DATAGRAM),
-    )  # fmt: skip
-    if vmc.subjects is not None and len(vmc.subjects) != len(vmc.destinations):
-        raise ConfigError(
-            f"udp.vmc.subjects = {list(vmc.subjects)!r} has {len(vmc.subjects)} entries for "
-            f'{len(vmc.destinations)} destination(s); allowed: "all" or one identity per destination'
-        )
-    return UdpConfig(allow_remote=allow_remote, mvn=mvn, vmc=vmc)
-
-
-def _reject_unknown(t: Mapping[str, Any], allowed: set[str], where: str) -> None:
-    unknown = sorted(set(t) - allowed)
-    if unknown:
-        raise ConfigError(f"unknown key(s) {unknown} in [{where}]; allowed: {sorted(allowed)}")
-
-
-def _subtable(t: Mapping[str, Any], key: str) -> Mapping[str, Any]:
-    value = t.get(key, {})
-    if not isinstance(value, Mapping):
-        raise ConfigError(f"udp.{key} = {value!r}; allowed: a table ([udp.{key}])")
-    return value
-
-
-def _bool(value: object, key: str) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"{key} = {value!r}; allowed: true or false")
-    return value
-
-
-def _int(value: object, key: str, lo: int, hi: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-        raise ConfigError(f"{key} = {value!r}; allowed: an integer in {lo}..{hi}")
-    return value
-
-
-def _destination(value: object, key: str, allow_remote: bool) -> Destination:
-    allowed = '"host:port" with an IPv4 address (or "localhost") and a port in 1..65535'
-    if not isinstance(value, str) or value.count(":") != 1:
-        raise ConfigError(f"{key} entry {value!r}; allowed: {allowed}")
-    host, port_s = value.split(":")
+def _destination(value: object) -> Destination:
+    """``"127.0.0.1:9763"`` (or a Destination) -> Destination; the loopback rule is UdpConfig's (allow_remote)."""
+    text = str(value) if isinstance(value, Destination) else value
+    if not isinstance(text, str) or text.count(":") != 1:
+        raise ValueError(f"allowed: {_HOST_PORT}")
+    host, port_s = text.split(":")
     if host == "localhost":
         host = "127.0.0.1"
     try:
         addr = ipaddress.IPv4Address(host)
-        port = int(port_s)
+        port = int(port_s) if port_s.isascii() and port_s.isdigit() and len(port_s) <= 5 else -1
     except ValueError:
-        raise ConfigError(f"{key} entry {value!r}; allowed: {allowed}") from None
+        raise ValueError(f"allowed: {_HOST_PORT}") from None
     if not 1 <= port <= 65535:
-        raise ConfigError(f"{key} entry {value!r}: port {port}; allowed: {allowed}")
+        raise ValueError(f"port {port_s!r}; allowed: {_HOST_PORT}")
     if addr.is_multicast or addr.is_unspecified or str(addr) == "255.255.255.255":
-        raise ConfigError(f"{key} entry {value!r}: broadcast, multicast and 0.0.0.0 are not allowed; {allowed}")
-    if not addr.is_loopback and not allow_remote:
-        raise ConfigError(
-            f"{key} entry {value!r} is not a loopback address; poses go to another machine only when "
-            "udp.allow_remote = true (allowed without it: 127.0.0.0/8)"
-        )
+        raise ValueError(f"broadcast, multicast and 0.0.0.0 are not allowed; allowed: {_HOST_PORT}")
     return Destination(str(addr), port)
 
 
-def _destinations(t: Mapping[str, Any], where: str, default: tuple[Destination, ...],
-                  allow_remote: bool) -> tuple[Destination, ...]:  # fmt: skip
-    key = f"{where}.destinations"
-    if "destinations" not in t:
-        return default
-    raw = t["destinations"]
-    if not isinstance(raw, list) or not raw:
-        raise ConfigError(f'{key} = {raw!r}; allowed: a non-empty list of "host:port" strings')
-    out = tuple(_destination(v, key, allow_remote) for v in raw)
-    if len(set(out)) != len(out):
-        raise ConfigError(f"{key} = {raw!r} lists a destination twice; allowed: distinct destinations")
-    return out
+def _identity(value: str) -> str:
+    if value == "all":
+        raise ValueError('"all" is not an identity: write subjects = "all" instead of a list')
+    return value
 
 
-def _subjects(value: object, key: str) -> tuple[str, ...] | None:
+def _subjects(value: object) -> object:
+    """``"all"`` -> None (everyone); an array -> a tuple of identities."""
     if value == "all":
         return None
-    if (not isinstance(value, list) or not value
-            or not all(isinstance(s, str) and s and s != "all" for s in value)):  # fmt: skip
-        raise ConfigError(f'{key} = {value!r}; allowed: "all" or a non-empty list of identities such as "suit:suit0"')
-    if len(set(value)) != len(value):
-        raise ConfigError(f"{key} = {value!r} names a subject twice; allowed: distinct identities")
-    return tuple(value)
+    return tuple(value) if isinstance(value, list) else value
 
 
-def _character_ids(value: object) -> tuple[tuple[str, int], ...]:
-    key = "udp.mvn.character_ids"
-    if not isinstance(value, Mapping):
-        raise ConfigError(f'{key} = {value!r}; allowed: a table identity = id, e.g. {{ "suit:suit0" = 0 }}')
-    out = []
-    for ident, cid in value.items():
-        out.append((str(ident), _int(cid, f"{key}.{ident!r}", 0, 255)))
-    ids = [c for _, c in out]
-    if len(set(ids)) != len(ids):
-        raise ConfigError(f"{key} = {dict(value)!r} gives two subjects the same id; allowed: distinct ids 0..255")
-    return tuple(out)
+def _subjects_out(value: tuple[str, ...] | None) -> object:
+    return "all" if value is None else list(value)
+
+
+def _distinct_ids(ids: dict[str, int]) -> dict[str, int]:
+    if len(set(ids.values())) != len(ids):
+        raise ValueError("gives two subjects the same id; allowed: distinct ids 0..255")
+    return ids
+
+
+Dest = Annotated[
+    Destination,
+    PlainValidator(_destination),
+    PlainSerializer(str, return_type=str),
+    WithJsonSchema({"type": "string", "maxLength": 32}),  # "255.255.255.255:65535" at most, as the file writes it
+    Allowed(_HOST_PORT),
+]
+Destinations = Annotated[
+    tuple[Dest, ...],
+    BeforeValidator(as_tuple),
+    Field(min_length=1, max_length=MAX_DESTINATIONS),
+    AfterValidator(unique),
+]
+Identity = Annotated[Text, Field(min_length=1), AfterValidator(_identity)]
+Subjects = Annotated[
+    Annotated[tuple[Identity, ...], Field(min_length=1, max_length=MAX_DESTINATIONS), AfterValidator(unique)] | None,
+    BeforeValidator(_subjects),
+    PlainSerializer(_subjects_out),
+    Allowed('"all" or a non-empty array of distinct identities such as "suit:suit0" or "track:3"'),
+]
+CharacterId = Annotated[int, Field(ge=0, le=255)]
+
+
+class MvnStreamConfig(Section):
+    """``[udp.mvn]``: MVN network streaming (``MXTP02`` datagrams)."""
+
+    enabled: bool = False
+    destinations: Destinations = (Destination("127.0.0.1", 9763),)
+    """Every destination receives every streamed character."""
+    rate_divisor: int = Field(1, ge=1, le=1000)
+    """Send every n-th output frame (60 Hz output / 2 = 30 Hz)."""
+    subjects: Subjects = None
+    """Identities to stream (``suit:<id>``, ``track:<k>``); None ("all"): everyone."""
+    character_ids: Annotated[dict[Identity, CharacterId], Field(max_length=256), AfterValidator(_distinct_ids)] = Field(
+        default_factory=dict
+    )
+    """Pinned character ids (identity -> 0..255); other subjects get the lowest free id in order of appearance."""
+    max_datagram_bytes: int = Field(1472, ge=MIN_DATAGRAM, le=MAX_DATAGRAM)
+    """Split a character over several datagrams above this size (bytes, header included)."""
+
+
+class VmcStreamConfig(Section):
+    """``[udp.vmc]``: VMC protocol (OSC bundles), one avatar per destination."""
+
+    enabled: bool = False
+    destinations: Destinations = (Destination("127.0.0.1", 39539),)
+    """Destination k is the avatar driven by subject k."""
+    rate_divisor: int = Field(1, ge=1, le=1000)
+    subjects: Subjects = None
+    """``subjects[k]`` drives ``destinations[k]`` (same length); None ("all"): subjects take avatars in order of
+    appearance."""
+    max_datagram_bytes: int = Field(1472, ge=MIN_DATAGRAM, le=MAX_DATAGRAM)
+    """Split a frame over several bundles above this size (bytes)."""
+
+    @model_validator(mode="after")
+    def _one_subject_per_avatar(self) -> Self:
+        if self.subjects is not None and len(self.subjects) != len(self.destinations):
+            raise RuleError(
+                f"{{0}} has {len(self.subjects)} entries for the {len(self.destinations)} of {{1}}; "
+                'allowed: "all" or one identity per destination',
+                "subjects",
+                "destinations",
+                values=(list(self.subjects), [str(d) for d in self.destinations]),
+            )
+        return self
+
+
+def _role(value: str) -> str:
+    if value not in ROLES:
+        raise ValueError(f"allowed: {', '.join(ROLES)}")
+    return value
+
+
+def _user_height(value: float) -> float:
+    if value != 0 and not 0.5 <= value <= 2.5:
+        raise ValueError("allowed: 0 (no scaling) or metres in [0.5, 2.5]")
+    return value
+
+
+class VrChatStreamConfig(Section):
+    """``[udp.vrchat]``: VRChat's OSC trackers (:mod:`mocapd.protocols.vrchat`) for one subject."""
+
+    enabled: bool = False
+    destination: Dest = Destination("127.0.0.1", VRCHAT_PORT)
+    """VRChat's OSC input port (9000) on the machine running VRChat."""
+    subject: Annotated[Text, Allowed('"" (the first subject seen) or an identity such as "suit:suit0"')] = ""
+    """The identity streamed; "": the first subject to appear."""
+    trackers: Annotated[
+        tuple[Annotated[Text, AfterValidator(_role)], ...],
+        BeforeValidator(as_tuple),
+        Field(min_length=1, max_length=len(ROLES)),
+        AfterValidator(unique),
+        Allowed(f"a non-empty array of distinct names of {', '.join(ROLES)}"),
+    ] = ROLES
+    """Which trackers to send (VRChat's documentation: fewer, e.g. hip and feet, can work better)."""
+    user_height_m: Annotated[float, Field(ge=0.0, le=2.5), AfterValidator(_user_height)] = 0.0
+    """The user's real height; positions are scaled by it over the solved skeleton's height (0: no scaling)."""
+    rate_divisor: int = Field(1, ge=1, le=1000)
+
+    @model_validator(mode="after")
+    def _an_identity(self) -> Self:
+        if self.subject == "all":
+            raise RuleError('{0}: one subject drives the trackers, not "all"', "subject", values=(self.subject,))
+        return self
+
+
+class UdpConfig(Section):
+    """The ``[udp]`` section."""
+
+    allow_remote: bool = False
+    """Allow non-loopback destinations."""
+    mvn: MvnStreamConfig = Field(default_factory=MvnStreamConfig)
+    vmc: VmcStreamConfig = Field(default_factory=VmcStreamConfig)
+    vrchat: VrChatStreamConfig = Field(default_factory=VrChatStreamConfig)
+
+    @model_validator(mode="after")
+    def _loopback_unless_allowed(self) -> Self:
+        if self.allow_remote:
+            return self
+        for stream in ("mvn", "vmc", "vrchat"):
+            s = getattr(self, stream)
+            dests: tuple[Destination, ...] = s.destinations if stream != "vrchat" else (s.destination,)
+            for d in dests:
+                if not ipaddress.IPv4Address(d.host).is_loopback:
+                    raise RuleError(
+                        f"{{0}}: {show(str(d))} is not a loopback address; poses go to another machine only when "
+                        "{1} (allowed without it: 127.0.0.0/8)",
+                        f"{stream}.destinations" if stream != "vrchat" else "vrchat.destination",
+                        "allow_remote",
+                        values=([str(x) for x in dests], True),
+                    )
+        return self

@@ -1,54 +1,17 @@
-"""The ``[websocket]`` section of config.toml: the WebSocket pose stream and the live web viewer on its port,
-parsed once into a frozen dataclass (unknown keys and bad values are errors naming the key)."""
+"""The ``[websocket]`` section of config.toml: the WebSocket pose stream and the live web viewer on its port."""
 
 from __future__ import annotations
 
 import ipaddress
-import math
-from dataclasses import dataclass
-from typing import Any
+import re
+from typing import Annotated, Literal, Self
 
-from mocapd.errors import ConfigError
-from mocapd.protocols.ws_stream import ENCODINGS, STREAM_CONVENTIONS
+from pydantic import AfterValidator, Field, model_validator
 
-_KEYS = {
-    "enabled", "host", "port", "token", "max_clients", "queue_messages", "max_message_bytes", "encoding",
-    "convention", "globals", "status_hz", "viewer",
-}  # fmt: skip
+from mocapd.service.config.schema import Allowed, RuleError, Section, Text
 
-
-@dataclass(frozen=True, slots=True)
-class WebSocketConfig:
-    """``[websocket]``."""
-
-    enabled: bool = True
-    """Serve the stream (and the viewer) at all."""
-    host: str = "127.0.0.1"
-    """Listening address. Anything but loopback needs ``token``."""
-    port: int = 8766
-    """TCP port (0: any free port, printed at start-up)."""
-    token: str = ""
-    """Shared secret clients must present (``?token=`` or ``Authorization: Bearer``); "" = none (loopback only)."""
-    max_clients: int = 64
-    """Connections beyond this are refused with HTTP 503."""
-    queue_messages: int = 8
-    """Per-client queue of outgoing frame/status messages; when full, the oldest is dropped (and counted)."""
-    max_message_bytes: int = 4096
-    """Largest client message; a larger one closes that client's connection (close code 1009)."""
-    encoding: str = "msgpack"
-    """Default encoding of new clients: "msgpack" or "json"."""
-    convention: str = "native"
-    """Default coordinate convention of new clients."""
-    globals: bool = False
-    """Whether new clients get global joint positions by default."""
-    status_hz: float = 1.0
-    """Status messages per second (0: none)."""
-    viewer: bool = True
-    """Serve the live web viewer at http://host:port/."""
-
-    @property
-    def loopback(self) -> bool:
-        return is_loopback(self.host)
+MIN_TOKEN = 16
+_TOKEN = re.compile(r"[!-~]*")  # printable ASCII, no spaces: it travels in a URL query or an HTTP header
 
 
 def is_loopback(host: str) -> bool:
@@ -61,50 +24,73 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def parse_websocket_config(t: dict[str, Any]) -> WebSocketConfig:
-    """Validate a ``[websocket]`` table (already read from TOML)."""
-    unknown = set(t) - _KEYS
-    if unknown:
-        raise ConfigError(f"unknown key(s) {sorted(unknown)} in [websocket]; allowed: {sorted(_KEYS)}")
-    d = WebSocketConfig()
-    out: dict[str, Any] = {}
-    for key in ("enabled", "globals", "viewer"):
-        if key in t:
-            if not isinstance(t[key], bool):
-                raise ConfigError(f"websocket.{key} = {t[key]!r}; allowed: true or false")
-            out[key] = t[key]
-    for key in ("host", "token"):
-        if key in t and not isinstance(t[key], str):
-            raise ConfigError(f"websocket.{key} = {t[key]!r}; allowed: a string")
-    host = t.get("host", d.host)
-    if not host:
-        raise ConfigError('websocket.host = ""; allowed: an IP address or "localhost"')
-    out["host"] = host
-    token = t.get("token", d.token)
-    if not is_loopback(host) and len(token) < 16:
-        raise ConfigError(
-            f"websocket.host = {host!r} is not loopback: websocket.token must then be set (at least 16 characters), "
-            "so only clients that know it can connect"
-        )
-    out["token"] = token
-    for key, lo, hi in (("port", 0, 65535), ("max_clients", 1, 10_000), ("queue_messages", 1, 10_000),
-                        ("max_message_bytes", 256, 1 << 20)):  # fmt: skip
-        if key in t:
-            v = t[key]
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise ConfigError(f"websocket.{key} = {v!r}; allowed: an integer {lo}..{hi}")
-            out[key] = v
-    if "encoding" in t:
-        if t["encoding"] not in ENCODINGS:
-            raise ConfigError(f"websocket.encoding = {t['encoding']!r}; allowed: {list(ENCODINGS)}")
-        out["encoding"] = t["encoding"]
-    if "convention" in t:
-        if t["convention"] not in STREAM_CONVENTIONS:
-            raise ConfigError(f"websocket.convention = {t['convention']!r}; allowed: {list(STREAM_CONVENTIONS)}")
-        out["convention"] = t["convention"]
-    if "status_hz" in t:
-        v = t["status_hz"]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and 0 <= v <= 60):
-            raise ConfigError(f"websocket.status_hz = {v!r}; allowed: a number 0..60 (0 = no status messages)")
-        out["status_hz"] = float(v)
-    return WebSocketConfig(**{**{k: getattr(d, k) for k in _KEYS}, **out})
+def _host(value: str) -> str:
+    if value != "localhost":
+        try:
+            ipaddress.ip_address(value)
+        except ValueError:
+            raise ValueError('allowed: an IP address or "localhost" (names are not resolved)') from None
+    return value
+
+
+def _token(value: str) -> str:
+    if not _TOKEN.fullmatch(value):
+        raise ValueError("allowed: printable ASCII characters without spaces")
+    return value
+
+
+Host = Annotated[Text, AfterValidator(_host), Allowed('an IP address or "localhost"')]
+Token = Annotated[Text, AfterValidator(_token)]
+
+
+class WebSocketConfig(Section):
+    """``[websocket]``."""
+
+    enabled: bool = True
+    """Serve the stream (and the viewer) at all."""
+    host: Host = "127.0.0.1"
+    """Listening address. Anything but loopback needs ``token``."""
+    port: int = Field(8766, ge=0, le=65535)
+    """TCP port (0: any free port, printed at start-up)."""
+    token: Token = ""
+    """Shared secret clients must present (``?token=`` or ``Authorization: Bearer``); "" = none (loopback only)."""
+    max_clients: int = Field(64, ge=1, le=10_000)
+    """Connections beyond this are refused with HTTP 503."""
+    queue_messages: int = Field(8, ge=1, le=10_000)
+    """Per-client queue of outgoing frame/status messages; when full, the oldest is dropped (and counted)."""
+    max_message_bytes: int = Field(4096, ge=256, le=1 << 20)
+    """Largest client message; a larger one closes that client's connection (close code 1009)."""
+    encoding: Literal["msgpack", "json"] = "msgpack"
+    """Default encoding of new clients."""
+    convention: Literal["native", "unity", "unreal", "mvn"] = "native"
+    """Default coordinate convention of new clients."""
+    globals: bool = False
+    """Whether new clients get global joint positions by default."""
+    status_hz: float = Field(1.0, ge=0.0, le=60.0)
+    """Status messages per second (0: none)."""
+    viewer: bool = True
+    """Serve the live web viewer at http://host:port/."""
+    cameras: bool = True
+    """Offer camera views (the viewer's camera panels; sent only to clients that ask)."""
+    camera_rate_hz: float = Field(4.0, ge=0.1, le=30.0)
+    """Most camera messages per second per camera a client may ask for."""
+    camera_width: int = Field(320, ge=16, le=4096)
+    """Width (pixels) the camera panels' frames are downscaled to."""
+    camera_quality: int = Field(70, ge=1, le=100)
+    """JPEG quality of the camera panels' frames."""
+
+    @model_validator(mode="after")
+    def _token_off_loopback(self) -> Self:
+        if not is_loopback(self.host) and len(self.token) < MIN_TOKEN:
+            raise RuleError(
+                f"{{0}} is not loopback: {{1}} must then be set (at least {MIN_TOKEN} characters), so only "
+                "clients that know it can connect",
+                "host",
+                "token",
+                values=(self.host, "*" * len(self.token)),
+            )
+        return self
+
+    @property
+    def loopback(self) -> bool:
+        return is_loopback(self.host)

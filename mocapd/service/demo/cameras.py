@@ -1,72 +1,208 @@
-"""``mocapd demo``: the full daemon on the camera rig — four fake GigE Vision cameras streaming the Pose2Sim
-multi-person demo videos, the real detector, sorting/tracking, solving — in a private network namespace.
+"""``mocapd demo``: the daemon on four fake GigE Vision cameras streaming the Pose2Sim multi-person demo videos,
+through the one assembly path, with a generated config.
 
-Why two processes. Aravis discovery broadcasts on every interface, so cameras must live on loopback aliases
-inside a private network namespace (``unshare -rn``), and so must the daemon that talks to them. But the status
-page must be reachable from the user's browser, in the host's namespace. A socket belongs to the namespace it was
-created in, whatever process later uses it, so:
+The demo is data plus fakes fed to :func:`mocapd.service.assembly.run`: a config whose ``[[cameras]]`` are four
+``aravis`` cameras opened by IP (the fake cameras of :mod:`mocapd.sim.fake_cameras`, one per loopback alias) and
+whose ``[calibration]`` is the demo's Qualisys calibration scaled to the served image size (written as a mocapd
+calibration file next to the run). The user's config (``--config``) supplies everything else: detector, solver,
+streams, recording.
 
-1. the parent (``mocapd demo``, host namespace) binds and listens on ``daemon.http_host:http_port``;
-2. it starts ``unshare -rn python -m mocapd.service.demo.cameras --http-fd N ...`` with that socket inherited
-   (``pass_fds``) and closes its own copy;
-3. the child (new namespace) brings ``lo`` up with aliases 127.0.0.2-4, starts the four fake cameras there, builds
-   the rig and runs the daemon, whose status server accepts on the inherited socket: connections from the host
-   reach it, while every camera packet stays inside the namespace.
+Why two processes. Aravis and the fake cameras need loopback aliases and GigE Vision traffic that must never
+reach a real network, so the cameras and the daemon live in a private network namespace (``unshare -rn``). But
+the status page, the viewer and the streams must be reachable from the user's host. A socket belongs to the
+namespace it was created in, whatever process later uses it, so:
 
-The parent only forwards SIGINT/SIGTERM and returns the child's exit status. No relay, no second port.
+1. the parent (``mocapd demo``, host namespace) binds the status, WebSocket and UDP sockets;
+2. it starts ``unshare -rn python -m mocapd.service.demo.cameras --http-fd N ...`` with them inherited
+   (``pass_fds``) and closes its copies;
+3. the child (new namespace) brings ``lo`` up with aliases 127.0.0.2-5, starts the fake cameras there, and runs
+   the daemon on the generated config with those sockets.
+
+The parent forwards SIGINT/SIGTERM to the child and returns its exit status. The fake camera servers run in
+their own session, so the terminal's Ctrl-C reaches the daemon only: the cameras stay up while the daemon stops
+(as real cameras would), and are stopped after it.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
-from collections.abc import Callable, Coroutine
-from dataclasses import asdict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import DeviceError, MocapdError
+import cv2
+
+from mocapd.errors import ConfigError, MocapdError
+from mocapd.io.calibration_files import read_qca, scale_calibration, write_mocapd_toml
+from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
 from mocapd.io.ws_server import listen_error
 from mocapd.pipeline.scheduler import PoseFrame
+from mocapd.service import assembly
+from mocapd.service.assembly import Monitor, RunOptions, Sockets
 from mocapd.service.config import Config, load_config
-from mocapd.service.daemon import Daemon, PoseSink, Rig
-from mocapd.service.demo.camera_rig import AnyDetector, CameraDemoOptions, build_rig, demo_cameras, make_detector
-from mocapd.service.http_status import StatusServer
-from mocapd.service.outputs.recorder import attach_recorder
-from mocapd.service.outputs.udp import build_udp_sinks
-from mocapd.service.outputs.websocket import build_websocket_sinks
-from mocapd.sim.fake_cameras import FakeCameraFleet
+from mocapd.service.config.cameras import CalibrationConfig, parse_cameras
+from mocapd.service.config.schema import validate
+from mocapd.service.daemon import Daemon
+from mocapd.service.process import exit_now
+from mocapd.sim.fake_cameras import FakeCameraFleet, FakeCameraSpec
 from mocapd.sim.fake_gige import add_loopback_aliases
 
+SOURCE_SIZE = (1088, 1920)  # the Pose2Sim demo videos: 1088 wide, 1920 tall (portrait)
 
-class CameraDemoDaemon(Daemon):
-    """The daemon of the camera demo: serves on an inherited socket and reports its fake cameras in /status."""
 
-    def __init__(
-        self, config: Config, rig: Rig, fleet: FakeCameraFleet, *, http_socket: socket.socket | None, **kw: Any
-    ) -> None:
-        super().__init__(config, rig, **kw)
-        self.fleet = fleet
-        if http_socket is not None:
-            self.http = StatusServer(self.status, self.metrics, sock=http_socket)
+@dataclass(frozen=True)
+class CameraDemoOptions:
+    """What the camera demo serves and how (``mocapd demo`` flags).
 
-    def status(self) -> dict[str, Any]:
-        out = super().status()
-        out["fake_cameras"] = self.fleet.status()
-        return out
+    Attributes
+    ----------
+    demo : str
+        Pose2Sim demo folder (``Demo_MultiPerson``: two people walking, four 60 fps portrait cameras).
+    scale : float
+        Served image size as a fraction of the videos' 1088 x 1920 (0.5: 544 x 960).
+    pixel_format : str
+        What the cameras send (``BayerRG8``: what a colour machine-vision camera sends; mocapd demosaics).
+    max_frames : int
+        Frames of each video served, looped (the demo videos have 100).
+    replug_after_s : float
+        A fake camera whose process ends is started again after this long.
+    lost_after_s : float
+        A camera silent this long is declared lost and reopened with back-off.
+    packed : bool
+        Detect the newest frames of all cameras together, their people's regions packed onto shared canvases
+        (``[detector.packing] enabled``); False: one whole-frame inference per camera frame, the cameras taking
+        turns on ``[detector] workers`` (docs/daemon.md, Numbers).
+    latency_s : float
+        The daemon's fixed delay between solve time and wall time. A CPU detector shared by four cameras
+        delivers each camera's detections late and far apart, and the scheduler interpolates only between
+        detections it already has: the latency must cover the detection delay plus the interval between two
+        detections of a camera. The keypoint hold and gap limits follow it (``latency/2``, ``2 × latency``).
+    """
 
-    def status_line_text(self) -> str:
-        cams = [s.status() for s in self.rig.sources]
-        up = sum(1 for c in cams if c.get("capture", {}).get("up"))
-        detected = sum(int(c["detected"]) for c in cams)
-        return f"{super().status_line_text()}  cameras up {up}/{len(cams)}  detected {detected}"
+    demo: str = "Demo_MultiPerson"
+    scale: float = 0.5
+    pixel_format: str = "BayerRG8"
+    max_frames: int = 100
+    replug_after_s: float = 3.0
+    lost_after_s: float = 2.0
+    latency_s: float = 1.0
+    packed: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0.05 <= self.scale <= 1.0:
+            raise ConfigError(f"camera demo scale = {self.scale}; allowed: 0.05 .. 1.0")
+        if self.max_frames < 1 or self.replug_after_s < 0 or self.lost_after_s <= 0:
+            raise ConfigError("camera demo: max_frames >= 1, replug_after_s >= 0 and lost_after_s > 0 are required")
+        if not 0.0 < self.latency_s <= 2.0:
+            raise ConfigError(f"camera demo latency = {self.latency_s} s; allowed: (0, 2]")
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """Served image size (width, height)."""
+        return round(SOURCE_SIZE[0] * self.scale), round(SOURCE_SIZE[1] * self.scale)
+
+
+def video_fps(path: Path) -> float:
+    """Frame rate of a video file (30 if the container does not say)."""
+    cap = cv2.VideoCapture(str(path))
+    try:
+        return float(cap.get(cv2.CAP_PROP_FPS)) or 30.0
+    finally:
+        cap.release()
+
+
+def write_scaled_calibration(opts: CameraDemoOptions, path: Path) -> list[str]:
+    """The demo's Qualisys calibration scaled to the served image size, as a mocapd calibration file; returns
+    the camera names."""
+    calib = scale_calibration(read_qca(demo_calibration(opts.demo)), opts.scale)
+    write_mocapd_toml(calib, path)
+    return calib.names
+
+
+def fake_camera_specs(opts: CameraDemoOptions, names: list[str], addresses: list[str]) -> list[FakeCameraSpec]:
+    """One fake camera per calibrated camera, serving that camera's video at its own pace."""
+    if len(addresses) < len(names):
+        raise ConfigError(f"{len(names)} cameras need as many addresses, got {addresses}")
+    specs = []
+    for name, video_name, address in zip(names, CAMERAS, addresses, strict=False):
+        video = demo_video(opts.demo, video_name)
+        specs.append(FakeCameraSpec(name, video, address, opts.size, video_fps(video), opts.pixel_format,
+                                    opts.max_frames))  # fmt: skip
+    return specs
+
+
+def demo_config(base: Config, opts: CameraDemoOptions, specs: list[FakeCameraSpec], calibration: Path) -> Config:
+    """``base`` (the user's config) with the demo's cameras, calibration, detection mode and timing: the tables a
+    user would write, checked by the same rules."""
+    w, h = opts.size
+    tables = [
+        {"name": s.name, "source": "aravis", "address": s.address, "pixel_format": opts.pixel_format,
+         "region": [0, 0, w, h], "frame_rate": s.video_fps, "packet_size": 8192, "ring_slots": 8,
+         "lost_after_s": opts.lost_after_s}
+        for s in specs
+    ]  # fmt: skip
+    lat = opts.latency_s
+    daemon = base.daemon.model_copy(update={"latency_s": lat, "keypoint_max_age_s": lat / 2,
+                                            "keypoint_max_gap_s": 2 * lat})  # fmt: skip
+    packing = base.detector.packing.model_copy(update={"enabled": opts.packed})
+    return base.model_copy(update={
+        "cameras": parse_cameras(tables), "daemon": daemon,
+        "calibration": validate(CalibrationConfig, {"file": str(calibration)}, "calibration"),
+        "detector": base.detector.model_copy(update={"packing": packing}),
+    })  # fmt: skip
+
+
+async def run_camera_demo(
+    base: Config,
+    opts: CameraDemoOptions,
+    options: RunOptions,
+    *,
+    monitor: Monitor | None = None,
+    seconds: float | None = None,
+    stop: asyncio.Event | None = None,
+    on_ready: Callable[[assembly.Assembly], None] | None = None,
+) -> int:
+    """Inside a private network namespace: start the fake cameras, then run the daemon of the generated config
+    until ``stop``, ``seconds`` or ``monitor``; the cameras stop after the daemon."""
+    stop = stop if stop is not None else asyncio.Event()
+    addresses = add_loopback_aliases(4)
+    with tempfile.TemporaryDirectory(prefix="mocapd-demo-") as tmp:
+        work = Path(tmp)
+        names = write_scaled_calibration(opts, work / "calibration.toml")
+        specs = fake_camera_specs(opts, names, addresses)
+        config = demo_config(base, opts, specs, work / "calibration.toml")
+        fleet = FakeCameraFleet(specs, time.monotonic_ns(), opts.replug_after_s)
+        started = asyncio.Event()
+        fleet_task = asyncio.create_task(fleet.run(started), name="fake cameras")
+        try:
+            waits = {asyncio.create_task(started.wait()), asyncio.create_task(stop.wait()), fleet_task}
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+            for w in waits - {fleet_task}:
+                w.cancel()
+            if fleet_task.done():
+                fleet_task.result()  # a camera did not start: raise its error
+            if stop.is_set():
+                return 0
+            options = RunOptions(
+                record=options.record, sockets=options.sockets, status_line=options.status_line, sinks=options.sinks,
+                manifest_extra={**options.manifest_extra, "camera_demo": asdict(opts)},
+                status_extras={**options.status_extras, "fake_cameras": fleet.status},
+            )  # fmt: skip
+            return await assembly.run(config, options, monitor=monitor, seconds=seconds, stop=stop,
+                                      on_ready=on_ready)  # fmt: skip
+        finally:
+            await fleet.stop()
+            fleet_task.cancel()
+            await asyncio.gather(fleet_task, return_exceptions=True)
 
 
 class PeopleCount:
@@ -92,77 +228,7 @@ class PeopleCount:
         return None
 
 
-Monitor = Callable[[CameraDemoDaemon], Coroutine[Any, Any, None]]
-
-
-async def run_camera_demo(
-    config: Config,
-    opts: CameraDemoOptions,
-    monitor: Monitor,
-    *,
-    http_socket: socket.socket | None = None,
-    sinks: list[PoseSink] | None = None,
-    status_line: Callable[[str], None] | None = None,
-    configure: Callable[[CameraDemoDaemon], None] | None = None,
-) -> int:
-    """Start the fake cameras and the daemon (in this process's network namespace, which must be private), run
-    ``monitor(daemon)`` once the daemon is ready, and stop everything when it returns or on SIGINT/SIGTERM.
-    ``configure(daemon)`` runs once the daemon is built, before it starts (streams, recorder)."""
-    loop = asyncio.get_running_loop()
-    addresses = add_loopback_aliases(4)
-    cameras, specs = demo_cameras(opts, addresses)
-    fleet = FakeCameraFleet(specs, time.monotonic_ns(), opts.replug_after_s)
-    stop = asyncio.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    started = asyncio.Event()
-    fleet_task = asyncio.create_task(fleet.run(started))
-    detector: AnyDetector | None = None
-    try:
-        detector = await loop.run_in_executor(None, make_detector, config.detector, opts, cameras)
-        rig, _ = await loop.run_in_executor(None, build_rig, config, opts, cameras, specs, detector)
-        waits = {asyncio.create_task(w) for w in (started.wait(), stop.wait())} | {fleet_task}
-        await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
-        for w in waits - {fleet_task}:
-            w.cancel()
-        if fleet_task.done():
-            fleet_task.result()  # a camera did not start: raise its error
-        if stop.is_set():
-            return 0
-        daemon = CameraDemoDaemon(config, rig, fleet, http_socket=http_socket, sinks=sinks, status_line=status_line)
-        if configure is not None:
-            configure(daemon)
-        task = asyncio.create_task(daemon.run())  # installs its own SIGINT/SIGTERM handlers
-        ready = asyncio.create_task(daemon.ready.wait())
-        await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
-        if ready.done():
-            watch = asyncio.create_task(monitor(daemon))
-            await asyncio.wait({task, watch}, return_when=asyncio.FIRST_COMPLETED)
-            watch.cancel()
-            daemon.request_stop()
-        return await task
-    finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
-        fleet_task.cancel()
-        with contextlib.suppress(asyncio.CancelledError, DeviceError):  # a start failure was raised above
-            await fleet_task
-        if detector is not None:
-            await loop.run_in_executor(None, detector.close)
-
-
-def _demo_monitor(seconds: float | None) -> Monitor:
-    async def monitor(daemon: CameraDemoDaemon) -> None:
-        url = daemon.http.url
-        print(f"ready: status {url}/status  metrics {url}/metrics  (Ctrl-C stops)", flush=True)
-        if seconds is None:
-            await asyncio.Event().wait()
-        await asyncio.sleep(seconds or 0.0)
-
-    return monitor
-
-
-def _summary(daemon: CameraDemoDaemon | None, people: PeopleCount) -> dict[str, Any]:
+def _summary(daemon: Daemon | None, people: PeopleCount) -> dict[str, Any]:
     out: dict[str, Any] = {
         "frames": people.frames, "frames_with_people": people.frames_with_people, "max_people": people.max_people,
         "identities": sorted(people.identities),
@@ -173,6 +239,12 @@ def _summary(daemon: CameraDemoDaemon | None, people: PeopleCount) -> dict[str, 
         out["detected"] = {c["name"]: c["detected"] for c in st["cameras"]}
         out["end_to_end_ms"] = st["latency_ms"]["end_to_end"]
     return out
+
+
+def announce(a: assembly.Assembly) -> None:
+    """Print where the running daemon can be seen (the line scripts and tests wait for)."""
+    url = a.daemon.http.url
+    print(f"ready: status {url}/status  metrics {url}/metrics  (Ctrl-C stops)", flush=True)
 
 
 def child_main(argv: list[str] | None = None) -> int:
@@ -186,32 +258,30 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--udp-fd", type=int, default=None, help="inherited UDP socket for the MVN / VMC streams")
     p.add_argument("--options", default="{}", help="CameraDemoOptions fields as JSON")
     args = p.parse_args(argv)
-    opts = CameraDemoOptions(**json.loads(args.options))
-    config = opts.apply(load_config(args.config))
-    sock = socket.socket(fileno=args.http_fd) if args.http_fd is not None else None
     people = PeopleCount()
-    sinks: list[PoseSink] = [people]
-    ws_sock = socket.socket(fileno=args.ws_fd) if args.ws_fd is not None else None
+    holder: list[Daemon] = []
 
-    def configure(daemon: CameraDemoDaemon) -> None:
-        # Streams go out through sockets made in the host's namespace (this one is private): the viewer and the
-        # engines on the host reach them; the recorder writes to the shared file system.
-        daemon.sinks.extend(build_udp_sinks(config, daemon, args.udp_fd))
-        daemon.sinks.extend(build_websocket_sinks(config, daemon, ws_sock))
-        attach_recorder(config, daemon, args.record, extra={"camera_demo": asdict(opts)})
+    def ready(a: assembly.Assembly) -> None:
+        holder.append(a.daemon)
+        announce(a)
 
-    holder: list[CameraDemoDaemon] = []
-
-    async def monitor(daemon: CameraDemoDaemon) -> None:
-        holder.append(daemon)
-        await _demo_monitor(None if args.seconds <= 0 else args.seconds)(daemon)
+    async def main() -> int:
+        stop = asyncio.Event()
+        with assembly.stop_on_signals(stop):
+            opts = CameraDemoOptions(**json.loads(args.options))
+            sockets = Sockets(
+                http=socket.socket(fileno=args.http_fd) if args.http_fd is not None else None,
+                websocket=socket.socket(fileno=args.ws_fd) if args.ws_fd is not None else None,
+                udp_fileno=args.udp_fd,
+            )
+            options = RunOptions(record=args.record, sockets=sockets, status_line=lambda s: print(s, flush=True),
+                                 sinks=[people])  # fmt: skip
+            return await run_camera_demo(load_config(args.config), opts, options, stop=stop, on_ready=ready,
+                                         seconds=None if args.seconds <= 0 else args.seconds)  # fmt: skip
 
     try:
-        code = asyncio.run(
-            run_camera_demo(config, opts, monitor, http_socket=sock, sinks=sinks,
-                            status_line=lambda s: print(s, flush=True), configure=configure)
-        )  # fmt: skip
-    except MocapdError as exc:  # missing model or demo data, a camera that never started: say what, no traceback
+        code = asyncio.run(main())
+    except MocapdError as exc:  # missing model or demo data, a camera that never opened: say what, no traceback
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2
     summary = _summary(holder[0] if holder else None, people)
@@ -226,18 +296,17 @@ def in_private_netns(
     module: str,
     args: list[str],
     *,
-    http_socket: socket.socket | None = None,
     inherited: dict[str, socket.socket] | None = None,
 ) -> int:
-    """Run ``python -m module args`` under ``unshare -rn`` (with ``http_socket`` inherited as ``--http-fd``, and
-    each of ``inherited`` as ``--<name> FD``), forwarding SIGINT/SIGTERM to it; returns its exit status."""
+    """Run ``python -m module args`` under ``unshare -rn`` with each socket of ``inherited`` passed as
+    ``--<name> FD``, forwarding SIGINT/SIGTERM to it; returns its exit status."""
     cmd = ["unshare", "-rn", sys.executable, "-m", module, *args]
     passed = dict(inherited or {})
-    if http_socket is not None:
-        passed["http-fd"] = http_socket
     for flag, sock in passed.items():
         cmd += [f"--{flag}", str(sock.fileno())]
-    proc = subprocess.Popen(cmd, pass_fds=tuple(sock.fileno() for sock in passed.values()))
+    # Its own session: the terminal's Ctrl-C reaches us only, and we forward it once (twice would hurry the
+    # child's clean stop).
+    proc = subprocess.Popen(cmd, pass_fds=tuple(sock.fileno() for sock in passed.values()), start_new_session=True)
     for sock in passed.values():
         sock.close()  # the child holds them now
     previous = {sig: signal.signal(sig, lambda s, _f: proc.send_signal(s)) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -248,6 +317,27 @@ def in_private_netns(
             signal.signal(sig, handler)
 
 
+def host_sockets(config: Config) -> dict[str, socket.socket]:
+    """The sockets the daemon serves and sends through, made here in the host's namespace so that what the
+    daemon does from its private namespace reaches the host: status listener, WebSocket listener, UDP socket."""
+    out: dict[str, socket.socket] = {}
+    d = config.daemon
+    try:
+        out["http-fd"] = socket.create_server((d.http_host, d.http_port))
+    except OSError as exc:
+        raise ConfigError(f"cannot listen on {d.http_host}:{d.http_port} ({exc}); try --http-port") from exc
+    ws = config.websocket
+    if ws.enabled:
+        try:
+            out["ws-fd"] = socket.create_server((ws.host, ws.port))
+        except OSError as exc:
+            out.pop("http-fd").close()
+            raise listen_error(ws.host, ws.port, exc) from exc
+    if config.udp.mvn.enabled or config.udp.vmc.enabled:
+        out["udp-fd"] = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    return out
+
+
 def run(
     config_path: Path | None,
     config: Config,
@@ -256,48 +346,29 @@ def run(
     opts: CameraDemoOptions,
     record: Path | None = None,
 ) -> int:
-    """``mocapd demo``: bind the status port here, run the demo in a private network namespace."""
+    """``mocapd demo``: bind the host sockets here, run the demo in a private network namespace."""
+    inherited = host_sockets(config)
     d = config.daemon
-    try:
-        sock = socket.create_server((d.http_host, d.http_port))
-    except OSError as exc:
-        print(f"error: cannot listen on {d.http_host}:{d.http_port} ({exc}); try --http-port", file=sys.stderr)
-        return 2
     print(
-        f"mocapd demo: 4 fake GigE Vision cameras ({opts.pixel_format}, {opts.scale:g} x 1088x1920) streaming the "
-        f"Pose2Sim {opts.demo} videos at their own 60 fps pace, in a private network namespace; detector "
+        f"mocapd demo: 4 fake GigE Vision cameras ({opts.pixel_format}, {opts.size[0]}x{opts.size[1]}) streaming "
+        f"the Pose2Sim {opts.demo} videos at their own 60 fps pace, in a private network namespace; detector "
         f"{config.detector.model.input_width}x{config.detector.model.input_height} on "
         f"{'packed (all cameras per pass)' if opts.packed else f'{config.detector.workers} worker(s)'}",
         flush=True,
     )
-    print(f"status: http://{d.http_host}:{sock.getsockname()[1]}/status  (starting cameras and models ...)", flush=True)
+    port = inherited["http-fd"].getsockname()[1]
+    print(f"status: http://{d.http_host}:{port}/status  (starting cameras and models ...)", flush=True)
+    if "ws-fd" in inherited:
+        ws_port = inherited["ws-fd"].getsockname()[1]
+        ws = config.websocket
+        print(f"viewer: http://{ws.host}:{ws_port}/  pose stream ws://{ws.host}:{ws_port}/", flush=True)
     args = ["--seconds", str(seconds or 0.0), "--options", json.dumps(asdict(opts))]
     if config_path is not None:
         args += ["--config", str(config_path)]
     if record is not None:
         args += ["--record", str(record)]
-    inherited = _stream_sockets(config)
-    if config.websocket.enabled:
-        port = inherited["ws-fd"].getsockname()[1]
-        print(f"viewer: http://{config.websocket.host}:{port}/  pose stream ws://{config.websocket.host}:{port}/",
-              flush=True)  # fmt: skip
-    return in_private_netns("mocapd.service.demo.cameras", args, http_socket=sock, inherited=inherited)
-
-
-def _stream_sockets(config: Config) -> dict[str, socket.socket]:
-    """The streams' sockets, made here in the host's namespace so that what the daemon serves or sends from its
-    private namespace reaches the host: the WebSocket listener, and one UDP socket for MVN and VMC."""
-    out: dict[str, socket.socket] = {}
-    ws = config.websocket
-    if ws.enabled:
-        try:
-            out["ws-fd"] = socket.create_server((ws.host, ws.port))
-        except OSError as exc:
-            raise listen_error(ws.host, ws.port, exc) from exc
-    if config.udp.mvn.enabled or config.udp.vmc.enabled:
-        out["udp-fd"] = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    return out
+    return in_private_netns("mocapd.service.demo.cameras", args, inherited=inherited)
 
 
 if __name__ == "__main__":
-    sys.exit(child_main())
+    exit_now(child_main())

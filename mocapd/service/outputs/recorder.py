@@ -8,14 +8,21 @@ and fsync happen on the writer's thread. When the queue is full a record is drop
 The manifest describes everything :mod:`mocapd.service.session.solve` needs to re-solve the session offline: the
 parsed config, the cameras, the skeleton and keypoint targets, the suits' calibrations, the scheduler's timing and
 the pose prior (``prior.npz`` beside it).
+
+Camera frames (optional, :class:`FrameRecordOptions`): a few times a second each camera's newest frame is copied,
+downscaled and JPEG-encoded in a worker thread and queued as a ``T_FRAME`` record of the ``frames`` stream, so
+``mocapd replay`` can show the camera panels of the session.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import platform
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -24,22 +31,29 @@ import numpy as np
 import mocapd
 from mocapd.core.camera import Camera
 from mocapd.core.sorting import Detections2D
-from mocapd.io.session import STREAMS, SessionWriter
+from mocapd.errors import ConfigError
+from mocapd.io.session import FRAMES, STREAMS, SessionWriter
 from mocapd.io.xsens_serial import ImuSample
+from mocapd.pipeline.camera_views import SnapshotSource, encode_jpeg
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.protocols.session_format import (
+    T_FRAME,
     T_IMU,
     T_KEYPOINTS,
     T_POSE,
+    FrameRecord,
     ImuRecord,
     PersonRecord,
     PoseRecord,
+    encode_frame,
     encode_imu,
     encode_keypoints,
     encode_pose,
 )
-from mocapd.service.config.daemon import SyntheticRigConfig
+from mocapd.service.config import config_document
+from mocapd.service.config.cameras import SyntheticConfig
 from mocapd.service.config.record import RecordConfig
+from mocapd.service.outputs.camera_views import snapshot_source
 
 if TYPE_CHECKING:
     from mocapd.service.config import Config
@@ -47,13 +61,13 @@ if TYPE_CHECKING:
 
 
 def pose_record(frame: PoseFrame) -> PoseRecord:
-    """A published frame as a recorded one (same fields)."""
+    """A published frame as a recorded one (same fields, and the instant each pose is for)."""
     people = tuple(
         PersonRecord(p.identity, p.suit, p.track, p.views, p.imus, p.iterations, p.converged, p.confidence,
-                     p.theta, p.joints, p.skeleton)
+                     p.theta, p.joints, p.skeleton, frame.pose_time_ns(p))
         for p in frame.people
     )  # fmt: skip
-    return PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people)
+    return PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people, frame.output)
 
 
 def _encode_frame(frame: PoseFrame) -> bytes:
@@ -70,22 +84,84 @@ def _encode_sample(s: ImuSample, quat: tuple[float, ...], acc: tuple[float, ...]
     return encode_imu(ImuRecord(s.sensor, -1 if t is None else t, s.host_ns, s.device_ticks, s.packet_counter, q, a))
 
 
-class SessionRecorder:
-    """Records one session (see the module docstring); a pose sink plus two input taps."""
+@dataclass(frozen=True)
+class FrameRecordOptions:
+    """Recording of downscaled camera frames into the session's ``frames`` stream."""
 
-    def __init__(self, writer: SessionWriter) -> None:
+    enabled: bool = False
+    """Record camera frames (for the camera panels of ``mocapd replay``)."""
+    rate_hz: float = 2.0
+    """Frames per second per camera."""
+    max_width: int = 320
+    """Width the frames are downscaled to (pixels; the aspect ratio is kept, never upscaled)."""
+    jpeg_quality: int = 70
+    """JPEG quality, 1..100."""
+
+    def __post_init__(self) -> None:
+        if not 0.1 <= self.rate_hz <= 30.0:
+            raise ConfigError(f"record.frames_hz = {self.rate_hz!r}; allowed: 0.1 .. 30")
+        if not 16 <= self.max_width <= 4096:
+            raise ConfigError(f"record.frames_width = {self.max_width!r}; allowed: 16 .. 4096")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"record.frames_quality = {self.jpeg_quality!r}; allowed: 1 .. 100")
+
+
+class SessionRecorder:
+    """Records one session (see the module docstring); a pose sink plus two input taps, and optionally a task
+    recording each camera's frames from ``frame_sources``."""
+
+    def __init__(
+        self,
+        writer: SessionWriter,
+        frame_sources: Sequence[SnapshotSource | None] = (),
+        frames: FrameRecordOptions | None = None,
+    ) -> None:
         self.writer = writer
         self.frames = 0
+        self.frame_sources = list(frame_sources)
+        self.frame_options = frames or FrameRecordOptions()
+        self.frames_recorded = 0
+        self._newest = [-1] * len(self.frame_sources)
+        self._frame_task: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------------------------------------ PoseSink
     async def start(self) -> None:
         await asyncio.get_running_loop().run_in_executor(None, self.writer.open)
+        if self.frame_options.enabled and any(s is not None for s in self.frame_sources):
+            self._frame_task = asyncio.create_task(self._frame_loop())
+
+    async def _frame_loop(self) -> None:
+        period = 1.0 / self.frame_options.rate_hz
+        while True:
+            for record in await asyncio.to_thread(self._grab_frames):
+                if self.writer.put(FRAMES, T_FRAME, encode_frame, record):
+                    self.frames_recorded += 1
+            await asyncio.sleep(period)
+
+    def _grab_frames(self) -> list[FrameRecord]:
+        """In a worker thread: each camera's newest frame not recorded yet, downscaled, as JPEG."""
+        o = self.frame_options
+        out = []
+        for i, src in enumerate(self.frame_sources):
+            snap = src.snapshot(o.max_width) if src is not None else None
+            if snap is None or snap.capture_ns <= self._newest[i]:
+                continue
+            self._newest[i] = snap.capture_ns
+            if snap.image is not None:
+                h, w = snap.image.shape[:2]
+                out.append(FrameRecord(i, snap.capture_ns, w, h, encode_jpeg(snap.image, o.jpeg_quality)))
+        return out
 
     def publish(self, frame: PoseFrame) -> None:
         self.writer.put("poses", T_POSE, _encode_frame, frame)
         self.frames += 1
 
     async def aclose(self, update: dict[str, Any] | None = None) -> None:
+        if self._frame_task is not None:
+            self._frame_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._frame_task
+            self._frame_task = None
         info = {"ended_utc": dt.datetime.now(dt.UTC).isoformat(), "ended_monotonic_ns": time.monotonic_ns()}
         await asyncio.get_running_loop().run_in_executor(None, self.writer.close, {**info, **(update or {})})
 
@@ -101,7 +177,8 @@ class SessionRecorder:
     def status(self) -> dict[str, Any]:
         c = self.writer.counters
         return {"directory": str(self.writer.directory), "queued": c.queued, "written": c.written,
-                "dropped": c.dropped, "bytes": c.bytes, "write_errors": c.write_errors}  # fmt: skip
+                "dropped": c.dropped, "bytes": c.bytes, "write_errors": c.write_errors,
+                "camera_frames": self.frames_recorded}  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------- manifest
@@ -127,12 +204,13 @@ def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | Non
         "started_monotonic_ns": time.monotonic_ns(),
         "host": platform.node(),
         "streams": list(STREAMS),
-        "config": config.raw,
+        "config": config_document(config),
         "scheduler": {
             "rate_hz": o.rate_hz, "latency_ns": o.latency_ns, "keypoint_max_age_ns": o.keypoint_max_age_ns,
             "keypoint_max_gap_ns": o.keypoint_max_gap_ns, "match_px": o.match_px,
             "camera_offsets_ns": list(o.camera_offsets_ns), "imu_offsets_ns": dict(o.imu_offsets_ns),
-            "body_size_frames": o.body_size_frames,
+            "body_size_frames": o.body_size_frames, "output": o.prediction.output,
+            "heading_correction": o.heading.enabled,
         },
         "cameras": [camera_dict(c) for c in rig.cameras],
         "skeleton": {"offsets": rig.skeleton.offsets.tolist(), "root_height": rig.skeleton.root_height,
@@ -148,11 +226,11 @@ def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | Non
     }  # fmt: skip
 
 
-def synthetic_extra(syn: SyntheticRigConfig, epoch_ns: int, suits: int | None = None) -> dict[str, Any]:
+def synthetic_extra(syn: SyntheticConfig, cameras: list[str], epoch_ns: int) -> dict[str, Any]:
     """The manifest's description of a synthetic world (rebuilt by the resolve measurement to score against
-    the truth): its size, seed and the host time of its t = 0."""
-    return {"epoch_ns": epoch_ns, "cameras": syn.cameras, "people": syn.people,
-            "suits": syn.suits if suits is None else suits, "seed": syn.seed, "motion": syn.motion}  # fmt: skip
+    the truth): its cameras, size, seed and the host time of its t = 0."""
+    return {"epoch_ns": epoch_ns, "cameras": len(cameras), "camera_names": cameras, "people": syn.people,
+            "suits": syn.suits, "seed": syn.seed, "motion": syn.motion}  # fmt: skip
 
 
 def session_directory(cfg: RecordConfig, directory: str | Path | None) -> Path:
@@ -168,21 +246,31 @@ def session_directory(cfg: RecordConfig, directory: str | Path | None) -> Path:
 
 
 def attach_recorder(
-    config: Config, daemon: Daemon, directory: str | Path | None = None, extra: dict[str, Any] | None = None
+    config: Config,
+    daemon: Daemon,
+    directory: str | Path | None = None,
+    extra: dict[str, Any] | None = None,
+    frames: FrameRecordOptions | None = None,
 ) -> SessionRecorder | None:
     """Record ``daemon``'s session when ``config.record.enabled`` or a ``directory`` is given (else None).
 
     The recorder is appended to ``daemon.sinks`` and to its detection and IMU taps; its files are created when
-    the daemon starts its sinks.
+    the daemon starts its sinks. With ``frames`` enabled (default: ``[record] frames``) it also records
+    downscaled camera frames from the rig's frame sources.
     """
     rc = config.record
     if directory is None and not rc.enabled:
         return None
+    if frames is None:
+        frames = FrameRecordOptions(rc.frames, rc.frames_hz, rc.frames_width, rc.frames_quality)
     path = session_directory(rc, directory)
     manifest = session_manifest(config, daemon, extra)
-    writer = SessionWriter(path, manifest, flush_interval_s=rc.flush_interval_s, fsync=rc.fsync,
+    streams = (*STREAMS, FRAMES) if frames.enabled else STREAMS
+    manifest["streams"] = list(streams)
+    writer = SessionWriter(path, manifest, streams=streams, flush_interval_s=rc.flush_interval_s, fsync=rc.fsync,
                            queue_size=rc.queue_size)  # fmt: skip
-    rec = SessionRecorder(writer)
+    sources = [snapshot_source(s) for s in daemon.rig.sources] if frames.enabled else []
+    rec = SessionRecorder(writer, sources, frames)
     prior = daemon.rig.prior
     if prior is not None:
         path.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""The UDP pose streams of ``[udp]`` (MVN network streaming, VMC) as pose sinks."""
+"""The UDP pose streams of ``[udp]`` (MVN network streaming, VMC, VRChat OSC trackers) as pose sinks."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def udp_sinks(config: Config, skeleton: Skeleton, fileno: int | None = None) -> 
     """The enabled UDP streams of ``config.udp`` for poses on ``skeleton`` (people carrying their own sized
     skeleton are sent on theirs), at ``config.daemon.output_rate_hz``; a replay has no daemon but the same needs.
     ``fileno``: an inherited UDP socket to send from (the camera demo runs in a private network namespace)."""
-    from mocapd.io.udp_stream import MvnUdpSink, VmcUdpSink
+    from mocapd.io.udp_stream import MvnUdpSink, VmcUdpSink, VrChatUdpSink
 
     u = config.udp
     rate = config.daemon.output_rate_hz
@@ -55,6 +55,19 @@ def udp_sinks(config: Config, skeleton: Skeleton, fileno: int | None = None) -> 
             fileno=fileno,
         )
         sinks.append(vmc)
+    if u.vrchat.enabled:
+        c = u.vrchat
+        vrchat = VrChatUdpSink(
+            skeleton,
+            (c.destination.host, c.destination.port),
+            subject=c.subject or None,
+            roles=c.trackers,
+            user_height_m=c.user_height_m or None,
+            rate_divisor=c.rate_divisor,
+            release_after_frames=release(c.rate_divisor),
+            fileno=fileno,
+        )
+        sinks.append(vrchat)
     return sinks
 
 

@@ -9,8 +9,10 @@ from typing import TYPE_CHECKING, Any
 
 from mocapd.core.skeleton import Skeleton
 from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
+from mocapd.pipeline.camera_views import CameraViewOptions, CameraViews
 from mocapd.protocols.ws_stream import StreamDescription, StreamOptions
 from mocapd.service.config import Config
+from mocapd.service.outputs.camera_views import attach_camera_views
 
 if TYPE_CHECKING:
     from mocapd.service.daemon import Daemon
@@ -23,9 +25,20 @@ def build_websocket_sinks(
 
     Add the result to ``daemon.sinks`` before ``daemon.run()``; the server listens when the daemon starts its
     sinks. Subjects on the rig's skeleton share the key ``"default"``; a body-sized person's own skeleton gets a
-    key of its own, announced in a fresh hello before the first frame that uses it.
+    key of its own, announced in a fresh hello before the first frame that uses it. The server also sends the
+    viewer's camera panels: their taps are attached to ``daemon`` here.
     """
-    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock)
+    ws = config.websocket
+    if not ws.enabled:
+        return []
+    views = None
+    if ws.cameras:
+        options = CameraViewOptions(
+            max_width=ws.camera_width, rate_hz=ws.camera_rate_hz, jpeg_quality=ws.camera_quality
+        )
+        views = attach_camera_views(daemon, options)
+    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock,
+                           camera_views=views, output=daemon.scheduler.options.prediction.output)  # fmt: skip
 
 
 def websocket_sinks(
@@ -35,8 +48,12 @@ def websocket_sinks(
     status: Callable[[], Mapping[str, Any]] | None = None,
     clock: Callable[[], int] = time.monotonic_ns,
     sock: socket.socket | None = None,
+    camera_views: CameraViews | None = None,
+    output: str = "delayed",
 ) -> list[WebSocketStreamServer]:
-    """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health)."""
+    """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health), with
+    camera panels from ``camera_views`` when given; ``output`` is the output mode the hello announces (the
+    daemon's, or the recorded session's)."""
     ws = config.websocket
     if not ws.enabled:
         return []
@@ -45,5 +62,7 @@ def websocket_sinks(
         max_message_bytes=ws.max_message_bytes, status_hz=ws.status_hz, viewer=ws.viewer,
         defaults=StreamOptions(encoding=ws.encoding, convention=ws.convention, globals=ws.globals),
     )  # fmt: skip
-    description = StreamDescription(rate_hz=config.daemon.output_rate_hz, skeletons={"default": skeleton})
-    return [WebSocketStreamServer(settings, description, status=status, clock=clock, sock=sock)]
+    description = StreamDescription(config.daemon.output_rate_hz, {"default": skeleton}, output=output)
+    return [
+        WebSocketStreamServer(settings, description, status=status, clock=clock, sock=sock, camera_views=camera_views)
+    ]

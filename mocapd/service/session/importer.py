@@ -35,7 +35,7 @@ from mocapd.io.imu_recordings import (
     write_imported_session,
 )
 from mocapd.io.session import STREAMS
-from mocapd.service.config import DEFAULT_CONFIG, load_config
+from mocapd.service.config import DEFAULT_CONFIG, config_document, load_config
 
 __all__ = [
     "MVN_SENSOR_BONES",
@@ -67,7 +67,7 @@ def imported_manifest(
     if not checked:
         raise InputError("no sensor is assigned to a bone: give SENSOR=BONE pairs (--assign)")
     cfg = load_config()
-    raw = dict(cfg.raw)
+    raw = config_document(cfg)  # the defaults, as a recording of the daemon would store them
     imu = dict(raw.get("imu", {}))
     imu["assignment"] = checked
     imu["imu_set"] = imu_set or ""

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.camera import Camera
+from mocapd.core.heading import HeadingOptions
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
@@ -115,18 +117,21 @@ def session_rig(session: Session) -> SessionRig:
         camera_offsets_ns=tuple(int(v) for v in s["camera_offsets_ns"]),
         imu_offsets_ns={k: int(v) for k, v in s["imu_offsets_ns"].items()},
         body_size_frames=int(s.get("body_size_frames", 0)),
+        # Offline there is nothing to predict: always the delayed solve. Heading correction as recorded (on for
+        # sessions from before it existed: it only ever uses the session's own keypoints and IMUs).
+        heading=HeadingOptions(enabled=bool(s.get("heading_correction", True))),
     )  # fmt: skip
     return SessionRig(config, cameras, skeleton, targets, prior, suits, options)
 
 
 def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencyScheduler, ImuIngest]:
     cfg = rig.config
-    lm = replace(cfg.solver.lm, max_iterations=opts.max_iterations, function_tolerance=opts.tolerance,
+    lm = replace(cfg.solver.lm.options(), max_iterations=opts.max_iterations, function_tolerance=opts.tolerance,
                  parameter_tolerance=opts.tolerance)  # fmt: skip
     ingest = ImuIngest(capacity=max(cfg.imu.buffer_capacity, 1024))
     tracker = PeopleTracker(
-        SubjectTracker(DetectionSorter(rig.cameras, cfg.tracking.sorting), cfg.tracking.enrolment),
-        SuitBinder(rig.skeleton, cfg.tracking.binding) if rig.suits else None,
+        SubjectTracker(DetectionSorter(rig.cameras, cfg.tracking.sorting.options()), cfg.tracking.enrolment.options()),
+        SuitBinder(rig.skeleton, cfg.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
     )
     sched = FixedLatencyScheduler(
         rig.cameras, rig.skeleton, rig.targets, tracker, prior=rig.prior, ingest=ingest, suits=rig.suits,
@@ -175,8 +180,11 @@ def imu_times(records: list[ImuRecord], refit: bool = True) -> list[tuple[int, I
     return out
 
 
-def forward_resolve(session: Session, opts: ResolveOptions) -> list[PoseRecord]:
-    """Pass 1: every recorded input through the daemon's scheduler at the recorded solve times."""
+def forward_resolve(
+    session: Session, opts: ResolveOptions, progress: Callable[[int], None] | None = None
+) -> list[PoseRecord]:
+    """Pass 1: every recorded input through the daemon's scheduler at the recorded solve times; ``progress`` is
+    called with 1 after each frame."""
     rig = session_rig(session)
     sched, ingest = _scheduler(rig, opts)
     o = rig.options
@@ -203,6 +211,8 @@ def forward_resolve(session: Session, opts: ResolveOptions) -> list[PoseRecord]:
             for p in frame.people
         )  # fmt: skip
         out.append(PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people))
+        if progress is not None:
+            progress(1)
     return out
 
 
@@ -310,10 +320,13 @@ def smooth_frames(frames: list[PoseRecord], skeleton: Skeleton, opts: ResolveOpt
     return out
 
 
-def resolve(session: Session, opts: ResolveOptions | None = None) -> tuple[list[PoseRecord], dict[str, Any]]:
-    """Both passes; returns the frames and a summary (frames, people solves, inputs used)."""
+def resolve(
+    session: Session, opts: ResolveOptions | None = None, progress: Callable[[int], None] | None = None
+) -> tuple[list[PoseRecord], dict[str, Any]]:
+    """Both passes; returns the frames and a summary (frames, people solves, inputs used). ``progress`` is called
+    with 1 per frame of the forward pass."""
     opts = opts or ResolveOptions()
-    frames = forward_resolve(session, opts)
+    frames = forward_resolve(session, opts, progress)
     if opts.smooth:
         frames = smooth_frames(frames, session_rig(session).skeleton, opts)
     summary = {

@@ -24,8 +24,9 @@ def world_of(session: Session) -> tuple[SyntheticWorld, int]:
         int(s["people"]),
         int(s["suits"]),
         seed=int(s["seed"]),
-        motion=str(s.get("motion", "procedural")),
-    )  # sessions before the recorded motion
+        motion=str(s.get("motion", "procedural")),  # sessions before the recorded motion
+        camera_names=s.get("camera_names"),  # sessions before named synthetic cameras: cam0, cam1, ...
+    )
     return world, int(s["epoch_ns"])
 
 
@@ -35,8 +36,8 @@ def person_errors(world: SyntheticWorld, epoch_ns: int, frames: list[PoseRecord]
     people."""
     out: dict[tuple[int, int], float] = {}
     for f in frames:
-        t = (f.t_solve_ns - epoch_ns) / 1e9
-        for p in f.people:
+        for p in f.people:  # against the truth at the pose's own instant (later than the solve when predicted)
+            t = ((f.t_solve_ns if p.t_pose_ns is None else p.t_pose_ns) - epoch_ns) / 1e9
             e, k = world.nearest_site_error(p.theta, p.skeleton, t)
             out[(f.t_solve_ns, k)] = min(e, out.get((f.t_solve_ns, k), np.inf))
     return out

@@ -1,0 +1,427 @@
+"""The SlimeVR server side of the tracker protocol as a sans-I/O state machine (bytes and times in, events out).
+
+Datagram formats: :mod:`mocapd.protocols.slimevr`. What the server does, following SlimeVR-Server's
+``TrackersUDPServer.kt`` (commit ``554976390b7c``):
+
+- a handshake (type 3) from any address opens a connection, or hands an existing one (same MAC) over to the new
+  address, resets its packet numbering, and is answered with the 64-byte handshake reply;
+- sensors exist once announced by a sensor info packet (15), which is acknowledged; trackers of protocol version
+  < 9 have sensor 0 from the handshake on;
+- a connection's packets must carry increasing packet numbers (0 is always accepted: handshakes, echoed pings):
+  a number not above the last one is a late or duplicated datagram, counted as reordered and dropped (an older
+  orientation must not overwrite a newer one); a jump counts the numbers skipped as lost;
+- every ``heartbeat_interval_ns`` each connection gets a heartbeat (answered by the tracker) and a ping (echoed:
+  the round trip is reported); a connection silent for ``timeout_ns`` is timed out until it speaks again;
+- feature flags (22) are answered with the server's (bundles and compact bundles, which are parsed);
+- acceleration of trackers with protocol version < 22 is turned by −90° about +Z, the server's correction for
+  firmware that applied the board rotation to acceleration wrongly (SlimeVR-Tracker-ESP pull request 480).
+
+What mocapd adds, because its buffers are sampled at fixed instants:
+
+- samples: each orientation becomes a :class:`SensorSample` with the sensor's specific force in the sensor frame
+  (mocapd's IMU model, gravity included: the tracker's gravity-free acceleration plus ``R_iᵀ (0, 0, g)``); the
+  acceleration is the one that came with the rotation in the same datagram (bundles, packet 23) or the latest
+  one received within ``acc_max_age_ns``, otherwise none (rest assumed, counted);
+- holding: firmware sends an orientation only when it changed (``OPTIMIZE_UPDATES``), so a still tracker goes
+  quiet. While its connection is alive, :meth:`SlimeVrServer.tick` repeats a sensor's last orientation when it is
+  older than ``hold_after_ns`` (marked ``held``), so look-ups see "unchanged", not a dropout; a timed-out tracker
+  is not held, and its buffers run dry as any lost sensor's do.
+
+Sensor ids are ``"<MAC>/<sensor index>"`` (``"AA:BB:CC:DD:EE:FF/0"``), or ``"<host>:<port>/<index>"`` for a tracker
+that sent no MAC. Nothing here reads a clock: every call takes the host time ``now_ns``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Hashable
+from dataclasses import dataclass, field
+from typing import Any
+
+from mocapd.protocols.slimevr import (
+    DATA_TYPE_NORMAL,
+    HANDSHAKE_REPLY,
+    Acceleration,
+    Battery,
+    FeatureFlags,
+    Handshake,
+    Heartbeat,
+    Ignored,
+    Packet,
+    PingPong,
+    Quat,
+    Rotation,
+    SensorInfo,
+    ServerFeature,
+    SignalStrength,
+    Temperature,
+    TrackerError,
+    Tx,
+    Vec3,
+    decode_datagram,
+    encode_feature_flags,
+    encode_heartbeat,
+    encode_ping,
+    encode_sensor_info_ack,
+)
+
+Address = tuple[str, int]
+STANDARD_GRAVITY = 9.80665
+SERVER_FEATURES = ServerFeature.BUNDLE | ServerFeature.BUNDLE_COMPACT
+
+
+@dataclass(frozen=True, slots=True)
+class ServerOptions:
+    """Timing of the server side (ns)."""
+
+    heartbeat_interval_ns: int = 500_000_000
+    """Heartbeat and ping to every connection this often (the SlimeVR server's 500 ms)."""
+    timeout_ns: int = 1_000_000_000
+    """A connection silent this long is timed out (the SlimeVR server's 1 s)."""
+    hold_after_ns: int = 20_000_000
+    """Repeat a live sensor's last orientation when it is older than this."""
+    acc_max_age_ns: int = 100_000_000
+    """A separate acceleration packet applies to rotations up to this much later."""
+    gravity: float = STANDARD_GRAVITY
+
+    def __post_init__(self) -> None:
+        for name in ("heartbeat_interval_ns", "timeout_ns", "hold_after_ns", "acc_max_age_ns"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"ServerOptions.{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass(slots=True)
+class SensorState:
+    """One sensor of a tracker."""
+
+    index: int
+    status: int = 1
+    imu_type: int = 0
+    rotations: int = 0
+    held: int = 0
+    without_acceleration: int = 0
+    temperature_c: float | None = None
+    quat: Quat | None = None
+    acc: Vec3 | None = None  # the latest gravity-free acceleration (sensor frame)
+    acc_ns: int = 0
+    last_sample_ns: int = 0
+
+
+@dataclass(slots=True)
+class TrackerState:
+    """One tracker (one ESP board, one or more sensors) as the server knows it."""
+
+    key: str
+    mac: str | None
+    address: Address
+    board: int
+    mcu: int
+    firmware: str
+    protocol_version: int
+    connected_ns: int
+    last_packet_ns: int
+    timed_out: bool = False
+    last_number: int = 0
+    packets: int = 0
+    lost: int = 0
+    reordered: int = 0
+    handovers: int = 0
+    battery_voltage: float | None = None
+    battery_level: float | None = None
+    rssi_dbm: int | None = None
+    rtt_ms: float | None = None
+    pings: dict[int, int] = field(default_factory=dict)  # ping id -> sent at (the last few, a late echo still counts)
+    next_keepalive_ns: int = 0
+    firmware_features: bytes | None = None
+    errors: int = 0
+    sensors: dict[int, SensorState] = field(default_factory=dict)
+
+    def sensor_id(self, index: int) -> str:
+        return f"{self.key}/{index}"
+
+
+@dataclass(frozen=True, slots=True)
+class SensorSample:
+    """One orientation of one sensor for the IMU buffers.
+
+    ``quat`` (w, x, y, z): sensor frame → the tracker's +Z-up fusion frame; ``acc``: specific force in the sensor
+    frame (m/s², gravity included, the convention of mocapd's IMU model); ``held``: a repeat of the last orientation
+    of a quiet but connected tracker.
+    """
+
+    sensor: str
+    host_ns: int
+    quat: Quat
+    acc: Vec3
+    held: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class TrackerConnected:
+    key: str
+    address: Address
+    handover: bool  # an existing tracker (same MAC) came back from a new address, or re-shook hands
+
+
+@dataclass(frozen=True, slots=True)
+class TrackerTimedOut:
+    key: str
+
+
+Event = SensorSample | TrackerConnected | TrackerTimedOut
+
+
+@dataclass(slots=True)
+class ServerCounters:
+    datagrams: int = 0
+    bad_datagrams: int = 0
+    """Undecodable datagrams or packets (short, unknown type, non-finite or non-unit values), counted per reason."""
+    unknown_source: int = 0
+    """Datagrams from an address that has not shaken hands (dropped)."""
+    unannounced_sensor: int = 0
+    """Orientations of a sensor that sent no sensor info (dropped, as the SlimeVR server does)."""
+    ignored: Counter[str] = field(default_factory=Counter)
+    bad_reasons: Counter[str] = field(default_factory=Counter)
+
+
+class SlimeVrServer:
+    """Tracker connections of one server socket.
+
+    Feed every received datagram to :meth:`receive_datagram`, call :meth:`tick` regularly (every
+    ``hold_after_ns`` or so), then send :meth:`datagrams_to_send` and handle :meth:`events_received`.
+    """
+
+    def __init__(self, options: ServerOptions | None = None) -> None:
+        self.options = options or ServerOptions()
+        self.trackers: dict[str, TrackerState] = {}
+        self.counters = ServerCounters()
+        self._by_address: dict[Hashable, TrackerState] = {}
+        self._out: list[tuple[bytes, Address]] = []
+        self._events: list[Event] = []
+        self._ping_counter = 0
+
+    # ------------------------------------------------------------------------------------------ I/O boundary
+    def datagrams_to_send(self) -> list[tuple[bytes, Address]]:
+        out, self._out = self._out, []
+        return out
+
+    def events_received(self) -> list[Event]:
+        out, self._events = self._events, []
+        return out
+
+    def receive_datagram(self, data: bytes, address: Address, now_ns: int) -> None:
+        """Process one datagram received from ``address`` at host time ``now_ns``."""
+        c = self.counters
+        c.datagrams += 1
+        decoded = decode_datagram(data)
+        if decoded.error is not None:
+            self._bad(decoded.error)
+        if decoded.packet_type == Tx.HANDSHAKE and decoded.packets:
+            packet = decoded.packets[0]
+            assert isinstance(packet, Handshake)
+            self._handshake(packet, address, now_ns)
+            return
+        tracker = self._by_address.get(address)
+        if tracker is None:
+            if decoded.packet_type >= 0:
+                c.unknown_source += 1
+            return
+        if decoded.packet_type < 0:
+            return
+        if decoded.number != 0:
+            if decoded.number <= tracker.last_number:
+                tracker.reordered += 1
+                return
+            tracker.lost += decoded.number - tracker.last_number - 1
+            tracker.last_number = decoded.number
+        tracker.packets += 1
+        tracker.last_packet_ns = now_ns
+        if tracker.timed_out:
+            tracker.timed_out = False
+        rotations: dict[int, Rotation] = {}
+        accelerations: dict[int, Vec3] = {}
+        for p in decoded.packets:
+            self._packet(tracker, p, now_ns, rotations, accelerations)
+        for index, rot in rotations.items():
+            self._sample(tracker, index, rot, accelerations.get(index), now_ns)
+
+    def tick(self, now_ns: int) -> None:
+        """Heartbeats, pings, time-outs and held orientations due at ``now_ns``."""
+        o = self.options
+        for t in self.trackers.values():
+            if now_ns >= t.next_keepalive_ns:
+                t.next_keepalive_ns = now_ns + o.heartbeat_interval_ns
+                self._out.append((encode_heartbeat(), t.address))
+                self._ping_counter = (self._ping_counter + 1) & 0xFFFFFFFF
+                t.pings[self._ping_counter] = now_ns
+                if len(t.pings) > 8:
+                    del t.pings[next(iter(t.pings))]
+                self._out.append((encode_ping(self._ping_counter), t.address))
+            if not t.timed_out and now_ns - t.last_packet_ns > o.timeout_ns:
+                t.timed_out = True
+                self._events.append(TrackerTimedOut(t.key))
+            if t.timed_out:
+                continue
+            for s in t.sensors.values():
+                if s.quat is not None and now_ns - s.last_sample_ns >= o.hold_after_ns:
+                    s.held += 1
+                    s.last_sample_ns = now_ns
+                    self._events.append(SensorSample(t.sensor_id(s.index), now_ns, s.quat,
+                                                     self._specific_force(s.quat, None), held=True))  # fmt: skip
+
+    # ------------------------------------------------------------------------------------------ packets
+    def _bad(self, reason: str) -> None:
+        self.counters.bad_datagrams += 1
+        # A hostile sender can vary the reason (unknown type numbers): keep at most 32 distinct keys.
+        key = reason.split(" (", maxsplit=1)[0][:60]
+        reasons = self.counters.bad_reasons
+        reasons[key if key in reasons or len(reasons) < 31 else "other"] += 1
+
+    def _handshake(self, h: Handshake, address: Address, now_ns: int) -> None:
+        old = self.trackers.get(h.mac) if h.mac else None
+        if old is None:
+            old = self._by_address.get(address)
+        if old is not None:
+            self._by_address.pop(old.address, None)
+            old.address = address
+            old.last_number = 0
+            old.handovers += 1
+            old.firmware, old.protocol_version, old.board, old.mcu = h.firmware, h.protocol_version, h.board, h.mcu
+            old.last_packet_ns = now_ns
+            old.timed_out = False
+            tracker = old
+        else:
+            key = h.mac or f"{address[0]}:{address[1]}"
+            tracker = TrackerState(key, h.mac, address, h.board, h.mcu, h.firmware, h.protocol_version,
+                                   connected_ns=now_ns, last_packet_ns=now_ns, next_keepalive_ns=now_ns)  # fmt: skip
+            self.trackers[key] = tracker
+            if h.protocol_version < 9:  # old firmware announces no sensors: sensor 0 exists from the start
+                tracker.sensors[0] = SensorState(0, imu_type=h.imu)
+        self._by_address[address] = tracker
+        self._out.append((HANDSHAKE_REPLY, address))
+        self._events.append(TrackerConnected(tracker.key, address, handover=old is not None))
+
+    def _packet(self, t: TrackerState, p: Packet, now_ns: int, rotations: dict[int, Rotation],
+                accelerations: dict[int, Vec3]) -> None:  # fmt: skip
+        if isinstance(p, Rotation):
+            if p.data_type != DATA_TYPE_NORMAL:
+                self.counters.ignored["correction rotation"] += 1
+            elif p.sensor not in t.sensors:
+                self.counters.unannounced_sensor += 1
+            else:
+                rotations[p.sensor] = p
+                if p.acc is not None:
+                    accelerations[p.sensor] = self._acc(t, p.acc)
+        elif isinstance(p, Acceleration):
+            s = t.sensors.get(p.sensor)
+            if s is None:
+                self.counters.unannounced_sensor += 1
+                return
+            s.acc, s.acc_ns = self._acc(t, p.acc), now_ns
+            accelerations[p.sensor] = s.acc
+        elif isinstance(p, SensorInfo):
+            s = t.sensors.setdefault(p.sensor, SensorState(p.sensor))
+            s.status, s.imu_type = p.status, p.imu_type
+            self._out.append((encode_sensor_info_ack(p.sensor, p.status), t.address))
+        elif isinstance(p, PingPong):
+            sent = t.pings.pop(p.ping_id, None)
+            if sent is not None:
+                t.rtt_ms = (now_ns - sent) / 1e6
+            else:
+                self.counters.ignored["unknown ping id"] += 1
+        elif isinstance(p, Battery):
+            t.battery_voltage, t.battery_level = p.voltage, p.level
+        elif isinstance(p, SignalStrength):
+            t.rssi_dbm = p.rssi_dbm
+        elif isinstance(p, Temperature):
+            if p.sensor in t.sensors:
+                t.sensors[p.sensor].temperature_c = p.celsius
+        elif isinstance(p, TrackerError):
+            t.errors += 1
+            if p.sensor in t.sensors:
+                t.sensors[p.sensor].status = 2
+        elif isinstance(p, FeatureFlags):
+            t.firmware_features = p.flags
+            self._out.append((encode_feature_flags(SERVER_FEATURES), t.address))
+        elif isinstance(p, Ignored):
+            self.counters.ignored[Tx(p.packet_type).name.lower()] += 1
+        elif isinstance(p, Heartbeat):
+            return
+        else:  # a second handshake inside a bundle is refused by the decoder; nothing else is left
+            self.counters.ignored[type(p).__name__] += 1
+
+    # Per-datagram arithmetic is written out on floats: numpy costs ~100 µs per tiny array call here, and a suit
+    # of trackers sends thousands of datagrams a second into the daemon's event loop.
+    def _acc(self, t: TrackerState, acc: Vec3) -> Vec3:
+        if t.protocol_version >= 22:
+            return acc
+        return (acc[1], -acc[0], acc[2])  # turned by −90° about +Z
+
+    def _specific_force(self, quat: Quat, linear: Vec3 | None) -> Vec3:
+        """Sensor-frame specific force: gravity-free acceleration + ``R_iᵀ (0, 0, g)`` (at rest without one)."""
+        w, x, y, z = quat
+        g = self.options.gravity
+        # R_iᵀ e_z is the third row of R_i.
+        fx, fy, fz = 2.0 * (x * z - w * y) * g, 2.0 * (y * z + w * x) * g, (1.0 - 2.0 * (x * x + y * y)) * g
+        if linear is not None:
+            fx, fy, fz = fx + linear[0], fy + linear[1], fz + linear[2]
+        return (fx, fy, fz)
+
+    def _sample(self, t: TrackerState, index: int, rot: Rotation, acc: Vec3 | None, now_ns: int) -> None:
+        s = t.sensors[index]
+        if acc is None and s.acc is not None and now_ns - s.acc_ns <= self.options.acc_max_age_ns:
+            acc = s.acc
+        if acc is None:
+            s.without_acceleration += 1
+        s.quat = rot.quat
+        s.rotations += 1
+        s.last_sample_ns = now_ns
+        if s.status == 0:
+            s.status = 1  # data from a sensor reported offline: it is working (as the SlimeVR server does)
+        self._events.append(SensorSample(t.sensor_id(index), now_ns, rot.quat, self._specific_force(rot.quat, acc)))
+
+    # ------------------------------------------------------------------------------------------ status
+    def status(self) -> dict[str, Any]:
+        """Counters and per-tracker state for /status."""
+        c = self.counters
+        return {
+            "datagrams": c.datagrams,
+            "bad_datagrams": c.bad_datagrams,
+            "bad_reasons": dict(c.bad_reasons),
+            "unknown_source": c.unknown_source,
+            "unannounced_sensor": c.unannounced_sensor,
+            "ignored": dict(c.ignored),
+            "trackers": [
+                {
+                    "id": t.key,
+                    "address": f"{t.address[0]}:{t.address[1]}",
+                    "firmware": t.firmware,
+                    "protocol_version": t.protocol_version,
+                    "board": t.board,
+                    "mcu": t.mcu,
+                    "connected": not t.timed_out,
+                    "packets": t.packets,
+                    "lost": t.lost,
+                    "reordered": t.reordered,
+                    "handovers": t.handovers,
+                    "battery_voltage": t.battery_voltage,
+                    "battery_level": t.battery_level,
+                    "rssi_dbm": t.rssi_dbm,
+                    "rtt_ms": None if t.rtt_ms is None else round(t.rtt_ms, 2),
+                    "errors": t.errors,
+                    "sensors": [
+                        {
+                            "id": t.sensor_id(s.index),
+                            "status": {0: "offline", 1: "ok", 2: "error"}.get(s.status, str(s.status)),
+                            "imu_type": s.imu_type,
+                            "rotations": s.rotations,
+                            "held": s.held,
+                            "without_acceleration": s.without_acceleration,
+                            "temperature_c": s.temperature_c,
+                        }
+                        for s in sorted(t.sensors.values(), key=lambda s: s.index)
+                    ],
+                }
+                for t in self.trackers.values()
+            ],
+        }

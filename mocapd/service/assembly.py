@@ -1,0 +1,207 @@
+"""The one assembly path: the daemon a config describes, built and run by one function.
+
+``mocapd run`` feeds it the user's config; ``mocapd demo`` a generated config naming fake GigE Vision cameras
+(:mod:`mocapd.service.demo.cameras`); ``mocapd demo --synthetic`` a generated config of ``synthetic`` cameras;
+``mocapd bench latency`` either of those. Nothing else wires a daemon. What differs between them is only data:
+the config, the sockets a parent process made (the camera demo runs in a private network namespace), where a
+session is recorded, and a monitor that watches the running daemon (the benchmark's measurements).
+
+What :func:`assemble` builds, in order: the rig (:mod:`mocapd.service.rig`: cameras and their sources, the shared
+detector, the people's model, the IMU suits; for a synthetic rig its world and simulated devices), the daemon
+(:class:`~mocapd.service.daemon.Daemon`: IMU inputs, scheduler, status server), and its outputs: the truth
+score of a synthetic rig, the UDP streams (MVN, VMC), the WebSocket stream and viewer, the session recorder.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import signal
+import socket
+import time
+from collections.abc import Awaitable, Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mocapd.service.config import Config
+from mocapd.service.daemon import Daemon, PoseSink
+from mocapd.service.http_status import StatusServer
+from mocapd.service.outputs.recorder import SessionRecorder, attach_recorder, synthetic_extra
+from mocapd.service.outputs.udp import build_udp_sinks
+from mocapd.service.outputs.websocket import build_websocket_sinks
+from mocapd.service.rig import BuiltRig, RigPlan, build_rig, plan_rig
+from mocapd.sim.truth import TruthError
+
+#: watches a running daemon (from READY) until it returns; the daemon then stops
+Monitor = Callable[[Daemon], Awaitable[None]]
+
+
+@dataclass(frozen=True)
+class Sockets:
+    """Sockets a parent process made for the daemon in its own network namespace (the camera demo runs in a
+    private one): the status server's listener, the WebSocket listener and a UDP socket for MVN/VMC."""
+
+    http: socket.socket | None = None
+    websocket: socket.socket | None = None
+    udp_fileno: int | None = None
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to run what a config describes (everything that is not the config itself)."""
+
+    record: Path | None = None
+    """Record the run as a session into this new directory (also when ``[record] enabled``)."""
+    sockets: Sockets = field(default_factory=Sockets)
+    status_line: Callable[[str], None] | None = None
+    """Called with a one-line summary every second."""
+    sinks: Sequence[PoseSink] = ()
+    """More pose sinks (a test's or a benchmark's)."""
+    manifest_extra: dict[str, Any] = field(default_factory=dict)
+    """More for the session manifest's ``extra`` (e.g. how a demo was generated)."""
+    status_extras: dict[str, Callable[[], Any]] = field(default_factory=dict)
+    """More sections of /status (e.g. the camera demo's fake cameras)."""
+
+
+@dataclass
+class Assembly:
+    """A built daemon and what it owns: the rig (closed after the daemon stops), its truth score (synthetic)."""
+
+    daemon: Daemon
+    built: BuiltRig
+    truth: TruthError | None
+    recorder: SessionRecorder | None
+
+    def close(self) -> None:
+        self.built.close()
+
+
+def assemble(
+    config: Config,
+    options: RunOptions = RunOptions(),
+    *,
+    plan: RigPlan | None = None,
+    clock: Callable[[], int] = time.monotonic_ns,
+) -> Assembly:
+    """Build (not run) the daemon of ``config`` (blocking: checks the rig, loads the models, starts simulators).
+
+    Raises
+    ------
+    ConfigError
+        The rig does not check out against its calibration or files (see :func:`~mocapd.service.rig.plan_rig`).
+    ModelError
+        The detector model or the pose prior cannot be loaded.
+    """
+    plan = plan if plan is not None else plan_rig(config)
+    built = build_rig(config, plan, clock)
+    try:
+        daemon = Daemon(config, built.rig, imu=built.imu, sinks=list(options.sinks), clock=clock,
+                        status_line=options.status_line)  # fmt: skip
+        daemon.handle_signals = False  # run() below owns them, from before the daemon exists to after it ends
+        if options.sockets.http is not None:
+            daemon.http = StatusServer(daemon.status, daemon.metrics, sock=options.sockets.http)
+        daemon.status_extras.update(options.status_extras)
+        truth = None
+        extra = dict(options.manifest_extra)
+        if built.world is not None:
+            truth = TruthError(built.world, built.epoch_ns)
+            daemon.sinks.insert(0, truth)
+            daemon.status_line_extras.append(truth.status_field)
+            extra["synthetic"] = synthetic_extra(config.synthetic, [c.name for c in plan.cameras], built.epoch_ns)
+        daemon.sinks.extend(build_udp_sinks(config, daemon, options.sockets.udp_fileno))
+        daemon.sinks.extend(build_websocket_sinks(config, daemon, options.sockets.websocket))
+        recorder = attach_recorder(config, daemon, options.record, extra=extra or None)
+    except BaseException:
+        built.close()
+        raise
+    return Assembly(daemon, built, truth, recorder)
+
+
+@contextlib.contextmanager
+def assembled(config: Config, options: RunOptions = RunOptions(), **kw: Any) -> Iterator[Assembly]:
+    """:func:`assemble`, closed on exit (for callers that run ``daemon.run()`` themselves, e.g. tests)."""
+    built = assemble(config, options, **kw)
+    try:
+        yield built
+    finally:
+        built.close()
+
+
+async def run(
+    config: Config,
+    options: RunOptions = RunOptions(),
+    *,
+    monitor: Monitor | None = None,
+    seconds: float | None = None,
+    stop: asyncio.Event | None = None,
+    on_ready: Callable[[Assembly], None] | None = None,
+) -> int:
+    """Build and run the daemon of ``config`` until ``stop`` is set (SIGINT/SIGTERM set it, see
+    :func:`stop_on_signals`), ``seconds`` have passed since READY, or ``monitor`` returns.
+
+    Returns the exit status (0). A start-up failure (a device that does not open, a stream that cannot listen)
+    raises: :class:`~mocapd.service.daemon.StartupError`, :class:`~mocapd.errors.MocapdError`.
+    """
+    stop = stop if stop is not None else asyncio.Event()
+    loop = asyncio.get_running_loop()
+    assembly = await loop.run_in_executor(None, functools.partial(assemble, config, options))
+    daemon = assembly.daemon
+    try:
+        if stop.is_set():
+            return 0
+        task = asyncio.create_task(daemon.run(), name="daemon")
+        stopper = asyncio.create_task(_stop_when(stop, daemon), name="stop")
+        try:
+            ready = asyncio.create_task(daemon.ready.wait())
+            await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
+            if ready.done():
+                if on_ready is not None:
+                    on_ready(assembly)
+                watchers: list[asyncio.Future[Any]] = []
+                if monitor is not None:
+                    watchers.append(asyncio.ensure_future(monitor(daemon)))
+                if seconds is not None:
+                    watchers.append(asyncio.ensure_future(asyncio.sleep(seconds)))
+                if watchers:
+                    await asyncio.wait({task, *watchers}, return_when=asyncio.FIRST_COMPLETED)
+                    for w in watchers:
+                        w.cancel()
+                    daemon.request_stop()
+                    code = await task
+                    for w in watchers:  # a monitor that failed is a bug in it: say so, after the clean stop
+                        if w.done() and not w.cancelled() and (exc := w.exception()) is not None:
+                            raise exc
+                    return code
+            else:
+                ready.cancel()
+            return await task
+        finally:
+            stopper.cancel()
+    finally:
+        await loop.run_in_executor(None, assembly.close)
+
+
+async def _stop_when(stop: asyncio.Event, daemon: Daemon) -> None:
+    await stop.wait()
+    daemon.request_stop()
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: asyncio.Event) -> Iterator[None]:
+    """SIGINT and SIGTERM set ``stop`` while inside (call on the event loop's thread): from the first moment of a
+    run — before models load or cameras open — to its last, so Ctrl-C always ends a run cleanly."""
+    loop = asyncio.get_running_loop()
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+            installed.append(sig)
+        except RuntimeError:  # not the main thread: signals are the caller's job
+            break
+    try:
+        yield
+    finally:
+        for sig in installed:
+            loop.remove_signal_handler(sig)

@@ -1,0 +1,292 @@
+"""The rig a config describes, checked and then built: calibrated cameras, their frame and keypoint sources, the
+detector they share, the people's model, the IMU suits — and for a synthetic rig, the simulated world with its
+simulated devices.
+
+Two steps, so that ``mocapd check-config`` says everything that can be said without touching a device:
+
+* :func:`plan_rig` reads the calibration and the files the cameras replay and checks the rig against them: at
+  least one camera; every camera in the calibration file; the image size each camera will deliver (an Aravis
+  ``region``, a webcam's ``width``/``height``, a video's or an image folder's first frame) equal to its
+  calibration's; readable videos and image folders. Each problem is one line naming the key and its value.
+* :func:`build_rig` makes the sources (nothing is opened yet: the daemon opens every device before it reports
+  READY, and names the one that fails).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+
+from mocapd.core.camera import Camera
+from mocapd.core.keypoints import keypoint_format
+from mocapd.core.prior import PcaPrior
+from mocapd.core.skeleton import Skeleton
+from mocapd.errors import CalibrationError, ConfigError, InputError
+from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
+from mocapd.io.calibration_files import core_cameras, read_any
+from mocapd.io.frame_source import ThreadedSource
+from mocapd.io.pixels import pixel_format
+from mocapd.io.prior import resolve_prior
+from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
+from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileSource
+from mocapd.pipeline.clocksync import ClockSync
+from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns
+from mocapd.pipeline.frame_ring import FrameRing
+from mocapd.pipeline.keypoint_source import DetectorKeypointSource, KeypointSource
+from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
+from mocapd.pipeline.scheduler import Suit
+from mocapd.service.config import Config
+from mocapd.service.config.cameras import (
+    AravisCamera,
+    CameraConfig,
+    ImagesCamera,
+    SyntheticCamera,
+    UvcCamera,
+    VideoCamera,
+)
+from mocapd.service.config.imu import ImuConfig
+from mocapd.service.daemon import Rig
+from mocapd.service.suits import load_suits
+from mocapd.sim.suits import SimulatedSuits
+from mocapd.sim.world import SyntheticKeypointSource, SyntheticWorld
+
+DEFAULT_HEIGHT_M = 1.75  # the skeleton people start with, until body sizing gives each their own
+
+
+@dataclass(frozen=True)
+class RigPlan:
+    """The rig as checked: every camera calibrated at the size it will deliver, in ``[[cameras]]`` order."""
+
+    cameras: list[Camera]
+    synthetic: bool
+
+
+def plan_rig(config: Config) -> RigPlan:
+    """Check the rig of ``config`` against its calibration and files (no device is opened).
+
+    Raises
+    ------
+    ConfigError
+        One line per rule broken, naming the key and its value.
+    """
+    cams = config.cameras
+    if not cams:
+        raise ConfigError(
+            "no cameras: add [[cameras]] tables (`mocapd devices` prints them for what is plugged in), "
+            "or try `mocapd demo`"
+        )
+    names = [c.name for c in cams]
+    config.daemon.scheduler_options(names)  # daemon.offsets.cameras must name cameras of the rig
+    if all(isinstance(c, SyntheticCamera) for c in cams):
+        if config.calibration.file:
+            raise ConfigError(
+                f"calibration.file = {config.calibration.file!r}: a synthetic rig is calibrated by its simulation"
+            )
+        return RigPlan(synthetic_cameras(names), synthetic=True)
+    calibrated = _calibration(config)
+    problems: list[str] = []
+    cameras: list[Camera] = []
+    for i, cam in enumerate(cams):
+        where = f"cameras[{i}]"
+        found = calibrated.get(cam.name)
+        if found is None:
+            problems.append(
+                f"{where}.name = {cam.name!r}: not in the calibration {config.calibration.file} "
+                f"(it has {', '.join(sorted(calibrated)) or 'no camera'})"
+            )
+            continue
+        if isinstance(cam, AravisCamera) and cam.interface and cam.interface not in _interfaces():
+            problems.append(
+                f"{where}.interface = {cam.interface!r}: no such network interface on this machine "
+                f"(it has {', '.join(sorted(_interfaces()))})"
+            )
+            continue
+        try:
+            size = expected_size(cam)
+        except (ConfigError, InputError) as exc:
+            problems.append(f"{where}: {exc}")
+            continue
+        if size is not None and size != (found.width, found.height):
+            problems.append(
+                f"{where} ({cam.name}) delivers {size[0]}x{size[1]} images, but the calibration has it at "
+                f"{found.width}x{found.height}"
+            )
+        cameras.append(found)
+    if problems:
+        raise ConfigError("\n".join(problems))
+    return RigPlan(cameras, synthetic=False)
+
+
+def _interfaces() -> set[str]:
+    """The network interfaces of this machine (names only; nothing is sent)."""
+    return {name for _, name in socket.if_nameindex()}
+
+
+def synthetic_cameras(names: list[str]) -> list[Camera]:
+    """The simulated ring rig's cameras, named as configured."""
+    from mocapd.core.synthetic import ring_rig
+
+    return [dataclasses.replace(c, name=n) for c, n in zip(ring_rig(len(names)), names, strict=True)]
+
+
+def _calibration(config: Config) -> dict[str, Camera]:
+    path = config.calibration.file
+    if not path:
+        raise ConfigError("calibration.file is not set: real cameras need their calibration (docs/cameras.md)")
+    world_up = None if config.calibration.world_up == "auto" else config.calibration.world_up
+    try:
+        cameras = core_cameras(read_any(Path(path), world_up=world_up))
+    except (OSError, CalibrationError, ValueError) as exc:
+        raise ConfigError(f"calibration.file = {path!r}: {exc}") from exc
+    return {c.name: c for c in cameras}
+
+
+def expected_size(cam: CameraConfig) -> tuple[int, int] | None:
+    """(width, height) the camera will deliver, when the config or its files say (None: known once opened)."""
+    if isinstance(cam, AravisCamera):
+        return (cam.region[2], cam.region[3]) if cam.region is not None else None
+    if isinstance(cam, UvcCamera):
+        return (cam.width, cam.height) if cam.width is not None and cam.height is not None else None
+    if isinstance(cam, VideoCamera):
+        return _video_size(cam.path)
+    if isinstance(cam, ImagesCamera):
+        return _images_size(cam.path)
+    return None
+
+
+def _video_size(path: str) -> tuple[int, int]:
+    if not Path(path).is_file():
+        raise InputError(f"path = {path!r}: no such video file")
+    cap = cv2.VideoCapture(path)
+    try:
+        ok, frame = cap.read() if cap.isOpened() else (False, None)
+    finally:
+        cap.release()
+    if not ok or frame is None:
+        raise InputError(f"path = {path!r}: cannot decode a frame (not a video OpenCV/FFmpeg reads?)")
+    return int(frame.shape[1]), int(frame.shape[0])
+
+
+def _images_size(path: str) -> tuple[int, int]:
+    folder = Path(path)
+    if not folder.is_dir():
+        raise InputError(f"path = {path!r}: no such folder")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise InputError(f"path = {path!r}: holds no image ({', '.join(IMAGE_SUFFIXES)})")
+    image = cv2.imread(str(files[0]))
+    if image is None:
+        raise InputError(f"path = {path!r}: cannot read {files[0].name}")
+    return int(image.shape[1]), int(image.shape[0])
+
+
+@dataclass
+class BuiltRig:
+    """A built rig and what it owns beside the daemon (closed by :meth:`close` once the daemon has stopped)."""
+
+    rig: Rig
+    imu: ImuConfig
+    """``[imu]`` with the simulated suits' ports added (a synthetic rig)."""
+    captures: list[ThreadedSource] = field(default_factory=list)
+    detector: AnyDetector | None = None
+    world: SyntheticWorld | None = None
+    epoch_ns: int = 0
+    """Host time of the synthetic world's t = 0."""
+    simulated: SimulatedSuits | None = None
+
+    def close(self) -> None:
+        """Stop the detector's workers (after the detection in flight) and the simulated devices."""
+        if self.detector is not None:
+            self.detector.close()
+            self.detector = None
+        if self.simulated is not None:
+            self.simulated.close()
+            self.simulated = None
+
+
+def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.monotonic_ns) -> BuiltRig:
+    """Make the rig's sources (blocking: loads the detector model and the prior; starts simulated devices)."""
+    prior = resolve_prior(config.solver.prior)
+    if plan.synthetic:
+        return _build_synthetic(config, plan, prior, clock)
+    skeleton = Skeleton.from_height(DEFAULT_HEIGHT_M)
+    fmt = keypoint_format(config.detector.model.keypoint_format)
+    targets = fmt.track_targets(skeleton)
+    backoff = (config.daemon.restart_min_s, config.daemon.restart_max_s)
+    captures = [frame_source(c, cam, backoff) for c, cam in zip(config.cameras, plan.cameras, strict=True)]
+    detector_config = config.detector.options()
+    detector = make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],
+                             target_columns(detector_config, targets.names))  # fmt: skip
+    sources: list[KeypointSource] = []
+    try:
+        for i, (cam, capture) in enumerate(zip(config.cameras, captures, strict=True)):
+            # A camera's own frame clock (exposure time) beats the host's arrival time; a replayed file has none
+            # worth mapping: its frames are published at their due time.
+            clk = ClockSync(tick_hz=1e9, wrap_bits=64) if isinstance(cam, AravisCamera | UvcCamera) else None
+            if isinstance(detector, PackedDetectionGroup):
+                sources.append(PackedKeypointSource(i, capture, detector, device_clock=clk, clock=clock))
+            else:
+                sources.append(DetectorKeypointSource(i, capture, detector, executor=detector.executor,
+                                                      device_clock=clk, clock=clock))  # fmt: skip
+        suits = load_suits(config.imu, skeleton)
+    except BaseException:
+        detector.close()
+        raise
+    rig = Rig(plan.cameras, sources, skeleton, targets, prior, suits)
+    return BuiltRig(rig, config.imu, captures, detector)
+
+
+def frame_source(cam: CameraConfig, calibrated: Camera, backoff_s: tuple[float, float]) -> ThreadedSource:
+    """The capture source of one configured camera, its ring sized to the camera's calibration."""
+    w, h = calibrated.width, calibrated.height
+    if isinstance(cam, AravisCamera):
+        fmt = pixel_format(cam.pixel_format)
+        cfg = AravisCameraConfig(
+            cam.name, address=cam.address or None, serial=cam.serial or None, device_id=cam.device_id or None,
+            interface=cam.interface,
+            pixel_format=cam.pixel_format, region=None if cam.region is None else tuple(cam.region),  # type: ignore[arg-type]
+            binning=None if cam.binning is None else tuple(cam.binning),  # type: ignore[arg-type]
+            frame_rate=cam.frame_rate, exposure_us=cam.exposure_us, gain_db=cam.gain_db,
+            trigger=cam.trigger or None, packet_size=cam.packet_size, n_buffers=cam.n_buffers,
+            ring_slots=cam.ring_slots, lost_after_s=cam.lost_after_s, socket_frames=cam.socket_frames,
+            packet_timeout_ms=cam.packet_timeout_ms, frame_retention_ms=cam.frame_retention_ms,
+            packet_delay_ns=cam.packet_delay_ns, ptp=cam.ptp, features=tuple(cam.features.items()),
+        )  # fmt: skip
+        ring = FrameRing(cam.name, cam.ring_slots, h, w, fmt.channels)
+        return AravisSource(cfg, ring, backoff_s=backoff_s)
+    if isinstance(cam, UvcCamera):
+        uvc = UvcCameraConfig(cam.name, cam.device, w, h, fps=cam.fps, fourcc=cam.fourcc, ring_slots=cam.ring_slots)
+        return UvcSource(uvc, backoff_s=backoff_s)
+    if isinstance(cam, VideoCamera):
+        return VideoFileSource(cam.name, Path(cam.path), loop=cam.loop, ring_slots=cam.ring_slots, backoff_s=backoff_s)
+    if isinstance(cam, ImagesCamera):
+        return ImageFolderSource(cam.name, Path(cam.path), fps=cam.fps, loop=cam.loop, ring_slots=cam.ring_slots,
+                                 backoff_s=backoff_s)  # fmt: skip
+    raise ConfigError(f"camera {cam.name!r}: a {cam.source} camera has no frame source")
+
+
+def _build_synthetic(config: Config, plan: RigPlan, prior: PcaPrior | None, clock: Callable[[], int]) -> BuiltRig:
+    syn = config.synthetic
+    world = SyntheticWorld(len(plan.cameras), syn.people, syn.suits, seed=syn.seed, motion=syn.motion,
+                           camera_names=[c.name for c in plan.cameras])  # fmt: skip
+    epoch = clock()
+    simulated = SimulatedSuits.start(world, syn.imu_rate_hz, epoch)
+    sources: list[KeypointSource] = [
+        SyntheticKeypointSource(world, c, epoch_ns=epoch, rate_hz=syn.camera_rate_hz, delay_s=syn.detection_delay_s,
+                                noise_px=syn.noise_px, seed=syn.seed, clock=clock)
+        for c in range(len(world.cameras))
+    ]  # fmt: skip
+    suits = [Suit.from_calibration(s.id, world.calibration(s), world.skeleton) for s in world.suits]
+    rig = Rig(world.cameras, sources, world.skeleton, world.targets, prior, suits)
+    # The simulated devices reconnect and stall-detect faster than real ones need: they restart in milliseconds.
+    imu = config.imu.model_copy(update={
+        "ports": (*config.imu.ports, *simulated.ports), "rate_hz": syn.imu_rate_hz,
+        "reconnect_min_s": 0.2, "reconnect_max_s": 1.0, "stall_timeout_s": 1.0,
+    })  # fmt: skip
+    return BuiltRig(rig, imu, world=world, epoch_ns=epoch, simulated=simulated)

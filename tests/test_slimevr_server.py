@@ -1,0 +1,240 @@
+"""The SlimeVR server state machine (pure): handshake and replies, sensors, packet numbers, keep-alive, time-outs,
+holding quiet sensors, acceleration as specific force, and hostile input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mocapd.core.rotations import quat_from_rotvec, quat_rotate
+from mocapd.protocols.slimevr import (
+    HANDSHAKE_REPLY,
+    Acceleration,
+    Battery,
+    FeatureFlags,
+    Handshake,
+    Packet,
+    PingPong,
+    Rotation,
+    SensorInfo,
+    SignalStrength,
+    Temperature,
+    TrackerError,
+    encode_bundle,
+    encode_feature_flags,
+    encode_heartbeat,
+    encode_packet,
+    encode_ping,
+    encode_sensor_info_ack,
+)
+from mocapd.protocols.slimevr_server import (
+    SERVER_FEATURES,
+    STANDARD_GRAVITY,
+    SensorSample,
+    ServerOptions,
+    SlimeVrServer,
+    TrackerConnected,
+    TrackerTimedOut,
+)
+
+A = ("127.0.0.1", 40001)
+B = ("127.0.0.1", 40002)
+MAC = "A1:B2:C3:D4:E5:F6"
+MS = 1_000_000
+IDENTITY = (1.0, 0.0, 0.0, 0.0)
+
+
+def connect(server: SlimeVrServer, addr: tuple[str, int] = A, *, version: int = 22, sensors: int = 2) -> None:
+    server.receive_datagram(encode_packet(Handshake(2, 3, 2, version, "0.6.3", MAC), 0), addr, 0)
+    for k in range(sensors):
+        server.receive_datagram(encode_packet(SensorInfo(k, 1, 3), k + 1), addr, 0)
+
+
+def samples(server: SlimeVrServer) -> list[SensorSample]:
+    return [e for e in server.events_received() if isinstance(e, SensorSample)]
+
+
+def test_handshake_is_answered_and_sensors_acknowledged() -> None:
+    s = SlimeVrServer()
+    connect(s)
+    assert s.datagrams_to_send() == [(HANDSHAKE_REPLY, A), (encode_sensor_info_ack(0, 1), A),
+                                     (encode_sensor_info_ack(1, 1), A)]  # fmt: skip
+    assert s.events_received() == [TrackerConnected(MAC, A, handover=False)]
+    t = s.trackers[MAC]
+    assert (t.firmware, t.protocol_version, sorted(t.sensors)) == ("0.6.3", 22, [0, 1])
+
+
+def test_rotations_become_samples_with_sensor_ids_from_mac_and_index() -> None:
+    s = SlimeVrServer()
+    connect(s)
+    s.events_received()
+    q = (0.5, 0.5, 0.5, 0.5)
+    s.receive_datagram(encode_packet(Rotation(1, q), 10), A, 5 * MS)
+    (smp,) = samples(s)
+    assert smp.sensor == f"{MAC}/1" and smp.host_ns == 5 * MS and smp.quat == q and not smp.held
+    # Without an acceleration the sensor is taken at rest: specific force = R_iᵀ (0, 0, g).
+    expected = quat_rotate(np.array([0.5, -0.5, -0.5, -0.5]), np.array([0.0, 0.0, STANDARD_GRAVITY]))
+    np.testing.assert_allclose(smp.acc, expected, atol=1e-12)
+    assert s.trackers[MAC].sensors[1].without_acceleration == 1
+
+
+def test_acceleration_is_gravity_free_in_and_specific_force_out() -> None:
+    s = SlimeVrServer()
+    connect(s)
+    q = tuple(float(v) for v in quat_from_rotvec(np.array([0.3, -0.2, 1.0])))
+    lin = (1.0, -2.0, 0.5)
+    # Same datagram (a bundle): the rotation gets its own acceleration.
+    s.receive_datagram(encode_bundle([Rotation(0, q), Acceleration(0, lin)], 10), A, 1 * MS)  # type: ignore[arg-type]
+    (smp,) = samples(s)
+    up = quat_rotate(np.array([q[0], -q[1], -q[2], -q[3]]), np.array([0.0, 0.0, STANDARD_GRAVITY]))
+    np.testing.assert_allclose(smp.acc, np.array(lin) + up, atol=1e-6)
+    # Separate packets: the last acceleration applies to rotations within acc_max_age_ns.
+    s.receive_datagram(encode_packet(Acceleration(1, (0.0, 0.0, 3.0)), 11), A, 2 * MS)
+    s.receive_datagram(encode_packet(Rotation(1, IDENTITY), 12), A, 3 * MS)
+    s.receive_datagram(encode_packet(Rotation(1, IDENTITY), 13), A, 200 * MS)
+    first, late = samples(s)
+    assert first.acc == (0.0, 0.0, 3.0 + STANDARD_GRAVITY)
+    assert late.acc == (0.0, 0.0, STANDARD_GRAVITY)
+
+
+def test_old_protocol_acceleration_is_turned_like_the_server_does() -> None:
+    s = SlimeVrServer()
+    connect(s, version=17)
+    s.receive_datagram(encode_bundle([Rotation(0, IDENTITY), Acceleration(0, (1.0, 0.0, 0.0))], 10), A, MS)
+    (smp,) = samples(s)
+    np.testing.assert_allclose(smp.acc, (0.0, -1.0, STANDARD_GRAVITY), atol=1e-12)  # −90° about +Z
+
+
+def test_packet_numbers_count_losses_and_drop_late_packets() -> None:
+    s = SlimeVrServer()
+    connect(s)  # numbers 0, 1, 2
+    for n in (3, 4, 8, 6, 9, 9):
+        s.receive_datagram(encode_packet(Rotation(0, IDENTITY), n), A, n * MS)
+    t = s.trackers[MAC]
+    assert (t.lost, t.reordered) == (3, 2)  # 5, 6, 7 skipped; 6 late and 9 repeated
+    assert len(samples(s)) == 4
+    # Number 0 always passes (an echoed ping carries the server's 0).
+    s.receive_datagram(encode_ping(1), A, 20 * MS)
+    assert t.reordered == 2
+
+
+def test_keepalive_ping_round_trip_and_timeout() -> None:
+    opts = ServerOptions(heartbeat_interval_ns=500 * MS, timeout_ns=1000 * MS)
+    s = SlimeVrServer(opts)
+    connect(s, sensors=0)
+    s.datagrams_to_send()
+    s.tick(0)
+    sent = s.datagrams_to_send()
+    assert sent == [(encode_heartbeat(), A), (encode_ping(1), A)]
+    s.tick(100 * MS)
+    assert s.datagrams_to_send() == []  # not due yet
+    s.receive_datagram(sent[1][0], A, 30 * MS)  # the tracker echoes the ping
+    assert s.trackers[MAC].rtt_ms == 30.0
+    s.tick(1031 * MS)
+    assert s.events_received()[-1] == TrackerTimedOut(MAC)
+    assert s.status()["trackers"][0]["connected"] is False
+    s.receive_datagram(encode_packet(Battery(3.9, 0.7), 20), A, 1100 * MS)
+    assert s.trackers[MAC].timed_out is False
+
+
+def test_quiet_sensors_are_held_while_connected_only() -> None:
+    s = SlimeVrServer(ServerOptions(hold_after_ns=20 * MS, timeout_ns=1000 * MS))
+    connect(s, sensors=1)
+    q = (0.0, 1.0, 0.0, 0.0)
+    s.receive_datagram(encode_packet(Rotation(0, q), 5), A, 0)
+    s.events_received()
+    s.tick(10 * MS)
+    assert samples(s) == []
+    s.tick(25 * MS)
+    (held,) = samples(s)
+    assert held.held and held.quat == q and held.host_ns == 25 * MS
+    np.testing.assert_allclose(held.acc, (0.0, 0.0, -STANDARD_GRAVITY), atol=1e-12)  # upside down, at rest
+    s.tick(1500 * MS)  # silent for more than the time-out: no more holding
+    assert samples(s) == []
+
+
+def test_handover_to_a_new_address_keeps_the_tracker() -> None:
+    s = SlimeVrServer()
+    connect(s, A)
+    s.receive_datagram(encode_packet(Rotation(0, IDENTITY), 50), A, MS)
+    connect(s, B)  # same MAC from another port (the tracker rebooted or changed IP): numbering starts over
+    s.receive_datagram(encode_packet(Rotation(0, IDENTITY), 3), B, 2 * MS)
+    s.receive_datagram(encode_packet(Rotation(0, IDENTITY), 51), A, 3 * MS)  # the old address is forgotten
+    t = s.trackers[MAC]
+    assert t.address == B and t.handovers == 1 and t.reordered == 0
+    assert s.counters.unknown_source == 1
+    assert [e.sensor for e in samples(s)] == [f"{MAC}/0", f"{MAC}/0"]
+
+
+def test_tracker_without_mac_is_named_by_address_and_old_firmware_has_sensor_0() -> None:
+    s = SlimeVrServer()
+    s.receive_datagram(encode_packet(Handshake(0, 3, 0, 5, "owo", None), 0), A, 0)
+    s.receive_datagram(encode_packet(Rotation(0, IDENTITY), 1), A, MS)
+    assert [e.sensor for e in samples(s)] == ["127.0.0.1:40001/0"]
+
+
+def test_other_packets_update_the_tracker_state() -> None:
+    s = SlimeVrServer()
+    connect(s)
+    s.datagrams_to_send()
+    others: list[Packet] = [Battery(3.9, 0.62), SignalStrength(255, -58), Temperature(1, 36.5), TrackerError(0, 3),
+                            FeatureFlags(b"\x07")]  # fmt: skip
+    for n, p in enumerate(others, start=10):
+        s.receive_datagram(encode_packet(p, n), A, n * MS)
+    st_ = s.status()["trackers"][0]
+    assert (st_["battery_voltage"], st_["battery_level"], st_["rssi_dbm"], st_["errors"]) == (
+        3.9000000953674316, 0.6200000047683716, -58, 1)  # fmt: skip
+    assert st_["sensors"][0]["status"] == "error" and st_["sensors"][1]["temperature_c"] == 36.5
+    assert s.datagrams_to_send() == [(encode_feature_flags(SERVER_FEATURES), A)]
+    assert s.trackers[MAC].firmware_features == b"\x07"
+
+
+def test_unknown_sources_unannounced_sensors_and_bad_packets_are_counted() -> None:
+    s = SlimeVrServer()
+    s.receive_datagram(encode_packet(Rotation(0, IDENTITY), 1), A, 0)
+    connect(s, sensors=1)
+    s.receive_datagram(encode_packet(Rotation(5, IDENTITY), 10), A, 0)
+    s.receive_datagram(b"\x00\x00\x00\x11", A, 0)
+    s.receive_datagram(bytes.fromhex("00000011" + "000000000000000b" + "0001" + "00000000" * 4 + "00"), A, 0)
+    c = s.counters
+    assert (c.unknown_source, c.unannounced_sensor, c.bad_datagrams) == (1, 1, 2)
+    assert samples(s) == []
+
+
+def _packets() -> st.SearchStrategy[Packet]:
+    unit = st.tuples(*[st.floats(-1, 1)] * 4).filter(lambda q: 0.5 < math.hypot(*q) < 2).map(
+        lambda q: tuple(v / math.hypot(*q) for v in q))  # fmt: skip
+    small = st.integers(0, 4)
+    return st.one_of(
+        st.builds(Rotation, small, unit),
+        st.builds(Acceleration, small, st.tuples(*[st.floats(-50, 50)] * 3)),
+        st.builds(SensorInfo, small, st.integers(0, 2), st.integers(0, 20)),
+        st.builds(PingPong, st.integers(0, 2**32 - 1)),
+        st.builds(Battery, st.none(), st.floats(0, 1, width=32)),
+    )
+
+
+@settings(deadline=None, max_examples=150)
+@given(st.lists(st.tuples(st.booleans(), st.integers(0, 40), st.binary(max_size=64), _packets()), max_size=30))
+def test_hostile_and_mutated_streams_never_raise(steps: list[tuple[bool, int, bytes, Packet]]) -> None:
+    s = SlimeVrServer(ServerOptions(hold_after_ns=MS, timeout_ns=50 * MS))
+    connect(s)
+    now = 0
+    for use_raw, n, raw, packet in steps:
+        now += MS
+        data = bytearray(raw if use_raw else encode_packet(packet, n))
+        if use_raw and raw:  # a mutated real packet
+            data = bytearray(encode_packet(packet, n))
+            data[len(raw) % len(data)] ^= raw[0] | 1
+        s.receive_datagram(bytes(data), A if n % 3 else B, now)
+        s.tick(now)
+    for e in s.events_received():
+        if isinstance(e, SensorSample):
+            assert all(math.isfinite(v) for v in (*e.quat, *e.acc))
+            assert abs(math.hypot(*e.quat) - 1.0) < 1e-6
+    st_ = s.status()
+    assert st_["datagrams"] == len(steps) + 3
+    assert len(st_["bad_reasons"]) <= 32

@@ -1,0 +1,188 @@
+"""The synthetic rig with SlimeVR trackers: the daemon's SlimeVR server fed by the PyPI ``slimevr-tracker-emulator``
+(a dev dependency, hence here and not in the package), one emulated tracker carrying one sensor per suit bone.
+
+The emulated sensors report what the synthetic world's suit sensors would (:meth:`SyntheticWorld.imu_motion`,
+ENU taken as the trackers' +Z-up frame), optionally with a yaw drift of their own (degrees per minute about the
+vertical, as gyroscope bias makes 6-axis trackers drift). The emulator sends at most about ten updates a second
+(its loop sleeps 0.1 s twice per received packet), so the daemon sees steps that the SlimeVR server's holding
+bridges. Used by ``tests/test_slimevr_daemon.py`` and ``tools/bench_vr_drift.py``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import math
+import multiprocessing
+import multiprocessing.process
+import time
+import types
+from collections.abc import AsyncIterator, Coroutine
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from slimevr_tracker_emulator.async_tracker_emulator import SlimeVRTrackerEmulatorAsync
+from slimevr_tracker_emulator.tracker_types import (
+    ImuType,
+    SensorAcceleration,
+    SensorData,
+    SensorPosition,
+    SensorRotationQuat,
+    SensorState,
+)
+
+from mocapd.core.imu_calibration import ImuCalibration
+from mocapd.core.rotations import quat_conjugate, quat_from_rotvec, quat_multiply, quat_rotate
+from mocapd.io.prior import resolve_prior
+from mocapd.pipeline.scheduler import Suit
+from mocapd.service.config import Config
+from mocapd.service.daemon import Daemon, PoseSink, Rig
+from mocapd.sim.world import SuitTruth, SyntheticKeypointSource, SyntheticWorld
+
+#: The MAC a SlimeVR server reads from the emulator's handshake (its firmware string carries a NUL the length byte
+#: does not count, so the six 0x78 bytes are read one byte early).
+EMULATOR_MAC = "00:78:78:78:78:78"
+RATE_HZ = 100.0
+GRAVITY = 9.81  # the synthetic world's
+
+
+def sensor_ids(suit: SuitTruth) -> list[str]:
+    return [f"{EMULATOR_MAC}/{k}" for k in range(len(suit.sensor_ids))]
+
+
+def slimevr_calibration(world: SyntheticWorld, suit: SuitTruth) -> ImuCalibration:
+    """The suit's calibration with the emulated trackers' sensor ids."""
+    c = world.calibration(suit)
+    old = [f"{s:08X}" for s in suit.sensor_ids]
+    new = sensor_ids(suit)
+    rename = dict(zip(old, new, strict=True))
+    return replace(c, bones={rename[k]: v for k, v in c.bones.items()}, q_ib={rename[k]: v for k, v in c.q_ib.items()},
+                   spread_deg={rename[k]: v for k, v in c.spread_deg.items()})  # fmt: skip
+
+
+@dataclass
+class SlimeVrRig:
+    daemon: Daemon
+    world: SyntheticWorld
+    epoch_ns: int
+    drift_deg_per_min: np.ndarray  # (n_sensors,)
+    sent: list[dict[int, tuple[float, float, float, float]]] = field(default_factory=list)
+
+
+def build_slimevr_daemon(
+    config: Config,
+    *,
+    cameras: int = 2,
+    motion: str = "procedural",
+    drift_deg_per_min: np.ndarray | None = None,
+    sinks: list[PoseSink] | None = None,
+    seed: int = 0,
+) -> SlimeVrRig:
+    """One person in a ring of ``cameras`` synthetic cameras wearing a 13-sensor SlimeVR suit (built, not run)."""
+    world = SyntheticWorld(cameras, 1, 1, seed=seed, motion=motion)
+    suit = world.suits[0]
+    epoch = time.monotonic_ns()
+    slimevr = config.imu.slimevr.model_copy(update={"enabled": True, "port": 0})
+    cfg = config.model_copy(update={"imu": config.imu.model_copy(update={"slimevr": slimevr, "ports": ()})})
+    suits = [Suit.from_calibration(suit.id, slimevr_calibration(world, suit), world.skeleton)]
+    sources = [SyntheticKeypointSource(world, c, epoch_ns=epoch, seed=seed) for c in range(len(world.cameras))]
+    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(cfg.solver.prior), suits)
+    daemon = Daemon(cfg, rig, sinks=list(sinks or []))
+    drift = np.zeros(len(suit.sensor_ids)) if drift_deg_per_min is None else np.asarray(drift_deg_per_min, float)
+    return SlimeVrRig(daemon, world, epoch, drift)
+
+
+def _sensor(k: int) -> SensorData:
+    return SensorData(k, SensorState.SENSOR_OK, ImuType.BNO080, SensorRotationQuat(0.0, 0.0, 0.0, 1.0),
+                      SensorAcceleration(0.0, 0.0, 0.0), SensorPosition(0.0, 0.0, 0.0))  # fmt: skip
+
+
+#: The emulator announces protocol version 17; servers turn such trackers' acceleration by -90° about +Z (a fix
+#: for old firmware), so an emulated tracker reports it turned by +90°.
+_OLD_FIRMWARE_ACC = np.array([math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)])
+
+
+@contextlib.asynccontextmanager
+async def emulated_suit(rig: SlimeVrRig, port: int, period_s: float = 0.02) -> AsyncIterator[None]:
+    """Run the emulator against ``port`` with every suit sensor following the world (and its drift) until exit."""
+    async with _emulated(rig.world, rig.epoch_ns, rig.drift_deg_per_min, port, rig.sent, period_s):
+        yield
+
+
+@contextlib.asynccontextmanager
+async def _emulated(world: SyntheticWorld, epoch_ns: int, drift_deg_per_min: np.ndarray, port: int,
+                    sent_log: list[dict[int, tuple[float, float, float, float]]],
+                    period_s: float) -> AsyncIterator[None]:  # fmt: skip
+    suit = world.suits[0]
+    quats, accs = world.imu_motion(suit, RATE_HZ)  # (n, m, 4), (n, m, 3): ENU orientation, specific force
+    emu = SlimeVRTrackerEmulatorAsync()
+    for k in range(len(suit.sensor_ids)):
+        await emu.set_tracker(_sensor(k))
+    up = np.array([0.0, 0.0, GRAVITY])
+
+    async def drive() -> None:
+        while True:
+            t = (time.monotonic_ns() - epoch_ns) / 1e9
+            i = round(t * RATE_HZ) % quats.shape[1]
+            sent = {}
+            for k in range(quats.shape[0]):
+                yaw = quat_from_rotvec(np.array([0.0, 0.0, math.radians(drift_deg_per_min[k] * t / 60.0)]))
+                q = quat_multiply(yaw, quats[k, i])  # drift: the tracker's heading reference turns
+                lin = accs[k, i] - quat_rotate(quat_conjugate(quats[k, i]), up)  # the firmware sends it gravity-free
+                a = quat_rotate(_OLD_FIRMWARE_ACC, lin)
+                w, x, y, z = (float(v) for v in q)
+                await emu.set_tracker_rotation(k, SensorRotationQuat(x, y, z, w))
+                await emu.set_tracker_acceleration(k, SensorAcceleration(float(a[0]), float(a[1]), float(a[2])))
+                sent[k] = (w, x, y, z)
+            sent_log.append(sent)
+            del sent_log[:-500]
+            await asyncio.sleep(period_s)
+
+    runner = asyncio.create_task(emu.run(("127.0.0.1", port)))
+    driver = asyncio.create_task(drive())
+    try:
+        yield
+    finally:
+        for task in (driver, runner):
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        if emu.sock is not None:
+            emu.sock.close()
+
+
+def _child(port: int, epoch_ns: int, cameras: int, motion: str, seed: int, drift: list[float], seconds: float,
+           pace: float) -> None:  # fmt: skip
+    world = SyntheticWorld(cameras, 1, 1, seed=seed, motion=motion)  # the same world: same seed, same motion
+    if pace != 1.0:
+        # The emulator paces itself with two 0.1 s sleeps per received packet (about 10 updates a second); scale
+        # them so that sensors update at a real tracker's rate. Only its module's view of asyncio changes.
+        import slimevr_tracker_emulator.async_tracker_emulator as emulator_module
+
+        def sleep(delay: float) -> Coroutine[Any, Any, None]:
+            return asyncio.sleep(delay * pace)
+
+        emulator_module.asyncio = types.SimpleNamespace(**{**vars(asyncio), "sleep": sleep})
+
+    async def main() -> None:
+        async with _emulated(world, epoch_ns, np.array(drift), port, [], 0.01):
+            await asyncio.sleep(seconds)
+
+    with contextlib.redirect_stdout(io.StringIO()):  # the emulator prints every packet it does not expect
+        asyncio.run(main())
+
+
+def emulator_process(rig: SlimeVrRig, port: int, seconds: float, *, cameras: int, motion: str, seed: int,
+                     pace: float = 1.0) -> multiprocessing.process.BaseProcess:  # fmt: skip
+    """The emulated suit in a process of its own (as trackers are devices of their own): started, runs ``seconds``.
+
+    ``pace`` scales the emulator's own sleeps (0.1: about ten times as many updates, a real tracker's rate).
+    """
+    ctx = multiprocessing.get_context("spawn")
+    drift = [float(v) for v in rig.drift_deg_per_min]
+    proc = ctx.Process(target=_child, args=(port, rig.epoch_ns, cameras, motion, seed, drift, seconds, pace),
+                       daemon=True)  # fmt: skip
+    proc.start()
+    return proc
