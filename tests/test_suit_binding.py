@@ -88,3 +88,17 @@ def test_a_suit_matching_no_track_stays_unpaired() -> None:
             f * NS, {1: _keypoints(sk, people[0][f], rng)}, {"B": suit_orientations(sk, people[1][f], 0.0, rng)}
         )
     assert binder.state.pairs == {}
+
+
+def test_a_track_without_limb_keypoints_leaves_the_window_cleanly() -> None:
+    """A track seen with no triangulated limb (all NaN: no evidence, count 0) adds nothing to the window; when its
+    frame leaves the window, nothing is taken away either (it raised KeyError: `mocapd resolve` crashed on a
+    session recorded under load)."""
+    rng = np.random.default_rng(4)
+    sk, people = _people(30)
+    binder = SuitBinder(sk, BindingOptions(window_s=0.2))
+    nothing = np.full((17, 3), np.nan)
+    for f in range(30):
+        tracks = {1: _keypoints(sk, people[0][f], rng)} | ({2: nothing} if f < 3 else {})  # then track 2 is gone
+        binder.update(f * NS, tracks, {"A": suit_orientations(sk, people[0][f], 0.0, rng)})
+    assert binder.state.pairs == {"A": 1}

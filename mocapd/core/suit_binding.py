@@ -179,6 +179,9 @@ class SuitBinder:
             imu = np.stack([imu_directions(suits[s], self._axes) for s in suit_ids])
             sums = all_pair_sums(imu, vis)
             frame = {(s, k): sums[i, j] for i, s in enumerate(suit_ids) for j, k in enumerate(track_ids)}
+        # A pair without evidence this frame (no limb triangulated: count 0) adds nothing, so it is not kept: the
+        # totals drop pairs whose count falls to zero, and removing it later would find no total to take it from.
+        frame = {key: v for key, v in frame.items() if v[3] > 0}
         self._frames.append((t_ns, frame))
         for key, v in frame.items():
             self._totals[key] = self._totals.get(key, np.zeros(4)) + v
