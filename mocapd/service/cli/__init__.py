@@ -8,6 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
+from mocapd.errors import InputError
 from mocapd.service.cli import calibrate as cmd_calibrate
 from mocapd.service.cli import daemon as cmd_daemon
 from mocapd.service.cli import eval as eval_cli
@@ -35,7 +36,12 @@ def _cmd_eval_tracking(args: argparse.Namespace) -> int:
     from mocapd.eval import tracking as eval_tracking
 
     motion = "synthetic" if args.synthetic else "real"
-    print(json.dumps(eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion), indent=2))
+    try:
+        report = eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion, scenes=args.scene)
+    except InputError as exc:  # an unknown scene name
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(report, indent=2))
     return 0
 
 
@@ -61,6 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     tracking.add_argument("--seconds", type=float, default=8.0, help="length of each scene (default 8)")
     tracking.add_argument("--seed", type=int, default=0)
     tracking.add_argument("--synthetic", action="store_true", help="generated motion instead of recorded clips")
+    tracking.add_argument("--scene", action="append", default=None, metavar="NAME",
+                          help="run only this scene (repeatable; default: every scene)")  # fmt: skip
     tracking.set_defaults(func=_cmd_eval_tracking)
     eval_cli.register(ev_sub)
 
