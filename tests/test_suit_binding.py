@@ -102,3 +102,23 @@ def test_a_track_without_limb_keypoints_leaves_the_window_cleanly() -> None:
         tracks = {1: _keypoints(sk, people[0][f], rng)} | ({2: nothing} if f < 3 else {})  # then track 2 is gone
         binder.update(f * NS, tracks, {"A": suit_orientations(sk, people[0][f], 0.0, rng)})
     assert binder.state.pairs == {"A": 1}
+
+
+def test_a_pairing_holds_through_frames_without_its_track_then_ends() -> None:
+    """A loaded machine drops the wearer from a few frames (a late detection): the pairing holds, so the identity
+    does not flicker; a track gone for a whole window (released) unpairs the suit."""
+    rng = np.random.default_rng(5)
+    sk, people = _people(120)
+    binder = SuitBinder(sk, BindingOptions(window_s=1.0))
+    kinds = []
+    for f in range(120):
+        gone = 40 <= f < 45 or f >= 80  # five frames without the track, then gone for good
+        tracks = {} if gone else {1: _keypoints(sk, people[0][f], rng)}
+        kinds += [
+            (f, e.kind) for e in binder.update(f * NS, tracks, {"A": suit_orientations(sk, people[0][f], 0.0, rng)})
+        ]
+        if 30 <= f < 80:
+            assert binder.state.pairs == {"A": 1}, f
+    assert [k for _, k in kinds] == ["paired", "unpaired"]
+    assert 80 + FPS * 1.0 <= kinds[1][0] <= 80 + FPS * 1.0 + 1  # one window after the track was last seen
+    assert binder.state.pairs == {}
