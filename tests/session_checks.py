@@ -29,6 +29,8 @@ LIMB_JOINTS = [7, 10, 8, 11, 9, 12, 13, 17, 14, 18, 15, 19]
 SEGMENTS = {"upper arm": ((0, 2), (1, 3)), "forearm": ((2, 4), (3, 5)), "thigh": ((6, 8), (7, 9)),
             "shank": ((8, 10), (9, 11))}  # fmt: skip
 """Limb segments as pairs of indices into the 12 limb keypoints, left and right."""
+MIRROR = [1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10]
+"""The 12 limb keypoints with left and right exchanged."""
 MIN_CONFIDENCE = 0.5
 MIN_KEYPOINTS = 6
 
@@ -67,16 +69,21 @@ def _pose_at(poses: list[PoseRecord], t_solve: NDArray[np.int64], t_ns: int, tol
 
 
 def _match(person: PersonRecord, camera: dict[str, Any], record: KeypointRecord) -> tuple[float, FloatArray] | None:
-    """The detection of ``record`` that best fits ``person``: its median limb-keypoint error (px) and keypoints."""
+    """The detection of ``record`` that best fits ``person``: its median limb-keypoint error (px) and keypoints.
+
+    A detector mirrors a person now and then (left and right limbs swapped, docs/detection.md), and the solve
+    rightly leaves such a view out; each detection is taken as detected or mirrored, whichever fits."""
     uv = project(camera, np.asarray(person.joints, np.float64)[LIMB_JOINTS])
     best: tuple[float, FloatArray] | None = None
     for kp, conf in zip(record.keypoints, record.confidences, strict=True):
-        ok = conf[LIMB_KEYPOINTS] >= MIN_CONFIDENCE
-        if ok.sum() < MIN_KEYPOINTS:
-            continue
-        err = float(np.median(np.linalg.norm(kp[LIMB_KEYPOINTS][ok] - uv[ok], axis=1)))
-        if best is None or err < best[0]:
-            best = (err, np.column_stack([kp[LIMB_KEYPOINTS], conf[LIMB_KEYPOINTS]]))
+        limbs = np.column_stack([kp[LIMB_KEYPOINTS], conf[LIMB_KEYPOINTS]])
+        for candidate in (limbs, limbs[MIRROR]):
+            ok = candidate[:, 2] >= MIN_CONFIDENCE
+            if ok.sum() < MIN_KEYPOINTS:
+                continue
+            err = float(np.median(np.linalg.norm(candidate[ok, :2] - uv[ok], axis=1)))
+            if best is None or err < best[0]:
+                best = (err, candidate)
     return best
 
 
