@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from tests.pose2sim_data import demo_root
@@ -52,6 +53,8 @@ def test_four_fake_cameras_deliver_bit_identical_frames(pose2sim_demo: Path) -> 
             "10",
             "--size",
             "272x480",
+            "--format",
+            "BayerRG8",  # what tests/data/four_gige.toml configures: the ring holds the demosaiced image
         ]
     )
     assert len(result["cameras"]) == 4
@@ -66,6 +69,24 @@ def test_four_fake_cameras_deliver_bit_identical_frames(pose2sim_demo: Path) -> 
         assert cam["in_order"] == cam["frames"], f"{name}: frames out of order"
         assert cam["host_ts_increasing"] and cam["device_ts_increasing"], name
         assert cam["frame_ids_consecutive"], name
+
+
+def test_reference_images_keep_the_source_colours(pose2sim_demo: Path) -> None:
+    """The oracle of the capture checks (tools.fake_rig.reference_image), judged against the source itself: each
+    Bayer pattern sampled and demosaiced comes back close to the source RGB, far from it with red and blue
+    swapped; Mono8 is the luma of the source."""
+    from mocapd.sim.fake_gige import load_video_rgb
+    from tools.fake_rig import GENICAM_BAYER_ROWS, reference_image
+
+    (rgb,) = load_video_rgb(pose2sim_demo / "Demo_MultiPerson" / "videos" / "cam02.mp4", 1, (544, 960))
+    src = rgb.astype(int)
+    for fmt in GENICAM_BAYER_ROWS:
+        img = reference_image(rgb, fmt).astype(int)
+        assert img.shape == rgb.shape
+        assert np.abs(img - src).mean() < 3.0 < np.abs(img[..., ::-1] - src).mean(), fmt
+    assert np.array_equal(reference_image(rgb, "RGB8"), rgb)
+    grey = reference_image(rgb, "Mono8")[..., 0].astype(float)
+    assert np.abs(grey - src @ np.array([0.299, 0.587, 0.114])).max() <= 1.0
 
 
 def test_bayer_capture_is_demosaiced_in_rgb_order(pose2sim_demo: Path) -> None:

@@ -24,14 +24,21 @@ from mocapd.service.config import load_config
 from mocapd.service.demo.synthetic import synthetic_config
 from mocapd.service.session.replay import pose_frame, replay
 from mocapd.service.session.solve import resolve, session_rig
-from mocapd.service.session.truth import truth_report
+from mocapd.service.session.truth import person_errors, truth_report, world_of
 from tests.test_daemon import Recorder
 
 
 async def _record(path: Path, seconds: float) -> list[PoseFrame]:
     cfg = load_config()
-    cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0}),
-                                 "websocket": cfg.websocket.model_copy(update={"enabled": False})})  # fmt: skip
+    # No body sizing: every pose, live and resolved, is on the synthetic people's own skeleton, so the truth
+    # comparison measures the solves. With sizing on, each run sizes a person from its first 120 solved frames,
+    # and under load the live run's span more time (missed ticks) than the re-solve's: two skeleton estimates,
+    # a few millimetres apart, decided the comparison (resolve 3.8 vs live 2.6 mm median once; sizing is
+    # checked in tests/test_body_size.py and tests/test_scheduler.py).
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0, "body_size_s": 0.0}),
+        "websocket": cfg.websocket.model_copy(update={"enabled": False}),
+    })  # fmt: skip
     live = Recorder()
     with assembled(synthetic_config(cfg), RunOptions(sinks=[live], record=path)) as demo:
         task = asyncio.create_task(demo.daemon.run())
@@ -42,7 +49,12 @@ async def _record(path: Path, seconds: float) -> list[PoseFrame]:
                    and any(p.suit == "suit0" and p.imus == 13 for p in live.frames[-1].people)):  # fmt: skip
             assert loop.time() < end, "both people never tracked"
             await asyncio.sleep(0.05)
+        # At least ``seconds`` more, and at least 150 frames with both people (a loaded machine misses ticks).
+        tracked, end = len(live.frames), loop.time() + 60
         await asyncio.sleep(seconds)
+        while sum(len(f.people) == 2 for f in live.frames[tracked:]) < 150:
+            assert loop.time() < end, "too few frames with both people"
+            await asyncio.sleep(0.1)
         demo.daemon.request_stop()
         assert await asyncio.wait_for(task, 10) == 0
     return live.frames
@@ -95,6 +107,15 @@ def test_replay_publishes_the_same_frames_at_the_recorded_pace(recorded: tuple[P
     assert stats.wall_s >= recorded_s / 4.0 - 0.01  # paced, not dumped
 
 
+# Resolved minus live error at the same solve instants (same person), over 8 sessions recorded at load averages
+# 20-25: median -5.85 to -0.08 mm, resolve no worse at 56-80 % of the instants. Comparing the two streams' medians
+# instead failed under load (resolved 4.48 vs live 3.86 mm in one session whose paired median was -0.12 mm): the
+# instants where a loaded live daemon solved are not a random sample, and the medians of two long-tailed
+# distributions over them swing by more than resolve gains at the typical instant.
+PAIRED_MEDIAN_MAX_MM = 0.1
+NOT_WORSE_FRACTION_MIN = 0.5
+
+
 def test_resolve_does_not_worsen_the_error_against_the_truth(recorded: tuple[Path, list[PoseFrame]]) -> None:
     path, _ = recorded
     s = open_session(path)
@@ -104,15 +125,20 @@ def test_resolve_does_not_worsen_the_error_against_the_truth(recorded: tuple[Pat
     assert len(frames) >= len(live) and summary["keypoint_frames"] == len(s.keypoints())
     period = round(1e9 / 60.0)
     assert np.all(np.diff([f.t_solve_ns for f in frames]) == period)
-    # Steady state: once the live daemon had bound the suit (the test recorded 4 s after that); before it the
-    # two runs enrol and bind at different moments, and a binding transient is not what resolve is for.
+    # Steady state: once the live daemon had bound the suit; before it the two runs enrol and bind at different
+    # moments, and a binding transient is not what resolve is for.
     bound = next(f.t_solve_ns for f in live if any(p.suit is not None for p in f.people))
     report = truth_report(s, {"live": live, "resolved": frames}, from_ns=bound + 500_000_000)
     print("resolve vs live:", report)
-    assert report["person_frames"] > 100
-    assert report["resolved"]["median"] <= report["live"]["median"] * 1.02, report
-    assert report["resolved"]["mean"] <= report["live"]["mean"] * 1.02, report
-    assert report["resolved"]["median"] < 10.0
+    assert report["person_frames"] > 100 and report["resolved"]["median"] < 10.0, report
+    # The same solve instants and people, compared one by one.
+    world, epoch = world_of(s)
+    errors = [person_errors(world, epoch, stream) for stream in (live, frames)]
+    common = [k for k in set(errors[0]) & set(errors[1]) if k[0] >= bound + 500_000_000]
+    diff = np.array([errors[1][k] - errors[0][k] for k in common]) * 1e3
+    assert len(diff) == report["person_frames"]
+    assert float(np.median(diff)) <= PAIRED_MEDIAN_MAX_MM, (np.median(diff), report)
+    assert float(np.mean(diff <= 0.0)) >= NOT_WORSE_FRACTION_MIN, (np.mean(diff <= 0.0), report)
 
 
 def test_resolve_and_export_commands_round_trip_through_the_bvh_reader(
@@ -129,7 +155,7 @@ def test_resolve_and_export_commands_round_trip_through_the_bvh_reader(
     s = open_session(path)
     track = resample(subject_track(s.poses("poses-resolved"), "suit:suit0"), 60.0)
     assert out["frames"] == track.thetas.shape[0] > 100
-    fk = Kinematics(track.skeleton or session_rig(s).skeleton).forward(track.thetas)  # the subject's sized one
+    fk = Kinematics(track.skeleton or session_rig(s).skeleton).forward(track.thetas)  # its own skeleton, if sized
 
     motion = read_bvh(bvh)  # unit detected from the leg length: centimetres
     assert motion.fps == 60.0 and motion.n_frames == track.thetas.shape[0] and motion.joint_names[0] == "Hips"

@@ -136,3 +136,37 @@ def test_keypoint_sets_holding_coco17_are_read_by_name() -> None:
         binder.update(41 * NS, {7: kp[:17]}, {})
     with pytest.raises(InputError, match="lacks the COCO-17 keypoints"):
         SuitBinder(sk, names=("nose", "neck"))
+
+
+def test_a_track_without_limb_keypoints_leaves_the_window_cleanly() -> None:
+    """A track seen with no triangulated limb (all NaN: no evidence, count 0) adds nothing to the window; when its
+    frame leaves the window, nothing is taken away either (it raised KeyError: `mocapd resolve` crashed on a
+    session recorded under load)."""
+    rng = np.random.default_rng(4)
+    sk, people = _people(30)
+    binder = SuitBinder(sk, BindingOptions(window_s=0.2))
+    nothing = np.full((17, 3), np.nan)
+    for f in range(30):
+        tracks = {1: _keypoints(sk, people[0][f], rng)} | ({2: nothing} if f < 3 else {})  # then track 2 is gone
+        binder.update(f * NS, tracks, {"A": suit_orientations(sk, people[0][f], 0.0, rng)})
+    assert binder.state.pairs == {"A": 1}
+
+
+def test_a_pairing_holds_through_frames_without_its_track_then_ends() -> None:
+    """A loaded machine drops the wearer from a few frames (a late detection): the pairing holds, so the identity
+    does not flicker; a track gone for a whole window (released) unpairs the suit."""
+    rng = np.random.default_rng(5)
+    sk, people = _people(120)
+    binder = SuitBinder(sk, BindingOptions(window_s=1.0))
+    kinds = []
+    for f in range(120):
+        gone = 40 <= f < 45 or f >= 80  # five frames without the track, then gone for good
+        tracks = {} if gone else {1: _keypoints(sk, people[0][f], rng)}
+        kinds += [
+            (f, e.kind) for e in binder.update(f * NS, tracks, {"A": suit_orientations(sk, people[0][f], 0.0, rng)})
+        ]
+        if 30 <= f < 80:
+            assert binder.state.pairs == {"A": 1}, f
+    assert [k for _, k in kinds] == ["paired", "unpaired"]
+    assert 80 + FPS * 1.0 <= kinds[1][0] <= 80 + FPS * 1.0 + 1  # one window after the track was last seen
+    assert binder.state.pairs == {}

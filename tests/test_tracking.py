@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -134,13 +136,23 @@ def test_people_tracker_reports_pairing_and_events_in_status() -> None:
     assert len(status["subjects"]) == 2 and status["bystanders"] == 1
 
 
-def test_close_interaction_on_recorded_motion_keeps_identities() -> None:
-    """The evaluation's hardest scene, on real clips (short): no switch, no bystander enrolled, solves finite."""
-    from mocapd.eval.tracking import SCENES, run_scene
+def test_close_interaction_on_recorded_motion_keeps_identities(capsys: pytest.CaptureFixture[str]) -> None:
+    """The evaluation's hardest scene on real clips through ``mocapd eval tracking``, as docs/tracking.md reports
+    it (8 s, with and without suits): no switch, no bystander enrolled, and the documented fractions and joint
+    errors (0.929 / 0.938 of the person-frames, 15.5–17.3 mm). Seeded, so the numbers repeat; the bounds leave
+    room for other BLAS builds."""
+    from mocapd.service.cli import main
 
-    scene = next(s for s in SCENES if s.name == "close_interaction")
-    for suits in (True, False):
-        r = run_scene(scene, with_suits=suits, seconds=4.0, motion="real")
-        assert r["motion"] == "real" and r["identity_switches"] == 0 and r["bystanders_enrolled"] == 0
-        assert r["correct_fraction"] > 0.8
-        assert all(v is not None and v < 60.0 for v in r["joint_error_mm"].values())
+    assert main(["eval", "tracking", "--scene", "close_interaction"]) == 0
+    scenes = json.loads(capsys.readouterr().out)["scenes"]
+    assert [(r["scene"], r["suits"], r["frames"]) for r in scenes] == [("close_interaction", True, 240),
+                                                                     ("close_interaction", False, 240)]  # fmt: skip
+    for r in scenes:
+        assert r["motion"] == "real" and r["identity_switches"] == 0 and r["bystanders_enrolled"] == 0, r
+        assert r["mixed_assignments"] == 0, r
+        # At most 1 - 0.5 s enrolment / 8 s = 0.9375 of the visible person-frames can be followed.
+        assert 0.92 <= r["correct_fraction"] <= 0.9375, r
+        assert len(r["joint_error_mm"]) == 2, r
+        assert all(v is not None and v < 20.0 for v in r["joint_error_mm"].values()), r
+    assert main(["eval", "tracking", "--scene", "nowhere"]) == 2
+    assert "unknown tracking scene" in capsys.readouterr().err

@@ -118,7 +118,13 @@ def test_benchmark_reports_sizes_and_costs() -> None:
     r = run(subjects=2, rate=60.0, n_frames=20)
     assert r["mvn"]["bytes_per_frame"] == 2 * 760 and r["mvn"]["datagrams_per_frame"] == 2
     assert r["vmc"]["datagrams_per_frame"] == 4 and r["mvn"]["dropped"] == 0 and r["vmc"]["dropped"] == 0
-    assert r["mvn"]["publish_us"]["median"] > 0 and r["baseline"]["json_lines_us"]["median"] > 0
+    assert r["subjects"] == 2 and r["frames"] == 20
+    timings = [r["mvn"]["serialise_us"], r["mvn"]["publish_us"], r["mvn"]["sendto_us_per_datagram"],
+               r["vmc"]["serialise_us"], r["vmc"]["publish_us"], *r["baseline"].values()]  # fmt: skip
+    assert len(timings) == 7 and all(0 < t["median"] <= t["p95"] for t in timings), timings
+    # The budget is both streams' median publish cost over the 60 Hz frame period (rounded to 4 decimals).
+    both_us = r["mvn"]["publish_us"]["median"] + r["vmc"]["publish_us"]["median"]
+    assert r["budget_fraction"] == pytest.approx(both_us / (1e6 / 60.0), abs=2e-4)
 
 
 def test_sink_arguments_are_checked() -> None:

@@ -11,6 +11,7 @@ import socket
 from collections.abc import AsyncIterator
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -53,8 +54,39 @@ def near(img: NDArray[np.uint8], bgr: NDArray[np.int32], tol: int = 40) -> NDArr
     return result
 
 
+def project_view(view: dict[str, Any], joints: NDArray[np.float64]) -> list[tuple[float, float] | None]:
+    """Canvas pixels of world points through the viewer's camera, computed here from its parameters, not by the
+    page: an orbit camera at ``dist`` from ``target``, at azimuth ``yaw`` (from +Z towards +X) and elevation
+    ``pitch``, looking at the target with +Y up; a pinhole of focal length 0.9 · min(width, height) centred on the
+    canvas. OpenCV projects (camera x right, y down, z forward)."""
+    cam = view["cam"]
+    yaw, pitch, dist = float(cam["yaw"]), float(cam["pitch"]), float(cam["dist"])
+    target = np.array(cam["target"], dtype=np.float64)
+    eye = target + dist * np.array([np.cos(pitch) * np.sin(yaw), np.sin(pitch), np.cos(pitch) * np.cos(yaw)])
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    R = np.stack([right, -up, forward])
+    t = -R @ eye
+    w, h = float(view["width"]), float(view["height"])
+    f = 0.9 * min(w, h)
+    K = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
+    uv, _ = cv2.projectPoints(joints.reshape(-1, 1, 3), cv2.Rodrigues(R)[0], t, K, None)
+    depth = (joints - eye) @ forward
+    left, top = view["left"], view["top"]
+    return [(u + left, v + top) if z > 0.05 else None for (u, v), z in zip(uv.reshape(-1, 2), depth, strict=True)]
+
+
+VIEW = """(() => { const c = document.getElementById('view'), r = c.getBoundingClientRect();
+  return {cam: mocapdViewer.cam, width: c.clientWidth, height: c.clientHeight, left: r.left, top: r.top,
+          subjects: mocapdViewer.state.shown.subjects.map((s) => ({id: s.id, colour: mocapdViewer.colourOf(s.id),
+                                                                  joints: s.joints}))}; })()"""
+
+
 async def check_skeletons_drawn(page: Page) -> list[dict[str, Any]]:
-    """Pause the view on a frame with both people; each one's colour must be on the screenshot at its joints."""
+    """Pause the view on a frame with both people; each one's colour must be on the screenshot where its joints
+    project (projected here from the view's camera and the frame's joints, not by the page)."""
     # Pause on a frame with both people (atomic in the page: under load the tracker may briefly lose someone).
     pause_on_two = (
         "(() => { const s = mocapdViewer.state; const ok = s.shown && s.shown.subjects.length == 2;"
@@ -62,19 +94,27 @@ async def check_skeletons_drawn(page: Page) -> list[dict[str, Any]]:
     )
     await page.wait_for(pause_on_two, 30, "a frame with both people")
     await asyncio.sleep(0.3)  # the paused frame is drawn
+    view = await page.evaluate(VIEW)
     drawn = await page.evaluate("mocapdViewer.drawn()")
     img = await page.screenshot()
     h, w = img.shape[:2]
-    assert drawn, "no subject on screen"
-    for subject in drawn:
+    assert view["subjects"], "no subject on screen"
+    assert [d["id"] for d in drawn] == [s["id"] for s in view["subjects"]]
+    for subject, page_drawn in zip(view["subjects"], drawn, strict=True):
+        joints = np.array(subject["joints"], dtype=np.float64).reshape(-1, 3)
+        assert joints.shape == (21, 3), subject
+        projected = project_view(view, joints)
+        # The page's own projection agrees with this one (a disagreement would show which side is wrong).
+        for p, q in zip(projected, page_drawn["points"], strict=True):
+            assert (p is None) == (q is None) and (p is None or np.hypot(p[0] - q[0], p[1] - q[1]) < 0.5), (p, q)
         mask = near(img, hex_bgr(subject["colour"]))
-        points = [p for p in subject["points"] if p and 3 <= p[0] < w - PANEL_PX - 3 and 3 <= p[1] < h - 3]
+        points = [p for p in projected if p and 3 <= p[0] < w - PANEL_PX - 3 and 3 <= p[1] < h - 3]
         assert len(points) >= 15, subject
         hits = [bool(mask[round(y) - 3 : round(y) + 4, round(x) - 3 : round(x) + 4].any()) for x, y in points]
         assert sum(hits) >= 0.8 * len(points), (subject["id"], hits)
         assert mask[:, : w - PANEL_PX].sum() > 300  # lines, not a stray pixel
     await page.evaluate("mocapdViewer.pause(false)")
-    return list(drawn)
+    return list(view["subjects"])
 
 
 @pytest.mark.asyncio

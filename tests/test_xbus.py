@@ -70,8 +70,12 @@ def test_real_capture_split_at_every_offset() -> None:
 
 def test_every_real_message_split_at_every_offset() -> None:
     """All 500 messages of the five captures, each cut in two at every byte offset, decode unchanged."""
-    for capture in sorted(CAPTURE.parent.parent.glob("*/output.bin")):
+    captures = sorted(CAPTURE.parent.parent.glob("*/output.bin"))
+    assert len(captures) == 5, captures  # an empty glob must not pass
+    n = 0
+    for capture in captures:
         whole, _ = _parse(capture.read_bytes())
+        n += len(whole)
         for msg in whole:
             frame = encode(msg.mid, msg.payload)
             for cut in range(len(frame) + 1):
@@ -81,6 +85,7 @@ def test_every_real_message_split_at_every_offset() -> None:
                 parser.receive_data(frame[cut:])
                 assert first + parser.events_received() == [msg]
                 assert parser.buffered == 0
+    assert n == 500
 
 
 def test_byte_by_byte() -> None:
@@ -158,10 +163,28 @@ def test_arbitrary_bytes_never_raise(stream: bytes, sizes: list[int]) -> None:
         parser.receive_data(stream[pos : pos + size])
         pos += size
     parser.receive_data(stream[pos:])
+    # Every message emitted was in the input: a whole frame (short or extended length form) with a valid checksum,
+    # each after the previous one.
+    at = 0
     for msg in parser.events_received():
-        assert checksum(bytes((msg.bid, msg.mid)) + len(msg.payload).to_bytes(1, "big") + msg.payload) in range(256)
+        at = _frame_end(stream, msg, at)
     c = parser.counters
     assert c.discarded_bytes + parser.buffered <= len(stream)
+
+
+def _frame_end(stream: bytes, msg: XbusMessage, start: int) -> int:
+    """End of the first frame of ``msg`` in ``stream`` at or after ``start`` (asserts there is one)."""
+    n = len(msg.payload)
+    forms = [bytes((msg.bid, msg.mid, 0xFF, n >> 8, n & 0xFF))] + ([bytes((msg.bid, msg.mid, n))] if n < 255 else [])
+    found = []
+    for header in forms:
+        body = header + msg.payload
+        frame = b"\xfa" + body + bytes(((-sum(body)) & 0xFF,))  # the checksum by its definition, not checksum()
+        i = stream.find(frame, start)
+        if i >= 0:
+            found.append(i + len(frame))
+    assert found, f"{msg} is not a frame of the input after offset {start}"
+    return min(found)
 
 
 @settings(max_examples=200, deadline=None)

@@ -7,7 +7,9 @@
 during and after the outage, the failure/reopen counters and the error that was reported.
 
 ``bayer`` / ``mono``: one camera in a Bayer or Mono8 format; compares what mocapd's ring holds with the expected
-conversion of the source frames (and, for Bayer, with the source RGB itself, to catch swapped channels).
+image of the source frames (``tools.fake_rig.reference_image``: OpenCV's demosaicing of a mosaic sampled by the
+GenICam definition, not mocapd's own conversion) and, for Bayer, with the source RGB itself, to catch swapped
+channels.
 """
 
 from __future__ import annotations
@@ -28,9 +30,10 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
-from mocapd.io.pixels import convert_into, from_rgb, pixel_format
+from mocapd.io.pixels import pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.sim.fake_gige import add_loopback_aliases, load_video_rgb, server_command
+from tools.fake_rig import reference_image
 
 
 def start_server(video: Path, address: str, max_frames: int, prepare: str) -> subprocess.Popen[str]:
@@ -114,11 +117,7 @@ async def one_format(video: Path, fmt_name: str) -> dict[str, Any]:
     frames = load_video_rgb(video, 4)
     h, w, _ = frames[0].shape
     server = start_server(video, "127.0.0.1", 4, fmt_name)
-    expected = []
-    for rgb in frames:
-        out = np.empty((h, w, fmt.channels), np.uint8)
-        convert_into(fmt, from_rgb(rgb, fmt), h, w, out)
-        expected.append(out)
+    expected = [reference_image(rgb, fmt.name) for rgb in frames]  # not mocapd's own conversion
     source = AravisSource(
         AravisCameraConfig(
             "cam",

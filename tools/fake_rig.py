@@ -6,7 +6,8 @@ video, captures every camera with :class:`mocapd.io.aravis_camera.AravisSource` 
 ``--duration`` seconds and prints one JSON object:
 
 * per camera: frames captured, transport counters (missing frames, resent packets, bad buffers), whether every
-  frame is bit-identical to the decoded source frame it should be (in order), whether host/camera timestamps and
+  frame is bit-identical to the decoded source frame it should be (in order; computed by
+  :func:`reference_image`, independently of mocapd's pixel conversion), whether host/camera timestamps and
   frame ids increase, latency statistics (ms) and the capture thread's CPU use (% of one core);
 * the fake servers' CPU use.
 
@@ -30,13 +31,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
-from mocapd.io.pixels import convert_into, from_rgb, pixel_format
+from mocapd.io.pixels import pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.sim.fake_gige import add_loopback_aliases, load_video_rgb, server_command
 
@@ -139,19 +141,43 @@ class CameraCheck:
             self.out_of_order.append((ref.seq, self.hashes.index(digest)))
 
 
-def expected_hashes(frames: list[Any], fmt_name: str) -> list[str]:
-    """Digests of the ring images mocapd must produce from each source frame.
+# GenICam names a Bayer pattern after its first row (BayerRG8: R at pixel (0, 0), G at (0, 1)); the second row
+# holds the other two colours of the 2x2 cell.
+GENICAM_BAYER_ROWS = {"BayerRG8": ("RG", "GB"), "BayerBG8": ("BG", "GR"), "BayerGR8": ("GR", "BG"),
+                      "BayerGB8": ("GB", "RG")}  # fmt: skip
 
-    RGB8 and Mono8 frames are the decoded video (converted to gray); Bayer frames are the demosaiced mosaic.
+
+def reference_image(rgb: np.ndarray[Any, Any], fmt_name: str) -> np.ndarray[Any, Any]:
+    """The image a camera delivering ``rgb`` in ``fmt_name`` must produce in mocapd's ring, computed without
+    mocapd's pixel code (:mod:`mocapd.io.pixels`), so that it can judge the capture path.
+
+    RGB8 is the frame itself, Mono8 its OpenCV grey conversion. A Bayer format is sampled here from the frame by
+    the GenICam definition of its pattern and demosaiced with ``cv2.demosaicing``, whose code names the pattern
+    after the second row's second and third pixels (OpenCV's convention) — for a 2x2 cell, the second row's
+    two colours swapped.
+
+    Returns
+    -------
+    ndarray, shape (h, w, channels), uint8
     """
-    fmt = pixel_format(fmt_name)
-    out = []
-    for rgb in frames:
-        h, w, _ = rgb.shape
-        image = np.empty((h, w, fmt.channels), np.uint8)
-        convert_into(fmt, from_rgb(rgb, fmt), h, w, image)
-        out.append(hashlib.blake2b(image.tobytes(), digest_size=16).hexdigest())
-    return out
+    if fmt_name == "RGB8":
+        return rgb.copy()
+    if fmt_name == "Mono8":
+        return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)[:, :, None]
+    rows = GENICAM_BAYER_ROWS[fmt_name]
+    channel = {"R": 0, "G": 1, "B": 2}
+    raw = np.empty(rgb.shape[:2], np.uint8)
+    for dy, row in enumerate(rows):
+        for dx, colour in enumerate(row):
+            raw[dy::2, dx::2] = rgb[dy::2, dx::2, channel[colour]]
+    code = getattr(cv2, f"COLOR_Bayer{rows[1][1]}{rows[1][0]}2RGB")
+    image: np.ndarray[Any, Any] = cv2.demosaicing(raw, code)
+    return image
+
+
+def expected_hashes(frames: list[Any], fmt_name: str) -> list[str]:
+    """Digests of the ring images mocapd must produce from each source frame (:func:`reference_image`)."""
+    return [hashlib.blake2b(reference_image(rgb, fmt_name).tobytes(), digest_size=16).hexdigest() for rgb in frames]
 
 
 async def capture(sources: list[AravisSource], checks: list[CameraCheck], duration_s: float, verify: bool) -> None:
@@ -280,7 +306,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--videos", nargs="+", required=True, help="one video per fake camera")
     parser.add_argument("--max-frames", type=int, default=20, help="frames of each video served (looped)")
     parser.add_argument("--size", default=None, help="resize videos to WIDTHxHEIGHT")
-    parser.add_argument("--format", default="RGB8", choices=["RGB8", "Mono8", "BayerRG8"], help="camera pixel format")
+    parser.add_argument(
+        "--format", default="RGB8", choices=["RGB8", "Mono8", *GENICAM_BAYER_ROWS], help="camera pixel format"
+    )
     parser.add_argument("--fps", type=float, default=30.0, help="acquisition frame rate, Hz")
     parser.add_argument("--duration", type=float, default=3.0, help="capture time, s")
     parser.add_argument("--packet-size", type=int, default=8192, help="GigE stream packet size, bytes")

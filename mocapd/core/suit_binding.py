@@ -45,7 +45,9 @@ LIMBS: tuple[tuple[str, str, str, str], ...] = (
 @dataclass(frozen=True)
 class BindingOptions:
     window_s: float = 2.0
-    """Sliding window of evidence (seconds)."""
+    """Sliding window of evidence (seconds). A pairing also lasts while its suit and its track were each seen
+    within it: a frame or a few without the wearer (a late detection on a loaded machine, an IMU sample held up)
+    does not unpair them, so the identity ``suit:<id>`` does not flicker back to the track's."""
     min_samples: int = 20
     """Limb observations a (suit, track) pair needs in the window before it can be paired."""
     max_mean_angle_deg: float = 15.0
@@ -171,6 +173,8 @@ class SuitBinder:
         self.state = BindingState()
         self._challenger: dict[str, int] | None = None
         self._challenger_since = 0
+        self._track_seen: dict[int, int] = {}  # last time (ns) each track / suit was given to update()
+        self._suit_seen: dict[str, int] = {}
 
     def update(
         self, t_ns: int, tracks: dict[int, FloatArray], suits: dict[str, dict[str, FloatArray]]
@@ -187,6 +191,8 @@ class SuitBinder:
             if np.asarray(kp).shape != (self._n_kp, 3):
                 raise InputError(f"suit binding: track {k} keypoints must have shape ({self._n_kp}, 3)")
         track_ids, suit_ids = list(tracks), list(suits)
+        self._track_seen.update(dict.fromkeys(track_ids, t_ns))
+        self._suit_seen.update(dict.fromkeys(suit_ids, t_ns))
         frame: dict[tuple[str, int], _Sums] = {}
         if track_ids and suit_ids:
             pick = self._coco
@@ -234,17 +240,30 @@ class SuitBinder:
                 if usable[r, c]:
                     proposal[suit_ids[r]] = track_ids[c]
                     angles[suit_ids[r]] = float(cost[r, c])
-        current = {s: k for s, k in self.state.pairs.items() if s in suit_ids and k in track_ids}
-        # Suits that lost their track (track released, suit unplugged) are unpaired.
+        # Pairs whose suit or track has not been seen for a whole window (track released, suit unplugged) are
+        # unpaired; the others hold, seen in this frame or not.
+        window_ns = o.window_s * 1e9
+
+        def recent(seen: int | None) -> bool:
+            return seen is not None and t_ns - seen <= window_ns
+
+        held = {
+            s: k
+            for s, k in self.state.pairs.items()
+            if recent(self._suit_seen.get(s)) and recent(self._track_seen.get(k))
+        }
         for s, k in list(self.state.pairs.items()):
-            if s not in current:
+            if s not in held:
                 events.append(BindingEvent(t_ns, "unpaired", s, None, k, np.nan))
-        new_pairs = dict(current)
+        self._track_seen = {k: t for k, t in self._track_seen.items() if t_ns - t <= window_ns}
+        self._suit_seen = {s: t for s, t in self._suit_seen.items() if t_ns - t <= window_ns}
+        new_pairs = dict(held)
         for s, k in proposal.items():  # first pairings need no challenge period
             if s not in new_pairs and k not in new_pairs.values():
                 new_pairs[s] = k
                 events.append(BindingEvent(t_ns, "paired", s, k, None, angles[s]))
-        if self._better(proposal, new_pairs, cost, suit_ids, track_ids):
+        seen_now = {s: k for s, k in new_pairs.items() if s in suit_ids and k in track_ids}
+        if self._better(proposal, seen_now, cost, suit_ids, track_ids):
             if self._challenger != proposal:
                 self._challenger, self._challenger_since = dict(proposal), t_ns
             elif t_ns - self._challenger_since >= o.switch_after_s * 1e9:
@@ -257,10 +276,12 @@ class SuitBinder:
         else:
             self._challenger = None
         self.state.pairs = new_pairs
-        self.state.mean_angle_deg = {
-            s: float(cost[suit_ids.index(s), track_ids.index(k)]) for s, k in new_pairs.items()
-        }
-        self.state.confidence = self._confidence(new_pairs, cost, suit_ids, track_ids)
+        # Pairs not seen in this frame keep the figures of the last frame they were seen in.
+        seen_now = {s: k for s, k in new_pairs.items() if s in suit_ids and k in track_ids}
+        angle = {s: float(cost[suit_ids.index(s), track_ids.index(k)]) for s, k in seen_now.items()}
+        confidence = self._confidence(seen_now, cost, suit_ids, track_ids)
+        self.state.mean_angle_deg = {s: angle.get(s, self.state.mean_angle_deg.get(s, np.nan)) for s in new_pairs}
+        self.state.confidence = {s: confidence.get(s, self.state.confidence.get(s, 0.0)) for s in new_pairs}
         return events
 
     def _better(self, proposal: dict[str, int], current: dict[str, int], cost: FloatArray, suit_ids: list[str],

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy
 from scipy.cluster.vq import kmeans2
 
 from mocapd.core.prior import PcaPrior
@@ -53,6 +54,9 @@ def train(data_root: Path | None, out: Path, seed: int = 0, variance_kept: float
         "variance_kept": round(kept, 4),
         "components": prior.n_components,
         "tool": "tools/train_prior.py",
+        # Seeded k-means is reproducible bit for bit with the same libraries; tests/test_default_prior.py retrains
+        # and compares, and names these versions when the result no longer matches.
+        "libraries": {"numpy": np.__version__, "scipy": scipy.__version__},
     }
     out.with_suffix(".json").write_text(json.dumps(prov, indent=2) + "\n", encoding="utf-8")
     return prov

@@ -8,6 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from mocapd import __version__
+from mocapd.errors import InputError
 from mocapd.service.cli import calibrate as cmd_calibrate
 from mocapd.service.cli import daemon as cmd_daemon
 from mocapd.service.cli import devices as cmd_devices
@@ -38,9 +39,15 @@ def _cmd_eval_tracking(args: argparse.Namespace) -> int:
     from mocapd.io.progress import Progress
 
     motion = "synthetic" if args.synthetic else "real"
-    with Progress(2 * len(eval_tracking.SCENES), "eval tracking") as bar:
-        result = eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion, progress=bar)
-    print(json.dumps(result, indent=2))
+    n_scenes = len(args.scene) if args.scene else len(eval_tracking.SCENES)
+    try:
+        with Progress(2 * n_scenes, "eval tracking") as bar:
+            report = eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion, scenes=args.scene,
+                                            progress=bar)  # fmt: skip
+    except InputError as exc:  # an unknown scene name
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(report, indent=2))
     return 0
 
 
@@ -66,6 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     tracking.add_argument("--seconds", type=float, default=8.0, help="length of each scene (default 8)")
     tracking.add_argument("--seed", type=int, default=0)
     tracking.add_argument("--synthetic", action="store_true", help="generated motion instead of recorded clips")
+    tracking.add_argument("--scene", action="append", default=None, metavar="NAME",
+                          help="run only this scene (repeatable; default: every scene)")  # fmt: skip
     tracking.set_defaults(func=_cmd_eval_tracking)
     eval_cli.register(ev_sub)
 

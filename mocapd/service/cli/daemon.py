@@ -120,7 +120,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             return synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
         from mocapd.service.demo import cameras
 
-        opts = cameras.CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
+        opts = cameras.CameraDemoOptions(scale=args.scale, latency_s=args.latency, speed=args.speed,
+                                         packed=args.packed)  # fmt: skip
         return cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
                            record=args.record)  # fmt: skip
     except MocapdError as exc:  # bad config, a port in use, a session that exists, a device that did not open
@@ -166,6 +167,8 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--scale", type=float, default=0.5, help="camera rig: image size / 1088x1920 (default 0.5)")
     demo.add_argument("--latency", type=float, default=1.0, help="camera rig: fixed latency, s (default 1.0)")
     demo.add_argument("--packed", action="store_true", help="camera rig: all cameras' ROIs packed per detector pass")
+    demo.add_argument("--speed", type=float, default=1.0,
+                      help="camera rig: video playback speed (default 1, their pace; < 1: slow motion)")  # fmt: skip
     demo.set_defaults(func=cmd_demo, fast_exit=True)
 
     check_ = subparsers.add_parser("check-config", help="validate a config file and its rig, and say what is wrong")

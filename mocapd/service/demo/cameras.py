@@ -77,6 +77,11 @@ class CameraDemoOptions:
         A fake camera whose process ends is started again after this long.
     lost_after_s : float
         A camera silent this long is declared lost and reopened with back-off.
+    speed : float
+        Playback speed of the videos: 1 serves them at their own pace (60 fps), 0.05 in slow motion (3 fps, each
+        frame shown 20 times as long). The cameras send at the slowed rate. For a detector far slower than the
+        motion (a loaded CPU): the people then move little between two detections of a camera, so they can be
+        tracked and solved as on a rig whose detector keeps up.
     packed : bool
         Detect the newest frames of all cameras together, their people's regions packed onto shared canvases
         (``[detector.packing] enabled``); False: one whole-frame inference per camera frame, the cameras taking
@@ -95,6 +100,7 @@ class CameraDemoOptions:
     replug_after_s: float = 3.0
     lost_after_s: float = 2.0
     latency_s: float = 1.0
+    speed: float = 1.0
     packed: bool = False
 
     def __post_init__(self) -> None:
@@ -104,6 +110,8 @@ class CameraDemoOptions:
             raise ConfigError("camera demo: max_frames >= 1, replug_after_s >= 0 and lost_after_s > 0 are required")
         if not 0.0 < self.latency_s <= 2.0:
             raise ConfigError(f"camera demo latency = {self.latency_s} s; allowed: (0, 2]")
+        if not 0.01 <= self.speed <= 1.0:
+            raise ConfigError(f"camera demo speed = {self.speed}; allowed: 0.01 .. 1.0")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -129,14 +137,14 @@ def write_scaled_calibration(opts: CameraDemoOptions, path: Path) -> list[str]:
 
 
 def fake_camera_specs(opts: CameraDemoOptions, names: list[str], addresses: list[str]) -> list[FakeCameraSpec]:
-    """One fake camera per calibrated camera, serving that camera's video at its own pace."""
+    """One fake camera per calibrated camera, serving that camera's video at its own pace (times ``opts.speed``)."""
     if len(addresses) < len(names):
         raise ConfigError(f"{len(names)} cameras need as many addresses, got {addresses}")
     specs = []
     for name, video_name, address in zip(names, CAMERAS, addresses, strict=False):
         video = demo_video(opts.demo, video_name)
-        specs.append(FakeCameraSpec(name, video, address, opts.size, video_fps(video), opts.pixel_format,
-                                    opts.max_frames))  # fmt: skip
+        specs.append(FakeCameraSpec(name, video, address, opts.size, video_fps(video) * opts.speed,
+                                    opts.pixel_format, opts.max_frames))  # fmt: skip
     return specs
 
 
@@ -349,9 +357,10 @@ def run(
     """``mocapd demo``: bind the host sockets here, run the demo in a private network namespace."""
     inherited = host_sockets(config)
     d = config.daemon
+    pace = "at their own 60 fps pace" if opts.speed == 1.0 else f"in slow motion ({60 * opts.speed:g} fps)"
     print(
         f"mocapd demo: 4 fake GigE Vision cameras ({opts.pixel_format}, {opts.size[0]}x{opts.size[1]}) streaming "
-        f"the Pose2Sim {opts.demo} videos at their own 60 fps pace, in a private network namespace; detector "
+        f"the Pose2Sim {opts.demo} videos {pace}, in a private network namespace; detector "
         f"{config.detector.model.input_width}x{config.detector.model.input_height} on "
         f"{'packed (all cameras per pass)' if opts.packed else f'{config.detector.workers} worker(s)'}",
         flush=True,
