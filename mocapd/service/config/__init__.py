@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import stat
 import tomllib
-from dataclasses import fields
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal, Self
@@ -138,7 +137,7 @@ class LmConfig(Section):
     max_lm_diagonal: float = Field(LMOptions.max_lm_diagonal, gt=0.0, le=1e64)
 
     def options(self) -> LMOptions:
-        return LMOptions(**{f.name: getattr(self, f.name) for f in fields(LMOptions)})
+        return self.build(LMOptions)
 
 
 class SolverConfig(Section):

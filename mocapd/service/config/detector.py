@@ -7,9 +7,8 @@ is built from it by :meth:`DetectorSection.options`; the keys and defaults are t
 
 from __future__ import annotations
 
-import dataclasses
 import re
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BeforeValidator, Field
 
@@ -87,10 +86,6 @@ class PackingSection(Section):
     n_p: int = Field(_P.n_p, ge=1, le=1000)
 
 
-def _fields(cls: type[Any], section: Section) -> dict[str, Any]:
-    return {f.name: getattr(section, f.name) for f in dataclasses.fields(cls)}
-
-
 class DetectorSection(Section):
     """The ``[detector]`` section."""
 
@@ -108,6 +103,6 @@ class DetectorSection(Section):
             intra_op_threads=self.intra_op_threads,
             inter_op_threads=self.inter_op_threads,
             workers=self.workers,
-            model=ModelSpec(**_fields(ModelSpec, self.model)),
-            packing=PackingConfig(**_fields(PackingConfig, self.packing)),
+            model=self.model.build(ModelSpec),
+            packing=self.packing.build(PackingConfig),
         )

@@ -21,13 +21,14 @@ and every rule is exercised with bad values).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import reprlib
 import types
 import typing
 from collections.abc import Mapping
-from typing import Annotated, Any, ClassVar, Literal, NamedTuple, Self, TypeVar, get_args, get_origin
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, NamedTuple, Self, TypeVar, get_args, get_origin
 
 import annotated_types as at
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
@@ -35,7 +36,11 @@ from pydantic.fields import FieldInfo
 
 from mocapd.errors import ConfigError
 
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
 M = TypeVar("M", bound=BaseModel)
+_D = TypeVar("_D", bound="DataclassInstance")
 T = TypeVar("T")
 
 MAX_PATH = 4096
@@ -83,6 +88,10 @@ class Section(BaseModel):
                 each = " (each coordinate)" if isinstance(va, tuple) else ""
                 raise RuleError(f"{{0}} must be {op} {{1}}{each}", a, b, values=(va, vb))
         return self
+
+    def build(self, cls: type[_D]) -> _D:
+        """The dataclass ``cls`` (a library's options) from this table's keys of the same names."""
+        return cls(**{f.name: getattr(self, f.name) for f in dataclasses.fields(cls)})
 
 
 def as_tuple(value: object) -> object:

@@ -7,8 +7,7 @@ and :class:`~mocapd.core.suit_binding.BindingOptions`.
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Annotated, Any
+from typing import Annotated
 
 from pydantic import AfterValidator, Field
 
@@ -18,10 +17,6 @@ from mocapd.core.tracking import TrackingOptions
 from mocapd.service.config.schema import Pair, Section, Seq, unique
 
 _S, _T, _B = SortingOptions(), TrackingOptions(), BindingOptions()
-
-
-def _as(cls: type[Any], section: Section) -> Any:
-    return cls(**{f.name: getattr(section, f.name) for f in dataclasses.fields(cls)})
 
 
 class SortingConfig(Section):
@@ -35,8 +30,7 @@ class SortingConfig(Section):
     max_interframe_movement: float = Field(_S.max_interframe_movement, gt=0.0, le=100.0)
 
     def options(self) -> SortingOptions:
-        result: SortingOptions = _as(SortingOptions, self)
-        return result
+        return self.build(SortingOptions)
 
 
 class EnrolmentConfig(Section):
@@ -55,8 +49,7 @@ class EnrolmentConfig(Section):
     start_radius: float = Field(_T.start_radius, gt=0.0, le=100.0)
 
     def options(self) -> TrackingOptions:
-        result: TrackingOptions = _as(TrackingOptions, self)
-        return result
+        return self.build(TrackingOptions)
 
 
 class BindingConfig(Section):
@@ -69,8 +62,7 @@ class BindingConfig(Section):
     switch_after_s: float = Field(_B.switch_after_s, ge=0.0, le=60.0)
 
     def options(self) -> BindingOptions:
-        result: BindingOptions = _as(BindingOptions, self)
-        return result
+        return self.build(BindingOptions)
 
 
 class TrackingConfig(Section):
