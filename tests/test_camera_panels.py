@@ -111,12 +111,12 @@ async def test_camera_panels_draw_the_overlays_where_the_calibration_projects() 
                     dots = [(p["left"] + d[k] * p["scale_x"], p["top"] + d[k + 1] * p["scale_y"])
                             for d in p["detections"] for k in range(0, len(d), 3)
                             if d[k] is not None and d[k + 2] >= 0.3]  # fmt: skip
-                    drawn = [_css(p, cam.project(ref[p["frame"]][s["id"]])) for s in p["subjects"]]
+                    # Python's projection through the calibration of the daemon's joints for the drawn frame
+                    projected = [cam.project(ref[p["frame"]][s["id"]]) for s in p["subjects"]]
+                    drawn = [_css(p, uv) for uv in projected]
                     for i, s in enumerate(p["subjects"]):
-                        joints = ref[p["frame"]][s["id"]]  # the daemon's joints for the drawn frame
-                        uv = cam.project(joints)  # Python's projection through the calibration
                         sent = np.array([np.nan if v is None else v for v in s["joints"]]).reshape(21, 2)
-                        np.testing.assert_allclose(sent, uv, atol=0.02)
+                        np.testing.assert_allclose(sent, projected[i], atol=0.02)
                         xy = drawn[i]
                         inside = (xy[:, 0] > p["left"] + 2) & (xy[:, 0] < p["left"] + p["width"] - 2)
                         inside &= (xy[:, 1] > p["top"] + 2) & (xy[:, 1] < p["top"] + p["height"] - 2)
