@@ -11,6 +11,7 @@ from collections.abc import AsyncIterator
 from dataclasses import replace
 from typing import Any
 
+import msgpack
 import numpy as np
 import pytest
 import pytest_asyncio
@@ -131,6 +132,34 @@ async def test_bad_messages_get_errors_and_the_server_keeps_serving(server: WebS
     async with asyncio.timeout(5):
         while server.clients:  # the server notices both closes
             await asyncio.sleep(0.01)
+
+
+@pytest.mark.asyncio
+async def test_extreme_rates_get_bad_field_over_the_wire_and_are_counted(
+    server: WebSocketStreamServer, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 18 D1, D2 on a real connection: the client got 1011 (internal error) from an OverflowError; now a
+    ``bad_field`` error, the connection stays open and the rejection is counted in the server's /status section."""
+    rng = np.random.default_rng(4)
+    async with connect(server.url) as ws:
+        await recv(ws, "hello")
+        for bad in (
+            msgpack.packb({"type": "subscribe", "rate_hz": 1e-20}),
+            '{"type": "subscribe", "rate_hz": 1e-20}',
+            '{"type": "subscribe", "rate_hz": ' + "4" * 400 + "}",
+        ):
+            await ws.send(bad)
+            err = await recv(ws, "error")
+            assert err["code"] == "bad_field" and "rate_hz" in err["message"]
+        got = await publish_until(server, ws, range(2), rng)
+        assert [m["frame"] for m in got] == [0, 1]
+        assert server.status()["rejected_requests"] == {"bad_field": 3}
+        assert server.status()["per_client"][0]["errors"] == 3
+    assert not [r for r in caplog.records if r.exc_info], "a traceback was logged"
+    assert [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()][:1] == [
+        "websocket: rejected bad_field (client 1: rate_hz = 1e-20; allowed: a number from 0.01 to 1e+06 Hz, or nil "
+        "for every frame); 1 rejected so far (counts per reason in /status)"
+    ]
 
 
 @pytest.mark.asyncio

@@ -49,6 +49,7 @@ from websockets.protocol import State
 from mocapd.core.per_skeleton import skeleton_key
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError
+from mocapd.io.rejections import Rejections
 from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
 from mocapd.protocols.ws_stream import (
     ClientSession,
@@ -151,6 +152,9 @@ class WebSocketStreamServer:
         Serve on this listening socket instead of binding ``settings.host:port``.
     """
 
+    name = "websocket"
+    """Its section of the daemon's /status: ``sinks.websocket`` (:meth:`status`)."""
+
     def __init__(
         self,
         settings: ServerSettings,
@@ -185,6 +189,8 @@ class WebSocketStreamServer:
         self.frames_published = 0
         self.non_finite = 0
         self.refused = {"unauthorised": 0, "full": 0, "not_found": 0}
+        #: client requests answered with an error, per error code (every client's, also after it left)
+        self.rejected = Rejections("websocket", log)
         self._connections = 0
         self._latest_subjects: tuple[str, ...] = ()
         self._server: Server | None = None
@@ -297,6 +303,10 @@ class WebSocketStreamServer:
         h = self.settings.host
         return f"[{h}]" if ":" in h else h
 
+    def status(self) -> dict[str, Any]:
+        """:meth:`stats`, for the daemon's /status."""
+        return self.stats()
+
     def stats(self) -> dict[str, Any]:
         """Counters for status pages and benchmarks."""
         return {
@@ -304,6 +314,7 @@ class WebSocketStreamServer:
             "frames_published": self.frames_published,
             "non_finite_subjects": self.non_finite,
             "refused": dict(self.refused),
+            "rejected_requests": self.rejected.as_dict(),
             "per_client": [
                 {"client": c.number, "sent": c.sent, "dropped": c.dropped, "queued": len(c.queue),
                  "requests": c.session.requests, "errors": c.session.errors}
@@ -361,7 +372,9 @@ class WebSocketStreamServer:
         client.wake.set()
         try:
             async for message in conn:
-                session.receive_message(message)
+                error = session.receive_message(message)
+                if error is not None:
+                    self.rejected.reject(error.code, f"client {client.number}: {error}")
                 client.control.extend(session.messages_to_send())
                 if len(client.control) > CONTROL_LIMIT:
                     await conn.close(1008, "too many unanswered requests")
