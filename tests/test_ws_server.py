@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import socket
 from collections.abc import AsyncIterator
 from dataclasses import replace
@@ -280,6 +281,30 @@ async def test_viewer_files_client_limit_and_status_messages() -> None:
             await recv(a, "hello")
             srv.publish(random_frame(np.random.default_rng(5), 0, IDS, SKEL))
             assert (await recv(a, "frame"))["frame"] == 0
+    finally:
+        await srv.aclose()
+
+
+@pytest.mark.asyncio
+async def test_bytes_after_a_request_head_are_dropped_not_a_traceback(caplog: pytest.LogCaptureFixture) -> None:
+    """Found by the wire fuzzing of issue 18: a GET followed by bytes that are not a WebSocket frame (a body,
+    pipelined requests) made websockets fail its own assertion when it sent the answer: "unexpected internal
+    error" with a traceback per request. Such a connection is now dropped unanswered, and counted."""
+    srv = WebSocketStreamServer(ServerSettings(port=0, status_hz=0), StreamDescription(60.0, {"default": SKEL}))
+    await srv.start()
+    try:
+        for tail in (b"\x00\x00", b"GET / HTTP/1.1\r\n\r\n", b"x"):
+            reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+            writer.write(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + tail)
+            async with asyncio.timeout(5):
+                answer = await reader.read()
+            writer.close()
+            assert answer.startswith(b"HTTP/1.1 200 ") == (tail == b"x"), answer[:40]  # one byte is no frame yet
+        await asyncio.sleep(0.05)  # the handshakes end after the connections close
+        assert not [r for r in caplog.records if r.exc_info and r.levelno >= logging.WARNING], "a traceback was logged"
+        assert srv.refused["bad_request"] == 2
+        code, _, body = await http_get(srv.port, "/")
+        assert code == 200 and b"viewer.js" in body
     finally:
         await srv.aclose()
 

@@ -33,7 +33,7 @@ import logging
 import socket
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from http import HTTPStatus
 from importlib import resources
 from typing import Any
@@ -188,7 +188,7 @@ class WebSocketStreamServer:
         self.clients: set[_Client] = set()
         self.frames_published = 0
         self.non_finite = 0
-        self.refused = {"unauthorised": 0, "full": 0, "not_found": 0}
+        self.refused = {"unauthorised": 0, "full": 0, "not_found": 0, "bad_request": 0}
         #: client requests answered with an error, per error code (every client's, also after it left)
         self.rejected = Rejections("websocket", log)
         self._connections = 0
@@ -334,7 +334,13 @@ class WebSocketStreamServer:
             offered = auth[len("Bearer ") :]
         return hmac.compare_digest(offered.encode(), token.encode())
 
-    def _process_request(self, conn: ServerConnection, request: Request) -> Response | None:
+    def _process_request(self, conn: ServerConnection, request: Request) -> Response | Coroutine[Any, Any, None] | None:
+        if conn.protocol.eof_sent:
+            # Bytes that are not a WebSocket frame followed the request head (a body, pipelined requests): the
+            # protocol has already ended its side, and websockets (17.4) would then fail its own assertion sending
+            # any answer ("unexpected internal error", a traceback per request). Drop the connection unanswered.
+            self.refused["bad_request"] += 1
+            return _drop(conn)
         if not self._authorised(request):
             self.refused["unauthorised"] += 1
             return conn.respond(HTTPStatus.UNAUTHORIZED, "a token is required: ?token=... or Authorization: Bearer\n")
@@ -455,6 +461,13 @@ class WebSocketStreamServer:
                     c.push(cache[enc])
                     self.camera_messages += 1
             await asyncio.sleep(1.0 / rate)
+
+
+async def _drop(conn: ServerConnection) -> None:
+    """Close a connection during its opening handshake without an answer (once it is closed, websockets sends
+    none: the handshake finds the connection no longer connecting)."""
+    conn.transport.abort()
+    await conn.wait_closed()
 
 
 def _panels(views: CameraViews, now_ns: int) -> list[tuple[CameraView, bytes | None, tuple[int, int]]]:
