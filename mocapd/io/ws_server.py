@@ -196,6 +196,7 @@ class WebSocketStreamServer:
         self._server: Server | None = None
         self._status_task: asyncio.Task[None] | None = None
         self._camera_task: asyncio.Task[None] | None = None
+        self._camera_wake = asyncio.Event()  # a client changed its camera options: the loop's rate may change
         self.camera_messages = 0
         self._web = load_web_files() if settings.viewer else {}
 
@@ -388,6 +389,8 @@ class WebSocketStreamServer:
                 client.wake.set()
                 if session.options.cameras and (self._camera_task is None or self._camera_task.done()):
                     self._camera_task = asyncio.create_task(self._camera_loop())
+                elif error is None:
+                    self._camera_wake.set()
         except ConnectionClosed:
             pass  # oversized message (1009), reset, or going away: this client only
         finally:
@@ -443,6 +446,7 @@ class WebSocketStreamServer:
         views = self.camera_views
         assert views is not None
         while True:
+            self._camera_wake.clear()
             wanted = self._camera_clients()
             if not wanted:
                 return
@@ -460,7 +464,10 @@ class WebSocketStreamServer:
                         cache[enc] = camera_message(panel, jpeg, size, enc)
                     c.push(cache[enc])
                     self.camera_messages += 1
-            await asyncio.sleep(1.0 / rate)
+            # Until the next panel is due, or a client changes its options (one that asked for one message per
+            # 100 s must not hold back the next client's 4 Hz).
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._camera_wake.wait(), 1.0 / rate)
 
 
 async def _drop(conn: ServerConnection) -> None:
