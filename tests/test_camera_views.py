@@ -5,12 +5,14 @@ encodings and the ``cameras`` subscribe option."""
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import json
 
 import cv2
 import numpy as np
 import pytest
+from websockets.asyncio.client import connect
 
 from mocapd.core.camera import look_at
 from mocapd.core.keypoints import coco17_targets
@@ -18,6 +20,7 @@ from mocapd.core.kinematics import Kinematics
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import ConfigError
+from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
 from mocapd.pipeline.camera_views import CameraViewOptions, CameraViews, LatestSnapshot, RingSnapshots, Snapshot
 from mocapd.pipeline.frame_ring import FrameRing
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame
@@ -113,3 +116,30 @@ def test_cameras_option_needs_camera_views_and_caps_the_rate() -> None:
     assert hello["camera_views"] is True and hello["camera_rate_hz"] == 5.0
     s.receive_message(json.dumps({"type": "subscribe", "camera_rate_hz": -1}))
     assert decode(s.messages_to_send()[0])["code"] == "bad_field"
+
+
+@pytest.mark.asyncio
+async def test_a_client_at_the_lowest_camera_rate_does_not_hold_back_the_next_one() -> None:
+    """Found reviewing issue 18's rate checks: the camera loop slept ``1 / rate`` of the fastest client asking,
+    so a first client at a tiny rate (1e-9 Hz: 30 years; now at least 0.01 Hz: 100 s) kept every later client
+    waiting that long for its first camera message. The loop now wakes when a client changes its options."""
+    views = CameraViews([CAM], TARGETS, SK, [None], CameraViewOptions(rate_hz=4.0))
+    views.publish(_pose(7, 500 * MS, 0.0))
+    srv = WebSocketStreamServer(ServerSettings(port=0, status_hz=0), StreamDescription(60.0, {"default": SK}),
+                                camera_views=views)  # fmt: skip
+    await srv.start()
+    try:
+        async with connect(srv.url) as slow, connect(srv.url) as other:
+            for ws in (slow, other):
+                assert decode(await ws.recv())["type"] == "hello"
+            await slow.send(json.dumps({"type": "subscribe", "cameras": True, "camera_rate_hz": 0.01}))
+            async with asyncio.timeout(5):
+                assert decode(await slow.recv())["type"] == "hello"
+                assert decode(await slow.recv())["type"] == "camera"  # the first one at once, the next in 100 s
+            await other.send(json.dumps({"type": "subscribe", "cameras": True, "camera_rate_hz": 4}))
+            async with asyncio.timeout(5):
+                assert decode(await other.recv())["type"] == "hello"
+                got = [decode(await other.recv())["type"] for _ in range(2)]
+            assert got == ["camera", "camera"]  # at 4 Hz, not after the slow client's 100 s
+    finally:
+        await srv.aclose()

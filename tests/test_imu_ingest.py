@@ -49,3 +49,25 @@ def test_gaps_incomplete_and_no_device_time() -> None:
     # Host time not after the newest sample: kept, 1 ns after it, and counted.
     assert ingest.add("a", 5 * MS, device_ticks=None, packet_counter=1, quat=Q, acc=A) == 5 * MS + 1
     assert stream.clock_steps_back == 1
+
+
+def test_unconfigured_sensors_are_a_bounded_table_that_evicts_the_longest_silent() -> None:
+    """Issue 18 D4: every new sensor id got a buffer and a status entry, without a cap. Now at most
+    ``max_other_sensors`` unconfigured sensors are held; a new one evicts the one silent longest (counted); the
+    kept (configured) sensors are never evicted."""
+    ingest = ImuIngest(capacity=16, max_other_sensors=4)
+    ingest.keep(["SUIT0", "SUIT1"])
+    ingest.add("SUIT0", 1 * MS, device_ticks=None, packet_counter=None, quat=Q, acc=A)
+    for k in range(100):
+        ingest.add(f"X{k}", (2 + k) * MS, device_ticks=None, packet_counter=None, quat=Q, acc=A)
+        if k >= 50:  # X3 (evicted early on) comes back and keeps speaking
+            ingest.add("X3", (2 + k) * MS + 1, device_ticks=None, packet_counter=None, quat=Q, acc=A)
+    assert set(ingest.streams) == {"SUIT0", "X3", "X97", "X98", "X99"}
+    assert ingest.evicted == 101 - 4  # 100 new ids and X3 again, 4 held
+    ingest.add("SUIT1", 200 * MS, device_ticks=None, packet_counter=None, quat=Q, acc=A)  # kept: evicts nothing
+    assert len(ingest.streams) == 6 and ingest.evicted == 97
+    assert len(ingest.streams["SUIT0"].buffer) == 1
+    ingest.keep(["X99"])  # a sensor that becomes configured leaves the table of others
+    ingest.add("Y", 300 * MS, device_ticks=None, packet_counter=None, quat=Q, acc=A)  # 4 others again: no eviction
+    ingest.add("Z", 301 * MS, device_ticks=None, packet_counter=None, quat=Q, acc=A)  # evicts X97, silent longest
+    assert set(ingest.streams) == {"SUIT0", "SUIT1", "X99", "X3", "X98", "Y", "Z"} and ingest.evicted == 98

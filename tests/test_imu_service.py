@@ -93,3 +93,50 @@ async def test_serial_and_bridge_inputs_feed_one_ingest(tmp_path: Path) -> None:
         await task
         for s in sims:
             s.stop()
+
+
+@pytest.mark.asyncio
+async def test_new_sensor_ids_on_the_bridge_cannot_grow_the_daemon_or_evict_a_suit(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Issue 18 D4: datagrams each naming a new sensor id gave every id a buffer (~100 KiB) and a /status entry,
+    without a cap. Built on the one assembly path (the synthetic rig's suit), the daemon holds at most
+    ``MAX_OTHER_SENSORS`` unconfigured sensors, counts the evictions in /status, and keeps the suit's sensors."""
+    from mocapd.pipeline.imu_ingest import MAX_OTHER_SENSORS
+    from mocapd.service.assembly import assembled
+    from mocapd.service.config import load_config
+    from mocapd.service.demo.synthetic import synthetic_config
+
+    cfg = load_config()
+    bridge = cfg.imu.bridge.model_copy(update={"enabled": True, "port": 0})
+    cfg = synthetic_config(cfg.model_copy(update={"imu": cfg.imu.model_copy(update={"bridge": bridge})}))
+    with assembled(cfg) as demo:
+        imu = demo.daemon.imu
+        (suit,) = demo.daemon.rig.suits
+        assert imu.bridge is not None
+        port = await imu.bridge.start()
+        sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+
+            async def send(records: list[BridgeRecord]) -> None:
+                before = imu.bridge.stats.datagrams if imu.bridge else 0
+                for r in records:
+                    sender.sendto(encode_records([r]), ("127.0.0.1", port))
+                await _until(lambda: imu.bridge is not None and imu.bridge.stats.datagrams == before + len(records))
+
+            def rec(sensor: str, k: int) -> BridgeRecord:
+                return BridgeRecord(sensor, 1.0 + k / 100, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 9.81), CoordFrame.ENU, k)
+
+            await send([rec(sid, k) for k in range(3) for sid in suit.sensors[:2]])
+            for start in range(0, 700, 50):  # 700 ids, in bursts the socket's buffer holds
+                await send([rec(f"F{k:07X}", 0) for k in range(start, start + 50)])
+            st = imu.status()
+        finally:
+            sender.close()
+            imu.bridge.close()
+    sensors = cast(dict[str, dict[str, int]], st["sensors"])
+    assert len(sensors) == 2 + MAX_OTHER_SENSORS
+    assert st["sensors_evicted"] == 700 - MAX_OTHER_SENSORS
+    assert all(sensors[sid]["buffered"] == 3 for sid in suit.sensors[:2])
+    assert f"F{699:07X}" in sensors and f"F{0:07X}" not in sensors
+    assert not [r for r in caplog.records if r.exc_info]

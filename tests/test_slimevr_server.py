@@ -37,6 +37,7 @@ from mocapd.protocols.slimevr_server import (
     ServerOptions,
     SlimeVrServer,
     TrackerConnected,
+    TrackerRefused,
     TrackerTimedOut,
 )
 
@@ -238,3 +239,30 @@ def test_hostile_and_mutated_streams_never_raise(steps: list[tuple[bool, int, by
     st_ = s.status()
     assert st_["datagrams"] == len(steps) + 3
     assert len(st_["bad_reasons"]) <= 32
+
+
+def test_the_table_of_trackers_is_bounded_and_a_live_tracker_is_never_pushed_out() -> None:
+    """Found by the wire fuzzing of issue 18: every handshake from a new source port (or MAC) made a tracker, each
+    with up to 256 sensors, heartbeats and pings every 500 ms, and a /status entry, without a cap."""
+    s = SlimeVrServer(ServerOptions(max_trackers=4, timeout_ns=1000 * MS))
+    hello = [encode_packet(Handshake(2, 3, 2, 22, "0.6.3", f"A1:B2:C3:D4:E5:{k:02X}"), 0) for k in range(10)]
+    for k in range(10):
+        s.receive_datagram(hello[k], ("127.0.0.1", 41000 + k), k * MS)
+    assert [t.key for t in s.trackers.values()] == [f"A1:B2:C3:D4:E5:{k:02X}" for k in range(4)]
+    assert s.counters.refused_trackers == 6 and s.status()["refused_trackers"] == 6
+    refused = [e for e in s.events_received() if isinstance(e, TrackerRefused)]
+    assert [e.address[1] for e in refused] == list(range(41004, 41010))
+    assert sum(1 for d, _ in s.datagrams_to_send() if d == HANDSHAKE_REPLY) == 4  # the refused got no reply
+    # Trackers 1..3 keep talking; tracker 0 falls silent and times out: a new tracker takes its place.
+    s.receive_datagram(hello[0], ("127.0.0.1", 41000), 500 * MS)  # tracker 0 re-shakes hands: a handover
+    for k in (1, 2, 3):
+        s.receive_datagram(encode_packet(SensorInfo(0, 1, 3), 1), ("127.0.0.1", 41000 + k), 1200 * MS)
+    s.tick(1600 * MS)
+    assert [t.key for t in s.trackers.values() if t.timed_out] == ["A1:B2:C3:D4:E5:00"]
+    s.receive_datagram(hello[9], ("127.0.0.1", 41009), 1700 * MS)
+    assert sorted(t.key[-2:] for t in s.trackers.values()) == ["01", "02", "03", "09"]
+    assert s.counters.replaced_trackers == 1
+    s.receive_datagram(hello[8], ("127.0.0.1", 41008), 1700 * MS)  # all four live again: refused
+    assert s.counters.refused_trackers == 7 and len(s.trackers) == 4
+    s.receive_datagram(encode_packet(SensorInfo(0, 1, 3), 2), ("127.0.0.1", 41000), 1800 * MS)  # forgotten
+    assert s.counters.unknown_source == 1

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import socket
 from collections.abc import AsyncIterator
 from dataclasses import replace
 from typing import Any
 
+import msgpack
 import numpy as np
 import pytest
 import pytest_asyncio
@@ -134,6 +136,34 @@ async def test_bad_messages_get_errors_and_the_server_keeps_serving(server: WebS
 
 
 @pytest.mark.asyncio
+async def test_extreme_rates_get_bad_field_over_the_wire_and_are_counted(
+    server: WebSocketStreamServer, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 18 D1, D2 on a real connection: the client got 1011 (internal error) from an OverflowError; now a
+    ``bad_field`` error, the connection stays open and the rejection is counted in the server's /status section."""
+    rng = np.random.default_rng(4)
+    async with connect(server.url) as ws:
+        await recv(ws, "hello")
+        for bad in (
+            msgpack.packb({"type": "subscribe", "rate_hz": 1e-20}),
+            '{"type": "subscribe", "rate_hz": 1e-20}',
+            '{"type": "subscribe", "rate_hz": ' + "4" * 400 + "}",
+        ):
+            await ws.send(bad)
+            err = await recv(ws, "error")
+            assert err["code"] == "bad_field" and "rate_hz" in err["message"]
+        got = await publish_until(server, ws, range(2), rng)
+        assert [m["frame"] for m in got] == [0, 1]
+        assert server.status()["rejected_requests"] == {"bad_field": 3}
+        assert server.status()["per_client"][0]["errors"] == 3
+    assert not [r for r in caplog.records if r.exc_info], "a traceback was logged"
+    assert [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()][:1] == [
+        "websocket: rejected bad_field (client 1: rate_hz = 1e-20; allowed: a number from 0.01 to 1e+06 Hz, or nil "
+        "for every frame); 1 rejected so far (counts per reason in /status)"
+    ]
+
+
+@pytest.mark.asyncio
 async def test_an_oversized_message_closes_that_client_only(server: WebSocketStreamServer) -> None:
     rng = np.random.default_rng(3)
     async with connect(server.url) as ws, connect(server.url) as other:
@@ -251,6 +281,30 @@ async def test_viewer_files_client_limit_and_status_messages() -> None:
             await recv(a, "hello")
             srv.publish(random_frame(np.random.default_rng(5), 0, IDS, SKEL))
             assert (await recv(a, "frame"))["frame"] == 0
+    finally:
+        await srv.aclose()
+
+
+@pytest.mark.asyncio
+async def test_bytes_after_a_request_head_are_dropped_not_a_traceback(caplog: pytest.LogCaptureFixture) -> None:
+    """Found by the wire fuzzing of issue 18: a GET followed by bytes that are not a WebSocket frame (a body,
+    pipelined requests) made websockets fail its own assertion when it sent the answer: "unexpected internal
+    error" with a traceback per request. Such a connection is now dropped unanswered, and counted."""
+    srv = WebSocketStreamServer(ServerSettings(port=0, status_hz=0), StreamDescription(60.0, {"default": SKEL}))
+    await srv.start()
+    try:
+        for tail in (b"\x00\x00", b"GET / HTTP/1.1\r\n\r\n", b"x"):
+            reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+            writer.write(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + tail)
+            async with asyncio.timeout(5):
+                answer = await reader.read()
+            writer.close()
+            assert answer.startswith(b"HTTP/1.1 200 ") == (tail == b"x"), answer[:40]  # one byte is no frame yet
+        await asyncio.sleep(0.05)  # the handshakes end after the connections close
+        assert not [r for r in caplog.records if r.exc_info and r.levelno >= logging.WARNING], "a traceback was logged"
+        assert srv.refused["bad_request"] == 2
+        code, _, body = await http_get(srv.port, "/")
+        assert code == 200 and b"viewer.js" in body
     finally:
         await srv.aclose()
 

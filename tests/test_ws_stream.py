@@ -155,6 +155,42 @@ def test_bad_requests_get_an_error_reply_and_change_nothing(data: str | bytes, c
     assert s.options == before
 
 
+@pytest.mark.parametrize(
+    "data",
+    [
+        '{"type": "subscribe", "rate_hz": 1e-20}',  # issue 18 D1: a decimation of 6e21 frames broke msgpack
+        msgpack.packb({"type": "subscribe", "rate_hz": 1e-20}),
+        '{"type": "subscribe", "rate_hz": 1e-300, "encoding": "json"}',  # JSON could carry the huge decimation
+        '{"type": "subscribe", "rate_hz": ' + "9" * 400 + "}",  # issue 18 D2: no float of 400 digits
+        msgpack.packb({"type": "subscribe", "rate_hz": 2**64 - 1}),
+        '{"type": "subscribe", "rate_hz": NaN}',
+        '{"type": "subscribe", "rate_hz": 1e999}',  # JSON's inf
+        '{"type": "subscribe", "rate_hz": 0.009}',
+        '{"type": "subscribe", "camera_rate_hz": ' + "9" * 400 + "}",
+        '{"type": "subscribe", "camera_rate_hz": 1e-300}',  # the camera loop's next-due time overflowed
+    ],
+)
+def test_extreme_rates_are_bad_fields_not_overflows(data: str | bytes) -> None:
+    """Issue 18 D1, D2: a rate is checked for type, finiteness and range (0.01 Hz .. 1 MHz) before it is used,
+    and answered with a short ``bad_field`` error (not an echo of 400 digits); the session keeps working."""
+    s = ClientSession(description(cameras=(("cam0", 640, 480),)))
+    before = s.options
+    error = s.receive_message(data)
+    (reply,) = s.messages_to_send()
+    err = decode(reply)
+    assert error is not None and error.code == "bad_field"
+    assert err["type"] == "error" and err["code"] == "bad_field" and "rate_hz" in err["message"]
+    assert len(err["message"]) < 160, err["message"]
+    assert s.options == before and s.errors == 1
+    assert s.receive_message('{"type": "subscribe", "rate_hz": 1e9}') is not None  # above 1 MHz
+    assert s.receive_message('{"type": "subscribe", "rate_hz": 0.01, "camera_rate_hz": 1' + "0" * 30 + "}")
+    s.messages_to_send()
+    assert s.receive_message('{"type": "subscribe", "rate_hz": 0.01, "camera_rate_hz": 0.01}') is None
+    assert decode(s.messages_to_send()[0])["decimation"] == 6000 and s.options.camera_rate_hz == 0.01
+    assert s.receive_message(msgpack.packb({"type": "subscribe", "rate_hz": 10**6})) is None  # every frame
+    assert decode(s.messages_to_send()[0])["decimation"] == 1
+
+
 def test_status_carries_the_health_subset_and_client_counters() -> None:
     health = {
         "uptime_s": 12.5, "ready": True,

@@ -8,13 +8,17 @@ converted to 10 kHz ticks so that the same clock mapping as for serial devices a
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from mocapd.errors import ConfigError, DeviceError
+from mocapd.io.rejections import Rejections
 from mocapd.io.xsens_serial import ImuSample
-from mocapd.protocols.imu_bridge import decode_datagram
+from mocapd.protocols.imu_bridge import decode
+
+log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 9773  # not 9763: that is MVN network streaming, which mocapd sends
 _TICK_HZ = 10_000
@@ -24,7 +28,10 @@ _TICK_HZ = 10_000
 class BridgeStats:
     datagrams: int = 0
     records: int = 0
+    """Records accepted (each became a sample)."""
     rejected: int = 0
+    """Items rejected (a datagram that is not msgpack counts as one); per reason in ``rejections``."""
+    rejections: Rejections = field(default_factory=lambda: Rejections("imu bridge", log))
 
 
 class _BridgeProtocol(asyncio.DatagramProtocol):
@@ -35,13 +42,17 @@ class _BridgeProtocol(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str | object, ...]) -> None:
         now = self._clock()
-        records, rejected = decode_datagram(data)
-        self._stats.datagrams += 1
-        self._stats.rejected += rejected
-        for r in records:
-            self._stats.records += 1
+        decoded = decode(data)
+        st = self._stats
+        st.datagrams += 1
+        for reason in decoded.rejected:
+            st.rejected += 1
+            st.rejections.reject(reason, f"datagram of {len(data)} bytes from {addr[0]}:{addr[1]}")
+        for r in decoded.records:
+            # |t| <= 2^32 s (checked by the decoder): the tick count is exact and never overflows
             ticks = round(r.device_time_s * _TICK_HZ) & 0xFFFFFFFF
             self._on_sample(ImuSample(r.sensor, now, ticks, r.packet_counter, r.quat, r.acc, r.frame))
+            st.records += 1
 
 
 class ImuBridgeListener:

@@ -25,6 +25,7 @@ from typing import Any
 
 from mocapd.errors import DeviceError
 from mocapd.io.device_state import OpenState
+from mocapd.io.rejections import Rejections
 from mocapd.io.xsens_serial import ImuSample
 from mocapd.protocols.mtdata2 import CoordFrame
 from mocapd.protocols.slimevr import PORT
@@ -34,6 +35,7 @@ from mocapd.protocols.slimevr_server import (
     ServerOptions,
     SlimeVrServer,
     TrackerConnected,
+    TrackerRefused,
     TrackerTimedOut,
 )
 
@@ -82,6 +84,8 @@ class SlimeVrListener:
         self.server = SlimeVrServer(options)
         self.tick_s = tick_s
         self.send_errors: Counter[str] = Counter()
+        #: what the server refused, logged at most every 10 s (the counts are also in the server's counters)
+        self.rejections = Rejections("slimevr", log, clock=clock)
         self._on_sample = on_sample
         self._clock = clock
         self._transport: asyncio.DatagramTransport | None = None
@@ -132,7 +136,13 @@ class SlimeVrListener:
 
     def received(self, data: bytes, address: Address) -> None:
         """One datagram from ``address`` (called by the datagram protocol)."""
+        c = self.server.counters
+        before = (c.bad_datagrams, c.unknown_source, c.unannounced_sensor)
         self.server.receive_datagram(data, address, self._clock())
+        where = f"{len(data)} bytes from {address[0]}:{address[1]}"
+        for reason, n0, n1 in zip(("bad datagram", "unknown source", "unannounced sensor"), before,
+                                  (c.bad_datagrams, c.unknown_source, c.unannounced_sensor), strict=True):  # fmt: skip
+            self.rejections.reject(reason, where, n1 - n0)
         self._flush()
 
     def _flush(self) -> None:
@@ -146,6 +156,8 @@ class SlimeVrListener:
                 log.info("slimevr: tracker %s %s from %s:%d", event.key, what, *event.address)
             elif isinstance(event, TrackerTimedOut):
                 log.warning("slimevr: tracker %s timed out", event.key)
+            elif isinstance(event, TrackerRefused):
+                self.rejections.reject("tracker table full", "handshake from {}:{}".format(*event.address))
         transport = self._transport
         for data, address in self.server.datagrams_to_send():
             if transport is None:

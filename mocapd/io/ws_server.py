@@ -33,7 +33,7 @@ import logging
 import socket
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from http import HTTPStatus
 from importlib import resources
 from typing import Any
@@ -49,6 +49,7 @@ from websockets.protocol import State
 from mocapd.core.per_skeleton import skeleton_key
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError
+from mocapd.io.rejections import Rejections
 from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
 from mocapd.protocols.ws_stream import (
     ClientSession,
@@ -151,6 +152,9 @@ class WebSocketStreamServer:
         Serve on this listening socket instead of binding ``settings.host:port``.
     """
 
+    name = "websocket"
+    """Its section of the daemon's /status: ``sinks.websocket`` (:meth:`status`)."""
+
     def __init__(
         self,
         settings: ServerSettings,
@@ -184,12 +188,15 @@ class WebSocketStreamServer:
         self.clients: set[_Client] = set()
         self.frames_published = 0
         self.non_finite = 0
-        self.refused = {"unauthorised": 0, "full": 0, "not_found": 0}
+        self.refused = {"unauthorised": 0, "full": 0, "not_found": 0, "bad_request": 0}
+        #: client requests answered with an error, per error code (every client's, also after it left)
+        self.rejected = Rejections("websocket", log)
         self._connections = 0
         self._latest_subjects: tuple[str, ...] = ()
         self._server: Server | None = None
         self._status_task: asyncio.Task[None] | None = None
         self._camera_task: asyncio.Task[None] | None = None
+        self._camera_wake = asyncio.Event()  # a client changed its camera options: the loop's rate may change
         self.camera_messages = 0
         self._web = load_web_files() if settings.viewer else {}
 
@@ -297,6 +304,10 @@ class WebSocketStreamServer:
         h = self.settings.host
         return f"[{h}]" if ":" in h else h
 
+    def status(self) -> dict[str, Any]:
+        """:meth:`stats`, for the daemon's /status."""
+        return self.stats()
+
     def stats(self) -> dict[str, Any]:
         """Counters for status pages and benchmarks."""
         return {
@@ -304,6 +315,7 @@ class WebSocketStreamServer:
             "frames_published": self.frames_published,
             "non_finite_subjects": self.non_finite,
             "refused": dict(self.refused),
+            "rejected_requests": self.rejected.as_dict(),
             "per_client": [
                 {"client": c.number, "sent": c.sent, "dropped": c.dropped, "queued": len(c.queue),
                  "requests": c.session.requests, "errors": c.session.errors}
@@ -323,7 +335,13 @@ class WebSocketStreamServer:
             offered = auth[len("Bearer ") :]
         return hmac.compare_digest(offered.encode(), token.encode())
 
-    def _process_request(self, conn: ServerConnection, request: Request) -> Response | None:
+    def _process_request(self, conn: ServerConnection, request: Request) -> Response | Coroutine[Any, Any, None] | None:
+        if conn.protocol.eof_sent:
+            # Bytes that are not a WebSocket frame followed the request head (a body, pipelined requests): the
+            # protocol has already ended its side, and websockets (17.4) would then fail its own assertion sending
+            # any answer ("unexpected internal error", a traceback per request). Drop the connection unanswered.
+            self.refused["bad_request"] += 1
+            return _drop(conn)
         if not self._authorised(request):
             self.refused["unauthorised"] += 1
             return conn.respond(HTTPStatus.UNAUTHORIZED, "a token is required: ?token=... or Authorization: Bearer\n")
@@ -361,7 +379,9 @@ class WebSocketStreamServer:
         client.wake.set()
         try:
             async for message in conn:
-                session.receive_message(message)
+                error = session.receive_message(message)
+                if error is not None:
+                    self.rejected.reject(error.code, f"client {client.number}: {error}")
                 client.control.extend(session.messages_to_send())
                 if len(client.control) > CONTROL_LIMIT:
                     await conn.close(1008, "too many unanswered requests")
@@ -369,6 +389,8 @@ class WebSocketStreamServer:
                 client.wake.set()
                 if session.options.cameras and (self._camera_task is None or self._camera_task.done()):
                     self._camera_task = asyncio.create_task(self._camera_loop())
+                elif error is None:
+                    self._camera_wake.set()
         except ConnectionClosed:
             pass  # oversized message (1009), reset, or going away: this client only
         finally:
@@ -424,6 +446,7 @@ class WebSocketStreamServer:
         views = self.camera_views
         assert views is not None
         while True:
+            self._camera_wake.clear()
             wanted = self._camera_clients()
             if not wanted:
                 return
@@ -441,7 +464,17 @@ class WebSocketStreamServer:
                         cache[enc] = camera_message(panel, jpeg, size, enc)
                     c.push(cache[enc])
                     self.camera_messages += 1
-            await asyncio.sleep(1.0 / rate)
+            # Until the next panel is due, or a client changes its options (one that asked for one message per
+            # 100 s must not hold back the next client's 4 Hz).
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._camera_wake.wait(), 1.0 / rate)
+
+
+async def _drop(conn: ServerConnection) -> None:
+    """Close a connection during its opening handshake without an answer (once it is closed, websockets sends
+    none: the handshake finds the connection no longer connecting)."""
+    conn.transport.abort()
+    await conn.wait_closed()
 
 
 def _panels(views: CameraViews, now_ns: int) -> list[tuple[CameraView, bytes | None, tuple[int, int]]]:

@@ -6,14 +6,18 @@ samples with a short script (``tools/xsens_sdk_bridge.py``). Each UDP datagram i
 
     key     type              meaning
     "v"     int               format version, 1
-    "id"    str               sensor id, 8 hex digits as printed on the case (e.g. "00B421E6")
-    "t"     float             device time in seconds (the sensor's own clock; any origin, must increase)
-    "q"     [4 x float]       orientation (w, x, y, z) of the sensor frame in the device global frame
-    "a"     [3 x float]       sensor-frame acceleration, m/s², gravity included
+    "id"    str               sensor id, 8 hex digits as printed on the case (e.g. "00B421E6"); any printable
+                              text of 1..64 characters is taken (upper-cased)
+    "t"     float             device time in seconds (the sensor's own clock; any origin, must increase),
+                              |t| <= 2^32 s
+    "q"     [4 x float]       orientation (w, x, y, z) of the sensor frame in the device global frame, norm
+                              0.9..1.1 (normalised here)
+    "a"     [3 x float]       sensor-frame acceleration, m/s², gravity included, each |a_i| <= 2000
     "frame" str, optional     device global frame of "q": "ENU" (default), "NED" or "NWU"
     "pc"    int, optional     packet counter (0..65535), lets mocapd count dropped samples
 
-Records that do not follow this are counted and skipped, never raised.
+Every number is checked for type (int or float; never bool), finiteness and range before it is used. Records
+that do not follow this are counted (with the reason) and skipped, never raised.
 """
 
 from __future__ import annotations
@@ -59,31 +63,60 @@ def encode_records(records: list[BridgeRecord]) -> bytes:
     return bytes(msgpack.packb(items[0] if len(items) == 1 else items))
 
 
-def _floats(value: object, n: int) -> tuple[float, ...] | None:
+MAX_ID_CHARS = 64
+MAX_TIME_S = 2.0**32
+"""Largest |t|: 136 years of seconds, where a float64 still resolves the bridge's 0.1 ms ticks."""
+MAX_ACC = 2000.0
+"""Largest |a_i| in m/s² (about 200 g; the MTw measures up to 160 m/s²)."""
+MAX_PACKET_COUNTER = 0xFFFF
+
+
+def _number(value: object, bound: float) -> float | None:
+    """``value`` as a float when it is an int or a float (not a bool) with ``|value| <= bound``, else None.
+
+    Compared before conversion: an int too large for a float fails the bound instead of overflowing, NaN fails
+    every comparison.
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float) or not -bound <= value <= bound:
+        return None
+    return float(value)
+
+
+def _floats(value: object, n: int, bound: float) -> tuple[float, ...] | None:
     if not isinstance(value, list | tuple) or len(value) != n:
         return None
-    if not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value):
-        return None
-    return tuple(float(v) for v in value)
+    out = tuple(_number(v, bound) for v in value)
+    return None if None in out else out  # type: ignore[return-value]
 
 
-def _record(item: object) -> BridgeRecord | None:
-    if not isinstance(item, dict) or item.get("v") != VERSION:
-        return None
-    sensor, t = item.get("id"), item.get("t")
-    if not isinstance(sensor, str) or not isinstance(t, int | float) or isinstance(t, bool) or not math.isfinite(t):
-        return None
-    q, a = _floats(item.get("q"), 4), _floats(item.get("a"), 3)
-    frame = _FRAMES.get(str(item.get("frame", "ENU")))
-    pc = item.get("pc")
-    if q is None or a is None or frame is None or (pc is not None and not isinstance(pc, int)):
-        return None
-    norm = math.sqrt(sum(v * v for v in q))
-    if not 0.9 < norm < 1.1:
-        return None
+def _record(item: object) -> BridgeRecord | str:
+    """The record of one item, or why it is rejected (a short fixed phrase: it becomes a counter's key)."""
+    if not isinstance(item, dict):
+        return "not a map"
+    version, sensor, pc = item.get("v"), item.get("id"), item.get("pc")
+    t = _number(item.get("t"), MAX_TIME_S)
+    q, a = _floats(item.get("q"), 4, 2.0), _floats(item.get("a"), 3, MAX_ACC)
+    norm = math.sqrt(sum(v * v for v in q)) if q is not None else 0.0
+    frame = _FRAMES.get(item["frame"]) if isinstance(item.get("frame"), str) else None
+    if "frame" not in item:
+        frame = CoordFrame.ENU
+    problems = (
+        (version != VERSION or isinstance(version, bool), "bad version"),
+        (not isinstance(sensor, str) or not 0 < len(sensor) <= MAX_ID_CHARS or not sensor.isprintable(), "bad id"),
+        (t is None, "bad time"),
+        (q is None or not 0.9 < norm < 1.1, "bad quaternion"),
+        (a is None, "bad acceleration"),
+        (frame is None, "bad frame"),
+        (pc is not None and (isinstance(pc, bool) or not isinstance(pc, int) or not 0 <= pc <= MAX_PACKET_COUNTER),
+         "bad packet counter"),
+    )  # fmt: skip
+    reason = next((why for bad, why in problems if bad), None)
+    if reason is not None:
+        return reason
+    assert isinstance(sensor, str) and t is not None and q is not None and a is not None and frame is not None
     return BridgeRecord(
         sensor.upper(),
-        float(t),
+        t,
         (q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm),
         (a[0], a[1], a[2]),
         frame,
@@ -91,19 +124,33 @@ def _record(item: object) -> BridgeRecord | None:
     )
 
 
-def decode_datagram(data: bytes) -> tuple[list[BridgeRecord], int]:
-    """Records of one datagram and the number of rejected items (malformed msgpack counts as one)."""
+@dataclass(frozen=True, slots=True)
+class Decoded:
+    """What one datagram held: its valid records and a reason per rejected item."""
+
+    records: list[BridgeRecord]
+    rejected: list[str]
+
+
+def decode(data: bytes) -> Decoded:
+    """Records of one datagram and why each other item was rejected (malformed msgpack is one rejection)."""
     try:
         value = msgpack.unpackb(data, raw=False, strict_map_key=False)
     except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, TypeError):
-        return [], 1
+        return Decoded([], ["not msgpack"])
     items = value if isinstance(value, list) else [value]
-    records = []
-    rejected = 0
+    records: list[BridgeRecord] = []
+    rejected: list[str] = []
     for item in items:
         rec = _record(item)
-        if rec is None:
-            rejected += 1
+        if isinstance(rec, str):
+            rejected.append(rec)
         else:
             records.append(rec)
-    return records, rejected
+    return Decoded(records, rejected)
+
+
+def decode_datagram(data: bytes) -> tuple[list[BridgeRecord], int]:
+    """Records of one datagram and the number of rejected items (malformed msgpack counts as one)."""
+    d = decode(data)
+    return d.records, len(d.rejected)

@@ -300,9 +300,15 @@ def _quat(x: float, y: float, z: float, w: float) -> Quat:
     return (w / n, x / n, y / n, z / n)
 
 
+MAX_ACC = 2000.0
+"""Largest acceleration component accepted, m/s² (about 200 g; tracker IMUs measure up to 16 g)."""
+
+
 def _vec(x: float, y: float, z: float) -> Vec3:
     if not _finite(x, y, z):
         raise ValueError("non-finite vector")
+    if max(abs(x), abs(y), abs(z)) > MAX_ACC:
+        raise ValueError(f"acceleration beyond {MAX_ACC:g} m/s²")
     return (x, y, z)
 
 

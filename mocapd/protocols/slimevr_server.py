@@ -83,9 +83,13 @@ class ServerOptions:
     acc_max_age_ns: int = 100_000_000
     """A separate acceleration packet applies to rotations up to this much later."""
     gravity: float = STANDARD_GRAVITY
+    max_trackers: int = 64
+    """Trackers known at once. A handshake from a new tracker beyond this replaces the timed-out tracker silent
+    longest; with none timed out it is refused (counted): a sender cycling through source ports or MACs cannot
+    grow the table, and cannot push out a tracker that is talking."""
 
     def __post_init__(self) -> None:
-        for name in ("heartbeat_interval_ns", "timeout_ns", "hold_after_ns", "acc_max_age_ns"):
+        for name in ("heartbeat_interval_ns", "timeout_ns", "hold_after_ns", "acc_max_age_ns", "max_trackers"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"ServerOptions.{name} must be > 0, got {getattr(self, name)}")
 
@@ -168,7 +172,14 @@ class TrackerTimedOut:
     key: str
 
 
-Event = SensorSample | TrackerConnected | TrackerTimedOut
+@dataclass(frozen=True, slots=True)
+class TrackerRefused:
+    """A new tracker's handshake was not answered: the table of trackers is full of live ones."""
+
+    address: Address
+
+
+Event = SensorSample | TrackerConnected | TrackerTimedOut | TrackerRefused
 
 
 @dataclass(slots=True)
@@ -180,6 +191,10 @@ class ServerCounters:
     """Datagrams from an address that has not shaken hands (dropped)."""
     unannounced_sensor: int = 0
     """Orientations of a sensor that sent no sensor info (dropped, as the SlimeVR server does)."""
+    refused_trackers: int = 0
+    """Handshakes of new trackers refused because ``max_trackers`` live trackers are known."""
+    replaced_trackers: int = 0
+    """Timed-out trackers forgotten to make room for a new one."""
     ignored: Counter[str] = field(default_factory=Counter)
     bad_reasons: Counter[str] = field(default_factory=Counter)
 
@@ -291,6 +306,10 @@ class SlimeVrServer:
             old.timed_out = False
             tracker = old
         else:
+            if len(self.trackers) >= self.options.max_trackers and not self._make_room():
+                self.counters.refused_trackers += 1
+                self._events.append(TrackerRefused(address))
+                return
             key = h.mac or f"{address[0]}:{address[1]}"
             tracker = TrackerState(key, h.mac, address, h.board, h.mcu, h.firmware, h.protocol_version,
                                    connected_ns=now_ns, last_packet_ns=now_ns, next_keepalive_ns=now_ns)  # fmt: skip
@@ -300,6 +319,18 @@ class SlimeVrServer:
         self._by_address[address] = tracker
         self._out.append((HANDSHAKE_REPLY, address))
         self._events.append(TrackerConnected(tracker.key, address, handover=old is not None))
+
+    def _make_room(self) -> bool:
+        """Forget the timed-out tracker silent longest; False when every known tracker is live."""
+        quiet = [t for t in self.trackers.values() if t.timed_out]
+        if not quiet:
+            return False
+        gone = min(quiet, key=lambda t: t.last_packet_ns)
+        del self.trackers[gone.key]
+        if self._by_address.get(gone.address) is gone:
+            del self._by_address[gone.address]
+        self.counters.replaced_trackers += 1
+        return True
 
     def _packet(self, t: TrackerState, p: Packet, now_ns: int, rotations: dict[int, Rotation],
                 accelerations: dict[int, Vec3]) -> None:  # fmt: skip
@@ -390,6 +421,8 @@ class SlimeVrServer:
             "bad_reasons": dict(c.bad_reasons),
             "unknown_source": c.unknown_source,
             "unannounced_sensor": c.unannounced_sensor,
+            "refused_trackers": c.refused_trackers,
+            "replaced_trackers": c.replaced_trackers,
             "ignored": dict(c.ignored),
             "trackers": [
                 {

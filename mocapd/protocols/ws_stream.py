@@ -123,13 +123,14 @@ A text message is read as JSON, a binary one as msgpack; at most ``max_message_b
     type            str     "subscribe"
     subjects        [str] | nil   only these subject ids (at most 64 ids of at most 128 characters); nil: all
     rate_hz         float | nil   at most this rate: the server sends every n-th frame, n = round(stream/rate)
-                                  (at least 1); nil: every frame
+                                  (at least 1); nil: every frame; 0.01 to 1e6 Hz
     convention      str     "native" | "unity" | "unreal" | "mvn"
     encoding        str     "msgpack" | "json"
     globals         bool    add global joint positions to frames
     status          bool    receive status messages
     cameras         bool    receive camera messages (needs hello.cameras)
-    camera_rate_hz  float | nil   camera messages per second per camera, at most the server's rate (nil: it)
+    camera_rate_hz  float | nil   camera messages per second per camera, 0.01 to 1e6, at most the server's
+                                  rate (nil: it)
 
 Every key but ``type`` is optional (absent keys keep their current value); unknown keys, wrong types or values
 are answered with an ``error`` and change nothing. An accepted request is answered with a new ``hello``.
@@ -164,6 +165,10 @@ ENCODINGS = ("msgpack", "json")
 STREAM_CONVENTIONS = ("native", "unity", "unreal", "mvn")
 MAX_SUBJECTS_PER_REQUEST = 64
 MAX_ID_CHARS = 128
+MIN_RATE_HZ = 0.01
+"""The lowest ``rate_hz`` / ``camera_rate_hz`` a client may ask for (one message per 100 s)."""
+MAX_RATE_HZ = 1e6
+"""The highest (anything above the server's own rate means every message; beyond this it is not a rate)."""
 _SUBSCRIBE_KEYS = frozenset(
     {"type", "subjects", "rate_hz", "convention", "encoding", "globals", "status", "cameras", "camera_rate_hz"}
 )
@@ -590,8 +595,9 @@ class ClientSession:
         return encode({"type": "error", "code": code, "message": message}, self.options.encoding)
 
     # -------------------------------------------------------------------------------------------- input
-    def receive_message(self, data: Message) -> None:
-        """Handle one client message: apply a valid subscribe (queue a hello) or queue an error reply."""
+    def receive_message(self, data: Message) -> RequestError | None:
+        """Handle one client message: apply a valid subscribe (queue a hello) or queue an error reply; returns
+        the error (for the server's counters) or None."""
         self.requests += 1
         try:
             request = self._parse(data)
@@ -599,8 +605,9 @@ class ClientSession:
         except RequestError as exc:
             self.errors += 1
             self._outbox.append(self.error(exc.code, str(exc)))
-            return
+            return exc
         self._outbox.append(self.hello())
+        return None
 
     def _parse(self, data: Message) -> dict[str, Any]:
         limit = self.description.max_message_bytes
@@ -651,20 +658,36 @@ class ClientSession:
             updates["cameras"] = r["cameras"]
         if "camera_rate_hz" in r:
             top = self.description.camera_rate_hz
-            rate = r["camera_rate_hz"]
-            if rate is not None and (
-                isinstance(rate, bool) or not isinstance(rate, int | float) or not math.isfinite(rate) or rate <= 0
-            ):
-                raise RequestError("bad_field", f"camera_rate_hz = {rate!r}; allowed: a number > 0, or nil for {top}")
-            updates["camera_rate_hz"] = top if rate is None else min(float(rate), top)
+            rate = _rate("camera_rate_hz", r["camera_rate_hz"], top, f"nil for {top}")
+            updates["camera_rate_hz"] = top if rate is None else rate
         if "rate_hz" in r:
-            rate = r["rate_hz"]
-            if rate is not None and (
-                isinstance(rate, bool) or not isinstance(rate, int | float) or not math.isfinite(rate) or rate <= 0
-            ):
-                raise RequestError("bad_field", f"rate_hz = {rate!r}; allowed: a number > 0, or nil for every frame")
-            updates["decimation"] = decimation_for(self.description.rate_hz, None if rate is None else float(rate))
+            stream = self.description.rate_hz
+            rate = _rate("rate_hz", r["rate_hz"], stream, "nil for every frame")
+            updates["decimation"] = decimation_for(stream, rate)
         return replace(o, **updates)
+
+
+def _shown(value: object) -> str:
+    """A client's value for an error message, cut short (a reply must not echo kilobytes back)."""
+    if isinstance(value, int) and abs(value) >= 10**30:
+        return f"an integer of {len(str(abs(value)))} digits"
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _rate(key: str, value: object, top: float, nil: str) -> float | None:
+    """A client's rate (Hz) checked for type, finiteness and range, at most ``top`` (None stays None).
+
+    The bounds matter downstream: a rate of 1e-20 Hz would make a decimation of 6e21 frames, which msgpack
+    cannot encode, and an integer of 400 digits cannot even become a float.
+    """
+    if value is None:
+        return None
+    # Compared as given: an int as an int (10**400 has no float), NaN and ±inf fall outside the bounds.
+    if isinstance(value, bool) or not isinstance(value, int | float) or not MIN_RATE_HZ <= value <= MAX_RATE_HZ:
+        raise RequestError("bad_field", f"{key} = {_shown(value)}; allowed: a number from {MIN_RATE_HZ} to "
+                                        f"{MAX_RATE_HZ:g} Hz, or {nil}")  # fmt: skip
+    return float(min(value, top))
 
 
 def _subjects(value: object) -> frozenset[str] | None:

@@ -169,6 +169,7 @@ class Daemon:
         d = config.daemon
         self.imu = ImuInputs(imu if imu is not None else config.imu)
         self.imu.use_calibrations([s.calibration for s in rig.suits])  # SlimeVR trackers' own headings
+        self.imu.keep_sensors(sid for s in rig.suits for sid in s.sensors)  # never evicted by unknown sensor ids
         #: more sections of /status (name -> provider), e.g. the camera demo's fake cameras
         self.status_extras: dict[str, Callable[[], Any]] = {}
         #: more fields of the status line, e.g. the synthetic rig's keypoint error

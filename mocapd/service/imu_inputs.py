@@ -9,7 +9,7 @@ world bone orientations with a person's calibration (``R_gb = R_ig · R_i · R_i
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +40,7 @@ class ImuInputs:
     def __init__(self, config: ImuConfig, ingest: ImuIngest | None = None) -> None:
         self.config = config
         self.ingest = ingest or ImuIngest(capacity=config.buffer_capacity)
+        self.ingest.keep(config.sensors)  # the assigned sensors are never evicted by unknown ones
         self.devices = [XsensSerialDevice(p, self.on_sample) for p in config.port_configs()]
         if config.awinda.experimental:
             station_port = XsensPortConfig(path=config.awinda.path)
@@ -81,6 +82,10 @@ class ImuInputs:
     def use_calibrations(self, calibrations: list[ImuCalibration]) -> None:
         """Apply the device headings of these calibrations to their sensors' samples from now on."""
         self.device_headings = {sid: q for c in calibrations for sid, q in c.device_heading_quats().items()}
+
+    def keep_sensors(self, sensors: Iterable[str]) -> None:
+        """Never evict these sensors' buffers (the suits' sensors), however many unknown sensor ids arrive."""
+        self.ingest.keep(sensors)
 
     async def run(self) -> None:
         """Run every input until :meth:`stop`; device failures are retried inside each device's own loop."""
@@ -148,9 +153,11 @@ class ImuInputs:
                 "datagrams": st.datagrams,
                 "records": st.records,
                 "rejected": st.rejected,
+                "rejected_reasons": st.rejections.as_dict(),
             }
         slimevr = self.slimevr.status() if self.slimevr is not None else None
-        return {"devices": devices, "bridge": bridge, "slimevr": slimevr, "sensors": streams}
+        return {"devices": devices, "bridge": bridge, "slimevr": slimevr, "sensors": streams,
+                "sensors_evicted": self.ingest.evicted}  # fmt: skip
 
     def bone_orientations(self, t_ns: int, calibration: ImuCalibration) -> list[BoneSample]:
         """World orientation of every calibrated bone at ``t_ns`` (slerped between samples)."""

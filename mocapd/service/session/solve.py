@@ -129,6 +129,7 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
     lm = replace(cfg.solver.lm.options(), max_iterations=opts.max_iterations, function_tolerance=opts.tolerance,
                  parameter_tolerance=opts.tolerance)  # fmt: skip
     ingest = ImuIngest(capacity=max(cfg.imu.buffer_capacity, 1024))
+    ingest.keep(sid for suit in rig.suits for sid in suit.sensors)
     tracker = PeopleTracker(
         SubjectTracker(DetectionSorter(rig.cameras, cfg.tracking.sorting.options()), cfg.tracking.enrolment.options()),
         SuitBinder(rig.skeleton, cfg.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
