@@ -1,0 +1,153 @@
+"""Benchmark: does polling ``/status`` and ``/metrics`` move the output rate? Prints JSON.
+
+The daemon on the synthetic rig (the one assembly path, as ``mocapd demo --synthetic``) runs in this process in
+three phases of ``--seconds`` each: idle, then a client process hammering ``/status`` and ``/metrics`` on
+loopback with ``--concurrency`` connections as fast as the server answers, then idle again. Per phase: the output
+rate (frames published / s), missed ticks, requests answered and documents rendered (when the server counts them).
+The client runs at ``nice 10`` so what is measured is the server side's cost on the tick loop, not the client's
+own CPU (the machine is shared: compare the phases of one run with each other).
+
+    .venv/bin/python tools/bench_status.py [--seconds 10] [--concurrency 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+
+async def _hammer(port: int, seconds: float, concurrency: int) -> dict[str, int]:
+    """GET /status (and every 4th request /metrics) on ``concurrency`` connections until ``seconds`` have passed."""
+    end = time.monotonic() + seconds
+    counts = {"ok": 0, "failed": 0, "bytes": 0}
+
+    async def worker(k: int) -> None:
+        i = 0
+        while time.monotonic() < end:
+            target = "/metrics" if (i + k) % 4 == 0 else "/status"
+            i += 1
+            try:
+                reader, writer = await asyncio.open_connection("127.0.0.1", port)
+                writer.write(f"GET {target} HTTP/1.1\r\nHost: localhost\r\n\r\n".encode())
+                data = await reader.read()
+                writer.close()
+                ok = data.startswith(b"HTTP/1.1 200")
+                counts["ok" if ok else "failed"] += 1
+                counts["bytes"] += len(data)
+            except OSError:
+                counts["failed"] += 1
+
+    await asyncio.gather(*(worker(k) for k in range(concurrency)))
+    return counts
+
+
+def hammer_main(port: int, seconds: float, concurrency: int) -> None:
+    print(json.dumps(asyncio.run(_hammer(port, seconds, concurrency))), flush=True)
+
+
+class Counter:
+    """A pose sink counting published frames."""
+
+    name = "bench-counter"
+
+    def __init__(self) -> None:
+        self.frames = 0
+
+    async def start(self) -> None:
+        return None
+
+    def publish(self, frame: Any) -> None:
+        self.frames += 1
+
+    async def aclose(self) -> None:
+        return None
+
+
+async def bench(seconds: float, concurrency: int, people: int) -> dict[str, Any]:
+    from mocapd.service.assembly import RunOptions, assembled
+    from mocapd.service.config import load_config
+    from mocapd.service.demo.synthetic import synthetic_config
+
+    cfg = load_config()
+    cfg = cfg.model_copy(
+        update={
+            "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+            "synthetic": cfg.synthetic.model_copy(update={"people": people, "suits": min(1, people)}),
+        }
+    )
+    counter = Counter()
+    phases: list[dict[str, Any]] = []
+    with assembled(synthetic_config(cfg), RunOptions(sinks=[counter])) as demo:
+        d = demo.daemon
+        task = asyncio.create_task(d.run())
+        await asyncio.wait_for(d.ready.wait(), 300)
+        await asyncio.sleep(3.0)  # past the start-up transient
+
+        async def phase(name: str, client: bool) -> None:
+            f0, m0, r0 = counter.frames, d.plan.missed if d.plan else 0, d.http.requests
+            renders0 = getattr(d.http, "renders", None)
+            t0 = time.monotonic()
+            result: dict[str, Any] = {}
+            if client:
+                cmd = ["nice", "-n", "10", sys.executable, __file__, "--hammer", str(d.http.port),
+                       "--seconds", str(seconds), "--concurrency", str(concurrency)]  # fmt: skip
+                proc = await asyncio.create_subprocess_exec(*cmd, stdout=subprocess.PIPE)
+                out, _ = await proc.communicate()
+                result = json.loads(out)
+            else:
+                await asyncio.sleep(seconds)
+            dt = time.monotonic() - t0
+            renders1 = getattr(d.http, "renders", None)
+            phases.append({
+                "phase": name,
+                "seconds": round(dt, 2),
+                "output_hz": round((counter.frames - f0) / dt, 2),
+                "missed_ticks": (d.plan.missed if d.plan else 0) - m0,
+                "requests_served": d.http.requests - r0,
+                "renders": None if renders0 is None or renders1 is None else renders1 - renders0,
+                **({"client": result} if client else {}),
+            })  # fmt: skip
+
+        await phase("idle", False)
+        await phase("polling", True)
+        await phase("idle_after", False)
+        status_bytes = len(json.dumps(d.status()))
+        d.request_stop()
+        await asyncio.wait_for(task, 10)
+    return {
+        "benchmark": "status_polling",
+        "configured_hz": cfg.daemon.output_rate_hz,
+        "people": people,
+        "concurrency": concurrency,
+        "status_document_bytes": status_bytes,
+        "phases": phases,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--concurrency", type=int, default=8)
+    ap.add_argument("--people", type=int, default=2)
+    ap.add_argument("--hammer", type=int, default=None, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.hammer is not None:
+        hammer_main(a.hammer, a.seconds, a.concurrency)
+        return
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    print(json.dumps(asyncio.run(bench(a.seconds, a.concurrency, a.people)), indent=1))
+
+
+if __name__ == "__main__":
+    main()
