@@ -1,9 +1,10 @@
 """Benchmark: does polling ``/status`` and ``/metrics`` move the output rate? Prints JSON.
 
 The daemon on the synthetic rig (the one assembly path, as ``mocapd demo --synthetic``) runs in this process in
-three phases of ``--seconds`` each: idle, then a client process hammering ``/status`` and ``/metrics`` on
-loopback with ``--concurrency`` connections as fast as the server answers, then idle again. Per phase: the output
-rate (frames published / s), missed ticks, requests answered and documents rendered (when the server counts them).
+``--rounds`` pairs of phases of ``--seconds`` each: idle, then a client process hammering ``/status`` and
+``/metrics`` on loopback with ``--concurrency`` connections as fast as the server answers. Per phase: the output
+rate (frames published / s), missed ticks, the daemon process's CPU seconds per second, requests answered and
+status snapshots taken (when the server counts them); then the medians per kind of phase.
 The client runs at ``nice 10`` so what is measured is the server side's cost on the tick loop, not the client's
 own CPU (the machine is shared: compare the phases of one run with each other).
 
@@ -16,6 +17,7 @@ import argparse
 import asyncio
 import json
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -74,7 +76,11 @@ class Counter:
         return None
 
 
-async def bench(seconds: float, concurrency: int, people: int) -> dict[str, Any]:
+def _median(xs: list[float]) -> float:
+    return float(statistics.median(xs)) if xs else float("nan")
+
+
+async def bench(seconds: float, concurrency: int, people: int, rounds: int) -> dict[str, Any]:
     from mocapd.service.assembly import RunOptions, assembled
     from mocapd.service.config import load_config
     from mocapd.service.demo.synthetic import synthetic_config
@@ -96,6 +102,7 @@ async def bench(seconds: float, concurrency: int, people: int) -> dict[str, Any]
 
         async def phase(name: str, client: bool) -> None:
             f0, m0, r0 = counter.frames, d.plan.missed if d.plan else 0, d.http.requests
+            cpu0 = time.process_time()
             renders0 = getattr(d.http, "renders", None)
             t0 = time.monotonic()
             result: dict[str, Any] = {}
@@ -114,14 +121,15 @@ async def bench(seconds: float, concurrency: int, people: int) -> dict[str, Any]
                 "seconds": round(dt, 2),
                 "output_hz": round((counter.frames - f0) / dt, 2),
                 "missed_ticks": (d.plan.missed if d.plan else 0) - m0,
+                "daemon_cpu_s_per_s": round((time.process_time() - cpu0) / dt, 3),
                 "requests_served": d.http.requests - r0,
                 "renders": None if renders0 is None or renders1 is None else renders1 - renders0,
                 **({"client": result} if client else {}),
             })  # fmt: skip
 
-        await phase("idle", False)
-        await phase("polling", True)
-        await phase("idle_after", False)
+        for _ in range(rounds):  # alternate, so a neighbour's load on the shared machine hits both kinds alike
+            await phase("idle", False)
+            await phase("polling", True)
         status_bytes = len(json.dumps(d.status()))
         d.request_stop()
         await asyncio.wait_for(task, 10)
@@ -131,6 +139,13 @@ async def bench(seconds: float, concurrency: int, people: int) -> dict[str, Any]
         "people": people,
         "concurrency": concurrency,
         "status_document_bytes": status_bytes,
+        "median": {
+            kind: {
+                key: _median([p[key] for p in phases if p["phase"] == kind])
+                for key in ("output_hz", "missed_ticks", "daemon_cpu_s_per_s", "requests_served")
+            }
+            for kind in ("idle", "polling")
+        },
         "phases": phases,
     }
 
@@ -140,13 +155,14 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--concurrency", type=int, default=8)
     ap.add_argument("--people", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=3, help="idle/polling pairs (default 3)")
     ap.add_argument("--hammer", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.hammer is not None:
         hammer_main(a.hammer, a.seconds, a.concurrency)
         return
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
-    print(json.dumps(asyncio.run(bench(a.seconds, a.concurrency, a.people)), indent=1))
+    print(json.dumps(asyncio.run(bench(a.seconds, a.concurrency, a.people, a.rounds)), indent=1))
 
 
 if __name__ == "__main__":
