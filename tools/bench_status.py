@@ -3,8 +3,10 @@
 The daemon on the synthetic rig (the one assembly path, as ``mocapd demo --synthetic``) runs in this process in
 ``--rounds`` pairs of phases of ``--seconds`` each: idle, then a client process hammering ``/status`` and
 ``/metrics`` on loopback with ``--concurrency`` connections as fast as the server answers. Per phase: the output
-rate (frames published / s), missed ticks, the daemon process's CPU seconds per second, requests answered and
-status snapshots taken (when the server counts them); then the medians per kind of phase.
+rate (frames published / s), missed ticks, the daemon process's CPU seconds per second, requests answered, the
+event loop's CPU time spent answering them (ms per second: what polling costs the tick's loop, measured as thread
+CPU time so that other processes on a shared machine do not inflate it) and status snapshots taken (when the
+server counts them); then the medians per kind of phase.
 The client runs at ``nice 10`` so what is measured is the server side's cost on the tick loop, not the client's
 own CPU (the machine is shared: compare the phases of one run with each other).
 
@@ -80,7 +82,7 @@ def _median(xs: list[float]) -> float:
     return float(statistics.median(xs)) if xs else float("nan")
 
 
-async def bench(seconds: float, concurrency: int, people: int, rounds: int) -> dict[str, Any]:
+async def bench(seconds: float, concurrency: int, people: int, rounds: int, extra_kb: int) -> dict[str, Any]:
     from mocapd.service.assembly import RunOptions, assembled
     from mocapd.service.config import load_config
     from mocapd.service.demo.synthetic import synthetic_config
@@ -94,15 +96,31 @@ async def bench(seconds: float, concurrency: int, people: int, rounds: int) -> d
     )
     counter = Counter()
     phases: list[dict[str, Any]] = []
-    with assembled(synthetic_config(cfg), RunOptions(sinks=[counter])) as demo:
+    # A larger document, as a daemon with many sensors has (issue 18 D4: 113 KB after ~700 sensor ids).
+    padding = {f"s{i:05d}": {"buffered": i, "counter_gaps": 0, "clock_skew_ppm": 1.5} for i in range(extra_kb * 14)}
+    extras = {"padding": lambda: dict(padding)} if extra_kb else {}
+    with assembled(synthetic_config(cfg), RunOptions(sinks=[counter], status_extras=extras)) as demo:
         d = demo.daemon
+        # The event loop's CPU time spent answering requests (parsing + snapshot + rendering), thread CPU time so
+        # that a neighbour's load on the shared machine does not count: the cost polling puts on the tick's loop.
+        respond = d.http._respond
+        spent = [0]
+
+        def timed_respond(head: bytes) -> tuple[str, str, bytes]:
+            t = time.thread_time_ns()
+            try:
+                return respond(head)
+            finally:
+                spent[0] += time.thread_time_ns() - t
+
+        d.http._respond = timed_respond  # type: ignore[method-assign]
         task = asyncio.create_task(d.run())
         await asyncio.wait_for(d.ready.wait(), 300)
         await asyncio.sleep(3.0)  # past the start-up transient
 
         async def phase(name: str, client: bool) -> None:
             f0, m0, r0 = counter.frames, d.plan.missed if d.plan else 0, d.http.requests
-            cpu0 = time.process_time()
+            cpu0, spent0 = time.process_time(), spent[0]
             renders0 = getattr(d.http, "renders", None)
             t0 = time.monotonic()
             result: dict[str, Any] = {}
@@ -123,6 +141,7 @@ async def bench(seconds: float, concurrency: int, people: int, rounds: int) -> d
                 "missed_ticks": (d.plan.missed if d.plan else 0) - m0,
                 "daemon_cpu_s_per_s": round((time.process_time() - cpu0) / dt, 3),
                 "requests_served": d.http.requests - r0,
+                "respond_cpu_ms_per_s": round((spent[0] - spent0) / 1e6 / dt, 2),
                 "renders": None if renders0 is None or renders1 is None else renders1 - renders0,
                 **({"client": result} if client else {}),
             })  # fmt: skip
@@ -138,11 +157,18 @@ async def bench(seconds: float, concurrency: int, people: int, rounds: int) -> d
         "configured_hz": cfg.daemon.output_rate_hz,
         "people": people,
         "concurrency": concurrency,
+        "extra_kb": extra_kb,
         "status_document_bytes": status_bytes,
         "median": {
             kind: {
                 key: _median([p[key] for p in phases if p["phase"] == kind])
-                for key in ("output_hz", "missed_ticks", "daemon_cpu_s_per_s", "requests_served")
+                for key in (
+                    "output_hz",
+                    "missed_ticks",
+                    "daemon_cpu_s_per_s",
+                    "requests_served",
+                    "respond_cpu_ms_per_s",
+                )
             }
             for kind in ("idle", "polling")
         },
@@ -156,13 +182,14 @@ def main() -> None:
     ap.add_argument("--concurrency", type=int, default=8)
     ap.add_argument("--people", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=3, help="idle/polling pairs (default 3)")
+    ap.add_argument("--extra-kb", type=int, default=0, help="grow /status by about this many KB (default 0)")
     ap.add_argument("--hammer", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.hammer is not None:
         hammer_main(a.hammer, a.seconds, a.concurrency)
         return
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
-    print(json.dumps(asyncio.run(bench(a.seconds, a.concurrency, a.people, a.rounds)), indent=1))
+    print(json.dumps(asyncio.run(bench(a.seconds, a.concurrency, a.people, a.rounds, a.extra_kb)), indent=1))
 
 
 if __name__ == "__main__":
