@@ -96,3 +96,56 @@ async def test_a_new_snapshot_after_its_period() -> None:
     finally:
         await server.close()
     assert first == [1] * 5 and same == 1 and fresh == 2 and status.calls == 2
+
+
+@pytest.mark.asyncio
+async def test_websocket_status_messages_read_the_same_snapshots() -> None:
+    """The daemon's WebSocket status messages (here 30 a second to each of 4 clients) come from the status server's
+    snapshots too: the daemon renders no more documents than the snapshot rate allows."""
+    from websockets.asyncio.client import connect
+
+    from mocapd.io.ws_server import WebSocketStreamServer
+    from mocapd.service.assembly import assembled
+    from mocapd.service.config import load_config
+    from mocapd.service.demo.synthetic import synthetic_config
+
+    cfg = load_config()
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+        "websocket": cfg.websocket.model_copy(update={"port": 0, "status_hz": 30.0}),
+    })  # fmt: skip
+    with assembled(synthetic_config(cfg)) as demo:
+        d = demo.daemon
+        # Every status document (and the once-a-second status line) asks the scheduler for its state: count those.
+        calls = [0]
+        scheduler_status = d.scheduler.status
+
+        def counted() -> dict[str, Any]:
+            calls[0] += 1
+            return scheduler_status()
+
+        d.scheduler.status = counted  # type: ignore[method-assign]
+        task = asyncio.create_task(d.run())
+        await asyncio.wait_for(d.ready.wait(), 120)
+        ws = next(s for s in d.sinks if isinstance(s, WebSocketStreamServer))
+        received = [0]
+
+        async def client() -> None:
+            async with connect(f"ws://127.0.0.1:{ws.port}/") as c:
+                await c.send(json.dumps({"type": "subscribe", "encoding": "json"}))
+                async for msg in c:  # the first hello is in the default encoding (msgpack): skip bytes
+                    if isinstance(msg, str) and json.loads(msg)["type"] == "status":
+                        received[0] += 1
+                        if received[0] >= 4 * 60:
+                            return
+
+        calls[0] = 0
+        t0 = time.monotonic()
+        await asyncio.wait_for(asyncio.gather(*(client() for _ in range(4))), 120)
+        elapsed = time.monotonic() - t0
+        d.request_stop()
+        assert await asyncio.wait_for(task, 10) == 0
+    assert received[0] >= 4 * 60
+    # 240 status messages; the documents behind them: one per 1/4 s at most (+1 for the first), plus the status
+    # line's once a second.
+    assert calls[0] <= math.ceil(elapsed * 4.0) + 1 + math.ceil(elapsed) + 1

@@ -78,6 +78,10 @@ class Snapshots:
             self.snapshots += 1
         return self._doc
 
+    def document(self) -> dict[str, Any]:
+        """The current snapshot's document (shared: read it, do not change it)."""
+        return self._current()
+
     def status_json(self) -> bytes:
         """The /status body of the current snapshot."""
         doc = self._current()
