@@ -125,8 +125,8 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
         text = body.decode()
         assert code == 200 and headers["Content-Type"].startswith("text/plain; version=0.0.4")
         assert "# TYPE mocapd_latency_seconds histogram" in text
-        assert 'mocapd_latency_seconds_bucket{stage="end_to_end",le="+Inf"}' in text
-        assert 'mocapd_task_failures_total{task="keypoints:cam1"} 1' in text
+        assert 'mocapd_latency_seconds_bucket{le="+Inf",stage="end_to_end"}' in text
+        assert 'mocapd_task_failures_total{task="keypoints:cam1"} 1.0' in text
         assert text.count("mocapd_imu_device_streaming{") == 13
         assert (await http_get(port, "/nope"))[0] == 404
         assert (await http_get(port, "/status", method="POST"))[0] == 405

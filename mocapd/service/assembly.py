@@ -28,6 +28,7 @@ from typing import Any
 from mocapd.service.config import Config
 from mocapd.service.daemon import Daemon, PoseSink
 from mocapd.service.http_status import StatusServer
+from mocapd.service.metrics import render_metrics
 from mocapd.service.outputs.recorder import SessionRecorder, attach_recorder, synthetic_extra
 from mocapd.service.outputs.udp import build_udp_sinks
 from mocapd.service.outputs.websocket import build_websocket_sinks
@@ -101,7 +102,7 @@ def assemble(
                         status_line=options.status_line)  # fmt: skip
         daemon.handle_signals = False  # run() below owns them, from before the daemon exists to after it ends
         if options.sockets.http is not None:
-            daemon.http = StatusServer(daemon.status, daemon.metrics, sock=options.sockets.http)
+            daemon.http = StatusServer(daemon.status, render_metrics, sock=options.sockets.http)
         daemon.status_extras.update(options.status_extras)
         truth = None
         extra = dict(options.manifest_extra)

@@ -50,7 +50,7 @@ from mocapd.service.config import Config
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.http_status import StatusServer
 from mocapd.service.imu_inputs import ImuInputs
-from mocapd.service.metrics import render_metrics
+from mocapd.service.metrics import latency_snapshot, render_metrics
 from mocapd.service.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
@@ -194,7 +194,7 @@ class Daemon:
             backend=config.solver.backend,
         )
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
-        self.http = StatusServer(self.status, self.metrics, d.http_host, d.http_port)
+        self.http = StatusServer(self.status, render_metrics, d.http_host, d.http_port)
         self.plan: TickPlan | None = None
         self.latest: PoseFrame | None = None
         self.started_ns = clock()
@@ -414,6 +414,7 @@ class Daemon:
                 "mode": s["output"],
             },
             "latency_ms": s["latency_ms"],
+            "latency_histograms": latency_snapshot(self.scheduler.latency),
             "cpu_s": s["cpu_s"],
             "counters": s["counters"],
             "cameras": [
@@ -449,5 +450,5 @@ class Daemon:
         }  # fmt: skip
 
     def metrics(self) -> str:
-        """The /metrics document (Prometheus text format 0.0.4)."""
-        return render_metrics(self.status(), self.scheduler.latency)
+        """The /metrics document (Prometheus text format 0.0.4) of the daemon's state now."""
+        return render_metrics(self.status()).decode()

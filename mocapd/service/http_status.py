@@ -2,6 +2,13 @@
 
 asyncio streams, GET only, one request per connection (``Connection: close``); requests are bounded in size
 and time so a stuck client cannot hold the daemon.
+
+The server shares the event loop with the output tick, so what a request costs must not grow with how often
+clients ask: requests are answered from a **snapshot** — the status document taken at most ``max_hz`` times a
+second (when a request finds the last one older than ``1 / max_hz``), its JSON and its Prometheus text each
+rendered at most once per snapshot and then served as the same bytes to every request until the next one.
+A thousand polls a second cost the tick loop ``max_hz`` renders a second plus the (small, fixed) cost of
+answering each connection, however large the document.
 """
 
 from __future__ import annotations
@@ -11,17 +18,90 @@ import contextlib
 import json
 import logging
 import socket
+import time
 from collections.abc import Callable
 from typing import Any
+
+from mocapd.service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 
 log = logging.getLogger(__name__)
 
 MAX_REQUEST = 8192
 READ_TIMEOUT_S = 2.0
+#: snapshots a second at most (a monitoring poll every 250 ms sees every change; a flood of polls costs 4 renders/s)
+MAX_SNAPSHOT_HZ = 4.0
+
+
+class Snapshots:
+    """The latest status snapshot and its documents, rendered lazily once each per snapshot.
+
+    Parameters
+    ----------
+    status
+        Takes a snapshot: a new JSON-able document of the daemon's state (called on the event loop).
+    metrics
+        Renders the Prometheus text of one snapshot.
+    max_hz
+        Snapshots a second at most: a request within ``1 / max_hz`` of the last snapshot is served from it.
+    clock
+        Monotonic nanoseconds (a test may step it).
+    """
+
+    def __init__(
+        self,
+        status: Callable[[], dict[str, Any]],
+        metrics: Callable[[dict[str, Any]], bytes],
+        max_hz: float = MAX_SNAPSHOT_HZ,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        if not max_hz > 0:
+            raise ValueError(f"max_hz must be > 0, got {max_hz}")
+        self._status = status
+        self._metrics = metrics
+        self._min_age_ns = round(1e9 / max_hz)
+        self._clock = clock
+        self._taken_ns: int | None = None
+        self._doc: dict[str, Any] = {}
+        self._json: bytes | None = None
+        self._text: bytes | None = None
+        #: snapshots taken, JSON documents rendered, Prometheus documents rendered (since start)
+        self.snapshots = 0
+        self.json_renders = 0
+        self.metrics_renders = 0
+
+    def _current(self) -> dict[str, Any]:
+        now = self._clock()
+        if self._taken_ns is None or now - self._taken_ns >= self._min_age_ns:
+            self._doc = self._status()
+            self._taken_ns = now
+            self._json = self._text = None
+            self.snapshots += 1
+        return self._doc
+
+    def document(self) -> dict[str, Any]:
+        """The current snapshot's document (shared: read it, do not change it)."""
+        return self._current()
+
+    def status_json(self) -> bytes:
+        """The /status body of the current snapshot."""
+        doc = self._current()
+        if self._json is None:
+            self._json = json.dumps(doc, indent=1).encode() + b"\n"
+            self.json_renders += 1
+        return self._json
+
+    def metrics_text(self) -> bytes:
+        """The /metrics body of the current snapshot."""
+        doc = self._current()
+        if self._text is None:
+            self._text = self._metrics(doc)
+            self.metrics_renders += 1
+        return self._text
 
 
 class StatusServer:
-    """Serves ``status()`` as JSON at /status and ``metrics()`` as text at /metrics.
+    """Serves snapshots of ``status()`` as JSON at /status and their ``metrics(status)`` text at /metrics
+    (see :class:`Snapshots`: at most ``max_hz`` snapshots a second however many requests come).
 
     ``sock``: serve on this already listening TCP socket instead of binding ``host:port`` (the camera demo's
     daemon runs in a private network namespace and serves on a socket its parent bound in the host's).
@@ -30,14 +110,15 @@ class StatusServer:
     def __init__(
         self,
         status: Callable[[], dict[str, Any]],
-        metrics: Callable[[], str],
+        metrics: Callable[[dict[str, Any]], bytes],
         host: str = "127.0.0.1",
         port: int = 0,
         *,
         sock: socket.socket | None = None,
+        max_hz: float = MAX_SNAPSHOT_HZ,
+        clock: Callable[[], int] = time.monotonic_ns,
     ) -> None:
-        self._status = status
-        self._metrics = metrics
+        self.snapshots = Snapshots(status, metrics, max_hz, clock)
         self._sock = sock
         self.host, self.port = (str(sock.getsockname()[0]), int(sock.getsockname()[1])) if sock else (host, port)
         self.requests = 0
@@ -59,6 +140,11 @@ class StatusServer:
             with contextlib.suppress(TimeoutError):  # do not wait on stuck clients at shutdown
                 await asyncio.wait_for(self._server.wait_closed(), 0.5)
             self._server = None
+
+    @property
+    def renders(self) -> int:
+        """Status snapshots taken so far (each costs one ``status()`` call on the event loop)."""
+        return self.snapshots.snapshots
 
     @property
     def url(self) -> str:
@@ -95,7 +181,7 @@ class StatusServer:
         if method != "GET":
             return "405 Method Not Allowed", "text/plain", b"only GET\n"
         if target == "/status":
-            return "200 OK", "application/json", json.dumps(self._status(), indent=1).encode() + b"\n"
+            return "200 OK", "application/json", self.snapshots.status_json()
         if target == "/metrics":
-            return "200 OK", "text/plain; version=0.0.4; charset=utf-8", self._metrics().encode()
+            return "200 OK", METRICS_CONTENT_TYPE, self.snapshots.metrics_text()
         return "404 Not Found", "text/plain", b"try /status or /metrics\n"

@@ -1,72 +1,112 @@
-"""The daemon's health as Prometheus text (exposition format 0.0.4): counters, gauges and latency histograms."""
+"""The daemon's health as Prometheus text (exposition format 0.0.4), rendered by ``prometheus_client`` from one
+``/status`` snapshot: counters, gauges and the latency histograms per stage.
+
+The daemon keeps its own counters (plain ints on the tick's path); this module only turns a snapshot of them into
+metric families, once per snapshot (see :class:`~mocapd.service.http_status.StatusServer`), so a scrape never
+touches live state and never costs the tick loop more than one render per snapshot.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
-from mocapd.pipeline.latency import LatencyStats
+import numpy as np
+from prometheus_client import generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
+from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
+from prometheus_client.registry import Collector, CollectorRegistry
+
+from mocapd.pipeline.latency import BUCKETS_MS, LatencyStats
+
+#: the Content-Type of /metrics
+CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
 
 
-def _label(value: str) -> str:
-    return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+def latency_snapshot(latency: Mapping[str, LatencyStats]) -> dict[str, dict[str, Any]]:
+    """The latency histograms as plain data (cumulative bucket counts, sum in seconds, count): copied when the
+    status snapshot is taken, so the histograms on /metrics are of the same instant as the rest."""
+    return {
+        stage: {
+            "buckets": [int(c) for c in np.cumsum(s.bucket_counts)],
+            "sum_s": s.sum_ns / 1e9,
+            "count": s.count,
+        }
+        for stage, s in latency.items()
+    }
 
 
-def render_metrics(status: Mapping[str, Any], latency: Mapping[str, LatencyStats]) -> str:
-    """Every metric of a running daemon, from its ``/status`` document and its latency histograms per stage."""
-    out: list[str] = []
-    o = status["output"]
+class _SnapshotCollector(Collector):
+    """Metric families from one status document (``status["latency_histograms"]``: :func:`latency_snapshot`)."""
 
-    def metric(name: str, kind: str, help_: str, samples: list[tuple[str, float]]) -> None:
-        out.append(f"# HELP {name} {help_}")
-        out.append(f"# TYPE {name} {kind}")
-        for labels, value in samples:
-            out.append(f"{name}{{{labels}}} {value:g}" if labels else f"{name} {value:g}")
+    def __init__(self, status: Mapping[str, Any]) -> None:
+        self.status = status
 
-    metric("mocapd_frames_published_total", "counter", "Pose frames published.", [("", o["frames"])])
-    metric("mocapd_missed_ticks_total", "counter", "Output ticks skipped because the previous one overran.",
-           [("", o["missed_ticks"])])  # fmt: skip
-    metric("mocapd_late_ticks_total", "counter", "Output ticks run late (within daemon.max_catch_up_s).",
-           [("", o["late_ticks"])])  # fmt: skip
-    metric("mocapd_output_rate_hz", "gauge", "Frames published in the last second.", [("", o["achieved_hz"])])
-    metric("mocapd_output_rate_configured_hz", "gauge", "Configured output rate.", [("", o["configured_hz"])])
-    people = len(status["frame"]["people"]) if status["frame"] else 0
-    metric("mocapd_people", "gauge", "People solved in the latest frame.", [("", people)])
-    metric("mocapd_person_solves_total", "counter", "Per-person solves.", [("", status["counters"]["person_solves"])])
-    metric("mocapd_solves_not_converged_total", "counter", "Solves that hit the iteration limit or failed.",
-           [("", status["counters"]["not_converged"])])  # fmt: skip
-    cams = status["cameras"]
-    names = [c["name"] for c in cams]
-    metric("mocapd_camera_detected_frames_total", "counter", "Detected frames received per camera.",
-           [(f'camera="{_label(n)}"', c["frames"]) for n, c in zip(names, cams, strict=False)])  # fmt: skip
-    metric("mocapd_keypoint_lookups_total", "counter",
-           "Keypoint look-ups per camera and outcome (stale/empty: the camera was missing at solve time).",
-           [(f'camera="{_label(n)}",status="{k}"', v)
-            for n, c in zip(names, cams, strict=False) for k, v in c["samples"].items()])  # fmt: skip
-    imu = status["imu"]
-    devices = imu["devices"]
-    assert isinstance(devices, list)
-    metric("mocapd_imu_device_streaming", "gauge", "1 while the serial IMU device streams.",
-           [(f'device="{_label(str(x["path"]))}"', 1 if x["streaming"] else 0) for x in devices])  # fmt: skip
-    metric("mocapd_imu_device_samples_total", "counter", "Samples received per serial IMU device.",
-           [(f'device="{_label(str(x["path"]))}"', x["samples"]) for x in devices])  # fmt: skip
-    metric("mocapd_imu_device_disconnects_total", "counter", "Links lost per serial IMU device.",
-           [(f'device="{_label(str(x["path"]))}"', x["disconnects"]) for x in devices])  # fmt: skip
-    metric("mocapd_imu_lookups_total", "counter", "IMU look-ups at solve time per sensor and outcome.",
-           [(f'sensor="{_label(k)}",status="{st}"', v)
-            for k, c in status["imu_lookups"].items() for st, v in c.items()])  # fmt: skip
-    tasks = status["tasks"]
-    metric("mocapd_task_failures_total", "counter", "Failures of supervised tasks (each restarted with back-off).",
-           [(f'task="{_label(k)}"', t["failures"]) for k, t in tasks.items()])  # fmt: skip
-    metric("mocapd_task_running", "gauge", "1 while the supervised task runs.",
-           [(f'task="{_label(k)}"', 1 if t["running"] else 0) for k, t in tasks.items()])  # fmt: skip
-    metric("mocapd_stage_cpu_seconds_total", "counter", "CPU time spent per scheduler stage.",
-           [(f'stage="{k}"', v) for k, v in status["cpu_s"].items()])  # fmt: skip
-    out.append(
-        "# HELP mocapd_latency_seconds Latency per stage; end_to_end = solve instant -> frame published; "
-        "imu_to_publish = instant a suit wearer's pose is for (newest IMU sample when predicted) -> published."
-    )
-    out.append("# TYPE mocapd_latency_seconds histogram")
-    for stage, stats in latency.items():
-        out.extend(stats.prometheus("mocapd_latency_seconds", f'stage="{stage}"'))
-    return "\n".join(out) + "\n"
+    def collect(self) -> Iterator[Metric]:
+        st = self.status
+        o = st["output"]
+
+        def counter(name: str, help_: str, labels: list[str], samples: list[tuple[list[str], float]]) -> Metric:
+            m = CounterMetricFamily(name, help_, labels=labels)
+            for values, v in samples:
+                m.add_metric(values, v)
+            return m
+
+        def gauge(name: str, help_: str, labels: list[str], samples: list[tuple[list[str], float]]) -> Metric:
+            m = GaugeMetricFamily(name, help_, labels=labels)
+            for values, v in samples:
+                m.add_metric(values, v)
+            return m
+
+        yield counter("mocapd_frames_published", "Pose frames published.", [], [([], o["frames"])])
+        yield counter("mocapd_missed_ticks", "Output ticks skipped because the previous one overran.", [],
+                      [([], o["missed_ticks"])])  # fmt: skip
+        yield counter("mocapd_late_ticks", "Output ticks run late (within daemon.max_catch_up_s).", [],
+                      [([], o["late_ticks"])])  # fmt: skip
+        yield gauge("mocapd_output_rate_hz", "Frames published in the last second.", [], [([], o["achieved_hz"])])
+        yield gauge("mocapd_output_rate_configured_hz", "Configured output rate.", [], [([], o["configured_hz"])])
+        people = len(st["frame"]["people"]) if st["frame"] else 0
+        yield gauge("mocapd_people", "People solved in the latest frame.", [], [([], people)])
+        yield counter("mocapd_person_solves", "Per-person solves.", [], [([], st["counters"]["person_solves"])])
+        yield counter("mocapd_solves_not_converged", "Solves that hit the iteration limit or failed.", [],
+                      [([], st["counters"]["not_converged"])])  # fmt: skip
+        cams = st["cameras"]
+        yield counter("mocapd_camera_detected_frames", "Detected frames received per camera.", ["camera"],
+                      [([str(c["name"])], c["frames"]) for c in cams])  # fmt: skip
+        yield counter("mocapd_keypoint_lookups",
+                      "Keypoint look-ups per camera and outcome (stale/empty: the camera was missing at solve time).",
+                      ["camera", "status"],
+                      [([str(c["name"]), str(k)], v) for c in cams for k, v in c["samples"].items()])  # fmt: skip
+        devices = st["imu"]["devices"]
+        yield gauge("mocapd_imu_device_streaming", "1 while the serial IMU device streams.", ["device"],
+                    [([str(x["path"])], 1 if x["streaming"] else 0) for x in devices])  # fmt: skip
+        yield counter("mocapd_imu_device_samples", "Samples received per serial IMU device.", ["device"],
+                      [([str(x["path"])], x["samples"]) for x in devices])  # fmt: skip
+        yield counter("mocapd_imu_device_disconnects", "Links lost per serial IMU device.", ["device"],
+                      [([str(x["path"])], x["disconnects"]) for x in devices])  # fmt: skip
+        yield counter("mocapd_imu_lookups", "IMU look-ups at solve time per sensor and outcome.", ["sensor", "status"],
+                      [([str(k), str(s)], v) for k, c in st["imu_lookups"].items() for s, v in c.items()])  # fmt: skip
+        tasks = st["tasks"]
+        yield counter("mocapd_task_failures", "Failures of supervised tasks (each restarted with back-off).",
+                      ["task"], [([str(k)], t["failures"]) for k, t in tasks.items()])  # fmt: skip
+        yield gauge("mocapd_task_running", "1 while the supervised task runs.", ["task"],
+                    [([str(k)], 1 if t["running"] else 0) for k, t in tasks.items()])  # fmt: skip
+        yield counter("mocapd_stage_cpu_seconds", "CPU time spent per scheduler stage.", ["stage"],
+                      [([str(k)], v) for k, v in st["cpu_s"].items()])  # fmt: skip
+        h = HistogramMetricFamily(
+            "mocapd_latency_seconds",
+            "Latency per stage; end_to_end = solve instant -> frame published; "
+            "imu_to_publish = instant a suit wearer's pose is for (newest IMU sample when predicted) -> published.",
+            labels=["stage"],
+        )
+        for stage, s in st.get("latency_histograms", {}).items():
+            bounds = [f"{b / 1e3:g}" for b in BUCKETS_MS] + ["+Inf"]
+            h.add_metric([stage], list(zip(bounds, s["buckets"], strict=True)), sum_value=s["sum_s"])
+        yield h
+
+
+def render_metrics(status: Mapping[str, Any]) -> bytes:
+    """The /metrics document of one status snapshot (which carries ``latency_histograms``)."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(_SnapshotCollector(status))
+    return generate_latest(registry)

@@ -37,7 +37,9 @@ def build_websocket_sinks(
             max_width=ws.camera_width, rate_hz=ws.camera_rate_hz, jpeg_quality=ws.camera_quality
         )
         views = attach_camera_views(daemon, options)
-    return websocket_sinks(config, daemon.rig.skeleton, status=daemon.status, clock=daemon.clock, sock=sock,
+    # Status messages read the status server's snapshot: at any status_hz they add no renders of their own.
+    status = daemon.http.snapshots.document
+    return websocket_sinks(config, daemon.rig.skeleton, status=status, clock=daemon.clock, sock=sock,
                            camera_views=views, output=daemon.scheduler.options.prediction.output)  # fmt: skip
 
 
