@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 
@@ -66,4 +68,45 @@ def test_bench_latency_reports_the_synthetic_daemon(capsys: pytest.CaptureFixtur
     # The poses it timed are right: the synthetic truth scores them, and the whole suit streamed, nothing failed.
     assert r["median_keypoint_error_mm"] is not None and r["median_keypoint_error_mm"] < 20.0
     assert r["imu_devices_streaming_at_end"] == 13 and r["imu_disconnects"] == 0
+    assert not any(r["task_failures"].values()), r["task_failures"]
+
+
+def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_detector_alone() -> None:
+    """``mocapd bench latency --rig cameras`` (the camera demo in a private network namespace) for a few seconds:
+    the JSON is checked for content and coherence, not for speed."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "mocapd", "bench", "latency", "--rig", "cameras", "--seconds", "4", "--warm-up", "4",
+         "--alone-passes", "2", "--scale", "0.25"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(proc.stdout[proc.stdout.index("{") :])
+    alone, s = r["detector_alone"], r["summary"]
+    for run in (alone["before_live_run"], alone["after_live_run"]):
+        assert run["passes"] == 2 and run["camera_frames_per_pass"] == 4 and run["image_size"] == [272, 480]
+        assert run["whole_camera_frames_per_s"] > 0 and run["packed_camera_frames_per_s"] > 0
+    runs = (
+        alone["before_live_run"]["packed_camera_frames_per_s"],
+        alone["after_live_run"]["packed_camera_frames_per_s"],
+    )
+    assert alone["packed_camera_frames_per_s"] == round(sum(runs) / 2, 2)
+    # The headline repeats the detailed figures, and the ratio is theirs.
+    assert s["detector_alone_packed_camera_frames_per_s"] == alone["packed_camera_frames_per_s"]
+    assert s["live_detected_camera_frames_per_s"] == r["detector_camera_frames_per_s"] > 0
+    assert s["live_over_alone_packed"] == round(
+        s["live_detected_camera_frames_per_s"] / alone["packed_camera_frames_per_s"], 3
+    )
+    assert s["live_detection"] == ["detector"]  # the demo as shipped: whole frames
+    detected = sum(c["detected_fps"] for c in r["cameras"].values())
+    assert abs(detected - s["live_detected_camera_frames_per_s"]) <= 0.05
+    assert 0 < s["end_to_end_ms_p50"] <= s["end_to_end_ms_p95"]
+    assert s["end_to_end_ms_p50"] >= r["configured"]["latency_ms"]  # the fixed latency is part of end to end
+    assert s["missed_ticks_after_warm_up"] == r["output"]["missed_ticks"] >= 0
+    assert 0 <= s["missed_tick_fraction_after_warm_up"] <= 1
+    assert r["output"]["frames"] > 0 and r["duration_s"] > 0
+    cpu = s["cpu_cores"]
+    # Every stage ran and was charged: the cameras' capture threads, the detector's threads, the event loop's tick.
+    assert cpu["capture_threads"] > 0 and cpu["detector_threads"] > 0 and cpu["event_loop_with_tick"] > 0
+    assert cpu["capture_threads_per_camera"] == round(cpu["capture_threads"] / 4, 4)
+    assert set(cpu["tick_stages"]) >= {"sample", "sort", "solve", "publish"}
     assert not any(r["task_failures"].values()), r["task_failures"]

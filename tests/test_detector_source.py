@@ -36,6 +36,9 @@ async def test_detector_source_subsamples_and_stamps_capture_time(tmp_path: Path
     assert src.detected == len(got) >= 3
     assert src.skipped > 0  # 100 Hz frames, a 30 ms detector: it keeps up by skipping to the newest frame
     assert src.detected + src.skipped + src.lost <= 30
+    # Frames are converted (BGR -> RGB) when the detector takes them, not at capture: skipped frames cost nothing.
+    # (+ 1: the detection in flight when the replay ended is dropped, its frame converted.)
+    assert src.detected <= frames.ring.conversions <= src.detected + src.lost + 1 < src.captured
     times = [t for _, t, _, _ in got]
     assert times == sorted(times) and len(set(times)) == len(times)
     xs = [d.keypoints[0, 0, 0] for _, _, d, _ in got]

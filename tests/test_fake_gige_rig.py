@@ -100,6 +100,19 @@ def test_bayer_capture_is_demosaiced_in_rgb_order(pose2sim_demo: Path) -> None:
         assert result["mean_abs_error_rgb"] < 3.0 < result["mean_abs_error_swapped"]
 
 
+def test_bayer_frames_are_demosaiced_only_when_read_once_and_as_eagerly(pose2sim_demo: Path) -> None:
+    """Capture keeps the mosaic; a frame is demosaiced when read (one in three here), once however often it is read,
+    into the image the eager conversion of the same bytes gives (and the expected one)."""
+    video = str(pose2sim_demo / "Demo_MultiPerson" / "videos" / "cam01.mp4")
+    r = _run(["tools.camera_scenarios", "lazy", "--video", video, "--format", "BayerRG8"])
+    assert r["lazy"] and r["captured"] >= 24
+    assert r["conversions_before_reading"] == 0  # the frames before the first read were never converted
+    assert r["read"] >= 8 and r["overtaken"] == 0
+    assert r["conversions"] == r["read"] < r["captured"]
+    assert r["second_read_converted"] == 0
+    assert r["identical_to_eager"] == r["identical_to_expected"] == r["read"]
+
+
 def test_mono8_capture_matches_gray_source(pose2sim_demo: Path) -> None:
     video = str(pose2sim_demo / "Demo_MultiPerson" / "videos" / "cam03.mp4")
     result = _run(["tools.camera_scenarios", "mono", "--video", video])

@@ -1,4 +1,4 @@
-"""FrameRing: slots, sequence numbers, overwrite detection."""
+"""FrameRing: slots, sequence numbers, overwrite detection; lazy rings convert a frame when first read, once."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from mocapd.errors import InputError
+from mocapd.io.pixels import capture_ring, convert_into, from_rgb, pixel_format
 from mocapd.pipeline.frame_ring import FrameRing
 
 
@@ -39,3 +40,65 @@ def test_rejects_bad_geometry() -> None:
         FrameRing("cam", 1, 2, 2, 3)
     with pytest.raises(InputError, match="channels"):
         FrameRing("cam", 4, 2, 2, 2)
+
+
+class _Doubling:
+    """A converter that counts its calls: image = 2 * raw (one channel per raw byte)."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, raw: np.ndarray, out: np.ndarray) -> None:
+        self.calls += 1
+        out[...] = (2 * raw).reshape(out.shape)
+
+
+def test_lazy_ring_converts_only_the_frames_read_once_each() -> None:
+    convert = _Doubling()
+    ring = FrameRing("cam", 4, 2, 3, 1, raw_shape=(6,), convert=convert)
+    for i in range(10):
+        ring.next_raw()[:] = i
+        ring.publish(i, i, i)
+    assert convert.calls == 0 and ring.conversions == 0  # nobody read: nothing converted
+    image = ring.read(8)
+    assert image is not None and np.all(image == 16) and image.shape == (2, 3, 1)
+    assert np.all(ring.view(8) == 16) and ring.read(8) is not None
+    assert convert.calls == ring.conversions == 1  # read three times, converted once
+    assert np.all(ring.view(7) == 14) and ring.conversions == 2
+    assert ring.read(5) is None and ring.conversions == 2  # overwritten frames are not converted
+    # The writer reuses the slot of frame 7: frame 11's image is its own conversion, not frame 7's cache.
+    ring.next_raw()[:] = 11
+    ring.publish(10, 10, 10)
+    ring.next_raw()[:] = 11
+    ring.publish(11, 11, 11)
+    assert np.all(ring.view(11) == 22) and ring.conversions == 3
+
+
+def test_lazy_and_eager_rings_are_filled_through_their_own_slots() -> None:
+    lazy = FrameRing("cam", 2, 2, 2, 3, raw_shape=(4,), convert=_Doubling())
+    eager = FrameRing("cam", 2, 2, 2, 3)
+    assert lazy.lazy and not eager.lazy
+    with pytest.raises(InputError, match="lazy"):
+        lazy.next_slot()
+    with pytest.raises(InputError, match="eager"):
+        eager.next_raw()
+    with pytest.raises(InputError, match="both"):
+        FrameRing("cam", 2, 2, 2, 3, raw_shape=(4,))
+
+
+@pytest.mark.parametrize("name", ["BayerRG8", "BayerGB8", "RGB8", "Mono8"])
+def test_capture_ring_reads_what_eager_conversion_gives(name: str) -> None:
+    fmt = pixel_format(name)
+    rgb = np.random.default_rng(1).integers(0, 256, (6, 8, 3), dtype=np.uint8)
+    raw = from_rgb(rgb, fmt)
+    ring = capture_ring("cam", 3, 6, 8, fmt)
+    assert ring.lazy == (name.startswith("Bayer"))  # Mono8 / RGB8: the copy is the conversion
+    if ring.lazy:
+        ring.next_raw()[:] = raw
+    else:
+        convert_into(fmt, raw, 6, 8, ring.next_slot())
+    ref = ring.publish(0, 0, 0)
+    eager = np.zeros((6, 8, fmt.channels), np.uint8)
+    convert_into(fmt, raw, 6, 8, eager)
+    got = ring.read(ref.seq)
+    assert got is not None and np.array_equal(got, eager)

@@ -2,9 +2,14 @@
 
     python -m tools.camera_scenarios reconnect --video cam01.mp4
     python -m tools.camera_scenarios bayer --video cam01.mp4 --format BayerRG8
+    python -m tools.camera_scenarios lazy --video cam01.mp4 --format BayerRG8
 
 ``reconnect``: two fake cameras; one server is killed and later restarted. Reports frames of each camera before,
 during and after the outage, the failure/reopen counters and the error that was reported.
+
+``lazy``: one Bayer camera whose frames are read one in three (each twice): reports frames captured, frames read
+and conversions done (a frame is demosaiced only when read, once), and whether each frame read is identical to the
+eager conversion of its raw bytes (what capture did before it turned lazy) and to the expected image.
 
 ``bayer`` / ``mono``: one camera in a Bayer or Mono8 format; compares what mocapd's ring holds with the expected
 image of the source frames (``tools.fake_rig.reference_image``: OpenCV's demosaicing of a mosaic sampled by the
@@ -30,7 +35,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
-from mocapd.io.pixels import pixel_format
+from mocapd.io.pixels import convert_into, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.sim.fake_gige import add_loopback_aliases, load_video_rgb, server_command
 from tools.fake_rig import reference_image
@@ -161,9 +166,56 @@ async def one_format(video: Path, fmt_name: str) -> dict[str, Any]:
     return result
 
 
+async def lazy(video: Path, fmt_name: str, read_every: int = 3, frames_wanted: int = 24) -> dict[str, Any]:
+    fmt = pixel_format(fmt_name)
+    frames = load_video_rgb(video, 4)
+    h, w, _ = frames[0].shape
+    expected = [reference_image(rgb, fmt.name) for rgb in frames]  # not mocapd's own conversion
+    config = AravisCameraConfig("cam", address="127.0.0.1", pixel_format=fmt_name, region=(0, 0, w, h),
+                                frame_rate=10, packet_size=8192, ring_slots=16)  # fmt: skip
+    source = AravisSource(config)
+    ring = source.ring
+    out: dict[str, Any] = {"lazy": ring.lazy, "captured": 0, "conversions_before_reading": None, "read": 0,
+                           "overtaken": 0, "identical_to_eager": 0, "identical_to_expected": 0,
+                           "second_read_converted": 0}  # fmt: skip
+
+    def on_frame(ref: FrameRef) -> None:
+        out["captured"] += 1
+        if (ref.seq + 1) % read_every or ring.raw is None:  # frames 0 .. read_every - 2 are never read
+            return
+        if out["conversions_before_reading"] is None:
+            out["conversions_before_reading"] = ring.conversions
+        raw = ring.raw[ref.seq % ring.n_slots].copy()  # the bytes the camera sent, before anyone read the frame
+        image = ring.read(ref.seq)
+        out["read"] += 1
+        if image is None or not ring.is_valid(ref.seq):
+            out["overtaken"] += 1
+            return
+        before = ring.conversions
+        again = ring.view(ref.seq)  # a second reader of the same frame: no second conversion
+        out["second_read_converted"] += ring.conversions - before
+        eager = np.empty_like(image)
+        convert_into(fmt, raw, h, w, eager)
+        out["identical_to_eager"] += int(np.array_equal(image, eager) and np.array_equal(again, eager))
+        out["identical_to_expected"] += int(any(np.array_equal(image, e) for e in expected))
+
+    server = start_server(video, "127.0.0.1", 4, fmt_name)
+    task = asyncio.create_task(source.run(on_frame))
+    try:
+        await wait_for(lambda: out["captured"] >= frames_wanted, 20)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        server.terminate()
+        server.wait()
+    out["conversions"] = ring.conversions
+    out["missing_frames"] = source.counters.missing_frames
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("scenario", choices=["reconnect", "bayer", "mono"])
+    parser.add_argument("scenario", choices=["reconnect", "bayer", "mono", "lazy"])
     parser.add_argument("--video", type=Path, required=True)
     parser.add_argument("--format", default="BayerRG8")
     parser.add_argument("--in-netns", action="store_true", help="already inside a private network namespace")
@@ -182,6 +234,8 @@ def main(argv: list[str] | None = None) -> int:
     add_loopback_aliases(2)
     if args.scenario == "reconnect":
         result = asyncio.run(reconnect(args.video))
+    elif args.scenario == "lazy":
+        result = asyncio.run(lazy(args.video, args.format))
     else:
         result = asyncio.run(one_format(args.video, "Mono8" if args.scenario == "mono" else args.format))
     print(json.dumps(result), flush=True)

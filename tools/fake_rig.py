@@ -9,7 +9,10 @@ video, captures every camera with :class:`mocapd.io.aravis_camera.AravisSource` 
   frame is bit-identical to the decoded source frame it should be (in order; computed by
   :func:`reference_image`, independently of mocapd's pixel conversion), whether host/camera timestamps and
   frame ids increase, latency statistics (ms) and the capture thread's CPU use (% of one core);
-* the fake servers' CPU use.
+* the fake servers' CPU use;
+* with ``--read-hz R``: a reader thread (the detector's stand-in) takes the newest frame of every camera R times a
+  second; per camera the frames it read and the conversions the ring did (a lazy ring converts only those), and
+  the reader thread's CPU (where the conversions of a lazy ring now run).
 
 Used by the integration tests and by ``tools/bench_capture.py``::
 
@@ -26,6 +29,7 @@ import math
 import os
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +43,7 @@ if __package__ in (None, ""):
 
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.pixels import pixel_format
-from mocapd.pipeline.frame_ring import FrameRef
+from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 from mocapd.sim.fake_gige import add_loopback_aliases, load_video_rgb, server_command
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
@@ -194,6 +198,36 @@ async def capture(sources: list[AravisSource], checks: list[CameraCheck], durati
     await asyncio.gather(*tasks, return_exceptions=True)
 
 
+class Reader:
+    """A thread reading the newest frame of every camera ``rate_hz`` times a second, as the detector does."""
+
+    def __init__(self, sources: list[AravisSource], rate_hz: float) -> None:
+        self.sources = sources
+        self.period_s = 1.0 / rate_hz
+        self.read = [0] * len(sources)
+        self.thread_id: int | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._main, name="reader")
+
+    def _main(self) -> None:
+        self.thread_id = threading.get_native_id()
+        last = [-1] * len(self.sources)
+        while not self._stop.wait(self.period_s):
+            for i, s in enumerate(self.sources):
+                ref = s.ring.latest()
+                if ref is not None and ref.seq != last[i] and s.ring.read(ref.seq) is not None:
+                    last[i] = ref.seq
+                    self.read[i] += 1
+
+    def __enter__(self) -> Reader:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
 def percentile_ms(values: np.ndarray[Any, Any], q: float) -> float | None:
     return round(float(np.percentile(values, q)) / 1e6, 3) if values.size else None
 
@@ -226,13 +260,18 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
                 frame_retention_ms=1000.0 if args.verify else 100.0,
                 packet_timeout_ms=50.0 if args.verify else 20.0,
             )
-            sources.append(AravisSource(config))
+            # --eager: a ring of finished images, so capture demosaics every frame (mocapd before its rings turned
+            # lazy), for a before/after comparison in one benchmark run.
+            ring = FrameRing(config.name, config.ring_slots, h, w, fmt.channels) if args.eager else None
+            sources.append(AravisSource(config, ring))
             frames = load_video_rgb(Path(video), args.max_frames, size) if args.verify else []  # type: ignore[arg-type]
             checks.append(CameraCheck(expected_hashes(frames, fmt.name) if args.verify else [], debug_frames=frames))
         server_cpu0 = [cpu_seconds(s.pid) for s in servers]
         wall0, cpu0 = time.monotonic(), time.process_time()
         thread_cpu: dict[str, float] = {}
         thread_names: dict[str, float] = {}
+        reader = Reader(sources, args.read_hz) if args.read_hz > 0 else None
+        reader_cpu: list[float] = []
 
         async def main() -> None:
             task = asyncio.create_task(capture(sources, checks, args.duration, args.verify))
@@ -240,6 +279,7 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
             start = {s.name: cpu_seconds(os.getpid(), s.thread_id) for s in sources}
             tids = {s.thread_id for s in sources if s.thread_id is not None}
             by_name0 = cpu_by_thread_name(tids)
+            r0 = cpu_seconds(os.getpid(), reader.thread_id) if reader and reader.thread_id else 0.0
             t_start = time.monotonic()
             await asyncio.sleep(max(0.0, args.duration - min(1.0, args.duration / 2) - 0.2))
             span = time.monotonic() - t_start
@@ -248,9 +288,15 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
                 thread_names[k] = round(100 * (v - by_name0.get(k, 0.0)) / span, 2)
             for s in sources:
                 thread_cpu[s.name] = (cpu_seconds(os.getpid(), s.thread_id) - start[s.name]) / span
+            if reader is not None and reader.thread_id is not None:
+                reader_cpu.append((cpu_seconds(os.getpid(), reader.thread_id) - r0) / span)
             await task
 
-        asyncio.run(main())
+        if reader is not None:
+            with reader:
+                asyncio.run(main())
+        else:
+            asyncio.run(main())
         wall = time.monotonic() - wall0
         process_cpu = time.process_time() - cpu0
         server_cpu = [(cpu_seconds(p.pid) - c) / wall for p, c in zip(servers, server_cpu0, strict=True)]
@@ -260,7 +306,7 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
         for proc in servers:
             proc.wait(timeout=10)
     cameras = []
-    for s, c in zip(sources, checks, strict=True):
+    for i, (s, c) in enumerate(zip(sources, checks, strict=True)):
         lat, conv = s.latency.recent(), s.convert.recent()
         cameras.append(
             {
@@ -287,6 +333,9 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
                 "convert_ms_median": percentile_ms(conv, 50),
                 "convert_ms_p95": percentile_ms(conv, 95),
                 "capture_thread_cpu_pct": round(100 * thread_cpu.get(s.name, float("nan")), 2),
+                "lazy_ring": s.ring.lazy,
+                "frames_read": None if reader is None else reader.read[i],
+                "conversions": s.ring.conversions,
             }
         )
     return {
@@ -298,6 +347,9 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
         "capture_process_cpu_pct": round(100 * process_cpu / wall, 1),
         "capture_process_cpu_pct_by_thread_name": thread_names,
         "fake_server_cpu_pct": [round(100 * c, 1) for c in server_cpu],
+        "eager": args.eager,
+        "read_hz": args.read_hz,
+        "reader_thread_cpu_pct": round(100 * reader_cpu[0], 2) if reader_cpu else None,
     }
 
 
@@ -313,6 +365,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--duration", type=float, default=3.0, help="capture time, s")
     parser.add_argument("--packet-size", type=int, default=8192, help="GigE stream packet size, bytes")
     parser.add_argument("--no-verify", dest="verify", action="store_false", help="skip the bit-identity check")
+    parser.add_argument(
+        "--read-hz", type=float, default=0.0, help="a reader takes every camera's newest frame this often (0: none)"
+    )
+    parser.add_argument("--eager", action="store_true", help="convert every frame at capture (eager rings)")
     parser.add_argument("--in-netns", action="store_true", help="already inside a private network namespace")
     parser.add_argument("--json", type=Path, default=None, help="also write the result here")
     return parser.parse_args(argv)

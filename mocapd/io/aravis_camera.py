@@ -2,9 +2,10 @@
 
 One :class:`AravisSource` per camera. Its capture thread blocks in ``ArvStream.timeout_pop_buffer`` (which
 releases the GIL), views the buffer's memory through ctypes without copying (a numpy view made once per buffer of
-the pool, instead of ``get_data()``'s copy to ``bytes``), converts/copies it once into the camera's
+the pool, instead of ``get_data()``'s copy to ``bytes``), copies it once into the camera's
 :class:`~mocapd.pipeline.frame_ring.FrameRing` slot, pushes the buffer back to the pool and hands the frame
-reference to asyncio.
+reference to asyncio. A Bayer frame is copied raw and demosaiced only if something reads it
+(:func:`mocapd.io.pixels.capture_ring`).
 
 Opening
     * by IP address (``address``): ``ArvGvDevice`` is created directly between the host interface address that
@@ -38,7 +39,7 @@ from numpy.typing import NDArray
 from mocapd.errors import ConfigError, DeviceError
 from mocapd.io.frame_source import ThreadedSource
 from mocapd.io.gige_discovery import find_camera
-from mocapd.io.pixels import PixelFormat, convert_into, pixel_format
+from mocapd.io.pixels import PixelFormat, capture_ring, pixel_format, store_raw
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
 log = logging.getLogger(__name__)
@@ -382,7 +383,8 @@ class AravisSource(ThreadedSource):
     config : AravisCameraConfig
     ring : FrameRing or None
         Ring to fill; by default one is made from the configured region and pixel format (a region must then be
-        given).
+        given) by :func:`~mocapd.io.pixels.capture_ring`. An eager ring of a Bayer camera gets its frames
+        demosaiced at capture.
     """
 
     def __init__(self, config: AravisCameraConfig, ring: FrameRing | None = None, **kw: Any) -> None:
@@ -391,7 +393,7 @@ class AravisSource(ThreadedSource):
             if config.region is None:
                 raise ConfigError(f"camera {config.name!r}: give a region (x, y, width, height) or a ring")
             _, _, w, h = config.region
-            ring = FrameRing(config.name, config.ring_slots, h, w, fmt.channels)
+            ring = capture_ring(config.name, config.ring_slots, h, w, fmt)
         super().__init__(config.name, ring, **kw)
         _warm_up_introspection()
         self.config = config
@@ -471,7 +473,7 @@ class AravisSource(ThreadedSource):
                 self.counters.bad_buffers += 1
                 return None
             width, height = self._size
-            convert_into(self.format, view, height, width, self.ring.next_slot())
+            store_raw(self.format, view, height, width, self.ring)
             ref = self.ring.publish(now, int(buffer.get_timestamp()), int(buffer.get_frame_id()))
             # Aravis' system timestamp (host wall clock when the frame's leader packet arrived) to publication:
             # the frame's transfer plus mocapd's capture path.

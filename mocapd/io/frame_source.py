@@ -1,8 +1,9 @@
 """What every frame source (Aravis camera, video file, image folder) has in common.
 
 A source owns a :class:`~mocapd.pipeline.frame_ring.FrameRing` and one capture thread. The thread blocks in the
-device or decoder (both release the GIL), converts each frame once into the ring's next slot, publishes it and
-hands the :class:`~mocapd.pipeline.frame_ring.FrameRef` to the asyncio loop with ``call_soon_threadsafe``.
+device or decoder (both release the GIL), puts each frame once into the ring's next slot (raw, when the ring is
+lazy: the conversion is left to whoever reads the frame), publishes it and hands the
+:class:`~mocapd.pipeline.frame_ring.FrameRef` to the asyncio loop with ``call_soon_threadsafe``.
 
 ``await source.run(on_frame)`` supervises the thread: when the device fails (:class:`~mocapd.errors.DeviceError`)
 the failure is counted and reported, and the source is reopened after an exponential back-off, while the other
@@ -106,7 +107,7 @@ class ThreadedSource(abc.ABC):
         self.counters = CaptureCounters()
         self.latency = LatencyLog()
         self.backoff_s = backoff_s
-        self.convert = LatencyLog()
+        self.convert = LatencyLog()  # frame in hand -> published: the copy (or conversion) into the ring
         self.opened = threading.Event()  # set while the device is open and streaming
         self.retry_in_s: float | None = None  # the back-off being waited before reopening (None: not waiting)
         self.last_backoff_s: float | None = None  # the last back-off waited (it doubles while reopening fails)

@@ -1,4 +1,4 @@
-"""Camera pixel formats and their one-copy conversion into a ring slot.
+"""Camera pixel formats, their conversion into an image, and the capture ring of a format.
 
 Supported formats (GenICam PFNC names): ``Mono8`` → 1 channel; ``RGB8`` → 3 channels (R, G, B);
 ``BayerRG8``, ``BayerBG8``, ``BayerGR8``, ``BayerGB8`` → demosaiced by OpenCV into 3 channels (R, G, B).
@@ -6,6 +6,10 @@ Supported formats (GenICam PFNC names): ``Mono8`` → 1 channel; ``RGB8`` → 3 
 OpenCV names a Bayer pattern after the second row's first two pixels, GenICam after the first row's: GenICam
 ``BayerRG8`` (R at pixel (0, 0)) is OpenCV's ``COLOR_BayerBG2RGB``. ``tests/test_pixels.py`` checks this on a
 mosaic made by hand.
+
+A Bayer camera's ring (:func:`capture_ring`) is lazy: capture copies the mosaic (one byte a pixel) into the ring
+and demosaicing happens when something reads the frame (the detector, a camera panel, the recorder), once per
+frame read. ``Mono8`` and ``RGB8`` need no conversion beyond the copy, which capture does straight into the image.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.errors import ConfigError, InputError
+from mocapd.pipeline.frame_ring import FrameRing
 
 
 @dataclass(frozen=True)
@@ -88,6 +93,56 @@ def convert_into(fmt: PixelFormat, raw: NDArray[np.uint8], height: int, width: i
         np.copyto(out, raw[:n].reshape(height, width, fmt.channels))
     else:
         cv2.cvtColor(raw[:n].reshape(height, width), fmt.cv_code, dst=out)
+
+
+def capture_ring(name: str, n_slots: int, height: int, width: int, fmt: PixelFormat) -> FrameRing:
+    """The ring a camera delivering ``fmt`` captures into: lazy (raw mosaic, demosaiced when read) for Bayer
+    formats, eager (the copy is the conversion) for ``Mono8`` and ``RGB8``."""
+    if fmt.cv_code is None:
+        return FrameRing(name, n_slots, height, width, fmt.channels)
+
+    def demosaic(raw: NDArray[np.uint8], out: NDArray[np.uint8]) -> None:
+        convert_into(fmt, raw, height, width, out)
+
+    return FrameRing(name, n_slots, height, width, fmt.channels, raw_shape=(height * width * fmt.bytes_per_pixel,),
+                     convert=demosaic)  # fmt: skip
+
+
+def bgr_ring(name: str, n_slots: int, height: int, width: int, *, gray: bool = False) -> FrameRing:
+    """The lazy ring of a decoder's frames (video file, image folder, webcam): raw slots hold the decoder's BGR
+    image, shape (height, width, 3), converted to RGB (or gray, 1 channel) when read."""
+    code = cv2.COLOR_BGR2GRAY if gray else cv2.COLOR_BGR2RGB
+
+    def convert(bgr: NDArray[np.uint8], out: NDArray[np.uint8]) -> None:
+        cv2.cvtColor(bgr, code, dst=out[:, :, 0] if gray else out)
+
+    return FrameRing(name, n_slots, height, width, 1 if gray else 3, raw_shape=(height, width, 3), convert=convert)
+
+
+def store_raw(fmt: PixelFormat, raw: NDArray[np.uint8], height: int, width: int, ring: FrameRing) -> None:
+    """Put one camera buffer into the ring's next slot: its bytes as they are (lazy ring) or converted (eager).
+
+    Parameters
+    ----------
+    fmt : PixelFormat
+        Format of ``raw``.
+    raw : ndarray, shape (n_bytes,), uint8
+        The camera buffer (a zero-copy view); at least ``height * width * fmt.bytes_per_pixel`` bytes.
+    height, width : int
+        Image size in pixels.
+    ring : FrameRing
+        Of shape (height, width, fmt.channels); call its ``publish`` next.
+    """
+    if not ring.lazy:
+        convert_into(fmt, raw, height, width, ring.next_slot())
+        return
+    slot = ring.next_raw()
+    n = height * width * fmt.bytes_per_pixel
+    if raw.size < n or slot.shape != (n,):
+        raise InputError(
+            f"{fmt.name}: buffer of {raw.size} bytes / raw slot {slot.shape} do not fit a {width}x{height} image"
+        )
+    np.copyto(slot, raw[:n])
 
 
 def mosaic(rgb: NDArray[np.uint8], fmt: PixelFormat) -> NDArray[np.uint8]:

@@ -1,10 +1,11 @@
 """USB webcams (UVC) through OpenCV's ``VideoCapture``: the cameras most people already own.
 
 One :class:`UvcSource` per camera, a :class:`~mocapd.io.frame_source.ThreadedSource`: its thread blocks in
-``VideoCapture.read`` (which releases the GIL), converts BGR to RGB into the camera's ring and hands the frame to
-asyncio. On Linux the camera is opened through V4L2 (``/dev/videoN`` or a stable ``/dev/v4l/by-id/...`` path, or
-an index); resolution, frame rate and FOURCC are requested before the first frame, and the size the driver really
-delivers must be the size the camera was calibrated at, or the open fails naming both.
+``VideoCapture.read`` (which releases the GIL) decoding straight into the camera's lazy ring (BGR, converted to RGB
+when the frame is read) and hands the frame to asyncio. On Linux the camera is opened through V4L2
+(``/dev/videoN`` or a stable ``/dev/v4l/by-id/...`` path, or an index); resolution, frame rate and FOURCC are
+requested before the first frame, and the size the driver really delivers must be the size the camera was
+calibrated at, or the open fails naming both.
 
 Time: ``host_ns`` is when ``read`` returned (a webcam has no exposure clock we can read portably); ``device_ns`` is
 the driver's buffer timestamp (``CAP_PROP_POS_MSEC``: V4L2 stamps each buffer when its transfer started) when it
@@ -24,10 +25,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import cv2
+import numpy as np
 
 from mocapd.errors import ConfigError, DeviceError
 from mocapd.io.frame_source import ThreadedSource
-from mocapd.pipeline.frame_ring import FrameRef, FrameRing
+from mocapd.io.pixels import bgr_ring
+from mocapd.pipeline.frame_ring import FrameRef
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +85,7 @@ class UvcSource(ThreadedSource):
     """One webcam captured into a ring buffer by its own thread."""
 
     def __init__(self, config: UvcCameraConfig, **kw: Any) -> None:
-        super().__init__(config.name, FrameRing(config.name, config.ring_slots, config.height, config.width, 3), **kw)
+        super().__init__(config.name, bgr_ring(config.name, config.ring_slots, config.height, config.width), **kw)
         self.config = config
         self._cap: Any = None
         self._file = is_regular_file(config.device)
@@ -124,20 +127,22 @@ class UvcSource(ThreadedSource):
     def _grab(self) -> FrameRef | None:
         if self._file:
             self._pace()
-        ok, bgr = self._cap.read()
+        slot = self.ring.next_raw()
+        ok, bgr = self._cap.read(slot)  # decoded into the ring's raw slot when the size is right
         now = time.monotonic_ns()
         if not ok or bgr is None:
             if self._file:  # a recording played as a webcam: start again, as a camera keeps streaming
                 self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
                 return None
             raise DeviceError(f"camera {self.name!r} ({self.config.device}) stopped delivering frames")
-        if bgr.shape[:2] != self.ring.shape[:2] or bgr.ndim != 3:
+        if bgr.shape != slot.shape:
             self.counters.bad_buffers += 1
             return None
         stamp_ms = float(self._cap.get(cv2.CAP_PROP_POS_MSEC)) if not self._file else 0.0
         device_ns = round(stamp_ms * 1e6) if stamp_ms > 0 else now
         t0 = time.monotonic_ns()
-        cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB, dst=self.ring.next_slot())
+        if not np.shares_memory(bgr, slot):  # the decoder made its own array after all
+            np.copyto(slot, bgr)
         ref = self.ring.publish(now, device_ns, self._index)
         self.convert.add(time.monotonic_ns() - t0)
         self._index += 1

@@ -1,7 +1,9 @@
 """Replay sources with the same interface as a camera: a video file and a folder of images.
 
-Both are :class:`~mocapd.io.frame_source.ThreadedSource`: one thread decodes frames into the ring (RGB, or gray
-with ``gray=True``) and hands :class:`~mocapd.pipeline.frame_ring.FrameRef` to asyncio. Per frame:
+Both are :class:`~mocapd.io.frame_source.ThreadedSource`: one thread decodes frames into a lazy ring and hands
+:class:`~mocapd.pipeline.frame_ring.FrameRef` to asyncio. The ring keeps the decoder's BGR image (a video is decoded
+straight into the ring's raw slot) and converts it to RGB (or gray with ``gray=True``) only when the frame is read.
+Per frame:
 
 * ``host_ns``: ``time.monotonic_ns()`` when the frame was published;
 * ``device_ns``: the frame's presentation time in ns from the start of the file (video timestamps, or
@@ -24,7 +26,8 @@ from numpy.typing import NDArray
 
 from mocapd.errors import DeviceError, InputError
 from mocapd.io.frame_source import ThreadedSource
-from mocapd.pipeline.frame_ring import FrameRef, FrameRing
+from mocapd.io.pixels import bgr_ring
+from mocapd.pipeline.frame_ring import FrameRef
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -44,7 +47,7 @@ class _ReplaySource(ThreadedSource):
         ring_slots: int,
         **kw: Any,
     ) -> None:
-        super().__init__(name, FrameRing(name, ring_slots, height, width, 1 if gray else 3), **kw)
+        super().__init__(name, bgr_ring(name, ring_slots, height, width, gray=gray), **kw)
         self.gray = gray
         self.realtime = realtime
         self.loop = loop
@@ -52,7 +55,9 @@ class _ReplaySource(ThreadedSource):
         self._offset_ns = 0  # presentation time added per loop so device_ns keeps increasing
 
     def _publish(self, bgr: NDArray[np.uint8], index: int, pts_ns: int) -> FrameRef:
-        if bgr.shape[:2] != self.ring.shape[:2]:
+        """Publish the decoded frame ``bgr`` (h, w, 3): decoded into the ring's raw slot already, or copied there."""
+        slot = self.ring.next_raw()
+        if bgr.shape != slot.shape:
             raise DeviceError(f"{self.name}: frame {index} is {bgr.shape[1]}x{bgr.shape[0]}, not like the first")
         pts_ns += self._offset_ns
         if self.realtime and self._start_ns:
@@ -60,11 +65,8 @@ class _ReplaySource(ThreadedSource):
             if delay > 0:
                 time.sleep(delay / 1e9)
         t0 = time.monotonic_ns()
-        slot = self.ring.next_slot()
-        if self.gray:
-            cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY, dst=slot[:, :, 0])
-        else:
-            cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB, dst=slot)
+        if not np.shares_memory(bgr, slot):
+            np.copyto(slot, bgr)
         now = time.monotonic_ns()
         if self._start_ns == 0:  # the clock starts when the first frame is published, so none is ever early
             self._start_ns = now - pts_ns
@@ -129,7 +131,8 @@ class VideoFileSource(_ReplaySource):
         self._start_ns = 0
 
     def _grab(self) -> FrameRef | bool | None:
-        ok, bgr = self._cap.read()
+        # Decoded straight into the ring's raw slot (OpenCV writes into a given array of the right size).
+        ok, bgr = self._cap.read(self.ring.next_raw())
         if not ok:
             if not self.loop or self._index == 0:
                 return False

@@ -31,13 +31,12 @@ from mocapd.errors import CalibrationError, ConfigError, InputError
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.calibration_files import core_cameras, read_any
 from mocapd.io.frame_source import ThreadedSource
-from mocapd.io.pixels import pixel_format
+from mocapd.io.pixels import capture_ring, pixel_format
 from mocapd.io.prior import resolve_prior
 from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
 from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileSource
 from mocapd.pipeline.clocksync import ClockSync
 from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns
-from mocapd.pipeline.frame_ring import FrameRing
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource, KeypointSource
 from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.pipeline.scheduler import Suit
@@ -258,7 +257,7 @@ def frame_source(cam: CameraConfig, calibrated: Camera, backoff_s: tuple[float, 
             packet_timeout_ms=cam.packet_timeout_ms, frame_retention_ms=cam.frame_retention_ms,
             packet_delay_ns=cam.packet_delay_ns, ptp=cam.ptp, features=tuple(cam.features.items()),
         )  # fmt: skip
-        ring = FrameRing(cam.name, cam.ring_slots, h, w, fmt.channels)
+        ring = capture_ring(cam.name, cam.ring_slots, h, w, fmt)
         return AravisSource(cfg, ring, backoff_s=backoff_s)
     if isinstance(cam, UvcCamera):
         uvc = UvcCameraConfig(cam.name, cam.device, w, h, fps=cam.fps, fourcc=cam.fourcc, ring_slots=cam.ring_slots)

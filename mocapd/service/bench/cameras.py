@@ -7,12 +7,21 @@ detections received), the output rate achieved against the configured one, detec
 frames captured / skipped per camera, CPU per stage (the scheduler's own stage clocks) and per thread kind
 (event loop, detector workers with their onnxruntime threads, capture threads, Aravis stream threads), the fake
 camera servers' CPU, and resident memory over the run (growth after the warm-up).
+
+Before and after the live run, in the same process and on the same frames (the demo videos at the served size,
+mosaicked and demosaicked as the cameras and the ring do), the detector alone: whole-frame and packed throughput in
+camera-frames per second (:func:`detector_alone`; the report gives both runs and their mean). The report's
+``summary`` puts the live pipeline against it: live detected camera-frames per second over the detector-alone
+packed throughput (the issue-15 target: >= 0.8), end-to-end latency p50/p95, ticks missed after the warm-up, and
+CPU per stage in cores (capture threads, Aravis stream threads, detector threads, the event loop with its 60 Hz
+tick).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import os
 import platform
@@ -21,15 +30,28 @@ import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
+from statistics import median
 from typing import Any
 
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.io.pixels import convert_into, from_rgb, pixel_format
+from mocapd.io.pose2sim_demo import CAMERAS, demo_video
+from mocapd.pipeline.detector import OnnxPoseDetector
+from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.packing import packed_detector_from_config
 from mocapd.service.assembly import RunOptions
-from mocapd.service.config import load_config
+from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import Daemon
 from mocapd.service.demo.cameras import CameraDemoOptions, in_private_netns, run_camera_demo
+from mocapd.sim.fake_gige import load_video_rgb
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 WARM_UP_S = 20.0  # model sessions, numba kernel and every ring / buffer pool touched once
+ALONE_PASSES = 20  # detector-alone passes (each: one frame of every camera), after ALONE_WARM_UP untimed ones
+ALONE_WARM_UP = 2
 
 
 def _rss_mb() -> float:
@@ -75,11 +97,82 @@ def thread_cpu_by_kind(capture_tids: set[int]) -> dict[str, float]:
     return out
 
 
+def served_frames(opts: CameraDemoOptions, n_frames: int) -> list[list[NDArray[np.uint8]]]:
+    """The first ``n_frames`` frames of every demo camera as the detector gets them live, BGR (h, w, 3): the video
+    resized to the served size, sent in the cameras' pixel format and converted as the ring converts it.
+
+    Returns
+    -------
+    list over frames of list over cameras of ndarray, shape (h, w, 3), uint8
+    """
+    fmt = pixel_format(opts.pixel_format)
+    w, h = opts.size
+    per_camera = []
+    for cam in CAMERAS:
+        out = []
+        for rgb in load_video_rgb(demo_video(opts.demo, cam), min(n_frames, opts.max_frames), opts.size):
+            image = np.empty((h, w, fmt.channels), np.uint8)
+            convert_into(fmt, from_rgb(rgb, fmt), h, w, image)
+            rgb3 = image if fmt.channels == 3 else np.repeat(image, 3, axis=2)
+            out.append(np.asarray(cv2.cvtColor(rgb3, cv2.COLOR_RGB2BGR), np.uint8))
+        per_camera.append(out)
+    n = min(len(f) for f in per_camera)
+    return [[per_camera[c][k % n] for c in range(len(CAMERAS))] for k in range(n_frames)]
+
+
+def detector_alone(cfg: DetectorConfig, frames: list[list[NDArray[np.uint8]]], warm_up: int) -> dict[str, Any]:
+    """Throughput of the detector alone, in camera-frames per second: whole-frame (one inference per camera frame)
+    and packed (every camera's frame per pass, ROIs on shared canvases), over the same consecutive frames, the two
+    interleaved pass by pass (their order alternating) so that other load on the machine hits both alike.
+
+    Parameters
+    ----------
+    cfg : DetectorConfig
+        The live run's detector section (providers, threads, model, packing options).
+    frames : list over passes of list over cameras of ndarray, shape (h, w, 3), uint8, BGR
+    warm_up : int
+        Leading passes not timed (sessions allocate on their first runs; the packer finds the people).
+    """
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    whole = OnnxPoseDetector.from_config(cfg)
+    packing = dataclasses.replace(cfg.packing, enabled=True)
+    packer = packed_detector_from_config(dataclasses.replace(cfg, packing=packing), sizes)
+    t_whole: list[float] = []
+    t_packed: list[float] = []
+    canvases: list[int] = []
+    for k, cams in enumerate(frames):
+        for name in ("whole", "packed") if k % 2 == 0 else ("packed", "whole"):
+            t0 = time.perf_counter()
+            if name == "whole":
+                for im in cams:
+                    whole.detect(im)
+            else:
+                packer.detect([cams])
+            dt = time.perf_counter() - t0
+            if k >= warm_up:
+                (t_whole if name == "whole" else t_packed).append(dt)
+        if k >= warm_up:
+            canvases.append(len(packer.last_packings))
+    n_cams = len(frames[0])
+
+    def rate(times: list[float]) -> float:
+        # Total frames over total time: the packer's periodic whole-frame refresh passes count at their cost.
+        return round(n_cams * len(times) / sum(times), 2) if times else 0.0
+
+    return {"passes": len(t_whole), "camera_frames_per_pass": n_cams, "image_size": list(sizes[0]),
+            "whole_camera_frames_per_s": rate(t_whole), "packed_camera_frames_per_s": rate(t_packed),
+            "whole_pass_ms_median": round(1e3 * median(t_whole), 1) if t_whole else None,
+            "packed_pass_ms_median": round(1e3 * median(t_packed), 1) if t_packed else None,
+            "packed_canvases_per_pass_mean": round(float(np.mean(canvases)), 2) if canvases else None,
+            "providers": whole.providers, "intra_op_threads": cfg.intra_op_threads}  # fmt: skip
+
+
 class Measure:
     """Samples the running demo daemon: memory each second, counters at the warm-up's end and at the end."""
 
-    def __init__(self, seconds: float) -> None:
+    def __init__(self, seconds: float, warm_up_s: float = WARM_UP_S) -> None:
         self.seconds = seconds
+        self.warm_up_s = warm_up_s
         self.result: dict[str, Any] = {}
 
     def _snapshot(self, daemon: Daemon) -> dict[str, Any]:
@@ -95,21 +188,26 @@ class Measure:
         t0 = time.monotonic()
         percentiles: list[dict[str, Any]] = []
         a: dict[str, Any] | None = None
-        while (now := time.monotonic()) - t0 < WARM_UP_S + self.seconds:
-            await asyncio.sleep(1.0)
+        while (now := time.monotonic()) - t0 < self.warm_up_s + self.seconds:
+            await asyncio.sleep(min(1.0, self.warm_up_s + self.seconds - (now - t0)))
+            now = time.monotonic()
             rss.append((round(now - t0, 1), round(_rss_mb(), 1)))
-            if a is None and now - t0 >= WARM_UP_S:
+            if a is None and now - t0 >= self.warm_up_s:
                 a = self._snapshot(daemon)
             if a is not None and len(rss) % 30 == 0:
                 e2e = daemon.status()["latency_ms"]["end_to_end"]
                 percentiles.append({"t_s": round(now - t0, 1), "p50": e2e["p50"], "p95": e2e["p95"]})
         assert a is not None
         b = self._snapshot(daemon)
-        self.result = summarize(a, b, rss, percentiles)
+        self.result = summarize(a, b, rss, percentiles, self.warm_up_s)
 
 
 def summarize(
-    a: dict[str, Any], b: dict[str, Any], rss: list[tuple[float, float]], percentiles: list[dict[str, Any]]
+    a: dict[str, Any],
+    b: dict[str, Any],
+    rss: list[tuple[float, float]],
+    percentiles: list[dict[str, Any]],
+    warm_up_s: float = WARM_UP_S,
 ) -> dict[str, Any]:
     """The JSON report from two snapshots (end of warm-up, end of run)."""
     wall = b["t"] - a["t"]
@@ -127,7 +225,7 @@ def summarize(
         }  # fmt: skip
     detected = sum((cb["detected"] - ca["detected"]) for ca, cb in zip(sa["cameras"], sb["cameras"], strict=True))
     stage_cpu = {k: round(v - sa["cpu_s"].get(k, 0.0), 2) for k, v in sb["cpu_s"].items()}
-    after = [m for t, m in rss if t >= WARM_UP_S]
+    after = [m for t, m in rss if t >= warm_up_s]
     return {
         "duration_s": round(wall, 1),
         "configured": {"output_rate_hz": sb["output"]["configured_hz"], "latency_ms": 1e3 * sb["output"]["latency_s"]},
@@ -138,6 +236,7 @@ def summarize(
         "detection_delay_ms_last_window": sb["latency_ms"]["detect"],
         "stage_latency_ms_last_window": {k: v for k, v in sb["latency_ms"].items() if k not in ("end_to_end",)},
         "detector_camera_frames_per_s": round(detected / wall, 2),
+        "detection_kinds": sorted({str(c.get("kind")) for c in sb["cameras"]}),
         "cameras": cams,
         "people": {"person_solves": sb["counters"]["person_solves"] - sa["counters"]["person_solves"],
                    "person_solves_per_frame": round((sb["counters"]["person_solves"] - sa["counters"]["person_solves"])
@@ -154,31 +253,81 @@ def summarize(
         "memory_mb": {"rss_samples": rss[:: max(1, len(rss) // 12)], "after_warm_up_first": after[0] if after else None,
                       "after_warm_up_last": after[-1] if after else None,
                       "growth_after_warm_up": round(after[-1] - after[0], 1) if len(after) > 1 else None,
-                      "warm_up_s": WARM_UP_S},
+                      "warm_up_s": warm_up_s},
         "task_failures": {k: v["failures"] for k, v in sb["tasks"].items()},
     }  # fmt: skip
 
 
+def headline(alone: dict[str, Any], live: dict[str, Any], cameras: int) -> dict[str, Any]:
+    """The numbers issue 15 asks for, from the detector-alone figures and the live run's report."""
+    live_rate = live["detector_camera_frames_per_s"]
+    packed, whole = alone["packed_camera_frames_per_s"], alone["whole_camera_frames_per_s"]
+    out = live["output"]
+    ticks = out["frames"] + out["missed_ticks"]
+    threads = live["cpu_fraction_of_one_core"]["threads"]
+    e2e = live["end_to_end_ms_last_window"]
+    return {
+        "detector_alone_packed_camera_frames_per_s": packed,
+        "detector_alone_whole_camera_frames_per_s": whole,
+        "live_detected_camera_frames_per_s": live_rate,
+        "live_over_alone_packed": round(live_rate / packed, 3) if packed else None,
+        "live_over_alone_whole": round(live_rate / whole, 3) if whole else None,
+        "live_detection": live["detection_kinds"],
+        "end_to_end_ms_p50": e2e["p50"], "end_to_end_ms_p95": e2e["p95"],
+        "missed_ticks_after_warm_up": out["missed_ticks"],
+        "missed_tick_fraction_after_warm_up": round(out["missed_ticks"] / ticks, 4) if ticks else None,
+        "cpu_cores": {"capture_threads": threads.get("capture", 0.0),
+                      "capture_threads_per_camera": round(threads.get("capture", 0.0) / cameras, 4),
+                      "aravis_stream_threads": threads.get("aravis", 0.0),
+                      "detector_threads": threads.get("detector", 0.0),
+                      "event_loop_with_tick": threads.get("event_loop", 0.0),
+                      "other_threads": threads.get("other", 0.0),
+                      "tick_stages": live["cpu_fraction_of_one_core"]["scheduler_stages"],
+                      "daemon_process": live["cpu_fraction_of_one_core"]["daemon_process"]},
+    }  # fmt: skip
+
+
 def child_main(argv: list[str] | None = None) -> int:
-    """Inside the private network namespace: run the demo, measure, print the JSON report."""
+    """Inside the private network namespace: the detector alone, then the demo run and measured; prints the JSON
+    report."""
     p = argparse.ArgumentParser()
     p.add_argument("--seconds", type=float, default=120.0)
+    p.add_argument("--warm-up", type=float, default=WARM_UP_S)
+    p.add_argument("--alone-passes", type=int, default=ALONE_PASSES)
     p.add_argument("--options", default="{}")
     args = p.parse_args(argv)
     opts = CameraDemoOptions(**json.loads(args.options))
-    config = load_config()
+    config: Config = load_config()
     # Inside the namespace: any free port (nothing outside it reads them).
     config = config.model_copy(update={"daemon": config.daemon.model_copy(update={"http_port": 0}),
                                        "websocket": config.websocket.model_copy(update={"port": 0})})  # fmt: skip
     m = config.detector.model
     load0 = os.getloadavg()
-    measure = Measure(args.seconds)
+
+    def alone_now() -> dict[str, Any]:
+        # The frames are decoded again each time rather than kept: 130 MB held through the live run would count
+        # in its memory figures.
+        return detector_alone(config.detector.options(), served_frames(opts, ALONE_WARM_UP + args.alone_passes),
+                              ALONE_WARM_UP)  # fmt: skip
+
+    # The detector alone before and after the live run, so that a change of load on a shared machine shows as a
+    # difference between the two instead of hiding in the ratio.
+    before = alone_now()
+    measure = Measure(args.seconds, args.warm_up)
     code = asyncio.run(run_camera_demo(config, opts, RunOptions(), monitor=measure))
+    after = alone_now()
+    alone = {"before_live_run": before, "after_live_run": after,
+             **{k: round((before[k] + after[k]) / 2, 2) for k in ("whole_camera_frames_per_s",
+                                                                   "packed_camera_frames_per_s")}}  # fmt: skip
     report = {
-        "rig": {"cameras": 4, "source": f"Pose2Sim {opts.demo} videos, fake GigE Vision cameras in a private netns",
-                "image": [round(1088 * opts.scale), round(1920 * opts.scale)], "pixel_format": opts.pixel_format,
-                "camera_fps": 60, "detector": f"{m.input_width}x{m.input_height} yolo11n-pose, "
-                f"{config.detector.workers} worker(s), providers {list(config.detector.providers)}"},
+        "rig": {"cameras": len(CAMERAS),
+                "source": f"Pose2Sim {opts.demo} videos, fake GigE Vision cameras in a private netns",
+                "image": list(opts.size), "pixel_format": opts.pixel_format,
+                "camera_fps": 60 * opts.speed, "detector": f"{m.input_width}x{m.input_height} yolo11n-pose, "
+                f"{config.detector.workers} worker(s), providers {list(config.detector.providers)}",
+                "options": asdict(opts)},
+        "summary": headline(alone, measure.result, len(CAMERAS)) if measure.result else None,
+        "detector_alone": alone,
         **measure.result,
         "machine": {"cpus": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load0],
                     "loadavg_at_end": [round(x, 2) for x in os.getloadavg()], "python": platform.python_version()},
@@ -187,11 +336,15 @@ def child_main(argv: list[str] | None = None) -> int:
     return code
 
 
-def run(seconds: float, opts: CameraDemoOptions) -> int:
+def run(
+    seconds: float, opts: CameraDemoOptions, *, warm_up_s: float = WARM_UP_S, alone_passes: int = ALONE_PASSES
+) -> int:
     """``mocapd bench latency --rig cameras``: re-run this module in a private network namespace."""
     return in_private_netns(
-        "mocapd.service.bench.cameras", ["--seconds", str(seconds), "--options", json.dumps(asdict(opts))]
-    )
+        "mocapd.service.bench.cameras",
+        ["--seconds", str(seconds), "--warm-up", str(warm_up_s), "--alone-passes", str(alone_passes),
+         "--options", json.dumps(asdict(opts))],
+    )  # fmt: skip
 
 
 if __name__ == "__main__":

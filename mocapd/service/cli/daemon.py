@@ -136,7 +136,7 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
         from mocapd.service.demo.cameras import CameraDemoOptions
 
         opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
-        return cameras.run(args.seconds, opts)
+        return cameras.run(args.seconds, opts, warm_up_s=args.warm_up, alone_passes=args.alone_passes)
     from mocapd.service.bench import latency
 
     print(json.dumps(latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
@@ -176,7 +176,8 @@ def register(subparsers: Any) -> None:
     check_.set_defaults(func=cmd_check_config)
 
     bench = _subcommand_group(subparsers, "bench")
-    lat = bench.add_parser("latency", help="daemon end-to-end latency, output rate, CPU and memory (synthetic rig)")
+    lat = bench.add_parser("latency", help="daemon end-to-end latency, output rate, CPU and memory (synthetic rig, or "
+                           "the camera demo against its detector alone)")  # fmt: skip
     lat.add_argument("--seconds", type=float, default=60.0, help="run length (default 60)")
     lat.add_argument("--cameras", type=int, default=4)
     lat.add_argument("--people", type=int, default=2)
@@ -185,4 +186,7 @@ def register(subparsers: Any) -> None:
     lat.add_argument("--scale", type=float, default=0.5, help="cameras: image size / 1088x1920")
     lat.add_argument("--latency", type=float, default=1.0, help="cameras: fixed latency, s (default 1.0)")
     lat.add_argument("--packed", action="store_true", help="cameras: all cameras' ROIs packed per detector pass")
+    lat.add_argument("--warm-up", type=float, default=20.0, help="cameras: seconds run before measuring (default 20)")
+    lat.add_argument("--alone-passes", type=int, default=20,
+                     help="cameras: detector-alone passes timed before the live run (default 20)")  # fmt: skip
     lat.set_defaults(func=cmd_bench_latency)
