@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in runs:
         rate = float(np.median(n_cf / np.array(r.seconds)))
         table[r.name] = {
-            "provider": r.detector.providers[0],
+            "provider": r.detector.session.get_providers()[0],  # what the session runs, not what was asked
             "precision": r.precision,
             "mode": r.mode,
             "camera_frames_per_s_median": round(rate, 2),
