@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import tomllib
 from pathlib import Path
@@ -23,6 +24,7 @@ from mocapd.io.model_quant import int8_is_current, int8_model_path
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import AsyncPoseDetector, OnnxPoseDetector, letterbox_image, resolve_providers
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
+from mocapd.pipeline.detector_pool import detector_status, make_detector
 from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, packed_detector_from_config, render_canvas
 from mocapd.service.config import DEFAULT_CONFIG, parse_config
 
@@ -389,3 +391,19 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
     inter = iw * ih
     return float(inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter))
+
+
+def test_detector_status_names_the_provider_that_runs() -> None:
+    # /status's "detector" section: "auto" resolved to what the session really uses, whole and packed.
+    cfg = DetectorConfig(providers=("auto",), precision="int8", intra_op_threads=1)
+    whole = make_detector(dataclasses.replace(cfg, packing=PackingConfig(enabled=False)), [(1080, 1920)])
+    packed = make_detector(cfg, [(1080, 1920)])
+    try:
+        for det, mode in ((whole, "whole"), (packed, "packed")):
+            st = detector_status(det)
+            assert st["mode"] == mode and st["precision"] == "int8"
+            assert st["providers"] == ["CPUExecutionProvider"]  # this CPU-only build
+            assert str(st["model"]).endswith("yolo11n-pose-640-int8.onnx")
+    finally:
+        whole.close()
+        packed.close()

@@ -171,6 +171,15 @@ class OnnxPoseDetector:
         # (a CPU inference takes up to a second; a daemon stopping must not wait for it).
         self._run_options = ort.RunOptions()
 
+    def describe(self) -> dict[str, object]:
+        """What runs, for ``/status``: the providers the session really uses (after "auto"), precision, model."""
+        return {
+            "providers": list(self.session.get_providers()),
+            "precision": self.precision,
+            "model": str(self.path),
+            "input_size": list(self.input_size),
+        }
+
     def terminate(self) -> None:
         """Abort the inference in flight (it raises in its thread) and refuse further runs: at shutdown."""
         self._run_options.terminate = True
