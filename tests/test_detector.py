@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import tomllib
 from pathlib import Path
@@ -10,6 +11,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import onnxruntime as ort
 import pytest
 
 from mocapd.core.keypoints import COCO17_FORMAT as COCO17
@@ -18,13 +20,17 @@ from mocapd.core.roi_packing import AlignedRoi, Roi, SubsampleSchedule, match_pe
 from mocapd.errors import ConfigError, InputError, ModelError
 from mocapd.io.model_build import LICENCE, model_is_current, sha256, sidecar_path
 from mocapd.io.model_cache import default_model_path
+from mocapd.io.model_quant import int8_is_current, int8_model_path
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import AsyncPoseDetector, OnnxPoseDetector, letterbox_image, resolve_providers
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
+from mocapd.pipeline.detector_pool import detector_status, make_detector
 from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, packed_detector_from_config, render_canvas
 from mocapd.service.config import DEFAULT_CONFIG, parse_config
 
 Image = np.ndarray
+#: Median keypoint distance (source px) INT8 vs FP32 on one demo frame that the INT8 test accepts.
+INT8_BOUND_PX = 8.0
 
 
 @pytest.fixture(scope="module")
@@ -164,7 +170,55 @@ def test_detector_rejects_bad_inputs_and_models(detector: OnnxPoseDetector, tmp_
 def test_providers_resolution() -> None:
     assert resolve_providers(["cpu"]) == ["CPUExecutionProvider"]
     assert resolve_providers(["auto"])[-1] == "CPUExecutionProvider"
-    assert resolve_providers(["cuda"])[-1] == "CPUExecutionProvider"  # CUDA only where the build has it
+    assert resolve_providers(["auto"], ["CUDAExecutionProvider", "CPUExecutionProvider"]) == [
+        "CUDAExecutionProvider",
+        "CPUExecutionProvider",
+    ]
+    assert resolve_providers(["openvino"], ["OpenVINOExecutionProvider", "CPUExecutionProvider"]) == [
+        "OpenVINOExecutionProvider",
+        "CPUExecutionProvider",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("name", "extra"),
+    [("cuda", r"mocapd\[gpu\]"), ("tensorrt", r"mocapd\[gpu\]"), ("openvino", r"mocapd\[openvino\]")],
+)
+def test_requested_provider_missing_is_a_clear_error(name: str, extra: str) -> None:
+    # This CPU-only onnxruntime build: a provider asked for by name must not silently become the CPU.
+    assert "CUDAExecutionProvider" not in ort.get_available_providers()
+    with pytest.raises(ModelError, match=rf"^detector.providers: '{name}' .* not in this onnxruntime build .*{extra}"):
+        resolve_providers([name])
+    with pytest.raises(ModelError, match=extra):
+        OnnxPoseDetector(ModelSpec(), providers=[name])
+
+
+def test_int8_model_built_and_agrees_with_fp32() -> None:
+    # The set-up step builds the INT8 model beside the FP32 one; it loads, is current against this FP32
+    # file, and finds the same people with keypoints close to FP32's on a demo frame (correctness, not speed).
+    fp32_path = default_model_path()
+    assert int8_is_current(fp32_path)
+    meta = json.loads(sidecar_path(int8_model_path(fp32_path)).read_text(encoding="utf-8"))
+    assert meta["precision"] == "int8" and meta["fp32_onnx_sha256"] == sha256(fp32_path)
+    fp32 = OnnxPoseDetector(ModelSpec(), providers=["cpu"], precision="fp32")
+    int8 = OnnxPoseDetector(ModelSpec(), providers=["cpu"], precision="int8")
+    assert int8.path == int8_model_path(fp32_path) and fp32.path == fp32_path
+    cap = cv2.VideoCapture(str(demo_video("Demo_MultiPerson", "cam01")))
+    cap.set(cv2.CAP_PROP_POS_FRAMES, 40)
+    ok, raw = cap.read()
+    cap.release()
+    assert ok
+    img = np.asarray(raw, dtype=np.uint8)
+    a, b = fp32.detect(img), int8.detect(img)
+    assert len(a) >= 2 and len(b) == len(a)
+    dis = []
+    for i, j in match_people(a, b):
+        ok_kp = (a.keypoints[i][:, 2] >= 0.5) & (b.keypoints[j][:, 2] >= 0.5)
+        dis.extend(np.linalg.norm(a.keypoints[i][ok_kp, :2] - b.keypoints[j][ok_kp, :2], axis=1).tolist())
+    assert len(dis) >= 20
+    # Bound with headroom over the measured demo median (docs/detection.md): a broken quantization (wrong
+    # scales, quantized decoding tail) moves keypoints by tens of pixels.
+    assert float(np.median(dis)) <= INT8_BOUND_PX
 
 
 def detector_config_from_mapping(raw: dict[str, Any]) -> DetectorConfig:
@@ -337,3 +391,19 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
     inter = iw * ih
     return float(inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter))
+
+
+def test_detector_status_names_the_provider_that_runs() -> None:
+    # /status's "detector" section: "auto" resolved to what the session really uses, whole and packed.
+    cfg = DetectorConfig(providers=("auto",), precision="int8", intra_op_threads=1)
+    whole = make_detector(dataclasses.replace(cfg, packing=PackingConfig(enabled=False)), [(1080, 1920)])
+    packed = make_detector(cfg, [(1080, 1920)])
+    try:
+        for det, mode in ((whole, "whole"), (packed, "packed")):
+            st = detector_status(det)
+            assert st["mode"] == mode and st["precision"] == "int8"
+            assert st["providers"] == ["CPUExecutionProvider"]  # this CPU-only build
+            assert str(st["model"]).endswith("yolo11n-pose-640-int8.onnx")
+    finally:
+        whole.close()
+        packed.close()

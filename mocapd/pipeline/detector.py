@@ -29,14 +29,19 @@ from mocapd.core.pose2d import (
     letterbox_geometry,
 )
 from mocapd.errors import InputError, ModelError
-from mocapd.io.model_cache import default_model_path
+from mocapd.io.model_quant import model_path
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec
 
 Image = NDArray[np.uint8]
 R = TypeVar("R")
 
 # Preference order of "auto": the fastest provider this onnxruntime build offers comes first.
-_AUTO_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+_AUTO_PROVIDERS = (
+    "TensorrtExecutionProvider",
+    "CUDAExecutionProvider",
+    "OpenVINOExecutionProvider",
+    "CPUExecutionProvider",
+)
 # onnxruntime's load errors derive from Exception directly, not from RuntimeError.
 _ORT_LOAD_ERRORS: tuple[type[Exception], ...] = tuple(
     getattr(ort.capi.onnxruntime_pybind11_state, name)
@@ -47,22 +52,52 @@ _LOAD_ERRORS: tuple[type[Exception], ...] = (RuntimeError, ValueError, *_ORT_LOA
 _SHORT_NAMES = {
     "tensorrt": "TensorrtExecutionProvider",
     "cuda": "CUDAExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
     "cpu": "CPUExecutionProvider",
+}
+# Which install extra of mocapd brings a provider (onnxruntime-gpu, onnxruntime-openvino replace onnxruntime).
+_EXTRA = {
+    "TensorrtExecutionProvider": "pip install mocapd[gpu] (onnxruntime-gpu, with TensorRT installed)",
+    "CUDAExecutionProvider": "pip install mocapd[gpu] (onnxruntime-gpu)",
+    "OpenVINOExecutionProvider": "pip install mocapd[openvino] (onnxruntime-openvino)",
 }
 
 
-def resolve_providers(requested: Sequence[str]) -> list[str]:
-    """Execution provider names for onnxruntime from config names ("auto", "cuda", "cpu", or full names).
+def resolve_providers(requested: Sequence[str], available: Sequence[str] | None = None) -> list[str]:
+    """Execution provider names for onnxruntime from config names ("auto", "cuda", "openvino", "cpu", full names).
 
-    Providers this onnxruntime build lacks are left out; the CPU provider is always last as a fallback.
+    "auto" takes TensorRT, CUDA, OpenVINO and CPU in that order, as far as this onnxruntime build has them.
+    A provider named explicitly must be in the build: a user who asked for "cuda" and silently got the CPU
+    would measure the wrong thing. The CPU provider is always appended last (onnxruntime runs nodes another
+    provider cannot take there).
+
+    Parameters
+    ----------
+    requested : sequence of str
+        ``[detector] providers``.
+    available : sequence of str, optional
+        The build's providers (default ``onnxruntime.get_available_providers()``).
+
+    Raises
+    ------
+    ModelError
+        A provider named explicitly is not in this onnxruntime build (the message names the extra to install).
     """
-    available = set(ort.get_available_providers())
+    have = set(ort.get_available_providers() if available is None else available)
     out: list[str] = []
     for name in requested:
-        names = _AUTO_PROVIDERS if name == "auto" else (_SHORT_NAMES.get(name.lower(), name),)
-        for full in names:
-            if full in available and full not in out:
-                out.append(full)
+        if name.lower() == "auto":
+            names: tuple[str, ...] = tuple(p for p in _AUTO_PROVIDERS if p in have)
+        else:
+            full = _SHORT_NAMES.get(name.lower(), name)
+            if full not in have:
+                hint = _EXTRA.get(full, "install an onnxruntime build that has it")
+                raise ModelError(
+                    f"detector.providers: {name!r} ({full}) is not in this onnxruntime build "
+                    f"(it has {sorted(have)}); {hint}"
+                )
+            names = (full,)
+        out.extend(p for p in names if p not in out)
     if "CPUExecutionProvider" not in out:
         out.append("CPUExecutionProvider")
     return out
@@ -86,13 +121,16 @@ class OnnxPoseDetector:
         Model file, input size, layout and decoding.
     providers : sequence of str
         Config provider names (see :func:`resolve_providers`).
+    precision : {"fp32", "int8"}
+        Which default model file to load when ``spec.path`` is empty (an explicit path is used as it is).
     intra_op_threads, inter_op_threads : int
         onnxruntime thread counts (0 = its default).
 
     Raises
     ------
     ModelError
-        The file is missing, is not a loadable ONNX model, or its input/output shapes contradict ``spec``.
+        The file is missing, is not a loadable ONNX model, its input/output shapes contradict ``spec``, or a
+        provider named explicitly is not in this onnxruntime build.
     """
 
     def __init__(
@@ -100,14 +138,18 @@ class OnnxPoseDetector:
         spec: ModelSpec,
         *,
         providers: Sequence[str] = ("auto",),
+        precision: str = "fp32",
         intra_op_threads: int = 0,
         inter_op_threads: int = 1,
     ) -> None:
         self.spec = spec
         self.format: KeypointFormat = keypoint_format(spec.keypoint_format)
-        path = Path(spec.path) if spec.path else default_model_path(spec.input_width, spec.input_height)
+        path = Path(spec.path) if spec.path else model_path(spec.input_width, spec.input_height, precision)
         if not path.is_file():
-            raise ModelError(f"detector model {path} not found; run `mocapd model fetch` (or set detector.model.path)")
+            fetch = "mocapd model fetch" + (" --int8" if precision == "int8" and not spec.path else "")
+            raise ModelError(f"detector model {path} not found; run `{fetch}` (or set detector.model.path)")
+        self.precision = precision
+        self.path = path
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = intra_op_threads
         opts.inter_op_num_threads = inter_op_threads
@@ -129,6 +171,15 @@ class OnnxPoseDetector:
         # (a CPU inference takes up to a second; a daemon stopping must not wait for it).
         self._run_options = ort.RunOptions()
 
+    def describe(self) -> dict[str, object]:
+        """What runs, for ``/status``: the providers the session really uses (after "auto"), precision, model."""
+        return {
+            "providers": list(self.session.get_providers()),
+            "precision": self.precision,
+            "model": str(self.path),
+            "input_size": list(self.input_size),
+        }
+
     def terminate(self) -> None:
         """Abort the inference in flight (it raises in its thread) and refuse further runs: at shutdown."""
         self._run_options.terminate = True
@@ -139,6 +190,7 @@ class OnnxPoseDetector:
         return OnnxPoseDetector(
             cfg.model,
             providers=cfg.providers,
+            precision=cfg.precision,
             intra_op_threads=cfg.intra_op_threads,
             inter_op_threads=cfg.inter_op_threads,
         )

@@ -16,6 +16,7 @@ from mocapd.errors import ConfigError
 DECODERS = ("yolo_pose",)
 LAYOUTS = ("NCHW", "NHWC")
 CHANNEL_ORDERS = ("RGB", "BGR")
+PRECISIONS = ("fp32", "int8")
 
 
 @dataclass(frozen=True)
@@ -147,8 +148,11 @@ class DetectorConfig:
     """The ``[detector]`` section."""
 
     providers: tuple[str, ...] = ("auto",)
-    """onnxruntime execution providers in order of preference; "auto" = TensorRT, CUDA, then CPU, whichever
-    this onnxruntime build has."""
+    """onnxruntime execution providers in order of preference; "auto" = TensorRT, CUDA, OpenVINO, then CPU,
+    whichever this onnxruntime build has; a provider named explicitly must be in the build."""
+    precision: str = "fp32"
+    """Default model variant: "fp32" or "int8" (the statically quantized model ``mocapd model fetch --int8``
+    builds beside the FP32 one). Ignored for a model given by path (that file is used as it is)."""
     intra_op_threads: int = 0
     """Threads inside one inference (0 = onnxruntime's default, one per core)."""
     inter_op_threads: int = 1
@@ -159,6 +163,7 @@ class DetectorConfig:
     packing: PackingConfig = field(default_factory=PackingConfig)
 
     def __post_init__(self) -> None:
+        _choice("detector.precision", self.precision, PRECISIONS)
         if self.intra_op_threads < 0 or self.inter_op_threads < 0 or self.workers < 1:
             raise ConfigError(
                 "detector threads must be >= 0 and workers >= 1, got "

@@ -110,3 +110,15 @@ def make_detector(
                                   initargs=(THREAD_NAME,))  # fmt: skip
     packer = executor.submit(packed_detector_from_config, cfg, list(image_sizes)).result()
     return PackedDetectionGroup(packer, executor, columns)
+
+
+def detector_status(detector: AnyDetector) -> dict[str, object]:
+    """``/status`` section ``detector``: which execution provider and precision run (packed: also the canvas
+    model's), so that a user who left ``providers = ["auto"]`` sees whether the GPU or the CPU took it."""
+    if isinstance(detector, PooledDetector):
+        return {"mode": "whole", "workers": len(detector._detectors), **detector._detectors[0].describe()}
+    packer = detector.packer
+    out: dict[str, object] = {"mode": "packed", **packer.detector.describe()}
+    if packer.canvas_detector is not packer.detector:
+        out["canvas"] = packer.canvas_detector.describe()
+    return out

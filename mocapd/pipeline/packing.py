@@ -379,6 +379,7 @@ def packed_detector_from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple
         canvas = OnnxPoseDetector(
             spec,
             providers=cfg.providers,
+            precision=cfg.precision,
             intra_op_threads=cfg.intra_op_threads,
             inter_op_threads=cfg.inter_op_threads,
         )

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mocapd.pipeline.detector_pool import detector_status
 from mocapd.service.config import Config
 from mocapd.service.daemon import Daemon, PoseSink
 from mocapd.service.http_status import StatusServer
@@ -104,6 +105,9 @@ def assemble(
         if options.sockets.http is not None:
             daemon.http = StatusServer(daemon.status, render_metrics, sock=options.sockets.http)
         daemon.status_extras.update(options.status_extras)
+        if built.detector is not None:
+            det = built.detector
+            daemon.status_extras.setdefault("detector", lambda: detector_status(det))
         truth = None
         extra = dict(options.manifest_extra)
         if built.world is not None:

@@ -3,12 +3,17 @@
 # into mocapd's cache directory (~/.cache/mocapd/models/ or $MOCAPD_CACHE/models/) when a file is missing or does not match its sidecar's sha256: 640x640 (whole frames)
 # and 960x960 (packed canvases). The export runs in a throw-away venv (CPU torch + ultralytics, --no-deps),
 # deleted afterwards; a few minutes the first time, nothing afterwards.
+# Beside each FP32 model it builds the INT8 one (<name>-int8.onnx + sidecar with its sha256 and the FP32
+# model's): onnxruntime static quantization calibrated on Pose2Sim demo frames (needs 21-pose2sim-demo.sh
+# first), about a minute.
 set -euo pipefail
 if .venv/bin/python -c 'import sys
 from mocapd.io.model_build import model_is_current
 from mocapd.io.model_cache import default_model_path
-sys.exit(0 if all(model_is_current(default_model_path(s, s)) for s in (640, 960)) else 1)'; then
+from mocapd.io.model_quant import int8_is_current
+paths = [default_model_path(s, s) for s in (640, 960)]
+sys.exit(0 if all(model_is_current(p) and int8_is_current(p) for p in paths) else 1)'; then
     exit 0
 fi
 echo "building the default pose models (one time, a few minutes)" >&2
-.venv/bin/mocapd model fetch --size 640 --size 960
+.venv/bin/mocapd model fetch --size 640 --size 960 --int8

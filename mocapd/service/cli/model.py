@@ -1,4 +1,5 @@
-"""``mocapd model fetch``: build the default pose model (YOLO11n-pose → ONNX) into the cache."""
+"""``mocapd model fetch``: build the default pose model (YOLO11n-pose → ONNX, and with ``--int8`` its INT8
+quantization) into the cache."""
 
 from __future__ import annotations
 
@@ -29,6 +30,10 @@ def _fetch(args: argparse.Namespace) -> int:
     try:
         with Progress(1, "model fetch") as bar:
             build_default_model(sizes, force=args.force, steps=bar.update)
+        if args.int8:
+            from mocapd.io.model_quant import build_int8_model
+
+            build_int8_model(sizes, force=args.force)
     except MocapdError as exc:
         print(f"mocapd model fetch: {exc}")
         return 1
@@ -42,4 +47,9 @@ def register(subparsers: Any) -> None:
     f = sub.add_parser("fetch", help="build the default YOLO11n-pose ONNX model into the cache (AGPL-3.0 weights)")
     f.add_argument("--size", type=_parse_size, action="append", help="input size N or WxH (repeatable; 640)")
     f.add_argument("--force", action="store_true", help="rebuild even when the cached model is current")
+    f.add_argument(
+        "--int8",
+        action="store_true",
+        help="also build the INT8 model beside each FP32 one (static quantization calibrated on the Pose2Sim demo)",
+    )
     f.set_defaults(func=_fetch)

@@ -16,8 +16,10 @@ from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingCo
 from mocapd.service.config.schema import Allowed, PathStr, Section, Seq, as_tuple, unique
 
 _M, _P, _D = ModelSpec(), PackingConfig(), DetectorConfig()
-_PROVIDER = re.compile(r"(?i:auto|tensorrt|cuda|cpu)|[A-Za-z0-9]{1,40}ExecutionProvider")
-_PROVIDER_WORDS = '"auto", "tensorrt", "cuda", "cpu" or an onnxruntime provider name ("...ExecutionProvider")'
+_PROVIDER = re.compile(r"(?i:auto|tensorrt|cuda|openvino|cpu)|[A-Za-z0-9]{1,40}ExecutionProvider")
+_PROVIDER_WORDS = (
+    '"auto", "tensorrt", "cuda", "openvino", "cpu" or an onnxruntime provider name ("...ExecutionProvider")'
+)
 
 
 def _provider(name: str) -> str:
@@ -90,6 +92,7 @@ class DetectorSection(Section):
     """The ``[detector]`` section."""
 
     providers: Annotated[Seq[Provider], Field(min_length=1, max_length=8), AfterValidator(unique)] = _D.providers
+    precision: Literal["fp32", "int8"] = "fp32"
     intra_op_threads: int = Field(_D.intra_op_threads, ge=0, le=256)
     inter_op_threads: int = Field(_D.inter_op_threads, ge=0, le=256)
     workers: int = Field(_D.workers, ge=1, le=64)
@@ -100,6 +103,7 @@ class DetectorSection(Section):
         """The pipeline's :class:`DetectorConfig` of this section."""
         return DetectorConfig(
             providers=self.providers,
+            precision=self.precision,
             intra_op_threads=self.intra_op_threads,
             inter_op_threads=self.inter_op_threads,
             workers=self.workers,
