@@ -195,7 +195,7 @@ def test_config_parsing() -> None:
         ),
         ({"model": {"pixel_scale": 0}}, r"^detector.model.pixel_scale = 0; allowed: a number in \(0, 1000\]$"),
         ({"packing": {"n_o": 3, "n_p": 2}}, "^detector.packing.n_o = 3 must be <= detector.packing.n_p = 2$"),
-        ({"packing": {"enabled": 1}}, "^detector.packing.enabled = 1; allowed: true or false$"),
+        ({"packing": {"enabled": 1}}, '^detector.packing.enabled = 1; allowed: true, false or "auto"$'),
         ({"workers": 0}, r"^detector.workers = 0; allowed: an integer in \[1, 64\]$"),
         ({"providers": "cpu"}, "^detector.providers = 'cpu'; allowed: a non-empty array of at most 8 items"),
         ({"providers": ["cdua"]}, r"^detector.providers\[0\] = 'cdua': not a provider"),

@@ -107,6 +107,7 @@ class DetectorKeypointSource:
             self.captured += 1
             if self.device_clock is not None:
                 self.device_clock.update(ref.device_ns, ref.host_ns)
+            self.frame_arrived(ref)
             wake.set()
 
         async def detect_loop() -> None:
@@ -126,6 +127,9 @@ class DetectorKeypointSource:
             worker = tg.create_task(detect_loop())
             await self.frames.run(on_frame)  # returns at the end of a replay; errors propagate to the supervisor
             worker.cancel()
+
+    def frame_arrived(self, ref: FrameRef) -> None:
+        """Called on the event loop for every captured frame (a shared detector's worker wakes up here)."""
 
     def capture_ns(self, ref: FrameRef) -> int:
         """The frame's capture time on the host clock (never later than its arrival)."""

@@ -1,0 +1,115 @@
+"""Which detection mode serves this rig best, measured while it runs: whole frames or packed canvases.
+
+Packed detection (:mod:`mocapd.pipeline.packing`) puts the regions around the people every camera saw last time
+on shared canvases, so one inference serves several cameras; whole-frame detection runs one inference per camera
+frame. Which delivers more depends on the rig: few small people in many cameras favour packing, people that fill
+the frames (or a fast accelerator, on which a canvas costs what a frame costs) do not. :class:`ModeChooser` is a
+small epoch bandit over the two: each mode runs for an epoch of detector time, its rate of *usable* camera frames
+(frames in which the detector found at least one person) per second of detector time is measured, the better one
+runs, and every ``explore_every_s`` the other gets one epoch to show it has become better. Pure: the caller
+passes the detector time each pass took; nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from mocapd.errors import InputError
+
+MODES = ("packed", "whole")
+
+
+@dataclass(frozen=True)
+class ModeChooserOptions:
+    """Epoch lengths and the switching margin."""
+
+    epoch_s: float = 4.0
+    """Detector time of one epoch (one mode measured)."""
+    explore_every_s: float = 60.0
+    """Detector time spent in the better mode before the other gets an epoch again."""
+    margin: float = 0.1
+    """The other mode takes over only when its rate beats the current one's by this fraction."""
+
+    def __post_init__(self) -> None:
+        if self.epoch_s <= 0 or self.explore_every_s < self.epoch_s or not 0 <= self.margin < 1:
+            raise InputError("mode chooser needs epoch_s > 0, explore_every_s >= epoch_s and 0 <= margin < 1")
+
+
+@dataclass
+class _Rate:
+    usable: int = 0
+    frames: int = 0
+    busy_ns: int = 0
+
+    def per_s(self, what: int) -> float:
+        return what / (self.busy_ns / 1e9) if self.busy_ns > 0 else 0.0
+
+
+class ModeChooser:
+    """Epoch bandit over ``("packed", "whole")``: measure each, run the better, re-check the other now and then.
+
+    Parameters
+    ----------
+    options : ModeChooserOptions
+    first : str
+        The mode measured first.
+    """
+
+    def __init__(self, options: ModeChooserOptions | None = None, first: str = "packed") -> None:
+        if first not in MODES:
+            raise InputError(f"detection mode {first!r} is not one of {list(MODES)}")
+        self.options = options if options is not None else ModeChooserOptions()
+        self.mode = first
+        self.best: str | None = None  # the mode chosen after both were measured
+        self.rates: dict[str, _Rate] = {}  # the last finished epoch of each mode
+        self.epochs = 0
+        self.switches = 0
+        self._epoch = _Rate()
+        self._since_explore_ns = 0
+
+    def record(self, mode: str, usable: int, frames: int, busy_ns: int) -> str:
+        """One pass of ``mode``: ``frames`` camera frames detected, ``usable`` of them with someone in them, in
+        ``busy_ns`` of detector time. Returns the mode to run next."""
+        if mode != self.mode:  # a pass that started before the mode changed: not this epoch's
+            return self.mode
+        e = self._epoch
+        e.usable += usable
+        e.frames += frames
+        e.busy_ns += max(0, busy_ns)
+        if e.busy_ns >= self.options.epoch_s * 1e9:
+            self._end_epoch()
+        return self.mode
+
+    def _end_epoch(self) -> None:
+        finished, self._epoch = self._epoch, _Rate()
+        self.rates[self.mode] = finished
+        self.epochs += 1
+        previous = self.mode
+        other = next(m for m in MODES if m != self.mode)
+        if other not in self.rates:
+            self.mode = other  # not measured yet
+        elif self.best is None or self.mode != self.best:
+            # Both measured (first round, or an exploration epoch just ended): keep the incumbent unless the other
+            # beats it by the margin.
+            incumbent = self.best if self.best is not None else other
+            challenger = next(m for m in MODES if m != incumbent)
+            rate = {m: self.rates[m].per_s(self.rates[m].usable) for m in MODES}
+            self.best = challenger if rate[challenger] > (1 + self.options.margin) * rate[incumbent] else incumbent
+            self.mode = self.best
+            self._since_explore_ns = 0
+        else:
+            self._since_explore_ns += finished.busy_ns
+            if self._since_explore_ns >= self.options.explore_every_s * 1e9:
+                self.mode = other  # one epoch to show it has become better
+        if self.mode != previous:
+            self.switches += 1
+
+    def status(self) -> dict[str, Any]:
+        """JSON-able: the mode now, the chosen one, and each mode's last measured rates (per detector second)."""
+        return {
+            "mode": self.mode, "chosen": self.best, "epochs": self.epochs, "switches": self.switches,
+            "rates": {m: {"usable_frames_per_s": round(r.per_s(r.usable), 2),
+                          "camera_frames_per_s": round(r.per_s(r.frames), 2), "busy_s": round(r.busy_ns / 1e9, 2)}
+                      for m, r in self.rates.items()},
+        }  # fmt: skip
