@@ -337,3 +337,20 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
     inter = iw * ih
     return float(inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter))
+
+
+def test_a_call_for_some_cameras_keeps_the_others_rois(detector: OnnxPoseDetector, frames: list[list[Image]]) -> None:
+    """The live group detects a canvas's worth of cameras per pass: the cameras left out of a call keep their
+    ROIs (not reset to whole frames by an empty result) and get no detections from it."""
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(refresh_every=0))
+    packer.detect([frames[0]])  # whole frames: every camera gets ROIs around the subject
+    rois = [list(r) for r in packer.rois]
+    assert all(r.width < w for r_cam, (w, _) in zip(rois, sizes, strict=True) for r in r_cam)
+    assert packer.canvases_for([0, 1]) <= packer.canvases_for([0, 1, 2, 3])
+    blank = [np.empty_like(im) for im in frames[1]]  # the cameras left out are not read
+    images = [frames[1][c] if c in (0, 2) else blank[c] for c in range(4)]
+    (found,) = packer.detect([images], cameras=[2, 0])
+    assert len(found[0]) >= 1 and len(found[2]) >= 1 and len(found[1]) == 0 and len(found[3]) == 0
+    assert packer.rois[1] == rois[1] and packer.rois[3] == rois[3]
+    assert packer.stats.camera_frames == 4 + 2

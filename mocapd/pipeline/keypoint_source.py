@@ -141,6 +141,11 @@ class DetectorKeypointSource:
         # workers, a frame chosen at queueing time would be stale (or overwritten) by then.
         return await loop.run_in_executor(self.executor, self._detect_newest)
 
+    def has_new_frame(self) -> bool:
+        """Whether the ring holds a frame newer than the last one taken."""
+        ref = self.frames.ring.latest()
+        return ref is not None and ref.seq > self._last_seq
+
     def take_newest(self) -> tuple[FrameRef, NDArray[np.uint8]] | None:
         """The newest frame not taken yet, copied out of the ring (None if there is none); counts the frames
         skipped since the last one taken. Called by one worker at a time."""

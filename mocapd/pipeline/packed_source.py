@@ -47,7 +47,7 @@ def to_detections2d(people: PoseDetections, columns: NDArray[np.intp] | None = N
 
 
 class PackedDetectionGroup:
-    """The cameras detected together by one :class:`PackedDetector` on one worker thread that never idles.
+    """The cameras detected by one :class:`PackedDetector` on one worker thread that never idles.
 
     The worker loops on its own thread: as soon as a pass ends it starts the next one if any camera has a frame
     it has not detected yet (waiting on the event loop to start a pass would leave the detector idle while the
@@ -55,8 +55,8 @@ class PackedDetectionGroup:
     ``call_soon_threadsafe``; each camera keeps its newest uncollected result (a newer one replaces it, counted).
 
     With a :class:`~mocapd.pipeline.detection_mode.ModeChooser` (``[detector.packing] enabled = "auto"``) each
-    pass is either packed (the newest frame of every camera with a new one, on shared canvases) or whole-frame
-    (the newest frame of the camera whose detection is oldest, letterboxed alone), whichever delivered more
+    pass is either packed (the newest frames of the cameras that share a canvas, see :meth:`_packed_pass`) or
+    whole-frame (the newest frame of the camera whose detection is oldest, letterboxed alone), whichever delivered more
     frames with people per second of detector time on this rig; without one, every pass is packed.
 
     Parameters
@@ -171,9 +171,23 @@ class PackedDetectionGroup:
         return found
 
     def _packed_pass(self) -> dict[int, tuple[FrameRef, Detections2D]] | None:
+        """One canvas's worth of cameras: those with an unseen frame, detected longest ago first, as many as
+        share the canvases the first one needs. A pass over every camera would deliver each camera's detections
+        only after all canvases ran, and make every camera wait that long again for its next frame; passes of one
+        canvas each deliver as they go (the same inferences, a shorter detection delay)."""
+        order = sorted(
+            (c for c, src in self.sources.items() if src.has_new_frame()), key=lambda c: self._detected_at[c]
+        )
+        if not order:
+            return None
+        chosen = [order[0]]
+        need = self.packer.canvases_for(chosen)
+        for cam in order[1:]:
+            if self.packer.canvases_for([*chosen, cam]) <= need:
+                chosen.append(cam)
         new: dict[int, FrameRef] = {}
-        for cam, source in self.sources.items():
-            got = source.take_newest()
+        for cam in chosen:
+            got = self.sources[cam].take_newest()
             if got is not None:
                 new[cam] = got[0]
                 self._images[cam] = np.asarray(cv2.cvtColor(got[1], cv2.COLOR_RGB2BGR), np.uint8)
@@ -182,8 +196,8 @@ class PackedDetectionGroup:
         images = []
         for cam, (w, h) in enumerate(self.packer.image_sizes):
             image = self._images[cam]
-            images.append(image if image is not None else np.full((h, w, 3), 114, np.uint8))
-        (found,) = self.packer.detect([images])
+            images.append(image if image is not None and cam in new else np.empty((h, w, 3), np.uint8))
+        (found,) = self.packer.detect([images], cameras=sorted(new))
         return {cam: (ref, to_detections2d(found[cam], self.columns)) for cam, ref in new.items()}
 
     def _whole_pass(self) -> dict[int, tuple[FrameRef, Detections2D]] | None:
