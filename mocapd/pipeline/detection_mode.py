@@ -6,7 +6,8 @@ frame. Which delivers more depends on the rig: few small people in many cameras 
 the frames (or a fast accelerator, on which a canvas costs what a frame costs) do not. :class:`ModeChooser` is a
 small epoch bandit over the two: each mode runs for an epoch of detector time, its rate of *usable* camera frames
 (frames in which the detector found at least one person) per second of detector time is measured, the better one
-runs, and every ``explore_every_s`` the other gets one epoch to show it has become better. Pure: the caller
+runs, and now and then (after 8 s of detector time, doubling up to ``explore_every_s``) the other gets one epoch
+to show it has become better. Pure: the caller
 passes the detector time each pass took; nothing here reads a clock.
 """
 
@@ -27,13 +28,16 @@ class ModeChooserOptions:
     epoch_s: float = 4.0
     """Detector time of one epoch (one mode measured)."""
     explore_every_s: float = 60.0
-    """Detector time spent in the better mode before the other gets an epoch again."""
+    """Detector time spent in the better mode before the other gets an epoch again, at most: the first re-check
+    comes after ``first_explore_s``, and the wait doubles each time the choice holds (a first comparison made
+    during start-up, with empty ROIs and a loaded CPU, is corrected soon; a settled one costs one epoch in 16)."""
+    first_explore_s: float = 8.0
     margin: float = 0.1
     """The other mode takes over only when its rate beats the current one's by this fraction."""
 
     def __post_init__(self) -> None:
-        if self.epoch_s <= 0 or self.explore_every_s < self.epoch_s or not 0 <= self.margin < 1:
-            raise InputError("mode chooser needs epoch_s > 0, explore_every_s >= epoch_s and 0 <= margin < 1")
+        if not 0 < self.epoch_s <= self.first_explore_s <= self.explore_every_s or not 0 <= self.margin < 1:
+            raise InputError("mode chooser needs 0 < epoch_s <= first_explore_s <= explore_every_s and 0 <= margin < 1")
 
 
 @dataclass
@@ -67,6 +71,7 @@ class ModeChooser:
         self.switches = 0
         self._epoch = _Rate()
         self._since_explore_ns = 0
+        self._explore_after_s = self.options.first_explore_s
 
     def record(self, mode: str, usable: int, frames: int, busy_ns: int) -> str:
         """One pass of ``mode``: ``frames`` camera frames detected, ``usable`` of them with someone in them, in
@@ -95,12 +100,15 @@ class ModeChooser:
             incumbent = self.best if self.best is not None else other
             challenger = next(m for m in MODES if m != incumbent)
             rate = {m: self.rates[m].per_s(self.rates[m].usable) for m in MODES}
-            self.best = challenger if rate[challenger] > (1 + self.options.margin) * rate[incumbent] else incumbent
-            self.mode = self.best
+            chosen = challenger if rate[challenger] > (1 + self.options.margin) * rate[incumbent] else incumbent
+            held = chosen == self.best
+            self.best = self.mode = chosen
             self._since_explore_ns = 0
+            o = self.options
+            self._explore_after_s = min(o.explore_every_s, 2 * self._explore_after_s) if held else o.first_explore_s
         else:
             self._since_explore_ns += finished.busy_ns
-            if self._since_explore_ns >= self.options.explore_every_s * 1e9:
+            if self._since_explore_ns >= self._explore_after_s * 1e9:
                 self.mode = other  # one epoch to show it has become better
         if self.mode != previous:
             self.switches += 1

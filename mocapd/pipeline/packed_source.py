@@ -101,7 +101,6 @@ class PackedDetectionGroup:
         self._stop = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._worker: Future[None] | None = None
-        self._last_mode = "packed"
 
     def add(self, source: PackedKeypointSource) -> None:
         self.sources[source.camera] = source
@@ -153,9 +152,6 @@ class PackedDetectionGroup:
     def _run_pass(self) -> dict[int, tuple[FrameRef, Detections2D]] | None:
         """One pass in the chosen mode; None when no camera had an unseen frame."""
         mode = self.chooser.mode if self.chooser is not None else "packed"
-        if mode == "packed" and self._last_mode != "packed":
-            self.packer.reset()  # ROIs from before the whole-frame passes are stale: look at whole frames again
-        self._last_mode = mode
         t0 = self.clock()
         found = self._whole_pass() if mode == "whole" else self._packed_pass()
         if found is None:
@@ -209,7 +205,9 @@ class PackedDetectionGroup:
             image = np.asarray(cv2.cvtColor(got[1], cv2.COLOR_RGB2BGR), np.uint8)
             self._images[cam] = image
             self.whole_passes += 1
-            return {cam: (got[0], to_detections2d(self.packer.detector.detect(image), self.columns))}
+            people = self.packer.detector.detect(image)
+            self.packer.seed_rois(cam, people)  # packed passes start from where the people are now
+            return {cam: (got[0], to_detections2d(people, self.columns))}
         return None
 
     def close(self) -> None:

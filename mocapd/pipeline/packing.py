@@ -327,6 +327,13 @@ class PackedDetector:
                 keep.append(int(i))
         return det.select(np.asarray(sorted(keep, key=lambda j: -det.scores[j]), dtype=np.int64))
 
+    def seed_rois(self, camera: int, found: PoseDetections) -> None:
+        """Set ``camera``'s ROIs from a whole-frame detection of it (as a packed call would from its own)."""
+        seeds = [PoseDetections.empty(self.detector.format.n_keypoints)] * self.n_cameras
+        seeds[camera] = found
+        self.rois[camera] = [full_roi(*self.image_sizes[camera])]  # a whole frame: nothing was cut
+        self._update_rois(seeds, [camera])
+
     def canvases_for(self, cameras: Sequence[int]) -> int:
         """Canvases a call detecting only ``cameras`` needs for their current ROIs (refresh tiles left out)."""
         items = [(0, cam, roi) for cam in cameras for roi in self.rois[cam]]

@@ -56,8 +56,8 @@ from mocapd.service.process import exit_now
 from mocapd.sim.fake_cameras import FakeCameraFleet, FakeCameraSpec
 from mocapd.sim.fake_gige import add_loopback_aliases
 
-AUTO_MAX_AGE_S = 0.2  # keypoint hold with latency "auto" (s)
-AUTO_MAX_GAP_S = 1.0  # keypoint interpolation gap with latency "auto" (s)
+AUTO_MAX_AGE_S = 0.5  # keypoint hold with latency "auto" (s): what the old fixed 1.0 s default gave
+AUTO_MAX_GAP_S = 2.0  # keypoint interpolation gap with latency "auto" (s): ditto
 SOURCE_SIZE = (1088, 1920)  # the Pose2Sim demo videos: 1088 wide, 1920 tall (portrait)
 
 
