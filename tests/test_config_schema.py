@@ -185,7 +185,7 @@ def accepts(s: dict[str, Any], value: Any) -> bool:
     if type(value) not in kinds or (type(value) is float and not math.isfinite(value)):
         return False
     lo, lo_in, hi, hi_in = bounds(s)
-    return (lo <= value if lo_in else lo < value) and (value <= hi if hi_in else value < hi)
+    return bool((lo <= value if lo_in else lo < value) and (value <= hi if hi_in else value < hi))
 
 
 def bad_values(s: dict[str, Any], sample: Any = None) -> list[Any]:
