@@ -25,12 +25,12 @@ MODES = ("packed", "whole")
 class ModeChooserOptions:
     """Epoch lengths and the switching margin."""
 
-    epoch_s: float = 4.0
+    epoch_s: float = 3.0
     """Detector time of one epoch (one mode measured)."""
-    explore_every_s: float = 60.0
+    explore_every_s: float = 90.0
     """Detector time spent in the better mode before the other gets an epoch again, at most: the first re-check
     comes after ``first_explore_s``, and the wait doubles each time the choice holds (a first comparison made
-    during start-up, with empty ROIs and a loaded CPU, is corrected soon; a settled one costs one epoch in 16)."""
+    during start-up, with empty ROIs and a loaded CPU, is corrected soon; a settled one costs one epoch in 31)."""
     first_explore_s: float = 8.0
     margin: float = 0.1
     """The other mode takes over only when its rate beats the current one's by this fraction."""

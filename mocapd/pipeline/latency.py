@@ -93,8 +93,10 @@ class AutoLatencyOptions:
     """Percentile of the measured needs that the latency covers."""
     margin_ns: int = 0
     """Added to that percentile (the daemon adds one output period: a tick may run that much late)."""
-    window: int = 256
-    """Needs kept (all cameras together): with 4 cameras at ~4 detections/s each, the last ~16 s."""
+    window: int = 1024
+    """Needs kept (all cameras together): ~2 min at 8 detected frames/s. Long enough that the detection
+    chooser's exploration epochs (3 s of the other mode every 90 s, see :mod:`~mocapd.pipeline.detection_mode`)
+    stay under 5 % of it and so out of the p95."""
     min_samples: int = 16
     """Needs measured before the first estimate replaces ``start_ns``."""
     hysteresis: float = 0.1
