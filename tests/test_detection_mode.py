@@ -44,8 +44,10 @@ def test_measures_both_then_runs_the_better_and_rechecks_the_other() -> None:
     # The rig changes (people fill the frames: packing needs a canvas per camera): packed epochs measure the
     # drop, and the next check of the other mode finds it better.
     rates = {"packed": (4, 4, 500 * MS), "whole": (1, 1, 100 * MS)}
-    modes = run(chooser, 26.0, rates)
+    modes = run(chooser, 8.0, rates)
     assert chooser.best == "whole" and modes[-1] == "whole"
+    # It fell below the other's last rate: re-checked after its next epoch, not after the 20 s wait.
+    assert modes.index("whole") <= 4  # one packed epoch (2 s of 0.5 s passes), then the other
 
 
 def test_a_challenger_within_the_margin_does_not_take_over() -> None:

@@ -108,8 +108,13 @@ class ModeChooser:
             self._explore_after_s = min(o.explore_every_s, 2 * self._explore_after_s) if held else o.first_explore_s
         else:
             self._since_explore_ns += finished.busy_ns
-            if self._since_explore_ns >= self._explore_after_s * 1e9:
-                self.mode = other  # one epoch to show it has become better
+            fell = finished.per_s(finished.usable) * (1 + self.options.margin) < self.rates[other].per_s(
+                self.rates[other].usable
+            )
+            if fell or self._since_explore_ns >= self._explore_after_s * 1e9:
+                # One epoch to show it has become better: when its turn comes, or at once when the current mode's
+                # last epoch fell below the other's last measured rate.
+                self.mode = other
         if self.mode != previous:
             self.switches += 1
 
