@@ -44,10 +44,18 @@ def test_measures_both_then_runs_the_better_and_rechecks_the_other() -> None:
     # The rig changes (people fill the frames: packing needs a canvas per camera): packed epochs measure the
     # drop, and the next check of the other mode finds it better.
     rates = {"packed": (4, 4, 500 * MS), "whole": (1, 1, 100 * MS)}
-    modes = run(chooser, 8.0, rates)
-    assert chooser.best == "whole" and modes[-1] == "whole"
-    # It fell below the other's last rate: re-checked after its next epoch, not after the 20 s wait.
-    assert modes.index("whole") <= 4  # one packed epoch (2 s of 0.5 s passes), then the other
+    modes = run(chooser, 26.0, rates)
+    assert chooser.best == "whole" and modes.count("whole") > modes.count("packed")
+
+
+def test_a_mode_that_falls_far_below_the_other_is_rechecked_at_once() -> None:
+    chooser = ModeChooser(ModeChooserOptions(epoch_s=1.0, first_explore_s=50.0, explore_every_s=100.0))
+    run(chooser, 2.0, {"packed": (3, 4, 250 * MS), "whole": (1, 1, 100 * MS)})  # 12 vs 10 usable/s
+    assert chooser.best == "packed"
+    # Packed drops to 4 usable/s (30 % below whole's 10 and more): whole gets its epoch after the next one,
+    # not after the 50 s wait.
+    modes = run(chooser, 5.0, {"packed": (4, 4, 1000 * MS), "whole": (1, 1, 100 * MS)})
+    assert modes.index("whole") <= 2 and chooser.best == "whole"
 
 
 def test_a_challenger_within_the_margin_does_not_take_over() -> None:

@@ -107,3 +107,13 @@ def test_auto_latency_ignores_a_camera_away_and_stays_in_bounds() -> None:
         AutoLatencyOptions(up_rate=1.0)  # solve time would stand still or run backwards
     with pytest.raises(InputError):
         AutoLatencyOptions(min_ns=2 * S, max_ns=1 * S)
+
+
+def test_auto_latency_forgets_needs_older_than_a_minute() -> None:
+    """A slow start (models warming up: 1.5 s needs) raises the latency; a minute of a fast detector later it
+    is forgotten and the latency comes down to what the detector needs now."""
+    auto = AutoLatency(2, AutoLatencyOptions(start_ns=500 * MS))
+    t = _feed(auto, 0, 10.0, 500 * MS, 1000 * MS, n_cams=2)
+    assert auto.goal_ns >= 1500 * MS
+    _feed(auto, t, 90.0, 50 * MS, 100 * MS, n_cams=2)
+    assert auto.goal_ns == pytest.approx(150 * MS, abs=MS) and auto.latency_ns == auto.goal_ns

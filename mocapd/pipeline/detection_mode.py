@@ -6,8 +6,8 @@ frame. Which delivers more depends on the rig: few small people in many cameras 
 the frames (or a fast accelerator, on which a canvas costs what a frame costs) do not. :class:`ModeChooser` is a
 small epoch bandit over the two: each mode runs for an epoch of detector time, its rate of *usable* camera frames
 (frames in which the detector found at least one person) per second of detector time is measured, the better one
-runs, and now and then (after 8 s of detector time, doubling up to ``explore_every_s``) the other gets one epoch
-to show it has become better. Pure: the caller
+runs, and now and then (after 15 s of detector time, doubling up to ``explore_every_s``) the other gets one
+epoch to show it has become better. Pure: the caller
 passes the detector time each pass took; nothing here reads a clock.
 """
 
@@ -27,11 +27,11 @@ class ModeChooserOptions:
 
     epoch_s: float = 3.0
     """Detector time of one epoch (one mode measured)."""
-    explore_every_s: float = 90.0
+    explore_every_s: float = 120.0
     """Detector time spent in the better mode before the other gets an epoch again, at most: the first re-check
     comes after ``first_explore_s``, and the wait doubles each time the choice holds (a first comparison made
-    during start-up, with empty ROIs and a loaded CPU, is corrected soon; a settled one costs one epoch in 31)."""
-    first_explore_s: float = 8.0
+    during start-up, with empty ROIs and a loaded CPU, is corrected soon; a settled one costs one epoch in 41)."""
+    first_explore_s: float = 15.0
     margin: float = 0.1
     """The other mode takes over only when its rate beats the current one's by this fraction."""
 
@@ -108,7 +108,8 @@ class ModeChooser:
             self._explore_after_s = min(o.explore_every_s, 2 * self._explore_after_s) if held else o.first_explore_s
         else:
             self._since_explore_ns += finished.busy_ns
-            fell = finished.per_s(finished.usable) * (1 + self.options.margin) < self.rates[other].per_s(
+            # A drop three margins deep (a loaded CPU makes single epochs noisy; a smaller one waits its turn).
+            fell = finished.per_s(finished.usable) * (1 + 3 * self.options.margin) < self.rates[other].per_s(
                 self.rates[other].usable
             )
             if fell or self._since_explore_ns >= self._explore_after_s * 1e9:

@@ -94,9 +94,12 @@ class AutoLatencyOptions:
     margin_ns: int = 0
     """Added to that percentile (the daemon adds one output period: a tick may run that much late)."""
     window: int = 1024
-    """Needs kept (all cameras together): ~2 min at 8 detected frames/s. Long enough that the detection
-    chooser's exploration epochs (3 s of the other mode every 90 s, see :mod:`~mocapd.pipeline.detection_mode`)
-    stay under 5 % of it and so out of the p95."""
+    """Needs kept (all cameras together), at most."""
+    max_age_ns: int = 60_000_000_000
+    """... and only those that arrived in the last minute: start-up (models warming, the detection chooser's
+    first comparisons) is forgotten a minute later, while the chooser's later exploration epochs (3 s of the
+    other mode every 2 min at most, :mod:`~mocapd.pipeline.detection_mode`) stay under 5 % of the window and so
+    out of the p95."""
     min_samples: int = 16
     """Needs measured before the first estimate replaces ``start_ns``."""
     hysteresis: float = 0.1
@@ -148,6 +151,7 @@ class AutoLatency:
         self._needs = np.zeros(o.window, dtype=np.int64)
         self._delays = np.zeros(o.window, dtype=np.int64)
         self._intervals = np.zeros(o.window, dtype=np.int64)
+        self._arrivals = np.zeros(o.window, dtype=np.int64)  # arrival time of each need
         self._n = 0  # needs recorded so far (the rings hold the last `window`)
         self._nd = 0  # delays recorded so far
         self._updated_ns: int | None = None
@@ -168,6 +172,7 @@ class AutoLatency:
                 k = self._n % o.window
                 self._needs[k] = arrival_ns - previous
                 self._intervals[k] = capture_ns - previous
+                self._arrivals[k] = arrival_ns
                 self._n += 1
         if previous is None or capture_ns > previous:
             self._last_capture[camera] = capture_ns
@@ -177,7 +182,7 @@ class AutoLatency:
         o = self.options
         if self._evaluated_ns is None or now_ns - self._evaluated_ns >= o.evaluate_every_ns:
             self._evaluated_ns = now_ns
-            self._evaluate()
+            self._evaluate(now_ns)
         if self._updated_ns is not None and now_ns > self._updated_ns:
             dt = now_ns - self._updated_ns
             if self.goal_ns > self.latency_ns:
@@ -187,12 +192,13 @@ class AutoLatency:
         self._updated_ns = now_ns if self._updated_ns is None else max(now_ns, self._updated_ns)
         return self.latency_ns
 
-    def _evaluate(self) -> None:
+    def _evaluate(self, now_ns: int) -> None:
         o = self.options
         n = min(self._n, o.window)
-        if self._n < o.min_samples:
+        recent = self._needs[:n][self._arrivals[:n] >= now_ns - o.max_age_ns]
+        if recent.size < o.min_samples:
             return
-        need = float(np.percentile(self._needs[:n], o.quantile))
+        need = float(np.percentile(recent, o.quantile))
         first = self.estimate_ns is None  # the start value is a placeholder: the first estimate replaces it
         self.estimate_ns = estimate = int(min(o.max_ns, max(o.min_ns, need + o.margin_ns)))
         band = max(o.hysteresis * self.goal_ns, o.hysteresis_min_ns)
