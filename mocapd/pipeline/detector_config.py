@@ -72,7 +72,7 @@ class ModelSpec:
 class PackingConfig:
     """ROI packing and temporal sub-sampling (seed 000 §3.3)."""
 
-    enabled: bool | str = True
+    enabled: bool | str = "auto"
     """Pack camera ROIs into shared detector images (False: one image per camera frame; "auto": whichever of
     the two delivers more camera frames with people per second on this rig, measured while the daemon runs)."""
     roi_margin: float = 0.075
