@@ -112,5 +112,8 @@ def make_detector(
     executor = ThreadPoolExecutor(1, thread_name_prefix=THREAD_NAME, initializer=name_os_thread,
                                   initargs=(THREAD_NAME,))  # fmt: skip
     packer = executor.submit(packed_detector_from_config, cfg, list(image_sizes)).result()
-    chooser = ModeChooser() if cfg.packing.enabled == "auto" else None
+    # Whole frames first: their passes seed every camera's ROIs, so the first packed epoch is measured on the
+    # people's regions rather than on the whole frames an empty start would pack (and warm-up, which slows
+    # whichever runs first, then weighs against whole frames, re-checked 15 s later anyway).
+    chooser = ModeChooser(first="whole") if cfg.packing.enabled == "auto" else None
     return PackedDetectionGroup(packer, executor, columns, chooser=chooser)
