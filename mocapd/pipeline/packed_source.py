@@ -176,6 +176,10 @@ class PackedDetectionGroup:
         )
         if not order:
             return None
+        # The cameras detected together last time first (then any other that still fits): the groups stay
+        # stable, so every camera is detected at a steady interval (the latency covers the slowest, its p95).
+        first = self._detected_at[order[0]]
+        order.sort(key=lambda c: (self._detected_at[c] != first, self._detected_at[c]))
         chosen = [order[0]]
         need = self.packer.canvases_for(chosen)
         for cam in order[1:]:
