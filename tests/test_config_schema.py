@@ -174,8 +174,27 @@ def valid_example(s: dict[str, Any]) -> Any:
     return examples[kind]() if kind in examples else "x"  # a string, or an untyped value (given by FORMAT_CASES)
 
 
+def accepts(s: dict[str, Any], value: Any) -> bool:
+    """Whether a value of schema ``s`` (a number, a boolean or a choice) may be ``value`` (False where this
+    test cannot say)."""
+    if "enum" in s or "const" in s:
+        return any(type(value) is type(a) and value == a for a in s.get("enum", [s.get("const")]))
+    if s.get("type") == "boolean":
+        return type(value) is bool
+    kinds = {"integer": (int,), "number": (int, float)}.get(s.get("type", ""), ())
+    if type(value) not in kinds or (type(value) is float and not math.isfinite(value)):
+        return False
+    lo, lo_in, hi, hi_in = bounds(s)
+    return bool((lo <= value if lo_in else lo < value) and (value <= hi if hi_in else value < hi))
+
+
 def bad_values(s: dict[str, Any], sample: Any = None) -> list[Any]:
     """What a fuzzer would try for a value of schema ``s`` (``sample``: a valid value of its items)."""
+    if "anyOf" in s:  # e.g. a number or "auto": what each branch's fuzzer tries and no branch accepts
+        branches = [resolve(b) for b in s["anyOf"]]
+        tried = [v for b in branches for v in bad_values(b, sample)]
+        unique_tried = list({repr((type(v), v)): v for v in tried}.values())
+        return [v for v in unique_tried if not any(accepts(b, v) for b in branches)]
     out: list[Any] = [] if s.get("nullable") else [None]
     if "enum" in s or "const" in s:
         allowed = s.get("enum", [s.get("const")])
@@ -236,6 +255,8 @@ def _bad_tables(s: dict[str, Any]) -> list[Any]:
 
 def ends(s: dict[str, Any]) -> list[Any]:
     """The values at the ends of a number's range (accepted)."""
+    if "anyOf" in s:
+        return [v for b in s["anyOf"] for v in ends(resolve(b))]
     kind = s.get("type")
     if kind not in ("integer", "number") or "enum" in s:
         return []

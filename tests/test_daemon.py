@@ -247,3 +247,40 @@ async def test_supervisor_restarts_with_back_off_and_lets_cancellation_through()
 
     await asyncio.wait_for(sup.supervise("once", done, restart_on_exit=False), 1)
     assert sup.tasks["once"].starts == 1
+
+
+@pytest.mark.asyncio
+async def test_auto_latency_follows_the_synthetic_detector_through_the_assembly_path() -> None:
+    """``latency_s = "auto"`` built by the one assembly path: the delay starts at 0.5 s, measures the synthetic
+    detector (10 detections per camera per second, each 0.2 s after capture), settles on the smallest delay that
+    covers it, and /status says so; solve time never runs backwards while it moves."""
+    cfg = load_config()
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0, "latency_s": "auto", "keypoint_max_gap_s": 1.0}),
+        "websocket": cfg.websocket.model_copy(update={"enabled": False}),
+        "synthetic": cfg.synthetic.model_copy(update={"camera_rate_hz": 10.0, "detection_delay_s": 0.2}),
+    })  # fmt: skip
+    rec = Recorder()
+    with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:
+        d = demo.daemon
+        task = asyncio.create_task(d.run())
+        await asyncio.wait_for(d.ready.wait(), 120)
+        auto = d.scheduler.auto_latency
+        assert auto is not None and d.scheduler.latency_ns == 500_000_000  # measured nothing yet: the start
+
+        def settled() -> bool:
+            return auto.estimate_ns is not None and auto.latency_ns == auto.goal_ns and len(rec.frames) > 10
+
+        await wait_for(settled, 90, "the auto latency to settle")
+        code, _, body = await http_get(d.http.port, "/status")
+        d.request_stop()
+        assert await asyncio.wait_for(task, 30) == 0 and code == 200
+    st = json.loads(body)["output"]
+    assert st["latency"]["mode"] == "auto"
+    # Covers delay 200 ms + interval 100 ms (+ one 16.7 ms output period), without the 0.5 s start's slack.
+    assert 316.0 <= st["latency"]["goal_ms"] < 500.0, st["latency"]
+    assert st["latency"]["detection_delay_p95_ms"] >= 200.0
+    assert st["latency_s"] == pytest.approx(st["latency"]["latency_ms"] / 1e3, abs=0.05)
+    solve = [f.t_solve_ns for f in rec.frames]
+    assert solve == sorted(solve)
+    assert rec.frames[-1].tick_ns - rec.frames[-1].t_solve_ns == d.scheduler.latency_ns

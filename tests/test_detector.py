@@ -249,7 +249,7 @@ def test_config_parsing() -> None:
         ),
         ({"model": {"pixel_scale": 0}}, r"^detector.model.pixel_scale = 0; allowed: a number in \(0, 1000\]$"),
         ({"packing": {"n_o": 3, "n_p": 2}}, "^detector.packing.n_o = 3 must be <= detector.packing.n_p = 2$"),
-        ({"packing": {"enabled": 1}}, "^detector.packing.enabled = 1; allowed: true or false$"),
+        ({"packing": {"enabled": 1}}, '^detector.packing.enabled = 1; allowed: true, false or "auto"$'),
         ({"workers": 0}, r"^detector.workers = 0; allowed: an integer in \[1, 64\]$"),
         ({"providers": "cpu"}, "^detector.providers = 'cpu'; allowed: a non-empty array of at most 8 items"),
         ({"providers": ["cdua"]}, r"^detector.providers\[0\] = 'cdua': not a provider"),
@@ -397,7 +397,7 @@ def test_detector_status_names_the_provider_that_runs() -> None:
     # /status's "detector" section: "auto" resolved to what the session really uses, whole and packed.
     cfg = DetectorConfig(providers=("auto",), precision="int8", intra_op_threads=1)
     whole = make_detector(dataclasses.replace(cfg, packing=PackingConfig(enabled=False)), [(1080, 1920)])
-    packed = make_detector(cfg, [(1080, 1920)])
+    packed = make_detector(dataclasses.replace(cfg, packing=PackingConfig(enabled=True)), [(1080, 1920)])
     try:
         for det, mode in ((whole, "whole"), (packed, "packed")):
             st = detector_status(det)
@@ -407,3 +407,20 @@ def test_detector_status_names_the_provider_that_runs() -> None:
     finally:
         whole.close()
         packed.close()
+
+
+def test_a_call_for_some_cameras_keeps_the_others_rois(detector: OnnxPoseDetector, frames: list[list[Image]]) -> None:
+    """The live group detects a canvas's worth of cameras per pass: the cameras left out of a call keep their
+    ROIs (not reset to whole frames by an empty result) and get no detections from it."""
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    packer = PackedDetector(detector, sizes, PackingConfig(refresh_every=0))
+    packer.detect([frames[0]])  # whole frames: every camera gets ROIs around the subject
+    rois = [list(r) for r in packer.rois]
+    assert all(r.width < w for r_cam, (w, _) in zip(rois, sizes, strict=True) for r in r_cam)
+    assert packer.canvases_for([0, 1]) <= packer.canvases_for([0, 1, 2, 3])
+    blank = [np.empty_like(im) for im in frames[1]]  # the cameras left out are not read
+    images = [frames[1][c] if c in (0, 2) else blank[c] for c in range(4)]
+    (found,) = packer.detect([images], cameras=[2, 0])
+    assert len(found[0]) >= 1 and len(found[2]) >= 1 and len(found[1]) == 0 and len(found[3]) == 0
+    assert packer.rois[1] == rois[1] and packer.rois[3] == rois[3]
+    assert packer.stats.camera_frames == 4 + 2

@@ -604,7 +604,7 @@ def _status_code(response: bytes) -> int | None:
 
 
 async def _status_server_round(requests: list[bytes]) -> None:
-    server = StatusServer(lambda: {"ready": True, "n": 1}, lambda: "mocapd_up 1\n", port=0)
+    server = StatusServer(lambda: {"ready": True, "n": 1}, lambda _snapshot: b"mocapd_up 1\n", port=0)
     port = await server.start()
     try:
         codes = [_status_code(await _exchange(port, r)) for r in requests]

@@ -73,8 +73,9 @@ class ModelSpec:
 class PackingConfig:
     """ROI packing and temporal sub-sampling (seed 000 §3.3)."""
 
-    enabled: bool = True
-    """Pack camera ROIs into shared detector images (False: one image per camera frame)."""
+    enabled: bool | str = "auto"
+    """Pack camera ROIs into shared detector images (False: one image per camera frame; "auto": whichever of
+    the two delivers more camera frames with people per second on this rig, measured while the daemon runs)."""
     roi_margin: float = 0.075
     """ROI = union box of the last detections grown on each side by this fraction of its larger side."""
     gap: int = 0
@@ -118,6 +119,8 @@ class PackingConfig:
 
     def __post_init__(self) -> None:
         SubsampleSchedule(self.n_o, self.n_p)  # validates
+        if self.enabled not in (True, False, "auto"):
+            raise ConfigError(f'detector.packing.enabled must be true, false or "auto", got {self.enabled!r}')
         if not 0.0 <= self.roi_margin <= 2.0:
             raise ConfigError(f"detector.packing.roi_margin must be in [0, 2], got {self.roi_margin}")
         for key in ("canvas_width", "canvas_height"):

@@ -3,8 +3,9 @@
 :class:`PooledDetector` is the :data:`~mocapd.pipeline.keypoint_source.Detector` behind
 :class:`~mocapd.pipeline.keypoint_source.DetectorKeypointSource`: one onnxruntime session per worker thread
 (``[detector] workers``), handed out through a queue, the cameras taking turns. With ``[detector.packing]
-enabled``, :func:`make_detector` builds a :class:`~mocapd.pipeline.packed_source.PackedDetectionGroup` instead:
-the newest frame of every camera detected together on shared canvases by one worker.
+enabled`` (true or "auto"), :func:`make_detector` builds a
+:class:`~mocapd.pipeline.packed_source.PackedDetectionGroup` instead: the newest frame of every camera detected
+together on shared canvases by one worker (with "auto", or alone where whole frames deliver more).
 
 Worker threads carry an OS-level name (``mocapd-detect``) that onnxruntime's own threads inherit, so per-thread
 CPU accounting (``mocapd bench latency``) sees the detector's whole cost.
@@ -23,6 +24,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.keypoints import keypoint_format
 from mocapd.core.sorting import Detections2D
+from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.packed_source import PackedDetectionGroup
@@ -97,7 +99,8 @@ def make_detector(
     cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]], columns: NDArray[np.intp] | None = None
 ) -> AnyDetector:
     """The cameras' detector (blocking: loads the model): one packed group for all cameras on one named worker
-    thread when ``cfg.packing.enabled``, else a pool of whole-frame workers.
+    thread when ``cfg.packing.enabled`` (with ``"auto"``, the group chooses packed or whole-frame passes by what
+    they deliver, :class:`~mocapd.pipeline.detection_mode.ModeChooser`), else a pool of whole-frame workers.
 
     Parameters
     ----------
@@ -109,7 +112,11 @@ def make_detector(
     executor = ThreadPoolExecutor(1, thread_name_prefix=THREAD_NAME, initializer=name_os_thread,
                                   initargs=(THREAD_NAME,))  # fmt: skip
     packer = executor.submit(packed_detector_from_config, cfg, list(image_sizes)).result()
-    return PackedDetectionGroup(packer, executor, columns)
+    # Whole frames first: their passes seed every camera's ROIs, so the first packed epoch is measured on the
+    # people's regions rather than on the whole frames an empty start would pack (and warm-up, which slows
+    # whichever runs first, then weighs against whole frames, re-checked 15 s later anyway).
+    chooser = ModeChooser(first="whole") if cfg.packing.enabled == "auto" else None
+    return PackedDetectionGroup(packer, executor, columns, chooser=chooser)
 
 
 def detector_status(detector: AnyDetector) -> dict[str, object]:
@@ -118,7 +125,9 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
     if isinstance(detector, PooledDetector):
         return {"mode": "whole", "workers": len(detector._detectors), **detector._detectors[0].describe()}
     packer = detector.packer
-    out: dict[str, object] = {"mode": "packed", **packer.detector.describe()}
+    # With packing "auto" the group's chooser picks packed or whole passes; name the one it runs now.
+    mode = detector.chooser.mode if detector.chooser is not None else "packed"
+    out: dict[str, object] = {"mode": mode, **packer.detector.describe()}
     if packer.canvas_detector is not packer.detector:
         out["canvas"] = packer.canvas_detector.describe()
     return out

@@ -107,6 +107,7 @@ class DetectorKeypointSource:
             self.captured += 1
             if self.device_clock is not None:
                 self.device_clock.update(ref.device_ns, ref.host_ns)
+            self.frame_arrived(ref)
             wake.set()
 
         async def detect_loop() -> None:
@@ -127,6 +128,9 @@ class DetectorKeypointSource:
             await self.frames.run(on_frame)  # returns at the end of a replay; errors propagate to the supervisor
             worker.cancel()
 
+    def frame_arrived(self, ref: FrameRef) -> None:
+        """Called on the event loop for every captured frame (a shared detector's worker wakes up here)."""
+
     def capture_ns(self, ref: FrameRef) -> int:
         """The frame's capture time on the host clock (never later than its arrival)."""
         mapped = self.device_clock.to_host_ns(ref.device_ns) if self.device_clock is not None else None
@@ -136,6 +140,11 @@ class DetectorKeypointSource:
         # The frame is chosen when a worker is free, not when it was queued: with several cameras sharing the
         # workers, a frame chosen at queueing time would be stale (or overwritten) by then.
         return await loop.run_in_executor(self.executor, self._detect_newest)
+
+    def has_new_frame(self) -> bool:
+        """Whether the ring holds a frame newer than the last one taken."""
+        ref = self.frames.ring.latest()
+        return ref is not None and ref.seq > self._last_seq
 
     def take_newest(self) -> tuple[FrameRef, NDArray[np.uint8]] | None:
         """The newest frame not taken yet, copied out of the ring (None if there is none); counts the frames

@@ -131,13 +131,18 @@ class PackedDetector:
         """Forget the ROIs: every camera looks at its whole frame next time."""
         self.rois = [[full_roi(w, h)] for w, h in self.image_sizes]
 
-    def detect(self, frames: Sequence[Sequence[Image]]) -> list[list[PoseDetections]]:
+    def detect(
+        self, frames: Sequence[Sequence[Image]], cameras: Sequence[int] | None = None
+    ) -> list[list[PoseDetections]]:
         """Detect people in ``frames[slot][camera]`` (BGR images), all slots sharing the current ROIs.
 
         Parameters
         ----------
         frames : sequence of sequence of ndarray
             One or more consecutive frames (slots), each with one image per camera.
+        cameras : sequence of int, optional
+            Detect only these cameras (default: all); the others' images are not read, their detections come
+            back empty and their ROIs are kept for their next call.
 
         Returns
         -------
@@ -145,16 +150,20 @@ class PackedDetector:
             ``[slot][camera]``, in each camera's pixels. The ROIs are then updated from the last slot.
         """
         n_kp = self.detector.format.n_keypoints
+        subset = list(range(self.n_cameras)) if cameras is None else sorted(set(cameras))
         if not self.cfg.enabled:
             self.stats.calls += 1
-            self.stats.camera_frames += len(frames) * self.n_cameras
-            self.stats.canvases += len(frames) * self.n_cameras
-            return [[self.detector.detect(img) for img in cams] for cams in frames]
+            self.stats.camera_frames += len(frames) * len(subset)
+            self.stats.canvases += len(frames) * len(subset)
+            none = PoseDetections.empty(n_kp)
+            return [[self.detector.detect(img) if c in subset else none for c, img in enumerate(cams)]
+                    for cams in frames]  # fmt: skip
         items: list[tuple[int, int, Roi]] = []
         for slot, cams in enumerate(frames):
             if len(cams) != self.n_cameras:
                 raise InputError(f"slot {slot} has {len(cams)} images, expected {self.n_cameras} cameras")
-            for cam, img in enumerate(cams):
+            for cam in subset:
+                img = cams[cam]
                 w, h = self.image_sizes[cam]
                 if img.shape[:2] != (h, w):
                     raise InputError(f"camera {cam} image is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
@@ -164,7 +173,7 @@ class PackedDetector:
         call = self.stats.calls
         for cam in self.refresh_cameras(call):
             self._refresh_due.setdefault(cam, call)
-        due = sorted(c for c in self._refresh_due if not any(self._is_full(c, r) for r in self.rois[c]))
+        due = sorted(c for c in self._refresh_due if c in subset and not any(self._is_full(c, r) for r in self.rois[c]))
         # A due refresh rides along when it fits the canvases this call needs anyway; one that would open a
         # canvas of its own waits, at most one period (then it is forced, alone, keeping the stagger).
         forced = [c for c in due if call - self._refresh_due[c] >= self.cfg.refresh_every]
@@ -202,12 +211,12 @@ class PackedDetector:
         for cam, extra in enumerate(refreshed):
             if extra is not None:
                 out[-1][cam], seeds[cam] = self._add_refreshed(out[-1][cam], extra, n_kp)
-        self._update_rois(seeds)
+        self._update_rois(seeds, subset)
         self.last_packings = packings
         self.last_tile_images = images  # tile.index → its source image (for drawing the canvases)
         self.stats.calls += 1
         self.stats.canvases += len(packings)
-        self.stats.camera_frames += len(frames) * self.n_cameras
+        self.stats.camera_frames += len(frames) * len(subset)
         self.stats.tiles += len(items)
         self.stats.full_frame_tiles += sum(1 for _, cam, r in items[:n_roi_items] if self._is_full(cam, r))
         self.stats.refresh_tiles += len(refresh)
@@ -318,9 +327,22 @@ class PackedDetector:
                 keep.append(int(i))
         return det.select(np.asarray(sorted(keep, key=lambda j: -det.scores[j]), dtype=np.int64))
 
-    def _update_rois(self, last: list[PoseDetections]) -> None:
+    def seed_rois(self, camera: int, found: PoseDetections) -> None:
+        """Set ``camera``'s ROIs from a whole-frame detection of it (as a packed call would from its own)."""
+        seeds = [PoseDetections.empty(self.detector.format.n_keypoints)] * self.n_cameras
+        seeds[camera] = found
+        self.rois[camera] = [full_roi(*self.image_sizes[camera])]  # a whole frame: nothing was cut
+        self._update_rois(seeds, [camera])
+
+    def canvases_for(self, cameras: Sequence[int]) -> int:
+        """Canvases a call detecting only ``cameras`` needs for their current ROIs (refresh tiles left out)."""
+        items = [(0, cam, roi) for cam in cameras for roi in self.rois[cam]]
+        return len(self._plan(items, len(items))) if items else 0
+
+    def _update_rois(self, last: list[PoseDetections], cameras: Sequence[int]) -> None:
         stride = self.cfg.align_stride
-        for cam, det in enumerate(last):
+        for cam in cameras:
+            det = last[cam]
             w, h = self.image_sizes[cam]
             boxes = grow_cut_boxes(det.boxes, self.rois[cam], w, h, margin=self.cfg.roi_margin)
             rois = rois_from_boxes(boxes, w, h, margin=self.cfg.roi_margin)

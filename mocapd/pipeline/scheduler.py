@@ -58,7 +58,7 @@ from mocapd.core.terms import CostOptions
 from mocapd.errors import InputError
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
-from mocapd.pipeline.latency import LatencyStats
+from mocapd.pipeline.latency import AutoLatency, AutoLatencyOptions, LatencyStats
 from mocapd.pipeline.prediction import PosePredictor, PredictionOptions, SuitState
 from mocapd.pipeline.ringbuffer import IMU_FIELDS, LookupStatus, RingBuffer
 from mocapd.pipeline.time_alignment import estimate_imu_lag, estimate_lag, keypoint_speed
@@ -80,7 +80,10 @@ class SchedulerOptions:
     rate_hz: float = 60.0
     """Output rate (ticks per second)."""
     latency_ns: int = 150_000_000
-    """Fixed delay between wall time and solve time."""
+    """Fixed delay between wall time and solve time (unused with ``auto_latency``)."""
+    auto_latency: AutoLatencyOptions | None = None
+    """Set: the delay follows the detector (:class:`~mocapd.pipeline.latency.AutoLatency`, ``latency_s = "auto"``)
+    instead of ``latency_ns``."""
     keypoint_max_age_ns: int = 100_000_000
     """Detections further than this from the solve time are not used (held or nearest frame)."""
     keypoint_max_gap_ns: int = 250_000_000
@@ -264,6 +267,9 @@ class FixedLatencyScheduler:
             for _ in cameras
         ]
         self.solvers: dict[str, PoseSolver] = {}
+        #: the delay behind wall time now: fixed, or following the detector
+        self.auto_latency = AutoLatency(len(cameras), o.auto_latency) if o.auto_latency is not None else None
+        self.latency_ns = o.latency_ns if self.auto_latency is None else self.auto_latency.latency_ns
         self.frame = 0
         self.latency = {s: LatencyStats() for s in STAGES}
         self.cpu_ns = dict.fromkeys(STAGES[1:6], 0)
@@ -310,6 +316,8 @@ class FixedLatencyScheduler:
             self.counters["detections_rejected"] += 1
             return False
         self.latency["detect"].add(arrival_ns - t)
+        if self.auto_latency is not None:
+            self.auto_latency.observe(camera, t, arrival_ns)
         return True
 
     # ------------------------------------------------------------------------------------------- the tick
@@ -321,7 +329,9 @@ class FixedLatencyScheduler:
         the IMU inputs buffer what arrived while this tick solved (the daemon does; the IMU samples are read on the
         same event loop, so none is buffered during the tick).
         """
-        t = now_ns - self.options.latency_ns
+        if self.auto_latency is not None:
+            self.latency_ns = self.auto_latency.update(now_ns)
+        t = now_ns - self.latency_ns
         w0, c0 = self._wall(), self._cpu()
         detections, missing = self._sample_cameras(t)
         suits = {sid: self._sample_suit(suit, t) for sid, suit in self.suits.items()}
@@ -641,7 +651,14 @@ class FixedLatencyScheduler:
             "suggested_camera_offsets_ms": self.suggested_offsets,
             "output": self.options.prediction.output,
             "heading": self.heading_status(),
+            "latency": self.latency_status(),
         }
+
+    def latency_status(self) -> dict[str, Any]:
+        """The delay behind wall time: fixed, or (auto) following the detector with what it is made of."""
+        if self.auto_latency is not None:
+            return self.auto_latency.status()
+        return {"mode": "fixed", "latency_ms": round(self.latency_ns / 1e6, 1)}
 
     def heading_status(self) -> dict[str, dict[str, dict[str, Any]]]:
         """Per suit, per sensor: its bone, whether the cameras can observe its heading with this keypoint set,

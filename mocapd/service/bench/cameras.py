@@ -237,6 +237,8 @@ def summarize(
         "stage_latency_ms_last_window": {k: v for k, v in sb["latency_ms"].items() if k not in ("end_to_end",)},
         "detector_camera_frames_per_s": round(detected / wall, 2),
         "detection_kinds": sorted({str(c.get("kind")) for c in sb["cameras"]}),
+        "latency_at_end": sb["output"].get("latency"),
+        "detection_group_at_end": sb["cameras"][0].get("packing"),
         "cameras": cams,
         "people": {"person_solves": sb["counters"]["person_solves"] - sa["counters"]["person_solves"],
                    "person_solves_per_frame": round((sb["counters"]["person_solves"] - sa["counters"]["person_solves"])

@@ -12,7 +12,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from mocapd.errors import ConfigError, MocapdError
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
@@ -52,12 +52,16 @@ def check(cfg: Config) -> RigPlan:
     return plan
 
 
+def _latency_text(latency_s: float | str) -> str:
+    return "auto" if isinstance(latency_s, str) else f"{1e3 * latency_s:g} ms"
+
+
 def _rig_summary(cfg: Config) -> str:
     cams = "; ".join(f"{c.name} ({describe(c)})" for c in cfg.cameras)
     d = cfg.daemon
     return (
         f"{len(cfg.cameras)} camera(s): {cams}; {len(cfg.imu.ports)} serial IMU port(s); output "
-        f"{d.output_rate_hz:g} Hz, latency {1e3 * d.latency_s:g} ms; status http://{d.http_host}:{d.http_port}/status"
+        f"{d.output_rate_hz:g} Hz, latency {_latency_text(d.latency_s)}; status http://{d.http_host}:{d.http_port}/status"
     )
 
 
@@ -121,7 +125,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         from mocapd.service.demo import cameras
 
         opts = cameras.CameraDemoOptions(scale=args.scale, latency_s=args.latency, speed=args.speed,
-                                         packed=args.packed)  # fmt: skip
+                                         packed=_packed(args))  # fmt: skip
         return cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
                            record=args.record)  # fmt: skip
     except MocapdError as exc:  # bad config, a port in use, a session that exists, a device that did not open
@@ -135,7 +139,7 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
         from mocapd.service.bench import cameras
         from mocapd.service.demo.cameras import CameraDemoOptions
 
-        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=args.packed)
+        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=_packed(args))
         return cameras.run(args.seconds, opts, warm_up_s=args.warm_up, alone_passes=args.alone_passes)
     from mocapd.service.bench import latency
 
@@ -143,6 +147,29 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
     return 0
 
 
+def _packed(args: argparse.Namespace) -> bool | Literal["auto"]:
+    """``[detector.packing] enabled`` of the camera demo from ``--detection`` (``--packed``: packed)."""
+    if args.packed:
+        return True
+    choice: bool | Literal["auto"] = {"packed": True, "whole": False}.get(args.detection, "auto")
+    return choice
+
+
+def _latency(text: str) -> float | Literal["auto"]:
+    """``--latency``: seconds, or "auto"."""
+    if text == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: a number of seconds or 'auto'") from None
+
+
+_LATENCY_HELP = 'camera rig: delay behind wall time, s, or "auto" (default: follows the detector)'
+_DETECTION_HELP = (
+    'camera rig: "auto" (default; whichever of packed and whole-frame passes detects more frames with people '
+    'per second), "packed" (all cameras\' ROIs on shared canvases) or "whole" (one inference per camera frame)'
+)
 _RECORD_HELP = "record this run as a session into this new directory (docs/sessions.md)"
 
 
@@ -165,8 +192,9 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
     demo.add_argument("--record", type=Path, default=None, help=_RECORD_HELP)
     demo.add_argument("--scale", type=float, default=0.5, help="camera rig: image size / 1088x1920 (default 0.5)")
-    demo.add_argument("--latency", type=float, default=1.0, help="camera rig: fixed latency, s (default 1.0)")
-    demo.add_argument("--packed", action="store_true", help="camera rig: all cameras' ROIs packed per detector pass")
+    demo.add_argument("--latency", type=_latency, default="auto", help=_LATENCY_HELP)
+    demo.add_argument("--detection", choices=["auto", "packed", "whole"], default="auto", help=_DETECTION_HELP)
+    demo.add_argument("--packed", action="store_true", help="camera rig: same as --detection packed")
     demo.add_argument("--speed", type=float, default=1.0,
                       help="camera rig: video playback speed (default 1, their pace; < 1: slow motion)")  # fmt: skip
     demo.set_defaults(func=cmd_demo, fast_exit=True)
@@ -184,8 +212,9 @@ def register(subparsers: Any) -> None:
     lat.add_argument("--rig", choices=["synthetic", "cameras"], default="synthetic",
                      help="cameras: the camera demo (fake GigE cameras, real detector) in a private netns")  # fmt: skip
     lat.add_argument("--scale", type=float, default=0.5, help="cameras: image size / 1088x1920")
-    lat.add_argument("--latency", type=float, default=1.0, help="cameras: fixed latency, s (default 1.0)")
-    lat.add_argument("--packed", action="store_true", help="cameras: all cameras' ROIs packed per detector pass")
+    lat.add_argument("--latency", type=_latency, default="auto", help=_LATENCY_HELP)
+    lat.add_argument("--detection", choices=["auto", "packed", "whole"], default="auto", help=_DETECTION_HELP)
+    lat.add_argument("--packed", action="store_true", help="cameras: same as --detection packed")
     lat.add_argument("--warm-up", type=float, default=20.0, help="cameras: seconds run before measuring (default 20)")
     lat.add_argument("--alone-passes", type=int, default=20,
                      help="cameras: detector-alone passes timed before the live run (default 20)")  # fmt: skip

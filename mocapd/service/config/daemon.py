@@ -10,6 +10,7 @@ from pydantic import AfterValidator, Field
 
 from mocapd.core.heading import HeadingOptions
 from mocapd.errors import ConfigError
+from mocapd.pipeline.latency import AutoLatencyOptions
 from mocapd.pipeline.prediction import PredictionOptions
 from mocapd.pipeline.scheduler import SchedulerOptions
 from mocapd.service.config.cameras import Name
@@ -42,7 +43,9 @@ class DaemonConfig(Section):
     ordered = (("restart_min_s", "<=", "restart_max_s"),)
 
     output_rate_hz: float = Field(60.0, ge=1.0, le=500.0)
-    latency_s: float = Field(0.15, ge=0.0, le=2.0)
+    latency_s: Annotated[float, Field(ge=0.0, le=2.0)] | Literal["auto"] = 0.15
+    """Delay between wall time and solve time (s), or "auto": the smallest that covers what the detector
+    delivers (measured p95 of detection delay + detection interval), adapted slowly (docs/daemon.md)."""
     output: Literal["delayed", "predicted"] = "delayed"
     """Publish the solve of ``now - latency_s`` ("delayed"), or carry suit wearers forward to the newest IMU
     samples ("predicted", docs/daemon.md "Predicted output")."""
@@ -79,7 +82,11 @@ class DaemonConfig(Section):
             raise ConfigError(f"daemon.offsets.cameras: unknown camera(s) {unknown}; the rig has {camera_names}")
         return SchedulerOptions(
             rate_hz=self.output_rate_hz,
-            latency_ns=round(self.latency_s * 1e9),
+            latency_ns=AutoLatencyOptions.start_ns if self.latency_s == "auto" else round(self.latency_s * 1e9),
+            # a tick runs up to one period late: the delay covers that too
+            auto_latency=AutoLatencyOptions(margin_ns=round(1e9 / self.output_rate_hz))
+            if self.latency_s == "auto"
+            else None,
             keypoint_max_age_ns=round(self.keypoint_max_age_s * 1e9),
             keypoint_max_gap_ns=round(self.keypoint_max_gap_s * 1e9),
             match_px=self.match_px,

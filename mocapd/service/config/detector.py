@@ -72,7 +72,7 @@ class PackingSection(Section):
 
     ordered = (("min_scale_ratio", "<=", "max_scale_ratio"), ("n_o", "<=", "n_p"))
 
-    enabled: bool = _P.enabled
+    enabled: Annotated[bool | Literal["auto"], Allowed('true, false or "auto"')] = "auto"
     roi_margin: float = Field(_P.roi_margin, ge=0.0, le=2.0)
     gap: int = Field(_P.gap, ge=0, le=64)
     canvas_width: Annotated[int, Field(ge=0, le=8192), AfterValidator(_canvas)] = _P.canvas_width

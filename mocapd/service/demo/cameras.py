@@ -37,7 +37,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 
@@ -56,6 +56,8 @@ from mocapd.service.process import exit_now
 from mocapd.sim.fake_cameras import FakeCameraFleet, FakeCameraSpec
 from mocapd.sim.fake_gige import add_loopback_aliases
 
+AUTO_MAX_AGE_S = 0.5  # keypoint hold with latency "auto" (s): what the old fixed 1.0 s default gave
+AUTO_MAX_GAP_S = 2.0  # keypoint interpolation gap with latency "auto" (s): ditto
 SOURCE_SIZE = (1088, 1920)  # the Pose2Sim demo videos: 1088 wide, 1920 tall (portrait)
 
 
@@ -82,15 +84,17 @@ class CameraDemoOptions:
         frame shown 20 times as long). The cameras send at the slowed rate. For a detector far slower than the
         motion (a loaded CPU): the people then move little between two detections of a camera, so they can be
         tracked and solved as on a rig whose detector keeps up.
-    packed : bool
+    packed : bool or "auto"
         Detect the newest frames of all cameras together, their people's regions packed onto shared canvases
         (``[detector.packing] enabled``); False: one whole-frame inference per camera frame, the cameras taking
-        turns on ``[detector] workers`` (docs/daemon.md, Numbers).
-    latency_s : float
-        The daemon's fixed delay between solve time and wall time. A CPU detector shared by four cameras
+        turns on ``[detector] workers`` (docs/daemon.md, Numbers); "auto" (the default): whichever of the two
+        detects more frames with people per second, measured while the demo runs.
+    latency_s : float or "auto"
+        The daemon's delay between solve time and wall time. A CPU detector shared by four cameras
         delivers each camera's detections late and far apart, and the scheduler interpolates only between
         detections it already has: the latency must cover the detection delay plus the interval between two
-        detections of a camera. The keypoint hold and gap limits follow it (``latency/2``, ``2 × latency``).
+        detections of a camera. "auto" (the default) measures both and follows them (``[daemon] latency_s``);
+        a fixed value sets the keypoint hold and gap limits after it (``latency/2``, ``2 × latency``).
     """
 
     demo: str = "Demo_MultiPerson"
@@ -99,16 +103,16 @@ class CameraDemoOptions:
     max_frames: int = 100
     replug_after_s: float = 3.0
     lost_after_s: float = 2.0
-    latency_s: float = 1.0
+    latency_s: float | Literal["auto"] = "auto"
     speed: float = 1.0
-    packed: bool = False
+    packed: bool | Literal["auto"] = "auto"
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.scale <= 1.0:
             raise ConfigError(f"camera demo scale = {self.scale}; allowed: 0.05 .. 1.0")
         if self.max_frames < 1 or self.replug_after_s < 0 or self.lost_after_s <= 0:
             raise ConfigError("camera demo: max_frames >= 1, replug_after_s >= 0 and lost_after_s > 0 are required")
-        if not 0.0 < self.latency_s <= 2.0:
+        if self.latency_s != "auto" and not 0.0 < self.latency_s <= 2.0:
             raise ConfigError(f"camera demo latency = {self.latency_s} s; allowed: (0, 2]")
         if not 0.01 <= self.speed <= 1.0:
             raise ConfigError(f"camera demo speed = {self.speed}; allowed: 0.01 .. 1.0")
@@ -159,8 +163,11 @@ def demo_config(base: Config, opts: CameraDemoOptions, specs: list[FakeCameraSpe
         for s in specs
     ]  # fmt: skip
     lat = opts.latency_s
-    daemon = base.daemon.model_copy(update={"latency_s": lat, "keypoint_max_age_s": lat / 2,
-                                            "keypoint_max_gap_s": 2 * lat})  # fmt: skip
+    # With "auto" the limits cannot follow the latency (it moves): a hold of a few detection intervals at most,
+    # and interpolation across any interval a shared CPU detector leaves between two frames of a camera.
+    age, gap = (AUTO_MAX_AGE_S, AUTO_MAX_GAP_S) if lat == "auto" else (lat / 2, 2 * lat)
+    daemon = base.daemon.model_copy(update={"latency_s": lat, "keypoint_max_age_s": age,
+                                            "keypoint_max_gap_s": gap})  # fmt: skip
     packing = base.detector.packing.model_copy(update={"enabled": opts.packed})
     return base.model_copy(update={
         "cameras": parse_cameras(tables), "daemon": daemon,
@@ -346,6 +353,12 @@ def host_sockets(config: Config) -> dict[str, socket.socket]:
     return out
 
 
+def _detection_text(opts: CameraDemoOptions, config: Config) -> str:
+    if opts.packed == "auto":
+        return "packed or whole-frame passes, whichever detects more (measured)"
+    return "packed (all cameras per pass)" if opts.packed else f"{config.detector.workers} worker(s)"
+
+
 def run(
     config_path: Path | None,
     config: Config,
@@ -362,7 +375,7 @@ def run(
         f"mocapd demo: 4 fake GigE Vision cameras ({opts.pixel_format}, {opts.size[0]}x{opts.size[1]}) streaming "
         f"the Pose2Sim {opts.demo} videos {pace}, in a private network namespace; detector "
         f"{config.detector.model.input_width}x{config.detector.model.input_height} on "
-        f"{'packed (all cameras per pass)' if opts.packed else f'{config.detector.workers} worker(s)'}",
+        f"{_detection_text(opts, config)}",
         flush=True,
     )
     port = inherited["http-fd"].getsockname()[1]
