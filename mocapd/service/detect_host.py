@@ -122,8 +122,9 @@ async def serve(
 
     try:
         async with asyncio.TaskGroup() as tg:
-            tasks = [tg.create_task(supervisor.supervise(f"keypoints:{s.name}", functools.partial(s.run,
-                     publisher.sink))) for s in sources]  # fmt: skip
+            runs = [(f"keypoints:{s.name}", functools.partial(s.run, _sink(publisher, i))) for i, s in
+                    enumerate(sources)]  # fmt: skip
+            tasks = [tg.create_task(supervisor.supervise(name, factory)) for name, factory in runs]
             end = None if seconds is None else loop.time() + seconds
             ready = False
             while not stop.is_set() and (end is None or loop.time() < end):
@@ -141,6 +142,12 @@ async def serve(
     finally:
         publisher.close()
         await loop.run_in_executor(None, session.close)
+
+
+def _sink(publisher: DetectionPublisher, index: int) -> Callable[[int, int, Detections2D, int], None]:
+    """The sink of the host's ``index``-th source (a source's own camera number is that of its rig, which for a
+    host publishing part of a simulated rig is not its place among the host's cameras)."""
+    return lambda _camera, capture_ns, dets, arrival_ns: publisher.sink(index, capture_ns, dets, arrival_ns)
 
 
 def run(config: Config, *, seconds: float | None = None, on_ready: Callable[[str], None] | None = None) -> int:
