@@ -25,6 +25,7 @@ def test_camera_hosts_in_namespaces_solve_lose_and_rejoin(tmp_path: Path) -> Non
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-5000:]
     r: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    (tmp_path / "result.json").write_text(json.dumps(r, indent=1), encoding="utf-8")  # for a look after the run
     out = "".join(r["output"])
     before = r["before"]["remote_hosts"]
     for host in ("hostA", "hostB"):
