@@ -114,13 +114,21 @@ def _measure(solver: Solver, hosts: list[int], seconds: float, warmup: float) ->
     c1, h1, t1 = _cpu([solver.proc.pid]), _cpu(hosts), time.monotonic()
     wall = t1 - t0
 
-    def delivered(s: dict[str, Any]) -> int:
+    def delivered(s: dict[str, Any]) -> int:  # a remote camera's delivered; a local camera's timeline frames
         return sum(int(c.get("delivered", c.get("frames", 0))) for c in s["cameras"])
 
+    frames = s1["output"]["frames"] - s0["output"]["frames"]
+    dets = delivered(s1) - delivered(s0)
     out: dict[str, Any] = {
         "solver_cpu_cores": round((c1 - c0) / wall, 3),
+        # The two runs need not reach the same output rate on a loaded machine: CPU per unit of work compares them.
+        "solver_cpu_ms_per_output_frame": round(1e3 * (c1 - c0) / max(frames, 1), 3),
+        "solver_cpu_ms_per_detection": round(1e3 * (c1 - c0) / max(dets, 1), 3),
         "solver_cpu_per_camera_cores": round((c1 - c0) / wall / N_CAMERAS, 4),
-        "detections_per_s": round((delivered(s1) - delivered(s0)) / wall, 1),
+        "detections_per_s": round(dets / wall, 1),
+        "stage_cpu_ms_per_output_frame": {
+            k: round(1e3 * (s1["cpu_s"][k] - s0["cpu_s"][k]) / max(frames, 1), 3) for k in ("sample", "sort", "solve")
+        },
         "detect_latency_ms": {k: s1["latency_ms"]["detect"][k] for k in ("p50", "p95")},
         "solve_ms": {k: s1["latency_ms"]["solve"][k] for k in ("p50", "p95")},
         "output_hz": s1["output"]["achieved_hz"],
@@ -137,12 +145,34 @@ def _measure(solver: Solver, hosts: list[int], seconds: float, warmup: float) ->
     return out
 
 
+def codec_cost(people: int, repeats: int = 2000) -> dict[str, Any]:
+    """Median encode and decode time of one camera frame's ``det`` message (COCO-17, ``people`` people)."""
+    from mocapd.core.sorting import Detections2D
+    from mocapd.protocols.remote import Decoder, encode_detections
+
+    rng = np.random.default_rng(0)
+    dets = Detections2D(rng.uniform(0, 500, (people, 17, 2)), rng.uniform(0, 1, (people, 17)))
+    data = encode_detections("hostA", "cam0", 1, 1, 1, 1, 640, 480, dets)
+    decoder = Decoder()
+    enc, dec = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter_ns()
+        encode_detections("hostA", "cam0", 1, 1, 1, 1, 640, 480, dets)
+        t1 = time.perf_counter_ns()
+        decoder.decode(data)
+        dec.append(time.perf_counter_ns() - t1)
+        enc.append(t1 - t0)
+    return {"message_bytes": len(data), "encode_us_median": round(float(np.median(enc)) / 1e3, 1),
+            "decode_us_median": round(float(np.median(dec)) / 1e3, 1)}  # fmt: skip
+
+
 def run(seconds: float, warmup: float, people: int, rate: float) -> dict[str, Any]:
     from mocapd.sim.camera_hosts import host_config, solver_config, toml_tables, write_ring_calibration
 
     daemon = {"http_port": 0, "latency_s": 0.3, "keypoint_max_age_s": 0.2}
     result: dict[str, Any] = {"cameras": N_CAMERAS, "hosts": len(HOSTS), "people": people, "camera_rate_hz": rate,
-                              "cpu_count": psutil.cpu_count(), "seconds": seconds}  # fmt: skip
+                              "cpu_count": psutil.cpu_count(), "seconds": seconds,
+                              "codec": codec_cost(people)}  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         local = folder / "local.toml"
@@ -186,6 +216,7 @@ def run(seconds: float, warmup: float, people: int, rate: float) -> dict[str, An
     result["solver_cpu_per_camera_remote_minus_local_cores"] = round(
         re_["solver_cpu_per_camera_cores"] - lo["solver_cpu_per_camera_cores"], 4
     )
+    result["load_average_1_5_15"] = [round(v, 2) for v in psutil.getloadavg()]
     return result
 
 
