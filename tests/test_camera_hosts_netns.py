@@ -36,8 +36,8 @@ def test_camera_hosts_in_namespaces_solve_lose_and_rejoin(tmp_path: Path) -> Non
         x, y, z = p["root_m"]
         assert 0.5 < y < 1.3 and abs(x) < 3.0 and abs(z) < 3.0 and p["views"] >= 2, p
     assert r["stream"]["max_subjects"] == 2 and r["stream"]["frames_with_two"] >= 10
-    assert r["lost_after_s"] <= 3.0 + 1.0  # zenoh.lost_after_s + the status poll
     lost = r["while_lost"]
+    assert lost["remote_hosts"]["hostB"]["last_seen_s"] > 3.0  # lost once silent for zenoh.lost_after_s
     assert lost["remote_hosts"]["hostB"]["lost"] and not lost["remote_hosts"]["hostA"]["lost"]
     assert lost["missing_cameras"] == 2
     after = r["after"]["remote_hosts"]["hostB"]
