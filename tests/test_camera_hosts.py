@@ -226,6 +226,60 @@ def test_user_password_settings_read_the_password_file(tmp_path: Path) -> None:
         session_settings(z)
 
 
+def _certificates(folder: Path) -> None:
+    """A throw-away CA and a certificate for 127.0.0.1 signed by it (openssl, setup/steps/23-openssl.sh)."""
+
+    def ssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True)
+
+    ssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+        "-subj", "/CN=mocapd-test-ca")  # fmt: skip
+    ssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "solver.key", "-out", "solver.csr", "-subj", "/CN=solver")
+    (folder / "ext").write_text("subjectAltName=IP:127.0.0.1\n", encoding="utf-8")
+    ssl("x509", "-req", "-in", "solver.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out",
+        "solver.pem", "-days", "2", "-extfile", "ext")  # fmt: skip
+    (folder / "other").mkdir()
+    ssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "other/ca.key", "-out", "other/ca.pem", "-days",
+        "2", "-subj", "/CN=someone-else")  # fmt: skip
+
+
+def _delivered_over(listener: zenoh.Session, talker: zenoh.Session) -> bool:
+    got: list[bytes] = []
+    listener.declare_subscriber("mocapd/tls-test/**", lambda s: got.append(s.payload.to_bytes()))
+    for _ in range(40):
+        talker.put("mocapd/tls-test/x", b"over tls")
+        time.sleep(0.1)
+        if got:
+            return True
+    return False
+
+
+def test_tls_sessions_talk_with_the_ca_and_not_without_it(tmp_path: Path) -> None:
+    """The TLS configuration of docs/scaling.md: a tls/ listener with a CA-signed certificate; a client that trusts
+    that CA gets through, one that trusts another CA does not."""
+    from mocapd.io.zenoh_link import open_session
+
+    _certificates(tmp_path)
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    solver = open_session(parse_config({"zenoh": {
+        "listen": [endpoint], "tls_root_ca": str(tmp_path / "ca.pem"), "tls_cert": str(tmp_path / "solver.pem"),
+        "tls_key": str(tmp_path / "solver.key")}}).zenoh)  # fmt: skip
+    sessions = [solver]
+    try:
+        trusting = open_session(parse_config({"zenoh": {"listen": [], "connect": [endpoint],
+                                                        "tls_root_ca": str(tmp_path / "ca.pem")}}).zenoh)  # fmt: skip
+        sessions.append(trusting)
+        assert _delivered_over(solver, trusting)
+        other_ca = str(tmp_path / "other" / "ca.pem")
+        stranger = open_session(parse_config({"zenoh": {"listen": [], "connect": [endpoint],
+                                                        "tls_root_ca": other_ca}}).zenoh)  # fmt: skip
+        sessions.append(stranger)
+        assert not _delivered_over(solver, stranger)
+    finally:
+        for s in sessions:
+            s.close()  # type: ignore[no-untyped-call]
+
+
 def test_detect_host_refuses_to_listen_off_loopback_without_auth(tmp_path: Path) -> None:
     cfg = tmp_path / "host.toml"
     cfg.write_text(host_config("h", [{"name": "cam0", "source": "synthetic"}], [],
