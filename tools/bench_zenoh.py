@@ -105,7 +105,9 @@ def _cpu(pids: list[int]) -> float:
     return total
 
 
-def _measure(solver: Solver, hosts: list[int], seconds: float, warmup: float) -> dict[str, Any]:
+def _measure(
+    solver: Solver, hosts: list[int], seconds: float, warmup: float, n_cameras: int = N_CAMERAS
+) -> dict[str, Any]:
     time.sleep(warmup)
     s0 = _status(solver.url)
     c0, h0, t0 = _cpu([solver.proc.pid]), _cpu(hosts), time.monotonic()
@@ -124,7 +126,7 @@ def _measure(solver: Solver, hosts: list[int], seconds: float, warmup: float) ->
         # The two runs need not reach the same output rate on a loaded machine: CPU per unit of work compares them.
         "solver_cpu_ms_per_output_frame": round(1e3 * (c1 - c0) / max(frames, 1), 3),
         "solver_cpu_ms_per_detection": round(1e3 * (c1 - c0) / max(dets, 1), 3),
-        "solver_cpu_per_camera_cores": round((c1 - c0) / wall / N_CAMERAS, 4),
+        "solver_cpu_per_camera_cores": round((c1 - c0) / wall / n_cameras, 4),
         "detections_per_s": round(dets / wall, 1),
         "stage_cpu_ms_per_output_frame": {
             k: round(1e3 * (s1["cpu_s"][k] - s0["cpu_s"][k]) / max(frames, 1), 3) for k in ("sample", "sort", "solve")
@@ -220,6 +222,54 @@ def run(seconds: float, warmup: float, people: int, rate: float) -> dict[str, An
     return result
 
 
+def run_detector(seconds: float, warmup: float, cameras: int) -> dict[str, Any]:
+    """The same ``cameras`` Pose2Sim multi-person videos with the real detector: as ``video`` cameras of
+    ``mocapd run`` (local), and on one ``mocapd detect-host`` feeding ``mocapd run`` with ``zenoh`` cameras."""
+    from mocapd.io.pose2sim_demo import CAMERAS, demo_video
+    from mocapd.service.cli import main as cli
+    from mocapd.sim.camera_hosts import host_config, solver_config, toml_tables
+    from tests.test_run_rig import _calib
+
+    names = list(CAMERAS[:cameras])
+    daemon = {"http_port": 0, "latency_s": 2.0, "keypoint_max_age_s": 1.0, "keypoint_max_gap_s": 5.0}
+    detector = {"intra_op_threads": 1}
+    result: dict[str, Any] = {"cameras": cameras, "seconds": seconds, "video": "Pose2Sim Demo_MultiPerson 1088x1920"}
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        calibration = folder / "calibration.toml"
+        assert cli(["calibrate", "convert", str(_calib()), str(calibration)]) == 0
+        cams = [{"name": n, "source": "video", "path": str(demo_video("Demo_MultiPerson", n))} for n in names]
+        local = folder / "local.toml"
+        tables: dict[str, dict[str, Any]] = {
+            "daemon": daemon, "websocket": {"port": 0}, "calibration": {"file": str(calibration)},
+            "detector": detector, "detector.packing": {"enabled": False},
+        }  # fmt: skip
+        local.write_text(toml_tables(tables, cams), encoding="utf-8")
+        solver = Solver(local)
+        try:
+            result["local"] = _measure(solver, [], seconds, warmup, n_cameras=cameras)
+        finally:
+            solver.stop()
+        endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        remote = folder / "remote.toml"
+        remote.write_text(solver_config(dict.fromkeys(names, "hostA"), calibration, [endpoint],
+                                        extra={"daemon": daemon}), encoding="utf-8")  # fmt: skip
+        host_cfg = folder / "hostA.toml"
+        host_cfg.write_text(host_config("hostA", cams, [endpoint], extra={
+            "calibration": {"file": str(calibration)}, "detector": detector, "detector.packing": {"enabled": False}}),
+            encoding="utf-8")  # fmt: skip
+        solver = Solver(remote)
+        host = subprocess.Popen([sys.executable, "-m", "mocapd", "detect-host", "--config", str(host_cfg)],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        try:
+            result["remote"] = _measure(solver, [host.pid], seconds, warmup, n_cameras=cameras)
+        finally:
+            solver.stop()
+            host.send_signal(signal.SIGINT)
+            host.wait(timeout=30)
+    return result
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=20.0)
@@ -227,6 +277,8 @@ def main() -> None:
     p.add_argument("--people", type=int, default=2)
     p.add_argument("--rate", type=float, default=30.0, help="camera frame rate, Hz")
     p.add_argument("--role", choices=["bench", "host"], default="bench")
+    p.add_argument("--detector", type=int, default=0, metavar="N",
+                   help="instead: N Pose2Sim videos with the real detector, local vs on one detect-host")  # fmt: skip
     p.add_argument("--config")
     p.add_argument("--host-cameras")
     p.add_argument("--epoch-ns", type=int)
@@ -234,6 +286,9 @@ def main() -> None:
     if args.role == "host":
         cams = [int(c) for c in args.host_cameras.split(",")]
         asyncio.run(host_role(args.config, cams, args.epoch_ns, args.people, args.rate))
+        return
+    if args.detector:
+        print(json.dumps(run_detector(args.seconds, args.warmup, args.detector), indent=2))
         return
     print(json.dumps(run(args.seconds, args.warmup, args.people, args.rate), indent=2))
 
