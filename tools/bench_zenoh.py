@@ -64,7 +64,7 @@ async def host_role(config: str, cameras: list[int], epoch_ns: int, people: int,
 
 # ------------------------------------------------------------------------------------------------ measurement
 def _status(url: str) -> dict[str, Any]:
-    with urllib.request.urlopen(f"{url}/status", timeout=5) as r:
+    with urllib.request.urlopen(f"{url}/status", timeout=60) as r:  # a starved loaded daemon answers late
         out: dict[str, Any] = json.loads(r.read())
         return out
 
