@@ -153,7 +153,8 @@ def _name(v: Any, what: str) -> str:
 def _floats(v: Any, count: int, what: str) -> FloatArray:
     if type(v) is not bytes or len(v) != count * 4:
         raise Rejected(what)
-    out = np.frombuffer(v, dtype=_F32).astype(np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN in the bytes: refused just below, not warned about
+        out = np.frombuffer(v, dtype=_F32).astype(np.float64)
     if not np.isfinite(out).all():
         raise Rejected(f"{what}_not_finite")
     return out
