@@ -159,6 +159,8 @@ def valid_example(s: dict[str, Any]) -> Any:
     """A value the schema accepts (for array items and table entries)."""
     if "enum" in s or "const" in s:
         return s.get("enum", [s.get("const")])[0]
+    if "examples" in s:  # a string of a format (e.g. a Zenoh endpoint) shows a valid one in its schema
+        return s["examples"][0]
     kind = s.get("type")
     if kind in ("integer", "number"):
         lo, lo_in, hi, _ = bounds(s)
@@ -427,6 +429,43 @@ CROSS_CASES: dict[tuple[str, str], list[Case]] = {
         Case({"udp.vmc.destinations": ["192.168.1.2:39539"]}, ("udp.vmc.destinations", "udp.allow_remote")),
         Case({"udp.vmc.destinations": ["192.168.1.2:39539"], "udp.allow_remote": True}, ()),
     ],
+    ("ZenohConfig", "_secured_off_loopback"): [
+        Case({"zenoh.listen": ["tcp/0.0.0.0:7447"]}, ("zenoh.listen", "zenoh.user", "zenoh.users_file")),
+        Case(
+            {"zenoh.listen": ["tcp/10.0.0.1:7447"], "zenoh.user": "a", "zenoh.password_file": "p"},
+            ("zenoh.listen", "zenoh.users_file"),
+        ),
+        Case(
+            {
+                "zenoh.listen": ["tcp/10.0.0.1:7447"],
+                "zenoh.user": "a",
+                "zenoh.password_file": "p",
+                "zenoh.users_file": "u",
+            },
+            (),
+        ),
+        Case({"zenoh.listen": [], "zenoh.connect": ["tcp/10.0.0.1:7447"]}, ("zenoh.connect", "zenoh.user")),
+        Case(
+            {"zenoh.listen": [], "zenoh.connect": ["tcp/10.0.0.1:7447"], "zenoh.user": "a", "zenoh.password_file": "p"},
+            (),
+        ),
+        Case({"zenoh.user": "a"}, ("zenoh.user", "zenoh.password_file")),
+        Case({"zenoh.listen": ["tls/10.0.0.1:7447"]}, ("zenoh.listen", "zenoh.tls_root_ca")),
+        Case(
+            {"zenoh.listen": ["tls/10.0.0.1:7447"], "zenoh.tls_root_ca": "ca.pem"},
+            ("zenoh.listen", "zenoh.tls_cert", "zenoh.tls_key"),
+        ),
+        Case(
+            {
+                "zenoh.listen": ["tls/10.0.0.1:7447"],
+                "zenoh.tls_root_ca": "ca.pem",
+                "zenoh.tls_cert": "c.pem",
+                "zenoh.tls_key": "k.pem",
+            },
+            (),
+        ),
+        Case({"zenoh.listen": ["tcp/[::1]:7447", "tcp/127.0.0.2:7447"]}, ()),
+    ],
     ("WebSocketConfig", "_token_off_loopback"): [
         Case({"websocket.host": "0.0.0.0"}, ("websocket.host", "websocket.token")),
         Case({"websocket.host": "192.168.1.5", "websocket.token": "x" * 15}, ("websocket.host", "websocket.token")),
@@ -508,6 +547,15 @@ FORMAT_CASES: dict[str, list[tuple[str, Any]]] = {
     "_distinct_ids": [("udp.mvn.character_ids", {"suit:a": 1, "suit:b": 1})],
     "_host": [("websocket.host", "example.com"), ("websocket.host", "")],
     "_token": [("websocket.token", "a b"), ("websocket.token", "tab\there")],
+    "_endpoint": [
+        ("zenoh.listen", ["127.0.0.1:7447"]),
+        ("zenoh.listen", ["udp/127.0.0.1:7447"]),
+        ("zenoh.listen", ["tcp/localhost:7447"]),
+        ("zenoh.connect", ["tcp/127.0.0.1:65536"]),
+        ("zenoh.connect", ["tcp/300.0.0.1:7447"]),
+        ("zenoh.connect", ["tcp/::1:7447"]),
+    ],
+    "_host_name": [("zenoh.host", "a b"), ("zenoh.rig", "r/x"), ("zenoh.host", "h" * 33)],
 }
 #: validators exercised for every key that has them: a TOML array as a tuple (no rule), NUL refused in every
 #: string (bad_values), ``unique`` (test_arrays_of_distinct_entries_refuse_repeats)

@@ -38,7 +38,9 @@ from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileS
 from mocapd.pipeline.clocksync import ClockSync
 from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource, KeypointSource
+from mocapd.pipeline.latency import AutoLatencyOptions
 from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
+from mocapd.pipeline.remote_cameras import RemoteRig, ZenohKeypointSource
 from mocapd.pipeline.scheduler import Suit
 from mocapd.service.config import Config
 from mocapd.service.config.cameras import (
@@ -48,6 +50,7 @@ from mocapd.service.config.cameras import (
     SyntheticCamera,
     UvcCamera,
     VideoCamera,
+    ZenohCamera,
 )
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.daemon import Rig
@@ -198,9 +201,15 @@ class BuiltRig:
     epoch_ns: int = 0
     """Host time of the synthetic world's t = 0."""
     simulated: SimulatedSuits | None = None
+    remote: RemoteRig | None = None
+    """The Zenoh session of the rig's ``zenoh`` cameras (camera hosts), when it has any."""
 
     def close(self) -> None:
-        """Stop the detector's workers (after the detection in flight) and the simulated devices."""
+        """Stop the detector's workers (after the detection in flight), the simulated devices and the Zenoh
+        session."""
+        if self.remote is not None:
+            self.remote.close()
+            self.remote = None
         if self.detector is not None:
             self.detector.close()
             self.detector = None
@@ -218,27 +227,43 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     fmt = keypoint_format(config.detector.model.keypoint_format)
     targets = fmt.track_targets(skeleton)
     backoff = (config.daemon.restart_min_s, config.daemon.restart_max_s)
-    captures = [frame_source(c, cam, backoff) for c, cam in zip(config.cameras, plan.cameras, strict=True)]
+    pairs = list(zip(config.cameras, plan.cameras, strict=True))
+    local = {i: frame_source(c, cam, backoff) for i, (c, cam) in enumerate(pairs) if not isinstance(c, ZenohCamera)}
+    captures = list(local.values())
+    remote_hosts = sorted({c.host for c in config.cameras if isinstance(c, ZenohCamera)})
+    remote = RemoteRig(config.zenoh, remote_hosts, clock=clock) if remote_hosts else None
     detector_config = config.detector.options()
-    detector = make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],
-                             target_columns(detector_config, targets.names))  # fmt: skip
+    # A rig of camera hosts only runs no detector here: the hosts run it.
+    detector = (make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],
+                              target_columns(detector_config, targets.names)) if local else None)  # fmt: skip
     sources: list[KeypointSource] = []
+    # A remote frame older than the latency on arrival is counted late; under "auto" the latency moves, so only
+    # what is older than its ceiling is surely late here (the timeline drops the rest as it does local frames).
+    latency_s = config.daemon.latency_s
+    latency_ns = AutoLatencyOptions().max_ns if latency_s == "auto" else round(latency_s * 1e9)
     try:
-        for i, (cam, capture) in enumerate(zip(config.cameras, captures, strict=True)):
+        for i, (cam, calibrated) in enumerate(pairs):
+            if isinstance(cam, ZenohCamera):
+                assert remote is not None
+                sources.append(ZenohKeypointSource(i, cam.name, cam.host, remote, (calibrated.width, calibrated.height),
+                                                   len(targets), latency_ns, clock=clock))  # fmt: skip
+                continue
+            capture = local[i]
             # A camera's own frame clock (exposure time) beats the host's arrival time; a replayed file has none
             # worth mapping: its frames are published at their due time.
             clk = ClockSync(tick_hz=1e9, wrap_bits=64) if isinstance(cam, AravisCamera | UvcCamera) else None
             if isinstance(detector, PackedDetectionGroup):
                 sources.append(PackedKeypointSource(i, capture, detector, device_clock=clk, clock=clock))
-            else:
+            elif detector is not None:
                 sources.append(DetectorKeypointSource(i, capture, detector, executor=detector.executor,
                                                       device_clock=clk, clock=clock))  # fmt: skip
         suits = load_suits(config.imu, skeleton)
     except BaseException:
-        detector.close()
+        if detector is not None:
+            detector.close()
         raise
     rig = Rig(plan.cameras, sources, skeleton, targets, prior, suits)
-    return BuiltRig(rig, config.imu, captures, detector)
+    return BuiltRig(rig, config.imu, captures, detector, remote=remote)
 
 
 def frame_source(cam: CameraConfig, calibrated: Camera, backoff_s: tuple[float, float]) -> ThreadedSource:

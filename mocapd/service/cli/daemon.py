@@ -1,4 +1,4 @@
-"""``mocapd run``, ``mocapd demo``, ``mocapd check-config`` and ``mocapd bench latency``.
+"""``mocapd run``, ``mocapd detect-host``, ``mocapd demo``, ``mocapd check-config`` and ``mocapd bench latency``.
 
 All of them build the daemon through :mod:`mocapd.service.assembly`: ``run`` from the user's config, ``demo``
 and the benchmark from a generated one.
@@ -115,6 +115,31 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
 
 
+def cmd_detect_host(args: argparse.Namespace) -> int:
+    path = args.config
+    try:
+        cfg = _load(args.config)
+    except ConfigError as exc:
+        for line in str(exc).splitlines():
+            print(f"{path}: error: {line}", file=sys.stderr)
+        return 2
+    from mocapd.service import detect_host
+
+    cams = ", ".join(c.name for c in cfg.cameras)
+    print(f"mocapd detect-host: {len(cfg.cameras)} camera(s): {cams}; rig {cfg.zenoh.rig!r}, listen "
+          f"{list(cfg.zenoh.listen)}, connect {list(cfg.zenoh.connect)}", flush=True)  # fmt: skip
+
+    def ready(host: str) -> None:
+        print(f"ready: host {host} publishing mocapd/{cfg.zenoh.rig}/<camera>/detections (Ctrl-C stops)", flush=True)
+
+    try:
+        return detect_host.run(cfg, seconds=args.seconds if args.seconds > 0 else None, on_ready=ready)
+    except MocapdError as exc:  # bad rig, a session that cannot listen, a device that does not open
+        for line in str(exc).splitlines():
+            print(f"{path}: error: {line}", file=sys.stderr)
+        return 2
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     try:
         cfg = _load(args.config, args.http_port)
@@ -182,6 +207,12 @@ def register(subparsers: Any) -> None:
     run.add_argument("--record", type=Path, default=None, help=_RECORD_HELP)
     run.add_argument("--verbose", action="store_true", help="print a status line per second")
     run.set_defaults(func=cmd_run, fast_exit=True)
+
+    host = subparsers.add_parser("detect-host", help="a camera host: run its cameras and detector, publish the "
+                                 "detections over Zenoh to a solver host (docs/scaling.md)")  # fmt: skip
+    host.add_argument("--config", type=Path, required=True, help="config file: [[cameras]], [calibration], [zenoh]")
+    host.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: until Ctrl-C)")
+    host.set_defaults(func=cmd_detect_host, fast_exit=True)
 
     demo = subparsers.add_parser("demo", help="the full daemon on an embedded rig, no hardware needed")
     demo.add_argument(

@@ -41,6 +41,7 @@ from mocapd.service.config.schema import PathStr, RuleError, Section, Seq, valid
 from mocapd.service.config.tracking import TrackingConfig
 from mocapd.service.config.udp import UdpConfig
 from mocapd.service.config.websocket import WebSocketConfig, is_loopback
+from mocapd.service.config.zenoh import ZenohConfig
 
 DEFAULT_CONFIG = Path(str(resources.files("mocapd").joinpath("config.toml")))
 """The shipped config.toml (inside the package, so an installed wheel has it): every key, documented."""
@@ -194,6 +195,7 @@ class Config(Section):
     """``[[cameras]]``: validated entry by entry against each one's ``source`` kind (:func:`parse_config`)."""
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
     synthetic: SyntheticConfig = Field(default_factory=SyntheticConfig)
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
 
     @model_validator(mode="after")
     def _ports_apart(self) -> Self:
@@ -305,7 +307,10 @@ def resolve_paths(config: Config, base: Path) -> Config:
         else:
             cameras.append(cam)
     calibration = config.calibration.model_copy(update={"file": absolute(config.calibration.file)})
-    return config.model_copy(update={"cameras": tuple(cameras), "calibration": calibration})
+    z = config.zenoh
+    keys = ("password_file", "users_file", "tls_root_ca", "tls_cert", "tls_key")
+    zenoh = z.model_copy(update={k: absolute(getattr(z, k)) for k in keys})
+    return config.model_copy(update={"cameras": tuple(cameras), "calibration": calibration, "zenoh": zenoh})
 
 
 def config_document(config: Config) -> dict[str, Any]:

@@ -173,13 +173,23 @@ class SyntheticCamera(_Camera):
     source: Literal["synthetic"]
 
 
-CameraConfig = AravisCamera | UvcCamera | VideoCamera | ImagesCamera | SyntheticCamera
+class ZenohCamera(_Camera):
+    """A camera of a camera host (``mocapd detect-host``): its detections arrive over Zenoh ([zenoh]) on
+    ``mocapd/<rig>/<name>/detections``. Calibrated like any camera."""
+
+    source: Literal["zenoh"]
+    host: Name
+    """The camera host's name ([zenoh] host of its ``mocapd detect-host``): whose clock its times are on."""
+
+
+CameraConfig = AravisCamera | UvcCamera | VideoCamera | ImagesCamera | SyntheticCamera | ZenohCamera
 CAMERA_KINDS: dict[str, type[_Camera]] = {
     "aravis": AravisCamera,
     "uvc": UvcCamera,
     "video": VideoCamera,
     "images": ImagesCamera,
     "synthetic": SyntheticCamera,
+    "zenoh": ZenohCamera,
 }
 
 
@@ -249,6 +259,8 @@ def describe(camera: CameraConfig) -> str:
         how = camera.device
     elif isinstance(camera, VideoCamera | ImagesCamera):
         how = camera.path
+    elif isinstance(camera, ZenohCamera):
+        how = f"from host {camera.host}"
     else:
         how = "simulated"
     return f"{camera.source} {how}"
