@@ -172,9 +172,9 @@ def solver_targets() -> tuple[str, ...]:
 
 
 def _ring_size() -> tuple[int, int]:
-    from mocapd.service.rig import synthetic_cameras
+    from mocapd.core.synthetic import named_ring_rig
 
-    cam = synthetic_cameras(["cam0"])[0]
+    cam = named_ring_rig(["cam0"])[0]
     return cam.width, cam.height
 
 

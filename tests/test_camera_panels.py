@@ -98,7 +98,7 @@ async def test_camera_panels_draw_the_overlays_where_the_calibration_projects() 
                 await asyncio.sleep(0.5)  # the paused panels are drawn
                 panels = await page.evaluate("mocapdViewer.cameraPanels()")
                 img = await page.screenshot()
-                checked = 0
+                checked = well_seen = 0
                 for p in panels:
                     cam = cameras[p["camera"]]
                     assert p["name"] == cam.name and p["image"]
@@ -128,8 +128,11 @@ async def test_camera_panels_draw_the_overlays_where_the_calibration_projects() 
                         # (2.5 px); its bones leave the dot: look 4 px around.
                         hits = [bool(mask[round(b) - 4 : round(b) + 5, round(a) - 4 : round(a) + 5].any())
                                 for a, b in xy[visible]]  # fmt: skip
-                        assert len(hits) >= 6 and sum(hits) >= 0.85 * len(hits), (p["name"], s["id"], hits)
+                        assert sum(hits) >= 0.85 * len(hits), (p["name"], s["id"], hits)
                         checked += 1
+                        # A subject may be mostly covered or out of one camera's frame at the drawn instant (5
+                        # visible joints, all hit, in one run): the count of evidence is checked over all panels.
+                        well_seen += len(hits) >= 6
                     white = near(img, np.array([255, 255, 255]), 30)
                     assert dots and np.mean([white[round(b) - 1 : round(b) + 2, round(a) - 1 : round(a) + 2].any()
                                              for a, b in dots]) >= 0.8  # fmt: skip
@@ -139,7 +142,7 @@ async def test_camera_panels_draw_the_overlays_where_the_calibration_projects() 
                     # A few pixels of 1920 when the solve is settled; tens for a person close to the camera or
                     # while a loaded machine misses ticks. The synthetic cameras detect at 30 Hz.
                     assert 0.0 <= rep < 0.1 * cam.width and 5.0 < rate < 60.0, caption
-                assert checked == 8
+                assert checked == 8 and well_seen >= 6, well_seen
 
                 # Off: the page stops asking and the server stops sending.
                 await page.evaluate("mocapdViewer.pause(false); mocapdViewer.setCameras(false)")

@@ -96,7 +96,10 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     assert s["live_over_alone_packed"] == round(
         s["live_detected_camera_frames_per_s"] / alone["packed_camera_frames_per_s"], 3
     )
-    assert s["live_detection"] == ["detector"]  # the demo as shipped: whole frames
+    # The demo as shipped: one packed group whose chooser runs packed or whole-frame passes ("auto").
+    assert s["live_detection"] == ["packed detector"]
+    assert r["detection_group_at_end"]["mode"]["mode"] in ("packed", "whole")
+    assert r["latency_at_end"]["mode"] == "auto"
     detected = sum(c["detected_fps"] for c in r["cameras"].values())
     assert abs(detected - s["live_detected_camera_frames_per_s"]) <= 0.05
     assert 0 < s["end_to_end_ms_p50"] <= s["end_to_end_ms_p95"]

@@ -139,8 +139,13 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
         device = next(x for x in d.imu.devices if x.config.path == str(sim.link))
         await wait_for(lambda: not device.streaming.is_set(), 10, "the unplug to be noticed")
         await wait_for(lambda: suited(12), 10, "the suit solved with 12 IMUs")
-        st = json.loads((await http_get(port, "/status"))[2])
-        dev = next(x for x in st["imu"]["devices"] if x["path"] == str(sim.link))
+        # /status is a snapshot taken at most MAX_SNAPSHOT_HZ times a second: poll until it is newer than the unplug.
+        for _ in range(100):
+            st = json.loads((await http_get(port, "/status"))[2])
+            dev = next(x for x in st["imu"]["devices"] if x["path"] == str(sim.link))
+            if not dev["streaming"]:
+                break
+            await asyncio.sleep(0.05)
         assert not dev["streaming"] and dev["disconnects"] >= 1
         assert len(rec.frames) > frames_before
         sim.replug()

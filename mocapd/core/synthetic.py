@@ -6,6 +6,7 @@ motion); it produces *exact* measurements of a known pose so a solver's behaviou
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
@@ -40,6 +41,12 @@ def ring_rig(
         pos = np.array([radius * np.sin(a), height, radius * np.cos(a)])
         cams.append(look_at(f"cam{i}", pos, np.array([0.0, target_height, 0.0]), width, image_height, focal))
     return cams
+
+
+def named_ring_rig(names: Sequence[str]) -> list[Camera]:
+    """The ring rig of ``len(names)`` cameras (defaults of :func:`ring_rig`), named ``names`` in order (the
+    simulated rig of ``source = "synthetic"`` cameras and of synthetic camera hosts)."""
+    return [dataclasses.replace(c, name=n) for c, n in zip(ring_rig(len(names)), names, strict=True)]
 
 
 # Joint-angle amplitudes (radians) per bone for the synthetic walk-like motion: (x, y, z) of the local

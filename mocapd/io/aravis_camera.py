@@ -402,12 +402,16 @@ class AravisSource(ThreadedSource):
         self._stream: Any = None
         self._views: dict[int, NDArray[np.uint8]] = {}
         self._control_lost = threading.Event()
+        self._lost_handler = 0  # the "control-lost" signal handler's id on the open device
+        # Objects of a closed opening, released on this capture thread at the next opening (see _close).
+        self._retired: tuple[Any, ...] = ()
         self._size = (0, 0)
         self._last_frame_ns = 0
         self._stream_base = (0, 0)  # counters before this opening, added to the stream's own
         self._success = load_aravis().BufferStatus.SUCCESS  # looked up once, not per frame
 
     def _open(self) -> None:
+        self._retired = ()  # the last opening's camera and stream end here, on the capture thread
         with _OPEN_LOCK:
             self._open_locked()
         self._last_frame_ns = time.monotonic_ns()
@@ -425,7 +429,7 @@ class AravisSource(ThreadedSource):
             raise DeviceError(f"camera {self.name!r} delivers {width}x{height} {self.format.name}, ring is {w}x{h}x{c}")
         self._size = (width, height)
         try:
-            camera.get_device().connect("control-lost", lambda *_: self._control_lost.set())
+            self._lost_handler = camera.get_device().connect("control-lost", lambda *_: self._control_lost.set())
             stream = camera.create_stream(None, None)
             if stream is None:
                 raise DeviceError(f"camera {self.name!r}: Aravis could not create a stream")
@@ -504,6 +508,15 @@ class AravisSource(ThreadedSource):
                     self._camera.stop_acquisition()
             except GLib.Error as exc:  # the camera is gone: nothing left to stop
                 log.debug("camera %s: stop_acquisition failed: %s", self.name, exc.message)
+        # Aravis emits "control-lost" on the device's heartbeat thread, and the Python callback holds a reference
+        # to the device while it runs. Were that the last reference (this thread dropped its own meanwhile), the
+        # device would be finalized on the heartbeat thread, whose finalizer joins the heartbeat thread itself:
+        # GLib aborts the process ("Resource deadlock avoided" in pthread_join), seen on camera unplugs. So the
+        # handler is disconnected and the objects are kept until the next opening releases them on this thread.
+        if self._camera is not None and self._lost_handler:
+            self._camera.get_device().disconnect(self._lost_handler)
+        self._lost_handler = 0
+        self._retired = (self._camera, self._stream)
         self._stream = None
         self._camera = None
         self._views.clear()

@@ -34,10 +34,9 @@ import zenoh
 from mocapd.core.clock_offset import ClockOffsetEstimator
 from mocapd.errors import DeviceError, MocapdError
 from mocapd.io.device_state import OpenState
-from mocapd.io.zenoh_link import clock_key, detections_key, open_session, status_key
+from mocapd.io.zenoh_link import ZenohConfig, clock_key, detections_key, open_session, status_key
 from mocapd.pipeline.keypoint_source import KeypointSink
 from mocapd.protocols.remote import ClockMessage, Decoder, DetectionsMessage, StatusMessage
-from mocapd.service.config.zenoh import ZenohConfig
 
 log = logging.getLogger(__name__)
 

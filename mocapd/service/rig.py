@@ -14,7 +14,6 @@ Two steps, so that ``mocapd check-config`` says everything that can be said with
 
 from __future__ import annotations
 
-import dataclasses
 import socket
 import time
 from collections.abc import Callable
@@ -27,6 +26,7 @@ from mocapd.core.camera import Camera
 from mocapd.core.keypoints import keypoint_format
 from mocapd.core.prior import PcaPrior
 from mocapd.core.skeleton import Skeleton
+from mocapd.core.synthetic import named_ring_rig
 from mocapd.errors import CalibrationError, ConfigError, InputError
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.calibration_files import core_cameras, read_any
@@ -90,7 +90,7 @@ def plan_rig(config: Config) -> RigPlan:
             raise ConfigError(
                 f"calibration.file = {config.calibration.file!r}: a synthetic rig is calibrated by its simulation"
             )
-        return RigPlan(synthetic_cameras(names), synthetic=True)
+        return RigPlan(named_ring_rig(names), synthetic=True)
     calibrated = _calibration(config)
     problems: list[str] = []
     cameras: list[Camera] = []
@@ -128,13 +128,6 @@ def plan_rig(config: Config) -> RigPlan:
 def _interfaces() -> set[str]:
     """The network interfaces of this machine (names only; nothing is sent)."""
     return {name for _, name in socket.if_nameindex()}
-
-
-def synthetic_cameras(names: list[str]) -> list[Camera]:
-    """The simulated ring rig's cameras, named as configured."""
-    from mocapd.core.synthetic import ring_rig
-
-    return [dataclasses.replace(c, name=n) for c, n in zip(ring_rig(len(names)), names, strict=True)]
 
 
 def _calibration(config: Config) -> dict[str, Camera]:

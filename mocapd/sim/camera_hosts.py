@@ -13,13 +13,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from mocapd.core.synthetic import named_ring_rig
 from mocapd.io.calibration_files import CalibrationSet, CameraCalibration, write_mocapd_toml
-from mocapd.service.rig import synthetic_cameras
 
 
 def write_ring_calibration(names: Sequence[str], path: Path) -> None:
     """The simulated ring rig of ``len(names)`` cameras, named ``names``, as a mocapd calibration file."""
-    cams = synthetic_cameras(list(names))
+    cams = named_ring_rig(names)
     calib = CalibrationSet(tuple(CameraCalibration(c.name, (c.width, c.height), c.K, c.dist, c.R, c.t) for c in cams))
     write_mocapd_toml(calib, path)
 
