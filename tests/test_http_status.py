@@ -149,3 +149,59 @@ async def test_websocket_status_messages_read_the_same_snapshots() -> None:
     # 240 status messages; the documents behind them: one per 1/4 s at most (+1 for the first), plus the status
     # line's once a second.
     assert calls[0] <= math.ceil(elapsed * 4.0) + 1 + math.ceil(elapsed) + 1
+
+
+@pytest.mark.asyncio
+async def test_metrics_count_the_rejections_of_the_network_doors() -> None:
+    """A garbage IMU bridge datagram and an out-of-range WebSocket subscribe reach the daemon's /metrics as
+    ``mocapd_input_rejected_total{door, reason}`` (the same counts /status shows)."""
+    import socket
+
+    import msgpack
+    from websockets.asyncio.client import connect
+
+    from mocapd.io.ws_server import WebSocketStreamServer
+    from mocapd.service.assembly import assembled
+    from mocapd.service.config import load_config
+    from mocapd.service.demo.synthetic import synthetic_config
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        bridge_port = int(probe.getsockname()[1])
+    cfg = load_config()
+    bridge_cfg = cfg.imu.bridge.model_copy(update={"enabled": True, "port": bridge_port})
+    imu = cfg.imu.model_copy(update={"bridge": bridge_cfg})
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+        "websocket": cfg.websocket.model_copy(update={"port": 0}),
+        "imu": imu,
+    })  # fmt: skip
+    with assembled(synthetic_config(cfg)) as demo:
+        d = demo.daemon
+        task = asyncio.create_task(d.run())
+        await asyncio.wait_for(d.ready.wait(), 120)
+        ws = next(s for s in d.sinks if isinstance(s, WebSocketStreamServer))
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+            for _ in range(3):
+                sender.sendto(b"\xc1 not msgpack", ("127.0.0.1", bridge_port))
+        async with connect(f"ws://127.0.0.1:{ws.port}/") as c:
+            await c.send(json.dumps({"type": "subscribe", "rate_hz": 1e-20}))
+            async with asyncio.timeout(30):
+                while (m := await c.recv()) and (msgpack.unpackb(m) if isinstance(m, bytes) else json.loads(m))[
+                    "type"
+                ] != "error":
+                    pass
+        assert d.http is not None
+        text = ""
+        for _ in range(200):  # /metrics is rendered from a snapshot at most 4 times a second
+            text = (await get(d.http.port, "/metrics"))[1].decode()
+            if 'door="imu_bridge"' in text and 'reason="bad_field"' in text:
+                break
+            await asyncio.sleep(0.05)
+        d.request_stop()
+        assert await asyncio.wait_for(task, 10) == 0
+    samples = [ln.rsplit(" ", 1) for ln in text.splitlines() if ln.startswith("mocapd_input")]
+    lines = {name: float(value) for name, value in samples}
+    bridge = {k: v for k, v in lines.items() if 'door="imu_bridge"' in k}
+    assert sum(bridge.values()) == 3, lines
+    assert lines['mocapd_input_rejected_total{door="websocket",reason="bad_field"}'] == 1.0, lines

@@ -91,6 +91,10 @@ class _SnapshotCollector(Collector):
                       ["task"], [([str(k)], t["failures"]) for k, t in tasks.items()])  # fmt: skip
         yield gauge("mocapd_task_running", "1 while the supervised task runs.", ["task"],
                     [([str(k)], 1 if t["running"] else 0) for k, t in tasks.items()])  # fmt: skip
+        yield counter("mocapd_input_rejected", "Input rejected at a door (network), per door and reason.",
+                      ["door", "reason"], list(_rejections(st)))  # fmt: skip
+        yield counter("mocapd_imu_sensors_evicted", "Unconfigured IMU sensors evicted from the bounded table.", [],
+                      [([], st["imu"].get("sensors_evicted", 0))])  # fmt: skip
         yield counter("mocapd_stage_cpu_seconds", "CPU time spent per scheduler stage.", ["stage"],
                       [([str(k)], v) for k, v in st["cpu_s"].items()])  # fmt: skip
         h = HistogramMetricFamily(
@@ -110,3 +114,23 @@ def render_metrics(status: Mapping[str, Any]) -> bytes:
     registry = CollectorRegistry(auto_describe=False)
     registry.register(_SnapshotCollector(status))
     return generate_latest(registry)
+
+
+def _rejections(st: Mapping[str, Any]) -> Iterator[tuple[list[str], float]]:
+    """(door, reason) counts of the network doors as ``/status`` shows them (docs/reliability.md)."""
+    imu = st["imu"]
+    if imu.get("bridge"):
+        for reason, n in imu["bridge"]["rejected_reasons"].items():
+            yield ["imu_bridge", str(reason)], n
+    if imu.get("slimevr"):
+        sv = imu["slimevr"]
+        for reason, n in sv["bad_reasons"].items():
+            yield ["slimevr", str(reason)], n
+        yield ["slimevr", "unknown_source"], sv["unknown_source"]
+        yield ["slimevr", "unannounced_sensor"], sv["unannounced_sensor"]
+    ws = st.get("sinks", {}).get("websocket")
+    if ws:
+        for reason, n in ws["rejected_requests"].items():
+            yield ["websocket", str(reason)], n
+        for reason, n in ws["refused"].items():
+            yield ["websocket", f"refused_{reason}"], n
