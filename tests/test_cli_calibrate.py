@@ -90,7 +90,7 @@ def test_convert_qca(pose2sim_demo: Path, tmp_path: Path) -> None:
     assert main(["calibrate", "convert", str(qca), str(tmp_path / "c.yml")]) == 0
     ours, theirs = read_mocapd_toml(tmp_path / "c.toml"), read_pose2sim_toml(tmp_path / "p.toml")
     assert ours.cameras[0].center == pytest.approx(theirs.cameras[0].center)
-    assert main(["calibrate", "convert", str(tmp_path / "missing.toml"), str(tmp_path / "x.toml")]) == 1
+    assert main(["calibrate", "convert", str(tmp_path / "missing.toml"), str(tmp_path / "x.toml")]) == 2
 
 
 def _render_rig_views(truth: CalibrationSet, board: Board, out: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:

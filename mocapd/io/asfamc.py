@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from mocapd.core.motion import SourceMotion
 from mocapd.core.rotations import quat_conjugate, quat_multiply
 from mocapd.errors import InputError
+from mocapd.io.malformed import malformed_file
 from mocapd.io.mocap_units import quat_from_euler
 
 FloatArray = NDArray[np.float64]
@@ -57,6 +58,12 @@ def read_asf(path: str | Path) -> AsfSkeleton:
 
 
 def parse_asf(text: str, name: str = "asf") -> AsfSkeleton:
+    """Parse ASF text; a malformed file is an :class:`~mocapd.errors.InputError`."""
+    with malformed_file(f"ASF {name}"):
+        return _parse_asf(text, name)
+
+
+def _parse_asf(text: str, name: str) -> AsfSkeleton:
     section = ""
     length_unit = 1.0
     degrees = True
@@ -162,7 +169,12 @@ def read_amc(path: str | Path, skeleton: AsfSkeleton, fps: float = 120.0) -> Sou
 
 
 def parse_amc(text: str, skeleton: AsfSkeleton, name: str = "amc", fps: float = 120.0) -> SourceMotion:
-    """AMC text on a parsed ASF skeleton (see module doc)."""
+    """AMC text on a parsed ASF skeleton (see module doc); a malformed file is an :class:`~mocapd.errors.InputError`."""
+    with malformed_file(f"AMC {name}"):
+        return _parse_amc(text, skeleton, name, fps)
+
+
+def _parse_amc(text: str, skeleton: AsfSkeleton, name: str, fps: float) -> SourceMotion:
     bones = skeleton.bones
     index = {b.name.lower(): i for i, b in enumerate(bones)}
     frames: list[dict[int, list[float]]] = []

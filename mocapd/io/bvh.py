@@ -15,6 +15,7 @@ import numpy as np
 from mocapd.core.motion import SourceMotion
 from mocapd.core.naming import match_roles
 from mocapd.errors import InputError
+from mocapd.io.malformed import malformed_file
 from mocapd.io.mocap_units import CANDIDATE_UNITS, detect_unit, quat_from_euler
 
 _LEG_NAMES = (("upleg", "hip", "upperleg", "thigh", "femur"), ("leg", "knee", "lowerleg", "shin", "tibia"))
@@ -37,7 +38,12 @@ def read_bvh(path: str | Path, unit: str | None = None) -> SourceMotion:
 
 
 def parse_bvh(text: str, name: str = "bvh", unit: str | None = None) -> SourceMotion:
-    """Parse BVH text (see :func:`read_bvh`)."""
+    """Parse BVH text (see :func:`read_bvh`); a malformed file is an :class:`~mocapd.errors.InputError`."""
+    with malformed_file(f"BVH {name}"):
+        return _parse_bvh(text, name, unit)
+
+
+def _parse_bvh(text: str, name: str, unit: str | None) -> SourceMotion:
     tokens = text.split()
     pos = 0
 

@@ -201,7 +201,7 @@ def _load_toml(path: Path) -> dict[str, Any]:
     try:
         with Path(path).open("rb") as f:
             return tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"cannot read calibration {path}: {exc}") from exc
 
 
@@ -445,8 +445,23 @@ def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:
     """Read a calibration in any supported format, chosen from its name and content.
 
     ``world_up`` overrides the format's default world up axis (Z for Qualisys/Pose2Sim, Y for mocapd/OpenCV YAML).
+
+    Raises
+    ------
+    CalibrationError
+        The file cannot be read, or is not a valid calibration of its format: damaged syntax (OpenCV's YAML
+        parser raises ``cv2.error``), a value of the wrong type or shape, a missing key.
     """
-    path = Path(path)
+    try:
+        return _read_any(Path(path), world_up)
+    except CalibrationError:
+        raise
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError, cv2.error, SystemError) as exc:
+        # A file door: whatever the format's reader trips over in a damaged file is the file's fault, said once.
+        raise CalibrationError(f"{path}: not a valid calibration file: {type(exc).__name__}: {exc}") from None
+
+
+def _read_any(path: Path, world_up: WorldUp | None) -> CalibrationSet:
     name = path.name.lower()
     if name.endswith(".qca.txt") or name.endswith(".qca"):
         return read_qca(path, world_up=world_up or "z")

@@ -19,6 +19,7 @@ from mocapd.core.imu import STANDARD_GRAVITY
 from mocapd.core.motion import SourceMotion
 from mocapd.core.rotations import matrix_from_quat, quat_from_matrix, quat_normalize
 from mocapd.errors import InputError
+from mocapd.io.malformed import malformed_file
 
 FloatArray = NDArray[np.float64]
 
@@ -127,6 +128,16 @@ def read_mvnx(path: str | Path) -> MvnxRecording:
     subject = root.find(f"{ns}subject")
     if subject is None:
         raise InputError(f"MVNX {p.name}: no <subject>")
+    with malformed_file(f"MVNX {p.name}"):
+        rec = _recording(subject, ns, p.name)
+    arrays = (rec.time_ms, rec.segment_orientation, rec.segment_position, rec.sensor_orientation,
+              rec.sensor_free_acceleration)  # fmt: skip
+    if not (np.isfinite(rec.fps) and rec.fps > 0) or not all(np.isfinite(a).all() for a in arrays):
+        raise InputError(f"MVNX {p.name}: non-finite values (frame rate {rec.fps!r}, or a frame's numbers)")
+    return rec
+
+
+def _recording(subject: ET.Element, ns: str, name: str) -> MvnxRecording:
     fps = float(subject.get("frameRate", "60"))
     segs = [s.get("label", "") for s in subject.iter(f"{ns}segment")]
     sensors = [s.get("label", "") for s in subject.iter(f"{ns}sensor")]
@@ -155,7 +166,7 @@ def read_mvnx(path: str | Path) -> MvnxRecording:
         s_ori.append(_quat(_floats(so, "sensorOrientation")) if so is not None else np.zeros((len(sensors), 4)))
         s_acc.append(_vec(_floats(sa, "sensorFreeAcceleration")) if sa is not None else np.zeros((len(sensors), 3)))
     if not times:
-        raise InputError(f"MVNX {p.name}: no normal frames")
+        raise InputError(f"MVNX {name}: no normal frames")
     perm = np.array(order)
     inv = {old: new for new, old in enumerate(order)}
     return MvnxRecording(

@@ -284,6 +284,11 @@ class StreamReport:
     def damaged(self) -> bool:
         return self.corrupt > 0 or self.torn_tail_bytes > 0
 
+    @property
+    def empty(self) -> bool:
+        """Present but without a single intact record (not even its header): a zero-length or wiped file."""
+        return not self.missing and self.records == 0
+
 
 def read_stream(path: Path) -> tuple[list[Record], StreamReport]:
     """Every intact record of one stream file (header first) and what was recovered."""
@@ -311,14 +316,23 @@ class Session:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        where = self.path / MANIFEST
         try:
-            self.manifest: dict[str, Any] = json.loads((self.path / MANIFEST).read_text(encoding="utf-8"))
+            manifest = json.loads(where.read_bytes().decode("utf-8"))
         except FileNotFoundError as exc:
             raise InputError(f"{self.path} is not a session directory (no {MANIFEST})") from exc
+        except UnicodeDecodeError as exc:
+            raise InputError(f"{where}: damaged: byte {exc.start} is not UTF-8 (a manifest is JSON text)") from None
         except json.JSONDecodeError as exc:
-            raise InputError(f"{self.path / MANIFEST}: not JSON: {exc}") from exc
-        if self.manifest.get("format") != "mocapd-session":
-            raise InputError(f"{self.path / MANIFEST}: not a mocapd session manifest")
+            raise InputError(f"{where}: not JSON (damaged?): {exc}") from None
+        except (OSError, RecursionError) as exc:
+            raise InputError(f"{where}: cannot read: {exc}") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != "mocapd-session":
+            raise InputError(f"{where}: not a mocapd session manifest")
+        streams = manifest.get("streams", [])
+        if not isinstance(streams, list) or not all(isinstance(x, str) and x.isidentifier() for x in streams):
+            raise InputError(f"{where}: damaged: 'streams' is not a list of stream names")
+        self.manifest: dict[str, Any] = manifest
         self.reports: dict[str, StreamReport] = {}
 
     @property
@@ -350,16 +364,46 @@ class Session:
         return [decode_imu(r.payload) for r in self._records("imu", T_IMU)]
 
     def check(self) -> dict[str, StreamReport]:
-        """Read every stream file present and report what was recovered."""
-        for path in sorted(self.path.glob(f"*{SUFFIX}")):
-            self.reports[path.name.removesuffix(SUFFIX)] = read_stream(path)[1]
+        """Read every stream file present, and those the manifest lists, and report what was recovered (a listed
+        stream without its file is reported ``missing``)."""
+        names = {p.name.removesuffix(SUFFIX) for p in self.path.glob(f"*{SUFFIX}")} | set(self.manifest["streams"])
+        for name in sorted(names):
+            self.reports[name] = read_stream(self.path / f"{name}{SUFFIX}")[1]
         return dict(self.reports)
 
+    def require_stream(self, stream: str) -> None:
+        """:class:`~mocapd.errors.InputError` naming the stream when its file is missing or holds no intact
+        record (a re-solve without the recorded keypoints or IMU samples would be a different, silent answer)."""
+        where = self.path / f"{stream}{SUFFIX}"
+        if not where.exists():
+            raise InputError(f"{where}: missing: the session's {stream} stream is needed here")
+        report = self.reports.get(stream) or read_stream(where)[1]
+        if report.empty:
+            raise InputError(f"{where}: empty: no intact record, not even its header")
+
+    def require_poses(self, stream: str = "poses") -> list[PoseRecord]:
+        """The frames of a pose stream, or :class:`~mocapd.errors.InputError` naming it when it is missing, empty
+        or holds no pose (what replay and export need)."""
+        where = self.path / f"{stream}{SUFFIX}"
+        if not where.exists():
+            raise InputError(f"{where}: missing: the session has no {stream} stream")
+        frames = self.poses(stream)
+        if not frames:
+            report = self.reports[stream]
+            what = "empty (zero length)" if where.stat().st_size == 0 else f"no intact pose in {report.records} records"
+            hint = " (an imported IMU session: run `mocapd resolve` first)" if "imported" in self.manifest else ""
+            raise InputError(f"{where}: {what}: nothing to read{hint}")
+        return frames
+
     def recovery_lines(self) -> list[str]:
-        """Human-readable notes on damaged streams and an unclean end."""
+        """Human-readable notes on damaged, missing or empty streams and an unclean end."""
         lines = [] if self.closed_cleanly else [f"{self.path}: not closed cleanly (the recorder was interrupted)"]
         for r in self.reports.values():
-            if r.damaged:
+            if r.missing:
+                lines.append(f"{self.path}/{r.name}{SUFFIX}: missing (the manifest lists this stream)")
+            elif r.empty:
+                lines.append(f"{self.path}/{r.name}{SUFFIX}: empty: no intact record, not even its header")
+            elif r.damaged:
                 lines.append(
                     f"{self.path}/{r.name}{SUFFIX}: recovered {r.records} records; {r.corrupt} corrupt "
                     f"({r.skipped_bytes} bytes skipped), torn tail of {r.torn_tail_bytes} bytes dropped"

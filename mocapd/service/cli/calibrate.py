@@ -150,8 +150,8 @@ def _run_convert(args: argparse.Namespace) -> int:
         if args.scale != 1.0:
             calib = scale_calibration(calib, args.scale)
     except CalibrationError as exc:
-        print(f"cannot read {args.input}: {exc}", file=sys.stderr)
-        return 1
+        print(f"error: cannot read {args.input}: {exc}", file=sys.stderr)
+        return 2
     target = args.to or ("opencv-yaml" if args.output.suffix in (".yml", ".yaml") else "mocapd")
     if target == "pose2sim":
         write_pose2sim_toml(calib, args.output)

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from mocapd.core.skeleton import Skeleton
-from mocapd.errors import ConfigError, InputError
+from mocapd.errors import InputError, MocapdError
 from mocapd.io.session import RESOLVED, Session, open_session
 from mocapd.io.session_export import SubjectTrack
 from mocapd.pipeline.camera_views import CameraViews
@@ -52,7 +52,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     session = _open(args.session)
-    frames = session.poses(_pose_stream(session, args.resolved))
+    frames = session.require_poses(_pose_stream(session, args.resolved))
     rig = session_rig(session)
     views, events = replay_camera_views(session, rig, frames)
     output = frames[0].output if frames else "delayed"
@@ -78,8 +78,13 @@ def cmd_resolve(args: argparse.Namespace) -> int:
     from mocapd.service.session.truth import truth_report
 
     session = _open(args.session)
+    rig = session_rig(session)
+    # The inputs of the solve the session had: a camera rig's keypoints, a suit's IMU samples.
+    for stream, needed in (("keypoints", rig.cameras), ("imu", rig.suits)):
+        if needed:
+            session.require_stream(stream)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
-    n_frames = len(solve_times(session, session_rig(session).options.rate_hz))
+    n_frames = len(solve_times(session, rig.options.rate_hz))
     with Progress(n_frames, "resolve") as bar:
         frames, summary = resolve(session, opts, bar)
     path = write_resolved(session, frames, args.output)
@@ -100,7 +105,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         print("error: nothing to export: give --bvh FILE, --csv FILE and/or --gltf FILE", file=sys.stderr)
         return 2
     session = _open(args.session)
-    poses = session.poses(_pose_stream(session, args.resolved))
+    poses = session.require_poses(_pose_stream(session, args.resolved))
     rig: list[Skeleton] = []
 
     def skeleton_of(track: SubjectTrack) -> Skeleton:
@@ -144,29 +149,44 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_info(args: argparse.Namespace) -> int:
     from mocapd.io.session_export import subjects
+    from mocapd.service.session.solve import session_rig
 
     session = _open(args.session)
     m = session.manifest
+    try:
+        session_rig(session)  # the manifest's rig and the prior file: what replay and resolve will read
+        rig = "ok"
+    except MocapdError as exc:
+        rig = str(exc)
+        print(f"note: {exc}", file=sys.stderr)
     info = {
         "path": str(session.path),
         "closed_cleanly": session.closed_cleanly,
         "started_utc": m.get("started_utc"),
         "software": m.get("software"),
-        "cameras": [c["name"] for c in m.get("cameras", [])],
-        "suits": [s["id"] for s in m.get("suits", [])],
+        "cameras": _names(m.get("cameras"), "name"),
+        "suits": _names(m.get("suits"), "id"),
         "streams": {k: asdict(v) for k, v in session.reports.items()},
         "subjects": dict(subjects(session.poses())),
         "writer": m.get("writer"),
+        "rig": rig,
     }
     print(json.dumps(info, indent=2))
     return 0
+
+
+def _names(items: object, key: str) -> list[str]:
+    """Names of a manifest's cameras or suits; "?" where a damaged manifest has none (``session`` still reports)."""
+    if not isinstance(items, list):
+        return []
+    return [str(x[key]) if isinstance(x, dict) and key in x else "?" for x in items]
 
 
 def _guard(func: Any) -> Any:
     def run(args: argparse.Namespace) -> int:
         try:
             result: int = func(args)
-        except (InputError, ConfigError) as exc:
+        except MocapdError as exc:  # input, config, model: each a one-line message
             print(f"error: {exc}", file=sys.stderr)
             return 2
         return result

@@ -24,6 +24,8 @@ measured joint errors of the live solve, the forward re-solve and the smoothed r
 from __future__ import annotations
 
 import itertools
+import zipfile
+import zlib
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -46,7 +48,8 @@ from mocapd.core.skeleton import N_BONES, Skeleton
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
-from mocapd.io.session import Session
+from mocapd.errors import InputError, MocapdError, ModelError
+from mocapd.io.session import MANIFEST, Session
 from mocapd.pipeline.clocksync import offline_clock_map
 from mocapd.pipeline.imu_ingest import TICK_HZ, ImuIngest
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, SchedulerOptions, Suit
@@ -96,6 +99,25 @@ class SessionRig:
 
 
 def session_rig(session: Session) -> SessionRig:
+    """What the daemon ran with, from the session's manifest and prior file; a damaged or incomplete manifest or
+    prior is an :class:`~mocapd.errors.InputError` naming the file (never a KeyError from deep inside)."""
+    try:
+        return _session_rig(session)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        if isinstance(exc, MocapdError):
+            raise
+        raise InputError(f"{session.path / MANIFEST}: damaged or incomplete: {type(exc).__name__}: {exc}") from None
+
+
+def _prior(path: Path) -> PcaPrior:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return PcaPrior(z["M"], z["mu"], z["sigma"])
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, ModelError) as exc:
+        raise InputError(f"{path}: cannot read the session's pose prior (damaged?): {exc}") from None
+
+
+def _session_rig(session: Session) -> SessionRig:
     m = session.manifest
     config = parse_config(m["config"])
     cameras = [camera_from_dict(c) for c in m["cameras"]]
@@ -105,8 +127,7 @@ def session_rig(session: Session) -> SessionRig:
     targets = TrackTargets(tuple(t["names"]), np.array(t["bones"], dtype=np.intp), np.array(t["offsets"]))
     prior = None
     if m.get("prior"):
-        with np.load(session.path / str(m["prior"])) as z:
-            prior = PcaPrior(z["M"], z["mu"], z["sigma"])
+        prior = _prior(session.path / Path(str(m["prior"])).name)  # a file beside the manifest, nowhere else
     suits = [
         Suit.from_calibration(s["id"], ImuCalibration.from_json_dict(s["calibration"]), skeleton) for s in m["suits"]
     ]

@@ -1,0 +1,376 @@
+"""Fuzzing the file doors (issue 18): config files, recorded sessions, calibration files of every format
+``mocapd calibrate convert`` reads, motion files (BVH, ASF/AMC, MVNX) and MT Manager exports (``mocapd import mtw``).
+
+The property at every door: a damaged or hostile file ends as the command's one clear error line and exit 2, or a
+counted note and a normal run (a session stream's corrupt records are skipped and reported) — never a traceback,
+never an exception other than the project's own (:class:`~mocapd.errors.MocapdError`) out of a reader.
+
+Hypothesis draws the damage from a fixed seed (``derandomize``) with a small budget; the explicit tests below the
+fuzzers are the regressions of the issue's table (D8–D10) and of what the fuzzers found.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import re
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from mocapd.errors import ConfigError, InputError, MocapdError
+from mocapd.eval.data import default_data_root
+from mocapd.io.asfamc import read_amc, read_asf
+from mocapd.io.bvh import read_bvh
+from mocapd.io.calibration_files import read_any
+from mocapd.io.mt_export import read_mt_export
+from mocapd.io.mvnx import read_mvnx
+from mocapd.io.pose2sim_demo import demo_calibration
+from mocapd.service.cli import main
+from mocapd.service.config import DEFAULT_CONFIG, load_config
+
+FUZZ = settings(
+    derandomize=True,  # the fixed seed: the same examples every run
+    database=None,
+    deadline=None,  # the machine is shared: no per-example wall-clock limit
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture, HealthCheck.data_too_large],
+)
+DATA = default_data_root()
+MTW = Path(__file__).parent / "data" / "opensense_mtw"
+
+
+def run_cli(argv: list[str]) -> tuple[int, str]:
+    """``mocapd ARGV`` in this process: exit status and what it wrote to stderr. Any exception fails the test."""
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return code, err.getvalue()
+
+
+def assert_clear(code: int, stderr: str) -> None:
+    """Exit 0, or exit 2 with its reason on the last line, ``error: ...``; never a traceback."""
+    assert "Traceback" not in stderr, stderr
+    assert code in (0, 2), (code, stderr)
+    if code == 2:
+        assert stderr.strip().splitlines()[-1].startswith("error: "), stderr
+
+
+# ---------------------------------------------------------------------------------------------- damage
+@st.composite
+def damaged(draw: st.DrawFn, data: bytes) -> bytes:
+    """``data`` with one kind of damage: flipped bits, a cut, inserted hostile bytes, a zeroed stretch."""
+    if not data:
+        return draw(st.binary(max_size=64))
+    kind = draw(st.sampled_from(["flip", "cut", "insert", "zero"]))
+    b = bytearray(data)
+    if kind == "flip":
+        for _ in range(draw(st.sampled_from([1, 3, 30]))):
+            b[draw(st.integers(0, len(b) - 1))] ^= 1 << draw(st.integers(0, 7))
+    elif kind == "cut":
+        b = b[: draw(st.integers(0, len(b) - 1))]
+    elif kind == "insert":
+        at = draw(st.integers(0, len(b)))
+        junk = [b"nan", b"-1", b"1e999", b"\x00", b"9" * 30, b"\xff\xfe", b"\n", b"[", b"{", b'"', b"<"]
+        b[at:at] = draw(st.sampled_from(junk))
+    else:
+        at = draw(st.integers(0, len(b) - 1))
+        b[at : at + 50] = bytes(len(b[at : at + 50]))
+    return bytes(b)
+
+
+# ---------------------------------------------------------------------------------------------- config files
+SHIPPED_LINES = DEFAULT_CONFIG.read_text(encoding="utf-8").splitlines()
+# One-line `key = value` settings of the shipped config (multi-line arrays left out): the values to mutate.
+VALUE_LINES = [
+    i for i, line in enumerate(SHIPPED_LINES)
+    if re.match(r"^[a-z_0-9]+ = ", line) and not (line.split("=", 1)[1].strip().startswith("[") and "]" not in line)
+]  # fmt: skip
+EXTREMES = ["nan", "inf", "-inf", "0", "-1", "9223372036854775807", "-9223372036854775808", "1e308", "5e-324",
+            '"x"', '""', "true", "[]", "[" + "1," * 5000 + "]", "[nan, 1]", "{}", '"\\u0000"',
+            '"' + "a" * 100_000 + '"', "1979-05-27T07:32:00Z", "[[1, 2], [3]]", '["a", 1]']  # fmt: skip
+NON_FINITE = {"nan", "inf", "-inf", "[nan, 1]"}
+
+
+@settings(FUZZ, max_examples=300)
+@given(st.sampled_from(VALUE_LINES), st.sampled_from(EXTREMES), st.booleans(), st.integers(0, 10**9))
+def test_config_values_mutated_to_the_extremes(
+    tmp_path_factory: pytest.TempPathFactory, line: int, value: str, non_utf8: bool, where: int
+) -> None:
+    """The shipped config with one setting's value replaced by an extreme (NaN, ±inf, 0, negative, 2^63, huge
+    lists and strings, wrong types), sometimes with a non-UTF-8 byte: a valid config or one ConfigError."""
+    lines = list(SHIPPED_LINES)
+    key = lines[line].split(" = ", 1)[0]
+    lines[line] = f"{key} = {value}"
+    data = "\n".join(lines).encode()
+    if non_utf8:
+        at = where % len(data)
+        data = data[:at] + b"\xff" + data[at:]
+    path = tmp_path_factory.mktemp("cfg") / "config.toml"
+    path.write_bytes(data)
+    try:
+        load_config(path)
+    except ConfigError as exc:
+        assert "\n" not in str(exc).strip(), str(exc)  # one line
+    else:
+        assert value not in NON_FINITE, f"{key} = {value} was accepted"
+
+
+# ---------------------------------------------------------------------------------------------- sessions
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A real recorded session: `mocapd demo --synthetic` for 1.5 s with --record."""
+    path = tmp_path_factory.mktemp("recorded") / "session"
+    subprocess.run([sys.executable, "-m", "mocapd", "demo", "--synthetic", "--seconds", "1.5", "--record", str(path)],
+                   check=True, capture_output=True, timeout=300)  # fmt: skip
+    assert sorted(p.name for p in path.iterdir()) == [
+        "imu.mcs", "keypoints.mcs", "manifest.json", "poses.mcs", "prior.npz"
+    ]  # fmt: skip
+    return path
+
+
+@pytest.fixture(scope="module")
+def replay_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("replay") / "replay.toml"
+    path.write_text("[websocket]\nport = 0\n")  # any free port: the shipped one may be taken
+    return path
+
+
+SESSION_FILES = ["manifest.json", "prior.npz", "poses.mcs", "keypoints.mcs", "imu.mcs"]
+
+
+@st.composite
+def session_damage(draw: st.DrawFn, session: Path) -> tuple[str, bytes | None]:
+    """One file of the session and what becomes of it: None = deleted, else its new bytes."""
+    name = draw(st.sampled_from(SESSION_FILES))
+    action = draw(st.sampled_from(["damage", "damage", "delete", "empty", "json"]))
+    data = (session / name).read_bytes()
+    if action == "delete":
+        return name, None
+    if action == "empty":
+        return name, b""
+    if action == "json" and name == "manifest.json":  # valid JSON, one value of the wrong type or size
+        manifest = json.loads(data)
+        key = draw(st.sampled_from(sorted(manifest)))
+        manifest[key] = draw(st.sampled_from([None, -1, 0, 2**63, 1e308, "x", [], {}, [1, 2], True]))
+        return name, json.dumps(manifest).encode()
+    return name, draw(damaged(data))
+
+
+@settings(FUZZ, max_examples=50)
+@given(st.data())
+def test_damaged_sessions(
+    session: Path, replay_config: Path, tmp_path_factory: pytest.TempPathFactory, data: st.DataObject
+) -> None:
+    """Each file of a recorded session flipped, cut, emptied, deleted (the manifest also given wrong values):
+    `mocapd session`, `replay` and `export` answer with notes and exit 0, or one error line and exit 2."""
+    name, new = data.draw(session_damage(session))
+    copy = tmp_path_factory.mktemp("damaged") / "session"
+    shutil.copytree(session, copy)
+    if new is None:
+        (copy / name).unlink()
+    else:
+        (copy / name).write_bytes(new)
+    out = copy.parent
+    for argv in (["session", str(copy)],
+                 ["replay", str(copy), "--speed", "1000", "--config", str(replay_config)],
+                 ["export", str(copy), "--csv", str(out / "x.csv"), "--gltf", str(out / "x.glb")]):  # fmt: skip
+        assert_clear(*run_cli(argv))
+
+
+@pytest.mark.parametrize("name", SESSION_FILES)
+@pytest.mark.parametrize("action", ["flip", "delete", "empty"])
+def test_resolve_on_damaged_sessions(session: Path, tmp_path: Path, name: str, action: str) -> None:
+    """`mocapd resolve` (a few iterations) on each file flipped, deleted or emptied in turn."""
+    copy = tmp_path / "session"
+    shutil.copytree(session, copy)
+    path = copy / name
+    if action == "delete":
+        path.unlink()
+    elif action == "empty":
+        path.write_bytes(b"")
+    else:
+        data = bytearray(path.read_bytes())
+        for k in range(30):
+            data[(k * 7919) % len(data)] ^= 0xFF
+        path.write_bytes(bytes(data))
+    code, err = run_cli(["resolve", str(copy), "--iterations", "2", "--no-smooth", "-o", str(tmp_path / "r.mcs")])
+    assert_clear(code, err)
+    if (name in ("manifest.json", "prior.npz", "keypoints.mcs") and action != "flip") or name == "manifest.json":
+        # the rig, the prior, the camera evidence: nothing to re-solve without them
+        assert code == 2 and name in err.strip().splitlines()[-1], err
+
+
+# --- the issue's rows
+
+
+def _flip(path: Path, n: int = 30) -> None:
+    data = bytearray(path.read_bytes())
+    for k in range(n):
+        data[(k * 104729) % len(data)] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+@pytest.fixture
+def copy(session: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "session"
+    shutil.copytree(session, out)
+    return out
+
+
+@pytest.mark.parametrize("command", ["session", "replay", "resolve", "export"])
+def test_d8_a_flipped_manifest_is_one_error_line(copy: Path, replay_config: Path, tmp_path: Path, command: str) -> None:
+    """D8: 30 flipped bytes in manifest.json were a UnicodeDecodeError traceback in all four commands."""
+    _flip(copy / "manifest.json")
+    extra = {"session": [], "replay": ["--speed", "1000", "--config", str(replay_config)],
+             "resolve": ["-o", str(tmp_path / "r.mcs")], "export": ["--csv", str(tmp_path / "x.csv")]}  # fmt: skip
+    code, err = run_cli([command, str(copy), *extra[command]])
+    assert code == 2 and err.strip().splitlines()[-1].startswith(f"error: {copy / 'manifest.json'}: damaged"), err
+
+
+@pytest.mark.parametrize("command", ["replay", "resolve"])
+def test_d9_a_damaged_prior_is_one_error_line(copy: Path, replay_config: Path, tmp_path: Path, command: str) -> None:
+    """D9: flipped bytes in the session's prior file were a traceback in replay and resolve; `mocapd session`
+    now says so too."""
+    _flip(copy / "prior.npz", 5)
+    extra = ["--speed", "1000", "--config", str(replay_config)] if command == "replay" else ["-o", str(tmp_path / "r")]
+    code, err = run_cli([command, str(copy), *extra])
+    assert code == 2 and err.strip().splitlines()[-1].startswith(f"error: {copy / 'prior.npz'}: cannot read"), err
+    code, err = run_cli(["session", str(copy)])
+    assert code == 0 and f"note: {copy / 'prior.npz'}: cannot read" in err
+
+
+@pytest.mark.parametrize("how", ["missing", "empty"])
+def test_d10_a_missing_or_empty_pose_stream_is_named(copy: Path, replay_config: Path, tmp_path: Path, how: str) -> None:
+    """D10: without poses.mcs (or with a zero-length one) `mocapd session` said nothing and `replay` exited 0 having
+    sent 0 frames. Now session names it, replay and export stop with one line naming it."""
+    poses = copy / "poses.mcs"
+    if how == "missing":
+        poses.unlink()
+    else:
+        poses.write_bytes(b"")
+    code, err = run_cli(["session", str(copy)])
+    assert code == 0 and f"note: {poses}: {how}" in err, err
+    for argv in (["replay", str(copy), "--speed", "1000", "--config", str(replay_config)],
+                 ["export", str(copy), "--csv", str(tmp_path / "x.csv")]):  # fmt: skip
+        code, err = run_cli(argv)
+        assert code == 2 and err.strip().splitlines()[-1].startswith(f"error: {poses}: {how}"), err
+
+
+def test_resolve_without_the_recorded_keypoints_refuses(copy: Path, tmp_path: Path) -> None:
+    """Found by the fuzzer: a camera session's resolve without keypoints.mcs ran and wrote a different, IMU-only
+    answer with exit 0."""
+    (copy / "keypoints.mcs").unlink()
+    code, err = run_cli(["resolve", str(copy), "-o", str(tmp_path / "r.mcs")])
+    assert code == 2 and "keypoints.mcs: missing" in err.strip().splitlines()[-1], err
+
+
+# ---------------------------------------------------------------------------------------------- calibration files
+@pytest.fixture(scope="module")
+def calibrations(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The demo's Qualisys calibration and its conversions: every format `calibrate convert` reads."""
+    out = tmp_path_factory.mktemp("calib")
+    qca = out / "Calib.qca.txt"
+    shutil.copy(demo_calibration("Demo_MultiPerson"), qca)
+    files = {"qca": qca, "mocapd": out / "calibration.toml", "pose2sim": out / "Calib_pose2sim.toml",
+             "opencv-yaml": out / "calibration.yml"}  # fmt: skip
+    for fmt in ("mocapd", "pose2sim", "opencv-yaml"):
+        assert run_cli(["calibrate", "convert", str(qca), str(files[fmt]), "--to", fmt])[0] == 0
+    return files
+
+
+@settings(FUZZ, max_examples=120)
+@given(st.sampled_from(["qca", "mocapd", "pose2sim", "opencv-yaml"]), st.data())
+def test_damaged_calibration_files(
+    calibrations: dict[str, Path], tmp_path_factory: pytest.TempPathFactory, fmt: str, data: st.DataObject
+) -> None:
+    src = calibrations[fmt]
+    path = tmp_path_factory.mktemp("c") / src.name
+    path.write_bytes(data.draw(damaged(src.read_bytes())))
+    assert_clear(*run_cli(["calibrate", "convert", str(path), str(path.parent / "out.toml")]))
+
+
+@pytest.mark.parametrize(
+    ("fmt", "damage"),
+    [("pose2sim", b"\xf4"), ("mocapd", b"\xf4"), ("opencv-yaml", b"\n: ["), ("opencv-yaml", b"]]")],
+)
+def test_calibration_files_the_fuzzer_broke(
+    calibrations: dict[str, Path], tmp_path: Path, fmt: str, damage: bytes
+) -> None:
+    """Found by the fuzzer: a non-UTF-8 byte in a TOML calibration (UnicodeDecodeError) and a YAML syntax error
+    (cv2.error through SystemError) escaped as tracebacks; `calibrate convert` also said 'cannot read' with exit 1."""
+    src = calibrations[fmt]
+    data = src.read_bytes()
+    path = tmp_path / src.name
+    path.write_bytes(data[: len(data) // 2] + damage + data[len(data) // 2 :])
+    with pytest.raises(MocapdError):
+        read_any(path)
+    code, err = run_cli(["calibrate", "convert", str(path), str(tmp_path / "out.toml")])
+    assert code == 2 and err.strip().splitlines()[-1].startswith(f"error: cannot read {path}"), err
+
+
+# ---------------------------------------------------------------------------------------------- motion files
+def _head(path: Path, lines: int) -> bytes:
+    return b"".join(path.read_bytes().splitlines(keepends=True)[:lines])
+
+
+MOTION: dict[str, tuple[Callable[[], bytes], Callable[[Path], Any], str]] = {
+    "bvh": ((DATA / "mocap/bandai/dataset-1_bow_angry_001.bvh").read_bytes, read_bvh, "x.bvh"),
+    "asf": ((DATA / "mocap/cmu/asfamc/02.asf").read_bytes, read_asf, "x.asf"),
+    "amc": (lambda: _head(DATA / "mocap/cmu/asfamc/02_01.amc", 300),
+            lambda p: read_amc(p, read_asf(DATA / "mocap/cmu/asfamc/02.asf")), "x.amc"),
+    "mvnx": ((DATA / "imu/mvnx/mpiea_upperbody_test_mocap.mvnx").read_bytes, read_mvnx, "x.mvnx"),
+    "mt": ((MTW / "MT_012005D6_009-001_00B421E6.txt").read_bytes, read_mt_export,
+           "MT_012005D6_009-001_00B421E6.txt"),
+}  # fmt: skip
+ORIGINALS: dict[str, bytes] = {}
+
+
+@settings(FUZZ, max_examples=150)
+@given(st.sampled_from(sorted(MOTION)), st.data())
+def test_damaged_motion_files(tmp_path_factory: pytest.TempPathFactory, kind: str, data: st.DataObject) -> None:
+    """BVH, ASF, AMC, MVNX and MT Manager exports damaged: each reader returns a motion or raises InputError."""
+    load, read, name = MOTION[kind]
+    if kind not in ORIGINALS:
+        ORIGINALS[kind] = load()
+    path = tmp_path_factory.mktemp(kind) / name
+    path.write_bytes(data.draw(damaged(ORIGINALS[kind])))
+    with contextlib.suppress(InputError):
+        read(path)
+
+
+@pytest.mark.parametrize(
+    ("kind", "find", "replace"),
+    [("bvh", b"Frame Time:", b"Frame Time: x"), ("asf", b"length ", b"length 7.2\x00"),
+     ("amc", b"lradius ", b"lradius 1.\xff"), ("mvnx", b'<sensorOrientation>', b"<sensorOrientation>1 2 ")],
+)  # fmt: skip
+def test_motion_files_the_fuzzer_broke(tmp_path: Path, kind: str, find: bytes, replace: bytes) -> None:
+    """Found by the fuzzer: a number that does not parse (BVH, ASF, AMC: ValueError) or a frame with a wrong count
+    of numbers (MVNX: ValueError from reshape) escaped the readers."""
+    load, read, name = MOTION[kind]
+    path = tmp_path / name
+    path.write_bytes(load().replace(find, replace, 1))
+    with pytest.raises(InputError, match="malformed"):
+        read(path)
+
+
+@settings(FUZZ, max_examples=15)
+@given(st.data())
+def test_import_mtw_with_damaged_exports(tmp_path_factory: pytest.TempPathFactory, data: st.DataObject) -> None:
+    """`mocapd import mtw` on the two real MT Manager exports, one of them damaged."""
+    folder = tmp_path_factory.mktemp("mtw")
+    files = sorted(MTW.glob("MT_*.txt"))
+    hit = data.draw(st.sampled_from(files))
+    for f in files:
+        (folder / f.name).write_bytes(data.draw(damaged(f.read_bytes())) if f == hit else f.read_bytes())
+    argv = ["import", "mtw", *map(str, sorted(folder.glob("MT_*.txt"))), "-o", str(folder / "session"),
+            "--assign", "00B421E6=Hips", "--assign", "00B421ED=RightUpperLeg"]  # fmt: skip
+    assert_clear(*run_cli(argv))
