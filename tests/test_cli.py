@@ -8,6 +8,7 @@ import sys
 
 import pytest
 
+from mocapd.pipeline.latency import AutoLatencyOptions
 from mocapd.service.cli import main
 
 
@@ -103,7 +104,9 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     detected = sum(c["detected_fps"] for c in r["cameras"].values())
     assert abs(detected - s["live_detected_camera_frames_per_s"]) <= 0.05
     assert 0 < s["end_to_end_ms_p50"] <= s["end_to_end_ms_p95"]
-    assert s["end_to_end_ms_p50"] >= r["configured"]["latency_ms"]  # the fixed latency is part of end to end
+    # The latency is part of end to end; "auto" moves it during the run (from 0.5 s, bounded slew), never below
+    # its floor.
+    assert s["end_to_end_ms_p50"] >= AutoLatencyOptions().min_ns / 1e6
     assert s["missed_ticks_after_warm_up"] == r["output"]["missed_ticks"] >= 0
     assert 0 <= s["missed_tick_fraction_after_warm_up"] <= 1
     assert r["output"]["frames"] > 0 and r["duration_s"] > 0

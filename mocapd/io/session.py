@@ -366,7 +366,8 @@ class Session:
     def check(self) -> dict[str, StreamReport]:
         """Read every stream file present, and those the manifest lists, and report what was recovered (a listed
         stream without its file is reported ``missing``)."""
-        names = {p.name.removesuffix(SUFFIX) for p in self.path.glob(f"*{SUFFIX}")} | set(self.manifest["streams"])
+        listed = set(self.manifest.get("streams", []))  # sessions from before the manifest listed them: none
+        names = {p.name.removesuffix(SUFFIX) for p in self.path.glob(f"*{SUFFIX}")} | listed
         for name in sorted(names):
             self.reports[name] = read_stream(self.path / f"{name}{SUFFIX}")[1]
         return dict(self.reports)
