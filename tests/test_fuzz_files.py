@@ -14,10 +14,12 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 import re
 import shutil
 import subprocess
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -34,8 +36,21 @@ from mocapd.io.calibration_files import read_any
 from mocapd.io.mt_export import read_mt_export
 from mocapd.io.mvnx import read_mvnx
 from mocapd.io.pose2sim_demo import demo_calibration
+from mocapd.io.session import open_session
+from mocapd.protocols.session_format import (
+    T_IMU,
+    T_KEYPOINTS,
+    T_POSE,
+    decode_frame,
+    decode_imu,
+    decode_keypoints,
+    decode_pose,
+    encode_record,
+)
 from mocapd.service.cli import main
 from mocapd.service.config import DEFAULT_CONFIG, load_config
+from mocapd.service.session.solve import session_rig, solve_times
+from mocapd.service.session.truth import synthetic_of
 
 FUZZ = settings(
     derandomize=True,  # the fixed seed: the same examples every run
@@ -374,3 +389,161 @@ def test_import_mtw_with_damaged_exports(tmp_path_factory: pytest.TempPathFactor
     argv = ["import", "mtw", *map(str, sorted(folder.glob("MT_*.txt"))), "-o", str(folder / "session"),
             "--assign", "00B421E6=Hips", "--assign", "00B421ED=RightUpperLeg"]  # fmt: skip
     assert_clear(*run_cli(argv))
+
+
+# ---------------------------------------------------------------------------------------------- manifest values
+def _set(doc: Any, path: tuple[str | int, ...], value: Any) -> None:
+    for part in path[:-1]:
+        doc = doc[part]
+    doc[path[-1]] = value
+
+
+def _leaves(doc: Any, path: tuple[str | int, ...] = ()) -> list[tuple[str | int, ...]]:
+    """Every value's path in a manifest, arrays of numbers (matrices, offsets) as one value each."""
+    if isinstance(doc, dict):
+        return [p for k, v in doc.items() for p in _leaves(v, (*path, k))]
+    if isinstance(doc, list) and doc and any(isinstance(v, dict | list) for v in doc):
+        return [p for i, v in enumerate(doc) for p in _leaves(v, (*path, i))]
+    return [path]
+
+
+MANIFEST_EXTREMES = [math.nan, math.inf, -math.inf, 0, -1, 2**63, 1e308, 1e-300, "x", None, True, [], {},
+                     [math.nan] * 3, [0] * 10_000]  # fmt: skip
+
+
+@settings(FUZZ, max_examples=120)
+@given(st.data())
+def test_manifest_values_mutated_to_the_extremes(
+    session: Path, tmp_path_factory: pytest.TempPathFactory, data: st.DataObject
+) -> None:
+    """One value anywhere in the manifest (the scheduler's numbers, a camera's matrices, the skeleton, a suit's
+    calibration, the synthetic world) set to an extreme (JSON carries NaN and Infinity too): the session opens
+    and its rig rebuilds, or one InputError naming a file of the session. Library calls: what every command
+    does first (session, replay, resolve and export alike)."""
+    manifest = json.loads((session / "manifest.json").read_text())
+    leaves = [p for p in _leaves(manifest) if p[:1] not in (("config",), ("format",))]  # config: fuzzed above
+    path = data.draw(st.sampled_from(leaves))
+    value = data.draw(st.sampled_from(MANIFEST_EXTREMES))
+    _set(manifest, path, value)
+    copy = tmp_path_factory.mktemp("manifest") / "session"
+    shutil.copytree(session, copy)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)  # nan or inf computed from a value: a silent wrong rig
+            s = open_session(copy)
+            rig = session_rig(s)
+            solve_times(s, rig.options.rate_hz)
+            synthetic_of(s)
+    except InputError as exc:
+        assert str(copy) in str(exc) and "\n" not in str(exc), str(exc)
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "problem"),
+    [
+        (("scheduler", "rate_hz"), 0, "scheduler.rate_hz = 0; allowed"),  # ZeroDivisionError in resolve
+        (("scheduler", "rate_hz"), math.nan, "scheduler.rate_hz = nan; allowed"),  # ValueError in resolve
+        (("scheduler", "rate_hz"), -60.0, "scheduler.rate_hz = -60.0; allowed"),  # resolve solved nothing, exit 0
+        (("scheduler", "latency_ns"), math.inf, "scheduler.latency_ns = inf; allowed"),  # OverflowError in all four
+        (("scheduler", "imu_offsets_ns"), {"X": math.inf}, "scheduler.imu_offsets_ns.X = inf; allowed"),
+        (("targets", "bones", 0), 10**6, "track target bones must be bone indices"),  # IndexError in resolve
+        (("config", "imu"), {"buffer_capacity": 2**63, "baudrate": -1}, "its copy of the config: "),  # 2 lines
+        (("cameras", 0, "width"), 0, "camera 'cam0': image size must be positive"),  # did not name the manifest
+        (("skeleton", "height"), math.nan, "skeleton root_height and height must be finite"),  # nan IMU mounts
+    ],
+    ids=[
+        "rate-0",
+        "rate-nan",
+        "rate-negative",
+        "latency-inf",
+        "imu-offset-inf",
+        "bone-index",
+        "config",
+        "camera",
+        "height-nan",
+    ],
+)
+@pytest.mark.parametrize("command", ["replay", "resolve"])
+def test_manifest_values_the_fuzzer_broke(
+    copy: Path, replay_config: Path, tmp_path: Path, command: str, path: tuple[str | int, ...], value: Any,
+    problem: str,
+) -> None:  # fmt: skip
+    """Found by the manifest fuzzer: numbers JSON carries (NaN, Infinity, 0) or indices out of range escaped as
+    ZeroDivisionError, OverflowError, ValueError or IndexError tracebacks; a bad config copy, camera or suit in
+    the manifest was an error (or several lines) that did not say it came from the manifest."""
+    manifest = json.loads((copy / "manifest.json").read_text())
+    _set(manifest, path, value)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    extra = {"replay": ["--speed", "1000", "--config", str(replay_config)],
+             "resolve": ["--iterations", "1", "-o", str(tmp_path / "r.mcs")]}[command]  # fmt: skip
+    code, err = run_cli([command, str(copy), *extra])
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: {copy / 'manifest.json'}: damaged") and problem in err, err
+
+
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [(("extra",), "synthetic"), (("extra", "synthetic"), "x"), (("extra", "synthetic", "camera_names"), ["a"])],
+    ids=["extra-a-string", "synthetic-a-string", "camera-names-short"],
+)
+def test_a_damaged_synthetic_table_is_a_note_in_resolve(
+    copy: Path, tmp_path: Path, path: tuple[str, ...], value: Any
+) -> None:
+    """Found by the manifest fuzzer: resolve's error against the synthetic truth read extra.synthetic unchecked
+    (TypeError or ValueError tracebacks after the resolved stream was written; a count of a million people
+    would build a world of a million people). Now the solve runs and a note says why there is no truth report."""
+    manifest = json.loads((copy / "manifest.json").read_text())
+    _set(manifest, path, value)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    code, err = run_cli(["resolve", str(copy), "--iterations", "1", "--no-smooth", "-o", str(tmp_path / "r.mcs")])
+    assert code == 0 and "Traceback" not in err, err
+    if path != ("extra",):  # a string there is no synthetic table at all: nothing to note
+        assert f"note: {copy / 'manifest.json'}: damaged: extra.synthetic" in err, err
+    assert synthetic_of(open_session(copy)) is None if path == ("extra",) else True
+
+
+@pytest.mark.parametrize("name", ["poses.mcs", "imu.mcs", "keypoints.mcs"])
+def test_a_stream_that_is_a_directory_is_one_error_line(copy: Path, replay_config: Path, name: str) -> None:
+    """Found by hand beside the fuzzer: a directory named like a stream was an IsADirectoryError traceback."""
+    (copy / name).unlink()
+    (copy / name).mkdir()
+    for argv in (["session", str(copy)], ["replay", str(copy), "--speed", "1000", "--config", str(replay_config)]):
+        code, err = run_cli(argv)
+        assert (code, err) == (2, f"error: {copy / name}: not a regular file, not a session stream\n")
+
+
+PAYLOADS = {
+    "poses.mcs": (T_POSE, b"\xff" * 40),  # counts say 65535 people: struct.error
+    "imu.mcs": (T_IMU, bytes(28) + b"\x05\x00" + b"\xff" * 60),  # a sensor id that is not UTF-8
+    "keypoints.mcs": (T_KEYPOINTS, bytes(10)),  # shorter than its header: struct.error
+}
+
+
+@settings(FUZZ, max_examples=200)
+@given(st.sampled_from([decode_pose, decode_imu, decode_keypoints, decode_frame]), st.binary(max_size=2000))
+def test_record_payloads_decode_or_raise_input_error(decode: Callable[[bytes], Any], payload: bytes) -> None:
+    """A record whose CRC is intact holds any bytes (written by another tool, or a CRC collision): its payload
+    decoder returns a record or raises InputError, nothing else."""
+    with contextlib.suppress(InputError):
+        decode(payload)
+
+
+@pytest.mark.parametrize("name", list(PAYLOADS))
+def test_an_intact_record_that_does_not_decode_is_counted_and_skipped(
+    copy: Path, replay_config: Path, tmp_path: Path, name: str
+) -> None:
+    """Found by the payload fuzzer: a record with a valid CRC but a payload mocapd did not write escaped the
+    session reader as struct.error / UnicodeDecodeError in every command. Now it is counted in the stream's
+    report (``undecodable``) and skipped, like a corrupt record."""
+    frames = len(open_session(copy).poses())
+    rtype, payload = PAYLOADS[name]
+    with (copy / name).open("ab") as fh:
+        fh.write(encode_record(rtype, payload))
+    session = open_session(copy)
+    assert len(session.poses()) == frames and len(session.imu()) > 0 and len(session.keypoints()) > 0
+    assert session.reports[name.removesuffix(".mcs")].undecodable == 1
+    code, err = run_cli(["replay", str(copy), "--speed", "1000", "--config", str(replay_config)])
+    assert code == 0 and "Traceback" not in err, err
+    code, err = run_cli(["resolve", str(copy), "--iterations", "1", "--no-smooth", "-o", str(tmp_path / "r.mcs")])
+    assert code == 0 and f"note: {copy / name}: 1 intact records did not decode (skipped)" in err, err

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.skeleton import BONE_INDEX, REFERENCE_HEIGHT, Skeleton
+from mocapd.core.skeleton import BONE_INDEX, N_BONES, REFERENCE_HEIGHT, Skeleton
 from mocapd.errors import ConfigError, InputError
 
 FloatArray = NDArray[np.float64]
@@ -64,6 +64,9 @@ class TrackTargets:
             )
         if not np.all(np.isfinite(offsets)):
             raise InputError("track target offsets contain non-finite values")
+        outside = bones[(bones < 0) | (bones >= N_BONES)]
+        if outside.size:
+            raise InputError(f"track target bones must be bone indices in [0, {N_BONES}), got {outside[0]}")
         object.__setattr__(self, "bones", bones)
         object.__setattr__(self, "offsets", offsets)
 

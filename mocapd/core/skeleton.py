@@ -10,6 +10,7 @@ toe joint 5 cm above the floor at rest, matching the 5 cm collision radius of th
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -152,6 +153,10 @@ class Skeleton:
             raise InputError(f"skeleton offsets must have shape ({N_BONES}, 3), got {offsets.shape}")
         if not np.all(np.isfinite(offsets)):
             raise InputError("skeleton offsets contain non-finite values")
+        if not (math.isfinite(self.root_height) and math.isfinite(self.height) and self.height > 0):
+            # both scale things downstream (IMU mounts, body size): nan would spread silently into every pose
+            raise InputError(f"skeleton root_height and height must be finite, height > 0; got "
+                             f"{self.root_height!r} and {self.height!r}")  # fmt: skip
         offsets = offsets.copy()
         offsets[0] = 0.0
         offsets.setflags(write=False)

@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from mocapd.errors import InputError
 from mocapd.protocols.session_format import (
@@ -68,6 +68,7 @@ BLOCK = 1 << 16
 """The writer hands the OS whole 64 KiB blocks as they fill (whatever record boundaries fall inside them) and
 the rest at each flush: large writes, and a crash between two of them leaves a partial record at the end."""
 _STOP = object()
+T = TypeVar("T")
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
@@ -279,10 +280,12 @@ class StreamReport:
     skipped_bytes: int = 0
     torn_tail_bytes: int = 0
     missing: bool = False
+    undecodable: int = 0
+    """Records with an intact CRC whose payload did not decode (not written by mocapd): counted and skipped."""
 
     @property
     def damaged(self) -> bool:
-        return self.corrupt > 0 or self.torn_tail_bytes > 0
+        return self.corrupt > 0 or self.torn_tail_bytes > 0 or self.undecodable > 0
 
     @property
     def empty(self) -> bool:
@@ -296,12 +299,17 @@ def read_stream(path: Path) -> tuple[list[Record], StreamReport]:
     if not path.exists():
         report.missing = True
         return [], report
+    if not path.is_file():  # a directory (or a pipe, which would block) of that name
+        raise InputError(f"{path}: not a regular file, not a session stream")
     dec = StreamDecoder()
     records: list[Record] = []
-    with path.open("rb") as fh:
-        while chunk := fh.read(_CHUNK):
-            dec.receive_data(chunk)
-            records.extend(dec.records_received())
+    try:
+        with path.open("rb") as fh:
+            while chunk := fh.read(_CHUNK):
+                dec.receive_data(chunk)
+                records.extend(dec.records_received())
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
     report.torn_tail_bytes = dec.finish()
     records.extend(dec.records_received())
     c = dec.counters
@@ -347,21 +355,35 @@ class Session:
     def has_stream(self, stream: str) -> bool:
         return (self.path / f"{stream}{SUFFIX}").exists()
 
+    def _decoded(self, stream: str, rtype: int, decode: Callable[[bytes], T]) -> list[T]:
+        """Every record of ``rtype`` in ``stream``, decoded; a payload that does not decode (its CRC intact: a
+        record written by something else, or a CRC collision) is counted in the stream's report and skipped, as a
+        corrupt record is."""
+        out: list[T] = []
+        records = self._records(stream, rtype)
+        report = self.reports[stream]
+        for r in records:
+            try:
+                out.append(decode(r.payload))
+            except InputError:
+                report.undecodable += 1
+        return out
+
     def poses(self, stream: str = "poses") -> list[PoseRecord]:
         """The recorded frames of a pose stream (``poses`` or ``poses-resolved``), in order."""
-        return [decode_pose(r.payload) for r in self._records(stream, T_POSE)]
+        return self._decoded(stream, T_POSE, decode_pose)
 
     def keypoints(self) -> list[KeypointRecord]:
-        return [decode_keypoints(r.payload) for r in self._records("keypoints", T_KEYPOINTS)]
+        return self._decoded("keypoints", T_KEYPOINTS, decode_keypoints)
 
     def frames(self) -> list[FrameRecord]:
         """The recorded camera frames (none when the session was recorded without them)."""
         if not self.has_stream(FRAMES):
             return []
-        return [decode_frame(r.payload) for r in self._records(FRAMES, T_FRAME)]
+        return self._decoded(FRAMES, T_FRAME, decode_frame)
 
     def imu(self) -> list[ImuRecord]:
-        return [decode_imu(r.payload) for r in self._records("imu", T_IMU)]
+        return self._decoded("imu", T_IMU, decode_imu)
 
     def check(self) -> dict[str, StreamReport]:
         """Read every stream file present, and those the manifest lists, and report what was recovered (a listed
@@ -408,6 +430,7 @@ class Session:
                 lines.append(
                     f"{self.path}/{r.name}{SUFFIX}: recovered {r.records} records; {r.corrupt} corrupt "
                     f"({r.skipped_bytes} bytes skipped), torn tail of {r.torn_tail_bytes} bytes dropped"
+                    + (f", {r.undecodable} intact records that do not decode skipped" if r.undecodable else "")
                 )
         return lines
 

@@ -42,10 +42,13 @@ resynchronises on the next sync word; bytes left at the end that do not make a w
 
 from __future__ import annotations
 
+import functools
 import json
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import ParamSpec, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -77,6 +80,30 @@ _SIZES = struct.Struct("<ff")
 _FRAME = struct.Struct("<qHHHI")
 _NO_SUIT = 255
 OUTPUT_MODES = ("delayed", "predicted")
+
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+def _payload(kind: str) -> Callable[[Callable[_P, _R]], Callable[_P, _R]]:
+    """A payload decoder that raises only InputError: a payload too short for its own counts, a name that is not
+    UTF-8 or an array that does not fit (a record whose CRC is intact but whose bytes were not written by mocapd)
+    says so in one line instead of escaping as ``struct.error``, ``UnicodeDecodeError`` or ``IndexError``."""
+
+    def wrap(decode: Callable[_P, _R]) -> Callable[_P, _R]:
+        @functools.wraps(decode)
+        def checked(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+            try:
+                return decode(*args, **kwargs)
+            except InputError:
+                raise
+            except (struct.error, UnicodeDecodeError, ValueError, IndexError) as exc:
+                raise InputError(f"{kind} record: malformed payload: {exc}") from None
+
+        return checked
+
+    return wrap
 
 
 # ----------------------------------------------------------------------------------------------- framing
@@ -226,6 +253,7 @@ def encode_imu(r: ImuRecord) -> bytes:
     return head + sid + _IMU_VALUES.pack(*r.quat, *r.acc)
 
 
+@_payload("IMU")
 def decode_imu(p: bytes) -> ImuRecord:
     t, host, ticks, counter, m = _IMU.unpack_from(p, 0)
     o = _IMU.size
@@ -262,6 +290,7 @@ def encode_keypoints(camera: int, capture_ns: int, arrival_ns: int, keypoints: F
     )
 
 
+@_payload("keypoint")
 def decode_keypoints(p: bytes) -> KeypointRecord:
     capture, arrival, camera, n, k = _KP.unpack_from(p, 0)
     o = _KP.size
@@ -288,6 +317,7 @@ def encode_frame(r: FrameRecord) -> bytes:
     return _FRAME.pack(r.capture_ns, r.camera, r.width, r.height, len(r.jpeg)) + r.jpeg
 
 
+@_payload("frame")
 def decode_frame(p: bytes) -> FrameRecord:
     capture, camera, w, h, n = _FRAME.unpack_from(p, 0)
     if len(p) != _FRAME.size + n:
@@ -369,6 +399,7 @@ def _read_short(p: bytes, o: int) -> tuple[str | None, int]:
     return p[o + 1 : o + 1 + m].decode(), o + 1 + m
 
 
+@_payload("pose")
 def decode_pose(p: bytes) -> PoseRecord:
     frame, t, tick, missing, n = _POSE.unpack_from(p, 0)
     o = _POSE.size

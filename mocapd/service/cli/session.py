@@ -40,6 +40,15 @@ def _open(path: Path) -> Session:
     return session
 
 
+def _undecodable_notes(session: Session) -> None:
+    """A note per stream read so far with records whose checksum was intact but whose payload did not decode
+    (skipped, like corrupt ones; known only once the records were decoded, after :func:`_open`'s notes)."""
+    for r in session.reports.values():
+        if r.undecodable:
+            print(f"note: {session.path}/{r.name}.mcs: {r.undecodable} intact records did not decode (skipped)",
+                  file=sys.stderr)  # fmt: skip
+
+
 def _pose_stream(session: Session, resolved: bool) -> str:
     if resolved and not session.has_stream(RESOLVED):
         raise InputError(f"{session.path}: no resolved poses yet (run `mocapd resolve {session.path}`)")
@@ -53,6 +62,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     session = _open(args.session)
     frames = session.require_poses(_pose_stream(session, args.resolved))
+    _undecodable_notes(session)
     rig = session_rig(session)
     views, events = replay_camera_views(session, rig, frames)
     output = frames[0].output if frames else "delayed"
@@ -75,10 +85,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def cmd_resolve(args: argparse.Namespace) -> int:
     from mocapd.io.progress import Progress
     from mocapd.service.session.solve import ResolveOptions, resolve, session_rig, solve_times, write_resolved
-    from mocapd.service.session.truth import truth_report
+    from mocapd.service.session.truth import synthetic_of, truth_report
 
     session = _open(args.session)
     rig = session_rig(session)
+    try:
+        truth = synthetic_of(session) is not None  # checked before the solve: a damaged table is known at once
+    except InputError as exc:
+        truth = False
+        print(f"note: {exc} (no error against the truth)", file=sys.stderr)
     # The inputs of the solve the session had: a camera rig's keypoints, a suit's IMU samples.
     for stream, needed in (("keypoints", rig.cameras), ("imu", rig.suits)):
         if needed:
@@ -87,9 +102,10 @@ def cmd_resolve(args: argparse.Namespace) -> int:
     n_frames = len(solve_times(session, rig.options.rate_hz))
     with Progress(n_frames, "resolve") as bar:
         frames, summary = resolve(session, opts, bar)
+    _undecodable_notes(session)
     path = write_resolved(session, frames, args.output)
     summary["written"] = str(path)
-    if "synthetic" in session.manifest.get("extra", {}):
+    if truth:
         summary["error_vs_truth_mm"] = truth_report(session, {"live": session.poses(), "resolved": frames})
     print(json.dumps(summary, indent=2, default=str))
     return 0
@@ -106,6 +122,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         return 2
     session = _open(args.session)
     poses = session.require_poses(_pose_stream(session, args.resolved))
+    _undecodable_notes(session)
     rig: list[Skeleton] = []
 
     def skeleton_of(track: SubjectTrack) -> Skeleton:
@@ -153,6 +170,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 
     session = _open(args.session)
     m = session.manifest
+    poses = session.poses()  # before "streams": its records that do not decode are counted in its report
+    _undecodable_notes(session)
     try:
         session_rig(session)  # the manifest's rig and the prior file: what replay and resolve will read
         rig = "ok"
@@ -167,7 +186,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         "cameras": _names(m.get("cameras"), "name"),
         "suits": _names(m.get("suits"), "id"),
         "streams": {k: asdict(v) for k, v in session.reports.items()},
-        "subjects": dict(subjects(session.poses())),
+        "subjects": dict(subjects(poses)),
         "writer": m.get("writer"),
         "rig": rig,
     }

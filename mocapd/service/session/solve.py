@@ -48,7 +48,7 @@ from mocapd.core.skeleton import N_BONES, Skeleton
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
-from mocapd.errors import InputError, MocapdError, ModelError
+from mocapd.errors import ConfigError, InputError, MocapdError, ModelError
 from mocapd.io.session import MANIFEST, Session
 from mocapd.pipeline.clocksync import offline_clock_map
 from mocapd.pipeline.imu_ingest import TICK_HZ, ImuIngest
@@ -100,13 +100,45 @@ class SessionRig:
 
 def session_rig(session: Session) -> SessionRig:
     """What the daemon ran with, from the session's manifest and prior file; a damaged or incomplete manifest or
-    prior is an :class:`~mocapd.errors.InputError` naming the file (never a KeyError from deep inside)."""
+    prior is an :class:`~mocapd.errors.InputError` in one line naming the file (never a KeyError from deep inside,
+    nor a camera's, calibration's or config key's message that does not say it comes from the manifest)."""
+    m = session.manifest
+    prior = _prior(session.path / Path(str(m["prior"])).name) if m.get("prior") else None  # beside the manifest
+    where = session.path / MANIFEST
     try:
-        return _session_rig(session)
-    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
-        if isinstance(exc, MocapdError):
-            raise
-        raise InputError(f"{session.path / MANIFEST}: damaged or incomplete: {type(exc).__name__}: {exc}") from None
+        return _session_rig(session, prior)
+    except ConfigError as exc:
+        lines = str(exc).splitlines() or [""]
+        more = f" (and {len(lines) - 1} more)" if len(lines) > 1 else ""
+        raise InputError(f"{where}: damaged: its copy of the config: {lines[0]}{more}") from None
+    except MocapdError as exc:
+        raise InputError(f"{where}: damaged: {exc}") from None
+    except KeyError as exc:
+        raise InputError(f"{where}: damaged or incomplete: no key {exc}") from None
+    except (TypeError, ValueError, IndexError, AttributeError, OverflowError) as exc:
+        raise InputError(f"{where}: damaged or incomplete: {type(exc).__name__}: {exc}") from None
+
+
+SCHEDULER_RANGES: dict[str, tuple[float, float]] = {
+    "rate_hz": (1.0, 1000.0),
+    "latency_ns": (0.0, 60e9),
+    "keypoint_max_age_ns": (0.0, 60e9),
+    "keypoint_max_gap_ns": (0.0, 60e9),
+    "match_px": (0.0, 1e5),
+    "body_size_frames": (0.0, 1e6),
+    "offset_ns": (-60e9, 60e9),
+}
+"""What a manifest's ``scheduler`` numbers may be (JSON also carries NaN and Infinity): wider than the config
+allows, so a session of an older version still opens, but nothing divides by zero, overflows an integer or
+spans more ticks than a run can have."""
+
+
+def _number(value: object, key: str, rng: str | None = None) -> float:
+    """``value`` when it is a number inside ``SCHEDULER_RANGES[rng or key]``, else InputError naming ``key``."""
+    lo, hi = SCHEDULER_RANGES[rng or key]
+    if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
+        raise InputError(f"scheduler.{key} = {value!r}; allowed: a number in [{lo:g}, {hi:g}]")
+    return value
 
 
 def _prior(path: Path) -> PcaPrior:
@@ -117,7 +149,7 @@ def _prior(path: Path) -> PcaPrior:
         raise InputError(f"{path}: cannot read the session's pose prior (damaged?): {exc}") from None
 
 
-def _session_rig(session: Session) -> SessionRig:
+def _session_rig(session: Session, prior: PcaPrior | None) -> SessionRig:
     m = session.manifest
     config = parse_config(m["config"])
     cameras = [camera_from_dict(c) for c in m["cameras"]]
@@ -125,19 +157,22 @@ def _session_rig(session: Session) -> SessionRig:
     skeleton = Skeleton(np.array(sk["offsets"]), root_height=float(sk["root_height"]), height=float(sk["height"]))
     t = m["targets"]
     targets = TrackTargets(tuple(t["names"]), np.array(t["bones"], dtype=np.intp), np.array(t["offsets"]))
-    prior = None
-    if m.get("prior"):
-        prior = _prior(session.path / Path(str(m["prior"])).name)  # a file beside the manifest, nowhere else
     suits = [
         Suit.from_calibration(s["id"], ImuCalibration.from_json_dict(s["calibration"]), skeleton) for s in m["suits"]
     ]
     s = m["scheduler"]
+    offsets = s["camera_offsets_ns"]
+    if len(offsets) != len(cameras):
+        raise InputError(f"scheduler.camera_offsets_ns has {len(offsets)} entries for {len(cameras)} cameras")
     options = SchedulerOptions(
-        rate_hz=float(s["rate_hz"]), latency_ns=int(s["latency_ns"]), keypoint_max_age_ns=int(s["keypoint_max_age_ns"]),
-        keypoint_max_gap_ns=int(s["keypoint_max_gap_ns"]), match_px=float(s["match_px"]),
-        camera_offsets_ns=tuple(int(v) for v in s["camera_offsets_ns"]),
-        imu_offsets_ns={k: int(v) for k, v in s["imu_offsets_ns"].items()},
-        body_size_frames=int(s.get("body_size_frames", 0)),
+        rate_hz=float(_number(s["rate_hz"], "rate_hz")), latency_ns=int(_number(s["latency_ns"], "latency_ns")),
+        keypoint_max_age_ns=int(_number(s["keypoint_max_age_ns"], "keypoint_max_age_ns")),
+        keypoint_max_gap_ns=int(_number(s["keypoint_max_gap_ns"], "keypoint_max_gap_ns")),
+        match_px=float(_number(s["match_px"], "match_px")),
+        camera_offsets_ns=tuple(int(_number(v, "camera_offsets_ns", "offset_ns")) for v in offsets),
+        imu_offsets_ns={str(k): int(_number(v, f"imu_offsets_ns.{k}", "offset_ns"))
+                        for k, v in s["imu_offsets_ns"].items()},
+        body_size_frames=int(_number(s.get("body_size_frames", 0), "body_size_frames")),
         # Offline there is nothing to predict: always the delayed solve. Heading correction as recorded (on for
         # sessions from before it existed: it only ever uses the session's own keypoints and IMUs).
         heading=HeadingOptions(enabled=bool(s.get("heading_correction", True))),

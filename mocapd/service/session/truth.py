@@ -11,19 +11,54 @@ from typing import Any
 
 import numpy as np
 
-from mocapd.io.session import Session
+from mocapd.errors import InputError
+from mocapd.io.session import MANIFEST, Session
 from mocapd.protocols.session_format import PoseRecord
 from mocapd.sim.world import SyntheticWorld
+
+MAX_SYNTHETIC_CAMERAS = 64
+"""The most cameras a daemon runs (``MAX_CAMERAS`` of the config)."""
+MAX_SYNTHETIC_PEOPLE = 4
+"""The most people and suits ``[synthetic]`` allows."""
+
+
+def synthetic_of(session: Session) -> dict[str, Any] | None:
+    """The manifest's ``extra.synthetic`` table (None for a session of real cameras), its values checked: a
+    damaged or hand-edited one is an InputError naming the manifest, not a traceback or a world of a million
+    people built from it."""
+    extra = session.manifest.get("extra")
+    if not isinstance(extra, dict) or "synthetic" not in extra:
+        return None
+    where = f"{session.path / MANIFEST}: damaged: extra.synthetic"
+    s = extra["synthetic"]
+    if not isinstance(s, dict):
+        raise InputError(f"{where} is not a table")
+    ranges = {"cameras": (1, MAX_SYNTHETIC_CAMERAS), "people": (1, MAX_SYNTHETIC_PEOPLE),
+              "suits": (0, MAX_SYNTHETIC_PEOPLE), "seed": (0, 2**31), "epoch_ns": (-(2**62), 2**62)}  # fmt: skip
+    for key, (lo, hi) in ranges.items():
+        v = s.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            raise InputError(f"{where}.{key} = {v!r}; allowed: an integer in [{lo}, {hi}]")
+    if s.get("motion", "procedural") not in ("recorded", "procedural"):
+        raise InputError(f'{where}.motion = {s.get("motion")!r}; allowed: "recorded" or "procedural"')
+    names = s.get("camera_names")
+    if names is not None and (
+        not isinstance(names, list) or len(names) != s["cameras"] or not all(isinstance(n, str) for n in names)
+    ):
+        raise InputError(f"{where}.camera_names is not a list of {s['cameras']} camera names")
+    return s
 
 
 def world_of(session: Session) -> tuple[SyntheticWorld, int]:
     """The synthetic world a session was recorded in, and its epoch (host ns of world time 0)."""
-    s = session.manifest["extra"]["synthetic"]
+    s = synthetic_of(session)
+    if s is None:
+        raise InputError(f"{session.path / MANIFEST}: not a session of the synthetic rig (no extra.synthetic)")
     world = SyntheticWorld(
-        int(s["cameras"]),
-        int(s["people"]),
-        int(s["suits"]),
-        seed=int(s["seed"]),
+        s["cameras"],
+        s["people"],
+        s["suits"],
+        seed=s["seed"],
         motion=str(s.get("motion", "procedural")),  # sessions before the recorded motion
         camera_names=s.get("camera_names"),  # sessions before named synthetic cameras: cam0, cam1, ...
     )
