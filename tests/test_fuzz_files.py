@@ -24,13 +24,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mocapd.errors import ConfigError, InputError, MocapdError
 from mocapd.eval.data import default_data_root
-from mocapd.io.asfamc import read_amc, read_asf
+from mocapd.io.asfamc import AsfSkeleton, read_amc, read_asf
 from mocapd.io.bvh import read_bvh
 from mocapd.io.calibration_files import read_any
 from mocapd.io.mt_export import read_mt_export
@@ -547,3 +548,79 @@ def test_an_intact_record_that_does_not_decode_is_counted_and_skipped(
     assert code == 0 and "Traceback" not in err, err
     code, err = run_cli(["resolve", str(copy), "--iterations", "1", "--no-smooth", "-o", str(tmp_path / "r.mcs")])
     assert code == 0 and f"note: {copy / name}: 1 intact records did not decode (skipped)" in err, err
+
+
+# ---------------------------------------------------------------------------------------------- motion file values
+_NUMBER = re.compile(rb"(?<![\w.])-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?(?![\w.])")
+NUMBER_EXTREMES = [b"nan", b"inf", b"-inf", b"0", b"-1", b"-5", b"1e-300", b"1e308", b"9223372036854775807"]
+
+
+def _finite(result: Any) -> bool:
+    """Every number a reader returned is finite (a motion's arrays and rate, a skeleton's bones and scale)."""
+    if isinstance(result, AsfSkeleton):
+        return math.isfinite(result.length_scale) and all(
+            np.isfinite(b.direction).all() and math.isfinite(b.length) for b in result.bones
+        )
+    arrays = [v for v in vars(result).values() if isinstance(v, np.ndarray) and v.dtype.kind == "f"]
+    fps = float(result.fps)
+    return math.isfinite(fps) and 0 < fps <= 10_000 and all(np.isfinite(a).all() for a in arrays)
+
+
+@settings(FUZZ, max_examples=150)
+@given(st.sampled_from(["bvh", "asf", "amc", "mvnx"]), st.data())
+def test_motion_file_numbers_set_to_the_extremes(
+    tmp_path_factory: pytest.TempPathFactory, kind: str, data: st.DataObject
+) -> None:
+    """Structure-aware: one number of a real file (its hierarchy, units, rate, frame count or a value) replaced by
+    an extreme. The reader raises InputError or returns only finite numbers and a plausible rate — never a
+    silent NaN skeleton or a 1e300 Hz motion."""
+    load, read, name = MOTION[kind]
+    if kind not in ORIGINALS:
+        ORIGINALS[kind] = load()
+    text = ORIGINALS[kind][:200_000] if kind != "mvnx" else ORIGINALS[kind]  # the hierarchy and first frames
+    numbers = [m.span() for m in _NUMBER.finditer(text)][:3000]
+    start, end = data.draw(st.sampled_from(numbers))
+    value = data.draw(st.sampled_from(NUMBER_EXTREMES))
+    path = tmp_path_factory.mktemp(kind) / name
+    path.write_bytes(ORIGINALS[kind][:start] + value + ORIGINALS[kind][end:])
+    try:
+        result = read(path)
+    except InputError:
+        return
+    assert _finite(result), f"{kind}: {text[max(0, start - 40) : end + 20]!r} -> {value!r} gave non-finite numbers"
+
+
+@pytest.mark.parametrize(
+    ("kind", "pattern", "value", "problem"),
+    [
+        ("bvh", rb"Frame Time:\s*\S+", b"Frame Time: 1e-300", "frame time must be in"),  # fps = 1e300
+        ("bvh", rb"Frames:\s*\d+", b"Frames: -5", "Frames: -5"),  # the last 2 frames silently dropped
+        ("bvh", rb"OFFSET\s+\S+", b"OFFSET nan", "non-finite OFFSET"),  # a nan offset sized the skeleton
+        ("asf", rb"length\s+\S+\s*\n\s*axis", b"length nan\n axis", "non-finite direction or length"),
+        ("asf", rb"direction\s+\S+", b"direction inf", "non-finite direction or length"),
+        ("asf", rb":units\s+mass\s+\S+\s+length\s+\S+", b":units\n  mass 1.0\n  length 0", "':units length 0"),
+        ("mvnx", rb'(type="tpose">\s*<orientation>)\S+', rb"\1nan", "non-finite values"),  # the T-pose frame
+    ],
+    ids=[
+        "bvh-frame-time",
+        "bvh-frames-negative",
+        "bvh-offset-nan",
+        "asf-bone-length",
+        "asf-direction",
+        "asf-unit",
+        "mvnx-tpose",
+    ],
+)
+def test_motion_file_values_the_fuzzer_broke(
+    tmp_path: Path, kind: str, pattern: bytes, value: bytes, problem: str
+) -> None:
+    """Found by the structure-aware motion fuzzer: values every reader accepted silently (a rate of 1e300 Hz,
+    frames dropped by a negative count, nan bone offsets, directions and lengths, a zero length unit that scaled
+    every bone to infinity)."""
+    load, read, name = MOTION[kind]
+    original = load()
+    assert re.search(pattern, original), pattern
+    path = tmp_path / name
+    path.write_bytes(re.sub(pattern, value, original, count=1))
+    with pytest.raises(InputError, match=re.escape(problem)):
+        read(path)

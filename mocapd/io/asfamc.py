@@ -149,6 +149,11 @@ def _parse_asf(text: str, name: str) -> AsfSkeleton:
     ordered = tuple(all_bones[i] for i in order)
     parents = tuple(-1 if i == 0 else remap[parent_of[i]] for i in order)
     # CMU: length unit 0.45 means lengths are in inches / 0.45.
+    if not (np.isfinite(length_unit) and length_unit > 0):
+        raise InputError(f"ASF {name}: ':units length {length_unit!r}'; allowed: a positive number")
+    for b in ordered:
+        if not (np.isfinite(b.direction).all() and np.isfinite(b.length) and b.length >= 0):
+            raise InputError(f"ASF {name}: bone {b.name}: non-finite direction or length (or a negative length)")
     scale = _INCH / length_unit
     return AsfSkeleton(ordered, parents, scale, degrees, root_order, root_axis_order)
 

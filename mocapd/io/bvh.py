@@ -94,6 +94,8 @@ def _parse_bvh(text: str, name: str, unit: str | None) -> SourceMotion:
     if take().rstrip(":").upper() != "FRAMES":
         raise InputError(f"BVH {name}: missing 'Frames:'")
     n_frames = int(take())
+    if n_frames < 0:  # a negative count slices frames off the end of the data: refuse it instead
+        raise InputError(f"BVH {name}: Frames: {n_frames}; allowed: a count >= 0")
     if take().upper() != "FRAME" or take().rstrip(":").upper() != "TIME":
         raise InputError(f"BVH {name}: missing 'Frame Time:'")
     frame_time = float(take())
@@ -108,6 +110,9 @@ def _parse_bvh(text: str, name: str, unit: str | None) -> SourceMotion:
 
     n = len(names)
     off = np.array(offsets)
+    if not (np.isfinite(off).all() and np.isfinite(np.array(end_sites, dtype=np.float64)).all()):
+        # position channels may replace a joint's OFFSET, but the offsets also size the skeleton (unit detection)
+        raise InputError(f"BVH {name}: non-finite OFFSET in the hierarchy")
     trans = np.broadcast_to(off, (n_frames, n, 3)).copy()
     rot = np.zeros((n_frames, n, 4))
     rot[..., 0] = 1.0
@@ -163,9 +168,16 @@ def _leg_length(names: list[str], offsets: np.ndarray, parents: list[int]) -> fl
     return float("nan")
 
 
+MIN_FRAME_TIME_S = 1e-4
+"""10 kHz: faster than any motion capture (a frame time of 1e-300 s is damage, not a 1e300 Hz recording)."""
+MAX_FRAME_TIME_S = 60.0
+
+
 def _rate(frame_time: float) -> float:
     """Frame rate from a frame time, snapped to an integer rate when the file rounded it (.0083333 -> 120)."""
-    if not (np.isfinite(frame_time) and frame_time > 0):
-        raise InputError(f"BVH frame time must be positive, got {frame_time!r}")
+    if not (np.isfinite(frame_time) and MIN_FRAME_TIME_S <= frame_time <= MAX_FRAME_TIME_S):
+        raise InputError(
+            f"BVH frame time must be in [{MIN_FRAME_TIME_S:g}, {MAX_FRAME_TIME_S:g}] s, got {frame_time!r}"
+        )
     r = 1.0 / frame_time
     return float(round(r)) if abs(r - round(r)) < 1e-3 * r else r

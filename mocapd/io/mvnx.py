@@ -130,8 +130,10 @@ def read_mvnx(path: str | Path) -> MvnxRecording:
         raise InputError(f"MVNX {p.name}: no <subject>")
     with malformed_file(f"MVNX {p.name}"):
         rec = _recording(subject, ns, p.name)
-    arrays = (rec.time_ms, rec.segment_orientation, rec.segment_position, rec.sensor_orientation,
-              rec.sensor_free_acceleration)  # fmt: skip
+    arrays = [rec.time_ms, rec.segment_orientation, rec.segment_position, rec.sensor_orientation,
+              rec.sensor_free_acceleration]  # fmt: skip
+    if rec.tpose_orientation is not None:  # the calibration pose: a nan there would reach the retarget silently
+        arrays.append(rec.tpose_orientation)
     if not (np.isfinite(rec.fps) and rec.fps > 0) or not all(np.isfinite(a).all() for a in arrays):
         raise InputError(f"MVNX {p.name}: non-finite values (frame rate {rec.fps!r}, or a frame's numbers)")
     return rec
