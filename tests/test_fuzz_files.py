@@ -29,7 +29,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mocapd.errors import ConfigError, InputError, MocapdError
+from mocapd.errors import CalibrationError, ConfigError, InputError, MocapdError
 from mocapd.eval.data import default_data_root
 from mocapd.io.asfamc import AsfSkeleton, read_amc, read_asf
 from mocapd.io.bvh import read_bvh
@@ -624,3 +624,87 @@ def test_motion_file_values_the_fuzzer_broke(
     path.write_bytes(re.sub(pattern, value, original, count=1))
     with pytest.raises(InputError, match=re.escape(problem)):
         read(path)
+
+
+# ---------------------------------------------------------------------------------------------- calibration values
+def _plausible(calib: Any) -> bool:
+    """Every camera of a calibration that was read is usable: finite numbers, positive focal lengths and size."""
+    return all(
+        np.isfinite(c.K).all() and np.isfinite(c.dist).all() and np.isfinite(c.R).all() and np.isfinite(c.t).all()
+        and c.K[0, 0] > 0 and c.K[1, 1] > 0 and c.size[0] > 0 and c.size[1] > 0
+        and (c.error_px is None or (math.isfinite(c.error_px) and c.error_px >= 0))
+        for c in calib.cameras
+    )  # fmt: skip
+
+
+@settings(FUZZ, max_examples=120)
+@given(st.sampled_from(["qca", "mocapd", "pose2sim", "opencv-yaml"]), st.data())
+def test_calibration_numbers_set_to_the_extremes(
+    calibrations: dict[str, Path], tmp_path_factory: pytest.TempPathFactory, fmt: str, data: st.DataObject
+) -> None:
+    """Structure-aware: one number of a valid calibration file of each format (a focal length, a distortion
+    coefficient, a rotation, a translation, the image size, the error) replaced by an extreme: the reader raises
+    the project's error or returns only usable cameras — never a nan distortion or a zero-pixel image."""
+    src = calibrations[fmt]
+    original = src.read_bytes()
+    numbers = [m.span() for m in _NUMBER.finditer(original)]
+    start, end = data.draw(st.sampled_from(numbers))
+    value = data.draw(st.sampled_from(NUMBER_EXTREMES))
+    path = tmp_path_factory.mktemp("cv") / src.name
+    path.write_bytes(original[:start] + value + original[end:])
+    try:
+        calib = read_any(path)
+    except MocapdError:
+        return
+    context = original[max(0, start - 40) : end + 10]
+    assert _plausible(calib), f"{fmt}: {context!r} -> {value!r} was accepted"
+
+
+@pytest.mark.parametrize(
+    ("fmt", "find", "replace", "problem"),
+    [
+        ("pose2sim", b"distortions = [-0.046183,", b"distortions = [nan,", "non-finite calibration values"),
+        ("pose2sim", b"size = [1088.0, 1920.0]", b"size = [0.0, 1920.0]", "image size 0x1920"),
+        ("pose2sim", b"matrix = [[1681.244873046875,", b"matrix = [[-1681.2,", "focal lengths must be positive"),
+        ("qca", b'<fov_video bottom="1919"', b'<fov_video bottom="inf"', "OverflowError"),
+        ("mocapd", b'name = "cam01"\n', b'name = "cam01"\nreprojection_error_px = -1.0\n', "reprojection error -1.0"),
+    ],
+    ids=["dist-nan", "size-0", "focal-negative", "qca-size-inf", "error-negative"],
+)
+def test_calibration_values_the_fuzzer_broke(
+    calibrations: dict[str, Path], tmp_path: Path, fmt: str, find: bytes, replace: bytes, problem: str
+) -> None:
+    """Found by the structure-aware calibration fuzzer: a nan distortion coefficient, a zero image size, a negative
+    focal length or reprojection error were accepted; an infinite QCA image bound escaped as OverflowError."""
+    src = calibrations[fmt]
+    data = src.read_bytes()
+    assert find in data, find
+    path = tmp_path / src.name
+    path.write_bytes(data.replace(find, replace, 1))
+    with pytest.raises(CalibrationError, match=re.escape(problem)):
+        read_any(path)
+
+
+@pytest.mark.parametrize(
+    ("find", "replace"),
+    [(b"rows: 3\n   cols: 1\n", b"rows: 3\n   cols: -1\n"), (b"sizes: [ 2 ]", b"sizes: [ 7 ]"),
+     (b"rows: 3\n   cols: 1\n", b"rows: 3\n   cols: 9223372036854775807\n"), (b"dt: d", b"dt: x")],
+    ids=["cols-negative", "sizes-wrong", "cols-2**63", "dt-unknown"],
+)  # fmt: skip
+def test_an_opencv_matrix_header_that_disagrees_with_its_data_is_one_error_line(
+    calibrations: dict[str, Path], tmp_path: Path, find: bytes, replace: bytes
+) -> None:
+    """Found by the calibration fuzzer: OpenCV's FileNode.mat() trusts a matrix's rows/cols/sizes. With
+    `cols: 2**63-1` a bare `read_any` aborted the process (malloc(): invalid size, SIGABRT: no except can catch
+    it), and a run of bad headers in one process (cols 0, -1, sizes -5) corrupted the heap until a later read
+    aborted or segfaulted; through `calibrate convert` each was a garbled multi-line cv2 assertion. Run in a child
+    process, as a user runs it: it now exits 2 with one line, the header checked before OpenCV reads the data."""
+    src = calibrations["opencv-yaml"]
+    data = src.read_bytes()
+    assert find in data, find
+    path = tmp_path / src.name
+    path.write_bytes(data.replace(find, replace, 1))
+    proc = subprocess.run([sys.executable, "-m", "mocapd", "calibrate", "convert", str(path), str(tmp_path / "o.toml")],
+                          check=False, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(f"error: cannot read {path}"), proc.stderr

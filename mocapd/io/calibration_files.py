@@ -63,6 +63,10 @@ WorldUp = Literal["y", "z"]
 Z_TO_Y: FloatArray = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
+MAX_IMAGE_PX = 65535
+"""Largest image side a calibration may give (the session format's 16-bit sizes)."""
+
+
 @dataclass(frozen=True)
 class CameraCalibration:
     """One calibrated camera in mocapd's conventions.
@@ -103,8 +107,17 @@ class CameraCalibration:
             raise CalibrationError(
                 f"camera {self.name!r}: K and R must be 3x3 and t has 3 values (got {K.shape}, {R.shape}, {t.shape})"
             )
-        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        if not (
+            np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.all(np.isfinite(dist))
+        ):
             raise CalibrationError(f"camera {self.name!r}: non-finite calibration values")
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise CalibrationError(f"camera {self.name!r}: focal lengths must be positive, got K={K.tolist()}")
+        width, height = self.size
+        if not all(isinstance(v, int | float) and math.isfinite(v) and 1 <= v <= MAX_IMAGE_PX for v in (width, height)):
+            raise CalibrationError(f"camera {self.name!r}: image size {width}x{height}; allowed: 1..{MAX_IMAGE_PX} px")
+        if self.error_px is not None and not (math.isfinite(self.error_px) and self.error_px >= 0):
+            raise CalibrationError(f"camera {self.name!r}: reprojection error {self.error_px!r}; allowed: >= 0 px")
         if abs(np.linalg.det(R) - 1.0) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
             raise CalibrationError(f"camera {self.name!r}: R is not a rotation matrix (det={np.linalg.det(R):.4f})")
         object.__setattr__(self, "K", K)
@@ -374,6 +387,43 @@ def _is_float(text: str) -> bool:
 # -- OpenCV YAML --------------------------------------------------------------------------------------------------
 
 
+MAX_MATRIX_SIDE = 16
+"""Largest row or column count of a matrix in a calibration (3x3 K, up to 14 distortion coefficients)."""
+
+
+def _mat(fs: Any, key: str, path: Path) -> Any:
+    """The matrix ``key`` of an open FileStorage, or None when absent; its header checked first.
+
+    OpenCV's ``FileNode.mat()`` trusts ``rows``/``cols``/``sizes`` and ``dt``: a damaged header (``cols: -1``, a
+    count that disagrees with ``data``) corrupts the heap and aborts the whole process (``malloc(): invalid
+    size``), past any ``except``. So the header is read as plain nodes and checked against ``data`` before it.
+    """
+    node = fs.getNode(key)
+    if node.empty():
+        return None
+    if not node.isMap():
+        raise CalibrationError(f"{path}: {key} is not an OpenCV matrix")
+    data = node.getNode("data")
+    dt = node.getNode("dt")
+    if not data.isSeq() or not dt.isString() or dt.string() not in ("d", "f"):
+        raise CalibrationError(f"{path}: {key}: an OpenCV matrix of 'd' or 'f' numbers with a 'data' list expected")
+    sizes_node = node.getNode("sizes")
+    if not sizes_node.empty():  # !!opencv-nd-matrix
+        sizes = [sizes_node.at(i) for i in range(sizes_node.size())] if sizes_node.isSeq() else []
+        dims = [int(n.real()) if n.isInt() else -1 for n in sizes]
+    else:  # !!opencv-matrix
+        rows, cols = node.getNode("rows"), node.getNode("cols")
+        dims = [int(n.real()) if n.isInt() else -1 for n in (rows, cols)]
+    if not dims or not all(1 <= d <= MAX_MATRIX_SIDE for d in dims) or math.prod(dims) != data.size():
+        raise CalibrationError(
+            f"{path}: {key}: matrix dimensions {dims} do not match its {data.size()} values "
+            f"(each dimension 1..{MAX_MATRIX_SIDE})"
+        )
+    if not all(data.at(i).isReal() or data.at(i).isInt() for i in range(data.size())):
+        raise CalibrationError(f"{path}: {key}: a value of its data is not a number")
+    return node.mat()
+
+
 def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
     """Read OpenCV ``FileStorage`` YAML (Pose2Sim multi-camera layout or one camera); see module docstring."""
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
@@ -385,14 +435,14 @@ def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
         if not names_node.empty():
             for i in range(names_node.size()):
                 name = names_node.at(i).string()
-                K = fs.getNode(f"K_{name}").mat()
-                dist = fs.getNode(f"dist_{name}").mat()
-                rvec, tvec = fs.getNode(f"R_{name}").mat(), fs.getNode(f"T_{name}").mat()
+                K = _mat(fs, f"K_{name}", path)
+                dist = _mat(fs, f"dist_{name}", path)
+                rvec, tvec = _mat(fs, f"R_{name}", path), _mat(fs, f"T_{name}", path)
                 size_node = fs.getNode(f"size_{name}")
                 if K is None or dist is None:
                     raise CalibrationError(f"{path}: camera {name} lacks K_{name} or dist_{name}")
                 size = (
-                    tuple(int(v) for v in size_node.mat().reshape(-1)[:2])
+                    tuple(int(v) for v in _mat(fs, f"size_{name}", path).reshape(-1)[:2])
                     if not size_node.empty()
                     else (round(2 * K[0, 2]), round(2 * K[1, 2]))  # as Pose2Sim: twice the principal point
                 )
@@ -400,14 +450,14 @@ def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
                 t = tvec.reshape(3) if tvec is not None else np.zeros(3)
                 cams.append(CameraCalibration(name, size, K, dist.reshape(-1), R, t))  # type: ignore[arg-type]
         else:
-            K = fs.getNode("camera_matrix").mat()
-            dist = fs.getNode("distortion_coefficients").mat()
+            K = _mat(fs, "camera_matrix", path)
+            dist = _mat(fs, "distortion_coefficients", path)
             if K is None or dist is None:
                 raise CalibrationError(
                     f"{path}: neither a Pose2Sim 'names' list nor camera_matrix/distortion_coefficients found"
                 )
             w, h = fs.getNode("image_width").real(), fs.getNode("image_height").real()
-            rvec, tvec = fs.getNode("rvec").mat(), fs.getNode("tvec").mat()
+            rvec, tvec = _mat(fs, "rvec", path), _mat(fs, "tvec", path)
             R = cv2.Rodrigues(rvec.reshape(3))[0] if rvec is not None else np.eye(3)
             t = tvec.reshape(3) if tvec is not None else np.zeros(3)
             cams.append(
@@ -456,7 +506,7 @@ def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:
         return _read_any(Path(path), world_up)
     except CalibrationError:
         raise
-    except (ValueError, TypeError, KeyError, IndexError, AttributeError, cv2.error, SystemError) as exc:
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError, cv2.error, SystemError) as exc:
         # A file door: whatever the format's reader trips over in a damaged file is the file's fault, said once.
         raise CalibrationError(f"{path}: not a valid calibration file: {type(exc).__name__}: {exc}") from None
 
