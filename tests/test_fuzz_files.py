@@ -34,7 +34,7 @@ from mocapd.eval.data import default_data_root
 from mocapd.io.asfamc import AsfSkeleton, read_amc, read_asf
 from mocapd.io.bvh import read_bvh
 from mocapd.io.calibration_files import read_any
-from mocapd.io.mt_export import read_mt_export
+from mocapd.io.mt_export import MtExport, read_mt_export
 from mocapd.io.mvnx import read_mvnx
 from mocapd.io.pose2sim_demo import demo_calibration
 from mocapd.io.session import open_session
@@ -562,12 +562,16 @@ def _finite(result: Any) -> bool:
             np.isfinite(b.direction).all() and math.isfinite(b.length) for b in result.bones
         )
     arrays = [v for v in vars(result).values() if isinstance(v, np.ndarray) and v.dtype.kind == "f"]
-    fps = float(result.fps)
+    fps = float(result.rate_hz if isinstance(result, MtExport) else result.fps)
+    if isinstance(result, MtExport):  # device counters: the unwrapped ticks only ever grow (no int64 garbage)
+        arrays += [np.diff(c).astype(np.float64) for c in (result.ticks, result.counter) if c is not None]
+        if any((np.diff(c) < 0).any() for c in (result.ticks, result.counter) if c is not None):
+            return False
     return math.isfinite(fps) and 0 < fps <= 10_000 and all(np.isfinite(a).all() for a in arrays)
 
 
 @settings(FUZZ, max_examples=150)
-@given(st.sampled_from(["bvh", "asf", "amc", "mvnx"]), st.data())
+@given(st.sampled_from(["bvh", "asf", "amc", "mvnx", "mt"]), st.data())
 def test_motion_file_numbers_set_to_the_extremes(
     tmp_path_factory: pytest.TempPathFactory, kind: str, data: st.DataObject
 ) -> None:
@@ -600,6 +604,7 @@ def test_motion_file_numbers_set_to_the_extremes(
         ("asf", rb"direction\s+\S+", b"direction inf", "non-finite direction or length"),
         ("asf", rb":units\s+mass\s+\S+\s+length\s+\S+", b":units\n  mass 1.0\n  length 0", "':units length 0"),
         ("mvnx", rb'(type="tpose">\s*<orientation>)\S+', rb"\1nan", "non-finite values"),  # the T-pose frame
+        ("mt", rb"\n00473\t", b"\n1e308\t", "PacketCounter = 1e+308 in data row 2"),  # int64 garbage counter
     ],
     ids=[
         "bvh-frame-time",
@@ -609,6 +614,7 @@ def test_motion_file_numbers_set_to_the_extremes(
         "asf-direction",
         "asf-unit",
         "mvnx-tpose",
+        "mt-counter",
     ],
 )
 def test_motion_file_values_the_fuzzer_broke(
@@ -697,14 +703,20 @@ def test_an_opencv_matrix_header_that_disagrees_with_its_data_is_one_error_line(
     """Found by the calibration fuzzer: OpenCV's FileNode.mat() trusts a matrix's rows/cols/sizes. With
     `cols: 2**63-1` a bare `read_any` aborted the process (malloc(): invalid size, SIGABRT: no except can catch
     it), and a run of bad headers in one process (cols 0, -1, sizes -5) corrupted the heap until a later read
-    aborted or segfaulted; through `calibrate convert` each was a garbled multi-line cv2 assertion. Run in a child
-    process, as a user runs it: it now exits 2 with one line, the header checked before OpenCV reads the data."""
+    aborted or segfaulted; through `calibrate convert` each was a garbled multi-line cv2 assertion. Now it exits 2
+    with one line, the header checked before OpenCV reads the data; the case that aborted runs in a child process,
+    as a user runs it (an abort there fails this test instead of ending the test run)."""
     src = calibrations["opencv-yaml"]
     data = src.read_bytes()
     assert find in data, find
     path = tmp_path / src.name
     path.write_bytes(data.replace(find, replace, 1))
-    proc = subprocess.run([sys.executable, "-m", "mocapd", "calibrate", "convert", str(path), str(tmp_path / "o.toml")],
-                          check=False, capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
-    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(f"error: cannot read {path}"), proc.stderr
+    argv = ["calibrate", "convert", str(path), str(tmp_path / "o.toml")]
+    if b"9223372036854775807" in replace:
+        proc = subprocess.run([sys.executable, "-m", "mocapd", *argv],
+                              check=False, capture_output=True, text=True, timeout=120)  # fmt: skip
+        code, err = proc.returncode, proc.stderr
+    else:
+        code, err = run_cli(argv)
+    assert code == 2, (code, err[-2000:])
+    assert err.count("\n") == 1 and err.startswith(f"error: cannot read {path}"), err

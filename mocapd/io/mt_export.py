@@ -149,8 +149,8 @@ def parse_mt_export(
         raise InputError(f"{name}: no sample has an orientation")
     frame = header.get("Coordinate system", "ENU").strip().upper() or "ENU"
     q = quat_to_enu(quat_normalize(q), frame)
-    ticks = _unwrapped(values, col.get("SampleTimeFine"), 1 << 32)
-    counter = _unwrapped(values, col.get("PacketCounter"), 1 << 16)
+    ticks = _unwrapped(values, col.get("SampleTimeFine"), 1 << 32, name, "SampleTimeFine")
+    counter = _unwrapped(values, col.get("PacketCounter"), 1 << 16, name, "PacketCounter")
     rate = _rate(rate_hz, header, ticks, name)
     if ticks is not None:
         time_s = (ticks - ticks[0]) / TICK_HZ
@@ -255,10 +255,19 @@ def _quat_from_xsens_euler(rpy: FloatArray) -> FloatArray:
     )
 
 
-def _unwrapped(values: FloatArray, c: int | None, modulus: int) -> IntArray | None:
+def _unwrapped(values: FloatArray, c: int | None, modulus: int, name: str, column: str) -> IntArray | None:
+    """A wrapping device counter unwrapped (None without the column, or where a sample lacks it); a value that is
+    not an integer in [0, modulus) is an InputError (cast to int64 it became garbage time, silently)."""
     if c is None or not np.all(np.isfinite(values[:, c])):
         return None
-    raw = values[:, c].astype(np.int64)
+    v = values[:, c]
+    bad = (v < 0) | (v >= modulus) | (v != np.floor(v))
+    if np.any(bad):
+        row = int(np.argmax(bad))
+        raise InputError(
+            f"{name}: {column} = {float(v[row])!r} in data row {row + 1}; allowed: an integer in [0, {modulus})"
+        )
+    raw = v.astype(np.int64)
     steps = np.diff(raw)
     wraps = np.cumsum(np.r_[0, (steps < -modulus // 2).astype(np.int64)])
     return np.asarray(raw + wraps * modulus, dtype=np.int64)
