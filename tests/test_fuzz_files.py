@@ -720,3 +720,21 @@ def test_an_opencv_matrix_header_that_disagrees_with_its_data_is_one_error_line(
         code, err = run_cli(argv)
     assert code == 2, (code, err[-2000:])
     assert err.count("\n") == 1 and err.startswith(f"error: cannot read {path}"), err
+
+
+def test_huge_channel_values_are_refused_before_the_rotation_math(tmp_path: Path) -> None:
+    """A finite but absurd channel value (1e308 degrees) is refused by the reader itself, not left to become NaN
+    (with numpy's RuntimeWarnings) in the Euler-angle conversion and be caught later."""
+    bvh = (DATA / "mocap/bandai/dataset-1_bow_angry_001.bvh").read_text()
+    head, frames = bvh.split("Frame Time:", 1)
+    time_line, first, *rest = frames.split("\n")
+    values = first.split()
+    values[5] = "1e308"
+    path = tmp_path / "x.bvh"
+    path.write_text("\n".join([head + "Frame Time:" + time_line, " ".join(values), *rest]))
+    with pytest.raises(InputError, match="within"):
+        read_bvh(path)
+    amc = _head(DATA / "mocap/cmu/asfamc/02_01.amc", 60).replace(b"lradius ", b"lradius 1e308 ", 1)
+    (tmp_path / "x.amc").write_bytes(amc)
+    with pytest.raises(InputError, match="within"):
+        read_amc(tmp_path / "x.amc", read_asf(DATA / "mocap/cmu/asfamc/02.asf"))

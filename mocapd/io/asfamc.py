@@ -10,6 +10,7 @@ unit = 1/0.45 inch) and ``angle deg|rad``. AMC files are 120 Hz unless the calle
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from numpy.typing import NDArray
 from mocapd.core.motion import SourceMotion
 from mocapd.core.rotations import quat_conjugate, quat_multiply
 from mocapd.errors import InputError
+from mocapd.io.bvh import MAX_CHANNEL_VALUE
 from mocapd.io.malformed import malformed_file
 from mocapd.io.mocap_units import quat_from_euler
 
@@ -199,6 +201,9 @@ def _parse_amc(text: str, skeleton: AsfSkeleton, name: str, fps: float) -> Sourc
         if j is None:
             raise InputError(f"AMC {name}: unknown bone {words[0]!r}")
         cur[j] = [float(w) for w in words[1:]]
+        if not all(math.isfinite(v) and abs(v) <= MAX_CHANNEL_VALUE for v in cur[j]):
+            # refused before any rotation math runs on them (sin/cos of 1e308 degrees is NaN with a warning)
+            raise InputError(f"AMC {name}: bone {words[0]!r}: values must be finite and within ±{MAX_CHANNEL_VALUE:g}")
     if not frames:
         raise InputError(f"AMC {name}: no frames")
     n, f = len(bones), len(frames)

@@ -101,6 +101,9 @@ def _parse_bvh(text: str, name: str, unit: str | None) -> SourceMotion:
     frame_time = float(take())
     n_ch = sum(len(c) for c in channels)
     values = np.array(tokens[pos : pos + n_frames * n_ch], dtype=np.float64)
+    if not np.isfinite(values).all() or (values.size and np.abs(values).max() > MAX_CHANNEL_VALUE):
+        # refused before any rotation math runs on them (sin/cos of 1e308 degrees is NaN with a warning)
+        raise InputError(f"BVH {name}: channel values must be finite and within ±{MAX_CHANNEL_VALUE:g}")
     if values.size < n_frames * n_ch or n_frames < 1:
         n_frames = values.size // max(n_ch, 1)  # a truncated last frame: keep the complete ones
         if n_frames < 1:
@@ -168,6 +171,8 @@ def _leg_length(names: list[str], offsets: np.ndarray, parents: list[int]) -> fl
     return float("nan")
 
 
+MAX_CHANNEL_VALUE = 1e7
+"""Largest magnitude of a motion channel value (cm, mm or degrees): far beyond any capture, finite for the math."""
 MIN_FRAME_TIME_S = 1e-4
 """10 kHz: faster than any motion capture (a frame time of 1e-300 s is damage, not a 1e300 Hz recording)."""
 MAX_FRAME_TIME_S = 60.0
