@@ -93,7 +93,9 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     assert alone["packed_camera_frames_per_s"] == round(sum(runs) / 2, 2)
     # The headline repeats the detailed figures, and the ratio is theirs.
     assert s["detector_alone_packed_camera_frames_per_s"] == alone["packed_camera_frames_per_s"]
-    assert s["live_detected_camera_frames_per_s"] == r["detector_camera_frames_per_s"] > 0
+    # What the live run did, shown when it detected nothing (seen once on CI, never here: say where it stopped).
+    why = {k: r.get(k) for k in ("cameras", "detection_group_at_end", "output", "machine")}, proc.stderr[-3000:]
+    assert s["live_detected_camera_frames_per_s"] == r["detector_camera_frames_per_s"] > 0, why
     assert s["live_over_alone_packed"] == round(
         s["live_detected_camera_frames_per_s"] / alone["packed_camera_frames_per_s"], 3
     )

@@ -78,7 +78,7 @@ def test_a_file_that_is_no_config_is_one_line_and_exit_2(
     assert main(argv) == 2
     out = capsys.readouterr()
     assert out.err.count("\n") == 1 and "Traceback" not in out.err, out.err
-    assert str(path) in out.err and problem in out.err, out.err
+    assert out.err.count(str(path)) == 1 and problem in out.err, out.err  # the file named once, not twice
     assert out.out == ""
 
 

@@ -65,14 +65,19 @@ def _rig_summary(cfg: Config) -> str:
     )
 
 
+def _print_config_error(path: object, exc: ConfigError) -> None:
+    """One ``FILE: error: ...`` line per problem (a file-level message names the file already: not twice)."""
+    for line in str(exc).removeprefix(f"{path}: ").splitlines():
+        print(f"{path}: error: {line}", file=sys.stderr)
+
+
 def cmd_check_config(args: argparse.Namespace) -> int:
     path = args.path if args.path is not None else DEFAULT_CONFIG
     try:
         cfg = load_config(path)
         check(cfg)
-    except ConfigError as exc:  # a file-level message names the file already
-        for line in str(exc).removeprefix(f"{path}: ").splitlines():
-            print(f"{path}: error: {line}", file=sys.stderr)
+    except ConfigError as exc:
+        _print_config_error(path, exc)
         return 2
     print(f"{path}: ok ({_rig_summary(cfg)})")
     return 0
@@ -84,8 +89,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg = _load(args.config, args.http_port)
         check(cfg)
     except ConfigError as exc:
-        for line in str(exc).splitlines():
-            print(f"{path}: error: {line}", file=sys.stderr)
+        _print_config_error(path, exc)
         return 2
     from mocapd.service import assembly
     from mocapd.service.assembly import RunOptions
@@ -120,8 +124,7 @@ def cmd_detect_host(args: argparse.Namespace) -> int:
     try:
         cfg = _load(args.config)
     except ConfigError as exc:
-        for line in str(exc).splitlines():
-            print(f"{path}: error: {line}", file=sys.stderr)
+        _print_config_error(path, exc)
         return 2
     from mocapd.service import detect_host
 
