@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -72,19 +73,23 @@ def test_bench_latency_reports_the_synthetic_daemon(capsys: pytest.CaptureFixtur
     assert not any(r["task_failures"].values()), r["task_failures"]
 
 
-def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_detector_alone() -> None:
+def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_detector_alone(tmp_path: Path) -> None:
     """``mocapd bench latency --rig cameras`` (the camera demo in a private network namespace) for a few seconds:
-    the JSON is checked for content and coherence, not for speed."""
+    the JSON is checked for content and coherence, not for speed. ``--config`` gives the detector settings run."""
+    config = tmp_path / "bench.toml"
+    config.write_text("[detector]\nintra_op_threads = 1\n", encoding="utf-8")
     proc = subprocess.run(
         [sys.executable, "-m", "mocapd", "bench", "latency", "--rig", "cameras", "--seconds", "4", "--warm-up", "4",
-         "--alone-passes", "2", "--scale", "0.25"],
+         "--alone-passes", "2", "--scale", "0.25", "--config", str(config)],
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     r = json.loads(proc.stdout[proc.stdout.index("{") :])
+    assert r["rig"]["config"] == str(config) and "precision fp32" in r["rig"]["detector"]
     alone, s = r["detector_alone"], r["summary"]
     for run in (alone["before_live_run"], alone["after_live_run"]):
         assert run["passes"] == 2 and run["camera_frames_per_pass"] == 4 and run["image_size"] == [272, 480]
+        assert run["intra_op_threads"] == 1  # the given config's, not the shipped one's (0: all cores)
         assert run["whole_camera_frames_per_s"] > 0 and run["packed_camera_frames_per_s"] > 0
     runs = (
         alone["before_live_run"]["packed_camera_frames_per_s"],
@@ -118,3 +123,14 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     assert cpu["capture_threads_per_camera"] == round(cpu["capture_threads"] / 4, 4)
     assert set(cpu["tick_stages"]) >= {"sample", "sort", "solve", "publish"}
     assert not any(r["task_failures"].values()), r["task_failures"]
+
+
+def test_bench_latency_with_a_bad_config_is_one_line_and_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The base config is read before the private namespace starts: its error is the same line ``run`` prints."""
+    config = tmp_path / "bench.toml"
+    config.write_text('[detector]\nprecision = "int4"\n', encoding="utf-8")
+    assert main(["bench", "latency", "--rig", "cameras", "--config", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"{config}: error: detector.precision") and err.count("\n") == 1, err

@@ -297,9 +297,12 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--warm-up", type=float, default=WARM_UP_S)
     p.add_argument("--alone-passes", type=int, default=ALONE_PASSES)
     p.add_argument("--options", default="{}")
+    p.add_argument("--config", type=Path, default=None)
     args = p.parse_args(argv)
     opts = CameraDemoOptions(**json.loads(args.options))
-    config: Config = load_config()
+    # The base config's [detector] (providers, precision, threads, packing) and [daemon] rates are the ones run;
+    # the demo's cameras and calibration replace its rig.
+    config: Config = load_config(args.config)
     # Inside the namespace: any free port (nothing outside it reads them).
     config = config.model_copy(update={"daemon": config.daemon.model_copy(update={"http_port": 0}),
                                        "websocket": config.websocket.model_copy(update={"port": 0})})  # fmt: skip
@@ -326,7 +329,9 @@ def child_main(argv: list[str] | None = None) -> int:
                 "source": f"Pose2Sim {opts.demo} videos, fake GigE Vision cameras in a private netns",
                 "image": list(opts.size), "pixel_format": opts.pixel_format,
                 "camera_fps": 60 * opts.speed, "detector": f"{m.input_width}x{m.input_height} yolo11n-pose, "
-                f"{config.detector.workers} worker(s), providers {list(config.detector.providers)}",
+                f"{config.detector.workers} worker(s), providers {list(config.detector.providers)}, "
+                f"precision {config.detector.precision}",
+                "config": str(args.config) if args.config is not None else "shipped config.toml",
                 "options": asdict(opts)},
         "summary": headline(alone, measure.result, len(CAMERAS)) if measure.result else None,
         "detector_alone": alone,
@@ -339,13 +344,20 @@ def child_main(argv: list[str] | None = None) -> int:
 
 
 def run(
-    seconds: float, opts: CameraDemoOptions, *, warm_up_s: float = WARM_UP_S, alone_passes: int = ALONE_PASSES
+    seconds: float,
+    opts: CameraDemoOptions,
+    *,
+    warm_up_s: float = WARM_UP_S,
+    alone_passes: int = ALONE_PASSES,
+    config: Path | None = None,
 ) -> int:
-    """``mocapd bench latency --rig cameras``: re-run this module in a private network namespace."""
+    """``mocapd bench latency --rig cameras``: re-run this module in a private network namespace (``config``: the
+    base config whose detector settings are measured; default the shipped one)."""
+    extra = [] if config is None else ["--config", str(config.resolve())]
     return in_private_netns(
         "mocapd.service.bench.cameras",
         ["--seconds", str(seconds), "--warm-up", str(warm_up_s), "--alone-passes", str(alone_passes),
-         "--options", json.dumps(asdict(opts))],
+         "--options", json.dumps(asdict(opts)), *extra],
     )  # fmt: skip
 
 

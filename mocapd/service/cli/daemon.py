@@ -167,8 +167,15 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
         from mocapd.service.bench import cameras
         from mocapd.service.demo.cameras import CameraDemoOptions
 
+        if args.config is not None:
+            try:
+                load_config(args.config)  # a bad file is one line here, not a traceback in the namespace
+            except ConfigError as exc:
+                _print_config_error(args.config, exc)
+                return 2
         opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=_packed(args))
-        return cameras.run(args.seconds, opts, warm_up_s=args.warm_up, alone_passes=args.alone_passes)
+        return cameras.run(args.seconds, opts, warm_up_s=args.warm_up, alone_passes=args.alone_passes,
+                           config=args.config)  # fmt: skip
     from mocapd.service.bench import latency
 
     print(json.dumps(latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
@@ -252,4 +259,7 @@ def register(subparsers: Any) -> None:
     lat.add_argument("--warm-up", type=float, default=20.0, help="cameras: seconds run before measuring (default 20)")
     lat.add_argument("--alone-passes", type=int, default=20,
                      help="cameras: detector-alone passes timed before the live run (default 20)")  # fmt: skip
+    lat.add_argument("--config", type=Path, default=None,
+                     help="cameras: base config whose [detector] (providers, precision, threads, packing) and [daemon] "
+                     "are measured; the demo's cameras replace its rig (default: the shipped config)")  # fmt: skip
     lat.set_defaults(func=cmd_bench_latency)
