@@ -116,7 +116,7 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     assert s["end_to_end_ms_p50"] >= AutoLatencyOptions().min_ns / 1e6
     assert s["missed_ticks_after_warm_up"] == r["output"]["missed_ticks"] >= 0
     assert 0 <= s["missed_tick_fraction_after_warm_up"] <= 1
-    assert r["output"]["frames"] > 0 and r["duration_s"] > 0
+    assert r["output"]["frames"] > 0 and r["duration_s"] >= 3.9  # the window asked for, after the warm-up
     cpu = s["cpu_cores"]
     # Every stage ran and was charged: the cameras' capture threads, the detector's threads, the event loop's tick.
     assert cpu["capture_threads"] > 0 and cpu["detector_threads"] > 0 and cpu["event_loop_with_tick"] > 0

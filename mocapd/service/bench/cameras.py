@@ -188,12 +188,16 @@ class Measure:
         t0 = time.monotonic()
         percentiles: list[dict[str, Any]] = []
         a: dict[str, Any] | None = None
-        while (now := time.monotonic()) - t0 < self.warm_up_s + self.seconds:
-            await asyncio.sleep(min(1.0, self.warm_up_s + self.seconds - (now - t0)))
+        end = t0 + self.warm_up_s + self.seconds
+        while (now := time.monotonic()) < end:
+            await asyncio.sleep(min(1.0, end - now))
             now = time.monotonic()
             rss.append((round(now - t0, 1), round(_rss_mb(), 1)))
             if a is None and now - t0 >= self.warm_up_s:
                 a = self._snapshot(daemon)
+                # The measured window is ``seconds`` from this snapshot: an event loop that stalled past the
+                # warm-up's end (a loaded machine) would otherwise leave a window of a few ms, and rates of 0.
+                end = a["t"] + self.seconds
             if a is not None and len(rss) % 30 == 0:
                 e2e = daemon.status()["latency_ms"]["end_to_end"]
                 percentiles.append({"t_s": round(now - t0, 1), "p50": e2e["p50"], "p95": e2e["p95"]})
