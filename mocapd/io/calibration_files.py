@@ -438,12 +438,12 @@ def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
                 K = _mat(fs, f"K_{name}", path)
                 dist = _mat(fs, f"dist_{name}", path)
                 rvec, tvec = _mat(fs, f"R_{name}", path), _mat(fs, f"T_{name}", path)
-                size_node = fs.getNode(f"size_{name}")
+                size_mat = _mat(fs, f"size_{name}", path)
                 if K is None or dist is None:
                     raise CalibrationError(f"{path}: camera {name} lacks K_{name} or dist_{name}")
                 size = (
-                    tuple(int(v) for v in _mat(fs, f"size_{name}", path).reshape(-1)[:2])
-                    if not size_node.empty()
+                    tuple(int(v) for v in size_mat.reshape(-1)[:2])
+                    if size_mat is not None
                     else (round(2 * K[0, 2]), round(2 * K[1, 2]))  # as Pose2Sim: twice the principal point
                 )
                 R = cv2.Rodrigues(rvec.reshape(3))[0] if rvec is not None else np.eye(3)
