@@ -752,3 +752,25 @@ def test_each_key_is_documented_with_what_the_schema_allows(leaf: Leaf) -> None:
         )
     for choice in s.get("enum", []):
         assert f'"{choice}"' in text, f"{leaf.key}: the comment does not list {choice!r}:\n{text}"
+
+
+@pytest.mark.parametrize(
+    ("raw", "expected"),
+    [
+        # Found by tests/test_fuzz_files.py: `listen = [[1, 2], [3]]` was two lines for one key.
+        ({"zenoh": {"listen": [[1, 2], [3]]}},
+         'zenoh.listen[0] = [1, 2], zenoh.listen[1] = [3]; allowed: "tcp/<ip>:<port>" or "tls/<ip>:<port>"'),
+        ({"detector": {"providers": ["cdua", "xx"]}},
+         "detector.providers[0] = 'cdua', detector.providers[1] = 'xx': not a provider; allowed: "),
+        ({"detector": {"providers": ["cdua", 1]}}, "detector.providers[0] = 'cdua': not a provider; allowed: "),
+    ],
+)  # fmt: skip
+def test_bad_items_of_one_array_are_one_line(raw: dict[str, Any], expected: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(raw)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(expected), message
+    # Another bad key is its own line.
+    with pytest.raises(ConfigError) as info:
+        parse_config({**raw, "daemon": {"rate_hz": -1}})
+    assert len(str(info.value).splitlines()) == 2

@@ -148,6 +148,16 @@ def validate(model: type[M], data: object, where: str = "") -> M:
 def error_lines(exc: ValidationError, model: type[BaseModel], where: str = "") -> list[str]:
     """One message per bad key: ``key = value; allowed: what``, ``unknown key k; allowed: ...``, or a rule."""
     lines: list[str] = []
+    # The bad items of one array share one line (one key, one line): ``k[0] = a, k[2] = b; allowed: ...``, items
+    # with another complaint after `` | ``. Array path -> complaint -> its items, in order.
+    items: dict[tuple[str | int, ...], dict[str, list[str]]] = {}
+
+    def group_item(path: tuple[str | int, ...], item: str, tail: str) -> None:
+        if path[:-1] not in items:
+            items[path[:-1]] = {}
+            lines.append(_ITEMS.format(len(items) - 1))
+        items[path[:-1]].setdefault(tail, []).append(item)
+
     errors = exc.errors(include_url=False)
     with_bad_items = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
     for err in errors:
@@ -172,13 +182,23 @@ def error_lines(exc: ValidationError, model: type[BaseModel], where: str = "") -
             lines.append(f"{key} is required")
         elif kind in ("value_error", "assertion_error") and isinstance(err.get("input"), dict) and at_.is_table:
             lines.append(f"{key}: {_message(err)}")  # a rule of a whole table (a model validator)
+        elif kind in ("value_error", "assertion_error") and at_.path and isinstance(at_.path[-1], int):
+            group_item(at_.path, f"{key} = {show(err.get('input'))}", f": {_message(err)}")
         elif kind in ("value_error", "assertion_error"):
             lines.append(f"{key} = {show(err.get('input'))}: {_message(err)}")
         elif at_.is_key:
             lines.append(f"{key} (a key) is not allowed; allowed keys: {at_.allowed or _message(err)}")
+        elif at_.path and isinstance(at_.path[-1], int):
+            group_item(at_.path, f"{key} = {show(err.get('input'))}", f"; allowed: {at_.allowed or _message(err)}")
         else:
             lines.append(f"{key} = {show(err.get('input'))}; allowed: {at_.allowed or _message(err)}")
+    for n, by_tail in enumerate(items.values()):
+        merged = " | ".join(f"{', '.join(dict.fromkeys(bad))}{tail}" for tail, bad in by_tail.items())
+        lines[lines.index(_ITEMS.format(n))] = merged
     return list(dict.fromkeys(lines))  # a union reports each member's failure: one line is enough
+
+
+_ITEMS = "\0items{}"  # placeholder of an array's merged line in error_lines (no config text holds a NUL)
 
 
 class Located(NamedTuple):
