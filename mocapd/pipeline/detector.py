@@ -29,6 +29,7 @@ from mocapd.core.pose2d import (
     letterbox_geometry,
 )
 from mocapd.errors import InputError, ModelError
+from mocapd.io.model_batch import fixed_batch, load_model
 from mocapd.io.model_quant import model_path
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec
 
@@ -42,6 +43,10 @@ _AUTO_PROVIDERS = (
     "OpenVINOExecutionProvider",
     "CPUExecutionProvider",
 )
+# Providers whose device waits on kernel launches at batch 1: "auto" batches the canvases of a pass there.
+_GPU_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider")
+WARM_BATCHES = 4  # batch sizes whose sessions a batched detector makes and runs once when it loads: 1..this
+MAX_BATCH = 8  # canvases per call at most (a pass has 1-3 on the demo rig; bounds the device memory of one call)
 # onnxruntime's load errors derive from Exception directly, not from RuntimeError.
 _ORT_LOAD_ERRORS: tuple[type[Exception], ...] = tuple(
     getattr(ort.capi.onnxruntime_pybind11_state, name)
@@ -103,6 +108,26 @@ def resolve_providers(requested: Sequence[str], available: Sequence[str] | None 
     return out
 
 
+def _check_session_providers(requested: Sequence[str], resolved: Sequence[str], used: Sequence[str]) -> None:
+    """A provider named explicitly must be one the session runs: onnxruntime falls back on its own (TensorRT to
+    CUDA when the TensorRT libraries are missing, any provider to the CPU when its device cannot start) and only
+    prints that. "auto" may fall back: it asks for the best there is.
+
+    Raises
+    ------
+    ModelError
+        An explicitly named provider is not among the session's providers.
+    """
+    explicit = {_SHORT_NAMES.get(n.lower(), n) for n in requested if n.lower() != "auto"}
+    missing = [p for p in resolved if p in explicit and p not in used]
+    if missing:
+        raise ModelError(
+            f"detector.providers: onnxruntime could not start {', '.join(missing)} (its message is above; "
+            f"the session fell back to {list(used)}): check the GPU driver and the CUDA/cuDNN/TensorRT libraries "
+            "(docs/detection.md), or name the provider that runs"
+        )
+
+
 def letterbox_image(image: Image, lb: Letterbox, dst_w: int, dst_h: int, pad_value: int) -> Image:
     """Resize ``image (H, W, 3)`` by ``lb`` and pad to ``(dst_h, dst_w, 3)`` with grey ``pad_value``."""
     canvas = np.full((dst_h, dst_w, 3), pad_value, dtype=np.uint8)
@@ -141,6 +166,7 @@ class OnnxPoseDetector:
         precision: str = "fp32",
         intra_op_threads: int = 0,
         inter_op_threads: int = 1,
+        batch: bool | str = "auto",
     ) -> None:
         self.spec = spec
         self.format: KeypointFormat = keypoint_format(spec.keypoint_format)
@@ -156,10 +182,20 @@ class OnnxPoseDetector:
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         self.providers = resolve_providers(providers)
+        if batch not in ("auto", True, False):
+            raise ModelError(f'detector.batch = {batch!r}; allowed: "auto", true, false')
+        # "auto": batch on GPU providers, where one canvas per call leaves the device waiting on launches; on a
+        # CPU a batch costs what its canvases cost one by one (mocapd/io/model_batch.py).
+        self.batched: bool = self.providers[0] in _GPU_PROVIDERS if batch == "auto" else bool(batch)
         try:
             self.session = ort.InferenceSession(str(path), sess_options=opts, providers=self.providers)
         except _LOAD_ERRORS as exc:
             raise ModelError(f"onnxruntime cannot load {path}: {exc}") from exc
+        _check_session_providers(providers, self.providers, self.session.get_providers())
+        self._opts = opts
+        # The batch-1 model, checked for the rewrite now; a session per batch size, made when first needed.
+        self._model = load_model(path) if self.batched else None
+        self._batch_sessions: dict[int, ort.InferenceSession] = {1: self.session}
         self.intra_op_threads = intra_op_threads
         self._check_shapes()
         inp = self.session.get_inputs()[0]
@@ -167,15 +203,29 @@ class OnnxPoseDetector:
         self._input_dtype = np.float16 if "float16" in inp.type else np.float32
         self._scale = (np.float32(spec.pixel_scale) / np.asarray(spec.std, dtype=np.float32)).astype(np.float32)
         self._mean = np.asarray(spec.mean, dtype=np.float32)
+        # OpenCV's blob conversion does resize-free (x - mean) * scale, channel swap and HWC -> CHW in one C++
+        # pass: 1.5 ms against numpy's 6.4 ms per 640x640 canvas on the 2-core laptop, 1.8 vs 12 ms on the H100
+        # host, where it was most of a detection's time. It takes one scale for all channels.
+        self._blob = spec.layout == "NCHW" and bool(np.all(self._scale == self._scale[0]))
+        w, h = self.input_size
+        self._blank = np.full((h, w, 3), spec.pad_value, np.uint8)
         # One RunOptions for every run: terminate() sets its flag, and a run in flight stops at its next node
         # (a CPU inference takes up to a second; a daemon stopping must not wait for it).
         self._run_options = ort.RunOptions()
+        if self.batched:
+            # The batch sizes a packed pass meets (1-3 canvases on a 4-camera rig), made and run once now: a
+            # session's first run on a GPU tunes its kernels, and sessions made inside live passes cut the H100's
+            # packed detector-alone rate from 174 to 28 camera-frames/s in a 20-pass benchmark (docs/detection.md).
+            # Larger batches are made when first met.
+            for k in range(1, WARM_BATCHES + 1):
+                self._session_for(k).run(None, {self._input_name: self.to_batch([self._blank] * k)})
 
     def describe(self) -> dict[str, object]:
         """What runs, for ``/status``: the providers the session really uses (after "auto"), precision, model."""
         return {
             "providers": list(self.session.get_providers()),
             "precision": self.precision,
+            "batched_canvases": self.batched,
             "model": str(self.path),
             "input_size": list(self.input_size),
         }
@@ -193,6 +243,7 @@ class OnnxPoseDetector:
             precision=cfg.precision,
             intra_op_threads=cfg.intra_op_threads,
             inter_op_threads=cfg.inter_op_threads,
+            batch=cfg.batch,
         )
 
     def _check_shapes(self) -> None:
@@ -222,23 +273,65 @@ class OnnxPoseDetector:
         w, h = self.input_size
         if canvas.shape != (h, w, 3) or canvas.dtype != np.uint8:
             raise InputError(f"detector canvas must be uint8 ({h}, {w}, 3), got {canvas.dtype} {canvas.shape}")
-        img = canvas[..., ::-1] if self.spec.channel_order == "RGB" else canvas
-        x = (img.astype(np.float32) - self._mean) * self._scale
-        if self.spec.layout == "NCHW":
-            x = x.transpose(2, 0, 1)
-        return np.ascontiguousarray(x[None]).astype(self._input_dtype, copy=False)
+        return self.to_batch([canvas])
 
-    def run_canvas(self, canvas: Image) -> PoseDetections:
-        """Detect people on a model-sized image; coordinates in that image's pixels."""
-        (out,) = self.session.run(None, {self._input_name: self.to_tensor(canvas)}, self._run_options)[:1]
+    def to_batch(self, canvases: Sequence[Image]) -> NDArray[np.float32]:
+        """Model-sized BGR ``(H, W, 3)`` uint8 images → one network input tensor, shape ``(len(canvases), ...)``."""
+        w, h = self.input_size
+        for canvas in canvases:
+            if canvas.shape != (h, w, 3) or canvas.dtype != np.uint8:
+                raise InputError(f"detector canvas must be uint8 ({h}, {w}, 3), got {canvas.dtype} {canvas.shape}")
+        swap = self.spec.channel_order == "RGB"
+        if self._blob:
+            x = cv2.dnn.blobFromImages(list(canvases), float(self._scale[0]), mean=tuple(float(m) for m in self._mean),
+                                       swapRB=swap, crop=False, ddepth=cv2.CV_32F)  # fmt: skip
+        else:
+            img = np.stack(canvases)
+            x = (img[..., ::-1] if swap else img).astype(np.float32)
+            x = (x - self._mean) * self._scale
+            if self.spec.layout == "NCHW":
+                x = x.transpose(0, 3, 1, 2)
+        return np.ascontiguousarray(x).astype(self._input_dtype, copy=False)
+
+    def _decode(self, out: NDArray[np.float32]) -> PoseDetections:
         spec = self.spec
         return decode_yolo_pose(
-            np.asarray(out),
+            out,
             self.format.n_keypoints,
             score_threshold=spec.score_threshold,
             iou_threshold=spec.iou_threshold,
             max_people=spec.max_people,
         )
+
+    def run_canvas(self, canvas: Image) -> PoseDetections:
+        """Detect people on a model-sized image; coordinates in that image's pixels."""
+        (out,) = self.session.run(None, {self._input_name: self.to_tensor(canvas)}, self._run_options)[:1]
+        return self._decode(np.asarray(out))
+
+    def run_canvases(self, canvases: Sequence[Image]) -> list[PoseDetections]:
+        """:meth:`run_canvas` of each canvas: in calls of up to :data:`MAX_BATCH` canvases when the session is
+        batched, else one call each."""
+        if not self.batched or len(canvases) < 2:
+            return [self.run_canvas(c) for c in canvases]
+        found: list[PoseDetections] = []
+        for i in range(0, len(canvases), MAX_BATCH):
+            x = self.to_batch(canvases[i : i + MAX_BATCH])
+            (out,) = self._session_for(len(x)).run(None, {self._input_name: x}, self._run_options)[:1]
+            found.extend(self._decode(np.asarray(out[k : k + 1])) for k in range(len(x)))
+        return found
+
+    def _session_for(self, k: int) -> ort.InferenceSession:
+        """The session of batch size ``k`` (made the first time: a fraction of a second, once per size)."""
+        session = self._batch_sessions.get(k)
+        if session is None:
+            assert self._model is not None
+            data = fixed_batch(self._model, k).SerializeToString()
+            try:
+                session = ort.InferenceSession(data, sess_options=self._opts, providers=self.providers)
+            except _LOAD_ERRORS as exc:
+                raise ModelError(f"onnxruntime cannot load the batch-{k} copy of {self.path}: {exc}") from exc
+            self._batch_sessions[k] = session
+        return session
 
     def detect(self, image: Image) -> PoseDetections:
         """Detect people in a BGR image of any size (letterboxed to the model); source-image pixels."""

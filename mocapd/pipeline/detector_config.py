@@ -162,11 +162,16 @@ class DetectorConfig:
     """Threads across graph branches (1 is best for these sequential networks)."""
     workers: int = 1
     """Inference worker threads behind the async wrapper (each owns a session)."""
+    batch: bool | str = "auto"
+    """Run the canvases of a packed pass in one inference (a batch-dynamic copy of the model, made at load):
+    "auto" = on GPU providers (TensorRT, CUDA), where it pays; True/False = always/never."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)
 
     def __post_init__(self) -> None:
         _choice("detector.precision", self.precision, PRECISIONS)
+        if self.batch not in ("auto", True, False):
+            raise ConfigError(f"detector.batch = {self.batch!r} is not one of ['auto', true, false]")
         if self.intra_op_threads < 0 or self.inter_op_threads < 0 or self.workers < 1:
             raise ConfigError(
                 "detector threads must be >= 0 and workers >= 1, got "

@@ -193,9 +193,10 @@ class PackedDetector:
         parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
         part_rois: list[list[list[Roi]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
         refreshed: list[PoseDetections | None] = [None] * self.n_cameras
-        for packing in packings:
-            canvas = render_canvas(packing, images, self.detector.spec.pad_value)
-            found = unpack_detections(self.canvas_detector.run_canvas(canvas), packing)
+        canvases = [render_canvas(packing, images, self.detector.spec.pad_value) for packing in packings]
+        # One inference for all canvases where the detector batches (GPU), else one each.
+        for packing, dets in zip(packings, self.canvas_detector.run_canvases(canvases), strict=True):
+            found = unpack_detections(dets, packing)
             for tile, det in zip(packing.tiles, found, strict=True):
                 slot, cam, _ = items[tile.index]
                 if tile.index >= n_roi_items:
@@ -404,5 +405,6 @@ def packed_detector_from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple
             precision=cfg.precision,
             intra_op_threads=cfg.intra_op_threads,
             inter_op_threads=cfg.inter_op_threads,
+            batch=cfg.batch,
         )
     return PackedDetector(ref, image_sizes, pk, canvas_detector=canvas)

@@ -96,6 +96,7 @@ class DetectorSection(Section):
     intra_op_threads: int = Field(_D.intra_op_threads, ge=0, le=256)
     inter_op_threads: int = Field(_D.inter_op_threads, ge=0, le=256)
     workers: int = Field(_D.workers, ge=1, le=64)
+    batch: bool | Literal["auto"] = "auto"
     model: ModelSection = Field(default_factory=ModelSection)
     packing: PackingSection = Field(default_factory=PackingSection)
 
@@ -107,6 +108,7 @@ class DetectorSection(Section):
             intra_op_threads=self.intra_op_threads,
             inter_op_threads=self.inter_op_threads,
             workers=self.workers,
+            batch=self.batch,
             model=self.model.build(ModelSpec),
             packing=self.packing.build(PackingConfig),
         )
