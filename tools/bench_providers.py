@@ -71,6 +71,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", type=int, default=20, help="frame pairs to time (each: 8 camera frames)")
     ap.add_argument("--skip", type=int, default=0, help="frames to skip at the start of the videos")
     ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
+    ap.add_argument("--scale-ratio", type=float, default=1.0,
+                    help="packed tiles' scale / the whole frame's letterbox scale (1: as large; < 1: smaller tiles, "
+                    "fewer canvases, coarser keypoints; [detector.packing] min/max_scale_ratio)")  # fmt: skip
+    ap.add_argument("--align-stride", type=int, default=32,
+                    help="[detector.packing] align_stride: > 0 aligned tiles at the whole frame's scale (the scale "
+                    "ratio is then unused), 0 common-scale packing")  # fmt: skip
     args = ap.parse_args(argv)
 
     caps = [cv2.VideoCapture(str(demo_video(args.demo, c))) for c in CAMERAS]
@@ -90,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     if first is None:
         raise SystemExit("cannot read the demo videos")
     sizes = [(im.shape[1], im.shape[0]) for im in first]
-    packing = PackingConfig(align_stride=32, min_scale_ratio=1.0, max_scale_ratio=1.0, n_o=2, n_p=2)
+    packing = PackingConfig(align_stride=args.align_stride, min_scale_ratio=args.scale_ratio,
+                            max_scale_ratio=args.scale_ratio, n_o=2, n_p=2)  # fmt: skip
 
     def detector(provider: str, precision: str) -> OnnxPoseDetector:
         d = OnnxPoseDetector(
@@ -160,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
         "image_size": sizes[0],
         "model_input": list(reference.input_size),
         "intra_op_threads": args.threads,
+        "packed_scale_ratio": args.scale_ratio,
+        "packed_align_stride": args.align_stride,
         "onnxruntime": ort.__version__,
         "available_providers": ort.get_available_providers(),
         "reference": "cpu/fp32/whole",

@@ -214,9 +214,9 @@ class OnnxPoseDetector:
         self._run_options = ort.RunOptions()
         if self.batched:
             # The batch sizes a packed pass meets (1-3 canvases on a 4-camera rig), made and run once now: a
-            # session's first run on a GPU tunes its kernels, and sessions made inside live passes cut the H100's
-            # packed detector-alone rate from 174 to 28 camera-frames/s in a 20-pass benchmark (docs/detection.md).
-            # Larger batches are made when first met.
+            # session's first run on a GPU tunes its kernels. The camera benchmark's 20-pass detector-alone packed
+            # rate on the H100 was 28 camera-frames/s with these sessions made inside its passes, 215 with them
+            # made here (docs/daemon.md, "Issue 15: on a GPU"). Larger batches are made when first met.
             for k in range(1, WARM_BATCHES + 1):
                 self._session_for(k).run(None, {self._input_name: self.to_batch([self._blank] * k)})
 
@@ -321,7 +321,7 @@ class OnnxPoseDetector:
         return found
 
     def _session_for(self, k: int) -> ort.InferenceSession:
-        """The session of batch size ``k`` (made the first time: a fraction of a second, once per size)."""
+        """The session of batch size ``k`` (made the first time it is needed)."""
         session = self._batch_sessions.get(k)
         if session is None:
             assert self._model is not None
