@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import queue
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -209,6 +210,7 @@ class OnnxPoseDetector:
         self._blob = spec.layout == "NCHW" and bool(np.all(self._scale == self._scale[0]))
         w, h = self.input_size
         self._blank = np.full((h, w, 3), spec.pad_value, np.uint8)
+        self.inference_ns = 0  # time inside onnxruntime's run, all sessions (a pass's rest is mocapd's own work)
         # One RunOptions for every run: terminate() sets its flag, and a run in flight stops at its next node
         # (a CPU inference takes up to a second; a daemon stopping must not wait for it).
         self._run_options = ort.RunOptions()
@@ -303,10 +305,15 @@ class OnnxPoseDetector:
             max_people=spec.max_people,
         )
 
+    def _infer(self, session: ort.InferenceSession, x: NDArray[np.float32]) -> NDArray[np.float32]:
+        t0 = time.perf_counter_ns()
+        (out,) = session.run(None, {self._input_name: x}, self._run_options)[:1]
+        self.inference_ns += time.perf_counter_ns() - t0
+        return np.asarray(out)
+
     def run_canvas(self, canvas: Image) -> PoseDetections:
         """Detect people on a model-sized image; coordinates in that image's pixels."""
-        (out,) = self.session.run(None, {self._input_name: self.to_tensor(canvas)}, self._run_options)[:1]
-        return self._decode(np.asarray(out))
+        return self._decode(self._infer(self.session, self.to_tensor(canvas)))
 
     def run_canvases(self, canvases: Sequence[Image]) -> list[PoseDetections]:
         """:meth:`run_canvas` of each canvas: in calls of up to :data:`MAX_BATCH` canvases when the session is
@@ -316,8 +323,8 @@ class OnnxPoseDetector:
         found: list[PoseDetections] = []
         for i in range(0, len(canvases), MAX_BATCH):
             x = self.to_batch(canvases[i : i + MAX_BATCH])
-            (out,) = self._session_for(len(x)).run(None, {self._input_name: x}, self._run_options)[:1]
-            found.extend(self._decode(np.asarray(out[k : k + 1])) for k in range(len(x)))
+            out = self._infer(self._session_for(len(x)), x)
+            found.extend(self._decode(out[k : k + 1]) for k in range(len(x)))
         return found
 
     def _session_for(self, k: int) -> ort.InferenceSession:

@@ -223,6 +223,10 @@ class PackedDetectionGroup:
         self.packer.canvas_detector.terminate()
         self.executor.shutdown(wait=True, cancel_futures=True)
 
+    def _inference_ns(self) -> int:
+        whole, canvas = self.packer.detector, self.packer.canvas_detector
+        return whole.inference_ns + (canvas.inference_ns if canvas is not whole else 0)
+
     def status(self) -> dict[str, Any]:
         st = self.packer.stats
         packed = self.passes - self.whole_passes
@@ -231,6 +235,8 @@ class PackedDetectionGroup:
             "failed_passes": self.failed_passes, "canvases": st.canvases, "tiles": st.tiles, "replaced": self.replaced,
             "canvases_per_pass": round(st.canvases / packed, 2) if packed else None,
             "detector_busy_s": round(self.busy_ns / 1e9, 2),
+            # Of which inside onnxruntime: the rest of a pass (frame conversion, canvases, decoding) is mocapd's.
+            "inference_s": round(self._inference_ns() / 1e9, 2),
         }  # fmt: skip
         out["mode"] = self.chooser.status() if self.chooser is not None else {"mode": "packed", "chosen": "packed"}
         return out

@@ -243,6 +243,7 @@ def summarize(
         "detection_kinds": sorted({str(c.get("kind")) for c in sb["cameras"]}),
         "latency_at_end": sb["output"].get("latency"),
         "detection_group_at_end": sb["cameras"][0].get("packing"),
+        "detection_group_window": _group_window(sa["cameras"][0].get("packing"), sb["cameras"][0].get("packing")),
         "cameras": cams,
         "people": {"person_solves": sb["counters"]["person_solves"] - sa["counters"]["person_solves"],
                    "person_solves_per_frame": round((sb["counters"]["person_solves"] - sa["counters"]["person_solves"])
@@ -264,6 +265,20 @@ def summarize(
     }  # fmt: skip
 
 
+def _group_window(a: dict[str, Any] | None, b: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The packed detection group over the measured window: passes, and a pass's milliseconds inside onnxruntime
+    and outside it (frame conversion, canvases, decoding: what limits a GPU detector)."""
+    if not a or not b or "inference_s" not in b:
+        return None
+    passes = b["passes"] - a["passes"]
+    busy = b["detector_busy_s"] - a["detector_busy_s"]
+    inference = b["inference_s"] - a["inference_s"]
+    per = 1e3 / passes if passes else 0.0
+    return {"passes": passes, "busy_s": round(busy, 2), "inference_s": round(inference, 2),
+            "pass_ms": round(busy * per, 2), "inference_ms_per_pass": round(inference * per, 2),
+            "rest_ms_per_pass": round((busy - inference) * per, 2)}  # fmt: skip
+
+
 def headline(alone: dict[str, Any], live: dict[str, Any], cameras: int) -> dict[str, Any]:
     """The numbers issue 15 asks for, from the detector-alone figures and the live run's report."""
     live_rate = live["detector_camera_frames_per_s"]
@@ -280,6 +295,7 @@ def headline(alone: dict[str, Any], live: dict[str, Any], cameras: int) -> dict[
         "live_over_alone_whole": round(live_rate / whole, 3) if whole else None,
         "live_detection": live["detection_kinds"],
         "end_to_end_ms_p50": e2e["p50"], "end_to_end_ms_p95": e2e["p95"],
+        "detector_pass_ms": live.get("detection_group_window"),
         "missed_ticks_after_warm_up": out["missed_ticks"],
         "missed_tick_fraction_after_warm_up": round(out["missed_ticks"] / ticks, 4) if ticks else None,
         "cpu_cores": {"capture_threads": threads.get("capture", 0.0),
