@@ -170,4 +170,4 @@ def test_batch_key_in_config() -> None:
     with pytest.raises(ConfigError, match="batch"):
         parse_config({"detector": {"batch": "yes"}})
     with pytest.raises(ConfigError, match=r"detector\.batch"):
-        DetectorConfig(batch="sometimes")
+        DetectorConfig(batch="sometimes")  # type: ignore[arg-type]

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TypeVar
+from typing import Literal, TypeVar
 
 import cv2
 import numpy as np
@@ -151,12 +151,16 @@ class OnnxPoseDetector:
         Which default model file to load when ``spec.path`` is empty (an explicit path is used as it is).
     intra_op_threads, inter_op_threads : int
         onnxruntime thread counts (0 = its default).
+    batch : bool or "auto"
+        Run several canvases per inference (:meth:`run_canvases`) through fixed-batch copies of the model
+        (:mod:`mocapd.io.model_batch`); "auto": when the first provider is a GPU one (TensorRT, CUDA).
 
     Raises
     ------
     ModelError
-        The file is missing, is not a loadable ONNX model, its input/output shapes contradict ``spec``, or a
-        provider named explicitly is not in this onnxruntime build.
+        The file is missing, is not a loadable ONNX model, its input/output shapes contradict ``spec``, a
+        provider named explicitly is not in this onnxruntime build or did not start, or a batched detector's
+        model cannot be batched.
     """
 
     def __init__(
@@ -167,7 +171,7 @@ class OnnxPoseDetector:
         precision: str = "fp32",
         intra_op_threads: int = 0,
         inter_op_threads: int = 1,
-        batch: bool | str = "auto",
+        batch: bool | Literal["auto"] = "auto",
     ) -> None:
         self.spec = spec
         self.format: KeypointFormat = keypoint_format(spec.keypoint_format)

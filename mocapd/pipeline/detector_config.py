@@ -8,6 +8,7 @@ construction (tools, tests) with the same rules. ``config.toml`` documents every
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 from mocapd.core.keypoints import FORMATS
 from mocapd.core.roi_packing import SubsampleSchedule
@@ -162,8 +163,8 @@ class DetectorConfig:
     """Threads across graph branches (1 is best for these sequential networks)."""
     workers: int = 1
     """Inference worker threads behind the async wrapper (each owns a session)."""
-    batch: bool | str = "auto"
-    """Run the canvases of a packed pass in one inference (a batch-dynamic copy of the model, made at load):
+    batch: bool | Literal["auto"] = "auto"
+    """Run the canvases of a packed pass in one inference (fixed-batch copies of the model, made at load):
     "auto" = on GPU providers (TensorRT, CUDA), where it pays; True/False = always/never."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)
