@@ -47,13 +47,6 @@ def demo_frames(per_camera: int, scale: float) -> list[Image]:
     return out
 
 
-def numpy_tensor(det: OnnxPoseDetector, canvas: Image) -> np.ndarray:
-    """The per-channel numpy conversion the detector used before the blob (reference for the timing)."""
-    img = canvas[..., ::-1] if det.spec.channel_order == "RGB" else canvas
-    x = (img.astype(np.float32) - det._mean) * det._scale
-    return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
-
-
 def profile(provider: str, images: list[Image], reps: int, warm: int = 5) -> dict[str, Any]:
     """Stage medians (ms) of ``reps`` detections on ``images`` (cycled), then the batch runs."""
     det = OnnxPoseDetector(ModelSpec(), providers=[provider], batch=False)
@@ -67,7 +60,7 @@ def profile(provider: str, images: list[Image], reps: int, warm: int = 5) -> dic
         lb = letterbox_geometry(img.shape[1], img.shape[0], w, h)
         canvas = letterbox_image(img, lb, w, h, spec.pad_value)
         t1 = time.perf_counter()
-        numpy_tensor(det, canvas)
+        np.ascontiguousarray(det.numpy_batch([canvas]))  # what the detector did before the blob
         t2 = time.perf_counter()
         x = det.to_tensor(canvas)
         t3 = time.perf_counter()

@@ -276,9 +276,6 @@ class OnnxPoseDetector:
 
     def to_tensor(self, canvas: Image) -> NDArray[np.float32]:
         """A model-sized BGR ``(H, W, 3)`` uint8 image → the network input tensor."""
-        w, h = self.input_size
-        if canvas.shape != (h, w, 3) or canvas.dtype != np.uint8:
-            raise InputError(f"detector canvas must be uint8 ({h}, {w}, 3), got {canvas.dtype} {canvas.shape}")
         return self.to_batch([canvas])
 
     def to_batch(self, canvases: Sequence[Image]) -> NDArray[np.float32]:
@@ -287,17 +284,21 @@ class OnnxPoseDetector:
         for canvas in canvases:
             if canvas.shape != (h, w, 3) or canvas.dtype != np.uint8:
                 raise InputError(f"detector canvas must be uint8 ({h}, {w}, 3), got {canvas.dtype} {canvas.shape}")
-        swap = self.spec.channel_order == "RGB"
         if self._blob:
             x = cv2.dnn.blobFromImages(list(canvases), float(self._scale[0]), mean=tuple(float(m) for m in self._mean),
-                                       swapRB=swap, crop=False, ddepth=cv2.CV_32F)  # fmt: skip
+                                       swapRB=self.spec.channel_order == "RGB", crop=False,
+                                       ddepth=cv2.CV_32F)  # fmt: skip
         else:
-            img = np.stack(canvases)
-            x = (img[..., ::-1] if swap else img).astype(np.float32)
-            x = (x - self._mean) * self._scale
-            if self.spec.layout == "NCHW":
-                x = x.transpose(0, 3, 1, 2)
+            x = self.numpy_batch(canvases)
         return np.ascontiguousarray(x).astype(self._input_dtype, copy=False)
+
+    def numpy_batch(self, canvases: Sequence[Image]) -> NDArray[np.float32]:
+        """The per-channel numpy conversion of :meth:`to_batch` (models with per-channel scales or NHWC input; the
+        reference the blob is tested and timed against). Not validated, maybe not contiguous."""
+        img = np.stack(canvases)
+        x = (img[..., ::-1] if self.spec.channel_order == "RGB" else img).astype(np.float32)
+        x = (x - self._mean) * self._scale
+        return x.transpose(0, 3, 1, 2) if self.spec.layout == "NCHW" else x
 
     def _decode(self, out: NDArray[np.float32]) -> PoseDetections:
         spec = self.spec
