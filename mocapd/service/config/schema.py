@@ -147,16 +147,17 @@ def validate(model: type[M], data: object, where: str = "") -> M:
 
 def error_lines(exc: ValidationError, model: type[BaseModel], where: str = "") -> list[str]:
     """One message per bad key: ``key = value; allowed: what``, ``unknown key k; allowed: ...``, or a rule."""
-    lines: list[str] = []
-    # The bad items of one array share one line (one key, one line): ``k[0] = a, k[2] = b; allowed: ...``, items
-    # with another complaint after `` | ``. Array path -> complaint -> its items, in order.
-    items: dict[tuple[str | int, ...], dict[str, list[str]]] = {}
+    # A line, or the bad items of one array, which share one line (one key, one line): complaint -> its items, in
+    # order, rendered ``k[0] = a, k[2] = b; allowed: ...``, items with another complaint after `` | ``.
+    lines: list[str | dict[str, list[str]]] = []
+    items: dict[tuple[str | int, ...], dict[str, list[str]]] = {}  # array path -> its entry in ``lines``
 
     def group_item(path: tuple[str | int, ...], item: str, tail: str) -> None:
-        if path[:-1] not in items:
-            items[path[:-1]] = {}
-            lines.append(_ITEMS.format(len(items) - 1))
-        items[path[:-1]].setdefault(tail, []).append(item)
+        by_tail = items.get(path[:-1])
+        if by_tail is None:
+            by_tail = items[path[:-1]] = {}
+            lines.append(by_tail)
+        by_tail.setdefault(tail, []).append(item)
 
     errors = exc.errors(include_url=False)
     with_bad_items = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
@@ -192,13 +193,11 @@ def error_lines(exc: ValidationError, model: type[BaseModel], where: str = "") -
             group_item(at_.path, f"{key} = {show(err.get('input'))}", f"; allowed: {at_.allowed or _message(err)}")
         else:
             lines.append(f"{key} = {show(err.get('input'))}; allowed: {at_.allowed or _message(err)}")
-    for n, by_tail in enumerate(items.values()):
-        merged = " | ".join(f"{', '.join(dict.fromkeys(bad))}{tail}" for tail, bad in by_tail.items())
-        lines[lines.index(_ITEMS.format(n))] = merged
-    return list(dict.fromkeys(lines))  # a union reports each member's failure: one line is enough
-
-
-_ITEMS = "\0items{}"  # placeholder of an array's merged line in error_lines (no config text holds a NUL)
+    rendered = (
+        line if isinstance(line, str) else " | ".join(f"{', '.join(dict.fromkeys(bad))}{t}" for t, bad in line.items())
+        for line in lines
+    )
+    return list(dict.fromkeys(rendered))  # a union reports each member's failure: one line is enough
 
 
 class Located(NamedTuple):
