@@ -15,7 +15,7 @@ import onnxruntime as ort
 import pytest
 
 from mocapd.core.keypoints import COCO17_FORMAT as COCO17
-from mocapd.core.pose2d import PoseDetections, letterbox_geometry
+from mocapd.core.pose2d import PoseDetections, fitted_input_size, letterbox_geometry
 from mocapd.core.roi_packing import AlignedRoi, Roi, SubsampleSchedule, match_people, plan_aligned_canvases
 from mocapd.errors import ConfigError, InputError, ModelError
 from mocapd.io.model_build import LICENCE, model_is_current, sha256, sidecar_path
@@ -76,6 +76,94 @@ def test_default_model_is_built_with_sidecar() -> None:
     assert meta["licence"] == LICENCE and "AGPL-3.0" in LICENCE
     assert meta["onnx_sha256"] == sha256(onnx) and len(meta["pt_sha256"]) == 64
     assert (meta["input_width"], meta["input_height"]) == (640, 640)
+    for w, h in ((384, 640), (640, 384)):  # the whole-frame inputs of 9:16 and 16:9 cameras, FP32 and INT8
+        fitted = default_model_path(w, h)
+        assert model_is_current(fitted) and int8_is_current(fitted)
+        fitted_meta = json.loads(sidecar_path(fitted).read_text())
+        assert (fitted_meta["input_width"], fitted_meta["input_height"]) == (w, h)
+
+
+def test_a_fitted_input_shows_the_letterbox_pixels_on_the_same_stride_grid(frames: list[list[Image]]) -> None:
+    img = frames[0][0]  # 1080x1920 portrait
+    h, w = img.shape[:2]
+    fw, fh = fitted_input_size(w, h, 640, 640)
+    assert (fw, fh) == (384, 640)
+    square = letterbox_image(img, letterbox_geometry(w, h, 640, 640), 640, 640, 114)
+    fitted = letterbox_image(img, letterbox_geometry(w, h, fw, fh), fw, fh, 114)
+    # The fitted input is the square one's middle 384 columns: 128 = 4 strides of padding fewer on each side.
+    assert np.array_equal(fitted, square[:, 128:512])
+
+
+def test_whole_frames_run_at_the_cameras_aspect_with_the_square_inputs_keypoints(
+    detector: OnnxPoseDetector, frames: list[list[Image]]
+) -> None:
+    square = OnnxPoseDetector(ModelSpec(), intra_op_threads=2, fitted_inputs=False)
+    fitted = OnnxPoseDetector(ModelSpec(), intra_op_threads=2, fitted_inputs=True)
+    dists = []
+    for img in frames[0]:
+        a, b = square.detect(img), fitted.detect(img)
+        _plausible(b, img.shape[0])
+        assert len(a) == len(b)
+        for i, j in match_people(a, b):
+            ok = (a.keypoints[i, :, 2] > 0.5) & (b.keypoints[j, :, 2] > 0.5)
+            dists.extend(np.linalg.norm(a.keypoints[i, ok, :2] - b.keypoints[j, ok, :2], axis=1))
+    # Not zero: the network's attention block and its zero padding see a smaller map (0.49 px measured here).
+    assert np.median(dists) < 3.0
+    # The demo's cameras are 1080x1920 and 1088x1920: both portrait 9:16.
+    assert set(_inputs(fitted).values()) == {"384x640"}
+    assert set(_inputs(square).values()) == {"640x640"}
+    auto = detector.fit_to(1080, 1920)  # "auto" with the export built
+    assert auto is not None and auto[:2] == (384, 640)
+
+
+def test_packed_canvases_run_cropped_to_their_tiles(frames: list[list[Image]]) -> None:
+    # One camera per call: its tiles fill part of the canvas, which then runs at 384x640 or 640x384 (the canvas's
+    # top-left corner: same pixels, same stride grid), finding the people the uncropped canvas finds.
+    sizes = [(im.shape[1], im.shape[0]) for im in frames[0]]
+    runs = []
+    for fitted in (False, "auto"):
+        det = OnnxPoseDetector(ModelSpec(), intra_op_threads=2, fitted_inputs=fitted)
+        packer = PackedDetector(det, sizes, PackingConfig(refresh_every=0))
+        packer.detect([frames[0]])  # whole frames: the ROIs follow
+        runs.append([packer.detect([frames[1]], cameras=[c])[0][c] for c in range(4)])
+        assert det.describe()["canvas_crops"] == ([] if fitted is False else ["384x640", "640x384"])
+        assert (det.cropped_canvases > 0) == (fitted == "auto")
+    dists = []
+    for a, b in zip(*runs, strict=True):
+        assert len(a) == len(b) >= 1
+        for i, j in match_people(a, b):
+            ok = (a.keypoints[i, :, 2] > 0.5) & (b.keypoints[j, :, 2] > 0.5)
+            dists.extend(np.linalg.norm(a.keypoints[i, ok, :2] - b.keypoints[j, ok, :2], axis=1))
+    assert np.median(dists) < 3.0  # 0.12 px measured
+
+
+def _inputs(det: OnnxPoseDetector) -> dict[str, str]:
+    inputs = det.describe()["whole_frame_inputs"]
+    assert isinstance(inputs, dict)
+    return inputs
+
+
+def test_a_missing_fitted_export_is_said_or_refused(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    models = tmp_path / "mocapd" / "models"
+    models.mkdir(parents=True)
+    for f in ("yolo11n-pose-640.onnx", "yolo11n-pose-640.json"):
+        (models / f).symlink_to(default_model_path(640, 640).parent / f)
+    monkeypatch.setenv("MOCAPD_CACHE", str(tmp_path / "mocapd"))
+    img = np.zeros((1920, 1080, 3), np.uint8)
+    auto = OnnxPoseDetector(ModelSpec(), intra_op_threads=1)
+    assert auto.fit_to(1080, 1920) is None  # the square input runs them, and says why
+    auto.detect(img)
+    assert _inputs(auto) == {"1080x1920": "640x640"}
+    unfitted = auto.describe()["unfitted"]
+    assert isinstance(unfitted, dict) and "mocapd model fetch --size 384x640" in unfitted["384x640"]
+    strict = OnnxPoseDetector(ModelSpec(), intra_op_threads=1, fitted_inputs=True)
+    with pytest.raises(ModelError, match=r"yolo11n-pose-384x640.onnx not found .*`mocapd model fetch --size 384x640`"):
+        strict.fit_to(1080, 1920)
+    assert strict.fit_to(640, 640) is None  # a square camera needs no other export
+    with pytest.raises(ModelError, match="needs the default model"):
+        OnnxPoseDetector(ModelSpec(path=str(default_model_path())), fitted_inputs=True)
+    with pytest.raises(ModelError, match="fitted_inputs = 'yes'"):
+        OnnxPoseDetector(ModelSpec(), fitted_inputs="yes")  # type: ignore[arg-type]
 
 
 def test_real_model_finds_the_subject_in_every_camera(detector: OnnxPoseDetector, frames: list[list[Image]]) -> None:
@@ -238,7 +326,7 @@ def test_config_parsing() -> None:
     assert cfg.model.score_threshold == 0.3 and cfg.packing.n_p == 8
     assert detector_config_from_mapping({}) == DetectorConfig()
     cases: list[tuple[dict[str, Any], str]] = [
-        ({"threads": 2}, "^unknown key detector.threads; allowed: batch, inter_op_threads"),
+        ({"threads": 2}, "^unknown key detector.threads; allowed: batch, fitted_inputs, inter_op_threads"),
         ({"model": {"inputwidth": 640}}, "^unknown key detector.model.inputwidth; allowed: channel_order"),
         ({"model": {"layout": "CHW"}}, '^detector.model.layout = \'CHW\'; allowed: "NCHW" or "NHWC"$'),
         ({"model": {"keypoint_format": "mpi"}}, "^detector.model.keypoint_format = 'mpi'; allowed: \"coco17\""),

@@ -91,7 +91,8 @@ def test_packed_pass_in_one_inference_matches_one_per_canvas(demo_frames: list[I
     pk = PackingConfig(align_stride=32, min_scale_ratio=1.0, max_scale_ratio=1.0, n_o=2, n_p=2)
     results = []
     for batch in (False, True):
-        det = OnnxPoseDetector(ModelSpec(), providers=["cpu"], intra_op_threads=2, batch=batch)
+        # Both at the model's own input: a batch does not crop, one canvas at a time would (fitted_inputs).
+        det = OnnxPoseDetector(ModelSpec(), providers=["cpu"], intra_op_threads=2, batch=batch, fitted_inputs=False)
         packer = PackedDetector(det, sizes, pk)
         packer.detect([demo_frames])  # first pass: whole frames; the ROIs follow
         results.append(packer.detect([demo_frames, demo_frames]))

@@ -11,6 +11,7 @@ from mocapd.core.pose2d import (
     decode_yolo_pose,
     detections_to_source,
     encode_yolo_pose,
+    fitted_input_size,
     letterbox_geometry,
     nms,
 )
@@ -113,3 +114,23 @@ def test_box_iou_values() -> None:
     a = np.array([[0, 0, 10, 10]], dtype=float)
     b = np.array([[0, 0, 10, 10], [5, 0, 15, 10], [20, 20, 30, 30], [0, 0, 0, 0]], dtype=float)
     np.testing.assert_allclose(box_iou(a, b)[0], [1.0, 50 / 150, 0.0, 0.0])
+
+
+@pytest.mark.parametrize(
+    ("src", "fitted"),
+    [
+        ((544, 960), (384, 640)),  # 9:16 portrait (the demo's cameras)
+        ((1920, 1080), (640, 384)),  # 16:9 landscape
+        ((1280, 1024), (640, 512)),  # 5:4 machine-vision sensor
+        ((1280, 960), (640, 512)),  # 4:3
+        ((800, 800), (640, 640)),  # square: nothing to trim
+        ((640, 600), (640, 640)),  # 40 rows of padding: less than one step of 64
+    ],
+)
+def test_fitted_input_trims_whole_double_strides_of_padding(src: tuple[int, int], fitted: tuple[int, int]) -> None:
+    assert fitted_input_size(*src, 640, 640) == fitted
+    full, fit = letterbox_geometry(*src, 640, 640), letterbox_geometry(*src, *fitted)
+    # Same scale, the image inside the fitted input, and its offset moved by whole strides only.
+    assert (fit.sx, fit.sy, fit.new_w, fit.new_h) == (full.sx, full.sy, full.new_w, full.new_h)
+    assert fit.new_w <= fitted[0] and fit.new_h <= fitted[1]
+    assert (full.pad_x - fit.pad_x) % 32 == 0 and (full.pad_y - fit.pad_y) % 32 == 0

@@ -1,13 +1,14 @@
-"""Benchmark: execution provider x precision x (whole, packed) detection on the Pose2Sim 4-camera demo.
+"""Benchmark: execution provider x precision x (whole, fitted, packed) detection on the Pose2Sim 4-camera demo.
 
 Prints one JSON object. For each provider (``--providers``, config names: cpu, openvino, cuda, tensorrt) and
-precision (``--precision``: fp32, int8) it times whole-frame detection (each camera frame letterboxed alone)
-and packed detection (the ROIs of 4 cameras x 2 consecutive frames on shared canvases, as
-``tools/bench_detect.py``). All configurations run in the same process on the same frame pairs, their order
-rotating from pair to pair, and every rate is a median over pairs, so that the other work on this shared
-machine hits all alike. ``disagreement_px`` compares each configuration's keypoints with those of FP32 CPU
-whole-frame detection (the reference, always run): distance between keypoints both found with confidence
->= 0.5 on the same person in the same camera frame, in source pixels (median and p90).
+precision (``--precision``: fp32, int8) it times whole-frame detection (each camera frame letterboxed alone into
+the square input: the naive way), whole frames at the camera's aspect (``fitted``: the 384x640 export for these
+portrait cameras, ``[detector] fitted_inputs``) and packed detection (the ROIs of 4 cameras x 2 consecutive
+frames on shared canvases, as ``tools/bench_detect.py``). All configurations run in the same process on the
+same frame pairs, their order rotating from pair to pair, and every rate is a median over pairs, so that the
+other work on this shared machine hits all alike. ``disagreement_px`` compares each configuration's keypoints
+with those of FP32 CPU whole-frame detection (the reference, always run): distance between keypoints both found
+with confidence >= 0.5 on the same person in the same camera frame, in source pixels (median and p90).
 
     .venv/bin/python tools/bench_providers.py --providers cpu --precision fp32 int8 --pairs 20 --threads 2
 """
@@ -30,6 +31,8 @@ from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import Image, OnnxPoseDetector
 from mocapd.pipeline.detector_config import ModelSpec, PackingConfig
 from mocapd.pipeline.packing import PackedDetector
+
+MODES = ["whole", "fitted", "packed", "packed-square"]
 
 
 def disagreements(a: PoseDetections, b: PoseDetections, conf: float = 0.5) -> list[float]:
@@ -67,7 +70,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--demo", default="Demo_MultiPerson", help="Demo_SinglePerson or Demo_MultiPerson")
     ap.add_argument("--providers", nargs="+", default=["cpu"], help="config provider names (cpu, openvino, ...)")
     ap.add_argument("--precision", nargs="+", default=["fp32", "int8"], choices=["fp32", "int8"])
-    ap.add_argument("--modes", nargs="+", default=["whole", "packed"], choices=["whole", "packed"])
+    ap.add_argument("--modes", nargs="+", default=["whole", "fitted", "packed"], choices=MODES,
+                    help="whole: frames letterboxed into the square input (naive); fitted: whole frames at the "
+                    "camera's aspect; packed: ROIs on canvases, cropped to their tiles where an export fits "
+                    "(both [detector] fitted_inputs); packed-square: packed at the model's own input only")  # fmt: skip
     ap.add_argument("--pairs", type=int, default=20, help="frame pairs to time (each: 8 camera frames)")
     ap.add_argument("--skip", type=int, default=0, help="frames to skip at the start of the videos")
     ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
@@ -99,21 +105,22 @@ def main(argv: list[str] | None = None) -> int:
     packing = PackingConfig(align_stride=args.align_stride, min_scale_ratio=args.scale_ratio,
                             max_scale_ratio=args.scale_ratio, n_o=2, n_p=2)  # fmt: skip
 
-    def detector(provider: str, precision: str) -> OnnxPoseDetector:
-        d = OnnxPoseDetector(
-            ModelSpec(), providers=[provider], precision=precision, intra_op_threads=args.threads, inter_op_threads=1
-        )
+    def detector(provider: str, precision: str, fit: bool) -> OnnxPoseDetector:
+        d = OnnxPoseDetector(ModelSpec(), providers=[provider], precision=precision, intra_op_threads=args.threads,
+                             inter_op_threads=1, fitted_inputs=fit)  # fmt: skip
         d.detect(first[0])  # warm-up: the first run allocates (and OpenVINO compiles)
         return d
 
     try:
-        reference = detector("cpu", "fp32")
+        reference = detector("cpu", "fp32", False)
         runs: list[_Run] = []
         for provider in args.providers:
             for precision in args.precision:
-                det = reference if (provider, precision) == ("cpu", "fp32") else detector(provider, precision)
+                square = reference if (provider, precision) == ("cpu", "fp32") else detector(provider, precision, False)
+                fitted = detector(provider, precision, True) if {"fitted", "packed"} & set(args.modes) else square
                 for mode in args.modes:
-                    packer = PackedDetector(det, sizes, packing) if mode == "packed" else None
+                    det = square if mode in ("whole", "packed-square") else fitted
+                    packer = PackedDetector(det, sizes, packing) if mode.startswith("packed") else None
                     runs.append(_Run(f"{provider}/{precision}/{mode}", provider, precision, mode, det, packer))
     except MocapdError as exc:
         raise SystemExit(f"bench_providers: {exc}") from None

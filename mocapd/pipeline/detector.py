@@ -9,6 +9,7 @@ of :mod:`mocapd.core.pose2d`. onnxruntime releases the GIL while it computes, so
 from __future__ import annotations
 
 import asyncio
+import logging
 import queue
 import time
 from collections.abc import Callable, Sequence
@@ -27,6 +28,7 @@ from mocapd.core.pose2d import (
     PoseDetections,
     decode_yolo_pose,
     detections_to_source,
+    fitted_input_size,
     letterbox_geometry,
 )
 from mocapd.errors import InputError, ModelError
@@ -36,6 +38,7 @@ from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec
 
 Image = NDArray[np.uint8]
 R = TypeVar("R")
+log = logging.getLogger(__name__)
 
 # Preference order of "auto": the fastest provider this onnxruntime build offers comes first.
 _AUTO_PROVIDERS = (
@@ -154,13 +157,22 @@ class OnnxPoseDetector:
     batch : bool or "auto"
         Run several canvases per inference (:meth:`run_canvases`) through fixed-batch copies of the model
         (:mod:`mocapd.io.model_batch`); "auto": when the first provider is a GPU one (TensorRT, CUDA).
+    fitted_inputs : bool or "auto"
+        Run on the default model's exports at smaller inputs where the picture allows: :meth:`detect` a whole
+        frame at the camera's aspect (:func:`~mocapd.core.pose2d.fitted_input_size`: 384×640 for a portrait 9:16
+        camera) instead of letterboxed into the square input, and :meth:`run_canvases` a packed canvas cropped to
+        its tiles (its top-left 384×640 or 640×384) when they fit: the same pixels on the same stride grid, so
+        nearly the same keypoints for ~40 % less work. "auto": where that export is in the model cache (the set-up
+        builds the 9:16 and 16:9 ones), else the model's own input, said once in the log and in :meth:`describe`;
+        True: a camera's whole-frame export must be there; False: never. A model given by path is used as it is
+        ("auto"; True refuses it). Not with ``batch`` (a batch runs one size).
 
     Raises
     ------
     ModelError
         The file is missing, is not a loadable ONNX model, its input/output shapes contradict ``spec``, a
-        provider named explicitly is not in this onnxruntime build or did not start, or a batched detector's
-        model cannot be batched.
+        provider named explicitly is not in this onnxruntime build or did not start, a batched detector's
+        model cannot be batched, or ``fitted_inputs=True`` meets a camera whose fitted export is missing.
     """
 
     def __init__(
@@ -172,6 +184,7 @@ class OnnxPoseDetector:
         intra_op_threads: int = 0,
         inter_op_threads: int = 1,
         batch: bool | Literal["auto"] = "auto",
+        fitted_inputs: bool | Literal["auto"] = "auto",
     ) -> None:
         self.spec = spec
         self.format: KeypointFormat = keypoint_format(spec.keypoint_format)
@@ -189,6 +202,14 @@ class OnnxPoseDetector:
         self.providers = resolve_providers(providers)
         if batch not in ("auto", True, False):
             raise ModelError(f'detector.batch = {batch!r}; allowed: "auto", true, false')
+        if fitted_inputs not in ("auto", True, False):
+            raise ModelError(f'detector.fitted_inputs = {fitted_inputs!r}; allowed: "auto", true, false')
+        if fitted_inputs is True and spec.path:
+            raise ModelError(
+                "detector.fitted_inputs = true needs the default model (detector.model.path is set: a model "
+                'given by path has no exports at other sizes); use "auto" or false'
+            )
+        self.fitted_inputs = fitted_inputs
         # "auto": batch on GPU providers, where one canvas per call leaves the device waiting on launches; on a
         # CPU a batch costs what its canvases cost one by one (mocapd/io/model_batch.py).
         self.batched: bool = self.providers[0] in _GPU_PROVIDERS if batch == "auto" else bool(batch)
@@ -215,6 +236,12 @@ class OnnxPoseDetector:
         w, h = self.input_size
         self._blank = np.full((h, w, 3), spec.pad_value, np.uint8)
         self.inference_ns = 0  # time inside onnxruntime's run, all sessions (a pass's rest is mocapd's own work)
+        # Whole frames at the camera's aspect: per source (w, h), the fitted input size and its session, or None
+        # where the model's own input runs them; per fitted size, why it is not used (for describe()).
+        self._fitted: dict[tuple[int, int], tuple[int, int, ort.InferenceSession] | None] = {}
+        self._fitted_by_size: dict[tuple[int, int], ort.InferenceSession] = {}
+        self.unfitted: dict[str, str] = {}
+        self.cropped_canvases = 0  # canvases run cropped to their tiles (run_canvases)
         # One RunOptions for every run: terminate() sets its flag, and a run in flight stops at its next node
         # (a CPU inference takes up to a second; a daemon stopping must not wait for it).
         self._run_options = ort.RunOptions()
@@ -225,6 +252,8 @@ class OnnxPoseDetector:
             # made here (docs/daemon.md, "Issue 15: on a GPU"). Larger batches are made when first met.
             for k in range(1, WARM_BATCHES + 1):
                 self._session_for(k).run(None, {self._input_name: self.to_batch([self._blank] * k)})
+        # Packed canvases cropped to their tiles: the exports at a smaller input that the cache holds, loaded now.
+        self.crop_sizes: list[tuple[int, int]] = self._crop_sizes()
 
     def describe(self) -> dict[str, object]:
         """What runs, for ``/status``: the providers the session really uses (after "auto"), precision, model."""
@@ -234,6 +263,13 @@ class OnnxPoseDetector:
             "batched_canvases": self.batched,
             "model": str(self.path),
             "input_size": list(self.input_size),
+            # Whole frames by camera size: the input they run at ("384x640"), and why not fitted where not.
+            "whole_frame_inputs": {
+                f"{sw}x{sh}": f"{f[0]}x{f[1]}" if f is not None else "x".join(map(str, self.input_size))
+                for (sw, sh), f in self._fitted.items()
+            },
+            "unfitted": dict(self.unfitted),
+            "canvas_crops": [f"{w}x{h}" for w, h in self.crop_sizes],
         }
 
     def terminate(self) -> None:
@@ -250,6 +286,7 @@ class OnnxPoseDetector:
             intra_op_threads=cfg.intra_op_threads,
             inter_op_threads=cfg.inter_op_threads,
             batch=cfg.batch,
+            fitted_inputs=cfg.fitted_inputs,
         )
 
     def _check_shapes(self) -> None:
@@ -278,9 +315,10 @@ class OnnxPoseDetector:
         """A model-sized BGR ``(H, W, 3)`` uint8 image → the network input tensor."""
         return self.to_batch([canvas])
 
-    def to_batch(self, canvases: Sequence[Image]) -> NDArray[np.float32]:
-        """Model-sized BGR ``(H, W, 3)`` uint8 images → one network input tensor, shape ``(len(canvases), ...)``."""
-        w, h = self.input_size
+    def to_batch(self, canvases: Sequence[Image], size: tuple[int, int] | None = None) -> NDArray[np.float32]:
+        """Model-sized BGR ``(H, W, 3)`` uint8 images → one network input tensor, shape ``(len(canvases), ...)``
+        (``size``: the (width, height) of a fitted export's input instead of the model's)."""
+        w, h = size or self.input_size
         for canvas in canvases:
             if canvas.shape != (h, w, 3) or canvas.dtype != np.uint8:
                 raise InputError(f"detector canvas must be uint8 ({h}, {w}, 3), got {canvas.dtype} {canvas.shape}")
@@ -316,15 +354,29 @@ class OnnxPoseDetector:
         self.inference_ns += time.perf_counter_ns() - t0
         return np.asarray(out)
 
-    def run_canvas(self, canvas: Image) -> PoseDetections:
-        """Detect people on a model-sized image; coordinates in that image's pixels."""
-        return self._decode(self._infer(self.session, self.to_tensor(canvas)))
+    def run_canvas(self, canvas: Image, extent: tuple[int, int] | None = None) -> PoseDetections:
+        """Detect people on a model-sized image; coordinates in that image's pixels.
 
-    def run_canvases(self, canvases: Sequence[Image]) -> list[PoseDetections]:
-        """:meth:`run_canvas` of each canvas: in calls of up to :data:`MAX_BATCH` canvases when the session is
-        batched, else one call each."""
+        ``extent``: the (width, height) of the canvas's top-left part that holds anything; the canvas then runs
+        cropped to the smallest of :attr:`crop_sizes` that holds it (the origin, so the pixels and their stride
+        grid, unchanged), or whole where none does.
+        """
+        size = self._crop_for(extent) if extent is not None else None
+        if size is None:
+            return self._decode(self._infer(self.session, self.to_tensor(canvas)))
+        w, h = size
+        self.cropped_canvases += 1
+        x = self.to_batch([np.ascontiguousarray(canvas[:h, :w])], size)
+        return self._decode(self._infer(self._fitted_by_size[size], x))
+
+    def run_canvases(
+        self, canvases: Sequence[Image], extents: Sequence[tuple[int, int]] | None = None
+    ) -> list[PoseDetections]:
+        """:meth:`run_canvas` of each canvas (with its ``extents`` entry): in calls of up to :data:`MAX_BATCH`
+        canvases when the session is batched (uncropped), else one call each."""
         if not self.batched or len(canvases) < 2:
-            return [self.run_canvas(c) for c in canvases]
+            ext = list(extents) if extents is not None else [None] * len(canvases)
+            return [self.run_canvas(c, e) for c, e in zip(canvases, ext, strict=True)]
         found: list[PoseDetections] = []
         for i in range(0, len(canvases), MAX_BATCH):
             x = self.to_batch(canvases[i : i + MAX_BATCH])
@@ -346,13 +398,85 @@ class OnnxPoseDetector:
         return session
 
     def detect(self, image: Image) -> PoseDetections:
-        """Detect people in a BGR image of any size (letterboxed to the model); source-image pixels."""
+        """Detect people in a BGR image of any size (letterboxed to the model, or to its export at the image's
+        aspect, see ``fitted_inputs``); source-image pixels."""
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise InputError(f"detector input must be a uint8 (H, W, 3) BGR image, got {image.dtype} {image.shape}")
-        w, h = self.input_size
+        fitted = self.fit_to(image.shape[1], image.shape[0])
+        w, h, session = fitted if fitted is not None else (*self.input_size, self.session)
         lb = letterbox_geometry(image.shape[1], image.shape[0], w, h)
         canvas = letterbox_image(image, lb, w, h, self.spec.pad_value)
-        return detections_to_source(self.run_canvas(canvas), lb)
+        out = self._infer(session, self.to_batch([canvas], (w, h)))
+        return detections_to_source(self._decode(out), lb)
+
+    def fit_to(self, src_w: int, src_h: int) -> tuple[int, int, ort.InferenceSession] | None:
+        """The fitted input (width, height, session) that whole ``src_w × src_h`` frames run at, or None for the
+        model's own input. Its session is made (and run once) the first time a size is met; the daemon calls this
+        for its cameras when it loads, so that a missing export is said at start and a GPU's kernel tuning does
+        not land in a live pass.
+
+        Raises
+        ------
+        ModelError
+            ``fitted_inputs`` is True and the fitted export is missing or does not load.
+        """
+        key = (src_w, src_h)
+        if key in self._fitted:
+            return self._fitted[key]
+        fw, fh = fitted_input_size(src_w, src_h, *self.input_size)
+        found = None
+        if self.fitted_inputs is not False and (fw, fh) != self.input_size:
+            session = self._fitted_session(fw, fh)
+            found = (fw, fh, session) if session is not None else None
+        self._fitted[key] = found
+        return found
+
+    def _crop_sizes(self) -> list[tuple[int, int]]:
+        """The smaller inputs (the full width or height kept) whose exports are in the cache, their sessions made,
+        smallest first; none for a batched detector (a batch runs one size) or a model given by path."""
+        if self.fitted_inputs is False or self.spec.path or self.batched:
+            return []
+        cw, ch = self.input_size
+        sizes = [(w, ch) for w in range(cw - 32, 0, -32)] + [(cw, h) for h in range(ch - 32, 0, -32)]
+        found = [s for s in sizes if model_path(*s, self.precision).is_file()]
+        for w, h in found:
+            self._fitted_session(w, h)
+        return sorted(found, key=lambda s: s[0] * s[1])
+
+    def _crop_for(self, extent: tuple[int, int]) -> tuple[int, int] | None:
+        return next((s for s in self.crop_sizes if s[0] >= extent[0] and s[1] >= extent[1]), None)
+
+    def _fitted_session(self, fw: int, fh: int) -> ort.InferenceSession | None:
+        session = self._fitted_by_size.get((fw, fh))
+        if session is not None:
+            return session
+        size = f"{fw}x{fh}"
+        if self.spec.path:
+            self.unfitted[size] = "detector.model.path is set: that model runs whole frames at its own size"
+            return None
+        path = model_path(fw, fh, self.precision)
+        if not path.is_file():
+            fetch = f"mocapd model fetch --size {size}" + (" --int8" if self.precision == "int8" else "")
+            if self.fitted_inputs is True:
+                raise ModelError(f"detector model {path} not found (detector.fitted_inputs = true); run `{fetch}`")
+            if size not in self.unfitted:
+                w, h = self.input_size
+                log.warning("whole frames run letterboxed at %dx%d: `%s` builds %s, which runs them in ~60 %% of "
+                            "the time", w, h, fetch, path.name)  # fmt: skip
+            self.unfitted[size] = f"{path.name} not built (`{fetch}`)"
+            return None
+        try:
+            session = ort.InferenceSession(str(path), sess_options=self._opts, providers=self.providers)
+        except _LOAD_ERRORS as exc:
+            raise ModelError(f"onnxruntime cannot load {path}: {exc}") from exc
+        shape = list(session.get_inputs()[0].shape)
+        want = [1, 3, fh, fw] if self.spec.layout == "NCHW" else [1, fh, fw, 3]
+        if shape != want:
+            raise ModelError(f"{path}: input shape {shape}, expected {want} (rebuild it: mocapd model fetch --force)")
+        blank = np.full((fh, fw, 3), self.spec.pad_value, np.uint8)
+        session.run(None, {self._input_name: self.to_batch([blank], (fw, fh))}, self._run_options)
+        self._fitted_by_size[(fw, fh)] = session
+        return session
 
 
 class AsyncPoseDetector:

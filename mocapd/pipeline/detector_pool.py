@@ -60,9 +60,17 @@ class PooledDetector:
     cfg : DetectorConfig
     columns : array of int, optional
         Keypoint columns to keep, in the track targets' order (default: all).
+    image_sizes : sequence of (width, height)
+        The cameras' image sizes: their whole-frame inputs are made when the workers load
+        (:meth:`OnnxPoseDetector.fit_to`).
     """
 
-    def __init__(self, cfg: DetectorConfig, columns: NDArray[np.intp] | None = None) -> None:
+    def __init__(
+        self,
+        cfg: DetectorConfig,
+        columns: NDArray[np.intp] | None = None,
+        image_sizes: Sequence[tuple[int, int]] = (),
+    ) -> None:
         self._pool: queue.SimpleQueue[OnnxPoseDetector] = queue.SimpleQueue()
         self._columns = columns
         self._detectors: list[OnnxPoseDetector] = []
@@ -72,7 +80,7 @@ class PooledDetector:
         )  # fmt: skip
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
-            self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg).result())
+            self._detectors.append(self.executor.submit(_load, cfg, image_sizes).result())
             self._pool.put(self._detectors[-1])
 
     def __call__(self, rgb: NDArray[np.uint8]) -> Detections2D:
@@ -92,6 +100,13 @@ class PooledDetector:
         self.executor.shutdown(wait=True, cancel_futures=True)
 
 
+def _load(cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]]) -> OnnxPoseDetector:
+    det = OnnxPoseDetector.from_config(cfg)
+    for w, h in dict.fromkeys(image_sizes):
+        det.fit_to(w, h)
+    return det
+
+
 AnyDetector = PooledDetector | PackedDetectionGroup
 
 
@@ -108,7 +123,7 @@ def make_detector(
         Every camera's image size, in camera index order.
     """
     if not cfg.packing.enabled:
-        return PooledDetector(cfg, columns)
+        return PooledDetector(cfg, columns, image_sizes)
     executor = ThreadPoolExecutor(1, thread_name_prefix=THREAD_NAME, initializer=name_os_thread,
                                   initargs=(THREAD_NAME,))  # fmt: skip
     packer = executor.submit(packed_detector_from_config, cfg, list(image_sizes)).result()

@@ -80,6 +80,15 @@ def render_canvas(packing: Packing, images: Sequence[Image], pad_value: int) -> 
     return canvas
 
 
+def canvas_extent(packing: Packing) -> tuple[int, int]:
+    """(width, height) of the top-left part of a canvas that its tiles cover (canvas pixels, rounded up)."""
+    if not packing.tiles:
+        return packing.canvas_w, packing.canvas_h
+    w = max(math.ceil(t.x + t.w) for t in packing.tiles)
+    h = max(math.ceil(t.y + t.h) for t in packing.tiles)
+    return min(w, packing.canvas_w), min(h, packing.canvas_h)
+
+
 class PackedDetector:
     """Detects people in groups of camera frames through ROI packing.
 
@@ -194,8 +203,9 @@ class PackedDetector:
         part_rois: list[list[list[Roi]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
         refreshed: list[PoseDetections | None] = [None] * self.n_cameras
         canvases = [render_canvas(packing, images, self.detector.spec.pad_value) for packing in packings]
-        # One inference for all canvases where the detector batches (GPU), else one each.
-        for packing, dets in zip(packings, self.canvas_detector.run_canvases(canvases), strict=True):
+        # One inference for all canvases where the detector batches (GPU), else one each, cropped to its tiles.
+        extents = [canvas_extent(packing) for packing in packings]
+        for packing, dets in zip(packings, self.canvas_detector.run_canvases(canvases, extents), strict=True):
             found = unpack_detections(dets, packing)
             for tile, det in zip(packing.tiles, found, strict=True):
                 slot, cam, _ = items[tile.index]
@@ -393,6 +403,8 @@ def packed_detector_from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple
     """A :class:`PackedDetector` for the ``[detector]`` section, with a canvas-sized session when
     ``[detector.packing]`` asks for canvases of another size than the model's input."""
     ref = OnnxPoseDetector.from_config(cfg)
+    for w, h in dict.fromkeys(image_sizes):  # the whole-frame passes' inputs, made (or found missing) now
+        ref.fit_to(w, h)
     pk = cfg.packing
     cw = pk.canvas_width or cfg.model.input_width
     ch = pk.canvas_height or cfg.model.input_height

@@ -8,6 +8,10 @@ from typing import Any
 
 from mocapd.errors import MocapdError
 
+# The square input (packed canvases, square cameras) and the whole-frame inputs of 9:16 portrait and 16:9
+# landscape cameras ([detector] fitted_inputs).
+DEFAULT_SIZES = ((640, 640), (384, 640), (640, 384))
+
 
 def _parse_size(text: str) -> tuple[int, int]:
     try:
@@ -26,7 +30,7 @@ def _fetch(args: argparse.Namespace) -> int:
     from mocapd.io.model_build import build_default_model
     from mocapd.io.progress import Progress
 
-    sizes = args.size or [(640, 640)]
+    sizes = args.size or list(DEFAULT_SIZES)
     try:
         with Progress(1, "model fetch") as bar:
             build_default_model(sizes, force=args.force, steps=bar.update)
@@ -45,7 +49,12 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("model", help="detector models")
     sub = p.add_subparsers(dest="model_command", metavar="ACTION", required=True)
     f = sub.add_parser("fetch", help="build the default YOLO11n-pose ONNX model into the cache (AGPL-3.0 weights)")
-    f.add_argument("--size", type=_parse_size, action="append", help="input size N or WxH (repeatable; 640)")
+    f.add_argument(
+        "--size",
+        type=_parse_size,
+        action="append",
+        help="input size N or WxH (repeatable; default 640, 384x640, 640x384)",
+    )
     f.add_argument("--force", action="store_true", help="rebuild even when the cached model is current")
     f.add_argument(
         "--int8",

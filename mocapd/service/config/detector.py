@@ -97,6 +97,7 @@ class DetectorSection(Section):
     inter_op_threads: int = Field(_D.inter_op_threads, ge=0, le=256)
     workers: int = Field(_D.workers, ge=1, le=64)
     batch: bool | Literal["auto"] = "auto"
+    fitted_inputs: bool | Literal["auto"] = "auto"
     model: ModelSection = Field(default_factory=ModelSection)
     packing: PackingSection = Field(default_factory=PackingSection)
 
@@ -109,6 +110,7 @@ class DetectorSection(Section):
             inter_op_threads=self.inter_op_threads,
             workers=self.workers,
             batch=self.batch,
+            fitted_inputs=self.fitted_inputs,
             model=self.model.build(ModelSpec),
             packing=self.packing.build(PackingConfig),
         )
