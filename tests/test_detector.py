@@ -512,3 +512,13 @@ def test_a_call_for_some_cameras_keeps_the_others_rois(detector: OnnxPoseDetecto
     assert len(found[0]) >= 1 and len(found[2]) >= 1 and len(found[1]) == 0 and len(found[3]) == 0
     assert packer.rois[1] == rois[1] and packer.rois[3] == rois[3]
     assert packer.stats.camera_frames == 4 + 2
+
+
+def test_intra_op_threads_sleep_unless_spinning_is_asked_for() -> None:
+    for spinning, entry in ((False, "0"), (True, "1")):
+        det = OnnxPoseDetector(ModelSpec(), intra_op_threads=1, intra_op_spinning=spinning)
+        assert det._opts.get_session_config_entry("session.intra_op.allow_spinning") == entry
+    assert parse_config({"detector": {"intra_op_spinning": True}}).detector.options().intra_op_spinning is True
+    assert DetectorConfig().intra_op_spinning is False
+    with pytest.raises(ConfigError, match=r"^detector\.intra_op_spinning"):
+        parse_config({"detector": {"intra_op_spinning": "yes"}})

@@ -154,6 +154,9 @@ class OnnxPoseDetector:
         Which default model file to load when ``spec.path`` is empty (an explicit path is used as it is).
     intra_op_threads, inter_op_threads : int
         onnxruntime thread counts (0 = its default).
+    intra_op_spinning : bool
+        Let onnxruntime's intra-op threads spin-wait for work between operators (its own default) instead of
+        sleeping: faster alone on an idle machine, slower live where the detector shares the cores.
     batch : bool or "auto"
         Run several canvases per inference (:meth:`run_canvases`) through fixed-batch copies of the model
         (:mod:`mocapd.io.model_batch`); "auto": when the first provider is a GPU one (TensorRT, CUDA).
@@ -185,6 +188,7 @@ class OnnxPoseDetector:
         inter_op_threads: int = 1,
         batch: bool | Literal["auto"] = "auto",
         fitted_inputs: bool | Literal["auto"] = "auto",
+        intra_op_spinning: bool = False,
     ) -> None:
         self.spec = spec
         self.format: KeypointFormat = keypoint_format(spec.keypoint_format)
@@ -199,6 +203,11 @@ class OnnxPoseDetector:
         opts.inter_op_num_threads = inter_op_threads
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        # onnxruntime's intra-op threads spin between operators waiting for work by default. Beside the 60 Hz
+        # tick and the capture threads that burns the cores they need and stalls the detector's own parallel
+        # sections when one of its threads is preempted: on the 2-core laptop the live camera demo's e2e p50 went
+        # from 563-599 ms spinning to 403-404 ms not (docs/daemon.md, "Issue 15: detector threads that sleep").
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if intra_op_spinning else "0")
         self.providers = resolve_providers(providers)
         if batch not in ("auto", True, False):
             raise ModelError(f'detector.batch = {batch!r}; allowed: "auto", true, false')
@@ -287,6 +296,7 @@ class OnnxPoseDetector:
             inter_op_threads=cfg.inter_op_threads,
             batch=cfg.batch,
             fitted_inputs=cfg.fitted_inputs,
+            intra_op_spinning=cfg.intra_op_spinning,
         )
 
     def _check_shapes(self) -> None:

@@ -161,6 +161,9 @@ class DetectorConfig:
     """Threads inside one inference (0 = onnxruntime's default, one per core)."""
     inter_op_threads: int = 1
     """Threads across graph branches (1 is best for these sequential networks)."""
+    intra_op_spinning: bool = False
+    """Let the intra-op threads spin-wait for work between operators (onnxruntime's default) instead of sleeping;
+    off, because live the detector shares the cores with the tick and the capture."""
     workers: int = 1
     """Inference worker threads behind the async wrapper (each owns a session)."""
     batch: bool | Literal["auto"] = "auto"

@@ -96,6 +96,7 @@ class DetectorSection(Section):
     intra_op_threads: int = Field(_D.intra_op_threads, ge=0, le=256)
     inter_op_threads: int = Field(_D.inter_op_threads, ge=0, le=256)
     workers: int = Field(_D.workers, ge=1, le=64)
+    intra_op_spinning: bool = _D.intra_op_spinning
     batch: bool | Literal["auto"] = "auto"
     fitted_inputs: bool | Literal["auto"] = "auto"
     model: ModelSection = Field(default_factory=ModelSection)
@@ -109,6 +110,7 @@ class DetectorSection(Section):
             intra_op_threads=self.intra_op_threads,
             inter_op_threads=self.inter_op_threads,
             workers=self.workers,
+            intra_op_spinning=self.intra_op_spinning,
             batch=self.batch,
             fitted_inputs=self.fitted_inputs,
             model=self.model.build(ModelSpec),
