@@ -85,11 +85,12 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     r = json.loads(proc.stdout[proc.stdout.index("{") :])
-    assert r["rig"]["config"] == str(config) and "precision fp32" in r["rig"]["detector"]
+    assert r["rig"]["config"] == str(config) and "precision auto" in r["rig"]["detector"]
     alone, s = r["detector_alone"], r["summary"]
     for run in (alone["before_live_run"], alone["after_live_run"]):
         assert run["passes"] == 2 and run["camera_frames_per_pass"] == 4 and run["image_size"] == [272, 480]
         assert run["intra_op_threads"] == 1  # the given config's, not the shipped one's (0: all cores)
+        assert run["precision"] == "int8"  # "auto" on this CPU
         assert run["whole_camera_frames_per_s"] > 0 and run["packed_camera_frames_per_s"] > 0
     runs = (
         alone["before_live_run"]["packed_camera_frames_per_s"],

@@ -22,7 +22,13 @@ from mocapd.io.model_build import LICENCE, model_is_current, sha256, sidecar_pat
 from mocapd.io.model_cache import default_model_path
 from mocapd.io.model_quant import int8_is_current, int8_model_path
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
-from mocapd.pipeline.detector import AsyncPoseDetector, OnnxPoseDetector, letterbox_image, resolve_providers
+from mocapd.pipeline.detector import (
+    AsyncPoseDetector,
+    OnnxPoseDetector,
+    auto_precision,
+    letterbox_image,
+    resolve_providers,
+)
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
 from mocapd.pipeline.detector_pool import detector_status, make_detector
 from mocapd.pipeline.packing import PackedDetector, ScheduledDetector, packed_detector_from_config, render_canvas
@@ -522,3 +528,20 @@ def test_intra_op_threads_sleep_unless_spinning_is_asked_for() -> None:
     assert DetectorConfig().intra_op_spinning is False
     with pytest.raises(ConfigError, match=r"^detector\.intra_op_spinning"):
         parse_config({"detector": {"intra_op_spinning": "yes"}})
+
+
+def test_precision_auto_is_int8_on_cpus_and_fp32_on_gpus(tmp_path: Path) -> None:
+    det = OnnxPoseDetector.from_config(DetectorConfig(intra_op_threads=1))  # the default: "auto", on this CPU
+    assert det.precision == "int8" and det.path.name == "yolo11n-pose-640-int8.onnx"
+    assert det.describe()["precision"] == "int8" and "auto: INT8" in str(det.describe()["precision_note"])
+    int8 = int8_model_path(default_model_path())
+    for provider in ("TensorrtExecutionProvider", "CUDAExecutionProvider"):
+        assert auto_precision(provider, int8)[0] == "fp32"
+    assert auto_precision("OpenVINOExecutionProvider", int8)[0] == "int8"
+    precision, note = auto_precision("CPUExecutionProvider", tmp_path / "missing-int8.onnx")
+    assert precision == "fp32" and "mocapd model fetch --int8" in note
+    given = OnnxPoseDetector(ModelSpec(path=str(default_model_path())), precision="auto", intra_op_threads=1)
+    assert given.path == default_model_path() and "path is set" in given.precision_note
+    assert DetectorConfig().precision == "auto"
+    with pytest.raises(ConfigError, match=r"^detector\.precision = 'int4'"):
+        parse_config({"detector": {"precision": "int4"}})

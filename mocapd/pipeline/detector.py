@@ -132,6 +132,19 @@ def _check_session_providers(requested: Sequence[str], resolved: Sequence[str], 
         )
 
 
+def auto_precision(provider: str, int8: Path) -> tuple[str, str]:
+    """``[detector] precision = "auto"``: the precision to load on ``provider`` (the first the session runs) and
+    why, given the INT8 model's path: INT8 on CPU providers (1.2-1.7x FP32 on the 2-core laptop, keypoints 2.3 px
+    median from FP32's), FP32 on GPU ones (the INT8 QDQ model ran slower than FP32 on CUDA, H100) or where the
+    INT8 file is missing (said in the log)."""
+    if provider in _GPU_PROVIDERS:
+        return "fp32", f"auto: FP32 on {provider} (INT8 ran slower than FP32 on CUDA)"
+    if not int8.is_file():
+        log.warning("detector precision auto: %s not built (`mocapd model fetch --int8`), running FP32", int8.name)
+        return "fp32", f"auto: {int8.name} not built (`mocapd model fetch --int8`)"
+    return "int8", f"auto: INT8 on {provider} (faster than FP32 there, keypoints 2.3 px median from FP32's)"
+
+
 def letterbox_image(image: Image, lb: Letterbox, dst_w: int, dst_h: int, pad_value: int) -> Image:
     """Resize ``image (H, W, 3)`` by ``lb`` and pad to ``(dst_h, dst_w, 3)`` with grey ``pad_value``."""
     canvas = np.full((dst_h, dst_w, 3), pad_value, dtype=np.uint8)
@@ -150,8 +163,11 @@ class OnnxPoseDetector:
         Model file, input size, layout and decoding.
     providers : sequence of str
         Config provider names (see :func:`resolve_providers`).
-    precision : {"fp32", "int8"}
-        Which default model file to load when ``spec.path`` is empty (an explicit path is used as it is).
+    precision : {"auto", "fp32", "int8"}
+        Which default model file to load when ``spec.path`` is empty (an explicit path is used as it is). "auto":
+        INT8 on CPU providers (CPU, OpenVINO), where it measured faster, FP32 on GPU ones (TensorRT, CUDA), where
+        the INT8 QDQ model ran slower; FP32 (said once in the log and in :meth:`describe`) where the INT8 file is
+        missing.
     intra_op_threads, inter_op_threads : int
         onnxruntime thread counts (0 = its default).
     intra_op_spinning : bool
@@ -192,6 +208,13 @@ class OnnxPoseDetector:
     ) -> None:
         self.spec = spec
         self.format: KeypointFormat = keypoint_format(spec.keypoint_format)
+        self.providers = resolve_providers(providers)
+        self.precision_note = ""
+        if precision == "auto" and spec.path:
+            precision, self.precision_note = "fp32", "detector.model.path is set: that model runs as it is"
+        elif precision == "auto":
+            int8 = model_path(spec.input_width, spec.input_height, "int8")
+            precision, self.precision_note = auto_precision(self.providers[0], int8)
         path = Path(spec.path) if spec.path else model_path(spec.input_width, spec.input_height, precision)
         if not path.is_file():
             fetch = "mocapd model fetch" + (" --int8" if precision == "int8" and not spec.path else "")
@@ -208,7 +231,6 @@ class OnnxPoseDetector:
         # sections when one of its threads is preempted: on the 2-core laptop the live camera demo's e2e p50 went
         # from 563-599 ms spinning to 403-404 ms not (docs/daemon.md, "Issue 15: detector threads that sleep").
         opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if intra_op_spinning else "0")
-        self.providers = resolve_providers(providers)
         if batch not in ("auto", True, False):
             raise ModelError(f'detector.batch = {batch!r}; allowed: "auto", true, false')
         if fitted_inputs not in ("auto", True, False):
@@ -269,6 +291,7 @@ class OnnxPoseDetector:
         return {
             "providers": list(self.session.get_providers()),
             "precision": self.precision,
+            "precision_note": self.precision_note,
             "batched_canvases": self.batched,
             "model": str(self.path),
             "input_size": list(self.input_size),

@@ -17,7 +17,7 @@ from mocapd.errors import ConfigError
 DECODERS = ("yolo_pose",)
 LAYOUTS = ("NCHW", "NHWC")
 CHANNEL_ORDERS = ("RGB", "BGR")
-PRECISIONS = ("fp32", "int8")
+PRECISIONS = ("auto", "fp32", "int8")
 
 
 @dataclass(frozen=True)
@@ -154,9 +154,10 @@ class DetectorConfig:
     providers: tuple[str, ...] = ("auto",)
     """onnxruntime execution providers in order of preference; "auto" = TensorRT, CUDA, OpenVINO, then CPU,
     whichever this onnxruntime build has; a provider named explicitly must be in the build."""
-    precision: str = "fp32"
-    """Default model variant: "fp32" or "int8" (the statically quantized model ``mocapd model fetch --int8``
-    builds beside the FP32 one). Ignored for a model given by path (that file is used as it is)."""
+    precision: str = "auto"
+    """Default model variant: "fp32", "int8" (the statically quantized model ``mocapd model fetch --int8``
+    builds beside the FP32 one) or "auto" (INT8 on CPU providers, FP32 on GPU ones). Ignored for a model given by
+    path (that file is used as it is)."""
     intra_op_threads: int = 0
     """Threads inside one inference (0 = onnxruntime's default, one per core)."""
     inter_op_threads: int = 1

@@ -164,7 +164,8 @@ def detector_alone(cfg: DetectorConfig, frames: list[list[NDArray[np.uint8]]], w
             "whole_pass_ms_median": round(1e3 * median(t_whole), 1) if t_whole else None,
             "packed_pass_ms_median": round(1e3 * median(t_packed), 1) if t_packed else None,
             "packed_canvases_per_pass_mean": round(float(np.mean(canvases)), 2) if canvases else None,
-            "providers": whole.providers, "intra_op_threads": cfg.intra_op_threads}  # fmt: skip
+            "providers": whole.providers, "precision": whole.precision,  # what runs ("auto" resolved)
+            "intra_op_threads": cfg.intra_op_threads}  # fmt: skip
 
 
 class Measure:

@@ -374,8 +374,8 @@ def run(
     print(
         f"mocapd demo: 4 fake GigE Vision cameras ({opts.pixel_format}, {opts.size[0]}x{opts.size[1]}) streaming "
         f"the Pose2Sim {opts.demo} videos {pace}, in a private network namespace; detector "
-        f"{config.detector.model.input_width}x{config.detector.model.input_height} on "
-        f"{_detection_text(opts, config)}",
+        f"{config.detector.model.input_width}x{config.detector.model.input_height}, precision "
+        f"{config.detector.precision} (/status detector says what runs), on {_detection_text(opts, config)}",
         flush=True,
     )
     port = inherited["http-fd"].getsockname()[1]
