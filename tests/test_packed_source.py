@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 from concurrent.futures import ThreadPoolExecutor
 
+import cv2
 import numpy as np
 import pytest
 
@@ -14,6 +15,7 @@ from mocapd.io.pose2sim_demo import demo_video
 from mocapd.io.video_source import VideoFileSource
 from mocapd.pipeline.detection_mode import ModeChooser, ModeChooserOptions
 from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.pipeline.packing import packed_detector_from_config
 
@@ -97,3 +99,42 @@ async def test_auto_mode_runs_both_kinds_of_pass_and_reports_its_choice() -> Non
     st = sources[0].status()["packing"]
     assert st["whole_frame_passes"] == group.whole_passes and st["failed_passes"] == 0
     assert st["mode"]["epochs"] == chooser.epochs and set(st["mode"]["rates"]) == {"packed", "whole"}
+
+
+class _Replay:
+    """A camera of the group that always has a new frame (the detector far slower than 60 fps): demo frames."""
+
+    def __init__(self, camera: int, frames: list[np.ndarray]) -> None:
+        self.camera, self.frames, self.seq = camera, frames, 0
+
+    def has_new_frame(self) -> bool:
+        return True
+
+    def take_newest(self) -> tuple[FrameRef, np.ndarray]:
+        self.seq += 1
+        return FrameRef(f"cam{self.camera}", self.seq, self.seq, self.seq, self.seq), self.frames[self.seq % 2]
+
+
+@pytest.mark.parametrize("batch", [False, True])
+def test_a_batched_detector_passes_over_every_camera_and_a_cpu_one_over_one_canvas(batch: bool) -> None:
+    frames = []
+    for name in ("cam01", "cam02", "cam03", "cam04"):
+        cap = cv2.VideoCapture(str(demo_video("Demo_MultiPerson", name)))
+        pair = [cv2.cvtColor(cv2.resize(cap.read()[1], (544, 960)), cv2.COLOR_BGR2RGB) for _ in range(2)]
+        frames.append([np.asarray(f, np.uint8) for f in pair])
+        cap.release()
+    cfg = DetectorConfig(intra_op_threads=2, batch=batch)
+    group = PackedDetectionGroup(packed_detector_from_config(cfg, [(544, 960)] * 4), ThreadPoolExecutor(1))
+    for cam, f in enumerate(frames):
+        group.add(_Replay(cam, f))  # type: ignore[arg-type]  # the group calls has_new_frame and take_newest
+    try:
+        group._run_pass()  # whole frames in: the ROIs follow
+        found = group._run_pass()
+    finally:
+        group.close()
+    assert found is not None and all(len(d) >= 1 for _, d in found.values())
+    canvases = len(group.packer.last_packings)
+    if batch:  # every camera, their canvases in one inference
+        assert sorted(found) == [0, 1, 2, 3] and canvases >= 2
+    else:  # one canvas's worth of cameras (these four need more than one)
+        assert canvases == 1 and 1 <= len(found) < 4

@@ -170,21 +170,19 @@ class PackedDetectionGroup:
         """One canvas's worth of cameras: those with an unseen frame, detected longest ago first, as many as
         share the canvases the first one needs. A pass over every camera would deliver each camera's detections
         only after all canvases ran, and make every camera wait that long again for its next frame; passes of one
-        canvas each deliver as they go (the same inferences, a shorter detection delay)."""
+        canvas each deliver as they go (the same inferences, a shorter detection delay).
+
+        With a batched detector (a GPU: ``[detector] batch``) a pass takes every camera with an unseen frame
+        instead: its canvases run in one inference that costs little more than one canvas (1.25-1.8 ms each in a
+        batch of 4 against 5.5 ms alone on the H100), and one-canvas passes there ran 1.1 canvases a pass at ~20 ms,
+        mostly the pass's own Python work, so live detection reached 0.32 of the detector alone (docs/daemon.md,
+        "Issue 15: on a GPU"). Not measured live on a GPU since (no device lent)."""
         order = sorted(
             (c for c, src in self.sources.items() if src.has_new_frame()), key=lambda c: self._detected_at[c]
         )
         if not order:
             return None
-        # The cameras detected together last time first (then any other that still fits): the groups stay
-        # stable, so every camera is detected at a steady interval (the latency covers the slowest, its p95).
-        first = self._detected_at[order[0]]
-        order.sort(key=lambda c: (self._detected_at[c] != first, self._detected_at[c]))
-        chosen = [order[0]]
-        need = self.packer.canvases_for(chosen)
-        for cam in order[1:]:
-            if self.packer.canvases_for([*chosen, cam]) <= need:
-                chosen.append(cam)
+        chosen = order if self.packer.canvas_detector.batched else self._one_canvas(order)
         new: dict[int, FrameRef] = {}
         for cam in chosen:
             got = self.sources[cam].take_newest()
@@ -199,6 +197,19 @@ class PackedDetectionGroup:
             images.append(image if image is not None and cam in new else np.empty((h, w, 3), np.uint8))
         (found,) = self.packer.detect([images], cameras=sorted(new))
         return {cam: (ref, to_detections2d(found[cam], self.columns)) for cam, ref in new.items()}
+
+    def _one_canvas(self, order: list[int]) -> list[int]:
+        """The cameras of one canvas: ``order``'s first and those that share the canvases it needs."""
+        # The cameras detected together last time first (then any other that still fits): the groups stay
+        # stable, so every camera is detected at a steady interval (the latency covers the slowest, its p95).
+        first = self._detected_at[order[0]]
+        order = sorted(order, key=lambda c: (self._detected_at[c] != first, self._detected_at[c]))
+        chosen = [order[0]]
+        need = self.packer.canvases_for(chosen)
+        for cam in order[1:]:
+            if self.packer.canvases_for([*chosen, cam]) <= need:
+                chosen.append(cam)
+        return chosen
 
     def _whole_pass(self) -> dict[int, tuple[FrameRef, Detections2D]] | None:
         # The camera detected longest ago first: every camera gets its turn, none waits two rounds.
