@@ -229,7 +229,8 @@ class OnnxPoseDetector:
         # onnxruntime's intra-op threads spin between operators waiting for work by default. Beside the 60 Hz
         # tick and the capture threads that burns the cores they need and stalls the detector's own parallel
         # sections when one of its threads is preempted: on the 2-core laptop the live camera demo's e2e p50 went
-        # from 563-599 ms spinning to 403-404 ms not (docs/daemon.md, "Issue 15: detector threads that sleep").
+        # from 563-599 ms spinning to 403-491 ms not, three runs each (docs/daemon.md, "Issue 15: detector threads
+        # that sleep").
         opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if intra_op_spinning else "0")
         if batch not in ("auto", True, False):
             raise ModelError(f'detector.batch = {batch!r}; allowed: "auto", true, false')
