@@ -84,8 +84,8 @@ def test_auto_latency_moves_slowly_and_only_outside_its_band() -> None:
     t = _feed(auto, t, 20.0, 100 * MS, 200 * MS, n_cams=2)
     assert auto.latency_ns == auto.goal_ns
     changes = auto.goal_changes
-    # A need 5 % higher stays inside the ±10 % band: the goal holds.
-    t = _feed(auto, t, 30.0, 115 * MS, 200 * MS, n_cams=2)
+    # A need 5 % higher stays inside the ±10 % band and within hysteresis_min_ns (15 < 20 ms): the goal holds.
+    t = _feed(auto, t, 40.0, 115 * MS, 200 * MS, n_cams=2)
     assert auto.goal_changes == changes and auto.latency_ns == pytest.approx(300 * MS, abs=MS)
     # The detector slows down (interval 400 ms): the latency grows, at most 0.25 s/s.
     before = auto.latency_ns
@@ -117,3 +117,19 @@ def test_auto_latency_forgets_needs_older_than_a_minute() -> None:
     assert auto.goal_ns >= 1500 * MS
     _feed(auto, t, 90.0, 50 * MS, 100 * MS, n_cams=2)
     assert auto.goal_ns == pytest.approx(150 * MS, abs=MS) and auto.latency_ns == auto.goal_ns
+
+
+def test_auto_latency_follows_a_lasting_change_inside_its_band() -> None:
+    # The need falls from 500 to 460 ms: inside the ±10 % band, more than hysteresis_min_ns (20 ms) below.
+    opts = AutoLatencyOptions(start_ns=500 * MS, settle_ns=30 * S)
+    auto = AutoLatency(2, opts)
+    t = _feed(auto, 0, 65.0, 200 * MS, 300 * MS, n_cams=2)
+    assert auto.goal_ns == pytest.approx(500 * MS, abs=MS)
+    changes = auto.goal_changes
+    # The estimate (p95 of the last minute's needs) reaches 460 ms ~57 s later; the goal holds 30 s more.
+    t = _feed(auto, t, 70.0, 160 * MS, 300 * MS, n_cams=2)
+    assert auto.goal_changes == changes and auto.estimate_ns == pytest.approx(460 * MS, abs=MS)
+    t = _feed(auto, t, 20.0, 160 * MS, 300 * MS, n_cams=2)
+    assert auto.goal_changes == changes + 1 and auto.goal_ns == pytest.approx(460 * MS, abs=MS)
+    _feed(auto, t, 10.0, 160 * MS, 300 * MS, n_cams=2)
+    assert auto.latency_ns == auto.goal_ns  # reached at 0.05 s/s

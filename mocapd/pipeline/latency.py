@@ -105,6 +105,10 @@ class AutoLatencyOptions:
     hysteresis: float = 0.1
     """The goal moves only when the estimate leaves ``goal ± max(hysteresis × goal, hysteresis_min_ns)``."""
     hysteresis_min_ns: int = 20_000_000
+    settle_ns: int = 30_000_000_000
+    """... and when the estimate has stayed more than ``hysteresis_min_ns`` on one side of the goal for this long:
+    a lasting change inside the band is followed, not held (the band alone held a live goal at 486 ms over an
+    estimate of 446 ms for the rest of a run, docs/daemon.md)."""
     up_rate: float = 0.25
     """The latency grows towards a higher goal by at most this many seconds per second of wall time (the solve
     time then advances at 0.75× wall time for a while: never backwards)."""
@@ -119,6 +123,8 @@ class AutoLatencyOptions:
                              f"{self.max_ns}")  # fmt: skip
         if not (0.0 < self.up_rate < 1.0 and 0.0 < self.down_rate < 1.0):
             raise InputError("auto latency rates must be in (0, 1) s/s: solve time must never run backwards")
+        if self.settle_ns <= 0:
+            raise InputError(f"auto latency settle time must be > 0, got {self.settle_ns} ns")
         if not 0.0 < self.quantile <= 100.0 or self.window < 1 or self.min_samples < 1:
             raise InputError("auto latency needs a quantile in (0, 100], window >= 1 and min_samples >= 1")
 
@@ -133,8 +139,9 @@ class AutoLatency:
     the ``quantile`` of the recent needs plus ``margin_ns`` (the issue's "p95 detection delay plus one detection
     interval", measured as one quantity per frame rather than as two percentiles added).
 
-    The goal moves only when the estimate leaves a band around it (hysteresis), and the latency follows the goal
-    at a bounded rate, so solve time never jumps and never runs backwards. Pure: times are arguments.
+    The goal moves when the estimate leaves a band around it (hysteresis), or has stayed on one side of it for
+    ``settle_ns`` (a lasting change inside the band), and the latency follows the goal at a bounded rate, so
+    solve time never jumps and never runs backwards. Pure: times are arguments.
 
     Parameters
     ----------
@@ -158,6 +165,8 @@ class AutoLatency:
         self._evaluated_ns: int | None = None
         self.goal_changes = 0
         self.gaps = 0  # detection intervals longer than max_ns (a camera away), left out
+        self._side = 0  # where the estimate is: above (1) or below (-1) the goal by > hysteresis_min_ns, or 0
+        self._side_since_ns = 0
 
     def observe(self, camera: int, capture_ns: int, arrival_ns: int) -> None:
         """One detected frame of ``camera``: captured at ``capture_ns``, its detections in at ``arrival_ns``."""
@@ -202,9 +211,15 @@ class AutoLatency:
         first = self.estimate_ns is None  # the start value is a placeholder: the first estimate replaces it
         self.estimate_ns = estimate = int(min(o.max_ns, max(o.min_ns, need + o.margin_ns)))
         band = max(o.hysteresis * self.goal_ns, o.hysteresis_min_ns)
-        if first or abs(estimate - self.goal_ns) > band:
+        off = estimate - self.goal_ns
+        side = 0 if abs(off) <= o.hysteresis_min_ns else (1 if off > 0 else -1)
+        if side != self._side:
+            self._side, self._side_since_ns = side, now_ns
+        settled = side != 0 and now_ns - self._side_since_ns >= o.settle_ns
+        if first or abs(off) > band or settled:
             self.goal_ns = estimate
             self.goal_changes += 1
+            self._side = 0
 
     def status(self) -> dict[str, Any]:
         """JSON-able: the latency now, its goal, the estimate and what it is made of (ms)."""
