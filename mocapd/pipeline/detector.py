@@ -245,12 +245,9 @@ class OnnxPoseDetector:
         # "auto": batch on GPU providers, where one canvas per call leaves the device waiting on launches; on a
         # CPU a batch costs what its canvases cost one by one (mocapd/io/model_batch.py).
         self.batched: bool = self.providers[0] in _GPU_PROVIDERS if batch == "auto" else bool(batch)
-        try:
-            self.session = ort.InferenceSession(str(path), sess_options=opts, providers=self.providers)
-        except _LOAD_ERRORS as exc:
-            raise ModelError(f"onnxruntime cannot load {path}: {exc}") from exc
-        _check_session_providers(providers, self.providers, self.session.get_providers())
         self._opts = opts
+        self.session = self._new_session(str(path), str(path))
+        _check_session_providers(providers, self.providers, self.session.get_providers())
         # The batch-1 model, checked for the rewrite now; a session per batch size, made when first needed.
         self._model = load_model(path) if self.batched else None
         self._batch_sessions: dict[int, ort.InferenceSession] = {1: self.session}
@@ -310,9 +307,10 @@ class OnnxPoseDetector:
         self._run_options.terminate = True
 
     @staticmethod
-    def from_config(cfg: DetectorConfig) -> OnnxPoseDetector:
-        """A detector built from the ``[detector]`` section."""
-        return OnnxPoseDetector(
+    def from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]] = ()) -> OnnxPoseDetector:
+        """A detector built from the ``[detector]`` section, with the whole-frame inputs of cameras of
+        ``image_sizes`` (width, height) made now (:meth:`fit_to`)."""
+        det = OnnxPoseDetector(
             cfg.model,
             providers=cfg.providers,
             precision=cfg.precision,
@@ -322,6 +320,9 @@ class OnnxPoseDetector:
             fitted_inputs=cfg.fitted_inputs,
             intra_op_spinning=cfg.intra_op_spinning,
         )
+        for w, h in dict.fromkeys(image_sizes):
+            det.fit_to(w, h)
+        return det
 
     def _check_shapes(self) -> None:
         spec = self.spec
@@ -424,10 +425,7 @@ class OnnxPoseDetector:
         if session is None:
             assert self._model is not None
             data = fixed_batch(self._model, k).SerializeToString()
-            try:
-                session = ort.InferenceSession(data, sess_options=self._opts, providers=self.providers)
-            except _LOAD_ERRORS as exc:
-                raise ModelError(f"onnxruntime cannot load the batch-{k} copy of {self.path}: {exc}") from exc
+            session = self._new_session(data, f"the batch-{k} copy of {self.path}")
             self._batch_sessions[k] = session
         return session
 
@@ -480,6 +478,13 @@ class OnnxPoseDetector:
     def _crop_for(self, extent: tuple[int, int]) -> tuple[int, int] | None:
         return next((s for s in self.crop_sizes if s[0] >= extent[0] and s[1] >= extent[1]), None)
 
+    def _new_session(self, model: str | bytes, what: str) -> ort.InferenceSession:
+        """A session of ``model`` (a path or serialized bytes) with this detector's options and providers."""
+        try:
+            return ort.InferenceSession(model, sess_options=self._opts, providers=self.providers)
+        except _LOAD_ERRORS as exc:
+            raise ModelError(f"onnxruntime cannot load {what}: {exc}") from exc
+
     def _fitted_session(self, fw: int, fh: int) -> ort.InferenceSession | None:
         session = self._fitted_by_size.get((fw, fh))
         if session is not None:
@@ -499,10 +504,7 @@ class OnnxPoseDetector:
                             "the time", w, h, fetch, path.name)  # fmt: skip
             self.unfitted[size] = f"{path.name} not built (`{fetch}`)"
             return None
-        try:
-            session = ort.InferenceSession(str(path), sess_options=self._opts, providers=self.providers)
-        except _LOAD_ERRORS as exc:
-            raise ModelError(f"onnxruntime cannot load {path}: {exc}") from exc
+        session = self._new_session(str(path), str(path))
         shape = list(session.get_inputs()[0].shape)
         want = [1, 3, fh, fw] if self.spec.layout == "NCHW" else [1, fh, fw, 3]
         if shape != want:

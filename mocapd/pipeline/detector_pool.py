@@ -80,7 +80,7 @@ class PooledDetector:
         )  # fmt: skip
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
-            self._detectors.append(self.executor.submit(_load, cfg, image_sizes).result())
+            self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg, image_sizes).result())
             self._pool.put(self._detectors[-1])
 
     def __call__(self, rgb: NDArray[np.uint8]) -> Detections2D:
@@ -98,13 +98,6 @@ class PooledDetector:
         for det in self._detectors:
             det.terminate()
         self.executor.shutdown(wait=True, cancel_futures=True)
-
-
-def _load(cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]]) -> OnnxPoseDetector:
-    det = OnnxPoseDetector.from_config(cfg)
-    for w, h in dict.fromkeys(image_sizes):
-        det.fit_to(w, h)
-    return det
 
 
 AnyDetector = PooledDetector | PackedDetectionGroup

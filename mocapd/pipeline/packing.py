@@ -402,9 +402,7 @@ class ScheduledDetector:
 def packed_detector_from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]]) -> PackedDetector:
     """A :class:`PackedDetector` for the ``[detector]`` section, with a canvas-sized session when
     ``[detector.packing]`` asks for canvases of another size than the model's input."""
-    ref = OnnxPoseDetector.from_config(cfg)
-    for w, h in dict.fromkeys(image_sizes):  # the whole-frame passes' inputs, made (or found missing) now
-        ref.fit_to(w, h)
+    ref = OnnxPoseDetector.from_config(cfg, image_sizes)  # the whole-frame passes' inputs made (or found missing)
     pk = cfg.packing
     cw = pk.canvas_width or cfg.model.input_width
     ch = pk.canvas_height or cfg.model.input_height
