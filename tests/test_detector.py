@@ -26,7 +26,10 @@ from mocapd.pipeline.detector import (
     AsyncPoseDetector,
     OnnxPoseDetector,
     auto_precision,
+    bf16_flags,
+    check_bf16,
     letterbox_image,
+    provider_options,
     resolve_providers,
 )
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
@@ -528,6 +531,59 @@ def test_intra_op_threads_sleep_unless_spinning_is_asked_for() -> None:
     assert DetectorConfig().intra_op_spinning is False
     with pytest.raises(ConfigError, match=r"^detector\.intra_op_spinning"):
         parse_config({"detector": {"intra_op_spinning": "yes"}})
+
+
+_CPUINFO = """processor\t: 0
+vendor_id\t: AuthenticAMD
+flags\t\t: fpu avx2 avx512f avx512_bf16 avx512_vnni
+processor\t: 1
+flags\t\t: fpu avx2 avx512f avx512_bf16 avx512_vnni
+"""
+
+
+def test_bf16_flags_are_read_from_cpuinfo() -> None:
+    assert bf16_flags(_CPUINFO) == ["avx512_bf16"]
+    assert bf16_flags(_CPUINFO.replace("avx512_bf16", "amx_bf16 amx_tile")) == ["amx_bf16"]
+    assert bf16_flags(_CPUINFO.replace(" avx512_bf16", "")) == []
+    assert bf16_flags("") == []
+
+
+def test_precision_auto_is_bf16_on_openvino_where_the_cpu_has_it(tmp_path: Path) -> None:
+    int8 = int8_model_path(default_model_path())
+    ov = "OpenVINOExecutionProvider"
+    precision, note = auto_precision(ov, int8, ("avx512_bf16",))
+    assert precision == "bf16" and "avx512_bf16" in note
+    assert auto_precision(ov, int8, ())[0] == "int8"  # no BF16 instructions: OpenVINO would emulate them
+    # BF16 needs no file of its own: a missing INT8 file does not stop it.
+    assert auto_precision(ov, tmp_path / "missing-int8.onnx", ("amx_bf16",))[0] == "bf16"
+    # Only OpenVINO computes the FP32 model in BF16 among these builds' providers.
+    assert auto_precision("CPUExecutionProvider", int8, ("avx512_bf16",))[0] == "int8"
+    assert auto_precision("CUDAExecutionProvider", int8, ("avx512_bf16",))[0] == "fp32"
+
+
+def test_openvino_is_told_its_arithmetic_and_threads() -> None:
+    providers = ["OpenVINOExecutionProvider", "CPUExecutionProvider"]
+    bf16, cpu = provider_options(providers, "bf16", 2)
+    assert json.loads(bf16["load_config"]) == {"CPU": {"INFERENCE_PRECISION_HINT": "bf16"}}
+    assert bf16["num_of_threads"] == "2" and cpu == {}
+    # FP32 and INT8 say f32 outright: OpenVINO's own default on AMX CPUs is BF16.
+    for precision in ("fp32", "int8"):
+        opts = provider_options(providers, precision, 0)[0]
+        assert json.loads(opts["load_config"]) == {"CPU": {"INFERENCE_PRECISION_HINT": "f32"}}
+        assert "num_of_threads" not in opts  # 0: OpenVINO's own default
+    assert provider_options(["CPUExecutionProvider"], "bf16", 2) == [{}]
+
+
+def test_bf16_elsewhere_than_openvino_or_without_the_instructions_is_refused() -> None:
+    with pytest.raises(ModelError, match=r'^detector\.precision = "bf16" runs on OpenVINO only .*CPUExecutionProvider'):
+        OnnxPoseDetector(ModelSpec(), providers=["cpu"], precision="bf16", intra_op_threads=1)
+    with pytest.raises(ModelError, match=r"needs a CPU with BF16 instructions \(avx512_bf16 or amx_bf16"):
+        check_bf16("OpenVINOExecutionProvider", ())
+    check_bf16("OpenVINOExecutionProvider", ("avx512_bf16",))  # both there: runs
+    cfg = parse_config({"detector": {"precision": "bf16"}})
+    assert cfg.detector.options().precision == "bf16"
+    with pytest.raises(ModelError, match="runs on OpenVINO only"):
+        OnnxPoseDetector.from_config(dataclasses.replace(cfg.detector.options(), providers=("cpu",)))
 
 
 def test_precision_auto_is_int8_on_cpus_and_fp32_on_gpus(tmp_path: Path) -> None:

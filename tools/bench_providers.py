@@ -1,16 +1,18 @@
 """Benchmark: execution provider x precision x (whole, fitted, packed) detection on the Pose2Sim 4-camera demo.
 
 Prints one JSON object. For each provider (``--providers``, config names: cpu, openvino, cuda, tensorrt) and
-precision (``--precision``: fp32, int8) it times whole-frame detection (each camera frame letterboxed alone into
-the square input: the naive way), whole frames at the camera's aspect (``fitted``: the 384x640 export for these
-portrait cameras, ``[detector] fitted_inputs``) and packed detection (the ROIs of 4 cameras x 2 consecutive
-frames on shared canvases, as ``tools/bench_detect.py``). All configurations run in the same process on the
-same frame pairs, their order rotating from pair to pair, and every rate is a median over pairs, so that the
-other work on this shared machine hits all alike. ``disagreement_px`` compares each configuration's keypoints
+precision (``--precision``: fp32, int8, bf16 = the FP32 model computed in BF16, OpenVINO only) it times
+whole-frame detection (each camera frame letterboxed alone into the square input: the naive way), whole frames
+at the camera's aspect (``fitted``: the 384x640 export for these portrait cameras, ``[detector]
+fitted_inputs``) and packed detection (the ROIs of 4 cameras x 2 consecutive frames on shared canvases, as
+``tools/bench_detect.py``). All configurations run in the same process on the same frame pairs, their order
+rotating from pair to pair, and every rate is a median over pairs, so that the other work on this shared machine
+hits all alike. ``disagreement_px`` compares each configuration's keypoints
 with those of FP32 CPU whole-frame detection (the reference, always run): distance between keypoints both found
 with confidence >= 0.5 on the same person in the same camera frame, in source pixels (median and p90).
 
     .venv/bin/python tools/bench_providers.py --providers cpu --precision fp32 int8 --pairs 20 --threads 2
+    python tools/bench_providers.py --providers cpu openvino --precision fp32 int8 bf16 --threads 2  # openvino extra
 """
 
 from __future__ import annotations
@@ -69,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--demo", default="Demo_MultiPerson", help="Demo_SinglePerson or Demo_MultiPerson")
     ap.add_argument("--providers", nargs="+", default=["cpu"], help="config provider names (cpu, openvino, ...)")
-    ap.add_argument("--precision", nargs="+", default=["fp32", "int8"], choices=["fp32", "int8"])
+    ap.add_argument("--precision", nargs="+", default=["fp32", "int8"], choices=["fp32", "int8", "bf16"])
     ap.add_argument("--modes", nargs="+", default=["whole", "fitted", "packed"], choices=MODES,
                     help="whole: frames letterboxed into the square input (naive); fitted: whole frames at the "
                     "camera's aspect; packed: ROIs on canvases, cropped to their tiles where an export fits "
@@ -113,17 +115,23 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         reference = detector("cpu", "fp32", False)
-        runs: list[_Run] = []
-        for provider in args.providers:
-            for precision in args.precision:
-                square = reference if (provider, precision) == ("cpu", "fp32") else detector(provider, precision, False)
-                fitted = detector(provider, precision, True) if {"fitted", "packed"} & set(args.modes) else square
-                for mode in args.modes:
-                    det = square if mode in ("whole", "packed-square") else fitted
-                    packer = PackedDetector(det, sizes, packing) if mode.startswith("packed") else None
-                    runs.append(_Run(f"{provider}/{precision}/{mode}", provider, precision, mode, det, packer))
     except MocapdError as exc:
         raise SystemExit(f"bench_providers: {exc}") from None
+    runs: list[_Run] = []
+    skipped: dict[str, str] = {}  # provider/precision that cannot run here (BF16 off OpenVINO), and why
+    for provider in args.providers:
+        for precision in args.precision:
+            try:
+                square = reference if (provider, precision) == ("cpu", "fp32") else detector(provider, precision, False)
+                fitted = detector(provider, precision, True) if {"fitted", "packed"} & set(args.modes) else square
+            except MocapdError as exc:
+                skipped[f"{provider}/{precision}"] = str(exc)
+                print(f"bench_providers: {provider}/{precision} skipped: {exc}", file=sys.stderr)
+                continue
+            for mode in args.modes:
+                det = square if mode in ("whole", "packed-square") else fitted
+                packer = PackedDetector(det, sizes, packing) if mode.startswith("packed") else None
+                runs.append(_Run(f"{provider}/{precision}/{mode}", provider, precision, mode, det, packer))
     if not any(r.name == "cpu/fp32/whole" for r in runs):
         runs.append(_Run("cpu/fp32/whole", "cpu", "fp32", "whole", reference, None))
 
@@ -180,6 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         "available_providers": ort.get_available_providers(),
         "reference": "cpu/fp32/whole",
         "results": table,
+        "skipped": skipped,
     }
     json.dump(result, sys.stdout, indent=2)
     print()

@@ -41,7 +41,7 @@ def int8_model_path(fp32: Path) -> Path:
 
 
 def model_path(width: int, height: int, precision: str) -> Path:
-    """The default model file for an input size and a precision ("fp32" or "int8")."""
+    """The default model file for an input size and a precision ("fp32", "int8"; "bf16" runs the FP32 file)."""
     fp32 = default_model_path(width, height)
     return int8_model_path(fp32) if precision == "int8" else fp32
 

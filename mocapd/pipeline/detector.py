@@ -9,6 +9,8 @@ of :mod:`mocapd.core.pose2d`. onnxruntime releases the GIL while it computes, so
 from __future__ import annotations
 
 import asyncio
+import functools
+import json
 import logging
 import queue
 import time
@@ -49,6 +51,7 @@ _AUTO_PROVIDERS = (
 )
 # Providers whose device waits on kernel launches at batch 1: "auto" batches the canvases of a pass there.
 _GPU_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider")
+_OPENVINO = "OpenVINOExecutionProvider"
 WARM_BATCHES = 4  # batch sizes whose sessions a batched detector makes and runs once when it loads: 1..this
 MAX_BATCH = 8  # canvases per call at most (a pass has 1-3 on the demo rig; bounds the device memory of one call)
 # onnxruntime's load errors derive from Exception directly, not from RuntimeError.
@@ -132,13 +135,75 @@ def _check_session_providers(requested: Sequence[str], resolved: Sequence[str], 
         )
 
 
-def auto_precision(provider: str, int8: Path) -> tuple[str, str]:
+def provider_options(providers: Sequence[str], precision: str, intra_op_threads: int = 0) -> list[dict[str, str]]:
+    """onnxruntime's per-provider options (parallel to ``providers``) for a detector of ``precision``.
+
+    OpenVINO gets its arithmetic precision set outright, BF16 for "bf16" and FP32 otherwise: on CPUs with AMX
+    its own default is BF16, so "fp32" there would silently not be FP32 (and the float head of the INT8 model
+    would run in BF16 too). It also gets ``intra_op_threads`` (when > 0) as its thread count, which it does not
+    take from the session options.
+    """
+    out: list[dict[str, str]] = []
+    for p in providers:
+        opts: dict[str, str] = {}
+        if p == _OPENVINO:
+            hint = "bf16" if precision == "bf16" else "f32"
+            opts["load_config"] = json.dumps({"CPU": {"INFERENCE_PRECISION_HINT": hint}})
+            if intra_op_threads > 0:
+                opts["num_of_threads"] = str(intra_op_threads)
+        out.append(opts)
+    return out
+
+
+def check_bf16(provider: str, flags: Sequence[str]) -> None:
+    """``precision = "bf16"`` needs OpenVINO first (no other provider of these builds computes the FP32 model in
+    BF16 on a CPU) and a CPU with BF16 instructions (elsewhere OpenVINO would emulate them, slower than FP32).
+
+    Raises
+    ------
+    ModelError
+        Either is missing.
+    """
+    if provider != _OPENVINO:
+        raise ModelError(
+            f'detector.precision = "bf16" runs on OpenVINO only (providers = ["openvino"], pip install '
+            f'mocapd[openvino]); the first provider here is {provider}: use "auto", "fp32" or "int8"'
+        )
+    if not flags:
+        raise ModelError(
+            'detector.precision = "bf16" needs a CPU with BF16 instructions (avx512_bf16 or amx_bf16 in '
+            '/proc/cpuinfo); this one has neither: use "auto", "fp32" or "int8"'
+        )
+
+
+def bf16_flags(cpuinfo: str) -> list[str]:
+    """The BF16 arithmetic flags (``avx512_bf16``, ``amx_bf16``) of the first processor in ``/proc/cpuinfo`` text."""
+    for line in cpuinfo.splitlines():
+        if line.startswith("flags"):
+            return [f for f in line.partition(":")[2].split() if f in ("avx512_bf16", "amx_bf16")]
+    return []
+
+
+@functools.cache
+def cpu_bf16_flags() -> tuple[str, ...]:
+    """This machine's BF16 flags (none where ``/proc/cpuinfo`` is missing: not Linux)."""
+    try:
+        return tuple(bf16_flags(Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace")))
+    except OSError:
+        return ()
+
+
+def auto_precision(provider: str, int8: Path, bf16: Sequence[str] = ()) -> tuple[str, str]:
     """``[detector] precision = "auto"``: the precision to load on ``provider`` (the first the session runs) and
-    why, given the INT8 model's path: INT8 on CPU providers (1.2-1.7x FP32 on the 2-core laptop, keypoints 2.3 px
-    median from FP32's), FP32 on GPU ones (the INT8 QDQ model ran slower than FP32 on CUDA, H100) or where the
-    INT8 file is missing (said in the log)."""
+    why, given the INT8 model's path and the CPU's BF16 flags (:func:`cpu_bf16_flags`): BF16 on OpenVINO where
+    the CPU computes in BF16 (on the 2-core laptop 1.7x the speed of FP32 there and 1.3x that of INT8, keypoints
+    0.6 px median from FP32's against INT8's 2.2), INT8 on the other CPU providers (1.2-1.7x FP32, 2.3 px), FP32
+    on GPU ones (the INT8 QDQ model ran slower than FP32 on CUDA, H100) or where the INT8 file is missing (said in
+    the log)."""
     if provider in _GPU_PROVIDERS:
         return "fp32", f"auto: FP32 on {provider} (INT8 ran slower than FP32 on CUDA)"
+    if provider == _OPENVINO and bf16:
+        return "bf16", f"auto: BF16 on {provider} (this CPU has {', '.join(bf16)}; faster than INT8 and closer to FP32)"
     if not int8.is_file():
         log.warning("detector precision auto: %s not built (`mocapd model fetch --int8`), running FP32", int8.name)
         return "fp32", f"auto: {int8.name} not built (`mocapd model fetch --int8`)"
@@ -163,11 +228,13 @@ class OnnxPoseDetector:
         Model file, input size, layout and decoding.
     providers : sequence of str
         Config provider names (see :func:`resolve_providers`).
-    precision : {"auto", "fp32", "int8"}
-        Which default model file to load when ``spec.path`` is empty (an explicit path is used as it is). "auto":
-        INT8 on CPU providers (CPU, OpenVINO), where it measured faster, FP32 on GPU ones (TensorRT, CUDA), where
-        the INT8 QDQ model ran slower; FP32 (said once in the log and in :meth:`describe`) where the INT8 file is
-        missing.
+    precision : {"auto", "fp32", "int8", "bf16"}
+        Which default model file to load when ``spec.path`` is empty (an explicit path is used as it is), and in
+        what arithmetic: "bf16" runs the FP32 file in BF16 on OpenVINO (a CPU with ``avx512_bf16`` or
+        ``amx_bf16`` only, :func:`check_bf16`). "auto" (:func:`auto_precision`): BF16 on OpenVINO where the CPU
+        has it, INT8 on the other CPU providers, where it measured faster than FP32, FP32 on GPU ones (TensorRT,
+        CUDA), where the INT8 QDQ model ran slower; FP32 (said once in the log and in :meth:`describe`) where the
+        INT8 file is missing.
     intra_op_threads, inter_op_threads : int
         onnxruntime thread counts (0 = its default).
     intra_op_spinning : bool
@@ -214,7 +281,10 @@ class OnnxPoseDetector:
             precision, self.precision_note = "fp32", "detector.model.path is set: that model runs as it is"
         elif precision == "auto":
             int8 = model_path(spec.input_width, spec.input_height, "int8")
-            precision, self.precision_note = auto_precision(self.providers[0], int8)
+            precision, self.precision_note = auto_precision(self.providers[0], int8, cpu_bf16_flags())
+        elif precision == "bf16":
+            check_bf16(self.providers[0], cpu_bf16_flags())
+        # BF16 is arithmetic, not a file: the FP32 model runs in it (model_path gives FP32's file).
         path = Path(spec.path) if spec.path else model_path(spec.input_width, spec.input_height, precision)
         if not path.is_file():
             fetch = "mocapd model fetch" + (" --int8" if precision == "int8" and not spec.path else "")
@@ -246,6 +316,7 @@ class OnnxPoseDetector:
         # CPU a batch costs what its canvases cost one by one (mocapd/io/model_batch.py).
         self.batched: bool = self.providers[0] in _GPU_PROVIDERS if batch == "auto" else bool(batch)
         self._opts = opts
+        self._provider_options = provider_options(self.providers, precision, intra_op_threads)
         self.session = self._new_session(str(path), str(path))
         _check_session_providers(providers, self.providers, self.session.get_providers())
         # The batch-1 model, checked for the rewrite now; a session per batch size, made when first needed.
@@ -481,7 +552,9 @@ class OnnxPoseDetector:
     def _new_session(self, model: str | bytes, what: str) -> ort.InferenceSession:
         """A session of ``model`` (a path or serialized bytes) with this detector's options and providers."""
         try:
-            return ort.InferenceSession(model, sess_options=self._opts, providers=self.providers)
+            return ort.InferenceSession(
+                model, sess_options=self._opts, providers=self.providers, provider_options=self._provider_options
+            )
         except _LOAD_ERRORS as exc:
             raise ModelError(f"onnxruntime cannot load {what}: {exc}") from exc
 

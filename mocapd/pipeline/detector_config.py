@@ -17,7 +17,7 @@ from mocapd.errors import ConfigError
 DECODERS = ("yolo_pose",)
 LAYOUTS = ("NCHW", "NHWC")
 CHANNEL_ORDERS = ("RGB", "BGR")
-PRECISIONS = ("auto", "fp32", "int8")
+PRECISIONS = ("auto", "fp32", "int8", "bf16")
 
 
 @dataclass(frozen=True)

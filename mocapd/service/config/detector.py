@@ -92,7 +92,7 @@ class DetectorSection(Section):
     """The ``[detector]`` section."""
 
     providers: Annotated[Seq[Provider], Field(min_length=1, max_length=8), AfterValidator(unique)] = _D.providers
-    precision: Literal["auto", "fp32", "int8"] = "auto"
+    precision: Literal["auto", "fp32", "int8", "bf16"] = "auto"
     intra_op_threads: int = Field(_D.intra_op_threads, ge=0, le=256)
     inter_op_threads: int = Field(_D.inter_op_threads, ge=0, le=256)
     workers: int = Field(_D.workers, ge=1, le=64)
