@@ -92,6 +92,7 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
         assert run["intra_op_threads"] == 1  # the given config's, not the shipped one's (0: all cores)
         assert run["precision"] == "int8"  # "auto" on this CPU
         assert run["whole_camera_frames_per_s"] > 0 and run["packed_camera_frames_per_s"] > 0
+        assert run["whole_cpu_cores"] > 0 and run["packed_cpu_cores"] > 0  # the process's CPU in the passes
     runs = (
         alone["before_live_run"]["packed_camera_frames_per_s"],
         alone["after_live_run"]["packed_camera_frames_per_s"],
@@ -104,6 +105,17 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     assert s["live_detected_camera_frames_per_s"] == r["detector_camera_frames_per_s"] > 0, why
     assert s["live_over_alone_packed"] == round(
         s["live_detected_camera_frames_per_s"] / alone["packed_camera_frames_per_s"], 3
+    )
+    # Per core of CPU the detector had, alone and live: the same frames over the CPU each measured.
+    assert s["detector_alone_packed_cpu_cores"] == alone["packed_cpu_cores"] > 0
+    assert s["detector_alone_packed_camera_frames_per_core_s"] == round(
+        alone["packed_camera_frames_per_s"] / alone["packed_cpu_cores"], 2
+    )
+    assert s["live_detected_camera_frames_per_detector_core_s"] == round(
+        s["live_detected_camera_frames_per_s"] / s["cpu_cores"]["detector_threads"], 2
+    )
+    assert s["live_over_alone_packed_per_core"] == round(
+        s["live_detected_camera_frames_per_detector_core_s"] / s["detector_alone_packed_camera_frames_per_core_s"], 3
     )
     # The demo as shipped: one packed group whose chooser runs packed or whole-frame passes ("auto").
     assert s["live_detection"] == ["packed detector"]
