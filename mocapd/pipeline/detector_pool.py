@@ -45,6 +45,13 @@ def name_os_thread(name: str) -> None:
         prctl(15, name.encode()[:15], 0, 0, 0)  # 15 = PR_SET_NAME
 
 
+def detector_executor(workers: int = 1) -> ThreadPoolExecutor:
+    """Worker threads named ``mocapd-detect``, in Python and at the OS level (:func:`name_os_thread`): the threads
+    onnxruntime and OpenVINO start from them carry the name too, so per-thread CPU accounting sees the detector."""
+    return ThreadPoolExecutor(workers, thread_name_prefix=THREAD_NAME, initializer=name_os_thread,
+                              initargs=(THREAD_NAME,))  # fmt: skip
+
+
 def target_columns(cfg: DetectorConfig, target_names: Sequence[str]) -> NDArray[np.intp]:
     """Column of each track target's keypoint in the model's output (the detector may output keypoints that have
     no target on the skeleton)."""
@@ -74,10 +81,7 @@ class PooledDetector:
         self._pool: queue.SimpleQueue[OnnxPoseDetector] = queue.SimpleQueue()
         self._columns = columns
         self._detectors: list[OnnxPoseDetector] = []
-        self.executor = ThreadPoolExecutor(
-            max_workers=cfg.workers, thread_name_prefix=THREAD_NAME, initializer=name_os_thread,
-            initargs=(THREAD_NAME,),
-        )  # fmt: skip
+        self.executor = detector_executor(cfg.workers)
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
             self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg, image_sizes).result())
@@ -117,8 +121,7 @@ def make_detector(
     """
     if not cfg.packing.enabled:
         return PooledDetector(cfg, columns, image_sizes)
-    executor = ThreadPoolExecutor(1, thread_name_prefix=THREAD_NAME, initializer=name_os_thread,
-                                  initargs=(THREAD_NAME,))  # fmt: skip
+    executor = detector_executor()
     packer = executor.submit(packed_detector_from_config, cfg, list(image_sizes)).result()
     # Whole frames first: their passes seed every camera's ROIs, so the first packed epoch is measured on the
     # people's regions rather than on the whole frames an empty start would pack (and warm-up, which slows

@@ -28,7 +28,6 @@ import platform
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 from statistics import median
@@ -42,7 +41,7 @@ from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
-from mocapd.pipeline.detector_pool import THREAD_NAME, name_os_thread
+from mocapd.pipeline.detector_pool import detector_executor
 from mocapd.pipeline.packing import packed_detector_from_config
 from mocapd.service.assembly import RunOptions
 from mocapd.service.config import Config, load_config
@@ -368,7 +367,7 @@ def child_main(argv: list[str] | None = None) -> int:
         # process-wide, made by the first thread that infers and named after it (Linux), and the live detector
         # then runs on those same threads; started from the main thread they counted as "other", not "detector".
         frames = served_frames(opts, ALONE_WARM_UP + args.alone_passes)
-        with ThreadPoolExecutor(1, initializer=name_os_thread, initargs=(THREAD_NAME,)) as named:
+        with detector_executor() as named:
             return named.submit(detector_alone, config.detector.options(), frames, ALONE_WARM_UP).result()
 
     # The detector alone before and after the live run, so that a change of load on a shared machine shows as a
