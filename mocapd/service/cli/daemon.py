@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from mocapd.errors import ConfigError, MocapdError
+from mocapd.io import log_throttle
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
 from mocapd.service.config.cameras import describe
 
@@ -211,6 +212,7 @@ _RECORD_HELP = "record this run as a session into this new directory (docs/sessi
 def register(subparsers: Any) -> None:
     """Add run, demo, check-config and ``bench latency`` to the CLI."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    log_throttle.install()  # a fault repeated many times a second is a few lines and a count
     run = subparsers.add_parser("run", help="run the daemon on the rig of a config file ([[cameras]], [imu])")
     run.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     run.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")

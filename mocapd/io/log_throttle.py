@@ -1,0 +1,148 @@
+"""Rate limit for repeated log lines: the first few of a call site pass, the rest are counted and summarised.
+
+A live daemon meets the same fault many times a second (a full disk, a flooding sender, a camera that keeps
+timing out); a log line per occurrence buries everything else on the console and in the journal. One
+:class:`RepeatFilter` on the process's log handlers lets ``burst`` records of one *call site* (file, line, level)
+through per ``window_s`` and counts the others; the first record of the site after its window closes carries the
+count::
+
+    ... WARNING mocapd.io.slimevr: tracker 12 timed out (1 234 more in the last 10 s)
+
+A site that goes quiet with records still counted is summarised by the next record of any site (at most once a
+second it sweeps closed windows) and by :meth:`RepeatFilter.flush` at exit, so no count is lost. A call site,
+not the message text, is the key: a line formatted with an f-string (a tracker id, a path) is still one line.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+#: records of one call site let through per window before counting starts
+DEFAULT_BURST = 5
+#: seconds of one window
+DEFAULT_WINDOW_S = 10.0
+#: call sites tracked at once; beyond it the oldest is summarised and forgotten (a bound, not a working limit:
+#: call sites are lines of code)
+MAX_SITES = 4096
+
+_Key = tuple[str, int, int]
+
+
+@dataclass
+class _Site:
+    window_start: float
+    passed: int = 0
+    suppressed: int = 0
+    last: logging.LogRecord | None = None
+
+
+def group_digits(n: int) -> str:
+    """``1234`` -> ``"1 234"``: counts in log lines, readable at a glance."""
+    return f"{n:,}".replace(",", " ")
+
+
+class RepeatFilter(logging.Filter):
+    """A :class:`logging.Filter` for handlers that rate-limits records per call site.
+
+    Parameters
+    ----------
+    burst
+        Records of one call site passed per window before the rest are counted.
+    window_s
+        Length of a window, seconds.
+    clock
+        Monotonic seconds (injectable for tests).
+    """
+
+    def __init__(self, burst: int = DEFAULT_BURST, window_s: float = DEFAULT_WINDOW_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+        super().__init__()
+        if burst < 1 or not window_s > 0:
+            raise ValueError(f"burst must be >= 1 and window_s > 0 (got {burst}, {window_s})")
+        self.burst = burst
+        self.window_s = window_s
+        self._clock = clock
+        self._sites: dict[_Key, _Site] = {}
+        self._last_sweep = clock()
+        self._emitting = False
+        # One filter on several handlers sees each record once per handler: the decision is made once.
+        self._decided: tuple[logging.LogRecord | None, bool] = (None, True)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self._emitting:  # a summary this filter is emitting itself
+            return True
+        if self._decided[0] is record:
+            return self._decided[1]
+        decision = self._decide(record)
+        self._decided = (record, decision)
+        return decision
+
+    def _decide(self, record: logging.LogRecord) -> bool:
+        now = self._clock()
+        if now - self._last_sweep >= 1.0:
+            self._last_sweep = now
+            self._sweep(now)
+        key = (record.pathname, record.lineno, record.levelno)
+        site = self._sites.get(key)
+        if site is None:
+            if len(self._sites) >= MAX_SITES:
+                self._summarise(self._sites.pop(next(iter(self._sites))))
+            site = self._sites[key] = _Site(window_start=now)
+        elif now - site.window_start >= self.window_s:
+            if site.suppressed:
+                _append_count(record, site.suppressed, now - site.window_start)
+            site.window_start, site.passed, site.suppressed, site.last = now, 0, 0, None
+        if site.passed < self.burst:
+            site.passed += 1
+            return True
+        site.suppressed += 1
+        site.last = record
+        return False
+
+    def flush(self) -> None:
+        """Summarise every site with records still counted (call before the process exits)."""
+        for site in self._sites.values():
+            self._summarise(site)
+        self._sites.clear()
+
+    def _sweep(self, now: float) -> None:
+        for key, site in list(self._sites.items()):
+            if now - site.window_start >= self.window_s:
+                self._summarise(site)
+                del self._sites[key]
+
+    def _summarise(self, site: _Site) -> None:
+        last = site.last
+        if not site.suppressed or last is None:
+            return
+        # The last counted record, re-emitted with the count of the others: its logger's handlers see it as any
+        # other record.
+        if site.suppressed > 1:
+            _append_count(last, site.suppressed - 1, self._clock() - site.window_start)
+        site.suppressed = 0
+        self._emitting = True
+        try:
+            logging.getLogger(last.name).handle(last)
+        finally:
+            self._emitting = False
+
+
+def _append_count(record: logging.LogRecord, count: int, span_s: float) -> None:
+    record.msg = f"{record.getMessage()} ({group_digits(count)} more in the last {max(span_s, 1.0):.0f} s)"
+    record.args = None
+
+
+def install(burst: int = DEFAULT_BURST, window_s: float = DEFAULT_WINDOW_S) -> RepeatFilter:
+    """Put one :class:`RepeatFilter` on every handler of the root logger (once; returns the one installed)."""
+    root = logging.getLogger()
+    for handler in root.handlers:
+        for f in handler.filters:
+            if isinstance(f, RepeatFilter):
+                return f
+    rf = RepeatFilter(burst=burst, window_s=window_s)
+    for handler in root.handlers:
+        handler.addFilter(rf)
+    return rf
