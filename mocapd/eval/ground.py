@@ -47,7 +47,8 @@ from mocapd.core.motion import resample_poses
 from mocapd.core.observations import Observations
 from mocapd.core.prior import PcaPrior
 from mocapd.core.retarget import Retargeted
-from mocapd.core.skeleton import Skeleton
+from mocapd.core.rotations import matrix_from_rotvec, rotvec_from_matrix
+from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.core.solver import PoseSolver
 from mocapd.core.terms import CostOptions
 from mocapd.eval.simulate import ImuNoise, simulate_imus
@@ -62,6 +63,68 @@ def make_clip(name: str, skeleton: Skeleton, theta: FloatArray, fps: float) -> R
     """A pose sequence as a :class:`Retargeted` clip (its joints and rotations by forward kinematics)."""
     fk = Kinematics(skeleton).forward(theta)
     return Retargeted(name, skeleton, theta, fk.positions, fk.rotations, fk.positions, fps)
+
+
+FLAT_SPEED = 0.05
+"""m/s: a foot whose ankle and toe joints both move slower than this, at the lower end of their heights, stands
+flat (for :func:`standing_feet`)."""
+
+
+def standing_feet(skeleton: Skeleton, thetas: list[FloatArray], fps: float) -> tuple[Skeleton, list[FloatArray]]:
+    """The clips as a suit calibrated standing sees them: each foot's rest orientation is the one it stands flat in.
+
+    A suit's calibration takes the standing posture for the rest pose (``mocapd calibrate imu``), so a foot standing
+    flat on the floor is at its rest orientation, with its sole on the floor. Retargeted recordings do not do that:
+    their foot bones point from the source's ankle joint to its toe joint, which stands pitched down by 6-12° (CMU)
+    or 31° (Bandai) against the skeleton's rest foot. Here each foot's frame is turned by that pitch, the median over
+    the frames where the foot stands still and low: its local rotation ``R_f ← R_f · P⁻¹``, its toes' offset
+    ``o ← P · o`` and rotation ``R_t ← P · R_t · P⁻¹``, the rest pose put back on the floor. Every joint position of
+    every frame is unchanged (forward kinematics gives the same points); only the feet's rest pose, and so their
+    bone orientations, now match a calibrated suit.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    thetas : list of arrays, shape (n_i, 66)
+        The clips (one skeleton).
+    fps : float
+
+    Returns
+    -------
+    skeleton, thetas
+        The re-expressed skeleton and clips.
+    """
+    kin = Kinematics(skeleton)
+    fks = [kin.forward(th) for th in thetas]
+    offsets = skeleton.offsets.copy()
+    out = [th.copy() for th in thetas]
+    for foot, toes in (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes")):
+        f, t = BONE_INDEX[foot], BONE_INDEX[toes]
+        pitches = []
+        for fk in fks:
+            pts = fk.positions[:, [f, t]]
+            speed = np.linalg.norm(np.gradient(pts, 1.0 / fps, axis=0), axis=-1).max(axis=1) if len(pts) > 1 else [0.0]
+            top = pts[:, :, 1].max(axis=1)
+            still = (np.asarray(speed) < FLAT_SPEED) & (top <= np.percentile(top, 30))
+            fwd = fk.rotations[still, f][:, :, 2]  # the foot's forward axis in the world
+            pitches.extend(np.arcsin(np.clip(-fwd[:, 1], -1.0, 1.0)))
+        if not pitches:
+            continue
+        P = matrix_from_rotvec(np.array([float(np.median(pitches)), 0.0, 0.0]))
+        for th in out:
+            sl_f, sl_t = slice(3 + 3 * f, 6 + 3 * f), slice(3 + 3 * t, 6 + 3 * t)
+            th[:, sl_f] = rotvec_from_matrix(matrix_from_rotvec(th[:, sl_f]) @ P.T)
+            th[:, sl_t] = rotvec_from_matrix(P @ matrix_from_rotvec(th[:, sl_t]) @ P.T)
+        offsets[t] = P @ offsets[t]
+    # The rest pose stands on the floor as before: its lowest foot joint as high as it was.
+    feet = [BONE_INDEX[b] for b in ("LeftFoot", "LeftToes", "RightFoot", "RightToes")]
+    low_before = float(kin.forward(skeleton.rest_pose()).positions[feet, 1].min())
+    moved = Skeleton(offsets=offsets, root_height=skeleton.root_height, height=skeleton.height)
+    low_after = float(Kinematics(moved).forward(moved.rest_pose()).positions[feet, 1].min())
+    return (
+        Skeleton(offsets=offsets, root_height=skeleton.root_height + low_before - low_after, height=skeleton.height),
+        out,
+    )
 
 
 def imu_only_observations(
@@ -89,12 +152,15 @@ def drift_metrics(solved: FloatArray, truth: FloatArray, fps: float) -> dict[str
     exz = solved[:, [0, 2]] - truth[:, [0, 2]]
     dxz = np.linalg.norm(exz, axis=1)
     walked = walked_distance(truth[:, [0, 2]], fps)
+    path = walked_distance(solved[:, [0, 2]], fps)
     n = max(1, round(fps))  # 1 s means: the drift without the per-frame jitter of the orientation noise
     smooth = np.linalg.norm(np.cumsum(exz, axis=0)[n - 1 :] - np.r_[np.zeros((1, 2)), np.cumsum(exz, axis=0)[:-n]],
                             axis=1) / n  # fmt: skip
     return {
         "seconds": round(len(truth) / fps, 1),
         "walked_m": round(walked, 2),
+        "solved_path_m": round(path, 2),
+        "path_error_pct": round(100 * (path - walked) / max(walked, 1e-9), 1),
         "height_error_p95_cm": round(100 * float(np.percentile(dy, 95)), 1),
         "height_error_max_cm": round(100 * float(dy.max()), 1),
         "horizontal_drift_end_cm": round(100 * float(dxz[-1]), 1),
@@ -131,7 +197,9 @@ def solve_clip(solver: PoseSolver, truth: FloatArray, obs: list[Observations]) -
 def imu_only_case(
     name: str, skeleton: Skeleton, truth: FloatArray, prior: PcaPrior | None, seed: int, noise: ImuNoise
 ) -> dict[str, Any]:
-    """One clip, 0 cameras + 13 IMUs, contacts on and off."""
+    """One clip, 0 cameras + 13 IMUs, contacts on and off (the feet as a suit calibrated standing sees them,
+    :func:`standing_feet`)."""
+    skeleton, (truth,) = standing_feet(skeleton, [truth], FPS)
     clip = make_clip(name, skeleton, truth, FPS)
     obs = imu_only_observations(clip, default_mounts(IMU_SET_13, skeleton), noise, np.random.default_rng(seed))
     out: dict[str, Any] = {"clip": name}
