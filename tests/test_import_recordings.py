@@ -39,10 +39,10 @@ MVNX = default_data_root() / "imu" / "mvnx" / "mpiea_upperbody_test_mocap.mvnx"
 def _write_exports(folder: Path, seconds: float = 3.0) -> tuple[dict[str, str], dict[str, np.ndarray], np.ndarray]:
     """MT Manager exports of a lower-body suit; returns the assignment, the true mountings and the truth θ."""
     clips, skeleton = load_demo_motion()
-    motion = resample_poses(clips[0][: round(seconds * TRUTH_FPS)], TRUTH_FPS, RATE)
+    motion = resample_poses(clips[0][: max(2, round(seconds * TRUTH_FPS))], TRUTH_FPS, RATE)
     rest = np.repeat(skeleton.rest_pose()[None], round(1.5 * RATE), axis=0)
     rest[:, :3] = motion[0, :3]
-    theta = np.concatenate([rest, motion])
+    theta = np.concatenate([rest, motion]) if seconds > 0 else np.concatenate([rest, rest])  # 0: standing only
     kin = Kinematics(skeleton)
     fk = kin.forward(theta)
     mounts = default_mounts(SUIT, skeleton)
@@ -133,8 +133,60 @@ def test_calibration_needs_a_facing_direction_and_names_bad_windows(
     assert "during the T-pose" in capsys.readouterr().err  # the window holds the jump into the motion
     assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "0", "--window", "0.2:0.1"]) == 1
     assert "--window" in capsys.readouterr().err
-    with pytest.raises(SystemExit):  # a heading or a forward sensor axis is required
-        main(["calibrate", "imu", "--from", str(session)])
+
+
+def test_calibration_takes_the_facing_from_the_steps_and_refuses_a_mirrored_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 28: without a facing direction the take's steps give it (the subject faced north, heading 0); a facing
+    turned by 180° (the wrong sign) bends the knees backwards and is refused, naming the one that works; a take
+    without steps needs the facing given."""
+    assignment, _, _ = _write_exports(tmp_path)
+    session = tmp_path / "take"
+    files = sorted(str(p) for p in tmp_path.glob("MT_*.txt"))
+    assign = [a for sid, bone in assignment.items() for a in ("--assign", f"{sid}={bone}")]
+    assert main(["import", "mtw", *files, "-o", str(session), *assign]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", "imu", "--from", str(session), "--out", str(tmp_path / "c.json")]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["facing_from"] == "steps" and report["hinges_checked"] == ["left_knee", "right_knee"]
+    assert abs((report["facing_heading_deg"] + 180.0) % 360.0 - 180.0) < 10.0
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "180", "--out",
+                 str(tmp_path / "c.json")]) == 1  # fmt: skip
+    err = capsys.readouterr().err
+    assert "knee" in err and "wrong way" in err and "--facing-heading 0 " in err
+
+    still = tmp_path / "still"
+    still.mkdir()
+    _write_exports(still, seconds=0.0)
+    files = sorted(str(p) for p in still.glob("MT_*.txt"))
+    assert main(["import", "mtw", *files, "-o", str(still / "take"), *assign]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", "imu", "--from", str(still / "take")]) == 1
+    assert "no steps" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not (default_data_root() / "imu" / "opensense_mtw").is_dir(), reason="no shared data")
+def test_the_wrong_sign_of_a_real_pelvis_axis_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 28, friction 3, on the real OpenSense MTw take: with ``--facing-from 00B42279:-z`` every command used to
+    succeed with the knees bending backwards in every step; it is refused, naming +z, which is accepted (and the
+    facing from the steps agrees with it within 15°)."""
+    from mocapd.eval.ground_real import MTW_ASSIGNMENT
+
+    files = sorted(str(p) for p in (default_data_root() / "imu" / "opensense_mtw").glob("*.txt"))
+    assign = [a for sid, bone in MTW_ASSIGNMENT.items() for a in ("--assign", f"{sid}={bone}")]
+    session = tmp_path / "mtw"
+    assert main(["import", "mtw", *files, "-o", str(session), *assign]) == 0
+    capsys.readouterr()
+    out = ["--out", str(tmp_path / "c.json")]
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-from", "00B42279:-z", *out]) == 1
+    err = capsys.readouterr().err
+    assert "left knee" in err and "right knee" in err and "--facing-from 00B42279:+z bends them the right way" in err
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-from", "00B42279:+z", *out]) == 0
+    heading = json.loads(capsys.readouterr().out)["facing_heading_deg"]
+    assert main(["calibrate", "imu", "--from", str(session), *out]) == 0
+    steps = json.loads(capsys.readouterr().out)["facing_heading_deg"]
+    assert abs((steps - heading + 180.0) % 360.0 - 180.0) < 15.0
 
 
 def test_mvnx_imports_with_its_segment_labels(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

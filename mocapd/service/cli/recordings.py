@@ -4,7 +4,7 @@
 
     mocapd import mtw FILE... -o SESSION --assign SENSOR=BONE... [--suit NAME] [--height M] [--imu-set lower]
     mocapd import mvnx FILE -o SESSION [--assign SENSOR=BONE...] [--suit NAME] [--height M]
-    mocapd calibrate imu --from SESSION (--facing-heading DEG | --facing-from SENSOR:AXIS)
+    mocapd calibrate imu --from SESSION [--facing-heading DEG | --facing-from SENSOR:AXIS]
                          [--window START:END] [--pose t-pose|arms-down] [--person NAME] [--suit NAME]
     mocapd resolve SESSION          # solves the suit IMU-only
     mocapd export SESSION --resolved --bvh take.bvh --csv take.csv
@@ -42,7 +42,7 @@ def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
             for sid, info in imp["sensors"].items()
         },
         "assignment": imp["assignment"],
-        "next": f"mocapd calibrate imu --from {path} --facing-from SENSOR:AXIS (or --facing-heading DEG)",
+        "next": f"mocapd calibrate imu --from {path}  (the facing from the take's steps; or --facing-from SENSOR:AXIS)",
     }
 
 
@@ -113,7 +113,8 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
         )
         calib: ImuCalibration = result.calibration
         info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,
-                "facing_heading_deg": round(calib.facing_heading_deg, 2)}  # fmt: skip
+                "facing_heading_deg": round(calib.facing_heading_deg, 2), "facing_from": result.facing,
+                "hinges": {name: h.as_dict() for name, h in result.hinges.items()}}  # fmt: skip
         store_in_session(session, suit, calib, info)
         out = args.out or Path(load_config(args.config if args.config.exists() else None).imu.calibration_dir) / (
             f"{person}.imu.json"
@@ -125,6 +126,7 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
     out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
     print(json.dumps({"session": str(session.path), "suit": suit, "calibration": str(out), "posture": result.pose,
                       "window_s": info["window_s"], "facing_heading_deg": info["facing_heading_deg"],
+                      "facing_from": result.facing, "hinges_checked": sorted(result.hinges),
                       "still_spread_deg": {s: round(v, 2) for s, v in calib.spread_deg.items()},
                       "next": f"mocapd resolve {session.path}"}, indent=2))  # fmt: skip
     return 0
