@@ -23,7 +23,7 @@ from mocapd.core.imu import (
 from mocapd.core.imu_calibration import ImuCalibration, heading_alignment, parse_assignment
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.motion import resample_poses
-from mocapd.core.rotations import quat_angle, quat_from_matrix, random_quat
+from mocapd.core.rotations import quat_angle, quat_from_matrix, quat_from_rotvec, quat_multiply, random_quat
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError
 from mocapd.eval.data import default_data_root
@@ -91,7 +91,8 @@ def test_mt_manager_take_imports_calibrates_resolves_and_exports(
     assert open_session(session).manifest["suits"][0]["id"] == "suit0"
 
     assert main(["resolve", str(session), "--iterations", "10"]) == 0
-    capsys.readouterr()
+    resolved = json.loads(capsys.readouterr().out)
+    assert resolved["plausibility"]["suit:suit0"]["implausible"] is False and resolved["notes"] == []
     frames = open_session(session).poses(RESOLVED)
     assert frames and all([p.identity for p in f.people] == ["suit:suit0"] for f in frames)
     theta = np.array([f.people[0].theta for f in frames])
@@ -107,6 +108,19 @@ def test_mt_manager_take_imports_calibrates_resolves_and_exports(
     csv, bvh = tmp_path / "take.csv", tmp_path / "take.bvh"
     assert main(["export", str(session), "--resolved", "--csv", str(csv), "--bvh", str(bvh)]) == 0
     assert csv.read_text().count("\n") > 100 and bvh.read_text().startswith("HIERARCHY")
+
+    # A calibration with its facing mirrored (what the wrong --facing-from sign gave before it was refused): resolve
+    # says that the knees bend the wrong way (issue 28).
+    manifest = json.loads((session / "manifest.json").read_text())
+    turn = quat_from_rotvec(np.array([0.0, np.pi, 0.0]))
+    for sensor in manifest["suits"][0]["calibration"]["sensors"].values():
+        sensor["R_ib"] = [float(v) for v in quat_multiply(turn, np.array(sensor["R_ib"]))]
+    (session / "manifest.json").write_text(json.dumps(manifest))
+    capsys.readouterr()
+    assert main(["resolve", str(session), "--iterations", "10"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["plausibility"]["suit:suit0"]["implausible"] is True
+    assert "note: suit:suit0: left knee bent the wrong way" in out.err
 
 
 def test_lower_body_suit_check() -> None:

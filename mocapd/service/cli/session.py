@@ -103,6 +103,8 @@ def cmd_resolve(args: argparse.Namespace) -> int:
     with Progress(n_frames, "resolve") as bar:
         frames, summary = resolve(session, opts, bar)
     _undecodable_notes(session)
+    for line in summary["notes"]:  # anatomically impossible stretches (a mirrored facing, a swapped sensor)
+        print(f"note: {line}", file=sys.stderr)
     path = write_resolved(session, frames, args.output)
     summary["written"] = str(path)
     if truth:
