@@ -25,6 +25,12 @@ behaviour before issue 14 minus the velocity feedback of its warm start):
     the horizontal drift in the still first seconds.
 ``mvnx``
     The MVNX upper-body recording (11 sensors, 1.9 s) against MVN's own pelvis trajectory.
+``optical`` (not in the default parts: its data are not shipped)
+    A real walk of a 7-sensor lower-body suit against Vicon, beside Xsens MVN's own solve
+    (:mod:`mocapd.eval.ground_optical`).
+
+Every IMU-only part reports the root's path length against the truth's (``path_error_pct``): an avatar's steps
+must cover the floor its body covers (issue 28).
 """
 
 from __future__ import annotations
@@ -307,6 +313,8 @@ class GroundEvalOptions:
     split: str = "evaluation"
     parts: tuple[str, ...] = ("synthetic", "walking", "standing", "cameras_back", "mtw", "mvnx")
     standing_s: float = 60.0
+    optical_dir: Path | None = None
+    """The optical-truth recording for the ``optical`` part (default ``<data root>/imu/gaittoolbox``)."""
 
 
 def run(opts: GroundEvalOptions, data_root: Path | None = None) -> dict[str, Any]:
@@ -335,6 +343,12 @@ def run(opts: GroundEvalOptions, data_root: Path | None = None) -> dict[str, Any
             out["mtw"] = run_mtw(prior, data_root)
         if "mvnx" in opts.parts:
             out["mvnx"] = run_mvnx(prior, data_root)
+    if "optical" in opts.parts:
+        from mocapd.eval.data import default_data_root
+        from mocapd.eval.ground_optical import default_dir, run_optical
+
+        root = default_data_root() if data_root is None else Path(data_root)
+        out["optical"] = run_optical(prior, opts.optical_dir or default_dir(root))
     out["machine"] = {"cpus": os.cpu_count(), "seconds": round(time.perf_counter() - t0, 1),
                       "loadavg_start": [round(x, 2) for x in load0],
                       "loadavg_end": [round(x, 2) for x in os.getloadavg()]}  # fmt: skip

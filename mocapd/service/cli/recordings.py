@@ -8,7 +8,7 @@
                          [--window START:END] [--pose t-pose|arms-down] [--person NAME] [--suit NAME]
     mocapd resolve SESSION          # solves the suit IMU-only
     mocapd export SESSION --resolved --bvh take.bvh --csv take.csv
-    mocapd eval ground [--parts synthetic,standing,...]   # root drift without cameras, JSON (docs/imu.md)
+    mocapd eval ground [--parts synthetic,standing,...] [--optical-data DIR]   # root drift/strides, JSON (docs/imu.md)
 
 ``import mtw`` takes MT Manager text exports, one file per sensor (:mod:`mocapd.io.mt_export`), ``import mvnx``
 an MVN export (its sensors are assigned from their segment labels unless ``--assign`` says otherwise). Both print
@@ -161,11 +161,18 @@ def _guard(func: Any) -> Any:
     return run
 
 
+GROUND_PARTS = ("synthetic", "walking", "standing", "cameras_back", "mtw", "mvnx", "optical")
+
+
 def cmd_eval_ground(args: argparse.Namespace) -> int:
     from mocapd.eval.ground import GroundEvalOptions, run
 
     parts = tuple(args.parts.split(",")) if args.parts else GroundEvalOptions().parts
-    opts = GroundEvalOptions(seed=args.seed, split=args.split, parts=parts, standing_s=args.standing_seconds)
+    unknown = sorted(set(parts) - set(GROUND_PARTS))
+    if unknown:
+        raise MocapdError(f"--parts: unknown {unknown}; choose from {', '.join(GROUND_PARTS)}")
+    opts = GroundEvalOptions(seed=args.seed, split=args.split, parts=parts, standing_s=args.standing_seconds,
+                             optical_dir=args.optical_data)  # fmt: skip
     print(json.dumps(run(opts, args.data_root), indent=2))
     return 0
 
@@ -177,7 +184,18 @@ def register(subparsers: Any) -> None:
     ev = _subcommand_group(subparsers, "eval", "evaluations that print JSON", "eval")
     g = ev.add_parser("ground", help="root drift without cameras: synthetic rig, walking clips, real MTw/MVNX")
     g.add_argument(
-        "--parts", default="", help="comma-separated subset of synthetic,walking,standing,cameras_back,mtw,mvnx"
+        "--parts",
+        default="",
+        help="comma-separated subset of synthetic,walking,standing,cameras_back,mtw,mvnx (the default: all of "
+        "them) and optical (a real walk against Vicon; its data are not shipped: see --optical-data)",
+    )
+    g.add_argument(
+        "--optical-data",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="the optical part's recording: the data/sample folder of github.com/gait-tech/gaittoolbox (GPL-3.0) "
+        "(default <data root>/imu/gaittoolbox)",
     )
     g.add_argument("--split", default="evaluation", help="clip split for the walking part (default evaluation)")
     g.add_argument("--standing-seconds", type=float, default=60.0, help="length of the standing-still test")
