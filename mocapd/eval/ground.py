@@ -76,61 +76,68 @@ FLAT_SPEED = 0.05
 flat (for :func:`standing_feet`)."""
 
 
-def standing_feet(skeleton: Skeleton, thetas: list[FloatArray], fps: float) -> tuple[Skeleton, list[FloatArray]]:
-    """The clips as a suit calibrated standing sees them: each foot's rest orientation is the one it stands flat in.
+FLAT_FRAMES = 10
+"""A clip with fewer frames of a foot standing flat (a run, a dash) does not tell that foot's flat pitch."""
+
+
+def flat_pitches(skeleton: Skeleton, theta: FloatArray, fps: float) -> tuple[float | None, float | None]:
+    """Each foot's pitch (radians, toe down positive) where it stands flat in a clip: the median over the frames where
+    its ankle and toe joints both move slower than :data:`FLAT_SPEED` at the lower end of their heights; None with
+    fewer than :data:`FLAT_FRAMES` such frames."""
+    fk = Kinematics(skeleton).forward(theta)
+    out: list[float | None] = []
+    for foot, toes in (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes")):
+        f, t = BONE_INDEX[foot], BONE_INDEX[toes]
+        pts = fk.positions[:, [f, t]]
+        if len(pts) < 2:
+            out.append(None)
+            continue
+        speed = np.linalg.norm(np.gradient(pts, 1.0 / fps, axis=0), axis=-1).max(axis=1)
+        top = pts[:, :, 1].max(axis=1)
+        still = (speed < FLAT_SPEED) & (top <= np.percentile(top, 30))
+        fwd = fk.rotations[still, f][:, :, 2]  # the foot's forward axis in the world
+        out.append(float(np.median(np.arcsin(np.clip(-fwd[:, 1], -1.0, 1.0)))) if still.sum() >= FLAT_FRAMES else None)
+    return out[0], out[1]
+
+
+def standing_feet(
+    skeleton: Skeleton, theta: FloatArray, pitches: tuple[float | None, float | None]
+) -> tuple[Skeleton, FloatArray]:
+    """A clip as a suit calibrated standing sees it: each foot's rest orientation is the one it stands flat in.
 
     A suit's calibration takes the standing posture for the rest pose (``mocapd calibrate imu``), so a foot standing
     flat on the floor is at its rest orientation, with its sole on the floor. Retargeted recordings do not do that:
     their foot bones point from the source's ankle joint to its toe joint, which stands pitched down by 6-12° (CMU)
-    or 31° (Bandai) against the skeleton's rest foot. Here each foot's frame is turned by that pitch, the median over
-    the frames where the foot stands still and low: its local rotation ``R_f ← R_f · P⁻¹``, its toes' offset
+    or 31.5° (Bandai, every clip) against the skeleton's rest foot. Here each foot's frame is turned by its flat pitch
+    (:func:`flat_pitches`; None: left as it is): its local rotation ``R_f ← R_f · P⁻¹``, its toes' offset
     ``o ← P · o`` and rotation ``R_t ← P · R_t · P⁻¹``, the rest pose put back on the floor. Every joint position of
     every frame is unchanged (forward kinematics gives the same points); only the feet's rest pose, and so their
     bone orientations, now match a calibrated suit.
 
-    Parameters
-    ----------
-    skeleton : Skeleton
-    thetas : list of arrays, shape (n_i, 66)
-        The clips (one skeleton).
-    fps : float
-
     Returns
     -------
-    skeleton, thetas
-        The re-expressed skeleton and clips.
+    skeleton, theta
+        The re-expressed skeleton and clip.
     """
     kin = Kinematics(skeleton)
-    fks = [kin.forward(th) for th in thetas]
     offsets = skeleton.offsets.copy()
-    out = [th.copy() for th in thetas]
-    for foot, toes in (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes")):
-        f, t = BONE_INDEX[foot], BONE_INDEX[toes]
-        pitches = []
-        for fk in fks:
-            pts = fk.positions[:, [f, t]]
-            speed = np.linalg.norm(np.gradient(pts, 1.0 / fps, axis=0), axis=-1).max(axis=1) if len(pts) > 1 else [0.0]
-            top = pts[:, :, 1].max(axis=1)
-            still = (np.asarray(speed) < FLAT_SPEED) & (top <= np.percentile(top, 30))
-            fwd = fk.rotations[still, f][:, :, 2]  # the foot's forward axis in the world
-            pitches.extend(np.arcsin(np.clip(-fwd[:, 1], -1.0, 1.0)))
-        if not pitches:
+    th = np.array(theta, dtype=np.float64)
+    for (foot, toes), pitch in zip((("LeftFoot", "LeftToes"), ("RightFoot", "RightToes")), pitches, strict=True):
+        if pitch is None:
             continue
-        P = matrix_from_rotvec(np.array([float(np.median(pitches)), 0.0, 0.0]))
-        for th in out:
-            sl_f, sl_t = slice(3 + 3 * f, 6 + 3 * f), slice(3 + 3 * t, 6 + 3 * t)
-            th[:, sl_f] = rotvec_from_matrix(matrix_from_rotvec(th[:, sl_f]) @ P.T)
-            th[:, sl_t] = rotvec_from_matrix(P @ matrix_from_rotvec(th[:, sl_t]) @ P.T)
+        f, t = BONE_INDEX[foot], BONE_INDEX[toes]
+        P = matrix_from_rotvec(np.array([pitch, 0.0, 0.0]))
+        sl_f, sl_t = slice(3 + 3 * f, 6 + 3 * f), slice(3 + 3 * t, 6 + 3 * t)
+        th[:, sl_f] = rotvec_from_matrix(matrix_from_rotvec(th[:, sl_f]) @ P.T)
+        th[:, sl_t] = rotvec_from_matrix(P @ matrix_from_rotvec(th[:, sl_t]) @ P.T)
         offsets[t] = P @ offsets[t]
     # The rest pose stands on the floor as before: its lowest foot joint as high as it was.
     feet = [BONE_INDEX[b] for b in ("LeftFoot", "LeftToes", "RightFoot", "RightToes")]
     low_before = float(kin.forward(skeleton.rest_pose()).positions[feet, 1].min())
     moved = Skeleton(offsets=offsets, root_height=skeleton.root_height, height=skeleton.height)
     low_after = float(Kinematics(moved).forward(moved.rest_pose()).positions[feet, 1].min())
-    return (
-        Skeleton(offsets=offsets, root_height=skeleton.root_height + low_before - low_after, height=skeleton.height),
-        out,
-    )
+    root_height = skeleton.root_height + low_before - low_after
+    return Skeleton(offsets=offsets, root_height=root_height, height=skeleton.height), th
 
 
 def imu_only_observations(
@@ -201,11 +208,17 @@ def solve_clip(solver: PoseSolver, truth: FloatArray, obs: list[Observations]) -
 
 
 def imu_only_case(
-    name: str, skeleton: Skeleton, truth: FloatArray, prior: PcaPrior | None, seed: int, noise: ImuNoise
+    name: str,
+    skeleton: Skeleton,
+    truth: FloatArray,
+    prior: PcaPrior | None,
+    seed: int,
+    noise: ImuNoise,
+    pitches: tuple[float | None, float | None] | None = None,
 ) -> dict[str, Any]:
     """One clip, 0 cameras + 13 IMUs, contacts on and off (the feet as a suit calibrated standing sees them,
-    :func:`standing_feet`)."""
-    skeleton, (truth,) = standing_feet(skeleton, [truth], FPS)
+    :func:`standing_feet`, at ``pitches``, default the clip's own :func:`flat_pitches`)."""
+    skeleton, truth = standing_feet(skeleton, truth, flat_pitches(skeleton, truth, FPS) if pitches is None else pitches)
     clip = make_clip(name, skeleton, truth, FPS)
     obs = imu_only_observations(clip, default_mounts(IMU_SET_13, skeleton), noise, np.random.default_rng(seed))
     out: dict[str, Any] = {"clip": name}
@@ -234,6 +247,9 @@ def _summary(rows: list[dict[str, Any]], label: str) -> dict[str, float]:
         "drift_end_sum_per_walked_pct": round(
             100 * sum(v["horizontal_drift_end_cm"] / 100 for v in vals) / max(walked, 1e-9), 1
         ),
+        "path_error_pct_median": float(np.median([v["path_error_pct"] for v in vals])),
+        "path_error_pct_worst": max((v["path_error_pct"] for v in vals), key=abs),
+        "path_error_abs_pct_median": float(np.median([abs(v["path_error_pct"]) for v in vals])),
     }
 
 
@@ -249,11 +265,31 @@ def run_walking(
     from mocapd.eval.data import load_clip, load_splits
 
     paths = [p for p in load_splits(data_root)[split] if any(w in p.name for w in ("walk", "run", "dash", "131_"))]
+    clips = [load_clip(p, FPS) for p in paths]
+    # A clip that never stands flat (a run) takes its feet's flat pitch from the other clips of its data set (the
+    # same source skeleton's feet: one folder).
+    own = [flat_pitches(c.skeleton, c.theta, FPS) for c in clips]
+
+    def pitch(p: Path, f: int) -> float | None:
+        kin = [o[f] for q, o in zip(paths, own, strict=True) if q.parent == p.parent and o[f] is not None]
+        return float(np.median(kin)) if kin else None
+
+    pitches = [
+        (mine[0] if mine[0] is not None else pitch(p, 0), mine[1] if mine[1] is not None else pitch(p, 1))
+        for p, mine in zip(paths, own, strict=True)
+    ]
     rows = []
-    for i, p in enumerate(paths):
-        c = load_clip(p, FPS)
-        rows.append(imu_only_case(p.stem, c.skeleton, c.theta, prior, seed + 100 + i, noise))
-    return {"split": split, "clips": rows, "summary": {k: _summary(rows, k) for k in ("contacts", "no_contacts")}}
+    for i, (p, c) in enumerate(zip(paths, clips, strict=True)):
+        rows.append(imu_only_case(p.stem, c.skeleton, c.theta, prior, seed + 100 + i, noise, pitches[i]))
+    rows_walk = [r for r in rows if not any(w in r["clip"] for w in ("run", "dash"))]
+    rows_run = [r for r in rows if any(w in r["clip"] for w in ("run", "dash"))]
+    return {
+        "split": split,
+        "clips": rows,
+        "summary": {k: _summary(rows, k) for k in ("contacts", "no_contacts")},
+        "walking_clips": {k: _summary(rows_walk, k) for k in ("contacts", "no_contacts")} if rows_walk else {},
+        "running_clips": {k: _summary(rows_run, k) for k in ("contacts", "no_contacts")} if rows_run else {},
+    }
 
 
 def run_standing(prior: PcaPrior | None, seed: int, noise: ImuNoise, seconds: float = 60.0) -> dict[str, Any]:
@@ -268,7 +304,7 @@ def run_cameras_back(prior: PcaPrior | None, seed: int, dark: tuple[float, float
     """The rig's first clip, 4 cameras that see nothing during ``dark`` (seconds)."""
     world = SyntheticWorld(n_cams=4, n_people=1, n_suits=1, seed=seed)
     clips, skeleton = synthetic_rig_clips()
-    truth = clips[0][1]
+    skeleton, truth = standing_feet(skeleton, clips[0][1], flat_pitches(skeleton, clips[0][1], FPS))
     clip = make_clip(clips[0][0], skeleton, truth, FPS)
     rng = np.random.default_rng(seed + 7)
     imu = imu_only_observations(clip, default_mounts(IMU_SET_13, skeleton), ImuNoise(), rng)
