@@ -271,7 +271,7 @@ def run_walking(
     own = [flat_pitches(c.skeleton, c.theta, FPS) for c in clips]
 
     def pitch(p: Path, f: int) -> float | None:
-        kin = [o[f] for q, o in zip(paths, own, strict=True) if q.parent == p.parent and o[f] is not None]
+        kin = [x for q, o in zip(paths, own, strict=True) if q.parent == p.parent and (x := o[f]) is not None]
         return float(np.median(kin)) if kin else None
 
     pitches = [
