@@ -171,7 +171,8 @@ def _refusal(
         assert heading is not None
         given = "the facing found from the take's steps" if source == "steps" else f"--facing-heading {heading:g}"
         other = f"--facing-heading {(heading + 180.0) % 360.0:.0f}"
-    head = f"with {given} the joints bend the wrong way ({'; '.join(bent)}): the facing direction is mirrored"
+    kinds = " and ".join(sorted({f"{name.split('_')[1]}s" for name, h in hinges.items() if h.events}, reverse=True))
+    head = f"with {given} the {kinds} bend the wrong way ({'; '.join(bent)}): the facing direction is mirrored"
     if flipped_works:
         return f"{head}; {other} bends them the right way: calibrate again with it"
     return (
