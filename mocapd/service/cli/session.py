@@ -37,6 +37,8 @@ def _open(path: Path) -> Session:
     session.check()
     for line in session.recovery_lines():
         print(f"note: {line}", file=sys.stderr)
+    for line in session.manifest.get("notes", []):  # what the recorder noticed (knees bending the wrong way)
+        print(f"note: {line}", file=sys.stderr)
     return session
 
 
