@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -298,3 +299,16 @@ def test_a_person_without_a_suit_seen_by_one_camera_is_not_held() -> None:
         conf[1:] = 0.0  # only the first camera sees the person
         roots.append(solver.solve(Observations(keypoints=uv, confidences=conf, dt=1 / 60)).theta[:3])
     assert not np.array_equal(roots[-1], roots[-2])
+
+
+def test_eval_ground_says_where_to_get_the_optical_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The optical part's data are not shipped (GPL-3.0): without them the command names what to fetch and where."""
+    from mocapd.service.cli import main
+
+    assert main(["eval", "ground", "--parts", "optical", "--optical-data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "github.com/gait-tech/gaittoolbox" in err and str(tmp_path) in err and "GPL-3.0" in err
+    assert main(["eval", "ground", "--parts", "synthetic,walkng"]) == 2
+    assert "unknown ['walkng']" in capsys.readouterr().err
