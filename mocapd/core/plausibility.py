@@ -270,6 +270,10 @@ def facing_from_knees(
 
 
 # --------------------------------------------------------------------------------------- the live monitor
+_MONITORED = ("Hips", "LeftUpperLeg", "RightUpperLeg", *(bone for _, bone in HINGES.values()))
+_MONITORED_IDX = np.array([BONE_INDEX[b] for b in _MONITORED], dtype=np.intp)
+
+
 @dataclass
 class _Run:
     """A hinge's or the pelvis's current run of implausible frames."""
@@ -300,12 +304,14 @@ class PlausibilityMonitor:
         th = np.asarray(theta, dtype=np.float64)
         dt = 0.0 if self._last_s is None else max(0.0, t_s - self._last_s)
         self._last_s = t_s
-        for name, angle in hinge_angles(th).items():
-            a = float(angle)
+        # One conversion for every bone the checks read (this runs per person and tick in the daemon).
+        R = dict(zip(_MONITORED, matrix_from_rotvec(th[3:].reshape(N_BONES, 3)[_MONITORED_IDX]), strict=True))
+        for name, (_, bone) in HINGES.items():
+            a = float(_flexion(R[bone], name))
             self._advance(name, t_s, dt, a < -self.options.wrong_way_deg, -a, self.options.min_duration_s)
-        self._advance("pelvis_backwards", t_s, dt, self._pelvis_backwards(t_s, th), 0.0, self.options.backwards_s)
+        self._advance("pelvis_backwards", t_s, dt, self._pelvis_backwards(t_s, th, R), 0.0, self.options.backwards_s)
 
-    def _pelvis_backwards(self, t_s: float, th: FloatArray) -> bool:
+    def _pelvis_backwards(self, t_s: float, th: FloatArray, R: dict[str, FloatArray]) -> bool:
         o = self.options
         self._roots.append((t_s, th[:3].copy()))
         while self._roots and self._roots[0][0] < t_s - o.travel_window_s:
@@ -318,12 +324,11 @@ class PlausibilityMonitor:
         speed = float(np.linalg.norm(travel))
         if speed < o.min_speed:
             return False
-        rot = th[3:].reshape(N_BONES, 3)
-        hips = matrix_from_rotvec(rot[BONE_INDEX["Hips"]])
+        hips = R["Hips"]
         facing = hips[[0, 2], 2]
         legs = np.zeros(2)
         for b in ("LeftUpperLeg", "RightUpperLeg"):
-            legs += (hips @ matrix_from_rotvec(rot[BONE_INDEX[b]]))[[0, 2], 2]
+            legs += (hips @ R[b])[[0, 2], 2]
         cos_max = math.cos(math.radians(o.backwards_deg))
 
         def cos(a: FloatArray) -> float:
