@@ -6,11 +6,11 @@ rotations, the acceleration term is off (it would double-integrate noise), and o
 feet up. A warm start that extrapolates the root's velocity then turns every upward push into a velocity that never
 decays: on a real MTw recording the root floated from 0.93 m to 2.57 m in 25 s.
 
-IMU-only motion capture places the root the way people walk: a planted foot does not move. Per foot (its ankle
-and toe joints, the floor term's targets), :class:`GroundTracker`
+IMU-only motion capture places the root the way people walk: a planted foot does not move. Per foot (the points where
+it touches the floor, :func:`sole_points`: the heel and the ball of the foot, issue 28), :class:`GroundTracker`
 
 1. **weighs the feet.** The lower foot carries the body: each foot's *support* is a logistic of the two feet's
-   height difference (every joint measured against its standing height, its height in the skeleton's rest pose,
+   height difference (every point measured against its standing height, its height in the skeleton's rest pose,
    which stands on y = 0; the relative heights come from the solved rotations alone), divided by
    ``1 + (a / moving_acceleration)²`` for a foot whose sensor measures a free acceleration ``a`` (an impact, a
    swing) and, while cameras make the solved feet absolute, by ``1 + (v / still_speed)²`` for a foot moving at
@@ -19,9 +19,12 @@ and toe joints, the floor term's targets), :class:`GroundTracker`
    whose support stays below ``free_weight`` for ``hold_s`` is lifted, at once when the hips sensor falls freely
    (``airborne_acceleration``: a run's flight phase, a jump). A foot put down again at once, close by, returns to
    its old anchor, so noise that briefly lifts a standing foot does not move it;
-3. **anchors the root.** A planted foot's pivot (the lower of ankle and toe, passing to the toe at heel-off) stays
+3. **anchors the root.** A planted foot's pivot (its lowest point: the heel after heel strike, passing to the ball at
+   heel-off, and back as the foot rocks; a point taken up again in the same stance returns to where it was held) stays
    where it was planted; the root translation is the support-weighted mean of what puts each planted pivot on its
-   anchor under the solved rotations;
+   anchor under the solved rotations. The pivot must be on the sole: a foot turning about a joint 5-7 cm above the
+   floor (the ankle and toe joints, used before issue 28) drags the body back at each rocker, and strides came out
+   5-14 % short;
 4. **makes the floor two-sided for the standing foot.** The root height puts the lowest point of the feet exactly
    on the floor (a free foot above it may only not go through).
 
@@ -166,8 +169,8 @@ class GroundTracker:
 
     Parameters
     ----------
-    standing_heights : array, shape (2, 2)
-        Per foot (left, right), the heights of its ankle and toe joints above the floor when it stands flat (the
+    standing_heights : array, shape (2, k)
+        Per foot (left, right), the heights of its k contact points above the floor when it stands flat (the
         skeleton's rest pose, which stands on y = 0).
     floor_height : float
         World y of the floor (m).
@@ -222,8 +225,8 @@ class GroundTracker:
         ----------
         solved_root : array, shape (3,)
             The root translation the solve ended at.
-        relative : array, shape (2, 2, 3)
-            Per foot, its ankle and toe joints relative to the root (world axes) under the solved rotations.
+        relative : array, shape (2, k, 3)
+            Per foot, its contact points relative to the root (world axes) under the solved rotations.
         views : int
             Cameras that saw the person this frame.
         dt : float
@@ -284,13 +287,13 @@ class GroundTracker:
 
     # ------------------------------------------------------------------------------------------- helpers
     def _lows(self, rel: FloatArray) -> FloatArray:
-        """Per foot and point, the height above its standing height relative to the root, shape (2, 2)."""
+        """Per foot and point, the height above its standing height relative to the root, shape (2, k)."""
         return np.asarray(rel[:, :, 1] - self.heights)
 
     def _weigh(self, rel: FloatArray, foot_acc: FloatArray, dt: float, world: FloatArray | None) -> None:
         """Each foot's support: the lower foot carries the body (a logistic of the two feet's height difference),
         a foot whose sensor accelerates less so, and, where the cameras make the solved feet absolute (``world``,
-        shape (2, 2, 3)), a foot that moves less so."""
+        shape (2, k, 3)), a foot that moves less so."""
         o = self.options
         lows = self._lows(rel)
         low = lows.min(axis=1)
