@@ -3,19 +3,22 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mocapd.core.camera import project_points, stack_cameras
-from mocapd.core.ground import GroundOptions, GroundTracker
+from mocapd.core.ground import GroundOptions, GroundTracker, sole_points
 from mocapd.core.imu import IMU_SET_13, default_mounts
 from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.observations import Observations
+from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.core.solver import PoseSolver
 from mocapd.core.synthetic import ring_rig
 from mocapd.errors import InputError
+from mocapd.eval.data import default_data_root
 from mocapd.eval.ground import drift_metrics, imu_only_observations, make_clip, synthetic_rig_clips
 from mocapd.eval.simulate import ImuNoise
 
@@ -84,6 +87,98 @@ def test_a_step_hands_the_weight_to_the_landing_foot() -> None:
     np.testing.assert_allclose((root + _feet((0.1, -0.8, -0.9), (-0.1, -0.93, 0.0))[1, 0])[[0, 2]],
                                right_anchor[[0, 2]], atol=1e-6)  # fmt: skip
     assert root[2] == pytest.approx(0.6, abs=0.01)
+
+
+def _rolling_foot() -> tuple[np.ndarray, np.ndarray]:
+    """A foot rolling over its sole through one stance, and the root moving on: per frame the world positions of the
+    foot's heel and ball (sole points, standing height 0) and the root. Heel strike with the toes 20° up, flat,
+    heel-off about the ball to 40°, back onto the heel, off it again; each pivot stays where it touched."""
+    sole = np.array([[0.0, 0.0, -0.05], [0.0, 0.0, 0.14]])  # heel, ball (foot frame)
+
+    def toes_up(a: float) -> np.ndarray:  # about +X
+        c, s_ = np.cos(a), np.sin(a)
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, s_], [0.0, -s_, c]])
+
+    tilt = np.r_[np.linspace(20, 0, 20), np.zeros(30), np.linspace(0, -40, 40), np.linspace(-40, 0, 24),
+                 np.linspace(0, 10, 6), np.linspace(10, 0, 6), np.linspace(0, -40, 24)]  # fmt: skip
+    world = np.zeros((len(tilt), 2, 3))
+    pivot, at = 0, np.zeros(3)  # the heel strikes at the origin
+    for i, deg in enumerate(np.radians(tilt)):
+        k = 0 if deg > 0 else (1 if deg < 0 else pivot)  # toes up: on the heel; heel up: on the ball
+        if k != pivot:
+            at, pivot = world[i - 1, k], k
+        pts = (toes_up(deg) @ sole.T).T
+        world[i] = pts - pts[pivot] + at
+    root = np.c_[np.zeros(len(tilt)), 0.9 + 0.02 * np.sin(np.arange(len(tilt)) / 9.0),
+                 -0.3 + 0.8 * np.arange(len(tilt)) / 60.0]  # fmt: skip
+    return world, root
+
+
+def test_a_foot_rolling_over_its_sole_holds_the_root_where_the_body_is() -> None:
+    """Issue 28: the stance foot rolls over its sole (heel strike, flat, heel-off onto the ball, back onto the heel);
+    each sole point holds the foot where it touches the floor, rocking back goes back to where the heel was held, so
+    the root goes exactly where the body goes, whatever the solve's own root says."""
+    world, root = _rolling_foot()
+    g = GroundTracker(np.zeros((2, 2)), 0.0, GroundOptions(pivot_hysteresis=1e-4))
+    nan2 = np.full(2, np.nan)
+    swing = np.array([[0.1, 0.12, 0.0], [0.1, 0.12, 0.14]])  # the other foot, in the air
+    got, pivots = [], []
+    for i in range(len(world)):
+        rel = np.stack([world[i] - root[i], swing + np.array([0.0, 0.0, 0.5 - i / 60.0])])
+        r, _ = g.step(root[0] if i == 0 else root[i] + 0.3, rel, 0, 1 / 60, nan2)  # the solve's own root is off
+        got.append(r)
+        pivots.append(g.feet[0].pivot)
+    assert g.planted == (True, False) and (pivots[10], pivots[80], pivots[118], pivots[-1]) == (0, 1, 0, 1)
+    # Within the hysteresis: a pivot passes on once the next point is 0.1 mm lower.
+    assert np.linalg.norm(np.array(got) - root, axis=1).max() < 1e-4
+
+
+WALK = default_data_root() / "mocap" / "bandai" / "dataset-1_walk_normal_001.bvh"
+
+
+@pytest.mark.skipif(not WALK.is_file(), reason="no shared data")
+def test_imu_only_strides_cover_the_floor_on_a_recorded_walk() -> None:
+    """Issue 28 on a recorded 8 m walk (the development split's Bandai 'walk normal'), 0 cameras + 13 noisy IMUs:
+    the root's path is within 4 % of the truth's and its height within 3 cm (p95). Pinning the ankle and toe joints
+    (5-7 cm above the sole) instead of the sole made it 6-9 % short."""
+    from mocapd.eval.data import load_clip
+    from mocapd.eval.ground import flat_pitches, imu_only_case
+
+    clip = load_clip(WALK, 60.0)
+    pitches = flat_pitches(clip.skeleton, clip.theta, 60.0)
+    r = imu_only_case("walk", clip.skeleton, clip.theta, None, 7, ImuNoise(), pitches)["contacts"]
+    assert abs(r["path_error_pct"]) < 4.0, r
+    assert r["height_error_p95_cm"] < 3.0, r
+
+
+def test_standing_feet_keeps_every_joint_and_stands_the_feet_flat_at_rest() -> None:
+    """The evaluation's calibration of a clip's feet (a foot standing flat is at its rest orientation) moves no
+    joint, and the rest pose still stands on the floor."""
+    from mocapd.eval.ground import flat_pitches, standing_feet, synthetic_rig_clips
+
+    clips, skeleton = synthetic_rig_clips()
+    theta = clips[0][1]
+    pitches = flat_pitches(skeleton, theta, 60.0)
+    assert all(p is not None and 0.05 < p < 0.3 for p in pitches)  # CMU's feet stand pitched 3-17° at rest
+    sk, th = standing_feet(skeleton, theta, pitches)
+    before, after = Kinematics(skeleton).forward(theta).positions, Kinematics(sk).forward(th).positions
+    np.testing.assert_allclose(after, before, atol=1e-9)
+    feet = [BONE_INDEX[b] for b in ("LeftFoot", "LeftToes", "RightFoot", "RightToes")]
+    rest = [Kinematics(x).forward(x.rest_pose()).positions[feet, 1].min() for x in (skeleton, sk)]
+    assert rest[0] == pytest.approx(rest[1])
+
+
+def test_sole_points_lie_on_the_floor_under_the_heel_and_the_ball() -> None:
+    sk = Skeleton.from_height(1.75)
+    bones, offsets = sole_points(sk, GroundOptions())
+    kin = Kinematics(sk)
+    rest = kin.forward(sk.rest_pose())
+    for f, side in enumerate(("Left", "Right")):
+        pts = kin.targets(rest, bones[f], offsets[f])
+        np.testing.assert_allclose(pts[:, 1], 0.0, atol=1e-12)  # the rest pose stands on the floor
+        ankle, toe = rest.positions[[BONE_INDEX[f"{side}Foot"], BONE_INDEX[f"{side}Toes"]]]
+        np.testing.assert_allclose(pts[0, [0, 2]], ankle[[0, 2]] - [0.0, 0.025 * 1.75], atol=1e-12)
+        np.testing.assert_allclose(pts[1, [0, 2]], toe[[0, 2]], atol=1e-12)
 
 
 def test_cameras_coming_back_blend_the_published_root() -> None:
@@ -204,3 +299,16 @@ def test_a_person_without_a_suit_seen_by_one_camera_is_not_held() -> None:
         conf[1:] = 0.0  # only the first camera sees the person
         roots.append(solver.solve(Observations(keypoints=uv, confidences=conf, dt=1 / 60)).theta[:3])
     assert not np.array_equal(roots[-1], roots[-2])
+
+
+def test_eval_ground_says_where_to_get_the_optical_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The optical part's data are not shipped (GPL-3.0): without them the command names what to fetch and where."""
+    from mocapd.service.cli import main
+
+    assert main(["eval", "ground", "--parts", "optical", "--optical-data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "github.com/gait-tech/gaittoolbox" in err and str(tmp_path) in err and "GPL-3.0" in err
+    assert main(["eval", "ground", "--parts", "synthetic,walkng"]) == 2
+    assert "unknown ['walkng']" in capsys.readouterr().err

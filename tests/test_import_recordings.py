@@ -23,7 +23,7 @@ from mocapd.core.imu import (
 from mocapd.core.imu_calibration import ImuCalibration, heading_alignment, parse_assignment
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.motion import resample_poses
-from mocapd.core.rotations import quat_angle, quat_from_matrix, random_quat
+from mocapd.core.rotations import quat_angle, quat_from_matrix, quat_from_rotvec, quat_multiply, random_quat
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError
 from mocapd.eval.data import default_data_root
@@ -39,10 +39,10 @@ MVNX = default_data_root() / "imu" / "mvnx" / "mpiea_upperbody_test_mocap.mvnx"
 def _write_exports(folder: Path, seconds: float = 3.0) -> tuple[dict[str, str], dict[str, np.ndarray], np.ndarray]:
     """MT Manager exports of a lower-body suit; returns the assignment, the true mountings and the truth θ."""
     clips, skeleton = load_demo_motion()
-    motion = resample_poses(clips[0][: round(seconds * TRUTH_FPS)], TRUTH_FPS, RATE)
+    motion = resample_poses(clips[0][: max(2, round(seconds * TRUTH_FPS))], TRUTH_FPS, RATE)
     rest = np.repeat(skeleton.rest_pose()[None], round(1.5 * RATE), axis=0)
     rest[:, :3] = motion[0, :3]
-    theta = np.concatenate([rest, motion])
+    theta = np.concatenate([rest, motion]) if seconds > 0 else np.concatenate([rest, rest])  # 0: standing only
     kin = Kinematics(skeleton)
     fk = kin.forward(theta)
     mounts = default_mounts(SUIT, skeleton)
@@ -91,7 +91,8 @@ def test_mt_manager_take_imports_calibrates_resolves_and_exports(
     assert open_session(session).manifest["suits"][0]["id"] == "suit0"
 
     assert main(["resolve", str(session), "--iterations", "10"]) == 0
-    capsys.readouterr()
+    resolved = json.loads(capsys.readouterr().out)
+    assert resolved["plausibility"]["suit:suit0"]["implausible"] is False and resolved["notes"] == []
     frames = open_session(session).poses(RESOLVED)
     assert frames and all([p.identity for p in f.people] == ["suit:suit0"] for f in frames)
     theta = np.array([f.people[0].theta for f in frames])
@@ -107,6 +108,19 @@ def test_mt_manager_take_imports_calibrates_resolves_and_exports(
     csv, bvh = tmp_path / "take.csv", tmp_path / "take.bvh"
     assert main(["export", str(session), "--resolved", "--csv", str(csv), "--bvh", str(bvh)]) == 0
     assert csv.read_text().count("\n") > 100 and bvh.read_text().startswith("HIERARCHY")
+
+    # A calibration with its facing mirrored (what the wrong --facing-from sign gave before it was refused): resolve
+    # says that the knees bend the wrong way (issue 28).
+    manifest = json.loads((session / "manifest.json").read_text())
+    turn = quat_from_rotvec(np.array([0.0, np.pi, 0.0]))
+    for sensor in manifest["suits"][0]["calibration"]["sensors"].values():
+        sensor["R_ib"] = [float(v) for v in quat_multiply(turn, np.array(sensor["R_ib"]))]
+    (session / "manifest.json").write_text(json.dumps(manifest))
+    capsys.readouterr()
+    assert main(["resolve", str(session), "--iterations", "10"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["plausibility"]["suit:suit0"]["implausible"] is True
+    assert "note: suit:suit0: left knee bent the wrong way" in out.err
 
 
 def test_lower_body_suit_check() -> None:
@@ -133,8 +147,60 @@ def test_calibration_needs_a_facing_direction_and_names_bad_windows(
     assert "during the T-pose" in capsys.readouterr().err  # the window holds the jump into the motion
     assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "0", "--window", "0.2:0.1"]) == 1
     assert "--window" in capsys.readouterr().err
-    with pytest.raises(SystemExit):  # a heading or a forward sensor axis is required
-        main(["calibrate", "imu", "--from", str(session)])
+
+
+def test_calibration_takes_the_facing_from_the_steps_and_refuses_a_mirrored_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 28: without a facing direction the take's steps give it (the subject faced north, heading 0); a facing
+    turned by 180° (the wrong sign) bends the knees backwards and is refused, naming the one that works; a take
+    without steps needs the facing given."""
+    assignment, _, _ = _write_exports(tmp_path)
+    session = tmp_path / "take"
+    files = sorted(str(p) for p in tmp_path.glob("MT_*.txt"))
+    assign = [a for sid, bone in assignment.items() for a in ("--assign", f"{sid}={bone}")]
+    assert main(["import", "mtw", *files, "-o", str(session), *assign]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", "imu", "--from", str(session), "--out", str(tmp_path / "c.json")]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["facing_from"] == "steps" and report["hinges_checked"] == ["left_knee", "right_knee"]
+    assert abs((report["facing_heading_deg"] + 180.0) % 360.0 - 180.0) < 10.0
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "180", "--out",
+                 str(tmp_path / "c.json")]) == 1  # fmt: skip
+    err = capsys.readouterr().err
+    assert "knee" in err and "wrong way" in err and "--facing-heading 0 " in err
+
+    still = tmp_path / "still"
+    still.mkdir()
+    _write_exports(still, seconds=0.0)
+    files = sorted(str(p) for p in still.glob("MT_*.txt"))
+    assert main(["import", "mtw", *files, "-o", str(still / "take"), *assign]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", "imu", "--from", str(still / "take")]) == 1
+    assert "no steps" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not (default_data_root() / "imu" / "opensense_mtw").is_dir(), reason="no shared data")
+def test_the_wrong_sign_of_a_real_pelvis_axis_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 28, friction 3, on the real OpenSense MTw take: with ``--facing-from 00B42279:-z`` every command used to
+    succeed with the knees bending backwards in every step; it is refused, naming +z, which is accepted (and the
+    facing from the steps agrees with it within 15°)."""
+    from mocapd.eval.ground_real import MTW_ASSIGNMENT
+
+    files = sorted(str(p) for p in (default_data_root() / "imu" / "opensense_mtw").glob("*.txt"))
+    assign = [a for sid, bone in MTW_ASSIGNMENT.items() for a in ("--assign", f"{sid}={bone}")]
+    session = tmp_path / "mtw"
+    assert main(["import", "mtw", *files, "-o", str(session), *assign]) == 0
+    capsys.readouterr()
+    out = ["--out", str(tmp_path / "c.json")]
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-from", "00B42279:-z", *out]) == 1
+    err = capsys.readouterr().err
+    assert "left knee" in err and "right knee" in err and "--facing-from 00B42279:+z bends them the right way" in err
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-from", "00B42279:+z", *out]) == 0
+    heading = json.loads(capsys.readouterr().out)["facing_heading_deg"]
+    assert main(["calibrate", "imu", "--from", str(session), *out]) == 0
+    steps = json.loads(capsys.readouterr().out)["facing_heading_deg"]
+    assert abs((steps - heading + 180.0) % 360.0 - 180.0) < 15.0
 
 
 def test_mvnx_imports_with_its_segment_labels(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

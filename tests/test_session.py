@@ -159,3 +159,29 @@ def test_bad_writer_settings_and_existing_streams_are_refused(tmp_path: Path) ->
     (tmp_path / "other" / "manifest.json").write_text('{"format": "x"}')
     with pytest.raises(InputError):
         open_session(tmp_path / "other")
+
+
+def test_the_recorder_notes_knees_bending_the_wrong_way(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 28: a recorded person whose knee bends backwards for more than a moment is in the session's notes (its
+    manifest, printed by every command that opens it); the others are not."""
+    import asyncio
+
+    from mocapd.core.skeleton import BONE_INDEX
+    from mocapd.service.cli.session import _open
+
+    w = SessionWriter(tmp_path / "s", MANIFEST, flush_interval_s=0.1)
+    w.open()
+    rec = SessionRecorder(w)
+    knee = 3 + 3 * BONE_INDEX["LeftLowerLeg"]
+    for i in range(1, 61):  # 1 s at 60 Hz
+        f = frame(i, i * 1_000_000_000 // 60, people=2)
+        for p in f.people:
+            p.theta[:] = 0.0  # standing straight ...
+        f.people[1].theta[knee] = -0.6  # ... but this one's left knee 34° the wrong way, all along
+        rec.publish(f)
+    asyncio.run(rec.aclose())
+    s = _open(tmp_path / "s")
+    people = [p.identity for p in frame(1, 0, people=2).people]
+    assert s.manifest["plausibility"][people[0]]["implausible"] is False
+    assert s.manifest["plausibility"][people[1]]["events"]["left_knee"]["events"] == 1
+    assert f"note: {people[1]}: left knee bent the wrong way 1 time(s)" in capsys.readouterr().err

@@ -6,11 +6,11 @@ rotations, the acceleration term is off (it would double-integrate noise), and o
 feet up. A warm start that extrapolates the root's velocity then turns every upward push into a velocity that never
 decays: on a real MTw recording the root floated from 0.93 m to 2.57 m in 25 s.
 
-IMU-only motion capture places the root the way people walk: a planted foot does not move. Per foot (its ankle
-and toe joints, the floor term's targets), :class:`GroundTracker`
+IMU-only motion capture places the root the way people walk: a planted foot does not move. Per foot (the points where
+it touches the floor, :func:`sole_points`: the heel and the ball of the foot, issue 28), :class:`GroundTracker`
 
 1. **weighs the feet.** The lower foot carries the body: each foot's *support* is a logistic of the two feet's
-   height difference (every joint measured against its standing height, its height in the skeleton's rest pose,
+   height difference (every point measured against its standing height, its height in the skeleton's rest pose,
    which stands on y = 0; the relative heights come from the solved rotations alone), divided by
    ``1 + (a / moving_acceleration)²`` for a foot whose sensor measures a free acceleration ``a`` (an impact, a
    swing) and, while cameras make the solved feet absolute, by ``1 + (v / still_speed)²`` for a foot moving at
@@ -19,9 +19,12 @@ and toe joints, the floor term's targets), :class:`GroundTracker`
    whose support stays below ``free_weight`` for ``hold_s`` is lifted, at once when the hips sensor falls freely
    (``airborne_acceleration``: a run's flight phase, a jump). A foot put down again at once, close by, returns to
    its old anchor, so noise that briefly lifts a standing foot does not move it;
-3. **anchors the root.** A planted foot's pivot (the lower of ankle and toe, passing to the toe at heel-off) stays
+3. **anchors the root.** A planted foot's pivot (its lowest point: the heel after heel strike, passing to the ball at
+   heel-off, and back as the foot rocks; a point taken up again in the same stance returns to where it was held) stays
    where it was planted; the root translation is the support-weighted mean of what puts each planted pivot on its
-   anchor under the solved rotations;
+   anchor under the solved rotations. The pivot must be on the sole: a foot turning about a joint 5-7 cm above the
+   floor (the ankle and toe joints, used before issue 28) drags the body back at each rocker, and strides came out
+   5-14 % short;
 4. **makes the floor two-sided for the standing foot.** The root height puts the lowest point of the feet exactly
    on the floor (a free foot above it may only not go through).
 
@@ -52,12 +55,20 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 FOOT_POINTS: tuple[tuple[str, str], tuple[str, str]] = (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes"))
-"""Each foot's contact points: its ankle joint (the foot bone's origin) and its toe joint."""
+"""Each foot's ankle joint (the foot bone's origin) and toe joint (the toes bone's origin)."""
+
+SOLE_POINTS = ("heel", "ball")
+"""Where a foot touches the floor: the sole under and behind the ankle joint (the heel rocker) and under the toe
+joint (the forefoot rocker, at the ball of the foot), both on the foot bone. The stance foot rolls from one to the
+other; the toes, which no sensor measures, bend at the ball rather than lifting it."""
 
 FOOT_SENSOR_BONES = ("LeftFoot", "RightFoot")
 
@@ -92,7 +103,10 @@ class GroundOptions:
     relock_distance: float = 0.03
     """m: ... and this close to where it was held goes back to its old anchor."""
     pivot_hysteresis: float = 0.01
-    """m: the pivot passes from ankle to toe (or back) when the other point is lower by this much."""
+    """m: the pivot passes from one sole point to another when that one is lower by this much."""
+    heel_length: float = 0.025
+    """Fraction of the body height: how far behind the ankle joint the heel touches the floor (4.4 cm at 1.75 m;
+    Vicon markers of a shod walker put the heel rocker 2-5 cm behind the ankle joint centre)."""
     velocity_decay_s: float = 0.5
     """s: with no foot planted and no hips sensor, the time constant of the horizontal velocity's decay."""
     velocity_gain: float = 0.3
@@ -122,7 +136,7 @@ class FootState:
 
     planted: bool = False
     pivot: int = 0
-    """0: ankle, 1: toe."""
+    """Which of the foot's contact points (:data:`SOLE_POINTS`) holds it."""
     anchor: FloatArray = field(default_factory=lambda: np.zeros(3))
     """World position of the pivot: held while planted, following the foot while free (m)."""
     weight: float = 0.0
@@ -131,13 +145,13 @@ class FootState:
     unsupported_s: float = 0.0
     """For how long (s) the foot's support has been below ``free_weight``."""
     last: FloatArray | None = None
-    """World positions of the ankle and toe at the previous frame, shape (2, 3)."""
-    other_anchor: FloatArray | None = None
-    """Where the other point was held when it last was this stance's pivot (a foot rocking between heel and toe
-    returns to the same places instead of accumulating its joints' noise)."""
+    """World positions of the contact points at the previous frame, shape (k, 3)."""
+    held: dict[int, FloatArray] = field(default_factory=dict)
+    """Where the other contact points were held when they last were this stance's pivot (a foot rocking between
+    heel and toe returns to the same places instead of accumulating its joints' noise)."""
 
-    lifted: tuple[int, FloatArray, FloatArray | None] | None = None
-    """Pivot, anchor and other anchor when the foot was last lifted (a foot put down again at once, close by,
+    lifted: tuple[int, FloatArray, dict[int, FloatArray]] | None = None
+    """Pivot, anchor and held points when the foot was last lifted (a foot put down again at once, close by,
     goes back to them: noise that briefly lifts a standing foot does not move it)."""
     lifted_s: float = 0.0
     """Time since the foot was lifted (s)."""
@@ -146,7 +160,7 @@ class FootState:
         out = replace(self)
         out.anchor = self.anchor.copy()
         out.last = None if self.last is None else self.last.copy()
-        out.other_anchor = None if self.other_anchor is None else self.other_anchor.copy()
+        out.held = {k: v.copy() for k, v in self.held.items()}
         return out
 
 
@@ -155,8 +169,8 @@ class GroundTracker:
 
     Parameters
     ----------
-    standing_heights : array, shape (2, 2)
-        Per foot (left, right), the heights of its ankle and toe joints above the floor when it stands flat (the
+    standing_heights : array, shape (2, k)
+        Per foot (left, right), the heights of its k contact points above the floor when it stands flat (the
         skeleton's rest pose, which stands on y = 0).
     floor_height : float
         World y of the floor (m).
@@ -165,8 +179,8 @@ class GroundTracker:
 
     def __init__(self, standing_heights: FloatArray, floor_height: float, options: GroundOptions) -> None:
         h = np.asarray(standing_heights, dtype=np.float64)
-        if h.shape != (2, 2) or not np.all(np.isfinite(h)):
-            raise InputError(f"ground: standing heights must be a finite (2, 2) array, got {h.shape}")
+        if h.ndim != 2 or h.shape[0] != 2 or h.shape[1] < 1 or not np.all(np.isfinite(h)):
+            raise InputError(f"ground: standing heights must be a finite (2, k) array, got {h.shape}")
         self.heights = h
         self.floor = float(floor_height)
         self.options = options
@@ -211,8 +225,8 @@ class GroundTracker:
         ----------
         solved_root : array, shape (3,)
             The root translation the solve ended at.
-        relative : array, shape (2, 2, 3)
-            Per foot, its ankle and toe joints relative to the root (world axes) under the solved rotations.
+        relative : array, shape (2, k, 3)
+            Per foot, its contact points relative to the root (world axes) under the solved rotations.
         views : int
             Cameras that saw the person this frame.
         dt : float
@@ -273,13 +287,13 @@ class GroundTracker:
 
     # ------------------------------------------------------------------------------------------- helpers
     def _lows(self, rel: FloatArray) -> FloatArray:
-        """Per foot and point, the height above its standing height relative to the root, shape (2, 2)."""
+        """Per foot and point, the height above its standing height relative to the root, shape (2, k)."""
         return np.asarray(rel[:, :, 1] - self.heights)
 
     def _weigh(self, rel: FloatArray, foot_acc: FloatArray, dt: float, world: FloatArray | None) -> None:
         """Each foot's support: the lower foot carries the body (a logistic of the two feet's height difference),
         a foot whose sensor accelerates less so, and, where the cameras make the solved feet absolute (``world``,
-        shape (2, 2, 3)), a foot that moves less so."""
+        shape (2, k, 3)), a foot that moves less so."""
         o = self.options
         lows = self._lows(rel)
         low = lows.min(axis=1)
@@ -331,7 +345,7 @@ class GroundTracker:
         ``follow``: the root is absolute (cameras): the anchors of planted feet move to the solved feet.
         """
         o = self.options
-        world = root + rel  # (2, 2, 3)
+        world = root + rel  # (2, k, 3)
         lows = self._lows(rel)
         for f, foot in enumerate(self.feet):
             if not foot.planted and foot.weight >= o.lock_weight:
@@ -339,7 +353,7 @@ class GroundTracker:
                 foot.planted = True
                 foot.pivot = k
                 foot.anchor = world[f, k].copy()
-                foot.other_anchor = None
+                foot.held = {}
                 if (
                     foot.lifted is not None
                     and not follow
@@ -348,11 +362,11 @@ class GroundTracker:
                     and float(np.linalg.norm((world[f, k] - foot.lifted[1])[[0, 2]])) < o.relock_distance
                 ):
                     foot.anchor = foot.lifted[1].copy()
-                    foot.other_anchor = foot.lifted[2]
+                    foot.held = foot.lifted[2]
         for foot in self.feet:
             if foot.planted and foot.weight < o.free_weight and (airborne or foot.unsupported_s >= o.hold_s):
                 foot.planted = False
-                foot.lifted = (foot.pivot, foot.anchor.copy(), foot.other_anchor)
+                foot.lifted = (foot.pivot, foot.anchor.copy(), foot.held)
                 foot.lifted_s = 0.0
         for f, foot in enumerate(self.feet):
             foot.last = world[f].copy()
@@ -360,22 +374,47 @@ class GroundTracker:
             if not foot.planted or follow:
                 foot.pivot = k
                 foot.anchor = world[f, k].copy()
-                foot.other_anchor = None
+                foot.held = {}
             elif k != foot.pivot and lows[f, k] < lows[f, foot.pivot] - o.pivot_hysteresis:
-                # Heel-off (or the foot settling back): the other point holds the foot from now on, where it was
-                # held before in this stance, else placed from the old anchor by the foot's own geometry (not from
-                # the root, which the other foot shares).
-                new = (
-                    foot.other_anchor if foot.other_anchor is not None else foot.anchor + rel[f, k] - rel[f, foot.pivot]
-                )
-                foot.other_anchor = foot.anchor
+                # The foot rolls on (heel strike to flat, heel-off, onto the toes, or back): the lower point holds
+                # it from now on, where it was held before in this stance, else placed from the old anchor by the
+                # foot's own geometry (not from the root, which the other foot shares).
+                held = foot.held.get(k)
+                new = held if held is not None else foot.anchor + rel[f, k] - rel[f, foot.pivot]
+                foot.held[foot.pivot] = foot.anchor
                 foot.anchor = new.copy()
                 foot.pivot = k
 
 
 def standing_heights(rest_points: FloatArray) -> FloatArray:
-    """Per foot, the ankle and toe heights of the rest pose, shape (2, 2), from their rest positions (2, 2, 3)."""
+    """Per foot, the heights of its contact points in the rest pose, shape (2, k), from their rest positions
+    (2, k, 3)."""
     p = np.asarray(rest_points, dtype=np.float64)
-    if p.shape != (2, 2, 3):
-        raise InputError(f"ground: rest foot points must have shape (2, 2, 3), got {p.shape}")
+    if p.ndim != 3 or p.shape[0] != 2 or p.shape[2] != 3:
+        raise InputError(f"ground: rest foot points must have shape (2, k, 3), got {p.shape}")
     return np.asarray(p[:, :, 1])
+
+
+def sole_points(skeleton: Skeleton, options: GroundOptions) -> tuple[IntArray, FloatArray]:
+    """Each foot's :data:`SOLE_POINTS` as points on its bones, from the skeleton's rest pose (which stands flat on
+    the floor, y = 0: the calibration posture).
+
+    Returns
+    -------
+    bones : int array, shape (2, 3)
+        Bone index of each point (left foot first).
+    offsets : array, shape (2, 3, 3)
+        Each point in its bone's frame (m).
+    """
+    rest = Kinematics(skeleton).forward(skeleton.rest_pose())
+    bones = np.zeros((2, len(SOLE_POINTS)), dtype=np.intp)
+    offsets = np.zeros((2, len(SOLE_POINTS), 3))
+    for f, (ankle, toe) in enumerate(FOOT_POINTS):
+        a, t = BONE_INDEX[ankle], BONE_INDEX[toe]
+        # Rest rotations are identity: an offset in a bone's frame is the same vector in the world.
+        ya = max(float(rest.positions[a, 1]), 0.0)
+        yt = max(float(rest.positions[t, 1]), 0.0)
+        bones[f] = (a, a)
+        offsets[f, 0] = (0.0, -ya, -options.heel_length * skeleton.height)
+        offsets[f, 1] = skeleton.offsets[t] + (0.0, -yt, 0.0)
+    return bones, offsets

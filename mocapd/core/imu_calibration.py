@@ -43,6 +43,12 @@ from mocapd.core.imu import (
     IMU_SET_LOWER_OPTIONAL,
     measured_bone_orientation,
 )
+from mocapd.core.plausibility import (
+    HingeEvents,
+    PlausibilityOptions,
+    check_bone_orientations,
+    facing_from_knees,
+)
 from mocapd.core.rotations import (
     matrix_from_quat,
     quat_angle,
@@ -480,6 +486,62 @@ def stillest_common_window(samples: Samples, window_s: float, span: tuple[float,
             best = (worst, float(start))
     assert best is not None
     return best[1], best[1] + window_s
+
+
+def common_grid(samples: Samples, sensors: list[str]) -> tuple[FloatArray, dict[str, FloatArray]]:
+    """The sensors' orientations on one time grid: the first sensor's sample times where all recorded, every other
+    sensor's nearest sample (one recording shares a time base).
+
+    Returns times (s, shape (n,)) and per sensor its orientations (n, 4).
+    """
+    t_all = [samples[s][0] for s in sensors]
+    t = t_all[0][(t_all[0] >= max(x[0] for x in t_all)) & (t_all[0] <= min(x[-1] for x in t_all))]
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    out = {}
+    for sid in sensors:
+        ts, qs, _ = samples[sid]
+        out[sid] = qs[np.clip(np.searchsorted(ts, t - dt / 2), 0, len(ts) - 1)]
+    return t, out
+
+
+def facing_heading_from_steps(samples: Samples, bones: Mapping[str, str], window: tuple[float, float]) -> float | None:
+    """The compass heading (degrees clockwise from north) the subject faced during ``window`` (s), from the way the
+    knees bent in the take (:func:`mocapd.core.plausibility.facing_from_knees`); None when no leg wears both a
+    thigh and a shank sensor, or the knees never bent (no steps)."""
+    by_bone = {b: sid for sid, b in bones.items()}
+    legs, still = [], []
+    for side in ("Left", "Right"):
+        thigh, shank = by_bone.get(f"{side}UpperLeg"), by_bone.get(f"{side}LowerLeg")
+        if thigh is None or shank is None or thigh not in samples or shank not in samples:
+            continue
+        t, q = common_grid(samples, [thigh, shank])
+        if t.size < 3:
+            continue
+        sel = (t >= window[0]) & (t < window[1])
+        ref = quat_average(q[thigh][sel]) if sel.any() else q[thigh][0]
+        ref_s = quat_average(q[shank][sel]) if sel.any() else q[shank][0]
+        # The still window first: the knee's bend is measured from standing.
+        legs.append((np.vstack([ref, q[thigh]]), np.vstack([ref_s, q[shank]])))
+        still.append(ref)
+    if not legs:
+        return None
+    forward = facing_from_knees(legs, still, np.array([0.0, 0.0, 1.0]))
+    if forward is None:
+        return None
+    return float(np.degrees(np.arctan2(forward[0], forward[1])) % 360.0)
+
+
+def calibration_hinges(
+    samples: Samples, calib: ImuCalibration, options: PlausibilityOptions | None = None
+) -> dict[str, HingeEvents]:
+    """The knees and elbows over a recording, as the calibration makes its sensors measure them (no solve): the
+    hinges with both bones measured and their wrong-way events (:mod:`mocapd.core.plausibility`)."""
+    sensors = sorted(sid for sid in calib.bones if sid in samples)
+    if not sensors:
+        return {}
+    t, q = common_grid(samples, sensors)
+    orientations = {calib.bones[sid]: bone_orientation(calib.q_ig, q[sid], calib.q_ib[sid]) for sid in sensors}
+    return check_bone_orientations(orientations, t, options)
 
 
 def calibrate_recording(

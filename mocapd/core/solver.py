@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from mocapd.core import _kernel
 from mocapd.core.camera import Camera, stack_cameras, triangulate
-from mocapd.core.ground import FOOT_POINTS, FOOT_SENSOR_BONES, GroundOptions, GroundTracker, standing_heights
+from mocapd.core.ground import FOOT_SENSOR_BONES, GroundOptions, GroundTracker, sole_points, standing_heights
 from mocapd.core.imu import ImuMount
 from mocapd.core.keypoints import TrackTargets, coco17_targets, floor_targets
 from mocapd.core.kinematics import FKState, Kinematics
@@ -28,7 +28,7 @@ from mocapd.core.lm import LMOptions, Termination, levenberg_marquardt
 from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss, corrector_weights
 from mocapd.core.observations import Observations, ValidatedObservations
 from mocapd.core.prior import PcaPrior
-from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
+from mocapd.core.skeleton import POSE_DIM, Skeleton
 from mocapd.core.terms import (
     CostOptions,
     PriorMatrices,
@@ -207,7 +207,8 @@ class PoseSolver:
         self._had_reference = False  # the last solve had an absolute position reference (enough cameras)
         self._kernel_static = self._pack_static() if backend == "compiled" else None
         self.ground_options = ground if ground is not None else GroundOptions()
-        self._foot_bones = np.array([BONE_INDEX[b] for pair in FOOT_POINTS for b in pair], dtype=np.intp)
+        bones, offsets = sole_points(skeleton, self.ground_options)
+        self._contact_bones, self._contact_offsets = bones.reshape(-1), offsets.reshape(-1, 3)
         self._hips_imu = next((i for i, m in enumerate(self.imus) if m.bone == "Hips"), None)
         self._foot_imus = [next((i for i, m in enumerate(self.imus) if m.bone == b), None) for b in FOOT_SENSOR_BONES]
         self.ground = (
@@ -369,19 +370,20 @@ class PoseSolver:
         return out
 
     def _foot_points(self, theta: FloatArray) -> FloatArray:
-        """Ankle and toe joints of both feet, world positions, shape (2, 2, 3)."""
+        """The sole points of both feet (:func:`~mocapd.core.ground.sole_points`), world positions, shape
+        (2, k, 3)."""
         if self._kernel_static is not None:
             kp = self._kernel_static
             pts = _kernel.skeleton_points(
                 np.ascontiguousarray(theta, dtype=np.float64),
                 kp.parents,
                 kp.offsets,
-                self._foot_bones.astype(np.float64),
-                np.zeros((len(self._foot_bones), 3)),
+                self._contact_bones.astype(np.float64),
+                np.ascontiguousarray(self._contact_offsets),
             )
         else:
-            pts = self.kin.forward(theta).positions[self._foot_bones]
-        return np.asarray(pts).reshape(2, 2, 3)
+            pts = self.kin.targets(self.kin.forward(theta), self._contact_bones, self._contact_offsets)
+        return np.asarray(pts).reshape(2, -1, 3)
 
     def _foot_accelerations(self, v: ValidatedObservations) -> FloatArray:
         """|free acceleration| of each foot's sensor (m/s², the previous frame's), NaN without one; shape (2,)."""

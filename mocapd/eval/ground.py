@@ -25,6 +25,12 @@ behaviour before issue 14 minus the velocity feedback of its warm start):
     the horizontal drift in the still first seconds.
 ``mvnx``
     The MVNX upper-body recording (11 sensors, 1.9 s) against MVN's own pelvis trajectory.
+``optical`` (not in the default parts: its data are not shipped)
+    A real walk of a 7-sensor lower-body suit against Vicon, beside Xsens MVN's own solve
+    (:mod:`mocapd.eval.ground_optical`).
+
+Every IMU-only part reports the root's path length against the truth's (``path_error_pct``): an avatar's steps
+must cover the floor its body covers (issue 28).
 """
 
 from __future__ import annotations
@@ -47,7 +53,8 @@ from mocapd.core.motion import resample_poses
 from mocapd.core.observations import Observations
 from mocapd.core.prior import PcaPrior
 from mocapd.core.retarget import Retargeted
-from mocapd.core.skeleton import Skeleton
+from mocapd.core.rotations import matrix_from_rotvec, rotvec_from_matrix
+from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.core.solver import PoseSolver
 from mocapd.core.terms import CostOptions
 from mocapd.eval.simulate import ImuNoise, simulate_imus
@@ -62,6 +69,75 @@ def make_clip(name: str, skeleton: Skeleton, theta: FloatArray, fps: float) -> R
     """A pose sequence as a :class:`Retargeted` clip (its joints and rotations by forward kinematics)."""
     fk = Kinematics(skeleton).forward(theta)
     return Retargeted(name, skeleton, theta, fk.positions, fk.rotations, fk.positions, fps)
+
+
+FLAT_SPEED = 0.05
+"""m/s: a foot whose ankle and toe joints both move slower than this, at the lower end of their heights, stands
+flat (for :func:`standing_feet`)."""
+
+
+FLAT_FRAMES = 10
+"""A clip with fewer frames of a foot standing flat (a run, a dash) does not tell that foot's flat pitch."""
+
+
+def flat_pitches(skeleton: Skeleton, theta: FloatArray, fps: float) -> tuple[float | None, float | None]:
+    """Each foot's pitch (radians, toe down positive) where it stands flat in a clip: the median over the frames where
+    its ankle and toe joints both move slower than :data:`FLAT_SPEED` at the lower end of their heights; None with
+    fewer than :data:`FLAT_FRAMES` such frames."""
+    fk = Kinematics(skeleton).forward(theta)
+    out: list[float | None] = []
+    for foot, toes in (("LeftFoot", "LeftToes"), ("RightFoot", "RightToes")):
+        f, t = BONE_INDEX[foot], BONE_INDEX[toes]
+        pts = fk.positions[:, [f, t]]
+        if len(pts) < 2:
+            out.append(None)
+            continue
+        speed = np.linalg.norm(np.gradient(pts, 1.0 / fps, axis=0), axis=-1).max(axis=1)
+        top = pts[:, :, 1].max(axis=1)
+        still = (speed < FLAT_SPEED) & (top <= np.percentile(top, 30))
+        fwd = fk.rotations[still, f][:, :, 2]  # the foot's forward axis in the world
+        out.append(float(np.median(np.arcsin(np.clip(-fwd[:, 1], -1.0, 1.0)))) if still.sum() >= FLAT_FRAMES else None)
+    return out[0], out[1]
+
+
+def standing_feet(
+    skeleton: Skeleton, theta: FloatArray, pitches: tuple[float | None, float | None]
+) -> tuple[Skeleton, FloatArray]:
+    """A clip as a suit calibrated standing sees it: each foot's rest orientation is the one it stands flat in.
+
+    A suit's calibration takes the standing posture for the rest pose (``mocapd calibrate imu``), so a foot standing
+    flat on the floor is at its rest orientation, with its sole on the floor. Retargeted recordings do not do that:
+    their foot bones point from the source's ankle joint to its toe joint, which stands pitched down by 6-12° (CMU)
+    or 31.5° (Bandai, every clip) against the skeleton's rest foot. Here each foot's frame is turned by its flat pitch
+    (:func:`flat_pitches`; None: left as it is): its local rotation ``R_f ← R_f · P⁻¹``, its toes' offset
+    ``o ← P · o`` and rotation ``R_t ← P · R_t · P⁻¹``, the rest pose put back on the floor. Every joint position of
+    every frame is unchanged (forward kinematics gives the same points); only the feet's rest pose, and so their
+    bone orientations, now match a calibrated suit.
+
+    Returns
+    -------
+    skeleton, theta
+        The re-expressed skeleton and clip.
+    """
+    kin = Kinematics(skeleton)
+    offsets = skeleton.offsets.copy()
+    th = np.array(theta, dtype=np.float64)
+    for (foot, toes), pitch in zip((("LeftFoot", "LeftToes"), ("RightFoot", "RightToes")), pitches, strict=True):
+        if pitch is None:
+            continue
+        f, t = BONE_INDEX[foot], BONE_INDEX[toes]
+        P = matrix_from_rotvec(np.array([pitch, 0.0, 0.0]))
+        sl_f, sl_t = slice(3 + 3 * f, 6 + 3 * f), slice(3 + 3 * t, 6 + 3 * t)
+        th[:, sl_f] = rotvec_from_matrix(matrix_from_rotvec(th[:, sl_f]) @ P.T)
+        th[:, sl_t] = rotvec_from_matrix(P @ matrix_from_rotvec(th[:, sl_t]) @ P.T)
+        offsets[t] = P @ offsets[t]
+    # The rest pose stands on the floor as before: its lowest foot joint as high as it was.
+    feet = [BONE_INDEX[b] for b in ("LeftFoot", "LeftToes", "RightFoot", "RightToes")]
+    low_before = float(kin.forward(skeleton.rest_pose()).positions[feet, 1].min())
+    moved = Skeleton(offsets=offsets, root_height=skeleton.root_height, height=skeleton.height)
+    low_after = float(Kinematics(moved).forward(moved.rest_pose()).positions[feet, 1].min())
+    root_height = skeleton.root_height + low_before - low_after
+    return Skeleton(offsets=offsets, root_height=root_height, height=skeleton.height), th
 
 
 def imu_only_observations(
@@ -89,12 +165,15 @@ def drift_metrics(solved: FloatArray, truth: FloatArray, fps: float) -> dict[str
     exz = solved[:, [0, 2]] - truth[:, [0, 2]]
     dxz = np.linalg.norm(exz, axis=1)
     walked = walked_distance(truth[:, [0, 2]], fps)
+    path = walked_distance(solved[:, [0, 2]], fps)
     n = max(1, round(fps))  # 1 s means: the drift without the per-frame jitter of the orientation noise
     smooth = np.linalg.norm(np.cumsum(exz, axis=0)[n - 1 :] - np.r_[np.zeros((1, 2)), np.cumsum(exz, axis=0)[:-n]],
                             axis=1) / n  # fmt: skip
     return {
         "seconds": round(len(truth) / fps, 1),
         "walked_m": round(walked, 2),
+        "solved_path_m": round(path, 2),
+        "path_error_pct": round(100 * (path - walked) / max(walked, 1e-9), 1),
         "height_error_p95_cm": round(100 * float(np.percentile(dy, 95)), 1),
         "height_error_max_cm": round(100 * float(dy.max()), 1),
         "horizontal_drift_end_cm": round(100 * float(dxz[-1]), 1),
@@ -129,9 +208,17 @@ def solve_clip(solver: PoseSolver, truth: FloatArray, obs: list[Observations]) -
 
 
 def imu_only_case(
-    name: str, skeleton: Skeleton, truth: FloatArray, prior: PcaPrior | None, seed: int, noise: ImuNoise
+    name: str,
+    skeleton: Skeleton,
+    truth: FloatArray,
+    prior: PcaPrior | None,
+    seed: int,
+    noise: ImuNoise,
+    pitches: tuple[float | None, float | None] | None = None,
 ) -> dict[str, Any]:
-    """One clip, 0 cameras + 13 IMUs, contacts on and off."""
+    """One clip, 0 cameras + 13 IMUs, contacts on and off (the feet as a suit calibrated standing sees them,
+    :func:`standing_feet`, at ``pitches``, default the clip's own :func:`flat_pitches`)."""
+    skeleton, truth = standing_feet(skeleton, truth, flat_pitches(skeleton, truth, FPS) if pitches is None else pitches)
     clip = make_clip(name, skeleton, truth, FPS)
     obs = imu_only_observations(clip, default_mounts(IMU_SET_13, skeleton), noise, np.random.default_rng(seed))
     out: dict[str, Any] = {"clip": name}
@@ -160,6 +247,9 @@ def _summary(rows: list[dict[str, Any]], label: str) -> dict[str, float]:
         "drift_end_sum_per_walked_pct": round(
             100 * sum(v["horizontal_drift_end_cm"] / 100 for v in vals) / max(walked, 1e-9), 1
         ),
+        "path_error_pct_median": float(np.median([v["path_error_pct"] for v in vals])),
+        "path_error_pct_worst": max((v["path_error_pct"] for v in vals), key=abs),
+        "path_error_abs_pct_median": float(np.median([abs(v["path_error_pct"]) for v in vals])),
     }
 
 
@@ -175,11 +265,31 @@ def run_walking(
     from mocapd.eval.data import load_clip, load_splits
 
     paths = [p for p in load_splits(data_root)[split] if any(w in p.name for w in ("walk", "run", "dash", "131_"))]
+    clips = [load_clip(p, FPS) for p in paths]
+    # A clip that never stands flat (a run) takes its feet's flat pitch from the other clips of its data set (the
+    # same source skeleton's feet: one folder).
+    own = [flat_pitches(c.skeleton, c.theta, FPS) for c in clips]
+
+    def pitch(p: Path, f: int) -> float | None:
+        kin = [x for q, o in zip(paths, own, strict=True) if q.parent == p.parent and (x := o[f]) is not None]
+        return float(np.median(kin)) if kin else None
+
+    pitches = [
+        (mine[0] if mine[0] is not None else pitch(p, 0), mine[1] if mine[1] is not None else pitch(p, 1))
+        for p, mine in zip(paths, own, strict=True)
+    ]
     rows = []
-    for i, p in enumerate(paths):
-        c = load_clip(p, FPS)
-        rows.append(imu_only_case(p.stem, c.skeleton, c.theta, prior, seed + 100 + i, noise))
-    return {"split": split, "clips": rows, "summary": {k: _summary(rows, k) for k in ("contacts", "no_contacts")}}
+    for i, (p, c) in enumerate(zip(paths, clips, strict=True)):
+        rows.append(imu_only_case(p.stem, c.skeleton, c.theta, prior, seed + 100 + i, noise, pitches[i]))
+    rows_walk = [r for r in rows if not any(w in r["clip"] for w in ("run", "dash"))]
+    rows_run = [r for r in rows if any(w in r["clip"] for w in ("run", "dash"))]
+    return {
+        "split": split,
+        "clips": rows,
+        "summary": {k: _summary(rows, k) for k in ("contacts", "no_contacts")},
+        "walking_clips": {k: _summary(rows_walk, k) for k in ("contacts", "no_contacts")} if rows_walk else {},
+        "running_clips": {k: _summary(rows_run, k) for k in ("contacts", "no_contacts")} if rows_run else {},
+    }
 
 
 def run_standing(prior: PcaPrior | None, seed: int, noise: ImuNoise, seconds: float = 60.0) -> dict[str, Any]:
@@ -194,7 +304,7 @@ def run_cameras_back(prior: PcaPrior | None, seed: int, dark: tuple[float, float
     """The rig's first clip, 4 cameras that see nothing during ``dark`` (seconds)."""
     world = SyntheticWorld(n_cams=4, n_people=1, n_suits=1, seed=seed)
     clips, skeleton = synthetic_rig_clips()
-    truth = clips[0][1]
+    skeleton, truth = standing_feet(skeleton, clips[0][1], flat_pitches(skeleton, clips[0][1], FPS))
     clip = make_clip(clips[0][0], skeleton, truth, FPS)
     rng = np.random.default_rng(seed + 7)
     imu = imu_only_observations(clip, default_mounts(IMU_SET_13, skeleton), ImuNoise(), rng)
@@ -239,6 +349,8 @@ class GroundEvalOptions:
     split: str = "evaluation"
     parts: tuple[str, ...] = ("synthetic", "walking", "standing", "cameras_back", "mtw", "mvnx")
     standing_s: float = 60.0
+    optical_dir: Path | None = None
+    """The optical-truth recording for the ``optical`` part (default ``<data root>/imu/gaittoolbox``)."""
 
 
 def run(opts: GroundEvalOptions, data_root: Path | None = None) -> dict[str, Any]:
@@ -267,6 +379,12 @@ def run(opts: GroundEvalOptions, data_root: Path | None = None) -> dict[str, Any
             out["mtw"] = run_mtw(prior, data_root)
         if "mvnx" in opts.parts:
             out["mvnx"] = run_mvnx(prior, data_root)
+    if "optical" in opts.parts:
+        from mocapd.eval.data import default_data_root
+        from mocapd.eval.ground_optical import default_dir, run_optical
+
+        root = default_data_root() if data_root is None else Path(data_root)
+        out["optical"] = run_optical(prior, opts.optical_dir or default_dir(root))
     out["machine"] = {"cpus": os.cpu_count(), "seconds": round(time.perf_counter() - t0, 1),
                       "loadavg_start": [round(x, 2) for x in load0],
                       "loadavg_end": [round(x, 2) for x in os.getloadavg()]}  # fmt: skip

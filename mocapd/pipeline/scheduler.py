@@ -49,6 +49,7 @@ from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.people import PeopleTracker, Person
 from mocapd.core.per_skeleton import PerSkeleton
+from mocapd.core.plausibility import PlausibilityMonitor
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import matrix_from_quat, quat_multiply, quat_normalize, quat_slerp
 from mocapd.core.skeleton import N_BONES, POSE_DIM, Skeleton
@@ -285,6 +286,8 @@ class FixedLatencyScheduler:
             s.id: _vectors_per_skeleton(skeleton, targets, tuple(m.bone for m in s.mounts)) for s in suits or []
         }
         self._seen_suits: set[str] = set()  # suits whose wearer enough cameras saw this tick
+        # Per identity: knees/elbows bending the wrong way, a pelvis backwards while walking (issue 28).
+        self.plausibility: dict[str, PlausibilityMonitor] = {}
         self._heading_at: dict[str, int] = {}  # solve time of each suit's last heading observation
         self._suit_samples: dict[str, SuitSample] = {}  # the latest tick's, where predict() starts from
         self._imu_width = sum(f.width for f in IMU_FIELDS)  # quat 0:4, acc 4:7 (IMU_FIELDS order)
@@ -347,6 +350,8 @@ class FixedLatencyScheduler:
         self._seen_suits.clear()
         people = [*frame.people, *self._imu_only_people(frame.people, suits)]
         poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in people]
+        for pose in poses:
+            self.plausibility.setdefault(pose.identity, PlausibilityMonitor()).step(t / 1e9, pose.theta)
         for sid, suit in self.suits.items():
             if sid not in self._seen_suits:
                 self.heading.freeze(suit.sensors)  # the cameras lost the wearer: offsets stay as they are
@@ -605,6 +610,8 @@ class FixedLatencyScheduler:
         for identity in list(self.solvers):
             if identity not in known and identity not in seen:
                 del self.solvers[identity]
+        for identity in [k for k in self.plausibility if k not in known and k not in seen]:
+            del self.plausibility[identity]
         tracks = {s.id for s in self.people.tracker.subjects}
         for table in (self.skeletons, self._sizing, self._restart):
             for track in [k for k in table if k not in tracks]:
@@ -652,6 +659,7 @@ class FixedLatencyScheduler:
             "output": self.options.prediction.output,
             "heading": self.heading_status(),
             "latency": self.latency_status(),
+            "plausibility": {k: m.status() for k, m in sorted(self.plausibility.items())},
         }
 
     def latency_status(self) -> dict[str, Any]:

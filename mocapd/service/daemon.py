@@ -424,6 +424,7 @@ class Daemon:
             "imu": self.imu.status(),
             "imu_lookups": s["imu_samples"],
             "imu_heading": s["heading"],
+            "plausibility": s["plausibility"],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},
             "subjects": s["people"],

@@ -60,7 +60,7 @@ def register(subparsers: Any) -> None:
         help="the posture held (the solver's rest pose is the T-pose; arms-down: arms hanging at the sides)",
     )
     p.add_argument("--suit", help="with --from: the suit name in the session (default: the import's, or the person)")
-    facing = p.add_mutually_exclusive_group(required=True)
+    facing = p.add_mutually_exclusive_group()
     facing.add_argument(
         "--facing-heading",
         type=float,
@@ -69,7 +69,8 @@ def register(subparsers: Any) -> None:
     facing.add_argument(
         "--facing-from",
         metavar="SENSOR:AXIS",
-        help="derive the heading from a sensor axis known to point forward, e.g. 00B421E6:-z",
+        help="derive the heading from a sensor axis known to point forward, e.g. 00B421E6:-z (with --from: "
+        "optional, the take's steps give it; a sign that bends the knees backwards is refused)",
     )
     p.add_argument("--world-heading", choices=("subject", "north"), default="subject", help="what world +Z is")
     p.add_argument("--seconds", type=float, default=3.0, help="recording length (s)")
@@ -154,6 +155,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     try:
         if not args.person:
             raise ConfigError("--person is required (the name of the calibration file)")
+        if args.facing_heading is None and args.facing_from is None:
+            raise ConfigError(
+                "give the facing direction of the T-pose: --facing-heading DEG or --facing-from SENSOR:AXIS "
+                "(a recording calibrated with --from SESSION can take it from its steps)"
+            )
         window_s = float(args.window)
         config = load_config(args.config).imu  # validates the whole file, like the daemon
         if args.port:  # --port replaces imu.ports, validated like the file's

@@ -4,11 +4,11 @@
 
     mocapd import mtw FILE... -o SESSION --assign SENSOR=BONE... [--suit NAME] [--height M] [--imu-set lower]
     mocapd import mvnx FILE -o SESSION [--assign SENSOR=BONE...] [--suit NAME] [--height M]
-    mocapd calibrate imu --from SESSION (--facing-heading DEG | --facing-from SENSOR:AXIS)
+    mocapd calibrate imu --from SESSION [--facing-heading DEG | --facing-from SENSOR:AXIS]
                          [--window START:END] [--pose t-pose|arms-down] [--person NAME] [--suit NAME]
     mocapd resolve SESSION          # solves the suit IMU-only
     mocapd export SESSION --resolved --bvh take.bvh --csv take.csv
-    mocapd eval ground [--parts synthetic,standing,...]   # root drift without cameras, JSON (docs/imu.md)
+    mocapd eval ground [--parts synthetic,standing,...] [--optical-data DIR]   # root drift/strides, JSON (docs/imu.md)
 
 ``import mtw`` takes MT Manager text exports, one file per sensor (:mod:`mocapd.io.mt_export`), ``import mvnx``
 an MVN export (its sensors are assigned from their segment labels unless ``--assign`` says otherwise). Both print
@@ -42,7 +42,7 @@ def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
             for sid, info in imp["sensors"].items()
         },
         "assignment": imp["assignment"],
-        "next": f"mocapd calibrate imu --from {path} --facing-from SENSOR:AXIS (or --facing-heading DEG)",
+        "next": f"mocapd calibrate imu --from {path}  (the facing from the take's steps; or --facing-from SENSOR:AXIS)",
     }
 
 
@@ -113,7 +113,8 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
         )
         calib: ImuCalibration = result.calibration
         info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,
-                "facing_heading_deg": round(calib.facing_heading_deg, 2)}  # fmt: skip
+                "facing_heading_deg": round(calib.facing_heading_deg, 2), "facing_from": result.facing,
+                "hinges": {name: h.as_dict() for name, h in result.hinges.items()}}  # fmt: skip
         store_in_session(session, suit, calib, info)
         out = args.out or Path(load_config(args.config if args.config.exists() else None).imu.calibration_dir) / (
             f"{person}.imu.json"
@@ -125,6 +126,7 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
     out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
     print(json.dumps({"session": str(session.path), "suit": suit, "calibration": str(out), "posture": result.pose,
                       "window_s": info["window_s"], "facing_heading_deg": info["facing_heading_deg"],
+                      "facing_from": result.facing, "hinges_checked": sorted(result.hinges),
                       "still_spread_deg": {s: round(v, 2) for s, v in calib.spread_deg.items()},
                       "next": f"mocapd resolve {session.path}"}, indent=2))  # fmt: skip
     return 0
@@ -159,11 +161,18 @@ def _guard(func: Any) -> Any:
     return run
 
 
+GROUND_PARTS = ("synthetic", "walking", "standing", "cameras_back", "mtw", "mvnx", "optical")
+
+
 def cmd_eval_ground(args: argparse.Namespace) -> int:
     from mocapd.eval.ground import GroundEvalOptions, run
 
     parts = tuple(args.parts.split(",")) if args.parts else GroundEvalOptions().parts
-    opts = GroundEvalOptions(seed=args.seed, split=args.split, parts=parts, standing_s=args.standing_seconds)
+    unknown = sorted(set(parts) - set(GROUND_PARTS))
+    if unknown:
+        raise MocapdError(f"--parts: unknown {unknown}; choose from {', '.join(GROUND_PARTS)}")
+    opts = GroundEvalOptions(seed=args.seed, split=args.split, parts=parts, standing_s=args.standing_seconds,
+                             optical_dir=args.optical_data)  # fmt: skip
     print(json.dumps(run(opts, args.data_root), indent=2))
     return 0
 
@@ -175,7 +184,18 @@ def register(subparsers: Any) -> None:
     ev = _subcommand_group(subparsers, "eval", "evaluations that print JSON", "eval")
     g = ev.add_parser("ground", help="root drift without cameras: synthetic rig, walking clips, real MTw/MVNX")
     g.add_argument(
-        "--parts", default="", help="comma-separated subset of synthetic,walking,standing,cameras_back,mtw,mvnx"
+        "--parts",
+        default="",
+        help="comma-separated subset of synthetic,walking,standing,cameras_back,mtw,mvnx (the default: all of "
+        "them) and optical (a real walk against Vicon; its data are not shipped: see --optical-data)",
+    )
+    g.add_argument(
+        "--optical-data",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="the optical part's recording: the data/sample folder of github.com/gait-tech/gaittoolbox (GPL-3.0) "
+        "(default <data root>/imu/gaittoolbox)",
     )
     g.add_argument("--split", default="evaluation", help="clip split for the walking part (default evaluation)")
     g.add_argument("--standing-seconds", type=float, default=60.0, help="length of the standing-still test")

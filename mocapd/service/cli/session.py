@@ -37,6 +37,8 @@ def _open(path: Path) -> Session:
     session.check()
     for line in session.recovery_lines():
         print(f"note: {line}", file=sys.stderr)
+    for line in session.manifest.get("notes", []):  # what the recorder noticed (knees bending the wrong way)
+        print(f"note: {line}", file=sys.stderr)
     return session
 
 
@@ -103,6 +105,8 @@ def cmd_resolve(args: argparse.Namespace) -> int:
     with Progress(n_frames, "resolve") as bar:
         frames, summary = resolve(session, opts, bar)
     _undecodable_notes(session)
+    for line in summary["notes"]:  # anatomically impossible stretches (a mirrored facing, a swapped sensor)
+        print(f"note: {line}", file=sys.stderr)
     path = write_resolved(session, frames, args.output)
     summary["written"] = str(path)
     if truth:

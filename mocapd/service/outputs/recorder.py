@@ -30,6 +30,7 @@ import numpy as np
 
 import mocapd
 from mocapd.core.camera import Camera
+from mocapd.core.plausibility import PlausibilityMonitor
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import ConfigError
 from mocapd.io.session import FRAMES, STREAMS, SessionWriter
@@ -123,6 +124,8 @@ class SessionRecorder:
         self.frames_recorded = 0
         self._newest = [-1] * len(self.frame_sources)
         self._frame_task: asyncio.Task[None] | None = None
+        # Anatomically impossible stretches of the recorded poses, per identity: the manifest's notes at the end.
+        self.plausibility: dict[str, PlausibilityMonitor] = {}
 
     # ------------------------------------------------------------------------------------------ PoseSink
     async def start(self) -> None:
@@ -155,6 +158,8 @@ class SessionRecorder:
     def publish(self, frame: PoseFrame) -> None:
         self.writer.put("poses", T_POSE, _encode_frame, frame)
         self.frames += 1
+        for p in frame.people:
+            self.plausibility.setdefault(p.identity, PlausibilityMonitor()).step(frame.t_solve_ns / 1e9, p.theta)
 
     async def aclose(self, update: dict[str, Any] | None = None) -> None:
         if self._frame_task is not None:
@@ -162,7 +167,11 @@ class SessionRecorder:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._frame_task
             self._frame_task = None
-        info = {"ended_utc": dt.datetime.now(dt.UTC).isoformat(), "ended_monotonic_ns": time.monotonic_ns()}
+        info: dict[str, Any] = {"ended_utc": dt.datetime.now(dt.UTC).isoformat(),
+                                "ended_monotonic_ns": time.monotonic_ns()}  # fmt: skip
+        monitors = sorted(self.plausibility.items())
+        info["plausibility"] = {k: m.status() for k, m in monitors}
+        info["notes"] = [f"{k}: {line}" for k, m in monitors for line in m.summary_lines()]
         await asyncio.get_running_loop().run_in_executor(None, self.writer.close, {**info, **(update or {})})
 
     # ------------------------------------------------------------------------------------------ taps

@@ -10,8 +10,16 @@ a take. For a suit without arm sensors the two are the same: standing straight.
 The window is the one where *all* assigned sensors are jointly stillest (the largest turn of any sensor from its
 window mean is smallest), searched in steps of a quarter window over the whole recording or over
 ``START:END`` seconds; a window where a sensor turns more than 2° or its acceleration norm varies by more than
-0.3 m/s² is refused with the sensor named, as for a live calibration. The heading comes from ``--facing-heading``
-or from a sensor axis that points forward (``--facing-from SENSOR:AXIS``).
+0.3 m/s² is refused with the sensor named, as for a live calibration. The heading comes from ``--facing-heading``,
+from a sensor axis that points forward (``--facing-from SENSOR:AXIS``), or, with neither, from the take's steps: a
+knee bends about the body's left-right axis, its foot moving backwards
+(:func:`mocapd.core.imu_calibration.facing_heading_from_steps`).
+
+A facing direction with which knees or elbows bend the wrong way over the take for more than a moment
+(:mod:`mocapd.core.plausibility`, measured on the calibrated sensors' bone orientations, no solve) is refused: with a
+mirrored facing every bone's frame is turned by 180° about the vertical and every bend of a knee reads as a knee
+bending backwards, while every later command succeeds. The refusal names the opposite sign (or heading) when that
+one makes them bend the right way.
 
 The result is written into the session's manifest (its ``suits``: what ``mocapd resolve`` solves with) and as a
 calibration file (``<calibration_dir>/<person>.imu.json``).
@@ -20,13 +28,21 @@ calibration file (``<calibration_dir>/<person>.imu.json``).
 from __future__ import annotations
 
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.imu_calibration import ImuCalibration, calibrate_recording, parse_assignment
+from mocapd.core.imu_calibration import (
+    ImuCalibration,
+    calibrate_recording,
+    calibration_hinges,
+    facing_heading_from_steps,
+    parse_assignment,
+    stillest_common_window,
+)
+from mocapd.core.plausibility import HingeEvents
 from mocapd.errors import CalibrationError, ConfigError
 from mocapd.io.session import MANIFEST, Session, write_json_atomic
 
@@ -39,6 +55,11 @@ class SessionCalibration:
     window_s: tuple[float, float]
     """Start and end of the window used, seconds from the session's first sample."""
     pose: str
+    facing: str = "heading"
+    """Where the facing direction came from: "heading" (``--facing-heading``), "sensor" (``--facing-from``) or
+    "steps" (the knees' bending in the take's steps)."""
+    hinges: dict[str, HingeEvents] = field(default_factory=dict)
+    """The knees and elbows over the take as this calibration measures them (wrong-way events)."""
 
 
 def session_samples(session: Session) -> dict[str, tuple[FloatArray, FloatArray, FloatArray]]:
@@ -75,18 +96,90 @@ def calibrate_session(
 ) -> SessionCalibration:
     """Calibrate the session's assigned sensors (see the module docstring).
 
-    ``assignment`` defaults to the session's ``[imu.assignment]`` (an imported session has it). Exactly one of
-    ``facing_heading_deg`` and ``facing_from`` (sensor id, unit axis in the sensor frame) must be given.
+    ``assignment`` defaults to the session's ``[imu.assignment]`` (an imported session has it). At most one of
+    ``facing_heading_deg`` and ``facing_from`` (sensor id, unit axis in the sensor frame) may be given; with neither,
+    the facing comes from the knees' bending in the take's steps
+    (:func:`~mocapd.core.imu_calibration.facing_heading_from_steps`).
+
+    Raises
+    ------
+    CalibrationError
+        The calibration makes knees or elbows bend the wrong way for more than a moment (a mirrored facing
+        direction): the message names the facing that works when the opposite one does.
+    ConfigError
+        No facing direction given and no steps to take it from.
     """
     imu_cfg = session.manifest.get("config", {}).get("imu", {})
     bones = parse_assignment(assignment if assignment is not None else imu_cfg.get("assignment", {}))
     if not bones:
         raise ConfigError(f"{session.path}: no sensor is assigned to a bone ([imu.assignment] of its config)")
-    calib, window = calibrate_recording(
-        person, session_samples(session), bones, facing_heading_deg=facing_heading_deg, facing_from=facing_from,
-        world_heading=world_heading, window_s=window_s, span=span, pose=pose,
-    )  # fmt: skip
-    return SessionCalibration(calib, window, pose)
+    samples = session_samples(session)
+    source = "sensor" if facing_from is not None else "heading"
+    if facing_heading_deg is None and facing_from is None:
+        start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span)
+        facing_heading_deg = facing_heading_from_steps(samples, bones, (start, end))
+        if facing_heading_deg is None:
+            raise ConfigError(
+                f"{session.path}: no facing direction: the take has no steps to take it from (it needs a thigh and a "
+                "shank sensor on one leg and knees that bend); give --facing-from SENSOR:AXIS (a sensor axis that "
+                "points forward while standing) or --facing-heading DEG"
+            )
+        source = "steps"
+
+    def calibrate(
+        heading: float | None, axis: tuple[str, FloatArray] | None
+    ) -> tuple[ImuCalibration, tuple[float, float]]:
+        return calibrate_recording(
+            person, samples, bones, facing_heading_deg=heading, facing_from=axis, world_heading=world_heading,
+            window_s=window_s, span=span, pose=pose,
+        )  # fmt: skip
+
+    calib, window = calibrate(facing_heading_deg, facing_from)
+    hinges = calibration_hinges(samples, calib)
+    if _wrong_way(hinges):
+        flipped_heading = None if facing_heading_deg is None else (facing_heading_deg + 180.0) % 360.0
+        flipped_axis = None if facing_from is None else (facing_from[0], -np.asarray(facing_from[1]))
+        other, _ = calibrate(flipped_heading, flipped_axis)
+        works = not _wrong_way(calibration_hinges(samples, other))
+        raise CalibrationError(_refusal(hinges, source, facing_from, facing_heading_deg, works))
+    return SessionCalibration(calib, window, pose, source, hinges)
+
+
+def _wrong_way(hinges: dict[str, HingeEvents]) -> bool:
+    return any(h.events for h in hinges.values())
+
+
+def _axis_text(axis: FloatArray) -> str:
+    i = int(np.argmax(np.abs(axis)))
+    return f"{'+' if axis[i] > 0 else '-'}{'xyz'[i]}"
+
+
+def _refusal(
+    hinges: dict[str, HingeEvents],
+    source: str,
+    facing_from: tuple[str, FloatArray] | None,
+    heading: float | None,
+    flipped_works: bool,
+) -> str:
+    """The message refusing a facing direction with which hinges bend the wrong way, naming the one that works."""
+    bent = [f"{name.replace('_', ' ')} {h.seconds:.1f} s (up to {h.worst_deg:.0f}°, first at {h.first_s:.1f} s)"
+            for name, h in hinges.items() if h.events]  # fmt: skip
+    if facing_from is not None:
+        given = f"--facing-from {facing_from[0]}:{_axis_text(facing_from[1])}"
+        other = f"--facing-from {facing_from[0]}:{_axis_text(-np.asarray(facing_from[1]))}"
+    else:
+        assert heading is not None
+        given = "the facing found from the take's steps" if source == "steps" else f"--facing-heading {heading:g}"
+        other = f"--facing-heading {(heading + 180.0) % 360.0:.0f}"
+    kinds = " and ".join(sorted({f"{name.split('_')[1]}s" for name, h in hinges.items() if h.events}, reverse=True))
+    head = f"with {given} the {kinds} bend the wrong way ({'; '.join(bent)}): the facing direction is mirrored"
+    if flipped_works:
+        return f"{head}; {other} bends them the right way: calibrate again with it"
+    return (
+        f"{head}, and {other} does not make them bend the right way either: check the sensor assignment "
+        "(a sensor on another bone, left and right swapped) or leave out --facing-from/--facing-heading to take the "
+        "facing from the take's steps"
+    )
 
 
 def store_in_session(session: Session, suit: str, calib: ImuCalibration, info: dict[str, Any]) -> None:

@@ -17,6 +17,10 @@ Two passes over the recorded raw inputs:
    removes the per-frame jitter of detector noise. Segments are split where a subject is unseen for longer
    than :attr:`ResolveOptions.max_gap_s`.
 
+Then every subject's poses go through the anatomical plausibility checks (:func:`plausibility`): a knee or elbow
+bending the wrong way, or a pelvis facing backwards while the legs walk forwards, for more than a moment is counted
+in the summary and said in its notes.
+
 The noise levels (:class:`ResolveOptions`) were chosen on the synthetic rig; ``docs/sessions.md`` has the
 measured joint errors of the live solve, the forward re-solve and the smoothed result against the known truth.
 """
@@ -42,6 +46,7 @@ from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.people import PeopleTracker
 from mocapd.core.per_skeleton import PerSkeleton, skeleton_key
+from mocapd.core.plausibility import PlausibilityMonitor
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import quat_from_rotvec, quat_normalize, rotvec_from_quat
 from mocapd.core.skeleton import N_BONES, Skeleton
@@ -386,14 +391,27 @@ def resolve(
     frames = forward_resolve(session, opts, progress)
     if opts.smooth:
         frames = smooth_frames(frames, session_rig(session).skeleton, opts)
+    monitors = plausibility(frames)
     summary = {
         "frames": len(frames),
         "person_solves": sum(len(f.people) for f in frames),
         "keypoint_frames": session.reports["keypoints"].records - 1 if "keypoints" in session.reports else 0,
         "imu_samples": session.reports["imu"].records - 1 if "imu" in session.reports else 0,
         "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__},
+        "plausibility": {identity: m.status() for identity, m in sorted(monitors.items())},
+        "notes": [f"{identity}: {line}" for identity, m in sorted(monitors.items()) for line in m.summary_lines()],
     }
     return frames, summary
+
+
+def plausibility(frames: list[PoseRecord]) -> dict[str, PlausibilityMonitor]:
+    """Every subject's solved poses through the anatomical plausibility checks (:mod:`mocapd.core.plausibility`:
+    knees and elbows bending the wrong way, a pelvis facing backwards while the legs walk forwards), per identity."""
+    monitors: dict[str, PlausibilityMonitor] = {}
+    for f in frames:
+        for p in f.people:
+            monitors.setdefault(p.identity, PlausibilityMonitor()).step(f.t_solve_ns / 1e9, p.theta)
+    return monitors
 
 
 def write_resolved(session: Session, frames: list[PoseRecord], out: str | Path | None = None) -> Path:
