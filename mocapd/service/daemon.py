@@ -271,11 +271,14 @@ class Daemon:
                 t.cancel()
 
     def devices(self) -> list[tuple[str, OpenState]]:
-        """Every device of the rig with its opening state: cameras (``camera <name>``), IMU ports (``IMU <path>``)."""
+        """Every device of the rig with its opening state: cameras (``camera <name>``), IMU ports (``IMU <path>``),
+        the SlimeVR server's and the IMU bridge's sockets."""
         out = [(f"camera {src.name}", src.open_state()) for src in self.rig.sources]
         out += [(f"IMU {d.config.path}", d.open_state()) for d in self.imu.devices]
         if self.imu.slimevr is not None:
             out.append((f"SlimeVR server {self.imu.slimevr.host}", self.imu.slimevr.open_state()))
+        if self.imu.bridge is not None:
+            out.append((f"IMU bridge {self.imu.bridge.host}:{self.imu.bridge.port}", self.imu.bridge.open_state()))
         return out
 
     async def _open_devices(self) -> StartupError | None:

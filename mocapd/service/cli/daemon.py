@@ -43,14 +43,19 @@ def _load(path: Path | None, http_port: int | None = None) -> Config:
 def check(cfg: Config) -> RigPlan:
     """Everything ``mocapd run`` checks before it opens a device: the rig against its calibration and files, and
     the IMU suits' calibration files."""
-    from mocapd.core.skeleton import Skeleton
     from mocapd.service.rig import plan_rig
-    from mocapd.service.suits import load_suits
 
     plan = plan_rig(cfg)
     if not plan.synthetic:
-        load_suits(cfg.imu, Skeleton.from_height(1.75))
+        _suits(cfg)
     return plan
+
+
+def _suits(cfg: Config) -> list[Any]:
+    from mocapd.service.rig import rig_skeleton
+    from mocapd.service.suits import load_suits
+
+    return load_suits(cfg.imu, rig_skeleton(cfg))
 
 
 def _latency_text(latency_s: float | str) -> str:
@@ -58,12 +63,39 @@ def _latency_text(latency_s: float | str) -> str:
 
 
 def _rig_summary(cfg: Config) -> str:
-    cams = "; ".join(f"{c.name} ({describe(c)})" for c in cfg.cameras)
     d = cfg.daemon
+    if cfg.cameras:
+        cams = "; ".join(f"{c.name} ({describe(c)})" for c in cfg.cameras)
+        rig = f"{len(cfg.cameras)} camera(s): {cams}; {len(cfg.imu.ports)} serial IMU port(s)"
+    else:
+        rig = f"IMUs only (no cameras): {'; '.join(cfg.imu.sources())}; {len(cfg.imu.sensors)} sensor(s) assigned"
     return (
-        f"{len(cfg.cameras)} camera(s): {cams}; {len(cfg.imu.ports)} serial IMU port(s); output "
-        f"{d.output_rate_hz:g} Hz, latency {_latency_text(d.latency_s)}; status http://{d.http_host}:{d.http_port}/status"
+        f"{rig}; output {d.output_rate_hz:g} Hz, latency {_latency_text(d.latency_s)}; "
+        f"status http://{d.http_host}:{d.http_port}/status"
     )
+
+
+def _imu_notes(cfg: Config, path: object) -> list[str]:
+    """What an IMU-only rig still lacks before it streams a pose, each with the command that gives it."""
+    if cfg.cameras:
+        return []
+    notes = []
+    imu = cfg.imu
+    if not imu.sensors:
+        notes.append(
+            "[imu.assignment] is empty: say which sensor sits on which bone (`mocapd devices` lists Xsens ids; "
+            "SlimeVR trackers are listed under imu.slimevr.trackers in /status once `mocapd run` hears them)"
+        )
+    suits = _suits(cfg)
+    if suits:
+        names = ", ".join(f"{s.id} ({len(s.sensors)} sensors)" for s in suits)
+        notes.append(f"suits calibrated in {imu.calibration_dir}/: {names}")
+    else:
+        notes.append(
+            f"no suit is calibrated in {imu.calibration_dir}/ yet, so no pose is streamed: stand still in a T-pose and "
+            f"run `mocapd calibrate imu --config {path} --person NAME --facing-heading 0`"
+        )
+    return notes
 
 
 def _print_config_error(path: object, exc: ConfigError) -> None:
@@ -77,10 +109,13 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(path)
         check(cfg)
+        notes = _imu_notes(cfg, path)
     except ConfigError as exc:
         _print_config_error(path, exc)
         return 2
     print(f"{path}: ok ({_rig_summary(cfg)})")
+    for note in notes:
+        print(f"{path}: note: {note}")
     return 0
 
 
@@ -147,6 +182,10 @@ def cmd_detect_host(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     try:
         cfg = _load(args.config, args.http_port)
+        if args.imu_only:
+            from mocapd.service.demo import imu_only
+
+            return imu_only.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
         if args.synthetic:
             from mocapd.service.demo import synthetic
 
@@ -230,6 +269,9 @@ def register(subparsers: Any) -> None:
     demo.add_argument(
         "--synthetic", action="store_true", help="synthetic motion: simulated keypoints + Xsens IMUs on ptys"
     )
+    demo.add_argument("--imu-only", action="store_true",
+                      help="no camera: a simulated Xsens suit on ptys walking recorded motion drives the avatar alone "
+                      "(viewer; VRChat OSC when --config enables [udp.vrchat])")  # fmt: skip
     demo.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: until Ctrl-C)")
     demo.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     demo.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
