@@ -181,7 +181,9 @@ class ImuConfig(Section):
     def sources(self) -> list[str]:
         """The IMU inputs this section opens, one phrase each (empty: no IMU source): what ``check-config`` says a
         rig without cameras runs on."""
-        out = [f"Xsens serial port {p}" for p in self.ports]
+        ports = self.ports
+        many = f"{len(ports)} Xsens serial ports ({ports[0]} ... {ports[-1]})" if len(ports) > 2 else ""
+        out = [many] if many else [f"Xsens serial port {p}" for p in ports]
         if self.awinda.experimental:
             out.append(f"Awinda station {self.awinda.path} (experimental)")
         if self.slimevr.enabled:
