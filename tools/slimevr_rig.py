@@ -155,9 +155,14 @@ async def emulated_suit(rig: SlimeVrRig, port: int, period_s: float = 0.02) -> A
 
 
 @contextlib.asynccontextmanager
-async def emulated_trackers(world: SyntheticWorld, epoch_ns: int, port: int, drift_deg_per_min: np.ndarray | None = None,
-                            sent_log: list[dict[int, tuple[float, float, float, float]]] | None = None,
-                            period_s: float = 0.02) -> AsyncIterator[None]:  # fmt: skip
+async def emulated_trackers(
+    world: SyntheticWorld,
+    epoch_ns: int,
+    port: int,
+    drift_deg_per_min: np.ndarray | None = None,
+    sent_log: list[dict[int, tuple[float, float, float, float]]] | None = None,
+    period_s: float = 0.02,
+) -> AsyncIterator[None]:
     """The emulator against the SlimeVR server on loopback ``port``, one tracker sensor per sensor of ``world``'s
     first suit following its motion (world time 0 at ``epoch_ns``), until exit."""
     suit = world.suits[0]
