@@ -105,7 +105,8 @@ def _trackers(port: int, n: int, rate_hz: float, seconds: float, results: Any, s
             q = quats[k13, j]
             lin = accs[k13, j] - quat_rotate(quat_conjugate(q), up)
             w, x, y, z = (float(v) for v in q)
-            row.append(encode_packet(Rotation(0, (w, x, y, z), acc=tuple(float(v) for v in lin)), 0)[12:])
+            a = (float(lin[0]), float(lin[1]), float(lin[2]))
+            row.append(encode_packet(Rotation(0, (w, x, y, z), acc=a), 0)[12:])
         payloads.append(row)
     head = struct.Struct(">IQ")
     if streaming is not None:

@@ -139,18 +139,20 @@ class BatchReader:
                 return []
             raise OSError(err, os.strerror(err))
         offset = _realtime_offset_ns()
-        out = []
+        out: list[Datagram] = []
+        at = ctypes.string_at
         for i in range(n):
             m = self._msgs[i]
-            control = bytes(self._controls[i][: m.hdr.controllen])
-            out.append((bytes(self._bufs[i][: m.len]), _address(bytes(self._names[i])), _arrival(control, offset)))
+            control = at(ctypes.addressof(self._controls[i]), m.hdr.controllen)
+            name = at(ctypes.addressof(self._names[i]), 128)
+            out.append((at(ctypes.addressof(self._bufs[i]), m.len), _address(name), _arrival(control, offset)))
         return out
 
     def _read_python(self, timeout_s: float) -> list[Datagram]:
         ready, _, _ = select.select([self.sock], [], [], timeout_s)
         if not ready:
             return []
-        raw = []
+        raw: list[tuple[bytes, tuple[str, int], bytes | None]] = []
         while len(raw) < self.batch:
             try:
                 data, ancillary, _, addr = self.sock.recvmsg(MAX_DATAGRAM, CONTROL, socket.MSG_DONTWAIT)

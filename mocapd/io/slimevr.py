@@ -50,6 +50,7 @@ from mocapd.protocols.slimevr_server import (
     ServerOptions,
     SlimeVrServer,
     TrackerConnected,
+    TrackerGesture,
     TrackerRefused,
     TrackerTimedOut,
 )
@@ -128,6 +129,8 @@ class SlimeVrListener:
         self._inbox: deque[tuple[bytes, Address, int]] = deque()
         self._wake_pending = False
         self._closing = False
+        #: called with (what, sensor ids of the tracker) when a wearer asks a tracker for a heading reset
+        self.on_gesture: Callable[[str, list[str]], None] | None = None
         self.inbox_dropped = 0
         self.batches = 0
         self.largest_batch = 0
@@ -263,6 +266,13 @@ class SlimeVrListener:
                 log.warning("slimevr: tracker %s timed out", event.key)
             elif isinstance(event, TrackerRefused):
                 self.rejections.reject("tracker table full", "handshake from {}:{}".format(*event.address))
+            elif isinstance(event, TrackerGesture):
+                tracker = self.server.trackers.get(event.key)
+                sensors = [event.sensor] if event.sensor else [] if tracker is None else [
+                    tracker.sensor_id(i) for i in tracker.sensors]  # fmt: skip
+                log.info("slimevr: %s on tracker %s", event.kind, event.key)
+                if self.on_gesture is not None:
+                    self.on_gesture(f"{event.kind} on tracker {event.key}", sensors)
         transport, sock = self._transport, self._sock
         for data, address in self.server.datagrams_to_send():
             try:

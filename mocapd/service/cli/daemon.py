@@ -155,6 +155,40 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
 
 
+def cmd_reset_heading(args: argparse.Namespace) -> int:
+    """``mocapd reset-heading``: ask the running daemon (``POST /heading/reset``) for a heading reset."""
+    import time
+    import urllib.error
+    import urllib.parse
+    import urllib.request
+
+    path = args.config if args.config is not None else DEFAULT_CONFIG
+    try:
+        cfg = _load(args.config, args.http_port)
+    except ConfigError as exc:
+        _print_config_error(path, exc)
+        return 2
+    d = cfg.daemon
+    url = f"http://{d.http_host}:{d.http_port}/heading/reset" + (
+        f"?{urllib.parse.urlencode({'suit': args.suit})}" if args.suit else "")  # fmt: skip
+    if args.delay > 0:
+        print(f"stand straight, facing forward (the way you faced at calibration): reset in {args.delay:g} s",
+              flush=True)  # fmt: skip
+        time.sleep(args.delay)
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, method="POST"), timeout=10) as r:
+            result = json.loads(r.read())
+    except urllib.error.HTTPError as exc:
+        print(f"error: {json.loads(exc.read() or b'{}').get('error', exc)}", file=sys.stderr)
+        return 2
+    except (urllib.error.URLError, OSError) as exc:
+        print(f"error: no daemon answers at {url} ({getattr(exc, 'reason', exc)}): start one with `mocapd run "
+              f"--config FILE`, or name its port (--http-port, --config)", file=sys.stderr)  # fmt: skip
+        return 2
+    print(json.dumps(result, indent=2))
+    return 0
+
+
 def cmd_detect_host(args: argparse.Namespace) -> int:
     path = args.config
     try:
@@ -283,6 +317,15 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--speed", type=float, default=1.0,
                       help="camera rig: video playback speed (default 1, their pace; < 1: slow motion)")  # fmt: skip
     demo.set_defaults(func=cmd_demo, fast_exit=True)
+
+    reset = subparsers.add_parser(
+        "reset-heading", help="heading reset of the running daemon's suits: the wearer stands straight facing forward "
+        "(IMUs without cameras drift in heading; POST /heading/reset, docs/vr.md)")  # fmt: skip
+    reset.add_argument("--config", type=Path, default=None, help="the daemon's config file (for its http_port)")
+    reset.add_argument("--http-port", type=int, default=None, help="the daemon's status port (default: the config's)")
+    reset.add_argument("--suit", default=None, help="only this suit (default: every suit)")
+    reset.add_argument("--delay", type=float, default=0.0, help="seconds to wait first, to stand straight (default 0)")
+    reset.set_defaults(func=cmd_reset_heading)
 
     check_ = subparsers.add_parser("check-config", help="validate a config file and its rig, and say what is wrong")
     check_.add_argument("path", nargs="?", type=Path, default=None, help="config file (default: the shipped one)")

@@ -117,6 +117,10 @@ class SlimeVrSection(Section):
         default_factory=dict
     )
     """``"<MAC>/<sensor index>"`` -> bone."""
+    reset_taps: int = Field(2, ge=0, le=5)
+    """Taps on the chest (or hips) tracker that ask for a heading reset, as in the SlimeVR server (0: off)."""
+    reset_delay_s: float = Field(1.0, ge=0.0, le=10.0)
+    """A reset asked on a tracker (taps, its button) happens this long after: the hand goes back down first."""
 
     def options(self) -> SlimeVrConfig:
         return SlimeVrConfig(enabled=self.enabled, host=self.host, port=self.port, assignment=dict(self.assignment))
