@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.imu_calibration import ImuCalibration, calibrate_recording, parse_assignment
+from mocapd.core.imu_calibration import ImuCalibration, calibrate_recording, parse_assignment, stillest_common_window
 from mocapd.errors import CalibrationError, ConfigError
 from mocapd.io.session import MANIFEST, Session, write_json_atomic
 
@@ -82,11 +82,33 @@ def calibrate_session(
     bones = parse_assignment(assignment if assignment is not None else imu_cfg.get("assignment", {}))
     if not bones:
         raise ConfigError(f"{session.path}: no sensor is assigned to a bone ([imu.assignment] of its config)")
-    calib, window = calibrate_recording(
-        person, session_samples(session), bones, facing_heading_deg=facing_heading_deg, facing_from=facing_from,
-        world_heading=world_heading, window_s=window_s, span=span, pose=pose,
-    )  # fmt: skip
+    samples = session_samples(session)
+    try:
+        calib, window = calibrate_recording(
+            person, samples, bones, facing_heading_deg=facing_heading_deg, facing_from=facing_from,
+            world_heading=world_heading, window_s=window_s, span=span, pose=pose,
+        )  # fmt: skip
+    except CalibrationError as exc:
+        raise CalibrationError(_from_a_recording(str(exc), session, samples, bones, window_s, span, pose)) from None
     return SessionCalibration(calib, window, pose)
+
+
+def _from_a_recording(message: str, session: Session, samples: dict[str, Any], bones: dict[str, str],
+                      window_s: float, span: tuple[float, float] | None, pose: str) -> str:  # fmt: skip
+    """A still-window refusal as advice for a recording: it cannot be repeated, but another moment of it can be
+    chosen (``--window START:END``); and it names the posture that was assumed, not always the T-pose."""
+    if "stand still and repeat" not in message:
+        return message
+    try:
+        start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span)
+        where = f"in the stillest {window_s:g} s of the recording ({start:.1f}-{end:.1f} s)"
+    except CalibrationError:
+        where = "in the stillest window of the recording"
+    posture = {"t-pose": "a T-pose", "arms-down": "standing, arms down"}.get(pose, pose)
+    return (message.replace("during the T-pose", where).replace(
+        "stand still and repeat",
+        f"choose a moment when the subject stands still ({posture}): `mocapd calibrate imu --from {session.path} "
+        f"--window START:END` (seconds of the session; `mocapd session {session.path}` shows its length)"))  # fmt: skip
 
 
 def store_in_session(session: Session, suit: str, calib: ImuCalibration, info: dict[str, Any]) -> None:
