@@ -46,7 +46,7 @@ def check(cfg: Config) -> RigPlan:
     from mocapd.service.rig import plan_rig
 
     plan = plan_rig(cfg)
-    if not plan.synthetic:
+    if not plan.synthetic or cfg.imu.sources():  # a synthetic rig loads suits only for IMU inputs of its own
         _suits(cfg)
     return plan
 
