@@ -33,7 +33,7 @@ from mocapd.core.rotations import (
 from mocapd.core.skeleton import BONE_INDEX
 from mocapd.core.taps import TapDetector, TapOptions
 from mocapd.core.yaw_drift import StillDrift
-from mocapd.pipeline.scheduler import PoseFrame
+from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols.slimevr import HANDSHAKE_REPLY, Handshake, Rotation, SensorInfo, Tap, UserAction, encode_packet
 from mocapd.service import assembly
 from mocapd.service.assembly import RunOptions
@@ -161,20 +161,25 @@ class Trackers:
             s.close()
 
 
-def _headings(frame: PoseFrame, kin: Kinematics) -> np.ndarray:
-    """The solved suit bones' headings (deg): the reset yaw each would still need."""
-    (p,) = [p for p in frame.people if p.suit == "walker"]
+def _walker(frame: PoseFrame) -> PersonPose | None:
+    return next((p for p in frame.people if p.suit == "walker"), None)
+
+
+def _headings(rec: Recorder, kin: Kinematics) -> np.ndarray:
+    """The solved suit bones' headings (deg) in the newest frame that has the wearer (on a loaded machine a frame
+    may come without: the IMU samples of its instant arrived late): the reset yaw each would still need."""
+    p = next(w for f in reversed(rec.frames) if (w := _walker(f)) is not None)
     q = quat_from_matrix(kin.forward(p.theta).rotations[[BONE_INDEX[b] for b in IMU_SET_13]])
     out: np.ndarray = -np.degrees(reset_yaws(q))
     return out
 
 
 async def _settled(rec: Recorder, kin: Kinematics, after: int, frames: int = 20) -> np.ndarray:
-    """The headings once ``frames`` frames after frame number ``after`` have come."""
-    async with asyncio.timeout(20):
-        while not rec.frames or rec.frames[-1].frame < after + frames or not rec.frames[-1].people:
+    """The headings once ``frames`` frames after frame number ``after`` have come, the last with the wearer."""
+    async with asyncio.timeout(30):
+        while not rec.frames or rec.frames[-1].frame < after + frames or _walker(rec.frames[-1]) is None:
             await asyncio.sleep(0.02)
-    return _headings(rec.frames[-1], kin)
+    return _headings(rec, kin)
 
 
 def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -> None:
@@ -222,7 +227,7 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -
             async def check(ask: Any, source: str) -> Any:
                 trackers.drift += 7.0  # they drift on between resets
                 await asyncio.sleep(0.3)
-                assert np.abs(_headings(rec.frames[-1], kin)).max() > 5.0
+                assert np.abs(_headings(rec, kin)).max() > 5.0
                 n = rec.frames[-1].frame
                 result = await ask()
                 after = await _settled(rec, kin, n + 10)

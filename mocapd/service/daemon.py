@@ -186,7 +186,7 @@ class Daemon:
         self.resets = ResetHistory(since_ns=clock())
         self.reset_log: list[dict[str, Any]] = []
         self.still_drift = StillDrift()
-        self._reset_timer: asyncio.TimerHandle | None = None
+        self._reset_timers: dict[str | None, asyncio.TimerHandle] = {}  # per suit: a reset asked, still waiting
         self._watch_gestures(config, rig.suits)
         #: more sections of /status (name -> provider), e.g. the camera demo's fake cameras
         self.status_extras: dict[str, Callable[[], Any]] = {}
@@ -276,24 +276,25 @@ class Daemon:
         self.reset_log = [*self.reset_log[-9:], entry]
         for sid, d in done.items():
             worst = max((abs(v) for v in d["corrections_deg"].values()), default=0.0)
-            log.warning("heading reset (%s): suit %s, %d sensor(s) turned, at most %.1f deg%s", source, sid,
+            log.info("heading reset (%s): suit %s, %d sensor(s) turned, at most %.1f deg%s", source, sid,
                         len(d["corrections_deg"]), worst, f"; no recent sample: {d['no_recent_sample']}"
                         if d["no_recent_sample"] else "")  # fmt: skip
         return entry
 
     def request_reset(self, suit: str | None, source: str, delay_s: float) -> None:
-        """A heading reset of ``suit`` in ``delay_s`` (a gesture: the hand goes back down first); a later request
-        replaces one still waiting."""
-        if self._reset_timer is not None:
-            self._reset_timer.cancel()
+        """A heading reset of ``suit`` in ``delay_s`` (a gesture: the hand goes back down first); a later request for
+        the same suit replaces one still waiting."""
+        waiting = self._reset_timers.pop(suit, None)
+        if waiting is not None:
+            waiting.cancel()
         loop = asyncio.get_running_loop()
 
         def fire() -> None:
-            self._reset_timer = None
+            self._reset_timers.pop(suit, None)
             with contextlib.suppress(InputError):  # the suit's sensors are gone: nothing to reset
                 self.reset_heading(suit, source)
 
-        self._reset_timer = loop.call_later(delay_s, fire)
+        self._reset_timers[suit] = loop.call_later(delay_s, fire)
 
     def _watch_gestures(self, config: Config, suits: list[Suit]) -> None:
         """Heading resets asked on SlimeVR trackers: the firmware's reset button and double tap (any tracker of a
