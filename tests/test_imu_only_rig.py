@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from pythonosc.osc_bundle import OscBundle
 from websockets.asyncio.client import connect
 
@@ -33,7 +34,7 @@ def _toml(value: Any) -> str:
 
 
 def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_and_vrchat(
-    tmp_path: Path, capsys: Any
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     osc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     osc.bind(("127.0.0.1", 0))
@@ -139,7 +140,9 @@ async def _stream(
     return frames, bundles
 
 
-def test_check_config_of_a_tracker_rig_names_what_is_still_missing(tmp_path: Path, capsys: Any) -> None:
+def test_check_config_of_a_tracker_rig_names_what_is_still_missing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """SlimeVR trackers switched on, nothing assigned or calibrated yet: the rig is valid (run it to see the
     trackers), and check-config says what is missing with the command that gives it."""
     config = tmp_path / "trackers.toml"
@@ -149,3 +152,30 @@ def test_check_config_of_a_tracker_rig_names_what_is_still_missing(tmp_path: Pat
     assert out[0].startswith(f"{config}: ok (IMUs only (no cameras): SlimeVR server on udp 127.0.0.1:6969;"), out
     assert "[imu.assignment] is empty" in out[1] and "imu.slimevr.trackers in /status" in out[1]
     assert f"run `mocapd calibrate imu --config {config} --person NAME --facing-heading 0`" in out[2]
+
+
+def test_demo_imu_only_runs_a_simulated_suit_to_the_viewer_and_vrchat(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`mocapd demo --imu-only`, as the README has it, with a config that enables VRChat's OSC stream."""
+    osc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    osc.bind(("127.0.0.1", 0))
+    osc.settimeout(10)
+    config = tmp_path / "vr.toml"
+    config.write_text(
+        f'[websocket]\nport = 0\n[udp.vrchat]\nenabled = true\ndestination = "127.0.0.1:{osc.getsockname()[1]}"\n',
+        encoding="utf-8",
+    )
+    try:
+        assert main(["demo", "--imu-only", "--seconds", "4", "--http-port", "0", "--config", str(config)]) == 0
+        bundle = osc.recv(65536)
+    finally:
+        osc.close()
+    out = capsys.readouterr().out
+    assert "13 simulated Xsens IMUs on pseudo-terminals" in out and "viewer http://127.0.0.1:" in out, out
+    assert "VRChat OSC trackers to 127.0.0.1:" in out
+    done = next(line for line in out.splitlines() if line.startswith("done: "))
+    frames = int(done.split()[1])
+    error_mm = float(done.split("median ")[1].split()[0])
+    assert frames > 0 and error_mm < 80.0, done  # the suit poses the walker (roots put together)
+    assert any(m.address == "/tracking/trackers/1/position" for m in OscBundle(bundle))
