@@ -19,7 +19,9 @@ def test_shipped_config_is_valid_and_check_config_asks_for_cameras(
     assert cfg.daemon.output_rate_hz == 60.0 and cfg.daemon.http_host == "127.0.0.1" and cfg.cameras == ()
     # Valid, but it describes no rig: what `mocapd run` would say, said before starting anything.
     assert main(["check-config"]) == 2
-    assert f"{DEFAULT_CONFIG}: error: no cameras: add [[cameras]]" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err  # one line, exit 2
+    assert f"{DEFAULT_CONFIG}: error: no cameras and no IMU source: add [[cameras]] tables or an IMU source" in err
     config = write(tmp_path / "synthetic.toml", synthetic_toml())
     assert main(["check-config", str(config)]) == 0
     assert f"{config}: ok (4 camera(s): cam0 (synthetic simulated);" in capsys.readouterr().out

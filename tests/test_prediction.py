@@ -160,6 +160,22 @@ def test_predictor_leaves_out_a_stalled_sensor_and_keeps_the_delayed_pose_withou
     assert short.predict("c", theta, PARENTS, t, state).t_ns == t + 50 * MS
 
 
+def test_predictor_leaves_out_a_sensor_whose_buffer_has_a_hole_at_the_new_instant() -> None:
+    """A sensor newer than the solve whose buffer cannot be interpolated at the instant carried to (a dropout, as a
+    SlimeVR tracker's on Wi-Fi) is left out; the others carry the pose (this raised IndexError in a live daemon)."""
+    world = SyntheticWorld(1, 1, 1, motion="recorded")
+    pred = PosePredictor(PredictionOptions(output="predicted"))
+    t, now = 1 * S, 1 * S + 150 * MS
+    theta = world.theta_at(0, t / 1e9)
+    suit = TruthSuit(world)
+    head = IMU_SET_13.index("Head")
+    buf = suit.buffers[head] = RingBuffer(1024, IMU_FIELDS, max_gap_ns=50 * MS)
+    suit.advance(now, stopped={head: t + 10 * MS})
+    buf.push(now + 10 * MS, buf.rows()[-1].copy())  # the head sensor is back after a hole longer than max_gap
+    p = pred.predict("a", theta, PARENTS, t, suit.state(t))
+    assert p.t_ns == now and p.sensors == 12
+
+
 def test_prediction_options_are_validated() -> None:
     with pytest.raises(InputError, match="output"):
         PredictionOptions(output="future")

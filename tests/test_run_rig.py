@@ -273,7 +273,7 @@ BAD_RIGS: list[tuple[str, str, str, str]] = [
     ("no such interface",
      GIGE.format(name="cam01", w=544, h=960).replace('address = "127.0.0.1"', 'serial = "X"\ninterface = "gige9"'),
      "", "cameras[0].interface = 'gige9': no such network interface"),
-    ("no cameras", "", "", "no cameras: add [[cameras]]"),
+    ("no cameras", "", "", "no cameras and no IMU source: add [[cameras]]"),
 ]  # fmt: skip
 
 

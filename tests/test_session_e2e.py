@@ -170,7 +170,9 @@ def test_resolve_and_export_commands_round_trip_through_the_bvh_reader(
         rows = list(csv.reader(fh))
     assert rows[0][:7] == ["frame", "time_s", "t_solve_ns", "subject", "root_x", "root_y", "root_z"]
     assert len(rows) - 1 == track.thetas.shape[0] and rows[1][3] == "suit:suit0"
-    positions = np.array([[float(v) for v in r[-63:]] for r in rows[1:]]).reshape(-1, 21, 3)
+    first = rows[0].index("Hips_x")  # the 63 joint coordinates, then source_s
+    assert rows[0][-1] == "source_s" and len(rows[0]) == first + 64
+    positions = np.array([[float(v) for v in r[first : first + 63]] for r in rows[1:]]).reshape(-1, 21, 3)
     assert np.abs(positions - fk.positions).max() < 1e-6
 
     assert cli.main(["replay", str(path), "--resolved", "--speed", "50"]) == 0

@@ -24,9 +24,11 @@ from mocapd.protocols.slimevr import (
     SensorInfo,
     ServerFeature,
     SignalStrength,
+    Tap,
     Temperature,
     TrackerError,
     Tx,
+    UserAction,
     decode_datagram,
     encode_bundle,
     encode_feature_flags,
@@ -60,7 +62,9 @@ GOLDEN: dict[str, tuple[str, Packet]] = {
     # sensor 0, Q15 quaternion x y z w = 0 0 0 0x7fff, Q7 acceleration 128 -64 0 → 1.0 -0.5 0.0 m/s²
     "rotation + acceleration": ("00000017" + N5 + "00" + "0000" * 3 + "7fff" + "0080" + "ffc0" + "0000",
                                 Rotation(0, (1.0, 0.0, 0.0, 0.0), acc=(1.0, -0.5, 0.0))),
-    "tap (ignored)": ("0000000d" + N5 + "0001", Ignored(Tx.TAP)),
+    # sensor 1, flags 0x41: the firmware's tap detector saw a double tap (bit 6)
+    "tap": ("0000000d" + N5 + "0141", Tap(1, 0x41)),
+    "user action": ("00000015" + N5 + "03", UserAction(3)),  # a yaw reset asked on the tracker
     "serial (ignored)": ("0000000b" + N5 + "00000002" + "6869", Ignored(Tx.SERIAL)),
 }  # fmt: skip
 

@@ -53,7 +53,10 @@ async def test_emulated_slimevr_suit_drives_the_solved_skeleton() -> None:
             assert matched >= 40  # the oldest rows may predate the kept history of what was sent
     finally:
         d.request_stop()
-        assert await asyncio.wait_for(task, 10) == 0
+        try:
+            assert await asyncio.wait_for(task, 10) == 0
+        finally:
+            rig.close()
 
     # The suit drives a person whose keypoint sites follow the truth (every frame since it first bound; on a loaded
     # machine the binding can come and go, which the suit binder's own tests cover).

@@ -141,20 +141,23 @@ async def run(args: argparse.Namespace) -> dict[str, Any]:
     rig = build_slimevr_daemon(cfg, cameras=args.cameras, drift_deg_per_min=drift, sinks=[probe], seed=args.seed)
     probe.rig = rig
     d = rig.daemon
-    task = asyncio.create_task(d.run())
-    await asyncio.wait_for(d.ready.wait(), 300)
-    while d.imu.slimevr is None or d.imu.slimevr.port == 0:
-        await asyncio.sleep(0.05)
-    t_start = time.monotonic()
-    proc = emulator_process(rig, d.imu.slimevr.port, args.seconds + 5, cameras=args.cameras, motion="procedural",
-                            seed=args.seed, pace=args.emulator_pace)  # fmt: skip
-    await asyncio.sleep(args.seconds)
-    status = d.status()
-    proc.terminate()
-    proc.join(5)
-    d.request_stop()
-    await asyncio.wait_for(task, 10)
-    elapsed = time.monotonic() - t_start
+    try:
+        task = asyncio.create_task(d.run())
+        await asyncio.wait_for(d.ready.wait(), 300)
+        while d.imu.slimevr is None or d.imu.slimevr.port == 0:
+            await asyncio.sleep(0.05)
+        t_start = time.monotonic()
+        proc = emulator_process(rig, d.imu.slimevr.port, args.seconds + 5, cameras=args.cameras, motion="procedural",
+                                seed=args.seed, pace=args.emulator_pace)  # fmt: skip
+        await asyncio.sleep(args.seconds)
+        status = d.status()
+        proc.terminate()
+        proc.join(5)
+        d.request_stop()
+        await asyncio.wait_for(task, 10)
+        elapsed = time.monotonic() - t_start
+    finally:
+        rig.close()
     (tracker,) = status["imu"]["slimevr"]["trackers"]
     return {
         "benchmark": "vr_drift",

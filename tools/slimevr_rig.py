@@ -1,6 +1,10 @@
 """The synthetic rig with SlimeVR trackers: the daemon's SlimeVR server fed by the PyPI ``slimevr-tracker-emulator``
 (a dev dependency, hence here and not in the package), one emulated tracker carrying one sensor per suit bone.
 
+The rig is a config (:func:`slimevr_rig_config`: ``[imu.slimevr]`` with the suit's sensors assigned, its
+calibration file in a calibration directory, synthetic cameras or none) built by the one assembly path
+(:func:`mocapd.service.assembly.assemble`), as ``mocapd run`` builds a user's.
+
 The emulated sensors report what the synthetic world's suit sensors would (:meth:`SyntheticWorld.imu_motion`,
 ENU taken as the trackers' +Z-up frame), optionally with a yaw drift of their own (degrees per minute about the
 vertical, as gyroscope bias makes 6-axis trackers drift). The emulator sends at most about ten updates a second
@@ -13,13 +17,17 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import io
+import json
 import math
 import multiprocessing
 import multiprocessing.process
+import shutil
+import tempfile
 import time
 import types
 from collections.abc import AsyncIterator, Coroutine
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,11 +43,11 @@ from slimevr_tracker_emulator.tracker_types import (
 
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.rotations import quat_conjugate, quat_from_rotvec, quat_multiply, quat_rotate
-from mocapd.io.prior import resolve_prior
-from mocapd.pipeline.scheduler import Suit
+from mocapd.service.assembly import Assembly, RunOptions, assemble
 from mocapd.service.config import Config
-from mocapd.service.daemon import Daemon, PoseSink, Rig
-from mocapd.sim.world import SuitTruth, SyntheticKeypointSource, SyntheticWorld
+from mocapd.service.config.cameras import CalibrationConfig, parse_cameras
+from mocapd.service.daemon import Daemon, PoseSink
+from mocapd.sim.world import SuitTruth, SyntheticWorld
 
 #: The MAC a SlimeVR server reads from the emulator's handshake (its firmware string carries a NUL the length byte
 #: does not count, so the six 0x78 bytes are read one byte early).
@@ -64,11 +72,42 @@ def slimevr_calibration(world: SyntheticWorld, suit: SuitTruth) -> ImuCalibratio
 
 @dataclass
 class SlimeVrRig:
-    daemon: Daemon
+    """The rig as a config (what a user of SlimeVR trackers writes: ``[imu.slimevr]`` with the assignment, a
+    calibration directory, the synthetic cameras or none), the daemon assembled from it, and the world its
+    emulated trackers follow. :meth:`close` after the daemon stopped."""
+
+    config: Config
+    assembly: Assembly
     world: SyntheticWorld
     epoch_ns: int
     drift_deg_per_min: np.ndarray  # (n_sensors,)
+    workdir: Path
     sent: list[dict[int, tuple[float, float, float, float]]] = field(default_factory=list)
+
+    @property
+    def daemon(self) -> Daemon:
+        return self.assembly.daemon
+
+    def close(self) -> None:
+        self.assembly.close()
+        shutil.rmtree(self.workdir, ignore_errors=True)
+
+
+def slimevr_rig_config(base: Config, calibration: ImuCalibration, calibration_dir: Path, *, cameras: int,
+                       motion: str, seed: int) -> Config:  # fmt: skip
+    """``base`` as the rig of one person wearing the emulated SlimeVR suit: ``[imu.slimevr]`` on a free loopback
+    port with the suit's sensors assigned, its calibration in ``calibration_dir``, and ``cameras`` synthetic
+    cameras seeing the same person (``[synthetic]``: one person, no simulated Xsens suit), or none (IMU only)."""
+    folder = Path(calibration_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"{calibration.person}.imu.json").write_text(json.dumps(calibration.to_json_dict()), encoding="utf-8")
+    slimevr = base.imu.slimevr.model_copy(update={"enabled": True, "port": 0, "assignment": dict(calibration.bones)})
+    imu = base.imu.model_copy(update={"slimevr": slimevr, "ports": (), "assignment": {}, "imu_set": "",
+                                      "calibration_dir": str(folder)})  # fmt: skip
+    tables = [{"name": f"cam{i}", "source": "synthetic"} for i in range(cameras)]
+    synthetic = base.synthetic.model_copy(update={"people": 1, "suits": 0, "motion": motion, "seed": seed})
+    return base.model_copy(update={"imu": imu, "cameras": parse_cameras(tables), "calibration": CalibrationConfig(),
+                                   "synthetic": synthetic})  # fmt: skip
 
 
 def build_slimevr_daemon(
@@ -80,18 +119,22 @@ def build_slimevr_daemon(
     sinks: list[PoseSink] | None = None,
     seed: int = 0,
 ) -> SlimeVrRig:
-    """One person in a ring of ``cameras`` synthetic cameras wearing a 13-sensor SlimeVR suit (built, not run)."""
+    """One person wearing a 13-sensor SlimeVR suit, in a ring of ``cameras`` synthetic cameras (0: none), assembled
+    from its config by the one assembly path (built, not run)."""
     world = SyntheticWorld(cameras, 1, 1, seed=seed, motion=motion)
     suit = world.suits[0]
-    epoch = time.monotonic_ns()
-    slimevr = config.imu.slimevr.model_copy(update={"enabled": True, "port": 0})
-    cfg = config.model_copy(update={"imu": config.imu.model_copy(update={"slimevr": slimevr, "ports": ()})})
-    suits = [Suit.from_calibration(suit.id, slimevr_calibration(world, suit), world.skeleton)]
-    sources = [SyntheticKeypointSource(world, c, epoch_ns=epoch, seed=seed) for c in range(len(world.cameras))]
-    rig = Rig(world.cameras, list(sources), world.skeleton, world.targets, resolve_prior(cfg.solver.prior), suits)
-    daemon = Daemon(cfg, rig, sinks=list(sinks or []))
+    workdir = Path(tempfile.mkdtemp(prefix="mocapd-slimevr-rig-"))
+    try:
+        cfg = slimevr_rig_config(config, slimevr_calibration(world, suit), workdir / "calibration", cameras=cameras,
+                                 motion=motion, seed=seed)  # fmt: skip
+        built = assemble(cfg, RunOptions(sinks=list(sinks or [])))
+    except BaseException:
+        shutil.rmtree(workdir, ignore_errors=True)
+        raise
+    # The synthetic cameras' world starts at the assembly's epoch; without cameras the trackers start now.
+    epoch = built.built.epoch_ns if built.built.world is not None else time.monotonic_ns()
     drift = np.zeros(len(suit.sensor_ids)) if drift_deg_per_min is None else np.asarray(drift_deg_per_min, float)
-    return SlimeVrRig(daemon, world, epoch, drift)
+    return SlimeVrRig(cfg, built, world, epoch, drift, workdir)
 
 
 def _sensor(k: int) -> SensorData:
@@ -107,15 +150,24 @@ _OLD_FIRMWARE_ACC = np.array([math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)])
 @contextlib.asynccontextmanager
 async def emulated_suit(rig: SlimeVrRig, port: int, period_s: float = 0.02) -> AsyncIterator[None]:
     """Run the emulator against ``port`` with every suit sensor following the world (and its drift) until exit."""
-    async with _emulated(rig.world, rig.epoch_ns, rig.drift_deg_per_min, port, rig.sent, period_s):
+    async with emulated_trackers(rig.world, rig.epoch_ns, port, rig.drift_deg_per_min, rig.sent, period_s):
         yield
 
 
 @contextlib.asynccontextmanager
-async def _emulated(world: SyntheticWorld, epoch_ns: int, drift_deg_per_min: np.ndarray, port: int,
-                    sent_log: list[dict[int, tuple[float, float, float, float]]],
-                    period_s: float) -> AsyncIterator[None]:  # fmt: skip
+async def emulated_trackers(
+    world: SyntheticWorld,
+    epoch_ns: int,
+    port: int,
+    drift_deg_per_min: np.ndarray | None = None,
+    sent_log: list[dict[int, tuple[float, float, float, float]]] | None = None,
+    period_s: float = 0.02,
+) -> AsyncIterator[None]:
+    """The emulator against the SlimeVR server on loopback ``port``, one tracker sensor per sensor of ``world``'s
+    first suit following its motion (world time 0 at ``epoch_ns``), until exit."""
     suit = world.suits[0]
+    drift_deg_per_min = np.zeros(len(suit.sensor_ids)) if drift_deg_per_min is None else drift_deg_per_min
+    sent_log = [] if sent_log is None else sent_log
     quats, accs = world.imu_motion(suit, RATE_HZ)  # (n, m, 4), (n, m, 3): ENU orientation, specific force
     emu = SlimeVRTrackerEmulatorAsync()
     for k in range(len(suit.sensor_ids)):
@@ -167,7 +219,7 @@ def _child(port: int, epoch_ns: int, cameras: int, motion: str, seed: int, drift
         emulator_module.asyncio = types.SimpleNamespace(**{**vars(asyncio), "sleep": sleep})
 
     async def main() -> None:
-        async with _emulated(world, epoch_ns, np.array(drift), port, [], 0.01):
+        async with emulated_trackers(world, epoch_ns, port, np.array(drift), [], 0.01):
             await asyncio.sleep(seconds)
 
     with contextlib.redirect_stdout(io.StringIO()):  # the emulator prints every packet it does not expect

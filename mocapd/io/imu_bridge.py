@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from mocapd.errors import ConfigError, DeviceError
+from mocapd.io.device_state import OpenState
 from mocapd.io.rejections import Rejections
 from mocapd.io.xsens_serial import ImuSample
 from mocapd.protocols.imu_bridge import decode
@@ -74,6 +75,13 @@ class ImuBridgeListener:
         self._on_sample = on_sample
         self._clock = clock
         self._transport: asyncio.DatagramTransport | None = None
+        self._bind_error = ""
+
+    def open_state(self) -> OpenState:
+        """Whether the socket has been bound (what the daemon waits for before READY)."""
+        if self._transport is not None:
+            return OpenState("open", "")
+        return OpenState("failed", self._bind_error) if self._bind_error else OpenState("opening", "")
 
     async def start(self) -> int:
         """Bind and start receiving; returns the bound port (useful with port 0)."""
@@ -84,7 +92,8 @@ class ImuBridgeListener:
                 local_addr=(self.host, self.port),
             )
         except OSError as exc:
-            raise DeviceError(f"imu bridge: cannot bind udp {self.host}:{self.port}: {exc}") from exc
+            self._bind_error = f"imu bridge: cannot bind udp {self.host}:{self.port}: {exc}"
+            raise DeviceError(self._bind_error) from exc
         self._transport = transport
         sockname = transport.get_extra_info("sockname")
         self.port = int(sockname[1])

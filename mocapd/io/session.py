@@ -329,6 +329,10 @@ class Session:
             manifest = json.loads(where.read_bytes().decode("utf-8"))
         except FileNotFoundError as exc:
             raise InputError(f"{self.path} is not a session directory (no {MANIFEST})") from exc
+        except NotADirectoryError:
+            hint = (f": a pose stream written by `mocapd resolve SESSION -o {self.path}`? Give its session and "
+                    f"`--poses {self.path}`" if self.path.suffix == SUFFIX else "")  # fmt: skip
+            raise InputError(f"{self.path} is a file, not a session directory{hint}") from None
         except UnicodeDecodeError as exc:
             raise InputError(f"{where}: damaged: byte {exc.start} is not UTF-8 (a manifest is JSON text)") from None
         except json.JSONDecodeError as exc:
@@ -347,20 +351,20 @@ class Session:
     def closed_cleanly(self) -> bool:
         return bool(self.manifest.get("closed"))
 
-    def _records(self, stream: str, rtype: int) -> Iterator[Record]:
-        records, report = read_stream(self.path / f"{stream}{SUFFIX}")
+    def _records(self, stream: str, rtype: int, path: Path | None = None) -> Iterator[Record]:
+        records, report = read_stream(path if path is not None else self.path / f"{stream}{SUFFIX}")
         self.reports[stream] = report
         return (r for r in records if r.rtype == rtype)
 
     def has_stream(self, stream: str) -> bool:
         return (self.path / f"{stream}{SUFFIX}").exists()
 
-    def _decoded(self, stream: str, rtype: int, decode: Callable[[bytes], T]) -> list[T]:
+    def _decoded(self, stream: str, rtype: int, decode: Callable[[bytes], T], path: Path | None = None) -> list[T]:
         """Every record of ``rtype`` in ``stream``, decoded; a payload that does not decode (its CRC intact: a
         record written by something else, or a CRC collision) is counted in the stream's report and skipped, as a
         corrupt record is."""
         out: list[T] = []
-        records = self._records(stream, rtype)
+        records = self._records(stream, rtype, path)
         report = self.reports[stream]
         for r in records:
             try:
@@ -416,6 +420,17 @@ class Session:
             what = "empty (zero length)" if where.stat().st_size == 0 else f"no intact pose in {report.records} records"
             hint = " (an imported IMU session: run `mocapd resolve` first)" if "imported" in self.manifest else ""
             raise InputError(f"{where}: {what}: nothing to read{hint}")
+        return frames
+
+    def require_poses_file(self, path: str | Path) -> list[PoseRecord]:
+        """The frames of a pose stream file outside the session (``mocapd resolve SESSION -o FILE``), on this
+        session's rig; :class:`~mocapd.errors.InputError` naming it when it is missing or holds no pose."""
+        where = Path(path)
+        if not where.is_file():
+            raise InputError(f"{where}: no such pose stream file (`mocapd resolve {self.path} -o {where}` writes one)")
+        frames = self._decoded(where.name.removesuffix(SUFFIX), T_POSE, decode_pose, where)
+        if not frames:
+            raise InputError(f"{where}: no intact pose: nothing to read (not a pose stream of `mocapd resolve -o`?)")
         return frames
 
     def recovery_lines(self) -> list[str]:

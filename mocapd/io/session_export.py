@@ -10,9 +10,15 @@ CSV columns (one row per output frame, header row first; lengths in metres, quat
     frame, time_s, t_solve_ns, subject, root_x, root_y, root_z,
     <Bone>_qw, <Bone>_qx, <Bone>_qy, <Bone>_qz    for the 21 bones in skeleton order (local rotations)
     <Bone>_x, <Bone>_y, <Bone>_z                  for the 21 bones in skeleton order (global joint positions)
+    source_s                                      (last, so that the columns before it keep their places)
 
 ``time_s`` is seconds since the first exported frame, ``t_solve_ns`` the host-clock instant it stands for (the
-solve time; in a session recorded with predicted output, the instants the suit wearer's poses were carried to).
+solve time; in a session recorded with predicted output, the instants the suit wearer's poses were carried to),
+``source_s`` seconds since the session began (a recorded session: its start; an imported take: its recording's
+first sample, so a file's sample row ``k`` at update rate ``r`` is the row with ``source_s = k / r`` when no
+sample was dropped). A bone's joint position is where the bone starts: the joint that joins it to its parent
+(``Hips`` is the root, ``LeftLowerLeg`` the left knee). World frame: right-handed, +Y up, metres, floor at y = 0,
++Z where the subject faced at calibration (or magnetic north).
 """
 
 from __future__ import annotations
@@ -115,11 +121,13 @@ def csv_header() -> list[str]:
     cols = ["frame", "time_s", "t_solve_ns", "subject", "root_x", "root_y", "root_z"]
     cols += [f"{b}_{c}" for b in BONE_NAMES for c in ("qw", "qx", "qy", "qz")]
     cols += [f"{b}_{c}" for b in BONE_NAMES for c in ("x", "y", "z")]
-    return cols
+    return [*cols, "source_s"]
 
 
-def write_csv(path: str | Path, skeleton: Skeleton, track: SubjectTrack) -> int:
-    """Write ``track`` as CSV (columns in the module docstring); returns the row count."""
+def write_csv(path: str | Path, skeleton: Skeleton, track: SubjectTrack, origin_ns: int | None = None) -> int:
+    """Write ``track`` as CSV (columns in the module docstring); returns the row count. ``source_s`` counts from
+    ``origin_ns``, the session's start (an imported take: its recording's first sample; default: the first row)."""
+    origin = int(track.t_ns[0]) if origin_ns is None else origin_ns
     n = int(track.thetas.shape[0])
     q = quat_from_rotvec(track.thetas[:, 3:].reshape(n, N_BONES, 3)).reshape(n, -1)
     x = Kinematics(skeleton).forward(track.thetas).positions.reshape(n, -1)
@@ -132,5 +140,6 @@ def write_csv(path: str | Path, skeleton: Skeleton, track: SubjectTrack) -> int:
                 + [f"{v:.6f}" for v in track.thetas[i, 0:3]]
                 + [f"{v:.7f}" for v in q[i]]
                 + [f"{v:.6f}" for v in x[i]]
+                + [f"{(track.t_ns[i] - origin) / 1e9:.6f}"]
             )
     return n

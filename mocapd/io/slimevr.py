@@ -8,6 +8,18 @@ heartbeats and pings, times out silent trackers and holds quiet sensors. Every o
 :class:`~mocapd.io.xsens_serial.ImuSample` in the tracker's +Z-up frame, treated as ENU (its heading is the
 tracker's own; calibration and heading correction take care of it), without a device clock: the buffer time is
 the arrival time. Send errors are counted, never raised.
+
+**A receive thread.** A suit of trackers sends thousands of datagrams a second, and the kernel keeps only as many
+as the socket's receive buffer holds (on a stock kernel ``net.core.rmem_max`` caps it at 208 KiB, a few hundred
+small datagrams: each costs its buffer ~1 KiB of accounting). Read on the event loop, they wait while it solves a
+tick, and on a busy machine a tick can take long enough that the kernel drops the rest (16 % of an emulated
+suit's datagrams at load 6 before this thread). So the socket is read by a thread of its own
+(``mocapd-slimevr-rx``), which only stamps each datagram and queues it; the event loop hands the queue to the
+server in batches. The thread reads many datagrams per wake-up with ``recvmmsg`` (:mod:`mocapd.io.recvmmsg`), so it
+needs the interpreter lock once per batch rather than once per datagram (a thread waiting for the lock gets it
+back from a computing thread only every ``sys.getswitchinterval()``, 5 ms: one datagram each time would be 200 a
+second). ``tools/bench_slimevr_loss.py`` measures the loss with 16 trackers at 100 Hz on a loaded machine, against
+the event-loop reader (``receive_thread=False``) in the same run.
 """
 
 from __future__ import annotations
@@ -16,15 +28,18 @@ import asyncio
 import contextlib
 import errno
 import logging
+import os
 import socket
+import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from mocapd.errors import DeviceError
 from mocapd.io.device_state import OpenState
+from mocapd.io.recvmmsg import BatchReader
 from mocapd.io.rejections import Rejections
 from mocapd.io.xsens_serial import ImuSample
 from mocapd.protocols.mtdata2 import CoordFrame
@@ -35,6 +50,7 @@ from mocapd.protocols.slimevr_server import (
     ServerOptions,
     SlimeVrServer,
     TrackerConnected,
+    TrackerGesture,
     TrackerRefused,
     TrackerTimedOut,
 )
@@ -65,9 +81,22 @@ class _ServerProtocol(asyncio.DatagramProtocol):
         self._owner.send_errors[type(exc).__name__] += 1
 
 
+RCVBUF = 1 << 20
+"""Receive buffer asked for (bytes; the kernel caps it at ``net.core.rmem_max`` and doubles it for bookkeeping)."""
+INBOX_LIMIT = 1 << 16
+"""Datagrams the receive thread holds for the event loop at most (40 s of 16 trackers at 100 Hz): beyond, the
+oldest are dropped and counted (``inbox_dropped``), so a stopped event loop cannot grow the daemon."""
+BATCH = 64
+"""Datagrams read per wake-up of the receive thread at most."""
+
+
 class SlimeVrListener:
     """The SlimeVR server socket; samples go to ``on_sample``. ``await start()``, then ``await run()`` until
-    :meth:`stop`."""
+    :meth:`stop`; :meth:`close` at the end.
+
+    ``receive_thread=False`` reads the socket on the event loop instead (the reader before the receive thread, kept
+    as the benchmark's baseline); ``rcvbuf`` is the receive buffer asked for.
+    """
 
     def __init__(
         self,
@@ -78,37 +107,61 @@ class SlimeVrListener:
         options: ServerOptions | None = None,
         clock: Callable[[], int] = time.monotonic_ns,
         tick_s: float = 0.01,
+        receive_thread: bool = True,
+        rcvbuf: int = RCVBUF,
     ) -> None:
         self.host = host
         self.port = port
         self.server = SlimeVrServer(options)
         self.tick_s = tick_s
+        self.receive_thread = receive_thread
+        self.rcvbuf = rcvbuf
         self.send_errors: Counter[str] = Counter()
+        self.receive_errors: Counter[str] = Counter()
         #: what the server refused, logged at most every 10 s (the counts are also in the server's counters)
         self.rejections = Rejections("slimevr", log, clock=clock)
         self._on_sample = on_sample
         self._clock = clock
         self._transport: asyncio.DatagramTransport | None = None
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._inbox: deque[tuple[bytes, Address, int]] = deque()
+        self._wake_pending = False
+        self._closing = False
+        #: called with (what, sensor ids of the tracker) when a wearer asks a tracker for a heading reset
+        self.on_gesture: Callable[[str, list[str]], None] | None = None
+        self.inbox_dropped = 0
+        self.batches = 0
+        self.largest_batch = 0
         self._bound = False
         self._bind_error = ""
         self._stop = asyncio.Event()
 
     async def start(self) -> int:
-        """Bind; returns the bound port (useful with port 0)."""
+        """Bind (and start the receive thread); returns the bound port (useful with port 0)."""
         loop = asyncio.get_running_loop()
+        self._loop = loop
         try:
-            transport, _ = await loop.create_datagram_endpoint(
-                lambda: _ServerProtocol(self), local_addr=(self.host, self.port)
-            )
+            if self.receive_thread:
+                sock = _bind(self.host, self.port, self.rcvbuf)
+            else:
+                transport, _ = await loop.create_datagram_endpoint(
+                    lambda: _ServerProtocol(self), local_addr=(self.host, self.port)
+                )
+                sock = transport.get_extra_info("socket")
+                with contextlib.suppress(OSError):  # a burst of a dozen trackers must survive a busy event loop
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf)
+                self._transport = transport
         except OSError as exc:
             self._bind_error = f"slimevr: cannot bind udp {self.host}:{self.port}: {exc}"
             raise DeviceError(self._bind_error) from exc
-        self._transport = transport
+        self.port = int(sock.getsockname()[1])
+        if self.receive_thread:
+            self._sock = sock
+            self._thread = threading.Thread(target=self._receive, args=(sock,), name="mocapd-slimevr-rx", daemon=True)
+            self._thread.start()
         self._bound = True
-        sock = transport.get_extra_info("socket")
-        with contextlib.suppress(OSError):  # a burst of a dozen trackers must survive a busy event loop: ask for
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)  # 1 MiB (the kernel caps it at rmem_max)
-        self.port = int(transport.get_extra_info("sockname")[1])
         return self.port
 
     def open_state(self) -> OpenState:
@@ -130,20 +183,75 @@ class SlimeVrListener:
 
     def close(self) -> None:
         self._stop.set()
+        self._closing = True
+        if self._thread is not None:
+            self._thread.join(1.0)  # it wakes at least every RECEIVE_TIMEOUT_S to see _closing
+            self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
         if self._transport is not None:
             self._transport.close()
             self._transport = None
 
+    # ------------------------------------------------------------------------------------------ receive thread
+    def _receive(self, sock: socket.socket) -> None:
+        """The receive thread: read datagrams in batches, stamp them, queue them for the event loop."""
+        reader = BatchReader(sock, BATCH)
+        # The kernel's arrival times are CLOCK_MONOTONIC: used unless a test runs the listener on a clock of its own.
+        kernel_time = self._clock is time.monotonic_ns
+        while not self._closing:
+            try:
+                batch = reader.read(RECEIVE_TIMEOUT_S)
+            except OSError as exc:  # an ICMP error for an earlier send, or the socket closed under us
+                if self._closing:
+                    break
+                self.receive_errors[errno.errorcode.get(exc.errno or 0, type(exc).__name__)] += 1
+                continue
+            if not batch:
+                continue
+            now = self._clock()
+            inbox = self._inbox
+            inbox.extend((data, address, t if kernel_time and t is not None else now) for data, address, t in batch)
+            over = len(inbox) - INBOX_LIMIT
+            for _ in range(max(0, over)):
+                inbox.popleft()
+                self.inbox_dropped += 1
+            if not self._wake_pending:
+                self._wake_pending = True
+                loop = self._loop
+                if loop is None or loop.is_closed():
+                    break
+                try:
+                    loop.call_soon_threadsafe(self._drain)
+                except RuntimeError:  # the loop closed between the check and the call: nobody listens
+                    break
+
+    def _drain(self) -> None:
+        """On the event loop: hand every queued datagram to the server, then send the replies."""
+        self._wake_pending = False
+        inbox = self._inbox
+        n = len(inbox)
+        self.batches += 1
+        self.largest_batch = max(self.largest_batch, n)
+        for _ in range(n):
+            data, address, t_ns = inbox.popleft()
+            self._receive_one(data, address, t_ns)
+        self._flush()
+
     def received(self, data: bytes, address: Address) -> None:
-        """One datagram from ``address`` (called by the datagram protocol)."""
+        """One datagram from ``address``, received now (the event-loop reader's datagram protocol calls this)."""
+        self._receive_one(data, address, self._clock())
+        self._flush()
+
+    def _receive_one(self, data: bytes, address: Address, t_ns: int) -> None:
         c = self.server.counters
         before = (c.bad_datagrams, c.unknown_source, c.unannounced_sensor)
-        self.server.receive_datagram(data, address, self._clock())
+        self.server.receive_datagram(data, address, t_ns)
         where = f"{len(data)} bytes from {address[0]}:{address[1]}"
         for reason, n0, n1 in zip(("bad datagram", "unknown source", "unannounced sensor"), before,
                                   (c.bad_datagrams, c.unknown_source, c.unannounced_sensor), strict=True):  # fmt: skip
             self.rejections.reject(reason, where, n1 - n0)
-        self._flush()
 
     def _flush(self) -> None:
         for event in self.server.events_received():
@@ -158,16 +266,84 @@ class SlimeVrListener:
                 log.warning("slimevr: tracker %s timed out", event.key)
             elif isinstance(event, TrackerRefused):
                 self.rejections.reject("tracker table full", "handshake from {}:{}".format(*event.address))
-        transport = self._transport
+            elif isinstance(event, TrackerGesture):
+                tracker = self.server.trackers.get(event.key)
+                sensors = [event.sensor] if event.sensor else [] if tracker is None else [
+                    tracker.sensor_id(i) for i in tracker.sensors]  # fmt: skip
+                log.info("slimevr: %s on tracker %s", event.kind, event.key)
+                if self.on_gesture is not None:
+                    self.on_gesture(f"{event.kind} on tracker {event.key}", sensors)
+        transport, sock = self._transport, self._sock
         for data, address in self.server.datagrams_to_send():
-            if transport is None:
-                self.send_errors["not_started"] += 1
-                continue
             try:
-                transport.sendto(data, address)
+                if sock is not None:
+                    sock.sendto(data, socket.MSG_DONTWAIT, address)  # never waits: a full buffer is a counted error
+                elif transport is not None:
+                    transport.sendto(data, address)
+                else:
+                    self.send_errors["not_started"] += 1
             except OSError as exc:
                 self.send_errors[errno.errorcode.get(exc.errno or 0, "OSError")] += 1
 
     def status(self) -> dict[str, Any]:
-        """Listening address, counters and trackers for /status."""
-        return {"listen": f"{self.host}:{self.port}", "send_errors": dict(self.send_errors), **self.server.status()}
+        """Listening address, counters and trackers for /status; per tracker ``loss_percent``, the share of its
+        datagrams that never arrived (packet numbers skipped), and for the socket the datagrams the kernel dropped
+        because its receive buffer was full (``kernel_drops``, Linux)."""
+        st = self.server.status()
+        for t in st["trackers"]:
+            sent = t["packets"] + t["lost"]
+            t["loss_percent"] = round(100.0 * t["lost"] / sent, 3) if sent else 0.0
+        sock = self._sock if self._sock is not None else (
+            self._transport.get_extra_info("socket") if self._transport is not None else None)  # fmt: skip
+        receiver = {
+            "thread": self.receive_thread, "kernel_drops": None if sock is None else udp_drops(sock),
+            "receive_buffer_bytes": None if sock is None else _rcvbuf(sock), "inbox_dropped": self.inbox_dropped,
+            "batches": self.batches, "largest_batch": self.largest_batch, "errors": dict(self.receive_errors),
+        }  # fmt: skip
+        return {"listen": f"{self.host}:{self.port}", "send_errors": dict(self.send_errors), "receiver": receiver,
+                **st}  # fmt: skip
+
+
+RECEIVE_TIMEOUT_S = 0.1
+"""The receive thread looks at least this often whether it should stop."""
+
+
+def _bind(host: str, port: int, rcvbuf: int) -> socket.socket:
+    """A bound, blocking UDP socket for the receive thread (with a time-out, so that it sees a stop)."""
+    family, _, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+    sock = socket.socket(family, socket.SOCK_DGRAM)
+    try:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        sock.bind(address)
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+def _rcvbuf(sock: socket.socket) -> int | None:
+    try:
+        return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    except OSError:
+        return None
+
+
+def udp_drops(sock: socket.socket) -> int | None:
+    """Datagrams the kernel dropped for ``sock`` (its receive buffer full), from ``/proc/net/udp[6]``; None where
+    the kernel does not say (not Linux, or the socket closed)."""
+    try:
+        inode = os.fstat(sock.fileno()).st_ino
+    except (OSError, ValueError):
+        return None
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            with open(table, encoding="ascii") as fh:
+                next(fh, None)  # the header
+                for line in fh:
+                    fields = line.split()
+                    if len(fields) >= 13 and fields[9] == str(inode):
+                        return int(fields[12])
+        except (OSError, ValueError):
+            continue
+    return None

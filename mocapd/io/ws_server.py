@@ -48,7 +48,7 @@ from websockets.protocol import State
 
 from mocapd.core.per_skeleton import skeleton_key
 from mocapd.core.skeleton import Skeleton
-from mocapd.errors import ConfigError
+from mocapd.errors import ConfigError, MocapdError
 from mocapd.io.rejections import Rejections
 from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
 from mocapd.protocols.ws_stream import (
@@ -150,6 +150,8 @@ class WebSocketStreamServer:
         Host monotonic nanoseconds (the ``t_publish_ns`` of frames).
     sock : socket, optional
         Serve on this listening socket instead of binding ``settings.host:port``.
+    commands : mapping, optional
+        The daemon's side of client requests (``"reset_heading"`` -> a function of the request's arguments).
     """
 
     name = "websocket"
@@ -164,9 +166,12 @@ class WebSocketStreamServer:
         clock: Callable[[], int] = time.monotonic_ns,
         sock: socket.socket | None = None,
         camera_views: CameraViews | None = None,
+        commands: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
     ) -> None:
         self.settings = settings
         self.camera_views = camera_views
+        #: what clients may ask the daemon for (``reset_heading``), each called on the event loop with the request
+        self.commands: Mapping[str, Callable[[dict[str, Any]], Any]] = commands if commands is not None else {}
         if camera_views is not None:
             description = dataclasses.replace(
                 description, cameras=tuple((c.name, c.width, c.height) for c in camera_views.cameras),
@@ -383,6 +388,8 @@ class WebSocketStreamServer:
                 if error is not None:
                     self.rejected.reject(error.code, f"client {client.number}: {error}")
                 client.control.extend(session.messages_to_send())
+                for name, args in session.commands_received():
+                    client.control.append(self._command(session, name, args))
                 if len(client.control) > CONTROL_LIMIT:
                     await conn.close(1008, "too many unanswered requests")
                     break
@@ -398,6 +405,17 @@ class WebSocketStreamServer:
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await sender
+
+    def _command(self, session: ClientSession, name: str, args: dict[str, Any]) -> Message:
+        """Carry out a client's request for the daemon (a heading reset) and answer it."""
+        handler = self.commands.get(name)
+        if handler is None:
+            return session.error("unsupported", f"{name}: this server has no daemon to ask (a replay?)")
+        try:
+            result = handler(args)
+        except MocapdError as exc:
+            return session.error("failed", str(exc))
+        return session.reply({"reset_heading": "heading_reset"}.get(name, name), result)
 
     async def _send_loop(self, client: _Client) -> None:
         conn = client.conn

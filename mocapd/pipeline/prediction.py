@@ -154,7 +154,8 @@ class PosePredictor:
         t1 = int(min(newest[live].min(), t_ns + round(o.max_horizon_s * 1e9)))
         idx = np.flatnonzero(live)
         q1, ok = _orientations_at([suit.buffers[i] for i in idx.tolist()], t1 + suit.offsets_ns[idx])
-        idx, live[idx[~ok]] = idx[ok], False
+        live[idx[~ok]] = False  # (before idx shrinks: one tuple assignment would index with the new idx)
+        idx = idx[ok]
         if not live.any():
             return Prediction(theta, t_ns, 0)
         turn = quat_multiply(quat_conjugate(suit.q_i[idx]), q1[ok])  # each sensor's own rotation, t -> t1

@@ -15,7 +15,7 @@ costs two row copies and no allocation.
 from __future__ import annotations
 
 import enum
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -136,6 +136,14 @@ class RingBuffer:
     def rows(self) -> FloatArray:
         """Rows of the live window, oldest first (a view, shape ``(len, row_width)``)."""
         return self._rows[self._start : self._start + self._count]
+
+    def transform(self, name: str, fn: Callable[[FloatArray], FloatArray]) -> None:
+        """Replace the named field of every stored row with ``fn`` of it (``fn`` maps an array of shape
+        ``(n, width)`` to one of the same shape): e.g. every buffered orientation turned by a heading reset."""
+        sl = self.slices[name]
+        half = self._rows[: self.capacity, sl]
+        half[:] = fn(half.copy())
+        self._rows[self.capacity :, sl] = half
 
     def field(self, row: FloatArray, name: str) -> FloatArray:
         """The named field of a row (a view)."""

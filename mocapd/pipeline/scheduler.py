@@ -783,6 +783,8 @@ def estimate_camera_offsets(
     """Per camera (the first is the reference): the offset that would align its keypoint speeds with the first
     camera's, in ms, in the convention of ``[daemon.offsets]`` (added to what is configured), with the
     correlation peak as quality. Cameras without enough moving data are left out."""
+    if len(frames) < 2:  # one camera, or none (a rig of IMUs alone): nothing to align
+        return {}
     ref_t, ref_v = keypoint_speed(np.asarray(frames[0][0], dtype=np.int64), frames[0][1])
     out: dict[str, dict[str, float]] = {}
     offsets = current_ns[1:] or (0,) * (len(names) - 1)

@@ -223,6 +223,32 @@ class FeatureFlags:
 
 
 @dataclass(frozen=True, slots=True)
+class Tap:
+    """Packet 13: the tracker's own tap detector fired (BNO08x): ``flags`` bit 6 (0x40) is a double tap."""
+
+    sensor: int
+    flags: int
+
+    @property
+    def double(self) -> bool:
+        return bool(self.flags & 0x40)
+
+
+USER_ACTION_RESET_FULL = 2
+USER_ACTION_RESET_YAW = 3
+USER_ACTION_RESET_MOUNTING = 4
+USER_ACTION_PAUSE = 5
+
+
+@dataclass(frozen=True, slots=True)
+class UserAction:
+    """Packet 21: the wearer asked the server for something on the tracker (a button): ``action`` is 2 full
+    reset, 3 yaw reset, 4 mounting reset, 5 pause tracking."""
+
+    action: int
+
+
+@dataclass(frozen=True, slots=True)
 class Ignored:
     """A well-formed packet mocapd has no use for (serial log, tap, user action, flex data, ...)."""
 
@@ -231,7 +257,7 @@ class Ignored:
 
 Packet = (
     Handshake | Heartbeat | Rotation | Acceleration | PingPong | Battery | SignalStrength | SensorInfo | Temperature
-    | TrackerError | FeatureFlags | Ignored
+    | TrackerError | FeatureFlags | Tap | UserAction | Ignored
 )  # fmt: skip
 
 
@@ -397,8 +423,10 @@ _DECODERS: dict[int, Callable[[_Reader], Packet]] = {
     Tx.TEMPERATURE: _temperature,
     Tx.FEATURE_FLAGS: lambda r: FeatureFlags(r.take(r.remaining)),
     Tx.ROTATION_ACCELERATION: _rotation_acceleration,
-    **{t: _ignored(t) for t in (Tx.SERIAL, Tx.TAP, Tx.MAGNETOMETER_ACCURACY, Tx.USER_ACTION, Tx.ACK_CONFIG_CHANGE,
-                                Tx.FLEX_DATA, Tx.POSITION, Tx.PROTOCOL_CHANGE)},
+    Tx.TAP: lambda r: Tap(r.u8(), r.u8()),
+    Tx.USER_ACTION: lambda r: UserAction(r.u8()),
+    **{t: _ignored(t) for t in (Tx.SERIAL, Tx.MAGNETOMETER_ACCURACY, Tx.ACK_CONFIG_CHANGE, Tx.FLEX_DATA,
+                                Tx.POSITION, Tx.PROTOCOL_CHANGE)},
 }  # fmt: skip
 
 
@@ -524,6 +552,10 @@ def _payload_bytes(p: Packet) -> tuple[int, bytes]:
             body = (Tx.ERROR, bytes([p.sensor, p.code]))
         case FeatureFlags():
             body = (Tx.FEATURE_FLAGS, p.flags)
+        case Tap():
+            body = (Tx.TAP, bytes([p.sensor, p.flags]))
+        case UserAction():
+            body = (Tx.USER_ACTION, bytes([p.action]))
         case _:
             raise TypeError(f"cannot encode {type(p).__name__}")
     return body

@@ -41,6 +41,8 @@ from typing import Any
 from mocapd.protocols.slimevr import (
     DATA_TYPE_NORMAL,
     HANDSHAKE_REPLY,
+    USER_ACTION_RESET_FULL,
+    USER_ACTION_RESET_YAW,
     Acceleration,
     Battery,
     FeatureFlags,
@@ -54,9 +56,11 @@ from mocapd.protocols.slimevr import (
     SensorInfo,
     ServerFeature,
     SignalStrength,
+    Tap,
     Temperature,
     TrackerError,
     Tx,
+    UserAction,
     Vec3,
     decode_datagram,
     encode_feature_flags,
@@ -179,7 +183,18 @@ class TrackerRefused:
     address: Address
 
 
-Event = SensorSample | TrackerConnected | TrackerTimedOut | TrackerRefused
+@dataclass(frozen=True, slots=True)
+class TrackerGesture:
+    """The wearer asked for a heading reset on a tracker: a double tap its firmware detected (packet 13, then
+    ``sensor`` is the tapped sensor's id), or a reset asked with its button (packet 21: ``kind`` "yaw reset" or
+    "full reset"). The SlimeVR server resets on the button; mocapd resets on both."""
+
+    key: str
+    sensor: str | None
+    kind: str
+
+
+Event = SensorSample | TrackerConnected | TrackerTimedOut | TrackerRefused | TrackerGesture
 
 
 @dataclass(slots=True)
@@ -374,6 +389,17 @@ class SlimeVrServer:
         elif isinstance(p, FeatureFlags):
             t.firmware_features = p.flags
             self._out.append((encode_feature_flags(SERVER_FEATURES), t.address))
+        elif isinstance(p, Tap):
+            if p.double and p.sensor in t.sensors:
+                self._events.append(TrackerGesture(t.key, t.sensor_id(p.sensor), "double tap"))
+            else:
+                self.counters.ignored["tap"] += 1
+        elif isinstance(p, UserAction):
+            kind = {USER_ACTION_RESET_YAW: "yaw reset", USER_ACTION_RESET_FULL: "full reset"}.get(p.action)
+            if kind is not None:
+                self._events.append(TrackerGesture(t.key, None, kind))
+            else:
+                self.counters.ignored["user action"] += 1
         elif isinstance(p, Ignored):
             self.counters.ignored[Tx(p.packet_type).name.lower()] += 1
         elif isinstance(p, Heartbeat):

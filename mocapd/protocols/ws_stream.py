@@ -135,6 +135,16 @@ A text message is read as JSON, a binary one as msgpack; at most ``max_message_b
 Every key but ``type`` is optional (absent keys keep their current value); unknown keys, wrong types or values
 are answered with an ``error`` and change nothing. An accepted request is answered with a new ``hello``.
 
+A client may also ask the daemon for a **heading reset** (docs/vr.md "Heading without cameras": the wearer stands
+straight facing forward; every sensor of the suit is turned about the vertical so its bone faces forward)::
+
+    type            str     "reset_heading"
+    suit            str | nil   the suit to reset (nil or absent: every suit)
+
+answered with ``heading_reset`` (``t_ns``, ``source``, ``suits``: per suit ``corrections_deg`` per sensor and
+``no_recent_sample``, the sensors left alone), or with an ``error`` (code ``failed``: no such suit; ``unsupported``:
+a server without a daemon, e.g. a replay).
+
 Encoding cost: :class:`FrameEncoder` converts each subject once per convention and encodes each distinct
 (encoding, convention, globals, subjects) once per frame, whatever the number of clients.
 """
@@ -172,6 +182,7 @@ MAX_RATE_HZ = 1e6
 _SUBSCRIBE_KEYS = frozenset(
     {"type", "subjects", "rate_hz", "convention", "encoding", "globals", "status", "cameras", "camera_rate_hz"}
 )
+_RESET_KEYS = frozenset({"type", "suit"})
 _JSON_DECIMALS = 6
 
 
@@ -547,6 +558,7 @@ class ClientSession:
         self.requests = 0
         self.errors = 0
         self._outbox: list[Message] = []
+        self._commands: list[tuple[str, dict[str, Any]]] = []
         self.latest_subjects: tuple[str, ...] = ()
 
     # -------------------------------------------------------------------------------------------- output
@@ -594,6 +606,16 @@ class ClientSession:
     def error(self, code: str, message: str) -> Message:
         return encode({"type": "error", "code": code, "message": message}, self.options.encoding)
 
+    def commands_received(self) -> list[tuple[str, dict[str, Any]]]:
+        """Requests for the daemon (``("reset_heading", {"suit": ...})``) since the last call, for the server to carry
+        out and answer with :meth:`reply` or :meth:`error`."""
+        out, self._commands = self._commands, []
+        return out
+
+    def reply(self, kind: str, payload: Mapping[str, Any]) -> Message:
+        """The answer to a request the daemon carried out: ``{"type": kind, **payload}``."""
+        return encode({"type": kind, **payload}, self.options.encoding)
+
     # -------------------------------------------------------------------------------------------- input
     def receive_message(self, data: Message) -> RequestError | None:
         """Handle one client message: apply a valid subscribe (queue a hello) or queue an error reply; returns
@@ -601,6 +623,9 @@ class ClientSession:
         self.requests += 1
         try:
             request = self._parse(data)
+            if request["type"] == "reset_heading":
+                self._commands.append(("reset_heading", {"suit": request.get("suit")}))
+                return None
             self.options = self._apply(request)
         except RequestError as exc:
             self.errors += 1
@@ -622,12 +647,16 @@ class ClientSession:
         if not isinstance(obj, dict):
             raise RequestError("bad_message", f"a request must be a map, got {type(obj).__name__}")
         kind = obj.get("type")
-        if kind != "subscribe":
-            raise RequestError("unknown_type", f"unknown request type {kind!r}; the only request is 'subscribe'")
-        unknown = set(obj) - _SUBSCRIBE_KEYS
+        keys = {"subscribe": _SUBSCRIBE_KEYS, "reset_heading": _RESET_KEYS}.get(kind) if isinstance(kind, str) else None
+        if keys is None:
+            raise RequestError("unknown_type", f"unknown request type {kind!r}; requests: 'subscribe', 'reset_heading'")
+        unknown = set(obj) - keys
         if unknown:
-            raise RequestError("bad_field", f"unknown key(s) {sorted(map(str, unknown))}; allowed: "
-                                            f"{sorted(_SUBSCRIBE_KEYS)}")  # fmt: skip
+            raise RequestError("bad_field", f"unknown key(s) {sorted(map(str, unknown))}; allowed: {sorted(keys)}")
+        suit = obj.get("suit")
+        named = isinstance(suit, str) and 0 < len(suit) <= MAX_ID_CHARS
+        if kind == "reset_heading" and suit is not None and not named:
+            raise RequestError("bad_field", f"suit = {suit!r}; allowed: a suit's name (1 to {MAX_ID_CHARS} characters)")
         return obj
 
     def _apply(self, r: Mapping[str, Any]) -> StreamOptions:

@@ -103,7 +103,7 @@ def assemble(
                         status_line=options.status_line)  # fmt: skip
         daemon.handle_signals = False  # run() below owns them, from before the daemon exists to after it ends
         if options.sockets.http is not None:
-            daemon.http = StatusServer(daemon.status, render_metrics, sock=options.sockets.http)
+            daemon.http = StatusServer(daemon.status, render_metrics, sock=options.sockets.http, actions=daemon.actions)
         if built.remote is not None:
             daemon.status_extras["remote_hosts"] = built.remote.status
         daemon.status_extras.update(options.status_extras)

@@ -26,15 +26,20 @@ from typing import Any, Protocol, TypeVar, runtime_checkable
 import numpy as np
 
 from mocapd.core.camera import Camera
+from mocapd.core.heading import yaw_quat
+from mocapd.core.heading_reset import ResetHistory, enu_turn, reset_yaws
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.people import PeopleTracker
 from mocapd.core.prior import PcaPrior
+from mocapd.core.rotations import quat_conjugate, quat_multiply, quat_normalize
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.solver import Observations, PoseSolver
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
+from mocapd.core.taps import TapOptions
 from mocapd.core.tracking import SubjectTracker
-from mocapd.errors import DeviceError
+from mocapd.core.yaw_drift import StillDrift
+from mocapd.errors import DeviceError, InputError
 from mocapd.io.device_state import OpenState
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.keypoint_source import KeypointSource
@@ -126,6 +131,13 @@ def in_daemon_thread(fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
     return future
 
 
+TAP_BONES = ("Spine3", "Spine2", "Spine1", "Spine", "Hips")
+"""Where the tap gesture is watched, the first present: upper chest, chest, waist, hips (the SlimeVR server's order)."""
+CALM_BONES = ("Hips", "Spine", "Spine1", "Spine2", "Spine3", "LeftUpperLeg", "RightUpperLeg", "LeftLowerLeg",
+              "RightLowerLeg", "LeftFoot", "RightFoot")  # fmt: skip
+"""Sensors that must stay calm for taps to count (a heel strike jolts the chest too)."""
+
+
 class StartupError(DeviceError):
     """A device did not open when the daemon started (the message names each one and why)."""
 
@@ -170,6 +182,12 @@ class Daemon:
         self.imu = ImuInputs(imu if imu is not None else config.imu)
         self.imu.use_calibrations([s.calibration for s in rig.suits])  # SlimeVR trackers' own headings
         self.imu.keep_sensors(sid for s in rig.suits for sid in s.sensors)  # never evicted by unknown sensor ids
+        #: heading resets (without cameras nothing else corrects a drifting heading) and each sensor's drift
+        self.resets = ResetHistory(since_ns=clock())
+        self.reset_log: list[dict[str, Any]] = []
+        self.still_drift = StillDrift()
+        self._reset_timers: dict[str | None, asyncio.TimerHandle] = {}  # per suit: a reset asked, still waiting
+        self._watch_gestures(config, rig.suits)
         #: more sections of /status (name -> provider), e.g. the camera demo's fake cameras
         self.status_extras: dict[str, Callable[[], Any]] = {}
         #: more fields of the status line, e.g. the synthetic rig's keypoint error
@@ -194,7 +212,11 @@ class Daemon:
             backend=config.solver.backend,
         )
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
-        self.http = StatusServer(self.status, render_metrics, d.http_host, d.http_port)
+        #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
+        self.actions: dict[str, Callable[[dict[str, str]], Any]] = {
+            "/heading/reset": lambda q: self.reset_heading(q.get("suit") or None, "HTTP request"),
+        }
+        self.http = StatusServer(self.status, render_metrics, d.http_host, d.http_port, actions=self.actions)
         self.plan: TickPlan | None = None
         self.latest: PoseFrame | None = None
         self.started_ns = clock()
@@ -210,6 +232,95 @@ class Daemon:
     def request_stop(self) -> None:
         """Begin a clean shutdown (signal handlers call this)."""
         self._stop.set()
+
+    # ------------------------------------------------------------------------------------------ heading reset
+    def reset_heading(self, suit: str | None = None, source: str = "request") -> dict[str, Any]:
+        """Heading reset (:mod:`mocapd.core.heading_reset`): the wearer stands straight facing forward (the way they
+        faced at calibration); every sensor of ``suit`` (default: every suit) is turned about the vertical so its
+        bone faces forward, from its newest sample on, the buffered samples included. Returns what was done per
+        suit and sensor (the correction in degrees; sensors without a sample in the last second are left alone).
+
+        Raises
+        ------
+        InputError
+            ``suit`` is not a suit of this rig, or the rig has none.
+        """
+        suits = [s for s in self.rig.suits if suit in (None, s.id)]
+        if not suits:
+            have = ", ".join(s.id for s in self.rig.suits) or "none: calibrate one with `mocapd calibrate imu`"
+            raise InputError(f"no suit {suit!r} to reset (suits: {have})" if suit else f"no suit to reset ({have})")
+        now = self.clock()
+        done: dict[str, Any] = {}
+        for s in suits:
+            offsets = self.scheduler.heading.offsets(s.sensors)
+            live, q_gb, missing = [], [], []
+            for i, sid in enumerate(s.sensors):
+                stream = self.imu.ingest.streams.get(sid)
+                latest = stream.buffer.latest() if stream is not None else None
+                if latest is None or now - latest[0] > 1_000_000_000 or not np.all(np.isfinite(latest[1][0:4])):
+                    missing.append(sid)
+                    continue
+                q_gi = quat_multiply(s.calibration.q_ig, quat_normalize(latest[1][0:4]))
+                q_gb.append(
+                    quat_multiply(yaw_quat(offsets[i]), quat_multiply(q_gi, quat_conjugate(s.calibration.q_ib[sid])))
+                )
+                live.append(sid)
+            yaws = reset_yaws(np.array(q_gb)) if q_gb else np.zeros(0)
+            self.imu.turn_headings(
+                {sid: enu_turn(s.calibration.q_ig, float(y)) for sid, y in zip(live, yaws, strict=True)}
+            )
+            corrections = {sid: round(float(np.degrees(y)), 2) for sid, y in zip(live, yaws, strict=True)}
+            self.resets.record(now, corrections)
+            done[s.id] = {"corrections_deg": corrections, "no_recent_sample": missing}
+        entry = {"t_ns": now, "source": source, "suits": done}
+        self.reset_log = [*self.reset_log[-9:], entry]
+        for sid, d in done.items():
+            worst = max((abs(v) for v in d["corrections_deg"].values()), default=0.0)
+            log.info("heading reset (%s): suit %s, %d sensor(s) turned, at most %.1f deg%s", source, sid,
+                        len(d["corrections_deg"]), worst, f"; no recent sample: {d['no_recent_sample']}"
+                        if d["no_recent_sample"] else "")  # fmt: skip
+        return entry
+
+    def request_reset(self, suit: str | None, source: str, delay_s: float) -> None:
+        """A heading reset of ``suit`` in ``delay_s`` (a gesture: the hand goes back down first); a later request for
+        the same suit replaces one still waiting."""
+        waiting = self._reset_timers.pop(suit, None)
+        if waiting is not None:
+            waiting.cancel()
+        loop = asyncio.get_running_loop()
+
+        def fire() -> None:
+            self._reset_timers.pop(suit, None)
+            with contextlib.suppress(InputError):  # the suit's sensors are gone: nothing to reset
+                self.reset_heading(suit, source)
+
+        self._reset_timers[suit] = loop.call_later(delay_s, fire)
+
+    def _watch_gestures(self, config: Config, suits: list[Suit]) -> None:
+        """Heading resets asked on SlimeVR trackers: the firmware's reset button and double tap (any tracker of a
+        suit), and the SlimeVR server's tap gesture (taps on the chest or hips tracker, counted here)."""
+        sv = config.imu.slimevr
+        owner = {sid: s.id for s in suits for sid in s.sensors}
+        if self.imu.slimevr is not None:
+
+            def gesture(what: str, sensors: list[str]) -> None:
+                for suit in sorted({owner[sid] for sid in sensors if sid in owner}):
+                    self.request_reset(suit, what, sv.reset_delay_s)
+
+            self.imu.slimevr.on_gesture = gesture
+        if not sv.enabled or sv.reset_taps <= 0:
+            return
+        for s in suits:
+            bones = {s.calibration.bones[sid]: sid for sid in s.sensors if "/" in sid}  # SlimeVR sensors
+            watched = next((bones[b] for b in TAP_BONES if b in bones), None)
+            if watched is None:
+                continue
+            body = [sid for b, sid in bones.items() if b in CALM_BONES]
+
+            def taps(sensor: str, suit: str = s.id) -> None:
+                self.request_reset(suit, f"{sv.reset_taps} taps on {sensor}", sv.reset_delay_s)
+
+            self.imu.watch_taps(watched, body, TapOptions(taps=sv.reset_taps), taps)
 
     async def run(self) -> int:
         """Serve until stopped; returns the process exit status."""
@@ -271,11 +382,14 @@ class Daemon:
                 t.cancel()
 
     def devices(self) -> list[tuple[str, OpenState]]:
-        """Every device of the rig with its opening state: cameras (``camera <name>``), IMU ports (``IMU <path>``)."""
+        """Every device of the rig with its opening state: cameras (``camera <name>``), IMU ports (``IMU <path>``),
+        the SlimeVR server's and the IMU bridge's sockets."""
         out = [(f"camera {src.name}", src.open_state()) for src in self.rig.sources]
         out += [(f"IMU {d.config.path}", d.open_state()) for d in self.imu.devices]
         if self.imu.slimevr is not None:
             out.append((f"SlimeVR server {self.imu.slimevr.host}", self.imu.slimevr.open_state()))
+        if self.imu.bridge is not None:
+            out.append((f"IMU bridge {self.imu.bridge.host}:{self.imu.bridge.port}", self.imu.bridge.open_state()))
         return out
 
     async def _open_devices(self) -> StartupError | None:
@@ -360,6 +474,7 @@ class Daemon:
         while True:
             await asyncio.sleep(1.0)
             ticks += 1
+            self._observe_drift()
             if ticks % 10 == 0:  # offset suggestions from the last seconds of keypoints, computed off the loop
                 frames = self.scheduler.camera_frames()
                 offsets = self.scheduler.options.camera_offsets_ns
@@ -375,6 +490,29 @@ class Daemon:
             self.notifier.notify(f"STATUS={line}")
             if self.status_line is not None:
                 self.status_line(line)
+
+    def _observe_drift(self) -> None:
+        """Each suit sensor's newest samples to the still-drift estimate (:mod:`mocapd.core.yaw_drift`)."""
+        span = round(self.still_drift.options.max_span_s * 1e9)
+        for suit in self.rig.suits:
+            for sid in suit.sensors:
+                stream = self.imu.ingest.streams.get(sid)
+                if stream is None or not len(stream.buffer):
+                    continue
+                times = stream.buffer.times()
+                k = int(np.searchsorted(times, times[-1] - span))
+                rows = stream.buffer.rows()[k:]
+                self.still_drift.observe(sid, times[k:], rows[:, 0:4], rows[:, 4:7])
+
+    def heading_status(self) -> dict[str, Any]:
+        """``imu_heading``: per suit and sensor the camera correction's state (docs/imu.md) and ``yaw_drift``: the
+        drift measured while still and the one the heading resets revealed."""
+        out = self.scheduler.heading_status()
+        now = self.clock()
+        for sensors in out.values():
+            for sid, entry in sensors.items():
+                entry["yaw_drift"] = {**self.still_drift.status(sid), **self.resets.status(sid, now)}
+        return out
 
     # ------------------------------------------------------------------------------------------ health
     def status_line_text(self) -> str:
@@ -423,7 +561,8 @@ class Daemon:
             ],
             "imu": self.imu.status(),
             "imu_lookups": s["imu_samples"],
-            "imu_heading": s["heading"],
+            "imu_heading": self.heading_status(),
+            "heading_resets": [{**r, "s_ago": round((self.clock() - r["t_ns"]) / 1e9, 1)} for r in self.reset_log],
             "plausibility": s["plausibility"],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},

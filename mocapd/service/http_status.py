@@ -1,7 +1,8 @@
-"""A minimal HTTP/1.1 server on loopback for ``/status`` (JSON) and ``/metrics`` (Prometheus text format).
+"""A minimal HTTP/1.1 server on loopback for ``/status`` (JSON) and ``/metrics`` (Prometheus text format), and the
+daemon's few actions (``POST /heading/reset``).
 
-asyncio streams, GET only, one request per connection (``Connection: close``); requests are bounded in size
-and time so a stuck client cannot hold the daemon.
+asyncio streams, GET (and POST to an action's path), one request per connection (``Connection: close``); requests
+are bounded in size and time so a stuck client cannot hold the daemon.
 
 The server shares the event loop with the output tick, so what a request costs must not grow with how often
 clients ask: requests are answered from a **snapshot** — the status document taken at most ``max_hz`` times a
@@ -19,13 +20,17 @@ import json
 import logging
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
+from urllib.parse import parse_qs
 
+from mocapd.errors import MocapdError
 from mocapd.service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 
 log = logging.getLogger(__name__)
 
+#: a POST action: the query's parameters in, a JSON-able result out (MocapdError: a 400 with its message)
+Action = Callable[[dict[str, str]], Any]
 MAX_REQUEST = 8192
 READ_TIMEOUT_S = 2.0
 #: snapshots a second at most (a monitoring poll every 250 ms sees every change; a flood of polls costs 4 renders/s)
@@ -117,8 +122,11 @@ class StatusServer:
         sock: socket.socket | None = None,
         max_hz: float = MAX_SNAPSHOT_HZ,
         clock: Callable[[], int] = time.monotonic_ns,
+        actions: Mapping[str, Action] | None = None,
     ) -> None:
         self.snapshots = Snapshots(status, metrics, max_hz, clock)
+        #: POST paths -> what they do (called with the query's parameters on the event loop; a JSON-able result)
+        self.actions: Mapping[str, Action] = actions if actions is not None else {}
         self._sock = sock
         self.host, self.port = (str(sock.getsockname()[0]), int(sock.getsockname()[1])) if sock else (host, port)
         self.requests = 0
@@ -169,6 +177,14 @@ class StatusServer:
         with contextlib.suppress(ConnectionError):
             await writer.wait_closed()
 
+    def _act(self, target: str, query: str) -> tuple[str, str, bytes]:
+        params = {k: v[-1] for k, v in parse_qs(query).items()}
+        try:
+            result = self.actions[target](params)
+        except MocapdError as exc:
+            return "400 Bad Request", "application/json", json.dumps({"error": str(exc)}).encode() + b"\n"
+        return "200 OK", "application/json", json.dumps(result, indent=1).encode() + b"\n"
+
     def _respond(self, head: bytes) -> tuple[str, str, bytes]:
         if len(head) > MAX_REQUEST:
             self.bad_requests += 1
@@ -178,8 +194,14 @@ class StatusServer:
             self.bad_requests += 1
             return "400 Bad Request", "text/plain", b"bad request line\n"
         method, target = parts[0], parts[1].split("?", 1)[0]
+        if method == "POST" and target in self.actions:
+            return self._act(target, parts[1].partition("?")[2])
         if method != "GET":
-            return "405 Method Not Allowed", "text/plain", b"only GET\n"
+            allowed = ", ".join(f"POST {a}" for a in self.actions)
+            return "405 Method Not Allowed", "text/plain", f"only GET{', ' + allowed if allowed else ''}\n".encode()
+        return self._get(target)
+
+    def _get(self, target: str) -> tuple[str, str, bytes]:
         if target == "/status":
             return "200 OK", "application/json", self.snapshots.status_json()
         if target == "/metrics":

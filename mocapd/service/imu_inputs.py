@@ -16,6 +16,7 @@ import numpy as np
 
 from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, quat_to_enu
 from mocapd.core.rotations import quat_multiply
+from mocapd.core.taps import TapDetector, TapOptions, linear_norm
 from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
@@ -59,6 +60,9 @@ class ImuInputs:
         #: dropped), e.g. the session recorder; called where samples arrive, so they must not block
         self.taps: list[Callable[[ImuSample, tuple[float, ...] | None, int | None], None]] = []
         self._stop = asyncio.Event()
+        # Tap gestures: per watched sensor its detector, the sensors whose motion cancels its taps, and what to call.
+        self._tap_watch: dict[str, tuple[TapDetector, tuple[str, ...], Callable[[str], None]]] = {}
+        self._tap_norms: dict[str, tuple[int, float]] = {}  # sensor -> (time, linear acceleration norm)
 
     def on_sample(self, s: ImuSample) -> None:
         """Buffer one sample (re-expressed in ENU)."""
@@ -68,6 +72,8 @@ class ImuInputs:
         heading = self.device_headings.get(s.sensor)
         if quat is not None and heading is not None:
             quat = tuple(float(v) for v in quat_multiply(heading, np.array(quat)))
+        if s.sensor in self._tap_norms and quat is not None and s.acc is not None:
+            self._tap_sample(s.sensor, s.host_ns, quat, s.acc)
         t = self.ingest.add(
             s.sensor,
             s.host_ns,
@@ -82,6 +88,37 @@ class ImuInputs:
     def use_calibrations(self, calibrations: list[ImuCalibration]) -> None:
         """Apply the device headings of these calibrations to their sensors' samples from now on."""
         self.device_headings = {sid: q for c in calibrations for sid, q in c.device_heading_quats().items()}
+
+    def turn_headings(self, turns: dict[str, np.ndarray]) -> None:
+        """Turn these sensors' device headings by ``turns[sensor]`` (a quaternion about the device frame's up, from
+        now on and for every sample already buffered, so that the solve sees no step): a heading reset."""
+        for sid, turn in turns.items():
+            old = self.device_headings.get(sid)
+            self.device_headings[sid] = turn if old is None else quat_multiply(turn, old)
+            stream = self.ingest.streams.get(sid)
+            if stream is not None:
+                stream.buffer.transform("quat", _turned_by(turn))
+
+    def watch_taps(self, sensor: str, body: Iterable[str], options: TapOptions, on_taps: Callable[[str], None]) -> None:
+        """Count taps on ``sensor`` (its linear acceleration) while the ``body`` sensors stay calm; ``on_taps(sensor)``
+        when the gesture is complete (:mod:`mocapd.core.taps`)."""
+        others = tuple(b for b in body if b != sensor)
+        self._tap_watch[sensor] = (TapDetector(options), others, on_taps)
+        for sid in (sensor, *others):
+            self._tap_norms.setdefault(sid, (0, 0.0))
+
+    def _tap_sample(self, sensor: str, t_ns: int, quat: tuple[float, ...], acc: tuple[float, ...]) -> None:
+        norm = linear_norm(quat, acc)
+        self._tap_norms[sensor] = (t_ns, norm)
+        watched = self._tap_watch.get(sensor)
+        if watched is None:
+            return
+        detector, others, on_taps = watched
+        calm = detector.options.calm
+        recent = t_ns - 200_000_000
+        moving = any(n > calm for t, n in (self._tap_norms[o] for o in others) if t >= recent)
+        if detector.update(t_ns, norm, moving):
+            on_taps(sensor)
 
     def keep_sensors(self, sensors: Iterable[str]) -> None:
         """Never evict these sensors' buffers (the suits' sensors), however many unknown sensor ids arrive."""
@@ -174,3 +211,11 @@ class ImuInputs:
             q_i = stream.buffer.field(r.row, "quat")
             out.append(BoneSample(bone, sid, r.status, bone_orientation(calibration.q_ig, q_i, calibration.q_ib[sid])))
         return out
+
+
+def _turned_by(turn: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    def turned(q: np.ndarray) -> np.ndarray:
+        out: np.ndarray = quat_multiply(turn[None], q)
+        return out
+
+    return turned

@@ -5,9 +5,11 @@ simulated devices.
 Two steps, so that ``mocapd check-config`` says everything that can be said without touching a device:
 
 * :func:`plan_rig` reads the calibration and the files the cameras replay and checks the rig against them: at
-  least one camera; every camera in the calibration file; the image size each camera will deliver (an Aravis
-  ``region``, a webcam's ``width``/``height``, a video's or an image folder's first frame) equal to its
-  calibration's; readable videos and image folders. Each problem is one line naming the key and its value.
+  least one camera or one IMU source (a rig of IMUs alone, an Xsens suit or SlimeVR trackers, has no cameras,
+  no calibration file and no detector); every camera in the calibration file; the image size each camera will
+  deliver (an Aravis ``region``, a webcam's ``width``/``height``, a video's or an image folder's first frame)
+  equal to its calibration's; readable videos and image folders. Each problem is one line naming the key and
+  its value.
 * :func:`build_rig` makes the sources (nothing is opened yet: the daemon opens every device before it reports
   READY, and names the one that fails).
 """
@@ -58,7 +60,11 @@ from mocapd.service.suits import load_suits
 from mocapd.sim.suits import SimulatedSuits
 from mocapd.sim.world import SyntheticKeypointSource, SyntheticWorld
 
-DEFAULT_HEIGHT_M = 1.75  # the skeleton people start with, until body sizing gives each their own
+NO_RIG = (
+    "no cameras and no IMU source: add [[cameras]] tables or an IMU source ([imu] ports, [imu.slimevr] enabled, "
+    "[imu.bridge] enabled); `mocapd devices` prints them for what is plugged in; or try `mocapd demo` "
+    "(`mocapd demo --imu-only`: a simulated suit alone)"
+)
 
 
 @dataclass(frozen=True)
@@ -79,10 +85,10 @@ def plan_rig(config: Config) -> RigPlan:
     """
     cams = config.cameras
     if not cams:
-        raise ConfigError(
-            "no cameras: add [[cameras]] tables (`mocapd devices` prints them for what is plugged in), "
-            "or try `mocapd demo`"
-        )
+        if not config.imu.sources():
+            raise ConfigError(NO_RIG)
+        config.daemon.scheduler_options([])  # daemon.offsets.cameras must be empty
+        return RigPlan([], synthetic=False)  # an IMU-only rig: a suit (Xsens, SlimeVR, bridge) solved alone
     names = [c.name for c in cams]
     config.daemon.scheduler_options(names)  # daemon.offsets.cameras must name cameras of the rig
     if all(isinstance(c, SyntheticCamera) for c in cams):
@@ -211,12 +217,18 @@ class BuiltRig:
             self.simulated = None
 
 
+def rig_skeleton(config: Config) -> Skeleton:
+    """The skeleton every person starts with (until body sizing from the cameras gives each their own), and the one
+    a suit alone is solved on: ``[imu.body]`` (a height, 1.75 m by default, and any segment lengths given)."""
+    return config.imu.body.spec().skeleton()
+
+
 def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.monotonic_ns) -> BuiltRig:
     """Make the rig's sources (blocking: loads the detector model and the prior; starts simulated devices)."""
     prior = resolve_prior(config.solver.prior)
     if plan.synthetic:
         return _build_synthetic(config, plan, prior, clock)
-    skeleton = Skeleton.from_height(DEFAULT_HEIGHT_M)
+    skeleton = rig_skeleton(config)
     fmt = keypoint_format(config.detector.model.keypoint_format)
     targets = fmt.track_targets(skeleton)
     backoff = (config.daemon.restart_min_s, config.daemon.restart_max_s)
@@ -300,6 +312,8 @@ def _build_synthetic(config: Config, plan: RigPlan, prior: PcaPrior | None, cloc
         for c in range(len(world.cameras))
     ]  # fmt: skip
     suits = [Suit.from_calibration(s.id, world.calibration(s), world.skeleton) for s in world.suits]
+    if config.imu.sources():  # IMU inputs of its own beside the simulated suits (e.g. SlimeVR trackers): their suits
+        suits += load_suits(config.imu, world.skeleton)
     rig = Rig(world.cameras, sources, world.skeleton, world.targets, prior, suits)
     # The simulated devices reconnect and stall-detect faster than real ones need: they restart in milliseconds.
     imu = config.imu.model_copy(update={

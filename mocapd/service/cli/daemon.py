@@ -43,14 +43,19 @@ def _load(path: Path | None, http_port: int | None = None) -> Config:
 def check(cfg: Config) -> RigPlan:
     """Everything ``mocapd run`` checks before it opens a device: the rig against its calibration and files, and
     the IMU suits' calibration files."""
-    from mocapd.core.skeleton import Skeleton
     from mocapd.service.rig import plan_rig
-    from mocapd.service.suits import load_suits
 
     plan = plan_rig(cfg)
-    if not plan.synthetic:
-        load_suits(cfg.imu, Skeleton.from_height(1.75))
+    if not plan.synthetic or cfg.imu.sources():  # a synthetic rig loads suits only for IMU inputs of its own
+        _suits(cfg)
     return plan
+
+
+def _suits(cfg: Config) -> list[Any]:
+    from mocapd.service.rig import rig_skeleton
+    from mocapd.service.suits import load_suits
+
+    return load_suits(cfg.imu, rig_skeleton(cfg))
 
 
 def _latency_text(latency_s: float | str) -> str:
@@ -58,12 +63,39 @@ def _latency_text(latency_s: float | str) -> str:
 
 
 def _rig_summary(cfg: Config) -> str:
-    cams = "; ".join(f"{c.name} ({describe(c)})" for c in cfg.cameras)
     d = cfg.daemon
+    if cfg.cameras:
+        cams = "; ".join(f"{c.name} ({describe(c)})" for c in cfg.cameras)
+        rig = f"{len(cfg.cameras)} camera(s): {cams}; {len(cfg.imu.ports)} serial IMU port(s)"
+    else:
+        rig = f"IMUs only (no cameras): {'; '.join(cfg.imu.sources())}; {len(cfg.imu.sensors)} sensor(s) assigned"
     return (
-        f"{len(cfg.cameras)} camera(s): {cams}; {len(cfg.imu.ports)} serial IMU port(s); output "
-        f"{d.output_rate_hz:g} Hz, latency {_latency_text(d.latency_s)}; status http://{d.http_host}:{d.http_port}/status"
+        f"{rig}; output {d.output_rate_hz:g} Hz, latency {_latency_text(d.latency_s)}; "
+        f"status http://{d.http_host}:{d.http_port}/status"
     )
+
+
+def _imu_notes(cfg: Config, path: object) -> list[str]:
+    """What an IMU-only rig still lacks before it streams a pose, each with the command that gives it."""
+    if cfg.cameras:
+        return []
+    notes = []
+    imu = cfg.imu
+    if not imu.sensors:
+        notes.append(
+            "[imu.assignment] is empty: say which sensor sits on which bone (`mocapd devices` lists Xsens ids; "
+            "SlimeVR trackers are listed under imu.slimevr.trackers in /status once `mocapd run` hears them)"
+        )
+    suits = _suits(cfg)
+    if suits:
+        names = ", ".join(f"{s.id} ({len(s.sensors)} sensors)" for s in suits)
+        notes.append(f"suits calibrated in {imu.calibration_dir}/: {names}")
+    else:
+        notes.append(
+            f"no suit is calibrated in {imu.calibration_dir}/ yet, so no pose is streamed: stand still in a T-pose and "
+            f"run `mocapd calibrate imu --config {path} --person NAME --facing-heading 0`"
+        )
+    return notes
 
 
 def _print_config_error(path: object, exc: ConfigError) -> None:
@@ -77,10 +109,13 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(path)
         check(cfg)
+        notes = _imu_notes(cfg, path)
     except ConfigError as exc:
         _print_config_error(path, exc)
         return 2
     print(f"{path}: ok ({_rig_summary(cfg)})")
+    for note in notes:
+        print(f"{path}: note: {note}")
     return 0
 
 
@@ -120,6 +155,40 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
 
 
+def cmd_reset_heading(args: argparse.Namespace) -> int:
+    """``mocapd reset-heading``: ask the running daemon (``POST /heading/reset``) for a heading reset."""
+    import time
+    import urllib.error
+    import urllib.parse
+    import urllib.request
+
+    path = args.config if args.config is not None else DEFAULT_CONFIG
+    try:
+        cfg = _load(args.config, args.http_port)
+    except ConfigError as exc:
+        _print_config_error(path, exc)
+        return 2
+    d = cfg.daemon
+    url = f"http://{d.http_host}:{d.http_port}/heading/reset" + (
+        f"?{urllib.parse.urlencode({'suit': args.suit})}" if args.suit else "")  # fmt: skip
+    if args.delay > 0:
+        print(f"stand straight, facing forward (the way you faced at calibration): reset in {args.delay:g} s",
+              flush=True)  # fmt: skip
+        time.sleep(args.delay)
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, method="POST"), timeout=10) as r:
+            result = json.loads(r.read())
+    except urllib.error.HTTPError as exc:
+        print(f"error: {json.loads(exc.read() or b'{}').get('error', exc)}", file=sys.stderr)
+        return 2
+    except (urllib.error.URLError, OSError) as exc:
+        print(f"error: no daemon answers at {url} ({getattr(exc, 'reason', exc)}): start one with `mocapd run "
+              f"--config FILE`, or name its port (--http-port, --config)", file=sys.stderr)  # fmt: skip
+        return 2
+    print(json.dumps(result, indent=2))
+    return 0
+
+
 def cmd_detect_host(args: argparse.Namespace) -> int:
     path = args.config
     try:
@@ -147,6 +216,10 @@ def cmd_detect_host(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     try:
         cfg = _load(args.config, args.http_port)
+        if args.imu_only:
+            from mocapd.service.demo import imu_only
+
+            return imu_only.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
         if args.synthetic:
             from mocapd.service.demo import synthetic
 
@@ -230,6 +303,9 @@ def register(subparsers: Any) -> None:
     demo.add_argument(
         "--synthetic", action="store_true", help="synthetic motion: simulated keypoints + Xsens IMUs on ptys"
     )
+    demo.add_argument("--imu-only", action="store_true",
+                      help="no camera: a simulated Xsens suit on ptys walking recorded motion drives the avatar alone "
+                      "(viewer; VRChat OSC when --config enables [udp.vrchat])")  # fmt: skip
     demo.add_argument("--seconds", type=float, default=0.0, help="stop after this long (default: until Ctrl-C)")
     demo.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     demo.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
@@ -241,6 +317,15 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--speed", type=float, default=1.0,
                       help="camera rig: video playback speed (default 1, their pace; < 1: slow motion)")  # fmt: skip
     demo.set_defaults(func=cmd_demo, fast_exit=True)
+
+    reset = subparsers.add_parser(
+        "reset-heading", help="heading reset of the running daemon's suits: the wearer stands straight facing forward "
+        "(IMUs without cameras drift in heading; POST /heading/reset, docs/vr.md)")  # fmt: skip
+    reset.add_argument("--config", type=Path, default=None, help="the daemon's config file (for its http_port)")
+    reset.add_argument("--http-port", type=int, default=None, help="the daemon's status port (default: the config's)")
+    reset.add_argument("--suit", default=None, help="only this suit (default: every suit)")
+    reset.add_argument("--delay", type=float, default=0.0, help="seconds to wait first, to stand straight (default 0)")
+    reset.set_defaults(func=cmd_reset_heading)
 
     check_ = subparsers.add_parser("check-config", help="validate a config file and its rig, and say what is wrong")
     check_.add_argument("path", nargs="?", type=Path, default=None, help="config file (default: the shipped one)")

@@ -44,7 +44,9 @@ def register(subparsers: Any) -> None:
     """Add ``calibrate imu`` to the CLI's subcommands."""
     group = _subcommand_group(subparsers, "calibrate", "calibration procedures", "calibrate_what")
     p = group.add_parser("imu", help="T-pose calibration of the IMU mountings (writes <person>.imu.json)")
-    p.add_argument("--config", type=Path, default=Path("config.toml"), help="config file with an [imu] section")
+    p.add_argument("--config", type=Path, default=None,
+                   help="config file with an [imu] section (default: config.toml here); with --from, whose "
+                   "calibration_dir gets the file too")  # fmt: skip
     p.add_argument("--person", help="name of the subject (file name of the calibration; required when recording)")
     p.add_argument(
         "--from",
@@ -82,7 +84,12 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")
     p.add_argument("--connect-timeout", type=float, default=15.0, help="wait for all sensors (s)")
-    p.add_argument("--out", type=Path, help="output file (default <calibration_dir>/<person>.imu.json)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="output file (default <calibration_dir>/<person>.imu.json; with --from: "
+        "SESSION/calibration/<person>.imu.json, or --config's calibration_dir when --config is given)",
+    )
     p.add_argument(
         "--mount-yaw",
         action="append",
@@ -161,7 +168,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 "(a recording calibrated with --from SESSION can take it from its steps)"
             )
         window_s = float(args.window)
-        config = load_config(args.config).imu  # validates the whole file, like the daemon
+        config = load_config(args.config or Path("config.toml")).imu  # validates the whole file, like the daemon
         if args.port:  # --port replaces imu.ports, validated like the file's
             config = validate(ImuConfig, {**config.model_dump(), "ports": list(args.port)}, "imu")
         if not config.sensors:

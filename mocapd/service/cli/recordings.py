@@ -23,7 +23,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from mocapd.core.body_dims import SEGMENTS, default_lengths
+from mocapd.core.skeleton import REFERENCE_HEIGHT
 from mocapd.errors import MocapdError
+
+
+def _segments(args: argparse.Namespace) -> dict[str, float]:
+    """The segment lengths given on the command line (``--thigh`` ...)."""
+    return {k: v for k in SEGMENTS if (v := getattr(args, f"seg_{k}", None)) is not None}
 
 
 def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
@@ -42,6 +49,8 @@ def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
             for sid, info in imp["sensors"].items()
         },
         "assignment": imp["assignment"],
+        "unassigned": sorted(set(imp["sensors"]) - set(imp["assignment"])),
+        "skeleton": manifest["skeleton"]["from"],
         "next": f"mocapd calibrate imu --from {path}  (the facing from the take's steps; or --facing-from SENSOR:AXIS)",
     }
 
@@ -55,15 +64,40 @@ def cmd_import_mtw(args: argparse.Namespace) -> int:
         write_imported_session,
     )
 
-    exports = [(p.name, read_mt_export(p, rate_hz=args.rate)) for p in args.files]
+    exports = [(p.name, read_mt_export(p, rate_hz=args.rate)) for p in _export_files(args.files)]
     streams = streams_from_mt_exports(exports)
     manifest = imported_manifest(
         streams, parse_assign_pairs(args.assign), source="mt-manager", suit=args.suit, height=args.height,
-        imu_set=args.imu_set or None,
+        imu_set=args.imu_set or None, segments=_segments(args),
     )  # fmt: skip
     path = write_imported_session(args.output, streams, manifest)
+    _note_unassigned(manifest)
     print(json.dumps(_summary(path, manifest), indent=2))
     return 0
+
+
+def _export_files(paths: list[Path]) -> list[Path]:
+    """The files named, a folder standing for its MT Manager exports (``*.txt``, ``*.csv``)."""
+    out: list[Path] = []
+    for p in paths:
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in (".txt", ".csv"))
+            if not found:
+                raise MocapdError(f"{p}: a folder without MT Manager exports (.txt, .csv)")
+            out += found
+        else:
+            out.append(p)
+    return out
+
+
+def _note_unassigned(manifest: dict[str, Any]) -> None:
+    """Say which imported sensors have no bone: they are kept in the session, but nothing calibrates or solves them."""
+    imp = manifest["imported"]
+    extra = sorted(set(imp["sensors"]) - set(imp["assignment"]))
+    if extra:
+        print(f"note: {len(extra)} sensor(s) have no bone, kept in the session but not calibrated or solved: "
+              f"{', '.join(extra)}; give each a bone with --assign SENSOR=BONE, or leave its file out",
+              file=sys.stderr)  # fmt: skip
 
 
 def cmd_import_mvnx(args: argparse.Namespace) -> int:
@@ -79,9 +113,16 @@ def cmd_import_mvnx(args: argparse.Namespace) -> int:
     streams = streams_from_mvnx(read_mvnx(args.file), args.file.name)
     assignment = parse_assign_pairs(args.assign) if args.assign else mvnx_assignment(streams)
     manifest = imported_manifest(
-        streams, assignment, source="mvnx", suit=args.suit, height=args.height, imu_set=args.imu_set or None
+        streams,
+        assignment,
+        source="mvnx",
+        suit=args.suit,
+        height=args.height,
+        imu_set=args.imu_set or None,
+        segments=_segments(args),
     )
     path = write_imported_session(args.output, streams, manifest)
+    _note_unassigned(manifest)
     print(json.dumps(_summary(path, manifest), indent=2))
     return 0
 
@@ -116,9 +157,14 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
                 "facing_heading_deg": round(calib.facing_heading_deg, 2), "facing_from": result.facing,
                 "hinges": {name: h.as_dict() for name, h in result.hinges.items()}}  # fmt: skip
         store_in_session(session, suit, calib, info)
-        out = args.out or Path(load_config(args.config if args.config.exists() else None).imu.calibration_dir) / (
-            f"{person}.imu.json"
-        )
+        # A take's calibration stays with the take: a file in the working directory's calibration/ would become a
+        # suit of any daemon started there. A rig's calibration_dir gets it only when its config is named.
+        if args.out is not None:
+            out = args.out
+        elif args.config is not None:
+            out = Path(load_config(args.config).imu.calibration_dir) / f"{person}.imu.json"
+        else:
+            out = session.path / "calibration" / f"{person}.imu.json"
     except MocapdError as exc:
         print(f"mocapd calibrate imu: {exc}", file=sys.stderr)
         return 1
@@ -211,7 +257,16 @@ def register(subparsers: Any) -> None:
         p.add_argument("--assign", action="append", default=[], metavar="SENSOR=BONE",
                        help="which sensor sits on which bone, e.g. 00B42279=Hips (repeat)")  # fmt: skip
         p.add_argument("--suit", default="suit0", help="the suit's name in the session (default suit0)")
-        p.add_argument("--height", type=float, default=1.75, help="the wearer's height in m (sizes the skeleton)")
+        body = p.add_argument_group(
+            "the wearer's body", "a height, and any segment lengths measured (each one not given is scaled from the "
+            "height; the session records which: manifest skeleton.from)")  # fmt: skip
+        body.add_argument("--height", type=float, default=REFERENCE_HEIGHT, metavar="M",
+                          help=f"the wearer's height, m (default {REFERENCE_HEIGHT:g})")  # fmt: skip
+        at = default_lengths()
+        for name, what in SEGMENTS.items():
+            helps = f"{what}, m (default: from --height; {at[name]:.3f} at {REFERENCE_HEIGHT:g} m)"
+            body.add_argument(f"--{name.replace('_', '-')}", type=float, default=None, metavar="M", dest=f"seg_{name}",
+                              help=helps)  # fmt: skip
         p.add_argument(
             "--imu-set",
             default="",
@@ -220,7 +275,8 @@ def register(subparsers: Any) -> None:
         )
 
     mtw = what.add_parser("mtw", help="MT Manager text exports, one file per sensor (the id in its name)")
-    mtw.add_argument("files", type=Path, nargs="+", help="export files (.txt/.csv), all of one recording")
+    mtw.add_argument("files", type=Path, nargs="+",
+                     help="export files (.txt/.csv) of one recording, or a folder of them")  # fmt: skip
     mtw.add_argument("--rate", type=float, default=None, help="update rate (Hz) when the files do not say it")
     common(mtw)
     mtw.set_defaults(func=_guard(cmd_import_mtw))

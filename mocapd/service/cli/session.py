@@ -16,6 +16,7 @@ from mocapd.io.session import RESOLVED, Session, open_session
 from mocapd.io.session_export import SubjectTrack
 from mocapd.pipeline.camera_views import CameraViews
 from mocapd.pipeline.scheduler import PoseFrame
+from mocapd.protocols.session_format import PoseRecord
 from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import PoseSink
 
@@ -51,10 +52,32 @@ def _undecodable_notes(session: Session) -> None:
                   file=sys.stderr)  # fmt: skip
 
 
-def _pose_stream(session: Session, resolved: bool) -> str:
-    if resolved and not session.has_stream(RESOLVED):
-        raise InputError(f"{session.path}: no resolved poses yet (run `mocapd resolve {session.path}`)")
-    return RESOLVED if resolved else "poses"
+def _poses(session: Session, args: argparse.Namespace, again: str) -> list[PoseRecord]:
+    """The frames to replay or export: the live ``poses``, the resolved ones (``--resolved``), or a stream file
+    ``mocapd resolve -o FILE`` wrote (``--poses FILE``). A session whose live stream holds no pose but which is
+    resolved (an imported take always is so) names the command that reads the resolved poses."""
+    if args.poses is not None:
+        return session.require_poses_file(args.poses)
+    if args.resolved:
+        if not session.has_stream(RESOLVED):
+            raise InputError(f"{session.path}: no resolved poses yet: run `mocapd resolve {session.path}` first")
+        return session.require_poses(RESOLVED)
+    try:
+        return session.require_poses("poses")
+    except InputError as exc:
+        if not session.has_stream(RESOLVED):
+            raise
+        raise InputError(f"{exc}; the session is resolved: `{again} --resolved`") from None
+
+
+def _again(command: str, args: argparse.Namespace, options: tuple[str, ...]) -> str:
+    """The command line the user typed (for a message naming the next one to type)."""
+    out = [f"mocapd {command} {args.session}"]
+    for name in options:
+        value = getattr(args, name, None)
+        if value is not None and value is not False:
+            out.append(f"--{name.replace('_', '-')}" + ("" if value is True else f" {value}"))
+    return " ".join(out)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -63,7 +86,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     session = _open(args.session)
-    frames = session.require_poses(_pose_stream(session, args.resolved))
+    frames = _poses(session, args, _again("replay", args, ("speed", "config")))
     _undecodable_notes(session)
     rig = session_rig(session)
     views, events = replay_camera_views(session, rig, frames)
@@ -109,6 +132,8 @@ def cmd_resolve(args: argparse.Namespace) -> int:
         print(f"note: {line}", file=sys.stderr)
     path = write_resolved(session, frames, args.output)
     summary["written"] = str(path)
+    read = f"--poses {path}" if args.output is not None else "--resolved"
+    summary["next"] = f"mocapd export {session.path} {read} --csv take.csv --bvh take.bvh"
     if truth:
         summary["error_vs_truth_mm"] = truth_report(session, {"live": session.poses(), "resolved": frames})
     print(json.dumps(summary, indent=2, default=str))
@@ -125,7 +150,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         print("error: nothing to export: give --bvh FILE, --csv FILE and/or --gltf FILE", file=sys.stderr)
         return 2
     session = _open(args.session)
-    poses = session.require_poses(_pose_stream(session, args.resolved))
+    poses = _poses(session, args, _again("export", args, ("gltf", "bvh", "csv", "subject")))
     _undecodable_notes(session)
     rig: list[Skeleton] = []
 
@@ -151,7 +176,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             out["bvh"] = str(args.bvh)
             bar(1)
         if args.csv is not None:
-            write_csv(args.csv, skeleton, track)
+            write_csv(args.csv, skeleton, track, origin_ns=_origin_ns(session))
             out["csv"] = str(args.csv)
             bar(1)
         if args.gltf is not None:
@@ -166,6 +191,13 @@ def cmd_export(args: argparse.Namespace) -> int:
             bar(1)
     print(json.dumps(out))
     return 0
+
+
+def _origin_ns(session: Session) -> int | None:
+    """Host time of the session's start (an imported take: of its recording's first sample): the CSV's
+    ``source_s`` counts from it."""
+    origin = session.manifest.get("started_monotonic_ns")
+    return origin if isinstance(origin, int) and not isinstance(origin, bool) else None
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -223,14 +255,17 @@ def register(subparsers: Any) -> None:
     rp.add_argument("session", type=Path, help="session directory")
     rp.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1 = recorded pace)")
     rp.add_argument("--resolved", action="store_true", help="replay the resolved poses instead of the live ones")
+    rp.add_argument("--poses", type=Path, default=None, metavar="FILE",
+                    help="replay this pose stream file (written by `mocapd resolve SESSION -o FILE`)")  # fmt: skip
     rp.add_argument("--config", type=Path, default=None, help="config file with the stream sinks (default: shipped)")
     rp.add_argument("--verbose", action="store_true", help="print a line per second of session time")
     rp.set_defaults(func=_guard(cmd_replay))
 
     rs = subparsers.add_parser("resolve", help="re-solve a session offline: all frames, more iterations, smoothing")
     rs.add_argument("session", type=Path, help="session directory")
-    rs.add_argument("-o", "--output", type=Path, default=None,
-                    help="write the resolved stream here (default: SESSION/poses-resolved.mcs)")  # fmt: skip
+    rs.add_argument("-o", "--output", type=Path, default=None, metavar="FILE",
+                    help="write the resolved pose stream to FILE instead of SESSION/poses-resolved.mcs (to keep "
+                    "several re-solves side by side); `mocapd export SESSION --poses FILE` reads it")  # fmt: skip
     rs.add_argument("--iterations", type=int, default=100, help="LM iterations per frame (default 100)")
     rs.add_argument("--no-smooth", action="store_true", help="skip the forward-backward (RTS) smoother")
     rs.set_defaults(func=_guard(cmd_resolve))
@@ -245,6 +280,8 @@ def register(subparsers: Any) -> None:
                     help="identity, e.g. suit:suit0 or track:1 (BVH/CSV default: most seen; glTF: all)")  # fmt: skip
     ex.add_argument("--rate", type=float, default=60.0, help="output frame rate, Hz (default 60)")
     ex.add_argument("--resolved", action="store_true", help="export the resolved poses instead of the live ones")
+    ex.add_argument("--poses", type=Path, default=None, metavar="FILE",
+                    help="export this pose stream file (written by `mocapd resolve SESSION -o FILE`)")  # fmt: skip
     ex.set_defaults(func=_guard(cmd_export))
 
     info = subparsers.add_parser("session", help="describe a session and check its streams (recovery report)")

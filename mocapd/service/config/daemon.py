@@ -26,6 +26,9 @@ def _sensor_id(value: str) -> str:
 
 
 SensorId = Annotated[str, AfterValidator(_sensor_id), Allowed("a sensor id: 8 hex digits, e.g. 00B421E6")]
+IMU_ONLY_LATENCY_S = 0.06
+"""``latency_s = "auto"`` on a rig without cameras (s): nothing to follow but the IMUs, whose samples arrive within
+a few ms of being measured: a 100 Hz sensor's interval, the SlimeVR server's 20 ms holding and Wi-Fi jitter."""
 #: how far a device's time stamps run ahead of the host clock (s)
 Offset = Annotated[float, Field(ge=-1.0, le=1.0)]
 
@@ -80,13 +83,14 @@ class DaemonConfig(Section):
         unknown = sorted(set(self.offsets.cameras) - set(camera_names))
         if unknown:
             raise ConfigError(f"daemon.offsets.cameras: unknown camera(s) {unknown}; the rig has {camera_names}")
+        # "auto" follows the detector; a rig without cameras has none: its IMUs need a short fixed delay.
+        auto = self.latency_s == "auto" and bool(camera_names)
+        fixed = IMU_ONLY_LATENCY_S if self.latency_s == "auto" else self.latency_s
         return SchedulerOptions(
             rate_hz=self.output_rate_hz,
-            latency_ns=AutoLatencyOptions.start_ns if self.latency_s == "auto" else round(self.latency_s * 1e9),
+            latency_ns=AutoLatencyOptions.start_ns if auto else round(fixed * 1e9),
             # a tick runs up to one period late: the delay covers that too
-            auto_latency=AutoLatencyOptions(margin_ns=round(1e9 / self.output_rate_hz))
-            if self.latency_s == "auto"
-            else None,
+            auto_latency=AutoLatencyOptions(margin_ns=round(1e9 / self.output_rate_hz)) if auto else None,
             keypoint_max_age_ns=round(self.keypoint_max_age_s * 1e9),
             keypoint_max_gap_ns=round(self.keypoint_max_gap_s * 1e9),
             match_px=self.match_px,

@@ -9,7 +9,9 @@ from typing import Annotated, Literal, Self
 
 from pydantic import AfterValidator, Field, model_validator
 
+from mocapd.core.body_dims import LIMITS, BodySpec
 from mocapd.core.imu_calibration import parse_assignment
+from mocapd.core.skeleton import REFERENCE_HEIGHT
 from mocapd.errors import ConfigError
 from mocapd.io.slimevr import SlimeVrConfig
 from mocapd.io.xsens_serial import XsensPortConfig
@@ -115,9 +117,36 @@ class SlimeVrSection(Section):
         default_factory=dict
     )
     """``"<MAC>/<sensor index>"`` -> bone."""
+    reset_taps: int = Field(2, ge=0, le=5)
+    """Taps on the chest (or hips) tracker that ask for a heading reset, as in the SlimeVR server (0: off)."""
+    reset_delay_s: float = Field(1.0, ge=0.0, le=10.0)
+    """A reset asked on a tracker (taps, its button) happens this long after: the hand goes back down first."""
 
     def options(self) -> SlimeVrConfig:
         return SlimeVrConfig(enabled=self.enabled, host=self.host, port=self.port, assignment=dict(self.assignment))
+
+
+_Segment = Annotated[float | None, Field(ge=LIMITS[0], le=LIMITS[1])]
+
+
+class BodyConfig(Section):
+    """``[imu.body]``: the suit wearer's body, when no camera measures it (:mod:`mocapd.core.body_dims`)."""
+
+    height_m: float = Field(REFERENCE_HEIGHT, ge=0.5, le=2.6)
+    """Sizes every segment not given below."""
+    hip_width_m: _Segment = None
+    thigh_m: _Segment = None
+    shank_m: _Segment = None
+    foot_m: _Segment = None
+    ankle_height_m: _Segment = None
+    torso_m: _Segment = None
+    shoulder_width_m: _Segment = None
+    upper_arm_m: _Segment = None
+    forearm_m: _Segment = None
+
+    def spec(self) -> BodySpec:
+        given = {k.removesuffix("_m"): v for k, v in self.model_dump().items() if k != "height_m" and v is not None}
+        return BodySpec(self.height_m, given)
 
 
 class ImuConfig(Section):
@@ -145,12 +174,27 @@ class ImuConfig(Section):
     bridge: BridgeConfig = Field(default_factory=BridgeConfig)
     awinda: AwindaSection = Field(default_factory=AwindaSection)
     slimevr: SlimeVrSection = Field(default_factory=SlimeVrSection)
+    body: BodyConfig = Field(default_factory=BodyConfig)
 
     @property
     def sensors(self) -> dict[str, str]:
         """Every sensor's bone, whatever carries it (Xsens ``assignment`` and ``slimevr.assignment``): one IMU
         model for calibration, suits and the sensor-set check."""
         return {**self.assignment, **self.slimevr.assignment}
+
+    def sources(self) -> list[str]:
+        """The IMU inputs this section opens, one phrase each (empty: no IMU source): what ``check-config`` says a
+        rig without cameras runs on."""
+        ports = self.ports
+        many = f"{len(ports)} Xsens serial ports ({ports[0]} ... {ports[-1]})" if len(ports) > 2 else ""
+        out = [many] if many else [f"Xsens serial port {p}" for p in ports]
+        if self.awinda.experimental:
+            out.append(f"Awinda station {self.awinda.path} (experimental)")
+        if self.slimevr.enabled:
+            out.append(f"SlimeVR server on udp {self.slimevr.host}:{self.slimevr.port}")
+        if self.bridge.enabled:
+            out.append(f"IMU bridge on udp {self.bridge.host}:{self.bridge.port}")
+        return out
 
     @model_validator(mode="after")
     def _one_bone_per_sensor(self) -> Self:

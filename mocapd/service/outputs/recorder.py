@@ -223,7 +223,7 @@ def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | Non
         },
         "cameras": [camera_dict(c) for c in rig.cameras],
         "skeleton": {"offsets": rig.skeleton.offsets.tolist(), "root_height": rig.skeleton.root_height,
-                     "height": rig.skeleton.height},
+                     "height": rig.skeleton.height, "from": _skeleton_source(config)},
         "targets": {"names": list(rig.targets.names), "bones": rig.targets.bones.tolist(),
                     "offsets": rig.targets.offsets.tolist()},
         "prior": "prior.npz" if rig.prior is not None else None,
@@ -233,6 +233,14 @@ def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | Non
                     "keypoint_sources": [src.name for src in rig.sources]},
         **({"extra": extra} if extra else {}),
     }  # fmt: skip
+
+
+def _skeleton_source(config: Config) -> dict[str, Any]:
+    """How the rig's skeleton was sized: the synthetic world's, or ``[imu.body]`` (a height, and segment lengths if
+    given). People the cameras measure get their own (``[daemon] body_size_s``; recorded with their poses)."""
+    if any(c.source == "synthetic" for c in config.cameras):
+        return {"source": "synthetic world"}
+    return config.imu.body.spec().describe()
 
 
 def synthetic_extra(syn: SyntheticConfig, cameras: list[str], epoch_ns: int) -> dict[str, Any]:

@@ -39,8 +39,10 @@ def build_websocket_sinks(
         views = attach_camera_views(daemon, options)
     # Status messages read the status server's snapshot: at any status_hz they add no renders of their own.
     status = daemon.http.snapshots.document
+    commands = {"reset_heading": lambda args: daemon.reset_heading(args.get("suit"), "WebSocket request")}
     return websocket_sinks(config, daemon.rig.skeleton, status=status, clock=daemon.clock, sock=sock,
-                           camera_views=views, output=daemon.scheduler.options.prediction.output)  # fmt: skip
+                           camera_views=views, output=daemon.scheduler.options.prediction.output,
+                           commands=commands)  # fmt: skip
 
 
 def websocket_sinks(
@@ -52,6 +54,7 @@ def websocket_sinks(
     sock: socket.socket | None = None,
     camera_views: CameraViews | None = None,
     output: str = "delayed",
+    commands: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
 ) -> list[WebSocketStreamServer]:
     """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health), with
     camera panels from ``camera_views`` when given; ``output`` is the output mode the hello announces (the
@@ -65,6 +68,7 @@ def websocket_sinks(
         defaults=StreamOptions(encoding=ws.encoding, convention=ws.convention, globals=ws.globals),
     )  # fmt: skip
     description = StreamDescription(config.daemon.output_rate_hz, {"default": skeleton}, output=output)
-    return [
-        WebSocketStreamServer(settings, description, status=status, clock=clock, sock=sock, camera_views=camera_views)
-    ]
+    server = WebSocketStreamServer(
+        settings, description, status=status, clock=clock, sock=sock, camera_views=camera_views, commands=commands
+    )
+    return [server]

@@ -116,7 +116,10 @@ def calibrate_session(
     samples = session_samples(session)
     source = "sensor" if facing_from is not None else "heading"
     if facing_heading_deg is None and facing_from is None:
-        start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span)
+        try:
+            start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span)
+        except CalibrationError as exc:
+            raise CalibrationError(_from_a_recording(str(exc), session, samples, bones, window_s, span, pose)) from None
         facing_heading_deg = facing_heading_from_steps(samples, bones, (start, end))
         if facing_heading_deg is None:
             raise ConfigError(
@@ -129,10 +132,13 @@ def calibrate_session(
     def calibrate(
         heading: float | None, axis: tuple[str, FloatArray] | None
     ) -> tuple[ImuCalibration, tuple[float, float]]:
-        return calibrate_recording(
-            person, samples, bones, facing_heading_deg=heading, facing_from=axis, world_heading=world_heading,
-            window_s=window_s, span=span, pose=pose,
-        )  # fmt: skip
+        try:
+            return calibrate_recording(
+                person, samples, bones, facing_heading_deg=heading, facing_from=axis, world_heading=world_heading,
+                window_s=window_s, span=span, pose=pose,
+            )  # fmt: skip
+        except CalibrationError as exc:
+            raise CalibrationError(_from_a_recording(str(exc), session, samples, bones, window_s, span, pose)) from None
 
     calib, window = calibrate(facing_heading_deg, facing_from)
     hinges = calibration_hinges(samples, calib)
@@ -180,6 +186,24 @@ def _refusal(
         "(a sensor on another bone, left and right swapped) or leave out --facing-from/--facing-heading to take the "
         "facing from the take's steps"
     )
+
+
+def _from_a_recording(message: str, session: Session, samples: dict[str, Any], bones: dict[str, str],
+                      window_s: float, span: tuple[float, float] | None, pose: str) -> str:  # fmt: skip
+    """A still-window refusal as advice for a recording: it cannot be repeated, but another moment of it can be
+    chosen (``--window START:END``); and it names the posture that was assumed, not always the T-pose."""
+    if "stand still and repeat" not in message:
+        return message
+    try:
+        start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span)
+        where = f"in the stillest {window_s:g} s of the recording ({start:.1f}-{end:.1f} s)"
+    except CalibrationError:
+        where = "in the stillest window of the recording"
+    posture = {"t-pose": "a T-pose", "arms-down": "standing, arms down"}.get(pose, pose)
+    return (message.replace("during the T-pose", where).replace(
+        "stand still and repeat",
+        f"choose a moment when the subject stands still ({posture}): `mocapd calibrate imu --from {session.path} "
+        f"--window START:END` (seconds of the session; `mocapd session {session.path}` shows its length)"))  # fmt: skip
 
 
 def store_in_session(session: Session, suit: str, calib: ImuCalibration, info: dict[str, Any]) -> None:

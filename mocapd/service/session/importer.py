@@ -2,8 +2,9 @@
 
 An imported session is an ordinary session directory (``docs/sessions.md``) with no cameras: ``imu.mcs`` holds
 every sample of every sensor, ``keypoints.mcs`` and ``poses.mcs`` are empty, and ``manifest.json`` describes a rig
-without cameras (the shipped config with the sensor assignment in ``[imu.assignment]``, the default skeleton at
-``--height``, the default pose prior) plus an ``imported`` section: where the data came from, each sensor's
+without cameras (the shipped config with the sensor assignment in ``[imu.assignment]``, the skeleton at
+``--height`` with any segment lengths given (``--thigh`` ..., recorded in ``[imu.body]`` and ``skeleton.from``), the
+default pose prior) plus an ``imported`` section: where the data came from, each sensor's
 samples, rate, orientation and acceleration source, and the suit name. Its ``suits`` list is empty until
 ``mocapd calibrate imu --from SESSION`` calibrates it; then ``mocapd resolve`` solves it (IMU-only) and
 ``mocapd export`` writes BVH/CSV.
@@ -21,9 +22,9 @@ from typing import Any
 import numpy as np
 
 import mocapd
+from mocapd.core.body_dims import BodySpec
 from mocapd.core.imu_calibration import parse_assignment
 from mocapd.core.keypoints import coco17_targets
-from mocapd.core.skeleton import Skeleton
 from mocapd.errors import InputError
 from mocapd.io.imu_recordings import (
     MVN_SENSOR_BONES,
@@ -56,8 +57,10 @@ def imported_manifest(
     suit: str,
     height: float,
     imu_set: str | None = None,
+    segments: dict[str, float] | None = None,
 ) -> dict[str, Any]:
-    """The manifest of an imported session (see the module docstring)."""
+    """The manifest of an imported session (see the module docstring). The skeleton is the default proportions at
+    ``height`` with any ``segments`` given (:mod:`mocapd.core.body_dims`); the manifest records which."""
     missing = sorted(set(assignment) - {s.sensor for s in streams})
     if missing:
         raise InputError(
@@ -73,7 +76,9 @@ def imported_manifest(
     imu["imu_set"] = imu_set or ""
     raw["imu"] = imu
     o = cfg.daemon.scheduler_options([])
-    skeleton = Skeleton.from_height(height)
+    body = BodySpec(height, dict(segments or {}))
+    skeleton = body.skeleton()
+    imu["body"] = {"height_m": height, **{f"{k}_m": v for k, v in (segments or {}).items()}}
     targets = coco17_targets(skeleton)
     return {
         "format": "mocapd-session",
@@ -91,7 +96,7 @@ def imported_manifest(
         },
         "cameras": [],
         "skeleton": {"offsets": skeleton.offsets.tolist(), "root_height": skeleton.root_height,
-                     "height": skeleton.height},
+                     "height": skeleton.height, "from": body.describe()},
         "targets": {"names": list(targets.names), "bones": targets.bones.tolist(), "offsets": targets.offsets.tolist()},
         "prior": "prior.npz",
         "suits": [],

@@ -1,0 +1,181 @@
+"""An IMU-only rig, as a suit owner configures it: ``mocapd run --config`` with no ``[[cameras]]``.
+
+One run carries both IMU transports: an Xsens suit (13 simulated devices on real pseudo-terminals, speaking Xbus)
+and a SlimeVR suit (13 sensors of the PyPI ``slimevr-tracker-emulator`` on loopback UDP). A real WebSocket client
+reads both wearers' poses, and VRChat's OSC trackers arrive on a UDP socket the test bound. One daemon start for
+both transports keeps the suite's time down."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from pythonosc.osc_bundle import OscBundle
+from websockets.asyncio.client import connect
+
+from mocapd.core.body_dims import segment_lengths
+from mocapd.service.cli import main
+from mocapd.service.config import load_config
+from mocapd.service.demo.imu_only import simulated_suit
+from mocapd.sim.world import SyntheticWorld
+from tests.test_run_rig import RunProcess
+from tools.slimevr_rig import emulated_trackers, slimevr_calibration
+
+
+def _toml(value: Any) -> str:
+    return json.dumps(value)  # strings, numbers and lists of strings read the same in TOML
+
+
+def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_and_vrchat(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    osc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    osc.bind(("127.0.0.1", 0))
+    osc.settimeout(0.2)
+    slime_world = SyntheticWorld(0, 1, 1, seed=3, motion="procedural")
+    slime = replace(slimevr_calibration(slime_world, slime_world.suits[0]), person="slime")
+    with simulated_suit(load_config()) as xsens:
+        imu = xsens.config.imu
+        folder = Path(imu.calibration_dir)
+        (folder / "slime.imu.json").write_text(json.dumps(slime.to_json_dict()), encoding="utf-8")
+        body = segment_lengths(xsens.world.skeleton)  # the Xsens wearer, measured with a tape
+        config = tmp_path / "suit.toml"
+        config.write_text(
+            "[imu]\n"
+            f"ports = [{', '.join(_toml(p) for p in imu.ports)}]\n"
+            f"calibration_dir = {_toml(str(folder))}\n"
+            # No [imu.assignment] for the Xsens suit: one config assigns each bone once, and two wearers have
+            # two of each; the daemon takes every suit's sensors from its calibration file.
+            "[imu.body]\n" + "".join(f"{k}_m = {v:.3f}\n" for k, v in body.items())
+            + "[imu.slimevr]\nenabled = true\nport = 0\n"
+            "[imu.slimevr.assignment]\n" + "".join(f"{_toml(k)} = {_toml(v)}\n" for k, v in slime.bones.items())
+            + "[daemon]\nhttp_port = 0\noutput = \"predicted\"\n"
+            "[websocket]\nport = 0\n"
+            f"[udp.vrchat]\nenabled = true\ndestination = \"127.0.0.1:{osc.getsockname()[1]}\"\n"
+            "subject = \"suit:slime\"\n",
+            encoding="utf-8",
+        )  # fmt: skip
+        assert main(["check-config", str(config)]) == 0
+        said = capsys.readouterr().out
+        assert "IMUs only (no cameras): 13 Xsens serial ports" in said and "SlimeVR server on udp" in said, said
+        assert "slime (13 sensors), suit0 (13 sensors)" in said, said
+
+        run = RunProcess(["--config", str(config)], cwd=tmp_path)
+        try:
+            url = run.url(300)
+            ws_url = next(line.split()[-1] for line in run.lines if line.startswith("viewer "))
+            st = run.wait_status(url, lambda s: s["imu"]["slimevr"] is not None, 30)
+            port = int(st["imu"]["slimevr"]["listen"].rsplit(":", 1)[1])
+            frames, osc_bundles = asyncio.run(_stream(ws_url, port, slime_world, osc))
+            st = run.wait_status(url, lambda s: True, 5)
+            code, _ = run.interrupt()
+        finally:
+            run.close()
+            osc.close()
+        assert code == 0, run.output
+        assert "Traceback" not in run.output, run.output[-4000:]
+
+        # Every device opened before READY; no camera, no detector.
+        assert st["cameras"] == [] and "detector" not in st
+        assert all(d["streaming"] for d in st["imu"]["devices"]) and len(st["imu"]["devices"]) == 13
+        (tracker,) = st["imu"]["slimevr"]["trackers"]
+        assert tracker["connected"] and len(tracker["sensors"]) == 13
+
+        # The WebSocket client saw both wearers, with their IMUs, on the ground.
+        by_id: dict[str, list[dict[str, Any]]] = {}
+        for f in frames:
+            for s in f["subjects"]:
+                by_id.setdefault(s["id"], []).append({**s, "t_solve_ns": f["t_solve_ns"]})
+        assert {"suit:suit0", "suit:slime"} <= set(by_id), sorted(by_id)
+        for subject in by_id.values():
+            assert max(s["imus"] for s in subject) >= 10
+            heights = [s["root"][1] for s in subject]
+            assert 0.6 < float(np.median(heights)) < 1.2, heights[-5:]
+        # The Xsens wearer's joints follow the simulated body (roots put together: nothing fixes where a suit
+        # alone is in the room).
+        errors = []
+        for s in by_id["suit:suit0"][-120:]:
+            truth = xsens.world.joints_at(0, (s["t_pose_ns"] - xsens.epoch_ns) / 1e9)
+            joints = np.array(s["joints"]).reshape(21, 3)
+            errors.append(np.linalg.norm((joints - joints[0]) - (truth - truth[0]), axis=1).mean())
+        assert float(np.median(errors)) < 0.08, np.median(errors)
+
+    # VRChat got the SlimeVR wearer's trackers.
+    assert len(osc_bundles) >= 30
+    hips = [m.params for b in osc_bundles for m in OscBundle(b) if m.address == "/tracking/trackers/1/position"]
+    assert hips and all(np.isfinite(p).all() for p in hips)
+    assert 0.6 < float(np.median([p[1] for p in hips])) < 1.2
+
+
+async def _stream(
+    ws_url: str, port: int, world: SyntheticWorld, osc: socket.socket
+) -> tuple[list[dict[str, Any]], list[bytes]]:
+    """Emulated trackers streaming to the daemon; meanwhile a WebSocket client's frames and the OSC bundles."""
+    frames: list[dict[str, Any]] = []
+    bundles: list[bytes] = []
+    loop = asyncio.get_running_loop()
+    async with emulated_trackers(world, time.monotonic_ns(), port):
+        async with connect(ws_url, max_size=None) as ws:
+            await ws.send(json.dumps({"type": "subscribe", "encoding": "json", "globals": True}))
+            end = loop.time() + 120
+            seen: set[str] = set()
+            while loop.time() < end and (len(seen) < 2 or len(frames) < 300):
+                raw = await asyncio.wait_for(ws.recv(), 10)
+                if isinstance(raw, bytes):  # the first hello, msgpack, before the subscribe took effect
+                    continue
+                msg = json.loads(raw)
+                if msg["type"] == "frame":
+                    frames.append(msg)
+                    seen |= {s["id"] for s in msg["subjects"] if s["imus"] >= 10}
+        osc.setblocking(False)
+        while len(bundles) < 60:  # a second of VRChat's stream (queued since the run began, at 60 Hz)
+            bundles.append(await asyncio.wait_for(loop.sock_recv(osc, 65536), 5))
+    return frames, bundles
+
+
+def test_check_config_of_a_tracker_rig_names_what_is_still_missing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """SlimeVR trackers switched on, nothing assigned or calibrated yet: the rig is valid (run it to see the
+    trackers), and check-config says what is missing with the command that gives it."""
+    config = tmp_path / "trackers.toml"
+    config.write_text(f'[imu]\ncalibration_dir = "{tmp_path}/cal"\n[imu.slimevr]\nenabled = true\n', encoding="utf-8")
+    assert main(["check-config", str(config)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"{config}: ok (IMUs only (no cameras): SlimeVR server on udp 127.0.0.1:6969;"), out
+    assert "[imu.assignment] is empty" in out[1] and "imu.slimevr.trackers in /status" in out[1]
+    assert f"run `mocapd calibrate imu --config {config} --person NAME --facing-heading 0`" in out[2]
+
+
+def test_demo_imu_only_runs_a_simulated_suit_to_the_viewer_and_vrchat(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`mocapd demo --imu-only`, as the README has it, with a config that enables VRChat's OSC stream."""
+    osc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    osc.bind(("127.0.0.1", 0))
+    osc.settimeout(10)
+    config = tmp_path / "vr.toml"
+    config.write_text(
+        f'[websocket]\nport = 0\n[udp.vrchat]\nenabled = true\ndestination = "127.0.0.1:{osc.getsockname()[1]}"\n',
+        encoding="utf-8",
+    )
+    try:
+        assert main(["demo", "--imu-only", "--seconds", "4", "--http-port", "0", "--config", str(config)]) == 0
+        bundle = osc.recv(65536)
+    finally:
+        osc.close()
+    out = capsys.readouterr().out
+    assert "13 simulated Xsens IMUs on pseudo-terminals" in out and "viewer http://127.0.0.1:" in out, out
+    assert "VRChat OSC trackers to 127.0.0.1:" in out
+    done = next(line for line in out.splitlines() if line.startswith("done: "))
+    frames = int(done.split()[1])
+    error_mm = float(done.split("median ")[1].split()[0])
+    assert frames > 0 and error_mm < 80.0, done  # the suit poses the walker (roots put together)
+    assert any(m.address == "/tracking/trackers/1/position" for m in OscBundle(bundle))
