@@ -35,6 +35,14 @@ COCO17_LR_PAIRS: tuple[tuple[int, int], ...] = ((1, 2), (3, 4), (5, 6), (7, 8), 
 """(left, right) keypoint indices of COCO-17: eyes, ears, shoulders, elbows, wrists, hips, knees, ankles."""
 
 
+def lr_pairs(names: tuple[str, ...] | list[str]) -> tuple[tuple[int, int], ...]:
+    """(left, right) index pairs of a keypoint set's names (``left_knee`` with ``right_knee``, ...)."""
+    index = {n: i for i, n in enumerate(names)}
+    return tuple(
+        (i, index["right_" + n[5:]]) for i, n in enumerate(names) if n.startswith("left_") and "right_" + n[5:] in index
+    )
+
+
 @dataclass(frozen=True)
 class FlipOptions:
     """How per-view left/right flips are found."""
@@ -49,6 +57,9 @@ class FlipOptions:
     """Each observation's reprojection error counts at most this much (px), so one wrong view cannot decide."""
     max_views: int = 10
     """Views of one pair searched exhaustively (2^(n-1) hypotheses); further views keep their labels."""
+    min_views_alone: int = 3
+    """Without the person's previous pose, at least this many views must see them (two views cannot say which of
+    them is flipped)."""
 
 
 @dataclass(frozen=True)
