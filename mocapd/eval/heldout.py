@@ -18,6 +18,7 @@ learned fusion too, which give 3D keypoints per frame the same way.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -119,7 +120,9 @@ def held_out_errors(
         conf = det.confidences[None] >= min_confidence
         usable = conf & np.isfinite(d)
         count = usable.sum(axis=-1)
-        med = np.where(count >= min_keypoints, np.nanmedian(np.where(usable, d, np.nan), axis=-1), np.inf)
+        with warnings.catch_warnings():  # people sharing no keypoint with a detection: all-NaN rows, inf below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.where(count >= min_keypoints, np.nanmedian(np.where(usable, d, np.nan), axis=-1), np.inf)
         heights = np.array([_height(det, i, min_confidence) for i in range(len(det))])
         gate = med < max_match * heights[None, :]
         if not np.any(gate):

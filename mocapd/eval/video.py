@@ -235,12 +235,13 @@ def take_results(run: TakeRun) -> dict[str, Any]:
     res: dict[str, Any] = {"take": take.name, "frames": run.detections.n_frames, "cameras": take.camera_names,
                            "fps": take.fps, "source": take.source, "systems": {}}  # fmt: skip
     for s in systems:
-        allp = list(run.people[s].get(ALL, {}).values())
+        people = people_metrics(run, s)
+        performers = [run.people[s][ALL][i] for i in people["performers"]]
         res["systems"][s] = {
             "held_out": ho[s],
-            "jitter": jitter(allp, take.fps),
-            "bone_cv": bone_cv(allp),
-            "people": people_metrics(run, s),
+            "jitter": jitter(performers, take.fps),
+            "bone_cv": bone_cv(performers),
+            "people": people,
         }
     res["segment_lengths"] = segment_lengths(run.skeletons)
     res["notes"] = dict(run.notes)

@@ -105,7 +105,8 @@ def markdown(results: dict[str, Any]) -> str:
         "",
         "Held-out-view error: each system reconstructs the take without one camera, its people are projected into "
         "that camera and compared with the camera's own detections (confidence >= 0.5). *Common*: only the "
-        "keypoints every system was compared on. Jitter: median joint acceleration (60 Hz second differences).",
+        "keypoints every system was compared on. Jitter (median joint acceleration, second differences at the "
+        "videos' 60 Hz) and bone-length CV: the performers only (a bystander standing still would lower them).",
         "",
     ]
     for res in results["takes"].values():
