@@ -36,7 +36,7 @@ def _undistort(K: FloatArray, dist: FloatArray, u: float, v: float) -> tuple[flo
     return x, y
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _pair_point(
     rays: FloatArray,
     centres: FloatArray,
@@ -52,10 +52,9 @@ def _pair_point(
     jb: int,
     min_depth: float,
     X: FloatArray,
-    err: FloatArray,
-) -> bool:
+) -> tuple[bool, float, float]:
     """Closest approach of the rays of keypoint ``ja`` of person ``pa`` (camera ``a``) and keypoint ``jb`` of ``pb``
-    (camera ``b``): the midpoint into ``X`` and each view's reprojection error (px) into ``err``; False when the
+    (camera ``b``): the midpoint into ``X``; returns (ok, reprojection error in a, in b) in px, ok False when the
     rays are parallel or the point is behind a camera."""
     da = rays[pa, ja]
     db = rays[pb, jb]
@@ -67,11 +66,12 @@ def _pair_point(
     E = db[0] * w0[0] + db[1] * w0[1] + db[2] * w0[2]
     den = A * C - B * B
     if abs(den) < 1e-12:
-        return False
+        return False, 0.0, 0.0
     s = (B * E - C * D) / den
     u = (A * E - B * D) / den
     for i in range(3):
         X[i] = 0.5 * (centres[a, i] + s * da[i] + centres[b, i] + u * db[i])
+    e = (0.0, 0.0)
     for side in range(2):
         c = a if side == 0 else b
         p = pa if side == 0 else pb
@@ -80,9 +80,10 @@ def _pair_point(
         xc1 = R[c, 1, 0] * X[0] + R[c, 1, 1] * X[1] + R[c, 1, 2] * X[2] + t[c, 1]
         xc2 = R[c, 2, 0] * X[0] + R[c, 2, 1] * X[1] + R[c, 2, 2] * X[2] + t[c, 2]
         if xc2 <= min_depth:
-            return False
-        err[side] = math.hypot(xc0 / xc2 - xy[p, j, 0], xc1 / xc2 - xy[p, j, 1]) * 0.5 * (K[c, 0, 0] + K[c, 1, 1])
-    return True
+            return False, 0.0, 0.0
+        err = math.hypot(xc0 / xc2 - xy[p, j, 0], xc1 / xc2 - xy[p, j, 1]) * 0.5 * (K[c, 0, 0] + K[c, 1, 1])
+        e = (err, e[1]) if side == 0 else (e[0], err)
+    return True, e[0], e[1]
 
 
 @nb.njit(cache=True)
@@ -158,33 +159,36 @@ def candidate_pairs(
             shared = 0
             ea = 0.0
             eb = 0.0
+            limit = max_error_fraction * 0.5 * (widths[a] + widths[b])
             for j in range(k):
-                q = partner[j]
+                q = partner[j] if flips else j
                 if q < j:
                     continue  # done with its left/right partner
                 if q == j:
-                    if (
-                        usable[pa, j]
-                        and usable[pb, j]
-                        and _pair_point(rays, centres, xy, R, t, K, a, b, pa, j, pb, j, min_depth, X, cand_e[0])
-                    ):
+                    if not (usable[pa, j] and usable[pb, j]):
+                        continue
+                    ok, e0, e1 = _pair_point(rays, centres, xy, R, t, K, a, b, pa, j, pb, j, min_depth, X)
+                    if ok:
                         shared += 1
-                        ea += cand_e[0, 0]
-                        eb += cand_e[0, 1]
-                        points[m, j] = X
+                        ea += e0
+                        eb += e1
+                        for i in range(3):
+                            points[m, j, i] = X[i]
                     continue
                 # A left/right pair: as labelled, or with b's labels exchanged (a flipped view); the one of smaller
                 # mean error (a flipped view would otherwise fail the limit, or pull the pairing apart).
                 for h in range(4):
                     ja = j if h in (0, 2) else q
                     jb = j if h in (0, 3) else q
-                    cand_ok[h] = (
-                        usable[pa, ja]
-                        and usable[pb, jb]
-                        and _pair_point(rays, centres, xy, R, t, K, a, b, pa, ja, pb, jb, min_depth, X, cand_e[h])
-                    )
+                    cand_ok[h] = False
+                    if usable[pa, ja] and usable[pb, jb]:
+                        ok, cand_e[h, 0], cand_e[h, 1] = _pair_point(
+                            rays, centres, xy, R, t, K, a, b, pa, ja, pb, jb, min_depth, X
+                        )
+                        cand_ok[h] = ok
                     if cand_ok[h]:
-                        cand[h] = X
+                        for i in range(3):
+                            cand[h, i] = X[i]
                 n_straight = int(cand_ok[0]) + int(cand_ok[1])
                 n_crossed = int(cand_ok[2]) + int(cand_ok[3])
                 s_straight = (cand_e[0, 0] + cand_e[0, 1]) * cand_ok[0] + (cand_e[1, 0] + cand_e[1, 1]) * cand_ok[1]
@@ -200,8 +204,8 @@ def candidate_pairs(
                         shared += 1
                         ea += cand_e[h, 0]
                         eb += cand_e[h, 1]
-                        points[m, jj] = cand[h]
-            limit = max_error_fraction * 0.5 * (widths[a] + widths[b])
+                        for i in range(3):
+                            points[m, jj, i] = cand[h, i]
             if shared < min_shared or 0.5 * (ea + eb) / shared >= limit:
                 for j in range(k):
                     points[m, j, 0] = np.nan
