@@ -100,3 +100,11 @@ def test_detection_cache_and_openpose_files_round_trip(tmp_path: Path) -> None:
     kp = np.array(doc["people"][1]["pose_keypoints_2d"]).reshape(17, 3)
     assert np.allclose(kp[:, :2], frames[1][1].keypoints[1], atol=1e-3)
     assert np.allclose(kp[:, 2], frames[1][1].confidences[1], atol=1e-3)
+
+
+def test_an_unknown_take_is_refused_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from mocapd.service.cli import main
+
+    assert main(["eval", "video", "--take", "Demo_Nobody", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mocapd eval video: unknown Pose2Sim demo 'Demo_Nobody'") and err.count("\n") == 1

@@ -19,13 +19,14 @@ from mocapd.eval.heldout import COCO17_GROUPS
 if TYPE_CHECKING:
     from mocapd.eval.video import TakeRun
 
-COLOURS = {  # BGR
-    "mocapd live": (40, 40, 230),
-    "mocapd resolve": (0, 160, 255),
-    "naive DLT": (230, 120, 20),
+COLOURS = {  # BGR; drawn in this order, so mocapd's skeletons lie on top
     "Pose2Sim": (200, 40, 200),
-    "Pose2Sim filtered": (140, 0, 140),
+    "Pose2Sim filtered": (120, 0, 120),
+    "naive DLT": (230, 120, 20),
+    "mocapd resolve": (0, 165, 255),
+    "mocapd live": (0, 0, 235),
 }
+WIDTHS = {"Pose2Sim": 10, "Pose2Sim filtered": 9, "naive DLT": 8, "mocapd resolve": 7, "mocapd live": 4}
 EDGES = ((5, 7), (7, 9), (6, 8), (8, 10), (5, 6), (11, 12), (5, 11), (6, 12), (11, 13), (13, 15), (12, 14), (14, 16),
          (0, 5), (0, 6))  # fmt: skip
 TILE_WIDTH = 272
@@ -95,7 +96,7 @@ def _take_tables(res: dict[str, Any]) -> list[str]:
 
 
 def markdown(results: dict[str, Any]) -> str:
-    """The report of :func:`mocapd.eval.video.run_video_eval` as markdown."""
+    """The report of :func:`mocapd.service.video_eval.run_video_eval` as markdown."""
     s = results["setup"]
     lines = [
         "# mocapd eval video",
@@ -137,7 +138,7 @@ def draw_held_out(run: TakeRun, folder: Path, n_frames: int) -> list[Path]:
                 people = run.people.get(name, {}).get(f"no_{cam.name}", {})
                 pts = _stack(people, n)[f] if people else np.zeros((0, 17, 3))
                 for person in pts:
-                    _skeleton(canvas, cam.project(person), colour)
+                    _skeleton(canvas, cam.project(person), colour, WIDTHS[name])
             det = dets.frames[f][k]
             for i in range(len(det)):
                 for (x, y), c in zip(det.keypoints[i], det.confidences[i], strict=True):
@@ -171,21 +172,23 @@ def _read_frames(video: Path, picks: list[int]) -> list[np.ndarray]:
     return out
 
 
-def _skeleton(img: np.ndarray, uv: np.ndarray, colour: tuple[int, int, int]) -> None:
+def _skeleton(img: np.ndarray, uv: np.ndarray, colour: tuple[int, int, int], width: int) -> None:
+    h, w = img.shape[:2]
     for a, b in EDGES:
-        if np.all(np.isfinite(uv[[a, b]])):
+        if np.all(np.isfinite(uv[[a, b]])) and np.all(np.abs(uv[[a, b]]) < 4 * max(h, w)):
             pa = (int(uv[a, 0]), int(uv[a, 1]))
             pb = (int(uv[b, 0]), int(uv[b, 1]))
-            cv2.line(img, pa, pb, colour, 7, cv2.LINE_AA)
+            cv2.line(img, pa, pb, colour, width, cv2.LINE_AA)
     for j in (5, 7, 9, 11, 13, 15):  # the person's left side: filled joints
-        if np.all(np.isfinite(uv[j])):
-            cv2.circle(img, (int(uv[j, 0]), int(uv[j, 1])), 12, colour, -1, cv2.LINE_AA)
+        if np.all(np.isfinite(uv[j])) and np.all(np.abs(uv[j]) < 4 * max(h, w)):
+            cv2.circle(img, (int(uv[j, 0]), int(uv[j, 1])), width + 5, colour, -1, cv2.LINE_AA)
 
 
 def _legend(width: int) -> np.ndarray:
     band = np.full((40, width, 3), 255, np.uint8)
     x = 6
-    for name, colour in COLOURS.items():
+    for name in reversed(COLOURS):
+        colour = COLOURS[name]
         cv2.rectangle(band, (x, 14), (x + 18, 30), colour, -1)
         cv2.putText(band, name, (x + 22, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
         x += 26 + 8 * len(name)

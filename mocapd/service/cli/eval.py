@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -41,15 +42,20 @@ def register(sub: Any) -> None:
 
 
 def _run_video(args: argparse.Namespace) -> int:
-    from mocapd.eval.video import VideoEvalOptions, run_video_eval
+    from mocapd.errors import MocapdError
     from mocapd.io.pose2sim_demo import DEMOS
+    from mocapd.service.video_eval import VideoEvalOptions, run_video_eval
 
     opts = VideoEvalOptions(
         takes=tuple(args.take) if args.take else DEMOS, max_frames=args.max_frames, config=args.config,
         precision=args.precision, pose2sim=not args.no_pose2sim, images=args.images, use_cache=not args.no_cache,
         progress=not args.no_progress,
     )  # fmt: skip
-    res = run_video_eval(opts, args.out)
+    try:
+        res = run_video_eval(opts, args.out)
+    except MocapdError as exc:  # an unknown take, the demo data or a model not there, Pose2Sim failing
+        print(f"mocapd eval video: {exc}", file=sys.stderr)
+        return 1
     summary = {name: {"targets": t["targets"], "held_out_common_median_px": {
         s: v["held_out"]["common"]["all"]["median"] for s, v in t["systems"].items()}}
         for name, t in res["takes"].items()}  # fmt: skip

@@ -1,4 +1,5 @@
-"""mocapd's systems in ``mocapd eval video``: the live path, ``mocapd resolve`` and a naive DLT beside them.
+"""mocapd's systems in ``mocapd eval video``: the live path, ``mocapd resolve`` and a naive DLT beside them (the
+daemon's own parts, hence the service layer; the metrics are :mod:`mocapd.eval.video`).
 
 **Live** (:func:`run_live`): a :class:`~mocapd.service.daemon.Daemon` is built from the config and the take's
 calibrated cameras exactly as ``mocapd run`` builds it (its tracker, its :class:`FixedLatencyScheduler`, its
