@@ -1,4 +1,4 @@
-"""``mocapd eval video`` end to end on the first frames of the Pose2Sim single-person demo: the real detector
+"""``mocapd eval video`` end to end on the first 40 frames of the Pose2Sim single-person demo: the real detector
 (cached after the first run), mocapd live and resolve, the naive DLT and Pose2Sim 0.10.49 (installed by
 setup/steps/24-pose2sim.sh), every number of the report produced, and mocapd's held-out error below the naive
 DLT's on those frames (docs/accuracy-video.md)."""
@@ -21,7 +21,7 @@ from mocapd.eval.video_input import TakeDetections, load_detections, save_detect
 from tests.pose2sim_data import demo_root
 
 REPO = Path(__file__).resolve().parents[1]
-FRAMES = 30
+FRAMES = 40
 
 
 def _finite(x: Any) -> bool:
