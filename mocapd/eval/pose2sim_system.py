@@ -14,8 +14,9 @@ to keep it from drawing windows; none changes how it associates, triangulates or
   = false: no windows, plots or C3D files.
 
 What does not run, and why: pose estimation (the point is the same detections for every system), synchronisation
-(the demo videos are synchronised), marker augmentation and OpenSim kinematics (``opensim`` is not on PyPI for this
-Python/platform with the packages mocapd pins; they come after the 3D keypoints this evaluation scores).
+(the demo videos are synchronised), marker augmentation and OpenSim kinematics (they come after the 3D keypoints
+this evaluation scores; ``opensim`` and the augmenter's runtime are not installed: Pose2Sim comes without its
+dependencies, see ``setup/steps/24-pose2sim.sh``).
 """
 
 from __future__ import annotations

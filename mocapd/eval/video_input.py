@@ -16,7 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -183,8 +183,6 @@ def cache_path(take: Take, key: str) -> Path:
 def eval_detector_config(base: DetectorConfig, precision: str = "fp32") -> DetectorConfig:
     """The detector the evaluation runs: the config's, whole frames, at ``precision`` (FP32 by default: the same
     keypoints on every machine, where "auto" picks INT8 or BF16 by CPU)."""
-    from dataclasses import replace
-
     return replace(base, precision=precision, workers=1)
 
 
