@@ -124,7 +124,7 @@ def test_tracking_section_maps_onto_the_core_options() -> None:
     assert custom.tracking.enrolment.options().max_subjects == 2
     with pytest.raises(ConfigError, match=r"tracking.enrolment.max_subjects = 2.5; allowed: an integer"):
         parse_config({"tracking": {"enrolment": {"max_subjects": 2.5}}})
-    with pytest.raises(ConfigError, match=r"unknown key tracking.sorting.radius; allowed: max_interframe_movement"):
+    with pytest.raises(ConfigError, match=r"unknown key tracking.sorting.radius; allowed: flip_aware, max_interframe"):
         parse_config({"tracking": {"sorting": {"radius": 1}}})
     with pytest.raises(ConfigError, match=r"tracking.enrolment.volume_min = \[1\]; allowed: an array of 2 items"):
         parse_config({"tracking": {"enrolment": {"volume_min": [1]}}})

@@ -1,7 +1,8 @@
 """Compiled candidate generation for detection sorting (Algorithm 1, lines 1–17).
 
 One call per frame: undistort every keypoint, triangulate every pair of 2D people across every pair of views
-(two-ray midpoint on keypoints confident in both), keep pairs whose mean reprojection error is under the limit,
+(two-ray midpoint on keypoints confident in both; each left/right pair of keypoints as labelled or with the second
+view's labels exchanged, whichever fits better), keep pairs whose mean reprojection error is under the limit,
 and cluster them in order of increasing reprojection error (each pair joins the first earlier *leader* within
 the same-person distance that does not already hold a different 2D person of one of its cameras).
 :mod:`mocapd.core.sorting` turns the result into candidates; its tests exercise this kernel end to end.
@@ -35,6 +36,56 @@ def _undistort(K: FloatArray, dist: FloatArray, u: float, v: float) -> tuple[flo
     return x, y
 
 
+@nb.njit(cache=True, inline="always")
+def _pair_point(
+    rays: FloatArray,
+    centres: FloatArray,
+    xy: FloatArray,
+    R: FloatArray,
+    t: FloatArray,
+    K: FloatArray,
+    a: int,
+    b: int,
+    pa: int,
+    ja: int,
+    pb: int,
+    jb: int,
+    min_depth: float,
+    X: FloatArray,
+) -> tuple[bool, float, float]:
+    """Closest approach of the rays of keypoint ``ja`` of person ``pa`` (camera ``a``) and keypoint ``jb`` of ``pb``
+    (camera ``b``): the midpoint into ``X``; returns (ok, reprojection error in a, in b) in px, ok False when the
+    rays are parallel or the point is behind a camera."""
+    da = rays[pa, ja]
+    db = rays[pb, jb]
+    w0 = centres[a] - centres[b]
+    A = da[0] * da[0] + da[1] * da[1] + da[2] * da[2]
+    B = da[0] * db[0] + da[1] * db[1] + da[2] * db[2]
+    C = db[0] * db[0] + db[1] * db[1] + db[2] * db[2]
+    D = da[0] * w0[0] + da[1] * w0[1] + da[2] * w0[2]
+    E = db[0] * w0[0] + db[1] * w0[1] + db[2] * w0[2]
+    den = A * C - B * B
+    if abs(den) < 1e-12:
+        return False, 0.0, 0.0
+    s = (B * E - C * D) / den
+    u = (A * E - B * D) / den
+    for i in range(3):
+        X[i] = 0.5 * (centres[a, i] + s * da[i] + centres[b, i] + u * db[i])
+    e = (0.0, 0.0)
+    for side in range(2):
+        c = a if side == 0 else b
+        p = pa if side == 0 else pb
+        j = ja if side == 0 else jb
+        xc0 = R[c, 0, 0] * X[0] + R[c, 0, 1] * X[1] + R[c, 0, 2] * X[2] + t[c, 0]
+        xc1 = R[c, 1, 0] * X[0] + R[c, 1, 1] * X[1] + R[c, 1, 2] * X[2] + t[c, 1]
+        xc2 = R[c, 2, 0] * X[0] + R[c, 2, 1] * X[1] + R[c, 2, 2] * X[2] + t[c, 2]
+        if xc2 <= min_depth:
+            return False, 0.0, 0.0
+        err = math.hypot(xc0 / xc2 - xy[p, j, 0], xc1 / xc2 - xy[p, j, 1]) * 0.5 * (K[c, 0, 0] + K[c, 1, 1])
+        e = (err, e[1]) if side == 0 else (e[0], err)
+    return True, e[0], e[1]
+
+
 @nb.njit(cache=True)
 def candidate_pairs(
     keypoints: FloatArray,
@@ -50,6 +101,8 @@ def candidate_pairs(
     min_shared: int,
     same_person: float,
     min_depth: float,
+    partner: IntArray,
+    flips: bool,
 ) -> tuple[FloatArray, IntArray, FloatArray]:
     """All viable cross-view pairs of 2D people, clustered into 3D person candidates.
 
@@ -57,7 +110,10 @@ def candidate_pairs(
     ----------
     keypoints : (n, k, 2) pixels of all 2D people of all cameras; usable : (n, k) confident keypoints;
     camera_of, person_of : (n,) camera index and per-camera person index of each 2D person;
-    K, dist, R, t : stacked cameras; widths : (n_cams,) image widths.
+    K, dist, R, t : stacked cameras; widths : (n_cams,) image widths;
+    partner : (k,) each keypoint's left/right counterpart (itself where it has none);
+    flips : pair a left/right pair of keypoints with the second view's labels exchanged where that fits better
+    (a view that confused the person's left and right still pairs with the others).
 
     Returns
     -------
@@ -91,6 +147,9 @@ def candidate_pairs(
     n_leaders = 0
     m = 0
     X = np.empty(3)
+    cand = np.empty((4, 3))  # the four pairings of a left/right pair: (j, j), (q, q), (j, q), (q, j)
+    cand_e = np.empty((4, 2))
+    cand_ok = np.empty(4, dtype=np.bool_)
     for pa in range(n):
         a = camera_of[pa]
         for pb in range(n):
@@ -100,46 +159,53 @@ def candidate_pairs(
             shared = 0
             ea = 0.0
             eb = 0.0
-            for j in range(k):
-                if not (usable[pa, j] and usable[pb, j]):
-                    continue
-                # closest approach of the two rays
-                da = rays[pa, j]
-                db = rays[pb, j]
-                w0 = centres[a] - centres[b]
-                A = da[0] * da[0] + da[1] * da[1] + da[2] * da[2]
-                B = da[0] * db[0] + da[1] * db[1] + da[2] * db[2]
-                C = db[0] * db[0] + db[1] * db[1] + db[2] * db[2]
-                D = da[0] * w0[0] + da[1] * w0[1] + da[2] * w0[2]
-                E = db[0] * w0[0] + db[1] * w0[1] + db[2] * w0[2]
-                den = A * C - B * B
-                if abs(den) < 1e-12:
-                    continue
-                s = (B * E - C * D) / den
-                u = (A * E - B * D) / den
-                for i in range(3):
-                    X[i] = 0.5 * (centres[a, i] + s * da[i] + centres[b, i] + u * db[i])
-                ok = True
-                errs = (0.0, 0.0)
-                for side in range(2):
-                    c = a if side == 0 else b
-                    p = pa if side == 0 else pb
-                    xc0 = R[c, 0, 0] * X[0] + R[c, 0, 1] * X[1] + R[c, 0, 2] * X[2] + t[c, 0]
-                    xc1 = R[c, 1, 0] * X[0] + R[c, 1, 1] * X[1] + R[c, 1, 2] * X[2] + t[c, 1]
-                    xc2 = R[c, 2, 0] * X[0] + R[c, 2, 1] * X[1] + R[c, 2, 2] * X[2] + t[c, 2]
-                    if xc2 <= min_depth:
-                        ok = False
-                        break
-                    e = math.hypot(xc0 / xc2 - xy[p, j, 0], xc1 / xc2 - xy[p, j, 1]) * 0.5 * (K[c, 0, 0] + K[c, 1, 1])
-                    errs = (e, errs[1]) if side == 0 else (errs[0], e)
-                if not ok:
-                    continue
-                shared += 1
-                ea += errs[0]
-                eb += errs[1]
-                for i in range(3):
-                    points[m, j, i] = X[i]
             limit = max_error_fraction * 0.5 * (widths[a] + widths[b])
+            for j in range(k):
+                q = partner[j] if flips else j
+                if q < j:
+                    continue  # done with its left/right partner
+                if q == j:
+                    if not (usable[pa, j] and usable[pb, j]):
+                        continue
+                    ok, e0, e1 = _pair_point(rays, centres, xy, R, t, K, a, b, pa, j, pb, j, min_depth, X)
+                    if ok:
+                        shared += 1
+                        ea += e0
+                        eb += e1
+                        for i in range(3):
+                            points[m, j, i] = X[i]
+                    continue
+                # A left/right pair: as labelled, or with b's labels exchanged (a flipped view); the one of smaller
+                # mean error (a flipped view would otherwise fail the limit, or pull the pairing apart).
+                for h in range(4):
+                    ja = j if h in (0, 2) else q
+                    jb = j if h in (0, 3) else q
+                    cand_ok[h] = False
+                    if usable[pa, ja] and usable[pb, jb]:
+                        ok, cand_e[h, 0], cand_e[h, 1] = _pair_point(
+                            rays, centres, xy, R, t, K, a, b, pa, ja, pb, jb, min_depth, X
+                        )
+                        cand_ok[h] = ok
+                    if cand_ok[h]:
+                        for i in range(3):
+                            cand[h, i] = X[i]
+                n_straight = int(cand_ok[0]) + int(cand_ok[1])
+                n_crossed = int(cand_ok[2]) + int(cand_ok[3])
+                s_straight = (cand_e[0, 0] + cand_e[0, 1]) * cand_ok[0] + (cand_e[1, 0] + cand_e[1, 1]) * cand_ok[1]
+                s_crossed = (cand_e[2, 0] + cand_e[2, 1]) * cand_ok[2] + (cand_e[3, 0] + cand_e[3, 1]) * cand_ok[3]
+                crossed = (
+                    flips
+                    and n_crossed > 0
+                    and (n_crossed > n_straight or (n_crossed == n_straight and s_crossed < s_straight))
+                )
+                first, second = (2, 3) if crossed else (0, 1)
+                for h, jj in ((first, j), (second, q)):
+                    if cand_ok[h]:
+                        shared += 1
+                        ea += cand_e[h, 0]
+                        eb += cand_e[h, 1]
+                        for i in range(3):
+                            points[m, jj, i] = cand[h, i]
             if shared < min_shared or 0.5 * (ea + eb) / shared >= limit:
                 for j in range(k):
                     points[m, j, 0] = np.nan

@@ -13,7 +13,9 @@ Beyond the pseudo-code, each measured on the close-interaction scene of ``mocapd
 the same-person distance stay apart (a candidate therefore holds at most one detection per view); (2) each 2D detection
 is finally given to one candidate only, the one supported by most views (:func:`_resolve_claims`): with the seed's
 loose threshold, two different people seen by two facing cameras otherwise pair into spurious 2-view candidates;
-(3) subjects take candidates by an optimal assignment rather than in subject order. Triangulation is the
+(3) subjects take candidates by an optimal assignment rather than in subject order; (4) a left/right pair of
+keypoints pairs as labelled or with the second view's labels exchanged, whichever fits better
+(:attr:`SortingOptions.flip_aware`, measured on the Pose2Sim demos by ``mocapd eval video``). Triangulation is the
 two-ray midpoint, all the association needs; reprojection errors are measured in the undistorted image. The
 per-pair work runs in one compiled call (:mod:`mocapd.core._sorting_kernel`).
 """
@@ -28,6 +30,7 @@ from scipy.optimize import linear_sum_assignment
 
 from mocapd.core import _sorting_kernel
 from mocapd.core.camera import MIN_DEPTH, Camera, stack_cameras
+from mocapd.core.lr_flips import COCO17_LR_PAIRS, lr_pairs
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -41,12 +44,19 @@ class SortingOptions:
     """A keypoint counts when its detector confidence is at least this."""
     min_shared_keypoints: int = 5
     """A pair of 2D people must share this many confident keypoints to be triangulated."""
-    max_reprojection_error: float = 0.015
-    """ThreshTriError: mean reprojection error, as a fraction of the image width."""
+    max_reprojection_error: float = 0.025
+    """ThreshTriError: mean reprojection error, as a fraction of the image width. 2.5 %, not the 1.5 % tuned on
+    synthetic detections: real detections of one person disagree across views by 13-20 px median on 1088-px-wide
+    cameras, and at 1.5 % a view of the Pose2Sim demos was dropped in a quarter of the frames
+    (docs/accuracy-video.md)."""
     same_person_distance: float = 0.30
     """ThreshDistSamePerson: mean keypoint distance (m) under which two candidates are one person."""
     max_interframe_movement: float = 1.0
     """ThreshInterFrameMovement: how far (m) a subject may move between the frames it is seen in."""
+    flip_aware: bool = True
+    """Pair each left/right pair of keypoints of two views as labelled or with the second view's labels exchanged,
+    whichever fits better: a view whose detector confused the person's left and right (back views) still joins
+    the person (the solve undoes the flip, :mod:`mocapd.core.lr_flips`) instead of failing the limit."""
 
 
 @dataclass(frozen=True)
@@ -136,13 +146,28 @@ class DetectionSorter:
     options : SortingOptions
     """
 
-    def __init__(self, cameras: list[Camera], options: SortingOptions | None = None) -> None:
+    def __init__(
+        self, cameras: list[Camera], options: SortingOptions | None = None, keypoint_names: tuple[str, ...] = ()
+    ) -> None:
         if len(cameras) == 1:
             raise InputError("detection sorting needs at least two cameras (it triangulates across views), or none")
         self.cameras = list(cameras)
         self.options = options if options is not None else SortingOptions()
         self._K, self._dist, self._R, self._t = (np.ascontiguousarray(a) for a in stack_cameras(self.cameras))
         self._widths = np.array([c.width for c in cameras], dtype=np.float64)
+        self.keypoint_names = tuple(keypoint_names)
+
+    def _partner(self, n_kp: int) -> NDArray[np.int64]:
+        """Each keypoint's left/right counterpart (itself where it has none): from the keypoint names, COCO-17's
+        when none were given and detections have 17 keypoints."""
+        partner = np.arange(n_kp, dtype=np.int64)
+        if len(self.keypoint_names) == n_kp:
+            pairs = lr_pairs(self.keypoint_names)
+        else:
+            pairs = COCO17_LR_PAIRS if n_kp == 17 else ()
+        for left, right in pairs:
+            partner[left], partner[right] = right, left
+        return partner
 
     def warm_up(self, n_keypoints: int) -> None:
         """Compile (or load from numba's cache) the pairing kernel now, not when the first two people appear in
@@ -167,6 +192,7 @@ class DetectionSorter:
         points, members, member_errors = _sorting_kernel.candidate_pairs(
             np.ascontiguousarray(kp), usable, camera_of, person_of, self._K, self._dist, self._R, self._t,
             self._widths, o.max_reprojection_error, o.min_shared_keypoints, o.same_person_distance, MIN_DEPTH,
+            self._partner(n_kp), o.flip_aware,
         )  # fmt: skip
         cands = []
         for q in range(points.shape[0]):

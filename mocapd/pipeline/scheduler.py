@@ -47,6 +47,7 @@ from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.lr_flips import FlipOptions, apply_swaps, choose_swaps, lr_pairs, undistorted
 from mocapd.core.people import PeopleTracker, Person
 from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.plausibility import PlausibilityMonitor
@@ -69,6 +70,7 @@ IntArray = NDArray[np.int64]
 GRAVITY = 9.81
 HEIGHT_EVERY = 3  # ticks between two of them: 20 Hz at 60 Hz output covers the 0.3-5 Hz band it is compared in
 HEIGHT_HISTORY_S = 12.0  # solved heights kept per suit for the IMU offset estimate (the IMU buffers hold ~5 s)
+SIZE_MIN_CONFIDENCE = 0.3  # keypoints below this confidence take no part in the body-size triangulation
 HEADING_EVERY_NS = 50_000_000  # at least this between two heading observations of a suit (20 Hz: plenty for a
 # window of seconds; every tick would triangulate and observe three times as often for nothing)
 STAGES = ("detect", "sample", "sort", "solve", "predict", "publish", "end_to_end", "imu_to_publish")
@@ -98,10 +100,14 @@ class SchedulerOptions:
     body_size_frames: int = 0
     """Size each tracked person's skeleton from this many ticks of their triangulated keypoints (0: everyone
     keeps the configured skeleton)."""
+    body_size_first_frames: int = 0
+    """Before that, a provisional size from this many ticks (0: none; the configured skeleton until then)."""
     prediction: PredictionOptions = field(default_factory=PredictionOptions)
     """What is published for suit wearers: the delayed solve, or it carried to the IMUs' newest instant."""
     heading: HeadingOptions = field(default_factory=HeadingOptions)
     """Per-sensor heading correction from the cameras."""
+    flips: FlipOptions = field(default_factory=FlipOptions)
+    """Per-view left/right flips of the detections, undone before the solve (:mod:`mocapd.core.lr_flips`)."""
 
     @property
     def period_ns(self) -> int:
@@ -277,7 +283,10 @@ class FixedLatencyScheduler:
         self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
-                         "bodies_sized": 0, "body_size_failed": 0}  # fmt: skip
+                         "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0}  # fmt: skip
+        self._lr_pairs = lr_pairs(list(getattr(targets, "names", ())))
+        self._projections = (np.stack([c.projection_matrix for c in cameras]) if cameras
+                             else np.zeros((0, 3, 4)))  # fmt: skip
         self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
         self.heading = HeadingEstimator(o.heading)
         self.predictor = PosePredictor(o.prediction)
@@ -298,6 +307,7 @@ class FixedLatencyScheduler:
         self._heights: dict[str, deque[tuple[int, float]]] = {}
         # Body size per track: keypoints gathered until there are enough, then the track's own skeleton.
         self._sizing: dict[int, list[FloatArray]] = {}
+        self._sized: set[int] = set()  # tracks sized for good (from body_size_frames)
         self.skeletons: dict[int, Skeleton] = {}
         self._restart: dict[int, FloatArray] = {}
         names = list(getattr(targets, "names", ()))
@@ -345,8 +355,6 @@ class FixedLatencyScheduler:
         }
         frame = self.people.update(t, detections, {k: v for k, v in suit_bones.items() if v})
         w2, c2 = self._stage("sort", w1, c1)
-        for person in frame.people:
-            self._size_body(person)
         self._seen_suits.clear()
         people = [*frame.people, *self._imu_only_people(frame.people, suits)]
         poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in people]
@@ -490,6 +498,7 @@ class FixedLatencyScheduler:
         for cam, idx in person.detections.items():
             kp[cam] = detections[cam].keypoints[idx]
             conf[cam] = np.clip(detections[cam].confidences[idx], 0.0, 1.0)
+        kp, conf = self._unflip(solver, kp, conf, len(person.detections))
         imu_kw: dict[str, Any] = {}
         n_imu = 0
         if suit is not None and suit_sample is not None:
@@ -514,6 +523,8 @@ class FixedLatencyScheduler:
         self.counters["person_solves"] += 1
         if not result.summary.converged:
             self.counters["not_converged"] += 1
+        if person.track >= 0 and len(person.detections) >= 2:
+            self._size_body(person, solver, kp, conf)
         views = len(person.detections)
         used = conf[conf > 0]
         confidence = float(used.mean()) * min(1.0, views / 2.0) if used.size else 0.0
@@ -523,6 +534,27 @@ class FixedLatencyScheduler:
             result.summary.iterations, result.summary.converged,
             solver.skeleton if solver.skeleton is not self.skeleton else None,
         )  # fmt: skip
+
+    def _unflip(
+        self, solver: PoseSolver, kp: FloatArray, conf: FloatArray, views: int
+    ) -> tuple[FloatArray, FloatArray]:
+        """The person's keypoints with each view's left/right labels as the views agree on them
+        (:mod:`mocapd.core.lr_flips`); which of the mirror labellings is right comes from the previous solve."""
+        o = self.options.flips
+        if not o.enabled or not self._lr_pairs or views < 2:
+            return kp, conf
+        reference = None
+        if solver._has_solved:
+            fk = solver.kin.forward(solver.theta)
+            reference = solver.kin.targets(fk, solver.targets.bones, solver.targets.offsets)
+        elif views < o.min_views_alone:
+            return kp, conf
+        _, und = undistorted(self.cameras, kp)
+        decision = choose_swaps(self._projections, und, conf, self._lr_pairs, reference, o)
+        if decision.count:
+            self.counters["lr_swaps"] += decision.count
+            kp, conf = apply_swaps(kp, conf, decision.swaps, self._lr_pairs)
+        return kp, conf
 
     def _observe_heading(
         self, suit: Suit, sample: SuitSample, skeleton: Skeleton, kp: FloatArray, conf: FloatArray, t: int
@@ -557,27 +589,36 @@ class FixedLatencyScheduler:
         return replace(pose, theta=pred.theta, joints=self._joints(solver, pred.theta), t_pose_ns=pred.t_ns,
                        solved=replace(pose, t_pose_ns=t))  # fmt: skip
 
-    def _size_body(self, person: Person) -> None:
-        """Gather a track's triangulated keypoints; once there are enough, give it its own skeleton (its solver
-        is rebuilt on it at the next solve, warm-started from the current pose)."""
-        n = self.options.body_size_frames
-        if n <= 0 or person.track in self.skeletons or person.keypoints.shape != (17, 3):
+    def _size_body(self, person: Person, solver: PoseSolver, kp: FloatArray, conf: FloatArray) -> None:
+        """Gather a track's keypoints, triangulated from every view that sees it (after the solve undid the views'
+        left/right flips); give it its own skeleton from the first ``body_size_first_frames`` (a provisional size:
+        the default 1.75 m skeleton misfits most people) and again, for good, from ``body_size_frames``. Its
+        solver is rebuilt on the new skeleton at the next solve, warm-started from this one."""
+        o = self.options
+        n = o.body_size_frames
+        if n <= 0 or person.track in self._sized or len(self.targets) != 17:
             return
+        X, ok = triangulate(self.cameras, kp, np.where(conf >= SIZE_MIN_CONFIDENCE, conf, 0.0))
         frames = self._sizing.setdefault(person.track, [])
-        frames.append(person.keypoints)
-        if len(frames) < n:
+        frames.append(np.where(ok[:, None], X, np.nan))
+        first = min(o.body_size_first_frames, n) if o.body_size_first_frames > 0 else n
+        final = len(frames) >= n
+        if not (final or (len(frames) >= first and person.track not in self.skeletons)):
             return
         try:
-            skeleton = estimate_skeleton(np.stack(frames), min_frames=n // 2)
+            skeleton = estimate_skeleton(np.stack(frames), min_frames=(n if final else first) // 2)
         except InputError:
             self.counters["body_size_failed"] += 1
-            del frames[: n // 2]  # legs not seen well enough yet: keep trying with newer frames
+            if final:
+                del frames[: n // 2]  # legs not seen well enough yet: keep trying with newer frames
             return
         self.skeletons[person.track] = skeleton
-        del self._sizing[person.track]
         self.counters["bodies_sized"] += 1
-        solver = self.solvers.pop(person.identity, None)
-        if solver is not None:  # the next solve builds a solver on the new skeleton, from this pose (same θ layout)
+        if final:
+            self._sized.add(person.track)
+            del self._sizing[person.track]
+        if self.solvers.pop(person.identity, None) is not None:
+            # the next solve builds a solver on the new skeleton, from this pose (same θ layout)
             self._restart[person.track] = solver.theta.copy()
 
     def _record_height(self, suit: str, t: int, kp: FloatArray, conf: FloatArray) -> None:
@@ -616,6 +657,7 @@ class FixedLatencyScheduler:
         for table in (self.skeletons, self._sizing, self._restart):
             for track in [k for k in table if k not in tracks]:
                 del table[track]
+        self._sized &= tracks
         self.predictor.forget(known | seen)
 
     def imu_alignment_inputs(self) -> list[ImuAlignmentInput]:

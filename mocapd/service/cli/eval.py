@@ -1,9 +1,11 @@
-"""``mocapd eval accuracy``: the accuracy harness from the command line (registered by ``mocapd.service.cli``)."""
+"""``mocapd eval accuracy`` and ``mocapd eval video``: the accuracy harnesses from the command line (registered by
+``mocapd.service.cli``)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -24,6 +26,41 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true", help="no progress bar (it is drawn only on a terminal)")
     p.set_defaults(func=_run)
+    v = sub.add_parser("video", help="accuracy on real multi-view footage beside Pose2Sim (docs/accuracy-video.md)")
+    v.add_argument("--take", action="append", default=None, metavar="NAME",
+                   help="Demo_SinglePerson or Demo_MultiPerson (repeatable; default: both)")  # fmt: skip
+    v.add_argument("--max-frames", type=int, default=None, help="only the first frames of each take (CI)")
+    v.add_argument("--config", type=Path, default=None, help="mocapd config to run (default: the shipped one)")
+    v.add_argument("--out", type=Path, default=Path("results/accuracy-video"), help="results directory")
+    v.add_argument("--precision", default="fp32", choices=("fp32", "int8", "bf16"),
+                   help="detector precision of the shared detections (default fp32)")  # fmt: skip
+    v.add_argument("--no-pose2sim", action="store_true", help="leave Pose2Sim out (it is an optional install)")
+    v.add_argument("--images", type=int, default=3, help="frames per camera drawn (default 3, 0: none)")
+    v.add_argument("--no-cache", action="store_true", help="detect again even when the detections are cached")
+    v.add_argument("--no-progress", action="store_true", help="no progress bar (it is drawn only on a terminal)")
+    v.set_defaults(func=_run_video)
+
+
+def _run_video(args: argparse.Namespace) -> int:
+    from mocapd.errors import MocapdError
+    from mocapd.io.pose2sim_demo import DEMOS
+    from mocapd.service.video_eval import VideoEvalOptions, run_video_eval
+
+    opts = VideoEvalOptions(
+        takes=tuple(args.take) if args.take else DEMOS, max_frames=args.max_frames, config=args.config,
+        precision=args.precision, pose2sim=not args.no_pose2sim, images=args.images, use_cache=not args.no_cache,
+        progress=not args.no_progress,
+    )  # fmt: skip
+    try:
+        res = run_video_eval(opts, args.out)
+    except MocapdError as exc:  # an unknown take, the demo data or a model not there, Pose2Sim failing
+        print(f"mocapd eval video: {exc}", file=sys.stderr)
+        return 1
+    summary = {name: {"targets": t["targets"], "held_out_common_median_px": {
+        s: v["held_out"]["common"]["all"]["median"] for s, v in t["systems"].items()}}
+        for name, t in res["takes"].items()}  # fmt: skip
+    print(json.dumps({"out": str(args.out), "takes": summary, "setup": res["setup"]}, indent=2, default=str))
+    return 0
 
 
 def _run(args: argparse.Namespace) -> int:

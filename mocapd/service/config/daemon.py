@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, Field
 
 from mocapd.core.heading import HeadingOptions
+from mocapd.core.lr_flips import FlipOptions
 from mocapd.errors import ConfigError
 from mocapd.pipeline.latency import AutoLatencyOptions
 from mocapd.pipeline.prediction import PredictionOptions
@@ -56,6 +57,10 @@ class DaemonConfig(Section):
     """Correct each IMU's heading from the cameras while at least two see its wearer."""
     max_catch_up_s: float = Field(0.05, ge=0.0, le=1.0)
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
+    body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
+    """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
+    lr_flips: bool = True
+    """Undo each view's left/right confusions before the solve (:mod:`mocapd.core.lr_flips`)."""
     keypoint_max_age_s: float = Field(0.1, ge=0.0, le=2.0)
     keypoint_max_gap_s: float = Field(0.25, ge=0.0, le=5.0)
     match_px: float = Field(80.0, ge=1.0, le=10000.0)
@@ -97,6 +102,8 @@ class DaemonConfig(Section):
             camera_offsets_ns=tuple(round(self.offsets.cameras.get(n, 0.0) * 1e9) for n in camera_names),
             imu_offsets_ns={k: round(v * 1e9) for k, v in self.offsets.imus.items()},
             body_size_frames=round(self.body_size_s * self.output_rate_hz),
+            body_size_first_frames=round(self.body_size_first_s * self.output_rate_hz),
+            flips=FlipOptions(enabled=self.lr_flips),
             prediction=PredictionOptions(output=self.output),
             heading=HeadingOptions(enabled=self.heading_correction),
         )

@@ -28,6 +28,8 @@ class SortingConfig(Section):
     """Fraction of the image width."""
     same_person_distance: float = Field(_S.same_person_distance, gt=0.0, le=10.0)
     max_interframe_movement: float = Field(_S.max_interframe_movement, gt=0.0, le=100.0)
+    flip_aware: bool = _S.flip_aware
+    """Pair keypoints of views that confused the person's left and right with their labels exchanged."""
 
     def options(self) -> SortingOptions:
         return self.build(SortingOptions)

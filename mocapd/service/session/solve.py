@@ -44,6 +44,7 @@ from mocapd.core.heading import HeadingOptions
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.lr_flips import FlipOptions
 from mocapd.core.people import PeopleTracker
 from mocapd.core.per_skeleton import PerSkeleton, skeleton_key
 from mocapd.core.plausibility import PlausibilityMonitor
@@ -77,11 +78,11 @@ class ResolveOptions:
     """Run the RTS smoother after the forward re-solve."""
     root_sigma_m: float = 0.006
     """Measurement noise of a solved root position (m, standard deviation)."""
-    root_accel: float = 20.0
+    root_accel: float = 2.0
     """Process noise of the root: white-acceleration spectral density (m²/s³)."""
     rot_sigma: float = 0.01
     """Measurement noise of a solved local-rotation quaternion component (standard deviation)."""
-    rot_accel: float = 30.0
+    rot_accel: float = 3.0
     """Process noise of the quaternion components: white-acceleration spectral density (1/s³)."""
     max_gap_s: float = 0.25
     """A subject unseen for longer than this starts a new smoothing segment."""
@@ -131,6 +132,7 @@ SCHEDULER_RANGES: dict[str, tuple[float, float]] = {
     "keypoint_max_gap_ns": (0.0, 60e9),
     "match_px": (0.0, 1e5),
     "body_size_frames": (0.0, 1e6),
+    "body_size_first_frames": (0.0, 1e6),
     "offset_ns": (-60e9, 60e9),
 }
 """What a manifest's ``scheduler`` numbers may be (JSON also carries NaN and Infinity): wider than the config
@@ -178,6 +180,9 @@ def _session_rig(session: Session, prior: PcaPrior | None) -> SessionRig:
         imu_offsets_ns={str(k): int(_number(v, f"imu_offsets_ns.{k}", "offset_ns"))
                         for k, v in s["imu_offsets_ns"].items()},
         body_size_frames=int(_number(s.get("body_size_frames", 0), "body_size_frames")),
+        # Sessions from before these existed re-solve as they were solved: no provisional size, no flips undone.
+        body_size_first_frames=int(_number(s.get("body_size_first_frames", 0), "body_size_first_frames")),
+        flips=FlipOptions(enabled=bool(s.get("lr_flips", False))),
         # Offline there is nothing to predict: always the delayed solve. Heading correction as recorded (on for
         # sessions from before it existed: it only ever uses the session's own keypoints and IMUs).
         heading=HeadingOptions(enabled=bool(s.get("heading_correction", True))),

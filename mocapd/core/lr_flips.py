@@ -1,0 +1,208 @@
+"""Left/right flips of 2D detections: a per-view L/R hypothesis for each keypoint pair, chosen by the other views.
+
+2D pose networks confuse a person's left and right, mostly on views that see the back (the Pose2Sim demos show it
+on every camera at some point). A flipped view averaged with the others pulls both limbs to the body's midline:
+the held-out camera then sees a skeleton narrower than the person, and a robust loss cannot tell which of the two
+labels is the outlier when the two limbs are half a metre apart.
+
+For each left/right keypoint pair (shoulders, elbows, wrists, hips, knees, ankles, eyes, ears) and each view that
+sees it, the labels are either as detected or swapped. Every combination of swaps across the views is
+triangulated (confidence-weighted DLT in undistorted pixels, all hypotheses in one batch) and the one with the
+smallest total reprojection error wins, when it beats "no swap" by ``margin_px`` per view. Swapping every view is
+the mirror image of swapping none (same error), so which of the two 3D points is the person's left comes from
+elsewhere: the person's previous pose where there is one (the label assignment whose points lie nearer the
+previous left and right points), else the views themselves (the assignment that swaps fewer of them; the detector
+is right more often than not).
+
+Pure numpy; :func:`choose_swaps` returns the decision, :func:`apply_swaps` applies it to the keypoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.camera import Camera, triangulate_projections
+from mocapd.errors import InputError
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+COCO17_LR_PAIRS: tuple[tuple[int, int], ...] = ((1, 2), (3, 4), (5, 6), (7, 8), (9, 10), (11, 12), (13, 14), (15, 16))
+"""(left, right) keypoint indices of COCO-17: eyes, ears, shoulders, elbows, wrists, hips, knees, ankles."""
+
+
+def lr_pairs(names: tuple[str, ...] | list[str]) -> tuple[tuple[int, int], ...]:
+    """(left, right) index pairs of a keypoint set's names (``left_knee`` with ``right_knee``, ...)."""
+    index = {n: i for i, n in enumerate(names)}
+    return tuple(
+        (i, index["right_" + n[5:]]) for i, n in enumerate(names) if n.startswith("left_") and "right_" + n[5:] in index
+    )
+
+
+@dataclass(frozen=True)
+class FlipOptions:
+    """How per-view left/right flips are found."""
+
+    enabled: bool = True
+    min_confidence: float = 0.3
+    """A keypoint takes part when its detector confidence is at least this."""
+    margin_px: float = 4.0
+    """A swap is made only when it lowers the pair's reprojection error by more than this per view (px): where the
+    two keypoints project close together (a side view) both labellings fit and the detection is left alone."""
+    cap_px: float = 80.0
+    """Each observation's reprojection error counts at most this much (px), so one wrong view cannot decide."""
+    max_views: int = 10
+    """Views of one pair searched exhaustively (2^(n-1) hypotheses); further views keep their labels."""
+    min_views_alone: int = 3
+    """Without the person's previous pose, at least this many views must see them (two views cannot say which of
+    them is flipped)."""
+
+
+@dataclass(frozen=True)
+class SwapDecision:
+    """Per view and pair: whether the detected labels are swapped.
+
+    Attributes
+    ----------
+    swaps : bool array, shape (n_cams, n_pairs)
+    gain_px : array, shape (n_pairs,)
+        How much the chosen labelling lowered the pair's reprojection error against the detected one (px per
+        view; 0 where nothing was swapped).
+    """
+
+    swaps: BoolArray
+    gain_px: FloatArray
+
+    @property
+    def count(self) -> int:
+        return int(np.count_nonzero(self.swaps))
+
+
+def undistorted(cameras: list[Camera], uv: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Projection matrices (n_cams, 3, 4) and undistorted pixels (n_cams, n_kp, 2) of distorted ``uv``."""
+    P = np.stack([c.projection_matrix for c in cameras])
+    und = np.stack([c.undistort_points(np.nan_to_num(uv[i])) for i, c in enumerate(cameras)])
+    return P, und
+
+
+def _project(P: FloatArray, X: FloatArray) -> FloatArray:
+    """Undistorted pixels of points X (n, 3) in every camera: (n_cams, n, 2)."""
+    h = np.einsum("cij,nj->cni", P[:, :, :3], X) + P[:, None, :, 3]
+    z = h[..., 2:3]
+    return np.where(z > 1e-6, h[..., :2] / np.where(z > 1e-6, z, 1.0), np.nan)
+
+
+def choose_swaps(
+    P: FloatArray,
+    uv: FloatArray,
+    conf: FloatArray,
+    pairs: tuple[tuple[int, int], ...] = COCO17_LR_PAIRS,
+    reference: FloatArray | None = None,
+    options: FlipOptions | None = None,
+) -> SwapDecision:
+    """The per-view left/right labelling of each keypoint pair that the views agree on best.
+
+    Parameters
+    ----------
+    P : array, shape (n_cams, 3, 4)
+        Projection matrices (undistorted pixels).
+    uv : array, shape (n_cams, n_kp, 2)
+        Undistorted pixels of one person's detections (any value where the confidence is 0).
+    conf : array, shape (n_cams, n_kp)
+        Detector confidence; 0 where the view did not see the person.
+    pairs : sequence of (left, right) keypoint indices
+    reference : array, shape (n_kp, 3), optional
+        The person's keypoints a moment ago (world): decides which of the two mirror-image labellings is right.
+    options : FlipOptions
+    """
+    o = options if options is not None else FlipOptions()
+    uv = np.asarray(uv, dtype=np.float64)
+    conf = np.asarray(conf, dtype=np.float64)
+    n_cams = P.shape[0]
+    if uv.shape[:2] != conf.shape or uv.shape[0] != n_cams:
+        raise InputError(f"uv {uv.shape} and conf {conf.shape} must cover the {n_cams} cameras")
+    swaps = np.zeros((n_cams, len(pairs)), dtype=bool)
+    gains = np.zeros(len(pairs))
+    if not o.enabled:
+        return SwapDecision(swaps, gains)
+    ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
+    for p, (left, right) in enumerate(pairs):
+        views = np.flatnonzero(ok[:, left] | ok[:, right])[: o.max_views]
+        if views.size < 2 or np.count_nonzero(ok[views, left]) + np.count_nonzero(ok[views, right]) < 3:
+            continue
+        best, gain = _best_hypothesis(P[views], uv[views][:, [left, right]], conf[views][:, [left, right]],
+                                      ok[views][:, [left, right]], o)  # fmt: skip
+        if best is None:
+            continue
+        flags = np.asarray(best, dtype=bool)
+        mirror = ~flags
+        if reference is not None and np.all(np.isfinite(reference[[left, right]])):
+            X = _triangulate_pair(P[views], uv[views][:, [left, right]], conf[views][:, [left, right]],
+                                  ok[views][:, [left, right]], flags)  # fmt: skip
+            if np.all(np.isfinite(X)):
+                d_as = np.linalg.norm(X - reference[[left, right]], axis=-1).sum()
+                d_mirror = np.linalg.norm(X[::-1] - reference[[left, right]], axis=-1).sum()
+                if d_mirror < d_as:
+                    flags = mirror
+        elif np.count_nonzero(mirror) < np.count_nonzero(flags) or (
+            np.count_nonzero(mirror) == np.count_nonzero(flags) and conf[views][mirror].sum() < conf[views][flags].sum()
+        ):
+            flags = mirror  # swap the fewer (then the less confident) views
+        swaps[views, p] = flags
+        gains[p] = gain if flags.any() else 0.0
+    return SwapDecision(swaps, gains)
+
+
+def _triangulate_pair(P: FloatArray, uv: FloatArray, conf: FloatArray, ok: BoolArray, flags: BoolArray) -> FloatArray:
+    """The pair's two points (2, 3) triangulated with the views of ``flags`` swapped."""
+    uv_h = np.where(flags[:, None, None], uv[:, ::-1], uv)
+    w_h = np.where(flags[:, None], (conf * ok)[:, ::-1], conf * ok)
+    X, good = triangulate_projections(P, uv_h, w_h)
+    return np.where(good[:, None], X, np.nan)
+
+
+def _best_hypothesis(
+    P: FloatArray, uv: FloatArray, conf: FloatArray, ok: BoolArray, o: FlipOptions
+) -> tuple[tuple[bool, ...] | None, float]:
+    """Among the swap vectors with the first view as detected, the one of least capped reprojection error, when it
+    beats no swap by ``margin_px`` per view; (None, 0) when no swap wins."""
+    n = P.shape[0]
+    hyps = np.array([(False, *rest) for rest in product((False, True), repeat=n - 1)], dtype=bool)  # (H, n)
+    H = hyps.shape[0]
+    # Observations per hypothesis: (H, n, 2 points, 2) pixels and (H, n, 2) weights, the two labels exchanged in
+    # swapped views.
+    uv_h = np.where(hyps[:, :, None, None], uv[None, :, ::-1], uv[None])
+    w = conf * ok
+    w_h = np.where(hyps[:, :, None], w[None, :, ::-1], w[None])
+    # One DLT batch: points are (hypothesis, label), cameras the views.
+    X, good = triangulate_projections(
+        P, uv_h.transpose(1, 0, 2, 3).reshape(n, H * 2, 2), w_h.transpose(1, 0, 2).reshape(n, H * 2)
+    )
+    proj = _project(P, np.where(good[:, None], X, 0.0)).reshape(n, H, 2, 2).transpose(1, 0, 2, 3)
+    err = np.linalg.norm(proj - uv_h, axis=-1)  # (H, n, 2)
+    err = np.where(np.isfinite(err), np.minimum(err, o.cap_px), o.cap_px)
+    err = np.where(good.reshape(H, 2)[:, None, :], err, o.cap_px)
+    cost = np.where(w_h > 0, err, 0.0).sum(axis=(1, 2))  # the same observations under every hypothesis
+    k = int(np.argmin(cost))
+    gain = (cost[0] - cost[k]) / n
+    if k == 0 or gain <= o.margin_px:
+        return None, 0.0
+    return tuple(bool(v) for v in hyps[k]), float(gain)
+
+
+def apply_swaps(
+    kp: FloatArray, conf: FloatArray, swaps: BoolArray, pairs: tuple[tuple[int, int], ...] = COCO17_LR_PAIRS
+) -> tuple[FloatArray, FloatArray]:
+    """Keypoints (n_cams, n_kp, 2) and confidences (n_cams, n_kp) with each view's flagged pairs exchanged."""
+    kp = np.array(kp, dtype=np.float64, copy=True)
+    conf = np.array(conf, dtype=np.float64, copy=True)
+    for p, (left, right) in enumerate(pairs):
+        views = np.flatnonzero(swaps[:, p])
+        if views.size:
+            kp[views, left], kp[views, right] = kp[views, right].copy(), kp[views, left].copy()
+            conf[views, left], conf[views, right] = conf[views, right].copy(), conf[views, left].copy()
+    return kp, conf

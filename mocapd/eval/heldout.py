@@ -1,0 +1,154 @@
+"""Held-out-view error: how far a 3D reconstruction made *without* a camera lands from that camera's own detections.
+
+For real footage there is no ground truth, but there is a view no system has seen: solve or triangulate with every
+camera but ``k``, project the result into ``k`` and compare it with ``k``'s confident detections. The detector's
+own error in ``k`` is in the number too (it is the floor every system shares), so the metric ranks systems on the
+same detections rather than measuring absolute accuracy.
+
+Pure functions (numpy, scipy): the detections of the held-out camera per frame, its calibration and the 3D
+keypoints each system gave per frame and person. Which detection of camera ``k`` is which of the system's people
+is decided here, the same way for every system: per frame, an optimal assignment (Hungarian) on the median pixel
+distance over the keypoints confident in the detection and projected from the person, accepted when that median is
+below ``max_match`` × the detection's height (a person projected further away is not compared at all, and the
+result says how many were: :attr:`HeldOutErrors.compared`).
+
+Used by ``mocapd eval video`` (docs/accuracy-video.md); written to judge keypoint tracking between detections and
+learned fusion too, which give 3D keypoints per frame the same way.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from mocapd.core.camera import Camera
+from mocapd.core.sorting import Detections2D
+from mocapd.errors import InputError
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+COCO17_GROUPS: dict[str, tuple[int, ...]] = {
+    "head": (0,),
+    "shoulders": (5, 6),
+    "elbows": (7, 8),
+    "wrists": (9, 10),
+    "hips": (11, 12),
+    "knees": (13, 14),
+    "ankles": (15, 16),
+}
+"""Joint groups of COCO-17 (the keypoints every evaluated system estimates: nose, shoulders, elbows, wrists, hips,
+knees, ankles; eyes and ears are left out because Pose2Sim's COCO-17 model does not triangulate them)."""
+
+COCO17_COMPARED: tuple[int, ...] = tuple(i for g in COCO17_GROUPS.values() for i in g)
+
+
+@dataclass(frozen=True)
+class HeldOutErrors:
+    """Per frame and person: the pixel error of each keypoint in the held-out view.
+
+    Attributes
+    ----------
+    errors : array, shape (n_frames, n_people, n_kp)
+        Distance (px) between the projection and the detection; NaN where not compared (person not matched,
+        keypoint not confident, not estimated or behind the camera).
+    matched : int array, shape (n_frames, n_people)
+        Index of the held-out camera's detection each person was matched to, -1 for none.
+    """
+
+    errors: FloatArray
+    matched: IntArray
+
+    @property
+    def compared(self) -> int:
+        """Keypoints compared."""
+        return int(np.count_nonzero(np.isfinite(self.errors)))
+
+
+def _height(det: Detections2D, i: int, min_confidence: float) -> float:
+    ok = det.confidences[i] >= min_confidence
+    if np.count_nonzero(ok) < 2:
+        return 0.0
+    y = det.keypoints[i][ok, 1]
+    x = det.keypoints[i][ok, 0]
+    return float(max(np.ptp(y), np.ptp(x)))
+
+
+def held_out_errors(
+    camera: Camera,
+    detections: Sequence[Detections2D],
+    points: FloatArray,
+    min_confidence: float = 0.5,
+    max_match: float = 0.5,
+    min_keypoints: int = 3,
+) -> HeldOutErrors:
+    """The held-out-view errors of one system in one camera.
+
+    Parameters
+    ----------
+    camera : Camera
+        The held-out camera (which the system did not use).
+    detections : sequence of n_frames Detections2D
+        That camera's detections per frame.
+    points : array, shape (n_frames, n_people, n_kp, 3)
+        The system's 3D keypoints (world), in the detector's keypoint order; NaN where it has none.
+    min_confidence : float
+        Only detected keypoints of at least this confidence are compared (and define a detection's height).
+    max_match : float
+        A person is matched to a detection only when the median distance is below this × the detection's height.
+    min_keypoints : int
+        Keypoints a person and a detection must share to be matched.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 4 or pts.shape[-1] != 3 or pts.shape[0] != len(detections):
+        raise InputError(f"points must be (n_frames={len(detections)}, n_people, n_kp, 3), got {pts.shape}")
+    n_frames, n_people, n_kp, _ = pts.shape
+    errors = np.full((n_frames, n_people, n_kp), np.nan)
+    matched = np.full((n_frames, n_people), -1, dtype=np.int64)
+    for f, det in enumerate(detections):
+        if len(det) == 0 or n_people == 0:
+            continue
+        if det.keypoints.shape[1] != n_kp:
+            raise InputError(f"frame {f}: detections have {det.keypoints.shape[1]} keypoints, points {n_kp}")
+        uv = camera.project(pts[f].reshape(-1, 3)).reshape(n_people, n_kp, 2)  # NaN behind the camera / missing
+        d = np.linalg.norm(uv[:, None] - det.keypoints[None], axis=-1)  # (people, detections, kp)
+        conf = det.confidences[None] >= min_confidence
+        usable = conf & np.isfinite(d)
+        count = usable.sum(axis=-1)
+        with warnings.catch_warnings():  # people sharing no keypoint with a detection: all-NaN rows, inf below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.where(count >= min_keypoints, np.nanmedian(np.where(usable, d, np.nan), axis=-1), np.inf)
+        heights = np.array([_height(det, i, min_confidence) for i in range(len(det))])
+        gate = med < max_match * heights[None, :]
+        if not np.any(gate):
+            continue
+        rows, cols = linear_sum_assignment(np.where(gate, med, 1e12))
+        for p, i in zip(rows, cols, strict=True):
+            if gate[p, i]:
+                matched[f, p] = i
+                errors[f, p] = np.where(usable[p, i], d[p, i], np.nan)
+    return HeldOutErrors(errors, matched)
+
+
+def summarize(
+    errors: FloatArray, groups: Mapping[str, Sequence[int]] = COCO17_GROUPS, keypoints: Sequence[int] | None = None
+) -> dict[str, dict[str, float]]:
+    """Median and 90th percentile (px) and count of held-out errors per joint group and over ``keypoints`` (the
+    groups' keypoints by default) as ``"all"``; errors of shape (..., n_kp), NaN ignored."""
+    e = np.asarray(errors, dtype=np.float64)
+    sel = [i for g in groups.values() for i in g] if keypoints is None else list(keypoints)
+    out: dict[str, dict[str, float]] = {}
+    for name, idx in [("all", sel), *groups.items()]:
+        v = e[..., list(idx)]
+        v = v[np.isfinite(v)]
+        out[name] = (
+            {"median": float(np.median(v)), "p90": float(np.percentile(v, 90)), "n": int(v.size)}
+            if v.size
+            else {"median": float("nan"), "p90": float("nan"), "n": 0}
+        )
+    return out

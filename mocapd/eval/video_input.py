@@ -1,0 +1,270 @@
+"""Real multi-view footage for ``mocapd eval video``: takes (videos + calibration) and their detections, cached.
+
+A :class:`Take` is a set of synchronised videos, one per calibrated camera. Its detections — mocapd's detector run
+once on every frame of every camera (whole frames, at the camera's aspect where the export exists) — are the one
+input every evaluated system sees (:class:`TakeDetections`). They are cached in ``<cache>/eval-video/`` in a file
+named by a key over the videos' and the model's SHA-256 and the detector settings that change its output, so a
+rerun skips the detector entirely and any change of video, model or setting detects again.
+
+Cache file (numpy ``.npz``, no pickles): ``counts`` (n_frames, n_cams) people per frame and camera, ``keypoints``
+(sum(counts), n_kp, 2) pixels of the source image and ``confidences`` (sum(counts), n_kp), people in frame-major,
+camera-minor order, plus ``key`` (the cache key) and ``meta`` (JSON: what was detected with what).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.camera import Camera
+from mocapd.core.sorting import Detections2D
+from mocapd.errors import InputError
+from mocapd.io.calibration_files import core_cameras, read_qca
+from mocapd.io.model_cache import cache_dir
+from mocapd.io.model_quant import model_path
+from mocapd.io.pose2sim_demo import CAMERAS, DEMOS, demo_calibration, demo_root, demo_video
+from mocapd.pipeline.detector import OnnxPoseDetector
+from mocapd.pipeline.detector_config import DetectorConfig
+
+FloatArray = NDArray[np.float64]
+
+CACHE_VERSION = 1
+"""Bumped when the cache layout or what is stored changes."""
+
+
+@dataclass(frozen=True)
+class Take:
+    """Synchronised videos of a calibrated rig.
+
+    Attributes
+    ----------
+    name : str
+    cameras : list of Camera
+        In the order of ``videos``.
+    videos : list of Path
+    fps : float
+        Frame rate of the videos (all equal).
+    n_frames : int
+        Frames every video has.
+    subjects : int
+        How many performers the take has (the rest are bystanders): the reference the people metrics use.
+    calibration : Path
+        The calibration file the cameras came from (Pose2Sim converts the same file itself).
+    sizes : list of (int, int)
+        (width, height) of each video's frames (may differ from the calibration's by a few pixels).
+    source : str
+        Where the footage comes from, with its licence.
+    """
+
+    name: str
+    cameras: list[Camera]
+    videos: list[Path]
+    fps: float
+    n_frames: int
+    subjects: int
+    calibration: Path
+    sizes: list[tuple[int, int]]
+    source: str = ""
+
+    @property
+    def camera_names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+
+def pose2sim_take(demo: str) -> Take:
+    """One of the Pose2Sim demos (``Demo_SinglePerson``: one performer; ``Demo_MultiPerson``: two), as the set-up
+    unpacked them (:mod:`mocapd.io.pose2sim_demo`), with the demo's own Qualisys calibration."""
+    if demo not in DEMOS:
+        raise InputError(f"unknown Pose2Sim demo {demo!r}; known: {', '.join(DEMOS)}")
+    calib = demo_calibration(demo)
+    cams = core_cameras(read_qca(calib))
+    videos = [demo_video(demo, c) for c in CAMERAS]
+    if [c.name for c in cams] != list(CAMERAS):
+        raise InputError(f"{calib}: cameras {[c.name for c in cams]}, expected {list(CAMERAS)}")
+    fps, n, sizes = _video_info(videos)
+    return Take(
+        name=demo, cameras=cams, videos=videos, fps=fps, n_frames=n, subjects=1 if "Single" in demo else 2,
+        calibration=calib, sizes=sizes, source=f"Pose2Sim {demo} (pose2sim wheel, BSD-3-Clause; {demo_root()})",
+    )  # fmt: skip
+
+
+def _video_info(videos: list[Path]) -> tuple[float, int, list[tuple[int, int]]]:
+    fps, frames, sizes = [], [], []
+    for v in videos:
+        cap = cv2.VideoCapture(str(v))
+        if not cap.isOpened():
+            raise InputError(f"cannot open video {v}")
+        fps.append(float(cap.get(cv2.CAP_PROP_FPS)))
+        frames.append(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+        sizes.append((int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))))
+        cap.release()
+    if max(fps) - min(fps) > 1e-3:
+        raise InputError(f"videos have different frame rates {fps}: {[str(v) for v in videos]}")
+    return fps[0], min(frames), sizes
+
+
+@dataclass
+class TakeDetections:
+    """Every frame's detections of a take: ``frames[f][c]`` is camera ``c``'s :class:`Detections2D` of frame ``f``."""
+
+    frames: list[list[Detections2D]]
+    key: str
+    meta: dict[str, Any] = field(default_factory=dict)
+    from_cache: bool = False
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+    def head(self, n: int) -> TakeDetections:
+        """The first ``n`` frames."""
+        return TakeDetections(self.frames[:n], self.key, self.meta, self.from_cache)
+
+    def without(self, camera: int) -> list[list[Detections2D]]:
+        """Every frame's detections with camera ``camera`` left out."""
+        return [[d for c, d in enumerate(row) if c != camera] for row in self.frames]
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def detector_fingerprint(det: OnnxPoseDetector, image_sizes: list[tuple[int, int]]) -> dict[str, Any]:
+    """What about the detector changes its output on images of ``image_sizes`` (width, height): the model files'
+    hashes (the square model and each fitted export whole frames run on), precision, decoding thresholds."""
+    spec = det.spec
+    files = {str(det.path)}
+    inputs = {}
+    for w, h in dict.fromkeys(image_sizes):
+        fitted = det.fit_to(w, h)
+        inputs[f"{w}x{h}"] = "x".join(map(str, fitted[:2] if fitted is not None else det.input_size))
+        if fitted is not None:
+            files.add(str(model_path(fitted[0], fitted[1], det.precision)))
+    return {
+        "model_sha256": {Path(f).name: _sha256(Path(f)) for f in sorted(files)},
+        "whole_frame_inputs": inputs,
+        "precision": det.precision,
+        "providers": list(det.session.get_providers()),
+        "decoder": spec.decoder,
+        "keypoint_format": spec.keypoint_format,
+        "score_threshold": spec.score_threshold,
+        "iou_threshold": spec.iou_threshold,
+        "max_people": spec.max_people,
+    }
+
+
+def cache_key(take: Take, n_frames: int, fingerprint: dict[str, Any]) -> str:
+    """Key of a take's detections: the videos' SHA-256, the frame count, the detector and the cache version."""
+    payload = {
+        "version": CACHE_VERSION,
+        "videos": [_sha256(v) for v in take.videos],
+        "frames": n_frames,
+        "detector": fingerprint,
+    }
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:24]
+
+
+def cache_path(take: Take, key: str) -> Path:
+    return cache_dir() / "eval-video" / f"{take.name}-{key}.npz"
+
+
+def eval_detector_config(base: DetectorConfig, precision: str = "fp32") -> DetectorConfig:
+    """The detector the evaluation runs: the config's, whole frames, at ``precision`` (FP32 by default: the same
+    keypoints on every machine, where "auto" picks INT8 or BF16 by CPU)."""
+    return replace(base, precision=precision, workers=1)
+
+
+def detect_take(
+    take: Take,
+    detector: Callable[[], OnnxPoseDetector],
+    n_frames: int | None = None,
+    progress: Callable[[int], None] | None = None,
+    use_cache: bool = True,
+) -> TakeDetections:
+    """The detections of every frame and camera of ``take`` (the first ``n_frames``), from the cache when there.
+
+    ``detector`` makes the detector (only called when something must be detected or fingerprinted); ``progress``
+    is called with 1 per camera frame detected.
+    """
+    n = take.n_frames if n_frames is None else min(n_frames, take.n_frames)
+    det = detector()
+    fp = detector_fingerprint(det, take.sizes)
+    key = cache_key(take, n, fp)
+    path = cache_path(take, key)
+    if use_cache and path.is_file():
+        loaded = load_detections(path, len(take.cameras))
+        if loaded is not None and loaded.key == key:
+            return loaded
+    caps = [cv2.VideoCapture(str(v)) for v in take.videos]
+    frames: list[list[Detections2D]] = []
+    try:
+        for f in range(n):
+            row = []
+            for cap, video in zip(caps, take.videos, strict=True):
+                ok, img = cap.read()
+                if not ok:
+                    raise InputError(f"{video}: frame {f} could not be read (the video has {take.n_frames})")
+                people = det.detect(np.ascontiguousarray(img, dtype=np.uint8))
+                row.append(Detections2D(people.keypoints[..., :2], people.keypoints[..., 2]))
+                if progress is not None:
+                    progress(1)
+            frames.append(row)
+    finally:
+        for cap in caps:
+            cap.release()
+    meta = {"take": take.name, "frames": n, "cameras": take.camera_names, "detector": fp}
+    out = TakeDetections(frames, key, meta)
+    save_detections(path, out)
+    return out
+
+
+def save_detections(path: Path, dets: TakeDetections) -> None:
+    """Write ``dets`` to ``path`` (atomically: a temporary file renamed)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    counts = np.array([[len(d) for d in row] for row in dets.frames], dtype=np.int64)
+    n_kp = next((d.keypoints.shape[1] for row in dets.frames for d in row), 17)
+    kp = [d.keypoints for row in dets.frames for d in row]
+    cf = [d.confidences for row in dets.frames for d in row]
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(
+        tmp,
+        counts=counts,
+        keypoints=np.concatenate(kp) if kp else np.zeros((0, n_kp, 2)),
+        confidences=np.concatenate(cf) if cf else np.zeros((0, n_kp)),
+        key=np.array(dets.key),
+        meta=np.array(json.dumps(dets.meta)),
+    )
+    tmp.replace(path)
+
+
+def load_detections(path: Path, n_cams: int) -> TakeDetections | None:
+    """Read a cache file; None when it is damaged or does not fit ``n_cams`` cameras (it is then detected again)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            counts, kp, cf = z["counts"], z["keypoints"], z["confidences"]
+            key, meta = str(z["key"]), json.loads(str(z["meta"]))
+    except (OSError, ValueError, KeyError, json.JSONDecodeError):
+        return None
+    if counts.ndim != 2 or counts.shape[1] != n_cams or int(counts.sum()) != kp.shape[0] or kp.shape[:2] != cf.shape:
+        return None
+    frames: list[list[Detections2D]] = []
+    i = 0
+    for row in counts:
+        out = []
+        for k in row:
+            out.append(Detections2D(kp[i : i + k], cf[i : i + k]))
+            i += int(k)
+        frames.append(out)
+    return TakeDetections(frames, key, meta, from_cache=True)

@@ -1,0 +1,110 @@
+"""``mocapd eval video`` end to end on the first 40 frames of the Pose2Sim single-person demo: the real detector
+(cached after the first run), mocapd live and resolve, the naive DLT and Pose2Sim 0.10.49 (installed by
+setup/steps/24-pose2sim.sh), every number of the report produced, and mocapd's held-out error below the naive
+DLT's on those frames (docs/accuracy-video.md)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mocapd.core.sorting import Detections2D
+from mocapd.eval.pose2sim_system import pose2sim_missing, write_openpose
+from mocapd.eval.video_input import TakeDetections, load_detections, save_detections
+from tests.pose2sim_data import demo_root
+
+REPO = Path(__file__).resolve().parents[1]
+FRAMES = 40
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, int | float) and math.isfinite(x)
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    demo_root()  # the demo data is there (set-up step 21)
+    assert pose2sim_missing() is None, pose2sim_missing()  # installed by the set-up, never skipped
+    out = tmp_path_factory.mktemp("eval-video")
+    cmd = [sys.executable, "-m", "mocapd", "eval", "video", "--take", "Demo_SinglePerson", "--max-frames",
+           str(FRAMES), "--config", str(REPO / "presets" / "eval-video.toml"), "--images", "1", "--no-progress",
+           "--out", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    printed = json.loads(proc.stdout)
+    results: dict[str, Any] = json.loads((out / "results.json").read_text())
+    results["_printed"] = printed
+    results["_out"] = out
+    return results
+
+
+def test_every_number_is_produced(report: dict[str, Any]) -> None:
+    take = report["takes"]["Demo_SinglePerson"]
+    assert take["frames"] == FRAMES
+    assert set(take["systems"]) == {"mocapd live", "mocapd resolve", "naive DLT", "Pose2Sim", "Pose2Sim filtered"}
+    for name, s in take["systems"].items():
+        h = s["held_out"]
+        for which in ("own", "common"):
+            for group, v in h[which].items():
+                assert _finite(v["median"]) and _finite(v["p90"]) and v["n"] > 0, (name, which, group)
+        assert all(_finite(v["median"]) for v in h["per_camera"].values()), name
+        assert _finite(s["jitter"]["median"]) and _finite(s["bone_cv"]["median"]), name
+        people = s["people"]
+        assert people["identities"] >= 1 and len(people["performers"]) == 1, (name, people)
+        assert people["bystanders_enrolled"] == 0 and people["identity_switches"] >= 0
+        assert set(people["flips_found"]) == set(people["flips_accepted"]) == {"cam01", "cam02", "cam03", "cam04"}
+    heights = [v["height"] for v in take["segment_lengths"].values()]
+    assert heights and all(1.4 < h < 2.0 for h in heights)
+    assert len(take["targets"]) == 10 and all(isinstance(v, bool | float) for v in take["targets"].values())
+    assert report["setup"]["pose2sim"] == "0.10.49"
+    out = report["_out"]
+    md = (out / "report.md").read_text()
+    assert "| mocapd live |" in md and "| Pose2Sim filtered |" in md
+    images = [out / p for p in take["images"]]
+    assert len(images) == 4 and all(p.suffix == ".png" and p.stat().st_size > 10_000 for p in images)
+
+
+def test_mocapd_is_below_the_naive_dlt_on_held_out_views(report: dict[str, Any]) -> None:
+    s = report["takes"]["Demo_SinglePerson"]["systems"]
+    for mocapd in ("mocapd live", "mocapd resolve"):
+        for stat in ("median", "p90"):
+            ours = s[mocapd]["held_out"]["common"]["all"][stat]
+            dlt = s["naive DLT"]["held_out"]["common"]["all"][stat]
+            assert ours < dlt, (mocapd, stat, ours, dlt)
+    # The smoothed output is steadier than the per-frame solve, and no steadier than a person can move.
+    assert s["mocapd resolve"]["jitter"]["median"] < 0.3 * s["mocapd live"]["jitter"]["median"]
+
+
+def test_detection_cache_and_openpose_files_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    frames = [[Detections2D(rng.random((k, 17, 2)) * 100, rng.random((k, 17))) for k in (0, 2)] for _ in range(3)]
+    dets = TakeDetections(frames, "abc", {"take": "t"})
+    save_detections(tmp_path / "d.npz", dets)
+    back = load_detections(tmp_path / "d.npz", 2)
+    assert back is not None and back.key == "abc" and back.meta == {"take": "t"} and back.from_cache
+    assert [[len(d) for d in row] for row in back.frames] == [[0, 2]] * 3
+    assert np.array_equal(back.frames[2][1].keypoints, frames[2][1].keypoints)
+    assert load_detections(tmp_path / "d.npz", 3) is None  # another rig: detected again
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    assert load_detections(tmp_path / "bad.npz", 2) is None
+    write_openpose(tmp_path / "pose", "cam02", [row[1] for row in frames])
+    doc = json.loads((tmp_path / "pose" / "cam02_json" / "cam02_000001.json").read_text())
+    assert len(doc["people"]) == 2
+    kp = np.array(doc["people"][1]["pose_keypoints_2d"]).reshape(17, 3)
+    assert np.allclose(kp[:, :2], frames[1][1].keypoints[1], atol=1e-3)
+    assert np.allclose(kp[:, 2], frames[1][1].confidences[1], atol=1e-3)
+
+
+def test_an_unknown_take_is_refused_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from mocapd.service.cli import main
+
+    assert main(["eval", "video", "--take", "Demo_Nobody", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mocapd eval video: unknown Pose2Sim demo 'Demo_Nobody'") and err.count("\n") == 1

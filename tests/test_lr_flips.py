@@ -1,0 +1,104 @@
+"""Per-view left/right flips (mocapd.core.lr_flips), the flip-aware pairing of detection sorting, and the
+scheduler undoing a flipped view before the solve."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocapd.core.camera import Camera
+from mocapd.core.keypoints import COCO17, coco17_targets
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.lr_flips import (
+    COCO17_LR_PAIRS,
+    FlipOptions,
+    apply_swaps,
+    choose_swaps,
+    lr_pairs,
+    undistorted,
+)
+from mocapd.core.skeleton import Skeleton
+from mocapd.core.sorting import Detections2D, DetectionSorter, SortingOptions
+from mocapd.core.synthetic import moving_sequence, ring_rig
+
+FloatArray = np.ndarray
+
+
+def _person(frame: int = 40, arms_out: bool = False) -> tuple[list[Camera], FloatArray, FloatArray]:
+    """A walking person (or one standing with the arms out, the rest pose) seen by a 4-camera ring: their 17
+    keypoints in 3D and as every camera sees them."""
+    sk = Skeleton.from_height(1.75)
+    theta = sk.rest_pose() if arms_out else moving_sequence(sk, frame + 1, seed=3)[frame]
+    theta[3:6] = [0.0, 0.5, 0.0]  # turned a little: no view sees the person exactly side-on
+    kin = Kinematics(sk)
+    targets = coco17_targets(sk)
+    X = kin.targets(kin.forward(theta), targets.bones, targets.offsets)
+    cams = ring_rig(4, radius=4.5)
+    uv = np.stack([c.project(X) for c in cams])
+    return cams, X, uv
+
+
+def _flip(uv: FloatArray, view: int) -> FloatArray:
+    out = uv.copy()
+    for left, right in COCO17_LR_PAIRS:
+        out[view, [left, right]] = uv[view, [right, left]]
+    return out
+
+
+def test_lr_pairs_from_keypoint_names() -> None:
+    assert lr_pairs(tuple(n for n, _, _ in COCO17)) == COCO17_LR_PAIRS
+    assert lr_pairs(("nose", "left_knee", "right_knee", "left_toe")) == ((1, 2),)
+
+
+def test_the_flipped_view_is_found_and_undone_by_the_majority() -> None:
+    cams, _, uv = _person()
+    rng = np.random.default_rng(0)
+    seen = uv + rng.normal(0.0, 1.5, uv.shape)
+    conf = np.full(uv.shape[:2], 0.9)
+    bad = _flip(seen, 2)
+    P, und = undistorted(cams, bad)
+    decision = choose_swaps(P, und, conf)
+    # Pairs whose two keypoints project apart in view 2 are swapped there, and only there.
+    assert decision.swaps[[0, 1, 3]].sum() == 0
+    assert decision.swaps[2, 2:].all(), decision.swaps  # shoulders, elbows, wrists, hips, knees, ankles
+    fixed, _ = apply_swaps(bad, conf, decision.swaps)
+    assert np.allclose(fixed[2, 5:], seen[2, 5:])
+    # Nothing to undo in views that agree: no swap at all.
+    P, und = undistorted(cams, seen)
+    assert choose_swaps(P, und, conf).count == 0
+
+
+def test_the_previous_pose_decides_which_mirror_labelling_is_right() -> None:
+    cams, X, uv = _person()
+    conf = np.full(uv.shape[:2], 0.9)
+    two_flipped = _flip(_flip(uv, 1), 2)  # two views of four: the majority cannot tell
+    P, und = undistorted(cams, two_flipped)
+    decision = choose_swaps(P, und, conf, reference=X)
+    assert decision.swaps[[1, 2], 2:].all() and not decision.swaps[[0, 3]].any()
+    mirrored = X.copy()
+    for left, right in COCO17_LR_PAIRS:
+        mirrored[[left, right]] = X[[right, left]]
+    other = choose_swaps(P, und, conf, reference=mirrored)
+    assert other.swaps[[0, 3], 2:].all() and not other.swaps[[1, 2]].any()
+
+
+def test_disabled_or_unseen_pairs_are_left_alone() -> None:
+    cams, _, uv = _person()
+    conf = np.full(uv.shape[:2], 0.9)
+    P, und = undistorted(cams, _flip(uv, 2))
+    assert choose_swaps(P, und, conf, options=FlipOptions(enabled=False)).count == 0
+    low = conf.copy()
+    low[:, [15, 16]] = 0.1  # ankles not confidently seen anywhere
+    assert not choose_swaps(P, und, low).swaps[:, 7].any()
+
+
+@pytest.mark.parametrize("flip_aware", [False, True])
+def test_sorting_keeps_a_flipped_view_in_the_person_only_when_flip_aware(flip_aware: bool) -> None:
+    cams, _, uv = _person(arms_out=True)  # the hands 1.6 m apart: a flipped view is far off as labelled
+    rng = np.random.default_rng(1)
+    seen = _flip(uv + rng.normal(0.0, 1.0, uv.shape), 2)
+    dets = [Detections2D(seen[c][None], np.full((1, 17), 0.9)) for c in range(4)]
+    sorter = DetectionSorter(cams, SortingOptions(flip_aware=flip_aware))
+    cands = sorter.candidates(dets)
+    views = max(len(c.sources) for c in cands)
+    assert views == (4 if flip_aware else 3)
