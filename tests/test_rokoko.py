@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.rotations import matrix_from_quat, random_rotvec
+from mocapd.core.rotations import matrix_from_quat, random_rotvec, rotvec_from_matrix
 from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.errors import InputError
 from mocapd.io.udp_stream import ACTOR_COLOURS, RokokoUdpSink
@@ -47,7 +47,7 @@ for side, flat in (("left", _L), ("right", _R)):
             STUDIO_TPOSE[f"{side}{finger}{ph}"] = flat
 # Rokoko joint -> the mocapd bone whose world rotation it carries and whose joint it sits at (None: elsewhere).
 SOURCE = {
-    "hip": "Hips", "spine": "Spine", "chest": "Spine3", "neck": "Neck", "head": "Head",
+    "hip": "Hips", "spine": "Spine", "chest": "Spine3", "neck": "Neck", "head": "Head",  # spine: swung (check_actor)
     "leftUpperArm": "LeftUpperArm", "leftLowerArm": "LeftLowerArm", "leftHand": "LeftHand",
     "rightUpperArm": "RightUpperArm", "rightLowerArm": "RightLowerArm", "rightHand": "RightHand",
     "leftUpLeg": "LeftUpperLeg", "leftLeg": "LeftLowerLeg", "leftFoot": "LeftFoot", "leftToe": "LeftToes",
@@ -109,6 +109,13 @@ def check_actor(actor: dict[str, Any], skeleton: Skeleton, theta: np.ndarray, to
             b = BONE_INDEX[bone]
             want = fk.positions[b]
         np.testing.assert_allclose(p, want, atol=tol, err_msg=name)
+        if name == "spine":  # Spine's rotation swung to point the lower spine at mocapd's chest (Spine3's joint)
+            lower = off[BONE_INDEX["Spine1"]] + off[BONE_INDEX["Spine2"]] + off[BONE_INDEX["Spine3"]]
+            chest = fk.positions[BONE_INDEX["Spine3"]] - fk.positions[b]
+            np.testing.assert_allclose(G @ lower / np.linalg.norm(lower), chest / np.linalg.norm(chest), atol=1e-3)
+            turn = rotvec_from_matrix(G @ fk.rotations[b].T)  # the swing: about an axis across the lower spine
+            assert abs(turn @ fk.rotations[b] @ lower) < 1e-3 * np.linalg.norm(lower)
+            continue
         np.testing.assert_allclose(G, fk.rotations[b], atol=3e-3 if "Thumb" in name else 1e-3, err_msg=name)
 
 
@@ -195,18 +202,44 @@ async def test_sink_sends_one_scene_per_due_frame_with_named_coloured_actors(rec
     try:
         a, b, c = moving(1, 0.0), moving(2, 1.0), moving(3, -1.0)
         for n in range(1, 6):
-            people = [person("suit:suit0", a), person("track:2", b), person("track:9", c)]
-            sink.publish(PoseFrame(n, n * 16_666_667, n * 16_666_667, people if n != 3 else [], 0))
-        docs = [decode(receiver.recv(65536)) for _ in range(3)]  # frames 1, 3 (nobody: an empty scene), 5
+            people = [person("track:2", b), person("track:9", c), person("suit:suit0", a)]
+            sink.publish(PoseFrame(n, n * 16_666_667, n * 16_666_667, people if n != 3 else people[:1], 0))
+        docs = [decode(receiver.recv(65536)) for _ in range(3)]  # frames 1, 3 (track:2 alone), 5
     finally:
         await sink.aclose()
     assert [d["frame"] for d in docs] == [1, 3, 5] and all(d["fps"] == 30 for d in docs)
     assert [d["scene"]["timestamp"] for d in docs] == pytest.approx([0.0, 0.0333333, 0.0666667], abs=1e-6)
-    assert docs[1]["scene"]["actors"] == [] and docs[1]["scene"]["props"] == []
-    alice, two = docs[2]["scene"]["actors"]  # track:9 is not among the subjects
+    assert all(d["scene"]["props"] == [] for d in docs)
+    # Actors in the order of the subjects list (track:9 is not in it), named by actor_names, coloured by slot.
+    alice, two = docs[2]["scene"]["actors"]
     assert (alice["name"], two["name"]) == ("Alice", "track:2")
     assert (alice["color"], two["color"]) == ([*ACTOR_COLOURS[0]], [*ACTOR_COLOURS[1]])
+    assert alice["meta"]["hasBody"] and two["meta"]["hasBody"]
     check_actor(alice, SKELETON, a)
+    # Frame 3 lost Alice: she stays first, at her last pose, without a body update; the list keeps its order.
+    lost, kept = docs[1]["scene"]["actors"]
+    assert (lost["name"], lost["meta"]["hasBody"], kept["meta"]["hasBody"]) == ("Alice", False, True)
+    check_actor(lost, SKELETON, a)
     st = sink.status()
     assert st["frames_seen"] == 5 and st["frames_sent"] == 3 and st["datagrams_sent"] == 3
     assert st["compression"] == "lz4" and st["oversize_actors"] == 0 and st["slots"] == {"suit:suit0": 0, "track:2": 1}
+
+
+@pytest.mark.asyncio
+async def test_a_lost_subject_leaves_the_scene_once_its_slot_is_released(receiver: socket.socket) -> None:
+    sink = RokokoUdpSink(SKELETON, [("127.0.0.1", receiver.getsockname()[1])], fps=60.0, release_after_frames=2)
+    await sink.start()
+    try:
+        who = [["track:1", "track:2"], ["track:2"], ["track:2"], ["track:2", "track:3"]]
+        for n, ids in enumerate(who, start=1):
+            sink.publish(PoseFrame(n, n, n, [person(i, moving(n, 0.0)) for i in ids], 0))
+        docs = [decode(receiver.recv(65536)) for _ in who]
+    finally:
+        await sink.aclose()
+    scenes = [[(a["name"], a["meta"]["hasBody"]) for a in d["scene"]["actors"]] for d in docs]
+    assert scenes == [
+        [("track:1", True), ("track:2", True)],
+        [("track:1", False), ("track:2", True)],
+        [("track:2", True)],  # released after 2 frames away
+        [("track:3", True), ("track:2", True)],  # the new subject takes the freed slot 0
+    ]

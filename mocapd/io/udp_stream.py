@@ -16,6 +16,7 @@ import os
 import socket
 from collections import Counter
 from collections.abc import Collection, Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -324,6 +325,11 @@ def colour(slot: int) -> tuple[int, int, int]:
 class RokokoUdpSink(_UdpPoseSink):
     """Rokoko Studio Live: every streamed subject as an actor of one scene datagram per frame, to every destination.
 
+    Actors come in the order of their slots (``subjects[k]`` is slot k; otherwise the lowest free slot in order of
+    appearance), and a subject lost for less than ``release_after_frames`` stays in the scene at its last pose with
+    ``hasBody`` false: the plugins' actor lists keep their order while the same people are tracked (the Blender
+    add-on remembers an armature's actor by its position in that list).
+
     Parameters
     ----------
     skeleton : Skeleton
@@ -332,8 +338,8 @@ class RokokoUdpSink(_UdpPoseSink):
     fps : float
         The output rate of the frames published (the stream's ``fps`` is it over ``rate_divisor``).
     rate_divisor : int
-    subjects : collection of identities, optional
-        Stream only these (default: everyone, at most 64 at a time).
+    subjects : sequence of identities, optional
+        Stream only these, in this order (default: everyone, at most 64 at a time).
     actor_names : mapping identity -> actor name, optional
         The name each subject's actor has in the plugins (default: the identity).
     compression : str
@@ -353,26 +359,35 @@ class RokokoUdpSink(_UdpPoseSink):
         *,
         fps: float,
         rate_divisor: int = 1,
-        subjects: Collection[str] | None = None,
+        subjects: Sequence[str] | None = None,
         actor_names: Mapping[str, str] | None = None,
         compression: str = "lz4",
         max_datagram_bytes: int = 32768,
         release_after_frames: int = 120,
         fileno: int | None = None,
     ) -> None:
-        super().__init__(destinations, capacity=MAX_ACTORS, rate_divisor=rate_divisor, subjects=subjects,
-                         release_after_frames=release_after_frames, fileno=fileno)  # fmt: skip
+        pinned = None if subjects is None else {s: k for k, s in enumerate(subjects)}
+        super().__init__(destinations, capacity=max(MAX_ACTORS, len(pinned or ())), rate_divisor=rate_divisor,
+                         pinned=pinned, subjects=subjects, release_after_frames=release_after_frames,
+                         fileno=fileno)  # fmt: skip
         self.encoder = RokokoEncoder(skeleton, fps=fps / rate_divisor, compression=compression,
                                      max_datagram_bytes=max_datagram_bytes)  # fmt: skip
         self.actor_names = dict(actor_names or {})
+        self._last: dict[str, RokokoActor] = {}  # identity -> its last actor, while it holds a slot
         self.oversize_actors = 0  # actors left out of a frame because the datagram would have been too large
 
     def publish(self, frame: PoseFrame) -> None:
         if not self._due():
             return
+        present = {p.identity: (slot, p) for slot, p in self._subjects(frame)}
+        held = self.slots.held()
+        for ident in [i for i in self._last if i not in held]:  # released: the actor leaves the scene
+            del self._last[ident]
+        for ident, (slot, p) in present.items():
+            self._last[ident] = RokokoActor(self.actor_names.get(ident, ident), p.theta, colour(slot), p.skeleton)
         actors = [
-            RokokoActor(self.actor_names.get(p.identity, p.identity), p.theta, colour(slot), p.skeleton)
-            for slot, p in self._subjects(frame)
+            a if ident in present else replace(a, tracked=False)
+            for ident, a in sorted(self._last.items(), key=lambda kv: held[kv[0]])
         ]
         try:
             datagram = self.encoder.encode(frame.frame, frame.t_solve_ns, actors)

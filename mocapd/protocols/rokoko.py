@@ -39,7 +39,8 @@ of that frame and counted. The JSON document (UTF-8, keys in this order, numbers
     ACTOR = {"name": "suit:suit0",     the subject's identity, or its [udp.rokoko] actor_names entry
              "color": [255, 59, 48],   RGB 0..255 (the live viewer's colour of the subject's slot)
              "meta": {"hasGloves": false, "hasLeftGlove": false, "hasRightGlove": false,
-                      "hasBody": true, "hasFace": false},
+                      "hasBody": true, "hasFace": false},      hasBody false: a subject lost for now, at its
+                                                                last pose (the Unity plugin then leaves it be)
              "dimensions": {"totalHeight": 1.75, "hipHeight": 0.98},   metres: the subject's skeleton's height
                                                                         and rest Hips joint height
              "body": {JOINT: {"position": {"x": .., "y": .., "z": ..},
@@ -56,8 +57,12 @@ receiving character mocapd's rotation.
 
 Joints (Rokoko name ← mocapd bone giving the rotation; position)::
 
-    hip ← Hips; spine ← Spine; chest ← Spine3 (the Unity plugin drives UpperChest with it); neck ← Neck;
-    head ← Head                                                           each at its bone's joint
+    hip ← Hips; chest ← Spine3 (the Unity plugin drives UpperChest with it); neck ← Neck; head ← Head
+                                                                          each at its bone's joint
+    spine ← Spine, swung: Rokoko's skeleton has one lower-spine bone where mocapd has Spine, Spine1 and Spine2, so
+        Spine's rotation is turned by the smallest rotation that points the lower spine (Spine's joint to Spine3's)
+        where mocapd's is; a receiver's chest then sits where mocapd's does (with Spine's own rotation it was off by
+        up to 11 cm on the synthetic rig's motion), at Spine's joint
     leftShoulder, rightShoulder ← Spine3 (mocapd has no clavicles: rigid with the chest), at the mid-line point at
         the height and depth of that side's upper-arm joint (the MVN shoulder rule, mocapd.protocols.mvn)
     left/rightUpperArm, LowerArm, Hand ← same names; left/rightUpLeg ← UpperLeg, Leg ← LowerLeg, Foot ← Foot,
@@ -155,12 +160,13 @@ TPOSE: FloatArray = quat_normalize(np.array([j[3] for j in JOINTS], dtype=np.flo
 """Studio's T-pose rotation of each joint, (63, 4) as (w, x, y, z) in Unity's frame."""
 TPOSE.setflags(write=False)
 _ROT_SRC = np.array([BONE_INDEX[j[1]] for j in JOINTS], dtype=np.intp)
+_SPINE = JOINT_NAMES.index("spine")
 _CLAVICLE_ARM = {"leftShoulder": "LeftUpperArm", "rightShoulder": "RightUpperArm"}
 
 # Each joint's JSON, with %-placeholders for its 7 numbers (x y z, then the rotation's x y z w).
 _JOINT_JSON = '"{}":{{"position":{{"x":%.6f,"y":%.6f,"z":%.6f}},"rotation":{{"x":%.6f,"y":%.6f,"z":%.6f,"w":%.6f}}}}'
 _BODY_TEMPLATE = "{" + ",".join(_JOINT_JSON.format(n) for n in JOINT_NAMES) + "}"
-_META = '{"hasGloves":false,"hasLeftGlove":false,"hasRightGlove":false,"hasBody":true,"hasFace":false}'
+_META = '{{"hasGloves":false,"hasLeftGlove":false,"hasRightGlove":false,"hasBody":{},"hasFace":false}}'
 
 
 class RokokoJoints:
@@ -181,6 +187,9 @@ class RokokoJoints:
                 local[i] = END_FRACTION * off[BONE_INDEX[bone]]
         self._base = base
         self._local = local
+        sp = BONE_INDEX["Spine"]
+        self._spine = sp
+        self._lower_spine = off[BONE_INDEX["Spine1"]] + off[BONE_INDEX["Spine2"]] + off[BONE_INDEX["Spine3"]]
 
     def compute(self, thetas: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Joint positions and rotations for a batch of subjects.
@@ -202,8 +211,29 @@ class RokokoJoints:
         fk = self.kinematics.forward(thetas)
         Q = fk.rotations[:, self._base]
         pos = fk.positions[:, self._base] + np.einsum("nkij,kj->nki", Q, self._local)
-        g = UNITY.quaternions(quat_from_matrix(fk.rotations[:, _ROT_SRC]))
+        R = fk.rotations[:, _ROT_SRC]
+        sp = self._spine
+        chest = fk.positions[:, BONE_INDEX["Spine3"]] - fk.positions[:, sp]
+        R[:, _SPINE] = swing(fk.rotations[:, sp] @ self._lower_spine, chest) @ fk.rotations[:, sp]
+        g = UNITY.quaternions(quat_from_matrix(R))
         return UNITY.positions(pos), quat_multiply(g, TPOSE)
+
+
+def swing(a: FloatArray, b: FloatArray) -> FloatArray:
+    """The smallest rotations taking directions ``a`` to ``b``: (n, 3), (n, 3) → (n, 3, 3).
+
+    ``R = I + K + K² / (1 + a·b)`` with ``K = [a × b]×`` for unit ``a``, ``b`` (undefined only for opposite
+    directions, which a spine does not reach).
+    """
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    k = np.cross(a, b)
+    K = np.zeros((*k.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = k[..., 2], -k[..., 1], k[..., 0]
+    c = np.sum(a * b, axis=-1)[..., None, None]
+    out: FloatArray = np.eye(3) + K + (K @ K) / np.maximum(1.0 + c, 1e-9)
+    return out
 
 
 @dataclass(frozen=True)
@@ -214,6 +244,7 @@ class RokokoActor:
     theta: FloatArray  # (66,)
     color: tuple[int, int, int] = (255, 255, 255)
     skeleton: Skeleton | None = None  # the subject's own sized skeleton (None: the encoder's)
+    tracked: bool = True  # meta.hasBody: False for a subject lost for now, sent at its last pose
 
 
 @dataclass(frozen=True)
@@ -285,7 +316,8 @@ class RokokoEncoder:
                 a = actors[k]
                 r, g, b = (int(c) for c in a.color)
                 body = _BODY_TEMPLATE % tuple(v.ravel().tolist())
-                out[k] = f'{{"name":{json.dumps(a.name)},"color":[{r},{g},{b}],"meta":{_META},{dims},"body":{body}}}'
+                meta = _META.format("true" if a.tracked else "false")
+                out[k] = f'{{"name":{json.dumps(a.name)},"color":[{r},{g},{b}],"meta":{meta},{dims},"body":{body}}}'
         return out
 
     def document(self, frame: int, t_ns: int, actors_json: Sequence[str]) -> bytes:
