@@ -320,12 +320,12 @@ def main(argv: list[str]) -> dict[str, Any]:
             if actor is None or not actor["meta"]["hasBody"]:
                 continue
             drifted += actor["name"] != name  # its Actor choice moved to another actor of the list
-            for frame, out in ((ref, None), (earlier, "control")):
+            for frame, kind in ((ref, "same"), (earlier, "control")):
                 s = next((x for x in frame["subjects"] if x["id"] == actor["name"]), None) if frame else None
                 if s is None or ob["mocapd_skeleton"] != s["skeleton"]:
                     continue
                 c = compare(ob, s, stream.skeletons[s["skeleton"]], names)
-                if out is None:
+                if kind == "same":
                     results.append({"frame": ref["frame"], "subject": s["id"], **c})
                 else:  # the control: the same armature against a quarter second earlier
                     control = max(control, *c["rotation_deg"].values())
