@@ -285,7 +285,7 @@ def main(argv: list[str]) -> dict[str, Any]:
         raise AssertionError("no two actors from the add-on's receiver matched with the WebSocket stream")
     names = stream.bones
     arms: dict[str, Any] = {}
-    detected: dict[str, bool] = {}
+    missed: dict[str, list[str]] = {}
     for actor in live.actors:  # per actor, what a user does in the add-on's Objects panel
         subject = next(s for s in ref["subjects"] if s["id"] == actor["name"])
         sk = stream.skeletons[subject["skeleton"]]
@@ -294,7 +294,7 @@ def main(argv: list[str]) -> dict[str, Any]:
         with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
             bpy.ops.rsl.init_tpose()  # "Set as T-Pose"
             bpy.ops.rsl.detect_actor_bones()  # "Auto Detect"
-            detected[actor["name"]] = all(getattr(ob, f"rsl_actor_{b}") == b for b in BONES)
+            missed[actor["name"]] = [b for b in BONES if getattr(ob, f"rsl_actor_{b}") != b]
             for b in BONES:  # what a user would pick where auto-detection missed a bone
                 setattr(ob, f"rsl_actor_{b}", b)
             ob.rsl_animations_actors = actor["name"]  # "Actor"
@@ -356,7 +356,7 @@ def main(argv: list[str]) -> dict[str, Any]:
         "datagrams_applied": applied,
         "json_version": live.version,
         "actors": sorted(arms),
-        "auto_detected_all_bones": detected,
+        "auto_detect_missed": missed,
         "frames_compared": len(results),
         "actor_choice_moved": drifted,
         "worst": worst,
