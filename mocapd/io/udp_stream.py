@@ -326,9 +326,9 @@ class RokokoUdpSink(_UdpPoseSink):
     """Rokoko Studio Live: every streamed subject as an actor of one scene datagram per frame, to every destination.
 
     Actors come in the order of their slots (``subjects[k]`` is slot k; otherwise the lowest free slot in order of
-    appearance), and a subject lost for less than ``release_after_frames`` stays in the scene at its last pose with
-    ``hasBody`` false: the plugins' actor lists keep their order while the same people are tracked (the Blender
-    add-on remembers an armature's actor by its position in that list).
+    appearance), and a subject lost for less than ``release_after_frames`` (a listed one: always) stays in the scene
+    at its last pose with ``hasBody`` false: the plugins' actor lists keep their order while the same people are
+    tracked (the Blender add-on remembers an armature's actor by its position in that list).
 
     Parameters
     ----------
