@@ -62,7 +62,7 @@ Joints (Rokoko name ← mocapd bone giving the rotation; position)::
     spine ← Spine, swung: Rokoko's skeleton has one lower-spine bone where mocapd has Spine, Spine1 and Spine2, so
         Spine's rotation is turned by the smallest rotation that points the lower spine (Spine's joint to Spine3's)
         where mocapd's is; a receiver's chest then sits where mocapd's does (with Spine's own rotation it was off by
-        9 to 17 cm on the synthetic rig's motion, in Rokoko's Blender add-on), at Spine's joint
+        9 to 19 cm on the synthetic rig's motion, in Rokoko's Blender add-on), at Spine's joint
     leftShoulder, rightShoulder ← Spine3 (mocapd has no clavicles: rigid with the chest), at the mid-line point at
         the height and depth of that side's upper-arm joint (the MVN shoulder rule, mocapd.protocols.mvn)
     left/rightUpperArm, LowerArm, Hand ← same names; left/rightUpLeg ← UpperLeg, Leg ← LowerLeg, Foot ← Foot,
