@@ -8,8 +8,9 @@
     ├── CalibrationError      a calibration could not be computed or loaded
     ├── ModelError            a model (pose prior, detector) is missing, malformed or incompatible
     ├── ProtocolError         a wire protocol was violated in a way a parser cannot just count and skip
-    └── DeviceError           a camera, IMU or port failed (open, configure, stream)
-        └── DeviceTimeout     a device did not answer in time
+    ├── DeviceError           a camera, IMU or port failed (open, configure, stream)
+    │   └── DeviceTimeout     a device did not answer in time
+    └── ToolError             an external program mocapd runs (Blender, for FBX) is missing or failed
 
 Parsers never raise on bad bytes: they count and resynchronise. Solvers never raise on numerical failure: they
 report it in their summary and keep the previous pose. These exceptions are for callers that passed something
@@ -49,3 +50,7 @@ class DeviceError(MocapdError):
 
 class DeviceTimeout(DeviceError, TimeoutError):  # noqa: N818 (reads as a state, like TimeoutError)
     """A device did not answer within its time-out."""
+
+
+class ToolError(MocapdError):
+    """An external program mocapd runs (Blender, for the FBX export) is missing, failed or timed out."""

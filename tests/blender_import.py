@@ -1,10 +1,13 @@
-"""Run inside Blender's Python (the ``bpy`` wheel in ``.venv-bpy``): import a glTF or BVH file and report what
+"""Run inside Blender's Python (the ``bpy`` wheel in ``.venv-bpy``): import a glTF, BVH or FBX file and report what
 Blender made of it, as JSON on stdout.
 
-Usage: ``python tests/blender_import.py gltf|bvh FILE FPS SAMPLE [SAMPLE...]``. For each armature: its bone
+Usage: ``python tests/blender_import.py gltf|bvh|fbx FILE FPS SAMPLE [SAMPLE...]``. For each armature: its bone
 names, the frames of its keyframes, and at the keyframes numbered ``SAMPLE`` (0 = first) every pose bone's head
 in world coordinates, converted back from Blender's Z-up to Y-up (``(x, y, z)_yup = (x, z, -y)_blender``), in
-metres. Standalone: Blender's Python has neither mocapd nor its dependencies.
+metres. An FBX is imported with the importer's defaults (it reads the file's axes, unit and frame rate; the first
+key lands on frame 1), and the file itself is read with the importer's parser: the GlobalSettings that engines
+read (axes, unit scale, frame rate), the animation stacks, and the armature nodes' local transforms. Standalone:
+Blender's Python has neither mocapd nor its dependencies.
 """
 
 from __future__ import annotations
@@ -41,11 +44,16 @@ def main(argv: list[str]) -> dict[str, Any]:
     scene.render.fps, scene.render.fps_base = fps, 1.0
     if kind == "gltf":
         bpy.ops.import_scene.gltf(filepath=path)
+    elif kind == "fbx":
+        bpy.ops.import_scene.fbx(filepath=path)
     else:
         # BVH in centimetres, Y up; Blender's importer numbers the first frame 1.
         bpy.ops.import_anim.bvh(filepath=path, global_scale=0.01, frame_start=1, use_fps_scale=False,
                                 rotate_mode="NATIVE", axis_forward="-Z", axis_up="Y")  # fmt: skip
-    report: dict[str, Any] = {"version": bpy.app.version_string, "armatures": {}, "meshes": {}}
+    report: dict[str, Any] = {"version": bpy.app.version_string, "armatures": {}, "meshes": {},
+                              "fps": scene.render.fps / scene.render.fps_base}  # fmt: skip
+    if kind == "fbx":
+        report["fbx"] = fbx_structure(path)
     for ob in scene.objects:
         if ob.type == "MESH":
             mods = [m.object.name for m in ob.modifiers if m.type == "ARMATURE" and m.object is not None]
@@ -76,6 +84,40 @@ def main(argv: list[str]) -> dict[str, Any]:
             entry["samples"][str(i)] = heads
         report["armatures"][arm.name] = entry
     return report
+
+
+def _props70(elem: Any) -> dict[str, list[Any]]:
+    """The ``P`` entries of an element's Properties70: name -> values (bytes decoded)."""
+    out: dict[str, list[Any]] = {}
+    for child in elem.elems:
+        if child.id == b"Properties70":
+            for prop in child.elems:
+                vals = [v.decode("utf-8", "replace") if isinstance(v, bytes) else v for v in prop.props]
+                out[vals[0]] = vals[4:]
+    return out
+
+
+def fbx_structure(path: str) -> dict[str, Any]:
+    """What an engine's importer reads first: GlobalSettings, the takes, and each Null model's (armature node's)
+    local transform (absent = identity), from the binary file itself."""
+    from io_scene_fbx import parse_fbx
+
+    root, version = parse_fbx.parse(path)
+    top = {e.id: e for e in root.elems}
+    settings = _props70(top[b"GlobalSettings"])
+    keys = ("UpAxis", "UpAxisSign", "FrontAxis", "FrontAxisSign", "CoordAxis", "CoordAxisSign", "UnitScaleFactor",
+            "TimeMode", "CustomFrameRate")  # fmt: skip
+    models, stacks = {}, []
+    for e in top[b"Objects"].elems:
+        name = e.props[1].split(b"\x00")[0].decode() if len(e.props) > 1 else ""
+        if e.id == b"Model":
+            props = _props70(e)
+            models[name] = {"type": e.props[2].decode(), **{k: props.get(k, []) for k in
+                            ("Lcl Translation", "Lcl Rotation", "Lcl Scaling")}}  # fmt: skip
+        elif e.id == b"AnimationStack":
+            stacks.append(name)
+    return {"version": version, "settings": {k: settings.get(k, [None])[0] for k in keys}, "models": models,
+            "stacks": stacks}  # fmt: skip
 
 
 if __name__ == "__main__":

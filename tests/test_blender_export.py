@@ -1,6 +1,7 @@
-"""glTF and BVH exports imported into real Blender (``bpy``): joint count, frame count, and every joint within
+"""glTF, BVH and FBX exports imported into real Blender (``bpy``): joint count, frame count, and every joint within
 1 mm of the session's recorded joint positions at sampled frames; two subjects with their own skeletons, one
-starting later, so the glTF's shared timeline is checked too."""
+starting later, so the glTF's and FBX's shared timelines are checked too. The FBX is written by Blender's own
+exporter in one Blender process (``mocapd export --fbx``) and read back in another."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from mocapd.core.synthetic import moving_sequence
 from mocapd.io.session import SessionWriter, open_session
 from mocapd.protocols import session_format as sf
 from mocapd.service import cli
-from tests.blender_support import ROOT, run_blender_script
+from tests.blender_support import ROOT, bpy_python, run_blender_script
 
 FPS = 60
 PERIOD_NS = round(1e9 / FPS)
@@ -88,3 +89,69 @@ def test_bvh_export_imports_into_blender(session: Path, tmp_path: Path, capsys: 
     report = run_blender_script(ROOT / "tests" / "blender_import.py", "bvh", str(bvh), str(FPS), *map(str, SAMPLES))
     (arm,) = report["armatures"].values()
     _check(arm, _recorded(session, "suit:suit0"), 1)  # Blender's BVH import starts at frame 1
+
+
+FBX_SAMPLES = (0, 1, 20, 44, 89, 126, 149)
+
+
+def _fbx_expected(path: Path, who: str, frame: int, step: int) -> np.ndarray:
+    """The session's joints of ``who`` at FBX frame ``frame`` of a grid of ``step`` ticks from the session's start:
+    the subject's first grid point before it appears, its last after it leaves (it holds its pose)."""
+    _, first, n = SUBJECTS[who]
+    lo = -(-first // step) * step  # the subject's first and last grid ticks
+    hi = (first + n - 1) // step * step
+    joints: np.ndarray = _recorded(path, who)[min(max(frame * step, lo), hi) - first]
+    return joints
+
+
+@pytest.mark.parametrize(
+    ("options", "rate", "settings"),
+    [
+        # Defaults: centimetres (UnitScaleFactor 1), Y up, facing +Z (FrontAxis 2), 60 fps.
+        ((), 60, {"UpAxis": 1, "UpAxisSign": 1, "FrontAxis": 2, "FrontAxisSign": 1, "UnitScaleFactor": 1.0}),
+        # Metres (100 cm a unit), Z up (Blender's frame: facing -Y, FrontAxis 1 with sign -1), 30 fps.
+        (("--fbx-units", "m", "--fbx-up", "z", "--rate", "30"), 30,
+         {"UpAxis": 2, "UpAxisSign": 1, "FrontAxis": 1, "FrontAxisSign": -1, "UnitScaleFactor": 100.0}),
+    ],
+    ids=["cm-y-60fps", "m-z-30fps"],
+)  # fmt: skip
+def test_fbx_export_through_blender_imports_into_blender(
+    session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], options: tuple[str, ...], rate: int,
+    settings: dict[str, float],
+) -> None:  # fmt: skip
+    fbx = tmp_path / "take.fbx"
+    argv = ["export", str(session), "--fbx", str(fbx), "--blender", str(bpy_python()), *options]
+    assert cli.main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    nodes = {"suit:suit0": "suit_suit0", "track:1": "track_1"}
+    assert out["fbx_nodes"] == nodes and fbx.stat().st_size > 0 and list(tmp_path.iterdir()) == [fbx]
+    samples = map(str, FBX_SAMPLES)
+    report = run_blender_script(ROOT / "tests" / "blender_import.py", "fbx", str(fbx), str(rate), *samples)
+    # What engines read first: the axes, the unit, the frame rate, one take named after the session, and the
+    # armature nodes at the identity (no axis or unit baked into a node's transform).
+    info = report["fbx"]
+    assert info["version"] >= 7400 and info["stacks"] == ["session"]
+    assert {k: info["settings"][k] for k in settings} == pytest.approx(settings, rel=1e-6)  # the unit: float32
+    assert info["settings"]["CustomFrameRate"] == pytest.approx(rate)
+    for node in nodes.values():
+        model = info["models"][node]
+        assert model["type"] == "Null"
+        assert np.allclose(model["Lcl Rotation"] or [0.0] * 3, 0.0, atol=1e-4)  # degrees
+        assert np.allclose(model["Lcl Scaling"] or [1.0] * 3, 1.0, atol=1e-6)
+    assert report["fps"] == pytest.approx(rate)
+    # Read back by Blender's importer: bones, one key per frame of the take (from frame 1), every joint within 1 mm.
+    step = 60 // rate
+    frames = 150 // step
+    assert set(report["armatures"]) == set(nodes.values()), report["armatures"].keys()
+    for who, node in nodes.items():
+        arm = report["armatures"][node]
+        assert arm["bones"] == list(BONE_NAMES)
+        np.testing.assert_allclose(arm["keyframes"], 1 + np.arange(frames), atol=1e-3)
+        assert set(arm["samples"]) == {str(i) for i in FBX_SAMPLES if i < frames}
+        for i, heads in arm["samples"].items():
+            got = np.array([heads[b] for b in BONE_NAMES])
+            err = np.linalg.norm(got - _fbx_expected(session, who, int(i), step), axis=1)
+            assert err.max() < 1e-3, f"{who} frame {i}: {BONE_NAMES[int(err.argmax())]} off by {1e3 * err.max():.3f} mm"
+    skinned = {name: m for name, m in report["meshes"].items() if m["armature"]}
+    assert {m["armature"][0] for m in skinned.values()} == set(nodes.values())
+    assert all(m["groups"] == 21 for m in skinned.values())

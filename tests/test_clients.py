@@ -1,6 +1,7 @@
 """The example clients in tools/clients/ against the real daemon on the synthetic rig: the Node.js receiver (ws +
 @msgpack/msgpack, installed by setup/steps/26-node-clients.sh) and the Python receiver connect, get the hello
-and frames with both people, print each subject's root position and exit 0."""
+and frames with both people, print each subject's root position and exit 0; the Unity receiver, compiled and run
+under Mono (tests/unity_client.py), poses its avatar with the daemon's poses."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import pytest
 
 from mocapd.service.config import load_config
 from tests.test_web_viewer import daemon, free_port
+from tests.unity_client import check_unity_receiver, compile_receiver
 
 CLIENTS = Path(__file__).resolve().parents[1] / "tools" / "clients"
 FRAME = re.compile(r"^frame (\d+) t_solve_ns \d+: (.*)$")
@@ -55,7 +57,8 @@ def check_output(out: str, convention: str, units: str, rate: str) -> None:
 
 
 @pytest.mark.asyncio
-async def test_node_and_python_receivers_against_the_daemon() -> None:
+async def test_node_python_and_unity_receivers_against_the_daemon(tmp_path: Path) -> None:
+    unity = await compile_receiver(tmp_path)  # before the daemon: a compile error needs no daemon to show
     cfg = load_config()
     cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0}),
                                  "websocket": cfg.websocket.model_copy(update={"port": free_port()})})  # fmt: skip
@@ -84,3 +87,6 @@ async def test_node_and_python_receivers_against_the_daemon() -> None:
         code, out, err = await run("node", "receiver.mjs", "--url", "ws://127.0.0.1:1/", "--frames", "5",
                                    cwd=CLIENTS / "node")  # fmt: skip
         assert code == 1 and "connection failed" in err
+
+        # The Unity receiver following the suit's wearer: its avatar's bones are the daemon's poses.
+        assert await check_unity_receiver(url, unity, "suit:suit0", frames=20) >= 15

@@ -545,6 +545,7 @@ FORMAT_CASES: dict[str, list[tuple[str, Any]]] = {
     "_identity": [("udp.mvn.subjects", ["all"]), ("udp.mvn.character_ids", {"all": 1})],
     "_subjects": [("udp.mvn.subjects", "everyone"), ("udp.vmc.subjects", [])],
     "_distinct_ids": [("udp.mvn.character_ids", {"suit:a": 1, "suit:b": 1})],
+    "_distinct_names": [("udp.rokoko.actor_names", {"suit:a": "Alice", "suit:b": "Alice"})],
     "_host": [("websocket.host", "example.com"), ("websocket.host", "")],
     "_token": [("websocket.token", "a b"), ("websocket.token", "tab\there")],
     "_endpoint": [

@@ -51,7 +51,7 @@ def test_remote_destinations_need_allow_remote() -> None:
 @pytest.mark.parametrize(
     ("table", "message"),
     [
-        ({"mvm": {}}, r"unknown key udp.mvm; allowed: allow_remote, mvn, vmc, vrchat$"),
+        ({"mvm": {}}, r"unknown key udp.mvm; allowed: allow_remote, mvn, rokoko, vmc, vrchat$"),
         ({"mvn": {"port": 1}}, r"unknown key udp.mvn.port; allowed: character_ids, destinations,"),
         ({"vmc": {"character_ids": {}}}, r"unknown key udp.vmc.character_ids; allowed: destinations,"),
         ({"allow_remote": "yes"}, r"udp.allow_remote = 'yes'; allowed: true or false"),

@@ -1,5 +1,5 @@
-"""The real daemon on the synthetic rig streaming MVN and VMC to loopback receivers; what arrives decodes to the
-published frames' poses, and /status reports the streams' counters."""
+"""The real daemon on the synthetic rig streaming MVN, VMC and Rokoko Studio Live to loopback receivers; what arrives
+decodes to the published frames' poses, and /status reports the streams' counters."""
 
 from __future__ import annotations
 
@@ -16,10 +16,11 @@ from mocapd.core.skeleton import BONE_INDEX
 from mocapd.protocols.conventions import MVN, UNITY
 from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import load_config
-from mocapd.service.config.udp import Destination, MvnStreamConfig, UdpConfig, VmcStreamConfig
+from mocapd.service.config.udp import Destination, MvnStreamConfig, RokokoStreamConfig, UdpConfig, VmcStreamConfig
 from mocapd.service.demo.synthetic import synthetic_config
 from tests.test_daemon import Recorder, http_get, wait_for
 from tests.test_mvn import read_datagram
+from tests.test_rokoko import check_actor, decode
 
 SUIT = "suit:suit0"
 
@@ -33,17 +34,21 @@ class Collect(asyncio.DatagramProtocol):
 
 
 @pytest.mark.asyncio
-async def test_daemon_streams_mvn_and_vmc_on_loopback() -> None:
+async def test_daemon_streams_mvn_vmc_and_rokoko_on_loopback() -> None:
     loop = asyncio.get_running_loop()
     mvn_t, mvn_rx = await loop.create_datagram_endpoint(Collect, local_addr=("127.0.0.1", 0))
     vmc_t, vmc_rx = await loop.create_datagram_endpoint(Collect, local_addr=("127.0.0.1", 0))
+    rok_t, rok_rx = await loop.create_datagram_endpoint(Collect, local_addr=("127.0.0.1", 0))
     mvn_port = mvn_t.get_extra_info("sockname")[1]
     vmc_port = vmc_t.get_extra_info("sockname")[1]
-    udp = UdpConfig(  # the suited person is pinned to MVN character 0 and drives the one VMC avatar
+    rok_port = rok_t.get_extra_info("sockname")[1]
+    udp = UdpConfig(  # the suited person is pinned to MVN character 0, drives the one VMC avatar, is Rokoko's "Suited"
         mvn=MvnStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", mvn_port),),
                             character_ids={"suit:suit0": 0}),
         vmc=VmcStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", vmc_port),),
                             subjects=("suit:suit0",)),
+        rokoko=RokokoStreamConfig(enabled=True, destinations=(Destination("127.0.0.1", rok_port),),
+                                  actor_names={"suit:suit0": "Suited"}),
     )  # fmt: skip
     cfg = load_config()
     cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": 0}), "udp": udp,
@@ -61,12 +66,14 @@ async def test_daemon_streams_mvn_and_vmc_on_loopback() -> None:
             st = json.loads((await http_get(d.http.port, "/status"))[2])
             d.request_stop()
             assert await asyncio.wait_for(task, 5) == 0
+            rig = d.rig.skeleton
     finally:
         mvn_t.close()
         vmc_t.close()
+        rok_t.close()
 
     frames = {f.frame: f for f in rec.frames}
-    for name in ("mvn", "vmc"):
+    for name in ("mvn", "vmc", "rokoko"):
         assert st["sinks"][name]["datagrams_sent"] > 0 and st["sinks"][name]["datagrams_dropped"] == 0
     assert st["sinks"]["mvn"]["slots"][SUIT] == 0 and st["sinks"]["vmc"]["slots"] == {SUIT: 0}
 
@@ -107,3 +114,21 @@ async def test_daemon_streams_mvn_and_vmc_on_loopback() -> None:
             matched += 1
             hips = None
     assert matched >= 10
+
+    # Rokoko: one scene per published frame (its frame counter), each person an actor (the suited one named by
+    # actor_names), every joint from the published pose; the timestamp counts from the first published frame.
+    both = 0
+    for raw in rok_rx.datagrams[-20:]:
+        doc = decode(raw)
+        f = frames[doc["frame"]]
+        assert doc["fps"] == 60 and doc["scene"]["timestamp"] == pytest.approx((f.t_solve_ns - t0) / 1e9, abs=2e-6)
+        names = {"Suited" if p.identity == SUIT else p.identity: p for p in f.people}
+        # a subject lost a moment ago stays in the scene at its last pose with hasBody false (slot order is kept)
+        shown = [a for a in doc["scene"]["actors"] if a["meta"]["hasBody"]]
+        assert sorted(a["name"] for a in shown) == sorted(names)
+        for actor in shown:
+            p = names[actor["name"]]
+            check_actor(actor, p.skeleton or rig, p.theta)
+        both += len(names) == 2
+    assert both >= 10
+    assert st["sinks"]["rokoko"]["oversize_actors"] == 0 and st["sinks"]["rokoko"]["compression"] == "lz4"

@@ -118,6 +118,8 @@ def test_benchmark_reports_sizes_and_costs() -> None:
     r = run(subjects=2, rate=60.0, n_frames=20)
     assert r["mvn"]["bytes_per_frame"] == 2 * 760 and r["mvn"]["datagrams_per_frame"] == 2
     assert r["vmc"]["datagrams_per_frame"] == 4 and r["mvn"]["dropped"] == 0 and r["vmc"]["dropped"] == 0
+    assert r["rokoko"]["datagrams_per_frame"] == 1 and r["rokoko"]["dropped"] == 0
+    assert r["rokoko"]["publish_us"]["median"] > 0 and r["rokoko"]["budget_fraction"] > 0
     assert r["subjects"] == 2 and r["frames"] == 20
     timings = [r["mvn"]["serialise_us"], r["mvn"]["publish_us"], r["mvn"]["sendto_us_per_datagram"],
                r["vmc"]["serialise_us"], r["vmc"]["publish_us"], *r["baseline"].values()]  # fmt: skip

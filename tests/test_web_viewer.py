@@ -1,7 +1,8 @@
 """The live web viewer in real headless Chromium against the real daemon on the synthetic rig: the page served by
 the daemon connects to the WebSocket stream, receives frames and status, draws every subject's skeleton where
-its joints project (checked on a screenshot), draws none while disconnected, and reconnects after the daemon
-restarts on the same port."""
+its joints project (checked on a screenshot), frames the people (their projected bounds fill a good part of the
+canvas, inside it) and follows them until the user moves the view, draws none while disconnected, and reconnects
+after the daemon restarts on the same port."""
 
 from __future__ import annotations
 
@@ -117,6 +118,39 @@ async def check_skeletons_drawn(page: Page) -> list[dict[str, Any]]:
     return list(view["subjects"])
 
 
+FRAMED = 0.45  # the people's projected bounds span at least this much of the canvas's width or height
+SETTLED = (
+    "(() => { const v = mocapdViewer, s = v.state.shown; return v.view.fitted && s && s.subjects.length == 2"
+    " && Math.abs(v.cam.dist - v.fitOf(s.subjects).dist) < 0.05; })()"
+)
+
+
+async def check_people_framed(page: Page) -> dict[str, Any]:
+    """Pause on a frame with both people once the view has settled on them: every joint projects (through the
+    view's camera, computed here) inside the canvas, the joints' bounds span at least FRAMED of its width or
+    height, and the view aims at their middle. Returns the view and the joints' middle."""
+    await page.wait_for(SETTLED, 20, "the view to settle on the people")
+    pause_on_two = (
+        "(() => { const s = mocapdViewer.state; const ok = s.shown && s.shown.subjects.length == 2;"
+        " if (ok) mocapdViewer.pause(true); return ok; })()"
+    )
+    await page.wait_for(pause_on_two, 30, "a frame with both people")
+    view = await page.evaluate(VIEW)
+    joints = np.concatenate([np.array(s["joints"], dtype=np.float64).reshape(-1, 3) for s in view["subjects"]])
+    projected = project_view(view, joints)
+    assert all(p is not None for p in projected)
+    uv = np.array(projected, dtype=np.float64) - [view["left"], view["top"]]
+    w, h = float(view["width"]), float(view["height"])
+    assert uv.min() >= 0 and np.all(uv.max(axis=0) <= [w, h]), (uv.min(axis=0), uv.max(axis=0), w, h)
+    span = (uv.max(axis=0) - uv.min(axis=0)) / [w, h]
+    assert span.max() >= FRAMED, span
+    middle = (joints.min(axis=0) + joints.max(axis=0)) / 2
+    # Aimed at the people's middle (up to the glide of the last few frames).
+    assert np.linalg.norm(np.array(view["cam"]["target"]) - middle) < 0.25, (view["cam"], middle)
+    await page.evaluate("mocapdViewer.pause(false)")
+    return {"cam": view["cam"], "middle": middle, "span": span}
+
+
 @pytest.mark.asyncio
 async def test_viewer_draws_the_daemons_subjects_and_reconnects_after_a_restart() -> None:
     cfg = load_config()
@@ -136,6 +170,12 @@ async def test_viewer_draws_the_daemons_subjects_and_reconnects_after_a_restart(
             await page.wait_for("mocapdViewer.state.statusMessages > 0", 10, "a status message")
             drawn = await check_skeletons_drawn(page)
             assert len({d["colour"] for d in drawn}) == 2
+            # The view frames the people from the first frame and follows them (not the fixed default view).
+            assert await page.evaluate("mocapdViewer.view.auto")
+            framed = await check_people_framed(page)
+            await asyncio.sleep(2.0)
+            later = await check_people_framed(page)
+            assert framed["cam"]["target"] != later["cam"]["target"]
             panel = await page.evaluate("document.getElementById('panel').innerText")
             assert "cam0" in panel and "end_to_end" in panel and "streaming" in panel, panel
             palette = [hex_bgr(c) for c in await page.evaluate("mocapdViewer.palette")]
@@ -149,6 +189,18 @@ async def test_viewer_draws_the_daemons_subjects_and_reconnects_after_a_restart(
             yaw2, dist2 = await page.evaluate("[mocapdViewer.cam.yaw, mocapdViewer.cam.dist]")
             assert yaw2 == pytest.approx(yaw - 1.2) and dist2 < dist
             await check_skeletons_drawn(page)
+            # Moved by hand, the view stays where the user put it while the people move on.
+            cam = await page.evaluate("JSON.stringify(mocapdViewer.cam)")
+            await asyncio.sleep(1.0)
+            assert not await page.evaluate("mocapdViewer.view.auto")
+            assert await page.evaluate("JSON.stringify(mocapdViewer.cam)") == cam
+            # Double-click: the default angle, following the people again.
+            for count in (1, 2):
+                for kind, buttons in (("mousePressed", 1), ("mouseReleased", 0)):
+                    await page.call("Input.dispatchMouseEvent", type=kind, x=400, y=300, button="left",
+                                    buttons=buttons, clickCount=count)  # fmt: skip
+            assert await page.evaluate("mocapdViewer.view.auto && mocapdViewer.cam.yaw == 0.6")
+            await check_people_framed(page)
 
             # The daemon stops: the page says so and draws no skeleton.
             await first.aclose()

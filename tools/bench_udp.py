@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""UDP stream benchmark: serialisation and send cost of the MVN and VMC streams per output frame.
+"""UDP stream benchmark: serialisation and send cost of the MVN, VMC and Rokoko streams per output frame.
 
 Prints one JSON object. The workload is ``--subjects`` solved people (seeded random poses, cycled) per frame at
 ``--rate`` Hz, as the daemon publishes them:
@@ -11,7 +11,8 @@ Prints one JSON object. The workload is ``--subjects`` solved people (seeded ran
 - ``baseline``: in the same process, the same frame as the JSON-lines pose file writes it (``json.dumps`` of the
   pose vectors rounded to 6 digits) and forward kinematics alone, so that results from different machines can
   be compared as ratios.
-- ``budget_fraction``: median publish cost of both streams over the frame period (1 / rate).
+- ``budget_fraction``: median publish cost of the MVN and VMC streams over the frame period (1 / rate);
+  ``rokoko.budget_fraction``: the Rokoko stream's alone (one LZ4 datagram per frame, every subject an actor).
 
 Median and 95th percentile over ``--frames`` frames, microseconds. Usage:
 ``python tools/bench_udp.py [--subjects 4] [--rate 60] [--frames 3000]``
@@ -34,9 +35,10 @@ import numpy as np
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.rotations import random_rotvec
 from mocapd.core.skeleton import Skeleton
-from mocapd.io.udp_stream import MvnUdpSink, VmcUdpSink
+from mocapd.io.udp_stream import MvnUdpSink, RokokoUdpSink, VmcUdpSink
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols.mvn import MvnEncoder
+from mocapd.protocols.rokoko import RokokoActor, RokokoEncoder
 from mocapd.protocols.vmc import VmcEncoder
 
 
@@ -109,6 +111,12 @@ def run(subjects: int = 4, rate: float = 60.0, n_frames: int = 3000) -> dict[str
         d = vmc_enc.encode_many(f.t_solve_ns, np.stack([p.theta for p in f.people]), [True] * len(f.people))
         sizes["vmc"] = (sum(len(b) for per in d for b in per), sum(len(per) for per in d))
 
+    rok_enc = RokokoEncoder(skeleton, fps=rate)
+
+    def rokoko_serialise(f: PoseFrame) -> None:
+        d = rok_enc.encode(f.frame, f.t_solve_ns, [RokokoActor(p.identity, p.theta) for p in f.people])
+        sizes["rokoko"] = (len(d.data), 1)
+
     # VMC drives one avatar per destination: give every subject its own (all to the same receiver port is not
     # allowed by the config, so use one receiver per subject).
     vmc_rx = []
@@ -119,8 +127,9 @@ def run(subjects: int = 4, rate: float = 60.0, n_frames: int = 3000) -> dict[str
         vmc_rx.append(s)
     mvn_sink = MvnUdpSink(skeleton, dest)
     vmc_sink = VmcUdpSink(skeleton, [("127.0.0.1", s.getsockname()[1]) for s in vmc_rx])
-    asyncio.run(mvn_sink.start())
-    asyncio.run(vmc_sink.start())
+    rok_sink = RokokoUdpSink(skeleton, dest, fps=rate)
+    for sink in (mvn_sink, vmc_sink, rok_sink):
+        asyncio.run(sink.start())
 
     def drain_all() -> None:
         _drain(rx)
@@ -128,9 +137,10 @@ def run(subjects: int = 4, rate: float = 60.0, n_frames: int = 3000) -> dict[str
             _drain(s)
 
     warm = frames[:200]
-    for warm_fn in (mvn_serialise, vmc_serialise, mvn_sink.publish, vmc_sink.publish):
+    for warm_fn in (mvn_serialise, vmc_serialise, rokoko_serialise, mvn_sink.publish, vmc_sink.publish,
+                    rok_sink.publish):  # fmt: skip
         _time(warm_fn, warm, drain_all)
-    mvn_sink.sender.datagrams_sent = vmc_sink.sender.datagrams_sent = 0
+    mvn_sink.sender.datagrams_sent = vmc_sink.sender.datagrams_sent = rok_sink.sender.datagrams_sent = 0
 
     kin = Kinematics(skeleton)
 
@@ -142,9 +152,12 @@ def run(subjects: int = 4, rate: float = 60.0, n_frames: int = 3000) -> dict[str
         kin.forward(np.stack([p.theta for p in f.people]))
 
     # Interleave the measurements frame by frame so that machine load hits all of them alike.
-    names = ["mvn_serialise", "vmc_serialise", "mvn_publish", "vmc_publish", "json", "fk"]
-    fns: list[Callable[[PoseFrame], Any]] = [mvn_serialise, vmc_serialise, mvn_sink.publish, vmc_sink.publish,
-                                             baseline_json, baseline_fk]  # fmt: skip
+    names = ["mvn_serialise", "vmc_serialise", "rokoko_serialise", "mvn_publish", "vmc_publish", "rokoko_publish",
+             "json", "fk"]  # fmt: skip
+    fns: list[Callable[[PoseFrame], Any]] = [
+        mvn_serialise, vmc_serialise, rokoko_serialise, mvn_sink.publish, vmc_sink.publish, rok_sink.publish,
+        baseline_json, baseline_fk,
+    ]  # fmt: skip
     samples: dict[str, list[int]] = {n: [] for n in names}
     for f in frames:
         for label, fn in zip(names, fns, strict=True):
@@ -163,7 +176,7 @@ def run(subjects: int = 4, rate: float = 60.0, n_frames: int = 3000) -> dict[str
             send_ns.append(time.perf_counter_ns() - t0)
         _drain(rx)
 
-    for name, sink in (("mvn", mvn_sink), ("vmc", vmc_sink)):
+    for name, sink in (("mvn", mvn_sink), ("vmc", vmc_sink), ("rokoko", rok_sink)):
         b, n = sizes[name]
         result[name] = {
             "serialise_us": _stats(samples[f"{name}_serialise"]),
@@ -176,10 +189,11 @@ def run(subjects: int = 4, rate: float = 60.0, n_frames: int = 3000) -> dict[str
     result["baseline"] = {"json_lines_us": _stats(samples["json"]), "forward_kinematics_us": _stats(samples["fk"])}
     both = float(np.median(samples["mvn_publish"])) + float(np.median(samples["vmc_publish"]))
     result["budget_fraction"] = round(both / (1e9 / rate), 4)
+    result["rokoko"]["budget_fraction"] = round(float(np.median(samples["rokoko_publish"])) / (1e9 / rate), 4)
     for s in (rx, *vmc_rx):
         s.close()
-    asyncio.run(mvn_sink.aclose())
-    asyncio.run(vmc_sink.aclose())
+    for sink in (mvn_sink, vmc_sink, rok_sink):
+        asyncio.run(sink.aclose())
     return result
 
 

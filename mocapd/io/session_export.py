@@ -79,13 +79,18 @@ def subject_track(poses: list[PoseRecord], subject: str | None = None) -> Subjec
     return SubjectTrack(subject, np.array(t, dtype=np.int64)[order], np.array(th)[order], skeleton)
 
 
-def resample(track: SubjectTrack, rate_hz: float = 60.0) -> SubjectTrack:
-    """The track on a uniform grid of ``rate_hz`` from its first frame (root: linear; rotations: slerp)."""
+def resample(track: SubjectTrack, rate_hz: float = 60.0, origin_ns: int | None = None) -> SubjectTrack:
+    """The track on a uniform grid of ``rate_hz`` from its first frame (root: linear; rotations: slerp).
+
+    ``origin_ns``: the grid runs through this instant instead (its first point the first at or after the track's
+    first frame), so subjects exported together share one frame grid (FBX keys whole frames).
+    """
     t = track.t_ns
-    if t.size == 1:
-        return track
     period = round(1e9 / rate_hz)  # the daemon's tick period (integer ns), so a 60 Hz session keeps its times
-    grid = t[0] + np.arange((t[-1] - t[0]) // period + 1, dtype=np.int64) * period
+    start = int(t[0]) if origin_ns is None else origin_ns + -(-(int(t[0]) - origin_ns) // period) * period
+    if t.size == 1 or start > t[-1]:
+        return track
+    grid = start + np.arange((t[-1] - start) // period + 1, dtype=np.int64) * period
     k = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 2)
     alpha = np.clip((grid - t[k]) / np.maximum(t[k + 1] - t[k], 1), 0.0, 1.0)
     th = track.thetas

@@ -1,5 +1,5 @@
-"""UDP pose sinks: the MVN (``MXTP02``), VMC (OSC) and VRChat OSC trackers streams of :mod:`mocapd.protocols.mvn`,
-``.vmc`` and ``.vrchat``.
+"""UDP pose sinks: the MVN (``MXTP02``), VMC (OSC), VRChat OSC trackers and Rokoko Studio Live (JSON v3) streams of
+:mod:`mocapd.protocols.mvn`, ``.vmc``, ``.vrchat`` and ``.rokoko``.
 
 Each sink owns one non-blocking, unconnected IPv4 UDP socket (opened in :meth:`start`, on the event loop) and
 sends from :meth:`publish`, which the daemon calls from its tick loop: a send never blocks and never raises. A full
@@ -16,6 +16,7 @@ import os
 import socket
 from collections import Counter
 from collections.abc import Collection, Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.errors import InputError, MocapdError
 from mocapd.pipeline.scheduler import PersonPose, PoseFrame
 from mocapd.protocols.mvn import MvnEncoder
+from mocapd.protocols.rokoko import RokokoActor, RokokoEncoder
 from mocapd.protocols.subjects import SubjectSlots
 from mocapd.protocols.vmc import VmcEncoder
 from mocapd.protocols.vrchat import ROLES, VrChatEncoder
@@ -305,3 +307,97 @@ class VrChatUdpSink(_UdpPoseSink):
                 continue
             self.sender.send(bundle, self.destinations[0])
             self.frames_sent += 1
+
+
+ACTOR_COLOURS: tuple[tuple[int, int, int], ...] = (
+    (255, 59, 48), (48, 209, 88), (10, 132, 255), (255, 214, 10),
+    (191, 90, 242), (255, 159, 10), (100, 210, 255), (255, 55, 95),
+)  # fmt: skip
+"""Actor colours by slot: the live viewer's palette (mocapd/web/viewer.js)."""
+MAX_ACTORS = 64
+
+
+def colour(slot: int) -> tuple[int, int, int]:
+    """The colour of a subject slot: the live viewer's, in its order."""
+    return ACTOR_COLOURS[slot % len(ACTOR_COLOURS)]
+
+
+class RokokoUdpSink(_UdpPoseSink):
+    """Rokoko Studio Live: every streamed subject as an actor of one scene datagram per frame, to every destination.
+
+    Actors come in the order of their slots (``subjects[k]`` is slot k; otherwise the lowest free slot in order of
+    appearance), and a subject lost for less than ``release_after_frames`` (a listed one: always) stays in the scene
+    at its last pose with ``hasBody`` false: the plugins' actor lists keep their order while the same people are
+    tracked (the Blender add-on remembers an armature's actor by its position in that list).
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    destinations : sequence of (host, port)
+        Rokoko plugins' receivers (default port 14043); each gets every frame.
+    fps : float
+        The output rate of the frames published (the stream's ``fps`` is it over ``rate_divisor``).
+    rate_divisor : int
+    subjects : sequence of identities, optional
+        Stream only these, in this order (default: everyone, at most 64 at a time).
+    actor_names : mapping identity -> actor name, optional
+        The name each subject's actor has in the plugins (default: the identity).
+    compression : str
+        ``"lz4"`` or ``"none"`` (:mod:`mocapd.protocols.rokoko`).
+    max_datagram_bytes : int
+        Actors that would make the datagram larger are left out of that frame (counted).
+    release_after_frames, fileno
+        As for the other UDP streams.
+    """
+
+    name = "rokoko"
+
+    def __init__(
+        self,
+        skeleton: Skeleton,
+        destinations: Sequence[Destination],
+        *,
+        fps: float,
+        rate_divisor: int = 1,
+        subjects: Sequence[str] | None = None,
+        actor_names: Mapping[str, str] | None = None,
+        compression: str = "lz4",
+        max_datagram_bytes: int = 32768,
+        release_after_frames: int = 120,
+        fileno: int | None = None,
+    ) -> None:
+        pinned = None if subjects is None else {s: k for k, s in enumerate(subjects)}
+        super().__init__(destinations, capacity=max(MAX_ACTORS, len(pinned or ())), rate_divisor=rate_divisor,
+                         pinned=pinned, subjects=subjects, release_after_frames=release_after_frames,
+                         fileno=fileno)  # fmt: skip
+        self.encoder = RokokoEncoder(skeleton, fps=fps / rate_divisor, compression=compression,
+                                     max_datagram_bytes=max_datagram_bytes)  # fmt: skip
+        self.actor_names = dict(actor_names or {})
+        self._last: dict[str, RokokoActor] = {}  # identity -> its last actor, while it holds a slot
+        self.oversize_actors = 0  # actors left out of a frame because the datagram would have been too large
+
+    def publish(self, frame: PoseFrame) -> None:
+        if not self._due():
+            return
+        present = {p.identity: (slot, p) for slot, p in self._subjects(frame)}
+        held = self.slots.held()
+        for ident in [i for i in self._last if i not in held]:  # released: the actor leaves the scene
+            del self._last[ident]
+        for ident, (slot, p) in present.items():
+            self._last[ident] = RokokoActor(self.actor_names.get(ident, ident), p.theta, colour(slot), p.skeleton)
+        actors = [
+            a if ident in present else replace(a, tracked=False)
+            for ident, a in sorted(self._last.items(), key=lambda kv: held[kv[0]])
+        ]
+        try:
+            datagram = self.encoder.encode(frame.frame, frame.t_solve_ns, actors)
+        except MocapdError:
+            self.skipped_subjects += len(actors)
+            return
+        self.oversize_actors += len(actors) - datagram.actors
+        for dest in self.destinations:
+            self.sender.send(datagram.data, dest)
+        self.frames_sent += 1
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "compression": self.encoder.compression, "oversize_actors": self.oversize_actors}

@@ -2,6 +2,9 @@
 // frames in mocapd's native convention (right-handed, +Y up, metres) with global joint positions and status
 // messages, and draws every subject's skeleton on a 2D canvas with its own small perspective camera.
 // Reconnects by itself when the daemon goes away and comes back. State for tests: window.mocapdViewer.
+// The 3D view fits the people: it aims at the middle of every shown subject's joints, from the distance at which
+// their bounding sphere fills FIT_FILL of the canvas's smaller side, and follows them (smoothed over FIT_TAU_S)
+// until the user orbits or zooms; double-click fits again. The floor grid is drawn around the point looked at.
 // Camera views (the "Camera views" button, or ?cameras=1): one panel per camera with its latest frame, the 2D
 // detections (white dots) and every solved subject reprojected through that camera's calibration (lines in the
 // subject's colour), with the reprojection error and detection rate; the server sends them only while asked.
@@ -21,6 +24,9 @@
     camerasOn: params.get("cameras") === "1", cameraMessages: 0, cams: {},
   };
   const cam = { yaw: 0.6, pitch: 0.35, dist: 7.0, target: [0, 0.9, 0] };
+  const FIT_FILL = 0.8, FIT_MIN_RADIUS = 1.0, FIT_TAU_S = 0.4, MIN_DIST = 1.0, MAX_DIST = 40.0;
+  // auto: the view follows the people (until the user moves it); fitted: it has aimed at them once (no fly-in).
+  const view = { auto: true, fitted: false, last: 0 };
   let socket = null, retryMs = 250, drawPending = false, frameTimes = [];
 
   // ------------------------------------------------------------------------------------------ camera
@@ -85,6 +91,33 @@
     return [r[1], r[2], r[3]];
   }
 
+  function fitOf(subjects) {
+    // Where to look from to see every joint of ``subjects``: the middle of their bounding box, at the distance
+    // at which the sphere around it (at least FIT_MIN_RADIUS) spans FIT_FILL of the canvas's smaller side.
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    const pts = [];
+    for (const s of subjects) for (const p of jointsOf(s)) if (p.every(Number.isFinite)) pts.push(p);
+    if (!pts.length) return null;
+    for (const p of pts) for (let i = 0; i < 3; i++) { lo[i] = Math.min(lo[i], p[i]); hi[i] = Math.max(hi[i], p[i]); }
+    const target = [0, 1, 2].map((i) => (lo[i] + hi[i]) / 2);
+    let r = FIT_MIN_RADIUS;
+    for (const p of pts) r = Math.max(r, Math.hypot(p[0] - target[0], p[1] - target[1], p[2] - target[2]));
+    // Projected radius f r / d with f = 0.9 min(w, h) (project()): FIT_FILL min(w, h) / 2 when d = 1.8 r / FIT_FILL.
+    const dist = Math.max(MIN_DIST, Math.min(MAX_DIST, 1.8 * r / FIT_FILL));
+    return { target, dist };
+  }
+
+  function followPeople(now) {
+    // One step of the auto view towards the shown subjects' fit (the first one there at once).
+    if (!view.auto || state.paused || !state.shown || !state.hello) { view.last = now; return; }
+    const f = fitOf(state.shown.subjects);
+    if (!f) { view.last = now; return; }
+    const a = view.fitted ? 1 - Math.exp(-Math.max(0, now - view.last) / 1000 / FIT_TAU_S) : 1;
+    view.fitted = true; view.last = now;
+    for (let i = 0; i < 3; i++) cam.target[i] += a * (f.target[i] - cam.target[i]);
+    cam.dist += a * (f.dist - cam.dist);
+  }
+
   function line(a, b, colour, width) {
     if (!a || !b) return;
     ctx.strokeStyle = colour; ctx.lineWidth = width;
@@ -99,10 +132,13 @@
     }
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
     ctx.fillStyle = "#111418"; ctx.fillRect(0, 0, w, h);
+    followPeople(performance.now());  // a step per drawn frame: no redraws of its own (the page stays as cheap)
     const b = basis();
-    for (let k = -5; k <= 5; k++) {  // floor grid, 1 m
-      line(project([k, 0, -5], b), project([k, 0, 5], b), k === 0 ? "#3b4350" : "#262b33", 1);
-      line(project([-5, 0, k], b), project([5, 0, k], b), k === 0 ? "#3b4350" : "#262b33", 1);
+    // Floor grid, 1 m, around the point looked at; the world's x = 0 and z = 0 lines brighter.
+    const gx = Math.round(cam.target[0]), gz = Math.round(cam.target[2]), n = Math.max(5, Math.ceil(cam.dist));
+    for (let k = -n; k <= n; k++) {
+      line(project([gx + k, 0, gz - n], b), project([gx + k, 0, gz + n], b), gx + k === 0 ? "#3b4350" : "#262b33", 1);
+      line(project([gx - n, 0, gz + k], b), project([gx + n, 0, gz + k], b), gz + k === 0 ? "#3b4350" : "#262b33", 1);
     }
     const f = state.shown, parents = state.hello ? state.hello.parents : null;
     if (f && parents) {
@@ -117,7 +153,8 @@
       }
     }
     ctx.fillStyle = "#8a94a3"; ctx.font = "12px system-ui, sans-serif";
-    ctx.fillText(f ? `frame ${f.frame} · ${state.rate.toFixed(0)} Hz received` : "no frames yet", 10, h - 10);
+    const mode = view.auto ? "view follows the people" : "view moved by hand · double-click: follow the people";
+    ctx.fillText(f ? `frame ${f.frame} · ${state.rate.toFixed(0)} Hz received · ${mode}` : "no frames yet", 10, h - 10);
   }
 
   function scheduleDraw() {
@@ -314,6 +351,7 @@
   window.addEventListener("mouseup", () => { drag = null; canvas.style.cursor = "grab"; });
   window.addEventListener("mousemove", (e) => {
     if (!drag) return;
+    view.auto = false;  // the user has taken the view
     cam.yaw -= (e.clientX - drag[0]) * 0.01;
     cam.pitch = Math.max(-1.4, Math.min(1.4, cam.pitch + (e.clientY - drag[1]) * 0.01));
     drag = [e.clientX, e.clientY];
@@ -321,10 +359,15 @@
   });
   canvas.addEventListener("wheel", (e) => {
     e.preventDefault();
-    cam.dist = Math.max(1.0, Math.min(40.0, cam.dist * Math.exp(e.deltaY * 0.001)));
+    view.auto = false;
+    cam.dist = Math.max(MIN_DIST, Math.min(MAX_DIST, cam.dist * Math.exp(e.deltaY * 0.001)));
     scheduleDraw();
   }, { passive: false });
-  canvas.addEventListener("dblclick", () => { Object.assign(cam, { yaw: 0.6, pitch: 0.35, dist: 7.0 }); scheduleDraw(); });
+  canvas.addEventListener("dblclick", () => {  // the default angle, fitted to the people again
+    Object.assign(cam, { yaw: 0.6, pitch: 0.35 });
+    Object.assign(view, { auto: true, fitted: false });
+    scheduleDraw();
+  });
   window.addEventListener("resize", () => { layoutCameras(); scheduleDraw(); });
   function pause(on) {
     state.paused = on;
@@ -337,7 +380,8 @@
   window.addEventListener("keydown", (e) => { if (e.key === " ") { e.preventDefault(); pause(!state.paused); } });
 
   window.mocapdViewer = {
-    state, cam, palette: PALETTE,
+    state, cam, view, palette: PALETTE,
+    fitOf: (subjects) => fitOf(subjects),
     project: (p) => project(p),
     pause,
     // What is on screen: per subject its colour and the canvas pixels of its joints.

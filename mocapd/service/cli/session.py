@@ -146,11 +146,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     from mocapd.io.session_export import resample, subject_track, subjects, write_bvh, write_csv, write_gltf
     from mocapd.service.session.solve import session_rig
 
-    if args.bvh is None and args.csv is None and args.gltf is None:
-        print("error: nothing to export: give --bvh FILE, --csv FILE and/or --gltf FILE", file=sys.stderr)
+    if args.bvh is None and args.csv is None and args.gltf is None and args.fbx is None:
+        print("error: nothing to export: give --bvh FILE, --csv FILE, --gltf FILE and/or --fbx FILE", file=sys.stderr)
         return 2
+    blender = _fbx_preflight(args) if args.fbx is not None else None  # before any work: a bad path, no Blender
     session = _open(args.session)
-    poses = _poses(session, args, _again("export", args, ("gltf", "bvh", "csv", "subject")))
+    poses = _poses(session, args, _again("export", args, ("gltf", "fbx", "bvh", "csv", "subject")))
     _undecodable_notes(session)
     rig: list[Skeleton] = []
 
@@ -165,7 +166,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     # glTF: every subject unless one is named; BVH and CSV: one subject (default: the one seen most).
     everyone = [args.subject] if args.subject is not None else sorted(subjects(poses))
-    steps = 1 + sum(f is not None for f in (args.bvh, args.csv)) + (len(everyone) + 1 if args.gltf else 0)
+    many = args.gltf is not None or args.fbx is not None  # every subject resampled, once for both
+    steps = 1 + sum(f is not None for f in (args.bvh, args.csv)) + (len(everyone) + 1 if many else 0)
     with Progress(steps, "export") as bar:
         track = resample(subject_track(poses, args.subject), args.rate)
         bar(1)
@@ -179,15 +181,27 @@ def cmd_export(args: argparse.Namespace) -> int:
             write_csv(args.csv, skeleton, track, origin_ns=_origin_ns(session))
             out["csv"] = str(args.csv)
             bar(1)
-        if args.gltf is not None:
+        if many:
             tracks = []
-            for who in everyone:
-                t = resample(subject_track(poses, who), args.rate)
+            raw = [subject_track(poses, who) for who in everyone]
+            origin = min(int(r.t_ns[0]) for r in raw)  # one frame grid for every subject
+            for r in raw:
+                t = resample(r, args.rate, origin)
                 tracks.append((t, skeleton_of(t)))
                 bar(1)
+        if args.gltf is not None:
             write_gltf(args.gltf, tracks, f"mocapd {__version__}")
             out["gltf"] = str(args.gltf)
             out["gltf_subjects"] = {t.subject: int(t.thetas.shape[0]) for t, _ in tracks}
+        if args.fbx is not None:
+            from mocapd.io.fbx_export import export_fbx
+
+            report = export_fbx(args.fbx, tracks, rate_hz=args.rate, units=args.fbx_units, up=args.fbx_up,
+                                take=Path(args.session).resolve().name, blender=blender)  # fmt: skip
+            out["fbx"] = str(args.fbx)
+            out["fbx_subjects"] = {t.subject: int(t.thetas.shape[0]) for t, _ in tracks}
+            out["fbx_nodes"], out["fbx_blender"] = report["nodes"], report["blender"]
+        if many:
             bar(1)
     print(json.dumps(out))
     return 0
@@ -198,6 +212,14 @@ def _origin_ns(session: Session) -> int | None:
     ``source_s`` counts from it."""
     origin = session.manifest.get("started_monotonic_ns")
     return origin if isinstance(origin, int) and not isinstance(origin, bool) else None
+
+
+def _fbx_preflight(args: argparse.Namespace) -> Any:
+    """The FBX path checked and Blender found, before the session is read (:mod:`mocapd.io.fbx_export`)."""
+    from mocapd.io.fbx_export import check_output, find_blender
+
+    check_output(args.fbx)
+    return find_blender(args.blender)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -270,14 +292,23 @@ def register(subparsers: Any) -> None:
     rs.add_argument("--no-smooth", action="store_true", help="skip the forward-backward (RTS) smoother")
     rs.set_defaults(func=_guard(cmd_resolve))
 
-    ex = subparsers.add_parser("export", help="export a session's subjects as glTF, one of them as BVH and/or CSV")
+    ex = subparsers.add_parser("export", help="export a session's subjects as glTF/FBX, one of them as BVH and/or CSV")
     ex.add_argument("session", type=Path, help="session directory")
     ex.add_argument("--bvh", type=Path, default=None, help="BVH file to write (21-bone skeleton, cm)")
     ex.add_argument("--csv", type=Path, default=None, help="CSV file to write (columns in docs/sessions.md)")
     ex.add_argument("--gltf", type=Path, default=None,
                     help="glTF 2.0 binary (.glb) to write: skinned armature + one animation per subject")  # fmt: skip
     ex.add_argument("--subject", default=None,
-                    help="identity, e.g. suit:suit0 or track:1 (BVH/CSV default: most seen; glTF: all)")  # fmt: skip
+                    help="identity, e.g. suit:suit0 or track:1 (BVH/CSV: the most seen; glTF/FBX: all)")  # fmt: skip
+    ex.add_argument("--fbx", type=Path, default=None,
+                    help="FBX to write through Blender: every subject's armature + skinned mesh, one take")  # fmt: skip
+    ex.add_argument("--fbx-units", choices=("cm", "m"), default="cm",
+                    help="FBX lengths: cm (default; Unreal, Maya) or m; Unity and Blender read both")  # fmt: skip
+    ex.add_argument("--fbx-up", choices=("y", "z"), default="y",
+                    help="FBX up axis: y (default; Maya, Unity, MotionBuilder) or z (Blender, 3ds Max)")  # fmt: skip
+    ex.add_argument("--blender", default=None,
+                    help="Blender for --fbx: a blender executable or a Python with bpy (default: $MOCAPD_BLENDER, "
+                    "the checkout's .venv-bpy, blender on PATH)")  # fmt: skip
     ex.add_argument("--rate", type=float, default=60.0, help="output frame rate, Hz (default 60)")
     ex.add_argument("--resolved", action="store_true", help="export the resolved poses instead of the live ones")
     ex.add_argument("--poses", type=Path, default=None, metavar="FILE",

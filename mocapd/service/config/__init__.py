@@ -205,7 +205,7 @@ class Config(Section):
             raise RuleError(_PORT_CLASH, "daemon.http_port", "websocket.port", values=(d.http_port, ws.port))
         bridge = self.imu.bridge
         if bridge.enabled:
-            for stream in ("mvn", "vmc"):
+            for stream in ("mvn", "vmc", "rokoko"):
                 s = getattr(self.udp, stream)
                 if s.enabled and any(dst.port == bridge.port and is_loopback(dst.host) for dst in s.destinations):
                     raise RuleError(

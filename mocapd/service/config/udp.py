@@ -1,5 +1,5 @@
-"""The ``[udp]`` section of config.toml (MVN and VMC streams); :mod:`mocapd.service.outputs.udp` turns it into
-pose sinks.
+"""The ``[udp]`` section of config.toml (MVN, VMC, VRChat and Rokoko streams); :mod:`mocapd.service.outputs.udp`
+turns it into pose sinks.
 
 Destinations come only from here. They must be loopback addresses unless ``udp.allow_remote = true``: streaming
 poses to another machine is an explicit choice, never a default or a typo. Hosts are IPv4 literals (or
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import ipaddress
 from dataclasses import dataclass
-from typing import Annotated, Self
+from typing import Annotated, Literal, Self
 
 from pydantic import (
     AfterValidator,
@@ -22,6 +22,8 @@ from pydantic import (
     model_validator,
 )
 
+from mocapd.protocols.rokoko import DEFAULT_MAX_DATAGRAM as ROKOKO_MAX_DATAGRAM
+from mocapd.protocols.rokoko import DEFAULT_PORT as ROKOKO_PORT
 from mocapd.protocols.vrchat import DEFAULT_PORT as VRCHAT_PORT
 from mocapd.protocols.vrchat import ROLES
 from mocapd.service.config.schema import Allowed, RuleError, Section, Text, as_tuple, show, unique
@@ -195,6 +197,34 @@ class VrChatStreamConfig(Section):
         return self
 
 
+def _distinct_names(names: dict[str, str]) -> dict[str, str]:
+    if len(set(names.values())) != len(names):
+        raise ValueError("gives two subjects the same actor name; allowed: distinct names")
+    return names
+
+
+ActorName = Annotated[Text, Field(min_length=1, max_length=64)]
+
+
+class RokokoStreamConfig(Section):
+    """``[udp.rokoko]``: Rokoko Studio Live JSON v3 (:mod:`mocapd.protocols.rokoko`), every subject an actor."""
+
+    enabled: bool = False
+    destinations: Destinations = (Destination("127.0.0.1", ROKOKO_PORT),)
+    """Every destination receives the whole scene (14043: the plugins' default port)."""
+    rate_divisor: int = Field(1, ge=1, le=1000)
+    subjects: Subjects = None
+    """Identities to stream; None ("all"): everyone (64 actors at most)."""
+    actor_names: Annotated[dict[Identity, ActorName], Field(max_length=64), AfterValidator(_distinct_names)] = Field(
+        default_factory=dict
+    )
+    """The actor name a subject has in the plugins (identity -> name); default: the identity itself."""
+    compression: Literal["lz4", "none"] = "lz4"
+    """``lz4``: an LZ4 frame per datagram (the Unity and Unreal plugins read only that); ``none``: plain JSON."""
+    max_datagram_bytes: int = Field(ROKOKO_MAX_DATAGRAM, ge=1024, le=MAX_DATAGRAM)
+    """Largest datagram (bytes); actors that would not fit are left out of that frame (32768: Unreal's buffer)."""
+
+
 class UdpConfig(Section):
     """The ``[udp]`` section."""
 
@@ -203,12 +233,13 @@ class UdpConfig(Section):
     mvn: MvnStreamConfig = Field(default_factory=MvnStreamConfig)
     vmc: VmcStreamConfig = Field(default_factory=VmcStreamConfig)
     vrchat: VrChatStreamConfig = Field(default_factory=VrChatStreamConfig)
+    rokoko: RokokoStreamConfig = Field(default_factory=RokokoStreamConfig)
 
     @model_validator(mode="after")
     def _loopback_unless_allowed(self) -> Self:
         if self.allow_remote:
             return self
-        for stream in ("mvn", "vmc", "vrchat"):
+        for stream in ("mvn", "vmc", "vrchat", "rokoko"):
             s = getattr(self, stream)
             dests: tuple[Destination, ...] = s.destinations if stream != "vrchat" else (s.destination,)
             for d in dests:

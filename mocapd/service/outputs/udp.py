@@ -1,4 +1,5 @@
-"""The UDP pose streams of ``[udp]`` (MVN network streaming, VMC, VRChat OSC trackers) as pose sinks."""
+"""The UDP pose streams of ``[udp]`` (MVN network streaming, VMC, VRChat OSC trackers, Rokoko Studio Live) as pose
+sinks."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ def udp_sinks(config: Config, skeleton: Skeleton, fileno: int | None = None) -> 
     """The enabled UDP streams of ``config.udp`` for poses on ``skeleton`` (people carrying their own sized
     skeleton are sent on theirs), at ``config.daemon.output_rate_hz``; a replay has no daemon but the same needs.
     ``fileno``: an inherited UDP socket to send from (the camera demo runs in a private network namespace)."""
-    from mocapd.io.udp_stream import MvnUdpSink, VmcUdpSink, VrChatUdpSink
+    from mocapd.io.udp_stream import MvnUdpSink, RokokoUdpSink, VmcUdpSink, VrChatUdpSink
 
     u = config.udp
     rate = config.daemon.output_rate_hz
@@ -68,6 +69,21 @@ def udp_sinks(config: Config, skeleton: Skeleton, fileno: int | None = None) -> 
             fileno=fileno,
         )
         sinks.append(vrchat)
+    if u.rokoko.enabled:
+        r = u.rokoko
+        rokoko = RokokoUdpSink(
+            skeleton,
+            [(d.host, d.port) for d in r.destinations],
+            fps=rate,
+            rate_divisor=r.rate_divisor,
+            subjects=r.subjects,
+            actor_names=dict(r.actor_names),
+            compression=r.compression,
+            max_datagram_bytes=r.max_datagram_bytes,
+            release_after_frames=release(r.rate_divisor),
+            fileno=fileno,
+        )
+        sinks.append(rokoko)
     return sinks
 
 

@@ -1,8 +1,8 @@
 // mocapd WebSocket pose stream -> a Unity humanoid (protocol: docs/streaming.md, "WebSocket").
 //
-// NOT RUN IN mocapd's CI: there is no Unity editor on the build machines. It is written against the documented
-// protocol and Unity's documented APIs (System.Net.WebSockets, JsonUtility, Animator.GetBoneTransform); see
-// README.md beside it for set-up and what to check on first use.
+// Tested in mocapd's CI without Unity: compiled by Mono's mcs against a minimal stand-in for the UnityEngine types
+// it uses and run under mono against the live daemon, every applied pose compared with the daemon's
+// (tests/unity_client.py). Not run inside the Unity editor there; see README.md beside it for set-up.
 //
 // Asks for JSON frames in the "unity" convention (left-handed, +Y up, metres) and drives one subject onto a
 // humanoid avatar. mocapd's local rotations are relative to its T-pose (facing +Z, every bone frame aligned with
@@ -50,6 +50,9 @@ public class MocapdReceiver : MonoBehaviour
     [Serializable] class Frame { public string type; public long frame; public long t_solve_ns; public Subject[] subjects; }
     [Serializable] class ErrorMessage { public string code; public string message; }
 
+    /// <summary>The daemon's counter of the frame applied last (-1 before the first): for a status display.</summary>
+    public long AppliedFrame { get; private set; } = -1;
+
     readonly ConcurrentQueue<Frame> frames = new ConcurrentQueue<Frame>();
     readonly Transform[] bones = new Transform[21];
     readonly Quaternion[] rest = new Quaternion[21];
@@ -59,7 +62,8 @@ public class MocapdReceiver : MonoBehaviour
     {
         for (int b = 0; b < 21; b++)
         {
-            if (ToHuman[b] is HumanBodyBones hb && avatar != null && (bones[b] = avatar.GetBoneTransform(hb)) != null)
+            HumanBodyBones? hb = ToHuman[b];  // (not `is HumanBodyBones hb`: Mono's mcs cannot compile that pattern)
+            if (hb.HasValue && avatar != null && (bones[b] = avatar.GetBoneTransform(hb.Value)) != null)
                 rest[b] = Quaternion.Inverse(avatar.transform.rotation) * bones[b].rotation;
         }
         cancel = new CancellationTokenSource();
@@ -133,5 +137,6 @@ public class MocapdReceiver : MonoBehaviour
         }
         if (applyRootPosition && bones[0] != null && s.root != null && s.root.Length == 3)
             bones[0].position = avatar.transform.TransformPoint(new Vector3(s.root[0], s.root[1], s.root[2]) * scaleRoot);
+        AppliedFrame = latest.frame;
     }
 }
