@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import zenoh
 
 from mocapd.errors import ConfigError, DeviceError
+from mocapd.io.input_files import read_input_text
 
 
 class ZenohConfig(Protocol):
@@ -81,9 +82,9 @@ def host_name(z: ZenohConfig) -> str:
 
 
 def _read_secret(path: str, key: str) -> str:
-    try:
-        text = Path(path).read_text(encoding="utf-8").strip()
-    except (OSError, UnicodeDecodeError) as exc:
+    try:  # a regular file of a few bytes: a FIFO would block the start, a link to /dev/zero never end
+        text = read_input_text(path, f"zenoh.{key}", max_bytes=4096, errors="strict", error=ConfigError).strip()
+    except UnicodeDecodeError as exc:
         raise ConfigError(f"zenoh.{key} = {path!r}: cannot read: {exc}") from None
     if not text or "\n" in text:
         raise ConfigError(f"zenoh.{key} = {path!r}: must hold one line, the password")
