@@ -22,8 +22,10 @@ from typing import Any
 import numpy as np
 
 from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
-from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
+from mocapd.core.names import check_name
+from mocapd.errors import ConfigError, DeviceTimeout, MocapdError, OutputError
 from mocapd.io.imu_bridge import ImuBridgeListener
+from mocapd.io.output_files import check_output_file, write_text_atomic
 from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
 from mocapd.service.config import load_config
@@ -154,8 +156,15 @@ def run_calibrate(args: argparse.Namespace) -> int:
     try:
         if not args.person:
             raise ConfigError("--person is required (the name of the calibration file)")
+        check_name(args.person, "--person")  # it names the calibration file: no '/', no newline
         window_s = float(args.window)
         config = load_config(args.config).imu  # validates the whole file, like the daemon
+        out = args.out or Path(config.calibration_dir) / f"{args.person}.imu.json"
+        try:  # before recording: a path that cannot be written is known at once
+            replacing = check_output_file(out, overwrite=True, create_folder=True).exists()
+        except OutputError as exc:
+            print(f"mocapd calibrate imu: {exc}")
+            return 2
         if args.port:  # --port replaces imu.ports, validated like the file's
             config = validate(ImuConfig, {**config.model_dump(), "ports": list(args.port)}, "imu")
         if not config.sensors:
@@ -190,13 +199,15 @@ def run_calibrate(args: argparse.Namespace) -> int:
     except MocapdError as exc:
         print(f"mocapd calibrate imu: {exc}")
         return 1
-    out = args.out or Path(config.calibration_dir) / f"{args.person}.imu.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
+    try:
+        write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
+    except OutputError as exc:
+        print(f"mocapd calibrate imu: {exc}")
+        return 2
     for sid, bone in calib.bones.items():
         own = f"  heading reset {calib.device_heading_deg[sid]:+.1f} deg" if sid in calib.device_heading_deg else ""
         print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg{own}")
-    print(f"wrote {out}")
+    print(f"wrote {out}" + (" (replaced the earlier calibration)" if replacing else ""))
     return 0
 
 

@@ -23,7 +23,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import MocapdError
+from mocapd.core.names import check_name
+from mocapd.errors import MocapdError, OutputError
+from mocapd.io.output_files import check_output_dir, check_output_file, write_text_atomic
 
 
 def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
@@ -55,6 +57,7 @@ def cmd_import_mtw(args: argparse.Namespace) -> int:
         write_imported_session,
     )
 
+    check_output_dir(args.output, what="session directory")  # before reading: a bad -o is known at once
     exports = [(p.name, read_mt_export(p, rate_hz=args.rate)) for p in args.files]
     streams = streams_from_mt_exports(exports)
     manifest = imported_manifest(
@@ -76,6 +79,7 @@ def cmd_import_mvnx(args: argparse.Namespace) -> int:
         write_imported_session,
     )
 
+    check_output_dir(args.output, what="session directory")
     streams = streams_from_mvnx(read_mvnx(args.file), args.file.name)
     assignment = parse_assign_pairs(args.assign) if args.assign else mvnx_assignment(streams)
     manifest = imported_manifest(
@@ -101,6 +105,12 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
         if not suit:
             raise MocapdError("name the suit (--suit) or the person (--person)")
         person = args.person or suit
+        check_name(suit, "--suit" if args.suit else f"{session.path}: the suit's name")
+        check_name(person, "--person")  # it names the calibration file: no '/', no newline
+        out = args.out or Path(load_config(args.config if args.config.exists() else None).imu.calibration_dir) / (
+            f"{person}.imu.json"
+        )
+        replacing = check_output_file(out, inputs=[session.path], overwrite=True, create_folder=True).exists()
         result = calibrate_session(
             session,
             person=person,
@@ -115,14 +125,15 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
         info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,
                 "facing_heading_deg": round(calib.facing_heading_deg, 2)}  # fmt: skip
         store_in_session(session, suit, calib, info)
-        out = args.out or Path(load_config(args.config if args.config.exists() else None).imu.calibration_dir) / (
-            f"{person}.imu.json"
-        )
+        write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
+    except OutputError as exc:  # a path that cannot be written: an argument error, as argparse's (exit 2)
+        print(f"mocapd calibrate imu: {exc}", file=sys.stderr)
+        return 2
     except MocapdError as exc:
         print(f"mocapd calibrate imu: {exc}", file=sys.stderr)
         return 1
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
+    if replacing:  # a recalibration renews the person's file: said, not done silently
+        print(f"note: replaced the earlier calibration {out}", file=sys.stderr)
     print(json.dumps({"session": str(session.path), "suit": suit, "calibration": str(out), "posture": result.pose,
                       "window_s": info["window_s"], "facing_heading_deg": info["facing_heading_deg"],
                       "still_spread_deg": {s: round(v, 2) for s, v in calib.spread_deg.items()},
@@ -187,7 +198,8 @@ def register(subparsers: Any) -> None:
     what = imp.add_subparsers(dest="import_what", metavar="FORMAT", required=True)
 
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("-o", "--output", type=Path, required=True, help="session directory to create")
+        p.add_argument("-o", "--output", type=Path, required=True,
+                       help="session directory to create (new, or an empty directory)")  # fmt: skip
         p.add_argument("--assign", action="append", default=[], metavar="SENSOR=BONE",
                        help="which sensor sits on which bone, e.g. 00B42279=Hips (repeat)")  # fmt: skip
         p.add_argument("--suit", default="suit0", help="the suit's name in the session (default suit0)")

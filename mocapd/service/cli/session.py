@@ -12,7 +12,8 @@ from typing import Any
 
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import InputError, MocapdError
-from mocapd.io.session import RESOLVED, Session, open_session
+from mocapd.io.output_files import check_distinct, check_output_file
+from mocapd.io.session import FRAMES, MANIFEST, RESOLVED, STREAMS, SUFFIX, Session, open_session
 from mocapd.io.session_export import SubjectTrack
 from mocapd.pipeline.camera_views import CameraViews
 from mocapd.pipeline.scheduler import PoseFrame
@@ -30,6 +31,17 @@ def stream_sinks(
     from mocapd.service.outputs.websocket import websocket_sinks
 
     return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton, camera_views=camera_views, output=output)]
+
+
+def session_files(session: Path) -> list[Path]:
+    """The files of a session that its commands read (an output must be none of them)."""
+    return [session / MANIFEST, session / "prior.npz",
+            *(session / f"{name}{SUFFIX}" for name in (*STREAMS, RESOLVED, FRAMES))]  # fmt: skip
+
+
+def resolved_path(out: Path) -> Path:
+    """Where ``resolve -o OUT`` writes (:func:`~mocapd.service.session.solve.write_resolved`: a ``.mcs`` file)."""
+    return out.parent / f"{out.name.removesuffix(SUFFIX)}{SUFFIX}"
 
 
 def _open(path: Path) -> Session:
@@ -87,6 +99,8 @@ def cmd_resolve(args: argparse.Namespace) -> int:
     from mocapd.service.session.solve import ResolveOptions, resolve, session_rig, solve_times, write_resolved
     from mocapd.service.session.truth import synthetic_of, truth_report
 
+    if args.output is not None:  # the default, SESSION/poses-resolved.mcs, is the session's own: renewed
+        check_output_file(resolved_path(args.output), inputs=session_files(args.session), overwrite=args.force)
     session = _open(args.session)
     rig = session_rig(session)
     try:
@@ -120,6 +134,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.bvh is None and args.csv is None and args.gltf is None:
         print("error: nothing to export: give --bvh FILE, --csv FILE and/or --gltf FILE", file=sys.stderr)
         return 2
+    outputs = [(o, p) for o, p in (("--bvh", args.bvh), ("--csv", args.csv), ("--gltf", args.gltf)) if p is not None]
+    check_distinct(outputs)  # before any work: a path that cannot be written is known at once
+    for _, path in outputs:
+        check_output_file(path, inputs=session_files(args.session), overwrite=args.force)
     session = _open(args.session)
     poses = session.require_poses(_pose_stream(session, args.resolved))
     _undecodable_notes(session)
@@ -229,6 +247,7 @@ def register(subparsers: Any) -> None:
                     help="write the resolved stream here (default: SESSION/poses-resolved.mcs)")  # fmt: skip
     rs.add_argument("--iterations", type=int, default=100, help="LM iterations per frame (default 100)")
     rs.add_argument("--no-smooth", action="store_true", help="skip the forward-backward (RTS) smoother")
+    rs.add_argument("--force", action="store_true", help="replace an existing -o file")
     rs.set_defaults(func=_guard(cmd_resolve))
 
     ex = subparsers.add_parser("export", help="export a session's subjects as glTF, one of them as BVH and/or CSV")
@@ -241,6 +260,7 @@ def register(subparsers: Any) -> None:
                     help="identity, e.g. suit:suit0 or track:1 (BVH/CSV default: most seen; glTF: all)")  # fmt: skip
     ex.add_argument("--rate", type=float, default=60.0, help="output frame rate, Hz (default 60)")
     ex.add_argument("--resolved", action="store_true", help="export the resolved poses instead of the live ones")
+    ex.add_argument("--force", action="store_true", help="replace existing output files (refused otherwise)")
     ex.set_defaults(func=_guard(cmd_export))
 
     info = subparsers.add_parser("session", help="describe a session and check its streams (recovery report)")
