@@ -16,6 +16,7 @@ segment labels map onto bones by :data:`MVN_SENSOR_BONES` (the shoulder sensors 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -150,7 +151,7 @@ def write_imported_session(directory: str | Path, streams: list[SensorStream], m
                     os.fsync(fh.fileno())
         with (tmp / f"imu{SUFFIX}").open("wb", buffering=1 << 20) as fh:
             fh.write(encode_record(T_HEADER, encode_header("imu")))
-            for i, k in zip(which[order].tolist(), where[order].tolist(), strict=True):
+            for i, k in _in_order(which, where, order):
                 s = streams[i]
                 t = T0_NS + int(s.time_ns[k])
                 q, a = s.quat[k], s.acc[k]
@@ -170,3 +171,10 @@ def write_imported_session(directory: str | Path, streams: list[SensorStream], m
         write_json_atomic(tmp / MANIFEST, {**manifest, "closed": True, "ended_monotonic_ns": ended,
                                            "writer": asdict(counters)})  # fmt: skip
     return path
+
+
+def _in_order(which: NDArray[np.int32], where: IntArray, order: IntArray) -> Iterator[tuple[int, int]]:
+    """(stream, sample) pairs in ``order``, 65536 at a time (never a Python list of every sample)."""
+    for start in range(0, len(order), 1 << 16):
+        part = order[start : start + (1 << 16)]
+        yield from zip(which[part].tolist(), where[part].tolist(), strict=True)
