@@ -208,7 +208,12 @@ class RemoteRig:
         t0 = self.clock()
         got: list[tuple[bytes, str | None, int]] = []  # every reply (payload, replier, arrival): not only the first
         try:
-            for reply in self.session.get(key, timeout=self.z.clock_timeout_s):
+            # Every queryable of the key is asked (ALL) and every reply kept (no consolidation): by default Zenoh
+            # asks the "best matching" queryable only and keeps one reply per key, so a rogue answering for a host
+            # could be the only answer seen; here all answers are compared.
+            replies = self.session.get(key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                                       timeout=self.z.clock_timeout_s)  # fmt: skip
+            for reply in replies:
                 if reply.ok is not None and len(got) < MAX_CLOCK_REPLIES:
                     replier = getattr(reply, "replier_id", None)
                     got.append((reply.ok.payload.to_bytes(), None if replier is None else str(replier), self.clock()))

@@ -8,19 +8,23 @@ plausible:
 
 - up to ``max_ahead`` past the last one: accepted, the numbers skipped counted as ``lost``;
 - the last one or up to ``max_behind`` before it: a duplicate or a late (reordered) message, dropped and counted;
-- anything else (a jump ahead beyond ``max_ahead``, or far behind): dropped and counted as a ``jump``, and
-  remembered; when ``confirm`` such numbers in a row follow each other (each within ``max_ahead`` of the one
-  before), the sender really did move on (it restarted its numbering, or was silent for a long time): the
-  sequence *resynchronises* to the newest one (counted in ``resyncs``), without counting the gap as lost.
+- anything else (a jump ahead beyond ``max_ahead``, or far behind): dropped and counted as a ``jump``.
 
-So one forged number costs nothing but its own datagram, a sender that restarted its numbering is followed after
-``confirm`` messages, and a flood of random numbers can make it resynchronise only as often as ``confirm``
-consecutive numbers happen to line up.
+Numbers that are not taken are remembered: when ``confirm`` of them in a row follow each other (each up to
+``max_ahead`` after the one before), the sender really is elsewhere: it restarted its numbering or was silent for
+long (a jump), or a forged number inside the window moved the sequence ahead of it (its own numbers now arrive as
+"late" ones, one after the other: ``confirm_behind`` of them, more than a burst of reordered datagrams holds). The
+sequence then *resynchronises* to the newest (counted in ``resyncs``), without counting the gap as lost.
+
+So a forged number far off costs nothing but its own datagram; one inside the window costs the real sender at most
+``confirm_behind - 1`` messages (and inflates ``lost`` by its step); a sender that restarted its numbering is
+followed after ``confirm`` messages; a flood of random numbers resynchronises the sequence only when ``confirm``
+consecutive ones happen to line up.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 Verdict = Literal["next", "duplicate", "reordered", "jump", "resync"]
@@ -38,6 +42,8 @@ class SequenceNumbers:
         How far behind the last number a message still counts as late (``reordered``) rather than a jump.
     confirm : int
         Numbers in a row, each following the one before, after which a jump is followed.
+    confirm_behind : int
+        Late numbers in a row, each following the one before, after which the sequence goes back to them.
     last : int or None
         The last number taken (None: the first number is taken as it comes).
     """
@@ -45,24 +51,24 @@ class SequenceNumbers:
     max_ahead: int
     max_behind: int
     confirm: int = 2
+    confirm_behind: int = 3
     last: int | None = None
     lost: int = 0
     duplicates: int = 0
     reordered: int = 0
     jumps: int = 0
     resyncs: int = 0
-    _candidate: int | None = None
-    _agreeing: int = 0
+    _chains: dict[bool, tuple[int, int]] = field(default_factory=dict)
+    """Numbers not taken, per kind (late or a jump): the newest and how many in a row followed each other."""
 
     def __post_init__(self) -> None:
-        if self.max_ahead < 1 or self.max_behind < 0 or self.confirm < 1:
+        if self.max_ahead < 1 or self.max_behind < 0 or self.confirm < 1 or self.confirm_behind < 1:
             raise ValueError(f"SequenceNumbers: max_ahead >= 1, max_behind >= 0, confirm >= 1 (got {self})")
 
     def reset(self, last: int | None = None) -> None:
         """A new connection or run: numbering starts again after ``last`` (None: from the first number)."""
         self.last = last
-        self._candidate = None
-        self._agreeing = 0
+        self._chains.clear()
 
     def take(self, number: int) -> Verdict:
         """Judge ``number``: ``"next"`` and ``"resync"`` are taken (``last`` becomes it), the others dropped."""
@@ -74,24 +80,23 @@ class SequenceNumbers:
         if 0 < step <= self.max_ahead:
             self.lost += step - 1
             self.last = number
-            self._candidate = None
+            self._chains.clear()
             return "next"
-        if step == 0:
-            self.duplicates += 1
-            return "duplicate"
-        if -self.max_behind <= step < 0:
-            self.reordered += 1
-            return "reordered"
-        self.jumps += 1
-        candidate = self._candidate
-        if candidate is not None and 0 < number - candidate <= self.max_ahead:
-            self._agreeing += 1
-        else:
-            self._agreeing = 1
-        self._candidate = number
-        if self._agreeing >= self.confirm:
-            self.jumps -= 1  # this one is taken after all
+        # Not taken. Late numbers and jumps are followed apart: a forged number far off does not break the run of
+        # the real sender's numbers that a forged number inside the window left behind, nor the other way round.
+        late = -self.max_behind <= step <= 0
+        newest, run = self._chains.get(late, (None, 0))
+        run = run + 1 if newest is not None and 0 < number - newest <= self.max_ahead else 1
+        self._chains[late] = (number, run)
+        if run >= (self.confirm_behind if late else self.confirm):
             self.resyncs += 1
             self.reset(number)
             return "resync"
+        if step == 0:
+            self.duplicates += 1
+            return "duplicate"
+        if late:
+            self.reordered += 1
+            return "reordered"
+        self.jumps += 1
         return "jump"

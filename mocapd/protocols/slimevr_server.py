@@ -99,9 +99,10 @@ class ServerOptions:
     """A separate acceleration packet applies to rotations up to this much later."""
     gravity: float = STANDARD_GRAVITY
     max_trackers: int = 64
-    """Trackers known at once. A handshake from a new tracker beyond this replaces the timed-out tracker silent
-    longest; with none timed out it is refused (counted): a sender cycling through source ports or MACs cannot
-    grow the table, and cannot push out a tracker that is talking."""
+    """Trackers known at once. A handshake from a new tracker beyond this replaces a timed-out tracker (one that
+    never sent an orientation first, then the one silent longest); with none timed out it is refused (counted): a
+    sender cycling through source ports or MACs cannot grow the table, and cannot push out a tracker that is
+    talking."""
     max_sensors_per_tracker: int = 16
     """Sensors one tracker may announce (the firmware's MAX_SENSORS_COUNT: 1-2 on a tracker, 10 on a glove)."""
     max_sensors: int = 128
@@ -373,11 +374,13 @@ class SlimeVrServer:
         self._events.append(TrackerConnected(tracker.key, address, handover=old is not None))
 
     def _make_room(self) -> bool:
-        """Forget the timed-out tracker silent longest; False when every known tracker is live."""
+        """Forget a timed-out tracker: one that never sent an orientation first (it gave the solve nothing: a sender
+        that fills the table with handshakes and heartbeats cannot push out a real tracker that missed a second),
+        then the one silent longest; False when every known tracker is live."""
         quiet = [t for t in self.trackers.values() if t.timed_out]
         if not quiet:
             return False
-        gone = min(quiet, key=lambda t: t.last_packet_ns)
+        gone = min(quiet, key=lambda t: (any(s.rotations for s in t.sensors.values()), t.last_packet_ns))
         del self.trackers[gone.key]
         self._sensors -= len(gone.sensors)
         if self._by_address.get(gone.address) is gone:
