@@ -20,9 +20,10 @@ import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,23 @@ def run_cli(argv: list[str]) -> tuple[int, str]:
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
         code = main(argv)
     return code, err.getvalue()
+
+
+@contextlib.contextmanager
+def alarm(seconds: int) -> Iterator[None]:
+    """Fail instead of hanging: SIGALRM after ``seconds`` raises in the blocked call (an open() of a FIFO waits for
+    its other end; PEP 475 retries it unless the handler raises)."""
+
+    def expired(*_: object) -> None:
+        raise TimeoutError(f"no answer within {seconds} s (a FIFO waited on?)")
+
+    previous = signal.signal(signal.SIGALRM, expired)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
 
 
 def assert_refused(code: int, err: str, *needles: str) -> None:
@@ -294,14 +312,17 @@ def test_calibration_camera_names_follow_the_config_rule(tmp_path: Path) -> None
 
 def test_a_large_export_is_read_with_bounded_memory(tmp_path: Path) -> None:
     """Issue 34 item 7: a 265 MB MT export took 2.5 GiB (tools/bench_import.py: 2405 MiB over the CLI's own
-    memory before, 379 MiB now). Here a 12 MB export in a child process: the import's peak memory over what the
-    CLI itself takes must stay under 4 times the file (before: ~9 times)."""
+    memory before, 379 MiB now). Here a 30 MB export in a child process that first imports the small real export
+    (so that every module the import loads is loaded): the big import's peak memory beyond that must stay under
+    twice the file (before: ~9 times)."""
     from tools.bench_import import write_export
 
     export = tmp_path / "MT_bench_00B421E6.txt"
-    write_export(export, 12.0)
+    write_export(export, 30.0)
     script = (
         "import resource, sys\nfrom mocapd.service.cli import main\n"
+        f"assert main(['import', 'mtw', {str(MTW_FILE)!r}, '-o', {str(tmp_path / 'warm')!r}, '--assign', "
+        "'00B421E6=Hips']) == 0\n"
         "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
         f"code = main(['import', 'mtw', {str(export)!r}, '-o', {str(tmp_path / 's')!r}, '--assign', "
         "'00B421E6=Hips'])\n"
@@ -312,7 +333,7 @@ def test_a_large_export_is_read_with_bounded_memory(tmp_path: Path) -> None:
     code, grown = proc.stdout.strip().splitlines()[-1].split()
     size = export.stat().st_size
     assert code == "0", proc.stderr[-2000:]
-    assert int(grown) < 4 * size, f"the import grew by {int(grown) / 2**20:.0f} MiB for a {size / 2**20:.0f} MiB file"
+    assert int(grown) < 2 * size, f"the import grew by {int(grown) / 2**20:.0f} MiB for a {size / 2**20:.0f} MiB file"
 
 
 # ---------------------------------------------------------------------------------------------- MVNX
@@ -497,7 +518,8 @@ def test_export_output_path_fuzz(
     manifest = (session / "manifest.json").read_bytes()
     target = _make_output(kind, folder, session)
     before = sorted(p.name for p in folder.iterdir())
-    code, err = run_cli(["export", str(session), "--resolved", option, target, *(["--force"] if force else [])])
+    with alarm(60):  # a FIFO opened for writing waits for a reader: before issue 34, forever
+        code, err = run_cli(["export", str(session), "--resolved", option, target, *(["--force"] if force else [])])
     assert "Traceback" not in err and code in (0, 2), (kind, code, err)
     assert (session / "manifest.json").read_bytes() == manifest
     leftovers = [p.name for p in folder.iterdir() if p.name.startswith(".")]
