@@ -60,8 +60,7 @@ def _folder(path: Path, *, create: bool) -> Path:
         raise OutputError(f"{path}: the folder {parent} does not exist")
     if not stat.S_ISDIR(st.st_mode):
         raise OutputError(f"{path}: {probe} is not a folder ({file_kind(st.st_mode)})")
-    if probe == parent:
-        _try_create(parent, path)
+    _try_create(probe, path)  # the folder, or the ancestor the missing folders will be made in
     return parent
 
 

@@ -19,8 +19,10 @@ host restarted; :class:`~mocapd.protocols.sequence.SequenceNumbers` follows a re
 Who speaks for a host (issue 34; who may connect at all is ``[zenoh]``'s credentials, :mod:`mocapd.io.zenoh_link`):
 a host's **run id** is taken only from status messages published on that host's own status key (its name in the
 message and in the key must agree); a different run id replaces the current one only once the current run's
-status has been silent for two status periods or the host is lost (a restart), otherwise it is refused
-(``run_conflict``): a second peer publishing status for a host cannot flip it back and forth. Detections and clock
+status has been silent for ``lost_after_s`` (a restart: a host takes longer than that to start again), otherwise
+it is refused (``run_conflict``): a second peer publishing status for a host cannot flip it back and forth, even
+when the real host's status comes late on a loaded machine (with two status periods as the limit, a soak on a
+machine at load 20 saw the run flip 40 times in 30 minutes). Detections and clock
 replies are accepted only with the host's current run id. A **clock reply** counts only if it is plausible: the
 offset it gives must agree with the host's latest status message (sent at ``S`` on its clock, received at ``A`` on
 ours: the offset lies in ``[S - A, S - A + lost_after_s]``), and every reply to one query is read: replies that
@@ -137,12 +139,12 @@ class RemoteRig:
     # ------------------------------------------------------------------------------------------ hosts
     def seen(self, host: RemoteHost, run_id: int, now: int) -> bool:
         """``host``'s status said run ``run_id`` (call under the lock): its current run, or a new one once the
-        current run's status has been silent for two status periods or the host is lost (a restart: its clock
-        offset starts over). False, counted as ``run_conflict``, for a different run while the current one talks."""
+        current run's status has been silent for ``lost_after_s`` (a restart: its clock offset starts over).
+        False, counted as ``run_conflict``, for a different run while the current one talks."""
         if host.run_id != run_id:
-            quiet_ns = 2 * self.z.status_period_s * 1e9
+            quiet_ns = self.z.lost_after_s * 1e9
             current_talks = host.status_arrival_ns is not None and now - host.status_arrival_ns <= quiet_ns
-            if host.run_id is not None and current_talks and not host.lost:
+            if host.run_id is not None and current_talks:
                 host.rejected["run_conflict"] += 1
                 return False
             if host.run_id is not None:
