@@ -430,6 +430,34 @@ def test_export_output_paths_the_probe_found(session: Path, tmp_path: Path, targ
         assert (tmp_path / "existing.bvh").read_text().startswith("HIERARCHY")
 
 
+@pytest.mark.parametrize(
+    ("argv", "problem"),
+    [
+        (["export", "{s}", "--resolved", "--csv", "{t}/x.csv", "--rate", "nan"], "argument --rate: 'nan'; allowed"),
+        (["export", "{s}", "--resolved", "--csv", "{t}/x.csv", "--rate", "1e-9"], "argument --rate: '1e-9'; allowed"),
+        (["calibrate", "imu", "--from", "{s}", "--facing-heading", "nan"], "argument --facing-heading: 'nan'"),
+        (["resolve", "{s}", "--iterations", "-5"], "argument --iterations: '-5'; allowed: an integer"),
+        (["replay", "{s}", "--speed", "0"], "argument --speed: '0'; allowed"),
+        (["calibrate", "convert", "{t}/c.toml", "{t}/d.toml", "--scale", "inf"], "argument --scale: 'inf'"),
+    ],
+    ids=["export-rate-nan", "export-rate-tiny", "facing-heading-nan", "iterations-negative", "speed-0", "scale-inf"],
+)
+def test_numbers_on_the_command_line_are_checked(
+    session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], problem: str
+) -> None:
+    """Found beside the probe's list (the principle, applied to the command line): `export --rate nan` was a
+    ValueError traceback; `calibrate imu --from S --facing-heading nan` wrote NaN into the calibration file and into
+    the session's manifest with exit 0 (every later command then called the session damaged). Now argparse refuses
+    each number outside its range with one `error:` line and exit 2, before anything is touched."""
+    manifest = (session / "manifest.json").read_bytes()
+    args = [a.format(s=session, t=tmp_path) for a in argv]
+    with pytest.raises(SystemExit) as exit_:
+        main(args)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and problem in err.strip().splitlines()[-1], err
+    assert (session / "manifest.json").read_bytes() == manifest
+
+
 def test_two_outputs_of_one_export_must_differ(session: Path, tmp_path: Path) -> None:
     """Issue 34 item 6: `export --bvh F --csv F` reported both written while F held only the CSV."""
     f = tmp_path / "F"

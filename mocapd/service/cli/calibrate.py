@@ -35,6 +35,7 @@ from mocapd.io.calibration_files import (
 )
 from mocapd.io.output_files import check_output_file
 from mocapd.io.rig_calibration import Intrinsics, Observation, calibrate_rig
+from mocapd.service.cli.numbers import number
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 
@@ -189,18 +190,28 @@ def register(subparsers: Any) -> None:
     sub = parser.add_subparsers(dest="calibrate_command", metavar="WHAT", required=True)
     cams = sub.add_parser("cameras", help="intrinsics and extrinsics from board pictures")
     cams.add_argument("--board", choices=["checkerboard", "charuco"], default="checkerboard")
-    cams.add_argument("--cols", type=int, required=True, help="checkerboard: inner corners per row; charuco: squares")
     cams.add_argument(
-        "--rows", type=int, required=True, help="checkerboard: inner corners per column; charuco: squares"
+        "--cols",
+        type=number(2, 200, integer=True),
+        required=True,
+        help="checkerboard: inner corners per row; charuco: squares",
     )
-    cams.add_argument("--square-mm", type=float, required=True, help="square side, mm")
-    cams.add_argument("--marker-mm", type=float, default=0.0, help="ChArUco marker side, mm")
+    cams.add_argument(
+        "--rows",
+        type=number(2, 200, integer=True),
+        required=True,
+        help="checkerboard: inner corners per column; charuco: squares",
+    )
+    cams.add_argument("--square-mm", type=number(0.1, 10_000.0), required=True, help="square side, mm")
+    cams.add_argument("--marker-mm", type=number(0.0, 10_000.0), default=0.0, help="ChArUco marker side, mm")
     cams.add_argument("--dictionary", default="DICT_4X4_50", help="ChArUco ArUco dictionary")
     cams.add_argument("--intrinsics", type=Path, help="folder with one picture sub-folder per camera")
     cams.add_argument("--intrinsics-from", type=Path, help="reuse intrinsics from a calibration file")
     cams.add_argument("--extrinsics", type=Path, help="folder with one sub-folder per camera, same stem = same moment")
     cams.add_argument("--origin-frame", help="file stem of the moment the board lies on the floor at the origin")
-    cams.add_argument("--max-view-error-px", type=float, default=1.0, help="reject views above this RMS error, px")
+    cams.add_argument(
+        "--max-view-error-px", type=number(0.01, 1000.0), default=1.0, help="reject views above this RMS error, px"
+    )
     cams.add_argument("--fix-k3", action="store_true", help="keep k3 = 0 (as Qualisys/Pose2Sim)")
     cams.add_argument("--output", type=Path, required=True, help="mocapd calibration TOML to write")
     cams.add_argument("--force", action="store_true", help="replace an existing --output file")
@@ -211,6 +222,6 @@ def register(subparsers: Any) -> None:
     conv.add_argument("--to", choices=["mocapd", "pose2sim", "opencv-yaml"], default=None)
     conv.add_argument("--force", action="store_true", help="replace an existing OUTPUT file (never the input)")
     conv.add_argument("--world-up", choices=["y", "z"], default=None, help="up axis of the input's world")
-    conv.add_argument("--scale", type=float, default=1.0,
+    conv.add_argument("--scale", type=number(0.01, 100.0), default=1.0,
                       help="for images resized by this factor (0.5: half-size, or 2x2 binning); default 1")  # fmt: skip
     conv.set_defaults(func=_run_convert)

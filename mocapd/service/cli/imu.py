@@ -28,6 +28,7 @@ from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.output_files import check_output_file, write_text_atomic
 from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
+from mocapd.service.cli.numbers import number
 from mocapd.service.config import load_config
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.config.schema import validate
@@ -65,7 +66,7 @@ def register(subparsers: Any) -> None:
     facing = p.add_mutually_exclusive_group(required=True)
     facing.add_argument(
         "--facing-heading",
-        type=float,
+        type=number(-360.0, 360.0),
         help="compass heading the subject faces, degrees clockwise from magnetic north",
     )
     facing.add_argument(
@@ -74,7 +75,7 @@ def register(subparsers: Any) -> None:
         help="derive the heading from a sensor axis known to point forward, e.g. 00B421E6:-z",
     )
     p.add_argument("--world-heading", choices=("subject", "north"), default="subject", help="what world +Z is")
-    p.add_argument("--seconds", type=float, default=3.0, help="recording length (s)")
+    p.add_argument("--seconds", type=number(0.1, 3600.0), default=3.0, help="recording length (s)")
     p.add_argument(
         "--window",
         default="1.0",
@@ -82,7 +83,7 @@ def register(subparsers: Any) -> None:
         "session to search in (a 1 s window)",
     )
     p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")
-    p.add_argument("--connect-timeout", type=float, default=15.0, help="wait for all sensors (s)")
+    p.add_argument("--connect-timeout", type=number(0.1, 3600.0), default=15.0, help="wait for all sensors (s)")
     p.add_argument("--out", type=Path, help="output file (default <calibration_dir>/<person>.imu.json)")
     p.add_argument(
         "--mount-yaw",
@@ -224,6 +225,8 @@ def _own_heading(config: ImuConfig, specs: list[str]) -> dict[str, float]:
             yaw = float(value)
         except ValueError:
             raise ConfigError(f"--mount-yaw {spec!r}: expected SENSOR=DEGREES") from None
+        if not -360.0 <= yaw <= 360.0:  # nan too
+            raise ConfigError(f"--mount-yaw {spec!r}: degrees from -360 to 360")
         if sid not in out:
             raise ConfigError(f"--mount-yaw {spec!r}: {sensor!r} is not an assigned SlimeVR sensor")
         out[sid] = yaw

@@ -26,6 +26,7 @@ from typing import Any
 from mocapd.core.names import check_name
 from mocapd.errors import MocapdError, OutputError
 from mocapd.io.output_files import check_output_dir, check_output_file, write_text_atomic
+from mocapd.service.cli.numbers import number
 
 
 def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
@@ -203,7 +204,9 @@ def register(subparsers: Any) -> None:
         p.add_argument("--assign", action="append", default=[], metavar="SENSOR=BONE",
                        help="which sensor sits on which bone, e.g. 00B42279=Hips (repeat)")  # fmt: skip
         p.add_argument("--suit", default="suit0", help="the suit's name in the session (default suit0)")
-        p.add_argument("--height", type=float, default=1.75, help="the wearer's height in m (sizes the skeleton)")
+        p.add_argument(
+            "--height", type=number(0.5, 2.5), default=1.75, help="the wearer's height in m (sizes the skeleton)"
+        )
         p.add_argument(
             "--imu-set",
             default="",
@@ -213,7 +216,9 @@ def register(subparsers: Any) -> None:
 
     mtw = what.add_parser("mtw", help="MT Manager text exports, one file per sensor (the id in its name)")
     mtw.add_argument("files", type=Path, nargs="+", help="export files (.txt/.csv), all of one recording")
-    mtw.add_argument("--rate", type=float, default=None, help="update rate (Hz) when the files do not say it")
+    mtw.add_argument(
+        "--rate", type=number(1.0, 2000.0), default=None, help="update rate (Hz) when the files do not say it"
+    )
     common(mtw)
     mtw.set_defaults(func=_guard(cmd_import_mtw))
 

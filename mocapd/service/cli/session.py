@@ -17,6 +17,7 @@ from mocapd.io.session import FRAMES, MANIFEST, RESOLVED, STREAMS, SUFFIX, Sessi
 from mocapd.io.session_export import SubjectTrack
 from mocapd.pipeline.camera_views import CameraViews
 from mocapd.pipeline.scheduler import PoseFrame
+from mocapd.service.cli.numbers import number
 from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import PoseSink
 
@@ -235,7 +236,9 @@ def register(subparsers: Any) -> None:
     """Add replay, resolve, export and session to the CLI."""
     rp = subparsers.add_parser("replay", help="stream a recorded session through the configured sinks, as if live")
     rp.add_argument("session", type=Path, help="session directory")
-    rp.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1 = recorded pace)")
+    rp.add_argument(
+        "--speed", type=number(0.01, 1000.0), default=1.0, help="playback speed (default 1 = recorded pace)"
+    )
     rp.add_argument("--resolved", action="store_true", help="replay the resolved poses instead of the live ones")
     rp.add_argument("--config", type=Path, default=None, help="config file with the stream sinks (default: shipped)")
     rp.add_argument("--verbose", action="store_true", help="print a line per second of session time")
@@ -245,7 +248,9 @@ def register(subparsers: Any) -> None:
     rs.add_argument("session", type=Path, help="session directory")
     rs.add_argument("-o", "--output", type=Path, default=None,
                     help="write the resolved stream here (default: SESSION/poses-resolved.mcs)")  # fmt: skip
-    rs.add_argument("--iterations", type=int, default=100, help="LM iterations per frame (default 100)")
+    rs.add_argument(
+        "--iterations", type=number(1, 10_000, integer=True), default=100, help="LM iterations per frame (default 100)"
+    )
     rs.add_argument("--no-smooth", action="store_true", help="skip the forward-backward (RTS) smoother")
     rs.add_argument("--force", action="store_true", help="replace an existing -o file")
     rs.set_defaults(func=_guard(cmd_resolve))
@@ -258,7 +263,7 @@ def register(subparsers: Any) -> None:
                     help="glTF 2.0 binary (.glb) to write: skinned armature + one animation per subject")  # fmt: skip
     ex.add_argument("--subject", default=None,
                     help="identity, e.g. suit:suit0 or track:1 (BVH/CSV default: most seen; glTF: all)")  # fmt: skip
-    ex.add_argument("--rate", type=float, default=60.0, help="output frame rate, Hz (default 60)")
+    ex.add_argument("--rate", type=number(1.0, 1000.0), default=60.0, help="output frame rate, Hz (default 60)")
     ex.add_argument("--resolved", action="store_true", help="export the resolved poses instead of the live ones")
     ex.add_argument("--force", action="store_true", help="replace existing output files (refused otherwise)")
     ex.set_defaults(func=_guard(cmd_export))
