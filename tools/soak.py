@@ -553,11 +553,13 @@ async def _run_cli_attacks(folder: Path, counts: Counter[str], failures: list[st
         try:
             _, err = await asyncio.wait_for(proc.communicate(), 60)
         except TimeoutError:
-            proc.kill()
-            await proc.wait()
             counts["cli_bad"] += 1
             failures.append(f"{name}: no answer within 60 s")
             continue
+        finally:
+            if proc.returncode is None:  # timed out, or the soak ended (cancelled) while it ran: never an orphan
+                proc.kill()
+                await asyncio.shield(proc.wait())
         lines = err.decode(errors="replace").strip().splitlines()
         if proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "):
             counts["cli_refused"] += 1
