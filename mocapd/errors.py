@@ -8,6 +8,8 @@
     ├── CalibrationError      a calibration could not be computed or loaded
     ├── ModelError            a model (pose prior, detector) is missing, malformed or incompatible
     ├── ProtocolError         a wire protocol was violated in a way a parser cannot just count and skip
+    ├── OutputError           an output path cannot be written (a missing folder, a directory, a device, an input
+    │                         of the same command, an existing file without --force, a write that failed)
     ├── DeviceError           a camera, IMU or port failed (open, configure, stream)
     │   └── DeviceTimeout     a device did not answer in time
     └── ToolError             an external program mocapd runs (Blender, for FBX) is missing or failed
@@ -42,6 +44,10 @@ class ModelError(MocapdError):
 
 class ProtocolError(MocapdError):
     """A wire protocol was violated beyond what a parser can count and skip."""
+
+
+class OutputError(MocapdError):
+    """An output path a command was given cannot be written (checked before the work starts)."""
 
 
 class DeviceError(MocapdError):

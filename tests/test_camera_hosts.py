@@ -125,6 +125,7 @@ def test_duplicates_garbage_and_strangers_are_counted_and_dropped(tmp_path: Path
     solver = RunProcess(["--config", str(solver_cfg)], tmp_path)
     cfg = load_config(tmp_path / "hostA.toml")
     session = zenoh.open(_config(cfg.zenoh))
+    stop = threading.Event()
     try:
         url = solver.url(180)
         from mocapd.core.sorting import Detections2D
@@ -132,14 +133,21 @@ def test_duplicates_garbage_and_strangers_are_counted_and_dropped(tmp_path: Path
         dets = Detections2D.empty(len(solver_targets()))
         width, height = _ring_size()
         pub = session.declare_publisher(detections_key("rig", "cam0"))
-        # The clock offset of hostA is unknown until it answers a round trip: answer them.
-        from mocapd.io.zenoh_link import clock_key
-        from mocapd.protocols.remote import encode_clock
+        # A host's run id comes from its status, its clock offset from round trips: publish one, answer them.
+        from mocapd.io.zenoh_link import clock_key, status_key
+        from mocapd.protocols.remote import CameraState, encode_clock, encode_status
 
         def answer(q: zenoh.Query) -> None:
             q.reply(q.key_expr, encode_clock("hostA", 7, time.monotonic_ns()))
 
         session.declare_queryable(clock_key("rig", "hostA"), answer)
+        status = session.declare_publisher(status_key("rig", "hostA"))
+
+        def publish_status() -> None:
+            while not stop.wait(0.2):
+                status.put(encode_status("hostA", 7, time.monotonic_ns(), 1.0, [CameraState("cam0", 0, True)]))
+
+        threading.Thread(target=publish_status, daemon=True).start()
         solver.wait_status(url, lambda s: s["remote_hosts"]["hostA"]["clock_offset_ms"] is not None, 30)
 
         def frame(n: int, camera: str = "cam0", size: tuple[int, int] = (width, height)) -> bytes:
@@ -159,6 +167,7 @@ def test_duplicates_garbage_and_strangers_are_counted_and_dropped(tmp_path: Path
         st = solver.wait_status(url, lambda s: s["cameras"][0]["received"] >= 8, 20)
         assert st["cameras"][0]["delivered"] == 2 and st["cameras"][0]["dropped"]["late"] == 1
     finally:
+        stop.set()
         session.close()  # type: ignore[no-untyped-call]
         solver.close()
 
@@ -238,6 +247,9 @@ def _certificates(folder: Path) -> None:
     (folder / "ext").write_text("subjectAltName=IP:127.0.0.1\n", encoding="utf-8")
     ssl("x509", "-req", "-in", "solver.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out",
         "solver.pem", "-days", "2", "-extfile", "ext")  # fmt: skip
+    ssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "hostA.key", "-out", "hostA.csr", "-subj", "/CN=hostA")
+    ssl("x509", "-req", "-in", "hostA.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out",
+        "hostA.pem", "-days", "2", "-extfile", "ext")  # fmt: skip
     (folder / "other").mkdir()
     ssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "other/ca.key", "-out", "other/ca.pem", "-days",
         "2", "-subj", "/CN=someone-else")  # fmt: skip
@@ -255,8 +267,9 @@ def _delivered_over(listener: zenoh.Session, talker: zenoh.Session) -> bool:
 
 
 def test_tls_sessions_talk_with_the_ca_and_not_without_it(tmp_path: Path) -> None:
-    """The TLS configuration of docs/scaling.md: a tls/ listener with a CA-signed certificate; a client that trusts
-    that CA gets through, one that trusts another CA does not."""
+    """The TLS configuration of docs/scaling.md: mutual TLS, a tls/ listener and a camera host each with a
+    certificate signed by the rig's CA get through; a client that only knows the CA certificate (public: it proves
+    nothing) does not (issue 34: it did), nor does one that trusts another CA."""
     from mocapd.io.zenoh_link import open_session
 
     _certificates(tmp_path)
@@ -266,10 +279,15 @@ def test_tls_sessions_talk_with_the_ca_and_not_without_it(tmp_path: Path) -> Non
         "tls_key": str(tmp_path / "solver.key")}}).zenoh)  # fmt: skip
     sessions = [solver]
     try:
+        host = open_session(parse_config({"zenoh": {
+            "listen": [], "connect": [endpoint], "tls_root_ca": str(tmp_path / "ca.pem"),
+            "tls_cert": str(tmp_path / "hostA.pem"), "tls_key": str(tmp_path / "hostA.key")}}).zenoh)  # fmt: skip
+        sessions.append(host)
+        assert _delivered_over(solver, host)
         trusting = open_session(parse_config({"zenoh": {"listen": [], "connect": [endpoint],
                                                         "tls_root_ca": str(tmp_path / "ca.pem")}}).zenoh)  # fmt: skip
         sessions.append(trusting)
-        assert _delivered_over(solver, trusting)
+        assert not _delivered_over(solver, trusting)
         other_ca = str(tmp_path / "other" / "ca.pem")
         stranger = open_session(parse_config({"zenoh": {"listen": [], "connect": [endpoint],
                                                         "tls_root_ca": other_ca}}).zenoh)  # fmt: skip

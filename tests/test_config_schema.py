@@ -464,6 +464,22 @@ CROSS_CASES: dict[tuple[str, str], list[Case]] = {
             },
             (),
         ),
+        # issue 34: TLS off loopback is mutual: a connector that only knows the (public) CA certificate is refused
+        Case(
+            {"zenoh.listen": [], "zenoh.connect": ["tls/10.0.0.1:7447"], "zenoh.tls_root_ca": "ca.pem"},
+            ("zenoh.connect", "zenoh.tls_cert"),
+        ),
+        Case(
+            {
+                "zenoh.listen": [],
+                "zenoh.connect": ["tls/10.0.0.1:7447"],
+                "zenoh.tls_root_ca": "ca.pem",
+                "zenoh.tls_cert": "c.pem",
+                "zenoh.tls_key": "k.pem",
+            },
+            (),
+        ),
+        Case({"zenoh.tls_cert": "c.pem"}, ("zenoh.tls_cert", "zenoh.tls_key")),
         Case({"zenoh.listen": ["tcp/[::1]:7447", "tcp/127.0.0.2:7447"]}, ()),
     ],
     ("WebSocketConfig", "_token_off_loopback"): [

@@ -79,9 +79,9 @@ def test_ned_exports_are_turned_to_enu() -> None:
     from mocapd.core.rotations import quat_from_matrix
 
     q_ned = quat_from_matrix(T @ matrix_from_quat(q_enu))
-    text = _export(q_ned, sep="\t", layout="quat", header=["// Update Rate: 60Hz", "// Coordinate system: NED"])
+    text = _export(q_ned, sep="\t", layout="quat", header=["// Update Rate: 100Hz", "// Coordinate system: NED"])
     e = parse_mt_export(text, name="MT_00B40001.txt")
-    assert e.sensor == "00B40001" and e.rate_hz == 60.0
+    assert e.sensor == "00B40001" and e.rate_hz == 100.0
     assert np.degrees(quat_angle(e.quat, q_enu)).max() < 1e-5
 
 

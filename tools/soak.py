@@ -14,14 +14,32 @@ every door at once:
 - IMU bridge datagrams: valid records, garbage bytes, out-of-range numbers (t = 1.7e308, NaN quaternions,
   ``pc`` = -5 or 2^63), wrong types, and records from fresh sensor ids;
 - SlimeVR datagrams: random bytes and truncated or mangled packets;
+- a SlimeVR swarm (issue 34): 64 trackers that each announce sensor ids 0..255 (again every 10 s, as firmware
+  repeats unacknowledged sensor infos) and then send only heartbeats, every one of them now and then a datagram
+  numbered 2⁶⁴−1; beside them one well-behaved tracker streaming sensor 0 at 100 Hz that also sends a 2⁶⁴−1
+  every 10 s: its rotations per second (``slimevr_good_hz``) show whether it is locked out;
+- Zenoh (issue 34): the soak process receives one remote camera (``zcam`` of host ``hostZ``: the door's
+  :class:`~mocapd.pipeline.remote_cameras.RemoteRig` and keypoint source on the daemon's event loop, counting what
+  they deliver) over a real Zenoh session on loopback; the attacker process runs the real host (status, clock
+  replies, 30 detections a second) and a rogue peer that answers the host's clock queries with 2^62 ns or another
+  run id, publishes status for the host with its own run id (also on another host's key), and detections numbered
+  2^63−1, stamped an hour ahead, of another run, or garbage: the real camera's delivered rate
+  (``zenoh_delivered_hz``) and its clock offset (0 on one machine) show whether the rogue got through;
 - HTTP: /status and /metrics polling, and bad requests (garbage request lines, oversized headers, POST, unknown
   paths, half-sent requests that stall) to the status server; viewer file-server requests with path traversal;
+- every ``--cli-every`` seconds, hostile file commands in child processes (``nice 10``): ``mocapd import mtw`` of a
+  FIFO, of a link to ``/dev/zero``, of an export of zero quaternions, with an absurd update rate, a backwards
+  counter; ``mocapd import mvnx`` of a FIFO; ``mocapd export`` to ``/dev/full``, a directory, a missing folder, one
+  file twice; ``mocapd calibrate convert X X``: each must end with one ``error:`` line and exit 2 within 60 s
+  (``cli_refused`` / ``cli_bad``);
 
 while this process unplugs one simulated IMU (its pseudo-terminal goes away, as a USB cable pulled) every
 ``--unplug-every`` seconds and plugs it back 5 s later. Every minute one JSON line: the output rate the good
 client saw, frames the daemon published, missed ticks, RSS, open fds, the rejection counters of every door, the
-WebSocket close codes the churn clients got, and how many log records of level ERROR or above (and how many with
-a traceback) the daemon wrote. The last line is the whole run's summary.
+WebSocket close codes the churn clients got, how many log records of level ERROR or above (and how many with
+a traceback) the daemon wrote, and how many log lines of any level it wrote that minute (through the daemon's
+repeat filter, :mod:`mocapd.io.log_throttle`, installed as ``mocapd run`` installs it). The last line is the
+whole run's summary.
 
     .venv/bin/python tools/soak.py [--minutes 30] [--interval 60] [--seed 0] [--out soak.jsonl]
 """
@@ -36,8 +54,10 @@ import logging
 import math
 import os
 import random
+import shutil
 import socket
 import sys
+import tempfile
 import time
 from collections import Counter
 from pathlib import Path
@@ -254,19 +274,312 @@ async def _attack(ports: dict[str, int], seconds: float, seed: int) -> None:
             await asyncio.sleep(1.0)
             print(json.dumps(dict(c)), flush=True)
 
-    await asyncio.gather(
-        good_client(),
-        *(ws_churn() for _ in range(3)),
-        udp("bridge", lambda n: _bridge_datagram(rng, n), 200.0),
-        udp("slimevr", slimevr, 20.0),
-        http_polling(),
-        http_bad(),
-        report(),
-    )
+    zenoh_side = _ZenohAttack(ports["zenoh"], rng, c) if "zenoh" in ports else None
+    try:
+        await asyncio.gather(
+            good_client(),
+            *(ws_churn() for _ in range(3)),
+            udp("bridge", lambda n: _bridge_datagram(rng, n), 200.0),
+            udp("slimevr", slimevr, 20.0),
+            _slimevr_swarm(ports["slimevr"], end, c),
+            _slimevr_good_tracker(ports["slimevr"], end, c),
+            *([] if zenoh_side is None else [zenoh_side.run(end)]),
+            http_polling(),
+            http_bad(),
+            report(),
+        )
+    finally:
+        if zenoh_side is not None:
+            zenoh_side.close()
     print(json.dumps(dict(c)), flush=True)
 
 
+SWARM_TRACKERS = 64
+"""Trackers of the SlimeVR swarm (the server's table holds 64)."""
+GOOD_MAC = "0B:00:00:00:00:01"
+"""The well-behaved SlimeVR tracker's MAC (its sensor 0 is ``0B:00:00:00:00:01/0``)."""
+
+
+async def _slimevr_swarm(port: int, end: float, c: Counter[str]) -> None:
+    """64 trackers announcing sensors 0..255 every 10 s, then heartbeats; each sends a 2^64-1 now and then."""
+    from mocapd.protocols.slimevr import Handshake, Heartbeat, SensorInfo, encode_bundle, encode_packet
+
+    socks = []
+    for _ in range(SWARM_TRACKERS):
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        sock.setblocking(False)
+        socks.append(sock)
+    numbers = [0] * SWARM_TRACKERS
+
+    def send(k: int, data: bytes) -> None:
+        with contextlib.suppress(OSError):
+            socks[k].sendto(data, ("127.0.0.1", port))
+            c["swarm_datagrams"] += 1
+
+    def nxt(k: int) -> int:
+        numbers[k] += 1
+        return numbers[k]
+
+    tick = 0
+    try:
+        while time.monotonic() < end:
+            for k in range(SWARM_TRACKERS):
+                if tick % 20 == 0:  # every 10 s: (re)introduce itself and announce 256 sensors
+                    send(k, encode_packet(Handshake(2, 3, 2, 22, "swarm", f"0A:00:00:00:00:{k:02X}"), 0))
+                    numbers[k] = 0
+                    for first in range(0, 256, 128):
+                        infos = [SensorInfo(i, 1, 3) for i in range(first, first + 128)]
+                        send(k, encode_bundle(list(infos), nxt(k), compact=True))
+                elif (tick + k) % 37 == 0:
+                    send(k, encode_packet(Heartbeat(), 2**64 - 1))  # one absurd packet number
+                    c["swarm_absurd_numbers"] += 1
+                send(k, encode_packet(Heartbeat(), nxt(k)))
+            tick += 1
+            await asyncio.sleep(0.5)
+    finally:
+        for sock in socks:
+            sock.close()
+
+
+async def _slimevr_good_tracker(port: int, end: float, c: Counter[str]) -> None:
+    """A tracker streaming sensor 0 at 100 Hz; every 10 s one of its datagrams is numbered 2^64-1. Like the
+    firmware, it shakes hands again when it has heard nothing from the server for 3 s (a tracker that went quiet
+    and was replaced in the server's table, or a daemon that restarted)."""
+    from mocapd.protocols.slimevr import HANDSHAKE_REPLY, Handshake, Rotation, SensorInfo, encode_packet
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.setblocking(False)
+    loop = asyncio.get_running_loop()
+
+    async def handshake() -> None:
+        while time.monotonic() < end:  # until answered (the daemon may be busy)
+            sock.sendto(encode_packet(Handshake(2, 3, 2, 22, "good", GOOD_MAC), 0), ("127.0.0.1", port))
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(1.0):
+                    while await loop.sock_recv(sock, 2048) != HANDSHAKE_REPLY:
+                        pass
+                    return
+
+    n = 0
+    try:
+        await handshake()
+        heard = time.monotonic()
+        k = 0
+        while time.monotonic() < end:
+            if time.monotonic() - heard > 3.0:
+                c["good_tracker_reconnects"] += 1
+                await handshake()
+                heard, n, k = time.monotonic(), 0, 0
+            if k % 100 == 0:
+                n += 1
+                sock.sendto(encode_packet(SensorInfo(0, 1, 3), n), ("127.0.0.1", port))
+            if k % 1000 == 500:
+                sock.sendto(encode_packet(Rotation(0, (1.0, 0.0, 0.0, 0.0)), 2**64 - 1), ("127.0.0.1", port))
+                c["good_tracker_absurd_numbers"] += 1
+            n += 1
+            a = 0.001 * (k % 100)
+            with contextlib.suppress(OSError):
+                sock.sendto(encode_packet(Rotation(0, (math.cos(a), 0.0, 0.0, math.sin(a))), n), ("127.0.0.1", port))
+                c["good_tracker_rotations_sent"] += 1
+            with contextlib.suppress(OSError, BlockingIOError):
+                while sock.recv(2048):  # the server's heartbeats and acks
+                    heard = time.monotonic()
+            k += 1
+            await asyncio.sleep(0.01)
+    finally:
+        sock.close()
+
+
+class _ZenohAttack:
+    """The attacker's Zenoh side: the real camera host ``hostZ`` and a rogue peer (module docstring)."""
+
+    def __init__(self, port: int, rng: random.Random, c: Counter[str]) -> None:
+        import zenoh
+
+        from mocapd.core.sorting import Detections2D
+        from mocapd.io.zenoh_link import clock_key, detections_key, status_key
+        from mocapd.protocols.remote import CameraState, encode_clock, encode_detections, encode_status
+
+        self.c, self.rng = c, rng
+        self.encode_detections, self.encode_status, self.CameraState = encode_detections, encode_status, CameraState
+        self.dets = Detections2D.empty(17)
+        self.run_id = rng.getrandbits(64)
+        self.rogue_run = rng.getrandbits(64)
+        self.frame = 0
+
+        def session() -> Any:
+            cfg = zenoh.Config()
+            for key, value in (("mode", "peer"), ("listen/endpoints", []),
+                               ("connect/endpoints", [f"tcp/127.0.0.1:{port}"]),
+                               ("scouting/multicast/enabled", False), ("scouting/gossip/enabled", False)):  # fmt: skip
+                cfg.insert_json5(key, json.dumps(value))
+            return zenoh.open(cfg)
+
+        self.host, self.rogue = session(), session()
+        self.started = time.monotonic_ns()
+        self.pub = self.host.declare_publisher(detections_key("soak", "zcam"))
+        self.status = self.host.declare_publisher(status_key("soak", "hostZ"))
+        self.rogue_pub = self.rogue.declare_publisher(detections_key("soak", "zcam"))
+        self.rogue_status = self.rogue.declare_publisher(status_key("soak", "hostZ"))
+        self.rogue_other = self.rogue.declare_publisher(status_key("soak", "hostY"))
+
+        def real_clock(q: Any) -> None:
+            q.reply(q.key_expr, encode_clock("hostZ", self.run_id, time.monotonic_ns()))
+
+        def rogue_clock(q: Any) -> None:  # answers first if it can: 2^62 ns, or another run's clock
+            c["zenoh_rogue_clock_replies"] += 1
+            run = self.run_id if self.rng.random() < 0.5 else self.rogue_run
+            q.reply(q.key_expr, encode_clock("hostZ", run, 2**62 if self.rng.random() < 0.5 else 1))
+
+        self.queryables = [self.host.declare_queryable(clock_key("soak", "hostZ"), real_clock),
+                           self.rogue.declare_queryable(clock_key("soak", "hostZ"), rogue_clock)]  # fmt: skip
+
+    async def run(self, end: float) -> None:
+        tick = 0
+        while time.monotonic() < end:
+            now = time.monotonic_ns()
+            self.frame += 1
+            self.pub.put(self.encode_detections("hostZ", "zcam", self.run_id, self.frame, now, now, 640, 480,
+                                                self.dets))  # fmt: skip
+            self.c["zenoh_real_frames"] += 1
+            if tick % 15 == 0:
+                uptime = (now - self.started) / 1e9
+                self.status.put(self.encode_status("hostZ", self.run_id, now, uptime, [self.CameraState("zcam",
+                                                   self.frame, True)]))  # fmt: skip
+            if tick % 2 == 0:
+                self._rogue(now)
+            tick += 1
+            await asyncio.sleep(1 / 30)
+
+    def _rogue(self, now: int) -> None:
+        kind = self.rng.randrange(6)
+        hour = 3600 * 10**9
+        if kind == 0:
+            data = self.encode_detections("hostZ", "zcam", self.run_id, 2**63 - 1, now, now, 640, 480, self.dets)
+        elif kind == 1:
+            data = self.encode_detections("hostZ", "zcam", self.run_id, self.frame + 1, now + hour, now + hour, 640,
+                                          480, self.dets)  # fmt: skip
+        elif kind == 2:
+            data = self.encode_detections("hostZ", "zcam", self.rogue_run, 1, now, now, 640, 480, self.dets)
+        elif kind == 3:
+            self.rogue_status.put(self.encode_status("hostZ", self.rogue_run, now, 0.5, []))
+            self.c["zenoh_rogue_status"] += 1
+            return
+        elif kind == 4:
+            self.rogue_other.put(self.encode_status("hostZ", self.rogue_run, now, 0.5, []))
+            self.c["zenoh_rogue_status"] += 1
+            return
+        else:
+            data = self.rng.randbytes(self.rng.randint(0, 200))
+        self.rogue_pub.put(data)
+        self.c["zenoh_rogue_messages"] += 1
+
+    def close(self) -> None:
+        for s in (self.host, self.rogue):
+            with contextlib.suppress(Exception):
+                s.close()
+
+
+# --------------------------------------------------------------------------------------------- file doors
+
+
+def _cli_attacks(folder: Path) -> list[tuple[str, list[str]]]:
+    """Hostile ``mocapd`` file commands (module docstring), each expected to refuse with one line, exit 2."""
+    src = REPO / "tests" / "data" / "opensense_mtw" / "MT_012005D6_009-001_00B421E6.txt"
+    text = src.read_text(encoding="utf-8")
+    fifo = folder / "MT_fifo_00B40001.txt"
+    if not fifo.exists():
+        os.mkfifo(fifo)
+    zero = folder / "MT_zero_00B40002.txt"
+    if not zero.is_symlink():
+        zero.symlink_to("/dev/zero")
+    quat = folder / "MT_quat_00B40003.txt"
+    quat.write_text("// Update Rate: 100Hz\nPacketCounter\tQuat_q0\tQuat_q1\tQuat_q2\tQuat_q3\n"
+                    + "".join(f"{i}\t0\t0\t0\t0\n" for i in range(200)), encoding="utf-8")  # fmt: skip
+    rate = folder / "MT_rate_00B421E6.txt"
+    rate.write_text(text.replace("// Update Rate: 100.0Hz", "// Update Rate: 1e6Hz"), encoding="utf-8")
+    backwards = folder / "MT_back_00B421E6.txt"
+    lines = text.splitlines()
+    head = [ln for ln in lines if ln.startswith("//")]
+    rows = lines[len(head) + 1 :]
+    backwards.write_text("\n".join([*head, lines[len(head)], *reversed(rows)]) + "\n", encoding="utf-8")
+    mvnx_fifo = folder / "take.mvnx"
+    if not mvnx_fifo.exists():
+        os.mkfifo(mvnx_fifo)
+    session = folder / "session"
+    calib = folder / "calib.toml"
+    out = [(f"import mtw {p.name}", ["import", "mtw", str(p), "-o", str(folder / f"s-{p.stem}"), "--assign",
+                                     f"{p.stem[-8:]}=Hips"]) for p in (fifo, zero, quat, rate, backwards)]  # fmt: skip
+    out.append(("import mvnx FIFO", ["import", "mvnx", str(mvnx_fifo), "-o", str(folder / "s-mvnx")]))
+    if session.exists():
+        for name, target in (("export /dev/full", ["--bvh", "/dev/full"]), ("export dir", ["--csv", str(folder)]),
+                             ("export missing folder", ["--bvh", str(folder / "no" / "x.bvh")]),
+                             ("export twice", ["--bvh", str(folder / "F"), "--csv", str(folder / "F")])):  # fmt: skip
+            out.append((name, ["export", str(session), "--resolved", *target]))
+    if calib.exists():
+        out.append(("calibrate convert X X", ["calibrate", "convert", str(calib), str(calib)]))
+    return out
+
+
+async def _cli_setup(folder: Path) -> None:
+    """A resolved imported session and a calibration file for the export and convert attacks."""
+    src = REPO / "tests" / "data" / "opensense_mtw" / "MT_012005D6_009-001_00B421E6.txt"
+    for argv in (["import", "mtw", str(src), "-o", str(folder / "session"), "--assign", "00B421E6=Hips"],
+                 ["resolve", str(folder / "session"), "--iterations", "2", "--no-smooth"]):  # fmt: skip
+        proc = await asyncio.create_subprocess_exec("nice", "-n", "10", sys.executable, "-m", "mocapd", *argv,
+                                                    stdout=asyncio.subprocess.DEVNULL,
+                                                    stderr=asyncio.subprocess.DEVNULL, cwd=REPO)  # fmt: skip
+        await proc.wait()
+    from mocapd.sim.camera_hosts import write_ring_calibration
+
+    write_ring_calibration(["cam0", "cam1"], folder / "calib.toml")
+
+
+def _limit_memory() -> None:
+    """A child's address space: 4 GiB (a regression reading /dev/zero whole fails with MemoryError instead of
+    taking the shared machine's memory)."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
+
+
+async def _run_cli_attacks(folder: Path, counts: Counter[str], failures: list[str]) -> None:
+    for name, argv in _cli_attacks(folder):
+        proc = await asyncio.create_subprocess_exec("nice", "-n", "10", sys.executable, "-m", "mocapd", *argv,
+                                                    stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE,
+                                                    cwd=REPO, preexec_fn=_limit_memory)  # fmt: skip
+        try:
+            _, err = await asyncio.wait_for(proc.communicate(), 60)
+        except TimeoutError:
+            counts["cli_bad"] += 1
+            failures.append(f"{name}: no answer within 60 s")
+            continue
+        finally:
+            if proc.returncode is None:  # timed out, or the soak ended (cancelled) while it ran: never an orphan
+                proc.kill()
+                await asyncio.shield(proc.wait())
+        lines = err.decode(errors="replace").strip().splitlines()
+        if proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "):
+            counts["cli_refused"] += 1
+        else:
+            counts["cli_bad"] += 1
+            failures.append(f"{name}: exit {proc.returncode}: {(lines or [''])[-1][:200]}")
+
+
 # --------------------------------------------------------------------------------------------- the daemon side
+
+
+class _LineCounter(logging.Handler):
+    """Counts the log lines the daemon writes (level WARNING and above, after the repeat filter)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines += 1
 
 
 class _LogCounter(logging.Handler):
@@ -296,12 +609,22 @@ def _fds() -> int:
     return len(os.listdir("/proc/self/fd"))
 
 
-async def soak(minutes: float, interval_s: float, seed: int, unplug_every_s: float, out: Any) -> dict[str, Any]:
+def _free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def soak(
+    minutes: float, interval_s: float, seed: int, unplug_every_s: float, cli_every_s: float, out: Any
+) -> dict[str, Any]:
     import psutil
 
+    from mocapd.io import log_throttle
     from mocapd.io.ws_server import WebSocketStreamServer
+    from mocapd.pipeline.remote_cameras import RemoteRig, ZenohKeypointSource
     from mocapd.service.assembly import assembled
-    from mocapd.service.config import load_config
+    from mocapd.service.config import load_config, parse_config
     from mocapd.service.demo.synthetic import synthetic_config
 
     cfg = load_config()
@@ -315,7 +638,16 @@ async def soak(minutes: float, interval_s: float, seed: int, unplug_every_s: flo
         "imu": imu,
     })  # fmt: skip
     logs = _LogCounter()
+    lines_out = _LineCounter()
     logging.getLogger().addHandler(logs)
+    logging.getLogger().addHandler(lines_out)
+    log_throttle.install()  # as `mocapd run` does: repeated lines are a few and a count
+    zport = _free_tcp_port()
+    zrig = RemoteRig(parse_config({"zenoh": {"rig": "soak", "listen": [f"tcp/127.0.0.1:{zport}"]}}).zenoh, ["hostZ"])
+    zcam = ZenohKeypointSource(0, "zcam", "hostZ", zrig, (640, 480), 17, 300_000_000)
+    cli_counts: Counter[str] = Counter()
+    cli_failures: list[str] = []
+    cli_folder = Path(tempfile.mkdtemp(prefix="mocapd-soak-"))
     proc_info = psutil.Process()
     rng = random.Random(seed)
     seconds = minutes * 60.0
@@ -333,7 +665,9 @@ async def soak(minutes: float, interval_s: float, seed: int, unplug_every_s: flo
         await asyncio.wait_for(d.ready.wait(), 600)
         ws = next(s for s in d.sinks if isinstance(s, WebSocketStreamServer))
         assert d.imu.bridge is not None and d.imu.slimevr is not None
-        ports = {"http": d.http.port, "ws": int(ws.port), "bridge": d.imu.bridge.port, "slimevr": d.imu.slimevr.port}
+        zenoh_task = asyncio.create_task(zcam.run(lambda *_: None))  # delivered frames counted by the source
+        ports = {"http": d.http.port, "ws": int(ws.port), "bridge": d.imu.bridge.port, "slimevr": d.imu.slimevr.port,
+                 "zenoh": zport}  # fmt: skip
         cmd = ["nice", "-n", "5", sys.executable, __file__, "--attack", json.dumps(ports),
                "--seconds", str(seconds), "--seed", str(seed)]  # fmt: skip
         attacker = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE)
@@ -361,12 +695,47 @@ async def soak(minutes: float, interval_s: float, seed: int, unplug_every_s: flo
 
         plugging = asyncio.create_task(unplugger())
 
+        async def cli_attacker() -> None:
+            await _cli_setup(cli_folder)
+            while True:
+                await _run_cli_attacks(cli_folder, cli_counts, cli_failures)
+                await asyncio.sleep(cli_every_s)
+
+        cli = asyncio.create_task(cli_attacker())
+
         def counters() -> dict[str, Any]:
             st = d.status()
             ws_stats = ws.stats()
             bridge = st["imu"]["bridge"] or {}
             slime = st["imu"]["slimevr"] or {}
+            good_t = d.imu.slimevr.server.trackers.get(GOOD_MAC) if d.imu.slimevr is not None else None
+            zst = zcam.status()
+            zhost = zrig.status().get("hostZ", {})
             return {
+                "slimevr": {
+                    "trackers": slime.get("trackers_total", len(slime.get("trackers", []))),
+                    "sensors": slime.get("sensors_total", sum(len(t["sensors"]) for t in slime.get("trackers", []))),
+                    "refused_sensors": slime.get("refused_sensors"),
+                    "number_jumps": slime.get("number_jumps"),
+                    "timeouts": slime.get("timeouts"),
+                    # the well-behaved tracker, read from the server (/status lists only some trackers)
+                    "good_rotations": sum(x.rotations for x in good_t.sensors.values()) if good_t else 0,
+                    "good_connected": None if good_t is None else not good_t.timed_out,
+                    "good_reordered": None if good_t is None else good_t.reordered,
+                    "good_lost": None if good_t is None else good_t.lost,
+                },
+                "zenoh": {
+                    "received": zst["received"],
+                    "delivered": zst["delivered"],
+                    "dropped": zst["dropped"],
+                    "decode_rejected": zst["decode_rejected"],
+                    "host_rejected": zhost.get("rejected"),
+                    "clock_offset_ms": zhost.get("clock_offset_ms"),
+                    "restarts": zhost.get("restarts"),
+                    "round_trips": zhost.get("round_trips"),
+                },
+                "log_lines": lines_out.lines,
+                "cli": dict(cli_counts),
                 "frames_published": st["output"]["frames"],
                 "missed_ticks": st["output"]["missed_ticks"],
                 "good_frames": latest.get("good_frames", 0),
@@ -409,6 +778,15 @@ async def soak(minutes: float, interval_s: float, seed: int, unplug_every_s: flo
                 "status_bytes": cur["status_bytes"],
                 "imu_unplugs": unplugs,
                 "imu_disconnects": cur["imu_disconnects"],
+                "slimevr": cur["slimevr"],
+                "slimevr_good_hz": round(  # (a tracker replaced in the table counts from 0 again)
+                    max(0, cur["slimevr"]["good_rotations"] - prev["slimevr"]["good_rotations"]) / dt, 2
+                ),
+                "zenoh": cur["zenoh"],
+                "zenoh_delivered_hz": round((cur["zenoh"]["delivered"] - prev["zenoh"]["delivered"]) / dt, 2),
+                "log_lines_per_min": round((cur["log_lines"] - prev["log_lines"]) * 60.0 / dt, 1),
+                "cli": cur["cli"],
+                "loadavg": os.getloadavg(),
                 "log_errors": logs.errors,
                 "log_tracebacks": logs.tracebacks,
                 "attacker": dict(latest),
@@ -417,6 +795,11 @@ async def soak(minutes: float, interval_s: float, seed: int, unplug_every_s: flo
             emit(line)
             prev, prev_t = cur, now
         plugging.cancel()
+        cli.cancel()
+        zenoh_task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await zenoh_task
+        zrig.close()
         if attacker.returncode is None:
             attacker.terminate()
         await attacker.wait()
@@ -436,12 +819,24 @@ async def soak(minutes: float, interval_s: float, seed: int, unplug_every_s: flo
         "rss_mib_end": lines[-1]["rss_mib"] if lines else None,
         "fds_end": lines[-1]["fds"] if lines else None,
         "imu_unplugs": unplugs,
+        "status_kb_max": max((round(x["status_bytes"] / 1024, 1) for x in lines if x["status_bytes"]), default=None),
+        "log_lines_per_min_median": _median([x["log_lines_per_min"] for x in lines]),
+        "log_lines_per_min_max": max((x["log_lines_per_min"] for x in lines), default=None),
+        "slimevr_good_hz_min": min((x["slimevr_good_hz"] for x in lines), default=None),
+        "zenoh_delivered_hz_min": min((x["zenoh_delivered_hz"] for x in lines), default=None),
+        "cli": dict(cli_counts),
+        "cli_failures": cli_failures[:10],
         "log_errors": logs.errors,
         "log_tracebacks": logs.tracebacks,
         "first_errors": logs.first,
     }
+    shutil.rmtree(cli_folder, ignore_errors=True)
     emit(summary)
     return summary
+
+
+def _median(values: list[float]) -> float | None:
+    return sorted(values)[len(values) // 2] if values else None
 
 
 def main() -> None:
@@ -450,6 +845,8 @@ def main() -> None:
     ap.add_argument("--interval", type=float, default=60.0, help="seconds between report lines (default 60)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--unplug-every", type=float, default=20.0, help="seconds between IMU unplugs (default 20)")
+    ap.add_argument("--cli-every", type=float, default=300.0,
+                    help="seconds between rounds of hostile file commands (default 300)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=None, help="also append the JSON lines to this file")
     ap.add_argument("--attack", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--seconds", type=float, default=None, help=argparse.SUPPRESS)
@@ -460,7 +857,7 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     with contextlib.ExitStack() as stack:
         out = stack.enter_context(a.out.open("a")) if a.out is not None else None
-        summary = asyncio.run(soak(a.minutes, a.interval, a.seed, a.unplug_every, out))
+        summary = asyncio.run(soak(a.minutes, a.interval, a.seed, a.unplug_every, a.cli_every, out))
     sys.exit(0 if summary["daemon_alive_to_the_end"] and summary["exit_code"] == 0 else 1)
 
 

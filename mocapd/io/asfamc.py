@@ -21,8 +21,13 @@ from mocapd.core.motion import SourceMotion
 from mocapd.core.rotations import quat_conjugate, quat_multiply
 from mocapd.errors import InputError
 from mocapd.io.bvh import MAX_CHANNEL_VALUE
+from mocapd.io.input_files import GiB, MiB, read_input_text
 from mocapd.io.malformed import malformed_file
 from mocapd.io.mocap_units import quat_from_euler
+
+MAX_FILE_BYTES = GiB // 2
+"""Largest motion file read (read whole and split into words: ~10 times its size in memory while parsed; an hour
+of 120 Hz motion of a 30-bone skeleton is ~250 MiB of text)."""
 
 FloatArray = NDArray[np.float64]
 _INCH = 0.0254
@@ -52,10 +57,7 @@ class AsfSkeleton:
 
 def read_asf(path: str | Path) -> AsfSkeleton:
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise InputError(f"cannot read ASF file {p}: {exc}") from exc
+    text = read_input_text(p, "ASF file", max_bytes=16 * MiB)  # a skeleton: a few KB
     return parse_asf(text, p.name)
 
 
@@ -168,10 +170,7 @@ def _euler_xyz(angles_deg: FloatArray) -> FloatArray:
 
 def read_amc(path: str | Path, skeleton: AsfSkeleton, fps: float = 120.0) -> SourceMotion:
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise InputError(f"cannot read AMC file {p}: {exc}") from exc
+    text = read_input_text(p, "AMC file", max_bytes=MAX_FILE_BYTES)
     return parse_amc(text, skeleton, p.stem, fps)
 
 

@@ -15,8 +15,13 @@ import numpy as np
 from mocapd.core.motion import SourceMotion
 from mocapd.core.naming import match_roles
 from mocapd.errors import InputError
+from mocapd.io.input_files import GiB, read_input_text
 from mocapd.io.malformed import malformed_file
 from mocapd.io.mocap_units import CANDIDATE_UNITS, detect_unit, quat_from_euler
+
+MAX_FILE_BYTES = GiB // 2
+"""Largest motion file read (read whole and split into words: ~10 times its size in memory while parsed; an hour
+of 120 Hz motion of a 30-bone skeleton is ~250 MiB of text)."""
 
 _LEG_NAMES = (("upleg", "hip", "upperleg", "thigh", "femur"), ("leg", "knee", "lowerleg", "shin", "tibia"))
 
@@ -30,10 +35,7 @@ def read_bvh(path: str | Path, unit: str | None = None) -> SourceMotion:
     unit : one of ``CANDIDATE_UNITS`` (m, cm, mm, inch, cmu) or None to detect it from the leg length.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise InputError(f"cannot read BVH file {p}: {exc}") from exc
+    text = read_input_text(p, "BVH file", max_bytes=MAX_FILE_BYTES)
     return parse_bvh(text, p.stem, unit)
 
 

@@ -54,7 +54,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.camera import Camera
+from mocapd.core.names import check_name
 from mocapd.errors import CalibrationError
+from mocapd.io.input_files import open_input, read_input_bytes
+from mocapd.io.output_files import atomic_path, write_text_atomic
 
 FloatArray = NDArray[np.float64]
 WorldUp = Literal["y", "z"]
@@ -63,6 +66,10 @@ WorldUp = Literal["y", "z"]
 Z_TO_Y: FloatArray = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
+MAX_CAMERAS = 256
+"""Most cameras one calibration file may hold."""
+MAX_FILE_BYTES = 16 << 20
+"""Largest calibration file read (a calibration of 256 cameras is ~200 KB of text)."""
 MAX_IMAGE_PX = 65535
 """Largest image side a calibration may give (the session format's 16-bit sizes)."""
 
@@ -97,6 +104,7 @@ class CameraCalibration:
     error_px: float | None = None
 
     def __post_init__(self) -> None:
+        check_name(self.name, "camera name", CalibrationError)  # the config's rule: the name must match one there
         K = np.asarray(self.K, np.float64)
         dist = np.zeros(5)
         d = np.asarray(self.dist, np.float64).reshape(-1)[:5]
@@ -144,6 +152,14 @@ class CalibrationSet:
 
     cameras: tuple[CameraCalibration, ...]
     source: str = ""
+
+    def __post_init__(self) -> None:
+        names = [c.name for c in self.cameras]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:  # which one would a camera of the config get?
+            raise CalibrationError(f"camera(s) {twice} appear more than once in the calibration")
+        if len(names) > MAX_CAMERAS:
+            raise CalibrationError(f"{len(names)} cameras; a calibration holds at most {MAX_CAMERAS}")
 
     def __getitem__(self, name: str) -> CameraCalibration:
         for cam in self.cameras:
@@ -203,18 +219,24 @@ def write_mocapd_toml(calib: CalibrationSet, path: Path) -> None:
         ]
         if cam.error_px is not None:
             lines.append(f"reprojection_error_px = {cam.error_px!r}")
-    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 def _quote(text: str) -> str:
     return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
+def _read(path: Path) -> bytes:
+    """A calibration file's bytes: a regular file of at most :data:`MAX_FILE_BYTES` (a FIFO or a device is
+    refused, not waited on or read without end)."""
+    return read_input_bytes(path, "calibration file", max_bytes=MAX_FILE_BYTES, error=CalibrationError)
+
+
 def _load_toml(path: Path) -> dict[str, Any]:
+    data = _read(path)
     try:
-        with Path(path).open("rb") as f:
-            return tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        return tomllib.loads(data.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"cannot read calibration {path}: {exc}") from exc
 
 
@@ -301,7 +323,7 @@ def write_pose2sim_toml(calib: CalibrationSet, path: Path, world_up: WorldUp = "
             "",
         ]
     lines += ["[metadata]", "adjusted = false", "error = 0.0", ""]
-    Path(path).write_text("\n".join(lines), encoding="utf-8")
+    write_text_atomic(path, "\n".join(lines))
 
 
 # -- Qualisys .qca.txt ----------------------------------------------------------------------------------------------
@@ -327,9 +349,10 @@ def read_qca(
     pose2sim_distortion : bool
         Divide the distortion coefficients by 64 (and the binning factor) as Pose2Sim does.
     """
+    data = _read(path)
     try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError) as exc:
+        root = ET.fromstring(data)
+    except ET.ParseError as exc:
         raise CalibrationError(f"cannot read Qualisys calibration {path}: {exc}") from exc
     cams: list[CameraCalibration] = []
     for node in root.findall("cameras/camera"):
@@ -426,6 +449,8 @@ def _mat(fs: Any, key: str, path: Path) -> Any:
 
 def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
     """Read OpenCV ``FileStorage`` YAML (Pose2Sim multi-camera layout or one camera); see module docstring."""
+    with open_input(path, "calibration file", max_bytes=MAX_FILE_BYTES, error=CalibrationError):
+        pass  # a regular file of a sane size: OpenCV opens it by name (and would wait on a FIFO)
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     if not fs.isOpened():
         raise CalibrationError(f"cannot open OpenCV YAML {path}")
@@ -477,18 +502,19 @@ def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
 
 def write_opencv_yaml(calib: CalibrationSet, path: Path, world_up: WorldUp = "y") -> None:
     """Write ``calib`` in the Pose2Sim multi-camera OpenCV YAML layout (plus ``size_<name>``)."""
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    try:
-        fs.write("names", calib.names)
-        for cam in calib.cameras:
-            c = world_y_up_to_z_up(cam) if world_up == "z" else cam
-            fs.write(f"size_{c.name}", np.array(c.size, np.float64))
-            fs.write(f"K_{c.name}", c.K)
-            fs.write(f"dist_{c.name}", c.dist.reshape(1, 5))
-            fs.write(f"R_{c.name}", cv2.Rodrigues(c.R)[0])
-            fs.write(f"T_{c.name}", c.t.reshape(3, 1))
-    finally:
-        fs.release()
+    with atomic_path(path) as tmp:  # OpenCV writes the file itself: into a temporary one of the same suffix
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        try:
+            fs.write("names", calib.names)
+            for cam in calib.cameras:
+                c = world_y_up_to_z_up(cam) if world_up == "z" else cam
+                fs.write(f"size_{c.name}", np.array(c.size, np.float64))
+                fs.write(f"K_{c.name}", c.K)
+                fs.write(f"dist_{c.name}", c.dist.reshape(1, 5))
+                fs.write(f"R_{c.name}", cv2.Rodrigues(c.R)[0])
+                fs.write(f"T_{c.name}", c.t.reshape(3, 1))
+        finally:
+            fs.release()
 
 
 def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:

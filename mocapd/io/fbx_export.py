@@ -33,6 +33,7 @@ import numpy as np
 from mocapd.core.rotations import quat_from_rotvec
 from mocapd.core.skeleton import BONE_NAMES, N_BONES, PARENTS, Skeleton
 from mocapd.errors import InputError, ToolError
+from mocapd.io.output_files import check_output_file
 from mocapd.io.session_export import SubjectTrack
 
 SCRIPT = Path(__file__).with_name("_blender_fbx.py")
@@ -87,19 +88,6 @@ def find_blender(explicit: str | Path | None = None) -> Blender:
                     f"`{INSTALL}`, or put `blender` on PATH, or pass --blender PATH")  # fmt: skip
 
 
-def check_output(path: str | Path) -> Path:
-    """The FBX path, checked before anything runs: an existing, writable directory, not a directory itself."""
-    p = Path(path)
-    parent = p.parent if str(p.parent) else Path(".")
-    if p.is_dir():
-        raise InputError(f"--fbx {p}: is a directory; give a file name such as take.fbx")
-    if not parent.is_dir():
-        raise InputError(f"--fbx {p}: directory {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"--fbx {p}: directory {parent} is not writable")
-    return p
-
-
 def node_names(subjects: list[str]) -> list[str]:
     """FBX node names of the subjects' armatures: letters, digits and ``_`` (``suit:suit0`` → ``suit_suit0``; FBX
     and Maya give ``:`` a meaning), distinct."""
@@ -132,7 +120,7 @@ def export_fbx(
         raise InputError(f"FBX units {units!r} / up axis {up!r}: allowed {UNITS} and {UP_AXES}")
     if not tracks:
         raise InputError("no subject to export")
-    out = check_output(path).resolve()
+    out = check_output_file(path, overwrite=True).resolve()  # replacing a file is the caller's choice (--force)
     blender = blender or find_blender()
     t0 = min(int(t.t_ns[0]) for t, _ in tracks)
     names = node_names([t.subject for t, _ in tracks])

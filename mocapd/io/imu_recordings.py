@@ -15,7 +15,9 @@ segment labels map onto bones by :data:`MVN_SENSOR_BONES` (the shoulder sensors 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +27,10 @@ from numpy.typing import NDArray
 from mocapd.errors import InputError
 from mocapd.io.mt_export import TICK_HZ, MtExport
 from mocapd.io.mvnx import MvnxRecording
+from mocapd.io.output_files import atomic_directory, check_output_dir
 from mocapd.io.prior import resolve_prior
-from mocapd.io.session import SessionWriter
-from mocapd.protocols.session_format import T_IMU, ImuRecord, encode_imu
+from mocapd.io.session import MANIFEST, STREAMS, SUFFIX, WriterCounters, write_json_atomic
+from mocapd.protocols.session_format import T_HEADER, T_IMU, ImuRecord, encode_header, encode_imu, encode_record
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -122,33 +125,56 @@ def mvnx_assignment(streams: list[SensorStream]) -> dict[str, str]:
 
 
 def write_imported_session(directory: str | Path, streams: list[SensorStream], manifest: dict[str, Any]) -> Path:
-    """Write the session: manifest, the default prior, every sample in time order into ``imu.mcs``."""
-    path = Path(directory)
-    if (path / "manifest.json").exists():
-        raise InputError(f"{path} is a session already: import into a new directory")
+    """Write the session: manifest, the default prior, every sample in time order into ``imu.mcs``.
+
+    The directory must not exist or be empty (:func:`mocapd.io.output_files.check_output_dir`, best called before
+    reading the recordings). It is built beside its final name and renamed into place when complete, so a failed
+    import leaves nothing half-written; the samples are encoded and written as they are taken in time order
+    (memory: the recordings' arrays and one sort index, nothing per sample).
+    """
+    path = check_output_dir(directory, what="session directory")
     prior = resolve_prior("default")
     n = sum(len(s.time_ns) for s in streams)
-    writer = SessionWriter(path, manifest, queue_size=n + 16)
-    writer.open()
-    try:
+    times = np.concatenate([s.time_ns for s in streams]) if streams else np.empty(0, np.int64)
+    which = np.concatenate([np.full(len(s.time_ns), i, np.int32) for i, s in enumerate(streams)]) if streams else (
+        np.empty(0, np.int32))  # fmt: skip
+    where = np.concatenate([np.arange(len(s.time_ns)) for s in streams]) if streams else np.empty(0, np.int64)
+    order = np.lexsort((which, times))  # by time, then by the stream's place (as the writer queue had them)
+    counters = WriterCounters()
+    with atomic_directory(path) as tmp:
         if prior is not None:
-            np.savez(path / "prior.npz", M=prior.M, mu=prior.mu, sigma=prior.sigma)
-        order = sorted(
-            ((int(t), i, k) for i, s in enumerate(streams) for k, t in enumerate(s.time_ns)), key=lambda x: x[:2]
-        )
-        for t, i, k in order:
-            s = streams[i]
-            q, a = s.quat[k], s.acc[k]
-            rec = ImuRecord(
-                s.sensor, T0_NS + t, T0_NS + t,
-                None if s.ticks is None else int(s.ticks[k]), None if s.counter is None else int(s.counter[k]),
-                (float(q[0]), float(q[1]), float(q[2]), float(q[3])), (float(a[0]), float(a[1]), float(a[2])),
-            )  # fmt: skip
-            writer.put("imu", T_IMU, encode_imu, rec)
-    finally:
-        writer.close({"ended_monotonic_ns": T0_NS + max(int(s.time_ns[-1]) for s in streams if s.time_ns.size)})
-    if writer.counters.dropped or writer.counters.encode_errors:
-        raise InputError(
-            f"{path}: {writer.counters.dropped} samples dropped, {writer.counters.encode_errors} not encodable"
-        )
+            np.savez(tmp / "prior.npz", M=prior.M, mu=prior.mu, sigma=prior.sigma)
+        for name in STREAMS:
+            if name != "imu":
+                with (tmp / f"{name}{SUFFIX}").open("wb") as fh:
+                    fh.write(encode_record(T_HEADER, encode_header(name)))
+                    os.fsync(fh.fileno())
+        with (tmp / f"imu{SUFFIX}").open("wb", buffering=1 << 20) as fh:
+            fh.write(encode_record(T_HEADER, encode_header("imu")))
+            for i, k in _in_order(which, where, order):
+                s = streams[i]
+                t = T0_NS + int(s.time_ns[k])
+                q, a = s.quat[k], s.acc[k]
+                rec = ImuRecord(
+                    s.sensor, t, t, None if s.ticks is None else int(s.ticks[k]),
+                    None if s.counter is None else int(s.counter[k]),
+                    (float(q[0]), float(q[1]), float(q[2]), float(q[3])), (float(a[0]), float(a[1]), float(a[2])),
+                )  # fmt: skip
+                data = encode_record(T_IMU, encode_imu(rec))
+                fh.write(data)
+                counters.bytes += len(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        counters.queued = counters.written = n
+        counters.flushes = 1
+        ended = T0_NS + max((int(s.time_ns[-1]) for s in streams if s.time_ns.size), default=0)
+        write_json_atomic(tmp / MANIFEST, {**manifest, "closed": True, "ended_monotonic_ns": ended,
+                                           "writer": asdict(counters)})  # fmt: skip
     return path
+
+
+def _in_order(which: NDArray[np.int32], where: IntArray, order: IntArray) -> Iterator[tuple[int, int]]:
+    """(stream, sample) pairs in ``order``, 65536 at a time (never a Python list of every sample)."""
+    for start in range(0, len(order), 1 << 16):
+        part = order[start : start + (1 << 16)]
+        yield from zip(which[part].tolist(), where[part].tolist(), strict=True)

@@ -4,13 +4,23 @@ MVN's world is Z up, X forward (at reset), Y left; mocapd's is Y up with the per
 ``(x, y, z)`` of MVN is ``(y, z, x)`` here (a cyclic permutation, still right-handed). Quaternions are (w, x, y,
 z) in both. Frames of type ``identity``, ``tpose`` and ``tpose-isb`` are calibration poses and are returned
 apart from the ``normal`` frames of the recording.
+
+The file is a door (issue 34): it must be a regular file of at most :data:`MAX_FILE_BYTES`
+(:mod:`mocapd.io.input_files`) and is parsed as a stream (expat feeding a target that keeps only the numbers it
+needs: a frame's text is dropped once its arrays are read, so memory follows the recording's arrays, not the XML
+tree, ~10 times their size). Counts and values are checked: at most :data:`MAX_SEGMENTS` segments and
+:data:`MAX_SENSORS` sensors, no element's text beyond :data:`MAX_TEXT_CHARS`, at most :data:`MAX_FRAMES` frames,
+a frame rate in [:data:`MIN_FPS`, :data:`MAX_FPS`] that agrees with the frames' times within 10 %, times in ms
+finite, at least 0 and increasing, every number finite; anything else is one ``InputError`` naming the file.
 """
 
 from __future__ import annotations
 
+import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,9 +29,26 @@ from mocapd.core.imu import STANDARD_GRAVITY
 from mocapd.core.motion import SourceMotion
 from mocapd.core.rotations import matrix_from_quat, quat_from_matrix, quat_normalize
 from mocapd.errors import InputError
+from mocapd.io.input_files import GiB, open_input
 from mocapd.io.malformed import malformed_file
 
 FloatArray = NDArray[np.float64]
+
+MAX_FILE_BYTES = 8 * GiB
+"""Largest MVNX file read (~12 KB of XML a frame at 60 Hz: about three hours)."""
+MAX_SEGMENTS = 64
+MAX_SENSORS = 64
+MAX_JOINTS = 128
+MAX_FRAMES = 5_000_000
+MAX_TEXT_CHARS = 1 << 20
+"""Longest text of one element (a frame's 23 segment orientations are ~1.5 KB)."""
+MIN_FPS = 1.0
+MAX_FPS = 1_000.0
+"""Frame rates accepted (MVN records at 60 to 240 Hz)."""
+MAX_TIME_MS = 1e10
+"""Latest frame time accepted (ms from the start: about 115 days)."""
+_CHUNK = 1 << 20
+_FRAME_FIELDS = ("orientation", "position", "sensorOrientation", "sensorFreeAcceleration")
 
 _PERM = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 """MVN (Z up, X forward, Y left) → mocapd (Y up, X left, Z forward)."""
@@ -99,10 +126,10 @@ class MvnxRecording:
         return SourceMotion(name, self.segments, self.segment_parents, tr, rot, np.zeros((n, 3)), self.fps)
 
 
-def _floats(el: ET.Element | None, what: str) -> FloatArray:
-    if el is None or el.text is None:
+def _floats(text: str | None, what: str) -> FloatArray:
+    if text is None:
         raise InputError(f"MVNX: frame without <{what}>")
-    return np.array(el.text.split(), dtype=np.float64)
+    return np.array(text.split(), dtype=np.float64)
 
 
 def _vec(a: FloatArray) -> FloatArray:
@@ -120,69 +147,172 @@ def _quat(a: FloatArray) -> FloatArray:
 def read_mvnx(path: str | Path) -> MvnxRecording:
     """Read an MVNX file (see module doc)."""
     p = Path(path)
-    try:
-        root = ET.parse(p).getroot()
-    except (OSError, ET.ParseError) as exc:
-        raise InputError(f"cannot read MVNX file {p}: {exc}") from exc
-    ns = root.tag.split("}")[0] + "}" if root.tag.startswith("{") else ""
-    subject = root.find(f"{ns}subject")
-    if subject is None:
-        raise InputError(f"MVNX {p.name}: no <subject>")
-    with malformed_file(f"MVNX {p.name}"):
-        rec = _recording(subject, ns, p.name)
+    target = _Target(p.name)
+    parser = ET.XMLParser(target=target)
+    with open_input(p, "MVNX file", max_bytes=MAX_FILE_BYTES) as fh, malformed_file(f"MVNX {p.name}"):
+        try:
+            while chunk := fh.read(_CHUNK):
+                parser.feed(chunk)
+            parser.close()
+        except ET.ParseError as exc:
+            raise InputError(f"cannot read MVNX file {p}: {exc}") from None
+        except OSError as exc:
+            raise InputError(f"cannot read MVNX file {p}: {exc.strerror or exc}") from None
+        rec = target.recording()
     arrays = [rec.time_ms, rec.segment_orientation, rec.segment_position, rec.sensor_orientation,
               rec.sensor_free_acceleration]  # fmt: skip
     if rec.tpose_orientation is not None:  # the calibration pose: a nan there would reach the retarget silently
         arrays.append(rec.tpose_orientation)
     if not (np.isfinite(rec.fps) and rec.fps > 0) or not all(np.isfinite(a).all() for a in arrays):
         raise InputError(f"MVNX {p.name}: non-finite values (frame rate {rec.fps!r}, or a frame's numbers)")
+    _check_times(rec, p.name)
     return rec
 
 
-def _recording(subject: ET.Element, ns: str, name: str) -> MvnxRecording:
-    fps = float(subject.get("frameRate", "60"))
-    segs = [s.get("label", "") for s in subject.iter(f"{ns}segment")]
-    sensors = [s.get("label", "") for s in subject.iter(f"{ns}sensor")]
-    index = {s: i for i, s in enumerate(segs)}
-    parents = [-1] * len(segs)
-    for joint in subject.iter(f"{ns}joint"):
-        c1, c2 = joint.find(f"{ns}connector1"), joint.find(f"{ns}connector2")
-        if c1 is None or c2 is None or c1.text is None or c2.text is None:
-            continue
-        a, b = c1.text.split("/")[0], c2.text.split("/")[0]
-        if a in index and b in index:
-            parents[index[b]] = index[a]
-    order = _topological(parents)
-    times, ori, pos, s_ori, s_acc = [], [], [], [], []
+def _check_times(rec: MvnxRecording, name: str) -> None:
+    """Frame rate and times plausible: MVN's rate, and ms times that start at >= 0 and increase at about it."""
+    if not MIN_FPS <= rec.fps <= MAX_FPS:
+        raise InputError(f"MVNX {name}: frameRate {rec.fps:.6g}; allowed: {MIN_FPS:g} to {MAX_FPS:g} Hz")
+    t = rec.time_ms
+    if t.size and not (t[0] >= 0 and t[-1] <= MAX_TIME_MS):
+        raise InputError(f"MVNX {name}: frame times from {t[0]:.6g} to {t[-1]:.6g} ms; allowed: 0 to "
+                         f"{MAX_TIME_MS:.0e} ms")  # fmt: skip
+    if np.any(np.diff(t) <= 0):
+        k = int(np.argmax(np.diff(t) <= 0))
+        raise InputError(f"MVNX {name}: frame times do not increase ({t[k]:.6g} ms, then {t[k + 1]:.6g} ms)")
+    if t.size > 2:
+        step_fps = 1000.0 / float(np.median(np.diff(t)))
+        if abs(rec.fps / step_fps - 1.0) > 0.1:
+            raise InputError(f"MVNX {name}: frameRate {rec.fps:g} Hz disagrees with the frames' times "
+                             f"({step_fps:.4g} Hz)")  # fmt: skip
+
+
+@dataclass
+class _Target:
+    """An expat target that keeps what :class:`MvnxRecording` needs (see the module docstring)."""
+
+    name: str
+    ns: str | None = None
+    path: list[str] = field(default_factory=list)
+    fps_text: str | None = None
+    subjects: int = 0
+    segs: list[str] = field(default_factory=list)
+    sensors: list[str] = field(default_factory=list)
+    joints: list[tuple[str | None, str | None]] = field(default_factory=list)
+    frame: dict[str, Any] | None = None
+    text: list[str] | None = None
+    text_chars: int = 0
+    times: list[float] = field(default_factory=list)
+    ori: list[FloatArray] = field(default_factory=list)
+    pos: list[FloatArray] = field(default_factory=list)
+    s_ori: list[FloatArray] = field(default_factory=list)
+    s_acc: list[FloatArray] = field(default_factory=list)
     tpose: FloatArray | None = None
-    for fr in subject.iter(f"{ns}frame"):
-        kind = fr.get("type", "normal")
+
+    def start(self, tag: str, attrib: dict[str, str]) -> None:
+        if self.ns is None:
+            self.ns = tag.split("}", maxsplit=1)[0] + "}" if tag.startswith("{") else ""
+        local = tag.removeprefix(self.ns) if self.ns else tag
+        self.path.append(local)
+        if "subject" not in self.path:
+            return
+        if local == "subject" and self.subjects == 0:
+            self.subjects = 1
+            self.fps_text = attrib.get("frameRate", "60")
+        elif self.subjects != 1 or len(self.path) < 2:
+            return
+        elif local == "segment":
+            self._count(self.segs, MAX_SEGMENTS, "segments").append(attrib.get("label", ""))
+        elif local == "sensor":
+            self._count(self.sensors, MAX_SENSORS, "sensors").append(attrib.get("label", ""))
+        elif local == "joint":
+            self._count(self.joints, MAX_JOINTS, "joints").append((None, None))
+        elif (local in ("connector1", "connector2") and self.path[-2] == "joint") or (
+            local in _FRAME_FIELDS and self.path[-2] == "frame" and self.frame is not None
+        ):
+            self.text, self.text_chars = [], 0
+        elif local == "frame":
+            if len(self.times) >= MAX_FRAMES:
+                raise InputError(f"MVNX {self.name}: more than {MAX_FRAMES} frames")
+            self.frame = {"type": attrib.get("type", "normal"), "time": attrib.get("time", "0")}
+
+    def _count(self, items: list[Any], limit: int, what: str) -> list[Any]:
+        if len(items) >= limit:
+            raise InputError(f"MVNX {self.name}: more than {limit} {what}")
+        return items
+
+    def data(self, text: str) -> None:
+        if self.text is not None:
+            self.text_chars += len(text)
+            if self.text_chars > MAX_TEXT_CHARS:
+                raise InputError(f"MVNX {self.name}: <{self.path[-1]}> holds more than {MAX_TEXT_CHARS} characters")
+            self.text.append(text)
+
+    def end(self, tag: str) -> None:
+        local = self.path.pop() if self.path else ""
+        text = "".join(self.text) if self.text is not None else None
+        self.text = None
+        if local in ("connector1", "connector2") and text is not None and self.joints:
+            c1, c2 = self.joints[-1]
+            self.joints[-1] = (text, c2) if local == "connector1" else (c1, text)
+        elif local in _FRAME_FIELDS and self.frame is not None and text is not None:
+            self.frame[local] = text
+        elif local == "frame" and self.frame is not None:
+            self._frame(self.frame)
+            self.frame = None
+        elif local == "subject" and self.subjects == 1:
+            self.subjects = 2  # a second <subject> is not read (as before: the first one)
+
+    def close(self) -> None:
+        return None
+
+    def _frame(self, fr: dict[str, Any]) -> None:
+        kind = fr["type"]
         if kind == "tpose":
-            tpose = _quat(_floats(fr.find(f"{ns}orientation"), "orientation"))
+            self.tpose = _quat(_floats(fr.get("orientation"), "orientation"))
         if kind != "normal":
-            continue
-        times.append(float(fr.get("time", "0")))
-        ori.append(_quat(_floats(fr.find(f"{ns}orientation"), "orientation")))
-        pos.append(_vec(_floats(fr.find(f"{ns}position"), "position")))
-        so, sa = fr.find(f"{ns}sensorOrientation"), fr.find(f"{ns}sensorFreeAcceleration")
-        s_ori.append(_quat(_floats(so, "sensorOrientation")) if so is not None else np.zeros((len(sensors), 4)))
-        s_acc.append(_vec(_floats(sa, "sensorFreeAcceleration")) if sa is not None else np.zeros((len(sensors), 3)))
-    if not times:
-        raise InputError(f"MVNX {name}: no normal frames")
-    perm = np.array(order)
-    inv = {old: new for new, old in enumerate(order)}
-    return MvnxRecording(
-        segments=tuple(segs[i] for i in order),
-        segment_parents=tuple(-1 if parents[i] < 0 else inv[parents[i]] for i in order),
-        sensors=tuple(sensors),
-        fps=fps,
-        time_ms=np.array(times),
-        segment_orientation=np.stack(ori)[:, perm],
-        segment_position=np.stack(pos)[:, perm],
-        sensor_orientation=np.stack(s_ori),
-        sensor_free_acceleration=np.stack(s_acc),
-        tpose_orientation=None if tpose is None else tpose[perm],
-    )
+            return
+        n = len(self.sensors)
+        self.times.append(float(fr["time"]))
+        self.ori.append(_quat(_floats(fr.get("orientation"), "orientation")))
+        self.pos.append(_vec(_floats(fr.get("position"), "position")))
+        so, sa = fr.get("sensorOrientation"), fr.get("sensorFreeAcceleration")
+        self.s_ori.append(_quat(_floats(so, "sensorOrientation")) if so is not None else np.zeros((n, 4)))
+        self.s_acc.append(_vec(_floats(sa, "sensorFreeAcceleration")) if sa is not None else np.zeros((n, 3)))
+
+    def recording(self) -> MvnxRecording:
+        name = self.name
+        if self.subjects == 0:
+            raise InputError(f"MVNX {name}: no <subject>")
+        fps = float(self.fps_text or "60")
+        if not math.isfinite(fps):
+            raise InputError(f"MVNX {name}: non-finite values (frame rate {fps!r}, or a frame's numbers)")
+        segs = self.segs
+        index = {s: i for i, s in enumerate(segs)}
+        parents = [-1] * len(segs)
+        for c1, c2 in self.joints:
+            if c1 is None or c2 is None:
+                continue
+            a, b = c1.split("/")[0], c2.split("/")[0]
+            if a in index and b in index:
+                parents[index[b]] = index[a]
+        order = _topological(parents)
+        if not self.times:
+            raise InputError(f"MVNX {name}: no normal frames")
+        perm = np.array(order)
+        inv = {old: new for new, old in enumerate(order)}
+        return MvnxRecording(
+            segments=tuple(segs[i] for i in order),
+            segment_parents=tuple(-1 if parents[i] < 0 else inv[parents[i]] for i in order),
+            sensors=tuple(self.sensors),
+            fps=fps,
+            time_ms=np.array(self.times),
+            segment_orientation=np.stack(self.ori)[:, perm],
+            segment_position=np.stack(self.pos)[:, perm],
+            sensor_orientation=np.stack(self.s_ori),
+            sensor_free_acceleration=np.stack(self.s_acc),
+            tpose_orientation=None if self.tpose is None else self.tpose[perm],
+        )
 
 
 def _topological(parents: list[int]) -> list[int]:

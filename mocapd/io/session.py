@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from mocapd.errors import InputError
+from mocapd.io.input_files import read_input_bytes
 from mocapd.protocols.session_format import (
     T_FRAME,
     T_HEADER,
@@ -69,6 +70,8 @@ BLOCK = 1 << 16
 the rest at each flush: large writes, and a crash between two of them leaves a partial record at the end."""
 _STOP = object()
 T = TypeVar("T")
+MAX_MANIFEST_BYTES = 64 << 20
+"""Largest manifest read (a session's is a few KB to a few MB with a long synthetic truth table)."""
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
@@ -325,14 +328,14 @@ class Session:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         where = self.path / MANIFEST
-        try:
-            manifest = json.loads(where.read_bytes().decode("utf-8"))
-        except FileNotFoundError as exc:
-            raise InputError(f"{self.path} is not a session directory (no {MANIFEST})") from exc
-        except NotADirectoryError:
+        if self.path.is_file():
             hint = (f": a pose stream written by `mocapd resolve SESSION -o {self.path}`? Give its session and "
                     f"`--poses {self.path}`" if self.path.suffix == SUFFIX else "")  # fmt: skip
-            raise InputError(f"{self.path} is a file, not a session directory{hint}") from None
+            raise InputError(f"{self.path} is a file, not a session directory{hint}")
+        if not where.exists():
+            raise InputError(f"{self.path} is not a session directory (no {MANIFEST})")
+        try:  # a regular file of sane size: a FIFO or a link to /dev/zero is refused, not waited on or read
+            manifest = json.loads(read_input_bytes(where, "session manifest", max_bytes=MAX_MANIFEST_BYTES))
         except UnicodeDecodeError as exc:
             raise InputError(f"{where}: damaged: byte {exc.start} is not UTF-8 (a manifest is JSON text)") from None
         except json.JSONDecodeError as exc:

@@ -12,6 +12,9 @@ CSV columns (one row per output frame, header row first; lengths in metres, quat
     <Bone>_x, <Bone>_y, <Bone>_z                  for the 21 bones in skeleton order (global joint positions)
     source_s                                      (last, so that the columns before it keep their places)
 
+Every file is written atomically (:mod:`mocapd.io.output_files`: a temporary file renamed into place when
+complete); the export command checks the paths before it starts.
+
 ``time_s`` is seconds since the first exported frame, ``t_solve_ns`` the host-clock instant it stands for (the
 solve time; in a session recorded with predicted output, the instants the suit wearer's poses were carried to),
 ``source_s`` seconds since the session began (a recorded session: its start; an imported take: its recording's
@@ -35,6 +38,7 @@ from mocapd.core.kinematics import Kinematics
 from mocapd.core.rotations import quat_from_rotvec, quat_slerp, rotvec_from_quat
 from mocapd.core.skeleton import BONE_NAMES, N_BONES, Skeleton
 from mocapd.errors import InputError
+from mocapd.io.output_files import atomic_file, write_bytes_atomic, write_text_atomic
 from mocapd.protocols.bvh_writer import bvh_text
 from mocapd.protocols.gltf_writer import GltfSubject, glb_bytes
 from mocapd.protocols.session_format import PoseRecord
@@ -105,7 +109,7 @@ def resample(track: SubjectTrack, rate_hz: float = 60.0, origin_ns: int | None =
 
 def write_bvh(path: str | Path, skeleton: Skeleton, track: SubjectTrack, rate_hz: float = 60.0) -> int:
     """Write ``track`` (already on a ``rate_hz`` grid) as BVH; returns the frame count."""
-    Path(path).write_text(bvh_text(skeleton.offsets, track.thetas, rate_hz), encoding="utf-8")
+    write_text_atomic(path, bvh_text(skeleton.offsets, track.thetas, rate_hz))
     return int(track.thetas.shape[0])
 
 
@@ -118,7 +122,7 @@ def write_gltf(path: str | Path, tracks: list[tuple[SubjectTrack, Skeleton]], ge
         raise InputError("no subject to export")
     t0 = min(int(t.t_ns[0]) for t, _ in tracks)
     subjects = [GltfSubject(t.subject, sk.offsets, sk.root_height, (t.t_ns - t0) / 1e9, t.thetas) for t, sk in tracks]
-    Path(path).write_bytes(glb_bytes(subjects, generator))
+    write_bytes_atomic(path, glb_bytes(subjects, generator))
     return len(subjects)
 
 
@@ -136,7 +140,7 @@ def write_csv(path: str | Path, skeleton: Skeleton, track: SubjectTrack, origin_
     n = int(track.thetas.shape[0])
     q = quat_from_rotvec(track.thetas[:, 3:].reshape(n, N_BONES, 3)).reshape(n, -1)
     x = Kinematics(skeleton).forward(track.thetas).positions.reshape(n, -1)
-    with Path(path).open("w", newline="", encoding="utf-8") as fh:
+    with atomic_file(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(csv_header())
         for i in range(n):

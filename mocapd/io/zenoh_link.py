@@ -3,7 +3,9 @@
 What the session may do is decided here, once: it listens and connects only on the configured endpoints (a peer
 left without ``listen`` endpoints would otherwise listen on every interface, ``tcp/[::]:0``), scouting is off
 (multicast scouting sends on every interface; gossip would connect to peers of peers), user/password or TLS
-when configured (the schema refuses endpoints off loopback without one of them).
+when configured (the schema refuses endpoints off loopback without one of them); with a certificate of its own a
+session uses mutual TLS (``enable_mtls``): as a listener it accepts only peers presenting a certificate signed by
+``tls_root_ca``, as a connector it presents its own.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any, Protocol
 import zenoh
 
 from mocapd.errors import ConfigError, DeviceError
+from mocapd.io.input_files import read_input_text
 
 
 class ZenohConfig(Protocol):
@@ -81,9 +84,9 @@ def host_name(z: ZenohConfig) -> str:
 
 
 def _read_secret(path: str, key: str) -> str:
-    try:
-        text = Path(path).read_text(encoding="utf-8").strip()
-    except (OSError, UnicodeDecodeError) as exc:
+    try:  # a regular file of a few bytes: a FIFO would block the start, a link to /dev/zero never end
+        text = read_input_text(path, f"zenoh.{key}", max_bytes=4096, errors="strict", error=ConfigError).strip()
+    except UnicodeDecodeError as exc:
         raise ConfigError(f"zenoh.{key} = {path!r}: cannot read: {exc}") from None
     if not text or "\n" in text:
         raise ConfigError(f"zenoh.{key} = {path!r}: must hold one line, the password")
@@ -112,7 +115,8 @@ def session_settings(z: ZenohConfig) -> dict[str, Any]:
         tls: dict[str, Any] = {"root_ca_certificate": z.tls_root_ca}
         if z.tls_cert:
             tls |= {"listen_certificate": z.tls_cert, "listen_private_key": z.tls_key,
-                    "connect_certificate": z.tls_cert, "connect_private_key": z.tls_key}  # fmt: skip
+                    "connect_certificate": z.tls_cert, "connect_private_key": z.tls_key,
+                    "enable_mtls": True}  # fmt: skip
         for key in ("tls_root_ca", "tls_cert", "tls_key"):
             if getattr(z, key) and not Path(getattr(z, key)).is_file():
                 raise ConfigError(f"zenoh.{key} = {getattr(z, key)!r}: no such file")

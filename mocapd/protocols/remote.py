@@ -17,7 +17,8 @@ this run (uint63, increasing); ``capture_ns``/``sent_ns``/``now_ns``: the host's
 ``boxes``/``keypoints``/``confidences``: msgpack bin of little-endian float32, ``n * 4`` (x0, y0, x1, y1),
 ``n * n_kp * 2`` (x, y) and ``n * n_kp`` values for ``n`` people (0..64). Pixels are finite and within
 ``[-width, 2 width] x [-height, 2 height]`` (a detector places a keypoint a little outside the image, never
-that far); confidences are in [0, 1]; boxes have x0 <= x1, y0 <= y1.
+that far); confidences are in [0, 1]; boxes have x0 <= x1, y0 <= y1; a frame is sent after it was captured
+(``sent_ns >= capture_ns``, both on the host's clock).
 
 A decoder never raises on bytes: what does not parse or breaks a rule is counted under a reason
 (:attr:`Decoder.rejected`) and dropped.
@@ -211,6 +212,8 @@ class Decoder:
         frame = _int(obj[5], 0, MAX_INT63, "frame")
         capture_ns = _int(obj[6], 0, MAX_INT63, "capture_ns")
         sent_ns = _int(obj[7], 0, MAX_INT63, "sent_ns")
+        if sent_ns < capture_ns:
+            raise Rejected("sent_before_capture")
         width = _int(obj[8], 1, 65535, "width")
         height = _int(obj[9], 1, 65535, "height")
         n_kp = _int(obj[10], 1, MAX_KEYPOINTS, "n_kp")

@@ -9,12 +9,26 @@ Datagram formats: :mod:`mocapd.protocols.slimevr`. What the server does, followi
   < 9 have sensor 0 from the handshake on;
 - a connection's packets must carry increasing packet numbers (0 is always accepted: handshakes, echoed pings):
   a number not above the last one is a late or duplicated datagram, counted as reordered and dropped (an older
-  orientation must not overwrite a newer one); a jump counts the numbers skipped as lost;
+  orientation must not overwrite a newer one); a step forward counts the numbers skipped as lost;
 - every ``heartbeat_interval_ns`` each connection gets a heartbeat (answered by the tracker) and a ping (echoed:
   the round trip is reported); a connection silent for ``timeout_ns`` is timed out until it speaks again;
 - feature flags (22) are answered with the server's (bundles and compact bundles, which are parsed);
 - acceleration of trackers with protocol version < 22 is turned by −90° about +Z, the server's correction for
   firmware that applied the board rotation to acceleration wrongly (SlimeVR-Tracker-ESP pull request 480).
+
+What mocapd adds at the door (issue 34), because anyone on the network can send a datagram:
+
+- packet numbers are followed by :class:`~mocapd.protocols.sequence.SequenceNumbers`: a step forward of more
+  than ``max_number_step`` or back by more than ``max_number_behind`` is not adopted (one datagram numbered 2⁶⁴−1
+  locked a tracker out: every later one was "reordered"); it is dropped and counted (``number_jumps``), and two
+  such numbers in a row that follow each other resynchronise the connection (``number_resyncs``);
+- sensors are bounded per tracker (``max_sensors_per_tracker``, 16: a SlimeVR glove has 10) and in total
+  (``max_sensors``): a sensor info beyond either is refused, counted (``refused_sensors``) and not acknowledged;
+  64 trackers announcing 256 sensors each had held the daemon's loop busy enough to drop the output rate by a
+  third;
+- :meth:`SlimeVrServer.status` lists at most ``max_listed_trackers`` trackers (connected ones first, then the
+  most recently heard) beside counts of all of them, so ``/status`` stays a few tens of KB however many trackers
+  a sender invents; time-outs are counted per tracker and in total.
 
 What mocapd adds, because its buffers are sampled at fixed instants:
 
@@ -38,6 +52,7 @@ from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
+from mocapd.protocols.sequence import SequenceNumbers
 from mocapd.protocols.slimevr import (
     DATA_TYPE_NORMAL,
     HANDSHAKE_REPLY,
@@ -88,12 +103,25 @@ class ServerOptions:
     """A separate acceleration packet applies to rotations up to this much later."""
     gravity: float = STANDARD_GRAVITY
     max_trackers: int = 64
-    """Trackers known at once. A handshake from a new tracker beyond this replaces the timed-out tracker silent
-    longest; with none timed out it is refused (counted): a sender cycling through source ports or MACs cannot
-    grow the table, and cannot push out a tracker that is talking."""
+    """Trackers known at once. A handshake from a new tracker beyond this replaces a timed-out tracker (one that
+    never sent an orientation first, then the one silent longest); with none timed out it is refused (counted): a
+    sender cycling through source ports or MACs cannot grow the table, and cannot push out a tracker that is
+    talking."""
+    max_sensors_per_tracker: int = 16
+    """Sensors one tracker may announce (the firmware's MAX_SENSORS_COUNT: 1-2 on a tracker, 10 on a glove)."""
+    max_sensors: int = 128
+    """Sensors of all trackers together (a full-body suit and two gloves are ~40)."""
+    max_number_step: int = 1 << 16
+    """Largest step forward of a packet number taken as the next one (~5 minutes of packets at 200 a second)."""
+    max_number_behind: int = 1 << 10
+    """A packet number this far behind the last one is a late datagram (reordered); farther, a jump."""
+    max_listed_trackers: int = 16
+    """Trackers listed one by one in :meth:`SlimeVrServer.status` (all of them are counted)."""
 
     def __post_init__(self) -> None:
-        for name in ("heartbeat_interval_ns", "timeout_ns", "hold_after_ns", "acc_max_age_ns", "max_trackers"):
+        for name in ("heartbeat_interval_ns", "timeout_ns", "hold_after_ns", "acc_max_age_ns", "max_trackers",
+                     "max_sensors_per_tracker", "max_sensors", "max_number_step", "max_number_behind",
+                     "max_listed_trackers"):  # fmt: skip
             if getattr(self, name) <= 0:
                 raise ValueError(f"ServerOptions.{name} must be > 0, got {getattr(self, name)}")
 
@@ -129,11 +157,10 @@ class TrackerState:
     connected_ns: int
     last_packet_ns: int
     timed_out: bool = False
-    last_number: int = 0
+    numbers: SequenceNumbers = field(default_factory=lambda: SequenceNumbers(1 << 16, 1 << 10, last=0))
     packets: int = 0
-    lost: int = 0
-    reordered: int = 0
     handovers: int = 0
+    timeouts: int = 0
     battery_voltage: float | None = None
     battery_level: float | None = None
     rssi_dbm: int | None = None
@@ -146,6 +173,16 @@ class TrackerState:
 
     def sensor_id(self, index: int) -> str:
         return f"{self.key}/{index}"
+
+    @property
+    def lost(self) -> int:
+        """Packet numbers skipped (a step forward counts the ones between)."""
+        return self.numbers.lost
+
+    @property
+    def reordered(self) -> int:
+        """Late or duplicated datagrams dropped."""
+        return self.numbers.reordered + self.numbers.duplicates
 
 
 @dataclass(frozen=True, slots=True)
@@ -210,6 +247,14 @@ class ServerCounters:
     """Handshakes of new trackers refused because ``max_trackers`` live trackers are known."""
     replaced_trackers: int = 0
     """Timed-out trackers forgotten to make room for a new one."""
+    refused_sensors: int = 0
+    """Sensor infos refused: the tracker has ``max_sensors_per_tracker`` sensors, or all have ``max_sensors``."""
+    number_jumps: int = 0
+    """Datagrams dropped because their packet number jumped too far from the connection's (not adopted)."""
+    number_resyncs: int = 0
+    """Connections whose packet numbering was followed to a new place (two consecutive numbers agreed on it)."""
+    timeouts: int = 0
+    """Trackers timed out (each time one went silent for ``timeout_ns``)."""
     ignored: Counter[str] = field(default_factory=Counter)
     bad_reasons: Counter[str] = field(default_factory=Counter)
 
@@ -229,6 +274,7 @@ class SlimeVrServer:
         self._out: list[tuple[bytes, Address]] = []
         self._events: list[Event] = []
         self._ping_counter = 0
+        self._sensors = 0  # sensors of all trackers
 
     # ------------------------------------------------------------------------------------------ I/O boundary
     def datagrams_to_send(self) -> list[tuple[bytes, Address]]:
@@ -259,11 +305,14 @@ class SlimeVrServer:
         if decoded.packet_type < 0:
             return
         if decoded.number != 0:
-            if decoded.number <= tracker.last_number:
-                tracker.reordered += 1
+            verdict = tracker.numbers.take(decoded.number)
+            if verdict == "resync":
+                c.number_resyncs += 1
+            elif verdict == "jump":
+                c.number_jumps += 1
                 return
-            tracker.lost += decoded.number - tracker.last_number - 1
-            tracker.last_number = decoded.number
+            elif verdict != "next":  # late or repeated: an older orientation must not overwrite a newer one
+                return
         tracker.packets += 1
         tracker.last_packet_ns = now_ns
         if tracker.timed_out:
@@ -289,6 +338,8 @@ class SlimeVrServer:
                 self._out.append((encode_ping(self._ping_counter), t.address))
             if not t.timed_out and now_ns - t.last_packet_ns > o.timeout_ns:
                 t.timed_out = True
+                t.timeouts += 1
+                self.counters.timeouts += 1
                 self._events.append(TrackerTimedOut(t.key))
             if t.timed_out:
                 continue
@@ -308,13 +359,14 @@ class SlimeVrServer:
         reasons[key if key in reasons or len(reasons) < 31 else "other"] += 1
 
     def _handshake(self, h: Handshake, address: Address, now_ns: int) -> None:
+        o = self.options
         old = self.trackers.get(h.mac) if h.mac else None
         if old is None:
             old = self._by_address.get(address)
         if old is not None:
             self._by_address.pop(old.address, None)
             old.address = address
-            old.last_number = 0
+            old.numbers.reset(0)  # a new connection numbers its packets from 1
             old.handovers += 1
             old.firmware, old.protocol_version, old.board, old.mcu = h.firmware, h.protocol_version, h.board, h.mcu
             old.last_packet_ns = now_ns
@@ -327,21 +379,25 @@ class SlimeVrServer:
                 return
             key = h.mac or f"{address[0]}:{address[1]}"
             tracker = TrackerState(key, h.mac, address, h.board, h.mcu, h.firmware, h.protocol_version,
-                                   connected_ns=now_ns, last_packet_ns=now_ns, next_keepalive_ns=now_ns)  # fmt: skip
+                                   connected_ns=now_ns, last_packet_ns=now_ns, next_keepalive_ns=now_ns,
+                                   numbers=SequenceNumbers(o.max_number_step, o.max_number_behind, last=0))  # fmt: skip
             self.trackers[key] = tracker
             if h.protocol_version < 9:  # old firmware announces no sensors: sensor 0 exists from the start
-                tracker.sensors[0] = SensorState(0, imu_type=h.imu)
+                self._add_sensor(tracker, 0, h.imu)
         self._by_address[address] = tracker
         self._out.append((HANDSHAKE_REPLY, address))
         self._events.append(TrackerConnected(tracker.key, address, handover=old is not None))
 
     def _make_room(self) -> bool:
-        """Forget the timed-out tracker silent longest; False when every known tracker is live."""
+        """Forget a timed-out tracker: one that never sent an orientation first (it gave the solve nothing: a sender
+        that fills the table with handshakes and heartbeats cannot push out a real tracker that missed a second),
+        then the one silent longest; False when every known tracker is live."""
         quiet = [t for t in self.trackers.values() if t.timed_out]
         if not quiet:
             return False
-        gone = min(quiet, key=lambda t: t.last_packet_ns)
+        gone = min(quiet, key=lambda t: (any(s.rotations for s in t.sensors.values()), t.last_packet_ns))
         del self.trackers[gone.key]
+        self._sensors -= len(gone.sensors)
         if self._by_address.get(gone.address) is gone:
             del self._by_address[gone.address]
         self.counters.replaced_trackers += 1
@@ -366,7 +422,9 @@ class SlimeVrServer:
             s.acc, s.acc_ns = self._acc(t, p.acc), now_ns
             accelerations[p.sensor] = s.acc
         elif isinstance(p, SensorInfo):
-            s = t.sensors.setdefault(p.sensor, SensorState(p.sensor))
+            s = t.sensors.get(p.sensor) or self._add_sensor(t, p.sensor, p.imu_type)
+            if s is None:  # not acknowledged: the firmware repeats it, each refusal counted
+                return
             s.status, s.imu_type = p.status, p.imu_type
             self._out.append((encode_sensor_info_ack(p.sensor, p.status), t.address))
         elif isinstance(p, PingPong):
@@ -407,6 +465,16 @@ class SlimeVrServer:
         else:  # a second handshake inside a bundle is refused by the decoder; nothing else is left
             self.counters.ignored[type(p).__name__] += 1
 
+    def _add_sensor(self, t: TrackerState, index: int, imu_type: int) -> SensorState | None:
+        """A new sensor of ``t``, or None (counted) when the tracker or the server has all it may hold."""
+        o = self.options
+        if len(t.sensors) >= o.max_sensors_per_tracker or self._sensors >= o.max_sensors:
+            self.counters.refused_sensors += 1
+            return None
+        s = t.sensors[index] = SensorState(index, imu_type=imu_type)
+        self._sensors += 1
+        return s
+
     # Per-datagram arithmetic is written out on floats: numpy costs ~100 µs per tiny array call here, and a suit
     # of trackers sends thousands of datagrams a second into the daemon's event loop.
     def _acc(self, t: TrackerState, acc: Vec3) -> Vec3:
@@ -439,8 +507,11 @@ class SlimeVrServer:
 
     # ------------------------------------------------------------------------------------------ status
     def status(self) -> dict[str, Any]:
-        """Counters and per-tracker state for /status."""
+        """Counters, counts of trackers and sensors, and the first ``max_listed_trackers`` trackers (connected
+        ones first, then the most recently heard) for /status."""
         c = self.counters
+        ranked = sorted(self.trackers.values(), key=lambda t: (t.timed_out, -t.last_packet_ns))
+        listed = ranked[: self.options.max_listed_trackers]
         return {
             "datagrams": c.datagrams,
             "bad_datagrams": c.bad_datagrams,
@@ -449,38 +520,49 @@ class SlimeVrServer:
             "unannounced_sensor": c.unannounced_sensor,
             "refused_trackers": c.refused_trackers,
             "replaced_trackers": c.replaced_trackers,
+            "refused_sensors": c.refused_sensors,
+            "number_jumps": c.number_jumps,
+            "number_resyncs": c.number_resyncs,
+            "timeouts": c.timeouts,
             "ignored": dict(c.ignored),
-            "trackers": [
+            "trackers_total": len(self.trackers),
+            "trackers_connected": sum(not t.timed_out for t in self.trackers.values()),
+            "sensors_total": self._sensors,
+            "trackers_listed": len(listed),
+            "trackers": [self._tracker_status(t) for t in listed],
+        }
+
+    @staticmethod
+    def _tracker_status(t: TrackerState) -> dict[str, Any]:
+        return {
+            "id": t.key,
+            "address": f"{t.address[0]}:{t.address[1]}",
+            "firmware": t.firmware,
+            "protocol_version": t.protocol_version,
+            "board": t.board,
+            "mcu": t.mcu,
+            "connected": not t.timed_out,
+            "packets": t.packets,
+            "lost": t.lost,
+            "reordered": t.reordered,
+            "number_jumps": t.numbers.jumps,
+            "handovers": t.handovers,
+            "timeouts": t.timeouts,
+            "battery_voltage": t.battery_voltage,
+            "battery_level": t.battery_level,
+            "rssi_dbm": t.rssi_dbm,
+            "rtt_ms": None if t.rtt_ms is None else round(t.rtt_ms, 2),
+            "errors": t.errors,
+            "sensors": [
                 {
-                    "id": t.key,
-                    "address": f"{t.address[0]}:{t.address[1]}",
-                    "firmware": t.firmware,
-                    "protocol_version": t.protocol_version,
-                    "board": t.board,
-                    "mcu": t.mcu,
-                    "connected": not t.timed_out,
-                    "packets": t.packets,
-                    "lost": t.lost,
-                    "reordered": t.reordered,
-                    "handovers": t.handovers,
-                    "battery_voltage": t.battery_voltage,
-                    "battery_level": t.battery_level,
-                    "rssi_dbm": t.rssi_dbm,
-                    "rtt_ms": None if t.rtt_ms is None else round(t.rtt_ms, 2),
-                    "errors": t.errors,
-                    "sensors": [
-                        {
-                            "id": t.sensor_id(s.index),
-                            "status": {0: "offline", 1: "ok", 2: "error"}.get(s.status, str(s.status)),
-                            "imu_type": s.imu_type,
-                            "rotations": s.rotations,
-                            "held": s.held,
-                            "without_acceleration": s.without_acceleration,
-                            "temperature_c": s.temperature_c,
-                        }
-                        for s in sorted(t.sensors.values(), key=lambda s: s.index)
-                    ],
+                    "id": t.sensor_id(s.index),
+                    "status": {0: "offline", 1: "ok", 2: "error"}.get(s.status, str(s.status)),
+                    "imu_type": s.imu_type,
+                    "rotations": s.rotations,
+                    "held": s.held,
+                    "without_acceleration": s.without_acceleration,
+                    "temperature_c": s.temperature_c,
                 }
-                for t in self.trackers.values()
+                for s in sorted(t.sensors.values(), key=lambda s: s.index)
             ],
         }

@@ -14,6 +14,7 @@ from pathlib import Path
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import CalibrationError, ConfigError
+from mocapd.io.input_files import read_input_text
 from mocapd.pipeline.scheduler import Suit
 from mocapd.service.config.imu import ImuConfig
 
@@ -38,7 +39,10 @@ def load_suits(config: ImuConfig, skeleton: Skeleton, base: Path | None = None) 
     owner: dict[str, str] = {}
     for path in sorted(folder.glob("*.imu.json")):
         try:
-            calibration = ImuCalibration.from_json_dict(json.loads(path.read_text(encoding="utf-8")))
+            text = read_input_text(path, "IMU calibration", max_bytes=16 << 20, errors="strict", error=ConfigError)
+            calibration = ImuCalibration.from_json_dict(json.loads(text))
+        except ConfigError:
+            raise
         except (OSError, ValueError, CalibrationError) as exc:
             raise ConfigError(f"IMU calibration {path}: {exc}") from exc
         if any(s.id == calibration.person for s in suits):

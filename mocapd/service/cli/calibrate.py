@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import CalibrationError
+from mocapd.errors import CalibrationError, OutputError
 from mocapd.io.board_calibration import Board, calibrate_intrinsics, detect_in_files
 from mocapd.io.calibration_files import (
     CalibrationSet,
@@ -33,7 +33,9 @@ from mocapd.io.calibration_files import (
     write_opencv_yaml,
     write_pose2sim_toml,
 )
+from mocapd.io.output_files import check_output_file
 from mocapd.io.rig_calibration import Intrinsics, Observation, calibrate_rig
+from mocapd.service.cli.numbers import number
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 
@@ -56,7 +58,8 @@ def _camera_folders(root: Path) -> dict[str, Path]:
 
 
 def _images(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    # Regular files only: OpenCV would wait forever on a FIFO named x.jpg, or read /dev/zero without end.
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
 
 
 def calibrate_cameras(
@@ -127,6 +130,11 @@ def _board(args: argparse.Namespace) -> Board:
 
 def _run_cameras(args: argparse.Namespace) -> int:
     try:
+        check_output_file(args.output, overwrite=args.force)
+    except OutputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
         calib, report = calibrate_cameras(
             _board(args),
             args.intrinsics,
@@ -139,12 +147,21 @@ def _run_cameras(args: argparse.Namespace) -> int:
     except CalibrationError as exc:
         print(f"calibration failed: {exc}", file=sys.stderr)
         return 1
-    write_mocapd_toml(calib, args.output)
+    try:
+        write_mocapd_toml(calib, args.output)
+    except OutputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(json.dumps(report, indent=1, default=float))
     return 0
 
 
 def _run_convert(args: argparse.Namespace) -> int:
+    try:
+        check_output_file(args.output, inputs=[args.input], overwrite=args.force)
+    except OutputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     try:
         calib = read_any(args.input, world_up=args.world_up)
         if args.scale != 1.0:
@@ -153,12 +170,16 @@ def _run_convert(args: argparse.Namespace) -> int:
         print(f"error: cannot read {args.input}: {exc}", file=sys.stderr)
         return 2
     target = args.to or ("opencv-yaml" if args.output.suffix in (".yml", ".yaml") else "mocapd")
-    if target == "pose2sim":
-        write_pose2sim_toml(calib, args.output)
-    elif target == "opencv-yaml":
-        write_opencv_yaml(calib, args.output)
-    else:
-        write_mocapd_toml(calib, args.output)
+    try:
+        if target == "pose2sim":
+            write_pose2sim_toml(calib, args.output)
+        elif target == "opencv-yaml":
+            write_opencv_yaml(calib, args.output)
+        else:
+            write_mocapd_toml(calib, args.output)
+    except OutputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(f"wrote {len(calib.cameras)} camera(s) to {args.output} ({target})")
     return 0
 
@@ -169,26 +190,38 @@ def register(subparsers: Any) -> None:
     sub = parser.add_subparsers(dest="calibrate_command", metavar="WHAT", required=True)
     cams = sub.add_parser("cameras", help="intrinsics and extrinsics from board pictures")
     cams.add_argument("--board", choices=["checkerboard", "charuco"], default="checkerboard")
-    cams.add_argument("--cols", type=int, required=True, help="checkerboard: inner corners per row; charuco: squares")
     cams.add_argument(
-        "--rows", type=int, required=True, help="checkerboard: inner corners per column; charuco: squares"
+        "--cols",
+        type=number(2, 200, integer=True),
+        required=True,
+        help="checkerboard: inner corners per row; charuco: squares",
     )
-    cams.add_argument("--square-mm", type=float, required=True, help="square side, mm")
-    cams.add_argument("--marker-mm", type=float, default=0.0, help="ChArUco marker side, mm")
+    cams.add_argument(
+        "--rows",
+        type=number(2, 200, integer=True),
+        required=True,
+        help="checkerboard: inner corners per column; charuco: squares",
+    )
+    cams.add_argument("--square-mm", type=number(0.1, 10_000.0), required=True, help="square side, mm")
+    cams.add_argument("--marker-mm", type=number(0.0, 10_000.0), default=0.0, help="ChArUco marker side, mm")
     cams.add_argument("--dictionary", default="DICT_4X4_50", help="ChArUco ArUco dictionary")
     cams.add_argument("--intrinsics", type=Path, help="folder with one picture sub-folder per camera")
     cams.add_argument("--intrinsics-from", type=Path, help="reuse intrinsics from a calibration file")
     cams.add_argument("--extrinsics", type=Path, help="folder with one sub-folder per camera, same stem = same moment")
     cams.add_argument("--origin-frame", help="file stem of the moment the board lies on the floor at the origin")
-    cams.add_argument("--max-view-error-px", type=float, default=1.0, help="reject views above this RMS error, px")
+    cams.add_argument(
+        "--max-view-error-px", type=number(0.01, 1000.0), default=1.0, help="reject views above this RMS error, px"
+    )
     cams.add_argument("--fix-k3", action="store_true", help="keep k3 = 0 (as Qualisys/Pose2Sim)")
     cams.add_argument("--output", type=Path, required=True, help="mocapd calibration TOML to write")
+    cams.add_argument("--force", action="store_true", help="replace an existing --output file")
     cams.set_defaults(func=_run_cameras)
     conv = sub.add_parser("convert", help="convert qca.txt / Pose2Sim TOML / OpenCV YAML / mocapd TOML")
     conv.add_argument("input", type=Path)
     conv.add_argument("output", type=Path)
     conv.add_argument("--to", choices=["mocapd", "pose2sim", "opencv-yaml"], default=None)
+    conv.add_argument("--force", action="store_true", help="replace an existing OUTPUT file (never the input)")
     conv.add_argument("--world-up", choices=["y", "z"], default=None, help="up axis of the input's world")
-    conv.add_argument("--scale", type=float, default=1.0,
+    conv.add_argument("--scale", type=number(0.01, 100.0), default=1.0,
                       help="for images resized by this factor (0.5: half-size, or 2x2 binning); default 1")  # fmt: skip
     conv.set_defaults(func=_run_convert)

@@ -22,10 +22,13 @@ from typing import Any
 import numpy as np
 
 from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
-from mocapd.errors import ConfigError, DeviceTimeout, MocapdError
+from mocapd.core.names import check_name
+from mocapd.errors import ConfigError, DeviceTimeout, MocapdError, OutputError
 from mocapd.io.imu_bridge import ImuBridgeListener
+from mocapd.io.output_files import check_output_file, write_text_atomic
 from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
+from mocapd.service.cli.numbers import number
 from mocapd.service.config import load_config
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.config.schema import validate
@@ -65,7 +68,7 @@ def register(subparsers: Any) -> None:
     facing = p.add_mutually_exclusive_group()
     facing.add_argument(
         "--facing-heading",
-        type=float,
+        type=number(-360.0, 360.0),
         help="compass heading the subject faces, degrees clockwise from magnetic north",
     )
     facing.add_argument(
@@ -75,7 +78,7 @@ def register(subparsers: Any) -> None:
         "optional, the take's steps give it; a sign that bends the knees backwards is refused)",
     )
     p.add_argument("--world-heading", choices=("subject", "north"), default="subject", help="what world +Z is")
-    p.add_argument("--seconds", type=float, default=3.0, help="recording length (s)")
+    p.add_argument("--seconds", type=number(0.1, 3600.0), default=3.0, help="recording length (s)")
     p.add_argument(
         "--window",
         default="1.0",
@@ -83,7 +86,7 @@ def register(subparsers: Any) -> None:
         "session to search in (a 1 s window)",
     )
     p.add_argument("--port", action="append", default=[], help="serial device path (overrides imu.ports)")
-    p.add_argument("--connect-timeout", type=float, default=15.0, help="wait for all sensors (s)")
+    p.add_argument("--connect-timeout", type=number(0.1, 3600.0), default=15.0, help="wait for all sensors (s)")
     p.add_argument(
         "--out",
         type=Path,
@@ -167,8 +170,15 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 "give the facing direction of the T-pose: --facing-heading DEG or --facing-from SENSOR:AXIS "
                 "(a recording calibrated with --from SESSION can take it from its steps)"
             )
+        check_name(args.person, "--person")  # it names the calibration file: no '/', no newline
         window_s = float(args.window)
         config = load_config(args.config or Path("config.toml")).imu  # validates the whole file, like the daemon
+        out = args.out or Path(config.calibration_dir) / f"{args.person}.imu.json"
+        try:  # before recording: a path that cannot be written is known at once
+            replacing = check_output_file(out, overwrite=True, create_folder=True).exists()
+        except OutputError as exc:
+            print(f"mocapd calibrate imu: {exc}")
+            return 2
         if args.port:  # --port replaces imu.ports, validated like the file's
             config = validate(ImuConfig, {**config.model_dump(), "ports": list(args.port)}, "imu")
         if not config.sensors:
@@ -203,13 +213,15 @@ def run_calibrate(args: argparse.Namespace) -> int:
     except MocapdError as exc:
         print(f"mocapd calibrate imu: {exc}")
         return 1
-    out = args.out or Path(config.calibration_dir) / f"{args.person}.imu.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
+    try:
+        write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
+    except OutputError as exc:
+        print(f"mocapd calibrate imu: {exc}")
+        return 2
     for sid, bone in calib.bones.items():
         own = f"  heading reset {calib.device_heading_deg[sid]:+.1f} deg" if sid in calib.device_heading_deg else ""
         print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg{own}")
-    print(f"wrote {out}")
+    print(f"wrote {out}" + (" (replaced the earlier calibration)" if replacing else ""))
     return 0
 
 
@@ -226,6 +238,8 @@ def _own_heading(config: ImuConfig, specs: list[str]) -> dict[str, float]:
             yaw = float(value)
         except ValueError:
             raise ConfigError(f"--mount-yaw {spec!r}: expected SENSOR=DEGREES") from None
+        if not -360.0 <= yaw <= 360.0:  # nan too
+            raise ConfigError(f"--mount-yaw {spec!r}: degrees from -360 to 360")
         if sid not in out:
             raise ConfigError(f"--mount-yaw {spec!r}: {sensor!r} is not an assigned SlimeVR sensor")
         out[sid] = yaw

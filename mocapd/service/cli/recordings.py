@@ -24,8 +24,11 @@ from pathlib import Path
 from typing import Any
 
 from mocapd.core.body_dims import SEGMENTS, default_lengths
+from mocapd.core.names import check_name
 from mocapd.core.skeleton import REFERENCE_HEIGHT
-from mocapd.errors import MocapdError
+from mocapd.errors import MocapdError, OutputError
+from mocapd.io.output_files import check_output_dir, check_output_file, write_text_atomic
+from mocapd.service.cli.numbers import number
 
 
 def _segments(args: argparse.Namespace) -> dict[str, float]:
@@ -64,6 +67,7 @@ def cmd_import_mtw(args: argparse.Namespace) -> int:
         write_imported_session,
     )
 
+    check_output_dir(args.output, what="session directory")  # before reading: a bad -o is known at once
     exports = [(p.name, read_mt_export(p, rate_hz=args.rate)) for p in _export_files(args.files)]
     streams = streams_from_mt_exports(exports)
     manifest = imported_manifest(
@@ -110,6 +114,7 @@ def cmd_import_mvnx(args: argparse.Namespace) -> int:
         write_imported_session,
     )
 
+    check_output_dir(args.output, what="session directory")
     streams = streams_from_mvnx(read_mvnx(args.file), args.file.name)
     assignment = parse_assign_pairs(args.assign) if args.assign else mvnx_assignment(streams)
     manifest = imported_manifest(
@@ -142,6 +147,17 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
         if not suit:
             raise MocapdError("name the suit (--suit) or the person (--person)")
         person = args.person or suit
+        check_name(suit, "--suit" if args.suit else f"{session.path}: the suit's name")
+        check_name(person, "--person")  # it names the calibration file: no '/', no newline
+        # A take's calibration stays with the take: a file in the working directory's calibration/ would become a
+        # suit of any daemon started there. A rig's calibration_dir gets it only when its config is named.
+        if args.out is not None:
+            out = args.out
+        elif args.config is not None:
+            out = Path(load_config(args.config).imu.calibration_dir) / f"{person}.imu.json"
+        else:
+            out = session.path / "calibration" / f"{person}.imu.json"
+        replacing = check_output_file(out, inputs=[session.path], overwrite=True, create_folder=True).exists()
         result = calibrate_session(
             session,
             person=person,
@@ -157,19 +173,15 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
                 "facing_heading_deg": round(calib.facing_heading_deg, 2), "facing_from": result.facing,
                 "hinges": {name: h.as_dict() for name, h in result.hinges.items()}}  # fmt: skip
         store_in_session(session, suit, calib, info)
-        # A take's calibration stays with the take: a file in the working directory's calibration/ would become a
-        # suit of any daemon started there. A rig's calibration_dir gets it only when its config is named.
-        if args.out is not None:
-            out = args.out
-        elif args.config is not None:
-            out = Path(load_config(args.config).imu.calibration_dir) / f"{person}.imu.json"
-        else:
-            out = session.path / "calibration" / f"{person}.imu.json"
+        write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
+    except OutputError as exc:  # a path that cannot be written: an argument error, as argparse's (exit 2)
+        print(f"mocapd calibrate imu: {exc}", file=sys.stderr)
+        return 2
     except MocapdError as exc:
         print(f"mocapd calibrate imu: {exc}", file=sys.stderr)
         return 1
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(calib.to_json_dict(), indent=2) + "\n", encoding="utf-8")
+    if replacing:  # a recalibration renews the person's file: said, not done silently
+        print(f"note: replaced the earlier calibration {out}", file=sys.stderr)
     print(json.dumps({"session": str(session.path), "suit": suit, "calibration": str(out), "posture": result.pose,
                       "window_s": info["window_s"], "facing_heading_deg": info["facing_heading_deg"],
                       "facing_from": result.facing, "hinges_checked": sorted(result.hinges),
@@ -253,20 +265,21 @@ def register(subparsers: Any) -> None:
     what = imp.add_subparsers(dest="import_what", metavar="FORMAT", required=True)
 
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("-o", "--output", type=Path, required=True, help="session directory to create")
+        p.add_argument("-o", "--output", type=Path, required=True,
+                       help="session directory to create (new, or an empty directory)")  # fmt: skip
         p.add_argument("--assign", action="append", default=[], metavar="SENSOR=BONE",
                        help="which sensor sits on which bone, e.g. 00B42279=Hips (repeat)")  # fmt: skip
         p.add_argument("--suit", default="suit0", help="the suit's name in the session (default suit0)")
         body = p.add_argument_group(
             "the wearer's body", "a height, and any segment lengths measured (each one not given is scaled from the "
             "height; the session records which: manifest skeleton.from)")  # fmt: skip
-        body.add_argument("--height", type=float, default=REFERENCE_HEIGHT, metavar="M",
+        body.add_argument("--height", type=number(0.5, 2.5), default=REFERENCE_HEIGHT, metavar="M",
                           help=f"the wearer's height, m (default {REFERENCE_HEIGHT:g})")  # fmt: skip
         at = default_lengths()
         for name, what in SEGMENTS.items():
             helps = f"{what}, m (default: from --height; {at[name]:.3f} at {REFERENCE_HEIGHT:g} m)"
-            body.add_argument(f"--{name.replace('_', '-')}", type=float, default=None, metavar="M", dest=f"seg_{name}",
-                              help=helps)  # fmt: skip
+            body.add_argument(f"--{name.replace('_', '-')}", type=number(0.01, 1.5), default=None, metavar="M",
+                              dest=f"seg_{name}", help=helps)  # fmt: skip
         p.add_argument(
             "--imu-set",
             default="",
@@ -277,7 +290,9 @@ def register(subparsers: Any) -> None:
     mtw = what.add_parser("mtw", help="MT Manager text exports, one file per sensor (the id in its name)")
     mtw.add_argument("files", type=Path, nargs="+",
                      help="export files (.txt/.csv) of one recording, or a folder of them")  # fmt: skip
-    mtw.add_argument("--rate", type=float, default=None, help="update rate (Hz) when the files do not say it")
+    mtw.add_argument(
+        "--rate", type=number(1.0, 2000.0), default=None, help="update rate (Hz) when the files do not say it"
+    )
     common(mtw)
     mtw.set_defaults(func=_guard(cmd_import_mtw))
 

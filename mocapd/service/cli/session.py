@@ -12,11 +12,13 @@ from typing import Any
 
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import InputError, MocapdError
-from mocapd.io.session import RESOLVED, Session, open_session
+from mocapd.io.output_files import check_distinct, check_output_file
+from mocapd.io.session import FRAMES, MANIFEST, RESOLVED, STREAMS, SUFFIX, Session, open_session
 from mocapd.io.session_export import SubjectTrack
 from mocapd.pipeline.camera_views import CameraViews
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.protocols.session_format import PoseRecord
+from mocapd.service.cli.numbers import number
 from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import PoseSink
 
@@ -31,6 +33,17 @@ def stream_sinks(
     from mocapd.service.outputs.websocket import websocket_sinks
 
     return [*udp_sinks(config, skeleton), *websocket_sinks(config, skeleton, camera_views=camera_views, output=output)]
+
+
+def session_files(session: Path) -> list[Path]:
+    """The files of a session that its commands read (an output must be none of them)."""
+    return [session / MANIFEST, session / "prior.npz",
+            *(session / f"{name}{SUFFIX}" for name in (*STREAMS, RESOLVED, FRAMES))]  # fmt: skip
+
+
+def resolved_path(out: Path) -> Path:
+    """Where ``resolve -o OUT`` writes (:func:`~mocapd.service.session.solve.write_resolved`: a ``.mcs`` file)."""
+    return out.parent / f"{out.name.removesuffix(SUFFIX)}{SUFFIX}"
 
 
 def _open(path: Path) -> Session:
@@ -112,6 +125,8 @@ def cmd_resolve(args: argparse.Namespace) -> int:
     from mocapd.service.session.solve import ResolveOptions, resolve, session_rig, solve_times, write_resolved
     from mocapd.service.session.truth import synthetic_of, truth_report
 
+    if args.output is not None:  # the default, SESSION/poses-resolved.mcs, is the session's own: renewed
+        check_output_file(resolved_path(args.output), inputs=session_files(args.session), overwrite=args.force)
     session = _open(args.session)
     rig = session_rig(session)
     try:
@@ -149,7 +164,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.bvh is None and args.csv is None and args.gltf is None and args.fbx is None:
         print("error: nothing to export: give --bvh FILE, --csv FILE, --gltf FILE and/or --fbx FILE", file=sys.stderr)
         return 2
-    blender = _fbx_preflight(args) if args.fbx is not None else None  # before any work: a bad path, no Blender
+    outputs = [(o, p) for o, p in (("--bvh", args.bvh), ("--csv", args.csv), ("--gltf", args.gltf), ("--fbx", args.fbx))
+               if p is not None]  # fmt: skip
+    check_distinct(outputs)  # before any work: a path that cannot be written is known at once
+    for _, path in outputs:
+        check_output_file(path, inputs=session_files(args.session), overwrite=args.force)
+    blender = _find_blender(args) if args.fbx is not None else None  # before any work: no Blender is one line
     session = _open(args.session)
     poses = _poses(session, args, _again("export", args, ("gltf", "fbx", "bvh", "csv", "subject")))
     _undecodable_notes(session)
@@ -214,11 +234,10 @@ def _origin_ns(session: Session) -> int | None:
     return origin if isinstance(origin, int) and not isinstance(origin, bool) else None
 
 
-def _fbx_preflight(args: argparse.Namespace) -> Any:
-    """The FBX path checked and Blender found, before the session is read (:mod:`mocapd.io.fbx_export`)."""
-    from mocapd.io.fbx_export import check_output, find_blender
+def _find_blender(args: argparse.Namespace) -> Any:
+    """Blender for ``--fbx``, found before the session is read (:mod:`mocapd.io.fbx_export`)."""
+    from mocapd.io.fbx_export import find_blender
 
-    check_output(args.fbx)
     return find_blender(args.blender)
 
 
@@ -275,7 +294,9 @@ def register(subparsers: Any) -> None:
     """Add replay, resolve, export and session to the CLI."""
     rp = subparsers.add_parser("replay", help="stream a recorded session through the configured sinks, as if live")
     rp.add_argument("session", type=Path, help="session directory")
-    rp.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1 = recorded pace)")
+    rp.add_argument(
+        "--speed", type=number(0.01, 1000.0), default=1.0, help="playback speed (default 1 = recorded pace)"
+    )
     rp.add_argument("--resolved", action="store_true", help="replay the resolved poses instead of the live ones")
     rp.add_argument("--poses", type=Path, default=None, metavar="FILE",
                     help="replay this pose stream file (written by `mocapd resolve SESSION -o FILE`)")  # fmt: skip
@@ -288,8 +309,11 @@ def register(subparsers: Any) -> None:
     rs.add_argument("-o", "--output", type=Path, default=None, metavar="FILE",
                     help="write the resolved pose stream to FILE instead of SESSION/poses-resolved.mcs (to keep "
                     "several re-solves side by side); `mocapd export SESSION --poses FILE` reads it")  # fmt: skip
-    rs.add_argument("--iterations", type=int, default=100, help="LM iterations per frame (default 100)")
+    rs.add_argument(
+        "--iterations", type=number(1, 10_000, integer=True), default=100, help="LM iterations per frame (default 100)"
+    )
     rs.add_argument("--no-smooth", action="store_true", help="skip the forward-backward (RTS) smoother")
+    rs.add_argument("--force", action="store_true", help="replace an existing -o file")
     rs.set_defaults(func=_guard(cmd_resolve))
 
     ex = subparsers.add_parser("export", help="export a session's subjects as glTF/FBX, one of them as BVH and/or CSV")
@@ -309,10 +333,11 @@ def register(subparsers: Any) -> None:
     ex.add_argument("--blender", default=None,
                     help="Blender for --fbx: a blender executable or a Python with bpy (default: $MOCAPD_BLENDER, "
                     "the checkout's .venv-bpy, blender on PATH)")  # fmt: skip
-    ex.add_argument("--rate", type=float, default=60.0, help="output frame rate, Hz (default 60)")
+    ex.add_argument("--rate", type=number(1.0, 1000.0), default=60.0, help="output frame rate, Hz (default 60)")
     ex.add_argument("--resolved", action="store_true", help="export the resolved poses instead of the live ones")
     ex.add_argument("--poses", type=Path, default=None, metavar="FILE",
                     help="export this pose stream file (written by `mocapd resolve SESSION -o FILE`)")  # fmt: skip
+    ex.add_argument("--force", action="store_true", help="replace existing output files (refused otherwise)")
     ex.set_defaults(func=_guard(cmd_export))
 
     info = subparsers.add_parser("session", help="describe a session and check its streams (recovery report)")

@@ -3,9 +3,10 @@
 Endpoints are explicit (Zenoh locators ``tcp/<ip>:<port>`` or ``tls/<ip>:<port>``, IP literals only: what the
 file says is where mocapd listens and connects). Zenoh's scouting is always off (its multicast scouting would send
 on every interface of the machine; with explicit endpoints it finds nothing anyway). Any endpoint off loopback
-needs authentication: user/password (``user``, ``password_file``, and ``users_file`` on a listener) or TLS
-(``tls/`` endpoints with ``tls_root_ca``, and ``tls_cert``/``tls_key`` on a listener): mocapd refuses the config
-otherwise. docs/scaling.md shows both.
+needs authentication of both sides: user/password (``user``, ``password_file``, and ``users_file`` on a listener)
+or mutual TLS (``tls/`` endpoints with ``tls_root_ca``, and ``tls_cert``/``tls_key`` on the listener *and* on the
+connecting side: a listener with a certificate asks every peer for one signed by its CA, so knowing the public CA
+certificate is not enough to connect): mocapd refuses the config otherwise. docs/scaling.md shows both.
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ class ZenohConfig(Section):
     tls_root_ca: PathStr = ""
     """CA certificate (PEM) that signed the other side's certificate."""
     tls_cert: PathStr = ""
-    """This side's certificate (PEM; a listener's is required)."""
+    """This side's certificate (PEM; required on a tls/ listener, and on both sides off loopback: mutual TLS)."""
     tls_key: PathStr = ""
     """This side's private key (PEM)."""
     lost_after_s: float = Field(2.0, ge=0.1, le=60.0)
@@ -104,6 +105,8 @@ class ZenohConfig(Section):
         tls = [e for e in (*self.listen, *self.connect) if e.startswith("tls/")]
         if bool(self.user) != bool(self.password_file):
             raise RuleError("{0} and {1} go together", "user", "password_file", values=(self.user, self.password_file))
+        if bool(self.tls_cert) != bool(self.tls_key):
+            raise RuleError("{0} and {1} go together", "tls_cert", "tls_key", values=(self.tls_cert, self.tls_key))
         if tls and not self.tls_root_ca:
             raise RuleError("{0} use TLS: {1} must be set", "listen", "tls_root_ca", values=(tls, ""))
         tls_listen = [e for e in self.listen if e.startswith("tls/")]
@@ -113,12 +116,12 @@ class ZenohConfig(Section):
         if not remote:
             return self
         usrpwd = bool(self.user) and (bool(self.users_file) or not remote_listen)
-        all_tls = all(e.startswith("tls/") for e in remote)
-        if not (usrpwd or all_tls):
+        mutual_tls = all(e.startswith("tls/") for e in remote) and bool(self.tls_cert)  # each side its certificate
+        if not (usrpwd or mutual_tls):
             raise RuleError(
-                "{0} is not loopback: mocapd talks to other machines only authenticated, with {1}/{2} (and {3} on "
-                "a listener) or over tls/ endpoints (docs/scaling.md)",
-                "listen" if remote_listen else "connect", "user", "password_file", "users_file",
-                values=(remote, self.user, self.password_file, self.users_file),
+                "{0} is not loopback: mocapd talks to other machines only authenticated on both sides, with {1}/{2} "
+                "(and {3} on a listener) or over tls/ endpoints with this side's {4} (mutual TLS, docs/scaling.md)",
+                "listen" if remote_listen else "connect", "user", "password_file", "users_file", "tls_cert",
+                values=(remote, self.user, self.password_file, self.users_file, self.tls_cert),
             )  # fmt: skip
         return self

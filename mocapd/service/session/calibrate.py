@@ -74,11 +74,15 @@ def session_samples(session: Session) -> dict[str, tuple[FloatArray, FloatArray,
     out = {}
     for sid, rs in by.items():
         rs.sort(key=lambda r: r.t_ns)
-        out[sid] = (
-            np.array([(r.t_ns - t0) / 1e9 for r in rs]),
-            np.array([r.quat for r in rs]),
-            np.array([r.acc for r in rs]),
-        )
+        quat, acc = np.array([r.quat for r in rs]), np.array([r.acc for r in rs])
+        with np.errstate(over="ignore", invalid="ignore"):
+            bad = ~np.isfinite(acc).all(axis=1) | ~(np.abs(np.linalg.norm(quat, axis=1) - 1.0) < 0.1)
+        if bad.any():  # written by an older import that stored a file's zero quaternions as NaN
+            raise CalibrationError(
+                f"{session.path}: sensor {sid}: {int(bad.sum())} of {len(rs)} samples hold no rotation or a "
+                "non-finite acceleration (NaN); import the recording again"
+            )
+        out[sid] = (np.array([(r.t_ns - t0) / 1e9 for r in rs]), quat, acc)
     return out
 
 

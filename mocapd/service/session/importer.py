@@ -16,6 +16,7 @@ Reading and time alignment of the recordings, sensor ids of MVNX sensors and wri
 from __future__ import annotations
 
 import datetime as dt
+import math
 import platform
 from typing import Any
 
@@ -25,6 +26,7 @@ import mocapd
 from mocapd.core.body_dims import BodySpec
 from mocapd.core.imu_calibration import parse_assignment
 from mocapd.core.keypoints import coco17_targets
+from mocapd.core.names import check_name
 from mocapd.errors import InputError
 from mocapd.io.imu_recordings import (
     MVN_SENSOR_BONES,
@@ -37,6 +39,10 @@ from mocapd.io.imu_recordings import (
 )
 from mocapd.io.session import STREAMS
 from mocapd.service.config import DEFAULT_CONFIG, config_document, load_config
+
+MIN_HEIGHT_M = 0.5
+MAX_HEIGHT_M = 2.5
+"""Heights ``--height`` accepts (the skeleton is scaled from it)."""
 
 __all__ = [
     "MVN_SENSOR_BONES",
@@ -61,6 +67,9 @@ def imported_manifest(
 ) -> dict[str, Any]:
     """The manifest of an imported session (see the module docstring). The skeleton is the default proportions at
     ``height`` with any ``segments`` given (:mod:`mocapd.core.body_dims`); the manifest records which."""
+    check_name(suit, "--suit")
+    if not (isinstance(height, float | int) and math.isfinite(height) and MIN_HEIGHT_M <= height <= MAX_HEIGHT_M):
+        raise InputError(f"--height {height!r}: allowed: {MIN_HEIGHT_M:g} to {MAX_HEIGHT_M:g} m")
     missing = sorted(set(assignment) - {s.sensor for s in streams})
     if missing:
         raise InputError(
@@ -115,6 +124,9 @@ def parse_assign_pairs(pairs: list[str]) -> dict[str, str]:
     for p in pairs:
         sensor, sep, bone = p.partition("=")
         if not sep or not sensor.strip() or not bone.strip():
-            raise InputError(f"--assign {p!r}: expected SENSOR=BONE, e.g. 00B42279=Hips")
-        out[sensor.strip().upper()] = bone.strip()
+            raise InputError(f"--assign {p[:80]!r}: expected SENSOR=BONE, e.g. 00B42279=Hips")
+        sid = sensor.strip().upper()
+        if sid in out:  # the last one silently won: which bone did the user mean?
+            raise InputError(f"--assign: sensor {sid[:40]} is assigned twice ({out[sid]} and {bone.strip()[:40]})")
+        out[sid] = bone.strip()
     return out

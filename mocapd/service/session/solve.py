@@ -55,6 +55,7 @@ from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
 from mocapd.errors import ConfigError, InputError, MocapdError, ModelError
+from mocapd.io.input_files import open_input
 from mocapd.io.session import MANIFEST, Session
 from mocapd.pipeline.clocksync import offline_clock_map
 from mocapd.pipeline.imu_ingest import TICK_HZ, ImuIngest
@@ -149,6 +150,8 @@ def _number(value: object, key: str, rng: str | None = None) -> float:
 
 
 def _prior(path: Path) -> PcaPrior:
+    with open_input(path, "session pose prior", max_bytes=64 << 20):
+        pass  # a regular file of sane size: numpy opens it by name (and would wait on a FIFO)
     try:
         with np.load(path, allow_pickle=False) as z:
             return PcaPrior(z["M"], z["mu"], z["sigma"])
