@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from mocapd.errors import ConfigError, DeviceError
+from mocapd.io import ports
 from mocapd.io.rejections import Rejections
 from mocapd.io.xsens_serial import ImuSample
 from mocapd.protocols.imu_bridge import decode
@@ -84,7 +85,9 @@ class ImuBridgeListener:
                 local_addr=(self.host, self.port),
             )
         except OSError as exc:
-            raise DeviceError(f"imu bridge: cannot bind udp {self.host}:{self.port}: {exc}") from exc
+            raise DeviceError(
+                "imu bridge: " + ports.bind_failure("[imu.bridge] port", self.host, self.port, exc, "udp")
+            ) from None
         self._transport = transport
         sockname = transport.get_extra_info("sockname")
         self.port = int(sockname[1])

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from mocapd.errors import DeviceError
+from mocapd.io import ports
 from mocapd.io.device_state import OpenState
 from mocapd.io.rejections import Rejections
 from mocapd.io.xsens_serial import ImuSample
@@ -101,8 +102,8 @@ class SlimeVrListener:
                 lambda: _ServerProtocol(self), local_addr=(self.host, self.port)
             )
         except OSError as exc:
-            self._bind_error = f"slimevr: cannot bind udp {self.host}:{self.port}: {exc}"
-            raise DeviceError(self._bind_error) from exc
+            self._bind_error = "slimevr: " + ports.bind_failure("[imu.slimevr] port", self.host, self.port, exc, "udp")
+            raise DeviceError(self._bind_error) from None
         self._transport = transport
         self._bound = True
         sock = transport.get_extra_info("socket")

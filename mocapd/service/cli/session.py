@@ -181,6 +181,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     info = {
         "path": str(session.path),
         "closed_cleanly": session.closed_cleanly,
+        "cut": session.cut,
         "started_utc": m.get("started_utc"),
         "software": m.get("software"),
         "cameras": _names(m.get("cameras"), "name"),

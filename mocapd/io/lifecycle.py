@@ -1,0 +1,323 @@
+"""A mocapd process from its first line to its last: stop signals, the phase it is in, children that end with it,
+and a quick exit.
+
+**Stop signals.** SIGINT (Ctrl-C), SIGTERM (``kill``, systemd) and SIGHUP (the terminal or SSH session closed)
+mean the same thing: stop cleanly. :func:`install_stop_signals` is the first thing the ``mocapd`` command does,
+before the seconds of imports (NumPy, SciPy, OpenCV) that follow, so there is no window where a signal prints a
+``KeyboardInterrupt`` traceback or is lost. A SIGINT inherited as *ignored* (a background job of a shell script)
+is handled all the same: a script that sends it means it. A SIGHUP inherited as ignored (``nohup``) stays
+ignored: closing that terminal is not a stop.
+
+What a stop signal does depends on where the process is:
+
+- while something waits for it (:func:`on_stop`: the daemon's stop event, :func:`stop_event`, a parent that
+  forwards it to its child), each waiting target is called and nothing is raised;
+- otherwise the first one raises :class:`StopRequested` in the main thread (the way Python raises
+  ``KeyboardInterrupt``), unwinding whatever runs through its ``finally`` blocks — unless that code said it
+  checks for itself (:func:`deferred`).
+
+Either way one line goes to stderr naming the signal and the :func:`phase` the process was in, so a technician
+knows what was interrupted. Repeated signals are counted, not acted on twice.
+
+**Children.** Every child process mocapd starts is started through this module (:func:`child_command` for a
+Python function, :func:`guarded_command` for any program): it first asks the kernel (``PR_SET_PDEATHSIG``) for
+SIGTERM when its parent ends, however the parent ends — SIGKILL, the OOM killer, a crash — so no camera server or
+namespace child is left holding a port, and a child that is mocapd stops as cleanly as on Ctrl-C (its recording
+closed). The setting survives ``exec`` (of ``unshare``/``nsenter``, which put children in private namespaces),
+and is set in the child itself, not in a ``preexec_fn`` (unsafe in a process with threads). It is tied to the
+parent *thread*: children are started from the thread that outlives them, the main thread, whose event loop runs
+the daemon. A Python child then installs the same stop signals before it imports its module.
+
+**Exit.** :func:`exit_now` ends a process whose work is closed without the interpreter's teardown (seconds of
+numeric libraries' finalisers on a loaded machine), after removing the temporary directories registered with
+:func:`remove_at_exit` (a stop during start-up may leave a builder thread behind, abandoned: what it made on disk
+must not be).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ctypes
+import importlib
+import logging
+import os
+import shutil
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Coroutine, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NoReturn, TypeVar
+
+from mocapd.io.log_throttle import RepeatFilter
+from mocapd.io.log_throttle import install as install_log_throttle
+
+#: the signals that ask a mocapd process to stop
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: Linux prctl(2) option: the signal this process gets when its parent thread ends
+PR_SET_PDEATHSIG = 1
+T = TypeVar("T")
+
+
+class StopRequested(BaseException):
+    """A stop signal arrived where nothing waits for it: raised in the main thread to unwind the command.
+
+    A ``BaseException``, like ``KeyboardInterrupt``: ``except Exception`` blocks let it through.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+@dataclass
+class _State:
+    installed: bool = False
+    signum: int | None = None
+    received_ns: int | None = None
+    count: int = 0
+    raise_outside: bool = True
+    phase: str = "starting"
+    name: str = "mocapd"
+    targets: list[Callable[[int], None]] = field(default_factory=list)
+    remove: list[Path] = field(default_factory=list)
+    previous: dict[int, object] = field(default_factory=dict)
+
+
+_state = _State()
+
+
+def signal_name(signum: int) -> str:
+    return signal.Signals(signum).name
+
+
+# ---------------------------------------------------------------------------------------------- stop signals
+def install_stop_signals(name: str = "mocapd") -> None:
+    """Handle SIGINT, SIGTERM and SIGHUP as stop requests from now on (main thread only; once).
+
+    ``name`` starts the line said on stderr when one arrives (``mocapd run``, ``fake camera CAM01``).
+    """
+    _state.name = name
+    if _state.installed:
+        return
+    for sig in STOP_SIGNALS:
+        current = signal.getsignal(sig)
+        if sig == signal.SIGHUP and current is signal.SIG_IGN:
+            continue  # nohup: the terminal closing is not a stop
+        _state.previous[sig] = current
+        signal.signal(sig, _on_signal)
+    _state.installed = True
+
+
+def uninstall_stop_signals() -> None:
+    """Put back the handlers :func:`install_stop_signals` replaced (for callers that installed them for a while)."""
+    for sig, handler in _state.previous.items():
+        signal.signal(sig, handler)  # type: ignore[arg-type]
+    _state.previous.clear()
+    _state.installed = False
+
+
+def _on_signal(signum: int, _frame: object) -> None:
+    _state.count += 1
+    first = _state.signum is None
+    if first:
+        _state.signum = signum
+        _state.received_ns = time.monotonic_ns()
+        # os.write, not print: a handler may run in the middle of a print to the same stream (reentrant call).
+        line = f"{_state.name}: {signal_name(signum)} while {_state.phase}: stopping\n"
+        with contextlib.suppress(OSError):
+            os.write(2, line.encode(errors="replace"))
+    for target in list(_state.targets):
+        target(signum)
+    if first and not _state.targets and _state.raise_outside:
+        raise StopRequested(signum)
+
+
+def requested() -> int | None:
+    """The first stop signal received so far (None: none)."""
+    return _state.signum
+
+
+def received_ns() -> int | None:
+    """``time.monotonic_ns()`` when the first stop signal arrived (None: none)."""
+    return _state.received_ns
+
+
+def reset() -> None:
+    """Forget the stop signals received (for a process that runs several commands: tests in one process)."""
+    _state.signum = _state.received_ns = None
+    _state.count = 0
+    _state.phase = "starting"
+
+
+def enter_phase(phase: str) -> None:
+    """Say what the process is doing now (named by the line a stop signal prints)."""
+    _state.phase = phase
+
+
+def phase() -> str:
+    return _state.phase
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Inside, a stop signal nobody waits for is only recorded (:func:`requested`), never raised: for code that
+    checks for itself, such as the start of an event loop before its stop event exists."""
+    before = _state.raise_outside
+    _state.raise_outside = False
+    try:
+        yield
+    finally:
+        _state.raise_outside = before
+
+
+@contextlib.contextmanager
+def on_stop(target: Callable[[int], None]) -> Iterator[None]:
+    """Call ``target(signum)`` on every stop signal while inside (at once if one came already). It runs in the
+    signal handler, in the main thread, between two bytecodes of whatever runs there: it must only set flags,
+    schedule work or send signals."""
+    _state.targets.append(target)
+    try:
+        if _state.signum is not None:
+            target(_state.signum)
+        yield
+    finally:
+        _state.targets.remove(target)
+
+
+def run_until_stopped(main: Callable[[asyncio.Event], Coroutine[Any, Any, T]]) -> T:
+    """``asyncio.run(main(stop))`` with stop signals setting ``stop`` from the loop's first instant to its last
+    (none is raised into the loop's machinery)."""
+
+    async def wrapper() -> T:
+        stop = asyncio.Event()
+        with stop_event(stop):
+            return await main(stop)
+
+    with deferred():
+        return asyncio.run(wrapper())
+
+
+@contextlib.contextmanager
+def stop_event(stop: asyncio.Event) -> Iterator[None]:
+    """Stop signals set ``stop`` while inside (call on the event loop's thread). A process that did not
+    :func:`install_stop_signals` (a test, a library user) gets them for the time inside, on the main thread."""
+    loop = asyncio.get_running_loop()
+
+    def fire(_signum: int) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed: nothing waits any more
+            loop.call_soon_threadsafe(stop.set)
+
+    temporary = not _state.installed and threading.current_thread() is threading.main_thread()
+    if temporary:
+        install_stop_signals(_state.name)
+    try:
+        with deferred(), on_stop(fire):
+            yield
+    finally:
+        if temporary:
+            uninstall_stop_signals()
+
+
+# ---------------------------------------------------------------------------------------------- children
+def die_with_parent(parent: int, sig: int = signal.SIGTERM) -> None:
+    """In a child process: receive ``sig`` when the parent thread that started it ends, however it ends.
+
+    ``parent`` is the pid the child was started by: if it died before this call, the child is re-parented
+    already and no signal would come, so it is sent now.
+    """
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+    libc.prctl.restype = ctypes.c_int
+    if libc.prctl(PR_SET_PDEATHSIG, sig, 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent:
+        os.kill(os.getpid(), sig)
+
+
+def child_command(target: str, *args: str) -> list[str]:
+    """The command line that runs ``target`` (``"package.module:function"``, called with the list ``args``) in a
+    child Python process that ends with this one and handles stop signals from its first line
+    (:func:`child_main`)."""
+    return [sys.executable, "-m", "mocapd.io.lifecycle", "--parent", str(os.getpid()), target, *args]
+
+
+def guarded_command(cmd: list[str]) -> list[str]:
+    r"""``cmd`` (any program: ``unshare``, ``nsenter``, ``pip``, Blender) started so that it ends with this
+    process: a small Python sets its parent-death signal and ``exec``\s it (the setting survives ``exec``)."""
+    return [sys.executable, "-m", "mocapd.io.lifecycle", "--parent", str(os.getpid()), "--exec", *cmd]
+
+
+def child_main(argv: list[str] | None = None) -> NoReturn:
+    """``python -m mocapd.io.lifecycle [--parent PID] (--exec PROGRAM ARGS... | MODULE:FUNCTION ARGS...)``.
+
+    With ``--parent``, the process ends with that parent (:func:`die_with_parent`). ``--exec`` then runs the
+    program in this process. Otherwise: stop signals installed, logging rate-limited, then ``FUNCTION(ARGS)`` of
+    ``MODULE`` (returning an exit status); a stop before it serves ends it with status 0.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--parent"]:
+        die_with_parent(int(argv[1]))
+        argv = argv[2:]
+    if argv[:1] == ["--exec"]:
+        os.execvp(argv[1], argv[1:])
+    target = argv.pop(0)
+    module, _, function = target.partition(":")
+    install_stop_signals(f"{module.rsplit('.', 1)[-1]} (pid {os.getpid()})")
+    setup_logging()
+    try:
+        code = int(getattr(importlib.import_module(module), function)(argv))
+    except StopRequested:
+        code = 0
+    exit_now(code)
+
+
+# ---------------------------------------------------------------------------------------------- logging, exit
+def setup_logging(level: int = logging.WARNING) -> RepeatFilter:
+    """The process's log lines: one format on stderr, every call site rate-limited with a count
+    (:mod:`mocapd.io.log_throttle`). Idempotent."""
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    return install_log_throttle()
+
+
+def remove_at_exit(path: Path) -> None:
+    """Remove directory ``path`` when the process ends through :func:`exit_now` (unless forgotten first)."""
+    _state.remove.append(path)
+
+
+def forget_at_exit(path: Path) -> None:
+    """The owner removed ``path`` itself."""
+    with contextlib.suppress(ValueError):
+        _state.remove.remove(path)
+
+
+def exit_now(code: int) -> NoReturn:
+    """Flush the log and standard streams and end the process without the interpreter's teardown.
+
+    Only for a process whose work is closed (devices, sockets, sessions flushed and fsynced, threads joined) or
+    abandoned on purpose (a model load or kernel compile in a daemon thread when a stop came during start-up):
+    tearing down the numeric libraries (numba, onnxruntime, OpenCV, SciPy, matplotlib) takes a second or more on
+    a loaded 2-core machine, and a daemon asked to stop must be gone within ``daemon.shutdown_timeout_s`` plus a
+    second (systemd's ``TimeoutStopSec``, a technician's Ctrl-C).
+    """
+    for path in _state.remove:
+        shutil.rmtree(path, ignore_errors=True)
+    for handler in logging.getLogger().handlers:  # counts of rate-limited log lines not yet said
+        for f in handler.filters:
+            if isinstance(f, RepeatFilter):
+                f.flush()
+    logging.shutdown()
+    with contextlib.suppress(OSError, ValueError):
+        sys.stdout.flush()
+    with contextlib.suppress(OSError, ValueError):
+        sys.stderr.flush()
+    os._exit(code)
+
+
+if __name__ == "__main__":  # run as a script this file is a second module: use the one everything else imports
+    from mocapd.io.lifecycle import child_main as _child_main
+
+    _child_main()
