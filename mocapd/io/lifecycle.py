@@ -83,6 +83,7 @@ class _State:
     phase: str = "starting"
     name: str = "mocapd"
     targets: list[Callable[[int], None]] = field(default_factory=list)
+    quiet: int = 0  # targets that announce the stop themselves (a child the signal is forwarded to)
     remove: list[Path] = field(default_factory=list)
     previous: dict[int, object] = field(default_factory=dict)
 
@@ -126,6 +127,7 @@ def _on_signal(signum: int, _frame: object) -> None:
     if first:
         _state.signum = signum
         _state.received_ns = time.monotonic_ns()
+    if first and not _state.quiet:
         # os.write, not print: a handler may run in the middle of a print to the same stream (reentrant call).
         line = f"{_state.name}: {signal_name(signum)} while {_state.phase}: stopping\n"
         with contextlib.suppress(OSError):
@@ -175,16 +177,19 @@ def deferred() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def on_stop(target: Callable[[int], None]) -> Iterator[None]:
+def on_stop(target: Callable[[int], None], *, quiet: bool = False) -> Iterator[None]:
     """Call ``target(signum)`` on every stop signal while inside (at once if one came already). It runs in the
     signal handler, in the main thread, between two bytecodes of whatever runs there: it must only set flags,
-    schedule work or send signals."""
+    schedule work or send signals. ``quiet``: the target says what stops itself (a child the signal is forwarded
+    to prints its own line), this process does not."""
     _state.targets.append(target)
+    _state.quiet += quiet
     try:
         if _state.signum is not None:
             target(_state.signum)
         yield
     finally:
+        _state.quiet -= quiet
         _state.targets.remove(target)
 
 

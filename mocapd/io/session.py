@@ -514,16 +514,21 @@ def open_session(path: str | Path) -> Session:
 
 
 def write_pose_stream(directory: Path, stream: str, payloads: list[bytes]) -> Path:
-    """Write a whole pose stream (e.g. ``poses-resolved``) in one go: temporary file, fsync, rename."""
+    """Write a whole pose stream (e.g. ``poses-resolved``) in one go: temporary file, fsync, rename (a write that
+    fails or is interrupted by a stop signal leaves the old stream, if any, and no temporary file)."""
     path = directory / f"{stream}{SUFFIX}"
     tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("wb") as fh:
-        fh.write(encode_record(T_HEADER, encode_header(stream)))
-        for p in payloads:
-            fh.write(encode_record(T_POSE, p))
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with tmp.open("wb") as fh:
+            fh.write(encode_record(T_HEADER, encode_header(stream)))
+            for p in payloads:
+                fh.write(encode_record(T_POSE, p))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     with contextlib.suppress(OSError):
         fd = os.open(directory, os.O_RDONLY)
         os.fsync(fd)

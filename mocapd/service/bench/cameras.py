@@ -353,6 +353,7 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--options", default="{}")
     p.add_argument("--config", type=Path, default=None)
     args = p.parse_args(argv)
+    lifecycle.install_stop_signals("mocapd bench latency (in its network namespace)")  # names the stop line
     opts = CameraDemoOptions(**json.loads(args.options))
     # The base config's [detector] (providers, precision, threads, packing) and [daemon] rates are the ones run;
     # the demo's cameras and calibration replace its rig.

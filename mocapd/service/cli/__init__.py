@@ -38,6 +38,12 @@ def entry() -> None:
 
     command = _command(sys.argv[1:])
     lifecycle.install_stop_signals(f"mocapd {command}".rstrip())
+    if command in SERVING:  # what systemd (and a test) sees from the first instant a stop is handled
+        from mocapd.io.sd_notify import SdNotifier
+
+        notifier = SdNotifier()
+        notifier.notify("STATUS=starting")
+        notifier.close()
     try:
         from mocapd.service.cli.commands import dispatch
 
@@ -45,6 +51,8 @@ def entry() -> None:
         code, fast = dispatch(None)
     except lifecycle.StopRequested as stop:  # before the command was serving, or a command that computes
         code, fast = (0 if command in SERVING else 128 + stop.signum), True
+    except BrokenPipeError:  # `mocapd session S | head`: the reader left; not an error of ours, no traceback
+        code, fast = 0, True
     if fast:
         lifecycle.exit_now(code)
     sys.exit(code)

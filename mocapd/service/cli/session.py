@@ -12,6 +12,7 @@ from typing import Any
 
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import InputError, MocapdError
+from mocapd.io import lifecycle
 from mocapd.io.session import RESOLVED, Session, open_session
 from mocapd.io.session_export import SubjectTrack
 from mocapd.pipeline.camera_views import CameraViews
@@ -56,7 +57,7 @@ def _pose_stream(session: Session, resolved: bool) -> str:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from mocapd.service.session.replay import replay, replay_camera_views
+    from mocapd.service.session.replay import ReplayStats, replay, replay_camera_views
     from mocapd.service.session.solve import session_rig
 
     cfg = load_config(args.config)
@@ -77,7 +78,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
                   flush=True)  # fmt: skip
 
     print(f"mocapd replay: {len(frames)} frames through {len(sinks) - 1} sink(s) at {args.speed:g}x", flush=True)
-    stats = asyncio.run(replay(frames, sinks, speed=args.speed, on_frame=progress, events=events))
+
+    async def main(stop: asyncio.Event) -> ReplayStats:
+        lifecycle.enter_phase("replaying")
+        return await replay(frames, sinks, speed=args.speed, on_frame=progress, events=events, stop=stop)
+
+    stats = lifecycle.run_until_stopped(main)
     print(json.dumps(asdict(stats)))
     return 0
 
@@ -100,9 +106,12 @@ def cmd_resolve(args: argparse.Namespace) -> int:
             session.require_stream(stream)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
     n_frames = len(solve_times(session, rig.options.rate_hz))
+    # A stop signal while solving raises StopRequested here: nothing is written (exit 128 + the signal).
+    lifecycle.enter_phase("re-solving the session (nothing written yet)")
     with Progress(n_frames, "resolve") as bar:
         frames, summary = resolve(session, opts, bar)
     _undecodable_notes(session)
+    lifecycle.enter_phase("writing the resolved poses (atomically: all or nothing)")
     path = write_resolved(session, frames, args.output)
     summary["written"] = str(path)
     if truth:

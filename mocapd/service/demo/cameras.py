@@ -46,6 +46,7 @@ from mocapd.errors import ConfigError, MocapdError
 from mocapd.io import lifecycle, ports
 from mocapd.io.calibration_files import read_qca, scale_calibration, write_mocapd_toml
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
+from mocapd.io.sd_notify import SdNotifier
 from mocapd.io.ws_server import listen_error
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service import assembly
@@ -190,6 +191,10 @@ async def run_camera_demo(
     """Inside a private network namespace: start the fake cameras, then run the daemon of the generated config
     until ``stop``, ``seconds`` or ``monitor``; the cameras stop after the daemon."""
     stop = stop if stop is not None else asyncio.Event()
+    lifecycle.enter_phase("starting the fake cameras")
+    notifier = SdNotifier()
+    notifier.notify("STATUS=starting the fake cameras")
+    notifier.close()
     addresses = add_loopback_aliases(4)
     with tempfile.TemporaryDirectory(prefix="mocapd-demo-") as tmp:
         work = Path(tmp)
@@ -274,6 +279,7 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--udp-fd", type=int, default=None, help="inherited UDP socket for the MVN / VMC streams")
     p.add_argument("--options", default="{}", help="CameraDemoOptions fields as JSON")
     args = p.parse_args(argv)
+    lifecycle.install_stop_signals("mocapd demo (in its network namespace)")  # names the stop line
     people = PeopleCount()
     holder: list[Daemon] = []
 
@@ -339,7 +345,7 @@ def in_private_netns(
             with contextlib.suppress(ProcessLookupError):
                 proc.send_signal(signum)
 
-        with lifecycle.on_stop(forward):
+        with lifecycle.on_stop(forward, quiet=True):  # the child names the phase it stops in
             code = proc.wait()
     return 128 - code if code < 0 else code
 

@@ -1,0 +1,237 @@
+"""Stopping a real mocapd process in a chosen phase with a chosen signal, and what it leaves behind (issue 32).
+
+The process tells where it is the way it tells systemd: ``sd_notify`` datagrams on ``$NOTIFY_SOCKET`` (``STATUS=
+starting``, ``STATUS=loading models and building the rig``, ``STATUS=loading the solver kernel``, ``STATUS=opening
+devices``, ``READY=1``, ``STOPPING=1``). The socket here asks for the sender's credentials (``SO_PASSCRED``), so
+each message comes with the pid that sent it — the demo's namespace child, not the ``mocapd demo`` the user
+signals. To land a signal inside a phase however short it is, the sender is frozen (SIGSTOP) the moment its
+phase's message arrives, the test checks that no later phase was announced meanwhile, sends the stop signal to
+the process the user would signal, and lets the sender go on (SIGCONT): the signal is handled in that phase.
+
+Every process the test starts carries ``MOCAPD_TEST_TAG`` in its environment, and so does every descendant (they
+inherit it), so "no process left" is a scan of ``/proc/*/environ`` for the tag — the test's own processes only,
+never another engineer's. ``TMPDIR`` is a folder of the case's own: it must be empty at the end.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import socket
+import struct
+import subprocess
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+TAG_VAR = "MOCAPD_TEST_TAG"
+#: the messages that start a phase (a periodic STATUS line of the running daemon does not)
+PHASES = {
+    "starting": "STATUS=starting",
+    "starting the fake cameras": "STATUS=starting the fake cameras",
+    "loading models": "STATUS=loading models and building the rig",
+    "loading the solver kernel": "STATUS=loading the solver kernel",
+    "opening devices": "STATUS=opening devices",
+    "running": "READY=1",
+}
+STOP_LINE = re.compile(r"^(?P<who>.+): (?P<signal>SIG[A-Z]+) while (?P<phase>.+): stopping$", re.MULTILINE)
+
+
+def tagged_processes(tag: str) -> list[tuple[int, str]]:
+    """Live processes whose environment carries ``MOCAPD_TEST_TAG=tag`` (pid, command line); zombies excluded."""
+    needle = f"{TAG_VAR}={tag}".encode()
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        with contextlib.suppress(OSError):
+            if needle not in Path(f"/proc/{entry}/environ").read_bytes().split(b"\0"):
+                continue
+            stat = Path(f"/proc/{entry}/stat").read_text()
+            if stat.rsplit(")", 1)[1].split()[0] == "Z":
+                continue
+            cmd = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            found.append((int(entry), cmd[:160]))
+    return found
+
+
+def port_free(port: int, host: str = "127.0.0.1") -> bool:
+    """Whether ``host:port`` can be listened on now."""
+    try:
+        with socket.create_server((host, port)):
+            return True
+    except OSError:
+        return False
+
+
+class Notifications:
+    """A datagram socket standing in for systemd's: every message with the pid that sent it."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
+        self.sock.bind(str(path))
+        self.messages: list[tuple[int, str]] = []  # (sender pid, one line)
+
+    def receive(self, timeout: float) -> list[tuple[int, str]]:
+        """Lines that arrive within ``timeout`` s (all those already queued, at least)."""
+        got: list[tuple[int, str]] = []
+        end = time.monotonic() + timeout
+        while True:
+            self.sock.settimeout(max(0.0, end - time.monotonic()) or 1e-4)
+            try:
+                data, ancdata, _, _ = self.sock.recvmsg(4096, socket.CMSG_SPACE(12))
+            except (TimeoutError, BlockingIOError):
+                break
+            pid = 0
+            for level, kind, value in ancdata:
+                if level == socket.SOL_SOCKET and kind == socket.SCM_CREDENTIALS:
+                    pid = struct.unpack("3i", value[:12])[0]
+            got += [(pid, line) for line in data.decode(errors="replace").splitlines()]
+        self.messages += got
+        return got
+
+    def wait_for(self, line: str, timeout: float, alive: Callable[[], bool]) -> int:
+        """The pid that sent ``line`` (waiting up to ``timeout`` s while ``alive()``)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and alive():
+            for pid, got in self.receive(0.05):
+                if got == line:
+                    return pid
+        raise AssertionError(f"no {line!r} within {timeout:.0f} s; got {[m for _, m in self.messages][-12:]}")
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@dataclass
+class Outcome:
+    """What stopping one process did."""
+
+    rc: int
+    stop_s: float
+    """From the stop signal to the exit of the signalled process."""
+    out: str
+    err: str
+    stop_lines: list[dict[str, str]]
+    left: list[tuple[int, str]]
+    """Tagged processes still alive 2 s after the exit."""
+    tmp_left: list[str]
+    """What the run left in its TMPDIR."""
+    messages: list[str] = field(default_factory=list)
+
+    def describe(self) -> str:
+        return (f"rc {self.rc}, stopped in {self.stop_s:.2f} s, stop lines {self.stop_lines}, left {self.left}, "
+                f"tmp left {self.tmp_left}\n--- stdout\n{self.out[-3000:]}\n--- stderr\n{self.err[-3000:]}")  # fmt: skip
+
+
+class Launched:
+    """One tagged process with its own notification socket, TMPDIR and output readers."""
+
+    def __init__(self, cmd: list[str], folder: Path, env: dict[str, str] | None = None) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        self.tag = uuid.uuid4().hex
+        self.tmpdir = folder / "tmp"
+        self.tmpdir.mkdir(exist_ok=True)
+        self.notes = Notifications(folder / "notify.sock")
+        full_env = {**os.environ, **(env or {}), TAG_VAR: self.tag, "NOTIFY_SOCKET": str(self.notes.path),
+                    "TMPDIR": str(self.tmpdir)}  # fmt: skip
+        full_env.pop("WATCHDOG_USEC", None)
+        self.proc = subprocess.Popen(cmd, env=full_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.out: list[str] = []
+        self.err: list[str] = []
+        self._readers = [threading.Thread(target=self._pump, args=(s, into), daemon=True)
+                         for s, into in ((self.proc.stdout, self.out), (self.proc.stderr, self.err))]  # fmt: skip
+        for r in self._readers:
+            r.start()
+
+    @staticmethod
+    def _pump(stream: object, into: list[str]) -> None:
+        assert stream is not None
+        into.extend(stream)  # type: ignore[call-overload]
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def wait_phase(self, phase: str, timeout: float = 300.0) -> int:
+        """Wait until ``phase`` starts, and freeze the process that announced it; returns that pid."""
+        line = PHASES[phase]
+        pid = self.notes.wait_for(line, timeout, self.alive)
+        os.kill(pid, signal.SIGSTOP)
+        later = [m for _, m in self.notes.receive(0.05) if m in PHASES.values() and m != line]
+        assert not later, f"phase {phase!r} was over before the process could be frozen in it: then {later}"
+        return pid
+
+    def stop(self, sig: int, frozen: int | None = None, then: int | None = None, timeout: float = 60.0) -> float:
+        """Send ``sig`` (and thaw ``frozen``); with ``then``, send that too once the process says it is stopping.
+        Returns the seconds from ``sig`` to the exit."""
+        t0 = time.monotonic()
+        self.proc.send_signal(sig)
+        if frozen is not None:
+            os.kill(frozen, signal.SIGCONT)
+        if then is not None:
+            with contextlib.suppress(AssertionError):  # a process that stops at once sends no STOPPING=1 first
+                self.notes.wait_for("STOPPING=1", 10.0, self.alive)
+            if self.alive():
+                self.proc.send_signal(then)
+        self.proc.wait(timeout=timeout)
+        return time.monotonic() - t0
+
+    def finish(self) -> Outcome:
+        """After the exit: output, stop lines, what is left (processes after up to 2 s, files in TMPDIR)."""
+        stop_s = -1.0
+        end = time.monotonic() + 2.0
+        left = tagged_processes(self.tag)
+        while left and time.monotonic() < end:
+            time.sleep(0.05)
+            left = tagged_processes(self.tag)
+        for r in self._readers:
+            r.join(timeout=10)
+        err = "".join(self.err)
+        lines = [m.groupdict() for m in STOP_LINE.finditer(err)]
+        self.notes.close()
+        # onnxruntime's OpenVINO build writes TMPDIR/.ses (a time and an id) when it is imported: the library's own
+        # file, there after every run however it ends, not something a stop left.
+        tmp_left = sorted(p.name for p in self.tmpdir.iterdir() if p.name != ".ses")
+        return Outcome(self.proc.returncode, stop_s, "".join(self.out), err, lines, left, tmp_left,
+                       [m for _, m in self.notes.messages])  # fmt: skip
+
+    def kill(self) -> None:
+        """Clean up after a failed test: the process and everything tagged."""
+        for pid, _ in tagged_processes(self.tag):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        with contextlib.suppress(ProcessLookupError):
+            self.proc.kill()
+        self.proc.wait()
+
+
+def stop_in_phase(cmd: list[str], folder: Path, phase: str, sig: int, *, then: int | None = None,
+                  env: dict[str, str] | None = None, timeout: float = 300.0) -> Outcome:  # fmt: skip
+    """Start ``cmd``, send ``sig`` in ``phase`` (and ``then`` while it stops); what happened."""
+    run = Launched(cmd, folder, env)
+    try:
+        frozen = run.wait_phase(phase, timeout)
+        stop_s = run.stop(sig, frozen, then)
+        outcome = run.finish()
+        outcome.stop_s = stop_s
+        return outcome
+    finally:
+        if run.alive() or tagged_processes(run.tag):
+            run.kill()
+
+
+def silent_pty(folder: Path) -> tuple[Path, int]:
+    """A serial port that never answers (a device that does not open): a pseudo-terminal whose other end this
+    process holds and never writes to. Returns its path (a symlink, as /dev/serial/by-id) and the master fd."""
+    master, slave = os.openpty()
+    link = folder / "silent-imu"
+    link.symlink_to(os.ttyname(slave))
+    os.close(slave)
+    return link, master
