@@ -28,6 +28,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO
 
 TAG_VAR = "MOCAPD_TEST_TAG"
 #: the messages that start a phase (a periodic STATUS line of the running daemon does not)
@@ -128,7 +129,8 @@ class Outcome:
 
     def describe(self) -> str:
         return (f"rc {self.rc}, stopped in {self.stop_s:.2f} s, stop lines {self.stop_lines}, left {self.left}, "
-                f"tmp left {self.tmp_left}\n--- stdout\n{self.out[-3000:]}\n--- stderr\n{self.err[-3000:]}")  # fmt: skip
+                f"tmp left {self.tmp_left}\n--- stdout\n{self.out[-3000:]}\n--- stderr\n"
+                f"{self.err[-3000:]}")  # fmt: skip
 
 
 class Launched:
@@ -152,9 +154,9 @@ class Launched:
             r.start()
 
     @staticmethod
-    def _pump(stream: object, into: list[str]) -> None:
+    def _pump(stream: IO[str] | None, into: list[str]) -> None:
         assert stream is not None
-        into.extend(stream)  # type: ignore[call-overload]
+        into.extend(stream)
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -225,6 +227,51 @@ def stop_in_phase(cmd: list[str], folder: Path, phase: str, sig: int, *, then: i
     finally:
         if run.alive() or tagged_processes(run.tag):
             run.kill()
+
+
+STOP_S = 2.0
+"""The issue's bound: a requested stop is done within 2 s, in any phase."""
+
+
+def ready_ports(out: str) -> list[int]:
+    """The ports a ready daemon printed (status, viewer, stream)."""
+    return sorted({int(p) for p in re.findall(r"(?:http|ws)://127\.0\.0\.1:(\d+)/", out)})
+
+
+def problems(outcome: Outcome, sig: int, phase: str, who: str, session: Path | None = None) -> list[str]:
+    """What is wrong with a stop in ``phase`` by ``sig`` (empty: nothing): exit 0 within :data:`STOP_S`, one
+    line by ``who`` naming the signal and the phase, no traceback, no process or TMPDIR file left, the ports
+    free, and a recorded ``session`` complete and closed."""
+    from mocapd.io.session import open_session
+
+    found = []
+    name = signal.Signals(sig).name
+    if outcome.rc != 0:
+        found.append(f"exit status {outcome.rc}")
+    if not outcome.stop_s < STOP_S:
+        found.append(f"stopped in {outcome.stop_s:.2f} s")
+    said = [(line["who"], line["signal"], line["phase"]) for line in outcome.stop_lines]
+    if said != [(who, name, phase)]:
+        found.append(f"stop lines {said}, expected {[(who, name, phase)]}")
+    if "Traceback" in outcome.out + outcome.err:
+        found.append("a traceback")
+    if outcome.left:
+        found.append(f"processes left: {outcome.left}")
+    if outcome.tmp_left:
+        found.append(f"TMPDIR left: {outcome.tmp_left}")
+    taken = [p for p in ready_ports(outcome.out) if not port_free(p)]
+    if taken:
+        found.append(f"ports still taken: {taken}")
+    if session is not None:
+        s = open_session(session)
+        frames = s.poses()
+        if not (s.closed_cleanly and not s.reports["poses"].damaged and s.cut is None):
+            found.append(f"session not closed cleanly: {s.recovery_lines()}")
+        if not frames or [f.frame for f in frames] != list(range(1, len(frames) + 1)):
+            found.append(f"session frames not 1..n: {len(frames)}")
+        if list(session.glob("*.tmp")) or list(session.glob(".manifest-reserve")):
+            found.append(f"session files left: {sorted(p.name for p in session.iterdir())}")
+    return [f"{p}\n{outcome.describe()}" for p in found[:1]] + found[1:]
 
 
 def silent_pty(folder: Path) -> tuple[Path, int]:

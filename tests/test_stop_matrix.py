@@ -14,53 +14,25 @@ empty ``NUMBA_CACHE_DIR``); the devices phase waits on a serial port that never 
 
 from __future__ import annotations
 
-import re
+import json
+import os
 import signal
+import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from mocapd.io.session import open_session
 from tests.rigs import synthetic_toml, write
-from tests.stop_cases import Outcome, port_free, silent_pty, stop_in_phase
+from tests.stop_cases import problems, silent_pty, stop_in_phase
 
 REPO = Path(__file__).resolve().parents[1]
 SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP]
 PHASES = ["starting", "loading models", "loading the solver kernel", "opening devices", "running", "recording"]
-STOP_S = 2.0  # the issue's bound: a requested stop is done within 2 s, in any phase
 
 
 def _next(sig: signal.Signals) -> signal.Signals:
     return SIGNALS[(SIGNALS.index(sig) + 1) % len(SIGNALS)]
-
-
-def _ports(out: str) -> list[int]:
-    """The ports a ready daemon printed (status, viewer/stream)."""
-    return [int(p) for p in re.findall(r"http://127\.0\.0\.1:(\d+)/", out)]
-
-
-def check(outcome: Outcome, sig: signal.Signals, phase: str, who: str, session: Path | None = None) -> None:
-    """The assertions every case shares (see the module docstring)."""
-    what = outcome.describe()
-    assert outcome.rc == 0, what
-    assert outcome.stop_s < STOP_S, what
-    expected = "running" if phase == "recording" else phase
-    assert [(line["who"], line["signal"], line["phase"]) for line in outcome.stop_lines] == [
-        (who, sig.name, expected)
-    ], what
-    assert "Traceback" not in outcome.out + outcome.err, what
-    assert outcome.left == [], what
-    assert outcome.tmp_left == [], what
-    for port in _ports(outcome.out):
-        assert port_free(port), f"port {port} still taken\n{what}"
-    if session is not None:
-        s = open_session(session)
-        frames = s.poses()
-        assert s.closed_cleanly and not s.reports["poses"].damaged, what
-        assert frames and [f.frame for f in frames] == list(range(1, len(frames) + 1)), what
-        assert s.manifest["writer"]["dropped"] == 0 and s.cut is None
-        assert not list(session.glob("*.tmp")) and not list(session.glob(".manifest-reserve"))
 
 
 def case_setup(tmp_path: Path, phase: str, base: str) -> tuple[Path, dict[str, str], int | None]:
@@ -91,7 +63,27 @@ def test_run_on_the_synthetic_rig_stops_in_every_phase(tmp_path: Path, phase: st
         outcome = stop_in_phase(cmd, tmp_path / "run", wait_for, sig, then=then, env=env)
     finally:
         if held is not None:
-            import os
-
             os.close(held)
-    check(outcome, sig, phase, "mocapd run", session)
+    assert not problems(outcome, sig, "running" if phase == "recording" else phase, "mocapd run", session)
+
+
+def test_run_on_fake_gige_cameras_stops_in_every_phase_and_tells_a_pause_from_a_lost_camera(tmp_path: Path) -> None:
+    """The same on four fake GigE Vision cameras in a private network namespace (one case per phase, the signal
+    taking turns), and the camera faults: a pause of the whole daemon is not a lost camera; a camera that stops
+    sending but keeps its socket is (tests/netns_stop_matrix.py)."""
+    proc = subprocess.run(["unshare", "-rn", sys.executable, "-m", "tests.netns_stop_matrix", str(tmp_path)],
+                          cwd=REPO, capture_output=True, text=True, timeout=1200, check=False)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-5000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert [c["phase"] for c in result["cases"]] == PHASES
+    for case in result["cases"]:
+        assert not case["problems"], case
+    f = result["faults"]
+    # Paused for longer than lost_after_s: no camera declared lost, none reopened.
+    assert all(c["failures"] == 0 and c["reopens"] == 0 for c in f["after_pause"]), f
+    # A camera that stops sending is declared lost after its time-out (1 s; plus a pop time-out and a status
+    # poll), the others untouched, and it comes back once it sends again.
+    assert f["declared_lost_after_s"] < 1.0 + 3.0, f
+    assert "sent no frame" in f["lost_error"] or "control connection" in f["lost_error"], f
+    assert f["others_failures"] == [0, 0, 0], f
+    assert f["rc"] == 0 and f["stop_s"] < 2.0 and not f["traceback"], f

@@ -12,9 +12,12 @@ What a stop signal does depends on where the process is:
 
 - while something waits for it (:func:`on_stop`: the daemon's stop event, :func:`stop_event`, a parent that
   forwards it to its child), each waiting target is called and nothing is raised;
+- while the process is still ``starting`` (imports, arguments, config: nothing opened, nothing written), it
+  ends at once with the command's stop status: an exception raised into C code there is not safe (NumPy's
+  import turned one into an ``ImportError`` and a traceback);
 - otherwise the first one raises :class:`StopRequested` in the main thread (the way Python raises
-  ``KeyboardInterrupt``), unwinding whatever runs through its ``finally`` blocks — unless that code said it
-  checks for itself (:func:`deferred`).
+  ``KeyboardInterrupt``), unwinding whatever runs through its ``finally`` blocks — never inside an import (it is
+  raised once the import is done) — unless that code said it checks for itself (:func:`deferred`).
 
 Either way one line goes to stderr naming the signal and the :func:`phase` the process was in, so a technician
 knows what was interrupted. Repeated signals are counted, not acted on twice.
@@ -36,24 +39,21 @@ must not be).
 
 from __future__ import annotations
 
-import asyncio
+# Light on purpose: this module is imported first, and until it has installed the handlers a stop signal has
+# Python's default effect. asyncio, logging, ctypes are imported where they are used.
 import contextlib
-import ctypes
-import importlib
-import logging
 import os
-import shutil
 import signal
 import sys
-import threading
 import time
 from collections.abc import Callable, Coroutine, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
-from mocapd.io.log_throttle import RepeatFilter
-from mocapd.io.log_throttle import install as install_log_throttle
+if TYPE_CHECKING:
+    import asyncio
+
+    from mocapd.io.log_throttle import RepeatFilter
 
 #: the signals that ask a mocapd process to stop
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -73,19 +73,22 @@ class StopRequested(BaseException):
         self.signum = signum
 
 
-@dataclass
 class _State:
-    installed: bool = False
-    signum: int | None = None
-    received_ns: int | None = None
-    count: int = 0
-    raise_outside: bool = True
-    phase: str = "starting"
-    name: str = "mocapd"
-    targets: list[Callable[[int], None]] = field(default_factory=list)
-    quiet: int = 0  # targets that announce the stop themselves (a child the signal is forwarded to)
-    remove: list[Path] = field(default_factory=list)
-    previous: dict[int, object] = field(default_factory=dict)
+    """The process's stop state (a plain class: ``dataclasses`` costs this early module 17 ms of imports)."""
+
+    def __init__(self) -> None:
+        self.installed = False
+        self.signum: int | None = None
+        self.received_ns: int | None = None
+        self.count = 0
+        self.raise_outside = True
+        self.phase = "starting"
+        self.name = "mocapd"
+        self.targets: list[Callable[[int], None]] = []
+        self.quiet = 0  # targets that announce the stop themselves (a child the signal is forwarded to)
+        self.starting_status: Callable[[int], int] = lambda _signum: 0
+        self.remove: list[Path] = []
+        self.previous: dict[int, object] = {}
 
 
 _state = _State()
@@ -96,12 +99,15 @@ def signal_name(signum: int) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- stop signals
-def install_stop_signals(name: str = "mocapd") -> None:
+def install_stop_signals(name: str = "mocapd", starting_status: Callable[[int], int] | None = None) -> None:
     """Handle SIGINT, SIGTERM and SIGHUP as stop requests from now on (main thread only; once).
 
-    ``name`` starts the line said on stderr when one arrives (``mocapd run``, ``fake camera CAM01``).
+    ``name`` starts the line said on stderr when one arrives (``mocapd run``, ``fake camera CAM01``);
+    ``starting_status(signum)`` is the exit status of a stop while still starting (default 0).
     """
     _state.name = name
+    if starting_status is not None:
+        _state.starting_status = starting_status
     if _state.installed:
         return
     for sig in STOP_SIGNALS:
@@ -134,8 +140,32 @@ def _on_signal(signum: int, _frame: object) -> None:
             os.write(2, line.encode(errors="replace"))
     for target in list(_state.targets):
         target(signum)
-    if first and not _state.targets and _state.raise_outside:
+    if _state.targets or not first:
+        return
+    if _state.phase == "starting":  # nothing opened or written yet: end now, no exception into C code
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+        os._exit(_state.starting_status(signum))
+    if _state.raise_outside:
+        _raise_when_safe(signum, _frame)
+
+
+def _in_import(frame: Any) -> bool:
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _raise_when_safe(signum: int, frame: Any) -> None:
+    """Raise :class:`StopRequested` now, or (inside an import, whose C parts turn exceptions into ImportErrors)
+    as soon as the import is done: SIGALRM every 20 ms looks again."""
+    if not _in_import(frame):
+        signal.setitimer(signal.ITIMER_REAL, 0)
         raise StopRequested(signum)
+    signal.signal(signal.SIGALRM, lambda _s, f: _raise_when_safe(signum, f))
+    signal.setitimer(signal.ITIMER_REAL, 0.02)
 
 
 def requested() -> int | None:
@@ -197,6 +227,8 @@ def run_until_stopped(main: Callable[[asyncio.Event], Coroutine[Any, Any, T]]) -
     """``asyncio.run(main(stop))`` with stop signals setting ``stop`` from the loop's first instant to its last
     (none is raised into the loop's machinery)."""
 
+    import asyncio
+
     async def wrapper() -> T:
         stop = asyncio.Event()
         with stop_event(stop):
@@ -210,6 +242,9 @@ def run_until_stopped(main: Callable[[asyncio.Event], Coroutine[Any, Any, T]]) -
 def stop_event(stop: asyncio.Event) -> Iterator[None]:
     """Stop signals set ``stop`` while inside (call on the event loop's thread). A process that did not
     :func:`install_stop_signals` (a test, a library user) gets them for the time inside, on the main thread."""
+    import asyncio
+    import threading
+
     loop = asyncio.get_running_loop()
 
     def fire(_signum: int) -> None:
@@ -234,6 +269,8 @@ def die_with_parent(parent: int, sig: int = signal.SIGTERM) -> None:
     ``parent`` is the pid the child was started by: if it died before this call, the child is re-parented
     already and no signal would come, so it is sent now.
     """
+    import ctypes
+
     libc = ctypes.CDLL(None, use_errno=True)
     libc.prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
     libc.prctl.restype = ctypes.c_int
@@ -274,6 +311,8 @@ def child_main(argv: list[str] | None = None) -> NoReturn:
     install_stop_signals(f"{module.rsplit('.', 1)[-1]} (pid {os.getpid()})")
     setup_logging()
     try:
+        import importlib
+
         code = int(getattr(importlib.import_module(module), function)(argv))
     except StopRequested:
         code = 0
@@ -281,11 +320,16 @@ def child_main(argv: list[str] | None = None) -> NoReturn:
 
 
 # ---------------------------------------------------------------------------------------------- logging, exit
-def setup_logging(level: int = logging.WARNING) -> RepeatFilter:
-    """The process's log lines: one format on stderr, every call site rate-limited with a count
-    (:mod:`mocapd.io.log_throttle`). Idempotent."""
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return install_log_throttle()
+def setup_logging(level: int | None = None) -> RepeatFilter:
+    """The process's log lines: one format on stderr (WARNING and above unless ``level``), every call site
+    rate-limited with a count (:mod:`mocapd.io.log_throttle`). Idempotent."""
+    import logging
+
+    from mocapd.io.log_throttle import install
+
+    logging.basicConfig(level=logging.WARNING if level is None else level,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")  # fmt: skip
+    return install()
 
 
 def remove_at_exit(path: Path) -> None:
@@ -308,6 +352,11 @@ def exit_now(code: int) -> NoReturn:
     a loaded 2-core machine, and a daemon asked to stop must be gone within ``daemon.shutdown_timeout_s`` plus a
     second (systemd's ``TimeoutStopSec``, a technician's Ctrl-C).
     """
+    import logging
+    import shutil
+
+    from mocapd.io.log_throttle import RepeatFilter
+
     for path in _state.remove:
         shutil.rmtree(path, ignore_errors=True)
     for handler in logging.getLogger().handlers:  # counts of rate-limited log lines not yet said

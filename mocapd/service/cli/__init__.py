@@ -37,7 +37,11 @@ def entry() -> None:
     from mocapd.io import lifecycle
 
     command = _command(sys.argv[1:])
-    lifecycle.install_stop_signals(f"mocapd {command}".rstrip())
+
+    def stop_status(signum: int) -> int:
+        return 0 if command in SERVING else 128 + signum
+
+    lifecycle.install_stop_signals(f"mocapd {command}".rstrip(), stop_status)
     if command in SERVING:  # what systemd (and a test) sees from the first instant a stop is handled
         from mocapd.io.sd_notify import SdNotifier
 
@@ -49,8 +53,8 @@ def entry() -> None:
 
         lifecycle.setup_logging()
         code, fast = dispatch(None)
-    except lifecycle.StopRequested as stop:  # before the command was serving, or a command that computes
-        code, fast = (0 if command in SERVING else 128 + stop.signum), True
+    except lifecycle.StopRequested as stop:  # a command that computes (resolve, eval), or a daemon's set-up
+        code, fast = stop_status(stop.signum), True
     except BrokenPipeError:  # `mocapd session S | head`: the reader left; not an error of ours, no traceback
         code, fast = 0, True
     if fast:
