@@ -3,7 +3,7 @@ four Aravis fake GigE Vision cameras serving the Pose2Sim multi-person videos on
 then ``mocapd run`` on them, the way a user runs it, again and again:
 
 - the stop matrix on this rig (issue 32): one case per phase, the signal taking turns (the synthetic rig, in
-  tests/test_stop_matrix.py, gets every signal in every phase), each checked by :func:`tests.stop_cases.problems`
+  tests/test_stop_matrix.py, gets every signal in every phase), each checked by :func:`tools.stop_cases.problems`
   here, where its ports are;
 - faults: the whole daemon paused (SIGSTOP) for twice a camera's ``lost_after_s`` and resumed: no camera may be
   declared lost for it; then one camera stops sending but keeps its socket (its server frozen): it must be
@@ -28,7 +28,7 @@ from mocapd.io.calibration_files import read_qca, scale_calibration, write_mocap
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
 from mocapd.sim.fake_cameras import FakeCameraFleet, FakeCameraSpec
 from mocapd.sim.fake_gige import add_loopback_aliases
-from tests.stop_cases import Launched, problems, silent_pty, stop_in_phase
+from tools.stop_cases import Launched, problems, silent_pty, stop_in_phase
 
 DEMO = "Demo_MultiPerson"
 SCALE = 0.25  # 272 x 480 frames: four cameras and a detector on a loaded 2-core machine

@@ -6,7 +6,7 @@ Each case asserts what a technician relies on: exit status 0 (a requested stop),
 one line naming the signal and the phase (no traceback), no process of the run left (``/proc`` scan for the
 run's tag), its ports free again, nothing left in its TMPDIR, and a recording's session complete and closed.
 
-How a signal is landed in a phase, and the other helpers: :mod:`tests.stop_cases`. Start-ups are shared where
+How a signal is landed in a phase, and the other helpers: :mod:`tools.stop_cases`. Start-ups are shared where
 the phase allows: a daemon stopped while running or recording is also sent a second signal while it stops (the
 "stopping" phase), so those two phases cost one start-up per signal. The kernel phase is a real compile (an
 empty ``NUMBA_CACHE_DIR``); the devices phase waits on a serial port that never answers.
@@ -19,12 +19,14 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
+from mocapd.io.session import open_session
 from tests.rigs import synthetic_toml, write
-from tests.stop_cases import problems, silent_pty, stop_in_phase
+from tools.stop_cases import Launched, port_free, problems, ready_ports, silent_pty, stop_in_phase, tagged_processes
 
 REPO = Path(__file__).resolve().parents[1]
 SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP]
@@ -87,3 +89,60 @@ def test_run_on_fake_gige_cameras_stops_in_every_phase_and_tells_a_pause_from_a_
     assert "sent no frame" in f["lost_error"] or "control connection" in f["lost_error"], f
     assert f["others_failures"] == [0, 0, 0], f
     assert f["rc"] == 0 and f["stop_s"] < 2.0 and not f["traceback"], f
+
+
+DEMO_PHASES = ["starting", "starting the fake cameras", *PHASES[1:]]
+DEMO_CHILD = "mocapd demo (in its network namespace)"
+
+
+def _demo_cmd(config: Path, session: Path | None = None) -> list[str]:
+    cmd = [sys.executable, "-m", "mocapd", "demo", "--config", str(config), "--http-port", "0", "--scale", "0.25"]
+    return cmd + (["--record", str(session)] if session is not None else [])
+
+
+@pytest.mark.parametrize("phase", DEMO_PHASES)
+def test_demo_stops_in_every_phase(tmp_path: Path, phase: str) -> None:
+    """``mocapd demo`` (a parent in the host's network namespace, the daemon and four fake camera servers in a
+    private one): the signal taking turns over the phases; the parent forwards it, the child names the phase."""
+    i = DEMO_PHASES.index(phase)
+    sig = SIGNALS[i % len(SIGNALS)]
+    config, env, held = case_setup(tmp_path, phase, "[websocket]\nport = 0\n\n")
+    session = tmp_path / "session" if phase == "recording" else None
+    then = _next(sig) if phase in ("running", "recording") else None
+    try:
+        outcome = stop_in_phase(_demo_cmd(config, session), tmp_path / "run",
+                                "running" if phase == "recording" else phase, sig, then=then, env=env)  # fmt: skip
+    finally:
+        if held is not None:
+            os.close(held)
+    who = "mocapd demo" if phase == "starting" else DEMO_CHILD
+    assert not problems(outcome, sig, "running" if phase == "recording" else phase, who, session)
+
+
+def test_kill_9_of_the_demo_leaves_no_process_and_frees_its_ports(tmp_path: Path) -> None:
+    """SIGKILL of ``mocapd demo`` (a crashed terminal, the OOM killer): its namespace child and the four fake
+    camera servers end too (the kernel's SIGTERM: PR_SET_PDEATHSIG), within 2 s; the ports are free again; and
+    the child, stopped by that SIGTERM as by a Ctrl-C, closed its recording."""
+    config = write(tmp_path / "demo.toml", "[websocket]\nport = 0\n")
+    session = tmp_path / "session"
+    run = Launched(_demo_cmd(config, session), tmp_path / "run")
+    try:
+        run.notes.wait_for("READY=1", 300, run.alive)
+        assert len(tagged_processes(run.tag)) >= 6  # the demo, its namespace child, four camera servers
+        t0 = time.monotonic()
+        run.proc.send_signal(signal.SIGKILL)
+        run.proc.wait(timeout=10)
+        while tagged_processes(run.tag) and time.monotonic() - t0 < 10:
+            time.sleep(0.02)
+        gone_s = time.monotonic() - t0
+    finally:
+        if run.alive() or tagged_processes(run.tag):
+            run.kill()
+    outcome = run.finish()
+    assert gone_s < 2.0 and outcome.left == [], outcome.describe()
+    ports = ready_ports(outcome.out)
+    assert len(ports) == 2 and all(port_free(p) for p in ports), outcome.describe()
+    assert [(x["who"], x["signal"], x["phase"]) for x in outcome.stop_lines] == [(DEMO_CHILD, "SIGTERM", "running")]
+    s = open_session(session)
+    assert s.closed_cleanly and s.poses() and s.cut is None, s.recovery_lines()
+    assert outcome.tmp_left == []

@@ -13,8 +13,8 @@ without a clean close.
 
 A write that fails (the disk full: ``ENOSPC``; the drive gone) stops the recording there, for good, with one log
 line: every stream ends at its last complete record, and the closing manifest says ``"cut"`` (the errno, when,
-which stream). Space for that manifest is held from the start (:data:`RESERVE`, released just before it is
-written), so a full disk does not keep the session from closing properly.
+which stream). Space for that manifest is held from the start (the opening manifest's padding,
+:data:`RESERVE_BYTES`), so a full disk does not keep the session from closing properly.
 
 Recovery: :func:`open_session` reads every stream with :class:`~mocapd.protocols.session_format.StreamDecoder`;
 records failing their CRC are counted and skipped (decoding resynchronises on the next record), and a partial
@@ -70,10 +70,10 @@ FRAMES = "frames"
 """The optional stream of downscaled camera frames (``[record] frames``)."""
 RESOLVED = "poses-resolved"
 MAX_FLUSH_INTERVAL_S = 1.0
-RESERVE = ".manifest-reserve"
-"""Disk space held from the start for the closing manifest: removed just before it is written, so a session cut
-by a full disk still closes with a manifest that says so."""
 RESERVE_BYTES = 256 * 1024
+"""The opening manifest is padded with spaces to at least this size (and twice its own): disk space held for the
+closing manifest, rewritten in place when a full disk refuses a new file, so a session cut by a full disk still
+closes with a manifest that says so."""
 _CHUNK = 1 << 20
 BLOCK = 1 << 16
 """The writer hands the OS whole 64 KiB blocks as they fill (whatever record boundaries fall inside them) and
@@ -82,13 +82,15 @@ _STOP = object()
 T = TypeVar("T")
 
 
-def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+def write_json_atomic(path: Path, data: dict[str, Any], pad_to: int = 0) -> None:
     """Write JSON to ``path`` so that a reader sees the old or the new file, never a partial one (and no
-    temporary file is left when the write fails: a full disk)."""
+    temporary file is left when the write fails: a full disk). ``pad_to``: spaces after the JSON (which allows
+    them) up to that many bytes, really written: disk space held for a later rewrite in place."""
     tmp = path.with_name(path.name + ".tmp")
+    text = json.dumps(data, indent=1, default=str).encode()
     try:
-        with tmp.open("w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1, default=str)
+        with tmp.open("wb") as fh:
+            fh.write(text + b" " * max(0, pad_to - len(text) - 1) + b"\n")
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
@@ -176,10 +178,8 @@ class SessionWriter:
             if path.exists():
                 raise InputError(f"session stream {path} exists already: record into a new directory")
         self.manifest["closed"] = False
-        write_json_atomic(self.directory / MANIFEST, self.manifest)
-        # Twice the opening manifest (the closing one adds counters) and at least RESERVE_BYTES.
-        size = max(RESERVE_BYTES, 2 * (self.directory / MANIFEST).stat().st_size)
-        _reserve(self.directory / RESERVE, size)
+        size = len(json.dumps(self.manifest, indent=1, default=str))
+        write_json_atomic(self.directory / MANIFEST, self.manifest, pad_to=max(RESERVE_BYTES, 2 * size))
         for name in self.streams:
             self._files[name] = (self.directory / f"{name}{SUFFIX}").open("xb", buffering=0)
             self._pending[name] = bytearray(encode_record(T_HEADER, encode_header(name)))
@@ -218,12 +218,15 @@ class SessionWriter:
         self.manifest["writer"] = asdict(self.counters)
         if self.cut is not None:
             self.manifest["cut"] = self.cut
-        (self.directory / RESERVE).unlink(missing_ok=True)  # its space is the manifest's now
+        path = self.directory / MANIFEST
         try:
-            write_json_atomic(self.directory / MANIFEST, self.manifest)
-        except OSError as exc:
-            log.error("session %s: cannot write the closing manifest: %s (`mocapd session` still reads the streams)",
-                      self.directory, exc.strerror or exc)  # fmt: skip
+            write_json_atomic(path, self.manifest)
+        except OSError:  # no room for a new file: over the opening one, in the space its padding holds
+            try:
+                _overwrite_json(path, self.manifest)
+            except OSError as exc:
+                log.error("session %s: cannot write the closing manifest: %s (`mocapd session` still reads the "
+                          "streams)", self.directory, exc.strerror or exc)  # fmt: skip
 
     # ------------------------------------------------------------------------------------------ the thread
     def _run(self) -> None:
@@ -311,10 +314,14 @@ class SessionWriter:
                   exc.strerror or exc, self.counters.written)  # fmt: skip
 
 
-def _reserve(path: Path, size: int) -> None:
-    """Write ``size`` bytes to ``path`` (really written: a sparse file would hold no space)."""
-    with path.open("wb") as fh:
-        fh.write(bytes(size))
+def _overwrite_json(path: Path, data: dict[str, Any]) -> None:
+    """Rewrite ``path`` in place with ``data`` as JSON, padded with spaces over the old bytes: no new disk space
+    where the old file is at least as long (not atomic: only for when a full disk leaves no other way)."""
+    text = json.dumps(data, indent=1, default=str).encode()
+    with path.open("r+b") as fh:
+        old = fh.seek(0, os.SEEK_END)
+        fh.seek(0)
+        fh.write(text + b" " * max(0, old - len(text) - 1) + b"\n")
         fh.flush()
         os.fsync(fh.fileno())
 

@@ -269,7 +269,7 @@ def problems(outcome: Outcome, sig: int, phase: str, who: str, session: Path | N
             found.append(f"session not closed cleanly: {s.recovery_lines()}")
         if not frames or [f.frame for f in frames] != list(range(1, len(frames) + 1)):
             found.append(f"session frames not 1..n: {len(frames)}")
-        if list(session.glob("*.tmp")) or list(session.glob(".manifest-reserve")):
+        if list(session.glob("*.tmp")):
             found.append(f"session files left: {sorted(p.name for p in session.iterdir())}")
     return [f"{p}\n{outcome.describe()}" for p in found[:1]] + found[1:]
 
