@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+from mocapd.io.lifecycle import guarded_command
 from mocapd.io.session import open_session
 from tests.rigs import synthetic_toml, write
 from tools.stop_cases import Launched
@@ -23,8 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def test_a_full_disk_stops_the_recording_cleanly_while_the_output_goes_on(tmp_path: Path) -> None:
-    proc = subprocess.run(["unshare", "-rm", sys.executable, "-m", "tests.enospc_rig", str(tmp_path)], cwd=REPO,
-                          capture_output=True, text=True, timeout=600, check=False)  # fmt: skip
+    cmd = guarded_command(["unshare", "-rm", sys.executable, "-m", "tests.enospc_rig", str(tmp_path)])
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-5000:]
     r = json.loads(proc.stdout.strip().splitlines()[-1])
     err = r["stderr"]

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import pytest
 
+from mocapd.io.lifecycle import guarded_command
 from mocapd.io.session import open_session
 from tests.rigs import synthetic_toml, write
 from tools.stop_cases import Launched, port_free, problems, ready_ports, silent_pty, stop_in_phase, tagged_processes
@@ -73,8 +74,8 @@ def test_run_on_fake_gige_cameras_stops_in_every_phase_and_tells_a_pause_from_a_
     """The same on four fake GigE Vision cameras in a private network namespace (one case per phase, the signal
     taking turns), and the camera faults: a pause of the whole daemon is not a lost camera; a camera that stops
     sending but keeps its socket is (tests/netns_stop_matrix.py)."""
-    proc = subprocess.run(["unshare", "-rn", sys.executable, "-m", "tests.netns_stop_matrix", str(tmp_path)],
-                          cwd=REPO, capture_output=True, text=True, timeout=1200, check=False)  # fmt: skip
+    cmd = guarded_command(["unshare", "-rn", sys.executable, "-m", "tests.netns_stop_matrix", str(tmp_path)])
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=1200, check=False)
     assert proc.returncode == 0, proc.stderr[-5000:]
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert [c["phase"] for c in result["cases"]] == PHASES

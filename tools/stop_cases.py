@@ -1,12 +1,13 @@
 """Stopping a real mocapd process in a chosen phase with a chosen signal, and what it leaves behind (issue 32).
 
-The process tells where it is the way it tells systemd: ``sd_notify`` datagrams on ``$NOTIFY_SOCKET`` (``STATUS=
-starting``, ``STATUS=loading models and building the rig``, ``STATUS=loading the solver kernel``, ``STATUS=opening
-devices``, ``READY=1``, ``STOPPING=1``). The socket here asks for the sender's credentials (``SO_PASSCRED``), so
-each message comes with the pid that sent it — the demo's namespace child, not the ``mocapd demo`` the user
-signals. To land a signal inside a phase however short it is, the sender is frozen (SIGSTOP) the moment its
-phase's message arrives, the test checks that no later phase was announced meanwhile, sends the stop signal to
-the process the user would signal, and lets the sender go on (SIGCONT): the signal is handled in that phase.
+The process tells where it is the way it tells systemd: ``sd_notify`` datagrams on ``$NOTIFY_SOCKET``
+(``STATUS=<phase>`` from :func:`mocapd.io.lifecycle.enter_phase`: ``starting``, ``loading models``, ``loading the
+solver kernel``, ``opening devices``; ``READY=1``, ``STOPPING=1``). The socket here asks for the sender's
+credentials (``SO_PASSCRED``), so each message comes with the pid that sent it — the demo's namespace child, not
+the ``mocapd demo`` the user signals. To land a signal inside a phase however short it is, the sender is frozen
+(SIGSTOP) the moment its phase's message arrives, the test checks that no later phase was announced meanwhile,
+sends the stop signal to the process the user would signal, and lets the sender go on (SIGCONT): the signal is
+handled in that phase.
 
 Every process the test starts carries ``MOCAPD_TEST_TAG`` in its environment, and so does every descendant (they
 inherit it), so "no process left" is a scan of ``/proc/*/environ`` for the tag — the test's own processes only,
@@ -30,16 +31,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
+from mocapd.io.lifecycle import guarded_command
+
 TAG_VAR = "MOCAPD_TEST_TAG"
-#: the messages that start a phase (a periodic STATUS line of the running daemon does not)
+#: the messages that start a phase (a periodic STATUS line of the running daemon does not): STATUS=<phase>, and
+#: READY=1 for a daemon's "running"
 PHASES = {
-    "starting": "STATUS=starting",
-    "starting the fake cameras": "STATUS=starting the fake cameras",
-    "loading models": "STATUS=loading models and building the rig",
-    "loading the solver kernel": "STATUS=loading the solver kernel",
-    "opening devices": "STATUS=opening devices",
+    **{p: f"STATUS={p}" for p in ("starting", "starting the fake cameras", "loading models",
+                                  "loading the solver kernel", "opening devices", "replaying",
+                                  "re-solving the session (nothing written yet)",
+                                  "evaluating (results are written at the end)")},
     "running": "READY=1",
-}
+    "detect-host running": "STATUS=running",
+}  # fmt: skip
 STOP_LINE = re.compile(r"^(?P<who>.+): (?P<signal>SIG[A-Z]+) while (?P<phase>.+): stopping$", re.MULTILINE)
 
 
@@ -145,7 +149,9 @@ class Launched:
         full_env = {**os.environ, **(env or {}), TAG_VAR: self.tag, "NOTIFY_SOCKET": str(self.notes.path),
                     "TMPDIR": str(self.tmpdir)}  # fmt: skip
         full_env.pop("WATCHDOG_USEC", None)
-        self.proc = subprocess.Popen(cmd, env=full_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # guarded: it ends with this process, however this one ends (the process itself, by exec: same pid)
+        self.proc = subprocess.Popen(guarded_command(cmd), env=full_env, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)  # fmt: skip
         self.out: list[str] = []
         self.err: list[str] = []
         self._readers = [threading.Thread(target=self._pump, args=(s, into), daemon=True)

@@ -186,8 +186,15 @@ def reset() -> None:
 
 
 def enter_phase(phase: str) -> None:
-    """Say what the process is doing now (named by the line a stop signal prints)."""
+    """Say what the process is doing now: named by the line a stop signal prints, and sent to systemd (or a
+    test) as ``STATUS=<phase>`` where ``$NOTIFY_SOCKET`` is set."""
     _state.phase = phase
+    if os.environ.get("NOTIFY_SOCKET"):
+        from mocapd.io.sd_notify import SdNotifier
+
+        notifier = SdNotifier()
+        notifier.notify(f"STATUS={phase}")
+        notifier.close()
 
 
 def phase() -> str:

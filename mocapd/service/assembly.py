@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 from mocapd.io import lifecycle
-from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.detector_pool import detector_status
 from mocapd.service.config import Config
 from mocapd.service.daemon import Daemon, PoseSink, in_daemon_thread
@@ -159,9 +158,6 @@ async def run(
     stop = stop if stop is not None else asyncio.Event()
     loop = asyncio.get_running_loop()
     lifecycle.enter_phase("loading models")
-    notifier = SdNotifier()
-    notifier.notify("STATUS=loading models and building the rig")
-    notifier.close()
     abandoned = threading.Event()
 
     def build() -> Assembly:

@@ -223,7 +223,6 @@ class Daemon:
             with contextlib.suppress(RuntimeError):
                 loop.add_signal_handler(sig, self.request_stop)
         lifecycle.enter_phase("loading the solver kernel")
-        self.notifier.notify("STATUS=loading the solver kernel")
         # A daemon thread, raced against the stop: a first compile takes up to a minute, and a stop meanwhile
         # abandons it (nothing else is started yet) rather than waiting for it.
         warm_up = in_daemon_thread(self._warm_up)
@@ -269,7 +268,6 @@ class Daemon:
                 name = f"keypoints:{src.name}"
                 tasks.append(tg.create_task(self.supervisor.supervise(name, self._source(src)), name=name))
             lifecycle.enter_phase("opening devices")
-            self.notifier.notify("STATUS=opening devices")
             self._startup_error = await self._open_devices()
             if self._startup_error is None:
                 tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop), name="scheduler"))

@@ -42,12 +42,7 @@ def entry() -> None:
         return 0 if command in SERVING else 128 + signum
 
     lifecycle.install_stop_signals(f"mocapd {command}".rstrip(), stop_status)
-    if command in SERVING:  # what systemd (and a test) sees from the first instant a stop is handled
-        from mocapd.io.sd_notify import SdNotifier
-
-        notifier = SdNotifier()
-        notifier.notify("STATUS=starting")
-        notifier.close()
+    lifecycle.enter_phase("starting")  # STATUS=starting: what systemd (and a test) sees once a stop is handled
     try:
         from mocapd.service.cli.commands import dispatch
 

@@ -46,7 +46,6 @@ from mocapd.errors import ConfigError, MocapdError
 from mocapd.io import lifecycle, ports
 from mocapd.io.calibration_files import read_qca, scale_calibration, write_mocapd_toml
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
-from mocapd.io.sd_notify import SdNotifier
 from mocapd.io.ws_server import listen_error
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.service import assembly
@@ -192,9 +191,6 @@ async def run_camera_demo(
     until ``stop``, ``seconds`` or ``monitor``; the cameras stop after the daemon."""
     stop = stop if stop is not None else asyncio.Event()
     lifecycle.enter_phase("starting the fake cameras")
-    notifier = SdNotifier()
-    notifier.notify("STATUS=starting the fake cameras")
-    notifier.close()
     addresses = add_loopback_aliases(4)
     with tempfile.TemporaryDirectory(prefix="mocapd-demo-") as tmp:
         work = Path(tmp)
@@ -358,7 +354,7 @@ def host_sockets(config: Config) -> dict[str, socket.socket]:
     try:
         out["http-fd"] = socket.create_server((d.http_host, d.http_port))
     except OSError as exc:
-        raise ports.listen_error("[daemon] http_port, --http-port", d.http_host, d.http_port, exc) from None
+        raise ports.listen_error("[daemon] http_port", d.http_host, d.http_port, exc) from None
     ws = config.websocket
     if ws.enabled:
         try:
