@@ -86,7 +86,7 @@ def test_a_guarded_child_ends_with_its_killed_parent(tmp_path: Path) -> None:
         "import subprocess, sys, time\n"
         "from mocapd.io.lifecycle import child_command, guarded_command\n"
         "a = subprocess.Popen(guarded_command(['unshare', '-rn', 'sleep', '600']), start_new_session=True)\n"
-        "b = subprocess.Popen(child_command('time:sleep', '600'), start_new_session=True)\n"
+        "b = subprocess.Popen(child_command('tests.lifecycle_child:sleep', '600'), start_new_session=True)\n"
         "print(a.pid, b.pid, flush=True)\n"
         "time.sleep(600)\n"
     )
@@ -94,8 +94,8 @@ def test_a_guarded_child_ends_with_its_killed_parent(tmp_path: Path) -> None:
     assert proc.stdout is not None
     pids = [int(p) for p in proc.stdout.readline().split()]
     try:
-        time.sleep(0.5)  # the children have exec'd
-        assert all(Path(f"/proc/{p}").exists() for p in pids)
+        time.sleep(1.0)  # the children have exec'd and imported
+        assert all(_alive(p) for p in pids)
         proc.kill()
         proc.wait()
         end = time.monotonic() + 2.0

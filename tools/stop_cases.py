@@ -75,43 +75,52 @@ def port_free(port: int, host: str = "127.0.0.1") -> bool:
 
 
 class Notifications:
-    """A datagram socket standing in for systemd's: every message with the pid that sent it."""
+    """A datagram socket standing in for systemd's, read by a thread of its own (a manager that stops reading
+    would fill its queue): every message line with the pid that sent it."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
         self.sock.bind(str(path))
-        self.messages: list[tuple[int, str]] = []  # (sender pid, one line)
+        self.sock.settimeout(0.1)
+        self.messages: list[tuple[int, str]] = []  # (sender pid, one line), in arrival order
+        self._closed = threading.Event()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
 
-    def receive(self, timeout: float) -> list[tuple[int, str]]:
-        """Lines that arrive within ``timeout`` s (all those already queued, at least)."""
-        got: list[tuple[int, str]] = []
-        end = time.monotonic() + timeout
-        while True:
-            self.sock.settimeout(max(0.0, end - time.monotonic()) or 1e-4)
+    def _read(self) -> None:
+        while not self._closed.is_set():
             try:
                 data, ancdata, _, _ = self.sock.recvmsg(4096, socket.CMSG_SPACE(12))
-            except (TimeoutError, BlockingIOError):
-                break
+            except TimeoutError:
+                continue
+            except OSError:
+                return
             pid = 0
             for level, kind, value in ancdata:
                 if level == socket.SOL_SOCKET and kind == socket.SCM_CREDENTIALS:
                     pid = struct.unpack("3i", value[:12])[0]
-            got += [(pid, line) for line in data.decode(errors="replace").splitlines()]
-        self.messages += got
-        return got
+            self.messages += [(pid, line) for line in data.decode(errors="replace").splitlines()]
 
-    def wait_for(self, line: str, timeout: float, alive: Callable[[], bool]) -> int:
-        """The pid that sent ``line`` (waiting up to ``timeout`` s while ``alive()``)."""
+    def wait_for(self, line: str, timeout: float, alive: Callable[[], bool], start: int = 0) -> tuple[int, int]:
+        """(the pid that sent ``line``, its index in :attr:`messages`), looking from ``start``, waiting up to
+        ``timeout`` s while ``alive()``."""
         end = time.monotonic() + timeout
-        while time.monotonic() < end and alive():
-            for pid, got in self.receive(0.05):
-                if got == line:
-                    return pid
+        seen = start
+        while time.monotonic() < end:
+            for i in range(seen, len(self.messages)):
+                if self.messages[i][1] == line:
+                    return self.messages[i][0], i
+            seen = len(self.messages)
+            if not alive():
+                break
+            time.sleep(0.002)
         raise AssertionError(f"no {line!r} within {timeout:.0f} s; got {[m for _, m in self.messages][-12:]}")
 
     def close(self) -> None:
+        self._closed.set()
+        self._reader.join(timeout=1)
         self.sock.close()
 
 
@@ -170,9 +179,10 @@ class Launched:
     def wait_phase(self, phase: str, timeout: float = 300.0) -> int:
         """Wait until ``phase`` starts, and freeze the process that announced it; returns that pid."""
         line = PHASES[phase]
-        pid = self.notes.wait_for(line, timeout, self.alive)
+        pid, at = self.notes.wait_for(line, timeout, self.alive)
         os.kill(pid, signal.SIGSTOP)
-        later = [m for _, m in self.notes.receive(0.05) if m in PHASES.values() and m != line]
+        time.sleep(0.05)  # anything it sent before it froze has arrived
+        later = [m for _, m in self.notes.messages[at + 1 :] if m in PHASES.values() and m != line]
         assert not later, f"phase {phase!r} was over before the process could be frozen in it: then {later}"
         return pid
 
@@ -246,8 +256,8 @@ def ready_ports(out: str) -> list[int]:
 
 def problems(outcome: Outcome, sig: int, phase: str, who: str, session: Path | None = None) -> list[str]:
     """What is wrong with a stop in ``phase`` by ``sig`` (empty: nothing): exit 0 within :data:`STOP_S`, one
-    line by ``who`` naming the signal and the phase, no traceback, no process or TMPDIR file left, the ports
-    free, and a recorded ``session`` complete and closed."""
+    line by ``who`` naming the signal and the phase, no traceback, no process or TMPDIR file left, no port 0
+    printed and the ports printed free again, and a recorded ``session`` complete and closed."""
     from mocapd.io.session import open_session
 
     found = []
@@ -265,6 +275,8 @@ def problems(outcome: Outcome, sig: int, phase: str, who: str, session: Path | N
         found.append(f"processes left: {outcome.left}")
     if outcome.tmp_left:
         found.append(f"TMPDIR left: {outcome.tmp_left}")
+    if "127.0.0.1:0/" in outcome.out:  # --http-port 0 / port = 0: only the real ports are printed
+        found.append("a port 0 printed")
     taken = [p for p in ready_ports(outcome.out) if not port_free(p)]
     if taken:
         found.append(f"ports still taken: {taken}")
