@@ -14,6 +14,7 @@ other seconds (per second), and the load average.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import re
@@ -49,7 +50,7 @@ def summary(runs: list[list[tuple[float, int, int]]]) -> dict[str, Any]:
     inside, outside = [], []
     for rows in runs:
         # The status line comes once a second from the event loop: a stall of the loop is a gap between two.
-        t_gap, gap = max(((b[0], b[0] - a[0]) for a, b in zip(rows, rows[1:], strict=False)), key=lambda g: g[1])
+        t_gap, gap = max(((b[0], b[0] - a[0]) for a, b in itertools.pairwise(rows)), key=lambda g: g[1])
         gaps.append({"ends_at_t_s": t_gap, "gap_s": round(gap, 1)})
         t, hz, missed = min(rows[1:], key=lambda r: r[1])  # the first second is the start-up's
         worst.append({"t_s": t, "hz": hz, "missed": missed})
