@@ -26,7 +26,7 @@ import subprocess
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -146,6 +146,22 @@ class Outcome:
                 f"{self.err[-3000:]}")  # fmt: skip
 
 
+@contextlib.contextmanager
+def _sighup_not_ignored() -> Iterator[None]:
+    """A test run under ``nohup`` (or a CI runner ignoring SIGHUP) would hand its children SIGHUP ignored, and
+    mocapd keeps an inherited ignored SIGHUP ignored (nohup's meaning): the children are started with the
+    default disposition instead (an ignored signal stays ignored across fork and exec; a default one does not)."""
+    main = threading.current_thread() is threading.main_thread()
+    ignored = main and signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+    if ignored:
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        yield
+    finally:
+        if ignored:
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)
+
+
 class Launched:
     """One tagged process with its own notification socket, TMPDIR and output readers."""
 
@@ -159,8 +175,9 @@ class Launched:
                     "TMPDIR": str(self.tmpdir)}  # fmt: skip
         full_env.pop("WATCHDOG_USEC", None)
         # guarded: it ends with this process, however this one ends (the process itself, by exec: same pid)
-        self.proc = subprocess.Popen(guarded_command(cmd), env=full_env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)  # fmt: skip
+        with _sighup_not_ignored():
+            self.proc = subprocess.Popen(guarded_command(cmd), env=full_env, stdout=subprocess.PIPE,
+                                         stderr=subprocess.PIPE, text=True)  # fmt: skip
         self.out: list[str] = []
         self.err: list[str] = []
         self._readers = [threading.Thread(target=self._pump, args=(s, into), daemon=True)
