@@ -174,4 +174,5 @@ async def main(out: Path) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)  # the cases run on threads: see tools.stop_cases (nohup)
     print(json.dumps(asyncio.run(main(Path(sys.argv[1])))), flush=True)
