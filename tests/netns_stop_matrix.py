@@ -55,7 +55,7 @@ def rig_toml(addresses: list[str], calibration: Path, extra: str = "") -> str:
 
 
 def _status(port: int) -> dict[str, Any]:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=5) as r:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=30) as r:  # a loaded machine answers late
         st: dict[str, Any] = json.loads(r.read())
         return st
 

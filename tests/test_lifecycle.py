@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _status(out: list[str]) -> dict[str, Any]:
     url = next(line.split()[2] for line in out if line.startswith("ready: status http://"))
-    with urllib.request.urlopen(url, timeout=5) as r:
+    with urllib.request.urlopen(url, timeout=30) as r:  # a loaded machine answers late
         st: dict[str, Any] = json.loads(r.read())
         return st
 
