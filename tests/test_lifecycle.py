@@ -313,3 +313,13 @@ def test_lifecycle_phase_and_stop_state_in_process() -> None:
         lifecycle.reset()
     assert signal.getsignal(signal.SIGTERM) is before
     assert port_free(0)
+
+
+def test_a_child_process_rate_limits_its_repeated_log_lines() -> None:
+    """Every mocapd process logs through the rate limit, the children too (the demo's namespace child logged
+    through Python's last-resort handler, unlimited): 5 lines of a call site, then one with the count."""
+    proc = subprocess.run(lifecycle.child_command("tests.lifecycle_child:spam", "200"), cwd=REPO,
+                          capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 0 and len(lines) == 6, lines
+    assert lines[-1].endswith("the same fault again (199) (194 more in the last 1 s)"), lines

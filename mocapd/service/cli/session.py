@@ -143,6 +143,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             rig.append(session_rig(session).skeleton)
         return rig[0]
 
+    # A stop signal lets the file being written finish (lifecycle.finishing), then stops: 128 + the signal.
+    lifecycle.enter_phase("exporting (the file being written is finished first)")
     # glTF: every subject unless one is named; BVH and CSV: one subject (default: the one seen most).
     everyone = [args.subject] if args.subject is not None else sorted(subjects(poses))
     steps = 1 + sum(f is not None for f in (args.bvh, args.csv)) + (len(everyone) + 1 if args.gltf else 0)
@@ -152,11 +154,13 @@ def cmd_export(args: argparse.Namespace) -> int:
         skeleton = skeleton_of(track)
         out: dict[str, Any] = {"subject": track.subject, "frames": int(track.thetas.shape[0]), "rate_hz": args.rate}
         if args.bvh is not None:
-            write_bvh(args.bvh, skeleton, track, args.rate)
+            with lifecycle.finishing():
+                write_bvh(args.bvh, skeleton, track, args.rate)
             out["bvh"] = str(args.bvh)
             bar(1)
         if args.csv is not None:
-            write_csv(args.csv, skeleton, track)
+            with lifecycle.finishing():
+                write_csv(args.csv, skeleton, track)
             out["csv"] = str(args.csv)
             bar(1)
         if args.gltf is not None:
@@ -165,7 +169,8 @@ def cmd_export(args: argparse.Namespace) -> int:
                 t = resample(subject_track(poses, who), args.rate)
                 tracks.append((t, skeleton_of(t)))
                 bar(1)
-            write_gltf(args.gltf, tracks, f"mocapd {__version__}")
+            with lifecycle.finishing():
+                write_gltf(args.gltf, tracks, f"mocapd {__version__}")
             out["gltf"] = str(args.gltf)
             out["gltf_subjects"] = {t.subject: int(t.thetas.shape[0]) for t, _ in tracks}
             bar(1)
