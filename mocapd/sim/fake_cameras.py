@@ -164,7 +164,14 @@ class FakeCameraFleet:
     async def run(self, started: asyncio.Event) -> None:
         """Start every camera (in parallel), set ``started``, then keep them running until cancelled."""
         try:
-            procs = await asyncio.gather(*(self._start(c) for c in self.cameras))
+            # A task group: the first camera that does not start cancels the others' starts (stop() below ends
+            # their processes), and its error is the one raised.
+            try:
+                async with asyncio.TaskGroup() as starting:
+                    starts = [starting.create_task(self._start(c)) for c in self.cameras]
+            except* DeviceError as group:
+                raise group.exceptions[0] from None
+            procs = [t.result() for t in starts]
             started.set()
             async with asyncio.TaskGroup() as tg:
                 for cam, proc in zip(self.cameras, procs, strict=True):

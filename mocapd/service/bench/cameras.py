@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 
 from mocapd.errors import MocapdError
 from mocapd.io import lifecycle
+from mocapd.io.aravis_camera import load_aravis
 from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
@@ -354,6 +355,11 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", type=Path, default=None)
     args = p.parse_args(argv)
     lifecycle.install_stop_signals("mocapd bench latency (in its network namespace)")  # names the stop line
+    try:
+        load_aravis()  # before a minute of detector passes: no Aravis, no fake cameras, no benchmark
+    except MocapdError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
     opts = CameraDemoOptions(**json.loads(args.options))
     # The base config's [detector] (providers, precision, threads, packing) and [daemon] rates are the ones run;
     # the demo's cameras and calibration replace its rig.
