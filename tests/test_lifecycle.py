@@ -163,11 +163,11 @@ def test_a_second_instance_names_each_taken_port_and_who_holds_it(
 # ------------------------------------------------------------------------------------------ a pause is not a stall
 def test_silence_counts_only_while_the_watcher_listened() -> None:
     ms = 1_000_000
-    c = SilenceClock(0, 250 * ms)
-    for t in range(250, 2001, 250):  # on time, nothing heard: silence grows
+    c = SilenceClock(0, 250 * ms, 1000 * ms)
+    for t in (250, 500, 1400, 1650, 2000):  # on time or starved (900 ms late: under 2 x 250 + 500): silence grows
         silent = c.silent_ns(t * ms)
     assert silent == 2000 * ms and c.pauses == 0
-    c = SilenceClock(0, 250 * ms)
+    c = SilenceClock(0, 250 * ms, 1000 * ms)
     c.heard(200 * ms)
     assert c.silent_ns(5200 * ms) == 0 and c.pauses == 1  # 5 s late: the watcher was paused, not the device
     assert c.silent_ns(5450 * ms) == 250 * ms  # and from there on it counts

@@ -410,7 +410,7 @@ class AravisSource(ThreadedSource):
         self._last_frame_ns = 0
         # Silence counted only while the capture thread was there to hear it (a paused process is not a lost
         # camera: its frames wait in the socket buffer); checked at every pop time-out.
-        self._silence = SilenceClock(0, round(self.config.pop_timeout_s * 1e9))
+        self._silence = SilenceClock(0, round(self.config.pop_timeout_s * 1e9), round(self.config.lost_after_s * 1e9))
         self._stream_base = (0, 0)  # counters before this opening, added to the stream's own
         self._success = load_aravis().BufferStatus.SUCCESS  # looked up once, not per frame
 
@@ -419,7 +419,8 @@ class AravisSource(ThreadedSource):
         with _OPEN_LOCK:
             self._open_locked()
         self._last_frame_ns = time.monotonic_ns()
-        self._silence = SilenceClock(self._last_frame_ns, round(self.config.pop_timeout_s * 1e9))
+        self._silence = SilenceClock(self._last_frame_ns, round(self.config.pop_timeout_s * 1e9),
+                                     round(self.config.lost_after_s * 1e9))  # fmt: skip
 
     def _open_locked(self) -> None:
         aravis = load_aravis()

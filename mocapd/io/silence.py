@@ -8,8 +8,9 @@ every one of them for nothing.
 
 So silence is counted only over time the watcher was there to hear: the watcher checks every ``period``; a check
 that comes more than ``2 * period + slack`` after the one before means the watcher itself was not running, and
-the silence counts from that check. A device that really stalls is still declared after its time-out of checks
-made on time.
+the silence counts from that check. The slack is half the device's time-out (at least 0.25 s): a watcher thread
+merely starved on a loaded machine is late by less, so it still declares a stalled device after its time-out of
+checks, while a pause long enough to make a device look lost is recognised.
 """
 
 from __future__ import annotations
@@ -25,13 +26,14 @@ class SilenceClock:
         Start of listening.
     period_ns : int
         How often the watcher means to check.
-    slack_ns : int
-        Lateness of a check tolerated before it counts as a pause of the watcher (scheduling noise).
+    timeout_ns : int
+        The device's time-out: the lateness of a check tolerated before it counts as a pause of the watcher
+        (scheduling on a loaded machine) is half of it, at least 0.25 s.
     """
 
-    def __init__(self, now_ns: int, period_ns: int, slack_ns: int = 250_000_000) -> None:
+    def __init__(self, now_ns: int, period_ns: int, timeout_ns: int) -> None:
         self.period_ns = period_ns
-        self.slack_ns = slack_ns
+        self.slack_ns = max(250_000_000, timeout_ns // 2)
         self.last_heard_ns = now_ns
         self.listening_since_ns = now_ns
         self.last_check_ns = now_ns

@@ -259,7 +259,7 @@ class XsensSerialDevice:
         period_s = self.config.stall_timeout_s / 4
         # Silence counted only while this loop was there to hear it: a pause of the whole process (SIGSTOP, a
         # suspend, a starved loop) is not the device's (mocapd.io.silence).
-        silence = SilenceClock(self._clock(), round(period_s * 1e9))
+        silence = SilenceClock(self._clock(), round(period_s * 1e9), stall_ns)
         while True:
             try:
                 exc = await asyncio.wait_for(asyncio.shield(proto.lost), timeout=period_s)
