@@ -24,7 +24,7 @@ def test_shipped_config_is_valid_and_check_config_says_it_describes_no_rig(
     assert out.out.startswith(f"{DEFAULT_CONFIG}: ok: the shipped config is valid and describes no rig")
     # ... while `mocapd run` on it says what is missing, before starting anything.
     assert main(["run"]) == 2
-    assert f"{DEFAULT_CONFIG}: error: no cameras: add [[cameras]]" in capsys.readouterr().err
+    assert f"{DEFAULT_CONFIG}: error: no cameras" in capsys.readouterr().err
     # A file of the user's without cameras is a rig that is not there: exit 2.
     empty = write(tmp_path / "empty.toml", "[daemon]\nhttp_port = 0\n")
     assert main(["check-config", str(empty)]) == 2

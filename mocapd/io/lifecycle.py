@@ -213,21 +213,6 @@ def deferred() -> Iterator[None]:
         _state.raise_outside = before
 
 
-def check() -> None:
-    """Raise :class:`StopRequested` if a stop signal came meanwhile (the end of a :func:`finishing` block)."""
-    if _state.signum is not None:
-        raise StopRequested(_state.signum)
-
-
-@contextlib.contextmanager
-def finishing() -> Iterator[None]:
-    """Inside, a stop signal waits for the end of the block (a file being written is finished, not left half
-    written), then stops the command."""
-    with deferred():
-        yield
-    check()
-
-
 @contextlib.contextmanager
 def on_stop(target: Callable[[int], None], *, quiet: bool = False) -> Iterator[None]:
     """Call ``target(signum)`` on every stop signal while inside (at once if one came already). It runs in the

@@ -82,14 +82,18 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     path = args.path if args.path is not None else DEFAULT_CONFIG
     try:
         cfg = load_config(path)
+    except ConfigError as exc:
+        _print_config_error(path, exc)
+        return 2
+    try:
+        check(cfg)
+    except ConfigError as exc:
         if args.path is None and not cfg.cameras:
             # The shipped file is valid and describes no rig on purpose: a rig is the user's to write.
             print(f"{path}: ok: the shipped config is valid and describes no rig (no [[cameras]]); write yours "
                   "(`mocapd devices` prints [[cameras]] tables for what is plugged in) and check it with "
                   "`mocapd check-config FILE`, or try `mocapd demo`")  # fmt: skip
             return 0
-        check(cfg)
-    except ConfigError as exc:
         _print_config_error(path, exc)
         return 2
     print(f"{path}: ok ({_rig_summary(cfg)})")

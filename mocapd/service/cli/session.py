@@ -106,12 +106,11 @@ def cmd_resolve(args: argparse.Namespace) -> int:
             session.require_stream(stream)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
     n_frames = len(solve_times(session, rig.options.rate_hz))
-    # A stop signal while solving raises StopRequested here: nothing is written (exit 128 + the signal).
+    # A stop signal raises StopRequested here: the output is written at the end, atomically (exit 128 + the signal).
     lifecycle.enter_phase("re-solving the session (nothing written yet)")
     with Progress(n_frames, "resolve") as bar:
         frames, summary = resolve(session, opts, bar)
     _undecodable_notes(session)
-    lifecycle.enter_phase("writing the resolved poses (atomically: all or nothing)")
     path = write_resolved(session, frames, args.output)
     summary["written"] = str(path)
     if truth:
@@ -143,8 +142,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             rig.append(session_rig(session).skeleton)
         return rig[0]
 
-    # A stop signal lets the file being written finish (lifecycle.finishing), then stops: 128 + the signal.
-    lifecycle.enter_phase("exporting (the file being written is finished first)")
+    lifecycle.enter_phase("exporting")  # a stop signal unwinds the export (exit 128 + the signal)
     # glTF: every subject unless one is named; BVH and CSV: one subject (default: the one seen most).
     everyone = [args.subject] if args.subject is not None else sorted(subjects(poses))
     steps = 1 + sum(f is not None for f in (args.bvh, args.csv)) + (len(everyone) + 1 if args.gltf else 0)
@@ -154,13 +152,11 @@ def cmd_export(args: argparse.Namespace) -> int:
         skeleton = skeleton_of(track)
         out: dict[str, Any] = {"subject": track.subject, "frames": int(track.thetas.shape[0]), "rate_hz": args.rate}
         if args.bvh is not None:
-            with lifecycle.finishing():
-                write_bvh(args.bvh, skeleton, track, args.rate)
+            write_bvh(args.bvh, skeleton, track, args.rate)
             out["bvh"] = str(args.bvh)
             bar(1)
         if args.csv is not None:
-            with lifecycle.finishing():
-                write_csv(args.csv, skeleton, track)
+            write_csv(args.csv, skeleton, track)
             out["csv"] = str(args.csv)
             bar(1)
         if args.gltf is not None:
@@ -169,8 +165,7 @@ def cmd_export(args: argparse.Namespace) -> int:
                 t = resample(subject_track(poses, who), args.rate)
                 tracks.append((t, skeleton_of(t)))
                 bar(1)
-            with lifecycle.finishing():
-                write_gltf(args.gltf, tracks, f"mocapd {__version__}")
+            write_gltf(args.gltf, tracks, f"mocapd {__version__}")
             out["gltf"] = str(args.gltf)
             out["gltf_subjects"] = {t.subject: int(t.thetas.shape[0]) for t, _ in tracks}
             bar(1)
