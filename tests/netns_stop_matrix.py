@@ -95,7 +95,7 @@ def matrix(out: Path, addresses: list[str], calibration: Path) -> list[dict[str,
         then = SIGNALS[(i + 1) % len(SIGNALS)] if phase in ("running", "recording") else None
         try:
             outcome = stop_in_phase(cmd, folder / "run", "running" if phase == "recording" else phase, sig,
-                                    then=then, env=env)  # fmt: skip
+                                    then=then, env=env, settle_s=1.0 if phase == "recording" else 0.0)  # fmt: skip
         finally:
             if held is not None:
                 os.close(held)

@@ -38,6 +38,11 @@ def _next(sig: signal.Signals) -> signal.Signals:
     return SIGNALS[(SIGNALS.index(sig) + 1) % len(SIGNALS)]
 
 
+def _settle(phase: str) -> float:
+    """A recording is stopped once it has recorded something (1 s after READY), other phases as they begin."""
+    return 1.0 if phase == "recording" else 0.0
+
+
 def case_setup(tmp_path: Path, phase: str, base: str) -> tuple[Path, dict[str, str], int | None]:
     """The config file, environment and held pty of a case: a fresh numba cache for the kernel phase (a real
     compile), a serial port that never answers for the devices phase."""
@@ -63,7 +68,7 @@ def test_run_on_the_synthetic_rig_stops_in_every_phase(tmp_path: Path, phase: st
     wait_for = "running" if phase == "recording" else phase
     then = _next(sig) if phase in ("running", "recording") else None  # and the stopping phase
     try:
-        outcome = stop_in_phase(cmd, tmp_path / "run", wait_for, sig, then=then, env=env)
+        outcome = stop_in_phase(cmd, tmp_path / "run", wait_for, sig, then=then, env=env, settle_s=_settle(phase))
     finally:
         if held is not None:
             os.close(held)
@@ -111,8 +116,8 @@ def test_demo_stops_in_every_phase(tmp_path: Path, phase: str) -> None:
     session = tmp_path / "session" if phase == "recording" else None
     then = _next(sig) if phase in ("running", "recording") else None
     try:
-        outcome = stop_in_phase(_demo_cmd(config, session), tmp_path / "run",
-                                "running" if phase == "recording" else phase, sig, then=then, env=env)  # fmt: skip
+        outcome = stop_in_phase(_demo_cmd(config, session), tmp_path / "run", "running" if phase == "recording"
+                                else phase, sig, then=then, env=env, settle_s=_settle(phase))  # fmt: skip
     finally:
         if held is not None:
             os.close(held)
@@ -129,6 +134,7 @@ def test_kill_9_of_the_demo_leaves_no_process_and_frees_its_ports(tmp_path: Path
     run = Launched(_demo_cmd(config, session), tmp_path / "run")
     try:
         run.notes.wait_for("READY=1", 300, run.alive)
+        time.sleep(2.0)  # recording
         assert len(tagged_processes(run.tag)) >= 6  # the demo, its namespace child, four camera servers
         t0 = time.monotonic()
         run.proc.send_signal(signal.SIGKILL)

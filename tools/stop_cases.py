@@ -193,10 +193,12 @@ class Launched:
     def alive(self) -> bool:
         return self.proc.poll() is None
 
-    def wait_phase(self, phase: str, timeout: float = 300.0) -> int:
-        """Wait until ``phase`` starts, and freeze the process that announced it; returns that pid."""
+    def wait_phase(self, phase: str, timeout: float = 300.0, settle_s: float = 0.0) -> int:
+        """Wait until ``phase`` starts (and ``settle_s`` more: a recording that has recorded something), and
+        freeze the process that announced it; returns that pid."""
         line = PHASES[phase]
         pid, at = self.notes.wait_for(line, timeout, self.alive)
+        time.sleep(settle_s)
         os.kill(pid, signal.SIGSTOP)
         time.sleep(0.05)  # anything it sent before it froze has arrived
         later = [m for _, m in self.notes.messages[at + 1 :] if m in PHASES.values() and m != line]
@@ -248,11 +250,13 @@ class Launched:
 
 
 def stop_in_phase(cmd: list[str], folder: Path, phase: str, sig: int, *, then: int | None = None,
-                  env: dict[str, str] | None = None, timeout: float = 300.0) -> Outcome:  # fmt: skip
-    """Start ``cmd``, send ``sig`` in ``phase`` (and ``then`` while it stops); what happened."""
+                  env: dict[str, str] | None = None, timeout: float = 300.0,
+                  settle_s: float = 0.0) -> Outcome:  # fmt: skip
+    """Start ``cmd``, send ``sig`` in ``phase`` (``settle_s`` after it began; and ``then`` while it stops); what
+    happened."""
     run = Launched(cmd, folder, env)
     try:
-        frozen = run.wait_phase(phase, timeout)
+        frozen = run.wait_phase(phase, timeout, settle_s)
         stop_s = run.stop(sig, frozen, then)
         outcome = run.finish()
         outcome.stop_s = stop_s
