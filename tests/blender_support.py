@@ -8,6 +8,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+from mocapd.io.lifecycle import guarded_command
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -21,8 +23,12 @@ def bpy_python() -> Path:
 
 def run_blender_script(script: Path, *args: str, timeout: float = 300.0) -> dict[str, Any]:
     """Run ``script`` under Blender's Python; return the JSON it printed after ``MOCAPD-REPORT``."""
-    proc = subprocess.run(
-        [str(bpy_python()), str(script), *args], capture_output=True, text=True, timeout=timeout, check=False
+    proc = subprocess.run(  # guarded: Blender ends with the test, however that ends
+        guarded_command([str(bpy_python()), str(script), *args]),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
     )
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("MOCAPD-REPORT ")]
     assert proc.returncode == 0 and lines, f"Blender script failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"

@@ -27,6 +27,7 @@ import urllib.request
 from pathlib import Path
 from typing import Any
 
+from mocapd.io.lifecycle import guarded_command
 from mocapd.io.pose2sim_demo import demo_video
 from mocapd.service.demo.cameras import video_fps
 from mocapd.sim.camera_hosts import host_config, solver_config
@@ -49,7 +50,8 @@ async def host_role(config: str, cameras: list[str]) -> int:
     started = asyncio.Event()
     fleet_task = asyncio.create_task(fleet.run(started))
     await started.wait()
-    cmd = [sys.executable, "-m", "mocapd", "detect-host", "--config", config]
+    # guarded: a detect-host ends with this process, however it ends (issue 32: no orphans, in tests either)
+    cmd = guarded_command([sys.executable, "-m", "mocapd", "detect-host", "--config", config])
     procs = [await asyncio.create_subprocess_exec(*cmd)]
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -81,7 +83,7 @@ async def host_role(config: str, cameras: list[str]) -> int:
 
 # -------------------------------------------------------------------------------------------- solver host role
 def _namespace() -> subprocess.Popen[bytes]:
-    holder = subprocess.Popen(["unshare", "-n", "sleep", "infinity"])
+    holder = subprocess.Popen(guarded_command(["unshare", "-n", "sleep", "infinity"]))
     own = os.readlink("/proc/self/ns/net")
     for _ in range(500):
         with contextlib.suppress(FileNotFoundError, PermissionError):
@@ -155,11 +157,11 @@ async def main(folder: Path) -> dict[str, Any]:
         cmd = ["nsenter", f"--net=/proc/{holders[host].pid}/ns/net", sys.executable, "-m", "tests.netns_camera_hosts",
                "host", "--config", str(folder / f"{host}.toml"), "--cameras", ",".join(HOSTS[host])]  # fmt: skip
         out = (folder / f"{host}.log").open("ab")
-        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+        return subprocess.Popen(guarded_command(cmd), stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
 
     log: list[str] = []
     solver = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "mocapd", "run", "--config", str(folder / "solver.toml"), "--verbose",
+        *guarded_command([sys.executable, "-m", "mocapd", "run", "--config", str(folder / "solver.toml"), "--verbose"]),
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
     )  # fmt: skip
     assert solver.stdout is not None

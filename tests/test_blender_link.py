@@ -16,6 +16,7 @@ import pytest
 import websockets
 
 from mocapd.core.skeleton import BONE_NAMES
+from mocapd.io.lifecycle import guarded_command
 from mocapd.service.config import load_config
 from tests.blender_support import ROOT, bpy_python
 from tests.test_web_viewer import daemon, free_port
@@ -48,8 +49,8 @@ async def test_armatures_follow_the_stream_and_record(tmp_path: Path) -> None:
             if ref and len(ref[max(ref)]) == 2:
                 break
             await asyncio.sleep(0.1)
-        proc = await asyncio.create_subprocess_exec(
-            str(bpy_python()), str(ROOT / "tests" / "blender_live.py"), url, "4", "3",
+        proc = await asyncio.create_subprocess_exec(  # guarded: Blender ends with the test, however it ends
+            *guarded_command([str(bpy_python()), str(ROOT / "tests" / "blender_live.py"), url, "4", "3"]),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=env,
         )  # fmt: skip
         out, err = await asyncio.wait_for(proc.communicate(), 400)

@@ -18,6 +18,7 @@ import pytest
 import zenoh
 
 from mocapd.errors import ConfigError
+from mocapd.io.lifecycle import guarded_command
 from mocapd.io.zenoh_link import detections_key, session_settings
 from mocapd.pipeline.remote_cameras import RemoteRig
 from mocapd.protocols.remote import encode_detections
@@ -39,8 +40,9 @@ class HostProcess:
     """``mocapd detect-host`` as a subprocess, its output collected by a thread."""
 
     def __init__(self, config: Path) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "mocapd", "detect-host", "--config", str(config)],
-                                     cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+        # guarded: it ends with the test process, however that ends (no orphan detect-host holding its ports)
+        cmd = guarded_command([sys.executable, "-m", "mocapd", "detect-host", "--config", str(config)])
+        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         assert self.proc.stdout is not None
         stdout = self.proc.stdout

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from mocapd.io.lifecycle import guarded_command
 from mocapd.service.cli import main
 from tests.test_run_rig import _calib
 
@@ -20,7 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 def test_camera_hosts_in_namespaces_solve_lose_and_rejoin(tmp_path: Path) -> None:
     assert main(["calibrate", "convert", str(_calib()), str(tmp_path / "calibration.toml"), "--scale", "0.5"]) == 0
     proc = subprocess.run(
-        ["unshare", "-rn", sys.executable, "-m", "tests.netns_camera_hosts", "main", "--folder", str(tmp_path)],
+        guarded_command(["unshare", "-rn", sys.executable, "-m", "tests.netns_camera_hosts", "main", "--folder",
+                         str(tmp_path)]),
         cwd=REPO, capture_output=True, text=True, timeout=1500, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-5000:]

@@ -12,16 +12,25 @@ from mocapd.service.config import DEFAULT_CONFIG, load_config, parse_config
 from tests.rigs import synthetic_toml, write
 
 
-def test_shipped_config_is_valid_and_check_config_asks_for_cameras(
+def test_shipped_config_is_valid_and_check_config_says_it_describes_no_rig(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     cfg = load_config()
     assert cfg.daemon.output_rate_hz == 60.0 and cfg.daemon.http_host == "127.0.0.1" and cfg.cameras == ()
-    # Valid, but it describes no rig: what `mocapd run` would say, said before starting anything.
-    assert main(["check-config"]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1, err  # one line, exit 2
-    assert f"{DEFAULT_CONFIG}: error: no cameras and no IMU source: add [[cameras]] tables or an IMU source" in err
+    # Valid, and it describes no rig on purpose: check-config with no file says both, exit 0 (issue 32) ...
+    assert main(["check-config"]) == 0
+    out = capsys.readouterr()
+    assert out.err == ""
+    assert out.out.startswith(f"{DEFAULT_CONFIG}: ok: the shipped config is valid and describes no rig")
+    # ... while `mocapd run` on it says what is missing, before starting anything.
+    assert main(["run"]) == 2
+    assert f"{DEFAULT_CONFIG}: error: no cameras and no IMU source: add [[cameras]] tables or an IMU source" in (
+        capsys.readouterr().err
+    )
+    # A file of the user's without cameras or IMUs is a rig that is not there: exit 2.
+    empty = write(tmp_path / "empty.toml", "[daemon]\nhttp_port = 0\n")
+    assert main(["check-config", str(empty)]) == 2
+    assert f"{empty}: error: no cameras and no IMU source" in capsys.readouterr().err
     config = write(tmp_path / "synthetic.toml", synthetic_toml())
     assert main(["check-config", str(config)]) == 0
     assert f"{config}: ok (4 camera(s): cam0 (synthetic simulated);" in capsys.readouterr().out

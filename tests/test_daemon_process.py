@@ -150,3 +150,18 @@ def test_run_serves_until_sigint(tmp_path: Path) -> None:
     out = proc.stdout.read() if proc.stdout else ""
     assert rc == 0, out
     assert "output" in out and "people [" in out  # the per-second status line
+
+
+def test_a_manager_that_does_not_read_never_blocks_the_notifier(tmp_path: Path) -> None:
+    """A full notification queue (a service manager, or a test, that stopped reading) fails the send, counted:
+    a blocking send held a daemon's event loop, and with it its stop, for as long as nobody read (issue 32)."""
+    path = tmp_path / "n.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    n = SdNotifier({"NOTIFY_SOCKET": str(path)})
+    t0 = time.monotonic()
+    sent = [n.notify(f"STATUS={'x' * 1000} {i}") for i in range(2000)]  # far more than a datagram queue holds
+    assert time.monotonic() - t0 < 5.0
+    assert sent[0] and not sent[-1] and n.errors == sent.count(False) > 0
+    n.close()
+    sock.close()

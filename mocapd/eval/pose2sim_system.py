@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import MocapdError
 from mocapd.eval.video_input import Take
+from mocapd.io import lifecycle
 
 FloatArray = NDArray[np.float64]
 
@@ -123,8 +124,8 @@ def run_pose2sim(
            "projects": projects, "n_frames": len(frames)}  # fmt: skip
     work.mkdir(parents=True, exist_ok=True)
     (work / "job.json").write_text(json.dumps(job, indent=2))
-    proc = subprocess.run(
-        [sys.executable, "-m", "mocapd.eval.pose2sim_runner", str(work / "job.json")],
+    proc = subprocess.run(  # ends with this process, also when it is killed (lifecycle.guarded_command)
+        lifecycle.guarded_command([sys.executable, "-m", "mocapd.eval.pose2sim_runner", str(work / "job.json")]),
         capture_output=True, text=True, timeout=timeout_s, check=False,
     )  # fmt: skip
     (work / "runner.log").write_text(proc.stdout + proc.stderr)

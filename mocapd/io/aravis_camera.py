@@ -40,6 +40,7 @@ from mocapd.errors import ConfigError, DeviceError
 from mocapd.io.frame_source import ThreadedSource
 from mocapd.io.gige_discovery import find_camera
 from mocapd.io.pixels import PixelFormat, capture_ring, pixel_format, store_raw
+from mocapd.io.silence import SilenceClock
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
 log = logging.getLogger(__name__)
@@ -407,6 +408,9 @@ class AravisSource(ThreadedSource):
         self._retired: tuple[Any, ...] = ()
         self._size = (0, 0)
         self._last_frame_ns = 0
+        # Silence counted only while the capture thread was there to hear it (a paused process is not a lost
+        # camera: its frames wait in the socket buffer); checked at every pop time-out.
+        self._silence = SilenceClock(0, round(self.config.pop_timeout_s * 1e9), round(self.config.lost_after_s * 1e9))
         self._stream_base = (0, 0)  # counters before this opening, added to the stream's own
         self._success = load_aravis().BufferStatus.SUCCESS  # looked up once, not per frame
 
@@ -415,6 +419,8 @@ class AravisSource(ThreadedSource):
         with _OPEN_LOCK:
             self._open_locked()
         self._last_frame_ns = time.monotonic_ns()
+        self._silence = SilenceClock(self._last_frame_ns, round(self.config.pop_timeout_s * 1e9),
+                                     round(self.config.lost_after_s * 1e9))  # fmt: skip
 
     def _open_locked(self) -> None:
         aravis = load_aravis()
@@ -472,6 +478,7 @@ class AravisSource(ThreadedSource):
                 self.counters.bad_buffers += 1
                 return None
             self._last_frame_ns = now
+            self._silence.heard(now)
             view = self._views.get(_lib().gobject_pointer(buffer))
             if view is None:  # not one of ours: never expected, count rather than crash
                 self.counters.bad_buffers += 1
@@ -492,7 +499,8 @@ class AravisSource(ThreadedSource):
     def _check_alive(self, now: int) -> None:
         if self._control_lost.is_set():
             raise DeviceError(f"camera {self.name!r} lost its control connection (heartbeat)")
-        silent_s = (now - self._last_frame_ns) / 1e9
+        self._silence.heard(self._last_frame_ns)
+        silent_s = self._silence.silent_ns(now) / 1e9
         if self.config.trigger is None and silent_s > self.config.lost_after_s:
             self._control_lost.set()  # treat as gone: do not wait for protocol time-outs when closing
             raise DeviceError(f"camera {self.name!r} sent no frame for {silent_s:.1f} s")

@@ -33,6 +33,7 @@ import numpy as np
 from mocapd.core.rotations import quat_from_rotvec
 from mocapd.core.skeleton import BONE_NAMES, N_BONES, PARENTS, Skeleton
 from mocapd.errors import InputError, ToolError
+from mocapd.io import lifecycle
 from mocapd.io.output_files import check_output_file
 from mocapd.io.session_export import SubjectTrack
 
@@ -148,8 +149,10 @@ def export_fbx(
 
 def _run(command: list[str], timeout_s: float) -> dict[str, Any]:
     """Run Blender; its ``MOCAPD-FBX`` report, or :class:`ToolError` with the end of its output."""
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                            text=True, errors="replace")  # fmt: skip
+    # Blender ends with mocapd however mocapd ends, SIGKILL included (lifecycle.guarded_command); a stop, a time-out
+    # or an error stops it here.
+    proc = subprocess.Popen(lifecycle.guarded_command(command), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL, text=True, errors="replace")  # fmt: skip
     try:
         output, _ = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:

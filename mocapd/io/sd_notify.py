@@ -39,7 +39,9 @@ class SdNotifier:
         if self.address is None:
             return False
         if self._sock is None:
-            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            # Non-blocking: a manager that does not read (its queue full) must never stall the daemon's event
+            # loop, and with it the output and the stop (a send then fails with EAGAIN, counted like any other).
+            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC | socket.SOCK_NONBLOCK)
         try:
             self._sock.sendto("\n".join(fields).encode(), self.address)
         except OSError as exc:

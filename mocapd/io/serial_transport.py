@@ -54,6 +54,12 @@ class SerialTransport(asyncio.Transport):
         self.bytes_read += len(data)
         self._protocol.data_received(data)
 
+    def read_pending(self) -> None:
+        """Read what the kernel holds for the port now, as the loop would when it next runs (a watcher about to
+        judge the port silent asks first)."""
+        if not self._closing:
+            self._read_ready()
+
     def write(self, data: bytes | bytearray | memoryview) -> None:
         if self._closing or not data:
             return

@@ -11,6 +11,11 @@ The manifest is written atomically (temporary file, fsync, rename) at the start 
 ``"closed": true`` and the writer's counters; a session whose manifest still says ``"closed": false`` ended
 without a clean close.
 
+A write that fails (the disk full: ``ENOSPC``; the drive gone) stops the recording there, for good, with one log
+line: every stream ends at its last complete record, and the closing manifest says ``"cut"`` (the errno, when,
+which stream). Space for that manifest is held from the start (the opening manifest's padding,
+:data:`RESERVE_BYTES`), so a full disk does not keep the session from closing properly.
+
 Recovery: :func:`open_session` reads every stream with :class:`~mocapd.protocols.session_format.StreamDecoder`;
 records failing their CRC are counted and skipped (decoding resynchronises on the next record), and a partial
 record at the end of a file (the write the crash interrupted) is reported as the torn tail. Everything before it
@@ -20,6 +25,7 @@ is returned.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -29,6 +35,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -64,6 +71,10 @@ FRAMES = "frames"
 """The optional stream of downscaled camera frames (``[record] frames``)."""
 RESOLVED = "poses-resolved"
 MAX_FLUSH_INTERVAL_S = 1.0
+RESERVE_BYTES = 256 * 1024
+"""The opening manifest is padded with spaces to at least this size (and twice its own): disk space held for the
+closing manifest, rewritten in place when a full disk refuses a new file, so a session cut by a full disk still
+closes with a manifest that says so."""
 _CHUNK = 1 << 20
 BLOCK = 1 << 16
 """The writer hands the OS whole 64 KiB blocks as they fill (whatever record boundaries fall inside them) and
@@ -74,14 +85,21 @@ MAX_MANIFEST_BYTES = 64 << 20
 """Largest manifest read (a session's is a few KB to a few MB with a long synthetic truth table)."""
 
 
-def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    """Write JSON to ``path`` so that a reader sees the old or the new file, never a partial one."""
+def write_json_atomic(path: Path, data: dict[str, Any], pad_to: int = 0) -> None:
+    """Write JSON to ``path`` so that a reader sees the old or the new file, never a partial one (and no
+    temporary file is left when the write fails: a full disk). ``pad_to``: spaces after the JSON (which allows
+    them) up to that many bytes, really written: disk space held for a later rewrite in place."""
     tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=1, default=str)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    text = json.dumps(data, indent=1, default=str).encode()
+    try:
+        with tmp.open("wb") as fh:
+            fh.write(text + b" " * max(0, pad_to - len(text) - 1) + b"\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     dir_fd = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(dir_fd)
@@ -102,7 +120,9 @@ class WriterCounters:
     write_errors: int = 0
     encode_errors: int = 0
     lost_bytes: int = 0
-    """Bytes given up after write errors (kept for a retry up to 4 MiB per stream)."""
+    """Bytes given up when recording stopped on a write error (written to no file)."""
+    not_recorded: int = 0
+    """Records given after recording stopped on a write error."""
     max_queue: int = 0
 
 
@@ -148,6 +168,8 @@ class SessionWriter:
         self._pending: dict[str, bytearray] = {}
         self._thread: threading.Thread | None = None
         self._closed = False
+        #: why recording stopped before the close (a write error: the disk full), else None; in the manifest
+        self.cut: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -159,7 +181,8 @@ class SessionWriter:
             if path.exists():
                 raise InputError(f"session stream {path} exists already: record into a new directory")
         self.manifest["closed"] = False
-        write_json_atomic(self.directory / MANIFEST, self.manifest)
+        size = len(json.dumps(self.manifest, indent=1, default=str))
+        write_json_atomic(self.directory / MANIFEST, self.manifest, pad_to=max(RESERVE_BYTES, 2 * size))
         for name in self.streams:
             self._files[name] = (self.directory / f"{name}{SUFFIX}").open("xb", buffering=0)
             self._pending[name] = bytearray(encode_record(T_HEADER, encode_header(name)))
@@ -170,6 +193,9 @@ class SessionWriter:
     def put(self, stream: str, rtype: int, encode: Callable[..., bytes], *args: Any) -> bool:
         """Queue one record (``encode(*args)`` runs on the writer thread); never blocks. False when dropped."""
         if self._closed:
+            return False
+        if self.cut is not None:
+            self.counters.not_recorded += 1
             return False
         try:
             self._queue.put_nowait((stream, rtype, encode, args))
@@ -188,11 +214,22 @@ class SessionWriter:
             self._queue.put(_STOP)
             self._thread.join()
         for fh in self._files.values():
-            fh.close()
+            with contextlib.suppress(OSError):  # closing an unbuffered file writes nothing more
+                fh.close()
         self.manifest.update(update or {})
         self.manifest["closed"] = True
         self.manifest["writer"] = asdict(self.counters)
-        write_json_atomic(self.directory / MANIFEST, self.manifest)
+        if self.cut is not None:
+            self.manifest["cut"] = self.cut
+        path = self.directory / MANIFEST
+        try:
+            write_json_atomic(path, self.manifest)
+        except OSError:  # no room for a new file: over the opening one, in the space its padding holds
+            try:
+                _overwrite_json(path, self.manifest)
+            except OSError as exc:
+                log.error("session %s: cannot write the closing manifest: %s (`mocapd session` still reads the "
+                          "streams)", self.directory, exc.strerror or exc)  # fmt: skip
 
     # ------------------------------------------------------------------------------------------ the thread
     def _run(self) -> None:
@@ -231,23 +268,23 @@ class SessionWriter:
             self.counters.encode_errors += 1
             log.warning("session %s: record not encodable for %s: %s", self.directory, stream, exc)
             return
+        if self.cut is not None:
+            self.counters.not_recorded += 1
+            return
         pending = self._pending[stream]
         pending += data
         try:
             if len(pending) >= BLOCK:
                 _write_all(self._files[stream], pending, len(pending) - len(pending) % BLOCK)
         except OSError as exc:
-            self.counters.write_errors += 1
-            if self.counters.write_errors == 1:
-                log.error("session %s: cannot write %s: %s (further errors counted)", self.directory, stream, exc)
-            if len(pending) > 64 * BLOCK:  # the disk is not coming back soon: bound the memory, count the loss
-                self.counters.lost_bytes += len(pending)
-                pending.clear()
+            self._stop_recording(stream, exc)
             return
         self.counters.written += 1
         self.counters.bytes += len(data)
 
     def _sync(self) -> None:
+        if self.cut is not None:
+            return
         for name, fh in self._files.items():
             try:
                 pending = self._pending[name]
@@ -255,9 +292,41 @@ class SessionWriter:
                 if self.fsync:
                     os.fsync(fh.fileno())
             except OSError as exc:
-                self.counters.write_errors += 1
-                log.error("session %s: cannot flush %s: %s", self.directory, name, exc)
+                self._stop_recording(name, exc)
+                return
         self.counters.flushes += 1
+
+    def _stop_recording(self, stream: str, exc: OSError) -> None:
+        """A write failed (the disk is full, the drive went away): stop recording here, for good.
+
+        Writing on after a failed write would leave a hole of unknown size inside a stream, records after it
+        stamped as if nothing was missing; stopping leaves every stream ending at its last complete record (a
+        partial one at the end is the reader's torn tail). One log line says so; the manifest written at the
+        close records it (``cut``), and :meth:`Session.recovery_lines` tells it. The live output is not touched.
+        """
+        self.counters.write_errors += 1
+        name = errno.errorcode.get(exc.errno or 0, "error")
+        self.cut = {"errno": name, "error": exc.strerror or str(exc), "stream": f"{stream}{SUFFIX}",
+                    "at_utc": datetime.now(UTC).isoformat(), "at_monotonic_ns": time.monotonic_ns(),
+                    "records_written": self.counters.written}  # fmt: skip
+        for pending in self._pending.values():
+            self.counters.lost_bytes += len(pending)
+            pending.clear()
+        log.error("session %s: recording stopped: cannot write %s%s (%s: %s); the live output goes on, the session "
+                  "keeps the %d records written before", self.directory, stream, SUFFIX, name,
+                  exc.strerror or exc, self.counters.written)  # fmt: skip
+
+
+def _overwrite_json(path: Path, data: dict[str, Any]) -> None:
+    """Rewrite ``path`` in place with ``data`` as JSON, padded with spaces over the old bytes: no new disk space
+    where the old file is at least as long (not atomic: only for when a full disk leaves no other way)."""
+    text = json.dumps(data, indent=1, default=str).encode()
+    with path.open("r+b") as fh:
+        old = fh.seek(0, os.SEEK_END)
+        fh.seek(0)
+        fh.write(text + b" " * max(0, old - len(text) - 1) + b"\n")
+        fh.flush()
+        os.fsync(fh.fileno())
 
 
 def _write_all(fh: Any, pending: bytearray, n: int) -> None:
@@ -436,9 +505,20 @@ class Session:
             raise InputError(f"{where}: no intact pose: nothing to read (not a pose stream of `mocapd resolve -o`?)")
         return frames
 
+    @property
+    def cut(self) -> dict[str, Any] | None:
+        """Why recording stopped before the session was closed (a write error, e.g. ``ENOSPC``), else None."""
+        cut = self.manifest.get("cut")
+        return cut if isinstance(cut, dict) else None
+
     def recovery_lines(self) -> list[str]:
-        """Human-readable notes on damaged, missing or empty streams and an unclean end."""
+        """Human-readable notes on damaged, missing or empty streams, a recording cut short and an unclean end."""
         lines = [] if self.closed_cleanly else [f"{self.path}: not closed cleanly (the recorder was interrupted)"]
+        if (cut := self.cut) is not None:
+            why = "the disk was full" if cut.get("errno") == "ENOSPC" else "a write failed"
+            lines.append(f"{self.path}: cut by {cut.get('errno', '?')}: recording stopped at {cut.get('at_utc', '?')} "
+                         f"because {why} ({cut.get('error', '?')}, writing {cut.get('stream', '?')}); the session "
+                         "holds what was written before")  # fmt: skip
         for r in self.reports.values():
             if r.missing:
                 lines.append(f"{self.path}/{r.name}{SUFFIX}: missing (the manifest lists this stream)")
@@ -459,16 +539,21 @@ def open_session(path: str | Path) -> Session:
 
 
 def write_pose_stream(directory: Path, stream: str, payloads: list[bytes]) -> Path:
-    """Write a whole pose stream (e.g. ``poses-resolved``) in one go: temporary file, fsync, rename."""
+    """Write a whole pose stream (e.g. ``poses-resolved``) in one go: temporary file, fsync, rename (a write that
+    fails or is interrupted by a stop signal leaves the old stream, if any, and no temporary file)."""
     path = directory / f"{stream}{SUFFIX}"
     tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("wb") as fh:
-        fh.write(encode_record(T_HEADER, encode_header(stream)))
-        for p in payloads:
-            fh.write(encode_record(T_POSE, p))
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with tmp.open("wb") as fh:
+            fh.write(encode_record(T_HEADER, encode_header(stream)))
+            for p in payloads:
+                fh.write(encode_record(T_POSE, p))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     with contextlib.suppress(OSError):
         fd = os.open(directory, os.O_RDONLY)
         os.fsync(fd)

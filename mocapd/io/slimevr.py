@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from mocapd.errors import DeviceError
+from mocapd.io import ports
 from mocapd.io.device_state import OpenState
 from mocapd.io.recvmmsg import BatchReader
 from mocapd.io.rejections import Rejections
@@ -154,8 +155,8 @@ class SlimeVrListener:
                     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf)
                 self._transport = transport
         except OSError as exc:
-            self._bind_error = f"slimevr: cannot bind udp {self.host}:{self.port}: {exc}"
-            raise DeviceError(self._bind_error) from exc
+            self._bind_error = "slimevr: " + ports.bind_failure("[imu.slimevr] port", self.host, self.port, exc, "udp")
+            raise DeviceError(self._bind_error) from None
         self.port = int(sock.getsockname()[1])
         if self.receive_thread:
             self._sock = sock

@@ -49,6 +49,7 @@ from websockets.protocol import State
 from mocapd.core.per_skeleton import skeleton_key
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError, MocapdError
+from mocapd.io import ports
 from mocapd.io.rejections import Rejections
 from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
 from mocapd.protocols.ws_stream import (
@@ -79,10 +80,7 @@ def load_web_files() -> dict[str, tuple[str, bytes]]:
 
 def listen_error(host: str, port: int, exc: OSError) -> ConfigError:
     """What to tell the user when the stream's port cannot be bound (also where the socket is made elsewhere)."""
-    return ConfigError(
-        f"websocket: cannot listen on {host}:{port} ({exc.strerror or exc}); "
-        "choose another [websocket] port (0 = any free port) or stop the other program"
-    )
+    return ports.listen_error("[websocket] port", host, port, exc)
 
 
 MAX_SKELETONS = 64  # per-person skeletons kept for the hello before old ones are forgotten

@@ -11,7 +11,9 @@ Failure handling:
 - bring-up fails (no reply after ``attempts`` × ``response_timeout_s``, or device errors): same back-off, and
   :attr:`XsensSerialDevice.last_error` says which step failed and why;
 - the port disappears while streaming (unplug: EIO / end of file) or stays silent for ``stall_timeout_s``:
-  close, back off, reopen the same path (use a stable path such as ``/dev/serial/by-id/...``).
+  close, back off, reopen the same path (use a stable path such as ``/dev/serial/by-id/...``). Silence is counted
+  only while mocapd was running to hear it, and what the kernel holds is read before judging: a pause of the
+  whole process (SIGSTOP, a suspend) is not a stall (:mod:`mocapd.io.silence`).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from dataclasses import dataclass, field
 from mocapd.errors import ConfigError, DeviceError, DeviceTimeout
 from mocapd.io.device_state import OpenState
 from mocapd.io.serial_transport import SerialTransport, create_serial_connection
+from mocapd.io.silence import SilenceClock
 from mocapd.protocols.awinda import AwindaConfig, SnapshotIntegrator, station_steps
 from mocapd.protocols.mtdata2 import AwindaSnapshot, CoordFrame, DataId, MtData2, Precision
 from mocapd.protocols.xsens_session import (
@@ -253,15 +256,24 @@ class XsensSerialDevice:
 
     async def _stream(self, proto: _SessionProtocol) -> None:
         stall_ns = round(self.config.stall_timeout_s * 1e9)
+        period_s = self.config.stall_timeout_s / 4
+        # Silence counted only while this loop was there to hear it: a pause of the whole process (SIGSTOP, a
+        # suspend, a starved loop) is not the device's (mocapd.io.silence).
+        silence = SilenceClock(self._clock(), round(period_s * 1e9), stall_ns)
         while True:
             try:
-                exc = await asyncio.wait_for(asyncio.shield(proto.lost), timeout=self.config.stall_timeout_s / 4)
+                exc = await asyncio.wait_for(asyncio.shield(proto.lost), timeout=period_s)
             except TimeoutError:
-                if self._clock() - proto.last_rx_ns > stall_ns:
-                    self.stats.stalls += 1
-                    raise DeviceTimeout(
-                        f"imu {self.config.path}: no data for {self.config.stall_timeout_s} s while streaming"
-                    ) from None
+                silence.heard(proto.last_rx_ns)
+                if silence.silent_ns(self._clock()) > stall_ns:
+                    if proto.transport is not None:
+                        proto.transport.read_pending()  # what the kernel holds for the port, before judging
+                    silence.heard(proto.last_rx_ns)
+                    if silence.silent_ns(self._clock()) > stall_ns:
+                        self.stats.stalls += 1
+                        raise DeviceTimeout(
+                            f"imu {self.config.path}: no data for {self.config.stall_timeout_s} s while streaming"
+                        ) from None
                 continue
             if self._stopping:
                 return

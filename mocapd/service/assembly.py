@@ -16,18 +16,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
-import signal
 import socket
+import threading
 import time
 from collections.abc import Awaitable, Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mocapd.io import lifecycle
 from mocapd.pipeline.detector_pool import detector_status
 from mocapd.service.config import Config
-from mocapd.service.daemon import Daemon, PoseSink
+from mocapd.service.daemon import Daemon, PoseSink, in_daemon_thread
 from mocapd.service.http_status import StatusServer
 from mocapd.service.metrics import render_metrics
 from mocapd.service.outputs.recorder import SessionRecorder, attach_recorder, synthetic_extra
@@ -145,15 +145,33 @@ async def run(
     stop: asyncio.Event | None = None,
     on_ready: Callable[[Assembly], None] | None = None,
 ) -> int:
-    """Build and run the daemon of ``config`` until ``stop`` is set (SIGINT/SIGTERM set it, see
-    :func:`stop_on_signals`), ``seconds`` have passed since READY, or ``monitor`` returns.
+    """Build and run the daemon of ``config`` until ``stop`` is set (stop signals set it, see
+    :func:`mocapd.io.lifecycle.stop_event`), ``seconds`` have passed since READY, or ``monitor`` returns.
+
+    A stop in any phase ends the run: while the rig is built (models loaded, simulators started) the builder
+    thread is abandoned — it closes what it made when it finishes, and a process that exits first
+    (:func:`~mocapd.io.lifecycle.exit_now`) takes it along — rather than waited for.
 
     Returns the exit status (0). A start-up failure (a device that does not open, a stream that cannot listen)
     raises: :class:`~mocapd.service.daemon.StartupError`, :class:`~mocapd.errors.MocapdError`.
     """
     stop = stop if stop is not None else asyncio.Event()
     loop = asyncio.get_running_loop()
-    assembly = await loop.run_in_executor(None, functools.partial(assemble, config, options))
+    lifecycle.enter_phase("loading models")
+    abandoned = threading.Event()
+
+    def build() -> Assembly:
+        built = assemble(config, options)
+        if abandoned.is_set():  # nobody waits for it any more
+            built.close()
+        return built
+
+    building = in_daemon_thread(build)
+    if not await _first(building, stop):
+        abandoned.set()
+        building.cancel()
+        return 0
+    assembly = building.result()
     daemon = assembly.daemon
     try:
         if stop.is_set():
@@ -190,25 +208,21 @@ async def run(
         await loop.run_in_executor(None, assembly.close)
 
 
+async def _first(work: asyncio.Future[Any], stop: asyncio.Event) -> bool:
+    """Wait for ``work`` or ``stop``, whichever comes first; True when ``work`` finished."""
+    waiting = asyncio.ensure_future(stop.wait())
+    try:
+        await asyncio.wait({work, waiting}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        waiting.cancel()
+    return work.done()
+
+
 async def _stop_when(stop: asyncio.Event, daemon: Daemon) -> None:
     await stop.wait()
     daemon.request_stop()
 
 
-@contextlib.contextmanager
-def stop_on_signals(stop: asyncio.Event) -> Iterator[None]:
-    """SIGINT and SIGTERM set ``stop`` while inside (call on the event loop's thread): from the first moment of a
-    run — before models load or cameras open — to its last, so Ctrl-C always ends a run cleanly."""
-    loop = asyncio.get_running_loop()
-    installed = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            loop.add_signal_handler(sig, stop.set)
-            installed.append(sig)
-        except RuntimeError:  # not the main thread: signals are the caller's job
-            break
-    try:
-        yield
-    finally:
-        for sig in installed:
-            loop.remove_signal_handler(sig)
+def stop_on_signals(stop: asyncio.Event) -> contextlib.AbstractContextManager[None]:
+    """Stop signals set ``stop`` while inside (:func:`mocapd.io.lifecycle.stop_event`)."""
+    return lifecycle.stop_event(stop)

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -40,6 +40,7 @@ from mocapd.core.taps import TapOptions
 from mocapd.core.tracking import SubjectTracker
 from mocapd.core.yaw_drift import StillDrift
 from mocapd.errors import DeviceError, InputError
+from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.keypoint_source import KeypointSource
@@ -51,6 +52,7 @@ from mocapd.pipeline.scheduler import (
     estimate_camera_offsets,
     estimate_imu_offsets,
 )
+from mocapd.pipeline.time_alignment import estimate_imu_lag
 from mocapd.service.config import Config
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.http_status import StatusServer
@@ -99,11 +101,12 @@ class Rig:
 
 
 def in_daemon_thread(fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
-    """``fn(*args)`` (a pure computation of advisory results, such as the offset estimates) in a daemon thread.
+    """``fn(*args)`` in a daemon thread: work a stop may abandon (the offset estimates, the solver kernel's
+    compile, the rig's model loads).
 
     Not the loop's default executor: its threads are joined when the process exits, so a second of estimation
-    still running at Ctrl-C would delay the stop by that second. A daemon thread is abandoned instead, and its
-    result with it.
+    (or a minute of compiling) still running at Ctrl-C would delay the stop by that long. A daemon thread is
+    abandoned instead, and its result with it: cancel the future to say nobody waits.
     """
     loop = asyncio.get_running_loop()
     future: asyncio.Future[T] = loop.create_future()
@@ -225,7 +228,7 @@ class Daemon:
         self._rate_window: list[int] = []  # tick times of the last second, for the achieved rate
         self.stopping = False
         self._startup_error: StartupError | None = None
-        #: run() installs SIGINT/SIGTERM handlers (False: the caller owns signals, see assembly.stop_on_signals)
+        #: run() installs SIGINT/SIGTERM/SIGHUP handlers (False: the caller owns signals, see lifecycle.stop_event)
         self.handle_signals = True
 
     # ------------------------------------------------------------------------------------------ control
@@ -325,16 +328,26 @@ class Daemon:
     async def run(self) -> int:
         """Serve until stopped; returns the process exit status."""
         loop = asyncio.get_running_loop()
-        signals = (signal.SIGINT, signal.SIGTERM) if self.handle_signals else ()
+        signals = lifecycle.STOP_SIGNALS if self.handle_signals else ()
         for sig in signals:
             # add_signal_handler raises RuntimeError off the main thread: then signals are the caller's job.
             with contextlib.suppress(RuntimeError):
                 loop.add_signal_handler(sig, self.request_stop)
-        self.notifier.notify("STATUS=loading the solver kernel")
-        await loop.run_in_executor(None, self._warm_up)
+        lifecycle.enter_phase("loading the solver kernel")
+        # A daemon thread, raced against the stop: a first compile takes up to a minute, and a stop meanwhile
+        # abandons it (nothing else is started yet) rather than waiting for it.
+        warm_up = in_daemon_thread(self._warm_up)
+        stop: asyncio.Future[Any] = asyncio.ensure_future(self._stop.wait())
+        await asyncio.wait({warm_up, stop}, return_when=asyncio.FIRST_COMPLETED)
+        stop.cancel()
         started: list[PoseSink] = []
         try:
+            if not warm_up.done():
+                warm_up.cancel()
+                return 0
+            warm_up.result()
             await self.http.start()
+            await self.imu.bind()
             for sink in self.sinks:
                 await sink.start()  # a stream that cannot listen, a session that exists: the run stops here, cleanly
                 started.append(sink)
@@ -349,6 +362,7 @@ class Daemon:
         finally:
             for sink in started:
                 await sink.aclose()
+            self.imu.close()
             await self.http.close()
             for sig in signals:
                 with contextlib.suppress(RuntimeError):
@@ -364,14 +378,17 @@ class Daemon:
             for src in self.rig.sources:
                 name = f"keypoints:{src.name}"
                 tasks.append(tg.create_task(self.supervisor.supervise(name, self._source(src)), name=name))
-            self.notifier.notify("STATUS=opening devices")
+            lifecycle.enter_phase("opening devices")
             self._startup_error = await self._open_devices()
             if self._startup_error is None:
                 tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop), name="scheduler"))
                 tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop), name="status"))
+                pass  # gc.freeze()  # see _warm_up
+                lifecycle.enter_phase("running")
                 self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
                 self.ready.set()
                 await self._stop.wait()
+            lifecycle.enter_phase("stopping")
             self.stopping = True
             deadline.reschedule(asyncio.get_running_loop().time() + self.config.daemon.shutdown_timeout_s)
             self.notifier.notify("STOPPING=1", "STATUS=stopping")
@@ -428,6 +445,14 @@ class Daemon:
         )
         if n_cams >= 2:
             DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options()).warm_up(n_kp)
+        # The offset estimates of the status loop, once: their first run, 10 s after READY, imported SciPy's signal
+        # package (~200 modules) while the tick ran, and the imports' allocations set off full garbage collections
+        # of the whole start-up heap: a second of 26-49 Hz output in every run. With the imports done here and
+        # the start-up heap frozen at READY (gc.freeze: out of every later collection), it is gone.
+        t = np.arange(0, 4_000_000_000, 10_000_000, dtype=np.int64)
+        wave = np.sin(t / 1e9 * 2 * np.pi)
+        estimate_imu_lag(t, wave, t, wave)
+        gc.collect()
 
     def _source(self, src: KeypointSource) -> Callable[[], Any]:
         def sink(camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:

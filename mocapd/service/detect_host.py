@@ -23,6 +23,7 @@ import zenoh
 
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import ConfigError
+from mocapd.io import lifecycle
 from mocapd.io.zenoh_link import clock_key, detections_key, host_name, open_session, status_key
 from mocapd.pipeline.keypoint_source import KeypointSource
 from mocapd.protocols.remote import CameraState, encode_clock, encode_detections, encode_status
@@ -132,6 +133,7 @@ async def serve(
                 publisher.publish_status(up)
                 if not ready and all(up):
                     ready = True
+                    lifecycle.enter_phase("running")
                     if on_ready is not None:
                         on_ready(host)
                 with contextlib.suppress(TimeoutError):
@@ -152,7 +154,6 @@ def _sink(publisher: DetectionPublisher, index: int) -> Callable[[int, int, Dete
 
 def run(config: Config, *, seconds: float | None = None, on_ready: Callable[[str], None] | None = None) -> int:
     """``mocapd detect-host``: build the config's cameras and detector, publish until SIGINT/SIGTERM."""
-    from mocapd.service.assembly import stop_on_signals
     from mocapd.service.rig import build_rig, plan_rig
 
     remote = [c.name for c in config.cameras if isinstance(c, ZenohCamera)]
@@ -160,16 +161,17 @@ def run(config: Config, *, seconds: float | None = None, on_ready: Callable[[str
         raise ConfigError(f"cameras {remote}: a camera host runs its own cameras; source = \"zenoh\" is the solver "
                           "host's view of them")  # fmt: skip
     plan = plan_rig(config)
-    built = build_rig(config, plan)
+    lifecycle.enter_phase("loading models")
+    built = build_rig(config, plan)  # a stop signal now raises StopRequested: the detector is closed on the way out
     try:
         sizes = [(c.width, c.height) for c in plan.cameras]
 
-        async def main() -> int:
-            stop = asyncio.Event()
-            with stop_on_signals(stop):
-                await serve(config, built.rig.sources, sizes, stop=stop, seconds=seconds, on_ready=on_ready)
+        async def main(stop: asyncio.Event) -> int:
+            lifecycle.enter_phase("opening devices")
+            await serve(config, built.rig.sources, sizes, stop=stop, seconds=seconds, on_ready=on_ready)
             return 0
 
-        return asyncio.run(main())
+        return lifecycle.run_until_stopped(main)
     finally:
+        lifecycle.enter_phase("stopping")
         built.close()

@@ -25,6 +25,7 @@ from typing import Any
 from urllib.parse import parse_qs
 
 from mocapd.errors import MocapdError
+from mocapd.io import ports
 from mocapd.service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 
 log = logging.getLogger(__name__)
@@ -138,7 +139,10 @@ class StatusServer:
         if self._sock is not None:
             self._server = await asyncio.start_server(self._handle, sock=self._sock)
         else:
-            self._server = await asyncio.start_server(self._handle, self.host, self.port)
+            try:
+                self._server = await asyncio.start_server(self._handle, self.host, self.port)
+            except OSError as exc:  # a second daemon, another program: one line naming the key and the holder
+                raise ports.listen_error("[daemon] http_port", self.host, self.port, exc) from None
         self.port = int(self._server.sockets[0].getsockname()[1])
         return self.port
 

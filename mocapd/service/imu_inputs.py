@@ -63,6 +63,7 @@ class ImuInputs:
         # Tap gestures: per watched sensor its detector, the sensors whose motion cancels its taps, and what to call.
         self._tap_watch: dict[str, tuple[TapDetector, tuple[str, ...], Callable[[str], None]]] = {}
         self._tap_norms: dict[str, tuple[int, float]] = {}  # sensor -> (time, linear acceleration norm)
+        self._bound = False
 
     def on_sample(self, s: ImuSample) -> None:
         """Buffer one sample (re-expressed in ENU)."""
@@ -124,13 +125,26 @@ class ImuInputs:
         """Never evict these sensors' buffers (the suits' sensors), however many unknown sensor ids arrive."""
         self.ingest.keep(sensors)
 
-    async def run(self) -> None:
-        """Run every input until :meth:`stop`; device failures are retried inside each device's own loop."""
+    async def bind(self) -> None:
+        """Bind the bridge's and the SlimeVR server's ports now (the daemon does before it starts its tasks, so a
+        port in use stops the start-up with one line naming it, rather than failing a supervised task)."""
+        if self._bound:
+            return
         if self.bridge is not None:
             await self.bridge.start()
         try:
             if self.slimevr is not None:
                 await self.slimevr.start()
+        except BaseException:
+            if self.bridge is not None:
+                self.bridge.close()
+            raise
+        self._bound = True
+
+    async def run(self) -> None:
+        """Run every input until :meth:`stop`; device failures are retried inside each device's own loop."""
+        await self.bind()
+        try:
             async with asyncio.TaskGroup() as tg:
                 for device in self.devices:
                     tg.create_task(device.run())
@@ -142,10 +156,15 @@ class ImuInputs:
                 if self.slimevr is not None:
                     self.slimevr.stop()
         finally:
-            if self.bridge is not None:
-                self.bridge.close()
-            if self.slimevr is not None:
-                self.slimevr.close()
+            self.close()
+
+    def close(self) -> None:
+        """Close the bridge's and the SlimeVR server's sockets (again: nothing)."""
+        self._bound = False
+        if self.bridge is not None:
+            self.bridge.close()
+        if self.slimevr is not None:
+            self.slimevr.close()
 
     def stop(self) -> None:
         self._stop.set()

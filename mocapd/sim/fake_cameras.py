@@ -76,6 +76,21 @@ class FakeCameraState:
                 "starts": self.starts, "exits": self.exits, "last_exit_code": self.last_exit_code}  # fmt: skip
 
 
+async def _ready_line(proc: asyncio.subprocess.Process) -> tuple[dict[str, Any], str]:
+    """The server's ready line (its JSON), or ({}, its last line of output) once it has ended without one: the
+    cause of a failed start (no Aravis, a video that does not decode) in one line, not its whole output."""
+    assert proc.stdout is not None
+    last = ""
+    while line := await proc.stdout.readline():
+        text = line.decode(errors="replace").strip()
+        with contextlib.suppress(ValueError):
+            info = json.loads(text)
+            if isinstance(info, dict) and info.get("ready"):
+                return info, text
+        last = text or last
+    return {}, last
+
+
 class FakeCameraFleet:
     """Starts the fake cameras, restarts any that ends after ``replug_after_s``, stops them all at the end.
 
@@ -105,24 +120,24 @@ class FakeCameraFleet:
     async def _start(self, cam: FakeCameraState) -> asyncio.subprocess.Process:
         # Its own session: a terminal's Ctrl-C goes to the daemon, not to the cameras, which stay up (as real
         # cameras would) until stop() ends them after the daemon has closed its streams.
+        # It ends with this process however this one ends (lifecycle.child_command): no server outlives the demo.
         proc = await asyncio.create_subprocess_exec(
             *self._command(cam.spec),
             stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.STDOUT,
             stdin=asyncio.subprocess.DEVNULL,
             start_new_session=True,
         )
         self._procs[cam.spec.name] = proc  # known at once, so a stop while it starts terminates it too
-        assert proc.stdout is not None
         try:
-            line = await asyncio.wait_for(proc.stdout.readline(), START_TIMEOUT_S)
-            info = json.loads(line) if line else {}
-        except (TimeoutError, ValueError) as exc:
-            info = {"error": str(exc)}
+            info, said = await asyncio.wait_for(_ready_line(proc), START_TIMEOUT_S)
+        except TimeoutError:
+            info, said = {}, f"no ready line within {START_TIMEOUT_S:g} s"
         if not info.get("ready"):
             with contextlib.suppress(ProcessLookupError):
                 proc.kill()
             await proc.wait()
-            raise DeviceError(f"fake camera {cam.spec.name} did not start ({info or 'no output'})")
+            raise DeviceError(f"fake camera {cam.spec.name} did not start: {said or 'no output'}")
         cam.pid, cam.running = proc.pid, True
         cam.starts += 1
         cam.ready.set()
@@ -149,7 +164,14 @@ class FakeCameraFleet:
     async def run(self, started: asyncio.Event) -> None:
         """Start every camera (in parallel), set ``started``, then keep them running until cancelled."""
         try:
-            procs = await asyncio.gather(*(self._start(c) for c in self.cameras))
+            # A task group: the first camera that does not start cancels the others' starts (stop() below ends
+            # their processes), and its error is the one raised.
+            try:
+                async with asyncio.TaskGroup() as starting:
+                    starts = [starting.create_task(self._start(c)) for c in self.cameras]
+            except* DeviceError as group:
+                raise group.exceptions[0] from None
+            procs = [t.result() for t in starts]
             started.set()
             async with asyncio.TaskGroup() as tg:
                 for cam, proc in zip(self.cameras, procs, strict=True):

@@ -5,6 +5,9 @@ video's frames, one per acquisition period, through the real GVCP/GVSP protocol 
 
     python -m mocapd.sim.fake_gige --video cam01.mp4 --address 127.0.0.1 --serial CAM01 [--max-frames 60]
 
+(:func:`server_command` starts it through :mod:`mocapd.io.lifecycle`, whose stop signals are handled from the
+process's first line.)
+
 The client chooses pixel format (Mono8, RGB8, Bayer*8), region and frame rate; frames are converted from the
 decoded video (RGB) into that format, cropped to the region, and looped. Frame ``k`` sent (k = 0, 1, ...) is
 video frame ``k % n_frames``.
@@ -19,7 +22,7 @@ interface): run multi-camera set-ups inside a private network namespace, ``unsha
 :func:`add_loopback_aliases`.
 
 Prints one JSON line ``{"ready": true, "address": ..., "serial": ..., "n_frames": ..., "width": ..., ...}`` on
-stdout when serving, then serves until SIGTERM/SIGINT.
+stdout when serving, then serves until a stop signal (SIGTERM, SIGINT, SIGHUP).
 """
 
 from __future__ import annotations
@@ -27,7 +30,6 @@ from __future__ import annotations
 import argparse
 import ctypes
 import json
-import signal
 import subprocess
 import sys
 import threading
@@ -39,7 +41,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.errors import DeviceError, InputError
+from mocapd.errors import DeviceError, InputError, MocapdError
+from mocapd.io import lifecycle
 from mocapd.io.aravis_camera import load_aravis
 from mocapd.io.pixels import PIXEL_FORMATS, PixelFormat, from_rgb
 
@@ -221,8 +224,8 @@ def server_command(
     bounce: bool = False,
 ) -> list[str]:
     """The command line that runs one fake camera server (this module) in its own process."""
-    cmd = [sys.executable, "-m", "mocapd.sim.fake_gige", "--video", str(video), "--address", address,
-           "--max-frames", str(max_frames), "--prepare", prepare]  # fmt: skip
+    cmd = lifecycle.child_command("mocapd.sim.fake_gige:main", "--video", str(video), "--address", address,
+                                  "--max-frames", str(max_frames), "--prepare", prepare)  # fmt: skip
     if serial is not None:
         cmd += ["--serial", serial]
     if size is not None:
@@ -266,12 +269,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bounce", action="store_true", help="with --video-fps: play forwards then backwards")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
-    frames = load_video_rgb(args.video, args.max_frames, size)  # type: ignore[arg-type]
-    camera = FakeGigECamera(frames, args.address, args.serial, args.video_fps, args.epoch_ns, args.bounce)
+    try:
+        frames = load_video_rgb(args.video, args.max_frames, size)  # type: ignore[arg-type]
+        camera = FakeGigECamera(frames, args.address, args.serial, args.video_fps, args.epoch_ns, args.bounce)
+    except MocapdError as exc:  # no Aravis, a video that does not decode: the cause, one line (the parent shows it)
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
     camera.prepare(args.prepare)
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
     h, w, _ = frames[0].shape
     print(
         json.dumps(
@@ -286,11 +291,12 @@ def main(argv: list[str] | None = None) -> int:
         ),
         flush=True,
     )
-    stop.wait()
+    with lifecycle.on_stop(lambda _signum: stop.set()):
+        stop.wait()
     camera.close()
     print(json.dumps({"stopped": True, "frames_sent": camera.n_sent, "errors": camera.errors}), flush=True)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    lifecycle.child_main(["mocapd.sim.fake_gige:main", *sys.argv[1:]])

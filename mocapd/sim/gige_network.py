@@ -32,6 +32,7 @@ from types import TracebackType
 import psutil
 
 from mocapd.errors import DeviceError
+from mocapd.io import lifecycle
 from mocapd.sim.fake_gige import server_command
 
 START_TIMEOUT_S = 60.0
@@ -144,7 +145,7 @@ class FakeGigENetwork:
 
     def _camera_namespace(self) -> int:
         """A process holding a new network namespace (the far side of one link)."""
-        holder = subprocess.Popen(["unshare", "-n", "sleep", "infinity"], text=True)
+        holder = subprocess.Popen(lifecycle.guarded_command(["unshare", "-n", "sleep", "infinity"]), text=True)
         self._holders.append(holder)
         own = _own_netns()
         for _ in range(500):  # unshare(2) happens right after exec: a few ms

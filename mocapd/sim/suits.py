@@ -14,6 +14,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from mocapd.io import lifecycle
 from mocapd.sim import xsens as sim
 from mocapd.sim.world import SyntheticWorld
 
@@ -58,6 +59,8 @@ class SimulatedSuits:
     def start(cls, world: SyntheticWorld, rate_hz: int, epoch_ns: int) -> SimulatedSuits:
         """Create a pty per sensor of every suit of ``world`` and start streaming (one thread for all)."""
         workdir = Path(tempfile.mkdtemp(prefix="mocapd-imu-sim-"))
+        # Removed at exit even if the build that started them is abandoned by a stop during start-up.
+        lifecycle.remove_at_exit(workdir)
         simulators = []
         for suit in world.suits:
             quats, accs = world.imu_motion(suit, float(rate_hz))
@@ -73,3 +76,4 @@ class SimulatedSuits:
             self._loop.stop()
             self._loop = None
         shutil.rmtree(self.workdir, ignore_errors=True)
+        lifecycle.forget_at_exit(self.workdir)

@@ -37,6 +37,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.errors import MocapdError
+from mocapd.io import lifecycle
+from mocapd.io.aravis_camera import load_aravis
 from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
@@ -351,6 +354,12 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--options", default="{}")
     p.add_argument("--config", type=Path, default=None)
     args = p.parse_args(argv)
+    lifecycle.install_stop_signals("mocapd bench latency (in its network namespace)")  # names the stop line
+    try:
+        load_aravis()  # before a minute of detector passes: no Aravis, no fake cameras, no benchmark
+    except MocapdError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
     opts = CameraDemoOptions(**json.loads(args.options))
     # The base config's [detector] (providers, precision, threads, packing) and [daemon] rates are the ones run;
     # the demo's cameras and calibration replace its rig.
@@ -372,10 +381,20 @@ def child_main(argv: list[str] | None = None) -> int:
 
     # The detector alone before and after the live run, so that a change of load on a shared machine shows as a
     # difference between the two instead of hiding in the ratio.
-    before = alone_now()
     measure = Measure(args.seconds, args.warm_up)
-    code = asyncio.run(run_camera_demo(config, opts, RunOptions(), monitor=measure))
-    after = alone_now()
+
+    async def live(stop: asyncio.Event) -> int:
+        return await run_camera_demo(config, opts, RunOptions(), monitor=measure, stop=stop)
+
+    try:
+        before = alone_now()
+        code = lifecycle.run_until_stopped(live)
+        if lifecycle.requested() is not None:
+            return 0  # stopped: nothing measured to report
+        after = alone_now()
+    except MocapdError as exc:  # no Aravis, no model, a camera that did not start: the cause in one line
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
     alone = {"before_live_run": before, "after_live_run": after,
              **{k: round((before[k] + after[k]) / 2, 2) for k in ("whole_camera_frames_per_s",
                                                                    "packed_camera_frames_per_s")},
@@ -411,11 +430,11 @@ def run(
     base config whose detector settings are measured; default the shipped one)."""
     extra = [] if config is None else ["--config", str(config.resolve())]
     return in_private_netns(
-        "mocapd.service.bench.cameras",
+        "mocapd.service.bench.cameras:child_main",
         ["--seconds", str(seconds), "--warm-up", str(warm_up_s), "--alone-passes", str(alone_passes),
          "--options", json.dumps(asdict(opts)), *extra],
     )  # fmt: skip
 
 
 if __name__ == "__main__":
-    sys.exit(child_main())
+    lifecycle.child_main(["mocapd.service.bench.cameras:child_main", *sys.argv[1:]])

@@ -1,118 +1,74 @@
-"""The ``mocapd`` command line."""
+"""The ``mocapd`` command line.
+
+This module is light on purpose: :func:`entry` installs the stop signals' handlers
+(:func:`mocapd.io.lifecycle.install_stop_signals`) before the commands are imported — seconds of NumPy, SciPy,
+OpenCV and pydantic on a loaded machine, during which a Ctrl-C would otherwise print a ``KeyboardInterrupt``
+traceback, a SIGHUP kill the process unannounced, and a SIGINT inherited as ignored be lost. The parser and the
+commands are in :mod:`mocapd.service.cli.commands`.
+"""
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-from mocapd import __version__
-from mocapd.errors import InputError
-from mocapd.service.cli import calibrate as cmd_calibrate
-from mocapd.service.cli import daemon as cmd_daemon
-from mocapd.service.cli import devices as cmd_devices
-from mocapd.service.cli import eval as eval_cli
-from mocapd.service.cli import imu as cmd_imu
-from mocapd.service.cli import model as cmd_model
-from mocapd.service.cli import recordings as cmd_recordings
-from mocapd.service.cli import session as cmd_session
-from mocapd.service.process import exit_now
+if TYPE_CHECKING:
+    import argparse
 
 
-def _cmd_bench_solver(args: argparse.Namespace) -> int:
-    from mocapd.service.bench import solver as bench_solver
-
-    print(json.dumps(bench_solver.run(frames=args.frames, scipy_frames=args.scipy_frames, seed=args.seed), indent=2))
-    return 0
+#: commands that serve until stopped: a stop signal is how they end, exit status 0 (others: 128 + the signal)
+SERVING = frozenset({"run", "demo", "detect-host", "replay"})
 
 
-def _cmd_bench_sorting(args: argparse.Namespace) -> int:
-    from mocapd.eval import tracking as eval_tracking
-
-    print(json.dumps(eval_tracking.bench_sorting(frames=args.frames), indent=2))
-    return 0
-
-
-def _cmd_eval_tracking(args: argparse.Namespace) -> int:
-    from mocapd.eval import tracking as eval_tracking
-    from mocapd.io.progress import Progress
-
-    motion = "synthetic" if args.synthetic else "real"
-    n_scenes = len(args.scene) if args.scene else len(eval_tracking.SCENES)
-    try:
-        with Progress(2 * n_scenes, "eval tracking") as bar:
-            report = eval_tracking.evaluate(seconds=args.seconds, seed=args.seed, motion=motion, scenes=args.scene,
-                                            progress=bar)  # fmt: skip
-    except InputError as exc:  # an unknown scene name
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(report, indent=2))
-    return 0
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="mocapd", description="Real-time multi-person motion capture daemon.")
-    parser.add_argument("--version", action="version", version=f"mocapd {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
-    bench = sub.add_parser("bench", help="benchmarks that print JSON")
-    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
-    solver = bench_sub.add_parser("solver", help="per-frame solver cost (issue: kinematic core)")
-    solver.add_argument("--frames", type=int, default=600, help="frames per configuration (default 600)")
-    solver.add_argument("--scipy-frames", type=int, default=30, help="frames for the scipy baseline (default 30)")
-    solver.add_argument("--seed", type=int, default=0)
-    solver.set_defaults(func=_cmd_bench_solver)
-    sorting = bench_sub.add_parser("sorting", help="detection sorting time per frame (issue: multi-person)")
-    sorting.add_argument("--frames", type=int, default=60)
-    sorting.set_defaults(func=_cmd_bench_sorting)
-
-    ev = sub.add_parser("eval", help="evaluations that print JSON")
-    ev_sub = ev.add_subparsers(dest="eval", metavar="EVAL", required=True)
-    tracking = ev_sub.add_parser("tracking", help="multi-person tracking on synthetic scenes")
-    tracking.add_argument("--seconds", type=float, default=8.0, help="length of each scene (default 8)")
-    tracking.add_argument("--seed", type=int, default=0)
-    tracking.add_argument("--synthetic", action="store_true", help="generated motion instead of recorded clips")
-    tracking.add_argument("--scene", action="append", default=None, metavar="NAME",
-                          help="run only this scene (repeatable; default: every scene)")  # fmt: skip
-    tracking.set_defaults(func=_cmd_eval_tracking)
-    eval_cli.register(ev_sub)
-
-    cmd_calibrate.register(sub)
-    cmd_imu.register(sub)  # adds "imu" to the calibrate group
-    cmd_model.register(sub)
-    cmd_daemon.register(sub)  # run, demo, check-config, bench latency
-    cmd_devices.register(sub)
-    cmd_session.register(sub)  # replay, resolve, export, session
-    cmd_recordings.register(sub)  # import mtw, import mvnx
-    return parser
-
-
-def _dispatch(argv: Sequence[str] | None) -> tuple[int, bool]:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 2, False
-    result: int = args.func(args)
-    return result, bool(getattr(args, "fast_exit", False))
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run one command and return its exit status (what tests call, in-process)."""
-    return _dispatch(argv)[0]
+def _command(argv: Sequence[str]) -> str:
+    """The command word of a command line (its first argument that is not an option; "" if none)."""
+    return next((a for a in argv if not a.startswith("-")), "")
 
 
 def entry() -> None:
     """The ``mocapd`` program (console script and ``python -m mocapd``).
 
-    The long-running commands (``run``, ``demo``) end with :func:`~mocapd.service.process.exit_now` once they
-    have closed everything they opened; other commands exit normally.
+    A stop signal ends a serving command (``run``, ``demo``, ``detect-host``, ``replay``) cleanly with exit status
+    0, whatever phase it is in; any other command stops with 128 + the signal's number (130 for SIGINT, 143 for
+    SIGTERM, 129 for SIGHUP), its output not written. The long-running commands end with
+    :func:`~mocapd.io.lifecycle.exit_now` once they have closed everything they opened; others exit normally.
     """
-    code, fast = _dispatch(None)
+    from mocapd.io import lifecycle
+
+    command = _command(sys.argv[1:])
+
+    def stop_status(signum: int) -> int:
+        return 0 if command in SERVING else 128 + signum
+
+    lifecycle.install_stop_signals(f"mocapd {command}".rstrip(), stop_status)
+    lifecycle.enter_phase("starting")  # STATUS=starting: what systemd (and a test) sees once a stop is handled
+    try:
+        from mocapd.service.cli.commands import dispatch
+
+        lifecycle.setup_logging()
+        code, fast = dispatch(None)
+    except lifecycle.StopRequested as stop:  # a command that computes (resolve, eval), or a daemon's set-up
+        code, fast = stop_status(stop.signum), True
+    except BrokenPipeError:  # `mocapd session S | head`: the reader left; not an error of ours, no traceback
+        code, fast = 0, True
     if fast:
-        exit_now(code)
+        lifecycle.exit_now(code)
     sys.exit(code)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command and return its exit status (what tests call, in-process)."""
+    from mocapd.service.cli.commands import main as run
+
+    return run(argv)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of every command."""
+    from mocapd.service.cli.commands import build_parser as build
+
+    return build()
 
 
 if __name__ == "__main__":

@@ -9,13 +9,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import logging
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from mocapd.errors import ConfigError, MocapdError
-from mocapd.io import log_throttle
+from mocapd.io import lifecycle
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
 from mocapd.service.config.cameras import describe
 
@@ -71,8 +70,15 @@ def _rig_summary(cfg: Config) -> str:
         rig = f"IMUs only (no cameras): {'; '.join(cfg.imu.sources())}; {len(cfg.imu.sensors)} sensor(s) assigned"
     return (
         f"{rig}; output {d.output_rate_hz:g} Hz, latency {_latency_text(d.latency_s)}; "
-        f"status http://{d.http_host}:{d.http_port}/status"
+        f"{_status_text(d.http_host, d.http_port)}"
     )
+
+
+def _status_text(host: str, port: int) -> str:
+    """Where /status will be: a port the config fixes, or (port 0) one the system picks, printed once bound."""
+    if port == 0:
+        return "status on a free port (printed when ready)"
+    return f"status http://{host}:{port}/status"
 
 
 def _imu_notes(cfg: Config, path: object) -> list[str]:
@@ -108,9 +114,19 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     path = args.path if args.path is not None else DEFAULT_CONFIG
     try:
         cfg = load_config(path)
+    except ConfigError as exc:
+        _print_config_error(path, exc)
+        return 2
+    try:
         check(cfg)
         notes = _imu_notes(cfg, path)
     except ConfigError as exc:
+        if args.path is None and not cfg.cameras:
+            # The shipped file is valid and describes no rig on purpose: a rig is the user's to write.
+            print(f"{path}: ok: the shipped config is valid and describes no rig (no [[cameras]]); write yours "
+                  "(`mocapd devices` prints [[cameras]] tables for what is plugged in) and check it with "
+                  "`mocapd check-config FILE`, or try `mocapd demo`")  # fmt: skip
+            return 0
         _print_config_error(path, exc)
         return 2
     print(f"{path}: ok ({_rig_summary(cfg)})")
@@ -141,15 +157,13 @@ def cmd_run(args: argparse.Namespace) -> int:
             if viewer is not None:
                 print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
 
-    async def main() -> int:
-        stop = asyncio.Event()
-        with assembly.stop_on_signals(stop):
-            status_line = (lambda s: print(s, flush=True)) if args.verbose else None
-            options = RunOptions(record=args.record, status_line=status_line)
-            return await assembly.run(cfg, options, stop=stop, on_ready=ready)
+    async def main(stop: asyncio.Event) -> int:
+        status_line = (lambda s: print(s, flush=True)) if args.verbose else None
+        options = RunOptions(record=args.record, status_line=status_line)
+        return await assembly.run(cfg, options, stop=stop, on_ready=ready)
 
     try:
-        return asyncio.run(main())
+        return lifecycle.run_until_stopped(main)
     except MocapdError as exc:  # a device that did not open, a stream that cannot listen, a session that exists
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -284,8 +298,7 @@ _RECORD_HELP = "record this run as a session into this new directory (docs/sessi
 
 def register(subparsers: Any) -> None:
     """Add run, demo, check-config and ``bench latency`` to the CLI."""
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    log_throttle.install()  # a fault repeated many times a second is a few lines and a count
+    lifecycle.setup_logging()  # a fault repeated many times a second is a few lines and a count
     run = subparsers.add_parser("run", help="run the daemon on the rig of a config file ([[cameras]], [imu])")
     run.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     run.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")

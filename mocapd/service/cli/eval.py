@@ -66,6 +66,7 @@ def _run_video(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from mocapd.eval.runner import EvalOptions, run_eval
     from mocapd.eval.simulate import DetectionNoise, ImuNoise
+    from mocapd.io import lifecycle
     from mocapd.service.config import load_config
 
     opts = EvalOptions.quick() if args.quick else EvalOptions()
@@ -86,6 +87,8 @@ def _run(args: argparse.Namespace) -> int:
         opts = replace(opts, sweep_frames=args.sweep_frames)
     if args.clean:
         opts = replace(opts, detections=DetectionNoise.clean(), imus=ImuNoise.clean())
+    # A stop signal raises StopRequested in the experiments: the results directory is written only at the end.
+    lifecycle.enter_phase("evaluating (results are written at the end)")
     res = run_eval(opts, args.out, args.data_root)
     print(json.dumps({"out": str(args.out), "targets": res["targets"], "setup": res["setup"]}, indent=2))
     return 0

@@ -27,10 +27,14 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def _fetch(args: argparse.Namespace) -> int:
+    from mocapd.io import lifecycle
     from mocapd.io.model_build import build_default_model
     from mocapd.io.progress import Progress
 
     sizes = args.size or list(DEFAULT_SIZES)
+    # A stop signal unwinds the build (its temporary venv removed, its pip or export process killed) and leaves
+    # the cache as it was: a model file is current only once its sidecar's checksum matches.
+    lifecycle.enter_phase("building the model")
     try:
         with Progress(1, "model fetch") as bar:
             build_default_model(sizes, force=args.force, steps=bar.update)

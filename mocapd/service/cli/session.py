@@ -12,6 +12,7 @@ from typing import Any
 
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import InputError, MocapdError
+from mocapd.io import lifecycle
 from mocapd.io.output_files import check_distinct, check_output_file
 from mocapd.io.session import FRAMES, MANIFEST, RESOLVED, STREAMS, SUFFIX, Session, open_session
 from mocapd.io.session_export import SubjectTrack
@@ -94,7 +95,7 @@ def _again(command: str, args: argparse.Namespace, options: tuple[str, ...]) -> 
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from mocapd.service.session.replay import replay, replay_camera_views
+    from mocapd.service.session.replay import ReplayStats, replay, replay_camera_views
     from mocapd.service.session.solve import session_rig
 
     cfg = load_config(args.config)
@@ -115,7 +116,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
                   flush=True)  # fmt: skip
 
     print(f"mocapd replay: {len(frames)} frames through {len(sinks) - 1} sink(s) at {args.speed:g}x", flush=True)
-    stats = asyncio.run(replay(frames, sinks, speed=args.speed, on_frame=progress, events=events))
+
+    async def main(stop: asyncio.Event) -> ReplayStats:
+        lifecycle.enter_phase("replaying")
+        return await replay(frames, sinks, speed=args.speed, on_frame=progress, events=events, stop=stop)
+
+    stats = lifecycle.run_until_stopped(main)
     print(json.dumps(asdict(stats)))
     return 0
 
@@ -140,6 +146,8 @@ def cmd_resolve(args: argparse.Namespace) -> int:
             session.require_stream(stream)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
     n_frames = len(solve_times(session, rig.options.rate_hz))
+    # A stop signal raises StopRequested here: the output is written at the end, atomically (exit 128 + the signal).
+    lifecycle.enter_phase("re-solving the session (nothing written yet)")
     with Progress(n_frames, "resolve") as bar:
         frames, summary = resolve(session, opts, bar)
     _undecodable_notes(session)
@@ -184,6 +192,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             rig.append(session_rig(session).skeleton)
         return rig[0]
 
+    lifecycle.enter_phase("exporting")  # a stop signal unwinds the export (exit 128 + the signal)
     # glTF: every subject unless one is named; BVH and CSV: one subject (default: the one seen most).
     everyone = [args.subject] if args.subject is not None else sorted(subjects(poses))
     many = args.gltf is not None or args.fbx is not None  # every subject resampled, once for both
@@ -258,6 +267,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     info = {
         "path": str(session.path),
         "closed_cleanly": session.closed_cleanly,
+        "cut": session.cut,
         "started_utc": m.get("started_utc"),
         "software": m.get("software"),
         "cameras": _names(m.get("cameras"), "name"),

@@ -13,22 +13,23 @@ the status page, the viewer and the streams must be reachable from the user's ho
 namespace it was created in, whatever process later uses it, so:
 
 1. the parent (``mocapd demo``, host namespace) binds the status, WebSocket and UDP sockets;
-2. it starts ``unshare -rn python -m mocapd.service.demo.cameras --http-fd N ...`` with them inherited
-   (``pass_fds``) and closes its copies;
+2. it starts ``unshare -rn python -m mocapd.io.lifecycle mocapd.service.demo.cameras:child_main --http-fd N ...``
+   with them inherited (``pass_fds``) and closes its copies;
 3. the child (new namespace) brings ``lo`` up with aliases 127.0.0.2-5, starts the fake cameras there, and runs
    the daemon on the generated config with those sockets.
 
-The parent forwards SIGINT/SIGTERM to the child and returns its exit status. The fake camera servers run in
-their own session, so the terminal's Ctrl-C reaches the daemon only: the cameras stay up while the daemon stops
-(as real cameras would), and are stopped after it.
+The parent forwards stop signals (SIGINT, SIGTERM, SIGHUP) to the child and returns its exit status; the child
+ends with the parent even when the parent is killed (:func:`mocapd.io.lifecycle.die_with_parent`), and so do the
+fake cameras with the child. The fake camera servers run in their own session, so the terminal's Ctrl-C reaches
+the daemon only: the cameras stay up while the daemon stops (as real cameras would), and are stopped after it.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
-import signal
 import socket
 import subprocess
 import sys
@@ -42,6 +43,7 @@ from typing import Any, Literal
 import cv2
 
 from mocapd.errors import ConfigError, MocapdError
+from mocapd.io import lifecycle, ports
 from mocapd.io.calibration_files import read_qca, scale_calibration, write_mocapd_toml
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
 from mocapd.io.ws_server import listen_error
@@ -52,7 +54,6 @@ from mocapd.service.config import Config, load_config
 from mocapd.service.config.cameras import CalibrationConfig, parse_cameras
 from mocapd.service.config.schema import validate
 from mocapd.service.daemon import Daemon
-from mocapd.service.process import exit_now
 from mocapd.sim.fake_cameras import FakeCameraFleet, FakeCameraSpec
 from mocapd.sim.fake_gige import add_loopback_aliases
 
@@ -189,6 +190,7 @@ async def run_camera_demo(
     """Inside a private network namespace: start the fake cameras, then run the daemon of the generated config
     until ``stop``, ``seconds`` or ``monitor``; the cameras stop after the daemon."""
     stop = stop if stop is not None else asyncio.Event()
+    lifecycle.enter_phase("starting the fake cameras")
     addresses = add_loopback_aliases(4)
     with tempfile.TemporaryDirectory(prefix="mocapd-demo-") as tmp:
         work = Path(tmp)
@@ -273,6 +275,7 @@ def child_main(argv: list[str] | None = None) -> int:
     p.add_argument("--udp-fd", type=int, default=None, help="inherited UDP socket for the MVN / VMC streams")
     p.add_argument("--options", default="{}", help="CameraDemoOptions fields as JSON")
     args = p.parse_args(argv)
+    lifecycle.install_stop_signals("mocapd demo (in its network namespace)")  # names the stop line
     people = PeopleCount()
     holder: list[Daemon] = []
 
@@ -280,22 +283,20 @@ def child_main(argv: list[str] | None = None) -> int:
         holder.append(a.daemon)
         announce(a)
 
-    async def main() -> int:
-        stop = asyncio.Event()
-        with assembly.stop_on_signals(stop):
-            opts = CameraDemoOptions(**json.loads(args.options))
-            sockets = Sockets(
-                http=socket.socket(fileno=args.http_fd) if args.http_fd is not None else None,
-                websocket=socket.socket(fileno=args.ws_fd) if args.ws_fd is not None else None,
-                udp_fileno=args.udp_fd,
-            )
-            options = RunOptions(record=args.record, sockets=sockets, status_line=lambda s: print(s, flush=True),
-                                 sinks=[people])  # fmt: skip
-            return await run_camera_demo(load_config(args.config), opts, options, stop=stop, on_ready=ready,
-                                         seconds=None if args.seconds <= 0 else args.seconds)  # fmt: skip
+    async def main(stop: asyncio.Event) -> int:
+        opts = CameraDemoOptions(**json.loads(args.options))
+        sockets = Sockets(
+            http=socket.socket(fileno=args.http_fd) if args.http_fd is not None else None,
+            websocket=socket.socket(fileno=args.ws_fd) if args.ws_fd is not None else None,
+            udp_fileno=args.udp_fd,
+        )
+        options = RunOptions(record=args.record, sockets=sockets, status_line=lambda s: print(s, flush=True),
+                             sinks=[people])  # fmt: skip
+        return await run_camera_demo(load_config(args.config), opts, options, stop=stop, on_ready=ready,
+                                     seconds=None if args.seconds <= 0 else args.seconds)  # fmt: skip
 
     try:
-        code = asyncio.run(main())
+        code = lifecycle.run_until_stopped(main)
     except MocapdError as exc:  # missing model or demo data, a camera that never opened: say what, no traceback
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2
@@ -308,28 +309,41 @@ def child_main(argv: list[str] | None = None) -> int:
 
 
 def in_private_netns(
-    module: str,
+    target: str,
     args: list[str],
     *,
     inherited: dict[str, socket.socket] | None = None,
 ) -> int:
-    """Run ``python -m module args`` under ``unshare -rn`` with each socket of ``inherited`` passed as
-    ``--<name> FD``, forwarding SIGINT/SIGTERM to it; returns its exit status."""
-    cmd = ["unshare", "-rn", sys.executable, "-m", module, *args]
+    """Run ``target`` (``module:function``, see :func:`mocapd.io.lifecycle.child_command`) under ``unshare -rn``
+    with each socket of ``inherited`` passed as ``--<name> FD``, forwarding stop signals to it; returns its exit
+    status (128 + N when a signal N ended it).
+
+    The child ends with this process, however it ends (SIGTERM from the kernel if this one is killed: it then
+    stops as cleanly as on Ctrl-C, its recording closed, its fake cameras stopped; see
+    :func:`~mocapd.io.lifecycle.child_command`).
+    """
+    cmd = ["unshare", "-rn", *lifecycle.child_command(target, *args)]
     passed = dict(inherited or {})
     for flag, sock in passed.items():
         cmd += [f"--{flag}", str(sock.fileno())]
-    # Its own session: the terminal's Ctrl-C reaches us only, and we forward it once (twice would hurry the
-    # child's clean stop).
-    proc = subprocess.Popen(cmd, pass_fds=tuple(sock.fileno() for sock in passed.values()), start_new_session=True)
-    for sock in passed.values():
-        sock.close()  # the child holds them now
-    previous = {sig: signal.signal(sig, lambda s, _f: proc.send_signal(s)) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        return proc.wait()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with lifecycle.deferred():  # from here a stop signal is forwarded to the child, never raised
+        if lifecycle.requested() is not None:
+            for sock in passed.values():
+                sock.close()
+            return 0
+        # Its own session: the terminal's Ctrl-C reaches us only, and we forward it once (twice would hurry the
+        # child's clean stop).
+        proc = subprocess.Popen(cmd, pass_fds=tuple(sock.fileno() for sock in passed.values()), start_new_session=True)
+        for sock in passed.values():
+            sock.close()  # the child holds them now
+
+        def forward(signum: int) -> None:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signum)
+
+        with lifecycle.on_stop(forward, quiet=True):  # the child names the phase it stops in
+            code = proc.wait()
+    return 128 - code if code < 0 else code
 
 
 def host_sockets(config: Config) -> dict[str, socket.socket]:
@@ -340,7 +354,7 @@ def host_sockets(config: Config) -> dict[str, socket.socket]:
     try:
         out["http-fd"] = socket.create_server((d.http_host, d.http_port))
     except OSError as exc:
-        raise ConfigError(f"cannot listen on {d.http_host}:{d.http_port} ({exc}); try --http-port") from exc
+        raise ports.listen_error("[daemon] http_port", d.http_host, d.http_port, exc) from None
     ws = config.websocket
     if ws.enabled:
         try:
@@ -389,8 +403,8 @@ def run(
         args += ["--config", str(config_path)]
     if record is not None:
         args += ["--record", str(record)]
-    return in_private_netns("mocapd.service.demo.cameras", args, inherited=inherited)
+    return in_private_netns("mocapd.service.demo.cameras:child_main", args, inherited=inherited)
 
 
 if __name__ == "__main__":
-    exit_now(child_main())
+    lifecycle.child_main(["mocapd.service.demo.cameras:child_main", *sys.argv[1:]])

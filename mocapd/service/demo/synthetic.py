@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
+from mocapd.io import lifecycle
 from mocapd.service import assembly
 from mocapd.service.assembly import Monitor, RunOptions
 from mocapd.service.config import Config
@@ -72,14 +73,12 @@ def run(config: Config, seconds: float | None, record: str | Path | None = None,
     )
     print("starting: solver kernel (compiled once per machine, up to a minute the first time), inputs ...", flush=True)
 
-    async def main() -> tuple[int, assembly.Assembly | None]:
-        stop = asyncio.Event()
-        with assembly.stop_on_signals(stop):
-            options = RunOptions(record=None if record is None else Path(record),
-                                 status_line=lambda s: print(s, flush=True))  # fmt: skip
-            return await run_synthetic(config, options, seconds=seconds, stop=stop)
+    async def main(stop: asyncio.Event) -> tuple[int, assembly.Assembly | None]:
+        options = RunOptions(record=None if record is None else Path(record),
+                             status_line=lambda s: print(s, flush=True))  # fmt: skip
+        return await run_synthetic(config, options, seconds=seconds, stop=stop)
 
-    code, done = asyncio.run(main())
+    code, done = lifecycle.run_until_stopped(main)
     if done is not None:
         err = done.truth.recent_mm(10**9) if done.truth is not None else None
         st = done.daemon.status()["output"]

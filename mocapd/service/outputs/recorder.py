@@ -109,7 +109,9 @@ class FrameRecordOptions:
 
 class SessionRecorder:
     """Records one session (see the module docstring); a pose sink plus two input taps, and optionally a task
-    recording each camera's frames from ``frame_sources``."""
+    recording each camera's frames from ``frame_sources``. Its counters are ``/status`` → ``sinks.recorder``."""
+
+    name = "recorder"
 
     def __init__(
         self,
@@ -184,10 +186,13 @@ class SessionRecorder:
         self.writer.put("imu", T_IMU, _encode_sample, s, quat, s.acc, t)
 
     def status(self) -> dict[str, Any]:
+        """``recording`` false and ``stopped`` (errno and message) once a write error stopped the recording."""
         c = self.writer.counters
-        return {"directory": str(self.writer.directory), "queued": c.queued, "written": c.written,
-                "dropped": c.dropped, "bytes": c.bytes, "write_errors": c.write_errors,
-                "camera_frames": self.frames_recorded}  # fmt: skip
+        cut = self.writer.cut
+        return {"directory": str(self.writer.directory), "recording": cut is None,
+                "stopped": None if cut is None else f"{cut['errno']}: {cut['error']}", "queued": c.queued,
+                "written": c.written, "dropped": c.dropped, "not_recorded": c.not_recorded, "bytes": c.bytes,
+                "write_errors": c.write_errors, "camera_frames": self.frames_recorded}  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------- manifest

@@ -15,6 +15,7 @@ show the session as they showed it live.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -94,11 +95,14 @@ async def replay(
     clock: Callable[[], int] = time.monotonic_ns,
     on_frame: Callable[[PoseFrame], None] | None = None,
     events: Sequence[tuple[int, Callable[[], None]]] = (),
+    stop: asyncio.Event | None = None,
 ) -> ReplayStats:
-    """Start the sinks, publish every frame at its recorded time (scaled by 1/``speed``), close the sinks.
+    """Start the sinks, publish every frame at its recorded time (scaled by 1/``speed``) until the last one or
+    ``stop``, close the sinks.
 
     ``events``: (time on the solve-time axis, action) in time order, each run just before the first frame solved
     at or after its time (the camera panels' inputs, :func:`replay_camera_views`)."""
+    stop = stop if stop is not None else asyncio.Event()
     if not (np.isfinite(speed) and speed > 0):
         raise InputError(f"replay speed must be a positive number, got {speed!r}")
     stats = ReplayStats()
@@ -111,13 +115,18 @@ async def replay(
             period = np.median(np.diff([f.t_solve_ns for f in frames])) if len(frames) > 1 else 0.0
             k = 0
             for r in frames:
+                if stop.is_set():
+                    break
                 while k < len(events) and events[k][0] <= r.t_solve_ns:
                     events[k][1]()
                     k += 1
                 due = start + round((r.t_solve_ns - t0) / speed)
                 delay = (due - clock()) / 1e9
                 if delay > 0:
-                    await asyncio.sleep(delay)
+                    with contextlib.suppress(TimeoutError):  # the frame's time came, or a stop
+                        await asyncio.wait_for(stop.wait(), delay)
+                    if stop.is_set():
+                        break
                 elif -delay * 1e9 > period / speed:
                     stats.late += 1
                 frame = pose_frame(r)
