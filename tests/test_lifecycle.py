@@ -317,3 +317,39 @@ def test_a_child_process_rate_limits_its_repeated_log_lines() -> None:
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 0 and len(lines) == 6, lines
     assert re.search(r"the same fault again \(199\) \(194 more in the last \d+ s\)$", lines[-1]), lines
+
+
+def test_a_stop_signal_delivered_to_a_worker_thread_wakes_the_idle_loop() -> None:
+    """The kernel may hand a process's signal to any of its threads. One that lands on a worker (the solver
+    kernel's compile, a model load) while the event loop sleeps with nothing scheduled must still stop the loop
+    at once, not when the worker is done (CI: a SIGHUP during the compile was acted on 15 s later, after READY).
+    The worker signals itself, then waits for the loop to say it saw the stop; without the wakeup it waits out
+    its 20 s and the loop sees the stop only then."""
+    script = """
+import asyncio, signal, threading, time
+from mocapd.io import lifecycle
+
+async def main(stop):
+    seen = threading.Event()
+    loop = asyncio.get_running_loop()
+
+    def worker():
+        time.sleep(0.3)  # the loop is back in epoll_wait, idle, when the signal comes
+        signal.pthread_kill(threading.get_ident(), signal.SIGTERM)
+        print("woken" if seen.wait(20.0) else "slept", flush=True)
+        loop.call_soon_threadsafe(lambda: None)
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    await stop.wait()
+    seen.set()
+    await asyncio.to_thread(thread.join)
+    return 0
+
+lifecycle.install_stop_signals("test")
+raise SystemExit(lifecycle.run_until_stopped(main))
+"""
+    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=60,
+                          check=False)  # fmt: skip
+    assert proc.returncode == 0 and proc.stdout.strip() == "woken", (proc.stdout, proc.stderr)
+    assert "test: SIGTERM while" in proc.stderr

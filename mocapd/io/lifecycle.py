@@ -258,15 +258,49 @@ def stop_event(stop: asyncio.Event) -> Iterator[None]:
         with contextlib.suppress(RuntimeError):  # the loop closed: nothing waits any more
             loop.call_soon_threadsafe(stop.set)
 
-    temporary = not _state.installed and threading.current_thread() is threading.main_thread()
+    main = threading.current_thread() is threading.main_thread()
+    temporary = not _state.installed and main
     if temporary:
         install_stop_signals(_state.name)
     try:
-        with deferred(), on_stop(fire):
+        with deferred(), on_stop(fire), _loop_woken_by_signals(loop) if main else contextlib.nullcontext():
             yield
     finally:
         if temporary:
             uninstall_stop_signals()
+
+
+@contextlib.contextmanager
+def _loop_woken_by_signals(loop: asyncio.AbstractEventLoop) -> Iterator[None]:
+    """While inside, a signal wakes ``loop`` whichever thread the kernel delivers it to.
+
+    Python runs a signal's handler in the main thread, the next time that thread runs bytecode. The kernel may
+    deliver a process-directed signal to any thread: one delivered to a worker (a kernel compile, a model load,
+    a camera's capture thread) while the loop sleeps in ``epoll_wait`` with nothing scheduled left the handler
+    waiting until something else woke the loop (CI: a SIGHUP during the solver kernel's compile was acted on
+    15 s later, when the compile finished, after READY). The C-level handler writes the signal's number to the
+    wakeup fd from whichever thread it runs on; the loop reads it, and the main thread then runs the handler.
+    """
+    import socket
+
+    reader, writer = socket.socketpair()
+    reader.setblocking(False)
+    writer.setblocking(False)
+
+    def drain() -> None:
+        with contextlib.suppress(OSError):
+            while reader.recv(4096):
+                pass
+
+    loop.add_reader(reader.fileno(), drain)
+    previous = signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
+    try:
+        yield
+    finally:
+        signal.set_wakeup_fd(previous)
+        loop.remove_reader(reader.fileno())
+        reader.close()
+        writer.close()
 
 
 # ---------------------------------------------------------------------------------------------- children
