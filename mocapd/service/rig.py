@@ -236,7 +236,8 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     local = {i: frame_source(c, cam, backoff) for i, (c, cam) in enumerate(pairs) if not isinstance(c, ZenohCamera)}
     captures = list(local.values())
     remote_hosts = sorted({c.host for c in config.cameras if isinstance(c, ZenohCamera)})
-    remote = RemoteRig(config.zenoh, remote_hosts, clock=clock) if remote_hosts else None
+    by_host = {h: [c.name for c in config.cameras if isinstance(c, ZenohCamera) and c.host == h] for h in remote_hosts}
+    remote = RemoteRig(config.zenoh, remote_hosts, cameras=by_host, clock=clock) if remote_hosts else None
     detector_config = config.detector.options()
     # A rig of camera hosts only runs no detector here: the hosts run it.
     detector = (make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],
