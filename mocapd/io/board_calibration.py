@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.errors import CalibrationError
+from mocapd.io.media_files import read_image
 
 FloatArray = NDArray[np.float64]
 
@@ -121,10 +122,8 @@ def detect_in_files(paths: Iterable[Path], board: Board) -> tuple[list[Detection
     """Detect the board in image files. Returns the detections and the names of images without a board."""
     found, missed = [], []
     for path in sorted(paths):
-        image = cv2.imread(str(path))
-        if image is None:
-            raise CalibrationError(f"cannot read image {path}")
-        det = detect_board(np.asarray(image, np.uint8), board, Path(path).name)
+        image = read_image(path, "calibration image", error=CalibrationError)  # a FIFO: one line, not a wait
+        det = detect_board(image, board, Path(path).name)
         if det is None:
             missed.append(Path(path).name)
         else:
