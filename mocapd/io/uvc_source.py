@@ -97,7 +97,7 @@ class UvcSource(ThreadedSource):
     def _open(self) -> None:
         c = self.config
         if self._file:  # a video file standing in for a webcam: the checks of every media file
-            cap = open_video(c.device, f"camera {c.name!r}: video", error=DeviceError)
+            cap = open_video(str(c.device), f"camera {c.name!r}: video", error=DeviceError)
         else:
             # Through V4L2 explicitly: OpenCV's default may pick GStreamer, which ignores the property requests.
             target = c.device if isinstance(c.device, int) else str(c.device)
