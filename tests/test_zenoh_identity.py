@@ -8,6 +8,7 @@ only as a ``run_conflict`` and its clock replies collide with B's (counted, and 
 from __future__ import annotations
 
 import socket
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -195,3 +196,54 @@ def test_a_solver_host_off_loopback_names_every_camera_hosts_identity(tmp_path: 
         parse_config({"zenoh": {**base, "identities": {"hostA": "cert:hostA"}}})
     with pytest.raises(ConfigError, match=r"identities\.hostA"):
         parse_config({"zenoh": {**base, "identities": {"hostA": "hostA\nuser:x"}}})
+
+
+def _certificates(folder: Path) -> None:
+    """A throw-away CA and certificates for the solver and hosts A and B (CN = the name; openssl)."""
+
+    def ssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True)
+
+    ssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+        "-subj", "/CN=mocapd-test-ca")  # fmt: skip
+    (folder / "ext").write_text("subjectAltName=IP:127.0.0.1\n", encoding="utf-8")
+    for name in ("solver", "hostA", "hostB"):
+        ssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj",
+            f"/CN={name}")  # fmt: skip
+        ssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out",
+            f"{name}.pem", "-days", "2", "-extfile", "ext")  # fmt: skip
+
+
+def test_with_mutual_tls_a_host_is_its_certificates_name(tmp_path: Path) -> None:
+    """The same attack over mutual TLS, identities by certificate name: host A's certificate, signed by the rig's
+    CA like B's, does not let it speak for B; ``zenoh_links`` shows the two hosts' certificate names."""
+    _certificates(tmp_path)
+    endpoint = f"tls/127.0.0.1:{_port()}"
+
+    def tls(name: str) -> dict[str, str]:
+        return {"tls_root_ca": str(tmp_path / "ca.pem"), "tls_cert": str(tmp_path / f"{name}.pem"),
+                "tls_key": str(tmp_path / f"{name}.key")}  # fmt: skip
+
+    z = _zenoh({"listen": [endpoint], **tls("solver"), "identities": {h: f"cert:{h}" for h in CAMERAS}})
+    rig = RemoteRig(z, sorted(CAMERAS), cameras=CAMERAS)
+    rig.start()
+    peers: list[Peer] = []
+    try:
+        b = open_session(_zenoh({"listen": [], "connect": [endpoint], **tls("hostB")}))
+        peers.append(Peer(b, "hostB", run_id=0xB))
+        a = open_session(_zenoh({"listen": [], "connect": [endpoint], **tls("hostA")}))
+        peers += [Peer(a, "hostA", run_id=0xA), Peer(a, "hostB", run_id=0x666, clock_skew_ns=30_000_000_000)]
+        time.sleep(3.0)
+        st = rig.status()
+        assert st["hostB"]["run_id"] == f"{0xB:016x}" and st["hostB"]["rejected"] == {}, st["hostB"]
+        assert st["hostB"]["round_trips"] > 0 and abs(st["hostB"]["clock_offset_ms"]) < 100, st["hostB"]
+        assert st["hostA"]["run_id"] == f"{0xA:016x}" and st["hostA"]["identity"] == "cert:hostA"
+        assert rig.links() == ["cert:hostA", "cert:hostB"]
+    finally:
+        for p in peers:
+            p.stop.set()
+        for p in peers:
+            p.thread.join()
+        for s in {id(p.session): p.session for p in peers}.values():
+            s.close()  # type: ignore[no-untyped-call]
+        rig.close()
