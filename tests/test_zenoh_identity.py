@@ -188,6 +188,9 @@ def test_a_solver_host_off_loopback_names_every_camera_hosts_identity(tmp_path: 
     cameras: Any = [{"name": c, "source": "zenoh", "host": h} for h, cs in CAMERAS.items() for c in cs]
     with pytest.raises(ConfigError, match=r"zenoh.identities .*missing: hostB\), e.g. hostB = \"user:hostB\""):
         parse_config({"zenoh": {**base, "identities": {"hostA": "user:hostA"}}, "cameras": cameras})
+    loopback = {**base, "listen": ["tcp/127.0.0.1:7447"], "identities": {"hostA": "user:hostA"}}
+    with pytest.raises(ConfigError, match=r"leaves out camera host\(s\) hostB: the session admits"):
+        parse_config({"zenoh": loopback, "cameras": cameras})
     ok = parse_config({"zenoh": {**base, "identities": {h: f"user:{h}" for h in CAMERAS}}, "cameras": cameras})
     assert ok.zenoh.identities == {"hostA": "user:hostA", "hostB": "user:hostB"}
     with pytest.raises(ConfigError, match="users_file"):  # a user name this side does not check is no identity

@@ -285,12 +285,17 @@ def _hosts_identified(config: Config) -> None:
     hosts = sorted({c.host for c in config.cameras if isinstance(c, ZenohCamera)})
     remote = [e for e in (*z.listen, *z.connect) if not is_loopback_endpoint(e)]
     missing = [h for h in hosts if h not in z.identities]
-    if hosts and remote and missing:
+    if not (hosts and missing and (remote or z.identities)):
+        return
+    example = f'e.g. {missing[0]} = "user:{missing[0]}" (docs/scaling.md)'
+    if remote:
         err = RuleError("{0} is not loopback: each camera host's identity must be in {1} (missing: "
-                        f"{', '.join(missing)}), e.g. {missing[0]} = \"user:{missing[0]}\" (docs/scaling.md)",
-                        "zenoh.listen" if z.listen else "zenoh.connect", "zenoh.identities",
-                        values=(remote, dict(z.identities)))  # fmt: skip
-        raise ConfigError(str(err))
+                        f"{', '.join(missing)}), {example}", "zenoh.listen" if z.listen else "zenoh.connect",
+                        "zenoh.identities", values=(remote, dict(z.identities)))  # fmt: skip
+    else:  # some identities: the session admits nobody else, a host left out would be cut off without a word
+        err = RuleError(f"{{0}} leaves out camera host(s) {', '.join(missing)}: the session admits only the hosts "
+                        f"it names, {example}", "zenoh.identities", values=(dict(z.identities),))  # fmt: skip
+    raise ConfigError(str(err))
 
 
 def parse_config(data: object) -> Config:
