@@ -18,7 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mocapd.errors import CalibrationError, InputError
+from mocapd.errors import CalibrationError, DeviceError, InputError
 from mocapd.io.board_calibration import Board, detect_in_files
 from mocapd.io.media_files import open_video, read_image
 from mocapd.io.video_source import ImageFolderSource
@@ -82,7 +82,7 @@ def test_an_image_folder_source_refuses_a_fifo_among_its_pictures(tmp_path: Path
     src = ImageFolderSource("cam0", tmp_path, realtime=False)
     src._open()
     assert src._grab() not in (None, False)
-    with alarm(20), pytest.raises(Exception, match=r"0002\.png: not a regular file \(a FIFO\)"):
+    with alarm(20), pytest.raises(DeviceError, match=r"0002\.png: not a regular file \(a FIFO\)"):
         src._grab()
 
 
