@@ -30,10 +30,11 @@ disagree (two peers answering for one host) are all refused (``clock_conflict``)
 reply of a run, replies from another Zenoh session (``replier_id``) are refused (``clock_other_peer``). What is
 refused is counted per host (``rejected`` in ``/status``).
 
-With ``[zenoh] identities`` (off loopback the schema requires one for every camera host) the session itself
-admits a host's status, its cameras' detections and its clock replies from that host's authenticated identity
-alone (Zenoh's access control, :func:`mocapd.io.zenoh_link.access_control`): a peer with valid credentials of its
-own cannot publish as another host; ``/status`` shows each host's ``identity`` and the identities of the links up.
+With ``[zenoh] identities`` (off loopback, or once one is named, the schema requires one per camera host) the
+session admits a host's status, its cameras' detections and its clock replies from that host's authenticated
+identity alone (Zenoh's access control, :func:`mocapd.io.zenoh_link.access_control`): a peer with valid
+credentials of its own cannot publish as another host; ``/status`` shows each host's ``identity`` and
+(``zenoh_links``) the identities of the links up.
 
 A host not heard from (status, detections or clock replies) for ``lost_after_s`` is shown lost; its cameras deliver
 nothing, so their timelines go stale and they drop out of the solve; when it is heard again it rejoins (a
