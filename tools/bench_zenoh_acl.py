@@ -39,8 +39,10 @@ def _port() -> int:
 def _round(folder: Path, acl: bool, messages: int, rate: float, size: int) -> list[float]:
     """Send -> receive delays (ms) of one round."""
     endpoint = f"tcp/127.0.0.1:{_port()}"
-    base = {"rig": "bench", "listen": [endpoint], "user": "solver", "password_file": str(folder / "pw-solver"),
-            "users_file": str(folder / "users")}  # fmt: skip
+    base: dict[str, Any] = {
+        "rig": "bench", "listen": [endpoint], "user": "solver", "password_file": str(folder / "pw-solver"),
+        "users_file": str(folder / "users"),
+    }  # fmt: skip
     if acl:
         base["identities"] = {"hostA": "user:hostA"}
     solver = open_session(parse_config({"zenoh": base}).zenoh, {"hostA": ["cam0"]})
