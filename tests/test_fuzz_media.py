@@ -18,7 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mocapd.errors import CalibrationError, DeviceError, InputError
+from mocapd.errors import DeviceError, InputError
 from mocapd.io.board_calibration import Board, detect_in_files
 from mocapd.io.media_files import open_video, read_image
 from mocapd.io.video_source import ImageFolderSource
@@ -66,13 +66,28 @@ def test_special_media_files_are_refused_not_waited_on(tmp_path: Path) -> None:
         assert "cameras[0]" in lines[0] and what in lines[0], (name, err)
 
 
+def test_calibrate_cameras_names_a_special_file_among_the_pictures(tmp_path: Path) -> None:
+    """A FIFO among a camera's calibration pictures was left out without a word (the board's views silently
+    fewer); now it is one line naming it, exit 2."""
+    folder = tmp_path / "intrinsics" / "cam0"
+    folder.mkdir(parents=True)
+    (folder / "0001.png").write_bytes(_picture())
+    os.mkfifo(folder / "0002.png")
+    argv = ["calibrate", "cameras", "--cols", "9", "--rows", "6", "--square-mm", "25", "--intrinsics",
+            str(tmp_path / "intrinsics"), "--output", str(tmp_path / "out.toml")]  # fmt: skip
+    [(code, err)] = run_guarded([argv])
+    assert code == 2 and len(err.strip().splitlines()) == 1, (code, err)
+    assert "0002.png: not a regular file (a FIFO)" in err, err
+    assert not (tmp_path / "out.toml").exists()
+
+
 def test_a_picture_larger_than_a_picture_is_refused_before_it_is_read(tmp_path: Path) -> None:
     big = tmp_path / "cam0" / "big.png"
     big.parent.mkdir()
     with big.open("wb") as fh:  # sparse: 600 MiB on paper, nothing on disk
         fh.write(_picture())
         fh.truncate(600 << 20)
-    with pytest.raises(CalibrationError, match=r"calibration image .*big\.png: 600 MiB, larger than the 512 MiB"):
+    with pytest.raises(InputError, match=r"calibration image .*big\.png: 600 MiB, larger than the 512 MiB"):
         detect_in_files([big], Board("checkerboard", 9, 6, 0.025))
 
 

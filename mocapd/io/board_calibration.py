@@ -119,10 +119,16 @@ def detect_board(image: NDArray[np.uint8], board: Board, view: str = "") -> Dete
 
 
 def detect_in_files(paths: Iterable[Path], board: Board) -> tuple[list[Detection], list[str]]:
-    """Detect the board in image files. Returns the detections and the names of images without a board."""
+    """Detect the board in image files. Returns the detections and the names of images without a board.
+
+    Raises
+    ------
+    InputError
+        A file that is not a readable picture (a FIFO, a device, over 512 MiB, not decodable): one line naming it.
+    """
     found, missed = [], []
     for path in sorted(paths):
-        image = read_image(path, "calibration image", error=CalibrationError)  # a FIFO: one line, not a wait
+        image = read_image(path, "calibration image")  # a FIFO: InputError, one line, not a wait
         det = detect_board(image, board, Path(path).name)
         if det is None:
             missed.append(Path(path).name)
