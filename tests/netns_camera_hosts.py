@@ -124,9 +124,13 @@ async def _lines(stream: asyncio.StreamReader, out: list[str]) -> None:
 async def main(folder: Path) -> dict[str, Any]:
     _disable_ipv6()
     _ip("link", "set", "lo", "up")
-    (folder / "password").write_text("correct-horse-battery\n", encoding="utf-8")
-    (folder / "users").write_text("mocapd:correct-horse-battery\n", encoding="utf-8")
-    auth = {"user": "mocapd", "password_file": str(folder / "password")}
+    # One user per machine: the solver host admits each camera host's messages from its own user alone
+    # ([zenoh] identities, issue 34).
+    users = {"mocapd": "correct-horse-battery", **{h: f"{h}-staple-battery" for h in HOSTS}}
+    for user, password in users.items():
+        (folder / f"password-{user}").write_text(password + "\n", encoding="utf-8")
+    (folder / "users").write_text("".join(f"{u}:{p}\n" for u, p in users.items()), encoding="utf-8")
+    auth = {"user": "mocapd", "password_file": str(folder / "password-mocapd")}
     holders: dict[str, subprocess.Popen[bytes]] = {}
     listen = []
     for k, host in enumerate(HOSTS, start=1):
@@ -142,14 +146,16 @@ async def main(folder: Path) -> dict[str, Any]:
                  "region": [0, 0, 544, 960], "frame_rate": 60.0, "packet_size": 8192}
                 for i, c in enumerate(HOSTS[host], start=1)]  # fmt: skip
         (folder / f"{host}.toml").write_text(host_config(
-            host, cams, [f"tcp/10.78.{k}.1:{PORT}"], zenoh=auth,
+            host, cams, [f"tcp/10.78.{k}.1:{PORT}"],
+            zenoh={"user": host, "password_file": str(folder / f"password-{host}")},
             extra={"calibration": {"file": str(folder / "calibration.toml")}, "detector": {"intra_op_threads": 1},
                    "detector.packing": {"enabled": False}},
         ), encoding="utf-8")  # fmt: skip
     all_cams = {c: h for h, cs in HOSTS.items() for c in cs}
     (folder / "solver.toml").write_text(solver_config(
         all_cams, folder / "calibration.toml", listen, zenoh={**auth, "users_file": str(folder / "users"),
-                                                              "lost_after_s": 3.0},
+                                                              "lost_after_s": 3.0,
+                                                              "identities": {h: f"user:{h}" for h in HOSTS}},
         extra={"daemon": {"latency_s": 2.0, "keypoint_max_age_s": 1.0, "keypoint_max_gap_s": 5.0}},
     ), encoding="utf-8")  # fmt: skip
 

@@ -90,7 +90,8 @@ def test_synthetic_host_is_solved_lost_and_rejoins(tmp_path: Path) -> None:
         host.wait_ready()
         st = solver.wait_status(url, lambda s: _people(s) == 2 and s["frame"]["missing_cameras"] == 0, 120)
         remote = st["remote_hosts"]["hostA"]
-        assert remote["lost"] is False and remote["joins"] == 1
+        assert remote["lost"] is False and remote["joins"] == 1 and remote["identity"] is None
+        assert st["zenoh_links"] == ["?"]  # one link, unauthenticated (loopback needs no credentials)
         # One machine, one CLOCK_MONOTONIC: the true offset is 0, and the estimate's bound must hold.
         assert abs(remote["clock_offset_ms"]) <= remote["clock_uncertainty_ms"] < 50.0
         cams = {c["name"]: c for c in st["cameras"]}

@@ -482,6 +482,25 @@ CROSS_CASES: dict[tuple[str, str], list[Case]] = {
         Case({"zenoh.tls_cert": "c.pem"}, ("zenoh.tls_cert", "zenoh.tls_key")),
         Case({"zenoh.listen": ["tcp/[::1]:7447", "tcp/127.0.0.2:7447"]}, ()),
     ],
+    ("ZenohConfig", "_identities_checkable"): [
+        Case({"zenoh.identities": {"hostA": "user:hostA"}}, ("zenoh.identities", "zenoh.users_file")),
+        Case(
+            {"zenoh.identities": {"hostA": "user:hostA"}, "zenoh.mode": "client", "zenoh.users_file": "u"},
+            ("zenoh.identities", "zenoh.mode"),
+        ),
+        Case({"zenoh.identities": {"hostA": "user:hostA"}, "zenoh.users_file": "u"}, ()),
+        Case({"zenoh.identities": {"hostA": "cert:hostA"}}, ("zenoh.identities", "zenoh.listen", "zenoh.tls_cert")),
+        Case(
+            {
+                "zenoh.identities": {"hostA": "cert:hostA"},
+                "zenoh.listen": ["tls/127.0.0.1:7447"],
+                "zenoh.tls_root_ca": "ca.pem",
+                "zenoh.tls_cert": "c.pem",
+                "zenoh.tls_key": "k.pem",
+            },
+            (),
+        ),
+    ],
     ("WebSocketConfig", "_token_off_loopback"): [
         Case({"websocket.host": "0.0.0.0"}, ("websocket.host", "websocket.token")),
         Case({"websocket.host": "192.168.1.5", "websocket.token": "x" * 15}, ("websocket.host", "websocket.token")),
@@ -573,6 +592,13 @@ FORMAT_CASES: dict[str, list[tuple[str, Any]]] = {
         ("zenoh.connect", ["tcp/::1:7447"]),
     ],
     "_host_name": [("zenoh.host", "a b"), ("zenoh.rig", "r/x"), ("zenoh.host", "h" * 33)],
+    "_speaker_identity": [
+        ("zenoh.identities", {"hostA": "hostA"}),
+        ("zenoh.identities", {"hostA": "group:hostA"}),
+        ("zenoh.identities", {"hostA": "user:"}),
+        ("zenoh.identities", {"hostA": "user:a b"}),
+        ("zenoh.identities", {"hostA": "cert:../x" + "y" * 64}),
+    ],
 }
 #: validators exercised for every key that has them: a TOML array as a tuple (no rule), NUL refused in every
 #: string (bad_values), ``unique`` (test_arrays_of_distinct_entries_refuse_repeats)

@@ -92,7 +92,7 @@ def test_image_folder_source(pose2sim_demo: Path, tmp_path: Path) -> None:
 
 
 def test_video_ends() -> None:
-    with pytest.raises(InputError, match="cannot decode"):
+    with pytest.raises(InputError, match=r"video /nonexistent\.mp4: no such file"):
         VideoFileSource("x", Path("/nonexistent.mp4"))
 
 

@@ -28,6 +28,7 @@ from mocapd.core.camera import Camera
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import InputError
 from mocapd.io.calibration_files import core_cameras, read_qca
+from mocapd.io.media_files import open_video
 from mocapd.io.model_cache import cache_dir
 from mocapd.io.model_quant import model_path
 from mocapd.io.pose2sim_demo import CAMERAS, DEMOS, demo_calibration, demo_root, demo_video
@@ -99,9 +100,7 @@ def pose2sim_take(demo: str) -> Take:
 def _video_info(videos: list[Path]) -> tuple[float, int, list[tuple[int, int]]]:
     fps, frames, sizes = [], [], []
     for v in videos:
-        cap = cv2.VideoCapture(str(v))
-        if not cap.isOpened():
-            raise InputError(f"cannot open video {v}")
+        cap = open_video(v)
         fps.append(float(cap.get(cv2.CAP_PROP_FPS)))
         frames.append(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
         sizes.append((int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))))
@@ -207,7 +206,7 @@ def detect_take(
         loaded = load_detections(path, len(take.cameras))
         if loaded is not None and loaded.key == key:
             return loaded
-    caps = [cv2.VideoCapture(str(v)) for v in take.videos]
+    caps = [open_video(v) for v in take.videos]
     frames: list[list[Detections2D]] = []
     try:
         for f in range(n):

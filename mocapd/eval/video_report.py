@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from mocapd.eval.heldout import COCO17_GROUPS
+from mocapd.io.media_files import open_video
 
 if TYPE_CHECKING:
     from mocapd.eval.video import TakeRun
@@ -158,7 +159,7 @@ def draw_held_out(run: TakeRun, folder: Path, n_frames: int) -> list[Path]:
 
 
 def _read_frames(video: Path, picks: list[int]) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(video))
+    cap = open_video(video)
     out = []
     try:
         for f in range(max(picks) + 1):

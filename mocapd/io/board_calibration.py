@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.errors import CalibrationError
+from mocapd.io.media_files import read_image
 
 FloatArray = NDArray[np.float64]
 
@@ -118,13 +119,17 @@ def detect_board(image: NDArray[np.uint8], board: Board, view: str = "") -> Dete
 
 
 def detect_in_files(paths: Iterable[Path], board: Board) -> tuple[list[Detection], list[str]]:
-    """Detect the board in image files. Returns the detections and the names of images without a board."""
+    """Detect the board in image files. Returns the detections and the names of images without a board.
+
+    Raises
+    ------
+    InputError
+        A file that is not a readable picture (a FIFO, a device, over 512 MiB, not decodable): one line naming it.
+    """
     found, missed = [], []
     for path in sorted(paths):
-        image = cv2.imread(str(path))
-        if image is None:
-            raise CalibrationError(f"cannot read image {path}")
-        det = detect_board(np.asarray(image, np.uint8), board, Path(path).name)
+        image = read_image(path, "calibration image")  # a FIFO: InputError, one line, not a wait
+        det = detect_board(image, board, Path(path).name)
         if det is None:
             missed.append(Path(path).name)
         else:

@@ -73,6 +73,21 @@ def open_input(
         Missing, unreadable, not a regular file, or larger than ``max_bytes``.
     """
     p = Path(path)
+    fd = checked_fd(p, what, max_bytes=max_bytes, error=error)
+    try:
+        raw = os.fdopen(fd, "rb", buffering=0)
+    except BaseException:
+        os.close(fd)
+        raise
+    with io.BufferedReader(_Bounded(raw, max_bytes, f"{what} {p}", error)) as fh:
+        yield fh
+
+
+def checked_fd(path: str | Path, what: str, *, max_bytes: int, error: type[MocapdError] = InputError) -> int:
+    """A descriptor (blocking, close-on-exec; the caller closes it) of ``path`` once it is known to be a regular
+    file of at most ``max_bytes``: the checks of :func:`open_input`, for readers that take a descriptor or a name
+    (:mod:`mocapd.io.media_files` hands decoders ``/proc/self/fd/N``, the file checked)."""
+    p = Path(path)
     try:
         fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
     except FileNotFoundError:
@@ -88,12 +103,10 @@ def open_input(
         if st.st_size > max_bytes:
             raise error(f"{what} {p}: {_size(st.st_size)}, larger than the {_size(max_bytes)} a {what} may be")
         os.set_blocking(fd, True)
-        raw = os.fdopen(fd, "rb", buffering=0)
     except BaseException:
         os.close(fd)
         raise
-    with io.BufferedReader(_Bounded(raw, max_bytes, f"{what} {p}", error)) as fh:
-        yield fh
+    return fd
 
 
 def read_input_bytes(path: str | Path, what: str, *, max_bytes: int, error: type[MocapdError] = InputError) -> bytes:

@@ -29,6 +29,7 @@ import numpy as np
 
 from mocapd.errors import ConfigError, DeviceError
 from mocapd.io.frame_source import ThreadedSource
+from mocapd.io.media_files import open_video
 from mocapd.io.pixels import bgr_ring
 from mocapd.pipeline.frame_ring import FrameRef
 
@@ -95,8 +96,8 @@ class UvcSource(ThreadedSource):
 
     def _open(self) -> None:
         c = self.config
-        if self._file:
-            cap = cv2.VideoCapture(str(c.device))
+        if self._file:  # a video file standing in for a webcam: the checks of every media file
+            cap = open_video(str(c.device), f"camera {c.name!r}: video", error=DeviceError)
         else:
             # Through V4L2 explicitly: OpenCV's default may pick GStreamer, which ignores the property requests.
             target = c.device if isinstance(c.device, int) else str(c.device)

@@ -12,6 +12,9 @@ Per frame:
 
 ``realtime=True`` paces frames on their presentation times (a replay behaves like a live camera);
 ``realtime=False`` delivers them as fast as they decode. ``run`` returns at the end unless ``loop=True``.
+
+Files are opened through :mod:`mocapd.io.media_files` (regular files of bounded size: a FIFO among the pictures is
+one line, not a wait).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from numpy.typing import NDArray
 
 from mocapd.errors import DeviceError, InputError
 from mocapd.io.frame_source import ThreadedSource
+from mocapd.io.media_files import open_video, read_image
 from mocapd.io.pixels import bgr_ring
 from mocapd.pipeline.frame_ring import FrameRef
 
@@ -104,8 +108,8 @@ class VideoFileSource(_ReplaySource):
         **kw: Any,
     ) -> None:
         self.path = Path(path)
-        cap = cv2.VideoCapture(str(self.path))
-        ok, first = cap.read() if cap.isOpened() else (False, None)
+        cap = open_video(self.path)
+        ok, first = cap.read()
         self.fps = float(cap.get(cv2.CAP_PROP_FPS)) or 30.0
         cap.release()
         if not ok or first is None:
@@ -124,9 +128,7 @@ class VideoFileSource(_ReplaySource):
         self._index = 0
 
     def _open(self) -> None:
-        self._cap = cv2.VideoCapture(str(self.path))
-        if not self._cap.isOpened():
-            raise DeviceError(f"cannot open video {self.path}")
+        self._cap = open_video(self.path, error=DeviceError)
         self._index = 0
         self._start_ns = 0
 
@@ -179,9 +181,7 @@ class ImageFolderSource(_ReplaySource):
         self.files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not self.files:
             raise InputError(f"{folder} holds no image ({', '.join(IMAGE_SUFFIXES)})")
-        first = cv2.imread(str(self.files[0]))
-        if first is None:
-            raise InputError(f"cannot read image {self.files[0]}")
+        first = read_image(self.files[0])
         if fps <= 0:
             raise InputError(f"fps must be positive, got {fps}")
         super().__init__(
@@ -208,10 +208,8 @@ class ImageFolderSource(_ReplaySource):
             self._offset_ns += round(self._index * 1e9 / self.fps)
             self._index = 0
         path = self.files[self._index]
-        bgr = cv2.imread(str(path))
-        if bgr is None:
-            raise DeviceError(f"cannot read image {path}")
-        ref = self._publish(np.asarray(bgr, np.uint8), self._index, round(self._index * 1e9 / self.fps))
+        bgr = read_image(path, error=DeviceError)
+        ref = self._publish(bgr, self._index, round(self._index * 1e9 / self.fps))
         self._index += 1
         return ref
 

@@ -6,13 +6,23 @@ left without ``listen`` endpoints would otherwise listen on every interface, ``t
 when configured (the schema refuses endpoints off loopback without one of them); with a certificate of its own a
 session uses mutual TLS (``enable_mtls``): as a listener it accepts only peers presenting a certificate signed by
 ``tls_root_ca``, as a connector it presents its own.
+
+Who may speak for which camera host (``identities``, issue 34) is Zenoh's access control on the solver host's
+session (:func:`access_control`): everything a peer sends is refused (``default_permission = "deny"``) except, for
+the peer authenticated as a host's identity (its user name, or its certificate's common name), that host's status,
+its cameras' detections and the declaration and replies of its clock queryable. The check is Zenoh's, on the
+link's authenticated identity, before a message reaches mocapd: one camera host cannot publish as another even
+with valid credentials of its own. Zenoh does not tell the application what its access control dropped (no hook,
+no statistics in zenoh-python 1.10), so those are not counted here; what gets through and is still wrong (a status
+message naming another host on a host's own key, another camera's frame) is counted by the solver host
+(:mod:`mocapd.pipeline.remote_cameras`), and the identities of the links up are shown in ``/status``.
 """
 
 from __future__ import annotations
 
 import json
 import socket
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -60,6 +70,8 @@ class ZenohConfig(Protocol):
     def clock_window(self) -> int: ...
     @property
     def clock_drift_ppm(self) -> float: ...
+    @property
+    def identities(self) -> Mapping[str, str]: ...
 
 
 def detections_key(rig: str, camera: str) -> str:
@@ -93,8 +105,48 @@ def _read_secret(path: str, key: str) -> str:
     return text
 
 
-def session_settings(z: ZenohConfig) -> dict[str, Any]:
-    """The Zenoh configuration (path -> value, as ``zenoh.Config.insert_json5`` takes them) of ``[zenoh]``."""
+ACL_MESSAGES = ("put", "delete", "query", "reply", "declare_subscriber", "declare_queryable", "liveliness_token",
+                "liveliness_query", "declare_liveliness_subscriber")  # fmt: skip
+"""Every message kind Zenoh's access control knows (this side may send all of them: egress is allowed)."""
+
+
+def access_control(rig: str, identities: Mapping[str, str], cameras: Mapping[str, Sequence[str]]) -> dict[str, Any]:
+    """Zenoh's ``access_control`` for a solver host: each host's keys only from its identity (module docstring).
+
+    Parameters
+    ----------
+    rig : str
+        ``[zenoh] rig``.
+    identities : {host: "user:<name>" | "cert:<common name>"}
+        ``[zenoh] identities`` (checked by the schema).
+    cameras : {host: [camera, ...]}
+        The ``source = "zenoh"`` cameras of each host; a host left out has none (its status and clock still).
+    """
+    rules: list[dict[str, Any]] = [
+        {"id": "solver_out", "messages": list(ACL_MESSAGES), "flows": ["egress"], "permission": "allow",
+         "key_exprs": [f"mocapd/{rig}/**"]},
+    ]  # fmt: skip
+    subjects: list[dict[str, Any]] = [{"id": "any"}]  # no property: every peer
+    policies: list[dict[str, Any]] = [{"rules": ["solver_out"], "subjects": ["any"]}]
+    for k, (host, identity) in enumerate(sorted(identities.items())):
+        kind, _, name = identity.partition(":")
+        talk = [status_key(rig, host), *(detections_key(rig, c) for c in sorted(cameras.get(host, ())))]
+        rules += [
+            {"id": f"h{k}_put", "messages": ["put"], "flows": ["ingress"], "permission": "allow", "key_exprs": talk},
+            {"id": f"h{k}_clock", "messages": ["declare_queryable", "reply"], "flows": ["ingress"],
+             "permission": "allow", "key_exprs": [clock_key(rig, host)]},
+        ]  # fmt: skip
+        subjects.append({"id": f"h{k}", "usernames" if kind == "user" else "cert_common_names": [name]})
+        policies.append({"rules": [f"h{k}_put", f"h{k}_clock"], "subjects": [f"h{k}"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def session_settings(z: ZenohConfig, cameras: Mapping[str, Sequence[str]] | None = None) -> dict[str, Any]:
+    """The Zenoh configuration (path -> value, as ``zenoh.Config.insert_json5`` takes them) of ``[zenoh]``.
+
+    ``cameras`` ({host: [camera, ...]}) is given by a solver host: with ``identities`` set, its session admits each
+    host's messages from that host's identity alone (:func:`access_control`).
+    """
     out: dict[str, Any] = {
         "mode": z.mode,
         "listen/endpoints": list(z.listen),
@@ -121,11 +173,24 @@ def session_settings(z: ZenohConfig) -> dict[str, Any]:
             if getattr(z, key) and not Path(getattr(z, key)).is_file():
                 raise ConfigError(f"zenoh.{key} = {getattr(z, key)!r}: no such file")
         out["transport/link/tls"] = tls
+    if z.identities and cameras is not None:
+        out["access_control"] = access_control(z.rig, z.identities, cameras)
     return out
 
 
-def open_session(z: ZenohConfig) -> zenoh.Session:
-    """A Zenoh session of ``[zenoh]`` (blocking: listens and starts connecting).
+def link_identities(session: zenoh.Session) -> list[str]:
+    """The authenticated identities of the session's links (``cert:<common name>``; Zenoh 1.10 reports a
+    certificate's name, not a user name: a link authenticated by user/password shows as ``"?"``)."""
+    out = []
+    for link in session.info.links():
+        ident = link.auth_identifier
+        out.append("?" if ident is None else f"cert:{ident}")
+    return sorted(out)
+
+
+def open_session(z: ZenohConfig, cameras: Mapping[str, Sequence[str]] | None = None) -> zenoh.Session:
+    """A Zenoh session of ``[zenoh]`` (blocking: listens and starts connecting); ``cameras`` as
+    :func:`session_settings` takes it.
 
     Raises
     ------
@@ -135,7 +200,7 @@ def open_session(z: ZenohConfig) -> zenoh.Session:
         Zenoh refused the configuration or cannot listen (an endpoint in use, an address not on this machine).
     """
     config = zenoh.Config()
-    for path, value in session_settings(z).items():
+    for path, value in session_settings(z, cameras).items():
         config.insert_json5(path, json.dumps(value))
     try:
         return zenoh.open(config)

@@ -30,6 +30,12 @@ disagree (two peers answering for one host) are all refused (``clock_conflict``)
 reply of a run, replies from another Zenoh session (``replier_id``) are refused (``clock_other_peer``). What is
 refused is counted per host (``rejected`` in ``/status``).
 
+With ``[zenoh] identities`` (off loopback, or once one is named, the schema requires one per camera host) the
+session admits a host's status, its cameras' detections and its clock replies from that host's authenticated
+identity alone (Zenoh's access control, :func:`mocapd.io.zenoh_link.access_control`): a peer with valid
+credentials of its own cannot publish as another host; ``/status`` shows each host's ``identity`` and
+(``zenoh_links``) the identities of the links up.
+
 A host not heard from (status, detections or clock replies) for ``lost_after_s`` is shown lost; its cameras deliver
 nothing, so their timelines go stale and they drop out of the solve; when it is heard again it rejoins (a
 restarted host has a new run id: its frame numbers and clock offset start again).
@@ -43,7 +49,7 @@ import logging
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -53,7 +59,14 @@ import zenoh
 from mocapd.core.clock_offset import ClockOffsetEstimator
 from mocapd.errors import DeviceError, MocapdError
 from mocapd.io.device_state import OpenState
-from mocapd.io.zenoh_link import ZenohConfig, clock_key, detections_key, open_session, status_key
+from mocapd.io.zenoh_link import (
+    ZenohConfig,
+    clock_key,
+    detections_key,
+    link_identities,
+    open_session,
+    status_key,
+)
 from mocapd.pipeline.keypoint_source import KeypointSink
 from mocapd.protocols.remote import ClockMessage, Decoder, DetectionsMessage, StatusMessage
 from mocapd.protocols.sequence import SequenceNumbers
@@ -96,8 +109,13 @@ class RemoteHost:
 class RemoteRig:
     """The Zenoh side of a solver host's remote cameras (see the module docstring)."""
 
-    def __init__(self, z: ZenohConfig, hosts: list[str], *, clock: Callable[[], int] = time.monotonic_ns) -> None:
+    def __init__(
+        self, z: ZenohConfig, hosts: list[str], *, cameras: Mapping[str, Sequence[str]] | None = None,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:  # fmt: skip
         self.z = z
+        self.cameras = {h: list((cameras or {}).get(h, ())) for h in hosts}
+        """Each host's ``source = "zenoh"`` cameras: only their detections are admitted from its identity."""
         self.clock = clock
         self.lock = threading.Lock()
         self.hosts = {h: RemoteHost(h, ClockOffsetEstimator(z.clock_window, z.clock_drift_ppm)) for h in hosts}
@@ -116,7 +134,7 @@ class RemoteRig:
             if self.session is not None:
                 return self.session
             try:
-                session = open_session(self.z)
+                session = open_session(self.z, self.cameras)
             except MocapdError as exc:
                 self.error = str(exc)
                 raise
@@ -299,10 +317,21 @@ class RemoteRig:
                     "cameras": None if h.status is None else {
                         c.name: {"frames": c.frames, "up": c.up} for c in h.status.cameras},
                     "uptime_s": None if h.status is None else round(h.status.uptime_s, 3),
+                    "identity": self.z.identities.get(name),
                 }  # fmt: skip
         if self.error:
             out["error"] = self.error
         return out
+
+    def links(self) -> list[str]:
+        """The authenticated identities of the session's links now (:func:`~mocapd.io.zenoh_link.link_identities`)."""
+        session = self.session
+        if session is None:
+            return []
+        try:
+            return link_identities(session)
+        except zenoh.ZError:
+            return []
 
 
 class ZenohKeypointSource:

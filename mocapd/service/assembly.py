@@ -106,6 +106,7 @@ def assemble(
             daemon.http = StatusServer(daemon.status, render_metrics, sock=options.sockets.http, actions=daemon.actions)
         if built.remote is not None:
             daemon.status_extras["remote_hosts"] = built.remote.status
+            daemon.status_extras["zenoh_links"] = built.remote.links
         daemon.status_extras.update(options.status_extras)
         if built.detector is not None:
             det = built.detector

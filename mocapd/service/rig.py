@@ -22,8 +22,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
-
 from mocapd.core.camera import Camera
 from mocapd.core.keypoints import keypoint_format
 from mocapd.core.prior import PcaPrior
@@ -33,6 +31,7 @@ from mocapd.errors import CalibrationError, ConfigError, InputError
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.calibration_files import core_cameras, read_any
 from mocapd.io.frame_source import ThreadedSource
+from mocapd.io.media_files import open_video, read_image
 from mocapd.io.pixels import capture_ring, pixel_format
 from mocapd.io.prior import resolve_prior
 from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
@@ -162,11 +161,9 @@ def expected_size(cam: CameraConfig) -> tuple[int, int] | None:
 
 
 def _video_size(path: str) -> tuple[int, int]:
-    if not Path(path).is_file():
-        raise InputError(f"path = {path!r}: no such video file")
-    cap = cv2.VideoCapture(path)
+    cap = open_video(path, "video (path)")  # a FIFO, a device, a folder: one line, not a wait (issue 34)
     try:
-        ok, frame = cap.read() if cap.isOpened() else (False, None)
+        ok, frame = cap.read()
     finally:
         cap.release()
     if not ok or frame is None:
@@ -181,9 +178,7 @@ def _images_size(path: str) -> tuple[int, int]:
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not files:
         raise InputError(f"path = {path!r}: holds no image ({', '.join(IMAGE_SUFFIXES)})")
-    image = cv2.imread(str(files[0]))
-    if image is None:
-        raise InputError(f"path = {path!r}: cannot read {files[0].name}")
+    image = read_image(files[0], "image (path)")
     return int(image.shape[1]), int(image.shape[0])
 
 
@@ -236,7 +231,8 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     local = {i: frame_source(c, cam, backoff) for i, (c, cam) in enumerate(pairs) if not isinstance(c, ZenohCamera)}
     captures = list(local.values())
     remote_hosts = sorted({c.host for c in config.cameras if isinstance(c, ZenohCamera)})
-    remote = RemoteRig(config.zenoh, remote_hosts, clock=clock) if remote_hosts else None
+    by_host = {h: [c.name for c in config.cameras if isinstance(c, ZenohCamera) and c.host == h] for h in remote_hosts}
+    remote = RemoteRig(config.zenoh, remote_hosts, cameras=by_host, clock=clock) if remote_hosts else None
     detector_config = config.detector.options()
     # A rig of camera hosts only runs no detector here: the hosts run it.
     detector = (make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],

@@ -25,7 +25,10 @@ def write_ring_calibration(names: Sequence[str], path: Path) -> None:
 
 
 def toml_value(value: Any) -> str:
-    """A TOML literal of a str, bool, number or list of them (JSON's syntax is TOML's for these)."""
+    """A TOML literal of a str, bool, number or list of them (JSON's syntax is TOML's for these), or of a table of
+    them (an inline table: ``{ key = value, ... }``)."""
+    if isinstance(value, Mapping):
+        return "{ " + ", ".join(f"{json.dumps(str(k))} = {toml_value(v)}" for k, v in value.items()) + " }"
     return json.dumps(value)
 
 

@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import CalibrationError, OutputError
+from mocapd.errors import CalibrationError, InputError, OutputError
 from mocapd.io.board_calibration import Board, calibrate_intrinsics, detect_in_files
 from mocapd.io.calibration_files import (
     CalibrationSet,
@@ -58,8 +58,9 @@ def _camera_folders(root: Path) -> dict[str, Path]:
 
 
 def _images(folder: Path) -> list[Path]:
-    # Regular files only: OpenCV would wait forever on a FIFO named x.jpg, or read /dev/zero without end.
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    # Every picture by its name, special files too: each is read through the media checks (a FIFO named x.jpg is
+    # one line naming it, not a wait, and not a picture silently left out of the calibration).
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
 
 def calibrate_cameras(
@@ -144,6 +145,9 @@ def _run_cameras(args: argparse.Namespace) -> int:
             max_view_error_px=args.max_view_error_px,
             fix_k3=args.fix_k3,
         )
+    except InputError as exc:  # a picture that is no picture file: the input's fault, as every door's (exit 2)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except CalibrationError as exc:
         print(f"calibration failed: {exc}", file=sys.stderr)
         return 1

@@ -31,6 +31,7 @@ from mocapd.service.config.cameras import (
     SyntheticConfig,
     UvcCamera,
     VideoCamera,
+    ZenohCamera,
     parse_cameras,
 )
 from mocapd.service.config.daemon import DaemonConfig
@@ -41,7 +42,7 @@ from mocapd.service.config.schema import PathStr, RuleError, Section, Seq, valid
 from mocapd.service.config.tracking import TrackingConfig
 from mocapd.service.config.udp import UdpConfig
 from mocapd.service.config.websocket import WebSocketConfig, is_loopback
-from mocapd.service.config.zenoh import ZenohConfig
+from mocapd.service.config.zenoh import ZenohConfig, is_loopback_endpoint
 
 DEFAULT_CONFIG = Path(str(resources.files("mocapd").joinpath("config.toml")))
 """The shipped config.toml (inside the package, so an installed wheel has it): every key, documented."""
@@ -277,6 +278,26 @@ def _position(data: bytes, offset: int) -> tuple[int, int]:
     return line, offset - (data.rfind(b"\n", 0, offset) + 1) + 1
 
 
+def _hosts_identified(config: Config) -> None:
+    """A solver host reached off loopback admits each camera host by its identity (issue 34): without one, any peer
+    holding valid credentials could publish as any host. (Here, not in :class:`Config`: the cameras join it after.)"""
+    z = config.zenoh
+    hosts = sorted({c.host for c in config.cameras if isinstance(c, ZenohCamera)})
+    remote = [e for e in (*z.listen, *z.connect) if not is_loopback_endpoint(e)]
+    missing = [h for h in hosts if h not in z.identities]
+    if not (hosts and missing and (remote or z.identities)):
+        return
+    example = f'e.g. {missing[0]} = "user:{missing[0]}" (docs/scaling.md)'
+    if remote:
+        err = RuleError("{0} is not loopback: each camera host's identity must be in {1} (missing: "
+                        f"{', '.join(missing)}), {example}", "zenoh.listen" if z.listen else "zenoh.connect",
+                        "zenoh.identities", values=(remote, dict(z.identities)))  # fmt: skip
+    else:  # some identities: the session admits nobody else, a host left out would be cut off without a word
+        err = RuleError(f"{{0}} leaves out camera host(s) {', '.join(missing)}: the session admits only the hosts "
+                        f"it names, {example}", "zenoh.identities", values=(dict(z.identities),))  # fmt: skip
+    raise ConfigError(str(err))
+
+
 def parse_config(data: object) -> Config:
     """A parsed config (a TOML document, or a session manifest's copy of one) as :class:`Config`.
 
@@ -287,7 +308,9 @@ def parse_config(data: object) -> Config:
         raise ConfigError(f"a config is a TOML table of sections, got {type(data).__name__}")
     cameras = parse_cameras(data.get("cameras", []))
     config = validate(Config, {k: v for k, v in data.items() if k != "cameras"})
-    return config.model_copy(update={"cameras": cameras})
+    config = config.model_copy(update={"cameras": cameras})
+    _hosts_identified(config)
+    return config
 
 
 def resolve_paths(config: Config, base: Path) -> Config:

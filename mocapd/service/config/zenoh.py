@@ -7,6 +7,12 @@ needs authentication of both sides: user/password (``user``, ``password_file``, 
 or mutual TLS (``tls/`` endpoints with ``tls_root_ca``, and ``tls_cert``/``tls_key`` on the listener *and* on the
 connecting side: a listener with a certificate asks every peer for one signed by its CA, so knowing the public CA
 certificate is not enough to connect): mocapd refuses the config otherwise. docs/scaling.md shows both.
+
+Who speaks for a camera host (issue 34): on the solver host, ``identities`` names the authenticated identity of each
+camera host (``hostA = "user:hostA"``: the user name it presents; ``"cert:hostA.studio"``: the common name of its
+certificate). The Zenoh session then enforces it (Zenoh's access control, :func:`mocapd.io.zenoh_link.access_control`):
+that identity alone may publish the host's status and its cameras' detections and answer its clock queries. A user
+name is checked by this side only when it listens with ``users_file``; a certificate's name on any TLS link.
 """
 
 from __future__ import annotations
@@ -21,7 +27,10 @@ from mocapd.service.config.schema import Allowed, PathStr, RuleError, Section, S
 
 _ENDPOINT = re.compile(r"^(tcp|tls)/(\[[0-9A-Fa-f:.]+\]|[0-9.]+):([0-9]{1,5})$")
 _HOST_NAME = re.compile(r"^[A-Za-z0-9_.-]{0,32}$")
+_IDENTITY = re.compile(r"^(user|cert):([A-Za-z0-9_.@-]{1,64})$")
 MAX_ENDPOINTS = 16
+MAX_HOSTS = 64
+"""Camera hosts one solver host names an identity for (as many as it may have cameras)."""
 
 
 def _endpoint(value: str) -> str:
@@ -43,6 +52,19 @@ def _host_name(value: str) -> str:
     return value
 
 
+def _speaker_identity(value: str) -> str:
+    if not _IDENTITY.match(value):
+        raise ValueError('allowed: "user:<user name>" (user/password) or "cert:<certificate common name>" (mutual '
+                         'TLS), the name 1 to 64 letters, digits, "_", ".", "@" or "-"')  # fmt: skip
+    return value
+
+
+def identity_kind(identity: str) -> tuple[str, str]:
+    """``"user:hostA"`` -> ``("user", "hostA")`` (a checked identity)."""
+    kind, _, name = identity.partition(":")
+    return kind, name
+
+
 def endpoint_address(endpoint: str) -> str:
     """The IP of a checked endpoint: ``tcp/[::1]:7447`` -> ``::1``."""
     return endpoint.split("/", 1)[1].rsplit(":", 1)[0].strip("[]")
@@ -57,6 +79,8 @@ Endpoint = Annotated[
     Field(examples=["tcp/127.0.0.1:7447"]),
 ]  # fmt: skip
 Endpoints = Annotated[Seq[Endpoint], Field(max_length=MAX_ENDPOINTS), AfterValidator(unique)]
+HostName = Annotated[str, Field(min_length=1, max_length=32), AfterValidator(_host_name)]
+Identity = Annotated[Text, AfterValidator(_speaker_identity), Field(examples=["user:hostA"])]
 
 
 class ZenohConfig(Section):
@@ -64,7 +88,7 @@ class ZenohConfig(Section):
 
     ordered = (("status_period_s", "<", "lost_after_s"),)
 
-    rig: Annotated[str, Field(min_length=1, max_length=32), AfterValidator(_host_name)] = "rig"
+    rig: HostName = "rig"
     """The rig's name: the first part of every key (``mocapd/<rig>/<camera>/detections``)."""
     host: Annotated[Text, AfterValidator(_host_name)] = ""
     """This camera host's name (``mocapd detect-host``); "" = the machine's host name."""
@@ -97,6 +121,8 @@ class ZenohConfig(Section):
     """Round trips kept per host; the one with the smallest error bound gives the offset."""
     clock_drift_ppm: float = Field(100.0, ge=0.0, le=10_000.0)
     """Bound on the two clocks' relative drift, ageing old round trips' error bounds (ppm)."""
+    identities: Annotated[dict[HostName, Identity], Field(max_length=MAX_HOSTS)] = Field(default_factory=dict)
+    """Solver host: camera host name -> the identity that alone may speak for it (module docstring)."""
 
     @model_validator(mode="after")
     def _secured_off_loopback(self) -> Self:
@@ -124,4 +150,25 @@ class ZenohConfig(Section):
                 "listen" if remote_listen else "connect", "user", "password_file", "users_file", "tls_cert",
                 values=(remote, self.user, self.password_file, self.users_file, self.tls_cert),
             )  # fmt: skip
+        return self
+
+    @model_validator(mode="after")
+    def _identities_checkable(self) -> Self:
+        """Each identity must be one this side authenticates, on a link the host reaches it by directly."""
+        kinds = {identity_kind(i)[0] for i in self.identities.values()}
+        if not kinds:
+            return self
+        if self.mode != "peer":
+            raise RuleError("{0} need {1}: the camera hosts connect to this solver host itself (through a router it "
+                            "would see the router's identity)", "identities", "mode",
+                            values=(dict(self.identities), self.mode))  # fmt: skip
+        if "user" in kinds and not self.users_file:
+            raise RuleError("{0} name users: this side checks them against {1} (camera hosts connect to it with "
+                            "their own user and password)", "identities", "users_file",
+                            values=(dict(self.identities), self.users_file))  # fmt: skip
+        tls = [e for e in (*self.listen, *self.connect) if e.startswith("tls/")]
+        if "cert" in kinds and not (tls and self.tls_cert):
+            raise RuleError("{0} name certificates: the links must be mutual TLS (tls/ endpoints in {1}, and {2})",
+                            "identities", "listen", "tls_cert", values=(dict(self.identities), self.listen,
+                            self.tls_cert))  # fmt: skip
         return self
