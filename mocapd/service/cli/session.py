@@ -109,7 +109,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_resolve(args: argparse.Namespace) -> int:
     from mocapd.io.progress import Progress
-    from mocapd.service.session.solve import ResolveOptions, resolve, session_rig, solve_times, write_resolved
+    from mocapd.service.session.solve import (
+        ResolveOptions,
+        resolve,
+        session_rig,
+        solve_times,
+        suit_sensors,
+        write_resolved,
+    )
     from mocapd.service.session.truth import synthetic_of, truth_report
 
     session = _open(args.session)
@@ -124,7 +131,7 @@ def cmd_resolve(args: argparse.Namespace) -> int:
         if needed:
             session.require_stream(stream)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
-    n_frames = len(solve_times(session, rig.options.rate_hz))
+    n_frames = len(solve_times(session, rig.options.rate_hz, suit_sensors(rig.suits)))
     with Progress(n_frames, "resolve") as bar:
         frames, summary = resolve(session, opts, bar)
     _undecodable_notes(session)
