@@ -150,7 +150,15 @@ def cmd_resolve(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from mocapd import __version__
     from mocapd.io.progress import Progress
-    from mocapd.io.session_export import resample, subject_track, subjects, write_bvh, write_csv, write_gltf
+    from mocapd.io.session_export import (
+        FLEETING_S,
+        lasting_subjects,
+        resample,
+        subject_track,
+        write_bvh,
+        write_csv,
+        write_gltf,
+    )
     from mocapd.service.session.solve import session_rig
 
     if args.bvh is None and args.csv is None and args.gltf is None and args.fbx is None:
@@ -171,9 +179,16 @@ def cmd_export(args: argparse.Namespace) -> int:
             rig.append(session_rig(session).skeleton)
         return rig[0]
 
-    # glTF: every subject unless one is named; BVH and CSV: one subject (default: the one seen most).
-    everyone = [args.subject] if args.subject is not None else sorted(subjects(poses))
+    # glTF/FBX: every subject but fleeting tracks, unless one is named; BVH and CSV: one (default: the one seen most).
+    everyone, fleeting = ([args.subject], {}) if args.subject is not None else lasting_subjects(poses)
     many = args.gltf is not None or args.fbx is not None  # every subject resampled, once for both
+    if many:
+        for who, seen in fleeting.items():
+            print(
+                f"note: {who} left out of the glTF/FBX: seen for {seen}, under {FLEETING_S:g} s (a fleeting track, "
+                f"which would stand frozen through the take); --subject {who} exports it",
+                file=sys.stderr,
+            )
     steps = 1 + sum(f is not None for f in (args.bvh, args.csv)) + (len(everyone) + 1 if many else 0)
     with Progress(steps, "export") as bar:
         track = resample(subject_track(poses, args.subject), args.rate)
@@ -210,6 +225,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             out["fbx_nodes"], out["fbx_blender"] = report["nodes"], report["blender"]
         if many:
             bar(1)
+            if fleeting:
+                out["left_out"] = fleeting
     print(json.dumps(out))
     return 0
 
