@@ -150,8 +150,17 @@ def test_check_config_of_a_tracker_rig_names_what_is_still_missing(
     assert main(["check-config", str(config)]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[0].startswith(f"{config}: ok (IMUs only (no cameras): SlimeVR server on udp 127.0.0.1:6969;"), out
-    assert "[imu.assignment] is empty" in out[1] and "imu.slimevr.trackers in /status" in out[1]
+    assert "[imu.slimevr.assignment] is empty" in out[1] and "imu.slimevr.trackers in /status" in out[1]
     assert f"run `mocapd calibrate imu --config {config} --person NAME --facing-heading 0`" in out[2]
+    assert "north" not in out[2]  # trackers without a compass: their headings are reset at calibration
+    # An Xsens suit's heading is the compass's: the note says that 0 is north, and what a wrong heading does.
+    suit = tmp_path / "suit.toml"
+    suit.write_text(f'[imu]\ncalibration_dir = "{tmp_path}/cal"\nports = ["/dev/xsens0"]\n', encoding="utf-8")
+    assert main(["check-config", str(suit)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "[imu.assignment] is empty" in out[1] and "`mocapd devices` lists Xsens ids" in out[1]
+    assert "stand still in a T-pose facing magnetic north and run `mocapd calibrate imu" in out[2]
+    assert "--facing-from SENSOR:AXIS" in out[2] and "bends the knees sideways or backwards" in out[2]
 
 
 def test_demo_imu_only_runs_a_simulated_suit_to_the_viewer_and_vrchat(

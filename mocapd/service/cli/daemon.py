@@ -81,9 +81,13 @@ def _imu_notes(cfg: Config, path: object) -> list[str]:
         return []
     notes = []
     imu = cfg.imu
+    # Which table assigns this rig's sensors: Xsens (and bridge) ids in [imu.assignment], SlimeVR's in its own.
+    xsens = bool(imu.ports) or imu.awinda.experimental or imu.bridge.enabled
+    slime_only = imu.slimevr.enabled and not xsens
     if not imu.sensors:
+        table = "[imu.slimevr.assignment]" if slime_only else "[imu.assignment]"
         notes.append(
-            "[imu.assignment] is empty: say which sensor sits on which bone (`mocapd devices` lists Xsens ids; "
+            f"{table} is empty: say which sensor sits on which bone (`mocapd devices` lists Xsens ids; "
             "SlimeVR trackers are listed under imu.slimevr.trackers in /status once `mocapd run` hears them)"
         )
     suits = _suits(cfg)
@@ -91,9 +95,15 @@ def _imu_notes(cfg: Config, path: object) -> list[str]:
         names = ", ".join(f"{s.id} ({len(s.sensors)} sensors)" for s in suits)
         notes.append(f"suits calibrated in {imu.calibration_dir}/: {names}")
     else:
+        # An Xsens heading is the compass's: a facing heading off by δ turns every bone's frame by δ, and a knee then
+        # bends sideways (90°) or backwards (180°). SlimeVR trackers are heading-reset at calibration instead.
+        facing = "" if slime_only else " facing magnetic north"
+        other = "" if slime_only else (
+            " (facing elsewhere: that compass heading, or --facing-from SENSOR:AXIS with a sensor axis that points "
+            "forward; a wrong heading bends the knees sideways or backwards)")  # fmt: skip
         notes.append(
-            f"no suit is calibrated in {imu.calibration_dir}/ yet, so no pose is streamed: stand still in a T-pose and "
-            f"run `mocapd calibrate imu --config {path} --person NAME --facing-heading 0`"
+            f"no suit is calibrated in {imu.calibration_dir}/ yet, so no pose is streamed: stand still in a T-pose"
+            f"{facing} and run `mocapd calibrate imu --config {path} --person NAME --facing-heading 0`{other}"
         )
     return notes
 
