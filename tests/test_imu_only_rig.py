@@ -67,7 +67,7 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
         assert "IMUs only (no cameras): 13 Xsens serial ports" in said and "SlimeVR server on udp" in said, said
         assert "slime (13 sensors), suit0 (13 sensors)" in said, said
 
-        run = RunProcess(["--config", str(config)], cwd=tmp_path)
+        run = RunProcess(["--config", str(config), "--verbose"], cwd=tmp_path)
         try:
             url = run.url(300)
             ws_url = next(line.split()[-1] for line in run.lines if line.startswith("viewer "))
@@ -81,6 +81,10 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
             osc.close()
         assert code == 0, run.output
         assert "Traceback" not in run.output, run.output[-4000:]
+        # --verbose says what happens to the devices (info lines, hidden before): devices streaming (five lines of
+        # one call site, then a count: mocapd.io.log_throttle), the tracker connecting.
+        assert "firmware 4.6.0 streaming at 100 Hz" in run.output, run.output[-4000:]
+        assert "slimevr: tracker 00:78:78:78:78:78 connected from 127.0.0.1:" in run.output, run.output[-4000:]
 
         # Every device opened before READY; no camera, no detector.
         assert st["cameras"] == [] and "detector" not in st

@@ -142,6 +142,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     print(f"mocapd run: {_rig_summary(cfg)}", flush=True)
     print("mocapd run: loading models, opening every device ...", flush=True)
+    if args.verbose:  # and what happens to the devices: each one streaming, trackers connecting, heading resets
+        logging.getLogger("mocapd").setLevel(logging.INFO)
 
     def ready(a: assembly.Assembly) -> None:
         print(f"ready: status {a.daemon.http.url}/status  metrics {a.daemon.http.url}/metrics  (Ctrl-C stops)",
@@ -300,7 +302,8 @@ def register(subparsers: Any) -> None:
     run.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     run.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
     run.add_argument("--record", type=Path, default=None, help=_RECORD_HELP)
-    run.add_argument("--verbose", action="store_true", help="print a status line per second")
+    run.add_argument("--verbose", action="store_true", help="print a status line per second, and each device "
+                     "that starts streaming, SlimeVR tracker that connects and heading reset")  # fmt: skip
     run.set_defaults(func=cmd_run, fast_exit=True)
 
     host = subparsers.add_parser("detect-host", help="a camera host: run its cameras and detector, publish the "
