@@ -134,6 +134,8 @@ def test_7_sessions_doc_cites_only_files_of_the_repository_and_says_what_a_csv_j
     text = (REPO / "docs" / "sessions.md").read_text(encoding="utf-8")
     for name in set(re.findall(r"[\w./-]+\.md\b", text)):
         assert (REPO / name).exists() or (REPO / "docs" / name).exists(), f"docs/sessions.md cites {name}"
+    for name in set(re.findall(r"`((?:mocapd|tools|tests)/[\w./-]+\.py)`", text)):  # modules named by path
+        assert (REPO / name).exists(), f"docs/sessions.md cites {name}"
     csv_part = text[text.index("**CSV**") :]
     assert "where the bone starts" in csv_part and "+Y up" in csv_part and "right-handed" in csv_part
 
