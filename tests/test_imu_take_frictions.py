@@ -226,3 +226,40 @@ def test_a_take_whose_sensors_end_apart_is_solved_where_all_of_them_measure(
     note = f"suit:suit0: solved 0.00-{(foot_last - origin) / 1e9:.2f} s of the take, the span all 8 of its sensors"
     assert any(n.startswith(note) and f"{foot} (LeftFoot) ends 0.50 s before" in n for n in summary["notes"]), said
     assert f"note: {note}" in said.err
+
+
+def test_an_mvnx_take_without_legs_names_the_facing_it_needs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The real upper-body MVNX take has no thigh and shank sensors: ``import mvnx`` told the user to calibrate with
+    "the facing from the take's steps", which then refused ("no steps"). Now the next command names the facing an
+    MVNX take has — MVN's forward, its global +X, read as east — and the refusal does too."""
+    from mocapd.core.rotations import matrix_from_quat
+    from mocapd.io.mvnx import MVN_FACING_HEADING_DEG, read_mvnx
+    from tests.test_import_recordings import MVNX
+
+    # MVN's +X is where the wearer faces: the pelvis segment's forward over the take, as a compass heading of the
+    # sensors' world (MVN's global frame read as ENU; mocapd axes (x, y, z) are MVN's (y, z, x)).
+    fwd = matrix_from_quat(read_mvnx(MVNX).segment_orientation[:, 0]) @ np.array([0.0, 0.0, 1.0])
+    heading = np.degrees(np.arctan2(fwd[:, 2], fwd[:, 0]))
+    assert np.all(np.abs(heading - MVN_FACING_HEADING_DEG) < 10.0)
+    session = tmp_path / "mvn"
+    assert main(["import", "mvnx", str(MVNX), "-o", str(session)]) == 0
+    next_command = json.loads(capsys.readouterr().out)["next"]
+    assert next_command.startswith(f"mocapd calibrate imu --from {session} --facing-heading 90  (MVN's forward")
+    assert "no thigh and shank sensors" in next_command
+    assert main(["calibrate", "imu", "--from", str(session)]) == 1
+    assert "for this MVNX take --facing-heading 90 (MVN's forward" in capsys.readouterr().err
+
+
+def test_a_take_without_legs_asks_for_a_facing_in_its_next_command(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    exports = tmp_path / "exports"
+    exports.mkdir()
+    assignment, _, _ = _write_exports(exports, seconds=0.2)
+    upper = [a for sid, b in assignment.items() if b in ("Hips", "Spine3") for a in ("--assign", f"{sid}={b}")]
+    assert main(["import", "mtw", str(exports), "-o", str(tmp_path / "take"), *upper]) == 0
+    next_command = json.loads(capsys.readouterr().out)["next"]
+    assert next_command.startswith(f"mocapd calibrate imu --from {tmp_path / 'take'} --facing-heading DEG  (")
+    assert "--facing-from SENSOR:AXIS" in next_command and "no thigh and shank sensors" in next_command

@@ -34,6 +34,8 @@ def _segments(args: argparse.Namespace) -> dict[str, float]:
 
 
 def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    from mocapd.service.session.calibrate import calibrate_command
+
     imp = manifest["imported"]
     return {
         "session": str(path),
@@ -51,7 +53,7 @@ def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
         "assignment": imp["assignment"],
         "unassigned": sorted(set(imp["sensors"]) - set(imp["assignment"])),
         "skeleton": manifest["skeleton"]["from"],
-        "next": f"mocapd calibrate imu --from {path}  (the facing from the take's steps; or --facing-from SENSOR:AXIS)",
+        "next": calibrate_command(path, manifest),
     }
 
 
