@@ -39,6 +39,7 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
     osc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     osc.bind(("127.0.0.1", 0))
     osc.settimeout(0.2)
+    vrchat = f"127.0.0.1:{osc.getsockname()[1]}"
     slime_world = SyntheticWorld(0, 1, 1, seed=3, motion="procedural")
     slime = replace(slimevr_calibration(slime_world, slime_world.suits[0]), person="slime")
     with simulated_suit(load_config()) as xsens:
@@ -85,6 +86,7 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
         # one call site, then a count: mocapd.io.log_throttle), the tracker connecting.
         assert "firmware 4.6.0 streaming at 100 Hz" in run.output, run.output[-4000:]
         assert "slimevr: tracker 00:78:78:78:78:78 connected from 127.0.0.1:" in run.output, run.output[-4000:]
+        assert f"VRChat OSC trackers to {vrchat}: suit:slime\n" in run.output, run.output[-4000:]
 
         # Every device opened before READY; no camera, no detector.
         assert st["cameras"] == [] and "detector" not in st
@@ -170,23 +172,33 @@ def test_check_config_of_a_tracker_rig_names_what_is_still_missing(
 def test_demo_imu_only_runs_a_simulated_suit_to_the_viewer_and_vrchat(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """`mocapd demo --imu-only`, as the README has it, with a config that enables VRChat's OSC stream."""
-    osc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    osc.bind(("127.0.0.1", 0))
-    osc.settimeout(10)
+    """`mocapd demo --imu-only`, as the README has it, with a config that enables VRChat's OSC stream (and VMC and
+    Rokoko: each stream enabled is said where it goes; only VRChat's was, so a VMC or Rokoko receiver listening on
+    another port than the config's had nothing to go on)."""
+    osc, vmc, rokoko = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3))
+    for s in (osc, vmc, rokoko):
+        s.bind(("127.0.0.1", 0))
+        s.settimeout(10)
+    port = {name: s.getsockname()[1] for name, s in (("osc", osc), ("vmc", vmc), ("rokoko", rokoko))}
     config = tmp_path / "vr.toml"
     config.write_text(
-        f'[websocket]\nport = 0\n[udp.vrchat]\nenabled = true\ndestination = "127.0.0.1:{osc.getsockname()[1]}"\n',
+        f'[websocket]\nport = 0\n[udp.vrchat]\nenabled = true\ndestination = "127.0.0.1:{port["osc"]}"\n'
+        f'[udp.vmc]\nenabled = true\ndestinations = ["127.0.0.1:{port["vmc"]}"]\n'
+        f'[udp.rokoko]\nenabled = true\ndestinations = ["127.0.0.1:{port["rokoko"]}"]\n',
         encoding="utf-8",
     )
     try:
         assert main(["demo", "--imu-only", "--seconds", "4", "--http-port", "0", "--config", str(config)]) == 0
         bundle = osc.recv(65536)
+        assert vmc.recv(65536) and rokoko.recv(65536)
     finally:
-        osc.close()
+        for s in (osc, vmc, rokoko):
+            s.close()
     out = capsys.readouterr().out
     assert "13 simulated Xsens IMUs on pseudo-terminals" in out and "viewer http://127.0.0.1:" in out, out
-    assert "VRChat OSC trackers to 127.0.0.1:" in out
+    assert f"VRChat OSC trackers to 127.0.0.1:{port['osc']}: the first subject\n" in out, out
+    assert f"VMC (OSC) avatars to 127.0.0.1:{port['vmc']}: a subject per avatar\n" in out, out
+    assert f"Rokoko Studio Live (lz4) to 127.0.0.1:{port['rokoko']}: every subject as actors\n" in out, out
     done = next(line for line in out.splitlines() if line.startswith("done: "))
     frames = int(done.split()[1])
     error_mm = float(done.split("median ")[1].split()[0])

@@ -18,6 +18,7 @@ from mocapd.errors import ConfigError, MocapdError
 from mocapd.io import log_throttle
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
 from mocapd.service.config.cameras import describe
+from mocapd.service.config.udp import describe_streams
 
 if TYPE_CHECKING:
     from mocapd.service import assembly
@@ -152,6 +153,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             viewer = getattr(sink, "viewer_url", None)
             if viewer is not None:
                 print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
+        for line in describe_streams(cfg.udp):
+            print(line, flush=True)
 
     async def main() -> int:
         stop = asyncio.Event()

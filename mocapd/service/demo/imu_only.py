@@ -30,6 +30,7 @@ from mocapd.service import assembly
 from mocapd.service.assembly import RunOptions
 from mocapd.service.config import Config
 from mocapd.service.config.cameras import CalibrationConfig
+from mocapd.service.config.udp import describe_streams
 from mocapd.sim.suits import SimulatedSuits
 from mocapd.sim.truth import RootRelativeError
 from mocapd.sim.world import SyntheticWorld
@@ -119,8 +120,8 @@ def run(config: Config, seconds: float | None, record: str | Path | None = None)
                 viewer = getattr(sink, "viewer_url", None)
                 if viewer is not None:
                     print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
-                if getattr(sink, "name", "") == "vrchat":
-                    print(f"VRChat OSC trackers to {rig.config.udp.vrchat.destination}", flush=True)
+            for line in describe_streams(rig.config.udp):
+                print(line, flush=True)
 
         async def main() -> int:
             stop = asyncio.Event()

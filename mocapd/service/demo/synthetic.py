@@ -25,6 +25,7 @@ from mocapd.service import assembly
 from mocapd.service.assembly import Monitor, RunOptions
 from mocapd.service.config import Config
 from mocapd.service.config.cameras import CalibrationConfig, parse_cameras
+from mocapd.service.config.udp import describe_streams
 
 DEFAULT_CAMERAS = 4
 
@@ -55,6 +56,8 @@ async def run_synthetic(
             viewer = getattr(sink, "viewer_url", None)
             if viewer is not None:
                 print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
+        for line in describe_streams(config.udp):
+            print(line, flush=True)
 
     code = await assembly.run(config, options, monitor=monitor, seconds=seconds, stop=stop, on_ready=ready)
     return code, holder[0] if holder else None
