@@ -82,9 +82,11 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
             osc.close()
         assert code == 0, run.output
         assert "Traceback" not in run.output, run.output[-4000:]
-        # --verbose says what happens to the devices (info lines, hidden before): devices streaming (five lines of
-        # one call site, then a count: mocapd.io.log_throttle), the tracker connecting.
-        assert "firmware 4.6.0 streaming at 100 Hz" in run.output, run.output[-4000:]
+        # --verbose says what happens to the devices (info lines, hidden before): each device streaming (every one
+        # named: mocapd.io.log_throttle's limit of five lines per call site held eight of thirteen back, said only
+        # as a count), the tracker connecting.
+        streaming = [p for p in imu.ports if f"imu {p}: MTw2-3A7G6 " in run.output]
+        assert streaming == list(imu.ports) and "firmware 4.6.0 streaming at 100 Hz" in run.output, run.output[-4000:]
         assert "slimevr: tracker 00:78:78:78:78:78 connected from 127.0.0.1:" in run.output, run.output[-4000:]
         assert f"VRChat OSC trackers to {vrchat}: suit:slime\n" in run.output, run.output[-4000:]
 

@@ -261,9 +261,10 @@ class SlimeVrListener:
                 )
             elif isinstance(event, TrackerConnected):
                 what = "reconnected" if event.handover else "connected"
-                log.info("slimevr: tracker %s %s from %s:%d", event.key, what, *event.address)
+                log.info("slimevr: tracker %s %s from %s:%d", event.key, what, *event.address,
+                         extra={"repeat_key": event.key})  # fmt: skip
             elif isinstance(event, TrackerTimedOut):
-                log.warning("slimevr: tracker %s timed out", event.key)
+                log.warning("slimevr: tracker %s timed out", event.key, extra={"repeat_key": event.key})
             elif isinstance(event, TrackerRefused):
                 self.rejections.reject("tracker table full", "handshake from {}:{}".format(*event.address))
             elif isinstance(event, TrackerGesture):
