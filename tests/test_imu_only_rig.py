@@ -88,6 +88,9 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
         streaming = [p for p in imu.ports if f"imu {p}: MTw2-3A7G6 " in run.output]
         assert streaming == list(imu.ports) and "firmware 4.6.0 streaming at 100 Hz" in run.output, run.output[-4000:]
         assert "slimevr: tracker 00:78:78:78:78:78 connected from 127.0.0.1:" in run.output, run.output[-4000:]
+        # and each tracker sensor's id, the key of [imu.slimevr.assignment] (read from /status's JSON before)
+        for index in range(13):
+            assert f'slimevr: sensor "00:78:78:78:78:78/{index}" streaming (the key' in run.output, run.output[-4000:]
         assert f"VRChat OSC trackers to {vrchat}: suit:slime\n" in run.output, run.output[-4000:]
 
         # Every device opened before READY; no camera, no detector.

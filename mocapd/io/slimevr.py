@@ -121,6 +121,7 @@ class SlimeVrListener:
         #: what the server refused, logged at most every 10 s (the counts are also in the server's counters)
         self.rejections = Rejections("slimevr", log, clock=clock)
         self._on_sample = on_sample
+        self._said: set[str] = set()  # sensors whose first sample was logged
         self._clock = clock
         self._transport: asyncio.DatagramTransport | None = None
         self._sock: socket.socket | None = None
@@ -256,6 +257,10 @@ class SlimeVrListener:
     def _flush(self) -> None:
         for event in self.server.events_received():
             if isinstance(event, SensorSample):
+                if event.sensor not in self._said:  # the id a user assigns a bone to, said once it streams
+                    self._said.add(event.sensor)
+                    log.info('slimevr: sensor "%s" streaming (the key that gives it a bone in '
+                             "[imu.slimevr.assignment])", event.sensor, extra={"repeat_key": event.sensor})  # fmt: skip
                 self._on_sample(
                     ImuSample(event.sensor, event.host_ns, None, None, event.quat, event.acc, CoordFrame.ENU)
                 )

@@ -116,6 +116,6 @@ def render_tables(inv: Inventory, *, searched: tuple[str, ...] = ()) -> str:
     # tracker owner following "from `mocapd devices` to a live avatar" would otherwise see no word about them.
     out.append("SlimeVR trackers (Wi-Fi, not listed here: they connect to a running server):")
     out.append("  set [imu.slimevr] enabled = true and host = this machine's LAN address, run `mocapd run --config "
-               "FILE --verbose` and switch them on: each is named as it connects, its sensors' ids for "
-               "[imu.slimevr.assignment] are in /status imu.slimevr.trackers (docs/vr.md)")  # fmt: skip
+               "FILE --verbose` and switch them on: each is named as it connects, and each sensor's id for "
+               "[imu.slimevr.assignment] as it streams (also in /status imu.slimevr.trackers; docs/vr.md)")  # fmt: skip
     return "\n".join(out) + "\n"
