@@ -209,3 +209,21 @@ def test_demo_imu_only_runs_a_simulated_suit_to_the_viewer_and_vrchat(
     error_mm = float(done.split("median ")[1].split()[0])
     assert frames > 0 and error_mm < 80.0, done  # the suit poses the walker (roots put together)
     assert any(m.address == "/tracking/trackers/1/position" for m in OscBundle(bundle))
+
+
+def test_run_of_an_imu_rig_without_a_calibrated_suit_says_why_no_pose_comes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`mocapd run` of a suit not yet calibrated streamed `people []` for as long as it ran, saying nothing of why
+    (only `check-config` did): it now says what check-config says before it opens the devices."""
+    config = tmp_path / "suit.toml"
+    config.write_text(
+        f'[imu]\nports = ["{tmp_path}/no-such-port"]\ncalibration_dir = "{tmp_path}/cal"\n'
+        '[imu.assignment]\n"00B42279" = "Hips"\n[daemon]\nhttp_port = 0\n[websocket]\nport = 0\n',
+        encoding="utf-8",
+    )
+    assert main(["run", "--config", str(config)]) == 2  # the port does not open: the start stops with its name
+    said = capsys.readouterr()
+    assert f"mocapd run: note: no suit is calibrated in {tmp_path}/cal/ yet, so no pose is streamed" in said.out
+    assert f"`mocapd calibrate imu --config {config} --person NAME --facing-heading 0`" in said.out
+    assert "no-such-port" in said.err

@@ -142,6 +142,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mocapd.service.assembly import RunOptions
 
     print(f"mocapd run: {_rig_summary(cfg)}", flush=True)
+    for note in _imu_notes(cfg, path):  # what check-config says: why an IMU rig streams no pose yet
+        print(f"mocapd run: note: {note}", flush=True)
     print("mocapd run: loading models, opening every device ...", flush=True)
     if args.verbose:  # and what happens to the devices: each one streaming, trackers connecting, heading resets
         logging.getLogger("mocapd").setLevel(logging.INFO)
