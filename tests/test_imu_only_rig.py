@@ -227,3 +227,4 @@ def test_run_of_an_imu_rig_without_a_calibrated_suit_says_why_no_pose_comes(
     assert f"mocapd run: note: no suit is calibrated in {tmp_path}/cal/ yet, so no pose is streamed" in said.out
     assert f"`mocapd calibrate imu --config {config} --person NAME --facing-heading 0`" in said.out
     assert "no-such-port" in said.err
+    assert "mocapd run: opening every device ...\n" in said.out  # no "loading models": no detector here

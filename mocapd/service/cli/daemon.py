@@ -144,7 +144,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(f"mocapd run: {_rig_summary(cfg)}", flush=True)
     for note in _imu_notes(cfg, path):  # what check-config says: why an IMU rig streams no pose yet
         print(f"mocapd run: note: {note}", flush=True)
-    print("mocapd run: loading models, opening every device ...", flush=True)
+    # An IMU-only rig loads no detector: "loading models" would be a wait for nothing to a user watching it start.
+    print(f"mocapd run: {'loading models, ' if cfg.cameras else ''}opening every device ...", flush=True)
     if args.verbose:  # and what happens to the devices: each one streaming, trackers connecting, heading resets
         logging.getLogger("mocapd").setLevel(logging.INFO)
 
