@@ -8,6 +8,7 @@ import csv
 import json
 import re
 import shutil
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -263,3 +264,23 @@ def test_a_take_without_legs_asks_for_a_facing_in_its_next_command(
     next_command = json.loads(capsys.readouterr().out)["next"]
     assert next_command.startswith(f"mocapd calibrate imu --from {tmp_path / 'take'} --facing-heading DEG  (")
     assert "--facing-from SENSOR:AXIS" in next_command and "no thigh and shank sensors" in next_command
+
+
+def test_replay_of_a_take_says_where_its_streams_go(
+    take: tuple[Path, dict[str, str], np.ndarray], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`mocapd replay TAKE --resolved --config vr.toml` (an imported take to an engine) said how many sinks it fed,
+    not which streams or where: a VMC receiver on the wrong port had nothing to go on."""
+    session, _, _ = take
+    vmc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vmc.bind(("127.0.0.1", 0))
+    vmc.settimeout(10)
+    config = tmp_path / "vr.toml"
+    dest = f"127.0.0.1:{vmc.getsockname()[1]}"
+    config.write_text(f'[websocket]\nport = 0\n[udp.vmc]\nenabled = true\ndestinations = ["{dest}"]\n')
+    try:
+        assert main(["replay", str(session), "--resolved", "--speed", "100", "--config", str(config)]) == 0
+        assert vmc.recv(65536).startswith(b"#bundle")
+    finally:
+        vmc.close()
+    assert f"\nVMC (OSC) avatars to {dest}: a subject per avatar\n" in capsys.readouterr().out

@@ -18,6 +18,7 @@ from mocapd.pipeline.camera_views import CameraViews
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.protocols.session_format import PoseRecord
 from mocapd.service.config import Config, load_config
+from mocapd.service.config.udp import describe_streams
 from mocapd.service.daemon import PoseSink
 
 
@@ -102,6 +103,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
                   flush=True)  # fmt: skip
 
     print(f"mocapd replay: {len(frames)} frames through {len(sinks) - 1} sink(s) at {args.speed:g}x", flush=True)
+    for line in describe_streams(cfg.udp):  # where the engines' streams go, as `mocapd run` says it
+        print(line, flush=True)
     stats = asyncio.run(replay(frames, sinks, speed=args.speed, on_frame=progress, events=events))
     print(json.dumps(asdict(stats)))
     return 0
