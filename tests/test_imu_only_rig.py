@@ -193,7 +193,8 @@ def test_demo_imu_only_runs_a_simulated_suit_to_the_viewer_and_vrchat(
         encoding="utf-8",
     )
     try:
-        assert main(["demo", "--imu-only", "--seconds", "4", "--http-port", "0", "--config", str(config)]) == 0
+        assert main(["demo", "--imu-only", "--seconds", "4", "--http-port", "0", "--config", str(config),
+                     "--record", str(tmp_path / "take")]) == 0  # fmt: skip
         bundle = osc.recv(65536)
         assert vmc.recv(65536) and rokoko.recv(65536)
     finally:
@@ -204,6 +205,10 @@ def test_demo_imu_only_runs_a_simulated_suit_to_the_viewer_and_vrchat(
     assert f"VRChat OSC trackers to 127.0.0.1:{port['osc']}: the first subject\n" in out, out
     assert f"VMC (OSC) avatars to 127.0.0.1:{port['vmc']}: a subject per avatar\n" in out, out
     assert f"Rokoko Studio Live (lz4) to 127.0.0.1:{port['rokoko']}: every subject as actors\n" in out, out
+    # and the session recorded: where, and what to type next (nothing said it, nor where [record] enabled put it)
+    take = tmp_path / "take"
+    assert f"recording the session to {take} (then `mocapd resolve {take}`, `mocapd export {take} --resolved" in out
+    assert (take / "manifest.json").is_file()
     done = next(line for line in out.splitlines() if line.startswith("done: "))
     frames = int(done.split()[1])
     error_mm = float(done.split("median ")[1].split()[0])

@@ -18,7 +18,6 @@ from mocapd.errors import ConfigError, MocapdError
 from mocapd.io import log_throttle
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
 from mocapd.service.config.cameras import describe
-from mocapd.service.config.udp import describe_streams
 
 if TYPE_CHECKING:
     from mocapd.service import assembly
@@ -152,11 +151,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     def ready(a: assembly.Assembly) -> None:
         print(f"ready: status {a.daemon.http.url}/status  metrics {a.daemon.http.url}/metrics  (Ctrl-C stops)",
               flush=True)  # fmt: skip
-        for sink in a.daemon.sinks:
-            viewer = getattr(sink, "viewer_url", None)
-            if viewer is not None:
-                print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
-        for line in describe_streams(cfg.udp):
+        for line in assembly.ready_lines(a):
             print(line, flush=True)
 
     async def main() -> int:

@@ -30,7 +30,6 @@ from mocapd.service import assembly
 from mocapd.service.assembly import RunOptions
 from mocapd.service.config import Config
 from mocapd.service.config.cameras import CalibrationConfig
-from mocapd.service.config.udp import describe_streams
 from mocapd.sim.suits import SimulatedSuits
 from mocapd.sim.truth import RootRelativeError
 from mocapd.sim.world import SyntheticWorld
@@ -116,11 +115,7 @@ def run(config: Config, seconds: float | None, record: str | Path | None = None)
             url = a.daemon.http.url
             a.daemon.status_line_extras.append(truth.status_field)
             print(f"ready: status {url}/status  metrics {url}/metrics  (Ctrl-C stops)", flush=True)
-            for sink in a.daemon.sinks:
-                viewer = getattr(sink, "viewer_url", None)
-                if viewer is not None:
-                    print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
-            for line in describe_streams(rig.config.udp):
+            for line in assembly.ready_lines(a):
                 print(line, flush=True)
 
         async def main() -> int:

@@ -25,7 +25,6 @@ from mocapd.service import assembly
 from mocapd.service.assembly import Monitor, RunOptions
 from mocapd.service.config import Config
 from mocapd.service.config.cameras import CalibrationConfig, parse_cameras
-from mocapd.service.config.udp import describe_streams
 
 DEFAULT_CAMERAS = 4
 
@@ -52,11 +51,7 @@ async def run_synthetic(
         holder.append(a)
         url = a.daemon.http.url
         print(f"ready: status {url}/status  metrics {url}/metrics  (Ctrl-C stops)", flush=True)
-        for sink in a.daemon.sinks:
-            viewer = getattr(sink, "viewer_url", None)
-            if viewer is not None:
-                print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
-        for line in describe_streams(config.udp):
+        for line in assembly.ready_lines(a):
             print(line, flush=True)
 
     code = await assembly.run(config, options, monitor=monitor, seconds=seconds, stop=stop, on_ready=ready)
