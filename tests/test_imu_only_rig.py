@@ -233,3 +233,31 @@ def test_run_of_an_imu_rig_without_a_calibrated_suit_says_why_no_pose_comes(
     assert f"`mocapd calibrate imu --config {config} --person NAME --facing-heading 0`" in said.out
     assert "no-such-port" in said.err
     assert "mocapd run: opening every device ...\n" in said.out  # no "loading models": no detector here
+
+
+def test_check_config_names_a_stream_whose_suit_is_not_calibrated(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`[udp.vrchat] subject = "suit:alice"` with the suit calibrated as `bob` (or an actor name keyed by a typo):
+    valid, and VRChat got no tracker with no word anywhere. check-config (and run) now say so."""
+    world = SyntheticWorld(0, 1, 1, seed=3, motion="procedural")
+    bob = replace(slimevr_calibration(world, world.suits[0]), person="bob")
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "bob.imu.json").write_text(json.dumps(bob.to_json_dict()), encoding="utf-8")
+    config = tmp_path / "vr.toml"
+    config.write_text(
+        f'[imu]\ncalibration_dir = "{tmp_path}/cal"\n[imu.slimevr]\nenabled = true\n'
+        '[udp.vrchat]\nenabled = true\nsubject = "suit:alice"\n'
+        '[udp.rokoko]\nenabled = true\nactor_names = { "suit:bob" = "Bob", "suit:bbo" = "Bob 2" }\n',
+        encoding="utf-8",
+    )
+    assert main(["check-config", str(config)]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "not a calibrated suit" in line]
+    assert notes == [
+        f"{config}: note: [udp.vrchat] subject names 'suit:alice', which is not a calibrated suit of this rig "
+        "(suits: suit:bob): that stream never gets its pose; name one of them, or calibrate it (`mocapd calibrate "
+        "imu --person alice`)",
+        f"{config}: note: [udp.rokoko] actor_names names 'suit:bbo', which is not a calibrated suit of this rig "
+        "(suits: suit:bob): that stream never gets its pose; name one of them, or calibrate it (`mocapd calibrate "
+        "imu --person bbo`)",
+    ]

@@ -108,6 +108,32 @@ def _imu_notes(cfg: Config, path: object) -> list[str]:
     return notes
 
 
+def _subject_notes(cfg: Config) -> list[str]:
+    """UDP streams that name a suit this rig has no calibration for (``suit:alice`` where the calibrated suit is
+    ``bob``): the config is valid, the daemon runs, and that stream never gets the pose it was set up for."""
+    u = cfg.udp
+    named: list[tuple[str, str]] = []  # (where, identity)
+    if u.vrchat.enabled and u.vrchat.subject:
+        named.append(("[udp.vrchat] subject", u.vrchat.subject))
+    for name, stream in (("mvn", u.mvn), ("vmc", u.vmc), ("rokoko", u.rokoko)):
+        if stream.enabled:
+            named += [(f"[udp.{name}] subjects", i) for i in stream.subjects or ()]
+    if u.mvn.enabled:
+        named += [("[udp.mvn] character_ids", i) for i in u.mvn.character_ids]
+    if u.rokoko.enabled:
+        named += [("[udp.rokoko] actor_names", i) for i in u.rokoko.actor_names]
+    named = [(where, i) for where, i in named if i.startswith("suit:")]
+    if not named:
+        return []
+    suits = {f"suit:{s.id}" for s in _suits(cfg)}
+    have = ", ".join(sorted(suits)) or f"none in {cfg.imu.calibration_dir}/"
+    return [
+        f"{where} names {i!r}, which is not a calibrated suit of this rig (suits: {have}): that stream never gets "
+        f"its pose; name one of them, or calibrate it (`mocapd calibrate imu --person {i.removeprefix('suit:')}`)"
+        for where, i in dict.fromkeys(named) if i not in suits
+    ]  # fmt: skip
+
+
 def _print_config_error(path: object, exc: ConfigError) -> None:
     """One ``FILE: error: ...`` line per problem (a file-level message names the file already: not twice)."""
     for line in str(exc).removeprefix(f"{path}: ").splitlines():
@@ -119,7 +145,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(path)
         check(cfg)
-        notes = _imu_notes(cfg, path)
+        notes = _imu_notes(cfg, path) + _subject_notes(cfg)
     except ConfigError as exc:
         _print_config_error(path, exc)
         return 2
@@ -141,7 +167,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mocapd.service.assembly import RunOptions
 
     print(f"mocapd run: {_rig_summary(cfg)}", flush=True)
-    for note in _imu_notes(cfg, path):  # what check-config says: why an IMU rig streams no pose yet
+    for note in _imu_notes(cfg, path) + _subject_notes(cfg):  # what check-config says: why no pose streams
         print(f"mocapd run: note: {note}", flush=True)
     # An IMU-only rig loads no detector: "loading models" would be a wait for nothing to a user watching it start.
     print(f"mocapd run: {'loading models, ' if cfg.cameras else ''}opening every device ...", flush=True)
