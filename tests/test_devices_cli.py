@@ -74,6 +74,9 @@ def test_table_and_snippet_and_a_port_that_does_not_answer(sim: xsens_sim.XsensS
     assert any(line.strip().startswith(silent) and "no answer" in line for line in lines)
     assert "Xsens serial devices:" in proc.stdout and "GigE Vision is listed only with --gige-interface" in proc.stdout
     assert f"warning: serial {silent}: " in proc.stderr
+    # A SlimeVR tracker owner is told where trackers show up (on Wi-Fi, nothing here can list them).
+    assert "SlimeVR trackers (Wi-Fi, not listed here: they connect to a running server):" in proc.stdout
+    assert "[imu.slimevr] enabled = true" in proc.stdout and "/status imu.slimevr.trackers" in proc.stdout
     snippet = proc.stdout[proc.stdout.index("# From `mocapd devices`") :]
     assert list(parse_config({"imu": tomllib.loads(snippet)["imu"]}).imu.ports) == [str(sim.link)]
 

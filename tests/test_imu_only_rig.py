@@ -39,6 +39,7 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
     osc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     osc.bind(("127.0.0.1", 0))
     osc.settimeout(0.2)
+    vrchat = f"127.0.0.1:{osc.getsockname()[1]}"
     slime_world = SyntheticWorld(0, 1, 1, seed=3, motion="procedural")
     slime = replace(slimevr_calibration(slime_world, slime_world.suits[0]), person="slime")
     with simulated_suit(load_config()) as xsens:
@@ -67,7 +68,7 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
         assert "IMUs only (no cameras): 13 Xsens serial ports" in said and "SlimeVR server on udp" in said, said
         assert "slime (13 sensors), suit0 (13 sensors)" in said, said
 
-        run = RunProcess(["--config", str(config)], cwd=tmp_path)
+        run = RunProcess(["--config", str(config), "--verbose"], cwd=tmp_path)
         try:
             url = run.url(300)
             ws_url = next(line.split()[-1] for line in run.lines if line.startswith("viewer "))
@@ -81,6 +82,16 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
             osc.close()
         assert code == 0, run.output
         assert "Traceback" not in run.output, run.output[-4000:]
+        # --verbose says what happens to the devices (info lines, hidden before): each device streaming (every one
+        # named: mocapd.io.log_throttle's limit of five lines per call site held eight of thirteen back, said only
+        # as a count), the tracker connecting.
+        streaming = [p for p in imu.ports if f"imu {p}: MTw2-3A7G6 " in run.output]
+        assert streaming == list(imu.ports) and "firmware 4.6.0 streaming at 100 Hz" in run.output, run.output[-4000:]
+        assert "slimevr: tracker 00:78:78:78:78:78 connected from 127.0.0.1:" in run.output, run.output[-4000:]
+        # and each tracker sensor's id, the key of [imu.slimevr.assignment] (read from /status's JSON before)
+        for index in range(13):
+            assert f'slimevr: sensor "00:78:78:78:78:78/{index}" streaming (the key' in run.output, run.output[-4000:]
+        assert f"VRChat OSC trackers to {vrchat}: suit:slime\n" in run.output, run.output[-4000:]
 
         # Every device opened before READY; no camera, no detector.
         assert st["cameras"] == [] and "detector" not in st
@@ -150,32 +161,103 @@ def test_check_config_of_a_tracker_rig_names_what_is_still_missing(
     assert main(["check-config", str(config)]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[0].startswith(f"{config}: ok (IMUs only (no cameras): SlimeVR server on udp 127.0.0.1:6969;"), out
-    assert "[imu.assignment] is empty" in out[1] and "imu.slimevr.trackers in /status" in out[1]
+    assert "[imu.slimevr.assignment] is empty" in out[1] and "imu.slimevr.trackers in /status" in out[1]
     assert f"run `mocapd calibrate imu --config {config} --person NAME --facing-heading 0`" in out[2]
+    assert "north" not in out[2]  # trackers without a compass: their headings are reset at calibration
+    # An Xsens suit's heading is the compass's: the note says that 0 is north, and what a wrong heading does.
+    suit = tmp_path / "suit.toml"
+    suit.write_text(f'[imu]\ncalibration_dir = "{tmp_path}/cal"\nports = ["/dev/xsens0"]\n', encoding="utf-8")
+    assert main(["check-config", str(suit)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "[imu.assignment] is empty" in out[1] and "`mocapd devices` lists Xsens ids" in out[1]
+    assert "stand still in a T-pose facing magnetic north and run `mocapd calibrate imu" in out[2]
+    assert "--facing-from SENSOR:AXIS" in out[2] and "bends the knees sideways or backwards" in out[2]
 
 
 def test_demo_imu_only_runs_a_simulated_suit_to_the_viewer_and_vrchat(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """`mocapd demo --imu-only`, as the README has it, with a config that enables VRChat's OSC stream."""
-    osc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    osc.bind(("127.0.0.1", 0))
-    osc.settimeout(10)
+    """`mocapd demo --imu-only`, as the README has it, with a config that enables VRChat's OSC stream (and VMC and
+    Rokoko: each stream enabled is said where it goes; only VRChat's was, so a VMC or Rokoko receiver listening on
+    another port than the config's had nothing to go on)."""
+    osc, vmc, rokoko = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3))
+    for s in (osc, vmc, rokoko):
+        s.bind(("127.0.0.1", 0))
+        s.settimeout(10)
+    port = {name: s.getsockname()[1] for name, s in (("osc", osc), ("vmc", vmc), ("rokoko", rokoko))}
     config = tmp_path / "vr.toml"
     config.write_text(
-        f'[websocket]\nport = 0\n[udp.vrchat]\nenabled = true\ndestination = "127.0.0.1:{osc.getsockname()[1]}"\n',
+        f'[websocket]\nport = 0\n[udp.vrchat]\nenabled = true\ndestination = "127.0.0.1:{port["osc"]}"\n'
+        f'[udp.vmc]\nenabled = true\ndestinations = ["127.0.0.1:{port["vmc"]}"]\n'
+        f'[udp.rokoko]\nenabled = true\ndestinations = ["127.0.0.1:{port["rokoko"]}"]\n',
         encoding="utf-8",
     )
     try:
-        assert main(["demo", "--imu-only", "--seconds", "4", "--http-port", "0", "--config", str(config)]) == 0
+        assert main(["demo", "--imu-only", "--seconds", "4", "--http-port", "0", "--config", str(config),
+                     "--record", str(tmp_path / "take")]) == 0  # fmt: skip
         bundle = osc.recv(65536)
+        assert vmc.recv(65536) and rokoko.recv(65536)
     finally:
-        osc.close()
+        for s in (osc, vmc, rokoko):
+            s.close()
     out = capsys.readouterr().out
     assert "13 simulated Xsens IMUs on pseudo-terminals" in out and "viewer http://127.0.0.1:" in out, out
-    assert "VRChat OSC trackers to 127.0.0.1:" in out
+    assert f"VRChat OSC trackers to 127.0.0.1:{port['osc']}: the first subject\n" in out, out
+    assert f"VMC (OSC) avatars to 127.0.0.1:{port['vmc']}: a subject per avatar\n" in out, out
+    assert f"Rokoko Studio Live (lz4) to 127.0.0.1:{port['rokoko']}: every subject as actors\n" in out, out
+    # and the session recorded: where, and what to type next (nothing said it, nor where [record] enabled put it)
+    take = tmp_path / "take"
+    assert f"recording the session to {take} (then `mocapd resolve {take}`, `mocapd export {take} --resolved" in out
+    assert (take / "manifest.json").is_file()
     done = next(line for line in out.splitlines() if line.startswith("done: "))
     frames = int(done.split()[1])
     error_mm = float(done.split("median ")[1].split()[0])
     assert frames > 0 and error_mm < 80.0, done  # the suit poses the walker (roots put together)
     assert any(m.address == "/tracking/trackers/1/position" for m in OscBundle(bundle))
+
+
+def test_run_of_an_imu_rig_without_a_calibrated_suit_says_why_no_pose_comes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`mocapd run` of a suit not yet calibrated streamed `people []` for as long as it ran, saying nothing of why
+    (only `check-config` did): it now says what check-config says before it opens the devices."""
+    config = tmp_path / "suit.toml"
+    config.write_text(
+        f'[imu]\nports = ["{tmp_path}/no-such-port"]\ncalibration_dir = "{tmp_path}/cal"\n'
+        '[imu.assignment]\n"00B42279" = "Hips"\n[daemon]\nhttp_port = 0\n[websocket]\nport = 0\n',
+        encoding="utf-8",
+    )
+    assert main(["run", "--config", str(config)]) == 2  # the port does not open: the start stops with its name
+    said = capsys.readouterr()
+    assert f"mocapd run: note: no suit is calibrated in {tmp_path}/cal/ yet, so no pose is streamed" in said.out
+    assert f"`mocapd calibrate imu --config {config} --person NAME --facing-heading 0`" in said.out
+    assert "no-such-port" in said.err
+    assert "mocapd run: opening every device ...\n" in said.out  # no "loading models": no detector here
+
+
+def test_check_config_names_a_stream_whose_suit_is_not_calibrated(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`[udp.vrchat] subject = "suit:alice"` with the suit calibrated as `bob` (or an actor name keyed by a typo):
+    valid, and VRChat got no tracker with no word anywhere. check-config (and run) now say so."""
+    world = SyntheticWorld(0, 1, 1, seed=3, motion="procedural")
+    bob = replace(slimevr_calibration(world, world.suits[0]), person="bob")
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "bob.imu.json").write_text(json.dumps(bob.to_json_dict()), encoding="utf-8")
+    config = tmp_path / "vr.toml"
+    config.write_text(
+        f'[imu]\ncalibration_dir = "{tmp_path}/cal"\n[imu.slimevr]\nenabled = true\n'
+        '[udp.vrchat]\nenabled = true\nsubject = "suit:alice"\n'
+        '[udp.rokoko]\nenabled = true\nactor_names = { "suit:bob" = "Bob", "suit:bbo" = "Bob 2" }\n',
+        encoding="utf-8",
+    )
+    assert main(["check-config", str(config)]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "not a calibrated suit" in line]
+    assert notes == [
+        f"{config}: note: [udp.vrchat] subject names 'suit:alice', which is not a calibrated suit of this rig "
+        "(suits: suit:bob): that stream never gets its pose; name one of them, or calibrate it (`mocapd calibrate "
+        "imu --person alice`)",
+        f"{config}: note: [udp.rokoko] actor_names names 'suit:bbo', which is not a calibrated suit of this rig "
+        "(suits: suit:bob): that stream never gets its pose; name one of them, or calibrate it (`mocapd calibrate "
+        "imu --person bbo`)",
+    ]

@@ -8,6 +8,7 @@ import csv
 import json
 import re
 import shutil
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -134,6 +135,8 @@ def test_7_sessions_doc_cites_only_files_of_the_repository_and_says_what_a_csv_j
     text = (REPO / "docs" / "sessions.md").read_text(encoding="utf-8")
     for name in set(re.findall(r"[\w./-]+\.md\b", text)):
         assert (REPO / name).exists() or (REPO / "docs" / name).exists(), f"docs/sessions.md cites {name}"
+    for name in set(re.findall(r"`((?:mocapd|tools|tests)/[\w./-]+\.py)`", text)):  # modules named by path
+        assert (REPO / name).exists(), f"docs/sessions.md cites {name}"
     csv_part = text[text.index("**CSV**") :]
     assert "where the bone starts" in csv_part and "+Y up" in csv_part and "right-handed" in csv_part
 
@@ -191,3 +194,93 @@ def test_9_a_take_s_calibration_stays_with_the_take(
     rig.write_text('[imu]\ncalibration_dir = "rigcal"\n', encoding="utf-8")
     assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "0", "--config", str(rig)]) == 0
     assert json.loads(capsys.readouterr().out)["calibration"] == "rigcal/suit0.imu.json"  # asked for: the rig's
+
+
+def test_a_take_whose_sensors_end_apart_is_solved_where_all_of_them_measure(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """MT Manager's exports of one recording end up to a second apart (the OpenSense take: 0.73 s). ``resolve``
+    solved up to the last sample of any sensor, so the tail solved a foot from the prior and the stance from one
+    leg: on that take the root sank 9 cm and lurched 0.4 m in its last 0.7 s. It now solves the span every suit
+    sensor covers and says which sensor bounds it."""
+    assignment, _, truth = _write_exports(tmp_path, seconds=1.5)
+    foot = next(sid for sid, bone in assignment.items() if bone == "LeftFoot")
+    path = tmp_path / f"MT_012005D6_009-001_{foot}.txt"
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(lines[:-50]) + "\n")  # this sensor's export ends 0.5 s before the others'
+    session = tmp_path / "take"
+    files = sorted(str(p) for p in tmp_path.glob("MT_*.txt"))
+    assign = [a for sid, bone in assignment.items() for a in ("--assign", f"{sid}={bone}")]
+    assert main(["import", "mtw", *files, "-o", str(session), *assign]) == 0
+    assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "0"]) == 0
+    capsys.readouterr()
+    assert main(["resolve", str(session), "--iterations", "5"]) == 0
+    said = capsys.readouterr()
+    summary = json.loads(said.out)
+    s = open_session(session)
+    origin = s.manifest["started_monotonic_ns"]
+    foot_last = max(r.t_ns for r in s.imu() if r.sensor == foot)
+    t = np.array([f.t_solve_ns for f in s.poses("poses-resolved")])
+    assert (foot_last - origin) / 1e9 == pytest.approx((len(truth) - 51) / 100.0, abs=1e-6)
+    assert foot_last - 17_000_000 < t[-1] <= foot_last  # the last tick the foot still measures
+    assert t[0] == origin
+    note = f"suit:suit0: solved 0.00-{(foot_last - origin) / 1e9:.2f} s of the take, the span all 8 of its sensors"
+    assert any(n.startswith(note) and f"{foot} (LeftFoot) ends 0.50 s before" in n for n in summary["notes"]), said
+    assert f"note: {note}" in said.err
+
+
+def test_an_mvnx_take_without_legs_names_the_facing_it_needs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The real upper-body MVNX take has no thigh and shank sensors: ``import mvnx`` told the user to calibrate with
+    "the facing from the take's steps", which then refused ("no steps"). Now the next command names the facing an
+    MVNX take has — MVN's forward, its global +X, read as east — and the refusal does too."""
+    from mocapd.core.rotations import matrix_from_quat
+    from mocapd.io.mvnx import MVN_FACING_HEADING_DEG, read_mvnx
+    from tests.test_import_recordings import MVNX
+
+    # MVN's +X is where the wearer faces: the pelvis segment's forward over the take, as a compass heading of the
+    # sensors' world (MVN's global frame read as ENU; mocapd axes (x, y, z) are MVN's (y, z, x)).
+    fwd = matrix_from_quat(read_mvnx(MVNX).segment_orientation[:, 0]) @ np.array([0.0, 0.0, 1.0])
+    heading = np.degrees(np.arctan2(fwd[:, 2], fwd[:, 0]))
+    assert np.all(np.abs(heading - MVN_FACING_HEADING_DEG) < 10.0)
+    session = tmp_path / "mvn"
+    assert main(["import", "mvnx", str(MVNX), "-o", str(session)]) == 0
+    next_command = json.loads(capsys.readouterr().out)["next"]
+    assert next_command.startswith(f"mocapd calibrate imu --from {session} --facing-heading 90  (MVN's forward")
+    assert "no thigh and shank sensors" in next_command
+    assert main(["calibrate", "imu", "--from", str(session)]) == 1
+    assert "for this MVNX take --facing-heading 90 (MVN's forward" in capsys.readouterr().err
+
+
+def test_a_take_without_legs_asks_for_a_facing_in_its_next_command(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    exports = tmp_path / "exports"
+    exports.mkdir()
+    assignment, _, _ = _write_exports(exports, seconds=0.2)
+    upper = [a for sid, b in assignment.items() if b in ("Hips", "Spine3") for a in ("--assign", f"{sid}={b}")]
+    assert main(["import", "mtw", str(exports), "-o", str(tmp_path / "take"), *upper]) == 0
+    next_command = json.loads(capsys.readouterr().out)["next"]
+    assert next_command.startswith(f"mocapd calibrate imu --from {tmp_path / 'take'} --facing-heading DEG  (")
+    assert "--facing-from SENSOR:AXIS" in next_command and "no thigh and shank sensors" in next_command
+
+
+def test_replay_of_a_take_says_where_its_streams_go(
+    take: tuple[Path, dict[str, str], np.ndarray], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`mocapd replay TAKE --resolved --config vr.toml` (an imported take to an engine) said how many sinks it fed,
+    not which streams or where: a VMC receiver on the wrong port had nothing to go on."""
+    session, _, _ = take
+    vmc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vmc.bind(("127.0.0.1", 0))
+    vmc.settimeout(10)
+    config = tmp_path / "vr.toml"
+    dest = f"127.0.0.1:{vmc.getsockname()[1]}"
+    config.write_text(f'[websocket]\nport = 0\n[udp.vmc]\nenabled = true\ndestinations = ["{dest}"]\n')
+    try:
+        assert main(["replay", str(session), "--resolved", "--speed", "100", "--config", str(config)]) == 0
+        assert vmc.recv(65536).startswith(b"#bundle")
+    finally:
+        vmc.close()
+    assert f"\nVMC (OSC) avatars to {dest}: a subject per avatar\n" in capsys.readouterr().out

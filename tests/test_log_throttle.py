@@ -61,6 +61,21 @@ def test_a_record_closing_its_window_between_sweeps_carries_the_count(logged) ->
     assert stream.getvalue().splitlines()[-1] == "WARNING tracker 0 timed out (7 more in the last 10 s)"
 
 
+def test_a_line_said_once_per_device_passes_for_every_device(logged) -> None:  # type: ignore[no-untyped-def]
+    """Thirteen sensors starting were three lines and a count: which ones stream was said for none of the rest."""
+    log, stream, _rf, _clock = logged
+
+    def streaming(device: int) -> None:
+        log.info(f"imu {device} streaming", extra={"repeat_key": device})  # one call site
+
+    for i in range(13):
+        streaming(i)
+    assert stream.getvalue().splitlines() == [f"INFO imu {i} streaming" for i in range(13)]
+    for _ in range(10):  # one device reconnecting in a loop is still limited
+        streaming(0)
+    assert stream.getvalue().count("INFO imu 0 streaming\n") == 3
+
+
 def test_other_lines_pass_while_one_is_counted(logged) -> None:  # type: ignore[no-untyped-def]
     log, stream, _rf, _clock = logged
     _flood(log, 100)

@@ -14,6 +14,7 @@ from mocapd.core.plausibility import (
     PlausibilityMonitor,
     PlausibilityOptions,
     facing_from_knees,
+    first_events,
     hinge_angles,
     wrong_way_events,
 )
@@ -139,3 +140,10 @@ def test_the_live_scheduler_counts_knees_bending_backwards(mirrored: bool) -> No
     assert list(st) == ["suit:suit0"]
     knees = {k: v for k, v in st["suit:suit0"]["events"].items() if "knee" in k}
     assert bool(knees) == mirrored and st["suit:suit0"]["implausible"] == mirrored
+    # What the live daemon says on its console (once per person and check), not only in /status.
+    said: set[tuple[str, str]] = set()
+    lines = first_events(sched.plausibility, said)
+    assert len([line for line in lines if "knee bent the wrong way" in line]) == len(knees)
+    for line in lines:
+        assert line.startswith("suit:suit0: the ") and "a facing direction mirrored at calibration" in line
+    assert first_events(sched.plausibility, said) == []  # said once

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 import socket
 from collections.abc import AsyncIterator
 from typing import Any
@@ -179,6 +180,18 @@ async def test_viewer_draws_the_daemons_subjects_and_reconnects_after_a_restart(
             panel = await page.evaluate("document.getElementById('panel').innerText")
             assert "cam0" in panel and "end_to_end" in panel and "streaming" in panel, panel
             palette = [hex_bgr(c) for c in await page.evaluate("mocapdViewer.palette")]
+            # The heading reset a suit wearer asks for (IMUs without cameras drift in heading), from the page: a
+            # real click on its button, the daemon's answer said under it.
+            box = await page.evaluate(
+                "(() => { const r = document.getElementById('headingButton')"
+                ".getBoundingClientRect(); return [r.left + r.width / 2, r.top + r.height / 2]; })()"
+            )
+            for kind, buttons in (("mousePressed", 1), ("mouseReleased", 0)):
+                await page.call("Input.dispatchMouseEvent", type=kind, x=box[0], y=box[1], button="left",
+                                buttons=buttons, clickCount=1)  # fmt: skip
+            await page.wait_for("mocapdViewer.state.headingResets == 1", 10, "the heading reset's answer")
+            said = await page.evaluate("document.getElementById('headingMsg').innerText")
+            assert re.fullmatch(r"heading reset · suit0: 13 sensors turned, up to \d+\.\d°", said), said
 
             # Orbit (drag) and zoom (wheel) with real input events; the skeletons follow the new view.
             yaw, dist = await page.evaluate("[mocapdViewer.cam.yaw, mocapdViewer.cam.dist]")

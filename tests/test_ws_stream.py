@@ -198,7 +198,9 @@ def test_status_carries_the_health_subset_and_client_counters() -> None:
         "latency_ms": {"end_to_end": {"count": 5, "mean_ms": 160.0, "p50": 158.0, "p95": 170.0, "p99": 171.0}},
         "cameras": [{"name": "cam0", "kind": "synthetic", "frames": 300, "skipped": 0}],
         "imu": {"devices": [{"path": "/dev/pts/3", "streaming": True, "samples": 900, "disconnects": 0,
-                             "serial": 7}]},
+                             "serial": 7}],
+                "slimevr": {"listen": "127.0.0.1:6969", "trackers": [
+                    {"id": "A1:B2:C3:D4:E5:01", "connected": True, "packets": 4000, "lost": 0, "sensors": []}]}},
         "tasks": {"imu": {"failures": 0, "running": True}},
     }  # fmt: skip
     s = ClientSession(description())
@@ -207,6 +209,10 @@ def test_status_carries_the_health_subset_and_client_counters() -> None:
     assert st["latency_ms"]["end_to_end"] == {"p50": 158.0, "p95": 170.0, "p99": 171.0}
     assert st["cameras"] == [{"name": "cam0", "kind": "synthetic", "frames": 300}]
     assert st["imus"][0] == {"path": "/dev/pts/3", "streaming": True, "samples": 900, "disconnects": 0}
+    # SlimeVR trackers are listed too (a tracker-only rig's viewer said "IMUs: none").
+    assert st["imus"][1] == {"path": "slimevr A1:B2:C3:D4:E5:01", "streaming": True, "samples": 4000,
+                             "disconnects": None}  # fmt: skip
+    assert decode(s.status({"imu": {"devices": [], "slimevr": None}}, 1, {}))["imus"] == []
     assert st["tasks"] == {"imu": 0} and st["stream"]["dropped"] == 1 and st["output"]["missed_ticks"] == 1
     assert health_subset({}) == {}
 

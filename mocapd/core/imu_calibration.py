@@ -504,6 +504,13 @@ def common_grid(samples: Samples, sensors: list[str]) -> tuple[FloatArray, dict[
     return t, out
 
 
+def has_step_sensors(bones: Mapping[str, str]) -> bool:
+    """Whether an assignment (sensor → bone) lets :func:`facing_heading_from_steps` work: one leg wears both a
+    thigh and a shank sensor."""
+    worn = set(bones.values())
+    return any({f"{side}UpperLeg", f"{side}LowerLeg"} <= worn for side in ("Left", "Right"))
+
+
 def facing_heading_from_steps(samples: Samples, bones: Mapping[str, str], window: tuple[float, float]) -> float | None:
     """The compass heading (degrees clockwise from north) the subject faced during ``window`` (s), from the way the
     knees bent in the take (:func:`mocapd.core.plausibility.facing_from_knees`); None when no leg wears both a

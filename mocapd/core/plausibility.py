@@ -384,3 +384,28 @@ class PlausibilityMonitor:
                 worst = self.worst_deg.get(name, 0.0)
                 out.append(f"{what} bent the wrong way {n} time(s), {secs:.1f} s in all, up to {worst:.0f}°")
         return out
+
+
+CAUSES = (
+    "a facing direction mirrored at calibration (calibrate again: facing the heading given, or --facing-from with "
+    "the other sign), a sensor on another bone than the assignment says (left and right swapped), or one turned on "
+    "its strap"
+)
+"""What makes a solve implausible (the module docstring), as said to the user."""
+
+
+def first_events(monitors: Mapping[str, PlausibilityMonitor], said: set[tuple[str, str]]) -> list[str]:
+    """One line per person and check whose first event was counted since ``said`` last saw it (added to ``said``):
+    what a live daemon says once, on its console, instead of only counting it in /status."""
+    out = []
+    for identity, m in sorted(monitors.items()):
+        for name, n in sorted(m.events.items()):
+            if n <= 0 or (identity, name) in said:
+                continue
+            said.add((identity, name))
+            if name == "pelvis_backwards":
+                what = "the pelvis faced backwards while the legs walked forwards"
+            else:
+                what = f"the {name.replace('_', ' ')} bent the wrong way (up to {m.worst_deg.get(name, 0.0):.0f}°)"
+            out.append(f"{identity}: {what}, which no body does: likely {CAUSES} (counted in /status plausibility)")
+    return out

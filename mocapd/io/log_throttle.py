@@ -8,6 +8,10 @@ count::
 
     ... WARNING mocapd.io.slimevr: tracker 12 timed out (1 234 more in the last 10 s)
 
+A line said once per device (a device streaming, a tracker connecting) passes ``extra={"repeat_key": device}``:
+each device is then a site of its own, so thirteen sensors starting are thirteen lines, while one device
+reconnecting in a loop is still limited.
+
 A site that goes quiet with records still counted is summarised by the next record of any site (at most once a
 second it sweeps closed windows) and by :meth:`RepeatFilter.flush` at exit, so no count is lost. A call site,
 not the message text, is the key: a line formatted with an f-string (a tracker id, a path) is still one line.
@@ -28,7 +32,7 @@ DEFAULT_WINDOW_S = 10.0
 #: call sites are lines of code)
 MAX_SITES = 4096
 
-_Key = tuple[str, int, int]
+_Key = tuple[str, int, int, object]
 
 
 @dataclass
@@ -85,7 +89,7 @@ class RepeatFilter(logging.Filter):
         if now - self._last_sweep >= 1.0:
             self._last_sweep = now
             self._sweep(now)
-        key = (record.pathname, record.lineno, record.levelno)
+        key = (record.pathname, record.lineno, record.levelno, getattr(record, "repeat_key", None))
         site = self._sites.get(key)
         if site is None:
             if len(self._sites) >= MAX_SITES:

@@ -49,6 +49,10 @@ MAX_TIME_MS = 1e10
 """Latest frame time accepted (ms from the start: about 115 days)."""
 _CHUNK = 1 << 20
 _FRAME_FIELDS = ("orientation", "position", "sensorOrientation", "sensorFreeAcceleration")
+MVN_FACING_HEADING_DEG = 90.0
+"""The facing of an MVNX take's wearer in its sensors' world: MVN's +X is where they faced at MVN's calibration
+(reset), and a session holds the sensors' orientations in MVN's global frame read as Xsens's ENU, whose +X is east
+(``calibrate imu --facing-heading``: degrees clockwise from north)."""
 
 _PERM = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 """MVN (Z up, X forward, Y left) → mocapd (Y up, X left, Z forward)."""

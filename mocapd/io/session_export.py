@@ -62,6 +62,32 @@ def subjects(poses: list[PoseRecord]) -> Counter[str]:
     return Counter(p.identity for f in poses for p in f.people)
 
 
+FLEETING_S = 0.5
+"""A subject seen for less than this (s) is a fleeting track (a person taken for a new one for a few frames before
+their suit or track took them over): glTF and FBX leave it out unless it is named (:func:`lasting_subjects`)."""
+
+
+def lasting_subjects(poses: list[PoseRecord]) -> tuple[list[str], dict[str, str]]:
+    """The identities seen for at least :data:`FLEETING_S`, and the others with what they were (frames, seconds).
+
+    Each subject of a glTF or FBX holds its first pose before its first frame and its last after its last: a
+    subject of two frames stood frozen through the whole take beside the person it was. When every subject is
+    fleeting (a very short session), all are kept."""
+    first: dict[str, int] = {}
+    last: dict[str, int] = {}
+    frames: Counter[str] = Counter()
+    for f in poses:
+        for p in f.people:
+            t = f.t_solve_ns if p.t_pose_ns is None else p.t_pose_ns
+            first[p.identity] = min(first.get(p.identity, t), t)
+            last[p.identity] = max(last.get(p.identity, t), t)
+            frames[p.identity] += 1
+    fleeting = {who: f"{frames[who]} frame(s), {(last[who] - first[who]) / 1e9:.2f} s" for who in sorted(frames)
+                if last[who] - first[who] < FLEETING_S * 1e9}  # fmt: skip
+    kept = sorted(who for who in frames if who not in fleeting)
+    return (kept, fleeting) if kept else (sorted(frames), {})
+
+
 def subject_track(poses: list[PoseRecord], subject: str | None = None) -> SubjectTrack:
     """The frames of ``subject`` (default: the identity seen in most frames)."""
     counts = subjects(poses)

@@ -122,6 +122,7 @@ class SlimeVrListener:
         #: what the server refused, logged at most every 10 s (the counts are also in the server's counters)
         self.rejections = Rejections("slimevr", log, clock=clock)
         self._on_sample = on_sample
+        self._said: set[str] = set()  # sensors whose first sample was logged
         self._clock = clock
         self._transport: asyncio.DatagramTransport | None = None
         self._sock: socket.socket | None = None
@@ -257,14 +258,19 @@ class SlimeVrListener:
     def _flush(self) -> None:
         for event in self.server.events_received():
             if isinstance(event, SensorSample):
+                if event.sensor not in self._said:  # the id a user assigns a bone to, said once it streams
+                    self._said.add(event.sensor)
+                    log.info('slimevr: sensor "%s" streaming (the key that gives it a bone in '
+                             "[imu.slimevr.assignment])", event.sensor, extra={"repeat_key": event.sensor})  # fmt: skip
                 self._on_sample(
                     ImuSample(event.sensor, event.host_ns, None, None, event.quat, event.acc, CoordFrame.ENU)
                 )
             elif isinstance(event, TrackerConnected):
                 what = "reconnected" if event.handover else "connected"
-                log.info("slimevr: tracker %s %s from %s:%d", event.key, what, *event.address)
+                log.info("slimevr: tracker %s %s from %s:%d", event.key, what, *event.address,
+                         extra={"repeat_key": event.key})  # fmt: skip
             elif isinstance(event, TrackerTimedOut):
-                log.warning("slimevr: tracker %s timed out", event.key)
+                log.warning("slimevr: tracker %s timed out", event.key, extra={"repeat_key": event.key})
             elif isinstance(event, TrackerRefused):
                 self.rejections.reject("tracker table full", "handshake from {}:{}".format(*event.address))
             elif isinstance(event, TrackerGesture):

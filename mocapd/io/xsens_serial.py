@@ -306,6 +306,7 @@ class XsensSerialDevice:
                     ev.info.serial,
                     ev.info.firmware,
                     self.config.rate_hz,
+                    extra={"repeat_key": self.config.path},  # one line per device, not five of thirteen
                 )
             elif isinstance(ev, DeviceReportedError):
                 self.stats.device_errors.append(f"0x{ev.report.code:02X} {ev.report.description}")

@@ -84,7 +84,8 @@ Server → client messages
     latency_ms      map     per stage ("detect", "sample", "sort", "solve", "publish", "end_to_end"):
                             {"p50": float|nil, "p95": float|nil, "p99": float|nil}
     cameras         [map]   name, kind, frames (received keypoint frames)
-    imus            [map]   path, streaming (bool), samples, disconnects
+    imus            [map]   path, streaming (bool), samples, disconnects; a SlimeVR tracker: path "slimevr <MAC>",
+                            streaming = connected, samples = its datagrams, disconnects nil
     tasks           {str: int}   supervised task -> failures so far
     stream          map     clients (connected now), sent (messages sent to this client), dropped (messages
                             dropped for this client because it read too slowly)
@@ -473,6 +474,15 @@ def health_subset(health: Mapping[str, Any]) -> dict[str, Any]:
             for d in devices
             if isinstance(d, Mapping)
         ]
+    slimevr = imu.get("slimevr") if isinstance(imu, Mapping) else None
+    trackers = slimevr.get("trackers") if isinstance(slimevr, Mapping) else None
+    if isinstance(trackers, list):  # SlimeVR trackers are IMUs too (the viewer listed "none" while they streamed)
+        out.setdefault("imus", []).extend(
+            {"path": f"slimevr {t.get('id')}", "streaming": bool(t.get("connected")), "samples": t.get("packets"),
+             "disconnects": None}
+            for t in trackers
+            if isinstance(t, Mapping)
+        )  # fmt: skip
     tasks = health.get("tasks")
     if isinstance(tasks, Mapping):
         out["tasks"] = {k: v.get("failures", 0) for k, v in tasks.items() if isinstance(v, Mapping)}

@@ -27,6 +27,7 @@ from typing import Any
 from mocapd.io import lifecycle
 from mocapd.pipeline.detector_pool import detector_status
 from mocapd.service.config import Config
+from mocapd.service.config.udp import describe_streams
 from mocapd.service.daemon import Daemon, PoseSink, in_daemon_thread
 from mocapd.service.http_status import StatusServer
 from mocapd.service.metrics import render_metrics
@@ -125,6 +126,22 @@ def assemble(
         built.close()
         raise
     return Assembly(daemon, built, truth, recorder)
+
+
+def ready_lines(built: Assembly) -> list[str]:
+    """What ``mocapd run`` and the demos say at READY besides the status URL: the viewer, where each enabled UDP
+    stream goes, and the session being recorded with the commands that use it."""
+    lines = []
+    for sink in built.daemon.sinks:
+        viewer = getattr(sink, "viewer_url", None)
+        if viewer is not None:
+            lines.append(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}")
+    lines += describe_streams(built.daemon.config.udp)
+    if built.recorder is not None:
+        where = built.recorder.writer.directory
+        lines.append(f"recording the session to {where} (then `mocapd resolve {where}`, `mocapd export {where} "
+                     "--resolved --gltf take.glb`)")  # fmt: skip
+    return lines
 
 
 @contextlib.contextmanager

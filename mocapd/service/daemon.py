@@ -30,6 +30,7 @@ from mocapd.core.heading import yaw_quat
 from mocapd.core.heading_reset import ResetHistory, enu_turn, reset_yaws
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.people import PeopleTracker
+from mocapd.core.plausibility import first_events
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import quat_conjugate, quat_multiply, quat_normalize
 from mocapd.core.skeleton import Skeleton
@@ -190,6 +191,7 @@ class Daemon:
         self.reset_log: list[dict[str, Any]] = []
         self.still_drift = StillDrift()
         self._reset_timers: dict[str | None, asyncio.TimerHandle] = {}  # per suit: a reset asked, still waiting
+        self._implausible_said: set[tuple[str, str]] = set()  # (person, check) already warned about
         self._watch_gestures(config, rig.suits)
         #: more sections of /status (name -> provider), e.g. the camera demo's fake cameras
         self.status_extras: dict[str, Callable[[], Any]] = {}
@@ -511,6 +513,8 @@ class Daemon:
                     self.scheduler.imu_alignment_inputs(),
                     dict(self.scheduler.options.imu_offsets_ns),
                 )
+            for warning in first_events(self.scheduler.plausibility, self._implausible_said):
+                log.warning("%s", warning)
             line = self.status_line_text()
             self.notifier.notify(f"STATUS={line}")
             if self.status_line is not None:

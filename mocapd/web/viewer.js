@@ -21,7 +21,7 @@
   const state = {
     connected: false, connects: 0, hellos: 0, frames: 0, statusMessages: 0, errors: 0,
     hello: null, frame: null, shown: null, paused: false, status: null, colours: {}, rate: 0, lastError: null,
-    camerasOn: params.get("cameras") === "1", cameraMessages: 0, cams: {},
+    camerasOn: params.get("cameras") === "1", cameraMessages: 0, cams: {}, headingResets: 0, headingAsked: false,
   };
   const cam = { yaw: 0.6, pitch: 0.35, dist: 7.0, target: [0, 0.9, 0] };
   const FIT_FILL = 0.8, FIT_MIN_RADIUS = 1.0, FIT_TAU_S = 0.4, MIN_DIST = 1.0, MAX_DIST = 40.0;
@@ -306,6 +306,30 @@
   }
   document.getElementById("camsButton").addEventListener("click", () => setCameras(!state.camerasOn));
 
+  // Heading reset (docs/imu.md "Heading without cameras"): the daemon's WebSocket request, its answer said here.
+  function resetHeading() {
+    const msg = document.getElementById("headingMsg");
+    if (!socket || socket.readyState !== WebSocket.OPEN) {
+      msg.textContent = "not connected"; msg.className = "bad"; return;
+    }
+    state.headingAsked = true;
+    socket.send(JSON.stringify({ type: "reset_heading" }));
+    msg.textContent = "resetting…"; msg.className = "dim";
+  }
+  function onHeadingReset(m) {
+    state.headingResets += 1; state.headingAsked = false;
+    const said = Object.entries(m.suits || {}).map(([suit, r]) => {
+      const c = Object.values(r.corrections_deg || {}).map((d) => Math.abs(d));
+      const stale = (r.no_recent_sample || []).length;
+      return `${suit}: ${c.length} sensors turned, up to ${c.length ? Math.max(...c).toFixed(1) : "0"}°` +
+        (stale ? `, ${stale} without a recent sample` : "");
+    });
+    const msg = document.getElementById("headingMsg");
+    msg.textContent = said.length ? `heading reset · ${said.join(" · ")}` : "heading reset: no suit";
+    msg.className = said.length ? "ok" : "bad";
+  }
+  document.getElementById("headingButton").addEventListener("click", resetHeading);
+
   // ------------------------------------------------------------------------------------------ stream
   function connect() {
     const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/` +
@@ -334,7 +358,15 @@
         scheduleDraw();
       } else if (m.type === "camera") { onCamera(m); }
       else if (m.type === "status") { state.status = m; state.statusMessages += 1; updatePanel(); }
-      else if (m.type === "error") { state.errors += 1; state.lastError = m.message; }
+      else if (m.type === "heading_reset") { onHeadingReset(m); }
+      else if (m.type === "error") {
+        state.errors += 1; state.lastError = m.message;
+        if (state.headingAsked) {  // the answer to the reset: no suit, or a server without a daemon
+          state.headingAsked = false;
+          const msg = document.getElementById("headingMsg");
+          msg.textContent = `heading reset: ${m.message}`; msg.className = "bad";
+        }
+      }
     };
     ws.onclose = () => {
       if (socket !== ws) return;
@@ -390,6 +422,7 @@
     colourOf,
     get frames() { return state.frames; }, get connects() { return state.connects; },
     get connected() { return state.connected; },
+    resetHeading,
     setCameras,
     // Camera panels on screen: per camera the message drawn (and whether its image is drawn) and where its
     // canvas is (CSS px), so a test can map full-resolution pixels to the screen: x_css = left + x * scale_x.

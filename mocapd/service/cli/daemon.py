@@ -87,9 +87,13 @@ def _imu_notes(cfg: Config, path: object) -> list[str]:
         return []
     notes = []
     imu = cfg.imu
+    # Which table assigns this rig's sensors: Xsens (and bridge) ids in [imu.assignment], SlimeVR's in its own.
+    xsens = bool(imu.ports) or imu.awinda.experimental or imu.bridge.enabled
+    slime_only = imu.slimevr.enabled and not xsens
     if not imu.sensors:
+        table = "[imu.slimevr.assignment]" if slime_only else "[imu.assignment]"
         notes.append(
-            "[imu.assignment] is empty: say which sensor sits on which bone (`mocapd devices` lists Xsens ids; "
+            f"{table} is empty: say which sensor sits on which bone (`mocapd devices` lists Xsens ids; "
             "SlimeVR trackers are listed under imu.slimevr.trackers in /status once `mocapd run` hears them)"
         )
     suits = _suits(cfg)
@@ -97,11 +101,43 @@ def _imu_notes(cfg: Config, path: object) -> list[str]:
         names = ", ".join(f"{s.id} ({len(s.sensors)} sensors)" for s in suits)
         notes.append(f"suits calibrated in {imu.calibration_dir}/: {names}")
     else:
+        # An Xsens heading is the compass's: a facing heading off by δ turns every bone's frame by δ, and a knee then
+        # bends sideways (90°) or backwards (180°). SlimeVR trackers are heading-reset at calibration instead.
+        facing = "" if slime_only else " facing magnetic north"
+        other = "" if slime_only else (
+            " (facing elsewhere: that compass heading, or --facing-from SENSOR:AXIS with a sensor axis that points "
+            "forward; a wrong heading bends the knees sideways or backwards)")  # fmt: skip
         notes.append(
-            f"no suit is calibrated in {imu.calibration_dir}/ yet, so no pose is streamed: stand still in a T-pose and "
-            f"run `mocapd calibrate imu --config {path} --person NAME --facing-heading 0`"
+            f"no suit is calibrated in {imu.calibration_dir}/ yet, so no pose is streamed: stand still in a T-pose"
+            f"{facing} and run `mocapd calibrate imu --config {path} --person NAME --facing-heading 0`{other}"
         )
     return notes
+
+
+def _subject_notes(cfg: Config) -> list[str]:
+    """UDP streams that name a suit this rig has no calibration for (``suit:alice`` where the calibrated suit is
+    ``bob``): the config is valid, the daemon runs, and that stream never gets the pose it was set up for."""
+    u = cfg.udp
+    named: list[tuple[str, str]] = []  # (where, identity)
+    if u.vrchat.enabled and u.vrchat.subject:
+        named.append(("[udp.vrchat] subject", u.vrchat.subject))
+    for name, stream in (("mvn", u.mvn), ("vmc", u.vmc), ("rokoko", u.rokoko)):
+        if stream.enabled:
+            named += [(f"[udp.{name}] subjects", i) for i in stream.subjects or ()]
+    if u.mvn.enabled:
+        named += [("[udp.mvn] character_ids", i) for i in u.mvn.character_ids]
+    if u.rokoko.enabled:
+        named += [("[udp.rokoko] actor_names", i) for i in u.rokoko.actor_names]
+    named = [(where, i) for where, i in named if i.startswith("suit:")]
+    if not named:
+        return []
+    suits = {f"suit:{s.id}" for s in _suits(cfg)}
+    have = ", ".join(sorted(suits)) or f"none in {cfg.imu.calibration_dir}/"
+    return [
+        f"{where} names {i!r}, which is not a calibrated suit of this rig (suits: {have}): that stream never gets "
+        f"its pose; name one of them, or calibrate it (`mocapd calibrate imu --person {i.removeprefix('suit:')}`)"
+        for where, i in dict.fromkeys(named) if i not in suits
+    ]  # fmt: skip
 
 
 def _print_config_error(path: object, exc: ConfigError) -> None:
@@ -119,7 +155,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
         return 2
     try:
         check(cfg)
-        notes = _imu_notes(cfg, path)
+        notes = _imu_notes(cfg, path) + _subject_notes(cfg)
     except ConfigError as exc:
         if args.path is None and not cfg.cameras:
             # The shipped file is valid and describes no rig on purpose: a rig is the user's to write.
@@ -147,15 +183,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mocapd.service.assembly import RunOptions
 
     print(f"mocapd run: {_rig_summary(cfg)}", flush=True)
-    print("mocapd run: loading models, opening every device ...", flush=True)
+    for note in _imu_notes(cfg, path) + _subject_notes(cfg):  # what check-config says: why no pose streams
+        print(f"mocapd run: note: {note}", flush=True)
+    # An IMU-only rig loads no detector: "loading models" would be a wait for nothing to a user watching it start.
+    print(f"mocapd run: {'loading models, ' if cfg.cameras else ''}opening every device ...", flush=True)
+    if args.verbose:  # and what happens to the devices: each one streaming, trackers connecting, heading resets
+        import logging
+
+        logging.getLogger("mocapd").setLevel(logging.INFO)
 
     def ready(a: assembly.Assembly) -> None:
         print(f"ready: status {a.daemon.http.url}/status  metrics {a.daemon.http.url}/metrics  (Ctrl-C stops)",
               flush=True)  # fmt: skip
-        for sink in a.daemon.sinks:
-            viewer = getattr(sink, "viewer_url", None)
-            if viewer is not None:
-                print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
+        for line in assembly.ready_lines(a):
+            print(line, flush=True)
 
     async def main(stop: asyncio.Event) -> int:
         status_line = (lambda s: print(s, flush=True)) if args.verbose else None
@@ -303,7 +344,8 @@ def register(subparsers: Any) -> None:
     run.add_argument("--config", type=Path, default=None, help="config file (default: the shipped config.toml)")
     run.add_argument("--http-port", type=int, default=None, help="override daemon.http_port (0 = any free port)")
     run.add_argument("--record", type=Path, default=None, help=_RECORD_HELP)
-    run.add_argument("--verbose", action="store_true", help="print a status line per second")
+    run.add_argument("--verbose", action="store_true", help="print a status line per second, and each device "
+                     "that starts streaming, SlimeVR tracker that connects and heading reset")  # fmt: skip
     run.set_defaults(func=cmd_run, fast_exit=True)
 
     host = subparsers.add_parser("detect-host", help="a camera host: run its cameras and detector, publish the "

@@ -112,4 +112,10 @@ def render_tables(inv: Inventory, *, searched: tuple[str, ...] = ()) -> str:
         else:
             rows.append([r.port.device, r.info.serial, r.info.product_code, r.info.firmware, r.port.stable or "-"])
     out += _table(["port", "device id", "product code", "firmware", "stable path"], rows) if rows else ["  none"]
+    # SlimeVR trackers are on Wi-Fi and find their server by broadcasting to it: nothing here can list them, and a
+    # tracker owner following "from `mocapd devices` to a live avatar" would otherwise see no word about them.
+    out.append("SlimeVR trackers (Wi-Fi, not listed here: they connect to a running server):")
+    out.append("  set [imu.slimevr] enabled = true and host = this machine's LAN address, run `mocapd run --config "
+               "FILE --verbose` and switch them on: each is named as it connects, and each sensor's id for "
+               "[imu.slimevr.assignment] as it streams (also in /status imu.slimevr.trackers; docs/vr.md)")  # fmt: skip
     return "\n".join(out) + "\n"

@@ -37,6 +37,8 @@ def _segments(args: argparse.Namespace) -> dict[str, float]:
 
 
 def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    from mocapd.service.session.calibrate import calibrate_command
+
     imp = manifest["imported"]
     return {
         "session": str(path),
@@ -54,7 +56,7 @@ def _summary(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
         "assignment": imp["assignment"],
         "unassigned": sorted(set(imp["sensors"]) - set(imp["assignment"])),
         "skeleton": manifest["skeleton"]["from"],
-        "next": f"mocapd calibrate imu --from {path}  (the facing from the take's steps; or --facing-from SENSOR:AXIS)",
+        "next": calibrate_command(path, manifest),
     }
 
 
@@ -94,14 +96,23 @@ def _export_files(paths: list[Path]) -> list[Path]:
     return out
 
 
-def _note_unassigned(manifest: dict[str, Any]) -> None:
-    """Say which imported sensors have no bone: they are kept in the session, but nothing calibrates or solves them."""
+def _note_unassigned(manifest: dict[str, Any], automatic: bool = False) -> None:
+    """Say which imported sensors have no bone: they are kept in the session, but nothing calibrates or solves them.
+    ``automatic``: the bones came from an MVNX file's segment labels (no ``--assign``)."""
     imp = manifest["imported"]
     extra = sorted(set(imp["sensors"]) - set(imp["assignment"]))
-    if extra:
-        print(f"note: {len(extra)} sensor(s) have no bone, kept in the session but not calibrated or solved: "
-              f"{', '.join(extra)}; give each a bone with --assign SENSOR=BONE, or leave its file out",
-              file=sys.stderr)  # fmt: skip
+    if not extra:
+        return
+    if automatic:
+        # MVN's own segments, assigned automatically: the ones left have no bone of mocapd's (the shoulders'
+        # clavicle sensors), and an --assign would replace the automatic assignment of every other sensor.
+        labels = ", ".join(f"{sid} ({imp['sensors'][sid].get('label', '?')})" for sid in extra)
+        print(f"note: {len(extra)} sensor(s) on segments mocapd's skeleton does not have, kept in the session but "
+              f"not calibrated or solved: {labels}", file=sys.stderr)  # fmt: skip
+        return
+    print(f"note: {len(extra)} sensor(s) have no bone, kept in the session but not calibrated or solved: "
+          f"{', '.join(extra)}; give each a bone with --assign SENSOR=BONE, or leave its file out",
+          file=sys.stderr)  # fmt: skip
 
 
 def cmd_import_mvnx(args: argparse.Namespace) -> int:
@@ -127,7 +138,7 @@ def cmd_import_mvnx(args: argparse.Namespace) -> int:
         segments=_segments(args),
     )
     path = write_imported_session(args.output, streams, manifest)
-    _note_unassigned(manifest)
+    _note_unassigned(manifest, automatic=not args.assign)
     print(json.dumps(_summary(path, manifest), indent=2))
     return 0
 

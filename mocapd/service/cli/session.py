@@ -21,6 +21,7 @@ from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.protocols.session_format import PoseRecord
 from mocapd.service.cli.numbers import number
 from mocapd.service.config import Config, load_config
+from mocapd.service.config.udp import describe_streams
 from mocapd.service.daemon import PoseSink
 
 
@@ -116,6 +117,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
                   flush=True)  # fmt: skip
 
     print(f"mocapd replay: {len(frames)} frames through {len(sinks) - 1} sink(s) at {args.speed:g}x", flush=True)
+    for line in describe_streams(cfg.udp):  # where the engines' streams go, as `mocapd run` says it
+        print(line, flush=True)
 
     async def main(stop: asyncio.Event) -> ReplayStats:
         lifecycle.enter_phase("replaying")
@@ -128,7 +131,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_resolve(args: argparse.Namespace) -> int:
     from mocapd.io.progress import Progress
-    from mocapd.service.session.solve import ResolveOptions, resolve, session_rig, solve_times, write_resolved
+    from mocapd.service.session.solve import (
+        ResolveOptions,
+        resolve,
+        session_rig,
+        solve_times,
+        suit_sensors,
+        write_resolved,
+    )
     from mocapd.service.session.truth import synthetic_of, truth_report
 
     if args.output is not None:  # the default, SESSION/poses-resolved.mcs, is the session's own: renewed
@@ -145,7 +155,7 @@ def cmd_resolve(args: argparse.Namespace) -> int:
         if needed:
             session.require_stream(stream)
     opts = ResolveOptions(max_iterations=args.iterations, smooth=not args.no_smooth)
-    n_frames = len(solve_times(session, rig.options.rate_hz))
+    n_frames = len(solve_times(session, rig.options.rate_hz, suit_sensors(rig.suits)))
     # A stop signal raises StopRequested here: the output is written at the end, atomically (exit 128 + the signal).
     lifecycle.enter_phase("re-solving the session (nothing written yet)")
     with Progress(n_frames, "resolve") as bar:
@@ -166,7 +176,15 @@ def cmd_resolve(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from mocapd import __version__
     from mocapd.io.progress import Progress
-    from mocapd.io.session_export import resample, subject_track, subjects, write_bvh, write_csv, write_gltf
+    from mocapd.io.session_export import (
+        FLEETING_S,
+        lasting_subjects,
+        resample,
+        subject_track,
+        write_bvh,
+        write_csv,
+        write_gltf,
+    )
     from mocapd.service.session.solve import session_rig
 
     if args.bvh is None and args.csv is None and args.gltf is None and args.fbx is None:
@@ -193,9 +211,16 @@ def cmd_export(args: argparse.Namespace) -> int:
         return rig[0]
 
     lifecycle.enter_phase("exporting")  # a stop signal unwinds the export (exit 128 + the signal)
-    # glTF: every subject unless one is named; BVH and CSV: one subject (default: the one seen most).
-    everyone = [args.subject] if args.subject is not None else sorted(subjects(poses))
+    # glTF/FBX: every subject but fleeting tracks, unless one is named; BVH and CSV: one (default: the one seen most).
+    everyone, fleeting = ([args.subject], {}) if args.subject is not None else lasting_subjects(poses)
     many = args.gltf is not None or args.fbx is not None  # every subject resampled, once for both
+    if many:
+        for who, seen in fleeting.items():
+            print(
+                f"note: {who} left out of the glTF/FBX: seen for {seen}, under {FLEETING_S:g} s (a fleeting track, "
+                f"which would stand frozen through the take); --subject {who} exports it",
+                file=sys.stderr,
+            )
     steps = 1 + sum(f is not None for f in (args.bvh, args.csv)) + (len(everyone) + 1 if many else 0)
     with Progress(steps, "export") as bar:
         track = resample(subject_track(poses, args.subject), args.rate)
@@ -232,6 +257,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             out["fbx_nodes"], out["fbx_blender"] = report["nodes"], report["blender"]
         if many:
             bar(1)
+            if fleeting:
+                out["left_out"] = fleeting
     print(json.dumps(out))
     return 0
 

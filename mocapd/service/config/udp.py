@@ -252,3 +252,27 @@ class UdpConfig(Section):
                         values=([str(x) for x in dests], True),
                     )
         return self
+
+
+def describe_streams(udp: UdpConfig) -> list[str]:
+    """One line per enabled UDP stream, where it goes: what ``mocapd run`` and the demos print at READY, so that a
+    stream turned on in the config is seen to be on (and a receiver on another port is seen to be missed)."""
+
+    def to(dests: tuple[Destination, ...]) -> str:
+        return ", ".join(str(d) for d in dests)
+
+    def who(subjects: tuple[str, ...] | None) -> str:
+        return "every subject" if subjects is None else ", ".join(subjects)
+
+    lines = []
+    if udp.mvn.enabled:
+        lines.append(f"MVN network stream (Xsens plugins) to {to(udp.mvn.destinations)}: {who(udp.mvn.subjects)}")
+    if udp.vmc.enabled:
+        avatars = "a subject per avatar" if udp.vmc.subjects is None else who(udp.vmc.subjects)
+        lines.append(f"VMC (OSC) avatars to {to(udp.vmc.destinations)}: {avatars}")
+    if udp.vrchat.enabled:
+        lines.append(f"VRChat OSC trackers to {udp.vrchat.destination}: {udp.vrchat.subject or 'the first subject'}")
+    if udp.rokoko.enabled:
+        lines.append(f"Rokoko Studio Live ({udp.rokoko.compression}) to {to(udp.rokoko.destinations)}: "
+                     f"{who(udp.rokoko.subjects)} as actors")  # fmt: skip
+    return lines

@@ -115,12 +115,8 @@ def run(config: Config, seconds: float | None, record: str | Path | None = None)
             url = a.daemon.http.url
             a.daemon.status_line_extras.append(truth.status_field)
             print(f"ready: status {url}/status  metrics {url}/metrics  (Ctrl-C stops)", flush=True)
-            for sink in a.daemon.sinks:
-                viewer = getattr(sink, "viewer_url", None)
-                if viewer is not None:
-                    print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
-                if getattr(sink, "name", "") == "vrchat":
-                    print(f"VRChat OSC trackers to {rig.config.udp.vrchat.destination}", flush=True)
+            for line in assembly.ready_lines(a):
+                print(line, flush=True)
 
         async def main() -> int:
             stop = asyncio.Event()

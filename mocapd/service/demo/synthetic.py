@@ -52,10 +52,8 @@ async def run_synthetic(
         holder.append(a)
         url = a.daemon.http.url
         print(f"ready: status {url}/status  metrics {url}/metrics  (Ctrl-C stops)", flush=True)
-        for sink in a.daemon.sinks:
-            viewer = getattr(sink, "viewer_url", None)
-            if viewer is not None:
-                print(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}", flush=True)
+        for line in assembly.ready_lines(a):
+            print(line, flush=True)
 
     code = await assembly.run(config, options, monitor=monitor, seconds=seconds, stop=stop, on_ready=ready)
     return code, holder[0] if holder else None

@@ -39,14 +39,46 @@ from mocapd.core.imu_calibration import (
     calibrate_recording,
     calibration_hinges,
     facing_heading_from_steps,
+    has_step_sensors,
     parse_assignment,
     stillest_common_window,
 )
 from mocapd.core.plausibility import HingeEvents
 from mocapd.errors import CalibrationError, ConfigError
+from mocapd.io.mvnx import MVN_FACING_HEADING_DEG
 from mocapd.io.session import MANIFEST, Session, write_json_atomic
 
 FloatArray = NDArray[np.float64]
+
+
+_NO_STEPS = "the take has no thigh and shank sensors on one leg to take the facing from its steps"
+_MVN_FORWARD = "MVN's forward: where the wearer faced at MVN's calibration"
+
+
+def _is_mvnx(manifest: dict[str, Any]) -> bool:
+    return bool(manifest.get("imported", {}).get("from") == "mvnx")
+
+
+def _mvn_facing(manifest: dict[str, Any]) -> str:
+    """For an MVNX take, the facing MVN gives (:data:`~mocapd.io.mvnx.MVN_FACING_HEADING_DEG`): the end of a refusal
+    that asks for one."""
+    return (
+        f"; for this MVNX take --facing-heading {MVN_FACING_HEADING_DEG:g} ({_MVN_FORWARD})"
+        if _is_mvnx(manifest)
+        else ""
+    )
+
+
+def calibrate_command(path: object, manifest: dict[str, Any]) -> str:
+    """The ``calibrate imu --from`` command to type next for an imported session, with the facing argument it needs
+    when the take's steps cannot give it."""
+    if has_step_sensors(manifest.get("config", {}).get("imu", {}).get("assignment", {})):
+        return f"mocapd calibrate imu --from {path}  (the facing from the take's steps; or --facing-from SENSOR:AXIS)"
+    if _is_mvnx(manifest):
+        heading = f"--facing-heading {MVN_FACING_HEADING_DEG:g}"
+        return f"mocapd calibrate imu --from {path} {heading}  ({_MVN_FORWARD}; {_NO_STEPS})"
+    return (f"mocapd calibrate imu --from {path} --facing-heading DEG  (the compass heading faced; or "
+            f"--facing-from SENSOR:AXIS, a sensor axis that points forward: {_NO_STEPS})")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -129,7 +161,7 @@ def calibrate_session(
             raise ConfigError(
                 f"{session.path}: no facing direction: the take has no steps to take it from (it needs a thigh and a "
                 "shank sensor on one leg and knees that bend); give --facing-from SENSOR:AXIS (a sensor axis that "
-                "points forward while standing) or --facing-heading DEG"
+                "points forward while standing) or --facing-heading DEG" + _mvn_facing(session.manifest)
             )
         source = "steps"
 

@@ -210,19 +210,86 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
     return sched, ingest
 
 
-def solve_times(session: Session, rate_hz: float) -> NDArray[np.int64]:
+def solve_times(session: Session, rate_hz: float, sensors: tuple[str, ...] = ()) -> NDArray[np.int64]:
     """Every output tick from the first to the last recorded frame, the ticks the live daemon missed included;
     a grid at ``rate_hz`` over the keypoints when no frame was recorded, over the IMU samples when there are no
-    keypoints either (an imported IMU recording: ``mocapd import``)."""
+    keypoints either (an imported IMU recording: ``mocapd import``): then over the span every one of the suits'
+    ``sensors`` covers (:func:`imu_coverage`), where the take has such a span."""
     period = round(1e9 / rate_hz)
     t = np.array([f.t_solve_ns for f in session.poses()], dtype=np.int64)
     if t.size == 0:
         t = np.array([k.capture_ns for k in session.keypoints()], dtype=np.int64)
     if t.size == 0:
-        t = np.array([r.t_ns for r in session.imu() if r.t_ns >= 0], dtype=np.int64)
-        if t.size == 0:
-            return t
+        coverage = imu_coverage(session)
+        if not coverage:
+            return np.zeros(0, dtype=np.int64)
+        t = np.array([t for span in coverage.values() for t in span], dtype=np.int64)
+        common = common_span(coverage, sensors)
+        if common is not None:
+            t = np.array(common, dtype=np.int64)
     return np.arange(int(t.min()), int(t.max()) + 1, period, dtype=np.int64)
+
+
+def suit_sensors(suits: list[Suit]) -> tuple[str, ...]:
+    """Every sensor of the suits, in suit order."""
+    return tuple(sid for suit in suits for sid in suit.sensors)
+
+
+def span_notes(session: Session, suits: list[Suit]) -> list[str]:
+    """For an imported take (no recorded poses, no keypoints) whose suit sensors end (or start) at different
+    moments: which span :func:`solve_times` solves, and which sensors bound it (seconds of the take)."""
+    if not suits or session.poses() or session.keypoints():
+        return []
+    coverage = imu_coverage(session)
+    if not coverage:
+        return []
+    first, last = min(a for a, _ in coverage.values()), max(b for _, b in coverage.values())
+    origin = session.manifest.get("started_monotonic_ns")
+    origin = origin if isinstance(origin, int) and not isinstance(origin, bool) else first
+    notes = []
+    for suit in suits:
+        common = common_span(coverage, suit.sensors)
+        if common is None or (common[0] - first < 20_000_000 and last - common[1] < 20_000_000):
+            continue  # all within two samples of a 100 Hz take: nothing left out worth saying
+
+        have = [s for s in suit.sensors if s in coverage]
+        starts = max(have, key=lambda s: coverage[s][0])
+        ends = min(have, key=lambda s: coverage[s][1])
+        bounds = []
+        if common[0] - first >= 20_000_000:
+            bounds.append(f"{starts} ({suit.calibration.bones.get(starts, '?')}) starts "
+                          f"{(common[0] - first) / 1e9:.2f} s after the first sample")  # fmt: skip
+        if last - common[1] >= 20_000_000:
+            bounds.append(f"{ends} ({suit.calibration.bones.get(ends, '?')}) ends "
+                          f"{(last - common[1]) / 1e9:.2f} s before the take's last sample")  # fmt: skip
+        notes.append(f"suit:{suit.id}: solved {(common[0] - origin) / 1e9:.2f}-{(common[1] - origin) / 1e9:.2f} s "
+                     f"of the take, the span all {len(have)} of its sensors cover ({'; '.join(bounds)})")  # fmt: skip
+    return notes
+
+
+def imu_coverage(session: Session) -> dict[str, tuple[int, int]]:
+    """Per sensor of the session's IMU stream: the buffer times of its first and last usable sample (ns)."""
+    out: dict[str, tuple[int, int]] = {}
+    for r in session.imu():
+        if r.t_ns < 0:
+            continue
+        first, last = out.get(r.sensor, (r.t_ns, r.t_ns))
+        out[r.sensor] = (min(first, r.t_ns), max(last, r.t_ns))
+    return out
+
+
+def common_span(coverage: dict[str, tuple[int, int]], sensors: tuple[str, ...]) -> tuple[int, int] | None:
+    """The span all of ``sensors`` that have samples cover (ns): from the latest first sample to the earliest last.
+
+    The sensors of one recording stop at different moments (MT Manager's exports of wireless MTw sensors end up to
+    a second apart); solving beyond one sensor's end solves its bone from the prior, and the stance foot's contact
+    from one leg: the tail of an imported take lurched and sank by centimetres. None: no such sensor, or they
+    never overlap."""
+    spans = [coverage[s] for s in sensors if s in coverage]
+    if not spans:
+        return None
+    lo, hi = max(a for a, _ in spans), min(b for _, b in spans)
+    return (lo, hi) if lo <= hi else None
 
 
 def imu_times(records: list[ImuRecord], refit: bool = True) -> list[tuple[int, ImuRecord]]:
@@ -264,7 +331,7 @@ def forward_resolve(
     ik = ii = 0
     row = np.full(9, np.nan)
     out = []
-    for t in solve_times(session, o.rate_hz):
+    for t in solve_times(session, o.rate_hz, suit_sensors(rig.suits)):
         while ik < len(kps) and kps[ik].capture_ns <= t + ahead:
             k = kps[ik]
             sched.add_detections(k.camera, k.capture_ns, Detections2D(k.keypoints, k.confidences), k.arrival_ns)
@@ -397,8 +464,9 @@ def resolve(
     with 1 per frame of the forward pass."""
     opts = opts or ResolveOptions()
     frames = forward_resolve(session, opts, progress)
+    rig = session_rig(session)
     if opts.smooth:
-        frames = smooth_frames(frames, session_rig(session).skeleton, opts)
+        frames = smooth_frames(frames, rig.skeleton, opts)
     monitors = plausibility(frames)
     summary = {
         "frames": len(frames),
@@ -407,8 +475,9 @@ def resolve(
         "imu_samples": session.reports["imu"].records - 1 if "imu" in session.reports else 0,
         "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__},
         "plausibility": {identity: m.status() for identity, m in sorted(monitors.items())},
-        "notes": [f"{identity}: {line}" for identity, m in sorted(monitors.items()) for line in m.summary_lines()],
-    }
+        "notes": [*span_notes(session, rig.suits),
+                  *(f"{identity}: {line}" for identity, m in sorted(monitors.items()) for line in m.summary_lines())],
+    }  # fmt: skip
     return frames, summary
 
 
