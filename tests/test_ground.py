@@ -51,7 +51,7 @@ def test_standing_feet_hold_the_root_and_the_floor_is_two_sided() -> None:
     rng = np.random.default_rng(0)
     g = GroundTracker(HEIGHTS, 0.0, GroundOptions())
     rel = _feet((0.1, -0.93, 0.0), (-0.1, -0.93, 0.0))
-    nan2 = np.full(2, np.nan)
+    nan2 = np.full((2, 3), np.nan)
     root, _ = g.step(np.array([0.3, 1.5, 0.2]), rel, 0, 1 / 60, nan2)
     assert root[1] == pytest.approx(1.0, abs=1e-9)  # the ankle 0.93 m below the root at its standing height 0.07
     start = root.copy()
@@ -68,7 +68,7 @@ def test_a_step_hands_the_weight_to_the_landing_foot() -> None:
     """The left foot stands; the right swings forward 60 cm and lands lower: the root follows the stance foot, then
     the right foot takes over where it landed, and the left lifts."""
     g = GroundTracker(HEIGHTS, 0.0, GroundOptions())
-    nan2 = np.full(2, np.nan)
+    nan2 = np.full((2, 3), np.nan)
     root, _ = g.step(np.zeros(3), _feet((0.1, -0.93, 0.0), (-0.1, -0.93, 0.0)), 0, 1 / 60, nan2)
     # The body moves forward over the planted left foot (its foot goes back relative to the root).
     for k in range(1, 31):
@@ -120,7 +120,7 @@ def test_a_foot_rolling_over_its_sole_holds_the_root_where_the_body_is() -> None
     the root goes exactly where the body goes, whatever the solve's own root says."""
     world, root = _rolling_foot()
     g = GroundTracker(np.zeros((2, 2)), 0.0, GroundOptions(pivot_hysteresis=1e-4))
-    nan2 = np.full(2, np.nan)
+    nan2 = np.full((2, 3), np.nan)
     swing = np.array([[0.1, 0.12, 0.0], [0.1, 0.12, 0.14]])  # the other foot, in the air
     got, pivots = [], []
     for i in range(len(world)):
@@ -186,7 +186,7 @@ def test_cameras_coming_back_blend_the_published_root() -> None:
     by at most ``blend_step`` per frame, and the kept (warm-start) root is the cameras' at once."""
     g = GroundTracker(HEIGHTS, 0.0, GroundOptions(blend_step=0.01))
     rel = _feet((0.1, -0.93, 0.0), (-0.1, -0.93, 0.0))
-    nan2 = np.full(2, np.nan)
+    nan2 = np.full((2, 3), np.nan)
     root, pub = g.step(np.zeros(3), rel, 0, 1 / 60, nan2)
     camera_root = root + np.array([0.2, 0.0, -0.1])
     last = pub
