@@ -32,8 +32,9 @@ its toes. :class:`GroundTracker`
    5-14 % short;
 4. **places the root's height between two bounds.** No sole point goes through the floor (the lowest sole point of
    the feet on it is the lowest the root may be), and unless airborne some part of a foot touches it: at most as high
-   as puts the lowest *toe tip* (:func:`sole_points`: straight toes, on the foot bone) on the floor. Flat on the floor
-   the two bounds are one; on the toes (a bouncy walk's push-off, a run) the toes bend, nothing measures them, and the
+   as puts the lowest *toe tip* (:func:`sole_points`: straight toes, on the foot bone, bent up at the ball by
+   ``toe_bend``: a foot pitched heel-up by less holds its toes flat) on the floor. Flat on the floor the two bounds
+   are one; on the toes (a bouncy walk's push-off, a run) the toes bend, nothing measures them, and the
    hips sensor's vertical acceleration integrated places the root between the bounds; in the air (flight phases,
    hops) it follows that acceleration alone until a foot lands.
 
@@ -135,6 +136,11 @@ class GroundOptions:
     toe_length: float = 0.04
     """Fraction of the body height: how far beyond the ball of the foot the toes reach (7 cm at 1.75 m; a foot is
     about 0.15 of the height long, its ball about 0.73 of that from the heel)."""
+    toe_bend: float = 15.0
+    """degrees: how far a foot pitches heel-up before its straight toes would lift the ball (and the root may rise
+    above the ball on the floor). The toes bend at the ball, and a few degrees of pitch are the solved foot's error
+    (a 5° mounting calibration error tips a rigid toe tip 6 mm below the ball) or a standing foot's roll, not a rise
+    onto the toes: with a rigid toe tip the root of a punching clip stood up to 1.8 cm high."""
     velocity_decay_s: float = 0.5
     """s: with no foot planted and no hips sensor, the time constant of the horizontal velocity's decay."""
     velocity_gain: float = 0.3
@@ -486,8 +492,7 @@ class GroundTracker:
         lowest = self.floor - float(self._lows(rel).min())
         highest = lowest
         if tips.shape[1]:
-            reach = tips[:, :, 1] - self.heights[:, self.heights.shape[1] - self.reach :]
-            highest = max(lowest, self.floor - min(float(self._lows(rel).min()), float(reach.min())))
+            highest = max(lowest, self.floor - min(float(self._lows(rel).min()), float(self._reach(rel, tips).min())))
         if self.height is None or dt <= 0:
             self.height, self.vertical = lowest, 0.0
             return lowest
@@ -498,6 +503,17 @@ class GroundTracker:
         self.vertical = (y - self.height) / dt if y != guess else self.vertical + ay * dt
         self.height = y
         return y
+
+    def _reach(self, rel: FloatArray, tips: FloatArray) -> FloatArray:
+        """How low each foot's toe tips reach (against their standing heights, relative to the root), shape (2, r):
+        the straight toes' tip turned up at the ball by ``toe_bend`` (a foot pitched heel-up less than that holds
+        its toes flat, at the ball's height)."""
+        ball = rel[:, -1:, 1] - self.heights[:, rel.shape[1] - 1 : rel.shape[1]]  # (2, 1): the last sole point
+        tip = tips[:, :, 1] - self.heights[:, self.heights.shape[1] - self.reach :]
+        length = np.maximum(np.linalg.norm(tips - rel[:, -1:], axis=-1), 1e-9)
+        pitch = np.arcsin(np.clip((ball - tip) / length, -1.0, 1.0))  # heel-up positive
+        bend = math.radians(self.options.toe_bend)
+        return np.asarray(ball - length * np.sin(np.maximum(pitch - bend, 0.0)))
 
     def _update_feet(self, root: FloatArray, rel: FloatArray, follow: bool, airborne: bool = False) -> None:
         """Plant, lift and re-pivot each foot at the world positions ``root + rel``.
