@@ -7,8 +7,8 @@ feet up. A warm start that extrapolates the root's velocity then turns every upw
 decays: on a real MTw recording the root floated from 0.93 m to 2.57 m in 25 s.
 
 IMU-only motion capture places the root the way people walk: a planted foot does not move. Each foot touches the floor
-at its sole (:func:`sole_points`: the heel and the ball of the foot, issue 28) and reaches down at most to the tip of
-its toes. :class:`GroundTracker`
+at its sole (:func:`sole_points`: the heel and the ball of the foot, issue 28) and, past heel-off, at the tip of its
+toes, which bend up at the ball (no sensor measures them). :class:`GroundTracker`
 
 1. **weighs the feet.** The lower foot carries the body: each foot's *support* is a logistic of the two feet's
    height difference (every point measured against its standing height, its height in the skeleton's rest pose,
@@ -25,11 +25,13 @@ its toes. :class:`GroundTracker`
    whose support stays below ``free_weight`` for ``hold_s`` is lifted, at once when airborne. A foot put down again at
    once, close by, returns to its old anchor, so noise that briefly lifts a standing foot does not move it;
 3. **anchors the root.** A planted foot's pivot (its lowest point: the heel after heel strike, passing to the ball at
-   heel-off, and back as the foot rocks; a point taken up again in the same stance returns to where it was held) stays
+   heel-off and to the toe tip at push-off once the foot pitches beyond ``toe_bend``, and back as the foot rocks; a
+   point taken up again in the same stance returns to where it was held) stays
    where it was planted; the root translation is the support-weighted mean of what puts each planted pivot on its
    anchor under the solved rotations. The pivot must be on the sole: a foot turning about a joint 5-7 cm above the
    floor (the ankle and toe joints, used before issue 28) drags the body back at each rocker, and strides came out
-   5-14 % short;
+   5-14 % short; held at the ball through push-off, the real walk against Vicon still came out 6 % short (3.7 % with
+   the toe rocker);
 4. **places the root's height between two bounds.** No sole point goes through the floor (the lowest sole point of
    the feet on it is the lowest the root may be), and unless airborne some part of a foot touches it: at most as high
    as puts the lowest *toe tip* (:func:`sole_points`: straight toes, on the foot bone, bent up at the ball by
@@ -82,11 +84,13 @@ FOOT_POINTS: tuple[tuple[str, str], tuple[str, str]] = (("LeftFoot", "LeftToes")
 SOLE_POINTS = ("heel", "ball", "toe_tip")
 """Where a foot touches the floor: the sole under and behind the ankle joint (the heel rocker) and under the toe
 joint (the forefoot rocker, at the ball of the foot), both on the foot bone; the stance foot rolls from one to the
-other and is held at them. Beyond the ball the tip of the straight toes (also on the foot bone: no sensor measures
-the toes, which bend up at push-off) only bounds how high the root may stand (:class:`GroundTracker`, ``reach``)."""
+other and is held at them. Beyond the ball, the tip of the straight toes (also on the foot bone): no sensor measures
+the toes, which lie flat on the floor as the heel rises and bend up at the ball, so the tracker bends this point up
+by ``toe_bend`` (the toe rocker at push-off: :class:`GroundTracker`, ``reach``)."""
 
 REACH_POINTS = 1
-"""How many of :data:`SOLE_POINTS` (the last ones) only bound the root's height: the toe tip."""
+"""How many of :data:`SOLE_POINTS` (the last ones) are toe tips: bent up at the ball before they hold a foot, and
+between the sole on the floor and them the root's height is free."""
 
 FOOT_SENSOR_BONES = ("LeftFoot", "RightFoot")
 
@@ -228,8 +232,9 @@ class GroundTracker:
         World y of the floor (m).
     options : GroundOptions
     reach : int
-        How many of the k points (the last ones, :data:`REACH_POINTS`: the toe tips) only bound the root's height
-        from above; the others are sole points that hold a foot and that the floor holds up.
+        How many of the k points (the last ones, :data:`REACH_POINTS`) are the straight toes' tips: bent up at the ball
+        by ``toe_bend`` they hold a foot as the others do, and bound the root's height from above only (the toes
+        bend, nothing measures them); the others are sole points that hold a foot and that the floor holds up.
     """
 
     def __init__(
@@ -327,6 +332,8 @@ class GroundTracker:
         solved = np.asarray(solved_root, dtype=np.float64)
         sites = np.full((2, 3), np.nan) if foot_sites is None else np.asarray(foot_sites, dtype=np.float64)
         frame = _Frame(rel, rel - sites[:, None, :], np.asarray(foot_acc, dtype=np.float64).reshape(2, 3))
+        # The points a planted foot can pivot on: the sole, and the toe tips where the toes are bent.
+        piv = np.concatenate([rel, self._toe_tips(rel, tips)], axis=1)
         self._weigh(frame, dt, solved + rel if absolute else None)
         if absolute:
             root = solved.copy()
@@ -343,15 +350,15 @@ class GroundTracker:
                 self.offset = np.zeros(3)
             elif self.mode is None:  # a fresh start: the feet stand where the solve put them
                 self.root = solved.copy()
-                self._update_feet(self.root, rel, follow=True)
-            root = self._anchored_root(rel, tips, dt, predicted, acc, airborne)
+                self._update_feet(self.root, piv, follow=True)
+            root = self._anchored_root(rel, tips, dt, predicted, acc, airborne, piv)
             if lost:
                 # The pose itself changes when the cameras stop correcting the IMUs' mounting errors (the legs can
                 # swing by centimetres), and the feet were not at the floor model's height: publish on from where
                 # the root was, blending to the estimate, rather than stepping.
                 self.offset = self.root + predicted * dt - root
         supported = any(f.planted for f in self.feet) or absolute
-        self._update_feet(root, rel, follow=absolute, airborne=airborne)
+        self._update_feet(root, piv, follow=absolute, airborne=airborne)
         if dt > 0 and self.mode is not None and supported:
             self.velocity = predicted + o.velocity_gain * ((root - self.root) / dt - predicted)
         else:
@@ -470,13 +477,14 @@ class GroundTracker:
         velocity: FloatArray,
         root_acc: FloatArray | None,
         airborne: bool,
+        piv: FloatArray,
     ) -> FloatArray:
         """The root that keeps the planted feet's pivots on their anchors (weighted), with no foot planted moving on
         at the predicted velocity; its height between the floor's bounds (:meth:`_height`)."""
         planted = [(f, foot) for f, foot in enumerate(self.feet) if foot.planted]
         if planted:
             w = np.array([foot.weight for _, foot in planted]) + 1e-9
-            c = np.array([foot.anchor - rel[f, foot.pivot] for f, foot in planted])
+            c = np.array([foot.anchor - piv[f, foot.pivot] for f, foot in planted])
             root = (w[:, None] * c).sum(axis=0) / w.sum()
         else:
             root = self.root + velocity * dt
@@ -504,16 +512,23 @@ class GroundTracker:
         self.height = y
         return y
 
+    def _toe_tips(self, rel: FloatArray, tips: FloatArray) -> FloatArray:
+        """The toe tips, bent up at the ball by ``toe_bend`` (flat on the floor while the foot pitches heel-up by
+        less: the toes lie on the floor while the heel rises), relative to the root, shape (2, r, 3); ``tips`` are
+        the straight toes' tips (on the foot bone)."""
+        ball = rel[:, -1:]
+        v = tips - ball
+        length = np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+        h = v * np.array([1.0, 0.0, 1.0])
+        hn = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-9)
+        pitch = np.arcsin(np.clip(-v[..., 1:2] / length, -1.0, 1.0))
+        p2 = np.maximum(pitch - math.radians(self.options.toe_bend), 0.0)
+        return np.asarray(ball + length * (hn * np.cos(p2) - np.array([0.0, 1.0, 0.0]) * np.sin(p2)))
+
     def _reach(self, rel: FloatArray, tips: FloatArray) -> FloatArray:
-        """How low each foot's toe tips reach (against their standing heights, relative to the root), shape (2, r):
-        the straight toes' tip turned up at the ball by ``toe_bend`` (a foot pitched heel-up less than that holds
-        its toes flat, at the ball's height)."""
-        ball = rel[:, -1:, 1] - self.heights[:, rel.shape[1] - 1 : rel.shape[1]]  # (2, 1): the last sole point
-        tip = tips[:, :, 1] - self.heights[:, self.heights.shape[1] - self.reach :]
-        length = np.maximum(np.linalg.norm(tips - rel[:, -1:], axis=-1), 1e-9)
-        pitch = np.arcsin(np.clip((ball - tip) / length, -1.0, 1.0))  # heel-up positive
-        bend = math.radians(self.options.toe_bend)
-        return np.asarray(ball - length * np.sin(np.maximum(pitch - bend, 0.0)))
+        """How low each foot's toe tips (:meth:`_toe_tips`) reach, against their standing heights, relative to the
+        root, shape (2, r)."""
+        return np.asarray(self._toe_tips(rel, tips)[:, :, 1] - self.heights[:, self.heights.shape[1] - self.reach :])
 
     def _update_feet(self, root: FloatArray, rel: FloatArray, follow: bool, airborne: bool = False) -> None:
         """Plant, lift and re-pivot each foot at the world positions ``root + rel``.
