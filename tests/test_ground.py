@@ -260,6 +260,22 @@ def test_a_foot_barely_off_its_heel_stands_on_its_ball() -> None:
         assert got[1] == pytest.approx(0.95, abs=1e-9)
 
 
+def test_the_stiller_foot_stands_however_both_accelerate() -> None:
+    """Issue 28: the acceleration cue says which foot stands, not whether one does. A standing foot measures
+    accelerations too (rolling over its toes, a bumpy stance, a noisy sensor: here 20 m/s²) while the other swings
+    at 40 m/s² above it; judged on its own, the standing foot was lifted and the body coasted (development backward
+    walks -6 … -11 %). Without a hips sensor the root must stay on the standing foot."""
+    g = GroundTracker(HEIGHTS, 0.0, GroundOptions())
+    dt = 1 / 60
+    root = np.array([0.0, 1.0, 0.0])
+    for k in range(60):
+        rel = _feet((0.1, -0.93, -0.3 * k * dt), (-0.1, -0.85, 0.2))  # the body moves on at 0.3 m/s
+        acc = np.array([[20.0, 0.0, 0.0], [0.0, 40.0, 0.0]]) if k >= 10 else np.zeros((2, 3))
+        root, _ = g.step(root, rel, 0, dt, acc)
+        assert g.planted[0]
+    assert root[2] == pytest.approx(0.3 * 59 * dt, abs=1e-6)
+
+
 def test_a_foot_turning_on_its_heel_stands() -> None:
     """A foot pivoting about its heel (toes up, turning on the spot) accelerates its sensor, 11 cm from the heel, by
     up to 25 m/s², but not its heel: the acceleration that says a foot moves is its contact point's (the sensor's
