@@ -20,7 +20,14 @@ from numpy.typing import NDArray
 
 from mocapd.core import _kernel
 from mocapd.core.camera import Camera, stack_cameras, triangulate
-from mocapd.core.ground import FOOT_SENSOR_BONES, GroundOptions, GroundTracker, sole_points, standing_heights
+from mocapd.core.ground import (
+    FOOT_SENSOR_BONES,
+    REACH_POINTS,
+    GroundOptions,
+    GroundTracker,
+    sole_points,
+    standing_heights,
+)
 from mocapd.core.imu import ImuMount
 from mocapd.core.keypoints import TrackTargets, coco17_targets, floor_targets
 from mocapd.core.kinematics import FKState, Kinematics
@@ -28,7 +35,7 @@ from mocapd.core.lm import LMOptions, Termination, levenberg_marquardt
 from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss, corrector_weights
 from mocapd.core.observations import Observations, ValidatedObservations
 from mocapd.core.prior import PcaPrior
-from mocapd.core.skeleton import POSE_DIM, Skeleton
+from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
 from mocapd.core.terms import (
     CostOptions,
     PriorMatrices,
@@ -207,15 +214,23 @@ class PoseSolver:
         self._had_reference = False  # the last solve had an absolute position reference (enough cameras)
         self._kernel_static = self._pack_static() if backend == "compiled" else None
         self.ground_options = ground if ground is not None else GroundOptions()
-        bones, offsets = sole_points(skeleton, self.ground_options)
-        self._contact_bones, self._contact_offsets = bones.reshape(-1), offsets.reshape(-1, 3)
         self._hips_imu = next((i for i, m in enumerate(self.imus) if m.bone == "Hips"), None)
         self._foot_imus = [next((i for i, m in enumerate(self.imus) if m.bone == b), None) for b in FOOT_SENSOR_BONES]
+        # The feet's contact points, then each foot sensor's site (the foot bone's origin where there is none: its
+        # row is not used) — one forward-kinematics pass gives both.
+        bones, offsets = sole_points(skeleton, self.ground_options)
+        self._n_contacts = bones.size
+        site_bones = [self.imus[i].bone_index if i is not None else BONE_INDEX[b]
+                      for i, b in zip(self._foot_imus, FOOT_SENSOR_BONES, strict=True)]  # fmt: skip
+        site_offsets = [self.imus[i].t_ib if i is not None else np.zeros(3) for i in self._foot_imus]
+        self._contact_bones = np.concatenate([bones.reshape(-1), site_bones]).astype(np.intp)
+        self._contact_offsets = np.concatenate([offsets.reshape(-1, 3), site_offsets])
         self.ground = (
             GroundTracker(
-                standing_heights(self._foot_points(skeleton.rest_pose())),
+                standing_heights(self._foot_points(skeleton.rest_pose())[0]),
                 self.cost_options.floor_height,
                 self.ground_options,
+                reach=REACH_POINTS,
             )
             if self.ground_options.enabled and _legs_measured(self.imus)
             else None
@@ -369,9 +384,9 @@ class PoseSolver:
         out[:3] += np.median(X[ok] - pred[ok], axis=0)
         return out
 
-    def _foot_points(self, theta: FloatArray) -> FloatArray:
+    def _foot_points(self, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The sole points of both feet (:func:`~mocapd.core.ground.sole_points`), world positions, shape
-        (2, k, 3)."""
+        (2, k, 3), and each foot sensor's site, shape (2, 3) (NaN for a foot without a sensor)."""
         if self._kernel_static is not None:
             kp = self._kernel_static
             pts = _kernel.skeleton_points(
@@ -383,16 +398,20 @@ class PoseSolver:
             )
         else:
             pts = self.kin.targets(self.kin.forward(theta), self._contact_bones, self._contact_offsets)
-        return np.asarray(pts).reshape(2, -1, 3)
+        pts = np.asarray(pts)
+        sites = pts[self._n_contacts :].copy()
+        sites[[i is None for i in self._foot_imus]] = np.nan
+        return pts[: self._n_contacts].reshape(2, -1, 3), sites
 
     def _foot_accelerations(self, v: ValidatedObservations) -> FloatArray:
-        """|free acceleration| of each foot's sensor (m/s², the previous frame's), NaN without one; shape (2,)."""
-        out = np.full(2, np.nan)
+        """Each foot sensor's free acceleration (world, m/s², the previous frame's), NaN without one; shape
+        (2, 3)."""
+        out = np.full((2, 3), np.nan)
         if not v.has_acceleration:
             return out
         for f, i in enumerate(self._foot_imus):
             if i is not None and v.mask[i]:
-                out[f] = float(np.linalg.norm(v.acc[i]))
+                out[f] = v.acc[i]
         return out
 
     def _hips_acceleration(self, v: ValidatedObservations) -> FloatArray | None:
@@ -405,9 +424,15 @@ class PoseSolver:
     def _place_root(self, tracker: GroundTracker, theta: FloatArray, v: ValidatedObservations) -> FloatArray:
         """The ground tracker's step for a solved θ: returns the published θ, and sets θ's root (in place) to
         the one to keep."""
-        feet = self._foot_points(theta)
+        feet, sites = self._foot_points(theta)
         root, published = tracker.step(
-            theta[:3], feet - theta[:3], self._views(v), v.dt, self._foot_accelerations(v), self._hips_acceleration(v)
+            theta[:3],
+            feet - theta[:3],
+            self._views(v),
+            v.dt,
+            self._foot_accelerations(v),
+            self._hips_acceleration(v),
+            sites - theta[:3],
         )
         theta[:3] = root
         out = theta.copy()
