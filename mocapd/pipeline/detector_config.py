@@ -147,6 +147,64 @@ class PackingConfig:
             )
 
 
+THREADS = ("capture", "pool")
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Keypoints carried between detections on every camera frame (:mod:`mocapd.pipeline.keypoint_tracker`)."""
+
+    enabled: bool = True
+    """Track each detected person's keypoints on the frames between two detections of their camera (pyramidal
+    Lucas-Kanade), so that the scheduler has keypoints at the camera rate; False: detections only."""
+    rate_hz: float = 30.0
+    """Track a camera's frames at most this often (a 60 fps camera: every other frame); the frames the detector
+    takes are tracked too."""
+    downsample: int = 2
+    """Track on the camera image downsampled by this factor (1, 2 or 4; block means: a Bayer camera's 2x2 cells
+    need no demosaicing)."""
+    window_px: int = 11
+    """Side of the Lucas-Kanade window, in pixels of the tracking image (odd, 5..63)."""
+    levels: int = 2
+    """Pyramid levels above the tracking image (0..6)."""
+    max_fb_px: float = 1.0
+    """A keypoint tracked to the next frame and back that misses its start by more than this (camera pixels) is
+    lost until the next detection."""
+    half_life_s: float = 0.5
+    """A tracked keypoint's confidence is the detector's, halved every this many seconds after the detection."""
+    max_age_s: float = 1.0
+    """Nobody is kept longer than this after the last detection of the camera (then the camera reports nobody
+    until the detector finds people again)."""
+    min_keypoints: int = 4
+    """A person with fewer of their confidently detected keypoints still tracked is dropped."""
+    history_s: float = 1.0
+    """Tracked frames kept (gray images) to carry a detection from its frame to the newest one; a detection older
+    than that is counted late and only re-seeds the tracking at the next detection."""
+    thread: str = "capture"
+    """Where tracking runs: "capture" (each camera's capture thread, right after the frame arrives) or "pool"
+    (worker threads fed from the event loop)."""
+    workers: int = 1
+    """Tracking worker threads with ``thread = "pool"``."""
+
+    def __post_init__(self) -> None:
+        _choice("detector.tracking.thread", self.thread, THREADS)
+        if not 1.0 <= self.rate_hz <= 1000.0:
+            raise ConfigError(f"detector.tracking.rate_hz must be in [1, 1000], got {self.rate_hz}")
+        if self.downsample not in (1, 2, 4):
+            raise ConfigError(f"detector.tracking.downsample must be 1, 2 or 4, got {self.downsample}")
+        if not (5 <= self.window_px <= 63 and self.window_px % 2 == 1):
+            raise ConfigError(f"detector.tracking.window_px must be odd, 5..63, got {self.window_px}")
+        if not 0 <= self.levels <= 6:
+            raise ConfigError(f"detector.tracking.levels must be 0..6, got {self.levels}")
+        if not 0.0 < self.max_fb_px <= 100.0:
+            raise ConfigError(f"detector.tracking.max_fb_px must be in (0, 100], got {self.max_fb_px}")
+        for key in ("half_life_s", "max_age_s", "history_s"):
+            if not 0.0 < getattr(self, key) <= 60.0:
+                raise ConfigError(f"detector.tracking.{key} must be in (0, 60], got {getattr(self, key)}")
+        if not 1 <= self.min_keypoints <= 1000 or not 1 <= self.workers <= 64:
+            raise ConfigError("detector.tracking needs min_keypoints in 1..1000 and workers in 1..64")
+
+
 @dataclass(frozen=True)
 class DetectorConfig:
     """The ``[detector]`` section."""
@@ -176,6 +234,7 @@ class DetectorConfig:
     that export is in the model cache, True = it must be, False = never."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def __post_init__(self) -> None:
         _choice("detector.precision", self.precision, PRECISIONS)
