@@ -44,8 +44,8 @@ def seeds(n_people: int = 2, n_kp: int = 6, seed: int = 1) -> np.ndarray:
     return grid + rng.uniform(-8, 8, grid.shape) + rng.uniform(-40, 40, (1, 1, 2))
 
 
-def gray(image: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
-    return block_mean(image, cfg.downsample)
+def gray(image: np.ndarray, tracker: KeypointTracker) -> np.ndarray:
+    return block_mean(image, tracker.factor)
 
 
 def test_joint_groups_by_name() -> None:
@@ -57,13 +57,15 @@ def test_joint_groups_by_name() -> None:
 @pytest.mark.parametrize("downsample", [1, 2])
 def test_keypoints_follow_a_known_motion_with_confidence_halving_per_half_life(downsample: int) -> None:
     cfg = TrackingConfig(downsample=downsample, half_life_s=0.2, max_age_s=5.0)
+    assert KeypointTracker(6, TrackingConfig(), image_size=(W, H)).factor == 2  # "auto": 240 px left on 480
+    assert KeypointTracker(6, TrackingConfig(), image_size=(272, 480)).factor == 1
     tex = texture()
     start = seeds()
-    tr = KeypointTracker(6, cfg)
-    assert tr.step(0, 0, gray(frame(tex, np.zeros(2)), cfg)) is None  # nothing detected yet: nothing to say
-    tr.detected(0, 0, people(start), gray(frame(tex, np.zeros(2)), cfg))
+    tr = KeypointTracker(6, cfg, image_size=(W, H))
+    assert tr.step(0, 0, gray(frame(tex, np.zeros(2)), tr)) is None  # nothing detected yet: nothing to say
+    tr.detected(0, 0, people(start), gray(frame(tex, np.zeros(2)), tr))
     for k in range(1, 13):
-        out = tr.step(k, k * FRAME_NS, gray(frame(tex, k * VELOCITY), cfg))
+        out = tr.step(k, k * FRAME_NS, gray(frame(tex, k * VELOCITY), tr))
         assert out is not None and len(out) == 2
         err = np.linalg.norm(out.keypoints - (start + k * VELOCITY), axis=-1)
         assert err.max() < 0.35 * downsample, (k, err.max())
@@ -79,9 +81,10 @@ def test_a_late_detection_replaces_the_tracked_people_carried_to_the_newest_fram
     and are the only people from frame 7 on; the error of the old tracking at frame 2 is measured."""
     cfg = TrackingConfig(max_age_s=5.0)
     tex = texture()
-    grays = [gray(frame(tex, k * VELOCITY), cfg) for k in range(12)]
     first = seeds(2)
-    tr = KeypointTracker(6, cfg, names=["nose", "left_shoulder", "left_elbow", "left_wrist", "left_hip", "left_knee"])
+    names = ["nose", "left_shoulder", "left_elbow", "left_wrist", "left_hip", "left_knee"]
+    tr = KeypointTracker(6, cfg, names, image_size=(W, H))
+    grays = [gray(frame(tex, k * VELOCITY), tr) for k in range(12)]
     tr.detected(0, 0, people(first), grays[0])
     for k in range(1, 7):
         tr.step(k, k * FRAME_NS, grays[k])
@@ -109,16 +112,16 @@ def test_occluded_keypoints_are_lost_and_a_person_with_too_few_left_is_dropped()
     cfg = TrackingConfig(max_age_s=5.0, min_keypoints=4)
     tex, other = texture(0), texture(99)
     start = seeds(2)
-    tr = KeypointTracker(6, cfg)
-    tr.detected(0, 0, people(start), gray(frame(tex, np.zeros(2)), cfg))
-    tr.step(0, 0, gray(frame(tex, np.zeros(2)), cfg))
+    tr = KeypointTracker(6, cfg, image_size=(W, H))
+    tr.detected(0, 0, people(start), gray(frame(tex, np.zeros(2)), tr))
+    tr.step(0, 0, gray(frame(tex, np.zeros(2)), tr))
     image = frame(tex, VELOCITY)
     # Something passes in front of person 0's first two keypoints and person 1's first one.
     cover = frame(other, VELOCITY)
     for p, k in ((0, 0), (0, 1), (1, 0)):
         x, y = np.round(start[p, k] + VELOCITY).astype(int)
         image[y - 20 : y + 20, x - 20 : x + 20] = cover[y - 20 : y + 20, x - 20 : x + 20]
-    out = tr.step(1, FRAME_NS, gray(image, cfg))
+    out = tr.step(1, FRAME_NS, gray(image, tr))
     assert out is not None and len(out) == 2
     lost = out.confidences == 0
     assert lost.sum() == 3 and lost[0, :2].all() and lost[1, 0], lost
@@ -126,7 +129,7 @@ def test_occluded_keypoints_are_lost_and_a_person_with_too_few_left_is_dropped()
     image2 = frame(tex, 2 * VELOCITY)
     x, y = np.round(start[0, 2] + 2 * VELOCITY).astype(int)
     image2[y - 20 : y + 20, x - 20 : x + 20] = frame(other, 2 * VELOCITY)[y - 20 : y + 20, x - 20 : x + 20]
-    out = tr.step(2, 2 * FRAME_NS, gray(image2, cfg))
+    out = tr.step(2, 2 * FRAME_NS, gray(image2, tr))
     assert out is not None and len(out) == 1
     assert tr.status()["people_dropped_keypoints"] == 1
 
@@ -134,30 +137,30 @@ def test_occluded_keypoints_are_lost_and_a_person_with_too_few_left_is_dropped()
 def test_nobody_is_kept_past_max_age_and_tracking_never_adds_people() -> None:
     cfg = TrackingConfig(max_age_s=0.2)
     tex = texture()
-    tr = KeypointTracker(6, cfg)
-    tr.detected(0, 0, people(seeds(3)), gray(frame(tex, np.zeros(2)), cfg))
+    tr = KeypointTracker(6, cfg, image_size=(W, H))
+    tr.detected(0, 0, people(seeds(3)), gray(frame(tex, np.zeros(2)), tr))
     counts = []
     for k in range(1, 10):
-        out = tr.step(k, k * FRAME_NS, gray(frame(tex, k * VELOCITY), cfg))
+        out = tr.step(k, k * FRAME_NS, gray(frame(tex, k * VELOCITY), tr))
         assert out is not None
         counts.append(len(out))
     assert max(counts) == 3  # never more than detected
     assert counts[:6] == [3] * 6 and counts[6:] == [0, 0, 0]  # 7 frames = 231 ms > 200 ms: the camera sees nobody
     assert tr.status()["people_dropped_age"] == 3
     # A detection of nobody empties the camera at once.
-    tr2 = KeypointTracker(6, cfg)
-    tr2.detected(0, 0, people(seeds(2)), gray(frame(tex, np.zeros(2)), cfg))
-    tr2.step(1, FRAME_NS, gray(frame(tex, VELOCITY), cfg))
-    tr2.detected(1, FRAME_NS, Detections2D.empty(6), gray(frame(tex, VELOCITY), cfg))
-    out = tr2.step(2, 2 * FRAME_NS, gray(frame(tex, 2 * VELOCITY), cfg))
+    tr2 = KeypointTracker(6, cfg, image_size=(W, H))
+    tr2.detected(0, 0, people(seeds(2)), gray(frame(tex, np.zeros(2)), tr))
+    tr2.step(1, FRAME_NS, gray(frame(tex, VELOCITY), tr))
+    tr2.detected(1, FRAME_NS, Detections2D.empty(6), gray(frame(tex, VELOCITY), tr))
+    out = tr2.step(2, 2 * FRAME_NS, gray(frame(tex, 2 * VELOCITY), tr))
     assert out is not None and len(out) == 0
 
 
 def test_old_frames_and_detections_older_than_the_history_are_refused() -> None:
     cfg = TrackingConfig(history_s=0.1)
     tex = texture()
-    g = [gray(frame(tex, k * VELOCITY), cfg) for k in range(10)]
-    tr = KeypointTracker(6, cfg)
+    tr = KeypointTracker(6, cfg, image_size=(W, H))
+    g = [gray(frame(tex, k * VELOCITY), tr) for k in range(10)]
     tr.detected(0, 0, people(seeds()), g[0])
     for k in range(1, 9):
         tr.step(k, k * FRAME_NS, g[k])

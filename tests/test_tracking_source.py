@@ -99,7 +99,7 @@ async def test_real_video_real_detector_keypoints_between_packed_detections() ->
     group = PackedDetectionGroup(packed_detector_from_config(DetectorConfig(intra_op_threads=2), sizes),
                                  ThreadPoolExecutor(1))  # fmt: skip
     names = keypoint_format("coco17").keypoints
-    sources = [PackedKeypointSource(i, c, group, tracker=KeypointTracker(17, TrackingConfig(), names))
+    sources = [PackedKeypointSource(i, c, group, tracker=KeypointTracker(17, TrackingConfig(), names, sizes[i]))
                for i, c in enumerate(cams)]  # fmt: skip
     got: list[tuple[int, int, Detections2D, int]] = []
     tasks = [asyncio.create_task(s.run(lambda cam, t, d, arrival: got.append((cam, t, d, arrival)))) for s in sources]

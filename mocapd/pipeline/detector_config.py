@@ -148,6 +148,9 @@ class PackingConfig:
 
 
 THREADS = ("capture", "pool")
+#: "auto" downsampling keeps at least this many pixels on the tracking image's shorter side (544x960 demo frames
+#: are tracked at 272x480: as accurate as full size there, a quarter of the cost; tools/track_quality.py)
+MIN_TRACKING_SIDE = 240
 
 
 @dataclass(frozen=True)
@@ -160,9 +163,10 @@ class TrackingConfig:
     rate_hz: float = 30.0
     """Track a camera's frames at most this often (a 60 fps camera: every other frame); the frames the detector
     takes are tracked too."""
-    downsample: int = 2
+    downsample: int | str = "auto"
     """Track on the camera image downsampled by this factor (1, 2 or 4; block means: a Bayer camera's 2x2 cells
-    need no demosaicing)."""
+    need no demosaicing); "auto": 2 where that leaves at least :data:`MIN_TRACKING_SIDE` pixels on the image's
+    shorter side, else 1 (:meth:`factor_for`)."""
     window_px: int = 11
     """Side of the Lucas-Kanade window, in pixels of the tracking image (odd, 5..63)."""
     levels: int = 2
@@ -190,8 +194,8 @@ class TrackingConfig:
         _choice("detector.tracking.thread", self.thread, THREADS)
         if not 1.0 <= self.rate_hz <= 1000.0:
             raise ConfigError(f"detector.tracking.rate_hz must be in [1, 1000], got {self.rate_hz}")
-        if self.downsample not in (1, 2, 4):
-            raise ConfigError(f"detector.tracking.downsample must be 1, 2 or 4, got {self.downsample}")
+        if self.downsample not in (1, 2, 4, "auto"):
+            raise ConfigError(f'detector.tracking.downsample must be 1, 2, 4 or "auto", got {self.downsample!r}')
         if not (5 <= self.window_px <= 63 and self.window_px % 2 == 1):
             raise ConfigError(f"detector.tracking.window_px must be odd, 5..63, got {self.window_px}")
         if not 0 <= self.levels <= 6:
@@ -203,6 +207,12 @@ class TrackingConfig:
                 raise ConfigError(f"detector.tracking.{key} must be in (0, 60], got {getattr(self, key)}")
         if not 1 <= self.min_keypoints <= 1000 or not 1 <= self.workers <= 64:
             raise ConfigError("detector.tracking needs min_keypoints in 1..1000 and workers in 1..64")
+
+    def factor_for(self, width: int, height: int) -> int:
+        """The downsampling factor of the tracking image for a camera of ``width`` x ``height``."""
+        if self.downsample != "auto":
+            return int(self.downsample)
+        return 2 if min(width, height) >= 2 * MIN_TRACKING_SIDE else 1
 
 
 @dataclass(frozen=True)

@@ -209,7 +209,7 @@ class DetectorKeypointSource:
         assert tracker is not None and loop is not None
         c0 = self._cpu()
         try:
-            gray = self.frames.ring.gray(ref.seq, tracker.options.downsample)
+            gray = self.frames.ring.gray(ref.seq, tracker.factor)
             if gray is None:  # the writer overtook us (a stalled thread): the next frame is tracked instead
                 self.tracking["gray_missed"] += 1
                 return
@@ -248,7 +248,7 @@ class DetectorKeypointSource:
         """The gray image of a frame the detector took (its detections re-seed the tracker); detector thread."""
         if self.tracker is None:
             return
-        factor = self.tracker.options.downsample
+        factor = self.tracker.factor
         gray = self.frames.ring.gray(ref.seq, factor)  # a Bayer ring makes it from the mosaic
         if gray is None:
             gray = image_gray(image, factor)

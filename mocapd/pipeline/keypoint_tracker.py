@@ -8,7 +8,7 @@ and follows the people in between: the latency then covers one frame's tracking.
 
 How, per camera (:class:`KeypointTracker`, thread-safe; the caller decides which thread runs it):
 
-* :meth:`KeypointTracker.step` with each tracked frame (a gray image, usually downsampled: see ``downsample``)
+* :meth:`KeypointTracker.step` with each tracked frame (a gray image, downsampled by :attr:`~KeypointTracker.factor`)
   carries every tracked keypoint from the previous tracked frame with ``cv2.calcOpticalFlowPyrLK``, then back
   again; a keypoint whose forward-backward error exceeds ``max_fb_px`` (or that LK loses) is lost for good until
   the next detection. On the Pose2Sim demo (544x960) a lost keypoint was 9-23 px from the detector's next answer
@@ -136,6 +136,9 @@ class KeypointTracker:
     options : TrackingConfig
     names : sequence of str, optional
         The keypoints' names, for the per-joint-group error report.
+    image_size : (width, height), optional
+        The camera's image size: fixes :attr:`factor`, the downsampling of the gray images it is given
+        (``options.factor_for``; without a size, ``options.downsample`` or 1 for "auto").
     cpu_clock : callable returning int ns
         The calling thread's CPU clock (cost per step and per person).
     """
@@ -145,10 +148,14 @@ class KeypointTracker:
         n_kp: int,
         options: TrackingConfig | None = None,
         names: Sequence[str] = (),
+        image_size: tuple[int, int] | None = None,
         cpu_clock: Callable[[], int] = time.thread_time_ns,
     ) -> None:
         self.n_kp = n_kp
         self.options = options if options is not None else TrackingConfig()
+        o = self.options
+        self.factor = o.factor_for(*image_size) if image_size is not None else (
+            o.downsample if isinstance(o.downsample, int) else 1)  # fmt: skip
         if names and len(names) != n_kp:
             raise InputError(f"keypoint tracker: {len(names)} names for {n_kp} keypoints")
         self._groups = np.array([JOINT_GROUPS.index(joint_group(n)) for n in names] if names else
@@ -228,7 +235,7 @@ class KeypointTracker:
         idx = np.flatnonzero(out.alive.ravel())
         if idx.size == 0:
             return out
-        f = self.options.downsample
+        f = self.factor
         pts = out.keypoints.reshape(-1, 2)[idx]
         # Block means: pixel j of the downsampled image is the mean of camera pixels j*f .. j*f + f - 1.
         u0 = ((pts - (f - 1) / 2) / f).astype(np.float32).reshape(-1, 1, 2)

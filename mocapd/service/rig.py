@@ -257,7 +257,8 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
             # worth mapping: its frames are published at their due time.
             clk = ClockSync(tick_hz=1e9, wrap_bits=64) if isinstance(cam, AravisCamera | UvcCamera) else None
             # Keypoints between detections: one tracker per camera, on its capture thread or on the pool.
-            tracker = KeypointTracker(len(targets), tracking, targets.names) if track else None
+            size = (calibrated.width, calibrated.height)
+            tracker = KeypointTracker(len(targets), tracking, targets.names, size) if track else None
             if isinstance(detector, PackedDetectionGroup):
                 sources.append(PackedKeypointSource(i, capture, detector, device_clock=clk, clock=clock,
                                                     tracker=tracker, tracking_pool=pool))  # fmt: skip

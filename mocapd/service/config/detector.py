@@ -97,7 +97,7 @@ def _odd(size: int) -> int:
 
 def _factor(factor: int) -> int:
     if factor not in (1, 2, 4):
-        raise ValueError("must be 1, 2 or 4")
+        raise ValueError('must be 1, 2, 4 or "auto"')
     return factor
 
 
@@ -106,7 +106,7 @@ class TrackingSection(Section):
 
     enabled: bool = _T.enabled
     rate_hz: float = Field(_T.rate_hz, ge=1.0, le=1000.0)
-    downsample: Annotated[int, Field(ge=1, le=4), AfterValidator(_factor)] = _T.downsample
+    downsample: Annotated[int, Field(ge=1, le=4), AfterValidator(_factor)] | Literal["auto"] = "auto"
     window_px: Annotated[int, Field(ge=5, le=63), AfterValidator(_odd)] = _T.window_px
     levels: int = Field(_T.levels, ge=0, le=6)
     max_fb_px: float = Field(_T.max_fb_px, gt=0.0, le=100.0)

@@ -83,7 +83,8 @@ class CameraDemoOptions:
         Playback speed of the videos: 1 serves them at their own pace (60 fps), 0.05 in slow motion (3 fps, each
         frame shown 20 times as long). The cameras send at the slowed rate. For a detector far slower than the
         motion (a loaded CPU): the people then move little between two detections of a camera, so they can be
-        tracked and solved as on a rig whose detector keeps up.
+        tracked and solved as on a rig whose detector keeps up. The keypoint tracker's times (``[detector.tracking]``
+        ``half_life_s``, ``max_age_s``, ``history_s``) stretch by ``1 / speed`` with the motion.
     packed : bool or "auto"
         Detect the newest frames of all cameras together, their people's regions packed onto shared canvases
         (``[detector.packing] enabled``); False: one whole-frame inference per camera frame, the cameras taking
@@ -169,10 +170,15 @@ def demo_config(base: Config, opts: CameraDemoOptions, specs: list[FakeCameraSpe
     daemon = base.daemon.model_copy(update={"latency_s": lat, "keypoint_max_age_s": age,
                                             "keypoint_max_gap_s": gap})  # fmt: skip
     packing = base.detector.packing.model_copy(update={"enabled": opts.packed})
+    # Slow motion stands for a rig whose detector keeps up with the people: the tracker's times (in seconds of
+    # motion) stretch with it, as the videos do.
+    tr = base.detector.tracking
+    tracking = tr.model_copy(update={k: min(60.0, getattr(tr, k) / opts.speed)
+                                     for k in ("half_life_s", "max_age_s", "history_s")})  # fmt: skip
     return base.model_copy(update={
         "cameras": parse_cameras(tables), "daemon": daemon,
         "calibration": validate(CalibrationConfig, {"file": str(calibration)}, "calibration"),
-        "detector": base.detector.model_copy(update={"packing": packing}),
+        "detector": base.detector.model_copy(update={"packing": packing, "tracking": tracking}),
     })  # fmt: skip
 
 
