@@ -7,6 +7,7 @@ construction (tools, tests) with the same rules. ``config.toml`` documents every
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -18,6 +19,8 @@ DECODERS = ("yolo_pose",)
 LAYOUTS = ("NCHW", "NHWC")
 CHANNEL_ORDERS = ("RGB", "BGR")
 PRECISIONS = ("auto", "fp32", "int8", "bf16")
+#: ``[detector] workers = "auto"``: one inference session per this many cores (tools/bench_sessions.py)
+CORES_PER_SESSION = 2
 
 
 @dataclass(frozen=True)
@@ -227,14 +230,15 @@ class DetectorConfig:
     builds beside the FP32 one) or "auto" (INT8 on CPU providers, FP32 on GPU ones). Ignored for a model given by
     path (that file is used as it is)."""
     intra_op_threads: int = 0
-    """Threads inside one inference (0 = onnxruntime's default, one per core)."""
+    """Threads inside one inference (0 = this process's cores shared among the ``workers``: :meth:`sessions`)."""
     inter_op_threads: int = 1
     """Threads across graph branches (1 is best for these sequential networks)."""
     intra_op_spinning: bool = False
     """Let the intra-op threads spin-wait for work between operators (onnxruntime's default) instead of sleeping;
     off, because live the detector shares the cores with the tick and the capture."""
-    workers: int = 1
-    """Inference worker threads behind the async wrapper (each owns a session)."""
+    workers: int | str = "auto"
+    """Inference sessions in flight at once, each on its own worker thread (whole-frame workers, or the packed
+    group's passes over disjoint cameras); "auto" = :meth:`sessions` from the cores."""
     batch: bool | Literal["auto"] = "auto"
     """Run the canvases of a packed pass in one inference (fixed-batch copies of the model, made at load):
     "auto" = on GPU providers (TensorRT, CUDA), where it pays; True/False = always/never."""
@@ -252,11 +256,29 @@ class DetectorConfig:
             raise ConfigError(f"detector.batch = {self.batch!r} is not one of ['auto', true, false]")
         if self.fitted_inputs not in ("auto", True, False):
             raise ConfigError(f"detector.fitted_inputs = {self.fitted_inputs!r} is not one of ['auto', true, false]")
-        if self.intra_op_threads < 0 or self.inter_op_threads < 0 or self.workers < 1:
+        if self.workers != "auto" and (not isinstance(self.workers, int) or self.workers < 1):
+            raise ConfigError(f'detector.workers must be >= 1 or "auto", got {self.workers!r}')
+        if self.intra_op_threads < 0 or self.inter_op_threads < 0:
             raise ConfigError(
-                "detector threads must be >= 0 and workers >= 1, got "
-                f"intra={self.intra_op_threads} inter={self.inter_op_threads} workers={self.workers}"
+                f"detector threads must be >= 0, got intra={self.intra_op_threads} inter={self.inter_op_threads}"
             )
+
+    def sessions(self, cores: int, cameras: int) -> tuple[int, int]:
+        """(sessions, intra-op threads of each) on a process with ``cores`` cores and ``cameras`` cameras.
+
+        ``workers = "auto"``: one session per :data:`CORES_PER_SESSION` cores, at most one per camera (a packed pass
+        holds its cameras; more sessions than cameras would wait) and at least one. ``intra_op_threads = 0``: the
+        cores shared among the sessions (at least one thread each).
+        """
+        auto = max(1, min(max(1, cameras), cores // CORES_PER_SESSION))
+        n = auto if self.workers == "auto" else int(self.workers)
+        threads = self.intra_op_threads or max(1, cores // n)
+        return n, threads
+
+    def with_sessions(self, cores: int, cameras: int) -> DetectorConfig:
+        """This config with ``workers`` and ``intra_op_threads`` made concrete (:meth:`sessions`)."""
+        n, threads = self.sessions(cores, cameras)
+        return dataclasses.replace(self, workers=n, intra_op_threads=threads)
 
 
 def _choice(key: str, value: str, allowed: tuple[str, ...]) -> None:

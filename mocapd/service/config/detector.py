@@ -125,7 +125,7 @@ class DetectorSection(Section):
     precision: Literal["auto", "fp32", "int8", "bf16"] = "auto"
     intra_op_threads: int = Field(_D.intra_op_threads, ge=0, le=256)
     inter_op_threads: int = Field(_D.inter_op_threads, ge=0, le=256)
-    workers: int = Field(_D.workers, ge=1, le=64)
+    workers: Annotated[int, Field(ge=1, le=64)] | Literal["auto"] = "auto"
     intra_op_spinning: bool = _D.intra_op_spinning
     batch: bool | Literal["auto"] = "auto"
     fitted_inputs: bool | Literal["auto"] = "auto"
