@@ -117,6 +117,7 @@ class DetectorKeypointSource:
         self.clock = clock
         self.device_clock = device_clock
         self.detected = 0
+        self.detected_people = 0  # people in all detections (the people in view, as the detector saw them)
         self.skipped = 0
         self.lost = 0  # copies overtaken by the ring's writer (a newer frame is taken; counted in skipped too)
         self.captured = 0
@@ -170,6 +171,7 @@ class DetectorKeypointSource:
                     self._reseed(ref, dets)
                 self.detection_delay.add(arrival - stamp)
                 self.detected += 1
+                self.detected_people += len(dets)
                 self.transfer_ns += ref.host_ns - stamp
 
         if in_capture:
@@ -305,6 +307,7 @@ class DetectorKeypointSource:
     def status(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "name": self.name, "kind": "detector", "captured": self.captured, "detected": self.detected,
+            "detected_people": self.detected_people,
             "skipped": self.skipped, "lost": self.lost,
             "transfer_ms_mean": round(self.transfer_ns / self.detected / 1e6, 2) if self.detected else None,
         }  # fmt: skip

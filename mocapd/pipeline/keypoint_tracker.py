@@ -352,11 +352,18 @@ class KeypointTracker:
             self.counters["retracked_frames"] += 1
 
     # ------------------------------------------------------------------------------------------------- report
-    def errors(self) -> tuple[NDArray[np.float32], NDArray[np.int8], NDArray[np.float32]]:
-        """Copies of the kept tracked-vs-detected errors: px, joint group index (:data:`JOINT_GROUPS`), age ms."""
+    @property
+    def error_count(self) -> int:
+        """Tracked-vs-detected keypoint errors measured so far (the newest :data:`ERROR_WINDOW` are kept)."""
+        return self._n_err
+
+    def errors(self, since: int = 0) -> tuple[NDArray[np.float32], NDArray[np.int8], NDArray[np.float32]]:
+        """Copies of the kept tracked-vs-detected errors measured after the first ``since`` (an earlier
+        :attr:`error_count`), oldest first: px, joint group index (:data:`JOINT_GROUPS`), age of the tracking ms."""
         with self._lock:
-            n = min(self._n_err, ERROR_WINDOW)
-            return self._err[:n].copy(), self._err_group[:n].copy(), self._err_age[:n].copy()
+            n = self._n_err
+            k = np.arange(max(since, n - ERROR_WINDOW), n) % ERROR_WINDOW
+            return self._err[k], self._err_group[k], self._err_age[k]
 
     def status(self) -> dict[str, Any]:
         """JSON-able: counters, CPU per step and per person-step, the error against the detections (px)."""
