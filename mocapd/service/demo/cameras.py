@@ -259,7 +259,41 @@ def _summary(daemon: Daemon | None, people: PeopleCount) -> dict[str, Any]:
         out["missed_ticks"] = st["output"]["missed_ticks"]
         out["detected"] = {c["name"]: c["detected"] for c in st["cameras"]}
         out["end_to_end_ms"] = st["latency_ms"]["end_to_end"]
+        out["seconds"] = st["uptime_s"]
+        tracked = {c["name"]: c for c in st["cameras"] if c.get("tracking")}
+        if tracked:
+            # Keypoint sets per camera (tracked frames), and per person in view: people in keypoint sets per
+            # second over the people per detection, over the whole run.
+            out["keypoint_sets"] = {n: c["tracking"]["keypoint_sets"] for n, c in tracked.items()}
+            out["keypoint_hz_per_person"] = {n: _per_person_hz(c, st["uptime_s"]) for n, c in tracked.items()}
     return out
+
+
+def _per_person_hz(camera: dict[str, Any], seconds: float) -> float | None:
+    """A camera's keypoints per second for each person in view: people in its keypoint sets per second over the
+    people in its detections (on average)."""
+    if not camera["detected_people"] or not seconds:
+        return None
+    in_view = float(camera["detected_people"]) / float(camera["detected"])
+    return round(float(camera["tracking"]["person_keypoint_sets"]) / seconds / in_view, 1)
+
+
+def summary_line(summary: dict[str, Any]) -> str:
+    """The closing line of ``mocapd demo``: what was solved, how often each camera gave keypoints, how late."""
+    who = ", ".join(summary["identities"]) or "nobody"
+    line = (f"done: {summary['frames']} frames, {summary['frames_with_people']} with people solved "
+            f"(at most {summary['max_people']} at once: {who})")  # fmt: skip
+    seconds = summary.get("seconds")
+    if seconds and summary.get("detected"):
+        det = sum(summary["detected"].values()) / len(summary["detected"]) / seconds
+        line += f"; detections {det:.1f} Hz per camera"
+        rates = [v for v in (summary.get("keypoint_hz_per_person") or {}).values() if v is not None]
+        if rates:
+            line += f", keypoints {min(rates):.0f}-{max(rates):.0f} Hz per camera and person"
+    e2e = summary.get("end_to_end_ms") or {}
+    if e2e.get("p50") is not None:
+        line += f"; end to end p50 {e2e['p50']:.0f} ms, p95 {e2e['p95']:.0f} ms"
+    return line
 
 
 def announce(a: assembly.Assembly) -> None:
@@ -306,9 +340,7 @@ def child_main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2
     summary = _summary(holder[0] if holder else None, people)
-    who = ", ".join(summary["identities"]) or "nobody"
-    print(f"done: {summary['frames']} frames, {summary['frames_with_people']} with people solved "
-          f"(at most {summary['max_people']} at once: {who})", flush=True)  # fmt: skip
+    print(summary_line(summary), flush=True)
     print(json.dumps({"summary": summary}), flush=True)
     return code
 
