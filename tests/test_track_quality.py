@@ -84,12 +84,14 @@ def test_held_out_view_error_of_exact_keypoints_is_zero_and_grows_with_noise() -
     world = SyntheticWorld(4, 1, 0, seed=1)
     cameras = [_scaled(c, 0.5) for c in world.cameras]
     rng = np.random.default_rng(1)
-    exact, noisy = {}, {}
+    exact: dict[int, list[np.ndarray | None]] = {}
+    noisy: dict[int, list[np.ndarray | None]] = {}
     for f in range(10):
         sites = world.sites_at(0, f / FPS)
         views = [np.concatenate([c.project(sites), np.full((17, 1), 0.9)], axis=1) for c in cameras]
         exact[f] = list(views)
-        noisy[f] = [np.concatenate([v[:, :2] + rng.normal(scale=3.0, size=(17, 2)), v[:, 2:]], axis=1) for v in views]
+        noisy[f] = [np.concatenate([v[:, :2] + rng.normal(scale=3.0, size=(17, 2)), v[:, 2:]], axis=1)
+                    for v in views]  # fmt: skip
     zero = held_out_view(cameras, exact, exact)
     assert zero["all"]["n"] == 10 * 4 * 17 and zero["all"]["median"] < 0.01
     three = held_out_view(cameras, noisy, exact)

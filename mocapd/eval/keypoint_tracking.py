@@ -220,8 +220,8 @@ def group_indices(names: Sequence[str]) -> list[int]:
 
 def held_out_view(
     cameras: Sequence[Camera],
-    subject: Mapping[int, list[FloatArray | None]],
-    reference: Mapping[int, list[FloatArray | None]],
+    subject: Mapping[int, Sequence[FloatArray | None]],
+    reference: Mapping[int, Sequence[FloatArray | None]],
     error: Callable[[Sequence[Camera], FloatArray, FloatArray, int], FloatArray] | None = None,
 ) -> dict[str, Any]:
     """Held-out-view error of a method's keypoints of one subject: per frame and camera ``k``, the subject
