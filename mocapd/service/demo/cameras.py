@@ -88,8 +88,8 @@ class CameraDemoOptions:
     packed : bool or "auto"
         Detect the newest frames of all cameras together, their people's regions packed onto shared canvases
         (``[detector.packing] enabled``); False: one whole-frame inference per camera frame, the cameras taking
-        turns on ``[detector] workers`` (docs/daemon.md, Numbers); "auto" (the default): whichever of the two
-        detects more frames with people per second, measured while the demo runs.
+        turns on ``[detector] workers`` (docs/daemon.md, Numbers); "auto" (the default): each pass packed or a
+        whole frame, whichever costs less detector time per camera frame (measured while the demo runs).
     latency_s : float or "auto"
         The daemon's delay between solve time and wall time. A CPU detector shared by four cameras
         delivers each camera's detections late and far apart, and the scheduler interpolates only between
@@ -393,7 +393,7 @@ def host_sockets(config: Config) -> dict[str, socket.socket]:
 
 def _detection_text(opts: CameraDemoOptions, config: Config) -> str:
     if opts.packed == "auto":
-        return "packed or whole-frame passes, whichever detects more (measured)"
+        return "packed or whole-frame passes, whichever costs less per camera frame (measured)"
     return "packed (all cameras per pass)" if opts.packed else f"{config.detector.workers} worker(s)"
 
 
