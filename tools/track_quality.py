@@ -150,6 +150,7 @@ def evaluate(
     """Every method on every camera under ``schedule``; pooled summaries and the estimates per camera."""
     groups = group_indices(names)
     pooled = {m: Comparison.empty() for m in METHODS}
+    jitter = Comparison.empty()  # the detections themselves, two frames (33 ms) apart: their noise
     trackers = []
     per_camera = []
     for run in runs:
@@ -162,6 +163,8 @@ def evaluate(
         methods = {"tracked": tracked, "interpolated": interpolated, "held": held}
         for m, est in methods.items():
             pooled[m].add(compare(est, run.reference, groups, frames))
+        apart = {f: Estimate(run.detections[f - 2], 2, 0) for f in frames if f - 2 in run.detections}
+        jitter.add(compare(apart, run.reference, groups, frames))
         trackers.append(tracker.status())
         per_camera.append(methods)
     out: dict[str, Any] = {
@@ -169,6 +172,7 @@ def evaluate(
         "delay_ms": round(schedule.seconds(schedule.delay_frames) * 1e3, 1),
         "tracking_hz": round(schedule.fps / schedule.track_every, 1),
         "methods": {m: summary(c, schedule) for m, c in pooled.items()},
+        "detections_two_frames_apart": summary(jitter, schedule),
         "tracker_vs_next_detection_px": {
             "median_by_camera": [t["error_vs_detection_px"]["all"]["median"] for t in trackers],
             "by_joint_group_camera_0": {g: v["median"] for g, v in
@@ -238,7 +242,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0, help="frames replayed per camera (at 60 fps)")
     ap.add_argument("--intervals-ms", type=float, nargs="+", default=[100.0, 150.0, 250.0, 400.0])
     ap.add_argument("--delay-ms", type=float, default=100.0)
-    ap.add_argument("--tracking-hz", type=float, default=30.0)
+    ap.add_argument("--tracking-hz", type=float, default=None, help="default: [detector.tracking] rate_hz")
     ap.add_argument("--noise-px", type=float, default=2.0, help="synthetic: detection noise (sigma, px)")
     ap.add_argument("--held-out", action="store_true", help="demo: held-out-view error of the subject")
     ap.add_argument("--seed", type=int, default=0)
@@ -251,7 +255,7 @@ def main() -> None:
     else:
         runs, cameras, factor = synthetic_runs(args, options)
     names = list(keypoint_format("coco17").keypoints)
-    every = max(1, round(FPS / args.tracking_hz))
+    every = max(1, round(FPS / (args.tracking_hz or options.rate_hz)))
     results = []
     for interval in args.intervals_ms:
         schedule = Schedule(FPS, max(1, round(interval / 1e3 * FPS)), round(args.delay_ms / 1e3 * FPS), every)
@@ -264,7 +268,7 @@ def main() -> None:
         "image": [int(runs[0].grays[0].shape[1] * factor), int(runs[0].grays[0].shape[0] * factor)],
         "tracking_downsample": factor, "cameras": len(runs), "frames_per_camera": len(runs[0].grays),
         "noise_px": args.noise_px if args.source == "synthetic" else None,
-        "tracking": {k: getattr(options, k) for k in ("window_px", "levels", "max_fb_px", "half_life_s",
+        "tracking": {k: getattr(options, k) for k in ("rate_hz", "window_px", "levels", "max_fb_px", "half_life_s",
                                                         "max_age_s", "min_keypoints")},
         "schedules": results,
         "loadavg": {"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in os.getloadavg()]},

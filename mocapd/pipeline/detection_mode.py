@@ -8,12 +8,15 @@ smaller whole frame.
 
 :class:`ModeChooser` decides *per pass*, before it runs, from what each mode would cost for the camera frames it
 would detect: the pixels of the network inputs it would run (the planned canvases, cropped where an export fits,
-or the fitted whole frame) times that mode's measured detector time per pixel (an exponential average over its
-passes, which holds the per-pass work beside the inference: canvas rendering, letterboxing, decoding). The cheaper
-per camera frame runs; the mode run last keeps the pass unless the other is cheaper by ``margin`` (no flapping on
-noise). A mode unmeasured for ``explore_after_s`` of detector time gets one pass when it is predicted within
-``explore_margin`` of the other, and after ``explore_always_s`` whatever its prediction (an estimate measured while
-the machine was busy would otherwise never be corrected), so that its estimate follows the machine.
+or the fitted whole frame) times that mode's measured detector time per pixel (the median of its last ``window``
+passes, which holds the per-pass work beside the inference: canvas rendering, letterboxing, decoding; a median,
+because on a shared machine single passes are slowed by other work, and a mode's first pass by its warm-up). The
+cheaper per camera frame runs; the mode run last keeps the pass unless the other is cheaper by ``margin`` (no
+flapping on noise). A mode measured on fewer than ``settle_passes`` passes gets another after ``explore_unsettled_s``
+of detector time; a settled one unmeasured for ``explore_after_s`` is measured again from scratch (its window
+emptied, ``settle_passes`` passes) when it is predicted within ``explore_margin`` of the other, and after
+``explore_always_s`` whatever its prediction (an estimate measured while the machine was busy would otherwise never
+be corrected), so that its estimate follows the machine.
 
 Issue 15's epoch bandit ran each mode for 3 s epochs and re-checked the other every 15-120 s: when the two were
 close (they are on the demo rig: a canvas of 2-3 cameras against 0.6 canvas per fitted whole frame), its whole
@@ -26,8 +29,11 @@ Pure: the caller passes each pass's detector time; nothing here reads a clock.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from mocapd.errors import InputError
 
@@ -46,9 +52,12 @@ class PassCost:
 class ModeChooserOptions:
     """How a mode's cost is learned and compared."""
 
-    smoothing: float = 0.1
-    """Weight of a pass in its mode's exponential average of detector ns per input pixel."""
-    margin: float = 0.05
+    window: int = 16
+    """Passes of a mode whose median detector ns per input pixel is its cost."""
+    settle_passes: int = 3
+    """A mode measured on fewer passes than this is measured again soon (``explore_unsettled_s``)."""
+    explore_unsettled_s: float = 3.0
+    margin: float = 0.1
     """The mode that ran last keeps the pass unless the other is predicted cheaper per frame by this fraction."""
     explore_after_s: float = 30.0
     """Detector time after which a mode not run since gets one pass (when predicted within ``explore_margin``)."""
@@ -57,10 +66,10 @@ class ModeChooserOptions:
     """Detector time after which a mode not run since gets one pass whatever its prediction."""
 
     def __post_init__(self) -> None:
-        if not 0 < self.smoothing <= 1 or not 0 <= self.margin < 1 or self.explore_margin < 0:
-            raise InputError("mode chooser needs 0 < smoothing <= 1, 0 <= margin < 1 and explore_margin >= 0")
-        if not 0 < self.explore_after_s <= self.explore_always_s:
-            raise InputError("mode chooser needs 0 < explore_after_s <= explore_always_s")
+        if self.window < 1 or self.settle_passes < 1 or not 0 <= self.margin < 1 or self.explore_margin < 0:
+            raise InputError("mode chooser needs window >= 1, settle_passes >= 1, 0 <= margin < 1, explore_margin >= 0")
+        if not 0 < self.explore_unsettled_s <= self.explore_after_s <= self.explore_always_s:
+            raise InputError("mode chooser needs 0 < explore_unsettled_s <= explore_after_s <= explore_always_s")
 
 
 @dataclass
@@ -91,7 +100,8 @@ class ModeChooser:
         self.mode = first  # the mode of the last pass chosen
         self.switches = 0
         self.explorations = 0
-        self.ns_per_pixel: dict[str, float | None] = dict.fromkeys(MODES)
+        self.ns_per_pixel: dict[str, float | None] = dict.fromkeys(MODES)  # the median of ``_samples``
+        self._samples: dict[str, deque[float]] = {m: deque(maxlen=self.options.window) for m in MODES}
         self.totals = {m: _Totals() for m in MODES}
         self.predicted: dict[str, float | None] = dict.fromkeys(MODES)  # ms per camera frame, last choice
         self._since_ns = dict.fromkeys(MODES, 0)  # detector time since each mode last ran
@@ -119,8 +129,11 @@ class ModeChooser:
             rest = next(m for m in MODES if m != chosen)
             o, since = self.options, self._since_ns[rest] / 1e9
             close = cost[rest] <= (1 + o.explore_margin) * cost[chosen]
-            if (since >= o.explore_after_s and close) or since >= o.explore_always_s:
-                chosen = rest  # its estimate may be stale: one pass to measure it again
+            unsettled = len(self._samples[rest]) < o.settle_passes and since >= o.explore_unsettled_s
+            if unsettled or (since >= o.explore_after_s and close) or since >= o.explore_always_s:
+                if not unsettled:  # its estimate may be stale: measured again from scratch (settle_passes passes)
+                    self._samples[rest].clear()
+                chosen = rest
                 self.explorations += 1
         if chosen != self.mode:
             self.switches += 1
@@ -138,8 +151,8 @@ class ModeChooser:
         t.usable += usable
         t.busy_ns += max(0, busy_ns)
         if pixels > 0 and busy_ns > 0:
-            rate, old = busy_ns / pixels, self.ns_per_pixel[mode]
-            self.ns_per_pixel[mode] = rate if old is None else old + self.options.smoothing * (rate - old)
+            self._samples[mode].append(busy_ns / pixels)
+            self.ns_per_pixel[mode] = float(np.median(self._samples[mode]))
         for m in MODES:
             self._since_ns[m] = 0 if m == mode else self._since_ns[m] + max(0, busy_ns)
 

@@ -163,9 +163,9 @@ class TrackingConfig:
     enabled: bool = True
     """Track each detected person's keypoints on the frames between two detections of their camera (pyramidal
     Lucas-Kanade), so that the scheduler has keypoints at the camera rate; False: detections only."""
-    rate_hz: float = 30.0
-    """Track a camera's frames at most this often (a 60 fps camera: every other frame); the frames the detector
-    takes are tracked too."""
+    rate_hz: float = 60.0
+    """Track a camera's frames this often on average, at most every frame (a 60 fps camera: every frame; 30: every
+    other); the frames the detector takes are tracked too."""
     downsample: int | str = "auto"
     """Track on the camera image downsampled by this factor (1, 2 or 4; block means: a Bayer camera's 2x2 cells
     need no demosaicing); "auto": 2 where that leaves at least :data:`MIN_TRACKING_SIDE` pixels on the image's
@@ -174,7 +174,7 @@ class TrackingConfig:
     """Side of the Lucas-Kanade window, in pixels of the tracking image (odd, 5..63)."""
     levels: int = 2
     """Pyramid levels above the tracking image (0..6)."""
-    max_fb_px: float = 1.0
+    max_fb_px: float = 0.5
     """A keypoint tracked to the next frame and back that misses its start by more than this (camera pixels) is
     lost until the next detection."""
     half_life_s: float = 0.5

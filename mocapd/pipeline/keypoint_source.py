@@ -130,7 +130,7 @@ class DetectorKeypointSource:
         # Tracking: keypoint sets delivered (people in them), frames tracked, the CPU of it all (gray image, steps).
         self.tracking = {"sets": 0, "person_sets": 0, "frames": 0, "gray_missed": 0, "errors": 0,
                          "cpu_ns": 0, "detections_without_image": 0}  # fmt: skip
-        self._last_frame_ns: int | None = None  # host time of the last frame offered to the tracker
+        self._last_frame_ns: tuple[int, int] | None = None  # (device, host) time of the last frame offered
         self._tokens = 0.0  # frames the tracker may take now (rate_hz token bucket)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._sink: KeypointSink | None = None
@@ -188,13 +188,19 @@ class DetectorKeypointSource:
     # ----------------------------------------------------------------------------------------------- tracking
     def _due(self, ref: FrameRef) -> bool:
         """Whether frame ``ref`` is tracked: ``rate_hz`` frames a second on average, never more than the camera
-        sends (a token bucket: a 60 fps camera at 30 Hz gives every other frame, one at 56 fps 30 of its 56)."""
+        sends (a token bucket: a 60 fps camera at 30 Hz gives every other frame, one at 56 fps 30 of its 56). Time
+        is the camera's own stamps where they advance plausibly (exposures are evenly spaced; arrivals come in
+        bursts after a stalled thread, which would overflow the bucket), else the host's arrival times."""
         assert self.tracker is not None
-        last, self._last_frame_ns = self._last_frame_ns, ref.host_ns
+        last = self._last_frame_ns
+        self._last_frame_ns = (ref.device_ns, ref.host_ns)
         if last is None:
             return True
+        dt = ref.device_ns - last[0]
+        if not 0 < dt < 1_000_000_000:
+            dt = max(0, ref.host_ns - last[1])
         rate = self.tracker.options.rate_hz
-        self._tokens = min(TOKENS_MAX, self._tokens + rate * max(0, ref.host_ns - last) / 1e9)
+        self._tokens = min(TOKENS_MAX, self._tokens + rate * dt / 1e9)
         if self._tokens < 1.0 - TOKEN_SLACK:
             return False
         self._tokens -= 1.0
