@@ -97,8 +97,8 @@ def test_a_late_detection_replaces_the_tracked_people_carried_to_the_newest_fram
     expected = np.stack([first[0] + [2.0, 0.0], new]) + 7 * VELOCITY
     order = np.argsort(out.keypoints[:, 0, 0])
     assert np.abs(out.keypoints[order] - expected[np.argsort(expected[:, 0, 0])]).max() < 0.6
-    # Ages count from the detected frame (2): confidence 0.9 halved (7 - 2) frames / 0.5 s.
-    assert out.confidences.max() == pytest.approx(0.9 * 0.5 ** (5 * FRAME_NS / 0.5e9))
+    # Ages count from the detected frame (2): confidence 0.9 halved every half life, (7 - 2) frames on.
+    assert out.confidences.max() == pytest.approx(0.9 * 0.5 ** (5 * FRAME_NS / (cfg.half_life_s * 1e9)))
     st = tr.status()
     assert st["detections"] == 2 and st["retracked_frames"] == 4  # frames 3, 4, 5, 6 rewritten
     errors = st["error_vs_detection_px"]

@@ -76,7 +76,9 @@ async def test_auto_mode_runs_both_kinds_of_pass_and_reports_its_choice() -> Non
             for i in (1, 2)]  # fmt: skip
     sizes = [(c.ring.shape[1], c.ring.shape[0]) for c in cams]
     packer = packed_detector_from_config(DetectorConfig(intra_op_threads=2), sizes)
-    chooser = ModeChooser(ModeChooserOptions(explore_after_s=0.5, explore_always_s=1.0), first="whole")
+    chooser = ModeChooser(
+        ModeChooserOptions(explore_unsettled_s=0.3, explore_after_s=0.5, explore_always_s=1.0), first="whole"
+    )
     group = PackedDetectionGroup(packer, ThreadPoolExecutor(1), chooser=chooser)
     sources = [PackedKeypointSource(i, c, group) for i, c in enumerate(cams)]
     got: list[tuple[int, int, Detections2D, int]] = []

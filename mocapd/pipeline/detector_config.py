@@ -177,9 +177,9 @@ class TrackingConfig:
     max_fb_px: float = 0.5
     """A keypoint tracked to the next frame and back that misses its start by more than this (camera pixels) is
     lost until the next detection."""
-    half_life_s: float = 0.5
+    half_life_s: float = 2.0
     """A tracked keypoint's confidence is the detector's, halved every this many seconds after the detection."""
-    max_age_s: float = 1.0
+    max_age_s: float = 2.0
     """Nobody is kept longer than this after the last detection of the camera (then the camera reports nobody
     until the detector finds people again)."""
     min_keypoints: int = 4

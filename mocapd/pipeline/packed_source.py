@@ -228,12 +228,14 @@ class PackedDetectionGroup:
             if plan is None:
                 return None
         session = self.sessions[worker]
+        inputs: list[tuple[int, int]] = []  # what the pass ran (refresh tiles included), for the cost per pixel
         t0 = self.clock()
         found = self._whole_pass(plan.cameras[0], session) if plan.mode == "whole" else self._packed_pass(
-            plan.cameras, session)  # fmt: skip
+            plan.cameras, session, inputs)  # fmt: skip
         if found is None:
             return None
         busy = self.clock() - t0
+        pixels = sum(w * h for w, h in inputs) if inputs else plan.pixels
         with self._cond:
             self.busy_ns += busy
             self.passes += 1
@@ -241,11 +243,14 @@ class PackedDetectionGroup:
                 self._detected_at[cam] = self.passes
             if self.chooser is not None:
                 usable = sum(1 for _, d in found.values() if len(d) > 0)
-                self.chooser.record(plan.mode, len(found), usable, plan.pixels, busy)
+                self.chooser.record(plan.mode, len(found), usable, pixels, busy)
         return found
 
     def _packed_pass(
-        self, cameras: Sequence[int] | None = None, session: Session | None = None
+        self,
+        cameras: Sequence[int] | None = None,
+        session: Session | None = None,
+        inputs: list[tuple[int, int]] | None = None,
     ) -> dict[int, tuple[FrameRef, Detections2D]] | None:
         """A packed pass over ``cameras`` (default: those with an unseen frame, one canvas's worth as
         :meth:`plan_pass` picks them).
@@ -279,7 +284,7 @@ class PackedDetectionGroup:
         for cam, (w, h) in enumerate(self.packer.image_sizes):
             image = self._images[cam]
             images.append(image if image is not None and cam in new else np.empty((h, w, 3), np.uint8))
-        (found,) = self.packer.detect([images], cameras=sorted(new), detector=session.canvas)
+        (found,) = self.packer.detect([images], cameras=sorted(new), detector=session.canvas, inputs=inputs)
         return {cam: (ref, to_detections2d(found[cam], self.columns)) for cam, ref in new.items()}
 
     def _one_canvas(self, order: list[int]) -> list[int]:

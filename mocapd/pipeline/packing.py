@@ -151,6 +151,7 @@ class PackedDetector:
         frames: Sequence[Sequence[Image]],
         cameras: Sequence[int] | None = None,
         detector: OnnxPoseDetector | None = None,
+        inputs: list[tuple[int, int]] | None = None,
     ) -> list[list[PoseDetections]]:
         """Detect people in ``frames[slot][camera]`` (BGR images), all slots sharing the current ROIs.
 
@@ -164,6 +165,8 @@ class PackedDetector:
         detector : OnnxPoseDetector, optional
             The session to infer with (default: ``canvas_detector``; packing disabled: ``detector``), of the canvas
             model's input size: passes over disjoint cameras may run at once, each on a session of its own.
+        inputs : list, optional
+            Given: the network input (width, height) of every canvas run is appended (what the pass cost).
 
         Returns
         -------
@@ -194,6 +197,8 @@ class PackedDetector:
         canvases = [render_canvas(packing, images, self.detector.spec.pad_value) for packing in packings]
         # One inference for all canvases where the detector batches (GPU), else one each, cropped to its tiles.
         extents = [canvas_extent(packing) for packing in packings]
+        if inputs is not None:
+            inputs.extend(runner.input_for_extent(e) for e in extents)
         for packing, dets in zip(packings, runner.run_canvases(canvases, extents), strict=True):
             found = unpack_detections(dets, packing)
             for tile, det in zip(packing.tiles, found, strict=True):

@@ -37,7 +37,7 @@ from mocapd.io.prior import resolve_prior
 from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
 from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileSource
 from mocapd.pipeline.clocksync import ClockSync
-from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns
+from mocapd.pipeline.detector_pool import AnyDetector, make_detector, name_os_thread, target_columns
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource, KeypointSource
 from mocapd.pipeline.keypoint_tracker import KeypointTracker
 from mocapd.pipeline.latency import AutoLatencyOptions
@@ -60,6 +60,7 @@ from mocapd.service.suits import load_suits
 from mocapd.sim.suits import SimulatedSuits
 from mocapd.sim.world import SyntheticKeypointSource, SyntheticWorld
 
+TRACK_THREAD = "mocapd-track"  # the tracking pool's threads, by this OS name in per-thread CPU accounting
 DEFAULT_HEIGHT_M = 1.75  # the skeleton people start with, until body sizing gives each their own
 
 
@@ -239,8 +240,8 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     sources: list[KeypointSource] = []
     tracking = detector_config.tracking
     track = tracking.enabled and detector is not None
-    pool = (ThreadPoolExecutor(tracking.workers, thread_name_prefix="mocapd-track")
-            if track and tracking.thread == "pool" else None)  # fmt: skip
+    pool = (ThreadPoolExecutor(tracking.workers, thread_name_prefix=TRACK_THREAD, initializer=name_os_thread,
+                               initargs=(TRACK_THREAD,)) if track and tracking.thread == "pool" else None)  # fmt: skip
     # A remote frame older than the latency on arrival is counted late; under "auto" the latency moves, so only
     # what is older than its ceiling is surely late here (the timeline drops the rest as it does local frames).
     latency_s = config.daemon.latency_s
