@@ -396,6 +396,8 @@ def headline(alone: dict[str, Any], live: dict[str, Any], cameras: int) -> dict[
         "detector_pass_ms": live.get("detection_group_window"),
         "missed_ticks_after_warm_up": out["missed_ticks"],
         "missed_tick_fraction_after_warm_up": missed,
+        # People solved per output frame (2 people in the videos): what the keypoints give the solver.
+        "person_solves_per_frame": live["people"]["person_solves_per_frame"],
         "detector_sessions": group.get("sessions"),
         "detection_modes": (group.get("mode") or {}).get("passes"),
         "keypoint_hz_per_person_by_camera": per_person,
