@@ -120,7 +120,7 @@ def test_occluded_keypoints_are_lost_and_a_person_with_too_few_left_is_dropped()
     cover = frame(other, VELOCITY)
     for p, k in ((0, 0), (0, 1), (1, 0)):
         x, y = np.round(start[p, k] + VELOCITY).astype(int)
-        image[y - 20 : y + 20, x - 20 : x + 20] = cover[y - 20 : y + 20, x - 20 : x + 20]
+        image[y - 26 : y + 26, x - 26 : x + 26] = cover[y - 26 : y + 26, x - 26 : x + 26]
     out = tr.step(1, FRAME_NS, gray(image, tr))
     assert out is not None and len(out) == 2
     lost = out.confidences == 0
@@ -128,7 +128,7 @@ def test_occluded_keypoints_are_lost_and_a_person_with_too_few_left_is_dropped()
     # Person 0 keeps 4 confident keypoints: one more loss and it is below min_keypoints.
     image2 = frame(tex, 2 * VELOCITY)
     x, y = np.round(start[0, 2] + 2 * VELOCITY).astype(int)
-    image2[y - 20 : y + 20, x - 20 : x + 20] = frame(other, 2 * VELOCITY)[y - 20 : y + 20, x - 20 : x + 20]
+    image2[y - 26 : y + 26, x - 26 : x + 26] = frame(other, 2 * VELOCITY)[y - 26 : y + 26, x - 26 : x + 26]
     out = tr.step(2, 2 * FRAME_NS, gray(image2, tr))
     assert out is not None and len(out) == 1
     assert tr.status()["people_dropped_keypoints"] == 1

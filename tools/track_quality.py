@@ -15,7 +15,9 @@ textured bodies at ``--scale`` (default 960x540); the reference is the truth, th
 The clips play forwards then backwards (``--seconds`` of them) at 60 fps. Prints one JSON object: per schedule
 (``--intervals-ms``, ``--delay-ms``), per method (tracked, interpolated, held) the error median/p90 (px), by joint
 group, coverage and latency, pooled over the cameras; the tracker's own error against each next detection and its
-CPU per frame and per person.
+CPU per frame and per person; and ``people_sorted``: the daemon's people sorting and enrolment run on the tracked
+keypoint stream (at a 5-frame latency) and on the detections alone (at their interval + delay + a frame), people
+per 60 Hz tick and identities (:func:`~mocapd.eval.keypoint_tracking.people_replay`).
 
     .venv/bin/python tools/track_quality.py --source demo --demo Demo_MultiPerson
     .venv/bin/python tools/track_quality.py --source demo --demo Demo_SinglePerson --held-out
@@ -47,11 +49,14 @@ from mocapd.eval.keypoint_tracking import (
     Schedule,
     compare,
     detection_baselines,
+    detection_stream,
     group_indices,
     held_out_view,
     match_people,
+    people_replay,
     replay_tracker,
     summary,
+    tracked_stream,
 )
 from mocapd.io.calibration_files import core_cameras, read_qca, scale_calibration
 from mocapd.io.pixels import bayer_gray, convert_into, from_rgb, pixel_format
@@ -66,6 +71,7 @@ from mocapd.sim.world import SyntheticWorld
 
 FloatArray = NDArray[np.float64]
 FPS = 60.0
+TRACKED_LATENCY_FRAMES = 5  # the scheduler's latency with tracked keypoints (live auto latency: ~70-120 ms)
 
 
 @dataclass
@@ -145,7 +151,12 @@ def scaled(camera: Camera, scale: float) -> Camera:
 
 
 def evaluate(
-    runs: list[CameraRun], schedule: Schedule, options: TrackingConfig, factor: int, names: list[str]
+    runs: list[CameraRun],
+    schedule: Schedule,
+    options: TrackingConfig,
+    factor: int,
+    names: list[str],
+    cameras: list[Camera],
 ) -> tuple[dict[str, Any], list[dict[str, dict[int, Estimate]]]]:
     """Every method on every camera under ``schedule``; pooled summaries and the estimates per camera."""
     groups = group_indices(names)
@@ -153,6 +164,7 @@ def evaluate(
     jitter = Comparison.empty()  # the detections themselves, two frames (33 ms) apart: their noise
     trackers = []
     per_camera = []
+    tracked_streams, detection_streams = [], []
     for run in runs:
         n = len(run.grays)
         seeds = {f: d for f, d in run.detections.items() if f % schedule.interval_frames == 0}
@@ -167,6 +179,14 @@ def evaluate(
         jitter.add(compare(apart, run.reference, groups, frames))
         trackers.append(tracker.status())
         per_camera.append(methods)
+        tracked_streams.append(tracked_stream(tracked))
+        detection_streams.append(detection_stream(seeds, schedule))
+    n = len(runs[0].grays)
+    # Downstream: the daemon's people sorting on the keypoint streams, each at the latency it needs (tracked: ~5
+    # frames, what the live auto latency found; detections: a detection interval + delay + a frame).
+    need = schedule.interval_frames + schedule.delay_frames + 1
+    people = {"tracked": people_replay(cameras, tracked_streams, TRACKED_LATENCY_FRAMES, n),
+              "detections": people_replay(cameras, detection_streams, need, n)}  # fmt: skip
     out: dict[str, Any] = {
         "interval_ms": round(schedule.seconds(schedule.interval_frames) * 1e3, 1),
         "delay_ms": round(schedule.seconds(schedule.delay_frames) * 1e3, 1),
@@ -181,6 +201,7 @@ def evaluate(
         "tracker_cpu_ms_per_step": [t["cpu_ms_per_step"] for t in trackers],
         "tracker_cpu_ms_per_person_step": [t["cpu_ms_per_person_step"] for t in trackers],
         "people_dropped": sum(t["people_dropped_keypoints"] + t["people_dropped_age"] for t in trackers),
+        "people_sorted": people,
     }  # fmt: skip
     return out, per_camera
 
@@ -259,7 +280,7 @@ def main() -> None:
     results = []
     for interval in args.intervals_ms:
         schedule = Schedule(FPS, max(1, round(interval / 1e3 * FPS)), round(args.delay_ms / 1e3 * FPS), every)
-        out, per_camera = evaluate(runs, schedule, options, factor, names)
+        out, per_camera = evaluate(runs, schedule, options, factor, names, cameras)
         if args.held_out:
             out["held_out_view_px"] = held_out(runs, per_camera, cameras, options, schedule)
         results.append(out)

@@ -21,6 +21,11 @@ the distance in pixels, by joint group and by the age of the estimate (frames si
 other cameras' keypoints of a method, reprojected into the camera and compared with its own reference detection;
 the real-video evaluation of issue 29 (``mocapd eval video``) builds the reusable held-out-view error, and
 ``held_out_view(..., error=...)`` takes that function in place of the simple confidence-weighted DLT here.
+
+:func:`people_replay` is what the keypoints give the daemon downstream: every camera's keypoint sets pushed into its
+scheduler timeline as they become available, sampled at each 60 Hz tick a latency behind, and sorted into people
+by the daemon's own sorting and enrolment (:class:`~mocapd.core.people.PeopleTracker`) on calibrated footage:
+how many of the ticks see each subject, how many identities were enrolled.
 """
 
 from __future__ import annotations
@@ -35,9 +40,11 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from mocapd.core.camera import Camera, triangulate
-from mocapd.core.sorting import Detections2D
+from mocapd.core.people import PeopleTracker
+from mocapd.core.sorting import Detections2D, DetectionSorter
+from mocapd.core.tracking import SubjectTracker, TrackingOptions
 from mocapd.pipeline.detector_config import TrackingConfig
-from mocapd.pipeline.keypoint_timeline import interpolate_people
+from mocapd.pipeline.keypoint_timeline import DetectionTimeline, interpolate_people
 from mocapd.pipeline.keypoint_tracker import JOINT_GROUPS, KeypointTracker, joint_group
 
 FloatArray = NDArray[np.float64]
@@ -279,3 +286,72 @@ def _dlt_held_out(cameras: Sequence[Camera], uvc: FloatArray, ref: FloatArray, k
     uv = cameras[k].project(X)
     e = np.linalg.norm(uv - ref[:, :2], axis=-1)
     return np.where(ok & (ref[:, 2] >= CONFIDENT) & np.isfinite(e), e, np.nan)
+
+
+@dataclass(frozen=True)
+class KeypointStream:
+    """One camera's keypoint sets as the scheduler receives them: (capture frame, set, frame it is available at)."""
+
+    sets: list[tuple[int, Detections2D, int]]
+
+
+def tracked_stream(estimates: Mapping[int, Estimate]) -> KeypointStream:
+    """The tracker's sets: available on their own frame (one frame's tracking after capture)."""
+    return KeypointStream([(f, e.people, f) for f, e in sorted(estimates.items())])
+
+
+def detection_stream(seeds: Mapping[int, Detections2D], schedule: Schedule) -> KeypointStream:
+    """The detections themselves (the pipeline before issue 31): available ``delay_frames`` after their frame."""
+    return KeypointStream([(n, d, n + schedule.delay_frames) for n, d in sorted(seeds.items())])
+
+
+def people_replay(
+    cameras: Sequence[Camera],
+    streams: Sequence[KeypointStream],
+    latency_frames: int,
+    n_frames: int,
+    fps: float = 60.0,
+    tracking: TrackingOptions | None = None,
+    hold_s: float = 0.5,
+    max_gap_s: float = 2.0,
+) -> dict[str, Any]:
+    """People sorted by the daemon's rules from keypoint streams, one tick per frame ``latency_frames`` behind.
+
+    Each tick ``k`` pushes every set available by frame ``k`` into its camera's timeline, samples all timelines at
+    frame ``k - latency_frames`` (interpolation, a hold of ``hold_s``, gaps up to ``max_gap_s``: the camera demo's
+    settings) and updates one :class:`~mocapd.core.people.PeopleTracker`. Returns the ticks after the first second,
+    the mean number of people solved per tick, the share of ticks with at least one and with two, and the identities
+    enrolled over the run.
+    """
+    ns = 1e9 / fps
+    n_kp = next(s[1].keypoints.shape[1] for st in streams for s in st.sets)
+    timelines = [DetectionTimeline(n_kp, max_age_ns=round(hold_s * 1e9), max_gap_ns=round(max_gap_s * 1e9))
+                 for _ in cameras]  # fmt: skip
+    tracker = PeopleTracker(SubjectTracker(DetectionSorter(list(cameras)), tracking))
+    queues = [sorted(st.sets, key=lambda s: (s[2], s[0])) for st in streams]
+    heads = [0] * len(queues)
+    counts: list[int] = []
+    identities: set[str] = set()
+    start = round(fps)  # the first second: enrolment takes enrol_after_s
+    for k in range(n_frames):
+        for c, q in enumerate(queues):
+            while heads[c] < len(q) and q[heads[c]][2] <= k:
+                f, dets, _ = q[heads[c]]
+                timelines[c].push(round(f * ns), dets)
+                heads[c] += 1
+        t = k - latency_frames
+        if t < 0:
+            continue
+        frame = tracker.update(round(t * ns), [tl.sample(round(t * ns)).detections for tl in timelines])
+        identities.update(p.identity for p in frame.people)
+        if k >= start:
+            counts.append(len(frame.people))
+    per_tick = np.asarray(counts, np.float64)
+    n = int(per_tick.size)
+    return {
+        "ticks": n, "latency_ms": round(latency_frames / fps * 1e3, 1),
+        "people_per_tick": round(float(per_tick.mean()), 3) if n else None,
+        "ticks_with_someone": round(float(np.mean(per_tick >= 1)), 3) if n else None,
+        "ticks_with_two": round(float(np.mean(per_tick >= 2)), 3) if n else None,
+        "identities": len(identities),
+    }  # fmt: skip

@@ -170,11 +170,11 @@ class TrackingConfig:
     """Track on the camera image downsampled by this factor (1, 2 or 4; block means: a Bayer camera's 2x2 cells
     need no demosaicing); "auto": 2 where that leaves at least :data:`MIN_TRACKING_SIDE` pixels on the image's
     shorter side, else 1 (:meth:`factor_for`)."""
-    window_px: int = 11
+    window_px: int = 15
     """Side of the Lucas-Kanade window, in pixels of the tracking image (odd, 5..63)."""
-    levels: int = 2
+    levels: int = 3
     """Pyramid levels above the tracking image (0..6)."""
-    max_fb_px: float = 0.5
+    max_fb_px: float = 1.0
     """A keypoint tracked to the next frame and back that misses its start by more than this (camera pixels) is
     lost until the next detection."""
     half_life_s: float = 2.0
