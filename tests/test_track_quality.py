@@ -12,12 +12,15 @@ from mocapd.core.camera import Camera
 from mocapd.core.keypoints import keypoint_format
 from mocapd.core.sorting import Detections2D
 from mocapd.eval.keypoint_tracking import (
+    KeypointStream,
     Reference,
     Schedule,
     compare,
     detection_baselines,
+    detection_stream,
     group_indices,
     held_out_view,
+    people_replay,
     replay_tracker,
     summary,
 )
@@ -101,3 +104,29 @@ def test_held_out_view_error_of_exact_keypoints_is_zero_and_grows_with_noise() -
     assert held_out_view(cameras, gaps, exact)["per_camera"][cameras[0].name]["n"] == 10 * 17
     constant = held_out_view(cameras, exact, exact, error=lambda cams, uvc, ref, k: np.full(17, 4.0))
     assert constant["all"]["median"] == 4.0
+
+
+def test_people_replay_sorts_keypoint_streams_as_the_daemon_does() -> None:
+    """The daemon's people sorting on keypoint streams: the synthetic rig's two people projected exactly into 4
+    cameras on every frame (available at once) are both solved on nearly every tick after enrolment, with two
+    identities; as sparse late detections (every 9th frame, 6 frames late) at their latency too; nothing from
+    nothing."""
+    world = SyntheticWorld(4, 2, 0, seed=2)
+    cameras = [_scaled(c, 0.5) for c in world.cameras]
+    n = 150
+    every: list[KeypointStream] = []
+    sparse: list[KeypointStream] = []
+    schedule = Schedule(FPS, interval_frames=9, delay_frames=6)
+    for c in cameras:
+        sets = []
+        for f in range(n):
+            kp = np.stack([c.project(world.sites_at(p, f / FPS)) for p in range(2)])
+            sets.append((f, Detections2D(kp, np.full(kp.shape[:2], 0.9)), f))
+        every.append(KeypointStream(sets))
+        sparse.append(detection_stream({f: d for f, d, _ in sets if f % 9 == 0}, schedule))
+    now = people_replay(cameras, every, 5, n)
+    assert now["identities"] == 2 and now["people_per_tick"] > 1.8 and now["latency_ms"] == 83.3, now
+    late = people_replay(cameras, sparse, 16, n)
+    assert late["identities"] == 2 and late["people_per_tick"] > 1.5, late
+    nothing = [KeypointStream([(f, Detections2D.empty(17), f) for f in range(n)]) for _ in cameras]
+    assert people_replay(cameras, nothing, 5, n)["people_per_tick"] == 0.0
