@@ -266,10 +266,19 @@ def main() -> None:
     ap.add_argument("--tracking-hz", type=float, default=None, help="default: [detector.tracking] rate_hz")
     ap.add_argument("--noise-px", type=float, default=2.0, help="synthetic: detection noise (sigma, px)")
     ap.add_argument("--held-out", action="store_true", help="demo: held-out-view error of the subject")
+    ap.add_argument(
+        "--downsample",
+        type=int,
+        choices=[1, 2, 4],
+        default=None,
+        help="tracking image downsampling (default: [detector.tracking] downsample)",
+    )
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     args.scale = args.scale if args.scale is not None else 0.5
     options = load_config().detector.options().tracking
+    if args.downsample is not None:
+        options = dataclasses.replace(options, downsample=args.downsample)
     load0 = os.getloadavg()
     if args.source == "demo":
         runs, cameras, factor = demo_runs(args, options)
