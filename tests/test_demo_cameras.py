@@ -317,3 +317,21 @@ def check_subjects(session: Session) -> None:
         for limb, parts in LIMBS.items():
             ratio = sum(published[-1][p] for p in parts) / sum(triangulated[p] for p in parts)
             assert abs(ratio - 1.0) <= LIMB_TOLERANCE, (who, limb, published[-1], triangulated)
+
+
+def test_the_closing_line_says_keypoint_and_detection_rates_and_latency() -> None:
+    """``make demo``'s summary line: detections and keypoints per camera (per person in view), end to end."""
+    from mocapd.service.demo.cameras import summary_line
+
+    summary = {
+        "frames": 4500, "frames_with_people": 4440, "max_people": 2, "identities": ["track:1", "track:2"],
+        "seconds": 75.0, "detected": {"cam01": 450, "cam02": 480},
+        "keypoint_hz_per_person": {"cam01": 30.1, "cam02": 31.4},
+        "end_to_end_ms": {"p50": 98.2, "p95": 131.0},
+    }  # fmt: skip
+    line = summary_line(summary)
+    assert line.startswith("done: 4500 frames, 4440 with people solved (at most 2 at once: track:1, track:2)")
+    assert "detections 6.2 Hz per camera" in line and "keypoints 30-31 Hz per camera and person" in line
+    assert line.endswith("end to end p50 98 ms, p95 131 ms")
+    bare = summary_line({"frames": 3, "frames_with_people": 0, "max_people": 0, "identities": []})
+    assert bare == "done: 3 frames, 0 with people solved (at most 0 at once: nobody)"
