@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import InputError
@@ -77,8 +78,9 @@ def test_keypoints_follow_a_known_motion_with_confidence_halving_per_half_life(d
 
 
 def test_a_late_detection_replaces_the_tracked_people_carried_to_the_newest_frame() -> None:
-    """A detection of frame 2 arrives at frame 6: its people (one new, one gone) are carried through frames 3..6
-    and are the only people from frame 7 on; the error of the old tracking at frame 2 is measured."""
+    """A detection of frame 2 arrives at frame 6: its people (one as before, one new; one it missed) are carried
+    through frames 3..6 and are the people from frame 7 on, with the missed one kept until a second detection
+    misses it too; the error of the old tracking at frame 2 is measured."""
     cfg = TrackingConfig(max_age_s=5.0)
     tex = texture()
     first = seeds(2)
@@ -93,19 +95,27 @@ def test_a_late_detection_replaces_the_tracked_people_carried_to_the_newest_fram
     at2 = np.stack([first[0] + 2 * VELOCITY + [2.0, 0.0], new + 2 * VELOCITY])
     tr.detected(2, 2 * FRAME_NS, people(at2), grays[2])
     out = tr.step(7, 7 * FRAME_NS, grays[7])
-    assert out is not None and len(out) == 2
-    expected = np.stack([first[0] + [2.0, 0.0], new]) + 7 * VELOCITY
+    assert out is not None and len(out) == 3
+    expected = np.stack([first[0] + [2.0, 0.0], new, first[1]]) + 7 * VELOCITY
     order = np.argsort(out.keypoints[:, 0, 0])
     assert np.abs(out.keypoints[order] - expected[np.argsort(expected[:, 0, 0])]).max() < 0.6
-    # Ages count from the detected frame (2): confidence 0.9 halved every half life, (7 - 2) frames on.
-    assert out.confidences.max() == pytest.approx(0.9 * 0.5 ** (5 * FRAME_NS / (cfg.half_life_s * 1e9)))
+    # Ages count from the detected frame that found each (2; the missed one 0): confidence 0.9 halved every half
+    # life, (7 - 2) and 7 frames on.
+    half = cfg.half_life_s * 1e9
+    assert out.confidences[:2] == pytest.approx(np.full((2, 6), 0.9 * 0.5 ** (5 * FRAME_NS / half)))
+    assert out.confidences[2] == pytest.approx(np.full(6, 0.9 * 0.5 ** (7 * FRAME_NS / half)))
     st = tr.status()
     assert st["detections"] == 2 and st["retracked_frames"] == 4  # frames 3, 4, 5, 6 rewritten
+    assert st["people_kept_missed"] == 1
     errors = st["error_vs_detection_px"]
     # The matched person: 6 keypoints 2 px from the old tracking at frame 2, of age 2 frames.
     assert errors["all"]["n"] == 6 and errors["all"]["median"] == pytest.approx(2.0, abs=0.3)
     assert set(errors["by_joint_group"]) == {"head", "shoulders", "elbows", "wrists", "hips", "knees"}
     assert list(errors["by_age_ms"]) == ["50-100"]
+    # The next detection (frame 8) misses that person again: gone.
+    tr.detected(8, 8 * FRAME_NS, people(np.stack([first[0], new]) + 8 * VELOCITY), grays[8])
+    out = tr.step(9, 9 * FRAME_NS, grays[9])
+    assert out is not None and len(out) == 2 and tr.status()["people_kept_missed"] == 1
 
 
 def test_occluded_keypoints_are_lost_and_a_person_with_too_few_left_is_dropped() -> None:
@@ -123,13 +133,38 @@ def test_occluded_keypoints_are_lost_and_a_person_with_too_few_left_is_dropped()
         image[y - 26 : y + 26, x - 26 : x + 26] = cover[y - 26 : y + 26, x - 26 : x + 26]
     out = tr.step(1, FRAME_NS, gray(image, tr))
     assert out is not None and len(out) == 2
-    lost = out.confidences == 0
+    # A lost keypoint follows its person's motion (the median of their tracked keypoints') at half the confidence.
+    lost = out.confidences < 0.5 * out.confidences.max() + 1e-9
     assert lost.sum() == 3 and lost[0, :2].all() and lost[1, 0], lost
+    assert out.confidences[lost] == pytest.approx(0.5 * out.confidences[~lost].max())
+    assert np.abs(out.keypoints[lost] - (start + VELOCITY)[lost]).max() < 0.6
+    # Person 0 keeps 4 tracked keypoints; one more loss and it is below min_keypoints, but its lost ones still
+    # follow it: kept until the next detection.
+    out = tr.step(2, 2 * FRAME_NS, gray(_cover(frame(tex, 2 * VELOCITY), frame(other, 2 * VELOCITY), start[0, 2]
+                                               + 2 * VELOCITY), tr))  # fmt: skip
+    assert out is not None and len(out) == 2 and tr.status()["people_dropped_keypoints"] == 0
+
+
+def _cover(image: NDArray[np.uint8], cover: NDArray[np.uint8], at: NDArray[np.float64]) -> NDArray[np.uint8]:
+    x, y = np.round(at).astype(int)
+    image[y - 26 : y + 26, x - 26 : x + 26] = cover[y - 26 : y + 26, x - 26 : x + 26]
+    return image
+
+
+def test_lost_keypoints_are_dropped_with_lost_confidence_zero_and_then_people_with_too_few_left() -> None:
+    tex, other = texture(0), texture(99)
+    start = seeds(2)
+    tr = KeypointTracker(6, TrackingConfig(max_age_s=5.0, min_keypoints=4, lost_confidence=0.0), image_size=(W, H))
+    tr.detected(0, 0, people(start), gray(frame(tex, np.zeros(2)), tr))
+    tr.step(0, 0, gray(frame(tex, np.zeros(2)), tr))
+    image = frame(tex, VELOCITY)
+    for k in (0, 1):
+        image = _cover(image, frame(other, VELOCITY), start[0, k] + VELOCITY)
+    out = tr.step(1, FRAME_NS, gray(image, tr))
+    assert out is not None and (out.confidences == 0).sum() == 2 and (out.confidences[0, :2] == 0).all()
     # Person 0 keeps 4 confident keypoints: one more loss and it is below min_keypoints.
-    image2 = frame(tex, 2 * VELOCITY)
-    x, y = np.round(start[0, 2] + 2 * VELOCITY).astype(int)
-    image2[y - 26 : y + 26, x - 26 : x + 26] = frame(other, 2 * VELOCITY)[y - 26 : y + 26, x - 26 : x + 26]
-    out = tr.step(2, 2 * FRAME_NS, gray(image2, tr))
+    out = tr.step(2, 2 * FRAME_NS, gray(_cover(frame(tex, 2 * VELOCITY), frame(other, 2 * VELOCITY), start[0, 2]
+                                               + 2 * VELOCITY), tr))  # fmt: skip
     assert out is not None and len(out) == 1
     assert tr.status()["people_dropped_keypoints"] == 1
 
@@ -147,13 +182,14 @@ def test_nobody_is_kept_past_max_age_and_tracking_never_adds_people() -> None:
     assert max(counts) == 3  # never more than detected
     assert counts[:6] == [3] * 6 and counts[6:] == [0, 0, 0]  # 7 frames = 231 ms > 200 ms: the camera sees nobody
     assert tr.status()["people_dropped_age"] == 3
-    # A detection of nobody empties the camera at once.
+    # A detection of nobody misses them once; a second one empties the camera.
     tr2 = KeypointTracker(6, cfg, image_size=(W, H))
     tr2.detected(0, 0, people(seeds(2)), gray(frame(tex, np.zeros(2)), tr))
     tr2.step(1, FRAME_NS, gray(frame(tex, VELOCITY), tr))
-    tr2.detected(1, FRAME_NS, Detections2D.empty(6), gray(frame(tex, VELOCITY), tr))
-    out = tr2.step(2, 2 * FRAME_NS, gray(frame(tex, 2 * VELOCITY), tr))
-    assert out is not None and len(out) == 0
+    for k, left in ((1, 2), (2, 0)):
+        tr2.detected(k, k * FRAME_NS, Detections2D.empty(6), gray(frame(tex, k * VELOCITY), tr))
+        out = tr2.step(k + 1, (k + 1) * FRAME_NS, gray(frame(tex, (k + 1) * VELOCITY), tr))
+        assert out is not None and len(out) == left
 
 
 def test_old_frames_and_detections_older_than_the_history_are_refused() -> None:

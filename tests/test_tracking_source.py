@@ -125,3 +125,21 @@ async def test_real_video_real_detector_keypoints_between_packed_detections() ->
         # Detector noise included (its keypoints move 2-3 px between consecutive frames of a still person).
         assert err["all"]["median"] is not None and err["all"]["median"] < 8.0, err
         assert set(err["by_joint_group"]) >= {"head", "shoulders", "hips"}
+
+
+@pytest.mark.asyncio
+async def test_tracking_steps_back_when_the_detector_is_later_than_it_can_carry(tmp_path: Path) -> None:
+    """Detections 120 ms or more late, a tracker that carries them at most 200 ms (history and age): past half of
+    that it steps back and the camera's detections go to the sink as they are, as without tracking (a tracker
+    whose detections all come too late would otherwise leave the camera with nobody)."""
+    for k in range(N_FRAMES):
+        cv2.imwrite(str(tmp_path / f"{k:03d}.png"), np.repeat(_scene(k)[..., None], 3, axis=2))
+    frames = ImageFolderSource("cam0", tmp_path, fps=30.0)
+    cfg = TrackingConfig(rate_hz=30.0, max_age_s=0.2, history_s=0.2)
+    src = DetectorKeypointSource(0, frames, _ShiftDetector(), tracker=KeypointTracker(6, cfg))
+    got: list[tuple[int, int, Detections2D, int]] = []
+    await src.run(lambda cam, t, d, arrival: got.append((cam, t, d, arrival)))
+    st = src.status()["tracking"]
+    assert not st["active"] and st["steps_back"] == 1 and st["keypoint_sets"] == 0, st
+    assert src.detected >= 3 and st["detections_delivered"] == src.detected == len(got)
+    assert all(arrival - t >= 0.12e9 and len(d) == 1 for _, t, d, arrival in got)  # the detections themselves

@@ -177,6 +177,9 @@ class TrackingConfig:
     max_fb_px: float = 1.0
     """A keypoint tracked to the next frame and back that misses its start by more than this (camera pixels) is
     lost until the next detection."""
+    lost_confidence: float = 0.5
+    """A keypoint the tracker lost follows its person's median motion until the next detection, with the
+    detector's confidence times this (0: it is dropped, confidence 0)."""
     half_life_s: float = 2.0
     """A tracked keypoint's confidence is the detector's, halved every this many seconds after the detection."""
     max_age_s: float = 2.0
@@ -205,6 +208,8 @@ class TrackingConfig:
             raise ConfigError(f"detector.tracking.levels must be 0..6, got {self.levels}")
         if not 0.0 < self.max_fb_px <= 100.0:
             raise ConfigError(f"detector.tracking.max_fb_px must be in (0, 100], got {self.max_fb_px}")
+        if not 0.0 <= self.lost_confidence <= 1.0:
+            raise ConfigError(f"detector.tracking.lost_confidence must be in [0, 1], got {self.lost_confidence}")
         for key in ("half_life_s", "max_age_s", "history_s"):
             if not 0.0 < getattr(self, key) <= 60.0:
                 raise ConfigError(f"detector.tracking.{key} must be in (0, 60], got {getattr(self, key)}")

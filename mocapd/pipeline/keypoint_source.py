@@ -20,6 +20,7 @@ import asyncio
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Executor
 from typing import Any, Protocol
@@ -39,6 +40,12 @@ from mocapd.pipeline.latency import LatencyStats
 log = logging.getLogger(__name__)
 TOKENS_MAX = 1.5  # a frame the camera dropped leaves half a frame of credit: the next two frames are tracked
 TOKEN_SLACK = 1e-6  # 0.5 + 0.5 tokens is a frame, however the sums round
+#: Tracking steps back (the camera delivers its detections, as without tracking) while the median delay of its last
+#: DELAY_WINDOW detections exceeds this share of what the tracker can carry a detection across (the shorter of
+#: [detector.tracking] history_s and max_age_s), and steps in again below STEP_IN of it.
+STEP_BACK = 0.5
+STEP_IN = 0.35
+DELAY_WINDOW = 8
 
 #: (camera index, capture time ns, detections, arrival time ns) -> None
 KeypointSink = Callable[[int, int, Detections2D, int], None]
@@ -129,7 +136,12 @@ class DetectorKeypointSource:
         self.detection_delay = LatencyStats(1024)  # capture -> detections received (the tracker hides it downstream)
         # Tracking: keypoint sets delivered (people in them), frames tracked, the CPU of it all (gray image, steps).
         self.tracking = {"sets": 0, "person_sets": 0, "frames": 0, "gray_missed": 0, "errors": 0,
-                         "cpu_ns": 0, "detections_without_image": 0}  # fmt: skip
+                         "cpu_ns": 0, "detections_without_image": 0, "steps_back": 0,
+                         "detections_delivered": 0}  # fmt: skip
+        #: tracking delivers the keypoints now (False: it stepped back, the detections go out themselves)
+        self.tracking_active = tracker is not None
+        self._delays: deque[int] = deque(maxlen=DELAY_WINDOW)
+        self._last_sent_ns = -(2**62)  # stamp of the newest keypoint set sent (tracked, or a detection)
         self._last_frame_ns: tuple[int, int] | None = None  # (device, host) time of the last frame offered
         self._tokens = 0.0  # frames the tracker may take now (rate_hz token bucket)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -152,7 +164,7 @@ class DetectorKeypointSource:
                 self.device_clock.update(ref.device_ns, ref.host_ns)
             self.frame_arrived(ref)
             wake.set()
-            if pool is not None and self.tracker is not None and self._due(ref):
+            if pool is not None and self.tracker is not None and self.tracking_active and self._due(ref):
                 pool.submit(self._track, ref)
 
         async def detect_loop() -> None:
@@ -165,10 +177,14 @@ class DetectorKeypointSource:
                 ref, dets = done
                 stamp = self.capture_ns(ref)
                 arrival = self.clock()
-                if self.tracker is None:
-                    sink(self.camera, stamp, dets, arrival)
-                else:
+                if self.tracker is not None and self._tracking_reaches(arrival - stamp):
                     self._reseed(ref, dets)
+                elif self.tracker is None:
+                    sink(self.camera, stamp, dets, arrival)
+                elif stamp > self._last_sent_ns:  # not older than a tracked set already sent (stepping back)
+                    self._last_sent_ns = stamp
+                    sink(self.camera, stamp, dets, arrival)
+                    self.tracking["detections_delivered"] += 1
                 self.detection_delay.add(arrival - stamp)
                 self.detected += 1
                 self.detected_people += len(dets)
@@ -186,6 +202,29 @@ class DetectorKeypointSource:
                 self.frames.frame_hook = None  # type: ignore[attr-defined]
 
     # ----------------------------------------------------------------------------------------------- tracking
+    def _tracking_reaches(self, delay_ns: int) -> bool:
+        """Whether tracking carries this camera's detections now, given the delay of the newest one.
+
+        A detection later than the tracker's history, or older than its people's age limit, re-seeds nothing: a
+        starved detector (1-2 s late on a loaded 2-core machine) would leave the camera with nobody, where its
+        detections alone, behind a longer latency, still have the people. Tracking then steps back and the
+        detections go out as they are (the scheduler's auto latency follows them) until the delay is short again;
+        stepping in, the tracker starts afresh from the next detection. Its CPU goes to the detector meanwhile."""
+        assert self.tracker is not None
+        o = self.tracker.options
+        self._delays.append(delay_ns)
+        reach = min(o.history_s, o.max_age_s) * 1e9
+        delay = float(np.median(self._delays))
+        if self.tracking_active and delay > STEP_BACK * reach:
+            self.tracking_active = False
+            self.tracking["steps_back"] += 1
+            log.info("camera %s: detections %.0f ms late: tracking steps back", self.name, delay / 1e6)
+        elif not self.tracking_active and delay < STEP_IN * reach:
+            self.tracker.reset()
+            self.tracking_active = True
+            log.info("camera %s: detections %.0f ms late: tracking again", self.name, delay / 1e6)
+        return self.tracking_active
+
     def _due(self, ref: FrameRef) -> bool:
         """Whether frame ``ref`` is tracked: ``rate_hz`` frames a second on average, never more than the camera
         sends (a token bucket: a 60 fps camera at 30 Hz gives every other frame, one at 56 fps 30 of its 56). Time
@@ -208,7 +247,7 @@ class DetectorKeypointSource:
 
     def _track_in_capture(self, ref: FrameRef) -> None:
         """On the capture thread, right after ``ref`` was published."""
-        if self._due(ref):
+        if self.tracking_active and self._due(ref):
             self._track(ref)
 
     def _track(self, ref: FrameRef) -> None:
@@ -236,9 +275,11 @@ class DetectorKeypointSource:
     def _deliver_tracked(self, ref: FrameRef, people: Detections2D, done_ns: int) -> None:
         """On the event loop: one tracked frame's keypoints to the sink, stamped like a detection (``done_ns``:
         when tracking finished)."""
-        if self._sink is None:
+        stamp = self.capture_ns(ref)
+        if self._sink is None or not self.tracking_active or stamp <= self._last_sent_ns:
             return
-        self._sink(self.camera, self.capture_ns(ref), people, done_ns)
+        self._last_sent_ns = stamp
+        self._sink(self.camera, stamp, people, done_ns)
         self.tracking["sets"] += 1
         self.tracking["person_sets"] += len(people)
 
@@ -329,6 +370,8 @@ class DetectorKeypointSource:
                 "cpu_ms_per_frame": round(cpu / t["frames"] / 1e6, 3) if t["frames"] else None,
                 "cpu_ms_per_person_frame": round(cpu / t["person_sets"] / 1e6, 3) if t["person_sets"] else None,
                 "thread": "pool" if self.tracking_pool is not None else "capture",
+                "active": self.tracking_active, "steps_back": t["steps_back"],
+                "detections_delivered": t["detections_delivered"],
                 "tracker": self.tracker.status(),
             }  # fmt: skip
         capture = getattr(self.frames, "capture_status", None)  # frame sources of mocapd.io report their device

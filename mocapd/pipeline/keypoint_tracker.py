@@ -84,25 +84,37 @@ class _People:
         Camera pixels.
     alive : ndarray of bool, shape (P, K)
         Still tracked (False once lost, until the next detection).
+    coasting : ndarray of bool, shape (P, K)
+        Lost by the tracker, carried by their person's median motion since (see :meth:`KeypointTracker._carry`).
     confidence : ndarray, shape (P, K)
         As the detector gave them.
-    t_det_ns : int
-        Capture time of the detection frame they come from.
+    t_det_ns : ndarray of int64, shape (P,)
+        Capture time of the detection frame each comes from (the last detection that found them).
     """
 
     keypoints: FloatArray
     alive: BoolArray
     confidence: FloatArray
-    t_det_ns: int
+    t_det_ns: NDArray[np.int64]
+    coasting: BoolArray
 
     @staticmethod
     def from_detections(d: Detections2D, t_ns: int) -> _People:
         kp = np.asarray(d.keypoints, np.float64).copy()
         conf = np.asarray(d.confidences, np.float64).copy()
-        return _People(kp, (conf > 0) & np.all(np.isfinite(kp), axis=-1), conf, t_ns)
+        alive = (conf > 0) & np.all(np.isfinite(kp), axis=-1)
+        return _People(kp, alive, conf, np.full(len(kp), t_ns, np.int64), np.zeros_like(alive))
 
-    def select(self, keep: BoolArray) -> _People:
-        return _People(self.keypoints[keep], self.alive[keep], self.confidence[keep], self.t_det_ns)
+    def select(self, keep: BoolArray | NDArray[np.int64]) -> _People:
+        return _People(self.keypoints[keep], self.alive[keep], self.confidence[keep], self.t_det_ns[keep],
+                       self.coasting[keep])  # fmt: skip
+
+    def extend(self, other: _People) -> _People:
+        return _People(
+            np.concatenate([self.keypoints, other.keypoints]), np.concatenate([self.alive, other.alive]),
+            np.concatenate([self.confidence, other.confidence]), np.concatenate([self.t_det_ns, other.t_det_ns]),
+            np.concatenate([self.coasting, other.coasting]),
+        )  # fmt: skip
 
     def __len__(self) -> int:
         return int(self.keypoints.shape[0])
@@ -173,9 +185,11 @@ class KeypointTracker:
         self._n_err = 0
         self.counters = dict.fromkeys(
             ("steps", "frames_skipped", "people_steps", "lk_calls", "keypoints_lost", "detections", "detections_late",
-             "retracked_frames", "people_dropped_age", "people_dropped_keypoints"), 0)  # fmt: skip
+             "retracked_frames", "people_dropped_age", "people_dropped_keypoints", "people_kept_missed"),
+            0)  # fmt: skip
         self.cpu_ns = 0
         self.people_now = 0
+        self._last_det_ns = -1  # capture time of the detection that replaced the tracked people last
 
     # ------------------------------------------------------------------------------------------------- input
     def detected(self, seq: int, t_ns: int, detections: Detections2D, gray: Gray) -> None:
@@ -186,6 +200,14 @@ class KeypointTracker:
                              f"expected (P, {self.n_kp}, 2)")  # fmt: skip
         with self._lock:
             self._pending.append(_Pending(seq, t_ns, detections, gray))
+
+    def reset(self) -> None:
+        """Forget the tracked frames, people and pending detections (the next detection starts afresh)."""
+        with self._lock:
+            self._history.clear()
+            self._pending.clear()
+            self._last_det_ns = -1
+            self.people_now = 0
 
     def step(self, seq: int, t_ns: int, gray: Gray) -> Detections2D | None:
         """Track to frame ``seq`` (captured at ``t_ns``, host ns; ``gray`` at the tracking resolution).
@@ -231,7 +253,8 @@ class KeypointTracker:
     # ------------------------------------------------------------------------------------------------- tracking
     def _carry(self, people: _People, g0: Gray, g1: Gray) -> _People:
         """``people`` tracked from image ``g0`` to ``g1``: forward and back; lost where the two disagree."""
-        out = _People(people.keypoints.copy(), people.alive.copy(), people.confidence, people.t_det_ns)
+        out = _People(people.keypoints.copy(), people.alive.copy(), people.confidence, people.t_det_ns,
+                      people.coasting.copy())  # fmt: skip
         idx = np.flatnonzero(out.alive.ravel())
         if idx.size == 0:
             return out
@@ -249,11 +272,26 @@ class KeypointTracker:
         ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= self.options.max_fb_px) & inside
         ok &= np.all(np.isfinite(p1), axis=1)
         flat_kp = out.keypoints.reshape(-1, 2)
+        moved = p1[ok] * f + (f - 1) / 2 - flat_kp[idx[ok]]
         flat_kp[idx[ok]] = p1[ok] * f + (f - 1) / 2
         flat_alive = out.alive.reshape(-1)
         flat_alive[idx[~ok]] = False
         self.counters["keypoints_lost"] += int((~ok).sum())
+        if self.options.lost_confidence > 0:
+            self._coast(out, people.alive, idx[ok] // self.n_kp, moved)
         return out
+
+    def _coast(self, out: _People, was_alive: BoolArray, person_of: NDArray[np.int64], moved: FloatArray) -> None:
+        """Keypoints the tracker lost (now or before) follow their person: each moves by the median motion of the
+        person's keypoints tracked this step (none: they stay). A person seen in fewer views than the sorting
+        needs is lost to the solve, and the detector's next answer for a lost keypoint is a few pixels from where
+        its person's motion carries it (tools/track_quality.py): better there, less trusted
+        (``lost_confidence``), than missing until the next detection."""
+        out.coasting |= was_alive & ~out.alive
+        for p in np.flatnonzero(out.coasting.any(axis=1)):
+            own = moved[person_of == p]
+            if own.shape[0]:
+                out.keypoints[p, out.coasting[p]] += np.median(own, axis=0)
 
     def _lk(self, a: Gray, b: Gray, pts: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
         """Points ``pts`` (n, 1, 2) of image ``a`` found in image ``b``, and whether each was found."""
@@ -266,18 +304,22 @@ class KeypointTracker:
         """Drop everyone once the detection is ``max_age_s`` old, and people with too few keypoints left."""
         if len(people) == 0:
             return people
-        if t_ns - people.t_det_ns > self.options.max_age_s * 1e9:
-            self.counters["people_dropped_age"] += len(people)
-            return people.select(np.zeros(len(people), bool))
-        kept = (people.alive & (people.confidence >= CONFIDENT)).sum(axis=1) >= self.options.min_keypoints
+        young = t_ns - people.t_det_ns <= self.options.max_age_s * 1e9
+        if not young.all():
+            self.counters["people_dropped_age"] += int((~young).sum())
+            people = people.select(young)
+        # Keypoints still followed: tracked, or coasting with their person (lost_confidence > 0).
+        followed = people.alive | people.coasting if self.options.lost_confidence > 0 else people.alive
+        kept = (followed & (people.confidence >= CONFIDENT)).sum(axis=1) >= self.options.min_keypoints
         if not kept.all():
             self.counters["people_dropped_keypoints"] += int((~kept).sum())
             return people.select(kept)
         return people
 
     def _output(self, people: _People, t_ns: int) -> Detections2D:
-        decay = 0.5 ** (max(0, t_ns - people.t_det_ns) / (self.options.half_life_s * 1e9))
-        conf = np.where(people.alive, people.confidence * decay, 0.0)
+        decay = 0.5 ** (np.maximum(0, t_ns - people.t_det_ns) / (self.options.half_life_s * 1e9))
+        lost = np.where(people.coasting, people.confidence * self.options.lost_confidence, 0.0)
+        conf = np.where(people.alive, people.confidence, lost) * decay[:, None]
         return Detections2D(people.keypoints.copy(), conf)
 
     def _trim(self, t_ns: int) -> None:
@@ -291,23 +333,25 @@ class KeypointTracker:
     def _apply_pending(self) -> None:
         pending = sorted(self._pending, key=lambda p: p.seq)
         self._pending.clear()
+        tracked = None
         for p in pending:
             self._check_shape(p.gray)
-            self._measure(p)
-        self._replace(pending[-1])
+            tracked = self._measure(p)
+        self._replace(pending[-1], tracked)
 
-    def _measure(self, p: _Pending) -> None:
-        """Distance between the tracked keypoints carried to the detection's frame and the detection there."""
+    def _measure(self, p: _Pending) -> _People | None:
+        """Distance between the tracked keypoints carried to the detection's frame and the detection there; the
+        tracked people on that frame (None: nobody was tracked before it)."""
         seqs = [f.seq for f in self._history]
         i = bisect.bisect_right(seqs, p.seq) - 1
         if i < 0 or self._history[i].people is None:
-            return
+            return None
         before = self._history[i]
         assert before.people is not None
         tracked = before.people if before.seq == p.seq else self._carry(before.people, before.gray, p.gray)
         tracked = self._prune(tracked, p.t_ns)
         if len(tracked) == 0 or len(p.detections) == 0:
-            return
+            return tracked
         age_ms = (p.t_ns - tracked.t_det_ns) / 1e6
         det_kp, det_conf = p.detections.keypoints, p.detections.confidences
         both = tracked.alive[:, None, :] & (tracked.confidence[:, None, :] >= CONFIDENT) & (
@@ -320,7 +364,8 @@ class KeypointTracker:
             if mean[r, c] > MATCH_PX:
                 continue
             sel = both[r, c]
-            self._record(d[r, c][sel], self._groups[sel], age_ms)
+            self._record(d[r, c][sel], self._groups[sel], float(age_ms[r]))
+        return tracked
 
     def _record(self, errors: FloatArray, groups: NDArray[np.int8], age_ms: float) -> None:
         for e, g in zip(errors, groups, strict=True):
@@ -328,11 +373,36 @@ class KeypointTracker:
             self._err[k], self._err_group[k], self._err_age[k] = e, g, age_ms
             self._n_err += 1
 
-    def _replace(self, p: _Pending) -> None:
+    def _missed(self, tracked: _People, fresh: _People) -> _People:
+        """The tracked people a detection did not find that tracking keeps: those found by the camera's previous
+        detection (missed once: a packed detector's region or a weak pass misses a person now and then; the next
+        detection decides) that no detected person overlaps. Dropped on the second miss in a row."""
+        if len(tracked) == 0:
+            return tracked.select(np.zeros(0, np.int64))
+        followed = tracked.alive | tracked.coasting
+        once = tracked.t_det_ns == self._last_det_ns
+        if len(fresh):
+            lo = np.where(fresh.alive[..., None], fresh.keypoints, np.inf).min(axis=1)  # (P_d, 2) boxes
+            hi = np.where(fresh.alive[..., None], fresh.keypoints, -np.inf).max(axis=1)
+            for r in np.flatnonzero(once):
+                pts = tracked.keypoints[r][followed[r]]
+                if pts.shape[0] == 0:
+                    once[r] = False
+                    continue
+                centre = np.median(pts, axis=0)
+                margin = 0.1 * (hi - lo).max(axis=1, keepdims=True)
+                once[r] = not np.any(np.all((centre >= lo - margin) & (centre <= hi + margin), axis=1))
+        self.counters["people_kept_missed"] += int(once.sum())
+        return tracked.select(once)
+
+    def _replace(self, p: _Pending, tracked: _People | None = None) -> None:
         """The detection's people replace the tracked ones from its frame on: carried through the kept frames
-        after it to the newest (their states rewritten)."""
+        after it to the newest (their states rewritten); tracked people it missed once stay (:meth:`_missed`)."""
         self.counters["detections"] += 1
         fresh = _People.from_detections(p.detections, p.t_ns)
+        if tracked is not None:
+            fresh = fresh.extend(self._missed(tracked, fresh))
+        self._last_det_ns = p.t_ns
         seqs = [f.seq for f in self._history]
         if not self._history or p.seq > seqs[-1]:
             self._history.append(_Frame(p.seq, p.t_ns, p.gray, fresh))

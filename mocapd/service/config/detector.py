@@ -110,6 +110,7 @@ class TrackingSection(Section):
     window_px: Annotated[int, Field(ge=5, le=63), AfterValidator(_odd)] = _T.window_px
     levels: int = Field(_T.levels, ge=0, le=6)
     max_fb_px: float = Field(_T.max_fb_px, gt=0.0, le=100.0)
+    lost_confidence: float = Field(_T.lost_confidence, ge=0.0, le=1.0)
     half_life_s: float = Field(_T.half_life_s, gt=0.0, le=60.0)
     max_age_s: float = Field(_T.max_age_s, gt=0.0, le=60.0)
     min_keypoints: int = Field(_T.min_keypoints, ge=1, le=1000)
