@@ -22,7 +22,10 @@ How, per camera (:class:`KeypointTracker`, thread-safe; the caller decides which
 * Confidence: the detector's, halved every ``half_life_s`` after the detection's frame, zero for lost keypoints.
 * People: only a detection makes people (tracking never invents one); a person is dropped when fewer than
   ``min_keypoints`` of their confidently detected keypoints are still tracked, and everyone is dropped once the
-  last detection is ``max_age_s`` old (the camera then reports nobody until the detector finds people again).
+  last detection that found them is ``max_age_s`` old (the camera then says nothing until the detector finds people
+  again: its keypoint stream stops, as a late detector's does). A person one detection missed is kept until a second
+  misses them too. A keypoint the tracker lost follows its person's median motion at ``lost_confidence`` times
+  the detector's confidence (:meth:`KeypointTracker._coast`).
 
 Times are arguments (the frames' host capture times); the only clock read is the thread CPU clock for the cost
 accounting (injected).
@@ -190,6 +193,8 @@ class KeypointTracker:
         self.cpu_ns = 0
         self.people_now = 0
         self._last_det_ns = -1  # capture time of the detection that replaced the tracked people last
+        self._silent = False  # everyone aged out since the last detection (step says nothing)
+        self._max_age_ns = self.options.max_age_s * 1e9
 
     # ------------------------------------------------------------------------------------------------- input
     def detected(self, seq: int, t_ns: int, detections: Detections2D, gray: Gray) -> None:
@@ -207,13 +212,15 @@ class KeypointTracker:
             self._history.clear()
             self._pending.clear()
             self._last_det_ns = -1
+            self._silent = False
             self.people_now = 0
 
     def step(self, seq: int, t_ns: int, gray: Gray) -> Detections2D | None:
         """Track to frame ``seq`` (captured at ``t_ns``, host ns; ``gray`` at the tracking resolution).
 
-        Returns the people on this frame (empty: nobody), or None when there is nothing to say yet (no detection
-        so far) or the frame is not newer than the newest tracked one.
+        Returns the people on this frame (empty: nobody), or None when there is nothing to say: no detection so
+        far, everyone aged out (``max_age_s``) waiting for the next one, or the frame is not newer than the newest
+        tracked one.
         """
         with self._lock:
             c0 = self._cpu()
@@ -239,7 +246,15 @@ class KeypointTracker:
         self.counters["steps"] += 1
         if frame.people is None:
             return None
-        frame.people = self._prune(frame.people, t_ns)
+        carried = frame.people
+        frame.people = self._prune(carried, t_ns)
+        if len(carried) and not len(frame.people) and np.all(t_ns - carried.t_det_ns > self._max_age_ns):
+            self._silent = True
+        if self._silent:
+            # Everyone aged out waiting for a detection: the tracker knows nothing now, which is not "nobody" (the
+            # scheduler then holds the camera's last keypoints, then counts it missing, as for a late detector).
+            self.people_now = 0
+            return None
         self.people_now = len(frame.people)
         self.counters["people_steps"] += len(frame.people)
         return self._output(frame.people, t_ns)
@@ -403,6 +418,7 @@ class KeypointTracker:
         if tracked is not None:
             fresh = fresh.extend(self._missed(tracked, fresh))
         self._last_det_ns = p.t_ns
+        self._silent = False
         seqs = [f.seq for f in self._history]
         if not self._history or p.seq > seqs[-1]:
             self._history.append(_Frame(p.seq, p.t_ns, p.gray, fresh))

@@ -329,6 +329,10 @@ def _tracking(ca: dict[str, Any], cb: dict[str, Any], wall: float) -> dict[str, 
         "people_dropped_age": tb["tracker"]["people_dropped_age"] - ta["tracker"]["people_dropped_age"],
         "people_dropped_keypoints": (tb["tracker"]["people_dropped_keypoints"]
                                      - ta["tracker"]["people_dropped_keypoints"]),
+        "people_kept_missed": tb["tracker"]["people_kept_missed"] - ta["tracker"]["people_kept_missed"],
+        # Detections delivered as they are while tracking stepped back (they came later than it can carry).
+        "detections_delivered": tb["detections_delivered"] - ta["detections_delivered"],
+        "steps_back": tb["steps_back"] - ta["steps_back"], "active_at_end": tb["active"],
         "thread": tb["thread"],
     }  # fmt: skip
 

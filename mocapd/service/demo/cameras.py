@@ -268,6 +268,8 @@ def _summary(daemon: Daemon | None, people: PeopleCount) -> dict[str, Any]:
             # second over the people per detection, over the whole run.
             out["keypoint_sets"] = {n: c["tracking"]["keypoint_sets"] for n, c in tracked.items()}
             out["keypoint_hz_per_person"] = {n: _per_person_hz(c, st["uptime_s"]) for n, c in tracked.items()}
+            # Detections that went out as they are, tracking having stepped back (later than it can carry).
+            out["detections_untracked"] = {n: c["tracking"]["detections_delivered"] for n, c in tracked.items()}
     return out
 
 
