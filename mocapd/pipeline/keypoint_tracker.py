@@ -178,6 +178,7 @@ class KeypointTracker:
         self._cpu = cpu_clock
         self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
         self._lock = threading.Lock()
+        self._pending_lock = threading.Lock()
         self._history: list[_Frame] = []  # tracked frames in seq order, the last history_s of them
         self._pending: list[_Pending] = []
         self._shape: tuple[int, int] | None = None
@@ -203,12 +204,12 @@ class KeypointTracker:
         if detections.keypoints.shape[1:] != (self.n_kp, 2):
             raise InputError(f"keypoint tracker: detections of shape {detections.keypoints.shape}, "
                              f"expected (P, {self.n_kp}, 2)")  # fmt: skip
-        with self._lock:
+        with self._pending_lock:  # not the tracking lock: a step (a catch-up) may hold that for a while
             self._pending.append(_Pending(seq, t_ns, detections, gray))
 
     def reset(self) -> None:
         """Forget the tracked frames, people and pending detections (the next detection starts afresh)."""
-        with self._lock:
+        with self._lock, self._pending_lock:
             self._history.clear()
             self._pending.clear()
             self._last_det_ns = -1
@@ -231,8 +232,10 @@ class KeypointTracker:
 
     def _step(self, seq: int, t_ns: int, gray: Gray) -> Detections2D | None:
         self._check_shape(gray)
-        if self._pending:
-            self._apply_pending()
+        with self._pending_lock:
+            pending, self._pending = self._pending, []
+        if pending:
+            self._apply_pending(pending)
         last = self._history[-1] if self._history else None
         if last is not None and seq <= last.seq:
             self.counters["frames_skipped"] += 1
@@ -345,9 +348,8 @@ class KeypointTracker:
         del self._history[:drop]
 
     # ------------------------------------------------------------------------------------------------- detections
-    def _apply_pending(self) -> None:
-        pending = sorted(self._pending, key=lambda p: p.seq)
-        self._pending.clear()
+    def _apply_pending(self, pending: list[_Pending]) -> None:
+        pending = sorted(pending, key=lambda p: p.seq)
         tracked = None
         for p in pending:
             self._check_shape(p.gray)
