@@ -79,7 +79,7 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     """``mocapd bench latency --rig cameras`` (the camera demo in a private network namespace) for a few seconds:
     the JSON is checked for content and coherence, not for speed. ``--config`` gives the detector settings run."""
     config = tmp_path / "bench.toml"
-    config.write_text("[detector]\nintra_op_threads = 1\n", encoding="utf-8")
+    config.write_text("[detector]\nintra_op_threads = 1\n[detector.tracking]\nenabled = true\n", encoding="utf-8")
     proc = subprocess.run(
         [sys.executable, "-m", "mocapd", "bench", "latency", "--rig", "cameras", "--seconds", "4", "--warm-up", "4",
          "--alone-passes", "2", "--scale", "0.25", "--config", str(config)],
@@ -138,7 +138,7 @@ def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_d
     assert cpu["capture_threads_per_camera"] == round(cpu["capture_threads"] / 4, 4)
     assert set(cpu["tick_stages"]) >= {"sample", "sort", "solve", "publish"}
     assert not any(r["task_failures"].values()), r["task_failures"]
-    # Keypoints between detections (the shipped [detector.tracking]): every camera delivers keypoint sets on its
+    # Keypoints between detections (the config's [detector.tracking]): every camera delivers keypoint sets on its
     # tracked frames, more of them than detections, the tracking's CPU is accounted, and the targets are stated.
     for cam in r["cameras"].values():
         t = cam["tracking"]

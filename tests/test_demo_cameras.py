@@ -335,3 +335,15 @@ def test_the_closing_line_says_keypoint_and_detection_rates_and_latency() -> Non
     assert line.endswith("end to end p50 98 ms, p95 131 ms")
     bare = summary_line({"frames": 3, "frames_with_people": 0, "max_people": 0, "identities": []})
     assert bare == "done: 3 frames, 0 with people solved (at most 0 at once: nobody)"
+
+
+def test_the_recorded_keypoint_sets_replay_to_the_live_people_count(demo: DemoProcess) -> None:
+    """``tools/replay_people.py`` on the recorded session (its keypoint sets through the people sorting at their
+    live arrival times) finds the people the live daemon solved, tick by tick on average, and its two subjects."""
+    from tools.replay_people import replay
+
+    _finished(demo)
+    r = replay(str(demo.session), [])
+    assert r["ticks"] > 100 and r["identities_recorded"] == ["track:1", "track:2"]
+    assert abs(r["person_solves_per_tick"] - r["recorded_person_solves_per_tick"]) <= 0.05, r
+    assert [e[1] for e in r["tracking_events"]][:2] == ["enrolled", "enrolled"]
