@@ -298,8 +298,8 @@ def main() -> None:
         "image": [int(runs[0].grays[0].shape[1] * factor), int(runs[0].grays[0].shape[0] * factor)],
         "tracking_downsample": factor, "cameras": len(runs), "frames_per_camera": len(runs[0].grays),
         "noise_px": args.noise_px if args.source == "synthetic" else None,
-        "tracking": {k: getattr(options, k) for k in ("rate_hz", "window_px", "levels", "max_fb_px", "half_life_s",
-                                                        "max_age_s", "min_keypoints")},
+        "tracking": {k: getattr(options, k) for k in ("rate_hz", "window_px", "levels", "max_fb_px", "lost_confidence",
+                                                        "half_life_s", "max_age_s", "min_keypoints")},
         "schedules": results,
         "loadavg": {"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in os.getloadavg()]},
     }  # fmt: skip
