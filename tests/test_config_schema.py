@@ -553,6 +553,8 @@ FORMAT_CASES: dict[str, list[tuple[str, Any]]] = {
     "_provider": [("detector.providers", ["cdua"]), ("detector.providers", ["Cuda Execution Provider"])],
     "_canvas": [("detector.packing.canvas_width", 1000), ("detector.packing.canvas_height", 33)],
     "_tile_height": [("detector.packing.max_tile_height", 0.05)],
+    "_odd": [("detector.tracking.window_px", 12)],
+    "_factor": [("detector.tracking.downsample", 3)],
     "_assignment": [
         ("imu.assignment", {"00B40011": "Pelvis"}),
         ("imu.assignment", {"xyz": "Hips"}),

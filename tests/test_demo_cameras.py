@@ -323,3 +323,33 @@ def check_subjects(session: Session) -> None:
         for limb, parts in LIMBS.items():
             ratio = sum(published[-1][p] for p in parts) / sum(triangulated[p] for p in parts)
             assert abs(ratio - 1.0) <= LIMB_TOLERANCE, (who, limb, published[-1], triangulated)
+
+
+def test_the_closing_line_says_keypoint_and_detection_rates_and_latency() -> None:
+    """``make demo``'s summary line: detections and keypoints per camera (per person in view), end to end."""
+    from mocapd.service.demo.cameras import summary_line
+
+    summary = {
+        "frames": 4500, "frames_with_people": 4440, "max_people": 2, "identities": ["track:1", "track:2"],
+        "seconds": 75.0, "detected": {"cam01": 450, "cam02": 480},
+        "keypoint_hz_per_person": {"cam01": 30.1, "cam02": 31.4},
+        "end_to_end_ms": {"p50": 98.2, "p95": 131.0},
+    }  # fmt: skip
+    line = summary_line(summary)
+    assert line.startswith("done: 4500 frames, 4440 with people solved (at most 2 at once: track:1, track:2)")
+    assert "detections 6.2 Hz per camera" in line and "keypoints 30-31 Hz per camera and person" in line
+    assert line.endswith("end to end p50 98 ms, p95 131 ms")
+    bare = summary_line({"frames": 3, "frames_with_people": 0, "max_people": 0, "identities": []})
+    assert bare == "done: 3 frames, 0 with people solved (at most 0 at once: nobody)"
+
+
+def test_the_recorded_keypoint_sets_replay_to_the_live_people_count(demo: DemoProcess) -> None:
+    """``tools/replay_people.py`` on the recorded session (its keypoint sets through the people sorting at their
+    live arrival times) finds the people the live daemon solved, tick by tick on average, and its two subjects."""
+    from tools.replay_people import replay
+
+    _finished(demo)
+    r = replay(str(demo.session), [])
+    assert r["ticks"] > 100 and r["identities_recorded"] == ["track:1", "track:2"]
+    assert abs(r["person_solves_per_tick"] - r["recorded_person_solves_per_tick"]) <= 0.05, r
+    assert [e[1] for e in r["tracking_events"]][:2] == ["enrolled", "enrolled"]

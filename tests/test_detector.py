@@ -347,7 +347,7 @@ def test_config_parsing() -> None:
         ({"model": {"pixel_scale": 0}}, r"^detector.model.pixel_scale = 0; allowed: a number in \(0, 1000\]$"),
         ({"packing": {"n_o": 3, "n_p": 2}}, "^detector.packing.n_o = 3 must be <= detector.packing.n_p = 2$"),
         ({"packing": {"enabled": 1}}, '^detector.packing.enabled = 1; allowed: true, false or "auto"$'),
-        ({"workers": 0}, r"^detector.workers = 0; allowed: an integer in \[1, 64\]$"),
+        ({"workers": 0}, r'^detector.workers = 0; allowed: an integer in \[1, 64\] or "auto"$'),
         ({"providers": "cpu"}, "^detector.providers = 'cpu'; allowed: a non-empty array of at most 8 items"),
         ({"providers": ["cdua"]}, r"^detector.providers\[0\] = 'cdua': not a provider"),
     ]
@@ -601,3 +601,18 @@ def test_precision_auto_is_int8_on_cpus_and_fp32_on_gpus(tmp_path: Path) -> None
     assert DetectorConfig().precision == "auto"
     with pytest.raises(ConfigError, match=r"^detector\.precision = 'int4'"):
         parse_config({"detector": {"precision": "int4"}})
+
+
+def test_sessions_share_the_cores_of_the_process() -> None:
+    """``[detector] workers`` (sessions in flight) and ``intra_op_threads`` (each session's threads), "auto" and 0
+    made concrete from the cores this process may use and the cameras of the rig."""
+    auto = DetectorConfig()
+    assert auto.sessions(1, 4) == (1, 1) and auto.sessions(2, 4) == (1, 2)
+    assert auto.sessions(4, 4) == (2, 2) and auto.sessions(16, 4) == (4, 4)  # at most one session per camera
+    assert auto.sessions(16, 1) == (1, 16) and auto.sessions(3, 4) == (1, 3)
+    assert DetectorConfig(workers=2).sessions(2, 4) == (2, 1)
+    assert DetectorConfig(workers=2, intra_op_threads=2).sessions(2, 4) == (2, 2)
+    concrete = auto.with_sessions(8, 4)
+    assert (concrete.workers, concrete.intra_op_threads) == (4, 2)
+    with pytest.raises(ConfigError, match="workers"):
+        DetectorConfig(workers=0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -102,3 +103,38 @@ def test_capture_ring_reads_what_eager_conversion_gives(name: str) -> None:
     convert_into(fmt, raw, 6, 8, eager)
     got = ring.read(ref.seq)
     assert got is not None and np.array_equal(got, eager)
+
+
+@pytest.mark.parametrize("name", ["BayerRG8", "BayerGB8", "RGB8", "Mono8"])
+def test_gray_images_for_tracking(name: str) -> None:
+    """``ring.gray``: a Bayer ring's half-size gray image is the mean of each 2x2 cell of the mosaic, (R + 2G + B)
+    / 4, made without demosaicing the frame; full size and the other formats go through the image; a copy, never
+    a view of the slot."""
+    fmt = pixel_format(name)
+    rng = np.random.default_rng(2)
+    rgb = np.asarray(cv2.GaussianBlur(rng.integers(0, 256, (16, 20, 3), dtype=np.uint8), (5, 5), 0), np.uint8)
+    raw = from_rgb(rgb, fmt)
+    ring = capture_ring("cam", 3, 16, 20, fmt)
+    if ring.lazy:
+        ring.next_raw()[:] = raw
+    else:
+        convert_into(fmt, raw, 16, 20, ring.next_slot())
+    ref = ring.publish(0, 0, 0)
+    half = ring.gray(ref.seq, 2)
+    assert half is not None and half.shape == (8, 10) and half.dtype == np.uint8
+    assert ring.conversions == 0  # no frame was demosaiced for it
+    full = ring.gray(ref.seq, 1)
+    assert full is not None and full.shape == (16, 20)
+    full[:] = 0
+    again = ring.gray(ref.seq, 1)
+    assert again is not None and again.any()  # a copy: writing to it leaves the ring alone
+    if name.startswith("Bayer"):
+        cells = raw.reshape(16, 20).astype(np.float64).reshape(8, 2, 10, 2).mean(axis=(1, 3))
+        np.testing.assert_allclose(half, cells, atol=0.51)
+    luma = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float64).reshape(8, 2, 10, 2).mean(axis=(1, 3))
+    # Every format's half-size gray follows the scene's brightness (Bayer: the cell means' weights differ a little).
+    assert np.abs(half - luma).mean() < (8 if name.startswith("Bayer") or name == "Mono8" else 1)
+    for _ in range(3):
+        (ring.next_raw() if ring.lazy else ring.next_slot())[:] = 0
+        ring.publish(1, 1, 1)
+    assert ring.gray(ref.seq, 2) is None  # overwritten

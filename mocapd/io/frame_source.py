@@ -5,6 +5,9 @@ device or decoder (both release the GIL), puts each frame once into the ring's n
 lazy: the conversion is left to whoever reads the frame), publishes it and hands the
 :class:`~mocapd.pipeline.frame_ring.FrameRef` to the asyncio loop with ``call_soon_threadsafe``.
 
+A consumer that must see every frame at once, on the capture thread itself (the keypoint tracker), sets
+:attr:`ThreadedSource.frame_hook`: it is called there right after the frame is handed to the loop.
+
 ``await source.run(on_frame)`` supervises the thread: when the device fails (:class:`~mocapd.errors.DeviceError`)
 the failure is counted and reported, and the source is reopened after an exponential back-off, while the other
 sources keep running. ``run`` returns when the source ends (end of a file) and stops the thread when cancelled.
@@ -113,6 +116,8 @@ class ThreadedSource(abc.ABC):
         self.last_backoff_s: float | None = None  # the last back-off waited (it doubles while reopening fails)
         self.thread_id: int | None = None  # native id of the current capture thread (for CPU accounting)
         self.ever_opened = False  # the device opened at least once (a later failure is retried, not fatal)
+        #: called on the capture thread with each published frame, after it was handed to the loop (None: nothing)
+        self.frame_hook: FrameCallback | None = None
 
     # -- subclasses implement -----------------------------------------------------------------------------
     @abc.abstractmethod
@@ -168,6 +173,9 @@ class ThreadedSource(abc.ABC):
                     break
                 if isinstance(ref, FrameRef):
                     loop.call_soon_threadsafe(on_frame, ref)
+                    hook = self.frame_hook
+                    if hook is not None:
+                        hook(ref)
         except DeviceError as exc:
             # Count and report at once: closing a vanished device can take seconds of protocol time-outs.
             result = exc

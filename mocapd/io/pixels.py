@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.errors import ConfigError, InputError
-from mocapd.pipeline.frame_ring import FrameRing
+from mocapd.pipeline.frame_ring import FrameRing, block_mean
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,15 @@ PIXEL_FORMATS: dict[str, PixelFormat] = {
     "BayerBG8": PixelFormat("BayerBG8", 1, 3, cv2.COLOR_BayerRG2RGB),
     "BayerGR8": PixelFormat("BayerGR8", 1, 3, cv2.COLOR_BayerGB2RGB),
     "BayerGB8": PixelFormat("BayerGB8", 1, 3, cv2.COLOR_BayerGR2RGB),
+}
+
+
+# OpenCV's demosaic-to-gray code of each demosaic-to-RGB code above.
+_BAYER_GRAY = {
+    cv2.COLOR_BayerBG2RGB: cv2.COLOR_BayerBG2GRAY,
+    cv2.COLOR_BayerRG2RGB: cv2.COLOR_BayerRG2GRAY,
+    cv2.COLOR_BayerGB2RGB: cv2.COLOR_BayerGB2GRAY,
+    cv2.COLOR_BayerGR2RGB: cv2.COLOR_BayerGR2GRAY,
 }
 
 
@@ -104,8 +113,30 @@ def capture_ring(name: str, n_slots: int, height: int, width: int, fmt: PixelFor
     def demosaic(raw: NDArray[np.uint8], out: NDArray[np.uint8]) -> None:
         convert_into(fmt, raw, height, width, out)
 
+    def gray(raw: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
+        return bayer_gray(fmt, raw, height, width, factor)
+
     return FrameRing(name, n_slots, height, width, fmt.channels, raw_shape=(height * width * fmt.bytes_per_pixel,),
-                     convert=demosaic)  # fmt: skip
+                     convert=demosaic, gray=gray)  # fmt: skip
+
+
+def bayer_gray(fmt: PixelFormat, raw: NDArray[np.uint8], height: int, width: int, factor: int) -> NDArray[np.uint8]:
+    """A Bayer mosaic as a gray image downsampled by ``factor`` (for the keypoint tracker).
+
+    An even factor averages whole 2x2 cells of the mosaic, (R + 2G + B) / 4 each: a luminance image with no
+    demosaicing (one area resize, ~0.05 ms for 544x960). Factor 1 (or odd) demosaics straight to gray.
+
+    Returns
+    -------
+    ndarray, shape (height // factor, width // factor), uint8
+    """
+    if fmt.cv_code is None:
+        raise InputError(f"{fmt.name} is not a Bayer format")
+    mosaic = raw[: height * width].reshape(height, width)
+    if factor % 2 == 0:
+        return block_mean(mosaic, factor)
+    code = _BAYER_GRAY[fmt.cv_code]
+    return block_mean(np.asarray(cv2.cvtColor(mosaic, code), np.uint8), factor)
 
 
 def bgr_ring(name: str, n_slots: int, height: int, width: int, *, gray: bool = False) -> FrameRing:
@@ -116,7 +147,11 @@ def bgr_ring(name: str, n_slots: int, height: int, width: int, *, gray: bool = F
     def convert(bgr: NDArray[np.uint8], out: NDArray[np.uint8]) -> None:
         cv2.cvtColor(bgr, code, dst=out[:, :, 0] if gray else out)
 
-    return FrameRing(name, n_slots, height, width, 1 if gray else 3, raw_shape=(height, width, 3), convert=convert)
+    def to_gray(bgr: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
+        return block_mean(np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), np.uint8), factor)
+
+    return FrameRing(name, n_slots, height, width, 1 if gray else 3, raw_shape=(height, width, 3), convert=convert,
+                     gray=to_gray)  # fmt: skip
 
 
 def store_raw(fmt: PixelFormat, raw: NDArray[np.uint8], height: int, width: int, ring: FrameRing) -> None:

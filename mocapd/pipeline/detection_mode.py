@@ -1,20 +1,39 @@
-"""Which detection mode serves this rig best, measured while it runs: whole frames or packed canvases.
+"""Which detection mode serves each pass best, from measured cost: a packed canvas or a whole frame.
 
 Packed detection (:mod:`mocapd.pipeline.packing`) puts the regions around the people every camera saw last time
 on shared canvases, so one inference serves several cameras; whole-frame detection runs one inference per camera
-frame. Which delivers more depends on the rig: few small people in many cameras favour packing, people that fill
-the frames (or a fast accelerator, on which a canvas costs what a frame costs) do not. :class:`ModeChooser` is a
-small epoch bandit over the two: each mode runs for an epoch of detector time, its rate of *usable* camera frames
-(frames in which the detector found at least one person) per second of detector time is measured, the better one
-runs, and now and then (after 15 s of detector time, doubling up to ``explore_every_s``) the other gets one
-epoch to show it has become better. Pure: the caller
-passes the detector time each pass took; nothing here reads a clock.
+frame (at the camera's aspect, :func:`~mocapd.core.pose2d.fitted_input_size`). Which costs less depends on the
+pass: three cameras whose people share a canvas cost a canvas; one camera left over costs a canvas too, or a
+smaller whole frame.
+
+:class:`ModeChooser` decides *per pass*, before it runs, from what each mode would cost for the camera frames it
+would detect: the pixels of the network inputs it would run (the planned canvases, cropped where an export fits,
+or the fitted whole frame) times that mode's measured detector time per pixel (the median of its last ``window``
+passes, which holds the per-pass work beside the inference: canvas rendering, letterboxing, decoding; a median,
+because on a shared machine single passes are slowed by other work, and a mode's first pass by its warm-up). The
+cheaper per camera frame runs; the mode run last keeps the pass unless the other is cheaper by ``margin`` (no
+flapping on noise). A mode measured on fewer than ``settle_passes`` passes gets another after ``explore_unsettled_s``
+of detector time; a settled one unmeasured for ``explore_after_s`` is measured again from scratch (its window
+emptied, ``settle_passes`` passes) when it is predicted within ``explore_margin`` of the other, and after
+``explore_always_s`` whatever its prediction (an estimate measured while the machine was busy would otherwise never
+be corrected), so that its estimate follows the machine.
+
+Issue 15's epoch bandit ran each mode for 3 s epochs and re-checked the other every 15-120 s: when the two were
+close (they are on the demo rig: a canvas of 2-3 cameras against 0.6 canvas per fitted whole frame), its whole
+epochs cost throughput, and the `auto` run was the worst live (0.58 of the detector alone against 0.94 packed
+only in the same session). Deciding per pass from cost has no epochs: the extra passes of the other mode are one
+pass every ``explore_after_s``.
+
+Pure: the caller passes each pass's detector time; nothing here reads a clock.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from mocapd.errors import InputError
 
@@ -22,28 +41,42 @@ MODES = ("packed", "whole")
 
 
 @dataclass(frozen=True)
-class ModeChooserOptions:
-    """Epoch lengths and the switching margin."""
+class PassCost:
+    """What a candidate pass would detect and run: ``frames`` camera frames, ``pixels`` network input pixels."""
 
-    epoch_s: float = 3.0
-    """Detector time of one epoch (one mode measured)."""
-    explore_every_s: float = 120.0
-    """Detector time spent in the better mode before the other gets an epoch again, at most: the first re-check
-    comes after ``first_explore_s``, and the wait doubles each time the choice holds (a first comparison made
-    during start-up, with empty ROIs and a loaded CPU, is corrected soon; a settled one costs one epoch in 41)."""
-    first_explore_s: float = 15.0
+    frames: int
+    pixels: int
+
+
+@dataclass(frozen=True)
+class ModeChooserOptions:
+    """How a mode's cost is learned and compared."""
+
+    window: int = 16
+    """Passes of a mode whose median detector ns per input pixel is its cost."""
+    settle_passes: int = 3
+    """A mode measured on fewer passes than this is measured again soon (``explore_unsettled_s``)."""
+    explore_unsettled_s: float = 3.0
     margin: float = 0.1
-    """The other mode takes over only when its rate beats the current one's by this fraction."""
+    """The mode that ran last keeps the pass unless the other is predicted cheaper per frame by this fraction."""
+    explore_after_s: float = 30.0
+    """Detector time after which a mode not run since gets one pass (when predicted within ``explore_margin``)."""
+    explore_margin: float = 0.3
+    explore_always_s: float = 120.0
+    """Detector time after which a mode not run since gets one pass whatever its prediction."""
 
     def __post_init__(self) -> None:
-        if not 0 < self.epoch_s <= self.first_explore_s <= self.explore_every_s or not 0 <= self.margin < 1:
-            raise InputError("mode chooser needs 0 < epoch_s <= first_explore_s <= explore_every_s and 0 <= margin < 1")
+        if self.window < 1 or self.settle_passes < 1 or not 0 <= self.margin < 1 or self.explore_margin < 0:
+            raise InputError("mode chooser needs window >= 1, settle_passes >= 1, 0 <= margin < 1, explore_margin >= 0")
+        if not 0 < self.explore_unsettled_s <= self.explore_after_s <= self.explore_always_s:
+            raise InputError("mode chooser needs 0 < explore_unsettled_s <= explore_after_s <= explore_always_s")
 
 
 @dataclass
-class _Rate:
-    usable: int = 0
+class _Totals:
+    passes: int = 0
     frames: int = 0
+    usable: int = 0
     busy_ns: int = 0
 
     def per_s(self, what: int) -> float:
@@ -51,79 +84,87 @@ class _Rate:
 
 
 class ModeChooser:
-    """Epoch bandit over ``("packed", "whole")``: measure each, run the better, re-check the other now and then.
+    """Per pass: packed or whole, whichever is predicted to cost less detector time per camera frame.
 
     Parameters
     ----------
     options : ModeChooserOptions
     first : str
-        The mode measured first.
+        The mode run when neither has been measured and both cost the same.
     """
 
     def __init__(self, options: ModeChooserOptions | None = None, first: str = "packed") -> None:
         if first not in MODES:
             raise InputError(f"detection mode {first!r} is not one of {list(MODES)}")
         self.options = options if options is not None else ModeChooserOptions()
-        self.mode = first
-        self.best: str | None = None  # the mode chosen after both were measured
-        self.rates: dict[str, _Rate] = {}  # the last finished epoch of each mode
-        self.epochs = 0
+        self.mode = first  # the mode of the last pass chosen
         self.switches = 0
-        self._epoch = _Rate()
-        self._since_explore_ns = 0
-        self._explore_after_s = self.options.first_explore_s
+        self.explorations = 0
+        self.ns_per_pixel: dict[str, float | None] = dict.fromkeys(MODES)  # the median of ``_samples``
+        self._samples: dict[str, deque[float]] = {m: deque(maxlen=self.options.window) for m in MODES}
+        self.totals = {m: _Totals() for m in MODES}
+        self.predicted: dict[str, float | None] = dict.fromkeys(MODES)  # ms per camera frame, last choice
+        self._since_ns = dict.fromkeys(MODES, 0)  # detector time since each mode last ran
 
-    def record(self, mode: str, usable: int, frames: int, busy_ns: int) -> str:
-        """One pass of ``mode``: ``frames`` camera frames detected, ``usable`` of them with someone in them, in
-        ``busy_ns`` of detector time. Returns the mode to run next."""
-        if mode != self.mode:  # a pass that started before the mode changed: not this epoch's
-            return self.mode
-        e = self._epoch
-        e.usable += usable
-        e.frames += frames
-        e.busy_ns += max(0, busy_ns)
-        if e.busy_ns >= self.options.epoch_s * 1e9:
-            self._end_epoch()
-        return self.mode
+    def _rate(self, mode: str) -> float:
+        """Detector ns per input pixel of ``mode``: measured, else the other's (then only pixels compare)."""
+        own = self.ns_per_pixel[mode]
+        other = self.ns_per_pixel[next(m for m in MODES if m != mode)]
+        return own if own is not None else other if other is not None else 1.0
 
-    def _end_epoch(self) -> None:
-        finished, self._epoch = self._epoch, _Rate()
-        self.rates[self.mode] = finished
-        self.epochs += 1
-        previous = self.mode
-        other = next(m for m in MODES if m != self.mode)
-        if other not in self.rates:
-            self.mode = other  # not measured yet
-        elif self.best is None or self.mode != self.best:
-            # Both measured (first round, or an exploration epoch just ended): keep the incumbent unless the other
-            # beats it by the margin.
-            incumbent = self.best if self.best is not None else other
-            challenger = next(m for m in MODES if m != incumbent)
-            rate = {m: self.rates[m].per_s(self.rates[m].usable) for m in MODES}
-            chosen = challenger if rate[challenger] > (1 + self.options.margin) * rate[incumbent] else incumbent
-            held = chosen == self.best
-            self.best = self.mode = chosen
-            self._since_explore_ns = 0
-            o = self.options
-            self._explore_after_s = min(o.explore_every_s, 2 * self._explore_after_s) if held else o.first_explore_s
+    def choose(self, packed: PassCost | None, whole: PassCost | None) -> str:
+        """The mode of the next pass, given what each candidate would detect and run (None: not possible now)."""
+        if packed is None and whole is None:
+            raise InputError("mode chooser: no candidate pass")
+        options = {m: c for m, c in (("packed", packed), ("whole", whole)) if c is not None and c.frames > 0}
+        if not options:
+            raise InputError("mode chooser: candidate passes detect no frame")
+        cost = {m: self._rate(m) * c.pixels / c.frames for m, c in options.items()}
+        self.predicted = {m: round(cost[m] / 1e6, 3) if m in cost else None for m in MODES}
+        if len(cost) == 1:
+            chosen = next(iter(cost))
         else:
-            self._since_explore_ns += finished.busy_ns
-            # A drop three margins deep (a loaded CPU makes single epochs noisy; a smaller one waits its turn).
-            fell = finished.per_s(finished.usable) * (1 + 3 * self.options.margin) < self.rates[other].per_s(
-                self.rates[other].usable
-            )
-            if fell or self._since_explore_ns >= self._explore_after_s * 1e9:
-                # One epoch to show it has become better: when its turn comes, or at once when the current mode's
-                # last epoch fell below the other's last measured rate.
-                self.mode = other
-        if self.mode != previous:
+            keep, other = self.mode, next(m for m in MODES if m != self.mode)
+            chosen = other if cost[other] < (1 - self.options.margin) * cost[keep] else keep
+            rest = next(m for m in MODES if m != chosen)
+            o, since = self.options, self._since_ns[rest] / 1e9
+            close = cost[rest] <= (1 + o.explore_margin) * cost[chosen]
+            unsettled = len(self._samples[rest]) < o.settle_passes and since >= o.explore_unsettled_s
+            if unsettled or (since >= o.explore_after_s and close) or since >= o.explore_always_s:
+                if not unsettled:  # its estimate may be stale: measured again from scratch (settle_passes passes)
+                    self._samples[rest].clear()
+                chosen = rest
+                self.explorations += 1
+        if chosen != self.mode:
             self.switches += 1
+        self.mode = chosen
+        return chosen
+
+    def record(self, mode: str, frames: int, usable: int, pixels: int, busy_ns: int) -> None:
+        """One pass of ``mode`` ran: ``frames`` camera frames (``usable`` of them with someone in them) on
+        ``pixels`` input pixels in ``busy_ns`` of detector time."""
+        if mode not in MODES:
+            raise InputError(f"detection mode {mode!r} is not one of {list(MODES)}")
+        t = self.totals[mode]
+        t.passes += 1
+        t.frames += frames
+        t.usable += usable
+        t.busy_ns += max(0, busy_ns)
+        if pixels > 0 and busy_ns > 0:
+            self._samples[mode].append(busy_ns / pixels)
+            self.ns_per_pixel[mode] = float(np.median(self._samples[mode]))
+        for m in MODES:
+            self._since_ns[m] = 0 if m == mode else self._since_ns[m] + max(0, busy_ns)
 
     def status(self) -> dict[str, Any]:
-        """JSON-able: the mode now, the chosen one, and each mode's last measured rates (per detector second)."""
+        """JSON-able: the last mode, the passes and rates of each mode (per detector second), the cost model."""
+        chosen = max(MODES, key=lambda m: self.totals[m].passes)
         return {
-            "mode": self.mode, "chosen": self.best, "epochs": self.epochs, "switches": self.switches,
-            "rates": {m: {"usable_frames_per_s": round(r.per_s(r.usable), 2),
-                          "camera_frames_per_s": round(r.per_s(r.frames), 2), "busy_s": round(r.busy_ns / 1e9, 2)}
-                      for m, r in self.rates.items()},
+            "mode": self.mode, "chosen": chosen, "switches": self.switches, "explorations": self.explorations,
+            "passes": {m: t.passes for m, t in self.totals.items()},
+            "rates": {m: {"usable_frames_per_s": round(t.per_s(t.usable), 2),
+                          "camera_frames_per_s": round(t.per_s(t.frames), 2), "busy_s": round(t.busy_ns / 1e9, 2)}
+                      for m, t in self.totals.items() if t.passes},
+            "ns_per_pixel": {m: None if v is None else round(v, 4) for m, v in self.ns_per_pixel.items()},
+            "predicted_ms_per_frame": dict(self.predicted),
         }  # fmt: skip

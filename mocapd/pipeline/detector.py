@@ -546,6 +546,17 @@ class OnnxPoseDetector:
             self._fitted_session(w, h)
         return sorted(found, key=lambda s: s[0] * s[1])
 
+    def input_for_extent(self, extent: tuple[int, int]) -> tuple[int, int]:
+        """The input (width, height) a canvas whose tiles cover its top-left ``extent`` runs at (:meth:`run_canvas`):
+        the smallest crop export that holds it, else the model's input; batched: always the model's input."""
+        crop = None if self.batched else self._crop_for(extent)
+        return crop if crop is not None else self.input_size
+
+    def whole_frame_input(self, src_w: int, src_h: int) -> tuple[int, int]:
+        """The input (width, height) a whole ``src_w x src_h`` frame runs at (:meth:`detect`, :meth:`fit_to`)."""
+        fitted = self.fit_to(src_w, src_h)
+        return (fitted[0], fitted[1]) if fitted is not None else self.input_size
+
     def _crop_for(self, extent: tuple[int, int]) -> tuple[int, int] | None:
         return next((s for s in self.crop_sizes if s[0] >= extent[0] and s[1] >= extent[1]), None)
 
@@ -597,9 +608,10 @@ class AsyncPoseDetector:
 
     def __init__(self, cfg: DetectorConfig) -> None:
         self._pool: queue.SimpleQueue[OnnxPoseDetector] = queue.SimpleQueue()
-        for _ in range(cfg.workers):
+        workers = cfg.workers if isinstance(cfg.workers, int) else 1
+        for _ in range(workers):
             self._pool.put(OnnxPoseDetector.from_config(cfg))
-        self._executor = ThreadPoolExecutor(max_workers=cfg.workers, thread_name_prefix="mocapd-detect")
+        self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mocapd-detect")
 
     def _with_detector(self, fn: Callable[[OnnxPoseDetector], R]) -> R:
         det = self._pool.get()

@@ -7,6 +7,7 @@ construction (tools, tests) with the same rules. ``config.toml`` documents every
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -18,6 +19,8 @@ DECODERS = ("yolo_pose",)
 LAYOUTS = ("NCHW", "NHWC")
 CHANNEL_ORDERS = ("RGB", "BGR")
 PRECISIONS = ("auto", "fp32", "int8", "bf16")
+#: ``[detector] workers = "auto"``: one inference session per this many cores (tools/bench_sessions.py)
+CORES_PER_SESSION = 2
 
 
 @dataclass(frozen=True)
@@ -147,6 +150,80 @@ class PackingConfig:
             )
 
 
+THREADS = ("capture", "pool")
+#: "auto" downsampling keeps at least this many pixels on the tracking image's shorter side (544x960 demo frames
+#: are tracked at 272x480: more keypoints kept than at full size, 55 % of its CPU; tools/track_quality.py)
+MIN_TRACKING_SIDE = 240
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Keypoints carried between detections on every camera frame (:mod:`mocapd.pipeline.keypoint_tracker`)."""
+
+    enabled: bool = False
+    """Track each detected person's keypoints on the frames between two detections of their camera (pyramidal
+    Lucas-Kanade), so that the scheduler has keypoints at the camera rate; False (the default: on a loaded 2-core
+    machine the people sorting found fewer people with it, see ``mocapd/config.toml``): detections only."""
+    rate_hz: float = 60.0
+    """Track a camera's frames this often on average, at most every frame (a 60 fps camera: every frame; 30: every
+    other); the frames the detector takes are tracked too."""
+    downsample: int | str = "auto"
+    """Track on the camera image downsampled by this factor (1, 2 or 4; block means: a Bayer camera's 2x2 cells
+    need no demosaicing); "auto": 2 where that leaves at least :data:`MIN_TRACKING_SIDE` pixels on the image's
+    shorter side, else 1 (:meth:`factor_for`)."""
+    window_px: int = 15
+    """Side of the Lucas-Kanade window, in pixels of the tracking image (odd, 5..63)."""
+    levels: int = 3
+    """Pyramid levels above the tracking image (0..6)."""
+    max_fb_px: float = 1.0
+    """A keypoint tracked to the next frame and back that misses its start by more than this (camera pixels) is
+    lost until the next detection."""
+    lost_confidence: float = 0.5
+    """A keypoint the tracker lost follows its person's median motion until the next detection, with the
+    detector's confidence times this (0: it is dropped, confidence 0)."""
+    half_life_s: float = 2.0
+    """A tracked keypoint's confidence is the detector's, halved every this many seconds after the detection."""
+    max_age_s: float = 2.0
+    """Nobody is kept longer than this after the last detection of the camera (then the camera reports nobody
+    until the detector finds people again)."""
+    min_keypoints: int = 4
+    """A person with fewer of their confidently detected keypoints still tracked is dropped."""
+    history_s: float = 1.0
+    """Tracked frames kept (gray images) to carry a detection from its frame to the newest one; a detection older
+    than that is counted late and only re-seeds the tracking at the next detection."""
+    thread: str = "capture"
+    """Where tracking runs: "capture" (each camera's capture thread, right after the frame arrives) or "pool"
+    (worker threads fed from the event loop)."""
+    workers: int = 1
+    """Tracking worker threads with ``thread = "pool"``."""
+
+    def __post_init__(self) -> None:
+        _choice("detector.tracking.thread", self.thread, THREADS)
+        if not 1.0 <= self.rate_hz <= 1000.0:
+            raise ConfigError(f"detector.tracking.rate_hz must be in [1, 1000], got {self.rate_hz}")
+        if self.downsample not in (1, 2, 4, "auto"):
+            raise ConfigError(f'detector.tracking.downsample must be 1, 2, 4 or "auto", got {self.downsample!r}')
+        if not (5 <= self.window_px <= 63 and self.window_px % 2 == 1):
+            raise ConfigError(f"detector.tracking.window_px must be odd, 5..63, got {self.window_px}")
+        if not 0 <= self.levels <= 6:
+            raise ConfigError(f"detector.tracking.levels must be 0..6, got {self.levels}")
+        if not 0.0 < self.max_fb_px <= 100.0:
+            raise ConfigError(f"detector.tracking.max_fb_px must be in (0, 100], got {self.max_fb_px}")
+        if not 0.0 <= self.lost_confidence <= 1.0:
+            raise ConfigError(f"detector.tracking.lost_confidence must be in [0, 1], got {self.lost_confidence}")
+        for key in ("half_life_s", "max_age_s", "history_s"):
+            if not 0.0 < getattr(self, key) <= 60.0:
+                raise ConfigError(f"detector.tracking.{key} must be in (0, 60], got {getattr(self, key)}")
+        if not 1 <= self.min_keypoints <= 1000 or not 1 <= self.workers <= 64:
+            raise ConfigError("detector.tracking needs min_keypoints in 1..1000 and workers in 1..64")
+
+    def factor_for(self, width: int, height: int) -> int:
+        """The downsampling factor of the tracking image for a camera of ``width`` x ``height``."""
+        if self.downsample != "auto":
+            return int(self.downsample)
+        return 2 if min(width, height) >= 2 * MIN_TRACKING_SIDE else 1
+
+
 @dataclass(frozen=True)
 class DetectorConfig:
     """The ``[detector]`` section."""
@@ -159,14 +236,15 @@ class DetectorConfig:
     builds beside the FP32 one) or "auto" (INT8 on CPU providers, FP32 on GPU ones). Ignored for a model given by
     path (that file is used as it is)."""
     intra_op_threads: int = 0
-    """Threads inside one inference (0 = onnxruntime's default, one per core)."""
+    """Threads inside one inference (0 = this process's cores shared among the ``workers``: :meth:`sessions`)."""
     inter_op_threads: int = 1
     """Threads across graph branches (1 is best for these sequential networks)."""
     intra_op_spinning: bool = False
     """Let the intra-op threads spin-wait for work between operators (onnxruntime's default) instead of sleeping;
     off, because live the detector shares the cores with the tick and the capture."""
-    workers: int = 1
-    """Inference worker threads behind the async wrapper (each owns a session)."""
+    workers: int | str = "auto"
+    """Inference sessions in flight at once, each on its own worker thread (whole-frame workers, or the packed
+    group's passes over disjoint cameras); "auto" = :meth:`sessions` from the cores."""
     batch: bool | Literal["auto"] = "auto"
     """Run the canvases of a packed pass in one inference (fixed-batch copies of the model, made at load):
     "auto" = on GPU providers (TensorRT, CUDA), where it pays; True/False = always/never."""
@@ -176,6 +254,7 @@ class DetectorConfig:
     that export is in the model cache, True = it must be, False = never."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def __post_init__(self) -> None:
         _choice("detector.precision", self.precision, PRECISIONS)
@@ -183,11 +262,29 @@ class DetectorConfig:
             raise ConfigError(f"detector.batch = {self.batch!r} is not one of ['auto', true, false]")
         if self.fitted_inputs not in ("auto", True, False):
             raise ConfigError(f"detector.fitted_inputs = {self.fitted_inputs!r} is not one of ['auto', true, false]")
-        if self.intra_op_threads < 0 or self.inter_op_threads < 0 or self.workers < 1:
+        if self.workers != "auto" and (not isinstance(self.workers, int) or self.workers < 1):
+            raise ConfigError(f'detector.workers must be >= 1 or "auto", got {self.workers!r}')
+        if self.intra_op_threads < 0 or self.inter_op_threads < 0:
             raise ConfigError(
-                "detector threads must be >= 0 and workers >= 1, got "
-                f"intra={self.intra_op_threads} inter={self.inter_op_threads} workers={self.workers}"
+                f"detector threads must be >= 0, got intra={self.intra_op_threads} inter={self.inter_op_threads}"
             )
+
+    def sessions(self, cores: int, cameras: int) -> tuple[int, int]:
+        """(sessions, intra-op threads of each) on a process with ``cores`` cores and ``cameras`` cameras.
+
+        ``workers = "auto"``: one session per :data:`CORES_PER_SESSION` cores, at most one per camera (a packed pass
+        holds its cameras; more sessions than cameras would wait) and at least one. ``intra_op_threads = 0``: the
+        cores shared among the sessions (at least one thread each).
+        """
+        auto = max(1, min(max(1, cameras), cores // CORES_PER_SESSION))
+        n = auto if self.workers == "auto" else int(self.workers)
+        threads = self.intra_op_threads or max(1, cores // n)
+        return n, threads
+
+    def with_sessions(self, cores: int, cameras: int) -> DetectorConfig:
+        """This config with ``workers`` and ``intra_op_threads`` made concrete (:meth:`sessions`)."""
+        n, threads = self.sessions(cores, cameras)
+        return dataclasses.replace(self, workers=n, intra_op_threads=threads)
 
 
 def _choice(key: str, value: str, allowed: tuple[str, ...]) -> None:

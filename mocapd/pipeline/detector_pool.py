@@ -1,11 +1,15 @@
-"""The detector the daemon's cameras share: whole-frame workers, or one packed pass over every camera.
+"""The detector the daemon's cameras share: whole-frame workers, or packed passes over the cameras.
 
 :class:`PooledDetector` is the :data:`~mocapd.pipeline.keypoint_source.Detector` behind
 :class:`~mocapd.pipeline.keypoint_source.DetectorKeypointSource`: one onnxruntime session per worker thread
 (``[detector] workers``), handed out through a queue, the cameras taking turns. With ``[detector.packing]
 enabled`` (true or "auto"), :func:`make_detector` builds a
-:class:`~mocapd.pipeline.packed_source.PackedDetectionGroup` instead: the newest frame of every camera detected
-together on shared canvases by one worker (with "auto", or alone where whole frames deliver more).
+:class:`~mocapd.pipeline.packed_source.PackedDetectionGroup` instead: the newest frames of the cameras detected
+together on shared canvases (with "auto", or alone where a whole frame costs less), one pass per session in flight.
+
+Sessions and threads (``[detector] workers``, ``intra_op_threads``; :meth:`DetectorConfig.sessions`): "auto" runs
+one session per two cores of this process (``os.sched_getaffinity``, so ``taskset`` counts), each with its share of
+the cores as intra-op threads.
 
 Worker threads carry an OS-level name (``mocapd-detect``) that onnxruntime's own threads inherit, so per-thread
 CPU accounting (``mocapd bench latency``) sees the detector's whole cost.
@@ -14,6 +18,7 @@ CPU accounting (``mocapd bench latency``) sees the detector's whole cost.
 from __future__ import annotations
 
 import ctypes
+import os
 import queue
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -27,8 +32,8 @@ from mocapd.core.sorting import Detections2D
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
-from mocapd.pipeline.packed_source import PackedDetectionGroup
-from mocapd.pipeline.packing import packed_detector_from_config
+from mocapd.pipeline.packed_source import PackedDetectionGroup, Session
+from mocapd.pipeline.packing import PackedDetector, detectors_from_config
 
 THREAD_NAME = "mocapd-detect"
 
@@ -50,6 +55,14 @@ def detector_executor(workers: int = 1) -> ThreadPoolExecutor:
     onnxruntime and OpenVINO start from them carry the name too, so per-thread CPU accounting sees the detector."""
     return ThreadPoolExecutor(workers, thread_name_prefix=THREAD_NAME, initializer=name_os_thread,
                               initargs=(THREAD_NAME,))  # fmt: skip
+
+
+def process_cores() -> int:
+    """The cores this process may run on (its CPU affinity: ``taskset`` counts), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
 
 
 def target_columns(cfg: DetectorConfig, target_names: Sequence[str]) -> NDArray[np.intp]:
@@ -81,6 +94,9 @@ class PooledDetector:
         self._pool: queue.SimpleQueue[OnnxPoseDetector] = queue.SimpleQueue()
         self._columns = columns
         self._detectors: list[OnnxPoseDetector] = []
+        cfg = cfg.with_sessions(process_cores(), len(image_sizes))
+        assert isinstance(cfg.workers, int)
+        self.intra_op_threads = cfg.intra_op_threads
         self.executor = detector_executor(cfg.workers)
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
@@ -121,24 +137,35 @@ def make_detector(
     """
     if not cfg.packing.enabled:
         return PooledDetector(cfg, columns, image_sizes)
-    executor = detector_executor()
-    packer = executor.submit(packed_detector_from_config, cfg, list(image_sizes)).result()
-    # Whole frames first: their passes seed every camera's ROIs, so the first packed epoch is measured on the
-    # people's regions rather than on the whole frames an empty start would pack (and warm-up, which slows
-    # whichever runs first, then weighs against whole frames, re-checked 15 s later anyway).
+    cfg = cfg.with_sessions(process_cores(), len(image_sizes))
+    assert isinstance(cfg.workers, int)
+    executor = detector_executor(cfg.workers)
+    sizes = list(image_sizes)
+    # Made on the named worker threads: onnxruntime's threads inherit their name (see the module docstring).
+    pairs = [executor.submit(detectors_from_config, cfg, sizes).result() for _ in range(cfg.workers)]
+    packer = PackedDetector(pairs[0][0], sizes, cfg.packing, canvas_detector=pairs[0][1])
+    # Whole frames first: until the people are found every camera's ROI is its whole frame, which a whole pass runs
+    # at the camera's aspect for the cost of a one-camera canvas; the per-pass cost then picks (ties keep the mode).
     chooser = ModeChooser(first="whole") if cfg.packing.enabled == "auto" else None
-    return PackedDetectionGroup(packer, executor, columns, chooser=chooser)
+    sessions = [Session(whole, canvas) for whole, canvas in pairs]
+    return PackedDetectionGroup(packer, executor, columns, chooser=chooser, sessions=sessions)
 
 
 def detector_status(detector: AnyDetector) -> dict[str, object]:
     """``/status`` section ``detector``: which execution provider and precision run (packed: also the canvas
     model's), so that a user who left ``providers = ["auto"]`` sees whether the GPU or the CPU took it."""
     if isinstance(detector, PooledDetector):
-        return {"mode": "whole", "workers": len(detector._detectors), **detector._detectors[0].describe()}
+        return {"mode": "whole", "workers": len(detector._detectors), "intra_op_threads": detector.intra_op_threads,
+                **detector._detectors[0].describe()}  # fmt: skip
     packer = detector.packer
     # With packing "auto" the group's chooser picks packed or whole passes; name the one it runs now.
     mode = detector.chooser.mode if detector.chooser is not None else "packed"
-    out: dict[str, object] = {"mode": mode, **packer.detector.describe()}
+    out: dict[str, object] = {
+        "mode": mode,
+        "workers": len(detector.sessions),
+        "intra_op_threads": packer.detector.intra_op_threads,
+        **packer.detector.describe(),
+    }
     if packer.canvas_detector is not packer.detector:
         out["canvas"] = packer.canvas_detector.describe()
     return out

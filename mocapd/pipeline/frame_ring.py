@@ -12,6 +12,11 @@ reading the same frame pay one conversion (counted in :attr:`FrameRing.conversio
 second and the detector reads one or two of them; converting (demosaicing) every frame at capture would spend the
 capture thread's time on images nobody looks at. The conversion runs in the reader's thread.
 
+Gray images for tracking. :meth:`FrameRing.gray` gives a frame as a gray image, optionally downsampled by an
+integer factor (block means), for the keypoint tracker (:mod:`mocapd.pipeline.keypoint_tracker`) that runs on every
+frame: a lazy ring makes it straight from the raw slot with the ring's own ``gray`` function (a Bayer mosaic
+averaged over whole 2x2 cells *is* a half-size gray image: no demosaicing), else from the image.
+
 A frame is addressed by its sequence number ``seq`` (0, 1, 2, ... in the order written). The slot of ``seq`` is
 ``seq % n_slots``; it stays valid until ``n_slots`` newer frames have been written. Readers that hold a sequence
 number check :meth:`FrameRing.is_valid` (or use :meth:`FrameRing.read`, which copies and re-checks) because a slow
@@ -24,6 +29,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -31,6 +37,26 @@ from mocapd.errors import InputError
 
 #: fills a converted image ``out`` (height, width, channels) from one raw slot (the ring's ``raw_shape``)
 Converter = Callable[[NDArray[np.uint8], NDArray[np.uint8]], None]
+#: one slot (a lazy ring's raw slot, else the image) and a factor -> a gray image, shape (height // factor,
+#: width // factor), each pixel the mean of a factor x factor block
+GrayConverter = Callable[[NDArray[np.uint8], int], NDArray[np.uint8]]
+
+
+def block_mean(image: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
+    """``image`` (h, w[, c]) downsampled by an integer ``factor``: each pixel the mean of a ``factor x factor``
+    block (trailing rows and columns that make no whole block are dropped; 1 returns ``image`` itself)."""
+    if factor == 1:
+        return image
+    if factor < 1:
+        raise InputError(f"downsampling factor must be >= 1, got {factor}")
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    return np.asarray(cv2.resize(image[: h * factor, : w * factor], (w, h), interpolation=cv2.INTER_AREA), np.uint8)
+
+
+def image_gray(image: NDArray[np.uint8], factor: int = 1) -> NDArray[np.uint8]:
+    """An RGB (h, w, 3) or mono (h, w, 1) image as gray, downsampled by ``factor`` (:func:`block_mean`)."""
+    gray = image[:, :, 0] if image.shape[2] == 1 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return block_mean(np.asarray(gray, np.uint8), factor)
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +101,9 @@ class FrameRing:
     convert : callable, optional
         ``convert(raw_slot, out)`` turns one raw slot into an image, shape ``(height, width, channels)``, written
         into ``out`` (see :data:`Converter`). Given: the ring is lazy (see the module docstring).
+    gray : callable, optional
+        ``gray(slot, factor)``: the gray image of one slot (the raw slot of a lazy ring, else the image), see
+        :data:`GrayConverter` and :meth:`gray`. Default: from the (converted) image.
     """
 
     def __init__(
@@ -87,6 +116,7 @@ class FrameRing:
         *,
         raw_shape: tuple[int, ...] | None = None,
         convert: Converter | None = None,
+        gray: GrayConverter | None = None,
     ) -> None:
         if n_slots < 2 or height < 1 or width < 1 or channels not in (1, 3):
             raise InputError(
@@ -104,6 +134,7 @@ class FrameRing:
         self.frame_id: NDArray[np.int64] = np.zeros(n_slots, np.int64)
         self.conversions = 0  # frames converted from raw (lazy rings; each frame at most once while in the ring)
         self._convert = convert
+        self._gray = gray
         # Sequence number of the frame whose image images[slot] holds (-1: none). An eager ring's writer fills the
         # image itself; a lazy ring's readers fill it on first use.
         self._converted: NDArray[np.int64] = np.full(n_slots, -1, np.int64)
@@ -219,6 +250,24 @@ class FrameRing:
         if image is None:
             return None
         out = image.copy()
+        return out if self.is_valid(seq) else None
+
+    def gray(self, seq: int, factor: int = 1) -> NDArray[np.uint8] | None:
+        """Frame ``seq`` as a new gray image downsampled by ``factor``, shape (height // factor, width // factor),
+        or None if the frame is not in the ring (or the writer overtook the conversion). A lazy ring with a
+        ``gray`` function makes it from the raw slot without converting the frame."""
+        if not self.is_valid(seq):
+            return None
+        if self._gray is not None:
+            slot = seq % self.n_slots
+            out = self._gray(self.raw[slot] if self.raw is not None else self.images[slot], factor)
+        else:
+            image = self._image(seq)
+            if image is None:
+                return None
+            out = image_gray(image, factor)
+        if out.base is not None or not out.flags.owndata:
+            out = out.copy()  # never a view of a slot the writer will refill
         return out if self.is_valid(seq) else None
 
     def latest(self) -> FrameRef | None:

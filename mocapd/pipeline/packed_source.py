@@ -1,16 +1,22 @@
-"""Packed detection for free-running cameras: one detector pass over the newest frame of every camera.
+"""Packed detection for free-running cameras: detector passes over the newest frames of the cameras, on one or more
+inference sessions at once.
 
 :class:`~mocapd.pipeline.packing.PackedDetector` puts the regions around the people each camera saw last time
 onto shared detector canvases (seed 000 §3.3.1), so a pass costs a canvas or two instead of one whole-frame
 inference per camera. It wants one image per camera per pass; the daemon's cameras are not synchronised, so
-:class:`PackedDetectionGroup` takes, when the worker is free, the newest frame of every camera that has a new one
+:class:`PackedDetectionGroup` takes, when a worker is free, the newest frame of the cameras that have a new one
 (each camera's own capture time stamps its detections), and gives a camera without a new frame (down, or slower)
-its previous image, whose detections are not delivered again. The worker starts the next pass itself as soon as
-one ends and a camera has an unseen frame, and may run whole-frame passes instead where they deliver more
+its previous image, whose detections are not delivered again. A worker starts its next pass as soon as one ends
+and a camera has an unseen frame; each pass is packed or one whole frame, whichever costs less per camera frame
 (:mod:`mocapd.pipeline.detection_mode`).
 
+Several sessions (``[detector] workers``): one worker thread per inference session, each with a share of the
+cores' threads, each pass taking cameras no other pass in flight holds. One onnxruntime session of a network this
+small is latency-bound and parallelises poorly inside (16 threads on a 16-core machine detected no more than 2 on
+the 2-core laptop, issue 31), so throughput on more cores comes from passes in flight at once.
+
 Each camera keeps its own :class:`PackedKeypointSource` (so the daemon supervises, counts and reports cameras
-one by one); a source's captured frames wake the group's worker, and its detections wait in the group until the
+one by one); a source's captured frames wake the group's workers, and its detections wait in the group until the
 source collects them (a newer pass's result replaces an uncollected one).
 """
 
@@ -20,8 +26,9 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -30,7 +37,8 @@ from numpy.typing import NDArray
 
 from mocapd.core.pose2d import PoseDetections
 from mocapd.core.sorting import Detections2D
-from mocapd.pipeline.detection_mode import ModeChooser
+from mocapd.pipeline.detection_mode import ModeChooser, PassCost
+from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource
 from mocapd.pipeline.packing import PackedDetector
@@ -46,31 +54,50 @@ def to_detections2d(people: PoseDetections, columns: NDArray[np.intp] | None = N
     return Detections2D(kp[..., :2], kp[..., 2])
 
 
-class PackedDetectionGroup:
-    """The cameras detected by one :class:`PackedDetector` on one worker thread that never idles.
+@dataclass(frozen=True)
+class Session:
+    """One inference session of the group (one worker thread): its whole-frame detector and its canvas detector
+    (the same object when the canvases are the model's own size)."""
 
-    The worker loops on its own thread: as soon as a pass ends it starts the next one if any camera has a frame
-    it has not detected yet (waiting on the event loop to start a pass would leave the detector idle while the
-    loop solves a tick), and otherwise sleeps until a camera captures one. Results go to the event loop with
-    ``call_soon_threadsafe``; each camera keeps its newest uncollected result (a newer one replaces it, counted).
+    whole: OnnxPoseDetector
+    canvas: OnnxPoseDetector
+
+
+@dataclass(frozen=True)
+class _Plan:
+    mode: str
+    cameras: tuple[int, ...]
+    pixels: int
+
+
+class PackedDetectionGroup:
+    """The cameras detected by one :class:`PackedDetector` on worker threads that never idle.
+
+    Each worker loops on its own thread with its own session: as soon as a pass ends it starts the next one if a
+    camera no other pass holds has a frame it has not detected yet (waiting on the event loop to start a pass would
+    leave the detector idle while the loop solves a tick), and otherwise sleeps until a camera captures one.
+    Results go to the event loop with ``call_soon_threadsafe``; each camera keeps its newest uncollected result (a
+    newer one replaces it, counted).
 
     With a :class:`~mocapd.pipeline.detection_mode.ModeChooser` (``[detector.packing] enabled = "auto"``) each
     pass is either packed (the newest frames of the cameras that share a canvas, see :meth:`_packed_pass`) or
-    whole-frame (the newest frame of the camera whose detection is oldest, letterboxed alone), whichever delivered more
-    frames with people per second of detector time on this rig; without one, every pass is packed.
+    whole-frame (the newest frame of the camera whose detection is oldest, letterboxed alone), whichever is
+    predicted to cost less detector time per camera frame; without one, every pass is packed.
 
     Parameters
     ----------
     packer : PackedDetector
         Its ``image_sizes`` are the cameras' (in camera index order).
     executor : Executor
-        One worker thread (the packer keeps per-camera ROI state between passes); the group's loop occupies it.
+        One worker thread per session (the group's loops occupy them).
     columns : array of int, optional
         Keypoint columns to deliver (see :func:`to_detections2d`).
     chooser : ModeChooser, optional
         Chooses the mode of each pass (None: always packed).
     clock : callable returning int ns
         Measures each pass's detector time (for the chooser and /status).
+    sessions : sequence of Session, optional
+        The inference sessions, one per worker (default: the packer's own detectors, one worker).
     """
 
     def __init__(
@@ -81,39 +108,45 @@ class PackedDetectionGroup:
         *,
         chooser: ModeChooser | None = None,
         clock: Callable[[], int] = time.perf_counter_ns,
+        sessions: Sequence[Session] = (),
     ) -> None:
         self.packer = packer
         self.executor = executor
         self.columns = columns
         self.chooser = chooser
         self.clock = clock
+        self.sessions = list(sessions) or [Session(packer.detector, packer.canvas_detector)]
         self.sources: dict[int, PackedKeypointSource] = {}
         self.passes = 0
         self.whole_passes = 0
         self.failed_passes = 0
         self.replaced = 0  # results a newer pass overwrote before their camera collected them
         self.busy_ns = 0
+        self.in_flight_max = 0  # most passes that ran at once
         self._images: list[Image | None] = [None] * packer.n_cameras
         self._detected_at: list[int] = [0] * packer.n_cameras  # pass number of each camera's last detection
         self._results: dict[int, tuple[FrameRef, Detections2D]] = {}
         self._ready: dict[int, asyncio.Event] = {}
-        self._wake = threading.Event()
+        self._cond = threading.Condition()
+        self._held: set[int] = set()  # cameras of the passes in flight
+        self._in_flight = 0
         self._stop = False
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._worker: Future[None] | None = None
+        self._workers: list[Future[None]] = []
 
     def add(self, source: PackedKeypointSource) -> None:
         self.sources[source.camera] = source
 
     def poke(self) -> None:
-        """A camera captured a frame (on the event loop): wake the worker, starting it the first time."""
-        if self._worker is None and not self._stop:
+        """A camera captured a frame (on the event loop): wake the workers, starting them the first time."""
+        if not self._workers and not self._stop:
             self._loop = asyncio.get_running_loop()
-            self._worker = self.executor.submit(self._work)
-        self._wake.set()
+            self._workers = [self.executor.submit(self._work, i) for i in range(len(self.sessions))]
+        with self._cond:
+            self._cond.notify_all()
 
     async def join(self, camera: int) -> tuple[FrameRef, Detections2D] | None:
-        """This camera's next detections (waits for the worker to deliver them)."""
+        """This camera's next detections (waits for a worker to deliver them)."""
         ready = self._ready.setdefault(camera, asyncio.Event())
         await ready.wait()
         ready.clear()
@@ -127,64 +160,120 @@ class PackedDetectionGroup:
             self._results[cam] = result
             self._ready.setdefault(cam, asyncio.Event()).set()
 
-    def _work(self) -> None:
-        """The worker thread's loop: a pass whenever a camera has an unseen frame, until :meth:`close`."""
-        while not self._stop:
-            self._wake.wait()
-            self._wake.clear()
-            if self._stop:
-                break
+    def _work(self, worker: int) -> None:
+        """Worker ``worker``'s loop on its session: a pass whenever a camera no other pass holds has an unseen
+        frame, until :meth:`close`."""
+        while True:
+            with self._cond:
+                plan = None
+                while not self._stop and (plan := self._claim(worker)) is None:
+                    self._cond.wait()
+                if self._stop or plan is None:
+                    return
+            failed = False
             try:
-                found = self._run_pass()
+                found = self._run_pass(plan, worker)
             except Exception:
                 if self._stop:  # terminate() aborts the inference in flight: that is how a pass ends at close
-                    break
-                self.failed_passes += 1
+                    return
+                failed = True
                 log.exception("detection pass failed")
-                continue
-            if found is None:
-                continue
-            self._wake.set()  # frames captured during the pass are unseen: run again without waiting for a poke
+                found = None
+            finally:
+                with self._cond:
+                    self.failed_passes += failed
+                    self._held.difference_update(plan.cameras)
+                    self._in_flight -= 1
+                    self._cond.notify_all()  # its cameras are free again, and more frames came meanwhile
             loop = self._loop
             if found and loop is not None and not loop.is_closed():
                 loop.call_soon_threadsafe(self._deliver, found)
 
-    def _run_pass(self) -> dict[int, tuple[FrameRef, Detections2D]] | None:
-        """One pass in the chosen mode; None when no camera had an unseen frame."""
-        mode = self.chooser.mode if self.chooser is not None else "packed"
+    def _claim(self, worker: int) -> _Plan | None:
+        """Under the lock: the next pass of ``worker`` (its mode and cameras, now held), or None."""
+        plan = self.plan_pass(worker)
+        if plan is not None:
+            self._held.update(plan.cameras)
+            self._in_flight += 1
+            self.in_flight_max = max(self.in_flight_max, self._in_flight)
+        return plan
+
+    def plan_pass(self, worker: int = 0) -> _Plan | None:
+        """The pass ``worker`` would run now over the cameras no pass holds that have an unseen frame: packed (a
+        canvas's worth of cameras, :meth:`_one_canvas`) or whole (the camera detected longest ago), whichever costs
+        less per camera frame (:class:`ModeChooser`); None when no such camera has a new frame."""
+        order = sorted(
+            (c for c, src in self.sources.items() if c not in self._held and src.has_new_frame()),
+            key=lambda c: self._detected_at[c],
+        )
+        if not order:
+            return None
+        session = self.sessions[worker]
+        packed = tuple(order if session.canvas.batched else self._one_canvas(order))
+        p_inputs = self.packer.pass_inputs(packed)
+        p_pixels = sum(w * h for w, h in p_inputs)
+        if self.chooser is None:
+            return _Plan("packed", packed, p_pixels)
+        first = order[0]
+        ww, wh = session.whole.whole_frame_input(*self.packer.image_sizes[first])
+        mode = self.chooser.choose(PassCost(len(packed), p_pixels), PassCost(1, ww * wh))
+        return _Plan("packed", packed, p_pixels) if mode == "packed" else _Plan("whole", (first,), ww * wh)
+
+    def _run_pass(self, plan: _Plan | None = None, worker: int = 0) -> dict[int, tuple[FrameRef, Detections2D]] | None:
+        """One pass as planned (default: as :meth:`plan_pass` plans it now); None when none of its cameras had an
+        unseen frame after all."""
+        if plan is None:
+            with self._cond:
+                plan = self.plan_pass(worker)
+            if plan is None:
+                return None
+        session = self.sessions[worker]
+        inputs: list[tuple[int, int]] = []  # what the pass ran (refresh tiles included), for the cost per pixel
         t0 = self.clock()
-        found = self._whole_pass() if mode == "whole" else self._packed_pass()
+        found = self._whole_pass(plan.cameras[0], session) if plan.mode == "whole" else self._packed_pass(
+            plan.cameras, session, inputs)  # fmt: skip
         if found is None:
             return None
         busy = self.clock() - t0
-        self.busy_ns += busy
-        self.passes += 1
-        for cam in found:
-            self._detected_at[cam] = self.passes
-        if self.chooser is not None:
-            usable = sum(1 for _, d in found.values() if len(d) > 0)
-            self.chooser.record(mode, usable, len(found), busy)
+        pixels = sum(w * h for w, h in inputs) if inputs else plan.pixels
+        with self._cond:
+            self.busy_ns += busy
+            self.passes += 1
+            for cam in found:
+                self._detected_at[cam] = self.passes
+            if self.chooser is not None:
+                usable = sum(1 for _, d in found.values() if len(d) > 0)
+                self.chooser.record(plan.mode, len(found), usable, pixels, busy)
         return found
 
-    def _packed_pass(self) -> dict[int, tuple[FrameRef, Detections2D]] | None:
-        """One canvas's worth of cameras: those with an unseen frame, detected longest ago first, as many as
-        share the canvases the first one needs. A pass over every camera would deliver each camera's detections
-        only after all canvases ran, and make every camera wait that long again for its next frame; passes of one
-        canvas each deliver as they go (the same inferences, a shorter detection delay).
+    def _packed_pass(
+        self,
+        cameras: Sequence[int] | None = None,
+        session: Session | None = None,
+        inputs: list[tuple[int, int]] | None = None,
+    ) -> dict[int, tuple[FrameRef, Detections2D]] | None:
+        """A packed pass over ``cameras`` (default: those with an unseen frame, one canvas's worth as
+        :meth:`plan_pass` picks them).
+
+        One canvas's worth of cameras: those with an unseen frame, detected longest ago first, as many as share the
+        canvases the first one needs. A pass over every camera would deliver each camera's detections only after
+        all canvases ran, and make every camera wait that long again for its next frame; passes of one canvas each
+        deliver as they go (the same inferences, a shorter detection delay).
 
         With a batched detector (a GPU: ``[detector] batch``) a pass takes every camera with an unseen frame
         instead: its canvases run in one inference that costs little more than one canvas (1.25-1.8 ms each in a
         batch of 4 against 5.5 ms alone on the H100), and one-canvas passes there ran 1.1 canvases a pass at ~20 ms,
         mostly the pass's own Python work, so live detection reached 0.32 of the detector alone (docs/daemon.md,
         "Issue 15: on a GPU"). Not measured live on a GPU since (no device lent)."""
-        order = sorted(
-            (c for c, src in self.sources.items() if src.has_new_frame()), key=lambda c: self._detected_at[c]
-        )
-        if not order:
-            return None
-        chosen = order if self.packer.canvas_detector.batched else self._one_canvas(order)
+        session = session if session is not None else self.sessions[0]
+        if cameras is None:
+            order = sorted((c for c, src in self.sources.items() if src.has_new_frame()),
+                           key=lambda c: self._detected_at[c])  # fmt: skip
+            if not order:
+                return None
+            cameras = order if session.canvas.batched else self._one_canvas(order)
         new: dict[int, FrameRef] = {}
-        for cam in chosen:
+        for cam in cameras:
             got = self.sources[cam].take_newest()
             if got is not None:
                 new[cam] = got[0]
@@ -195,7 +284,7 @@ class PackedDetectionGroup:
         for cam, (w, h) in enumerate(self.packer.image_sizes):
             image = self._images[cam]
             images.append(image if image is not None and cam in new else np.empty((h, w, 3), np.uint8))
-        (found,) = self.packer.detect([images], cameras=sorted(new))
+        (found,) = self.packer.detect([images], cameras=sorted(new), detector=session.canvas, inputs=inputs)
         return {cam: (ref, to_detections2d(found[cam], self.columns)) for cam, ref in new.items()}
 
     def _one_canvas(self, order: list[int]) -> list[int]:
@@ -211,32 +300,47 @@ class PackedDetectionGroup:
                 chosen.append(cam)
         return chosen
 
-    def _whole_pass(self) -> dict[int, tuple[FrameRef, Detections2D]] | None:
+    def _whole_pass(
+        self, camera: int | None = None, session: Session | None = None
+    ) -> dict[int, tuple[FrameRef, Detections2D]] | None:
+        """A whole-frame pass over ``camera`` (default: the camera detected longest ago with a new frame)."""
+        session = session if session is not None else self.sessions[0]
         # The camera detected longest ago first: every camera gets its turn, none waits two rounds.
-        for cam in sorted(self.sources, key=lambda c: self._detected_at[c]):
+        order = [camera] if camera is not None else sorted(self.sources, key=lambda c: self._detected_at[c])
+        for cam in order:
             got = self.sources[cam].take_newest()
             if got is None:
                 continue
             image = np.asarray(cv2.cvtColor(got[1], cv2.COLOR_RGB2BGR), np.uint8)
             self._images[cam] = image
-            people = self.packer.detector.detect(image)
+            people = session.whole.detect(image)
             # Counted once done, like ``passes``: a pass aborted by close() is neither (packed = passes - whole).
-            self.whole_passes += 1
+            with self._cond:
+                self.whole_passes += 1
             self.packer.seed_rois(cam, people)  # packed passes start from where the people are now
             return {cam: (got[0], to_detections2d(people, self.columns))}
         return None
 
     def close(self) -> None:
-        """Abort the pass in flight and stop the worker (at once: nobody waits for its results)."""
-        self._stop = True
-        self._wake.set()
-        self.packer.detector.terminate()
-        self.packer.canvas_detector.terminate()
+        """Abort the passes in flight and stop the workers (at once: nobody waits for their results)."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        for det in self._detectors():
+            det.terminate()
         self.executor.shutdown(wait=True, cancel_futures=True)
 
+    def _detectors(self) -> list[OnnxPoseDetector]:
+        """Every distinct detector of the sessions and the packer."""
+        out: list[OnnxPoseDetector] = []
+        for det in (self.packer.detector, self.packer.canvas_detector,
+                    *(d for s in self.sessions for d in (s.whole, s.canvas))):  # fmt: skip
+            if all(det is not d for d in out):
+                out.append(det)
+        return out
+
     def _inference_ns(self) -> int:
-        whole, canvas = self.packer.detector, self.packer.canvas_detector
-        return whole.inference_ns + (canvas.inference_ns if canvas is not whole else 0)
+        return sum(d.inference_ns for d in self._detectors())
 
     def status(self) -> dict[str, Any]:
         st = self.packer.stats
@@ -248,6 +352,7 @@ class PackedDetectionGroup:
             "detector_busy_s": round(self.busy_ns / 1e9, 2),
             # Of which inside onnxruntime: the rest of a pass (frame conversion, canvases, decoding) is mocapd's.
             "inference_s": round(self._inference_ns() / 1e9, 2),
+            "sessions": len(self.sessions), "passes_in_flight_max": self.in_flight_max,
         }  # fmt: skip
         out["mode"] = self.chooser.status() if self.chooser is not None else {"mode": "packed", "chosen": "packed"}
         return out

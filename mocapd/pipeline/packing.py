@@ -4,12 +4,17 @@
 plans canvases with :func:`mocapd.core.roi_packing.plan_canvases`, copies the ROIs into them, runs the
 detector once per canvas and maps every detection back to its camera and frame. A camera that found nobody
 looks at its whole frame again on the next call.
+
+Several passes may run at once on disjoint sets of cameras, each with its own inference session (the ``detector``
+argument of :meth:`PackedDetector.detect`): the ROI state is read and updated under a lock, the canvases are
+rendered and inferred outside it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -131,6 +136,7 @@ class PackedDetector:
         self._refresh_due: dict[int, int] = {}  # camera → the call its refresh fell due
         self.last_packings: list[Packing] = []
         self.last_tile_images: list[Image] = []
+        self._lock = threading.RLock()  # ROI state, refresh bookkeeping and counters (passes may run at once)
 
     @property
     def n_cameras(self) -> int:
@@ -141,7 +147,11 @@ class PackedDetector:
         self.rois = [[full_roi(w, h)] for w, h in self.image_sizes]
 
     def detect(
-        self, frames: Sequence[Sequence[Image]], cameras: Sequence[int] | None = None
+        self,
+        frames: Sequence[Sequence[Image]],
+        cameras: Sequence[int] | None = None,
+        detector: OnnxPoseDetector | None = None,
+        inputs: list[tuple[int, int]] | None = None,
     ) -> list[list[PoseDetections]]:
         """Detect people in ``frames[slot][camera]`` (BGR images), all slots sharing the current ROIs.
 
@@ -152,6 +162,11 @@ class PackedDetector:
         cameras : sequence of int, optional
             Detect only these cameras (default: all); the others' images are not read, their detections come
             back empty and their ROIs are kept for their next call.
+        detector : OnnxPoseDetector, optional
+            The session to infer with (default: ``canvas_detector``; packing disabled: ``detector``), of the canvas
+            model's input size: passes over disjoint cameras may run at once, each on a session of its own.
+        inputs : list, optional
+            Given: the network input (width, height) of every canvas run is appended (what the pass cost).
 
         Returns
         -------
@@ -161,12 +176,63 @@ class PackedDetector:
         n_kp = self.detector.format.n_keypoints
         subset = list(range(self.n_cameras)) if cameras is None else sorted(set(cameras))
         if not self.cfg.enabled:
-            self.stats.calls += 1
-            self.stats.camera_frames += len(frames) * len(subset)
-            self.stats.canvases += len(frames) * len(subset)
+            whole = detector if detector is not None else self.detector
+            with self._lock:
+                self.stats.calls += 1
+                self.stats.camera_frames += len(frames) * len(subset)
+                self.stats.canvases += len(frames) * len(subset)
             none = PoseDetections.empty(n_kp)
-            return [[self.detector.detect(img) if c in subset else none for c, img in enumerate(cams)]
+            return [[whole.detect(img) if c in subset else none for c, img in enumerate(cams)]
                     for cams in frames]  # fmt: skip
+        runner = detector if detector is not None else self.canvas_detector
+        if runner.input_size != self.canvas_detector.input_size:
+            raise InputError(f"a packed pass needs a session of the canvas size {self.canvas_detector.input_size}, "
+                             f"got {runner.input_size}")  # fmt: skip
+        with self._lock:
+            items, n_roi_items, packings, refresh = self._prepare(frames, subset)
+        images = [frames[it[0]][it[1]] for it in items]
+        parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
+        part_rois: list[list[list[Roi]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
+        refreshed: list[PoseDetections | None] = [None] * self.n_cameras
+        canvases = [render_canvas(packing, images, self.detector.spec.pad_value) for packing in packings]
+        # One inference for all canvases where the detector batches (GPU), else one each, cropped to its tiles.
+        extents = [canvas_extent(packing) for packing in packings]
+        if inputs is not None:
+            inputs.extend(runner.input_for_extent(e) for e in extents)
+        for packing, dets in zip(packings, runner.run_canvases(canvases, extents), strict=True):
+            found = unpack_detections(dets, packing)
+            for tile, det in zip(packing.tiles, found, strict=True):
+                slot, cam, _ = items[tile.index]
+                if tile.index >= n_roi_items:
+                    refreshed[cam] = det
+                else:
+                    parts[slot][cam].append(det)
+                    part_rois[slot][cam].append(items[tile.index][2])
+        out = [
+            [self._merge(p, n_kp, cam, r) for cam, (p, r) in enumerate(zip(slot_parts, slot_rois, strict=True))]
+            for slot_parts, slot_rois in zip(parts, part_rois, strict=True)
+        ]
+        seeds = list(out[-1])
+        for cam, extra in enumerate(refreshed):
+            if extra is not None:
+                out[-1][cam], seeds[cam] = self._add_refreshed(out[-1][cam], extra, n_kp)
+        with self._lock:
+            self._update_rois(seeds, subset)
+            self.last_packings = packings
+            self.last_tile_images = images  # tile.index → its source image (for drawing the canvases)
+            self.stats.calls += 1
+            self.stats.canvases += len(packings)
+            self.stats.camera_frames += len(frames) * len(subset)
+            self.stats.tiles += len(items)
+            self.stats.full_frame_tiles += sum(1 for _, cam, r in items[:n_roi_items] if self._is_full(cam, r))
+            self.stats.refresh_tiles += len(refresh)
+        return out
+
+    def _prepare(
+        self, frames: Sequence[Sequence[Image]], subset: list[int]
+    ) -> tuple[list[tuple[int, int, Roi]], int, list[Packing], list[int]]:
+        """Under the lock: the pass's items ``(slot, camera, roi)`` (refresh tiles from the returned count on), its
+        canvases and the cameras refreshed."""
         items: list[tuple[int, int, Roi]] = []
         for slot, cams in enumerate(frames):
             if len(cams) != self.n_cameras:
@@ -198,40 +264,7 @@ class PackedDetector:
         for cam in list(self._refresh_due):
             if cam in refresh or any(self._is_full(cam, r) for r in self.rois[cam]):
                 del self._refresh_due[cam]
-        images = [frames[it[0]][it[1]] for it in items]
-        parts: list[list[list[PoseDetections]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
-        part_rois: list[list[list[Roi]]] = [[[] for _ in range(self.n_cameras)] for _ in frames]
-        refreshed: list[PoseDetections | None] = [None] * self.n_cameras
-        canvases = [render_canvas(packing, images, self.detector.spec.pad_value) for packing in packings]
-        # One inference for all canvases where the detector batches (GPU), else one each, cropped to its tiles.
-        extents = [canvas_extent(packing) for packing in packings]
-        for packing, dets in zip(packings, self.canvas_detector.run_canvases(canvases, extents), strict=True):
-            found = unpack_detections(dets, packing)
-            for tile, det in zip(packing.tiles, found, strict=True):
-                slot, cam, _ = items[tile.index]
-                if tile.index >= n_roi_items:
-                    refreshed[cam] = det
-                else:
-                    parts[slot][cam].append(det)
-                    part_rois[slot][cam].append(items[tile.index][2])
-        out = [
-            [self._merge(p, n_kp, cam, r) for cam, (p, r) in enumerate(zip(slot_parts, slot_rois, strict=True))]
-            for slot_parts, slot_rois in zip(parts, part_rois, strict=True)
-        ]
-        seeds = list(out[-1])
-        for cam, extra in enumerate(refreshed):
-            if extra is not None:
-                out[-1][cam], seeds[cam] = self._add_refreshed(out[-1][cam], extra, n_kp)
-        self._update_rois(seeds, subset)
-        self.last_packings = packings
-        self.last_tile_images = images  # tile.index → its source image (for drawing the canvases)
-        self.stats.calls += 1
-        self.stats.canvases += len(packings)
-        self.stats.camera_frames += len(frames) * len(subset)
-        self.stats.tiles += len(items)
-        self.stats.full_frame_tiles += sum(1 for _, cam, r in items[:n_roi_items] if self._is_full(cam, r))
-        self.stats.refresh_tiles += len(refresh)
-        return out
+        return items, n_roi_items, packings, refresh
 
     def _plan(self, items: Sequence[tuple[int, int, Roi]], n_roi_items: int) -> list[Packing]:
         """Canvases for ``items`` (``(slot, camera, roi)``; those from ``n_roi_items`` on are refresh tiles)."""
@@ -342,13 +375,25 @@ class PackedDetector:
         """Set ``camera``'s ROIs from a whole-frame detection of it (as a packed call would from its own)."""
         seeds = [PoseDetections.empty(self.detector.format.n_keypoints)] * self.n_cameras
         seeds[camera] = found
-        self.rois[camera] = [full_roi(*self.image_sizes[camera])]  # a whole frame: nothing was cut
-        self._update_rois(seeds, [camera])
+        with self._lock:
+            self.rois[camera] = [full_roi(*self.image_sizes[camera])]  # a whole frame: nothing was cut
+            self._update_rois(seeds, [camera])
 
     def canvases_for(self, cameras: Sequence[int]) -> int:
         """Canvases a call detecting only ``cameras`` needs for their current ROIs (refresh tiles left out)."""
-        items = [(0, cam, roi) for cam in cameras for roi in self.rois[cam]]
-        return len(self._plan(items, len(items))) if items else 0
+        return len(self._packings_for(cameras))
+
+    def pass_inputs(self, cameras: Sequence[int]) -> list[tuple[int, int]]:
+        """The network input (width, height) of each canvas a call detecting only ``cameras`` would run: the
+        canvas cropped to its tiles where an export fits (:meth:`OnnxPoseDetector.input_for_extent`). Their pixels
+        are what the pass costs (:mod:`~mocapd.pipeline.detection_mode`)."""
+        det = self.canvas_detector
+        return [det.input_for_extent(canvas_extent(p)) for p in self._packings_for(cameras)]
+
+    def _packings_for(self, cameras: Sequence[int]) -> list[Packing]:
+        with self._lock:
+            items = [(0, cam, roi) for cam in cameras for roi in self.rois[cam]]
+            return self._plan(items, len(items)) if items else []
 
     def _update_rois(self, last: list[PoseDetections], cameras: Sequence[int]) -> None:
         stride = self.cfg.align_stride
@@ -399,22 +444,32 @@ class ScheduledDetector:
         return [(idx, d) for (idx, _), d in zip(pending, dets, strict=True)]
 
 
-def packed_detector_from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]]) -> PackedDetector:
-    """A :class:`PackedDetector` for the ``[detector]`` section, with a canvas-sized session when
-    ``[detector.packing]`` asks for canvases of another size than the model's input."""
+def detectors_from_config(
+    cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]]
+) -> tuple[OnnxPoseDetector, OnnxPoseDetector]:
+    """One inference session of the ``[detector]`` section for packed passes: (whole-frame detector, canvas
+    detector), the same object unless ``[detector.packing]`` asks for canvases of another size than the model's
+    input. ``intra_op_threads`` is taken as given (0: onnxruntime's default)."""
     ref = OnnxPoseDetector.from_config(cfg, image_sizes)  # the whole-frame passes' inputs made (or found missing)
     pk = cfg.packing
     cw = pk.canvas_width or cfg.model.input_width
     ch = pk.canvas_height or cfg.model.input_height
-    canvas = None
-    if (cw, ch) != (cfg.model.input_width, cfg.model.input_height):
-        spec = dataclasses.replace(cfg.model, path=pk.canvas_model_path, input_width=cw, input_height=ch)
-        canvas = OnnxPoseDetector(
-            spec,
-            providers=cfg.providers,
-            precision=cfg.precision,
-            intra_op_threads=cfg.intra_op_threads,
-            inter_op_threads=cfg.inter_op_threads,
-            batch=cfg.batch,
-        )
-    return PackedDetector(ref, image_sizes, pk, canvas_detector=canvas)
+    if (cw, ch) == (cfg.model.input_width, cfg.model.input_height):
+        return ref, ref
+    spec = dataclasses.replace(cfg.model, path=pk.canvas_model_path, input_width=cw, input_height=ch)
+    canvas = OnnxPoseDetector(
+        spec,
+        providers=cfg.providers,
+        precision=cfg.precision,
+        intra_op_threads=cfg.intra_op_threads,
+        inter_op_threads=cfg.inter_op_threads,
+        batch=cfg.batch,
+        intra_op_spinning=cfg.intra_op_spinning,
+    )
+    return ref, canvas
+
+
+def packed_detector_from_config(cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]]) -> PackedDetector:
+    """A :class:`PackedDetector` for the ``[detector]`` section (its first session, :func:`detectors_from_config`)."""
+    ref, canvas = detectors_from_config(cfg, image_sizes)
+    return PackedDetector(ref, image_sizes, cfg.packing, canvas_detector=canvas)

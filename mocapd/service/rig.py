@@ -19,6 +19,7 @@ from __future__ import annotations
 import socket
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,8 +38,9 @@ from mocapd.io.prior import resolve_prior
 from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
 from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileSource
 from mocapd.pipeline.clocksync import ClockSync
-from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns
+from mocapd.pipeline.detector_pool import AnyDetector, make_detector, name_os_thread, target_columns
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource, KeypointSource
+from mocapd.pipeline.keypoint_tracker import KeypointTracker
 from mocapd.pipeline.latency import AutoLatencyOptions
 from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.pipeline.remote_cameras import RemoteRig, ZenohKeypointSource
@@ -64,6 +66,8 @@ NO_RIG = (
     "[imu.bridge] enabled); `mocapd devices` prints them for what is plugged in; or try `mocapd demo` "
     "(`mocapd demo --imu-only`: a simulated suit alone)"
 )
+TRACK_THREAD = "mocapd-track"  # the tracking pool's threads, by this OS name in per-thread CPU accounting
+DEFAULT_HEIGHT_M = 1.75  # the skeleton people start with, until body sizing gives each their own
 
 
 @dataclass(frozen=True)
@@ -197,10 +201,15 @@ class BuiltRig:
     simulated: SimulatedSuits | None = None
     remote: RemoteRig | None = None
     """The Zenoh session of the rig's ``zenoh`` cameras (camera hosts), when it has any."""
+    tracking_pool: ThreadPoolExecutor | None = None
+    """The keypoint trackers' worker threads (``[detector.tracking] thread = "pool"``)."""
 
     def close(self) -> None:
-        """Stop the detector's workers (after the detection in flight), the simulated devices and the Zenoh
-        session."""
+        """Stop the detector's workers (after the detection in flight), the tracking pool, the simulated devices
+        and the Zenoh session."""
+        if self.tracking_pool is not None:
+            self.tracking_pool.shutdown(wait=True, cancel_futures=True)
+            self.tracking_pool = None
         if self.remote is not None:
             self.remote.close()
             self.remote = None
@@ -238,6 +247,10 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     detector = (make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],
                               target_columns(detector_config, targets.names)) if local else None)  # fmt: skip
     sources: list[KeypointSource] = []
+    tracking = detector_config.tracking
+    track = tracking.enabled and detector is not None
+    pool = (ThreadPoolExecutor(tracking.workers, thread_name_prefix=TRACK_THREAD, initializer=name_os_thread,
+                               initargs=(TRACK_THREAD,)) if track and tracking.thread == "pool" else None)  # fmt: skip
     # A remote frame older than the latency on arrival is counted late; under "auto" the latency moves, so only
     # what is older than its ceiling is surely late here (the timeline drops the rest as it does local frames).
     latency_s = config.daemon.latency_s
@@ -253,18 +266,25 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
             # A camera's own frame clock (exposure time) beats the host's arrival time; a replayed file has none
             # worth mapping: its frames are published at their due time.
             clk = ClockSync(tick_hz=1e9, wrap_bits=64) if isinstance(cam, AravisCamera | UvcCamera) else None
+            # Keypoints between detections: one tracker per camera, on its capture thread or on the pool.
+            size = (calibrated.width, calibrated.height)
+            tracker = KeypointTracker(len(targets), tracking, targets.names, size) if track else None
             if isinstance(detector, PackedDetectionGroup):
-                sources.append(PackedKeypointSource(i, capture, detector, device_clock=clk, clock=clock))
+                sources.append(PackedKeypointSource(i, capture, detector, device_clock=clk, clock=clock,
+                                                    tracker=tracker, tracking_pool=pool))  # fmt: skip
             elif detector is not None:
                 sources.append(DetectorKeypointSource(i, capture, detector, executor=detector.executor,
-                                                      device_clock=clk, clock=clock))  # fmt: skip
+                                                      device_clock=clk, clock=clock, tracker=tracker,
+                                                      tracking_pool=pool))  # fmt: skip
         suits = load_suits(config.imu, skeleton)
     except BaseException:
         if detector is not None:
             detector.close()
+        if pool is not None:
+            pool.shutdown(wait=False)
         raise
     rig = Rig(plan.cameras, sources, skeleton, targets, prior, suits)
-    return BuiltRig(rig, config.imu, captures, detector, remote=remote)
+    return BuiltRig(rig, config.imu, captures, detector, remote=remote, tracking_pool=pool)
 
 
 def frame_source(cam: CameraConfig, calibrated: Camera, backoff_s: tuple[float, float]) -> ThreadedSource:

@@ -14,7 +14,13 @@ camera-frames per second (:func:`detector_alone`; the report gives both runs and
 ``summary`` puts the live pipeline against it: live detected camera-frames per second over the detector-alone
 packed throughput (the issue-15 target: >= 0.8), end-to-end latency p50/p95, ticks missed after the warm-up, and
 CPU per stage in cores (capture threads, Aravis stream threads, detector threads, the event loop with its 60 Hz
-tick).
+tick, the keypoint tracking).
+
+Keypoints between detections (issue 31, ``[detector.tracking]``): per camera, keypoint sets delivered per second,
+and per person in view (person-keypoint-sets per second over the people per detection), the tracking's CPU per
+tracked frame and per tracked person, and the tracked keypoints' error against each new detection of the same
+frame (px, median and p90, per joint group and by age), pooled over the cameras for the measured window;
+``summary.targets_issue_31`` sets them against the issue's targets.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.detector_pool import detector_executor
+from mocapd.pipeline.keypoint_tracker import JOINT_GROUPS, error_summary
 from mocapd.pipeline.packing import packed_detector_from_config
 from mocapd.service.assembly import RunOptions
 from mocapd.service.config import Config, load_config
@@ -93,6 +100,8 @@ def thread_cpu_by_kind(capture_tids: set[int]) -> dict[str, float]:
             kind = "event_loop"
         elif name.startswith("mocapd-detect"):
             kind = "detector"
+        elif name.startswith("mocapd-track"):
+            kind = "tracking"
         elif name.startswith("arv"):
             kind = "aravis"
         else:
@@ -193,8 +202,10 @@ class Measure:
         frames = [getattr(s, "frames", None) for s in daemon.rig.sources]  # DetectorKeypointSource's capture
         tids = {t for f in frames if isinstance(t := getattr(f, "thread_id", None), int)}
         servers = {f["name"]: _cpu_s(f"/proc/{f['pid']}/stat") for f in st["fake_cameras"] if f["pid"]}
+        trackers = [t for s in daemon.rig.sources if (t := getattr(s, "tracker", None)) is not None]
         return {"t": time.monotonic(), "status": st, "threads": thread_cpu_by_kind(tids),
-                "process_cpu": time.process_time(), "servers": servers}  # fmt: skip
+                "process_cpu": time.process_time(), "servers": servers, "trackers": trackers,
+                "tracker_errors": [t.error_count for t in trackers]}  # fmt: skip
 
     async def __call__(self, daemon: Daemon) -> None:
         rss: list[tuple[float, float]] = []
@@ -217,6 +228,7 @@ class Measure:
         assert a is not None
         b = self._snapshot(daemon)
         self.result = summarize(a, b, rss, percentiles, self.warm_up_s)
+        self.result["tracked_vs_detected_px"] = tracked_errors(a)
 
 
 def summarize(
@@ -238,7 +250,8 @@ def summarize(
             "skipped": cb["skipped"] - ca["skipped"],
             "transfer_ms_mean": cb["transfer_ms_mean"],
             "missing_frames": cb["capture"]["missing_frames"], "bad_buffers": cb["capture"]["bad_buffers"],
-            "failures": cb["capture"]["failures"],
+            "failures": cb["capture"]["failures"], "detection_delay_ms": cb.get("detection_delay_ms"),
+            "tracking": _tracking(ca, cb, wall),
         }  # fmt: skip
     detected = sum((cb["detected"] - ca["detected"]) for ca, cb in zip(sa["cameras"], sb["cameras"], strict=True))
     stage_cpu = {k: round(v - sa["cpu_s"].get(k, 0.0), 2) for k, v in sb["cpu_s"].items()}
@@ -278,6 +291,52 @@ def summarize(
     }  # fmt: skip
 
 
+def tracked_errors(a: dict[str, Any]) -> dict[str, Any] | None:
+    """The tracked keypoints' error against each new detection of the same frame, measured since snapshot ``a``,
+    pooled over the cameras (:func:`~mocapd.pipeline.keypoint_tracker.error_summary`), with each camera's median."""
+    trackers = a.get("trackers")
+    if not trackers:
+        return None
+    parts = [t.errors(since) for t, since in zip(trackers, a["tracker_errors"], strict=True)]
+    pooled = [np.concatenate([p[k] for p in parts]) for k in range(3)]
+    out = error_summary(pooled[0], pooled[1], pooled[2])
+    out["camera_medians"] = [round(float(np.median(p[0])), 2) if p[0].size else None for p in parts]
+    out["joint_groups"] = list(JOINT_GROUPS)
+    return out
+
+
+def _tracking(ca: dict[str, Any], cb: dict[str, Any], wall: float) -> dict[str, Any] | None:
+    """One camera's keypoints between detections over the window (None: no tracking)."""
+    ta, tb = ca.get("tracking"), cb.get("tracking")
+    if ta is None or tb is None:
+        return None
+    sets = tb["keypoint_sets"] - ta["keypoint_sets"]
+    person_sets = tb["person_keypoint_sets"] - ta["person_keypoint_sets"]
+    frames = tb["frames"] - ta["frames"]
+    cpu = tb["cpu_s"] - ta["cpu_s"]
+    detections = cb["detected"] - ca["detected"]
+    people = (cb["detected_people"] - ca["detected_people"]) / detections if detections else None
+    person_hz = person_sets / wall
+    return {
+        "keypoint_sets_per_s": round(sets / wall, 2), "person_keypoint_sets_per_s": round(person_hz, 2),
+        "people_per_detection": round(people, 3) if people is not None else None,
+        # Keypoints per second for each person in view: the people the detector sees in this camera, on average.
+        "keypoint_hz_per_person": round(person_hz / people, 2) if people else None,
+        "tracked_frames_per_s": round(frames / wall, 2), "cpu_cores": round(cpu / wall, 4),
+        "cpu_ms_per_frame": round(1e3 * cpu / frames, 3) if frames else None,
+        "cpu_ms_per_person_frame": round(1e3 * cpu / person_sets, 3) if person_sets else None,
+        "detections_late": tb["tracker"]["detections_late"] - ta["tracker"]["detections_late"],
+        "people_dropped_age": tb["tracker"]["people_dropped_age"] - ta["tracker"]["people_dropped_age"],
+        "people_dropped_keypoints": (tb["tracker"]["people_dropped_keypoints"]
+                                     - ta["tracker"]["people_dropped_keypoints"]),
+        "people_kept_missed": tb["tracker"]["people_kept_missed"] - ta["tracker"]["people_kept_missed"],
+        # Detections delivered as they are while tracking stepped back (they came later than it can carry).
+        "detections_delivered": tb["detections_delivered"] - ta["detections_delivered"],
+        "steps_back": tb["steps_back"] - ta["steps_back"], "active_at_end": tb["active"],
+        "thread": tb["thread"],
+    }  # fmt: skip
+
+
 def _group_window(a: dict[str, Any] | None, b: dict[str, Any] | None) -> dict[str, Any] | None:
     """The packed detection group over the measured window: passes, and a pass's milliseconds inside onnxruntime
     and outside it (frame conversion, canvases, decoding: what limits a GPU detector)."""
@@ -290,6 +349,11 @@ def _group_window(a: dict[str, Any] | None, b: dict[str, Any] | None) -> dict[st
     return {"passes": passes, "busy_s": round(busy, 2), "inference_s": round(inference, 2),
             "pass_ms": round(busy * per, 2), "inference_ms_per_pass": round(inference * per, 2),
             "rest_ms_per_pass": round((busy - inference) * per, 2)}  # fmt: skip
+
+
+def _mean(values: list[float | None]) -> float | None:
+    kept = [v for v in values if v is not None]
+    return round(sum(kept) / len(kept), 3) if kept else None
 
 
 def _mean_of(a: float | None, b: float | None) -> float | None:
@@ -316,6 +380,12 @@ def headline(alone: dict[str, Any], live: dict[str, Any], cameras: int) -> dict[
     e2e = live["end_to_end_ms_last_window"]
     live_per_core = per_core(live_rate, threads.get("detector"))
     alone_per_core = per_core(packed, alone.get("packed_cpu_cores"))
+    tracking = [c["tracking"] for c in live["cameras"].values() if c.get("tracking")]
+    per_person = [t["keypoint_hz_per_person"] for t in tracking if t["keypoint_hz_per_person"] is not None]
+    errors = live.get("tracked_vs_detected_px") or {}
+    error_median = (errors.get("all") or {}).get("median")
+    missed = round(out["missed_ticks"] / ticks, 4) if ticks else None
+    group = live.get("detection_group_at_end") or {}
     return {
         "detector_alone_packed_camera_frames_per_s": packed,
         "detector_alone_whole_camera_frames_per_s": whole,
@@ -332,12 +402,34 @@ def headline(alone: dict[str, Any], live: dict[str, Any], cameras: int) -> dict[
         "end_to_end_ms_p50": e2e["p50"], "end_to_end_ms_p95": e2e["p95"],
         "detector_pass_ms": live.get("detection_group_window"),
         "missed_ticks_after_warm_up": out["missed_ticks"],
-        "missed_tick_fraction_after_warm_up": round(out["missed_ticks"] / ticks, 4) if ticks else None,
+        "missed_tick_fraction_after_warm_up": missed,
+        # People solved per output frame (2 people in the videos): what the keypoints give the solver.
+        "person_solves_per_frame": live["people"]["person_solves_per_frame"],
+        "detector_sessions": group.get("sessions"),
+        "detection_modes": (group.get("mode") or {}).get("passes"),
+        "keypoint_hz_per_person_by_camera": per_person,
+        "keypoint_sets_per_s_by_camera": [t["keypoint_sets_per_s"] for t in tracking],
+        "tracking_cpu_ms_per_frame": _mean([t["cpu_ms_per_frame"] for t in tracking]),
+        "tracking_cpu_ms_per_person_frame": _mean([t["cpu_ms_per_person_frame"] for t in tracking]),
+        "tracked_vs_detected_px_median": error_median,
+        "tracked_vs_detected_px_by_joint_group": {g: v["median"] for g, v in
+                                                  (errors.get("by_joint_group") or {}).items()},
+        "targets_issue_31": {
+            "keypoint_hz_per_person_min": min(per_person) if per_person else None,
+            "keypoints_30hz_per_person": bool(per_person) and min(per_person) >= 30.0,
+            "end_to_end_p50_le_150ms": e2e["p50"] is not None and e2e["p50"] <= 150.0,
+            "end_to_end_p95_le_200ms": e2e["p95"] is not None and e2e["p95"] <= 200.0,
+            "missed_ticks_le_1pct": missed is not None and missed <= 0.01,
+            "tracked_error_median_le_5px": error_median is not None and error_median <= 5.0,
+        },
         "cpu_cores": {"capture_threads": threads.get("capture", 0.0),
                       "capture_threads_per_camera": round(threads.get("capture", 0.0) / cameras, 4),
                       "aravis_stream_threads": threads.get("aravis", 0.0),
                       "detector_threads": threads.get("detector", 0.0),
                       "event_loop_with_tick": threads.get("event_loop", 0.0),
+                      # Tracking: on the capture threads (thread = "capture": part of capture_threads) or its pool.
+                      "tracking": round(sum(t["cpu_cores"] for t in tracking), 4) if tracking else None,
+                      "tracking_pool_threads": threads.get("tracking", 0.0),
                       "other_threads": threads.get("other", 0.0),
                       "tick_stages": live["cpu_fraction_of_one_core"]["scheduler_stages"],
                       "daemon_process": live["cpu_fraction_of_one_core"]["daemon_process"]},

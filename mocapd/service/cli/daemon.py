@@ -331,8 +331,8 @@ def _latency(text: str) -> float | Literal["auto"]:
 
 _LATENCY_HELP = 'camera rig: delay behind wall time, s, or "auto" (default: follows the detector)'
 _DETECTION_HELP = (
-    'camera rig: "auto" (default; whichever of packed and whole-frame passes detects more frames with people '
-    'per second), "packed" (all cameras\' ROIs on shared canvases) or "whole" (one inference per camera frame)'
+    'camera rig: "auto" (default; each pass packed or a whole frame, whichever costs less detector time per '
+    'camera frame), "packed" (cameras\' ROIs on shared canvases) or "whole" (one inference per camera frame)'
 )
 _RECORD_HELP = "record this run as a session into this new directory (docs/sessions.md)"
 

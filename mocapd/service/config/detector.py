@@ -1,4 +1,5 @@
-"""The ``[detector]`` section (with ``[detector.model]`` and ``[detector.packing]``): the 2D keypoint detector.
+"""The ``[detector]`` section (with ``[detector.model]``, ``[detector.packing]`` and ``[detector.tracking]``): the 2D
+keypoint detector and the keypoint tracking between its detections.
 
 The pipeline's plain :class:`~mocapd.pipeline.detector_config.DetectorConfig` (with its
 :class:`~mocapd.pipeline.detector_config.ModelSpec` and :class:`~mocapd.pipeline.detector_config.PackingConfig`)
@@ -12,10 +13,10 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BeforeValidator, Field
 
-from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
+from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig, TrackingConfig
 from mocapd.service.config.schema import Allowed, PathStr, Section, Seq, as_tuple, unique
 
-_M, _P, _D = ModelSpec(), PackingConfig(), DetectorConfig()
+_M, _P, _D, _T = ModelSpec(), PackingConfig(), DetectorConfig(), TrackingConfig()
 _PROVIDER = re.compile(r"(?i:auto|tensorrt|cuda|openvino|cpu)|[A-Za-z0-9]{1,40}ExecutionProvider")
 _PROVIDER_WORDS = (
     '"auto", "tensorrt", "cuda", "openvino", "cpu" or an onnxruntime provider name ("...ExecutionProvider")'
@@ -88,6 +89,36 @@ class PackingSection(Section):
     n_p: int = Field(_P.n_p, ge=1, le=1000)
 
 
+def _odd(size: int) -> int:
+    if size % 2 == 0:
+        raise ValueError("must be odd")
+    return size
+
+
+def _factor(factor: int) -> int:
+    if factor not in (1, 2, 4):
+        raise ValueError('must be 1, 2, 4 or "auto"')
+    return factor
+
+
+class TrackingSection(Section):
+    """``[detector.tracking]``: keypoints carried between detections on every camera frame."""
+
+    enabled: bool = _T.enabled
+    rate_hz: float = Field(_T.rate_hz, ge=1.0, le=1000.0)
+    downsample: Annotated[int, Field(ge=1, le=4), AfterValidator(_factor)] | Literal["auto"] = "auto"
+    window_px: Annotated[int, Field(ge=5, le=63), AfterValidator(_odd)] = _T.window_px
+    levels: int = Field(_T.levels, ge=0, le=6)
+    max_fb_px: float = Field(_T.max_fb_px, gt=0.0, le=100.0)
+    lost_confidence: float = Field(_T.lost_confidence, ge=0.0, le=1.0)
+    half_life_s: float = Field(_T.half_life_s, gt=0.0, le=60.0)
+    max_age_s: float = Field(_T.max_age_s, gt=0.0, le=60.0)
+    min_keypoints: int = Field(_T.min_keypoints, ge=1, le=1000)
+    history_s: float = Field(_T.history_s, gt=0.0, le=60.0)
+    thread: Literal["capture", "pool"] = "capture"
+    workers: int = Field(_T.workers, ge=1, le=64)
+
+
 class DetectorSection(Section):
     """The ``[detector]`` section."""
 
@@ -95,12 +126,13 @@ class DetectorSection(Section):
     precision: Literal["auto", "fp32", "int8", "bf16"] = "auto"
     intra_op_threads: int = Field(_D.intra_op_threads, ge=0, le=256)
     inter_op_threads: int = Field(_D.inter_op_threads, ge=0, le=256)
-    workers: int = Field(_D.workers, ge=1, le=64)
+    workers: Annotated[int, Field(ge=1, le=64)] | Literal["auto"] = "auto"
     intra_op_spinning: bool = _D.intra_op_spinning
     batch: bool | Literal["auto"] = "auto"
     fitted_inputs: bool | Literal["auto"] = "auto"
     model: ModelSection = Field(default_factory=ModelSection)
     packing: PackingSection = Field(default_factory=PackingSection)
+    tracking: TrackingSection = Field(default_factory=TrackingSection)
 
     def options(self) -> DetectorConfig:
         """The pipeline's :class:`DetectorConfig` of this section."""
@@ -115,4 +147,5 @@ class DetectorSection(Section):
             fitted_inputs=self.fitted_inputs,
             model=self.model.build(ModelSpec),
             packing=self.packing.build(PackingConfig),
+            tracking=self.tracking.build(TrackingConfig),
         )

@@ -84,12 +84,13 @@ class CameraDemoOptions:
         Playback speed of the videos: 1 serves them at their own pace (60 fps), 0.05 in slow motion (3 fps, each
         frame shown 20 times as long). The cameras send at the slowed rate. For a detector far slower than the
         motion (a loaded CPU): the people then move little between two detections of a camera, so they can be
-        tracked and solved as on a rig whose detector keeps up.
+        tracked and solved as on a rig whose detector keeps up. The keypoint tracker's times (``[detector.tracking]``
+        ``half_life_s``, ``max_age_s``, ``history_s``) stretch by ``1 / speed`` with the motion.
     packed : bool or "auto"
         Detect the newest frames of all cameras together, their people's regions packed onto shared canvases
         (``[detector.packing] enabled``); False: one whole-frame inference per camera frame, the cameras taking
-        turns on ``[detector] workers`` (docs/daemon.md, Numbers); "auto" (the default): whichever of the two
-        detects more frames with people per second, measured while the demo runs.
+        turns on ``[detector] workers`` (docs/daemon.md, Numbers); "auto" (the default): each pass packed or a
+        whole frame, whichever costs less detector time per camera frame (measured while the demo runs).
     latency_s : float or "auto"
         The daemon's delay between solve time and wall time. A CPU detector shared by four cameras
         delivers each camera's detections late and far apart, and the scheduler interpolates only between
@@ -170,10 +171,15 @@ def demo_config(base: Config, opts: CameraDemoOptions, specs: list[FakeCameraSpe
     daemon = base.daemon.model_copy(update={"latency_s": lat, "keypoint_max_age_s": age,
                                             "keypoint_max_gap_s": gap})  # fmt: skip
     packing = base.detector.packing.model_copy(update={"enabled": opts.packed})
+    # Slow motion stands for a rig whose detector keeps up with the people: the tracker's times (in seconds of
+    # motion) stretch with it, as the videos do.
+    tr = base.detector.tracking
+    tracking = tr.model_copy(update={k: min(60.0, getattr(tr, k) / opts.speed)
+                                     for k in ("half_life_s", "max_age_s", "history_s")})  # fmt: skip
     return base.model_copy(update={
         "cameras": parse_cameras(tables), "daemon": daemon,
         "calibration": validate(CalibrationConfig, {"file": str(calibration)}, "calibration"),
-        "detector": base.detector.model_copy(update={"packing": packing}),
+        "detector": base.detector.model_copy(update={"packing": packing, "tracking": tracking}),
     })  # fmt: skip
 
 
@@ -255,7 +261,43 @@ def _summary(daemon: Daemon | None, people: PeopleCount) -> dict[str, Any]:
         out["missed_ticks"] = st["output"]["missed_ticks"]
         out["detected"] = {c["name"]: c["detected"] for c in st["cameras"]}
         out["end_to_end_ms"] = st["latency_ms"]["end_to_end"]
+        out["seconds"] = st["uptime_s"]
+        tracked = {c["name"]: c for c in st["cameras"] if c.get("tracking")}
+        if tracked:
+            # Keypoint sets per camera (tracked frames), and per person in view: people in keypoint sets per
+            # second over the people per detection, over the whole run.
+            out["keypoint_sets"] = {n: c["tracking"]["keypoint_sets"] for n, c in tracked.items()}
+            out["keypoint_hz_per_person"] = {n: _per_person_hz(c, st["uptime_s"]) for n, c in tracked.items()}
+            # Detections that went out as they are, tracking having stepped back (later than it can carry).
+            out["detections_untracked"] = {n: c["tracking"]["detections_delivered"] for n, c in tracked.items()}
     return out
+
+
+def _per_person_hz(camera: dict[str, Any], seconds: float) -> float | None:
+    """A camera's keypoints per second for each person in view: people in its keypoint sets per second over the
+    people in its detections (on average)."""
+    if not camera["detected_people"] or not seconds:
+        return None
+    in_view = float(camera["detected_people"]) / float(camera["detected"])
+    return round(float(camera["tracking"]["person_keypoint_sets"]) / seconds / in_view, 1)
+
+
+def summary_line(summary: dict[str, Any]) -> str:
+    """The closing line of ``mocapd demo``: what was solved, how often each camera gave keypoints, how late."""
+    who = ", ".join(summary["identities"]) or "nobody"
+    line = (f"done: {summary['frames']} frames, {summary['frames_with_people']} with people solved "
+            f"(at most {summary['max_people']} at once: {who})")  # fmt: skip
+    seconds = summary.get("seconds")
+    if seconds and summary.get("detected"):
+        det = sum(summary["detected"].values()) / len(summary["detected"]) / seconds
+        line += f"; detections {det:.1f} Hz per camera"
+        rates = [v for v in (summary.get("keypoint_hz_per_person") or {}).values() if v is not None]
+        if rates:
+            line += f", keypoints {min(rates):.0f}-{max(rates):.0f} Hz per camera and person"
+    e2e = summary.get("end_to_end_ms") or {}
+    if e2e.get("p50") is not None:
+        line += f"; end to end p50 {e2e['p50']:.0f} ms, p95 {e2e['p95']:.0f} ms"
+    return line
 
 
 def announce(a: assembly.Assembly) -> None:
@@ -301,9 +343,7 @@ def child_main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2
     summary = _summary(holder[0] if holder else None, people)
-    who = ", ".join(summary["identities"]) or "nobody"
-    print(f"done: {summary['frames']} frames, {summary['frames_with_people']} with people solved "
-          f"(at most {summary['max_people']} at once: {who})", flush=True)  # fmt: skip
+    print(summary_line(summary), flush=True)
     print(json.dumps({"summary": summary}), flush=True)
     return code
 
@@ -369,7 +409,7 @@ def host_sockets(config: Config) -> dict[str, socket.socket]:
 
 def _detection_text(opts: CameraDemoOptions, config: Config) -> str:
     if opts.packed == "auto":
-        return "packed or whole-frame passes, whichever detects more (measured)"
+        return "packed or whole-frame passes, whichever costs less per camera frame (measured)"
     return "packed (all cameras per pass)" if opts.packed else f"{config.detector.workers} worker(s)"
 
 
