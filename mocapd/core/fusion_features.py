@@ -15,7 +15,9 @@ Frames (all positions in metres, joint order = the 21 bones):
   to the grid centre) and the fraction of cameras that see the person, and predicts the joints relative to the
   grid centre. The "mean of the streams" baseline averages the same two inputs.
 
-Windows at the start of a sequence repeat its first frame.
+Windows at the start of a sequence repeat its first frame (of the window's phase, with a stride). The functions take
+whole sequences (training, the accuracy harness: a window per frame); the runtime passes its last f learned frames
+and takes the last row, so both build the same windows.
 """
 
 from __future__ import annotations
@@ -27,45 +29,51 @@ FloatArray = NDArray[np.float64]
 
 LOOK_BACK = 5
 """f: frames an LSTM reads (the current one and four before it), seed 001 §4.5.3."""
+STRIDE = 3
+"""The learned stream runs on every STRIDE-th frame of the 60 Hz output (20 Hz: a person-frame of PVH, network
+and IMU-only solve costs ~10 ms on the 2-core CPU, docs/learned-fusion.md); its windows hold the current frame
+and the f - 1 frames STRIDE, 2·STRIDE, ... frames before it."""
 N_JOINTS = 21
 JOINT_DIM = 3 * N_JOINTS
 MAX_VIEWS = 8.0
 """The fusion layer reads ``views / MAX_VIEWS``."""
 
 
-def window_index(n_frames: int, look_back: int = LOOK_BACK) -> NDArray[np.intp]:
-    """Frame indices of each frame's window, shape (n_frames, look_back), oldest first, clamped at frame 0."""
-    t = np.arange(n_frames)[:, None] + np.arange(-look_back + 1, 1)[None, :]
-    return np.asarray(np.maximum(t, 0), dtype=np.intp)
+def window_index(n_frames: int, look_back: int = LOOK_BACK, stride: int = 1) -> NDArray[np.intp]:
+    """Frame indices of each frame's window, shape (n_frames, look_back), oldest first: ``t - stride·k``, clamped
+    at the first frame of the window's phase (``t mod stride``), which repeats."""
+    t = np.arange(n_frames)[:, None]
+    w = t + stride * np.arange(-look_back + 1, 1)[None, :]
+    return np.asarray(np.where(w < 0, t % stride, w), dtype=np.intp)
 
 
-def vision_windows(joints: FloatArray, centres: FloatArray, look_back: int = LOOK_BACK) -> FloatArray:
+def vision_windows(joints: FloatArray, centres: FloatArray, look_back: int = LOOK_BACK, stride: int = 1) -> FloatArray:
     """Vision LSTM input (n, look_back, 63): each window's joints relative to its last frame's grid centre.
 
     Parameters
     ----------
     joints : (n, 21, 3) per-frame world joints of the PVH network; centres : (n, 3) grid centres.
     """
-    w = window_index(joints.shape[0], look_back)
+    w = window_index(joints.shape[0], look_back, stride)
     rel = joints[w] - centres[:, None, None, :]
     return np.asarray(rel.reshape(joints.shape[0], look_back, JOINT_DIM))
 
 
-def imu_windows(joints: FloatArray, look_back: int = LOOK_BACK) -> FloatArray:
+def imu_windows(joints: FloatArray, look_back: int = LOOK_BACK, stride: int = 1) -> FloatArray:
     """Solved-IMU LSTM input (n, look_back, 63): each window's joints relative to its last frame's root (joint 0).
 
     Parameters
     ----------
     joints : (n, 21, 3) world joints of the IMU-only solve.
     """
-    w = window_index(joints.shape[0], look_back)
+    w = window_index(joints.shape[0], look_back, stride)
     rel = joints[w] - joints[:, None, None, 0, :]
     return np.asarray(rel.reshape(joints.shape[0], look_back, JOINT_DIM))
 
 
-def feature_windows(features: FloatArray, look_back: int = LOOK_BACK) -> FloatArray:
+def feature_windows(features: FloatArray, look_back: int = LOOK_BACK, stride: int = 1) -> FloatArray:
     """Per-frame features (n, d) as windows (n, look_back, d) (raw-IMU LSTM input)."""
-    return np.asarray(features[window_index(features.shape[0], look_back)])
+    return np.asarray(features[window_index(features.shape[0], look_back, stride)])
 
 
 def fusion_input(vision: FloatArray, imu_rel: FloatArray, views: FloatArray) -> FloatArray:

@@ -19,6 +19,7 @@ development split are CC BY-NC and the weights ship (MANIFEST.md).
 
 from __future__ import annotations
 
+import time
 import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -93,12 +94,16 @@ class VisionInputs:
         Cameras that see the person (any keypoint with confidence > 0).
     frames : int array, shape (n,)
         The sequence's frame of each row.
+    seconds : float
+        Time spent on what the daemon does per learned frame (grid centre, joint channels, carving), without
+        the simulation of the mattes (a live rig's come from the cameras).
     """
 
     pvh: U8Array
     centre: FloatArray
     views: FloatArray
     frames: NDArray[np.intp]
+    seconds: float = 0.0
 
 
 def frame_channels(
@@ -111,8 +116,9 @@ def frame_channels(
     conf: FloatArray,
     noise: MatteNoise,
     rng: np.random.Generator,
-) -> tuple[list[NDArray[np.float32]], NDArray[np.bool_]]:
-    """Log channel images of every camera for one frame and which are valid (simulated matte, detections' joints).
+) -> tuple[list[NDArray[np.float32]], NDArray[np.bool_], float]:
+    """Log channel images of every camera for one frame, which are valid (simulated matte, detections' joints), and
+    the seconds spent on what the daemon does (the joint channels and logarithms, not the matte simulation).
 
     Parameters
     ----------
@@ -120,8 +126,10 @@ def frame_channels(
     """
     imgs = []
     valid = np.ones((len(cams), 2), dtype=bool)
+    mattes = [simulated_matte(cam, [(joints, height)], grid.scale, noise, rng) for cam in cams]
+    t0 = time.perf_counter()
     for c, cam in enumerate(cams):
-        m = simulated_matte(cam, [(joints, height)], grid.scale, noise, rng)
+        m = mattes[c]
         seen = bool(np.any(conf[c] > 0))
         valid[c, 1] = seen
         jm = (
@@ -130,7 +138,7 @@ def frame_channels(
             else np.ones_like(m)
         )
         imgs.append(log_channels(np.stack((m, jm))))
-    return imgs, valid
+    return imgs, valid, time.perf_counter() - t0
 
 
 def vision_inputs(
@@ -155,15 +163,22 @@ def vision_inputs(
     centres = np.zeros((len(idx), 3))
     views = np.zeros(len(idx))
     prev = clip.positions[0, 0]  # the harness's solves also start from the known first pose
+    seconds = 0.0
     for i, t in enumerate(idx):
+        t0 = time.perf_counter()
         c = person_centre(cams, uv[t], conf[t], fallback=prev)
         assert c is not None
         prev = c
-        imgs, valid = frame_channels(grid, cams, c, clip.positions[t], clip.skeleton.height, uv[t], conf[t], noise, rng)
+        t1 = time.perf_counter()
+        imgs, valid, t_ch = frame_channels(
+            grid, cams, c, clip.positions[t], clip.skeleton.height, uv[t], conf[t], noise, rng
+        )
+        t2 = time.perf_counter()
         out[i] = np.rint(255.0 * carve(grid, c, cams, imgs, valid)).astype(np.uint8)
+        seconds += (t1 - t0) + t_ch + (time.perf_counter() - t2)
         centres[i] = c
         views[i] = np.count_nonzero(np.any(conf[t] > 0, axis=1))
-    return VisionInputs(out, centres, views, idx)
+    return VisionInputs(out, centres, views, idx, seconds)
 
 
 def ring_subset(n_cams: int, first: int) -> list[int]:

@@ -46,6 +46,7 @@ from mocapd.core.fusion_features import (
     JOINT_DIM,
     LOOK_BACK,
     MAX_VIEWS,
+    STRIDE,
     feature_windows,
     fusion_input,
     imu_windows,
@@ -68,15 +69,12 @@ from mocapd.eval.fusion_data import (
 from mocapd.eval.harness import Sequence, make_sequence, windows
 from mocapd.eval.simulate import DetectionNoise, ImuNoise
 from mocapd.io.prior import load_default_prior
+from mocapd.pipeline.fusion import PROVENANCE_FILE, RAW_IMU_FILE, TEMPORAL_FILE, cnn_file
 from mocapd.sim.silhouettes import MatteNoise
 
 FloatArray = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
-CNN_FILE = "fusion_cnn.onnx"
-TEMPORAL_FILE = "fusion_temporal.onnx"
-RAW_IMU_FILE = "fusion_raw_imu.onnx"
-PROVENANCE_FILE = "fusion.json"
 CHANNEL_SETS: dict[str, tuple[int, ...]] = {"both": (0, 1), "matte": (0,), "joints": (1,)}
 """PVH channels each network variant reads (the shipped one reads both; the others are Table 6's ablation)."""
 
@@ -107,6 +105,8 @@ class FusionRecipe:
     """Largest shift (x and z, metres) of a window in the volume."""
     stream_passes: int = 2
     look_back: int = LOOK_BACK
+    stride: int = STRIDE
+    """Frames (at 60 Hz) between two of the learned stream's: its rate is 60 / stride Hz."""
     lstm_hidden: int = 128
     lstm_layers: int = 2
     lstm_residual: bool = True
@@ -412,7 +412,7 @@ def stream_passes(
 
 
 def _temporal_arrays(
-    streams: list[tuple[_Stream, FloatArray]], look_back: int
+    streams: list[tuple[_Stream, FloatArray]], look_back: int, stride: int
 ) -> dict[str, tuple[list[FloatArray], F32]]:
     """Training arrays of each temporal model: inputs and targets."""
     xv, yv, views, xi, xr, yi, ycentre, cset = [], [], [], [], [], [], [], []
@@ -420,11 +420,11 @@ def _temporal_arrays(
     for s, vis in streams:
         truth = s.seq.clip.positions
         c = s.vision.centre
-        xv.append(vision_windows(vis, c, look_back))
+        xv.append(vision_windows(vis, c, look_back, stride))
         yv.append((truth - c[:, None]).reshape(len(c), JOINT_DIM))
         for n in s.solved:
-            xi.append(imu_windows(s.solved[n], look_back))
-            xr.append(feature_windows(s.raw[n], look_back))
+            xi.append(imu_windows(s.solved[n], look_back, stride))
+            xr.append(feature_windows(s.raw[n], look_back, stride))
             yi.append((truth - truth[:, :1]).reshape(len(c), JOINT_DIM))
             ycentre.append((truth - c[:, None]).reshape(len(c), JOINT_DIM))
             views.append(s.vision.views)
@@ -523,8 +523,8 @@ def train(recipe: FusionRecipe, out_dir: Path, data_root: Path | None = None, ab
     streams = stream_passes(train_clips, recipe, recipe.stream_passes, "stream", cnns["both"])
     val_streams = stream_passes(val_clips, recipe, len(recipe.camera_counts), "val-stream", cnns["both"])
     times["stream_data_s"] = time.perf_counter() - t0
-    arr = _temporal_arrays(streams, recipe.look_back)
-    varr = _temporal_arrays(val_streams, recipe.look_back)
+    arr = _temporal_arrays(streams, recipe.look_back, recipe.stride)
+    varr = _temporal_arrays(val_streams, recipe.look_back, recipe.stride)
     lstms: dict[str, JointLstm] = {}
     t0 = time.perf_counter()
     for name, n_in in (("vision", JOINT_DIM), ("imu", JOINT_DIM), ("raw_imu", RAW_IMU_FEATURES)):
@@ -575,7 +575,7 @@ def train(recipe: FusionRecipe, out_dir: Path, data_root: Path | None = None, ab
     files: dict[str, str] = {}
     checks: dict[str, float] = {}
     for variant, net in cnns.items():
-        name = CNN_FILE if variant == "both" else CNN_FILE.replace(".onnx", f"_{variant}.onnx")
+        name = cnn_file(variant)
         args = (torch.rand(2, len(CHANNEL_SETS[variant]), size, size, size),)
         _export(net, args, out_dir / name, ["pvh"], ["joints"])
         checks[name] = _check_export(out_dir / name, net, args, ["pvh"])

@@ -22,9 +22,11 @@ from numpy.typing import NDArray
 from mocapd.core.camera import Camera, project_points
 from mocapd.core.pvh import scaled_pixels
 from mocapd.core.skeleton import BONE_INDEX, REFERENCE_HEIGHT
+from mocapd.sim.world import SyntheticWorld
 
 FloatArray = NDArray[np.float64]
 F32Array = NDArray[np.float32]
+F32 = F32Array
 
 # (from joint, to joint, radius in metres for a 1.75 m person). Joint = the named bone's origin.
 _PARTS: tuple[tuple[str, str, float], ...] = (
@@ -209,3 +211,28 @@ def _shadow(
     shadow = np.zeros_like(img)
     cv2.fillPoly(shadow, [poly], value)
     np.maximum(img, shadow, out=img)
+
+
+class SyntheticMattes:
+    """The :class:`~mocapd.pipeline.mattes.MatteSource` of a :class:`~mocapd.sim.world.SyntheticWorld`: every
+    person's proxy rendered at the asked time in every camera, with the background-subtraction errors of
+    ``noise`` (what :class:`~mocapd.pipeline.mattes.BackgroundMatte` would give on rendered frames).
+
+    Parameters
+    ----------
+    epoch_ns : host time of the world's t = 0.
+    """
+
+    def __init__(
+        self, world: SyntheticWorld, epoch_ns: int, scale: int = 8, noise: MatteNoise | None = None, seed: int = 0
+    ) -> None:
+        self.world = world
+        self.epoch_ns = epoch_ns
+        self.scale = scale
+        self.noise = noise if noise is not None else MatteNoise()
+        self.rng = np.random.default_rng(seed + 5000)
+
+    def mattes(self, t_ns: int) -> list[F32 | None]:
+        t_s = (t_ns - self.epoch_ns) / 1e9
+        people = [(self.world.joints_at(p, t_s), self.world.skeleton.height) for p in range(len(self.world.truth))]
+        return [simulated_matte(cam, people, self.scale, self.noise, self.rng) for cam in self.world.cameras]
