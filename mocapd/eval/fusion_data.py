@@ -27,8 +27,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.camera import Camera
+from mocapd.core.camera import Camera, look_at
 from mocapd.core.imu import IMU_SET_13
+from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.prior import PcaPrior
 from mocapd.core.pvh import PvhGrid, carve, joint_map, joint_sigma, log_channels, person_centre, scaled_pixels
@@ -38,7 +39,7 @@ from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
 from mocapd.eval.data import load_splits
 from mocapd.eval.harness import IMU_SETS, RunConfig, Sequence, run_solver
-from mocapd.eval.simulate import totalcapture_ring
+from mocapd.eval.simulate import DetectionNoise, simulate_detections, totalcapture_ring
 from mocapd.sim.silhouettes import MatteNoise, simulated_matte
 
 FloatArray = NDArray[np.float64]
@@ -179,6 +180,44 @@ def vision_inputs(
         centres[i] = c
         views[i] = np.count_nonzero(np.any(conf[t] > 0, axis=1))
     return VisionInputs(out, centres, views, idx, seconds)
+
+
+def random_rig(rng: np.random.Generator, n_cams: int) -> list[Camera]:
+    """A random rig of ``n_cams`` cameras around the volume, for training: ring radius 3.5–6 m, height 1.6–3 m,
+    60 % of the time landscape 1920×1080 (25 % portrait 1080×1920, 15 % 1280×720), 50–75° across the long side,
+    looking 0.8–1.2 m above the floor; the cameras adjacent on a ring of 8 (half of the rigs) or anywhere on it
+    (a network trained on one rig alone would learn that rig's hull shapes)."""
+    radius = float(rng.uniform(3.5, 6.0))
+    height = float(rng.uniform(1.6, 3.0))
+    u = rng.uniform()
+    w, h = (1920, 1080) if u < 0.6 else (1080, 1920) if u < 0.85 else (1280, 720)
+    fov = np.deg2rad(rng.uniform(50.0, 75.0))
+    focal = 0.5 * max(w, h) / np.tan(fov / 2.0)
+    start = rng.uniform(0, 2 * np.pi)
+    if rng.uniform() < 0.5:
+        angles = start + 2 * np.pi * np.arange(n_cams) / 8.0
+    else:
+        angles = start + np.sort(rng.uniform(0, 2 * np.pi, n_cams))
+    angles = angles + rng.normal(scale=np.deg2rad(5.0), size=n_cams)
+    target = np.array([0.0, float(rng.uniform(0.8, 1.2)), 0.0])
+    return [
+        look_at(f"rig{i}", np.array([radius * np.sin(a), height, radius * np.cos(a)]), target, w, h, float(focal))
+        for i, a in enumerate(angles)
+    ]
+
+
+def rig_vision(
+    seq: Sequence,
+    cams: list[Camera],
+    grid: PvhGrid,
+    noise: MatteNoise,
+    rng: np.random.Generator,
+    frames: NDArray[np.intp] | None = None,
+) -> VisionInputs:
+    """:func:`vision_inputs` of a harness sequence's motion seen by another rig (its detections simulated here with
+    the harness's realistic detector model)."""
+    uv, conf = simulate_detections(seq.clip, cams, coco17_targets(seq.clip.skeleton), DetectionNoise(), rng)
+    return vision_inputs(seq.clip, cams, uv, conf, grid, noise, rng, frames)
 
 
 def ring_subset(n_cams: int, first: int) -> list[int]:

@@ -60,7 +60,9 @@ from mocapd.eval.data import load_clip
 from mocapd.eval.fusion_data import (
     RAW_IMU_FEATURES,
     VisionInputs,
+    random_rig,
     raw_imu,
+    rig_vision,
     rotate_clip,
     sequence_vision,
     solved_imu,
@@ -98,6 +100,8 @@ class FusionRecipe:
     cnn_epochs: int = 6
     cnn_batch: int = 32
     cnn_lr: float = 1e-3
+    lr_drop: float = 0.7
+    """Fraction of the epochs after which the learning rate is divided by 5 (1: never)."""
     optimizer: str = "adam"
     """"adam" or "rmsprop" (seed 001: RMSprop) for the PVH network and the LSTMs."""
     camera_counts: tuple[int, ...] = (8, 4)
@@ -122,6 +126,8 @@ class FusionRecipe:
     """Cap per window (the CI recipe)."""
     max_windows: int | None = None
     """Cap on training windows (the CI recipe)."""
+    max_clips: int | None = None
+    """Cap on the clips read for training and for validation (the CI recipe)."""
 
     @classmethod
     def tiny(cls) -> FusionRecipe:
@@ -143,6 +149,7 @@ class FusionRecipe:
             imu_sets=(6,),
             max_frames=48,
             max_windows=1,
+            max_clips=1,
         )
 
     @classmethod
@@ -298,15 +305,20 @@ def fit(
     name: str,
     x_scale: float = 1.0,
     val: tuple[NDArray[Any], F32] | None = None,
+    lr_drop: float = 1.0,
 ) -> list[dict[str, float]]:
     """Minimise the mean squared joint error (seed 001 Eq. 1) with shuffled minibatches; per-epoch joint errors.
 
-    ``x`` may be uint8 (PVHs): batches are converted and multiplied by ``x_scale`` on the fly."""
+    ``x`` may be uint8 (PVHs): batches are converted and multiplied by ``x_scale`` on the fly. After the fraction
+    ``lr_drop`` of the epochs the learning rate is divided by 5."""
     gen = torch.Generator().manual_seed(seed)
     opt = _optimizer(optimizer, model.parameters(), lr)
     history: list[dict[str, float]] = []
     n = x.shape[0]
     for epoch in range(epochs):
+        if epoch == int(np.ceil(lr_drop * epochs)) and epoch > 0:
+            for g in opt.param_groups:
+                g["lr"] = lr / 5.0
         model.train()
         t0 = time.perf_counter()
         order = torch.randperm(n, generator=gen).numpy()
@@ -349,7 +361,7 @@ class _Stream:
 
 def _windows(files: tuple[Path, ...], recipe: FusionRecipe) -> list[Retargeted]:
     out: list[Retargeted] = []
-    for f in files:
+    for f in files[: recipe.max_clips]:
         for w in windows(load_clip(f)):
             n = recipe.max_frames
             out.append(
@@ -372,18 +384,32 @@ def _augmented(clip: Retargeted, recipe: FusionRecipe, *key: object) -> Sequence
     return make_sequence(aug, _seed(recipe.seed, "sensors", clip.name, *key), DetectionNoise(), ImuNoise())
 
 
+def _vision(
+    seq: Sequence,
+    n_cams: int,
+    recipe: FusionRecipe,
+    tag: str,
+    p: int,
+    rng: np.random.Generator,
+    frames: NDArray[np.intp] | None = None,
+) -> VisionInputs:
+    """Training passes see a random rig (:func:`~mocapd.eval.fusion_data.random_rig`); validation the harness's
+    ring (its first ``n_cams`` cameras), as the evaluation does."""
+    if tag.startswith("val"):
+        return sequence_vision(seq, n_cams, recipe.grid, MatteNoise(), _seed(recipe.seed, tag, p), 0, frames)
+    return rig_vision(seq, random_rig(rng, n_cams), recipe.grid, MatteNoise(), rng, frames)
+
+
 def pvh_dataset(clips: list[Retargeted], recipe: FusionRecipe, passes: int, tag: str) -> tuple[NDArray[np.uint8], F32]:
     """PVH samples (n, 2, S, S, S) uint8 and their targets (n, 63): joints relative to the grid centre."""
     xs, ys = [], []
-    grid = recipe.grid
     for p in range(passes):
         n_cams = recipe.camera_counts[p % len(recipe.camera_counts)]
         for clip in clips:
             seq = _augmented(clip, recipe, tag, p)
             rng = np.random.default_rng(_seed(recipe.seed, tag, "frames", clip.name, p))
-            first = int(rng.integers(0, 8))
             frames = np.arange(int(rng.integers(0, recipe.cnn_stride)), seq.clip.n_frames, recipe.cnn_stride)
-            vi = sequence_vision(seq, n_cams, grid, MatteNoise(), _seed(recipe.seed, tag, p), first, frames)
+            vi = _vision(seq, n_cams, recipe, tag, p, rng, frames)
             xs.append(vi.pvh)
             ys.append((seq.clip.positions[frames] - vi.centre[:, None, :]).reshape(len(frames), JOINT_DIM))
         _log(f"{tag} PVH pass {p + 1}/{passes}: {sum(len(x) for x in xs)} samples")
@@ -401,8 +427,9 @@ def stream_passes(
         n_cams = recipe.camera_counts[p % len(recipe.camera_counts)]
         for clip in clips:
             seq = _augmented(clip, recipe, tag, p)
-            first = int(np.random.default_rng(_seed(recipe.seed, tag, "first", clip.name, p)).integers(0, 8))
-            vi = sequence_vision(seq, n_cams, recipe.grid, MatteNoise(), _seed(recipe.seed, tag, p), first)
+            vi = _vision(
+                seq, n_cams, recipe, tag, p, np.random.default_rng(_seed(recipe.seed, tag, "rig", clip.name, p))
+            )
             rel = predict(cnn, [vi.pvh], scale=1.0 / 255.0).reshape(-1, 21, 3)
             solved = {n: solved_imu(seq, n, prior, cost) for n in recipe.imu_sets}
             raw = {n: raw_imu(seq, n) for n in recipe.imu_sets}
@@ -476,8 +503,34 @@ def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def train(recipe: FusionRecipe, out_dir: Path, data_root: Path | None = None, ablation: bool = False) -> dict[str, Any]:
-    """Run the whole recipe; writes the ONNX files and the provenance JSON into ``out_dir``; returns it."""
+def _cnn_key(recipe: FusionRecipe) -> str:
+    """Hash of the recipe fields the PVH networks depend on (their checkpoints' names)."""
+    d = asdict(recipe)
+    for k in list(d):
+        if k.startswith(("lstm_", "fusion_", "stream_")) or k in ("look_back", "stride", "imu_sets", "threads"):
+            del d[k]
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def _load_checkpoint(work_dir: Path | None, variant: str, key: str) -> dict[str, Any] | None:
+    p = None if work_dir is None else work_dir / f"cnn_{variant}_{key}.pt"
+    if p is None or not p.is_file():
+        return None
+    ckpt: dict[str, Any] = torch.load(p, weights_only=True)
+    return ckpt
+
+
+def train(
+    recipe: FusionRecipe,
+    out_dir: Path,
+    data_root: Path | None = None,
+    ablation: bool = False,
+    work_dir: Path | None = None,
+) -> dict[str, Any]:
+    """Run the whole recipe; writes the ONNX files and the provenance JSON into ``out_dir``; returns it.
+
+    ``work_dir``: the PVH networks are saved there as they finish and taken from there when a checkpoint of the
+    same recipe exists (the temporal stages can be re-run without the hours of the PVH networks)."""
     t_start = time.perf_counter()
     torch.manual_seed(recipe.seed)
     torch.set_num_threads(recipe.threads)
@@ -490,20 +543,40 @@ def train(recipe: FusionRecipe, out_dir: Path, data_root: Path | None = None, ab
     _log(f"training windows {len(train_clips)} ({sum(c.n_frames for c in train_clips)} frames), "
          f"validation {len(val_clips)}")  # fmt: skip
 
-    t0 = time.perf_counter()
-    x, y = pvh_dataset(train_clips, recipe, recipe.cnn_passes, "train")
-    xv, yv = pvh_dataset(val_clips, recipe, len(recipe.camera_counts), "val")
-    times["pvh_data_s"] = time.perf_counter() - t0
     size = recipe.grid_size
+    variants = ("both", "matte", "joints") if ablation else ("both",)
+    key = _cnn_key(recipe)
     cnns: dict[str, PvhNet] = {}
-    for variant in ("both", "matte", "joints") if ablation else ("both",):
-        ch = list(CHANNEL_SETS[variant])
+    done = {v: _load_checkpoint(work_dir, v, key) for v in variants} if work_dir is not None else {}
+    n_samples = 0
+    data: tuple[NDArray[np.uint8], F32, NDArray[np.uint8], F32] | None = None
+    for variant in variants:
+        ch = CHANNEL_SETS[variant]
+        sl = slice(ch[0], ch[-1] + 1)  # a view of the samples, not a copy
         torch.manual_seed(_seed(recipe.seed, "cnn", variant))
         net = PvhNet(len(ch), recipe.widths, recipe.fc, size)
+        ckpt = done.get(variant)
+        if ckpt is not None:
+            net.load_state_dict(ckpt["state"])
+            history[f"cnn_{variant}"] = ckpt["history"]
+            times[f"cnn_{variant}_train_s"] = ckpt["seconds"]
+            n_samples = ckpt["samples"]
+            cnns[variant] = net
+            _log(f"PVH net ({variant}): from the checkpoint in {work_dir}")
+            continue
+        if data is None:
+            t0 = time.perf_counter()
+            data = (
+                *pvh_dataset(train_clips, recipe, recipe.cnn_passes, "train"),
+                *pvh_dataset(val_clips, recipe, len(recipe.camera_counts), "val"),
+            )
+            times["pvh_data_s"] = time.perf_counter() - t0
+        x, y, xv, yv = data
+        n_samples = int(x.shape[0])
         t0 = time.perf_counter()
         history[f"cnn_{variant}"] = fit(
             net,
-            x[:, ch] if variant != "both" else x,
+            x[:, sl],
             y,
             epochs=recipe.cnn_epochs,
             batch=recipe.cnn_batch,
@@ -512,12 +585,19 @@ def train(recipe: FusionRecipe, out_dir: Path, data_root: Path | None = None, ab
             seed=_seed(recipe.seed, "cnn-batches", variant),
             name=f"PVH net ({variant})",
             x_scale=1.0 / 255.0,
-            val=(xv[:, ch] if variant != "both" else xv, yv),
+            val=(xv[:, sl], yv),
+            lr_drop=recipe.lr_drop,
         )
         times[f"cnn_{variant}_train_s"] = time.perf_counter() - t0
         cnns[variant] = net
-    n_samples = int(x.shape[0])
-    del x, y
+        if work_dir is not None:
+            work_dir.mkdir(parents=True, exist_ok=True)
+            torch.save(
+                {"state": net.state_dict(), "history": history[f"cnn_{variant}"], "samples": n_samples,
+                 "seconds": times[f"cnn_{variant}_train_s"], "key": key},
+                work_dir / f"cnn_{variant}_{key}.pt",
+            )  # fmt: skip
+    del data
 
     t0 = time.perf_counter()
     streams = stream_passes(train_clips, recipe, recipe.stream_passes, "stream", cnns["both"])
@@ -541,6 +621,7 @@ def train(recipe: FusionRecipe, out_dir: Path, data_root: Path | None = None, ab
             seed=_seed(recipe.seed, "lstm-batches", name),
             name=f"LSTM ({name})",
             val=(varr[name][0][0], varr[name][1]),
+            lr_drop=recipe.lr_drop,
         )
         lstms[name] = m
     times["lstm_train_s"] = time.perf_counter() - t0
@@ -612,6 +693,7 @@ def train(recipe: FusionRecipe, out_dir: Path, data_root: Path | None = None, ab
         "training_windows": len(train_clips),
         "training_frames": sum(c.n_frames for c in train_clips),
         "pvh_samples": n_samples,
+        "cnn_checkpoint_key": key,
         "simulation": {
             "detections": asdict(DetectionNoise()),
             "imus": asdict(ImuNoise()),
