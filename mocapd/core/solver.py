@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core import _kernel
+from mocapd.core import _kernel, _learned_kernel
 from mocapd.core.camera import Camera, stack_cameras, triangulate
 from mocapd.core.ground import FOOT_POINTS, FOOT_SENSOR_BONES, GroundOptions, GroundTracker, standing_heights
 from mocapd.core.imu import ImuMount
@@ -58,8 +58,9 @@ __all__ = [
 TERM_NAMES = ("position", "orientation", "acceleration", "prior_projection", "prior_deviation", "floor")
 LEARNED_TERM = "learned"
 """E_J, the learned 3D joint observations (issue 30). It is not one of the compiled kernel's terms: its normal
-equations are added to the kernel's (or the numpy reference's) by :meth:`PoseSolver._learned`, and only on
-frames whose observations carry joint estimates, so a solve without them is the seed-003 solve unchanged."""
+equations are added to the kernel's (:mod:`mocapd.core._learned_kernel`) or the numpy reference's
+(:meth:`PoseSolver._learned`), and only on frames whose observations carry joint estimates, so a solve without
+them is the seed-003 solve unchanged."""
 
 
 @dataclass(frozen=True)
@@ -230,6 +231,8 @@ class PoseSolver:
         )
         self._H = np.zeros((POSE_DIM, POSE_DIM))
         self._g = np.zeros(POSE_DIM)
+        self._H_learned = np.zeros((POSE_DIM, POSE_DIM))
+        self._g_learned = np.zeros(POSE_DIM)
         self._tc = np.zeros(len(TERM_NAMES))
 
     def _pack_static(self) -> _KernelProblem:
@@ -324,7 +327,7 @@ class PoseSolver:
         c = self._kernel_call(theta, v, on, jac=False)
         terms = self._term_dict(on)
         if on[LEARNED_TERM]:
-            cl = self._learned(theta, v, None, jac=False)[0]
+            cl = self._learned_compiled(theta, v, jac=False)
             terms[LEARNED_TERM] = cl
             c += cl
         return c, terms
@@ -341,12 +344,35 @@ class PoseSolver:
         terms = self._term_dict(on)
         H, g = self._H.copy(), self._g.copy()
         if on[LEARNED_TERM]:
-            cl, Hl, gl = self._learned(theta, v, None, jac=True)
+            cl = self._learned_compiled(theta, v, jac=True)
             terms[LEARNED_TERM] = cl
             c += cl
-            H += Hl
-            g += gl
+            H += self._H_learned
+            g += self._g_learned
         return c, terms, H, g
+
+    def _learned_compiled(self, theta: FloatArray, v: ValidatedObservations, jac: bool) -> float:
+        """E_J by the compiled kernel (:mod:`mocapd.core._learned_kernel`): its cost, and with ``jac`` its normal
+        equations in ``self._H_learned``, ``self._g_learned``."""
+        kp = self._kernel_static
+        assert kp is not None
+        o = self.cost_options
+        code, scale = _loss_code(o.loss_learned, LEARNED_TERM)
+        return float(
+            _learned_kernel.learned_term(
+                np.ascontiguousarray(theta, dtype=np.float64),
+                jac,
+                kp.parents,
+                kp.offsets,
+                v.joints,
+                v.joint_weights,
+                float(o.lambda_learned),
+                code,
+                scale,
+                self._H_learned,
+                self._g_learned,
+            )
+        )
 
     def _learned(
         self, theta: FloatArray, v: ValidatedObservations, fk: FKState | None, jac: bool

@@ -21,6 +21,7 @@ joints, prior and floor kept). The default files ship in ``mocapd/data`` with th
 from __future__ import annotations
 
 import json
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -172,6 +173,8 @@ class PersonFusion:
         self._vision: deque[FloatArray] = deque(maxlen=f)
         self._centres: deque[FloatArray] = deque(maxlen=f)
         self._imu: deque[FloatArray] = deque(maxlen=f)
+        self.last_ms: dict[str, float] = {}
+        """Milliseconds of the last step's PVH network and temporal graph (for benchmarks and /status)."""
 
     def reset(self) -> None:
         self._vision.clear()
@@ -186,7 +189,9 @@ class PersonFusion:
         pvh : (2, S, S, S) in [0, 1]; centre : (3,) its grid centre; views : cameras that see the person.
         imu_joints : (21, 3) the IMU-only solve's joints, or None without a suit.
         """
+        t0 = time.perf_counter()
         rel = self.models.cnn(pvh[None])[0].astype(np.float64).reshape(N_JOINTS, 3)
+        t1 = time.perf_counter()
         _push(self._vision, rel + centre, self.models.look_back)
         _push(self._centres, np.asarray(centre, dtype=np.float64), self.models.look_back)
         hist_v = np.stack(self._vision)
@@ -200,6 +205,7 @@ class PersonFusion:
         v, _, fused = self.models.temporal(
             vis_win[None].astype(np.float32), imu_win[None].astype(np.float32), np.array([[views]], dtype=np.float32)
         )
+        self.last_ms = {"cnn": 1e3 * (t1 - t0), "temporal": 1e3 * (time.perf_counter() - t1)}
         c = np.asarray(centre, dtype=np.float64)
         vision = v[0].astype(np.float64).reshape(N_JOINTS, 3) + c
         out = fused[0].astype(np.float64).reshape(N_JOINTS, 3) + c if imu_joints is not None else None
@@ -277,6 +283,9 @@ class FusionStage:
         self.grid = models.grid
         self.people: dict[str, _Person] = {}
         self.counters = {"learned_frames": 0, "imu_solves": 0, "no_centre": 0}
+        self.last_ms: dict[str, float] = {}
+        """Milliseconds of the last step's parts: ``imu_solve``, and on learned frames ``pvh``, ``cnn``,
+        ``temporal`` (mattes not included: they are made where the frames are)."""
 
     def _person(self, identity: str, skeleton: Skeleton, mounts: tuple[ImuMount, ...], start: FloatArray) -> _Person:
         p = self.people.get(identity)
@@ -317,10 +326,12 @@ class FusionStage:
         imu : the suit's mounts and this tick's IMU observations (orientations, accelerations, mask).
         """
         p = self._person(identity, skeleton, imu[0] if imu is not None else (), start)
+        t0 = time.perf_counter()
         if p.imu_solver is not None and imu is not None:
             theta = p.imu_solver.solve(imu[1]).theta
             p.imu_joints = p.imu_solver.kin.forward(theta).positions
             self.counters["imu_solves"] += 1
+        self.last_ms = {"imu_solve": 1e3 * (time.perf_counter() - t0)}
         p.ticks += 1
         if (p.ticks - 1) % self.models.stride:
             return None
@@ -329,9 +340,13 @@ class FusionStage:
             self.counters["no_centre"] += 1
             return None
         p.centre = centre
-        pvh = self.pvh(centre, kp, conf, mattes())
+        frame_mattes = mattes()
+        t1 = time.perf_counter()
+        pvh = self.pvh(centre, kp, conf, frame_mattes)
+        self.last_ms["pvh"] = 1e3 * (time.perf_counter() - t1)
         views = int(np.count_nonzero(np.any(conf > 0, axis=1)))
         out = p.fusion.step(pvh, centre, views, p.imu_joints)
+        self.last_ms.update(p.fusion.last_ms)
         p.previous, p.last = p.last, out
         self.counters["learned_frames"] += 1
         return out

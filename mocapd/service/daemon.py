@@ -350,6 +350,8 @@ class Daemon:
             Observations(
                 keypoints=np.zeros((n_cams, n_kp, 2)),
                 confidences=np.zeros((n_cams, n_kp)),
+                # the learned fusion's E_J has its own compiled kernel: load (or compile) it too
+                joint_positions=s.kin.forward(s.theta).positions if self.scheduler.fusion is not None else None,
                 dt=self.scheduler.options.dt,
             ),
             update_state=False,

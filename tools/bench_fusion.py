@@ -1,0 +1,188 @@
+#!/usr/bin/env python3
+"""Per-frame cost of the learned fusion in the daemon's tick (issue 30), for 1 and 2 people, as JSON.
+
+What the daemon does per tick and person, on a simulated 60 Hz stream of real CMU motion (the development split's
+CMU clip, each person a copy turned and moved): the IMU-only solve of the person's 13-IMU suit (every tick), on
+every ``stride``-th tick the learned frame (grid centre, joint channels, carving the two-channel PVH, the PVH
+network, the temporal graph), and the person's LM solve with the learned joints as E_J ("both"). The baseline,
+in the same process on the same frames: the LM solve alone ("solver"). The mattes are rendered before the clock
+starts (a live rig's come from its cameras); the background subtraction of a live camera frame is timed apart
+(``mog2_ms_per_camera_frame``, 1920×1080 frames).
+
+Usage::
+
+    .venv/bin/python tools/bench_fusion.py [--model DIR] [--cams 8 4] [--people 1 2] [--seconds 6]
+
+Medians and 90th percentiles in ms; ``tick_*`` is the whole tick (all people), ``per_tick_mean`` amortises the
+learned frames over the ticks between them. BLAS and onnxruntime use one thread each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from mocapd.core.imu import IMU_SET_13, default_mounts
+from mocapd.core.keypoints import coco17_targets
+from mocapd.core.solver import Observations, PoseSolver
+from mocapd.core.terms import CostOptions
+from mocapd.eval.data import load_clip
+from mocapd.eval.fusion_data import rotate_clip, training_clips
+from mocapd.eval.harness import make_sequence
+from mocapd.eval.simulate import DetectionNoise, ImuNoise, totalcapture_ring
+from mocapd.io.prior import load_default_prior
+from mocapd.pipeline.fusion import FusionModels, FusionStage
+from mocapd.pipeline.mattes import BackgroundMatte
+from mocapd.sim.silhouettes import MatteNoise, simulated_matte
+
+
+def _ms(xs: list[float]) -> dict[str, float]:
+    a = np.asarray(xs) * 1e3
+    return {"median": round(float(np.median(a)), 3), "p90": round(float(np.percentile(a, 90)), 3)}
+
+
+def bench(models: FusionModels, n_cams: int, n_people: int, seconds: float) -> dict[str, Any]:
+    clip = load_clip(training_clips()[1][0])
+    n = min(clip.n_frames, round(60 * seconds))
+    ring = totalcapture_ring(8)[:n_cams]
+    prior = load_default_prior()
+    cost = CostOptions()
+    seqs = []
+    for p in range(n_people):
+        c = rotate_clip(clip, 2.0 * p, np.array([1.2 * p - 0.6 * (n_people - 1), 0.0]))
+        seqs.append(make_sequence(c, 100 + p, DetectionNoise(), ImuNoise()))
+    targets = coco17_targets(clip.skeleton)
+    mounts = default_mounts(IMU_SET_13, clip.skeleton)
+    rng = np.random.default_rng(0)
+    grid = models.grid
+    mattes = [
+        [
+            simulated_matte(cam, [(s.clip.positions[t], s.clip.skeleton.height) for s in seqs], grid.scale,
+                            MatteNoise(), rng)
+            for cam in ring
+        ]
+        for t in range(n)
+    ]  # fmt: skip
+    stage = FusionStage(models, ring, targets, prior, cost)
+    base = [PoseSolver(clip.skeleton, ring, targets, mounts, prior, cost) for _ in seqs]
+    both = [PoseSolver(clip.skeleton, ring, targets, mounts, prior, cost) for _ in seqs]
+    for s, b, q in zip(base, both, seqs, strict=True):
+        s.reset(q.clip.theta[0])
+        b.reset(q.clip.theta[0])
+    tick_solver, tick_both, learned_ticks, other_ticks = [], [], [], []
+    parts: dict[str, list[float]] = {"imu_solve": [], "pvh": [], "cnn": [], "temporal": []}
+    solve_alone, solve_ej = [], []
+    for t in range(n):
+        obs = []
+        for q in seqs:
+            uv, cf = q.uv[t, :n_cams], q.conf[t, :n_cams]
+            obs.append(
+                Observations(
+                    keypoints=uv,
+                    confidences=cf,
+                    imu_orientations=q.q13[t],
+                    imu_accelerations=q.acc13[t] if t >= 2 else None,
+                    dt=1 / 60,
+                )
+            )
+        t0 = time.perf_counter()
+        for s, o in zip(base, obs, strict=True):
+            a0 = time.perf_counter()
+            s.solve(o)
+            solve_alone.append(time.perf_counter() - a0)
+        t1 = time.perf_counter()
+        learned_tick = False
+        for p, (b, o) in enumerate(zip(both, obs, strict=True)):
+            imu = (mounts, Observations(imu_orientations=o.imu_orientations, imu_accelerations=o.imu_accelerations,
+                                        dt=o.dt))  # fmt: skip
+            assert o.keypoints is not None and o.confidences is not None
+            lj = stage.step(
+                f"p{p}", clip.skeleton, b.theta, np.nan_to_num(o.keypoints), o.confidences,
+                lambda t=t: list(mattes[t]), 1 / 60, imu,
+            )  # fmt: skip
+            for k, v in stage.last_ms.items():
+                parts[k].append(v / 1e3)
+            a0 = time.perf_counter()
+            b.solve(o if lj is None else replace(o, joint_positions=lj.joints))
+            if lj is not None:
+                solve_ej.append(time.perf_counter() - a0)
+                learned_tick = True
+        t2 = time.perf_counter()
+        tick_solver.append(t1 - t0)
+        tick_both.append(t2 - t1)
+        (learned_ticks if learned_tick else other_ticks).append(t2 - t1)
+    period = 1 / 60
+    return {
+        "cameras": n_cams,
+        "people": n_people,
+        "ticks": n,
+        "tick_solver_ms": _ms(tick_solver),
+        "tick_both_ms": _ms(tick_both),
+        "tick_both_learned_frame_ms": _ms(learned_ticks),
+        "tick_both_other_ms": _ms(other_ticks),
+        "per_tick_mean_ms": {
+            "solver": round(1e3 * float(np.mean(tick_solver)), 3),
+            "both": round(1e3 * float(np.mean(tick_both)), 3),
+        },
+        "share_of_one_core_at_60hz": {
+            "solver": round(float(np.mean(tick_solver)) / period, 3),
+            "both": round(float(np.mean(tick_both)) / period, 3),
+        },
+        "per_person_learned_frame_ms": {k: _ms(v) for k, v in parts.items() if v},
+        "lm_solve_ms": {"alone": _ms(solve_alone), "with_learned_joints": _ms(solve_ej)},
+    }
+
+
+def mog2_cost(frames: int = 60) -> dict[str, float]:
+    """Background subtraction of one 1920×1080 camera frame (resize to 1/8 + MOG2 + blur)."""
+    rng = np.random.default_rng(0)
+    bm = BackgroundMatte()
+    img = rng.integers(0, 255, size=(1080, 1920, 3), dtype=np.uint8)
+    times = []
+    for _ in range(frames):
+        t0 = time.perf_counter()
+        bm.apply(img)
+        times.append(time.perf_counter() - t0)
+    return _ms(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", type=Path, default=None, help="networks folder (default: the shipped ones)")
+    ap.add_argument("--cams", type=int, nargs="+", default=[8, 4])
+    ap.add_argument("--people", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--seconds", type=float, default=6.0)
+    args = ap.parse_args()
+    load0 = os.getloadavg()
+    with threadpool_limits(1):
+        models = FusionModels(args.model, threads=1)
+        runs = [bench(models, c, p, args.seconds) for c in args.cams for p in args.people]
+        mog2 = mog2_cost()
+    out = {
+        "stride": models.stride,
+        "learned_rate_hz": 60.0 / models.stride,
+        "grid": {"size": models.grid.size, "extent_m": models.grid.extent, "supersample": models.grid.supersample},
+        "model": str(models.directory),
+        "runs": runs,
+        "mog2_ms_per_camera_frame": mog2,
+        "machine": {
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+            "loadavg_start": [round(x, 2) for x in load0],
+            "loadavg_end": [round(x, 2) for x in os.getloadavg()],
+        },
+    }
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
