@@ -20,6 +20,7 @@ learned frames over the ticks between them. BLAS and onnxruntime use one thread 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -40,7 +41,7 @@ from mocapd.eval.fusion_data import rotate_clip, training_clips
 from mocapd.eval.harness import make_sequence
 from mocapd.eval.simulate import DetectionNoise, ImuNoise, totalcapture_ring
 from mocapd.io.prior import load_default_prior
-from mocapd.pipeline.fusion import FusionModels, FusionStage
+from mocapd.pipeline.fusion import F32, FusionModels, FusionStage
 from mocapd.pipeline.mattes import BackgroundMatte
 from mocapd.sim.silhouettes import MatteNoise, simulated_matte
 
@@ -78,7 +79,10 @@ def bench(models: FusionModels, n_cams: int, n_people: int, seconds: float) -> d
     for s, b, q in zip(base, both, seqs, strict=True):
         s.reset(q.clip.theta[0])
         b.reset(q.clip.theta[0])
-    tick_solver, tick_both, learned_ticks, other_ticks = [], [], [], []
+    tick_solver: list[float] = []
+    tick_both: list[float] = []
+    learned_ticks: list[float] = []
+    other_ticks: list[float] = []
     parts: dict[str, list[float]] = {"imu_solve": [], "pvh": [], "cnn": [], "temporal": []}
     solve_alone, solve_ej = [], []
     for t in range(n):
@@ -101,13 +105,14 @@ def bench(models: FusionModels, n_cams: int, n_people: int, seconds: float) -> d
             solve_alone.append(time.perf_counter() - a0)
         t1 = time.perf_counter()
         learned_tick = False
+        frame_mattes: list[F32 | None] = list(mattes[t])
         for p, (b, o) in enumerate(zip(both, obs, strict=True)):
             imu = (mounts, Observations(imu_orientations=o.imu_orientations, imu_accelerations=o.imu_accelerations,
                                         dt=o.dt))  # fmt: skip
             assert o.keypoints is not None and o.confidences is not None
             lj = stage.step(
                 f"p{p}", clip.skeleton, b.theta, np.nan_to_num(o.keypoints), o.confidences,
-                lambda t=t: list(mattes[t]), 1 / 60, imu,
+                functools.partial(list, frame_mattes), 1 / 60, imu,
             )  # fmt: skip
             for k, v in stage.last_ms.items():
                 parts[k].append(v / 1e3)

@@ -292,7 +292,7 @@ class FixedLatencyScheduler:
         self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
-                         "bodies_sized": 0, "body_size_failed": 0}  # fmt: skip
+                         "bodies_sized": 0, "body_size_failed": 0, "learned_observations": 0}  # fmt: skip
         self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
         self.heading = HeadingEstimator(o.heading)
         self.predictor = PosePredictor(o.prediction)
@@ -561,6 +561,8 @@ class FixedLatencyScheduler:
         learned = self.fusion.step(
             person.identity, solver.skeleton, solver.theta, kp, conf, mattes, self.options.dt, imu
         )
+        if learned is not None:
+            self.counters["learned_observations"] += 1
         if self.fusion_mode == "both":
             return obs if learned is None else replace(obs, joint_positions=learned.joints)
         joints = learned.joints if learned is not None else self.fusion.extrapolated(person.identity)
