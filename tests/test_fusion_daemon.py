@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mocapd.errors import ConfigError
+from mocapd.errors import ConfigError, ModelError
 from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import Rig, build_fusion
@@ -75,11 +75,9 @@ def test_learned_modes_are_refused_where_they_cannot_run() -> None:
     with pytest.raises(ConfigError, match="needs camera frames for the foreground mattes"):
         build_fusion(cfg, rig, None)
     fast = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"output_rate_hz": 100.0})})
-    with pytest.raises(ConfigError, match="needs daemon.output_rate_hz = 60"):
+    with pytest.raises(ConfigError, match=r"needs daemon\.output_rate_hz = 60"):
         build_fusion(fast, rig, object())  # type: ignore[arg-type]
     assert build_fusion(_config("solver"), rig, None) is None
     missing = cfg.model_copy(update={"fusion": cfg.fusion.model_copy(update={"model": str(Path("/nonexistent"))})})
-    from mocapd.errors import ModelError
-
-    with pytest.raises(ModelError, match="train the networks with tools/train_fusion.py"):
+    with pytest.raises(ModelError, match=r"train the networks with tools/train_fusion\.py"):
         build_fusion(missing, rig, object())  # type: ignore[arg-type]
