@@ -229,6 +229,17 @@ def test_runtime_streaming_windows_equal_the_training_windows(tiny_models: Path)
     assert alone.fused is None and np.array_equal(alone.joints, alone.vision)
 
 
+def test_the_recipe_reproduces_what_it_recorded_beside_the_shipped_networks(tiny_models: Path) -> None:
+    """The shipped networks' provenance records the CI recipe's validation errors as run when they were trained;
+    the same recipe run now (the fixture) must give them again. A change to the recipe's code, the simulator or
+    a library under them shows here (retraining the shipped networks themselves takes hours)."""
+    shipped = json.loads((default_model_dir() / PROVENANCE_FILE).read_text())["reproduction_check"]
+    now = json.loads((tiny_models / PROVENANCE_FILE).read_text())["validation_mean_mm"]
+    assert now.keys() == shipped["validation_mean_mm"].keys()
+    for k, v in shipped["validation_mean_mm"].items():
+        assert now[k] == pytest.approx(v, rel=0.02), f"{k}: {now[k]} mm now, {v} mm recorded"
+
+
 # ---------------------------------------------------------------------------------------- the shipped networks
 def test_shipped_networks_have_their_provenance_and_load() -> None:
     d = default_model_dir()

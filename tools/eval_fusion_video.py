@@ -29,7 +29,7 @@ if __name__ == "__main__":
     args = ap.parse_args()
     cfg = load_config()
     models = FusionModels(args.model)
-    inputs = fusion_video.video_inputs(args.demo, args.frames, models.grid.scale)
+    inputs = fusion_video.video_inputs(cfg.detector.options(), args.demo, args.frames, models.grid.scale)
     res = fusion_video.run(models, load_default_prior(), cfg.solver.cost, inputs, cfg.fusion.weight)
     fusion_video.save(res, args.out, args.demo)
     print(json.dumps(res["pooled"], indent=2))

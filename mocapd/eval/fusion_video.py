@@ -44,6 +44,7 @@ from mocapd.errors import InputError
 from mocapd.io.calibration_files import core_cameras, read_qca
 from mocapd.io.model_cache import cache_dir
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
+from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.fusion import FusionModels, PersonFusion
 from mocapd.pipeline.mattes import BackgroundMatte
 from mocapd.pipeline.scheduler import initial_pose
@@ -76,17 +77,19 @@ def _cache_key(demo: str, frames: int, scale: int) -> str:
     return f"{demo}-{frames}-{scale}-{h.hexdigest()[:12]}"
 
 
-def video_inputs(demo: str = "Demo_SinglePerson", max_frames: int = 100, scale: int = 8) -> VideoInputs:
-    """Detect the subject in every frame of the demo's cameras and subtract their backgrounds (cached)."""
+def video_inputs(
+    detector: DetectorConfig, demo: str = "Demo_SinglePerson", max_frames: int = 100, scale: int = 8
+) -> VideoInputs:
+    """Detect the subject in every frame of the demo's cameras with the ``[detector]`` of ``detector`` and subtract
+    their backgrounds (cached)."""
     cams = core_cameras(read_qca(demo_calibration(demo)))
     cache = cache_dir() / "fusion-video" / f"{_cache_key(demo, max_frames, scale)}.npz"
     if cache.is_file():
         d = np.load(cache)
         return VideoInputs(cams, d["uv"], d["conf"], [d[f"matte{c}"] for c in range(len(cams))])
     from mocapd.pipeline.detector import OnnxPoseDetector
-    from mocapd.service.config import load_config
 
-    det = OnnxPoseDetector.from_config(load_config().detector.options())
+    det = OnnxPoseDetector.from_config(detector)
     small: list[list[NDArray[np.uint8]]] = [[] for _ in cams]
     uv_l, conf_l = [], []
     caps = [cv2.VideoCapture(str(demo_video(demo, c))) for c in CAMERAS]
