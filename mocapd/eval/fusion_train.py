@@ -86,7 +86,8 @@ class FusionRecipe:
     """Every setting of a training run (written into the provenance)."""
 
     seed: int = 0
-    threads: int = 2
+    threads: int = 1
+    """torch threads (1: on a shared 2-core machine a second thread mostly waits at barriers for the other)."""
     grid_size: int = 30
     extent: float = 2.0
     supersample: int = 1
@@ -97,7 +98,7 @@ class FusionRecipe:
     """Simulated passes over the training clips for the PVH network (alternating camera counts)."""
     cnn_stride: int = 2
     """Every how many frames a PVH sample is taken (60 Hz motion: neighbours are near-duplicates)."""
-    cnn_epochs: int = 6
+    cnn_epochs: int = 4
     cnn_batch: int = 32
     cnn_lr: float = 1e-3
     lr_drop: float = 0.7
@@ -525,6 +526,24 @@ def _cnn_key(recipe: FusionRecipe) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
 
 
+def _data_key(recipe: FusionRecipe) -> str:
+    """Hash of the recipe fields the PVH training samples depend on."""
+    d = asdict(recipe)
+    keep = ("seed", "grid_size", "extent", "supersample", "scale", "cnn_passes", "cnn_stride", "camera_counts",
+            "shift_m", "max_frames", "max_windows", "max_clips")  # fmt: skip
+    return hashlib.sha256(json.dumps({k: d[k] for k in keep}, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def _cached_data(work_dir: Path | None, key: str) -> tuple[NDArray[np.uint8], F32, NDArray[np.uint8], F32] | None:
+    """The PVH samples of an earlier run of the same recipe (``--work``), or None."""
+    p = None if work_dir is None else work_dir / f"pvh_data_{key}.npz"
+    if p is None or not p.is_file():
+        return None
+    d = np.load(p)
+    _log(f"PVH samples from {p}")
+    return d["x"], d["y"], d["xv"], d["yv"]
+
+
 def _load_checkpoint(work_dir: Path | None, variant: str, key: str) -> dict[str, Any] | None:
     p = None if work_dir is None else work_dir / f"cnn_{variant}_{key}.pt"
     if p is None or not p.is_file():
@@ -579,10 +598,17 @@ def train(
             continue
         if data is None:
             t0 = time.perf_counter()
-            data = (
-                *pvh_dataset(train_clips, recipe, recipe.cnn_passes, "train"),
-                *pvh_dataset(val_clips, recipe, len(recipe.camera_counts), "val"),
-            )
+            data = _cached_data(work_dir, _data_key(recipe))
+            if data is None:
+                data = (
+                    *pvh_dataset(train_clips, recipe, recipe.cnn_passes, "train"),
+                    *pvh_dataset(val_clips, recipe, len(recipe.camera_counts), "val"),
+                )
+                if work_dir is not None:
+                    work_dir.mkdir(parents=True, exist_ok=True)
+                    np.savez(
+                        work_dir / f"pvh_data_{_data_key(recipe)}.npz", x=data[0], y=data[1], xv=data[2], yv=data[3]
+                    )
             times["pvh_data_s"] = time.perf_counter() - t0
         x, y, xv, yv = data
         n_samples = int(x.shape[0])

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -108,8 +109,11 @@ def video_inputs(
             people = det.detect(np.asarray(img, dtype=np.uint8)).keypoints  # (n, 17, 3)
             if len(people):
                 xy, cf = people[..., :2], people[..., 2]
-                area = np.ptp(np.where(cf[..., None] > 0.3, xy, np.nan), axis=1)
-                k = int(np.nanargmax(np.nan_to_num(area[:, 0] * area[:, 1], nan=-1.0)))
+                seen = np.where(cf[..., None] > 0.3, xy, np.nan)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)  # a detection with no confident keypoint
+                    span = np.nan_to_num(np.nanmax(seen, axis=1) - np.nanmin(seen, axis=1), nan=0.0)
+                k = int(np.argmax(span[:, 0] * span[:, 1]))  # the largest person: the subject
                 row_uv.append(xy[k])
                 row_conf.append(np.clip(cf[k], 0.0, 1.0))
             else:
