@@ -274,3 +274,28 @@ def test_shipped_network_finds_a_clean_simulated_person() -> None:
     rel = models.cnn(vi.pvh.astype(np.float32) / 255.0).reshape(-1, 21, 3)
     err = np.linalg.norm(rel + vi.centre[:, None] - clip.positions[frames], axis=-1)
     assert np.median(err) < 0.1, np.median(err)
+
+
+def test_eval_accuracy_gains_table_6(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``mocapd eval accuracy --only-fusion`` on a few frames of the quick split: every Table 6 row for every camera ×
+    IMU configuration, finite, with its cost per frame; the markdown has the table."""
+    from mocapd.eval.fusion_eval import NETWORK_ROWS, SOLVE_ROWS
+    from mocapd.service.cli import main
+
+    out = tmp_path / "t6"
+    args = ["eval", "accuracy", "--quick", "--only-fusion", "--fusion-frames", "24", "--no-scenarios"]
+    assert main([*args, "--no-progress", "--out", str(out)]) == 0
+    capsys.readouterr()
+    data = json.loads((out / "results.json").read_text())
+    t6 = data["fusion"]["table6"]
+    assert set(t6) == {f"{c}c{i}i" for c in (4, 8) for i in (0, 6, 13)}
+    for cfg, rows in t6.items():
+        want = set(SOLVE_ROWS) | {"two-channel PVH", "+ LSTM"}
+        if not cfg.endswith("c0i"):
+            want |= set(NETWORK_ROWS) - {"matte PVH", "joint-channel PVH"}
+        assert want <= set(rows), (cfg, want - set(rows))
+        for name, r in rows.items():
+            assert r["nonfinite_frames"] == 0 and np.isfinite(r["global_mm"]["mean"]), (cfg, name)
+            assert r["ms_per_frame"] > 0 or name == "raw-IMU LSTM", (cfg, name)
+        assert rows["LM solver"]["orientation_deg"] is not None and rows["both"]["orientation_deg"] is not None
+    assert "seed 001 Table 6" in (out / "tables.md").read_text()
