@@ -11,7 +11,7 @@ starts (a live rig's come from its cameras); the background subtraction of a liv
 
 Usage::
 
-    .venv/bin/python tools/bench_fusion.py [--model DIR] [--cams 8 4] [--people 1 2] [--seconds 6]
+    .venv/bin/python tools/bench_fusion.py [--model DIR] [--cams 8 4] [--people 1 2] [--seconds 6] [--networks]
 
 Medians and 90th percentiles in ms; ``tick_*`` is the whole tick (all people), ``per_tick_mean`` amortises the
 learned frames over the ticks between them. BLAS and onnxruntime use one thread each.
@@ -183,6 +183,54 @@ def carve_cost(reps: int = 5) -> dict[str, Any]:
     return out
 
 
+def network_cost(reps: int = 10) -> dict[str, Any]:
+    """Seed 001 Table 1's PVH network against mocapd's quarter-width one: onnxruntime inference per person-frame
+    (one thread) and torch training time per sample (batch 32). Needs the ``[train]`` extra."""
+    import tempfile
+    import warnings
+
+    import onnxruntime as ort
+    import torch
+
+    from mocapd.eval.fusion_train import PvhNet
+
+    torch.set_num_threads(1)
+    out: dict[str, Any] = {}
+    for name, widths, fc in (("table_1", (64, 96, 96, 96), 1024), ("mocapd", (16, 24, 24, 32), 256)):
+        net = PvhNet(2, widths, fc, 30)
+        x = torch.rand(32, 2, 30, 30, 30)
+        opt = torch.optim.Adam(net.parameters(), 1e-3)
+        times = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            opt.zero_grad()
+            loss = net(x).pow(2).mean()
+            loss.backward()
+            opt.step()
+            times.append((time.perf_counter() - t0) / 32)
+        with tempfile.TemporaryDirectory() as tmp:
+            path = f"{tmp}/net.onnx"
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                torch.onnx.export(net.eval(), (x[:1],), path, input_names=["pvh"], dynamo=False)
+            so = ort.SessionOptions()
+            so.intra_op_num_threads = 1
+            sess = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+            one = x[:1].numpy()
+            sess.run(None, {"pvh": one})
+            inf = []
+            for _ in range(reps):
+                t0 = time.perf_counter()
+                sess.run(None, {"pvh": one})
+                inf.append(time.perf_counter() - t0)
+        out[name] = {
+            "parameters": sum(p.numel() for p in net.parameters()),
+            "onnxruntime_ms_per_person_frame": _ms(inf),
+            "torch_train_ms_per_sample": _ms(times),
+        }
+    return out
+
+
 def mog2_cost(frames: int = 60) -> dict[str, float]:
     """Background subtraction of one 1920×1080 camera frame (resize to 1/8 + MOG2 + blur)."""
     rng = np.random.default_rng(0)
@@ -202,6 +250,7 @@ def main() -> None:
     ap.add_argument("--cams", type=int, nargs="+", default=[8, 4])
     ap.add_argument("--people", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--seconds", type=float, default=6.0)
+    ap.add_argument("--networks", action="store_true", help="also Table 1's network against ours (needs torch)")
     args = ap.parse_args()
     load0 = os.getloadavg()
     with threadpool_limits(1):
@@ -217,6 +266,7 @@ def main() -> None:
         "runs": runs,
         "mog2_ms_per_camera_frame": mog2,
         "carve_supersample": carving,
+        "networks": network_cost() if args.networks else None,
         "machine": {
             "cpus": os.cpu_count(),
             "python": platform.python_version(),
