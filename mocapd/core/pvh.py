@@ -41,6 +41,8 @@ MATTE, JOINTS = 0, 1
 
 HIP_KEYPOINTS = (11, 12)
 """COCO-17 left and right hip: the grid centre is their triangulated midpoint."""
+MIN_CENTRE_CONFIDENCE = 0.2
+"""Keypoints below this confidence do not place the grid (a detector's gross errors come with low confidence)."""
 
 
 @dataclass(frozen=True)
@@ -99,7 +101,9 @@ def scaled_pixels(uv: FloatArray, scale: int) -> FloatArray:
 def person_centre(
     cameras: list[Camera], uv: FloatArray, conf: FloatArray, fallback: FloatArray | None = None
 ) -> FloatArray | None:
-    """The grid centre for one person: the midpoint of the triangulated hips.
+    """The grid centre for one person: the midpoint of the triangulated hips (keypoints of confidence below
+    :data:`MIN_CENTRE_CONFIDENCE` ignored, views that disagree by more than 10 % of the person's size in pixels
+    dropped, see :func:`_robust_points`; one hip when the other is not seen by two views).
 
     Falls back to the mean of every triangulated keypoint lowered by the hips-to-keypoints offset of a standing
     person (0.25 m) when a hip is not seen by two views, then to ``fallback``.
@@ -112,16 +116,73 @@ def person_centre(
     -------
     array (3,) or None when nothing could be triangulated and there is no fallback.
     """
+    conf = np.where(conf >= MIN_CENTRE_CONFIDENCE, conf, 0.0)
     if len(cameras) >= 2 and np.count_nonzero(np.any(conf > 0, axis=1)) >= 2:
-        X, ok = triangulate(cameras, np.nan_to_num(uv), conf)
+        uv0 = np.nan_to_num(uv)
         hips = list(HIP_KEYPOINTS)
-        if np.all(ok[hips]):
-            return np.asarray(X[hips].mean(axis=0))
+        Xh, okh = _robust_points(cameras, uv0[:, hips], conf[:, hips], _person_size_px(uv0, conf))
+        if np.any(okh):  # both hips, or the one seen (the grid is 2 m: half a hip width off is nothing)
+            return np.asarray(Xh[okh].mean(axis=0))
+        X, ok = triangulate(cameras, uv0, conf)
         if np.count_nonzero(ok) >= 3:
             c = np.median(X[ok], axis=0)
             c[1] -= 0.25
             return np.asarray(c)
     return None if fallback is None else np.asarray(fallback, dtype=np.float64)
+
+
+MIN_RAY_ANGLE = np.deg2rad(10.0)
+"""A point whose viewing rays span less than this is not triangulated (adjacent cameras of a spread rig)."""
+
+
+def _ray_angle(cameras: list[Camera], X: FloatArray, w: FloatArray) -> FloatArray:
+    """Per point, the widest angle (radians) between the rays of the views that see it; shape (n,)."""
+    rays = np.stack([np.nan_to_num(X) - cam.center for cam in cameras])  # (n_cams, n, 3)
+    rays /= np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-9)
+    cos = np.einsum("anj,bnj->nab", rays, rays)
+    used = (w > 0).T  # (n, n_cams)
+    cos = np.where(used[:, :, None] & used[:, None, :], cos, 1.0)
+    return np.asarray(np.arccos(np.clip(cos.min(axis=(1, 2)), -1.0, 1.0)))
+
+
+def _person_size_px(uv: FloatArray, conf: FloatArray) -> FloatArray:
+    """Per view, the larger side of the confident keypoints' bounding box (pixels; 0 without two of them)."""
+    out = np.zeros(uv.shape[0])
+    for c in range(uv.shape[0]):
+        pts = uv[c][conf[c] > 0]
+        if len(pts) >= 2:
+            out[c] = float(np.max(pts.max(axis=0) - pts.min(axis=0)))
+    return out
+
+
+def _robust_points(
+    cameras: list[Camera], uv: FloatArray, conf: FloatArray, size_px: FloatArray, max_error: float = 0.1
+) -> tuple[FloatArray, BoolArray]:
+    """Weighted DLT of a few points, dropping per point the view whose reprojection error is largest while it
+    exceeds ``max_error`` × that view's person size and more than two views remain (a gross outlier or a left/right
+    swap in one view moved the grid centre by metres).
+
+    Parameters
+    ----------
+    uv : (n_cams, n, 2); conf : (n_cams, n); size_px : (n_cams,).
+    """
+    w = conf.copy()
+    X, ok = triangulate(cameras, uv, w)
+    for _ in range(len(cameras) + 1):
+        err = np.zeros(w.shape)
+        for c, cam in enumerate(cameras):
+            err[c] = np.linalg.norm(cam.project(np.nan_to_num(X)) - uv[c], axis=-1) / np.maximum(size_px[c], 1.0)
+        err = np.where(w > 0, err, 0.0)
+        worst = np.argmax(err, axis=0)
+        too_far = (err[worst, np.arange(w.shape[1])] > max_error) & ok
+        bad = too_far & (np.count_nonzero(w > 0, axis=0) > 2)
+        if not np.any(bad):
+            # Two views whose rays miss each other by that much: one of them saw something else (a swap); views
+            # (nearly) in line with the point fix its depth by noise.
+            return X, ok & ~too_far & (_ray_angle(cameras, X, w) >= MIN_RAY_ANGLE)
+        w[worst[bad], np.flatnonzero(bad)] = 0.0
+        X, ok = triangulate(cameras, uv, w)
+    return X, ok
 
 
 def joint_map(uv: FloatArray, conf: FloatArray, shape: tuple[int, int], sigma: float, floor: float = 0.1) -> F32Array:
