@@ -19,6 +19,7 @@ from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.eval.data import load_splits
 from mocapd.eval.fusion_data import training_clips
 from mocapd.eval.simulate import DetectionNoise, simulate_detections, totalcapture_ring
+from mocapd.pipeline.frame_ring import FrameRing
 from mocapd.pipeline.fusion import (
     PROVENANCE_FILE,
     FusionModels,
@@ -26,7 +27,7 @@ from mocapd.pipeline.fusion import (
     available_variants,
     default_model_dir,
 )
-from mocapd.pipeline.mattes import BackgroundMatte, FrameMattes
+from mocapd.pipeline.mattes import BackgroundMatte, FrameMattes, RingMattes
 from mocapd.sim.silhouettes import MatteNoise, proxy_shapes, render_silhouette, simulated_matte
 
 
@@ -161,6 +162,27 @@ def test_background_matte_finds_a_moving_object() -> None:
     fm.push(0, 2000, bg)
     assert fm.mattes(1010)[0] is not None and fm.mattes(1010)[0].mean() > fm.mattes(1990)[0].mean()  # type: ignore[union-attr]
     assert fm.mattes(5000) == [None]  # nothing within max_age
+
+
+def test_ring_mattes_subtract_the_background_of_each_cameras_newest_frame() -> None:
+    """The daemon's matte source on real frame rings: each poll takes every ring's newest frame once."""
+    rng = np.random.default_rng(3)
+    rings = [FrameRing(f"cam{i}", 4, 240, 320, 3) for i in range(2)]
+    rm = RingMattes([*rings, None], scale=4)
+    bg = rng.integers(60, 90, size=(240, 320, 3), dtype=np.uint8)
+    for k in range(20):
+        for ring in rings:
+            ring.next_slot()[:] = bg
+            ring.publish(1_000 * k, 0, k)
+        assert rm.poll() == 2 and rm.poll() == 0  # a frame is subtracted once
+    rings[0].next_slot()[:] = bg
+    rings[0].next_slot()[80:160, 120:200] = 230
+    rings[0].publish(50_000, 0, 20)
+    assert rm.poll() == 1
+    m = rm.mattes(50_000)
+    assert m[1] is not None and m[2] is None  # camera 2 has no frames; camera 1's last frame is old but in range
+    m0 = m[0]
+    assert m0 is not None and m0.shape == (60, 80) and m0[25:35, 35:45].mean() > 0.9 and m0[:10, :20].mean() < 0.05
 
 
 def test_window_index_with_stride_repeats_the_phase_start() -> None:
