@@ -7,11 +7,12 @@ keypoints, which sit on the skeleton's joints: shoulders, elbows, wrists, hips, 
 percentile in pixels). Issue 29's ``mocapd eval video`` was not on main when this was written: this module
 computes the same metric itself (:func:`held_out_errors`).
 
-Inputs, as in the daemon: the detector on every frame of every camera (the subject is each view's largest
-detection: the demo's bystander stands far behind), and foreground mattes by MOG2 background subtraction
-(:class:`~mocapd.pipeline.mattes.BackgroundMatte`). A live rig's subtractor learns the background over minutes;
-the demo is 1.7 s with the subject in every frame, so the subtractor first runs once over the whole take
-(learning) and the mattes come from a second pass: the take's own estimate of seed 001's clean plate.
+Inputs: the detector on every frame of every camera (the subject is each view's largest detection: the demo's
+bystander stands far behind), and foreground mattes. A live rig's MOG2 subtractor
+(:class:`~mocapd.pipeline.mattes.BackgroundMatte`) learns the background over minutes; the demo is 1.7 s with the
+subject in every frame, and MOG2 run over it absorbs the subject's inside into the background (hollow outlines).
+:func:`clean_plate_mattes` does what seed 001 does, against a clean plate estimated from the take itself: each
+pixel's median over the frames where the detected subject is not near it.
 
 Methods: the naive confidence-weighted DLT, the LM solver (no IMUs: the demo has none), the learned stream's joints
 (PVH network + vision LSTM on every 3rd frame, as the daemon), the skeleton fitted to them (``mode = "learned"``)
@@ -34,7 +35,7 @@ from numpy.typing import NDArray
 from mocapd.core.body_size import estimate_skeleton
 from mocapd.core.camera import Camera, project_points, triangulate
 from mocapd.core.fusion_features import N_JOINTS
-from mocapd.core.keypoints import COCO17, coco17_targets
+from mocapd.core.keypoints import COCO17, COCO17_FORMAT, coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.prior import PcaPrior
 from mocapd.core.pvh import carve, joint_map, joint_sigma, log_channels, person_centre, scaled_pixels
@@ -47,7 +48,6 @@ from mocapd.io.model_cache import cache_dir
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.fusion import FusionModels, PersonFusion
-from mocapd.pipeline.mattes import BackgroundMatte
 from mocapd.pipeline.scheduler import initial_pose
 
 FloatArray = NDArray[np.float64]
@@ -81,62 +81,114 @@ def _cache_key(demo: str, frames: int, scale: int) -> str:
 def video_inputs(
     detector: DetectorConfig, demo: str = "Demo_SinglePerson", max_frames: int = 100, scale: int = 8
 ) -> VideoInputs:
-    """Detect the subject in every frame of the demo's cameras with the ``[detector]`` of ``detector`` and subtract
-    their backgrounds (cached)."""
+    """Detect the subject in every frame of the demo's cameras with the ``[detector]`` of ``detector`` (cached: the
+    detector over 400 frames takes minutes here) and compute their mattes."""
     cams = core_cameras(read_qca(demo_calibration(demo)))
     cache = cache_dir() / "fusion-video" / f"{_cache_key(demo, max_frames, scale)}.npz"
+    small = _small_frames(demo, max_frames, scale)
     if cache.is_file():
         d = np.load(cache)
-        return VideoInputs(cams, d["uv"], d["conf"], [d[f"matte{c}"] for c in range(len(cams))])
+        uv_a, conf_a = d["uv"], d["conf"]
+    else:
+        uv_a, conf_a = _detect(detector, demo, len(small[0]))
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(cache, uv=uv_a, conf=conf_a)
+    f = min(len(uv_a), len(small[0]))
+    mattes = [clean_plate_mattes(np.stack(small[c][:f]), uv_a[:f, c], conf_a[:f, c], scale) for c in range(len(cams))]
+    return VideoInputs(cams, uv_a[:f], conf_a[:f], mattes)
+
+
+def _small_frames(demo: str, max_frames: int, scale: int) -> list[list[NDArray[np.uint8]]]:
+    """Every camera's frames at ``1/scale`` (BGR)."""
+    out: list[list[NDArray[np.uint8]]] = []
+    for c in CAMERAS:
+        cap = cv2.VideoCapture(str(demo_video(demo, c)))
+        frames = []
+        while len(frames) < max_frames:
+            ok, img = cap.read()
+            if not ok:
+                break
+            h, w = img.shape[:2]
+            frames.append(
+                np.asarray(cv2.resize(img, (-(-w // scale), -(-h // scale)), interpolation=cv2.INTER_AREA), np.uint8)
+            )
+        out.append(frames)
+    n = min(len(x) for x in out)
+    if n == 0:
+        raise InputError(f"{demo}: no frames could be read")
+    return [x[:n] for x in out]
+
+
+def _detect(detector: DetectorConfig, demo: str, n: int) -> tuple[FloatArray, FloatArray]:
+    """The subject's keypoints (n, n_cams, 17, 2) and confidences in every frame: each view's largest detection."""
     from mocapd.pipeline.detector import OnnxPoseDetector
 
     det = OnnxPoseDetector.from_config(detector)
-    small: list[list[NDArray[np.uint8]]] = [[] for _ in cams]
-    uv_l, conf_l = [], []
     caps = [cv2.VideoCapture(str(demo_video(demo, c))) for c in CAMERAS]
-    for _ in range(max_frames):
-        row_uv, row_conf = [], []
-        ok_all = True
+    uv = np.full((n, len(caps), 17, 2), np.nan)
+    conf = np.zeros((n, len(caps), 17))
+    for t in range(n):
         for c, cap in enumerate(caps):
             ok, img = cap.read()
             if not ok:
-                ok_all = False
-                break
-            h, w = img.shape[:2]
-            small[c].append(
-                np.asarray(cv2.resize(img, (-(-w // scale), -(-h // scale)), interpolation=cv2.INTER_AREA), np.uint8)
-            )
+                raise InputError(f"{demo}: camera {CAMERAS[c]} ended at frame {t}")
             people = det.detect(np.asarray(img, dtype=np.uint8)).keypoints  # (n, 17, 3)
-            if len(people):
-                xy, cf = people[..., :2], people[..., 2]
-                seen = np.where(cf[..., None] > 0.3, xy, np.nan)
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", RuntimeWarning)  # a detection with no confident keypoint
-                    span = np.nan_to_num(np.nanmax(seen, axis=1) - np.nanmin(seen, axis=1), nan=0.0)
-                k = int(np.argmax(span[:, 0] * span[:, 1]))  # the largest person: the subject
-                row_uv.append(xy[k])
-                row_conf.append(np.clip(cf[k], 0.0, 1.0))
-            else:
-                row_uv.append(np.full((17, 2), np.nan))
-                row_conf.append(np.zeros(17))
-        if not ok_all:
-            break
-        uv_l.append(np.stack(row_uv))
-        conf_l.append(np.stack(row_conf))
-    if not uv_l:
-        raise InputError(f"{demo}: no frames could be read")
-    mattes = []
-    for c in range(len(cams)):
-        bm = BackgroundMatte(scale=1, history=len(small[c]))  # frames are already at the PVH's scale
-        for img in small[c]:
-            bm.apply(img)  # learning pass: the take's own clean plate
-        bm.learning_rate = 0.0
-        mattes.append(np.stack([bm.apply(img) for img in small[c]]))
-    out = VideoInputs(cams, np.stack(uv_l), np.stack(conf_l), [m.astype(np.float32) for m in mattes])
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    arrays: dict[str, Any] = {"uv": out.uv, "conf": out.conf, **{f"matte{c}": m for c, m in enumerate(out.mattes)}}
-    np.savez_compressed(cache, **arrays)
-    return out
+            if not len(people):
+                continue
+            xy, cf = people[..., :2], people[..., 2]
+            seen = np.where(cf[..., None] > 0.3, xy, np.nan)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # a detection with no confident keypoint
+                span = np.nan_to_num(np.nanmax(seen, axis=1) - np.nanmin(seen, axis=1), nan=0.0)
+            k = int(np.argmax(span[:, 0] * span[:, 1]))  # the largest person: the subject
+            uv[t, c] = xy[k]
+            conf[t, c] = np.clip(cf[k], 0.0, 1.0)
+    return uv, conf
+
+
+PLATE_THRESHOLD = 30.0
+"""Colour distance (Lab units) from the clean plate at which a pixel is half foreground; ±15 spans 0 to 1."""
+
+
+def clean_plate_mattes(frames: NDArray[np.uint8], uv: FloatArray, conf: FloatArray, scale: int) -> F32:
+    """Seed 001's occupancy channel on a take without a clean plate: the plate is each pixel's median colour over
+    the frames where the detected subject is not near it (thick limbs between the confident keypoints, masked);
+    a frame's matte is the soft-thresholded Lab distance to it, blurred by a pixel.
+
+    Parameters
+    ----------
+    frames : (f, h, w, 3) BGR at the PVH's scale; uv : (f, 17, 2) the subject's keypoints (full-resolution
+    pixels); conf : (f, 17).
+
+    Returns
+    -------
+    (f, h, w) float32 in [0, 1].
+    """
+    f, h, w = frames.shape[:3]
+    masked = np.zeros((f, h, w), dtype=bool)
+    for t in range(f):
+        ok = conf[t] > 0.3
+        if ok.sum() < 2:
+            continue
+        pts = (uv[t] + 0.5) / scale - 0.5
+        size = float(np.max(np.ptp(pts[ok], axis=0)))
+        m = np.zeros((h, w), np.uint8)
+        thick = max(2, round(0.2 * size))
+        for a, b in COCO17_FORMAT.edges:
+            if ok[a] and ok[b]:
+                cv2.line(m, tuple(int(v) for v in pts[a]), tuple(int(v) for v in pts[b]), 1, thick)
+        for k in np.flatnonzero(ok):
+            cv2.circle(m, tuple(int(v) for v in pts[k]), thick, 1, -1)
+        masked[t] = m > 0
+    lab = np.stack([cv2.cvtColor(fr, cv2.COLOR_BGR2LAB) for fr in frames]).astype(np.float32)
+    free = np.where(masked[..., None], np.nan, lab)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # pixels the subject covers in every frame
+        plate = np.nanmedian(free, axis=0)
+    plate = np.where(np.isnan(plate), np.median(lab, axis=0), plate)
+    d = np.linalg.norm(lab - plate, axis=-1)
+    p = np.clip((d - PLATE_THRESHOLD) / 30.0 + 0.5, 0.0, 1.0).astype(np.float32)
+    return np.stack([np.asarray(cv2.GaussianBlur(x, (0, 0), 0.8), np.float32) for x in p])
 
 
 def held_out_errors(points: FloatArray, camera: Camera, uv: FloatArray, conf: FloatArray) -> FloatArray:
