@@ -49,9 +49,9 @@ async def test_both_mode_feeds_the_learned_joints_into_every_persons_solve() -> 
         await wait_for(lambda: bool(rec.frames) and len(rec.frames[-1].people) == 2, 60, "both people tracked")
         tracked_from = len(rec.frames)
         await wait_for(lambda: sum(len(f.people) for f in rec.frames[tracked_from:]) >= 240, 90, "240 person-frames")
-        status = d.scheduler.status()["fusion"]
         d.request_stop()
         assert await asyncio.wait_for(task, 10) == 0
+        status = d.scheduler.status()["fusion"]  # after the last tick: the counters below are of the same ticks
 
     # Every tracked person has a learned stream; the suit wearer also its IMU-only solve (every tick).
     assert status["mode"] == "both" and len(status["people"]) == 2
