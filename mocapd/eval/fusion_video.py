@@ -103,7 +103,7 @@ def _small_frames(demo: str, max_frames: int, scale: int) -> list[list[NDArray[n
     out: list[list[NDArray[np.uint8]]] = []
     for c in CAMERAS:
         cap = cv2.VideoCapture(str(demo_video(demo, c)))
-        frames = []
+        frames: list[NDArray[np.uint8]] = []
         while len(frames) < max_frames:
             ok, img = cap.read()
             if not ok:
