@@ -73,7 +73,8 @@ def test_overrides_are_applied(tmp_path: Path) -> None:
     [
         (
             {"solvr": {}},
-            r"^unknown section solvr; allowed: calibration, cameras, daemon, detector, imu, record, solver, synthetic",
+            r"^unknown section solvr; allowed: calibration, cameras, daemon, detector, fusion, imu, record, solver, "
+            r"synthetic",
         ),
         ({"solver": {"backend": "gpu"}}, r"solver.backend = 'gpu'; allowed: \"compiled\" or \"numpy\""),
         (

@@ -7,7 +7,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.skeleton import N_BONES
 from mocapd.errors import InputError
+
+N_JOINTS = N_BONES
+"""Learned joint observations cover every joint of the skeleton (one per bone)."""
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -30,6 +34,11 @@ class Observations:
         Measured global accelerations at the *previous* frame t-1 (Eq. 12), m/s², gravity removed.
     imu_mask : bool array, shape (n_imu,), optional
         Which IMUs have a measurement (default: all). Masked rows may hold NaN.
+    joint_positions : array, shape (21, 3), optional
+        Learned 3D estimates of the 21 joints (world, metres) for the E_J term (issue 30); rows with weight 0 may
+        hold NaN.
+    joint_weights : array, shape (21,), optional
+        Per-joint weights w_j >= 0 of those estimates (default: all 1).
     dt : float
         Time (seconds) from the previous solve to this one: the Δt of the acceleration term's finite
         difference. Required, with no default: a silent 1/60 s on 100 Hz data scales every measured
@@ -42,6 +51,8 @@ class Observations:
     imu_orientations: FloatArray | None = None
     imu_accelerations: FloatArray | None = None
     imu_mask: BoolArray | None = None
+    joint_positions: FloatArray | None = None
+    joint_weights: FloatArray | None = None
     dt: float
 
 
@@ -87,6 +98,25 @@ class ValidatedObservations:
             if not np.all(np.isfinite(a[mask])):
                 raise InputError("observations: imu_accelerations must be finite where imu_mask is set")
             self.acc[mask] = a[mask]
+        self.has_joints = obs.joint_positions is not None
+        self.joints = np.zeros((N_JOINTS, 3))
+        self.joint_weights = np.zeros(N_JOINTS)
+        if obs.joint_positions is not None:
+            j = _array("joint_positions", obs.joint_positions, (N_JOINTS, 3))
+            w = (
+                np.ones(N_JOINTS)
+                if obs.joint_weights is None
+                else _array("joint_weights", obs.joint_weights, (N_JOINTS,))
+            )
+            if not np.all(np.isfinite(w)) or np.any(w < 0):
+                raise InputError("observations: joint_weights must be finite and >= 0")
+            used = w > 0
+            if not np.all(np.isfinite(j[used])):
+                raise InputError("observations: joint_positions must be finite where joint_weights > 0")
+            self.joints[used] = j[used]
+            self.joint_weights = w
+        elif obs.joint_weights is not None:
+            raise InputError("observations: joint_weights without joint_positions")
 
 
 def _array(name: str, value: object, shape: tuple[int, ...]) -> FloatArray:

@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core import _kernel
+from mocapd.core import _kernel, _learned_kernel
 from mocapd.core.camera import Camera, stack_cameras, triangulate
 from mocapd.core.ground import (
     FOOT_SENSOR_BONES,
@@ -35,12 +35,13 @@ from mocapd.core.lm import LMOptions, Termination, levenberg_marquardt
 from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss, corrector_weights
 from mocapd.core.observations import Observations, ValidatedObservations
 from mocapd.core.prior import PcaPrior
-from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
+from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
 from mocapd.core.terms import (
     CostOptions,
     PriorMatrices,
     acceleration_term,
     floor_term,
+    learned_joint_term,
     orientation_term,
     position_term,
 )
@@ -50,6 +51,7 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 __all__ = [
+    "LEARNED_TERM",
     "TERM_NAMES",
     "LMOptions",
     "Observations",
@@ -61,6 +63,11 @@ __all__ = [
 ]
 
 TERM_NAMES = ("position", "orientation", "acceleration", "prior_projection", "prior_deviation", "floor")
+LEARNED_TERM = "learned"
+"""E_J, the learned 3D joint observations (issue 30). It is not one of the compiled kernel's terms: its normal
+equations are added to the kernel's (:mod:`mocapd.core._learned_kernel`) or the numpy reference's
+(:meth:`PoseSolver._learned`), and only on frames whose observations carry joint estimates, so a solve without
+them is the seed-003 solve unchanged."""
 
 
 @dataclass(frozen=True)
@@ -193,6 +200,9 @@ class PoseSolver:
         self._sl_imu = slice(self.n_kp, self.n_kp + self.n_imu)
         self._sl_floor = slice(self.n_kp + self.n_imu, self.n_points)
         self._point_pairs = self.kin.chain_pairs(self._point_bones)
+        self._joint_bones = np.arange(N_BONES, dtype=np.intp)
+        self._joint_pairs = self.kin.chain_pairs(self._joint_bones)
+        self._joint_table = np.zeros((N_BONES, 3, POSE_DIM))
         self._angular_pairs = self.kin.chain_pairs(imu_bones)
         self.n_rows = self.n_points + self.n_imu
         self._table = np.zeros((self.n_rows, 3, POSE_DIM))
@@ -237,6 +247,8 @@ class PoseSolver:
         )
         self._H = np.zeros((POSE_DIM, POSE_DIM))
         self._g = np.zeros(POSE_DIM)
+        self._H_learned = np.zeros((POSE_DIM, POSE_DIM))
+        self._g_learned = np.zeros(POSE_DIM)
         self._tc = np.zeros(len(TERM_NAMES))
 
     def _pack_static(self) -> _KernelProblem:
@@ -329,7 +341,12 @@ class PoseSolver:
             ev = self._evaluate(theta, v, on)
             return ev.cost, ev.term_costs
         c = self._kernel_call(theta, v, on, jac=False)
-        return c, self._term_dict(on)
+        terms = self._term_dict(on)
+        if on[LEARNED_TERM]:
+            cl = self._learned_compiled(theta, v, jac=False)
+            terms[LEARNED_TERM] = cl
+            c += cl
+        return c, terms
 
     def _linearize(
         self, theta: FloatArray, v: ValidatedObservations, on: dict[str, bool]
@@ -340,7 +357,65 @@ class PoseSolver:
             H, g = self._normal_equations(ev, v, on)
             return ev.cost, ev.term_costs, H, g
         c = self._kernel_call(theta, v, on, jac=True)
-        return c, self._term_dict(on), self._H.copy(), self._g.copy()
+        terms = self._term_dict(on)
+        H, g = self._H.copy(), self._g.copy()
+        if on[LEARNED_TERM]:
+            cl = self._learned_compiled(theta, v, jac=True)
+            terms[LEARNED_TERM] = cl
+            c += cl
+            H += self._H_learned
+            g += self._g_learned
+        return c, terms, H, g
+
+    def _learned_compiled(self, theta: FloatArray, v: ValidatedObservations, jac: bool) -> float:
+        """E_J by the compiled kernel (:mod:`mocapd.core._learned_kernel`): its cost, and with ``jac`` its normal
+        equations in ``self._H_learned``, ``self._g_learned``."""
+        kp = self._kernel_static
+        assert kp is not None
+        o = self.cost_options
+        code, scale = _loss_code(o.loss_learned, LEARNED_TERM)
+        return float(
+            _learned_kernel.learned_term(
+                np.ascontiguousarray(theta, dtype=np.float64),
+                jac,
+                kp.parents,
+                kp.offsets,
+                v.joints,
+                v.joint_weights,
+                float(o.lambda_learned),
+                code,
+                scale,
+                self._H_learned,
+                self._g_learned,
+            )
+        )
+
+    def _learned(
+        self, theta: FloatArray, v: ValidatedObservations, fk: FKState | None, jac: bool
+    ) -> tuple[float, FloatArray, FloatArray]:
+        """E_J's cost and, with ``jac``, its corrected normal equations (H (66, 66), g (66,)) at θ.
+
+        Every block is one joint (3 residuals) whose Jacobian is the joint's row of the kinematic chain; the
+        Gauss–Newton blocks are spread with the same Ceres corrector as the other terms."""
+        o = self.cost_options
+        fk = self.kin.forward(theta) if fk is None else fk
+        f, G = learned_joint_term(fk.positions, v.joints, v.joint_weights, o.lambda_learned)
+        s = np.einsum("ij,ij->i", f, f)
+        rho, rho1, rho2 = o.loss_learned.evaluate(s)
+        cost = 0.5 * float(np.sum(rho))
+        H = np.zeros((POSE_DIM, POSE_DIM))
+        g = np.zeros(POSE_DIM)
+        if not jac:
+            return cost, H, g
+        w, beta = corrector_weights(s, rho1, rho2)
+        gp = np.einsum("nki,nk->ni", G, f)
+        Hb = np.einsum("n,nki,nkj->nij", w, G, G) - (w * beta)[:, None, None] * gp[:, :, None] * gp[:, None, :]
+        gb = w[:, None] * gp
+        axes = self.kin.angular_axes(fk, theta)
+        J = self.kin.point_jacobian(fk, axes, fk.positions, self._joint_pairs, out=self._joint_table)
+        H += np.einsum("nai,nab,nbj->ij", J, Hb, J)
+        g += np.einsum("nai,na->i", J, gb)
+        return cost, H, g
 
     def _term_dict(self, on: dict[str, bool]) -> dict[str, float]:
         return {n: float(self._tc[i]) for i, n in enumerate(TERM_NAMES) if on[n]}
@@ -476,6 +551,7 @@ class PoseSolver:
             "prior_projection": o.use_prior_projection and self._prior_mats is not None,
             "prior_deviation": o.use_prior_deviation and self._prior_mats is not None,
             "floor": o.use_floor,
+            LEARNED_TERM: o.use_learned and v.has_joints and bool(np.any(v.joint_weights > 0)),
         }
 
     def _views(self, v: ValidatedObservations) -> int:
@@ -493,6 +569,7 @@ class PoseSolver:
             "prior_projection": o.loss_prior_projection,
             "prior_deviation": o.loss_prior_deviation,
             "floor": o.loss_floor,
+            LEARNED_TERM: o.loss_learned,
         }
 
     def _linearize_terms(
@@ -537,6 +614,8 @@ class PoseSolver:
         if on["floor"]:
             f, G = floor_term(points[self._sl_floor], o.floor_radius, o.floor_height, o.lambda_floor)
             out["floor"] = (f, G)
+        if on[LEARNED_TERM]:
+            out[LEARNED_TERM] = learned_joint_term(fk.positions, v.joints, v.joint_weights, o.lambda_learned)
         pm = self._prior_mats
         if pm is not None:
             d = theta[6:] - pm.mu
@@ -576,6 +655,8 @@ class PoseSolver:
         g = np.zeros(POSE_DIM)
         for name, (f, G) in terms.items():
             assert G is not None
+            if name == LEARNED_TERM:  # its own rows (the joints), added below
+                continue
             s = ev.blocks[name][1]
             _, rho1, rho2 = losses[name].evaluate(s)
             w, beta = corrector_weights(s, rho1, rho2)
@@ -603,6 +684,10 @@ class PoseSolver:
         T = table.reshape(self.n_rows * 3, POSE_DIM)
         H += T.T @ (H3 @ table).reshape(self.n_rows * 3, POSE_DIM)
         g += T.T @ g3.reshape(-1)
+        if on[LEARNED_TERM]:
+            _, Hl, gl = self._learned(theta, v, fk, jac=True)
+            H += Hl
+            g += gl
         return H, g
 
     def _add_dense(
@@ -649,6 +734,10 @@ class PoseSolver:
         out: dict[str, tuple[FloatArray, FloatArray]] = {}
         for name, (f, G) in terms.items():
             assert G is not None
+            if name == LEARNED_TERM:
+                joints = self.kin.point_jacobian(fk, self.kin.angular_axes(fk, theta), fk.positions, self._joint_pairs)
+                out[name] = (f, G @ joints)
+                continue
             if name.startswith("prior"):
                 J = np.zeros((1, f.shape[1], POSE_DIM))
                 J[0, :, 6:] = G[0]

@@ -21,6 +21,12 @@ Terms (seed 003):
 - ``E_PD`` (Eq. 15) PCA deviation (Mahalanobis) of θ̄, Cauchy (one block).
 - ``E_FP`` (Eq. 16) floor penetration of feet and toes with radius r. The seed writes a Heaviside step H(·),
   which has no useful gradient; we use the hinge ``max(0, r - y)`` that the step gates, L2.
+
+Beyond seed 003 (issue 30):
+
+- ``E_J`` learned 3D joint observations: ``sqrt(λ_J w_j) (x_j - y_j)`` between each solved joint and the learned
+  fusion's estimate of it (seed 001's network, :mod:`mocapd.pipeline.fusion`), Cauchy. Off unless the observations
+  carry joint targets.
 """
 
 from __future__ import annotations
@@ -86,6 +92,11 @@ class CostOptions:
     use_prior_projection: bool = True
     use_prior_deviation: bool = True
     use_floor: bool = True
+    lambda_learned: float = 100.0
+    """λ_J: weight of the learned 3D joint observations (metres²), used only when observations carry them
+    (``[fusion] mode = "both"``: the daemon sets it from ``[fusion] weight``)."""
+    loss_learned: Loss = field(default_factory=lambda: CauchyLoss(1.0))
+    use_learned: bool = True
 
     @classmethod
     def seed_003(cls) -> CostOptions:
@@ -227,6 +238,25 @@ def floor_term(points: FloatArray, radius: float, floor: float, lam: float) -> t
     f = (sl * np.where(active, pen, 0.0))[:, None]
     G = np.zeros((points.shape[0], 1, 3))
     G[active, 0, 1] = -sl
+    return f, G
+
+
+def learned_joint_term(
+    joints: FloatArray, targets: FloatArray, weights: FloatArray, lam: float
+) -> tuple[FloatArray, FloatArray]:
+    """E_J blocks ``sqrt(λ w_j) (x_j - y_j)``: solved joints against learned 3D joint estimates.
+
+    Parameters
+    ----------
+    joints : (n, 3) solved joint positions; targets : (n, 3) learned estimates; weights : (n,) w_j >= 0.
+
+    Returns
+    -------
+    f : (n, 3); G : (n, 3, 3) (derivative w.r.t. the joint position).
+    """
+    s = np.sqrt(lam * weights)
+    f = s[:, None] * (joints - np.where(weights[:, None] > 0, targets, joints))
+    G = s[:, None, None] * np.eye(3)
     return f, G
 
 

@@ -130,9 +130,16 @@ def _cameras(seq: Sequence, cfg: RunConfig) -> tuple[list[Camera], FloatArray, F
 
 
 def run_solver(
-    seq: Sequence, cfg: RunConfig, prior: PcaPrior | None, cost: CostOptions, lm: LMOptions | None = None
+    seq: Sequence,
+    cfg: RunConfig,
+    prior: PcaPrior | None,
+    cost: CostOptions,
+    lm: LMOptions | None = None,
+    learned: dict[int, FloatArray] | None = None,
 ) -> tuple[FloatArray, int]:
-    """Solve the sequence online; returns θ (f, 66) and the number of frames whose solve was not finite."""
+    """Solve the sequence online; returns θ (f, 66) and the number of frames whose solve was not finite.
+
+    ``learned`` (issue 30): per frame, learned 3D joints (21, 3) that enter the solve as E_J observations."""
     clip = seq.clip
     cams, uv, conf, _ = _cameras(seq, cfg)
     rows = _imu_rows(cfg.n_imus)
@@ -151,6 +158,7 @@ def run_solver(
             confidences=c if cams else None,
             imu_orientations=seq.q13[t, rows] if rows else None,
             imu_accelerations=seq.acc13[t, rows] if rows and t >= 2 else None,
+            joint_positions=learned.get(t) if learned is not None else None,
             dt=dt,
         )
         theta = solver.solve(obs).theta

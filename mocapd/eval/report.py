@@ -179,5 +179,10 @@ def plots(res: dict[str, Any], out: Path) -> None:
 
 
 def write_report(res: dict[str, Any], out: Path) -> None:
-    (out / "tables.md").write_text(markdown(res), encoding="utf-8")
+    text = markdown(res)
+    if res.get("fusion"):
+        from mocapd.eval.fusion_eval import markdown as fusion_markdown
+
+        text += "\n" + fusion_markdown(res["fusion"])
+    (out / "tables.md").write_text(text, encoding="utf-8")
     plots(res, out)

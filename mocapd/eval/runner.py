@@ -18,6 +18,8 @@ from mocapd.core.prior import PcaPrior
 from mocapd.core.terms import CostOptions
 from mocapd.eval.baselines import LIMB_JOINTS
 from mocapd.eval.data import load_clip, load_splits
+from mocapd.eval.fusion_eval import SCENARIOS, FusionEvalOptions, evaluate_sequences, run_scenarios
+from mocapd.eval.fusion_eval import markdown as fusion_markdown
 from mocapd.eval.harness import (
     Errors,
     RunConfig,
@@ -32,6 +34,7 @@ from mocapd.eval.report import write_report
 from mocapd.eval.simulate import DetectionNoise, ImuNoise
 from mocapd.io.prior import resolve_prior
 from mocapd.io.progress import Progress
+from mocapd.pipeline.fusion import FusionModels, available_variants
 
 ABLATION_TERMS = ("position", "orientation", "acceleration", "prior_projection", "prior_deviation", "floor")
 SUBSAMPLING = ((1, 1), (1, 2), (2, 4), (3, 6), (1, 4), (2, 8), (3, 12), (1, 8), (2, 16), (3, 24))
@@ -56,6 +59,10 @@ class EvalOptions:
     cost_label: str = "CostOptions.seed_003() (seed 003's weights)"
     prior: str = "default"
     progress: bool = True
+    fusion: FusionEvalOptions | None = None
+    """Also seed 001's Table 6: the learned fusion beside the solver (issue 30, docs/learned-fusion.md)."""
+    only_fusion: bool = False
+    """Run the learned-fusion evaluation alone (no main table, sweep, ablation or sub-sampling)."""
 
     @classmethod
     def quick(cls) -> EvalOptions:
@@ -100,11 +107,54 @@ def prepare(opts: EvalOptions, data_root: Path | None) -> list[Sequence]:
     return seqs
 
 
+def run_fusion(
+    opts: EvalOptions, seqs: list[Sequence], prior: PcaPrior | None, data_root: Path | None
+) -> dict[str, Any]:
+    """The learned-fusion rows (Table 6) on the main table's sequences, and the scenarios."""
+    assert opts.fusion is not None
+    fo = opts.fusion
+    t0 = time.perf_counter()
+    models = FusionModels(fo.model, variants=available_variants(fo.model), raw_imu=True)
+    table_seqs = [_head(s, fo.max_frames or opts.max_frames) for s in seqs]
+    n = sum(s.clip.n_frames for s in table_seqs)
+    clips = [_head(s, fo.scenario_frames).clip for s in seqs] if fo.scenarios else []
+    n_sc = sum(c.n_frames for c in clips) * len(SCENARIOS) * len(fo.scenario_configs)
+    bar = Progress(n * len(fo.camera_counts) * len(fo.imu_sets) + n_sc, "learned fusion", enabled=opts.progress)
+    out: dict[str, Any] = {
+        "table6": evaluate_sequences(table_seqs, fo, models, prior, opts.cost, bar),
+        "scenarios": run_scenarios(clips, fo, models, prior, opts.cost, bar) if fo.scenarios else None,
+    }
+    bar.close()
+    out["setup"] = {
+        "sequences": len(table_seqs),
+        "frames": n,
+        "scenario_frames_per_sequence": fo.scenario_frames,
+        "stride": models.stride,
+        "look_back": models.look_back,
+        "grid": {"size": models.grid.size, "extent_m": models.grid.extent, "supersample": models.grid.supersample},
+        "model": str(models.directory),
+        "model_date": models.provenance.get("date"),
+        "variants": list(models.variants),
+        "lambda_learned": fo.lambda_learned,
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
+    return out
+
+
 def run_eval(opts: EvalOptions, out_dir: Path, data_root: Path | None = None) -> dict[str, Any]:
     t_start = time.perf_counter()
     load0 = os.getloadavg()
     prior: PcaPrior | None = resolve_prior(opts.prior)
     seqs = prepare(opts, data_root)
+    if opts.only_fusion:
+        only: dict[str, Any] = {"fusion": run_fusion(opts, seqs, prior, data_root)}
+        only["setup"] = {"split": opts.split, "sequences": [s.name for s in seqs], "seed": opts.seed,
+                            "cost": opts.cost_label, "wall_s": round(time.perf_counter() - t_start, 1),
+                            "loadavg_start": list(load0), "loadavg_end": list(os.getloadavg())}  # fmt: skip
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "results.json").write_text(json.dumps(_clean(only), indent=2) + "\n", encoding="utf-8")
+        (out_dir / "tables.md").write_text(fusion_markdown(only["fusion"]), encoding="utf-8")
+        return only
     main = [_head(s, opts.max_frames) for s in seqs]
     short = [_head(s, opts.sweep_frames) for s in seqs]
     n_main = sum(s.clip.n_frames for s in main)
@@ -177,6 +227,8 @@ def run_eval(opts: EvalOptions, out_dir: Path, data_root: Path | None = None) ->
         }
     results["subsampling"] = ss
     bar.close()
+    if opts.fusion is not None:
+        results["fusion"] = run_fusion(opts, seqs, prior, data_root)
 
     results["setup"] = {
         "split": opts.split,

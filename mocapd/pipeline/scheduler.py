@@ -58,9 +58,11 @@ from mocapd.core.solver import LMOptions, Observations, PoseSolver
 from mocapd.core.sorting import Detections2D
 from mocapd.core.terms import CostOptions
 from mocapd.errors import InputError
+from mocapd.pipeline.fusion import FusionStage, Mode
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
 from mocapd.pipeline.latency import AutoLatency, AutoLatencyOptions, LatencyStats
+from mocapd.pipeline.mattes import MatteSource
 from mocapd.pipeline.prediction import PosePredictor, PredictionOptions, SuitState
 from mocapd.pipeline.ringbuffer import IMU_FIELDS, LookupStatus, RingBuffer
 from mocapd.pipeline.time_alignment import estimate_imu_lag, estimate_lag, keypoint_speed
@@ -228,6 +230,10 @@ class FixedLatencyScheduler:
         The IMU buffers (filled by the IMU inputs); needed when ``suits`` are given.
     suits : list of Suit
     options : SchedulerOptions
+    fusion, fusion_mode, mattes
+        The learned fusion (issue 30, :mod:`mocapd.pipeline.fusion`), how its joints enter each person's solve
+        ("solver": not at all; "both": as E_J observations on the frames it runs; "learned": the skeleton fitted
+        to them alone) and the cameras' foreground mattes it carves.
     wall_clock, cpu_clock : callables returning int ns
         Stage timers (defaults: ``time.perf_counter_ns`` and the thread's CPU time). The solve time itself is
         always the ``now_ns`` given to :meth:`tick`.
@@ -247,6 +253,9 @@ class FixedLatencyScheduler:
         cost: CostOptions | None = None,
         lm: LMOptions | None = None,
         backend: str = "compiled",
+        fusion: FusionStage | None = None,
+        fusion_mode: Mode = "solver",
+        mattes: MatteSource | None = None,
         wall_clock: Callable[[], int] = time.perf_counter_ns,
         cpu_clock: Callable[[], int] = time.thread_time_ns,
     ) -> None:
@@ -266,6 +275,13 @@ class FixedLatencyScheduler:
         self.cost = cost
         self.lm = lm
         self.backend = backend
+        if fusion_mode != "solver" and (fusion is None or mattes is None):
+            raise InputError(f"fusion mode {fusion_mode!r} needs the learned fusion's networks and a matte source")
+        self.fusion = fusion if fusion_mode != "solver" else None
+        self.fusion_mode = fusion_mode
+        self.mattes = mattes
+        self._tick_mattes: list[NDArray[np.float32] | None] | None = None  # read once per tick, when needed
+        self._tick_t = 0
         self.kin = Kinematics(skeleton)
         self.timelines = [
             DetectionTimeline(
@@ -283,7 +299,8 @@ class FixedLatencyScheduler:
         self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
-                         "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0}  # fmt: skip
+                         "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0,
+                         "learned_observations": 0}  # fmt: skip
         self._lr_pairs = lr_pairs(list(getattr(targets, "names", ())))
         self._projections = (np.stack([c.projection_matrix for c in cameras]) if cameras
                              else np.zeros((0, 3, 4)))  # fmt: skip
@@ -345,6 +362,7 @@ class FixedLatencyScheduler:
         if self.auto_latency is not None:
             self.latency_ns = self.auto_latency.update(now_ns)
         t = now_ns - self.latency_ns
+        self._tick_t = t
         w0, c0 = self._wall(), self._cpu()
         detections, missing = self._sample_cameras(t)
         suits = {sid: self._sample_suit(suit, t) for sid, suit in self.suits.items()}
@@ -356,6 +374,7 @@ class FixedLatencyScheduler:
         frame = self.people.update(t, detections, {k: v for k, v in suit_bones.items() if v})
         w2, c2 = self._stage("sort", w1, c1)
         self._seen_suits.clear()
+        self._tick_mattes = None
         people = [*frame.people, *self._imu_only_people(frame.people, suits)]
         poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in people]
         for pose in poses:
@@ -364,6 +383,8 @@ class FixedLatencyScheduler:
             if sid not in self._seen_suits:
                 self.heading.freeze(suit.sensors)  # the cameras lost the wearer: offsets stay as they are
         self._forget_released({p.identity for p in people})
+        if self.fusion is not None:
+            self.fusion.forget(set(self.solvers))
         self._stage("solve", w2, c2)
         self.frame += 1
         self.counters["ticks"] += 1
@@ -469,11 +490,12 @@ class FixedLatencyScheduler:
         solver = self.solvers.get(person.identity)
         if solver is not None:
             return solver
+        learned = self.fusion_mode == "learned"  # the skeleton fitted to the learned joints alone
         solver = PoseSolver(
             self.skeletons.get(person.track, self.skeleton),
-            self.cameras,
+            [] if learned else self.cameras,
             self.targets,
-            with_suit.mounts if with_suit is not None else (),
+            with_suit.mounts if with_suit is not None and not learned else (),
             self.prior,
             self.cost,
             self.lm,
@@ -519,6 +541,8 @@ class FixedLatencyScheduler:
                 self._heading_at[suit.id] = t
                 self._observe_heading(suit, suit_sample, solver.skeleton, kp, conf, t)
         obs = Observations(keypoints=kp, confidences=conf, dt=self.options.dt, **imu_kw)
+        if self.fusion is not None:
+            obs = self._fused_observations(person, solver, suit, obs, kp, conf)
         result = solver.solve(obs)
         self.counters["person_solves"] += 1
         if not result.summary.converged:
@@ -555,6 +579,32 @@ class FixedLatencyScheduler:
             self.counters["lr_swaps"] += decision.count
             kp, conf = apply_swaps(kp, conf, decision.swaps, self._lr_pairs)
         return kp, conf
+
+    def _fused_observations(
+        self, person: Person, solver: PoseSolver, suit: Suit | None, obs: Observations, kp: FloatArray, conf: FloatArray
+    ) -> Observations:
+        """The person's learned stream for this tick (:class:`~mocapd.pipeline.fusion.FusionStage`) folded into
+        their observations: added as E_J ("both", on the ticks it runs), or instead of everything ("learned")."""
+        assert self.fusion is not None and self.mattes is not None
+        source = self.mattes
+
+        def mattes() -> list[NDArray[np.float32] | None]:
+            if self._tick_mattes is None:
+                self._tick_mattes = source.mattes(self._tick_t)
+            return self._tick_mattes
+
+        imu = None
+        if suit is not None and obs.imu_orientations is not None:
+            imu = (suit.mounts, replace(obs, keypoints=None, confidences=None))
+        learned = self.fusion.step(
+            person.identity, solver.skeleton, solver.theta, kp, conf, mattes, self.options.dt, imu
+        )
+        if learned is not None:
+            self.counters["learned_observations"] += 1
+        if self.fusion_mode == "both":
+            return obs if learned is None else replace(obs, joint_positions=learned.joints)
+        joints = learned.joints if learned is not None else self.fusion.extrapolated(person.identity)
+        return Observations(joint_positions=joints, dt=self.options.dt)
 
     def _observe_heading(
         self, suit: Suit, sample: SuitSample, skeleton: Skeleton, kp: FloatArray, conf: FloatArray, t: int
@@ -702,6 +752,7 @@ class FixedLatencyScheduler:
             "heading": self.heading_status(),
             "latency": self.latency_status(),
             "plausibility": {k: m.status() for k, m in sorted(self.plausibility.items())},
+            "fusion": {"mode": self.fusion_mode, **(self.fusion.status() if self.fusion is not None else {})},
         }
 
     def latency_status(self) -> dict[str, Any]:

@@ -26,6 +26,7 @@ from typing import Any
 
 from mocapd.io import lifecycle
 from mocapd.pipeline.detector_pool import detector_status
+from mocapd.pipeline.mattes import MatteSource, RingMattes
 from mocapd.service.config import Config
 from mocapd.service.config.udp import describe_streams
 from mocapd.service.daemon import Daemon, PoseSink, in_daemon_thread
@@ -35,6 +36,7 @@ from mocapd.service.outputs.recorder import SessionRecorder, attach_recorder, sy
 from mocapd.service.outputs.udp import build_udp_sinks
 from mocapd.service.outputs.websocket import build_websocket_sinks
 from mocapd.service.rig import BuiltRig, RigPlan, build_rig, plan_rig
+from mocapd.sim.silhouettes import SyntheticMattes
 from mocapd.sim.truth import TruthError
 
 #: watches a running daemon (from READY) until it returns; the daemon then stops
@@ -101,7 +103,7 @@ def assemble(
     built = build_rig(config, plan, clock)
     try:
         daemon = Daemon(config, built.rig, imu=built.imu, sinks=list(options.sinks), clock=clock,
-                        status_line=options.status_line)  # fmt: skip
+                        status_line=options.status_line, mattes=rig_mattes(config, built))  # fmt: skip
         daemon.handle_signals = False  # run() below owns them, from before the daemon exists to after it ends
         if options.sockets.http is not None:
             daemon.http = StatusServer(daemon.status, render_metrics, sock=options.sockets.http, actions=daemon.actions)
@@ -142,6 +144,19 @@ def ready_lines(built: Assembly) -> list[str]:
         lines.append(f"recording the session to {where} (then `mocapd resolve {where}`, `mocapd export {where} "
                      "--resolved --gltf take.glb`)")  # fmt: skip
     return lines
+
+
+def rig_mattes(config: Config, built: BuiltRig) -> MatteSource | None:
+    """The foreground mattes of the learned fusion (``[fusion]``): rendered on the synthetic rig, background
+    subtraction of the cameras' frames elsewhere; None in mode "solver" or without any camera frames."""
+    if config.fusion.mode == "solver":
+        return None
+    if built.world is not None:
+        return SyntheticMattes(built.world, built.epoch_ns, seed=config.synthetic.seed)
+    rings = {c.name: c.ring for c in built.captures}
+    if not rings:
+        return None
+    return RingMattes([rings.get(cam.name) for cam in built.rig.cameras])
 
 
 @contextlib.contextmanager

@@ -21,6 +21,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
@@ -40,11 +41,13 @@ from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.taps import TapOptions
 from mocapd.core.tracking import SubjectTracker
 from mocapd.core.yaw_drift import StillDrift
-from mocapd.errors import DeviceError, InputError
+from mocapd.errors import ConfigError, DeviceError, InputError
 from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
 from mocapd.io.sd_notify import SdNotifier
+from mocapd.pipeline.fusion import FusionModels, FusionStage
 from mocapd.pipeline.keypoint_source import KeypointSource
+from mocapd.pipeline.mattes import MatteSource, RingMattes
 from mocapd.pipeline.scheduler import (
     FixedLatencyScheduler,
     PoseFrame,
@@ -99,6 +102,34 @@ class Rig:
     targets: TrackTargets
     prior: PcaPrior | None = None
     suits: list[Suit] = field(default_factory=list)
+
+
+def build_fusion(config: Config, rig: Rig, mattes: MatteSource | None) -> FusionStage | None:
+    """The learned fusion's stage for ``[fusion]`` (None in mode "solver").
+
+    Raises
+    ------
+    ConfigError
+        A learned mode without camera frames for the mattes, or an output rate other than the 60 Hz the networks'
+        windows were trained at.
+    ModelError
+        The networks cannot be loaded.
+    """
+    f = config.fusion
+    if f.mode == "solver":
+        return None
+    if mattes is None:
+        raise ConfigError(
+            f"fusion.mode = {f.mode!r} needs camera frames for the foreground mattes (video, aravis, uvc or images "
+            "cameras, or the synthetic rig); this rig has none"
+        )
+    if config.daemon.output_rate_hz != 60.0:
+        raise ConfigError(
+            f"fusion.mode = {f.mode!r} needs daemon.output_rate_hz = 60 (the networks' windows are 60 Hz frames); "
+            f"got {config.daemon.output_rate_hz:g}"
+        )
+    models = FusionModels(None if f.model == "default" else Path(f.model), threads=f.threads)
+    return FusionStage(models, rig.cameras, rig.targets, rig.prior, config.solver.cost)
 
 
 def in_daemon_thread(fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
@@ -160,6 +191,9 @@ class Daemon:
     notifier : SdNotifier
     status_line : callable, optional
         Called with a one-line summary every second.
+    mattes : MatteSource, optional
+        The cameras' foreground mattes for the learned fusion (``[fusion] mode`` other than "solver" needs them);
+        a :class:`~mocapd.pipeline.mattes.RingMattes` is polled by the daemon.
     """
 
     def __init__(
@@ -172,6 +206,7 @@ class Daemon:
         clock: Callable[[], int] = time.monotonic_ns,
         notifier: SdNotifier | None = None,
         status_line: Callable[[str], None] | None = None,
+        mattes: MatteSource | None = None,
     ) -> None:
         self.config = config
         self.rig = rig
@@ -203,6 +238,8 @@ class Daemon:
             ),
             SuitBinder(rig.skeleton, config.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
         )
+        self.mattes = mattes
+        fusion = build_fusion(config, rig, mattes)
         self.scheduler = FixedLatencyScheduler(
             rig.cameras,
             rig.skeleton,
@@ -212,9 +249,12 @@ class Daemon:
             ingest=self.imu.ingest,
             suits=rig.suits,
             options=d.scheduler_options([c.name for c in rig.cameras]),
-            cost=config.solver.cost,
+            cost=config.fusion.options().cost(config.solver.cost),
             lm=config.solver.lm.options(),
             backend=config.solver.backend,
+            fusion=fusion,
+            fusion_mode=config.fusion.mode,
+            mattes=mattes,
         )
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
@@ -383,6 +423,8 @@ class Daemon:
             lifecycle.enter_phase("opening devices")
             self._startup_error = await self._open_devices()
             if self._startup_error is None:
+                if isinstance(self.mattes, RingMattes) and self.scheduler.fusion is not None:
+                    tasks.append(tg.create_task(self.supervisor.supervise("mattes", self._matte_loop), name="mattes"))
                 tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop), name="scheduler"))
                 tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop), name="status"))
                 pass  # gc.freeze()  # see _warm_up
@@ -441,6 +483,8 @@ class Daemon:
             Observations(
                 keypoints=np.zeros((n_cams, n_kp, 2)),
                 confidences=np.zeros((n_cams, n_kp)),
+                # the learned fusion's E_J has its own compiled kernel: load (or compile) it too
+                joint_positions=s.kin.forward(s.theta).positions if self.scheduler.fusion is not None else None,
                 dt=self.scheduler.options.dt,
             ),
             update_state=False,
@@ -494,6 +538,14 @@ class Daemon:
                 self.notifier.notify("WATCHDOG=1")
                 last_ping = published
             plan.advance(self.clock())
+
+    async def _matte_loop(self) -> None:
+        """Background subtraction of the cameras' newest frames at the learned stream's rate, off the event loop."""
+        assert isinstance(self.mattes, RingMattes) and self.scheduler.fusion is not None
+        period = self.scheduler.fusion.models.stride / self.scheduler.options.rate_hz
+        while True:
+            await in_daemon_thread(self.mattes.poll)
+            await asyncio.sleep(period)
 
     async def _status_loop(self) -> None:
         names = [c.name for c in self.rig.cameras]

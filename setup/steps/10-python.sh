@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Creates .venv/ (Python >= 3.11) and installs mocapd in editable mode with its dev tools.
+# Creates .venv/ (Python >= 3.11) and installs mocapd in editable mode with its dev tools and the [train] extra
+# (CPU PyTorch, for the learned-fusion training test; the daemon itself never imports it).
 # Re-installs only when pyproject.toml changed since the last successful install.
 set -euo pipefail
 py="${PYTHON:-python3}"
@@ -20,6 +21,6 @@ stamp=.venv/.mocapd-installed
 want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
     .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-    .venv/bin/python -m pip install -q -e ".[dev]"
+    .venv/bin/python -m pip install -q -e ".[dev,train]"
     echo "$want" > "$stamp"
 fi

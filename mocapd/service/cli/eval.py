@@ -23,6 +23,13 @@ def register(sub: Any) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="cap per sequence for the main table")
     p.add_argument("--sweep-frames", type=int, default=None, help="cap per sequence for sweep/ablation")
     p.add_argument("--clean", action="store_true", help="clean detections and IMUs (debugging)")
+    p.add_argument("--fusion", action="store_true", help="also seed 001's Table 6: the learned fusion's rows")
+    p.add_argument(
+        "--only-fusion", action="store_true", help="the learned fusion's rows alone (docs/learned-fusion.md)"
+    )
+    p.add_argument("--fusion-model", type=Path, default=None, help="networks folder (default: the shipped ones)")
+    p.add_argument("--fusion-frames", type=int, default=None, help="cap per sequence for the learned fusion's table")
+    p.add_argument("--no-scenarios", action="store_true", help="skip the learned fusion's noise scenarios")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true", help="no progress bar (it is drawn only on a terminal)")
     p.set_defaults(func=_run)
@@ -89,6 +96,20 @@ def _run(args: argparse.Namespace) -> int:
         opts = replace(opts, detections=DetectionNoise.clean(), imus=ImuNoise.clean())
     # A stop signal raises StopRequested in the experiments: the results directory is written only at the end.
     lifecycle.enter_phase("evaluating (results are written at the end)")
+    if args.fusion or args.only_fusion:
+        from mocapd.eval.fusion_eval import FusionEvalOptions
+
+        fo = FusionEvalOptions(
+            model=args.fusion_model,
+            max_frames=args.fusion_frames,
+            scenarios=not args.no_scenarios,
+            seed=args.seed,
+            lambda_learned=cfg.fusion.weight,
+        )
+        if args.quick:
+            fo = replace(fo, scenario_frames=60, scenario_configs=((8, 13), (4, 6)))
+        opts = replace(opts, fusion=fo, only_fusion=args.only_fusion)
     res = run_eval(opts, args.out, args.data_root)
-    print(json.dumps({"out": str(args.out), "targets": res["targets"], "setup": res["setup"]}, indent=2))
+    summary = {"targets": res.get("targets"), "setup": res["setup"]}
+    print(json.dumps({"out": str(args.out), **summary}, indent=2))
     return 0

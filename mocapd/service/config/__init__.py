@@ -36,6 +36,7 @@ from mocapd.service.config.cameras import (
 )
 from mocapd.service.config.daemon import DaemonConfig
 from mocapd.service.config.detector import DetectorSection
+from mocapd.service.config.fusion import FusionConfig
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.config.record import RecordConfig
 from mocapd.service.config.schema import PathStr, RuleError, Section, Seq, validate
@@ -197,6 +198,7 @@ class Config(Section):
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
     synthetic: SyntheticConfig = Field(default_factory=SyntheticConfig)
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
+    fusion: FusionConfig = Field(default_factory=FusionConfig)
 
     @model_validator(mode="after")
     def _ports_apart(self) -> Self:
@@ -333,7 +335,11 @@ def resolve_paths(config: Config, base: Path) -> Config:
     z = config.zenoh
     keys = ("password_file", "users_file", "tls_root_ca", "tls_cert", "tls_key")
     zenoh = z.model_copy(update={k: absolute(getattr(z, k)) for k in keys})
-    return config.model_copy(update={"cameras": tuple(cameras), "calibration": calibration, "zenoh": zenoh})
+    f = config.fusion
+    fusion = f if f.model == "default" else f.model_copy(update={"model": absolute(f.model)})
+    return config.model_copy(
+        update={"cameras": tuple(cameras), "calibration": calibration, "zenoh": zenoh, "fusion": fusion}
+    )
 
 
 def config_document(config: Config) -> dict[str, Any]:
