@@ -56,9 +56,9 @@ def test_a_fleeting_track_is_left_out_of_gltf_and_named(tmp_path: Path, capsys: 
     g = GLTF2().load(str(glb))
     assert sorted(a.name for a in g.animations) == ["suit:suit0", "track:1"]
     # Named, it is exported; and a session of fleeting subjects only keeps them all.
-    assert cli.main(["export", str(session), "--gltf", str(glb), "--subject", "track:2"]) == 0
+    assert cli.main(["export", str(session), "--gltf", str(glb), "--subject", "track:2", "--force"]) == 0
     assert json.loads(capsys.readouterr().out)["gltf_subjects"] == {"track:2": 2}
     short = _session(tmp_path / "short", {"track:1": (0, 12), "track:2": (3, 5)})
-    assert cli.main(["export", str(short), "--gltf", str(glb)]) == 0
+    assert cli.main(["export", str(short), "--gltf", str(glb), "--force"]) == 0
     said = capsys.readouterr()
     assert json.loads(said.out)["gltf_subjects"] == {"track:1": 12, "track:2": 5} and "left out" not in said.err
