@@ -111,3 +111,17 @@ def test_skew() -> None:
     rng = _rng(3)
     v, u = rng.normal(size=(10, 3)), rng.normal(size=(10, 3))
     np.testing.assert_allclose(np.einsum("nij,nj->ni", rot.skew(v), u), np.cross(v, u), atol=1e-12)
+
+
+def test_rotvec_principal_winds_back_whole_turns_and_keeps_the_rotation() -> None:
+    rng = np.random.default_rng(3)
+    r = rot.random_rotvec(rng, (200,))
+    axis = r / np.linalg.norm(r, axis=-1, keepdims=True)
+    wound = r + axis * 2.0 * np.pi * rng.integers(-30, 31, size=(200, 1))  # up to 30 turns either way
+    back = rot.rotvec_principal(wound)
+    assert np.all(np.linalg.norm(back, axis=-1) <= np.pi + 1e-9)
+    np.testing.assert_allclose(rot.matrix_from_rotvec(back), rot.matrix_from_rotvec(wound), atol=1e-9)
+    np.testing.assert_allclose(back, r, atol=1e-9)  # the principal vector of each rotation
+    assert np.array_equal(rot.rotvec_principal(r), r)  # in range: bit for bit unchanged
+    assert np.array_equal(rot.rotvec_principal(np.zeros((2, 3))), np.zeros((2, 3)))
+    np.testing.assert_allclose(rot.rotvec_principal(np.array([0.0, 2.0 * np.pi, 0.0])), 0.0, atol=1e-12)

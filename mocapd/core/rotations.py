@@ -201,6 +201,21 @@ def rotvec_from_quat(q: FloatArray) -> FloatArray:
     return np.asarray(k * v)
 
 
+def rotvec_principal(r: FloatArray) -> FloatArray:
+    """The same rotations as rotation vectors of angle at most π: (..., 3) -> (..., 3).
+
+    ``r`` and ``r - 2πk · r/|r|`` are one rotation; this takes the ``k`` that brings the angle into [0, π] (at
+    exactly π either sign is the rotation). Unlike :func:`rotvec_from_quat` ∘ :func:`quat_from_rotvec` it leaves a
+    vector already in range bit for bit unchanged.
+    """
+    r = np.asarray(r, dtype=np.float64)
+    angle = np.linalg.norm(r, axis=-1, keepdims=True)
+    turns = np.floor((angle - np.pi) / (2.0 * np.pi)) + 1.0  # 0 while angle < π
+    wound = turns > 0.0
+    scale = np.where(wound, 1.0 - 2.0 * np.pi * turns / np.where(wound, angle, 1.0), 1.0)
+    return np.asarray(r * scale)
+
+
 def matrix_from_rotvec(r: FloatArray) -> FloatArray:
     """SO(3) exponential (Rodrigues): (..., 3) -> (..., 3, 3)."""
     r = np.asarray(r, dtype=np.float64)

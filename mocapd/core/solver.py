@@ -35,6 +35,7 @@ from mocapd.core.lm import LMOptions, Termination, levenberg_marquardt
 from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss, corrector_weights
 from mocapd.core.observations import Observations, ValidatedObservations
 from mocapd.core.prior import PcaPrior
+from mocapd.core.rotations import rotvec_principal
 from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
 from mocapd.core.terms import (
     CostOptions,
@@ -779,7 +780,7 @@ class PoseSolver:
             if theta0 is None:
                 start = self._recentre(start, v)
         result = self._minimize(start.copy(), v)
-        theta = result.theta
+        theta = principal_pose(result.theta)
         published = theta
         if self.ground is not None and result.summary.converged:
             tracker = self.ground if update_state else self.ground.copy()
@@ -850,6 +851,22 @@ def _loss_code(loss: Loss, term: str) -> tuple[int, float]:
         f"the compiled solver backend supports Trivial, Cauchy and Huber losses; the {term} term "
         f"has {type(loss).__name__} (use backend='numpy' for custom losses)"
     )
+
+
+def principal_pose(theta: FloatArray) -> FloatArray:
+    """``theta`` (66,) with every bone's rotation vector wound back to an angle of at most π (the same pose).
+
+    The minimiser steps in rotation-vector space, where a joint can wind past π and on by whole turns: the IMU and
+    keypoint terms see the same rotation, but the pose prior (a Gaussian over θ) sees a vector far from every pose
+    it knows, where its Cauchy loss is flat. A solve started far from the body (the rest pose while a suit's first
+    sensors stream, or samples of different instants) wound joints that no sensor fixes — spine, neck, hands, toes
+    — by up to tens of turns, and with the prior no longer pulling, the warm start kept that pose for good
+    (the IMU-only demo at 110-190 mm joint error instead of 50 mm). Winding back after every solve keeps the prior
+    meaningful; the pose itself does not change.
+    """
+    out = theta.copy()
+    out[3:] = rotvec_principal(theta[3:].reshape(-1, 3)).reshape(-1)
+    return out
 
 
 def _check_theta(theta: FloatArray) -> FloatArray:
