@@ -84,6 +84,11 @@ def video_inputs(
     from mocapd.pipeline.detector import OnnxPoseDetector
 
     take = pose2sim_take(demo)
+    if take.subjects != 1:
+        raise InputError(
+            f"{demo}: {take.subjects} performers; this evaluation takes each view's largest person as its one subject"
+            " (it has no cross-view association): only Demo_SinglePerson"
+        )
     dets = detect_take(
         take, lambda: OnnxPoseDetector.from_config(eval_detector_config(detector)), min(max_frames, take.n_frames)
     )
