@@ -350,3 +350,48 @@ def test_eval_accuracy_gains_table_6(tmp_path: Path, capsys: pytest.CaptureFixtu
             assert r["ms_per_frame"] > 0 or name == "raw-IMU LSTM", (cfg, name)
         assert rows["LM solver"]["orientation_deg"] is not None and rows["both"]["orientation_deg"] is not None
     assert "seed 001 Table 6" in (out / "tables.md").read_text()
+
+
+def test_real_footage_errors_are_issue_29s_held_out_view_metric() -> None:
+    """tools/eval_fusion_video.py scores with mocapd.eval.heldout (docs/accuracy-video.md): a method's person is
+    matched to one of the held-out camera's detections, one far from every detection is not compared at all, and
+    only the 12 limb keypoints the learned joints sit on are compared; the input is each view's largest person."""
+    from mocapd.core.sorting import Detections2D
+    from mocapd.core.synthetic import moving_sequence, ring_rig
+    from mocapd.eval.fusion_video import LIMB_KEYPOINTS, held_out_grid, subject_keypoints
+
+    sk = Skeleton.from_height(1.7)
+    kin, tg = Kinematics(sk), coco17_targets(sk)
+    thetas = moving_sequence(sk, 6, fps=60.0, seed=3)
+
+    def person(dx: float, dz: float) -> np.ndarray:
+        th = thetas.copy()
+        th[:, 0] += dx
+        th[:, 2] += dz  # y is up
+        return np.stack([kin.targets(kin.forward(t), tg.bones, tg.offsets) for t in th])  # (6, 17, 3)
+
+    cam = ring_rig(4, radius=4.5)[0]
+    subject, bystander = person(0.0, 0.0), person(0.5, 3.0)  # the bystander further from this camera: smaller
+    if np.linalg.norm(cam.t + cam.R @ bystander[0, 0]) < np.linalg.norm(cam.t + cam.R @ subject[0, 0]):
+        subject, bystander = person(0.0, 0.0), person(0.5, -3.0)
+    dets = []
+    for f in range(6):
+        uv = np.stack([cam.project(bystander[f]), cam.project(subject[f])])  # the bystander first
+        conf = np.full((2, 17), 0.9)
+        uv[1, 9] += (6.0, 8.0)  # the subject's left wrist detected 10 px off
+        dets.append(Detections2D(uv, conf))
+    uv_s, conf_s = subject_keypoints([[d] for d in dets])
+    assert np.allclose(uv_s[:, 0], np.stack([d.keypoints[1] for d in dets]))  # the largest person
+    assert conf_s.shape == (6, 1, 17)
+
+    limbs = list(LIMB_KEYPOINTS)
+    g = held_out_grid(subject[:, limbs], cam, dets, 3)
+    assert g.shape == (6, 3, 17)
+    assert np.all(np.isnan(g[:, [0, 2]]))  # matched to the subject's detection only
+    assert np.allclose(g[:, 1, 9], 10.0) and np.nanmax(np.delete(g[:, 1], 9, axis=1)) < 1e-6
+    assert np.all(np.isnan(g[:, 1, :5]))  # nose, eyes, ears: not joints the learned stream has
+    assert np.count_nonzero(np.isfinite(g)) == 6 * 12
+    # A reconstruction of the bystander is compared with the bystander's detection, not with the subject's.
+    assert np.nanmax(held_out_grid(bystander[:, limbs], cam, dets, 3)[:, 0]) < 1e-6
+    # One 3 m from everybody is not compared (the old own metric counted it as a large error).
+    assert np.all(np.isnan(held_out_grid(subject[:, limbs] + (3.0, 3.0, 0.0), cam, dets, 3)))

@@ -5,7 +5,7 @@ Usage::
 
     .venv/bin/python tools/eval_fusion_video.py [--model DIR] [--demo Demo_SinglePerson] [--out results/fusion-video]
 
-Runs the detector over every frame of the demo's four cameras once (cached in ~/.cache/mocapd/fusion-video/),
+Takes the detections ``mocapd eval video`` makes of the demo (cached in ~/.cache/mocapd/eval-video/: the same file),
 then mocapd.eval.fusion_video's comparison; prints the JSON and writes ``video.json`` and ``video.md``.
 """
 
