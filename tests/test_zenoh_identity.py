@@ -90,8 +90,19 @@ def _zenoh(section: dict[str, Any]) -> Any:
                                    "lost_after_s": 1.0, **section}}).zenoh  # fmt: skip
 
 
+def _heard(rig: RemoteRig, host: str) -> dict[str, int]:
+    """Wait until ``host``'s status has been heard; what was refused from it until then. A clock reply that
+    overtakes the host's first status is refused (``clock_before_status``): the honest host's own start-up race,
+    counted before the attacker connects, so the tests compare what is refused after."""
+    deadline = time.monotonic() + 30.0
+    while rig.status()[host]["run_id"] is None:
+        assert time.monotonic() < deadline, rig.status()[host]
+        time.sleep(0.05)
+    return dict(rig.status()[host]["rejected"])
+
+
 @pytest.fixture
-def attack(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[RemoteRig, list[bytes]]]:
+def attack(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[RemoteRig, list[bytes], dict[str, int]]]:
     """The solver host's RemoteRig (identities on or off: ``request.param``), host B honest, host A publishing its
     own status and B's; yields the rig and every payload the solver's session received on host B's keys."""
     pw = _users(tmp_path)
@@ -116,13 +127,14 @@ def attack(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[Rem
 
     try:
         peers.append(Peer(host("hostB"), "hostB", run_id=0xB))
+        before = _heard(rig, "hostB")
         a = host("hostA")
         peers.append(Peer(a, "hostA", run_id=0xA))
         # Host A speaking for host B on B's keys, 30 s in the future of B's clock (a clock reply that agrees with
         # its own status messages, so plausible on its own).
         peers.append(Peer(a, "hostB", run_id=0x666, clock_skew_ns=30_000_000_000))
         time.sleep(3.0)
-        yield rig, seen
+        yield rig, seen, before
     finally:
         for p in peers:
             p.stop.set()
@@ -134,12 +146,14 @@ def attack(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[Rem
 
 
 @pytest.mark.parametrize("attack", [True], indirect=True)
-def test_a_host_cannot_publish_or_answer_for_another_host(attack: tuple[RemoteRig, list[bytes]]) -> None:
-    rig, seen = attack
+def test_a_host_cannot_publish_or_answer_for_another_host(
+    attack: tuple[RemoteRig, list[bytes], dict[str, int]],
+) -> None:
+    rig, seen, before = attack
     st = rig.status()
     b, a = st["hostB"], st["hostA"]
     assert b["run_id"] == f"{0xB:016x}" and b["restarts"] == 0 and b["round_trips"] > 0, b
-    assert b["rejected"] == {}, b  # A's status, detections and clock replies never reached the solver host
+    assert b["rejected"] == before, b  # A's status, detections and clock replies never reached the solver host
     assert abs(b["clock_offset_ms"]) < 100, b  # B's own clock (one machine: offset 0), not A's 30 s
     runs = _runs(seen)
     assert runs == {0xB}  # on B's keys only B's own messages arrived
@@ -147,9 +161,11 @@ def test_a_host_cannot_publish_or_answer_for_another_host(attack: tuple[RemoteRi
 
 
 @pytest.mark.parametrize("attack", [False], indirect=True)
-def test_without_identities_another_host_gets_into_a_hosts_keys(attack: tuple[RemoteRig, list[bytes]]) -> None:
+def test_without_identities_another_host_gets_into_a_hosts_keys(
+    attack: tuple[RemoteRig, list[bytes], dict[str, int]],
+) -> None:
     """The same peers without ``identities``: what the session admitted before (and on loopback still does)."""
-    rig, seen = attack
+    rig, seen, _ = attack
     b = rig.status()["hostB"]
     assert b["rejected"].get("run_conflict", 0) > 0  # A's status for B got through and was refused by its run id
     assert _runs(seen) == {0xB, 0x666}
@@ -234,11 +250,12 @@ def test_with_mutual_tls_a_host_is_its_certificates_name(tmp_path: Path) -> None
     try:
         b = open_session(_zenoh({"listen": [], "connect": [endpoint], **tls("hostB")}))
         peers.append(Peer(b, "hostB", run_id=0xB))
+        before = _heard(rig, "hostB")
         a = open_session(_zenoh({"listen": [], "connect": [endpoint], **tls("hostA")}))
         peers += [Peer(a, "hostA", run_id=0xA), Peer(a, "hostB", run_id=0x666, clock_skew_ns=30_000_000_000)]
         time.sleep(3.0)
         st = rig.status()
-        assert st["hostB"]["run_id"] == f"{0xB:016x}" and st["hostB"]["rejected"] == {}, st["hostB"]
+        assert st["hostB"]["run_id"] == f"{0xB:016x}" and st["hostB"]["rejected"] == before, st["hostB"]
         assert st["hostB"]["round_trips"] > 0 and abs(st["hostB"]["clock_offset_ms"]) < 100, st["hostB"]
         assert st["hostA"]["run_id"] == f"{0xA:016x}" and st["hostA"]["identity"] == "cert:hostA"
         assert rig.links() == ["cert:hostA", "cert:hostB"]
