@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -50,3 +51,15 @@ def scene() -> Scene:
     prior = PcaPrior.fit(np.concatenate(pool), 0.95)
     obs = exact_observations(sk, cams, targets, imus, truth)
     return Scene(sk, cams, targets, imus, prior, truth, obs)
+
+
+@pytest.fixture(scope="session")
+def tiny_fusion_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The learned fusion's networks from a seconds-long training run of the whole recipe (PVH networks with the
+    single-channel ablation, LSTMs, fusion layer) and its ONNX export: the networks the tests run (the real ones,
+    ~50 min of training, are not in the repository)."""
+    from mocapd.eval.fusion_train import FusionRecipe, train
+
+    out = tmp_path_factory.mktemp("fusion")
+    train(FusionRecipe.tiny(), out, ablation=True)
+    return out

@@ -16,16 +16,17 @@ from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.pvh import MATTE, PvhGrid, carve, joint_map, log_channels, person_centre, scaled_pixels
 from mocapd.core.skeleton import BONE_INDEX, Skeleton
+from mocapd.errors import ModelError
 from mocapd.eval.data import load_splits
 from mocapd.eval.fusion_data import training_clips
-from mocapd.eval.simulate import DetectionNoise, simulate_detections, totalcapture_ring
+from mocapd.eval.simulate import totalcapture_ring
 from mocapd.pipeline.frame_ring import FrameRing
 from mocapd.pipeline.fusion import (
     PROVENANCE_FILE,
     FusionModels,
     PersonFusion,
     available_variants,
-    default_model_dir,
+    reference_provenance,
 )
 from mocapd.pipeline.mattes import BackgroundMatte, FrameMattes, RingMattes
 from mocapd.sim.silhouettes import MatteNoise, proxy_shapes, render_silhouette, simulated_matte
@@ -224,13 +225,9 @@ def test_window_index_with_stride_repeats_the_phase_start() -> None:
 
 # ---------------------------------------------------------------------------------------- training and export
 @pytest.fixture(scope="module")
-def tiny_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A seconds-long training run of the whole recipe (PVH network, LSTMs, fusion layer) and its ONNX export."""
-    from mocapd.eval.fusion_train import FusionRecipe, train
-
-    out = tmp_path_factory.mktemp("fusion")
-    train(FusionRecipe.tiny(), out, ablation=True)
-    return out
+def tiny_models(tiny_fusion_models: Path) -> Path:
+    """A seconds-long training run of the whole recipe and its ONNX export (conftest)."""
+    return tiny_fusion_models
 
 
 def test_training_exports_networks_that_onnxruntime_runs_as_torch_does(tiny_models: Path) -> None:
@@ -280,24 +277,20 @@ def test_runtime_streaming_windows_equal_the_training_windows(tiny_models: Path)
     assert alone.fused is None and np.array_equal(alone.joints, alone.vision)
 
 
-def test_the_recipe_reproduces_what_it_recorded_beside_the_shipped_networks(tiny_models: Path) -> None:
-    """The shipped networks' provenance records the CI recipe's validation errors as run when they were trained;
+def test_the_recipe_reproduces_what_it_recorded_beside_the_reference_networks(tiny_models: Path) -> None:
+    """The reference training's provenance records the CI recipe's validation errors as run when it trained;
     the same recipe run now (the fixture) must give them again. A change to the recipe's code, the simulator or
-    a library under them shows here (retraining the shipped networks themselves takes hours)."""
-    shipped = json.loads((default_model_dir() / PROVENANCE_FILE).read_text())["reproduction_check"]
+    a library under them shows here (retraining the reference networks themselves takes most of an hour)."""
+    shipped = reference_provenance()["reproduction_check"]
     now = json.loads((tiny_models / PROVENANCE_FILE).read_text())["validation_mean_mm"]
     assert now.keys() == shipped["validation_mean_mm"].keys()
     for k, v in shipped["validation_mean_mm"].items():
         assert now[k] == pytest.approx(v, rel=0.02), f"{k}: {now[k]} mm now, {v} mm recorded"
 
 
-# ---------------------------------------------------------------------------------------- the shipped networks
-def test_shipped_networks_have_their_provenance_and_load() -> None:
-    d = default_model_dir()
-    prov = json.loads((d / PROVENANCE_FILE).read_text())
-    for name, sha in prov["files"].items():
-        if (d / name).is_file():
-            assert hashlib.sha256((d / name).read_bytes()).hexdigest() == sha, f"{name} is not the recorded file"
+# ---------------------------------------------------------------------------------------- the reference training
+def test_the_reference_training_used_development_cmu_motion_only(tiny_models: Path) -> None:
+    prov = reference_provenance()
     # Trained on CMU motion only (the only licence here that allows a shipped artefact), none of it evaluated on.
     evaluation = {str(p) for p in load_splits()["evaluation"]}
     train, val = training_clips()
@@ -306,35 +299,22 @@ def test_shipped_networks_have_their_provenance_and_load() -> None:
     }
     assert all("cmu" in s["path"] for s in prov["source_files"])
     assert not {str(p) for p in (*train, *val)} & evaluation
-    models = FusionModels()
-    assert models.stride == prov["recipe"]["stride"] and models.grid.size == prov["recipe"]["grid_size"]
+    tiny = json.loads((tiny_models / PROVENANCE_FILE).read_text())
+    models = FusionModels(tiny_models)  # a folder's recipe sets the runtime's grid and stride
+    assert models.stride == tiny["recipe"]["stride"] and models.grid.size == tiny["recipe"]["grid_size"]
+    with pytest.raises(ModelError, match=r"tools/train_fusion\.py --out"):
+        FusionModels(tiny_models / "nowhere")
 
 
-def test_shipped_network_finds_a_clean_simulated_person() -> None:
-    """The shipped PVH network on a clean 8-camera hull of a development-split frame: joints within decimetres."""
-    from mocapd.eval.data import load_clip
-    from mocapd.eval.fusion_data import training_clips, vision_inputs
-
-    models = FusionModels()
-    clip = load_clip(training_clips()[1][0])
-    cams = totalcapture_ring(8)
-    rng = np.random.default_rng(0)
-    uv, conf = simulate_detections(clip, cams, coco17_targets(clip.skeleton), DetectionNoise.clean(), rng)
-    frames = np.arange(0, clip.n_frames, 50)
-    vi = vision_inputs(clip, cams, uv, conf, models.grid, MatteNoise.clean(), rng, frames)
-    rel = models.cnn(vi.pvh.astype(np.float32) / 255.0).reshape(-1, 21, 3)
-    err = np.linalg.norm(rel + vi.centre[:, None] - clip.positions[frames], axis=-1)
-    assert np.median(err) < 0.1, np.median(err)
-
-
-def test_eval_accuracy_gains_table_6(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_eval_accuracy_gains_table_6(tmp_path: Path, capsys: pytest.CaptureFixture[str], tiny_models: Path) -> None:
     """``mocapd eval accuracy --only-fusion`` on a few frames of the quick split: every Table 6 row for every camera ×
     IMU configuration, finite, with its cost per frame; the markdown has the table."""
     from mocapd.eval.fusion_eval import NETWORK_ROWS, SOLVE_ROWS
     from mocapd.service.cli import main
 
     out = tmp_path / "t6"
-    args = ["eval", "accuracy", "--quick", "--only-fusion", "--fusion-frames", "24", "--no-scenarios"]
+    args = ["eval", "accuracy", "--quick", "--only-fusion", "--fusion-frames", "24", "--no-scenarios",
+            "--fusion-model", str(tiny_models)]  # fmt: skip
     assert main([*args, "--no-progress", "--out", str(out)]) == 0
     capsys.readouterr()
     data = json.loads((out / "results.json").read_text())
@@ -395,3 +375,17 @@ def test_real_footage_errors_are_issue_29s_held_out_view_metric() -> None:
     assert np.nanmax(held_out_grid(bystander[:, limbs], cam, dets, 3)[:, 0]) < 1e-6
     # One 3 m from everybody is not compared (the old own metric counted it as a large error).
     assert np.all(np.isnan(held_out_grid(subject[:, limbs] + (3.0, 3.0, 0.0), cam, dets, 3)))
+
+
+def test_eval_accuracy_without_trained_networks_says_how_to_train_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The networks are trained by the user (no weights are committed): without them the Table 6 evaluation stops
+    before its work with one line naming the command."""
+    from mocapd.service.cli import main
+
+    args = ["eval", "accuracy", "--quick", "--only-fusion", "--no-scenarios", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "t6"), "--fusion-model", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: learned fusion: cannot read") and "tools/train_fusion.py --out" in err, err
+    assert not (tmp_path / "t6").exists()

@@ -1,7 +1,7 @@
-"""The learned fusion in the daemon (issue 30): ``[fusion] mode = "both"`` on the synthetic rig, in-process, with the
-shipped networks run by onnxruntime: the learned stream runs every third tick for both tracked people (the suit
-wearer's with its IMU-only solve), its joints enter the LM solve, the poses stay on the synthetic truth; and the
-configurations the fusion cannot run are refused with a clear message."""
+"""The learned fusion in the daemon (issue 30): ``[fusion] mode = "both"`` on the synthetic rig, in-process, with
+networks of the CI training recipe run by onnxruntime: the learned stream runs every third tick for both tracked
+people (the suit wearer's with its IMU-only solve), its joints enter the LM solve, the poses stay on the synthetic
+truth; and the configurations the fusion cannot run are refused with a clear message."""
 
 from __future__ import annotations
 
@@ -20,27 +20,33 @@ from mocapd.service.demo.synthetic import synthetic_config
 
 from .test_daemon import Recorder, wait_for
 
-MODEL = os.environ.get("MOCAPD_TEST_FUSION_MODEL", "default")
-"""The networks under test (the shipped ones; a folder from tools/train_fusion.py while developing)."""
+MODEL = os.environ.get("MOCAPD_TEST_FUSION_MODEL")
+"""The networks under test: the seconds-long training run's (conftest), or a folder from tools/train_fusion.py
+while developing."""
 
 
-def _config(mode: str) -> Config:
+@pytest.fixture
+def networks(tiny_fusion_models: Path) -> str:
+    return MODEL or str(tiny_fusion_models)
+
+
+def _config(mode: str, networks: str) -> Config:
     cfg = load_config()
     return synthetic_config(
         cfg.model_copy(
             update={
                 "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
                 "websocket": cfg.websocket.model_copy(update={"enabled": False}),
-                "fusion": cfg.fusion.model_copy(update={"mode": mode, "model": MODEL}),
+                "fusion": cfg.fusion.model_copy(update={"mode": mode, "model": networks}),
             }
         )
     )
 
 
 @pytest.mark.asyncio
-async def test_both_mode_feeds_the_learned_joints_into_every_persons_solve() -> None:
+async def test_both_mode_feeds_the_learned_joints_into_every_persons_solve(networks: str) -> None:
     rec = Recorder()
-    with assembled(_config("both"), RunOptions(sinks=[rec])) as demo:
+    with assembled(_config("both", networks), RunOptions(sinks=[rec])) as demo:
         d = demo.daemon
         stage = d.scheduler.fusion
         assert stage is not None and d.scheduler.fusion_mode == "both"
@@ -69,15 +75,15 @@ async def test_both_mode_feeds_the_learned_joints_into_every_persons_solve() -> 
     assert len(errors) >= 240 and float(np.median(errors)) < 0.03
 
 
-def test_learned_modes_are_refused_where_they_cannot_run() -> None:
-    cfg = _config("both")
+def test_learned_modes_are_refused_where_they_cannot_run(networks: str) -> None:
+    cfg = _config("both", networks)
     rig = Rig([], [], None, None)  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match="needs camera frames for the foreground mattes"):
         build_fusion(cfg, rig, None)
     fast = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"output_rate_hz": 100.0})})
     with pytest.raises(ConfigError, match=r"needs daemon\.output_rate_hz = 60"):
         build_fusion(fast, rig, object())  # type: ignore[arg-type]
-    assert build_fusion(_config("solver"), rig, None) is None
+    assert build_fusion(_config("solver", networks), rig, None) is None
     missing = cfg.model_copy(update={"fusion": cfg.fusion.model_copy(update={"model": str(Path("/nonexistent"))})})
     with pytest.raises(ModelError, match=r"train the networks with tools/train_fusion\.py"):
         build_fusion(missing, rig, object())  # type: ignore[arg-type]

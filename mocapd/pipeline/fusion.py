@@ -14,8 +14,9 @@ Per tracked person, every :data:`~mocapd.core.fusion_features.STRIDE`-th tick (2
 
 The result (:class:`LearnedJoints`) enters the person's LM solve as soft 3D joint observations (``[fusion] mode =
 "both"``, the E_J term), or replaces the cameras and IMUs in it (``"learned"``: the skeleton fitted to the learned
-joints, prior and floor kept). The default files ship in ``mocapd/data`` with their provenance (``fusion.json``,
-``tools/train_fusion.py``).
+joints, prior and floor kept). The networks are trained here (``tools/train_fusion.py``, ~50 min on two cores)
+into the cache (:func:`default_model_dir`), not kept in the repository (no model weights are committed);
+``mocapd/data/fusion.json`` is the provenance of the reference training every published number comes from.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.core.solver import Observations, PoseSolver
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ModelError
+from mocapd.io.model_cache import cache_dir
 
 FloatArray = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -55,17 +57,25 @@ Mode = Literal["solver", "learned", "both"]
 
 
 def default_model_dir() -> Path:
-    """Where the shipped networks are (``mocapd/data``)."""
-    return Path(str(resources.files("mocapd").joinpath("data")))
+    """Where ``tools/train_fusion.py`` writes the networks by default: ``<cache>/fusion``."""
+    return cache_dir() / "fusion"
+
+
+def reference_provenance() -> dict[str, Any]:
+    """The reference training's provenance (``mocapd/data/fusion.json``: sources, recipe, file hashes, the CI
+    recipe's reproduction check), the run docs/learned-fusion.md's numbers come from."""
+    text = resources.files("mocapd").joinpath("data", PROVENANCE_FILE).read_text(encoding="utf-8")
+    prov: dict[str, Any] = json.loads(text)
+    return prov
 
 
 def cnn_file(variant: str) -> str:
-    """File of a PVH network variant: "both" (shipped), "matte" or "joints" (Table 6's single-channel ablation)."""
+    """File of a PVH network variant: "both" (the daemon's), "matte" or "joints" (Table 6's single-channel ablation)."""
     return CNN_FILE if variant == "both" else CNN_FILE.replace(".onnx", f"_{variant}.onnx")
 
 
 def available_variants(directory: Path | None = None) -> tuple[str, ...]:
-    """The PVH network variants whose files are in ``directory`` (default: the shipped folder)."""
+    """The PVH network variants whose files are in ``directory`` (default: :func:`default_model_dir`)."""
     d = default_model_dir() if directory is None else Path(directory)
     return tuple(v for v in ("both", "matte", "joints") if (d / cnn_file(v)).is_file())
 
@@ -75,7 +85,7 @@ class FusionModels:
 
     Parameters
     ----------
-    directory : folder with the ONNX files and ``fusion.json`` (default: the shipped ones).
+    directory : folder with the ONNX files and ``fusion.json`` (default: :func:`default_model_dir`).
     threads : onnxruntime intra-op threads per session (1: the daemon's other work keeps the second core).
     variants : PVH network variants to load (:func:`cnn_file`).
     raw_imu : also load the raw-IMU LSTM (Table 6).
@@ -94,7 +104,8 @@ class FusionModels:
             self.provenance: dict[str, Any] = json.loads(prov.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise ModelError(
-                f"learned fusion: cannot read {prov} ({exc}); train the networks with tools/train_fusion.py"
+                f"learned fusion: cannot read {prov} ({exc}); train the networks with tools/train_fusion.py "
+                f"--out {self.directory} (~50 min on two cores, docs/learned-fusion.md)"
             ) from exc
         recipe = self.provenance.get("recipe", {})
         self.grid = PvhGrid(
@@ -232,7 +243,7 @@ class FusionOptions:
     loss_scale: float = 1.0
     """Cauchy scale of E_J, in units of sqrt(λ_J) · metres."""
     model: str = "default"
-    """"default" (the shipped networks in mocapd/data) or a folder with the files tools/train_fusion.py writes."""
+    """"default" (:func:`default_model_dir`) or a folder with the files tools/train_fusion.py writes."""
     threads: int = 1
     """onnxruntime intra-op threads."""
 

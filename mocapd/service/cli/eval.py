@@ -97,8 +97,15 @@ def _run(args: argparse.Namespace) -> int:
     # A stop signal raises StopRequested in the experiments: the results directory is written only at the end.
     lifecycle.enter_phase("evaluating (results are written at the end)")
     if args.fusion or args.only_fusion:
+        from mocapd.errors import ModelError
         from mocapd.eval.fusion_eval import FusionEvalOptions
+        from mocapd.pipeline.fusion import FusionModels
 
+        try:  # before the hours of evaluation: the networks are trained by the user, not shipped
+            FusionModels(args.fusion_model)
+        except ModelError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         fo = FusionEvalOptions(
             model=args.fusion_model,
             max_frames=args.fusion_frames,

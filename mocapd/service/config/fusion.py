@@ -21,7 +21,8 @@ class FusionConfig(Section):
     loss_scale: float = Field(FusionOptions.loss_scale, gt=0.0, le=1e6)
     """Cauchy scale of E_J in units of sqrt(λ_J) · metres (1 with λ_J = 100: errors past 10 cm count less)."""
     model: PathStr = Field("default", min_length=1)
-    """"default" (the shipped networks, mocapd/data/fusion_*.onnx) or a folder written by tools/train_fusion.py."""
+    """"default" (the networks tools/train_fusion.py writes to the cache, ~/.cache/mocapd/fusion) or a folder it
+    wrote."""
     threads: int = Field(1, ge=1, le=64)
     """onnxruntime threads of the networks."""
 
