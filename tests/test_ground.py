@@ -312,7 +312,6 @@ def test_a_foot_turning_on_its_heel_stands() -> None:
 WALK = default_data_root() / "mocap" / "bandai" / "dataset-1_walk_normal_001.bvh"
 
 
-@pytest.mark.skipif(not WALK.is_file(), reason="no shared data")
 def test_imu_only_strides_cover_the_floor_on_a_recorded_walk() -> None:
     """Issue 28 on a recorded 8 m walk (the development split's Bandai 'walk normal'), 0 cameras + 13 noisy IMUs:
     the root's path is within 4 % of the truth's and its height within 3 cm (p95). Pinning the ankle and toe joints

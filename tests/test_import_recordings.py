@@ -181,7 +181,6 @@ def test_calibration_takes_the_facing_from_the_steps_and_refuses_a_mirrored_one(
     assert "no steps" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not (default_data_root() / "imu" / "opensense_mtw").is_dir(), reason="no shared data")
 def test_the_wrong_sign_of_a_real_pelvis_axis_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Issue 28, friction 3, on the real OpenSense MTw take: with ``--facing-from 00B42279:-z`` every command used to
     succeed with the knees bending backwards in every step; it is refused, naming +z, which is accepted (and the
