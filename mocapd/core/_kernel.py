@@ -157,6 +157,19 @@ def _accumulate_block(
 
 
 @nb.njit(cache=True)
+def _joint_axes(Q: FloatArray, Jr: FloatArray) -> FloatArray:
+    """Each joint's rotation-vector Jacobian in world axes, Q_b · Jr_b (nb, 3, 3): the columns a row's derivative
+    is spread along (:func:`_spread_row`)."""
+    nb_ = Q.shape[0]
+    axes = np.empty((nb_, 3, 3))
+    for b in range(nb_):
+        for i in range(3):
+            for j in range(3):
+                axes[b, i, j] = Q[b, i, 0] * Jr[b, 0, j] + Q[b, i, 1] * Jr[b, 1, j] + Q[b, i, 2] * Jr[b, 2, j]
+    return axes
+
+
+@nb.njit(cache=True)
 def _spread_row(
     H: FloatArray,
     g: FloatArray,
@@ -484,11 +497,7 @@ def evaluate(
         return cost
 
     # -- spread per-row blocks into the 66×66 system along each row's kinematic chain
-    axes = np.empty((nb_, 3, 3))
-    for b in range(nb_):
-        for i in range(3):
-            for j in range(3):
-                axes[b, i, j] = Q[b, i, 0] * Jr[b, 0, j] + Q[b, i, 1] * Jr[b, 1, j] + Q[b, i, 2] * Jr[b, 2, j]
+    axes = _joint_axes(Q, Jr)
     cols = np.empty(3 + 3 * nb_)
     Jrow = np.empty((3, 3 + 3 * nb_))
     Mrow = np.empty((3, 3 + 3 * nb_))

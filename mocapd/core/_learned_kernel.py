@@ -15,7 +15,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core._kernel import _corrector, _forward, _loss, _spread_row
+from mocapd.core._kernel import _corrector, _forward, _joint_axes, _loss, _spread_row
 
 FloatArray = NDArray[np.float64]
 
@@ -52,12 +52,7 @@ def learned_term(
             g[i] = 0.0
             for j in range(H.shape[1]):
                 H[i, j] = 0.0
-    axes = np.empty((nb_, 3, 3))
-    if jac:
-        for b in range(nb_):
-            for i in range(3):
-                for j in range(3):
-                    axes[b, i, j] = Q[b, i, 0] * Jr[b, 0, j] + Q[b, i, 1] * Jr[b, 1, j] + Q[b, i, 2] * Jr[b, 2, j]
+    axes = _joint_axes(Q, Jr) if jac else np.empty((nb_, 3, 3))
     cols = np.empty(3 + 3 * nb_)
     Jrow = np.empty((3, 3 + 3 * nb_))
     Mrow = np.empty((3, 3 + 3 * nb_))
