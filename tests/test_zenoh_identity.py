@@ -101,6 +101,17 @@ def _heard(rig: RemoteRig, host: str) -> dict[str, int]:
     return dict(rig.status()[host]["rejected"])
 
 
+def _close(peers: list[Peer], rig: RemoteRig) -> None:
+    """Stop the peers' threads, close their sessions (a host may run several peers on one) and the rig."""
+    for p in peers:
+        p.stop.set()
+    for p in peers:
+        p.thread.join()
+    for s in {id(p.session): p.session for p in peers}.values():
+        s.close()  # type: ignore[no-untyped-call]
+    rig.close()
+
+
 @pytest.fixture
 def attack(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[RemoteRig, list[bytes], dict[str, int]]]:
     """The solver host's RemoteRig (identities on or off: ``request.param``), host B honest, host A publishing its
@@ -136,13 +147,7 @@ def attack(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[Rem
         time.sleep(3.0)
         yield rig, seen, before
     finally:
-        for p in peers:
-            p.stop.set()
-        for p in peers:
-            p.thread.join()
-        for s in {id(p.session): p.session for p in peers}.values():
-            s.close()  # type: ignore[no-untyped-call]
-        rig.close()
+        _close(peers, rig)
 
 
 @pytest.mark.parametrize("attack", [True], indirect=True)
@@ -260,10 +265,4 @@ def test_with_mutual_tls_a_host_is_its_certificates_name(tmp_path: Path) -> None
         assert st["hostA"]["run_id"] == f"{0xA:016x}" and st["hostA"]["identity"] == "cert:hostA"
         assert rig.links() == ["cert:hostA", "cert:hostB"]
     finally:
-        for p in peers:
-            p.stop.set()
-        for p in peers:
-            p.thread.join()
-        for s in {id(p.session): p.session for p in peers}.values():
-            s.close()  # type: ignore[no-untyped-call]
-        rig.close()
+        _close(peers, rig)
