@@ -52,6 +52,20 @@ def _ms(xs: list[float]) -> dict[str, float]:
     return {"median": round(float(np.median(a)), 3), "p90": round(float(np.percentile(a, 90)), 3)}
 
 
+def _ticks(solver: list[float], both: list[float]) -> dict[str, Any]:
+    """A tick's times (wall or CPU, s) for the solver alone and with the learned fusion: distributions, means and
+    the share of one core at the 60 Hz output."""
+    period = 1 / 60
+    return {
+        "tick_solver_ms": _ms(solver),
+        "tick_both_ms": _ms(both),
+        "per_tick_mean_ms": {k: round(1e3 * float(np.mean(v)), 3) for k, v in (("solver", solver), ("both", both))},
+        "share_of_one_core_at_60hz": {
+            k: round(float(np.mean(v)) / period, 3) for k, v in (("solver", solver), ("both", both))
+        },
+    }
+
+
 def bench(models: FusionModels, n_cams: int, n_people: int, seconds: float) -> dict[str, Any]:
     clip = load_clip(training_clips()[1][0])
     n = min(clip.n_frames, round(60 * seconds))
@@ -130,35 +144,14 @@ def bench(models: FusionModels, n_cams: int, n_people: int, seconds: float) -> d
         cpu_solver.append(c1 - c0)
         cpu_both.append(c2 - c1)
         (learned_ticks if learned_tick else other_ticks).append(t2 - t1)
-    period = 1 / 60
     return {
         "cameras": n_cams,
         "people": n_people,
         "ticks": n,
-        "tick_solver_ms": _ms(tick_solver),
-        "tick_both_ms": _ms(tick_both),
+        **_ticks(tick_solver, tick_both),
         "tick_both_learned_frame_ms": _ms(learned_ticks),
         "tick_both_other_ms": _ms(other_ticks),
-        "per_tick_mean_ms": {
-            "solver": round(1e3 * float(np.mean(tick_solver)), 3),
-            "both": round(1e3 * float(np.mean(tick_both)), 3),
-        },
-        "share_of_one_core_at_60hz": {
-            "solver": round(float(np.mean(tick_solver)) / period, 3),
-            "both": round(float(np.mean(tick_both)) / period, 3),
-        },
-        "cpu": {
-            "tick_solver_ms": _ms(cpu_solver),
-            "tick_both_ms": _ms(cpu_both),
-            "per_tick_mean_ms": {
-                "solver": round(1e3 * float(np.mean(cpu_solver)), 3),
-                "both": round(1e3 * float(np.mean(cpu_both)), 3),
-            },
-            "share_of_one_core_at_60hz": {
-                "solver": round(float(np.mean(cpu_solver)) / period, 3),
-                "both": round(float(np.mean(cpu_both)) / period, 3),
-            },
-        },
+        "cpu": _ticks(cpu_solver, cpu_both),
         "per_person_learned_frame_ms": {k: _ms(v) for k, v in parts.items() if v},
         "lm_solve_ms": {"alone": _ms(solve_alone), "with_learned_joints": _ms(solve_ej)},
     }
@@ -265,7 +258,12 @@ def mog2_cost(frames: int = 60) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", type=Path, default=None, help="networks folder (default: the shipped ones)")
+    ap.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help="networks folder (default: ~/.cache/mocapd/fusion, from tools/train_fusion.py)",
+    )
     ap.add_argument("--cams", type=int, nargs="+", default=[8, 4])
     ap.add_argument("--people", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--seconds", type=float, default=6.0)
