@@ -22,7 +22,12 @@ from mocapd.service.config import load_config
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", type=Path, default=None, help="networks folder (default: the shipped ones)")
+    ap.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help="networks folder (default: ~/.cache/mocapd/fusion, from tools/train_fusion.py)",
+    )
     ap.add_argument("--demo", default="Demo_SinglePerson", choices=("Demo_SinglePerson", "Demo_MultiPerson"))
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--out", type=Path, default=Path("results/fusion-video"))

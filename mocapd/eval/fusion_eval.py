@@ -81,7 +81,7 @@ class FusionEvalOptions:
     scenario_configs: tuple[tuple[int, int], ...] = ((8, 13), (4, 6), (3, 13))
     scenarios: bool = True
     model: Path | None = None
-    """Folder of the networks (None: the shipped ones)."""
+    """Folder of the networks (None: ~/.cache/mocapd/fusion, written by tools/train_fusion.py)."""
     seed: int = 0
     ablation_variants: tuple[str, ...] = ("matte", "joints")
     """Single-channel PVH networks to evaluate when their files exist (``tools/train_fusion.py --ablation``)."""

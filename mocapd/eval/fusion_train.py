@@ -797,9 +797,9 @@ def _kept(history: list[dict[str, float]]) -> dict[str, float]:
 def reproduction_check(data_root: Path | None = None) -> dict[str, Any]:
     """The validation errors of the CI recipe (:meth:`FusionRecipe.tiny`, all five networks) run now.
 
-    Retraining the shipped networks takes hours on the 2-core CPU; this runs every stage of the same code on a
-    few dozen frames in seconds. Recorded beside the shipped networks, it lets a test rerun it and find the
-    recipe's code (or a library under it) changed since they were trained."""
+    Retraining the reference networks takes most of an hour on the 2-core CPU; this runs every stage of the same
+    code on a few dozen frames in seconds. Recorded in the reference run's provenance (mocapd/data/fusion.json), it
+    lets a test rerun it and find the recipe's code (or a library under it) changed since they were trained."""
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -27,7 +27,12 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--only-fusion", action="store_true", help="the learned fusion's rows alone (docs/learned-fusion.md)"
     )
-    p.add_argument("--fusion-model", type=Path, default=None, help="networks folder (default: the shipped ones)")
+    p.add_argument(
+        "--fusion-model",
+        type=Path,
+        default=None,
+        help="networks folder (default: ~/.cache/mocapd/fusion, from tools/train_fusion.py)",
+    )
     p.add_argument("--fusion-frames", type=int, default=None, help="cap per sequence for the learned fusion's table")
     p.add_argument("--no-scenarios", action="store_true", help="skip the learned fusion's noise scenarios")
     p.add_argument("--seed", type=int, default=0)
