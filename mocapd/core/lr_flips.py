@@ -130,68 +130,100 @@ def choose_swaps(
     if not o.enabled:
         return SwapDecision(swaps, gains)
     ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
+    # The pairs seen by the same views are searched together, in one batch (one DLT, one projection): per pair
+    # and hypothesis the arithmetic is tiny, so numpy's per-call overhead is what costs (the scheduler runs this
+    # for every person on every tick).
+    groups: dict[tuple[int, ...], list[int]] = {}
     for p, (left, right) in enumerate(pairs):
         views = np.flatnonzero(ok[:, left] | ok[:, right])[: o.max_views]
         if views.size < 2 or np.count_nonzero(ok[views, left]) + np.count_nonzero(ok[views, right]) < 3:
             continue
-        best, gain = _best_hypothesis(P[views], uv[views][:, [left, right]], conf[views][:, [left, right]],
-                                      ok[views][:, [left, right]], o)  # fmt: skip
-        if best is None:
-            continue
-        flags = np.asarray(best, dtype=bool)
-        mirror = ~flags
-        if reference is not None and np.all(np.isfinite(reference[[left, right]])):
-            X = _triangulate_pair(P[views], uv[views][:, [left, right]], conf[views][:, [left, right]],
-                                  ok[views][:, [left, right]], flags)  # fmt: skip
-            if np.all(np.isfinite(X)):
-                d_as = np.linalg.norm(X - reference[[left, right]], axis=-1).sum()
-                d_mirror = np.linalg.norm(X[::-1] - reference[[left, right]], axis=-1).sum()
-                if d_mirror < d_as:
+        groups.setdefault(tuple(int(v) for v in views), []).append(p)
+    for key, members in groups.items():
+        views = np.array(key, dtype=np.intp)
+        cols = np.array([pairs[p] for p in members], dtype=np.intp)  # (K, 2)
+        uv_v, conf_v, ok_v = uv[views][:, cols], conf[views][:, cols], ok[views][:, cols]
+        best, gain, X = _best_hypotheses(P[views], uv_v, conf_v, ok_v, o)
+        # Which of the two mirror labellings lies nearer the previous pose, where there is one: (K,) flags.
+        known = np.zeros(len(members), dtype=bool)
+        take_mirror = np.zeros(len(members), dtype=bool)
+        if reference is not None:
+            ref = reference[cols]  # (K, 2, 3)
+            d_as = np.sqrt(((X - ref) ** 2).sum(-1)).sum(-1)
+            d_mirror = np.sqrt(((X[:, ::-1] - ref) ** 2).sum(-1)).sum(-1)
+            known = np.asarray(np.isfinite(ref).all(axis=(1, 2)))
+            take_mirror = known & np.isfinite(X).all(axis=(1, 2)) & (d_mirror < d_as)
+        for k, p in enumerate(members):
+            if best[k] is None:
+                continue
+            flags = np.asarray(best[k], dtype=bool)
+            mirror = ~flags
+            if known[k]:
+                if take_mirror[k]:
                     flags = mirror
-        elif np.count_nonzero(mirror) < np.count_nonzero(flags) or (
-            np.count_nonzero(mirror) == np.count_nonzero(flags) and conf[views][mirror].sum() < conf[views][flags].sum()
-        ):
-            flags = mirror  # swap the fewer (then the less confident) views
-        swaps[views, p] = flags
-        gains[p] = gain if flags.any() else 0.0
+            elif np.count_nonzero(mirror) < np.count_nonzero(flags) or (
+                np.count_nonzero(mirror) == np.count_nonzero(flags)
+                and conf[views][mirror].sum() < conf[views][flags].sum()
+            ):
+                flags = mirror  # swap the fewer (then the less confident) views
+            swaps[views, p] = flags
+            gains[p] = gain[k] if flags.any() else 0.0
     return SwapDecision(swaps, gains)
 
 
-def _triangulate_pair(P: FloatArray, uv: FloatArray, conf: FloatArray, ok: BoolArray, flags: BoolArray) -> FloatArray:
-    """The pair's two points (2, 3) triangulated with the views of ``flags`` swapped."""
-    uv_h = np.where(flags[:, None, None], uv[:, ::-1], uv)
-    w_h = np.where(flags[:, None], (conf * ok)[:, ::-1], conf * ok)
-    X, good = triangulate_projections(P, uv_h, w_h)
-    return np.where(good[:, None], X, np.nan)
+def _hypotheses(n: int) -> BoolArray:
+    """The swap vectors of ``n`` views with the first view as detected, shape (2^(n-1), n); row 0 swaps none."""
+    return np.array([(False, *rest) for rest in product((False, True), repeat=n - 1)], dtype=bool)
 
 
-def _best_hypothesis(
+def _best_hypotheses(
     P: FloatArray, uv: FloatArray, conf: FloatArray, ok: BoolArray, o: FlipOptions
-) -> tuple[tuple[bool, ...] | None, float]:
-    """Among the swap vectors with the first view as detected, the one of least capped reprojection error, when it
-    beats no swap by ``margin_px`` per view; (None, 0) when no swap wins."""
-    n = P.shape[0]
-    hyps = np.array([(False, *rest) for rest in product((False, True), repeat=n - 1)], dtype=bool)  # (H, n)
+) -> tuple[list[tuple[bool, ...] | None], FloatArray, FloatArray]:
+    """For each of K pairs seen by the same n views: among the swap vectors with the first view as detected, the
+    one of least capped reprojection error, when it beats no swap by ``margin_px`` per view (else None).
+
+    Parameters
+    ----------
+    P : array, shape (n, 3, 4)
+    uv : array, shape (n, K, 2, 2)
+        Each view's (left, right) pixels of each pair.
+    conf, ok : arrays, shape (n, K, 2)
+
+    Returns
+    -------
+    best : list of K swap vectors (n bools) or None
+    gain : array, shape (K,)
+        Reprojection error the winner saves against no swap, px per view (0 where none wins).
+    X : array, shape (K, 2, 3)
+        The pair's two points triangulated under the winner (NaN where a point has too few views).
+    """
+    n, K = uv.shape[0], uv.shape[1]
+    hyps = _hypotheses(n)  # (H, n)
     H = hyps.shape[0]
-    # Observations per hypothesis: (H, n, 2 points, 2) pixels and (H, n, 2) weights, the two labels exchanged in
-    # swapped views.
-    uv_h = np.where(hyps[:, :, None, None], uv[None, :, ::-1], uv[None])
+    # Observations per hypothesis: (H, n, K, 2 points, 2) pixels and (H, n, K, 2) weights, the two labels
+    # exchanged in swapped views.
+    uv_h = np.where(hyps[:, :, None, None, None], uv[None, :, :, ::-1], uv[None])
     w = conf * ok
-    w_h = np.where(hyps[:, :, None], w[None, :, ::-1], w[None])
-    # One DLT batch: points are (hypothesis, label), cameras the views.
+    w_h = np.where(hyps[:, :, None, None], w[None, :, :, ::-1], w[None])
+    # One DLT batch: points are (hypothesis, pair, label), cameras the views.
     X, good = triangulate_projections(
-        P, uv_h.transpose(1, 0, 2, 3).reshape(n, H * 2, 2), w_h.transpose(1, 0, 2).reshape(n, H * 2)
+        P,
+        uv_h.transpose(1, 0, 2, 3, 4).reshape(n, H * K * 2, 2),
+        w_h.transpose(1, 0, 2, 3).reshape(n, H * K * 2),
+        normal_equations=True,
     )
-    proj = _project(P, np.where(good[:, None], X, 0.0)).reshape(n, H, 2, 2).transpose(1, 0, 2, 3)
-    err = np.linalg.norm(proj - uv_h, axis=-1)  # (H, n, 2)
+    proj = _project(P, np.where(good[:, None], X, 0.0)).reshape(n, H, K, 2, 2).transpose(1, 0, 2, 3, 4)
+    err = np.linalg.norm(proj - uv_h, axis=-1)  # (H, n, K, 2)
     err = np.where(np.isfinite(err), np.minimum(err, o.cap_px), o.cap_px)
-    err = np.where(good.reshape(H, 2)[:, None, :], err, o.cap_px)
-    cost = np.where(w_h > 0, err, 0.0).sum(axis=(1, 2))  # the same observations under every hypothesis
-    k = int(np.argmin(cost))
-    gain = (cost[0] - cost[k]) / n
-    if k == 0 or gain <= o.margin_px:
-        return None, 0.0
-    return tuple(bool(v) for v in hyps[k]), float(gain)
+    err = np.where(good.reshape(H, K, 2)[:, None], err, o.cap_px)
+    cost = np.where(w_h > 0, err, 0.0).sum(axis=(1, 3))  # (H, K): the same observations under every hypothesis
+    k = np.argmin(cost, axis=0)
+    col = np.arange(K)
+    gain = (cost[0] - cost[k, col]) / n
+    win = (k != 0) & (gain > o.margin_px)
+    best = [tuple(bool(v) for v in hyps[k[j]]) if win[j] else None for j in range(K)]
+    Xb = X.reshape(H, K, 2, 3)[k, col]
+    return best, np.where(win, gain, 0.0), Xb
 
 
 def apply_swaps(

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from mocapd.errors import DeviceError
 from mocapd.io.device_state import OpenState
+from mocapd.io.thread_priority import nice_this_thread
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
 log = logging.getLogger(__name__)
@@ -116,6 +117,9 @@ class ThreadedSource(abc.ABC):
         self.last_backoff_s: float | None = None  # the last back-off waited (it doubles while reopening fails)
         self.thread_id: int | None = None  # native id of the current capture thread (for CPU accounting)
         self.ever_opened = False  # the device opened at least once (a later failure is retried, not fatal)
+        # How much nicer the capture thread runs once the device is open ([daemon] worker_nice; the device's own
+        # threads, started while opening, keep the daemon's priority: Aravis's packet thread must not wait).
+        self.worker_nice = 0
         #: called on the capture thread with each published frame, after it was handed to the loop (None: nothing)
         self.frame_hook: FrameCallback | None = None
 
@@ -166,6 +170,7 @@ class ThreadedSource(abc.ABC):
         try:
             self._open()
             self.ever_opened = True
+            nice_this_thread(self.worker_nice)
             self.opened.set()
             while not stop.is_set():
                 ref = self._grab()

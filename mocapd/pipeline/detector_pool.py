@@ -12,7 +12,8 @@ one session per two cores of this process (``os.sched_getaffinity``, so ``taskse
 the cores as intra-op threads.
 
 Worker threads carry an OS-level name (``mocapd-detect``) that onnxruntime's own threads inherit, so per-thread
-CPU accounting (``mocapd bench latency``) sees the detector's whole cost.
+CPU accounting (``mocapd bench latency``) sees the detector's whole cost; they inherit the workers' nice value the
+same way (``[daemon] worker_nice``, :mod:`mocapd.io.thread_priority`).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.keypoints import keypoint_format
 from mocapd.core.sorting import Detections2D
+from mocapd.io.thread_priority import nice_this_thread
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
@@ -50,11 +52,19 @@ def name_os_thread(name: str) -> None:
         prctl(15, name.encode()[:15], 0, 0, 0)  # 15 = PR_SET_NAME
 
 
-def detector_executor(workers: int = 1) -> ThreadPoolExecutor:
-    """Worker threads named ``mocapd-detect``, in Python and at the OS level (:func:`name_os_thread`): the threads
-    onnxruntime and OpenVINO start from them carry the name too, so per-thread CPU accounting sees the detector."""
-    return ThreadPoolExecutor(workers, thread_name_prefix=THREAD_NAME, initializer=name_os_thread,
-                              initargs=(THREAD_NAME,))  # fmt: skip
+def worker_thread_setup(name: str, nice: int = 0) -> None:
+    """A worker thread's initializer: its OS-level name (:func:`name_os_thread`) and ``nice`` more niceness
+    (:func:`~mocapd.io.thread_priority.nice_this_thread`), both inherited by the threads it starts."""
+    name_os_thread(name)
+    nice_this_thread(nice)
+
+
+def detector_executor(workers: int = 1, nice: int = 0) -> ThreadPoolExecutor:
+    """Worker threads named ``mocapd-detect``, in Python and at the OS level (:func:`name_os_thread`), ``nice``
+    nicer than the caller: the threads onnxruntime and OpenVINO start from them carry the name and the nice value
+    too, so per-thread CPU accounting sees the detector and the event loop's tick comes first."""
+    return ThreadPoolExecutor(workers, thread_name_prefix=THREAD_NAME, initializer=worker_thread_setup,
+                              initargs=(THREAD_NAME, nice))  # fmt: skip
 
 
 def process_cores() -> int:
@@ -83,6 +93,8 @@ class PooledDetector:
     image_sizes : sequence of (width, height)
         The cameras' image sizes: their whole-frame inputs are made when the workers load
         (:meth:`OnnxPoseDetector.fit_to`).
+    nice : int
+        How much nicer than the caller the workers (and onnxruntime's threads) run, 0..19.
     """
 
     def __init__(
@@ -90,6 +102,7 @@ class PooledDetector:
         cfg: DetectorConfig,
         columns: NDArray[np.intp] | None = None,
         image_sizes: Sequence[tuple[int, int]] = (),
+        nice: int = 0,
     ) -> None:
         self._pool: queue.SimpleQueue[OnnxPoseDetector] = queue.SimpleQueue()
         self._columns = columns
@@ -97,7 +110,7 @@ class PooledDetector:
         cfg = cfg.with_sessions(process_cores(), len(image_sizes))
         assert isinstance(cfg.workers, int)
         self.intra_op_threads = cfg.intra_op_threads
-        self.executor = detector_executor(cfg.workers)
+        self.executor = detector_executor(cfg.workers, nice)
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
             self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg, image_sizes).result())
@@ -124,7 +137,10 @@ AnyDetector = PooledDetector | PackedDetectionGroup
 
 
 def make_detector(
-    cfg: DetectorConfig, image_sizes: Sequence[tuple[int, int]], columns: NDArray[np.intp] | None = None
+    cfg: DetectorConfig,
+    image_sizes: Sequence[tuple[int, int]],
+    columns: NDArray[np.intp] | None = None,
+    nice: int = 0,
 ) -> AnyDetector:
     """The cameras' detector (blocking: loads the model): one packed group for all cameras on one named worker
     thread when ``cfg.packing.enabled`` (with ``"auto"``, the group chooses packed or whole-frame passes by what
@@ -134,12 +150,14 @@ def make_detector(
     ----------
     image_sizes : sequence of (width, height)
         Every camera's image size, in camera index order.
+    nice : int
+        How much nicer than the caller the detector's threads run (``[daemon] worker_nice``), 0..19.
     """
     if not cfg.packing.enabled:
-        return PooledDetector(cfg, columns, image_sizes)
+        return PooledDetector(cfg, columns, image_sizes, nice)
     cfg = cfg.with_sessions(process_cores(), len(image_sizes))
     assert isinstance(cfg.workers, int)
-    executor = detector_executor(cfg.workers)
+    executor = detector_executor(cfg.workers, nice)
     sizes = list(image_sizes)
     # Made on the named worker threads: onnxruntime's threads inherit their name (see the module docstring).
     pairs = [executor.submit(detectors_from_config, cfg, sizes).result() for _ in range(cfg.workers)]

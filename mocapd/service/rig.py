@@ -38,7 +38,7 @@ from mocapd.io.prior import resolve_prior
 from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
 from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileSource
 from mocapd.pipeline.clocksync import ClockSync
-from mocapd.pipeline.detector_pool import AnyDetector, make_detector, name_os_thread, target_columns
+from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns, worker_thread_setup
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource, KeypointSource
 from mocapd.pipeline.keypoint_tracker import KeypointTracker
 from mocapd.pipeline.latency import AutoLatencyOptions
@@ -239,18 +239,23 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     pairs = list(zip(config.cameras, plan.cameras, strict=True))
     local = {i: frame_source(c, cam, backoff) for i, (c, cam) in enumerate(pairs) if not isinstance(c, ZenohCamera)}
     captures = list(local.values())
+    nice = config.daemon.worker_nice  # throughput threads yield the CPU to the event loop's tick
+    for capture in captures:
+        capture.worker_nice = nice
     remote_hosts = sorted({c.host for c in config.cameras if isinstance(c, ZenohCamera)})
     by_host = {h: [c.name for c in config.cameras if isinstance(c, ZenohCamera) and c.host == h] for h in remote_hosts}
     remote = RemoteRig(config.zenoh, remote_hosts, cameras=by_host, clock=clock) if remote_hosts else None
     detector_config = config.detector.options()
     # A rig of camera hosts only runs no detector here: the hosts run it.
     detector = (make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],
-                              target_columns(detector_config, targets.names)) if local else None)  # fmt: skip
+                              target_columns(detector_config, targets.names), nice) if local else None)  # fmt: skip
     sources: list[KeypointSource] = []
     tracking = detector_config.tracking
     track = tracking.enabled and detector is not None
-    pool = (ThreadPoolExecutor(tracking.workers, thread_name_prefix=TRACK_THREAD, initializer=name_os_thread,
-                               initargs=(TRACK_THREAD,)) if track and tracking.thread == "pool" else None)  # fmt: skip
+    pool = None
+    if track and tracking.thread == "pool":
+        pool = ThreadPoolExecutor(tracking.workers, thread_name_prefix=TRACK_THREAD, initializer=worker_thread_setup,
+                                  initargs=(TRACK_THREAD, nice))  # fmt: skip
     # A remote frame older than the latency on arrival is counted late; under "auto" the latency moves, so only
     # what is older than its ceiling is surely late here (the timeline drops the rest as it does local frames).
     latency_s = config.daemon.latency_s

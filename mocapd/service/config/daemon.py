@@ -56,6 +56,9 @@ class DaemonConfig(Section):
     heading_correction: bool = True
     """Correct each IMU's heading from the cameras while at least two see its wearer."""
     max_catch_up_s: float = Field(0.05, ge=0.0, le=1.0)
+    worker_nice: int = Field(10, ge=0, le=19)
+    """How much nicer than the event loop (whose output tick has a deadline every period) the detector's, the
+    keypoint tracking's and the cameras' capture threads run (Linux nice, per thread)."""
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
     body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
     """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
