@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mocapd.core.camera import Camera, look_at, project_points, triangulate
+from mocapd.core.camera import Camera, look_at, project_points, triangulate, triangulate_projections
 from mocapd.core.rotations import matrix_from_rotvec, so3_log
 from mocapd.errors import InputError
 
@@ -95,6 +95,15 @@ def test_triangulation_exact_and_confidence_weighted() -> None:
     w_one[0] = 1.0
     X1, ok1 = triangulate(cams, uv, w_one)
     assert not ok1.any() and np.all(np.isnan(X1))
+    # The normal-equation variant (the left/right flip search's) finds the same points, noise and weights included.
+    P = np.stack([c.projection_matrix for c in cams])
+    und = np.stack([c.undistort_points(uv[i] + rng.normal(0.0, 2.0, uv[i].shape)) for i, c in enumerate(cams)])
+    w_rand = rng.uniform(0.0, 1.0, w.shape)
+    w_rand[rng.random(w.shape) < 0.3] = 0.0
+    X_svd, ok_svd = triangulate_projections(P, und, w_rand)
+    X_ne, ok_ne = triangulate_projections(P, und, w_rand, normal_equations=True)
+    assert np.array_equal(ok_svd, ok_ne) and ok_svd.sum() > 30
+    np.testing.assert_allclose(X_ne[ok_ne], X_svd[ok_svd], atol=1e-9)
 
 
 def test_invalid_cameras_and_inputs_raise() -> None:

@@ -102,3 +102,29 @@ def test_sorting_keeps_a_flipped_view_in_the_person_only_when_flip_aware(flip_aw
     cands = sorter.candidates(dets)
     views = max(len(c.sources) for c in cands)
     assert views == (4 if flip_aware else 3)
+
+
+def test_pairs_searched_together_decide_as_each_pair_alone() -> None:
+    """choose_swaps searches the pairs seen by the same views in one batch: the decision and gain of every pair
+    are what the pair gets searched alone, also when the pairs' view sets differ (views missing some keypoints)
+    and with or without a previous pose."""
+    rng = np.random.default_rng(7)
+    checked = swapped = 0
+    for trial in range(40):
+        cams, X, uv = _person(frame=int(rng.integers(0, 60)))
+        seen = uv + rng.normal(0.0, rng.uniform(0.5, 15.0), uv.shape)
+        for view in range(4):
+            if rng.random() < 0.3:
+                seen = _flip(seen, view)
+        conf = rng.uniform(0.0, 1.0, uv.shape[:2])
+        conf[rng.random(conf.shape) < 0.2] = 0.0
+        P, und = undistorted(cams, seen)
+        reference = None if trial % 3 == 0 else X + rng.normal(0.0, 0.05, X.shape)
+        together = choose_swaps(P, und, conf, reference=reference)
+        for p, pair in enumerate(COCO17_LR_PAIRS):
+            alone = choose_swaps(P, und, conf, pairs=(pair,), reference=None if reference is None else reference)
+            assert np.array_equal(together.swaps[:, p], alone.swaps[:, 0]), (trial, pair)
+            assert together.gain_px[p] == pytest.approx(alone.gain_px[0], abs=1e-9)
+            checked += 1
+        swapped += together.count
+    assert checked == 40 * len(COCO17_LR_PAIRS) and swapped > 20  # the cases exercised swaps, not only no-ops

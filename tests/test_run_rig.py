@@ -191,6 +191,7 @@ http_port = 0
 latency_s = 2.0
 keypoint_max_age_s = 1.0
 keypoint_max_gap_s = 5.0
+worker_nice = 7
 
 [websocket]
 enabled = false
@@ -220,6 +221,17 @@ enabled = false
         assert all(d["streaming"] and d["samples"] > 0 for d in devices)
         for person in st["frame"]["people"]:
             assert 0.4 < person["root_m"][1] < 1.4  # a standing adult's hips
+        # [daemon] worker_nice: the event loop (main thread) keeps the daemon's priority; the capture threads (each
+        # named once its device opened) and the detector's threads, onnxruntime's included, run 7 nicer.
+        nice = _thread_nice(run.proc.pid)
+        base = nice[run.proc.pid][1]
+        by_name: dict[str, list[int]] = {}
+        for name, n in nice.values():
+            by_name.setdefault(name, []).append(n)
+        # The three capture threads and the threads they start after opening (OpenCV's pool for the tracking).
+        capture, detect = by_name.get("mocapd-capture", []), by_name.get("mocapd-detect", [])
+        assert len(capture) >= 3 and set(capture) == {base + 7}, by_name
+        assert len(detect) >= 2 and set(detect) == {base + 7}, by_name  # the worker and onnxruntime's thread
         code, elapsed = run.interrupt()
         assert code == 0, run.output
         assert elapsed < SHUTDOWN_TIMEOUT_S + 1.0
@@ -228,6 +240,19 @@ enabled = false
             run.close()
         sim.send_signal(signal.SIGTERM)
         sim.wait(timeout=10)
+
+
+def _thread_nice(pid: int) -> dict[int, tuple[str, int]]:
+    """Every thread of process ``pid``: its OS-level name and nice value (/proc/PID/task/TID/stat, field 19)."""
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # the thread ended meanwhile
+        out[int(task.name)] = (name, int(fields[16]))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- check-config

@@ -160,10 +160,10 @@ MIN_TRACKING_SIDE = 240
 class TrackingConfig:
     """Keypoints carried between detections on every camera frame (:mod:`mocapd.pipeline.keypoint_tracker`)."""
 
-    enabled: bool = False
+    enabled: bool = True
     """Track each detected person's keypoints on the frames between two detections of their camera (pyramidal
-    Lucas-Kanade), so that the scheduler has keypoints at the camera rate; False (the default: on a loaded 2-core
-    machine the people sorting found fewer people with it, see ``mocapd/config.toml``): detections only."""
+    Lucas-Kanade), so that the scheduler has keypoints at the camera rate; False: detections only (their interval
+    then sets the latency, see ``mocapd/config.toml``)."""
     rate_hz: float = 60.0
     """Track a camera's frames this often on average, at most every frame (a 60 fps camera: every frame; 30: every
     other); the frames the detector takes are tracked too."""

@@ -13,12 +13,11 @@ the cores as intra-op threads.
 
 Worker threads carry an OS-level name (``mocapd-detect``) that onnxruntime's own threads inherit, so per-thread
 CPU accounting (``mocapd bench latency``) sees the detector's whole cost; they inherit the workers' nice value the
-same way (``[daemon] worker_nice``, :mod:`mocapd.io.thread_priority`).
+same way (``[daemon] worker_nice``, :mod:`mocapd.io.os_threads`).
 """
 
 from __future__ import annotations
 
-import ctypes
 import os
 import queue
 from collections.abc import Sequence
@@ -30,7 +29,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.keypoints import keypoint_format
 from mocapd.core.sorting import Detections2D
-from mocapd.io.thread_priority import nice_this_thread
+from mocapd.io.os_threads import name_os_thread, nice_this_thread
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
@@ -40,21 +39,9 @@ from mocapd.pipeline.packing import PackedDetector, detectors_from_config
 THREAD_NAME = "mocapd-detect"
 
 
-def name_os_thread(name: str) -> None:
-    """Give the calling thread an OS-level name (``/proc/.../comm``; Python's thread names stay in Python).
-
-    Threads the named thread starts inherit the name (Linux), onnxruntime's intra-op pool included. A no-op where
-    ``prctl`` is missing.
-    """
-    libc = ctypes.CDLL(None, use_errno=True)
-    prctl = getattr(libc, "prctl", None)
-    if prctl is not None:
-        prctl(15, name.encode()[:15], 0, 0, 0)  # 15 = PR_SET_NAME
-
-
 def worker_thread_setup(name: str, nice: int = 0) -> None:
     """A worker thread's initializer: its OS-level name (:func:`name_os_thread`) and ``nice`` more niceness
-    (:func:`~mocapd.io.thread_priority.nice_this_thread`), both inherited by the threads it starts."""
+    (:func:`~mocapd.io.os_threads.nice_this_thread`), both inherited by the threads it starts."""
     name_os_thread(name)
     nice_this_thread(nice)
 

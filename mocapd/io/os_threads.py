@@ -1,4 +1,5 @@
-"""Per-thread CPU priority: the daemon's throughput threads yield the CPU to its event loop.
+"""Threads as the OS sees them: their names (for ``top -H``, ``ps -L`` and the benchmark's CPU accounting) and
+their CPU priority, so that the daemon's throughput threads yield the CPU to its event loop.
 
 The event loop runs the output tick, which has a deadline every output period; the detector, the keypoint tracking
 and the cameras' capture threads do throughput work with none. On a 2-core laptop they all want the CPU at once and
@@ -14,6 +15,7 @@ would lower the loop too.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import sys
@@ -22,6 +24,21 @@ import threading
 log = logging.getLogger(__name__)
 
 MAX_NICE = 19
+CAPTURE_THREAD = "mocapd-capture"
+"""OS-level name of the cameras' capture threads (once their device is open)."""
+
+
+def name_os_thread(name: str) -> None:
+    """Give the calling thread an OS-level name (``/proc/.../comm``, 15 bytes; Python's thread names stay in
+    Python).
+
+    Threads the named thread starts inherit the name (Linux), onnxruntime's intra-op pool included. A no-op where
+    ``prctl`` is missing.
+    """
+    libc = ctypes.CDLL(None, use_errno=True)
+    prctl = getattr(libc, "prctl", None)
+    if prctl is not None:
+        prctl(15, name.encode()[:15], 0, 0, 0)  # 15 = PR_SET_NAME
 
 
 def nice_this_thread(increment: int) -> int:
