@@ -133,3 +133,35 @@ def test_auto_latency_follows_a_lasting_change_inside_its_band() -> None:
     assert auto.goal_changes == changes + 1 and auto.goal_ns == pytest.approx(460 * MS, abs=MS)
     _feed(auto, t, 10.0, 160 * MS, 300 * MS, n_cams=2)
     assert auto.latency_ns == auto.goal_ns  # reached at 0.05 s/s
+
+
+def test_auto_latency_drops_to_its_first_goal_at_once_while_nothing_is_solved_and_never_jumps_up() -> None:
+    """At start-up (``idle``: no person solved yet) the placeholder gives way to the first estimate on the tick it
+    is made, not at 0.05 s/s; once people are solved the rate limits hold again, and a goal above the latency is
+    approached at ``up_rate`` even when idle (solve time never runs backwards)."""
+    opts = AutoLatencyOptions(start_ns=500 * MS, min_samples=16)
+    auto = AutoLatency(4, opts)
+    t = 0
+    nxt = [k * 17 * MS // 4 for k in range(4)]
+    while auto.estimate_ns is None:  # a tracked stream: keypoints every 17 ms per camera, 30 ms after capture
+        t += S // 60
+        for c in range(4):
+            while nxt[c] + 30 * MS <= t:
+                auto.observe(c, nxt[c], nxt[c] + 30 * MS)
+                nxt[c] += 17 * MS
+        latency = auto.update(t, idle=True)
+    assert t < 200 * MS  # the first estimate came with the first keypoints (not at the next 1 s evaluation)
+    assert latency == auto.goal_ns == pytest.approx(47 * MS, abs=2 * MS)
+    # Once people are solved, a goal far below is approached at 0.05 s/s only.
+    slow = AutoLatency(2, opts)
+    t = _feed(slow, 0, 2.0, 30 * MS, 17 * MS, n_cams=2)
+    assert slow.latency_ns > 400 * MS
+    # Idle with a goal above the latency: no jump backwards in solve time.
+    up = AutoLatency(2, AutoLatencyOptions(start_ns=100 * MS))
+    for _ in range(120):
+        t += S // 60
+        up.observe(0, t - 400 * MS, t)
+        up.observe(1, t - 400 * MS + MS, t)
+        before = up.latency_ns
+        after = up.update(t, idle=True)
+        assert after - before <= int(opts.up_rate * S / 60) + MS

@@ -186,13 +186,22 @@ class AutoLatency:
         if previous is None or capture_ns > previous:
             self._last_capture[camera] = capture_ns
 
-    def update(self, now_ns: int) -> int:
-        """The latency to use at ``now_ns`` (call once per tick, ``now_ns`` non-decreasing)."""
+    def update(self, now_ns: int, *, idle: bool = False) -> int:
+        """The latency to use at ``now_ns`` (call once per tick, ``now_ns`` non-decreasing).
+
+        ``idle``: nothing has been solved from the cameras yet, so no motion is on anybody's screen: a goal below
+        the latency is taken at once rather than approached at ``down_rate`` (at start-up the 0.5 s placeholder
+        would otherwise take ~9 s to come down to a tracked stream's ~70 ms). Solve time then jumps forward, never
+        backwards: a higher goal is still approached at ``up_rate``.
+        """
         o = self.options
-        if self._evaluated_ns is None or now_ns - self._evaluated_ns >= o.evaluate_every_ns:
+        # Until the first estimate, every tick looks: it comes with the first keypoints, often before the first solve.
+        if self._evaluated_ns is None or self.estimate_ns is None or now_ns - self._evaluated_ns >= o.evaluate_every_ns:
             self._evaluated_ns = now_ns
             self._evaluate(now_ns)
-        if self._updated_ns is not None and now_ns > self._updated_ns:
+        if idle and self.goal_ns < self.latency_ns:
+            self.latency_ns = self.goal_ns
+        elif self._updated_ns is not None and now_ns > self._updated_ns:
             dt = now_ns - self._updated_ns
             if self.goal_ns > self.latency_ns:
                 self.latency_ns = min(self.goal_ns, self.latency_ns + int(o.up_rate * dt))

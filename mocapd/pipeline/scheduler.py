@@ -360,7 +360,8 @@ class FixedLatencyScheduler:
         same event loop, so none is buffered during the tick).
         """
         if self.auto_latency is not None:
-            self.latency_ns = self.auto_latency.update(now_ns)
+            # Before the first person solve nothing is on screen: the latency may drop to its first goal at once.
+            self.latency_ns = self.auto_latency.update(now_ns, idle=self.counters["person_solves"] == 0)
         t = now_ns - self.latency_ns
         self._tick_t = t
         w0, c0 = self._wall(), self._cpu()
