@@ -191,7 +191,8 @@ http_port = 0
 latency_s = 2.0
 keypoint_max_age_s = 1.0
 keypoint_max_gap_s = 5.0
-worker_nice = 7
+capture_nice = 3
+detector_nice = 7
 
 [websocket]
 enabled = false
@@ -221,8 +222,8 @@ enabled = false
         assert all(d["streaming"] and d["samples"] > 0 for d in devices)
         for person in st["frame"]["people"]:
             assert 0.4 < person["root_m"][1] < 1.4  # a standing adult's hips
-        # [daemon] worker_nice: the event loop (main thread) keeps the daemon's priority; the capture threads (each
-        # named once its device opened) and the detector's threads, onnxruntime's included, run 7 nicer.
+        # [daemon] capture_nice, detector_nice: the event loop (main thread) keeps the daemon's priority; the capture
+        # threads (each named once its device opened) run 3 nicer, the detector's, onnxruntime's included, 7.
         nice = _thread_nice(run.proc.pid)
         base = nice[run.proc.pid][1]
         by_name: dict[str, list[int]] = {}
@@ -230,7 +231,7 @@ enabled = false
             by_name.setdefault(name, []).append(n)
         # The three capture threads and the threads they start after opening (OpenCV's pool for the tracking).
         capture, detect = by_name.get("mocapd-capture", []), by_name.get("mocapd-detect", [])
-        assert len(capture) >= 3 and set(capture) == {base + 7}, by_name
+        assert len(capture) >= 3 and set(capture) == {base + 3}, by_name
         assert len(detect) >= 2 and set(detect) == {base + 7}, by_name  # the worker and onnxruntime's thread
         code, elapsed = run.interrupt()
         assert code == 0, run.output

@@ -117,7 +117,7 @@ class ThreadedSource(abc.ABC):
         self.last_backoff_s: float | None = None  # the last back-off waited (it doubles while reopening fails)
         self.thread_id: int | None = None  # native id of the current capture thread (for CPU accounting)
         self.ever_opened = False  # the device opened at least once (a later failure is retried, not fatal)
-        # How much nicer the capture thread runs once the device is open ([daemon] worker_nice; the device's own
+        # How much nicer the capture thread runs once the device is open ([daemon] capture_nice; the device's own
         # threads, started while opening, keep the daemon's priority: Aravis's packet thread must not wait).
         self.worker_nice = 0
         #: called on the capture thread with each published frame, after it was handed to the loop (None: nothing)

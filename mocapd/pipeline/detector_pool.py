@@ -13,7 +13,7 @@ the cores as intra-op threads.
 
 Worker threads carry an OS-level name (``mocapd-detect``) that onnxruntime's own threads inherit, so per-thread
 CPU accounting (``mocapd bench latency``) sees the detector's whole cost; they inherit the workers' nice value the
-same way (``[daemon] worker_nice``, :mod:`mocapd.io.os_threads`).
+same way (``[daemon] detector_nice``, :mod:`mocapd.io.os_threads`).
 """
 
 from __future__ import annotations
@@ -138,7 +138,7 @@ def make_detector(
     image_sizes : sequence of (width, height)
         Every camera's image size, in camera index order.
     nice : int
-        How much nicer than the caller the detector's threads run (``[daemon] worker_nice``), 0..19.
+        How much nicer than the caller the detector's threads run (``[daemon] detector_nice``), 0..19.
     """
     if not cfg.packing.enabled:
         return PooledDetector(cfg, columns, image_sizes, nice)

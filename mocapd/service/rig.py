@@ -239,23 +239,24 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     pairs = list(zip(config.cameras, plan.cameras, strict=True))
     local = {i: frame_source(c, cam, backoff) for i, (c, cam) in enumerate(pairs) if not isinstance(c, ZenohCamera)}
     captures = list(local.values())
-    nice = config.daemon.worker_nice  # throughput threads yield the CPU to the event loop's tick
-    for capture in captures:
-        capture.worker_nice = nice
+    for capture in captures:  # the event loop's tick first, then the capture threads' tracking, then the detector
+        capture.worker_nice = config.daemon.capture_nice
     remote_hosts = sorted({c.host for c in config.cameras if isinstance(c, ZenohCamera)})
     by_host = {h: [c.name for c in config.cameras if isinstance(c, ZenohCamera) and c.host == h] for h in remote_hosts}
     remote = RemoteRig(config.zenoh, remote_hosts, cameras=by_host, clock=clock) if remote_hosts else None
     detector_config = config.detector.options()
-    # A rig of camera hosts only runs no detector here: the hosts run it.
-    detector = (make_detector(detector_config, [(c.width, c.height) for c in plan.cameras],
-                              target_columns(detector_config, targets.names), nice) if local else None)  # fmt: skip
+    detector: AnyDetector | None = None
+    if local:  # a rig of camera hosts only runs no detector here: the hosts run it
+        sizes = [(c.width, c.height) for c in plan.cameras]
+        columns = target_columns(detector_config, targets.names)
+        detector = make_detector(detector_config, sizes, columns, config.daemon.detector_nice)
     sources: list[KeypointSource] = []
     tracking = detector_config.tracking
     track = tracking.enabled and detector is not None
     pool = None
     if track and tracking.thread == "pool":
         pool = ThreadPoolExecutor(tracking.workers, thread_name_prefix=TRACK_THREAD, initializer=worker_thread_setup,
-                                  initargs=(TRACK_THREAD, nice))  # fmt: skip
+                                  initargs=(TRACK_THREAD, config.daemon.capture_nice))  # fmt: skip
     # A remote frame older than the latency on arrival is counted late; under "auto" the latency moves, so only
     # what is older than its ceiling is surely late here (the timeline drops the rest as it does local frames).
     latency_s = config.daemon.latency_s

@@ -56,9 +56,11 @@ class DaemonConfig(Section):
     heading_correction: bool = True
     """Correct each IMU's heading from the cameras while at least two see its wearer."""
     max_catch_up_s: float = Field(0.05, ge=0.0, le=1.0)
-    worker_nice: int = Field(10, ge=0, le=19)
-    """How much nicer than the event loop (whose output tick has a deadline every period) the detector's, the
-    keypoint tracking's and the cameras' capture threads run (Linux nice, per thread)."""
+    capture_nice: int = Field(5, ge=0, le=19)
+    """How much nicer than the event loop (whose output tick has a deadline every period) the cameras' capture
+    threads, which run the keypoint tracking, run (Linux nice, per thread)."""
+    detector_nice: int = Field(10, ge=0, le=19)
+    """... and the detector's threads: throughput work, after the tick and the tracking that sets the latency."""
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
     body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
     """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
