@@ -41,7 +41,7 @@ def test_shipped_config_is_valid_and_check_config_says_it_describes_no_rig(
     [
         (
             "[daemon]\nlatncy_s = 0.1\n",
-            "unknown key daemon.latncy_s; allowed: body_size_first_s, body_size_s, capture_nice, detector_nice, heading_correction,",
+            "unknown key daemon.latncy_s; allowed: body_size_first_s, body_size_s, capture_nice, detector_nice,",
         ),
         ("[daemon]\nlatency_s = -1\n", "daemon.latency_s = -1; allowed: a number in [0, 2]"),
         ("[daemon]\noutput_rate_hz = true\n", "daemon.output_rate_hz = true; allowed: a number in [1, 500]"),

@@ -147,3 +147,17 @@ def test_the_live_scheduler_counts_knees_bending_backwards(mirrored: bool) -> No
     for line in lines:
         assert line.startswith("suit:suit0: the ") and "a facing direction mirrored at calibration" in line
     assert first_events(sched.plausibility, said) == []  # said once
+
+
+def test_a_camera_only_person_is_not_told_to_recalibrate_a_suit() -> None:
+    """A person the cameras track alone (``track:N``) whose elbow bent the wrong way is told about the keypoints,
+    not about a facing direction or sensors they do not wear; a suit wearer keeps the calibration advice."""
+    monitors = {"track:2": PlausibilityMonitor(), "suit:suit0": PlausibilityMonitor()}
+    for m in monitors.values():
+        m.events["right_elbow"] = 1
+        m.worst_deg["right_elbow"] = 152.0
+    lines = dict(line.split(": ", 1) for line in first_events(monitors, set()))
+    assert "the right elbow bent the wrong way (up to 152°)" in lines["track:2"]
+    assert "detector misplacing that limb's keypoints" in lines["track:2"]
+    assert "facing direction" not in lines["track:2"] and "sensor" not in lines["track:2"]
+    assert "a facing direction mirrored at calibration" in lines["suit:suit0"]

@@ -391,7 +391,12 @@ CAUSES = (
     "the other sign), a sensor on another bone than the assignment says (left and right swapped), or one turned on "
     "its strap"
 )
-"""What makes a solve implausible (the module docstring), as said to the user."""
+"""What makes a suit wearer's solve implausible (the module docstring), as said to the user."""
+CAMERA_CAUSES = (
+    "the detector misplacing that limb's keypoints in some views (an occluded or side-on limb, or its left and "
+    "right confused) -- a camera-only person has no calibration to redo; more views of the limb help"
+)
+"""... and a camera-only person's (identity ``track:N``): no IMU calibration is involved, only the keypoints."""
 
 
 def first_events(monitors: Mapping[str, PlausibilityMonitor], said: set[tuple[str, str]]) -> list[str]:
@@ -407,5 +412,6 @@ def first_events(monitors: Mapping[str, PlausibilityMonitor], said: set[tuple[st
                 what = "the pelvis faced backwards while the legs walked forwards"
             else:
                 what = f"the {name.replace('_', ' ')} bent the wrong way (up to {m.worst_deg.get(name, 0.0):.0f}°)"
-            out.append(f"{identity}: {what}, which no body does: likely {CAUSES} (counted in /status plausibility)")
+            causes = CAMERA_CAUSES if identity.startswith("track:") else CAUSES
+            out.append(f"{identity}: {what}, which no body does: likely {causes} (counted in /status plausibility)")
     return out
