@@ -86,7 +86,10 @@ def test_a_step_hands_the_weight_to_the_landing_foot() -> None:
     assert g.planted == (False, True)
     np.testing.assert_allclose((root + _feet((0.1, -0.8, -0.9), (-0.1, -0.93, 0.0))[1, 0])[[0, 2]],
                                right_anchor[[0, 2]], atol=1e-6)  # fmt: skip
-    assert root[2] == pytest.approx(0.6, abs=0.01)
+    # 0.6 m and 2.6 cm: for two frames neither foot carries lock_weight (the left lifted, the right still judged
+    # moving after its drop), so the root coasts at its walking speed; this body stops dead at the hand-over, which
+    # nothing measures here (no hips sensor).
+    assert root[2] == pytest.approx(0.6, abs=0.03)
 
 
 def _rolling_foot() -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +158,29 @@ def test_no_foot_is_planted_while_the_body_flies() -> None:
         root, _ = g.step(root, rel, 0, dt, nan2, np.array([0.0, -9.8, 0.0]))
         assert not g.planted[1]
     assert root[2] - start[2] == pytest.approx(v * 12 * dt, abs=0.02)
+
+
+def test_a_foot_lifting_off_does_not_stop_the_body() -> None:
+    """Issue 28 (development backward walks -4 … -11 % over five noise draws): at the end of its stance a foot rolls
+    off and its support falls (here its sensor accelerates at 20 m/s²) while it is still planted for ``hold_s``. The
+    solved foot already moves with the body; held by that foot alone the root stopped with it and the slowed velocity
+    was carried through the swing. A planted foot carrying less than ``lock_weight`` holds the body only in that
+    share; the root moving on at its velocity (the hips sensor: no acceleration) takes the rest."""
+    g = GroundTracker(HEIGHTS, 0.0, GroundOptions())
+    dt, v = 1 / 60, 1.2
+    root = np.array([0.0, 1.0, 0.0])
+    swing = (-0.1, -0.80, 0.1)  # the right foot, 13 cm up: it carries nothing
+    for k in range(30):  # the body walks over the planted left foot at 1.2 m/s
+        root, _ = g.step(root, _feet((0.1, -0.93, -v * dt * k), swing), 0, dt, np.zeros((2, 3)), np.zeros(3))
+    assert g.planted == (True, False) and root[2] == pytest.approx(v * dt * 29, abs=1e-6)
+    lifting = np.array([[0.0, 20.0, 0.0], [0.0, 0.0, 0.0]])
+    for _ in range(12):  # the left foot leaves the floor, moving with the body: nothing holds the root now
+        root, _ = g.step(root, _feet((0.1, -0.93, -v * dt * 29), swing), 0, dt, lifting, np.zeros(3))
+        assert g.feet[0].weight < GroundOptions().free_weight
+    assert g.planted == (False, False)
+    # 0.2 s after lift-off the body has gone on at (nearly) its speed: 24 cm, of which holding it on the lifting
+    # foot lost 15 cm (the root stood for two frames, then coasted at half the speed).
+    assert root[2] == pytest.approx(v * dt * 41, abs=0.05)
 
 
 def _shuffle(dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

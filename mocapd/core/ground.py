@@ -29,10 +29,12 @@ toes, which bend up at the ball (no sensor measures them). :class:`GroundTracker
    heel-off and to the toe tip at push-off once the foot pitches beyond ``toe_bend``, and back as the foot rocks; a
    point taken up again in the same stance returns to where it was held) stays
    where it was planted; the root translation is the support-weighted mean of what puts each planted pivot on its
-   anchor under the solved rotations. The pivot must be on the sole: a foot turning about a joint 5-7 cm above the
-   floor (the ankle and toe joints, used before issue 28) drags the body back at each rocker, and strides came out
-   5-14 % short; held at the ball through push-off, the real walk against Vicon still came out 6 % short (3.7 % with
-   the toe rocker);
+   anchor under the solved rotations. Planted feet that together carry less than ``lock_weight`` (a foot rolling off
+   at the end of its stance, still held for ``hold_s``) hold it only in that share: the root moving on at its
+   velocity (below) takes the rest, else the body stopped with the lifting foot. The pivot must be on the sole: a
+   foot turning about a joint 5-7 cm above the floor (the ankle and toe joints, used before issue 28) drags the body
+   back at each rocker, and strides came out 5-14 % short; held at the ball through push-off, the real walk against
+   Vicon still came out 6 % short (3.7 % with the toe rocker);
 4. **places the root's height between two bounds.** No sole point goes through the floor (the lowest sole point of
    the feet on it is the lowest the root may be), and unless airborne some part of a foot touches it: at most as high
    as puts the lowest *toe tip* (:func:`sole_points`: straight toes, on the foot bone, bent up at the ball by
@@ -493,7 +495,12 @@ class GroundTracker:
         if planted:
             w = np.array([foot.weight for _, foot in planted]) + 1e-9
             c = np.array([foot.anchor - piv[f, foot.pivot] for f, foot in planted])
-            root = (w[:, None] * c).sum(axis=0) / w.sum()
+            # Planted feet that carry less than a foot needs to be planted (one rolling off at the end of its
+            # stance, held for hold_s) do not hold the body alone: the root moving on at the predicted velocity
+            # takes the weight they lack. Held by a lifting foot alone, the body stopped with it and carried the
+            # slowed velocity into the swing (development backward walks -4 … -11 % over five noise draws).
+            coast = max(0.0, self.options.lock_weight - float(w.sum()))
+            root = ((w[:, None] * c).sum(axis=0) + coast * (self.root + velocity * dt)) / (w.sum() + coast)
         else:
             root = self.root + velocity * dt
         root[1] = self._height(rel, tips, dt, root_acc, airborne)
