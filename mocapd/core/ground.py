@@ -324,7 +324,7 @@ class GroundTracker:
             with it the acceleration cue is the contact point's, without it the sensor's own.
         root_site : array, shape (3,), optional
             The hips sensor's position relative to the root under the solved rotations: ``root_acc`` is that
-            point's acceleration, so the height it integrates is that point's (without it, the root's).
+            point's acceleration, so the height it integrates is that point's (without it, or NaN, the root's).
 
         Returns
         -------
