@@ -501,6 +501,7 @@ class PoseSolver:
         """The ground tracker's step for a solved θ: returns the published θ, and sets θ's root (in place) to
         the one to keep."""
         feet, sites = self._foot_points(theta)
+        hips = None if self._hips_imu is None else self.imu_sites(theta)[self._hips_imu] - theta[:3]
         root, published = tracker.step(
             theta[:3],
             feet - theta[:3],
@@ -509,6 +510,7 @@ class PoseSolver:
             self._foot_accelerations(v),
             self._hips_acceleration(v),
             sites - theta[:3],
+            hips,
         )
         theta[:3] = root
         out = theta.copy()
