@@ -454,8 +454,7 @@ class PoseSolver:
         X, ok = triangulate(self.cameras, v.uv, v.conf)
         if int(ok.sum()) < 3:
             return theta
-        fk = self.kin.forward(theta)
-        pred = self.kin.targets(fk, self.targets.bones, self.targets.offsets)
+        pred = self.keypoint_positions(theta)
         out = theta.copy()
         out[:3] += np.median(X[ok] - pred[ok], axis=0)
         return out
@@ -463,18 +462,7 @@ class PoseSolver:
     def _foot_points(self, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The sole points of both feet (:func:`~mocapd.core.ground.sole_points`), world positions, shape
         (2, k, 3), and each foot sensor's site, shape (2, 3) (NaN for a foot without a sensor)."""
-        if self._kernel_static is not None:
-            kp = self._kernel_static
-            pts = _kernel.skeleton_points(
-                np.ascontiguousarray(theta, dtype=np.float64),
-                kp.parents,
-                kp.offsets,
-                self._contact_bones.astype(np.float64),
-                np.ascontiguousarray(self._contact_offsets),
-            )
-        else:
-            pts = self.kin.targets(self.kin.forward(theta), self._contact_bones, self._contact_offsets)
-        pts = np.asarray(pts)
+        pts = self.points(theta, self._contact_bones, self._contact_offsets)
         sites = pts[self._n_contacts :].copy()
         sites[[i is None for i in self._foot_imus]] = np.nan
         return pts[: self._n_contacts].reshape(2, -1, 3), sites
@@ -517,21 +505,31 @@ class PoseSolver:
         out[:3] = published
         return out
 
+    def points(self, theta: FloatArray, bones: NDArray[np.intp], offsets: FloatArray) -> FloatArray:
+        """World positions of points ``(bone, offset)`` for θ, shape (n, 3): the compiled forward kinematics when the
+        solver has them (the numpy path costs ~10x more per call, and the scheduler asks on every tick).
+
+        Parameters
+        ----------
+        bones : int array, shape (n,)
+        offsets : array, shape (n, 3)
+            In the bone's frame (m).
+        """
+        kp = self._kernel_static
+        if kp is None:
+            return self.kin.targets(self.kin.forward(theta), bones, offsets)
+        return np.asarray(
+            _kernel.skeleton_points(np.ascontiguousarray(theta, dtype=np.float64), kp.parents, kp.offsets,
+                                    bones.astype(np.float64), np.ascontiguousarray(offsets))
+        )  # fmt: skip
+
+    def keypoint_positions(self, theta: FloatArray) -> FloatArray:
+        """World positions of the track targets (keypoints) for θ, shape (n_kp, 3)."""
+        return self.points(theta, self.targets.bones, self.targets.offsets)
+
     def imu_sites(self, theta: FloatArray) -> FloatArray:
         """World positions of the IMU sites for θ, shape (n_imu, 3)."""
-        if self._kernel_static is not None:
-            kp = self._kernel_static
-            return np.asarray(
-                _kernel.skeleton_points(
-                    np.ascontiguousarray(theta, dtype=np.float64),
-                    kp.parents,
-                    kp.offsets,
-                    self._imu_bones.astype(np.float64),
-                    np.ascontiguousarray(self._point_offsets[self._sl_imu]),
-                )
-            )
-        fk = self.kin.forward(theta)
-        return self.kin.targets(fk, self._imu_bones, self._point_offsets[self._sl_imu])
+        return self.points(theta, self._imu_bones, self._point_offsets[self._sl_imu])
 
     def push_history(self, theta: FloatArray) -> None:
         """Record a solved pose's IMU sites for the next frames' acceleration term."""

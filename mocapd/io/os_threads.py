@@ -50,13 +50,12 @@ def nice_this_thread(increment: int) -> int:
     """
     if increment < 0:
         raise ValueError(f"increment must be >= 0, got {increment}")
+    now = thread_nice()
     if increment == 0 or not sys.platform.startswith("linux"):
-        return os.getpriority(os.PRIO_PROCESS, 0)
-    tid = threading.get_native_id()
-    now = os.getpriority(os.PRIO_PROCESS, tid)
+        return now
     target = min(MAX_NICE, now + increment)
     try:
-        os.setpriority(os.PRIO_PROCESS, tid, target)
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), target)
     except OSError as exc:  # a seccomp'd sandbox may refuse even this; the thread then keeps its priority
         log.warning("could not lower thread %s's priority (nice %d -> %d): %s", threading.current_thread().name,
                     now, target, exc)  # fmt: skip

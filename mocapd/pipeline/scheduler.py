@@ -570,7 +570,7 @@ class FixedLatencyScheduler:
             return kp, conf
         reference = None
         if solver._has_solved:
-            reference = self._keypoints_3d(solver, solver.theta)
+            reference = solver.keypoint_positions(solver.theta)
         elif views < o.min_views_alone:
             return kp, conf
         _, und = undistorted(self.cameras, kp)
@@ -692,19 +692,6 @@ class FixedLatencyScheduler:
         return np.asarray(
             _kernel.skeleton_points(theta, static.parents, static.offsets, self._bone_ids, self._zero_offsets)
         )
-
-    def _keypoints_3d(self, solver: PoseSolver, theta: FloatArray) -> FloatArray:
-        """The track targets' (keypoints') global positions (n_kp, 3): compiled forward kinematics when the solver
-        has them (numpy's costs ~10x more per call, and this runs for every person on every tick)."""
-        static = solver._kernel_static
-        if static is None:
-            fk = solver.kin.forward(theta)
-            return solver.kin.targets(fk, solver.targets.bones, solver.targets.offsets)
-        n = solver.n_kp
-        return np.asarray(
-            _kernel.skeleton_points(theta, static.parents, static.offsets, static.point_bones[:n],
-                                    static.point_offsets[:n])
-        )  # fmt: skip
 
     def _forget_released(self, seen: set[str]) -> None:
         """Drop the solvers of identities the tracker no longer knows (released subjects)."""
