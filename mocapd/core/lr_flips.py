@@ -20,6 +20,7 @@ Pure numpy; :func:`choose_swaps` returns the decision, :func:`apply_swaps` appli
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 from itertools import product
 
 import numpy as np
@@ -171,9 +172,13 @@ def choose_swaps(
     return SwapDecision(swaps, gains)
 
 
+@cache
 def _hypotheses(n: int) -> BoolArray:
-    """The swap vectors of ``n`` views with the first view as detected, shape (2^(n-1), n); row 0 swaps none."""
-    return np.array([(False, *rest) for rest in product((False, True), repeat=n - 1)], dtype=bool)
+    """The swap vectors of ``n`` views with the first view as detected, shape (2^(n-1), n); row 0 swaps none.
+    Built once per view count (this runs for every person on every tick), read-only."""
+    hyps = np.array([(False, *rest) for rest in product((False, True), repeat=n - 1)], dtype=bool)
+    hyps.setflags(write=False)
+    return hyps
 
 
 def _best_hypotheses(
