@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from mocapd.errors import DeviceError
 from mocapd.io.device_state import OpenState
-from mocapd.io.os_threads import CAPTURE_THREAD, name_os_thread, nice_this_thread
+from mocapd.io.os_threads import CAPTURE_THREAD, worker_thread_setup
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
 log = logging.getLogger(__name__)
@@ -171,8 +171,7 @@ class ThreadedSource(abc.ABC):
             self._open()
             self.ever_opened = True
             # Named and lowered only now: the device's own threads, started while opening, keep the daemon's.
-            name_os_thread(CAPTURE_THREAD)
-            nice_this_thread(self.worker_nice)
+            worker_thread_setup(CAPTURE_THREAD, self.worker_nice)
             self.opened.set()
             while not stop.is_set():
                 ref = self._grab()

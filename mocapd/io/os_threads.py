@@ -63,6 +63,13 @@ def nice_this_thread(increment: int) -> int:
     return target
 
 
+def worker_thread_setup(name: str, nice: int = 0) -> None:
+    """A worker thread's initializer: its OS-level name (:func:`name_os_thread`) and ``nice`` more niceness
+    (:func:`nice_this_thread`), both inherited by the threads it starts."""
+    name_os_thread(name)
+    nice_this_thread(nice)
+
+
 def thread_nice() -> int:
     """The calling thread's nice value."""
     if not sys.platform.startswith("linux"):

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.keypoints import keypoint_format
 from mocapd.core.sorting import Detections2D
-from mocapd.io.os_threads import name_os_thread, nice_this_thread
+from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
@@ -39,15 +39,8 @@ from mocapd.pipeline.packing import PackedDetector, detectors_from_config
 THREAD_NAME = "mocapd-detect"
 
 
-def worker_thread_setup(name: str, nice: int = 0) -> None:
-    """A worker thread's initializer: its OS-level name (:func:`name_os_thread`) and ``nice`` more niceness
-    (:func:`~mocapd.io.os_threads.nice_this_thread`), both inherited by the threads it starts."""
-    name_os_thread(name)
-    nice_this_thread(nice)
-
-
 def detector_executor(workers: int = 1, nice: int = 0) -> ThreadPoolExecutor:
-    """Worker threads named ``mocapd-detect``, in Python and at the OS level (:func:`name_os_thread`), ``nice``
+    """Worker threads named ``mocapd-detect``, in Python and at the OS level (:func:`worker_thread_setup`), ``nice``
     nicer than the caller: the threads onnxruntime and OpenVINO start from them carry the name and the nice value
     too, so per-thread CPU accounting sees the detector and the event loop's tick comes first."""
     return ThreadPoolExecutor(workers, thread_name_prefix=THREAD_NAME, initializer=worker_thread_setup,

@@ -33,12 +33,13 @@ from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.calibration_files import core_cameras, read_any
 from mocapd.io.frame_source import ThreadedSource
 from mocapd.io.media_files import open_video, read_image
+from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.pixels import capture_ring, pixel_format
 from mocapd.io.prior import resolve_prior
 from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
 from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileSource
 from mocapd.pipeline.clocksync import ClockSync
-from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns, worker_thread_setup
+from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource, KeypointSource
 from mocapd.pipeline.keypoint_tracker import KeypointTracker
 from mocapd.pipeline.latency import AutoLatencyOptions
