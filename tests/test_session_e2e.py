@@ -121,10 +121,12 @@ def test_resolve_does_not_worsen_the_error_against_the_truth(recorded: tuple[Pat
     s = open_session(path)
     live = s.poses()
     frames, summary = resolve(s)
-    # Every output tick from the first to the last recorded frame is solved (the missed ones included).
+    # Every instant the live daemon solved is re-solved, and the ticks it missed are filled (under the shipped
+    # latency_s = "auto" the instants are not a uniform grid: the delay moves).
     assert len(frames) >= len(live) and summary["keypoint_frames"] == len(s.keypoints())
     period = round(1e9 / 60.0)
-    assert np.all(np.diff([f.t_solve_ns for f in frames]) == period)
+    t = np.array([f.t_solve_ns for f in frames])
+    assert {f.t_solve_ns for f in live} <= set(t.tolist()) and np.diff(t).max() <= 1.5 * period
     # Steady state: once the live daemon had bound the suit; before it the two runs enrol and bind at different
     # moments, and a binding transient is not what resolve is for.
     bound = next(f.t_solve_ns for f in live if any(p.suit is not None for p in f.people))

@@ -12,7 +12,7 @@ from mocapd.core.synthetic import moving_sequence
 from mocapd.errors import InputError
 from mocapd.io.session_export import SubjectTrack, resample, subject_track
 from mocapd.protocols.session_format import PersonRecord, PoseRecord
-from mocapd.service.session.solve import ResolveOptions, rts_smooth, smooth_thetas
+from mocapd.service.session.solve import ResolveOptions, recorded_instants, rts_smooth, smooth_thetas
 
 
 def test_rts_smoother_removes_most_of_the_noise_of_a_smooth_signal() -> None:
@@ -63,3 +63,13 @@ def test_resampling_fills_missed_ticks_on_a_uniform_grid() -> None:
         subject_track(_poses("track:1", [0], th[:1]), "track:9")
     with pytest.raises(InputError):
         subject_track([], None)
+
+
+def test_resolve_follows_the_recorded_instants_and_fills_the_missed_ticks() -> None:
+    period = round(1e9 / 60)
+    # A live "auto" latency coming down by 0.3 ms a tick: the instants drift off any grid from the first one.
+    live = np.array([i * period - 300_000 * i for i in range(40) if i not in (10, 11, 12, 25)], dtype=np.int64)
+    t = recorded_instants(live[::-1], period)
+    assert set(live.tolist()) <= set(t.tolist()) and np.all(np.diff(t) > 0)
+    assert np.diff(t).max() <= 1.5 * period and t.size == 40  # the four missed ticks filled, nothing else
+    assert recorded_instants(live[:1], period).tolist() == live[:1].tolist()

@@ -90,7 +90,8 @@ def run(seconds: float = 60.0, cameras: int = 4, people: int = 2) -> dict[str, A
                 "camera_rate_hz": syn.camera_rate_hz, "detection_delay_ms": 1e3 * syn.detection_delay_s,
                 "imu_rate_hz": syn.imu_rate_hz, "transport": "Xbus over pseudo-terminals (mocapd.sim.suits)"},
         "duration_s": run_stats["wall_s"],
-        "configured": {"output_rate_hz": cfg.daemon.output_rate_hz, "latency_ms": st["output"]["latency_s"] * 1e3},
+        "configured": {"output_rate_hz": cfg.daemon.output_rate_hz, "latency_ms": st["output"]["latency_s"] * 1e3,
+                       "latency_mode": "auto" if cfg.daemon.latency_s == "auto" else "fixed"},  # ms: at the end
         "output": {"frames": frames, "achieved_hz": round(frames / run_stats["wall_s"], 2),
                    "missed_ticks": st["output"]["missed_ticks"], "late_ticks": st["output"]["late_ticks"],
                    **_after_warm_up(run_stats.get("warm"), st, run_stats["wall_s"])},

@@ -47,7 +47,7 @@ class DaemonConfig(Section):
     ordered = (("restart_min_s", "<=", "restart_max_s"),)
 
     output_rate_hz: float = Field(60.0, ge=1.0, le=500.0)
-    latency_s: Annotated[float, Field(ge=0.0, le=2.0)] | Literal["auto"] = 0.15
+    latency_s: Annotated[float, Field(ge=0.0, le=2.0)] | Literal["auto"] = "auto"
     """Delay between wall time and solve time (s), or "auto": the smallest that covers what the detector
     delivers (measured p95 of detection delay + detection interval), adapted slowly (docs/daemon.md)."""
     output: Literal["delayed", "predicted"] = "delayed"

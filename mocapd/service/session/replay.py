@@ -49,15 +49,24 @@ def replay_camera_views(
     """Camera views of a recorded session and the replay events that feed them (see the module doc).
 
     Events are placed on the solve-time axis of the replay: a detection that reached the daemon at ``arrival``
-    is fed at ``arrival - latency`` (the daemon's latency is the tick time minus the solve time of the recorded
-    frames), a frame at its capture time. The views' clock follows the replay: the tick time of the frame
-    published last.
+    is fed at the solve time of the recorded tick at ``arrival`` (interpolated between the recorded frames' (tick,
+    solve) times: under ``latency_s = "auto"`` the delay between them moves), a frame at its capture time. The
+    views' clock follows the replay: the tick time of the frame published last.
     """
     recorded = session.frames()
     n = len(rig.cameras)
     sources: list[SnapshotSource | None] = [LatestSnapshot() for _ in range(n)] if recorded else [None] * n
     tick = [frames[0].tick_ns if frames else 0]
-    latency = frames[0].tick_ns - frames[0].t_solve_ns if frames else 0
+    ticks = np.array([r.tick_ns for r in frames], dtype=np.float64)
+    solves = np.array([r.t_solve_ns for r in frames], dtype=np.float64)
+    order = np.argsort(ticks, kind="stable")
+
+    def on_solve_axis(arrival_ns: int) -> int:
+        """Where a wall-clock arrival falls on the solve-time axis: the delay of the nearest recorded ticks."""
+        if not frames:
+            return arrival_ns
+        delay = np.interp(arrival_ns, ticks[order], ticks[order] - solves[order])
+        return int(arrival_ns - delay)
 
     def now() -> int:
         return tick[0]
@@ -69,7 +78,7 @@ def replay_camera_views(
     for k in session.keypoints():
         dets = Detections2D(k.keypoints, k.confidences)
         events.append(
-            (k.arrival_ns - latency, partial(views.on_detections, k.camera, k.capture_ns, dets, k.arrival_ns))
+            (on_solve_axis(k.arrival_ns), partial(views.on_detections, k.camera, k.capture_ns, dets, k.arrival_ns))
         )
     for f in recorded:
         src = sources[f.camera] if 0 <= f.camera < len(sources) else None

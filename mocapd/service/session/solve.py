@@ -211,14 +211,15 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
 
 
 def solve_times(session: Session, rate_hz: float, sensors: tuple[str, ...] = ()) -> NDArray[np.int64]:
-    """Every output tick from the first to the last recorded frame, the ticks the live daemon missed included;
-    a grid at ``rate_hz`` over the keypoints when no frame was recorded, over the IMU samples when there are no
-    keypoints either (an imported IMU recording: ``mocapd import``): then over the span every one of the suits'
+    """The instants the live daemon solved, the ticks it missed included (:func:`recorded_instants`); a grid at
+    ``rate_hz`` over the keypoints when no frame was recorded, over the IMU samples when there are no keypoints
+    either (an imported IMU recording: ``mocapd import``): then over the span every one of the suits'
     ``sensors`` covers (:func:`imu_coverage`), where the take has such a span."""
     period = round(1e9 / rate_hz)
     t = np.array([f.t_solve_ns for f in session.poses()], dtype=np.int64)
-    if t.size == 0:
-        t = np.array([k.capture_ns for k in session.keypoints()], dtype=np.int64)
+    if t.size:
+        return recorded_instants(t, period)
+    t = np.array([k.capture_ns for k in session.keypoints()], dtype=np.int64)
     if t.size == 0:
         coverage = imu_coverage(session)
         if not coverage:
@@ -228,6 +229,35 @@ def solve_times(session: Session, rate_hz: float, sensors: tuple[str, ...] = ())
         if common is not None:
             t = np.array(common, dtype=np.int64)
     return np.arange(int(t.min()), int(t.max()) + 1, period, dtype=np.int64)
+
+
+def recorded_instants(t_solve_ns: NDArray[np.int64], period_ns: int) -> NDArray[np.int64]:
+    """The recorded solve instants, sorted and unique, with the gaps the live daemon left (missed ticks: more than
+    1.5 periods between two frames) filled at the period.
+
+    The recorded instants, not a grid from the first one: under ``latency_s = "auto"`` the live delay moves, and
+    so do the instants (tick time minus delay), so a re-solve on a uniform grid would share no instant with the
+    live solve it should be compared with, or replace.
+
+    Parameters
+    ----------
+    t_solve_ns : (N,) int64
+        The recorded frames' solve instants, in any order.
+    period_ns : int
+        The output period.
+
+    Returns
+    -------
+    (M,) int64, M >= number of unique instants
+    """
+    t = np.unique(t_solve_ns)
+    if t.size < 2:
+        return t
+    gaps = np.flatnonzero(np.diff(t) > 1.5 * period_ns)
+    if gaps.size == 0:
+        return t
+    fill = [np.arange(t[i] + period_ns, t[i + 1] - period_ns // 2, period_ns, dtype=np.int64) for i in gaps]
+    return np.sort(np.concatenate([t, *fill]))
 
 
 def suit_sensors(suits: list[Suit]) -> tuple[str, ...]:
