@@ -76,6 +76,22 @@ def test_bench_latency_reports_the_synthetic_daemon(capsys: pytest.CaptureFixtur
     assert not any(r["task_failures"].values()), r["task_failures"]
 
 
+def test_bench_latency_on_the_suit_alone_reports_the_imu_only_rig(capsys: pytest.CaptureFixture[str]) -> None:
+    """``mocapd bench latency --rig imu``: `mocapd demo --imu-only`'s suit, no camera, in predicted output."""
+    assert main(["bench", "latency", "--rig", "imu", "--seconds", "3", "--output", "predicted"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["rig"]["cameras"] == 0 and r["rig"]["imus"] == 13 and r["imu_devices_streaming_at_end"] == 13
+    # The shipped "auto" latency on a rig without cameras: the IMUs' short fixed delay, not a camera rig's.
+    assert r["configured"] == {"output_rate_hz": 60.0, "latency_ms": 60.0, "latency_mode": "auto",
+                               "output": "predicted"}  # fmt: skip
+    assert r["output"]["frames"] > 0 and r["end_to_end_ms"]["p50"] >= 60.0
+    # Predicted output: the pose is carried to the newest IMU sample, well inside the 60 ms delay.
+    imu = r["stage_latency_ms"]["imu_to_publish"]
+    assert imu["count"] > 0 and imu["p50"] < r["end_to_end_ms"]["p50"]
+    assert r["median_root_relative_error_mm"] is not None and r["median_root_relative_error_mm"] < 100.0
+    assert not any(r["task_failures"].values()), r["task_failures"]
+
+
 def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_detector_alone(tmp_path: Path) -> None:
     """``mocapd bench latency --rig cameras`` (the camera demo in a private network namespace) for a few seconds:
     the JSON is checked for content and coherence, not for speed. ``--config`` gives the detector settings run."""

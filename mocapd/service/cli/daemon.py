@@ -307,6 +307,9 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
                            config=args.config)  # fmt: skip
     from mocapd.service.bench import latency
 
+    if args.rig == "imu":
+        print(json.dumps(latency.run_imu(seconds=args.seconds, output=args.output), indent=2))
+        return 0
     print(json.dumps(latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
     return 0
 
@@ -392,8 +395,11 @@ def register(subparsers: Any) -> None:
     lat.add_argument("--seconds", type=float, default=60.0, help="run length (default 60)")
     lat.add_argument("--cameras", type=int, default=4)
     lat.add_argument("--people", type=int, default=2)
-    lat.add_argument("--rig", choices=["synthetic", "cameras"], default="synthetic",
-                     help="cameras: the camera demo (fake GigE cameras, real detector) in a private netns")  # fmt: skip
+    lat.add_argument("--rig", choices=["synthetic", "cameras", "imu"], default="synthetic",
+                     help="cameras: the camera demo (fake GigE cameras, real detector) in a private netns; imu: "
+                     "`mocapd demo --imu-only`'s suit alone (13 simulated Xsens IMUs, no camera)")  # fmt: skip
+    lat.add_argument("--output", choices=["delayed", "predicted"], default=None,
+                     help="imu: [daemon] output (default: the shipped config's)")  # fmt: skip
     lat.add_argument("--scale", type=float, default=0.5, help="cameras: image size / 1088x1920")
     lat.add_argument("--latency", type=_latency, default="auto", help=_LATENCY_HELP)
     lat.add_argument("--detection", choices=["auto", "packed", "whole"], default="auto", help=_DETECTION_HELP)
