@@ -46,6 +46,26 @@ def test_no_directory_means_no_suits(tmp_path: Path) -> None:
     assert load_suits(ImuConfig(calibration_dir="absent"), world.skeleton, base=tmp_path) == []
 
 
+def test_a_configs_suits_are_found_beside_it_from_any_working_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A relative ``calibration_dir`` is the config file's folder's, as the rig's other files are: ``mocapd run
+    --config ~/mocap/suit.toml`` started elsewhere (a service runs in /) found no suit and streamed nothing."""
+    from mocapd.service.config import load_config
+
+    world = SyntheticWorld(n_cams=2, n_people=1, n_suits=1, motion="procedural")
+    (tmp_path / "mocap" / "cal").mkdir(parents=True)
+    _write(tmp_path / "mocap" / "cal", world, 0)
+    cfg = write(tmp_path / "mocap" / "suit.toml", '[imu]\ncalibration_dir = "cal"\n')
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    imu = load_config(cfg).imu
+    assert imu.calibration_dir == str(tmp_path / "mocap" / "cal")
+    assert [s.id for s in load_suits(imu, world.skeleton)] == ["suit0"]
+    assert load_config().imu.calibration_dir == "calibration"  # no --config: where mocapd is run
+
+
 def test_bad_files_are_errors_naming_the_file(tmp_path: Path) -> None:
     world = SyntheticWorld(n_cams=2, n_people=1, n_suits=1, motion="procedural")
     cfg = ImuConfig(calibration_dir=str(tmp_path))

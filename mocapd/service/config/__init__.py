@@ -234,7 +234,16 @@ def load_config(path: str | Path | None = None) -> Config:
         large, binary, not UTF-8, not TOML), or one line per bad key.
     """
     p = Path(path) if path is not None else DEFAULT_CONFIG
-    return resolve_paths(parse_config(read_toml(p)), p.resolve().parent)
+    config = resolve_paths(parse_config(read_toml(p)), p.resolve().parent)
+    if path is None:
+        return config  # the shipped file: its suits are calibrated where mocapd is run, not in the package
+    # A rig's suits travel with its config, as its camera calibration does: `mocapd run --config ~/suit.toml`
+    # started from anywhere (a service's working directory is /) finds what `calibrate imu --config` wrote.
+    folder = config.imu.calibration_dir
+    if Path(folder).is_absolute():
+        return config
+    imu = config.imu.model_copy(update={"calibration_dir": str(p.resolve().parent / folder)})
+    return config.model_copy(update={"imu": imu})
 
 
 def read_toml(p: Path) -> dict[str, Any]:
