@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mocapd.core.body_dims import SEGMENTS
 from mocapd.core.imu import (
     IMU_SET_LOWER,
     default_mounts,
@@ -212,11 +213,41 @@ def test_mvnx_imports_with_its_segment_labels(tmp_path: Path, capsys: pytest.Cap
     assert summary["assignment"][labels["Pelvis"]] == "Hips" and labels["RightShoulder"] not in summary["assignment"]
     # The shoulders' sensors have no bone of mocapd's: said so, not "give each a bone with --assign" (an --assign
     # replaces the automatic assignment of every other sensor) nor "leave its file out" (one file holds them all).
-    assert said.err == (f"note: 2 sensor(s) on segments mocapd's skeleton does not have, kept in the session but not "
-                        f"calibrated or solved: {labels['RightShoulder']} (RightShoulder), {labels['LeftShoulder']} "
-                        f"(LeftShoulder)\n")  # fmt: skip
+    notes = said.err.splitlines()
+    assert notes[-1] == (f"note: 2 sensor(s) on segments mocapd's skeleton does not have, kept in the session but "
+                         f"not calibrated or solved: {labels['RightShoulder']} (RightShoulder), "
+                         f"{labels['LeftShoulder']} (LeftShoulder)")  # fmt: skip
     records = open_session(session).imu()
     assert len({r.sensor for r in records}) == 11 and len(records) == 11 * 112
+
+
+def test_an_mvnx_take_brings_the_body_mvn_calibrated(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """MVN Studio sized the wearer (its segment points, in every MVNX file): the import uses that body instead of
+    the 1.75 m default proportions, says so, and records it; what the command line gives replaces it."""
+    from mocapd.io.mvnx import read_mvnx
+
+    body = read_mvnx(MVNX).body()
+    assert body is not None
+    # The file's numbers (upper-body take, full body sized): right knee 0.395876 m below the right hip, ...
+    assert body.height == pytest.approx(1.636, abs=1e-3) and body.segments["thigh"] == pytest.approx(0.3959, abs=1e-4)
+    assert body.segments["foot"] == pytest.approx(0.1659, abs=1e-4)
+    assert body.segments["ankle_height"] == pytest.approx(0.086, abs=1e-3)
+    assert set(body.segments) == set(SEGMENTS)
+    assert main(["import", "mvnx", str(MVNX), "-o", str(tmp_path / "a")]) == 0
+    assert "the wearer's body from the MVNX file" in capsys.readouterr().err
+    made = open_session(tmp_path / "a").manifest["skeleton"]
+    assert made["from"]["source"] == "mvnx" and made["height"] == pytest.approx(body.height)
+    lengths = made["from"]["lengths_m"]
+    assert all(lengths[k] == pytest.approx(v, abs=1e-3) for k, v in body.segments.items()), (lengths, body)
+    # A segment measured by hand replaces MVN's; a height alone scales the default proportions, as for MT Manager.
+    assert main(["import", "mvnx", str(MVNX), "-o", str(tmp_path / "b"), "--thigh", "0.42"]) == 0
+    b = open_session(tmp_path / "b").manifest["skeleton"]["from"]
+    assert b["lengths_m"]["thigh"] == pytest.approx(0.42) and b["lengths_m"]["shank"] == pytest.approx(0.4004, abs=1e-3)
+    capsys.readouterr()
+    assert main(["import", "mvnx", str(MVNX), "-o", str(tmp_path / "c"), "--height", "1.8"]) == 0
+    assert "is not used: leave --height out to use it" in capsys.readouterr().err
+    c = open_session(tmp_path / "c").manifest["skeleton"]["from"]
+    assert c["source"] == "height" and c["height_m"] == 1.8
 
 
 def test_arms_down_posture() -> None:

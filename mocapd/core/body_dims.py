@@ -72,6 +72,8 @@ class BodySpec:
 
     height: float = REFERENCE_HEIGHT
     segments: Mapping[str, float] | None = None
+    source: str | None = None
+    """Where height and segments came from when not typed in (``"mvnx"``: an MVN export's calibrated body)."""
 
     def skeleton(self) -> Skeleton:
         return skeleton_from_segments(self.height, self.segments or {})
@@ -80,7 +82,7 @@ class BodySpec:
         """JSON-able record of how the skeleton was made (a session's manifest keeps it)."""
         given = dict(sorted((self.segments or {}).items()))
         return {
-            "source": "segments" if given else "height",
+            "source": self.source or ("segments" if given else "height"),
             "height_m": self.height,
             "segments_m": given,
             "lengths_m": {k: round(v, 4) for k, v in segment_lengths(self.skeleton()).items()},

@@ -39,6 +39,8 @@ MAX_FILE_BYTES = 8 * GiB
 MAX_SEGMENTS = 64
 MAX_SENSORS = 64
 MAX_JOINTS = 128
+MAX_POINTS = 4096
+"""Segment points read (MVN's 23 segments have 127)."""
 MAX_FRAMES = 5_000_000
 MAX_TEXT_CHARS = 1 << 20
 """Longest text of one element (a frame's 23 segment orientations are ~1.5 KB)."""
@@ -81,6 +83,11 @@ class MvnxRecording:
         Sensor accelerations in the world with gravity removed (m/s²), or zeros when absent.
     tpose_orientation : array, shape (n_seg, 4) or None
         Segment orientations of the ``tpose`` calibration frame if present.
+    segment_points : dict of str to dict of str to array, shape (3,)
+        Each segment's named points (joints ``j…``, anatomical landmarks ``p…``) in the segment's frame, as MVN
+        calibrated them for the wearer (``<points><point><pos_b>``; MVN's axes: Z up, X forward, Y left).
+    joints : tuple of (str, str)
+        The file's joint list: (``parent/point``, ``child/point``), the point where the child segment hangs.
     """
 
     segments: tuple[str, ...]
@@ -93,6 +100,13 @@ class MvnxRecording:
     sensor_orientation: FloatArray
     sensor_free_acceleration: FloatArray
     tpose_orientation: FloatArray | None
+    segment_points: dict[str, dict[str, FloatArray]] = field(default_factory=dict)
+    joints: tuple[tuple[str, str], ...] = ()
+
+    def body(self) -> MvnBody | None:
+        """The wearer's body as MVN calibrated it (:func:`mvn_body`), or None where the file has no segment
+        points."""
+        return mvn_body(self.segment_points, self.joints)
 
     def sensor_readings(self) -> tuple[FloatArray, FloatArray]:
         """Each sensor's orientation and specific force as the device frames have them (MVN's Z-up global frame,
@@ -212,6 +226,9 @@ class _Target:
     s_ori: list[FloatArray] = field(default_factory=list)
     s_acc: list[FloatArray] = field(default_factory=list)
     tpose: FloatArray | None = None
+    points: dict[str, dict[str, FloatArray]] = field(default_factory=dict)
+    n_points: int = 0
+    point: str | None = None
 
     def start(self, tag: str, attrib: dict[str, str]) -> None:
         if self.ns is None:
@@ -227,6 +244,12 @@ class _Target:
             return
         elif local == "segment":
             self._count(self.segs, MAX_SEGMENTS, "segments").append(attrib.get("label", ""))
+        elif local == "point" and self.path[-2] == "points" and "segment" in self.path and self.segs:
+            if self.n_points >= MAX_POINTS:
+                raise InputError(f"MVNX {self.name}: more than {MAX_POINTS} segment points")
+            self.point, self.n_points = attrib.get("label", ""), self.n_points + 1
+        elif local == "pos_b" and self.path[-2] == "point" and self.point is not None:
+            self.text, self.text_chars = [], 0
         elif local == "sensor":
             self._count(self.sensors, MAX_SENSORS, "sensors").append(attrib.get("label", ""))
         elif local == "joint":
@@ -256,7 +279,15 @@ class _Target:
         local = self.path.pop() if self.path else ""
         text = "".join(self.text) if self.text is not None else None
         self.text = None
-        if local in ("connector1", "connector2") and text is not None and self.joints:
+        if local == "pos_b" and text is not None and self.point is not None:
+            xyz = _floats(text, "pos_b")
+            if xyz.shape != (3,):
+                raise InputError(f"MVNX {self.name}: segment {self.segs[-1]!r} point {self.point!r}: pos_b holds "
+                                 f"{xyz.size} numbers, not 3")  # fmt: skip
+            self.points.setdefault(self.segs[-1], {})[self.point] = xyz
+        elif local == "point":
+            self.point = None
+        elif local in ("connector1", "connector2") and text is not None and self.joints:
             c1, c2 = self.joints[-1]
             self.joints[-1] = (text, c2) if local == "connector1" else (c1, text)
         elif local in _FRAME_FIELDS and self.frame is not None and text is not None:
@@ -316,6 +347,8 @@ class _Target:
             sensor_orientation=np.stack(self.s_ori),
             sensor_free_acceleration=np.stack(self.s_acc),
             tpose_orientation=None if self.tpose is None else self.tpose[perm],
+            segment_points=self.points,
+            joints=tuple((c1, c2) for c1, c2 in self.joints if c1 is not None and c2 is not None),
         )
 
 
@@ -328,3 +361,67 @@ def _topological(parents: list[int]) -> list[int]:
         order.extend(frontier)
         frontier = [c for c, p in enumerate(parents) if p in frontier]
     return order
+
+
+@dataclass(frozen=True)
+class MvnBody:
+    """The wearer's height and segment lengths (m; :data:`mocapd.core.body_dims.SEGMENTS`) from an MVNX file's
+    segment points: what MVN Studio's body dimensions and calibration made of the person."""
+
+    height: float
+    segments: dict[str, float]
+
+
+_SOLE = ("HeelFoot", "FirstMetatarsal", "FifthMetatarsal", "PivotFoot")
+"""The foot's points on the floor when standing (``pRightHeelFoot`` ...)."""
+
+
+def mvn_body(points: dict[str, dict[str, FloatArray]], joints: tuple[tuple[str, str], ...]) -> MvnBody | None:
+    """The wearer's body from MVN's segment points (each in its segment's frame) and joint list.
+
+    MVN's segment frames are all aligned with the world in its neutral pose, so a point's place in that pose is the
+    sum of the joint offsets down the tree: the height is the top of the head above the soles' points, the
+    lengths are joint to joint (both sides averaged), the torso the hip joints' midpoint to the neck's base
+    (``jT1C7``). None where the file lacks any of the points needed (an older MVNX without ``<points>``).
+    """
+    origin: dict[str, FloatArray] = {}
+    parent_of = {c2.split("/")[0]: (c1.split("/", 1), c2.split("/", 1)) for c1, c2 in joints if "/" in c1 + c2}
+    if not points or not parent_of:
+        return None
+
+    def at(seg: str, depth: int = 0) -> FloatArray:
+        """A segment's origin in the neutral pose (m, relative to the root segment's)."""
+        if seg in origin:
+            return origin[seg]
+        if seg not in parent_of or depth > MAX_SEGMENTS:
+            origin[seg] = np.zeros(3)  # the root
+            return origin[seg]
+        (ps, pp), (cs, cp) = parent_of[seg]
+        origin[seg] = at(ps, depth + 1) + points[ps][pp] - points[cs][cp]
+        return origin[seg]
+
+    def point(seg: str, label: str) -> FloatArray:
+        return at(seg) + points[seg][label]
+
+    def mean_len(seg: str, label: str) -> float:
+        return float(np.mean([np.linalg.norm(points[f"{s}{seg}"][f"j{s}{label}"]) for s in ("Right", "Left")]))
+
+    try:
+        sole = np.median([point(f"{s}Foot", f"p{s}{p}")[2] for s in ("Right", "Left") for p in _SOLE])
+        hips = 0.5 * (point("Pelvis", "jRightHip") + point("Pelvis", "jLeftHip"))
+        ankle = 0.5 * (point("RightFoot", "jRightAnkle") + point("LeftFoot", "jLeftAnkle"))
+        segments = {
+            "hip_width": float(np.linalg.norm(point("Pelvis", "jRightHip") - point("Pelvis", "jLeftHip"))),
+            "thigh": mean_len("UpperLeg", "Knee"),
+            "shank": mean_len("LowerLeg", "Ankle"),
+            "foot": mean_len("Foot", "BallFoot"),
+            "ankle_height": float(ankle[2] - sole),
+            "torso": float(np.linalg.norm(point("T8", "jT1C7") - hips)),
+            "shoulder_width": float(np.linalg.norm(at("RightUpperArm") - at("LeftUpperArm"))),
+            "upper_arm": mean_len("UpperArm", "Elbow"),
+            "forearm": mean_len("ForeArm", "Wrist"),
+        }
+        height = float(point("Head", "pTopOfHead")[2] - sole)
+    except KeyError:
+        return None
+    return MvnBody(round(height, 4), {k: round(v, 4) for k, v in segments.items()})

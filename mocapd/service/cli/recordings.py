@@ -21,7 +21,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mocapd.core.body_dims import SEGMENTS, default_lengths
 from mocapd.core.names import check_name
@@ -29,6 +29,9 @@ from mocapd.core.skeleton import REFERENCE_HEIGHT
 from mocapd.errors import MocapdError, OutputError
 from mocapd.io.output_files import check_output_dir, check_output_file, write_text_atomic
 from mocapd.service.cli.numbers import number
+
+if TYPE_CHECKING:
+    from mocapd.io.mvnx import MvnBody
 
 
 def _segments(args: argparse.Namespace) -> dict[str, float]:
@@ -73,7 +76,8 @@ def cmd_import_mtw(args: argparse.Namespace) -> int:
     exports = [(p.name, read_mt_export(p, rate_hz=args.rate)) for p in _export_files(args.files)]
     streams = streams_from_mt_exports(exports)
     manifest = imported_manifest(
-        streams, parse_assign_pairs(args.assign), source="mt-manager", suit=args.suit, height=args.height,
+        streams, parse_assign_pairs(args.assign), source="mt-manager", suit=args.suit,
+        height=REFERENCE_HEIGHT if args.height is None else args.height,
         imu_set=args.imu_set or None, segments=_segments(args),
     )  # fmt: skip
     path = write_imported_session(args.output, streams, manifest)
@@ -115,6 +119,27 @@ def _note_unassigned(manifest: dict[str, Any], automatic: bool = False) -> None:
           file=sys.stderr)  # fmt: skip
 
 
+def _mvnx_body(args: argparse.Namespace, mvn: MvnBody | None) -> tuple[float, dict[str, float], str | None]:
+    """The wearer's height and segments for an MVNX import, and ``"mvnx"`` where the file's body was used.
+
+    MVN's own body (the file's segment points: MVN Studio's calibration of the person) is the default, each
+    segment given on the command line in its place; a ``--height`` given alone scales the default proportions as
+    for any import (the file's body is then left out, and a note says so). A file without segment points: the
+    command line's, or the 1.75 m default."""
+    given = _segments(args)
+    if mvn is None:
+        return (REFERENCE_HEIGHT if args.height is None else args.height), given, None
+    lengths = ", ".join(f"{k} {v:.3f}" for k, v in mvn.segments.items())
+    if args.height is not None and not given:
+        print(f"note: --height {args.height:g} m scales the default proportions; the MVNX file's own body (height "
+              f"{mvn.height:.3f} m, {lengths}) is not used: leave --height out to use it", file=sys.stderr)  # fmt: skip
+        return args.height, {}, None
+    replaced = f"; from the command line instead: {', '.join(sorted(given))}" if given else ""
+    print(f"note: the wearer's body from the MVNX file (MVN's calibrated segments): height {mvn.height:.3f} m, "
+          f"{lengths}{replaced}", file=sys.stderr)  # fmt: skip
+    return (mvn.height if args.height is None else args.height), {**mvn.segments, **given}, "mvnx"
+
+
 def cmd_import_mvnx(args: argparse.Namespace) -> int:
     from mocapd.io.mvnx import read_mvnx
     from mocapd.service.session.importer import (
@@ -126,16 +151,19 @@ def cmd_import_mvnx(args: argparse.Namespace) -> int:
     )
 
     check_output_dir(args.output, what="session directory")
-    streams = streams_from_mvnx(read_mvnx(args.file), args.file.name)
+    recording = read_mvnx(args.file)
+    streams = streams_from_mvnx(recording, args.file.name)
     assignment = parse_assign_pairs(args.assign) if args.assign else mvnx_assignment(streams)
+    height, segments, body_from = _mvnx_body(args, recording.body())
     manifest = imported_manifest(
         streams,
         assignment,
         source="mvnx",
         suit=args.suit,
-        height=args.height,
+        height=height,
         imu_set=args.imu_set or None,
-        segments=_segments(args),
+        segments=segments,
+        body_from=body_from,
     )
     path = write_imported_session(args.output, streams, manifest)
     _note_unassigned(manifest, automatic=not args.assign)
@@ -275,20 +303,27 @@ def register(subparsers: Any) -> None:
     imp = subparsers.add_parser("import", help="existing IMU recordings (MT Manager exports, MVNX) as sessions")
     what = imp.add_subparsers(dest="import_what", metavar="FORMAT", required=True)
 
-    def common(p: argparse.ArgumentParser) -> None:
+    def common(p: argparse.ArgumentParser, mvnx: bool = False) -> None:
         p.add_argument("-o", "--output", type=Path, required=True,
                        help="session directory to create (new, or an empty directory)")  # fmt: skip
         p.add_argument("--assign", action="append", default=[], metavar="SENSOR=BONE",
                        help="which sensor sits on which bone, e.g. 00B42279=Hips (repeat)")  # fmt: skip
         p.add_argument("--suit", default="suit0", help="the suit's name in the session (default suit0)")
         body = p.add_argument_group(
-            "the wearer's body", "a height, and any segment lengths measured (each one not given is scaled from the "
-            "height; the session records which: manifest skeleton.from)")  # fmt: skip
-        body.add_argument("--height", type=number(0.5, 2.5), default=REFERENCE_HEIGHT, metavar="M",
-                          help=f"the wearer's height, m (default {REFERENCE_HEIGHT:g})")  # fmt: skip
+            "the wearer's body",
+            "a height, and any segment lengths measured (each one not given is scaled from the "
+            "height; the session records which: manifest skeleton.from)"
+            + ("; an MVNX file's own body (MVN's calibration of the wearer) is the default" if mvnx else ""),
+        )
+        default = (
+            "the body MVN calibrated, from the file's segment points; else " if mvnx else ""
+        ) + f"{REFERENCE_HEIGHT:g}"
+        body.add_argument("--height", type=number(0.5, 2.5), default=None, metavar="M",
+                          help=f"the wearer's height, m (default {default})")  # fmt: skip
         at = default_lengths()
         for name, what in SEGMENTS.items():
-            helps = f"{what}, m (default: from --height; {at[name]:.3f} at {REFERENCE_HEIGHT:g} m)"
+            mvn = "MVN's, else " if mvnx else ""
+            helps = f"{what}, m (default: {mvn}from --height; {at[name]:.3f} at {REFERENCE_HEIGHT:g} m)"
             body.add_argument(f"--{name.replace('_', '-')}", type=number(0.01, 1.5), default=None, metavar="M",
                               dest=f"seg_{name}", help=helps)  # fmt: skip
         p.add_argument(
@@ -309,5 +344,5 @@ def register(subparsers: Any) -> None:
 
     mvnx = what.add_parser("mvnx", help="an Xsens MVN export (.mvnx)")
     mvnx.add_argument("file", type=Path, help="the .mvnx file")
-    common(mvnx)
+    common(mvnx, mvnx=True)
     mvnx.set_defaults(func=_guard(cmd_import_mvnx))

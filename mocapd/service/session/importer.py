@@ -64,9 +64,11 @@ def imported_manifest(
     height: float,
     imu_set: str | None = None,
     segments: dict[str, float] | None = None,
+    body_from: str | None = None,
 ) -> dict[str, Any]:
     """The manifest of an imported session (see the module docstring). The skeleton is the default proportions at
-    ``height`` with any ``segments`` given (:mod:`mocapd.core.body_dims`); the manifest records which."""
+    ``height`` with any ``segments`` given (:mod:`mocapd.core.body_dims`); the manifest records which, and
+    ``body_from`` where they came from a file (``"mvnx"``: MVN's calibrated body)."""
     check_name(suit, "--suit")
     if not (isinstance(height, float | int) and math.isfinite(height) and MIN_HEIGHT_M <= height <= MAX_HEIGHT_M):
         raise InputError(f"--height {height!r}: allowed: {MIN_HEIGHT_M:g} to {MAX_HEIGHT_M:g} m")
@@ -85,7 +87,7 @@ def imported_manifest(
     imu["imu_set"] = imu_set or ""
     raw["imu"] = imu
     o = cfg.daemon.scheduler_options([])
-    body = BodySpec(height, dict(segments or {}))
+    body = BodySpec(height, dict(segments or {}), source=body_from)
     skeleton = body.skeleton()
     imu["body"] = {"height_m": height, **{f"{k}_m": v for k, v in (segments or {}).items()}}
     targets = coco17_targets(skeleton)
