@@ -248,6 +248,13 @@ def test_an_mvnx_take_brings_the_body_mvn_calibrated(tmp_path: Path, capsys: pyt
     assert "is not used: leave --height out to use it" in capsys.readouterr().err
     c = open_session(tmp_path / "c").manifest["skeleton"]["from"]
     assert c["source"] == "height" and c["height_m"] == 1.8
+    # A body no person has (a hand-edited or damaged file): said, and not used.
+    text = MVNX.read_text(encoding="utf-8").replace("<pos_b>-0.000048 0.000000 -0.395876</pos_b>",
+                                                    "<pos_b>0 0 -3.9</pos_b>", 1)  # fmt: skip
+    (tmp_path / "giant.mvnx").write_text(text, encoding="utf-8")
+    assert main(["import", "mvnx", str(tmp_path / "giant.mvnx"), "-o", str(tmp_path / "d")]) == 0
+    assert "own body is not one mocapd can use (height 3.388 m, hip_width 0.190, thigh 2.148" in capsys.readouterr().err
+    assert open_session(tmp_path / "d").manifest["skeleton"]["from"]["source"] == "height"
 
 
 def test_arms_down_posture() -> None:

@@ -126,10 +126,20 @@ def _mvnx_body(args: argparse.Namespace, mvn: MvnBody | None) -> tuple[float, di
     segment given on the command line in its place; a ``--height`` given alone scales the default proportions as
     for any import (the file's body is then left out, and a note says so). A file without segment points: the
     command line's, or the 1.75 m default."""
+    from mocapd.core.body_dims import LIMITS
+    from mocapd.service.session.importer import MAX_HEIGHT_M, MIN_HEIGHT_M
+
     given = _segments(args)
+    lengths = "" if mvn is None else ", ".join(f"{k} {v:.3f}" for k, v in mvn.segments.items())
+    if mvn is not None and not (
+        MIN_HEIGHT_M <= mvn.height <= MAX_HEIGHT_M and all(LIMITS[0] <= v <= LIMITS[1] for v in mvn.segments.values())
+    ):  # comparisons with nan are False: a nan is refused too
+        print(f"note: the MVNX file's own body is not one mocapd can use (height {mvn.height:.3f} m, {lengths}; "
+              f"allowed: a height of {MIN_HEIGHT_M:g}-{MAX_HEIGHT_M:g} m, segments of {LIMITS[0]:g}-{LIMITS[1]:g} "
+              "m): the skeleton comes from --height and the segments given instead", file=sys.stderr)  # fmt: skip
+        mvn = None
     if mvn is None:
         return (REFERENCE_HEIGHT if args.height is None else args.height), given, None
-    lengths = ", ".join(f"{k} {v:.3f}" for k, v in mvn.segments.items())
     if args.height is not None and not given:
         print(f"note: --height {args.height:g} m scales the default proportions; the MVNX file's own body (height "
               f"{mvn.height:.3f} m, {lengths}) is not used: leave --height out to use it", file=sys.stderr)  # fmt: skip
