@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
+import threading
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -225,7 +226,7 @@ def test_aligned_tile_pixels_are_the_letterbox_pixels(frames: list[list[Image]])
 
 
 def test_async_wrapper_keeps_the_event_loop_free(frames: list[list[Image]]) -> None:
-    async def main() -> tuple[list[PoseDetections], int]:
+    async def main() -> tuple[list[PoseDetections], int, str]:
         ticks = 0
         stop = asyncio.Event()
 
@@ -240,9 +241,12 @@ def test_async_wrapper_keeps_the_event_loop_free(frames: list[list[Image]]) -> N
             results = await asyncio.gather(*(det.detect(img) for img in frames[0]))
             stop.set()
             await t
-        return list(results), ticks
+            # Its workers carry the OS-level name of the daemon's detector threads (top -H, perf).
+            named = await det.call(lambda _: Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text())
+        return list(results), ticks, named.strip()
 
-    results, ticks = asyncio.run(main())
+    results, ticks, named = asyncio.run(main())
+    assert named.startswith("mocapd-detect"), named
     assert len(results) == 4 and all(len(r) >= 1 for r in results)
     assert ticks >= 3  # the loop kept running while 4 inferences ran on worker threads
 

@@ -36,6 +36,7 @@ from mocapd.core.pose2d import (
 from mocapd.errors import InputError, ModelError
 from mocapd.io.model_batch import fixed_batch, load_model
 from mocapd.io.model_quant import model_path
+from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec
 
 Image = NDArray[np.uint8]
@@ -611,7 +612,9 @@ class AsyncPoseDetector:
         workers = cfg.workers if isinstance(cfg.workers, int) else 1
         for _ in range(workers):
             self._pool.put(OnnxPoseDetector.from_config(cfg))
-        self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mocapd-detect")
+        # Named at the OS level too, as the daemon's detector workers are (detector_pool.detector_executor).
+        self._executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mocapd-detect",
+                                            initializer=worker_thread_setup, initargs=("mocapd-detect", 0))  # fmt: skip
 
     def _with_detector(self, fn: Callable[[OnnxPoseDetector], R]) -> R:
         det = self._pool.get()
