@@ -23,8 +23,10 @@ toes, which bend up at the ball (no sensor measures them). :class:`GroundTracker
    sliding foot in a shuffle is as low as the standing one, but moves);
 2. **plants and lifts feet.** A foot whose support reaches ``lock_weight`` is planted where it is, unless the body is
    airborne (the hips sensor falls freely: a run's flight phase, a jump; nothing is on the floor then); a planted foot
-   whose support stays below ``free_weight`` for ``hold_s`` is lifted, at once when airborne. A foot put down again at
-   once, close by, returns to its old anchor, so noise that briefly lifts a standing foot does not move it;
+   whose support stays below ``free_weight`` for ``hold_s`` is lifted, at once when airborne. Unless airborne something
+   stands: with no foot planted, the stiller foot is planted if it is still against the inertial reference (slower
+   than ``still_speed``), however high the legs' mounting errors show it. A foot put down again at once, close by,
+   returns to its old anchor, so noise that briefly lifts a standing foot does not move it;
 3. **anchors the root.** A planted foot's pivot (its lowest point: the heel after heel strike, passing to the ball at
    heel-off and to the toe tip at push-off once the foot pitches beyond ``toe_bend``, and back as the foot rocks; a
    point taken up again in the same stance returns to where it was held) stays
