@@ -43,6 +43,7 @@ from mocapd.core.imu import (
     IMU_SET_LOWER_OPTIONAL,
     measured_bone_orientation,
 )
+from mocapd.core.names import check_name
 from mocapd.core.plausibility import (
     HingeEvents,
     PlausibilityOptions,
@@ -159,6 +160,58 @@ def parse_assignment(mapping: Mapping[str, str], *, imu_set: str | None = None) 
             extra = [b for b in extra if b not in IMU_SET_LOWER_OPTIONAL] + trunk[1:]
         if missing or extra:
             raise ConfigError(f"imu assignment for the {imu_set}-sensor set: missing {missing}, unexpected {extra}")
+    return out
+
+
+MAX_SUIT_SENSORS = 64
+"""Sensors one person's table (or the flat assignment) assigns at most."""
+MAX_PERSONS = 16
+"""Persons one per-person assignment names at most."""
+
+
+def is_per_person(mapping: Mapping[str, object]) -> bool:
+    """Whether an assignment is written per person (``[imu.assignment.alice]``: a table per person) rather than
+    flat (``"00B421E6" = "Hips"``, one suit)."""
+    return any(isinstance(v, Mapping) for v in mapping.values())
+
+
+def parse_person_assignment(mapping: Mapping[str, object], *, imu_set: str | None = None) -> dict[str, dict[str, str]]:
+    """Validate a per-person assignment, ``{"alice": {"00B42000": "Hips", ...}, "bob": {...}}``: one suit each.
+
+    Each person's table is checked as one suit by :func:`parse_assignment` (with ``imu_set`` when given); person
+    names follow :data:`~mocapd.core.names.NAME_RULE` (a person names a calibration file, as ``--person`` does).
+
+    Raises
+    ------
+    ConfigError
+        A flat entry beside the tables (naming it), a bad person name, a bad table, or a sensor in two persons'
+        tables (naming both).
+    """
+    flat = [k for k, v in mapping.items() if not isinstance(v, Mapping)]
+    if flat:
+        raise ConfigError(
+            f"imu assignment: {flat[0]!r} = {mapping[flat[0]]!r} is a sensor entry beside per-person tables "
+            f"({', '.join(k for k in mapping if k not in flat)}): write every sensor in its person's table"
+        )
+    if len(mapping) > MAX_PERSONS:
+        raise ConfigError(f"imu assignment: {len(mapping)} persons; at most {MAX_PERSONS}")
+    out: dict[str, dict[str, str]] = {}
+    owner: dict[str, str] = {}
+    for person, table in mapping.items():
+        check_name(person, "imu assignment: person", ConfigError)
+        assert isinstance(table, Mapping)
+        if len(table) > MAX_SUIT_SENSORS:
+            raise ConfigError(f"imu assignment: {person}: {len(table)} sensors; at most {MAX_SUIT_SENSORS}")
+        if not all(isinstance(b, str) for b in table.values()):
+            raise ConfigError(f"imu assignment: {person}: each value must be a bone name")
+        try:
+            out[person] = parse_assignment(table, imu_set=imu_set)
+        except ConfigError as exc:
+            raise ConfigError(f"imu assignment: {person}'s table{str(exc).removeprefix('imu assignment')}") from None
+        for sid in out[person]:
+            if sid in owner:
+                raise ConfigError(f"imu assignment: sensor {sid} is in the tables of both {owner[sid]} and {person}")
+            owner[sid] = person
     return out
 
 

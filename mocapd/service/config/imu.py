@@ -5,12 +5,13 @@ the protocol layer's :class:`~mocapd.protocols.awinda.AwindaConfig` are built fr
 from __future__ import annotations
 
 import ipaddress
+from collections.abc import Mapping
 from typing import Annotated, Literal, Self
 
 from pydantic import AfterValidator, Field, model_validator
 
 from mocapd.core.body_dims import LIMITS, BodySpec
-from mocapd.core.imu_calibration import parse_assignment
+from mocapd.core.imu_calibration import MAX_SUIT_SENSORS, is_per_person, parse_assignment, parse_person_assignment
 from mocapd.core.skeleton import REFERENCE_HEIGHT
 from mocapd.errors import ConfigError
 from mocapd.io.slimevr import SlimeVrConfig
@@ -26,12 +27,40 @@ MAX_BUFFER = 8192
 """Most samples kept per sensor: 68 s at 120 Hz, ~1.3 MB per sensor (each slot is stored twice, 80 bytes)."""
 
 
-def _assignment(mapping: dict[str, str]) -> dict[str, str]:
-    """Ids upper-cased; a bad id, an unknown or repeated bone is an error."""
+def _assignment(mapping: dict[str, str | dict[str, str]]) -> dict[str, str | dict[str, str]]:
+    """Ids upper-cased; a bad id, an unknown or repeated bone is an error. Per-person tables
+    (``[imu.assignment.alice]``) are one suit each; a sensor entry beside them, a bad person name or a sensor of
+    two persons is an error."""
     try:
-        return parse_assignment(mapping)
+        if is_per_person(mapping):
+            return dict(parse_person_assignment(mapping))
+        return dict(parse_assignment(_flat(mapping)))
     except ConfigError as exc:
         raise ValueError(str(exc).removeprefix("imu assignment: ")) from None
+
+
+def _flat(table: Mapping[str, str | dict[str, str]]) -> dict[str, str]:
+    """The sensor entries of an assignment table (all of a flat one, none of a per-person one)."""
+    return {k: v for k, v in table.items() if isinstance(v, str)}
+
+
+def _per_person(table: Mapping[str, str | dict[str, str]]) -> dict[str, dict[str, str]]:
+    """The person tables of an assignment table (none of a flat one)."""
+    return {k: v for k, v in table.items() if isinstance(v, dict)}
+
+
+def _sensors_of(table: Mapping[str, str | dict[str, str]]) -> dict[str, str]:
+    """Every sensor's bone in an assignment table, flat or per person."""
+    return {**_flat(table), **{s: b for t in _per_person(table).values() for s, b in t.items()}}
+
+
+#: ``[imu.assignment]`` and ``[imu.slimevr.assignment]``: sensor id -> bone (one suit), or person -> such a table
+#: (a suit each)
+Assignment = Annotated[
+    dict[Text, Text | Annotated[dict[Text, Text], Field(max_length=MAX_SUIT_SENSORS)]],
+    Field(max_length=64),
+    AfterValidator(_assignment),
+]
 
 
 Port = Annotated[PathStr, Field(min_length=1)]
@@ -96,9 +125,9 @@ def _ip_literal(host: str) -> str:
     return host
 
 
-def _slimevr_assignment(mapping: dict[str, str]) -> dict[str, str]:
+def _slimevr_assignment(mapping: dict[str, str | dict[str, str]]) -> dict[str, str | dict[str, str]]:
     parsed = _assignment(mapping)
-    xsens = sorted(s for s in parsed if "/" not in s)
+    xsens = sorted(s for s in _sensors_of(parsed) if "/" not in s)
     if xsens:
         raise ValueError(
             f'{xsens} are Xsens ids; SlimeVR sensors are "<MAC>/<sensor index>", e.g. "AA:BB:CC:DD:EE:FF/0"'
@@ -113,17 +142,20 @@ class SlimeVrSection(Section):
     host: Annotated[Text, AfterValidator(_ip_literal)] = "127.0.0.1"
     """Listening address: loopback unless set; trackers on the network need this machine's address or 0.0.0.0."""
     port: int = Field(PORT, ge=0, le=65535)
-    assignment: Annotated[dict[Text, Text], Field(max_length=64), AfterValidator(_slimevr_assignment)] = Field(
-        default_factory=dict
-    )
-    """``"<MAC>/<sensor index>"`` -> bone."""
+    assignment: Annotated[Assignment, AfterValidator(_slimevr_assignment)] = Field(default_factory=dict)
+    """``"<MAC>/<sensor index>"`` -> bone, or person -> such a table."""
     reset_taps: int = Field(2, ge=0, le=5)
     """Taps on the chest (or hips) tracker that ask for a heading reset, as in the SlimeVR server (0: off)."""
     reset_delay_s: float = Field(1.0, ge=0.0, le=10.0)
     """A reset asked on a tracker (taps, its button) happens this long after: the hand goes back down first."""
 
     def options(self) -> SlimeVrConfig:
-        return SlimeVrConfig(enabled=self.enabled, host=self.host, port=self.port, assignment=dict(self.assignment))
+        return SlimeVrConfig(enabled=self.enabled, host=self.host, port=self.port, assignment=self.sensors)
+
+    @property
+    def sensors(self) -> dict[str, str]:
+        """Every assigned SlimeVR sensor's bone, of every person."""
+        return _sensors_of(self.assignment)
 
 
 _Segment = Annotated[float | None, Field(ge=LIMITS[0], le=LIMITS[1])]
@@ -167,20 +199,47 @@ class ImuConfig(Section):
     """The sensor set the assignment must form ("" = no check)."""
     calibration_dir: PathStr = "calibration"
     buffer_capacity: int = Field(512, ge=16, le=MAX_BUFFER)
-    assignment: Annotated[dict[Text, Text], Field(max_length=64), AfterValidator(_assignment)] = Field(
-        default_factory=dict
-    )
-    """Sensor id (8 hex digits, stored upper-case) -> bone."""
+    assignment: Assignment = Field(default_factory=dict)
+    """Sensor id (8 hex digits, stored upper-case) -> bone (one suit), or person -> such a table (a suit each)."""
     bridge: BridgeConfig = Field(default_factory=BridgeConfig)
     awinda: AwindaSection = Field(default_factory=AwindaSection)
     slimevr: SlimeVrSection = Field(default_factory=SlimeVrSection)
     body: BodyConfig = Field(default_factory=BodyConfig)
 
     @property
+    def persons(self) -> dict[str, dict[str, str]]:
+        """Each person's sensors and bones where the assignment is written per person (``[imu.assignment.alice]``,
+        ``[imu.slimevr.assignment.alice]``, merged): one suit each. Empty for the flat form (one suit)."""
+        out: dict[str, dict[str, str]] = {}
+        for table in (self.assignment, self.slimevr.assignment):
+            for person, sensors in _per_person(table).items():
+                out.setdefault(person, {}).update(sensors)
+        return out
+
+    @property
     def sensors(self) -> dict[str, str]:
-        """Every sensor's bone, whatever carries it (Xsens ``assignment`` and ``slimevr.assignment``): one IMU
-        model for calibration, suits and the sensor-set check."""
-        return {**self.assignment, **self.slimevr.assignment}
+        """Every sensor's bone, whatever carries it (Xsens ``assignment`` and ``slimevr.assignment``) and whoever
+        wears it: the sensors the daemon opens and keeps. One suit in the flat form; with per-person tables a bone
+        appears once per person (:attr:`persons` says whose)."""
+        return {**_sensors_of(self.assignment), **self.slimevr.sensors}
+
+    def suit_sensors(self, person: str) -> dict[str, str]:
+        """The sensors ``mocapd calibrate imu --person`` calibrates: the person's table, or every sensor (flat form).
+
+        Raises
+        ------
+        ConfigError
+            The assignment is per person and ``person`` has no table (the message names those who have one).
+        """
+        persons = self.persons
+        if not persons:
+            return self.sensors
+        if person not in persons:
+            raise ConfigError(
+                f"--person {person!r} has no table in [imu.assignment]: the assignment is per person, with tables "
+                f"for {', '.join(persons)}"
+            )
+        return persons[person]
 
     def sources(self) -> list[str]:
         """The IMU inputs this section opens, one phrase each (empty: no IMU source): what ``check-config`` says a
@@ -198,14 +257,20 @@ class ImuConfig(Section):
 
     @model_validator(mode="after")
     def _one_bone_per_sensor(self) -> Self:
-        """A sensor in both tables, or two sensors (of either transport) on one bone, is an error."""
-        both = sorted(set(self.assignment) & set(self.slimevr.assignment))
+        """A sensor in both tables, two sensors (of either transport) on one bone of one suit, or one table per
+        person beside a flat one, is an error."""
+        xsens, slime = self.assignment, self.slimevr.assignment
+        both = sorted(set(_sensors_of(xsens)) & set(_sensors_of(slime)))
         problem = f"both name {both} (a sensor in both tables)" if both else ""
+        if not problem and (_flat(xsens) or _flat(slime)) and (_per_person(xsens) or _per_person(slime)):
+            problem = "one is written per person and the other is not: write both per person ([...assignment.NAME])"
         if not problem:
-            try:
-                parse_assignment(self.sensors)
-            except ConfigError as exc:
-                problem = str(exc).removeprefix("imu assignment: ")
+            for person, table in (self.persons or {"": self.sensors}).items():
+                try:
+                    parse_assignment(table)
+                except ConfigError as exc:
+                    problem = (f"{person}'s tables: " if person else "") + str(exc).removeprefix("imu assignment: ")
+                    break
         if problem:
             raise RuleError("{0} and {1}: " + problem.replace("{", "{{").replace("}", "}}"), "assignment",
                             "slimevr.assignment", values=(self.assignment, self.slimevr.assignment))  # fmt: skip
@@ -214,15 +279,17 @@ class ImuConfig(Section):
     @model_validator(mode="after")
     def _assignment_forms_the_set(self) -> Self:
         if self.imu_set:
-            try:
-                parse_assignment(self.sensors, imu_set=self.imu_set)
-            except ConfigError as exc:
-                raise RuleError(
-                    f"{{0}} does not form {{1}}: {str(exc).removeprefix('imu assignment ')}",
-                    "assignment",
-                    "imu_set",
-                    values=(self.sensors, self.imu_set),
-                ) from None
+            for person, table in (self.persons or {"": self.sensors}).items():
+                try:
+                    parse_assignment(table, imu_set=self.imu_set)
+                except ConfigError as exc:
+                    whose = f" ({person}'s table)" if person else ""
+                    raise RuleError(
+                        f"{{0}}{whose} does not form {{1}}: {str(exc).removeprefix('imu assignment ')}",
+                        "assignment",
+                        "imu_set",
+                        values=(table, self.imu_set),
+                    ) from None
         return self
 
     def port_configs(self) -> tuple[XsensPortConfig, ...]:
