@@ -67,7 +67,11 @@ def _rig_summary(cfg: Config) -> str:
         cams = "; ".join(f"{c.name} ({describe(c)})" for c in cfg.cameras)
         rig = f"{len(cfg.cameras)} camera(s): {cams}; {len(cfg.imu.ports)} serial IMU port(s)"
     else:
-        rig = f"IMUs only (no cameras): {'; '.join(cfg.imu.sources())}; {len(cfg.imu.sensors)} sensor(s) assigned"
+        persons = cfg.imu.persons
+        whose = f" to {len(persons)} persons ({', '.join(persons)})" if persons else ""
+        rig = (
+            f"IMUs only (no cameras): {'; '.join(cfg.imu.sources())}; {len(cfg.imu.sensors)} sensor(s) assigned{whose}"
+        )
     return (
         f"{rig}; output {d.output_rate_hz:g} Hz, latency {_latency_text(d.latency_s)}; "
         f"{_status_text(d.http_host, d.http_port)}"
@@ -100,7 +104,9 @@ def _imu_notes(cfg: Config, path: object) -> list[str]:
     if suits:
         names = ", ".join(f"{s.id} ({len(s.sensors)} sensors)" for s in suits)
         notes.append(f"suits calibrated in {imu.calibration_dir}/: {names}")
-    else:
+    if imu.persons:  # one suit per person's table: what each of them still lacks
+        notes += _person_notes(cfg, path, {s.id: dict(s.calibration.bones) for s in suits}, slime_only)
+    elif not suits:
         # An Xsens heading is the compass's: a facing heading off by δ turns every bone's frame by δ, and a knee then
         # bends sideways (90°) or backwards (180°). SlimeVR trackers are heading-reset at calibration instead.
         facing = "" if slime_only else " facing magnetic north"
@@ -111,6 +117,30 @@ def _imu_notes(cfg: Config, path: object) -> list[str]:
             f"no suit is calibrated in {imu.calibration_dir}/ yet, so no pose is streamed: stand still in a T-pose"
             f"{facing} and run `mocapd calibrate imu --config {path} --person NAME --facing-heading 0`{other}"
         )
+    return notes
+
+
+def _person_notes(cfg: Config, path: object, calibrated: dict[str, dict[str, str]], slime_only: bool) -> list[str]:
+    """Per-person tables (``[imu.assignment.alice]``): each person without a calibration, or whose calibration is of
+    other sensors or bones than their table, with the command that calibrates them."""
+    imu = cfg.imu
+    facing = "" if slime_only else " facing magnetic north"
+    notes = []
+    for person, table in imu.persons.items():
+        command = f"`mocapd calibrate imu --config {path} --person {person} --facing-heading 0`"
+        bones = calibrated.get(person)
+        if bones is None:
+            notes.append(
+                f"{person} ({len(table)} sensors assigned) has no calibration in {imu.calibration_dir}/ yet, so "
+                f"no pose is streamed for them: {person} stands still in a T-pose{facing} and you run {command}"
+            )
+        elif bones != table:
+            differ = sorted(set(table.items()) ^ set(bones.items()))
+            notes.append(
+                f"{person}'s calibration in {imu.calibration_dir}/ is of other sensors than their table "
+                f"({', '.join(f'{sid} {bone}' for sid, bone in differ[:4])}{', ...' if len(differ) > 4 else ''}): "
+                f"calibrate them again with {command}"
+            )
     return notes
 
 

@@ -1,9 +1,10 @@
 """``mocapd calibrate imu``: record a T-pose from the configured IMUs and write a per-person calibration file.
 
 The subject stands still in the T-pose (arms horizontal, facing one direction) for the whole recording. The
-command connects to every configured serial IMU (and the bridge input and SlimeVR server if enabled), waits until every
-assigned sensor streams, records ``--seconds``, then computes R_ib per sensor and R_ig
-(:func:`mocapd.core.imu_calibration.calibrate_tpose`) and writes
+command connects to every configured serial IMU (and the bridge input and SlimeVR server if enabled), waits until
+every assigned sensor streams (with per-person tables, ``[imu.assignment.<person>]``, every sensor of ``--person``'s
+table: another suit on the same inputs is neither waited for nor calibrated), records ``--seconds``, then computes
+R_ib per sensor and R_ig (:func:`mocapd.core.imu_calibration.calibrate_tpose`) and writes
 ``<calibration_dir>/<person>.imu.json``.
 
 With ``--from SESSION`` nothing is recorded: the stillest standing window of a recorded or imported session is
@@ -104,14 +105,20 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run_calibrate)
 
 
-async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> dict[str, list[ImuSample]]:
-    """Stream from every configured input until each assigned sensor delivered ``seconds`` of samples."""
+async def record(
+    config: ImuConfig, seconds: float, connect_timeout: float, sensors: dict[str, str] | None = None
+) -> dict[str, list[ImuSample]]:
+    """Stream from every configured input until each of ``sensors`` (default: every assigned sensor) streams, then
+    record ``seconds`` of their samples (another suit's sensors on the same inputs are neither waited for nor kept).
+    """
     samples: dict[str, list[ImuSample]] = {}
     seen: set[str] = set()
     recording = False
 
+    wanted = set(config.sensors if sensors is None else sensors)
+
     def on_sample(s: ImuSample) -> None:
-        if recording:
+        if recording and s.sensor in wanted:
             samples.setdefault(s.sensor, []).append(s)
         else:
             seen.add(s.sensor)
@@ -130,7 +137,6 @@ async def record(config: ImuConfig, seconds: float, connect_timeout: float) -> d
             bridge.close()
             raise
         tasks.append(asyncio.create_task(slimevr.run()))
-    wanted = set(config.sensors)
     try:
         deadline = time.monotonic() + connect_timeout
         while not wanted <= seen:
@@ -173,6 +179,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         check_name(args.person, "--person")  # it names the calibration file: no '/', no newline
         window_s = float(args.window)
         config = load_config(args.config or Path("config.toml")).imu  # validates the whole file, like the daemon
+        sensors = config.suit_sensors(args.person)  # per-person tables: this person's suit only
         out = args.out or Path(config.calibration_dir) / f"{args.person}.imu.json"
         try:  # before recording: a path that cannot be written is known at once
             replacing = check_output_file(out, overwrite=True, create_folder=True).exists()
@@ -185,14 +192,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise ConfigError("imu.assignment is empty: say which sensor sits on which bone")
         if args.facing_from is not None:
             parse_facing(args.facing_from)  # reject a malformed option before recording
-        samples = asyncio.run(record(config, args.seconds, args.connect_timeout))
+        samples = asyncio.run(record(config, args.seconds, args.connect_timeout, sensors))
         rate = max(len(v) for v in samples.values()) / args.seconds if samples else 0.0
         recordings = {
             sid: (
                 np.array([s.quat for s in samples[sid] if s.quat is not None]),
                 np.array([s.acc for s in samples[sid] if s.acc is not None]),
             )
-            for sid in config.sensors
+            for sid in sensors
             if sid in samples
         }
         heading = args.facing_heading
@@ -201,11 +208,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
         calib = calibrate_tpose(
             args.person,
             recordings,
-            config.sensors,
+            sensors,
             facing_heading_deg=heading,
             world_heading=args.world_heading,
             window=max(2, int(window_s * rate)),
-            own_heading=_own_heading(config, args.mount_yaw),
+            own_heading=_own_heading(sensors, args.mount_yaw),
         )
     except ValueError:
         print(f"mocapd calibrate imu: --window {args.window!r}: give seconds (START:END only with --from)")
@@ -228,9 +235,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 
-def _own_heading(config: ImuConfig, specs: list[str]) -> dict[str, float]:
-    """Mounting yaw of every SlimeVR sensor of the assignment (0 unless ``--mount-yaw SENSOR=DEG`` says)."""
-    out = {sid: 0.0 for sid in config.sensors if "/" in sid}  # "<MAC>/<index>": a SlimeVR sensor
+def _own_heading(sensors: dict[str, str], specs: list[str]) -> dict[str, float]:
+    """Mounting yaw of every SlimeVR sensor of ``sensors`` (0 unless ``--mount-yaw SENSOR=DEG`` says)."""
+    out = {sid: 0.0 for sid in sensors if "/" in sid}  # "<MAC>/<index>": a SlimeVR sensor
     for spec in specs:
         sensor, _, value = spec.rpartition("=")
         sid = sensor.upper()
