@@ -51,8 +51,11 @@ def load_suits(config: ImuConfig, skeleton: Skeleton, base: Path | None = None) 
             if sensor in owner:
                 raise ConfigError(f"IMU calibration {path}: sensor {sensor} is already in suit {owner[sensor]!r}")
             owner[sensor] = calibration.person
-        unassigned = sorted(set(calibration.bones) - set(config.sensors)) if config.sensors else []
+        persons = config.persons  # per-person tables: the suit's sensors are its person's table's
+        assigned = persons.get(calibration.person, {}) if persons else config.sensors
+        where = f"[imu.assignment.{calibration.person}]" if persons else "[imu.assignment]"
+        unassigned = sorted(set(calibration.bones) - set(assigned)) if config.sensors else []
         if unassigned:
-            log.warning("suit %s: sensors %s are not in [imu.assignment]", calibration.person, unassigned)
+            log.warning("suit %s: sensors %s are not in %s", calibration.person, unassigned, where)
         suits.append(Suit.from_calibration(calibration.person, calibration, skeleton))
     return suits

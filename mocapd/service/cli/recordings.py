@@ -216,6 +216,7 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
             window_s=window_s,
             span=span,
             pose=args.pose,
+            suit=suit,
         )
         calib: ImuCalibration = result.calibration
         info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,

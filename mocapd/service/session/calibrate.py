@@ -40,7 +40,9 @@ from mocapd.core.imu_calibration import (
     calibration_hinges,
     facing_heading_from_steps,
     has_step_sensors,
+    is_per_person,
     parse_assignment,
+    parse_person_assignment,
     stillest_common_window,
 )
 from mocapd.core.plausibility import HingeEvents
@@ -129,12 +131,14 @@ def calibrate_session(
     span: tuple[float, float] | None = None,
     pose: str = "t-pose",
     assignment: dict[str, str] | None = None,
+    suit: str | None = None,
 ) -> SessionCalibration:
     """Calibrate the session's assigned sensors (see the module docstring).
 
-    ``assignment`` defaults to the session's ``[imu.assignment]`` (an imported session has it). At most one of
-    ``facing_heading_deg`` and ``facing_from`` (sensor id, unit axis in the sensor frame) may be given; with neither,
-    the facing comes from the knees' bending in the take's steps
+    ``assignment`` defaults to the session's ``[imu.assignment]`` (an imported session has it); where the session's
+    config has one table per person (``[imu.assignment.alice]``), ``suit``'s table (default ``person``'s). At most
+    one of ``facing_heading_deg`` and ``facing_from`` (sensor id, unit axis in the sensor frame) may be given; with
+    neither, the facing comes from the knees' bending in the take's steps
     (:func:`~mocapd.core.imu_calibration.facing_heading_from_steps`).
 
     Raises
@@ -146,7 +150,18 @@ def calibrate_session(
         No facing direction given and no steps to take it from.
     """
     imu_cfg = session.manifest.get("config", {}).get("imu", {})
-    bones = parse_assignment(assignment if assignment is not None else imu_cfg.get("assignment", {}))
+    recorded = imu_cfg.get("assignment", {})
+    if assignment is None and is_per_person(recorded):
+        tables = parse_person_assignment(recorded)
+        whose = suit or person
+        if whose not in tables:
+            raise ConfigError(
+                f"{session.path}: its [imu.assignment] has one table per person, none for {whose!r}: name one of "
+                f"{', '.join(tables)} with --suit"
+            )
+        bones = tables[whose]
+    else:
+        bones = parse_assignment(assignment if assignment is not None else recorded)
     if not bones:
         raise ConfigError(f"{session.path}: no sensor is assigned to a bone ([imu.assignment] of its config)")
     samples = session_samples(session)
