@@ -214,11 +214,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
             window=max(2, int(window_s * rate)),
             own_heading=_own_heading(sensors, args.mount_yaw),
         )
+    except MocapdError as exc:  # before ValueError: a ConfigError is one too, and says what is wrong itself
+        print(f"mocapd calibrate imu: {exc}")
+        return 1
     except ValueError:
         print(f"mocapd calibrate imu: --window {args.window!r}: give seconds (START:END only with --from)")
-        return 1
-    except MocapdError as exc:
-        print(f"mocapd calibrate imu: {exc}")
         return 1
     try:
         write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
