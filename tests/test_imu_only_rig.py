@@ -58,8 +58,9 @@ def test_imu_only_run_streams_an_xsens_suit_and_slimevr_trackers_to_websocket_an
             "[imu]\n"
             f"ports = [{', '.join(_toml(p) for p in imu.ports)}]\n"
             f"calibration_dir = {_toml(str(folder))}\n"
-            # No [imu.assignment] for the Xsens suit: one config assigns each bone once, and two wearers have
-            # two of each; the daemon takes every suit's sensors from its calibration file.
+            # No [imu.assignment] for the Xsens suit: a flat one assigns each bone once, and two wearers have two
+            # of each (per-person tables would: tests/test_imu_two_suits.py); the daemon takes every suit's sensors
+            # from its calibration file.
             "[imu.body]\n" + "".join(f"{k}_m = {v:.3f}\n" for k, v in body.items())
             + "[imu.slimevr]\nenabled = true\nport = 0\n"
             "[imu.slimevr.assignment]\n" + "".join(f"{_toml(k)} = {_toml(v)}\n" for k, v in slime.bones.items())

@@ -8,21 +8,31 @@ bob, and the daemon's :func:`~mocapd.service.suits.load_suits` finding the two s
 
 from __future__ import annotations
 
+import asyncio
 import json
+import time
 import tomllib
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
+from websockets.asyncio.client import connect
 
+from mocapd.core.body_dims import segment_lengths
 from mocapd.core.imu_calibration import ImuCalibration, heading_alignment
 from mocapd.core.rotations import quat_angle, quat_conjugate, quat_multiply
 from mocapd.errors import ConfigError
 from mocapd.service.cli import main
 from mocapd.service.config import config_document, load_config, parse_config
+from mocapd.service.demo.imu_only import IMU_RATE_HZ
 from mocapd.service.suits import load_suits
 from mocapd.sim import xsens as xsens_sim
+from mocapd.sim.suits import SimulatedSuits
 from mocapd.sim.world import SuitTruth, SyntheticWorld
 from tests.test_import_recordings import _write_exports
+from tests.test_run_rig import RunProcess
 
 ALICE = {"00B42000": "Hips", "00B42001": "Head", "00B42002": "LeftLowerLeg"}
 BOB = {"00B4A000": "Hips", "00B4A001": "Head", "00B4A002": "LeftLowerLeg"}
@@ -204,3 +214,83 @@ def test_calibrate_from_a_session_with_per_person_tables_takes_the_suits_table(
     calib = ImuCalibration.from_json_dict(json.loads((tmp_path / "c.json").read_text(encoding="utf-8")))
     assert calib.person == "suit0" and dict(calib.bones) == assignment
     assert json.loads(capsys.readouterr().out)["suit"] == "suit0"
+
+
+def test_two_xsens_suits_stream_from_one_run_and_its_session_resolves(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``mocapd run`` of two performers each in a 13-sensor Xsens suit (26 simulated devices on pseudo-terminals,
+    walking recorded motion): both suits stream to a WebSocket client and follow their wearer; the recorded session
+    keeps the per-person tables and ``mocapd resolve`` solves both suits from it."""
+    world = SyntheticWorld(0, 2, n_suits=2, seed=0)
+    folder = tmp_path / "cal"
+    folder.mkdir()
+    tables, index = {}, {}
+    for person, suit in zip(("alice", "bob"), world.suits, strict=True):
+        calibration = replace(world.calibration(suit), person=person)
+        (folder / f"{person}.imu.json").write_text(json.dumps(calibration.to_json_dict()), encoding="utf-8")
+        tables[person], index[f"suit:{person}"] = dict(calibration.bones), suit.person
+    body = "".join(f"{k}_m = {v:.3f}\n" for k, v in segment_lengths(world.skeleton).items())
+    epoch = time.monotonic_ns()
+    sims = SimulatedSuits.start(world, IMU_RATE_HZ, epoch)
+    config = tmp_path / "rig.toml"
+    config.write_text(
+        f"[imu]\nports = [{', '.join(json.dumps(p) for p in sims.ports)}]\nrate_hz = {IMU_RATE_HZ}\n"
+        f'imu_set = "13"\ncalibration_dir = "cal"\nreconnect_min_s = 0.2\nreconnect_max_s = 1.0\n'
+        f"stall_timeout_s = 1.0\n" + _toml(tables) + "[imu.body]\n" + body
+        + "[daemon]\nhttp_port = 0\n[websocket]\nport = 0\n",
+        encoding="utf-8",
+    )  # fmt: skip
+    session = tmp_path / "take"
+    run = RunProcess(["--config", str(config), "--record", str(session)], cwd=tmp_path)
+    try:
+        run.url(300)
+        ws_url = next(line.split()[-1] for line in run.lines if line.startswith("viewer "))
+        frames = asyncio.run(_frames(ws_url))
+        code, _ = run.interrupt()
+    finally:
+        run.close()
+        sims.close()
+    assert code == 0 and "Traceback" not in run.output, run.output[-4000:]
+    assert "26 sensor(s) assigned to 2 persons (alice, bob)" in run.output, run.output[:2000]
+    by_id: dict[str, list[dict[str, Any]]] = {}
+    for f in frames:
+        for s in f["subjects"]:
+            by_id.setdefault(s["id"], []).append(s)
+    assert set(by_id) == {"suit:alice", "suit:bob"}, sorted(by_id)
+    for name, subject in by_id.items():  # each suit follows its own wearer (roots put together)
+        assert max(s["imus"] for s in subject) == 13
+        errors = []
+        for s in subject[-60:]:
+            truth = world.joints_at(index[name], (s["t_pose_ns"] - epoch) / 1e9)
+            joints = np.array(s["joints"]).reshape(21, 3)
+            errors.append(np.linalg.norm((joints - joints[0]) - (truth - truth[0]), axis=1).mean())
+        assert float(np.median(errors)) < 0.08, (name, np.median(errors))
+
+    manifest = json.loads((session / "manifest.json").read_text(encoding="utf-8"))
+    assert manifest["config"]["imu"]["assignment"] == tables
+    capsys.readouterr()
+    assert main(["resolve", str(session), "--iterations", "3"]) == 0, capsys.readouterr()
+    summary = json.loads(capsys.readouterr().out)
+    assert set(summary["plausibility"]) == {"suit:alice", "suit:bob"}, summary
+    assert summary["person_solves"] >= 2 * summary["frames"] - 4 and summary["frames"] > 60, summary  # both, each frame
+
+
+async def _frames(ws_url: str) -> list[dict[str, Any]]:
+    """A WebSocket client's frames until both suits streamed 120 frames with their IMUs (at most 60 s)."""
+    frames: list[dict[str, Any]] = []
+    count = {"suit:alice": 0, "suit:bob": 0}
+    loop = asyncio.get_running_loop()
+    async with connect(ws_url, max_size=None) as ws:
+        await ws.send(json.dumps({"type": "subscribe", "encoding": "json", "globals": True}))
+        end = loop.time() + 60
+        while loop.time() < end and min(count.values()) < 120:
+            raw = await asyncio.wait_for(ws.recv(), 10)
+            if isinstance(raw, bytes):  # the first hello, msgpack, before the subscribe took effect
+                continue
+            msg = json.loads(raw)
+            if msg["type"] == "frame":
+                frames.append(msg)
+                for s in msg["subjects"]:
+                    count[s["id"]] = count.get(s["id"], 0) + (s["imus"] >= 10)
+    return frames
