@@ -165,10 +165,10 @@ def test_mount_yaw_option_covers_slimevr_sensors_only() -> None:
 
     a, b = f"{EMULATOR_MAC}/0", f"{EMULATOR_MAC}/1"
     config = ImuConfig(assignment={a: "Hips", b: "LeftFoot", "00B421E6": "Head"})
-    assert _own_heading(config, [f"{b.lower()}=-90"]) == {a: 0.0, b: -90.0}
+    assert _own_heading(config.sensors, [f"{b.lower()}=-90"]) == {a: 0.0, b: -90.0}
     for bad in ("00B421E6=90", f"{a}=left", "90"):
         with pytest.raises(ConfigError, match="--mount-yaw"):
-            _own_heading(config, [bad])
+            _own_heading(config.sensors, [bad])
 
 
 @pytest.mark.asyncio
