@@ -164,7 +164,8 @@ def test_calibrate_imu_calibrates_each_persons_suit_of_one_config(
         assert "26 sensor(s) assigned to 2 persons (alice, bob)" in said, said
         assert f"suits calibrated in {tmp_path}/cal/: alice (13 sensors)" in said, said
         assert f"bob (13 sensors assigned) has no calibration in {tmp_path}/cal/ yet" in said, said
-        assert f"`mocapd calibrate imu --config {config} --person bob --facing-heading 0`" in said, said
+        command = f"`mocapd calibrate imu --config {config} --person bob --facing-heading 0`"
+        assert f"stand bob still in a T-pose facing magnetic north and run {command}" in said, said
         assert "alice (13 sensors assigned)" not in said, said
         loops.append(xsens_sim.SimulatorLoop(sims["bob"]).start())
         assert main([*calibrate, "--person", "bob"]) == 0, capsys.readouterr().out
@@ -188,6 +189,24 @@ def test_calibrate_imu_calibrates_each_persons_suit_of_one_config(
         assert suit.calibration.facing_heading_deg == pytest.approx(heading, abs=1e-3)
         for sid, q_ib in zip(truth.sensor_ids, truth.q_ib, strict=True):
             assert quat_angle(suit.calibration.q_ib[f"{sid:08X}"], q_ib) < 1e-4
+
+
+def test_check_config_names_a_persons_calibration_of_other_sensors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    world = SyntheticWorld(0, 2, n_suits=2, motion="procedural")
+    (tmp_path / "cal").mkdir()
+    calibration = replace(world.calibration(world.suits[0]), person="alice")
+    (tmp_path / "cal" / "alice.imu.json").write_text(json.dumps(calibration.to_json_dict()), encoding="utf-8")
+    theirs = world.calibration(world.suits[1]).bones  # alice's table names the other suit's sensors
+    config = tmp_path / "rig.toml"
+    config.write_text(f'[imu]\nports = ["/dev/xsens0"]\ncalibration_dir = "cal"\n{_toml({"alice": dict(theirs)})}')
+    assert main(["check-config", str(config)]) == 0
+    said = capsys.readouterr().out
+    assert f"alice's calibration in {tmp_path}/cal/ is of other sensors than their table (00B42000 Hips, " in said
+    assert (
+        f"calibrate them again with `mocapd calibrate imu --config {config} --person alice --facing-heading 0`" in said
+    )
 
 
 def test_calibrate_from_a_session_with_per_person_tables_takes_the_suits_table(

@@ -132,7 +132,7 @@ def _person_notes(cfg: Config, path: object, calibrated: dict[str, dict[str, str
         if bones is None:
             notes.append(
                 f"{person} ({len(table)} sensors assigned) has no calibration in {imu.calibration_dir}/ yet, so "
-                f"no pose is streamed for them: {person} stands still in a T-pose{facing} and you run {command}"
+                f"no pose is streamed for them: stand {person} still in a T-pose{facing} and run {command}"
             )
         elif bones != table:
             differ = sorted(set(table.items()) ^ set(bones.items()))
