@@ -131,7 +131,8 @@ def _person_notes(cfg: Config, path: object, calibrated: dict[str, dict[str, str
         bones = calibrated.get(person)
         if bones is None:
             notes.append(
-                f"{person} ({len(table)} sensors assigned) has no calibration in {imu.calibration_dir}/ yet, so "
+                f"{person} ({len(table)} sensor{'s' * (len(table) != 1)} assigned) has no calibration in "
+                f"{imu.calibration_dir}/ yet, so "
                 f"no pose is streamed for them: stand {person} still in a T-pose{facing} and run {command}"
             )
         elif bones != table:

@@ -51,7 +51,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--config", type=Path, default=None,
                    help="config file with an [imu] section (default: config.toml here); with --from, whose "
                    "calibration_dir gets the file too")  # fmt: skip
-    p.add_argument("--person", help="name of the subject (file name of the calibration; required when recording)")
+    p.add_argument("--person", help="name of the subject (file name of the calibration; required when recording; with "
+                   "per-person tables, [imu.assignment.PERSON], whose sensors are recorded)")  # fmt: skip
     p.add_argument(
         "--from",
         dest="from_session",
