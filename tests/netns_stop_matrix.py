@@ -35,9 +35,14 @@ SCALE = 0.25  # 272 x 480 frames: four cameras and a detector on a loaded 2-core
 SIZE = (272, 480)
 FPS = 10.0
 LOST_AFTER_S = 1.0
-PAUSE_S = 1.6
-"""Longer than ``lost_after_s``, shorter than the cameras' GigE Vision heartbeat time-out (3 s): a camera left
-without heartbeats longer than that releases its control channel, as a real one does, and must be reopened."""
+PAUSE_S = 1.3
+"""Longer than ``lost_after_s`` (a naive silence count would declare every camera lost) and than the silence clock's
+pause threshold (2 pop time-outs + half of ``lost_after_s``: 0.9 s), and well inside the cameras' GigE Vision
+heartbeat time-out (3 s): a camera left without heartbeats longer than that releases its control channel, as a real
+one does, and must be reopened. Aravis heartbeats once a second (``ARV_GV_DEVICE_HEARTBEAT_PERIOD_US``), so the last
+one may come a second before the pause, and on a loaded machine the first one after it comes late: a 1.6 s pause
+left 0.4 s, and in 3 runs of 11 on a busy 2-core machine one camera then sent no frame for a second after the pause
+and was reopened (the likeliest cause; 16 runs on a calmer machine saw none)."""
 SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP]
 PHASES = ["starting", "loading models", "loading the solver kernel", "opening devices", "running", "recording"]
 
