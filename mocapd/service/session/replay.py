@@ -58,15 +58,13 @@ def replay_camera_views(
     sources: list[SnapshotSource | None] = [LatestSnapshot() for _ in range(n)] if recorded else [None] * n
     tick = [frames[0].tick_ns if frames else 0]
     ticks = np.array([r.tick_ns for r in frames], dtype=np.float64)
-    solves = np.array([r.t_solve_ns for r in frames], dtype=np.float64)
     order = np.argsort(ticks, kind="stable")
+    ticks = ticks[order]
+    delays = ticks - np.array([r.t_solve_ns for r in frames], dtype=np.float64)[order]
 
     def on_solve_axis(arrival_ns: int) -> int:
         """Where a wall-clock arrival falls on the solve-time axis: the delay of the nearest recorded ticks."""
-        if not frames:
-            return arrival_ns
-        delay = np.interp(arrival_ns, ticks[order], ticks[order] - solves[order])
-        return int(arrival_ns - delay)
+        return arrival_ns - int(np.interp(arrival_ns, ticks, delays)) if frames else arrival_ns
 
     def now() -> int:
         return tick[0]
