@@ -37,6 +37,7 @@ def load_suits(config: ImuConfig, skeleton: Skeleton, base: Path | None = None) 
         return []
     suits: list[Suit] = []
     owner: dict[str, str] = {}
+    persons = config.persons  # per-person tables: a suit's sensors are its person's table's
     for path in sorted(folder.glob("*.imu.json")):
         try:
             text = read_input_text(path, "IMU calibration", max_bytes=16 << 20, errors="strict", error=ConfigError)
@@ -51,7 +52,6 @@ def load_suits(config: ImuConfig, skeleton: Skeleton, base: Path | None = None) 
             if sensor in owner:
                 raise ConfigError(f"IMU calibration {path}: sensor {sensor} is already in suit {owner[sensor]!r}")
             owner[sensor] = calibration.person
-        persons = config.persons  # per-person tables: the suit's sensors are its person's table's
         assigned = persons.get(calibration.person, {}) if persons else config.sensors
         where = f"[imu.assignment.{calibration.person}]" if persons else "[imu.assignment]"
         unassigned = sorted(set(calibration.bones) - set(assigned)) if config.sensors else []
