@@ -76,6 +76,25 @@ def test_bench_latency_reports_the_synthetic_daemon(capsys: pytest.CaptureFixtur
     assert not any(r["task_failures"].values()), r["task_failures"]
 
 
+def test_bench_latency_holds_the_daemon_to_a_cpu_budget() -> None:
+    """``--cpu-budget 0.8``: the synthetic rig's daemon runs in a cgroup of 0.8 core (a slower laptop, or one a
+    game shares) and still publishes; the report says the budget, how often it bit, what each person's tick cost
+    by stage and what the governor shed."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "mocapd", "bench", "latency", "--seconds", "4", "--cpu-budget", "0.8"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(proc.stdout)
+    budget = r["cpu_budget"]
+    assert budget["cores"] == 0.8 and budget["mechanism"].startswith("cgroup v") and budget["periods"] > 0, budget
+    assert r["output"]["frames"] > 0 and not any(r["task_failures"].values())
+    stages = r["person_cpu_ms"]
+    assert set(stages) == {"unflip", "solve", "size", "total"} and stages["total"]["count"] > 0
+    assert stages["solve"]["p50"] <= stages["total"]["p50"]  # a part of the person job costs no more than all of it
+    assert r["governor"]["shed"] and r["governor"]["step"] >= 0 and r["solve_threads"] >= 1
+
+
 def test_bench_latency_on_the_suit_alone_reports_the_imu_only_rig(capsys: pytest.CaptureFixture[str]) -> None:
     """``mocapd bench latency --rig imu``: `mocapd demo --imu-only`'s suit, no camera, in predicted output."""
     assert main(["bench", "latency", "--rig", "imu", "--seconds", "3", "--output", "predicted"]) == 0

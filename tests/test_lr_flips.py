@@ -128,3 +128,29 @@ def test_pairs_searched_together_decide_as_each_pair_alone() -> None:
             checked += 1
         swapped += together.count
     assert checked == 40 * len(COCO17_LR_PAIRS) and swapped > 20  # the cases exercised swaps, not only no-ops
+
+
+def test_the_compiled_search_decides_as_the_numpy_reference() -> None:
+    """The compiled hypothesis search (the one the scheduler runs every tick) makes the numpy reference's
+    decisions, gains and triangulated points on random scenes: noise, flipped views, missing keypoints, with and
+    without a previous pose, 2 to 6 views."""
+    rng = np.random.default_rng(11)
+    swapped = 0
+    for trial in range(300):
+        cams, X, uv = _person(frame=int(rng.integers(0, 60)))
+        n = int(rng.integers(2, 5))
+        views = rng.permutation(4)[:n]
+        seen = uv[views] + rng.normal(0.0, rng.uniform(0.5, 15.0), (n, *uv.shape[1:]))
+        for view in range(n):
+            if rng.random() < 0.3:
+                seen = _flip(seen, view)
+        conf = rng.uniform(0.0, 1.0, seen.shape[:2])
+        conf[rng.random(conf.shape) < 0.2] = 0.0
+        P, und = undistorted([cams[v] for v in views], seen)
+        reference = None if trial % 3 == 0 else X + rng.normal(0.0, 0.05, X.shape)
+        fast = choose_swaps(P, und, conf, reference=reference)
+        slow = choose_swaps(P, und, conf, reference=reference, compiled=False)
+        assert np.array_equal(fast.swaps, slow.swaps), trial
+        assert np.allclose(fast.gain_px, slow.gain_px, atol=1e-6), trial
+        swapped += fast.count
+    assert swapped > 50  # the scenes exercised swaps, not only no-ops

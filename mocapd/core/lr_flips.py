@@ -14,7 +14,8 @@ elsewhere: the person's previous pose where there is one (the label assignment w
 previous left and right points), else the views themselves (the assignment that swaps fewer of them; the detector
 is right more often than not).
 
-Pure numpy; :func:`choose_swaps` returns the decision, :func:`apply_swaps` applies it to the keypoints.
+The hypothesis search is compiled (:mod:`mocapd.core._flip_kernel`; the numpy reference beside it);
+:func:`choose_swaps` returns the decision, :func:`apply_swaps` applies it to the keypoints.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from itertools import product
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core import _flip_kernel
 from mocapd.core.camera import Camera, triangulate_projections
 from mocapd.errors import InputError
 
@@ -104,6 +106,8 @@ def choose_swaps(
     pairs: tuple[tuple[int, int], ...] = COCO17_LR_PAIRS,
     reference: FloatArray | None = None,
     options: FlipOptions | None = None,
+    *,
+    compiled: bool = True,
 ) -> SwapDecision:
     """The per-view left/right labelling of each keypoint pair that the views agree on best.
 
@@ -119,6 +123,9 @@ def choose_swaps(
     reference : array, shape (n_kp, 3), optional
         The person's keypoints a moment ago (world): decides which of the two mirror-image labellings is right.
     options : FlipOptions
+    compiled : bool
+        Search the hypotheses with the compiled kernel (:mod:`mocapd.core._flip_kernel`); False: the numpy
+        reference, the same decisions at several times the cost.
     """
     o = options if options is not None else FlipOptions()
     uv = np.asarray(uv, dtype=np.float64)
@@ -144,7 +151,8 @@ def choose_swaps(
         views = np.array(key, dtype=np.intp)
         cols = np.array([pairs[p] for p in members], dtype=np.intp)  # (K, 2)
         uv_v, conf_v, ok_v = uv[views][:, cols], conf[views][:, cols], ok[views][:, cols]
-        best, gain, X = _best_hypotheses(P[views], uv_v, conf_v, ok_v, o)
+        search = _best_hypotheses_compiled if compiled else _best_hypotheses
+        best, gain, X = search(P[views], uv_v, conf_v, ok_v, o)
         # Which of the two mirror labellings lies nearer the previous pose, where there is one: (K,) flags.
         known = np.zeros(len(members), dtype=bool)
         take_mirror = np.zeros(len(members), dtype=bool)
@@ -179,6 +187,18 @@ def _hypotheses(n: int) -> BoolArray:
     hyps = np.array([(False, *rest) for rest in product((False, True), repeat=n - 1)], dtype=bool)
     hyps.setflags(write=False)
     return hyps
+
+
+def _best_hypotheses_compiled(
+    P: FloatArray, uv: FloatArray, conf: FloatArray, ok: BoolArray, o: FlipOptions
+) -> tuple[list[tuple[bool, ...] | None], FloatArray, FloatArray]:
+    """:func:`_best_hypotheses` by the compiled kernel (same arguments and results)."""
+    w = np.where(ok & np.isfinite(uv).all(axis=-1), conf, 0.0)
+    uv_c = np.ascontiguousarray(np.where(w[..., None] > 0, uv, 0.0))
+    k, gain, X = _flip_kernel.best_hypotheses(np.ascontiguousarray(P), uv_c, w, float(o.cap_px), float(o.margin_px))
+    hyps = _hypotheses(uv.shape[0])
+    best = [tuple(bool(v) for v in hyps[j]) if j else None for j in k]
+    return best, gain, X
 
 
 def _best_hypotheses(
@@ -229,6 +249,13 @@ def _best_hypotheses(
     best = [tuple(bool(v) for v in hyps[k[j]]) if win[j] else None for j in range(K)]
     Xb = X.reshape(H, K, 2, 3)[k, col]
     return best, np.where(win, gain, 0.0), Xb
+
+
+def warm_up(cameras: list[Camera], n_kp: int) -> None:
+    """Load (or compile, the first time on a machine) the compiled search for these cameras, with the arrays the
+    scheduler passes: a first compile inside a live tick would hold it for seconds."""
+    P, und = undistorted(cameras, np.full((len(cameras), max(n_kp, 2), 2), 100.0))
+    choose_swaps(P, und, np.ones(und.shape[:2]), ((0, 1),))  # one pair compiles what every pair runs
 
 
 def apply_swaps(

@@ -68,10 +68,15 @@ class Detections2D:
     keypoints : array, shape (n_people, n_kp, 2)
         Pixels (distorted, as detected).
     confidences : array, shape (n_people, n_kp)
+    undistorted : array, shape (n_people, n_kp, 2), optional
+        The same keypoints undistorted (pixels of the camera without its lens distortion), where the receiver
+        made them once as the frame arrived (:meth:`FixedLatencyScheduler.add_detections`) rather than on every
+        tick that uses the frame.
     """
 
     keypoints: FloatArray
     confidences: FloatArray
+    undistorted: FloatArray | None = None
 
     def __post_init__(self) -> None:
         kp = np.asarray(self.keypoints, dtype=np.float64)
@@ -79,6 +84,8 @@ class Detections2D:
         if kp.ndim != 3 or kp.shape[2] != 2 or cf.shape != kp.shape[:2]:
             raise InputError(f"detections: keypoints (n, n_kp, 2) and confidences (n, n_kp) expected, "
                              f"got {kp.shape} and {cf.shape}")  # fmt: skip
+        if self.undistorted is not None and np.shape(self.undistorted) != kp.shape:
+            raise InputError(f"detections: undistorted keypoints {np.shape(self.undistorted)} for {kp.shape}")
         object.__setattr__(self, "keypoints", kp)
         object.__setattr__(self, "confidences", cf)
 

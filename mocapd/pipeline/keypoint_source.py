@@ -140,6 +140,9 @@ class DetectorKeypointSource:
                          "detections_delivered": 0}  # fmt: skip
         #: tracking delivers the keypoints now (False: it stepped back, the detections go out themselves)
         self.tracking_active = tracker is not None
+        #: the governor's share of the configured tracking rate (1: as configured, 0.5: half, 0: tracking off,
+        #: the detections go out themselves as when tracking steps back)
+        self.tracking_rate_scale = 1.0
         self._delays: deque[int] = deque(maxlen=DELAY_WINDOW)
         self._last_sent_ns = -(2**62)  # stamp of the newest keypoint set sent (tracked, or a detection)
         self._last_frame_ns: tuple[int, int] | None = None  # (device, host) time of the last frame offered
@@ -215,6 +218,11 @@ class DetectorKeypointSource:
         self._delays.append(delay_ns)
         reach = min(o.history_s, o.max_age_s) * 1e9
         delay = float(np.median(self._delays))
+        if self.tracking_rate_scale <= 0.0:  # the governor shed it: the detections go out themselves
+            if self.tracking_active:
+                self.tracking_active = False
+                log.info("camera %s: keypoint tracking off (the governor sheds it)", self.name)
+            return False
         if self.tracking_active and delay > STEP_BACK * reach:
             self.tracking_active = False
             self.tracking["steps_back"] += 1
@@ -238,7 +246,7 @@ class DetectorKeypointSource:
         dt = ref.device_ns - last[0]
         if not 0 < dt < 1_000_000_000:
             dt = max(0, ref.host_ns - last[1])
-        rate = self.tracker.options.rate_hz
+        rate = self.tracker.options.rate_hz * self.tracking_rate_scale
         self._tokens = min(TOKENS_MAX, self._tokens + rate * dt / 1e9)
         if self._tokens < 1.0 - TOKEN_SLACK:
             return False
@@ -371,6 +379,7 @@ class DetectorKeypointSource:
                 "cpu_ms_per_person_frame": round(cpu / t["person_sets"] / 1e6, 3) if t["person_sets"] else None,
                 "thread": "pool" if self.tracking_pool is not None else "capture",
                 "active": self.tracking_active, "steps_back": t["steps_back"],
+                "rate_hz": round(self.tracker.options.rate_hz * self.tracking_rate_scale, 1),
                 "detections_delivered": t["detections_delivered"],
                 "tracker": self.tracker.status(),
             }  # fmt: skip

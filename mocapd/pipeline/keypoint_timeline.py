@@ -28,6 +28,7 @@ from scipy.optimize import linear_sum_assignment
 from mocapd.core.sorting import Detections2D
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 
 class SampleStatus(enum.Enum):
@@ -168,22 +169,35 @@ def interpolate_people(a: Detections2D, b: Detections2D, alpha: float, match_px:
     if d.size:
         rows, cols = linear_sum_assignment(np.where(np.isfinite(d), d, 1e12))
         pairs = [(int(i), int(j)) for i, j in zip(rows, cols, strict=True) if d[i, j] <= match_px]
+    # The undistorted copies (made once per frame as it arrived) are blended like the pixels: the lens map is
+    # smooth over the few pixels a keypoint moves between two frames.
+    with_und = a.undistorted is not None and b.undistorted is not None
     kps: list[FloatArray] = []
     cfs: list[FloatArray] = []
+    unds: list[FloatArray] = []
     for i, j in pairs:
-        ka, kb = a.keypoints[i], b.keypoints[j]
         ca, cb = a.confidences[i], b.confidences[j]
         both = (ca > 0) & (cb > 0)
-        kp = np.where(both[:, None], ka + alpha * (kb - ka), np.where((ca > 0)[:, None], ka, kb))
-        cf = np.where(both, ca + alpha * (cb - ca), np.where(ca > 0, ca * (1.0 - alpha), cb * alpha))
-        kps.append(kp)
-        cfs.append(cf)
+        kps.append(_blend(a.keypoints[i], b.keypoints[j], both, ca > 0, alpha))
+        cfs.append(np.where(both, ca + alpha * (cb - ca), np.where(ca > 0, ca * (1.0 - alpha), cb * alpha)))
+        if with_und:
+            assert a.undistorted is not None and b.undistorted is not None
+            unds.append(_blend(a.undistorted[i], b.undistorted[j], both, ca > 0, alpha))
     matched_near = {i for i, _ in pairs} if near is a else {j for _, j in pairs}
     for p in range(near.keypoints.shape[0]):
         if p not in matched_near:
             kps.append(near.keypoints[p])
             cfs.append(near.confidences[p])
+            if with_und:
+                assert near.undistorted is not None
+                unds.append(near.undistorted[p])
     n_kp = a.keypoints.shape[1]
     if not kps:
         return Detections2D.empty(n_kp)
-    return Detections2D(np.stack(kps), np.stack(cfs))
+    return Detections2D(np.stack(kps), np.stack(cfs), np.stack(unds) if with_und else None)
+
+
+def _blend(pa: FloatArray, pb: FloatArray, both: BoolArray, in_a: BoolArray, alpha: float) -> FloatArray:
+    """Points (n_kp, 2) of two frames at ``alpha``: blended where both saw them, else the one that did."""
+    out: FloatArray = np.where(both[:, None], pa + alpha * (pb - pa), np.where(in_a[:, None], pa, pb))
+    return out

@@ -30,9 +30,11 @@ scheduler runs the same in the daemon and in tests on synthetic timelines.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -41,13 +43,13 @@ from numpy.typing import NDArray
 
 from mocapd.core import _kernel
 from mocapd.core.body_size import estimate_skeleton
-from mocapd.core.camera import Camera, triangulate
+from mocapd.core.camera import Camera, triangulate_projections
 from mocapd.core.heading import BoneVectors, HeadingEstimator, HeadingOptions, bone_vectors, observe_headings, yaw_quat
 from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.lr_flips import FlipOptions, apply_swaps, choose_swaps, lr_pairs, undistorted
+from mocapd.core.lr_flips import FlipOptions, apply_swaps, choose_swaps, lr_pairs
 from mocapd.core.people import PeopleTracker, Person
 from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.plausibility import PlausibilityMonitor
@@ -75,6 +77,7 @@ HEIGHT_HISTORY_S = 12.0  # solved heights kept per suit for the IMU offset estim
 SIZE_MIN_CONFIDENCE = 0.3  # keypoints below this confidence take no part in the body-size triangulation
 HEADING_EVERY_NS = 50_000_000  # at least this between two heading observations of a suit (20 Hz: plenty for a
 # window of seconds; every tick would triangulate and observe three times as often for nothing)
+READ_WAIT_S = 0.02  # the longest the event loop waits for the tick thread to read the scheduler's state
 STAGES = ("detect", "sample", "sort", "solve", "predict", "publish", "end_to_end", "imu_to_publish")
 
 
@@ -205,6 +208,31 @@ class TickPlan:
         return skipped
 
 
+@dataclass(frozen=True)
+class TickInputs:
+    """What :meth:`FixedLatencyScheduler.sample` took for one tick (the tick's own copies)."""
+
+    now_ns: int  # the wall time the tick was scheduled for
+    t_solve_ns: int  # the instant solved for: now - latency
+    detections: list[Detections2D]  # per camera, at t_solve_ns
+    missing: int  # cameras without usable keypoints
+    suits: dict[str, SuitSample]  # per suit, at t_solve_ns
+
+
+@dataclass
+class Shedding:
+    """Work the scheduler leaves out when the tick's budget is short (set by the daemon's governor,
+    :mod:`mocapd.pipeline.governor`)."""
+
+    flip_every: int = 1
+    """The left/right flip search runs on every this-many-th tick; the ticks between reuse each person's last
+    decision."""
+
+
+PERSON_STAGES = ("unflip", "solve", "size", "total")
+"""Per person and tick: the flip search, the LM solve, the body sizing and the whole person job (CPU, ms)."""
+
+
 @dataclass
 class SuitSample:
     orientations: FloatArray  # (n_imu, 4) measured global bone orientations (heading-corrected)
@@ -294,6 +322,7 @@ class FixedLatencyScheduler:
         self.auto_latency = AutoLatency(len(cameras), o.auto_latency) if o.auto_latency is not None else None
         self.latency_ns = o.latency_ns if self.auto_latency is None else self.auto_latency.latency_ns
         self.frame = 0
+        self.published = 0  # frames published (record_publish): ``frame`` runs ahead while one is on its way
         self.latency = {s: LatencyStats() for s in STAGES}
         self.cpu_ns = dict.fromkeys(STAGES[1:6], 0)
         self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
@@ -335,6 +364,20 @@ class FixedLatencyScheduler:
         self._zero_offsets = np.zeros((N_BONES, 3))
         self._wall = wall_clock
         self._cpu = cpu_clock
+        #: held while a tick solves; readers of the scheduler's state from other threads take it too
+        self.lock = threading.RLock()
+        self._count_lock = threading.Lock()  # counters and the heading estimator, shared by parallel person jobs
+        #: solves the people of a tick in parallel when set (the daemon's solve threads); None: one after another
+        self.pool: Executor | None = None
+        self.shedding = Shedding()
+        self._flip_due = True
+        self._last_swaps: dict[str, NDArray[np.bool_]] = {}  # per identity: the flip search's last decision
+        #: per person job and stage: CPU time (ms), for the stage costs in /status and the benchmarks
+        self.person_cpu = {s: LatencyStats() for s in PERSON_STAGES}
+        self._pool_cpu_ns = 0  # CPU of the person jobs run on the pool this tick (not the tick thread's)
+        self._tick_thread = threading.current_thread()  # the thread running the tick now
+        self._last_status: dict[str, Any] = {}  # status() while a tick holds the lock
+        self._last_heading: dict[str, dict[str, Any]] = {}
 
     # ------------------------------------------------------------------------------------------- inputs
     def add_detections(self, camera: int, capture_ns: int, detections: Detections2D, arrival_ns: int) -> bool:
@@ -342,6 +385,10 @@ class FixedLatencyScheduler:
         done) at ``arrival_ns`` (host clock). Returns False when it was rejected (out of order)."""
         offsets = self.options.camera_offsets_ns
         t = capture_ns - (offsets[camera] if offsets else 0)
+        if detections.undistorted is None and len(detections):
+            # Undistorted once, here, for every tick that samples this frame (the flip search, body sizing and
+            # heading triangulate in undistorted pixels).
+            detections = replace(detections, undistorted=self._undistort(camera, detections.keypoints))
         if not self.timelines[camera].push(t, detections):
             self.counters["detections_rejected"] += 1
             return False
@@ -352,22 +399,41 @@ class FixedLatencyScheduler:
 
     # ------------------------------------------------------------------------------------------- the tick
     def tick(self, now_ns: int, *, predict: bool = True) -> PoseFrame:
-        """Solve and return the frame at ``now_ns - latency``.
+        """Solve and return the frame at ``now_ns - latency``: :meth:`sample` then :meth:`solve`, in this thread.
 
         In predicted output the suit wearers are carried forward (:meth:`predict`) before it returns, unless
         ``predict`` is False: then the caller calls :meth:`predict` itself right before publishing, after letting
-        the IMU inputs buffer what arrived while this tick solved (the daemon does; the IMU samples are read on the
-        same event loop, so none is buffered during the tick).
+        the IMU inputs buffer what arrived while this tick solved.
         """
+        out = self.solve(self.sample(now_ns))
+        return self.predict(out) if predict else out
+
+    def sample(self, now_ns: int) -> TickInputs:
+        """The first half of a tick, on the thread that owns the inputs (the daemon's event loop): the delay behind
+        wall time, then every camera's detections and every suit's IMU samples at the solve time. What it returns
+        is the tick's own copy: the inputs may be written again while :meth:`solve` runs elsewhere."""
         if self.auto_latency is not None:
             # Before the first person solve nothing is on screen: the latency may drop to its first goal at once.
             self.latency_ns = self.auto_latency.update(now_ns, idle=self.counters["person_solves"] == 0)
         t = now_ns - self.latency_ns
-        self._tick_t = t
         w0, c0 = self._wall(), self._cpu()
         detections, missing = self._sample_cameras(t)
         suits = {sid: self._sample_suit(suit, t) for sid, suit in self.suits.items()}
-        w1, c1 = self._stage("sample", w0, c0)
+        self._stage("sample", w0, c0)
+        return TickInputs(now_ns, t, detections, missing, suits)
+
+    def solve(self, inputs: TickInputs) -> PoseFrame:
+        """The second half of a tick, on any one thread at a time (the daemon's tick worker): sort the sampled
+        people, solve each (in parallel on :attr:`pool` when one is given), publishable frame out. Holds
+        :attr:`lock` throughout, so readers of the scheduler's state on other threads (:meth:`status`) see it
+        between ticks, never half-updated."""
+        with self.lock:
+            return self._solve_tick(inputs)
+
+    def _solve_tick(self, inputs: TickInputs) -> PoseFrame:
+        t, suits, detections = inputs.t_solve_ns, inputs.suits, inputs.detections
+        self._tick_t = t
+        w1, c1 = self._wall(), self._cpu()
         suit_bones = {
             sid: {suit.mounts[i].bone: s.orientations[i] for i in range(len(suit.mounts)) if s.mask[i]}
             for sid, (suit, s) in ((k, (self.suits[k], v)) for k, v in suits.items())
@@ -376,8 +442,17 @@ class FixedLatencyScheduler:
         w2, c2 = self._stage("sort", w1, c1)
         self._seen_suits.clear()
         self._tick_mattes = None
+        self._flip_due = self.shedding.flip_every <= 1 or self.frame % self.shedding.flip_every == 0
         people = [*frame.people, *self._imu_only_people(frame.people, suits)]
-        poses = [self._solve(p, detections, suits.get(p.suit) if p.suit else None, t) for p in people]
+        jobs = [(p, detections, suits.get(p.suit) if p.suit else None, t) for p in people]
+        self._tick_thread = threading.current_thread()
+        self._pool_cpu_ns = 0
+        if self.pool is not None and len(jobs) > 1 and self.fusion is None:
+            # People in parallel: each job touches its own solver and track; what they share is locked
+            # (counters, the heading estimator). The compiled kernels release the GIL.
+            poses = list(self.pool.map(lambda job: self._solve(*job), jobs))
+        else:
+            poses = [self._solve(*job) for job in jobs]
         for pose in poses:
             self.plausibility.setdefault(pose.identity, PlausibilityMonitor()).step(t / 1e9, pose.theta)
         for sid, suit in self.suits.items():
@@ -387,11 +462,11 @@ class FixedLatencyScheduler:
         if self.fusion is not None:
             self.fusion.forget(set(self.solvers))
         self._stage("solve", w2, c2)
+        self.cpu_ns["solve"] += self._pool_cpu_ns  # the person jobs the pool ran, on its own threads' clocks
         self.frame += 1
         self.counters["ticks"] += 1
         self._suit_samples = suits
-        out = PoseFrame(self.frame, t, now_ns, poses, missing, self.options.prediction.output)
-        return self.predict(out) if predict else out
+        return PoseFrame(self.frame, t, inputs.now_ns, poses, inputs.missing, self.options.prediction.output)
 
     def predict(self, frame: PoseFrame) -> PoseFrame:
         """In predicted output, ``frame`` (this scheduler's latest, from :meth:`tick`) with each suit wearer
@@ -411,6 +486,7 @@ class FixedLatencyScheduler:
         time, the capture instant it represents, to ``published_ns`` on the host clock) and, per suit wearer, the
         IMU-sample-to-publish latency (from the instant the pose is for: the newest IMU sample it used)."""
         self._stage("publish", wall_start_ns, cpu_start_ns)
+        self.published += 1
         self.latency["end_to_end"].add(published_ns - frame.t_solve_ns)
         for p in frame.people:
             if p.suit is not None:
@@ -513,15 +589,19 @@ class FixedLatencyScheduler:
     def _solve(
         self, person: Person, detections: list[Detections2D], suit_sample: SuitSample | None, t: int
     ) -> PersonPose:
+        c0 = self._cpu()
         suit = self.suits.get(person.suit) if person.suit else None
         solver = self._solver_for(person, suit)
         n_cams, n_kp = len(self.cameras), len(self.targets)
         kp = np.zeros((n_cams, n_kp, 2))
+        und = np.zeros((n_cams, n_kp, 2))
         conf = np.zeros((n_cams, n_kp))
         for cam, idx in person.detections.items():
             kp[cam] = detections[cam].keypoints[idx]
+            und[cam] = self._undistorted(cam, detections[cam])[idx]
             conf[cam] = np.clip(detections[cam].confidences[idx], 0.0, 1.0)
-        kp, conf = self._unflip(solver, kp, conf, len(person.detections))
+        kp, und, conf = self._unflip(person.identity, solver, kp, und, conf, len(person.detections))
+        c1 = self._cpu()
         imu_kw: dict[str, Any] = {}
         n_imu = 0
         if suit is not None and suit_sample is not None:
@@ -532,7 +612,7 @@ class FixedLatencyScheduler:
             }
             n_imu = int(suit_sample.mask.sum())
         if suit is not None and self.frame % HEIGHT_EVERY == 0:
-            self._record_height(suit.id, t, kp, conf)
+            self._record_height(suit.id, t, und, conf)
         if suit is not None and suit_sample is not None and len(person.detections) >= self.heading.options.min_views:
             self._seen_suits.add(suit.id)
             if (
@@ -540,16 +620,25 @@ class FixedLatencyScheduler:
                 and t - self._heading_at.get(suit.id, t - HEADING_EVERY_NS) >= HEADING_EVERY_NS
             ):
                 self._heading_at[suit.id] = t
-                self._observe_heading(suit, suit_sample, solver.skeleton, kp, conf, t)
+                with self._count_lock:
+                    self._observe_heading(suit, suit_sample, solver.skeleton, und, conf, t)
         obs = Observations(keypoints=kp, confidences=conf, dt=self.options.dt, **imu_kw)
         if self.fusion is not None:
             obs = self._fused_observations(person, solver, suit, obs, kp, conf)
         result = solver.solve(obs)
-        self.counters["person_solves"] += 1
-        if not result.summary.converged:
-            self.counters["not_converged"] += 1
+        c2 = self._cpu()
+        with self._count_lock:
+            self.counters["person_solves"] += 1
+            if not result.summary.converged:
+                self.counters["not_converged"] += 1
         if person.track >= 0 and len(person.detections) >= 2:
-            self._size_body(person, solver, kp, conf)
+            self._size_body(person, solver, und, conf)
+        c3 = self._cpu()
+        with self._count_lock:
+            for stage, ns in zip(PERSON_STAGES, (c1 - c0, c2 - c1, c3 - c2, c3 - c0), strict=True):
+                self.person_cpu[stage].add(ns)
+            if threading.current_thread() is not self._tick_thread:
+                self._pool_cpu_ns += c3 - c0
         views = len(person.detections)
         used = conf[conf > 0]
         confidence = float(used.mean()) * min(1.0, views / 2.0) if used.size else 0.0
@@ -561,24 +650,46 @@ class FixedLatencyScheduler:
         )  # fmt: skip
 
     def _unflip(
-        self, solver: PoseSolver, kp: FloatArray, conf: FloatArray, views: int
-    ) -> tuple[FloatArray, FloatArray]:
+        self, identity: str, solver: PoseSolver, kp: FloatArray, und: FloatArray, conf: FloatArray, views: int
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """The person's keypoints with each view's left/right labels as the views agree on them
-        (:mod:`mocapd.core.lr_flips`); which of the mirror labellings is right comes from the previous solve."""
+        (:mod:`mocapd.core.lr_flips`); which of the mirror labellings is right comes from the previous solve.
+        ``und``: the same keypoints undistorted. On the ticks the governor leaves the search out
+        (:attr:`Shedding.flip_every`), the person's last decision is applied again."""
         o = self.options.flips
         if not o.enabled or not self._lr_pairs or views < 2:
-            return kp, conf
-        reference = None
-        if solver._has_solved:
-            reference = solver.keypoint_positions(solver.theta)
-        elif views < o.min_views_alone:
-            return kp, conf
-        _, und = undistorted(self.cameras, kp)
-        decision = choose_swaps(self._projections, und, conf, self._lr_pairs, reference, o)
-        if decision.count:
-            self.counters["lr_swaps"] += decision.count
-            kp, conf = apply_swaps(kp, conf, decision.swaps, self._lr_pairs)
-        return kp, conf
+            return kp, und, conf
+        if self._flip_due:
+            reference = None
+            if solver._has_solved:
+                reference = solver.keypoint_positions(solver.theta)
+            elif views < o.min_views_alone:
+                return kp, und, conf
+            decision = choose_swaps(self._projections, und, conf, self._lr_pairs, reference, o)
+            swaps: NDArray[np.bool_] | None = decision.swaps
+            self._last_swaps[identity] = decision.swaps
+            if decision.count:
+                with self._count_lock:
+                    self.counters["lr_swaps"] += decision.count
+        else:
+            swaps = self._last_swaps.get(identity)
+        if swaps is None or not swaps.any():
+            return kp, und, conf
+        kp, swapped_conf = apply_swaps(kp, conf, swaps, self._lr_pairs)
+        und, _ = apply_swaps(und, conf, swaps, self._lr_pairs)
+        return kp, und, swapped_conf
+
+    def _undistorted(self, camera: int, dets: Detections2D) -> FloatArray:
+        """A camera's sampled keypoints undistorted (n_people, n_kp, 2): from the undistorted copies the timeline
+        made as each frame arrived (interpolated like the pixels), else undistorted now."""
+        if dets.undistorted is not None:
+            return dets.undistorted
+        return self._undistort(camera, dets.keypoints)
+
+    def _undistort(self, camera: int, uv: FloatArray) -> FloatArray:
+        """Pixels (..., 2) of ``camera`` undistorted; NaN stays NaN (a keypoint nobody saw)."""
+        und = self.cameras[camera].undistort_points(np.nan_to_num(uv))
+        return np.where(np.isfinite(uv), und, np.nan)
 
     def _fused_observations(
         self, person: Person, solver: PoseSolver, suit: Suit | None, obs: Observations, kp: FloatArray, conf: FloatArray
@@ -607,11 +718,11 @@ class FixedLatencyScheduler:
         return Observations(joint_positions=joints, dt=self.options.dt)
 
     def _observe_heading(
-        self, suit: Suit, sample: SuitSample, skeleton: Skeleton, kp: FloatArray, conf: FloatArray, t: int
+        self, suit: Suit, sample: SuitSample, skeleton: Skeleton, und: FloatArray, conf: FloatArray, t: int
     ) -> None:
-        """One heading observation of every measured sensor of ``suit`` from its wearer's keypoints, triangulated
-        from every camera that sees them (not the fused solve: it follows the very IMUs under test)."""
-        points, ok = triangulate(self.cameras, kp, conf)
+        """One heading observation of every measured sensor of ``suit`` from its wearer's keypoints (undistorted),
+        triangulated from every camera that sees them (not the fused solve: it follows the very IMUs under test)."""
+        points, ok = triangulate_projections(self._projections, und, conf)
         vectors = self._heading_vectors[suit.id].get(None if skeleton is self.skeleton else skeleton)
         idx = np.flatnonzero(sample.mask)
         yaw, evidence = observe_headings(sample.raw[idx], [vectors[i] for i in idx], points, ok)
@@ -639,7 +750,7 @@ class FixedLatencyScheduler:
         return replace(pose, theta=pred.theta, joints=self._joints(solver, pred.theta), t_pose_ns=pred.t_ns,
                        solved=replace(pose, t_pose_ns=t))  # fmt: skip
 
-    def _size_body(self, person: Person, solver: PoseSolver, kp: FloatArray, conf: FloatArray) -> None:
+    def _size_body(self, person: Person, solver: PoseSolver, und: FloatArray, conf: FloatArray) -> None:
         """Gather a track's keypoints, triangulated from every view that sees it (after the solve undid the views'
         left/right flips); give it its own skeleton from the first ``body_size_first_frames`` (a provisional size:
         the default 1.75 m skeleton misfits most people) and again, for good, from ``body_size_frames``. Its
@@ -648,7 +759,7 @@ class FixedLatencyScheduler:
         n = o.body_size_frames
         if n <= 0 or person.track in self._sized or len(self.targets) != 17:
             return
-        X, ok = triangulate(self.cameras, kp, np.where(conf >= SIZE_MIN_CONFIDENCE, conf, 0.0))
+        X, ok = triangulate_projections(self._projections, und, np.where(conf >= SIZE_MIN_CONFIDENCE, conf, 0.0))
         frames = self._sizing.setdefault(person.track, [])
         frames.append(np.where(ok[:, None], X, np.nan))
         first = min(o.body_size_first_frames, n) if o.body_size_first_frames > 0 else n
@@ -671,12 +782,12 @@ class FixedLatencyScheduler:
             # the next solve builds a solver on the new skeleton, from this pose (same θ layout)
             self._restart[person.track] = solver.theta.copy()
 
-    def _record_height(self, suit: str, t: int, kp: FloatArray, conf: FloatArray) -> None:
+    def _record_height(self, suit: str, t: int, und: FloatArray, conf: FloatArray) -> None:
         """Hips height of a suit's wearer triangulated from the cameras alone: the camera side of the IMU offset
         estimate (the fused solve would not do — it follows the very IMU data whose timing is in question)."""
         if self._hips is None:
             return
-        X, ok = triangulate(self.cameras, kp[:, self._hips], conf[:, self._hips])
+        X, ok = triangulate_projections(self._projections, und[:, self._hips], conf[:, self._hips])
         if ok.all():
             keep = self._heights.setdefault(
                 suit, deque(maxlen=round(HEIGHT_HISTORY_S * self.options.rate_hz / HEIGHT_EVERY))
@@ -712,6 +823,14 @@ class FixedLatencyScheduler:
 
     def imu_alignment_inputs(self) -> list[ImuAlignmentInput]:
         """Copies of what :func:`estimate_imu_offsets` needs, per suit with a hips sensor and a solved wearer."""
+        if not self.lock.acquire(timeout=READ_WAIT_S):
+            return []  # a tick is solving: the next estimate (10 s later) has these records too
+        try:
+            return self._imu_alignment_inputs()
+        finally:
+            self.lock.release()
+
+    def _imu_alignment_inputs(self) -> list[ImuAlignmentInput]:
         out = []
         for sid, suit in self.suits.items():
             heights = self._heights.get(sid)
@@ -733,13 +852,27 @@ class FixedLatencyScheduler:
 
     # ------------------------------------------------------------------------------------------- status
     def status(self) -> dict[str, Any]:
-        """JSON-able counters and latency percentiles."""
+        """JSON-able counters and latency percentiles, taken between two ticks. The event loop asks for it: it waits
+        at most :data:`READ_WAIT_S` for a tick solving now, else it gets the previous document (the loop never
+        waits on the tick thread for longer than that)."""
+        if self.lock.acquire(timeout=READ_WAIT_S if self._last_status else -1):
+            try:
+                self._last_status = self._status()
+            finally:
+                self.lock.release()
+        return self._last_status
+
+    def _status(self) -> dict[str, Any]:
         return {
             "frame": self.frame,
+            "published": self.published,
             "counters": dict(self.counters),
             "body_heights_m": {str(k): round(v.height, 3) for k, v in self.skeletons.items()},
             "latency_ms": {k: v.summary() for k, v in self.latency.items()},
             "cpu_s": {k: round(v / 1e9, 3) for k, v in self.cpu_ns.items()},
+            # What one person costs a tick, by stage (CPU): where the tick's budget goes.
+            "person_cpu_ms": {k: v.summary() for k, v in self.person_cpu.items()},
+            "shedding": {"flip_every": self.shedding.flip_every},
             "cameras": [
                 {"frames": tl.frames_received, "rejected": tl.rejected_out_of_order, "samples": dict(st)}
                 for tl, st in zip(self.timelines, self.keypoint_status, strict=True)
@@ -765,7 +898,12 @@ class FixedLatencyScheduler:
         """Per suit, per sensor: its bone, whether the cameras can observe its heading with this keypoint set,
         and the estimator's state (:meth:`HeadingEstimator.status`: applied offset, window estimate, samples;
         state "unobservable" for a sensor whose bone has no keypoint pair, "unobserved" before any observation)."""
-        est = self.heading.status()
+        if self.lock.acquire(timeout=READ_WAIT_S):
+            try:
+                self._last_heading = self.heading.status()
+            finally:
+                self.lock.release()
+        est = self._last_heading
         out: dict[str, dict[str, dict[str, Any]]] = {}
         for sid, suit in self.suits.items():
             vectors = self._heading_vectors[sid].default

@@ -17,9 +17,11 @@ import asyncio
 import contextlib
 import gc
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar, runtime_checkable
@@ -30,6 +32,7 @@ from mocapd.core.camera import Camera
 from mocapd.core.heading import yaw_quat
 from mocapd.core.heading_reset import ResetHistory, enu_turn, reset_yaws
 from mocapd.core.keypoints import TrackTargets
+from mocapd.core.lr_flips import warm_up as warm_up_flip_search
 from mocapd.core.people import PeopleTracker
 from mocapd.core.plausibility import first_events
 from mocapd.core.prior import PcaPrior
@@ -44,11 +47,14 @@ from mocapd.core.yaw_drift import StillDrift
 from mocapd.errors import ConfigError, DeviceError, InputError
 from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
+from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.fusion import FusionModels, FusionStage
+from mocapd.pipeline.governor import Governor
 from mocapd.pipeline.keypoint_source import KeypointSource
 from mocapd.pipeline.mattes import MatteSource, RingMattes
 from mocapd.pipeline.scheduler import (
+    READ_WAIT_S,
     FixedLatencyScheduler,
     PoseFrame,
     Suit,
@@ -256,6 +262,15 @@ class Daemon:
             fusion_mode=config.fusion.mode,
             mattes=mattes,
         )
+        # The tick solves on its own thread (the loop only samples and publishes), its people on the solve pool.
+        self._tick_executor = ThreadPoolExecutor(1, "mocapd-tick", initializer=worker_thread_setup,
+                                                 initargs=("mocapd-tick",))  # fmt: skip
+        threads = self.solve_threads = d.solve_thread_count(os.cpu_count())
+        self._solve_pool = (ThreadPoolExecutor(threads, "mocapd-solve", initializer=worker_thread_setup,
+                                               initargs=("mocapd-solve",)) if threads > 1 else None)  # fmt: skip
+        self.scheduler.pool = self._solve_pool
+        #: sheds work when the tick does not fit its period (None: ``[daemon] governor = false``)
+        self.governor = Governor(self.scheduler.options.period_ns, start_ns=clock()) if d.governor else None
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
         self.actions: dict[str, Callable[[dict[str, str]], Any]] = {
@@ -297,7 +312,8 @@ class Daemon:
         now = self.clock()
         done: dict[str, Any] = {}
         for s in suits:
-            offsets = self.scheduler.heading.offsets(s.sensors)
+            with self.scheduler.lock:  # the tick thread updates the estimates
+                offsets = self.scheduler.heading.offsets(s.sensors)
             live, q_gb, missing = [], [], []
             for i, sid in enumerate(s.sensors):
                 stream = self.imu.ingest.streams.get(sid)
@@ -402,6 +418,9 @@ class Daemon:
             log.error("shutdown: tasks still running after %.1f s, abandoned: %s",
                       self.config.daemon.shutdown_timeout_s, ", ".join(sorted(pending)))  # fmt: skip
         finally:
+            self._tick_executor.shutdown(wait=False, cancel_futures=True)
+            if self._solve_pool is not None:
+                self._solve_pool.shutdown(wait=False, cancel_futures=True)
             for sink in started:
                 await sink.aclose()
             self.imu.close()
@@ -491,6 +510,7 @@ class Daemon:
         )
         if n_cams >= 2:
             DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options()).warm_up(n_kp)
+            warm_up_flip_search(self.rig.cameras, n_kp)
         # The offset estimates of the status loop, once: their first run, 10 s after READY, imported SciPy's signal
         # package (~200 modules) while the tick ran, and the imports' allocations set off full garbage collections
         # of the whole start-up heap: a second of 26-49 Hz output in every run. With the imports done here and
@@ -516,10 +536,15 @@ class Daemon:
             plan.missed, plan.late = previous.missed, previous.late
         watchdog_every = self.notifier.watchdog_s / 2 if self.notifier.watchdog_s else None
         last_ping = 0
+        loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(max(0.0, (plan.next_ns - self.clock()) / 1e9))
             # Solve for the scheduled tick time, not the (jittery) wake-up time: output frames stay evenly spaced.
-            frame = self.scheduler.tick(plan.next_ns, predict=False)
+            # The loop samples the inputs (its own buffers, written on it); the solve runs on the tick thread while
+            # the loop goes on capturing, reading IMUs and serving clients. One tick at a time: a late one makes
+            # the plan skip what it cannot catch up (max_catch_up_s), work never piles up.
+            inputs = self.scheduler.sample(plan.next_ns)
+            frame = await loop.run_in_executor(self._tick_executor, self.scheduler.solve, inputs)
             if self.scheduler.options.prediction.predicted:
                 # Two loop iterations: the first polls the serial ports and queues their readers after this task,
                 # the second runs them, so the IMU samples that arrived while solving are buffered; then the
@@ -537,7 +562,22 @@ class Daemon:
             if watchdog_every is not None and published - last_ping > watchdog_every * 1e9:
                 self.notifier.notify("WATCHDOG=1")
                 last_ping = published
-            plan.advance(self.clock())
+            skipped = plan.advance(self.clock())
+            if self.governor is not None:
+                self.governor.observe(published - frame.tick_ns, skipped)
+                if self.governor.step(published):
+                    self._apply_governor()
+
+    def _apply_governor(self) -> None:
+        """The governor's level to the keypoint sources (tracking rate) and the scheduler (flip search), said in the
+        log: what is shed now and why."""
+        assert self.governor is not None
+        level = self.governor.level
+        for src in self.rig.sources:
+            if hasattr(src, "tracking_rate_scale"):
+                src.tracking_rate_scale = level.tracking_rate
+        self.scheduler.shedding.flip_every = level.flip_every
+        log.warning("governor: %s (%s)", level.name, self.governor.last_reason)
 
     async def _matte_loop(self) -> None:
         """Background subtraction of the cameras' newest frames at the learned stream's rate, off the event loop."""
@@ -565,7 +605,13 @@ class Daemon:
                     self.scheduler.imu_alignment_inputs(),
                     dict(self.scheduler.options.imu_offsets_ns),
                 )
-            for warning in first_events(self.scheduler.plausibility, self._implausible_said):
+            warnings: list[str] = []
+            if self.scheduler.lock.acquire(timeout=READ_WAIT_S):  # the tick thread adds people's monitors
+                try:
+                    warnings = first_events(self.scheduler.plausibility, self._implausible_said)
+                finally:
+                    self.scheduler.lock.release()
+            for warning in warnings:
                 log.warning("%s", warning)
             line = self.status_line_text()
             self.notifier.notify(f"STATUS={line}")
@@ -605,6 +651,8 @@ class Daemon:
             f"missed {self.plan.missed if self.plan else 0} late {self.plan.late if self.plan else 0}  "
             f"e2e p50 {e2e['p50']} ms  people [{people}]"
         )
+        if self.governor is not None and self.governor.step_index:
+            line += f"  shed: {self.governor.level.name}"
         if self.imu.devices:
             streaming = sum(1 for d in self.imu.devices if d.streaming.is_set())
             line += f"  IMUs {streaming}/{len(self.imu.devices)}"
@@ -626,7 +674,7 @@ class Daemon:
             "output": {
                 "configured_hz": self.scheduler.options.rate_hz,
                 "achieved_hz": len(self._rate_window),
-                "frames": s["frame"],
+                "frames": s["published"],
                 "missed_ticks": self.plan.missed if self.plan else 0,
                 "late_ticks": self.plan.late if self.plan else 0,
                 "latency_s": self.scheduler.latency_ns / 1e9,
@@ -636,6 +684,9 @@ class Daemon:
             "latency_ms": s["latency_ms"],
             "latency_histograms": latency_snapshot(self.scheduler.latency),
             "cpu_s": s["cpu_s"],
+            "person_cpu_ms": s["person_cpu_ms"],
+            "governor": None if self.governor is None else self.governor.status(),
+            "solve_threads": self.solve_threads,
             "counters": s["counters"],
             "cameras": [
                 {**src.status(), **cam} for src, cam in zip(self.rig.sources, s["cameras"], strict=False)

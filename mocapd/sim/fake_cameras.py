@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from mocapd.errors import DeviceError
+from mocapd.io import cpu_budget
 from mocapd.sim import fake_gige
 
 log = logging.getLogger(__name__)
@@ -129,6 +130,7 @@ class FakeCameraFleet:
             start_new_session=True,
         )
         self._procs[cam.spec.name] = proc  # known at once, so a stop while it starts terminates it too
+        cpu_budget.exempt(proc.pid)  # a camera encodes on its own: outside the daemon's CPU budget, if it has one
         try:
             info, said = await asyncio.wait_for(_ready_line(proc), START_TIMEOUT_S)
         except TimeoutError:

@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.errors import MocapdError
-from mocapd.io import lifecycle
+from mocapd.io import cpu_budget, lifecycle
 from mocapd.io.aravis_camera import load_aravis
 from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
@@ -229,6 +229,12 @@ class Measure:
         b = self._snapshot(daemon)
         self.result = summarize(a, b, rss, percentiles, self.warm_up_s)
         self.result["tracked_vs_detected_px"] = tracked_errors(a)
+        # Where the tick's budget went (per person job, by stage) and what the governor shed, at the end.
+        end = b["status"]
+        self.result["person_cpu_ms"] = end["person_cpu_ms"]
+        self.result["solve_threads"] = end["solve_threads"]
+        self.result["governor"] = end["governor"]
+        self.result["tracking_rate_hz_by_camera"] = [c.get("tracking", {}).get("rate_hz") for c in end["cameras"]]
 
 
 def summarize(
@@ -478,6 +484,11 @@ def child_main(argv: list[str] | None = None) -> int:
     async def live(stop: asyncio.Event) -> int:
         return await run_camera_demo(config, opts, RunOptions(), monitor=measure, stop=stop)
 
+    try:  # the detector alone and the live run both under the budget: the report's ratio compares like with like
+        budget = cpu_budget.hold(opts.cpu_budget) if opts.cpu_budget is not None else None
+    except MocapdError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return 2
     try:
         before = alone_now()
         code = lifecycle.run_until_stopped(live)
@@ -487,6 +498,9 @@ def child_main(argv: list[str] | None = None) -> int:
     except MocapdError as exc:  # no Aravis, no model, a camera that did not start: the cause in one line
         print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2
+    finally:
+        throttling = budget.describe() if budget is not None else None
+        cpu_budget.release()
     alone = {"before_live_run": before, "after_live_run": after,
              **{k: round((before[k] + after[k]) / 2, 2) for k in ("whole_camera_frames_per_s",
                                                                    "packed_camera_frames_per_s")},
@@ -503,6 +517,7 @@ def child_main(argv: list[str] | None = None) -> int:
         "summary": headline(alone, measure.result, len(CAMERAS)) if measure.result else None,
         "detector_alone": alone,
         **measure.result,
+        "cpu_budget": throttling,
         "machine": {"cpus": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load0],
                     "loadavg_at_end": [round(x, 2) for x in os.getloadavg()], "python": platform.python_version()},
     }  # fmt: skip

@@ -130,6 +130,10 @@ def _measure(cfg: Config, seconds: float, rig: dict[str, Any], options: RunOptio
         "stage_latency_ms": {k: v for k, v in st["latency_ms"].items() if k != "end_to_end"},
         "stage_cpu_s": st["cpu_s"],
         "stage_cpu_ms_per_frame": {k: round(1e3 * v / max(frames, 1), 3) for k, v in st["cpu_s"].items()},
+        # Per person and tick, by stage of the person job (flip search, LM solve, body sizing): CPU ms.
+        "person_cpu_ms": st["person_cpu_ms"],
+        "solve_threads": st["solve_threads"],
+        "governor": st["governor"],
         "process_cpu_fraction_of_one_core": run_stats["process_cpu_fraction_of_one_core"],
         "memory_mb": {
             "rss_samples": rss[:: max(1, len(rss) // 12)],

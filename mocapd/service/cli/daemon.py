@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from mocapd.errors import ConfigError, MocapdError
-from mocapd.io import lifecycle
+from mocapd.io import cpu_budget, lifecycle
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
 from mocapd.service.config.cameras import describe
 
@@ -305,15 +305,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if args.imu_only:
             from mocapd.service.demo import imu_only
 
-            return imu_only.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
+            with cpu_budget.held(args.cpu_budget):  # the simulated suit's threads too: they run in this process
+                return imu_only.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
         if args.synthetic:
             from mocapd.service.demo import synthetic
 
-            return synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
+            with cpu_budget.held(args.cpu_budget):
+                return synthetic.run(cfg, None if args.seconds <= 0 else args.seconds, record=args.record)
         from mocapd.service.demo import cameras
 
         opts = cameras.CameraDemoOptions(scale=args.scale, latency_s=args.latency, speed=args.speed,
-                                         packed=_packed(args))  # fmt: skip
+                                         packed=_packed(args), cpu_budget=args.cpu_budget)  # fmt: skip
         return cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
                            record=args.record)  # fmt: skip
     except MocapdError as exc:  # bad config, a port in use, a session that exists, a device that did not open
@@ -333,15 +335,24 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
             except ConfigError as exc:
                 _print_config_error(args.config, exc)
                 return 2
-        opts = CameraDemoOptions(scale=args.scale, latency_s=args.latency, packed=_packed(args))
+        opts = CameraDemoOptions(
+            scale=args.scale, latency_s=args.latency, packed=_packed(args), cpu_budget=args.cpu_budget
+        )
         return cameras.run(args.seconds, opts, warm_up_s=args.warm_up, alone_passes=args.alone_passes,
                            config=args.config)  # fmt: skip
     from mocapd.service.bench import latency
 
-    if args.rig == "imu":
-        print(json.dumps(latency.run_imu(seconds=args.seconds, output=args.output), indent=2))
-        return 0
-    print(json.dumps(latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
+    try:
+        with cpu_budget.held(args.cpu_budget) as budget:
+            if args.rig == "imu":
+                report = latency.run_imu(seconds=args.seconds, output=args.output)
+            else:
+                report = latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people)
+            report["cpu_budget"] = budget.describe() if budget is not None else None
+    except MocapdError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(report, indent=2))
     return 0
 
 
@@ -367,6 +378,10 @@ _LATENCY_HELP = 'camera rig: delay behind wall time, s, or "auto" (default: foll
 _DETECTION_HELP = (
     'camera rig: "auto" (default; each pass packed or a whole frame, whichever costs less detector time per '
     'camera frame), "packed" (cameras\' ROIs on shared canvases) or "whole" (one inference per camera frame)'
+)
+_BUDGET_HELP = (
+    "hold the daemon's process to this many CPUs (e.g. 0.8) with a cgroup, as a slower or busier machine would; "
+    "camera rig: the fake cameras are exempt (needs a writable cgroup cpu controller: root)"
 )
 _RECORD_HELP = "record this run as a session into this new directory (docs/sessions.md)"
 
@@ -403,6 +418,7 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--latency", type=_latency, default="auto", help=_LATENCY_HELP)
     demo.add_argument("--detection", choices=["auto", "packed", "whole"], default="auto", help=_DETECTION_HELP)
     demo.add_argument("--packed", action="store_true", help="camera rig: same as --detection packed")
+    demo.add_argument("--cpu-budget", type=float, default=None, metavar="CORES", help=_BUDGET_HELP)
     demo.add_argument("--speed", type=float, default=1.0,
                       help="camera rig: video playback speed (default 1, their pace; < 1: slow motion)")  # fmt: skip
     demo.set_defaults(func=cmd_demo, fast_exit=True)
@@ -435,6 +451,7 @@ def register(subparsers: Any) -> None:
     lat.add_argument("--latency", type=_latency, default="auto", help=_LATENCY_HELP)
     lat.add_argument("--detection", choices=["auto", "packed", "whole"], default="auto", help=_DETECTION_HELP)
     lat.add_argument("--packed", action="store_true", help="cameras: same as --detection packed")
+    lat.add_argument("--cpu-budget", type=float, default=None, metavar="CORES", help=_BUDGET_HELP)
     lat.add_argument("--warm-up", type=float, default=20.0, help="cameras: seconds run before measuring (default 20)")
     lat.add_argument("--alone-passes", type=int, default=20,
                      help="cameras: detector-alone passes timed before the live run (default 20)")  # fmt: skip

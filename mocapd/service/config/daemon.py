@@ -61,6 +61,12 @@ class DaemonConfig(Section):
     threads, which run the keypoint tracking, run (Linux nice, per thread)."""
     detector_nice: int = Field(10, ge=0, le=19)
     """... and the detector's threads: throughput work, after the tick and the tracking that sets the latency."""
+    solve_threads: Annotated[int, Field(ge=1, le=64)] | Literal["auto"] = "auto"
+    """Threads that solve the people of a tick in parallel, beside the tick's own thread ("auto": one per core
+    beyond the first, at most 4; 1: people one after another on the tick's thread)."""
+    governor: bool = True
+    """Shed work (keypoint tracking rate, flip search frequency) when the tick does not fit its period, in the
+    order of docs/daemon.md "Real time on a slow machine"; never the output tick itself."""
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
     body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
     """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
@@ -87,6 +93,12 @@ class DaemonConfig(Section):
     def imu_offsets_s(self) -> dict[str, float]:
         """By upper-case sensor id."""
         return dict(self.offsets.imus)
+
+    def solve_thread_count(self, cores: int | None) -> int:
+        """Person-solve threads for a machine with ``cores`` CPUs (``solve_threads``, "auto" decided here)."""
+        if self.solve_threads != "auto":
+            return self.solve_threads
+        return max(1, min(4, (cores or 1) - 1))
 
     def scheduler_options(self, camera_names: list[str]) -> SchedulerOptions:
         """Scheduler options for a rig whose cameras have these names (offsets looked up by name)."""

@@ -43,7 +43,7 @@ from typing import Any, Literal
 import cv2
 
 from mocapd.errors import ConfigError, MocapdError
-from mocapd.io import lifecycle, ports
+from mocapd.io import cpu_budget, lifecycle, ports
 from mocapd.io.calibration_files import read_qca, scale_calibration, write_mocapd_toml
 from mocapd.io.pose2sim_demo import CAMERAS, demo_calibration, demo_video
 from mocapd.io.ws_server import listen_error
@@ -108,6 +108,8 @@ class CameraDemoOptions:
     latency_s: float | Literal["auto"] = "auto"
     speed: float = 1.0
     packed: bool | Literal["auto"] = "auto"
+    cpu_budget: float | None = None
+    """The daemon's process held to this many CPUs (:mod:`mocapd.io.cpu_budget`; the fake cameras exempt)."""
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.scale <= 1.0:
@@ -196,6 +198,19 @@ async def run_camera_demo(
     """Inside a private network namespace: start the fake cameras, then run the daemon of the generated config
     until ``stop``, ``seconds`` or ``monitor``; the cameras stop after the daemon."""
     stop = stop if stop is not None else asyncio.Event()
+    with cpu_budget.held(opts.cpu_budget if cpu_budget.active() is None else None):
+        return await _run_camera_demo(base, opts, options, monitor, seconds, stop, on_ready)
+
+
+async def _run_camera_demo(
+    base: Config,
+    opts: CameraDemoOptions,
+    options: RunOptions,
+    monitor: Monitor | None,
+    seconds: float | None,
+    stop: asyncio.Event,
+    on_ready: Callable[[assembly.Assembly], None] | None,
+) -> int:
     lifecycle.enter_phase("starting the fake cameras")
     addresses = add_loopback_aliases(4)
     with tempfile.TemporaryDirectory(prefix="mocapd-demo-") as tmp:
@@ -218,7 +233,7 @@ async def run_camera_demo(
             options = RunOptions(
                 record=options.record, sockets=options.sockets, status_line=options.status_line, sinks=options.sinks,
                 manifest_extra={**options.manifest_extra, "camera_demo": asdict(opts)},
-                status_extras={**options.status_extras, "fake_cameras": fleet.status},
+                status_extras={**options.status_extras, "fake_cameras": fleet.status, "cpu_budget": _budget_status},
             )  # fmt: skip
             return await assembly.run(config, options, monitor=monitor, seconds=seconds, stop=stop,
                                       on_ready=on_ready)  # fmt: skip
@@ -226,6 +241,12 @@ async def run_camera_demo(
             await fleet.stop()
             fleet_task.cancel()
             await asyncio.gather(fleet_task, return_exceptions=True)
+
+
+def _budget_status() -> dict[str, object] | None:
+    """/status ``cpu_budget``: the budget the daemon is held to (``--cpu-budget``) and how often it bit."""
+    budget = cpu_budget.active()
+    return None if budget is None else budget.describe()
 
 
 class PeopleCount:

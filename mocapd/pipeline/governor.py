@@ -1,0 +1,150 @@
+"""The governor: holds the output tick on a machine too slow for everything the daemon could do (issue 39).
+
+The output tick is what a user sees: a VR avatar or a game character at the configured rate. When the tick's work
+does not fit its period (a slower CPU, a game sharing the laptop, more people), something has to give, and it must
+not be the tick. The governor measures, every ``window_s``, how long the tick took (wall time from its scheduled
+instant to its publication, p95 over the window, which includes the CPU it did not get) and how many ticks were
+missed, and moves one step along a fixed ladder of work to leave out:
+
+====  ================================  ===========================================================================
+step  what is shed                      what it costs
+====  ================================  ===========================================================================
+0     nothing                           —
+1     keypoint tracking 60 -> 30 Hz     each camera's keypoints between detections at half the rate (the scheduler
+                                        interpolates between them)
+2     flip search every 2nd tick        a person's left/right decision reused on the tick between two searches
+3     keypoint tracking off             keypoints only at the detector's rate; ``latency_s = "auto"`` follows the
+                                        detector's delay instead of the tracking's
+4     flip search every 4th tick
+====  ================================  ===========================================================================
+
+It sheds one step when the tick's p95 exceeds ``shed_above`` of the period or more than ``max_missed`` of the
+window's ticks were missed, and restores one step only after ``hold_s`` in which the p95 stayed below
+``restore_below`` of the period with no tick missed (hysteresis: a step is not taken back the moment it helped).
+
+Pure state: times are arguments; the daemon feeds it (:meth:`Governor.observe` per tick, :meth:`Governor.step` once
+a window) and applies :attr:`Governor.level`'s settings to the keypoint sources and the scheduler.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Level:
+    """What one step of the ladder runs."""
+
+    name: str
+    tracking_rate: float  # keypoint tracking's rate as a share of its configured rate (0: off)
+    flip_every: int  # the flip search on every this-many-th tick
+
+
+LADDER: tuple[Level, ...] = (
+    Level("nothing shed", 1.0, 1),
+    Level("keypoint tracking at half rate", 0.5, 1),
+    Level("flip search every 2nd tick", 0.5, 2),
+    Level("keypoint tracking off", 0.0, 2),
+    Level("flip search every 4th tick", 0.0, 4),
+)
+
+
+@dataclass(frozen=True)
+class GovernorOptions:
+    """When the governor sheds and restores work."""
+
+    window_s: float = 2.0
+    """Decisions are made on this much of the run."""
+    shed_above: float = 0.6
+    """Shed a step when the tick's p95 (schedule to publication) exceeds this share of the period ..."""
+    max_missed: float = 0.01
+    """... or more than this share of the window's ticks were missed."""
+    restore_below: float = 0.3
+    """Restore a step when the p95 stayed below this share of the period, with no tick missed, ..."""
+    hold_s: float = 6.0
+    """... for this long (and at least this long after the last change)."""
+    settle_s: float = 5.0
+    """Nothing is shed in the first seconds after the start (models and caches warming up, people enrolling)."""
+
+
+class Governor:
+    """Chooses the step of :data:`LADDER` the daemon runs at (see the module docstring)."""
+
+    def __init__(self, period_ns: int, options: GovernorOptions | None = None, start_ns: int = 0) -> None:
+        self.options = options if options is not None else GovernorOptions()
+        self.period_ns = period_ns
+        self.step_index = 0
+        self._start_ns = start_ns
+        self._window_start = start_ns
+        self._calm_since: int | None = start_ns
+        self._changed_ns = start_ns
+        self._durations: list[int] = []
+        self._missed = 0
+        self.changes = 0
+        self.last_reason = "start"
+        self.last_p95_ms: float | None = None
+
+    @property
+    def level(self) -> Level:
+        return LADDER[self.step_index]
+
+    def observe(self, tick_ns: int, missed: int = 0) -> None:
+        """One published tick: how long after its scheduled instant it was published (ns), and the ticks skipped
+        before the next one."""
+        self._durations.append(tick_ns)
+        self._missed += missed
+
+    def step(self, now_ns: int) -> bool:
+        """At the end of a window (call often; it acts once ``window_s`` has passed): shed or restore a step.
+        Returns True when the level changed."""
+        o = self.options
+        if now_ns - self._window_start < o.window_s * 1e9:
+            return False
+        durations, missed, began = self._durations, self._missed, self._window_start
+        self._durations, self._missed, self._window_start = [], 0, now_ns
+        ticks = len(durations) + missed
+        if not durations or now_ns - self._start_ns < o.settle_s * 1e9:
+            return False
+        p95 = float(np.percentile(durations, 95))
+        self.last_p95_ms = round(p95 / 1e6, 2)
+        share = p95 / self.period_ns
+        missed_share = missed / ticks if ticks else 0.0
+        if share > o.shed_above or missed_share > o.max_missed:
+            self._calm_since = None
+            if self.step_index + 1 < len(LADDER):
+                self.step_index += 1
+                self._changed(now_ns, f"tick p95 {p95 / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
+                              f"{missed} of {ticks} ticks missed")  # fmt: skip
+                return True
+            return False
+        if share < o.restore_below and missed == 0:
+            if self._calm_since is None:
+                self._calm_since = began  # calm since this window began
+            calm_for = now_ns - max(self._calm_since, self._changed_ns)
+            if self.step_index > 0 and calm_for >= o.hold_s * 1e9:
+                self.step_index -= 1
+                self._calm_since = now_ns
+                self._changed(now_ns, f"tick p95 {p95 / 1e6:.1f} ms, no tick missed for {o.hold_s:g} s")
+                return True
+        else:
+            self._calm_since = None
+        return False
+
+    def _changed(self, now_ns: int, reason: str) -> None:
+        self._changed_ns = now_ns
+        self.changes += 1
+        self.last_reason = reason
+
+    def status(self) -> dict[str, object]:
+        """JSON-able: the step, what it sheds, why, and the last window's tick p95."""
+        return {
+            "step": self.step_index,
+            "shed": self.level.name,
+            "tracking_rate": self.level.tracking_rate,
+            "flip_every": self.level.flip_every,
+            "reason": self.last_reason,
+            "changes": self.changes,
+            "tick_p95_ms": self.last_p95_ms,
+        }
