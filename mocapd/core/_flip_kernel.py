@@ -61,15 +61,59 @@ def _triangulate(P: FloatArray, uv: FloatArray, w: FloatArray, h: int, k: int, l
                     M[i, j] += ri * row[j] * scale
     if views < 2:
         return False
-    _, vecs = np.linalg.eigh(M)  # eigenvalues ascending: the first vector is the least-squares point
-    hw = vecs[3, 0]
+    vec = _smallest_eigenvector(M)
+    hw = vec[3]
     if not abs(hw) > 1e-12:
         return False
     for i in range(3):
-        X[i] = vecs[i, 0] / hw
+        X[i] = vec[i] / hw
         if not math.isfinite(X[i]):
             return False
     return True
+
+
+@nb.njit(cache=True, nogil=True)
+def _smallest_eigenvector(M: FloatArray) -> FloatArray:
+    """The unit eigenvector of the smallest eigenvalue of a symmetric 4x4 matrix, by cyclic Jacobi rotations.
+
+    LAPACK's ``syevd`` through numba costs microseconds of call overhead per 4x4 matrix, more than the search's
+    whole arithmetic; a handful of Jacobi sweeps reaches the same vector to round-off (sign aside, which the
+    division by the homogeneous coordinate removes)."""
+    A = M.copy()
+    V = np.eye(4)
+    for _ in range(12):
+        off = 0.0
+        for p in range(3):
+            for q in range(p + 1, 4):
+                off += A[p, q] * A[p, q]
+        if off <= 1e-30 * (A[0, 0] * A[0, 0] + A[1, 1] * A[1, 1] + A[2, 2] * A[2, 2] + A[3, 3] * A[3, 3]):
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                sn = t * c
+                for k in range(4):  # A <- A J (columns p and q)
+                    akp, akq = A[k, p], A[k, q]
+                    A[k, p] = c * akp - sn * akq
+                    A[k, q] = sn * akp + c * akq
+                for k in range(4):  # A <- J^T A (rows p and q)
+                    apk, aqk = A[p, k], A[q, k]
+                    A[p, k] = c * apk - sn * aqk
+                    A[q, k] = sn * apk + c * aqk
+                for k in range(4):
+                    vkp, vkq = V[k, p], V[k, q]
+                    V[k, p] = c * vkp - sn * vkq
+                    V[k, q] = sn * vkp + c * vkq
+    best = 0
+    for i in range(1, 4):
+        if A[i, i] < A[best, best]:
+            best = i
+    return V[:, best].copy()
 
 
 @nb.njit(cache=True, nogil=True)
