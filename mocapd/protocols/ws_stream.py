@@ -87,6 +87,8 @@ Server → client messages
     imus            [map]   path, streaming (bool), samples, disconnects; a SlimeVR tracker: path "slimevr <MAC>",
                             streaming = connected, samples = its datagrams, disconnects nil
     tasks           {str: int}   supervised task -> failures so far
+    governor        map     step (0: nothing shed), shed (what is left out now), reason (why); absent when the
+                            daemon's governor is off
     stream          map     clients (connected now), sent (messages sent to this client), dropped (messages
                             dropped for this client because it read too slowly)
 
@@ -486,6 +488,9 @@ def health_subset(health: Mapping[str, Any]) -> dict[str, Any]:
     tasks = health.get("tasks")
     if isinstance(tasks, Mapping):
         out["tasks"] = {k: v.get("failures", 0) for k, v in tasks.items() if isinstance(v, Mapping)}
+    governor = health.get("governor")
+    if isinstance(governor, Mapping):
+        out["governor"] = {k: governor.get(k) for k in ("step", "shed", "reason")}
     return out
 
 

@@ -194,6 +194,7 @@
     const o = st.output || {};
     rows("output", [["rate (Hz)", `${o.achieved_hz ?? "–"} / ${o.configured_hz ?? "–"}`],
                     ["frames", o.frames ?? "–"], ["missed ticks", o.missed_ticks ?? "–", o.missed_ticks ? "bad" : ""],
+                    ...(st.governor ? [["shed", st.governor.shed, st.governor.step ? "bad" : "ok"]] : []),
                     ["uptime (s)", fmt(st.uptime_s, 0)],
                     ["stream clients", st.stream ? st.stream.clients : "–"],
                     ["dropped (this page)", st.stream ? st.stream.dropped : "–"]]);
