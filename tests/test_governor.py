@@ -36,8 +36,11 @@ def test_an_overrun_sheds_one_step_per_window_in_the_ladders_order_and_never_the
     for _ in range(len(LADDER) + 2):
         t = _window(g, t, 14.0)  # p95 84 % of the period
         seen.append(g.step_index)
-    assert seen == [1, 2, 3, 4, 4, 4, 4][: len(seen)]
-    assert g.level.tracking_rate == 0.0 and g.level.flip_every == 4
+    assert seen == [min(k + 1, len(LADDER) - 1) for k in range(len(seen))]
+    assert g.level.tracking_rate == 0.0 and g.level.flip_every == 4 and g.level.detector_duty == 0.35
+    # The order: tracking rate first, then the detector, then the flip search; the tick never.
+    assert [lv.name for lv in LADDER[1:4]] == ["keypoint tracking at half rate", "detector at 75 % duty",
+                                              "flip search every 2nd tick"]  # fmt: skip
     assert "of a 16.7 ms period" in str(g.status()["reason"])
 
 

@@ -3,9 +3,10 @@
 Why. Real-time claims must hold on the users' laptops, which are slower than the machine a figure was measured on
 and share their CPU with a VR game (issue 39). ``mocapd demo --cpu-budget 0.8`` and ``mocapd bench latency
 --cpu-budget 0.8`` run the daemon's process as if it had 0.8 of a core: the kernel's CFS bandwidth control lets its
-threads run at most ``cores x period`` of CPU time per ``period`` (100 ms), then throttles them until the next
-period, as a machine with less CPU would. The fake cameras (and anything else a demo spawns to stand in for
-hardware) are exempt: real cameras encode on their own.
+threads run at most ``cores x period`` of CPU time per ``period``, then throttles them until the next period, as
+a machine with less CPU would. The period is 10 ms (the kernel's default is 100 ms): two threads exhaust a 0.8-core
+quota in 40 ms of a 100 ms period and the whole process then stands still for 60 ms, which no slower CPU does.
+The fake cameras (and anything a demo spawns to stand in for hardware) are exempt: real cameras encode on their own.
 
 Mechanisms, the first that works:
 
@@ -28,8 +29,8 @@ from pathlib import Path
 
 from mocapd.errors import ConfigError
 
-PERIOD_US = 100_000
-MIN_CORES = 0.05
+PERIOD_US = 10_000  # 10 ms: a slower CPU is slower all the time, not frozen for most of every 100 ms period
+MIN_CORES = 0.1  # the kernel wants a quota of at least 1 ms: 0.1 of the 10 ms period
 _held: list[CpuBudget] = []  # the process-wide budget (one at most): what exempt() refers to
 
 

@@ -6,17 +6,21 @@ not be the tick. The governor measures, every ``window_s``, how long the tick to
 instant to its publication, p95 over the window, which includes the CPU it did not get) and how many ticks were
 missed, and moves one step along a fixed ladder of work to leave out:
 
-====  ================================  ===========================================================================
-step  what is shed                      what it costs
-====  ================================  ===========================================================================
-0     nothing                           —
-1     keypoint tracking 60 -> 30 Hz     each camera's keypoints between detections at half the rate (the scheduler
-                                        interpolates between them)
-2     flip search every 2nd tick        a person's left/right decision reused on the tick between two searches
-3     keypoint tracking off             keypoints only at the detector's rate; ``latency_s = "auto"`` follows the
-                                        detector's delay instead of the tracking's
-4     flip search every 4th tick
-====  ================================  ===========================================================================
+====  ===================================  ========================================================================
+step  what is shed                         what it costs
+====  ===================================  ========================================================================
+0     nothing                              —
+1     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
+                                           scheduler interpolates between them)
+2     detector at 75 % duty                each detector worker rests a third of a pass after each pass: fewer
+                                           detections, the CPU (or the CPU budget's quota) left to the tick
+3     flip search every 2nd tick           a person's left/right decision reused on the tick between two searches
+4     detector at 50 % duty
+5     keypoint tracking off                keypoints only at the detector's rate; ``latency_s = "auto"`` follows
+                                           the detector's delay instead of the tracking's
+6     flip search every 4th tick,
+      detector at 35 % duty
+====  ===================================  ========================================================================
 
 It sheds one step when the tick's p95 exceeds ``shed_above`` of the period or more than ``max_missed`` of the
 window's ticks were missed, and restores one step only after ``hold_s`` in which the p95 stayed below
@@ -40,14 +44,17 @@ class Level:
     name: str
     tracking_rate: float  # keypoint tracking's rate as a share of its configured rate (0: off)
     flip_every: int  # the flip search on every this-many-th tick
+    detector_duty: float  # the share of wall time each detector worker may spend in passes
 
 
 LADDER: tuple[Level, ...] = (
-    Level("nothing shed", 1.0, 1),
-    Level("keypoint tracking at half rate", 0.5, 1),
-    Level("flip search every 2nd tick", 0.5, 2),
-    Level("keypoint tracking off", 0.0, 2),
-    Level("flip search every 4th tick", 0.0, 4),
+    Level("nothing shed", 1.0, 1, 1.0),
+    Level("keypoint tracking at half rate", 0.5, 1, 1.0),
+    Level("detector at 75 % duty", 0.5, 1, 0.75),
+    Level("flip search every 2nd tick", 0.5, 2, 0.75),
+    Level("detector at 50 % duty", 0.5, 2, 0.5),
+    Level("keypoint tracking off", 0.0, 2, 0.5),
+    Level("flip search every 4th tick, detector at 35 % duty", 0.0, 4, 0.35),
 )
 
 
@@ -144,6 +151,7 @@ class Governor:
             "shed": self.level.name,
             "tracking_rate": self.level.tracking_rate,
             "flip_every": self.level.flip_every,
+            "detector_duty": self.level.detector_duty,
             "reason": self.last_reason,
             "changes": self.changes,
             "tick_p95_ms": self.last_p95_ms,

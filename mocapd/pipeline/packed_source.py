@@ -133,6 +133,11 @@ class PackedDetectionGroup:
         self._stop = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._workers: list[Future[None]] = []
+        #: the share of wall time each worker may spend in passes (the governor's; 1: passes back to back). A
+        #: worker rests ``pass × (1/duty − 1)`` after each pass: on a machine (or a CPU budget) too small for
+        #: everything, the detector gives way before the output tick does.
+        self.duty = 1.0
+        self.rested_ns = 0
 
     def add(self, source: PackedKeypointSource) -> None:
         self.sources[source.camera] = source
@@ -171,6 +176,7 @@ class PackedDetectionGroup:
                 if self._stop or plan is None:
                     return
             failed = False
+            t0 = self.clock()
             try:
                 found = self._run_pass(plan, worker)
             except Exception:
@@ -188,6 +194,18 @@ class PackedDetectionGroup:
             loop = self._loop
             if found and loop is not None and not loop.is_closed():
                 loop.call_soon_threadsafe(self._deliver, found)
+            self._rest(self.clock() - t0)
+
+    def _rest(self, took_ns: int) -> None:
+        """After a pass that took ``took_ns``: rest so that passes take at most :attr:`duty` of the time."""
+        duty = self.duty
+        if duty >= 1.0 or took_ns <= 0:
+            return
+        rest_ns = round(took_ns * (1.0 / max(duty, 0.05) - 1.0))
+        with self._cond:
+            if not self._stop:
+                self._cond.wait_for(lambda: self._stop, rest_ns / 1e9)
+        self.rested_ns += rest_ns
 
     def _claim(self, worker: int) -> _Plan | None:
         """Under the lock: the next pass of ``worker`` (its mode and cameras, now held), or None."""
@@ -353,6 +371,7 @@ class PackedDetectionGroup:
             # Of which inside onnxruntime: the rest of a pass (frame conversion, canvases, decoding) is mocapd's.
             "inference_s": round(self._inference_ns() / 1e9, 2),
             "sessions": len(self.sessions), "passes_in_flight_max": self.in_flight_max,
+            "duty": self.duty, "rested_s": round(self.rested_ns / 1e9, 2),
         }  # fmt: skip
         out["mode"] = self.chooser.status() if self.chooser is not None else {"mode": "packed", "chosen": "packed"}
         return out

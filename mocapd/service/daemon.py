@@ -576,6 +576,9 @@ class Daemon:
         for src in self.rig.sources:
             if hasattr(src, "tracking_rate_scale"):
                 src.tracking_rate_scale = level.tracking_rate
+            group = getattr(src, "group", None)  # a packed detection group (shared by its cameras)
+            if group is not None and hasattr(group, "duty"):
+                group.duty = level.detector_duty
         self.scheduler.shedding.flip_every = level.flip_every
         log.warning("governor: %s (%s)", level.name, self.governor.last_reason)
 

@@ -65,8 +65,8 @@ class DaemonConfig(Section):
     """Threads that solve the people of a tick in parallel, beside the tick's own thread ("auto": one per core
     beyond the first, at most 4; 1: people one after another on the tick's thread)."""
     governor: bool = True
-    """Shed work (keypoint tracking rate, flip search frequency) when the tick does not fit its period, in the
-    order of docs/daemon.md "Real time on a slow machine"; never the output tick itself."""
+    """Shed work (keypoint tracking rate, detector duty, flip search frequency) when the tick does not fit its
+    period, in the order of docs/daemon.md "Real time on a slow machine"; never the output tick itself."""
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
     body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
     """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
