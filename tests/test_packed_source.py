@@ -190,3 +190,33 @@ async def test_several_sessions_run_passes_at_once_on_disjoint_cameras() -> None
     assert all(not (a[2] & b[2]) for a, b in overlapping)  # ... never on the same camera
     assert {c for _, _, cams in spans for c in cams} == {0, 1, 2, 3}
     assert group.status()["sessions"] == 2
+
+
+@pytest.mark.asyncio
+async def test_a_detector_at_half_duty_rests_as_long_as_it_detects() -> None:
+    """The governor's detector duty (issue 39): at 0.5 each worker rests after every pass as long as the pass took,
+    so passes take at most half the time and the rest is left to the tick; /status says the duty and the rest."""
+    cams = [VideoFileSource(f"cam0{i}", demo_video("Demo_MultiPerson", f"cam0{i}"), realtime=True, loop=True)
+            for i in (1, 2)]  # fmt: skip
+    sizes = [(c.ring.shape[1], c.ring.shape[0]) for c in cams]
+    group = PackedDetectionGroup(packed_detector_from_config(DetectorConfig(intra_op_threads=1), sizes),
+                                 ThreadPoolExecutor(1))  # fmt: skip
+    group.duty = 0.5
+    sources = [PackedKeypointSource(i, c, group) for i, c in enumerate(cams)]
+    tasks = [asyncio.create_task(s.run(lambda *_: None)) for s in sources]
+    try:
+        for _ in range(1200):
+            if group.passes >= 4:
+                break
+            await asyncio.sleep(0.05)
+    finally:
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        group.close()
+    assert group.passes >= 4
+    # Every finished pass was followed by a rest of its own length (measured around the whole pass: at least
+    # the detector's busy time of all passes but the one in flight at the stop).
+    st = sources[0].status()["packing"]
+    assert st["duty"] == 0.5 and st["rested_s"] > 0
+    assert group.rested_ns >= 0.9 * group.busy_ns * (group.passes - 1) / group.passes, (group.rested_ns, group.busy_ns)
