@@ -576,6 +576,22 @@ def scale_calibration(calib: CalibrationSet, scale: float) -> CalibrationSet:
     return CalibrationSet(tuple(out), source=source)
 
 
+UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+"""Length units a calibration's translations may be in (metres per unit)."""
+
+
+def in_metres(calib: CalibrationSet, unit: str) -> CalibrationSet:
+    """A calibration whose translations are in ``unit`` (:data:`UNITS`), re-expressed in metres (a camera's centre
+    scales with its translation; rotations, intrinsics and distortion are unit-free)."""
+    if unit not in UNITS:
+        raise CalibrationError(f"length unit {unit!r}; choose from {', '.join(UNITS)}")
+    if unit == "m":
+        return calib
+    s = UNITS[unit]
+    cams = tuple(replace(c, t=c.t * s) for c in calib.cameras)
+    return CalibrationSet(cams, source=f"{calib.source} (translations in {unit})" if calib.source else "")
+
+
 def core_cameras(calib: CalibrationSet, scale: float = 1.0) -> list[Camera]:
     """The rig as the solver's :class:`~mocapd.core.camera.Camera` objects, for images resized by ``scale``
     (:func:`scale_calibration`), in the calibration's order."""

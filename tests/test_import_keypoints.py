@@ -1,0 +1,275 @@
+"""Other detectors' 2D keypoints as sessions: ``mocapd import keypoints``, then ``resolve`` and ``export``.
+
+The files are written here in each tool's layout (OpenPose per-frame JSON, MMPose prediction files, a Pose2Sim
+project, FreeMoCap's array) from the synthetic rig's people projected through its cameras with 1 px of noise,
+so the truth is known: the imported take must resolve to every person, its exported joints near the truth.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mocapd.core.keypoint_sets import BLAZEPOSE33, COCO18, WHOLEBODY133, convert, set_for_count
+from mocapd.core.keypoints import BODY25_FORMAT, COCO17_FORMAT, HALPE26_FORMAT
+from mocapd.core.skeleton import BONE_NAMES
+from mocapd.errors import InputError
+from mocapd.io.calibration_files import (
+    CalibrationSet,
+    CameraCalibration,
+    in_metres,
+    write_mocapd_toml,
+    write_pose2sim_toml,
+)
+from mocapd.io.keypoint_files import camera_name, match_cameras, read_keypoint_inputs
+from mocapd.io.session import RESOLVED, open_session
+from mocapd.protocols.keypoint_files import parse_landmark_array, parse_mmpose, parse_openpose
+from mocapd.service.cli import main
+from mocapd.sim.world import SyntheticWorld
+
+FPS = 25.0
+
+
+# ----------------------------------------------------------------------------------------------- parsers
+def _triplets(n: int, start: float = 0.0) -> list[float]:
+    return [v for i in range(n) for v in (start + i, 100.0 + i, 0.5)]
+
+
+def test_openpose_sets_told_by_length() -> None:
+    for n, name in ((25, "body25"), (18, "coco18"), (26, "halpe26"), (133, "wholebody133")):
+        doc = {"version": 1.3, "people": [{"pose_keypoints_2d": _triplets(n)}, {"pose_keypoints_2d": _triplets(n, 7)}]}
+        parsed = parse_openpose(doc)
+        assert parsed.keypoint_set == name
+        kp, conf = parsed.frames[0]
+        assert kp.shape == (2, n, 2) and conf.shape == (2, n)
+        assert kp[1, 3].tolist() == [10.0, 103.0] and conf[1, 3] == 0.5
+
+
+def test_openpose_bad_files_one_line() -> None:
+    with pytest.raises(InputError, match="no 'people' list"):
+        parse_openpose({"version": 1.3})
+    with pytest.raises(InputError, match="17 keypoints per person is no keypoint set"):
+        parse_openpose({"people": [{"pose_keypoints_2d": _triplets(17)}]})
+    with pytest.raises(InputError, match="different numbers"):
+        parse_openpose({"people": [{"pose_keypoints_2d": _triplets(25)}, {"pose_keypoints_2d": _triplets(18)}]})
+    with pytest.raises(InputError, match="not a number"):
+        parse_openpose({"people": [{"pose_keypoints_2d": ["x"] * 75}]})
+    empty = parse_openpose({"people": [{"pose_keypoints_2d": [], "face_keypoints_2d": _triplets(70)}]})
+    assert empty.keypoint_set == "" and empty.frames[0][0].shape[0] == 0
+
+
+def test_mmpose_layouts() -> None:
+    inst = {
+        "keypoints": [[float(i), 2.0 * i] for i in range(17)],
+        "keypoint_scores": [0.9] * 17,
+        "bbox": [[0, 0, 1, 1]],
+    }
+    one = parse_mmpose([inst, inst])
+    assert one.keypoint_set == "coco17" and one.frames[0][0].shape == (2, 17, 2)
+    video = parse_mmpose([{"frame_id": 4, "instances": [inst]}, {"frame_id": 5, "instances": []}])
+    assert sorted(video.frames) == [4, 5] and video.frames[5][0].shape == (0, 17, 2)
+    halpe = {"keypoints": [[1.0, 1.0]] * 26, "keypoint_scores": [0.7] * 26}
+    demo = {"meta_info": {"dataset_name": "halpe26"}, "instance_info": [{"frame_id": 1, "instances": [halpe]}]}
+    assert parse_mmpose(demo).keypoint_set == "halpe26"
+    coco = [{"image_id": 9, "category_id": 1, "keypoints": _triplets(133), "score": 0.8}]
+    res = parse_mmpose(coco)
+    assert res.keypoint_set == "wholebody133" and res.frames[9][1][0, 0] == 0.5
+    with pytest.raises(InputError, match="keypoint_scores"):
+        parse_mmpose([{"keypoints": [[1.0, 2.0]] * 17}])
+    with pytest.raises(InputError, match="not an MMPose"):
+        parse_mmpose({"people": []})
+
+
+def test_convert_by_name() -> None:
+    """Every set lands on mocapd's format by name; a point the source lacks is unseen (confidence 0)."""
+    rng = np.random.default_rng(0)
+    for source, names, target in (
+        ("coco18", COCO18, COCO17_FORMAT),
+        ("wholebody133", WHOLEBODY133, HALPE26_FORMAT),
+        ("blazepose33", BLAZEPOSE33, HALPE26_FORMAT),
+        ("body25", BODY25_FORMAT.keypoints, BODY25_FORMAT),
+    ):
+        kp = rng.uniform(0, 500, (3, len(names), 2))
+        conf = rng.uniform(0.5, 1.0, (3, len(names)))
+        out_kp, out_cf = convert(source, kp, conf, target.keypoints)
+        assert out_kp.shape == (3, target.n_keypoints, 2)
+        for j, name in enumerate(target.keypoints):
+            src = {"left_big_toe": "left_foot_index", "right_big_toe": "right_foot_index"}.get(name, name)
+            if source == "blazepose33" and src in names:
+                assert np.array_equal(out_kp[:, j], kp[:, names.index(src)])
+            elif name in names:
+                assert np.array_equal(out_kp[:, j], kp[:, names.index(name)]) and np.array_equal(
+                    out_cf[:, j], conf[:, names.index(name)]
+                )
+            elif source != "blazepose33":
+                assert np.all(out_cf[:, j] == 0.0)
+    out_kp, out_cf = convert("coco18", np.full((1, 18, 2), np.nan), np.ones((1, 18)), COCO17_FORMAT.keypoints)
+    assert np.all(out_cf == 0.0) and np.all(out_kp == 0.0)  # a NaN point is one the detector did not see
+    assert set_for_count(33) == "blazepose33"
+
+
+def test_freemocap_array() -> None:
+    arr = np.full((2, 3, 33 + 21 + 21 + 468, 3), np.nan)
+    arr[:, :, :33, :2] = 50.0
+    arr[:, :, :33, 2] = 0.8
+    arr[1, 2, 5] = np.nan
+    cams = parse_landmark_array(arr)
+    assert len(cams) == 2 and cams[0].keypoint_set == "blazepose33"
+    kp, conf = cams[1].frames[2]
+    assert kp.shape == (1, 33, 2) and conf[0, 5] == 0.0 and conf[0, 4] == pytest.approx(0.8)
+
+
+def test_camera_names_and_matching() -> None:
+    assert camera_name(Path("pose/cam01_json")) == "cam01"
+    assert camera_name(Path("cam2_keypoints.json")) == "cam2"
+    assert camera_name(Path("results_cam3.json")) == "cam3"
+    assert match_cameras(["cam02", "cam01"], ["cam01", "cam02"]) == [1, 0]
+    assert match_cameras(["a", "b"], ["cam01", "cam02"]) == [0, 1]  # no names in common: the order
+    with pytest.raises(InputError, match=r"\['x'\] are not in the calibration"):
+        match_cameras(["cam01", "x"], ["cam01", "cam02", "cam03"])
+
+
+def test_calibration_units() -> None:
+    cam = CameraCalibration("c", (640, 480), np.diag([500.0, 500.0, 1.0]), t=np.array([100.0, -50.0, 3000.0]))
+    assert in_metres(CalibrationSet((cam,)), "mm").cameras[0].t.tolist() == [0.1, -0.05, 3.0]
+
+
+# ----------------------------------------------------------------------------------------------- end to end
+def _world(keypoints: str) -> SyntheticWorld:
+    return SyntheticWorld(n_cams=4, n_people=2, n_suits=0, keypoints=keypoints, seed=1)
+
+
+def _calibration(world: SyntheticWorld) -> CalibrationSet:
+    return CalibrationSet(
+        tuple(CameraCalibration(c.name, (c.width, c.height), c.K, c.dist, c.R, c.t) for c in world.cameras)
+    )
+
+
+def _write_openpose(world: SyntheticWorld, folder: Path, seconds: float) -> list[Path]:
+    rng = np.random.default_rng(0)
+    out = []
+    for c, cam in enumerate(world.cameras):
+        d = folder / f"{cam.name}_json"
+        d.mkdir(parents=True)
+        for f in range(round(seconds * FPS)):
+            det = world.detections(c, f / FPS, rng, 1.0)
+            people = [
+                {"person_id": [-1], "pose_keypoints_2d": np.column_stack([det.keypoints[i], det.confidences[i]])
+                 .ravel().round(3).tolist()}
+                for i in range(len(det))
+            ]  # fmt: skip
+            (d / f"take_{f:012d}_keypoints.json").write_text(json.dumps({"version": 1.3, "people": people}))
+        out.append(d)
+    return out
+
+
+def _joint_errors(world: SyntheticWorld, csv_path: Path) -> tuple[np.ndarray, set[str]]:
+    """Per exported row, the mean joint distance (m) to the nearest true person at the row's source time."""
+    rows = list(csv.DictReader(csv_path.open()))
+    errors = []
+    for r in rows:
+        joints = np.array([[float(r[f"{b}_{a}"]) for a in "xyz"] for b in BONE_NAMES])
+        t = float(r["source_s"])
+        errors.append(min(np.linalg.norm(joints - world.joints_at(p, t), axis=1).mean() for p in range(2)))
+    return np.array(errors), {r["subject"] for r in rows}
+
+
+def _resolve_export(session: Path, csv_path: Path) -> dict[str, object]:
+    assert main(["resolve", str(session)]) == 0
+    assert main(["export", str(session), "--resolved", "--csv", str(csv_path), "--rate", str(FPS)]) == 0
+    resolved = open_session(session).poses(RESOLVED)
+    return {"identities": {p.identity for f in resolved for p in f.people}}
+
+
+def test_openpose_body25_zup_calibration_to_csv(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """OpenPose BODY_25 folders + a Pose2Sim (Z-up) calibration -> import -> resolve -> export CSV near the truth."""
+    world = _world("body25")
+    folders = _write_openpose(world, tmp_path, seconds=2.5)
+    write_pose2sim_toml(_calibration(world), tmp_path / "Calib.toml")  # Z-up: read back +Y up with no option
+    session = tmp_path / "take"
+    assert main(["import", "keypoints", *map(str, folders[::-1]), "-o", str(session),
+                 "--calibration", str(tmp_path / "Calib.toml"), "--fps", str(FPS)]) == 0  # fmt: skip
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["keypoint_set"] == "body25" and summary["solved_as"] == "body25"
+    assert list(summary["cameras"]) == [c.name for c in world.cameras][::-1]
+    s = open_session(session)
+    assert [c["name"] for c in s.manifest["cameras"]] == [c.name for c in world.cameras][::-1]
+    assert len(s.keypoints()) == 4 * round(2.5 * FPS) and s.manifest["targets"]["names"][1] == "neck"
+    out = _resolve_export(session, tmp_path / "take.csv")
+    assert len(out["identities"]) == 2  # type: ignore[arg-type]
+    errors, subjects = _joint_errors(world, tmp_path / "take.csv")
+    assert len(subjects) == 1 and errors.size >= 30
+    # The default 1.75 m skeleton on the CMU people (body sizing is COCO-17 only in the scheduler): ~35 mm.
+    assert np.median(errors) < 0.06, np.median(errors)
+
+
+def test_mmpose_files_to_csv(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """One MMPose prediction file per camera (a video's ``instance_info``), mocapd calibration -> resolve -> CSV."""
+    world = _world("coco17")
+    rng = np.random.default_rng(1)
+    files = []
+    for c, cam in enumerate(world.cameras):
+        frames = []
+        for f in range(round(2.5 * FPS)):
+            det = world.detections(c, f / FPS, rng, 1.0)
+            frames.append({"frame_id": f + 1, "instances": [
+                {"keypoints": det.keypoints[i].round(3).tolist(), "keypoint_scores": det.confidences[i].tolist(),
+                 "bbox": [[0.0, 0.0, 10.0, 10.0]], "bbox_score": 0.9} for i in range(len(det))]})  # fmt: skip
+        path = tmp_path / f"results_{cam.name}.json"
+        path.write_text(json.dumps({"meta_info": {"dataset_name": "coco"}, "instance_info": frames}))
+        files.append(path)
+    write_mocapd_toml(_calibration(world), tmp_path / "calib.toml")
+    session = tmp_path / "take"
+    assert main(["import", "keypoints", *map(str, files), "-o", str(session), "--calibration",
+                 str(tmp_path / "calib.toml"), "--fps", str(FPS)]) == 0  # fmt: skip
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["layout"] == "mmpose" and summary["keypoint_set"] == "coco17"
+    assert open_session(session).manifest["imported"]["first_frame"] == 1
+    _resolve_export(session, tmp_path / "take.csv")
+    errors, _ = _joint_errors(world, tmp_path / "take.csv")
+    assert errors.size >= 30 and np.median(errors) < 0.06, np.median(errors)
+
+
+def test_pose2sim_project(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A Pose2Sim project folder: pose/<cam>_json (Halpe-26 in OpenPose's layout), calibration/, Config.toml's
+    frame rate; cameras named by the folders."""
+    world = _world("halpe26")
+    project = tmp_path / "project"
+    _write_openpose(world, project / "pose", seconds=0.4)
+    (project / "calibration").mkdir()
+    write_pose2sim_toml(_calibration(world), project / "calibration" / "Calib_board.toml")
+    (project / "Config.toml").write_text('[project]\nframe_rate = 25\n\n[pose]\npose_model = "Body_with_feet"\n')
+    session = tmp_path / "take"
+    assert main(["import", "keypoints", str(project), "-o", str(session)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["layout"] == "pose2sim" and summary["keypoint_set"] == "halpe26" and summary["fps"] == 25.0
+    s = open_session(session)
+    kps = s.keypoints()
+    assert len(kps) == 4 * 10
+    assert (kps[-1].capture_ns - kps[0].capture_ns) == round(9 * 1e9 / 25)
+    name = s.manifest["cameras"][kps[0].camera]["name"]
+    doc = json.loads((project / "pose" / f"{name}_json" / "take_000000000000_keypoints.json").read_text())
+    first = np.array(doc["people"][0]["pose_keypoints_2d"]).reshape(-1, 3)
+    assert kps[0].keypoints.shape[1:] == (26, 2)
+    assert np.allclose(kps[0].keypoints[0], first[:, :2], atol=1e-3)  # the file's pixels, as float32
+
+
+def test_import_refusals(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    world = _world("body25")
+    folders = _write_openpose(world, tmp_path, seconds=0.12)
+    write_mocapd_toml(_calibration(world), tmp_path / "calib.toml")
+    args = ["import", "keypoints", *map(str, folders), "-o", str(tmp_path / "s")]
+    assert main([*args, "--fps", "25"]) == 2
+    assert "--calibration" in capsys.readouterr().err
+    assert main([*args, "--calibration", str(tmp_path / "calib.toml")]) == 2
+    assert "--fps" in capsys.readouterr().err
+    assert main(["import", "keypoints", f"nowhere={folders[0]}", *map(str, folders[1:]), "-o", str(tmp_path / "s"),
+                 "--calibration", str(tmp_path / "calib.toml"), "--fps", "25"]) == 2  # fmt: skip
+    assert "['nowhere'] are not in the calibration" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+    inputs = read_keypoint_inputs([str(f) for f in folders])
+    assert inputs.layout == "openpose" and all(len(c.parsed.frames) == 3 for c in inputs.cameras)
