@@ -19,6 +19,7 @@ from mocapd.core.keypoints import BODY25_FORMAT, COCO17_FORMAT, HALPE26_FORMAT
 from mocapd.core.skeleton import BONE_NAMES
 from mocapd.errors import InputError
 from mocapd.io.calibration_files import (
+    Z_TO_Y,
     CalibrationSet,
     CameraCalibration,
     in_metres,
@@ -40,7 +41,7 @@ def _triplets(n: int, start: float = 0.0) -> list[float]:
 
 
 def test_openpose_sets_told_by_length() -> None:
-    for n, name in ((25, "body25"), (18, "coco18"), (26, "halpe26"), (133, "wholebody133")):
+    for n, name in ((25, "body25"), (18, "coco18"), (17, "coco17"), (26, "halpe26"), (133, "wholebody133")):
         doc = {"version": 1.3, "people": [{"pose_keypoints_2d": _triplets(n)}, {"pose_keypoints_2d": _triplets(n, 7)}]}
         parsed = parse_openpose(doc)
         assert parsed.keypoint_set == name
@@ -52,8 +53,8 @@ def test_openpose_sets_told_by_length() -> None:
 def test_openpose_bad_files_one_line() -> None:
     with pytest.raises(InputError, match="no 'people' list"):
         parse_openpose({"version": 1.3})
-    with pytest.raises(InputError, match="17 keypoints per person is no keypoint set"):
-        parse_openpose({"people": [{"pose_keypoints_2d": _triplets(17)}]})
+    with pytest.raises(InputError, match="19 keypoints per person is no keypoint set"):
+        parse_openpose({"people": [{"pose_keypoints_2d": _triplets(19)}]})
     with pytest.raises(InputError, match="different numbers"):
         parse_openpose({"people": [{"pose_keypoints_2d": _triplets(25)}, {"pose_keypoints_2d": _triplets(18)}]})
     with pytest.raises(InputError, match="not a number"):
@@ -208,7 +209,8 @@ def test_openpose_body25_zup_calibration_to_csv(tmp_path: Path, capsys: pytest.C
 
 
 def test_mmpose_files_to_csv(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """One MMPose prediction file per camera (a video's ``instance_info``), mocapd calibration -> resolve -> CSV."""
+    """One MMPose prediction file per camera (a video's ``instance_info``) and a Z-up K/R/t JSON calibration ->
+    resolve -> CSV near the truth (in mocapd's +Y-up world: the JSON's Z-up world turned without an option)."""
     world = _world("coco17")
     rng = np.random.default_rng(1)
     files = []
@@ -222,10 +224,13 @@ def test_mmpose_files_to_csv(tmp_path: Path, capsys: pytest.CaptureFixture[str])
         path = tmp_path / f"results_{cam.name}.json"
         path.write_text(json.dumps({"meta_info": {"dataset_name": "coco"}, "instance_info": frames}))
         files.append(path)
-    write_mocapd_toml(_calibration(world), tmp_path / "calib.toml")
+    # the Shelf/Campus K/R/t JSON of 4D association (world Z-up, metres), named after the files' cameras
+    shelf = {c.name: {"K": c.K.ravel().tolist(), "RT": np.column_stack([c.R @ Z_TO_Y, c.t]).ravel().tolist(),
+                      "imgSize": [c.width, c.height], "distCoeff": c.dist.tolist()} for c in world.cameras}  # fmt: skip
+    (tmp_path / "calibration.json").write_text(json.dumps(shelf))
     session = tmp_path / "take"
     assert main(["import", "keypoints", *map(str, files), "-o", str(session), "--calibration",
-                 str(tmp_path / "calib.toml"), "--fps", str(FPS)]) == 0  # fmt: skip
+                 str(tmp_path / "calibration.json"), "--fps", str(FPS)]) == 0  # fmt: skip
     summary = json.loads(capsys.readouterr().out)
     assert summary["layout"] == "mmpose" and summary["keypoint_set"] == "coco17"
     assert open_session(session).manifest["imported"]["first_frame"] == 1

@@ -3,7 +3,7 @@
 OpenPose (``--write_json``, also Pose2Sim's ``pose/<camera>_json/`` folders and RTMLib's OpenPose-style output):
 one file per frame, ``{"people": [{"pose_keypoints_2d": [x0, y0, c0, x1, ...]}, ...]}``, pixels of the image and
 a confidence per point; a point not seen is ``0, 0, 0``. BODY_25 (75 numbers), COCO-18 (54) and, as Pose2Sim
-writes them, Halpe-26 (78) and COCO-WholeBody (399).
+writes them, COCO-17 (51), Halpe-26 (78), COCO-WholeBody (399) and BlazePose (99).
 
 MMPose / RTMPose / RTMW, any of:
 
@@ -36,7 +36,7 @@ FloatArray = NDArray[np.float64]
 MAX_PEOPLE = 1000
 """Most people one frame may hold (the session format's count is 16-bit; no detector reports more)."""
 
-OPENPOSE_SETS = ("body25", "coco18", "halpe26", "wholebody133")
+OPENPOSE_SETS = ("body25", "coco18", "coco17", "halpe26", "wholebody133", "blazepose33")
 """The sets an OpenPose-layout file may hold (told apart by their length)."""
 MMPOSE_SETS = ("coco17", "halpe26", "wholebody133")
 MMPOSE_DATASETS = {"coco": "coco17", "halpe26": "halpe26", "halpe": "halpe26", "coco_wholebody": "wholebody133",

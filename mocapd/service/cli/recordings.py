@@ -393,10 +393,20 @@ def _register_keypoints(what: Any) -> None:
         choices=tuple(SETS),
         help="the keypoint set of the files (default: told from their length or their metadata)",
     )
-    kp.add_argument("--up", default=None, choices=("y", "z"),
-                    help="the calibration world's up axis (default: the format's: z for Pose2Sim TOML and Qualisys, "
-                    "y for mocapd and OpenCV files); a Z-up world's floor z = 0 becomes mocapd's y = 0")  # fmt: skip
-    kp.add_argument("--units", default="m", choices=tuple(UNITS), help="the calibration's translation unit (default m)")
+    kp.add_argument("--up", default=None, choices=("y", "z", "-y"),
+                    help="the calibration world's up axis (default: the format's: z for Pose2Sim TOML, Qualisys, "
+                    "EasyMocap and the Shelf/Campus JSON, -y for CMU Panoptic (write --up=-y), y for mocapd and OpenCV "
+                    "files); a Z-up world's floor z = 0 becomes mocapd's y = 0")  # fmt: skip
+    kp.add_argument("--units", default=None, choices=tuple(UNITS),
+                    help="the calibration's translation unit (default: the format's: mm for VoxelPose's JSON, cm for "
+                    "CMU Panoptic, else m)")  # fmt: skip
+    kp.add_argument(
+        "--floor",
+        type=number(-100.0, 100.0),
+        default=0.0,
+        metavar="M",
+        help="the floor's height up the world's up axis, metres (default 0: the floor at the origin)",
+    )
     kp.add_argument(
         "--height",
         type=number(0.5, 2.5),
@@ -408,7 +418,7 @@ def _register_keypoints(what: Any) -> None:
 
 
 def cmd_import_keypoints(args: argparse.Namespace) -> int:
-    from mocapd.io.calibration_files import in_metres, read_any
+    from mocapd.io.calibration_files import on_floor, read_any
     from mocapd.io.keypoint_files import read_keypoint_inputs
     from mocapd.service.session.keypoint_import import keypoint_take, keypoints_manifest, write_keypoint_session
 
@@ -420,7 +430,7 @@ def cmd_import_keypoints(args: argparse.Namespace) -> int:
     fps = args.fps if args.fps is not None else inp.fps
     if fps is None:
         raise MocapdError("give the keypoints' frame rate (--fps HZ)")
-    calib = in_metres(read_any(calib_path, world_up=args.up), args.units)
+    calib = on_floor(read_any(calib_path, world_up=args.up, units=args.units), args.floor)
     take = keypoint_take(inp, calib, fps)
     manifest = keypoints_manifest(take, fps=fps, height=args.height, source=", ".join(args.inputs),
                                   layout=inp.layout, calibration=str(calib_path))  # fmt: skip
