@@ -66,7 +66,8 @@ def _voxelpose_project(X_mm: np.ndarray, cam: dict) -> np.ndarray:  # type: igno
     radial = 1 + k[0] * r2 + k[1] * r2**2 + k[2] * r2**3
     tan = p[0] * y[1] + p[1] * y[0]
     y = y * (radial + 2 * tan) + np.outer([p[1], p[0]], r2)
-    return (np.array([[cam["fx"]], [cam["fy"]]]) * y + np.array([[cam["cx"]], [cam["cy"]]])).T
+    pixels: np.ndarray = (np.array([[cam["fx"]], [cam["fy"]]]) * y + np.array([[cam["cx"]], [cam["cy"]]])).T
+    return pixels
 
 
 def test_voxelpose_json_projects_as_voxelpose_does(tmp_path: Path) -> None:

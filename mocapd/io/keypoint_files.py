@@ -190,6 +190,29 @@ def read_keypoint_inputs(specs: list[str], layout: str = "auto", keypoint_set: s
     return KeypointInput(cams, kind)
 
 
+def read_new_frames(cam: CameraKeypoints, layout: str, keypoint_set: str | None, seen: set[str]) -> ParsedFrames:
+    """The frames of a camera folder's files not in ``seen`` (their names, updated): a detector writing live.
+    Only files whose name carries a frame number are read (the order of files still being written means nothing).
+    """
+    if not cam.source.is_dir():
+        return ParsedFrames(cam.parsed.keypoint_set, {})
+    parse = parse_openpose if layout in ("openpose", "pose2sim") else parse_mmpose
+    parts = []
+    for f in sorted(cam.source.iterdir()):
+        if f.name in seen or f.suffix.lower() != ".json" or not f.is_file():
+            continue
+        n = _number(f)
+        if n is None:
+            continue
+        try:
+            doc = _json(f, MAX_FRAME_FILE_BYTES)
+        except InputError:
+            continue  # still being written: read at the next look
+        seen.add(f.name)
+        parts.append((n, parse(doc, keypoint_set or cam.parsed.keypoint_set or None, str(f))))
+    return _merge(cam.source, parts)
+
+
 def read_pose2sim_project(project: Path, keypoint_set: str | None = None) -> KeypointInput:
     """A Pose2Sim project folder (see the module docstring); the frame rate when ``Config.toml`` gives a number."""
     pose = project / "pose"
