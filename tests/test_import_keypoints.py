@@ -278,3 +278,61 @@ def test_import_refusals(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert not (tmp_path / "s").exists()
     inputs = read_keypoint_inputs([str(f) for f in folders])
     assert inputs.layout == "openpose" and all(len(c.parsed.frames) == 3 for c in inputs.cameras)
+
+
+def test_following_a_folder_reads_only_new_whole_files(tmp_path: Path) -> None:
+    """``feed --follow``: each look reads the files written since the last; one still being written (not yet
+    JSON) is left for the next look, not lost."""
+    from mocapd.io.keypoint_files import read_new_frames
+
+    folder = tmp_path / "cam0_json"
+    folder.mkdir()
+    doc = {"people": [{"pose_keypoints_2d": _triplets(25)}]}
+    (folder / "x_000000000000_keypoints.json").write_text(json.dumps(doc))
+    cam = read_keypoint_inputs([str(folder)]).cameras[0]
+    seen = {f.name for f in folder.iterdir()}
+    (folder / "x_000000000001_keypoints.json").write_text(json.dumps(doc))
+    (folder / "x_000000000002_keypoints.json").write_text(json.dumps(doc)[:20])  # half written
+    new = read_new_frames(cam, "openpose", None, seen)
+    assert sorted(new.frames) == [1] and new.keypoint_set == "body25"
+    (folder / "x_000000000002_keypoints.json").write_text(json.dumps(doc))
+    assert sorted(read_new_frames(cam, "openpose", None, seen).frames) == [2]
+    assert read_new_frames(cam, "openpose", None, seen).frames == {}
+
+
+def test_timestamps_parse() -> None:
+    from mocapd.protocols.keypoint_files import parse_timestamps
+
+    assert parse_timestamps("time_s\n0.0\n0.04\n\n0.08  # last\n") == {0: 0.0, 1: 0.04, 2: 0.08}
+    assert parse_timestamps("frame,time_s\n3,1.5\n5,1.6\n") == {3: 1.5, 5: 1.6}
+    for bad, why in (("0.1\n0.1\n", "increase"), ("1,0.1\n1,0.2\n", "twice"), ("", "no times"),
+                     ("0.0\nnan\n", "not finite"), ("1.5,0.1\n", "whole"), ("1 2 3\n", "expected")):  # fmt: skip
+        with pytest.raises(InputError, match=why):
+            parse_timestamps(bad)
+
+
+def test_import_with_timestamps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--timestamps: every camera's frame times from one file, one camera's own (13 ms late, a camera not in sync);
+    the output rate is the times' median rate without --fps; a frame without a time is refused."""
+    world = _world("coco17")
+    folders = _write_openpose(world, tmp_path, seconds=0.4)
+    write_mocapd_toml(_calibration(world), tmp_path / "calib.toml")
+    (tmp_path / "all.txt").write_text("".join(f"{0.5 + f / 20:.6f}\n" for f in range(10)))  # 20 Hz, from 0.5 s
+    (tmp_path / "cam1.txt").write_text("frame time_s\n" + "".join(f"{f} {0.513 + f / 20:.6f}\n" for f in range(10)))
+    args = ["import", "keypoints", *map(str, folders), "--calibration", str(tmp_path / "calib.toml"),
+            "--timestamps", str(tmp_path / "all.txt"), "--timestamps", f"cam1={tmp_path / 'cam1.txt'}"]  # fmt: skip
+    assert main([*args, "-o", str(tmp_path / "s")]) == 0
+    assert json.loads(capsys.readouterr().out)["fps"] == pytest.approx(20.0)
+    s = open_session(tmp_path / "s")
+    assert s.manifest["scheduler"]["rate_hz"] == pytest.approx(20.0) and s.manifest["imported"]["timestamps"] == (
+        "timestamps"
+    )
+    times: dict[str, list[int]] = {}
+    for k in s.keypoints():
+        times.setdefault(s.manifest["cameras"][k.camera]["name"], []).append(k.capture_ns)
+    start = s.manifest["started_monotonic_ns"]
+    assert times["cam0"][:2] == [start, start + 50_000_000]  # the earliest time is the session's start
+    assert times["cam1"][0] == start + 13_000_000
+    (tmp_path / "short.txt").write_text("0.0\n0.05\n")
+    assert main([*args[:-4], "--timestamps", str(tmp_path / "short.txt"), "-o", str(tmp_path / "t")]) == 2
+    assert "no timestamp for frame(s) [2, 3, 4, 5, 6] ..." in capsys.readouterr().err

@@ -31,7 +31,13 @@ import numpy as np
 
 from mocapd.errors import InputError
 from mocapd.io.input_files import read_input_bytes
-from mocapd.protocols.keypoint_files import ParsedFrames, parse_landmark_array, parse_mmpose, parse_openpose
+from mocapd.protocols.keypoint_files import (
+    ParsedFrames,
+    parse_landmark_array,
+    parse_mmpose,
+    parse_openpose,
+    parse_timestamps,
+)
 
 FORMATS = ("auto", "openpose", "mmpose", "pose2sim", "freemocap")
 MAX_FRAME_FILE_BYTES = 16 << 20
@@ -237,6 +243,18 @@ def read_pose2sim_project(project: Path, keypoint_set: str | None = None) -> Key
         rate = doc.get("project", {}).get("frame_rate") if isinstance(doc.get("project"), dict) else None
         fps = float(rate) if isinstance(rate, int | float) and not isinstance(rate, bool) and rate > 0 else None
     return KeypointInput(cams, "pose2sim", calib, fps)
+
+
+def read_timestamps(specs: list[str]) -> dict[str | None, dict[int, float]]:
+    """``--timestamps [CAMERA=]FILE``: per camera (None: every camera without its own), frame -> seconds."""
+    out: dict[str | None, dict[int, float]] = {}
+    for spec in specs:
+        name, path = _named(spec)
+        if name in out:
+            raise InputError(f"--timestamps: {name or 'the cameras'} given twice")
+        data = read_input_bytes(path, "timestamps file", max_bytes=MAX_VIDEO_FILE_BYTES)
+        out[name] = parse_timestamps(data.decode("utf-8", errors="replace"), str(path))
+    return out
 
 
 def match_cameras(inputs: list[str], calibrated: list[str]) -> list[int]:

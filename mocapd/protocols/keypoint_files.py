@@ -21,6 +21,7 @@ own keypoint set (:mod:`mocapd.core.keypoint_sets`), which it names when the fil
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -219,3 +220,45 @@ def parse_landmark_array(arr: FloatArray, keypoint_set: str = "blazepose33", wha
         frames = {f: (np.where(seen[f, :, None], xy[f], 0.0)[None], conf[f][None]) for f in range(len(pts))}
         out.append(ParsedFrames(keypoint_set, frames))
     return out
+
+
+def parse_timestamps(text: str, what: str = "timestamps") -> dict[int, float]:
+    """Frame times of a text file: one time (seconds) per line, the line's place being the frame (counted from 0,
+    blank lines and ``#`` comments left out), or two columns ``frame time_s`` (comma, tab or space between them);
+    a first line that is not numbers is a header. Times must increase with the frame.
+
+    Returns
+    -------
+    dict frame -> seconds
+    """
+    out: dict[int, float] = {}
+    rows = [line.split("#", 1)[0].replace(",", " ").replace(";", " ").split() for line in text.splitlines()]
+    rows = [r for r in rows if r]
+    if rows and not _numeric(rows[0]):
+        rows = rows[1:]  # a header
+    for i, r in enumerate(rows):
+        if not _numeric(r) or len(r) not in (1, 2):
+            raise InputError(f"{what}: line {i + 1}: expected 'time_s' or 'frame time_s', got {' '.join(r)[:60]!r}")
+        frame = i if len(r) == 1 else int(float(r[0]))
+        if len(r) == 2 and float(r[0]) != frame:
+            raise InputError(f"{what}: line {i + 1}: frame {r[0]!r} is not a whole number")
+        t = float(r[-1])
+        if frame in out:
+            raise InputError(f"{what}: line {i + 1}: frame {frame} twice")
+        if not math.isfinite(t):
+            raise InputError(f"{what}: line {i + 1}: time not finite")
+        out[frame] = t
+    if not out:
+        raise InputError(f"{what}: no times")
+    frames = sorted(out)
+    if any(out[b] <= out[a] for a, b in itertools.pairwise(frames)):
+        raise InputError(f"{what}: times must increase with the frame number")
+    return out
+
+
+def _numeric(row: list[str]) -> bool:
+    try:
+        [float(v) for v in row]
+    except ValueError:
+        return False
+    return True

@@ -386,6 +386,10 @@ def _register_keypoints(what: Any) -> None:
         default=None,
         help="the frame rate of the keypoints (a Pose2Sim project's Config.toml frame_rate by default)",
     )
+    kp.add_argument("--timestamps", action="append", default=[], metavar="[CAMERA=]FILE",
+                    help="frame times instead of --fps: a text file of one time (s) per line (line k: frame k) or "
+                    "'frame time_s' pairs; CAMERA= for one camera's (repeat), else every camera's; --fps is then "
+                    "the output rate (default: the times' median rate)")  # fmt: skip
     kp.add_argument("--format", default="auto", choices=FORMATS, help="the inputs' layout (default: told from them)")
     kp.add_argument(
         "--keypoints",
@@ -419,19 +423,27 @@ def _register_keypoints(what: Any) -> None:
 
 def cmd_import_keypoints(args: argparse.Namespace) -> int:
     from mocapd.io.calibration_files import on_floor, read_any
-    from mocapd.io.keypoint_files import read_keypoint_inputs
-    from mocapd.service.session.keypoint_import import keypoint_take, keypoints_manifest, write_keypoint_session
+    from mocapd.io.keypoint_files import read_keypoint_inputs, read_timestamps
+    from mocapd.service.session.keypoint_import import (
+        keypoint_take,
+        keypoints_manifest,
+        median_rate,
+        write_keypoint_session,
+    )
 
     check_output_dir(args.output, what="session directory")
     inp = read_keypoint_inputs(list(args.inputs), args.format, args.keypoints)
     calib_path = args.calibration or inp.calibration
     if calib_path is None:
         raise MocapdError("give the cameras' calibration (--calibration FILE)")
+    timestamps = read_timestamps(args.timestamps) if args.timestamps else None
     fps = args.fps if args.fps is not None else inp.fps
+    if fps is None and timestamps:
+        fps = median_rate(timestamps)
     if fps is None:
-        raise MocapdError("give the keypoints' frame rate (--fps HZ)")
+        raise MocapdError("give the keypoints' frame rate (--fps HZ) or their times (--timestamps FILE)")
     calib = on_floor(read_any(calib_path, world_up=args.up, units=args.units), args.floor)
-    take = keypoint_take(inp, calib, fps)
+    take = keypoint_take(inp, calib, fps, timestamps)
     manifest = keypoints_manifest(take, fps=fps, height=args.height, source=", ".join(args.inputs),
                                   layout=inp.layout, calibration=str(calib_path))  # fmt: skip
     path = write_keypoint_session(args.output, take, manifest)

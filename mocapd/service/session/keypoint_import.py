@@ -17,6 +17,7 @@ input's keypoint set is converted by name onto the format mocapd solves it in
 from __future__ import annotations
 
 import datetime as dt
+import itertools
 import math
 import os
 import platform
@@ -64,10 +65,19 @@ class KeypointTake:
     frames: dict[str, int]
     first_frame: int
     last_frame: int
+    timed_by: str = "fps"
+    """``"fps"``, or ``"timestamps"`` where a timestamps file timed any camera."""
 
 
-def keypoint_take(inp: KeypointInput, calib: CalibrationSet, fps: float) -> KeypointTake:
-    """The inputs' cameras matched with the calibration, their detections converted and timed at ``fps``."""
+def keypoint_take(
+    inp: KeypointInput,
+    calib: CalibrationSet,
+    fps: float,
+    timestamps: dict[str | None, dict[int, float]] | None = None,
+) -> KeypointTake:
+    """The inputs' cameras matched with the calibration, their detections converted and timed at ``fps``, or by
+    ``timestamps`` (per camera name, None for every camera without its own: frame -> seconds; the earliest time
+    used is the session's start)."""
     if not (isinstance(fps, float | int) and math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
         raise InputError(f"--fps {fps!r}: allowed {MIN_FPS:g} to {MAX_FPS:g}")
     sets = {c.parsed.keypoint_set for c in inp.cameras if c.parsed.keypoint_set}
@@ -87,6 +97,7 @@ def keypoint_take(inp: KeypointInput, calib: CalibrationSet, fps: float) -> Keyp
     if not frame_ids:
         raise InputError("the inputs hold no frames")
     first, last = min(frame_ids), max(frame_ids)
+    clocks = _frame_times(inp, timestamps or {}, fps, first)
     records = []
     for ci, cam in enumerate(inp.cameras):
         for f, (kp, cf) in sorted(cam.parsed.frames.items()):
@@ -94,10 +105,44 @@ def keypoint_take(inp: KeypointInput, calib: CalibrationSet, fps: float) -> Keyp
                 out_kp, out_cf = np.zeros((0, fmt.n_keypoints, 2)), np.zeros((0, fmt.n_keypoints))
             else:
                 out_kp, out_cf = convert(source, kp, cf, fmt.keypoints)
-            records.append((T0_NS + round((f - first) * 1e9 / fps), ci, out_kp, out_cf))
+            records.append((T0_NS + clocks[ci][f], ci, out_kp, out_cf))
     records.sort(key=lambda r: (r[0], r[1]))
     frames = {c.name: len(c.parsed.frames) for c in inp.cameras}
-    return KeypointTake(cameras, fmt.name, source, records, frames, first, last)
+    timed = "timestamps" if timestamps else "fps"
+    return KeypointTake(cameras, fmt.name, source, records, frames, first, last, timed)
+
+
+def median_rate(timestamps: dict[str | None, dict[int, float]]) -> float:
+    """The frame rate of timestamps (1 / the median time between consecutive frames), within the accepted rates."""
+    steps = [(ts[b] - ts[a]) / (b - a) for ts in timestamps.values() for a, b in itertools.pairwise(sorted(ts))]
+    if not steps:
+        raise InputError("--timestamps: one frame only: give the output rate (--fps HZ)")
+    return float(np.clip(1.0 / float(np.median(steps)), MIN_FPS, MAX_FPS))
+
+
+def _frame_times(
+    inp: KeypointInput, timestamps: dict[str | None, dict[int, float]], fps: float, first: int
+) -> list[dict[int, int]]:
+    """Per camera, frame -> ns after the session's start: from the timestamps where given, else ``(f - first) /
+    fps``; the earliest timestamp used is 0."""
+    unknown = sorted(str(k) for k in timestamps if k is not None and k not in {c.name for c in inp.cameras})
+    if unknown:
+        raise InputError(f"--timestamps for camera(s) {unknown}, which no input is; the inputs: "
+                         f"{[c.name for c in inp.cameras]}")  # fmt: skip
+    seconds: list[dict[int, float]] = []
+    for cam in inp.cameras:
+        ts = timestamps.get(cam.name, timestamps.get(None))
+        if ts is None:
+            seconds.append({f: (f - first) / fps for f in cam.parsed.frames})
+            continue
+        missing = sorted(set(cam.parsed.frames) - set(ts))
+        if missing:
+            more = " ..." if len(missing) > 5 else ""
+            raise InputError(f"camera {cam.name}: no timestamp for frame(s) {missing[:5]}{more} (the file has frames "
+                             f"{min(ts)}-{max(ts)})")  # fmt: skip
+        seconds.append({f: ts[f] for f in cam.parsed.frames})
+    t0 = min((t for s in seconds for t in s.values()), default=0.0)
+    return [{f: round((t - t0) * 1e9) for f, t in s.items()} for s in seconds]
 
 
 def keypoints_manifest(take: KeypointTake, *, fps: float, height: float, source: str, layout: str,
@@ -112,7 +157,7 @@ def keypoints_manifest(take: KeypointTake, *, fps: float, height: float, source:
         [c.name for c in take.cameras])  # fmt: skip
     skeleton = Skeleton.from_height(height)
     targets = keypoint_format(take.keypoint_format).track_targets(skeleton)
-    duration = (take.last_frame - take.first_frame) / fps
+    duration = (max((r[0] for r in take.records), default=T0_NS) - T0_NS) / 1e9
     return {
         "format": "mocapd-session",
         "version": 1,
@@ -140,6 +185,7 @@ def keypoints_manifest(take: KeypointTake, *, fps: float, height: float, source:
             "from": source, "layout": layout, "config_file": str(DEFAULT_CONFIG), "calibration": calibration,
             "keypoint_set": take.source_set, "keypoint_format": take.keypoint_format, "fps": fps,
             "first_frame": take.first_frame, "frames": take.frames, "duration_s": round(duration, 3),
+            "timestamps": take.timed_by,
         },
     }  # fmt: skip
 
