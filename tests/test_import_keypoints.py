@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from mocapd.io.calibration_files import (
     CalibrationSet,
     CameraCalibration,
     in_metres,
+    read_any,
     write_mocapd_toml,
     write_pose2sim_toml,
 )
@@ -31,6 +33,7 @@ from mocapd.io.session import RESOLVED, open_session
 from mocapd.protocols.keypoint_files import parse_landmark_array, parse_mmpose, parse_openpose
 from mocapd.service.cli import main
 from mocapd.sim.world import SyntheticWorld
+from tests.pose2sim_data import demo_root
 
 FPS = 25.0
 
@@ -336,3 +339,50 @@ def test_import_with_timestamps(tmp_path: Path, capsys: pytest.CaptureFixture[st
     (tmp_path / "short.txt").write_text("0.0\n0.05\n")
     assert main([*args[:-4], "--timestamps", str(tmp_path / "short.txt"), "-o", str(tmp_path / "t")]) == 2
     assert "no timestamp for frame(s) [2, 3, 4, 5, 6] ..." in capsys.readouterr().err
+
+
+def test_pose2sim_demo_project_with_its_real_calibration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The Pose2Sim multi-person demo as a project folder (its own Config.toml and Qualisys calibration, fetched by
+    the set-up), its pose/ folders written as Pose2Sim writes them (Halpe-26 in OpenPose's layout) from two
+    synthetic people placed in the demo's capture area and projected through its four real cameras; the demo's
+    frame_rate is 'auto', so --fps. Import -> resolve -> export: both people, joints near the truth."""
+    demo = demo_root() / "Demo_MultiPerson"
+    project = tmp_path / "Demo_MultiPerson"
+    (project / "calibration").mkdir(parents=True)
+    shutil.copy(demo / "Config.toml", project / "Config.toml")
+    shutil.copy(demo / "calibration" / "Calib.qca.txt", project / "calibration" / "Calib.qca.txt")
+    cams = read_any(project / "calibration" / "Calib.qca.txt").cameras
+    world = _world("halpe26")
+    centre = np.mean([c.center for c in cams], axis=0) * [1.0, 0.0, 1.0]  # the floor point the cameras surround
+    shift = []
+    for p in range(2):  # each person's own centre moved 0.5 m either side of it (inside all four views)
+        mean = np.mean([world.sites_at(p, t).mean(0) for t in np.arange(0, 4, 0.1)], axis=0) * [1.0, 0.0, 1.0]
+        shift.append(centre + np.array([0.0, 0.0, 0.5 if p == 0 else -0.5]) - mean)
+    rng = np.random.default_rng(2)
+    fps = 30.0
+    for cam in cams:
+        folder = project / "pose" / f"{cam.name}_json"
+        folder.mkdir(parents=True)
+        for f in range(round(2.5 * fps)):
+            people = []
+            for p in range(2):
+                uv = cam.project(world.sites_at(p, f / fps) + shift[p]) + rng.normal(scale=1.0, size=(26, 2))
+                inside = (uv[:, 0] >= 0) & (uv[:, 0] < cam.size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.size[1])
+                kp = np.column_stack([np.where(inside[:, None], uv, 0.0), 0.9 * inside])
+                people.append({"person_id": [-1], "pose_keypoints_2d": kp.ravel().round(2).tolist()})
+            (folder / f"{cam.name}_{f:06d}.json").write_text(json.dumps({"version": 1.3, "people": people}))
+    session = tmp_path / "take"
+    assert main(["import", "keypoints", str(project), "-o", str(session), "--fps", str(fps)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["layout"] == "pose2sim" and summary["keypoint_set"] == "halpe26"
+    assert list(summary["cameras"]) == ["cam01", "cam02", "cam03", "cam04"]
+    assert summary["calibration"].endswith("Calib.qca.txt")
+    out = _resolve_export(session, tmp_path / "take.csv")
+    assert len(out["identities"]) == 2  # type: ignore[arg-type]
+    rows = list(csv.DictReader((tmp_path / "take.csv").open()))
+    errors = []
+    for r in rows:
+        joints = np.array([[float(r[f"{b}_{a}"]) for a in "xyz"] for b in BONE_NAMES])
+        t = float(r["source_s"])
+        errors.append(min(np.linalg.norm(joints - world.joints_at(p, t) - shift[p], axis=1).mean() for p in range(2)))
+    assert len(errors) >= 30 and np.median(errors) < 0.06, np.median(errors)
