@@ -110,6 +110,8 @@ def test_panoptic_json(tmp_path: Path) -> None:
             }
         )
     cams.append({**cams[0], "name": "01_01", "type": "vga", "resolution": [640, 480]})
+    untyped = {k: v for k, v in cams[0].items() if k != "type"}
+    cams.append({**untyped, "name": "50_01", "panel": 50})  # no type: a panel other than 0 is no HD camera
     (tmp_path / "calibration_171204_pose1.json").write_text(json.dumps({"calibDataSource": "x", "cameras": cams}))
     _same(read_any(tmp_path / "calibration_171204_pose1.json"), ["00_00", "00_01", "00_02"])
 

@@ -668,7 +668,8 @@ def read_json_calibration(path: Path, world_up: WorldUp | None = None, units: st
     if isinstance(doc, dict) and isinstance(doc.get("cameras"), list):
         items = [(str(c.get("name", i)), c) for i, c in enumerate(doc["cameras"]) if isinstance(c, dict)]
         if flavour == "panoptic":
-            items = [(n, c) for n, c in items if c.get("type", "hd") == "hd"]
+            # HD cameras: type "hd" (panel 0 in files without types); VGA panels 1-20, Kinects panel 50
+            items = [(n, c) for n, c in items if c.get("type", "hd" if c.get("panel", 0) == 0 else "other") == "hd"]
     elif isinstance(doc, dict):
         items = [(str(k), c) for k, c in doc.items() if isinstance(c, dict)]
     elif isinstance(doc, list):
