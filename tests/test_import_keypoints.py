@@ -386,3 +386,84 @@ def test_pose2sim_demo_project_with_its_real_calibration(tmp_path: Path, capsys:
         t = float(r["source_s"])
         errors.append(min(np.linalg.norm(joints - world.joints_at(p, t) - shift[p], axis=1).mean() for p in range(2)))
     assert len(errors) >= 30 and np.median(errors) < 0.06, np.median(errors)
+
+
+def test_mediapipe_layouts() -> None:
+    from mocapd.protocols.keypoint_files import parse_mediapipe
+
+    lm = [{"x": 0.5, "y": 0.25, "z": -0.1, "visibility": 0.9}] * 33
+    legacy = parse_mediapipe({"landmark": lm})  # MessageToDict of the legacy solution's pose_landmarks
+    assert legacy.normalized and legacy.keypoint_set == "blazepose33"
+    assert legacy.frames[0][0].shape == (1, 33, 2) and legacy.frames[0][1][0, 0] == pytest.approx(0.9)
+    tasks = parse_mediapipe({"pose_landmarks": [lm, lm]})  # the Tasks API: one list per person
+    assert tasks.frames[0][0].shape == (2, 33, 2)
+    video = parse_mediapipe({"frames": [{"frame": 7, "pose_landmarks": [lm]}, {"frame": 8, "pose_landmarks": []}]})
+    assert sorted(video.frames) == [7, 8] and video.frames[8][0].shape == (0, 33, 2)
+    assert parse_mediapipe([lm]).frames[0][0].shape == (1, 33, 2)  # a list of people
+    with pytest.raises(InputError, match="33 landmarks"):
+        parse_mediapipe({"landmark": lm[:17]})
+
+
+def test_mediapipe_video_files_to_csv(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """One MediaPipe Pose JSON per camera (a video's frames, Tasks-API people, landmarks as fractions of the
+    image): import scales them by the calibrated image sizes and solves them as Halpe-26 (BlazePose's heels and
+    foot_index kept); resolve -> CSV near the truth."""
+    world = _world("halpe26")
+    names = HALPE26_FORMAT.keypoints
+    rng = np.random.default_rng(3)
+    files = []
+    for c, cam in enumerate(world.cameras):
+        frames = []
+        for f in range(round(2.5 * FPS)):
+            det = world.detections(c, f / FPS, rng, 1.0)
+            people = []
+            for i in range(len(det)):
+                lms = []
+                for name in BLAZEPOSE33:
+                    j = names.index({"left_foot_index": "left_big_toe", "right_foot_index": "right_big_toe"}.get(
+                        name, name)) if name in names or name.endswith("foot_index") else None  # fmt: skip
+                    x, y = (det.keypoints[i, j] / [cam.width, cam.height]) if j is not None else (0.0, 0.0)
+                    vis = float(det.confidences[i, j]) if j is not None else 0.0
+                    lms.append({"x": float(x), "y": float(y), "z": 0.0, "visibility": vis})
+                people.append(lms)
+            frames.append({"frame": f, "pose_landmarks": people})
+        path = tmp_path / f"{cam.name}.json"
+        path.write_text(json.dumps({"frames": frames}))
+        files.append(path)
+    write_mocapd_toml(_calibration(world), tmp_path / "calib.toml")
+    session = tmp_path / "take"
+    assert main(["import", "keypoints", *map(str, files), "-o", str(session), "--calibration",
+                 str(tmp_path / "calib.toml"), "--fps", str(FPS)]) == 0  # fmt: skip
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["layout"] == "mediapipe" and summary["keypoint_set"] == "blazepose33"
+    assert summary["solved_as"] == "halpe26"
+    _resolve_export(session, tmp_path / "take.csv")
+    errors, _ = _joint_errors(world, tmp_path / "take.csv")
+    assert errors.size >= 30 and np.median(errors) < 0.06, np.median(errors)
+
+
+def test_freemocap_array_import(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """FreeMoCap's 2D array (cameras x frames x 543 points x 3, pixels, NaN where unseen): one camera per row,
+    named cam0, cam1, ... and taken in the calibration's order; BlazePose's body points onto Halpe-26 by name."""
+    world = _world("halpe26")
+    n_frames = 10
+    arr = np.full((4, n_frames, 33 + 21 + 21 + 468, 3), np.nan)
+    arr[:, :, :33, :2] = np.linspace(10, 300, 33)[None, None, :, None]
+    arr[:, :, :33, 2] = 0.8
+    arr[2, 4, 11] = np.nan  # cam2's left shoulder unseen in frame 4
+    np.save(tmp_path / "mediapipe2dData_numCams_numFrames_numTrackedPoints_pixelXY.npy", arr)
+    write_mocapd_toml(_calibration(world), tmp_path / "calib.toml")
+    npy = tmp_path / "mediapipe2dData_numCams_numFrames_numTrackedPoints_pixelXY.npy"
+    assert main(["import", "keypoints", str(npy), "-o", str(tmp_path / "s"), "--calibration",
+                 str(tmp_path / "calib.toml"), "--fps", "30"]) == 0  # fmt: skip
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["layout"] == "freemocap" and summary["solved_as"] == "halpe26"
+    s = open_session(tmp_path / "s")
+    kps = s.keypoints()
+    assert len(kps) == 4 * n_frames and [c["name"] for c in s.manifest["cameras"]] == [c.name for c in world.cameras]
+    shoulder = HALPE26_FORMAT.keypoints.index("left_shoulder")
+    rec = next(
+        k for k in kps if k.camera == 2 and k.capture_ns == s.manifest["started_monotonic_ns"] + round(4 * 1e9 / 30)
+    )
+    assert rec.confidences[0, shoulder] == 0.0 and rec.keypoints[0, shoulder].tolist() == [0.0, 0.0]
+    assert rec.keypoints[0, HALPE26_FORMAT.keypoints.index("right_shoulder")][0] == pytest.approx(arr[2, 4, 12, 0])

@@ -9,6 +9,8 @@ which camera each input is. Layouts (``--format``, else told from the path):
   (``pred_out_dir``), numbered as OpenPose's;
 * ``pose2sim``: a Pose2Sim project folder: ``pose/<camera>_json/`` OpenPose folders, the calibration in
   ``calibration/`` (``Calib*.toml``, else a ``.qca.txt``) and the frame rate in ``Config.toml``;
+* ``mediapipe``: MediaPipe Pose landmarks (normalised x, y and visibility, :func:`~mocapd.protocols.keypoint_files.
+  parse_mediapipe`): one file of a video's frames or a folder of per-frame files (told by their landmark fields);
 * ``freemocap``: FreeMoCap's ``mediapipe2dData_numCams_numFrames_numTrackedPoints_pixelXY.npy`` (every camera in
   one array, BlazePose's body landmarks first).
 
@@ -30,16 +32,17 @@ from pathlib import Path
 import numpy as np
 
 from mocapd.errors import InputError
-from mocapd.io.input_files import read_input_bytes
+from mocapd.io.input_files import open_input, read_input_bytes
 from mocapd.protocols.keypoint_files import (
     ParsedFrames,
     parse_landmark_array,
+    parse_mediapipe,
     parse_mmpose,
     parse_openpose,
     parse_timestamps,
 )
 
-FORMATS = ("auto", "openpose", "mmpose", "pose2sim", "freemocap")
+FORMATS = ("auto", "openpose", "mmpose", "pose2sim", "freemocap", "mediapipe")
 MAX_FRAME_FILE_BYTES = 16 << 20
 """Largest per-frame JSON file read (OpenPose's with faces and hands of a crowd is a few hundred KB)."""
 MAX_VIDEO_FILE_BYTES = 1 << 30
@@ -105,6 +108,7 @@ def _number(path: Path) -> int | None:
 
 
 def _merge(folder: Path, parts: list[tuple[int, ParsedFrames]]) -> ParsedFrames:
+    normalized = any(p.normalized for _, p in parts)
     sets = {p.keypoint_set for _, p in parts if p.keypoint_set}
     if len(sets) > 1:
         raise InputError(f"{folder}: files of different keypoint sets {sorted(sets)}")
@@ -113,7 +117,7 @@ def _merge(folder: Path, parts: list[tuple[int, ParsedFrames]]) -> ParsedFrames:
     for n, p in parts:
         for k, v in p.frames.items():
             frames[n + k] = v if p.keypoint_set else (np.zeros((0, 0, 2)), np.zeros((0, 0)))
-    return ParsedFrames(name, frames)
+    return ParsedFrames(name, frames, normalized)
 
 
 def read_openpose_folder(folder: Path, keypoint_set: str | None = None) -> ParsedFrames:
@@ -128,6 +132,14 @@ def read_mmpose(path: Path, keypoint_set: str | None = None) -> ParsedFrames:
         parts = [(n, parse_mmpose(_json(f, MAX_FRAME_FILE_BYTES), keypoint_set, str(f))) for n, f in _frame_files(path)]
         return _merge(path, parts)
     return parse_mmpose(_json(path, MAX_VIDEO_FILE_BYTES), keypoint_set, str(path))
+
+
+def read_mediapipe(path: Path) -> ParsedFrames:
+    """MediaPipe Pose landmarks: one file of a video's frames, or a folder of per-frame files."""
+    if path.is_dir():
+        parts = [(n, parse_mediapipe(_json(f, MAX_FRAME_FILE_BYTES), str(f))) for n, f in _frame_files(path)]
+        return _merge(path, parts)
+    return parse_mediapipe(_json(path, MAX_VIDEO_FILE_BYTES), str(path))
 
 
 def read_freemocap(path: Path, keypoint_set: str | None = None) -> list[ParsedFrames]:
@@ -150,12 +162,22 @@ def _layout(path: Path, layout: str) -> str:
     if path.suffix.lower() == ".npy":
         return "freemocap"
     if path.is_file():
-        return "mmpose"
+        return "mediapipe" if _looks_mediapipe(path) else "mmpose"
     if path.is_dir():
         first = next((f for _, f in _frame_files(path)), None)
         doc = _json(first, MAX_FRAME_FILE_BYTES) if first is not None else None
-        return "openpose" if isinstance(doc, dict) and "people" in doc else "mmpose"
+        if isinstance(doc, dict) and "people" in doc:
+            return "openpose"
+        return "mediapipe" if first is not None and _looks_mediapipe(first) else "mmpose"
     raise InputError(f"{path}: no such file or folder")
+
+
+def _looks_mediapipe(path: Path) -> bool:
+    """Whether a JSON file's first 64 KB name MediaPipe's landmark fields (a whole video's file is not decoded
+    twice to tell)."""
+    with open_input(path, "keypoint file", max_bytes=MAX_VIDEO_FILE_BYTES) as fh:
+        head = fh.read(1 << 16)
+    return b'"visibility"' in head or b'"pose_landmarks"' in head or b'"landmark"' in head
 
 
 def _named(spec: str) -> tuple[str | None, Path]:
@@ -191,7 +213,12 @@ def read_keypoint_inputs(specs: list[str], layout: str = "auto", keypoint_set: s
         return KeypointInput(cams, kind)
     cams = []
     for name, p in named:
-        parsed = read_openpose_folder(p, keypoint_set) if kind == "openpose" else read_mmpose(p, keypoint_set)
+        if kind == "mediapipe":
+            parsed = read_mediapipe(p)
+        elif kind == "openpose":
+            parsed = read_openpose_folder(p, keypoint_set)
+        else:
+            parsed = read_mmpose(p, keypoint_set)
         cams.append(CameraKeypoints(name or camera_name(p), p, parsed))
     return KeypointInput(cams, kind)
 
@@ -202,7 +229,6 @@ def read_new_frames(cam: CameraKeypoints, layout: str, keypoint_set: str | None,
     """
     if not cam.source.is_dir():
         return ParsedFrames(cam.parsed.keypoint_set, {})
-    parse = parse_openpose if layout in ("openpose", "pose2sim") else parse_mmpose
     parts = []
     for f in sorted(cam.source.iterdir()):
         if f.name in seen or f.suffix.lower() != ".json" or not f.is_file():
@@ -215,7 +241,13 @@ def read_new_frames(cam: CameraKeypoints, layout: str, keypoint_set: str | None,
         except InputError:
             continue  # still being written: read at the next look
         seen.add(f.name)
-        parts.append((n, parse(doc, keypoint_set or cam.parsed.keypoint_set or None, str(f))))
+        wanted = keypoint_set or cam.parsed.keypoint_set or None
+        if layout == "mediapipe":
+            parts.append((n, parse_mediapipe(doc, str(f))))
+        elif layout in ("openpose", "pose2sim"):
+            parts.append((n, parse_openpose(doc, wanted, str(f))))
+        else:
+            parts.append((n, parse_mmpose(doc, wanted, str(f))))
     return _merge(cam.source, parts)
 
 

@@ -15,6 +15,12 @@ MMPose / RTMPose / RTMW, any of:
 * COCO results ``[{"image_id": 3, "keypoints": [x, y, s, ...], "score": 0.9}, ...]`` (``tools/test.py``),
   one frame per image id.
 
+MediaPipe Pose (BlazePose's 33 landmarks, ``x``, ``y`` as fractions of the image, ``visibility``), as its results
+are written out: one frame file holding ``{"landmark": [...]}`` (``MessageToDict`` of the legacy solution's
+``pose_landmarks``), ``{"pose_landmarks": [[...], ...]}`` (the Tasks API's result, one list per person) or a list
+of people; or one file of a video's frames, a list of such frames (or ``{"frames": [...]}``), frame ``i`` the
+``i``-th (or its ``frame``/``frame_id``).
+
 Each parser returns :class:`ParsedFrames`: per frame number, the people's keypoints and confidences in the file's
 own keypoint set (:mod:`mocapd.core.keypoint_sets`), which it names when the file says or the count tells.
 """
@@ -58,6 +64,9 @@ class ParsedFrames:
 
     keypoint_set: str
     frames: dict[int, tuple[FloatArray, FloatArray]] = field(default_factory=dict)
+    normalized: bool = False
+    """The keypoints are fractions of the image's width and height (MediaPipe's), not pixels: scaled by the
+    camera's image size once the calibration names it (:func:`to_pixels`)."""
 
 
 def _triplets(values: object, what: str) -> FloatArray:
@@ -262,3 +271,66 @@ def _numeric(row: list[str]) -> bool:
     except ValueError:
         return False
     return True
+
+
+def _landmarks(person: object, what: str) -> FloatArray:
+    """One MediaPipe person: 33 landmarks (dicts of x, y and visibility or presence) as (33, 3)."""
+    if isinstance(person, dict) and "landmark" in person:
+        person = person["landmark"]
+    if not isinstance(person, list) or len(person) != 33:
+        raise InputError(f"{what}: expected BlazePose's 33 landmarks, got {_kind(person)}")
+    out = np.empty((33, 3))
+    for i, lm in enumerate(person):
+        if not isinstance(lm, dict):
+            raise InputError(f"{what}: landmark {i} is {_kind(lm)}, not an object")
+        conf = lm.get("visibility", lm.get("presence", 1.0))
+        out[i] = _numbers([lm.get("x"), lm.get("y"), conf], f"{what}: landmark {i}")
+    return out
+
+
+def _mediapipe_people(frame: object, what: str) -> list[FloatArray]:
+    if isinstance(frame, dict):
+        if "landmark" in frame:
+            return [_landmarks(frame, what)]
+        people = frame.get("pose_landmarks", frame.get("people", []))
+    else:
+        people = frame
+    if isinstance(people, dict):  # MessageToDict of one person under pose_landmarks
+        people = [people]
+    if not isinstance(people, list):
+        raise InputError(f"{what}: not MediaPipe pose landmarks")
+    if len(people) == 33 and all(isinstance(p, dict) and "x" in p for p in people):
+        people = [people]  # one person's landmarks, not a list of people
+    return [_landmarks(p, f"{what}: person {j}") for j, p in enumerate(people)]
+
+
+def parse_mediapipe(doc: object, what: str = "MediaPipe JSON") -> ParsedFrames:
+    """MediaPipe Pose landmarks (module docstring): one frame (frame 0) or a video's frames; ``normalized``."""
+    if isinstance(doc, dict) and isinstance(doc.get("frames"), list):
+        doc = doc["frames"]
+    frames_in: list[tuple[int, object]]
+    one_frame = isinstance(doc, dict) or (
+        isinstance(doc, list) and (not doc or (isinstance(doc[0], dict) and "x" in doc[0]) or (
+            isinstance(doc[0], list) and doc[0] and isinstance(doc[0][0], dict) and "x" in doc[0][0]))
+    )  # fmt: skip
+    if one_frame:
+        frames_in = [(0, doc)]
+    elif isinstance(doc, list):
+        frames_in = []
+        for i, fr in enumerate(doc):
+            fid = fr.get("frame", fr.get("frame_id", i)) if isinstance(fr, dict) else i
+            if isinstance(fid, bool) or not isinstance(fid, int):
+                raise InputError(f"{what}: frame {i}: frame number {fid!r} is not an integer")
+            frames_in.append((fid, fr))
+    else:
+        raise InputError(f"{what}: not MediaPipe pose landmarks")
+    out = ParsedFrames("blazepose33", normalized=True)
+    for fid, fr in frames_in:
+        out.frames[fid] = _stack(_mediapipe_people(fr, f"{what}: frame {fid}"), 33)
+    return out
+
+
+def to_pixels(keypoints: FloatArray, width: int, height: int) -> FloatArray:
+    """Normalised keypoints (fractions of the image, shape (..., 2)) as pixels of a ``width`` x ``height`` image."""
+    out: FloatArray = np.asarray(keypoints, dtype=np.float64) * np.array([width, height], dtype=np.float64)
+    return out

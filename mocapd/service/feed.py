@@ -31,6 +31,7 @@ from mocapd.errors import InputError
 from mocapd.io.calibration_files import CalibrationSet
 from mocapd.io.keypoint_files import KeypointInput, match_cameras, read_keypoint_inputs, read_new_frames
 from mocapd.io.zenoh_link import host_name, open_session
+from mocapd.protocols.keypoint_files import to_pixels
 from mocapd.service.config import Config
 from mocapd.service.detect_host import DetectionPublisher
 
@@ -64,8 +65,11 @@ class FeedState:
     f0: int | None = None
 
 
-def _frames(inp: KeypointInput, state: FeedState, fmt: str) -> list[tuple[int, int, Detections2D]]:
-    """The frames not published yet: (frame, camera index, detections in ``fmt``), by frame then camera."""
+def _frames(
+    inp: KeypointInput, state: FeedState, fmt: str, sizes: list[tuple[str, int, int]]
+) -> list[tuple[int, int, Detections2D]]:
+    """The frames not published yet: (frame, camera index, detections in ``fmt``), by frame then camera;
+    ``sizes``: each camera's (name, width, height), for keypoints given as fractions of the image."""
     target = keypoint_format(fmt)
     out = []
     for ci, cam in enumerate(inp.cameras):
@@ -77,7 +81,8 @@ def _frames(inp: KeypointInput, state: FeedState, fmt: str) -> list[tuple[int, i
             if kp.shape[0] == 0:
                 dets = Detections2D.empty(target.n_keypoints)
             else:
-                dets = Detections2D(*convert(cam.parsed.keypoint_set, kp, cf, target.keypoints))
+                px = to_pixels(kp, sizes[ci][1], sizes[ci][2]) if cam.parsed.normalized else kp
+                dets = Detections2D(*convert(cam.parsed.keypoint_set, px, cf, target.keypoints))
             out.append((f, ci, dets))
     out.sort(key=lambda x: (x[0], x[1]))
     return out
@@ -121,7 +126,7 @@ async def feed(
         if on_ready is not None:
             on_ready(host, [name for name, _, _ in cameras])
         while not stop.is_set():
-            for f, ci, dets in _frames(inp, state, fmt):
+            for f, ci, dets in _frames(inp, state, fmt, cameras):
                 if state.t0_ns is None or state.f0 is None:
                     state.t0_ns, state.f0 = clock() - round(opts.latency_s * 1e9), f
                 capture = state.t0_ns + (f - state.f0) * period_ns

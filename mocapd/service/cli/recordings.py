@@ -369,12 +369,13 @@ def _register_keypoints(what: Any) -> None:
 
     kp = what.add_parser(
         "keypoints",
-        help="2D keypoints of another detector (OpenPose, MMPose/RTMPose, Pose2Sim, FreeMoCap), one input per camera",
+        help="2D keypoints of another detector (OpenPose, MMPose/RTMPose, Pose2Sim, MediaPipe, FreeMoCap), one input "
+        "per camera",
     )
     kp.add_argument("inputs", nargs="+", metavar="[CAMERA=]PATH",
-                    help="per camera: an OpenPose JSON folder, an MMPose prediction file (or folder); or one Pose2Sim "
-                    "project folder, or one FreeMoCap 2D array (.npy); CAMERA names the calibration's camera (default: "
-                    "the folder's or file's name, cam01_json -> cam01)")  # fmt: skip
+                    help="per camera: an OpenPose JSON folder, an MMPose or MediaPipe JSON file (or folder); or one "
+                    "Pose2Sim project folder, or one FreeMoCap 2D array (.npy); CAMERA names the calibration's camera "
+                    "(default: the folder's or file's name, cam01_json -> cam01)")  # fmt: skip
     kp.add_argument("-o", "--output", type=Path, required=True,
                     help="session directory to create (new, or an empty directory)")  # fmt: skip
     kp.add_argument("--calibration", type=Path, default=None, metavar="FILE",

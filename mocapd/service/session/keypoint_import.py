@@ -39,6 +39,7 @@ from mocapd.io.keypoint_files import MAX_FPS, MIN_FPS, KeypointInput, match_came
 from mocapd.io.output_files import atomic_directory, check_output_dir
 from mocapd.io.prior import resolve_prior
 from mocapd.io.session import MANIFEST, STREAMS, SUFFIX, WriterCounters, write_json_atomic
+from mocapd.protocols.keypoint_files import to_pixels
 from mocapd.protocols.session_format import T_HEADER, T_KEYPOINTS, encode_header, encode_keypoints, encode_record
 from mocapd.service.config import DEFAULT_CONFIG, config_document, load_config
 from mocapd.service.outputs.recorder import camera_dict
@@ -104,7 +105,9 @@ def keypoint_take(
             if kp.shape[0] == 0:
                 out_kp, out_cf = np.zeros((0, fmt.n_keypoints, 2)), np.zeros((0, fmt.n_keypoints))
             else:
-                out_kp, out_cf = convert(source, kp, cf, fmt.keypoints)
+                # MediaPipe's fractions of the image: pixels of this camera's
+                px = to_pixels(kp, cameras[ci].width, cameras[ci].height) if cam.parsed.normalized else kp
+                out_kp, out_cf = convert(source, px, cf, fmt.keypoints)
             records.append((T0_NS + clocks[ci][f], ci, out_kp, out_cf))
     records.sort(key=lambda r: (r[0], r[1]))
     frames = {c.name: len(c.parsed.frames) for c in inp.cameras}
