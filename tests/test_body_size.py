@@ -63,3 +63,49 @@ def test_torso_length_is_measured_not_assumed() -> None:
     sized = estimate_skeleton(np.repeat(rest_sites(person)[None], 20, axis=0))
     assert abs(torso(rest_sites(sized)) - truth) < 1e-3
     assert abs(torso(rest_sites(Skeleton.from_height(sized.height))) - truth) > 0.05
+
+
+@pytest.mark.parametrize("fmt", ["body25", "halpe26"])
+def test_any_keypoint_set_is_sized_by_names(fmt: str) -> None:
+    """BODY_25 and Halpe-26 (and any set naming the limbs' joints) give the skeleton COCO-17 gives from the same
+    people: the joints are looked up by name, not by COCO-17's positions."""
+    from mocapd.core.body_size import COCO17_NAMES, can_size
+    from mocapd.core.keypoint_sets import BLAZEPOSE33, convert
+    from mocapd.core.keypoints import keypoint_format
+
+    truth = Skeleton.from_bone_lengths({"LeftLowerLeg": 0.43, "RightLowerLeg": 0.43, "LeftFoot": 0.41,
+                                        "RightFoot": 0.41}, height=1.8)  # fmt: skip
+    kin = Kinematics(truth)
+    fk = kin.forward(moving_sequence(truth, 60, seed=2))
+    coco = coco17_targets(truth)
+    other = keypoint_format(fmt).track_targets(truth)
+    ref = estimate_skeleton(kin.targets(fk, coco.bones, coco.offsets))
+    est = estimate_skeleton(kin.targets(fk, other.bones, other.offsets), names=other.names)
+    np.testing.assert_allclose(est.offsets, ref.offsets, atol=1e-9)
+    assert est.height == pytest.approx(ref.height)
+    assert can_size(other.names) and can_size(BLAZEPOSE33) and not can_size(COCO17_NAMES[:11])
+    # BlazePose's 33 landmarks, put onto halpe26 by name, size the same person too
+    uv = np.zeros((1, 33, 2))
+    assert convert("blazepose33", uv, np.ones((1, 33)), other.names)[1].shape == (1, len(other.names))
+    with pytest.raises(InputError, match="left_ankle"):
+        estimate_skeleton(np.zeros((12, 11, 3)), names=COCO17_NAMES[:11])
+
+
+def test_initial_pose_by_names() -> None:
+    """A new person's warm start finds the hips by name in any set (BODY_25's hips are at 12 and 9)."""
+    from mocapd.core.keypoints import BODY25_FORMAT
+    from mocapd.core.warm_start import initial_pose
+
+    sk = Skeleton.from_height(1.75)
+    kin = Kinematics(sk)
+    theta = sk.rest_pose()
+    theta[0:3] = [0.4, 0.95, -1.2]
+    theta[3:6] = [0.0, 0.7, 0.0]
+    fk = kin.forward(theta)
+    body25 = BODY25_FORMAT.track_targets(sk)
+    start = initial_pose(sk, kin.targets(fk, body25.bones, body25.offsets), body25.names)
+    coco = coco17_targets(sk)
+    same = initial_pose(sk, kin.targets(fk, coco.bones, coco.offsets))
+    np.testing.assert_allclose(start, same, atol=1e-12)
+    assert start[4] == pytest.approx(0.7) and start[0] == pytest.approx(0.4)
+    assert np.array_equal(initial_pose(sk, np.full((25, 3), np.nan), body25.names), sk.rest_pose())

@@ -99,7 +99,7 @@ def test_bad_files(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match="lacks"):
         read_any(tmp_path / "z.qca.txt")
     with pytest.raises(CalibrationError, match="unknown calibration format"):
-        read_any(tmp_path / "c.json")
+        read_any(tmp_path / "c.csv")  # (.json is the K/R/t calibrations: tests/test_calibration_json.py)
     with pytest.raises(CalibrationError, match="not a rotation"):
         CameraCalibration("c", (10, 10), np.eye(3), R=np.diag([1.0, 1.0, -1.0]))
 

@@ -1,4 +1,6 @@
-"""Per-person body size from triangulated COCO-17 joints (the first seconds of a track).
+"""Per-person body size from triangulated keypoints (the first seconds of a track), of any keypoint set that names
+shoulders, elbows, wrists, hips, knees and ankles (COCO-17, BODY_25, Halpe-26, COCO-WholeBody, BlazePose: the
+points are looked up by their names, :data:`SIZING_KEYPOINTS`).
 
 Limb lengths are the medians of keypoint distances over the frames (robust to mis-detections): upper arm
 (shoulder–elbow), forearm (elbow–wrist), thigh (hip–knee), shank (knee–ankle), averaged over left and right;
@@ -17,7 +19,11 @@ from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
 
-_KP = {name: i for i, (name, _, _) in enumerate(COCO17)}
+COCO17_NAMES: tuple[str, ...] = tuple(name for name, _, _ in COCO17)
+SIZING_KEYPOINTS: tuple[str, ...] = tuple(
+    f"{side}_{j}" for side in ("left", "right") for j in ("shoulder", "elbow", "wrist", "hip", "knee", "ankle")
+)
+"""The keypoints body sizing measures: a set without one of them cannot be sized (:func:`can_size`)."""
 # bone whose offset is the measured segment (see Skeleton.from_bone_lengths), keypoint pairs left and right
 _SEGMENTS = {
     "LowerArm": ("shoulder", "elbow"),  # upper-arm length = offset of the lower arm
@@ -27,34 +33,47 @@ _SEGMENTS = {
 }
 
 
-def _median_distance(kp: FloatArray, a: str, b: str) -> float:
-    d = np.linalg.norm(kp[:, _KP[a]] - kp[:, _KP[b]], axis=-1)
+def can_size(names: tuple[str, ...] | list[str]) -> bool:
+    """Whether a keypoint set with these names can be sized (it has every one of :data:`SIZING_KEYPOINTS`)."""
+    return set(SIZING_KEYPOINTS) <= set(names)
+
+
+def _median_distance(kp: FloatArray, a: int, b: int) -> float:
+    d = np.linalg.norm(kp[:, a] - kp[:, b], axis=-1)
     d = d[np.isfinite(d)]
     return float(np.median(d)) if d.size else np.nan
 
 
-def estimate_skeleton(keypoints: FloatArray, min_frames: int = 10) -> Skeleton:
-    """A skeleton sized from triangulated COCO-17 keypoints.
+def estimate_skeleton(
+    keypoints: FloatArray, min_frames: int = 10, names: tuple[str, ...] | list[str] = COCO17_NAMES
+) -> Skeleton:
+    """A skeleton sized from triangulated keypoints.
 
     Parameters
     ----------
-    keypoints : array, shape (n_frames, 17, 3)
+    keypoints : array, shape (n_frames, n_kp, 3)
         World positions (metres), NaN where not triangulated.
     min_frames : int
         Fewer frames with both legs measured raise :class:`InputError` (use a configured height instead).
+    names : sequence of str, length n_kp
+        The keypoints' names (COCO-17's by default); the set must have every one of :data:`SIZING_KEYPOINTS`.
     """
     kp = np.asarray(keypoints, dtype=np.float64)
-    if kp.ndim != 3 or kp.shape[1:] != (len(COCO17), 3):
-        raise InputError(f"keypoints must have shape (n_frames, {len(COCO17)}, 3), got {kp.shape}")
+    if kp.ndim != 3 or kp.shape[1:] != (len(names), 3):
+        raise InputError(f"keypoints must have shape (n_frames, {len(names)}, 3), got {kp.shape}")
+    if not can_size(names):
+        missing = sorted(set(SIZING_KEYPOINTS) - set(names))
+        raise InputError(f"body size needs the keypoints {missing}, which this keypoint set does not have")
+    at = {n: i for i, n in enumerate(names)}
     legs = [
-        np.isfinite(kp[:, _KP[f"{s}_{j}"]]).all(axis=-1) for s in ("left", "right") for j in ("hip", "knee", "ankle")
+        np.isfinite(kp[:, at[f"{s}_{j}"]]).all(axis=-1) for s in ("left", "right") for j in ("hip", "knee", "ankle")
     ]
     if int(np.logical_and.reduce(legs).sum()) < min_frames:
         raise InputError(f"body size needs at least {min_frames} frames with both legs triangulated")
     ref = Skeleton.from_height(REFERENCE_HEIGHT)
     lengths: dict[str, float] = {}
     for bone, (a, b) in _SEGMENTS.items():
-        m = np.nanmean([_median_distance(kp, f"{side}_{a}", f"{side}_{b}") for side in ("left", "right")])
+        m = np.nanmean([_median_distance(kp, at[f"{side}_{a}"], at[f"{side}_{b}"]) for side in ("left", "right")])
         if np.isfinite(m):
             lengths[f"Left{bone}"] = lengths[f"Right{bone}"] = float(m)
     leg = lengths["LeftLowerLeg"] + lengths["LeftFoot"]
@@ -64,11 +83,11 @@ def estimate_skeleton(keypoints: FloatArray, min_frames: int = 10) -> Skeleton:
     for side in ("Left", "Right"):
         for bone, pair in ((f"{side}UpperArm", ("left_shoulder", "right_shoulder")),
                            (f"{side}UpperLeg", ("left_hip", "right_hip"))):  # fmt: skip
-            half = 0.5 * _median_distance(kp, *pair)
+            half = 0.5 * _median_distance(kp, at[pair[0]], at[pair[1]])
             lateral = abs(ref.offsets[BONE_INDEX[bone], 0]) * s
             if np.isfinite(half) and lateral > 0:
                 lengths[bone] = float(np.linalg.norm(ref.offsets[BONE_INDEX[bone]]) * s * half / lateral)
-    return _fit_torso(Skeleton.from_bone_lengths(lengths, height=height), kp)
+    return _fit_torso(Skeleton.from_bone_lengths(lengths, height=height), kp, at)
 
 
 _SPINE = [BONE_INDEX[b] for b in ("Spine", "Spine1", "Spine2", "Spine3")]
@@ -76,12 +95,12 @@ _UPPER_ARMS = [BONE_INDEX["LeftUpperArm"], BONE_INDEX["RightUpperArm"]]
 _UPPER_LEGS = [BONE_INDEX["LeftUpperLeg"], BONE_INDEX["RightUpperLeg"]]
 
 
-def _fit_torso(skeleton: Skeleton, kp: FloatArray) -> Skeleton:
+def _fit_torso(skeleton: Skeleton, kp: FloatArray, at: dict[str, int]) -> Skeleton:
     """Scale the spine chain so the rest-pose distance from the hip midpoint up to the shoulder midpoint is the
     measured one (the median over frames). Torso proportions vary between people far more than the height-scaled
     default assumes (a CMU subject's is ~30 % shorter than the default for his leg length)."""
-    mid_hip = 0.5 * (kp[:, _KP["left_hip"]] + kp[:, _KP["right_hip"]])
-    mid_shoulder = 0.5 * (kp[:, _KP["left_shoulder"]] + kp[:, _KP["right_shoulder"]])
+    mid_hip = 0.5 * (kp[:, at["left_hip"]] + kp[:, at["right_hip"]])
+    mid_shoulder = 0.5 * (kp[:, at["left_shoulder"]] + kp[:, at["right_shoulder"]])
     torso = float(np.nanmedian(np.linalg.norm(mid_shoulder - mid_hip, axis=-1)))
     off = skeleton.offsets.copy()
     # Rest pose, vertical: shoulders at Σ spine + upper-arm offset above the root, hips at the upper-leg offset.

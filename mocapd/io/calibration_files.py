@@ -36,11 +36,32 @@ Foreign conventions handled on import/export:
   (Rodrigues), ``T_<name>`` layout, or a single camera as ``camera_matrix``, ``distortion_coefficients``,
   ``image_width``, ``image_height`` (+ optional ``rvec``/``tvec``).
 
-Z-up worlds are turned +Y up by ``X_y = (x, z, -y)`` of ``X_z = (x, y, z)`` (a rotation, so handedness is kept).
+* K/R/t JSON (``.json``) of the multi-view benchmarks and their code bases, told apart by their keys:
+
+  - 4D association's ``calibration.json`` (Shelf, Campus as its repository ships them): per camera name ``K`` (9
+    numbers), ``R`` (3: Rodrigues, or 9) and ``T`` (3), or ``RT`` (3x4), ``imgSize`` [w, h], ``distCoeff``;
+    world→camera, metres, world Z-up;
+  - VoxelPose's ``calibration_shelf.json`` / ``calibration_campus.json``: per camera ``fx fy cx cy``, ``R`` (3x3),
+    ``T`` the camera's **centre** in the world (``x_cam = R (X - T)``), ``k`` (k1 k2 k3) and ``p`` (p1 p2),
+    millimetres, world Z-up, no image size (twice the principal point, as Pose2Sim does);
+  - CMU Panoptic's ``calibration_<sequence>.json``: ``cameras[]`` with ``name``, ``type``, ``resolution``, ``K``,
+    ``distCoef``, ``R``, ``t`` (world→camera, centimetres); its world is Y-down (the people stand towards -y); its
+    HD cameras only (``type = "hd"``: the 480 VGA and 10 Kinect cameras are left out);
+  - any list ``[{"name", "K", "R", "t", "dist", "size"}, ...]`` or object of such cameras (metres, +Y up).
+
+* EasyMocap's ``intri.yml`` + ``extri.yml`` (OpenCV YAML, one beside the other; either may be named): ``names``,
+  ``K_<name>``, ``dist_<name>`` and ``Rot_<name>`` (3x3) or ``R_<name>`` (Rodrigues), ``T_<name>``; metres, world
+  Z-up (a board on the floor).
+
+Z-up worlds are turned +Y up by ``X_y = (x, z, -y)`` of ``X_z = (x, y, z)`` (a rotation, so handedness is kept);
+Y-down worlds by ``(x, -y, -z)``. :func:`read_any` takes the world's up axis, the translations' unit and the floor's
+height from the caller where a file's own convention is not the one wanted (``mocapd import keypoints --up z
+--units mm --floor M``).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 import xml.etree.ElementTree as ET
@@ -60,7 +81,7 @@ from mocapd.io.input_files import open_input, read_input_bytes
 from mocapd.io.output_files import atomic_path, write_text_atomic
 
 FloatArray = NDArray[np.float64]
-WorldUp = Literal["y", "z"]
+WorldUp = Literal["y", "z", "-y"]
 
 # Z-up world -> mocapd's Y-up world: X_y = Z_TO_Y @ X_z.
 Z_TO_Y: FloatArray = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -182,9 +203,15 @@ def world_y_up_to_z_up(cam: CameraCalibration) -> CameraCalibration:
     return replace(cam, R=cam.R @ Z_TO_Y)
 
 
+# Y-down world (CMU Panoptic's) -> mocapd's Y-up world: half a turn about x (y and z negated; handedness kept).
+Y_DOWN_TO_Y: FloatArray = np.diag([1.0, -1.0, -1.0])
+
+
 def _to_y_up(cams: Sequence[CameraCalibration], world_up: WorldUp) -> tuple[CameraCalibration, ...]:
-    if world_up not in ("y", "z"):
-        raise CalibrationError(f"world_up must be 'y' or 'z', got {world_up!r}")
+    if world_up not in ("y", "z", "-y"):
+        raise CalibrationError(f"world_up must be 'y', 'z' or '-y', got {world_up!r}")
+    if world_up == "-y":
+        return tuple(replace(c, R=c.R @ Y_DOWN_TO_Y.T) for c in cams)
     return tuple(world_z_up_to_y_up(c) if world_up == "z" else c for c in cams)
 
 
@@ -447,6 +474,49 @@ def _mat(fs: Any, key: str, path: Path) -> Any:
     return node.mat()
 
 
+EASYMOCAP_FILES = ("intri.yml", "extri.yml")
+
+
+def _open_yaml(path: Path) -> Any:
+    with open_input(path, "calibration file", max_bytes=MAX_FILE_BYTES, error=CalibrationError):
+        pass  # a regular file of a sane size: OpenCV opens it by name (and would wait on a FIFO)
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise CalibrationError(f"cannot open OpenCV YAML {path}")
+    return fs
+
+
+def read_easymocap(path: Path, world_up: WorldUp = "z") -> CalibrationSet:
+    """EasyMocap's ``intri.yml`` and ``extri.yml``, from the folder of ``path`` (either of them)."""
+    folder = Path(path).parent
+    intri, extri = (_open_yaml(folder / n) for n in EASYMOCAP_FILES)
+    try:
+        names_node = intri.getNode("names")
+        if names_node.empty() or not names_node.isSeq():
+            raise CalibrationError(f"{folder / 'intri.yml'}: no 'names' list")
+        cams = []
+        for i in range(names_node.size()):
+            name = names_node.at(i).string()
+            K, dist = _mat(intri, f"K_{name}", folder / "intri.yml"), _mat(intri, f"dist_{name}", folder / "intri.yml")
+            rot, rvec = _mat(extri, f"Rot_{name}", folder / "extri.yml"), _mat(extri, f"R_{name}", folder / "extri.yml")
+            tvec = _mat(extri, f"T_{name}", folder / "extri.yml")
+            if K is None or dist is None or tvec is None or (rot is None and rvec is None):
+                raise CalibrationError(f"{folder}: camera {name} lacks K_, dist_ (intri.yml), Rot_ or R_, or T_ "
+                                       "(extri.yml)")  # fmt: skip
+            R = rot.reshape(3, 3) if rot is not None else cv2.Rodrigues(rvec.reshape(3))[0]
+            w, h = intri.getNode(f"W_{name}"), intri.getNode(f"H_{name}")
+            size = (
+                (int(w.real()), int(h.real()))
+                if w.isInt() or w.isReal()
+                else (round(2 * K[0, 2]), round(2 * K[1, 2]))  # as Pose2Sim: twice the principal point
+            )
+            cams.append(CameraCalibration(name, size, K, dist.reshape(-1), R, tvec.reshape(3)))
+    finally:
+        intri.release()
+        extri.release()
+    return CalibrationSet(_to_y_up(cams, world_up), f"easymocap:{folder.name}")
+
+
 def read_opencv_yaml(path: Path, world_up: WorldUp = "y") -> CalibrationSet:
     """Read OpenCV ``FileStorage`` YAML (Pose2Sim multi-camera layout or one camera); see module docstring."""
     with open_input(path, "calibration file", max_bytes=MAX_FILE_BYTES, error=CalibrationError):
@@ -517,10 +587,122 @@ def write_opencv_yaml(calib: CalibrationSet, path: Path, world_up: WorldUp = "y"
             fs.release()
 
 
-def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:
+# -- K/R/t JSON ---------------------------------------------------------------------------------------------------
+
+JSON_DEFAULTS: dict[str, tuple[WorldUp, str]] = {
+    "4d-association": ("z", "m"),
+    "voxelpose": ("z", "mm"),
+    "panoptic": ("-y", "cm"),
+    "krt": ("y", "m"),
+}
+"""Each K/R/t JSON flavour's world up axis and translation unit (module docstring)."""
+
+
+def _array(value: object, what: str) -> FloatArray:
+    arr = np.asarray(value, dtype=np.float64)  # a ragged or non-numeric value raises ValueError (read_any says so)
+    if not np.all(np.isfinite(arr)):
+        raise CalibrationError(f"{what}: non-finite values")
+    return arr
+
+
+def _json_camera(name: str, c: dict[str, Any], flavour: str, where: str) -> CameraCalibration:
+    """One camera of a K/R/t JSON file, in the file's units and world."""
+    if "K" in c:
+        K = _array(c["K"], f"{where} K").reshape(3, 3)
+    elif all(k in c for k in ("fx", "fy", "cx", "cy")):
+        fx, fy, cx, cy = (float(np.asarray(c[k], np.float64).reshape(-1)[0]) for k in ("fx", "fy", "cx", "cy"))
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    else:
+        raise CalibrationError(f"{where}: no intrinsics (K, or fx fy cx cy)")
+    R: FloatArray
+    if "RT" in c:
+        rt = _array(c["RT"], f"{where} RT").reshape(3, 4)
+        R, t = rt[:, :3], rt[:, 3]
+    else:
+        r = _array(c.get("R", c.get("rvec", np.eye(3))), f"{where} R").reshape(-1)
+        R = np.asarray(cv2.Rodrigues(r)[0], np.float64) if r.size == 3 else r.reshape(3, 3)
+        t = _array(c.get("t", c.get("T", np.zeros(3))), f"{where} t").reshape(3)
+        if flavour == "voxelpose":
+            t = -R @ t  # VoxelPose's T is the camera's centre: x_cam = R (X - T)
+    if "k" in c or "p" in c:
+        k = _array(c.get("k", [0.0, 0.0, 0.0]), f"{where} k").reshape(-1)
+        p = _array(c.get("p", [0.0, 0.0]), f"{where} p").reshape(-1)
+        k = np.r_[k, np.zeros(3)][:3]
+        p = np.r_[p, np.zeros(2)][:2]
+        dist = np.array([k[0], k[1], p[0], p[1], k[2]])
+    else:
+        d: object = next((c[k] for k in ("distCoef", "distCoeff", "dist", "distortion") if k in c), [])
+        dist = _array(d, f"{where} distortion").reshape(-1)
+    size_value = next((c[k] for k in ("imgSize", "size", "resolution") if k in c), None)
+    if size_value is not None:
+        size = tuple(round(float(v)) for v in np.asarray(size_value, np.float64).reshape(-1)[:2])
+    elif "width" in c and "height" in c:
+        size = (int(c["width"]), int(c["height"]))
+    else:
+        size = (round(2 * K[0, 2]), round(2 * K[1, 2]))  # as Pose2Sim: twice the principal point
+    if len(size) != 2:
+        raise CalibrationError(f"{where}: the image size needs a width and a height")
+    return CameraCalibration(str(c.get("name", name)), (size[0], size[1]), K, dist, R, t)
+
+
+def _json_flavour(doc: object) -> str:
+    if isinstance(doc, dict) and isinstance(doc.get("cameras"), list):
+        return "panoptic" if any(isinstance(c, dict) and "distCoef" in c for c in doc["cameras"]) else "krt"
+    cams = list(doc.values()) if isinstance(doc, dict) else doc if isinstance(doc, list) else []
+    first = next((c for c in cams if isinstance(c, dict)), {})
+    if "fx" in first and ("k" in first or "p" in first):
+        return "voxelpose"
+    if "imgSize" in first or "RT" in first:
+        return "4d-association"
+    return "krt"
+
+
+def read_json_calibration(path: Path, world_up: WorldUp | None = None, units: str | None = None) -> CalibrationSet:
+    """A K/R/t JSON calibration (module docstring); ``world_up`` and ``units`` override the flavour's own."""
+    data = _read(path)
+    try:
+        doc = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise CalibrationError(f"cannot read calibration {path}: not JSON: {exc}") from None
+    flavour = _json_flavour(doc)
+    if isinstance(doc, dict) and isinstance(doc.get("cameras"), list):
+        items = [(str(c.get("name", i)), c) for i, c in enumerate(doc["cameras"]) if isinstance(c, dict)]
+        if flavour == "panoptic":
+            # HD cameras: type "hd" (panel 0 in files without types); VGA panels 1-20, Kinects panel 50
+            items = [(n, c) for n, c in items if c.get("type", "hd" if c.get("panel", 0) == 0 else "other") == "hd"]
+    elif isinstance(doc, dict):
+        items = [(str(k), c) for k, c in doc.items() if isinstance(c, dict)]
+    elif isinstance(doc, list):
+        items = [(str(c.get("name", i)), c) for i, c in enumerate(doc) if isinstance(c, dict)]
+    else:
+        items = []
+    if not items:
+        raise CalibrationError(f"{path}: no cameras (a K/R/t JSON calibration: see docs/cameras.md)")
+    if len(items) > MAX_CAMERAS:
+        raise CalibrationError(f"{path}: {len(items)} cameras; a calibration holds at most {MAX_CAMERAS}")
+    cams = [_json_camera(name, c, flavour, f"{path}: camera {name}") for name, c in items]
+    up, unit = JSON_DEFAULTS[flavour]
+    calib = CalibrationSet(_to_y_up(cams, world_up or up), f"{flavour}-json:{Path(path).name}")
+    return in_metres(calib, units or unit)
+
+
+def on_floor(calib: CalibrationSet, floor_m: float) -> CalibrationSet:
+    """The world moved down so that a floor ``floor_m`` metres up the (+Y) axis becomes y = 0."""
+    if not math.isfinite(floor_m):
+        raise CalibrationError(f"floor height {floor_m!r}: a finite number of metres expected")
+    if floor_m == 0:
+        return calib
+    lift = np.array([0.0, floor_m, 0.0])
+    cams = tuple(replace(c, t=c.t + c.R @ lift) for c in calib.cameras)  # X_new = X - lift
+    return CalibrationSet(cams, source=f"{calib.source} (floor at {floor_m:g} m)" if calib.source else "")
+
+
+def read_any(path: Path, world_up: WorldUp | None = None, units: str | None = None) -> CalibrationSet:
     """Read a calibration in any supported format, chosen from its name and content.
 
-    ``world_up`` overrides the format's default world up axis (Z for Qualisys/Pose2Sim, Y for mocapd/OpenCV YAML).
+    ``world_up`` overrides the format's default world up axis (Z for Qualisys/Pose2Sim/EasyMocap and the benchmarks'
+    JSON, -Y for CMU Panoptic, Y for mocapd/OpenCV YAML), ``units`` the unit of its translations (metres, except
+    VoxelPose's millimetres and Panoptic's centimetres; Qualisys files say theirs).
 
     Raises
     ------
@@ -529,7 +711,7 @@ def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:
         parser raises ``cv2.error``), a value of the wrong type or shape, a missing key.
     """
     try:
-        return _read_any(Path(path), world_up)
+        return _read_any(Path(path), world_up, units)
     except CalibrationError:
         raise
     except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError, cv2.error, SystemError) as exc:
@@ -537,18 +719,25 @@ def read_any(path: Path, world_up: WorldUp | None = None) -> CalibrationSet:
         raise CalibrationError(f"{path}: not a valid calibration file: {type(exc).__name__}: {exc}") from None
 
 
-def _read_any(path: Path, world_up: WorldUp | None) -> CalibrationSet:
+def _read_any(path: Path, world_up: WorldUp | None, units: str | None) -> CalibrationSet:
     name = path.name.lower()
+    if name.endswith(".json"):
+        return read_json_calibration(path, world_up, units)
     if name.endswith(".qca.txt") or name.endswith(".qca"):
-        return read_qca(path, world_up=world_up or "z")
-    if name.endswith((".yml", ".yaml")):
-        return read_opencv_yaml(path, world_up=world_up or "y")
-    if name.endswith(".toml"):
+        calib = read_qca(path, world_up=world_up or "z")
+    elif name in EASYMOCAP_FILES and all((path.parent / n).is_file() for n in EASYMOCAP_FILES):
+        calib = read_easymocap(path, world_up=world_up or "z")
+    elif name.endswith((".yml", ".yaml")):
+        calib = read_opencv_yaml(path, world_up=world_up or "y")
+    elif name.endswith(".toml"):
         data = _load_toml(path)
         if data.get("format") == "mocapd-calibration":
-            return read_mocapd_toml(path)
-        return read_pose2sim_toml(path, world_up=world_up or "z")
-    raise CalibrationError(f"{path}: unknown calibration format (use .toml, .qca.txt, .yml or .yaml)")
+            calib = read_mocapd_toml(path)
+        else:
+            calib = read_pose2sim_toml(path, world_up=world_up or "z")
+    else:
+        raise CalibrationError(f"{path}: unknown calibration format (use .toml, .qca.txt, .yml, .yaml or .json)")
+    return in_metres(calib, units or "m")
 
 
 def scale_calibration(calib: CalibrationSet, scale: float) -> CalibrationSet:
@@ -574,6 +763,22 @@ def scale_calibration(calib: CalibrationSet, scale: float) -> CalibrationSet:
         out.append(CameraCalibration(c.name, size, K, c.dist, c.R, c.t, c.error_px))
     source = f"{calib.source} scaled by {scale:g}" if calib.source else f"scaled by {scale:g}"
     return CalibrationSet(tuple(out), source=source)
+
+
+UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+"""Length units a calibration's translations may be in (metres per unit)."""
+
+
+def in_metres(calib: CalibrationSet, unit: str) -> CalibrationSet:
+    """A calibration whose translations are in ``unit`` (:data:`UNITS`), re-expressed in metres (a camera's centre
+    scales with its translation; rotations, intrinsics and distortion are unit-free)."""
+    if unit not in UNITS:
+        raise CalibrationError(f"length unit {unit!r}; choose from {', '.join(UNITS)}")
+    if unit == "m":
+        return calib
+    s = UNITS[unit]
+    cams = tuple(replace(c, t=c.t * s) for c in calib.cameras)
+    return CalibrationSet(cams, source=f"{calib.source} (translations in {unit})" if calib.source else "")
 
 
 def core_cameras(calib: CalibrationSet, scale: float = 1.0) -> list[Camera]:

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 
 
 #: commands that serve until stopped: a stop signal is how they end, exit status 0 (others: 128 + the signal)
-SERVING = frozenset({"run", "demo", "detect-host", "replay"})
+SERVING = frozenset({"run", "demo", "detect-host", "replay", "feed"})
 
 
 def _command(argv: Sequence[str]) -> str:

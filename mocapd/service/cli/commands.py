@@ -13,6 +13,7 @@ from mocapd.service.cli import calibrate as cmd_calibrate
 from mocapd.service.cli import daemon as cmd_daemon
 from mocapd.service.cli import devices as cmd_devices
 from mocapd.service.cli import eval as eval_cli
+from mocapd.service.cli import feed as cmd_feed
 from mocapd.service.cli import imu as cmd_imu
 from mocapd.service.cli import model as cmd_model
 from mocapd.service.cli import recordings as cmd_recordings
@@ -83,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     cmd_daemon.register(sub)  # run, demo, check-config, bench latency
     cmd_devices.register(sub)
     cmd_session.register(sub)  # replay, resolve, export, session
-    cmd_recordings.register(sub)  # import mtw, import mvnx
+    cmd_recordings.register(sub)  # import mtw, import mvnx, import keypoints
+    cmd_feed.register(sub)  # feed keypoints
     return parser
 
 

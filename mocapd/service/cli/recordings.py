@@ -311,7 +311,9 @@ def register(subparsers: Any) -> None:
     g.add_argument("--data-root", type=Path, default=None, help="recorded data (default ../shared/data, $MOCAPD_DATA)")
     g.set_defaults(func=_guard(cmd_eval_ground))
 
-    imp = subparsers.add_parser("import", help="existing IMU recordings (MT Manager exports, MVNX) as sessions")
+    imp = subparsers.add_parser(
+        "import", help="existing recordings as sessions: IMU (MT Manager exports, MVNX), other detectors' 2D keypoints"
+    )
     what = imp.add_subparsers(dest="import_what", metavar="FORMAT", required=True)
 
     def common(p: argparse.ArgumentParser, mvnx: bool = False) -> None:
@@ -357,3 +359,99 @@ def register(subparsers: Any) -> None:
     mvnx.add_argument("file", type=Path, help="the .mvnx file")
     common(mvnx, mvnx=True)
     mvnx.set_defaults(func=_guard(cmd_import_mvnx))
+    _register_keypoints(what)
+
+
+def _register_keypoints(what: Any) -> None:
+    from mocapd.core.keypoint_sets import SETS
+    from mocapd.io.calibration_files import UNITS
+    from mocapd.io.keypoint_files import FORMATS, MAX_FPS, MIN_FPS
+
+    kp = what.add_parser(
+        "keypoints",
+        help="2D keypoints of another detector (OpenPose, MMPose/RTMPose, Pose2Sim, MediaPipe, FreeMoCap), one input "
+        "per camera",
+    )
+    kp.add_argument("inputs", nargs="+", metavar="[CAMERA=]PATH",
+                    help="per camera: an OpenPose JSON folder, an MMPose or MediaPipe JSON file (or folder); or one "
+                    "Pose2Sim project folder, or one FreeMoCap 2D array (.npy); CAMERA names the calibration's camera "
+                    "(default: the folder's or file's name, cam01_json -> cam01)")  # fmt: skip
+    kp.add_argument("-o", "--output", type=Path, required=True,
+                    help="session directory to create (new, or an empty directory)")  # fmt: skip
+    kp.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                    help="the cameras' calibration, any format mocapd reads (docs/cameras.md); a Pose2Sim "
+                    "project's own by default")  # fmt: skip
+    kp.add_argument(
+        "--fps",
+        type=number(MIN_FPS, MAX_FPS),
+        default=None,
+        help="the frame rate of the keypoints (a Pose2Sim project's Config.toml frame_rate by default)",
+    )
+    kp.add_argument("--timestamps", action="append", default=[], metavar="[CAMERA=]FILE",
+                    help="frame times instead of --fps: a text file of one time (s) per line (line k: frame k) or "
+                    "'frame time_s' pairs; CAMERA= for one camera's (repeat), else every camera's; --fps is then "
+                    "the output rate (default: the times' median rate)")  # fmt: skip
+    kp.add_argument("--format", default="auto", choices=FORMATS, help="the inputs' layout (default: told from them)")
+    kp.add_argument(
+        "--keypoints",
+        default=None,
+        choices=tuple(SETS),
+        help="the keypoint set of the files (default: told from their length or their metadata)",
+    )
+    kp.add_argument("--up", default=None, choices=("y", "z", "-y"),
+                    help="the calibration world's up axis (default: the format's: z for Pose2Sim TOML, Qualisys, "
+                    "EasyMocap and the Shelf/Campus JSON, -y for CMU Panoptic (write --up=-y), y for mocapd and OpenCV "
+                    "files); a Z-up world's floor z = 0 becomes mocapd's y = 0")  # fmt: skip
+    kp.add_argument("--units", default=None, choices=tuple(UNITS),
+                    help="the calibration's translation unit (default: the format's: mm for VoxelPose's JSON, cm for "
+                    "CMU Panoptic, else m)")  # fmt: skip
+    kp.add_argument(
+        "--floor",
+        type=number(-100.0, 100.0),
+        default=0.0,
+        metavar="M",
+        help="the floor's height up the world's up axis, metres (default 0: the floor at the origin)",
+    )
+    kp.add_argument(
+        "--height",
+        type=number(0.5, 2.5),
+        default=REFERENCE_HEIGHT,
+        metavar="M",
+        help=f"the people's height before body sizing measures them, m (default {REFERENCE_HEIGHT:g})",
+    )
+    kp.set_defaults(func=_guard(cmd_import_keypoints))
+
+
+def cmd_import_keypoints(args: argparse.Namespace) -> int:
+    from mocapd.io.calibration_files import on_floor, read_any
+    from mocapd.io.keypoint_files import read_keypoint_inputs, read_timestamps
+    from mocapd.service.session.keypoint_import import (
+        keypoint_take,
+        keypoints_manifest,
+        median_rate,
+        write_keypoint_session,
+    )
+
+    check_output_dir(args.output, what="session directory")
+    inp = read_keypoint_inputs(list(args.inputs), args.format, args.keypoints)
+    calib_path = args.calibration or inp.calibration
+    if calib_path is None:
+        raise MocapdError("give the cameras' calibration (--calibration FILE)")
+    timestamps = read_timestamps(args.timestamps) if args.timestamps else None
+    fps = args.fps if args.fps is not None else inp.fps
+    if fps is None and timestamps:
+        fps = median_rate(timestamps)
+    if fps is None:
+        raise MocapdError("give the keypoints' frame rate (--fps HZ) or their times (--timestamps FILE)")
+    calib = on_floor(read_any(calib_path, world_up=args.up, units=args.units), args.floor)
+    take = keypoint_take(inp, calib, fps, timestamps)
+    manifest = keypoints_manifest(take, fps=fps, height=args.height, source=", ".join(args.inputs),
+                                  layout=inp.layout, calibration=str(calib_path))  # fmt: skip
+    path = write_keypoint_session(args.output, take, manifest)
+    imp = manifest["imported"]
+    print(json.dumps({"session": str(path), "layout": inp.layout, "keypoint_set": take.source_set,
+                      "solved_as": take.keypoint_format, "fps": fps, "calibration": str(calib_path),
+                      "cameras": {c.name: {"input": str(i.source), "frames": take.frames[i.name]}
+                                  for c, i in zip(take.cameras, inp.cameras, strict=True)},
+                      "duration_s": imp["duration_s"], "next": f"mocapd resolve {path}"}, indent=2))  # fmt: skip
+    return 0

@@ -200,7 +200,10 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
     ingest = ImuIngest(capacity=max(cfg.imu.buffer_capacity, 1024))
     ingest.keep(sid for suit in rig.suits for sid in suit.sensors)
     tracker = PeopleTracker(
-        SubjectTracker(DetectionSorter(rig.cameras, cfg.tracking.sorting.options()), cfg.tracking.enrolment.options()),
+        SubjectTracker(
+            DetectionSorter(rig.cameras, cfg.tracking.sorting.options(), keypoint_names=rig.targets.names),
+            cfg.tracking.enrolment.options(),
+        ),
         SuitBinder(rig.skeleton, cfg.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
     )
     sched = FixedLatencyScheduler(
