@@ -46,13 +46,13 @@ from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.core.solver import Observations, PoseSolver
 from mocapd.core.sorting import Detections2D
 from mocapd.core.terms import CostOptions
+from mocapd.core.warm_start import initial_pose
 from mocapd.errors import InputError
 from mocapd.eval.heldout import held_out_errors, summarize
 from mocapd.eval.video_input import detect_take, eval_detector_config, pose2sim_take
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.fusion import FusionModels, PersonFusion
-from mocapd.pipeline.scheduler import initial_pose
 
 FloatArray = NDArray[np.float64]
 F32 = NDArray[np.float32]

@@ -23,6 +23,11 @@ Two things happen around the solve for people wearing a suit:
   the published person carries that instant (``t_pose_ns``) and the solve it came from (``solved``). People
   without a suit keep the delayed pose.
 
+In the daemon a tick is split in two: :meth:`FixedLatencyScheduler.sample` (step 1) on the event loop, which owns
+the buffers, and :meth:`FixedLatencyScheduler.solve` (steps 2-4) on the daemon's tick thread, the people of a tick
+on a pool of solve threads where there are cores for it; :meth:`FixedLatencyScheduler.tick` runs both in one thread
+(tests, ``resolve``).
+
 Each device has a configured time offset (its clock runs ``offset`` ahead of the host's: its samples are filed at
 ``t_device - offset``). Time is passed in (``now_ns``); the stage timer is injected (wall and CPU clocks), so the
 scheduler runs the same in the daemon and in tests on synthetic timelines.
@@ -42,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core import _kernel
-from mocapd.core.body_size import estimate_skeleton
+from mocapd.core.body_size import can_size, estimate_skeleton
 from mocapd.core.camera import Camera, triangulate_projections
 from mocapd.core.heading import BoneVectors, HeadingEstimator, HeadingOptions, bone_vectors, observe_headings, yaw_quat
 from mocapd.core.imu import ImuMount
@@ -55,10 +60,11 @@ from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.plausibility import PlausibilityMonitor
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import matrix_from_quat, quat_multiply, quat_normalize, quat_slerp
-from mocapd.core.skeleton import N_BONES, POSE_DIM, Skeleton
+from mocapd.core.skeleton import N_BONES, Skeleton
 from mocapd.core.solver import LMOptions, Observations, PoseSolver
 from mocapd.core.sorting import Detections2D
 from mocapd.core.terms import CostOptions
+from mocapd.core.warm_start import initial_pose
 from mocapd.errors import InputError
 from mocapd.pipeline.fusion import FusionStage, Mode
 from mocapd.pipeline.imu_ingest import ImuIngest
@@ -357,6 +363,8 @@ class FixedLatencyScheduler:
         self.skeletons: dict[int, Skeleton] = {}
         self._restart: dict[int, FloatArray] = {}
         names = list(getattr(targets, "names", ()))
+        self._names = tuple(names)
+        self._sizable = can_size(self._names)  # the set names the limb joints body sizing measures
         self._hips = (
             [names.index("left_hip"), names.index("right_hip")] if {"left_hip", "right_hip"} <= set(names) else None
         )
@@ -556,7 +564,7 @@ class FixedLatencyScheduler:
         a suit already solved as a person (its wearer walked out of view, or the cameras lost them), so that its
         identity, warm start and contacts carry on; a suit the cameras never saw waits for its binding."""
         bound = {p.suit for p in seen if p.suit}
-        nan = np.full((17, 3), np.nan)
+        nan = np.full((len(self.targets), 3), np.nan)
         return [
             Person(identity=f"suit:{sid}", track=-1, suit=sid, detections={}, keypoints=nan)
             for sid, sample in suits.items()
@@ -582,7 +590,7 @@ class FixedLatencyScheduler:
         # triangulated keypoints.
         previous = self.solvers.pop(f"track:{person.track}", None)
         start = previous.theta if previous is not None else self._restart.pop(person.track, None)
-        solver.reset(start if start is not None else initial_pose(solver.skeleton, person.keypoints))
+        solver.reset(start if start is not None else initial_pose(solver.skeleton, person.keypoints, self._names))
         self.solvers[person.identity] = solver
         return solver
 
@@ -757,7 +765,7 @@ class FixedLatencyScheduler:
         solver is rebuilt on the new skeleton at the next solve, warm-started from this one."""
         o = self.options
         n = o.body_size_frames
-        if n <= 0 or person.track in self._sized or len(self.targets) != 17:
+        if n <= 0 or person.track in self._sized or not self._sizable:
             return
         X, ok = triangulate_projections(self._projections, und, np.where(conf >= SIZE_MIN_CONFIDENCE, conf, 0.0))
         frames = self._sizing.setdefault(person.track, [])
@@ -767,7 +775,7 @@ class FixedLatencyScheduler:
         if not (final or (len(frames) >= first and person.track not in self.skeletons)):
             return
         try:
-            skeleton = estimate_skeleton(np.stack(frames), min_frames=(n if final else first) // 2)
+            skeleton = estimate_skeleton(np.stack(frames), min_frames=(n if final else first) // 2, names=self._names)
         except InputError:
             self.counters["body_size_failed"] += 1
             if final:
@@ -812,8 +820,9 @@ class FixedLatencyScheduler:
         for identity in list(self.solvers):
             if identity not in known and identity not in seen:
                 del self.solvers[identity]
-        for identity in [k for k in self.plausibility if k not in known and k not in seen]:
-            del self.plausibility[identity]
+        for table in (self.plausibility, self._last_swaps):
+            for identity in [k for k in table if k not in known and k not in seen]:
+                del table[identity]
         tracks = {s.id for s in self.people.tracker.subjects}
         for table in (self.skeletons, self._sizing, self._restart):
             for track in [k for k in table if k not in tracks]:
@@ -951,26 +960,6 @@ def _bracket(buf: RingBuffer, t: int, a: FloatArray, b: FloatArray, alpha: Float
 def _conj(q: FloatArray) -> FloatArray:
     out: FloatArray = q * np.array([1.0, -1.0, -1.0, -1.0])
     return out
-
-
-# COCO-17 indices used to place a new person
-_L_HIP, _R_HIP = 11, 12
-
-
-def initial_pose(skeleton: Skeleton, keypoints: FloatArray) -> FloatArray:
-    """A warm start from triangulated COCO-17 keypoints (17, 3): rest pose at the mid-hip, facing away from the
-    hip line (the solver then converges over the next frames). Rest pose when the hips are not known."""
-    theta = skeleton.rest_pose()
-    kp = np.asarray(keypoints, dtype=np.float64)
-    if kp.shape != (17, 3) or not np.all(np.isfinite(kp[[_L_HIP, _R_HIP]])):
-        return theta
-    left, right = kp[_L_HIP], kp[_R_HIP]
-    mid = 0.5 * (left + right)
-    theta[0:3] = mid
-    d = left - right  # the person's left, +X in the rest pose (facing +Z)
-    theta[3:6] = [0.0, float(np.arctan2(-d[2], d[0])), 0.0]
-    assert theta.shape == (POSE_DIM,)
-    return theta
 
 
 @dataclass(frozen=True)

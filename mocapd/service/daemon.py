@@ -240,7 +240,8 @@ class Daemon:
         self.status_line_extras: list[Callable[[], str]] = []
         tracker = PeopleTracker(
             SubjectTracker(
-                DetectionSorter(rig.cameras, config.tracking.sorting.options()), config.tracking.enrolment.options()
+                DetectionSorter(rig.cameras, config.tracking.sorting.options(), keypoint_names=rig.targets.names),
+                config.tracking.enrolment.options(),
             ),
             SuitBinder(rig.skeleton, config.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
         )
@@ -509,7 +510,8 @@ class Daemon:
             update_state=False,
         )
         if n_cams >= 2:
-            DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options()).warm_up(n_kp)
+            DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options(),
+                            keypoint_names=self.rig.targets.names).warm_up(n_kp)  # fmt: skip
             warm_up_flip_search(self.rig.cameras, n_kp)
         # The offset estimates of the status loop, once: their first run, 10 s after READY, imported SciPy's signal
         # package (~200 modules) while the tick ran, and the imports' allocations set off full garbage collections
