@@ -820,9 +820,10 @@ class FixedLatencyScheduler:
         for identity in list(self.solvers):
             if identity not in known and identity not in seen:
                 del self.solvers[identity]
-        for table in (self.plausibility, self._last_swaps):
-            for identity in [k for k in table if k not in known and k not in seen]:
-                del table[identity]
+        for identity in [k for k in self.plausibility if k not in known and k not in seen]:
+            del self.plausibility[identity]
+        for identity in [k for k in self._last_swaps if k not in known and k not in seen]:
+            del self._last_swaps[identity]
         tracks = {s.id for s in self.people.tracker.subjects}
         for table in (self.skeletons, self._sizing, self._restart):
             for track in [k for k in table if k not in tracks]:
