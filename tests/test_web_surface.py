@@ -364,3 +364,33 @@ async def test_a_configured_origin_may_use_the_websocket_from_chromium() -> None
     # Only the WebSocket: the status server's actions stay out of reach of any page (no CORS is granted).
     assert results["custom"] == "blocked" and results["status"] == "blocked"
     assert len(s.resets) == 1 and s.resets[0].startswith("WebSocket client"), s.resets
+
+
+@pytest.mark.asyncio
+async def test_the_web_section_reaches_the_servers() -> None:
+    """``[web] allowed_hosts`` and ``allowed_origins`` of a config file admit that name and that page's origin on
+    the daemon's WebSocket (as the daemon builds it) and nothing else."""
+    from mocapd.service.config import parse_config
+    from mocapd.service.outputs.websocket import websocket_sinks
+
+    web = {"allowed_hosts": ["studio.local"], "allowed_origins": ["http://localhost:3000"]}
+    cfg = parse_config({"websocket": {"port": 0, "status_hz": 0.0}, "web": web})
+    (server,) = websocket_sinks(cfg, SKEL)
+    await server.start()
+    try:
+        port = server.port
+        for uri, origin in ((f"ws://studio.local:{port}/", f"http://studio.local:{port}"),
+                            (f"ws://127.0.0.1:{port}/", "http://localhost:3000")):  # fmt: skip
+            async with connect(uri, host="127.0.0.1", port=port, origin=Origin(origin), open_timeout=5) as c:
+                assert "hello" in str(await asyncio.wait_for(c.recv(), 5))
+        refused: list[tuple[str, Origin | None]] = [
+            (f"ws://studio.example:{port}/", None),  # a name not configured, no Origin: refused for its Host
+            (f"ws://127.0.0.1:{port}/", Origin("http://localhost:3001")),
+        ]
+        for uri, other in refused:
+            with pytest.raises(InvalidStatus):
+                async with connect(uri, host="127.0.0.1", port=port, origin=other):
+                    pass
+    finally:
+        await server.aclose()
+    assert server.refused["host"] == 1 and server.refused["origin"] == 1
