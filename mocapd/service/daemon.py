@@ -310,10 +310,11 @@ class Daemon:
         now = self.clock()
         wait = self.reset_limit.take(now)
         if wait > 0:
-            d = self.config.daemon
+            limits = self.config.daemon
             raise RateLimitError(
-                f"heading reset refused: more than {d.heading_reset_burst} at once or {d.heading_resets_per_s:g} a "
-                f"second ([daemon] heading_reset_burst, heading_resets_per_s); the next in {wait:.1f} s",
+                f"heading reset refused: more than {limits.heading_reset_burst} at once or "
+                f"{limits.heading_resets_per_s:g} a second ([daemon] heading_reset_burst, heading_resets_per_s); the "
+                f"next in {wait:.1f} s",
                 wait,
             )
         done: dict[str, Any] = {}
