@@ -12,7 +12,8 @@
     │                         of the same command, an existing file without --force, a write that failed)
     ├── DeviceError           a camera, IMU or port failed (open, configure, stream)
     │   └── DeviceTimeout     a device did not answer in time
-    └── ToolError             an external program mocapd runs (Blender, for FBX) is missing or failed
+    ├── ToolError             an external program mocapd runs (Blender, for FBX) is missing or failed
+    └── RateLimitError        a request came sooner than its rate limit allows (HTTP 429; a heading reset flood)
 
 Parsers never raise on bad bytes: they count and resynchronise. Solvers never raise on numerical failure: they
 report it in their summary and keep the previous pose. These exceptions are for callers that passed something
@@ -60,3 +61,11 @@ class DeviceTimeout(DeviceError, TimeoutError):  # noqa: N818 (reads as a state,
 
 class ToolError(MocapdError):
     """An external program mocapd runs (Blender, for the FBX export) is missing, failed or timed out."""
+
+
+class RateLimitError(MocapdError):
+    """A request came sooner than its rate limit allows (the status server answers 429 with ``Retry-After``)."""
+
+    def __init__(self, message: str, retry_after_s: float) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s

@@ -11,7 +11,7 @@ import json
 import shutil
 import subprocess
 import tempfile
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -89,10 +89,11 @@ async def _pump(ws: ClientConnection) -> None:
 
 
 @contextlib.asynccontextmanager
-async def chromium_page(url: str) -> AsyncIterator[Page]:
-    """Launch headless Chromium with a fresh profile, open ``url``; closes the browser afterwards."""
+async def chromium_page(url: str, flags: Sequence[str] = ()) -> AsyncIterator[Page]:
+    """Launch headless Chromium with a fresh profile (and more command-line ``flags``, e.g.
+    ``--host-resolver-rules=MAP evil.example 127.0.0.1``), open ``url``; closes the browser afterwards."""
     profile = Path(tempfile.mkdtemp(prefix="mocapd-chromium-"))
-    proc = subprocess.Popen([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", "about:blank"],
+    proc = subprocess.Popen([CHROMIUM, *FLAGS, *flags, f"--user-data-dir={profile}", "about:blank"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     try:
         port_file = profile / "DevToolsActivePort"

@@ -585,6 +585,20 @@ FORMAT_CASES: dict[str, list[tuple[str, Any]]] = {
     "_distinct_names": [("udp.rokoko.actor_names", {"suit:a": "Alice", "suit:b": "Alice"})],
     "_host": [("websocket.host", "example.com"), ("websocket.host", "")],
     "_token": [("websocket.token", "a b"), ("websocket.token", "tab\there")],
+    "_web_host": [
+        ("web.allowed_hosts", ["evil.example:8766"]),
+        ("web.allowed_hosts", ["a b"]),
+        ("web.allowed_hosts", ["127.0.0.1"]),
+        ("web.allowed_hosts", ["-x.example"]),
+    ],
+    "_origin": [
+        ("web.allowed_origins", ["null"]),
+        ("web.allowed_origins", ["http://localhost:3000/"]),
+        ("web.allowed_origins", ["file://"]),
+        ("web.allowed_origins", ["http://localhost:99999"]),
+        ("web.allowed_origins", ["localhost:3000"]),
+        ("web.allowed_origins", ["http://a.example/x"]),
+    ],
     "_endpoint": [
         ("zenoh.listen", ["127.0.0.1:7447"]),
         ("zenoh.listen", ["udp/127.0.0.1:7447"]),

@@ -22,9 +22,12 @@ from mocapd.service.demo.synthetic import synthetic_config
 from mocapd.service.supervisor import Supervisor
 
 
-async def http_get(port: int, target: str, method: str = "GET") -> tuple[int, dict[str, str], bytes]:
+async def http_get(
+    port: int, target: str, method: str = "GET", headers: dict[str, str] | None = None
+) -> tuple[int, dict[str, str], bytes]:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
-    writer.write(f"{method} {target} HTTP/1.1\r\nHost: localhost\r\n\r\n".encode())
+    more = "".join(f"{k}: {v}\r\n" for k, v in (headers or {}).items())
+    writer.write(f"{method} {target} HTTP/1.1\r\nHost: localhost\r\n{more}\r\n".encode())
     await writer.drain()
     data = await reader.read()
     writer.close()

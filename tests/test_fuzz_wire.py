@@ -519,10 +519,11 @@ TOKEN = "s3cret"
 TARGETS = ["/", "/status", "/metrics", "/viewer.js", "/status?x=1", "/../../etc/passwd", "/%2e%2e/%2e%2e/etc/passwd",
            "//", "*", "http://127.0.0.1/status", f"/?token={TOKEN}", "/?token=wrong", "/?token=%ff%fe&token=",
            "/\u00e9", "/" + "a" * 9000, "/viewer.js?" + "&" * 3000]  # fmt: skip
-HEADER_NAMES = ["Host", "Upgrade", "Connection", "Authorization", "Sec-WebSocket-Key", "Sec-WebSocket-Version",
-                "Content-Length", "Transfer-Encoding", "X-" + "y" * 200]  # fmt: skip
-HEADER_VALUES = ["127.0.0.1", "websocket", "Upgrade", f"Bearer {TOKEN}", "Bearer \u00e9\u00ff", "Basic Zm9v",
-                 "dGhlIHNhbXBsZSBub25jZQ==", "13", "-1", "99999999999999999999", "chunked", "", "v" * 9000]  # fmt: skip
+HEADER_NAMES = ["Host", "Origin", "X-Mocapd-Request", "Upgrade", "Connection", "Authorization", "Sec-WebSocket-Key",
+                "Sec-WebSocket-Version", "Content-Length", "Transfer-Encoding", "X-" + "y" * 200]  # fmt: skip
+HEADER_VALUES = ["127.0.0.1", "evil.example", "http://evil.example", "null", "websocket", "Upgrade", f"Bearer {TOKEN}",
+                 "Bearer \u00e9\u00ff", "Basic Zm9v", "dGhlIHNhbXBsZSBub25jZQ==", "13", "-1", "99999999999999999999",
+                 "chunked", "", "v" * 9000]  # fmt: skip
 
 
 def http_requests() -> st.SearchStrategy[bytes]:
@@ -608,10 +609,12 @@ async def _status_server_round(requests: list[bytes]) -> None:
     port = await server.start()
     try:
         codes = [_status_code(await _exchange(port, r)) for r in requests]
-        assert set(codes) <= {200, 400, 404, 405, 431, None}, codes
+        assert set(codes) <= {200, 400, 403, 404, 405, 421, 431, None}, codes
         assert server.bad_requests == sum(1 for c in codes if c in (400, 431))  # every malformed one is counted
         assert server.requests == sum(1 for c in codes if c is not None)
-        ok = await _exchange(port, b"GET /status HTTP/1.1\r\nHost: x\r\n\r\n")
+        # every refusal is counted by reason: 421 a Host other than this machine's names, 403 a foreign Origin
+        assert server.refused.total == sum(1 for c in codes if c in (403, 421))
+        ok = await _exchange(port, b"GET /status HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
         assert _status_code(ok) == 200 and json.loads(ok.partition(b"\r\n\r\n")[2]) == {"ready": True, "n": 1}
     finally:
         await server.close()
@@ -634,12 +637,15 @@ async def _viewer_round(requests: list[bytes], token: str) -> None:
         answers = await asyncio.gather(*(_exchange(srv.port, r, websockets_server=True) for r in requests))
         codes = [_status_code(a) for a in answers]
         # None: websockets closed a request it could not parse (no HTTP answer); 500 would be a handler that failed
-        assert set(codes) <= {101, 200, 400, 401, 404, 405, 413, 414, 426, 431, 503, 505, None}, codes
+        assert set(codes) <= {101, 200, 400, 401, 403, 404, 405, 413, 414, 421, 426, 431, 503, 505, None}, codes
+        assert srv.refused["host"] == codes.count(421) and srv.refused["origin"] == codes.count(403)
         assert srv.refused["unauthorised"] == codes.count(401) and srv.refused["not_found"] == codes.count(404)
         files = {body for _, body in load_web_files().values()}  # a 200 is one of the viewer's files, nothing else
         assert all(a.partition(b"\r\n\r\n")[2] in files for a, c in zip(answers, codes, strict=True) if c == 200)
         q = f"?token={token}" if token else ""
-        page = await _exchange(srv.port, f"GET /{q} HTTP/1.1\r\nHost: x\r\n\r\n".encode(), websockets_server=True)
+        page = await _exchange(
+            srv.port, f"GET /{q} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode(), websockets_server=True
+        )
         assert _status_code(page) == 200 and b"viewer.js" in page
         async with asyncio.timeout(5):
             while srv.clients:  # the handshakes that succeeded above have gone

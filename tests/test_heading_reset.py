@@ -45,6 +45,7 @@ from tests.test_daemon import Recorder, http_get
 
 S = 1_000_000_000
 G = 9.80665
+ASK = {"X-Mocapd-Request": "test"}  # what a state change needs (no web page of another site can send it)
 
 
 # ------------------------------------------------------------------------------------------------ pure parts
@@ -182,7 +183,9 @@ async def _settled(rec: Recorder, kin: Kinematics, after: int, frames: int = 20)
     return _headings(rec, kin)
 
 
-def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -> None:
+def test_a_running_daemon_resets_headings_when_asked_every_way(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
+) -> None:
     """One IMU-only daemon, a SlimeVR suit whose trackers' headings are off by up to ±40° (one drifting 30°/min).
     Each way of asking resets every solved bone to face forward again: HTTP, ``mocapd reset-heading``, the
     WebSocket, a tracker's reset button (packet 21), its firmware's double tap (packet 13), two taps on the chest
@@ -200,7 +203,8 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -
     sv = base.imu.slimevr.model_copy(update={"enabled": True, "port": 0, "reset_delay_s": 0.05})
     cfg = base.model_copy(update={
         "imu": base.imu.model_copy(update={"slimevr": sv, "calibration_dir": str(folder)}),
-        "daemon": base.daemon.model_copy(update={"http_port": 0}),
+        # six resets in a few seconds, one per way of asking (the rate limit has its own test)
+        "daemon": base.daemon.model_copy(update={"http_port": 0, "heading_reset_burst": 10}),
         "websocket": base.websocket.model_copy(update={"port": 0}),
     })  # fmt: skip
     drift = np.linspace(-40.0, 40.0, 13)
@@ -236,7 +240,7 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -
                 return result
 
             async def http() -> Any:
-                code, _, body = await http_get(d.http.port, "/heading/reset", method="POST")
+                code, _, body = await http_get(d.http.port, "/heading/reset", method="POST", headers=ASK)
                 assert code == 200
                 return json.loads(body)
 
@@ -272,9 +276,39 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -
                     await asyncio.sleep(0.15)
 
             await check(chest_taps, "2 taps on")
-            code, _, body = await http_get(d.http.port, "/heading/reset?suit=nobody", method="POST")
+            code, _, body = await http_get(d.http.port, "/heading/reset?suit=nobody", method="POST", headers=ASK)
             assert code == 400 and "no suit 'nobody'" in json.loads(body)["error"]
             st = json.loads((await http_get(d.http.port, "/status"))[2])
+            # Each reset asked over the network is a warning naming the peer (and the CLI by name).
+            said = [
+                r.getMessage()
+                for r in caplog.records
+                if r.levelname == "WARNING" and "heading reset (" in r.getMessage()
+            ]
+            assert any(m.startswith("heading reset (HTTP request from 127.0.0.1:") and "(test))" in m for m in said)
+            assert any("(mocapd reset-heading)" in m for m in said) and any("WebSocket client" in m for m in said)
+            # A flood (the probe's 300 POSTs all 200, 50 resets a second on one socket): the burst, then 429s; the
+            # WebSocket and the CLI share the limit.
+            flood = [(await http_get(d.http.port, "/heading/reset", method="POST", headers=ASK)) for _ in range(30)]
+            codes = [c for c, _, _ in flood]
+            assert set(codes) == {200, 429} and codes.count(429) >= 15, codes
+            refused = next(f for f in flood if f[0] == 429)
+            assert "heading_reset_burst" in json.loads(refused[2])["error"] and int(refused[1]["Retry-After"]) >= 1
+            async with connect(ws_url) as c:
+                for _ in range(5):
+                    await c.send(json.dumps({"type": "reset_heading"}))
+                errors: list[str] = []
+                while len(errors) < 5:
+                    msg = msgpack.unpackb(await asyncio.wait_for(c.recv(), 10))
+                    if msg["type"] == "error":
+                        errors.append(msg["code"])
+            assert errors == ["rate_limited"] * 5
+            capsys.readouterr()
+            assert await loop.run_in_executor(None, main, ["reset-heading", "--http-port", str(d.http.port)]) == 2
+            assert "heading reset refused" in capsys.readouterr().err
+            after = json.loads((await http_get(d.http.port, "/status"))[2])
+            assert after["heading_resets_refused"] == codes.count(429) + 5 + 1
+            assert len(after["heading_resets"]) == 10  # the last ten, flood included
         finally:
             sender.cancel()
             trackers.close()

@@ -295,7 +295,7 @@ async def test_bytes_after_a_request_head_are_dropped_not_a_traceback(caplog: py
     try:
         for tail in (b"\x00\x00", b"GET / HTTP/1.1\r\n\r\n", b"x"):
             reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
-            writer.write(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n" + tail)
+            writer.write(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n" + tail)
             async with asyncio.timeout(5):
                 answer = await reader.read()
             writer.close()

@@ -86,6 +86,7 @@ async def bench(seconds: float, concurrency: int, people: int, rounds: int, extr
     from mocapd.service.assembly import RunOptions, assembled
     from mocapd.service.config import load_config
     from mocapd.service.demo.synthetic import synthetic_config
+    from mocapd.service.http_status import Reply
 
     cfg = load_config()
     cfg = cfg.model_copy(
@@ -106,10 +107,10 @@ async def bench(seconds: float, concurrency: int, people: int, rounds: int, extr
         respond = d.http._respond
         spent = [0]
 
-        def timed_respond(head: bytes) -> tuple[str, str, bytes]:
+        def timed_respond(head: bytes, peer: str) -> Reply:
             t = time.thread_time_ns()
             try:
-                return respond(head)
+                return respond(head, peer)
             finally:
                 spent[0] += time.thread_time_ns() - t
 

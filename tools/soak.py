@@ -27,6 +27,12 @@ every door at once:
   (``zenoh_delivered_hz``) and its clock offset (0 on one machine) show whether the rogue got through;
 - HTTP: /status and /metrics polling, and bad requests (garbage request lines, oversized headers, POST, unknown
   paths, half-sent requests that stall) to the status server; viewer file-server requests with path traversal;
+- the web surface (issue 45): pages of other sites opening the WebSocket (``Origin: null``, a foreign origin, a
+  rebound ``Host: evil.example``), 5 a second, each of which must be refused (``web_ws_opened`` counts breaches);
+  heading-reset floods, 10 POSTs a second: the simple requests a page can send (``text/plain``, a form, a foreign
+  Origin: 403), a rebound Host (421), and POSTs with ``X-Mocapd-Request`` (200 within the rate limit, else 429);
+  one WebSocket asking ``reset_heading`` 20 times a second (``rate_limited``); /status polled under a rebound Host
+  (421); the daemon's heading resets a minute (``web.resets_per_min``) show the limit holding;
 - every ``--cli-every`` seconds, hostile file commands in child processes (``nice 10``): ``mocapd import mtw`` of a
   FIFO, of a link to ``/dev/zero``, of an export of zero quaternions, with an absurd update rate, a backwards
   counter; ``mocapd import mvnx`` of a FIFO; ``mocapd export`` to ``/dev/full``, a directory, a missing folder, one
@@ -167,10 +173,30 @@ def _viewer_request(rng: random.Random) -> bytes:
     return f"GET {path} HTTP/1.1\r\nHost: localhost\r\n\r\n".encode()
 
 
+#: the heading-reset requests of the web attackers: (label, extra header lines) with a body where a page sends one
+_RESET_KINDS = {
+    "reset_text": "Content-Type: text/plain\r\nContent-Length: 5\r\n\r\nreset",
+    "reset_form": "Content-Type: application/x-www-form-urlencoded\r\nContent-Length: 6\r\n\r\nsuit=x",
+    "reset_origin": "Origin: http://evil.example\r\nX-Mocapd-Request: 1\r\n\r\n",
+    "reset_asked": "X-Mocapd-Request: soak\r\n\r\n",
+}
+#: attacker counters that mean a web attack got through (each must stay 0)
+WEB_BREACHES = ("web_ws_opened", "reset_text_200", "reset_form_200", "reset_origin_200", "reset_rebound_200",
+                "poll_rebound_200")  # fmt: skip
+
+
+def _reset_request(rng: random.Random, port: int) -> tuple[str, bytes]:
+    kind = rng.choice([*_RESET_KINDS, "reset_rebound", "reset_asked"])
+    host = f"evil.example:{port}" if kind == "reset_rebound" else f"127.0.0.1:{port}"
+    rest = _RESET_KINDS.get(kind, "X-Mocapd-Request: 1\r\n\r\n")
+    return kind, f"POST /heading/reset HTTP/1.1\r\nHost: {host}\r\n{rest}".encode()
+
+
 async def _attack(ports: dict[str, int], seconds: float, seed: int) -> None:
     import msgpack
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
+    from websockets.typing import Origin
 
     rng = random.Random(seed)
     c: Counter[str] = Counter()
@@ -255,7 +281,56 @@ async def _attack(ports: dict[str, int], seconds: float, seed: int) -> None:
         while time.monotonic() < end:
             target = rng.choice(["/status", "/metrics"])
             await tcp("http", f"GET {target} HTTP/1.1\r\nHost: localhost\r\n\r\n".encode(), f"poll{target[1:]}")
+            if rng.random() < 0.2:  # a rebound name reading the device paths: 421
+                await tcp("http", f"GET /status HTTP/1.1\r\nHost: evil.example:{ports['http']}\r\n\r\n".encode(),
+                          "poll_rebound")  # fmt: skip
             await asyncio.sleep(0.1)
+
+    async def web_ws_foreign() -> None:
+        """Other sites' pages opening the WebSocket, 5 a second: every handshake must be refused."""
+        port = ports["ws"]
+        while time.monotonic() < end:
+            kind = rng.choice(["null", "foreign", "rebound"])
+            uri = f"ws://evil.example:{port}/" if kind == "rebound" else f"ws://127.0.0.1:{port}/"
+            origin = {"null": "null", "foreign": "http://evil.example", "rebound": f"http://evil.example:{port}"}[kind]
+            try:
+                async with connect(uri, host="127.0.0.1", port=port, origin=Origin(origin), open_timeout=5,
+                                   close_timeout=1) as ws:  # fmt: skip
+                    c["web_ws_opened"] += 1  # a breach: it would read poses and camera images
+                    await ws.send(json.dumps({"type": "subscribe", "cameras": True}))
+            except InvalidStatus as exc:
+                c[f"web_ws_refused_{exc.response.status_code}"] += 1
+            except (OSError, InvalidHandshake, TimeoutError, ConnectionClosed) as exc:
+                c[f"web_ws_error:{type(exc).__name__}"] += 1
+            await asyncio.sleep(0.2)
+
+    async def reset_flood() -> None:
+        """Heading-reset POSTs, 10 a second: a page's simple requests and a rebound Host (refused), and asked
+        ones with the header (the rate limit's 200s and 429s)."""
+        while time.monotonic() < end:
+            label, request = _reset_request(rng, ports["http"])
+            await tcp("http", request, label)
+            await asyncio.sleep(0.1)
+
+    async def ws_reset_flood() -> None:
+        """One WebSocket asking for a heading reset 20 times a second (answered, or rate_limited)."""
+        while time.monotonic() < end:
+            try:
+                async with connect(f"ws://127.0.0.1:{ports['ws']}/", max_size=None, open_timeout=10) as ws:
+                    await ws.send(json.dumps({"type": "subscribe", "subjects": ["nobody"], "status": False}))
+                    for _ in range(100):
+                        await ws.send(json.dumps({"type": "reset_heading"}))
+                        with contextlib.suppress(TimeoutError):
+                            async with asyncio.timeout(0.05):
+                                while True:
+                                    m = msgpack.unpackb(await ws.recv())
+                                    if m.get("type") == "heading_reset":
+                                        c["ws_reset_done"] += 1
+                                    elif m.get("type") == "error":
+                                        c[f"ws_reset_{m.get('code')}"] += 1
+            except (OSError, ConnectionClosed, InvalidHandshake, TimeoutError) as exc:
+                c[f"ws_reset_error:{type(exc).__name__}"] += 1
+                await asyncio.sleep(0.5)
 
     async def http_bad() -> None:
         tasks: set[asyncio.Task[None]] = set()
@@ -286,6 +361,9 @@ async def _attack(ports: dict[str, int], seconds: float, seed: int) -> None:
             *([] if zenoh_side is None else [zenoh_side.run(end)]),
             http_polling(),
             http_bad(),
+            web_ws_foreign(),
+            reset_flood(),
+            ws_reset_flood(),
             report(),
         )
     finally:
@@ -750,6 +828,12 @@ async def soak(
                 "sensors": len(st["imu"]["sensors"]),
                 "status_bytes": len(d.http.snapshots.status_json()) if hasattr(d.http, "snapshots") else None,
                 "imu_disconnects": sum(x["disconnects"] for x in st["imu"]["devices"]),
+                "web": {
+                    "http_refused": st["http_refused"],
+                    "ws_refused": {k: ws_stats["refused"][k] for k in ("host", "origin")},
+                    "resets": d.reset_limit.allowed,
+                    "resets_refused": d.reset_limit.refused,
+                },
             }
 
         t_start = time.monotonic()
@@ -786,6 +870,11 @@ async def soak(
                 "zenoh_delivered_hz": round((cur["zenoh"]["delivered"] - prev["zenoh"]["delivered"]) / dt, 2),
                 "log_lines_per_min": round((cur["log_lines"] - prev["log_lines"]) * 60.0 / dt, 1),
                 "cli": cur["cli"],
+                "web": {
+                    **cur["web"],
+                    "resets_per_min": round((cur["web"]["resets"] - prev["web"]["resets"]) * 60 / dt, 1),
+                    "breaches": sum(latest.get(k, 0) for k in WEB_BREACHES),
+                },
                 "loadavg": os.getloadavg(),
                 "log_errors": logs.errors,
                 "log_tracebacks": logs.tracebacks,
@@ -824,6 +913,9 @@ async def soak(
         "log_lines_per_min_max": max((x["log_lines_per_min"] for x in lines), default=None),
         "slimevr_good_hz_min": min((x["slimevr_good_hz"] for x in lines), default=None),
         "zenoh_delivered_hz_min": min((x["zenoh_delivered_hz"] for x in lines), default=None),
+        "web_breaches": lines[-1]["web"]["breaches"] if lines else None,
+        "web_resets_per_min_max": max((x["web"]["resets_per_min"] for x in lines), default=None),
+        "web_refused_end": lines[-1]["web"] if lines else None,
         "cli": dict(cli_counts),
         "cli_failures": cli_failures[:10],
         "log_errors": logs.errors,

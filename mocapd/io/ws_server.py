@@ -21,6 +21,11 @@ clients due one, on their ordinary bounded queues (a slow client loses its own o
 Plain HTTP GETs on the same port (no ``Upgrade: websocket``) serve the viewer (``/`` and ``/viewer.js`` from
 ``mocapd/web/``); everything else is 404. With a token configured, both the page and the stream need it
 (``?token=...`` in the URL or ``Authorization: Bearer ...``), checked in constant time.
+
+Every request, page or handshake, must name this machine in its ``Host`` (421 otherwise: DNS rebinding) and come
+from no web page, the viewer's own origin or a configured one (403 otherwise: another site's page, a ``file://``
+page), :mod:`mocapd.protocols.web_access`: so the poses, the camera images and the heading reset are out of reach
+of pages from anywhere else.
 """
 
 from __future__ import annotations
@@ -48,10 +53,11 @@ from websockets.protocol import State
 
 from mocapd.core.per_skeleton import skeleton_key
 from mocapd.core.skeleton import Skeleton
-from mocapd.errors import ConfigError, MocapdError
+from mocapd.errors import ConfigError, MocapdError, RateLimitError
 from mocapd.io import ports
 from mocapd.io.rejections import Rejections
 from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
+from mocapd.protocols.web_access import WebAccess
 from mocapd.protocols.ws_stream import (
     ClientSession,
     FrameEncoder,
@@ -84,6 +90,8 @@ def listen_error(host: str, port: int, exc: OSError) -> ConfigError:
 
 
 MAX_SKELETONS = 64  # per-person skeletons kept for the hello before old ones are forgotten
+#: the daemon's side of a client request: its arguments and who asked in, a JSON-able answer out
+Command = Callable[[dict[str, Any], str], Any]
 
 
 class _Client:
@@ -131,6 +139,10 @@ class ServerSettings:
     status_hz: float = 1.0
     viewer: bool = True
     defaults: StreamOptions = dataclasses.field(default_factory=StreamOptions)
+    allowed_hosts: tuple[str, ...] = ()
+    """More Host names than this machine's addresses (``[web] allowed_hosts``)."""
+    allowed_origins: tuple[str, ...] = ()
+    """More origins than the viewer's own whose pages may connect (``[web] allowed_origins``)."""
 
 
 class WebSocketStreamServer:
@@ -149,7 +161,8 @@ class WebSocketStreamServer:
     sock : socket, optional
         Serve on this listening socket instead of binding ``settings.host:port``.
     commands : mapping, optional
-        The daemon's side of client requests (``"reset_heading"`` -> a function of the request's arguments).
+        The daemon's side of client requests (``"reset_heading"`` -> a function of the request's arguments and
+        who asked, e.g. "WebSocket client 3 from 127.0.0.1:40312").
     """
 
     name = "websocket"
@@ -164,12 +177,15 @@ class WebSocketStreamServer:
         clock: Callable[[], int] = time.monotonic_ns,
         sock: socket.socket | None = None,
         camera_views: CameraViews | None = None,
-        commands: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
+        commands: Mapping[str, Command] | None = None,
     ) -> None:
         self.settings = settings
         self.camera_views = camera_views
         #: what clients may ask the daemon for (``reset_heading``), each called on the event loop with the request
-        self.commands: Mapping[str, Callable[[dict[str, Any]], Any]] = commands if commands is not None else {}
+        self.commands: Mapping[str, Command] = commands if commands is not None else {}
+        bound = str(sock.getsockname()[0]) if sock is not None else settings.host
+        #: the Host and Origin rules: this machine's names, the viewer's own origin and the configured ones
+        self.access = WebAccess(bound, settings.allowed_hosts, settings.allowed_origins)
         if camera_views is not None:
             description = dataclasses.replace(
                 description, cameras=tuple((c.name, c.width, c.height) for c in camera_views.cameras),
@@ -191,7 +207,9 @@ class WebSocketStreamServer:
         self.clients: set[_Client] = set()
         self.frames_published = 0
         self.non_finite = 0
-        self.refused = {"unauthorised": 0, "full": 0, "not_found": 0, "bad_request": 0}
+        self.refused = {"unauthorised": 0, "full": 0, "not_found": 0, "bad_request": 0, "host": 0, "origin": 0}
+        #: pages and handshakes refused for their Host or Origin (logged at most once per 10 s)
+        self.foreign = Rejections("websocket server", log)
         #: client requests answered with an error, per error code (every client's, also after it left)
         self.rejected = Rejections("websocket", log)
         self._connections = 0
@@ -338,6 +356,22 @@ class WebSocketStreamServer:
             offered = auth[len("Bearer ") :]
         return hmac.compare_digest(offered.encode(), token.encode())
 
+    def _foreign(self, conn: ServerConnection, request: Request) -> Response | None:
+        """The answer to a request from another site (a foreign Host: 421; a foreign Origin: 403) or without the
+        token (401), counted; None for the rest."""
+        host, origin = request.headers.get_all("Host"), request.headers.get_all("Origin")
+        why = self.access.refusal(host, origin)
+        if why is None:
+            if self._authorised(request):
+                return None
+            self.refused["unauthorised"] += 1
+            return conn.respond(HTTPStatus.UNAUTHORIZED, "a token is required: ?token=... or Authorization: Bearer\n")
+        self.refused[why] += 1
+        self.foreign.reject(why, f"{request.path[:80]}: Host {host}, Origin {origin}, from {_peer(conn)}")
+        if why == "host":
+            return conn.respond(HTTPStatus.MISDIRECTED_REQUEST, "this server answers only to its own names\n")
+        return conn.respond(HTTPStatus.FORBIDDEN, "pages from other sites may not connect\n")
+
     def _process_request(self, conn: ServerConnection, request: Request) -> Response | Coroutine[Any, Any, None] | None:
         if conn.protocol.eof_sent:
             # Bytes that are not a WebSocket frame followed the request head (a body, pipelined requests): the
@@ -345,9 +379,9 @@ class WebSocketStreamServer:
             # any answer ("unexpected internal error", a traceback per request). Drop the connection unanswered.
             self.refused["bad_request"] += 1
             return _drop(conn)
-        if not self._authorised(request):
-            self.refused["unauthorised"] += 1
-            return conn.respond(HTTPStatus.UNAUTHORIZED, "a token is required: ?token=... or Authorization: Bearer\n")
+        refused = self._foreign(conn, request)
+        if refused is not None:
+            return refused
         if request.headers.get("Upgrade", "").lower() != "websocket":
             page = self._web.get(request.path.partition("?")[0])
             if page is None:
@@ -387,7 +421,7 @@ class WebSocketStreamServer:
                     self.rejected.reject(error.code, f"client {client.number}: {error}")
                 client.control.extend(session.messages_to_send())
                 for name, args in session.commands_received():
-                    client.control.append(self._command(session, name, args))
+                    client.control.append(self._command(session, name, args, self._who(client, conn)))
                 if len(client.control) > CONTROL_LIMIT:
                     await conn.close(1008, "too many unanswered requests")
                     break
@@ -404,13 +438,22 @@ class WebSocketStreamServer:
             with contextlib.suppress(asyncio.CancelledError):
                 await sender
 
-    def _command(self, session: ClientSession, name: str, args: dict[str, Any]) -> Message:
+    @staticmethod
+    def _who(client: _Client, conn: ServerConnection) -> str:
+        """A client as the log names who asked: its number, address and the page's origin (if a page)."""
+        origin = conn.request.headers.get("Origin") if conn.request is not None else None
+        return f"WebSocket client {client.number} from {_peer(conn)}" + (f", page {origin[:80]!r}" if origin else "")
+
+    def _command(self, session: ClientSession, name: str, args: dict[str, Any], who: str) -> Message:
         """Carry out a client's request for the daemon (a heading reset) and answer it."""
         handler = self.commands.get(name)
         if handler is None:
             return session.error("unsupported", f"{name}: this server has no daemon to ask (a replay?)")
         try:
-            result = handler(args)
+            result = handler(args, who)
+        except RateLimitError as exc:
+            self.rejected.reject("rate_limited", f"{who}: {exc}")
+            return session.error("rate_limited", str(exc))
         except MocapdError as exc:
             return session.error("failed", str(exc))
         return session.reply({"reset_heading": "heading_reset"}.get(name, name), result)
@@ -484,6 +527,13 @@ class WebSocketStreamServer:
             # 100 s must not hold back the next client's 4 Hz).
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._camera_wake.wait(), 1.0 / rate)
+
+
+def _peer(conn: ServerConnection) -> str:
+    peer = conn.remote_address
+    if isinstance(peer, tuple) and len(peer) >= 2:
+        return f"[{peer[0]}]:{peer[1]}" if ":" in str(peer[0]) else f"{peer[0]}:{peer[1]}"
+    return "?"
 
 
 async def _drop(conn: ServerConnection) -> None:

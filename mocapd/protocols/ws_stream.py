@@ -145,8 +145,9 @@ straight facing forward; every sensor of the suit is turned about the vertical s
     suit            str | nil   the suit to reset (nil or absent: every suit)
 
 answered with ``heading_reset`` (``t_ns``, ``source``, ``suits``: per suit ``corrections_deg`` per sensor and
-``no_recent_sample``, the sensors left alone), or with an ``error`` (code ``failed``: no such suit; ``unsupported``:
-a server without a daemon, e.g. a replay).
+``no_recent_sample``, the sensors left alone), or with an ``error`` (code ``failed``: no such suit; ``rate_limited``:
+more resets than ``[daemon] heading_reset_burst`` / ``heading_resets_per_s`` allow; ``unsupported``: a server without
+a daemon, e.g. a replay).
 
 Encoding cost: :class:`FrameEncoder` converts each subject once per convention and encodes each distinct
 (encoding, convention, globals, subjects) once per frame, whatever the number of clients.

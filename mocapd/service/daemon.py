@@ -36,6 +36,7 @@ from mocapd.core.lr_flips import warm_up as warm_up_flip_search
 from mocapd.core.people import PeopleTracker
 from mocapd.core.plausibility import first_events
 from mocapd.core.prior import PcaPrior
+from mocapd.core.rate_limit import TokenBucket
 from mocapd.core.rotations import quat_conjugate, quat_multiply, quat_normalize
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.solver import Observations, PoseSolver
@@ -44,7 +45,7 @@ from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.taps import TapOptions
 from mocapd.core.tracking import SubjectTracker
 from mocapd.core.yaw_drift import StillDrift
-from mocapd.errors import ConfigError, DeviceError, InputError
+from mocapd.errors import ConfigError, DeviceError, InputError, RateLimitError
 from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
 from mocapd.io.os_threads import worker_thread_setup
@@ -232,6 +233,8 @@ class Daemon:
         self.reset_log: list[dict[str, Any]] = []
         self.still_drift = StillDrift()
         self._reset_timers: dict[str | None, asyncio.TimerHandle] = {}  # per suit: a reset asked, still waiting
+        #: every source's heading resets together (a flood from any door would spin the suit's heading around)
+        self.reset_limit = TokenBucket(d.heading_resets_per_s, d.heading_reset_burst, clock())
         self._implausible_said: set[tuple[str, str]] = set()  # (person, check) already warned about
         self._watch_gestures(config, rig.suits)
         #: more sections of /status (name -> provider), e.g. the camera demo's fake cameras
@@ -274,10 +277,12 @@ class Daemon:
         self.governor = Governor(self.scheduler.options.period_ns, start_ns=clock()) if d.governor else None
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
-        self.actions: dict[str, Callable[[dict[str, str]], Any]] = {
-            "/heading/reset": lambda q: self.reset_heading(q.get("suit") or None, "HTTP request"),
+        self.actions: dict[str, Callable[[dict[str, str], str], Any]] = {
+            "/heading/reset": lambda q, who: self.reset_heading(q.get("suit") or None, who, remote=True),
         }
-        self.http = StatusServer(self.status, render_metrics, d.http_host, d.http_port, actions=self.actions)
+        self.http = StatusServer(self.status, render_metrics, d.http_host, d.http_port, actions=self.actions,
+                                 allowed_hosts=config.web.allowed_hosts,
+                                 allowed_origins=config.web.allowed_origins)  # fmt: skip
         self.plan: TickPlan | None = None
         self.latest: PoseFrame | None = None
         self.started_ns = clock()
@@ -295,22 +300,39 @@ class Daemon:
         self._stop.set()
 
     # ------------------------------------------------------------------------------------------ heading reset
-    def reset_heading(self, suit: str | None = None, source: str = "request") -> dict[str, Any]:
+    def reset_heading(
+        self, suit: str | None = None, source: str = "request", *, remote: bool = False
+    ) -> dict[str, Any]:
         """Heading reset (:mod:`mocapd.core.heading_reset`): the wearer stands straight facing forward (the way they
         faced at calibration); every sensor of ``suit`` (default: every suit) is turned about the vertical so its
         bone faces forward, from its newest sample on, the buffered samples included. Returns what was done per
         suit and sensor (the correction in degrees; sensors without a sample in the last second are left alone).
 
+        ``source`` says who asked, in the log and in /status (``heading_resets``); a reset asked over the network
+        (``remote``: HTTP, the WebSocket) is logged as a warning, so it shows without ``--verbose``. Every source
+        shares one rate limit (``[daemon] heading_reset_burst``, ``heading_resets_per_s``).
+
         Raises
         ------
         InputError
             ``suit`` is not a suit of this rig, or the rig has none.
+        RateLimitError
+            More resets than the rate limit allows (nothing is turned).
         """
         suits = [s for s in self.rig.suits if suit in (None, s.id)]
         if not suits:
             have = ", ".join(s.id for s in self.rig.suits) or "none: calibrate one with `mocapd calibrate imu`"
             raise InputError(f"no suit {suit!r} to reset (suits: {have})" if suit else f"no suit to reset ({have})")
         now = self.clock()
+        wait = self.reset_limit.take(now)
+        if wait > 0:
+            limits = self.config.daemon
+            raise RateLimitError(
+                f"heading reset refused: more than {limits.heading_reset_burst} at once or "
+                f"{limits.heading_resets_per_s:g} a second ([daemon] heading_reset_burst, heading_resets_per_s); the "
+                f"next in {wait:.1f} s",
+                wait,
+            )
         done: dict[str, Any] = {}
         for s in suits:
             with self.scheduler.lock:  # the tick thread updates the estimates
@@ -338,9 +360,10 @@ class Daemon:
         self.reset_log = [*self.reset_log[-9:], entry]
         for sid, d in done.items():
             worst = max((abs(v) for v in d["corrections_deg"].values()), default=0.0)
-            log.info("heading reset (%s): suit %s, %d sensor(s) turned, at most %.1f deg%s", source, sid,
-                        len(d["corrections_deg"]), worst, f"; no recent sample: {d['no_recent_sample']}"
-                        if d["no_recent_sample"] else "")  # fmt: skip
+            log.log(logging.WARNING if remote else logging.INFO,
+                     "heading reset (%s): suit %s, %d sensor(s) turned, at most %.1f deg%s", source, sid,
+                     len(d["corrections_deg"]), worst, f"; no recent sample: {d['no_recent_sample']}"
+                     if d["no_recent_sample"] else "")  # fmt: skip
         return entry
 
     def request_reset(self, suit: str | None, source: str, delay_s: float) -> None:
@@ -353,8 +376,12 @@ class Daemon:
 
         def fire() -> None:
             self._reset_timers.pop(suit, None)
-            with contextlib.suppress(InputError):  # the suit's sensors are gone: nothing to reset
+            try:
                 self.reset_heading(suit, source)
+            except InputError:  # the suit's sensors are gone: nothing to reset
+                pass
+            except RateLimitError as exc:  # a tracker's gestures share the limit: said, and nothing turned
+                log.warning("%s: %s", source, exc)
 
         self._reset_timers[suit] = loop.call_later(delay_s, fire)
 
@@ -700,6 +727,8 @@ class Daemon:
             "imu_lookups": s["imu_samples"],
             "imu_heading": self.heading_status(),
             "heading_resets": [{**r, "s_ago": round((self.clock() - r["t_ns"]) / 1e9, 1)} for r in self.reset_log],
+            "heading_resets_refused": self.reset_limit.refused,  # over the rate limit
+            "http_refused": self.http.refused.as_dict(),  # foreign Host or Origin, POSTs without X-Mocapd-Request
             "plausibility": s["plausibility"],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},

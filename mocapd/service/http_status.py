@@ -4,6 +4,13 @@ daemon's few actions (``POST /heading/reset``).
 asyncio streams, GET (and POST to an action's path), one request per connection (``Connection: close``); requests
 are bounded in size and time so a stuck client cannot hold the daemon.
 
+Only requests that name this machine are served (:mod:`mocapd.protocols.web_access`): a ``Host`` other than a
+loopback address, ``localhost`` or a configured name is a 421 (DNS rebinding), an ``Origin`` other than the
+server's own or a configured one a 403 (another site's page, a ``file://`` page), and a POST without the
+``X-Mocapd-Request`` header a 403 (no simple cross-origin request can change the daemon's state). An action that
+is asked too often (:class:`~mocapd.errors.RateLimitError`) is a 429 with ``Retry-After``. Refusals are counted
+by reason (``refused``) and logged at most once per 10 s.
+
 The server shares the event loop with the output tick, so what a request costs must not grow with how often
 clients ask: requests are answered from a **snapshot** — the status document taken at most ``max_hz`` times a
 second (when a request finds the last one older than ``1 / max_hz``), its JSON and its Prometheus text each
@@ -18,24 +25,37 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import socket
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 from urllib.parse import parse_qs
 
-from mocapd.errors import MocapdError
+from mocapd.errors import MocapdError, RateLimitError
 from mocapd.io import ports
+from mocapd.io.rejections import Rejections
+from mocapd.protocols.web_access import REQUEST_HEADER, WebAccess
 from mocapd.service.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 
 log = logging.getLogger(__name__)
 
-#: a POST action: the query's parameters in, a JSON-able result out (MocapdError: a 400 with its message)
-Action = Callable[[dict[str, str]], Any]
+#: a POST action: the query's parameters and who asked (for the log: "HTTP request from 127.0.0.1:40312
+#: (mocapd reset-heading)") in, a JSON-able result out (MocapdError: a 400 with its message; RateLimitError: 429)
+Action = Callable[[dict[str, str], str], Any]
 MAX_REQUEST = 8192
 READ_TIMEOUT_S = 2.0
 #: snapshots a second at most (a monitoring poll every 250 ms sees every change; a flood of polls costs 4 renders/s)
 MAX_SNAPSHOT_HZ = 4.0
+
+
+class Reply(NamedTuple):
+    """One answer: status line, content type, body, and more header lines (each ending in CRLF)."""
+
+    status: str
+    ctype: str
+    body: bytes
+    headers: str = ""
 
 
 class Snapshots:
@@ -124,14 +144,21 @@ class StatusServer:
         max_hz: float = MAX_SNAPSHOT_HZ,
         clock: Callable[[], int] = time.monotonic_ns,
         actions: Mapping[str, Action] | None = None,
+        allowed_hosts: tuple[str, ...] = (),
+        allowed_origins: tuple[str, ...] = (),
     ) -> None:
         self.snapshots = Snapshots(status, metrics, max_hz, clock)
         #: POST paths -> what they do (called with the query's parameters on the event loop; a JSON-able result)
         self.actions: Mapping[str, Action] = actions if actions is not None else {}
         self._sock = sock
         self.host, self.port = (str(sock.getsockname()[0]), int(sock.getsockname()[1])) if sock else (host, port)
+        #: the Host and Origin rules (``[web]``): names of this machine, the server's own origin and configured ones
+        self.access = WebAccess(self.host, allowed_hosts, allowed_origins)
         self.requests = 0
         self.bad_requests = 0
+        #: requests refused for their Host ("host"), Origin ("origin"), a POST without REQUEST_HEADER ("csrf") or
+        #: too many of an action ("rate")
+        self.refused = Rejections("status server", log)
         self._server: asyncio.Server | None = None
 
     async def start(self) -> int:
@@ -165,14 +192,14 @@ class StatusServer:
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
             head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), READ_TIMEOUT_S)
-            status, ctype, body = self._respond(head)
+            status, ctype, body, extra = self._respond(head, _peer(writer))
         except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError, ConnectionError):
             self.bad_requests += 1
-            status, ctype, body = "400 Bad Request", "text/plain", b"bad request\n"
+            status, ctype, body, extra = Reply("400 Bad Request", "text/plain", b"bad request\n")
         self.requests += 1
         writer.write(
             f"HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
-            "Connection: close\r\nCache-Control: no-store\r\n\r\n".encode()
+            f"Connection: close\r\nCache-Control: no-store\r\n{extra}\r\n".encode()
             + body
         )
         with contextlib.suppress(ConnectionError):
@@ -181,33 +208,86 @@ class StatusServer:
         with contextlib.suppress(ConnectionError):
             await writer.wait_closed()
 
-    def _act(self, target: str, query: str) -> tuple[str, str, bytes]:
+    def _act(self, target: str, query: str, who: str) -> Reply:
         params = {k: v[-1] for k, v in parse_qs(query).items()}
         try:
-            result = self.actions[target](params)
+            result = self.actions[target](params, who)
+        except RateLimitError as exc:
+            self.refused.reject("rate", f"{target} by {who}: {exc}")
+            body = json.dumps({"error": str(exc), "retry_after_s": round(exc.retry_after_s, 2)}).encode() + b"\n"
+            return Reply(
+                "429 Too Many Requests", "application/json", body, f"Retry-After: {math.ceil(exc.retry_after_s)}\r\n"
+            )
         except MocapdError as exc:
-            return "400 Bad Request", "application/json", json.dumps({"error": str(exc)}).encode() + b"\n"
-        return "200 OK", "application/json", json.dumps(result, indent=1).encode() + b"\n"
+            return Reply("400 Bad Request", "application/json", json.dumps({"error": str(exc)}).encode() + b"\n")
+        return Reply("200 OK", "application/json", json.dumps(result, indent=1).encode() + b"\n")
 
-    def _respond(self, head: bytes) -> tuple[str, str, bytes]:
+    def _respond(self, head: bytes, peer: str) -> Reply:
         if len(head) > MAX_REQUEST:
             self.bad_requests += 1
-            return "431 Request Header Fields Too Large", "text/plain", b"request too large\n"
-        parts = head.split(b"\r\n", 1)[0].decode("latin-1").split(" ")
+            return Reply("431 Request Header Fields Too Large", "text/plain", b"request too large\n")
+        first, _, rest = head.partition(b"\r\n")
+        parts = first.decode("latin-1").split(" ")
         if len(parts) != 3 or not parts[2].startswith("HTTP/1."):
             self.bad_requests += 1
-            return "400 Bad Request", "text/plain", b"bad request line\n"
+            return Reply("400 Bad Request", "text/plain", b"bad request line\n")
         method, target = parts[0], parts[1].split("?", 1)[0]
+        headers = _headers(rest)
+        refused = self._refusal(method, target, headers, peer)
+        if refused is not None:
+            return refused
         if method == "POST" and target in self.actions:
-            return self._act(target, parts[1].partition("?")[2])
+            client = headers[REQUEST_HEADER.lower()][0]
+            return self._act(target, parts[1].partition("?")[2], f"HTTP request from {peer} ({_printable(client)})")
         if method != "GET":
             allowed = ", ".join(f"POST {a}" for a in self.actions)
-            return "405 Method Not Allowed", "text/plain", f"only GET{', ' + allowed if allowed else ''}\n".encode()
+            return Reply(
+                "405 Method Not Allowed", "text/plain", f"only GET{', ' + allowed if allowed else ''}\n".encode()
+            )
         return self._get(target)
 
-    def _get(self, target: str) -> tuple[str, str, bytes]:
+    def _refusal(self, method: str, target: str, headers: dict[str, list[str]], peer: str) -> Reply | None:
+        """The answer to a request this server must not serve (a foreign Host or Origin, a POST without
+        REQUEST_HEADER), counted by reason; None for the rest."""
+        why = self.access.refusal(headers.get("host", []), headers.get("origin", []))
+        if why is not None:
+            shown = f"Host {headers.get('host')}, Origin {headers.get('origin')}, from {peer}"
+            self.refused.reject(why, f"{method} {target[:80]}: {shown}")
+            if why == "host":
+                return Reply("421 Misdirected Request", "text/plain", b"this server answers only to its own names\n")
+            return Reply("403 Forbidden", "text/plain", b"requests from other sites' pages are refused\n")
+        if method == "POST" and target in self.actions:
+            client = headers.get(REQUEST_HEADER.lower(), [])
+            if len(client) != 1 or not client[0]:
+                self.refused.reject("csrf", f"POST {target} without {REQUEST_HEADER}, from {peer}")
+                return Reply("403 Forbidden", "text/plain", f"a POST needs the header {REQUEST_HEADER}\n".encode())
+        return None
+
+    def _get(self, target: str) -> Reply:
         if target == "/status":
-            return "200 OK", "application/json", self.snapshots.status_json()
+            return Reply("200 OK", "application/json", self.snapshots.status_json())
         if target == "/metrics":
-            return "200 OK", METRICS_CONTENT_TYPE, self.snapshots.metrics_text()
-        return "404 Not Found", "text/plain", b"try /status or /metrics\n"
+            return Reply("200 OK", METRICS_CONTENT_TYPE, self.snapshots.metrics_text())
+        return Reply("404 Not Found", "text/plain", b"try /status or /metrics\n")
+
+
+def _headers(raw: bytes) -> dict[str, list[str]]:
+    """Header lines (after the request line) -> lower-case name: every value sent (Latin-1, stripped)."""
+    out: dict[str, list[str]] = {}
+    for line in raw.decode("latin-1").split("\r\n"):
+        name, sep, value = line.partition(":")
+        if sep and name and name == name.strip():
+            out.setdefault(name.lower(), []).append(value.strip())
+    return out
+
+
+def _peer(writer: asyncio.StreamWriter) -> str:
+    peer = writer.get_extra_info("peername")
+    if isinstance(peer, tuple) and len(peer) >= 2:
+        return f"[{peer[0]}]:{peer[1]}" if ":" in str(peer[0]) else f"{peer[0]}:{peer[1]}"
+    return "?"
+
+
+def _printable(text: str, limit: int = 40) -> str:
+    """Outside text for the log: printable ASCII only, at most ``limit`` characters."""
+    return "".join(c if " " <= c <= "~" else "?" for c in text[:limit])

@@ -248,6 +248,8 @@ def cmd_reset_heading(args: argparse.Namespace) -> int:
     import urllib.parse
     import urllib.request
 
+    from mocapd.protocols.web_access import REQUEST_HEADER
+
     path = args.config if args.config is not None else DEFAULT_CONFIG
     try:
         cfg = _load(args.config, args.http_port)
@@ -262,10 +264,17 @@ def cmd_reset_heading(args: argparse.Namespace) -> int:
               flush=True)  # fmt: skip
         time.sleep(args.delay)
     try:
-        with urllib.request.urlopen(urllib.request.Request(url, method="POST"), timeout=10) as r:
+        # The header a web page cannot send (docs/reliability.md "The web surface"); its value names us in the log.
+        request = urllib.request.Request(url, method="POST", headers={REQUEST_HEADER: "mocapd reset-heading"})
+        with urllib.request.urlopen(request, timeout=10) as r:
             result = json.loads(r.read())
-    except urllib.error.HTTPError as exc:
-        print(f"error: {json.loads(exc.read() or b'{}').get('error', exc)}", file=sys.stderr)
+    except urllib.error.HTTPError as exc:  # a 400 (no such suit), a 429 (too many resets): the daemon's words
+        body = exc.read()
+        try:
+            said = json.loads(body).get("error", exc)
+        except (ValueError, AttributeError):
+            said = body.decode("utf-8", "replace").strip() or exc
+        print(f"error: {said}", file=sys.stderr)
         return 2
     except (urllib.error.URLError, OSError) as exc:
         print(f"error: no daemon answers at {url} ({getattr(exc, 'reason', exc)}): start one with `mocapd run "

@@ -42,6 +42,7 @@ from mocapd.service.config.record import RecordConfig
 from mocapd.service.config.schema import PathStr, RuleError, Section, Seq, validate
 from mocapd.service.config.tracking import TrackingConfig
 from mocapd.service.config.udp import UdpConfig
+from mocapd.service.config.web import WebConfig
 from mocapd.service.config.websocket import WebSocketConfig, is_loopback
 from mocapd.service.config.zenoh import ZenohConfig, is_loopback_endpoint
 
@@ -193,6 +194,7 @@ class Config(Section):
     udp: UdpConfig = Field(default_factory=UdpConfig)
     record: RecordConfig = Field(default_factory=RecordConfig)
     websocket: WebSocketConfig = Field(default_factory=WebSocketConfig)
+    web: WebConfig = Field(default_factory=WebConfig)
     cameras: Seq[CameraConfig] = Field((), max_length=MAX_CAMERAS)
     """``[[cameras]]``: validated entry by entry against each one's ``source`` kind (:func:`parse_config`)."""
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)

@@ -78,6 +78,11 @@ class DaemonConfig(Section):
     http_host: Literal["127.0.0.1", "::1", "localhost"] = "127.0.0.1"
     """/status and /metrics listen on loopback only."""
     http_port: int = Field(8765, ge=0, le=65535)
+    heading_reset_burst: int = Field(3, ge=1, le=100)
+    """Heading resets allowed at once (every source together: HTTP, WebSocket, ``mocapd reset-heading``,
+    trackers' gestures); more are refused (HTTP 429) until the rate below allows one."""
+    heading_resets_per_s: float = Field(1.0, ge=0.01, le=100.0)
+    """... and one more every ``1 / heading_resets_per_s`` seconds."""
     restart_min_s: float = Field(0.5, ge=0.01, le=60.0)
     restart_max_s: float = Field(10.0, ge=0.01, le=600.0)
     shutdown_timeout_s: float = Field(1.5, ge=0.1, le=10.0)

@@ -8,7 +8,7 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from mocapd.core.skeleton import Skeleton
-from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
+from mocapd.io.ws_server import Command, ServerSettings, WebSocketStreamServer
 from mocapd.pipeline.camera_views import CameraViewOptions, CameraViews
 from mocapd.protocols.ws_stream import StreamDescription, StreamOptions
 from mocapd.service.config import Config
@@ -39,7 +39,9 @@ def build_websocket_sinks(
         views = attach_camera_views(daemon, options)
     # Status messages read the status server's snapshot: at any status_hz they add no renders of their own.
     status = daemon.http.snapshots.document
-    commands = {"reset_heading": lambda args: daemon.reset_heading(args.get("suit"), "WebSocket request")}
+    commands: dict[str, Command] = {
+        "reset_heading": lambda args, who: daemon.reset_heading(args.get("suit"), who, remote=True)
+    }
     return websocket_sinks(config, daemon.rig.skeleton, status=status, clock=daemon.clock, sock=sock,
                            camera_views=views, output=daemon.scheduler.options.prediction.output,
                            commands=commands)  # fmt: skip
@@ -54,7 +56,7 @@ def websocket_sinks(
     sock: socket.socket | None = None,
     camera_views: CameraViews | None = None,
     output: str = "delayed",
-    commands: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
+    commands: Mapping[str, Command] | None = None,
 ) -> list[WebSocketStreamServer]:
     """The server of ``config.websocket`` for poses on ``skeleton`` without a daemon (a replay: no health), with
     camera panels from ``camera_views`` when given; ``output`` is the output mode the hello announces (the
@@ -66,6 +68,7 @@ def websocket_sinks(
         host=ws.host, port=ws.port, token=ws.token, max_clients=ws.max_clients, queue_messages=ws.queue_messages,
         max_message_bytes=ws.max_message_bytes, status_hz=ws.status_hz, viewer=ws.viewer,
         defaults=StreamOptions(encoding=ws.encoding, convention=ws.convention, globals=ws.globals),
+        allowed_hosts=config.web.allowed_hosts, allowed_origins=config.web.allowed_origins,
     )  # fmt: skip
     description = StreamDescription(config.daemon.output_rate_hz, {"default": skeleton}, output=output)
     server = WebSocketStreamServer(
