@@ -195,3 +195,21 @@ def test_the_mounting_estimate_splits_a_discrepancy_by_the_priors() -> None:
     assert 15.0 < drop < 20.0 and arm.residual_deg < 5.0
     assert pelvis.residual_deg == pytest.approx(20.0) and np.allclose(pelvis.q_pose, hint)
     assert heading_alignment(0.0).shape == (4,)
+
+
+def test_friction_7_the_last_sample_of_a_60_hz_take_is_posed(tmp_path: Path) -> None:
+    """3006 samples at 60 Hz used to be solved (and exported) at 3005 instants: a grid of rounded periods
+    (16 666 667 ns) passes the last sample by 1 µs. Here 301 samples, 301 instants, the last at the last sample."""
+    from mocapd.io.session import open_session
+    from mocapd.service.session.solve import solve_times
+
+    n = 301
+    rows = "\n".join(f"{k}\t0.0\t0.0\t9.81\t1.0\t0.0\t0.0\t0.0" for k in range(n))
+    head = "// Update Rate: 60.0Hz\nPacketCounter\tAcc_X\tAcc_Y\tAcc_Z\tQuat_q0\tQuat_q1\tQuat_q2\tQuat_q3\n"
+    export = tmp_path / "MT_012005D6_009-001_00B40001.txt"
+    export.write_text(head + rows + "\n")
+    assert main(["import", "mtw", str(export), "-o", str(tmp_path / "take"), "--assign", "00B40001=Hips"]) == 0
+    session = open_session(tmp_path / "take")
+    t = solve_times(session, 60.0)
+    samples = [r.t_ns for r in session.imu()]
+    assert len(t) == n == len(samples) and t[-1] == max(samples) and t[0] == min(samples)
