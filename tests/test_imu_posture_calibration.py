@@ -213,3 +213,8 @@ def test_friction_7_the_last_sample_of_a_60_hz_take_is_posed(tmp_path: Path) -> 
     t = solve_times(session, 60.0)
     samples = [r.t_ns for r in session.imu()]
     assert len(t) == n == len(samples) and t[-1] == max(samples) and t[0] == min(samples)
+    # And through the commands: every sample resolved and exported (the export's grid had the same fault).
+    assert main(["calibrate", "imu", "--from", str(tmp_path / "take"), "--facing-heading", "0"]) == 0
+    assert main(["resolve", str(tmp_path / "take"), "--iterations", "2"]) == 0
+    assert main(["export", str(tmp_path / "take"), "--resolved", "--csv", str(tmp_path / "t.csv")]) == 0
+    assert len((tmp_path / "t.csv").read_text().strip().splitlines()) == 1 + n

@@ -45,6 +45,7 @@ from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.lr_flips import FlipOptions
+from mocapd.core.motion import time_grid
 from mocapd.core.people import PeopleTracker
 from mocapd.core.per_skeleton import PerSkeleton, skeleton_key
 from mocapd.core.plausibility import PlausibilityMonitor
@@ -228,16 +229,7 @@ def solve_times(session: Session, rate_hz: float, sensors: tuple[str, ...] = ())
         common = common_span(coverage, sensors)
         if common is not None:
             t = np.array(common, dtype=np.int64)
-    return solve_grid(int(t.min()), int(t.max()), rate_hz)
-
-
-def solve_grid(first_ns: int, last_ns: int, rate_hz: float) -> NDArray[np.int64]:
-    """Instants ``first_ns + k / rate_hz`` (ns) from ``first_ns`` through ``last_ns``, both included when the span is
-    a whole number of periods (within 1 µs): each instant rounded on its own, so that a 60 Hz take's last sample
-    (50.0833 s after its first: 3006 samples) gets its pose, which a grid of rounded periods (16 666 667 ns, 1/3 ns
-    long each) passed by 1 µs."""
-    n = int(np.floor((last_ns - first_ns) * rate_hz / 1e9 + 1e-6)) + 1
-    return np.int64(first_ns) + np.round(np.arange(max(n, 0)) * (1e9 / rate_hz)).astype(np.int64)
+    return time_grid(int(t.min()), int(t.max()), rate_hz)  # the last sample posed too
 
 
 def recorded_instants(t_solve_ns: NDArray[np.int64], period_ns: int) -> NDArray[np.int64]:
