@@ -497,6 +497,7 @@ def calibrate_tpose(
     headings: dict[str, float] = {}
     residual: dict[str, float] = {}
     pose: dict[str, FloatArray] = {}
+    worn: dict[str, tuple[str, FloatArray, FloatArray]] = {}  # bone -> sensor id, S = R_ig·R_i, hinted posture
     for sid, bone in bones.items():
         quat, acc = recordings[sid]
         still = stillest_window(
@@ -517,12 +518,15 @@ def calibrate_tpose(
             headings[sid] = delta
             q_i = quat_multiply(device_heading_quat(delta), q_i)
         hint = np.array([1.0, 0.0, 0.0, 0.0]) if q_rest is None else np.asarray(q_rest, dtype=np.float64)
+        worn[bone] = (sid, quat_multiply(q_ig_tpose, q_i), hint)
+        spread[sid] = still.spread_deg
+    flexion = knee_flexion(worn) if estimate_posture else {}
+    for bone, (sid, q_sensor, hint) in worn.items():
         sigma = posture_sigma(bone) if estimate_posture else None
-        est = estimate_mounting(quat_multiply(q_ig_tpose, q_i), hint, sigma)
+        est = estimate_mounting(q_sensor, hint, sigma, flexion=flexion.get(bone))
         q_ib[sid] = est.q_ib
         residual[sid] = est.residual_deg
         pose[bone] = est.q_pose
-        spread[sid] = still.spread_deg
     q_ig = heading_alignment(facing_heading_deg, world_heading=world_heading)
     return ImuCalibration(person, facing_heading_deg, world_heading, q_ig, dict(bones), q_ib, spread, headings,
                           residual, posture_angles(pose), pose_hint)  # fmt: skip
@@ -582,8 +586,8 @@ POSTURE_SIGMA_DEG: dict[str, tuple[float, float, float]] = {
     "UpperArm": (15.0, 12.0, 20.0),
     "LowerArm": (15.0, 20.0, 20.0),
     "Hand": (20.0, 20.0, 20.0),
-    "UpperLeg": (5.0, 6.0, 3.0),
-    "LowerLeg": (6.0, 6.0, 3.0),
+    "UpperLeg": (5.0, 2.0, 2.0),
+    "LowerLeg": (6.0, 2.0, 2.0),
 }
 """How far (degrees, per bone-frame axis) a real person's still posture strays from the hint; from the realistic
 calibration postures of docs/imu.md (upper arms 15-35° below horizontal, elbows 10-30° bent, knees 0-10° bent)."""
@@ -623,7 +627,12 @@ def posture_sigma(bone: str) -> FloatArray | None:
 
 
 def estimate_mounting(
-    q_sensor: FloatArray, q_hint: FloatArray, sigma: FloatArray | None, mount_sigma_deg: float = MOUNT_SIGMA_DEG
+    q_sensor: FloatArray,
+    q_hint: FloatArray,
+    sigma: FloatArray | None,
+    mount_sigma_deg: float = MOUNT_SIGMA_DEG,
+    *,
+    flexion: float | None = None,
 ) -> MountEstimate:
     """A sensor's mounting and its bone's posture from one still orientation, the posture hint and two priors.
 
@@ -642,19 +651,54 @@ def estimate_mounting(
         ``S`` and the hinted posture of the bone.
     sigma : array, shape (3,), or None
         The posture's spread about the hint (radians, bone-frame axes; :func:`posture_sigma`).
+    flexion : float, optional
+        The posture's turn about the bone-frame x axis (radians) when known from elsewhere (:func:`knee_flexion`).
     """
-    q_mount_hint = quat_multiply(quat_conjugate(q_hint), q_sensor)  # M if the hint were exact
-    nearest = _AXIS_ALIGNED[int(np.argmax(np.abs(_AXIS_ALIGNED @ q_mount_hint)))]
-    d = rotvec_from_quat(quat_multiply(q_mount_hint, quat_conjugate(nearest)))
+    nearest, d = mounting_discrepancy(q_sensor, q_hint)
     if sigma is None:
         a = np.zeros(3)
     else:
         var_m = np.radians(mount_sigma_deg) ** 2
         a = sigma**2 / (sigma**2 + var_m) * d
+        if flexion is not None:
+            a[0] = flexion
     q_pose = quat_canonical(quat_multiply(q_hint, quat_from_rotvec(a)))
     q_ib = quat_canonical(quat_multiply(quat_conjugate(q_pose), q_sensor))
     residual = float(np.degrees(quat_angle(q_ib, nearest)))
     return MountEstimate(q_ib, q_pose, residual)
+
+
+def mounting_discrepancy(q_sensor: FloatArray, q_hint: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The case-along-the-segment mounting nearest to what the hint implies, ``M0`` (4,), and ``log D`` (3,):
+    what the hint leaves over, split between posture and mounting by :func:`estimate_mounting`."""
+    q_mount_hint = quat_multiply(quat_conjugate(q_hint), q_sensor)  # M if the hint were exact
+    nearest = _AXIS_ALIGNED[int(np.argmax(np.abs(_AXIS_ALIGNED @ q_mount_hint)))]
+    return nearest, rotvec_from_quat(quat_multiply(q_mount_hint, quat_conjugate(nearest)))
+
+
+KNEE_SIGMA_DEG = 4.0
+"""How far a thigh (and, the other way, its shank) leans from vertical standing with the knees a little bent."""
+
+
+def knee_flexion(worn: Mapping[str, tuple[str, FloatArray, FloatArray]]) -> dict[str, float]:
+    """The thighs' and shanks' flexion (radians, about the bone-frame x axis) in a still standing posture, from
+    both sensors of a leg together.
+
+    Standing on flat feet with a knee bent by ``k``, the thigh leans forward by ``k/2`` and the shank back by
+    ``k/2`` (the ankle stays under the hip). Each sensor's discrepancy about x holds its bone's lean and its own
+    mounting error; their half difference holds the lean once with half the mounting variance, which the prior
+    :data:`KNEE_SIGMA_DEG` weighs. ``worn``: bone -> (sensor id, S, hinted posture) as in :func:`calibrate_tpose`.
+    """
+    out: dict[str, float] = {}
+    var_k, var_m = np.radians(KNEE_SIGMA_DEG) ** 2, np.radians(MOUNT_SIGMA_DEG) ** 2
+    for side in ("Left", "Right"):
+        thigh, shank = worn.get(f"{side}UpperLeg"), worn.get(f"{side}LowerLeg")
+        if thigh is None or shank is None:
+            continue
+        lean = (mounting_discrepancy(thigh[1], thigh[2])[1][0] - mounting_discrepancy(shank[1], shank[2])[1][0]) / 2
+        a = var_k / (var_k + var_m / 2) * float(lean)
+        out[f"{side}UpperLeg"], out[f"{side}LowerLeg"] = a, -a
+    return out
 
 
 def posture_angles(pose: Mapping[str, FloatArray]) -> dict[str, float]:
