@@ -14,8 +14,14 @@ pose is turned by ``Ry(-h)`` instead; R_ib is the same either way.) In the T-pos
 orientation is its rest orientation ``R_rest`` (identity for a T-pose rest skeleton), hence
 ``R_ib = R_rest⁻¹ · R_ig_T · R_i`` with ``R_ig_T`` the T-pose-facing alignment.
 
-``R_i`` is the average over the stillest window of the recording; windows where a sensor turns more than
-``max_spread_deg`` or its acceleration norm varies more than ``max_acc_std`` are rejected as motion.
+``R_i`` is the average over the stillest window of the recording (stillest by both tests: turn and acceleration,
+each as a fraction of its limit); windows where a sensor turns more than ``max_spread_deg`` or its acceleration norm
+varies more than ``max_acc_std`` are rejected as motion.
+
+The calibration posture need not be the T-pose: ``R_rest`` is a hint (:func:`rest_orientations`: T-, A- or N-pose)
+that :func:`estimate_mounting` refines with the sensors' orientations, splitting what the hint leaves over between
+the bone's posture and the sensor's mounting by two priors (a case strapped along its segment; a real person's
+still posture), so that a relaxed A-pose with bent elbows calibrates as what it is (issue 42).
 
 Sensors without a shared heading reference (SlimeVR trackers: each 6-axis tracker's yaw is wherever its gyroscope
 started) get a heading of their own, ``δ``, a rotation about the device's up axis applied to every sample before

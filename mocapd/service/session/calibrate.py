@@ -1,18 +1,19 @@
 """``mocapd calibrate imu --from SESSION``: calibrate a suit from the stillest standing moment of a recording.
 
 The calibration is :func:`mocapd.core.imu_calibration.calibrate_recording`: every assigned sensor's mounting
-``R_ib`` from one still window, during which every bone is assumed to be at its **rest orientation**. The solver's
-rest pose is the **T-pose** (DESIGN.md: arms horizontal, legs straight, feet flat, facing +Z), so by default the
-subject must stand in a T-pose; ``pose="arms-down"`` assumes instead that the arms hang at the sides (palms in:
-upper arms, forearms and hands turned 90° down about the body's forward axis), the usual posture at the start of
-a take. For a suit without arm sensors the two are the same: standing straight.
+``R_ib`` from one still window, in which the posture held is estimated from the sensors' orientations with ``pose``
+as a hint (:func:`mocapd.core.imu_calibration.estimate_mounting`: ``"t-pose"``, ``"a-pose"``, ``"n-pose"``/
+``"arms-down"``, or ``"auto"``: each tried, the one with which the take's knees and elbows bend the right way and
+the arms never point into the body kept). A hint with which the arms swing through the chest over the take is
+refused naming the one that works (the posture, not a mirrored facing, is then the cause).
 
-The window is the one where *all* assigned sensors are jointly stillest (the largest turn of any sensor from its
-window mean is smallest), searched in steps of a quarter window over the whole recording or over
-``START:END`` seconds; a window where a sensor turns more than 2° or its acceleration norm varies by more than
-0.3 m/s² is refused with the sensor named, as for a live calibration. The heading comes from ``--facing-heading``,
-from a sensor axis that points forward (``--facing-from SENSOR:AXIS``), or, with neither, from the take's steps: a
-knee bends about the body's left-right axis, its foot moving backwards
+The window is the one where *all* assigned sensors are jointly stillest by both tests it must pass (each sensor's
+largest turn from its window mean and the std of its acceleration norm, as fractions of their limits, ``--max-turn``
+and ``--max-acc-std``), searched every 0.05 s over the whole recording or over ``START:END`` seconds (exact bounds);
+a window that still fails is refused with the sensor, the limit and the option that raises it named.
+
+The heading comes from ``--facing-heading``, from a sensor axis that points forward (``--facing-from SENSOR:AXIS``),
+or, with neither, from the take's steps: a knee bends about the body's left-right axis, its foot moving backwards
 (:func:`mocapd.core.imu_calibration.facing_heading_from_steps`).
 
 A facing direction with which knees or elbows bend the wrong way over the take for more than a moment
@@ -174,13 +175,16 @@ def calibrate_session(
     if not bones:
         raise ConfigError(f"{session.path}: no sensor is assigned to a bone ([imu.assignment] of its config)")
     samples = session_samples(session)
+    limits = {"max_turn_deg": max_turn_deg, "max_acc_std": max_acc_std}
     source = "sensor" if facing_from is not None else "heading"
     if facing_heading_deg is None and facing_from is None:
         try:
             start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span,
                                                 max_turn_deg=max_turn_deg, max_acc_std=max_acc_std)  # fmt: skip
         except CalibrationError as exc:
-            raise CalibrationError(_from_a_recording(str(exc), session, samples, bones, window_s, span, pose)) from None
+            raise CalibrationError(
+                _from_a_recording(str(exc), session, samples, bones, window_s, span, pose, limits)
+            ) from None
         facing_heading_deg = facing_heading_from_steps(samples, bones, (start, end))
         if facing_heading_deg is None:
             raise ConfigError(
@@ -200,7 +204,9 @@ def calibrate_session(
                 max_turn_deg=max_turn_deg, max_acc_std=max_acc_std,
             )  # fmt: skip
         except CalibrationError as exc:
-            raise CalibrationError(_from_a_recording(str(exc), session, samples, bones, window_s, span, hint)) from None
+            raise CalibrationError(
+                _from_a_recording(str(exc), session, samples, bones, window_s, span, hint, limits)
+            ) from None
 
     def implausible(calib: ImuCalibration, hinges: dict[str, HingeEvents]) -> float:
         """Seconds of the take the calibration makes impossible: hinges bent the wrong way, arms through the body."""
@@ -304,14 +310,15 @@ _POSTURE_TEXT = {"t-pose": "a T-pose", "a-pose": "an A-pose", "n-pose": "standin
 
 
 def _from_a_recording(message: str, session: Session, samples: dict[str, Any], bones: dict[str, str],
-                      window_s: float, span: tuple[float, float] | None, pose: str) -> str:  # fmt: skip
+                      window_s: float, span: tuple[float, float] | None, pose: str,
+                      limits: dict[str, float]) -> str:  # fmt: skip
     """A still-window refusal as advice for a recording: it cannot be repeated, but another moment of it can be
     chosen (``--window START:END``); and it names the posture that was assumed, not always the T-pose."""
     if "stand still and repeat" not in message:
         return message
     limit = message[message.index("raise the limit:") :] if "raise the limit:" in message else ""
     try:
-        start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span)
+        start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span, **limits)
         where = f"in the stillest {window_s:g} s of the recording ({start:.1f}-{end:.1f} s)"
     except CalibrationError:
         where = "in the stillest window of the recording"
