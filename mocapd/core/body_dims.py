@@ -4,23 +4,31 @@ Without cameras nothing measures the wearer of a suit, and the default proportio
 centimetres off per segment (a thigh 4 cm short shortens every stride). So the user may give segment lengths;
 every segment not given keeps the default proportions scaled to the height (:meth:`Skeleton.from_height`).
 
-Segments (metres, each the distance between two joints of the 21-bone skeleton in the T-pose; left and right
-alike):
+Segments (metres; left and right alike):
 
-============== ================================================ ===================================
-name           what                                             bones set (offset in the parent)
-============== ================================================ ===================================
-hip_width      between the two hip joints                       Left/RightUpperLeg (x)
-thigh          hip joint to knee                                Left/RightLowerLeg
-shank          knee to ankle                                    Left/RightFoot
-foot           ankle to the ball of the foot (toe joint)        Left/RightToes
-ankle_height   ankle above the floor, standing                  (root height)
-torso          hip joint centre (pelvis) to the base of the     Spine, Spine1, Spine2, Spine3, Neck
-               neck, along the spine                            (scaled together)
-shoulder_width between the two shoulder joints                  Left/RightUpperArm (x)
-upper_arm      shoulder to elbow                                Left/RightLowerArm
-forearm        elbow to wrist                                   Left/RightHand
-============== ================================================ ===================================
+========================= ============================================================ ============================
+name                      the landmarks, as a tape measures them                       bones set (offset in the
+                                                                                       parent)
+========================= ============================================================ ============================
+hip_width                 left hip joint centre to right hip joint centre              Left/RightUpperLeg (x)
+thigh                     hip joint centre to knee joint centre (the knee's joint      Left/RightLowerLeg
+                          line, at the side of the knee)
+shank                     knee joint centre to ankle joint centre (the tip of the      Left/RightFoot
+                          outer ankle bone)
+foot                      ankle joint centre to the ball of the foot (the big toe's    Left/RightToes
+                          joint), straight
+ankle_height              floor to the ankle joint centre, standing                    (root height)
+torso                     the midpoint between the two hip joint centres to the base   Spine, Spine1, Spine2,
+                          of the neck (the bony bump at the back of the neck's base,   Spine3, Neck (scaled
+                          C7), straight                                                together)
+shoulder_width            left shoulder joint centre to right shoulder joint centre    Left/RightUpperArm (x)
+upper_arm                 shoulder joint centre to elbow joint centre                  Left/RightLowerArm
+forearm                   elbow joint centre to wrist joint centre                     Left/RightHand
+========================= ============================================================ ============================
+
+Each is the straight distance between two joints of the 21-bone skeleton in the T-pose (left side for the paired
+ones). The torso's lower end is the midpoint of the hip joints, which sits below the ``Hips`` joint (the root, the
+pelvis' centre, about 5 cm higher): its length is measured from there, as a tape does, not from the root.
 
 The hips joint (the root) stands at ``ankle_height`` plus the legs' vertical offsets (hip, thigh, shank) above the
 floor at rest. Pure: no I/O.
@@ -50,15 +58,16 @@ _WIDTHS = {"hip_width": ("LeftUpperLeg", "RightUpperLeg"), "shoulder_width": ("L
 _TORSO = ("Spine", "Spine1", "Spine2", "Spine3", "Neck")
 
 SEGMENTS: dict[str, str] = {
-    "hip_width": "between the two hip joints",
-    "thigh": "hip joint to knee",
-    "shank": "knee to ankle",
-    "foot": "ankle to the ball of the foot (toe joint)",
-    "ankle_height": "ankle above the floor, standing",
-    "torso": "pelvis (hip joint centre) to the base of the neck",
-    "shoulder_width": "between the two shoulder joints",
-    "upper_arm": "shoulder to elbow",
-    "forearm": "elbow to wrist",
+    "hip_width": "left hip joint centre to right hip joint centre",
+    "thigh": "hip joint centre to knee joint centre (the knee's joint line, at its side)",
+    "shank": "knee joint centre to ankle joint centre (the tip of the outer ankle bone)",
+    "foot": "ankle joint centre to the ball of the foot (the big toe's joint), straight",
+    "ankle_height": "floor to the ankle joint centre, standing",
+    "torso": "the midpoint between the two hip joint centres to the base of the neck (the bony bump at the back of "
+    "the neck's base, C7), straight",
+    "shoulder_width": "left shoulder joint centre to right shoulder joint centre",
+    "upper_arm": "shoulder joint centre to elbow joint centre",
+    "forearm": "elbow joint centre to wrist joint centre",
 }
 """Segment name -> what it measures (the order help texts list them in)."""
 
@@ -100,7 +109,7 @@ def segment_lengths(skeleton: Skeleton) -> dict[str, float]:
             left, right = (off[BONE_INDEX[b], 0] for b in _WIDTHS[name])
             out[name] = float(left - right)
         elif name == "torso":
-            out[name] = float(np.linalg.norm(sum(off[BONE_INDEX[b]] for b in _TORSO)))
+            out[name] = float(np.linalg.norm(_torso(off) - _hip_centre(off)))
         else:  # ankle_height
             out[name] = float(skeleton.root_height - _leg_drop(off))
     return out
@@ -114,6 +123,23 @@ def default_lengths(height: float = REFERENCE_HEIGHT) -> dict[str, float]:
 def _leg_drop(off: np.ndarray) -> float:
     """How far below the hips joint the ankle is at rest (m, positive), from the left leg's offsets."""
     return -float(sum(off[BONE_INDEX[b], 1] for b in ("LeftUpperLeg", "LeftLowerLeg", "LeftFoot")))
+
+
+def _torso(off: np.ndarray) -> np.ndarray:
+    """The base of the neck (the Neck joint) from the Hips joint, rest pose (m), shape (3,)."""
+    return np.asarray(sum(off[BONE_INDEX[b]] for b in _TORSO), dtype=np.float64)
+
+
+def _hip_centre(off: np.ndarray) -> np.ndarray:
+    """The midpoint of the hip joints from the Hips joint, rest pose (m), shape (3,): below it."""
+    return np.asarray((off[BONE_INDEX["LeftUpperLeg"]] + off[BONE_INDEX["RightUpperLeg"]]) / 2.0, dtype=np.float64)
+
+
+def _torso_scale(torso: np.ndarray, hips: np.ndarray, length: float) -> float:
+    """The scale ``s`` of the torso's bones with ``|s · torso - hips| = length`` (the larger root; the hip centre
+    stays where the legs put it)."""
+    a, b, c = float(torso @ torso), float(torso @ hips), float(hips @ hips) - length**2
+    return (b + float(np.sqrt(max(b * b - a * c, 0.0)))) / a
 
 
 def skeleton_from_segments(height: float, segments: Mapping[str, float]) -> Skeleton:
@@ -139,7 +165,6 @@ def skeleton_from_segments(height: float, segments: Mapping[str, float]) -> Skel
             left, right = (BONE_INDEX[b] for b in _WIDTHS[name])
             off[left, 0], off[right, 0] = 0.5 * length, -0.5 * length
         elif name == "torso":
-            idx = [BONE_INDEX[b] for b in _TORSO]
-            off[idx] *= length / float(np.linalg.norm(off[idx].sum(axis=0)))
+            off[[BONE_INDEX[b] for b in _TORSO]] *= _torso_scale(_torso(off), _hip_centre(off), length)
     ankle = segments.get("ankle_height", DEFAULT_ANKLE_HEIGHT * height / REFERENCE_HEIGHT)
     return Skeleton(offsets=off, root_height=_leg_drop(off) + float(ankle), height=height)

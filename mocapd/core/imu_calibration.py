@@ -14,8 +14,14 @@ pose is turned by ``Ry(-h)`` instead; R_ib is the same either way.) In the T-pos
 orientation is its rest orientation ``R_rest`` (identity for a T-pose rest skeleton), hence
 ``R_ib = R_rest⁻¹ · R_ig_T · R_i`` with ``R_ig_T`` the T-pose-facing alignment.
 
-``R_i`` is the average over the stillest window of the recording; windows where a sensor turns more than
-``max_spread_deg`` or its acceleration norm varies more than ``max_acc_std`` are rejected as motion.
+``R_i`` is the average over the stillest window of the recording (stillest by both tests: turn and acceleration,
+each as a fraction of its limit); windows where a sensor turns more than ``max_spread_deg`` or its acceleration norm
+varies more than ``max_acc_std`` are rejected as motion.
+
+The calibration posture need not be the T-pose: ``R_rest`` is a hint (:func:`rest_orientations`: T-, A- or N-pose)
+that :func:`estimate_mounting` refines with the sensors' orientations, splitting what the hint leaves over between
+the bone's posture and the sensor's mounting by two priors (a case strapped along its segment; a real person's
+still posture), so that a relaxed A-pose with bent elbows calibrates as what it is (issue 42).
 
 Sensors without a shared heading reference (SlimeVR trackers: each 6-axis tracker's yaw is wherever its gyroscope
 started) get a heading of their own, ``δ``, a rotation about the device's up axis applied to every sample before
@@ -58,6 +64,7 @@ from mocapd.core.rotations import (
     quat_from_matrix,
     quat_from_rotvec,
     quat_multiply,
+    rotvec_from_quat,
 )
 from mocapd.core.skeleton import BONE_NAMES
 from mocapd.errors import CalibrationError, ConfigError, InputError
@@ -243,6 +250,14 @@ def heading_alignment(facing_heading_deg: float, *, world_heading: str = "subjec
     return quat_canonical(quat_multiply(yaw_quat(np.radians(facing_heading_deg)), base))
 
 
+MAX_TURN_DEG = 4.0
+"""Default limit of a still window's turn (the largest angle of a sample from the window's mean, degrees):
+above the orientation noise of standing still with Xsens MTx/MTw/Awinda and SlimeVR trackers (docs/imu.md,
+"Still windows"), below a slow arm movement."""
+MAX_ACC_STD = 0.5
+"""Default limit of a still window's acceleration: the std of the acceleration norm (m/s²)."""
+
+
 @dataclass(frozen=True, slots=True)
 class StillWindow:
     """Result of :func:`stillest_window` for one sensor."""
@@ -259,11 +274,12 @@ def stillest_window(
     acc: FloatArray | None,
     window: int,
     *,
-    max_spread_deg: float = 2.0,
-    max_acc_std: float = 0.3,
+    max_spread_deg: float = MAX_TURN_DEG,
+    max_acc_std: float = MAX_ACC_STD,
     sensor: str = "imu",
 ) -> StillWindow:
-    """Find the window of ``window`` samples with the least rotation and accept it if it is still enough.
+    """Find the window of ``window`` samples that is stillest by both tests it must pass (turn and acceleration,
+    each relative to its limit) and accept it if it passes them.
 
     Parameters
     ----------
@@ -275,33 +291,43 @@ def stillest_window(
     Raises
     ------
     CalibrationError
-        Fewer than ``window`` samples, or the stillest window still moves (names the sensor and numbers).
+        Fewer than ``window`` samples, or the stillest window still moves (names the sensor, the numbers, the
+        limit and the option that sets it).
     """
     quat = np.asarray(quat, dtype=np.float64)
     n = len(quat)
     if n < window or window < 2:
-        raise CalibrationError(f"{sensor}: {n} samples, need at least {max(window, 2)} for the T-pose window")
-    best: StillWindow | None = None
+        raise CalibrationError(f"{sensor}: {n} samples, need at least {max(window, 2)} for the calibration window")
+    best: tuple[float, StillWindow] | None = None
     step = max(1, window // 4)
     for start in range(0, n - window + 1, step):
         chunk = quat[start : start + window]
         mean = quat_average(chunk)
         spread = float(np.degrees(np.max(quat_angle(chunk, mean))))
-        if best is None or spread < best.spread_deg:
-            acc_std = float(np.std(np.linalg.norm(acc[start : start + window], axis=1))) if acc is not None else np.nan
-            best = StillWindow(start, start + window, mean, spread, acc_std)
+        acc_std = float(np.std(np.linalg.norm(acc[start : start + window], axis=1))) if acc is not None else np.nan
+        score = max(spread / max_spread_deg, 0.0 if np.isnan(acc_std) else acc_std / max_acc_std)
+        if best is None or score < best[0]:
+            best = (score, StillWindow(start, start + window, mean, spread, acc_std))
     assert best is not None
-    if best.spread_deg > max_spread_deg:
+    still = best[1]
+    if still.spread_deg > max_spread_deg:
         raise CalibrationError(
-            f"{sensor} moved during the T-pose: its stillest {window}-sample window turns "
-            f"{best.spread_deg:.1f}° (limit {max_spread_deg}°); stand still and repeat"
+            f"{sensor} moved during the calibration: its stillest {window}-sample window turns "
+            f"{still.spread_deg:.1f}° (limit {max_spread_deg:g}°, --max-turn); stand still and repeat, or, if "
+            f"the subject stood still (a noisier sensor), raise the limit: --max-turn {_above(still.spread_deg)}"
         )
-    if not np.isnan(best.acc_std) and best.acc_std > max_acc_std:
+    if not np.isnan(still.acc_std) and still.acc_std > max_acc_std:
         raise CalibrationError(
-            f"{sensor} accelerated during the T-pose: |acc| std {best.acc_std:.2f} m/s² "
-            f"(limit {max_acc_std}); stand still and repeat"
+            f"{sensor} accelerated during the calibration: |acc| std {still.acc_std:.2f} m/s² "
+            f"(limit {max_acc_std:g}, --max-acc-std); stand still and repeat, or, if the subject stood still (a "
+            f"noisier sensor), raise the limit: --max-acc-std {_above(still.acc_std)}"
         )
-    return best
+    return still
+
+
+def _above(value: float) -> str:
+    """A limit just above ``value``, as typed (one decimal, rounded up)."""
+    return f"{np.ceil(value * 10.0 + 1e-9) / 10.0:g}"
 
 
 def mounting_rotation(q_i: FloatArray, q_ig_tpose: FloatArray, q_rest: FloatArray | None = None) -> FloatArray:
@@ -328,6 +354,12 @@ class ImuCalibration:
     spread_deg: dict[str, float]  # sensor id -> stillness of the window used
     device_heading_deg: dict[str, float] = field(default_factory=dict)
     """Sensor id -> δ (degrees) for sensors with a heading of their own (see the module docstring)."""
+    residual_deg: dict[str, float] = field(default_factory=dict)
+    """Sensor id -> its mounting's angle from the nearest case-along-the-segment mounting (degrees,
+    :func:`estimate_mounting`): a large one is a sensor strapped askew, or a posture far from the hint."""
+    posture: dict[str, float] = field(default_factory=dict)
+    """What the calibration posture held (:func:`posture_angles`, degrees), with the hint under ``"hint"`` absent."""
+    pose_hint: str = "t-pose"
 
     def device_heading_quats(self) -> dict[str, FloatArray]:
         """Sensor id -> ``Rz(δ)`` (4,), to apply to that sensor's device-frame samples before Eq. 8."""
@@ -343,11 +375,13 @@ class ImuCalibration:
             "facing_heading_deg": self.facing_heading_deg,
             "world_heading": self.world_heading,
             "R_ig": [float(v) for v in self.q_ig],
+            "posture": {"hint": self.pose_hint, "angles_deg": dict(self.posture)},
             "sensors": {
                 sid: {
                     "bone": self.bones[sid],
                     "R_ib": [float(v) for v in q],
                     "still_spread_deg": self.spread_deg[sid],
+                    **({"mount_residual_deg": round(self.residual_deg[sid], 2)} if sid in self.residual_deg else {}),
                     **({"device_heading_deg": self.device_heading_deg[sid]} if sid in self.device_heading_deg else {}),
                 }
                 for sid, q in self.q_ib.items()
@@ -365,6 +399,8 @@ class ImuCalibration:
             sensors = data["sensors"]
             assert isinstance(sensors, dict)
             q_ig = _unit_quat(data["R_ig"], "R_ig")
+            posture = data.get("posture", {})
+            assert isinstance(posture, dict)
             return ImuCalibration(
                 person=str(data["person"]),
                 facing_heading_deg=float(data["facing_heading_deg"]),  # type: ignore[arg-type]
@@ -378,6 +414,13 @@ class ImuCalibration:
                     for sid, s in sensors.items()
                     if "device_heading_deg" in s
                 },
+                residual_deg={
+                    sid.upper(): _finite_float(s["mount_residual_deg"], f"{sid} mount_residual_deg")
+                    for sid, s in sensors.items()
+                    if "mount_residual_deg" in s
+                },
+                posture={str(k): float(v) for k, v in posture.get("angles_deg", {}).items()},
+                pose_hint=str(posture.get("hint", "t-pose")),
             )
         except (KeyError, TypeError, ValueError, AssertionError) as exc:
             raise CalibrationError(f"malformed IMU calibration file: {exc!r}") from exc
@@ -416,9 +459,11 @@ def calibrate_tpose(
     world_heading: str = "subject",
     window: int = 60,
     rest: Mapping[str, FloatArray] | None = None,
-    max_spread_deg: float = 2.0,
-    max_acc_std: float = 0.3,
+    max_spread_deg: float = MAX_TURN_DEG,
+    max_acc_std: float = MAX_ACC_STD,
     own_heading: Mapping[str, float] | None = None,
+    estimate_posture: bool = False,
+    pose_hint: str = "t-pose",
 ) -> ImuCalibration:
     """T-pose calibration of every assigned sensor.
 
@@ -435,6 +480,11 @@ def calibrate_tpose(
     own_heading : mapping of sensor id to degrees, optional
         Sensors with a heading reference of their own (SlimeVR trackers) and their mounting yaw (0: on the front
         or back of the segment; +90: on the subject's left side): each gets a device heading δ (module docstring).
+    estimate_posture : bool
+        Take ``rest`` as a hint and estimate the posture held from the sensors' orientations
+        (:func:`estimate_mounting`); False: every bone held ``rest`` exactly.
+    pose_hint : str
+        The hint's name, recorded in the calibration.
 
     Raises
     ------
@@ -451,6 +501,9 @@ def calibrate_tpose(
     q_ib: dict[str, FloatArray] = {}
     spread: dict[str, float] = {}
     headings: dict[str, float] = {}
+    residual: dict[str, float] = {}
+    pose: dict[str, FloatArray] = {}
+    worn: dict[str, tuple[str, FloatArray, FloatArray]] = {}  # bone -> sensor id, S = R_ig·R_i, hinted posture
     for sid, bone in bones.items():
         quat, acc = recordings[sid]
         still = stillest_window(
@@ -470,10 +523,19 @@ def calibrate_tpose(
             delta = (own_heading[sid] - twist + 180.0) % 360.0 - 180.0
             headings[sid] = delta
             q_i = quat_multiply(device_heading_quat(delta), q_i)
-        q_ib[sid] = mounting_rotation(q_i, q_ig_tpose, q_rest)
+        hint = np.array([1.0, 0.0, 0.0, 0.0]) if q_rest is None else np.asarray(q_rest, dtype=np.float64)
+        worn[bone] = (sid, quat_multiply(q_ig_tpose, q_i), hint)
         spread[sid] = still.spread_deg
+    flexion = knee_flexion(worn) if estimate_posture else {}
+    for bone, (sid, q_sensor, hint) in worn.items():
+        sigma = posture_sigma(bone) if estimate_posture else None
+        est = estimate_mounting(q_sensor, hint, sigma, flexion=flexion.get(bone))
+        q_ib[sid] = est.q_ib
+        residual[sid] = est.residual_deg
+        pose[bone] = est.q_pose
     q_ig = heading_alignment(facing_heading_deg, world_heading=world_heading)
-    return ImuCalibration(person, facing_heading_deg, world_heading, q_ig, dict(bones), q_ib, spread, headings)
+    return ImuCalibration(person, facing_heading_deg, world_heading, q_ig, dict(bones), q_ib, spread, headings,
+                          residual, posture_angles(pose), pose_hint)  # fmt: skip
 
 
 def facing_heading_from_sensor(q_i: FloatArray, forward_axis: FloatArray) -> float:
@@ -488,8 +550,14 @@ def facing_heading_from_sensor(q_i: FloatArray, forward_axis: FloatArray) -> flo
     return float(np.degrees(np.arctan2(fwd[0], fwd[1])) % 360.0)
 
 
-# ------------------------------------------------------------------------------ calibration from a recording
-CALIBRATION_POSES = ("t-pose", "arms-down")
+# ------------------------------------------------------------------------------ the calibration posture
+CALIBRATION_POSES = ("t-pose", "a-pose", "n-pose", "arms-down")
+"""Posture hints: ``t-pose`` (arms horizontal), ``a-pose`` (upper arms 30° below horizontal), ``n-pose`` and its
+older name ``arms-down`` (arms hanging at the sides, palms in). ``auto`` (with a take) tries them all."""
+POSE_HINTS = ("t-pose", "a-pose", "n-pose")
+"""The hints ``--pose auto`` tries, in this order."""
+ARM_DROP_DEG = {"t-pose": 0.0, "a-pose": 30.0, "n-pose": 90.0, "arms-down": 90.0}
+"""How far below horizontal each hint holds the upper arms (degrees); forearms and hands in line with them."""
 _ARM_SIDE = {
     "LeftUpperArm": -1.0, "LeftLowerArm": -1.0, "LeftHand": -1.0,
     "RightUpperArm": 1.0, "RightLowerArm": 1.0, "RightHand": 1.0,
@@ -497,48 +565,236 @@ _ARM_SIDE = {
 
 
 def rest_orientations(pose: str) -> dict[str, FloatArray] | None:
-    """World orientation of each bone in a calibration posture, for :func:`calibrate_tpose` (None: the T-pose).
+    """World orientation of each bone in a calibration posture hint, for :func:`calibrate_tpose` (None: the T-pose).
 
-    ``"t-pose"`` is the solver's rest pose (arms horizontal); ``"arms-down"`` has the arms hanging at the sides,
-    palms in: upper arms, forearms and hands turned 90° down about the body's forward axis (+Z).
+    ``"t-pose"`` is the solver's rest pose (arms horizontal); the others turn the upper arms, forearms and hands
+    down about the body's forward axis (+Z) by :data:`ARM_DROP_DEG` (``"n-pose"``/``"arms-down"``: 90°, hanging
+    at the sides, palms in).
     """
-    if pose == "t-pose":
+    if pose not in ARM_DROP_DEG:
+        raise ConfigError(f"calibration pose must be one of {CALIBRATION_POSES} (or auto), got {pose!r}")
+    drop = np.radians(ARM_DROP_DEG[pose])
+    if drop == 0.0:
         return None
-    if pose != "arms-down":
-        raise ConfigError(f"calibration pose must be one of {CALIBRATION_POSES}, got {pose!r}")
     # The left arm along +X in the T-pose, down (-Y) at the side: -90° about +Z; the right arm (-X): +90°.
-    return {b: quat_from_rotvec(np.array([0.0, 0.0, s * np.pi / 2])) for b, s in _ARM_SIDE.items()}
+    return {b: quat_from_rotvec(np.array([0.0, 0.0, s * drop])) for b, s in _ARM_SIDE.items()}
+
+
+MOUNT_SIGMA_DEG = 8.0
+"""How far (degrees, per axis) a strapped sensor's axes stray from its segment's axes: a sensor is put on with its
+case along the segment (the long side along the bone, its face on the segment's surface), within a few degrees."""
+
+POSTURE_SIGMA_DEG: dict[str, tuple[float, float, float]] = {
+    # Bone-frame axes (x, y, z) of a perturbation of the hint: for the arms x runs along the arm (twist), y is the
+    # forward swing (and the elbow's flexion), z the elevation in the frontal plane; for the legs x is the flexion
+    # axis, y the twist about the bone, z the abduction. Bones not listed hold the hint exactly (pelvis, trunk,
+    # head and feet: a person standing upright on flat feet).
+    "UpperArm": (15.0, 12.0, 20.0),
+    "LowerArm": (15.0, 20.0, 20.0),
+    "Hand": (20.0, 20.0, 20.0),
+    "UpperLeg": (5.0, 2.0, 2.0),
+    "LowerLeg": (6.0, 2.0, 2.0),
+}
+"""How far (degrees, per bone-frame axis) a real person's still posture strays from the hint; from the realistic
+calibration postures of docs/imu.md (upper arms 15-35° below horizontal, elbows 10-30° bent, knees 0-10° bent)."""
+
+
+def _axis_aligned_rotations() -> FloatArray:
+    """The 24 rotations that map the axes onto signed axes (quaternions, shape (24, 4))."""
+    out = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.ndindex(2, 2, 2):
+            m = np.zeros((3, 3))
+            for row, (col, sign) in enumerate(zip(perm, signs, strict=True)):
+                m[row, col] = -1.0 if sign else 1.0
+            if np.linalg.det(m) > 0:
+                out.append(quat_from_matrix(m))
+    return np.array(out)
+
+
+_AXIS_ALIGNED = _axis_aligned_rotations()
+
+
+@dataclass(frozen=True, slots=True)
+class MountEstimate:
+    """One sensor's mounting with the posture its bone held, from :func:`estimate_mounting`."""
+
+    q_ib: FloatArray  # (4,) the mounting R_ib
+    q_pose: FloatArray  # (4,) the bone's world orientation in the calibration posture
+    residual_deg: float  # the mounting's angle from the nearest case-along-the-segment mounting
+
+
+def posture_sigma(bone: str) -> FloatArray | None:
+    """:data:`POSTURE_SIGMA_DEG` of ``bone`` in radians, shape (3,); None for a bone that holds the hint."""
+    for part, sigma in POSTURE_SIGMA_DEG.items():
+        if bone.endswith(part):
+            return np.radians(np.array(sigma, dtype=np.float64))
+    return None
+
+
+def estimate_mounting(
+    q_sensor: FloatArray,
+    q_hint: FloatArray,
+    sigma: FloatArray | None,
+    mount_sigma_deg: float = MOUNT_SIGMA_DEG,
+    *,
+    flexion: float | None = None,
+) -> MountEstimate:
+    """A sensor's mounting and its bone's posture from one still orientation, the posture hint and two priors.
+
+    With ``S`` the sensor's world orientation (R_ig · R_i), ``R_pose`` the bone's (unknown) posture and ``M`` the
+    (unknown) mounting, ``S = R_pose · M``. One orientation cannot split the two; the priors do. The posture is the
+    hint turned by ``a`` (bone frame, per-axis spread ``sigma``); the mounting is the nearest case-along-the-segment
+    mounting ``M0`` (:data:`_AXIS_ALIGNED`) turned by ``b`` (spread ``mount_sigma_deg`` on each axis). With
+    ``exp(a)·exp(b) = R_hint⁻¹ · S · M0⁻¹ = D`` the most probable split gives each axis of ``log D`` to the posture
+    in proportion to the variances: ``a = σ_a² / (σ_a² + σ_m²) · log D``. What gravity makes of the sensor's
+    inclination thus becomes the bone's (an arm 25° below horizontal, a knee bent 8°) where the posture is uncertain,
+    and the mounting keeps it where it is not (``sigma`` None: the hint held exactly, ``M = R_hint⁻¹ · S``).
+
+    Parameters
+    ----------
+    q_sensor, q_hint : array, shape (4,)
+        ``S`` and the hinted posture of the bone.
+    sigma : array, shape (3,), or None
+        The posture's spread about the hint (radians, bone-frame axes; :func:`posture_sigma`).
+    flexion : float, optional
+        The posture's turn about the bone-frame x axis (radians) when known from elsewhere (:func:`knee_flexion`).
+    """
+    nearest, d = mounting_discrepancy(q_sensor, q_hint)
+    if sigma is None:
+        a = np.zeros(3)
+    else:
+        var_m = np.radians(mount_sigma_deg) ** 2
+        a = sigma**2 / (sigma**2 + var_m) * d
+        if flexion is not None:
+            a[0] = flexion
+    q_pose = quat_canonical(quat_multiply(q_hint, quat_from_rotvec(a)))
+    q_ib = quat_canonical(quat_multiply(quat_conjugate(q_pose), q_sensor))
+    residual = float(np.degrees(quat_angle(q_ib, nearest)))
+    return MountEstimate(q_ib, q_pose, residual)
+
+
+def mounting_discrepancy(q_sensor: FloatArray, q_hint: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The case-along-the-segment mounting nearest to what the hint implies, ``M0`` (4,), and ``log D`` (3,):
+    what the hint leaves over, split between posture and mounting by :func:`estimate_mounting`."""
+    q_mount_hint = quat_multiply(quat_conjugate(q_hint), q_sensor)  # M if the hint were exact
+    nearest = _AXIS_ALIGNED[int(np.argmax(np.abs(_AXIS_ALIGNED @ q_mount_hint)))]
+    return nearest, rotvec_from_quat(quat_multiply(q_mount_hint, quat_conjugate(nearest)))
+
+
+KNEE_SIGMA_DEG = 4.0
+"""How far a thigh (and, the other way, its shank) leans from vertical standing with the knees a little bent."""
+
+
+def knee_flexion(worn: Mapping[str, tuple[str, FloatArray, FloatArray]]) -> dict[str, float]:
+    """The thighs' and shanks' flexion (radians, about the bone-frame x axis) in a still standing posture, from
+    both sensors of a leg together.
+
+    Standing on flat feet with a knee bent by ``k``, the thigh leans forward by ``k/2`` and the shank back by
+    ``k/2`` (the ankle stays under the hip). Each sensor's discrepancy about x holds its bone's lean and its own
+    mounting error; their half difference holds the lean once with half the mounting variance, which the prior
+    :data:`KNEE_SIGMA_DEG` weighs. ``worn``: bone -> (sensor id, S, hinted posture) as in :func:`calibrate_tpose`.
+    """
+    out: dict[str, float] = {}
+    var_k, var_m = np.radians(KNEE_SIGMA_DEG) ** 2, np.radians(MOUNT_SIGMA_DEG) ** 2
+    for side in ("Left", "Right"):
+        thigh, shank = worn.get(f"{side}UpperLeg"), worn.get(f"{side}LowerLeg")
+        if thigh is None or shank is None:
+            continue
+        lean = (mounting_discrepancy(thigh[1], thigh[2])[1][0] - mounting_discrepancy(shank[1], shank[2])[1][0]) / 2
+        a = var_k / (var_k + var_m / 2) * float(lean)
+        out[f"{side}UpperLeg"], out[f"{side}LowerLeg"] = a, -a
+    return out
+
+
+def posture_angles(pose: Mapping[str, FloatArray]) -> dict[str, float]:
+    """What a calibration posture (bone → world orientation) holds, in degrees: each upper arm's drop below
+    horizontal, each elbow's and knee's bend (angle between the bones' long axes) where both bones are there."""
+    out: dict[str, float] = {}
+
+    def axis(bone: str, v: tuple[float, float, float]) -> FloatArray:
+        return np.asarray(matrix_from_quat(pose[bone]) @ np.array(v), dtype=np.float64)
+
+    for side, sign in (("Left", 1.0), ("Right", -1.0)):
+        upper, lower = f"{side}UpperArm", f"{side}LowerArm"
+        if upper in pose:
+            along = axis(upper, (sign, 0.0, 0.0))
+            out[f"{side.lower()}_upper_arm_drop"] = float(np.degrees(np.arcsin(np.clip(-along[1], -1.0, 1.0))))
+            if lower in pose:
+                out[f"{side.lower()}_elbow_bend"] = float(np.degrees(np.arccos(np.clip(
+                    along @ axis(lower, (sign, 0.0, 0.0)), -1.0, 1.0))))  # fmt: skip
+        thigh, shank = f"{side}UpperLeg", f"{side}LowerLeg"
+        if thigh in pose and shank in pose:
+            down = (0.0, -1.0, 0.0)
+            out[f"{side.lower()}_knee_bend"] = float(np.degrees(np.arccos(np.clip(
+                axis(thigh, down) @ axis(shank, down), -1.0, 1.0))))  # fmt: skip
+    return {k: round(v, 1) for k, v in out.items()}
 
 
 Samples = Mapping[str, tuple[FloatArray, FloatArray, FloatArray]]
 """Per sensor id: times (s, shape (n,)), orientations (n, 4) and accelerations (n, 3) of a recording."""
 
 
-def stillest_common_window(samples: Samples, window_s: float, span: tuple[float, float] | None) -> tuple[float, float]:
-    """The ``window_s`` window (start, end in s) where the sensors are jointly stillest: the largest turn of any
-    sensor from its window mean is smallest. Searched in steps of a quarter window over ``span`` (default: where
-    every sensor recorded)."""
+WINDOW_STEP_S = 0.05
+"""Step between the still windows searched (s): fine enough that a window starting a moment after a movement is
+found."""
+
+
+def stillest_common_window(
+    samples: Samples,
+    window_s: float,
+    span: tuple[float, float] | None,
+    *,
+    max_turn_deg: float = MAX_TURN_DEG,
+    max_acc_std: float = MAX_ACC_STD,
+) -> tuple[float, float]:
+    """The ``window_s`` window (start, end in s) where the sensors are jointly stillest by every test a calibration
+    window must pass: each sensor's largest turn from its window mean (against ``max_turn_deg``) and the std of its
+    acceleration norm (against ``max_acc_std``), the worst ratio to its limit over sensors and tests smallest.
+    Searched in steps of :data:`WINDOW_STEP_S` (at most a quarter window) over ``span`` (default: where every sensor
+    recorded); the span's bounds are exact (a 1 s span holds a 1 s window).
+
+    Raises
+    ------
+    CalibrationError
+        The span is shorter than the window.
+    """
     t_begin = max(float(t[0]) for t, _, _ in samples.values())
     t_end = min(float(t[-1]) for t, _, _ in samples.values())
     lo, hi = (t_begin, t_end) if span is None else (max(t_begin, span[0]), min(t_end, span[1]))
-    if hi - lo < window_s:
+    if hi - lo < window_s - _TIME_EPS:
         raise CalibrationError(
-            f"the calibration span {lo:.2f}-{hi:.2f} s is shorter than the {window_s} s window (all sensors must "
+            f"the calibration span {lo:.3f}-{hi:.3f} s is shorter than the {window_s:g} s window (all sensors must "
             "record through it)"
         )
+    step = min(WINDOW_STEP_S, window_s / 4)
+    starts = lo + step * np.arange(int(np.floor((hi - window_s - lo) / step + _TIME_EPS)) + 1)
+    starts[-1] = min(starts[-1], hi - window_s)
     best: tuple[float, float] | None = None
-    for start in np.arange(lo, hi - window_s + 1e-9, window_s / 4):
+    for start in starts:
         worst = 0.0
-        for t, q, _ in samples.values():
-            sel = (t >= start) & (t < start + window_s)
-            if sel.sum() < 2:
+        for t, q, a in samples.values():
+            i, j = np.searchsorted(t, [start - _TIME_EPS, start + window_s - _TIME_EPS])
+            if j - i < 2:
                 worst = np.inf
                 break
-            worst = max(worst, float(np.degrees(quat_angle(q[sel], quat_average(q[sel])).max())))
+            turn = float(np.degrees(quat_angle(q[i:j], quat_average(q[i:j])).max()))
+            acc = float(np.std(np.linalg.norm(a[i:j], axis=1)))
+            worst = max(worst, turn / max_turn_deg, acc / max_acc_std if np.isfinite(acc) else 0.0)
         if best is None or worst < best[0]:
             best = (worst, float(start))
     assert best is not None
     return best[1], best[1] + window_s
+
+
+_TIME_EPS = 1e-6
+"""Seconds: bounds typed in decimals (``0.517:1.517``) are not exact binary fractions."""
+
+
+def window_samples(t: FloatArray, start: float, end: float) -> slice:
+    """The samples of times ``t`` (s, sorted) in ``[start, end)``, with bounds exact to :data:`_TIME_EPS`."""
+    i, j = np.searchsorted(t, [start - _TIME_EPS, end - _TIME_EPS])
+    return slice(int(i), int(j))
 
 
 def common_grid(samples: Samples, sensors: list[str]) -> tuple[FloatArray, dict[str, FloatArray]]:
@@ -604,6 +860,36 @@ def calibration_hinges(
     return check_bone_orientations(orientations, t, options)
 
 
+ARM_THROUGH_BODY_COS = -0.7
+"""An upper arm points into the body when its direction's component along the trunk's outward side axis is below
+this (more than about 45° past the body's midplane, toward the other side: through the chest)."""
+
+
+def arms_through_body(samples: Samples, calib: ImuCalibration) -> dict[str, float]:
+    """Seconds each calibrated upper arm points into the body over a recording (:data:`ARM_THROUGH_BODY_COS`),
+    measured against the pelvis (or sternum) sensor's bone: what a calibration posture turned by 90° makes of arms
+    that hang or swing (an arms-down hint for a T-pose, or the reverse), where no elbow bends the wrong way. Empty
+    without a trunk sensor."""
+    by_bone = {b: sid for sid, b in calib.bones.items() if sid in samples}
+    trunk = by_bone.get("Hips") or by_bone.get("Spine3")
+    out: dict[str, float] = {}
+    if trunk is None:
+        return out
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        arm = by_bone.get(f"{side.capitalize()}UpperArm")
+        if arm is None:
+            continue
+        t, q = common_grid(samples, [trunk, arm])
+        if t.size < 2:
+            continue
+        axis = np.array([sign, 0.0, 0.0])  # the arm's direction and the trunk's outward side, bone frames
+        along = matrix_from_quat(bone_orientation(calib.q_ig, q[arm], calib.q_ib[arm])) @ axis
+        side_axis = matrix_from_quat(bone_orientation(calib.q_ig, q[trunk], calib.q_ib[trunk])) @ axis
+        inward = np.einsum("ij,ij->i", along, side_axis) < ARM_THROUGH_BODY_COS
+        out[f"{side}_upper_arm"] = float(inward.sum() * np.median(np.diff(t)))
+    return out
+
+
 def calibrate_recording(
     person: str,
     samples: Samples,
@@ -615,10 +901,15 @@ def calibrate_recording(
     window_s: float = 1.0,
     span: tuple[float, float] | None = None,
     pose: str = "t-pose",
+    estimate_posture: bool = True,
+    max_turn_deg: float = MAX_TURN_DEG,
+    max_acc_std: float = MAX_ACC_STD,
 ) -> tuple[ImuCalibration, tuple[float, float]]:
     """:func:`calibrate_tpose` on the stillest moment of a recording where every assigned sensor stands still.
 
-    The posture held there is ``pose`` (:func:`rest_orientations`). Exactly one of ``facing_heading_deg`` and
+    The posture held there is ``pose`` (:func:`rest_orientations`): a hint the sensors refine with
+    ``estimate_posture`` (:func:`estimate_mounting`), or exact without. The window is chosen by, and must pass, both
+    stillness limits (:func:`stillest_common_window`). Exactly one of ``facing_heading_deg`` and
     ``facing_from`` (sensor id, unit axis in the sensor frame that points forward) gives the heading. Returns the
     calibration and the window used (s).
 
@@ -632,11 +923,13 @@ def calibrate_recording(
     missing = sorted(set(bones) - set(samples))
     if missing:
         raise CalibrationError(f"assigned sensor(s) {missing} have no samples")
-    start, end = stillest_common_window({s: samples[s] for s in bones}, window_s, span)
+    start, end = stillest_common_window(
+        {s: samples[s] for s in bones}, window_s, span, max_turn_deg=max_turn_deg, max_acc_std=max_acc_std
+    )
     chunks = {}
     for sid in bones:
         t, q, a = samples[sid]
-        sel = (t >= start) & (t < end)
+        sel = window_samples(t, start, end)
         chunks[sid] = (q[sel], a[sel])
     n = min(len(q) for q, _ in chunks.values())
     if facing_from is not None:
@@ -644,7 +937,7 @@ def calibrate_recording(
         if sid not in samples:
             raise ConfigError(f"--facing-from: no samples from sensor {sid}")
         t, q, _ = samples[sid]
-        facing_heading_deg = facing_heading_from_sensor(quat_average(q[(t >= start) & (t < end)]), axis)
+        facing_heading_deg = facing_heading_from_sensor(quat_average(q[window_samples(t, start, end)]), axis)
     assert facing_heading_deg is not None
     calib = calibrate_tpose(
         person,
@@ -654,5 +947,9 @@ def calibrate_recording(
         world_heading=world_heading,
         window=n,
         rest=rest_orientations(pose),
+        max_spread_deg=max_turn_deg,
+        max_acc_std=max_acc_std,
+        estimate_posture=estimate_posture,
+        pose_hint=pose,
     )
     return calib, (start, end)

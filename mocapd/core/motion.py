@@ -119,6 +119,20 @@ class SourceMotion:
         return SourceMotion(self.name, self.joint_names, self.parents, tr, rot, self.end_sites, fps)
 
 
+def time_grid(first_ns: int, last_ns: int, rate_hz: float, origin_ns: int | None = None) -> NDArray[np.int64]:
+    """The instants ``origin_ns + k / rate_hz`` (ns, each rounded on its own) from ``first_ns`` through ``last_ns``,
+    both ends included where they are on the grid (within 1 µs); ``origin_ns`` defaults to ``first_ns``.
+
+    Each instant is rounded on its own rather than summed from a rounded period: at 60 Hz a period of 16 666 667 ns
+    is 1/3 ns long, and a 3006-sample take's last sample (50.0833 s on) fell 1 µs beyond the grid and had no pose.
+    """
+    origin = first_ns if origin_ns is None else origin_ns
+    step = 1e9 / rate_hz
+    k0 = int(np.ceil((first_ns - origin) / step - 1e-6))
+    k1 = int(np.floor((last_ns - origin) / step + 1e-6))
+    return np.int64(origin) + np.round(np.arange(k0, max(k1 + 1, k0)) * step).astype(np.int64)
+
+
 def _catmull_rom(y: FloatArray, s: FloatArray) -> FloatArray:
     """Samples ``y`` (n, ...) evaluated at fractional indices ``s`` (m,) with a Catmull-Rom spline."""
     n = y.shape[0]

@@ -120,7 +120,11 @@ def resample(track: SubjectTrack, rate_hz: float = 60.0, origin_ns: int | None =
     start = int(t[0]) if origin_ns is None else origin_ns + -(-(int(t[0]) - origin_ns) // period) * period
     if t.size == 1 or start > t[-1]:
         return track
-    grid = start + np.arange((t[-1] - start) // period + 1, dtype=np.int64) * period
+    # A take whose instants are k / rate rounded one by one (an imported 60 Hz recording: mocapd.core.motion.time_grid)
+    # ends up to half a nanosecond per period before the integer period's grid: its last frame is the grid's last
+    # point all the same (3006 samples, 3006 rows; a 1 µs shortfall used to drop it).
+    slack = (int(t[-1]) - start) // (2 * period) + 1
+    grid = start + np.arange((int(t[-1]) - start + slack) // period + 1, dtype=np.int64) * period
     k = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 2)
     alpha = np.clip((grid - t[k]) / np.maximum(t[k + 1] - t[k], 1), 0.0, 1.0)
     th = track.thetas

@@ -22,7 +22,17 @@ from typing import Any
 
 import numpy as np
 
-from mocapd.core.imu_calibration import calibrate_tpose, facing_heading_from_sensor, quat_average
+from mocapd.core.imu_calibration import (
+    CALIBRATION_POSES,
+    MAX_ACC_STD,
+    MAX_TURN_DEG,
+    POSE_HINTS,
+    ImuCalibration,
+    calibrate_tpose,
+    facing_heading_from_sensor,
+    quat_average,
+    rest_orientations,
+)
 from mocapd.core.names import check_name
 from mocapd.errors import ConfigError, DeviceTimeout, MocapdError, OutputError
 from mocapd.io.imu_bridge import ImuBridgeListener
@@ -62,9 +72,33 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--pose",
-        choices=("t-pose", "arms-down"),
+        choices=(*CALIBRATION_POSES, "auto"),
         default="t-pose",
-        help="the posture held (the solver's rest pose is the T-pose; arms-down: arms hanging at the sides)",
+        help="the posture held, as a hint: t-pose (arms horizontal), a-pose (upper arms about 30° below "
+        "horizontal), n-pose or arms-down (arms hanging at the sides, palms in), auto (each tried; with --from the one "
+        "with which knees and elbows bend the right way). The sensors' inclination refines it: upper arms 15-35° "
+        "down, elbows or knees a little bent calibrate correctly (docs/imu.md)",
+    )
+    p.add_argument(
+        "--pose-exact",
+        action="store_true",
+        help="take the --pose as held exactly (no posture estimated from the sensors: every mounting error stays)",
+    )
+    p.add_argument(
+        "--max-turn",
+        type=number(0.1, 45.0),
+        default=MAX_TURN_DEG,
+        metavar="DEG",
+        help=f"stillness: the most a sensor may turn in the still window, degrees (default {MAX_TURN_DEG:g}; "
+        "MTx/MTw/Awinda/SlimeVR standing still stay well below it, docs/imu.md)",
+    )
+    p.add_argument(
+        "--max-acc-std",
+        type=number(0.01, 10.0),
+        default=MAX_ACC_STD,
+        metavar="M_S2",
+        help=f"stillness: the most a sensor's acceleration norm may vary in the still window, std in m/s² "
+        f"(default {MAX_ACC_STD:g})",
     )
     p.add_argument("--suit", help="with --from: the suit name in the session (default: the import's, or the person)")
     facing = p.add_mutually_exclusive_group()
@@ -206,15 +240,19 @@ def run_calibrate(args: argparse.Namespace) -> int:
         heading = args.facing_heading
         if heading is None:
             heading = _heading_from(args.facing_from, recordings)
-        calib = calibrate_tpose(
-            args.person,
-            recordings,
-            sensors,
-            facing_heading_deg=heading,
-            world_heading=args.world_heading,
-            window=max(2, int(window_s * rate)),
-            own_heading=_own_heading(sensors, args.mount_yaw),
-        )
+        own_yaw = _own_heading(sensors, args.mount_yaw)
+
+        def calibrate(hint: str) -> ImuCalibration:
+            return calibrate_tpose(
+                args.person, recordings, sensors, facing_heading_deg=heading, world_heading=args.world_heading,
+                window=max(2, int(window_s * rate)), own_heading=own_yaw, rest=rest_orientations(hint),
+                max_spread_deg=args.max_turn, max_acc_std=args.max_acc_std, estimate_posture=not args.pose_exact,
+                pose_hint=hint,
+            )  # fmt: skip
+
+        # Without motion, auto keeps the hint whose mountings stray least from case-along-the-segment ones.
+        hints = POSE_HINTS if args.pose == "auto" else (args.pose,)
+        calib = min((calibrate(h) for h in hints), key=_rms_residual)
     except MocapdError as exc:  # before ValueError: a ConfigError is one too, and says what is wrong itself
         print(f"mocapd calibrate imu: {exc}")
         return 1
@@ -228,9 +266,17 @@ def run_calibrate(args: argparse.Namespace) -> int:
         return 2
     for sid, bone in calib.bones.items():
         own = f"  heading reset {calib.device_heading_deg[sid]:+.1f} deg" if sid in calib.device_heading_deg else ""
-        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg{own}")
+        print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg  mounting residual "
+              f"{calib.residual_deg.get(sid, float('nan')):.1f} deg{own}")  # fmt: skip
+    print(f"posture ({calib.pose_hint} hint): " + ", ".join(f"{k.replace('_', ' ')} {v:g} deg"
+                                                           for k, v in calib.posture.items()))  # fmt: skip
     print(f"wrote {out}" + (" (replaced the earlier calibration)" if replacing else ""))
     return 0
+
+
+def _rms_residual(calib: ImuCalibration) -> float:
+    """RMS of the mountings' residuals (degrees): how far the sensors stray from case-along-the-segment mountings."""
+    return float(np.sqrt(np.mean(np.square(list(calib.residual_deg.values()) or [0.0]))))
 
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}

@@ -5,7 +5,7 @@
     mocapd import mtw FILE... -o SESSION --assign SENSOR=BONE... [--suit NAME] [--height M] [--imu-set lower]
     mocapd import mvnx FILE -o SESSION [--assign SENSOR=BONE...] [--suit NAME] [--height M]
     mocapd calibrate imu --from SESSION [--facing-heading DEG | --facing-from SENSOR:AXIS]
-                         [--window START:END] [--pose t-pose|arms-down] [--person NAME] [--suit NAME]
+                         [--window START:END] [--pose t-pose|a-pose|n-pose|auto] [--person NAME] [--suit NAME]
     mocapd resolve SESSION          # solves the suit IMU-only
     mocapd export SESSION --resolved --bvh take.bvh --csv take.csv
     mocapd eval ground [--parts synthetic,standing,...] [--optical-data DIR]   # root drift/strides, JSON (docs/imu.md)
@@ -217,10 +217,15 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
             span=span,
             pose=args.pose,
             suit=suit,
+            estimate_posture=not args.pose_exact,
+            max_turn_deg=args.max_turn,
+            max_acc_std=args.max_acc_std,
         )
         calib: ImuCalibration = result.calibration
         info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,
                 "facing_heading_deg": round(calib.facing_heading_deg, 2), "facing_from": result.facing,
+                "posture_deg": calib.posture,
+                "mount_residual_deg": {s: round(v, 1) for s, v in calib.residual_deg.items()},
                 "hinges": {name: h.as_dict() for name, h in result.hinges.items()}}  # fmt: skip
         store_in_session(session, suit, calib, info)
         write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
@@ -236,6 +241,8 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
                       "window_s": info["window_s"], "facing_heading_deg": info["facing_heading_deg"],
                       "facing_from": result.facing, "hinges_checked": sorted(result.hinges),
                       "still_spread_deg": {s: round(v, 2) for s, v in calib.spread_deg.items()},
+                      "posture_deg": calib.posture,
+                      "mount_residual_deg": {s: round(v, 1) for s, v in calib.residual_deg.items()},
                       "next": f"mocapd resolve {session.path}"}, indent=2))  # fmt: skip
     return 0
 

@@ -1,18 +1,19 @@
 """``mocapd calibrate imu --from SESSION``: calibrate a suit from the stillest standing moment of a recording.
 
 The calibration is :func:`mocapd.core.imu_calibration.calibrate_recording`: every assigned sensor's mounting
-``R_ib`` from one still window, during which every bone is assumed to be at its **rest orientation**. The solver's
-rest pose is the **T-pose** (DESIGN.md: arms horizontal, legs straight, feet flat, facing +Z), so by default the
-subject must stand in a T-pose; ``pose="arms-down"`` assumes instead that the arms hang at the sides (palms in:
-upper arms, forearms and hands turned 90° down about the body's forward axis), the usual posture at the start of
-a take. For a suit without arm sensors the two are the same: standing straight.
+``R_ib`` from one still window, in which the posture held is estimated from the sensors' orientations with ``pose``
+as a hint (:func:`mocapd.core.imu_calibration.estimate_mounting`: ``"t-pose"``, ``"a-pose"``, ``"n-pose"``/
+``"arms-down"``, or ``"auto"``: each tried, the one with which the take's knees and elbows bend the right way and
+the arms never point into the body kept). A hint with which the arms swing through the chest over the take is
+refused naming the one that works (the posture, not a mirrored facing, is then the cause).
 
-The window is the one where *all* assigned sensors are jointly stillest (the largest turn of any sensor from its
-window mean is smallest), searched in steps of a quarter window over the whole recording or over
-``START:END`` seconds; a window where a sensor turns more than 2° or its acceleration norm varies by more than
-0.3 m/s² is refused with the sensor named, as for a live calibration. The heading comes from ``--facing-heading``,
-from a sensor axis that points forward (``--facing-from SENSOR:AXIS``), or, with neither, from the take's steps: a
-knee bends about the body's left-right axis, its foot moving backwards
+The window is the one where *all* assigned sensors are jointly stillest by both tests it must pass (each sensor's
+largest turn from its window mean and the std of its acceleration norm, as fractions of their limits, ``--max-turn``
+and ``--max-acc-std``), searched every 0.05 s over the whole recording or over ``START:END`` seconds (exact bounds);
+a window that still fails is refused with the sensor, the limit and the option that raises it named.
+
+The heading comes from ``--facing-heading``, from a sensor axis that points forward (``--facing-from SENSOR:AXIS``),
+or, with neither, from the take's steps: a knee bends about the body's left-right axis, its foot moving backwards
 (:func:`mocapd.core.imu_calibration.facing_heading_from_steps`).
 
 A facing direction with which knees or elbows bend the wrong way over the take for more than a moment
@@ -35,7 +36,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.imu_calibration import (
+    MAX_ACC_STD,
+    MAX_TURN_DEG,
+    POSE_HINTS,
     ImuCalibration,
+    arms_through_body,
     calibrate_recording,
     calibration_hinges,
     facing_heading_from_steps,
@@ -132,6 +137,9 @@ def calibrate_session(
     pose: str = "t-pose",
     assignment: dict[str, str] | None = None,
     suit: str | None = None,
+    estimate_posture: bool = True,
+    max_turn_deg: float = MAX_TURN_DEG,
+    max_acc_std: float = MAX_ACC_STD,
 ) -> SessionCalibration:
     """Calibrate the session's assigned sensors (see the module docstring).
 
@@ -139,7 +147,9 @@ def calibrate_session(
     config has one table per person (``[imu.assignment.alice]``), ``suit``'s table (default ``person``'s). At most
     one of ``facing_heading_deg`` and ``facing_from`` (sensor id, unit axis in the sensor frame) may be given; with
     neither, the facing comes from the knees' bending in the take's steps
-    (:func:`~mocapd.core.imu_calibration.facing_heading_from_steps`).
+    (:func:`~mocapd.core.imu_calibration.facing_heading_from_steps`). ``pose`` is a hint (``"auto"``: each of
+    :data:`~mocapd.core.imu_calibration.POSE_HINTS` tried, the one with which the knees and elbows bend the right
+    way and the mountings stray least kept); ``estimate_posture`` False holds it exactly.
 
     Raises
     ------
@@ -165,12 +175,16 @@ def calibrate_session(
     if not bones:
         raise ConfigError(f"{session.path}: no sensor is assigned to a bone ([imu.assignment] of its config)")
     samples = session_samples(session)
+    limits = {"max_turn_deg": max_turn_deg, "max_acc_std": max_acc_std}
     source = "sensor" if facing_from is not None else "heading"
     if facing_heading_deg is None and facing_from is None:
         try:
-            start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span)
+            start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span,
+                                                max_turn_deg=max_turn_deg, max_acc_std=max_acc_std)  # fmt: skip
         except CalibrationError as exc:
-            raise CalibrationError(_from_a_recording(str(exc), session, samples, bones, window_s, span, pose)) from None
+            raise CalibrationError(
+                _from_a_recording(str(exc), session, samples, bones, window_s, span, pose, limits)
+            ) from None
         facing_heading_deg = facing_heading_from_steps(samples, bones, (start, end))
         if facing_heading_deg is None:
             raise ConfigError(
@@ -181,25 +195,69 @@ def calibrate_session(
         source = "steps"
 
     def calibrate(
-        heading: float | None, axis: tuple[str, FloatArray] | None
+        heading: float | None, axis: tuple[str, FloatArray] | None, hint: str = pose
     ) -> tuple[ImuCalibration, tuple[float, float]]:
         try:
             return calibrate_recording(
                 person, samples, bones, facing_heading_deg=heading, facing_from=axis, world_heading=world_heading,
-                window_s=window_s, span=span, pose=pose,
+                window_s=window_s, span=span, pose=hint, estimate_posture=estimate_posture,
+                max_turn_deg=max_turn_deg, max_acc_std=max_acc_std,
             )  # fmt: skip
         except CalibrationError as exc:
-            raise CalibrationError(_from_a_recording(str(exc), session, samples, bones, window_s, span, pose)) from None
+            raise CalibrationError(
+                _from_a_recording(str(exc), session, samples, bones, window_s, span, hint, limits)
+            ) from None
 
-    calib, window = calibrate(facing_heading_deg, facing_from)
-    hinges = calibration_hinges(samples, calib)
+    def implausible(calib: ImuCalibration, hinges: dict[str, HingeEvents]) -> float:
+        """Seconds of the take the calibration makes impossible: hinges bent the wrong way, arms through the body."""
+        return _wrong_seconds(hinges) + sum(arms_through_body(samples, calib).values())
+
+    if pose == "auto":
+        tried = []
+        for hint in POSE_HINTS:
+            calib, window = calibrate(facing_heading_deg, facing_from, hint)
+            hinges = calibration_hinges(samples, calib)
+            rms = float(np.sqrt(np.mean(np.square(list(calib.residual_deg.values()) or [0.0]))))
+            tried.append((implausible(calib, hinges), rms, hint, calib, window, hinges))
+        _, _, pose, calib, window, hinges = min(tried, key=lambda x: (round(x[0], 1), x[1]))
+    else:
+        calib, window = calibrate(facing_heading_deg, facing_from)
+        hinges = calibration_hinges(samples, calib)
+        through = arms_through_body(samples, calib)
+        if sum(through.values()) > ARMS_THROUGH_BODY_S:  # the arms held otherwise than the hint says
+            bad = implausible(calib, hinges)
+            for hint in POSE_HINTS:
+                other, _ = calibrate(facing_heading_deg, facing_from, hint)
+                if hint != pose and implausible(other, calibration_hinges(samples, other)) < 0.25 * bad:
+                    raise CalibrationError(_wrong_posture(through, pose, hint))
     if _wrong_way(hinges):
         flipped_heading = None if facing_heading_deg is None else (facing_heading_deg + 180.0) % 360.0
         flipped_axis = None if facing_from is None else (facing_from[0], -np.asarray(facing_from[1]))
-        other, _ = calibrate(flipped_heading, flipped_axis)
+        other, _ = calibrate(flipped_heading, flipped_axis, pose)
         works = not _wrong_way(calibration_hinges(samples, other))
-        raise CalibrationError(_refusal(hinges, source, facing_from, facing_heading_deg, works))
+        posture = None
+        if not works:  # the facing is not the cause: is the posture? (arms held otherwise than the hint says)
+            posture = next((hint for hint in POSE_HINTS if hint != pose and not _wrong_way(
+                calibration_hinges(samples, calibrate(facing_heading_deg, facing_from, hint)[0]))), None)  # fmt: skip
+        raise CalibrationError(_refusal(hinges, source, facing_from, facing_heading_deg, works, posture, pose))
     return SessionCalibration(calib, window, pose, source, hinges)
+
+
+ARMS_THROUGH_BODY_S = 1.0
+"""Seconds of a take in which the calibrated upper arms may point into the body before the posture hint is doubted."""
+
+
+def _wrong_posture(through: dict[str, float], pose: str, works: str) -> str:
+    arms = "; ".join(f"{k.replace('_', ' ')} {v:.1f} s" for k, v in through.items() if v > 0)
+    return (
+        f"with --pose {pose} the upper arms point into the body ({arms}): the posture held in the calibration window "
+        f"was not {_POSTURE_TEXT.get(pose, pose)}; --pose {works} makes them move as arms do: calibrate again with it "
+        "(or --pose auto)"
+    )
+
+
+def _wrong_seconds(hinges: dict[str, HingeEvents]) -> float:
+    return sum(h.seconds for h in hinges.values())
 
 
 def _wrong_way(hinges: dict[str, HingeEvents]) -> bool:
@@ -217,6 +275,8 @@ def _refusal(
     facing_from: tuple[str, FloatArray] | None,
     heading: float | None,
     flipped_works: bool,
+    posture: str | None = None,
+    pose: str = "t-pose",
 ) -> str:
     """The message refusing a facing direction with which hinges bend the wrong way, naming the one that works."""
     bent = [f"{name.replace('_', ' ')} {h.seconds:.1f} s (up to {h.worst_deg:.0f}°, first at {h.first_s:.1f} s)"
@@ -229,32 +289,53 @@ def _refusal(
         given = "the facing found from the take's steps" if source == "steps" else f"--facing-heading {heading:g}"
         other = f"--facing-heading {(heading + 180.0) % 360.0:.0f}"
     kinds = " and ".join(sorted({f"{name.split('_')[1]}s" for name, h in hinges.items() if h.events}, reverse=True))
+    if posture is not None:
+        return (
+            f"with --pose {pose} the {kinds} bend the wrong way ({'; '.join(bent)}): the posture held in the "
+            f"calibration window was not {_POSTURE_TEXT.get(pose, pose)}; --pose {posture} bends them the right way: "
+            f"calibrate again with it (or --pose auto)"
+        )
     head = f"with {given} the {kinds} bend the wrong way ({'; '.join(bent)}): the facing direction is mirrored"
     if flipped_works:
         return f"{head}; {other} bends them the right way: calibrate again with it"
     return (
-        f"{head}, and {other} does not make them bend the right way either: check the sensor assignment "
-        "(a sensor on another bone, left and right swapped) or leave out --facing-from/--facing-heading to take the "
-        "facing from the take's steps"
+        f"{head}, and {other} does not make them bend the right way either, nor does another --pose: check the "
+        "sensor assignment (a sensor on another bone, left and right swapped) or leave out "
+        "--facing-from/--facing-heading to take the facing from the take's steps"
     )
 
 
+_POSTURE_TEXT = {"t-pose": "a T-pose", "a-pose": "an A-pose", "n-pose": "standing, arms down",
+                 "arms-down": "standing, arms down", "auto": "standing"}  # fmt: skip
+
+
 def _from_a_recording(message: str, session: Session, samples: dict[str, Any], bones: dict[str, str],
-                      window_s: float, span: tuple[float, float] | None, pose: str) -> str:  # fmt: skip
+                      window_s: float, span: tuple[float, float] | None, pose: str,
+                      limits: dict[str, float]) -> str:  # fmt: skip
     """A still-window refusal as advice for a recording: it cannot be repeated, but another moment of it can be
     chosen (``--window START:END``); and it names the posture that was assumed, not always the T-pose."""
     if "stand still and repeat" not in message:
         return message
+    limit = message[message.index("raise the limit:") :] if "raise the limit:" in message else ""
     try:
-        start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span)
+        start, end = stillest_common_window({s: samples[s] for s in bones if s in samples}, window_s, span, **limits)
         where = f"in the stillest {window_s:g} s of the recording ({start:.1f}-{end:.1f} s)"
     except CalibrationError:
         where = "in the stillest window of the recording"
-    posture = {"t-pose": "a T-pose", "arms-down": "standing, arms down"}.get(pose, pose)
-    return (message.replace("during the T-pose", where).replace(
-        "stand still and repeat",
-        f"choose a moment when the subject stands still ({posture}): `mocapd calibrate imu --from {session.path} "
-        f"--window START:END` (seconds of the session; `mocapd session {session.path}` shows its length)"))  # fmt: skip
+    posture = _POSTURE_TEXT.get(pose, pose)
+    head = message[: message.index("; stand still and repeat")].replace("during the calibration", where)
+    flag = limit.removeprefix("raise the limit: ")
+    return (
+        f"{head}: choose a moment when the subject stands still ({posture}): `mocapd calibrate imu --from "
+        f"{session.path} --window START:END` (seconds of the session; `mocapd session {session.path}` shows its "
+        f"length)"
+        + (
+            f"; or, if the subject stood still there (a noisier sensor), `mocapd calibrate imu --from "
+            f"{session.path} {flag}`"
+            if flag
+            else ""
+        )
+    )
 
 
 def store_in_session(session: Session, suit: str, calib: ImuCalibration, info: dict[str, Any]) -> None:

@@ -45,6 +45,7 @@ from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.lr_flips import FlipOptions
+from mocapd.core.motion import time_grid
 from mocapd.core.people import PeopleTracker
 from mocapd.core.per_skeleton import PerSkeleton, skeleton_key
 from mocapd.core.plausibility import PlausibilityMonitor
@@ -231,7 +232,7 @@ def solve_times(session: Session, rate_hz: float, sensors: tuple[str, ...] = ())
         common = common_span(coverage, sensors)
         if common is not None:
             t = np.array(common, dtype=np.int64)
-    return np.arange(int(t.min()), int(t.max()) + 1, period, dtype=np.int64)
+    return time_grid(int(t.min()), int(t.max()), rate_hz)  # the last sample posed too
 
 
 def recorded_instants(t_solve_ns: NDArray[np.int64], period_ns: int) -> NDArray[np.int64]:
