@@ -46,7 +46,7 @@ class ModelSpec:
     decoder: str = "yolo_pose"
     """Output decoding: yolo_pose = (1, 5 + 3K, N) boxes cx,cy,w,h + score + K × (x, y, conf)."""
     keypoint_format: str = "coco17"
-    """coco17, body25 or halpe26."""
+    """coco17, body25, halpe26 or blazepose33."""
     score_threshold: float = 0.25
     """Person score below which candidates are dropped (0..1)."""
     iou_threshold: float = 0.65

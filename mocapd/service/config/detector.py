@@ -62,7 +62,7 @@ class ModelSection(Section):
     std: PositiveTriple = _M.std
     pad_value: int = Field(_M.pad_value, ge=0, le=255)
     decoder: Literal["yolo_pose"] = "yolo_pose"
-    keypoint_format: Literal["coco17", "body25", "halpe26"] = "coco17"
+    keypoint_format: Literal["coco17", "body25", "halpe26", "blazepose33"] = "coco17"
     score_threshold: float = Field(_M.score_threshold, ge=0.0, le=1.0)
     iou_threshold: float = Field(_M.iou_threshold, ge=0.0, le=1.0)
     max_people: int = Field(_M.max_people, ge=1, le=1000)
