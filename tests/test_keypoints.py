@@ -1,4 +1,5 @@
-"""Keypoint formats (COCO-17, Body25, Halpe-26, BlazePose-33), their default track targets and the solver's COCO-17 table."""
+"""Keypoint formats (COCO-17, Body25, Halpe-26, BlazePose-33), their default track targets and the solver's COCO-17
+table."""
 
 from __future__ import annotations
 

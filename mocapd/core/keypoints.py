@@ -11,9 +11,9 @@ top of the neck). Default offsets are anthropometric for a 1.75 m adult.
 
 Two views of the same data live here:
 
-* :class:`KeypointFormat` (``coco17``, ``body25``, ``halpe26``, ``blazepose33``): a detector's keypoint names in output order,
-  a :class:`TrackTarget` per keypoint and the stick-figure edges; chosen by name in config, written to and
-  read from offsets files (:mod:`mocapd.core.offset_calibration`);
+* :class:`KeypointFormat` (``coco17``, ``body25``, ``halpe26``, ``blazepose33``): a detector's keypoint names in
+  output order, a :class:`TrackTarget` per keypoint and the stick-figure edges; chosen by name in config, written to
+  and read from offsets files (:mod:`mocapd.core.offset_calibration`);
 * :class:`TrackTargets`: the solver's arrays (bone indices, offsets), from
   :meth:`KeypointFormat.track_targets` or :func:`coco17_targets`.
 
@@ -339,6 +339,13 @@ _LEFT_BLAZEPOSE: dict[str, TrackTarget] = {
     "left_foot_index": TrackTarget("LeftToes", (-0.01, -0.02, 0.05)),
 }
 
+_BLAZEPOSE33_EDGES = (
+    (0, 1), (1, 2), (2, 3), (3, 7), (0, 4), (4, 5), (5, 6), (6, 8), (9, 10),
+    (11, 12), (11, 13), (13, 15), (15, 17), (15, 19), (15, 21), (17, 19),
+    (12, 14), (14, 16), (16, 18), (16, 20), (16, 22), (18, 20),
+    (11, 23), (12, 24), (23, 24), (23, 25), (24, 26), (25, 27), (26, 28),
+    (27, 29), (28, 30), (29, 31), (30, 32), (27, 31), (28, 32),
+)  # fmt: skip
 BLAZEPOSE33_FORMAT = KeypointFormat(
     name="blazepose33",
     # MediaPipe's landmark order; its "mouth_left"/"mouth_right" are named left_mouth/right_mouth here so that every
@@ -379,13 +386,7 @@ BLAZEPOSE33_FORMAT = KeypointFormat(
         "right_foot_index",
     ),
     targets={**_COCO17_TARGETS, **_both_sides(_LEFT_BLAZEPOSE)},
-    edges=(
-        (0, 1), (1, 2), (2, 3), (3, 7), (0, 4), (4, 5), (5, 6), (6, 8), (9, 10),
-        (11, 12), (11, 13), (13, 15), (15, 17), (15, 19), (15, 21), (17, 19),
-        (12, 14), (14, 16), (16, 18), (16, 20), (16, 22), (18, 20),
-        (11, 23), (12, 24), (23, 24), (23, 25), (24, 26), (25, 27), (26, 28),
-        (27, 29), (28, 30), (29, 31), (30, 32), (27, 31), (28, 32),
-    ),  # fmt: skip
+    edges=_BLAZEPOSE33_EDGES,
 )
 """MediaPipe BlazePose (GHUM 3D) 33 landmarks: COCO-17's points plus heels, foot index, pinky, index, thumb and
 more face points."""

@@ -1,0 +1,166 @@
+"""BlazePose landmarks per person: YOLO's people → aligned 256 x 256 crops → 33 keypoints in source pixels.
+
+The second stage of the keypoint front end (``[detector] landmarks``, issue 40): for each person YOLO found, the
+crop :func:`mocapd.core.landmark_roi.roi_from_coco17` places (mid-hip centre, upright, MediaPipe's enlargement) is
+resampled with one ``cv2.warpAffine``, the crops of all people (and of all the cameras of a call) run as one batch,
+and :func:`mocapd.core.landmark_roi.decode_landmarks` maps the landmarks back with their confidences. A person
+whose hips or shoulders YOLO did not see gets no crop: their row is all zeros (confidence 0).
+
+**Runtime: LiteRT, not onnxruntime.** The models are the .tflite files of ``@mediapipe/pose``
+(:mod:`mocapd.io.landmark_build`). Both ways were measured on the same crops (one 256 x 256 input, 2 threads,
+median of 6 runs after 2 warm-up, three interleaved rounds, ``nice -n 19``, load 11-13 on the 2-core
+"Intel(R) Xeon(R) Processor" shared by eight engineers, 2026-11-29): ``ai-edge-litert`` 2.3.0 (XNNPACK) ran
+*full* in 68-107 ms and *heavy* in 259-272 ms; onnxruntime 1.32.0 on the tf2onnx 1.17 / tensorflow-cpu 2.21
+conversion (opset 17, landmarks within 0.003 crop px of LiteRT's) took 220-275 and 528-599 ms. The issue's own
+numbers on a quieter 2-core machine agree (heavy 49-60 against 96-128 ms, full 16-19 against 28-42). So LiteRT
+runs them: about twice as fast, the shipped file as it is (no conversion step, no tensorflow at set-up), at the
+cost of one runtime dependency. Batches of 4 crops cost per crop what single crops do on this CPU (61 against 64 ms,
+full); they are used because on a machine with more cores (or a GPU delegate later) they pay.
+
+MediaPipe refines the landmarks on the model's 64 x 64 heatmap (``RefineLandmarksFromHeatmapCalculator``); that
+step is not done here.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.landmark_roi import INPUT_SIZE, N_LANDMARKS, LandmarkRoi, decode_landmarks, roi_from_coco17
+from mocapd.errors import ModelError
+from mocapd.io.landmark_build import VARIANTS, landmark_model_is_current
+from mocapd.io.model_cache import landmark_model_path
+
+FloatArray = NDArray[np.float64]
+Image = NDArray[np.uint8]
+MAX_BATCH = 8
+"""Crops per model call at most (LiteRT resizes the input per batch size; 8 bounds the interpreters kept)."""
+
+
+def load_interpreter(path: Path, threads: int) -> Any:
+    """A LiteRT interpreter on ``path``, or ModelError naming what failed."""
+    try:
+        from ai_edge_litert.interpreter import Interpreter
+    except ImportError as exc:
+        raise ModelError(f"[detector] landmarks needs the PyPI package ai-edge-litert ({exc})") from None
+    try:
+        return Interpreter(model_path=str(path), num_threads=threads)
+    except (ValueError, RuntimeError) as exc:
+        raise ModelError(f"{path}: LiteRT cannot load it ({exc})") from None
+
+
+@dataclass(frozen=True)
+class PersonLandmarks:
+    """Landmarks of the people of one image.
+
+    Attributes
+    ----------
+    keypoints : array, shape (n, 33, 3)
+        x, y (source pixels) and confidence in [0, 1]; zeros for a person without a crop.
+    rois : list of (LandmarkRoi or None), length n
+        Each person's crop (None: no hip or no shoulder seen).
+    """
+
+    keypoints: FloatArray
+    rois: list[LandmarkRoi | None]
+
+
+class LandmarkRunner:
+    """One landmark model (``"full"`` or ``"heavy"``) on crops of people; not thread-safe (one per worker).
+
+    Parameters
+    ----------
+    variant : str
+        ``"full"`` or ``"heavy"``.
+    threads : int
+        LiteRT's CPU threads.
+    path : Path, optional
+        The .tflite file (default: the cache's, checked against its pinned sha256).
+    """
+
+    def __init__(self, variant: str = "full", *, threads: int = 2, path: Path | None = None) -> None:
+        if variant not in VARIANTS:
+            raise ModelError(f"unknown landmark model {variant!r}; known: {list(VARIANTS)}")
+        if path is None:
+            path = landmark_model_path(variant)
+            if not landmark_model_is_current(path, variant):
+                raise ModelError(
+                    f"{path} not found or not the pinned model: run `mocapd model fetch --landmarks` "
+                    "(setup/steps/31-landmarks.sh does it at set-up)"
+                )
+        self.variant = variant
+        self.path = path
+        self.threads = threads
+        self._interpreters: dict[int, Any] = {}
+        self._lock = threading.Lock()
+        self.crops_run = 0
+
+    def _interpreter(self, batch: int) -> Any:
+        it = self._interpreters.get(batch)
+        if it is None:
+            it = load_interpreter(self.path, self.threads)
+            if batch != 1:
+                it.resize_tensor_input(it.get_input_details()[0]["index"], [batch, INPUT_SIZE, INPUT_SIZE, 3])
+            it.allocate_tensors()
+            self._interpreters[batch] = it
+        return it
+
+    def infer(self, crops: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Raw landmark rows of ``crops``, shape (n, 256, 256, 3) RGB in [0, 1] → shape (n, 195)."""
+        out = np.empty((len(crops), 195), dtype=np.float32)
+        with self._lock:
+            for start in range(0, len(crops), MAX_BATCH):
+                part = crops[start : start + MAX_BATCH]
+                it = self._interpreter(len(part))
+                it.set_tensor(it.get_input_details()[0]["index"], np.ascontiguousarray(part))
+                it.invoke()
+                out[start : start + len(part)] = it.get_tensor(it.get_output_details()[0]["index"]).reshape(
+                    len(part), -1
+                )
+                self.crops_run += len(part)
+        return out
+
+    def run(self, images: Sequence[Image], people: Sequence[FloatArray]) -> list[PersonLandmarks]:
+        """Landmarks of every person of every image, the crops of all images in one batch.
+
+        Parameters
+        ----------
+        images : sequence of uint8 array, shape (H, W, 3), BGR
+        people : sequence of array, shape (n_i, 17, 3)
+            Each image's people as YOLO's COCO-17 keypoints (source pixels, confidence).
+        """
+        rois: list[list[LandmarkRoi | None]] = [[roi_from_coco17(kp) for kp in p] for p in people]
+        crops = [crop(img, r) for img, rs in zip(images, rois, strict=True) for r in rs if r is not None]
+        raw = self.infer(np.stack(crops)) if crops else np.zeros((0, 195), np.float32)
+        placed = [r for rs in rois for r in rs if r is not None]
+        decoded = decode_landmarks(raw, placed)
+        out, k = [], 0
+        for rs in rois:
+            kp = np.zeros((len(rs), N_LANDMARKS, 3))
+            for i, r in enumerate(rs):
+                if r is not None:
+                    kp[i] = decoded[k]
+                    k += 1
+            out.append(PersonLandmarks(kp, rs))
+        return out
+
+
+def crop(image: Image, roi: LandmarkRoi) -> NDArray[np.float32]:
+    """The model's input for ``roi``: shape (256, 256, 3), RGB in [0, 1] (MediaPipe's ``ImageToTensorCalculator``
+    with ``output_tensor_float_range`` 0..1; outside the image the border pixels repeat, its default)."""
+    patch = cv2.warpAffine(
+        image,
+        roi.sampling_matrix(),
+        (INPUT_SIZE, INPUT_SIZE),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    rgb = cv2.cvtColor(patch, cv2.COLOR_BGR2RGB)
+    return np.asarray(rgb, dtype=np.float32) * np.float32(1.0 / 255.0)
