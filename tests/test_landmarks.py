@@ -3,6 +3,7 @@ landmark models (fetched from @mediapipe/pose by setup/steps/31-landmarks.sh) ru
 
 from __future__ import annotations
 
+import asyncio
 import json
 import shutil
 import tarfile
@@ -14,7 +15,8 @@ import pytest
 
 from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
 from mocapd.core.keypoints import COCO17_FORMAT as COCO17
-from mocapd.errors import ModelError
+from mocapd.core.sorting import Detections2D
+from mocapd.errors import ConfigError, ModelError
 from mocapd.io import landmark_build
 from mocapd.io.landmark_build import (
     LICENCE,
@@ -26,10 +28,14 @@ from mocapd.io.landmark_build import (
 from mocapd.io.model_build import sha256
 from mocapd.io.model_cache import landmark_model_path
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
+from mocapd.io.video_source import VideoFileSource
 from mocapd.pipeline.detector import OnnxPoseDetector
-from mocapd.pipeline.detector_config import ModelSpec
+from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
+from mocapd.pipeline.detector_pool import PooledDetector, detector_status, make_detector, target_columns
 from mocapd.pipeline.landmarks import LandmarkRunner, PersonLandmarks
+from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.service.cli import main
+from mocapd.service.config import parse_config
 
 Image = np.ndarray
 SHARED = ("left_shoulder", "right_shoulder", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle",
@@ -153,3 +159,67 @@ def test_model_fetch_landmarks_is_a_no_op_when_current(capsys: pytest.CaptureFix
     assert main(["model", "fetch", "--size", "640", "--landmarks"]) == 0
     out = capsys.readouterr().out
     assert "pose_landmark_full.tflite" in out and "pose_landmark_heavy.tflite" in out and "wrote" not in out
+
+
+def test_the_landmarks_key_picks_the_model_and_the_output_keypoint_set() -> None:
+    for value, model, output in (("off", None, "coco17"), ("full", "full", "blazepose33"),
+                                 ("heavy", "heavy", "blazepose33"), ("auto", None, "coco17")):  # fmt: skip
+        opts = parse_config({"detector": {"landmarks": value}}).detector.options()
+        assert (opts.landmark_model, opts.output_format) == (model, output), value
+    assert parse_config({}).detector.landmarks == "off"
+    with pytest.raises(ConfigError, match="landmarks"):
+        parse_config({"detector": {"landmarks": "lite"}})
+    with pytest.raises(ConfigError, match="COCO-17 hips and shoulders"):
+        parse_config({"detector": {"landmarks": "full", "model": {"keypoint_format": "halpe26"}}}).detector.options()
+
+
+def test_whole_frame_workers_deliver_landmarks_as_the_keypoints(views: list[tuple[Image, np.ndarray]]) -> None:
+    cfg = DetectorConfig(intra_op_threads=2, landmarks="full", packing=PackingConfig(enabled=False))
+    targets = BLAZEPOSE33.track_targets()
+    det = make_detector(cfg, [(views[0][0].shape[1], views[0][0].shape[0])], target_columns(cfg, targets.names))
+    assert isinstance(det, PooledDetector)
+    try:
+        img, kp = views[0]
+        found = det(np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), np.uint8))
+        st = detector_status(det)
+    finally:
+        det.close()
+    assert found.keypoints.shape[1:] == (33, 2) and found.confidences.shape[1:] == (33,)
+    subject = int(np.argmin([np.linalg.norm(p[BLAZEPOSE33.index("left_hip")] - kp[COCO17.index("left_hip"), :2])
+                             for p in found.keypoints]))  # fmt: skip
+    heel = found.keypoints[subject, BLAZEPOSE33.index("left_heel")]
+    ankle = found.keypoints[subject, BLAZEPOSE33.index("left_ankle")]
+    assert np.linalg.norm(heel - ankle) < 80.0 and found.confidences[subject].min() > 0.3
+    assert st["landmarks"] == {"asked": "full", "running": "full", "crops": len(found)}
+
+
+@pytest.mark.asyncio
+async def test_the_packed_group_delivers_landmarks_and_auto_says_it_runs_off() -> None:
+    cam = VideoFileSource("cam01", demo_video("Demo_SinglePerson", "cam01"), realtime=True, loop=True)
+    size = (cam.ring.shape[1], cam.ring.shape[0])
+    cfg = DetectorConfig(intra_op_threads=2, landmarks="full", packing=PackingConfig(enabled="auto"))
+    group = make_detector(cfg, [size])
+    assert isinstance(group, PackedDetectionGroup)
+    source = PackedKeypointSource(0, cam, group)
+    got: list[Detections2D] = []
+    task = asyncio.create_task(source.run(lambda _c, _t, d, _a: got.append(d)))
+    try:
+        for _ in range(1200):  # until 3 detections (a minute at most on a starved CPU)
+            if source.detected >= 3:
+                break
+            await asyncio.sleep(0.05)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        group.close()
+    assert len(got) >= 3 and all(d.keypoints.shape[1:] == (33, 2) for d in got)
+    assert max(float(d.confidences.max()) for d in got if len(d)) > 0.9
+    marks = detector_status(group)["landmarks"]
+    assert isinstance(marks, dict) and marks["running"] == "full" and int(marks["crops"]) >= 3
+    auto = DetectorConfig(intra_op_threads=2, landmarks="auto", packing=PackingConfig(enabled=False))
+    det = make_detector(auto, [size])
+    try:
+        st = detector_status(det)["landmarks"]
+    finally:
+        det.close()
+    assert isinstance(st, dict) and st["running"] == "off" and "governor" in str(st["note"])

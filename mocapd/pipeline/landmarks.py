@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.landmark_roi import INPUT_SIZE, N_LANDMARKS, LandmarkRoi, decode_landmarks, roi_from_coco17
+from mocapd.core.pose2d import PoseDetections
 from mocapd.errors import ModelError
 from mocapd.io.landmark_build import VARIANTS, landmark_model_is_current
 from mocapd.io.model_cache import landmark_model_path
@@ -150,6 +151,29 @@ class LandmarkRunner:
                     k += 1
             out.append(PersonLandmarks(kp, rs))
         return out
+
+
+def with_landmarks(
+    runner: LandmarkRunner | None, images: Sequence[Image], people: Sequence[PoseDetections]
+) -> list[PoseDetections]:
+    """Each image's people with their 33 BlazePose landmarks in place of YOLO's keypoints (boxes and scores kept),
+    all images' crops in one batch; ``people`` unchanged when ``runner`` is None."""
+    if runner is None:
+        return list(people)
+    found = runner.run(images, [p.keypoints for p in people])
+    return [PoseDetections(p.boxes, p.scores, lm.keypoints) for p, lm in zip(people, found, strict=True)]
+
+
+def landmark_status(asked: str, runners: Sequence[LandmarkRunner | None]) -> dict[str, object]:
+    """``/status`` ``detector.landmarks``: what ``[detector] landmarks`` asked for, what runs, and the crops the
+    sessions' ``runners`` ran so far."""
+    running = [r for r in runners if r is not None]
+    out: dict[str, object] = {"asked": asked, "running": running[0].variant if running else "off"}
+    if asked == "auto":
+        out["note"] = '"auto" runs as "off" until the budget governor chooses the landmark model per pass'
+    if running:
+        out["crops"] = sum(r.crops_run for r in running)
+    return out
 
 
 def crop(image: Image, roi: LandmarkRoi) -> NDArray[np.float32]:

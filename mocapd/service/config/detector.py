@@ -130,6 +130,7 @@ class DetectorSection(Section):
     intra_op_spinning: bool = _D.intra_op_spinning
     batch: bool | Literal["auto"] = "auto"
     fitted_inputs: bool | Literal["auto"] = "auto"
+    landmarks: Literal["off", "full", "heavy", "auto"] = "off"
     model: ModelSection = Field(default_factory=ModelSection)
     packing: PackingSection = Field(default_factory=PackingSection)
     tracking: TrackingSection = Field(default_factory=TrackingSection)
@@ -145,6 +146,7 @@ class DetectorSection(Section):
             intra_op_spinning=self.intra_op_spinning,
             batch=self.batch,
             fitted_inputs=self.fitted_inputs,
+            landmarks=self.landmarks,
             model=self.model.build(ModelSpec),
             packing=self.packing.build(PackingConfig),
             tracking=self.tracking.build(TrackingConfig),
