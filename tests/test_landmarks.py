@@ -17,6 +17,7 @@ from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
 from mocapd.core.keypoints import COCO17_FORMAT as COCO17
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import ConfigError, ModelError
+from mocapd.eval.video_input import detect_take, eval_detector_config, pose2sim_take
 from mocapd.io import landmark_build
 from mocapd.io.landmark_build import (
     LICENCE,
@@ -223,3 +224,21 @@ async def test_the_packed_group_delivers_landmarks_and_auto_says_it_runs_off() -
     finally:
         det.close()
     assert isinstance(st, dict) and st["running"] == "off" and "governor" in str(st["note"])
+
+
+def test_the_video_evaluation_takes_blazeposes_coco17_points_as_the_keypoints() -> None:
+    # `mocapd eval video` with [detector] landmarks: the same COCO-17 layout for every system and metric, the values
+    # BlazePose's, and a detection cache of their own.
+    take = pose2sim_take("Demo_SinglePerson")
+    det = OnnxPoseDetector.from_config(eval_detector_config(DetectorConfig()))
+    yolo = detect_take(take, lambda: det, 2, use_cache=False)
+    runner = LandmarkRunner("full")
+    marked = detect_take(take, lambda: det, 2, use_cache=False, landmarks=runner)
+    assert marked.key != yolo.key and marked.meta["detector"]["landmarks"]["model"] == "full"
+    assert runner.crops_run >= 2 * len(take.cameras)
+    for row_y, row_m in zip(yolo.frames, marked.frames, strict=True):
+        for dy, dm in zip(row_y, row_m, strict=True):
+            assert dm.keypoints.shape == dy.keypoints.shape and dm.keypoints.shape[1] == 17
+            s = int(np.argmax(np.ptp(dy.keypoints[..., 1], axis=1)))  # the subject: the tallest person
+            d = np.linalg.norm(dm.keypoints[s] - dy.keypoints[s], axis=1)
+            assert 0.0 < np.median(d) < 40.0  # other values, the same points
