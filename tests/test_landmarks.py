@@ -152,6 +152,9 @@ def test_a_tarball_whose_model_differs_from_the_pinned_one_is_refused(tmp_path: 
 
 def test_fetch_without_npm_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("MOCAPD_CACHE", str(tmp_path))
+    # The daemon with landmarks on but no model fetched stops naming the command that fetches it.
+    with pytest.raises(ModelError, match=r"run `mocapd model fetch --landmarks`"):
+        LandmarkRunner("heavy")
     with pytest.raises(ModelError, match="not found: the landmark models come from the npm package"):
         build_landmark_models(["full"], npm="mocapd-no-such-npm")
 
