@@ -110,6 +110,17 @@ def test_feet_points_lie_below_the_ankles(landmarks: list[PersonLandmarks]) -> N
             assert np.linalg.norm(heel - ankle) < 0.15 * 256 and np.linalg.norm(toe - ankle) < 0.15 * 256
 
 
+def test_batches_give_the_landmarks_of_single_crops(views: list[tuple[Image, np.ndarray]]) -> None:
+    # 8 crops in batches of 3 (the last one padded) against one at a time: the same rows, in the same order.
+    images, people = [img for img, _ in views], [kp[None] for _, kp in views]
+    single = LandmarkRunner("full").run(images, people)
+    batched = LandmarkRunner("full", batch=3).run(images, people)
+    for a, b in zip(single, batched, strict=True):
+        np.testing.assert_allclose(a.keypoints, b.keypoints, atol=0.05)
+    with pytest.raises(ModelError, match="batch"):
+        LandmarkRunner("full", batch=0)
+
+
 def test_a_person_without_hips_gets_no_crop_and_zero_confidence(views: list[tuple[Image, np.ndarray]]) -> None:
     img, kp = views[0]
     blind = kp.copy()

@@ -2,9 +2,10 @@
 
 The second stage of the keypoint front end (``[detector] landmarks``, issue 40): for each person YOLO found, the
 crop :func:`mocapd.core.landmark_roi.roi_from_coco17` places (mid-hip centre, upright, MediaPipe's enlargement) is
-resampled with one ``cv2.warpAffine``, the crops of all people (and of all the cameras of a call) run as one batch,
-and :func:`mocapd.core.landmark_roi.decode_landmarks` maps the landmarks back with their confidences. A person
-whose hips or shoulders YOLO did not see gets no crop: their row is all zeros (confidence 0).
+resampled with one ``cv2.warpAffine``, the crops of all people (and of all the cameras of a call) go to the model
+together (in batches of ``batch``), and :func:`mocapd.core.landmark_roi.decode_landmarks` maps the landmarks back
+with their confidences. A person whose hips or shoulders YOLO did not see gets no crop: their row is all zeros
+(confidence 0).
 
 **Runtime: LiteRT, not onnxruntime.** The models are the .tflite files of ``@mediapipe/pose``
 (:mod:`mocapd.io.landmark_build`). Both ways were measured on the same crops (one 256 x 256 input, 2 threads,
@@ -14,8 +15,13 @@ median of 6 runs after 2 warm-up, three interleaved rounds, ``nice -n 19``, load
 conversion (opset 17, landmarks within 0.003 crop px of LiteRT's) took 220-275 and 528-599 ms. The issue's own
 numbers on a quieter 2-core machine agree (heavy 49-60 against 96-128 ms, full 16-19 against 28-42). So LiteRT
 runs them: about twice as fast, the shipped file as it is (no conversion step, no tensorflow at set-up), at the
-cost of one runtime dependency. Batches of 4 crops cost per crop what single crops do on this CPU (61 against 64 ms,
-full); they are used because on a machine with more cores (or a GPU delegate later) they pay.
+cost of one runtime dependency.
+
+**Batches.** The crops of all people and cameras of a call go to the model together, ``batch`` at a time (the last
+chunk padded, so one interpreter serves every call: each holds its own packed weights and arena, heavy ~120 MB at
+batch 1, ~140 MB at 4, ~190 MB at 8, measured RSS). LiteRT runs a batch of 4 crops for what 4 single crops cost on
+this CPU (61 against 64 ms per crop, full), so the default is 1; a runtime where batches pay (a GPU delegate) would
+raise it.
 
 MediaPipe refines the landmarks on the model's 64 x 64 heatmap (``RefineLandmarksFromHeatmapCalculator``); that
 step is not done here.
@@ -41,8 +47,6 @@ from mocapd.io.model_cache import landmark_model_path
 
 FloatArray = NDArray[np.float64]
 Image = NDArray[np.uint8]
-MAX_BATCH = 8
-"""Crops per model call at most (LiteRT resizes the input per batch size; 8 bounds the interpreters kept)."""
 
 
 def load_interpreter(path: Path, threads: int) -> Any:
@@ -84,9 +88,13 @@ class LandmarkRunner:
         LiteRT's CPU threads.
     path : Path, optional
         The .tflite file (default: the cache's, checked against its pinned sha256).
+    batch : int
+        Crops per model call (1..16; see the module docstring).
     """
 
-    def __init__(self, variant: str = "full", *, threads: int = 2, path: Path | None = None) -> None:
+    def __init__(self, variant: str = "full", *, threads: int = 2, path: Path | None = None, batch: int = 1) -> None:
+        if not 1 <= batch <= 16:
+            raise ModelError(f"landmark batch must be in 1..16, got {batch}")
         if variant not in VARIANTS:
             raise ModelError(f"unknown landmark model {variant!r}; known: {list(VARIANTS)}")
         if path is None:
@@ -99,37 +107,38 @@ class LandmarkRunner:
         self.variant = variant
         self.path = path
         self.threads = threads
-        self._interpreters: dict[int, Any] = {}
+        self.batch = batch
+        self._interpreter: Any = None  # made at first use, on the calling (worker) thread
         self._lock = threading.Lock()
         self.crops_run = 0
 
-    def _interpreter(self, batch: int) -> Any:
-        it = self._interpreters.get(batch)
-        if it is None:
+    def _loaded(self) -> Any:
+        if self._interpreter is None:
             it = load_interpreter(self.path, self.threads)
-            if batch != 1:
-                it.resize_tensor_input(it.get_input_details()[0]["index"], [batch, INPUT_SIZE, INPUT_SIZE, 3])
+            if self.batch != 1:
+                it.resize_tensor_input(it.get_input_details()[0]["index"], [self.batch, INPUT_SIZE, INPUT_SIZE, 3])
             it.allocate_tensors()
-            self._interpreters[batch] = it
-        return it
+            self._interpreter = it
+        return self._interpreter
 
     def infer(self, crops: NDArray[np.float32]) -> NDArray[np.float32]:
         """Raw landmark rows of ``crops``, shape (n, 256, 256, 3) RGB in [0, 1] → shape (n, 195)."""
         out = np.empty((len(crops), 195), dtype=np.float32)
         with self._lock:
-            for start in range(0, len(crops), MAX_BATCH):
-                part = crops[start : start + MAX_BATCH]
-                it = self._interpreter(len(part))
-                it.set_tensor(it.get_input_details()[0]["index"], np.ascontiguousarray(part))
+            it = self._loaded()
+            x_index, y_index = it.get_input_details()[0]["index"], it.get_output_details()[0]["index"]
+            for start in range(0, len(crops), self.batch):
+                part = crops[start : start + self.batch]
+                chunk = np.zeros((self.batch, INPUT_SIZE, INPUT_SIZE, 3), np.float32)
+                chunk[: len(part)] = part
+                it.set_tensor(x_index, chunk)
                 it.invoke()
-                out[start : start + len(part)] = it.get_tensor(it.get_output_details()[0]["index"]).reshape(
-                    len(part), -1
-                )
+                out[start : start + len(part)] = it.get_tensor(y_index).reshape(self.batch, -1)[: len(part)]
                 self.crops_run += len(part)
         return out
 
     def run(self, images: Sequence[Image], people: Sequence[FloatArray]) -> list[PersonLandmarks]:
-        """Landmarks of every person of every image, the crops of all images in one batch.
+        """Landmarks of every person of every image, the crops of all images in one call sequence.
 
         Parameters
         ----------
@@ -157,7 +166,7 @@ def with_landmarks(
     runner: LandmarkRunner | None, images: Sequence[Image], people: Sequence[PoseDetections]
 ) -> list[PoseDetections]:
     """Each image's people with their 33 BlazePose landmarks in place of YOLO's keypoints (boxes and scores kept),
-    all images' crops in one batch; ``people`` unchanged when ``runner`` is None."""
+    all images' crops together; ``people`` unchanged when ``runner`` is None."""
     if runner is None:
         return list(people)
     found = runner.run(images, [p.keypoints for p in people])
