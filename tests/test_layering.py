@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mocapd"
-FORBIDDEN = {"asyncio", "socket", "serial", "gi", "onnxruntime", "time"}
+FORBIDDEN = {"asyncio", "socket", "serial", "gi", "onnxruntime", "ai_edge_litert", "time"}
 PURE_LAYERS = ("core", "protocols")
 #: layer -> rank; a module may import layers of its own rank or lower
 RANKS = {"errors": 0, "data": 0, "web": 0, "core": 1, "protocols": 2, "pipeline": 3, "io": 3, "sim": 4, "eval": 5,

@@ -11,9 +11,9 @@ top of the neck). Default offsets are anthropometric for a 1.75 m adult.
 
 Two views of the same data live here:
 
-* :class:`KeypointFormat` (``coco17``, ``body25``, ``halpe26``): a detector's keypoint names in output order,
-  a :class:`TrackTarget` per keypoint and the stick-figure edges; chosen by name in config, written to and
-  read from offsets files (:mod:`mocapd.core.offset_calibration`);
+* :class:`KeypointFormat` (``coco17``, ``body25``, ``halpe26``, ``blazepose33``): a detector's keypoint names in
+  output order, a :class:`TrackTarget` per keypoint and the stick-figure edges; chosen by name in config, written to
+  and read from offsets files (:mod:`mocapd.core.offset_calibration`);
 * :class:`TrackTargets`: the solver's arrays (bone indices, offsets), from
   :meth:`KeypointFormat.track_targets` or :func:`coco17_targets`.
 
@@ -324,11 +324,80 @@ HALPE26_FORMAT = KeypointFormat(
 )
 """AlphaPose / RTMPose Halpe-26."""
 
-FORMATS: Mapping[str, KeypointFormat] = {f.name: f for f in (COCO17_FORMAT, BODY25_FORMAT, HALPE26_FORMAT)}
+_LEFT_BLAZEPOSE: dict[str, TrackTarget] = {
+    # Face points beside COCO-17's eyes and ears (Head bone, origin at the top of the neck).
+    "left_eye_inner": TrackTarget("Head", (0.02, 0.09, 0.085)),
+    "left_eye_outer": TrackTarget("Head", (0.05, 0.09, 0.075)),
+    "left_mouth": TrackTarget("Head", (0.025, 0.01, 0.095)),
+    # Hand bone origin = wrist, the hand along +x (T-pose, palm down, thumb forward +z). BlazePose's pinky and index
+    # points are their first knuckles, the thumb point its second joint.
+    "left_pinky": TrackTarget("LeftHand", (0.08, 0.0, -0.03)),
+    "left_index": TrackTarget("LeftHand", (0.09, 0.0, 0.025)),
+    "left_thumb": TrackTarget("LeftHand", (0.05, -0.01, 0.05)),
+    "left_heel": _LEFT_FOOT["left_heel"],
+    # The tip of the second toe: forward of the Toes bone's origin (ball of the foot), near the floor.
+    "left_foot_index": TrackTarget("LeftToes", (-0.01, -0.02, 0.05)),
+}
+
+_BLAZEPOSE33_EDGES = (
+    (0, 1), (1, 2), (2, 3), (3, 7), (0, 4), (4, 5), (5, 6), (6, 8), (9, 10),
+    (11, 12), (11, 13), (13, 15), (15, 17), (15, 19), (15, 21), (17, 19),
+    (12, 14), (14, 16), (16, 18), (16, 20), (16, 22), (18, 20),
+    (11, 23), (12, 24), (23, 24), (23, 25), (24, 26), (25, 27), (26, 28),
+    (27, 29), (28, 30), (29, 31), (30, 32), (27, 31), (28, 32),
+)  # fmt: skip
+BLAZEPOSE33_FORMAT = KeypointFormat(
+    name="blazepose33",
+    # MediaPipe's landmark order; its "mouth_left"/"mouth_right" are named left_mouth/right_mouth here so that every
+    # left/right pair reads left_*/right_* (mocapd.core.lr_flips.lr_pairs).
+    keypoints=(
+        "nose",
+        "left_eye_inner",
+        "left_eye",
+        "left_eye_outer",
+        "right_eye_inner",
+        "right_eye",
+        "right_eye_outer",
+        "left_ear",
+        "right_ear",
+        "left_mouth",
+        "right_mouth",
+        "left_shoulder",
+        "right_shoulder",
+        "left_elbow",
+        "right_elbow",
+        "left_wrist",
+        "right_wrist",
+        "left_pinky",
+        "right_pinky",
+        "left_index",
+        "right_index",
+        "left_thumb",
+        "right_thumb",
+        "left_hip",
+        "right_hip",
+        "left_knee",
+        "right_knee",
+        "left_ankle",
+        "right_ankle",
+        "left_heel",
+        "right_heel",
+        "left_foot_index",
+        "right_foot_index",
+    ),
+    targets={**_COCO17_TARGETS, **_both_sides(_LEFT_BLAZEPOSE)},
+    edges=_BLAZEPOSE33_EDGES,
+)
+"""MediaPipe BlazePose (GHUM 3D) 33 landmarks: COCO-17's points plus heels, foot index, pinky, index, thumb and
+more face points."""
+
+FORMATS: Mapping[str, KeypointFormat] = {
+    f.name: f for f in (COCO17_FORMAT, BODY25_FORMAT, HALPE26_FORMAT, BLAZEPOSE33_FORMAT)
+}
 
 
 def keypoint_format(name: str) -> KeypointFormat:
-    """The format called ``name`` (``coco17``, ``body25``, ``halpe26``)."""
+    """The format called ``name`` (``coco17``, ``body25``, ``halpe26``, ``blazepose33``)."""
     try:
         return FORMATS[name]
     except KeyError:

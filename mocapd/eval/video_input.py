@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.camera import Camera
+from mocapd.core.keypoints import BLAZEPOSE33_FORMAT, COCO17_FORMAT
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import InputError
 from mocapd.io.calibration_files import core_cameras, read_qca
@@ -34,8 +35,12 @@ from mocapd.io.model_quant import model_path
 from mocapd.io.pose2sim_demo import CAMERAS, DEMOS, demo_calibration, demo_root, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.landmarks import LandmarkRunner, with_landmarks
 
 FloatArray = NDArray[np.float64]
+
+#: The COCO-17 keypoints' columns among BlazePose's 33 landmarks.
+_COCO17_IN_BLAZEPOSE33 = np.array([BLAZEPOSE33_FORMAT.index(n) for n in COCO17_FORMAT.keypoints], dtype=np.intp)
 
 CACHE_VERSION = 1
 """Bumped when the cache layout or what is stored changes."""
@@ -191,15 +196,20 @@ def detect_take(
     n_frames: int | None = None,
     progress: Callable[[int], None] | None = None,
     use_cache: bool = True,
+    landmarks: LandmarkRunner | None = None,
 ) -> TakeDetections:
     """The detections of every frame and camera of ``take`` (the first ``n_frames``), from the cache when there.
 
     ``detector`` makes the detector (only called when something must be detected or fingerprinted); ``progress``
-    is called with 1 per camera frame detected.
+    is called with 1 per camera frame detected. With ``landmarks`` (``[detector] landmarks``) the people's COCO-17
+    keypoints are BlazePose's landmarks of the same names (every COCO-17 point is one of the 33): the evaluated
+    systems, Pose2Sim's COCO_17 model included, and the held-out metric see the two front ends in one layout.
     """
     n = take.n_frames if n_frames is None else min(n_frames, take.n_frames)
     det = detector()
     fp = detector_fingerprint(det, take.sizes)
+    if landmarks is not None:
+        fp["landmarks"] = {"model": landmarks.variant, "sha256": _sha256(landmarks.path), "as": "coco17"}
     key = cache_key(take, n, fp)
     path = cache_path(take, key)
     if use_cache and path.is_file():
@@ -215,8 +225,10 @@ def detect_take(
                 ok, img = cap.read()
                 if not ok:
                     raise InputError(f"{video}: frame {f} could not be read (the video has {take.n_frames})")
-                people = det.detect(np.ascontiguousarray(img, dtype=np.uint8))
-                row.append(Detections2D(people.keypoints[..., :2], people.keypoints[..., 2]))
+                image = np.ascontiguousarray(img, dtype=np.uint8)
+                (people,) = with_landmarks(landmarks, [image], [det.detect(image)])
+                kp = people.keypoints if landmarks is None else people.keypoints[:, _COCO17_IN_BLAZEPOSE33]
+                row.append(Detections2D(kp[..., :2], kp[..., 2]))
                 if progress is not None:
                     progress(1)
             frames.append(row)

@@ -102,7 +102,8 @@ def markdown(results: dict[str, Any]) -> str:
     lines = [
         "# mocapd eval video",
         "",
-        f"Config: {s['config']}; detector precision {s['precision']}; Pose2Sim: {s['pose2sim']}; "
+        f"Config: {s['config']}; detector precision {s['precision']}; "
+        f"BlazePose landmarks: {s.get('landmarks', 'off')}; Pose2Sim: {s['pose2sim']}; "
         f"wall time {s['wall_s']} s.",
         "",
         "Held-out-view error: each system reconstructs the take without one camera, its people are projected into "

@@ -31,3 +31,8 @@ def default_model_path(width: int = 640, height: int = 640) -> Path:
     """The default YOLO11n-pose ONNX export for a ``width x height`` input."""
     suffix = f"{width}" if width == height else f"{width}x{height}"
     return model_dir() / f"yolo11n-pose-{suffix}.onnx"
+
+
+def landmark_model_path(variant: str) -> Path:
+    """The BlazePose landmark model ``variant`` (``"full"``, ``"heavy"``) from ``@mediapipe/pose``."""
+    return model_dir() / f"pose_landmark_{variant}.tflite"

@@ -19,6 +19,9 @@ DECODERS = ("yolo_pose",)
 LAYOUTS = ("NCHW", "NHWC")
 CHANNEL_ORDERS = ("RGB", "BGR")
 PRECISIONS = ("auto", "fp32", "int8", "bf16")
+LANDMARKS = ("off", "full", "heavy", "auto")
+#: What ``[detector] landmarks = "auto"`` runs until the budget governor (issue 40) chooses per pass.
+AUTO_LANDMARKS = "off"
 #: ``[detector] workers = "auto"``: one inference session per this many cores (tools/bench_sessions.py)
 CORES_PER_SESSION = 2
 
@@ -46,7 +49,7 @@ class ModelSpec:
     decoder: str = "yolo_pose"
     """Output decoding: yolo_pose = (1, 5 + 3K, N) boxes cx,cy,w,h + score + K × (x, y, conf)."""
     keypoint_format: str = "coco17"
-    """coco17, body25 or halpe26."""
+    """coco17, body25, halpe26 or blazepose33."""
     score_threshold: float = 0.25
     """Person score below which candidates are dropped (0..1)."""
     iou_threshold: float = 0.65
@@ -252,12 +255,22 @@ class DetectorConfig:
     """Detect a whole frame on the default model's export at the camera's aspect (384x640 for a 9:16 portrait
     camera: the same pixels on the same stride grid as the square letterbox, ~40 % less work): "auto" = where
     that export is in the model cache, True = it must be, False = never."""
+    landmarks: str = "off"
+    """BlazePose landmarks per person after YOLO (:mod:`mocapd.pipeline.landmarks`): "off" (YOLO's keypoints),
+    "full" or "heavy" (that landmark model; the output becomes ``blazepose33``), "auto" (runs as
+    :data:`AUTO_LANDMARKS` until the budget governor picks per pass; ``/status`` says so)."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     def __post_init__(self) -> None:
         _choice("detector.precision", self.precision, PRECISIONS)
+        _choice("detector.landmarks", self.landmarks, LANDMARKS)
+        if self.landmark_model is not None and self.model.keypoint_format != "coco17":
+            raise ConfigError(
+                f"detector.landmarks = {self.landmarks!r} places its crops from COCO-17 hips and shoulders; "
+                f"detector.model.keypoint_format is {self.model.keypoint_format!r}"
+            )
         if self.batch not in ("auto", True, False):
             raise ConfigError(f"detector.batch = {self.batch!r} is not one of ['auto', true, false]")
         if self.fitted_inputs not in ("auto", True, False):
@@ -268,6 +281,17 @@ class DetectorConfig:
             raise ConfigError(
                 f"detector threads must be >= 0, got intra={self.intra_op_threads} inter={self.inter_op_threads}"
             )
+
+    @property
+    def landmark_model(self) -> str | None:
+        """The landmark model that runs ("full", "heavy") or None (YOLO's keypoints are the output)."""
+        chosen = AUTO_LANDMARKS if self.landmarks == "auto" else self.landmarks
+        return None if chosen == "off" else chosen
+
+    @property
+    def output_format(self) -> str:
+        """The keypoint set the detector delivers: ``blazepose33`` with landmarks, else the model's own."""
+        return "blazepose33" if self.landmark_model is not None else self.model.keypoint_format
 
     def sessions(self, cores: int, cameras: int) -> tuple[int, int]:
         """(sessions, intra-op threads of each) on a process with ``cores`` cores and ``cameras`` cameras.

@@ -14,6 +14,11 @@ the cores as intra-op threads.
 Worker threads carry an OS-level name (``mocapd-detect``) that onnxruntime's own threads inherit, so per-thread
 CPU accounting (``mocapd bench latency``) sees the detector's whole cost; they inherit the workers' nice value the
 same way (``[daemon] detector_nice``, :mod:`mocapd.io.os_threads`).
+
+With ``[detector] landmarks`` on, each session also holds a BlazePose landmark model
+(:class:`~mocapd.pipeline.landmarks.LandmarkRunner`, the session's intra-op threads; its interpreters are made on
+the worker thread at first use): the people YOLO found get their 33 landmarks as keypoints
+(:meth:`DetectorConfig.output_format` is then ``blazepose33``).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.landmarks import LandmarkRunner, landmark_status, with_landmarks
 from mocapd.pipeline.packed_source import PackedDetectionGroup, Session
 from mocapd.pipeline.packing import PackedDetector, detectors_from_config
 
@@ -55,10 +61,17 @@ def process_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def landmark_runner(cfg: DetectorConfig) -> LandmarkRunner | None:
+    """A session's landmark model when ``[detector] landmarks`` runs one (``cfg`` with concrete sessions), else
+    None; ModelError when the model was not fetched."""
+    variant = cfg.landmark_model
+    return None if variant is None else LandmarkRunner(variant, threads=max(1, cfg.intra_op_threads))
+
+
 def target_columns(cfg: DetectorConfig, target_names: Sequence[str]) -> NDArray[np.intp]:
-    """Column of each track target's keypoint in the model's output (the detector may output keypoints that have
+    """Column of each track target's keypoint in the detector's output (the detector may output keypoints that have
     no target on the skeleton)."""
-    fmt = keypoint_format(cfg.model.keypoint_format)
+    fmt = keypoint_format(cfg.output_format)
     return np.array([fmt.index(n) for n in target_names], dtype=np.intp)
 
 
@@ -90,17 +103,21 @@ class PooledDetector:
         cfg = cfg.with_sessions(process_cores(), len(image_sizes))
         assert isinstance(cfg.workers, int)
         self.intra_op_threads = cfg.intra_op_threads
+        self.landmarks_asked = cfg.landmarks
         self.executor = detector_executor(cfg.workers, nice)
+        self._runners: dict[int, LandmarkRunner | None] = {}
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
             self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg, image_sizes).result())
+            self._runners[id(self._detectors[-1])] = landmark_runner(cfg)
             self._pool.put(self._detectors[-1])
 
     def __call__(self, rgb: NDArray[np.uint8]) -> Detections2D:
         det = self._pool.get()
         try:
             # The detector takes BGR (OpenCV's order); the ring holds RGB.
-            people = det.detect(np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), np.uint8))
+            image = np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), np.uint8)
+            (people,) = with_landmarks(self._runners[id(det)], [image], [det.detect(image)])
         finally:
             self._pool.put(det)
         kp = people.keypoints if self._columns is None else people.keypoints[:, self._columns]
@@ -145,16 +162,19 @@ def make_detector(
     # Whole frames first: until the people are found every camera's ROI is its whole frame, which a whole pass runs
     # at the camera's aspect for the cost of a one-camera canvas; the per-pass cost then picks (ties keep the mode).
     chooser = ModeChooser(first="whole") if cfg.packing.enabled == "auto" else None
-    sessions = [Session(whole, canvas) for whole, canvas in pairs]
-    return PackedDetectionGroup(packer, executor, columns, chooser=chooser, sessions=sessions)
+    sessions = [Session(whole, canvas, landmark_runner(cfg)) for whole, canvas in pairs]
+    return PackedDetectionGroup(
+        packer, executor, columns, chooser=chooser, sessions=sessions, landmarks_asked=cfg.landmarks
+    )
 
 
 def detector_status(detector: AnyDetector) -> dict[str, object]:
     """``/status`` section ``detector``: which execution provider and precision run (packed: also the canvas
     model's), so that a user who left ``providers = ["auto"]`` sees whether the GPU or the CPU took it."""
     if isinstance(detector, PooledDetector):
+        marks = landmark_status(detector.landmarks_asked, list(detector._runners.values()))
         return {"mode": "whole", "workers": len(detector._detectors), "intra_op_threads": detector.intra_op_threads,
-                **detector._detectors[0].describe()}  # fmt: skip
+                **detector._detectors[0].describe(), "landmarks": marks}  # fmt: skip
     packer = detector.packer
     # With packing "auto" the group's chooser picks packed or whole passes; name the one it runs now.
     mode = detector.chooser.mode if detector.chooser is not None else "packed"
@@ -166,4 +186,5 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
     }
     if packer.canvas_detector is not packer.detector:
         out["canvas"] = packer.canvas_detector.describe()
+    out["landmarks"] = landmark_status(detector.landmarks_asked, [s.landmarks for s in detector.sessions])
     return out

@@ -41,6 +41,7 @@ from mocapd.pipeline.detection_mode import ModeChooser, PassCost
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource
+from mocapd.pipeline.landmarks import LandmarkRunner, with_landmarks
 from mocapd.pipeline.packing import PackedDetector
 
 Image = NDArray[np.uint8]
@@ -57,10 +58,12 @@ def to_detections2d(people: PoseDetections, columns: NDArray[np.intp] | None = N
 @dataclass(frozen=True)
 class Session:
     """One inference session of the group (one worker thread): its whole-frame detector and its canvas detector
-    (the same object when the canvases are the model's own size)."""
+    (the same object when the canvases are the model's own size), and its landmark model when ``[detector]
+    landmarks`` runs one (the people's keypoints are then its 33 landmarks)."""
 
     whole: OnnxPoseDetector
     canvas: OnnxPoseDetector
+    landmarks: LandmarkRunner | None = None
 
 
 @dataclass(frozen=True)
@@ -98,6 +101,8 @@ class PackedDetectionGroup:
         Measures each pass's detector time (for the chooser and /status).
     sessions : sequence of Session, optional
         The inference sessions, one per worker (default: the packer's own detectors, one worker).
+    landmarks_asked : str
+        ``[detector] landmarks`` as configured (``/status``; the sessions' landmark models are what runs).
     """
 
     def __init__(
@@ -109,8 +114,10 @@ class PackedDetectionGroup:
         chooser: ModeChooser | None = None,
         clock: Callable[[], int] = time.perf_counter_ns,
         sessions: Sequence[Session] = (),
+        landmarks_asked: str = "off",
     ) -> None:
         self.packer = packer
+        self.landmarks_asked = landmarks_asked
         self.executor = executor
         self.columns = columns
         self.chooser = chooser
@@ -303,7 +310,11 @@ class PackedDetectionGroup:
             image = self._images[cam]
             images.append(image if image is not None and cam in new else np.empty((h, w, 3), np.uint8))
         (found,) = self.packer.detect([images], cameras=sorted(new), detector=session.canvas, inputs=inputs)
-        return {cam: (ref, to_detections2d(found[cam], self.columns)) for cam, ref in new.items()}
+        cams = sorted(new)
+        # The packer keeps YOLO's people for its ROIs; the landmarks replace the keypoints delivered.
+        marked = dict(zip(cams, with_landmarks(session.landmarks, [images[c] for c in cams], [found[c] for c in cams]),
+                          strict=True))  # fmt: skip
+        return {cam: (ref, to_detections2d(marked[cam], self.columns)) for cam, ref in new.items()}
 
     def _one_canvas(self, order: list[int]) -> list[int]:
         """The cameras of one canvas: ``order``'s first and those that share the canvases it needs."""
@@ -336,7 +347,8 @@ class PackedDetectionGroup:
             with self._cond:
                 self.whole_passes += 1
             self.packer.seed_rois(cam, people)  # packed passes start from where the people are now
-            return {cam: (got[0], to_detections2d(people, self.columns))}
+            (marked,) = with_landmarks(session.landmarks, [image], [people])
+            return {cam: (got[0], to_detections2d(marked, self.columns))}
         return None
 
     def close(self) -> None:

@@ -234,7 +234,7 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     if plan.synthetic:
         return _build_synthetic(config, plan, prior, clock)
     skeleton = rig_skeleton(config)
-    fmt = keypoint_format(config.detector.model.keypoint_format)
+    fmt = keypoint_format(config.detector.options().output_format)  # blazepose33 when landmarks run
     targets = fmt.track_targets(skeleton)
     backoff = (config.daemon.restart_min_s, config.daemon.restart_max_s)
     pairs = list(zip(config.cameras, plan.cameras, strict=True))

@@ -25,6 +25,7 @@ from mocapd.eval.video import ALL, DLT, LIVE, P2S, P2S_FILT, RESOLVE, SYSTEMS, T
 from mocapd.eval.video_input import Take, TakeDetections, detect_take, eval_detector_config, pose2sim_take
 from mocapd.io.pose2sim_demo import DEMOS
 from mocapd.io.progress import Progress
+from mocapd.pipeline.landmarks import LandmarkRunner
 from mocapd.service.config import Config, load_config
 from mocapd.service.video_systems import dlt_from_live, run_live, run_resolve
 
@@ -108,13 +109,17 @@ def run_video_eval(opts: VideoEvalOptions, out: Path) -> dict[str, Any]:
             detector.append(OnnxPoseDetector.from_config(det_cfg))
         return detector[0]
 
+    # [detector] landmarks of the config: BlazePose's landmarks as the COCO-17 keypoints (detect_take). "auto" runs
+    # as "off", as in the daemon.
+    landmarks = LandmarkRunner(det_cfg.landmark_model) if det_cfg.landmark_model is not None else None
+
     results: dict[str, Any] = {"takes": {}}
     for take in takes:
         n = take.n_frames if opts.max_frames is None else min(opts.max_frames, take.n_frames)
         n_var = len(take.cameras) + 1
         total = n * len(take.cameras) + 2 * n_var * n + (n_var if missing is None else 0)
         with Progress(total, f"eval video {take.name}", enabled=None if opts.progress else False) as bar:
-            dets = detect_take(take, make_detector, n, bar, opts.use_cache)
+            dets = detect_take(take, make_detector, n, bar, opts.use_cache, landmarks)
             if dets.from_cache:
                 bar(n * len(take.cameras))
             run = run_systems(take, dets, config, work, missing is None, bar)
@@ -128,6 +133,7 @@ def run_video_eval(opts: VideoEvalOptions, out: Path) -> dict[str, Any]:
     results["setup"] = {
         "config": str(opts.config) if opts.config else "the shipped config.toml",
         "precision": opts.precision,
+        "landmarks": det_cfg.landmark_model or "off",
         "max_frames": opts.max_frames,
         "pose2sim": POSE2SIM_VERSION if missing is None else f"not run: {missing}",
         "wall_s": round(time.monotonic() - started, 1),

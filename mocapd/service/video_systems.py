@@ -113,6 +113,7 @@ def run_live(
         raise InputError(f"every frame needs detections for the {len(cameras)} cameras")
     config = live_config(config, fps)
     skeleton = Skeleton.from_height(1.75)
+    # The evaluation's detections are COCO-17 whatever the front end (eval.video_input.detect_take).
     targets = keypoint_format(config.detector.model.keypoint_format).track_targets(skeleton)
     rig = Rig(cameras, [], skeleton, targets, resolve_prior(config.solver.prior))
     daemon = Daemon(config, rig)

@@ -96,7 +96,7 @@ class SyntheticWorld:
         procedural walk (each person a 1 m circle around their centre; ``loop_s`` applies to it only, recorded
         clips loop over their own length).
     keypoints : str
-        The detector's keypoint format the cameras report ("coco17", "body25", "halpe26").
+        The detector's keypoint format the cameras report ("coco17", "body25", "halpe26", "blazepose33").
     """
 
     def __init__(

@@ -1,5 +1,6 @@
 """``mocapd model fetch``: build the default pose model (YOLO11n-pose → ONNX, and with ``--int8`` its INT8
-quantization) into the cache."""
+quantization) into the cache; with ``--landmarks`` the BlazePose landmark models (heavy, full) from
+``@mediapipe/pose`` too."""
 
 from __future__ import annotations
 
@@ -42,6 +43,10 @@ def _fetch(args: argparse.Namespace) -> int:
             from mocapd.io.model_quant import build_int8_model
 
             build_int8_model(sizes, force=args.force)
+        if args.landmarks:
+            from mocapd.io.landmark_build import build_landmark_models
+
+            build_landmark_models(force=args.force)
     except MocapdError as exc:
         print(f"mocapd model fetch: {exc}")
         return 1
@@ -64,5 +69,10 @@ def register(subparsers: Any) -> None:
         "--int8",
         action="store_true",
         help="also build the INT8 model beside each FP32 one (static quantization calibrated on the Pose2Sim demo)",
+    )
+    f.add_argument(
+        "--landmarks",
+        action="store_true",
+        help="also fetch the BlazePose landmark models (heavy, full; Apache-2.0) from the npm package @mediapipe/pose",
     )
     f.set_defaults(func=_fetch)

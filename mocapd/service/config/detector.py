@@ -62,7 +62,7 @@ class ModelSection(Section):
     std: PositiveTriple = _M.std
     pad_value: int = Field(_M.pad_value, ge=0, le=255)
     decoder: Literal["yolo_pose"] = "yolo_pose"
-    keypoint_format: Literal["coco17", "body25", "halpe26"] = "coco17"
+    keypoint_format: Literal["coco17", "body25", "halpe26", "blazepose33"] = "coco17"
     score_threshold: float = Field(_M.score_threshold, ge=0.0, le=1.0)
     iou_threshold: float = Field(_M.iou_threshold, ge=0.0, le=1.0)
     max_people: int = Field(_M.max_people, ge=1, le=1000)
@@ -130,6 +130,7 @@ class DetectorSection(Section):
     intra_op_spinning: bool = _D.intra_op_spinning
     batch: bool | Literal["auto"] = "auto"
     fitted_inputs: bool | Literal["auto"] = "auto"
+    landmarks: Literal["off", "full", "heavy", "auto"] = "off"
     model: ModelSection = Field(default_factory=ModelSection)
     packing: PackingSection = Field(default_factory=PackingSection)
     tracking: TrackingSection = Field(default_factory=TrackingSection)
@@ -145,6 +146,7 @@ class DetectorSection(Section):
             intra_op_spinning=self.intra_op_spinning,
             batch=self.batch,
             fitted_inputs=self.fitted_inputs,
+            landmarks=self.landmarks,
             model=self.model.build(ModelSpec),
             packing=self.packing.build(PackingConfig),
             tracking=self.tracking.build(TrackingConfig),
