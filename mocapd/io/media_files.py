@@ -34,6 +34,9 @@ from PIL import Image, UnidentifiedImageError
 
 from mocapd.errors import InputError, MocapdError
 from mocapd.io.input_files import GiB, MiB, checked_fd, read_input_bytes
+from mocapd.io.native_logs import quiet_opencv
+
+quiet_opencv()  # a damaged picture is said here once, not by libtiff in ten lines (issue 45)
 
 MAX_IMAGE_BYTES = 512 * MiB
 """Largest picture file read (an uncompressed 16-bit 8K TIFF is about 400 MiB)."""

@@ -36,6 +36,7 @@ from mocapd.core.pose2d import (
 from mocapd.errors import InputError, ModelError
 from mocapd.io.model_batch import fixed_batch, load_model
 from mocapd.io.model_quant import model_path
+from mocapd.io.native_logs import quiet_session_options
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec
 
@@ -292,7 +293,7 @@ class OnnxPoseDetector:
             raise ModelError(f"detector model {path} not found; run `{fetch}` (or set detector.model.path)")
         self.precision = precision
         self.path = path
-        opts = ort.SessionOptions()
+        opts = quiet_session_options(ort.SessionOptions())  # a failing run raises; its caller says it, rate-limited
         opts.intra_op_num_threads = intra_op_threads
         opts.inter_op_num_threads = inter_op_threads
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
