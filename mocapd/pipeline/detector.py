@@ -288,6 +288,8 @@ class OnnxPoseDetector:
             check_bf16(self.providers[0], cpu_bf16_flags())
         # BF16 is arithmetic, not a file: the FP32 model runs in it (model_path gives FP32's file).
         path = Path(spec.path) if spec.path else model_path(spec.input_width, spec.input_height, precision)
+        if path.exists() and not path.is_file():  # a FIFO, a device, a folder: not "not found" (issue 45)
+            raise ModelError(f"detector model {path}: not a regular file; give the ONNX model file")
         if not path.is_file():
             fetch = "mocapd model fetch" + (" --int8" if precision == "int8" and not spec.path else "")
             raise ModelError(f"detector model {path} not found; run `{fetch}` (or set detector.model.path)")

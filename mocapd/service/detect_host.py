@@ -154,6 +154,7 @@ def _sink(publisher: DetectionPublisher, index: int) -> Callable[[int, int, Dete
 
 def run(config: Config, *, seconds: float | None = None, on_ready: Callable[[str], None] | None = None) -> int:
     """``mocapd detect-host``: build the config's cameras and detector, publish until SIGINT/SIGTERM."""
+    from mocapd.io.tls_files import check_tls_files
     from mocapd.service.rig import build_rig, plan_rig
 
     remote = [c.name for c in config.cameras if isinstance(c, ZenohCamera)]
@@ -161,6 +162,8 @@ def run(config: Config, *, seconds: float | None = None, on_ready: Callable[[str
         raise ConfigError(f"cameras {remote}: a camera host runs its own cameras; source = \"zenoh\" is the solver "
                           "host's view of them")  # fmt: skip
     plan = plan_rig(config)
+    z = config.zenoh
+    check_tls_files(z.tls_root_ca, z.tls_cert, z.tls_key)  # a TLS link Zenoh cannot make fails without a word
     lifecycle.enter_phase("loading models")
     built = build_rig(config, plan)  # a stop signal now raises StopRequested: the detector is closed on the way out
     try:
