@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import io
 import os
+import struct
 import warnings
 from pathlib import Path
 from typing import IO, Any
@@ -47,7 +48,8 @@ MAX_IMAGE_PIXELS = 1 << 26
 BGR image is 192 MiB."""
 
 #: what Pillow raises on a header it cannot read (a damaged or truncated file, a format it does not know)
-_HEADER_ERRORS = (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError, IndexError, KeyError)
+_HEADER_ERRORS = (UnidentifiedImageError, OSError, SyntaxError, ValueError, TypeError, EOFError, IndexError, KeyError,
+                  struct.error)  # fmt: skip
 
 
 def read_image(
