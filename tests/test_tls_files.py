@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -79,3 +80,50 @@ def test_each_misconfiguration_is_one_line(pki: Path, ca: str, cert: str, key: s
     with pytest.raises(ConfigError, match=said) as exc:
         check_tls_files(str(pki / ca), str(pki / cert), str(pki / key))
     assert "\n" not in str(exc.value)
+
+
+def test_a_camera_host_says_when_it_has_no_link(tmp_path: Path) -> None:
+    """The runtime half: a host whose certificate the solver host's CA did not sign has no link, which Zenoh does
+    not report (detect-host printed "ready ... publishing" and nothing else). The link watch of detect-host says it
+    in one warning, once; a host the solver accepts is said linked. Real Zenoh sessions over TLS on loopback."""
+    import time
+
+    from mocapd.io.zenoh_link import LinkWatch, open_session
+    from mocapd.service.config import parse_config
+    from tests.test_camera_hosts import _certificates, free_port
+
+    _certificates(tmp_path)  # ca.pem, solver and hostA signed by it; other/ca.pem: someone else's CA
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "other/host.key", "-out",
+                    "other/host.pem", "-days", "2", "-subj", "/CN=hostA"], cwd=tmp_path, check=True,
+                   capture_output=True)  # fmt: skip
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    ca = str(tmp_path / "ca.pem")
+    tables: dict[str, dict[str, object]] = {
+        "solver": {
+            "listen": [endpoint],
+            "tls_cert": str(tmp_path / "solver.pem"),
+            "tls_key": str(tmp_path / "solver.key"),
+        },
+        "accepted": {"tls_cert": str(tmp_path / "hostA.pem"), "tls_key": str(tmp_path / "hostA.key")},
+        "refused": {"tls_cert": str(tmp_path / "other" / "host.pem"), "tls_key": str(tmp_path / "other" / "host.key")},
+    }
+    sessions: dict[str, Any] = {}
+    for name, table in tables.items():
+        ends: dict[str, object] = {} if name == "solver" else {"listen": [], "connect": [endpoint]}
+        sessions[name] = open_session(parse_config({"zenoh": {**ends, "tls_root_ca": ca, **table}}).zenoh)
+    said: dict[str, list[tuple[str, str]]] = {"accepted": [], "refused": []}
+    try:
+        t0 = time.monotonic()
+        watches = {name: LinkWatch(sessions[name], [endpoint], 1.0, t0) for name in said}
+        while time.monotonic() - t0 < 4.0:
+            for name, watch in watches.items():
+                line = watch.check(time.monotonic())
+                if line is not None:
+                    said[name].append(line)
+            time.sleep(0.1)
+    finally:
+        for session in sessions.values():
+            session.close()
+    assert said["accepted"] == [("info", f"zenoh: linked to {endpoint}")], said
+    assert len(said["refused"]) == 1 and said["refused"][0][0] == "warning", said
+    assert said["refused"][0][1].startswith(f"zenoh: no link after 1 s to {endpoint}: "), said
