@@ -155,3 +155,15 @@ def test_fbx_export_through_blender_imports_into_blender(
     skinned = {name: m for name, m in report["meshes"].items() if m["armature"]}
     assert {m["armature"][0] for m in skinned.values()} == set(nodes.values())
     assert all(m["groups"] == 21 for m in skinned.values())
+
+
+def test_fbx_output_names_up_to_the_longest_a_file_may_have(
+    session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 45: names of 241-255 bytes passed the name check, then failed inside Blender with a traceback (its
+    temporary file was the name plus ``.part-PID.fbx``). Now a 255-byte name (of 2-byte characters) is written."""
+    fbx = tmp_path / ("é" * 125 + "x.fbx")
+    assert len(fbx.name.encode()) == 255
+    argv = ["export", str(session), "--fbx", str(fbx), "--blender", str(bpy_python())]
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    assert fbx.stat().st_size > 0 and list(tmp_path.iterdir()) == [fbx]

@@ -599,3 +599,16 @@ def test_importing_leaves_nothing_when_it_fails(tmp_path: Path) -> None:
                          "00B421E6=Hips"])  # fmt: skip
     assert_refused(code, err, "not a rotation")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([good.name, bad.name])
+
+
+def test_output_names_of_four_byte_characters_up_to_the_longest_a_file_may_have(tmp_path: Path) -> None:
+    """Issue 45: the temporary file beside an output took the output name's first 100 *characters*: 62 emoji (248
+    bytes) plus the suffix went over the 255 bytes a file name may have. Now its first 100 bytes."""
+    from mocapd.io.output_files import atomic_file, check_output_file
+
+    out = tmp_path / ("🦴" * 62 + "a.txt")
+    assert len(out.name.encode()) == 253
+    check_output_file(out)
+    with atomic_file(out) as fh:
+        fh.write("bones")
+    assert out.read_text() == "bones" and list(tmp_path.iterdir()) == [out]

@@ -236,6 +236,60 @@ def test_slimevr_listener_status_stays_small_under_a_swarm() -> None:
     assert len(json.dumps(status)) < 40_000
 
 
+def test_silent_trackers_free_the_sensor_budget_over_udp() -> None:
+    """Issue 45: 8 handshakes and 128 sensor infos, then silence, held the 128-sensor budget with timed-out trackers;
+    every later tracker's sensors were refused, unacknowledged, until a restart. Now a timed-out tracker is forgotten
+    when the budget is full and a tracker announces a sensor: the newcomer's sensor is acknowledged and streams."""
+    import asyncio
+
+    from mocapd.io.slimevr import SlimeVrListener
+    from mocapd.protocols.slimevr import Rx
+
+    samples: list[str] = []
+
+    async def lock_out_then_join() -> tuple[dict[str, Any], list[int]]:
+        listener = SlimeVrListener(lambda sample: samples.append(sample.sensor), port=0)
+        port = await listener.start()
+        runner = asyncio.create_task(listener.run())
+        socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(9)]
+        try:
+            for k, sock in enumerate(socks[:8]):
+                sock.bind(("127.0.0.1", 0))
+                sock.sendto(encode_packet(Handshake(2, 3, 2, 22, "fw", _mac(k)), 0), ("127.0.0.1", port))
+                infos = [SensorInfo(i, 1, 3) for i in range(16)]
+                sock.sendto(encode_bundle(list(infos), 1, compact=True), ("127.0.0.1", port))
+            async with asyncio.timeout(10):
+                while listener.server.counters.timeouts < 8:  # silent for the server's 1 s
+                    await asyncio.sleep(0.05)
+            assert listener.status()["sensors_total"] == 128
+            late = socks[8]
+            late.bind(("127.0.0.1", 0))
+            late.setblocking(False)
+            late.sendto(encode_packet(Handshake(2, 3, 2, 22, "fw", _mac(99)), 0), ("127.0.0.1", port))
+            late.sendto(encode_packet(SensorInfo(0, 1, 3), 1), ("127.0.0.1", port))
+            late.sendto(encode_packet(Rotation(0, (1.0, 0.0, 0.0, 0.0)), 2), ("127.0.0.1", port))
+            answers: list[int] = []
+            async with asyncio.timeout(10):
+                while f"{_mac(99)}/0" not in samples or Rx.SENSOR_INFO not in answers:
+                    await asyncio.sleep(0.02)
+                    while True:
+                        try:
+                            answers.append(int.from_bytes(late.recv(2048)[:4], "big"))  # the server's type
+                        except BlockingIOError:
+                            break
+            return listener.status(), answers
+        finally:
+            listener.close()
+            await runner
+            for sock in socks:
+                sock.close()
+
+    status, answers = asyncio.run(lock_out_then_join())
+    assert Rx.SENSOR_INFO in answers  # the newcomer's sensor info is acknowledged (the old code: never)
+    assert status["refused_sensors"] == 0 and status["replaced_trackers"] == 1
+    assert status["sensors_total"] == 128 - 16 + 1
+
+
 # ---------------------------------------------------------------------------------------------- Zenoh, sans I/O
 RIG = "rig"
 SIZE = (640, 480)

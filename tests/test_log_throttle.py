@@ -76,6 +76,26 @@ def test_a_line_said_once_per_device_passes_for_every_device(logged) -> None:  #
     assert stream.getvalue().count("INFO imu 0 streaming\n") == 3
 
 
+def test_a_line_per_device_is_limited_per_kind_when_the_sender_names_the_devices(logged) -> None:  # type: ignore[no-untyped-def]
+    """Issue 45: "timed out" was limited per tracker, and a sender cycling through MACs gave each MAC its own
+    allowance (1 089 WARNING lines in 30 s). Now the line as a whole passes ``kind_burst`` (16) a window."""
+    log, stream, rf, clock = logged
+    for mac in range(1000):
+        log.warning(f"tracker {mac} timed out", extra={"repeat_key": mac})  # one call site, a key per sender
+    assert stream.getvalue().splitlines() == [f"WARNING tracker {mac} timed out" for mac in range(16)]
+    clock.t = 10.5
+    log.warning("tracker 2000 timed out", extra={"repeat_key": 2000})
+    assert stream.getvalue().splitlines()[16:] == [
+        "WARNING tracker 999 timed out (983 more in the last 10 s)",  # the kind's closed window, summarised
+        "WARNING tracker 2000 timed out",
+    ]
+    for _ in range(10):  # one key is still limited to its own burst inside the kind's
+        log.warning("tracker 3000 timed out", extra={"repeat_key": 3000})
+    rf.flush()
+    assert stream.getvalue().count("tracker 3000 timed out") == 4  # 3 passed, then the summary of the other 7
+    assert stream.getvalue().splitlines()[-1] == "WARNING tracker 3000 timed out (6 more in the last 1 s)"
+
+
 def test_other_lines_pass_while_one_is_counted(logged) -> None:  # type: ignore[no-untyped-def]
     log, stream, _rf, _clock = logged
     _flood(log, 100)

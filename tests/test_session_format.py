@@ -179,3 +179,14 @@ def test_pose_records_carry_the_output_mode_and_each_poses_instant() -> None:
         sf.encode_pose(replace(p, output="early"))
     with pytest.raises(InputError, match="output mode"):
         sf.decode_pose(old + bytes([7]) + bytes(24))
+
+
+def test_long_identities_are_cut_on_a_character_boundary() -> None:
+    """Issue 45: an identity over 254 bytes was cut at byte 254, inside a UTF-8 character: the record failed to decode
+    (173 of 242 records of a session). Now it is cut before the character and decodes to its first characters."""
+    person = _pose(1, 1).people[0]
+    for identity in ("é" * 200, "a" + "€" * 100, "🦴" * 70):
+        rec = replace(_pose(1, 1), people=(replace(person, identity=identity, suit=identity),))
+        back = sf.decode_pose(sf.encode_pose(rec)).people[0]
+        assert back.identity is not None and identity.startswith(back.identity)
+        assert 251 <= len(back.identity.encode()) <= 254 and back.suit == back.identity

@@ -197,7 +197,10 @@ def main(job_path: str) -> dict[str, Any]:
         last = max(last, int(subject["first_frame"]) + root.shape[0] - 1)
     scene.frame_start, scene.frame_end = 0, last
     out = job["output"]
-    tmp = f"{out}.part-{os.getpid()}.fbx"
+    # Beside the output under a short name: the output's own name plus a suffix went over the 255 bytes a file name
+    # may have for names of 241-255 bytes, which pass mocapd's check (issue 45). Cut on a character boundary.
+    short = os.path.basename(out).encode()[:100].decode("utf-8", "ignore")
+    tmp = os.path.join(os.path.dirname(out), f".{short}.part-{os.getpid()}.fbx")
     forward, up = AXES[job["up"]]
     try:
         result = bpy.ops.export_scene.fbx(

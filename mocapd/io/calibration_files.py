@@ -95,6 +95,14 @@ MAX_IMAGE_PX = 65535
 """Largest image side a calibration may give (the session format's 16-bit sizes)."""
 
 
+def _side(v: object) -> str:
+    """An image side for a message: a huge one by its magnitude (``size = [1e308, ...]`` in a Pose2Sim file, rounded
+    to an integer, printed 309 digits, issue 45)."""
+    if isinstance(v, int) and abs(v) >= 10**9:
+        return f"about 1e{int(abs(v).bit_length() * 0.30103)}"
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
 @dataclass(frozen=True)
 class CameraCalibration:
     """One calibrated camera in mocapd's conventions.
@@ -144,7 +152,9 @@ class CameraCalibration:
             raise CalibrationError(f"camera {self.name!r}: focal lengths must be positive, got K={K.tolist()}")
         width, height = self.size
         if not all(isinstance(v, int | float) and math.isfinite(v) and 1 <= v <= MAX_IMAGE_PX for v in (width, height)):
-            raise CalibrationError(f"camera {self.name!r}: image size {width}x{height}; allowed: 1..{MAX_IMAGE_PX} px")
+            raise CalibrationError(
+                f"camera {self.name!r}: image size {_side(width)}x{_side(height)}; allowed: 1..{MAX_IMAGE_PX} px"
+            )
         if self.error_px is not None and not (math.isfinite(self.error_px) and self.error_px >= 0):
             raise CalibrationError(f"camera {self.name!r}: reprojection error {self.error_px!r}; allowed: >= 0 px")
         if abs(np.linalg.det(R) - 1.0) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):

@@ -213,6 +213,32 @@ def deferred() -> Iterator[None]:
         _state.raise_outside = before
 
 
+def interruptible(fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+    """``fn(*args, **kwargs)`` in a worker thread, the main thread waiting for it in 0.1 s naps: a stop signal is then
+    handled within 0.1 s (raised here as :class:`StopRequested`) even while ``fn`` spends minutes in one C call that
+    released the GIL, where Python would run the handler only once the call returns (issue 45: ``calibrate
+    cameras`` deaf to SIGINT and SIGTERM inside OpenCV for two minutes). The worker is a daemon thread, abandoned
+    on a stop: the command ends with :func:`exit_now`. ``fn``'s exception is raised here."""
+    import threading
+
+    outcome: list[Any] = []
+
+    def work() -> None:
+        try:
+            outcome.append((True, fn(*args, **kwargs)))
+        except BaseException as exc:  # handed to the main thread, raised there
+            outcome.append((False, exc))
+
+    worker = threading.Thread(target=work, name=getattr(fn, "__name__", "work"), daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(0.1)
+    ok, value = outcome[0]
+    if not ok:
+        raise value
+    return value  # type: ignore[no-any-return]
+
+
 @contextlib.contextmanager
 def on_stop(target: Callable[[int], None], *, quiet: bool = False) -> Iterator[None]:
     """Call ``target(signum)`` on every stop signal while inside (at once if one came already). It runs in the

@@ -39,6 +39,12 @@ MAX_NAME_BYTES = 255
 """Longest file name on Linux file systems (NAME_MAX)."""
 
 
+def _short(name: str) -> str:
+    """The first 100 bytes of a file name, cut on a character boundary: a temporary file's name beside it, which
+    must stay under :data:`MAX_NAME_BYTES` with its suffix (100 characters of a 4-byte script are 400 bytes)."""
+    return name.encode()[:100].decode("utf-8", "ignore")
+
+
 def _stat(path: Path) -> os.stat_result | None:
     try:
         return os.stat(path)
@@ -67,7 +73,7 @@ def _folder(path: Path, *, create: bool) -> Path:
 def _try_create(folder: Path, path: Path) -> None:
     """Create and remove a file in ``folder``: the one sure test that the output can be written there."""
     try:
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name[:100]}.", suffix=".part")
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{_short(path.name)}.", suffix=".part")
     except OSError as exc:
         raise OutputError(f"{path}: cannot create a file in {folder}: {exc.strerror or exc}") from None
     os.close(fd)
@@ -188,7 +194,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     p = Path(path)
     try:
         p.parent.mkdir(parents=True, exist_ok=True)  # checked before (check_output_file(create_folder=True))
-        fd, name = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name[:100]}.", suffix=f".part{p.suffix}")
+        fd, name = tempfile.mkstemp(dir=p.parent, prefix=f".{_short(p.name)}.", suffix=f".part{p.suffix}")
     except OSError as exc:
         raise OutputError(f"cannot write {p}: {exc.strerror or exc}") from None
     os.close(fd)
@@ -230,7 +236,7 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
     ends without an exception; removed with its contents otherwise."""
     p = Path(path)
     try:
-        tmp = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name[:100]}.", suffix=".part"))
+        tmp = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{_short(p.name)}.", suffix=".part"))
     except OSError as exc:
         raise OutputError(f"cannot create {p}: {exc.strerror or exc}") from None
     try:

@@ -163,6 +163,13 @@ def csv_header() -> list[str]:
     return [*cols, "source_s"]
 
 
+def spreadsheet_safe(text: str) -> str:
+    """A text cell a spreadsheet shows as text: one starting with ``= + - @``, a tab or a carriage return is
+    prefixed with ``'`` (OWASP's advice on CSV injection): a subject named ``=HYPERLINK(...)`` went into the CSV
+    verbatim and became a formula where the file was opened (issue 45)."""
+    return f"'{text}" if text[:1] in ("=", "+", "-", "@", "\t", "\r") else text
+
+
 def write_csv(path: str | Path, skeleton: Skeleton, track: SubjectTrack, origin_ns: int | None = None) -> int:
     """Write ``track`` as CSV (columns in the module docstring); returns the row count. ``source_s`` counts from
     ``origin_ns``, the session's start (an imported take: its recording's first sample; default: the first row)."""
@@ -170,12 +177,13 @@ def write_csv(path: str | Path, skeleton: Skeleton, track: SubjectTrack, origin_
     n = int(track.thetas.shape[0])
     q = quat_from_rotvec(track.thetas[:, 3:].reshape(n, N_BONES, 3)).reshape(n, -1)
     x = Kinematics(skeleton).forward(track.thetas).positions.reshape(n, -1)
+    subject = spreadsheet_safe(track.subject)  # the only text cell: numbers are written by mocapd
     with atomic_file(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(csv_header())
         for i in range(n):
             w.writerow(
-                [i, f"{(track.t_ns[i] - track.t_ns[0]) / 1e9:.6f}", int(track.t_ns[i]), track.subject]
+                [i, f"{(track.t_ns[i] - track.t_ns[0]) / 1e9:.6f}", int(track.t_ns[i]), subject]
                 + [f"{v:.6f}" for v in track.thetas[i, 0:3]]
                 + [f"{v:.7f}" for v in q[i]]
                 + [f"{v:.6f}" for v in x[i]]

@@ -14,7 +14,7 @@ Per frame:
 ``realtime=False`` delivers them as fast as they decode. ``run`` returns at the end unless ``loop=True``.
 
 Files are opened through :mod:`mocapd.io.media_files` (regular files of bounded size: a FIFO among the pictures is
-one line, not a wait).
+one line, not a wait; a picture is decoded only once its header declares the first picture's size).
 """
 
 from __future__ import annotations
@@ -195,6 +195,8 @@ class ImageFolderSource(_ReplaySource):
             **kw,
         )
         self.fps = fps
+        self.size = (int(first.shape[1]), int(first.shape[0]))
+        """(width, height) of the first picture: every picture's size."""
         self._index = 0
 
     def _open(self) -> None:
@@ -208,7 +210,9 @@ class ImageFolderSource(_ReplaySource):
             self._offset_ns += round(self._index * 1e9 / self.fps)
             self._index = 0
         path = self.files[self._index]
-        bgr = read_image(path, error=DeviceError)
+        # Its header first: a picture declaring another size than the first (a decompression bomb among them) is
+        # refused before it is decoded, not after (issue 45: 19 GB for a PNG declaring 32767x32767).
+        bgr = read_image(path, size=self.size, error=DeviceError)
         ref = self._publish(bgr, self._index, round(self._index * 1e9 / self.fps))
         self._index += 1
         return ref

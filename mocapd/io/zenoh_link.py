@@ -188,6 +188,39 @@ def link_identities(session: zenoh.Session) -> list[str]:
     return sorted(out)
 
 
+class LinkWatch:
+    """Says, once per change, whether a connecting session has a link (issue 45): Zenoh reports nothing of a link it
+    cannot make (the other side refuses this side's certificate, trusts another CA, is not there), so a camera host
+    printed "ready ... publishing" and published into nothing without a word.
+
+    :meth:`check` returns a line to log when the state changed: no link ``after_s`` after the start, or none any more
+    (a warning); a link again (info). None otherwise.
+    """
+
+    def __init__(self, session: Any, connect: Sequence[str], after_s: float, now_s: float) -> None:
+        self.session = session
+        self.connect = list(connect)
+        self.after_s = after_s
+        self._start_s = now_s
+        self._linked: bool | None = None  # None: not said yet
+
+    def check(self, now_s: float) -> tuple[str, str] | None:
+        """(level, line) when there is something new to say, else None (never when nothing is to be connected)."""
+        if not self.connect:
+            return None
+        linked = any(True for _ in self.session.info.links())
+        if linked == self._linked or (not linked and self._linked is None and now_s - self._start_s < self.after_s):
+            return None
+        before, self._linked = self._linked, linked
+        if linked:
+            return "info", f"zenoh: linked to {', '.join(self.connect)}"
+        lost = "lost its link" if before else f"no link after {now_s - self._start_s:.0f} s"
+        return "warning", (
+            f"zenoh: {lost} to {', '.join(self.connect)}: the other side is not there or refuses this one "
+            "(TLS: a certificate its CA did not sign, or a name its [zenoh.identities] does not expect; user/password)"
+        )
+
+
 def open_session(z: ZenohConfig, cameras: Mapping[str, Sequence[str]] | None = None) -> zenoh.Session:
     """A Zenoh session of ``[zenoh]`` (blocking: listens and starts connecting); ``cameras`` as
     :func:`session_settings` takes it.

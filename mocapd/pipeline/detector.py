@@ -36,6 +36,7 @@ from mocapd.core.pose2d import (
 from mocapd.errors import InputError, ModelError
 from mocapd.io.model_batch import fixed_batch, load_model
 from mocapd.io.model_quant import model_path
+from mocapd.io.native_logs import quiet_session_options
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec
 
@@ -287,12 +288,14 @@ class OnnxPoseDetector:
             check_bf16(self.providers[0], cpu_bf16_flags())
         # BF16 is arithmetic, not a file: the FP32 model runs in it (model_path gives FP32's file).
         path = Path(spec.path) if spec.path else model_path(spec.input_width, spec.input_height, precision)
+        if path.exists() and not path.is_file():  # a FIFO, a device, a folder: not "not found" (issue 45)
+            raise ModelError(f"detector model {path}: not a regular file; give the ONNX model file")
         if not path.is_file():
             fetch = "mocapd model fetch" + (" --int8" if precision == "int8" and not spec.path else "")
             raise ModelError(f"detector model {path} not found; run `{fetch}` (or set detector.model.path)")
         self.precision = precision
         self.path = path
-        opts = ort.SessionOptions()
+        opts = quiet_session_options(ort.SessionOptions())  # a failing run raises; its caller says it, rate-limited
         opts.intra_op_num_threads = intra_op_threads
         opts.inter_op_num_threads = inter_op_threads
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL

@@ -45,6 +45,7 @@ from mocapd.core.solver import Observations, PoseSolver
 from mocapd.core.terms import CostOptions
 from mocapd.errors import ModelError
 from mocapd.io.model_cache import cache_dir
+from mocapd.io.native_logs import quiet_session_options
 
 FloatArray = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -116,7 +117,7 @@ class FusionModels:
         )
         self.look_back = int(recipe.get("look_back", LOOK_BACK))
         self.stride = int(recipe.get("stride", STRIDE))
-        so = ort.SessionOptions()
+        so = quiet_session_options(ort.SessionOptions())
         so.intra_op_num_threads = threads
         so.inter_op_num_threads = 1
         so.add_session_config_entry("session.intra_op.allow_spinning", "0")

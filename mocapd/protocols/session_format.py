@@ -358,7 +358,8 @@ class PoseRecord:
 def _short(text: str | None) -> bytes:
     if text is None:
         return bytes([_NO_SUIT])
-    b = text.encode()[:254]
+    # Cut on a character boundary: 254 bytes cut inside a UTF-8 character made the record undecodable (issue 45).
+    b = text.encode()[:254].decode("utf-8", "ignore").encode()
     return bytes([len(b)]) + b
 
 

@@ -23,7 +23,9 @@ What mocapd adds at the door (issue 34), because anyone on the network can send 
   locked a tracker out: every later one was "reordered"); it is dropped and counted (``number_jumps``), and two
   such numbers in a row that follow each other resynchronise the connection (``number_resyncs``);
 - sensors are bounded per tracker (``max_sensors_per_tracker``, 16: a SlimeVR glove has 10) and in total
-  (``max_sensors``): a sensor info beyond either is refused, counted (``refused_sensors``) and not acknowledged;
+  (``max_sensors``): a sensor info beyond either is refused, counted (``refused_sensors``) and not acknowledged,
+  unless timed-out trackers hold the sensors in all: the longest silent of them (one that never sent an orientation
+  first) is then forgotten and its sensors freed (issue 45: silent trackers held the budget until a restart);
   64 trackers announcing 256 sensors each had held the daemon's loop busy enough to drop the output rate by a
   third;
 - :meth:`SlimeVrServer.status` lists at most ``max_listed_trackers`` trackers (connected ones first, then the
@@ -388,11 +390,13 @@ class SlimeVrServer:
         self._out.append((HANDSHAKE_REPLY, address))
         self._events.append(TrackerConnected(tracker.key, address, handover=old is not None))
 
-    def _make_room(self) -> bool:
-        """Forget a timed-out tracker: one that never sent an orientation first (it gave the solve nothing: a sender
-        that fills the table with handshakes and heartbeats cannot push out a real tracker that missed a second),
-        then the one silent longest; False when every known tracker is live."""
-        quiet = [t for t in self.trackers.values() if t.timed_out]
+    def _make_room(self, keep: TrackerState | None = None, *, for_sensors: bool = False) -> bool:
+        """Forget a timed-out tracker (not ``keep``; with ``for_sensors``, one that holds sensors): one that never
+        sent an orientation first (it gave the solve nothing: a sender that fills the table with handshakes and
+        heartbeats cannot push out a real tracker that missed a second), then the one silent longest; False when
+        every such tracker is live."""
+        quiet = [t for t in self.trackers.values()
+                 if t.timed_out and t is not keep and (t.sensors or not for_sensors)]  # fmt: skip
         if not quiet:
             return False
         gone = min(quiet, key=lambda t: (any(s.rotations for s in t.sensors.values()), t.last_packet_ns))
@@ -468,9 +472,16 @@ class SlimeVrServer:
     def _add_sensor(self, t: TrackerState, index: int, imu_type: int) -> SensorState | None:
         """A new sensor of ``t``, or None (counted) when the tracker or the server has all it may hold."""
         o = self.options
-        if len(t.sensors) >= o.max_sensors_per_tracker or self._sensors >= o.max_sensors:
+        if len(t.sensors) >= o.max_sensors_per_tracker:
             self.counters.refused_sensors += 1
             return None
+        # The budget of all trackers is full: a timed-out tracker's sensors are freed (it is forgotten, as for a
+        # handshake beyond max_trackers). Issue 45: 8 handshakes and 128 sensor infos, then silence, held the
+        # budget for ever and every later tracker's sensors were refused until a restart.
+        while self._sensors >= o.max_sensors:
+            if not self._make_room(t, for_sensors=True):
+                self.counters.refused_sensors += 1
+                return None
         s = t.sensors[index] = SensorState(index, imu_type=imu_type)
         self._sensors += 1
         return s

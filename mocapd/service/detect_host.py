@@ -24,7 +24,7 @@ import zenoh
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import ConfigError
 from mocapd.io import lifecycle
-from mocapd.io.zenoh_link import clock_key, detections_key, host_name, open_session, status_key
+from mocapd.io.zenoh_link import LinkWatch, clock_key, detections_key, host_name, open_session, status_key
 from mocapd.pipeline.keypoint_source import KeypointSource
 from mocapd.protocols.remote import CameraState, encode_clock, encode_detections, encode_status
 from mocapd.service.config import Config
@@ -128,7 +128,11 @@ async def serve(
             tasks = [tg.create_task(supervisor.supervise(name, factory)) for name, factory in runs]
             end = None if seconds is None else loop.time() + seconds
             ready = False
+            links = LinkWatch(session, z.connect, z.lost_after_s, loop.time())
             while not stop.is_set() and (end is None or loop.time() < end):
+                said = links.check(loop.time())  # a link Zenoh cannot make is otherwise never said (issue 45)
+                if said is not None:
+                    getattr(log, said[0])("%s", said[1])
                 up = [s.open_state().state == "open" for s in sources]
                 publisher.publish_status(up)
                 if not ready and all(up):
@@ -154,6 +158,7 @@ def _sink(publisher: DetectionPublisher, index: int) -> Callable[[int, int, Dete
 
 def run(config: Config, *, seconds: float | None = None, on_ready: Callable[[str], None] | None = None) -> int:
     """``mocapd detect-host``: build the config's cameras and detector, publish until SIGINT/SIGTERM."""
+    from mocapd.io.tls_files import check_tls_files
     from mocapd.service.rig import build_rig, plan_rig
 
     remote = [c.name for c in config.cameras if isinstance(c, ZenohCamera)]
@@ -161,6 +166,8 @@ def run(config: Config, *, seconds: float | None = None, on_ready: Callable[[str
         raise ConfigError(f"cameras {remote}: a camera host runs its own cameras; source = \"zenoh\" is the solver "
                           "host's view of them")  # fmt: skip
     plan = plan_rig(config)
+    z = config.zenoh
+    check_tls_files(z.tls_root_ca, z.tls_cert, z.tls_key)  # a TLS link Zenoh cannot make fails without a word
     lifecycle.enter_phase("loading models")
     built = build_rig(config, plan)  # a stop signal now raises StopRequested: the detector is closed on the way out
     try:

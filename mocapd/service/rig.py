@@ -32,7 +32,7 @@ from mocapd.errors import CalibrationError, ConfigError, InputError
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.calibration_files import core_cameras, read_any
 from mocapd.io.frame_source import ThreadedSource
-from mocapd.io.media_files import open_video, read_image
+from mocapd.io.media_files import check_declared_size, open_video, picture_size, read_image
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.pixels import capture_ring, pixel_format
 from mocapd.io.prior import resolve_prior
@@ -184,7 +184,12 @@ def _images_size(path: str) -> tuple[int, int]:
     if not files:
         raise InputError(f"path = {path!r}: holds no image ({', '.join(IMAGE_SUFFIXES)})")
     image = read_image(files[0], "image (path)")
-    return int(image.shape[1]), int(image.shape[0])
+    size = int(image.shape[1]), int(image.shape[0])
+    # Every other picture's header, as the source checks each before decoding it: a decompression bomb, a FIFO or a
+    # picture of another size further down the folder is said now, not when `run` reaches it (issue 45).
+    for file in files[1:]:
+        check_declared_size(picture_size(file, "image (path)"), file, "image (path)", size=size)
+    return size
 
 
 @dataclass

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from mocapd.errors import CalibrationError, InputError, OutputError
+from mocapd.io import lifecycle
 from mocapd.io.board_calibration import Board, calibrate_intrinsics, detect_in_files
 from mocapd.io.calibration_files import (
     CalibrationSet,
@@ -135,8 +136,12 @@ def _run_cameras(args: argparse.Namespace) -> int:
     except OutputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    # The board detection can sit in one OpenCV call for minutes (a cluttered 1-megapixel picture: 40 s); it runs in
+    # a worker so that Ctrl-C and SIGTERM still stop the command at once (issue 45).
+    lifecycle.enter_phase("calibrating (nothing written yet)")
     try:
-        calib, report = calibrate_cameras(
+        calib, report = lifecycle.interruptible(
+            calibrate_cameras,
             _board(args),
             args.intrinsics,
             args.extrinsics,

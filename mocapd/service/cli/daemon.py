@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from mocapd.errors import ConfigError, MocapdError
 from mocapd.io import cpu_budget, lifecycle
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
-from mocapd.service.config.cameras import describe
+from mocapd.service.config.cameras import AravisCamera, ImagesCamera, UvcCamera, VideoCamera, describe
 
 if TYPE_CHECKING:
     from mocapd.service import assembly
@@ -42,12 +42,40 @@ def _load(path: Path | None, http_port: int | None = None) -> Config:
 def check(cfg: Config) -> RigPlan:
     """Everything ``mocapd run`` checks before it opens a device: the rig against its calibration and files, and
     the IMU suits' calibration files."""
+    from mocapd.io.tls_files import check_tls_files
     from mocapd.service.rig import plan_rig
 
     plan = plan_rig(cfg)
+    check_tls_files(cfg.zenoh.tls_root_ca, cfg.zenoh.tls_cert, cfg.zenoh.tls_key)  # Zenoh would fail in silence
+    if len(cfg.cameras) == 1:  # run's detection sorting refused it only once the models were loaded (issue 45)
+        raise ConfigError(
+            f"cameras: one camera ({cfg.cameras[0].name}): detection sorting needs at least two cameras (it "
+            "triangulates across views), or none (a rig of IMUs alone)"
+        )
+    if any(isinstance(c, (AravisCamera, UvcCamera, VideoCamera, ImagesCamera)) for c in cfg.cameras):  # detected
+        _model_file(cfg.detector.model.path, "detector.model.path")
+        _model_file(cfg.detector.packing.canvas_model_path, "detector.packing.canvas_model_path")
     if not plan.synthetic or cfg.imu.sources():  # a synthetic rig loads suits only for IMU inputs of its own
         _suits(cfg)
     return plan
+
+
+def _model_file(path: str, key: str) -> None:
+    """A model file the user named must be a regular file, as the detector will find (a FIFO, a device or a folder
+    passed check-config, then `run` said "not found", issue 45). Empty: the default model, found by `run`."""
+    import os
+    import stat
+
+    from mocapd.io.input_files import file_kind
+
+    if not path:
+        return
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        raise ConfigError(f"{key} = {path!r}: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        raise ConfigError(f"{key} = {path!r}: not a regular file ({file_kind(mode)}); give the ONNX model file")
 
 
 def _suits(cfg: Config) -> list[Any]:

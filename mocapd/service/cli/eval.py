@@ -10,6 +10,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from mocapd.service.cli.numbers import number
+
 
 def register(sub: Any) -> None:
     """Add ``accuracy`` to the subparsers of ``mocapd eval``."""
@@ -41,20 +43,22 @@ def register(sub: Any) -> None:
     v = sub.add_parser("video", help="accuracy on real multi-view footage beside Pose2Sim (docs/accuracy-video.md)")
     v.add_argument("--take", action="append", default=None, metavar="NAME",
                    help="Demo_SinglePerson or Demo_MultiPerson (repeatable; default: both)")  # fmt: skip
-    v.add_argument("--max-frames", type=int, default=None, help="only the first frames of each take (CI)")
+    v.add_argument("--max-frames", type=number(1, 1e9, integer=True), default=None,
+                   help="only the first frames of each take (CI)")  # fmt: skip
     v.add_argument("--config", type=Path, default=None, help="mocapd config to run (default: the shipped one)")
     v.add_argument("--out", type=Path, default=Path("results/accuracy-video"), help="results directory")
     v.add_argument("--precision", default="fp32", choices=("fp32", "int8", "bf16"),
                    help="detector precision of the shared detections (default fp32)")  # fmt: skip
     v.add_argument("--no-pose2sim", action="store_true", help="leave Pose2Sim out (it is an optional install)")
-    v.add_argument("--images", type=int, default=3, help="frames per camera drawn (default 3, 0: none)")
+    v.add_argument("--images", type=number(0, 1000, integer=True), default=3,
+                   help="frames per camera drawn (default 3, 0: none)")  # fmt: skip
     v.add_argument("--no-cache", action="store_true", help="detect again even when the detections are cached")
     v.add_argument("--no-progress", action="store_true", help="no progress bar (it is drawn only on a terminal)")
     v.set_defaults(func=_run_video)
 
 
 def _run_video(args: argparse.Namespace) -> int:
-    from mocapd.errors import MocapdError
+    from mocapd.errors import ConfigError, InputError, MocapdError
     from mocapd.io.pose2sim_demo import DEMOS
     from mocapd.service.video_eval import VideoEvalOptions, run_video_eval
 
@@ -65,7 +69,10 @@ def _run_video(args: argparse.Namespace) -> int:
     )  # fmt: skip
     try:
         res = run_video_eval(opts, args.out)
-    except MocapdError as exc:  # an unknown take, the demo data or a model not there, Pose2Sim failing
+    except (ConfigError, InputError) as exc:  # an unknown take, a config that is none: the arguments' fault
+        print(f"mocapd eval video: {exc}", file=sys.stderr)
+        return 2
+    except MocapdError as exc:  # the demo data or a model not there, Pose2Sim failing
         print(f"mocapd eval video: {exc}", file=sys.stderr)
         return 1
     summary = {name: {"targets": t["targets"], "held_out_common_median_px": {

@@ -264,6 +264,9 @@ def read_toml(p: Path) -> dict[str, Any]:
         raise ConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
     if len(data) > MAX_FILE_BYTES:
         raise ConfigError(f"{p}: larger than {MAX_FILE_BYTES >> 10} KiB; a config file is a few KB of TOML text")
+    # A UTF-8 byte order mark (Windows Notepad writes one) is no text: TOML readers stumbled on it at "line 1,
+    # column 1" (issue 45). It is left out.
+    data = data.removeprefix(b"\xef\xbb\xbf")
     if b"\x00" in data:
         line, col = _position(data, data.index(b"\x00"))
         raise ConfigError(f"{p}: a binary file, not TOML text (a NUL byte at line {line}, column {col})")
