@@ -52,7 +52,7 @@ def test_the_default_profile_is_test_so_ci_installs_everything() -> None:
 
 
 def test_an_unknown_profile_is_refused_by_name() -> None:
-    done = subprocess.run(["bash", str(SETUP), "--list", "lab"], capture_output=True, text=True)
+    done = subprocess.run(["bash", str(SETUP), "--list", "lab"], check=False, capture_output=True, text=True)
     assert done.returncode == 2
     assert "unknown profile 'lab'" in done.stderr
 
@@ -69,7 +69,9 @@ def checkout(tmp_path: Path) -> Path:
 def _plan(checkout: Path, profile: str) -> str:
     """What 10-python.sh would pip-install for a profile in ``checkout`` ("" when its venv is current)."""
     env = {"PATH": "/usr/bin:/bin", "MOCAPD_PROFILE": profile, "MOCAPD_SETUP_PLAN": "1"}
-    done = subprocess.run(["bash", str(PYTHON_STEP)], cwd=checkout, env=env, capture_output=True, text=True)
+    done = subprocess.run(
+        ["bash", str(PYTHON_STEP)], cwd=checkout, env=env, capture_output=True, text=True, check=False
+    )
     assert done.returncode == 0, done.stderr
     return done.stdout.strip()
 
