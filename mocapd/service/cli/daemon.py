@@ -337,11 +337,15 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
         return cameras.run(args.seconds, opts, warm_up_s=args.warm_up, alone_passes=args.alone_passes,
                            config=args.config)  # fmt: skip
     from mocapd.service.bench import latency
+    from mocapd.service.bench.machine import emit
 
     if args.rig == "imu":
-        print(json.dumps(latency.run_imu(seconds=args.seconds, output=args.output), indent=2))
-        return 0
-    print(json.dumps(latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people), indent=2))
+        report = latency.run_imu(seconds=args.seconds, output=args.output)
+    else:
+        report = latency.run(seconds=args.seconds, cameras=args.cameras, people=args.people)
+    e2e, out = report.get("end_to_end_ms") or {}, report["output"]
+    emit(report, f"bench latency ({args.rig}): end to end p50 {e2e.get('p50')} ms, output {out['achieved_hz']} Hz, "
+                 f"missed ticks {out['missed_ticks']}")  # fmt: skip
     return 0
 
 
