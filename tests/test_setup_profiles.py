@@ -72,7 +72,7 @@ def _plan(checkout: Path, profile: str) -> str:
     done = subprocess.run(
         ["bash", str(PYTHON_STEP)], cwd=checkout, env=env, capture_output=True, text=True, check=False
     )
-    assert done.returncode == 0, done.stderr
+    assert done.returncode == 0 and done.stderr == "", done.stderr
     return done.stdout.strip()
 
 

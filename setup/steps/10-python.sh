@@ -21,7 +21,10 @@ case "$profile" in
 esac
 stamp=.venv/.mocapd-installed
 sha="$(sha256sum pyproject.toml | cut -d' ' -f1)"
-read -r have_sha have_profile < "$stamp" 2>/dev/null || true
+have_sha="" have_profile=""
+if [ -f "$stamp" ]; then
+    read -r have_sha have_profile < "$stamp" || true
+fi
 have_profile="${have_profile:-test}"
 current=0
 if [ -x .venv/bin/python ] && [ "${have_sha:-}" = "$sha" ] \
