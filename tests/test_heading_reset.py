@@ -201,6 +201,10 @@ async def _headings_after(rec: Recorder, kin: Kinematics, t_ns: int, frames: int
             await asyncio.sleep(0.02)
 
 
+# Waits on events (issue 46): passed at load 11-16 on 2 cores (3 of 3 runs, one with two extra busy loops) where it
+# failed 2 of 3 runs at load 10-14 before; at load 17-19 with the busy loops the starved in-process daemon's solve
+# itself goes wrong (arms 90 deg off after a reset), so it is marked as needing a machine that is not that busy.
+@pytest.mark.quiet_machine
 def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -> None:
     """One IMU-only daemon, a SlimeVR suit whose trackers' headings are off by up to ±40° (one drifting 30°/min).
     Each way of asking resets every solved bone to face forward again: HTTP, ``mocapd reset-heading``, the
@@ -248,6 +252,8 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -
             assert still[SIDS[4]]["rate_when_still_deg_per_min"] == pytest.approx(30.0, abs=3.0), still[SIDS[4]]
             assert all(abs(still[sid]["rate_when_still_deg_per_min"]) < 1.0 for sid in SIDS if sid != SIDS[4])
 
+            repeated: list[dict[str, Any]] = []  # resets that named trackers without a recent sample
+
             async def sampled_since(t_ns: int) -> None:
                 """Until every tracker's newest sample in the daemon is from ``t_ns`` on (a loaded machine ingests
                 some trackers' datagrams long after others: a reset computed from a sample before the step below
@@ -266,15 +272,22 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -
                 stepped = time.monotonic_ns()
                 await sampled_since(stepped)
                 assert np.abs(await _headings_after(rec, kin, stepped)).max() > 5.0
-                resets = len(d.reset_log)
-                result = await ask()
-                asked = time.monotonic()
-                async with asyncio.timeout(30 * load_factor()):  # a tracker's request is made after its datagram
-                    while len(d.reset_log) == resets:
-                        await asyncio.sleep(0.02)
-                        if again_after_s is not None and time.monotonic() - asked > again_after_s * load_factor():
-                            result, asked = await ask(), time.monotonic()  # a gesture not seen: the wearer repeats it
-                assert len(d.reset_log) == resets + 1, d.reset_log
+                for _ in range(3):
+                    # A reset turns the sensors with a sample from the last second and names the others: on a starved
+                    # machine some trackers' datagrams are ingested late, and the wearer, told so, asks again.
+                    await sampled_since(time.monotonic_ns() - 200_000_000)
+                    resets = len(d.reset_log)
+                    result = await ask()
+                    asked = time.monotonic()
+                    async with asyncio.timeout(30 * load_factor()):  # a tracker's request comes after its datagram
+                        while len(d.reset_log) == resets:
+                            await asyncio.sleep(0.02)
+                            if again_after_s is not None and time.monotonic() - asked > again_after_s * load_factor():
+                                result, asked = await ask(), time.monotonic()  # a gesture not seen: repeated
+                    assert len(d.reset_log) == resets + 1, d.reset_log
+                    if not d.reset_log[-1]["suits"]["walker"]["no_recent_sample"]:
+                        break
+                    repeated.append(d.reset_log[-1])
                 after = await _headings_after(rec, kin, d.reset_log[-1]["t_ns"])
                 assert np.abs(after).max() < 2.0, (source, after)
                 assert d.reset_log[-1]["source"].startswith(source), d.reset_log[-1]
@@ -326,9 +339,9 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(tmp_path: Path) -
             sender.cancel()
             trackers.close()
         heading = st["imu_heading"]["walker"]
-        assert len(st["heading_resets"]) == 6
+        assert len(st["heading_resets"]) == min(10, 6 + len(repeated)), repeated  # /status keeps the last 10
         drifting = heading[SIDS[4]]["yaw_drift"]
-        assert drifting["resets"] == 6 and drifting["rate_from_resets_deg_per_min"] is not None
+        assert drifting["resets"] >= 6 and drifting["rate_from_resets_deg_per_min"] is not None
         steady = heading[SIDS[6]]["yaw_drift"]  # the middle tracker: 0 at first, then the test's 7 deg steps
         assert steady["last_correction_deg"] == pytest.approx(-7.0, abs=1.0) and steady["last_reset_s_ago"] < 5
 
