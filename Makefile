@@ -1,15 +1,20 @@
 # mocapd — the two commands of the README's Quick start are `make demo` and `make test`.
 # Both run the project's own set-up first (setup/setup.sh): it installs what is missing and is
-# a no-op when everything is already in place.
+# a no-op when everything is already in place. `make demo` runs the demo profile (the daemon, Aravis, the demo
+# videos and the detector models); `make test` the test profile (all of that and the test stack: dev tools,
+# PyTorch, Pose2Sim, Chromium, Node.js, Mono, Blender's bpy). `make setup` is the test profile.
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test lint typecheck unit bench clean
+.PHONY: setup setup-demo demo test lint typecheck unit bench clean
 
 setup:
-	@bash setup/setup.sh
+	@bash setup/setup.sh test
 
-demo: setup
+setup-demo:
+	@bash setup/setup.sh demo
+
+demo: setup-demo
 	$(BIN)/mocapd demo
 
 test: setup lint typecheck unit
@@ -24,7 +29,7 @@ typecheck:
 unit:
 	$(BIN)/pytest -q
 
-bench: setup
+bench: setup-demo
 	$(BIN)/mocapd bench solver
 
 clean:

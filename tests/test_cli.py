@@ -13,6 +13,7 @@ from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.detector_pool import process_cores
 from mocapd.pipeline.latency import AutoLatencyOptions
 from mocapd.service.cli import main
+from tests.test_bench_verbs import check_machine
 
 
 def test_bench_solver_prints_every_configuration(capsys: pytest.CaptureFixture[str]) -> None:
@@ -47,8 +48,8 @@ def test_no_command_prints_help(capsys: pytest.CaptureFixture[str]) -> None:
 def test_bench_sorting_times_a_sorter_that_finds_the_people(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "sorting", "--frames", "5"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert sorted(report) == ["4cam_3people", "8cam_10people"]
-    for r in report.values():
+    assert sorted(report) == ["4cam_3people", "8cam_10people", "machine"]
+    for r in (report["4cam_3people"], report["8cam_10people"]):
         assert r["frames"] == 5 and 0 < r["median_ms"] <= r["p90_ms"], r
     # Four cameras, three people well apart: one 3D candidate per person in every frame. Eight cameras and ten
     # people produce spurious cross-view candidates too (docs/tracking.md, Cost), but never fewer than the people.
@@ -58,7 +59,9 @@ def test_bench_sorting_times_a_sorter_that_finds_the_people(capsys: pytest.Captu
 
 def test_bench_latency_reports_the_synthetic_daemon(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "latency", "--seconds", "3"]) == 0
-    r = json.loads(capsys.readouterr().out)
+    out = capsys.readouterr()
+    r = json.loads(out.out)
+    check_machine(r, out.err, "latency")
     assert r["rig"]["cameras"] == 4 and r["rig"]["people"] == 2 and r["rig"]["imus"] == 13
     c = r["configured"]
     assert c["output_rate_hz"] == 60.0 and c["latency_mode"] == "auto" and 30.0 <= c["latency_ms"] <= 500.0, c
@@ -98,7 +101,9 @@ def test_bench_latency_holds_the_daemon_to_a_cpu_budget() -> None:
 def test_bench_latency_on_the_suit_alone_reports_the_imu_only_rig(capsys: pytest.CaptureFixture[str]) -> None:
     """``mocapd bench latency --rig imu``: `mocapd demo --imu-only`'s suit, no camera, in predicted output."""
     assert main(["bench", "latency", "--rig", "imu", "--seconds", "3", "--output", "predicted"]) == 0
-    r = json.loads(capsys.readouterr().out)
+    out = capsys.readouterr()
+    r = json.loads(out.out)
+    check_machine(r, out.err, "latency")
     assert r["rig"]["cameras"] == 0 and r["rig"]["imus"] == 13 and r["imu_devices_streaming_at_end"] == 13
     # The shipped "auto" latency on a rig without cameras: the IMUs' short fixed delay, not a camera rig's.
     assert r["configured"] == {"output_rate_hz": 60.0, "latency_ms": 60.0, "latency_mode": "auto",
@@ -111,6 +116,7 @@ def test_bench_latency_on_the_suit_alone_reports_the_imu_only_rig(capsys: pytest
     assert not any(r["task_failures"].values()), r["task_failures"]
 
 
+@pytest.mark.quiet_machine  # rates per thread over a few seconds: a starved capture or detector thread reads 0
 def test_bench_latency_on_the_camera_rig_reports_the_live_pipeline_against_its_detector_alone(tmp_path: Path) -> None:
     """``mocapd bench latency --rig cameras`` (the camera demo in a private network namespace) for a few seconds:
     the JSON is checked for content and coherence, not for speed. ``--config`` gives the detector settings run."""

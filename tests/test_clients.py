@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from mocapd.service.config import load_config
+from tests.load import load_factor
 from tests.test_web_viewer import daemon, free_port
 from tests.unity_client import check_unity_receiver, compile_receiver
 
@@ -28,7 +29,7 @@ SUITED_FRAMES_MIN = 12
 async def run(*argv: str | Path, cwd: Path | None = None) -> tuple[int, str, str]:
     proc = await asyncio.create_subprocess_exec(*map(str, argv), cwd=cwd, stdout=asyncio.subprocess.PIPE,
                                                 stderr=asyncio.subprocess.PIPE)  # fmt: skip
-    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    out, err = await asyncio.wait_for(proc.communicate(), 60 * load_factor())
     assert proc.returncode is not None
     return proc.returncode, out.decode(), err.decode()
 
@@ -67,7 +68,8 @@ async def test_node_python_and_unity_receivers_against_the_daemon(tmp_path: Path
         # Wait until both people are tracked and the suit is bound to its wearer, so the clients' frames carry
         # both subjects, one of them under the suit's identity.
         code, out, err = await run(sys.executable, CLIENTS / "python_receiver.py", "--url", url, "--frames", "1")
-        for _ in range(150):
+        end = asyncio.get_running_loop().time() + 60 * load_factor()  # the binding needs a few seconds of motion
+        while asyncio.get_running_loop().time() < end:
             if out.count(" root (") == 2 and "suit:suit0 root (" in out:
                 break
             await asyncio.sleep(0.2)

@@ -8,6 +8,7 @@ import asyncio
 import json
 import math
 import socket
+import time
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +42,7 @@ from mocapd.service.cli import main
 from mocapd.service.config import load_config
 from mocapd.service.daemon import Daemon
 from mocapd.sim.world import Q_WORLD_FROM_ENU
+from tests.load import load_factor
 from tests.test_daemon import Recorder, http_get
 
 S = 1_000_000_000
@@ -177,12 +179,33 @@ def _headings(rec: Recorder, kin: Kinematics) -> np.ndarray:
 
 async def _settled(rec: Recorder, kin: Kinematics, after: int, frames: int = 20) -> np.ndarray:
     """The headings once ``frames`` frames after frame number ``after`` have come, the last with the wearer."""
-    async with asyncio.timeout(30):
+    async with asyncio.timeout(30 * load_factor()):
         while not rec.frames or rec.frames[-1].frame < after + frames or _walker(rec.frames[-1]) is None:
             await asyncio.sleep(0.02)
     return _headings(rec, kin)
 
 
+async def _headings_after(rec: Recorder, kin: Kinematics, t_ns: int, frames: int = 20) -> np.ndarray:
+    """The headings in the frame ``frames`` frames after the first solved at or after ``t_ns`` (host clock), the
+    first such with the wearer: the solve had those frames to converge, and a drifting sensor drifted only as long
+    as they last, however late this test's event loop gets to look (a newest frame, on a loaded machine, is
+    seconds later: a tracker drifting 30°/min is then several degrees off again)."""
+    async with asyncio.timeout(60 * load_factor()):
+        while True:
+            first = next((i for i, f in enumerate(rec.frames) if f.t_solve_ns >= t_ns), None)
+            if first is not None:
+                p = next((w for f in rec.frames[first + frames :] if (w := _walker(f)) is not None), None)
+                if p is not None:
+                    q = quat_from_matrix(kin.forward(p.theta).rotations[[BONE_INDEX[b] for b in IMU_SET_13]])
+                    out: np.ndarray = -np.degrees(reset_yaws(q))
+                    return out
+            await asyncio.sleep(0.02)
+
+
+# Waits on events (issue 46): passed at load 11-16 on 2 cores (3 of 3 runs, one with two extra busy loops) where it
+# failed 2 of 3 runs at load 10-14 before; at load 17-19 with the busy loops the starved in-process daemon's solve
+# itself goes wrong (arms 90 deg off after a reset), so it is marked as needing a machine that is not that busy.
+@pytest.mark.quiet_machine
 def test_a_running_daemon_resets_headings_when_asked_every_way(
     tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -222,19 +245,54 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(
         try:
             before = await _settled(rec, kin, 0, 30)
             assert np.abs(before).max() > 30.0  # the trackers' own headings: off
-            # Standing still: the drift measured while still (the daemon looks once a second; 5 s are needed).
-            await asyncio.sleep(6.5)
-            still = {sid: e["yaw_drift"] for sid, e in d.heading_status()["walker"].items()}
+            # Standing still: the drift measured while still (the daemon looks once a second; 5 s of stillness are
+            # needed, however long a loaded machine takes to give them).
+            async with asyncio.timeout(60 * load_factor()):
+                while True:
+                    still = {sid: e["yaw_drift"] for sid, e in d.heading_status()["walker"].items()}
+                    if all(still[sid]["rate_when_still_deg_per_min"] is not None for sid in SIDS):
+                        break
+                    await asyncio.sleep(0.2)
             assert still[SIDS[4]]["rate_when_still_deg_per_min"] == pytest.approx(30.0, abs=3.0), still[SIDS[4]]
             assert all(abs(still[sid]["rate_when_still_deg_per_min"]) < 1.0 for sid in SIDS if sid != SIDS[4])
 
-            async def check(ask: Any, source: str) -> Any:
-                trackers.drift += 7.0  # they drift on between resets
-                await asyncio.sleep(0.3)
-                assert np.abs(_headings(rec, kin)).max() > 5.0
-                n = rec.frames[-1].frame
-                result = await ask()
-                after = await _settled(rec, kin, n + 10)
+            repeated: list[dict[str, Any]] = []  # resets that named trackers without a recent sample
+
+            async def sampled_since(t_ns: int) -> None:
+                """Until every tracker's newest sample in the daemon is from ``t_ns`` on (a loaded machine ingests
+                some trackers' datagrams long after others: a reset computed from a sample before the step below
+                would leave its bone off by that step)."""
+                async with asyncio.timeout(30 * load_factor()):
+                    while True:
+                        newest = [
+                            d.imu.ingest.streams[sid].buffer.latest() for sid in SIDS if sid in d.imu.ingest.streams
+                        ]
+                        if len(newest) == len(SIDS) and all(x is not None and x[0] >= t_ns for x in newest):
+                            return
+                        await asyncio.sleep(0.02)
+
+            async def check(ask: Any, source: str, again_after_s: float | None = None) -> Any:
+                trackers.drift += 7.0  # they drift on between resets (a step no real sensor makes: waited for)
+                stepped = time.monotonic_ns()
+                await sampled_since(stepped)
+                assert np.abs(await _headings_after(rec, kin, stepped)).max() > 5.0
+                for _ in range(3):
+                    # A reset turns the sensors with a sample from the last second and names the others: on a starved
+                    # machine some trackers' datagrams are ingested late, and the wearer, told so, asks again.
+                    await sampled_since(time.monotonic_ns() - 200_000_000)
+                    resets = len(d.reset_log)
+                    result = await ask()
+                    asked = time.monotonic()
+                    async with asyncio.timeout(30 * load_factor()):  # a tracker's request comes after its datagram
+                        while len(d.reset_log) == resets:
+                            await asyncio.sleep(0.02)
+                            if again_after_s is not None and time.monotonic() - asked > again_after_s * load_factor():
+                                result, asked = await ask(), time.monotonic()  # a gesture not seen: repeated
+                    assert len(d.reset_log) == resets + 1, d.reset_log
+                    if not d.reset_log[-1]["suits"]["walker"]["no_recent_sample"]:
+                        break
+                    repeated.append(d.reset_log[-1])
+                after = await _headings_after(rec, kin, d.reset_log[-1]["t_ns"])
                 assert np.abs(after).max() < 2.0, (source, after)
                 assert d.reset_log[-1]["source"].startswith(source), d.reset_log[-1]
                 return result
@@ -275,7 +333,9 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(
                     trackers.jolt[CHEST] = 20.0
                     await asyncio.sleep(0.15)
 
-            await check(chest_taps, "2 taps on")
+            # Two taps are two jolts 60-600 ms apart as the daemon receives them: a starved machine may deliver
+            # them together (one tap) or too far apart (none), as a wearer's taps are sometimes missed.
+            await check(chest_taps, "2 taps on", again_after_s=2.0)
             code, _, body = await http_get(d.http.port, "/heading/reset?suit=nobody", method="POST", headers=ASK)
             assert code == 400 and "no suit 'nobody'" in json.loads(body)["error"]
             st = json.loads((await http_get(d.http.port, "/status"))[2])
@@ -313,9 +373,9 @@ def test_a_running_daemon_resets_headings_when_asked_every_way(
             sender.cancel()
             trackers.close()
         heading = st["imu_heading"]["walker"]
-        assert len(st["heading_resets"]) == 6
+        assert len(st["heading_resets"]) == min(10, 6 + len(repeated)), repeated  # /status keeps the last 10
         drifting = heading[SIDS[4]]["yaw_drift"]
-        assert drifting["resets"] == 6 and drifting["rate_from_resets_deg_per_min"] is not None
+        assert drifting["resets"] >= 6 and drifting["rate_from_resets_deg_per_min"] is not None
         steady = heading[SIDS[6]]["yaw_drift"]  # the middle tracker: 0 at first, then the test's 7 deg steps
         assert steady["last_correction_deg"] == pytest.approx(-7.0, abs=1.0) and steady["last_reset_s_ago"] < 5
 

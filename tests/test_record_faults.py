@@ -15,8 +15,11 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from mocapd.io.lifecycle import guarded_command
 from mocapd.io.session import open_session
+from tests.load import load_factor
 from tests.rigs import synthetic_toml, write
 from tools.stop_cases import Launched
 
@@ -29,15 +32,16 @@ def test_a_full_disk_stops_the_recording_cleanly_while_the_output_goes_on(tmp_pa
     assert proc.returncode == 0, proc.stderr[-5000:]
     r = json.loads(proc.stdout.strip().splitlines()[-1])
     err = r["stderr"]
-    # /status says recording stopped, and why; the live output keeps its rate (~60 Hz; 3 s, a loaded machine).
+    # /status says recording stopped, and why; the live output goes on (3 s of frames after the cut, waited for:
+    # a loaded machine publishes them late, and the rate is not what this test is about).
     assert r["recorder"]["recording"] is False and r["recorder"]["stopped"].startswith("ENOSPC"), r["recorder"]
-    assert r["frames_in_3_s_after_cut"] > 90, r
+    assert r["frames_after_cut"] >= 180, r
     # The recorder that stopped does not keep trying (or logging): nothing more is written after the cut.
     assert r["recorder_later"]["written"] == r["recorder"]["written"], r
     assert r["recorder_later"]["write_errors"] == 1, r
     # One log line, no traceback; a clean exit, nothing left.
     assert err.count("recording stopped") == 1 and err.count(" ERROR ") == 1, err
-    assert "Traceback" not in err and r["rc"] == 0 and r["stop_s"] < 2.0 and r["left"] == [], r
+    assert "Traceback" not in err and r["rc"] == 0 and r["stop_s"] < 2.0 * load_factor() and r["left"] == [], r
     # The session: closed properly, cut by ENOSPC, every frame up to the last complete record, no .tmp.
     s = r["session"]
     assert s["closed_cleanly"] and s["cut"]["errno"] == "ENOSPC", s
@@ -50,6 +54,7 @@ def test_a_full_disk_stops_the_recording_cleanly_while_the_output_goes_on(tmp_pa
     assert "cut by ENOSPC" in cli["stderr"] and "the disk was full" in cli["stderr"], cli
 
 
+@pytest.mark.quiet_machine  # "at most 1 s lost" is a wall-clock promise: the writer thread must get the CPU
 def test_sigkill_while_recording_loses_at_most_one_second(tmp_path: Path) -> None:
     """``kill -9`` of the recording daemon: no clean close, but the session recovers, and what was published up
     to at most 1 s before the kill is on disk ([record] flush_interval_s = 0.25 s)."""

@@ -26,6 +26,7 @@ import pytest
 
 from mocapd.io.lifecycle import guarded_command
 from mocapd.io.session import open_session
+from tests.load import load_factor
 from tests.rigs import synthetic_toml, write
 from tools.stop_cases import Launched, port_free, problems, ready_ports, silent_pty, stop_in_phase, tagged_processes
 
@@ -91,10 +92,11 @@ def test_run_on_fake_gige_cameras_stops_in_every_phase_and_tells_a_pause_from_a_
     assert all(c["failures"] == 0 and c["reopens"] == 0 for c in f["after_pause"]), f
     # A camera that stops sending is declared lost after its time-out (1 s; plus a pop time-out and a status
     # poll), the others untouched, and it comes back once it sends again.
-    assert f["declared_lost_after_s"] < 1.0 + 3.0, f
+    # Bounds in seconds scaled by the machine's load (tests/load.py): a starved daemon notices and stops later.
+    assert f["declared_lost_after_s"] < (1.0 + 3.0) * load_factor(), f
     assert "sent no frame" in f["lost_error"] or "control connection" in f["lost_error"], f
     assert f["others_failures"] == [0, 0, 0], f
-    assert f["rc"] == 0 and f["stop_s"] < 2.0 and not f["traceback"], f
+    assert f["rc"] == 0 and f["stop_s"] < 2.0 * load_factor() and not f["traceback"], f
 
 
 DEMO_PHASES = ["starting", "starting the fake cameras", *PHASES[1:]]

@@ -113,7 +113,7 @@ def test_non_finite_poses_are_skipped_and_counted(receiver: socket.socket) -> No
 
 
 def test_benchmark_reports_sizes_and_costs() -> None:
-    from tools.bench_udp import run
+    from mocapd.service.bench.streams import run
 
     r = run(subjects=2, rate=60.0, n_frames=20)
     assert r["mvn"]["bytes_per_frame"] == 2 * 760 and r["mvn"]["datagrams_per_frame"] == 2

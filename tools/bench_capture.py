@@ -1,5 +1,7 @@
 """Capture benchmark: 4 fake GigE Vision cameras (Pose2Sim multi-person demo videos) captured by mocapd.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 Runs :mod:`tools.fake_rig` (inside ``unshare -rn``) for each configuration and prints one JSON object::
 
     python -m tools.bench_capture [--duration 10] [--fps 30] [--configs NAME ...] [--read-hz 0]

@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
 """Per-frame cost of the learned fusion in the daemon's tick (issue 30), for 1 and 2 people, as JSON.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 What the daemon does per tick and person, on a simulated 60 Hz stream of real CMU motion (the development split's
 CMU clip, each person a copy turned and moved): the IMU-only solve of the person's 13-IMU suit (every tick), on
 every ``stride``-th tick the learned frame (grid centre, joint channels, carving the two-channel PVH, the PVH

@@ -1,5 +1,7 @@
 """Memory and time of ``mocapd import mtw`` on a large MT Manager export (issue 34: a 265 MB export took 2.5 GiB).
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 Writes an export of ``--mb`` megabytes made of the rows of the OpenSense MTw file in ``tests/data`` (tab-separated,
 26 columns, empty UTC cells, PacketCounter renumbered), then runs ``python -m mocapd import mtw`` on it in a child
 process and reports the child's peak resident memory (``wait4``'s ``ru_maxrss``), its wall time and exit status,

@@ -1,6 +1,8 @@
 """How long a stop takes in each phase, and what a SIGKILL loses (issue 32): the numbers of the lifecycle table in
 docs/reliability.md.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 For ``mocapd run`` on the synthetic rig, ``mocapd run`` on four fake GigE cameras is in the test suite (a
 private network namespace), and ``mocapd demo``: each phase × each stop signal, ``--repeats`` times, landed in the
 phase as :mod:`tools.stop_cases` does (the announcing process frozen at its phase's sd_notify message, the signal

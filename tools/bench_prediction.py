@@ -1,5 +1,7 @@
 """Delayed vs predicted output at the moment of publishing, on the synthetic rig's recorded motion; prints JSON.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 Runs the daemon of ``mocapd demo --synthetic`` (4 cameras at 30 Hz with 50 ms detection delay, 2 people, one
 wearing 13 simulated Xsens IMUs streaming Xbus on pseudo-terminals at 100 Hz; output at ``--rate`` Hz with
 ``--latency`` s fixed latency) in predicted output. Every published frame of the suit wearer carries both poses:

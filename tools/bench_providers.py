@@ -1,11 +1,13 @@
 """Benchmark: execution provider x precision x (whole, fitted, packed) detection on the Pose2Sim 4-camera demo.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 Prints one JSON object. For each provider (``--providers``, config names: cpu, openvino, cuda, tensorrt) and
 precision (``--precision``: fp32, int8, bf16 = the FP32 model computed in BF16, OpenVINO only) it times
 whole-frame detection (each camera frame letterboxed alone into the square input: the naive way), whole frames
 at the camera's aspect (``fitted``: the 384x640 export for these portrait cameras, ``[detector]
 fitted_inputs``) and packed detection (the ROIs of 4 cameras x 2 consecutive frames on shared canvases, as
-``tools/bench_detect.py``). All configurations run in the same process on the same frame pairs, their order
+``mocapd bench detector``). All configurations run in the same process on the same frame pairs, their order
 rotating from pair to pair, and every rate is a median over pairs, so that the other work on this shared machine
 hits all alike. ``disagreement_px`` compares each configuration's keypoints
 with those of FP32 CPU whole-frame detection (the reference, always run): distance between keypoints both found

@@ -1,5 +1,7 @@
 """Detection scheduling policies of the live packed group, compared in one process on the Pose2Sim demo frames.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 The daemon's :class:`~mocapd.pipeline.packed_source.PackedDetectionGroup` runs back-to-back passes over cameras
 that always have a new frame (60 fps cameras, a detector far slower). This benchmark drives its pass function
 directly (no capture, no event loop) with the four ``Demo_MultiPerson`` cameras at 544x960, interleaving policies

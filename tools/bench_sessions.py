@@ -1,5 +1,7 @@
 """The detector's throughput against cores, sessions in flight and threads per session: the curve of issue 31.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 The daemon's packed group (:class:`~mocapd.pipeline.packed_source.PackedDetectionGroup`, the shipped ``[detector]``
 with ``enabled = "auto"``: packed or whole-frame passes by cost) runs its real worker loops, one per inference
 session, on the four ``Demo_MultiPerson`` cameras at the demo's 544x960, cameras that always have a new frame (60

@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
 """SlimeVR datagram loss at real rates on a loaded machine: the daemon's receive thread against the event-loop reader.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 ``--trackers`` emulated SlimeVR trackers (default 16, protocol 22, one sensor each, packet 23: rotation and
 acceleration), each from a socket of its own, send ``--rate`` datagrams a second (default 100) for ``--seconds``
 from a separate process, to the daemon's SlimeVR server on loopback. The first 13 follow the synthetic world's

@@ -1,5 +1,7 @@
 """Per-second output of ``mocapd demo --synthetic``: the stall around t ≈ 10-13 s (issue 32), measured.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 Runs the synthetic demo for ``--seconds`` in a private network namespace, ``--runs`` times, and reads its
 per-second status lines (``t=  11.2 s  output  60 Hz  missed 3 ...``): each second's output rate and the ticks it
 missed. With ``--baseline DIR`` (another checkout, e.g. main before the fix) the runs alternate between the two

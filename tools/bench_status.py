@@ -1,5 +1,7 @@
 """Benchmark: does polling ``/status`` and ``/metrics`` move the output rate? Prints JSON.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 The daemon on the synthetic rig (the one assembly path, as ``mocapd demo --synthetic``) runs in this process in
 ``--rounds`` pairs of phases of ``--seconds`` each: idle, then a client process hammering ``/status`` and
 ``/metrics`` on loopback with ``--concurrency`` connections as fast as the server answers. Per phase: the output

@@ -1,5 +1,7 @@
 """Benchmark of the WebSocket pose stream; prints JSON.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 1. **Serialisation**: 4 subjects (real poses through forward kinematics), each encoding (msgpack, JSON) and
    convention, with and without global joints: the cost of turning one published frame into one message
    (conversion + encoding, as the first client with those options pays it; every further client with the same

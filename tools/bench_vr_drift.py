@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
 """Yaw drift of a SlimeVR suit on the synthetic rig, with whatever heading handling the config has.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 One person walks (procedural motion) in a ring of ``--cameras`` synthetic cameras wearing 13 emulated SlimeVR
 sensors (``tools/slimevr_rig.py``: the PyPI ``slimevr-tracker-emulator``, in a process of its own, talking to the
 daemon's SlimeVR server over loopback UDP).

@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
 """Xbus benchmark: parser throughput on one core and end-to-end latency from simulator write to ring buffer.
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 Prints one JSON object:
 
 - ``parser``: messages per second through :class:`XbusParser` alone (``framing``) and with MTData2

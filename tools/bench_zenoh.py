@@ -1,4 +1,6 @@
-"""Camera hosts over Zenoh: what the hop adds, and what a remote camera costs the solver host. Prints one JSON object::
+"""Camera hosts over Zenoh: what the hop adds, and what a remote camera costs the solver host.
+
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs). Prints one JSON object::
 
     python -m tools.bench_zenoh [--seconds 20] [--warmup 8] [--people 2] [--rate 30]
 

@@ -1,5 +1,7 @@
 """What per-host identities (``[zenoh] identities``: Zenoh's access control on the solver host's session) cost a
-camera host's detections. Prints one JSON object::
+camera host's detections.
+
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs). Prints one JSON object::
 
     python -m tools.bench_zenoh_acl [--messages 1500] [--rounds 3] [--rate 400] [--bytes 2048]
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: demo
 # Installs what mocapd's camera layer needs (issue 5), only where missing:
 #  - Aravis 0.8 with its GObject-introspection typelib and tools (Debian packages);
 #  - the headers PyGObject is built against (girepository-1.0, cairo, glib) and a C compiler;

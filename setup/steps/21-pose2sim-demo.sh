@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: demo
 # Fetches the Pose2Sim demo data (videos, calibration images and Calib.qca.txt of four real cameras) used by
 # the camera tests and benchmarks (issue 5). Source: the `pose2sim` wheel on PyPI, BSD-3-Clause licence
 # (copyright David Pagnon; the licence text is unpacked beside the data as LICENSE). Nothing is committed to

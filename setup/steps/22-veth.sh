@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: test
 # The GigE Vision discovery tests (issue 13) put fake cameras behind veth pairs inside private network
 # namespaces (`unshare -rn`). A user namespace cannot load kernel modules itself on every kernel: where veth is
 # a module that is not loaded yet, load it here (as root). Nothing to do where veth pairs can already be made.

@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: test
 # The Zenoh TLS test (tests/test_camera_hosts.py) makes a throw-away CA and certificate with the openssl command.
 set -euo pipefail
 if ! command -v openssl >/dev/null; then

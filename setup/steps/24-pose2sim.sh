@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: test
 # Installs Pose2Sim 0.10.49 (BSD-3-Clause) into .venv for `mocapd eval video` (docs/accuracy-video.md), from the
 # wheel step 21 downloaded, without its dependencies: they would replace the headless OpenCV (opencv-python,
 # opencv-contrib-python) and pull in opensim, PySide6, rtmlib, openvino and caliscope, none of which the steps the

@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: test
 # Installs the Node.js example client's dependencies (issue 9: tools/clients/node, ws + @msgpack/msgpack from
 # the committed package-lock.json) with `npm ci`, only when node_modules is missing or the lock file changed.
 # Node.js >= 18 and npm come from Debian where missing (the tests run the client against the daemon).

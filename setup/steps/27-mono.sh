@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: test
 # Installs Debian's Mono C# compiler and runtime (issue 33), only where missing: the Unity receiver in
 # tools/clients/unity is compiled with mcs against a minimal stand-in for the UnityEngine types it uses and run under
 # mono against the real daemon (tests/test_unity_client.py). Not a runtime dependency of mocapd.

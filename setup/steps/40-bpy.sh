@@ -1,4 +1,5 @@
 #!/usr/bin/env bash
+# profile: test
 # Creates .venv-bpy/ with Blender as a Python module (the `bpy` wheel from PyPI), for the tests only (issue 16):
 # the glTF/BVH exports are imported into real Blender, and the Blender live-link add-on runs in it against a
 # running daemon. bpy is not a runtime dependency of mocapd. It lives in a venv of its own because every bpy wheel

@@ -30,7 +30,6 @@ import asyncio
 import dataclasses
 import json
 import os
-import platform
 import sys
 import threading
 import time
@@ -54,6 +53,7 @@ from mocapd.pipeline.detector_pool import detector_executor
 from mocapd.pipeline.keypoint_tracker import JOINT_GROUPS, error_summary
 from mocapd.pipeline.packing import packed_detector_from_config
 from mocapd.service.assembly import RunOptions
+from mocapd.service.bench.machine import machine
 from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import Daemon
 from mocapd.service.demo.cameras import CameraDemoOptions, in_private_netns, run_camera_demo
@@ -518,8 +518,8 @@ def child_main(argv: list[str] | None = None) -> int:
         "detector_alone": alone,
         **measure.result,
         "cpu_budget": throttling,
-        "machine": {"cpus": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load0],
-                    "loadavg_at_end": [round(x, 2) for x in os.getloadavg()], "python": platform.python_version()},
+        "machine": {**machine(), "loadavg_at_start": [round(x, 2) for x in load0],
+                    "loadavg_at_end": [round(x, 2) for x in os.getloadavg()]},
     }  # fmt: skip
     print(json.dumps(report, indent=2), flush=True)
     return code

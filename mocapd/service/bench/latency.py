@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import asyncio
 import os
-import platform
 import resource
 import time
 from typing import Any, Literal
 
 from mocapd.service import assembly
 from mocapd.service.assembly import RunOptions
+from mocapd.service.bench.machine import machine
 from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import Daemon
 from mocapd.service.demo.synthetic import synthetic_config
@@ -146,6 +146,5 @@ def _measure(cfg: Config, seconds: float, rig: dict[str, Any], options: RunOptio
         "imu_devices_streaming_at_end": run_stats["imu_streaming"],
         "imu_disconnects": sum(x["disconnects"] for x in st["imu"]["devices"]),
         "task_failures": {k: v["failures"] for k, v in st["tasks"].items()},
-        "machine": {"cpus": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load0],
-                    "python": platform.python_version()},
+        "machine": {**machine(), "loadavg_at_start": [round(x, 2) for x in load0]},
     }  # fmt: skip

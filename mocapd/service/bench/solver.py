@@ -18,7 +18,6 @@ Wall-clock numbers on a shared machine are noisy: medians are reported, and the 
 from __future__ import annotations
 
 import os
-import platform
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -36,6 +35,7 @@ from mocapd.core.rotations import quat_from_rotvec, quat_multiply
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.solver import Observations, PoseSolver
 from mocapd.core.synthetic import exact_observations, moving_sequence, ring_rig
+from mocapd.service.bench.machine import machine
 
 FloatArray = NDArray[np.float64]
 
@@ -194,8 +194,7 @@ def run(frames: int = 600, scipy_frames: int = 30, seed: int = 0) -> dict[str, A
     out["ours_on_scipy_frames_median_ms"] = ours["median_ms"]
     out["kernel_compile_or_cache_load_s"] = round(compile_s, 2)
     out["machine"] = {
-        "cpus": os.cpu_count(),
-        "python": platform.python_version(),
+        **machine(),
         "numpy": np.__version__,
         "blas_in_run": blas,
         "loadavg_start": [round(x, 2) for x in load0],

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 
 from mocapd import __version__
 from mocapd.errors import InputError
+from mocapd.service.cli import bench as cmd_bench
 from mocapd.service.cli import calibrate as cmd_calibrate
 from mocapd.service.cli import daemon as cmd_daemon
 from mocapd.service.cli import devices as cmd_devices
@@ -18,20 +19,6 @@ from mocapd.service.cli import imu as cmd_imu
 from mocapd.service.cli import model as cmd_model
 from mocapd.service.cli import recordings as cmd_recordings
 from mocapd.service.cli import session as cmd_session
-
-
-def _cmd_bench_solver(args: argparse.Namespace) -> int:
-    from mocapd.service.bench import solver as bench_solver
-
-    print(json.dumps(bench_solver.run(frames=args.frames, scipy_frames=args.scipy_frames, seed=args.seed), indent=2))
-    return 0
-
-
-def _cmd_bench_sorting(args: argparse.Namespace) -> int:
-    from mocapd.eval import tracking as eval_tracking
-
-    print(json.dumps(eval_tracking.bench_sorting(frames=args.frames), indent=2))
-    return 0
 
 
 def _cmd_eval_tracking(args: argparse.Namespace) -> int:
@@ -56,16 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"mocapd {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    bench = sub.add_parser("bench", help="benchmarks that print JSON")
-    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
-    solver = bench_sub.add_parser("solver", help="per-frame solver cost (issue: kinematic core)")
-    solver.add_argument("--frames", type=int, default=600, help="frames per configuration (default 600)")
-    solver.add_argument("--scipy-frames", type=int, default=30, help="frames for the scipy baseline (default 30)")
-    solver.add_argument("--seed", type=int, default=0)
-    solver.set_defaults(func=_cmd_bench_solver)
-    sorting = bench_sub.add_parser("sorting", help="detection sorting time per frame (issue: multi-person)")
-    sorting.add_argument("--frames", type=int, default=60)
-    sorting.set_defaults(func=_cmd_bench_sorting)
+    cmd_bench.register(sub)  # solver, sorting, detector, streams, record (latency: cmd_daemon)
 
     ev = sub.add_parser("eval", help="evaluations that print JSON")
     ev_sub = ev.add_subparsers(dest="eval", metavar="EVAL", required=True)

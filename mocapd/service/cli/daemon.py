@@ -378,6 +378,7 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
         return cameras.run(args.seconds, opts, warm_up_s=args.warm_up, alone_passes=args.alone_passes,
                            config=args.config)  # fmt: skip
     from mocapd.service.bench import latency
+    from mocapd.service.bench.machine import emit
 
     try:
         with cpu_budget.held(args.cpu_budget) as budget:
@@ -389,7 +390,9 @@ def cmd_bench_latency(args: argparse.Namespace) -> int:
     except MocapdError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(report, indent=2))
+    e2e, out = report.get("end_to_end_ms") or {}, report["output"]
+    emit(report, f"bench latency ({args.rig}): end to end p50 {e2e.get('p50')} ms, output {out['achieved_hz']} Hz, "
+                 f"missed ticks {out['missed_ticks']}")  # fmt: skip
     return 0
 
 

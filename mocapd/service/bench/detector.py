@@ -1,4 +1,4 @@
-"""Benchmark: naive per-camera detection against ROI packing on the Pose2Sim 4-camera demo videos.
+"""``mocapd bench detector``: naive per-camera detection against ROI packing on the Pose2Sim 4-camera demo videos.
 
 Prints one JSON object. Both paths run in the same process, interleaved frame pair by frame pair (their
 order alternating), and every figure is a median over pairs, so that the other work on this shared 2-core
@@ -7,21 +7,21 @@ machine hits both alike. ``naive`` letterboxes each camera frame alone into the 
 keep every tile at least at the naive scale. ``disagreement_px`` is the distance between the keypoints that
 both paths found with confidence >= 0.5 on the same person in the same camera frame, in source pixels.
 
-    .venv/bin/python tools/bench_detect.py --pairs 30 --threads 2
+    mocapd bench detector --pairs 30 --threads 2
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
+from typing import Any
 
 import cv2
 import numpy as np
 
 from mocapd.core.pose2d import PoseDetections
 from mocapd.core.roi_packing import match_people
+from mocapd.errors import InputError
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import Image, OnnxPoseDetector
 from mocapd.pipeline.detector_config import ModelSpec, PackingConfig
@@ -37,24 +37,9 @@ def _disagreements(a: PoseDetections, b: PoseDetections, conf: float) -> list[fl
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--demo", default="Demo_MultiPerson", help="Demo_SinglePerson or Demo_MultiPerson")
-    ap.add_argument("--pairs", type=int, default=30, help="frame pairs to time (each: 8 camera frames)")
-    ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
-    defaults = PackingConfig()
-    ap.add_argument("--margin", type=float, default=defaults.roi_margin, help="ROI margin (fraction of box side)")
-    ap.add_argument("--gap", type=int, default=defaults.gap, help="canvas pixels between tiles")
-    ap.add_argument("--min-scale-ratio", type=float, default=1.0, help="packed tile scale / naive scale, minimum")
-    ap.add_argument("--max-scale-ratio", type=float, default=1.0, help="packed tile scale / naive scale, maximum")
-    ap.add_argument("--align-stride", type=int, default=32, help="0: common-scale packing; >0: aligned tiles")
-    ap.add_argument(
-        "--max-tile-height", type=float, default=defaults.max_tile_height, help="tallest tile / canvas height (0: off)"
-    )
-    ap.add_argument("--refresh-every", type=int, default=defaults.refresh_every, help="whole-frame refresh period")
-    ap.add_argument("--refresh-scale-ratio", type=float, default=defaults.refresh_scale_ratio, help="refresh scale")
-    ap.add_argument("--canvas", default="", help="packed canvas size WxH (default: the model's 640x640)")
-    args = ap.parse_args(argv)
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Time both paths on ``args.pairs`` frame pairs of the demo videos (the options of ``mocapd bench detector``:
+    :func:`mocapd.service.cli.bench.detector_arguments`)."""
 
     det = OnnxPoseDetector(ModelSpec(), intra_op_threads=args.threads, inter_op_threads=1)
     caps = [cv2.VideoCapture(str(demo_video(args.demo, c))) for c in CAMERAS]
@@ -70,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
 
     first = read()
     if first is None:
-        raise SystemExit("cannot read the demo videos")
+        raise InputError(f"cannot read the Pose2Sim {args.demo} videos (run the set-up: make demo)")
     sizes = [(im.shape[1], im.shape[0]) for im in first]
     canvas_det = None
     if args.canvas:
@@ -169,10 +154,4 @@ def main(argv: list[str] | None = None) -> int:
         "people_naive": people_naive,
         "people_packed": people_packed,
     }
-    json.dump(result, sys.stdout, indent=2)
-    print()
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return result

@@ -1,4 +1,4 @@
-"""Recorder numbers (JSON): write rate, bytes per minute, cost on the tick loop, resolve speed.
+"""``mocapd bench record``: the session recorder: write rate, bytes per minute, tick-loop cost, resolve speed.
 
 A 4-subject synthetic session (4 cameras at 30 Hz, 4 suits of 13 IMUs at 100 Hz, poses of 4 people at 60 Hz):
 
@@ -11,16 +11,13 @@ A 4-subject synthetic session (4 cameras at 30 Hz, 4 suits of 13 IMUs at 100 Hz,
   them all (flushes and fsyncs included): records/s and MB/s the writer thread sustains.
 - ``resolve``: ``mocapd resolve``'s two passes on the realtime session: output frames per second.
 
-Usage: ``.venv/bin/python tools/bench_record.py [--seconds 10] [--repeats 3]`` (medians over repeats).
+Usage: ``mocapd bench record [--seconds 10] [--repeats 3]`` (medians over repeats).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import shutil
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -29,20 +26,16 @@ from typing import Any
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-from mocapd.core.sorting import Detections2D  # noqa: E402
-from mocapd.io.session import SessionWriter, open_session  # noqa: E402
-from mocapd.io.xsens_serial import ImuSample  # noqa: E402
-from mocapd.pipeline.scheduler import PersonPose, PoseFrame, Suit  # noqa: E402
-from mocapd.service.bench.solver import synthetic_prior  # noqa: E402
-from mocapd.service.config import load_config  # noqa: E402
-from mocapd.service.daemon import Daemon, Rig  # noqa: E402
-from mocapd.service.outputs.recorder import attach_recorder, synthetic_extra  # noqa: E402
-from mocapd.service.session.solve import resolve  # noqa: E402
-from mocapd.sim.world import SyntheticWorld  # noqa: E402
+from mocapd.core.sorting import Detections2D
+from mocapd.io.session import SessionWriter, open_session
+from mocapd.io.xsens_serial import ImuSample
+from mocapd.pipeline.scheduler import PersonPose, PoseFrame, Suit
+from mocapd.service.bench.solver import synthetic_prior
+from mocapd.service.config import load_config
+from mocapd.service.daemon import Daemon, Rig
+from mocapd.service.outputs.recorder import attach_recorder, synthetic_extra
+from mocapd.service.session.solve import resolve
+from mocapd.sim.world import SyntheticWorld
 
 PEOPLE, CAMERAS, CAMERA_HZ, IMU_HZ, POSE_HZ = 4, 4, 30.0, 100.0, 60.0
 
@@ -180,22 +173,18 @@ def throughput(events: list[Event], path: Path, copies: int) -> dict[str, float]
             "records": w.counters.written, "dropped": w.counters.dropped}  # fmt: skip
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=10.0, help="session length (default 10)")
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--resolve-seconds", type=float, default=4.0, help="session length resolved (default 4)")
-    args = ap.parse_args()
+def run(seconds: float = 10.0, repeats: int = 3, resolve_seconds: float = 4.0) -> dict[str, Any]:
+    """The recorder's realtime cost, throughput and resolve speed on the 4-subject synthetic session."""
     load0 = os.getloadavg()
     world = SyntheticWorld(CAMERAS, PEOPLE, PEOPLE, seed=0)
     epoch = time.monotonic_ns()
-    events = session_events(world, epoch, args.seconds)
+    events = session_events(world, epoch, seconds)
     tmp = Path(tempfile.mkdtemp(prefix="bench-record-"))
     try:
-        rt = [realtime(world, epoch, events, args.seconds, tmp / f"rt{i}") for i in range(args.repeats)]
-        tp = [throughput(events, tmp / f"tp{i}", 3) for i in range(args.repeats)]
-        short = session_events(world, epoch, args.resolve_seconds)
-        realtime(world, epoch, short, args.resolve_seconds, tmp / "resolve")
+        rt = [realtime(world, epoch, events, seconds, tmp / f"rt{i}") for i in range(repeats)]
+        tp = [throughput(events, tmp / f"tp{i}", 3) for i in range(repeats)]
+        short = session_events(world, epoch, resolve_seconds)
+        realtime(world, epoch, short, resolve_seconds, tmp / "resolve")
         s = open_session(tmp / "resolve")
         s.check()
         t0 = time.perf_counter()
@@ -211,15 +200,11 @@ def main() -> None:
         "realtime_pose_publish_median_us_per_run": [r["call_us"]["pose"]["median"] for r in rt],
         "throughput": {"records_per_s": float(np.median([t["records_per_s"] for t in tp])),
                        "mb_per_s": float(np.median([t["mb_per_s"] for t in tp])), "runs": tp},
-        "resolve": {"session_s": args.resolve_seconds, "frames": len(frames),
+        "resolve": {"session_s": resolve_seconds, "frames": len(frames),
                     "person_solves": summary["person_solves"], "wall_s": round(dt, 2),
                     "frames_per_s": round(len(frames) / dt, 1),
                     "person_solves_per_s": round(summary["person_solves"] / dt, 1)},
         "load_average": {"start": [round(x, 2) for x in load0], "end": [round(x, 2) for x in os.getloadavg()]},
         "cpus": os.cpu_count(),
     }  # fmt: skip
-    print(json.dumps(out, indent=2))
-
-
-if __name__ == "__main__":
-    main()
+    return out

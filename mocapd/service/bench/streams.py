@@ -1,5 +1,4 @@
-#!/usr/bin/env python3
-"""UDP stream benchmark: serialisation and send cost of the MVN, VMC and Rokoko streams per output frame.
+"""``mocapd bench streams``: serialisation and send cost of the MVN, VMC and Rokoko UDP streams per frame.
 
 Prints one JSON object. The workload is ``--subjects`` solved people (seeded random poses, cycled) per frame at
 ``--rate`` Hz, as the daemon publishes them:
@@ -15,12 +14,11 @@ Prints one JSON object. The workload is ``--subjects`` solved people (seeded ran
   ``rokoko.budget_fraction``: the Rokoko stream's alone (one LZ4 datagram per frame, every subject an actor).
 
 Median and 95th percentile over ``--frames`` frames, microseconds. Usage:
-``python tools/bench_udp.py [--subjects 4] [--rate 60] [--frames 3000]``
+``mocapd bench streams [--subjects 4] [--rate 60] [--frames 3000]``
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
 import os
@@ -195,16 +193,3 @@ def run(subjects: int = 4, rate: float = 60.0, n_frames: int = 3000) -> dict[str
     for sink in (mvn_sink, vmc_sink, rok_sink):
         asyncio.run(sink.aclose())
     return result
-
-
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--subjects", type=int, default=4)
-    ap.add_argument("--rate", type=float, default=60.0)
-    ap.add_argument("--frames", type=int, default=3000)
-    args = ap.parse_args()
-    print(json.dumps(run(args.subjects, args.rate, args.frames), indent=2))
-
-
-if __name__ == "__main__":
-    main()
