@@ -12,10 +12,15 @@ __all__ = ["MS", "S", "SuitLockstep", "suit_lockstep"]
 
 
 def suit_lockstep(
-    options: SchedulerOptions | None = None, *, n_people: int = 1, keypoints: str = "coco17", rate_hz: int = 60
+    options: SchedulerOptions | None = None,
+    *,
+    n_people: int = 1,
+    keypoints: str = "coco17",
+    rate_hz: int = 60,
+    n_cams: int = 4,
 ) -> SuitLockstep:
     """:func:`mocapd.sim.lockstep.suit_lockstep` with ``config.toml``'s solver weights, LM options and prior."""
     config = load_config()
     prior = resolve_prior(config.solver.prior)
     return _build(options, cost=config.solver.cost, lm=config.solver.lm.options(), prior=prior,
-                  n_people=n_people, keypoints=keypoints, rate_hz=rate_hz)  # fmt: skip
+                  n_people=n_people, keypoints=keypoints, rate_hz=rate_hz, n_cams=n_cams)  # fmt: skip

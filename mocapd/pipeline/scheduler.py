@@ -52,6 +52,7 @@ from mocapd.core.camera import Camera, triangulate_projections
 from mocapd.core.heading import BoneVectors, HeadingEstimator, HeadingOptions, bone_vectors, observe_headings, yaw_quat
 from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
+from mocapd.core.imu_start import initial_pose_from_imus
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.lr_flips import FlipOptions, apply_swaps, choose_swaps, lr_pairs
@@ -571,7 +572,7 @@ class FixedLatencyScheduler:
             if sid not in bound and sample.mask.any() and (not self.cameras or f"suit:{sid}" in self.solvers)
         ]
 
-    def _solver_for(self, person: Person, with_suit: Suit | None) -> PoseSolver:
+    def _solver_for(self, person: Person, with_suit: Suit | None, sample: SuitSample | None = None) -> PoseSolver:
         solver = self.solvers.get(person.identity)
         if solver is not None:
             return solver
@@ -590,6 +591,11 @@ class FixedLatencyScheduler:
         # triangulated keypoints.
         previous = self.solvers.pop(f"track:{person.track}", None)
         start = previous.theta if previous is not None else self._restart.pop(person.track, None)
+        if start is None and person.track < 0 and with_suit is not None and sample is not None:
+            # A suit no camera sees: its first pose from the sensors' orientations, not the rest pose (issue 46)
+            start = initial_pose_from_imus(
+                solver.skeleton, [m.bone for m in with_suit.mounts], sample.orientations, sample.mask
+            )
         solver.reset(start if start is not None else initial_pose(solver.skeleton, person.keypoints, self._names))
         self.solvers[person.identity] = solver
         return solver
@@ -599,7 +605,7 @@ class FixedLatencyScheduler:
     ) -> PersonPose:
         c0 = self._cpu()
         suit = self.suits.get(person.suit) if person.suit else None
-        solver = self._solver_for(person, suit)
+        solver = self._solver_for(person, suit, suit_sample)
         n_cams, n_kp = len(self.cameras), len(self.targets)
         kp = np.zeros((n_cams, n_kp, 2))
         und = np.zeros((n_cams, n_kp, 2))

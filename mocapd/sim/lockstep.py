@@ -98,10 +98,12 @@ def suit_lockstep(
     n_people: int = 1,
     keypoints: str = "coco17",
     rate_hz: int = 60,
+    n_cams: int = 4,
 ) -> SuitLockstep:
-    """The first person wears a 13-IMU suit; recorded motion; a 4-camera ring. Pass the solver set-up of the
-    configuration to measure (``cost``, ``lm``, ``prior``: the shipped ``config.toml``'s for realistic results)."""
-    world = SyntheticWorld(n_cams=4, n_people=n_people, n_suits=1, seed=0, motion="recorded", keypoints=keypoints)
+    """The first person wears a 13-IMU suit; recorded motion; a ring of ``n_cams`` cameras (0: the suit alone).
+    Pass the solver set-up of the configuration to measure (``cost``, ``lm``, ``prior``: the shipped
+    ``config.toml``'s for realistic results)."""
+    world = SyntheticWorld(n_cams=n_cams, n_people=n_people, n_suits=1, seed=0, motion="recorded", keypoints=keypoints)
     ingest = ImuIngest()
     tracker = PeopleTracker(
         SubjectTracker(DetectionSorter(world.cameras), TrackingOptions(enrol_after_s=0.3)),
