@@ -33,9 +33,10 @@ world with the floor at y = 0, and a quality report that says what to do when th
    along a line), +Y is the median direction from the ankles to the shoulders instead (the report says which).
 7. **Origin and heading.** ``origin="people"`` (the default): the origin is the middle of where people walked (the
    median of their feet, on the floor) and +Z is the first camera's viewing direction along the floor (from the
-   first camera into the volume). ``origin="person"`` with ``origin_moments``: the person seen in most views during
-   those moments stands at the origin (their feet, on the floor) and faces +Z (their left is +X), as every
-   skeleton's rest pose does.
+   first camera into the volume). ``origin="person"`` with ``origin_moments``: the person who stands still during
+   those moments (the one whose feet stay within 0.25 m; others may walk by) stands at the origin (the middle of
+   their ankles, on the floor) and faces +Z (their left, hips and shoulders, is +X), as every skeleton's rest pose
+   does.
 
 The report (:class:`SelfCalibrationReport`) gives per camera the observations used, the RMS and median
 reprojection error, the share of its image the people covered and the empty parts; per camera pair the 3D points
@@ -122,7 +123,7 @@ class SelfCalibrationOptions:
     origin: Origin = "people"
     origin_moments: tuple[int, int] | None = None
     seed: int = 0
-    seeds: int = 8
+    seeds: int = 6
 
     def __post_init__(self) -> None:
         if self.height_m is not None and not 0.5 <= self.height_m <= 2.6:
@@ -185,13 +186,17 @@ class SelfCalibrationReport:
     """Extent of the people's feet along X and Z (metres, 5th to 95th percentile)."""
     origin: str
     advice: list[str] = field(default_factory=list)
+    poor_px: dict[str, float] = field(default_factory=dict)
+    """Per camera, the median reprojection error above which the calibration is poor (1.5 % of the width)."""
 
     @property
     def verdict(self) -> str:
-        """ "good" (no advice), "usable" (advice, nothing failed) or "poor" (a camera's error or coverage)."""
+        """ "good" (no advice), "poor" (a camera's median reprojection error over 1.5 % of its width, a coverage
+        under 20 % or fewer than 50 keypoints) or "usable" (advice, nothing that bad)."""
         if not self.advice:
             return "good"
-        bad = any(c.coverage < 0.2 or c.observations < 50 for c in self.cameras)
+        bad = any(c.coverage < 0.2 or c.observations < 50 or not c.median_px <= self.poor_px.get(c.name, np.inf)
+                  for c in self.cameras)  # fmt: skip
         return "poor" if bad else "usable"
 
 
@@ -281,7 +286,7 @@ def _sampson(E: FloatArray, x1: FloatArray, x2: FloatArray) -> FloatArray:
 
 
 def _essential(
-    x1: FloatArray, x2: FloatArray, thr: float, rng: np.random.Generator, cap: int = 3000
+    x1: FloatArray, x2: FloatArray, thr: float, rng: np.random.Generator, cap: int = 1500
 ) -> tuple[FloatArray, FloatArray, FloatArray, int] | None:
     if len(x1) > cap:
         pick = rng.choice(len(x1), cap, replace=False)
@@ -289,7 +294,7 @@ def _essential(
     if len(x1) < 15:
         return None
     cv2.setRNGSeed(int(rng.integers(1 << 30)))
-    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=0.9999, threshold=thr, maxIters=1000)
+    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=thr, maxIters=500)
     if E is None or E.shape != (3, 3):
         return None
     n, R, t, _ = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
@@ -299,7 +304,7 @@ def _essential(
 def _hypotheses(
     v: _Views, a: int, b: int, width: float, f: float, opts: SelfCalibrationOptions, rng: np.random.Generator
 ) -> list[_Pair]:
-    """Candidate relative poses of cameras a and b: RANSAC run several times (three thresholds, two seeds each),
+    """Candidate relative poses of cameras a and b: RANSAC run four times (three thresholds, one of them twice),
     the distinct outcomes (rotations more than 3° apart) best first. On short takes of one person the two-view
     problem is ambiguous (a wrong pose can have more inliers than the right one), so several are kept and the whole
     rig decides (:func:`_initialise`)."""
@@ -316,8 +321,8 @@ def _hypotheses(
     if len(x1) < 300:
         x1, x2 = _correspondences(v, a, b, every)
     out: list[_Pair] = []
-    for k in range(6):
-        thr = opts.ransac_threshold_px * (1.0, 2.0, 4.0)[k % 3] / f
+    for k in range(4):
+        thr = opts.ransac_threshold_px * (1.0, 2.0, 4.0, 2.0)[k] / f
         est = _essential(x1, x2, thr, rng)
         if est is None:
             continue
@@ -603,9 +608,15 @@ def _world_frame(
         if not idx:
             raise CalibrationError(f"nobody seen by two cameras during moments {lo}..{hi}: the person at the origin "
                                    "must be in view of at least two cameras")  # fmt: skip
-        # The person seen in most views then (several people: the one the cameras agree on).
-        best = max(idx, key=lambda n: len(inst[n].views))
-        mine = [n for n in idx if _near(feet[n], feet[best])]
+        # The person who stands still then (several people: the one whose feet stay put; walkers pass by).
+        f = feet[idx]
+        ok = np.all(np.isfinite(f), axis=1)
+        if not ok.any():
+            raise CalibrationError("the person at the origin was not seen whole by two cameras: stand where at "
+                                   "least two cameras see your feet")  # fmt: skip
+        near = np.linalg.norm(f[:, None] - f[None], axis=-1) < 0.25
+        best = int(np.argmax(np.where(ok, near.sum(axis=1), -1)))
+        mine = [n for n, close in zip(idx, near[best], strict=True) if close]
         o = np.nanmedian(feet[mine], axis=0)
         left = np.nanmedian(_mid(kp[mine], [_KP["left_hip"], _KP["left_shoulder"]]) -
                             _mid(kp[mine], [_KP["right_hip"], _KP["right_shoulder"]]), axis=0)  # fmt: skip
@@ -684,7 +695,7 @@ def _report(
         int(np.all(np.isfinite(X), axis=1).sum()), height, given, measured, up_from,
         (round(float(ext[0]), 2), round(float(ext[2]), 2)), origin,
     )  # fmt: skip
-    return replace(rep, advice=_advice(rep, cameras))
+    return replace(rep, advice=_advice(rep, cameras), poor_px={c.name: 0.015 * c.width for c in cameras})
 
 
 def _advice(rep: SelfCalibrationReport, cameras: list[Camera]) -> list[str]:
@@ -755,7 +766,7 @@ def _initialise(
     failures = []
     for seed in sorted(hyps, key=lambda p: -p.inliers)[: opts.seeds]:
         try:
-            cams = _grow(v, cameras, seed, opts)
+            cams = _grow(v, cameras, seed, opts, rng)
             _, obs, X, _ = _associate(small, cams, opts)
             cams, X, err = _bundle_adjust(cams, X, obs, np.ones(len(obs.cam), dtype=bool), opts, iterations=10)
         except CalibrationError as exc:
@@ -770,7 +781,9 @@ def _initialise(
     return best[1]
 
 
-def _grow(v: _Views, cameras: list[Camera], seed: _Pair, opts: SelfCalibrationOptions) -> list[Camera]:
+def _grow(
+    v: _Views, cameras: list[Camera], seed: _Pair, opts: SelfCalibrationOptions, rng: np.random.Generator
+) -> list[Camera]:
     """The rig from one pair's relative pose: each next camera (the one with most candidate matches) placed by PnP
     RANSAC on every (3D person, detection) combination of its moments, then its detections assigned to the people
     they reproject onto."""
@@ -787,7 +800,7 @@ def _grow(v: _Views, cameras: list[Camera], seed: _Pair, opts: SelfCalibrationOp
         cand = {c: _candidates(v, inst, X, c) for c in range(n_cams) if c not in poses}
         c = max(cand, key=lambda k: len(cand[k][0]))
         obj, img, _ = cand[c]
-        placed = _pnp(obj, img, opts.ransac_threshold_px * 2.0 / f_mean)
+        placed = _pnp(obj, img, opts.ransac_threshold_px * 2.0 / f_mean, rng)
         if placed is None:
             missing = [cameras[k].name for k in cand]
             raise CalibrationError(f"camera(s) {missing} share too few people with the calibrated ones: walk where "
@@ -816,14 +829,32 @@ def _candidates(
     return np.concatenate(obj), np.concatenate(img), lab
 
 
-def _pnp(obj: FloatArray, img: FloatArray, thr: float) -> tuple[FloatArray, FloatArray] | None:
+def _pnp(
+    obj: FloatArray, img: FloatArray, thr: float, rng: np.random.Generator
+) -> tuple[FloatArray, FloatArray] | None:
+    """Pose of a camera from 2D-3D matches (normalised image points): RANSAC on at most 2000 of them (its cost
+    grows with every point), then Levenberg-Marquardt on every match within the threshold."""
     if len(obj) < 12:
         return None
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, np.eye(3), None, reprojectionError=thr, iterationsCount=3000,
-                                             confidence=0.9999, flags=cv2.SOLVEPNP_EPNP)  # fmt: skip
+    pick = rng.choice(len(obj), 2000, replace=False) if len(obj) > 2000 else np.arange(len(obj))
+    cv2.setRNGSeed(int(rng.integers(1 << 30)))
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        obj[pick],
+        img[pick],
+        np.eye(3),
+        None,
+        reprojectionError=thr,
+        iterationsCount=1000,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_EPNP,
+    )
     if not ok or inl is None or len(inl) < 12:
         return None
-    i = inl.reshape(-1)
+    Xc = obj @ matrix_from_rotvec(np.asarray(rvec, np.float64).reshape(3)).T + np.asarray(tvec).reshape(3)
+    err = np.linalg.norm(Xc[:, :2] / np.where(Xc[:, 2:] > 1e-6, Xc[:, 2:], np.nan) - img, axis=1)
+    i = np.flatnonzero(err < thr)
+    if len(i) < 12:
+        return None
     rvec, tvec = cv2.solvePnPRefineLM(obj[i], img[i], np.eye(3), None, rvec, tvec)
     return matrix_from_rotvec(np.asarray(rvec, np.float64).reshape(3)), np.asarray(tvec, np.float64).reshape(3)
 

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.camera import Camera, look_at, project_points, stack_cameras
 from mocapd.core.imu import ImuMount
-from mocapd.core.keypoints import TrackTargets
+from mocapd.core.keypoints import TrackTargets, coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.rotations import quat_from_matrix, quat_from_rotvec, quat_multiply
 from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
@@ -331,3 +331,42 @@ def detector_like(
             new_row.append(Detections2D(kp, cf))
         out.append(new_row)
     return out
+
+
+def people_walking(
+    cameras: list[Camera],
+    heights: Sequence[float],
+    seconds: float,
+    rng: np.random.Generator,
+    fps: float = 10.0,
+    still_s: float = 1.0,
+    extent: float = 1.5,
+) -> tuple[list[list[Detections2D]], list[FloatArray]]:
+    """People of ``heights`` walking through the rig for ``seconds`` (a self-calibration take): the first one
+    stands at the origin facing +Z for ``still_s`` (limbs moving, feet on the floor), then walks a square of side
+    2 ``extent`` around the centre; the others walk random waypoints inside ± ``extent``. Exact detections
+    (:func:`scene_detections`) at ``fps`` moments a second.
+
+    Returns
+    -------
+    detections : [moment][camera] Detections2D
+    poses : list of arrays, shape (n_moments, 66), one per person
+    """
+    n = round(seconds * fps)
+    still = round(still_s * fps)
+    sks = [Skeleton.from_height(h) for h in heights]
+    people = []
+    for p, sk in enumerate(sks):
+        if p == 0:
+            e = extent
+            square = [(0.3, e, -e), (0.5, -e, -e), (0.7, -e, e), (0.9, e, e), (1.0, e, -e)]
+            theta = waypoint_path(sk, n, [(0.0, 0.0, 0.0), (still / n, 0.0, 0.0), *square], seed=p, fps=fps)
+            theta[:still, 3:6] = 0.0  # facing +Z, upright
+            theta[:still, 1] = sk.root_height
+        else:
+            pts = rng.uniform(-extent, extent, size=(6, 2))
+            theta = waypoint_path(sk, n, [(k / 5, x, z) for k, (x, z) in enumerate(pts)], seed=p, fps=fps)
+        people.append(theta)
+    targets = [coco17_targets(sk) for sk in sks]
+    dets, _ = scene_detections(cameras, targets, sks, people, rng)
+    return dets, people

@@ -5,6 +5,8 @@ Sources of detections:
 * a recorded session directory (``mocapd run`` with recording on): its keypoint stream, grouped into synchronised
   moments (each camera's record nearest in capture time to the reference camera's, within half a frame), and its
   cameras' names, image sizes and intrinsics from the manifest;
+* a detections file (``.npz``, the layout of ``mocapd eval video``'s cache, :mod:`mocapd.eval.video_input`, with the
+  cameras' names in its ``meta``): then ``--intrinsics-from FILE`` gives the cameras;
 * ``pose2sim:Demo_SinglePerson`` / ``pose2sim:Demo_MultiPerson``: the Pose2Sim demo videos through mocapd's
   detector, exactly as ``mocapd eval video`` detects them (same cache, ``~/.cache/mocapd/eval-video/``), with the
   intrinsics of the demo's Qualisys calibration (its extrinsics are not used).
@@ -53,14 +55,43 @@ class PeopleInput:
     """The source's own extrinsics where it has trustworthy ones (the demo's board calibration)."""
 
 
-def load_people(source: str) -> PeopleInput:
-    """The detections of ``source``: a session directory or ``pose2sim:<demo>`` (module docstring)."""
+def load_people(source: str, intrinsics: Path | None = None, fps: float = 30.0) -> PeopleInput:
+    """The detections of ``source``: a session directory, a detections ``.npz`` (its cameras from ``intrinsics``,
+    its moments ``1/fps`` apart) or ``pose2sim:<demo>`` (module docstring)."""
     if source.startswith(DEMO_PREFIX):
         return _demo(source.removeprefix(DEMO_PREFIX))
     path = Path(source)
+    if path.suffix == ".npz" and path.is_file():
+        return _npz(path, intrinsics, fps)
     if not (path / "manifest.json").is_file():
-        raise InputError(f"{source}: neither a session directory (no manifest.json) nor pose2sim:<demo>")
+        raise InputError(f"{source}: neither a session directory (no manifest.json), a detections .npz nor "
+                         "pose2sim:<demo>")  # fmt: skip
     return _session(path)
+
+
+def _npz(path: Path, intrinsics: Path | None, fps: float) -> PeopleInput:
+    import json
+
+    from mocapd.eval.video_input import load_detections
+
+    if intrinsics is None:
+        raise InputError(f"{path}: a detections file has no cameras: give --intrinsics-from FILE")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            names = json.loads(str(z["meta"])).get("cameras")
+    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: not a detections file ({exc})") from None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise InputError(f"{path}: its meta names no cameras")
+    dets = load_detections(path, len(names))
+    if dets is None:
+        raise InputError(f"{path}: damaged, or not {len(names)} cameras' detections")
+    given = {c.name: c for c in core_cameras(read_any(intrinsics))}
+    missing = [n for n in names if n not in given]
+    if missing:
+        raise CalibrationError(f"camera(s) {missing} are not in {intrinsics} (it has {sorted(given)})")
+    cams = [replace(given[n], R=np.eye(3), t=np.zeros(3)) for n in names]
+    return PeopleInput(dets.frames, cams, np.arange(dets.n_frames) / fps, f"detections {path}")
 
 
 def _session(path: Path) -> PeopleInput:

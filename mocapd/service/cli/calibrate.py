@@ -179,7 +179,7 @@ def _run_from_people(args: argparse.Namespace) -> int:
     from mocapd.service import people_calibration as pc
 
     try:
-        people = pc.load_people(args.from_people)
+        people = pc.load_people(args.from_people, args.intrinsics_from, args.fps)
         cams = people.cameras
         if args.intrinsics_from is not None:
             cams = pc.with_intrinsics(cams, read_any(args.intrinsics_from))
@@ -271,7 +271,14 @@ def register(subparsers: Any) -> None:
     people.add_argument(
         "--from-people",
         metavar="SOURCE",
-        help="a recorded session directory, or pose2sim:Demo_SinglePerson / pose2sim:Demo_MultiPerson",
+        help="a recorded session directory, a detections .npz (with --intrinsics-from), or "
+        "pose2sim:Demo_SinglePerson / pose2sim:Demo_MultiPerson",
+    )
+    people.add_argument(
+        "--fps",
+        type=number(1.0, 1000.0),
+        default=30.0,
+        help="moments per second of a detections .npz (default 30; for --origin-at)",
     )
     people.add_argument(
         "--height",
