@@ -132,6 +132,8 @@ class SelfCalibrationOptions:
             raise CalibrationError(f"min_confidence {self.min_confidence}; allowed: 0..1")
         if self.origin not in ("people", "person"):
             raise CalibrationError(f"origin {self.origin!r}; allowed: 'people', 'person'")
+        if self.max_moments < 10 or self.seeds < 1:
+            raise CalibrationError(f"max_moments {self.max_moments} (allowed: >= 10), seeds {self.seeds} (>= 1)")
         if self.origin == "person" and self.origin_moments is None:
             raise CalibrationError("origin 'person' needs origin_moments: when the person stands at the origin")
 
@@ -715,8 +717,8 @@ def _advice(rep: SelfCalibrationReport, cameras: list[Camera]) -> list[str]:
     if rep.moments < 300:
         out.append(f"only {rep.moments} moments with people in two or more views: walk for about a minute")
     if rep.up_from != "floor plane":
-        out.append("the floor was not found from the feet (people walked along a line): walk across the whole "
-                   "floor so its tilt is measured; up was taken from the people's posture")  # fmt: skip
+        out.append("the floor's tilt was not measured from the feet (too narrow a strip of floor walked, or the feet "
+                   "seldom on it): walk across the whole floor; up was taken from the people's posture")  # fmt: skip
     if not rep.height_given:
         out.append(f"the scale assumes the people are {rep.height_m:.2f} m tall on average: give their height "
                    "(--height) for a metric scale within a few per cent")  # fmt: skip
