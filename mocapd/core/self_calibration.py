@@ -108,6 +108,8 @@ class SelfCalibrationOptions:
         stands at the origin facing +Z.
     seed : int
         Seeds the RANSAC samples and the subsampling: the same input gives the same calibration.
+    rounds : int
+        Association and adjustment rounds (the second associates under the first's adjusted poses).
     seeds : int
         Candidate pair poses the rig is grown from (the best by inliers over every pair); the one whose brief
         adjustment explains most keypoints is kept.
@@ -124,6 +126,7 @@ class SelfCalibrationOptions:
     origin_moments: tuple[int, int] | None = None
     seed: int = 0
     seeds: int = 6
+    rounds: int = 2
 
     def __post_init__(self) -> None:
         if self.height_m is not None and not 0.5 <= self.height_m <= 2.6:
@@ -926,18 +929,20 @@ def calibrate_from_people(
                                "(walk through the volume for about a minute)")  # fmt: skip
     if initial is None:
         initial = _initialise(v, cameras, opts, rng)
-    inst, obs, X, pair_counts = _associate(v, initial, opts)
     # Camera 0 holds the gauge in the adjustment: everything in its frame (the intrinsics are the input's).
     R0, t0 = initial[0].R, initial[0].t
     cams = [
         replace(cameras[c], R=initial[c].R @ R0.T, t=initial[c].t - initial[c].R @ R0.T @ t0) for c in range(n_cams)
     ]
-    X = X @ R0.T + t0
-    keep = np.ones(len(obs.cam), dtype=bool)
-    for _ in range(2):
-        cams, X, err = _bundle_adjust(cams, X, obs, keep, opts)
-        e = err[keep & np.isfinite(err)]
-        keep = keep & (err < max(4.0 * 1.4826 * float(np.median(e)), 2.0))
+    # Associate, adjust (twice, outliers dropped in between); then associate again under the adjusted poses (people
+    # the first poses paired wrongly or missed) and adjust once more.
+    for _ in range(opts.rounds):
+        inst, obs, X, pair_counts = _associate(v, cams, opts)
+        keep = np.ones(len(obs.cam), dtype=bool)
+        for _ in range(2):
+            cams, X, err = _bundle_adjust(cams, X, obs, keep, opts)
+            e = err[keep & np.isfinite(err)]
+            keep = keep & (err < max(4.0 * 1.4826 * float(np.median(e)), 2.0))
     # Scale, up, floor, origin.
     height = opts.height_m if opts.height_m is not None else REFERENCE_HEIGHT
     measured = REFERENCE_HEIGHT * _leg_length(X) / _reference_leg(REFERENCE_HEIGHT)
