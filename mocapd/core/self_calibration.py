@@ -125,7 +125,7 @@ class SelfCalibrationOptions:
     origin: Origin = "people"
     origin_moments: tuple[int, int] | None = None
     seed: int = 0
-    seeds: int = 6
+    seeds: int = 8
     rounds: int = 2
 
     def __post_init__(self) -> None:
@@ -291,7 +291,7 @@ def _sampson(E: FloatArray, x1: FloatArray, x2: FloatArray) -> FloatArray:
 
 
 def _essential(
-    x1: FloatArray, x2: FloatArray, thr: float, rng: np.random.Generator, cap: int = 1500
+    x1: FloatArray, x2: FloatArray, thr: float, rng: np.random.Generator, cap: int = 3000
 ) -> tuple[FloatArray, FloatArray, FloatArray, int] | None:
     if len(x1) > cap:
         pick = rng.choice(len(x1), cap, replace=False)
@@ -299,7 +299,7 @@ def _essential(
     if len(x1) < 15:
         return None
     cv2.setRNGSeed(int(rng.integers(1 << 30)))
-    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=thr, maxIters=500)
+    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=0.9999, threshold=thr, maxIters=1000)
     if E is None or E.shape != (3, 3):
         return None
     n, R, t, _ = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
@@ -309,7 +309,7 @@ def _essential(
 def _hypotheses(
     v: _Views, a: int, b: int, width: float, f: float, opts: SelfCalibrationOptions, rng: np.random.Generator
 ) -> list[_Pair]:
-    """Candidate relative poses of cameras a and b: RANSAC run four times (three thresholds, one of them twice),
+    """Candidate relative poses of cameras a and b: RANSAC run six times (three thresholds, twice each),
     the distinct outcomes (rotations more than 3° apart) best first. On short takes of one person the two-view
     problem is ambiguous (a wrong pose can have more inliers than the right one), so several are kept and the whole
     rig decides (:func:`_initialise`)."""
@@ -326,8 +326,8 @@ def _hypotheses(
     if len(x1) < 300:
         x1, x2 = _correspondences(v, a, b, every)
     out: list[_Pair] = []
-    for k in range(4):
-        thr = opts.ransac_threshold_px * (1.0, 2.0, 4.0, 2.0)[k] / f
+    for k in range(6):
+        thr = opts.ransac_threshold_px * (1.0, 2.0, 4.0)[k % 3] / f
         est = _essential(x1, x2, thr, rng)
         if est is None:
             continue
@@ -767,9 +767,9 @@ def _initialise(
     if not hyps:
         raise CalibrationError("no two cameras see the same people: walk where at least two cameras overlap")
     small = _subset(v, 120)
-    best: tuple[int, list[Camera]] | None = None
+    best: tuple[float, list[Camera]] | None = None
     failures = []
-    for seed in sorted(hyps, key=lambda p: -p.inliers)[: opts.seeds]:
+    for seed in sorted(hyps, key=lambda h: -h.inliers)[: opts.seeds]:
         try:
             cams = _grow(v, cameras, seed, opts, rng)
             _, obs, X, _ = _associate(small, cams, opts)
@@ -778,7 +778,7 @@ def _initialise(
             failures.append(str(exc))
             continue
         limit = opts.pair_threshold * float(np.mean([c.width for c in cameras]))
-        explained = int((err < limit).sum())
+        explained = float((err < limit).sum())
         if best is None or explained > best[0]:
             best = (explained, cams)
     if best is None:
