@@ -111,6 +111,17 @@ def test_too_little_input_is_a_clear_error() -> None:
         SelfCalibrationOptions(origin="person")
 
 
+def test_a_camera_that_keeps_nobody_is_refused_not_written() -> None:
+    """A camera none of whose detections joins a person (here: it saw nobody) has no pose to give: an error naming
+    it, not a calibration file with whatever pose it was started from."""
+    rng = np.random.default_rng(0)
+    truth = ring_rig(3, radius=4.0)
+    exact, _ = people_walking(truth, (1.75,), 3.0, rng)
+    blind = [[row[0], row[1], Detections2D.empty(17)] for row in exact]
+    with pytest.raises(CalibrationError, match=r"\['cam2'\] keep no person"):
+        calibrate_from_people(blind, _unplaced(truth), SelfCalibrationOptions(height_m=1.75), initial=truth)
+
+
 def test_cli_writes_a_calibration_check_config_accepts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``mocapd calibrate cameras --from-people`` on a detections file of people walking through the Pose2Sim demo
     rig (its Qualisys cameras, synthetic people): the file it writes matches the rig and runs the demo videos."""

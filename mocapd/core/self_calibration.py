@@ -943,6 +943,10 @@ def calibrate_from_people(
             cams, X, err = _bundle_adjust(cams, X, obs, keep, opts)
             e = err[keep & np.isfinite(err)]
             keep = keep & (err < max(4.0 * 1.4826 * float(np.median(e)), 2.0))
+    lost = [cams[c].name for c in range(n_cams) if not np.any(keep & (obs.cam == c) & np.isfinite(err))]
+    if lost:  # placed by nothing: a file with these poses would be a silent wrong answer
+        raise CalibrationError(f"camera(s) {lost} keep no person after the adjustment (nothing holds their poses): "
+                               "check their intrinsics, and walk where they and the others overlap")  # fmt: skip
     # Scale, up, floor, origin.
     height = opts.height_m if opts.height_m is not None else REFERENCE_HEIGHT
     measured = REFERENCE_HEIGHT * _leg_length(X) / _reference_leg(REFERENCE_HEIGHT)
