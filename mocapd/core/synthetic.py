@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.camera import Camera, look_at, project_points, stack_cameras
 from mocapd.core.imu import ImuMount
-from mocapd.core.keypoints import TrackTargets
+from mocapd.core.keypoints import TrackTargets, coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.rotations import quat_from_matrix, quat_from_rotvec, quat_multiply
 from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
@@ -290,3 +290,83 @@ def suit_orientations(
         noise = quat_from_rotvec(rng.normal(scale=np.radians(noise_deg), size=3))
         out[bone] = quat_multiply(noise, quat_multiply(q_ig, quat_from_matrix(R[BONE_INDEX[bone]])))
     return out
+
+
+def detector_like(
+    detections: list[list[Detections2D]],
+    rng: np.random.Generator,
+    sigma_height: float = 0.015,
+    outlier: float = 0.05,
+    swap: float = 0.02,
+) -> list[list[Detections2D]]:
+    """Exact detections (:func:`scene_detections`) made as noisy as a real detector's, with the noise model of
+    :mod:`mocapd.eval.simulate` applied per detected person: Gaussian noise of σ = ``sigma_height`` of the person's
+    height in the image (the keypoints' vertical extent), a share ``outlier`` of keypoints thrown up to 30 % of that
+    height away, in a share ``swap`` of people one limb's left and right keypoints exchanged, and a confidence that
+    falls with the error (``c = 0.9 / (1 + (e / 4σ)²)``)."""
+    out = []
+    for row in detections:
+        new_row = []
+        for det in row:
+            kp, cf = det.keypoints.copy(), det.confidences.copy()
+            for p in range(len(kp)):
+                seen = cf[p] > 0
+                if seen.sum() < 2:
+                    continue
+                h = float(np.ptp(kp[p, seen, 1])) or 1.0
+                sigma = sigma_height * h
+                noise = rng.normal(scale=sigma, size=kp[p].shape)
+                bad = rng.uniform(size=len(kp[p])) < outlier
+                ang = rng.uniform(0.0, 2.0 * np.pi, size=len(kp[p]))
+                rad = 0.3 * h * np.sqrt(rng.uniform(size=len(kp[p])))
+                noise[bad] = np.stack((np.cos(ang), np.sin(ang)), axis=1)[bad] * rad[bad, None]
+                kp[p] += noise
+                err = np.linalg.norm(noise, axis=1)
+                cf[p] = np.where(seen, 0.9 / (1.0 + (err / (4.0 * sigma)) ** 2), 0.0)
+                if rng.uniform() < swap:
+                    limb = ((5, 6), (7, 8), (9, 10)) if rng.uniform() < 0.5 else ((11, 12), (13, 14), (15, 16))
+                    for left, right in limb:
+                        kp[p, [left, right]] = kp[p, [right, left]]
+                        cf[p, [left, right]] = cf[p, [right, left]]
+            new_row.append(Detections2D(kp, cf))
+        out.append(new_row)
+    return out
+
+
+def people_walking(
+    cameras: list[Camera],
+    heights: Sequence[float],
+    seconds: float,
+    rng: np.random.Generator,
+    fps: float = 10.0,
+    still_s: float = 1.0,
+    extent: float = 1.5,
+) -> tuple[list[list[Detections2D]], list[FloatArray]]:
+    """People of ``heights`` walking through the rig for ``seconds`` (a self-calibration take): the first one
+    stands at the origin facing +Z for ``still_s`` (limbs moving, feet on the floor), then walks a square of side
+    2 ``extent`` around the centre; the others walk random waypoints inside ± ``extent``. Exact detections
+    (:func:`scene_detections`) at ``fps`` moments a second.
+
+    Returns
+    -------
+    detections : [moment][camera] Detections2D
+    poses : list of arrays, shape (n_moments, 66), one per person
+    """
+    n = round(seconds * fps)
+    still = round(still_s * fps)
+    sks = [Skeleton.from_height(h) for h in heights]
+    people = []
+    for p, sk in enumerate(sks):
+        if p == 0:
+            e = extent
+            square = [(0.3, e, -e), (0.5, -e, -e), (0.7, -e, e), (0.9, e, e), (1.0, e, -e)]
+            theta = waypoint_path(sk, n, [(0.0, 0.0, 0.0), (still / n, 0.0, 0.0), *square], seed=p, fps=fps)
+            theta[:still, 3:6] = 0.0  # facing +Z, upright
+            theta[:still, 1] = sk.root_height
+        else:
+            pts = rng.uniform(-extent, extent, size=(6, 2))
+            theta = waypoint_path(sk, n, [(k / 5, x, z) for k, (x, z) in enumerate(pts)], seed=p, fps=fps)
+        people.append(theta)
+    targets = [coco17_targets(sk) for sk in sks]
+    dets, _ = scene_detections(cameras, targets, sks, people, rng)
+    return dets, people

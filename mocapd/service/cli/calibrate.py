@@ -7,6 +7,11 @@
     refined by bundle adjustment. Writes mocapd's calibration TOML and prints a JSON report (per-view and
     per-camera reprojection errors, rejected views). ``--intrinsics-from FILE`` reuses existing intrinsics.
 
+``mocapd calibrate cameras --from-people SOURCE``
+    No board: the extrinsics from people walking through the volume (a recorded session, or ``pose2sim:<demo>``),
+    metric from their height (``--height``, else 1.75 m), +Y up from their feet, with a quality report
+    (:mod:`mocapd.service.people_calibration`).
+
 ``mocapd calibrate convert IN OUT``
     Converts between Qualisys ``.qca.txt``, Pose2Sim TOML, OpenCV YAML and mocapd TOML (format from the names;
     ``--to pose2sim`` writes Pose2Sim TOML).
@@ -19,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -136,6 +142,14 @@ def _run_cameras(args: argparse.Namespace) -> int:
     except OutputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    return _run_from_people(args) if args.from_people is not None else _run_board(args)
+
+
+def _run_board(args: argparse.Namespace) -> int:
+    if args.cols is None or args.rows is None or args.square_mm is None:
+        print("error: --cols, --rows and --square-mm are required to calibrate from a board (or give "
+              "--from-people SOURCE)", file=sys.stderr)  # fmt: skip
+        return 2
     # The board detection can sit in one OpenCV call for minutes (a cluttered 1-megapixel picture: 40 s); it runs in
     # a worker so that Ctrl-C and SIGTERM still stop the command at once (issue 45).
     lifecycle.enter_phase("calibrating (nothing written yet)")
@@ -162,6 +176,44 @@ def _run_cameras(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(report, indent=1, default=float))
+    return 0
+
+
+def _run_from_people(args: argparse.Namespace) -> int:
+    from mocapd.core.self_calibration import SelfCalibrationOptions
+    from mocapd.service import people_calibration as pc
+
+    try:
+        people = pc.load_people(args.from_people, args.intrinsics_from, args.fps)
+        cams = people.cameras
+        if args.intrinsics_from is not None:
+            cams = pc.with_intrinsics(cams, read_any(args.intrinsics_from))
+        if args.guess_intrinsics:
+            cams = pc.guessed_cameras(cams, args.fov_deg)
+        people = replace(people, cameras=cams)
+        refine = args.refine_intrinsics or ("all" if args.guess_intrinsics else "none")
+        origin = (0, 0) if args.origin_at is None else pc.moments_between(people.times_s, args.origin_at)
+        opts = SelfCalibrationOptions(
+            height_m=args.height, refine_focal=refine in ("focal", "all"), refine_principal_point=refine == "all",
+            origin="people" if args.origin_at is None else "person",
+            origin_moments=None if args.origin_at is None else origin, max_moments=args.max_moments,
+        )  # fmt: skip
+        reference = people.reference
+        if args.reference is not None:
+            reference = pc.reference_cameras(args.reference, cams)
+        calib, report = pc.calibrate(people, opts, reference if args.reference is not None or args.compare else None)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except CalibrationError as exc:
+        print(f"calibration failed: {exc}", file=sys.stderr)
+        return 1
+    try:
+        write_mocapd_toml(calib, args.output)
+    except OutputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(report, indent=1, default=float) if args.json else pc.report_text(report, args.output))
     return 0
 
 
@@ -197,21 +249,19 @@ def register(subparsers: Any) -> None:
     """Add ``mocapd calibrate ...`` to the CLI."""
     parser = subparsers.add_parser("calibrate", help="calibrate cameras, convert calibration files")
     sub = parser.add_subparsers(dest="calibrate_command", metavar="WHAT", required=True)
-    cams = sub.add_parser("cameras", help="intrinsics and extrinsics from board pictures")
+    cams = sub.add_parser("cameras", help="intrinsics and extrinsics from board pictures, or from people walking")
     cams.add_argument("--board", choices=["checkerboard", "charuco"], default="checkerboard")
     cams.add_argument(
         "--cols",
         type=number(2, 200, integer=True),
-        required=True,
         help="checkerboard: inner corners per row; charuco: squares",
     )
     cams.add_argument(
         "--rows",
         type=number(2, 200, integer=True),
-        required=True,
         help="checkerboard: inner corners per column; charuco: squares",
     )
-    cams.add_argument("--square-mm", type=number(0.1, 10_000.0), required=True, help="square side, mm")
+    cams.add_argument("--square-mm", type=number(0.1, 10_000.0), help="square side, mm (board)")
     cams.add_argument("--marker-mm", type=number(0.0, 10_000.0), default=0.0, help="ChArUco marker side, mm")
     cams.add_argument("--dictionary", default="DICT_4X4_50", help="ChArUco ArUco dictionary")
     cams.add_argument("--intrinsics", type=Path, help="folder with one picture sub-folder per camera")
@@ -222,7 +272,65 @@ def register(subparsers: Any) -> None:
         "--max-view-error-px", type=number(0.01, 1000.0), default=1.0, help="reject views above this RMS error, px"
     )
     cams.add_argument("--fix-k3", action="store_true", help="keep k3 = 0 (as Qualisys/Pose2Sim)")
-    cams.add_argument("--output", type=Path, required=True, help="mocapd calibration TOML to write")
+    people = cams.add_argument_group("from people (no board)")
+    people.add_argument(
+        "--from-people",
+        metavar="SOURCE",
+        help="a recorded session directory, a detections .npz (with --intrinsics-from), or "
+        "pose2sim:Demo_SinglePerson / pose2sim:Demo_MultiPerson",
+    )
+    people.add_argument(
+        "--fps",
+        type=number(1.0, 1000.0),
+        default=30.0,
+        help="moments per second of a detections .npz (default 30; for --origin-at)",
+    )
+    people.add_argument(
+        "--height",
+        type=number(0.5, 2.6),
+        default=None,
+        help="the people's mean height, m (default: 1.75, stated in the report)",
+    )
+    people.add_argument(
+        "--guess-intrinsics",
+        action="store_true",
+        help="ignore the source's intrinsics: centred pinhole, --fov-deg, refined",
+    )
+    people.add_argument(
+        "--fov-deg",
+        type=number(10.0, 150.0),
+        default=60.0,
+        help="with --guess-intrinsics: field of view across the longer image side (default 60)",
+    )
+    people.add_argument(
+        "--refine-intrinsics",
+        choices=["none", "focal", "all"],
+        default=None,
+        help="also adjust the focal length (focal) and principal point (all); default: none, "
+        "all with --guess-intrinsics",
+    )
+    people.add_argument(
+        "--origin-at",
+        type=number(0.0, 1e6),
+        default=None,
+        metavar="SECONDS",
+        help="a person stands at the origin facing +Z during the second from SECONDS (default: the "
+        "origin is the middle of where people walked, +Z along the first camera's view)",
+    )
+    people.add_argument(
+        "--max-moments",
+        type=number(10, 100_000, integer=True),
+        default=400,
+        help="moments used at most, evenly spaced (default 400)",
+    )
+    people.add_argument("--reference", type=Path, help="compare with this calibration (e.g. a board's)")
+    people.add_argument(
+        "--compare",
+        action="store_true",
+        help="compare with the source's own calibration (pose2sim demos: their board calibration)",
+    )
+    people.add_argument("--json", action="store_true", help="print the report as JSON")
+    cams.add_argument("--output", "-o", type=Path, required=True, help="mocapd calibration TOML to write")
     cams.add_argument("--force", action="store_true", help="replace an existing --output file")
     cams.set_defaults(func=_run_cameras)
     conv = sub.add_parser("convert", help="convert qca.txt / Pose2Sim TOML / OpenCV YAML / mocapd TOML")

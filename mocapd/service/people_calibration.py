@@ -1,0 +1,284 @@
+"""``mocapd calibrate cameras --from-people``: the cameras' extrinsics from people walking, no board (issue 43).
+
+Sources of detections:
+
+* a recorded session directory (``mocapd run`` with recording on): its keypoint stream, grouped into synchronised
+  moments (each camera's record nearest in capture time to the reference camera's, within half a frame), and its
+  cameras' names, image sizes and intrinsics from the manifest;
+* a detections file (``.npz``, the layout of ``mocapd eval video``'s cache, :mod:`mocapd.eval.video_input`, with the
+  cameras' names in its ``meta``): then ``--intrinsics-from FILE`` gives the cameras;
+* ``pose2sim:Demo_SinglePerson`` / ``pose2sim:Demo_MultiPerson``: the Pose2Sim demo videos through mocapd's
+  detector, exactly as ``mocapd eval video`` detects them (same cache, ``~/.cache/mocapd/eval-video/``), with the
+  intrinsics of the demo's Qualisys calibration (its extrinsics are not used).
+
+Intrinsics: the source's, or ``--intrinsics-from FILE`` (any calibration file ``mocapd calibrate convert`` reads), or
+``--guess-intrinsics``: a pinhole with its principal point at the image centre, no distortion and a field of view
+of ``--fov-deg`` across the image's longer side (then the focal length and principal point are refined).
+
+The core (:mod:`mocapd.core.self_calibration`) does the rest; this module turns its report into text or JSON.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.camera import Camera
+from mocapd.core.self_calibration import (
+    CalibrationComparison,
+    SelfCalibration,
+    SelfCalibrationOptions,
+    calibrate_from_people,
+    compare_calibrations,
+)
+from mocapd.core.sorting import Detections2D
+from mocapd.errors import CalibrationError, InputError
+from mocapd.io.calibration_files import CalibrationSet, CameraCalibration, core_cameras, read_any
+
+FloatArray = NDArray[np.float64]
+DEMO_PREFIX = "pose2sim:"
+
+
+@dataclass(frozen=True)
+class PeopleInput:
+    """Synchronised detections: ``frames[moment][camera]``, the cameras (intrinsics), each moment's time (s)."""
+
+    frames: list[list[Detections2D]]
+    cameras: list[Camera]
+    times_s: FloatArray
+    source: str
+    reference: list[Camera] | None = None
+    """The source's own extrinsics where it has trustworthy ones (the demo's board calibration)."""
+
+
+def load_people(source: str, intrinsics: Path | None = None, fps: float = 30.0) -> PeopleInput:
+    """The detections of ``source``: a session directory, a detections ``.npz`` (its cameras from ``intrinsics``,
+    its moments ``1/fps`` apart) or ``pose2sim:<demo>`` (module docstring)."""
+    if source.startswith(DEMO_PREFIX):
+        return _demo(source.removeprefix(DEMO_PREFIX))
+    path = Path(source)
+    if path.suffix == ".npz" and path.is_file():
+        return _npz(path, intrinsics, fps)
+    if not (path / "manifest.json").is_file():
+        raise InputError(f"{source}: neither a session directory (no manifest.json), a detections .npz nor "
+                         "pose2sim:<demo>")  # fmt: skip
+    return _session(path)
+
+
+def _npz(path: Path, intrinsics: Path | None, fps: float) -> PeopleInput:
+    import json
+
+    from mocapd.eval.video_input import load_detections
+
+    if intrinsics is None:
+        raise InputError(f"{path}: a detections file has no cameras: give --intrinsics-from FILE")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            names = json.loads(str(z["meta"])).get("cameras")
+    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: not a detections file ({exc})") from None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise InputError(f"{path}: its meta names no cameras")
+    dets = load_detections(path, len(names))
+    if dets is None:
+        raise InputError(f"{path}: damaged, or not {len(names)} cameras' detections")
+    given = {c.name: c for c in core_cameras(read_any(intrinsics))}
+    missing = [n for n in names if n not in given]
+    if missing:
+        raise CalibrationError(f"camera(s) {missing} are not in {intrinsics} (it has {sorted(given)})")
+    cams = [replace(given[n], R=np.eye(3), t=np.zeros(3)) for n in names]
+    return PeopleInput(dets.frames, cams, np.arange(dets.n_frames) / fps, f"detections {path}")
+
+
+def _session(path: Path) -> PeopleInput:
+    from mocapd.io.session import open_session
+    from mocapd.service.session.solve import session_rig
+
+    session = open_session(path)
+    cameras = session_rig(session).cameras
+    recs = session.keypoints()
+    if not recs:
+        raise InputError(f"{path}: the session has no keypoints (record with the detector running)")
+    n = len(cameras)
+    per: list[list[tuple[int, Detections2D]]] = [[] for _ in range(n)]
+    for r in recs:
+        if 0 <= r.camera < n:
+            per[r.camera].append((r.capture_ns, Detections2D(r.keypoints, r.confidences)))
+    for lst in per:
+        lst.sort(key=lambda x: x[0])
+    ref = max(range(n), key=lambda c: len(per[c]))
+    t_ref = np.array([t for t, _ in per[ref]], dtype=np.int64)
+    if len(t_ref) < 2:
+        raise InputError(f"{path}: too few detected frames to calibrate from")
+    tol = 0.5 * float(np.median(np.diff(t_ref)))
+    frames = []
+    n_kp = per[ref][0][1].keypoints.shape[1]
+    times = [np.array([t for t, _ in lst], dtype=np.int64) for lst in per]
+    for k, t in enumerate(t_ref):
+        row = []
+        for c in range(n):
+            if c == ref:
+                row.append(per[ref][k][1])
+                continue
+            i = int(np.searchsorted(times[c], t))
+            best = min((j for j in (i - 1, i) if 0 <= j < len(times[c])), key=lambda j: abs(times[c][j] - t),
+                       default=None)  # fmt: skip
+            ok = best is not None and abs(int(times[c][best]) - int(t)) <= tol
+            row.append(per[c][best][1] if ok and best is not None else Detections2D.empty(n_kp))
+        frames.append(row)
+    return PeopleInput(frames, cameras, (t_ref - t_ref[0]) / 1e9, f"session {path}")
+
+
+def _demo(name: str) -> PeopleInput:
+    from mocapd.eval.video_input import detect_take, eval_detector_config, pose2sim_take
+    from mocapd.pipeline.detector import OnnxPoseDetector
+    from mocapd.service.config import load_config
+
+    take = pose2sim_take(name)
+    made: list[OnnxPoseDetector] = []
+
+    def make() -> OnnxPoseDetector:
+        if not made:
+            made.append(OnnxPoseDetector.from_config(eval_detector_config(load_config(None).detector.options())))
+        return made[0]
+
+    dets = detect_take(take, make)
+    cams = [replace(c, R=np.eye(3), t=np.zeros(3)) for c in take.cameras]
+    times = np.arange(dets.n_frames) / take.fps
+    return PeopleInput(dets.frames, cams, times, f"{DEMO_PREFIX}{name} ({take.source})", list(take.cameras))
+
+
+def guessed_cameras(cameras: list[Camera], fov_deg: float) -> list[Camera]:
+    """The cameras with guessed intrinsics: principal point at the centre, no distortion, ``fov_deg`` across the
+    longer image side."""
+    out = []
+    for c in cameras:
+        f = 0.5 * max(c.width, c.height) / np.tan(np.radians(fov_deg) / 2.0)
+        K = np.array([[f, 0.0, (c.width - 1) / 2.0], [0.0, f, (c.height - 1) / 2.0], [0.0, 0.0, 1.0]])
+        out.append(replace(c, K=K, dist=np.zeros(5)))
+    return out
+
+
+def with_intrinsics(cameras: list[Camera], calib: CalibrationSet) -> list[Camera]:
+    """The cameras with the intrinsics (K, distortion) of ``calib`` (by name; every camera must be there)."""
+    given = {c.name: c for c in core_cameras(calib)}
+    missing = [c.name for c in cameras if c.name not in given]
+    if missing:
+        raise CalibrationError(f"camera(s) {missing} are not in the intrinsics file (it has {sorted(given)})")
+    return [replace(c, K=given[c.name].K, dist=given[c.name].dist) for c in cameras]
+
+
+def moments_between(times_s: FloatArray, start_s: float, length_s: float = 1.0) -> tuple[int, int]:
+    """The moment indices (first, last excluded) from ``start_s`` for ``length_s`` seconds."""
+    lo = int(np.searchsorted(times_s, start_s))
+    hi = int(np.searchsorted(times_s, start_s + length_s))
+    if hi <= lo:
+        raise CalibrationError(f"no moment between {start_s} s and {start_s + length_s} s (the take lasts "
+                               f"{float(times_s[-1]) if len(times_s) else 0.0:.1f} s)")  # fmt: skip
+    return lo, hi
+
+
+def calibrate(
+    people: PeopleInput, options: SelfCalibrationOptions, reference: list[Camera] | None = None
+) -> tuple[CalibrationSet, dict[str, Any]]:
+    """Self-calibrate and build the calibration file's contents and the JSON report."""
+    res = calibrate_from_people(people.frames, people.cameras, options)
+    ref = reference if reference is not None else None
+    comparison = compare_calibrations(res.cameras, ref) if ref is not None else None
+    calib = CalibrationSet(
+        tuple(
+            CameraCalibration(
+                c.name,
+                (c.width, c.height),
+                c.K,
+                c.dist,
+                c.R,
+                c.t,
+                round(q.rms_px, 3) if np.isfinite(q.rms_px) else None,
+            )
+            for c, q in zip(res.cameras, res.report.cameras, strict=True)
+        ),
+        f"mocapd calibrate cameras --from-people ({people.source})",
+    )
+    return calib, report_json(res, comparison)
+
+
+def report_json(res: SelfCalibration, comparison: CalibrationComparison | None) -> dict[str, Any]:
+    """The report as JSON-ready data."""
+    r = res.report
+    out: dict[str, Any] = {
+        "verdict": r.verdict,
+        "cameras": {
+            q.name: {
+                "observations": q.observations,
+                "rejected": q.rejected,
+                "rms_px": round(q.rms_px, 3),
+                "median_px": round(q.median_px, 3),
+                "coverage": round(q.coverage, 3),
+                "empty": q.empty,
+            }
+            for q in r.cameras
+        },
+        "shared_points": {f"{a}-{b}": n for (a, b), n in r.shared_points.items()},
+        "pair_inliers": {f"{a}-{b}": n for (a, b), n in r.pair_inliers.items()},
+        "moments": r.moments,
+        "people_instances": r.people_instances,
+        "points": r.points,
+        "height_m": r.height_m,
+        "height_given": r.height_given,
+        "up_from": r.up_from,
+        "floor_extent_m": list(r.floor_extent_m),
+        "origin": r.origin,
+        "advice": r.advice,
+    }
+    if comparison is not None:
+        out["against_reference"] = {
+            "rotation_deg": comparison.rotation_deg,
+            "centre_mm": comparison.centre_mm,
+            "scale_error": comparison.scale_error,
+            "up_deg": comparison.up_deg,
+            "relative_rotation_deg": comparison.relative_rotation_deg,
+        }
+    return out
+
+
+def report_text(report: dict[str, Any], output: Path) -> str:
+    """The report for people: per camera, the pairs, the world, the verdict and what to do."""
+    given = "given" if report["height_given"] else "default, not measured"
+    lines = [
+        f"calibrated {len(report['cameras'])} cameras from {report['people_instances']} people-moments in "
+        f"{report['moments']} moments ({report['points']} 3D keypoints) -> {output}",
+        "",
+        f"{'camera':<12} {'keypoints':>9} {'rejected':>8} {'rms px':>7} {'median px':>9} {'coverage':>8}  empty parts",
+    ]
+    for name, q in report["cameras"].items():
+        lines.append(f"{name:<12} {q['observations']:>9} {q['rejected']:>8} {q['rms_px']:>7.2f} "
+                     f"{q['median_px']:>9.2f} {q['coverage']:>8.0%}  {', '.join(q['empty']) or '-'}")  # fmt: skip
+    lines.append("")
+    lines.append("views shared (3D keypoints seen by both): " +
+                 ", ".join(f"{k} {v}" for k, v in report["shared_points"].items()))  # fmt: skip
+    lines.append(f"scale: people {report['height_m']:.2f} m tall ({given}); up: {report['up_from']}; "
+                 f"floor walked {report['floor_extent_m'][0]:.1f} x {report['floor_extent_m'][1]:.1f} m")  # fmt: skip
+    lines.append(f"origin: {report['origin']}")
+    if "against_reference" in report:
+        c = report["against_reference"]
+        lines.append("")
+        lines.append("against the reference calibration (after a similarity alignment):")
+        lines.append("  rotation deg: " + ", ".join(f"{k} {v:.3f}" for k, v in c["rotation_deg"].items()))
+        lines.append("  centre mm:    " + ", ".join(f"{k} {v:.0f}" for k, v in c["centre_mm"].items()))
+        lines.append(f"  scale error {c['scale_error']:+.2%}, up {c['up_deg']:.2f} deg, "
+                     f"worst relative rotation {c['relative_rotation_deg']:.3f} deg")  # fmt: skip
+    lines.append("")
+    lines.append(f"verdict: {report['verdict']}")
+    lines += [f"  - {a}" for a in report["advice"]]
+    return "\n".join(lines)
+
+
+def reference_cameras(path: Path, cameras: list[Camera]) -> list[Camera]:
+    """The cameras of a reference calibration file, for the comparison."""
+    given = {c.name: c for c in core_cameras(read_any(path))}
+    return [given[c.name] for c in cameras if c.name in given]
