@@ -230,11 +230,12 @@ class Measure:
         self.result = summarize(a, b, rss, percentiles, self.warm_up_s)
         self.result["tracked_vs_detected_px"] = tracked_errors(a)
         # Where the tick's budget went (per person job, by stage) and what the governor shed, at the end.
-        end = b["status"]
-        self.result["person_cpu_ms"] = end["person_cpu_ms"]
-        self.result["solve_threads"] = end["solve_threads"]
-        self.result["governor"] = end["governor"]
-        self.result["tracking_rate_hz_by_camera"] = [c.get("tracking", {}).get("rate_hz") for c in end["cameras"]]
+        end = b.get("status", {})
+        for key in ("person_cpu_ms", "solve_threads", "governor"):
+            self.result[key] = end.get(key)
+        self.result["tracking_rate_hz_by_camera"] = [
+            c.get("tracking", {}).get("rate_hz") for c in end.get("cameras", [])
+        ]
 
 
 def summarize(
