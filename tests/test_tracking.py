@@ -139,8 +139,8 @@ def test_people_tracker_reports_pairing_and_events_in_status() -> None:
 def test_close_interaction_on_recorded_motion_keeps_identities(capsys: pytest.CaptureFixture[str]) -> None:
     """The evaluation's hardest scene on real clips through ``mocapd eval tracking``, as docs/tracking.md reports
     it (8 s, with and without suits): no switch, no bystander or ghost enrolled, everyone published within 0.2 s, and
-    the documented fractions and joint errors (0.979 / 0.988 of the person-frames, 16.7–22.3 mm). Seeded, so the numbers repeat; the bounds leave
-    room for other BLAS builds."""
+    the documented fractions and joint errors (0.979 / 0.988 of the person-frames, 16.7–22.3 mm). Seeded, so the
+    numbers repeat; the bounds leave room for other BLAS builds."""
     from mocapd.service.cli import main
 
     assert main(["eval", "tracking", "--scene", "close_interaction"]) == 0
