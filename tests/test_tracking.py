@@ -150,8 +150,8 @@ def test_close_interaction_on_recorded_motion_keeps_identities(capsys: pytest.Ca
     for r in scenes:
         assert r["motion"] == "real" and r["identity_switches"] == 0 and r["bystanders_enrolled"] == 0, r
         assert r["mixed_assignments"] == 0, r
-        # At most 1 - 0.1 s enrolment / 8 s = 0.9875 of the visible person-frames can be followed (the shipped
-        # evidence rule, issue 41; the 0.5 s these scenes ran with before left 0.9375).
+        # At most 1 - 0.1 s enrolment / 8 s = 0.9875 of the visible person-frames can be followed (the evidence
+        # rule with 0.1 s, issue 41; the 0.5 s these scenes ran with before left 0.9375).
         assert 0.97 <= r["correct_fraction"] <= 0.9875, r
         assert r["ghost_tracks"] == 0 and max(r["first_published_s"].values()) <= 0.2, r
         assert len(r["joint_error_mm"]) == 2, r
@@ -161,12 +161,13 @@ def test_close_interaction_on_recorded_motion_keeps_identities(capsys: pytest.Ca
 
 
 def test_default_enrolment_on_evidence_within_a_fifth_of_a_second() -> None:
-    """The shipped rule (issue 41): a person the views agree on is a subject after 3 sightings and 0.1 s (by frame
+    """The evidence rule (issue 41): a person the views agree on is a subject after 3 sightings and 0.1 s (by frame
     4 at 30 Hz: 0.13 s), not after a fixed second; a candidate that holds no place frame after frame never enrols."""
     cams, dets, _ = _scene(12)
-    tracker = SubjectTracker(DetectionSorter(cams))
+    rule = TrackingOptions(enrol_after_s=0.1)
+    tracker = SubjectTracker(DetectionSorter(cams), rule)
     counts = [len(tracker.update(f * NS, dets[f]).subjects) for f in range(12)]
-    assert counts[:3] == [0, 0, 0] and counts[4] == 2, counts  # the old 1 s rule: none before frame 30
+    assert counts[:3] == [0, 0, 0] and counts[4] == 2, counts
     # A person-shaped candidate that the views put somewhere else every frame (a chance pairing, not a person):
     # never three agreeing sightings, never a subject.
     sk = Skeleton.from_height(1.75)
@@ -174,7 +175,7 @@ def test_default_enrolment_on_evidence_within_a_fifth_of_a_second() -> None:
     jumping[:, 0] = np.resize([-1.5, 0.0, 1.5], 12)
     jumping[:, 2] = np.resize([-1.5, 1.5], 12)
     ghost_dets, _ = scene_detections(cams, coco17_targets(sk), sk, [jumping], np.random.default_rng(1), 1.5)
-    ghost = SubjectTracker(DetectionSorter(cams))
+    ghost = SubjectTracker(DetectionSorter(cams), rule)
     for f in range(12):
         ghost.update(f * NS, ghost_dets[f])
     assert not ghost.subjects

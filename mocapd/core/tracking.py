@@ -11,9 +11,13 @@ Each frame the :class:`~mocapd.core.sorting.DetectionSorter` gives 3D candidates
   triangulation: the same 3D person, not views that paired up once), no gap longer than ``tentative_gap_s``, and
   for at least ``enrol_after_s``.
 
-The evidence rule replaces a fixed second (issue 41): one frame's candidate can be two people's views paired up
+The evidence rule (issue 41): with ``enrol_after_s`` = 0.1 a person is published at their 4th frame. One frame's
+candidate can be two people's views paired up
 across a near-degenerate camera pair, or a false-positive detection matched by chance, but such a pairing does not
-hold its place frame after frame; a real person does from their first frames.
+hold its place frame after frame; a real person does from their first frames. The shipped default stays 1 s for
+the live daemon: it updates the tracker every output tick, not every detection frame, so a slow detector's one
+pass counts as many sightings (docs/tracking.md); sessions of imported keypoints tick once per frame and enrol
+after 0.1 s (:mod:`mocapd.service.session.keypoint_import`).
 
 Everyone else is a bystander. A subject not seen for ``grace_period_s`` is released. Time is passed in (int64
 nanoseconds); nothing here reads a clock.
@@ -44,7 +48,7 @@ class TrackingOptions:
     """Capture volume, floor rectangle (x, z) minimum corner (m). People outside it are never enrolled."""
     volume_max: tuple[float, float] = (2.5, 2.5)
     """Capture volume (x, z) maximum corner (m)."""
-    enrol_after_s: float = 0.1
+    enrol_after_s: float = 1.0
     """A person must be seen at least this long (inside the volume / at a start position) to become a subject."""
     enrol_frames: int = 3
     """...and in this many frames (sightings that agree, see the module docstring)."""
