@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocapd.core.rotations import quat_angle, quat_from_rotvec
-from mocapd.core.skeleton import Skeleton
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.rotations import quat_angle, quat_from_rotvec, quat_multiply, rotvec_from_quat
+from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.core.synthetic import moving_sequence
 from mocapd.errors import InputError
 from mocapd.io.session_export import SubjectTrack, resample, subject_track
@@ -34,6 +35,44 @@ def test_smoothing_poses_keeps_a_clean_motion_and_splits_at_gaps() -> None:
     n = th.shape[0]
     err = quat_angle(quat_from_rotvec(sm[:, 3:].reshape(n, 21, 3)), quat_from_rotvec(th[:, 3:].reshape(n, 21, 3)))
     assert np.degrees(err).max() < 1.0 and np.abs(sm[:, :3] - th[:, :3]).max() < 0.003
+
+
+def test_smoothing_keeps_the_pose_when_the_solve_turns_an_upper_arm_about_itself() -> None:
+    """Keypoints fix an upper arm's direction, not its twist: the solve may turn it 150° about its own axis between
+    two frames while the forearm's local rotation undoes it (the same pose, every joint where it was). Smoothing the
+    local rotations blended the two solutions into a forearm where neither was (``resolve`` below live on the
+    waving forearms of ``mocapd eval keypoints``: here the hand 10.8 mm off instead of 5.4 mm); the world rotations
+    are smoothed as if the solve had not jumped."""
+    sk = Skeleton.from_height()
+    kin = Kinematics(sk)
+    upper, lower = BONE_INDEX["RightUpperArm"], BONE_INDEX["RightLowerArm"]
+    axis = sk.offsets[lower] / np.linalg.norm(sk.offsets[lower])  # the upper arm's own axis (rest pose)
+    n = 50
+    wave = np.outer(1.2 + 0.8 * np.sin(2 * np.pi * 1.5 * np.arange(n) / 25), [0.0, 0.0, 1.0])  # a waving forearm
+    steady = np.zeros((n, 66))
+    steady[:, 1] = sk.root_height
+    steady[:, 3 + 3 * lower : 6 + 3 * lower] = wave
+    jumped = steady.copy()
+    twist = np.radians(150.0) * axis
+    jumped[25:, 3 + 3 * upper : 6 + 3 * upper] = twist
+    undo = quat_multiply(quat_from_rotvec(-twist)[None], quat_from_rotvec(wave[25:]))
+    jumped[25:, 3 + 3 * lower : 6 + 3 * lower] = rotvec_from_quat(undo)
+    truth = kin.forward(steady).positions
+    assert np.abs(kin.forward(jumped).positions - truth).max() < 1e-9  # the same poses
+    t = (np.arange(n) * 1e9 / 25).astype(np.int64)
+    err_steady = np.abs(kin.forward(smooth_thetas(t, steady, ResolveOptions())).positions - truth).max()
+    err_jumped = np.abs(kin.forward(smooth_thetas(t, jumped, ResolveOptions())).positions - truth).max()
+    assert err_steady < 0.01 and abs(err_jumped - err_steady) < 1e-3, (err_steady, err_jumped)
+
+
+def test_a_short_segment_is_left_as_solved() -> None:
+    """Shorter than ``min_segment_s`` (a track's first frames, the solve converging from its warm start): no
+    velocity to learn, nothing smoothed."""
+    rng = np.random.default_rng(1)
+    th = rng.normal(scale=0.5, size=(6, 66))
+    t = (np.arange(6) * 1e9 / 25).astype(np.int64)
+    assert np.array_equal(smooth_thetas(t, th, ResolveOptions()), th)
+    assert not np.array_equal(smooth_thetas(t, th, ResolveOptions(min_segment_s=0.1)), th)
 
 
 def _poses(subject: str, times: list[int], thetas: np.ndarray) -> list[PoseRecord]:

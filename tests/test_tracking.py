@@ -138,9 +138,9 @@ def test_people_tracker_reports_pairing_and_events_in_status() -> None:
 
 def test_close_interaction_on_recorded_motion_keeps_identities(capsys: pytest.CaptureFixture[str]) -> None:
     """The evaluation's hardest scene on real clips through ``mocapd eval tracking``, as docs/tracking.md reports
-    it (8 s, with and without suits): no switch, no bystander enrolled, and the documented fractions and joint
-    errors (0.929 / 0.938 of the person-frames, 15.5–17.3 mm). Seeded, so the numbers repeat; the bounds leave
-    room for other BLAS builds."""
+    it (8 s, with and without suits): no switch, no bystander or ghost enrolled, everyone published within 0.2 s, and
+    the documented fractions and joint errors (0.979 / 0.988 of the person-frames, 16.7–22.3 mm). Seeded, so the
+    numbers repeat; the bounds leave room for other BLAS builds."""
     from mocapd.service.cli import main
 
     assert main(["eval", "tracking", "--scene", "close_interaction"]) == 0
@@ -150,9 +150,37 @@ def test_close_interaction_on_recorded_motion_keeps_identities(capsys: pytest.Ca
     for r in scenes:
         assert r["motion"] == "real" and r["identity_switches"] == 0 and r["bystanders_enrolled"] == 0, r
         assert r["mixed_assignments"] == 0, r
-        # At most 1 - 0.5 s enrolment / 8 s = 0.9375 of the visible person-frames can be followed.
-        assert 0.92 <= r["correct_fraction"] <= 0.9375, r
+        # At most 1 - 0.1 s enrolment / 8 s = 0.9875 of the visible person-frames can be followed (the evidence
+        # rule with 0.1 s, issue 41; the 0.5 s these scenes ran with before left 0.9375).
+        assert 0.97 <= r["correct_fraction"] <= 0.9875, r
+        assert r["ghost_tracks"] == 0 and max(r["first_published_s"].values()) <= 0.2, r
         assert len(r["joint_error_mm"]) == 2, r
-        assert all(v is not None and v < 20.0 for v in r["joint_error_mm"].values()), r
+        assert all(v is not None and v < 25.0 for v in r["joint_error_mm"].values()), r
     assert main(["eval", "tracking", "--scene", "nowhere"]) == 2
     assert "unknown tracking scene" in capsys.readouterr().err
+
+
+def test_default_enrolment_on_evidence_within_a_fifth_of_a_second() -> None:
+    """The evidence rule (issue 41): a person the views agree on is a subject after 3 sightings and 0.1 s (by frame
+    4 at 30 Hz: 0.13 s), not after a fixed second; a candidate that holds no place frame after frame never enrols."""
+    cams, dets, _ = _scene(12)
+    rule = TrackingOptions(enrol_after_s=0.1)
+    tracker = SubjectTracker(DetectionSorter(cams), rule)
+    counts = [len(tracker.update(f * NS, dets[f]).subjects) for f in range(12)]
+    assert counts[:3] == [0, 0, 0] and counts[4] == 2, counts
+    # A person-shaped candidate that the views put somewhere else every frame (a chance pairing, not a person):
+    # never three agreeing sightings, never a subject.
+    sk = Skeleton.from_height(1.75)
+    jumping = walking_path(sk, 12, (0.0, 0.0), (0.0, 0.0), seed=4, fps=FPS)
+    jumping[:, 0] = np.resize([-1.5, 0.0, 1.5], 12)
+    jumping[:, 2] = np.resize([-1.5, 1.5], 12)
+    ghost_dets, _ = scene_detections(cams, coco17_targets(sk), sk, [jumping], np.random.default_rng(1), 1.5)
+    ghost = SubjectTracker(DetectionSorter(cams), rule)
+    for f in range(12):
+        ghost.update(f * NS, ghost_dets[f])
+    assert not ghost.subjects
+
+
+def test_enrolment_options_checked() -> None:
+    with pytest.raises(InputError, match="non-negative"):
+        SubjectTracker(DetectionSorter([]), TrackingOptions(enrol_frames=-1))

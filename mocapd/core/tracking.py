@@ -5,8 +5,19 @@ Each frame the :class:`~mocapd.core.sorting.DetectionSorter` gives 3D candidates
 
 - with designated start positions (the seed's way) a tentative person standing within ``start_radius`` of a
   free start position for ``enrol_after_s`` becomes a subject;
-- without them, a tentative person seen inside the capture volume for ``enrol_after_s`` (allowing gaps of at
-  most ``tentative_gap_s``) becomes a subject, up to ``max_subjects``.
+- without them, a tentative person becomes a subject, up to ``max_subjects``, as soon as the views agree on them:
+  seen inside the capture volume in ``enrol_frames`` frames by at least ``enrol_views`` cameras each (as many as
+  the rig has, when fewer), every sighting within ``max_interframe_movement`` of the last (a consistent
+  triangulation: the same 3D person, not views that paired up once), no gap longer than ``tentative_gap_s``, and
+  for at least ``enrol_after_s``.
+
+The evidence rule (issue 41): with ``enrol_after_s`` = 0.1 a person is published at their 4th frame. One frame's
+candidate can be two people's views paired up
+across a near-degenerate camera pair, or a false-positive detection matched by chance, but such a pairing does not
+hold its place frame after frame; a real person does from their first frames. The shipped default stays 1 s for
+the live daemon: it updates the tracker every output tick, not every detection frame, so a slow detector's one
+pass counts as many sightings (docs/tracking.md); sessions of imported keypoints tick once per frame and enrol
+after 0.1 s (:mod:`mocapd.service.session.keypoint_import`).
 
 Everyone else is a bystander. A subject not seen for ``grace_period_s`` is released. Time is passed in (int64
 nanoseconds); nothing here reads a clock.
@@ -38,7 +49,11 @@ class TrackingOptions:
     volume_max: tuple[float, float] = (2.5, 2.5)
     """Capture volume (x, z) maximum corner (m)."""
     enrol_after_s: float = 1.0
-    """A person must be seen this long (inside the volume / at a start position) to become a subject."""
+    """A person must be seen at least this long (inside the volume / at a start position) to become a subject."""
+    enrol_frames: int = 3
+    """...and in this many frames (sightings that agree, see the module docstring)."""
+    enrol_views: int = 2
+    """A sighting counts when this many cameras see the person (or every camera of a smaller rig)."""
     tentative_gap_s: float = 0.3
     """A tentative person unseen for longer than this starts over."""
     grace_period_s: float = 2.0
@@ -67,6 +82,7 @@ class _Tentative:
     first_ns: int
     last_ns: int
     start_index: int  # designated start position it stands at, or -1
+    sightings: int = 0  # frames seen by enough views
 
 
 @dataclass(frozen=True)
@@ -102,7 +118,8 @@ class SubjectTracker:
     def __init__(self, sorter: DetectionSorter, options: TrackingOptions | None = None) -> None:
         self.sorter = sorter
         self.options = options if options is not None else TrackingOptions()
-        if self.options.max_subjects < 0 or self.options.enrol_after_s < 0 or self.options.grace_period_s < 0:
+        o = self.options
+        if min(o.max_subjects, o.enrol_after_s, o.grace_period_s, o.enrol_frames, o.enrol_views) < 0:
             raise InputError("tracking options must be non-negative")
         self.subjects: list[Subject] = []
         self._tentative: list[_Tentative] = []
@@ -181,7 +198,9 @@ class SubjectTracker:
                 self._tentative.append(_Tentative(c.points, t_ns, t_ns, start))
                 matched.add(id(self._tentative[-1]))
                 best = self._tentative[-1]
-            if best.last_ns - best.first_ns >= o.enrol_after_s * _NS and len(self.subjects) < o.max_subjects:
+            best.sightings += int(len(c.sources) >= min(o.enrol_views, len(self.sorter.cameras)))
+            confirmed = best.sightings >= o.enrol_frames and best.last_ns - best.first_ns >= o.enrol_after_s * _NS
+            if confirmed and len(self.subjects) < o.max_subjects:
                 s = Subject(self._next_id, c.points, t_ns, t_ns, dict(c.sources), True)
                 self._next_id += 1
                 self.subjects.append(s)

@@ -14,6 +14,11 @@ Metrics per scene and mode:
 - ``correct_fraction``: person-frames (true subject visible in ≥ 2 views) covered by that subject's main identity
   with detections of that subject only;
 - ``bystanders_enrolled``: output identities that mainly follow a bystander;
+- ``ghost_tracks``: output identities that never follow one person, subject or bystander (the
+  detections always come from people here, so these are identities made only of frames mixing people);
+- ``first_published_s``: per subject, the time from its first frame in ≥ 2 views to the first frame its main
+  identity follows it (the enrolment delay: the evidence rule of ``[tracking.enrolment]`` with 0.1 s, one tracker
+  update per frame as here);
 - ``joint_error_mm``: per subject, the solver's mean joint error on its sorted detections (+ its suit's IMUs).
 """
 
@@ -130,13 +135,14 @@ def run_scene(
     dets, labels = scene_detections(cams, targets, skeletons, people, rng, noise_px=2.0)
     _drop_keypoints(dets, rng, 0.05)
     tracker = PeopleTracker(
-        SubjectTracker(DetectionSorter(cams), TrackingOptions(max_subjects=n_subj, enrol_after_s=0.5,
+        SubjectTracker(DetectionSorter(cams), TrackingOptions(max_subjects=n_subj, enrol_after_s=0.1,
                                                               volume_min=(-2.2, -2.2), volume_max=(2.2, 2.2))),
         SuitBinder(skeletons[0]) if with_suits else None,
     )  # fmt: skip
     yaw = rng.uniform(-90, 90, size=n_subj)
     follows: dict[str, list[tuple[int, int]]] = {}  # identity -> (frame, true person)
     mixed = 0
+    published: set[str] = set()
     frames_out = []
     sort_ms = []
     for f in range(n):
@@ -149,6 +155,7 @@ def run_scene(
         out = tracker.update(int(f * 1e9 / FPS), dets[f], suits)
         sort_ms.append(1e3 * (time.perf_counter() - t0))
         frames_out.append(out)
+        published.update(person.identity for person in out.people)
         for person in out.people:
             truth = {int(labels[f][cam][i]) for cam, i in person.detections.items()}
             if len(truth) != 1:
@@ -162,12 +169,18 @@ def run_scene(
         counts = Counter(ident for ident, seq in follows.items() for _, q in seq if q == p)
         owner[p] = counts.most_common(1)[0][0] if counts else None
     visible = correct = 0
+    first_seen: dict[int, int] = {}
+    first_followed: dict[int, int] = {}
     for f in range(n):
         for p in range(n_subj):
             if sum(int(np.any(lb == p)) for lb in labels[f]) < 2:
                 continue
             visible += 1
-            correct += any((f, p) in follows.get(ident, []) and ident == owner[p] for ident in follows)
+            first_seen.setdefault(p, f)
+            hit = any((f, p) in follows.get(ident, []) and ident == owner[p] for ident in follows)
+            correct += hit
+            if hit:
+                first_followed.setdefault(p, f)
     errors = _solve_errors(skeletons, cams, targets, people, dets, frames_out, owner, with_suits, rng)
     return {
         "scene": scene.name, "motion": motion, "cameras": scene.n_cams, "subjects": n_subj,
@@ -176,6 +189,9 @@ def run_scene(
         "identity_switches": switches,
         "correct_fraction": round(correct / max(visible, 1), 4),
         "bystanders_enrolled": sum(1 for ident, p in main.items() if p >= n_subj),
+        "ghost_tracks": len(published - set(main)),
+        "first_published_s": {f"subject_{p}": round((first_followed[p] - first_seen[p]) / FPS, 3)
+                              if p in first_followed else None for p in range(n_subj)},
         "mixed_assignments": mixed,
         "joint_error_mm": errors,
         "tracking_ms_median": round(float(np.median(sort_ms)), 3),

@@ -1,5 +1,5 @@
-"""``mocapd eval accuracy`` and ``mocapd eval video``: the accuracy harnesses from the command line (registered by
-``mocapd.service.cli``)."""
+"""``mocapd eval accuracy``, ``mocapd eval video`` and ``mocapd eval keypoints``: the accuracy harnesses from the
+command line (registered by ``mocapd.service.cli``)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from mocapd.service.cli.numbers import number
 
 
 def register(sub: Any) -> None:
-    """Add ``accuracy`` to the subparsers of ``mocapd eval``."""
+    """Add ``accuracy``, ``video`` and ``keypoints`` to the subparsers of ``mocapd eval``."""
     p = sub.add_parser("accuracy", help="accuracy on real recorded motion vs baselines (docs/accuracy.md)")
     p.add_argument("--quick", action="store_true", help="CI smoke run: a few short sequences (< 2 minutes)")
     p.add_argument("--split", default=None, help="evaluation (default), development or quick")
@@ -55,6 +55,34 @@ def register(sub: Any) -> None:
     v.add_argument("--no-cache", action="store_true", help="detect again even when the detections are cached")
     v.add_argument("--no-progress", action="store_true", help="no progress bar (it is drawn only on a terminal)")
     v.set_defaults(func=_run_video)
+    k = sub.add_parser("keypoints", help="multi-person benchmark through import keypoints + resolve (docs/accuracy.md)")
+    k.add_argument("--people", type=int, default=3, help="people in the scene, 2 to 4 (default 3)")
+    k.add_argument("--seconds", type=float, default=10.0, help="length of the take (default 10)")
+    k.add_argument("--seed", type=int, default=0, help="seed of the detector's noise (default 0)")
+    k.add_argument(
+        "--out",
+        type=Path,
+        default=Path("results/keypoints"),
+        help="results directory: input/, session/, keypoints.json, keypoints.md (must not hold a session)",
+    )
+    k.add_argument("--data-root", type=Path, default=None, help="shared data root (default ../shared/data)")
+    k.set_defaults(func=_run_keypoints)
+
+
+def _run_keypoints(args: argparse.Namespace) -> int:
+    from mocapd.errors import MocapdError
+    from mocapd.service.keypoint_eval import run_keypoint_eval
+
+    try:
+        report = run_keypoint_eval(args.out, args.people, args.seconds, args.seed, data_root=args.data_root)
+    except MocapdError as exc:  # a bad option, the data root missing, an OUT that already holds a session
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    summary = {name: {key: s[key] for key in ("pcp_average", "mpjpe_mm", "misses", "misses_after_first_0.2s",
+                                              "identity_switches", "tracks", "false_positive_tracks")}
+               for name, s in report["systems"].items()}  # fmt: skip
+    print(json.dumps({"out": str(args.out), "systems": summary}, indent=2))
+    return 0
 
 
 def _run_video(args: argparse.Namespace) -> int:

@@ -45,6 +45,8 @@ class EnrolmentConfig(Section):
     """Floor rectangle [x, z] minimum corner (m)."""
     volume_max: Pair = _T.volume_max
     enrol_after_s: float = Field(_T.enrol_after_s, ge=0.0, le=60.0)
+    enrol_frames: int = Field(_T.enrol_frames, ge=1, le=1000)
+    enrol_views: int = Field(_T.enrol_views, ge=2, le=64)
     tentative_gap_s: float = Field(_T.tentative_gap_s, ge=0.0, le=60.0)
     grace_period_s: float = Field(_T.grace_period_s, ge=0.0, le=3600.0)
     start_positions: Annotated[Seq[Pair], Field(max_length=64), AfterValidator(unique)] = ()

@@ -44,6 +44,8 @@ from mocapd.protocols.session_format import T_HEADER, T_KEYPOINTS, encode_header
 from mocapd.service.config import DEFAULT_CONFIG, config_document, load_config
 from mocapd.service.outputs.recorder import camera_dict
 
+IMPORT_ENROL_AFTER_S = 0.1
+"""``[tracking.enrolment] enrol_after_s`` of an imported take (with the default 3 agreeing frames)."""
 LATENCY_S = 0.15
 """The fixed delay written into the session's scheduler (offline every detection is there; ``run_live``'s)."""
 
@@ -156,6 +158,10 @@ def keypoints_manifest(take: KeypointTake, *, fps: float, height: float, source:
     raw.setdefault("detector", {}).setdefault("model", {})["keypoint_format"] = take.keypoint_format
     raw.setdefault("daemon", {}).update({"output_rate_hz": float(fps), "latency_s": LATENCY_S})
     raw.setdefault("imu", {}).setdefault("body", {})["height_m"] = height
+    # Every tick of an imported take is a detection frame: the enrolment's evidence rule (enrol_frames agreeing
+    # frames) counts real frames, so a person is published at their 4th frame rather than after the live default's
+    # second (docs/tracking.md).
+    raw.setdefault("tracking", {}).setdefault("enrolment", {})["enrol_after_s"] = IMPORT_ENROL_AFTER_S
     o = cfg.daemon.model_copy(update={"output_rate_hz": float(fps), "latency_s": LATENCY_S}).scheduler_options(
         [c.name for c in take.cameras])  # fmt: skip
     skeleton = Skeleton.from_height(height)

@@ -50,8 +50,8 @@ from mocapd.core.people import PeopleTracker
 from mocapd.core.per_skeleton import PerSkeleton, skeleton_key
 from mocapd.core.plausibility import PlausibilityMonitor
 from mocapd.core.prior import PcaPrior
-from mocapd.core.rotations import quat_from_rotvec, quat_normalize, rotvec_from_quat
-from mocapd.core.skeleton import N_BONES, Skeleton
+from mocapd.core.rotations import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, rotvec_from_quat
+from mocapd.core.skeleton import N_BONES, PARENTS, Skeleton
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
@@ -88,6 +88,10 @@ class ResolveOptions:
     """Process noise of the quaternion components: white-acceleration spectral density (1/s³)."""
     max_gap_s: float = 0.25
     """A subject unseen for longer than this starts a new smoothing segment."""
+    min_segment_s: float = 0.3
+    """A segment shorter than this is left as solved. A constant-velocity smoother needs frames to learn a velocity
+    from, and the short segments are a track's first frames (before body sizing gives the person their skeleton),
+    where the solve still converges from the warm start: smoothing them averages the convergence, not noise."""
     refit_imu_clock: bool = True
     """Re-map every IMU sample's device time to the host clock with one fit over the whole session, instead of
     the buffer time the live (causal) clock map gave it."""
@@ -446,9 +450,11 @@ def smooth_thetas(t_ns: NDArray[np.int64], thetas: FloatArray, opts: ResolveOpti
     """Smoothed θ (n, 66) of one subject's frames (see the module docstring)."""
     out = thetas.copy()
     for seg in _segments(t_ns, opts.max_gap_s * 1e9):
+        if t_ns[seg][-1] - t_ns[seg][0] < opts.min_segment_s * 1e9:
+            continue
         th = thetas[seg]
         n = th.shape[0]
-        q = quat_from_rotvec(th[:, 3:].reshape(n, N_BONES, 3))
+        q = _global_quats(quat_from_rotvec(th[:, 3:].reshape(n, N_BONES, 3)))
         for k in range(1, n):  # sign continuity along time
             flip = np.sum(q[k] * q[k - 1], axis=-1) < 0
             q[k, flip] *= -1.0
@@ -457,7 +463,32 @@ def smooth_thetas(t_ns: NDArray[np.int64], thetas: FloatArray, opts: ResolveOpti
         accel = np.r_[np.full(3, opts.root_accel), np.full(4 * N_BONES, opts.rot_accel)]
         zs = rts_smooth((t_ns[seg] - t_ns[seg][0]) / 1e9, z, sigma, accel)
         out[seg, 0:3] = zs[:, 0:3]
-        out[seg, 3:] = rotvec_from_quat(quat_normalize(zs[:, 3:].reshape(n, N_BONES, 4))).reshape(n, -1)
+        local = _local_quats(quat_normalize(zs[:, 3:].reshape(n, N_BONES, 4)))
+        out[seg, 3:] = rotvec_from_quat(local).reshape(n, -1)
+    return out
+
+
+def _global_quats(local: FloatArray) -> FloatArray:
+    """Each bone's rotation in the world (n, N_BONES, 4) from the local ones (parents come before children).
+
+    The smoother works on these, not on the local rotations: keypoints fix a bone's direction, not its twist, so
+    the solve can turn an upper arm about its own axis from one frame to the next while the forearm's local
+    rotation undoes it (the same pose). Blending two such local solutions puts the forearm where neither was
+    (``resolve`` lost the waving forearms and heads that live kept, ``mocapd eval keypoints``); blending the
+    world rotations of two poses with the same bone directions keeps the directions."""
+    out = local.copy()
+    for b, parent in enumerate(PARENTS):
+        if parent >= 0:
+            out[:, b] = quat_multiply(out[:, parent], local[:, b])
+    return out
+
+
+def _local_quats(world: FloatArray) -> FloatArray:
+    """The inverse of :func:`_global_quats`."""
+    out = world.copy()
+    for b, parent in enumerate(PARENTS):
+        if parent >= 0:
+            out[:, b] = quat_multiply(quat_conjugate(world[:, parent]), world[:, b])
     return out
 
 
