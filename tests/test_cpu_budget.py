@@ -72,3 +72,24 @@ def test_the_process_is_held_its_children_exempted_and_the_cgroup_removed() -> N
     assert not any(line.endswith(name) for line in r["after"]) and r["removed"]
     # A second of spinning at 10 % of a core: the kernel ran it in 10 ms periods and throttled most of them.
     assert r["report"]["periods"] >= 1 and r["report"]["throttled_periods"] >= 1, r["report"]
+
+
+def test_the_quota_a_process_runs_under_is_read_from_its_cgroup(tmp_path: Path) -> None:
+    """What the detector sizes its threads by (``detector_pool.process_cores``): a v2 ``cpu.max`` quota, none
+    ("max"), and a v1 CFS quota."""
+    from mocapd.io.cpu_budget import quota_cores
+
+    here = tmp_path / "v2" / "app.slice"
+    here.mkdir(parents=True)
+    (here / "cgroup.controllers").write_text("cpu memory\n")
+    (here / "cpu.max").write_text("80000 100000\n")
+    mounts = f"40 25 0:30 / {tmp_path / 'v2'} rw - cgroup2 cgroup2 rw\n"
+    assert quota_cores("0::/app.slice\n", mounts) == 0.8
+    (here / "cpu.max").write_text("max 100000\n")
+    assert quota_cores("0::/app.slice\n", mounts) is None
+    v1 = tmp_path / "cpu" / "budget"
+    v1.mkdir(parents=True)
+    (v1 / "cpu.cfs_quota_us").write_text("15000\n")
+    (v1 / "cpu.cfs_period_us").write_text("10000\n")
+    mounts_v1 = f"31 30 0:27 / {tmp_path / 'cpu'} rw,relatime - cgroup cgroup rw,cpu\n"
+    assert quota_cores("1:cpu:/budget\n", mounts_v1) == 1.5

@@ -158,6 +158,29 @@ def _unavailable(why: str) -> str:
             "without --cpu-budget)")  # fmt: skip
 
 
+def quota_cores(proc_cgroup: str | None = None, mountinfo: str | None = None) -> float | None:
+    """The CPUs this process's cgroup lets it use per period (its CFS quota over its period: a ``--cpu-budget``, a
+    systemd ``CPUQuota=``, a container's limit), None where no quota is set."""
+    try:
+        found = find_hierarchies(
+            Path("/proc/self/cgroup").read_text() if proc_cgroup is None else proc_cgroup,
+            Path("/proc/self/mountinfo").read_text() if mountinfo is None else mountinfo,
+        )
+    except OSError:
+        return None
+    for h in found:
+        with contextlib.suppress(OSError, ValueError):
+            if h.version == 2:
+                quota, period = (h.parent / "cpu.max").read_text().split()[:2]
+                if quota != "max":
+                    return int(quota) / int(period)
+            else:
+                quota_us = int((h.parent / "cpu.cfs_quota_us").read_text())
+                if quota_us > 0:
+                    return quota_us / int((h.parent / "cpu.cfs_period_us").read_text())
+    return None
+
+
 @contextlib.contextmanager
 def held(cores: float | None) -> Iterator[CpuBudget | None]:
     """``with held(cores):`` this process held to ``cores`` CPUs inside the block (None: not held)."""

@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.keypoints import keypoint_format
 from mocapd.core.sorting import Detections2D
+from mocapd.io import cpu_budget
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
@@ -54,11 +55,16 @@ def detector_executor(workers: int = 1, nice: int = 0) -> ThreadPoolExecutor:
 
 
 def process_cores() -> int:
-    """The cores this process may run on (its CPU affinity: ``taskset`` counts), at least 1."""
+    """The cores this process may use, at least 1: its CPU affinity (``taskset`` counts), and no more than its
+    cgroup's CPU quota allows (``--cpu-budget``, systemd ``CPUQuota=``): a detector session with two intra-op
+    threads under a one-core quota spends the quota in half of each period, and the whole process, tick included,
+    then waits out the other half."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cores = max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
+        cores = max(1, os.cpu_count() or 1)
+    quota = cpu_budget.quota_cores()
+    return cores if quota is None else max(1, min(cores, int(quota)))
 
 
 def landmark_runner(cfg: DetectorConfig) -> LandmarkRunner | None:
