@@ -18,7 +18,6 @@ import contextlib
 import gc
 import logging
 import os
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -173,8 +172,6 @@ def in_daemon_thread(fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
     threading.Thread(target=work, name="mocapd-estimate", daemon=True).start()
     return future
 
-
-SWITCH_INTERVAL_S = 0.001  # the GIL's switch interval while the daemon runs (see Daemon.run)
 
 TAP_BONES = ("Spine3", "Spine2", "Spine1", "Spine", "Hips")
 """Where the tap gesture is watched, the first present: upper chest, chest, waist, hips (the SlimeVR server's order)."""
@@ -422,11 +419,6 @@ class Daemon:
             # add_signal_handler raises RuntimeError off the main thread: then signals are the caller's job.
             with contextlib.suppress(RuntimeError):
                 loop.add_signal_handler(sig, self.request_stop)
-        # Three threads share the GIL all the time now (the loop, the tick thread, the detector's and estimates'
-        # Python parts): a thread that released it (a numba kernel, a large numpy call) waits up to the switch
-        # interval to get it back, 5 ms by default: a third of a 60 Hz period per wait. 1 ms keeps the tick's wall
-        # time near its CPU time at the price of more (cheap) switches.
-        sys.setswitchinterval(SWITCH_INTERVAL_S)
         lifecycle.enter_phase("loading the solver kernel")
         # A daemon thread, raced against the stop: a first compile takes up to a minute, and a stop meanwhile
         # abandons it (nothing else is started yet) rather than waiting for it.
