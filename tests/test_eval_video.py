@@ -105,6 +105,7 @@ def test_detection_cache_and_openpose_files_round_trip(tmp_path: Path) -> None:
 def test_an_unknown_take_is_refused_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from mocapd.service.cli import main
 
-    assert main(["eval", "video", "--take", "Demo_Nobody", "--out", str(tmp_path)]) == 1
+    # An argument error exits 2, as every command's (issue 45: it exited 1, a failed evaluation's status).
+    assert main(["eval", "video", "--take", "Demo_Nobody", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("mocapd eval video: unknown Pose2Sim demo 'Demo_Nobody'") and err.count("\n") == 1
