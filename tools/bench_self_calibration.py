@@ -1,4 +1,4 @@
-"""Self-calibration from people (issue 43), measured (docs/cameras.md).
+"""Developer benchmark: self-calibration from people (issue 43), measured (docs/cameras.md).
 
 Synthetic rig: known cameras, people of known height walking, detector-like noise; prints rotation, centre, scale
 and up errors against the truth::
