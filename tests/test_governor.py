@@ -33,9 +33,8 @@ def test_an_overrun_sheds_one_step_per_window_in_the_ladders_order_and_never_the
     t = _window(g, t, 3.0)
     t = _window(g, t, 3.0)  # past the settling time: 6 s
     seen = []
-    for every in (5, 6, 8, 10, 12, 15, 20, 30)[: len(LADDER) + 1]:
-        # p95 84 % of the period and ticks missed, fewer after each step (each step helped, not enough)
-        t = _window(g, t, 14.0, missed_every=every)
+    for _ in range(len(LADDER) + 2):
+        t = _window(g, t, 14.0)  # p95 84 % of the period
         seen.append(g.step_index)
     assert seen == [min(k + 1, len(LADDER) - 1) for k in range(len(seen))]
     assert g.level.tracking_rate == 0.0 and g.level.flip_every == 4 and g.level.detector_duty == 0.35
@@ -64,7 +63,7 @@ def test_work_comes_back_only_after_a_calm_hold() -> None:
     o = GovernorOptions(settle_s=0.0, hold_s=6.0)
     g = Governor(PERIOD, o)
     t = _window(g, 0, 14.0)
-    t = _window(g, t, 11.0)  # the first step helped (p95 down by a fifth), not enough
+    t = _window(g, t, 14.0)
     assert g.step_index == 2
     steps = []
     for _ in range(8):  # calm: p95 18 % of the period
@@ -78,20 +77,3 @@ def test_work_comes_back_only_after_a_calm_hold() -> None:
     for _ in range(6):
         t = _window(g2, t, 8.0)  # 48 %: below shedding, above restoring
     assert g2.step_index == 1
-
-
-def test_a_step_that_did_not_help_is_taken_back_and_nothing_more_is_shed_for_a_while() -> None:
-    """What holds the tick back is not the daemon's own work (a CPU budget's throttling, another process): the
-    tick's p95 stays where it was after a step, so the step is taken back at once, and only retried after
-    ``retry_s`` (at a one-core budget the old rule walked to "tracking off" and 1.2 s of latency for nothing)."""
-    g = Governor(PERIOD, GovernorOptions(settle_s=0.0, retry_s=30.0))
-    t = _window(g, 0, 14.0)
-    assert g.step_index == 1
-    t = _window(g, t, 13.8)  # no better
-    assert g.step_index == 0 and "did not help" in str(g.status()["reason"])
-    for _ in range(13):  # 26 s of the same overrun: held at nothing shed
-        t = _window(g, t, 14.0)
-        assert g.step_index == 0
-    for _ in range(3):  # past 30 s: tried again
-        t = _window(g, t, 14.0)
-    assert g.changes >= 3

@@ -25,11 +25,7 @@ step  what is shed                         what it costs
 
 It sheds one step when the tick's p95 exceeds ``shed_above`` of the period or more than ``max_missed`` of the
 window's ticks were missed, and restores one step only after ``hold_s`` in which the p95 stayed below
-``restore_below`` of the period with no tick missed (hysteresis: a step is not taken back the moment it helped). A
-step whose next window is no better (p95 and missed share both above ``helped`` of what made it shed) is taken back
-at once and nothing more is shed for ``retry_s``: when what holds the tick back is not the daemon's own work (a CPU
-budget's throttling, the GIL, another process), shedding only costs quality (at a one-core budget it walked to
-"tracking off" and 1.2 s of latency without lowering the tick's p95).
+``restore_below`` of the period with no tick missed (hysteresis: a step is not taken back the moment it helped).
 
 Pure state: times are arguments; the daemon feeds it (:meth:`Governor.observe` per tick, :meth:`Governor.step` once
 a window) and applies :attr:`Governor.level`'s settings to the keypoint sources and the scheduler.
@@ -77,11 +73,6 @@ class GovernorOptions:
     """Restore a step when the p95 stayed below this share of the period, with no tick missed, ..."""
     hold_s: float = 6.0
     """... for this long (and at least this long after the last change)."""
-    helped: float = 0.9
-    """A shed step is kept only if the next window's p95 (or missed share) fell below this share of the one that
-    made it shed; otherwise it is taken back ..."""
-    retry_s: float = 30.0
-    """... and nothing more is shed for this long."""
     settle_s: float = 5.0
     """Nothing is shed in the first seconds after the start (models and caches warming up, people enrolling)."""
 
@@ -98,8 +89,6 @@ class Governor:
         self._calm_since: int | None = start_ns
         self._changed_ns = start_ns
         self._durations: list[int] = []
-        self._shed_from: tuple[float, float] | None = None  # (p95 share, missed share) the last shed answered
-        self._stuck_until = start_ns  # no shedding before this (a shed that did not help was taken back)
         self._missed = 0
         self.changes = 0
         self.last_reason = "start"
@@ -132,43 +121,23 @@ class Governor:
         missed_share = missed / ticks if ticks else 0.0
         if share > o.shed_above or missed_share > o.max_missed:
             self._calm_since = None
-            return self._overrun(now_ns, share, missed_share, f"{missed} of {ticks} ticks missed")
-        self._shed_from = None
-        if share < o.restore_below and missed == 0:
-            return self._calm(now_ns, began)
-        self._calm_since = None
-        return False
-
-    def _overrun(self, now_ns: int, share: float, missed_share: float, missed: str) -> bool:
-        """A window the tick did not fit: shed the next step, or take back the last one if it did not help."""
-        o = self.options
-        p95_ms = share * self.period_ns / 1e6
-        last, self._shed_from = self._shed_from, None
-        if last is not None and share > o.helped * last[0] and missed_share >= o.helped * last[1]:
-            # The step just shed did not help: what holds the tick back is not this work (a CPU budget's
-            # throttling, the GIL, another process). Take it back and hold here a while.
-            self.step_index -= 1
-            self._stuck_until = now_ns + round(o.retry_s * 1e9)
-            self._changed(now_ns, f"shedding did not help (tick p95 {p95_ms:.1f} ms, {missed}): taken back, "
-                          f"tried again in {o.retry_s:g} s")  # fmt: skip
-            return True
-        if now_ns < self._stuck_until or self.step_index + 1 >= len(LADDER):
+            if self.step_index + 1 < len(LADDER):
+                self.step_index += 1
+                self._changed(now_ns, f"tick p95 {p95 / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
+                              f"{missed} of {ticks} ticks missed")  # fmt: skip
+                return True
             return False
-        self.step_index += 1
-        self._shed_from = (share, missed_share)
-        self._changed(now_ns, f"tick p95 {p95_ms:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, {missed}")
-        return True
-
-    def _calm(self, now_ns: int, began: int) -> bool:
-        """A calm window: restore a step after ``hold_s`` of them (since the last change)."""
-        if self._calm_since is None:
-            self._calm_since = began  # calm since this window began
-        calm_for = now_ns - max(self._calm_since, self._changed_ns)
-        if self.step_index > 0 and calm_for >= self.options.hold_s * 1e9:
-            self.step_index -= 1
-            self._calm_since = now_ns
-            self._changed(now_ns, f"tick p95 {self.last_p95_ms} ms, no tick missed for {self.options.hold_s:g} s")
-            return True
+        if share < o.restore_below and missed == 0:
+            if self._calm_since is None:
+                self._calm_since = began  # calm since this window began
+            calm_for = now_ns - max(self._calm_since, self._changed_ns)
+            if self.step_index > 0 and calm_for >= o.hold_s * 1e9:
+                self.step_index -= 1
+                self._calm_since = now_ns
+                self._changed(now_ns, f"tick p95 {p95 / 1e6:.1f} ms, no tick missed for {o.hold_s:g} s")
+                return True
+        else:
+            self._calm_since = None
         return False
 
     def _changed(self, now_ns: int, reason: str) -> None:
