@@ -645,7 +645,9 @@ class FixedLatencyScheduler:
             self.counters["person_solves"] += 1
             if not result.summary.converged:
                 self.counters["not_converged"] += 1
-        if person.track >= 0 and len(person.detections) >= 2:
+        if person.track >= 0 and len(person.detections) >= 2 and self._flip_due:
+            # Only ticks whose left/right labels were searched size the body: a decision reused on the ticks the
+            # governor leaves the search out (a view's flip undone by the detector meanwhile) would swap limbs.
             self._size_body(person, solver, und, conf)
         c3 = self._cpu()
         with self._count_lock:
