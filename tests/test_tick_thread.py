@@ -27,7 +27,7 @@ from tests.test_daemon import Recorder, wait_for
 async def test_the_daemon_solves_on_its_tick_thread_while_the_loop_samples_and_publishes() -> None:
     cfg = load_config()
     cfg = cfg.model_copy(update={
-        "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0, "tick_thread": True}),
         "websocket": cfg.websocket.model_copy(update={"enabled": False}),
     })  # fmt: skip
     rec = Recorder()

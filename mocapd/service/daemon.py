@@ -574,7 +574,10 @@ class Daemon:
             # the loop goes on capturing, reading IMUs and serving clients. One tick at a time: a late one makes
             # the plan skip what it cannot catch up (max_catch_up_s), work never piles up.
             inputs = self.scheduler.sample(plan.next_ns)
-            frame = await loop.run_in_executor(self._tick_executor, self.scheduler.solve, inputs)
+            if self.config.daemon.tick_thread:
+                frame = await loop.run_in_executor(self._tick_executor, self.scheduler.solve, inputs)
+            else:
+                frame = self.scheduler.solve(inputs)
             if self.scheduler.options.prediction.predicted:
                 # Two loop iterations: the first polls the serial ports and queues their readers after this task,
                 # the second runs them, so the IMU samples that arrived while solving are buffered; then the
