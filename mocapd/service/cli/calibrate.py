@@ -170,13 +170,7 @@ def _run_board(args: argparse.Namespace) -> int:
     except CalibrationError as exc:
         print(f"calibration failed: {exc}", file=sys.stderr)
         return 1
-    try:
-        write_mocapd_toml(calib, args.output)
-    except OutputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(report, indent=1, default=float))
-    return 0
+    return _write_and_report(calib, args.output, json.dumps(report, indent=1, default=float))
 
 
 def _run_from_people(args: argparse.Namespace) -> int:
@@ -208,12 +202,18 @@ def _run_from_people(args: argparse.Namespace) -> int:
     except CalibrationError as exc:
         print(f"calibration failed: {exc}", file=sys.stderr)
         return 1
+    text = json.dumps(report, indent=1, default=float) if args.json else pc.report_text(report, args.output)
+    return _write_and_report(calib, args.output, text)
+
+
+def _write_and_report(calib: CalibrationSet, output: Path, report: str) -> int:
+    """Write the calibration either path computed, then print its report; exit 2 when it cannot be written."""
     try:
-        write_mocapd_toml(calib, args.output)
+        write_mocapd_toml(calib, output)
     except OutputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(report, indent=1, default=float) if args.json else pc.report_text(report, args.output))
+    print(report)
     return 0
 
 

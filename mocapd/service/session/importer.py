@@ -92,14 +92,7 @@ def imported_manifest(
     imu["body"] = {"height_m": height, **{f"{k}_m": v for k, v in (segments or {}).items()}}
     targets = coco17_targets(skeleton)
     return {
-        "format": "mocapd-session",
-        "version": 1,
-        "software": {"mocapd": mocapd.__version__, "python": platform.python_version(), "numpy": np.__version__},
-        "started_utc": dt.datetime.now(dt.UTC).isoformat(),
-        "started_monotonic_ns": T0_NS,
-        "host": platform.node(),
-        "streams": list(STREAMS),
-        "config": raw,
+        **manifest_head(raw),
         "scheduler": {
             "rate_hz": o.rate_hz, "latency_ns": o.latency_ns, "keypoint_max_age_ns": o.keypoint_max_age_ns,
             "keypoint_max_gap_ns": o.keypoint_max_gap_ns, "match_px": o.match_px, "camera_offsets_ns": [],
@@ -132,3 +125,18 @@ def parse_assign_pairs(pairs: list[str]) -> dict[str, str]:
             raise InputError(f"--assign: sensor {sid[:40]} is assigned twice ({out[sid]} and {bone.strip()[:40]})")
         out[sid] = bone.strip()
     return out
+
+
+def manifest_head(raw: dict[str, Any]) -> dict[str, Any]:
+    """The opening entries of an imported session's manifest (format, software, start, host, streams, the config
+    ``raw`` it was made with), shared by every importer."""
+    return {
+        "format": "mocapd-session",
+        "version": 1,
+        "software": {"mocapd": mocapd.__version__, "python": platform.python_version(), "numpy": np.__version__},
+        "started_utc": dt.datetime.now(dt.UTC).isoformat(),
+        "started_monotonic_ns": T0_NS,
+        "host": platform.node(),
+        "streams": list(STREAMS),
+        "config": raw,
+    }

@@ -16,18 +16,15 @@ input's keypoint set is converted by name onto the format mocapd solves it in
 
 from __future__ import annotations
 
-import datetime as dt
 import itertools
 import math
 import os
-import platform
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-import mocapd
 from mocapd.core.camera import Camera
 from mocapd.core.keypoint_sets import SOLVE_FORMAT, convert
 from mocapd.core.keypoints import keypoint_format
@@ -43,6 +40,7 @@ from mocapd.protocols.keypoint_files import to_pixels
 from mocapd.protocols.session_format import T_HEADER, T_KEYPOINTS, encode_header, encode_keypoints, encode_record
 from mocapd.service.config import DEFAULT_CONFIG, config_document, load_config
 from mocapd.service.outputs.recorder import camera_dict
+from mocapd.service.session.importer import manifest_head
 
 IMPORT_ENROL_AFTER_S = 0.1
 """``[tracking.enrolment] enrol_after_s`` of an imported take (with the default 3 agreeing frames)."""
@@ -168,14 +166,7 @@ def keypoints_manifest(take: KeypointTake, *, fps: float, height: float, source:
     targets = keypoint_format(take.keypoint_format).track_targets(skeleton)
     duration = (max((r[0] for r in take.records), default=T0_NS) - T0_NS) / 1e9
     return {
-        "format": "mocapd-session",
-        "version": 1,
-        "software": {"mocapd": mocapd.__version__, "python": platform.python_version(), "numpy": np.__version__},
-        "started_utc": dt.datetime.now(dt.UTC).isoformat(),
-        "started_monotonic_ns": T0_NS,
-        "host": platform.node(),
-        "streams": list(STREAMS),
-        "config": raw,
+        **manifest_head(raw),
         "scheduler": {
             "rate_hz": o.rate_hz, "latency_ns": o.latency_ns, "keypoint_max_age_ns": o.keypoint_max_age_ns,
             "keypoint_max_gap_ns": o.keypoint_max_gap_ns, "match_px": o.match_px,
