@@ -32,6 +32,7 @@ from mocapd.core.camera import Camera
 from mocapd.core.heading import yaw_quat
 from mocapd.core.heading_reset import ResetHistory, enu_turn, reset_yaws
 from mocapd.core.keypoints import TrackTargets
+from mocapd.core._undistort_kernel import warm_up as warm_up_undistortion
 from mocapd.core.lr_flips import warm_up as warm_up_flip_search
 from mocapd.core.people import PeopleTracker
 from mocapd.core.plausibility import first_events
@@ -474,7 +475,10 @@ class Daemon:
                     tasks.append(tg.create_task(self.supervisor.supervise("mattes", self._matte_loop), name="mattes"))
                 tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop), name="scheduler"))
                 tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop), name="status"))
-                pass  # gc.freeze()  # see _warm_up
+                if os.environ.get('MOCAPD_FREEZE'):
+                    gc.freeze()
+                if os.environ.get('MOCAPD_SWITCH'):
+                    import sys as _s; _s.setswitchinterval(float(os.environ['MOCAPD_SWITCH']))
                 lifecycle.enter_phase("running")
                 self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
                 self.ready.set()
@@ -540,6 +544,7 @@ class Daemon:
             DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options(),
                             keypoint_names=self.rig.targets.names).warm_up(n_kp)  # fmt: skip
             warm_up_flip_search(self.rig.cameras, n_kp)
+        warm_up_undistortion()  # every keypoint set arriving is undistorted by it, on the event loop
         # The offset estimates of the status loop, once: their first run, 10 s after READY, imported SciPy's signal
         # package (~200 modules) while the tick ran, and the imports' allocations set off full garbage collections
         # of the whole start-up heap: a second of 26-49 Hz output in every run. With the imports done here and
@@ -612,7 +617,6 @@ class Daemon:
             group = getattr(src, "group", None)  # a packed detection group (shared by its cameras)
             if group is not None and hasattr(group, "duty"):
                 group.duty = level.detector_duty
-        self.scheduler.shedding.flip_every = level.flip_every
         log.warning("governor: %s (%s)", level.name, self.governor.last_reason)
 
     async def _matte_loop(self) -> None:
