@@ -3,6 +3,8 @@ restores it only after a calm hold, never before the settling time."""
 
 from __future__ import annotations
 
+import itertools
+
 from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions
 
 PERIOD = 16_666_667
@@ -38,10 +40,11 @@ def test_an_overrun_sheds_one_step_per_window_in_the_ladders_order_and_never_the
         seen.append(g.step_index)
     assert seen == [min(k + 1, len(LADDER) - 1) for k in range(len(seen))]
     assert g.level.tracking_rate == 0.0 and g.level.detector_duty == 0.35
-    # The detector gives first, the tracking's rate next, tracking itself last (the latency is the tracking's);
-    # the tick never, and each step sheds at least as much as the one before.
-    assert [lv.name for lv in LADDER[1:3]] == ["detector at 75 % duty", "detector at 50 % duty"]
-    for a, b in zip(LADDER, LADDER[1:], strict=False):
+    # The issue's order: the tracking's rate first, then the detector, tracking itself last (the latency is the
+    # tracking's); the tick never, and each step sheds at least as much as the one before.
+    assert [lv.name for lv in LADDER[1:3]] == ["keypoint tracking at half rate",
+                                              "keypoint tracking at half rate, detector at 75 % duty"]  # fmt: skip
+    for a, b in itertools.pairwise(LADDER):
         assert b.tracking_rate <= a.tracking_rate and b.detector_duty <= a.detector_duty and a != b
     assert all(lv.tracking_rate > 0 for lv in LADDER[:-1])
     assert "of a 16.7 ms period" in str(g.status()["reason"])

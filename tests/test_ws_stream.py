@@ -202,8 +202,8 @@ def test_status_carries_the_health_subset_and_client_counters() -> None:
                 "slimevr": {"listen": "127.0.0.1:6969", "trackers": [
                     {"id": "A1:B2:C3:D4:E5:01", "connected": True, "packets": 4000, "lost": 0, "sensors": []}]}},
         "tasks": {"imu": {"failures": 0, "running": True}},
-        "governor": {"step": 1, "shed": "detector at 75 % duty", "reason": "tick p95 12.0 ms",
-                     "changes": 1, "tick_p95_ms": 12.0, "detector_duty": 0.75, "tracking_rate": 1.0},
+        "governor": {"step": 1, "shed": "keypoint tracking at half rate", "reason": "tick p95 12.0 ms",
+                     "changes": 1, "tick_p95_ms": 12.0, "detector_duty": 1.0, "tracking_rate": 0.5},
     }  # fmt: skip
     s = ClientSession(description())
     st = decode(s.status(health, 99, {"clients": 2, "sent": 10, "dropped": 1}))
@@ -217,7 +217,7 @@ def test_status_carries_the_health_subset_and_client_counters() -> None:
     assert decode(s.status({"imu": {"devices": [], "slimevr": None}}, 1, {}))["imus"] == []
     assert st["tasks"] == {"imu": 0} and st["stream"]["dropped"] == 1 and st["output"]["missed_ticks"] == 1
     # What the governor sheds, and why, reaches the viewer (issue 39).
-    assert st["governor"] == {"step": 1, "shed": "detector at 75 % duty", "reason": "tick p95 12.0 ms"}
+    assert st["governor"] == {"step": 1, "shed": "keypoint tracking at half rate", "reason": "tick p95 12.0 ms"}
     assert health_subset({}) == {}
 
 

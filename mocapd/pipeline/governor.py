@@ -10,13 +10,14 @@ missed, and moves one step along a fixed ladder of work to leave out:
 step  what is shed                         what it costs
 ====  ===================================  ========================================================================
 0     nothing                              —
-1     detector at 75 % duty                each detector worker rests a third of a pass after each pass: fewer
-                                           detections (keypoint tracking carries the people between them), the CPU
-                                           (or the CPU budget's quota) and the interpreter left to the tick
-2     detector at 50 % duty
-3     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
+1     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
                                            scheduler interpolates between them; ``latency_s = "auto"`` covers one
-                                           more frame interval)
+                                           more frame interval). The cheapest big step: on the 2-core camera demo
+                                           the tracking's optical flow cost ~0.5 of a core at 60 Hz
+2     detector at 75 % duty                each detector worker rests a third of a pass after each pass: fewer
+                                           detections (tracking carries the people between them), the CPU (or the
+                                           CPU budget's quota) and the interpreter left to the tick
+3     detector at 50 % duty
 4     detector at 35 % duty
 5     keypoint tracking off                keypoints only at the detector's rate; ``latency_s = "auto"`` follows
                                            the detector's delay instead of the tracking's (measured: 1.2 s end to
@@ -24,10 +25,11 @@ step  what is shed                         what it costs
 ====  ===================================  ========================================================================
 
 Why this order. The latency a user feels is the tracking's: between two detections the keypoints come from
-tracking, one frame after capture; the detector only re-anchors them. So the detector gives first, the tracking's
-rate next, tracking itself last. The left/right flip search is not on the ladder: compiled, it costs ~0.15 ms a
-person a tick (``person_cpu_ms.unflip`` in ``/status``), and reusing a decision on ticks between searches swapped
-a view's limbs whenever the detector had re-labelled it meanwhile (a demo person's arms sized 25 % long).
+tracking, one frame after capture; the detector only re-anchors them. Half the tracking rate keeps 30 keypoint sets
+a second per camera and person; the detector gives next; tracking itself goes last. The left/right flip search is
+not on the ladder: compiled, it costs ~0.15 ms a person a tick (``person_cpu_ms.unflip`` in ``/status``), and
+reusing a decision on ticks between searches swapped a view's limbs whenever the detector had re-labelled it
+meanwhile (a demo person's arms sized 25 % long).
 
 It sheds one step when the tick's p95 exceeds ``shed_above`` of the period or more than ``max_missed`` of the
 window's ticks were missed, and restores one step only after ``hold_s`` in which the p95 stayed below
@@ -55,8 +57,8 @@ class Level:
 
 LADDER: tuple[Level, ...] = (
     Level("nothing shed", 1.0, 1.0),
-    Level("detector at 75 % duty", 1.0, 0.75),
-    Level("detector at 50 % duty", 1.0, 0.5),
+    Level("keypoint tracking at half rate", 0.5, 1.0),
+    Level("keypoint tracking at half rate, detector at 75 % duty", 0.5, 0.75),
     Level("keypoint tracking at half rate, detector at 50 % duty", 0.5, 0.5),
     Level("keypoint tracking at half rate, detector at 35 % duty", 0.5, 0.35),
     Level("keypoint tracking off", 0.0, 0.35),
