@@ -19,17 +19,17 @@ step  what is shed                         what it costs
                                            CPU budget's quota) and the interpreter left to the tick
 3     detector at 50 % duty
 4     detector at 35 % duty
-5     keypoint tracking off                keypoints only at the detector's rate; ``latency_s = "auto"`` follows
-                                           the detector's delay instead of the tracking's (measured: 1.2 s end to
-                                           end at a one-core budget), so it is the last resort
 ====  ===================================  ========================================================================
 
-Why this order. The latency a user feels is the tracking's: between two detections the keypoints come from
-tracking, one frame after capture; the detector only re-anchors them. Half the tracking rate keeps 30 keypoint sets
-a second per camera and person; the detector gives next; tracking itself goes last. The left/right flip search is
-not on the ladder: compiled, it costs ~0.15 ms a person a tick (``person_cpu_ms.unflip`` in ``/status``), and
-reusing a decision on ticks between searches swapped a view's limbs whenever the detector had re-labelled it
-meanwhile (a demo person's arms sized 25 % long).
+Why this order, and why it ends there. The latency a user feels is the tracking's: between two detections the
+keypoints come from tracking, one frame after capture; the detector only re-anchors them. Half the tracking rate
+keeps 30 keypoint sets a second per camera and person; the detector gives next. Tracking is never shed: a starved
+detector delivers a camera's keypoints 1-3 times a second, too far apart for the scheduler to interpolate
+(``keypoint_max_gap_s``), so people dropped out of the solve and came back as new identities (the camera demo's
+test, 2 runs of 6 with a last step "tracking off"), and the latency became the detector's (1-2 s). The left/right
+flip search is not on the ladder either: compiled, it costs ~0.15 ms a person a tick (``person_cpu_ms.unflip`` in
+``/status``), and reusing a decision on ticks between searches swapped a view's limbs whenever the detector had
+re-labelled it meanwhile (a demo person's arms sized 25 % long).
 
 It sheds one step when the tick's p95 exceeds ``shed_above`` of the period or more than ``max_missed`` of the
 window's ticks were missed, and restores one step only after ``hold_s`` in which the p95 stayed below
@@ -61,7 +61,6 @@ LADDER: tuple[Level, ...] = (
     Level("keypoint tracking at half rate, detector at 75 % duty", 0.5, 0.75),
     Level("keypoint tracking at half rate, detector at 50 % duty", 0.5, 0.5),
     Level("keypoint tracking at half rate, detector at 35 % duty", 0.5, 0.35),
-    Level("keypoint tracking off", 0.0, 0.35),
 )
 
 

@@ -18,6 +18,7 @@ import contextlib
 import gc
 import logging
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -415,6 +416,10 @@ class Daemon:
     async def run(self) -> int:
         """Serve until stopped; returns the process exit status."""
         loop = asyncio.get_running_loop()
+        # How long a thread that wants the interpreter lock waits for the one holding it: the tick thread gives it
+        # up in every compiled kernel and would wait this long to get it back while the capture, tracking and
+        # detector threads run Python (CPython's default 5 ms is a third of a 60 Hz period).
+        sys.setswitchinterval(self.config.daemon.switch_interval_ms / 1000.0)
         signals = lifecycle.STOP_SIGNALS if self.handle_signals else ()
         for sig in signals:
             # add_signal_handler raises RuntimeError off the main thread: then signals are the caller's job.

@@ -69,6 +69,9 @@ class DaemonConfig(Section):
     governor: bool = False
     """Shed work (keypoint tracking rate, detector duty, flip search frequency) when the tick does not fit its
     period, in the order of docs/daemon.md "Real time on a slow machine"; never the output tick itself."""
+    switch_interval_ms: float = Field(1.0, ge=0.1, le=50.0)
+    """The interpreter's thread switch interval (``sys.setswitchinterval``): the longest a thread that wants the
+    interpreter lock waits for the one that holds it."""
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
     body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
     """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
