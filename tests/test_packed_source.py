@@ -17,7 +17,7 @@ from mocapd.io.video_source import VideoFileSource
 from mocapd.pipeline.detection_mode import ModeChooser, ModeChooserOptions
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.frame_ring import FrameRef
-from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource, Session
+from mocapd.pipeline.packed_source import MAX_REST_NS, PackedDetectionGroup, PackedKeypointSource, Session
 from mocapd.pipeline.packing import detectors_from_config, packed_detector_from_config
 
 
@@ -202,6 +202,7 @@ async def test_a_detector_at_half_duty_rests_as_long_as_it_detects() -> None:
     group = PackedDetectionGroup(packed_detector_from_config(DetectorConfig(intra_op_threads=1), sizes),
                                  ThreadPoolExecutor(1))  # fmt: skip
     group.duty = 0.5
+    group.max_rest_ns = 10**12  # the proportion itself (the cap has its own test)
     sources = [PackedKeypointSource(i, c, group) for i, c in enumerate(cams)]
     tasks = [asyncio.create_task(s.run(lambda *_: None)) for s in sources]
     try:
@@ -220,3 +221,21 @@ async def test_a_detector_at_half_duty_rests_as_long_as_it_detects() -> None:
     st = sources[0].status()["packing"]
     assert st["duty"] == 0.5 and st["rested_s"] > 0
     assert group.rested_ns >= 0.9 * group.busy_ns * (group.passes - 1) / group.passes, (group.rested_ns, group.busy_ns)
+
+
+def test_a_rest_never_ages_the_tracked_people_out() -> None:
+    """A pass a starved detector took 2 s for rests at most MAX_REST_NS at any duty (issue 39: 35 % duty rested
+    ~2 s after each 1 s pass, its cameras' tracked people aged out and came back as new identities)."""
+    cams = [VideoFileSource("cam01", demo_video("Demo_MultiPerson", "cam01"))]
+    sizes = [(c.ring.shape[1], c.ring.shape[0]) for c in cams]
+    group = PackedDetectionGroup(packed_detector_from_config(DetectorConfig(intra_op_threads=1), sizes),
+                                 ThreadPoolExecutor(1))  # fmt: skip
+    try:
+        group.duty = 0.35
+        group._rest(2_000_000_000)
+        assert group.rested_ns == MAX_REST_NS
+        group.duty = 0.75
+        group._rest(300_000_000)
+        assert group.rested_ns == MAX_REST_NS + 100_000_000  # a short pass rests its duty's share
+    finally:
+        group.close()

@@ -255,6 +255,24 @@ def test_backends_take_identical_steps(scene: Scene) -> None:
     np.testing.assert_allclose(a.theta, b.theta, atol=1e-9)
 
 
+@pytest.mark.parametrize("frame", [6, 14, 33])
+def test_the_compiled_lm_loop_takes_the_python_loops_steps(scene: Scene, frame: int) -> None:
+    """Issue 39: the LM loop compiled (it released the interpreter lock for the whole solve) is the Python loop
+    step for step: the same iterations, stopping rule, point and per-term costs, on warm and cold starts."""
+    for seed, degrees in ((frame, 3.0), (frame + 1, 25.0)):
+        start = perturb_pose(scene.truth[frame], np.random.default_rng(seed), degrees)
+        ref = _with_history(_solver(scene), scene, frame)
+        ref.compiled_loop = False
+        a = ref.solve(scene.observations[frame], start)
+        b = _with_history(_solver(scene), scene, frame).solve(scene.observations[frame], start)
+        assert (a.summary.iterations, a.summary.successful_iterations, a.summary.termination) == (
+            b.summary.iterations, b.summary.successful_iterations, b.summary.termination)  # fmt: skip
+        np.testing.assert_allclose(b.theta, a.theta, rtol=0.0, atol=1e-10)
+        assert b.summary.final_cost == pytest.approx(a.summary.final_cost, rel=1e-12)
+        assert b.summary.initial_cost == a.summary.initial_cost
+        assert b.summary.term_costs == pytest.approx(a.summary.term_costs, rel=1e-12)
+
+
 def test_bad_inputs_raise_clear_errors(scene: Scene) -> None:
     solver = _solver(scene)
     o = scene.observations[3]

@@ -203,7 +203,7 @@ def test_status_carries_the_health_subset_and_client_counters() -> None:
                     {"id": "A1:B2:C3:D4:E5:01", "connected": True, "packets": 4000, "lost": 0, "sensors": []}]}},
         "tasks": {"imu": {"failures": 0, "running": True}},
         "governor": {"step": 1, "shed": "keypoint tracking at half rate", "reason": "tick p95 12.0 ms",
-                     "changes": 1, "tick_p95_ms": 12.0, "flip_every": 1, "tracking_rate": 0.5},
+                     "changes": 1, "tick_p95_ms": 12.0, "detector_duty": 1.0, "tracking_rate": 0.5},
     }  # fmt: skip
     s = ClientSession(description())
     st = decode(s.status(health, 99, {"clients": 2, "sent": 10, "dropped": 1}))

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core._undistort_kernel import normalize_points
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -174,7 +175,8 @@ def project_points(
 
 
 def normalized_from_pixels(K: FloatArray, dist: FloatArray, uv: FloatArray, iterations: int = 10) -> FloatArray:
-    """Undistorted normalised coordinates from distorted pixels (fixed-point iteration as OpenCV does).
+    """Undistorted normalised coordinates from distorted pixels (fixed-point iteration as OpenCV does; compiled:
+    :mod:`mocapd.core._undistort_kernel`).
 
     Parameters
     ----------
@@ -184,6 +186,17 @@ def normalized_from_pixels(K: FloatArray, dist: FloatArray, uv: FloatArray, iter
     -------
     array, shape (..., 2)
     """
+    uv = np.asarray(uv, dtype=np.float64)
+    flat = np.ascontiguousarray(uv.reshape(-1, 2))
+    out = np.empty_like(flat)
+    normalize_points(
+        np.ascontiguousarray(K, dtype=np.float64), np.ascontiguousarray(dist, dtype=np.float64), flat, iterations, out
+    )
+    return out.reshape(uv.shape)
+
+
+def _normalized_from_pixels_numpy(K: FloatArray, dist: FloatArray, uv: FloatArray, iterations: int = 10) -> FloatArray:
+    """The numpy reference of :func:`normalized_from_pixels` (for the test that compares the two)."""
     k1, k2, p1, p2, k3 = (float(v) for v in dist)
     xd = (uv[..., 0] - K[0, 2]) / K[0, 0]
     yd = (uv[..., 1] - K[1, 2]) / K[1, 1]

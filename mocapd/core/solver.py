@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core import _kernel, _learned_kernel
+from mocapd.core import _kernel, _learned_kernel, _lm_kernel
 from mocapd.core.camera import Camera, stack_cameras, triangulate
 from mocapd.core.ground import (
     FOOT_SENSOR_BONES,
@@ -224,6 +224,9 @@ class PoseSolver:
         self._has_solved = False
         self._had_reference = False  # the last solve had an absolute position reference (enough cameras)
         self._kernel_static = self._pack_static() if backend == "compiled" else None
+        #: compiled backend: the LM loop compiled too (:mod:`mocapd.core._lm_kernel`); False runs the Python loop
+        #: around the same kernels (the reference the tests compare it with)
+        self.compiled_loop = True
         self.ground_options = ground if ground is not None else GroundOptions()
         self._hips_imu = next((i for i, m in enumerate(self.imus) if m.bone == "Hips"), None)
         self._foot_imus = [next((i for i, m in enumerate(self.imus) if m.bone == b), None) for b in FOOT_SENSOR_BONES]
@@ -809,6 +812,8 @@ class PoseSolver:
 
     def _minimize(self, x: FloatArray, v: ValidatedObservations) -> SolveResult:
         on = self._enabled(v)
+        if self._kernel_static is not None and self.compiled_loop and not on[LEARNED_TERM]:
+            return self._minimize_compiled(x, v, on)
 
         def linearize(theta: FloatArray) -> tuple[float, FloatArray, FloatArray, dict[str, float]]:
             cost, terms, H, g = self._linearize(theta, v, on)
@@ -829,6 +834,38 @@ class PoseSolver:
             term_costs={} if failed else r.info,
         )
         return SolveResult(self.theta.copy() if failed else r.x, summary)
+
+    def _minimize_compiled(self, x: FloatArray, v: ValidatedObservations, on: dict[str, bool]) -> SolveResult:
+        """The whole LM solve in one compiled call that releases the interpreter lock
+        (:mod:`mocapd.core._lm_kernel`; the learned term's solves keep the Python loop)."""
+        kp = self._kernel_static
+        assert kp is not None
+        zeros = np.zeros((self.n_imu, 3))
+        prev1 = self._history[0] if len(self._history) == 2 else zeros
+        prev2 = self._history[1] if len(self._history) == 2 else zeros
+        enabled = np.array([on[n] for n in TERM_NAMES], dtype=np.float64)
+        options = np.array([getattr(self.lm, f) for f in _lm_kernel.OPTION_FIELDS], dtype=np.float64)
+        out = np.empty(POSE_DIM)
+        stats = np.empty(6)
+        _lm_kernel.lm_solve(
+            np.ascontiguousarray(x, dtype=np.float64), options, kp.parents, kp.offsets, kp.point_bones,
+            kp.point_offsets, kp.n_kp, kp.n_imu, kp.K, kp.dist, kp.R, kp.t, v.uv, v.conf, v.q, v.acc,
+            v.mask.astype(np.float64), prev1, prev2, v.dt, kp.mu, kp.A_pp, kp.A_pd, kp.AtA_pp, kp.AtA_pd,
+            kp.lambdas, kp.loss_codes, kp.loss_scales, enabled, kp.floor_radius, kp.floor_height, out, self._tc, stats,
+        )  # fmt: skip
+        termination = Termination(_lm_kernel.TERMINATIONS[int(stats[4])])
+        failed = termination is Termination.NUMERICAL_FAILURE
+        message = _lm_kernel.FAILURE_MESSAGES[int(stats[5])] or ("non-finite point" if failed else "")
+        summary = SolveSummary(
+            initial_cost=float(stats[0]),
+            final_cost=float(stats[1]),
+            iterations=int(stats[2]),
+            successful_iterations=int(stats[3]),
+            termination=termination,
+            message=f"{message}; previous pose kept" if failed else message,
+            term_costs={} if failed else self._term_dict(on),
+        )
+        return SolveResult(self.theta.copy() if failed else out, summary)
 
 
 def _legs_measured(imus: tuple[ImuMount, ...]) -> bool:

@@ -11,17 +11,25 @@ step  what is shed                         what it costs
 ====  ===================================  ========================================================================
 0     nothing                              —
 1     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
-                                           scheduler interpolates between them)
+                                           scheduler interpolates between them; ``latency_s = "auto"`` covers one
+                                           more frame interval). The cheapest big step: on the 2-core camera demo
+                                           the tracking's optical flow cost ~0.5 of a core at 60 Hz
 2     detector at 75 % duty                each detector worker rests a third of a pass after each pass: fewer
-                                           detections, the CPU (or the CPU budget's quota) left to the tick
-3     flip search every 2nd tick           a person's left/right decision reused on the tick between two searches
-4     detector at 50 % duty
-5     flip search every 4th tick,
-      detector at 35 % duty
-6     keypoint tracking off                keypoints only at the detector's rate; ``latency_s = "auto"`` follows
-                                           the detector's delay instead of the tracking's (measured: 1.2 s end to
-                                           end at a one-core budget), so it is the last resort
+                                           detections (tracking carries the people between them), the CPU (or the
+                                           CPU budget's quota) and the interpreter left to the tick
+3     detector at 50 % duty
+4     detector at 35 % duty
 ====  ===================================  ========================================================================
+
+Why this order, and why it ends there. The latency a user feels is the tracking's: between two detections the
+keypoints come from tracking, one frame after capture; the detector only re-anchors them. Half the tracking rate
+keeps 30 keypoint sets a second per camera and person; the detector gives next. Tracking is never shed: a starved
+detector delivers a camera's keypoints 1-3 times a second, too far apart for the scheduler to interpolate
+(``keypoint_max_gap_s``), so people dropped out of the solve and came back as new identities (the camera demo's
+test, 2 runs of 6 with a last step "tracking off"), and the latency became the detector's (1-2 s). The left/right
+flip search is not on the ladder either: compiled, it costs ~0.15 ms a person a tick (``person_cpu_ms.unflip`` in
+``/status``), and reusing a decision on ticks between searches swapped a view's limbs whenever the detector had
+re-labelled it meanwhile (a demo person's arms sized 25 % long).
 
 It sheds one step when the tick's p95 exceeds ``shed_above`` of the period or more than ``max_missed`` of the
 window's ticks were missed, and restores one step only after ``hold_s`` in which the p95 stayed below
@@ -44,18 +52,15 @@ class Level:
 
     name: str
     tracking_rate: float  # keypoint tracking's rate as a share of its configured rate (0: off)
-    flip_every: int  # the flip search on every this-many-th tick
     detector_duty: float  # the share of wall time each detector worker may spend in passes
 
 
 LADDER: tuple[Level, ...] = (
-    Level("nothing shed", 1.0, 1, 1.0),
-    Level("keypoint tracking at half rate", 0.5, 1, 1.0),
-    Level("detector at 75 % duty", 0.5, 1, 0.75),
-    Level("flip search every 2nd tick", 0.5, 2, 0.75),
-    Level("detector at 50 % duty", 0.5, 2, 0.5),
-    Level("flip search every 4th tick, detector at 35 % duty", 0.5, 4, 0.35),
-    Level("keypoint tracking off", 0.0, 4, 0.35),
+    Level("nothing shed", 1.0, 1.0),
+    Level("keypoint tracking at half rate", 0.5, 1.0),
+    Level("keypoint tracking at half rate, detector at 75 % duty", 0.5, 0.75),
+    Level("keypoint tracking at half rate, detector at 50 % duty", 0.5, 0.5),
+    Level("keypoint tracking at half rate, detector at 35 % duty", 0.5, 0.35),
 )
 
 
@@ -152,7 +157,6 @@ class Governor:
             "step": self.step_index,
             "shed": self.level.name,
             "tracking_rate": self.level.tracking_rate,
-            "flip_every": self.level.flip_every,
             "detector_duty": self.level.detector_duty,
             "reason": self.last_reason,
             "changes": self.changes,

@@ -46,6 +46,8 @@ from mocapd.pipeline.packing import PackedDetector
 
 Image = NDArray[np.uint8]
 log = logging.getLogger(__name__)
+#: the longest rest after a pass at a duty below 1 (see :meth:`PackedDetectionGroup._rest`)
+MAX_REST_NS = 300_000_000
 
 
 def to_detections2d(people: PoseDetections, columns: NDArray[np.intp] | None = None) -> Detections2D:
@@ -144,6 +146,7 @@ class PackedDetectionGroup:
         #: worker rests ``pass × (1/duty − 1)`` after each pass: on a machine (or a CPU budget) too small for
         #: everything, the detector gives way before the output tick does.
         self.duty = 1.0
+        self.max_rest_ns = MAX_REST_NS
         self.rested_ns = 0
 
     def add(self, source: PackedKeypointSource) -> None:
@@ -204,11 +207,15 @@ class PackedDetectionGroup:
             self._rest(self.clock() - t0)
 
     def _rest(self, took_ns: int) -> None:
-        """After a pass that took ``took_ns``: rest so that passes take at most :attr:`duty` of the time."""
+        """After a pass that took ``took_ns``: rest so that passes take at most :attr:`duty` of the time, but never
+        longer than :attr:`max_rest_ns` (default :data:`MAX_REST_NS`)."""
         duty = self.duty
         if duty >= 1.0 or took_ns <= 0:
             return
-        rest_ns = round(took_ns * (1.0 / max(duty, 0.05) - 1.0))
+        # Capped: a pass a starved detector takes a second for would rest 2 s at 35 % duty, and a camera's
+        # detections that far apart age its tracked people out (``[detector.tracking] max_age_s``) -- they left
+        # the solve and came back as new identities on the loaded 2-core camera demo.
+        rest_ns = min(round(took_ns * (1.0 / max(duty, 0.05) - 1.0)), self.max_rest_ns)
         with self._cond:
             if not self._stop:
                 self._cond.wait_for(lambda: self._stop, rest_ns / 1e9)

@@ -226,16 +226,6 @@ class TickInputs:
     suits: dict[str, SuitSample]  # per suit, at t_solve_ns
 
 
-@dataclass
-class Shedding:
-    """Work the scheduler leaves out when the tick's budget is short (set by the daemon's governor,
-    :mod:`mocapd.pipeline.governor`)."""
-
-    flip_every: int = 1
-    """The left/right flip search runs on every this-many-th tick; the ticks between reuse each person's last
-    decision."""
-
-
 PERSON_STAGES = ("unflip", "solve", "size", "total")
 """Per person and tick: the flip search, the LM solve, the body sizing and the whole person job (CPU, ms)."""
 
@@ -378,9 +368,6 @@ class FixedLatencyScheduler:
         self._count_lock = threading.Lock()  # counters and the heading estimator, shared by parallel person jobs
         #: solves the people of a tick in parallel when set (the daemon's solve threads); None: one after another
         self.pool: Executor | None = None
-        self.shedding = Shedding()
-        self._flip_due = True
-        self._last_swaps: dict[str, NDArray[np.bool_]] = {}  # per identity: the flip search's last decision
         #: per person job and stage: CPU time (ms), for the stage costs in /status and the benchmarks
         self.person_cpu = {s: LatencyStats() for s in PERSON_STAGES}
         self._pool_cpu_ns = 0  # CPU of the person jobs run on the pool this tick (not the tick thread's)
@@ -451,7 +438,6 @@ class FixedLatencyScheduler:
         w2, c2 = self._stage("sort", w1, c1)
         self._seen_suits.clear()
         self._tick_mattes = None
-        self._flip_due = self.shedding.flip_every <= 1 or self.frame % self.shedding.flip_every == 0
         people = [*frame.people, *self._imu_only_people(frame.people, suits)]
         jobs = [(p, detections, suits.get(p.suit) if p.suit else None, t) for p in people]
         self._tick_thread = threading.current_thread()
@@ -614,7 +600,7 @@ class FixedLatencyScheduler:
             kp[cam] = detections[cam].keypoints[idx]
             und[cam] = self._undistorted(cam, detections[cam])[idx]
             conf[cam] = np.clip(detections[cam].confidences[idx], 0.0, 1.0)
-        kp, und, conf = self._unflip(person.identity, solver, kp, und, conf, len(person.detections))
+        kp, und, conf = self._unflip(solver, kp, und, conf, len(person.detections))
         c1 = self._cpu()
         imu_kw: dict[str, Any] = {}
         n_imu = 0
@@ -645,9 +631,7 @@ class FixedLatencyScheduler:
             self.counters["person_solves"] += 1
             if not result.summary.converged:
                 self.counters["not_converged"] += 1
-        if person.track >= 0 and len(person.detections) >= 2 and self._flip_due:
-            # Only ticks whose left/right labels were searched size the body: a decision reused on the ticks the
-            # governor leaves the search out (a view's flip undone by the detector meanwhile) would swap limbs.
+        if person.track >= 0 and len(person.detections) >= 2:
             self._size_body(person, solver, und, conf)
         c3 = self._cpu()
         with self._count_lock:
@@ -666,33 +650,27 @@ class FixedLatencyScheduler:
         )  # fmt: skip
 
     def _unflip(
-        self, identity: str, solver: PoseSolver, kp: FloatArray, und: FloatArray, conf: FloatArray, views: int
+        self, solver: PoseSolver, kp: FloatArray, und: FloatArray, conf: FloatArray, views: int
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """The person's keypoints with each view's left/right labels as the views agree on them
         (:mod:`mocapd.core.lr_flips`); which of the mirror labellings is right comes from the previous solve.
-        ``und``: the same keypoints undistorted. On the ticks the governor leaves the search out
-        (:attr:`Shedding.flip_every`), the person's last decision is applied again."""
+        ``und``: the same keypoints undistorted."""
         o = self.options.flips
         if not o.enabled or not self._lr_pairs or views < 2:
             return kp, und, conf
-        if self._flip_due:
-            reference = None
-            if solver._has_solved:
-                reference = solver.keypoint_positions(solver.theta)
-            elif views < o.min_views_alone:
-                return kp, und, conf
-            decision = choose_swaps(self._projections, und, conf, self._lr_pairs, reference, o)
-            swaps: NDArray[np.bool_] | None = decision.swaps
-            self._last_swaps[identity] = decision.swaps
-            if decision.count:
-                with self._count_lock:
-                    self.counters["lr_swaps"] += decision.count
-        else:
-            swaps = self._last_swaps.get(identity)
-        if swaps is None or not swaps.any():
+        reference = None
+        if solver._has_solved:
+            reference = solver.keypoint_positions(solver.theta)
+        elif views < o.min_views_alone:
             return kp, und, conf
-        kp, swapped_conf = apply_swaps(kp, conf, swaps, self._lr_pairs)
-        und, _ = apply_swaps(und, conf, swaps, self._lr_pairs)
+        decision = choose_swaps(self._projections, und, conf, self._lr_pairs, reference, o)
+        if decision.count:
+            with self._count_lock:
+                self.counters["lr_swaps"] += decision.count
+        if not decision.swaps.any():
+            return kp, und, conf
+        kp, swapped_conf = apply_swaps(kp, conf, decision.swaps, self._lr_pairs)
+        und, _ = apply_swaps(und, conf, decision.swaps, self._lr_pairs)
         return kp, und, swapped_conf
 
     def _undistorted(self, camera: int, dets: Detections2D) -> FloatArray:
@@ -830,8 +808,6 @@ class FixedLatencyScheduler:
                 del self.solvers[identity]
         for identity in [k for k in self.plausibility if k not in known and k not in seen]:
             del self.plausibility[identity]
-        for identity in [k for k in self._last_swaps if k not in known and k not in seen]:
-            del self._last_swaps[identity]
         tracks = {s.id for s in self.people.tracker.subjects}
         for table in (self.skeletons, self._sizing, self._restart):
             for track in [k for k in table if k not in tracks]:
@@ -890,7 +866,6 @@ class FixedLatencyScheduler:
             "cpu_s": {k: round(v / 1e9, 3) for k, v in self.cpu_ns.items()},
             # What one person costs a tick, by stage (CPU): where the tick's budget goes.
             "person_cpu_ms": {k: v.summary() for k, v in self.person_cpu.items()},
-            "shedding": {"flip_every": self.shedding.flip_every},
             "cameras": [
                 {"frames": tl.frames_received, "rejected": tl.rejected_out_of_order, "samples": dict(st)}
                 for tl, st in zip(self.timelines, self.keypoint_status, strict=True)

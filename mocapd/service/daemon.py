@@ -18,6 +18,7 @@ import contextlib
 import gc
 import logging
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -28,6 +29,7 @@ from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
+from mocapd.core._undistort_kernel import warm_up as warm_up_undistortion
 from mocapd.core.camera import Camera
 from mocapd.core.heading import yaw_quat
 from mocapd.core.heading_reset import ResetHistory, enu_turn, reset_yaws
@@ -414,6 +416,10 @@ class Daemon:
     async def run(self) -> int:
         """Serve until stopped; returns the process exit status."""
         loop = asyncio.get_running_loop()
+        # How long a thread that wants the interpreter lock waits for the one holding it: the tick thread gives it
+        # up in every compiled kernel and would wait this long to get it back while the capture, tracking and
+        # detector threads run Python (CPython's default 5 ms is a third of a 60 Hz period).
+        sys.setswitchinterval(self.config.daemon.switch_interval_ms / 1000.0)
         signals = lifecycle.STOP_SIGNALS if self.handle_signals else ()
         for sig in signals:
             # add_signal_handler raises RuntimeError off the main thread: then signals are the caller's job.
@@ -474,7 +480,7 @@ class Daemon:
                     tasks.append(tg.create_task(self.supervisor.supervise("mattes", self._matte_loop), name="mattes"))
                 tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop), name="scheduler"))
                 tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop), name="status"))
-                pass  # gc.freeze()  # see _warm_up
+                gc.freeze()  # the start-up heap out of every later collection (see _warm_up)
                 lifecycle.enter_phase("running")
                 self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
                 self.ready.set()
@@ -540,6 +546,7 @@ class Daemon:
             DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options(),
                             keypoint_names=self.rig.targets.names).warm_up(n_kp)  # fmt: skip
             warm_up_flip_search(self.rig.cameras, n_kp)
+        warm_up_undistortion()  # every keypoint set arriving is undistorted by it, on the event loop
         # The offset estimates of the status loop, once: their first run, 10 s after READY, imported SciPy's signal
         # package (~200 modules) while the tick ran, and the imports' allocations set off full garbage collections
         # of the whole start-up heap: a second of 26-49 Hz output in every run. With the imports done here and
@@ -612,7 +619,6 @@ class Daemon:
             group = getattr(src, "group", None)  # a packed detection group (shared by its cameras)
             if group is not None and hasattr(group, "duty"):
                 group.duty = level.detector_duty
-        self.scheduler.shedding.flip_every = level.flip_every
         log.warning("governor: %s (%s)", level.name, self.governor.last_reason)
 
     async def _matte_loop(self) -> None:
@@ -679,24 +685,26 @@ class Daemon:
 
     # ------------------------------------------------------------------------------------------ health
     def status_line_text(self) -> str:
-        s = self.scheduler.status()
-        e2e = s["latency_ms"]["end_to_end"]
+        """The console's one line a second. On the event loop, so it reads counters and one percentile: the whole
+        /status (every stage's percentiles, every camera's tracker statistics) cost ~100 ms of loop time a second
+        on the 2-core camera demo, six ticks' worth, every second (issue 39's profile)."""
+        e2e = self.scheduler.latency["end_to_end"].percentiles_ms((50,))["p50"]
         people = ", ".join(p.identity for p in self.latest.people) if self.latest else ""
         line = (
             f"t={(self.clock() - self.started_ns) / 1e9:6.1f} s  output {len(self._rate_window):3d} Hz  "
             f"missed {self.plan.missed if self.plan else 0} late {self.plan.late if self.plan else 0}  "
-            f"e2e p50 {e2e['p50']} ms  people [{people}]"
+            f"e2e p50 {e2e} ms  people [{people}]"
         )
         if self.governor is not None and self.governor.step_index:
             line += f"  shed: {self.governor.level.name}"
         if self.imu.devices:
             streaming = sum(1 for d in self.imu.devices if d.streaming.is_set())
             line += f"  IMUs {streaming}/{len(self.imu.devices)}"
-        cams = [s.status() for s in self.rig.sources]
-        if any("capture" in c for c in cams):
-            up = sum(1 for c in cams if c.get("capture", {}).get("up"))
-            detected = sum(int(c.get("detected", 0)) for c in cams)
-            line += f"  cameras up {up}/{len(cams)}  detected {detected}"
+        opened = [getattr(getattr(s, "frames", None), "opened", None) for s in self.rig.sources]
+        if any(isinstance(o, threading.Event) for o in opened):  # frame sources of mocapd.io: a capture device
+            up = sum(1 for o in opened if isinstance(o, threading.Event) and o.is_set())
+            detected = sum(int(getattr(s, "detected", 0)) for s in self.rig.sources)
+            line += f"  cameras up {up}/{len(opened)}  detected {detected}"
         return "  ".join([line, *(extra() for extra in self.status_line_extras)])
 
     def status(self) -> dict[str, Any]:

@@ -64,11 +64,14 @@ class DaemonConfig(Section):
     solve_threads: Annotated[int, Field(ge=1, le=64)] | Literal["auto"] = "auto"
     """Threads that solve the people of a tick in parallel, beside the tick's own thread ("auto": one per core
     beyond the first, at most 4; 1: people one after another on the tick's thread)."""
-    tick_thread: bool = False
+    tick_thread: bool = True
     """Solve each tick on the daemon's tick thread, off the event loop (issue 39); off: on the loop, as before."""
     governor: bool = False
-    """Shed work (keypoint tracking rate, detector duty, flip search frequency) when the tick does not fit its
+    """Shed work (keypoint tracking rate, detector duty) when the tick does not fit its
     period, in the order of docs/daemon.md "Real time on a slow machine"; never the output tick itself."""
+    switch_interval_ms: float = Field(1.0, ge=0.1, le=50.0)
+    """The interpreter's thread switch interval (``sys.setswitchinterval``): the longest a thread that wants the
+    interpreter lock waits for the one that holds it."""
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
     body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
     """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
