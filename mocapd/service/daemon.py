@@ -639,24 +639,37 @@ class Daemon:
     async def _status_loop(self) -> None:
         names = [c.name for c in self.rig.cameras]
         ticks = 0
-        while True:
-            await asyncio.sleep(1.0)
-            ticks += 1
-            self._observe_drift()
-            if ticks % 10 == 0:  # offset suggestions from the last seconds of keypoints, between ticks
-                await self.estimate_offsets(names)
-            warnings: list[str] = []
-            if self.scheduler.lock.acquire(timeout=READ_WAIT_S):  # the tick thread adds people's monitors
-                try:
-                    warnings = first_events(self.scheduler.plausibility, self._implausible_said)
-                finally:
-                    self.scheduler.lock.release()
-            for warning in warnings:
-                log.warning("%s", warning)
-            line = self.status_line_text()
-            self.notifier.notify(f"STATUS={line}")
-            if self.status_line is not None:
-                self.status_line(line)
+        estimating: asyncio.Task[None] | None = None
+        try:
+            while True:
+                await asyncio.sleep(1.0)
+                ticks += 1
+                self._observe_drift()
+                # Offset suggestions from the last seconds of keypoints, between ticks, beside this loop: on a
+                # machine with no time between ticks a step runs per tick, and the status lines go on meanwhile.
+                if ticks % 10 == 0 and (estimating is None or estimating.done()):
+                    if estimating is not None and not estimating.cancelled() and estimating.exception() is not None:
+                        log.warning("offset estimate failed: %s", estimating.exception())
+                    estimating = asyncio.create_task(self.estimate_offsets(names), name="offset estimate")
+                self._status_second()
+        finally:
+            if estimating is not None:
+                estimating.cancel()
+
+    def _status_second(self) -> None:
+        """The status loop's work of each second: implausible poses said, the status line."""
+        warnings: list[str] = []
+        if self.scheduler.lock.acquire(timeout=READ_WAIT_S):  # the tick thread adds people's monitors
+            try:
+                warnings = first_events(self.scheduler.plausibility, self._implausible_said)
+            finally:
+                self.scheduler.lock.release()
+        for warning in warnings:
+            log.warning("%s", warning)
+        line = self.status_line_text()
+        self.notifier.notify(f"STATUS={line}")
+        if self.status_line is not None:
+            self.status_line(line)
 
     async def estimate_offsets(self, names: list[str]) -> None:
         """The cameras' and suits' offset suggestions (``/status``), computed on the event loop in steps of about a
