@@ -294,3 +294,64 @@ async def test_auto_latency_follows_the_synthetic_detector_through_the_assembly_
     solve = [f.t_solve_ns for f in rec.frames]
     assert solve == sorted(solve)
     assert rec.frames[-1].tick_ns - rec.frames[-1].t_solve_ns == d.scheduler.latency_ns
+
+
+def test_the_offset_estimate_runs_between_ticks_in_steps() -> None:
+    """Issue 45's hiccup of every ``demo --synthetic`` near t = 10 s: the status loop's first offset estimate ran
+    in a thread, its thousands of small NumPy calls competing with the tick for the interpreter lock (each time
+    the tick let go of it, it waited a switch interval to get it back). Now it runs on the event loop in steps:
+    no thread is started, a timer that falls due while it runs (the next tick) runs after one step, and the
+    suggestions are the one-shot estimate's."""
+    import threading
+
+    from mocapd.pipeline.scheduler import Suit, camera_offset_steps, estimate_camera_offsets
+    from mocapd.service.bench.solver import synthetic_prior
+    from mocapd.service.daemon import Daemon, Rig, run_in_steps
+    from mocapd.sim.world import SyntheticWorld
+
+    world = SyntheticWorld(4, 2, 0, seed=3)
+    suits = [Suit.from_calibration(s.id, world.calibration(s), world.skeleton) for s in world.suits]
+    daemon = Daemon(load_config(), Rig(world.cameras, [], world.skeleton, world.targets, synthetic_prior(), suits))
+    rng = np.random.default_rng(0)
+    epoch, period = 10**12, round(1e9 / 30)
+    for k in range(300):  # 10 s of 30 Hz frames from 4 cameras, camera 1 stamped 40 ms late
+        for c in range(4):
+            t = epoch + k * period + c * period // 4
+            dets = world.detections(c, (t - epoch) / 1e9, rng)
+            daemon.scheduler.add_detections(c, t + (40_000_000 if c == 1 else 0), dets, t + 50_000_000)
+    names = [c.name for c in world.cameras]
+    frames = daemon.scheduler.camera_frames()
+    expected = estimate_camera_offsets(names, frames, daemon.scheduler.options.camera_offsets_ns)
+    assert expected["cam1"]["quality"] > 0.3  # a real estimate, not an empty one
+
+    def counted(steps: Any, count: list[int]) -> Any:
+        while True:
+            try:
+                next(steps)
+            except StopIteration as done:
+                return done.value
+            count[0] += 1
+            yield
+
+    async def main() -> tuple[list[int], int, dict[str, Any]]:
+        loop = asyncio.get_running_loop()
+        count, waited, threads = [0], [], threading.active_count()
+
+        def due(at: int) -> None:  # a timer due at once, as the next tick is: steps run before it
+            waited.append(count[0] - at)
+            if count[0] < 200:
+                loop.call_later(0.0, due, count[0])
+
+        loop.call_later(0.0, due, 0)
+        result = await run_in_steps(counted(camera_offset_steps(names, frames, (0, 0, 0, 0)), count))
+        assert threading.active_count() == threads
+        await daemon.estimate_offsets(names)  # the status loop's call: the same, through the daemon
+        assert threading.active_count() == threads
+        return waited, count[0], result
+
+    waited, steps, result = asyncio.run(main())
+    assert steps > 100 and result == expected
+    # A due timer waited one step at most (the first was set before the work's first step, which runs before the
+    # work first gives the loop back).
+    assert len(waited) > 50 and max(waited[1:]) <= 1, waited
+    assert daemon.scheduler.suggested_offsets == expected

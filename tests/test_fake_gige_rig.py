@@ -1,5 +1,5 @@
 """Real GigE Vision capture without hardware: Aravis fake cameras serving the Pose2Sim demo videos on loopback,
-inside a private network namespace, captured by mocapd's AravisSource (tools/fake_rig.py,
+inside a private network namespace, captured by mocapd's AravisSource (mocapd/sim/fake_rig.py,
 tools/camera_scenarios.py)."""
 
 from __future__ import annotations
@@ -39,10 +39,10 @@ def test_four_fake_cameras_deliver_bit_identical_frames(pose2sim_demo: Path) -> 
     # Quarter resolution (272x480, decoded then resized, like the fake server does) keeps four simultaneous
     # streams well within what a loaded 2-core machine moves: at half resolution one frame in a few hundred came
     # back torn under load (counters all zero; cause not found yet, see docs/cameras.md). Full-resolution frames
-    # are checked bit for bit by the single-camera tests below and measured by tools/bench_capture.py.
+    # are checked bit for bit by the single-camera tests below and measured by ``mocapd bench capture``.
     result = _run(
         [
-            "tools.fake_rig",
+            "mocapd.sim.fake_rig",
             "--videos",
             *videos,
             "--max-frames",
@@ -72,11 +72,11 @@ def test_four_fake_cameras_deliver_bit_identical_frames(pose2sim_demo: Path) -> 
 
 
 def test_reference_images_keep_the_source_colours(pose2sim_demo: Path) -> None:
-    """The oracle of the capture checks (tools.fake_rig.reference_image), judged against the source itself: each
+    """The oracle of the capture checks (mocapd.sim.fake_rig.reference_image), judged against the source itself: each
     Bayer pattern sampled and demosaiced comes back close to the source RGB, far from it with red and blue
     swapped; Mono8 is the luma of the source."""
     from mocapd.sim.fake_gige import load_video_rgb
-    from tools.fake_rig import GENICAM_BAYER_ROWS, reference_image
+    from mocapd.sim.fake_rig import GENICAM_BAYER_ROWS, reference_image
 
     (rgb,) = load_video_rgb(pose2sim_demo / "Demo_MultiPerson" / "videos" / "cam02.mp4", 1, (544, 960))
     src = rgb.astype(int)

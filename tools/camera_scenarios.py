@@ -12,7 +12,7 @@ and conversions done (a frame is demosaiced only when read, once), and whether e
 eager conversion of its raw bytes (what capture did before it turned lazy) and to the expected image.
 
 ``bayer`` / ``mono``: one camera in a Bayer or Mono8 format; compares what mocapd's ring holds with the expected
-image of the source frames (``tools.fake_rig.reference_image``: OpenCV's demosaicing of a mosaic sampled by the
+image of the source frames (``mocapd.sim.fake_rig.reference_image``: OpenCV's demosaicing of a mosaic sampled by the
 GenICam definition, not mocapd's own conversion) and, for Bayer, with the source RGB itself, to catch swapped
 channels.
 """
@@ -38,7 +38,7 @@ from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.pixels import convert_into, pixel_format
 from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.sim.fake_gige import add_loopback_aliases, load_video_rgb, server_command
-from tools.fake_rig import reference_image
+from mocapd.sim.fake_rig import reference_image
 
 
 def start_server(video: Path, address: str, max_frames: int, prepare: str) -> subprocess.Popen[str]:

@@ -38,7 +38,11 @@ credentials of its own cannot publish as another host; ``/status`` shows each ho
 
 A host not heard from (status, detections or clock replies) for ``lost_after_s`` is shown lost; its cameras deliver
 nothing, so their timelines go stale and they drop out of the solve; when it is heard again it rejoins (a
-restarted host has a new run id: its frame numbers and clock offset start again).
+restarted host has a new run id: its frame numbers and clock offset start again). A host never heard from
+``lost_after_s`` after the session opened is said once (:meth:`RemoteRig.unheard_line`, issue 45): Zenoh reports
+nothing of a link it refuses (a certificate ``tls_root_ca`` did not sign, a wrong password), so without that line
+a camera host refused by TLS was as silent on this side as on its own; the line names the links that are up, and
+those from identities ``[zenoh.identities]`` does not give any host.
 """
 
 from __future__ import annotations
@@ -126,6 +130,8 @@ class RemoteRig:
         self._thread: threading.Thread | None = None
         self._decoder = Decoder()
         self._start_lock = threading.Lock()
+        self._opened_ns: int | None = None  # when the session opened: the unheard hosts' grace starts there
+        self._unheard_said: set[str] = set()
 
     # ------------------------------------------------------------------------------------------ life cycle
     def start(self) -> zenoh.Session:
@@ -140,6 +146,7 @@ class RemoteRig:
                 raise
             self._subscribers.append(session.declare_subscriber(status_key(self.z.rig, "*"), self._on_status))
             self.session = session
+            self._opened_ns = self.clock()
             self._thread = threading.Thread(target=self._clock_loop, name="mocapd-zenoh-clock", daemon=True)
             self._thread.start()
             return session
@@ -188,6 +195,7 @@ class RemoteRig:
         return True
 
     def check_lost(self, now: int) -> None:
+        unheard: list[str] = []
         with self.lock:
             for host in self.hosts.values():
                 silent = host.last_seen_ns is None or now - host.last_seen_ns > self.z.lost_after_s * 1e9
@@ -195,6 +203,31 @@ class RemoteRig:
                     host.lost = True
                     host.losses += 1
                     log.warning("camera host %s lost (silent for %.1f s)", host.name, self.z.lost_after_s)
+                opened = self._opened_ns
+                late = opened is not None and now - opened >= self.z.lost_after_s * 1e9
+                if late and host.joins == 0 and host.name not in self._unheard_said:
+                    self._unheard_said.add(host.name)
+                    unheard.append(host.name)
+        if unheard:  # the links are read outside the lock: Zenoh's call may take a moment
+            log.warning("%s", self.unheard_line(unheard, self.links()))
+
+    def unheard_line(self, hosts: Sequence[str], links: Sequence[str]) -> str:
+        """The one line for camera hosts never heard from ``lost_after_s`` after the session opened (issue 45):
+        what may keep them out (Zenoh does not say), the links up, and those of identities no host has."""
+        expected = {self.z.identities[h] for h in self.hosts if h in self.z.identities}
+        strangers = sorted({i for i in links if i.startswith("cert:") and expected and i not in expected})
+        linked_silent = sorted(h for h in hosts if self.z.identities.get(h) in links)
+        names = ", ".join(hosts)
+        line = (
+            f"camera host{'s' if len(hosts) > 1 else ''} {names}: not heard from {self.z.lost_after_s:g} s after "
+            f"start: not running, or its link refused (TLS: a certificate tls_root_ca did not sign, or a name "
+            f"[zenoh.identities] does not give it; user/password); links up: {', '.join(links) or 'none'}"
+        )
+        if strangers:
+            line += f"; from identities [zenoh.identities] does not name: {', '.join(strangers)}"
+        if linked_silent:
+            line += f"; linked but silent (another [zenoh] rig name?): {', '.join(linked_silent)}"
+        return line
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         self.receive_status(str(sample.key_expr), sample.payload.to_bytes(), self.clock())

@@ -74,7 +74,13 @@ from mocapd.pipeline.latency import AutoLatency, AutoLatencyOptions, LatencyStat
 from mocapd.pipeline.mattes import MatteSource
 from mocapd.pipeline.prediction import PosePredictor, PredictionOptions, SuitState
 from mocapd.pipeline.ringbuffer import IMU_FIELDS, LookupStatus, RingBuffer
-from mocapd.pipeline.time_alignment import estimate_imu_lag, estimate_lag, keypoint_speed
+from mocapd.pipeline.time_alignment import (
+    Steps,
+    drain,
+    estimate_imu_lag_steps,
+    estimate_lag_steps,
+    keypoint_speed_steps,
+)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -962,6 +968,11 @@ class ImuAlignmentInput:
 
 
 def estimate_imu_offsets(inputs: list[ImuAlignmentInput], current_ns: dict[str, int]) -> dict[str, dict[str, Any]]:
+    """:func:`imu_offset_steps` at once."""
+    return drain(imu_offset_steps(inputs, current_ns))
+
+
+def imu_offset_steps(inputs: list[ImuAlignmentInput], current_ns: dict[str, int]) -> Steps[dict[str, dict[str, Any]]]:
     """Per suit: the offset (ms, ``[daemon.offsets.imus]`` convention, for every sensor of the suit) that aligns
     its hips sensor's vertical motion with the wearer's hips height as solved from the cameras, with the
     correlation peak as quality (see :func:`~mocapd.pipeline.time_alignment.estimate_imu_lag`). Suits without
@@ -970,7 +981,8 @@ def estimate_imu_offsets(inputs: list[ImuAlignmentInput], current_ns: dict[str, 
     for x in inputs:
         q_world = quat_multiply(np.asarray(x.q_ig)[None], quat_normalize(x.quat))
         vertical = np.einsum("nij,nj->ni", matrix_from_quat(q_world), x.acc)[:, 1] - GRAVITY
-        est = estimate_imu_lag(x.cam_t_ns, x.height_m, x.imu_t_ns, vertical)
+        yield
+        est = yield from estimate_imu_lag_steps(x.cam_t_ns, x.height_m, x.imu_t_ns, vertical)
         if est is not None:
             # Buffered times are raw (offsets are applied at look-up), so the lag is the whole offset.
             out[x.suit] = {
@@ -984,17 +996,24 @@ def estimate_imu_offsets(inputs: list[ImuAlignmentInput], current_ns: dict[str, 
 def estimate_camera_offsets(
     names: list[str], frames: list[tuple[list[int], list[Detections2D]]], current_ns: tuple[int, ...]
 ) -> dict[str, dict[str, float]]:
+    """:func:`camera_offset_steps` at once."""
+    return drain(camera_offset_steps(names, frames, current_ns))
+
+
+def camera_offset_steps(
+    names: list[str], frames: list[tuple[list[int], list[Detections2D]]], current_ns: tuple[int, ...]
+) -> Steps[dict[str, dict[str, float]]]:
     """Per camera (the first is the reference): the offset that would align its keypoint speeds with the first
     camera's, in ms, in the convention of ``[daemon.offsets]`` (added to what is configured), with the
     correlation peak as quality. Cameras without enough moving data are left out."""
     if len(frames) < 2:  # one camera, or none (a rig of IMUs alone): nothing to align
         return {}
-    ref_t, ref_v = keypoint_speed(np.asarray(frames[0][0], dtype=np.int64), frames[0][1])
+    ref_t, ref_v = yield from keypoint_speed_steps(np.asarray(frames[0][0], dtype=np.int64), frames[0][1])
     out: dict[str, dict[str, float]] = {}
     offsets = current_ns[1:] or (0,) * (len(names) - 1)
     for name, (times, dets), offset in zip(names[1:], frames[1:], offsets, strict=True):
-        t, v = keypoint_speed(np.asarray(times, dtype=np.int64), dets)
-        est = estimate_lag(ref_t, ref_v, t, v)
+        t, v = yield from keypoint_speed_steps(np.asarray(times, dtype=np.int64), dets)
+        est = yield from estimate_lag_steps(ref_t, ref_v, t, v)
         if est is not None:
             out[name] = {"offset_ms": round((offset + est.lag_ns) / 1e6, 1), "quality": round(est.quality, 3)}
     return out

@@ -8,11 +8,19 @@ image velocity of the people matched between consecutive frames).
 
 Pure: time stamps are arguments. The daemon reports the estimates as suggestions in /status; the configured
 ``[daemon.offsets]`` stay in charge (an estimate from a still scene is meaningless, and the ``quality`` says so).
+
+Each estimate also comes as steps (``*_steps``: a generator that yields after a bounded piece of work, about a
+millisecond, and returns the result; :func:`drain` runs one to its end). The daemon runs them on its event loop
+between ticks (issue 45): run in a thread, the estimate's thousands of small NumPy calls competed with the tick for
+the interpreter lock, and every time the tick let go of it (a compiled kernel, a socket) it waited a switch interval
+(5 ms) to get it back, so each estimate slowed the output for seconds.
 """
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +30,25 @@ from mocapd.pipeline.keypoint_timeline import person_distances
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+T = TypeVar("T")
+Steps = Generator[None, None, T]
+"""Work that yields after each bounded piece and returns its result."""
+
+FRAMES_PER_STEP = 8
+"""Frames of keypoint speed per step (each: a person matching and a few NumPy calls, ~0.1 ms on a laptop core)."""
+POINTS_PER_STEP = 40_000
+"""Interpolated samples per step of a lag search (candidate lags x grid points; ~0.5 ms on a laptop core): 30 s of
+keypoints on a 2 ms grid is 15 000 points per candidate lag, so a step scores two or three of the 201 lags."""
+
+
+def drain(steps: Steps[T]) -> T:
+    """Run ``steps`` to its end at once; its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            result: T = done.value
+            return result
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,6 +62,13 @@ class LagEstimate:
 def keypoint_speed(
     times_ns: IntArray, frames: list[Detections2D], match_px: float = 80.0
 ) -> tuple[IntArray, FloatArray]:
+    """:func:`keypoint_speed_steps` at once."""
+    return drain(keypoint_speed_steps(times_ns, frames, match_px))
+
+
+def keypoint_speed_steps(
+    times_ns: IntArray, frames: list[Detections2D], match_px: float = 80.0
+) -> Steps[tuple[IntArray, FloatArray]]:
     """Mean vertical image velocity (px/s, +down) of the people matched between consecutive frames, at the
     frames' midpoints. Vertical, because in a rig of upright cameras image "down" is world down in every view:
     the signal has the same sign and shape from every camera (speed magnitudes depend on the viewpoint).
@@ -48,6 +82,8 @@ def keypoint_speed(
     out_t: list[int] = []
     out_v: list[float] = []
     for k in range(1, len(frames)):
+        if k % FRAMES_PER_STEP == 0:
+            yield
         a, b = frames[k - 1], frames[k]
         dt = (int(times_ns[k]) - int(times_ns[k - 1])) / 1e9
         d = person_distances(a, b)
@@ -78,6 +114,20 @@ def estimate_lag(
 
     ``b(t + lag) ≈ a(t)``: a positive lag means b's time stamps run ahead.
     """
+    return drain(estimate_lag_steps(t_a, a, t_b, b, max_lag_ns=max_lag_ns, step_ns=step_ns))
+
+
+def estimate_lag_steps(
+    t_a: IntArray,
+    a: FloatArray,
+    t_b: IntArray,
+    b: FloatArray,
+    *,
+    max_lag_ns: int = 200_000_000,
+    step_ns: int = 2_000_000,
+) -> Steps[LagEstimate | None]:
+    """:func:`estimate_lag` in steps of :data:`POINTS_PER_STEP` interpolated samples: a block of candidate lags
+    scored in one array operation."""
     if len(t_a) < 8 or len(t_b) < 8:
         return None
     lo = max(int(t_a[0]), int(t_b[0]) - max_lag_ns)
@@ -89,10 +139,15 @@ def estimate_lag(
     sa = (sa - sa.mean()) / (sa.std() + 1e-12)
     lags = np.arange(-max_lag_ns, max_lag_ns + 1, step_ns, dtype=np.int64)
     scores = np.empty(lags.size)
-    for i, lag in enumerate(lags):
-        sb = np.interp(grid + lag, t_b, b)
-        sb = (sb - sb.mean()) / (sb.std() + 1e-12)
-        scores[i] = float(np.mean(sa * sb))
+    per_step = max(1, POINTS_PER_STEP // grid.size)
+    # Times as floats once (np.interp converts integer times on every call); exact below 2^53 ns (104 days).
+    grid_f, lags_f, tb_f = grid.astype(np.float64), lags.astype(np.float64), np.asarray(t_b, dtype=np.float64)
+    for i in range(0, lags.size, per_step):
+        block = lags_f[i : i + per_step]
+        sb = np.interp(grid_f[None, :] + block[:, None], tb_f, b)  # (lags, grid): b shifted by each lag
+        sb = (sb - sb.mean(axis=1, keepdims=True)) / (sb.std(axis=1, keepdims=True) + 1e-12)
+        scores[i : i + block.size] = np.mean(sa[None, :] * sb, axis=1)
+        yield
     k = int(np.argmax(scores))
     frac = 0.0
     if 0 < k < len(scores) - 1:
@@ -120,6 +175,21 @@ def estimate_imu_lag(
     band_hz: tuple[float, float] = (0.3, 5.0),
     max_lag_ns: int = 200_000_000,
 ) -> LagEstimate | None:
+    """:func:`estimate_imu_lag_steps` at once."""
+    return drain(estimate_imu_lag_steps(cam_t_ns, height_m, imu_t_ns, vertical_acc, rate_hz=rate_hz,
+                                        band_hz=band_hz, max_lag_ns=max_lag_ns))  # fmt: skip
+
+
+def estimate_imu_lag_steps(
+    cam_t_ns: IntArray,
+    height_m: FloatArray,
+    imu_t_ns: IntArray,
+    vertical_acc: FloatArray,
+    *,
+    rate_hz: float = 100.0,
+    band_hz: tuple[float, float] = (0.3, 5.0),
+    max_lag_ns: int = 200_000_000,
+) -> Steps[LagEstimate | None]:
     """How far an IMU's time stamps run ahead of the cameras', from vertical motion seen by both.
 
     The camera side is the height of the IMU's body site as solved from the cameras (host time, camera offsets
@@ -155,7 +225,9 @@ def estimate_imu_lag(
     # Trapezoidal, not a running sum: a running sum is half a sample (5 ms at 100 Hz) late.
     v_imu = np.concatenate([[0.0], np.cumsum(0.5 * (a_imu[1:] + a_imu[:-1]))]) * (step / 1e9)
     v_cam = _band_pass(v_cam, rate_hz, *band_hz)
+    yield
     v_imu = _band_pass(v_imu, rate_hz, *band_hz)
     if v_cam.std() < 1e-3 or v_imu.std() < 1e-3:  # under 1 mm/s: nobody is moving, any lag would fit
         return None
-    return estimate_lag(grid, v_cam, grid, v_imu, max_lag_ns=max_lag_ns)
+    yield
+    return (yield from estimate_lag_steps(grid, v_cam, grid, v_imu, max_lag_ns=max_lag_ns))

@@ -62,10 +62,10 @@ from mocapd.pipeline.scheduler import (
     PoseFrame,
     Suit,
     TickPlan,
-    estimate_camera_offsets,
-    estimate_imu_offsets,
+    camera_offset_steps,
+    imu_offset_steps,
 )
-from mocapd.pipeline.time_alignment import estimate_imu_lag, estimate_lag
+from mocapd.pipeline.time_alignment import Steps, estimate_imu_lag, estimate_lag
 from mocapd.service.config import Config
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.http_status import StatusServer
@@ -141,9 +141,22 @@ def build_fusion(config: Config, rig: Rig, mattes: MatteSource | None) -> Fusion
     return FusionStage(models, rig.cameras, rig.targets, rig.prior, config.solver.cost)
 
 
+async def run_in_steps(steps: Steps[T]) -> T:
+    """Run ``steps`` (work that yields after each bounded piece) on the event loop, one step per loop iteration,
+    and return its result: a timer that falls due (the next tick) runs after the current step, never after the
+    whole work."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            result: T = done.value
+            return result
+        await asyncio.sleep(0)
+
+
 def in_daemon_thread(fn: Callable[..., T], *args: Any) -> asyncio.Future[T]:
-    """``fn(*args)`` in a daemon thread: work a stop may abandon (the offset estimates, the solver kernel's
-    compile, the rig's model loads).
+    """``fn(*args)`` in a daemon thread: work a stop may abandon (the solver kernel's compile, the rig's model
+    loads).
 
     Not the loop's default executor: its threads are joined when the process exits, so a second of estimation
     (or a minute of compiling) still running at Ctrl-C would delay the stop by that long. A daemon thread is
@@ -632,33 +645,52 @@ class Daemon:
     async def _status_loop(self) -> None:
         names = [c.name for c in self.rig.cameras]
         ticks = 0
-        while True:
-            await asyncio.sleep(1.0)
-            ticks += 1
-            self._observe_drift()
-            if ticks % 10 == 0:  # offset suggestions from the last seconds of keypoints, computed off the loop
-                frames = self.scheduler.camera_frames()
-                offsets = self.scheduler.options.camera_offsets_ns
-                self.scheduler.suggested_offsets = await in_daemon_thread(
-                    estimate_camera_offsets, names, frames, offsets
-                )
-                self.scheduler.suggested_imu_offsets = await in_daemon_thread(
-                    estimate_imu_offsets,
-                    self.scheduler.imu_alignment_inputs(),
-                    dict(self.scheduler.options.imu_offsets_ns),
-                )
-            warnings: list[str] = []
-            if self.scheduler.lock.acquire(timeout=READ_WAIT_S):  # the tick thread adds people's monitors
-                try:
-                    warnings = first_events(self.scheduler.plausibility, self._implausible_said)
-                finally:
-                    self.scheduler.lock.release()
-            for warning in warnings:
-                log.warning("%s", warning)
-            line = self.status_line_text()
-            self.notifier.notify(f"STATUS={line}")
-            if self.status_line is not None:
-                self.status_line(line)
+        estimating: asyncio.Task[None] | None = None
+        try:
+            while True:
+                await asyncio.sleep(1.0)
+                ticks += 1
+                self._observe_drift()
+                # Offset suggestions from the last seconds of keypoints, between ticks, beside this loop: on a
+                # machine with no time between ticks a step runs per tick, and the status lines go on meanwhile.
+                if ticks % 10 == 0 and (estimating is None or estimating.done()):
+                    if estimating is not None and not estimating.cancelled() and estimating.exception() is not None:
+                        log.warning("offset estimate failed: %s", estimating.exception())
+                    estimating = asyncio.create_task(self.estimate_offsets(names), name="offset estimate")
+                self._status_second()
+        finally:
+            if estimating is not None:
+                estimating.cancel()
+
+    def _status_second(self) -> None:
+        """The status loop's work of each second: implausible poses said, the status line."""
+        warnings: list[str] = []
+        if self.scheduler.lock.acquire(timeout=READ_WAIT_S):  # the tick thread adds people's monitors
+            try:
+                warnings = first_events(self.scheduler.plausibility, self._implausible_said)
+            finally:
+                self.scheduler.lock.release()
+        for warning in warnings:
+            log.warning("%s", warning)
+        line = self.status_line_text()
+        self.notifier.notify(f"STATUS={line}")
+        if self.status_line is not None:
+            self.status_line(line)
+
+    async def estimate_offsets(self, names: list[str]) -> None:
+        """The cameras' and suits' offset suggestions (``/status``), computed on the event loop in steps of about a
+        millisecond (:func:`run_in_steps`).
+
+        Not in a thread (issue 45: the hiccup of every ``demo --synthetic`` near t = 10 s): the estimate's thousands
+        of small NumPy calls then competed with the tick for the interpreter lock, and each time the tick let go
+        of it (a compiled kernel, a socket) it waited a switch interval (5 ms) to get it back; ticks took 57-68 ms
+        for the seconds the estimate ran. Between ticks, a due tick waits for one step at most."""
+        offsets = self.scheduler.options.camera_offsets_ns
+        camera_steps = camera_offset_steps(names, self.scheduler.camera_frames(), offsets)
+        self.scheduler.suggested_offsets = await run_in_steps(camera_steps)
+        imu_inputs = self.scheduler.imu_alignment_inputs()
+        imu_steps = imu_offset_steps(imu_inputs, dict(self.scheduler.options.imu_offsets_ns))
+        self.scheduler.suggested_imu_offsets = await run_in_steps(imu_steps)
 
     def _observe_drift(self) -> None:
         """Each suit sensor's newest samples to the still-drift estimate (:mod:`mocapd.core.yaw_drift`)."""

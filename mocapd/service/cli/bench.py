@@ -10,6 +10,7 @@ lifecycle table...) stay in ``tools/``.
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 
@@ -67,6 +68,20 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_capture(args: argparse.Namespace) -> int:
+    from mocapd.errors import MocapdError
+    from mocapd.service.bench import capture
+    from mocapd.service.bench.machine import emit
+
+    try:
+        r = capture.run(args)
+    except MocapdError as exc:  # no Aravis, no unshare, a video that does not decode: the cause in one line
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    emit(r, capture.summary_line(r))
+    return 0
+
+
 def detector_arguments(ap: argparse.ArgumentParser) -> None:
     """The options of ``mocapd bench detector`` (the packing ones default to the shipped ``[detector.packing]``)."""
     from mocapd.pipeline.detector_config import PackingConfig
@@ -116,4 +131,10 @@ def register(subparsers: Any) -> argparse._SubParsersAction[argparse.ArgumentPar
     record.add_argument("--repeats", type=int, default=3)
     record.add_argument("--resolve-seconds", type=float, default=4.0, help="session length resolved (default 4)")
     record.set_defaults(func=_cmd_record)
+    cap = sub.add_parser("capture", help="GigE Vision capture cost: 4 fake cameras serving the Pose2Sim demo videos on "
+                         "loopback, in a private network namespace (needs Aravis and unshare)")  # fmt: skip
+    from mocapd.service.bench.capture import arguments as capture_arguments
+
+    capture_arguments(cap)
+    cap.set_defaults(func=_cmd_capture)
     return sub

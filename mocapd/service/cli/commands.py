@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"mocapd {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    cmd_bench.register(sub)  # solver, sorting, detector, streams, record (latency: cmd_daemon)
+    cmd_bench.register(sub)  # solver, sorting, detector, streams, record, capture (latency: cmd_daemon)
 
     ev = sub.add_parser("eval", help="evaluations that print JSON")
     ev_sub = ev.add_subparsers(dest="eval", metavar="EVAL", required=True)

@@ -14,9 +14,9 @@ video, captures every camera with :class:`mocapd.io.aravis_camera.AravisSource` 
   second; per camera the frames it read and the conversions the ring did (a lazy ring converts only those), and
   the reader thread's CPU (where the conversions of a lazy ring now run).
 
-Used by the integration tests and by ``tools/bench_capture.py``::
+Used by the integration tests and by ``mocapd bench capture`` (:mod:`mocapd.service.bench.capture`)::
 
-    python -m tools.fake_rig --videos a.mp4 b.mp4 --max-frames 20 --duration 3 --fps 30 --format RGB8
+    python -m mocapd.sim.fake_rig --videos a.mp4 b.mp4 --max-frames 20 --duration 3 --fps 30 --format RGB8
 """
 
 from __future__ import annotations
@@ -37,9 +37,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
 from mocapd.io.pixels import pixel_format
@@ -378,16 +375,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if not args.in_netns:
         # Aravis must never talk to a real network: re-run inside a private network namespace.
-        cmd = [
-            "unshare",
-            "-rn",
-            sys.executable,
-            "-m",
-            "tools.fake_rig",
-            *(argv or sys.argv[1:]),
-            "--in-netns",
-        ]
-        return subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], check=False).returncode
+        cmd = ["unshare", "-rn", sys.executable, "-m", "mocapd.sim.fake_rig", *(argv or sys.argv[1:]), "--in-netns"]
+        return subprocess.run(cmd, check=False).returncode
     result = run_rig(args)
     text = json.dumps(result, indent=1)
     print(text, flush=True)

@@ -1,11 +1,10 @@
-"""Capture benchmark: 4 fake GigE Vision cameras (Pose2Sim multi-person demo videos) captured by mocapd.
+"""``mocapd bench capture``: 4 fake GigE Vision cameras (Pose2Sim multi-person demo videos) captured by mocapd.
 
-Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+Runs the fake rig (:mod:`mocapd.sim.fake_rig`, inside ``unshare -rn``) for each configuration and prints one JSON
+object (its ``"machine"`` entry names the CPU, :func:`mocapd.service.bench.machine.emit`) and a summary line::
 
-Runs :mod:`tools.fake_rig` (inside ``unshare -rn``) for each configuration and prints one JSON object::
-
-    python -m tools.bench_capture [--duration 10] [--fps 30] [--configs NAME ...] [--read-hz 0]
-    python -m tools.bench_capture --fps 60 --configs 544x960_BayerRG8 --read-hz 2 --duration 20   # mocapd demo's
+    mocapd bench capture [--duration 10] [--fps 30] [--configs NAME ...] [--read-hz 0]
+    mocapd bench capture --fps 60 --configs 544x960_BayerRG8 --read-hz 2 --duration 20   # what mocapd demo serves
 
 Configurations: 640x480 and the videos' own 1088x1920 in RGB8, 1088x1920 and the demo's 544x960 in BayerRG8,
 ``--fps`` each. Per camera and configuration: capture-thread CPU (% of one core), frames, missing frames / resent
@@ -23,25 +22,27 @@ mosaic).
 
 ``capture_cpu_pct_per_camera`` is what capturing one camera costs: mocapd's capture threads plus Aravis' stream
 threads, over the cameras. With ``--read-hz`` a reader thread takes every camera's newest frame that often (the
-detector's stand-in): the conversions of a lazy ring run there, ``reader_thread_cpu_pct``.
+detector's stand-in): the conversions of a lazy ring run there, ``reader_thread_cpu_pct``. ``--compare-eager``
+runs the Bayer configurations with lazy and eager rings alternately (``--repeats`` times each).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from statistics import median
 from typing import Any
 
-from mocapd.io.pose2sim_demo import demo_root
+import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-VIDEOS = demo_root() / "Demo_MultiPerson" / "videos"
-
+from mocapd.errors import DeviceError
+from mocapd.io.pose2sim_demo import demo_video
 
 # RGB8 at the videos' size is 6.3 MB a frame (1.5 Gbit/s per camera at 30 fps, more than GigE carries); a colour
 # machine-vision camera sends Bayer (2.1 MB), demosaiced on the host. 544x960 BayerRG8 is what `mocapd demo` serves.
@@ -56,13 +57,14 @@ CONFIGS: dict[str, tuple[str | None, str]] = {
 def run_config(
     size: str | None, fmt: str, fps: float, duration: float, max_frames: int, read_hz: float = 0.0, eager: bool = False
 ) -> dict[str, Any]:
-    videos = [str(VIDEOS / f"cam0{i}.mp4") for i in range(1, 5)]
+    """One run of the fake rig (:mod:`mocapd.sim.fake_rig`, in its own process and network namespace): its JSON."""
+    videos = [str(demo_video("Demo_MultiPerson", f"cam0{i}")) for i in range(1, 5)]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "rig.json"
         cmd = [
             sys.executable,
             "-m",
-            "tools.fake_rig",
+            "mocapd.sim.fake_rig",
             "--videos",
             *videos,
             "--max-frames",
@@ -83,19 +85,17 @@ def run_config(
             cmd += ["--size", size]
         if eager:
             cmd.append("--eager")
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, check=False, timeout=duration + 300)
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=False, timeout=duration + 300)
         if proc.returncode != 0 or not out.exists():
-            raise RuntimeError(f"fake rig failed: {proc.stderr[-2000:]}")
+            # The cause in one line: no Aravis, no unshare, a video that does not decode.
+            last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+            raise DeviceError(f"fake rig ({fmt}, {size or 'full size'}) failed with status {proc.returncode}: {last}")
         result: dict[str, Any] = json.loads(out.read_text())
     return result
 
 
 def baseline_copy_ms(width: int, height: int, repeats: int = 50) -> float:
     """Median time of copying one RGB frame of this size with numpy, in ms."""
-    import time
-
-    import numpy as np
-
     src = np.random.default_rng(0).integers(0, 256, (height, width, 3), dtype=np.uint8)
     dst = np.empty_like(src)
     times = []
@@ -109,10 +109,7 @@ def baseline_copy_ms(width: int, height: int, repeats: int = 50) -> float:
 def per_frame_ms(width: int, height: int, fmt_name: str, repeats: int = 50) -> dict[str, float] | None:
     """Median time per frame of a Bayer format's eager conversion (demosaic into a slot) and of its lazy capture
     (copy the mosaic into a raw slot), in ms; None for other formats."""
-    import time
-
     import cv2
-    import numpy as np
 
     from mocapd.io.pixels import convert_into, from_rgb, pixel_format
 
@@ -169,13 +166,15 @@ def summarise(rig: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def compare_eager(args: argparse.Namespace, configs: dict[str, tuple[str | None, str]]) -> int:
+def _loadavg() -> list[float]:
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def compare_eager(args: argparse.Namespace, configs: dict[str, tuple[str | None, str]]) -> dict[str, Any]:
     """Lazy and eager rings, alternating run by run, per Bayer configuration: capture CPU per camera (mocapd's
     capture thread + Aravis' stream thread), the reader's CPU, frames read and conversions; medians over runs."""
-    out: dict[str, Any] = {"machine": {"cpus": len(__import__("os").sched_getaffinity(0)),
-                                       "loadavg_start": Path("/proc/loadavg").read_text().split()[:3]},
-                           "fps": args.fps, "duration_s": args.duration, "read_hz": args.read_hz,
-                           "repeats": args.repeats, "configs": {}}  # fmt: skip
+    out: dict[str, Any] = {"machine": {"loadavg_start": _loadavg()}, "fps": args.fps, "duration_s": args.duration,
+                           "read_hz": args.read_hz, "repeats": args.repeats, "configs": {}}  # fmt: skip
     for name, (size, fmt) in configs.items():
         if not fmt.startswith("Bayer"):
             continue
@@ -200,44 +199,61 @@ def compare_eager(args: argparse.Namespace, configs: dict[str, tuple[str | None,
                 "missing_frames_median": median(r["median_over_cameras"]["missing_frames"] for r in rs),
             }
         res["per_frame_ms"] = runs["lazy"][-1]["per_frame_ms"]
-        res["capture_cpu_ratio_lazy_over_eager"] = round(
-            res["lazy"]["capture_cpu_pct_per_camera_median"] / res["eager"]["capture_cpu_pct_per_camera_median"], 3
+        eager = res["eager"]["capture_cpu_pct_per_camera_median"]
+        res["capture_cpu_ratio_lazy_over_eager"] = (
+            round(res["lazy"]["capture_cpu_pct_per_camera_median"] / eager, 3) if eager else None
         )
         out["configs"][name] = res
-    out["machine"]["loadavg_end"] = Path("/proc/loadavg").read_text().split()[:3]
-    print(json.dumps(out, indent=1))
-    return 0
+    out["machine"]["loadavg_end"] = _loadavg()
+    return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--duration", type=float, default=10.0, help="capture time per configuration, s")
-    parser.add_argument("--fps", type=float, default=30.0)
-    parser.add_argument("--max-frames", type=int, default=30, help="video frames served (looped) per camera")
-    parser.add_argument("--configs", nargs="+", choices=sorted(CONFIGS), default=list(CONFIGS))
-    parser.add_argument("--read-hz", type=float, default=0.0, help="a reader takes every camera's newest frame")
-    parser.add_argument("--compare-eager", action="store_true",
-                        help="Bayer configurations: also run them with eager rings (demosaic at capture), alternating "
-                        "lazy / eager --repeats times")  # fmt: skip
-    parser.add_argument("--repeats", type=int, default=1, help="runs per configuration and mode (medians reported)")
-    args = parser.parse_args(argv)
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """``mocapd bench capture``'s report (without its CPU, which :func:`~mocapd.service.bench.machine.emit` adds).
+
+    Raises
+    ------
+    DeviceError
+        A fake rig run failed (no Aravis, no ``unshare``, a video that does not decode): its last line.
+    """
     configs = {name: CONFIGS[name] for name in args.configs}
     if args.compare_eager:
         return compare_eager(args, configs)
     result: dict[str, Any] = {
-        "machine": {
-            "cpus": len(__import__("os").sched_getaffinity(0)),
-            "loadavg_start": Path("/proc/loadavg").read_text().split()[:3],
-        },
+        "machine": {"loadavg_start": _loadavg()},
+        "cameras": 4,
         "configs": {
             name: summarise(run_config(size, fmt, args.fps, args.duration, args.max_frames, args.read_hz))
             for name, (size, fmt) in configs.items()
         },
     }
-    result["machine"]["loadavg_end"] = Path("/proc/loadavg").read_text().split()[:3]
-    print(json.dumps(result, indent=1))
-    return 0
+    result["machine"]["loadavg_end"] = _loadavg()
+    return result
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def summary_line(report: dict[str, Any]) -> str:
+    """The human summary: per configuration, the capture CPU per camera, frames and the latency's median."""
+    parts = []
+    for name, r in report["configs"].items():
+        if "lazy" in r:  # --compare-eager
+            parts.append(f"{name} capture {r['lazy']['capture_cpu_pct_per_camera_median']} % of a core per camera "
+                         f"lazy, {r['eager']['capture_cpu_pct_per_camera_median']} % eager")  # fmt: skip
+            continue
+        med, expected = r["median_over_cameras"], r["frames_expected_per_camera"]
+        parts.append(f"{name} {r['capture_cpu_pct_per_camera']} % of a core per camera, {med['frames']}/{expected} "
+                     f"frames, latency p50 {med['latency_ms_median']} ms")  # fmt: skip
+    return "bench capture (4 fake GigE cameras): " + "; ".join(parts or ["no Bayer configuration to compare"])
+
+
+def arguments(ap: argparse.ArgumentParser) -> None:
+    """The options of ``mocapd bench capture``."""
+    ap.add_argument("--duration", type=float, default=10.0, help="capture time per configuration, s (default 10)")
+    ap.add_argument("--fps", type=float, default=30.0, help="camera frame rate, Hz (default 30)")
+    ap.add_argument("--max-frames", type=int, default=30, help="video frames served (looped) per camera")
+    ap.add_argument("--configs", nargs="+", choices=sorted(CONFIGS), default=list(CONFIGS),
+                    help="size and pixel format configurations (default: all)")  # fmt: skip
+    ap.add_argument("--read-hz", type=float, default=0.0, help="a reader takes every camera's newest frame (0: none)")
+    ap.add_argument("--compare-eager", action="store_true",
+                    help="Bayer configurations: run them with lazy and eager rings (demosaic at capture), "
+                    "alternating --repeats times")  # fmt: skip
+    ap.add_argument("--repeats", type=int, default=1, help="runs per configuration and mode (medians reported)")
