@@ -82,7 +82,14 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--pose-exact",
         action="store_true",
-        help="take the --pose as held exactly (no posture estimated from the sensors: every mounting error stays)",
+        help="take the --pose as held exactly (no posture estimated from the sensors nor from the take's motion: every "
+        "mounting error stays)",
+    )
+    p.add_argument(
+        "--no-motion",
+        action="store_true",
+        help="with --from: keep the still window's mountings (by default the take's knee and elbow bends, where they "
+        "bend enough about one axis, refine them: docs/imu.md, 'Hinge axes from motion')",
     )
     p.add_argument(
         "--max-turn",
