@@ -1,11 +1,13 @@
 """Issue 42: hinge axes from motion refine the still window's mountings (mocapd.core.functional_calibration), on
-numbers: a knee or an elbow made to bend about a known axis, sensors strapped at known mountings."""
+numbers: a knee or an elbow made to bend about a known axis, sensors strapped at known mountings; and the guided
+routine (mocapd.core.calibration_routine) fed the routine's simulated take."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from mocapd.core.calibration_routine import CalibrationRoutine, RoutineOptions
 from mocapd.core.functional_calibration import (
     MIN_RANGE_DEG,
     aligned_mounting,
@@ -14,6 +16,7 @@ from mocapd.core.functional_calibration import (
 )
 from mocapd.core.imu_calibration import ImuCalibration, calibrate_recording
 from mocapd.core.rotations import matrix_from_quat, quat_angle, quat_conjugate, quat_from_rotvec, quat_multiply
+from mocapd.errors import ConfigError
 from mocapd.sim.calibration_routine import ROUTINE_S, routine_world
 
 RATE = 100.0
@@ -135,3 +138,50 @@ def test_a_take_without_enough_bending_keeps_the_still_window_s_mountings() -> N
     result = refine_from_recording(calib, still, window)
     assert result.calibration is calib
     assert all(not h["used"] and "needs 30" in str(h["reason"]) for h in result.hinges.values()), result.hinges
+
+
+# ------------------------------------------------------------------------------------------ the guided routine
+def _feed(routine: CalibrationRoutine, samples: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+          start_s: float, seconds: float) -> None:  # fmt: skip
+    """The samples from ``start_s`` for ``seconds``, a quarter second at a time, as a daemon polls its buffers."""
+    for k in np.arange(start_s, start_s + seconds, 0.25):
+        chunk = {}
+        for sid, (t, q, a) in samples.items():
+            sel = (t >= k) & (t < k + 0.25)
+            chunk[sid] = (t[sel], q[sel], a[sel])
+        routine.feed(float(k) + 0.25, chunk)
+        if routine.step in ("done", "failed"):
+            return
+
+
+def test_the_routine_says_each_step_and_calibrates_from_what_it_saw() -> None:
+    samples, bones, _ = _routine_take()
+    routine = CalibrationRoutine("p", bones, RoutineOptions(pose="a-pose"))
+    routine.start(0.0)
+    assert routine.step == "stand" and routine.said == [(0.0, "stand still, facing forward, arms relaxed "
+                                                              "(a-pose hint), for 1 s")]  # fmt: skip
+    _feed(routine, samples, 0.0, ROUTINE_S)
+    said = [text for _, text in routine.said]
+    assert said[1].startswith("still stand") and said[1].endswith("now walk 4 steps (forward and back, or on the spot)")
+    assert said[2] == "4 steps; now bend both elbows 2 times, palms in, upper arms still", said
+    assert said[3] == "elbow bends left elbow 2/2, right elbow 2/2; calibrating", said
+    assert said[4].startswith("done: facing 180 deg from the steps"), said
+    assert routine.step == "done" and routine.calibration is not None
+    assert routine.calibration.facing_heading_deg == pytest.approx(180.0, abs=2.0)
+    assert set(routine.calibration.hinge_misfit_deg) == {s for s, b in bones.items() if "Arm" in b or "Leg" in b}
+
+
+def test_the_routine_fails_naming_the_step_not_done() -> None:
+    samples, bones, _ = _routine_take()
+    still = {sid: (t[:250], q[:250], a[:250]) for sid, (t, q, a) in samples.items()}  # standing, never walking
+    routine = CalibrationRoutine("p", bones, RoutineOptions(step_timeout_s=1.0))
+    _feed(routine, still, 0.0, 2.5)
+    assert routine.step == "failed", routine.said
+    assert (
+        routine.said[-1][1] == "failed: no walk within 1 s (walk 4 steps (forward and back, or on the spot); steps 0/4)"
+    )
+    # a suit without a thigh and shank on either leg needs the heading given (no steps to take it from)
+    arms = {s: b for s, b in bones.items() if "Leg" not in b}
+    with pytest.raises(ConfigError, match="no thigh and shank on either leg"):
+        CalibrationRoutine("p", arms)
+    assert CalibrationRoutine("p", arms, RoutineOptions(facing_heading_deg=0.0)).step == "stand"
