@@ -4,6 +4,8 @@ routine (mocapd.core.calibration_routine) fed the routine's simulated take."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from mocapd.core.functional_calibration import (
     aligned_mounting,
     hinge_axes,
     refine_from_recording,
+    refine_mountings,
 )
 from mocapd.core.imu_calibration import ImuCalibration, calibrate_recording
 from mocapd.core.rotations import matrix_from_quat, quat_angle, quat_conjugate, quat_from_rotvec, quat_multiply
@@ -29,17 +32,25 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _hinge_take(
-    m_parent: np.ndarray, m_child: np.ndarray, axis: int, flex_deg: np.ndarray, twist_deg: np.ndarray | None = None
+    m_parent: np.ndarray,
+    m_child: np.ndarray,
+    axis: int,
+    flex_deg: np.ndarray,
+    twist_deg: np.ndarray | None = None,
+    twist_axis: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sensor world orientations (n, 4) of a parent bone turning about the vertical and a child bent about bone axis
-    ``axis`` by ``flex_deg`` (and twisted about its x axis by ``twist_deg``), worn at mountings ``m_*`` (4,)."""
+    ``axis`` by ``flex_deg`` (and twisted about its axis ``twist_axis`` by ``twist_deg``), worn at mountings ``m_*``
+    (4,)."""
     n = len(flex_deg)
     e = np.zeros((n, 3))
     e[:, axis] = np.radians(flex_deg)
     parent = quat_from_rotvec(np.c_[np.zeros(n), np.radians(np.linspace(0.0, 90.0, n)), np.zeros(n)])
     joint = quat_from_rotvec(e)
     if twist_deg is not None:
-        joint = quat_multiply(joint, quat_from_rotvec(np.c_[np.radians(twist_deg), np.zeros(n), np.zeros(n)]))
+        twist = np.zeros((n, 3))
+        twist[:, twist_axis] = np.radians(twist_deg)
+        joint = quat_multiply(joint, quat_from_rotvec(twist))
     child = quat_multiply(parent, joint)
     return quat_multiply(parent, m_parent[None]), quat_multiply(child, m_child[None])
 
@@ -185,3 +196,30 @@ def test_the_routine_fails_naming_the_step_not_done() -> None:
     with pytest.raises(ConfigError, match="no thigh and shank on either leg"):
         CalibrationRoutine("p", arms)
     assert CalibrationRoutine("p", arms, RoutineOptions(facing_heading_deg=0.0)).step == "stand"
+
+
+def test_an_axis_far_from_a_strapped_mounting_or_off_one_axis_is_not_taken() -> None:
+    """A knee whose axis would turn a mounting by 20° (more than a sensor strapped along its segment strays: on the
+    real MTw walk the knees' axes turned the mountings 18-27° and made the path 10 % too long), and one that twists
+    as much as it bends, keep the still window's mountings, saying why."""
+    ident = np.array([1.0, 0.0, 0.0, 0.0])
+    flex = 30.0 - 30.0 * np.cos(np.linspace(0.0, 6 * np.pi, 600))
+    s_p, s_c = _hinge_take(ident, ident, 0, flex)
+    off = quat_from_rotvec(np.radians(20.0) * np.array([0.0, 0.0, 1.0]))
+    calib = ImuCalibration("p", 0.0, "subject", ident, {"00B40001": "LeftUpperLeg", "00B40002": "LeftLowerLeg"},
+                           {"00B40001": off, "00B40002": ident}, {"00B40001": 0.1, "00B40002": 0.1})  # fmt: skip
+    result = refine_mountings(calib, {"00B40001": s_p, "00B40002": s_c}, {"00B40001": s_p[0], "00B40002": s_c[0]})
+    knee = result.hinges["left_knee"]
+    assert not knee["used"] and "would turn a mounting 20 deg, above 15" in str(knee["reason"]), knee
+    assert result.calibration is calib
+    # the same knee with the mounting 10° off is refined, onto the truth
+    near = quat_from_rotvec(np.radians(10.0) * np.array([0.0, 0.0, 1.0]))
+    calib = replace(calib, q_ib={"00B40001": near, "00B40002": ident})
+    result = refine_mountings(calib, {"00B40001": s_p, "00B40002": s_c}, {"00B40001": s_p[0], "00B40002": s_c[0]})
+    assert result.hinges["left_knee"]["used"]
+    assert float(np.degrees(quat_angle(result.calibration.q_ib["00B40001"], ident))) < 0.01
+    # twisting ±25° about the shank (its y axis) while bending: off one axis
+    twist = 25.0 * np.sin(np.linspace(0.0, 14 * np.pi, len(flex)))
+    s_p, s_c = _hinge_take(ident, ident, 0, flex, twist, twist_axis=1)
+    result = refine_mountings(calib, {"00B40001": s_p, "00B40002": s_c}, {"00B40001": s_p[0], "00B40002": s_c[0]})
+    assert not result.hinges["left_knee"]["used"] and "misfit" in str(result.hinges["left_knee"]["reason"])

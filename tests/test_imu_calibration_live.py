@@ -14,10 +14,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from websockets.asyncio.client import connect
 
 from mocapd.core.imu_calibration import ImuCalibration, calibrate_recording
 from mocapd.core.rotations import quat_angle
+from mocapd.service.cli import main
 from mocapd.service.demo.imu_only import IMU_RATE_HZ
 from mocapd.sim.calibration_routine import STAND_S, routine_world
 from mocapd.sim.suits import SimulatedSuits
@@ -153,3 +155,40 @@ def test_residuals_in_status_and_the_guided_calibration_of_a_running_daemon(tmp_
         assert abs(written.posture[f"{side}_upper_arm_drop"] - 25.0) < 2.0, written.posture
     for part in ("UpperArm", "LowerArm"):  # the arms' mountings nearer the truth than the stand alone put them
         assert _mount_error(written, truth, part) < _mount_error(first, truth, part), part
+
+
+def test_calibrate_imu_guided_walks_the_wearer_through_the_routine(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`mocapd calibrate imu --guided` (the issue's "a guided routine in `mocapd calibrate imu`") on the same 13
+    simulated devices: it says each step as the wearer does it and writes the calibration, the facing from the steps
+    (no --facing-heading)."""
+    world = routine_world(seed=2)
+    suit = world.suits[0]
+    ids = [f"{s:08X}" for s in suit.sensor_ids]
+    bones = {sid: m.bone for sid, m in zip(ids, suit.mounts, strict=True)}
+    sims = SimulatedSuits.start(world, IMU_RATE_HZ, time.monotonic_ns())
+    config = tmp_path / "suit.toml"
+    config.write_text(
+        f"[imu]\nports = {json.dumps(list(sims.ports))}\ncalibration_dir = {json.dumps(str(tmp_path / 'cal'))}\n"
+        f"rate_hz = {IMU_RATE_HZ}\n[imu.assignment]\n" + "".join(f'"{k}" = "{v}"\n' for k, v in bones.items()),
+        encoding="utf-8",
+    )  # fmt: skip
+    try:
+        code = main(["calibrate", "imu", "--guided", "--config", str(config), "--person", "bob", "--pose", "a-pose"])
+    finally:
+        sims.close()
+    out = capsys.readouterr().out
+    assert code == 0, out
+    lines = out.splitlines()
+    assert lines[0] == "stand still, facing forward, arms relaxed (a-pose hint), for 1 s", out
+    assert lines[1].startswith("still stand") and "now walk 4 steps" in lines[1], out
+    assert lines[2] == "4 steps; now bend both elbows 2 times, palms in, upper arms still", out
+    assert lines[3] == "elbow bends left elbow 2/2, right elbow 2/2; calibrating", out
+    assert lines[4].startswith("done: facing 180 deg from the steps"), out
+    assert "hinge misfit" in out and lines[-1] == f"wrote {tmp_path / 'cal' / 'bob.imu.json'}"
+    written = ImuCalibration.from_json_dict(json.loads((tmp_path / "cal" / "bob.imu.json").read_text()))
+    assert abs(written.facing_heading_deg - 180.0) < 3.0 and written.hinge_misfit_deg
+    # what it needs is said when a step cannot be done: auto is no posture to stand in
+    assert main(["calibrate", "imu", "--guided", "--config", str(config), "--person", "bob", "--pose", "auto"]) == 1
+    assert "say the stand's posture with --pose t-pose, a-pose or n-pose" in capsys.readouterr().out

@@ -26,7 +26,7 @@ import numpy as np
 from mocapd.core.calibration_routine import CalibrationRoutine, RoutineOptions
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.skeleton import Skeleton
-from mocapd.errors import InputError, MocapdError
+from mocapd.errors import InputError, MocapdError, OutputError
 from mocapd.io.output_files import write_text_atomic
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, Suit
@@ -138,12 +138,13 @@ class LiveCalibrations:
         path = self.calibration_dir / f"{calib.person}.imu.json"
         try:
             write_text_atomic(path, json.dumps(calib.to_json_dict(), indent=2) + "\n")
-            where = f"wrote {path}"
-        except OSError as exc:  # the pose still uses it; the file keeps the old one
-            where = f"could not write {path} ({exc}): the daemon uses it until it stops"
+            where, written = f"wrote {path}", str(path)
+        except (OSError, OutputError) as exc:  # the pose still uses it; the file keeps the old one (a read-only
+            # calibration_dir: under the systemd unit's ProtectSystem=strict, one outside its StateDirectory)
+            where, written = f"could not write {path} ({exc}): the daemon uses it until it stops", None
         self.install(suit)
         log.warning("imu calibration of suit %s done: %s; the suit is fused with it from now on", suit_id, where)
-        self.runs[suit_id].routine.report["file"] = str(path)
+        self.runs[suit_id].routine.report["file"] = written
 
     def _say(self, suit_id: str, run: _Run) -> None:
         """The routine's new words on the console."""
