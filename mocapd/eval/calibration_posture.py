@@ -10,13 +10,16 @@ development split's clips (CMU 131_02 and Bandai "normal"/"happy": never the eva
    orientations with 0.2° of jitter, specific force with 0.03 m/s² of noise (MTw-like, docs/imu.md);
 3. calibrated from the first 2 s with the facing known (what ``calibrate imu --from`` does after its still-window
    search): **before**, the T-pose assumed exactly (``--pose t-pose --pose-exact``, mocapd before issue 42); **after**,
-   the posture estimated from the hint ``--pose a-pose`` and from ``--pose t-pose``;
+   the posture estimated from the hint ``--pose a-pose`` and from ``--pose t-pose``; and the a-pose calibration with
+   its mountings refined by the hinge axes of the whole take's motion (what ``calibrate imu --from`` does:
+   :mod:`mocapd.core.functional_calibration`);
 4. solved IMU-only with the default options and prior (:class:`~mocapd.core.solver.PoseSolver`, foot contacts on)
    and measured over the clip (the standing and the move into it left out): joint position error relative to the
    hips joint by group (legs, trunk and head, arms; mm, mean over joints and frames), elbow / knee / hip flexion
    (:func:`~mocapd.core.plausibility.hinge_angles`, the thigh's sagittal angle in the pelvis) RMSE and bias (solved
-   minus true, degrees), and each calibration's posture error (its estimated upper-arm drop, elbow and knee bend
-   against the simulated posture's).
+   minus true, degrees), each calibration's posture error (its estimated upper-arm drop, elbow and knee bend
+   against the simulated posture's) and its mountings' error per segment (``mount_<segment>_deg``: the angle from
+   the simulated mountings, degrees); the functional rows say per hinge whether it refined and why not.
 
 Prints JSON. Deterministic for a seed.
 """
