@@ -246,23 +246,39 @@ GUIDED_POLL_S = 0.25
 """How often the guided routine is fed the samples that arrived (s)."""
 
 
-def _arrays(rows: list[ImuSample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Times (s), orientations (n, 4), specific force (n, 3) of the samples that carry both."""
+TICKS_HZ = 10_000.0
+"""Xsens SampleTimeFine counts at 10 kHz."""
+
+
+def _arrays(rows: list[ImuSample], base: dict[str, tuple[int, int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Times (s), orientations (n, 4), specific force (n, 3) of the samples that carry both.
+
+    A sample's time is its device clock's (SampleTimeFine) from the sensor's first sample on, put on the host clock
+    at that first sample (``base``: sensor -> (host ns, ticks)): a loaded machine reads a serial port in bursts, and
+    the host times of a burst's samples would be one instant (a still second would look shorter than it was)."""
     kept = [r for r in rows if r.quat is not None and r.acc is not None]
-    return (np.array([r.host_ns / 1e9 for r in kept]), np.array([r.quat for r in kept]).reshape(-1, 4),
+    times = []
+    for r in kept:
+        if r.device_ticks is None:
+            times.append(r.host_ns / 1e9)
+            continue
+        host0, ticks0 = base.setdefault(r.sensor, (r.host_ns, r.device_ticks))
+        times.append(host0 / 1e9 + ((r.device_ticks - ticks0) % (1 << 32)) / TICKS_HZ)
+    return (np.array(times), np.array([r.quat for r in kept]).reshape(-1, 4),
             np.array([r.acc for r in kept]).reshape(-1, 3))  # fmt: skip
 
 
 async def guided(config: ImuConfig, routine: CalibrationRoutine, connect_timeout: float) -> None:
     """Run the guided routine (:mod:`mocapd.core.calibration_routine`) on the live sensors, printing what it says."""
     said = 0
+    base: dict[str, tuple[int, int]] = {}
 
     async def run(take: Callable[[], dict[str, list[ImuSample]]]) -> None:
         nonlocal said
         routine.start(time.monotonic_ns() / 1e9)
         while routine.step not in ("done", "failed"):
             await asyncio.sleep(GUIDED_POLL_S)
-            routine.feed(time.monotonic_ns() / 1e9, {sid: _arrays(rows) for sid, rows in take().items()})
+            routine.feed(time.monotonic_ns() / 1e9, {sid: _arrays(rows, base) for sid, rows in take().items()})
             for _, text in routine.said[said:]:
                 print(text, flush=True)
             said = len(routine.said)
