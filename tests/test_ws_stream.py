@@ -242,3 +242,21 @@ def test_the_output_mode_and_each_poses_instant_are_carried(encoding: str) -> No
     assert [s["t_pose_ns"] for s in msg["subjects"]] == [ahead, frame.t_solve_ns]
     with pytest.raises(ValueError, match="output"):
         description(output="early")
+
+
+def test_calibrate_imu_requests_are_checked_and_handed_to_the_daemon() -> None:
+    """Issue 42: the guided IMU calibration asked over the WebSocket; a bad pose, suit or cancel is a bad_field."""
+    s = ClientSession(description())
+    assert s.receive_message(json.dumps({"type": "calibrate_imu", "suit": "alice", "pose": "a-pose"})) is None
+    assert s.receive_message(json.dumps({"type": "calibrate_imu", "cancel": True})) is None
+    assert s.commands_received() == [
+        ("calibrate_imu", {"suit": "alice", "pose": "a-pose", "cancel": None}),
+        ("calibrate_imu", {"suit": None, "pose": None, "cancel": True}),
+    ]
+    for bad, said in (({"pose": "y-pose"}, "pose = 'y-pose'"), ({"suit": ""}, "suit = ''"),
+                      ({"cancel": 1}, "cancel = 1"), ({"when": 3}, "unknown key(s) ['when']")):  # fmt: skip
+        error = s.receive_message(json.dumps({"type": "calibrate_imu", **bad}))
+        assert error is not None and error.code == "bad_field" and said in str(error), (bad, error)
+    assert s.commands_received() == []
+    unknown = s.receive_message(json.dumps({"type": "calibrate"}))
+    assert unknown is not None and "'calibrate_imu'" in str(unknown)

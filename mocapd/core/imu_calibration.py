@@ -360,6 +360,36 @@ class ImuCalibration:
     posture: dict[str, float] = field(default_factory=dict)
     """What the calibration posture held (:func:`posture_angles`, degrees), with the hint under ``"hint"`` absent."""
     pose_hint: str = "t-pose"
+    hinge_misfit_deg: dict[str, float] = field(default_factory=dict)
+    """Sensor id -> how far its bone's hinge (knee, elbow) strays from one axis over the motion that refined its
+    mounting (degrees, :mod:`mocapd.core.functional_calibration`); absent for a mounting from the still window only."""
+
+    def summary(self) -> dict[str, object]:
+        """What /status and the console say of this calibration: the posture it found (its hint and angles,
+        degrees), and per sensor its bone, stillness and residuals (degrees: ``mount_residual_deg`` the gravity
+        misfit, the mounting's angle from a case along its segment; ``hinge_misfit_deg`` where motion refined it),
+        with the sensor of the largest residual under ``worst``."""
+        sensors: dict[str, dict[str, object]] = {}
+        for sid in sorted(self.q_ib):
+            entry: dict[str, object] = {"bone": self.bones[sid]}
+            spread = self.spread_deg.get(sid, float("nan"))
+            entry["still_spread_deg"] = round(spread, 2) if np.isfinite(spread) else None
+            if sid in self.residual_deg:
+                entry["mount_residual_deg"] = round(self.residual_deg[sid], 1)
+            if sid in self.hinge_misfit_deg:
+                entry["hinge_misfit_deg"] = round(self.hinge_misfit_deg[sid], 1)
+            sensors[sid] = entry
+        residual = {sid: max(self.residual_deg.get(sid, 0.0), self.hinge_misfit_deg.get(sid, 0.0))
+                    for sid in self.q_ib if sid in self.residual_deg or sid in self.hinge_misfit_deg}  # fmt: skip
+        worst = max(residual, key=lambda k: residual[k], default=None)
+        return {
+            "pose_hint": self.pose_hint,
+            "posture_deg": dict(self.posture),
+            "functional": bool(self.hinge_misfit_deg),
+            "sensors": sensors,
+            "worst": None if worst is None else {"sensor": worst, "bone": self.bones[worst],
+                                                 "residual_deg": round(residual[worst], 1)},
+        }  # fmt: skip
 
     def device_heading_quats(self) -> dict[str, FloatArray]:
         """Sensor id -> ``Rz(δ)`` (4,), to apply to that sensor's device-frame samples before Eq. 8."""
@@ -382,6 +412,11 @@ class ImuCalibration:
                     "R_ib": [float(v) for v in q],
                     "still_spread_deg": self.spread_deg[sid],
                     **({"mount_residual_deg": round(self.residual_deg[sid], 2)} if sid in self.residual_deg else {}),
+                    **(
+                        {"hinge_misfit_deg": round(self.hinge_misfit_deg[sid], 2)}
+                        if sid in self.hinge_misfit_deg
+                        else {}
+                    ),
                     **({"device_heading_deg": self.device_heading_deg[sid]} if sid in self.device_heading_deg else {}),
                 }
                 for sid, q in self.q_ib.items()
@@ -421,6 +456,11 @@ class ImuCalibration:
                 },
                 posture={str(k): float(v) for k, v in posture.get("angles_deg", {}).items()},
                 pose_hint=str(posture.get("hint", "t-pose")),
+                hinge_misfit_deg={
+                    sid.upper(): _finite_float(s["hinge_misfit_deg"], f"{sid} hinge_misfit_deg")
+                    for sid, s in sensors.items()
+                    if "hinge_misfit_deg" in s
+                },
             )
         except (KeyError, TypeError, ValueError, AssertionError) as exc:
             raise CalibrationError(f"malformed IMU calibration file: {exc!r}") from exc

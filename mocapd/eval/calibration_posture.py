@@ -10,13 +10,16 @@ development split's clips (CMU 131_02 and Bandai "normal"/"happy": never the eva
    orientations with 0.2° of jitter, specific force with 0.03 m/s² of noise (MTw-like, docs/imu.md);
 3. calibrated from the first 2 s with the facing known (what ``calibrate imu --from`` does after its still-window
    search): **before**, the T-pose assumed exactly (``--pose t-pose --pose-exact``, mocapd before issue 42); **after**,
-   the posture estimated from the hint ``--pose a-pose`` and from ``--pose t-pose``;
+   the posture estimated from the hint ``--pose a-pose`` and from ``--pose t-pose``; and the a-pose calibration with
+   its mountings refined by the hinge axes of the whole take's motion (what ``calibrate imu --from`` does:
+   :mod:`mocapd.core.functional_calibration`);
 4. solved IMU-only with the default options and prior (:class:`~mocapd.core.solver.PoseSolver`, foot contacts on)
    and measured over the clip (the standing and the move into it left out): joint position error relative to the
    hips joint by group (legs, trunk and head, arms; mm, mean over joints and frames), elbow / knee / hip flexion
    (:func:`~mocapd.core.plausibility.hinge_angles`, the thigh's sagittal angle in the pelvis) RMSE and bias (solved
-   minus true, degrees), and each calibration's posture error (its estimated upper-arm drop, elbow and knee bend
-   against the simulated posture's).
+   minus true, degrees), each calibration's posture error (its estimated upper-arm drop, elbow and knee bend
+   against the simulated posture's) and its mountings' error per segment (``mount_<segment>_deg``: the angle from
+   the simulated mountings, degrees); the functional rows say per hinge whether it refined and why not.
 
 Prints JSON. Deterministic for a seed.
 """
@@ -33,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.functional_calibration import refine_mountings, still_orientations
 from mocapd.core.ground import GroundOptions
 from mocapd.core.imu import (
     IMU_SET_13,
@@ -42,15 +46,17 @@ from mocapd.core.imu import (
 )
 from mocapd.core.imu_calibration import (
     _AXIS_ALIGNED,
+    ImuCalibration,
     calibrate_recording,
     heading_alignment,
     posture_angles,
     rest_orientations,
+    window_samples,
 )
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.plausibility import hinge_angles
 from mocapd.core.prior import PcaPrior
-from mocapd.core.rotations import quat_from_matrix, quat_from_rotvec, quat_multiply
+from mocapd.core.rotations import quat_angle, quat_from_matrix, quat_from_rotvec, quat_multiply
 from mocapd.core.skeleton import BONE_INDEX, BONE_NAMES, Skeleton
 from mocapd.core.solver import PoseSolver
 from mocapd.eval.ground_optical import hip_flexion
@@ -69,10 +75,13 @@ CLIPS = (
 )
 """Development-split clips (``mocapd/data/eval_splits.toml``): a CMU walk, a walk, a wave, a guiding gesture, a bow."""
 METHODS = {
-    "before: T-pose assumed": ("t-pose", False),
-    "after: --pose a-pose (estimated)": ("a-pose", True),
-    "after: --pose t-pose (estimated)": ("t-pose", True),
+    "before: T-pose assumed": ("t-pose", False, False),
+    "after: --pose a-pose (estimated)": ("a-pose", True, False),
+    "after: --pose t-pose (estimated)": ("t-pose", True, False),
+    "after: --pose a-pose + hinge axes from the motion": ("a-pose", True, True),
 }
+"""Label -> (posture hint, posture estimated from the still window, mountings refined by the take's hinge axes:
+:func:`mocapd.core.functional_calibration.refine_mountings`, what ``calibrate imu --from`` does with a take)."""
 GROUPS = {
     "legs": [b for b in BONE_NAMES if "Leg" in b or "Foot" in b or "Toes" in b],
     "trunk_head": ["Spine", "Spine1", "Spine2", "Spine3", "Neck", "Head"],
@@ -108,10 +117,31 @@ def strapped_mounting(rng: np.random.Generator) -> FloatArray:
     return np.asarray(quat_multiply(askew, _AXIS_ALIGNED[rng.integers(len(_AXIS_ALIGNED))]))
 
 
+SEGMENTS = ("UpperArm", "LowerArm", "UpperLeg", "LowerLeg", "Hips", "Spine3", "Head", "Foot")
+"""The segments whose mounting error the table gives (left and right together)."""
+
+
+def mounting_errors(calib: ImuCalibration, true_mounts: dict[str, FloatArray]) -> dict[str, float]:
+    """Per segment (:data:`SEGMENTS`), the angle of the calibration's mountings from the simulated ones (sensor id ->
+    (4,), degrees, mean over the sensors on it)."""
+    out: dict[str, list[float]] = {}
+    for sid, bone in calib.bones.items():
+        seg = next(s for s in SEGMENTS if bone.endswith(s))
+        out.setdefault(seg, []).append(float(np.degrees(quat_angle(calib.q_ib[sid], true_mounts[sid]))))
+    return {s: round(float(np.mean(v)), 1) for s, v in out.items()}
+
+
 def simulate_take(
     skeleton: Skeleton, motion: FloatArray, rng: np.random.Generator
-) -> tuple[dict[str, tuple[FloatArray, FloatArray, FloatArray]], dict[str, str], FloatArray, dict[str, float]]:
-    """Samples per sensor (t, q, acc), the assignment, the truth θ (n, 66) and the posture's angles."""
+) -> tuple[
+    dict[str, tuple[FloatArray, FloatArray, FloatArray]],
+    dict[str, str],
+    FloatArray,
+    dict[str, float],
+    dict[str, FloatArray],
+]:
+    """Samples per sensor (t, q, acc), the assignment, the truth θ (n, 66), the posture's angles and the sensors'
+    true mountings (4,)."""
     posture, angles = realistic_posture(skeleton, rng)
     posture[:3] = [motion[0, 0], motion[0, 1], motion[0, 2]]
     still = np.repeat(posture[None], round(STILL_S * FPS), axis=0)
@@ -127,15 +157,16 @@ def simulate_take(
     q_gb = quat_from_matrix(fk.rotations[:, bones])
     q_ig = heading_alignment(0.0)
     t = np.arange(len(theta)) / FPS
-    samples, assignment = {}, {}
+    samples, assignment, true_mounts = {}, {}, {}
     for k, m in enumerate(mounts):
         sid = f"00B4{0x3100 + k:04X}"
         jitter = quat_from_rotvec(rng.normal(0.0, np.radians(0.2) / np.sqrt(3), (len(theta), 3)))
-        q_i = quat_multiply(sensor_orientation_from_bone(q_ig, q_gb[:, k], strapped_mounting(rng)), jitter)
+        true_mounts[sid] = strapped_mounting(rng)
+        q_i = quat_multiply(sensor_orientation_from_bone(q_ig, q_gb[:, k], true_mounts[sid]), jitter)
         f = specific_force_from_acceleration(q_ig, q_i, acc[:, k]) + rng.normal(0.0, 0.03, (len(theta), 3))
         samples[sid] = (t, q_i, f)
         assignment[sid] = m.bone
-    return samples, assignment, theta, angles
+    return samples, assignment, theta, angles, true_mounts
 
 
 def measure(theta: FloatArray, truth: FloatArray, skeleton: Skeleton) -> dict[str, Any]:
@@ -171,10 +202,17 @@ def run(seconds: float, seed: int, data_root: Path, prior: PcaPrior | None) -> d
     for path in CLIPS:
         clip = load_clip(data_root / path, FPS)
         motion = clip.theta[: round(seconds * FPS)]
-        samples, bones, truth, angles = simulate_take(clip.skeleton, motion, rng)
-        for label, (pose, estimate) in METHODS.items():
-            calib, _ = calibrate_recording("sim", samples, bones, facing_heading_deg=0.0, span=(0.0, STILL_S),
-                                           window_s=1.0, pose=pose, estimate_posture=estimate)  # fmt: skip
+        samples, bones, truth, angles, true_mounts = simulate_take(clip.skeleton, motion, rng)
+        hinge_rows: dict[str, Any] = {}
+        for label, (pose, estimate, functional) in METHODS.items():
+            calib, window = calibrate_recording("sim", samples, bones, facing_heading_deg=0.0, span=(0.0, STILL_S),
+                                                window_s=1.0, pose=pose, estimate_posture=estimate)  # fmt: skip
+            if functional:
+                t = next(iter(samples.values()))[0]
+                orientations = {sid: q for sid, (_, q, _) in samples.items()}
+                refined = refine_mountings(calib, orientations,
+                                           still_orientations(orientations, window_samples(t, *window)))  # fmt: skip
+                calib, hinge_rows = refined.calibration, refined.hinges
             if not estimate:  # the posture as the exact hint took it
                 hint = rest_orientations(pose) or {}
                 calib_angles = posture_angles({b: hint.get(b, np.array([1.0, 0, 0, 0])) for b in BONE_NAMES})
@@ -185,10 +223,12 @@ def run(seconds: float, seed: int, data_root: Path, prior: PcaPrior | None) -> d
             solver = PoseSolver(clip.skeleton, [], None, mounts, prior, ground=GroundOptions())
             solver.reset(truth[0])
             theta = np.array([solver.solve(o).theta for o in obs])
-            rows[label].append({"clip": Path(path).stem, **measure(theta, truth, clip.skeleton)})
+            row = {"clip": Path(path).stem, **measure(theta, truth, clip.skeleton),
+                   **{f"mount_{k}_deg": v for k, v in mounting_errors(calib, true_mounts).items()}}  # fmt: skip
+            rows[label].append(row | ({"hinges": hinge_rows} if functional else {}))
     summary = {}
     for label, rs in rows.items():
-        keys = [k for k in rs[0] if k != "clip"]
+        keys = [k for k in rs[0] if k not in ("clip", "hinges")]
         pe = np.array(posture_err[label])
         summary[label] = {k: round(float(np.mean([r[k] for r in rs])), 1) for k in keys} | {
             "posture_error_rms_deg": round(float(np.sqrt(np.mean(pe**2))), 1)

@@ -456,7 +456,8 @@ class WebSocketStreamServer:
             return session.error("rate_limited", str(exc))
         except MocapdError as exc:
             return session.error("failed", str(exc))
-        return session.reply({"reset_heading": "heading_reset"}.get(name, name), result)
+        return session.reply({"reset_heading": "heading_reset", "calibrate_imu": "imu_calibration"}.get(name, name),
+                             result)  # fmt: skip
 
     async def _send_loop(self, client: _Client) -> None:
         conn = client.conn

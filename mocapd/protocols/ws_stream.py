@@ -89,6 +89,8 @@ Server → client messages
     tasks           {str: int}   supervised task -> failures so far
     governor        map     step (0: nothing shed), shed (what is left out now), reason (why); absent when the
                             daemon's governor is off
+    imu_calibration_routine  {str: map}   per suit being calibrated live (or just done): step, do, progress,
+                            said (docs/imu.md "Calibrating a suit live"); absent when none ran
     stream          map     clients (connected now), sent (messages sent to this client), dropped (messages
                             dropped for this client because it read too slowly)
 
@@ -149,6 +151,18 @@ answered with ``heading_reset`` (``t_ns``, ``source``, ``suits``: per suit ``cor
 more resets than ``[daemon] heading_reset_burst`` / ``heading_resets_per_s`` allow; ``unsupported``: a server without
 a daemon, e.g. a replay).
 
+and for the **guided IMU calibration** of a suit (docs/imu.md "Calibrating a suit live": stand, walk a few steps,
+bend the elbows)::
+
+    type            str     "calibrate_imu"
+    suit            str | nil   the suit to calibrate (nil or absent: the rig's only suit)
+    pose            str | nil   the stand's posture hint: "t-pose", "a-pose" or "n-pose" (nil: "n-pose")
+    cancel          bool | nil  true: stop the routine running for the suit
+
+answered with ``imu_calibration`` (the routine's state: ``suit``, ``step``, ``do`` (what the wearer does now),
+``progress``, ``said``); its later steps and its result come in status messages (``imu_calibration_routine``), or an
+``error`` (code ``failed``: no such suit, a routine already running, a suit of SlimeVR trackers).
+
 Encoding cost: :class:`FrameEncoder` converts each subject once per convention and encodes each distinct
 (encoding, convention, globals, subjects) once per frame, whatever the number of clients.
 """
@@ -187,6 +201,9 @@ _SUBSCRIBE_KEYS = frozenset(
     {"type", "subjects", "rate_hz", "convention", "encoding", "globals", "status", "cameras", "camera_rate_hz"}
 )
 _RESET_KEYS = frozenset({"type", "suit"})
+_CALIBRATE_KEYS = frozenset({"type", "suit", "pose", "cancel"})
+ROUTINE_POSES = ("t-pose", "a-pose", "n-pose")
+"""The posture hints a ``calibrate_imu`` request may name."""
 _JSON_DECIMALS = 6
 
 
@@ -489,6 +506,12 @@ def health_subset(health: Mapping[str, Any]) -> dict[str, Any]:
     tasks = health.get("tasks")
     if isinstance(tasks, Mapping):
         out["tasks"] = {k: v.get("failures", 0) for k, v in tasks.items() if isinstance(v, Mapping)}
+    routines = health.get("imu_calibration_routine")
+    if isinstance(routines, Mapping) and routines:  # a guided calibration running or just done: its step and words
+        out["imu_calibration_routine"] = {
+            k: {f: r.get(f) for f in ("step", "do", "progress", "said")} for k, r in routines.items()
+            if isinstance(r, Mapping)
+        }  # fmt: skip
     governor = health.get("governor")
     if isinstance(governor, Mapping):
         out["governor"] = {k: governor.get(k) for k in ("step", "shed", "reason")}
@@ -642,6 +665,9 @@ class ClientSession:
             if request["type"] == "reset_heading":
                 self._commands.append(("reset_heading", {"suit": request.get("suit")}))
                 return None
+            if request["type"] == "calibrate_imu":
+                self._commands.append(("calibrate_imu", {k: request.get(k) for k in ("suit", "pose", "cancel")}))
+                return None
             self.options = self._apply(request)
         except RequestError as exc:
             self.errors += 1
@@ -663,16 +689,23 @@ class ClientSession:
         if not isinstance(obj, dict):
             raise RequestError("bad_message", f"a request must be a map, got {type(obj).__name__}")
         kind = obj.get("type")
-        keys = {"subscribe": _SUBSCRIBE_KEYS, "reset_heading": _RESET_KEYS}.get(kind) if isinstance(kind, str) else None
+        kinds = {"subscribe": _SUBSCRIBE_KEYS, "reset_heading": _RESET_KEYS, "calibrate_imu": _CALIBRATE_KEYS}
+        keys = kinds.get(kind) if isinstance(kind, str) else None
         if keys is None:
-            raise RequestError("unknown_type", f"unknown request type {kind!r}; requests: 'subscribe', 'reset_heading'")
+            raise RequestError("unknown_type", f"unknown request type {kind!r}; requests: 'subscribe', "
+                               "'reset_heading', 'calibrate_imu'")  # fmt: skip
         unknown = set(obj) - keys
         if unknown:
             raise RequestError("bad_field", f"unknown key(s) {sorted(map(str, unknown))}; allowed: {sorted(keys)}")
         suit = obj.get("suit")
         named = isinstance(suit, str) and 0 < len(suit) <= MAX_ID_CHARS
-        if kind == "reset_heading" and suit is not None and not named:
+        if kind in ("reset_heading", "calibrate_imu") and suit is not None and not named:
             raise RequestError("bad_field", f"suit = {suit!r}; allowed: a suit's name (1 to {MAX_ID_CHARS} characters)")
+        if kind == "calibrate_imu":
+            if obj.get("pose") is not None and obj.get("pose") not in ROUTINE_POSES:
+                raise RequestError("bad_field", f"pose = {obj.get('pose')!r}; allowed: {list(ROUTINE_POSES)}")
+            if obj.get("cancel") is not None and not isinstance(obj.get("cancel"), bool):
+                raise RequestError("bad_field", f"cancel = {obj.get('cancel')!r}; allowed: true or false")
         return obj
 
     def _apply(self, r: Mapping[str, Any]) -> StreamOptions:

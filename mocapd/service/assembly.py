@@ -36,6 +36,7 @@ from mocapd.service.outputs.recorder import SessionRecorder, attach_recorder, sy
 from mocapd.service.outputs.udp import build_udp_sinks
 from mocapd.service.outputs.websocket import build_websocket_sinks
 from mocapd.service.rig import BuiltRig, RigPlan, build_rig, plan_rig
+from mocapd.service.suits import calibration_line
 from mocapd.sim.silhouettes import SyntheticMattes
 from mocapd.sim.truth import TruthError
 
@@ -139,6 +140,7 @@ def ready_lines(built: Assembly) -> list[str]:
         if viewer is not None:
             lines.append(f"viewer {viewer}  pose stream {getattr(sink, 'url', '')}")
     lines += describe_streams(built.daemon.config.udp)
+    lines += [calibration_line(suit) for suit in built.daemon.rig.suits]
     if built.recorder is not None:
         where = built.recorder.writer.directory
         lines.append(f"recording the session to {where} (then `mocapd resolve {where}`, `mocapd export {where} "

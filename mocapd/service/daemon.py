@@ -70,6 +70,7 @@ from mocapd.service.config import Config
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.http_status import StatusServer
 from mocapd.service.imu_inputs import ImuInputs
+from mocapd.service.live_calibration import LiveCalibrations, install_suit
 from mocapd.service.metrics import latency_snapshot, render_metrics
 from mocapd.service.supervisor import Supervisor
 
@@ -294,7 +295,14 @@ class Daemon:
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
         self.actions: dict[str, Callable[[dict[str, str], str], Any]] = {
             "/heading/reset": lambda q, who: self.reset_heading(q.get("suit") or None, who, remote=True),
-        }
+            "/imu/calibrate": lambda q, who: self.calibrate_imu(q.get("suit") or None, q.get("pose") or None, who,
+                                                                cancel=q.get("cancel") in ("1", "true")),
+        }  # fmt: skip
+        #: the guided IMU calibrations asked of this daemon (docs/imu.md "Calibrating a suit live")
+        self.live_calibration = LiveCalibrations(
+            Path(self.imu.config.calibration_dir), rig.skeleton,
+            lambda suit: install_suit(self.scheduler, self.rig.suits, suit),
+        )  # fmt: skip
         self.http = StatusServer(self.status, render_metrics, d.http_host, d.http_port, actions=self.actions,
                                  allowed_hosts=config.web.allowed_hosts,
                                  allowed_origins=config.web.allowed_origins)  # fmt: skip
@@ -380,6 +388,11 @@ class Daemon:
                      len(d["corrections_deg"]), worst, f"; no recent sample: {d['no_recent_sample']}"
                      if d["no_recent_sample"] else "")  # fmt: skip
         return entry
+
+    def calibrate_imu(self, suit: str | None, pose: str | None, source: str, *, cancel: bool = False) -> dict[str, Any]:
+        """Start the guided calibration of ``suit`` (:mod:`mocapd.service.live_calibration`), or stop it; returns its
+        state (the first thing the wearer is asked to do). Raises InputError (naming the cause) when it cannot."""
+        return self.live_calibration.start(self.rig.suits, suit, pose, source, self.clock(), cancel=cancel)
 
     def request_reset(self, suit: str | None, source: str, delay_s: float) -> None:
         """A heading reset of ``suit`` in ``delay_s`` (a gesture: the hand goes back down first); a later request for
@@ -651,6 +664,7 @@ class Daemon:
                 await asyncio.sleep(1.0)
                 ticks += 1
                 self._observe_drift()
+                self.live_calibration.poll(self.imu.ingest, self.clock())
                 # Offset suggestions from the last seconds of keypoints, between ticks, beside this loop: on a
                 # machine with no time between ticks a step runs per tick, and the status lines go on meanwhile.
                 if ticks % 10 == 0 and (estimating is None or estimating.done()):
@@ -770,6 +784,9 @@ class Daemon:
             "imu": self.imu.status(),
             "imu_lookups": s["imu_samples"],
             "imu_heading": self.heading_status(),
+            # per suit: the posture its calibration found and each sensor's residuals (docs/imu.md)
+            "imu_calibration": {s.id: s.calibration.summary() for s in self.rig.suits},
+            "imu_calibration_routine": self.live_calibration.status(self.clock()),
             "heading_resets": [{**r, "s_ago": round((self.clock() - r["t_ns"]) / 1e9, 1)} for r in self.reset_log],
             "heading_resets_refused": self.reset_limit.refused,  # over the rate limit
             "http_refused": self.http.refused.as_dict(),  # foreign Host or Origin, POSTs without X-Mocapd-Request

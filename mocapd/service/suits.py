@@ -11,6 +11,8 @@ import json
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.skeleton import Skeleton
 from mocapd.errors import CalibrationError, ConfigError
@@ -59,3 +61,31 @@ def load_suits(config: ImuConfig, skeleton: Skeleton, base: Path | None = None) 
             log.warning("suit %s: sensors %s are not in %s", calibration.person, unassigned, where)
         suits.append(Suit.from_calibration(calibration.person, calibration, skeleton))
     return suits
+
+
+RESIDUAL_NOTE_DEG = 20.0
+"""A sensor whose mounting residual is above this (degrees) is named as one to check: a mounting that far from a case
+along its segment is a sensor strapped askew, a posture far from the hint, or a hinge that moved about more than
+one axis."""
+
+
+def calibration_line(suit: Suit) -> str:
+    """What the console says of a suit's calibration at start (and after a live calibration): the posture found,
+    and the sensors' residuals (median, and the worst sensor named)."""
+    calib = suit.calibration
+    summary = calib.summary()
+    posture = ", ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in calib.posture.items())
+    line = f"suit {suit.id}: calibrated with the {calib.pose_hint} hint"
+    line += f" (posture found, deg: {posture})" if posture else ""
+    residuals = [max(calib.residual_deg.get(s, 0.0), calib.hinge_misfit_deg.get(s, 0.0)) for s in calib.q_ib
+                 if s in calib.residual_deg or s in calib.hinge_misfit_deg]  # fmt: skip
+    worst = summary["worst"]
+    if not residuals or not isinstance(worst, dict):
+        return line + "; no mounting residuals in its file"
+    line += (f"; mounting residual median {float(np.median(residuals)):.1f} deg, worst {worst['residual_deg']:.1f} "
+             f"deg ({worst['sensor']}, {worst['bone']})")  # fmt: skip
+    if calib.hinge_misfit_deg:
+        line += f"; hinge axes from motion for {len(calib.hinge_misfit_deg)} sensors"
+    if float(worst["residual_deg"]) > RESIDUAL_NOTE_DEG:
+        line += f": above {RESIDUAL_NOTE_DEG:g} deg, check how that sensor sits and calibrate again"
+    return line

@@ -17,11 +17,13 @@ import argparse
 import asyncio
 import json
 import time
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mocapd.core.calibration_routine import CalibrationRoutine, RoutineOptions
 from mocapd.core.imu_calibration import (
     CALIBRATION_POSES,
     MAX_ACC_STD,
@@ -82,7 +84,28 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--pose-exact",
         action="store_true",
-        help="take the --pose as held exactly (no posture estimated from the sensors: every mounting error stays)",
+        help="take the --pose as held exactly (no posture estimated from the sensors nor from the take's motion: every "
+        "mounting error stays)",
+    )
+    p.add_argument(
+        "--guided",
+        action="store_true",
+        help="the guided routine on the live sensors: stand still, walk a few steps, bend the elbows, as it says; the "
+        "facing from the steps (no --facing-heading needed), the mountings refined by the knees' and elbows' axes "
+        "(docs/imu.md, 'Calibrating a suit live')",
+    )
+    p.add_argument(
+        "--step-timeout",
+        type=number(1.0, 3600.0),
+        default=60.0,
+        metavar="S",
+        help="with --guided: the most seconds a step may take before the routine gives up (default 60)",
+    )
+    p.add_argument(
+        "--no-motion",
+        action="store_true",
+        help="with --from: keep the still window's mountings (by default the take's knee and elbow bends, where they "
+        "bend enough about one axis, refine them: docs/imu.md, 'Hinge axes from motion')",
     )
     p.add_argument(
         "--max-turn",
@@ -146,7 +169,24 @@ async def record(
     """Stream from every configured input until each of ``sensors`` (default: every assigned sensor) streams, then
     record ``seconds`` of their samples (another suit's sensors on the same inputs are neither waited for nor kept).
     """
+
+    async def wait(_: Callable[[], dict[str, list[ImuSample]]]) -> None:
+        await asyncio.sleep(seconds)
+
+    return await streaming(config, connect_timeout, sensors, wait)
+
+
+async def streaming(
+    config: ImuConfig,
+    connect_timeout: float,
+    sensors: dict[str, str] | None,
+    body: Callable[[Callable[[], dict[str, list[ImuSample]]]], Awaitable[None]],
+) -> dict[str, list[ImuSample]]:
+    """Stream from every configured input until each of ``sensors`` (default: every assigned sensor) streams, then
+    keep their samples while ``body`` runs; ``body`` gets a function that returns the samples kept since its last
+    call. Returns every sample kept."""
     samples: dict[str, list[ImuSample]] = {}
+    taken: dict[str, int] = {}
     seen: set[str] = set()
     recording = False
 
@@ -157,6 +197,11 @@ async def record(
             samples.setdefault(s.sensor, []).append(s)
         else:
             seen.add(s.sensor)
+
+    def take() -> dict[str, list[ImuSample]]:
+        out = {sid: rs[taken.get(sid, 0) :] for sid, rs in samples.items()}
+        taken.update({sid: len(rs) for sid, rs in samples.items()})
+        return out
 
     devices = [XsensSerialDevice(p, on_sample) for p in config.port_configs()]
     tasks = [asyncio.create_task(d.run()) for d in devices]
@@ -183,7 +228,7 @@ async def record(
                 )
             await asyncio.sleep(0.05)
         recording = True
-        await asyncio.sleep(seconds)
+        await body(take)
         recording = False
     finally:
         for d in devices:
@@ -197,6 +242,50 @@ async def record(
     return samples
 
 
+GUIDED_POLL_S = 0.25
+"""How often the guided routine is fed the samples that arrived (s)."""
+
+
+TICKS_HZ = 10_000.0
+"""Xsens SampleTimeFine counts at 10 kHz."""
+
+
+def _arrays(rows: list[ImuSample], base: dict[str, tuple[int, int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Times (s), orientations (n, 4), specific force (n, 3) of the samples that carry both.
+
+    A sample's time is its device clock's (SampleTimeFine) from the sensor's first sample on, put on the host clock
+    at that first sample (``base``: sensor -> (host ns, ticks)): a loaded machine reads a serial port in bursts, and
+    the host times of a burst's samples would be one instant (a still second would look shorter than it was)."""
+    kept = [r for r in rows if r.quat is not None and r.acc is not None]
+    times = []
+    for r in kept:
+        if r.device_ticks is None:
+            times.append(r.host_ns / 1e9)
+            continue
+        host0, ticks0 = base.setdefault(r.sensor, (r.host_ns, r.device_ticks))
+        times.append(host0 / 1e9 + ((r.device_ticks - ticks0) % (1 << 32)) / TICKS_HZ)
+    return (np.array(times), np.array([r.quat for r in kept]).reshape(-1, 4),
+            np.array([r.acc for r in kept]).reshape(-1, 3))  # fmt: skip
+
+
+async def guided(config: ImuConfig, routine: CalibrationRoutine, connect_timeout: float) -> None:
+    """Run the guided routine (:mod:`mocapd.core.calibration_routine`) on the live sensors, printing what it says."""
+    said = 0
+    base: dict[str, tuple[int, int]] = {}
+
+    async def run(take: Callable[[], dict[str, list[ImuSample]]]) -> None:
+        nonlocal said
+        routine.start(time.monotonic_ns() / 1e9)
+        while routine.step not in ("done", "failed"):
+            await asyncio.sleep(GUIDED_POLL_S)
+            routine.feed(time.monotonic_ns() / 1e9, {sid: _arrays(rows, base) for sid, rows in take().items()})
+            for _, text in routine.said[said:]:
+                print(text, flush=True)
+            said = len(routine.said)
+
+    await streaming(config, connect_timeout, routine.bones, run)
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
     """Entry point of ``mocapd calibrate imu``; returns the process exit status."""
     if args.from_session is not None:
@@ -206,6 +295,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     try:
         if not args.person:
             raise ConfigError("--person is required (the name of the calibration file)")
+        if args.guided:
+            return _run_guided(args)
         if args.facing_heading is None and args.facing_from is None:
             raise ConfigError(
                 "give the facing direction of the T-pose: --facing-heading DEG or --facing-from SENSOR:AXIS "
@@ -259,6 +350,50 @@ def run_calibrate(args: argparse.Namespace) -> int:
     except ValueError:
         print(f"mocapd calibrate imu: --window {args.window!r}: give seconds (START:END only with --from)")
         return 1
+    return _write_and_say(calib, out, replacing)
+
+
+def _run_guided(args: argparse.Namespace) -> int:
+    """``mocapd calibrate imu --guided``: the routine on the live sensors (stand, walk, elbows), then the file."""
+    try:
+        if args.pose == "auto":
+            raise ConfigError("--guided: say the stand's posture with --pose t-pose, a-pose or n-pose (not auto)")
+        if args.facing_from is not None:
+            raise ConfigError("--guided takes the facing from the steps (or --facing-heading), not --facing-from")
+        check_name(args.person, "--person")
+        config = load_config(args.config or Path("config.toml")).imu
+        if args.port:
+            config = validate(ImuConfig, {**config.model_dump(), "ports": list(args.port)}, "imu")
+        sensors = config.suit_sensors(args.person)
+        if not sensors:
+            raise ConfigError("imu.assignment is empty: say which sensor sits on which bone")
+        if any("/" in sid for sid in sensors):
+            raise ConfigError("--guided: SlimeVR trackers need their own headings from --mount-yaw; calibrate them "
+                              "without --guided")  # fmt: skip
+        out = args.out or Path(config.calibration_dir) / f"{args.person}.imu.json"
+        try:
+            replacing = check_output_file(out, overwrite=True, create_folder=True).exists()
+        except OutputError as exc:
+            print(f"mocapd calibrate imu: {exc}")
+            return 2
+        options = RoutineOptions(pose=args.pose, window_s=float(args.window), facing_heading_deg=args.facing_heading,
+                                 world_heading=args.world_heading, max_turn_deg=args.max_turn,
+                                 max_acc_std=args.max_acc_std, step_timeout_s=args.step_timeout)  # fmt: skip
+        routine = CalibrationRoutine(args.person, dict(sensors), options)
+        asyncio.run(guided(config, routine, args.connect_timeout))
+    except MocapdError as exc:
+        print(f"mocapd calibrate imu: {exc}")
+        return 1
+    except ValueError:
+        print(f"mocapd calibrate imu: --window {args.window!r}: give seconds")
+        return 1
+    if routine.calibration is None:
+        return 1  # it said why
+    return _write_and_say(routine.calibration, out, replacing)
+
+
+def _write_and_say(calib: ImuCalibration, out: Path, replacing: bool) -> int:
+    """Write the calibration file and print each sensor's stillness, residuals and the posture found."""
     try:
         write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
     except OutputError as exc:
@@ -266,8 +401,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
         return 2
     for sid, bone in calib.bones.items():
         own = f"  heading reset {calib.device_heading_deg[sid]:+.1f} deg" if sid in calib.device_heading_deg else ""
+        hinge = f"  hinge misfit {calib.hinge_misfit_deg[sid]:.1f} deg" if sid in calib.hinge_misfit_deg else ""
         print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg  mounting residual "
-              f"{calib.residual_deg.get(sid, float('nan')):.1f} deg{own}")  # fmt: skip
+              f"{calib.residual_deg.get(sid, float('nan')):.1f} deg{hinge}{own}")  # fmt: skip
     print(f"posture ({calib.pose_hint} hint): " + ", ".join(f"{k.replace('_', ' ')} {v:g} deg"
                                                            for k, v in calib.posture.items()))  # fmt: skip
     print(f"wrote {out}" + (" (replaced the earlier calibration)" if replacing else ""))

@@ -220,13 +220,16 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
             estimate_posture=not args.pose_exact,
             max_turn_deg=args.max_turn,
             max_acc_std=args.max_acc_std,
+            motion=not (args.no_motion or args.pose_exact),  # exact: the hint held, every mounting error kept
         )
         calib: ImuCalibration = result.calibration
         info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,
                 "facing_heading_deg": round(calib.facing_heading_deg, 2), "facing_from": result.facing,
                 "posture_deg": calib.posture,
                 "mount_residual_deg": {s: round(v, 1) for s, v in calib.residual_deg.items()},
-                "hinges": {name: h.as_dict() for name, h in result.hinges.items()}}  # fmt: skip
+                "hinges": {name: h.as_dict() for name, h in result.hinges.items()},
+                "hinge_misfit_deg": {s: round(v, 1) for s, v in calib.hinge_misfit_deg.items()},
+                "hinge_axes": result.functional}  # fmt: skip
         store_in_session(session, suit, calib, info)
         write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
     except OutputError as exc:  # a path that cannot be written: an argument error, as argparse's (exit 2)
@@ -243,6 +246,8 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
                       "still_spread_deg": {s: round(v, 2) for s, v in calib.spread_deg.items()},
                       "posture_deg": calib.posture,
                       "mount_residual_deg": {s: round(v, 1) for s, v in calib.residual_deg.items()},
+                      "hinge_axes": result.functional,
+                      "hinge_misfit_deg": info["hinge_misfit_deg"],
                       "next": f"mocapd resolve {session.path}"}, indent=2))  # fmt: skip
     return 0
 

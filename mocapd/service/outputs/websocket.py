@@ -40,8 +40,10 @@ def build_websocket_sinks(
     # Status messages read the status server's snapshot: at any status_hz they add no renders of their own.
     status = daemon.http.snapshots.document
     commands: dict[str, Command] = {
-        "reset_heading": lambda args, who: daemon.reset_heading(args.get("suit"), who, remote=True)
-    }
+        "reset_heading": lambda args, who: daemon.reset_heading(args.get("suit"), who, remote=True),
+        "calibrate_imu": lambda args, who: daemon.calibrate_imu(args.get("suit"), args.get("pose"), who,
+                                                                cancel=bool(args.get("cancel"))),
+    }  # fmt: skip
     return websocket_sinks(config, daemon.rig.skeleton, status=status, clock=daemon.clock, sock=sock,
                            camera_views=views, output=daemon.scheduler.options.prediction.output,
                            commands=commands)  # fmt: skip

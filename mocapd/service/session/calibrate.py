@@ -22,6 +22,10 @@ mirrored facing every bone's frame is turned by 180° about the vertical and eve
 bending backwards, while every later command succeeds. The refusal names the opposite sign (or heading) when that
 one makes them bend the right way.
 
+The take's motion then refines the mountings where it shows a knee or an elbow bending about one axis
+(:mod:`mocapd.core.functional_calibration`; ``--no-motion`` keeps the still window's): each sensor's hinge misfit is
+kept beside its gravity residual.
+
 The result is written into the session's manifest (its ``suits``: what ``mocapd resolve`` solves with) and as a
 calibration file (``<calibration_dir>/<person>.imu.json``).
 """
@@ -35,6 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.functional_calibration import refine_from_recording
 from mocapd.core.imu_calibration import (
     MAX_ACC_STD,
     MAX_TURN_DEG,
@@ -99,6 +104,9 @@ class SessionCalibration:
     "steps" (the knees' bending in the take's steps)."""
     hinges: dict[str, HingeEvents] = field(default_factory=dict)
     """The knees and elbows over the take as this calibration measures them (wrong-way events)."""
+    functional: dict[str, dict[str, object]] = field(default_factory=dict)
+    """Per hinge, what the take's motion showed and whether it refined the mountings
+    (:func:`mocapd.core.functional_calibration.refine_mountings`); empty with ``motion`` off."""
 
 
 def session_samples(session: Session) -> dict[str, tuple[FloatArray, FloatArray, FloatArray]]:
@@ -140,8 +148,13 @@ def calibrate_session(
     estimate_posture: bool = True,
     max_turn_deg: float = MAX_TURN_DEG,
     max_acc_std: float = MAX_ACC_STD,
+    motion: bool = True,
 ) -> SessionCalibration:
     """Calibrate the session's assigned sensors (see the module docstring).
+
+    With ``motion`` the take's knees and elbows, where they bend enough about one axis, refine the still window's
+    mountings (:func:`~mocapd.core.functional_calibration.refine_from_recording`: each hinge's axis as its sensors
+    see it); the plausibility checks run on the still window's calibration before.
 
     ``assignment`` defaults to the session's ``[imu.assignment]`` (an imported session has it); where the session's
     config has one table per person (``[imu.assignment.alice]``), ``suit``'s table (default ``person``'s). At most
@@ -240,7 +253,11 @@ def calibrate_session(
             posture = next((hint for hint in POSE_HINTS if hint != pose and not _wrong_way(
                 calibration_hinges(samples, calibrate(facing_heading_deg, facing_from, hint)[0]))), None)  # fmt: skip
         raise CalibrationError(_refusal(hinges, source, facing_from, facing_heading_deg, works, posture, pose))
-    return SessionCalibration(calib, window, pose, source, hinges)
+    functional: dict[str, dict[str, object]] = {}
+    if motion:
+        refined = refine_from_recording(calib, samples, window)
+        calib, functional = refined.calibration, refined.hinges
+    return SessionCalibration(calib, window, pose, source, hinges, functional)
 
 
 ARMS_THROUGH_BODY_S = 1.0
