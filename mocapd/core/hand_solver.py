@@ -18,8 +18,8 @@ Cost, with every residual in units of its own standard deviation:
 * **hand pose prior**: a diagonal Gaussian on the 21 angles (:data:`HINGES` mean and sigma), plus the classic
   DIP ≈ 2/3 PIP coupling of the four fingers (Rijpkema & Girard 1991, *Computer animation of knowledge-based human
   grasping*, SIGGRAPH '91) with 15° of slack. The means are a relaxed hand (fingers a little curled, MCP 20°, PIP
-  25°, DIP 15°); each sigma is about a third of the joint's range. Hand-set from the ranges below, not trained
-  (no hand motion data set ships with mocapd);
+  25°, DIP 15°); each sigma is about a third of the joint's range (12° for the MCPs' abduction). Hand-set from the
+  ranges below, not trained (no hand motion data set ships with mocapd);
 * **wrist**: the hand's rotation within :attr:`HandSolveOptions.wrist_rotation_sigma_deg` of the body solve's (a
   body keypoint set barely constrains the hand bone's rotation, so this is loose) and its wrist within
   :attr:`HandSolveOptions.wrist_position_sigma_m` of the body's wrist joint.
@@ -43,8 +43,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core import _hand_kernel
-from mocapd.core.hand_skeleton import FINGERS, LANDMARK_BONE, LANDMARK_IS_TIP, N_FINGER_BONES, HandSkeleton
+from mocapd.core.hand_skeleton import (
+    FINGERS,
+    HAND_BONES,
+    LANDMARK_BONE,
+    LANDMARK_IS_TIP,
+    N_FINGER_BONES,
+    SIDES,
+    HandSkeleton,
+)
 from mocapd.core.rotations import matrix_from_rotvec, quat_from_matrix, skew
+from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -71,7 +80,7 @@ HINGES: tuple[tuple[str, int, tuple[float, float, float], float, float, float, f
             (4, "little", 1.0, (-15.0, 30.0)),
         )
         for hinge in (
-            (f"{finger}_mcp_abduction", 3 * f, (0.0, spread, 0.0), lo, hi, 0.0, 8.0),
+            (f"{finger}_mcp_abduction", 3 * f, (0.0, spread, 0.0), lo, hi, 0.0, 12.0),
             (f"{finger}_mcp_flexion", 3 * f, _FLEX, -30.0, 90.0, 20.0, 30.0),
             (f"{finger}_pip_flexion", 3 * f + 1, _FLEX, -5.0, 110.0, 25.0, 35.0),
             (f"{finger}_dip_flexion", 3 * f + 2, _FLEX, -10.0, 90.0, 15.0, 25.0),
@@ -149,8 +158,9 @@ class HandSolveOptions:
     """Standard deviation (pixels) of a hand keypoint: a few pixels, as the hand landmark model's."""
     cauchy_px: float = 12.0
     """Scale of the Cauchy loss on each keypoint's pixel error: errors beyond it count less and less."""
-    prior_weight: float = 1.0
-    """Multiplies the hand pose prior (0: none)."""
+    prior_weight: float = 0.5
+    """Multiplies the hand pose prior (0: none); 0.5 had the least flexion error on the synthetic hands (1.0 and
+    0.25 were 0.2° worse)."""
     wrist_rotation_sigma_deg: float = 45.0
     """How far the hand's rotation may stray from the body solve's hand bone."""
     wrist_position_sigma_m: float = 0.02
@@ -499,3 +509,57 @@ def palm_rotation(hand: HandSkeleton, side: int, points: FloatArray, ok: BoolArr
 def finger_of_landmark(landmark: int) -> str:
     """The finger (:data:`mocapd.core.hand_skeleton.FINGERS`) a landmark belongs to ("" for the wrist)."""
     return "" if landmark == 0 else FINGERS[int(_LM_FINGER[landmark])]
+
+
+def _chain(bone: int, parents: tuple[int, ...]) -> list[int]:
+    out = []
+    while bone >= 0:
+        out.append(bone)
+        bone = parents[bone]
+    return out[::-1]
+
+
+def body_hand_frames(skeleton: Skeleton, theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The body solve's frames of both hands from θ (66,), composing only the bones from the root to each hand.
+
+    Returns
+    -------
+    rotations : array, shape (2, 3, 3)
+        Global rotation of the ``LeftHand`` and ``RightHand`` bones.
+    wrists : array, shape (2, 3)
+        Their joints (the wrists).
+    forearms : array, shape (2, 3, 3)
+        Global rotation of each hand's parent (the lower arm): a hand rotation goes back into θ through it.
+    """
+    rotations = np.empty((2, 3, 3))
+    wrists = np.empty((2, 3))
+    forearms = np.empty((2, 3, 3))
+    for side, name in enumerate(SIDES):
+        chain = _chain(BONE_INDEX[HAND_BONES[name]], skeleton.parents)
+        local = matrix_from_rotvec(theta[3:].reshape(-1, 3)[chain])
+        R = np.eye(3)
+        x = np.asarray(theta[:3], dtype=np.float64).copy()
+        for i, b in enumerate(chain):
+            if i > 0:
+                x = x + R @ skeleton.offsets[b]
+            if i == len(chain) - 1:
+                forearms[side] = R
+            R = R @ local[i]
+        rotations[side], wrists[side] = R, x
+    return rotations, wrists, forearms
+
+
+def hand_scale_sample(hand: HandSkeleton, side: int, points: FloatArray, ok: BoolArray) -> float | None:
+    """How much larger than ``hand`` the triangulated landmarks ``points`` (21, 3) (where ``ok``, (21,)) say hand
+    ``side`` is: the median over its rigid segments (wrist to each finger's base, then joint to joint and to the
+    tip) of measured / model length; None with fewer than six segments measured."""
+    ratios = []
+    for lm in range(1, len(LANDMARK_BONE)):
+        first = (lm - 1) % 4 == 0  # a finger's base hangs from the wrist
+        parent = 0 if first else lm - 1
+        if not (ok[lm] and ok[parent]):
+            continue
+        bone = int(_LM_BONE[lm])
+        model = hand.tips[side, bone // 3] if _LM_TIP[lm] else hand.offsets[side, bone]
+        ratios.append(float(np.linalg.norm(points[lm] - points[parent]) / np.linalg.norm(model)))
+    return float(np.median(ratios)) if len(ratios) >= 6 else None
