@@ -31,6 +31,54 @@ def _rot(a: FloatArray, angle: float, out: FloatArray) -> None:
 
 
 @nb.njit(cache=True)
+def _mm(a: FloatArray, b: FloatArray, out: FloatArray) -> None:
+    """out = a @ b for 3x3 (numba's @ goes through BLAS: slow for 3x3)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+
+
+@nb.njit(cache=True)
+def _mv(a: FloatArray, v: FloatArray, out: FloatArray) -> None:
+    for i in range(3):
+        out[i] = a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2]
+
+
+@nb.njit(cache=True)
+def local_rotations(angles: FloatArray, axes: FloatArray, slots: NDArray[np.intp], prefix: FloatArray) -> None:
+    """Each bone's products of its first k hinges, ``prefix`` (15, 4, 3, 3); ``prefix[:, 3]`` the local rotation."""
+    nh = angles.shape[0]
+    H = np.empty((nh + 1, 3, 3))
+    for k in range(nh):
+        _rot(axes[k], angles[k], H[k])
+    H[nh] = np.eye(3)
+    for b in range(prefix.shape[0]):
+        prefix[b, 0] = np.eye(3)
+        for k in range(3):
+            _mm(prefix[b, k], H[slots[b, k]], prefix[b, k + 1])
+
+
+@nb.njit(cache=True)
+def apply_step(
+    angles: FloatArray, rotation: FloatArray, wrist: FloatArray, step: FloatArray, lower: FloatArray, upper: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The state moved by an LM step: angles projected onto their limits, the rotation on the right."""
+    nh = angles.shape[0]
+    new_angles = np.empty(nh)
+    for k in range(nh):
+        new_angles[k] = min(max(angles[k] + step[k], lower[k]), upper[k])
+    w = step[nh : nh + 3]
+    angle = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    E = np.eye(3)
+    if angle > 1e-15:
+        _rot(w / angle, angle, E)
+    new_rotation = np.empty((3, 3))
+    _mm(rotation, E, new_rotation)
+    new_wrist = wrist + step[nh + 3 :]
+    return new_angles, new_rotation, new_wrist
+
+
+@nb.njit(cache=True)
 def evaluate(
     angles: FloatArray,  # (21,)
     rotation: FloatArray,  # (3, 3)
@@ -63,30 +111,25 @@ def evaluate(
         for j in range(npar):
             JtJ[i, j] = 0.0
     # hinge rotations, each bone's prefix products and local rotation
-    H = np.empty((nh + 1, 3, 3))
-    for k in range(nh):
-        _rot(axes[k], angles[k], H[k])
-    H[nh] = np.eye(3)
     nb_ = offsets.shape[0]
     prefix = np.empty((nb_, 4, 3, 3))
-    for b in range(nb_):
-        prefix[b, 0] = np.eye(3)
-        for k in range(3):
-            prefix[b, k + 1] = prefix[b, k] @ H[slots[b, k]]
+    local_rotations(angles, axes, slots, prefix)
     G = np.empty((nb_, 3, 3))
     Gp = np.empty((nb_, 3, 3))
     J = np.empty((nb_, 3))
+    tmp = np.empty(3)
     for level in range(3):
         for f in range(5):
             b = 3 * f + level
             if level == 0:
                 Gp[b] = rotation
-                px = wrist
+                J[b] = wrist
             else:
                 Gp[b] = G[b - 1]
-                px = J[b - 1]
-            J[b] = px + Gp[b] @ offsets[b]
-            G[b] = Gp[b] @ prefix[b, 3]
+                J[b] = J[b - 1]
+            _mv(Gp[b], offsets[b], tmp)
+            J[b] += tmp
+            _mm(Gp[b], prefix[b, 3], G[b])
     nl = lm_bone.shape[0]
     L = np.empty((nl, 3))
     for lm in range(nl):
@@ -94,24 +137,33 @@ def evaluate(
         if b < 0:
             L[lm] = wrist
         elif lm_tip[lm]:
-            L[lm] = J[b] + G[b] @ tips[b // 3]
+            _mv(G[b], tips[b // 3], tmp)
+            L[lm] = J[b] + tmp
         else:
             L[lm] = J[b]
     W = np.empty((nh, 3))  # world hinge axes
+    tmp2 = np.empty(3)
     for k in range(nh):
         b = bone_of[k]
         s = 0
         for q in range(3):
             if slots[b, q] == k:
                 s = q
-        W[k] = Gp[b] @ (prefix[b, s] @ axes[k])
+        _mv(prefix[b, s], axes[k], tmp)
+        _mv(Gp[b], tmp, tmp2)
+        W[k] = tmp2
     cost = 0.0
     c2 = cauchy * cauchy
     s2 = sigma_px * sigma_px
     D = np.zeros((3, npar))
+    A = np.empty((3, 3))
+    bvec = np.empty(3)
+    du = np.empty(3)
+    dv = np.empty(3)
+    AD = np.empty((3, npar))
     for lm in range(nl):
-        A = np.zeros((3, 3))
-        bvec = np.zeros(3)
+        A[:] = 0.0
+        bvec[:] = 0.0
         used = False
         for c in range(P.shape[0]):
             cf = conf[c, lm]
@@ -127,8 +179,6 @@ def evaluate(
             sq = eu * eu + ev * ev
             cost += cf * c2 * math.log1p(sq / c2) / s2
             w = cf / (1.0 + sq / c2) / s2
-            du = np.empty(3)
-            dv = np.empty(3)
             for j in range(3):
                 du[j] = (P[c, 0, j] - u * P[c, 2, j]) / X2
                 dv[j] = (P[c, 1, j] - v * P[c, 2, j]) / X2
@@ -156,7 +206,9 @@ def evaluate(
             D[1, nh + j] = -(rz * rotation[0, j] - rx * rotation[2, j])
             D[2, nh + j] = -(-ry * rotation[0, j] + rx * rotation[1, j])
             D[j, nh + 3 + j] = 1.0
-        AD = A @ D
+        for i in range(3):
+            for p in range(npar):
+                AD[i, p] = A[i, 0] * D[0, p] + A[i, 1] * D[1, p] + A[i, 2] * D[2, p]
         for p in range(npar):
             gp = 0.0
             for i in range(3):
@@ -187,7 +239,13 @@ def evaluate(
         JtJ[pip, dip] += prior_w * jd * jp
         g[dip] += prior_w * r * jd
         g[pip] += prior_w * r * jp
-    A = body_rotation.T @ rotation
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = (
+                body_rotation[0, i] * rotation[0, j]
+                + body_rotation[1, i] * rotation[1, j]
+                + (body_rotation[2, i] * rotation[2, j])
+            )
     rr = np.empty(3)
     rr[0], rr[1], rr[2] = 0.5 * (A[2, 1] - A[1, 2]), 0.5 * (A[0, 2] - A[2, 0]), 0.5 * (A[1, 0] - A[0, 1])
     for i in range(3):

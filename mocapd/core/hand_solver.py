@@ -374,9 +374,13 @@ class HandSolver:
         eye = np.eye(len(g))
         while iterations < o.max_iterations:
             iterations += 1
-            damped = JtJ + lam * (np.diag(np.diag(JtJ)) + 1e-9 * eye)
+            damped = JtJ + lam * (JtJ * eye + 1e-9 * eye)
             step = np.asarray(np.linalg.solve(damped, -g), dtype=np.float64)
-            trial = _apply(state, step)
+            trial = (
+                _hand_kernel.apply_step(*state, step, LOWER, UPPER)
+                if self.backend == "compiled"
+                else (_apply(state, step))
+            )
             t_cost, t_JtJ, t_g = self.normal_equations(trial, *obs)
             if t_cost < cost:
                 change = float(np.max(np.abs(trial[0] - state[0])))
@@ -390,8 +394,9 @@ class HandSolver:
                 if lam > 1e6:
                     break
         angles, rotation, wrist = state
-        fk = hand_fk(self.hand, self.side, angles, rotation, wrist)
-        return HandResult(angles, rotation, wrist, quat_from_matrix(fk.local), iterations, float(cost), n_obs)
+        prefix = np.empty((N_FINGER_BONES, 4, 3, 3))
+        _hand_kernel.local_rotations(angles, self._axes, _SLOTS, prefix)
+        return HandResult(angles, rotation, wrist, quat_from_matrix(prefix[:, 3]), iterations, float(cost), n_obs)
 
     def normal_equations(
         self,
