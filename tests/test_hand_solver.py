@@ -192,3 +192,19 @@ def test_short_evaluation_meets_the_flexion_target() -> None:
     assert report["prior_mean_error_deg"]["mean"] > 15.0  # the keypoints, not the prior, gave the answer
     assert set(report["flexion_error_deg"]["per_joint"]) >= {"ThumbProximal", "LittleDistal"}
     assert report["cpu"]["model"]
+
+
+def test_compiled_and_numpy_solves_agree() -> None:
+    """The compiled LM loop (Cholesky) takes the numpy path's steps (LU): the same solve to round-off."""
+    rng = np.random.default_rng(7)
+    hand = HandSkeleton.reference()
+    truth, R = _random_hand(rng), matrix_from_rotvec(rng.normal(size=3))
+    uv = _project(hand_fk(hand, 1, truth, R, WRIST).landmarks) + rng.normal(scale=3.0, size=(6, 21, 2))
+    conf = rng.uniform(0.3, 1.0, size=(6, 21))
+    body = (R @ matrix_from_rotvec(np.array([0.2, 0.1, -0.1])), WRIST + 0.01)
+    a = HandSolver(hand, 1).solve(P, uv, conf, *body)
+    b = HandSolver(hand, 1, backend="numpy").solve(P, uv, conf, *body)
+    assert a is not None and b is not None
+    assert a.iterations == b.iterations
+    np.testing.assert_allclose(a.angles, b.angles, atol=1e-8)
+    np.testing.assert_allclose(a.local, b.local, atol=1e-8)

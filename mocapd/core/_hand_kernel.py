@@ -258,3 +258,103 @@ def evaluate(
         JtJ[nh + 3 + i, nh + 3 + i] += 1.0 / (p_sigma * p_sigma)
         g[nh + 3 + i] += r / p_sigma
     return cost
+
+
+@nb.njit(cache=True)
+def _cholesky_solve(A: FloatArray, b: FloatArray) -> tuple[FloatArray, bool]:
+    """x with A x = b for symmetric positive definite A (n small); False when A is not."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return np.zeros(n), False
+        L[j, j] = math.sqrt(d)
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / L[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    x = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return x, True
+
+
+@nb.njit(cache=True)
+def solve_lm(
+    angles: FloatArray,
+    rotation: FloatArray,
+    wrist: FloatArray,
+    axes: FloatArray,
+    slots: NDArray[np.intp],
+    bone_of: NDArray[np.intp],
+    offsets: FloatArray,
+    tips: FloatArray,
+    lm_bone: NDArray[np.intp],
+    lm_tip: NDArray[np.bool_],
+    depends: NDArray[np.bool_],
+    P: FloatArray,
+    uv: FloatArray,
+    conf: FloatArray,
+    prior: FloatArray,  # (4, 21): mean, sigma, lower, upper
+    coupled: NDArray[np.intp],
+    scalars: FloatArray,
+    body_rotation: FloatArray,
+    body_wrist: FloatArray,
+    max_iterations: int,
+    tolerance: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, float, int]:
+    """The whole Levenberg–Marquardt loop of :meth:`HandSolver.solve` in one call (the same steps as its numpy
+    path): returns angles, rotation, wrist, cost and iterations."""
+    npar = angles.shape[0] + 6
+    JtJ = np.empty((npar, npar))
+    g = np.empty(npar)
+    tJ = np.empty((npar, npar))
+    tg = np.empty(npar)
+    args = (axes, slots, bone_of, offsets, tips, lm_bone, lm_tip, depends, P, uv, conf, prior, coupled, scalars)
+    cost = evaluate(angles, rotation, wrist, *args, body_rotation, body_wrist, JtJ, g)
+    lam = 1e-3
+    iterations = 0
+    damped = np.empty((npar, npar))
+    while iterations < max_iterations:
+        iterations += 1
+        for i in range(npar):
+            for j in range(npar):
+                damped[i, j] = JtJ[i, j]
+            damped[i, i] += lam * (JtJ[i, i] + 1e-9)
+        step, ok = _cholesky_solve(damped, -g)
+        if not ok:
+            lam *= 4.0
+            if lam > 1e6:
+                break
+            continue
+        a2, r2, w2 = apply_step(angles, rotation, wrist, step, prior[2], prior[3])
+        t_cost = evaluate(a2, r2, w2, *args, body_rotation, body_wrist, tJ, tg)
+        if t_cost < cost:
+            change = 0.0
+            for k in range(angles.shape[0]):
+                change = max(change, abs(a2[k] - angles[k]))
+            small = (cost - t_cost) < tolerance * cost or change < tolerance
+            angles, rotation, wrist, cost = a2, r2, w2, t_cost
+            JtJ[:] = tJ
+            g[:] = tg
+            lam = max(lam / 3.0, 1e-7)
+            if small:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e6:
+                break
+    return angles, rotation, wrist, cost, iterations

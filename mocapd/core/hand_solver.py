@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -366,8 +367,27 @@ class HandSolver:
             angles = PRIOR_MEAN.copy()
             rotation = (start_rotation if start_rotation is not None else body_rotation).copy()
             wrist = body_wrist.copy()
-        state = (angles, rotation, wrist)
-        obs = (projections, uv, conf, body_rotation, body_wrist)
+        if self.backend == "compiled":
+            angles, rotation, wrist, cost, iterations = _compiled(_hand_kernel.solve_lm)(
+                angles, rotation, wrist, *self._kernel_args(projections, uv, conf),
+                np.ascontiguousarray(body_rotation, dtype=np.float64),
+                np.ascontiguousarray(body_wrist, dtype=np.float64), o.max_iterations, o.tolerance,
+            )  # fmt: skip
+        else:
+            angles, rotation, wrist, cost, iterations = self._solve_numpy(
+                (angles, rotation, wrist), (projections, uv, conf, body_rotation, body_wrist)
+            )
+        prefix = np.empty((N_FINGER_BONES, 4, 3, 3))
+        _hand_kernel.local_rotations(angles, self._axes, _SLOTS, prefix)
+        return HandResult(angles, rotation, wrist, quat_from_matrix(prefix[:, 3]), iterations, float(cost), n_obs)
+
+    def _solve_numpy(
+        self,
+        state: tuple[FloatArray, FloatArray, FloatArray],
+        obs: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray],
+    ) -> tuple[FloatArray, FloatArray, FloatArray, float, int]:
+        """The LM loop of the reference path (the compiled one is :func:`mocapd.core._hand_kernel.solve_lm`)."""
+        o = self.options
         cost, JtJ, g = self.normal_equations(state, *obs)
         lam = 1e-3
         iterations = 0
@@ -376,11 +396,7 @@ class HandSolver:
             iterations += 1
             damped = JtJ + lam * (JtJ * eye + 1e-9 * eye)
             step = np.asarray(np.linalg.solve(damped, -g), dtype=np.float64)
-            trial = (
-                _hand_kernel.apply_step(*state, step, LOWER, UPPER)
-                if self.backend == "compiled"
-                else (_apply(state, step))
-            )
+            trial = _apply(state, step)
             t_cost, t_JtJ, t_g = self.normal_equations(trial, *obs)
             if t_cost < cost:
                 change = float(np.max(np.abs(trial[0] - state[0])))
@@ -393,10 +409,7 @@ class HandSolver:
                 lam *= 4.0
                 if lam > 1e6:
                     break
-        angles, rotation, wrist = state
-        prefix = np.empty((N_FINGER_BONES, 4, 3, 3))
-        _hand_kernel.local_rotations(angles, self._axes, _SLOTS, prefix)
-        return HandResult(angles, rotation, wrist, quat_from_matrix(prefix[:, 3]), iterations, float(cost), n_obs)
+        return (*state, cost, iterations)
 
     def normal_equations(
         self,
@@ -413,20 +426,26 @@ class HandSolver:
             cost, r, Jac = self._evaluate(state, projections, uv, conf, body_rotation, body_wrist, True)
             assert Jac is not None
             return cost, Jac.T @ Jac, Jac.T @ r
-        o = self.options
         angles, rotation, wrist = state
         JtJ = np.empty((N_HINGES + 6, N_HINGES + 6))
         g = np.empty(N_HINGES + 6)
-        scalars = np.array([o.prior_weight, _COUPLING_SIGMA, _COUPLING_RATIO, o.wrist_rotation_sigma_deg * _DEG,
-                            o.wrist_position_sigma_m, o.sigma_px, o.cauchy_px])  # fmt: skip
-        cost = _hand_kernel.evaluate(
-            angles, rotation, wrist, self._axes, _SLOTS, _BONE, self.hand.offsets[self.side],
-            self.hand.tips[self.side], _LM_BONE, _LM_TIP, _DEPENDS, np.ascontiguousarray(projections, dtype=np.float64),
-            np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(conf, dtype=np.float64), _PRIOR_TABLE,
-            _COUPLED_ARRAY, scalars, np.ascontiguousarray(body_rotation, dtype=np.float64),
+        cost = _compiled(_hand_kernel.evaluate)(
+            angles, rotation, wrist, *self._kernel_args(projections, uv, conf),
+            np.ascontiguousarray(body_rotation, dtype=np.float64),
             np.ascontiguousarray(body_wrist, dtype=np.float64), JtJ, g,
         )  # fmt: skip
         return float(cost), JtJ, g
+
+    def _kernel_args(self, projections: FloatArray, uv: FloatArray, conf: FloatArray) -> tuple[Any, ...]:
+        """The kernel's arguments after the state and before the body's frame (see :func:`_hand_kernel.evaluate`)."""
+        o = self.options
+        scalars = np.array([o.prior_weight, _COUPLING_SIGMA, _COUPLING_RATIO, o.wrist_rotation_sigma_deg * _DEG,
+                            o.wrist_position_sigma_m, o.sigma_px, o.cauchy_px])  # fmt: skip
+        return (
+            self._axes, _SLOTS, _BONE, self.hand.offsets[self.side], self.hand.tips[self.side], _LM_BONE, _LM_TIP,
+            _DEPENDS, np.ascontiguousarray(projections, dtype=np.float64), np.ascontiguousarray(uv, dtype=np.float64),
+            np.ascontiguousarray(conf, dtype=np.float64), _PRIOR_TABLE, _COUPLED_ARRAY, scalars,
+        )  # fmt: skip
 
     def _evaluate(
         self,
@@ -568,3 +587,8 @@ def hand_scale_sample(hand: HandSkeleton, side: int, points: FloatArray, ok: Boo
         model = hand.tips[side, bone // 3] if _LM_TIP[lm] else hand.offsets[side, bone]
         ratios.append(float(np.linalg.norm(points[lm] - points[parent]) / np.linalg.norm(model)))
     return float(np.median(ratios)) if len(ratios) >= 6 else None
+
+
+def _compiled(kernel: object) -> Any:
+    """A numba kernel as a plain callable for the type checker (its dispatcher's signature is not known to it)."""
+    return kernel
