@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from mocapd.core import _kernel
 from mocapd.core.body_size import can_size, estimate_skeleton
 from mocapd.core.camera import Camera, triangulate_projections
+from mocapd.core.hand_skeleton import HandPose
 from mocapd.core.heading import BoneVectors, HeadingEstimator, HeadingOptions, bone_vectors, observe_headings, yaw_quat
 from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
@@ -68,6 +69,7 @@ from mocapd.core.terms import CostOptions
 from mocapd.core.warm_start import initial_pose
 from mocapd.errors import InputError
 from mocapd.pipeline.fusion import FusionStage, Mode
+from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
 from mocapd.pipeline.latency import AutoLatency, AutoLatencyOptions, LatencyStats
@@ -172,6 +174,7 @@ class PersonPose:
     skeleton: Skeleton | None = None  # the skeleton theta is on (None: the rig's)
     t_pose_ns: int | None = None  # the instant the pose is for (None: the frame's t_solve_ns)
     solved: PersonPose | None = None  # a predicted pose: the delayed solve it was carried from (else None)
+    hands: HandPose | None = None  # the fingers (mocapd.core.hand_skeleton), when hand keypoints were solved
 
 
 @dataclass(frozen=True)
@@ -265,6 +268,9 @@ class FixedLatencyScheduler:
         The learned fusion (issue 30, :mod:`mocapd.pipeline.fusion`), how its joints enter each person's solve
         ("solver": not at all; "both": as E_J observations on the frames it runs; "learned": the skeleton fitted
         to them alone) and the cameras' foreground mattes it carves.
+    hands : HandStage, optional
+        The per-person finger solve, given when the detections carry hand keypoints (their columns after the
+        body's); None: hands off, and nothing of it runs.
     wall_clock, cpu_clock : callables returning int ns
         Stage timers (defaults: ``time.perf_counter_ns`` and the thread's CPU time). The solve time itself is
         always the ``now_ns`` given to :meth:`tick`.
@@ -287,6 +293,7 @@ class FixedLatencyScheduler:
         fusion: FusionStage | None = None,
         fusion_mode: Mode = "solver",
         mattes: MatteSource | None = None,
+        hands: HandStage | None = None,
         wall_clock: Callable[[], int] = time.perf_counter_ns,
         cpu_clock: Callable[[], int] = time.thread_time_ns,
     ) -> None:
@@ -311,6 +318,8 @@ class FixedLatencyScheduler:
         self.fusion = fusion if fusion_mode != "solver" else None
         self.fusion_mode = fusion_mode
         self.mattes = mattes
+        #: the finger solve (:mod:`mocapd.pipeline.hands`) when the detections carry hand keypoints; None: hands off
+        self.hands = hands
         self._tick_mattes: list[NDArray[np.float32] | None] | None = None  # read once per tick, when needed
         self._tick_t = 0
         self.kin = Kinematics(skeleton)
@@ -460,6 +469,8 @@ class FixedLatencyScheduler:
             if sid not in self._seen_suits:
                 self.heading.freeze(suit.sensors)  # the cameras lost the wearer: offsets stay as they are
         self._forget_released({p.identity for p in people})
+        if self.hands is not None:
+            self.hands.forget(set(self.solvers))
         if self.fusion is not None:
             self.fusion.forget(set(self.solvers))
         self._stage("solve", w2, c2)
@@ -588,7 +599,8 @@ class FixedLatencyScheduler:
             start = initial_pose_from_imus(
                 solver.skeleton, [m.bone for m in with_suit.mounts], sample.orientations, sample.mask
             )
-        solver.reset(start if start is not None else initial_pose(solver.skeleton, person.keypoints, self._names))
+        body = person.keypoints[: len(self._names)]  # hand keypoints, if any, come after the body's
+        solver.reset(start if start is not None else initial_pose(solver.skeleton, body, self._names))
         self.solvers[person.identity] = solver
         return solver
 
@@ -602,10 +614,10 @@ class FixedLatencyScheduler:
         kp = np.zeros((n_cams, n_kp, 2))
         und = np.zeros((n_cams, n_kp, 2))
         conf = np.zeros((n_cams, n_kp))
-        for cam, idx in person.detections.items():
-            kp[cam] = detections[cam].keypoints[idx]
-            und[cam] = self._undistorted(cam, detections[cam])[idx]
-            conf[cam] = np.clip(detections[cam].confidences[idx], 0.0, 1.0)
+        for cam, idx in person.detections.items():  # the body's columns (hand keypoints, if any, come after them)
+            kp[cam] = detections[cam].keypoints[idx, :n_kp]
+            und[cam] = self._undistorted(cam, detections[cam])[idx, :n_kp]
+            conf[cam] = np.clip(detections[cam].confidences[idx, :n_kp], 0.0, 1.0)
         kp, und, conf = self._unflip(solver, kp, und, conf, len(person.detections))
         c1 = self._cpu()
         imu_kw: dict[str, Any] = {}
@@ -639,20 +651,28 @@ class FixedLatencyScheduler:
                 self.counters["not_converged"] += 1
         if person.track >= 0 and len(person.detections) >= 2:
             self._size_body(person, solver, und, conf)
-        c3 = self._cpu()
+        c3 = c4 = self._cpu()
+        theta, hands = result.theta, None
+        if self.hands is not None:
+            views = {cam: (self._undistorted(cam, detections[cam])[idx], detections[cam].confidences[idx])
+                     for cam, idx in person.detections.items()}  # fmt: skip
+            hands, theta = self.hands.solve(person.identity, solver.skeleton, theta, views)
+            c4 = self._cpu()
         with self._count_lock:
-            for stage, ns in zip(PERSON_STAGES, (c1 - c0, c2 - c1, c3 - c2, c3 - c0), strict=True):
+            if self.hands is not None:
+                self.hands.cpu.add(c4 - c3)
+            for stage, ns in zip(PERSON_STAGES, (c1 - c0, c2 - c1, c3 - c2, c4 - c0), strict=True):
                 self.person_cpu[stage].add(ns)
             if threading.current_thread() is not self._tick_thread:
-                self._pool_cpu_ns += c3 - c0
-        views = len(person.detections)
+                self._pool_cpu_ns += c4 - c0
+        n_views = len(person.detections)
         used = conf[conf > 0]
-        confidence = float(used.mean()) * min(1.0, views / 2.0) if used.size else 0.0
-        joints = self._joints(solver, result.theta)
+        confidence = float(used.mean()) * min(1.0, n_views / 2.0) if used.size else 0.0
+        joints = self._joints(solver, theta)
         return PersonPose(
-            person.identity, person.track, person.suit, result.theta, joints, confidence, views, n_imu,
+            person.identity, person.track, person.suit, theta, joints, confidence, n_views, n_imu,
             result.summary.iterations, result.summary.converged,
-            solver.skeleton if solver.skeleton is not self.skeleton else None,
+            solver.skeleton if solver.skeleton is not self.skeleton else None, hands=hands,
         )  # fmt: skip
 
     def _unflip(
