@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from mocapd.core import _kernel
 from mocapd.core.body_size import can_size, estimate_skeleton
 from mocapd.core.camera import Camera, triangulate_projections
+from mocapd.core.hand_skeleton import HandPose
 from mocapd.core.heading import BoneVectors, HeadingEstimator, HeadingOptions, bone_vectors, observe_headings, yaw_quat
 from mocapd.core.imu import ImuMount
 from mocapd.core.imu_calibration import ImuCalibration
@@ -166,6 +167,7 @@ class PersonPose:
     skeleton: Skeleton | None = None  # the skeleton theta is on (None: the rig's)
     t_pose_ns: int | None = None  # the instant the pose is for (None: the frame's t_solve_ns)
     solved: PersonPose | None = None  # a predicted pose: the delayed solve it was carried from (else None)
+    hands: HandPose | None = None  # the fingers (mocapd.core.hand_skeleton), when hand keypoints were solved
 
 
 @dataclass(frozen=True)
