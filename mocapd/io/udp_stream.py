@@ -247,7 +247,8 @@ class VmcUdpSink(_UdpPoseSink):
         tracked = [p.views > 0 or p.imus > 0 for _, p in subjects]
         try:
             bundles = self.encoder.encode_many(t, thetas, tracked, [p.skeleton for _, p in subjects],
-                                               [frame.pose_time_ns(p) for _, p in subjects])  # fmt: skip
+                                               [frame.pose_time_ns(p) for _, p in subjects],
+                                               [p.hands for _, p in subjects])  # fmt: skip
         except MocapdError:
             self.skipped_subjects += len(subjects)
             return
