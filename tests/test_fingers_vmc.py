@@ -38,8 +38,8 @@ def chain(bones: dict[str, list[float]]) -> dict[str, tuple[np.ndarray, np.ndarr
     """World transforms (mocapd axes) of every received bone: Unity's parents, then each finger's."""
     parents: dict[str, str | None] = dict(UNITY_PARENT)
     for side in ("Left", "Right"):
-        for b, p in zip(FINGER_BONES, FINGER_PARENTS, strict=True):
-            parents[side + b] = side + ("Hand" if p < 0 else FINGER_BONES[p])
+        for b, up in zip(FINGER_BONES, FINGER_PARENTS, strict=True):
+            parents[side + b] = side + ("Hand" if up < 0 else FINGER_BONES[up])
     world: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name, parent in parents.items():
         if name not in bones:
