@@ -385,7 +385,8 @@ class RokokoUdpSink(_UdpPoseSink):
         for ident in [i for i in self._last if i not in held]:  # released: the actor leaves the scene
             del self._last[ident]
         for ident, (slot, p) in present.items():
-            self._last[ident] = RokokoActor(self.actor_names.get(ident, ident), p.theta, colour(slot), p.skeleton)
+            self._last[ident] = RokokoActor(self.actor_names.get(ident, ident), p.theta, colour(slot), p.skeleton,
+                                            hands=p.hands)  # fmt: skip
         actors = [
             a if ident in present else replace(a, tracked=False)
             for ident, a in sorted(self._last.items(), key=lambda kv: held[kv[0]])
