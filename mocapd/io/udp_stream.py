@@ -191,7 +191,8 @@ class MvnUdpSink(_UdpPoseSink):
             return
         try:
             datagrams = self.encoder.encode(frame.frame, frame.t_solve_ns, chars, [p.skeleton for _, p in subjects],
-                                            [frame.pose_time_ns(p) for _, p in subjects])  # fmt: skip
+                                            [frame.pose_time_ns(p) for _, p in subjects],
+                                            [p.hands for _, p in subjects])  # fmt: skip
         except MocapdError:
             self.skipped_subjects += len(chars)
             return
