@@ -8,7 +8,6 @@ import pytest
 from mocapd.core.hand_skeleton import (
     FINGER_BONES,
     FINGER_PARENTS,
-    HAND21,
     HAND_BONE_NAMES,
     HAND_PER_FOREARM,
     LANDMARK_BONE,
@@ -21,6 +20,7 @@ from mocapd.core.hand_skeleton import (
     HandSkeleton,
     hand_bone_index,
 )
+from mocapd.core.keypoints import HAND21
 from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.errors import InputError
 
@@ -41,7 +41,7 @@ def test_names_follow_unity_and_vrm() -> None:
 
 def test_parents_and_landmarks_make_three_bone_chains() -> None:
     assert FINGER_PARENTS == (-1, 0, 1, -1, 3, 4, -1, 6, 7, -1, 9, 10, -1, 12, 13)
-    assert len(HAND21) == 21 and HAND21[0] == "wrist" and HAND21[4] == "thumb_tip" and HAND21[20] == "pinky_tip"
+    assert len(HAND21) == 21 and HAND21[0] == "wrist" and HAND21[4] == "thumb_tip" and HAND21[8] == "index_finger_tip"
     # each finger: three joints then a tip on the distal bone
     assert LANDMARK_BONE[5:9] == (3, 4, 5, 5) and LANDMARK_IS_TIP[5:9] == (False, False, False, True)
     assert LANDMARK_BONE[0] == -1

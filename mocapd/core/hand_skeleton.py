@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.keypoints import HAND21
 from mocapd.core.skeleton import BONE_INDEX, REFERENCE_HEIGHT, Skeleton
 from mocapd.errors import InputError
 
@@ -77,16 +78,7 @@ VRM1_NAMES: Mapping[str, str] = {side + f + s: _vrm(side, f, s, 1) for side in S
 VRM0_NAMES: Mapping[str, str] = {side + f + s: _vrm(side, f, s, 0) for side in SIDES for f in FINGERS for s in SEGMENTS}
 """Unity name -> VRM 0.x humanoid bone name (``LeftThumbProximal`` -> ``leftThumbProximal``)."""
 
-HAND21: tuple[str, ...] = (
-    "wrist",
-    "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
-    "index_mcp", "index_pip", "index_dip", "index_tip",
-    "middle_mcp", "middle_pip", "middle_dip", "middle_tip",
-    "ring_mcp", "ring_pip", "ring_dip", "ring_tip",
-    "pinky_mcp", "pinky_pip", "pinky_dip", "pinky_tip",
-)  # fmt: skip
-"""MediaPipe's 21 hand landmarks in output order (COCO-WholeBody's hands and OpenPose's hand model share it)."""
-N_HAND_KEYPOINTS = len(HAND21)
+N_HAND_KEYPOINTS = len(HAND21)  # MediaPipe's landmarks, :data:`mocapd.core.keypoints.HAND21`
 LANDMARK_BONE: tuple[int, ...] = (-1, *(3 * f + j if j < 3 else 3 * f + 2 for f in range(5) for j in range(4)))
 """Per landmark: the finger bone it sits on (-1: the wrist, the hand bone's origin)."""
 LANDMARK_IS_TIP: tuple[bool, ...] = (False, *(j == 3 for _ in range(5) for j in range(4)))

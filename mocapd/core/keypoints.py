@@ -395,10 +395,83 @@ FORMATS: Mapping[str, KeypointFormat] = {
     f.name: f for f in (COCO17_FORMAT, BODY25_FORMAT, HALPE26_FORMAT, BLAZEPOSE33_FORMAT)
 }
 
+# ------------------------------------------------------------------------------------------------ hands
+
+HAND21: tuple[str, ...] = (
+    "wrist",
+    "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
+    "index_finger_mcp", "index_finger_pip", "index_finger_dip", "index_finger_tip",
+    "middle_finger_mcp", "middle_finger_pip", "middle_finger_dip", "middle_finger_tip",
+    "ring_finger_mcp", "ring_finger_pip", "ring_finger_dip", "ring_finger_tip",
+    "pinky_mcp", "pinky_pip", "pinky_dip", "pinky_tip",
+)  # fmt: skip
+"""The hand landmark model's 21 points of one hand, in its output order, named as MediaPipe's ``HandLandmark``
+(lower case): the wrist, then per finger from the palm out (thumb: carpometacarpal, metacarpophalangeal,
+interphalangeal joints and tip; the others: MCP, PIP, DIP joints and tip)."""
+
+FINGERS: Mapping[str, tuple[str, ...]] = {
+    finger: tuple(n for n in HAND21 if n.startswith(finger)) for finger in ("thumb", "index", "middle", "ring", "pinky")
+}
+"""Each finger's four points of :data:`HAND21`, from the palm out."""
+
+HAND21_EDGES: tuple[tuple[int, int], ...] = (
+    (0, 1), (1, 2), (2, 3), (3, 4), (0, 5), (5, 6), (6, 7), (7, 8), (5, 9), (9, 10), (10, 11), (11, 12),
+    (9, 13), (13, 14), (14, 15), (15, 16), (13, 17), (0, 17), (17, 18), (18, 19), (19, 20),
+)  # fmt: skip
+"""MediaPipe's ``HAND_CONNECTIONS`` (the palm and each finger's chain) as index pairs of :data:`HAND21`."""
+
+HAND_SIDES = ("left", "right")
+
+
+def hand_keypoint_names(side: str) -> tuple[str, ...]:
+    """The 21 keypoint names of the ``side`` ("left" or "right") hand of a person: ``left_hand_wrist``,
+    ``left_hand_thumb_cmc``, ... ``left_hand_pinky_tip``. The side is the *body's* (the hand at the end of the
+    person's left arm), never the hand model's own handedness guess."""
+    if side not in HAND_SIDES:
+        raise ConfigError(f"hand side must be one of {list(HAND_SIDES)}, got {side!r}")
+    return tuple(f"{side}_hand_{n}" for n in HAND21)
+
+
+HANDS42: tuple[str, ...] = (*hand_keypoint_names("left"), *hand_keypoint_names("right"))
+"""A person's two hands: the left hand's 21 points (:func:`hand_keypoint_names`), then the right hand's."""
+
+_LEFT_HAND_TARGETS: dict[str, TrackTarget] = {}
+"""Track targets of the left hand's points (the right hand's are their twins). None yet: the finger bones (issue 44)
+give them; until then the hand points ride along with the body's keypoints and the solver skips them."""
+
+
+def with_hands(body: KeypointFormat) -> KeypointFormat:
+    """``body``'s keypoints followed by :data:`HANDS42` (the format ``<body>_hands``): what the detector delivers
+    with ``[detector] hands`` on. The body's columns, targets and edges are unchanged, so a consumer that takes the
+    body's columns sees exactly what it sees with hands off."""
+    n = body.n_keypoints
+    hand_edges = tuple((n + side * 21 + a, n + side * 21 + b) for side in (0, 1) for a, b in HAND21_EDGES)
+    # Each hand model's wrist drawn to the body's wrist of the same side.
+    wrists = tuple(
+        (body.index(f"{s}_wrist"), n + i * 21) for i, s in enumerate(HAND_SIDES) if f"{s}_wrist" in body.keypoints
+    )
+    return KeypointFormat(
+        name=f"{body.name}_hands",
+        keypoints=(*body.keypoints, *HANDS42),
+        targets={**body.targets, **_both_sides(_LEFT_HAND_TARGETS)},
+        edges=(*body.edges, *hand_edges, *wrists),
+    )
+
+
+COCO17_HANDS_FORMAT = with_hands(COCO17_FORMAT)
+"""COCO-17 (YOLO's keypoints; hand crops from the forearm) and both hands: 17 + 42 keypoints."""
+BLAZEPOSE33_HANDS_FORMAT = with_hands(BLAZEPOSE33_FORMAT)
+"""BlazePose's 33 landmarks (hand crops from wrist, pinky and index) and both hands: 33 + 42 keypoints."""
+
+HAND_FORMATS: Mapping[str, KeypointFormat] = {f.name: f for f in (COCO17_HANDS_FORMAT, BLAZEPOSE33_HANDS_FORMAT)}
+"""The formats ``[detector] hands`` delivers, by name (never a detector model's own format: not in
+:data:`FORMATS`)."""
+
 
 def keypoint_format(name: str) -> KeypointFormat:
-    """The format called ``name`` (``coco17``, ``body25``, ``halpe26``, ``blazepose33``)."""
+    """The format called ``name`` (``coco17``, ``body25``, ``halpe26``, ``blazepose33``, ``coco17_hands``,
+    ``blazepose33_hands``)."""
     try:
-        return FORMATS[name]
+        return FORMATS[name] if name in FORMATS else HAND_FORMATS[name]
     except KeyError:
-        raise ConfigError(f"unknown keypoint format {name!r}; known: {sorted(FORMATS)}") from None
+        raise ConfigError(f"unknown keypoint format {name!r}; known: {sorted([*FORMATS, *HAND_FORMATS])}") from None
