@@ -3,7 +3,9 @@
 
 The subject's recorded frames (their solve times need not be uniform: missed ticks, another output rate) are
 resampled to ``rate`` Hz from its first to its last frame: root translation linearly, every bone's local rotation
-by slerp, between the two recorded frames around each output time.
+by slerp, between the two recorded frames around each output time. A subject with fingers (issue 44) keeps them:
+their local rotations are resampled by slerp too (a frame without fingers: the rest pose) and BVH, glTF and FBX
+carry the 30 finger bones (:mod:`mocapd.protocols.fingers`); the CSV has the body's columns only.
 
 CSV columns (one row per output frame, header row first; lengths in metres, quaternions (w, x, y, z))::
 
