@@ -202,7 +202,7 @@ async def test_a_detector_at_half_duty_rests_as_long_as_it_detects() -> None:
     group = PackedDetectionGroup(packed_detector_from_config(DetectorConfig(intra_op_threads=1), sizes),
                                  ThreadPoolExecutor(1))  # fmt: skip
     group.duty = 0.5
-    group.max_rest_ns = 10**12  # the proportion itself (the cap has its own test)
+    group.max_rest_ns = group.starved_ns = 10**12  # the proportion itself (the cap and the floor: own test)
     sources = [PackedKeypointSource(i, c, group) for i, c in enumerate(cams)]
     tasks = [asyncio.create_task(s.run(lambda *_: None)) for s in sources]
     try:
@@ -224,14 +224,19 @@ async def test_a_detector_at_half_duty_rests_as_long_as_it_detects() -> None:
 
 
 def test_a_rest_never_ages_the_tracked_people_out() -> None:
-    """A pass a starved detector took 2 s for rests at most MAX_REST_NS at any duty (issue 39: 35 % duty rested
-    ~2 s after each 1 s pass, its cameras' tracked people aged out and came back as new identities)."""
+    """A pass a starved detector took 2 s for rests at most MAX_REST_NS at any duty, and not at all while a camera
+    has had no detection for STARVED_NS (issue 39: 35 % duty rested ~2 s after each 1 s pass, its cameras' tracked
+    people aged out and came back as new identities)."""
     cams = [VideoFileSource("cam01", demo_video("Demo_MultiPerson", "cam01"))]
     sizes = [(c.ring.shape[1], c.ring.shape[0]) for c in cams]
     group = PackedDetectionGroup(packed_detector_from_config(DetectorConfig(intra_op_threads=1), sizes),
                                  ThreadPoolExecutor(1))  # fmt: skip
+    PackedKeypointSource(0, cams[0], group)
     try:
         group.duty = 0.35
+        group._rest(2_000_000_000)  # cam01 never detected: no rest at all
+        assert group.rested_ns == 0 and group.rests_skipped == 1
+        group._detected_ns[0] = group.clock()
         group._rest(2_000_000_000)
         assert group.rested_ns == MAX_REST_NS
         group.duty = 0.75

@@ -48,6 +48,8 @@ Image = NDArray[np.uint8]
 log = logging.getLogger(__name__)
 #: the longest rest after a pass at a duty below 1 (see :meth:`PackedDetectionGroup._rest`)
 MAX_REST_NS = 300_000_000
+#: no rest at a duty below 1 while a camera went this long without a detection (see :meth:`PackedDetectionGroup._rest`)
+STARVED_NS = 1_000_000_000
 
 
 def to_detections2d(people: PoseDetections, columns: NDArray[np.intp] | None = None) -> Detections2D:
@@ -147,7 +149,11 @@ class PackedDetectionGroup:
         #: everything, the detector gives way before the output tick does.
         self.duty = 1.0
         self.max_rest_ns = MAX_REST_NS
+        #: no rest while a camera's last detection is older than this (or it has none yet)
+        self.starved_ns = STARVED_NS
         self.rested_ns = 0
+        self.rests_skipped = 0
+        self._detected_ns: dict[int, int] = {}  # per camera: when a pass last delivered its detections
 
     def add(self, source: PackedKeypointSource) -> None:
         self.sources[source.camera] = source
@@ -202,15 +208,25 @@ class PackedDetectionGroup:
                     self._in_flight -= 1
                     self._cond.notify_all()  # its cameras are free again, and more frames came meanwhile
             loop = self._loop
+            done = self.clock()
+            if found:
+                for cam in found:
+                    self._detected_ns[cam] = done
             if found and loop is not None and not loop.is_closed():
                 loop.call_soon_threadsafe(self._deliver, found)
-            self._rest(self.clock() - t0)
+            self._rest(done - t0)
 
     def _rest(self, took_ns: int) -> None:
         """After a pass that took ``took_ns``: rest so that passes take at most :attr:`duty` of the time, but never
         longer than :attr:`max_rest_ns` (default :data:`MAX_REST_NS`)."""
         duty = self.duty
         if duty >= 1.0 or took_ns <= 0:
+            return
+        now = self.clock()
+        if any(now - self._detected_ns.get(cam, -(1 << 62)) > self.starved_ns for cam in self.sources):
+            # A camera the detector has not reached for a second: its tracked people are ageing out
+            # (``[detector.tracking] max_age_s``), and resting would let them go. The duty gives way.
+            self.rests_skipped += 1
             return
         # Capped: a pass a starved detector takes a second for would rest 2 s at 35 % duty, and a camera's
         # detections that far apart age its tracked people out (``[detector.tracking] max_age_s``) -- they left
@@ -390,7 +406,7 @@ class PackedDetectionGroup:
             # Of which inside onnxruntime: the rest of a pass (frame conversion, canvases, decoding) is mocapd's.
             "inference_s": round(self._inference_ns() / 1e9, 2),
             "sessions": len(self.sessions), "passes_in_flight_max": self.in_flight_max,
-            "duty": self.duty, "rested_s": round(self.rested_ns / 1e9, 2),
+            "duty": self.duty, "rested_s": round(self.rested_ns / 1e9, 2), "rests_skipped": self.rests_skipped,
         }  # fmt: skip
         out["mode"] = self.chooser.status() if self.chooser is not None else {"mode": "packed", "chosen": "packed"}
         return out
