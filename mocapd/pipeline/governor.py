@@ -10,15 +10,18 @@ missed, and moves one step along a fixed ladder of work to leave out:
 step  what is shed                         what it costs
 ====  ===================================  ========================================================================
 0     nothing                              —
-1     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
+1     landmark model off                   with ``[detector] landmarks = "auto"``: YOLO's keypoints alone, no feet
+                                           or hand points (the landmark model is the detector's costliest part on
+                                           a CPU: 16-272 ms a crop); a model named in the config keeps running
+2     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
                                            scheduler interpolates between them)
-2     detector at 75 % duty                each detector worker rests a third of a pass after each pass: fewer
+3     detector at 75 % duty                each detector worker rests a third of a pass after each pass: fewer
                                            detections, the CPU (or the CPU budget's quota) left to the tick
-3     flip search every 2nd tick           a person's left/right decision reused on the tick between two searches
-4     detector at 50 % duty
-5     flip search every 4th tick,
+4     flip search every 2nd tick           a person's left/right decision reused on the tick between two searches
+5     detector at 50 % duty
+6     flip search every 4th tick,
       detector at 35 % duty
-6     keypoint tracking off                keypoints only at the detector's rate; ``latency_s = "auto"`` follows
+7     keypoint tracking off                keypoints only at the detector's rate; ``latency_s = "auto"`` follows
                                            the detector's delay instead of the tracking's (measured: 1.2 s end to
                                            end at a one-core budget), so it is the last resort
 ====  ===================================  ========================================================================
@@ -46,16 +49,18 @@ class Level:
     tracking_rate: float  # keypoint tracking's rate as a share of its configured rate (0: off)
     flip_every: int  # the flip search on every this-many-th tick
     detector_duty: float  # the share of wall time each detector worker may spend in passes
+    landmarks: bool = True  # landmarks = "auto" may run a landmark model (False: YOLO's keypoints alone)
 
 
 LADDER: tuple[Level, ...] = (
     Level("nothing shed", 1.0, 1, 1.0),
-    Level("keypoint tracking at half rate", 0.5, 1, 1.0),
-    Level("detector at 75 % duty", 0.5, 1, 0.75),
-    Level("flip search every 2nd tick", 0.5, 2, 0.75),
-    Level("detector at 50 % duty", 0.5, 2, 0.5),
-    Level("flip search every 4th tick, detector at 35 % duty", 0.5, 4, 0.35),
-    Level("keypoint tracking off", 0.0, 4, 0.35),
+    Level("landmark model off", 1.0, 1, 1.0, False),
+    Level("keypoint tracking at half rate", 0.5, 1, 1.0, False),
+    Level("detector at 75 % duty", 0.5, 1, 0.75, False),
+    Level("flip search every 2nd tick", 0.5, 2, 0.75, False),
+    Level("detector at 50 % duty", 0.5, 2, 0.5, False),
+    Level("flip search every 4th tick, detector at 35 % duty", 0.5, 4, 0.35, False),
+    Level("keypoint tracking off", 0.0, 4, 0.35, False),
 )
 
 
@@ -154,6 +159,7 @@ class Governor:
             "tracking_rate": self.level.tracking_rate,
             "flip_every": self.level.flip_every,
             "detector_duty": self.level.detector_duty,
+            "landmarks": self.level.landmarks,
             "reason": self.last_reason,
             "changes": self.changes,
             "tick_p95_ms": self.last_p95_ms,

@@ -89,6 +89,9 @@ Server → client messages
     tasks           {str: int}   supervised task -> failures so far
     governor        map     step (0: nothing shed), shed (what is left out now), reason (why); absent when the
                             daemon's governor is off
+    landmarks       map     the landmark model: running ("heavy" | "full" | "off"), every (on every n-th
+                            detection pass), reason (why; "auto" only), cameras ({name: {detect_hz, landmark_hz}};
+                            "auto" only); absent when [detector] landmarks is off
     stream          map     clients (connected now), sent (messages sent to this client), dropped (messages
                             dropped for this client because it read too slowly)
 
@@ -492,6 +495,10 @@ def health_subset(health: Mapping[str, Any]) -> dict[str, Any]:
     governor = health.get("governor")
     if isinstance(governor, Mapping):
         out["governor"] = {k: governor.get(k) for k in ("step", "shed", "reason")}
+    detector = health.get("detector")
+    marks = detector.get("landmarks") if isinstance(detector, Mapping) else None
+    if isinstance(marks, Mapping) and marks.get("asked", "off") != "off":
+        out["landmarks"] = {k: marks.get(k) for k in ("running", "every", "reason", "cameras")}
     return out
 
 

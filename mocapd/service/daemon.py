@@ -50,9 +50,11 @@ from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
+from mocapd.pipeline.detector_pool import landmark_fronts
 from mocapd.pipeline.fusion import FusionModels, FusionStage
 from mocapd.pipeline.governor import Governor
 from mocapd.pipeline.keypoint_source import KeypointSource
+from mocapd.pipeline.landmark_auto import LandmarkFront, shed_landmarks, status_field
 from mocapd.pipeline.mattes import MatteSource, RingMattes
 from mocapd.pipeline.scheduler import (
     READ_WAIT_S,
@@ -601,6 +603,16 @@ class Daemon:
                 if self.governor.step(published):
                     self._apply_governor()
 
+    def _landmark_fronts(self) -> list[LandmarkFront]:
+        """The landmark stages of the cameras' detectors, each once."""
+        out: list[LandmarkFront] = []
+        for src in self.rig.sources:
+            group = getattr(src, "group", None)
+            for f in landmark_fronts(group if group is not None else getattr(src, "detector", None)):
+                if all(f is not g for g in out):
+                    out.append(f)
+        return out
+
     def _apply_governor(self) -> None:
         """The governor's level to the keypoint sources (tracking rate) and the scheduler (flip search), said in the
         log: what is shed now and why."""
@@ -612,6 +624,9 @@ class Daemon:
             group = getattr(src, "group", None)  # a packed detection group (shared by its cameras)
             if group is not None and hasattr(group, "duty"):
                 group.duty = level.detector_duty
+        # landmarks = "auto": the landmark model off from step 1 on
+        shed_landmarks(self._landmark_fronts(), None if level.landmarks else f"step {self.governor.step_index}, "
+                       f"{self.governor.last_reason}")  # fmt: skip
         self.scheduler.shedding.flip_every = level.flip_every
         log.warning("governor: %s (%s)", level.name, self.governor.last_reason)
 
@@ -689,6 +704,9 @@ class Daemon:
         )
         if self.governor is not None and self.governor.step_index:
             line += f"  shed: {self.governor.level.name}"
+        marks = status_field(self._landmark_fronts())
+        if marks is not None:
+            line += f"  {marks}"
         if self.imu.devices:
             streaming = sum(1 for d in self.imu.devices if d.streaming.is_set())
             line += f"  IMUs {streaming}/{len(self.imu.devices)}"
