@@ -2,7 +2,7 @@
 (issue 40; :mod:`mocapd.eval.extremities`). Prints JSON (with the CPU and the load) on stdout, a summary on stderr.
 
     MOCAPD_DATA=/work/shared/data PYTHONPATH=$PWD nice -n 19 .venv/bin/python tools/extremity_orientation.py \\
-        --split evaluation --frames 300 --sequences 6 > docs/accuracy/extremities.json
+        --split evaluation --frames 600 --sequences 100 > docs/accuracy/extremities.json
 """
 
 from __future__ import annotations
