@@ -13,7 +13,7 @@ from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
 from mocapd.io.pose2sim_demo import demo_video
 from mocapd.pipeline.detector_config import DetectorConfig, PackingConfig
 from mocapd.pipeline.detector_pool import PooledDetector, detector_status, landmark_fronts, make_detector
-from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions
+from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions, ladder
 from mocapd.pipeline.landmark_auto import (
     AutoLandmarks,
     LandmarkBudget,
@@ -71,6 +71,8 @@ def test_the_governors_ladder_sheds_the_landmark_model_first_and_keeps_it_off_af
     for _ in range(120):
         g.observe(50_000_000)  # three periods a tick
     assert g.step(2_000_000_000) and g.step_index == 1 and g.status()["landmarks"] is False
+    # A daemon without "auto" has no landmark step: its first step sheds the tracking rate, as before.
+    assert ladder(False)[1].name == "keypoint tracking at half rate" and len(ladder(False)) == len(LADDER) - 1
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +131,7 @@ def test_the_daemons_governor_applies_the_landmark_step_to_the_cameras_detector(
     text = text.replace("[daemon]\nhttp_port = 0\n", "[daemon]\nhttp_port = 0\ngovernor = true\n")
     with assembled(load_config(write(tmp_path / "config.toml", text))) as built:
         daemon = built.daemon
-        assert daemon.governor is not None
+        assert daemon.governor is not None and daemon.governor.ladder == LADDER  # with the landmark step
         fronts = daemon._landmark_fronts()
         assert fronts and all(isinstance(f, AutoLandmarks) and f.shed is None for f in fronts)
         daemon.governor.step_index = 1  # as after one overrun window

@@ -12,7 +12,8 @@ step  what is shed                         what it costs
 0     nothing                              —
 1     landmark model off                   with ``[detector] landmarks = "auto"``: YOLO's keypoints alone, no feet
                                            or hand points (the landmark model is the detector's costliest part on
-                                           a CPU: 16-272 ms a crop); a model named in the config keeps running
+                                           a CPU: 16-272 ms a crop); a model named in the config keeps running;
+                                           without "auto" the step is left out (:func:`ladder`)
 2     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
                                            scheduler interpolates between them)
 3     detector at 75 % duty                each detector worker rests a third of a pass after each pass: fewer
@@ -64,6 +65,12 @@ LADDER: tuple[Level, ...] = (
 )
 
 
+def ladder(landmarks: bool) -> tuple[Level, ...]:
+    """:data:`LADDER` for a daemon whose detector runs ``landmarks = "auto"``, else without the landmark step (it
+    would shed nothing there, and cost a window before the tracking rate is shed)."""
+    return LADDER if landmarks else tuple(lv for lv in LADDER if lv.name != "landmark model off")
+
+
 @dataclass(frozen=True)
 class GovernorOptions:
     """When the governor sheds and restores work."""
@@ -84,10 +91,17 @@ class GovernorOptions:
 
 
 class Governor:
-    """Chooses the step of :data:`LADDER` the daemon runs at (see the module docstring)."""
+    """Chooses the step of its ladder (:data:`LADDER` by default) the daemon runs at (see the module docstring)."""
 
-    def __init__(self, period_ns: int, options: GovernorOptions | None = None, start_ns: int = 0) -> None:
+    def __init__(
+        self,
+        period_ns: int,
+        options: GovernorOptions | None = None,
+        start_ns: int = 0,
+        steps: tuple[Level, ...] = LADDER,
+    ) -> None:
         self.options = options if options is not None else GovernorOptions()
+        self.ladder = steps  # LADDER, or :func:`ladder` without the landmark step
         self.period_ns = period_ns
         self.step_index = 0
         self._start_ns = start_ns
@@ -102,7 +116,7 @@ class Governor:
 
     @property
     def level(self) -> Level:
-        return LADDER[self.step_index]
+        return self.ladder[self.step_index]
 
     def observe(self, tick_ns: int, missed: int = 0) -> None:
         """One published tick: how long after its scheduled instant it was published (ns), and the ticks skipped
@@ -127,7 +141,7 @@ class Governor:
         missed_share = missed / ticks if ticks else 0.0
         if share > o.shed_above or missed_share > o.max_missed:
             self._calm_since = None
-            if self.step_index + 1 < len(LADDER):
+            if self.step_index + 1 < len(self.ladder):
                 self.step_index += 1
                 self._changed(now_ns, f"tick p95 {p95 / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
                               f"{missed} of {ticks} ticks missed")  # fmt: skip

@@ -354,6 +354,11 @@ def front_status(asked: str, fronts: Sequence[LandmarkFront], camera_names: Sequ
     return landmark_status(asked, [f for f in fronts if isinstance(f, LandmarkRunner)])
 
 
+def has_auto(fronts: Sequence[LandmarkFront]) -> bool:
+    """Whether any of ``fronts`` is "auto" (the governor's ladder then has the landmark step)."""
+    return any(isinstance(f, AutoLandmarks) for f in fronts)
+
+
 def shed_landmarks(fronts: Sequence[LandmarkFront], reason: str | None) -> None:
     """The governor's hook: hold every "auto" front at off with ``reason`` (None: restore the cost-based choice).
     A model named in the config ("full", "heavy") is what the user asked for and is left running."""

@@ -52,9 +52,9 @@ from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.detector_pool import landmark_fronts
 from mocapd.pipeline.fusion import FusionModels, FusionStage
-from mocapd.pipeline.governor import Governor
+from mocapd.pipeline.governor import Governor, ladder
 from mocapd.pipeline.keypoint_source import KeypointSource
-from mocapd.pipeline.landmark_auto import LandmarkFront, shed_landmarks, status_field
+from mocapd.pipeline.landmark_auto import LandmarkFront, has_auto, shed_landmarks, status_field
 from mocapd.pipeline.mattes import MatteSource, RingMattes
 from mocapd.pipeline.scheduler import (
     READ_WAIT_S,
@@ -276,7 +276,8 @@ class Daemon:
                                                initargs=("mocapd-solve",)) if threads > 1 else None)  # fmt: skip
         self.scheduler.pool = self._solve_pool
         #: sheds work when the tick does not fit its period (None: ``[daemon] governor = false``)
-        self.governor = Governor(self.scheduler.options.period_ns, start_ns=clock()) if d.governor else None
+        self.governor = (Governor(self.scheduler.options.period_ns, start_ns=clock(),
+                                  steps=ladder(has_auto(self._landmark_fronts()))) if d.governor else None)  # fmt: skip
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
         self.actions: dict[str, Callable[[dict[str, str], str], Any]] = {
