@@ -22,6 +22,7 @@ from mocapd.pipeline.landmark_auto import (
     shed_landmarks,
     status_field,
 )
+from mocapd.pipeline.landmarks import LandmarkRunner
 from mocapd.protocols.ws_stream import health_subset
 from mocapd.service.assembly import assembled
 from mocapd.service.config import load_config
@@ -61,6 +62,18 @@ def test_unmeasured_models_are_measured_first_and_heavy_is_estimated_from_full()
     c = choose_landmarks(_costs(6.0, 30.0, 1.0, 5.0, None))  # heavy estimated at 16 ms: fits every pass
     assert c.variant == "heavy" and "measuring" in c.reason
     assert choose_landmarks(_costs(6.0, 30.0, 1.0, 5.0, 10.0), allowed=()).variant is None
+
+
+def test_a_models_cost_measured_under_load_follows_yolos_cost_since() -> None:
+    # Full measured at 250 ms a crop while YOLO took 1000 ms a pass; YOLO now takes 100 ms: full is taken as 25 ms
+    # (no new run needed to see the load gone), and "auto" comes back from off.
+    front = AutoLandmarks({"full": LandmarkRunner("full"), "heavy": LandmarkRunner("heavy")})  # lazy: nothing loads
+    front._per_crop["full"].value, front._yolo_then["full"] = 250.0, 1000.0
+    front._yolo.value, front._crops.value = 1000.0, 2.0
+    assert front.costs().landmark_ms["full"] == pytest.approx(250.0) and front.decide().variant is None
+    front._yolo.value = 100.0
+    assert front.costs().landmark_ms["full"] == pytest.approx(25.0)
+    assert (front.decide().variant, front.decide().every) == ("full", 1)
 
 
 def test_the_governors_ladder_sheds_the_landmark_model_first_and_keeps_it_off_after() -> None:

@@ -183,6 +183,7 @@ class AutoLandmarks:
         self.choice = LandmarkChoice(None, 1, "no pass yet")
         self._yolo, self._idle, self._crops = _Mean(), _Mean(), _Mean()
         self._per_crop: dict[str, _Mean] = {v: _Mean() for v in self.runners}
+        self._yolo_then: dict[str, float] = {}  # YOLO's pass time when each model's cost was last measured
         self._since = 0  # passes since the last one with landmarks
         self._last_end: int | None = None
         self.passes = 0
@@ -193,9 +194,17 @@ class AutoLandmarks:
         self._marked: dict[int, deque[int]] = {}  # camera -> end times of its passes with landmarks
 
     def costs(self) -> LandmarkCosts:
-        """The costs measured so far (YOLO 0 ms and one crop until the first pass)."""
-        return LandmarkCosts(self._yolo.value or 0.0, self._idle.value or 0.0, self._crops.value or 1.0,
-                             {v: m.value for v, m in self._per_crop.items()})  # fmt: skip
+        """The costs measured so far (YOLO 0 ms and one crop until the first pass).
+
+        A model's cost per crop is measured only when it runs, YOLO's on every pass: a model measured on a busier
+        (or quieter) CPU than now is scaled by how YOLO's pass time changed since, both being the same kind of CPU
+        work. Otherwise one measurement under a passing load spike would hold "auto" at off for good."""
+        yolo = self._yolo.value or 0.0
+        per_crop: dict[str, float | None] = {}
+        for v, m in self._per_crop.items():
+            then = self._yolo_then.get(v, 0.0)
+            per_crop[v] = None if m.value is None else (m.value * yolo / then if then > 0 and yolo > 0 else m.value)
+        return LandmarkCosts(yolo, self._idle.value or 0.0, self._crops.value or 1.0, per_crop)
 
     def decide(self) -> LandmarkChoice:
         """The choice for the next pass from the costs so far (:func:`choose_landmarks`), the governor's shedding
@@ -245,6 +254,7 @@ class AutoLandmarks:
             crops = sum(r is not None for lm in found for r in lm.rois)
             if crops:
                 self._per_crop[variant].add((self.clock() - t0) / 1e6 / crops)
+                self._yolo_then[variant] = self._yolo.value or 0.0
             for i, lm in enumerate(found):
                 for j, roi in enumerate(lm.rois):
                     if roi is not None:  # a person without a crop keeps YOLO's points
