@@ -5,7 +5,7 @@ Camera rigs
     a ~4×4 m volume, 2.5 m high, looking at the volume centre 1 m above the floor; subsets are "the first N
     adjacent cameras" (seed 003 §4.1.1). ``outdoor_arc``: 4 cameras on a 120° arc (outdoor sets).
 
-2D detections (COCO-17 keypoints of the truth's track targets, same offsets the solver uses)
+2D detections (any keypoint set on the truth's track targets, the offsets the solver uses; the harness: COCO-17)
     ``realistic`` (default): keypoints hidden by the body itself (ray to the camera passes through another body
     part, capsules with per-segment radii) or outside the image are missed; Gaussian noise σ = 1.5 % of the
     person's height in pixels; 5 % gross outliers, uniform in a disc of radius 30 % of the height; in 2 % of
@@ -122,8 +122,21 @@ _CAPSULES: tuple[tuple[str, str, float], ...] = (
     ("RightUpperLeg", "RightLowerLeg", 0.07), ("RightLowerLeg", "RightFoot", 0.05),
 )  # fmt: skip
 
-# COCO-17 left/right limb pairs that a detector swaps: (arm: shoulder, elbow, wrist) and (leg: hip, knee, ankle).
-_SWAP_LIMBS = (((5, 6), (7, 8), (9, 10)), ((11, 12), (13, 14), (15, 16)))
+# The points of a limb a detector swaps left for right together: the arm (shoulder to hand) and the leg (hip to
+# foot), by name so that every keypoint set swaps its own (COCO-17: arm 5/6, 7/8, 9/10, leg 11/12, 13/14, 15/16).
+_SWAP_LIMBS = (
+    ("shoulder", "elbow", "wrist", "pinky", "index", "thumb"),
+    ("hip", "knee", "ankle", "heel", "foot_index", "big_toe", "small_toe"),
+)
+
+
+def _swap_pairs(names: tuple[str, ...]) -> list[list[tuple[int, int]]]:
+    """Per limb of :data:`_SWAP_LIMBS`, the (left, right) index pairs of ``names`` on it."""
+    return [
+        [(names.index(f"left_{p}"), names.index(f"right_{p}")) for p in limb
+         if f"left_{p}" in names and f"right_{p}" in names]
+        for limb in _SWAP_LIMBS
+    ]  # fmt: skip
 
 
 def _occluded(
@@ -213,8 +226,9 @@ def simulate_detections(
     if noise.swap > 0:
         swaps = np.argwhere(rng.uniform(size=(f, n_c)) < noise.swap)
         limbs = rng.integers(0, 2, size=len(swaps))
+        pairs = _swap_pairs(targets.names)
         for (fi, ci), limb in zip(swaps, limbs, strict=True):
-            for left, right in _SWAP_LIMBS[limb]:
+            for left, right in pairs[limb]:
                 uv[fi, ci, [left, right]] = uv[fi, ci, [right, left]]
                 conf[fi, ci, [left, right]] = conf[fi, ci, [right, left]]
                 valid[fi, ci, [left, right]] = valid[fi, ci, [right, left]]

@@ -20,8 +20,6 @@ LAYOUTS = ("NCHW", "NHWC")
 CHANNEL_ORDERS = ("RGB", "BGR")
 PRECISIONS = ("auto", "fp32", "int8", "bf16")
 LANDMARKS = ("off", "full", "heavy", "auto")
-#: What ``[detector] landmarks = "auto"`` runs until the budget governor (issue 40) chooses per pass.
-AUTO_LANDMARKS = "off"
 #: ``[detector] workers = "auto"``: one inference session per this many cores (tools/bench_sessions.py)
 CORES_PER_SESSION = 2
 
@@ -257,8 +255,8 @@ class DetectorConfig:
     that export is in the model cache, True = it must be, False = never."""
     landmarks: str = "off"
     """BlazePose landmarks per person after YOLO (:mod:`mocapd.pipeline.landmarks`): "off" (YOLO's keypoints),
-    "full" or "heavy" (that landmark model; the output becomes ``blazepose33``), "auto" (runs as
-    :data:`AUTO_LANDMARKS` until the budget governor picks per pass; ``/status`` says so)."""
+    "full" or "heavy" (that landmark model; the output becomes ``blazepose33``), "auto" (heavy, full or none per
+    pass from the measured costs, :mod:`mocapd.pipeline.landmark_auto`; the output is ``blazepose33``)."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -266,7 +264,7 @@ class DetectorConfig:
     def __post_init__(self) -> None:
         _choice("detector.precision", self.precision, PRECISIONS)
         _choice("detector.landmarks", self.landmarks, LANDMARKS)
-        if self.landmark_model is not None and self.model.keypoint_format != "coco17":
+        if self.landmarks != "off" and self.model.keypoint_format != "coco17":
             raise ConfigError(
                 f"detector.landmarks = {self.landmarks!r} places its crops from COCO-17 hips and shoulders; "
                 f"detector.model.keypoint_format is {self.model.keypoint_format!r}"
@@ -284,14 +282,15 @@ class DetectorConfig:
 
     @property
     def landmark_model(self) -> str | None:
-        """The landmark model that runs ("full", "heavy") or None (YOLO's keypoints are the output)."""
-        chosen = AUTO_LANDMARKS if self.landmarks == "auto" else self.landmarks
-        return None if chosen == "off" else chosen
+        """The one landmark model that runs on every pass ("full", "heavy"), or None (none, or "auto": chosen per
+        pass)."""
+        return self.landmarks if self.landmarks in ("full", "heavy") else None
 
     @property
     def output_format(self) -> str:
-        """The keypoint set the detector delivers: ``blazepose33`` with landmarks, else the model's own."""
-        return "blazepose33" if self.landmark_model is not None else self.model.keypoint_format
+        """The keypoint set the detector delivers: ``blazepose33`` with landmarks (fixed or "auto"), else the
+        model's own."""
+        return "blazepose33" if self.landmarks != "off" else self.model.keypoint_format
 
     def sessions(self, cores: int, cameras: int) -> tuple[int, int]:
         """(sessions, intra-op threads of each) on a process with ``cores`` cores and ``cameras`` cameras.

@@ -18,13 +18,16 @@ same way (``[daemon] detector_nice``, :mod:`mocapd.io.os_threads`).
 With ``[detector] landmarks`` on, each session also holds a BlazePose landmark model
 (:class:`~mocapd.pipeline.landmarks.LandmarkRunner`, the session's intra-op threads; its interpreters are made on
 the worker thread at first use): the people YOLO found get their 33 landmarks as keypoints
-(:meth:`DetectorConfig.output_format` is then ``blazepose33``).
+(:meth:`DetectorConfig.output_format` is then ``blazepose33``). With "auto" each session holds an
+:class:`~mocapd.pipeline.landmark_auto.AutoLandmarks` that picks the model (or none) per pass from the measured
+costs.
 """
 
 from __future__ import annotations
 
 import os
 import queue
+import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -39,7 +42,7 @@ from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
-from mocapd.pipeline.landmarks import LandmarkRunner, landmark_status, with_landmarks
+from mocapd.pipeline.landmark_auto import LandmarkFront, front_status, landmark_front, mark
 from mocapd.pipeline.packed_source import PackedDetectionGroup, Session
 from mocapd.pipeline.packing import PackedDetector, detectors_from_config
 
@@ -67,11 +70,10 @@ def process_cores() -> int:
     return cores if quota is None else max(1, min(cores, int(quota)))
 
 
-def landmark_runner(cfg: DetectorConfig) -> LandmarkRunner | None:
-    """A session's landmark model when ``[detector] landmarks`` runs one (``cfg`` with concrete sessions), else
-    None; ModelError when the model was not fetched."""
-    variant = cfg.landmark_model
-    return None if variant is None else LandmarkRunner(variant, threads=max(1, cfg.intra_op_threads))
+def landmark_runner(cfg: DetectorConfig) -> LandmarkFront:
+    """A session's landmark stage for ``[detector] landmarks`` (``cfg`` with concrete sessions): None, a model, or
+    "auto"'s chooser; ModelError when a model was not fetched."""
+    return landmark_front(cfg.landmarks, max(1, cfg.intra_op_threads))
 
 
 def target_columns(cfg: DetectorConfig, target_names: Sequence[str]) -> NDArray[np.intp]:
@@ -111,7 +113,7 @@ class PooledDetector:
         self.intra_op_threads = cfg.intra_op_threads
         self.landmarks_asked = cfg.landmarks
         self.executor = detector_executor(cfg.workers, nice)
-        self._runners: dict[int, LandmarkRunner | None] = {}
+        self._runners: dict[int, LandmarkFront] = {}
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
             self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg, image_sizes).result())
@@ -123,7 +125,9 @@ class PooledDetector:
         try:
             # The detector takes BGR (OpenCV's order); the ring holds RGB.
             image = np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), np.uint8)
-            (people,) = with_landmarks(self._runners[id(det)], [image], [det.detect(image)])
+            t0 = time.perf_counter_ns()
+            found = det.detect(image)
+            (people,) = mark(self._runners[id(det)], [image], [found], time.perf_counter_ns() - t0)
         finally:
             self._pool.put(det)
         kp = people.keypoints if self._columns is None else people.keypoints[:, self._columns]
@@ -137,6 +141,15 @@ class PooledDetector:
 
 
 AnyDetector = PooledDetector | PackedDetectionGroup
+
+
+def landmark_fronts(detector: object) -> list[LandmarkFront]:
+    """The landmark stages of a detector's sessions (none for anything else): the governor's hook reaches them."""
+    if isinstance(detector, PooledDetector):
+        return list(detector._runners.values())
+    if isinstance(detector, PackedDetectionGroup):
+        return [s.landmarks for s in detector.sessions]
+    return []
 
 
 def make_detector(
@@ -178,7 +191,7 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
     """``/status`` section ``detector``: which execution provider and precision run (packed: also the canvas
     model's), so that a user who left ``providers = ["auto"]`` sees whether the GPU or the CPU took it."""
     if isinstance(detector, PooledDetector):
-        marks = landmark_status(detector.landmarks_asked, list(detector._runners.values()))
+        marks = front_status(detector.landmarks_asked, list(detector._runners.values()))
         return {"mode": "whole", "workers": len(detector._detectors), "intra_op_threads": detector.intra_op_threads,
                 **detector._detectors[0].describe(), "landmarks": marks}  # fmt: skip
     packer = detector.packer
@@ -192,5 +205,6 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
     }
     if packer.canvas_detector is not packer.detector:
         out["canvas"] = packer.canvas_detector.describe()
-    out["landmarks"] = landmark_status(detector.landmarks_asked, [s.landmarks for s in detector.sessions])
+    names = [detector.sources[c].name if c in detector.sources else str(c) for c in range(packer.n_cameras)]
+    out["landmarks"] = front_status(detector.landmarks_asked, [s.landmarks for s in detector.sessions], names)
     return out

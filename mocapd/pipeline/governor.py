@@ -10,15 +10,20 @@ missed, and moves one step along a fixed ladder of work to leave out:
 step  what is shed                         what it costs
 ====  ===================================  ========================================================================
 0     nothing                              —
-1     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
+1     landmark model off                   with ``[detector] landmarks = "auto"``: YOLO's keypoints alone, no feet
+                                           or hand points (the landmark model is the detector's costliest part on
+                                           a CPU: 16-272 ms a crop); a model named in the config keeps running;
+                                           without "auto" the step is left out (:func:`ladder`)
+2     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
                                            scheduler interpolates between them; ``latency_s = "auto"`` covers one
                                            more frame interval). The cheapest big step: on the 2-core camera demo
                                            the tracking's optical flow cost ~0.5 of a core at 60 Hz
-2     detector at 75 % duty                each detector worker rests a third of a pass after each pass: fewer
-                                           detections (tracking carries the people between them), the CPU (or the
-                                           CPU budget's quota) and the interpreter left to the tick
-3     detector at 50 % duty
-4     detector at 35 % duty
+3     detector at 75 % duty                each detector worker rests a third of a pass after each pass (at most
+                                           0.3 s, none while a camera has gone a second without a detection):
+                                           fewer detections (tracking carries the people between them), the CPU
+                                           (or the CPU budget's quota) and the interpreter left to the tick
+4     detector at 50 % duty
+5     detector at 35 % duty
 ====  ===================================  ========================================================================
 
 Why this order, and why it ends there. The latency a user feels is the tracking's: between two detections the
@@ -53,15 +58,23 @@ class Level:
     name: str
     tracking_rate: float  # keypoint tracking's rate as a share of its configured rate (0: off)
     detector_duty: float  # the share of wall time each detector worker may spend in passes
+    landmarks: bool = True  # landmarks = "auto" may run a landmark model (False: YOLO's keypoints alone)
 
 
 LADDER: tuple[Level, ...] = (
     Level("nothing shed", 1.0, 1.0),
-    Level("keypoint tracking at half rate", 0.5, 1.0),
-    Level("keypoint tracking at half rate, detector at 75 % duty", 0.5, 0.75),
-    Level("keypoint tracking at half rate, detector at 50 % duty", 0.5, 0.5),
-    Level("keypoint tracking at half rate, detector at 35 % duty", 0.5, 0.35),
+    Level("landmark model off", 1.0, 1.0, False),
+    Level("keypoint tracking at half rate", 0.5, 1.0, False),
+    Level("keypoint tracking at half rate, detector at 75 % duty", 0.5, 0.75, False),
+    Level("keypoint tracking at half rate, detector at 50 % duty", 0.5, 0.5, False),
+    Level("keypoint tracking at half rate, detector at 35 % duty", 0.5, 0.35, False),
 )
+
+
+def ladder(landmarks: bool) -> tuple[Level, ...]:
+    """:data:`LADDER` for a daemon whose detector runs ``landmarks = "auto"``, else without the landmark step (it
+    would shed nothing there, and cost a window before the tracking rate is shed)."""
+    return LADDER if landmarks else tuple(lv for lv in LADDER if lv.name != "landmark model off")
 
 
 @dataclass(frozen=True)
@@ -84,10 +97,17 @@ class GovernorOptions:
 
 
 class Governor:
-    """Chooses the step of :data:`LADDER` the daemon runs at (see the module docstring)."""
+    """Chooses the step of its ladder (:data:`LADDER` by default) the daemon runs at (see the module docstring)."""
 
-    def __init__(self, period_ns: int, options: GovernorOptions | None = None, start_ns: int = 0) -> None:
+    def __init__(
+        self,
+        period_ns: int,
+        options: GovernorOptions | None = None,
+        start_ns: int = 0,
+        steps: tuple[Level, ...] = LADDER,
+    ) -> None:
         self.options = options if options is not None else GovernorOptions()
+        self.ladder = steps  # LADDER, or :func:`ladder` without the landmark step
         self.period_ns = period_ns
         self.step_index = 0
         self._start_ns = start_ns
@@ -102,7 +122,7 @@ class Governor:
 
     @property
     def level(self) -> Level:
-        return LADDER[self.step_index]
+        return self.ladder[self.step_index]
 
     def observe(self, tick_ns: int, missed: int = 0) -> None:
         """One published tick: how long after its scheduled instant it was published (ns), and the ticks skipped
@@ -127,7 +147,7 @@ class Governor:
         missed_share = missed / ticks if ticks else 0.0
         if share > o.shed_above or missed_share > o.max_missed:
             self._calm_since = None
-            if self.step_index + 1 < len(LADDER):
+            if self.step_index + 1 < len(self.ladder):
                 self.step_index += 1
                 self._changed(now_ns, f"tick p95 {p95 / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
                               f"{missed} of {ticks} ticks missed")  # fmt: skip
@@ -158,6 +178,7 @@ class Governor:
             "shed": self.level.name,
             "tracking_rate": self.level.tracking_rate,
             "detector_duty": self.level.detector_duty,
+            "landmarks": self.level.landmarks,
             "reason": self.last_reason,
             "changes": self.changes,
             "tick_p95_ms": self.last_p95_ms,

@@ -178,8 +178,6 @@ def landmark_status(asked: str, runners: Sequence[LandmarkRunner | None]) -> dic
     sessions' ``runners`` ran so far."""
     running = [r for r in runners if r is not None]
     out: dict[str, object] = {"asked": asked, "running": running[0].variant if running else "off"}
-    if asked == "auto":
-        out["note"] = '"auto" runs as "off" until the budget governor chooses the landmark model per pass'
     if running:
         out["crops"] = sum(r.crops_run for r in running)
     return out

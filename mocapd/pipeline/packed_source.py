@@ -41,7 +41,7 @@ from mocapd.pipeline.detection_mode import ModeChooser, PassCost
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource
-from mocapd.pipeline.landmarks import LandmarkRunner, with_landmarks
+from mocapd.pipeline.landmark_auto import LandmarkFront, mark
 from mocapd.pipeline.packing import PackedDetector
 
 Image = NDArray[np.uint8]
@@ -63,11 +63,11 @@ def to_detections2d(people: PoseDetections, columns: NDArray[np.intp] | None = N
 class Session:
     """One inference session of the group (one worker thread): its whole-frame detector and its canvas detector
     (the same object when the canvases are the model's own size), and its landmark model when ``[detector]
-    landmarks`` runs one (the people's keypoints are then its 33 landmarks)."""
+    landmarks`` runs one (the people's keypoints are then its 33 landmarks; with "auto", the chooser)."""
 
     whole: OnnxPoseDetector
     canvas: OnnxPoseDetector
-    landmarks: LandmarkRunner | None = None
+    landmarks: LandmarkFront = None
 
 
 @dataclass(frozen=True)
@@ -332,11 +332,12 @@ class PackedDetectionGroup:
         for cam, (w, h) in enumerate(self.packer.image_sizes):
             image = self._images[cam]
             images.append(image if image is not None and cam in new else np.empty((h, w, 3), np.uint8))
+        t0 = self.clock()
         (found,) = self.packer.detect([images], cameras=sorted(new), detector=session.canvas, inputs=inputs)
         cams = sorted(new)
         # The packer keeps YOLO's people for its ROIs; the landmarks replace the keypoints delivered.
-        marked = dict(zip(cams, with_landmarks(session.landmarks, [images[c] for c in cams], [found[c] for c in cams]),
-                          strict=True))  # fmt: skip
+        marked = dict(zip(cams, mark(session.landmarks, [images[c] for c in cams], [found[c] for c in cams],
+                                     self.clock() - t0, cams), strict=True))  # fmt: skip
         return {cam: (ref, to_detections2d(marked[cam], self.columns)) for cam, ref in new.items()}
 
     def _one_canvas(self, order: list[int]) -> list[int]:
@@ -365,12 +366,14 @@ class PackedDetectionGroup:
                 continue
             image = np.asarray(cv2.cvtColor(got[1], cv2.COLOR_RGB2BGR), np.uint8)
             self._images[cam] = image
+            t0 = self.clock()
             people = session.whole.detect(image)
+            yolo_ns = self.clock() - t0
             # Counted once done, like ``passes``: a pass aborted by close() is neither (packed = passes - whole).
             with self._cond:
                 self.whole_passes += 1
             self.packer.seed_rois(cam, people)  # packed passes start from where the people are now
-            (marked,) = with_landmarks(session.landmarks, [image], [people])
+            (marked,) = mark(session.landmarks, [image], [people], yolo_ns, [cam])
             return {cam: (got[0], to_detections2d(marked, self.columns))}
         return None
 

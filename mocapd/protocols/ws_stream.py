@@ -91,6 +91,9 @@ Server → client messages
                             daemon's governor is off
     imu_calibration_routine  {str: map}   per suit being calibrated live (or just done): step, do, progress,
                             said (docs/imu.md "Calibrating a suit live"); absent when none ran
+    landmarks       map     the landmark model: running ("heavy" | "full" | "off"), every (on every n-th
+                            detection pass), reason (why; "auto" only), cameras ({name: {detect_hz, landmark_hz}};
+                            "auto" only); absent when [detector] landmarks is off
     stream          map     clients (connected now), sent (messages sent to this client), dropped (messages
                             dropped for this client because it read too slowly)
 
@@ -558,6 +561,10 @@ def health_subset(health: Mapping[str, Any]) -> dict[str, Any]:
     governor = health.get("governor")
     if isinstance(governor, Mapping):
         out["governor"] = {k: governor.get(k) for k in ("step", "shed", "reason")}
+    detector = health.get("detector")
+    marks = detector.get("landmarks") if isinstance(detector, Mapping) else None
+    if isinstance(marks, Mapping) and marks.get("asked", "off") != "off":
+        out["landmarks"] = {k: marks.get(k) for k in ("running", "every", "reason", "cameras")}
     return out
 
 

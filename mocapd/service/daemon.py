@@ -52,9 +52,11 @@ from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
+from mocapd.pipeline.detector_pool import landmark_fronts
 from mocapd.pipeline.fusion import FusionModels, FusionStage
-from mocapd.pipeline.governor import Governor
+from mocapd.pipeline.governor import Governor, ladder
 from mocapd.pipeline.keypoint_source import KeypointSource
+from mocapd.pipeline.landmark_auto import LandmarkFront, has_auto, shed_landmarks, status_field
 from mocapd.pipeline.mattes import MatteSource, RingMattes
 from mocapd.pipeline.scheduler import (
     READ_WAIT_S,
@@ -290,7 +292,8 @@ class Daemon:
                                                initargs=("mocapd-solve",)) if threads > 1 else None)  # fmt: skip
         self.scheduler.pool = self._solve_pool
         #: sheds work when the tick does not fit its period (None: ``[daemon] governor = false``)
-        self.governor = Governor(self.scheduler.options.period_ns, start_ns=clock()) if d.governor else None
+        self.governor = (Governor(self.scheduler.options.period_ns, start_ns=clock(),
+                                  steps=ladder(has_auto(self._landmark_fronts()))) if d.governor else None)  # fmt: skip
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
         self.actions: dict[str, Callable[[dict[str, str], str], Any]] = {
@@ -634,6 +637,16 @@ class Daemon:
                 if self.governor.step(published):
                     self._apply_governor()
 
+    def _landmark_fronts(self) -> list[LandmarkFront]:
+        """The landmark stages of the cameras' detectors, each once."""
+        out: list[LandmarkFront] = []
+        for src in self.rig.sources:
+            group = getattr(src, "group", None)
+            for f in landmark_fronts(group if group is not None else getattr(src, "detector", None)):
+                if all(f is not g for g in out):
+                    out.append(f)
+        return out
+
     def _apply_governor(self) -> None:
         """The governor's level to the keypoint sources (tracking rate) and the scheduler (flip search), said in the
         log: what is shed now and why."""
@@ -645,6 +658,9 @@ class Daemon:
             group = getattr(src, "group", None)  # a packed detection group (shared by its cameras)
             if group is not None and hasattr(group, "duty"):
                 group.duty = level.detector_duty
+        # landmarks = "auto": the landmark model off from step 1 on
+        shed_landmarks(self._landmark_fronts(), None if level.landmarks else f"step {self.governor.step_index}, "
+                       f"{self.governor.last_reason}")  # fmt: skip
         log.warning("governor: %s (%s)", level.name, self.governor.last_reason)
 
     async def _matte_loop(self) -> None:
@@ -743,6 +759,9 @@ class Daemon:
         )
         if self.governor is not None and self.governor.step_index:
             line += f"  shed: {self.governor.level.name}"
+        marks = status_field(self._landmark_fronts())
+        if marks is not None:
+            line += f"  {marks}"
         if self.imu.devices:
             streaming = sum(1 for d in self.imu.devices if d.streaming.is_set())
             line += f"  IMUs {streaming}/{len(self.imu.devices)}"

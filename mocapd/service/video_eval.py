@@ -109,8 +109,8 @@ def run_video_eval(opts: VideoEvalOptions, out: Path) -> dict[str, Any]:
             detector.append(OnnxPoseDetector.from_config(det_cfg))
         return detector[0]
 
-    # [detector] landmarks of the config: BlazePose's landmarks as the COCO-17 keypoints (detect_take). "auto" runs
-    # as "off", as in the daemon.
+    # [detector] landmarks of the config: BlazePose's landmarks as the COCO-17 keypoints (detect_take). "auto" (the
+    # daemon's per-pass choice from live costs) runs as "off" here: an offline pass has no tick to budget for.
     landmarks = LandmarkRunner(det_cfg.landmark_model) if det_cfg.landmark_model is not None else None
 
     results: dict[str, Any] = {"takes": {}}

@@ -229,6 +229,12 @@
   }
   const fmt = (x, d = 1) => (x === null || x === undefined ? "–" : Number(x).toFixed(d));
 
+  // The landmark model that runs (issue 40): "full every 3 · cam01 2.0/6.1 Hz" (landmark / detection passes).
+  function landmarkText(lm) {
+    const cams = Object.entries(lm.cameras || {}).map(([n, r]) => `${n} ${r.landmark_hz.toFixed(1)}/${r.detect_hz.toFixed(1)} Hz`);
+    return [`${lm.running}${lm.running !== "off" && lm.every > 1 ? ` every ${lm.every}` : ""}`, ...cams].join(" · ");
+  }
+
   function updatePanel() {
     const conn = document.getElementById("conn");
     conn.textContent = state.connected ? `connected · ${state.frames} frames${state.paused ? " · paused" : ""}`
@@ -247,6 +253,7 @@
     rows("output", [["rate (Hz)", `${o.achieved_hz ?? "–"} / ${o.configured_hz ?? "–"}`],
                     ["frames", o.frames ?? "–"], ["missed ticks", o.missed_ticks ?? "–", o.missed_ticks ? "bad" : ""],
                     ...(st.governor ? [["shed", st.governor.shed, st.governor.step ? "bad" : "ok"]] : []),
+                    ...(st.landmarks ? [["landmarks", landmarkText(st.landmarks)]] : []),
                     ["uptime (s)", fmt(st.uptime_s, 0)],
                     ["stream clients", st.stream ? st.stream.clients : "–"],
                     ["dropped (this page)", st.stream ? st.stream.dropped : "–"]]);

@@ -236,6 +236,14 @@ class Measure:
         self.result["tracking_rate_hz_by_camera"] = [
             c.get("tracking", {}).get("rate_hz") for c in end.get("cameras", [])
         ]
+        # [detector] landmarks: what ran at the end (with "auto": the choice, its reason, per-camera rates) and the
+        # passes with landmarks per second over the measured window.
+        marks = [(s.get("status", {}).get("detector") or {}).get("landmarks") for s in (a, b)]
+        if isinstance(marks[1], dict):
+            self.result["landmarks"] = marks[1]
+            if isinstance(marks[0], dict) and "landmark_passes" in marks[1]:
+                done = {v: n - marks[0]["landmark_passes"].get(v, 0) for v, n in marks[1]["landmark_passes"].items()}
+                self.result["landmark_passes_per_s"] = {v: round(n / (b["t"] - a["t"]), 2) for v, n in done.items()}
 
 
 def summarize(
