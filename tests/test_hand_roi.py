@@ -14,10 +14,13 @@ from mocapd.core.hand_roi import (
     FOREARM_CENTRE,
     FOREARM_SIDE,
     HAND_INPUT_SIZE,
+    REFINE_SCALE,
+    REFINE_SHIFT,
     UPPER_ARM_FLOOR,
     decode_hands,
     hand_roi_from_blazepose,
     hand_roi_from_forearm,
+    hand_roi_from_hand,
     hand_rois,
     hand_span,
 )
@@ -136,3 +139,38 @@ def test_hand_span_is_the_longer_side_of_the_box() -> None:
     hand[:, 0] = np.linspace(10, 40, 21)
     hand[:, 1] = np.linspace(0, 70, 21)
     assert hand_span(hand) == pytest.approx(70.0)
+
+
+def _upright_hand(wrist: tuple[float, float], length: float) -> np.ndarray:
+    """21 points of an open hand, fingers straight up on screen (-y), palm ``length`` px from wrist to knuckles."""
+    w = np.array(wrist)
+    pts = np.zeros((21, 3))
+    pts[0, :2] = w
+    for f, dx in enumerate((-0.5, -0.25, 0.0, 0.2, 0.4)):  # thumb, index, middle, ring, pinky
+        for j in range(4):
+            reach = (0.35 + 0.2 * j) if f == 0 else (1.0 + 0.3 * j)
+            pts[1 + 4 * f + j, :2] = w + length * np.array([dx * (1.3 if f == 0 else 1.0), -reach])
+    pts[:, 2] = 0.9
+    return pts
+
+
+def test_the_tracking_crop_from_a_hands_own_points() -> None:
+    hand = _upright_hand((400.0, 500.0), 50.0)
+    roi = hand_roi_from_hand(hand)
+    assert roi is not None
+    # Fingers up: no turn. The palm's box (wrist .. the PIP joints, 65 px tall; thumb to pinky, 52.5 px wide), moved
+    # 0.1 of its height towards the fingers, twice its longer side.
+    assert abs(normalized_angle(roi.rotation)) < 0.1
+    assert roi.size == pytest.approx(REFINE_SCALE * 65.0, rel=0.05)
+    assert roi.cy < 500.0 - 65.0 / 2 and roi.cy == pytest.approx(500.0 - 65.0 / 2 - REFINE_SHIFT * 65.0, abs=3.0)
+    # The whole hand, fingertips included, lies inside the crop.
+    crop = roi.to_crop(hand[:, :2], HAND_INPUT_SIZE)
+    assert (crop > 0).all() and (crop < HAND_INPUT_SIZE).all()
+    # Turned a quarter clockwise on screen, the crop turns with it.
+    c, s = 0.0, 1.0
+    turned = hand.copy()
+    turned[:, :2] = (hand[:, :2] - (400.0, 500.0)) @ np.array([[c, s], [-s, c]]) + (400.0, 500.0)
+    roi90 = hand_roi_from_hand(turned)
+    assert roi90 is not None and abs(normalized_angle(roi90.rotation - math.pi / 2)) < 0.1
+    assert roi90.size == pytest.approx(roi.size)
+    assert hand_roi_from_hand(np.zeros((21, 3))) is None

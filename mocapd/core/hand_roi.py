@@ -32,7 +32,7 @@ FloatArray = NDArray[np.float64]
 
 HAND_INPUT_SIZE = 224
 """Side of the hand landmark model's square input (pixels)."""
-BLAZEPOSE_SCALE = 1.5
+BLAZEPOSE_SCALE = 1.75
 """The crop's side over MediaPipe's pose-derived hand box (twice the wrist → middle-finger distance)."""
 BLAZEPOSE_SHIFT = 0.0
 """How far the crop's centre moves from the middle-finger estimate towards the fingertips, in crop sides."""
@@ -157,6 +157,47 @@ def hand_rois(
 
 N_HAND = len(HAND21)
 """Points per hand."""
+
+_PALM = tuple(HAND21.index(n) for n in ("wrist", "thumb_cmc", "thumb_mcp", "thumb_ip", "index_finger_mcp",
+                                        "index_finger_pip", "middle_finger_mcp", "middle_finger_pip",
+                                        "ring_finger_mcp", "ring_finger_pip", "pinky_mcp", "pinky_pip"))  # fmt: skip
+REFINE_SCALE = 2.0
+"""MediaPipe's enlargement of the palm's box for the next crop (``hand_landmark_landmarks_to_roi``)."""
+REFINE_SHIFT = 0.1
+"""... and its move towards the fingers, in box heights (its ``shift_y = -0.1``, the crop's y pointing down)."""
+
+
+def hand_roi_from_hand(
+    hand: FloatArray, *, scale: float = REFINE_SCALE, shift: float = REFINE_SHIFT
+) -> LandmarkRoi | None:
+    """The next crop of a hand from its own 21 points (source pixels, shape (21, 2) or (21, 3)), as MediaPipe's hand
+    tracking places it (``HandLandmarksToRectCalculator``): turned so that the wrist → middle of the knuckles
+    (the index and ring knuckles' midpoint averaged with the middle knuckle) points up, the palm points' box in
+    that frame, moved ``shift`` of its height towards the fingers, its longer side times ``scale``.
+
+    Returns
+    -------
+    LandmarkRoi or None
+        None when the palm has no extent (fewer than :data:`MIN_SIDE_PX` across after scaling).
+    """
+    pts = np.asarray(hand, dtype=np.float64)[:, :2]
+    wrist = pts[HAND21.index("wrist")]
+    knuckles = (
+        (pts[HAND21.index("index_finger_mcp")] + pts[HAND21.index("ring_finger_mcp")]) / 2.0
+        + pts[HAND21.index("middle_finger_mcp")]
+    ) / 2.0
+    rotation = roi_rotation(wrist, knuckles)
+    c, s = np.cos(rotation), np.sin(rotation)
+    # Into the crop's frame (x right, y down, the fingers up): the inverse of the crop → source rotation.
+    palm = pts[list(_PALM)] @ np.array([[c, -s], [s, c]])
+    lo, hi = palm.min(axis=0), palm.max(axis=0)
+    width, height = hi - lo
+    centre_crop = (lo + hi) / 2.0 + np.array([0.0, -shift * height])
+    side = scale * float(max(width, height))
+    if not side >= MIN_SIDE_PX:
+        return None
+    centre = np.array([[c, -s], [s, c]]) @ centre_crop
+    return LandmarkRoi(float(centre[0]), float(centre[1]), side, rotation)
 
 
 def decode_hands(
