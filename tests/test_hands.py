@@ -4,6 +4,7 @@ runs on LiteRT; ``[detector] hands`` in the config, the detector and ``/status``
 
 from __future__ import annotations
 
+import asyncio
 import json
 import shutil
 import tarfile
@@ -18,6 +19,7 @@ from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
 from mocapd.core.keypoints import BLAZEPOSE33_HANDS_FORMAT, HANDS42
 from mocapd.core.keypoints import COCO17_FORMAT as COCO17
 from mocapd.core.pose2d import PoseDetections
+from mocapd.core.sorting import Detections2D
 from mocapd.errors import ConfigError, ModelError
 from mocapd.io import hand_model_build
 from mocapd.io.hand_model_build import LICENCE, MODEL_SHA256, build_hand_models, hand_model_is_current
@@ -25,11 +27,13 @@ from mocapd.io.landmark_build import sidecar_path
 from mocapd.io.model_build import sha256
 from mocapd.io.model_cache import hand_model_path
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
+from mocapd.io.video_source import VideoFileSource
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
 from mocapd.pipeline.detector_pool import PooledDetector, detector_status, make_detector, target_columns
 from mocapd.pipeline.hands import MIN_HAND_CONFIDENCE, HandRates, HandRunner, rates_status, with_hands
 from mocapd.pipeline.landmarks import LandmarkRunner
+from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.service.cli import main
 from mocapd.service.config import parse_config
 
@@ -217,6 +221,34 @@ def test_whole_frame_workers_deliver_the_same_body_with_hands_on(
         pooled.close()
     assert whole.keypoints.shape[1] == BLAZEPOSE33_HANDS_FORMAT.n_keypoints == 33 + len(HANDS42)
     assert float(whole.confidences[:, 33:].max()) >= MIN_HAND_CONFIDENCE
+
+
+@pytest.mark.asyncio
+async def test_the_packed_group_delivers_hands_and_rates_per_camera() -> None:
+    cam = VideoFileSource("cam02", demo_video("Demo_SinglePerson", "cam02"), realtime=True, loop=True)
+    size = (cam.ring.shape[1], cam.ring.shape[0])
+    cfg = DetectorConfig(intra_op_threads=2, landmarks="full", hands="auto", packing=PackingConfig(enabled="auto"))
+    group = make_detector(cfg, [size])  # no columns: every keypoint, the hands included
+    assert isinstance(group, PackedDetectionGroup)
+    source = PackedKeypointSource(0, cam, group)
+    got: list[Detections2D] = []
+    task = asyncio.create_task(source.run(lambda _c, _t, d, _a: got.append(d)))
+    try:
+        for _ in range(1200):  # until 3 detections (a minute at most on a starved CPU)
+            if source.detected >= 3:
+                break
+            await asyncio.sleep(0.05)
+        hands = detector_status(group)["hands"]
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        group.close()
+    assert len(got) >= 3 and all(d.keypoints.shape[1:] == (75, 2) for d in got)
+    assert max(float(d.confidences[:, 33:].max()) for d in got if len(d)) >= MIN_HAND_CONFIDENCE
+    assert isinstance(hands, dict) and hands["asked"] == "auto" and hands["running"] == "on"
+    assert "body landmarks run" in str(hands["why"])
+    cams = hands["cameras"]
+    assert isinstance(cams, dict) and set(cams) == {"0"} and cams["0"]["images_hz"] > 0
 
 
 def test_rates_per_camera_over_the_window() -> None:

@@ -215,6 +215,42 @@ def held_out(cameras: list[Camera], body: np.ndarray, hand: np.ndarray, min_span
     return np.array(rows).reshape(-1, 21), np.array(spans)
 
 
+def body_reference(cameras: list[Camera], body: np.ndarray, min_span: float) -> dict[str, Any]:
+    """The same held-out error of BlazePose's own wrist, pinky, index and thumb points (the body model, the same
+    frames, people and size cut): the floor the footage sets for any hand keypoint."""
+    names = ("wrist", "pinky", "index", "thumb")
+    n_f, n_c = body.shape[:2]
+    P = np.stack([c.projection_matrix for c in cameras])
+    rows: list[np.ndarray] = []
+    for f in range(n_f):
+        und_body = np.stack([cam.undistort_points(body[f, c, :, :, :2]) for c, cam in enumerate(cameras)])
+        for cl in associate(cameras, body[f], und_body):
+            for s, side in enumerate(HAND_SIDES):
+                cols = [BLAZEPOSE33.index(f"{side}_{n}") for n in names]
+                kp = np.zeros((n_c, len(cols), 3))
+                for c in range(n_c):
+                    if cl[c] >= 0:
+                        kp[c] = body[f, c, cl[c], cols]
+                und = np.stack([cam.undistort_points(kp[c, :, :2]) for c, cam in enumerate(cameras)])
+                w = np.where(kp[..., 2] >= MIN_CONFIDENCE, kp[..., 2], 0.0)
+                for k in range(n_c):
+                    if cl[k] < 0 or _hand_length(body[f, k, cl[k]], s) < min_span:
+                        continue
+                    keep = [c for c in range(n_c) if c != k]
+                    X, ok = triangulate_projections(P[keep], und[keep], w[keep])
+                    e = np.linalg.norm(cameras[k].project(X) - kp[k, :, :2], axis=1)
+                    rows.append(np.where(ok & (w[k] > 0), e, np.nan))
+    err = np.array(rows).reshape(-1, len(names))
+    out: dict[str, Any] = {}
+    for j, n in (*enumerate(names), (-1, "all")):
+        e = err if j < 0 else err[:, j]
+        e = e[np.isfinite(e)]
+        out[n] = {"n": int(e.size)} if e.size == 0 else {
+            "n": int(e.size), "median": round(float(np.median(e)), 1), "p90": round(float(np.percentile(e, 90)), 1)
+        }  # fmt: skip
+    return out
+
+
 def summary(err: np.ndarray) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for g, names in (("all", HAND21), *GROUPS.items()):
@@ -237,6 +273,7 @@ def main() -> None:
     ap.add_argument("--min-span", type=float, default=60.0, help="hands at least this many px long (held-out view)")
     ap.add_argument("--side-check", action="store_true", help="confidence x the model's agreement with the side")
     ap.add_argument("--refine", action="store_true", help="a second pass on the crop each found hand's points place")
+    ap.add_argument("--reference-only", action="store_true", help="only BlazePose's own hand points (no hand model)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/mocapd-hand-heldout"))
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
@@ -245,11 +282,20 @@ def main() -> None:
     take = pose2sim_take(args.demo)
     n = min(args.frames, take.n_frames)
     body = bodies(args.demo, n, args.body, args.cache)
+    reference = body_reference(take.cameras, body, args.min_span)
+    print("BlazePose's own hand points:", json.dumps(reference))
+    if args.reference_only:
+        if args.out is not None:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps({"demo": args.demo, "frames": n, "body": args.body,
+                                            "min_span_px": args.min_span, "blazepose hand points held-out px":
+                                            reference}, indent=2) + "\n", encoding="utf-8")  # fmt: skip
+        return
     placements = [(a, b) for a in (args.scales or [BLAZEPOSE_SCALE]) for b in (args.shifts or [BLAZEPOSE_SHIFT])]
     found, placed, per_crop = hands(args.demo, body, placements, args.hand, args.side_check, args.refine)
     result: dict[str, Any] = {"demo": args.demo, "frames": n, "body": args.body, "hand": args.hand,
                               "side_check": args.side_check, "refine": args.refine, "min_span_px": args.min_span,
-                              "placements": []}  # fmt: skip
+                              "blazepose hand points held-out px": reference, "placements": []}  # fmt: skip
     for k, (scale, shift) in enumerate(placements):
         all_err, all_spans = held_out(take.cameras, body, found[k], 0.0)
         err, spans = all_err[all_spans >= args.min_span], all_spans[all_spans >= args.min_span]

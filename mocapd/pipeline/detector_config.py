@@ -312,8 +312,8 @@ class DetectorConfig:
 
         ``"auto"`` is on when the body landmark front end runs: the hand crops are then placed from BlazePose's
         wrist, index and pinky (the forearm alone places them poorly), and their measured cost, two crops of the
-        hand model per person and view, is a fraction of the body landmark crop's (docs/detection.md, "Hand
-        landmarks per person"). The budget governor does not weigh them yet.
+        hand model per person and view, is about one full body crop and under half a heavy one (docs/detection.md,
+        "Hand landmarks per person"). The budget governor does not weigh them yet.
         """
         if self.hands == "off":
             return False, "detector.hands is off"
@@ -321,9 +321,9 @@ class DetectorConfig:
             return True, f"detector.hands is on (crops from {self.body_format})"
         if self.landmark_model is None:
             return False, "auto: the body landmark front end does not run (detector.landmarks), so hands stay off"
-        return (
-            True,
-            f"auto: the body landmarks run ({self.landmark_model}); two hand crops cost less than one body crop",
+        return True, (
+            f"auto: the body landmarks run ({self.landmark_model}); a person's two hand crops cost about one full "
+            "body crop, under half a heavy one (tools/hand_cost.py)"
         )
 
     @property
