@@ -42,6 +42,7 @@ from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.hand_landmarks import HandRunner, hand_status, with_hand_landmarks
 from mocapd.pipeline.landmark_auto import LandmarkFront, front_status, landmark_front, mark
 from mocapd.pipeline.packed_source import PackedDetectionGroup, Session
 from mocapd.pipeline.packing import PackedDetector, detectors_from_config
@@ -74,6 +75,14 @@ def landmark_runner(cfg: DetectorConfig) -> LandmarkFront:
     """A session's landmark stage for ``[detector] landmarks`` (``cfg`` with concrete sessions): None, a model, or
     "auto"'s chooser; ModelError when a model was not fetched."""
     return landmark_front(cfg.landmarks, max(1, cfg.intra_op_threads))
+
+
+def hand_runner(cfg: DetectorConfig) -> HandRunner | None:
+    """A session's hand landmark model when ``[detector] hands`` runs it (``cfg`` with concrete sessions), else
+    None; ModelError when the model was not fetched."""
+    if not cfg.hands_decision()[0]:
+        return None
+    return HandRunner(keypoint_format(cfg.body_format).keypoints, threads=max(1, cfg.intra_op_threads))
 
 
 def target_columns(cfg: DetectorConfig, target_names: Sequence[str]) -> NDArray[np.intp]:
@@ -112,12 +121,15 @@ class PooledDetector:
         assert isinstance(cfg.workers, int)
         self.intra_op_threads = cfg.intra_op_threads
         self.landmarks_asked = cfg.landmarks
+        self.hands_asked, self.hands_decision = cfg.hands, cfg.hands_decision()
         self.executor = detector_executor(cfg.workers, nice)
         self._runners: dict[int, LandmarkFront] = {}
+        self._hands: dict[int, HandRunner | None] = {}
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
             self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg, image_sizes).result())
             self._runners[id(self._detectors[-1])] = landmark_runner(cfg)
+            self._hands[id(self._detectors[-1])] = hand_runner(cfg)
             self._pool.put(self._detectors[-1])
 
     def __call__(self, rgb: NDArray[np.uint8]) -> Detections2D:
@@ -128,6 +140,7 @@ class PooledDetector:
             t0 = time.perf_counter_ns()
             found = det.detect(image)
             (people,) = mark(self._runners[id(det)], [image], [found], time.perf_counter_ns() - t0)
+            (people,) = with_hand_landmarks(self._hands[id(det)], [image], [people])
         finally:
             self._pool.put(det)
         kp = people.keypoints if self._columns is None else people.keypoints[:, self._columns]
@@ -181,10 +194,11 @@ def make_detector(
     # Whole frames first: until the people are found every camera's ROI is its whole frame, which a whole pass runs
     # at the camera's aspect for the cost of a one-camera canvas; the per-pass cost then picks (ties keep the mode).
     chooser = ModeChooser(first="whole") if cfg.packing.enabled == "auto" else None
-    sessions = [Session(whole, canvas, landmark_runner(cfg)) for whole, canvas in pairs]
+    sessions = [Session(whole, canvas, landmark_runner(cfg), hand_runner(cfg)) for whole, canvas in pairs]
     return PackedDetectionGroup(
-        packer, executor, columns, chooser=chooser, sessions=sessions, landmarks_asked=cfg.landmarks
-    )
+        packer, executor, columns, chooser=chooser, sessions=sessions, landmarks_asked=cfg.landmarks,
+        hands=(cfg.hands, cfg.hands_decision()),
+    )  # fmt: skip
 
 
 def detector_status(detector: AnyDetector) -> dict[str, object]:
@@ -192,8 +206,9 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
     model's), so that a user who left ``providers = ["auto"]`` sees whether the GPU or the CPU took it."""
     if isinstance(detector, PooledDetector):
         marks = front_status(detector.landmarks_asked, list(detector._runners.values()))
+        hands = hand_status(detector.hands_decision, detector.hands_asked, list(detector._hands.values()))
         return {"mode": "whole", "workers": len(detector._detectors), "intra_op_threads": detector.intra_op_threads,
-                **detector._detectors[0].describe(), "landmarks": marks}  # fmt: skip
+                **detector._detectors[0].describe(), "landmarks": marks, "hands": hands}  # fmt: skip
     packer = detector.packer
     # With packing "auto" the group's chooser picks packed or whole passes; name the one it runs now.
     mode = detector.chooser.mode if detector.chooser is not None else "packed"
@@ -207,4 +222,5 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
         out["canvas"] = packer.canvas_detector.describe()
     names = [detector.sources[c].name if c in detector.sources else str(c) for c in range(packer.n_cameras)]
     out["landmarks"] = front_status(detector.landmarks_asked, [s.landmarks for s in detector.sessions], names)
+    out["hands"] = hand_status(detector.hands_decision, detector.hands_asked, [s.hands for s in detector.sessions])
     return out
