@@ -142,8 +142,8 @@ def _demo(name: str, config: Path | None = None) -> PeopleInput:
     from mocapd.pipeline.landmarks import LandmarkRunner
     from mocapd.service.config import load_config
 
-    take = pose2sim_take(name)
     det_cfg = eval_detector_config(load_config(config).detector.options())
+    take = pose2sim_take(name)
     made: list[OnnxPoseDetector] = []
 
     def make() -> OnnxPoseDetector:

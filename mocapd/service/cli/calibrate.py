@@ -28,7 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import CalibrationError, InputError, OutputError
+from mocapd.errors import CalibrationError, ConfigError, InputError, ModelError, OutputError
 from mocapd.io import lifecycle
 from mocapd.io.board_calibration import Board, calibrate_intrinsics, detect_in_files
 from mocapd.io.calibration_files import (
@@ -196,7 +196,7 @@ def _run_from_people(args: argparse.Namespace) -> int:
         if args.reference is not None:
             reference = pc.reference_cameras(args.reference, cams)
         calib, report = pc.calibrate(people, opts, reference if args.reference is not None or args.compare else None)
-    except InputError as exc:
+    except (InputError, ConfigError, ModelError) as exc:  # a bad source, --config, or its detector's models
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except CalibrationError as exc:
