@@ -33,7 +33,10 @@ async def test_a_camera_turned_mid_run_is_named_left_out_and_re_estimated(caplog
     lines: list[str] = []
     rec = Recorder()
     caplog.set_level(logging.WARNING, logger="mocapd.service.daemon")
-    with assembled(synthetic_config(cfg), RunOptions(sinks=[rec], status_line=lines.append)) as demo:
+    rig = synthetic_config(cfg)
+    watch_on = rig.calibration.watch.model_copy(update={"enabled": True})  # whatever the default
+    rig = rig.model_copy(update={"calibration": rig.calibration.model_copy(update={"watch": watch_on})})
+    with assembled(rig, RunOptions(sinks=[rec], status_line=lines.append)) as demo:
         d = demo.daemon
         assert d.camera_watch is not None and d.scheduler.observation_hook is not None
         world = demo.built.world
