@@ -164,3 +164,20 @@ def test_board_options_are_still_required_without_from_people(
 ) -> None:
     assert main(["calibrate", "cameras", "--intrinsics", str(tmp_path), "-o", str(tmp_path / "c.toml")]) == 2
     assert "--cols, --rows and --square-mm are required" in capsys.readouterr().err
+
+
+def test_a_demo_detected_with_a_config_that_cannot_be_read_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--config`` (the detector a Pose2Sim demo is detected with, e.g. BlazePose landmarks): a file that is not
+    there is refused with its name, exit 2, before any video is opened."""
+    missing = tmp_path / "nope.toml"
+    args = ["calibrate", "cameras", "--from-people", "pose2sim:Demo_SinglePerson", "--config", str(missing)]
+    assert main([*args, "-o", str(tmp_path / "c.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and str(missing) in err and len(err.strip().splitlines()) == 1, err
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[detector]\nlandmarks = "huge"\n', encoding="utf-8")
+    assert main(["calibrate", "cameras", "--from-people", "pose2sim:Demo_SinglePerson", "--config", str(bad),
+                 "-o", str(tmp_path / "c.toml")]) == 2  # fmt: skip
+    assert "landmarks" in capsys.readouterr().err

@@ -219,6 +219,10 @@ def test_status_carries_the_health_subset_and_client_counters() -> None:
     # What the governor sheds, and why, reaches the viewer (issue 39).
     assert st["governor"] == {"step": 1, "shed": "keypoint tracking at half rate", "reason": "tick p95 12.0 ms"}
     assert health_subset({}) == {}
+    # The bumped-camera watch's verdict reaches the viewer's camera rows (issue 43).
+    watched = {**health, "camera_watch": {"cam0": {"state": "bumped", "residual_px": 40.0}}}
+    assert health_subset(watched)["cameras"] == [{"name": "cam0", "kind": "synthetic", "frames": 300,
+                                                   "watch": "bumped"}]  # fmt: skip
 
 
 def test_description_validates() -> None:

@@ -10,6 +10,12 @@ for each camera k, the people mocapd's association (``DetectionSorter``) triangu
 projected into k and compared with k's detections (``mocapd.eval.heldout``)::
 
     python -m tools.bench_self_calibration --heldout Demo_SinglePerson board.qca.txt self.toml
+
+A Pose2Sim demo take calibrated from its people with each front end's keypoints (``yolo``: the shipped detector's;
+``heavy`` / ``full``: BlazePose's landmarks, ``[detector] landmarks``, issue 40), from nothing and from the board
+calibration, against the board calibration (rotation, centre, scale, up, median px per camera)::
+
+    python -m tools.bench_self_calibration --demo Demo_SinglePerson --height 1.61 --keypoints yolo heavy
 """
 
 from __future__ import annotations
@@ -83,13 +89,53 @@ def heldout(take: str, files: list[str]) -> None:
               + " | ".join(f"{m:.1f}" for m in per) + " |")  # fmt: skip
 
 
+def demo(take: str, keypoints: list[str], height: float | None) -> None:
+    """Rows of the docs/cameras.md demo table: per front end, the self-calibration from nothing and from the board."""
+    import tempfile
+
+    from mocapd.core.self_calibration import compare_calibrations
+    from mocapd.service.people_calibration import load_people
+
+    print("| take | keypoints | start | height | rotation deg per camera | centre mm per camera | scale | up deg | "
+          "median px per camera | wall |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for kind in keypoints:
+        with tempfile.TemporaryDirectory() as tmp:
+            config = None
+            if kind != "yolo":
+                config = Path(tmp) / "landmarks.toml"
+                config.write_text(f'[detector]\nlandmarks = "{kind}"\n', encoding="utf-8")
+            people = load_people(f"pose2sim:{take}", config=config)
+        assert people.reference is not None
+        for start in ("nothing", "board"):
+            opts = SelfCalibrationOptions(height_m=height, origin="people")
+            t0 = time.monotonic()
+            res = calibrate_from_people(people.frames, people.cameras, opts,
+                                        initial=people.reference if start == "board" else None)  # fmt: skip
+            wall = time.monotonic() - t0
+            cmp = compare_calibrations(res.cameras, people.reference)
+            names = [c.name for c in people.cameras]
+            print(f"| {take} | {kind} | {start} | {height if height else '1.75 default'} | "
+                  + " / ".join(f"{cmp.rotation_deg[n]:.2f}" for n in names) + " | "
+                  + " / ".join(f"{cmp.centre_mm[n]:.0f}" for n in names)
+                  + f" | {cmp.scale_error:+.2%} | {cmp.up_deg:.2f} | "
+                  + " / ".join(f"{q.median_px:.1f}" for q in res.report.cameras) + f" | {wall:.0f} s |",
+                  flush=True)  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cameras", type=int, nargs="+", default=[4, 8])
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--heldout", nargs="+", metavar=("TAKE", "CALIBRATION"), help="take, then calibration files")
+    ap.add_argument("--demo", metavar="TAKE", help="a Pose2Sim demo take calibrated from its people")
+    ap.add_argument("--keypoints", nargs="+", choices=["yolo", "full", "heavy"], default=["yolo", "heavy"])
+    ap.add_argument("--height", type=float, default=None, help="the people's mean height (m) for --demo")
     args = ap.parse_args()
+    if args.demo:
+        demo(args.demo, args.keypoints, args.height)
+        return
     if args.heldout:
         heldout(args.heldout[0], args.heldout[1:])
         return

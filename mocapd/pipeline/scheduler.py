@@ -388,6 +388,10 @@ class FixedLatencyScheduler:
         self._pool_cpu_ns = 0  # CPU of the person jobs run on the pool this tick (not the tick thread's)
         self._tick_thread = threading.current_thread()  # the thread running the tick now
         self._last_status: dict[str, Any] = {}  # status() while a tick holds the lock
+        #: called with (solve time, undistorted keypoints (n_cams, n_kp, 2), confidences (n_cams, n_kp)) of each
+        #: person seen by two or more cameras, before the solve; returns the confidences to solve with (the
+        #: bumped-camera watch, :mod:`mocapd.pipeline.camera_watch`). Called from the solve threads.
+        self.observation_hook: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
         self._last_heading: dict[str, dict[str, Any]] = {}
 
     # ------------------------------------------------------------------------------------------- inputs
@@ -619,6 +623,8 @@ class FixedLatencyScheduler:
             und[cam] = self._undistorted(cam, detections[cam])[idx, :n_kp]
             conf[cam] = np.clip(detections[cam].confidences[idx, :n_kp], 0.0, 1.0)
         kp, und, conf = self._unflip(solver, kp, und, conf, len(person.detections))
+        if self.observation_hook is not None and len(person.detections) >= 2:
+            conf = self.observation_hook(t, und, conf)
         c1 = self._cpu()
         imu_kw: dict[str, Any] = {}
         n_imu = 0

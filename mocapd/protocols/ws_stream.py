@@ -83,7 +83,8 @@ Server → client messages
     output          map     configured_hz, achieved_hz, frames, missed_ticks, latency_s
     latency_ms      map     per stage ("detect", "sample", "sort", "solve", "publish", "end_to_end"):
                             {"p50": float|nil, "p95": float|nil, "p99": float|nil}
-    cameras         [map]   name, kind, frames (received keypoint frames)
+    cameras         [map]   name, kind, frames (received keypoint frames); watch: the bumped-camera watch's
+                            state ("learning", "ok", "suspect", "bumped"; absent when the watch is off)
     imus            [map]   path, streaming (bool), samples, disconnects; a SlimeVR tracker: path "slimevr <MAC>",
                             streaming = connected, samples = its datagrams, disconnects nil
     tasks           {str: int}   supervised task -> failures so far
@@ -530,8 +531,13 @@ def health_subset(health: Mapping[str, Any]) -> dict[str, Any]:
             stage: {k: v.get(k) for k in ("p50", "p95", "p99")} for stage, v in lat.items() if isinstance(v, Mapping)
         }
     cams = health.get("cameras")
+    watch = health.get("camera_watch")
     if isinstance(cams, list):
         out["cameras"] = [{k: c.get(k) for k in ("name", "kind", "frames")} for c in cams if isinstance(c, Mapping)]
+        if isinstance(watch, Mapping):  # the bumped-camera watch's verdict per camera (issue 43)
+            for c in out["cameras"]:
+                w = watch.get(c["name"])
+                c["watch"] = w.get("state") if isinstance(w, Mapping) else None
     imu = health.get("imu")
     devices = imu.get("devices") if isinstance(imu, Mapping) else None
     if isinstance(devices, list):

@@ -52,6 +52,7 @@ from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
+from mocapd.pipeline.camera_watch import LiveCameraWatch
 from mocapd.pipeline.detector_pool import landmark_fronts
 from mocapd.pipeline.fusion import FusionModels, FusionStage
 from mocapd.pipeline.governor import Governor, ladder
@@ -284,6 +285,12 @@ class Daemon:
             fusion_mode=config.fusion.mode,
             mattes=mattes,
         )
+        watch = config.calibration.watch
+        #: the bumped-camera watch (None: ``[calibration.watch] enabled = false`` or fewer than three cameras)
+        self.camera_watch = (LiveCameraWatch(rig.cameras, watch.options())
+                             if watch.enabled and len(rig.cameras) >= 3 else None)  # fmt: skip
+        if self.camera_watch is not None:
+            self.scheduler.observation_hook = self.camera_watch.observe
         # The tick solves on its own thread (the loop only samples and publishes), its people on the solve pool.
         self._tick_executor = ThreadPoolExecutor(1, "mocapd-tick", initializer=worker_thread_setup,
                                                  initargs=("mocapd-tick",))  # fmt: skip
@@ -693,7 +700,8 @@ class Daemon:
                 estimating.cancel()
 
     def _status_second(self) -> None:
-        """The status loop's work of each second: implausible poses said, the status line."""
+        """The status loop's work of each second: implausible poses said, the camera watch's news, the status
+        line."""
         warnings: list[str] = []
         if self.scheduler.lock.acquire(timeout=READ_WAIT_S):  # the tick thread adds people's monitors
             try:
@@ -702,6 +710,7 @@ class Daemon:
                 self.scheduler.lock.release()
         for warning in warnings:
             log.warning("%s", warning)
+        self._say_camera_events()
         line = self.status_line_text()
         self.notifier.notify(f"STATUS={line}")
         if self.status_line is not None:
@@ -721,6 +730,21 @@ class Daemon:
         imu_inputs = self.scheduler.imu_alignment_inputs()
         imu_steps = imu_offset_steps(imu_inputs, dict(self.scheduler.options.imu_offsets_ns))
         self.scheduler.suggested_imu_offsets = await run_in_steps(imu_steps)
+
+    def _say_camera_events(self) -> None:
+        """The bumped-camera watch's news to the log (the console), once each."""
+        if self.camera_watch is None:
+            return
+        for _, name, what, d in self.camera_watch.new_events():
+            if what == "bumped":
+                log.warning("camera %s moved: its people reproject %s px off (%s px before); left out of the solve "
+                            "until it is recalibrated or back", name, d["residual_px"], d["baseline_px"])  # fmt: skip
+            elif what == "re-estimated":
+                log.warning("camera %s re-estimated from the people, the others held: turned %.2f deg, %s -> %s px "
+                            "(proposed in /status camera_watch.%s.proposal; not applied)", name, d["rotation_deg"],
+                            d["median_px_before"], d["median_px_after"], name)  # fmt: skip
+            else:
+                log.warning("camera %s agrees with the others again (%s px)", name, d["residual_px"])
 
     def _observe_drift(self) -> None:
         """Each suit sensor's newest samples to the still-drift estimate (:mod:`mocapd.core.yaw_drift`)."""
@@ -762,6 +786,8 @@ class Daemon:
         marks = status_field(self._landmark_fronts())
         if marks is not None:
             line += f"  {marks}"
+        if self.camera_watch is not None and (doubt := self.camera_watch.in_doubt()):
+            line += f"  camera moved? {', '.join(doubt)}"
         if self.imu.devices:
             streaming = sum(1 for d in self.imu.devices if d.streaming.is_set())
             line += f"  IMUs {streaming}/{len(self.imu.devices)}"
@@ -810,6 +836,7 @@ class Daemon:
             "heading_resets_refused": self.reset_limit.refused,  # over the rate limit
             "http_refused": self.http.refused.as_dict(),  # foreign Host or Origin, POSTs without X-Mocapd-Request
             "plausibility": s["plausibility"],
+            "camera_watch": None if self.camera_watch is None else self.camera_watch.status(),
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},
             "subjects": s["people"],

@@ -55,11 +55,14 @@ class PeopleInput:
     """The source's own extrinsics where it has trustworthy ones (the demo's board calibration)."""
 
 
-def load_people(source: str, intrinsics: Path | None = None, fps: float = 30.0) -> PeopleInput:
+def load_people(
+    source: str, intrinsics: Path | None = None, fps: float = 30.0, config: Path | None = None
+) -> PeopleInput:
     """The detections of ``source``: a session directory, a detections ``.npz`` (its cameras from ``intrinsics``,
-    its moments ``1/fps`` apart) or ``pose2sim:<demo>`` (module docstring)."""
+    its moments ``1/fps`` apart) or ``pose2sim:<demo>`` (module docstring; detected by ``config``'s detector,
+    default the shipped config's)."""
     if source.startswith(DEMO_PREFIX):
-        return _demo(source.removeprefix(DEMO_PREFIX))
+        return _demo(source.removeprefix(DEMO_PREFIX), config)
     path = Path(source)
     if path.suffix == ".npz" and path.is_file():
         return _npz(path, intrinsics, fps)
@@ -133,23 +136,29 @@ def _session(path: Path) -> PeopleInput:
     return PeopleInput(frames, cameras, (t_ref - t_ref[0]) / 1e9, f"session {path}")
 
 
-def _demo(name: str) -> PeopleInput:
+def _demo(name: str, config: Path | None = None) -> PeopleInput:
     from mocapd.eval.video_input import detect_take, eval_detector_config, pose2sim_take
     from mocapd.pipeline.detector import OnnxPoseDetector
+    from mocapd.pipeline.landmarks import LandmarkRunner
     from mocapd.service.config import load_config
 
+    det_cfg = eval_detector_config(load_config(config).detector.options())
     take = pose2sim_take(name)
     made: list[OnnxPoseDetector] = []
 
     def make() -> OnnxPoseDetector:
         if not made:
-            made.append(OnnxPoseDetector.from_config(eval_detector_config(load_config(None).detector.options())))
+            made.append(OnnxPoseDetector.from_config(det_cfg))
         return made[0]
 
-    dets = detect_take(take, make)
+    # [detector] landmarks (presets/eval-video-landmarks-heavy.toml): BlazePose's landmarks as the COCO-17 keypoints,
+    # as `mocapd eval video` detects them (same cache).
+    landmarks = LandmarkRunner(det_cfg.landmark_model) if det_cfg.landmark_model is not None else None
+    dets = detect_take(take, make, landmarks=landmarks)
     cams = [replace(c, R=np.eye(3), t=np.zeros(3)) for c in take.cameras]
     times = np.arange(dets.n_frames) / take.fps
-    return PeopleInput(dets.frames, cams, times, f"{DEMO_PREFIX}{name} ({take.source})", list(take.cameras))
+    what = "" if landmarks is None else f", BlazePose {landmarks.variant} landmarks"
+    return PeopleInput(dets.frames, cams, times, f"{DEMO_PREFIX}{name} ({take.source}{what})", list(take.cameras))
 
 
 def guessed_cameras(cameras: list[Camera], fov_deg: float) -> list[Camera]:

@@ -199,6 +199,13 @@ class SyntheticWorld:
         positions: FloatArray = self.kin.forward(self.theta_at(person, t_s)).positions
         return positions
 
+    def bump(self, camera: int, rotation: FloatArray) -> None:
+        """Turn camera ``camera`` on its mount by ``rotation`` (3x3, in its own frame): its detections from now on
+        come from the turned camera, while the rig's calibration stays what it was (a knock during a run)."""
+        c = self.cameras[camera]
+        self.cameras[camera] = dataclasses.replace(c, R=rotation @ c.R, t=rotation @ c.t)
+        self._camera_stack = stack_cameras(self.cameras)
+
     # ------------------------------------------------------------------------------------------ sensors
     def detections(self, cam: int, t_s: float, rng: np.random.Generator, noise_px: float = 1.0) -> Detections2D:
         """The people camera ``cam`` sees at ``t_s``, in a random order (a detector's output for that frame)."""

@@ -258,7 +258,10 @@
                     ["stream clients", st.stream ? st.stream.clients : "–"],
                     ["dropped (this page)", st.stream ? st.stream.dropped : "–"]]);
     rows("latency", Object.entries(st.latency_ms || {}).map(([k, v]) => [k, `${fmt(v.p50)} / ${fmt(v.p95)}`]));
-    rows("cameras", (st.cameras || []).map((c) => [c.name, `${c.frames} frames`]));
+    // The bumped-camera watch (issue 43): a camera in doubt is marked; "moved?" while suspect, "moved" once bumped.
+    const moved = { suspect: "moved?", bumped: "moved" };
+    rows("cameras", (st.cameras || []).map((c) => [c.name, `${c.frames} frames${moved[c.watch] ? " · " + moved[c.watch] : ""}`,
+                                                   moved[c.watch] ? "bad" : ""]));
     const imus = st.imus || [];
     rows("imus", imus.length ? imus.map((d) => [d.path.split("/").pop(), d.streaming ? "streaming" : "down",
                                                 d.streaming ? "ok" : "bad"]) : [["none", ""]]);

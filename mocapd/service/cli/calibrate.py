@@ -28,7 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import CalibrationError, InputError, OutputError
+from mocapd.errors import CalibrationError, ConfigError, InputError, ModelError, OutputError
 from mocapd.io import lifecycle
 from mocapd.io.board_calibration import Board, calibrate_intrinsics, detect_in_files
 from mocapd.io.calibration_files import (
@@ -178,7 +178,7 @@ def _run_from_people(args: argparse.Namespace) -> int:
     from mocapd.service import people_calibration as pc
 
     try:
-        people = pc.load_people(args.from_people, args.intrinsics_from, args.fps)
+        people = pc.load_people(args.from_people, args.intrinsics_from, args.fps, args.config)
         cams = people.cameras
         if args.intrinsics_from is not None:
             cams = pc.with_intrinsics(cams, read_any(args.intrinsics_from))
@@ -196,7 +196,7 @@ def _run_from_people(args: argparse.Namespace) -> int:
         if args.reference is not None:
             reference = pc.reference_cameras(args.reference, cams)
         calib, report = pc.calibrate(people, opts, reference if args.reference is not None or args.compare else None)
-    except InputError as exc:
+    except (InputError, ConfigError, ModelError) as exc:  # a bad source, --config, or its detector's models
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except CalibrationError as exc:
@@ -278,6 +278,13 @@ def register(subparsers: Any) -> None:
         metavar="SOURCE",
         help="a recorded session directory, a detections .npz (with --intrinsics-from), or "
         "pose2sim:Demo_SinglePerson / pose2sim:Demo_MultiPerson",
+    )
+    people.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="pose2sim:<demo>: detect with this config's [detector] (e.g. presets/eval-video-landmarks-heavy.toml: "
+        "BlazePose landmarks; default the shipped config's)",
     )
     people.add_argument(
         "--fps",

@@ -28,8 +28,11 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field, PlainValidator, model_validator
 
+from mocapd.core.camera_watch import WatchOptions
 from mocapd.errors import ConfigError
 from mocapd.service.config.schema import MAX_TEXT, PathStr, Section, Seq, Text, validate
+
+_W = WatchOptions()
 
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,32}$")
 
@@ -193,6 +196,30 @@ CAMERA_KINDS: dict[str, type[_Camera]] = {
 }
 
 
+class CameraWatchConfig(Section):
+    """``[calibration.watch]``: the bumped-camera watch (:mod:`mocapd.core.camera_watch`, issue 43)."""
+
+    ordered = (("window_s", "<", "baseline_s"),)
+
+    enabled: bool = True
+    rate_hz: float = Field(_W.rate_hz, gt=0.0, le=240.0)
+    window_s: float = Field(_W.window_s, gt=0.0, le=60.0)
+    baseline_s: float = Field(_W.baseline_s, gt=0.0, le=3600.0)
+    min_baseline_s: float = Field(_W.min_baseline_s, ge=0.0, le=3600.0)
+    hold_s: float = Field(_W.hold_s, gt=0.0, le=60.0)
+    margin_px: float = Field(_W.margin_px, ge=0.0, le=1000.0)
+    ratio: float = Field(_W.ratio, ge=0.0, le=10.0)
+    others_ratio: float = Field(_W.others_ratio, gt=0.0, le=1.0)
+    tie_ratio: float = Field(_W.tie_ratio, gt=0.0, le=1.0)
+    min_confidence: float = Field(_W.min_confidence, ge=0.0, le=1.0)
+    min_keypoints: int = Field(_W.min_keypoints, ge=3, le=1000)
+    down_weight: float = Field(_W.down_weight, ge=0.0, le=1.0)
+    reestimate_points: int = Field(_W.reestimate_points, ge=0, le=1_000_000)
+
+    def options(self) -> WatchOptions:
+        return self.build(WatchOptions)
+
+
 class CalibrationConfig(Section):
     """``[calibration]``: where the cameras' intrinsics and extrinsics come from."""
 
@@ -202,6 +229,8 @@ class CalibrationConfig(Section):
     delivers. "" = none (only a synthetic rig needs none)."""
     world_up: Literal["auto", "y", "z"] = "auto"
     """The file's world up axis: auto = the format's (Z for Qualisys/Pose2Sim, Y for mocapd/OpenCV)."""
+    watch: CameraWatchConfig = Field(default_factory=CameraWatchConfig)
+    """The bumped-camera watch: per camera, the people's reprojection residuals against the other cameras."""
 
 
 class SyntheticConfig(Section):

@@ -1,0 +1,400 @@
+"""Cameras that stay calibrated (issue 43, part 2): a camera bumped during a run, noticed from the people in view.
+
+Each solved person's keypoints, as the solve sees them (undistorted, after the views' left/right flips were undone),
+are a check of every camera's calibration: triangulated from the *other* cameras, they must reproject onto what
+this camera detected. Per camera the watch keeps that leave-one-out residual (the median over a person's keypoints,
+px) over time:
+
+* its **baseline**: the median over the last ``baseline_s`` before the current window (frozen while the camera is
+  in doubt, so a bump does not become the new normal);
+* its **current** level: the median over the last ``window_s``.
+
+A camera whose current level rises above its baseline by ``margin_px`` and by ``ratio`` of the baseline, while the
+other cameras' median rise stays under ``others_ratio`` of its own, none rose more and the runner-up rose less than
+``tie_ratio`` of it (a bump moves one camera and leaks into the others' checks by less; a flood of bad detections,
+a person half out of view or the sync drifting raise them all), is *suspect*; suspect for ``hold_s`` it is
+*bumped*. One camera is bumped at a time (a second is named once the first is set right or back). A suspect or
+bumped camera's confidences are scaled by ``down_weight`` in the solve (:meth:`CameraWatch.observe` returns them),
+so the poses published while it is in doubt come from the cameras that agree. A bumped camera whose level falls
+back to its baseline for ``hold_s`` (put back, or a passing disturbance) is *ok* again.
+
+Two opposite cameras that are each other's only witness of an axis (on a ring of four, cam1 and cam3 alone see
+the depth of cam0 and cam2) cannot be told apart when one of them pans: the check sees the same rise in both. The
+tie rule names neither while they rise alike; the noise can still tip it to the wrong one (docs/cameras.md).
+
+While a camera is bumped the watch gathers its 2D-3D matches (the others' triangulations and its own detections)
+and, from ``reestimate_points`` of them, re-estimates its orientation with the other cameras held
+(:func:`reestimate_pose`): a *proposal* the caller applies (:meth:`CameraWatch.apply`) or not.
+
+Time is the solve time passed in (ns); nothing here reads a clock or locks (the pipeline's adapter does).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.camera import Camera, triangulate_projections
+from mocapd.errors import InputError
+
+FloatArray = NDArray[np.float64]
+
+STATES = ("learning", "ok", "suspect", "bumped")
+"""A camera's state: no baseline yet, agreeing with the others, in doubt, bumped (held in doubt ``hold_s``)."""
+
+
+@dataclass(frozen=True)
+class WatchOptions:
+    """How the bumped-camera watch judges (``[calibration.watch]`` in config.toml)."""
+
+    rate_hz: float = 10.0
+    """Ticks a second whose people are checked (the others are passed through untouched)."""
+    window_s: float = 1.0
+    """The current level: the median residual over this window."""
+    baseline_s: float = 20.0
+    """The baseline: the median over this long before the window."""
+    min_baseline_s: float = 5.0
+    """A camera is judged once its baseline spans at least this long (before: state "learning")."""
+    hold_s: float = 1.5
+    """Suspect this long: bumped. Back at its baseline this long: ok again."""
+    margin_px: float = 6.0
+    """A rise smaller than this (px) is never a bump."""
+    ratio: float = 0.3
+    """Nor a rise smaller than this share of the camera's baseline."""
+    others_ratio: float = 0.5
+    """The other cameras' median rise must stay below this share of the camera's own."""
+    tie_ratio: float = 0.8
+    """The runner-up's rise at this share of the largest or more: which camera moved cannot be told."""
+    min_confidence: float = 0.3
+    """Keypoints below this confidence take no part."""
+    min_keypoints: int = 6
+    """A person checks a camera when at least this many of its keypoints are seen by it and two others."""
+    down_weight: float = 0.0
+    """Confidence factor in the solve of a camera in doubt (0: left out)."""
+    reestimate_points: int = 400
+    """2D-3D matches gathered from a bumped camera before its pose is re-estimated (0: never)."""
+
+    def __post_init__(self) -> None:
+        if not (self.rate_hz > 0 and self.window_s > 0 and self.hold_s > 0 and self.baseline_s > self.window_s):
+            raise InputError("camera watch: rate_hz, window_s and hold_s must be positive, baseline_s > window_s")
+        if not (0.0 <= self.down_weight <= 1.0):
+            raise InputError(f"camera watch: down_weight {self.down_weight} outside [0, 1]")
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """A bumped camera's pose re-estimated from the people with the other cameras held."""
+
+    camera: Camera
+    rotation_deg: float  # the turn from the configured pose
+    matches: int  # 2D-3D matches it was estimated from
+    inliers: int
+    median_px_before: float  # the matches' reprojection error with the configured pose
+    median_px_after: float  # ... and with the proposed one
+
+
+@dataclass
+class _Camera:
+    """One camera's record: (solve time ns, residual px) samples, its state and what the state came from."""
+
+    samples: deque[tuple[int, float]] = field(default_factory=deque)
+    state: str = "learning"
+    since_ns: int = 0  # when the state was entered
+    frozen_baseline: float | None = None  # the baseline held while in doubt
+    calm_since_ns: int | None = None  # bumped and back at its baseline since then
+    baseline: float = float("nan")
+    current: float = float("nan")
+    bumps: int = 0
+    matches: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)  # (X (n, 3), uv (n, 2)) while bumped
+    n_matches: int = 0
+    proposal: Proposal | None = None
+
+
+def residuals_left_out(
+    P: FloatArray, uv: FloatArray, conf: FloatArray, *, min_confidence: float, min_keypoints: int
+) -> tuple[FloatArray, list[tuple[FloatArray, FloatArray]]]:
+    """Per camera: the median distance (px) between one person's keypoints it detected and the same keypoints
+    triangulated from the other cameras, projected into it.
+
+    Parameters
+    ----------
+    P : array, shape (n_cams, 3, 4)
+        Projection matrices (undistorted pixels).
+    uv : array, shape (n_cams, n_kp, 2)
+        The person's undistorted keypoints per camera.
+    conf : array, shape (n_cams, n_kp)
+        Their confidences (0: not seen).
+
+    Returns
+    -------
+    residual : array, shape (n_cams,)
+        NaN where fewer than ``min_keypoints`` keypoints were seen by the camera and two others.
+    matches : list of (X (m, 3), uv (m, 2)) per camera
+        The triangulated points and the camera's own keypoints the residual was measured on.
+    """
+    n_cams = P.shape[0]
+    w = np.where((conf >= min_confidence) & np.all(np.isfinite(uv), axis=-1), conf, 0.0)
+    out = np.full(n_cams, np.nan)
+    matches: list[tuple[FloatArray, FloatArray]] = []
+    for c in range(n_cams):
+        others = np.ones(n_cams, dtype=bool)
+        others[c] = False
+        seen = w[c] > 0
+        if others.sum() < 2 or seen.sum() < min_keypoints:
+            matches.append((np.zeros((0, 3)), np.zeros((0, 2))))
+            continue
+        X, ok = triangulate_projections(P[others], uv[others], w[others])
+        ok &= seen
+        if ok.sum() < min_keypoints:
+            matches.append((np.zeros((0, 3)), np.zeros((0, 2))))
+            continue
+        h = np.c_[X[ok], np.ones(int(ok.sum()))] @ P[c].T
+        front = h[:, 2] > 1e-9
+        proj = h[:, :2] / np.where(front, h[:, 2], 1.0)[:, None]
+        err = np.where(front, np.linalg.norm(proj - uv[c, ok], axis=1), np.inf)
+        out[c] = float(np.median(err))
+        matches.append((X[ok][front], uv[c, ok][front]))
+    return out, matches
+
+
+def reestimate_pose(
+    camera: Camera, X: FloatArray, uv: FloatArray, threshold_px: float = 20.0, iterations: int = 5
+) -> Proposal | None:
+    """``camera``'s orientation from 2D-3D matches (its undistorted keypoints ``uv`` (n, 2), the points ``X``
+    (n, 3) the other cameras triangulated), its centre and intrinsics kept: a bump turns a camera on its mount.
+
+    The turn that best maps the rays from the camera's centre to the points onto the rays through its keypoints is
+    Wahba's problem (closed form, an SVD); it is solved again on the matches within ``threshold_px`` of the
+    previous answer (twice the median error while that is larger: the detector's outliers and swapped limbs left
+    out), ``iterations`` times. A free centre
+    (PnP) would trade a turn of the camera for a sideways move of it over a few metres' depth. None when fewer than
+    12 matches agree."""
+    if len(X) < 12:
+        return None
+    d = X - camera.center
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    b = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(np.asarray(camera.K)).T
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    R = np.asarray(camera.R)
+    keep = np.ones(len(X), dtype=bool)
+    for _ in range(iterations):
+        err = _errors(replace(camera, R=R, t=-R @ camera.center), X, uv)
+        # Twice the median error at first (the bump itself may be larger than the threshold), then the threshold.
+        keep = err < max(threshold_px, 2.0 * float(np.median(err)))
+        if keep.sum() < 12:
+            return None
+        U, _, Vt = np.linalg.svd(b[keep].T @ d[keep])  # argmax_R sum b^T R d
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    new = replace(camera, R=R, t=-R @ camera.center)
+    before, after = _errors(camera, X, uv), _errors(new, X, uv)
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(new.R @ camera.R.T) - 1.0) / 2.0, -1.0, 1.0))))
+    return Proposal(new, round(turn, 3), len(X), int(keep.sum()), round(float(np.median(before)), 2),
+                    round(float(np.median(after)), 2))  # fmt: skip
+
+
+def _errors(camera: Camera, X: FloatArray, uv: FloatArray) -> FloatArray:
+    """Undistorted-pixel reprojection errors (n,) of points ``X`` against ``uv``."""
+    h = np.c_[X, np.ones(len(X))] @ camera.projection_matrix.T
+    z = np.where(h[:, 2] > 1e-9, h[:, 2], np.nan)
+    err: FloatArray = np.linalg.norm(h[:, :2] / z[:, None] - uv, axis=1)
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+class CameraWatch:
+    """The per-camera residual record and the bump decisions (module docstring).
+
+    Parameters
+    ----------
+    cameras : list of Camera
+        The rig as configured (its projections: undistorted pixels).
+    options : WatchOptions
+    """
+
+    def __init__(self, cameras: list[Camera], options: WatchOptions | None = None) -> None:
+        self.options = options if options is not None else WatchOptions()
+        self.cameras = list(cameras)
+        self._P = np.stack([c.projection_matrix for c in cameras]) if cameras else np.zeros((0, 3, 4))
+        self._cams = [_Camera() for _ in cameras]
+        self._tick_ns: int | None = None  # the solve time being checked now (all its people are)
+        self._last_ns: int | None = None  # the last tick checked
+        #: what happened, newest last: (solve time ns, camera name, event, details) for the log and the session
+        self.events: list[tuple[int, str, str, dict[str, Any]]] = []
+
+    # ------------------------------------------------------------------------------------------ input
+    def observe(self, t_ns: int, uv: FloatArray, conf: FloatArray) -> FloatArray:
+        """One solved person at solve time ``t_ns``: ``uv`` (n_cams, n_kp, 2) undistorted keypoints and ``conf``
+        (n_cams, n_kp). Checks the cameras on ``rate_hz`` of the ticks; returns the confidences the solve should
+        use (a camera in doubt scaled by ``down_weight``)."""
+        n = len(self.cameras)
+        if uv.shape[:1] != (n,) or conf.shape != uv.shape[:2]:
+            raise InputError(f"camera watch: keypoints {uv.shape} / confidences {conf.shape} for {n} cameras")
+        if self._due(t_ns):
+            self._check(t_ns, uv, conf)
+        doubt = self.in_doubt()
+        if not doubt.any():
+            return conf
+        return conf * np.where(doubt, self.options.down_weight, 1.0)[:, None]
+
+    def in_doubt(self) -> NDArray[np.bool_]:
+        """Per camera: suspect or bumped."""
+        return np.array([c.state in ("suspect", "bumped") for c in self._cams], dtype=bool)
+
+    def _due(self, t_ns: int) -> bool:
+        if t_ns == self._tick_ns:
+            return True  # another person of the tick being checked
+        if self._last_ns is not None and t_ns - self._last_ns < 1e9 / self.options.rate_hz * 0.999:
+            return False
+        if self._tick_ns is not None:
+            self._judge(self._tick_ns)  # the previous checked tick is complete: judge on all its people
+        self._tick_ns = self._last_ns = t_ns
+        return True
+
+    def _check(self, t_ns: int, uv: FloatArray, conf: FloatArray) -> None:
+        o = self.options
+        res, matches = residuals_left_out(self._P, uv, conf, min_confidence=o.min_confidence,
+                                          min_keypoints=o.min_keypoints)  # fmt: skip
+        keep_ns = round((o.baseline_s + o.window_s) * 1e9)
+        for c, cam in enumerate(self._cams):
+            if np.isfinite(res[c]):
+                cam.samples.append((t_ns, float(res[c])))
+            while cam.samples and cam.samples[0][0] < t_ns - keep_ns:
+                cam.samples.popleft()
+            if cam.state == "bumped" and o.reestimate_points > 0 and cam.proposal is None and len(matches[c][0]):
+                cam.matches.append(matches[c])
+                cam.n_matches += len(matches[c][0])
+                if cam.n_matches >= o.reestimate_points:
+                    self._reestimate(t_ns, c)
+
+    # ------------------------------------------------------------------------------------------ decisions
+    def _levels(self, t_ns: int) -> None:
+        o = self.options
+        split = t_ns - round(o.window_s * 1e9)
+        for cam in self._cams:
+            old = [r for t, r in cam.samples if t < split]
+            new = [r for t, r in cam.samples if t >= split]
+            span = (split - cam.samples[0][0]) / 1e9 if old else 0.0
+            cam.current = float(np.median(new)) if len(new) >= 3 else float("nan")
+            if cam.frozen_baseline is not None:
+                cam.baseline = cam.frozen_baseline
+            else:
+                cam.baseline = float(np.median(old)) if span >= o.min_baseline_s else float("nan")
+
+    def _rise(self, cam: _Camera) -> float:
+        return cam.current - cam.baseline if np.isfinite(cam.current) and np.isfinite(cam.baseline) else float("nan")
+
+    def _high(self, cam: _Camera) -> bool:
+        rise = self._rise(cam)
+        return bool(np.isfinite(rise) and rise > max(self.options.margin_px, self.options.ratio * cam.baseline))
+
+    def _judge(self, t_ns: int) -> None:
+        o = self.options
+        self._levels(t_ns)
+        hold = round(o.hold_s * 1e9)
+        rises = np.array([self._rise(c) for c in self._cams])
+        doubt = bool(np.array([c.state == "bumped" for c in self._cams]).any())
+        finite = np.sort(rises[np.isfinite(rises)])
+        # Two cameras rising alike cannot be told apart (opposite cameras that are each other's only witness of
+        # an axis see one's bump as the other's): neither is named.
+        tied = finite.size >= 2 and finite[-2] >= o.tie_ratio * finite[-1]
+        for i, cam in enumerate(self._cams):
+            others = np.delete(rises, i)
+            others = others[np.isfinite(others)]
+            # The camera that rose most, and alone: a bump of one camera leaks into the others' checks (it takes
+            # part in their triangulations) by less than it shows in its own.
+            alone = (self._high(cam) and rises[i] >= np.nanmax(rises) and not tied and not doubt
+                     and (others.size == 0 or float(np.median(others)) < o.others_ratio * rises[i]))  # fmt: skip
+            if cam.state == "learning":
+                if np.isfinite(cam.baseline):
+                    self._enter(cam, i, "ok", t_ns)
+            elif cam.state == "ok":
+                if alone:
+                    cam.frozen_baseline = cam.baseline
+                    self._enter(cam, i, "suspect", t_ns)
+            elif cam.state == "suspect":
+                up = np.isfinite(rises[i]) and rises[i] > 0.5 * max(o.margin_px, o.ratio * cam.baseline)
+                if not up or rises[i] < np.nanmax(rises) or tied:
+                    # well back down (half the threshold: a level hovering at it does not flicker in and out), or
+                    # another camera rose as much or more: this one's rise may be that camera's leaking into it
+                    cam.frozen_baseline = None
+                    self._enter(cam, i, "ok", t_ns)
+                elif t_ns - cam.since_ns >= hold:
+                    cam.bumps += 1
+                    self._enter(cam, i, "bumped", t_ns)
+            elif cam.state == "bumped":
+                calm = np.isfinite(rises[i]) and rises[i] < 0.5 * max(o.margin_px, o.ratio * cam.baseline)
+                if not calm:
+                    cam.calm_since_ns = None
+                elif cam.calm_since_ns is None:
+                    cam.calm_since_ns = t_ns
+                elif t_ns - cam.calm_since_ns >= hold:
+                    self._clear(cam)
+                    self._enter(cam, i, "ok", t_ns)
+
+    def _enter(self, cam: _Camera, i: int, state: str, t_ns: int) -> None:
+        if cam.state == state:
+            return
+        details = {"from": cam.state, "residual_px": _r(cam.current), "baseline_px": _r(cam.baseline)}
+        if state == "bumped" or cam.state == "bumped":  # news: a bump, or a bumped camera back in agreement
+            self.events.append((t_ns, self.cameras[i].name, state, details))
+        cam.state, cam.since_ns = state, t_ns
+
+    def _clear(self, cam: _Camera) -> None:
+        cam.frozen_baseline = None
+        cam.calm_since_ns = None
+        cam.matches.clear()
+        cam.n_matches = 0
+        cam.proposal = None
+
+    def _reestimate(self, t_ns: int, c: int) -> None:
+        cam = self._cams[c]
+        X = np.concatenate([m[0] for m in cam.matches])
+        uv = np.concatenate([m[1] for m in cam.matches])
+        cam.matches.clear()
+        cam.n_matches = 0
+        prop = reestimate_pose(self.cameras[c], X, uv)
+        if prop is None:
+            return  # too few matches agree: gather again
+        cam.proposal = prop
+        self.events.append((t_ns, self.cameras[c].name, "re-estimated", _proposal_json(prop)))
+
+    # ------------------------------------------------------------------------------------------ output
+    def proposal(self, camera: int) -> Proposal | None:
+        """The bumped camera's re-estimated pose, once there is one."""
+        return self._cams[camera].proposal
+
+    def apply(self, camera: int, new: Camera) -> None:
+        """``camera`` now has the pose ``new`` (a proposal applied, or a recalibration): its residuals are measured
+        against it, from a new baseline."""
+        self.cameras[camera] = new
+        self._P = np.stack([c.projection_matrix for c in self.cameras])
+        self._cams[camera] = _Camera(bumps=self._cams[camera].bumps)
+
+    def states(self) -> list[str]:
+        return [c.state for c in self._cams]
+
+    def status(self) -> dict[str, Any]:
+        """JSON-able: per camera its state, current and baseline residual (px), bumps so far and any proposal."""
+        return {
+            cam.name: {
+                "state": c.state, "residual_px": _r(c.current), "baseline_px": _r(c.baseline), "bumps": c.bumps,
+                "samples": len(c.samples),
+                "proposal": None if c.proposal is None else _proposal_json(c.proposal),
+            }
+            for cam, c in zip(self.cameras, self._cams, strict=True)
+        }  # fmt: skip
+
+
+def _r(x: float) -> float | None:
+    return round(x, 2) if np.isfinite(x) else None
+
+
+def _proposal_json(p: Proposal) -> dict[str, Any]:
+    return {
+        "rotation_deg": p.rotation_deg, "matches": p.matches, "inliers": p.inliers,
+        "median_px_before": p.median_px_before, "median_px_after": p.median_px_after,
+        "R": np.round(p.camera.R, 9).tolist(), "t": np.round(p.camera.t, 6).tolist(),
+    }  # fmt: skip

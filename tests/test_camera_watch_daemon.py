@@ -1,0 +1,97 @@
+"""The bumped-camera watch in the daemon, end to end on the synthetic rig: a simulated camera turned 2° on its
+mount mid-run (the rig's calibration unchanged) is named in /status (over HTTP), the status line, the log and the
+viewer within seconds (the issue's 5 s at the watch's checking rate), left out of the solve, and its orientation
+re-estimated from the people."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from mocapd.core.rotations import matrix_from_rotvec
+from mocapd.io.ws_server import WebSocketStreamServer
+from mocapd.service.assembly import RunOptions, assembled
+from mocapd.service.config import load_config
+from mocapd.service.demo.synthetic import synthetic_config
+from tests.cdp import chromium_page
+from tests.test_daemon import Recorder, http_get, wait_for
+from tests.test_web_viewer import free_port
+
+
+@pytest.mark.asyncio
+async def test_a_camera_turned_mid_run_is_named_left_out_and_re_estimated(caplog: pytest.LogCaptureFixture) -> None:
+    cfg = load_config()
+    cfg = cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+        "websocket": cfg.websocket.model_copy(update={"port": free_port(), "status_hz": 5.0}),
+        "synthetic": cfg.synthetic.model_copy(update={"suits": 0}),
+    })  # fmt: skip
+    lines: list[str] = []
+    rec = Recorder()
+    caplog.set_level(logging.WARNING, logger="mocapd.service.daemon")
+    rig = synthetic_config(cfg)
+    watch_on = rig.calibration.watch.model_copy(update={"enabled": True})  # whatever the default
+    rig = rig.model_copy(update={"calibration": rig.calibration.model_copy(update={"watch": watch_on})})
+    with assembled(rig, RunOptions(sinks=[rec], status_line=lines.append)) as demo:
+        d = demo.daemon
+        assert d.camera_watch is not None and d.scheduler.observation_hook is not None
+        world = demo.built.world
+        assert world is not None
+        task = asyncio.create_task(d.run())
+        await asyncio.wait_for(d.ready.wait(), 300)  # a first kernel compile on a busy machine
+        watch = d.camera_watch.watch
+        await wait_for(lambda: watch.states() == ["ok"] * 4, 180, "every camera's baseline")
+        assert watch.events == []  # a clean start names nobody
+
+        bumped_ns, published = d.clock(), len(rec.frames)
+        world.bump(1, matrix_from_rotvec(np.radians(2.0) * np.array([1.0, 0.0, 0.0])))  # tilted 2°
+        await wait_for(lambda: watch.states()[1] == "bumped", 60, "cam1 named")
+        t_named, name, what, _ = watch.events[0]
+        # Solve time. The issue's 5 s is held by tests/test_camera_watch.py at the watch's 10 checks a second; a
+        # busy machine gives the daemon fewer ticks (3-8 a second seen here at load 15), so fewer checks.
+        assert (name, what) == ("cam1", "bumped") and t_named - bumped_ns <= 15e9
+        assert [s for i, s in enumerate(watch.states()) if i != 1] == ["ok"] * 3
+
+        # Left out of the solve: every person solved since carries no weight from cam1 (checked at the hook).
+        seen: list[np.ndarray] = []
+        hook = d.scheduler.observation_hook
+
+        def spy(t: int, uv: np.ndarray, conf: np.ndarray) -> np.ndarray:
+            out = hook(t, uv, conf)
+            seen.append(out)
+            return out
+
+        d.scheduler.observation_hook = spy
+        await wait_for(lambda: len(seen) >= 10, 10, "people solved with cam1 in doubt")
+        assert all(np.all(c[1] == 0.0) and np.any(np.delete(c, 1, axis=0) > 0) for c in seen), watch.status()
+
+        await wait_for(lambda: watch.proposal(1) is not None, 30, "cam1 re-estimated")
+        port = d.http.port
+        for _ in range(100):  # /status is a snapshot: poll until it has the proposal
+            st = json.loads((await http_get(port, "/status"))[2])["camera_watch"]
+            if st["cam1"]["proposal"] is not None:
+                break
+            await asyncio.sleep(0.05)
+        assert st["cam1"]["state"] == "bumped" and st["cam1"]["bumps"] == 1
+        assert {st[c]["state"] for c in ("cam0", "cam2", "cam3")} == {"ok"}
+        prop = st["cam1"]["proposal"]
+        assert abs(prop["rotation_deg"] - 2.0) < 0.3 and prop["median_px_after"] < 0.5 * prop["median_px_before"]
+        err = np.degrees(np.arccos(np.clip((np.trace(np.array(prop["R"]) @ world.cameras[1].R.T) - 1) / 2, -1, 1)))
+        assert err < 0.3  # the turned camera's true orientation
+        await wait_for(lambda: any("camera moved? cam1" in x for x in lines), 5, "the status line")
+        await wait_for(lambda: any("re-estimated" in r.getMessage() for r in caplog.records), 5, "the log")
+        assert any("camera cam1 moved" in r.getMessage() for r in caplog.records)
+        assert any(f.people for f in rec.frames[published:])  # people still published, from the three others
+        # The viewer (real headless Chromium on the daemon's stream) marks the camera in its status panel.
+        (stream,) = [s for s in d.sinks if isinstance(s, WebSocketStreamServer)]
+        async with chromium_page(stream.viewer_url) as page:
+            await page.wait_for("window.mocapdViewer && mocapdViewer.state.statusMessages > 0", 30, "a status")
+            await page.wait_for("document.getElementById('cameras').innerText.includes('moved')", 10, "the mark")
+            rows = await page.evaluate("document.getElementById('cameras').innerText")
+            assert [r for r in rows.splitlines() if "moved" in r] == [r for r in rows.splitlines() if "cam1" in r]
+        d.request_stop()
+        assert await asyncio.wait_for(task, 10) == 0
