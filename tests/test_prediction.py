@@ -241,6 +241,23 @@ def test_prediction_can_wait_for_the_samples_that_arrive_while_solving() -> None
     assert ls.scheduler.predict(frame) is frame  # an older frame is not carried again
 
 
+def test_a_wearer_resized_by_this_solve_is_published_as_solved() -> None:
+    """Body sizing drops a person's solver in the solve (the next tick rebuilds it on the new skeleton); carrying that
+    frame forward then raised KeyError in the daemon's tick task (seen in tests/test_daemon.py's predicted run). The
+    wearer is published as solved, and counted."""
+    ls = suit_lockstep(SchedulerOptions(prediction=PredictionOptions(output="predicted")))
+    ls.run(1.5)
+    now = ls.now_ns
+    ls.feed(now)
+    frame = ls.scheduler.tick(now, predict=False)
+    (wearer,) = [p for p in frame.people if p.suit is not None]
+    ls.scheduler.solvers.pop(wearer.identity)  # what _size_body does when the body is sized
+    carried = ls.scheduler.predict(frame)
+    (p,) = [p for p in carried.people if p.suit is not None]
+    assert p is wearer and p.solved is None and carried.pose_time_ns(p) == frame.t_solve_ns
+    assert ls.scheduler.counters["predictions_skipped"] == 1
+
+
 def test_delayed_output_publishes_the_solve() -> None:
     ls = suit_lockstep(n_people=1)
     frames = ls.run(1.5)

@@ -341,7 +341,7 @@ class FixedLatencyScheduler:
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
                          "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0,
-                         "learned_observations": 0}  # fmt: skip
+                         "learned_observations": 0, "predictions_skipped": 0}  # fmt: skip
         self._lr_pairs = lr_pairs(list(getattr(targets, "names", ())))
         self._projections = (np.stack([c.projection_matrix for c in cameras]) if cameras
                              else np.zeros((0, 3, 4)))  # fmt: skip
@@ -758,7 +758,12 @@ class FixedLatencyScheduler:
         """A suit wearer's solved pose carried to the suit's newest IMU instant (see module docstring)."""
         assert pose.suit is not None and self.ingest is not None
         suit = self.suits[pose.suit]
-        solver = self.solvers[pose.identity]
+        solver = self.solvers.get(pose.identity)
+        if solver is None:
+            # This very solve re-sized the wearer's body (:meth:`_size_body` drops the solver; the next tick builds
+            # it on the new skeleton): this frame publishes the solve itself, as delayed output would.
+            self.counters["predictions_skipped"] += 1
+            return pose
         hips = next((i for i, m in enumerate(suit.mounts) if m.bone == "Hips"), None)
         streams = [self.ingest.streams.get(sid) for sid in suit.sensors]
         state = SuitState(
