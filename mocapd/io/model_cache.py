@@ -36,3 +36,8 @@ def default_model_path(width: int = 640, height: int = 640) -> Path:
 def landmark_model_path(variant: str) -> Path:
     """The BlazePose landmark model ``variant`` (``"full"``, ``"heavy"``) from ``@mediapipe/pose``."""
     return model_dir() / f"pose_landmark_{variant}.tflite"
+
+
+def hand_model_path(variant: str) -> Path:
+    """The hand landmark model ``variant`` (``"full"``, ``"lite"``) from ``@mediapipe/hands``."""
+    return model_dir() / f"hand_landmark_{variant}.tflite"

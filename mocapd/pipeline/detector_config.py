@@ -20,6 +20,10 @@ LAYOUTS = ("NCHW", "NHWC")
 CHANNEL_ORDERS = ("RGB", "BGR")
 PRECISIONS = ("auto", "fp32", "int8", "bf16")
 LANDMARKS = ("off", "full", "heavy", "auto")
+HANDS = ("off", "on", "auto")
+#: The body keypoint sets hand crops are placed from (``[detector] hands``): BlazePose's wrist, index and pinky, or
+#: COCO-17's forearm.
+HAND_BODIES = ("coco17", "blazepose33")
 #: What ``[detector] landmarks = "auto"`` runs until the budget governor (issue 40) chooses per pass.
 AUTO_LANDMARKS = "off"
 #: ``[detector] workers = "auto"``: one inference session per this many cores (tools/bench_sessions.py)
@@ -259,6 +263,9 @@ class DetectorConfig:
     """BlazePose landmarks per person after YOLO (:mod:`mocapd.pipeline.landmarks`): "off" (YOLO's keypoints),
     "full" or "heavy" (that landmark model; the output becomes ``blazepose33``), "auto" (runs as
     :data:`AUTO_LANDMARKS` until the budget governor picks per pass; ``/status`` says so)."""
+    hands: str = "off"
+    """Hand landmarks per person after the body's keypoints (:mod:`mocapd.pipeline.hands`): "off", "on" (the
+    output becomes ``<body>_hands``), "auto" (on when the body landmarks run: :meth:`hands_decision`)."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -266,6 +273,13 @@ class DetectorConfig:
     def __post_init__(self) -> None:
         _choice("detector.precision", self.precision, PRECISIONS)
         _choice("detector.landmarks", self.landmarks, LANDMARKS)
+        _choice("detector.hands", self.hands, HANDS)
+        body = self.body_format
+        if self.hands == "on" and body not in HAND_BODIES:
+            raise ConfigError(
+                f'detector.hands = "on" places its crops from the wrists and elbows of {list(HAND_BODIES)}; '
+                f"the body keypoints are {body!r}"
+            )
         if self.landmark_model is not None and self.model.keypoint_format != "coco17":
             raise ConfigError(
                 f"detector.landmarks = {self.landmarks!r} places its crops from COCO-17 hips and shoulders; "
@@ -289,9 +303,34 @@ class DetectorConfig:
         return None if chosen == "off" else chosen
 
     @property
-    def output_format(self) -> str:
-        """The keypoint set the detector delivers: ``blazepose33`` with landmarks, else the model's own."""
+    def body_format(self) -> str:
+        """The body's keypoint set: ``blazepose33`` with landmarks, else the model's own."""
         return "blazepose33" if self.landmark_model is not None else self.model.keypoint_format
+
+    def hands_decision(self) -> tuple[bool, str]:
+        """Whether the hand landmark model runs, and why (``/status`` ``detector.hands``).
+
+        ``"auto"`` is on when the body landmark front end runs: the hand crops are then placed from BlazePose's
+        wrist, index and pinky (the forearm alone places them poorly), and their measured cost, two crops of the
+        hand model per person and view, is about one full body crop and under half a heavy one (docs/detection.md,
+        "Hand landmarks per person"). The budget governor does not weigh them yet.
+        """
+        if self.hands == "off":
+            return False, "detector.hands is off"
+        if self.hands == "on":
+            return True, f"detector.hands is on (crops from {self.body_format})"
+        if self.landmark_model is None:
+            return False, "auto: the body landmark front end does not run (detector.landmarks), so hands stay off"
+        return True, (
+            f"auto: the body landmarks run ({self.landmark_model}); a person's two hand crops cost about one full "
+            "body crop, under half a heavy one (tools/hand_cost.py)"
+        )
+
+    @property
+    def output_format(self) -> str:
+        """The keypoint set the detector delivers: the body's (:attr:`body_format`), followed by both hands'
+        (``<body>_hands``) when the hand model runs."""
+        return f"{self.body_format}_hands" if self.hands_decision()[0] else self.body_format
 
     def sessions(self, cores: int, cameras: int) -> tuple[int, int]:
         """(sessions, intra-op threads of each) on a process with ``cores`` cores and ``cameras`` cameras.

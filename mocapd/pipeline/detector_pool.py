@@ -39,6 +39,7 @@ from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.hands import HandRunner, hand_status, with_hands
 from mocapd.pipeline.landmarks import LandmarkRunner, landmark_status, with_landmarks
 from mocapd.pipeline.packed_source import PackedDetectionGroup, Session
 from mocapd.pipeline.packing import PackedDetector, detectors_from_config
@@ -72,6 +73,14 @@ def landmark_runner(cfg: DetectorConfig) -> LandmarkRunner | None:
     None; ModelError when the model was not fetched."""
     variant = cfg.landmark_model
     return None if variant is None else LandmarkRunner(variant, threads=max(1, cfg.intra_op_threads))
+
+
+def hand_runner(cfg: DetectorConfig) -> HandRunner | None:
+    """A session's hand landmark model when ``[detector] hands`` runs it (``cfg`` with concrete sessions), else
+    None; ModelError when the model was not fetched."""
+    if not cfg.hands_decision()[0]:
+        return None
+    return HandRunner(keypoint_format(cfg.body_format).keypoints, threads=max(1, cfg.intra_op_threads))
 
 
 def target_columns(cfg: DetectorConfig, target_names: Sequence[str]) -> NDArray[np.intp]:
@@ -110,12 +119,15 @@ class PooledDetector:
         assert isinstance(cfg.workers, int)
         self.intra_op_threads = cfg.intra_op_threads
         self.landmarks_asked = cfg.landmarks
+        self.hands_asked, self.hands_decision = cfg.hands, cfg.hands_decision()
         self.executor = detector_executor(cfg.workers, nice)
         self._runners: dict[int, LandmarkRunner | None] = {}
+        self._hands: dict[int, HandRunner | None] = {}
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
             self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg, image_sizes).result())
             self._runners[id(self._detectors[-1])] = landmark_runner(cfg)
+            self._hands[id(self._detectors[-1])] = hand_runner(cfg)
             self._pool.put(self._detectors[-1])
 
     def __call__(self, rgb: NDArray[np.uint8]) -> Detections2D:
@@ -124,6 +136,7 @@ class PooledDetector:
             # The detector takes BGR (OpenCV's order); the ring holds RGB.
             image = np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), np.uint8)
             (people,) = with_landmarks(self._runners[id(det)], [image], [det.detect(image)])
+            (people,) = with_hands(self._hands[id(det)], [image], [people])
         finally:
             self._pool.put(det)
         kp = people.keypoints if self._columns is None else people.keypoints[:, self._columns]
@@ -168,10 +181,11 @@ def make_detector(
     # Whole frames first: until the people are found every camera's ROI is its whole frame, which a whole pass runs
     # at the camera's aspect for the cost of a one-camera canvas; the per-pass cost then picks (ties keep the mode).
     chooser = ModeChooser(first="whole") if cfg.packing.enabled == "auto" else None
-    sessions = [Session(whole, canvas, landmark_runner(cfg)) for whole, canvas in pairs]
+    sessions = [Session(whole, canvas, landmark_runner(cfg), hand_runner(cfg)) for whole, canvas in pairs]
     return PackedDetectionGroup(
-        packer, executor, columns, chooser=chooser, sessions=sessions, landmarks_asked=cfg.landmarks
-    )
+        packer, executor, columns, chooser=chooser, sessions=sessions, landmarks_asked=cfg.landmarks,
+        hands=(cfg.hands, cfg.hands_decision()),
+    )  # fmt: skip
 
 
 def detector_status(detector: AnyDetector) -> dict[str, object]:
@@ -179,8 +193,9 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
     model's), so that a user who left ``providers = ["auto"]`` sees whether the GPU or the CPU took it."""
     if isinstance(detector, PooledDetector):
         marks = landmark_status(detector.landmarks_asked, list(detector._runners.values()))
+        hands = hand_status(detector.hands_decision, detector.hands_asked, list(detector._hands.values()))
         return {"mode": "whole", "workers": len(detector._detectors), "intra_op_threads": detector.intra_op_threads,
-                **detector._detectors[0].describe(), "landmarks": marks}  # fmt: skip
+                **detector._detectors[0].describe(), "landmarks": marks, "hands": hands}  # fmt: skip
     packer = detector.packer
     # With packing "auto" the group's chooser picks packed or whole passes; name the one it runs now.
     mode = detector.chooser.mode if detector.chooser is not None else "packed"
@@ -193,4 +208,5 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
     if packer.canvas_detector is not packer.detector:
         out["canvas"] = packer.canvas_detector.describe()
     out["landmarks"] = landmark_status(detector.landmarks_asked, [s.landmarks for s in detector.sessions])
+    out["hands"] = hand_status(detector.hands_decision, detector.hands_asked, [s.hands for s in detector.sessions])
     return out

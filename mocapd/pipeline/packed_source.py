@@ -40,6 +40,7 @@ from mocapd.core.sorting import Detections2D
 from mocapd.pipeline.detection_mode import ModeChooser, PassCost
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.frame_ring import FrameRef
+from mocapd.pipeline.hands import HandRunner, with_hands
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource
 from mocapd.pipeline.landmarks import LandmarkRunner, with_landmarks
 from mocapd.pipeline.packing import PackedDetector
@@ -64,6 +65,8 @@ class Session:
     whole: OnnxPoseDetector
     canvas: OnnxPoseDetector
     landmarks: LandmarkRunner | None = None
+    hands: HandRunner | None = None
+    """Its hand landmark model when ``[detector] hands`` runs it (both hands' 42 keypoints after the body's)."""
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,8 @@ class PackedDetectionGroup:
         The inference sessions, one per worker (default: the packer's own detectors, one worker).
     landmarks_asked : str
         ``[detector] landmarks`` as configured (``/status``; the sessions' landmark models are what runs).
+    hands : (str, (bool, str))
+        ``[detector] hands`` as configured and :meth:`DetectorConfig.hands_decision` (``/status``).
     """
 
     def __init__(
@@ -115,9 +120,11 @@ class PackedDetectionGroup:
         clock: Callable[[], int] = time.perf_counter_ns,
         sessions: Sequence[Session] = (),
         landmarks_asked: str = "off",
+        hands: tuple[str, tuple[bool, str]] = ("off", (False, "detector.hands is off")),
     ) -> None:
         self.packer = packer
         self.landmarks_asked = landmarks_asked
+        self.hands_asked, self.hands_decision = hands
         self.executor = executor
         self.columns = columns
         self.chooser = chooser
@@ -314,6 +321,9 @@ class PackedDetectionGroup:
         # The packer keeps YOLO's people for its ROIs; the landmarks replace the keypoints delivered.
         marked = dict(zip(cams, with_landmarks(session.landmarks, [images[c] for c in cams], [found[c] for c in cams]),
                           strict=True))  # fmt: skip
+        if session.hands is not None:
+            handed = with_hands(session.hands, [images[c] for c in cams], [marked[c] for c in cams], cams)
+            marked = dict(zip(cams, handed, strict=True))
         return {cam: (ref, to_detections2d(marked[cam], self.columns)) for cam, ref in new.items()}
 
     def _one_canvas(self, order: list[int]) -> list[int]:
@@ -348,6 +358,7 @@ class PackedDetectionGroup:
                 self.whole_passes += 1
             self.packer.seed_rois(cam, people)  # packed passes start from where the people are now
             (marked,) = with_landmarks(session.landmarks, [image], [people])
+            (marked,) = with_hands(session.hands, [image], [marked], [cam])
             return {cam: (got[0], to_detections2d(marked, self.columns))}
         return None
 

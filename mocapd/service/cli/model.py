@@ -1,6 +1,6 @@
 """``mocapd model fetch``: build the default pose model (YOLO11n-pose → ONNX, and with ``--int8`` its INT8
 quantization) into the cache; with ``--landmarks`` the BlazePose landmark models (heavy, full) from
-``@mediapipe/pose`` too."""
+``@mediapipe/pose`` too, with ``--hands`` the hand landmark models (full, lite) from ``@mediapipe/hands``."""
 
 from __future__ import annotations
 
@@ -47,6 +47,10 @@ def _fetch(args: argparse.Namespace) -> int:
             from mocapd.io.landmark_build import build_landmark_models
 
             build_landmark_models(force=args.force)
+        if args.hands:
+            from mocapd.io.hand_model_build import build_hand_models
+
+            build_hand_models(force=args.force)
     except MocapdError as exc:
         print(f"mocapd model fetch: {exc}")
         return 1
@@ -74,5 +78,10 @@ def register(subparsers: Any) -> None:
         "--landmarks",
         action="store_true",
         help="also fetch the BlazePose landmark models (heavy, full; Apache-2.0) from the npm package @mediapipe/pose",
+    )
+    f.add_argument(
+        "--hands",
+        action="store_true",
+        help="also fetch the hand landmark models (full, lite; Apache-2.0) from the npm package @mediapipe/hands",
     )
     f.set_defaults(func=_fetch)

@@ -131,6 +131,7 @@ class DetectorSection(Section):
     batch: bool | Literal["auto"] = "auto"
     fitted_inputs: bool | Literal["auto"] = "auto"
     landmarks: Literal["off", "full", "heavy", "auto"] = "off"
+    hands: Literal["off", "on", "auto"] = "off"
     model: ModelSection = Field(default_factory=ModelSection)
     packing: PackingSection = Field(default_factory=PackingSection)
     tracking: TrackingSection = Field(default_factory=TrackingSection)
@@ -147,6 +148,7 @@ class DetectorSection(Section):
             batch=self.batch,
             fitted_inputs=self.fitted_inputs,
             landmarks=self.landmarks,
+            hands=self.hands,
             model=self.model.build(ModelSpec),
             packing=self.packing.build(PackingConfig),
             tracking=self.tracking.build(TrackingConfig),
