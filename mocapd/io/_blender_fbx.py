@@ -5,8 +5,9 @@ scene with Blender's own FBX exporter. Standalone: Blender's Python has numpy bu
 Usage: ``python _blender_fbx.py JOB.json`` (after ``--`` when run by the ``blender`` binary). The job names the
 ``.npz`` with the arrays (per subject ``k``: ``offsets_k`` (21, 3) m, ``root_k`` (n, 3) m, ``quat_k`` (n, 21, 4)
 local rotations (w, x, y, z), all in mocapd's frame), the subjects (name, root height, first frame), the bone
-names and parents, the frame rate, the units (``cm`` or ``m``), the up axis (``y`` or ``z``), the take's name and
-the output path. Prints ``MOCAPD-FBX {json}`` on success.
+names and parents (a subject with fingers has its own ``bones`` and ``parents``, 51 of them, and ``tails_k`` (51, 3)
+m, each bone's rest tail: :mod:`mocapd.protocols.fingers`), the frame rate, the units (``cm`` or ``m``), the up
+axis (``y`` or ``z``), the take's name and the output path. Prints ``MOCAPD-FBX {json}`` on success.
 
 The scene, per subject:
 
@@ -123,18 +124,21 @@ def build_mesh(arm: Any, name: str, min_width: float) -> Any:
     return ob
 
 
-def key_subject(arm: Any, first: int, root: np.ndarray, quat: np.ndarray, to_file: Matrix, scale: float) -> None:
-    """Key every frame: bone rotations ``Rᵀ (C L Cᵀ) R`` and the Hips' location ``Rᵀ (C root s − head)``."""
+def key_subject(arm: Any, first: int, root: np.ndarray, quat: np.ndarray, to_file: Matrix, scale: float,
+                names: list[str]) -> None:  # fmt: skip
+    """Key every frame: bone rotations ``Rᵀ (C L Cᵀ) R`` and the Hips' location ``Rᵀ (C root s − head)``; ``quat``'s
+    bones in the order of ``names`` (Blender lists pose bones depth first: with fingers that is not the job's order)."""
+    column = {name: i for i, name in enumerate(names)}
     n = root.shape[0]
     frames = np.arange(first, first + n, dtype=np.float64)
     C = np.array(to_file)
     arm.animation_data_create()
     action = bpy.data.actions.new(f"{arm.name} take")
     arm.animation_data.action = action
-    for b, pb in enumerate(arm.pose.bones):
+    for pb in arm.pose.bones:
         R = np.array(pb.bone.matrix_local.to_3x3())
         # Quaternions in the file's frame: (w, C v) (C is a rotation), then seen from the bone's rest axes.
-        q = quat[:, b, :]
+        q = quat[:, column[pb.name], :]
         v = q[:, 1:] @ C.T
         local = np.concatenate([q[:, :1], v], axis=1)
         r = Quaternion(Matrix(R.tolist()).to_quaternion())
@@ -188,12 +192,14 @@ def main(job_path: str) -> dict[str, Any]:
     last = 0
     for k, subject in enumerate(job["subjects"]):
         offsets = arrays[f"offsets_{k}"]
-        heads = rest_heads(offsets, parents, float(subject["root_height"]))
-        arm = build_armature(subject["name"], bones, parents, heads, tails(heads, offsets, parents), to_file, scale,
-                             obj_rotation)  # fmt: skip
+        names, links = list(subject.get("bones", bones)), [int(p) for p in subject.get("parents", parents)]
+        heads = rest_heads(offsets, links, float(subject["root_height"]))
+        ends = ([Vector(v.tolist()) for v in arrays[f"tails_{k}"]] if f"tails_{k}" in arrays
+                else tails(heads, offsets, links))  # fmt: skip
+        arm = build_armature(subject["name"], names, links, heads, ends, to_file, scale, obj_rotation)
         build_mesh(arm, f"{subject['name']}_mesh", MIN_WIDTH_M * scale)
         root, quat = arrays[f"root_{k}"], arrays[f"quat_{k}"]
-        key_subject(arm, int(subject["first_frame"]), root, quat, to_file, scale)
+        key_subject(arm, int(subject["first_frame"]), root, quat, to_file, scale, names)
         last = max(last, int(subject["first_frame"]) + root.shape[0] - 1)
     scene.frame_start, scene.frame_end = 0, last
     out = job["output"]

@@ -36,6 +36,8 @@ from mocapd.errors import InputError, ToolError
 from mocapd.io import lifecycle
 from mocapd.io.output_files import check_output_file
 from mocapd.io.session_export import SubjectTrack
+from mocapd.protocols.fingers import EXTENDED_BONE_NAMES, EXTENDED_PARENTS, extended_offsets, leaf_ends, tail_child
+from mocapd.protocols.gltf_writer import END_FRACTION, rest_positions
 
 SCRIPT = Path(__file__).with_name("_blender_fbx.py")
 INSTALL = "python3.11 -m venv .venv-bpy && .venv-bpy/bin/python -m pip install bpy==4.5.15"
@@ -127,15 +129,18 @@ def export_fbx(
     names = node_names([t.subject for t, _ in tracks])
     with tempfile.TemporaryDirectory(prefix="mocapd-fbx-") as tmp:
         arrays: dict[str, Any] = {}  # name -> array (typed Any: np.savez also takes allow_pickle=)
-        subjects = []
+        subjects: list[dict[str, Any]] = []
         for k, ((track, skeleton), name) in enumerate(zip(tracks, names, strict=True)):
             n = int(track.thetas.shape[0])
             arrays[f"offsets_{k}"] = np.asarray(skeleton.offsets, dtype=np.float64)
             arrays[f"root_{k}"] = track.thetas[:, 0:3].astype(np.float64)
             arrays[f"quat_{k}"] = quat_from_rotvec(track.thetas[:, 3:].reshape(n, N_BONES, 3))
             first = round((int(track.t_ns[0]) - t0) * rate_hz / 1e9)
-            subjects.append({"name": name, "subject": track.subject, "root_height": skeleton.root_height,
-                             "first_frame": first})  # fmt: skip
+            subject: dict[str, Any] = {"name": name, "subject": track.subject, "root_height": skeleton.root_height,
+                                       "first_frame": first}  # fmt: skip
+            if track.hands is not None and track.hand_skeleton is not None:  # the finger bones join the body's
+                subject.update(_finger_job(arrays, k, track, skeleton))
+            subjects.append(subject)
         np.savez(Path(tmp) / "tracks.npz", **arrays)
         job = {"arrays": str(Path(tmp) / "tracks.npz"), "output": str(out), "rate_hz": rate_hz, "units": units,
                "up": up, "take": take, "bones": list(BONE_NAMES), "parents": list(PARENTS),
@@ -145,6 +150,24 @@ def export_fbx(
         report = _run(blender.command(SCRIPT, str(job_path)), timeout_s)
     report["nodes"] = dict(zip((t.subject for t, _ in tracks), names, strict=True))
     return report
+
+
+def _finger_job(arrays: dict[str, Any], k: int, track: SubjectTrack, skeleton: Skeleton) -> dict[str, Any]:
+    """A subject with fingers: the 51 bones' offsets, rotations and rest tails in the arrays (replacing the body's),
+    their names and parents for the job (:mod:`mocapd.protocols.fingers`)."""
+    assert track.hands is not None and track.hand_skeleton is not None
+    n = int(track.thetas.shape[0])
+    offsets = extended_offsets(skeleton.offsets, track.hand_skeleton)
+    arrays[f"offsets_{k}"] = offsets
+    arrays[f"quat_{k}"] = np.concatenate([arrays[f"quat_{k}"], track.hands.reshape(n, -1, 4)], axis=1)
+    heads = rest_positions(offsets, skeleton.root_height, EXTENDED_PARENTS)
+    ends = leaf_ends(skeleton.offsets, track.hand_skeleton, END_FRACTION)
+    tails = np.empty_like(heads)
+    for b in range(len(EXTENDED_PARENTS)):
+        c = tail_child(EXTENDED_PARENTS, b)
+        tails[b] = heads[c] if c is not None else heads[b] + ends[b]
+    arrays[f"tails_{k}"] = tails
+    return {"bones": list(EXTENDED_BONE_NAMES), "parents": list(EXTENDED_PARENTS)}
 
 
 def _run(command: list[str], timeout_s: float) -> dict[str, Any]:

@@ -3,7 +3,9 @@
 
 The subject's recorded frames (their solve times need not be uniform: missed ticks, another output rate) are
 resampled to ``rate`` Hz from its first to its last frame: root translation linearly, every bone's local rotation
-by slerp, between the two recorded frames around each output time.
+by slerp, between the two recorded frames around each output time. A subject with fingers (issue 44) keeps them:
+their local rotations are resampled by slerp too (a frame without fingers: the rest pose) and BVH, glTF and FBX
+carry the 30 finger bones (:mod:`mocapd.protocols.fingers`); the CSV has the body's columns only.
 
 CSV columns (one row per output frame, header row first; lengths in metres, quaternions (w, x, y, z))::
 
@@ -34,6 +36,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.hand_skeleton import N_FINGER_BONES, HandSkeleton
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.rotations import quat_from_rotvec, quat_slerp, rotvec_from_quat
 from mocapd.core.skeleton import BONE_NAMES, N_BONES, Skeleton
@@ -49,12 +52,16 @@ IntArray = NDArray[np.int64]
 
 @dataclass(frozen=True)
 class SubjectTrack:
-    """One subject's poses over time: solve times (n,) ns and θ (n, 66)."""
+    """One subject's poses over time: solve times (n,) ns and θ (n, 66); with fingers also their local rotations
+    ``hands`` (n, 2, 15, 4) (w, x, y, z; a frame or a hand without fingers holds the rest pose: straight fingers)
+    on ``hand_skeleton``."""
 
     subject: str
     t_ns: IntArray
     thetas: FloatArray
     skeleton: Skeleton | None = None  # the subject's own sized skeleton, as last recorded (None: the rig's)
+    hands: FloatArray | None = None  # (n, 2, 15, 4): None when the subject never had fingers
+    hand_skeleton: HandSkeleton | None = None  # the hands' sizes, as last recorded
 
 
 def subjects(poses: list[PoseRecord]) -> Counter[str]:
@@ -99,14 +106,22 @@ def subject_track(poses: list[PoseRecord], subject: str | None = None) -> Subjec
         raise InputError(f"no subject {subject!r} in the session; recorded: {sorted(counts)}")
     t, th = [], []
     skeleton = None
+    rest = np.zeros((2, N_FINGER_BONES, 4))
+    rest[..., 0] = 1.0
+    fingers: list[FloatArray] = []
+    hand_skeleton = None
     for f in poses:
         for p in f.people:
             if p.identity == subject:
                 t.append(f.t_solve_ns if p.t_pose_ns is None else p.t_pose_ns)  # a predicted pose: its own instant
                 th.append(p.theta)
                 skeleton = p.skeleton if p.skeleton is not None else skeleton
+                fingers.append(rest if p.hands is None else p.hands.rotations)
+                hand_skeleton = p.hands.skeleton if p.hands is not None else hand_skeleton
     order = np.argsort(np.array(t), kind="stable")
-    return SubjectTrack(subject, np.array(t, dtype=np.int64)[order], np.array(th)[order], skeleton)
+    hands = np.array(fingers)[order] if hand_skeleton is not None else None
+    return SubjectTrack(subject, np.array(t, dtype=np.int64)[order], np.array(th)[order], skeleton, hands,
+                        hand_skeleton)  # fmt: skip
 
 
 def resample(track: SubjectTrack, rate_hz: float = 60.0, origin_ns: int | None = None) -> SubjectTrack:
@@ -134,12 +149,17 @@ def resample(track: SubjectTrack, rate_hz: float = 60.0, origin_ns: int | None =
     q1 = quat_from_rotvec(th[k + 1, 3:].reshape(-1, N_BONES, 3))
     q = quat_slerp(q0, q1, np.repeat(alpha[:, None], N_BONES, axis=1))
     out[:, 3:] = rotvec_from_quat(q).reshape(grid.size, -1)
-    return SubjectTrack(track.subject, grid, out, track.skeleton)
+    hands = None
+    if track.hands is not None:  # the fingers by slerp too
+        w = np.repeat(alpha, 2 * N_FINGER_BONES).reshape(grid.size, 2, N_FINGER_BONES)
+        hands = quat_slerp(track.hands[k], track.hands[k + 1], w)
+    return SubjectTrack(track.subject, grid, out, track.skeleton, hands, track.hand_skeleton)
 
 
 def write_bvh(path: str | Path, skeleton: Skeleton, track: SubjectTrack, rate_hz: float = 60.0) -> int:
     """Write ``track`` (already on a ``rate_hz`` grid) as BVH; returns the frame count."""
-    write_text_atomic(path, bvh_text(skeleton.offsets, track.thetas, rate_hz))
+    write_text_atomic(path, bvh_text(skeleton.offsets, track.thetas, rate_hz, hands=track.hands,
+                                     hand_skeleton=track.hand_skeleton))  # fmt: skip
     return int(track.thetas.shape[0])
 
 
@@ -151,7 +171,8 @@ def write_gltf(path: str | Path, tracks: list[tuple[SubjectTrack, Skeleton]], ge
     if not tracks:
         raise InputError("no subject to export")
     t0 = min(int(t.t_ns[0]) for t, _ in tracks)
-    subjects = [GltfSubject(t.subject, sk.offsets, sk.root_height, (t.t_ns - t0) / 1e9, t.thetas) for t, sk in tracks]
+    subjects = [GltfSubject(t.subject, sk.offsets, sk.root_height, (t.t_ns - t0) / 1e9, t.thetas, t.hands,
+                            t.hand_skeleton) for t, sk in tracks]  # fmt: skip
     write_bytes_atomic(path, glb_bytes(subjects, generator))
     return len(subjects)
 

@@ -191,7 +191,8 @@ class MvnUdpSink(_UdpPoseSink):
             return
         try:
             datagrams = self.encoder.encode(frame.frame, frame.t_solve_ns, chars, [p.skeleton for _, p in subjects],
-                                            [frame.pose_time_ns(p) for _, p in subjects])  # fmt: skip
+                                            [frame.pose_time_ns(p) for _, p in subjects],
+                                            [p.hands for _, p in subjects])  # fmt: skip
         except MocapdError:
             self.skipped_subjects += len(chars)
             return
@@ -247,7 +248,8 @@ class VmcUdpSink(_UdpPoseSink):
         tracked = [p.views > 0 or p.imus > 0 for _, p in subjects]
         try:
             bundles = self.encoder.encode_many(t, thetas, tracked, [p.skeleton for _, p in subjects],
-                                               [frame.pose_time_ns(p) for _, p in subjects])  # fmt: skip
+                                               [frame.pose_time_ns(p) for _, p in subjects],
+                                               [p.hands for _, p in subjects])  # fmt: skip
         except MocapdError:
             self.skipped_subjects += len(subjects)
             return
@@ -384,7 +386,8 @@ class RokokoUdpSink(_UdpPoseSink):
         for ident in [i for i in self._last if i not in held]:  # released: the actor leaves the scene
             del self._last[ident]
         for ident, (slot, p) in present.items():
-            self._last[ident] = RokokoActor(self.actor_names.get(ident, ident), p.theta, colour(slot), p.skeleton)
+            self._last[ident] = RokokoActor(self.actor_names.get(ident, ident), p.theta, colour(slot), p.skeleton,
+                                            hands=p.hands)  # fmt: skip
         actors = [
             a if ident in present else replace(a, tracked=False)
             for ident, a in sorted(self._last.items(), key=lambda kv: held[kv[0]])

@@ -57,6 +57,7 @@ from mocapd.errors import ConfigError, MocapdError, RateLimitError
 from mocapd.io import ports
 from mocapd.io.rejections import Rejections
 from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
+from mocapd.protocols.fingers import hands_of
 from mocapd.protocols.web_access import WebAccess
 from mocapd.protocols.ws_stream import (
     ClientSession,
@@ -240,7 +241,7 @@ class WebSocketStreamServer:
     def publish(self, frame: FramePoses) -> None:
         """Queue ``frame`` for every client whose options select it; never waits."""
         self.frames_published += 1
-        if self._register_skeletons(frame):
+        if self._register_skeletons(frame) | self._announce_fingers(frame):
             for c in self.clients:  # a new skeleton: every client gets a fresh hello before the frame that uses it
                 c.control.append(c.session.hello())
                 c.wake.set()
@@ -266,6 +267,16 @@ class WebSocketStreamServer:
                 c.sent += 1
         if direct:
             self.non_finite += enc.non_finite
+
+    def _announce_fingers(self, frame: FramePoses) -> bool:
+        """With the first frame that has fingers the hello names the finger bones from then on (True: resend it);
+        a stream that never has fingers keeps the hello it always had."""
+        if self.description.fingers or not any(h is not None for h in hands_of(frame.people)):
+            return False
+        self.description = dataclasses.replace(self.description, fingers=True)
+        for c in self.clients:
+            c.session.description = self.description
+        return True
 
     def _skeleton_key(self, subject_id: str) -> str:
         return self._key_of.get(subject_id) or self._default_key(subject_id)

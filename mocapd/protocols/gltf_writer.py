@@ -18,6 +18,11 @@ Layout, per subject ``s`` (in the order given):
   sync). Rotations are the local rotations of θ as glTF quaternions (x, y, z, w), each the sign nearest the
   previous one so linear interpolation never takes the long way round.
 
+Fingers (issue 44): a subject with ``hands`` gets 30 more joint nodes (:mod:`mocapd.protocols.fingers`: the 15
+finger bones of each hand, ``LeftThumbProximal`` ..., children of its hand node, three per finger), in the skin and
+the mesh (a hand's bone then points at its middle knuckle, a distal bone ends at its fingertip) and one rotation
+channel each. A subject without fingers is exactly as above.
+
 Units and axes are mocapd's, which are glTF's: metres, +Y up, right-handed, character facing +Z. Every number is
 float32 (the format's type; 1e-7 relative, sub-micrometre at room scale).
 """
@@ -31,9 +36,11 @@ import numpy as np
 import pygltflib as gl
 from numpy.typing import NDArray
 
+from mocapd.core.hand_skeleton import N_FINGER_BONES, HandSkeleton
 from mocapd.core.rotations import quat_from_rotvec
 from mocapd.core.skeleton import BONE_NAMES, N_BONES, PARENTS, POSE_DIM
 from mocapd.errors import InputError
+from mocapd.protocols.fingers import EXTENDED_BONE_NAMES, EXTENDED_PARENTS, extended_offsets, leaf_ends, tail_child
 
 FloatArray = NDArray[np.float64]
 
@@ -60,6 +67,8 @@ class GltfSubject:
         Sample times in seconds (increasing).
     thetas : array, shape (n, 66)
         Pose vectors at those times.
+    hands : array, shape (n, 2, 15, 4), optional
+        The fingers' local rotations (w, x, y, z) at those times, on ``hand_skeleton`` (None: no fingers).
     """
 
     name: str
@@ -67,6 +76,8 @@ class GltfSubject:
     root_height: float
     times: FloatArray
     thetas: FloatArray
+    hands: FloatArray | None = None
+    hand_skeleton: HandSkeleton | None = None
 
     def __post_init__(self) -> None:
         th, t = np.asarray(self.thetas, dtype=np.float64), np.asarray(self.times, dtype=np.float64)
@@ -76,14 +87,20 @@ class GltfSubject:
             raise InputError(f"glTF subject {self.name!r}: thetas (n >= 1, {POSE_DIM}) and times (n,) expected")
         if not (np.all(np.isfinite(th)) and np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
             raise InputError(f"glTF subject {self.name!r}: poses must be finite and times increasing")
+        if self.hands is not None and (
+            self.hand_skeleton is None
+            or np.shape(self.hands) != (th.shape[0], 2, N_FINGER_BONES, 4)
+            or not np.all(np.isfinite(self.hands))
+        ):
+            raise InputError(f"glTF subject {self.name!r}: fingers (n, 2, 15, 4), finite, with their hand skeleton")
 
 
-def rest_positions(offsets: FloatArray, root_height: float) -> FloatArray:
-    """World joint positions of the rest pose (identity rotations), shape (21, 3)."""
-    x = np.zeros((N_BONES, 3))
+def rest_positions(offsets: FloatArray, root_height: float, parents: tuple[int, ...] = PARENTS) -> FloatArray:
+    """World joint positions of the rest pose (identity rotations), shape (m, 3) for ``m`` = len(parents)."""
+    x = np.zeros((len(parents), 3))
     x[0] = (0.0, root_height, 0.0)
-    for b in range(1, N_BONES):
-        x[b] = x[PARENTS[b]] + offsets[b]
+    for b in range(1, len(parents)):
+        x[b] = x[parents[b]] + offsets[b]
     return x
 
 
@@ -96,16 +113,20 @@ def _continuous(q: FloatArray) -> FloatArray:
     return q
 
 
-def _octahedra(rest: FloatArray, offsets: FloatArray) -> tuple[FloatArray, NDArray[np.uint16], NDArray[np.uint16]]:
-    """Bone shapes in the rest pose: positions (21*6, 3), joint index per vertex (21*6,), triangles (21*8, 3)."""
-    first_child = {b: next((c for c in range(N_BONES) if PARENTS[c] == b), None) for b in range(N_BONES)}
+def _octahedra(
+    rest: FloatArray, offsets: FloatArray, parents: tuple[int, ...] = PARENTS, ends: dict[int, FloatArray] | None = None
+) -> tuple[FloatArray, NDArray[np.uint16], NDArray[np.uint16]]:
+    """Bone shapes in the rest pose: positions (m*6, 3), joint index per vertex (m*6,), triangles (m*8, 3); ``ends``:
+    where each leaf ends, in its frame (default :data:`END_FRACTION` of its own offset)."""
+    m = len(parents)
+    first_child = {b: tail_child(parents, b) for b in range(m)}
     verts: list[FloatArray] = []
     joints: list[int] = []
     tris: list[tuple[int, int, int]] = []
-    for b in range(N_BONES):
+    for b in range(m):
         c = first_child[b]
         head = rest[b]
-        tail = rest[c] if c is not None else head + END_FRACTION * offsets[b]
+        tail = rest[c] if c is not None else head + (END_FRACTION * offsets[b] if ends is None else ends[b])
         axis = tail - head
         length = float(np.linalg.norm(axis))
         u = axis / length if length > 1e-9 else np.array([0.0, 1.0, 0.0])
@@ -148,20 +169,26 @@ class _Blob:
 
 def _subject(doc: gl.GLTF2, blob: _Blob, s: GltfSubject, scene: list[int]) -> None:
     offsets = np.asarray(s.offsets, dtype=np.float64)
-    rest = rest_positions(offsets, s.root_height)
+    names, parents, ends = BONE_NAMES, PARENTS, None
+    if s.hands is not None and s.hand_skeleton is not None:  # the finger bones join the body's (module doc)
+        names, parents = EXTENDED_BONE_NAMES, EXTENDED_PARENTS
+        ends = leaf_ends(offsets, s.hand_skeleton, END_FRACTION)
+        offsets = extended_offsets(offsets, s.hand_skeleton)
+    m = len(parents)
+    rest = rest_positions(offsets, s.root_height, parents)
     base = len(doc.nodes) + 1  # node index of joint 0 (after the armature root)
     doc.nodes.append(gl.Node(name=s.name, children=[base]))
     scene.append(base - 1)
-    for b in range(N_BONES):
+    for b in range(m):
         t = (0.0, float(s.root_height), 0.0) if b == 0 else tuple(float(v) for v in offsets[b])
-        kids = [base + c for c in range(N_BONES) if PARENTS[c] == b]
-        doc.nodes.append(gl.Node(name=BONE_NAMES[b], translation=list(t), children=kids or []))
-    ibm = np.tile(np.eye(4, dtype=np.float32), (N_BONES, 1, 1))
+        kids = [base + c for c in range(m) if parents[c] == b]
+        doc.nodes.append(gl.Node(name=names[b], translation=list(t), children=kids or []))
+    ibm = np.tile(np.eye(4, dtype=np.float32), (m, 1, 1))
     ibm[:, 3, :3] = -rest  # column-major: the translation is the last column, stored as the 4th row here
-    skin = gl.Skin(name=s.name, joints=list(range(base, base + N_BONES)), skeleton=base,
-                   inverseBindMatrices=blob.add(ibm.reshape(N_BONES, 16), "MAT4"))  # fmt: skip
+    skin = gl.Skin(name=s.name, joints=list(range(base, base + m)), skeleton=base,
+                   inverseBindMatrices=blob.add(ibm.reshape(m, 16), "MAT4"))  # fmt: skip
     doc.skins.append(skin)
-    verts, joint_of, tris = _octahedra(rest, offsets)
+    verts, joint_of, tris = _octahedra(rest, offsets, parents, ends)
     joints4 = np.zeros((joint_of.size, 4), dtype=np.uint16)
     joints4[:, 0] = joint_of
     weights = np.zeros((joint_of.size, 4), dtype=np.float32)
@@ -180,10 +207,13 @@ def _subject(doc: gl.GLTF2, blob: _Blob, s: GltfSubject, scene: list[int]) -> No
     n = th.shape[0]
     times = blob.add(np.asarray(s.times, dtype=np.float32), "SCALAR", minmax=True)
     anim = gl.Animation(name=s.name, samplers=[], channels=[])
-    wxyz = _continuous(quat_from_rotvec(th[:, 3:].reshape(n, N_BONES, 3)))
+    wxyz = quat_from_rotvec(th[:, 3:].reshape(n, N_BONES, 3))
+    if m > N_BONES and s.hands is not None:
+        wxyz = np.concatenate([wxyz, np.asarray(s.hands, dtype=np.float64).reshape(n, -1, 4)], axis=1)
+    wxyz = _continuous(wxyz)
     outputs = [(base, "translation", blob.add(th[:, 0:3].astype(np.float32), "VEC3"))]
     xyzw = wxyz[..., [1, 2, 3, 0]].astype(np.float32)
-    outputs += [(base + b, "rotation", blob.add(xyzw[:, b], "VEC4")) for b in range(N_BONES)]
+    outputs += [(base + b, "rotation", blob.add(xyzw[:, b], "VEC4")) for b in range(m)]
     for node, path, out in outputs:
         anim.samplers.append(gl.AnimationSampler(input=times, output=out, interpolation="LINEAR"))
         anim.channels.append(

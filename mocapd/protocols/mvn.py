@@ -20,7 +20,7 @@ Datagram (all multi-byte fields big-endian, "network byte order")::
     16     1    uint8     character id (0 for the first character; see the subject mapping below)
     17     1    uint8     number of body segments of the character: 23
     18     1    uint8     number of props: 0
-    19     1    uint8     number of finger-tracking segments: 0
+    19     1    uint8     number of finger-tracking segments: 0, or 40 for a character with fingers (below)
     20     2    -         reserved, zero
     22     2    uint16    payload size: bytes after the 24-byte header in THIS datagram (= 32 × items)
     24     32×n          items, per segment:
@@ -36,7 +36,8 @@ Datagram (all multi-byte fields big-endian, "network byte order")::
 Units: section 2.5.6 of revision N says "cm", but the MVN user manual ("position units are in meters"), MVNX
 files and the receivers we checked read metres; we send metres.
 
-Splitting: a full character is 24 + 23 × 32 = 760 bytes, one datagram. When ``max_datagram_bytes`` is smaller, the
+Splitting: a full character is 24 + 23 × 32 = 760 bytes, one datagram (with fingers 24 + 63 × 32 = 2040: two at
+the default limit). When ``max_datagram_bytes`` is smaller, the
 items of one character are split over datagrams with counters 0, 1, ..., 0x80 | last; every datagram repeats the
 header (same sample counter, time code and character id; its own item count and payload size). Each character is
 sent as its own datagram set (spec 2.4.1.6: "each character will send its own full packet").
@@ -58,6 +59,21 @@ no clavicles (the upper arms hang from Spine3), so each shoulder segment is rigi
 Spine3's, origin = the point of Spine3's frame on the mid-line at the height and depth of that side's upper-arm
 joint, i.e. ``x_Spine3 + Q_Spine3 · (0, o_y, o_z)`` with ``o`` the upper arm's rest offset. The segment then spans
 from the sternum to the shoulder joint, as MVN's does, and never moves relative to the chest.
+
+Fingers (issue 44; spec revision N, sections 2.4.1.9, 2.5.1 and 3.1 table 2): a character whose subject has fingers
+(:class:`mocapd.core.hand_skeleton.HandPose`) sends 40 finger-tracking segments after its 23 body segments (no
+props), left hand then right, header byte 19 = 40. Per hand, in the spec's order, with ids 24 .. 43 (left) and
+44 .. 63 (right) (index + 1; the left carpus's index is 23 + props, the right's 43 + props)::
+
+    Carpus ← Hand (the body's hand bone: its rotation, at the wrist)
+    FirstMC, FirstPP, FirstDP ← ThumbProximal, ThumbIntermediate, ThumbDistal (mocapd's thumb starts at its CMC)
+    SecondMC, ThirdMC, FourthMC, FifthMC ← Hand: mocapd has no metacarpal bones of the four fingers; rigid with the
+        hand, at the point :data:`CMC_FRACTION` of the way from the wrist to that finger's knuckle (the CMC joints)
+    Second/Third/Fourth/Fifth PP, MP, DP ← Index/Middle/Ring/Little Proximal, Intermediate, Distal
+
+each at its joint with its global rotation (identity at rest: the flat hand, as the body's T-pose). A hand that was
+not solved this frame is sent with its rest pose (straight fingers, rigid with the hand), since the count is per
+character. A character without fingers is sent exactly as above, with 0.
 """
 
 from __future__ import annotations
@@ -69,12 +85,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.hand_skeleton import HandPose
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.rotations import quat_from_matrix
 from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.conventions import MVN
+from mocapd.protocols.fingers import HAND_OF_SIDE, finger_kinematics
 
 FloatArray = NDArray[np.float64]
 
@@ -110,6 +128,21 @@ SEGMENT_BONES: tuple[str, ...] = (
 )  # fmt: skip
 """The mocapd bone whose global rotation (and, except for the shoulders, joint) each segment takes."""
 _SOURCE = np.array([BONE_INDEX[b] for b in SEGMENT_BONES], dtype=np.intp)
+
+FINGER_SEGMENTS: tuple[str, ...] = (
+    "Carpus", "FirstMC", "FirstPP", "FirstDP",
+    *(f"{n}{s}" for n in ("Second", "Third", "Fourth", "Fifth") for s in ("MC", "PP", "MP", "DP")),
+)  # fmt: skip
+"""The 20 finger-tracking segments of one hand in spec order (prefixed ``Left``/``Right`` in MVN's names)."""
+N_FINGER_SEGMENTS = 2 * len(FINGER_SEGMENTS)  # 40: both hands, the only count besides 0
+FINGER_SEGMENT_IDS = np.arange(N_SEGMENTS + 1, N_SEGMENTS + N_FINGER_SEGMENTS + 1, dtype=np.int32)
+CMC_FRACTION = 0.3
+"""Where the four fingers' metacarpal segments start, as a fraction of the wrist-to-knuckle offset (the CMC joints
+lie about a third of the way along the palm)."""
+# Per segment of a hand: the finger bone (0..14) giving its pose, or -1 for the hand's own rotation; and for the
+# -1 ones the finger whose proximal offset places it (-1: at the wrist).
+_FINGER_SOURCE = (-1, 0, 1, 2, *(b for f in range(1, 5) for b in (-1, 3 * f, 3 * f + 1, 3 * f + 2)))
+_MC_OF = (-1, -1, -1, -1, *(k for f in range(1, 5) for k in (3 * f, -1, -1, -1)))
 _SHOULDERS = ((SEGMENTS.index("RightShoulder"), "RightUpperArm"), (SEGMENTS.index("LeftShoulder"), "LeftUpperArm"))
 
 
@@ -178,6 +211,23 @@ class MvnSegments:
             pos[:, seg] = x3 + q3 @ c
         return MVN.positions(pos), MVN.quaternions(quat_from_matrix(rot))
 
+    def compute_fingers(self, theta: FloatArray, hands: HandPose) -> tuple[FloatArray, FloatArray]:
+        """The 40 finger-tracking segments of one subject: positions (40, 3) and quaternions (40, 4), MVN frame."""
+        fk = self.kinematics.forward(np.asarray(theta, dtype=np.float64).reshape(1, POSE_DIM))
+        side = list(HAND_OF_SIDE)
+        G_hand, x_hand = fk.rotations[:, side], fk.positions[:, side]  # (1, 2, 3, 3), (1, 2, 3)
+        fs = finger_kinematics(G_hand, x_hand, hands.rotations[None], [hands.skeleton])
+        rot = np.empty((2, len(FINGER_SEGMENTS), 3, 3))
+        pos = np.empty((2, len(FINGER_SEGMENTS), 3))
+        for h in range(2):
+            for k, (bone, mc) in enumerate(zip(_FINGER_SOURCE, _MC_OF, strict=True)):
+                if bone >= 0:
+                    rot[h, k], pos[h, k] = fs.rotations[0, h, bone], fs.positions[0, h, bone]
+                else:
+                    local = CMC_FRACTION * hands.skeleton.offsets[h, mc] if mc >= 0 else np.zeros(3)
+                    rot[h, k], pos[h, k] = G_hand[0, h], x_hand[0, h] + G_hand[0, h] @ local
+        return MVN.positions(pos.reshape(-1, 3)), MVN.quaternions(quat_from_matrix(rot.reshape(-1, 3, 3)))
+
 
 class MvnEncoder:
     """Encodes output frames into ``MXTP02`` datagrams (pure: values in, bytes out).
@@ -216,6 +266,7 @@ class MvnEncoder:
         characters: Sequence[tuple[int, FloatArray]],
         skeletons: Sequence[Skeleton | None] | None = None,
         times_ns: Sequence[int] | None = None,
+        hands: Sequence[HandPose | None] | None = None,
     ) -> list[bytes]:
         """Datagrams for one output frame.
 
@@ -231,6 +282,8 @@ class MvnEncoder:
             Each character's own sized skeleton (None, or no sequence: the encoder's).
         times_ns : sequence of int, optional
             The instant each character's pose is for (host ns; default: ``t_ns`` for all), sent as its time code.
+        hands : sequence of HandPose or None, optional
+            Each character's fingers (None: no finger-tracking segments, as without).
 
         Returns
         -------
@@ -260,11 +313,22 @@ class MvnEncoder:
         if len(codes) != len(ids):
             raise InputError(f"MVN: {len(codes)} time stamps for {len(ids)} characters")
         for k, char in enumerate(ids):
-            starts = range(0, N_SEGMENTS, per)
-            for index, start in enumerate(starts):
-                chunk = items[k, start : start + per]
-                last = LAST_DATAGRAM if start + per >= N_SEGMENTS else 0
-                head = HEADER.pack(ID_STRING, sample, index | last, len(chunk), codes[k], char, N_SEGMENTS, 0, 0,
+            these = items[k]
+            fingers = 0
+            h = None if hands is None else hands[k]
+            if h is not None:  # the 40 finger-tracking segments follow the body's (spec 2.5.1)
+                sk = None if skeletons is None else skeletons[k]
+                fpos, fquat = self._sized.get(sk).compute_fingers(thetas[k], h)
+                # Assigned into a big-endian array of its own: np.concatenate would promote to native byte order.
+                both = np.empty(N_SEGMENTS + N_FINGER_SEGMENTS, dtype=ITEM_DTYPE)
+                both[:N_SEGMENTS] = these
+                extra = both[N_SEGMENTS:]
+                extra["id"], extra["position"], extra["quaternion"] = FINGER_SEGMENT_IDS, fpos, fquat
+                these, fingers = both, N_FINGER_SEGMENTS
+            for index, start in enumerate(range(0, len(these), per)):
+                chunk = these[start : start + per]
+                last = LAST_DATAGRAM if start + per >= len(these) else 0
+                head = HEADER.pack(ID_STRING, sample, index | last, len(chunk), codes[k], char, N_SEGMENTS, 0, fingers,
                                    len(chunk) * ITEM_SIZE)  # fmt: skip
                 out.append(head + chunk.tobytes())
         return out

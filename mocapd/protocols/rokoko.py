@@ -68,9 +68,14 @@ Joints (Rokoko name ← mocapd bone giving the rotation; position)::
     left/rightUpperArm, LowerArm, Hand ← same names; left/rightUpLeg ← UpperLeg, Leg ← LowerLeg, Foot ← Foot,
         Toe ← Toes                                                        each at its bone's joint
     left/rightToeEnd ← Toes, at the toes' end site (half the toe offset beyond the toe joint, as the BVH export)
-    40 finger joints left/right Thumb/Index/Middle/Ring/Little × Proximal/Medial/Distal/Tip ← Hand: mocapd tracks
-        no fingers, so they are sent straight (the T-pose finger rotations, rigid with the hand) at the hand's end
-        site; the Unity plugin sets every humanoid bone it finds, so an absent finger would be a zero quaternion.
+    40 finger joints left/right Thumb/Index/Middle/Ring/Little × Proximal/Medial/Distal/Tip: for a hand solved
+        this frame (the subject's fingers, :class:`mocapd.core.hand_skeleton.HandPose`; issue 44) Proximal, Medial
+        and Distal ← that hand's finger bones Proximal, Intermediate and Distal (for the thumb its three bones, the
+        first its metacarpal), each at its joint, and Tip ← Distal at the fingertip, and that side's
+        ``meta.hasLeftGlove``/``hasRightGlove`` (and ``hasGloves``) are true while the subject is tracked; a hand
+        without fingers is sent straight (the T-pose finger rotations, rigid with the hand) at the hand's end site,
+        as before fingers: the Unity plugin sets every humanoid bone it finds, so an absent finger would be a zero
+        quaternion.
 
 A 2-actor scene is about 18 kB of JSON, 3.5 kB as an LZ4 frame (the repeated finger joints compress well).
 """
@@ -86,12 +91,14 @@ import lz4.frame
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.hand_skeleton import FINGER_BONES, HandPose
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.rotations import quat_from_matrix, quat_multiply, quat_normalize
 from mocapd.core.skeleton import BONE_INDEX, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 from mocapd.protocols.conventions import UNITY
+from mocapd.protocols.fingers import HAND_OF_SIDE, finger_kinematics
 
 FloatArray = NDArray[np.float64]
 
@@ -166,7 +173,12 @@ _CLAVICLE_ARM = {"leftShoulder": "LeftUpperArm", "rightShoulder": "RightUpperArm
 # Each joint's JSON, with %-placeholders for its 7 numbers (x y z, then the rotation's x y z w).
 _JOINT_JSON = '"{}":{{"position":{{"x":%.6f,"y":%.6f,"z":%.6f}},"rotation":{{"x":%.6f,"y":%.6f,"z":%.6f,"w":%.6f}}}}'
 _BODY_TEMPLATE = "{" + ",".join(_JOINT_JSON.format(n) for n in JOINT_NAMES) + "}"
-_META = '{{"hasGloves":false,"hasLeftGlove":false,"hasRightGlove":false,"hasBody":{},"hasFace":false}}'
+_META = '{{"hasGloves":{},"hasLeftGlove":{},"hasRightGlove":{},"hasBody":{},"hasFace":false}}'
+# Per hand, the Rokoko joint index of each finger bone (FINGER_BONES order), and of each fingertip (thumb to little).
+_FINGER_JOINTS = np.array([[JOINT_NAMES.index(side + b.replace("Intermediate", "Medial")) for b in FINGER_BONES]
+                           for side in ("left", "right")], dtype=np.intp)  # fmt: skip
+_TIP_JOINTS = np.array([[JOINT_NAMES.index(f"{side}{f}Tip") for f in ("Thumb", *_FINGERS)]
+                        for side in ("left", "right")], dtype=np.intp)  # fmt: skip
 
 
 class RokokoJoints:
@@ -191,12 +203,16 @@ class RokokoJoints:
         self._spine = sp
         self._lower_spine = off[BONE_INDEX["Spine1"]] + off[BONE_INDEX["Spine2"]] + off[BONE_INDEX["Spine3"]]
 
-    def compute(self, thetas: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def compute(
+        self, thetas: FloatArray, hands: Sequence[HandPose | None] | None = None
+    ) -> tuple[FloatArray, FloatArray]:
         """Joint positions and rotations for a batch of subjects.
 
         Parameters
         ----------
         thetas : array, shape (n, 66)
+        hands : sequence of HandPose or None, optional
+            Each subject's fingers: the finger joints of its hands present follow them (module doc).
 
         Returns
         -------
@@ -215,8 +231,26 @@ class RokokoJoints:
         sp = self._spine
         chest = fk.positions[:, BONE_INDEX["Spine3"]] - fk.positions[:, sp]
         R[:, _SPINE] = swing(fk.rotations[:, sp] @ self._lower_spine, chest) @ fk.rotations[:, sp]
+        fingered = [(k, h) for k, h in enumerate(hands or ()) if h is not None and h.present.any()]
+        if fingered:
+            self._fingers(fk.rotations, fk.positions, fingered, R, pos)
         g = UNITY.quaternions(quat_from_matrix(R))
         return UNITY.positions(pos), quat_multiply(g, TPOSE)
+
+    def _fingers(self, G: FloatArray, x: FloatArray, fingered: list[tuple[int, HandPose]], R: FloatArray,
+                 pos: FloatArray) -> None:  # fmt: skip
+        """Replace the finger joints of the hands present (subject rows of ``R``/``pos``) by the fingers' own."""
+        side = list(HAND_OF_SIDE)
+        rows, hands = [k for k, _ in fingered], [h for _, h in fingered]
+        fs = finger_kinematics(G[rows][:, side], x[rows][:, side], np.stack([h.rotations for h in hands]),
+                               [h.skeleton for h in hands])  # fmt: skip
+        distal = [3 * f + 2 for f in range(5)]
+        for i, (k, h) in enumerate(zip(rows, hands, strict=True)):
+            for s in np.flatnonzero(h.present):
+                R[k, _FINGER_JOINTS[s]] = fs.rotations[i, s]
+                pos[k, _FINGER_JOINTS[s]] = fs.positions[i, s]
+                R[k, _TIP_JOINTS[s]] = fs.rotations[i, s, distal]
+                pos[k, _TIP_JOINTS[s]] = fs.tips[i, s]
 
 
 def swing(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -245,6 +279,19 @@ class RokokoActor:
     color: tuple[int, int, int] = (255, 255, 255)
     skeleton: Skeleton | None = None  # the subject's own sized skeleton (None: the encoder's)
     tracked: bool = True  # meta.hasBody: False for a subject lost for now, sent at its last pose
+    hands: HandPose | None = None  # the subject's fingers (None: straight fingers, as without)
+
+
+def _bool(v: bool) -> str:
+    return "true" if v else "false"
+
+
+def _gloves(a: RokokoActor) -> tuple[bool, bool, bool]:
+    """meta.hasGloves, hasLeftGlove, hasRightGlove: the hands with fingers this frame, while the actor is tracked."""
+    if a.hands is None or not a.tracked:
+        return False, False, False
+    left, right = (bool(v) for v in a.hands.present)
+    return left or right, left, right
 
 
 @dataclass(frozen=True)
@@ -307,7 +354,10 @@ class RokokoEncoder:
             groups.setdefault(id(joints), (joints, []))[1].append(k)
         out = [""] * len(actors)
         for joints, members in groups.values():
-            pos, rot = joints.compute(np.stack([np.asarray(actors[k].theta, dtype=np.float64) for k in members]))
+            pos, rot = joints.compute(
+                np.stack([np.asarray(actors[k].theta, dtype=np.float64) for k in members]),
+                [actors[k].hands for k in members],
+            )
             values = np.concatenate([pos, rot[..., [1, 2, 3, 0]]], axis=2)  # x y z, then x y z w
             values[np.abs(values) < 5e-7] = 0.0  # no "-0.000000"
             sk = joints.skeleton
@@ -316,7 +366,7 @@ class RokokoEncoder:
                 a = actors[k]
                 r, g, b = (int(c) for c in a.color)
                 body = _BODY_TEMPLATE % tuple(v.ravel().tolist())
-                meta = _META.format("true" if a.tracked else "false")
+                meta = _META.format(*(_bool(v) for v in _gloves(a)), _bool(a.tracked))
                 out[k] = f'{{"name":{json.dumps(a.name)},"color":[{r},{g},{b}],"meta":{meta},{dims},"body":{body}}}'
         return out
 

@@ -30,6 +30,12 @@ Payloads (struct formats; ``f4``/``f8`` arrays are little-endian float32/float64
   Then an optional tail (absent in records written before the daemon had a predicted output, which are read as
   delayed): ``<B`` output mode (0 delayed, 1 predicted) and per person ``<q`` the instant its pose is for
   (host ns: t_solve_ns, or the IMUs' newest instant for a predicted pose).
+  Then, only in records where some person has fingers (issue 44; records without are exactly as before): ``<B``
+  0x48 (``H``) and per person ``<B`` 0 (no fingers) or 1, followed for 1 by ``<B`` the hands present (bit 0 left,
+  bit 1 right), ``<ff`` each hand's scale, the finger bones' rest offsets as 2 × 15 × 3 float32 (m), the fingertips
+  in their distal bones as 2 × 5 × 3 float32 (m), and the local rotations of the 2 × 15 finger bones as unit
+  quaternions (w, x, y, z), 120 float64 (:class:`mocapd.core.hand_skeleton.HandPose`; a hand not present holds
+  its rest pose). A reader older than fingers refuses such a record (bytes left after its people).
 - ``T_FRAME`` (one downscaled camera frame, optional ``frames`` stream): ``<qHHHI`` capture_ns (host clock, as
   the camera's detections), camera index, image width, image height, JPEG length m; then the m bytes of the
   baseline JPEG (the image as the camera panels show it, not the camera's full resolution).
@@ -53,6 +59,7 @@ from typing import ParamSpec, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.hand_skeleton import N_FINGER_BONES, HandPose, HandSkeleton
 from mocapd.core.skeleton import N_BONES, POSE_DIM, Skeleton
 from mocapd.errors import InputError
 
@@ -79,6 +86,9 @@ _PERSON = struct.Struct("<iHHHBf")
 _SIZES = struct.Struct("<ff")
 _FRAME = struct.Struct("<qHHHI")
 _NO_SUIT = 255
+_HANDS_TAG = 0x48  # "H": the fingers section of a pose record
+_HAND_FLOATS = 2 * N_FINGER_BONES * 3 + 2 * 5 * 3  # offsets and tips, float32
+_HAND_QUATS = 2 * N_FINGER_BONES * 4  # rotations, float64
 OUTPUT_MODES = ("delayed", "predicted")
 
 
@@ -341,6 +351,7 @@ class PersonRecord:
     joints: FloatArray
     skeleton: Skeleton | None = None  # the person's own sized skeleton (None: the rig's, from the manifest)
     t_pose_ns: int | None = None  # the instant the pose is for (None: the frame's t_solve_ns)
+    hands: HandPose | None = None  # the fingers (None: none solved)
 
 
 @dataclass(frozen=True)
@@ -390,7 +401,41 @@ def encode_pose(r: PoseRecord) -> bytes:
     parts.append(bytes([OUTPUT_MODES.index(r.output)]))
     parts.append(struct.pack(f"<{len(r.people)}q", *(r.t_solve_ns if p.t_pose_ns is None else p.t_pose_ns
                                                       for p in r.people)))  # fmt: skip
+    if any(p.hands is not None for p in r.people):
+        parts.append(bytes([_HANDS_TAG]))
+        parts.extend(_encode_hands(p.hands) for p in r.people)
     return b"".join(parts)
+
+
+def _encode_hands(h: HandPose | None) -> bytes:
+    if h is None:
+        return b"\x00"
+    sk = h.skeleton
+    present = int(bool(h.present[0])) | (int(bool(h.present[1])) << 1)
+    return (
+        bytes([1, present])
+        + _SIZES.pack(*sk.scale)
+        + np.concatenate([sk.offsets.ravel(), sk.tips.ravel()]).astype("<f4").tobytes()
+        + np.ascontiguousarray(h.rotations, dtype="<f8").tobytes()
+    )
+
+
+def _decode_hands(p: bytes, o: int) -> tuple[HandPose | None, int]:
+    if p[o] == 0:
+        return None, o + 1
+    if p[o] != 1:
+        raise InputError(f"pose record: finger flag {p[o]} unknown")
+    present = np.array([bool(p[o + 1] & 1), bool(p[o + 1] & 2)])
+    scale = _SIZES.unpack_from(p, o + 2)
+    o += 2 + _SIZES.size
+    sizes = np.frombuffer(p, "<f4", _HAND_FLOATS, o).astype(np.float64)
+    o += 4 * _HAND_FLOATS
+    rotations = np.frombuffer(p, "<f8", _HAND_QUATS, o).reshape(2, N_FINGER_BONES, 4).astype(np.float64)
+    o += 8 * _HAND_QUATS
+    n_off = 2 * N_FINGER_BONES * 3
+    skeleton = HandSkeleton(sizes[:n_off].reshape(2, N_FINGER_BONES, 3), sizes[n_off:].reshape(2, 5, 3),
+                            np.array(scale, dtype=np.float64))  # fmt: skip
+    return HandPose(rotations, present, skeleton), o
 
 
 def _read_short(p: bytes, o: int) -> tuple[str | None, int]:
@@ -426,13 +471,18 @@ def decode_pose(p: bytes) -> PoseRecord:
         people.append(PersonRecord(identity or "", suit, track, views, imus, iters, bool(conv), conf, theta, joints,
                                    skeleton))  # fmt: skip
     output = "delayed"
-    if len(p) - o == 1 + 8 * n:  # the tail: output mode and each pose's instant
+    if len(p) - o >= 1 + 8 * n:  # the tail: output mode and each pose's instant
         if p[o] >= len(OUTPUT_MODES):
             raise InputError(f"pose record: output mode {p[o]} unknown")
         output = OUTPUT_MODES[p[o]]
         times = struct.unpack_from(f"<{n}q", p, o + 1)
         people = [replace(person, t_pose_ns=tp) for person, tp in zip(people, times, strict=True)]
-        o = len(p)
+        o += 1 + 8 * n
+        if o < len(p) and p[o] == _HANDS_TAG:  # the fingers section
+            o += 1
+            for k in range(n):
+                hands, o = _decode_hands(p, o)
+                people[k] = replace(people[k], hands=hands)
     if o != len(p):
         raise InputError(f"pose record: {len(p) - o} bytes left after {n} people")
     return PoseRecord(frame, t, tick, missing, tuple(people), output)

@@ -37,6 +37,17 @@ Bones (HumanBodyBones name ← mocapd bones; parent)::
     Left/RightUpperLeg ← same (Hips)       Left/RightLowerLeg ← same   Left/RightFoot ← same   Left/RightToes ← same
 
 A rig without UpperChest or shoulders simply ignores those messages (receivers skip bones the avatar lacks).
+
+Fingers (issue 44): a subject with fingers (:class:`mocapd.core.hand_skeleton.HandPose`) also sends, after the 22
+bones and for each hand solved this frame, its 15 finger bones under their HumanBodyBones names (parent)::
+
+    Left/Right + Thumb/Index/Middle/Ring/Little + Proximal (Left/RightHand), Intermediate (Proximal),
+    Distal (Intermediate)
+
+each with ``localPosition`` its rest offset and ``localRotation`` its local rotation, in Unity's frame as above (a
+Unity humanoid's fingers have identity rotation with the hand flat, fingers along the arm, as mocapd's rest). A hand
+not solved this frame sends no finger bones (the avatar keeps its own). A subject without fingers sends exactly the
+messages above.
 """
 
 from __future__ import annotations
@@ -46,6 +57,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.hand_skeleton import FINGER_BONES, N_FINGER_BONES, SIDES, HandPose
 from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.rotations import quat_conjugate, quat_from_rotvec, quat_multiply, quat_rotate
 from mocapd.core.skeleton import BONE_INDEX, N_BONES, POSE_DIM, Skeleton
@@ -173,6 +185,8 @@ class VmcEncoder:
         self._sized = PerSkeleton(self.bones, VmcBones)  # per-person skeletons (body sizing)
         self.max_datagram_bytes = max_datagram_bytes
         self._prefixes = [message_prefix(BONE_ADDRESS, "sfffffff") + osc_string(name) for name in BONE_NAMES]
+        self._finger_prefixes = [[message_prefix(BONE_ADDRESS, "sfffffff") + osc_string(side + bone)
+                                  for bone in FINGER_BONES] for side in SIDES]  # fmt: skip
         self._root = encode_message(ROOT_ADDRESS, ["root", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
         self._t0_ns: int | None = None
         # Fail now, not per frame, when the limit cannot hold the largest message.
@@ -191,6 +205,7 @@ class VmcEncoder:
         tracked: list[bool],
         skeletons: Sequence[Skeleton | None] | None = None,
         times_ns: Sequence[int] | None = None,
+        hands: Sequence[HandPose | None] | None = None,
     ) -> list[list[bytes]]:
         """Bundles for several subjects of one frame (one list of bundles per subject, each for its own avatar).
 
@@ -205,6 +220,8 @@ class VmcEncoder:
             Each subject's own sized skeleton (None, or no sequence: the encoder's).
         times_ns : sequence of int, optional
             The instant each subject's pose is for (host ns; default ``t_ns``), sent as its ``/VMC/Ext/T``.
+        hands : sequence of HandPose or None, optional
+            Each subject's fingers (None: none; its bundles are as without fingers).
         """
         t = self.seconds(t_ns)
         thetas = np.asarray(thetas, dtype=np.float64).reshape(-1, POSE_DIM)
@@ -229,9 +246,27 @@ class VmcEncoder:
             raw = values[k].tobytes()
             msgs = [self._root]
             msgs += [p + raw[28 * i : 28 * i + 28] for i, p in enumerate(self._prefixes)]
+            if hands is not None and hands[k] is not None:
+                msgs += self._finger_messages(hands[k])
             msgs.append(encode_message(OK_ADDRESS, [1, CALIBRATED, NORMAL_MODE, int(tracked[k])]))
             msgs.append(time_msg)
             out.append(pack_bundles(msgs, self.max_datagram_bytes))
+        return out
+
+    def _finger_messages(self, hands: HandPose | None) -> list[bytes]:
+        """The finger bone messages of the hands present (local position and rotation, Unity's frame)."""
+        if hands is None:
+            return []
+        values = np.empty((2, N_FINGER_BONES, 7), dtype=_FLOATS)
+        values[..., 0:3] = UNITY.positions(hands.skeleton.offsets)
+        q = UNITY.quaternions(hands.rotations)
+        values[..., 3:6] = q[..., 1:4]
+        values[..., 6] = q[..., 0]
+        out = []
+        for h in range(2):
+            if hands.present[h]:
+                raw = values[h].tobytes()
+                out += [p + raw[28 * i : 28 * i + 28] for i, p in enumerate(self._finger_prefixes[h])]
         return out
 
     def encode(self, t_ns: int, theta: FloatArray, tracked: bool = True) -> list[bytes]:

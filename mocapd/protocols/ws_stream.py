@@ -166,9 +166,11 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.hand_skeleton import HAND_BONE_NAMES, HandPose
 from mocapd.core.rotations import quat_from_rotvec
 from mocapd.core.skeleton import BONE_NAMES, N_BONES, PARENTS, POSE_DIM, Skeleton
 from mocapd.protocols.conventions import Convention, convention
+from mocapd.protocols.fingers import EXTENDED_PARENTS, hands_of, subject_fingers
 
 FloatArray = NDArray[np.float64]
 Message = bytes | str
@@ -211,6 +213,8 @@ class SubjectPose(Protocol):
     def skeleton(self) -> Skeleton | None: ...  # the subject's own sized skeleton (None: the stream's default)
     @property
     def t_pose_ns(self) -> int | None: ...  # the instant the pose describes (None: the frame's t_solve_ns)
+    @property
+    def hands(self) -> HandPose | None: ...  # the fingers (None: none solved)
 
 
 class FramePoses(Protocol):
@@ -269,6 +273,8 @@ class StreamDescription:
     """The most camera messages per second per camera a client may ask for."""
     output: str = "delayed"
     """The daemon's output mode, announced in the hello ("delayed" or "predicted")."""
+    fingers: bool = False
+    """Whether the hello names the finger bones (the server turns it on with the first frame that has fingers)."""
 
     def __post_init__(self) -> None:
         if not self.skeletons:
@@ -349,6 +355,8 @@ class FrameEncoder:
         self._converted: dict[str, _Converted] = {}
         self._lists: dict[tuple[str, str], tuple[list[list[float]], list[list[float]], list[list[float]]]] = {}
         self._messages: dict[tuple[str, str, bool, frozenset[str] | None], Message] = {}
+        self._hand_poses: list[HandPose | None] = []
+        self._hands: dict[tuple[str, str, bool], dict[int, dict[str, Any]]] = {}
         self.encodings = 0
         """How many messages were actually encoded (the rest came from the cache)."""
 
@@ -370,6 +378,7 @@ class FrameEncoder:
         self._root = theta[ok, :3]
         self._quats = quat_from_rotvec(theta[ok, 3:].reshape(-1, N_BONES, 3))
         self._joints = joints[ok]
+        self._hand_poses = hands_of(self._people)
 
     @property
     def people(self) -> list[SubjectPose]:
@@ -392,6 +401,7 @@ class FrameEncoder:
         self._prepare()
         enc = options.encoding
         roots, rots, joints = self._values(options.convention, enc)
+        hands = self._hands_values(options.convention, enc, options.globals)
         subjects = []
         for k, person in enumerate(self.people):
             if options.subjects is not None and person.identity not in options.subjects:
@@ -410,6 +420,8 @@ class FrameEncoder:
             s["views"] = int(person.views)
             s["imus"] = int(person.imus)
             s["t_pose_ns"] = int(self.frame.t_solve_ns if person.t_pose_ns is None else person.t_pose_ns)
+            if k in hands:  # only subjects with fingers carry the key: a stream without fingers is as before
+                s["hands"] = hands[k]
             subjects.append(s)
         msg = encode(
             {"type": "frame", "frame": int(self.frame.frame), "t_solve_ns": int(self.frame.t_solve_ns),
@@ -436,6 +448,37 @@ class FrameEncoder:
                 _rows(cv.joints, encoding),
             )
         return lists
+
+    def _hands_values(self, conv_name: str, encoding: str, globals_: bool) -> dict[int, dict[str, Any]]:
+        """Per subject with fingers (index into :attr:`people`): its ``hands`` map in a convention."""
+        key = (conv_name, encoding, globals_)
+        cached = self._hands.get(key)
+        if cached is not None:
+            return cached
+        idx = [k for k, h in enumerate(self._hand_poses) if h is not None]
+        poses = [h for h in self._hand_poses if h is not None]
+        out: dict[int, dict[str, Any]] = {}
+        if idx:
+            c = convention(conv_name)
+            rot = _rows(c.quaternions(np.stack([h.rotations for h in poses])), encoding)
+            offsets = _rows(c.positions(np.stack([h.skeleton.offsets for h in poses])), encoding)
+            tips = _rows(c.positions(np.stack([h.skeleton.tips for h in poses])), encoding)
+            joints = tip_joints = None
+            if globals_:
+                people = [self._people[k] for k in idx]
+                skeletons = [p.skeleton if p.skeleton is not None
+                             else self.description.skeletons[self.description.skeleton_key(p.identity)]
+                             for p in people]  # fmt: skip
+                fs = subject_fingers(np.stack([p.theta for p in people]), skeletons, poses)
+                joints, tip_joints = _rows(c.positions(fs.positions), encoding), _rows(c.positions(fs.tips), encoding)
+            for i, (k, h) in enumerate(zip(idx, poses, strict=True)):
+                m: dict[str, Any] = {"present": [bool(v) for v in h.present], "rot": rot[i], "offsets": offsets[i],
+                                     "tip_offsets": tips[i]}  # fmt: skip
+                if joints is not None and tip_joints is not None:
+                    m["joints"], m["tip_joints"] = joints[i], tip_joints[i]
+                out[k] = m
+        self._hands[key] = out
+        return out
 
 
 def skeleton_map(skeleton: Skeleton, conv: Convention, encoding: str) -> dict[str, Any]:
@@ -606,6 +649,8 @@ class ClientSession:
                 ],
                 "cameras": [{"name": n, "width": w, "height": h} for n, w, h in self.description.cameras],
                 "camera_views": o.cameras, "camera_rate_hz": o.camera_rate_hz,
+                **({"finger_bones": list(HAND_BONE_NAMES), "finger_parents": list(EXTENDED_PARENTS[N_BONES:])}
+                   if self.description.fingers else {}),
             },
             o.encoding,
         )  # fmt: skip

@@ -8,6 +8,9 @@
 // Camera views (the "Camera views" button, or ?cameras=1): one panel per camera with its latest frame, the 2D
 // detections (white dots) and every solved subject reprojected through that camera's calibration (lines in the
 // subject's colour), with the reprojection error and detection rate; the server sends them only while asked.
+// Fingers (issue 44): a subject whose frame carries "hands" also gets its finger bones drawn, thinner, from each
+// hand's wrist through the finger joints to the fingertips (the hands' global joints, or forward kinematics from
+// the hand's rotation, the fingers' local rotations and their offsets).
 "use strict";
 
 (function () {
@@ -65,20 +68,61 @@
 
   function jointsOf(s) {
     // Global joints from the frame, or forward kinematics from root + local quaternions + rest offsets.
-    const out = [];
     if (s.joints) {
+      const out = [];
       for (let i = 0; i < s.joints.length; i += 3) out.push([s.joints[i], s.joints[i + 1], s.joints[i + 2]]);
       return out;
     }
-    const sk = state.hello && state.hello.skeletons[s.skeleton];
-    if (!sk) return out;
-    const glob = [];
+    return bodyFK(s).pos;
+  }
+  function bodyFK(s) {
+    // Joint positions and global rotations of the body by forward kinematics (empty without the skeleton).
+    const sk = state.hello && state.hello.skeletons[s.skeleton], pos = [], glob = [];
+    if (!sk) return { pos, glob };
     for (let b = 0; b < sk.parents.length; b++) {
       const q = s.rot.slice(4 * b, 4 * b + 4), p = sk.parents[b];
-      if (p < 0) { glob.push(q); out.push(s.root.slice()); continue; }
+      if (p < 0) { glob.push(q); pos.push(s.root.slice()); continue; }
       const o = sk.offsets.slice(3 * b, 3 * b + 3), r = rotate(glob[p], o);
       glob.push(qmul(glob[p], q));
-      out.push([out[p][0] + r[0], out[p][1] + r[1], out[p][2] + r[2]]);
+      pos.push([pos[p][0] + r[0], pos[p][1] + r[1], pos[p][2] + r[2]]);
+    }
+    return { pos, glob };
+  }
+  const HANDS = [9, 12];  // the body's LeftHand and RightHand
+  function fingersOf(s) {
+    // Per hand: its wrist, the 15 finger joints and the 5 fingertips (world), from the frame's "hands" (none: []).
+    const h = s.hands;
+    if (!h) return [];
+    const pts = (a) => {
+      const o = [];
+      for (let i = 0; i < a.length; i += 3) o.push([a[i], a[i + 1], a[i + 2]]);
+      return o;
+    };
+    const body = h.joints ? null : bodyFK(s), wrists = h.joints ? jointsOf(s) : body.pos;
+    const out = [];
+    for (let side = 0; side < 2; side++) {
+      const wrist = wrists[HANDS[side]];
+      if (!wrist) continue;
+      if (h.joints) {
+        out.push({ wrist, joints: pts(h.joints.slice(45 * side, 45 * side + 45)),
+                   tips: pts(h.tip_joints.slice(15 * side, 15 * side + 15)) });
+        continue;
+      }
+      // Forward kinematics: each finger's three bones from the hand, then its tip in the distal bone.
+      const joints = [], tips = [], glob = [];
+      for (let b = 0; b < 15; b++) {
+        const q = h.rot.slice(60 * side + 4 * b, 60 * side + 4 * b + 4);
+        const o = h.offsets.slice(45 * side + 3 * b, 45 * side + 3 * b + 3);
+        const pg = b % 3 === 0 ? body.glob[HANDS[side]] : glob[b - 1], pp = b % 3 === 0 ? wrist : joints[b - 1];
+        const r = rotate(pg, o);
+        joints.push([pp[0] + r[0], pp[1] + r[1], pp[2] + r[2]]);
+        glob.push(qmul(pg, q));
+        if (b % 3 === 2) {
+          const t = rotate(glob[b], h.tip_offsets.slice(15 * side + b - 2, 15 * side + b + 1));
+          tips.push([joints[b][0] + t[0], joints[b][1] + t[1], joints[b][2] + t[2]]);
+        }
+      }
+      out.push({ wrist, joints, tips });
     }
     return out;
   }
@@ -148,6 +192,14 @@
         for (let i = 1; i < pts.length; i++) line(pts[parents[i]], pts[i], colour, 4);
         ctx.fillStyle = colour;
         for (const p of pts) if (p) { ctx.beginPath(); ctx.arc(p[0], p[1], 3.5, 0, 2 * Math.PI); ctx.fill(); }
+        for (const hand of fingersOf(s)) {  // each finger: wrist, its three joints, its tip
+          const w = project(hand.wrist, b), j = hand.joints.map((p) => project(p, b));
+          const t = hand.tips.map((p) => project(p, b));
+          for (let f = 0; f < 5; f++) {
+            const chain = [w, j[3 * f], j[3 * f + 1], j[3 * f + 2], t[f]];
+            for (let k = 1; k < chain.length; k++) line(chain[k - 1], chain[k], colour, 2);
+          }
+        }
         const head = pts[6];
         if (head) { ctx.font = "12px system-ui, sans-serif"; ctx.fillText(s.id, head[0] + 8, head[1] - 8); }
       }
@@ -419,7 +471,10 @@
     pause,
     // What is on screen: per subject its colour and the canvas pixels of its joints.
     drawn: () => (state.shown && state.hello ? state.shown.subjects.map((s) => ({
-      id: s.id, colour: colourOf(s.id), points: jointsOf(s).map((p) => project(p)) })) : []),
+      id: s.id, colour: colourOf(s.id), points: jointsOf(s).map((p) => project(p)),
+      fingers: fingersOf(s).map((h) => ({ joints: h.joints.map((p) => project(p)), tips: h.tips.map((p) => project(p)),
+                                          world: h.joints.concat(h.tips) })) })) : []),
+    fingersOf: (s) => fingersOf(s),
     colourOf,
     get frames() { return state.frames; }, get connects() { return state.connects; },
     get connected() { return state.connected; },

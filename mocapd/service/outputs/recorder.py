@@ -65,7 +65,7 @@ def pose_record(frame: PoseFrame) -> PoseRecord:
     """A published frame as a recorded one (same fields, and the instant each pose is for)."""
     people = tuple(
         PersonRecord(p.identity, p.suit, p.track, p.views, p.imus, p.iterations, p.converged, p.confidence,
-                     p.theta, p.joints, p.skeleton, frame.pose_time_ns(p))
+                     p.theta, p.joints, p.skeleton, frame.pose_time_ns(p), p.hands)
         for p in frame.people
     )  # fmt: skip
     return PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people, frame.output)

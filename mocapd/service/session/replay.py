@@ -37,7 +37,7 @@ def pose_frame(r: PoseRecord) -> PoseFrame:
     """A recorded frame as the daemon published it."""
     people = [
         PersonPose(p.identity, p.track, p.suit, np.array(p.theta), np.array(p.joints), p.confidence, p.views,
-                   p.imus, p.iterations, p.converged, p.skeleton, p.t_pose_ns)
+                   p.imus, p.iterations, p.converged, p.skeleton, p.t_pose_ns, hands=p.hands)
         for p in r.people
     ]  # fmt: skip
     return PoseFrame(r.frame, r.t_solve_ns, r.tick_ns, people, r.missing_cameras, r.output)

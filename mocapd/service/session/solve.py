@@ -382,7 +382,7 @@ def forward_resolve(
         frame = sched.tick(int(t) + o.latency_ns)
         people = tuple(
             PersonRecord(p.identity, p.suit, p.track, p.views, p.imus, p.iterations, p.converged, p.confidence,
-                         p.theta, p.joints, p.skeleton)
+                         p.theta, p.joints, p.skeleton, hands=p.hands)
             for p in frame.people
         )  # fmt: skip
         out.append(PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people))
