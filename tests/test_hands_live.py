@@ -1,0 +1,114 @@
+"""Fingers live (issue 44): the daemon makes the finger solve when its rig's detections carry both hands' keypoints
+(and nothing of it otherwise: the same bytes out), /status reports it, and a view whose left/right labels are
+swapped has its hands swapped with its arms."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mocapd.core.keypoints import COCO17_HANDS_FORMAT, coco17_targets, hand_keypoint_names
+from mocapd.core.people import PeopleTracker
+from mocapd.core.sorting import Detections2D, DetectionSorter
+from mocapd.core.tracking import SubjectTracker, TrackingOptions
+from mocapd.pipeline.hand_stage import HandStage
+from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, SchedulerOptions
+from mocapd.protocols.session_format import encode_pose
+from mocapd.service.config import parse_config
+from mocapd.service.daemon import Daemon, Rig
+from mocapd.service.outputs.recorder import pose_record
+
+from .test_scheduler_hands import CAMERAS, LATENCY, PROJECTIONS, RATE, SKELETON, S, _frames
+
+TARGETS = coco17_targets(SKELETON)
+HAND_COLUMNS = TARGETS.names + hand_keypoint_names("left") + hand_keypoint_names("right")
+
+
+def _drive(sched: FixedLatencyScheduler, frames: list[list[Detections2D]], columns: int | None) -> list[PoseFrame]:
+    out = []
+    for i, row in enumerate(frames):
+        t = S + i * S // RATE
+        for c, det in enumerate(row):
+            cut = det if columns is None else Detections2D(det.keypoints[:, :columns], det.confidences[:, :columns])
+            sched.add_detections(c, t, cut, t + LATENCY // 2)
+        out.append(sched.tick(t + LATENCY))
+    return out
+
+
+def _daemon(keypoint_names: tuple[str, ...]) -> Daemon:
+    config = parse_config({"daemon": {"latency_s": LATENCY / 1e9, "output_rate_hz": float(RATE)},
+                           "tracking": {"enrolment": {"enrol_after_s": 0.1}}})  # fmt: skip
+    rig = Rig(list(CAMERAS), [], SKELETON, TARGETS, keypoint_names=keypoint_names)
+    return Daemon(config, rig)
+
+
+def _bytes(frames: list[PoseFrame]) -> list[bytes]:
+    return [encode_pose(pose_record(f)) for f in frames]
+
+
+def test_the_daemon_solves_fingers_only_when_its_detections_carry_hands() -> None:
+    frames, _thetas, _fingers = _frames(1.0)
+    off = _daemon(())
+    assert off.scheduler.hands is None and off.hand_status() is None
+    on = _daemon(HAND_COLUMNS)
+    assert on.scheduler.hands is not None
+    np.testing.assert_array_equal(on.scheduler.hands.columns, np.arange(17, 59).reshape(2, 21))
+    published = _drive(on.scheduler, frames, None)
+    fingered = [p for f in published for p in f.people if p.hands is not None and p.hands.present.all()]
+    assert len(fingered) >= 30
+    # the fingers move: the solved finger bones are far from the flat hand's identity rotations
+    assert max(float(np.abs(p.hands.rotations[..., 1:]).max()) for p in fingered if p.hands is not None) > 0.3
+    status = on.hand_status()
+    assert status is not None
+    assert status["counters"]["hands_solved"] >= 60 and status["cpu_ms"]["count"] > 0
+    # hands off: the daemon's frames are byte for byte a scheduler's made as before fingers (no ``hands``)
+    tracker = PeopleTracker(
+        SubjectTracker(
+            DetectionSorter(CAMERAS, off.config.tracking.sorting.options(), keypoint_names=TARGETS.names),
+            off.config.tracking.enrolment.options(),
+        )
+    )
+    before = FixedLatencyScheduler(
+        CAMERAS, SKELETON, TARGETS, tracker, options=off.scheduler.options, cost=off.scheduler.cost,
+        lm=off.scheduler.lm, backend=off.config.solver.backend,
+    )  # fmt: skip
+    assert _bytes(_drive(off.scheduler, frames, 17)) == _bytes(_drive(before, frames, 17))
+
+
+def _mirrored(det: Detections2D) -> Detections2D:
+    """A view whose detector took the person's left arm for their right: the elbows and wrists swapped, and so the
+    hands (their crops were placed from the arms)."""
+    names = COCO17_HANDS_FORMAT.keypoints
+    index = {n: i for i, n in enumerate(names)}
+
+    def other(n: str) -> str:
+        return n.replace("left_", "@").replace("right_", "left_").replace("@", "right_")
+
+    arms = ("_elbow", "_wrist", "_hand_")
+    order = [index[other(n)] if any(a in n for a in arms) else i for i, n in enumerate(names)]
+    return Detections2D(det.keypoints[:, order], det.confidences[:, order])
+
+
+def test_a_view_with_swapped_labels_has_its_hands_swapped_with_its_arms() -> None:
+    frames, _thetas, _fingers = _frames(0.5)
+    tracker = PeopleTracker(SubjectTracker(DetectionSorter(CAMERAS), TrackingOptions(enrol_after_s=0.1)))
+    stage = HandStage.from_names(COCO17_HANDS_FORMAT.keypoints, PROJECTIONS)
+    sched = FixedLatencyScheduler(
+        CAMERAS, SKELETON, TARGETS, tracker, options=SchedulerOptions(rate_hz=RATE, latency_ns=LATENCY), hands=stage,
+    )  # fmt: skip
+    out = _drive(sched, frames, None)
+    (identity,) = sched.solvers
+    assert out[-1].people and out[-1].people[0].hands is not None
+    # The next tick's keypoints with view 1's arms (and so its hands) mirrored, through the person's flip search.
+    row = [_mirrored(d) if c == 1 else d for c, d in enumerate(frames[-1])]
+    n = len(TARGETS)
+    kp = np.stack([d.keypoints[0, :n] for d in row])
+    conf = np.stack([d.confidences[0, :n] for d in row])
+    und = np.stack([sched._undistort(c, d.keypoints)[0, :n] for c, d in enumerate(row)])
+    views = {c: (sched._undistort(c, d.keypoints)[0], d.confidences[0]) for c, d in enumerate(row)}
+    sched._flip_due = True
+    _, und2, _ = sched._unflip(identity, sched.solvers[identity], kp, und, conf, len(row), views)
+    clean = [sched._undistort(c, d.keypoints)[0] for c, d in enumerate(frames[-1])]
+    np.testing.assert_allclose(und2, np.stack([u[:n] for u in clean]), rtol=0, atol=1e-9)  # the arms swapped back
+    for c in range(len(row)):  # and every view's hands are the clean ones: view 1's swapped back, the others kept
+        np.testing.assert_allclose(views[c][0][n:], clean[c][n:], rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(views[c][1][n:], frames[-1][c].confidences[0, n:])
