@@ -23,11 +23,16 @@ TARGETS = coco17_targets(SKELETON)
 HAND_COLUMNS = TARGETS.names + hand_keypoint_names("left") + hand_keypoint_names("right")
 
 
-def _drive(sched: FixedLatencyScheduler, frames: list[list[Detections2D]], columns: int | None) -> list[PoseFrame]:
+def _drive(
+    sched: FixedLatencyScheduler, frames: list[list[Detections2D]], columns: int | None, gap: range = range(0)
+) -> list[PoseFrame]:
+    """Every frame through the scheduler; camera 0 sends nothing during the frames of ``gap``."""
     out = []
     for i, row in enumerate(frames):
         t = S + i * S // RATE
         for c, det in enumerate(row):
+            if c == 0 and i in gap:
+                continue
             cut = det if columns is None else Detections2D(det.keypoints[:, :columns], det.confidences[:, :columns])
             sched.add_detections(c, t, cut, t + LATENCY // 2)
         out.append(sched.tick(t + LATENCY))
@@ -52,7 +57,9 @@ def test_the_daemon_solves_fingers_only_when_its_detections_carry_hands() -> Non
     on = _daemon(HAND_COLUMNS)
     assert on.scheduler.hands is not None
     np.testing.assert_array_equal(on.scheduler.hands.columns, np.arange(17, 59).reshape(2, 21))
-    published = _drive(on.scheduler, frames, None)
+    # camera 0 silent for a while: its timeline's empty sample has every column too (hands included)
+    published = _drive(on.scheduler, frames, None, gap=range(20, 45))
+    assert any(f.missing_cameras for f in published)
     fingered = [p for f in published for p in f.people if p.hands is not None and p.hands.present.all()]
     assert len(fingered) >= 30
     # the fingers move: the solved finger bones are far from the flat hand's identity rotations

@@ -327,9 +327,11 @@ class FixedLatencyScheduler:
         self._tick_mattes: list[NDArray[np.float32] | None] | None = None  # read once per tick, when needed
         self._tick_t = 0
         self.kin = Kinematics(skeleton)
+        # every column of the detections (the hands' after the body's): a camera without a sample gets an empty one
+        columns = len(targets) if hands is None else max(len(targets), int(hands.columns.max()) + 1)
         self.timelines = [
             DetectionTimeline(
-                len(targets), max_age_ns=o.keypoint_max_age_ns, max_gap_ns=o.keypoint_max_gap_ns, match_px=o.match_px
+                columns, max_age_ns=o.keypoint_max_age_ns, max_gap_ns=o.keypoint_max_gap_ns, match_px=o.match_px
             )
             for _ in cameras
         ]
