@@ -785,7 +785,7 @@ class Daemon:
         """The finger solve in ``/status`` (None: hands off, the detections carry no hand keypoints): per person the
         hands solved per second over the last second (the output rate when a hand is solved every tick), the
         stage's counters and its CPU per person and tick (both hands). The hand landmark model's rates per camera
-        are in ``cameras``' detector status (``detector.hands``)."""
+        are in ``detector.hands``."""
         stage = self.scheduler.hands
         if stage is None:
             return None
