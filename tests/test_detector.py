@@ -339,7 +339,7 @@ def test_config_parsing() -> None:
     assert cfg.model.score_threshold == 0.3 and cfg.packing.n_p == 8
     assert detector_config_from_mapping({}) == DetectorConfig()
     cases: list[tuple[dict[str, Any], str]] = [
-        ({"threads": 2}, "^unknown key detector.threads; allowed: batch, fitted_inputs, inter_op_threads"),
+        ({"threads": 2}, "^unknown key detector.threads; allowed: batch, fitted_inputs, hands, inter_op_threads"),
         ({"model": {"inputwidth": 640}}, "^unknown key detector.model.inputwidth; allowed: channel_order"),
         ({"model": {"layout": "CHW"}}, '^detector.model.layout = \'CHW\'; allowed: "NCHW" or "NHWC"$'),
         ({"model": {"keypoint_format": "mpi"}}, "^detector.model.keypoint_format = 'mpi'; allowed: \"coco17\""),

@@ -31,7 +31,7 @@ from mocapd.io.video_source import VideoFileSource
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
 from mocapd.pipeline.detector_pool import PooledDetector, detector_status, make_detector, target_columns
-from mocapd.pipeline.hands import MIN_HAND_CONFIDENCE, HandRates, HandRunner, rates_status, with_hands
+from mocapd.pipeline.hand_landmarks import MIN_HAND_CONFIDENCE, HandRates, HandRunner, rates_status, with_hand_landmarks
 from mocapd.pipeline.landmarks import LandmarkRunner
 from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.service.cli import main
@@ -148,19 +148,19 @@ def test_with_hands_keeps_the_body_keypoints_as_they_are(
 ) -> None:
     img, people, body = views[0]
     marked = PoseDetections(people.boxes, people.scores, body[None])
-    (out,) = with_hands(HandRunner(BLAZEPOSE33.keypoints), [img], [marked])
+    (out,) = with_hand_landmarks(HandRunner(BLAZEPOSE33.keypoints), [img], [marked])
     assert out.keypoints.shape == (1, 75, 3)
     np.testing.assert_array_equal(out.keypoints[:, :33], marked.keypoints)  # bit for bit
     np.testing.assert_array_equal(out.boxes, marked.boxes)
-    (same,) = with_hands(None, [img], [marked])
+    (same,) = with_hand_landmarks(None, [img], [marked])
     assert same is marked
     # A person with no seen arm gets all-zero hands; nobody gives an empty (0, 75, 3).
     blind = body.copy()
     blind[:, 2] = 0.0
-    (none,) = with_hands(HandRunner(BLAZEPOSE33.keypoints), [img], [PoseDetections(people.boxes, people.scores,
+    (none,) = with_hand_landmarks(HandRunner(BLAZEPOSE33.keypoints), [img], [PoseDetections(people.boxes, people.scores,
                                                                                    blind[None])])  # fmt: skip
     assert not none.keypoints[0, 33:].any()
-    (empty,) = with_hands(HandRunner(BLAZEPOSE33.keypoints), [img], [PoseDetections.empty(33)])
+    (empty,) = with_hand_landmarks(HandRunner(BLAZEPOSE33.keypoints), [img], [PoseDetections.empty(33)])
     assert empty.keypoints.shape == (0, 75, 3)
 
 

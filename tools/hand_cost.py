@@ -21,7 +21,7 @@ from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
 from mocapd.io.pose2sim_demo import CAMERAS, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import ModelSpec
-from mocapd.pipeline.hands import HandRunner, crop_hand
+from mocapd.pipeline.hand_landmarks import HandRunner, crop_hand
 from mocapd.pipeline.landmarks import LandmarkRunner
 from mocapd.pipeline.landmarks import crop as landmark_crop
 

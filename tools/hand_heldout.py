@@ -2,8 +2,8 @@
 
 Per frame and camera: YOLO11n-pose's people, BlazePose's 33 landmarks on crops YOLO placed (``--body``; heavy by
 default, as the issue-40 front end), and each person's two hand crops placed from the landmarks' wrist, index and
-pinky (:mod:`mocapd.core.hand_roi`) through the hand landmark model (:mod:`mocapd.pipeline.hands`). The people of
-the four views are matched by the symmetric epipolar distance of their confident body landmarks (Hungarian
+pinky (:mod:`mocapd.core.hand_roi`) through the hand landmark model (:mod:`mocapd.pipeline.hand_landmarks`). The
+people of the four views are matched by the symmetric epipolar distance of their confident body landmarks (Hungarian
 assignment against the view with the most people; a pair farther than ``MATCH_PX`` apart is not matched). For each
 camera held out, every hand keypoint is triangulated from the other views (confidence-weighted DLT,
 ``core.camera.triangulate_projections``, views whose hand confidence is >= 0.5 only), projected into the held-out
@@ -39,7 +39,7 @@ from mocapd.core.landmark_roi import LandmarkRoi
 from mocapd.eval.video_input import pose2sim_take
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import ModelSpec
-from mocapd.pipeline.hands import HandRunner, Image
+from mocapd.pipeline.hand_landmarks import HandRunner, Image
 from mocapd.pipeline.landmarks import LandmarkRunner
 
 MIN_CONFIDENCE = 0.5

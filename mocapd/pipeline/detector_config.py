@@ -264,7 +264,7 @@ class DetectorConfig:
     "full" or "heavy" (that landmark model; the output becomes ``blazepose33``), "auto" (runs as
     :data:`AUTO_LANDMARKS` until the budget governor picks per pass; ``/status`` says so)."""
     hands: str = "off"
-    """Hand landmarks per person after the body's keypoints (:mod:`mocapd.pipeline.hands`): "off", "on" (the
+    """Hand landmarks per person after the body's keypoints (:mod:`mocapd.pipeline.hand_landmarks`): "off", "on" (the
     output becomes ``<body>_hands``), "auto" (on when the body landmarks run: :meth:`hands_decision`)."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)

@@ -39,7 +39,7 @@ from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
-from mocapd.pipeline.hands import HandRunner, hand_status, with_hands
+from mocapd.pipeline.hand_landmarks import HandRunner, hand_status, with_hand_landmarks
 from mocapd.pipeline.landmarks import LandmarkRunner, landmark_status, with_landmarks
 from mocapd.pipeline.packed_source import PackedDetectionGroup, Session
 from mocapd.pipeline.packing import PackedDetector, detectors_from_config
@@ -136,7 +136,7 @@ class PooledDetector:
             # The detector takes BGR (OpenCV's order); the ring holds RGB.
             image = np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), np.uint8)
             (people,) = with_landmarks(self._runners[id(det)], [image], [det.detect(image)])
-            (people,) = with_hands(self._hands[id(det)], [image], [people])
+            (people,) = with_hand_landmarks(self._hands[id(det)], [image], [people])
         finally:
             self._pool.put(det)
         kp = people.keypoints if self._columns is None else people.keypoints[:, self._columns]

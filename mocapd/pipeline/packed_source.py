@@ -40,7 +40,7 @@ from mocapd.core.sorting import Detections2D
 from mocapd.pipeline.detection_mode import ModeChooser, PassCost
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.frame_ring import FrameRef
-from mocapd.pipeline.hands import HandRunner, with_hands
+from mocapd.pipeline.hand_landmarks import HandRunner, with_hand_landmarks
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource
 from mocapd.pipeline.landmarks import LandmarkRunner, with_landmarks
 from mocapd.pipeline.packing import PackedDetector
@@ -322,7 +322,7 @@ class PackedDetectionGroup:
         marked = dict(zip(cams, with_landmarks(session.landmarks, [images[c] for c in cams], [found[c] for c in cams]),
                           strict=True))  # fmt: skip
         if session.hands is not None:
-            handed = with_hands(session.hands, [images[c] for c in cams], [marked[c] for c in cams], cams)
+            handed = with_hand_landmarks(session.hands, [images[c] for c in cams], [marked[c] for c in cams], cams)
             marked = dict(zip(cams, handed, strict=True))
         return {cam: (ref, to_detections2d(marked[cam], self.columns)) for cam, ref in new.items()}
 
@@ -358,7 +358,7 @@ class PackedDetectionGroup:
                 self.whole_passes += 1
             self.packer.seed_rois(cam, people)  # packed passes start from where the people are now
             (marked,) = with_landmarks(session.landmarks, [image], [people])
-            (marked,) = with_hands(session.hands, [image], [marked], [cam])
+            (marked,) = with_hand_landmarks(session.hands, [image], [marked], [cam])
             return {cam: (got[0], to_detections2d(marked, self.columns))}
         return None
 

@@ -262,7 +262,7 @@ class HandRunner:
         return out
 
 
-def with_hands(
+def with_hand_landmarks(
     runner: HandRunner | None,
     images: Sequence[Image],
     people: Sequence[PoseDetections],
