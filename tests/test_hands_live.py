@@ -10,7 +10,7 @@ from mocapd.core.keypoints import COCO17_HANDS_FORMAT, coco17_targets, hand_keyp
 from mocapd.core.people import PeopleTracker
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
-from mocapd.pipeline.hand_stage import HandStage
+from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, SchedulerOptions
 from mocapd.protocols.session_format import encode_pose
 from mocapd.service.config import parse_config

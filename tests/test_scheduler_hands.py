@@ -16,7 +16,7 @@ from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.synthetic import moving_sequence, ring_rig
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
 from mocapd.eval.hands import _project, hand_motion
-from mocapd.pipeline.hand_stage import HandStage
+from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, SchedulerOptions
 
 S = 1_000_000_000

@@ -69,7 +69,7 @@ from mocapd.core.terms import CostOptions
 from mocapd.core.warm_start import initial_pose
 from mocapd.errors import InputError
 from mocapd.pipeline.fusion import FusionStage, Mode
-from mocapd.pipeline.hand_stage import HandStage
+from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.imu_ingest import ImuIngest
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline, SampleStatus
 from mocapd.pipeline.latency import AutoLatency, AutoLatencyOptions, LatencyStats
@@ -322,7 +322,7 @@ class FixedLatencyScheduler:
         self.fusion = fusion if fusion_mode != "solver" else None
         self.fusion_mode = fusion_mode
         self.mattes = mattes
-        #: the finger solve (:mod:`mocapd.pipeline.hand_stage`) when the detections carry hand keypoints; None: off
+        #: the finger solve (:mod:`mocapd.pipeline.hands`) when the detections carry hand keypoints; None: off
         self.hands = hands
         self._tick_mattes: list[NDArray[np.float32] | None] | None = None  # read once per tick, when needed
         self._tick_t = 0

@@ -52,7 +52,7 @@ from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.fusion import FusionModels, FusionStage
 from mocapd.pipeline.governor import Governor
-from mocapd.pipeline.hand_stage import HandStage
+from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.keypoint_source import KeypointSource
 from mocapd.pipeline.mattes import MatteSource, RingMattes
 from mocapd.pipeline.scheduler import (

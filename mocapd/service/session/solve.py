@@ -59,7 +59,7 @@ from mocapd.errors import ConfigError, InputError, MocapdError, ModelError
 from mocapd.io.input_files import open_input
 from mocapd.io.session import MANIFEST, Session
 from mocapd.pipeline.clocksync import offline_clock_map
-from mocapd.pipeline.hand_stage import HandStage
+from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.imu_ingest import TICK_HZ, ImuIngest
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, SchedulerOptions, Suit
 from mocapd.protocols.session_format import ImuRecord, PersonRecord, PoseRecord
