@@ -57,6 +57,9 @@ def test_the_daemon_solves_fingers_only_when_its_detections_carry_hands() -> Non
     on = _daemon(HAND_COLUMNS)
     assert on.scheduler.hands is not None
     np.testing.assert_array_equal(on.scheduler.hands.columns, np.arange(17, 59).reshape(2, 21))
+    # the sorter's flip-aware matching pairs every column: the body's (left with right shoulder) and the hands'
+    partner = on.scheduler.people.tracker.sorter._partner(59)
+    assert partner[5] == 6 and partner[17] == 38 and partner[58] == 37
     # camera 0 silent for a while: its timeline's empty sample has every column too (hands included)
     published = _drive(on.scheduler, frames, None, gap=range(20, 45))
     assert any(f.missing_cameras for f in published)

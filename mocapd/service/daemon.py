@@ -252,7 +252,8 @@ class Daemon:
         self.status_line_extras: list[Callable[[], str]] = []
         tracker = PeopleTracker(
             SubjectTracker(
-                DetectionSorter(rig.cameras, config.tracking.sorting.options(), keypoint_names=rig.targets.names),
+                # every column's name: the flip-aware matching pairs left and right (the hands' too, when they come)
+                DetectionSorter(rig.cameras, config.tracking.sorting.options(), keypoint_names=rig.columns),
                 config.tracking.enrolment.options(),
             ),
             SuitBinder(rig.skeleton, config.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,

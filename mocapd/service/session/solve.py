@@ -212,7 +212,9 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
     ingest.keep(sid for suit in rig.suits for sid in suit.sensors)
     tracker = PeopleTracker(
         SubjectTracker(
-            DetectionSorter(rig.cameras, cfg.tracking.sorting.options(), keypoint_names=rig.targets.names),
+            DetectionSorter(
+                rig.cameras, cfg.tracking.sorting.options(), keypoint_names=rig.keypoint_columns or rig.targets.names
+            ),
             cfg.tracking.enrolment.options(),
         ),
         SuitBinder(rig.skeleton, cfg.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
