@@ -6,16 +6,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocapd.core.keypoints import COCO17_HANDS_FORMAT, coco17_targets, hand_keypoint_names
+from mocapd.core.keypoints import COCO17_HANDS_FORMAT, coco17_targets, hand_keypoint_names, keypoint_format
 from mocapd.core.people import PeopleTracker
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
+from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.detector_pool import target_columns
 from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, PoseFrame, SchedulerOptions
 from mocapd.protocols.session_format import encode_pose
 from mocapd.service.config import parse_config
 from mocapd.service.daemon import Daemon, Rig
 from mocapd.service.outputs.recorder import pose_record
+from mocapd.service.rig import detection_columns
 
 from .test_scheduler_hands import CAMERAS, LATENCY, PROJECTIONS, RATE, SKELETON, S, _frames
 
@@ -126,3 +129,14 @@ def test_a_view_with_swapped_labels_has_its_hands_swapped_with_its_arms() -> Non
             np.testing.assert_allclose(pb.hands.rotations, pa.hands.rotations, rtol=0, atol=1e-9)
             compared += 1
     assert compared >= 40
+
+
+def test_a_local_rig_with_hands_on_delivers_the_hands_after_the_targets() -> None:
+    body = keypoint_format("blazepose33").track_targets(SKELETON).names
+    on = DetectorConfig(landmarks="full", hands="on")
+    hands = detection_columns(on, body, remote=False)
+    assert hands[: len(body)] == body and hands[len(body) :] == HAND_COLUMNS[17:]
+    assert target_columns(on, hands).tolist() == list(range(75))  # blazepose33_hands: body, then both hands
+    # hands off, or a rig of camera hosts (their keypoint stream carries the body alone): the targets' columns
+    assert detection_columns(DetectorConfig(landmarks="full"), body, remote=False) == body
+    assert detection_columns(on, body, remote=True) == body
