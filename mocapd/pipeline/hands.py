@@ -110,6 +110,15 @@ class HandStage:
         columns = np.array([[where[n] for n in hand] for hand in wanted], dtype=np.intp)
         return cls(columns, projections, **kw)  # type: ignore[arg-type]
 
+    def swapped(self, pixels: FloatArray, confidences: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """A view's columns (n_columns, 2) and confidences (n_columns,) with the two hands' keypoints exchanged
+        (copies): the view's left/right labels were swapped (the scheduler's per-view flips)."""
+        left, right = self.columns
+        pixels, confidences = pixels.copy(), confidences.copy()
+        pixels[left], pixels[right] = pixels[right], pixels[left].copy()
+        confidences[left], confidences[right] = confidences[right], confidences[left].copy()
+        return pixels, confidences
+
     def solve(
         self,
         identity: str,

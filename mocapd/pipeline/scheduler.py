@@ -318,14 +318,16 @@ class FixedLatencyScheduler:
         self.fusion = fusion if fusion_mode != "solver" else None
         self.fusion_mode = fusion_mode
         self.mattes = mattes
-        #: the finger solve (:mod:`mocapd.pipeline.hands`) when the detections carry hand keypoints; None: hands off
+        #: the finger solve (:mod:`mocapd.pipeline.hands`) when the detections carry hand keypoints; None: off
         self.hands = hands
         self._tick_mattes: list[NDArray[np.float32] | None] | None = None  # read once per tick, when needed
         self._tick_t = 0
         self.kin = Kinematics(skeleton)
+        # every column of the detections (the hands' after the body's): a camera without a sample gets an empty one
+        columns = len(targets) if hands is None else max(len(targets), int(hands.columns.max()) + 1)
         self.timelines = [
             DetectionTimeline(
-                len(targets), max_age_ns=o.keypoint_max_age_ns, max_gap_ns=o.keypoint_max_gap_ns, match_px=o.match_px
+                columns, max_age_ns=o.keypoint_max_age_ns, max_gap_ns=o.keypoint_max_gap_ns, match_px=o.match_px
             )
             for _ in cameras
         ]
@@ -343,6 +345,10 @@ class FixedLatencyScheduler:
                          "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0,
                          "learned_observations": 0, "predictions_skipped": 0}  # fmt: skip
         self._lr_pairs = lr_pairs(list(getattr(targets, "names", ())))
+        # The hands follow the wrists' labels (the detector placed each hand's crop from its arm)
+        target_names = tuple(getattr(targets, "names", ()))
+        wrists = [p for p, (left, _) in enumerate(self._lr_pairs) if target_names[left] == "left_wrist"]
+        self._wrist_pair = wrists[0] if wrists else None
         self._projections = (np.stack([c.projection_matrix for c in cameras]) if cameras
                              else np.zeros((0, 3, 4)))  # fmt: skip
         self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
@@ -622,7 +628,10 @@ class FixedLatencyScheduler:
             kp[cam] = detections[cam].keypoints[idx, :n_kp]
             und[cam] = self._undistorted(cam, detections[cam])[idx, :n_kp]
             conf[cam] = np.clip(detections[cam].confidences[idx, :n_kp], 0.0, 1.0)
-        kp, und, conf = self._unflip(solver, kp, und, conf, len(person.detections))
+        views = None if self.hands is None else {
+            cam: (self._undistorted(cam, detections[cam])[idx], detections[cam].confidences[idx])
+            for cam, idx in person.detections.items()}  # fmt: skip
+        kp, und, conf = self._unflip(solver, kp, und, conf, len(person.detections), views)
         if self.observation_hook is not None and len(person.detections) >= 2:
             conf = self.observation_hook(t, und, conf)
         c1 = self._cpu()
@@ -659,9 +668,7 @@ class FixedLatencyScheduler:
             self._size_body(person, solver, und, conf)
         c3 = c4 = self._cpu()
         theta, hands = result.theta, None
-        if self.hands is not None:
-            views = {cam: (self._undistorted(cam, detections[cam])[idx], detections[cam].confidences[idx])
-                     for cam, idx in person.detections.items()}  # fmt: skip
+        if self.hands is not None and views is not None:
             hands, theta = self.hands.solve(person.identity, solver.skeleton, theta, views)
             c4 = self._cpu()
         with self._count_lock:
@@ -682,11 +689,19 @@ class FixedLatencyScheduler:
         )  # fmt: skip
 
     def _unflip(
-        self, solver: PoseSolver, kp: FloatArray, und: FloatArray, conf: FloatArray, views: int
+        self,
+        solver: PoseSolver,
+        kp: FloatArray,
+        und: FloatArray,
+        conf: FloatArray,
+        views: int,
+        hand_views: dict[int, tuple[FloatArray, FloatArray]] | None = None,
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """The person's keypoints with each view's left/right labels as the views agree on them
         (:mod:`mocapd.core.lr_flips`); which of the mirror labellings is right comes from the previous solve.
-        ``und``: the same keypoints undistorted."""
+        ``und``: the same keypoints undistorted. ``hand_views`` (camera -> every column's undistorted pixels and
+        confidences, for the finger solve): a view whose wrists are swapped gets its two hands swapped too, in
+        place."""
         o = self.options.flips
         if not o.enabled or not self._lr_pairs or views < 2:
             return kp, und, conf
@@ -703,6 +718,10 @@ class FixedLatencyScheduler:
             return kp, und, conf
         kp, swapped_conf = apply_swaps(kp, conf, decision.swaps, self._lr_pairs)
         und, _ = apply_swaps(und, conf, decision.swaps, self._lr_pairs)
+        if hand_views is not None and self.hands is not None and self._wrist_pair is not None:
+            for cam in np.flatnonzero(decision.swaps[:, self._wrist_pair]):
+                if int(cam) in hand_views:
+                    hand_views[int(cam)] = self.hands.swapped(*hand_views[int(cam)])
         return kp, und, swapped_conf
 
     def _undistorted(self, camera: int, dets: Detections2D) -> FloatArray:

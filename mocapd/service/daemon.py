@@ -56,6 +56,7 @@ from mocapd.pipeline.camera_watch import LiveCameraWatch
 from mocapd.pipeline.detector_pool import landmark_fronts
 from mocapd.pipeline.fusion import FusionModels, FusionStage
 from mocapd.pipeline.governor import Governor, ladder
+from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.keypoint_source import KeypointSource
 from mocapd.pipeline.landmark_auto import LandmarkFront, has_auto, shed_landmarks, status_field
 from mocapd.pipeline.mattes import MatteSource, RingMattes
@@ -115,6 +116,14 @@ class Rig:
     targets: TrackTargets
     prior: PcaPrior | None = None
     suits: list[Suit] = field(default_factory=list)
+    keypoint_names: tuple[str, ...] = ()
+    """The detections' columns when they go beyond the targets' (both hands' keypoints after the body's, ``[detector]
+    hands``); empty: the targets' names."""
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The names of the detections' keypoint columns (the targets' first)."""
+        return self.keypoint_names or self.targets.names
 
 
 def build_fusion(config: Config, rig: Rig, mattes: MatteSource | None) -> FusionStage | None:
@@ -262,7 +271,8 @@ class Daemon:
         self.status_line_extras: list[Callable[[], str]] = []
         tracker = PeopleTracker(
             SubjectTracker(
-                DetectionSorter(rig.cameras, config.tracking.sorting.options(), keypoint_names=rig.targets.names),
+                # every column's name: the flip-aware matching pairs left and right (the hands' too, when they come)
+                DetectionSorter(rig.cameras, config.tracking.sorting.options(), keypoint_names=rig.columns),
                 config.tracking.enrolment.options(),
             ),
             SuitBinder(rig.skeleton, config.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
@@ -284,6 +294,10 @@ class Daemon:
             fusion=fusion,
             fusion_mode=config.fusion.mode,
             mattes=mattes,
+            # Fingers when the detector delivers both hands' keypoints (``[detector] hands``); else nothing of it runs.
+            hands=HandStage.from_names(rig.columns, np.stack([c.projection_matrix for c in rig.cameras]))
+            if rig.cameras
+            else None,
         )
         watch = config.calibration.watch
         #: the bumped-camera watch (None: ``[calibration.watch] enabled = false`` or fewer than three cameras)
@@ -322,6 +336,8 @@ class Daemon:
         self.ready = asyncio.Event()
         self._stop = asyncio.Event()
         self._rate_window: list[int] = []  # tick times of the last second, for the achieved rate
+        #: with fingers on: each published frame of the last second, its time and who had which hand solved
+        self._hand_window: list[tuple[int, dict[str, tuple[bool, bool]]]] = []
         self.stopping = False
         self._startup_error: StartupError | None = None
         #: run() installs SIGINT/SIGTERM/SIGHUP handlers (False: the caller owns signals, see lifecycle.stop_event)
@@ -635,6 +651,11 @@ class Daemon:
             published = self.clock()
             self.scheduler.record_publish(frame, w0, c0, published)
             self._rate_window = [t for t in self._rate_window if t > published - 1_000_000_000] + [published]
+            if self.scheduler.hands is not None:
+                seen = {p.identity: (bool(p.hands.present[0]), bool(p.hands.present[1]))
+                        for p in frame.people if p.hands is not None}  # fmt: skip
+                self._hand_window = [w for w in self._hand_window if w[0] > published - 1_000_000_000]
+                self._hand_window.append((published, seen))
             if watchdog_every is not None and published - last_ping > watchdog_every * 1e9:
                 self.notifier.notify("WATCHDOG=1")
                 last_ping = published
@@ -820,6 +841,7 @@ class Daemon:
             "latency_histograms": latency_snapshot(self.scheduler.latency),
             "cpu_s": s["cpu_s"],
             "person_cpu_ms": s["person_cpu_ms"],
+            "hands": self.hand_status(),
             "governor": None if self.governor is None else self.governor.status(),
             "solve_threads": self.solve_threads,
             "counters": s["counters"],
@@ -862,6 +884,22 @@ class Daemon:
                 ],
             },
         }  # fmt: skip
+
+    def hand_status(self) -> dict[str, Any] | None:
+        """The finger solve in ``/status`` (None: hands off, the detections carry no hand keypoints): per person the
+        hands solved per second over the last second (the output rate when a hand is solved every tick), the
+        stage's counters and its CPU per person and tick (both hands). The hand landmark model's rates per camera
+        are in ``detector.hands``."""
+        stage = self.scheduler.hands
+        if stage is None:
+            return None
+        rates: dict[str, dict[str, int]] = {}
+        for _, seen in self._hand_window:
+            for identity, (left, right) in seen.items():
+                r = rates.setdefault(identity, {"left_hz": 0, "right_hz": 0})
+                r["left_hz"] += left
+                r["right_hz"] += right
+        return {"people": rates, "counters": dict(stage.counters), "cpu_ms": stage.cpu.summary()}
 
     def metrics(self) -> str:
         """The /metrics document (Prometheus text format 0.0.4) of the daemon's state now."""

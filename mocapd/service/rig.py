@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mocapd.core.camera import Camera
-from mocapd.core.keypoints import keypoint_format
+from mocapd.core.keypoints import hand_keypoint_names, keypoint_format
 from mocapd.core.prior import PcaPrior
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.synthetic import named_ring_rig
@@ -39,6 +39,7 @@ from mocapd.io.prior import resolve_prior
 from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
 from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileSource
 from mocapd.pipeline.clocksync import ClockSync
+from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource, KeypointSource
 from mocapd.pipeline.keypoint_tracker import KeypointTracker
@@ -233,6 +234,15 @@ def rig_skeleton(config: Config) -> Skeleton:
     return config.imu.body.spec().skeleton()
 
 
+def detection_columns(cfg: DetectorConfig, targets: tuple[str, ...], remote: bool) -> tuple[str, ...]:
+    """The keypoint columns the rig's detections carry: the track targets', then both hands' 21 keypoints when the
+    hand landmark model runs (``[detector] hands``: the scheduler's finger solve takes them). A rig with camera
+    hosts keeps the targets' alone: the hosts' keypoint stream carries the body's columns only."""
+    if remote or not cfg.hands_decision()[0]:
+        return targets
+    return targets + hand_keypoint_names("left") + hand_keypoint_names("right")
+
+
 def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.monotonic_ns) -> BuiltRig:
     """Make the rig's sources (blocking: loads the detector model and the prior; starts simulated devices)."""
     prior = resolve_prior(config.solver.prior)
@@ -252,9 +262,10 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
     remote = RemoteRig(config.zenoh, remote_hosts, cameras=by_host, clock=clock) if remote_hosts else None
     detector_config = config.detector.options()
     detector: AnyDetector | None = None
+    names = detection_columns(detector_config, targets.names, bool(remote_hosts))
     if local:  # a rig of camera hosts only runs no detector here: the hosts run it
         sizes = [(c.width, c.height) for c in plan.cameras]
-        columns = target_columns(detector_config, targets.names)
+        columns = target_columns(detector_config, names)
         detector = make_detector(detector_config, sizes, columns, config.daemon.detector_nice)
     sources: list[KeypointSource] = []
     tracking = detector_config.tracking
@@ -280,7 +291,7 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
             clk = ClockSync(tick_hz=1e9, wrap_bits=64) if isinstance(cam, AravisCamera | UvcCamera) else None
             # Keypoints between detections: one tracker per camera, on its capture thread or on the pool.
             size = (calibrated.width, calibrated.height)
-            tracker = KeypointTracker(len(targets), tracking, targets.names, size) if track else None
+            tracker = KeypointTracker(len(names), tracking, names, size) if track else None
             if isinstance(detector, PackedDetectionGroup):
                 sources.append(PackedKeypointSource(i, capture, detector, device_clock=clk, clock=clock,
                                                     tracker=tracker, tracking_pool=pool))  # fmt: skip
@@ -295,7 +306,7 @@ def build_rig(config: Config, plan: RigPlan, clock: Callable[[], int] = time.mon
         if pool is not None:
             pool.shutdown(wait=False)
         raise
-    rig = Rig(plan.cameras, sources, skeleton, targets, prior, suits)
+    rig = Rig(plan.cameras, sources, skeleton, targets, prior, suits, names if names != targets.names else ())
     return BuiltRig(rig, config.imu, captures, detector, remote=remote, tracking_pool=pool)
 
 

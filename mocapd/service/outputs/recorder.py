@@ -232,6 +232,8 @@ def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | Non
                      "height": rig.skeleton.height, "from": _skeleton_source(config)},
         "targets": {"names": list(rig.targets.names), "bones": rig.targets.bones.tolist(),
                     "offsets": rig.targets.offsets.tolist()},
+        # The detections' columns when they go beyond the targets' (both hands' keypoints: `resolve` solves fingers)
+        **({"keypoint_columns": list(rig.keypoint_names)} if rig.keypoint_names else {}),
         "prior": "prior.npz" if rig.prior is not None else None,
         "suits": [{"id": s.id, "sensors": list(s.sensors), "calibration": s.calibration.to_json_dict()}
                   for s in rig.suits],

@@ -59,6 +59,7 @@ from mocapd.errors import ConfigError, InputError, MocapdError, ModelError
 from mocapd.io.input_files import open_input
 from mocapd.io.session import MANIFEST, Session
 from mocapd.pipeline.clocksync import offline_clock_map
+from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.imu_ingest import TICK_HZ, ImuIngest
 from mocapd.pipeline.scheduler import FixedLatencyScheduler, SchedulerOptions, Suit
 from mocapd.protocols.session_format import ImuRecord, PersonRecord, PoseRecord
@@ -108,6 +109,8 @@ class SessionRig:
     prior: PcaPrior | None
     suits: list[Suit]
     options: SchedulerOptions
+    keypoint_columns: tuple[str, ...] = ()
+    """The recorded detections' columns when they go beyond the targets' (hand keypoints); empty: the targets'."""
 
 
 def session_rig(session: Session) -> SessionRig:
@@ -195,7 +198,10 @@ def _session_rig(session: Session, prior: PcaPrior | None) -> SessionRig:
         # sessions from before it existed: it only ever uses the session's own keypoints and IMUs).
         heading=HeadingOptions(enabled=bool(s.get("heading_correction", True))),
     )  # fmt: skip
-    return SessionRig(config, cameras, skeleton, targets, prior, suits, options)
+    columns = m.get("keypoint_columns", [])
+    if not isinstance(columns, list) or not all(isinstance(n, str) for n in columns):
+        raise InputError("keypoint_columns: not a list of keypoint names")
+    return SessionRig(config, cameras, skeleton, targets, prior, suits, options, tuple(columns))
 
 
 def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencyScheduler, ImuIngest]:
@@ -206,7 +212,9 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
     ingest.keep(sid for suit in rig.suits for sid in suit.sensors)
     tracker = PeopleTracker(
         SubjectTracker(
-            DetectionSorter(rig.cameras, cfg.tracking.sorting.options(), keypoint_names=rig.targets.names),
+            DetectionSorter(
+                rig.cameras, cfg.tracking.sorting.options(), keypoint_names=rig.keypoint_columns or rig.targets.names
+            ),
             cfg.tracking.enrolment.options(),
         ),
         SuitBinder(rig.skeleton, cfg.tracking.binding.options(), names=rig.targets.names) if rig.suits else None,
@@ -214,6 +222,9 @@ def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencySched
     sched = FixedLatencyScheduler(
         rig.cameras, rig.skeleton, rig.targets, tracker, prior=rig.prior, ingest=ingest, suits=rig.suits,
         options=rig.options, cost=cfg.solver.cost, lm=lm, backend=cfg.solver.backend,
+        # Fingers when the recorded detections carry both hands' keypoints (as the live daemon solved them)
+        hands=HandStage.from_names(rig.keypoint_columns or rig.targets.names,
+                                   np.stack([c.projection_matrix for c in rig.cameras])) if rig.cameras else None,
     )  # fmt: skip
     return sched, ingest
 
