@@ -17,6 +17,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core._kernel import cholesky_solve
+
 FloatArray = NDArray[np.float64]
 
 
@@ -261,38 +263,6 @@ def evaluate(
 
 
 @nb.njit(cache=True)
-def _cholesky_solve(A: FloatArray, b: FloatArray) -> tuple[FloatArray, bool]:
-    """x with A x = b for symmetric positive definite A (n small); False when A is not."""
-    n = A.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        d = A[j, j]
-        for k in range(j):
-            d -= L[j, k] * L[j, k]
-        if not d > 0.0:
-            return np.zeros(n), False
-        L[j, j] = math.sqrt(d)
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / L[j, j]
-    y = np.empty(n)
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= L[i, k] * y[k]
-        y[i] = s / L[i, i]
-    x = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        s = y[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
-    return x, True
-
-
-@nb.njit(cache=True)
 def solve_lm(
     angles: FloatArray,
     rotation: FloatArray,
@@ -334,7 +304,7 @@ def solve_lm(
             for j in range(npar):
                 damped[i, j] = JtJ[i, j]
             damped[i, i] += lam * (JtJ[i, i] + 1e-9)
-        step, ok = _cholesky_solve(damped, -g)
+        step, ok = cholesky_solve(damped, -g)
         if not ok:
             lam *= 4.0
             if lam > 1e6:

@@ -520,6 +520,39 @@ def evaluate(
 
 
 @nb.njit(cache=True)
+def cholesky_solve(A: FloatArray, b: FloatArray) -> tuple[FloatArray, bool]:
+    """x with A x = b for symmetric positive definite A (n small); False when A is not (the body's LM step and
+    the hand solve's, :mod:`mocapd.core._hand_kernel`)."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return np.zeros(n), False
+        L[j, j] = math.sqrt(d)
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / L[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    x = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return x, True
+
+
+@nb.njit(cache=True)
 def lm_step(
     H: FloatArray, g: FloatArray, radius: float, min_diag: float, max_diag: float
 ) -> tuple[FloatArray, float, bool]:
@@ -533,31 +566,9 @@ def lm_step(
     A = H.copy()
     for i in range(n):
         A[i, i] += min(max(H[i, i], min_diag), max_diag) / radius
-    L = np.zeros((n, n))
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return np.zeros(n), 0.0, False
-        L[j, j] = math.sqrt(s)
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / L[j, j]
-    y = np.empty(n)
-    for i in range(n):
-        s = -g[i]
-        for k in range(i):
-            s -= L[i, k] * y[k]
-        y[i] = s / L[i, i]
-    x = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        s = y[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
+    x, ok = cholesky_solve(A, -g)
+    if not ok:
+        return np.zeros(n), 0.0, False
     red = 0.0
     for i in range(n):
         hx = 0.0
