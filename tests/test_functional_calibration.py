@@ -180,6 +180,13 @@ def test_the_routine_says_each_step_and_calibrates_from_what_it_saw() -> None:
     assert routine.step == "done" and routine.calibration is not None
     assert routine.calibration.facing_heading_deg == pytest.approx(180.0, abs=2.0)
     assert set(routine.calibration.hinge_misfit_deg) == {s for s, b in bones.items() if "Arm" in b or "Leg" in b}
+    # the walk's stances looked at gravity for the trunk and legs: the trunk's (upright here) used, each with its misfit
+    stances = routine.report["stance_gravity"]
+    assert isinstance(stances, dict)
+    trunk = {s for s, b in bones.items() if b in ("Hips", "Spine3")}
+    assert all(stances[s]["used"] and stances[s]["stances"] >= 4 for s in trunk), stances
+    assert set(routine.calibration.gravity_misfit_deg) == {s for s, b in bones.items() if b in ("Hips", "Spine3")
+                                                            or b.endswith(("UpperLeg", "LowerLeg"))}  # fmt: skip
 
 
 def test_the_routine_fails_naming_the_step_not_done() -> None:

@@ -11,8 +11,9 @@ What the wearer does, in order, and what the routine says at each step (docs/imu
 3. **elbows**: bend both elbows a few times, palms facing in, upper arms still; done when each elbow has bent past
    :data:`ELBOW_BENT_DEG` and straightened again ``bends`` times;
 4. **done**: the calibration from the stand, the facing from the steps, the mountings refined by the knees' and
-   elbows' axes (:func:`mocapd.core.functional_calibration.refine_mountings`); or **failed** with the reason (a step
-   not done within ``step_timeout_s``, a facing the steps could not give, a still window refused).
+   elbows' axes (:func:`mocapd.core.functional_calibration.refine_mountings`) and by gravity in the walk's stances
+   (:func:`mocapd.core.stance_calibration.refine_from_stances`, where consistent); or **failed** with the reason (a
+   step not done within ``step_timeout_s``, a facing the steps could not give, a still window refused).
 
 A step the suit cannot do is skipped (no thigh and shank on either leg: no walking, and the facing must be given;
 no upper arm and forearm: no elbows).
@@ -40,6 +41,7 @@ from mocapd.core.imu_calibration import (
     window_samples,
 )
 from mocapd.core.rotations import quat_angle, quat_conjugate, quat_multiply
+from mocapd.core.stance_calibration import refine_from_stances
 from mocapd.errors import CalibrationError, ConfigError
 
 FloatArray = NDArray[np.float64]
@@ -285,9 +287,11 @@ class CalibrationRoutine:
             self._fail(now_s, str(exc))
             return
         refined = refine_from_recording(calib, samples, window)
-        self.calibration = refined.calibration
+        by_stances = refine_from_stances(refined.calibration, samples, window)
+        self.calibration = by_stances.calibration
         self.report = {"facing_heading_deg": round(heading, 1), "window_s": [round(v, 2) for v in window],
-                       "hinge_axes": refined.hinges, **self.calibration.summary()}  # fmt: skip
+                       "hinge_axes": refined.hinges, "stance_gravity": by_stances.sensors,
+                       **self.calibration.summary()}  # fmt: skip
         worst = self.calibration.summary()["worst"]
         tail = f", worst residual {worst['residual_deg']} deg ({worst['bone']})" if isinstance(worst, dict) else ""
         self._say(now_s, f"done: facing {heading:.0f} deg from the steps{tail}")

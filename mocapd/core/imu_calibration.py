@@ -363,6 +363,9 @@ class ImuCalibration:
     hinge_misfit_deg: dict[str, float] = field(default_factory=dict)
     """Sensor id -> how far its bone's hinge (knee, elbow) strays from one axis over the motion that refined its
     mounting (degrees, :mod:`mocapd.core.functional_calibration`); absent for a mounting from the still window only."""
+    gravity_misfit_deg: dict[str, float] = field(default_factory=dict)
+    """Sensor id -> how far gravity in a walk's stances strays from what its mounting says (RMS over the stances,
+    degrees, :mod:`mocapd.core.stance_calibration`); absent for a sensor without stances (no walk, arms, feet)."""
 
     def summary(self) -> dict[str, object]:
         """What /status and the console say of this calibration: the posture it found (its hint and angles,
@@ -378,18 +381,26 @@ class ImuCalibration:
                 entry["mount_residual_deg"] = round(self.residual_deg[sid], 1)
             if sid in self.hinge_misfit_deg:
                 entry["hinge_misfit_deg"] = round(self.hinge_misfit_deg[sid], 1)
+            if sid in self.gravity_misfit_deg:
+                entry["gravity_misfit_deg"] = round(self.gravity_misfit_deg[sid], 1)
             sensors[sid] = entry
-        residual = {sid: max(self.residual_deg.get(sid, 0.0), self.hinge_misfit_deg.get(sid, 0.0))
-                    for sid in self.q_ib if sid in self.residual_deg or sid in self.hinge_misfit_deg}  # fmt: skip
+        residual = self.residuals()
         worst = max(residual, key=lambda k: residual[k], default=None)
         return {
             "pose_hint": self.pose_hint,
             "posture_deg": dict(self.posture),
             "functional": bool(self.hinge_misfit_deg),
+            "stances": bool(self.gravity_misfit_deg),
             "sensors": sensors,
             "worst": None if worst is None else {"sensor": worst, "bone": self.bones[worst],
                                                  "residual_deg": round(residual[worst], 1)},
         }  # fmt: skip
+
+    def residuals(self) -> dict[str, float]:
+        """Sensor id -> its largest residual (degrees): mounting, hinge misfit or gravity misfit, for the sensors
+        that have one."""
+        kinds = (self.residual_deg, self.hinge_misfit_deg, self.gravity_misfit_deg)
+        return {sid: max(k.get(sid, 0.0) for k in kinds) for sid in self.q_ib if any(sid in k for k in kinds)}
 
     def device_heading_quats(self) -> dict[str, FloatArray]:
         """Sensor id -> ``Rz(δ)`` (4,), to apply to that sensor's device-frame samples before Eq. 8."""
@@ -415,6 +426,11 @@ class ImuCalibration:
                     **(
                         {"hinge_misfit_deg": round(self.hinge_misfit_deg[sid], 2)}
                         if sid in self.hinge_misfit_deg
+                        else {}
+                    ),
+                    **(
+                        {"gravity_misfit_deg": round(self.gravity_misfit_deg[sid], 2)}
+                        if sid in self.gravity_misfit_deg
                         else {}
                     ),
                     **({"device_heading_deg": self.device_heading_deg[sid]} if sid in self.device_heading_deg else {}),
@@ -460,6 +476,11 @@ class ImuCalibration:
                     sid.upper(): _finite_float(s["hinge_misfit_deg"], f"{sid} hinge_misfit_deg")
                     for sid, s in sensors.items()
                     if "hinge_misfit_deg" in s
+                },
+                gravity_misfit_deg={
+                    sid.upper(): _finite_float(s["gravity_misfit_deg"], f"{sid} gravity_misfit_deg")
+                    for sid, s in sensors.items()
+                    if "gravity_misfit_deg" in s
                 },
             )
         except (KeyError, TypeError, ValueError, AssertionError) as exc:

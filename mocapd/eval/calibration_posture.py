@@ -59,6 +59,7 @@ from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import quat_angle, quat_from_matrix, quat_from_rotvec, quat_multiply
 from mocapd.core.skeleton import BONE_INDEX, BONE_NAMES, Skeleton
 from mocapd.core.solver import PoseSolver
+from mocapd.core.stance_calibration import refine_from_stances
 from mocapd.eval.ground_optical import hip_flexion
 from mocapd.eval.ground_real import calibrated_observations
 
@@ -74,14 +75,25 @@ CLIPS = (
     "mocap/bandai/dataset-1_bow_normal_001.bvh",
 )
 """Development-split clips (``mocapd/data/eval_splits.toml``): a CMU walk, a walk, a wave, a guiding gesture, a bow."""
+WALKS = (
+    "mocap/cmu/131_02.bvh",
+    "mocap/bandai/dataset-1_walk_normal_001.bvh",
+    "mocap/bandai/dataset-1_walk_happy_001.bvh",
+    "mocap/bandai/dataset-1_walk-back_normal_001.bvh",
+    "mocap/bandai/dataset-1_walk-left_normal_001.bvh",
+    "mocap/bandai/dataset-1_walk-right_normal_001.bvh",
+)
+"""The development split's walks (``--clip WALKS``): the takes with stances, for gravity from stances."""
 METHODS = {
-    "before: T-pose assumed": ("t-pose", False, False),
-    "after: --pose a-pose (estimated)": ("a-pose", True, False),
-    "after: --pose t-pose (estimated)": ("t-pose", True, False),
-    "after: --pose a-pose + hinge axes from the motion": ("a-pose", True, True),
+    "before: T-pose assumed": ("t-pose", False, False, False),
+    "after: --pose a-pose (estimated)": ("a-pose", True, False, False),
+    "after: --pose t-pose (estimated)": ("t-pose", True, False, False),
+    "after: --pose a-pose + hinge axes from the motion": ("a-pose", True, True, False),
+    "after: --pose a-pose + hinge axes + gravity from stances": ("a-pose", True, True, True),
 }
 """Label -> (posture hint, posture estimated from the still window, mountings refined by the take's hinge axes:
-:func:`mocapd.core.functional_calibration.refine_mountings`, what ``calibrate imu --from`` does with a take)."""
+:func:`mocapd.core.functional_calibration.refine_mountings`, and by gravity in its stances:
+:func:`mocapd.core.stance_calibration.refine_from_stances`; what ``calibrate imu --from`` does with a take)."""
 GROUPS = {
     "legs": [b for b in BONE_NAMES if "Leg" in b or "Foot" in b or "Toes" in b],
     "trunk_head": ["Spine", "Spine1", "Spine2", "Spine3", "Neck", "Head"],
@@ -89,22 +101,33 @@ GROUPS = {
 }
 
 
-def realistic_posture(skeleton: Skeleton, rng: np.random.Generator) -> tuple[FloatArray, dict[str, float]]:
-    """θ (66,) of a still standing posture drawn from the realistic ranges, and its angles (degrees)."""
+def realistic_posture(
+    skeleton: Skeleton, rng: np.random.Generator, sway_deg: float = 0.0
+) -> tuple[FloatArray, dict[str, float]]:
+    """θ (66,) of a still standing posture drawn from the realistic ranges, and its angles (degrees).
+
+    ``sway_deg`` > 0 also leans the body forward or back as people stand (each drawn in ±``sway_deg`` about the
+    left-right axis): the pelvis, the trunk (sternum and head) and each leg (its hip ahead of or behind its ankle, the
+    foot flat), what the still window's priors take for upright (:mod:`mocapd.core.stance_calibration`)."""
     theta = skeleton.rest_pose()
     truth: dict[str, float] = {}
+    pelvis, trunk = rng.uniform(-sway_deg, sway_deg, 2) if sway_deg > 0 else (0.0, 0.0)
 
     def turn(bone: str, rotvec_deg: tuple[float, float, float]) -> None:
         i = 3 + 3 * BONE_INDEX[bone]
         theta[i : i + 3] = np.radians(rotvec_deg)
 
+    if sway_deg > 0:
+        turn("Hips", (float(pelvis), 0.0, 0.0))
+        turn("Spine", (float(trunk - pelvis), 0.0, 0.0))
     for side, s in (("Left", 1.0), ("Right", -1.0)):
         drop, elbow, knee = rng.uniform(15.0, 35.0), rng.uniform(10.0, 30.0), rng.uniform(0.0, 10.0)
+        lean = float(rng.uniform(-sway_deg, sway_deg)) if sway_deg > 0 else 0.0
         turn(f"{side}UpperArm", (0.0, 0.0, -s * drop))
         turn(f"{side}LowerArm", (0.0, -s * elbow, 0.0))
-        turn(f"{side}UpperLeg", (-knee / 2, 0.0, 0.0))
+        turn(f"{side}UpperLeg", (-knee / 2 + lean - float(pelvis), 0.0, 0.0))
         turn(f"{side}LowerLeg", (knee, 0.0, 0.0))
-        turn(f"{side}Foot", (-knee / 2, 0.0, 0.0))
+        turn(f"{side}Foot", (-knee / 2 - lean, 0.0, 0.0))
         truth |= {f"{side.lower()}_upper_arm_drop": drop, f"{side.lower()}_elbow_bend": elbow,
                   f"{side.lower()}_knee_bend": knee}  # fmt: skip
     return theta, truth
@@ -132,7 +155,7 @@ def mounting_errors(calib: ImuCalibration, true_mounts: dict[str, FloatArray]) -
 
 
 def simulate_take(
-    skeleton: Skeleton, motion: FloatArray, rng: np.random.Generator
+    skeleton: Skeleton, motion: FloatArray, rng: np.random.Generator, sway_deg: float = 0.0
 ) -> tuple[
     dict[str, tuple[FloatArray, FloatArray, FloatArray]],
     dict[str, str],
@@ -142,7 +165,7 @@ def simulate_take(
 ]:
     """Samples per sensor (t, q, acc), the assignment, the truth θ (n, 66), the posture's angles and the sensors'
     true mountings (4,)."""
-    posture, angles = realistic_posture(skeleton, rng)
+    posture, angles = realistic_posture(skeleton, rng, sway_deg)
     posture[:3] = [motion[0, 0], motion[0, 1], motion[0, 2]]
     still = np.repeat(posture[None], round(STILL_S * FPS), axis=0)
     w = np.linspace(0.0, 1.0, round(BLEND_S * FPS))[:, None]
@@ -193,18 +216,26 @@ def measure(theta: FloatArray, truth: FloatArray, skeleton: Skeleton) -> dict[st
     return out
 
 
-def run(seconds: float, seed: int, data_root: Path, prior: PcaPrior | None) -> dict[str, Any]:
+def run(
+    seconds: float,
+    seed: int,
+    data_root: Path,
+    prior: PcaPrior | None,
+    sway_deg: float = 0.0,
+    clips: tuple[str, ...] = CLIPS,
+) -> dict[str, Any]:
     from mocapd.eval.data import load_clip
 
     rng = np.random.default_rng(seed)
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in METHODS}
     posture_err: dict[str, list[float]] = {m: [] for m in METHODS}
-    for path in CLIPS:
+    for path in clips:
         clip = load_clip(data_root / path, FPS)
         motion = clip.theta[: round(seconds * FPS)]
-        samples, bones, truth, angles, true_mounts = simulate_take(clip.skeleton, motion, rng)
+        samples, bones, truth, angles, true_mounts = simulate_take(clip.skeleton, motion, rng, sway_deg)
         hinge_rows: dict[str, Any] = {}
-        for label, (pose, estimate, functional) in METHODS.items():
+        stance_rows: dict[str, Any] = {}
+        for label, (pose, estimate, functional, stances) in METHODS.items():
             calib, window = calibrate_recording("sim", samples, bones, facing_heading_deg=0.0, span=(0.0, STILL_S),
                                                 window_s=1.0, pose=pose, estimate_posture=estimate)  # fmt: skip
             if functional:
@@ -213,6 +244,9 @@ def run(seconds: float, seed: int, data_root: Path, prior: PcaPrior | None) -> d
                 refined = refine_mountings(calib, orientations,
                                            still_orientations(orientations, window_samples(t, *window)))  # fmt: skip
                 calib, hinge_rows = refined.calibration, refined.hinges
+            if stances:
+                by_stances = refine_from_stances(calib, samples, window)
+                calib, stance_rows = by_stances.calibration, by_stances.sensors
             if not estimate:  # the posture as the exact hint took it
                 hint = rest_orientations(pose) or {}
                 calib_angles = posture_angles({b: hint.get(b, np.array([1.0, 0, 0, 0])) for b in BONE_NAMES})
@@ -225,15 +259,18 @@ def run(seconds: float, seed: int, data_root: Path, prior: PcaPrior | None) -> d
             theta = np.array([solver.solve(o).theta for o in obs])
             row = {"clip": Path(path).stem, **measure(theta, truth, clip.skeleton),
                    **{f"mount_{k}_deg": v for k, v in mounting_errors(calib, true_mounts).items()}}  # fmt: skip
-            rows[label].append(row | ({"hinges": hinge_rows} if functional else {}))
+            rows[label].append(
+                row | ({"hinges": hinge_rows} if functional else {}) | ({"stances": stance_rows} if stances else {})
+            )
     summary = {}
     for label, rs in rows.items():
-        keys = [k for k in rs[0] if k not in ("clip", "hinges")]
+        keys = [k for k in rs[0] if k not in ("clip", "hinges", "stances")]
         pe = np.array(posture_err[label])
         summary[label] = {k: round(float(np.mean([r[k] for r in rs])), 1) for k in keys} | {
             "posture_error_rms_deg": round(float(np.sqrt(np.mean(pe**2))), 1)
         }
-    return {"clips": list(CLIPS), "seconds": seconds, "seed": seed, "summary": summary, "per_clip": rows}
+    return {"clips": list(clips), "seconds": seconds, "seed": seed, "sway_deg": sway_deg, "summary": summary,
+            "per_clip": rows}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -244,9 +281,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=8.0, help="seconds of each clip after the calibration (default 8)")
     p.add_argument("--seed", type=int, default=42)
     p.add_argument("--data-root", type=Path, default=None)
+    p.add_argument("--sway", type=float, default=0.0, metavar="DEG",
+                   help="also lean the pelvis, the trunk and each leg in the still posture by up to DEG forward or "
+                   "back (default 0: upright, as the still window's priors assume)")  # fmt: skip
+    p.add_argument("--clip", action="append", default=None, metavar="PATH",
+                   help="a development-split clip under the data root (repeatable; default: the five of CLIPS; "
+                   "WALKS: the development walks, for gravity from stances)")  # fmt: skip
     args = p.parse_args(argv)
+    clips = tuple(c for spec in (args.clip or list(CLIPS)) for c in (WALKS if spec == "WALKS" else (spec,)))
     load0, t0 = os.getloadavg(), time.perf_counter()
-    out = run(args.seconds, args.seed, args.data_root or default_data_root(), resolve_prior("default"))
+    root = args.data_root or default_data_root()
+    out = run(args.seconds, args.seed, root, resolve_prior("default"), args.sway, clips)
     out["machine"] = {"cpus": os.cpu_count(), "seconds": round(time.perf_counter() - t0, 1),
                       "loadavg_start": [round(x, 2) for x in load0]}  # fmt: skip
     print(json.dumps(out, indent=2))

@@ -77,8 +77,7 @@ def calibration_line(suit: Suit) -> str:
     posture = ", ".join(f"{k.replace('_', ' ')} {v:g}" for k, v in calib.posture.items())
     line = f"suit {suit.id}: calibrated with the {calib.pose_hint} hint"
     line += f" (posture found, deg: {posture})" if posture else ""
-    residuals = [max(calib.residual_deg.get(s, 0.0), calib.hinge_misfit_deg.get(s, 0.0)) for s in calib.q_ib
-                 if s in calib.residual_deg or s in calib.hinge_misfit_deg]  # fmt: skip
+    residuals = list(calib.residuals().values())
     worst = summary["worst"]
     if not residuals or not isinstance(worst, dict):
         return line + "; no mounting residuals in its file"
@@ -86,6 +85,10 @@ def calibration_line(suit: Suit) -> str:
              f"deg ({worst['sensor']}, {worst['bone']})")  # fmt: skip
     if calib.hinge_misfit_deg:
         line += f"; hinge axes from motion for {len(calib.hinge_misfit_deg)} sensors"
+    if calib.gravity_misfit_deg:
+        worst_g = max(calib.gravity_misfit_deg, key=lambda s: calib.gravity_misfit_deg[s])
+        line += (f"; gravity from stances for {len(calib.gravity_misfit_deg)} sensors (misfit worst "
+                 f"{calib.gravity_misfit_deg[worst_g]:.1f} deg, {calib.bones[worst_g]})")  # fmt: skip
     if float(worst["residual_deg"]) > RESIDUAL_NOTE_DEG:
         line += f": above {RESIDUAL_NOTE_DEG:g} deg, check how that sensor sits and calibrate again"
     return line

@@ -402,6 +402,8 @@ def _write_and_say(calib: ImuCalibration, out: Path, replacing: bool) -> int:
     for sid, bone in calib.bones.items():
         own = f"  heading reset {calib.device_heading_deg[sid]:+.1f} deg" if sid in calib.device_heading_deg else ""
         hinge = f"  hinge misfit {calib.hinge_misfit_deg[sid]:.1f} deg" if sid in calib.hinge_misfit_deg else ""
+        if sid in calib.gravity_misfit_deg:
+            hinge += f"  gravity misfit {calib.gravity_misfit_deg[sid]:.1f} deg"
         print(f"{sid} {bone:14s} still within {calib.spread_deg[sid]:.2f} deg  mounting residual "
               f"{calib.residual_deg.get(sid, float('nan')):.1f} deg{hinge}{own}")  # fmt: skip
     print(f"posture ({calib.pose_hint} hint): " + ", ".join(f"{k.replace('_', ' ')} {v:g} deg"

@@ -229,7 +229,9 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
                 "mount_residual_deg": {s: round(v, 1) for s, v in calib.residual_deg.items()},
                 "hinges": {name: h.as_dict() for name, h in result.hinges.items()},
                 "hinge_misfit_deg": {s: round(v, 1) for s, v in calib.hinge_misfit_deg.items()},
-                "hinge_axes": result.functional}  # fmt: skip
+                "hinge_axes": result.functional,
+                "gravity_misfit_deg": {s: round(v, 1) for s, v in calib.gravity_misfit_deg.items()},
+                "stance_gravity": result.stances}  # fmt: skip
         store_in_session(session, suit, calib, info)
         write_text_atomic(out, json.dumps(calib.to_json_dict(), indent=2) + "\n")
     except OutputError as exc:  # a path that cannot be written: an argument error, as argparse's (exit 2)
@@ -248,6 +250,8 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
                       "mount_residual_deg": {s: round(v, 1) for s, v in calib.residual_deg.items()},
                       "hinge_axes": result.functional,
                       "hinge_misfit_deg": info["hinge_misfit_deg"],
+                      "stance_gravity": result.stances,
+                      "gravity_misfit_deg": info["gravity_misfit_deg"],
                       "next": f"mocapd resolve {session.path}"}, indent=2))  # fmt: skip
     return 0
 

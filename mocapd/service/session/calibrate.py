@@ -23,8 +23,9 @@ bending backwards, while every later command succeeds. The refusal names the opp
 one makes them bend the right way.
 
 The take's motion then refines the mountings where it shows a knee or an elbow bending about one axis
-(:mod:`mocapd.core.functional_calibration`; ``--no-motion`` keeps the still window's): each sensor's hinge misfit is
-kept beside its gravity residual.
+(:mod:`mocapd.core.functional_calibration`), and, where its feet stand in enough stances, gravity in them refines the
+trunk's and the legs' inclination (:mod:`mocapd.core.stance_calibration`; ``--no-motion`` keeps the still window's):
+each sensor's hinge and gravity misfits are kept beside its mounting residual.
 
 The result is written into the session's manifest (its ``suits``: what ``mocapd resolve`` solves with) and as a
 calibration file (``<calibration_dir>/<person>.imu.json``).
@@ -56,6 +57,7 @@ from mocapd.core.imu_calibration import (
     stillest_common_window,
 )
 from mocapd.core.plausibility import HingeEvents
+from mocapd.core.stance_calibration import refine_from_stances
 from mocapd.errors import CalibrationError, ConfigError
 from mocapd.io.mvnx import MVN_FACING_HEADING_DEG
 from mocapd.io.session import MANIFEST, Session, write_json_atomic
@@ -107,6 +109,9 @@ class SessionCalibration:
     functional: dict[str, dict[str, object]] = field(default_factory=dict)
     """Per hinge, what the take's motion showed and whether it refined the mountings
     (:func:`mocapd.core.functional_calibration.refine_mountings`); empty with ``motion`` off."""
+    stances: dict[str, dict[str, object]] = field(default_factory=dict)
+    """Per sensor, what gravity in the take's stances showed and whether it refined the mounting
+    (:func:`mocapd.core.stance_calibration.refine_from_stances`); empty with ``motion`` off or no foot sensor."""
 
 
 def session_samples(session: Session) -> dict[str, tuple[FloatArray, FloatArray, FloatArray]]:
@@ -154,7 +159,8 @@ def calibrate_session(
 
     With ``motion`` the take's knees and elbows, where they bend enough about one axis, refine the still window's
     mountings (:func:`~mocapd.core.functional_calibration.refine_from_recording`: each hinge's axis as its sensors
-    see it); the plausibility checks run on the still window's calibration before.
+    see it), then gravity in its stances the trunk's and legs' (:func:`~mocapd.core.stance_calibration.
+    refine_from_stances`, where consistent); the plausibility checks run on the still window's calibration before.
 
     ``assignment`` defaults to the session's ``[imu.assignment]`` (an imported session has it); where the session's
     config has one table per person (``[imu.assignment.alice]``), ``suit``'s table (default ``person``'s). At most
@@ -254,10 +260,13 @@ def calibrate_session(
                 calibration_hinges(samples, calibrate(facing_heading_deg, facing_from, hint)[0]))), None)  # fmt: skip
         raise CalibrationError(_refusal(hinges, source, facing_from, facing_heading_deg, works, posture, pose))
     functional: dict[str, dict[str, object]] = {}
+    stances: dict[str, dict[str, object]] = {}
     if motion:
         refined = refine_from_recording(calib, samples, window)
         calib, functional = refined.calibration, refined.hinges
-    return SessionCalibration(calib, window, pose, source, hinges, functional)
+        by_stances = refine_from_stances(calib, samples, window)
+        calib, stances = by_stances.calibration, by_stances.sensors
+    return SessionCalibration(calib, window, pose, source, hinges, functional, stances)
 
 
 ARMS_THROUGH_BODY_S = 1.0
