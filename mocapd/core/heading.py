@@ -280,6 +280,15 @@ class HeadingEstimator:
                 s.frozen = True
                 s.observed_ns = None  # the rate limit restarts from the next observation, not across the gap
 
+    def restart(self, sensors: Sequence[str]) -> None:
+        """``sensors``' bone orientations changed (new mountings): their window's observations were made of the old
+        ones, so they are dropped and gathered anew; the applied offsets stay until the new estimate moves them."""
+        for sid in sensors:
+            s = self.sensors.get(sid)
+            if s is not None:
+                s.samples.clear()
+                s.estimate = None
+
     def _robust(self, samples: deque[tuple[int, float, float]]) -> tuple[float, int, int]:
         """Weighted median, outliers (beyond ``outlier_mads`` MADs) rejected, inliers' weighted mean."""
         o = self.options

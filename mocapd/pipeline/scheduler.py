@@ -35,6 +35,7 @@ scheduler runs the same in the daemon and in tests on synthetic timelines.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
@@ -49,6 +50,7 @@ from numpy.typing import NDArray
 from mocapd.core import _kernel
 from mocapd.core.body_size import can_size, estimate_skeleton
 from mocapd.core.camera import Camera, triangulate_projections
+from mocapd.core.camera_mounting import CameraMountingEstimator, MountingOptions
 from mocapd.core.hand_skeleton import HandPose
 from mocapd.core.heading import BoneVectors, HeadingEstimator, HeadingOptions, bone_vectors, observe_headings, yaw_quat
 from mocapd.core.imu import ImuMount
@@ -85,6 +87,7 @@ from mocapd.pipeline.time_alignment import (
 )
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 IntArray = NDArray[np.int64]
 GRAVITY = 9.81
 HEIGHT_EVERY = 3  # ticks between two of them: 20 Hz at 60 Hz output covers the 0.3-5 Hz band it is compared in
@@ -126,6 +129,9 @@ class SchedulerOptions:
     """What is published for suit wearers: the delayed solve, or it carried to the IMUs' newest instant."""
     heading: HeadingOptions = field(default_factory=HeadingOptions)
     """Per-sensor heading correction from the cameras."""
+    mounting: MountingOptions = field(default_factory=lambda: MountingOptions(enabled=False))
+    """Each suit's mountings refined once from the cameras' first seconds of its wearer
+    (:mod:`mocapd.core.camera_mounting`; off unless ``[daemon] mounting_from_cameras``)."""
     flips: FlipOptions = field(default_factory=FlipOptions)
     """Per-view left/right flips of the detections, undone before the solve (:mod:`mocapd.core.lr_flips`)."""
 
@@ -353,6 +359,9 @@ class FixedLatencyScheduler:
                              else np.zeros((0, 3, 4)))  # fmt: skip
         self._q_ib = {s.id: np.array([s.calibration.q_ib[sid] for sid in s.sensors]) for s in suits or []}
         self.heading = HeadingEstimator(o.heading)
+        self.mounting = CameraMountingEstimator(o.mounting)
+        self._mounting_at: dict[str, int] = {}  # solve time of each suit's last mounting observation
+        self._last_mounting: dict[str, dict[str, object]] = {}
         self.predictor = PosePredictor(o.prediction)
         # Per suit: the keypoint pairs rigid with each sensor's bone (on the person's own skeleton once sized).
         self._heading_vectors = {
@@ -478,6 +487,8 @@ class FixedLatencyScheduler:
         for sid, suit in self.suits.items():
             if sid not in self._seen_suits:
                 self.heading.freeze(suit.sensors)  # the cameras lost the wearer: offsets stay as they are
+        for sid in [k for k in self.suits if self.mounting.ready(k, t)]:
+            self._refine_mountings(sid)
         self._forget_released({p.identity for p in people})
         if self.hands is not None:
             self.hands.forget(set(self.solvers))
@@ -655,6 +666,16 @@ class FixedLatencyScheduler:
                 self._heading_at[suit.id] = t
                 with self._count_lock:
                     self._observe_heading(suit, suit_sample, solver.skeleton, und, conf, t)
+        if (
+            suit is not None
+            and suit_sample is not None
+            and len(person.detections) >= 2
+            and self.mounting.wants(suit.id)
+            and t - self._mounting_at.get(suit.id, t - HEADING_EVERY_NS) >= HEADING_EVERY_NS
+        ):
+            self._mounting_at[suit.id] = t
+            with self._count_lock:
+                self._observe_mounting(suit, suit_sample, solver.skeleton, und, conf, t)
         obs = Observations(keypoints=kp, confidences=conf, dt=self.options.dt, **imu_kw)
         if self.fusion is not None:
             obs = self._fused_observations(person, solver, suit, obs, kp, conf)
@@ -772,6 +793,49 @@ class FixedLatencyScheduler:
         idx = np.flatnonzero(sample.mask)
         yaw, evidence = observe_headings(sample.raw[idx], [vectors[i] for i in idx], points, ok)
         self.heading.observe(t, [suit.sensors[i] for i in idx], yaw, evidence)
+
+    def _observe_mounting(
+        self, suit: Suit, sample: SuitSample, skeleton: Skeleton, und: FloatArray, conf: FloatArray, t: int
+    ) -> None:
+        """One observation of ``suit``'s mountings from its wearer's keypoints, triangulated as for the heading, with
+        the sensors' world orientations before the heading correction (``R_ig · R_i``), as the heading is estimated:
+        the heading estimate started over from the new mountings (:meth:`_refine_mountings`) keeps the two apart."""
+        points, ok = triangulate_projections(self._projections, und, conf)
+        vectors = self._heading_vectors[suit.id].get(None if skeleton is self.skeleton else skeleton)
+        idx = np.flatnonzero(sample.mask)
+        q_sensor = quat_multiply(sample.raw[idx], self._q_ib[suit.id][idx])
+        self.mounting.observe(suit.id, t, [suit.sensors[i] for i in idx], q_sensor, [vectors[i] for i in idx],
+                              points, ok)  # fmt: skip
+
+    def _refine_mountings(self, suit_id: str) -> None:
+        """Fit ``suit_id``'s mountings from the cameras' first seconds and fuse the suit with them from the next
+        tick (under :attr:`lock`, in the tick); each sensor's change is logged. The calibration file is not
+        rewritten: the next start refines again."""
+        suit = self.suits[suit_id]
+        fits = self.mounting.fit(suit_id, suit.calibration.q_ib)
+        q_ib = {sid: fits[sid].q_ib if fits[sid].used else q for sid, q in suit.calibration.q_ib.items()}
+        used = {sid: f for sid, f in fits.items() if f.used}
+        for sid, f in fits.items():
+            bone = suit.calibration.bones[sid]
+            if f.used:
+                log.warning("suit %s: mounting of %s (%s) refined from the cameras: turned %.1f deg (misfit %.1f deg, "
+                            "%d frames)", suit_id, sid, bone, f.change_deg, f.misfit_deg, f.frames)  # fmt: skip
+            else:
+                log.info("suit %s: mounting of %s (%s) kept: %s", suit_id, sid, bone, f.reason)
+        if used:
+            self.suits[suit_id] = replace(suit, calibration=replace(suit.calibration, q_ib=q_ib))
+            self._q_ib[suit_id] = np.array([q_ib[sid] for sid in suit.sensors])
+            self.heading.restart(list(used))  # its window was measured with the old mountings
+
+    def mounting_status(self) -> dict[str, dict[str, object]]:
+        """``imu_mounting_from_cameras``: per suit ``gathering`` (frames so far) or ``done`` with each sensor's fit
+        (``used``, ``change_deg``, ``misfit_deg``, ``frames``, ``rejected``, ``reason``); empty when off."""
+        if self.lock.acquire(timeout=READ_WAIT_S):
+            try:
+                self._last_mounting = self.mounting.status()
+            finally:
+                self.lock.release()
+        return self._last_mounting
 
     def _predict(self, pose: PersonPose, sample: SuitSample, t: int) -> PersonPose:
         """A suit wearer's solved pose carried to the suit's newest IMU instant (see module docstring)."""

@@ -851,6 +851,8 @@ class Daemon:
             "imu": self.imu.status(),
             "imu_lookups": s["imu_samples"],
             "imu_heading": self.heading_status(),
+            # per suit: the mountings refined from the cameras' first seconds (off by default; docs/imu.md)
+            "imu_mounting_from_cameras": self.scheduler.mounting_status(),
             # per suit: the posture its calibration found and each sensor's residuals (docs/imu.md)
             "imu_calibration": {s.id: s.calibration.summary() for s in self.rig.suits},
             "imu_calibration_routine": self.live_calibration.status(self.clock()),

@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field
 
+from mocapd.core.camera_mounting import MountingOptions
 from mocapd.core.heading import HeadingOptions
 from mocapd.core.lr_flips import FlipOptions
 from mocapd.errors import ConfigError
@@ -55,6 +56,9 @@ class DaemonConfig(Section):
     samples ("predicted", docs/daemon.md "Predicted output")."""
     heading_correction: bool = True
     """Correct each IMU's heading from the cameras while at least two see its wearer."""
+    mounting_from_cameras: bool = False
+    """Refine each suit sensor's mounting once from the cameras' first seconds of its wearer
+    (:mod:`mocapd.core.camera_mounting`)."""
     max_catch_up_s: float = Field(0.05, ge=0.0, le=1.0)
     capture_nice: int = Field(5, ge=0, le=19)
     """How much nicer than the event loop (whose output tick has a deadline every period) the cameras' capture
@@ -133,4 +137,5 @@ class DaemonConfig(Section):
             flips=FlipOptions(enabled=self.lr_flips),
             prediction=PredictionOptions(output=self.output),
             heading=HeadingOptions(enabled=self.heading_correction),
+            mounting=MountingOptions(enabled=self.mounting_from_cameras),
         )
