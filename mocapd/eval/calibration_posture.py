@@ -10,9 +10,11 @@ development split's clips (CMU 131_02 and Bandai "normal"/"happy": never the eva
    orientations with 0.2° of jitter, specific force with 0.03 m/s² of noise (MTw-like, docs/imu.md);
 3. calibrated from the first 2 s with the facing known (what ``calibrate imu --from`` does after its still-window
    search): **before**, the T-pose assumed exactly (``--pose t-pose --pose-exact``, mocapd before issue 42); **after**,
-   the posture estimated from the hint ``--pose a-pose`` and from ``--pose t-pose``; and the a-pose calibration with
-   its mountings refined by the hinge axes of the whole take's motion (what ``calibrate imu --from`` does:
-   :mod:`mocapd.core.functional_calibration`);
+   the posture estimated from the hint ``--pose a-pose`` and from ``--pose t-pose``; the a-pose calibration with
+   its mountings refined by the hinge axes of the whole take's motion (:mod:`mocapd.core.functional_calibration`),
+   and then by gravity in its stances (:mod:`mocapd.core.stance_calibration`), what ``calibrate imu --from`` does;
+   ``--sway DEG`` also leans the standing pelvis, trunk and legs (a posture the still window's priors take for
+   upright), ``--clip`` chooses the clips (``WALKS``: the development split's walks);
 4. solved IMU-only with the default options and prior (:class:`~mocapd.core.solver.PoseSolver`, foot contacts on)
    and measured over the clip (the standing and the move into it left out): joint position error relative to the
    hips joint by group (legs, trunk and head, arms; mm, mean over joints and frames), elbow / knee / hip flexion
