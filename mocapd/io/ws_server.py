@@ -18,8 +18,10 @@ it assembles the panels and encodes their JPEGs in a worker thread (``asyncio.to
 projections and encoding never run on the event loop the solver ticks on), then queues each message for the
 clients due one, on their ordinary bounded queues (a slow client loses its own oldest messages).
 
-Plain HTTP GETs on the same port (no ``Upgrade: websocket``) serve the viewer (``/`` and ``/viewer.js`` from
-``mocapd/web/``); everything else is 404. With a token configured, both the page and the stream need it
+Plain HTTP GETs on the same port (no ``Upgrade: websocket``) serve the viewer (``/``, ``/viewer.js`` and
+``/avatar.js`` from ``mocapd/web/``), the avatar view's model (``/avatar.vrm``, :mod:`mocapd.protocols.vrm_avatar`)
+and its libraries (``/lib/...``, from the cache when set-up fetched them: :mod:`mocapd.io.viewer_libs`); everything
+else is 404. With a token configured, both the page and the stream need it
 (``?token=...`` in the URL or ``Authorization: Bearer ...``), checked in constant time.
 
 Every request, page or handshake, must name this machine in its ``Host`` (421 otherwise: DNS rebinding) and come
@@ -56,8 +58,10 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError, MocapdError, RateLimitError
 from mocapd.io import ports
 from mocapd.io.rejections import Rejections
+from mocapd.io.viewer_libs import viewer_lib_files
 from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
 from mocapd.protocols.fingers import hands_of
+from mocapd.protocols.vrm_avatar import default_avatar
 from mocapd.protocols.web_access import WebAccess
 from mocapd.protocols.ws_stream import (
     ClientSession,
@@ -76,13 +80,18 @@ CONTROL_LIMIT = 32
 CLOSE_TIMEOUT_S = 1.0
 """How long a closing handshake may take before the TCP connection is dropped (a stalled client never answers)."""
 
-WEB_FILES = {"/": ("viewer.html", "text/html; charset=utf-8"), "/viewer.js": ("viewer.js", "text/javascript")}
+WEB_FILES = {"/": ("viewer.html", "text/html; charset=utf-8"), "/viewer.js": ("viewer.js", "text/javascript"),
+             "/avatar.js": ("avatar.js", "text/javascript")}  # fmt: skip
+AVATAR_PATH = "/avatar.vrm"
+"""The avatar view's model: :func:`mocapd.protocols.vrm_avatar.default_avatar`, built on the first request."""
 
 
 def load_web_files() -> dict[str, tuple[str, bytes]]:
-    """The viewer's files from package data: URL path -> (content type, body)."""
+    """The viewer's files from package data, and the avatar view's libraries from the cache when set-up fetched
+    them (:mod:`mocapd.io.viewer_libs`): URL path -> (content type, body)."""
     root = resources.files("mocapd.web")
-    return {path: (ctype, root.joinpath(name).read_bytes()) for path, (name, ctype) in WEB_FILES.items()}
+    files = {path: (ctype, root.joinpath(name).read_bytes()) for path, (name, ctype) in WEB_FILES.items()}
+    return files | viewer_lib_files()
 
 
 def listen_error(host: str, port: int, exc: OSError) -> ConfigError:
@@ -394,7 +403,10 @@ class WebSocketStreamServer:
         if refused is not None:
             return refused
         if request.headers.get("Upgrade", "").lower() != "websocket":
-            page = self._web.get(request.path.partition("?")[0])
+            path = request.path.partition("?")[0]
+            page = self._web.get(path)
+            if page is None and path == AVATAR_PATH and self._web:
+                page = ("model/gltf-binary", default_avatar())  # generated once per process (~50 kB)
             if page is None:
                 self.refused["not_found"] += 1
                 return conn.respond(HTTPStatus.NOT_FOUND, "not found: the viewer is at /, the stream at ws://.../\n")
