@@ -392,7 +392,9 @@ class WebSocketStreamServer:
             return conn.respond(HTTPStatus.MISDIRECTED_REQUEST, "this server answers only to its own names\n")
         return conn.respond(HTTPStatus.FORBIDDEN, "pages from other sites may not connect\n")
 
-    def _process_request(self, conn: ServerConnection, request: Request) -> Response | Coroutine[Any, Any, None] | None:
+    def _process_request(
+        self, conn: ServerConnection, request: Request
+    ) -> Response | Coroutine[Any, Any, Response | None] | None:
         if conn.protocol.eof_sent:
             # Bytes that are not a WebSocket frame followed the request head (a body, pipelined requests): the
             # protocol has already ended its side, and websockets (17.4) would then fail its own assertion sending
@@ -406,18 +408,11 @@ class WebSocketStreamServer:
             path = request.path.partition("?")[0]
             page = self._web.get(path)
             if page is None and path == AVATAR_PATH and self._web:
-                page = ("model/gltf-binary", default_avatar())  # generated once per process (~50 kB)
+                return _avatar(conn)
             if page is None:
                 self.refused["not_found"] += 1
                 return conn.respond(HTTPStatus.NOT_FOUND, "not found: the viewer is at /, the stream at ws://.../\n")
-            ctype, body = page
-            r = conn.respond(HTTPStatus.OK, "")
-            del r.headers["Content-Type"]
-            del r.headers["Content-Length"]
-            r.headers["Content-Type"] = ctype
-            r.headers["Content-Length"] = str(len(body))
-            r.headers["Cache-Control"] = "no-store"
-            return dataclasses.replace(r, body=body)
+            return _page(conn, *page)
         if len(self.clients) >= self.settings.max_clients:
             self.refused["full"] += 1
             return conn.respond(HTTPStatus.SERVICE_UNAVAILABLE, "too many clients\n")
@@ -558,6 +553,22 @@ def _peer(conn: ServerConnection) -> str:
     if isinstance(peer, tuple) and len(peer) >= 2:
         return f"[{peer[0]}]:{peer[1]}" if ":" in str(peer[0]) else f"{peer[0]}:{peer[1]}"
     return "?"
+
+
+def _page(conn: ServerConnection, ctype: str, body: bytes) -> Response:
+    """A 200 answer carrying ``body`` as ``ctype``, not to be cached (the page changes with the daemon)."""
+    r = conn.respond(HTTPStatus.OK, "")
+    del r.headers["Content-Type"]
+    del r.headers["Content-Length"]
+    r.headers["Content-Type"] = ctype
+    r.headers["Content-Length"] = str(len(body))
+    r.headers["Cache-Control"] = "no-store"
+    return dataclasses.replace(r, body=body)
+
+
+async def _avatar(conn: ServerConnection) -> Response:
+    """The avatar view's model, built once per process in a worker thread (~30 ms: not on the solver's loop)."""
+    return _page(conn, "model/gltf-binary", await asyncio.to_thread(default_avatar))
 
 
 async def _drop(conn: ServerConnection) -> None:
