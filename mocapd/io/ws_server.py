@@ -405,18 +405,21 @@ class WebSocketStreamServer:
         if refused is not None:
             return refused
         if request.headers.get("Upgrade", "").lower() != "websocket":
-            path = request.path.partition("?")[0]
-            page = self._web.get(path)
-            if page is None and path == AVATAR_PATH and self._web:
-                return _avatar(conn)
-            if page is None:
-                self.refused["not_found"] += 1
-                return conn.respond(HTTPStatus.NOT_FOUND, "not found: the viewer is at /, the stream at ws://.../\n")
-            return _page(conn, *page)
+            return self._get(conn, request.path.partition("?")[0])
         if len(self.clients) >= self.settings.max_clients:
             self.refused["full"] += 1
             return conn.respond(HTTPStatus.SERVICE_UNAVAILABLE, "too many clients\n")
         return None
+
+    def _get(self, conn: ServerConnection, path: str) -> Response | Coroutine[Any, Any, Response]:
+        """The answer to a plain GET of ``path``: a viewer file, the avatar's model, or 404."""
+        page = self._web.get(path)
+        if page is None and path == AVATAR_PATH and self._web:
+            return _avatar(conn)
+        if page is None:
+            self.refused["not_found"] += 1
+            return conn.respond(HTTPStatus.NOT_FOUND, "not found: the viewer is at /, the stream at ws://.../\n")
+        return _page(conn, *page)
 
     # ------------------------------------------------------------------------------------------ WebSocket side
     async def _handler(self, conn: ServerConnection) -> None:
