@@ -26,7 +26,7 @@ from mocapd.core.hand_skeleton import HAND_BONE_NAMES, VRM1_NAMES, HandSkeleton
 from mocapd.core.skeleton import BONE_INDEX, BONE_NAMES, Skeleton
 from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
 from mocapd.pipeline.scheduler import PoseFrame
-from mocapd.protocols.vrm_avatar import HUMAN_BONES
+from mocapd.protocols.vrm_avatar import HUMAN_BONES, avatar_vrm
 from mocapd.protocols.ws_stream import StreamDescription
 from tests.cdp import Page, chromium_page
 from tests.finger_support import FIST_DEG, fist, person_with_fingers
@@ -96,8 +96,16 @@ async def shown(page: Page, posed: bool) -> tuple[dict[str, Any], dict[str, Any]
 
 
 @pytest.mark.asyncio
-async def test_the_avatar_follows_the_stream_body_and_fingers(tmp_path: Path) -> None:
-    srv = WebSocketStreamServer(ServerSettings(port=0, status_hz=0), StreamDescription(60.0, {"default": SKEL}))
+@pytest.mark.parametrize("version", [1, 0])
+async def test_the_avatar_follows_the_stream_body_and_fingers(tmp_path: Path, version: int) -> None:
+    """VRM 1.0: the built-in mannequin; VRM 0.x: the same body as a VRM 0.x file facing -Z, as ``[websocket]
+    avatar`` names a user's model (three-vrm turns it round; the retargeting turns the rotations with it)."""
+    model = ""
+    if version == 0:
+        model = str(tmp_path / "mannequin0.vrm")
+        Path(model).write_bytes(avatar_vrm(version=0))
+    settings = ServerSettings(port=0, status_hz=0, avatar=model)
+    srv = WebSocketStreamServer(settings, StreamDescription(60.0, {"default": SKEL}))
     await srv.start()
     phase = {"posed": False}
 
@@ -130,7 +138,7 @@ async def test_the_avatar_follows_the_stream_body_and_fingers(tmp_path: Path) ->
         await srv.aclose()
     shot = tmp_path / "avatar.png"
     cv2.imwrite(str(shot), img)
-    if os.environ.get("MOCAPD_SCREENSHOTS"):
+    if os.environ.get("MOCAPD_SCREENSHOTS") and version == 1:
         shutil.copy(shot, Path(os.environ["MOCAPD_SCREENSHOTS"]) / "viewer_avatar.png")
     assert set(JOINT_OF) <= set(rest), "every humanoid bone of the mannequin, the 30 finger bones among them"
 
@@ -155,8 +163,11 @@ async def test_the_avatar_follows_the_stream_body_and_fingers(tmp_path: Path) ->
             bone = f"{side}Index{seg}"
             assert quat_angle_deg(posed[bone]["q"]) == pytest.approx(deg, abs=2.0), bone
             assert quat_angle_deg(rest[bone]["q"]) < 0.5
-    # The fingers' rotations on the avatar are the stream's local rotations (flexion about the same axis).
+    # The fingers' rotations on the avatar are the stream's local rotations (flexion about the same axis; a VRM 0.x
+    # model's normalized frames face -Z: the rotation turned 180° about +Y).
     stream_rot = np.reshape(subject["hands"]["rot"], (2, 15, 4))
+    if version == 0:
+        stream_rot = stream_rot * np.array([1.0, -1.0, 1.0, -1.0])
     for h, side in enumerate(("Left", "Right")):
         for b, unity in enumerate(HAND_BONE_NAMES[:15]):
             q = np.array(posed[VRM1_NAMES[side + unity[4:]]]["q"])

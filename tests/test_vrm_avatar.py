@@ -11,16 +11,19 @@ import numpy as np
 import pygltflib as gl
 import pytest
 
-from mocapd.core.hand_skeleton import HAND_BONE_NAMES, VRM1_NAMES, HandSkeleton
+from mocapd.core.hand_skeleton import HAND_BONE_NAMES, VRM0_NAMES, VRM1_NAMES, HandSkeleton
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.skeleton import BONE_NAMES, Skeleton
+from mocapd.errors import ConfigError, InputError
 from mocapd.io.viewer_libs import FILES, lib_dir, viewer_lib_files, viewer_libs_current
-from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer
+from mocapd.io.ws_server import ServerSettings, WebSocketStreamServer, read_avatar
 from mocapd.protocols.vrm_avatar import HUMAN_BONES, MERGED, avatar_vrm, default_avatar
 from mocapd.protocols.ws_stream import StreamDescription
+from mocapd.service.config import load_config
 from tests.test_ws_server import http_get
 
 #: VRM 1.0's required humanoid bones (the specification's table)
+STREAM = StreamDescription(60.0, {"default": Skeleton.from_height()})
 LIMBS = ("UpperArm", "LowerArm", "Hand", "UpperLeg", "LowerLeg", "Foot")
 REQUIRED = {"hips", "spine", "head", *(s + b for s in ("left", "right") for b in LIMBS)}
 
@@ -117,3 +120,43 @@ async def test_the_server_serves_the_avatar_and_its_libraries() -> None:
         assert (await http_get(off.port, "/avatar.vrm"))[0] == 404  # no viewer, no avatar
     finally:
         await off.aclose()
+
+
+def test_the_vrm0_mannequin_faces_minus_z_with_vrm0_names() -> None:
+    doc = _doc(avatar_vrm(version=0))
+    ext = doc.extensions["VRM"]
+    assert doc.extensionsUsed == ["VRM"] and ext["meta"]["title"] == "mocapd mannequin"
+    bones = {b["bone"]: b["node"] for b in ext["humanoid"]["humanBones"]}
+    assert {VRM0_NAMES[n] for n in HAND_BONE_NAMES} <= set(bones) and "leftThumbIntermediate" in bones
+    world0, world1 = _world(doc), _world(_doc(avatar_vrm(version=1)))
+    for name, w in world1.items():  # every joint turned 180° about +Y: the model's left is -X, its front -Z
+        np.testing.assert_allclose(world0[name], w * np.array([-1.0, 1.0, -1.0]), atol=1e-6, err_msg=name)
+    with pytest.raises(InputError, match="0 or 1"):
+        avatar_vrm(version=2)
+
+
+def test_a_users_avatar_is_read_once_and_a_bad_one_is_refused_by_name(tmp_path: Path) -> None:
+    mine = tmp_path / "me.vrm"
+    mine.write_bytes(avatar_vrm(version=0))
+    assert read_avatar(str(mine)) == mine.read_bytes()
+    with pytest.raises(ConfigError, match=r"\[websocket\] avatar: cannot read .*missing\.vrm"):
+        read_avatar(str(tmp_path / "missing.vrm"))
+    (tmp_path / "photo.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    with pytest.raises(ConfigError, match="is not a VRM"):
+        WebSocketStreamServer(ServerSettings(port=0, avatar=str(tmp_path / "photo.png")), STREAM)
+    # A relative path in a config file is the file's neighbour, whatever the working directory.
+    (tmp_path / "rig.toml").write_text('[websocket]\navatar = "me.vrm"\n', encoding="utf-8")
+    assert load_config(tmp_path / "rig.toml").websocket.avatar == str(mine)
+
+
+@pytest.mark.asyncio
+async def test_the_server_serves_a_users_avatar(tmp_path: Path) -> None:
+    mine = tmp_path / "me.vrm"
+    mine.write_bytes(avatar_vrm(version=0))
+    srv = WebSocketStreamServer(ServerSettings(port=0, status_hz=0, avatar=str(mine)), STREAM)
+    await srv.start()
+    try:
+        code, headers, body = await http_get(srv.port, "/avatar.vrm")
+        assert code == 200 and headers["Content-Type"] == "model/gltf-binary" and body == mine.read_bytes()
+    finally:
+        await srv.aclose()

@@ -83,7 +83,8 @@ CLOSE_TIMEOUT_S = 1.0
 WEB_FILES = {"/": ("viewer.html", "text/html; charset=utf-8"), "/viewer.js": ("viewer.js", "text/javascript"),
              "/avatar.js": ("avatar.js", "text/javascript")}  # fmt: skip
 AVATAR_PATH = "/avatar.vrm"
-"""The avatar view's model: :func:`mocapd.protocols.vrm_avatar.default_avatar`, built on the first request."""
+"""The avatar view's model: ``[websocket] avatar``'s file, or :func:`mocapd.protocols.vrm_avatar.default_avatar`
+built on the first request."""
 
 
 def load_web_files() -> dict[str, tuple[str, bytes]]:
@@ -153,6 +154,27 @@ class ServerSettings:
     """More Host names than this machine's addresses (``[web] allowed_hosts``)."""
     allowed_origins: tuple[str, ...] = ()
     """More origins than the viewer's own whose pages may connect (``[web] allowed_origins``)."""
+    avatar: str = ""
+    """A VRM file (0.x or 1.0) the viewer's avatar view shows instead of mocapd's mannequin (``[websocket]
+    avatar``; "" = the mannequin)."""
+
+
+MAX_AVATAR_BYTES = 256 << 20
+"""The largest avatar file the server reads (VRoid models are 10-60 MB)."""
+
+
+def read_avatar(path: str) -> bytes:
+    """The VRM file ``path`` (``[websocket] avatar``), read once at start; ConfigError with what is wrong."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_AVATAR_BYTES + 1)
+    except OSError as e:
+        raise ConfigError(f"[websocket] avatar: cannot read {path!r}: {e.strerror or e}") from e
+    if len(data) > MAX_AVATAR_BYTES:
+        raise ConfigError(f"[websocket] avatar: {path!r} is larger than {MAX_AVATAR_BYTES >> 20} MiB")
+    if data[:4] != b"glTF":
+        raise ConfigError(f"[websocket] avatar: {path!r} is not a VRM (a binary glTF file starts with 'glTF')")
+    return data
 
 
 class WebSocketStreamServer:
@@ -230,6 +252,7 @@ class WebSocketStreamServer:
         self._camera_wake = asyncio.Event()  # a client changed its camera options: the loop's rate may change
         self.camera_messages = 0
         self._web = load_web_files() if settings.viewer else {}
+        self._avatar = read_avatar(settings.avatar) if settings.viewer and settings.avatar else None
 
     # ------------------------------------------------------------------------------------------ sink API
     async def start(self) -> None:
@@ -415,7 +438,7 @@ class WebSocketStreamServer:
         """The answer to a plain GET of ``path``: a viewer file, the avatar's model, or 404."""
         page = self._web.get(path)
         if page is None and path == AVATAR_PATH and self._web:
-            return _avatar(conn)
+            return _page(conn, "model/gltf-binary", self._avatar) if self._avatar is not None else _avatar(conn)
         if page is None:
             self.refused["not_found"] += 1
             return conn.respond(HTTPStatus.NOT_FOUND, "not found: the viewer is at /, the stream at ws://.../\n")

@@ -31,8 +31,9 @@ import numpy as np
 import pygltflib as gl
 from numpy.typing import NDArray
 
-from mocapd.core.hand_skeleton import FINGERS, HAND_BONE_NAMES, VRM1_NAMES, HandSkeleton
+from mocapd.core.hand_skeleton import FINGERS, HAND_BONE_NAMES, VRM0_NAMES, VRM1_NAMES, HandSkeleton
 from mocapd.core.skeleton import BONE_NAMES, REFERENCE_HEIGHT, Skeleton
+from mocapd.errors import InputError
 from mocapd.protocols.fingers import EXTENDED_BONE_NAMES, EXTENDED_PARENTS, extended_offsets
 
 FloatArray = NDArray[np.float64]
@@ -59,6 +60,8 @@ HUMAN_BONES: tuple[tuple[str, str, str], ...] = (
 SIDES = 8
 """Sides of each bone's tube."""
 COLOUR = (0.82, 0.84, 0.88, 1.0)
+NAME = "mocapd mannequin"
+"""The model's name in its meta (the viewer tints a model of this name with the subject's colour)."""
 LICENCE_URL = "https://creativecommons.org/publicdomain/zero/1.0/"
 
 # Half-widths (m at 1.75 m) of each bone's tube at its joint and at its end: (across, depth) with "across" the
@@ -189,8 +192,15 @@ def _add(doc: gl.GLTF2, blob: bytearray, array: NDArray[np.generic], kind: str, 
     return len(doc.accessors) - 1
 
 
-def avatar_vrm(body: Skeleton | None = None) -> bytes:
-    """The mannequin (module doc) as VRM 1.0 bytes, sized to ``body`` (default: a 1.75 m person)."""
+def avatar_vrm(body: Skeleton | None = None, version: int = 1) -> bytes:
+    """The mannequin (module doc) as VRM bytes, sized to ``body`` (default: a 1.75 m person).
+
+    ``version`` 1: VRM 1.0 (the viewer's). 0: VRM 0.x, as older tools write it (the ``VRM`` extension, the thumbs'
+    bones ``Proximal``/``Intermediate``/``Distal``, :data:`~mocapd.core.hand_skeleton.VRM0_NAMES`), and facing -Z as
+    VRM 0.x models do (every position turned 180° about +Y): for the loaders' VRM 0.x path.
+    """
+    if version not in (0, 1):
+        raise InputError(f"VRM version must be 0 or 1, got {version!r}")
     body = body if body is not None else Skeleton.from_height(REFERENCE_HEIGHT)
     hands = HandSkeleton.from_body(body)
     scale = body.height / REFERENCE_HEIGHT
@@ -199,6 +209,10 @@ def avatar_vrm(body: Skeleton | None = None) -> bytes:
     rest = np.zeros((m, 3))
     for i in range(m):
         rest[i] = (0.0, body.root_height, 0.0) if parents[i] < 0 else rest[parents[i]] + offsets[i]
+    verts, bone_of, tris = _mesh(parents, offsets, rest, hands, scale)
+    if version == 0:  # facing -Z: x and z negated (a rotation: the triangles keep their winding)
+        turn = np.array([-1.0, 1.0, -1.0])
+        offsets, rest, verts = offsets * turn, rest * turn, verts * turn
     doc = gl.GLTF2(asset=gl.Asset(version="2.0", generator="mocapd vrm_avatar"))
     blob = bytearray()
     for i, (name, _, _) in enumerate(HUMAN_BONES):
@@ -209,7 +223,6 @@ def avatar_vrm(body: Skeleton | None = None) -> bytes:
     ibm[:, 3, :3] = -rest  # column-major: the translation is the 4th column, stored as the 4th row
     doc.skins.append(gl.Skin(name="mannequin", joints=list(range(m)), skeleton=0,
                              inverseBindMatrices=_add(doc, blob, ibm.reshape(m, 16), "MAT4")))  # fmt: skip
-    verts, bone_of, tris = _mesh(parents, offsets, rest, hands, scale)
     joints4 = np.zeros((bone_of.size, 4), dtype=np.uint16)
     joints4[:, 0] = bone_of
     weights = np.zeros((bone_of.size, 4), dtype=np.float32)
@@ -227,18 +240,42 @@ def avatar_vrm(body: Skeleton | None = None) -> bytes:
     doc.nodes.append(gl.Node(name="mannequin mesh", mesh=0, skin=0))
     doc.scenes = [gl.Scene(name="mannequin", nodes=[0, m])]
     doc.scene = 0
-    doc.extensionsUsed = ["VRMC_vrm"]
-    doc.extensions = {"VRMC_vrm": {
+    doc.extensionsUsed = ["VRMC_vrm"] if version == 1 else ["VRM"]
+    doc.extensions = {"VRMC_vrm": _vrm1()} if version == 1 else {"VRM": _vrm0()}
+    doc.buffers = [gl.Buffer(byteLength=len(blob))]
+    doc.set_binary_blob(bytes(blob))
+    return b"".join(doc.save_to_bytes())
+
+
+def _vrm1() -> dict[str, object]:
+    """The ``VRMC_vrm`` extension (VRM 1.0): meta and humanoid."""
+    return {
         "specVersion": "1.0",
-        "meta": {"name": "mocapd mannequin", "version": "1", "authors": ["mocapd"],
+        "meta": {"name": NAME, "version": "1", "authors": ["mocapd"],
                  "licenseUrl": "https://vrm.dev/licenses/1.0/", "otherLicenseUrl": LICENCE_URL,
                  "avatarPermission": "everyone", "commercialUsage": "corporation", "creditNotation": "unnecessary",
                  "allowRedistribution": True, "modification": "allowModificationRedistribution"},
         "humanoid": {"humanBones": {vrm: {"node": i} for i, (_, vrm, _) in enumerate(HUMAN_BONES)}},
-    }}  # fmt: skip
-    doc.buffers = [gl.Buffer(byteLength=len(blob))]
-    doc.set_binary_blob(bytes(blob))
-    return b"".join(doc.save_to_bytes())
+    }  # fmt: skip
+
+
+def _vrm0() -> dict[str, object]:
+    """The ``VRM`` extension (VRM 0.x): meta, humanoid (VRM 0.x's bone names) and the empty parts loaders expect."""
+    names = {vrm: VRM0_NAMES.get(mocapd, vrm) for _, vrm, mocapd in HUMAN_BONES}
+    head = next(i for i, (_, vrm, _) in enumerate(HUMAN_BONES) if vrm == "head")
+    return {
+        "exporterVersion": "mocapd", "specVersion": "0.0",
+        "meta": {"title": NAME, "version": "1", "author": "mocapd", "allowedUserName": "Everyone",
+                 "violentUssageName": "Allow", "sexualUssageName": "Allow", "commercialUssageName": "Allow",
+                 "licenseName": "CC0", "otherLicenseUrl": LICENCE_URL},
+        "humanoid": {"humanBones": [{"bone": names[vrm], "node": i, "useDefaultValues": True}
+                                    for i, (_, vrm, _) in enumerate(HUMAN_BONES)]},
+        "firstPerson": {"firstPersonBone": head, "firstPersonBoneOffset": {"x": 0.0, "y": 0.06, "z": 0.0},
+                        "meshAnnotations": [], "lookAtTypeName": "Bone"},
+        "blendShapeMaster": {"blendShapeGroups": []},
+        "secondaryAnimation": {"boneGroups": [], "colliderGroups": []},
+        "materialProperties": [],
+    }  # fmt: skip
 
 
 @functools.cache

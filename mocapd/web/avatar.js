@@ -4,8 +4,8 @@
 // keeps drawing skeletons.
 //
 // Every shown subject gets its own copy of the VRM at /avatar.vrm (mocapd's generated mannequin,
-// mocapd/protocols/vrm_avatar.py; any VRM 0.x or 1.0 humanoid works the same), drawn on a transparent WebGL canvas
-// over the 2D one, with the 2D view's camera.
+// mocapd/protocols/vrm_avatar.py, or the VRM 0.x or 1.0 file of [websocket] avatar), drawn on a transparent WebGL
+// canvas over the 2D one, with the 2D view's camera.
 //
 // Retargeting. mocapd's bone frames are the world's axes at rest (the T-pose facing +Z, +Y up, the person's left
 // +X: DESIGN.md), and so are the normalized humanoid bones of three-vrm in VRM 1.0 (VRM 0.x models face -Z: three-vrm
@@ -105,7 +105,7 @@ export async function createAvatarView(api) {
     const vrm0 = vrm.meta && vrm.meta.metaVersion === "0";
     if (vrm0) VRMUtils.rotateVRM0(vrm);
     vrm.scene.traverse((o) => { o.frustumCulled = false; });
-    if (vrm.meta && vrm.meta.name === "mocapd mannequin") {  // tinted with the subject's colour
+    if (vrm.meta && (vrm.meta.name || vrm.meta.title) === "mocapd mannequin") {  // tinted with the subject's colour
       const tint = new THREE.Color(api.colourOf(id)).lerp(new THREE.Color(0xffffff), 0.45);
       vrm.scene.traverse((o) => { if (o.isMesh) { o.material = o.material.clone(); o.material.color = tint; } });
     }
