@@ -19,6 +19,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import pygltflib as gl
 import pytest
 from numpy.typing import NDArray
 
@@ -30,7 +31,7 @@ from mocapd.protocols.vrm_avatar import HUMAN_BONES, avatar_vrm
 from mocapd.protocols.ws_stream import StreamDescription
 from tests.cdp import Page, chromium_page
 from tests.finger_support import FIST_DEG, fist, person_with_fingers
-from tests.test_web_viewer import project_view
+from tests.test_web_viewer import hex_bgr, near, project_view
 
 SKEL = Skeleton.from_height(1.75)
 HANDS = HandSkeleton.from_body(SKEL)
@@ -78,6 +79,24 @@ def elbow_deg(p: dict[str, NDArray[np.float64]], upper: str, lower: str, hand: s
 
 def quat_angle_deg(q: list[float]) -> float:
     return math.degrees(2.0 * math.acos(min(1.0, abs(q[0]))))
+
+
+async def skeleton_on_screen(page: Page) -> bool:
+    """Whether the subject's colour is on the screenshot at every projected joint (its skeleton is drawn)."""
+    view = await page.evaluate(
+        "(() => { const c = document.getElementById('view'), r = c.getBoundingClientRect(); mocapdViewer.pause(true);"
+        " return {cam: mocapdViewer.cam, width: c.clientWidth, height: c.clientHeight, left: r.left, top: r.top,"
+        " colour: mocapdViewer.colourOf(mocapdViewer.state.shown.subjects[0].id),"
+        " joints: mocapdViewer.state.shown.subjects[0].joints}; })()"
+    )
+    await asyncio.sleep(0.3)
+    img = await page.screenshot()
+    mask = near(img, hex_bgr(view["colour"]))
+    points = project_view(view, np.reshape(view["joints"], (-1, 3)))
+    return all(
+        p is not None and bool(mask[round(p[1]) - 3 : round(p[1]) + 4, round(p[0]) - 3 : round(p[0]) + 4].any())
+        for p in points
+    )
 
 
 async def shown(page: Page, posed: bool) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -133,9 +152,11 @@ async def test_the_avatar_follows_the_stream_body_and_fingers(tmp_path: Path, ve
                 " top: r.top}; })()"
             )
             img = await page.screenshot()
+            skeleton = await skeleton_on_screen(page)
     finally:
         task.cancel()
         await srv.aclose()
+    assert not skeleton  # the avatar is drawn in its place
     shot = tmp_path / "avatar.png"
     cv2.imwrite(str(shot), img)
     if os.environ.get("MOCAPD_SCREENSHOTS") and version == 1:
@@ -202,9 +223,40 @@ async def test_without_the_libraries_the_viewer_keeps_the_skeleton(tmp_path: Pat
             await page.wait_for("mocapdViewer.frames > 5", 30, "frames")
             said = await page.evaluate("document.getElementById('avatarMsg').textContent")
             on = await page.evaluate("mocapdViewer.avatar.on")
-            drawn = await page.evaluate("mocapdViewer.drawn()")
+            drawn = await skeleton_on_screen(page)
     finally:
         task.cancel()
         await srv.aclose()
     assert said.startswith("avatar unavailable:") and not on
-    assert len(drawn) == 1 and all(p is not None for p in drawn[0]["points"])  # the skeleton as before
+    assert drawn  # the skeleton as before
+
+
+@pytest.mark.asyncio
+async def test_a_gltf_that_is_not_a_vrm_leaves_the_skeleton_and_says_why(tmp_path: Path) -> None:
+    doc = gl.GLTF2.load_from_bytes(avatar_vrm())
+    doc.extensions, doc.extensionsUsed = {}, []  # a plain skinned glTF: no humanoid
+    plain = tmp_path / "plain.glb"
+    plain.write_bytes(b"".join(doc.save_to_bytes()))
+    srv = WebSocketStreamServer(ServerSettings(port=0, status_hz=0, avatar=str(plain)),
+                                StreamDescription(60.0, {"default": SKEL}))  # fmt: skip
+    await srv.start()
+
+    async def stream() -> None:
+        n = 0
+        while True:
+            srv.publish(frame(n, False))
+            n += 1
+            await asyncio.sleep(1 / 60)
+
+    task = asyncio.create_task(stream())
+    try:
+        async with chromium_page(srv.viewer_url + "?avatar=1") as page:
+            await page.wait_for("window.mocapdViewer && mocapdViewer.avatar.error", 60, "the avatar's failure")
+            said = await page.evaluate("document.getElementById('avatarMsg').textContent")
+            bones = await page.evaluate(f"mocapdViewer.avatar.bones({ID!r})")
+            drawn = await skeleton_on_screen(page)
+    finally:
+        task.cancel()
+        await srv.aclose()
+    assert said.startswith("avatar unavailable:") and "not a VRM humanoid" in said
+    assert bones is None and drawn

@@ -83,7 +83,8 @@ function mocapdGlobals(s, hello, bodyFK) {
 }
 
 export async function createAvatarView(api) {
-  // api: canvas (the WebGL canvas), hello() (the newest hello), bodyFK(subject), colourOf(id), url (the model).
+  // api: canvas (the WebGL canvas), hello() (the newest hello), bodyFK(subject), colourOf(id), url (the model),
+  // redraw() (ask for a draw), failed(message) (a subject's avatar could not be made: its skeleton stays).
   const renderer = new THREE.WebGLRenderer({ canvas: api.canvas, alpha: true, antialias: true });
   renderer.setClearColor(0x000000, 0);
   const scene = new THREE.Scene(), camera = new THREE.PerspectiveCamera(50, 1, 0.05, 200);
@@ -158,7 +159,7 @@ export async function createAvatarView(api) {
         if (a === undefined) {  // a new subject: its avatar loads, its skeleton is drawn meanwhile
           avatars.set(s.id, null);
           load(s.id).then((x) => { avatars.set(s.id, x); api.redraw(); })
-            .catch((e) => { view.error = String(e); api.redraw(); });
+            .catch((e) => { view.error = String(e); if (api.failed) api.failed(view.error); api.redraw(); });
           continue;
         }
         if (a === null || !hello || !hello.skeletons[s.skeleton]) continue;

@@ -400,7 +400,8 @@
       avatarSaid("avatar: loading…", "dim");
       import("./avatar.js")
         .then((m) => m.createAvatarView({ canvas: document.getElementById("avatarView"), hello: () => state.hello,
-                                          bodyFK, colourOf, redraw: scheduleDraw, url: "avatar.vrm" }))
+                                          bodyFK, colourOf, redraw: scheduleDraw, url: "avatar.vrm",
+                                          failed: (e) => avatarSaid(`avatar unavailable: ${e}`, "bad") }))
         .then((v) => { avatar.view = v; avatar.error = null; avatarSaid("avatar: VRM humanoid, body and fingers", "ok"); })
         .catch((e) => {
           // Most likely set-up has not fetched three.js and three-vrm (setup/steps/33-viewer-libs.sh): /lib/ is 404.
