@@ -5,8 +5,9 @@ A subject streams the T-pose with open hands, then a pose with the body turned, 
 elbow flexed by a known angle and both fists closed. On the page (?avatar=1) the avatar's bones (its debug hook:
 normalized local rotations, raw bones' world positions) must put every joint where the stream's global joints are,
 the elbow's flexion must be the stream's, and the finger bones' rotations must turn as the stream's fingers do. A
-screenshot of the posed avatar is written as ``avatar.png`` under the test's directory (``$MOCAPD_SCREENSHOTS``,
-when set, gets a copy as ``viewer_avatar.png``). Without the libraries the page says why and draws skeletons."""
+screenshot of the posed avatar is written as ``avatar.png`` under the test's directory, one of its left hand as
+``avatar_hand.png`` (``$MOCAPD_SCREENSHOTS``, when set, gets copies as ``viewer_avatar.png``,
+``viewer_avatar_hand.png``). Without the libraries the page says why and draws skeletons."""
 
 from __future__ import annotations
 
@@ -153,14 +154,24 @@ async def test_the_avatar_follows_the_stream_body_and_fingers(tmp_path: Path, ve
             )
             img = await page.screenshot()
             skeleton = await skeleton_on_screen(page)
+            # A close look at the left hand's closed fingers, from the front, 0.6 m away (the screenshot only).
+            await page.evaluate(
+                "(() => { const v = mocapdViewer, j = v.state.shown.subjects[0].joints; v.view.auto = false;"
+                " Object.assign(v.cam, {yaw: 0.9, pitch: 0.25, dist: 0.6, target: [j[27], j[28], j[29]]});"
+                " v.pause(true); return true; })()"
+            )
+            await asyncio.sleep(0.4)
+            hand_img = await page.screenshot()
     finally:
         task.cancel()
         await srv.aclose()
     assert not skeleton  # the avatar is drawn in its place
-    shot = tmp_path / "avatar.png"
+    shot, hand_shot = tmp_path / "avatar.png", tmp_path / "avatar_hand.png"
     cv2.imwrite(str(shot), img)
+    cv2.imwrite(str(hand_shot), hand_img)
     if os.environ.get("MOCAPD_SCREENSHOTS") and version == 1:
         shutil.copy(shot, Path(os.environ["MOCAPD_SCREENSHOTS"]) / "viewer_avatar.png")
+        shutil.copy(hand_shot, Path(os.environ["MOCAPD_SCREENSHOTS"]) / "viewer_avatar_hand.png")
     assert set(JOINT_OF) <= set(rest), "every humanoid bone of the mannequin, the 30 finger bones among them"
 
     # Rest: the T-pose with flat hands is every normalized bone's identity, and every joint where the stream's is.
