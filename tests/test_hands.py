@@ -246,7 +246,9 @@ async def test_the_packed_group_delivers_hands_and_rates_per_camera() -> None:
     assert len(got) >= 3 and all(d.keypoints.shape[1:] == (75, 2) for d in got)
     assert max(float(d.confidences[:, 33:].max()) for d in got if len(d)) >= MIN_HAND_CONFIDENCE
     assert isinstance(hands, dict) and hands["asked"] == "auto" and hands["running"] == "on"
-    assert "body landmarks run" in str(hands["why"])
+    assert "beside the body landmarks" in str(hands["why"])
+    auto = hands["auto"]  # the per-pass choice from measured costs (mocapd/pipeline/hand_auto.py)
+    assert isinstance(auto, dict) and auto["passes"] >= 3 and auto["hand_passes"] >= 1 and auto["reason"]
     cams = hands["cameras"]
     assert isinstance(cams, dict) and set(cams) == {"0"} and cams["0"]["images_hz"] > 0
 

@@ -15,8 +15,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SETUP = ROOT / "setup" / "setup.sh"
 PYTHON_STEP = ROOT / "setup" / "steps" / "10-python.sh"
 
-#: what the demo needs: mocapd and its runtime dependencies, Aravis, the Pose2Sim demo videos, the detector models
-DEMO_STEPS = ["10-python.sh", "20-aravis.sh", "21-pose2sim-demo.sh", "30-model.sh"]
+#: what the demo needs: mocapd and its runtime dependencies, Aravis, the Pose2Sim demo videos, the detector models,
+#: the viewer's avatar libraries (issue 44)
+DEMO_STEPS = ["10-python.sh", "20-aravis.sh", "21-pose2sim-demo.sh", "30-model.sh", "33-viewer-libs.sh"]
 #: the test stack, never installed by `make demo`
 TEST_ONLY = {
     "bpy": "40-bpy.sh",

@@ -18,8 +18,10 @@ it assembles the panels and encodes their JPEGs in a worker thread (``asyncio.to
 projections and encoding never run on the event loop the solver ticks on), then queues each message for the
 clients due one, on their ordinary bounded queues (a slow client loses its own oldest messages).
 
-Plain HTTP GETs on the same port (no ``Upgrade: websocket``) serve the viewer (``/`` and ``/viewer.js`` from
-``mocapd/web/``); everything else is 404. With a token configured, both the page and the stream need it
+Plain HTTP GETs on the same port (no ``Upgrade: websocket``) serve the viewer (``/``, ``/viewer.js`` and
+``/avatar.js`` from ``mocapd/web/``), the avatar view's model (``/avatar.vrm``, :mod:`mocapd.protocols.vrm_avatar`)
+and its libraries (``/lib/...``, from the cache when set-up fetched them: :mod:`mocapd.io.viewer_libs`); everything
+else is 404. With a token configured, both the page and the stream need it
 (``?token=...`` in the URL or ``Authorization: Bearer ...``), checked in constant time.
 
 Every request, page or handshake, must name this machine in its ``Host`` (421 otherwise: DNS rebinding) and come
@@ -56,8 +58,10 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.errors import ConfigError, MocapdError, RateLimitError
 from mocapd.io import ports
 from mocapd.io.rejections import Rejections
+from mocapd.io.viewer_libs import viewer_lib_files
 from mocapd.pipeline.camera_views import CameraView, CameraViews, encode_jpeg
 from mocapd.protocols.fingers import hands_of
+from mocapd.protocols.vrm_avatar import default_avatar
 from mocapd.protocols.web_access import WebAccess
 from mocapd.protocols.ws_stream import (
     ClientSession,
@@ -76,13 +80,19 @@ CONTROL_LIMIT = 32
 CLOSE_TIMEOUT_S = 1.0
 """How long a closing handshake may take before the TCP connection is dropped (a stalled client never answers)."""
 
-WEB_FILES = {"/": ("viewer.html", "text/html; charset=utf-8"), "/viewer.js": ("viewer.js", "text/javascript")}
+WEB_FILES = {"/": ("viewer.html", "text/html; charset=utf-8"), "/viewer.js": ("viewer.js", "text/javascript"),
+             "/avatar.js": ("avatar.js", "text/javascript")}  # fmt: skip
+AVATAR_PATH = "/avatar.vrm"
+"""The avatar view's model: ``[websocket] avatar``'s file, or :func:`mocapd.protocols.vrm_avatar.default_avatar`
+built on the first request."""
 
 
 def load_web_files() -> dict[str, tuple[str, bytes]]:
-    """The viewer's files from package data: URL path -> (content type, body)."""
+    """The viewer's files from package data, and the avatar view's libraries from the cache when set-up fetched
+    them (:mod:`mocapd.io.viewer_libs`): URL path -> (content type, body)."""
     root = resources.files("mocapd.web")
-    return {path: (ctype, root.joinpath(name).read_bytes()) for path, (name, ctype) in WEB_FILES.items()}
+    files = {path: (ctype, root.joinpath(name).read_bytes()) for path, (name, ctype) in WEB_FILES.items()}
+    return files | viewer_lib_files()
 
 
 def listen_error(host: str, port: int, exc: OSError) -> ConfigError:
@@ -144,6 +154,27 @@ class ServerSettings:
     """More Host names than this machine's addresses (``[web] allowed_hosts``)."""
     allowed_origins: tuple[str, ...] = ()
     """More origins than the viewer's own whose pages may connect (``[web] allowed_origins``)."""
+    avatar: str = ""
+    """A VRM file (0.x or 1.0) the viewer's avatar view shows instead of mocapd's mannequin (``[websocket]
+    avatar``; "" = the mannequin)."""
+
+
+MAX_AVATAR_BYTES = 256 << 20
+"""The largest avatar file the server reads (VRoid models are 10-60 MB)."""
+
+
+def read_avatar(path: str) -> bytes:
+    """The VRM file ``path`` (``[websocket] avatar``), read once at start; ConfigError with what is wrong."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_AVATAR_BYTES + 1)
+    except OSError as e:
+        raise ConfigError(f"[websocket] avatar: cannot read {path!r}: {e.strerror or e}") from e
+    if len(data) > MAX_AVATAR_BYTES:
+        raise ConfigError(f"[websocket] avatar: {path!r} is larger than {MAX_AVATAR_BYTES >> 20} MiB")
+    if data[:4] != b"glTF":
+        raise ConfigError(f"[websocket] avatar: {path!r} is not a VRM (a binary glTF file starts with 'glTF')")
+    return data
 
 
 class WebSocketStreamServer:
@@ -221,6 +252,7 @@ class WebSocketStreamServer:
         self._camera_wake = asyncio.Event()  # a client changed its camera options: the loop's rate may change
         self.camera_messages = 0
         self._web = load_web_files() if settings.viewer else {}
+        self._avatar = read_avatar(settings.avatar) if settings.viewer and settings.avatar else None
 
     # ------------------------------------------------------------------------------------------ sink API
     async def start(self) -> None:
@@ -383,7 +415,9 @@ class WebSocketStreamServer:
             return conn.respond(HTTPStatus.MISDIRECTED_REQUEST, "this server answers only to its own names\n")
         return conn.respond(HTTPStatus.FORBIDDEN, "pages from other sites may not connect\n")
 
-    def _process_request(self, conn: ServerConnection, request: Request) -> Response | Coroutine[Any, Any, None] | None:
+    def _process_request(
+        self, conn: ServerConnection, request: Request
+    ) -> Response | Coroutine[Any, Any, Response | None] | None:
         if conn.protocol.eof_sent:
             # Bytes that are not a WebSocket frame followed the request head (a body, pipelined requests): the
             # protocol has already ended its side, and websockets (17.4) would then fail its own assertion sending
@@ -394,22 +428,21 @@ class WebSocketStreamServer:
         if refused is not None:
             return refused
         if request.headers.get("Upgrade", "").lower() != "websocket":
-            page = self._web.get(request.path.partition("?")[0])
-            if page is None:
-                self.refused["not_found"] += 1
-                return conn.respond(HTTPStatus.NOT_FOUND, "not found: the viewer is at /, the stream at ws://.../\n")
-            ctype, body = page
-            r = conn.respond(HTTPStatus.OK, "")
-            del r.headers["Content-Type"]
-            del r.headers["Content-Length"]
-            r.headers["Content-Type"] = ctype
-            r.headers["Content-Length"] = str(len(body))
-            r.headers["Cache-Control"] = "no-store"
-            return dataclasses.replace(r, body=body)
+            return self._get(conn, request.path.partition("?")[0])
         if len(self.clients) >= self.settings.max_clients:
             self.refused["full"] += 1
             return conn.respond(HTTPStatus.SERVICE_UNAVAILABLE, "too many clients\n")
         return None
+
+    def _get(self, conn: ServerConnection, path: str) -> Response | Coroutine[Any, Any, Response]:
+        """The answer to a plain GET of ``path``: a viewer file, the avatar's model, or 404."""
+        page = self._web.get(path)
+        if page is None and path == AVATAR_PATH and self._web:
+            return _page(conn, "model/gltf-binary", self._avatar) if self._avatar is not None else _avatar(conn)
+        if page is None:
+            self.refused["not_found"] += 1
+            return conn.respond(HTTPStatus.NOT_FOUND, "not found: the viewer is at /, the stream at ws://.../\n")
+        return _page(conn, *page)
 
     # ------------------------------------------------------------------------------------------ WebSocket side
     async def _handler(self, conn: ServerConnection) -> None:
@@ -546,6 +579,22 @@ def _peer(conn: ServerConnection) -> str:
     if isinstance(peer, tuple) and len(peer) >= 2:
         return f"[{peer[0]}]:{peer[1]}" if ":" in str(peer[0]) else f"{peer[0]}:{peer[1]}"
     return "?"
+
+
+def _page(conn: ServerConnection, ctype: str, body: bytes) -> Response:
+    """A 200 answer carrying ``body`` as ``ctype``, not to be cached (the page changes with the daemon)."""
+    r = conn.respond(HTTPStatus.OK, "")
+    del r.headers["Content-Type"]
+    del r.headers["Content-Length"]
+    r.headers["Content-Type"] = ctype
+    r.headers["Content-Length"] = str(len(body))
+    r.headers["Cache-Control"] = "no-store"
+    return dataclasses.replace(r, body=body)
+
+
+async def _avatar(conn: ServerConnection) -> Response:
+    """The avatar view's model, built once per process in a worker thread (~30 ms: not on the solver's loop)."""
+    return _page(conn, "model/gltf-binary", await asyncio.to_thread(default_avatar))
 
 
 async def _drop(conn: ServerConnection) -> None:

@@ -263,7 +263,8 @@ class DetectorConfig:
     pass from the measured costs, :mod:`mocapd.pipeline.landmark_auto`; the output is ``blazepose33``)."""
     hands: str = "off"
     """Hand landmarks per person after the body's keypoints (:mod:`mocapd.pipeline.hand_landmarks`): "off", "on" (the
-    output becomes ``<body>_hands``), "auto" (on when the body landmarks run: :meth:`hands_decision`)."""
+    output becomes ``<body>_hands``), "auto" (beside the body landmarks, per pass from the measured costs:
+    :meth:`hands_decision`)."""
     model: ModelSpec = field(default_factory=ModelSpec)
     packing: PackingConfig = field(default_factory=PackingConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -308,10 +309,10 @@ class DetectorConfig:
     def hands_decision(self) -> tuple[bool, str]:
         """Whether the hand landmark model runs, and why (``/status`` ``detector.hands``).
 
-        ``"auto"`` is on when the body landmark front end runs: the hand crops are then placed from BlazePose's
-        wrist, index and pinky (the forearm alone places them poorly), and their measured cost, two crops of the
-        hand model per person and view, is about one full body crop and under half a heavy one (docs/detection.md,
-        "Hand landmarks per person"). The budget governor does not weigh them yet.
+        ``"auto"`` runs the model only beside the body landmark front end (the hand crops are then placed from
+        BlazePose's wrist, index and pinky; the forearm alone places them poorly), and there per pass from its
+        measured cost, after the body landmarks' (:mod:`mocapd.pipeline.hand_auto`: off first when the budget is
+        short; ``/status`` ``detector.hands.auto`` says the rate and why).
         """
         if self.hands == "off":
             return False, "detector.hands is off"
@@ -320,8 +321,8 @@ class DetectorConfig:
         if self.landmarks == "off":
             return False, "auto: the body landmark front end does not run (detector.landmarks), so hands stay off"
         return True, (
-            f"auto: the body landmarks run ({self.landmarks}); a person's two hand crops cost about one full "
-            "body crop, under half a heavy one (tools/hand_cost.py)"
+            f"auto: beside the body landmarks ({self.landmarks}), per pass from the measured costs, off first "
+            "when the budget is short (detector.hands.auto)"
         )
 
     @property

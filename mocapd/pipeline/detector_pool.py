@@ -42,7 +42,9 @@ from mocapd.io.os_threads import worker_thread_setup
 from mocapd.pipeline.detection_mode import ModeChooser
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
-from mocapd.pipeline.hand_landmarks import HandRunner, hand_status, with_hand_landmarks
+from mocapd.pipeline.hand_auto import AutoHands, HandFront, hand_stage
+from mocapd.pipeline.hand_auto import front_status as hands_status
+from mocapd.pipeline.hand_landmarks import HandRunner
 from mocapd.pipeline.landmark_auto import LandmarkFront, front_status, landmark_front, mark
 from mocapd.pipeline.packed_source import PackedDetectionGroup, Session
 from mocapd.pipeline.packing import PackedDetector, detectors_from_config
@@ -77,12 +79,14 @@ def landmark_runner(cfg: DetectorConfig) -> LandmarkFront:
     return landmark_front(cfg.landmarks, max(1, cfg.intra_op_threads))
 
 
-def hand_runner(cfg: DetectorConfig) -> HandRunner | None:
-    """A session's hand landmark model when ``[detector] hands`` runs it (``cfg`` with concrete sessions), else
-    None; ModelError when the model was not fetched."""
+def hand_runner(cfg: DetectorConfig, body: LandmarkFront = None) -> HandFront:
+    """A session's hand stage when ``[detector] hands`` runs the model (``cfg`` with concrete sessions): the model
+    ("on"), or "auto"'s per-pass choice over the session's ``body`` landmark stage (:mod:`mocapd.pipeline.hand_auto`);
+    else None. ModelError when the model was not fetched."""
     if not cfg.hands_decision()[0]:
         return None
-    return HandRunner(keypoint_format(cfg.body_format).keypoints, threads=max(1, cfg.intra_op_threads))
+    runner = HandRunner(keypoint_format(cfg.body_format).keypoints, threads=max(1, cfg.intra_op_threads))
+    return AutoHands(runner, body) if cfg.hands == "auto" else runner
 
 
 def target_columns(cfg: DetectorConfig, target_names: Sequence[str]) -> NDArray[np.intp]:
@@ -124,12 +128,12 @@ class PooledDetector:
         self.hands_asked, self.hands_decision = cfg.hands, cfg.hands_decision()
         self.executor = detector_executor(cfg.workers, nice)
         self._runners: dict[int, LandmarkFront] = {}
-        self._hands: dict[int, HandRunner | None] = {}
+        self._hands: dict[int, HandFront] = {}
         for _ in range(cfg.workers):
             # Made in a worker thread: onnxruntime's threads inherit its name (see the module docstring).
             self._detectors.append(self.executor.submit(OnnxPoseDetector.from_config, cfg, image_sizes).result())
-            self._runners[id(self._detectors[-1])] = landmark_runner(cfg)
-            self._hands[id(self._detectors[-1])] = hand_runner(cfg)
+            body = self._runners[id(self._detectors[-1])] = landmark_runner(cfg)
+            self._hands[id(self._detectors[-1])] = hand_runner(cfg, body)
             self._pool.put(self._detectors[-1])
 
     def __call__(self, rgb: NDArray[np.uint8]) -> Detections2D:
@@ -139,8 +143,10 @@ class PooledDetector:
             image = np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), np.uint8)
             t0 = time.perf_counter_ns()
             found = det.detect(image)
-            (people,) = mark(self._runners[id(det)], [image], [found], time.perf_counter_ns() - t0)
-            (people,) = with_hand_landmarks(self._hands[id(det)], [image], [people])
+            t1 = time.perf_counter_ns()
+            (people,) = mark(self._runners[id(det)], [image], [found], t1 - t0)
+            body_ns = time.perf_counter_ns() - t1
+            (people,) = hand_stage(self._hands[id(det)], [image], [people], None, t1 - t0, body_ns)
         finally:
             self._pool.put(det)
         kp = people.keypoints if self._columns is None else people.keypoints[:, self._columns]
@@ -194,7 +200,8 @@ def make_detector(
     # Whole frames first: until the people are found every camera's ROI is its whole frame, which a whole pass runs
     # at the camera's aspect for the cost of a one-camera canvas; the per-pass cost then picks (ties keep the mode).
     chooser = ModeChooser(first="whole") if cfg.packing.enabled == "auto" else None
-    sessions = [Session(whole, canvas, landmark_runner(cfg), hand_runner(cfg)) for whole, canvas in pairs]
+    fronts = [landmark_runner(cfg) for _ in pairs]
+    sessions = [Session(w, c, f, hand_runner(cfg, f)) for (w, c), f in zip(pairs, fronts, strict=True)]
     return PackedDetectionGroup(
         packer, executor, columns, chooser=chooser, sessions=sessions, landmarks_asked=cfg.landmarks,
         hands=(cfg.hands, cfg.hands_decision()),
@@ -206,7 +213,7 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
     model's), so that a user who left ``providers = ["auto"]`` sees whether the GPU or the CPU took it."""
     if isinstance(detector, PooledDetector):
         marks = front_status(detector.landmarks_asked, list(detector._runners.values()))
-        hands = hand_status(detector.hands_decision, detector.hands_asked, list(detector._hands.values()))
+        hands = hands_status(detector.hands_decision, detector.hands_asked, list(detector._hands.values()))
         return {"mode": "whole", "workers": len(detector._detectors), "intra_op_threads": detector.intra_op_threads,
                 **detector._detectors[0].describe(), "landmarks": marks, "hands": hands}  # fmt: skip
     packer = detector.packer
@@ -222,5 +229,5 @@ def detector_status(detector: AnyDetector) -> dict[str, object]:
         out["canvas"] = packer.canvas_detector.describe()
     names = [detector.sources[c].name if c in detector.sources else str(c) for c in range(packer.n_cameras)]
     out["landmarks"] = front_status(detector.landmarks_asked, [s.landmarks for s in detector.sessions], names)
-    out["hands"] = hand_status(detector.hands_decision, detector.hands_asked, [s.hands for s in detector.sessions])
+    out["hands"] = hands_status(detector.hands_decision, detector.hands_asked, [s.hands for s in detector.sessions])
     return out

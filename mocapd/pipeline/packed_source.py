@@ -40,7 +40,7 @@ from mocapd.core.sorting import Detections2D
 from mocapd.pipeline.detection_mode import ModeChooser, PassCost
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.frame_ring import FrameRef
-from mocapd.pipeline.hand_landmarks import HandRunner, with_hand_landmarks
+from mocapd.pipeline.hand_auto import HandFront, hand_stage
 from mocapd.pipeline.keypoint_source import DetectorKeypointSource
 from mocapd.pipeline.landmark_auto import LandmarkFront, mark
 from mocapd.pipeline.packing import PackedDetector
@@ -69,8 +69,9 @@ class Session:
     whole: OnnxPoseDetector
     canvas: OnnxPoseDetector
     landmarks: LandmarkFront = None
-    hands: HandRunner | None = None
-    """Its hand landmark model when ``[detector] hands`` runs it (both hands' 42 keypoints after the body's)."""
+    hands: HandFront = None
+    """Its hand stage when ``[detector] hands`` runs the model (both hands' 42 keypoints after the body's): the model,
+    or "auto"'s per-pass choice (:mod:`mocapd.pipeline.hand_auto`)."""
 
 
 @dataclass(frozen=True)
@@ -343,10 +344,13 @@ class PackedDetectionGroup:
         (found,) = self.packer.detect([images], cameras=sorted(new), detector=session.canvas, inputs=inputs)
         cams = sorted(new)
         # The packer keeps YOLO's people for its ROIs; the landmarks replace the keypoints delivered.
+        t1 = self.clock()
         marked = dict(zip(cams, mark(session.landmarks, [images[c] for c in cams], [found[c] for c in cams],
-                                     self.clock() - t0, cams), strict=True))  # fmt: skip
+                                     t1 - t0, cams), strict=True))  # fmt: skip
         if session.hands is not None:
-            handed = with_hand_landmarks(session.hands, [images[c] for c in cams], [marked[c] for c in cams], cams)
+            body_ns = self.clock() - t1
+            handed = hand_stage(session.hands, [images[c] for c in cams], [marked[c] for c in cams], cams, t1 - t0,
+                                body_ns)  # fmt: skip
             marked = dict(zip(cams, handed, strict=True))
         return {cam: (ref, to_detections2d(marked[cam], self.columns)) for cam, ref in new.items()}
 
@@ -383,8 +387,9 @@ class PackedDetectionGroup:
             with self._cond:
                 self.whole_passes += 1
             self.packer.seed_rois(cam, people)  # packed passes start from where the people are now
+            t1 = self.clock()
             (marked,) = mark(session.landmarks, [image], [people], yolo_ns, [cam])
-            (marked,) = with_hand_landmarks(session.hands, [image], [marked], [cam])
+            (marked,) = hand_stage(session.hands, [image], [marked], [cam], yolo_ns, self.clock() - t1)
             return {cam: (got[0], to_detections2d(marked, self.columns))}
         return None
 

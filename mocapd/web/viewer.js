@@ -11,6 +11,10 @@
 // Fingers (issue 44): a subject whose frame carries "hands" also gets its finger bones drawn, thinner, from each
 // hand's wrist through the finger joints to the fingertips (the hands' global joints, or forward kinematics from
 // the hand's rotation, the fingers' local rotations and their offsets).
+// Avatar (the "Avatar" button, or ?avatar=1; issue 44): avatar.js, loaded on demand, puts a VRM humanoid on every
+// subject, body and fingers, drawn on a WebGL canvas over this one with the same camera; a subject's skeleton is
+// drawn only until its avatar is there. Without the libraries (set-up not run) the skeletons stay, and the panel
+// says why. State for tests: window.mocapdViewer.avatar.
 "use strict";
 
 (function () {
@@ -25,7 +29,10 @@
     connected: false, connects: 0, hellos: 0, frames: 0, statusMessages: 0, errors: 0,
     hello: null, frame: null, shown: null, paused: false, status: null, colours: {}, rate: 0, lastError: null,
     camerasOn: params.get("cameras") === "1", cameraMessages: 0, cams: {}, headingResets: 0, headingAsked: false,
+    avatarOn: params.get("avatar") === "1",
   };
+  // The avatar view: its module's view once loaded, the error that stopped it, whether it is loading.
+  const avatar = { view: null, error: null, loading: false };
   const cam = { yaw: 0.6, pitch: 0.35, dist: 7.0, target: [0, 0.9, 0] };
   const FIT_FILL = 0.8, FIT_MIN_RADIUS = 1.0, FIT_TAU_S = 0.4, MIN_DIST = 1.0, MAX_DIST = 40.0;
   // auto: the view follows the people (until the user moves it); fitted: it has aimed at them once (no fly-in).
@@ -185,14 +192,18 @@
       line(project([gx - n, 0, gz + k], b), project([gx + n, 0, gz + k], b), gz + k === 0 ? "#3b4350" : "#262b33", 1);
     }
     const f = state.shown, parents = state.hello ? state.hello.parents : null;
+    const avatars = state.avatarOn && avatar.view && state.hello  // the subjects drawn as avatars
+      ? avatar.view.render(f ? f.subjects : [], b, cam.target, w, h) : new Set();
     if (f && parents) {
       ctx.lineCap = "round";
       for (const s of f.subjects) {
         const colour = colourOf(s.id), pts = jointsOf(s).map((p) => project(p, b));
-        for (let i = 1; i < pts.length; i++) line(pts[parents[i]], pts[i], colour, 4);
         ctx.fillStyle = colour;
-        for (const p of pts) if (p) { ctx.beginPath(); ctx.arc(p[0], p[1], 3.5, 0, 2 * Math.PI); ctx.fill(); }
-        for (const hand of fingersOf(s)) {  // each finger: wrist, its three joints, its tip
+        if (!avatars.has(s.id)) {
+          for (let i = 1; i < pts.length; i++) line(pts[parents[i]], pts[i], colour, 4);
+          for (const p of pts) if (p) { ctx.beginPath(); ctx.arc(p[0], p[1], 3.5, 0, 2 * Math.PI); ctx.fill(); }
+        }
+        for (const hand of avatars.has(s.id) ? [] : fingersOf(s)) {  // each finger: wrist, its three joints, its tip
           const w = project(hand.wrist, b), j = hand.joints.map((p) => project(p, b));
           const t = hand.tips.map((p) => project(p, b));
           for (let f = 0; f < 5; f++) {
@@ -369,6 +380,40 @@
   }
   document.getElementById("camsButton").addEventListener("click", () => setCameras(!state.camerasOn));
 
+  // ------------------------------------------------------------------------------------------ avatar view
+  function avatarSaid(text, cls) {
+    const m = document.getElementById("avatarMsg");
+    m.textContent = text; m.className = cls;
+  }
+  function setAvatar(on) {
+    state.avatarOn = on;
+    document.getElementById("avatarButton").className = on ? "on" : "";
+    document.getElementById("avatarView").className = on ? "on" : "";
+    if (!on) {
+      if (avatar.view) avatar.view.clear();
+      avatarSaid(avatar.error ? `avatar unavailable: ${avatar.error}` : "", avatar.error ? "bad" : "dim");
+      scheduleDraw();
+      return;
+    }
+    if (!avatar.view && !avatar.loading) {
+      avatar.loading = true;
+      avatarSaid("avatar: loading…", "dim");
+      import("./avatar.js")
+        .then((m) => m.createAvatarView({ canvas: document.getElementById("avatarView"), hello: () => state.hello,
+                                          bodyFK, colourOf, redraw: scheduleDraw, url: "avatar.vrm",
+                                          failed: (e) => avatarSaid(`avatar unavailable: ${e}`, "bad") }))
+        .then((v) => { avatar.view = v; avatar.error = null; avatarSaid("avatar: VRM humanoid, body and fingers", "ok"); })
+        .catch((e) => {
+          // Most likely set-up has not fetched three.js and three-vrm (setup/steps/33-viewer-libs.sh): /lib/ is 404.
+          avatar.error = String(e && e.message ? e.message : e);
+          setAvatar(false);
+        })
+        .finally(() => { avatar.loading = false; scheduleDraw(); });
+    }
+    scheduleDraw();
+  }
+  document.getElementById("avatarButton").addEventListener("click", () => setAvatar(!state.avatarOn));
+
   // Heading reset (docs/imu.md "Heading without cameras"): the daemon's WebSocket request, its answer said here.
   function resetHeading() {
     const msg = document.getElementById("headingMsg");
@@ -486,6 +531,14 @@
                                           world: h.joints.concat(h.tips) })) })) : []),
     fingersOf: (s) => fingersOf(s),
     colourOf,
+    setAvatar,
+    // The avatar view: on, loaded, its error, and per subject its bones (avatar.js bones()).
+    avatar: {
+      get on() { return state.avatarOn; }, get ready() { return !!avatar.view; },
+      get error() { return avatar.error || (avatar.view && avatar.view.error); },
+      bones: (id) => (avatar.view ? avatar.view.bones(id) : null),
+      vrm1Name: (n) => (avatar.view ? avatar.view.vrm1Name(n) : null),
+    },
     get frames() { return state.frames; }, get connects() { return state.connects; },
     get connected() { return state.connected; },
     resetHeading,
@@ -502,6 +555,7 @@
     }),
   };
   if (state.camerasOn) setCameras(true);
+  if (state.avatarOn) setAvatar(true);
   connect();
   scheduleDraw();
 })();

@@ -331,8 +331,8 @@ def parse_config(data: object) -> Config:
 
 def resolve_paths(config: Config, base: Path) -> Config:
     """``config`` with the rig's relative file paths (calibration file, replayed videos and image folders, a
-    webcam given as a file) made absolute from ``base``, the config file's folder: a config and the files it
-    names travel together, whatever the working directory."""
+    webcam given as a file, the viewer's avatar) made absolute from ``base``, the config file's folder: a config and
+    the files it names travel together, whatever the working directory."""
 
     def absolute(path: str) -> str:
         return path if not path or Path(path).is_absolute() else str(base / path)
@@ -351,9 +351,11 @@ def resolve_paths(config: Config, base: Path) -> Config:
     zenoh = z.model_copy(update={k: absolute(getattr(z, k)) for k in keys})
     f = config.fusion
     fusion = f if f.model == "default" else f.model_copy(update={"model": absolute(f.model)})
+    websocket = config.websocket.model_copy(update={"avatar": absolute(config.websocket.avatar)})
     return config.model_copy(
-        update={"cameras": tuple(cameras), "calibration": calibration, "zenoh": zenoh, "fusion": fusion}
-    )
+        update={"cameras": tuple(cameras), "calibration": calibration, "zenoh": zenoh, "fusion": fusion,
+                "websocket": websocket}
+    )  # fmt: skip
 
 
 def config_document(config: Config) -> dict[str, Any]:

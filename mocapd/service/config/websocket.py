@@ -8,7 +8,7 @@ from typing import Annotated, Literal, Self
 
 from pydantic import AfterValidator, Field, model_validator
 
-from mocapd.service.config.schema import Allowed, RuleError, Section, Text
+from mocapd.service.config.schema import Allowed, PathStr, RuleError, Section, Text
 
 MIN_TOKEN = 16
 _TOKEN = re.compile(r"[!-~]*")  # printable ASCII, no spaces: it travels in a URL query or an HTTP header
@@ -70,6 +70,8 @@ class WebSocketConfig(Section):
     """Status messages per second (0: none)."""
     viewer: bool = True
     """Serve the live web viewer at http://host:port/."""
+    avatar: PathStr = ""
+    """A VRM file (0.x or 1.0, e.g. a VRoid model) for the viewer's avatar view; "" = mocapd's mannequin."""
     cameras: bool = True
     """Offer camera views (the viewer's camera panels; sent only to clients that ask)."""
     camera_rate_hz: float = Field(4.0, ge=0.1, le=30.0)

@@ -68,7 +68,7 @@ def websocket_sinks(
         return []
     settings = ServerSettings(
         host=ws.host, port=ws.port, token=ws.token, max_clients=ws.max_clients, queue_messages=ws.queue_messages,
-        max_message_bytes=ws.max_message_bytes, status_hz=ws.status_hz, viewer=ws.viewer,
+        max_message_bytes=ws.max_message_bytes, status_hz=ws.status_hz, viewer=ws.viewer, avatar=ws.avatar,
         defaults=StreamOptions(encoding=ws.encoding, convention=ws.convention, globals=ws.globals),
         allowed_hosts=config.web.allowed_hosts, allowed_origins=config.web.allowed_origins,
     )  # fmt: skip
