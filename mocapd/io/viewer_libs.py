@@ -4,8 +4,9 @@ Nothing here is committed or vendored. The viewer's avatar view (``mocapd/web/av
 with ``@pixiv/three-vrm`` (pixiv, MIT) on ``three`` (three.js authors, MIT), the version three-vrm is built and
 tested against. :func:`build_viewer_libs`:
 
-1. runs ``npm pack three@0.180.0`` and ``npm pack @pixiv/three-vrm@3.5.5`` (the ordinary npm client, into a
-   temporary directory) and checks each tarball's sha256 against the one pinned here;
+1. downloads the tarballs of ``three@0.180.0`` and ``@pixiv/three-vrm@3.5.5`` from the npm registry (the addresses
+   ``npm pack`` fetches; no Node.js needed, so the demo profile's set-up stays lean) into a temporary directory and
+   checks each tarball's sha256 against the one pinned here;
 2. takes the few ES modules the page imports out of them (:data:`FILES`), each checked against its pinned sha256,
    with the packages' LICENSE files;
 3. writes them under the cache's ``web/lib/`` with a sidecar ``web/lib/viewer_libs.json`` (packages, versions,
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mocapd.errors import ModelError
-from mocapd.io.landmark_build import extract_pinned, npm_pack
+from mocapd.io.landmark_build import extract_pinned, npm_download
 from mocapd.io.model_build import sha256
 from mocapd.io.model_cache import cache_dir
 
@@ -92,7 +93,7 @@ def viewer_lib_files(root: Path | None = None) -> dict[str, tuple[str, bytes]]:
     return out
 
 
-def build_viewer_libs(*, force: bool = False, log: Callable[[str], None] = print, npm: str = "npm") -> Path:
+def build_viewer_libs(*, force: bool = False, log: Callable[[str], None] = print) -> Path:
     """Fetch the pinned packages and write :data:`FILES` under :func:`lib_dir` (skipped when current).
 
     Returns
@@ -103,7 +104,7 @@ def build_viewer_libs(*, force: bool = False, log: Callable[[str], None] = print
     Raises
     ------
     ModelError
-        When npm is missing, the download fails, or a checksum differs from the pinned one.
+        When the download fails or a checksum differs from the pinned one.
     """
     root = lib_dir()
     if not force and viewer_libs_current(root):
@@ -115,7 +116,7 @@ def build_viewer_libs(*, force: bool = False, log: Callable[[str], None] = print
         for pkg in PACKAGES:
             dest = tmp / pkg.name.replace("/", "_")
             dest.mkdir()
-            tarballs[pkg.name] = npm_pack(pkg.name, pkg.version, pkg.tarball_sha256, dest, log, npm)
+            tarballs[pkg.name] = npm_download(pkg.name, pkg.version, pkg.tarball_sha256, dest, log)
         for rel, (pkg, member, digest) in FILES.items():
             target = root / rel
             target.parent.mkdir(parents=True, exist_ok=True)
