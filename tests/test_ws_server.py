@@ -242,6 +242,9 @@ async def test_token_required_off_loopback_and_enforced_when_set() -> None:
             assert (await recv(ws, "hello"))["type"] == "hello"
         assert (await http_get(srv.port, "/"))[0] == 401
         assert (await http_get(srv.port, "/?token=a-long-enough-secret"))[0] == 200
+        # The page's own script is fetched by the browser without the page's query: it must load, or the viewer
+        # of a token-guarded daemon is a blank page (it was refused with 401).
+        assert (await http_get(srv.port, "/viewer.js"))[0] == 200
         assert srv.refused["unauthorised"] == 3
     finally:
         await srv.aclose()

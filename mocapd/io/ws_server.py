@@ -22,7 +22,8 @@ Plain HTTP GETs on the same port (no ``Upgrade: websocket``) serve the viewer (`
 ``/avatar.js`` from ``mocapd/web/``), the avatar view's model (``/avatar.vrm``, :mod:`mocapd.protocols.vrm_avatar`)
 and its libraries (``/lib/...``, from the cache when set-up fetched them: :mod:`mocapd.io.viewer_libs`); everything
 else is 404. With a token configured, both the page and the stream need it
-(``?token=...`` in the URL or ``Authorization: Bearer ...``), checked in constant time.
+(``?token=...`` in the URL or ``Authorization: Bearer ...``), checked in constant time; the page's own scripts,
+libraries and model do not (the browser requests them without the page's query; they hold nothing of the session).
 
 Every request, page or handshake, must name this machine in its ``Host`` (421 otherwise: DNS rebinding) and come
 from no web page, the viewer's own origin or a configured one (403 otherwise: another site's page, a ``file://``
@@ -399,13 +400,23 @@ class WebSocketStreamServer:
             offered = auth[len("Bearer ") :]
         return hmac.compare_digest(offered.encode(), token.encode())
 
+    @staticmethod
+    def _needs_token(request: Request) -> bool:
+        """Whether a configured token guards ``request``: the stream and the page do; the page's own scripts,
+        libraries and avatar model do not (the browser fetches them without the page's query, so guarding them
+        broke the viewer; they are the same files for everyone and carry nothing of the session, and the Host and
+        Origin checks still apply to them)."""
+        if request.headers.get("Upgrade", "").lower() == "websocket":
+            return True
+        return request.path.partition("?")[0] == "/"
+
     def _foreign(self, conn: ServerConnection, request: Request) -> Response | None:
         """The answer to a request from another site (a foreign Host: 421; a foreign Origin: 403) or without the
         token (401), counted; None for the rest."""
         host, origin = request.headers.get_all("Host"), request.headers.get_all("Origin")
         why = self.access.refusal(host, origin)
         if why is None:
-            if self._authorised(request):
+            if self._authorised(request) or not self._needs_token(request):
                 return None
             self.refused["unauthorised"] += 1
             return conn.respond(HTTPStatus.UNAUTHORIZED, "a token is required: ?token=... or Authorization: Bearer\n")
