@@ -24,7 +24,12 @@ tie rule names neither while they rise alike; the noise can still tip it to the 
 
 While a camera is bumped the watch gathers its 2D-3D matches (the others' triangulations and its own detections)
 and, from ``reestimate_points`` of them, re-estimates its orientation with the other cameras held
-(:func:`reestimate_pose`): a *proposal* the caller applies (:meth:`CameraWatch.apply`) or not.
+(:func:`reestimate_pose`): a *proposal*, judged by :func:`judge_proposal` (its matches' error must fall well below
+what it was and back near the camera's baseline, the turn be one a knock gives). With ``apply`` one that passes is
+handed to the caller (:meth:`CameraWatch.pending`), which swaps the camera in everything that holds it (the
+scheduler's :meth:`~mocapd.pipeline.scheduler.FixedLatencyScheduler.replace_camera`) and tells the watch
+(:meth:`CameraWatch.apply`: the camera is judged against the new pose from a new baseline, back in the solve). One
+that fails is shown with the reason and the matches are gathered again.
 
 Time is the solve time passed in (ns); nothing here reads a clock or locks (the pipeline's adapter does).
 """
@@ -77,12 +82,20 @@ class WatchOptions:
     """Confidence factor in the solve of a camera in doubt (0: left out)."""
     reestimate_points: int = 400
     """2D-3D matches gathered from a bumped camera before its pose is re-estimated (0: never)."""
+    apply: bool = True
+    """A re-estimate that passes :func:`judge_proposal` is applied (handed out by :meth:`CameraWatch.pending`);
+    False: only proposed."""
+    max_turn_deg: float = 10.0
+    """A re-estimated turn larger than this is not applied: no knock turns a camera that far and leaves it seeing
+    the same people (a camera that far off is recalibrated)."""
 
     def __post_init__(self) -> None:
         if not (self.rate_hz > 0 and self.window_s > 0 and self.hold_s > 0 and self.baseline_s > self.window_s):
             raise InputError("camera watch: rate_hz, window_s and hold_s must be positive, baseline_s > window_s")
         if not (0.0 <= self.down_weight <= 1.0):
             raise InputError(f"camera watch: down_weight {self.down_weight} outside [0, 1]")
+        if not self.max_turn_deg > 0:
+            raise InputError(f"camera watch: max_turn_deg {self.max_turn_deg} must be positive")
 
 
 @dataclass(frozen=True)
@@ -95,6 +108,31 @@ class Proposal:
     inliers: int
     median_px_before: float  # the matches' reprojection error with the configured pose
     median_px_after: float  # ... and with the proposed one
+    refused: str | None = None  # why it may not be applied (judge_proposal); None: it passed
+
+
+IMPROVEMENT = 0.5
+"""An applied re-estimate's matches reproject at most this share of their error with the old pose."""
+MIN_INLIER_SHARE = 0.5
+"""... and at least this share of its matches agree with it (the others: the detector's outliers)."""
+
+
+def judge_proposal(p: Proposal, baseline_px: float, options: WatchOptions) -> str | None:
+    """Why proposal ``p`` may not be applied, or None when it may: its matches' median error must fall to at most
+    :data:`IMPROVEMENT` of what it was, and to within ``margin_px`` of the camera's baseline from before the bump
+    (``baseline_px``: where a camera that agrees with the others sits; a re-estimate of the wrong camera, or of a
+    camera that moved rather than turned, stays above it), at least :data:`MIN_INLIER_SHARE` of the matches must
+    agree, and the turn must be at most ``max_turn_deg``."""
+    if p.inliers < MIN_INLIER_SHARE * p.matches:
+        return f"only {p.inliers} of {p.matches} matches agree with it"
+    if p.rotation_deg > options.max_turn_deg:
+        return f"a turn of {p.rotation_deg:.1f} deg is more than max_turn_deg {options.max_turn_deg:g}"
+    if not p.median_px_after <= IMPROVEMENT * p.median_px_before:
+        return f"its matches improve too little ({p.median_px_before} -> {p.median_px_after} px)"
+    if np.isfinite(baseline_px) and not p.median_px_after <= baseline_px + options.margin_px:
+        return (f"its matches stay {p.median_px_after} px off, more than the camera's {baseline_px:.1f} px before "
+                f"the bump + margin_px")  # fmt: skip
+    return None
 
 
 @dataclass
@@ -104,6 +142,7 @@ class _Camera:
     samples: deque[tuple[int, float]] = field(default_factory=deque)
     state: str = "learning"
     since_ns: int = 0  # when the state was entered
+    doubt_ns: int | None = None  # when it was last found suspect after agreeing (the bump is about window_s / 2 before)
     frozen_baseline: float | None = None  # the baseline held while in doubt
     calm_since_ns: int | None = None  # bumped and back at its baseline since then
     baseline: float = float("nan")
@@ -111,7 +150,8 @@ class _Camera:
     bumps: int = 0
     matches: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)  # (X (n, 3), uv (n, 2)) while bumped
     n_matches: int = 0
-    proposal: Proposal | None = None
+    proposal: Proposal | None = None  # the latest re-estimate (one that was refused: the matches gathered again)
+    applied: int = 0  # re-estimates applied to this camera so far
 
 
 def residuals_left_out(
@@ -263,7 +303,8 @@ class CameraWatch:
                 cam.samples.append((t_ns, float(res[c])))
             while cam.samples and cam.samples[0][0] < t_ns - keep_ns:
                 cam.samples.popleft()
-            if cam.state == "bumped" and o.reestimate_points > 0 and cam.proposal is None and len(matches[c][0]):
+            gathering = cam.proposal is None or cam.proposal.refused is not None
+            if cam.state == "bumped" and o.reestimate_points > 0 and gathering and len(matches[c][0]):
                 cam.matches.append(matches[c])
                 cam.n_matches += len(matches[c][0])
                 if cam.n_matches >= o.reestimate_points:
@@ -313,6 +354,7 @@ class CameraWatch:
             elif cam.state == "ok":
                 if alone:
                     cam.frozen_baseline = cam.baseline
+                    cam.doubt_ns = t_ns
                     self._enter(cam, i, "suspect", t_ns)
             elif cam.state == "suspect":
                 up = np.isfinite(rises[i]) and rises[i] > 0.5 * max(o.margin_px, o.ratio * cam.baseline)
@@ -358,20 +400,33 @@ class CameraWatch:
         prop = reestimate_pose(self.cameras[c], X, uv)
         if prop is None:
             return  # too few matches agree: gather again
-        cam.proposal = prop
-        self.events.append((t_ns, self.cameras[c].name, "re-estimated", _proposal_json(prop)))
+        cam.proposal = replace(prop, refused=judge_proposal(prop, cam.baseline, self.options))
+        self.events.append((t_ns, self.cameras[c].name, "re-estimated", _proposal_json(cam.proposal)))
 
     # ------------------------------------------------------------------------------------------ output
     def proposal(self, camera: int) -> Proposal | None:
         """The bumped camera's re-estimated pose, once there is one."""
         return self._cams[camera].proposal
 
+    def doubted_since(self, camera: int) -> int | None:
+        """The solve time ``camera`` was last found suspect (None: never, or since its last re-estimate applied)."""
+        return self._cams[camera].doubt_ns
+
+    def pending(self) -> list[tuple[int, Proposal]]:
+        """With ``apply``: the bumped cameras whose re-estimate passed its checks, waiting to be applied (the caller
+        swaps the camera everywhere, then calls :meth:`apply`)."""
+        if not self.options.apply:
+            return []
+        return [(i, c.proposal) for i, c in enumerate(self._cams)
+                if c.state == "bumped" and c.proposal is not None and c.proposal.refused is None]  # fmt: skip
+
     def apply(self, camera: int, new: Camera) -> None:
         """``camera`` now has the pose ``new`` (a proposal applied, or a recalibration): its residuals are measured
-        against it, from a new baseline."""
+        against it, from a new baseline (state "learning" until there is one); back in the solve at once."""
         self.cameras[camera] = new
         self._P = np.stack([c.projection_matrix for c in self.cameras])
-        self._cams[camera] = _Camera(bumps=self._cams[camera].bumps)
+        old = self._cams[camera]
+        self._cams[camera] = _Camera(bumps=old.bumps, applied=old.applied + (old.state == "bumped"))
 
     def states(self) -> list[str]:
         return [c.state for c in self._cams]
@@ -381,7 +436,7 @@ class CameraWatch:
         return {
             cam.name: {
                 "state": c.state, "residual_px": _r(c.current), "baseline_px": _r(c.baseline), "bumps": c.bumps,
-                "samples": len(c.samples),
+                "applied": c.applied, "samples": len(c.samples),
                 "proposal": None if c.proposal is None else _proposal_json(c.proposal),
             }
             for cam, c in zip(self.cameras, self._cams, strict=True)
@@ -396,5 +451,5 @@ def _proposal_json(p: Proposal) -> dict[str, Any]:
     return {
         "rotation_deg": p.rotation_deg, "matches": p.matches, "inliers": p.inliers,
         "median_px_before": p.median_px_before, "median_px_after": p.median_px_after,
-        "R": np.round(p.camera.R, 9).tolist(), "t": np.round(p.camera.t, 6).tolist(),
+        "R": np.round(p.camera.R, 9).tolist(), "t": np.round(p.camera.t, 6).tolist(), "refused": p.refused,
     }  # fmt: skip
