@@ -4,14 +4,14 @@ The real daemon (``mocapd demo --synthetic``'s assembly, suits off, recording a 
 has a baseline; then one camera of the simulated world is turned on its mount (:meth:`SyntheticWorld.bump`; the
 rig's calibration unchanged) and the take goes on until the camera watch has named it, re-estimated it, applied
 the re-estimate (``[calibration.watch] apply``) and the camera agrees with the others again. Measured: the time
-from the bump to *bumped*, to the re-estimate and to the change applied (solve time), and the published poses'
-keypoint-site error against the synthetic truth before the bump, while the camera is in doubt, and after the
-change; then ``mocapd resolve`` of the recorded session (its camera event followed) and of a copy without its
-events (the old calibration throughout).
+from the knock to *bumped*, to the re-estimate and to the change applied (solve times, counted from the first solve
+that can see a turned frame), and the published poses' keypoint-site error against the synthetic truth before the
+knock, between it and the camera left out, while it is left out, and after the change; then ``mocapd resolve`` of the
+recorded session (its camera event followed) and of a copy without its events (the old calibration throughout).
 
-    python -m tools.bench_camera_bump --degrees 2 --axis x --after 10
+    python -m tools.bench_camera_bump --degrees 2 --axis x --after 8
 
-Prints one JSON document (and the table rows of docs/cameras.md with ``--table``).
+Prints one JSON document.
 """
 
 from __future__ import annotations
@@ -63,7 +63,8 @@ class Frames:
 class BumpedTake:
     """What one run gave: the instants (host ns) and the published frames, for :func:`phase_errors`."""
 
-    bump_ns: int
+    bump_ns: int  # host time the camera turned (its first frame rendered turned)
+    seen_ns: int  # the earliest solve time whose keypoints can come from a turned frame (see bumped_take)
     epoch_ns: int
     events: list[tuple[int, str, str, dict[str, Any]]]  # the watch's (solve ns, camera, what, details)
     changes: list[dict[str, Any]]  # /status camera_changes
@@ -71,7 +72,9 @@ class BumpedTake:
     states_after: list[str]
     session: Path | None
     world: SyntheticWorld
-    in_doubt_ns: list[int] = field(default_factory=list)  # solve times of the ticks checked with the camera in doubt
+    in_doubt_ns: list[int] = field(default_factory=list)  # solve times of the person solves without the camera
+    used_ns: list[int] = field(default_factory=list)  # ... and with it, since the bump
+    status_after: dict[str, Any] = field(default_factory=dict)  # /status camera_watch at the end
 
 
 def bump_config(cameras: int = 4, apply: bool = True) -> Config:
@@ -122,15 +125,20 @@ async def bumped_take(
             n = len(watch.cameras)
             await wait_until(lambda: watch.states() == ["ok"] * n, timeout_s, "every camera's baseline")
             bump_ns = d.clock()
+            # A synthetic frame captured at t is rendered (with the world's cameras then) at t + detection_delay_s,
+            # and a solve at t blends the frames around t: solves from here on may see the turned camera.
+            syn = config.synthetic
+            seen_ns = bump_ns - round((syn.detection_delay_s + 1.0 / syn.camera_rate_hz) * 1e9)
             world.bump(camera, matrix_from_rotvec(np.radians(degrees) * np.array(AXES[axis])))
             doubt: list[int] = []
+            used: list[int] = []
             hook = d.scheduler.observation_hook
             assert hook is not None
 
             def spy(t: int, uv: Any, conf: Any) -> Any:
                 out = hook(t, uv, conf)
-                if np.all(out[camera] == 0) and np.any(conf[camera] > 0):
-                    doubt.append(t)
+                if np.any(conf[camera] > 0):
+                    (doubt if np.all(out[camera] == 0) else used).append(t)
                 return out
 
             d.scheduler.observation_hook = spy
@@ -142,10 +150,12 @@ async def bumped_take(
             changes = d.status()["camera_changes"]
             states = watch.states()
             events = list(watch.events)
+            status = d.camera_watch.status()
         finally:
             d.request_stop()
             await asyncio.wait_for(task, 30)
-        return BumpedTake(bump_ns, demo.built.epoch_ns, events, changes, frames.frames, states, record, world, doubt)
+        return BumpedTake(bump_ns, seen_ns, demo.built.epoch_ns, events, changes, frames.frames, states, record,
+                          world, doubt, used, status)  # fmt: skip
 
 
 def person_errors_mm(
@@ -179,10 +189,10 @@ def report(take: BumpedTake, camera: int = 1, settle_s: float = 1.0) -> dict[str
     named, estimated = first.get("bumped"), first.get("re-estimated")
     applied = take.changes[0]["t_solve_ns"] if take.changes else None
     out: dict[str, Any] = {
-        "noticed_s": None if named is None else round((named - take.bump_ns) / 1e9, 2),
-        "re_estimated_s": None if estimated is None else round((estimated - take.bump_ns) / 1e9, 2),
-        "applied_s": None if applied is None else round((applied - take.bump_ns) / 1e9, 2),
-        "first_left_out_s": round((min(take.in_doubt_ns) - take.bump_ns) / 1e9, 2) if take.in_doubt_ns else None,
+        "noticed_s": None if named is None else round((named - take.seen_ns) / 1e9, 2),
+        "re_estimated_s": None if estimated is None else round((estimated - take.seen_ns) / 1e9, 2),
+        "applied_s": None if applied is None else round((applied - take.seen_ns) / 1e9, 2),
+        "first_left_out_s": round((min(take.in_doubt_ns) - take.seen_ns) / 1e9, 2) if take.in_doubt_ns else None,
         "change": take.changes[0] if take.changes else None,
         "states_after": take.states_after,
     }
@@ -194,11 +204,11 @@ def report(take: BumpedTake, camera: int = 1, settle_s: float = 1.0) -> dict[str
         )
     start = take.frames[0].t_solve_ns if take.frames else take.bump_ns
     end = take.frames[-1].t_solve_ns + 1 if take.frames else take.bump_ns
-    left_out = min(take.in_doubt_ns) if take.in_doubt_ns else take.bump_ns
+    left_out = min(take.in_doubt_ns) if take.in_doubt_ns else take.seen_ns
     back = applied if applied is not None else end
     bounds = {
-        "before": (start + 2_000_000_000, take.bump_ns),  # after enrolment and body sizing
-        "bumped, still in the solve": (take.bump_ns, left_out),
+        "before": (start + 2_000_000_000, take.seen_ns),  # after enrolment and body sizing
+        "bumped, still in the solve": (take.seen_ns, left_out),
         "left out": (left_out, back),
         "applied": (back + round(settle_s * 1e9), end),
     }

@@ -15,8 +15,13 @@ other cameras' median rise stays under ``others_ratio`` of its own, none rose mo
 a person half out of view or the sync drifting raise them all), is *suspect*; suspect for ``hold_s`` it is
 *bumped*. One camera is bumped at a time (a second is named once the first is set right or back). A suspect or
 bumped camera's confidences are scaled by ``down_weight`` in the solve (:meth:`CameraWatch.observe` returns them),
-so the poses published while it is in doubt come from the cameras that agree. A bumped camera whose level falls
-back to its baseline for ``hold_s`` (put back, or a passing disturbance) is *ok* again.
+so the poses published while it is in doubt come from the cameras that agree. The window's median takes half a
+window to rise, so a check's people alone also put a camera in doubt for the solve until the next check
+(*flagged*: every person of the check that the camera sees puts it off alone, by the same rule on that person's
+residuals against the baselines; one bad detection does not): the solve leaves a knocked camera out from the tick
+after the first check that sees the knock, about 0.1 s, not half a second later. A flag is no state, names nobody.
+A bumped camera whose level falls back to its baseline for ``hold_s`` (put back, or a passing disturbance) is *ok*
+again.
 
 Two opposite cameras that are each other's only witness of an axis (on a ring of four, cam1 and cam3 alone see
 the depth of cam0 and cam2) cannot be told apart when one of them pans: the check sees the same rise in both. The
@@ -111,6 +116,10 @@ class Proposal:
     refused: str | None = None  # why it may not be applied (judge_proposal); None: it passed
 
 
+FLAG_FACTOR = 3.0
+"""A check's people flag a camera (left out until the next check) on a rise this many times the one that makes it
+suspect: one moment's residuals are noisier than a window's median (2: two or three flags a minute on the
+synthetic detector-like noise of tests/test_camera_watch.py; 3: none, and a 2° knock still flagged at once)."""
 IMPROVEMENT = 0.5
 """An applied re-estimate's matches reproject at most this share of their error with the old pose."""
 MIN_INLIER_SHARE = 0.5
@@ -142,7 +151,7 @@ class _Camera:
     samples: deque[tuple[int, float]] = field(default_factory=deque)
     state: str = "learning"
     since_ns: int = 0  # when the state was entered
-    doubt_ns: int | None = None  # when it was last found suspect after agreeing (the bump is about window_s / 2 before)
+    doubt_ns: int | None = None  # when it was last put in doubt after agreeing: flagged, then suspect
     frozen_baseline: float | None = None  # the baseline held while in doubt
     calm_since_ns: int | None = None  # bumped and back at its baseline since then
     baseline: float = float("nan")
@@ -260,6 +269,9 @@ class CameraWatch:
         self._P = np.stack([c.projection_matrix for c in cameras]) if cameras else np.zeros((0, 3, 4))
         self._cams = [_Camera() for _ in cameras]
         self._tick_ns: int | None = None  # the solve time being checked now (all its people are)
+        self._flagged = np.zeros(len(cameras), dtype=bool)  # the last check's people put it off alone
+        self._votes: list[FloatArray] | None = None  # this check's people's residuals (n_cams,) each
+        self._flag_since: list[int | None] = [None] * len(cameras)  # the check that began each flagged run
         self._last_ns: int | None = None  # the last tick checked
         #: what happened, newest last: (solve time ns, camera name, event, details) for the log and the session
         self.events: list[tuple[int, str, str, dict[str, Any]]] = []
@@ -274,7 +286,9 @@ class CameraWatch:
             raise InputError(f"camera watch: keypoints {uv.shape} / confidences {conf.shape} for {n} cameras")
         if self._due(t_ns):
             self._check(t_ns, uv, conf)
-        doubt = self.in_doubt()
+        elif self._votes is not None:
+            self._settle_flags()  # the checked tick is complete: its people's verdicts hold until the next check
+        doubt = self.in_doubt() | self._flagged
         if not doubt.any():
             return conf
         return conf * np.where(doubt, self.options.down_weight, 1.0)[:, None]
@@ -290,13 +304,18 @@ class CameraWatch:
             return False
         if self._tick_ns is not None:
             self._judge(self._tick_ns)  # the previous checked tick is complete: judge on all its people
+            if self._votes is not None:
+                self._settle_flags()
         self._tick_ns = self._last_ns = t_ns
+        self._votes = []
         return True
 
     def _check(self, t_ns: int, uv: FloatArray, conf: FloatArray) -> None:
         o = self.options
         res, matches = residuals_left_out(self._P, uv, conf, min_confidence=o.min_confidence,
                                           min_keypoints=o.min_keypoints)  # fmt: skip
+        if self._votes is not None:
+            self._votes.append(res)
         keep_ns = round((o.baseline_s + o.window_s) * 1e9)
         for c, cam in enumerate(self._cams):
             if np.isfinite(res[c]):
@@ -311,6 +330,44 @@ class CameraWatch:
                     self._reestimate(t_ns, c)
 
     # ------------------------------------------------------------------------------------------ decisions
+    def _settle_flags(self) -> None:
+        """The camera the complete checked tick's people put off alone (their median residual per camera), if any."""
+        votes, self._votes = self._votes or [], None
+        self._flagged[:] = False
+        if votes:
+            res = np.stack(votes)
+            seen = np.isfinite(res).any(axis=0)
+            pooled = np.full(len(self._cams), np.nan)
+            pooled[seen] = np.nanmedian(res[:, seen], axis=0)
+            off = self._off_alone(pooled)
+            if off is not None:
+                self._flagged[off] = True
+        for c, flagged in enumerate(self._flagged):
+            if not flagged:
+                self._flag_since[c] = None
+            elif self._flag_since[c] is None:
+                self._flag_since[c] = self._tick_ns
+
+    def _off_alone(self, res: FloatArray) -> int | None:
+        """The camera one check's residuals ``res`` (n_cams,) put off alone, by the rule that makes a camera
+        suspect with a rise :data:`FLAG_FACTOR` times larger (against the baselines; none while a camera is in doubt
+        or without baselines), or None."""
+        o = self.options
+        if any(c.state != "ok" for c in self._cams):
+            return None  # learning (no baseline), or a camera already in doubt: the state machine has it
+        base = np.array([c.baseline for c in self._cams])
+        rise = res - base
+        finite = np.isfinite(rise)
+        if finite.sum() < 3:
+            return None
+        i = int(np.argmax(np.where(finite, rise, -np.inf)))
+        ranked = np.sort(rise[finite])
+        others = np.delete(rise, i)
+        others = others[np.isfinite(others)]
+        if not (rise[i] > FLAG_FACTOR * max(o.margin_px, o.ratio * base[i]) and ranked[-2] < o.tie_ratio * rise[i]):
+            return None
+        return i if float(np.median(others)) < o.others_ratio * rise[i] else None
+
     def _levels(self, t_ns: int) -> None:
         o = self.options
         split = t_ns - round(o.window_s * 1e9)
@@ -354,7 +411,8 @@ class CameraWatch:
             elif cam.state == "ok":
                 if alone:
                     cam.frozen_baseline = cam.baseline
-                    cam.doubt_ns = t_ns
+                    since = self._flag_since[i]  # flagged since then, without a break
+                    cam.doubt_ns = t_ns if since is None else min(since, t_ns)
                     self._enter(cam, i, "suspect", t_ns)
             elif cam.state == "suspect":
                 up = np.isfinite(rises[i]) and rises[i] > 0.5 * max(o.margin_px, o.ratio * cam.baseline)
@@ -409,7 +467,8 @@ class CameraWatch:
         return self._cams[camera].proposal
 
     def doubted_since(self, camera: int) -> int | None:
-        """The solve time ``camera`` was last found suspect (None: never, or since its last re-estimate applied)."""
+        """The solve time of the check that first put ``camera`` in doubt, flagged or suspect (None: never, or not
+        since its last re-estimate was applied)."""
         return self._cams[camera].doubt_ns
 
     def pending(self) -> list[tuple[int, Proposal]]:
@@ -425,6 +484,9 @@ class CameraWatch:
         against it, from a new baseline (state "learning" until there is one); back in the solve at once."""
         self.cameras[camera] = new
         self._P = np.stack([c.projection_matrix for c in self.cameras])
+        self._flagged[:] = False
+        self._votes = None
+        self._flag_since = [None] * len(self.cameras)
         old = self._cams[camera]
         self._cams[camera] = _Camera(bumps=old.bumps, applied=old.applied + (old.state == "bumped"))
 
