@@ -156,3 +156,24 @@ async def test_a_camera_turned_mid_run_is_re_estimated_applied_recorded_and_reso
     manifest = open_session(tmp_path / "session").manifest["cameras"]
     assert all(np.allclose(saved[f"cam{i}"].R, manifest[i]["R"]) for i in (0, 2, 3))
     assert not np.allclose(saved["cam1"].R, manifest[1]["R"])
+
+
+def test_a_refused_re_estimate_is_said_once_a_bump(caplog: pytest.LogCaptureFixture) -> None:
+    """A camera whose re-estimates keep failing their checks (the wrong camera named: a 2° roll of cam1 on the ring
+    of four named cam0, whose re-estimates then improved nothing) is re-estimated about once a second; the log says
+    the first refusal of each bump, /status the latest."""
+    caplog.set_level(logging.WARNING, logger="mocapd.service.daemon")
+    with assembled(bump_config(apply=True), RunOptions()) as demo:
+        d = demo.daemon
+        assert d.camera_watch is not None
+        refused = {"rotation_deg": 0.1, "median_px_before": 2.6, "median_px_after": 2.5, "refused": "too little"}
+        named = {"from": "suspect", "residual_px": 13.0, "baseline_px": 2.5}
+        events = d.camera_watch.watch.events
+        events += [(1, "cam0", "bumped", named), (2, "cam0", "re-estimated", refused)]
+        events += [(3, "cam0", "re-estimated", refused), (4, "cam0", "re-estimated", refused)]
+        d._say_camera_events()
+        said = [r.getMessage() for r in caplog.records if "re-estimated" in r.getMessage()]
+        assert len(said) == 1 and "not applied: too little; said once" in said[0]
+        events += [(5, "cam0", "ok", named), (6, "cam0", "bumped", named), (7, "cam0", "re-estimated", refused)]
+        d._say_camera_events()
+        assert len([r for r in caplog.records if "re-estimated" in r.getMessage()]) == 2  # a new bump: said again

@@ -310,6 +310,7 @@ class Daemon:
         self.camera_changes: list[CameraChange] = []
         #: told of each camera replaced (the session recorder, the viewer's camera panels); on the event loop
         self.camera_taps: list[Callable[[CameraChange], None]] = []
+        self._refusals_said: set[str] = set()  # cameras whose refused re-estimate was said since they were named
         # The tick solves on its own thread (the loop only samples and publishes), its people on the solve pool.
         self._tick_executor = ThreadPoolExecutor(1, "mocapd-tick", initializer=worker_thread_setup,
                                                  initargs=("mocapd-tick",))  # fmt: skip
@@ -798,6 +799,12 @@ class Daemon:
         if self.camera_watch is None:
             return
         for _, name, what, d in self.camera_watch.new_events():
+            if what == "re-estimated" and d["refused"] and name in self._refusals_said:
+                continue  # refused again (the matches are gathered again, about once a second): said once a bump
+            if what == "re-estimated" and d["refused"]:
+                self._refusals_said.add(name)
+            elif what == "bumped":
+                self._refusals_said.discard(name)
             if what == "bumped":
                 log.warning("camera %s moved: its people reproject %s px off (%s px before); left out of the solve "
                             "until it is recalibrated or back", name, d["residual_px"], d["baseline_px"])  # fmt: skip
@@ -805,9 +812,10 @@ class Daemon:
                 applying = self.camera_watch.watch.options.apply
                 why = ("not applied: " + d["refused"] if d["refused"] else "applied" if applying
                        else "not applied: [calibration.watch] apply = false")  # fmt: skip
+                again = "; said once, retried while it stays bumped" if d["refused"] else ""
                 log.warning("camera %s re-estimated from the people, the others held: turned %.2f deg, %s -> %s px "
-                            "(/status camera_watch.%s.proposal; %s)", name, d["rotation_deg"],
-                            d["median_px_before"], d["median_px_after"], name, why)  # fmt: skip
+                            "(/status camera_watch.%s.proposal; %s%s)", name, d["rotation_deg"],
+                            d["median_px_before"], d["median_px_after"], name, why, again)  # fmt: skip
             else:
                 log.warning("camera %s agrees with the others again (%s px)", name, d["residual_px"])
 
