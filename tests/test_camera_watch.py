@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 from mocapd.core.camera import Camera
-from mocapd.core.camera_watch import CameraWatch, WatchOptions, reestimate_pose, residuals_left_out
+from mocapd.core.camera_watch import (
+    CameraWatch,
+    Proposal,
+    WatchOptions,
+    judge_proposal,
+    reestimate_pose,
+    residuals_left_out,
+)
 from mocapd.core.keypoints import coco17_targets
 from mocapd.core.rotations import matrix_from_rotvec
 from mocapd.core.skeleton import Skeleton
@@ -150,3 +157,59 @@ def test_bad_input_is_refused() -> None:
         watch.observe(0, np.zeros((3, 17, 2)), np.zeros((3, 17)))
     with pytest.raises(InputError, match="down_weight"):
         WatchOptions(down_weight=2.0)
+
+
+def test_a_knocked_camera_is_left_out_from_the_first_check_after_the_knock() -> None:
+    """The window's median takes half a second to rise; the check's own people flag the camera at once (2°: 50 px
+    off), so the solve leaves it out from the next moment, before it is even suspect."""
+    truth = ring_rig(4)
+    moved = [bumped(c, 2.0, (1.0, 0.0, 0.0)) if i == 1 else c for i, c in enumerate(truth)]
+    watch, weights = watched(truth, take(truth, 21.0, seed=1, bump_at=20.0, moved=moved))
+    assert all(np.allclose(w, 1.0) for t, w in weights if t <= 20e9)  # the knock's first check: seen, not yet used
+    after = [w for t, w in weights if t > 20e9]
+    assert all(w[1] == 0.0 and np.allclose(np.delete(w, 1), 1.0) for w in after)
+    first_after = next(t for t, w in weights if t > 20e9)
+    assert watch.states()[1] in ("suspect", "bumped") and first_after == round(20.1e9)
+    assert watch.doubted_since(1) == round(20.0e9)  # the first check that flagged it (resolve switches from there)
+
+
+def test_a_passing_re_estimate_is_handed_out_applied_and_the_camera_rejoins() -> None:
+    """``apply``: the re-estimate that passes its checks is pending until the caller applies it; then the camera is
+    judged against its new pose from a new baseline (back in the solve at once, ok again once it has one, at the
+    level it had before the knock) and nothing is pending. With ``apply = false`` nothing is ever pending."""
+    truth = ring_rig(4)
+    moved = [bumped(c, 2.0, (1.0, 0.0, 0.0)) if i == 1 else c for i, c in enumerate(truth)]
+    moments = take(truth, 40.0, seed=1, bump_at=20.0, moved=moved)
+    off = CameraWatch(truth, WatchOptions(apply=False))
+    watch = CameraWatch(truth)
+    applied_at, weights = None, []
+    for t, uv, cf in moments:
+        off.observe(t, uv, cf)
+        weights.append((t, watch.observe(t, uv, cf)[1].sum()))
+        assert off.pending() == []
+        for i, p in watch.pending():
+            assert applied_at is None and i == 1 and p.refused is None
+            baseline = watch.status()["cam1"]["baseline_px"]
+            watch.apply(i, p.camera)
+            applied_at = t
+    assert applied_at is not None and applied_at < 25e9 and off.proposal(1) is not None
+    assert all(w > 0 for t, w in weights if t > applied_at)  # in the solve again from the next moment
+    st = watch.status()["cam1"]
+    assert watch.states() == ["ok"] * 4 and st["applied"] == 1 and st["bumps"] == 1, st
+    # at its level from before the knock (within margin_px: its 1-s median is noisy), far below the knocked ~50 px
+    assert st["residual_px"] < baseline + WatchOptions().margin_px and st["baseline_px"] < baseline + 3.0, st
+    assert watch.pending() == []
+    assert [w for _, c, w, _ in watch.events] == ["bumped", "re-estimated"]
+
+
+def test_a_re_estimate_is_refused_unless_it_fits_well_turns_little_and_most_matches_agree() -> None:
+    cam = ring_rig(4)[0]
+    o = WatchOptions()
+    good = Proposal(cam, 2.0, 400, 390, 50.0, 10.0)
+    assert judge_proposal(good, 9.0, o) is None
+    assert "agree" in str(judge_proposal(replace(good, inliers=150), 9.0, o))
+    assert "max_turn_deg" in str(judge_proposal(replace(good, rotation_deg=12.0), 9.0, o))
+    assert "improve too little" in str(judge_proposal(replace(good, median_px_after=30.0), 9.0, o))
+    assert "before the bump" in str(judge_proposal(good, 2.0, o))  # 10 px: more than its 2 px + margin_px 6
+    with pytest.raises(InputError, match="max_turn_deg"):
+        WatchOptions(max_turn_deg=0.0)

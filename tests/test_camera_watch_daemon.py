@@ -1,29 +1,37 @@
 """The bumped-camera watch in the daemon, end to end on the synthetic rig: a simulated camera turned 2° on its
 mount mid-run (the rig's calibration unchanged) is named in /status (over HTTP), the status line, the log and the
 viewer within seconds (the issue's 5 s at the watch's checking rate), left out of the solve, and its orientation
-re-estimated from the people."""
+re-estimated from the people; with ``apply`` the re-estimate is applied (the camera rejoins the solve, its residual
+back at its baseline), recorded in the session, and ``mocapd resolve`` of the session follows it."""
 
 from __future__ import annotations
 
 import asyncio
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mocapd.core.rotations import matrix_from_rotvec
+from mocapd.io.calibration_files import read_any
+from mocapd.io.session import open_session
 from mocapd.io.ws_server import WebSocketStreamServer
 from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import load_config
 from mocapd.service.demo.synthetic import synthetic_config
 from tests.cdp import chromium_page
 from tests.test_daemon import Recorder, http_get, wait_for
+from tests.test_fuzz_files import run_cli
 from tests.test_web_viewer import free_port
+from tools.bench_camera_bump import bump_config, bumped_take, report
 
 
 @pytest.mark.asyncio
-async def test_a_camera_turned_mid_run_is_named_left_out_and_re_estimated(caplog: pytest.LogCaptureFixture) -> None:
+async def test_a_camera_turned_mid_run_is_named_left_out_and_re_estimated_not_applied(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     cfg = load_config()
     cfg = cfg.model_copy(update={
         "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
@@ -34,7 +42,7 @@ async def test_a_camera_turned_mid_run_is_named_left_out_and_re_estimated(caplog
     rec = Recorder()
     caplog.set_level(logging.WARNING, logger="mocapd.service.daemon")
     rig = synthetic_config(cfg)
-    watch_on = rig.calibration.watch.model_copy(update={"enabled": True})  # whatever the default
+    watch_on = rig.calibration.watch.model_copy(update={"enabled": True, "apply": False})  # proposed only
     rig = rig.model_copy(update={"calibration": rig.calibration.model_copy(update={"watch": watch_on})})
     with assembled(rig, RunOptions(sinks=[rec], status_line=lines.append)) as demo:
         d = demo.daemon
@@ -95,3 +103,77 @@ async def test_a_camera_turned_mid_run_is_named_left_out_and_re_estimated(caplog
             assert [r for r in rows.splitlines() if "moved" in r] == [r for r in rows.splitlines() if "cam1" in r]
         d.request_stop()
         assert await asyncio.wait_for(task, 10) == 0
+
+
+@pytest.mark.asyncio
+async def test_a_camera_turned_mid_run_is_re_estimated_applied_recorded_and_resolved(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``[calibration.watch] apply = true``: cam1 turned 2° is named, re-estimated and applied (the new pose within
+    0.3° of the truth); then it is back in the solve, its residual back at its baseline from before the bump, the
+    published poses as good as before; the change is in /status, the log and the session's events, and a re-solve
+    of the session uses the new camera (its poses after the change as good as before the bump, where the same
+    re-solve without the event, on the old calibration, is clearly worse)."""
+    caplog.set_level(logging.WARNING, logger="mocapd.service.daemon")
+    config = bump_config(apply=True)
+    assert config.calibration.watch.apply
+    take = await bumped_take(config, camera=1, degrees=2.0, axis="x", after_s=9.0, record=tmp_path / "session")
+    r = report(take, camera=1)
+    assert r["noticed_s"] is not None and r["noticed_s"] <= 15.0, r  # 1.9 s at the watch's 10 checks a second
+    assert r["re_estimated_s"] is not None and r["applied_s"] is not None and r["applied_s"] >= r["re_estimated_s"]
+    change = r["change"]
+    assert change["camera"] == "cam1" and change["source"] == "camera watch" and abs(change["rotation_deg"] - 2) < 0.3
+    assert change["median_px_after"] < 0.5 * change["median_px_before"] and r["applied_vs_truth_deg"] < 0.3
+    assert len(take.changes) == 1  # applied once
+    # Back in the solve: every person solved since the change weighs cam1 again, and the watch judges it against
+    # the new pose: back at its old baseline (1.4 px on these clean detections, 50 px before the change).
+    applied_ns = change["t_solve_ns"]
+    assert not [t for t in take.in_doubt_ns if t > applied_ns] and [t for t in take.used_ns if t > applied_ns]
+    cam1 = take.status_after["cam1"]
+    assert take.states_after == ["ok"] * 4 and cam1["applied"] == 1 and cam1["bumps"] == 1, take.status_after
+    old_baseline = next(d["baseline_px"] for _, c, what, d in take.events if (c, what) == ("cam1", "bumped"))
+    assert cam1["residual_px"] < old_baseline + 3.0 and cam1["baseline_px"] < old_baseline + 3.0, (cam1, old_baseline)
+    published = r["published_mm"]
+    assert published["applied"]["median"] < 1.5 * published["before"]["median"] + 1.0, published
+    assert published["left out"]["median"] < 2.0 * published["before"]["median"] + 2.0, published
+    assert any("camera cam1 recalibrated (camera watch): turned" in x.getMessage() for x in caplog.records)
+    # Recorded: one camera event, the camera the daemon solved with after it.
+    events = [e for e in open_session(tmp_path / "session").events() if e["kind"] == "camera"]
+    assert len(events) == 1 and events[0]["index"] == 1 and events[0]["t_ns"] == applied_ns
+    assert np.allclose(events[0]["camera"]["R"], change["R"], atol=1e-8)  # type: ignore[index]
+    # Re-solved: the new camera from the change on (and from when the watch first doubted it).
+    assert [c["camera"] for c in r["resolve_camera_changes"]] == ["cam1"]
+    followed, ignored = r["resolved_mm"], r["resolved_without_events_mm"]
+    assert followed["applied"]["median"] < 1.5 * followed["before"]["median"] + 1.0, followed
+    assert ignored["applied"]["median"] > 3.0 * followed["applied"]["median"], (followed, ignored)
+    assert followed["left out"]["median"] < 0.5 * ignored["left out"]["median"], (followed, ignored)
+    # Saved for the next start: the session's cameras as it ended, as a calibration file the config can name.
+    code, err = run_cli(["calibrate", "convert", str(tmp_path / "session"), str(tmp_path / "calib.toml")])
+    assert code == 0, err
+    saved = read_any(tmp_path / "calib.toml")
+    assert saved.names == [f"cam{i}" for i in range(4)]
+    assert np.allclose(saved["cam1"].R, change["R"], atol=1e-8)
+    manifest = open_session(tmp_path / "session").manifest["cameras"]
+    assert all(np.allclose(saved[f"cam{i}"].R, manifest[i]["R"]) for i in (0, 2, 3))
+    assert not np.allclose(saved["cam1"].R, manifest[1]["R"])
+
+
+def test_a_refused_re_estimate_is_said_once_a_bump(caplog: pytest.LogCaptureFixture) -> None:
+    """A camera whose re-estimates keep failing their checks (the wrong camera named: a 2° roll of cam1 on the ring
+    of four named cam0, whose re-estimates then improved nothing) is re-estimated about once a second; the log says
+    the first refusal of each bump, /status the latest."""
+    caplog.set_level(logging.WARNING, logger="mocapd.service.daemon")
+    with assembled(bump_config(apply=True), RunOptions()) as demo:
+        d = demo.daemon
+        assert d.camera_watch is not None
+        refused = {"rotation_deg": 0.1, "median_px_before": 2.6, "median_px_after": 2.5, "refused": "too little"}
+        named = {"from": "suspect", "residual_px": 13.0, "baseline_px": 2.5}
+        events = d.camera_watch.watch.events
+        events += [(1, "cam0", "bumped", named), (2, "cam0", "re-estimated", refused)]
+        events += [(3, "cam0", "re-estimated", refused), (4, "cam0", "re-estimated", refused)]
+        d._say_camera_events()
+        said = [r.getMessage() for r in caplog.records if "re-estimated" in r.getMessage()]
+        assert len(said) == 1 and "not applied: too little; said once" in said[0]
+        events += [(5, "cam0", "ok", named), (6, "cam0", "bumped", named), (7, "cam0", "re-estimated", refused)]
+        d._say_camera_events()
+        assert len([r for r in caplog.records if "re-estimated" in r.getMessage()]) == 2  # a new bump: said again

@@ -148,7 +148,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     subprocess.run([sys.executable, "-m", "mocapd", "demo", "--synthetic", "--seconds", "1.5", "--record", str(path)],
                    check=True, capture_output=True, timeout=300)  # fmt: skip
     assert sorted(p.name for p in path.iterdir()) == [
-        "imu.mcs", "keypoints.mcs", "manifest.json", "poses.mcs", "prior.npz"
+        "events.mcs", "imu.mcs", "keypoints.mcs", "manifest.json", "poses.mcs", "prior.npz"
     ]  # fmt: skip
     return path
 
@@ -160,7 +160,7 @@ def replay_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-SESSION_FILES = ["manifest.json", "prior.npz", "poses.mcs", "keypoints.mcs", "imu.mcs"]
+SESSION_FILES = ["manifest.json", "prior.npz", "poses.mcs", "keypoints.mcs", "imu.mcs", "events.mcs"]
 
 
 @st.composite

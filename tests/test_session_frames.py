@@ -77,7 +77,7 @@ async def test_recorded_frames_replay_into_camera_panels(tmp_path: Path) -> None
     await _record(path, 3.0)
     session = open_session(path)
     frames = session.frames()
-    assert session.manifest["streams"] == ["imu", "keypoints", "poses", "frames"]
+    assert session.manifest["streams"] == ["imu", "keypoints", "poses", "events", "frames"]
     cams = {f.camera for f in frames}
     assert cams == {0, 1, 2, 3} and all(f.width == 320 and f.height == 180 for f in frames)
     first = cv2.imdecode(np.frombuffer(frames[0].jpeg, np.uint8), cv2.IMREAD_COLOR)

@@ -15,8 +15,13 @@ other cameras' median rise stays under ``others_ratio`` of its own, none rose mo
 a person half out of view or the sync drifting raise them all), is *suspect*; suspect for ``hold_s`` it is
 *bumped*. One camera is bumped at a time (a second is named once the first is set right or back). A suspect or
 bumped camera's confidences are scaled by ``down_weight`` in the solve (:meth:`CameraWatch.observe` returns them),
-so the poses published while it is in doubt come from the cameras that agree. A bumped camera whose level falls
-back to its baseline for ``hold_s`` (put back, or a passing disturbance) is *ok* again.
+so the poses published while it is in doubt come from the cameras that agree. The window's median takes half a
+window to rise, so a check's people alone also put a camera in doubt for the solve until the next check
+(*flagged*: every person of the check that the camera sees puts it off alone, by the same rule on that person's
+residuals against the baselines; one bad detection does not): the solve leaves a knocked camera out from the tick
+after the first check that sees the knock, about 0.1 s, not half a second later. A flag is no state, names nobody.
+A bumped camera whose level falls back to its baseline for ``hold_s`` (put back, or a passing disturbance) is *ok*
+again.
 
 Two opposite cameras that are each other's only witness of an axis (on a ring of four, cam1 and cam3 alone see
 the depth of cam0 and cam2) cannot be told apart when one of them pans: the check sees the same rise in both. The
@@ -24,7 +29,12 @@ tie rule names neither while they rise alike; the noise can still tip it to the 
 
 While a camera is bumped the watch gathers its 2D-3D matches (the others' triangulations and its own detections)
 and, from ``reestimate_points`` of them, re-estimates its orientation with the other cameras held
-(:func:`reestimate_pose`): a *proposal* the caller applies (:meth:`CameraWatch.apply`) or not.
+(:func:`reestimate_pose`): a *proposal*, judged by :func:`judge_proposal` (its matches' error must fall well below
+what it was and back near the camera's baseline, the turn be one a knock gives). With ``apply`` one that passes is
+handed to the caller (:meth:`CameraWatch.pending`), which swaps the camera in everything that holds it (the
+scheduler's :meth:`~mocapd.pipeline.scheduler.FixedLatencyScheduler.replace_camera`) and tells the watch
+(:meth:`CameraWatch.apply`: the camera is judged against the new pose from a new baseline, back in the solve). One
+that fails is shown with the reason and the matches are gathered again.
 
 Time is the solve time passed in (ns); nothing here reads a clock or locks (the pipeline's adapter does).
 """
@@ -77,12 +87,20 @@ class WatchOptions:
     """Confidence factor in the solve of a camera in doubt (0: left out)."""
     reestimate_points: int = 400
     """2D-3D matches gathered from a bumped camera before its pose is re-estimated (0: never)."""
+    apply: bool = True
+    """A re-estimate that passes :func:`judge_proposal` is applied (handed out by :meth:`CameraWatch.pending`);
+    False: only proposed."""
+    max_turn_deg: float = 10.0
+    """A re-estimated turn larger than this is not applied: no knock turns a camera that far and leaves it seeing
+    the same people (a camera that far off is recalibrated)."""
 
     def __post_init__(self) -> None:
         if not (self.rate_hz > 0 and self.window_s > 0 and self.hold_s > 0 and self.baseline_s > self.window_s):
             raise InputError("camera watch: rate_hz, window_s and hold_s must be positive, baseline_s > window_s")
         if not (0.0 <= self.down_weight <= 1.0):
             raise InputError(f"camera watch: down_weight {self.down_weight} outside [0, 1]")
+        if not self.max_turn_deg > 0:
+            raise InputError(f"camera watch: max_turn_deg {self.max_turn_deg} must be positive")
 
 
 @dataclass(frozen=True)
@@ -95,6 +113,35 @@ class Proposal:
     inliers: int
     median_px_before: float  # the matches' reprojection error with the configured pose
     median_px_after: float  # ... and with the proposed one
+    refused: str | None = None  # why it may not be applied (judge_proposal); None: it passed
+
+
+FLAG_FACTOR = 3.0
+"""A check's people flag a camera (left out until the next check) on a rise this many times the one that makes it
+suspect: one moment's residuals are noisier than a window's median (2: two or three flags a minute on the
+synthetic detector-like noise of tests/test_camera_watch.py; 3: none, and a 2° knock still flagged at once)."""
+IMPROVEMENT = 0.5
+"""An applied re-estimate's matches reproject at most this share of their error with the old pose."""
+MIN_INLIER_SHARE = 0.5
+"""... and at least this share of its matches agree with it (the others: the detector's outliers)."""
+
+
+def judge_proposal(p: Proposal, baseline_px: float, options: WatchOptions) -> str | None:
+    """Why proposal ``p`` may not be applied, or None when it may: its matches' median error must fall to at most
+    :data:`IMPROVEMENT` of what it was, and to within ``margin_px`` of the camera's baseline from before the bump
+    (``baseline_px``: where a camera that agrees with the others sits; a re-estimate of the wrong camera, or of a
+    camera that moved rather than turned, stays above it), at least :data:`MIN_INLIER_SHARE` of the matches must
+    agree, and the turn must be at most ``max_turn_deg``."""
+    if p.inliers < MIN_INLIER_SHARE * p.matches:
+        return f"only {p.inliers} of {p.matches} matches agree with it"
+    if p.rotation_deg > options.max_turn_deg:
+        return f"a turn of {p.rotation_deg:.1f} deg is more than max_turn_deg {options.max_turn_deg:g}"
+    if not p.median_px_after <= IMPROVEMENT * p.median_px_before:
+        return f"its matches improve too little ({p.median_px_before} -> {p.median_px_after} px)"
+    if np.isfinite(baseline_px) and not p.median_px_after <= baseline_px + options.margin_px:
+        return (f"its matches stay {p.median_px_after} px off, more than the camera's {baseline_px:.1f} px before "
+                f"the bump + margin_px")  # fmt: skip
+    return None
 
 
 @dataclass
@@ -104,6 +151,7 @@ class _Camera:
     samples: deque[tuple[int, float]] = field(default_factory=deque)
     state: str = "learning"
     since_ns: int = 0  # when the state was entered
+    doubt_ns: int | None = None  # when it was last put in doubt after agreeing: flagged, then suspect
     frozen_baseline: float | None = None  # the baseline held while in doubt
     calm_since_ns: int | None = None  # bumped and back at its baseline since then
     baseline: float = float("nan")
@@ -111,7 +159,8 @@ class _Camera:
     bumps: int = 0
     matches: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)  # (X (n, 3), uv (n, 2)) while bumped
     n_matches: int = 0
-    proposal: Proposal | None = None
+    proposal: Proposal | None = None  # the latest re-estimate (one that was refused: the matches gathered again)
+    applied: int = 0  # re-estimates applied to this camera so far
 
 
 def residuals_left_out(
@@ -220,6 +269,9 @@ class CameraWatch:
         self._P = np.stack([c.projection_matrix for c in cameras]) if cameras else np.zeros((0, 3, 4))
         self._cams = [_Camera() for _ in cameras]
         self._tick_ns: int | None = None  # the solve time being checked now (all its people are)
+        self._flagged = np.zeros(len(cameras), dtype=bool)  # the last check's people put it off alone
+        self._votes: list[FloatArray] | None = None  # this check's people's residuals (n_cams,) each
+        self._flag_since: list[int | None] = [None] * len(cameras)  # the check that began each flagged run
         self._last_ns: int | None = None  # the last tick checked
         #: what happened, newest last: (solve time ns, camera name, event, details) for the log and the session
         self.events: list[tuple[int, str, str, dict[str, Any]]] = []
@@ -234,7 +286,9 @@ class CameraWatch:
             raise InputError(f"camera watch: keypoints {uv.shape} / confidences {conf.shape} for {n} cameras")
         if self._due(t_ns):
             self._check(t_ns, uv, conf)
-        doubt = self.in_doubt()
+        elif self._votes is not None:
+            self._settle_flags()  # the checked tick is complete: its people's verdicts hold until the next check
+        doubt = self.in_doubt() | self._flagged
         if not doubt.any():
             return conf
         return conf * np.where(doubt, self.options.down_weight, 1.0)[:, None]
@@ -250,26 +304,70 @@ class CameraWatch:
             return False
         if self._tick_ns is not None:
             self._judge(self._tick_ns)  # the previous checked tick is complete: judge on all its people
+            if self._votes is not None:
+                self._settle_flags()
         self._tick_ns = self._last_ns = t_ns
+        self._votes = []
         return True
 
     def _check(self, t_ns: int, uv: FloatArray, conf: FloatArray) -> None:
         o = self.options
         res, matches = residuals_left_out(self._P, uv, conf, min_confidence=o.min_confidence,
                                           min_keypoints=o.min_keypoints)  # fmt: skip
+        if self._votes is not None:
+            self._votes.append(res)
         keep_ns = round((o.baseline_s + o.window_s) * 1e9)
         for c, cam in enumerate(self._cams):
             if np.isfinite(res[c]):
                 cam.samples.append((t_ns, float(res[c])))
             while cam.samples and cam.samples[0][0] < t_ns - keep_ns:
                 cam.samples.popleft()
-            if cam.state == "bumped" and o.reestimate_points > 0 and cam.proposal is None and len(matches[c][0]):
+            gathering = cam.proposal is None or cam.proposal.refused is not None
+            if cam.state == "bumped" and o.reestimate_points > 0 and gathering and len(matches[c][0]):
                 cam.matches.append(matches[c])
                 cam.n_matches += len(matches[c][0])
                 if cam.n_matches >= o.reestimate_points:
                     self._reestimate(t_ns, c)
 
     # ------------------------------------------------------------------------------------------ decisions
+    def _settle_flags(self) -> None:
+        """The camera the complete checked tick's people put off alone (their median residual per camera), if any."""
+        votes, self._votes = self._votes or [], None
+        self._flagged[:] = False
+        if votes:
+            res = np.stack(votes)
+            seen = np.isfinite(res).any(axis=0)
+            pooled = np.full(len(self._cams), np.nan)
+            pooled[seen] = np.nanmedian(res[:, seen], axis=0)
+            off = self._off_alone(pooled)
+            if off is not None:
+                self._flagged[off] = True
+        for c, flagged in enumerate(self._flagged):
+            if not flagged:
+                self._flag_since[c] = None
+            elif self._flag_since[c] is None:
+                self._flag_since[c] = self._tick_ns
+
+    def _off_alone(self, res: FloatArray) -> int | None:
+        """The camera one check's residuals ``res`` (n_cams,) put off alone, by the rule that makes a camera
+        suspect with a rise :data:`FLAG_FACTOR` times larger (against the baselines; none while a camera is in doubt
+        or without baselines), or None."""
+        o = self.options
+        if any(c.state != "ok" for c in self._cams):
+            return None  # learning (no baseline), or a camera already in doubt: the state machine has it
+        base = np.array([c.baseline for c in self._cams])
+        rise = res - base
+        finite = np.isfinite(rise)
+        if finite.sum() < 3:
+            return None
+        i = int(np.argmax(np.where(finite, rise, -np.inf)))
+        ranked = np.sort(rise[finite])
+        others = np.delete(rise, i)
+        others = others[np.isfinite(others)]
+        if not (rise[i] > FLAG_FACTOR * max(o.margin_px, o.ratio * base[i]) and ranked[-2] < o.tie_ratio * rise[i]):
+            return None
+        return i if float(np.median(others)) < o.others_ratio * rise[i] else None
+
     def _levels(self, t_ns: int) -> None:
         o = self.options
         split = t_ns - round(o.window_s * 1e9)
@@ -313,6 +411,8 @@ class CameraWatch:
             elif cam.state == "ok":
                 if alone:
                     cam.frozen_baseline = cam.baseline
+                    since = self._flag_since[i]  # flagged since then, without a break
+                    cam.doubt_ns = t_ns if since is None else min(since, t_ns)
                     self._enter(cam, i, "suspect", t_ns)
             elif cam.state == "suspect":
                 up = np.isfinite(rises[i]) and rises[i] > 0.5 * max(o.margin_px, o.ratio * cam.baseline)
@@ -358,20 +458,37 @@ class CameraWatch:
         prop = reestimate_pose(self.cameras[c], X, uv)
         if prop is None:
             return  # too few matches agree: gather again
-        cam.proposal = prop
-        self.events.append((t_ns, self.cameras[c].name, "re-estimated", _proposal_json(prop)))
+        cam.proposal = replace(prop, refused=judge_proposal(prop, cam.baseline, self.options))
+        self.events.append((t_ns, self.cameras[c].name, "re-estimated", _proposal_json(cam.proposal)))
 
     # ------------------------------------------------------------------------------------------ output
     def proposal(self, camera: int) -> Proposal | None:
         """The bumped camera's re-estimated pose, once there is one."""
         return self._cams[camera].proposal
 
+    def doubted_since(self, camera: int) -> int | None:
+        """The solve time of the check that first put ``camera`` in doubt, flagged or suspect (None: never, or not
+        since its last re-estimate was applied)."""
+        return self._cams[camera].doubt_ns
+
+    def pending(self) -> list[tuple[int, Proposal]]:
+        """With ``apply``: the bumped cameras whose re-estimate passed its checks, waiting to be applied (the caller
+        swaps the camera everywhere, then calls :meth:`apply`)."""
+        if not self.options.apply:
+            return []
+        return [(i, c.proposal) for i, c in enumerate(self._cams)
+                if c.state == "bumped" and c.proposal is not None and c.proposal.refused is None]  # fmt: skip
+
     def apply(self, camera: int, new: Camera) -> None:
         """``camera`` now has the pose ``new`` (a proposal applied, or a recalibration): its residuals are measured
-        against it, from a new baseline."""
+        against it, from a new baseline (state "learning" until there is one); back in the solve at once."""
         self.cameras[camera] = new
         self._P = np.stack([c.projection_matrix for c in self.cameras])
-        self._cams[camera] = _Camera(bumps=self._cams[camera].bumps)
+        self._flagged[:] = False
+        self._votes = None
+        self._flag_since = [None] * len(self.cameras)
+        old = self._cams[camera]
+        self._cams[camera] = _Camera(bumps=old.bumps, applied=old.applied + (old.state == "bumped"))
 
     def states(self) -> list[str]:
         return [c.state for c in self._cams]
@@ -381,7 +498,7 @@ class CameraWatch:
         return {
             cam.name: {
                 "state": c.state, "residual_px": _r(c.current), "baseline_px": _r(c.baseline), "bumps": c.bumps,
-                "samples": len(c.samples),
+                "applied": c.applied, "samples": len(c.samples),
                 "proposal": None if c.proposal is None else _proposal_json(c.proposal),
             }
             for cam, c in zip(self.cameras, self._cams, strict=True)
@@ -396,5 +513,5 @@ def _proposal_json(p: Proposal) -> dict[str, Any]:
     return {
         "rotation_deg": p.rotation_deg, "matches": p.matches, "inliers": p.inliers,
         "median_px_before": p.median_px_before, "median_px_after": p.median_px_after,
-        "R": np.round(p.camera.R, 9).tolist(), "t": np.round(p.camera.t, 6).tolist(),
+        "R": np.round(p.camera.R, 9).tolist(), "t": np.round(p.camera.t, 6).tolist(), "refused": p.refused,
     }  # fmt: skip

@@ -12,7 +12,7 @@ Ceres's corrector (see :mod:`mocapd.core.loss`). Cost and normal equations come 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -425,6 +425,20 @@ class PoseSolver:
         return {n: float(self._tc[i]) for i, n in enumerate(TERM_NAMES) if on[n]}
 
     # -- state ---------------------------------------------------------------------------------------------
+    def set_camera(self, index: int, camera: Camera) -> None:
+        """Camera ``index`` is ``camera`` from the next solve on (a recalibrated camera); the warm start, the
+        acceleration history and the ground contacts are kept: the person has not moved."""
+        if not 0 <= index < self.n_cams:
+            raise InputError(f"solver: no camera {index} (it has {self.n_cams})")
+        self.cameras[index] = camera
+        self._K, self._dist, self._R, self._t = stack_cameras(self.cameras)
+        if self._kernel_static is not None:
+            self._kernel_static = replace(
+                self._kernel_static,
+                K=np.ascontiguousarray(self._K), dist=np.ascontiguousarray(self._dist),
+                R=np.ascontiguousarray(self._R), t=np.ascontiguousarray(self._t),
+            )  # fmt: skip
+
     def reset(self, theta: FloatArray | None = None) -> None:
         """Forget the warm start and the acceleration history; optionally set the pose to start from."""
         self.theta = self.skeleton.rest_pose() if theta is None else _check_theta(theta)

@@ -164,6 +164,14 @@ class DetectionSorter:
         self._widths = np.array([c.width for c in cameras], dtype=np.float64)
         self.keypoint_names = tuple(keypoint_names)
 
+    def set_camera(self, index: int, camera: Camera) -> None:
+        """Camera ``index`` is ``camera`` from the next frame on (a recalibrated camera)."""
+        if not 0 <= index < len(self.cameras):
+            raise InputError(f"sorting: no camera {index} (it has {len(self.cameras)})")
+        self.cameras[index] = camera
+        self._K, self._dist, self._R, self._t = (np.ascontiguousarray(a) for a in stack_cameras(self.cameras))
+        self._widths = np.array([c.width for c in self.cameras], dtype=np.float64)
+
     def _partner(self, n_kp: int) -> NDArray[np.int64]:
         """Each keypoint's left/right counterpart (itself where it has none): from the keypoint names, COCO-17's
         when none were given and detections have 17 keypoints."""

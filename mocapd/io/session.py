@@ -42,6 +42,7 @@ from typing import Any, TypeVar
 from mocapd.errors import InputError
 from mocapd.io.input_files import read_input_bytes
 from mocapd.protocols.session_format import (
+    T_EVENT,
     T_FRAME,
     T_HEADER,
     T_IMU,
@@ -53,6 +54,7 @@ from mocapd.protocols.session_format import (
     PoseRecord,
     Record,
     StreamDecoder,
+    decode_event,
     decode_frame,
     decode_header,
     decode_imu,
@@ -69,6 +71,8 @@ SUFFIX = ".mcs"
 STREAMS = ("imu", "keypoints", "poses")
 FRAMES = "frames"
 """The optional stream of downscaled camera frames (``[record] frames``)."""
+EVENTS = "events"
+"""What happened to the rig while recording (a camera recalibrated live); sessions before it have none."""
 RESOLVED = "poses-resolved"
 MAX_FLUSH_INTERVAL_S = 1.0
 RESERVE_BYTES = 256 * 1024
@@ -458,6 +462,12 @@ class Session:
             return []
         return self._decoded(FRAMES, T_FRAME, decode_frame)
 
+    def events(self) -> list[dict[str, object]]:
+        """The recorded events (:data:`EVENTS`; none when the session has no such stream), in order."""
+        if not self.has_stream(EVENTS):
+            return []
+        return self._decoded(EVENTS, T_EVENT, decode_event)
+
     def imu(self) -> list[ImuRecord]:
         return self._decoded("imu", T_IMU, decode_imu)
 
@@ -562,6 +572,7 @@ def write_pose_stream(directory: Path, stream: str, payloads: list[bytes]) -> Pa
 
 
 __all__ = [
+    "EVENTS",
     "FRAMES",
     "MANIFEST",
     "RESOLVED",

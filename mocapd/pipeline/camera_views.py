@@ -247,6 +247,10 @@ class CameraViews:
         self.now = now
         """The time base of the taps' time stamps, now (a replay sets the recorded clock's)."""
 
+    def set_camera(self, index: int, camera: Camera) -> None:
+        """Camera ``index`` recalibrated while running: the subjects are projected through ``camera`` from now on."""
+        self.cameras[index] = camera
+
     # ------------------------------------------------------------------------------------------ taps
     def on_detections(self, camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:
         """Detection tap (the daemon's ``detection_taps``): keeps a reference, nothing else."""

@@ -309,7 +309,7 @@ class FixedLatencyScheduler:
             raise InputError(f"camera_offsets_ns: {len(o.camera_offsets_ns)} offsets for {len(cameras)} cameras")
         if suits and ingest is None:
             raise InputError("suits need the IMU ingest that buffers their sensors")
-        self.cameras = cameras
+        self.cameras = list(cameras)  # its own list: replace_camera changes it
         self.skeleton = skeleton
         self.targets = targets
         self.people = people
@@ -407,6 +407,9 @@ class FixedLatencyScheduler:
         #: person seen by two or more cameras, before the solve; returns the confidences to solve with (the
         #: bumped-camera watch, :mod:`mocapd.pipeline.camera_watch`). Called from the solve threads.
         self.observation_hook: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
+        #: told (camera index, new camera) by :meth:`replace_camera`, under the lock, after the scheduler's own
+        #: holders of the camera have it (the bumped-camera watch)
+        self.camera_listeners: list[Callable[[int, Camera], None]] = []
         self._last_heading: dict[str, dict[str, Any]] = {}
 
     # ------------------------------------------------------------------------------------------- inputs
@@ -426,6 +429,48 @@ class FixedLatencyScheduler:
         if self.auto_latency is not None:
             self.auto_latency.observe(camera, t, arrival_ns)
         return True
+
+    # ------------------------------------------------------------------------------------------- cameras
+    def replace_camera(self, index: int, camera: Camera) -> None:
+        """Camera ``index`` is ``camera`` from the next tick on: a camera knocked during the run and re-estimated
+        (:mod:`mocapd.pipeline.camera_watch`), or recalibrated. The new camera keeps its name, image size and
+        intrinsics (the keypoints already filed were undistorted with them); only its pose may change.
+
+        Every holder of the camera takes it in one step, under :attr:`lock` (which a tick holds while it solves),
+        so a tick solves with the old rig or the new one, never a mix: the scheduler's projections (the flip
+        search, body sizing, heading triangulation), the association's sorter, every person's solver (warm starts
+        kept), the finger solve, the learned fusion, then the :attr:`camera_listeners`.
+
+        Raises
+        ------
+        InputError
+            No camera ``index``, or ``camera`` differs from it in more than its pose.
+        """
+        if not 0 <= index < len(self.cameras):
+            raise InputError(f"no camera {index}: the rig has {len(self.cameras)}")
+        old = self.cameras[index]
+        same = (camera.name, camera.width, camera.height) == (old.name, old.width, old.height)
+        if not (same and np.array_equal(camera.K, old.K) and np.array_equal(camera.dist, old.dist)):
+            raise InputError(f"camera {old.name}: a camera replaced while running keeps its name, image size and "
+                             "intrinsics (only its pose may change); restart with the new calibration")  # fmt: skip
+        with self.lock:
+            self.cameras[index] = camera
+            self._projections = np.stack([c.projection_matrix for c in self.cameras])
+            self.people.tracker.sorter.set_camera(index, camera)
+            for solver in self.solvers.values():
+                if solver.n_cams:  # a "learned" fusion solver holds no cameras
+                    solver.set_camera(index, camera)
+            if self.hands is not None:
+                self.hands.projections = self._projections
+            if self.fusion is not None:
+                self.fusion.cameras[index] = camera
+            for listener in self.camera_listeners:
+                listener(index, camera)
+
+    @property
+    def last_solve_ns(self) -> int:
+        """The solve time of the latest tick (a camera replaced now is used from the tick after it)."""
+        return self._tick_t
 
     # ------------------------------------------------------------------------------------------- the tick
     def tick(self, now_ns: int, *, predict: bool = True) -> PoseFrame:

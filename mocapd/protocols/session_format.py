@@ -5,7 +5,7 @@ little-endian. One record::
 
     offset  size  field
     0       2     sync        b"MR" (0x4D 0x52): where to look for the next record after a corrupt one
-    2       1     type        T_HEADER=0, T_IMU=1, T_KEYPOINTS=2, T_POSE=3, T_FRAME=4
+    2       1     type        T_HEADER=0, T_IMU=1, T_KEYPOINTS=2, T_POSE=3, T_FRAME=4, T_EVENT=5
     3       1     version     payload version of this type (1)
     4       4     length      n, payload bytes (uint32, at most MAX_PAYLOAD)
     8       n     payload     see below
@@ -39,6 +39,11 @@ Payloads (struct formats; ``f4``/``f8`` arrays are little-endian float32/float64
 - ``T_FRAME`` (one downscaled camera frame, optional ``frames`` stream): ``<qHHHI`` capture_ns (host clock, as
   the camera's detections), camera index, image width, image height, JPEG length m; then the m bytes of the
   baseline JPEG (the image as the camera panels show it, not the camera's full resolution).
+- ``T_EVENT`` (something that happened to the rig while recording, ``events`` stream): a UTF-8 JSON object with
+  at least ``t_ns`` (host clock, an integer) and ``kind`` (text). ``kind = "camera"``: a camera's calibration
+  replaced while running (the bumped-camera watch applying a re-estimate): ``index`` (order of the manifest's
+  cameras), ``camera`` (as the manifest's), ``source``, ``rotation_deg`` and the re-estimate's numbers; the camera
+  is the one solved with from the first solve after ``t_ns``.
 
 Decoding never raises on bad bytes: :class:`StreamDecoder` (sans-I/O: ``receive_data(bytes)``,
 ``records_received()``) counts a record whose CRC does not match, or whose length is impossible, as corrupt and
@@ -66,8 +71,8 @@ from mocapd.errors import InputError
 FloatArray = NDArray[np.float64]
 
 SYNC = b"MR"
-T_HEADER, T_IMU, T_KEYPOINTS, T_POSE, T_FRAME = 0, 1, 2, 3, 4
-RECORD_TYPES = (T_HEADER, T_IMU, T_KEYPOINTS, T_POSE, T_FRAME)
+T_HEADER, T_IMU, T_KEYPOINTS, T_POSE, T_FRAME, T_EVENT = 0, 1, 2, 3, 4, 5
+RECORD_TYPES = (T_HEADER, T_IMU, T_KEYPOINTS, T_POSE, T_FRAME, T_EVENT)
 PAYLOAD_VERSION = 1
 FORMAT_VERSION = 1
 MAX_PAYLOAD = 1 << 24
@@ -238,6 +243,28 @@ def decode_header(payload: bytes) -> dict[str, object]:
         raise InputError(f"session stream header is not JSON: {exc}") from exc
     if not isinstance(value, dict) or value.get("format") != "mocapd-session-stream":
         raise InputError(f"not a mocapd session stream header: {value!r}")
+    return value
+
+
+def encode_event(event: dict[str, object]) -> bytes:
+    """A ``T_EVENT`` payload: the event as UTF-8 JSON (NaN and infinities refused: JSON has none)."""
+    try:
+        return json.dumps(event, allow_nan=False, separators=(",", ":")).encode()
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"session event not JSON-able: {exc}") from None
+
+
+def decode_event(payload: bytes) -> dict[str, object]:
+    """A ``T_EVENT`` payload's JSON object; InputError when it is not one with an integer ``t_ns`` and a ``kind``."""
+    try:
+        value = json.loads(payload.decode())
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"event record is not JSON: {exc}") from None
+    if not isinstance(value, dict):
+        raise InputError("event record: not a JSON object")
+    t, kind = value.get("t_ns"), value.get("kind")
+    if isinstance(t, bool) or not isinstance(t, int) or not isinstance(kind, str):
+        raise InputError("event record: no integer t_ns or no kind")
     return value
 
 

@@ -52,7 +52,7 @@ from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
-from mocapd.pipeline.camera_watch import LiveCameraWatch
+from mocapd.pipeline.camera_watch import CameraChange, LiveCameraWatch, turn_deg
 from mocapd.pipeline.detector_pool import landmark_fronts
 from mocapd.pipeline.fusion import FusionModels, FusionStage
 from mocapd.pipeline.governor import Governor, ladder
@@ -305,6 +305,12 @@ class Daemon:
                              if watch.enabled and len(rig.cameras) >= 3 else None)  # fmt: skip
         if self.camera_watch is not None:
             self.scheduler.observation_hook = self.camera_watch.observe
+            self.scheduler.camera_listeners.append(self.camera_watch.camera_replaced)
+        #: the cameras replaced while running, newest last (the last 10: ``/status`` ``camera_changes``)
+        self.camera_changes: list[CameraChange] = []
+        #: told of each camera replaced (the session recorder, the viewer's camera panels); on the event loop
+        self.camera_taps: list[Callable[[CameraChange], None]] = []
+        self._refusals_said: set[str] = set()  # cameras whose refused re-estimate was said since they were named
         # The tick solves on its own thread (the loop only samples and publishes), its people on the solve pool.
         self._tick_executor = ThreadPoolExecutor(1, "mocapd-tick", initializer=worker_thread_setup,
                                                  initargs=("mocapd-tick",))  # fmt: skip
@@ -660,10 +666,46 @@ class Daemon:
                 self.notifier.notify("WATCHDOG=1")
                 last_ping = published
             skipped = plan.advance(self.clock())
+            if self.camera_watch is not None:
+                self._apply_camera_proposals()  # between two ticks: the next one solves with the new camera
             if self.governor is not None:
                 self.governor.observe(published - frame.tick_ns, skipped)
                 if self.governor.step(published):
                     self._apply_governor()
+
+    def replace_camera(
+        self, index: int, camera: Camera, source: str, details: dict[str, Any] | None = None
+    ) -> CameraChange:
+        """Camera ``index`` is ``camera`` from the next tick on (its pose changed: its name, size and intrinsics
+        stay): the scheduler swaps it in everything that holds it (:meth:`FixedLatencyScheduler.replace_camera`),
+        then the rig, the log, ``/status`` and the :attr:`camera_taps` (the session records it). On the event loop,
+        between ticks. Raises InputError when ``camera`` changes more than the pose."""
+        old = self.rig.cameras[index]
+        self.scheduler.replace_camera(index, camera)
+        self.rig.cameras[index] = camera
+        change = CameraChange(self.scheduler.last_solve_ns, index, camera, source, turn_deg(old, camera),
+                              dict(details or {}))  # fmt: skip
+        self.camera_changes = [*self.camera_changes[-9:], change]
+        d = change.details
+        errors = (f"; its people reproject {d['median_px_before']} -> {d['median_px_after']} px"
+                  if "median_px_after" in d else "")  # fmt: skip
+        log.warning("camera %s recalibrated (%s): turned %.2f deg%s; in the solve again, from the tick after %.3f s",
+                    camera.name, source, change.rotation_deg, errors, change.t_ns / 1e9)  # fmt: skip
+        for tap in self.camera_taps:
+            tap(change)
+        return change
+
+    def _apply_camera_proposals(self) -> None:
+        """The camera watch's re-estimates that passed their checks, applied (``[calibration.watch] apply``)."""
+        assert self.camera_watch is not None
+        pending = self.camera_watch.pending()
+        if pending:
+            self._say_camera_events()  # the re-estimate said before its application
+        for index, p in pending:
+            # doubt_ns: the first solve that left the camera out; the re-estimate holds from then (`resolve` uses it)
+            self.replace_camera(index, p.camera, "camera watch", {
+                "matches": p.matches, "inliers": p.inliers, "median_px_before": p.median_px_before,
+                "median_px_after": p.median_px_after, "doubt_ns": self.camera_watch.doubted_since(index)})  # fmt: skip
 
     def _landmark_fronts(self) -> list[LandmarkFront]:
         """The landmark stages of the cameras' detectors, each once."""
@@ -757,13 +799,23 @@ class Daemon:
         if self.camera_watch is None:
             return
         for _, name, what, d in self.camera_watch.new_events():
+            if what == "re-estimated" and d["refused"] and name in self._refusals_said:
+                continue  # refused again (the matches are gathered again, about once a second): said once a bump
+            if what == "re-estimated" and d["refused"]:
+                self._refusals_said.add(name)
+            elif what == "bumped":
+                self._refusals_said.discard(name)
             if what == "bumped":
                 log.warning("camera %s moved: its people reproject %s px off (%s px before); left out of the solve "
                             "until it is recalibrated or back", name, d["residual_px"], d["baseline_px"])  # fmt: skip
             elif what == "re-estimated":
+                applying = self.camera_watch.watch.options.apply
+                why = ("not applied: " + d["refused"] if d["refused"] else "applied" if applying
+                       else "not applied: [calibration.watch] apply = false")  # fmt: skip
+                again = "; said once, retried while it stays bumped" if d["refused"] else ""
                 log.warning("camera %s re-estimated from the people, the others held: turned %.2f deg, %s -> %s px "
-                            "(proposed in /status camera_watch.%s.proposal; not applied)", name, d["rotation_deg"],
-                            d["median_px_before"], d["median_px_after"], name)  # fmt: skip
+                            "(/status camera_watch.%s.proposal; %s%s)", name, d["rotation_deg"],
+                            d["median_px_before"], d["median_px_after"], name, why, again)  # fmt: skip
             else:
                 log.warning("camera %s agrees with the others again (%s px)", name, d["residual_px"])
 
@@ -861,6 +913,11 @@ class Daemon:
             "http_refused": self.http.refused.as_dict(),  # foreign Host or Origin, POSTs without X-Mocapd-Request
             "plausibility": s["plausibility"],
             "camera_watch": None if self.camera_watch is None else self.camera_watch.status(),
+            "camera_changes": [
+                {"camera": c.camera.name, "source": c.source, "t_solve_ns": c.t_ns, "rotation_deg": c.rotation_deg,
+                 **c.details, "R": np.round(c.camera.R, 9).tolist(), "t": np.round(c.camera.t, 6).tolist()}
+                for c in self.camera_changes
+            ],
             "tasks": {k: v.as_dict() for k, v in self.supervisor.tasks.items()},
             "sinks": {sink.name: sink.status() for sink in self.sinks if isinstance(sink, ReportingSink)},
             "subjects": s["people"],

@@ -353,7 +353,8 @@ def _build_synthetic(config: Config, plan: RigPlan, prior: PcaPrior | None, cloc
     suits = [Suit.from_calibration(s.id, world.calibration(s), world.skeleton) for s in world.suits]
     if config.imu.sources():  # IMU inputs of its own beside the simulated suits (e.g. SlimeVR trackers): their suits
         suits += load_suits(config.imu, world.skeleton)
-    rig = Rig(world.cameras, sources, world.skeleton, world.targets, prior, suits)
+    # The rig's calibration is its own list: the world's is the truth (SyntheticWorld.bump turns a camera there alone)
+    rig = Rig(list(world.cameras), sources, world.skeleton, world.targets, prior, suits)
     # The simulated devices reconnect and stall-detect faster than real ones need: they restart in milliseconds.
     imu = config.imu.model_copy(update={
         "ports": (*config.imu.ports, *simulated.ports), "rate_hz": syn.imu_rate_hz,

@@ -14,7 +14,9 @@
 
 ``mocapd calibrate convert IN OUT``
     Converts between Qualisys ``.qca.txt``, Pose2Sim TOML, OpenCV YAML and mocapd TOML (format from the names;
-    ``--to pose2sim`` writes Pose2Sim TOML).
+    ``--to pose2sim`` writes Pose2Sim TOML). ``IN`` may be a recorded session: its cameras as the session ended,
+    with every camera the daemon recalibrated while recording (the bumped-camera watch, ``docs/cameras.md``), so the
+    next start has them.
 
 Sub-folder names become camera names, without Pose2Sim's ``int_``/``ext_`` prefix and ``_img`` suffix.
 """
@@ -28,7 +30,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from mocapd.errors import CalibrationError, ConfigError, InputError, ModelError, OutputError
+from mocapd.errors import CalibrationError, ConfigError, InputError, MocapdError, ModelError, OutputError
 from mocapd.io import lifecycle
 from mocapd.io.board_calibration import Board, calibrate_intrinsics, detect_in_files
 from mocapd.io.calibration_files import (
@@ -217,19 +219,48 @@ def _write_and_report(calib: CalibrationSet, output: Path, report: str) -> int:
     return 0
 
 
+def session_calibration(path: Path) -> CalibrationSet:
+    """The cameras a recorded session ended with: its manifest's, each replaced by the last camera the daemon
+    recalibrated it to while recording (the session's camera events)."""
+    from mocapd.io.session import open_session
+    from mocapd.service.outputs.recorder import camera_from_dict
+    from mocapd.service.session.solve import camera_changes
+
+    session = open_session(path)
+    try:
+        cameras = [camera_from_dict(c) for c in session.manifest["cameras"]]
+    except (KeyError, TypeError, ValueError, MocapdError) as exc:
+        raise InputError(f"{path / 'manifest.json'}: damaged cameras: {exc}") from None
+    for _, index, cam in camera_changes(session, cameras):
+        cameras[index] = cam
+    return CalibrationSet(tuple(CameraCalibration(c.name, (c.width, c.height), c.K, c.dist, c.R, c.t)
+                                for c in cameras), source=f"session:{path}")  # fmt: skip
+
+
 def _run_convert(args: argparse.Namespace) -> int:
     try:
         check_output_file(args.output, inputs=[args.input], overwrite=args.force)
     except OutputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    try:
-        calib = read_any(args.input, world_up=args.world_up)
-        if args.scale != 1.0:
-            calib = scale_calibration(calib, args.scale)
-    except CalibrationError as exc:
-        print(f"error: cannot read {args.input}: {exc}", file=sys.stderr)
-        return 2
+    if (args.input / "manifest.json").is_file():  # a recorded session: its cameras as it ended
+        if args.world_up is not None or args.scale != 1.0:
+            print("error: a session's cameras are mocapd's (Y up, its image size): no --world-up or --scale",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        try:
+            calib = session_calibration(args.input)
+        except InputError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    else:
+        try:
+            calib = read_any(args.input, world_up=args.world_up)
+            if args.scale != 1.0:
+                calib = scale_calibration(calib, args.scale)
+        except CalibrationError as exc:
+            print(f"error: cannot read {args.input}: {exc}", file=sys.stderr)
+            return 2
     target = args.to or ("opencv-yaml" if args.output.suffix in (".yml", ".yaml") else "mocapd")
     try:
         if target == "pose2sim":
@@ -341,7 +372,7 @@ def register(subparsers: Any) -> None:
     cams.add_argument("--force", action="store_true", help="replace an existing --output file")
     cams.set_defaults(func=_run_cameras)
     conv = sub.add_parser("convert", help="convert qca.txt / Pose2Sim TOML / OpenCV YAML / mocapd TOML")
-    conv.add_argument("input", type=Path)
+    conv.add_argument("input", type=Path, help="a calibration file, or a recorded session (its cameras as it ended)")
     conv.add_argument("output", type=Path)
     conv.add_argument("--to", choices=["mocapd", "pose2sim", "opencv-yaml"], default=None)
     conv.add_argument("--force", action="store_true", help="replace an existing OUTPUT file (never the input)")

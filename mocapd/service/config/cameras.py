@@ -215,6 +215,8 @@ class CameraWatchConfig(Section):
     min_keypoints: int = Field(_W.min_keypoints, ge=3, le=1000)
     down_weight: float = Field(_W.down_weight, ge=0.0, le=1.0)
     reestimate_points: int = Field(_W.reestimate_points, ge=0, le=1_000_000)
+    apply: bool = _W.apply
+    max_turn_deg: float = Field(_W.max_turn_deg, gt=0.0, le=180.0)
 
     def options(self) -> WatchOptions:
         return self.build(WatchOptions)

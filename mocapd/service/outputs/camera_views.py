@@ -34,4 +34,6 @@ def attach_camera_views(daemon: Daemon, options: CameraViewOptions | None = None
     views = CameraViews(rig.cameras, rig.targets, rig.skeleton, [snapshot_source(s) for s in rig.sources], options)
     daemon.detection_taps.append(views.on_detections)
     daemon.sinks.append(views)
+    # a camera recalibrated while running: the subjects projected through its new pose
+    daemon.camera_taps.append(lambda change: views.set_camera(change.index, change.camera))
     return views

@@ -12,6 +12,9 @@ the pose prior (``prior.npz`` beside it).
 Camera frames (optional, :class:`FrameRecordOptions`): a few times a second each camera's newest frame is copied,
 downscaled and JPEG-encoded in a worker thread and queued as a ``T_FRAME`` record of the ``frames`` stream, so
 ``mocapd replay`` can show the camera panels of the session.
+
+What happens to the rig while recording goes into the ``events`` stream: a camera recalibrated live
+(:class:`~mocapd.pipeline.camera_watch.CameraChange`, :func:`camera_event`), which ``mocapd resolve`` follows.
 """
 
 from __future__ import annotations
@@ -33,11 +36,13 @@ from mocapd.core.camera import Camera
 from mocapd.core.plausibility import PlausibilityMonitor
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import ConfigError
-from mocapd.io.session import FRAMES, STREAMS, SessionWriter
+from mocapd.io.session import EVENTS, FRAMES, STREAMS, SessionWriter
 from mocapd.io.xsens_serial import ImuSample
 from mocapd.pipeline.camera_views import SnapshotSource, encode_jpeg
+from mocapd.pipeline.camera_watch import CameraChange
 from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.protocols.session_format import (
+    T_EVENT,
     T_FRAME,
     T_IMU,
     T_KEYPOINTS,
@@ -46,6 +51,7 @@ from mocapd.protocols.session_format import (
     ImuRecord,
     PersonRecord,
     PoseRecord,
+    encode_event,
     encode_frame,
     encode_imu,
     encode_keypoints,
@@ -180,6 +186,10 @@ class SessionRecorder:
     def on_detections(self, camera: int, capture_ns: int, dets: Detections2D, arrival_ns: int) -> None:
         self.writer.put("keypoints", T_KEYPOINTS, _encode_detections, camera, capture_ns, arrival_ns, dets)
 
+    def on_camera_change(self, change: CameraChange) -> None:
+        """A camera recalibrated while running (a tap of the daemon's): an event of the session."""
+        self.writer.put(EVENTS, T_EVENT, encode_event, camera_event(change))
+
     def on_imu(self, s: ImuSample, quat: tuple[float, ...] | None, t: int | None) -> None:
         if quat is None or s.acc is None:
             return  # incomplete samples are counted by the ingest and carry nothing to re-solve with
@@ -204,6 +214,12 @@ def camera_dict(c: Camera) -> dict[str, Any]:
 def camera_from_dict(d: dict[str, Any]) -> Camera:
     return Camera(str(d["name"]), int(d["width"]), int(d["height"]), np.array(d["K"]), np.array(d["R"]),
                   np.array(d["t"]), np.array(d["dist"]))  # fmt: skip
+
+
+def camera_event(change: CameraChange) -> dict[str, Any]:
+    """The ``events`` stream's record of a camera recalibrated while running (``kind = "camera"``)."""
+    return {"t_ns": change.t_ns, "kind": "camera", "index": change.index, "camera": camera_dict(change.camera),
+            "source": change.source, "rotation_deg": change.rotation_deg, **change.details}  # fmt: skip
 
 
 def session_manifest(config: Config, daemon: Daemon, extra: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -290,7 +306,7 @@ def attach_recorder(
         frames = FrameRecordOptions(rc.frames, rc.frames_hz, rc.frames_width, rc.frames_quality)
     path = session_directory(rc, directory)
     manifest = session_manifest(config, daemon, extra)
-    streams = (*STREAMS, FRAMES) if frames.enabled else STREAMS
+    streams = (*STREAMS, EVENTS, FRAMES) if frames.enabled else (*STREAMS, EVENTS)
     manifest["streams"] = list(streams)
     writer = SessionWriter(path, manifest, streams=streams, flush_interval_s=rc.flush_interval_s, fsync=rc.fsync,
                            queue_size=rc.queue_size)  # fmt: skip
@@ -303,4 +319,5 @@ def attach_recorder(
     daemon.sinks.append(rec)
     daemon.detection_taps.append(rec.on_detections)
     daemon.imu.taps.append(rec.on_imu)
+    daemon.camera_taps.append(rec.on_camera_change)
     return rec

@@ -17,6 +17,11 @@ Two passes over the recorded raw inputs:
    removes the per-frame jitter of detector noise. Segments are split where a subject is unseen for longer
    than :attr:`ResolveOptions.max_gap_s`.
 
+A camera recalibrated while recording (the bumped-camera watch applied a re-estimate: a ``camera`` event of the
+session, :func:`camera_changes`) is replaced in the re-solve's scheduler: the solves after the event's time use the
+new camera, as the live daemon's did, and so do those since the watch first doubted the camera (``doubt_ns``: live,
+the camera was left out of those; the re-estimate describes it since it moved, which the re-solve can know).
+
 Then every subject's poses go through the anatomical plausibility checks (:func:`plausibility`): a knee or elbow
 bending the wrong way, or a pelvis facing backwards while the legs walk forwards, for more than a moment is counted
 in the summary and said in its notes.
@@ -57,7 +62,7 @@ from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker
 from mocapd.errors import ConfigError, InputError, MocapdError, ModelError
 from mocapd.io.input_files import open_input
-from mocapd.io.session import MANIFEST, Session
+from mocapd.io.session import EVENTS, MANIFEST, SUFFIX, Session
 from mocapd.pipeline.clocksync import offline_clock_map
 from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.imu_ingest import TICK_HZ, ImuIngest
@@ -366,13 +371,50 @@ def imu_times(records: list[ImuRecord], refit: bool = True) -> list[tuple[int, I
     return out
 
 
+def camera_changes(session: Session, cameras: list[Camera]) -> list[tuple[int, int, Camera]]:
+    """(solve time ns, camera index, new camera) of every camera recalibrated while the session was recorded (its
+    ``camera`` events), in time order: the camera to solve with after that instant (the event's ``doubt_ns`` where
+    it has one: when the watch first doubted the camera, else its ``t_ns``: when the daemon swapped it). A damaged
+    event (a camera that is not the rig's, or that changes more than its pose) is an InputError naming the
+    stream."""
+    out = []
+    for e in session.events():
+        if e.get("kind") != "camera":
+            continue
+        where = f"{session.path / (EVENTS + SUFFIX)}: damaged camera event at t_ns {e['t_ns']}"
+        try:
+            index, d = e["index"], e["camera"]
+            if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(cameras):
+                raise InputError(f"index {index!r} is not a camera of the session's {len(cameras)}")
+            if not isinstance(d, dict):
+                raise InputError("camera is not a table")
+            cam = camera_from_dict(d)
+        except KeyError as exc:
+            raise InputError(f"{where}: no key {exc}") from None
+        except (MocapdError, TypeError, ValueError) as exc:
+            raise InputError(f"{where}: {exc}") from None
+        old = cameras[index]
+        if (cam.name, cam.width, cam.height) != (old.name, old.width, old.height) or not (
+            np.array_equal(cam.K, old.K) and np.array_equal(cam.dist, old.dist)
+        ):
+            raise InputError(f"{where}: camera {cam.name} is not the session's {old.name} at another pose")
+        t, doubt = e["t_ns"], e.get("doubt_ns")
+        assert isinstance(t, int)  # decode_event checked it
+        since = doubt if isinstance(doubt, int) and not isinstance(doubt, bool) and doubt <= t else t
+        out.append((since, index, cam))
+    return sorted(out, key=lambda x: x[0])
+
+
 def forward_resolve(
     session: Session, opts: ResolveOptions, progress: Callable[[int], None] | None = None
 ) -> list[PoseRecord]:
-    """Pass 1: every recorded input through the daemon's scheduler at the recorded solve times; ``progress`` is
-    called with 1 after each frame."""
+    """Pass 1: every recorded input through the daemon's scheduler at the recorded solve times, the cameras
+    recalibrated while recording replaced at their instants (:func:`camera_changes`); ``progress`` is called with 1
+    after each frame."""
     rig = session_rig(session)
     sched, ingest = _scheduler(rig, opts)
+    changes = camera_changes(session, rig.cameras)
+    ic = 0
     o = rig.options
     kps = sorted(session.keypoints(), key=lambda k: (k.capture_ns, k.camera))
     imu = imu_times(session.imu(), opts.refit_imu_clock)
@@ -390,6 +432,9 @@ def forward_resolve(
             row[0:4], row[4:7] = r.quat, r.acc
             ingest.stream(r.sensor).buffer.push(ti, row)
             ii += 1
+        while ic < len(changes) and changes[ic][0] < t:  # as live: from the first solve after the change
+            sched.replace_camera(changes[ic][1], changes[ic][2])
+            ic += 1
         frame = sched.tick(int(t) + o.latency_ns)
         people = tuple(
             PersonRecord(p.identity, p.suit, p.track, p.views, p.imus, p.iterations, p.converged, p.confidence,
@@ -549,6 +594,7 @@ def resolve(
         "person_solves": sum(len(f.people) for f in frames),
         "keypoint_frames": session.reports["keypoints"].records - 1 if "keypoints" in session.reports else 0,
         "imu_samples": session.reports["imu"].records - 1 if "imu" in session.reports else 0,
+        "camera_changes": [{"camera": c.name, "t_ns": t} for t, _, c in camera_changes(session, rig.cameras)],
         "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__},
         "plausibility": {identity: m.status() for identity, m in sorted(monitors.items())},
         "notes": [*span_notes(session, rig.suits),
