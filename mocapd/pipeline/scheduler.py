@@ -854,19 +854,20 @@ class FixedLatencyScheduler:
 
     def _refine_mountings(self, suit_id: str) -> None:
         """Fit ``suit_id``'s mountings from the cameras' first seconds and fuse the suit with them from the next
-        tick (under :attr:`lock`, in the tick); each sensor's change is logged. The calibration file is not
+        tick (under :attr:`lock`, in the tick); every sensor's change is logged in one line. The calibration file is not
         rewritten: the next start refines again."""
         suit = self.suits[suit_id]
         fits = self.mounting.fit(suit_id, suit.calibration.q_ib)
         q_ib = {sid: fits[sid].q_ib if fits[sid].used else q for sid, q in suit.calibration.q_ib.items()}
         used = {sid: f for sid, f in fits.items() if f.used}
-        for sid, f in fits.items():
-            bone = suit.calibration.bones[sid]
-            if f.used:
-                log.warning("suit %s: mounting of %s (%s) refined from the cameras: turned %.1f deg (misfit %.1f deg, "
-                            "%d frames)", suit_id, sid, bone, f.change_deg, f.misfit_deg, f.frames)  # fmt: skip
-            else:
-                log.info("suit %s: mounting of %s (%s) kept: %s", suit_id, sid, bone, f.reason)
+        # One line per suit, not one per sensor: the log limiter lets a few lines of one kind through a window, so
+        # 13 lines at once would lose most of a suit's changes.
+        bones = suit.calibration.bones
+        turned = ", ".join(f"{sid} ({bones[sid]}) {f.change_deg:.1f} deg (misfit {f.misfit_deg:.1f}, {f.frames} frames)"
+                           for sid, f in used.items())  # fmt: skip
+        kept = ", ".join(f"{sid} ({bones[sid]}): {f.reason}" for sid, f in fits.items() if not f.used)
+        log.warning("suit %s: %d of %d mountings refined from the cameras, turned %s; kept %s", suit_id, len(used),
+                    len(fits), turned or "none", kept or "none")  # fmt: skip
         if used:
             self.suits[suit_id] = replace(suit, calibration=replace(suit.calibration, q_ib=q_ib))
             self._q_ib[suit_id] = np.array([q_ib[sid] for sid in suit.sensors])
