@@ -51,6 +51,7 @@ from mocapd.protocols.slimevr_server import (
     ServerOptions,
     SlimeVrServer,
     TrackerConnected,
+    TrackerEvicted,
     TrackerGesture,
     TrackerRefused,
     TrackerTimedOut,
@@ -271,6 +272,12 @@ class SlimeVrListener:
                          extra={"repeat_key": event.key})  # fmt: skip
             elif isinstance(event, TrackerTimedOut):
                 log.warning("slimevr: tracker %s timed out", event.key, extra={"repeat_key": event.key})
+            elif isinstance(event, TrackerEvicted):
+                # One call site: the repeat filter passes at most its per-kind share a window, whatever MACs a
+                # swarm invents (the count is in /status: evicted_trackers).
+                log.warning("slimevr: tracker %s (%s:%d, %d sensors) evicted for a newcomer: no rotation from it "
+                            "for %.1f s while the table was full", event.key, *event.address, event.sensors,
+                            event.idle_ns / 1e9, extra={"repeat_key": event.key})  # fmt: skip
             elif isinstance(event, TrackerRefused):
                 self.rejections.reject("tracker table full", "handshake from {}:{}".format(*event.address))
             elif isinstance(event, TrackerGesture):
