@@ -329,3 +329,18 @@ def test_a_full_table_admits_a_newcomer_in_place_of_the_tracker_that_delivered_n
     hello(7, 4150)  # then 1; never the streaming 0 and 4
     assert sorted(s.trackers) == [mac[0], mac[4], mac[6], mac[7]]
     assert s.counters.evicted_trackers == 4 and s.counters.replaced_trackers == 0
+
+
+def test_a_datagram_from_an_address_that_has_not_shaken_hands_is_refused_before_it_is_decoded() -> None:
+    """Issue 45 (the soak's cost): a datagram from an address that has not shaken hands was decoded before it was
+    dropped (a bundle of 128 sensor infos: ~0.8 ms), so garbage from fresh ports counted as bad and as unknown.
+    Now it is counted once, as unknown_source, from its header alone; only a header too short to say is bad."""
+    s = SlimeVrServer()
+    s.receive_datagram(b"\xff" * 40, A, 0)  # an unknown packet type: decoded, a bad datagram as well
+    s.receive_datagram(encode_bundle([SensorInfo(i, 1, 3) for i in range(128)], 1, compact=True), A, 0)
+    s.receive_datagram(bytes(5), A, 0)  # shorter than the header
+    c = s.counters
+    assert (c.datagrams, c.unknown_source, c.bad_datagrams) == (3, 2, 1)
+    connect(s, sensors=1)  # a handshake from the same address is still heard
+    s.receive_datagram(b"\xff" * 40, A, 0)
+    assert (c.unknown_source, c.bad_datagrams) == (2, 2)
