@@ -4,6 +4,7 @@ holding quiet sensors, acceleration as specific force, and hostile input."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from hypothesis import given, settings
@@ -344,3 +345,35 @@ def test_a_datagram_from_an_address_that_has_not_shaken_hands_is_refused_before_
     connect(s, sensors=1)  # a handshake from the same address is still heard
     s.receive_datagram(b"\xff" * 40, A, 0)
     assert (c.unknown_source, c.bad_datagrams) == (2, 2)
+
+
+class _CountingTable(dict[str, object]):
+    """The server's table of trackers, counting the walks over it (the cost of a search for room)."""
+
+    walks = 0
+
+    def values(self) -> Any:
+        self.walks += 1
+        return super().values()
+
+
+def test_a_bundle_of_refused_sensor_infos_searches_the_table_for_room_once() -> None:
+    """Issue 45 (the soak's cost): each of the 128 sensor infos of a swarm tracker's bundle, refused because the
+    budget was full, searched the whole table for a tracker to make room (1.4 ms a bundle). A failed search is
+    remembered until the table changes: one search a bundle, and the room is found again once there is some."""
+    o = ServerOptions(timeout_ns=60_000 * MS, idle_grace_ns=1000 * MS)
+    s = SlimeVrServer(o)
+    table = _CountingTable()
+    s.trackers = table  # type: ignore[assignment]
+    for k in range(64):
+        addr = ("127.0.0.1", 43000 + k)
+        s.receive_datagram(encode_packet(Handshake(2, 3, 2, 22, "fw", f"0A:00:00:00:00:{k:02X}"), 0), addr, 0)
+        s.receive_datagram(encode_bundle([SensorInfo(i, 1, 3) for i in range(16)], 1, compact=True), addr, 0)
+    assert s.status()["sensors_total"] == 128
+    table.walks = 0
+    late = ("127.0.0.1", 43063)  # holds no sensor: every one of its 128 is refused
+    s.receive_datagram(encode_bundle([SensorInfo(i, 1, 3) for i in range(16, 144)], 2, compact=True), late, 500 * MS)
+    assert s.counters.refused_sensors == 64 * 16 - 128 + 128
+    assert table.walks <= 2, table.walks
+    s.receive_datagram(encode_bundle([SensorInfo(0, 1, 3)], 3, compact=True), late, 1500 * MS)  # past the grace
+    assert len(s.trackers["0A:00:00:00:00:3F"].sensors) == 1 and s.counters.evicted_trackers == 1
