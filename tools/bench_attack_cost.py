@@ -23,7 +23,9 @@ Kinds (each one operation as the soak's attacker does it):
 - ``slimevr_bundle``: a bundle of 128 sensor infos from one of 64 trackers that shook hands (the soak's swarm:
   all of them refused, the budget being full);
 - ``slimevr_unknown``: the same bundle from an address that never shook hands (a forgotten swarm tracker);
-- ``slimevr_heartbeat``: a heartbeat from one of the 64.
+- ``slimevr_heartbeat``: a heartbeat from one of the 64;
+- ``bridge_mix``: an IMU bridge datagram of the soak's mix (valid records, garbage, out-of-range numbers, wrong
+  types, fresh sensor ids, 1-50 records at once).
 
     nice -n 19 .venv/bin/python tools/bench_attack_cost.py [--kinds ws_foreign,status_poll] [--phase 6]
         [--repeats 2] [--out cost.json]
@@ -36,6 +38,7 @@ import asyncio
 import contextlib
 import json
 import os
+import random
 import socket
 import sys
 import threading
@@ -57,6 +60,7 @@ RATES = {
     "slimevr_bundle": 40.0,
     "slimevr_unknown": 40.0,
     "slimevr_heartbeat": 400.0,
+    "bridge_mix": 200.0,
 }
 SWARM = 64
 
@@ -96,6 +100,7 @@ async def _attack(kind: str, ports: dict[str, int], seconds: float, rate: float)
     from websockets.asyncio.client import connect
 
     from mocapd.protocols.slimevr import Heartbeat, SensorInfo, encode_bundle, encode_packet
+    from tools.soak import _bridge_datagram
 
     http, ws_port, slime = ports["http"], ports["ws"], ("127.0.0.1", ports["slimevr"])
     key = "dGhlIHNhbXBsZSBub25jZQ=="
@@ -112,6 +117,7 @@ async def _attack(kind: str, ports: dict[str, int], seconds: float, rate: float)
     stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     stranger.bind(("127.0.0.1", 0))
     bundle = [SensorInfo(i, 1, 3) for i in range(128)]
+    rng = random.Random(0)
     await asyncio.sleep(0.5)  # the swarm's handshakes are in before the first phase
     ws = await connect(f"ws://127.0.0.1:{ws_port}/", max_size=None) if kind == "ws_reset" else None
     if ws is not None:
@@ -165,6 +171,9 @@ async def _attack(kind: str, ports: dict[str, int], seconds: float, rate: float)
             elif kind == "slimevr_heartbeat":
                 socks[ops % SWARM].sendto(encode_packet(Heartbeat(), number), slime)
                 done += 1
+            elif kind == "bridge_mix":
+                stranger.sendto(_bridge_datagram(rng, number), ("127.0.0.1", ports["bridge"]))
+                done += 1
             else:
                 raise SystemExit(f"unknown kind {kind}")
             ops += 1
@@ -193,7 +202,10 @@ async def bench(kinds: list[str], phase_s: float, repeats: int) -> dict[str, Any
     from mocapd.service.demo.synthetic import synthetic_config
 
     cfg = load_config()
-    imu = cfg.imu.model_copy(update={"slimevr": cfg.imu.slimevr.model_copy(update={"enabled": True, "port": 0})})
+    imu = cfg.imu.model_copy(update={
+        "bridge": cfg.imu.bridge.model_copy(update={"enabled": True, "port": _free_udp_port()}),
+        "slimevr": cfg.imu.slimevr.model_copy(update={"enabled": True, "port": 0}),
+    })  # fmt: skip
     cfg = cfg.model_copy(update={
         "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
         "websocket": cfg.websocket.model_copy(update={"port": 0}),
@@ -207,11 +219,13 @@ async def bench(kinds: list[str], phase_s: float, repeats: int) -> dict[str, Any
         ws = next(s for s in d.sinks if isinstance(s, WebSocketStreamServer))
         slimevr = d.imu.slimevr
         assert slimevr is not None
+        assert d.imu.bridge is not None
         await d.http.start()
+        await d.imu.bridge.start()
         await slimevr.start()
         await ws.start()
         ticking = asyncio.create_task(slimevr.run())
-        ports = {"http": d.http.port, "ws": int(ws.port), "slimevr": slimevr.port}
+        ports = {"http": d.http.port, "ws": int(ws.port), "slimevr": slimevr.port, "bridge": d.imu.bridge.port}
         rx = next(t for t in threading.enumerate() if t.name == "mocapd-slimevr-rx")
 
         def cpu() -> float:
@@ -257,8 +271,15 @@ async def bench(kinds: list[str], phase_s: float, repeats: int) -> dict[str, Any
         await ticking
         slimevr.close()
         await ws.aclose()
+        d.imu.bridge.close()
         await d.http.close()
     return results
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def _thread_cpu(tid: int | None) -> float:
