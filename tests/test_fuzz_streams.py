@@ -414,6 +414,48 @@ def test_a_swarm_that_only_heartbeats_cannot_lock_a_real_tracker_out_over_udp() 
     assert status["trackers_total"] == 64 and status["sensors_total"] <= 128
 
 
+def test_a_swarm_churning_through_the_table_is_said_in_one_line_not_one_per_tracker(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Issue 45: evicting idle trackers for newcomers must not become a log flood. A swarm that keeps shaking hands
+    with new MACs evicts one of its own each time; the first eviction is said (with the count so far), the rest
+    within 10 s only counted (``evicted_trackers``). Real UDP: 30 trackers into a table of 2 whose grace is 1 ns."""
+    import asyncio
+    import logging
+
+    from mocapd.io.slimevr import SlimeVrListener
+
+    options = ServerOptions(max_trackers=2, idle_grace_ns=1, timeout_ns=60_000_000_000)
+
+    async def churn() -> int:
+        listener = SlimeVrListener(lambda _s: None, port=0, options=options)
+        port = await listener.start()
+        runner = asyncio.create_task(listener.run())
+        socks = []
+        try:
+            for k in range(30):
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                sock.bind(("127.0.0.1", 0))
+                socks.append(sock)
+                sock.sendto(encode_packet(Handshake(2, 3, 2, 22, "swarm", _mac(k)), 0), ("127.0.0.1", port))
+            async with asyncio.timeout(30):
+                while listener.server.counters.evicted_trackers < 28:
+                    await asyncio.sleep(0.01)
+            await asyncio.sleep(0.05)  # the last events are flushed
+            return listener.server.counters.evicted_trackers
+        finally:
+            listener.close()
+            await runner
+            for sock in socks:
+                sock.close()
+
+    with caplog.at_level(logging.WARNING, logger="mocapd.io.slimevr"):
+        evicted = asyncio.run(churn())
+    said = [r.getMessage() for r in caplog.records if "evicted for a newcomer" in r.getMessage()]
+    assert evicted == 28 and len(said) == 1, said
+    assert "evicted so far" in said[0]  # with the count the server had when it was said
+
+
 # ---------------------------------------------------------------------------------------------- Zenoh, sans I/O
 RIG = "rig"
 SIZE = (640, 480)

@@ -90,6 +90,8 @@ INBOX_LIMIT = 1 << 16
 oldest are dropped and counted (``inbox_dropped``), so a stopped event loop cannot grow the daemon."""
 BATCH = 64
 """Datagrams read per wake-up of the receive thread at most."""
+EVICTION_LOG_INTERVAL_NS = 10_000_000_000
+"""Evictions of idle trackers are said at most once per this (with the count so far)."""
 DRAIN_SLICE = 64
 """Datagrams handed to the server per event-loop callback at most (the rest in the next one)."""
 DRAIN_BUDGET_NS = 2_000_000
@@ -128,6 +130,7 @@ class SlimeVrListener:
         self.rejections = Rejections("slimevr", log, clock=clock)
         self._on_sample = on_sample
         self._said: set[str] = set()  # sensors whose first sample was logged
+        self._next_eviction_log_ns: int | None = None
         self._clock = clock
         self._transport: asyncio.DatagramTransport | None = None
         self._sock: socket.socket | None = None
@@ -287,11 +290,7 @@ class SlimeVrListener:
             elif isinstance(event, TrackerTimedOut):
                 log.warning("slimevr: tracker %s timed out", event.key, extra={"repeat_key": event.key})
             elif isinstance(event, TrackerEvicted):
-                # One call site: the repeat filter passes at most its per-kind share a window, whatever MACs a
-                # swarm invents (the count is in /status: evicted_trackers).
-                log.warning("slimevr: tracker %s (%s:%d, %d sensors) evicted for a newcomer: no rotation from it "
-                            "for %.1f s while the table was full", event.key, *event.address, event.sensors,
-                            event.idle_ns / 1e9, extra={"repeat_key": event.key})  # fmt: skip
+                self._log_eviction(event)
             elif isinstance(event, TrackerRefused):
                 self.rejections.reject("tracker table full", "handshake from {}:{}".format(*event.address))
             elif isinstance(event, TrackerGesture):
@@ -312,6 +311,19 @@ class SlimeVrListener:
                     self.send_errors["not_started"] += 1
             except OSError as exc:
                 self.send_errors[errno.errorcode.get(exc.errno or 0, "OSError")] += 1
+
+    def _log_eviction(self, event: TrackerEvicted) -> None:
+        """One line for the first eviction and then at most one per :data:`EVICTION_LOG_INTERVAL_NS`, whatever MACs
+        a swarm invents (a swarm churning through the table evicts one of its own every few seconds); the count is
+        in /status (``evicted_trackers``)."""
+        now = self._clock()
+        if self._next_eviction_log_ns is not None and now < self._next_eviction_log_ns:
+            return
+        self._next_eviction_log_ns = now + EVICTION_LOG_INTERVAL_NS
+        log.warning("slimevr: tracker %s (%s:%d, %d sensors) evicted for a newcomer: no rotation from it for %.1f s "
+                    "while the table was full; %d evicted so far (imu.slimevr.evicted_trackers in /status)",
+                    event.key, *event.address, event.sensors, event.idle_ns / 1e9,
+                    self.server.counters.evicted_trackers)  # fmt: skip
 
     def status(self) -> dict[str, Any]:
         """Listening address, counters and trackers for /status; per tracker ``loss_percent``, the share of its
