@@ -203,3 +203,41 @@ async def test_the_listener_ticks_without_making_a_task_each_time() -> None:
         loop.set_task_factory(default)
         listener.close()
     assert made == 1, made  # the runner itself; the old code made one more every tick
+
+
+@pytest.mark.asyncio
+async def test_a_tracker_whose_datagrams_wait_in_the_backlog_is_not_timed_out() -> None:
+    """The backlog of a blocked event loop is handed to the server in slices, and the listener ticks between them:
+    a tick must not time out a tracker whose datagrams are still queued (its time-out counts silence before the
+    oldest queued datagram). A tracker streams 400 datagrams a second while the loop is blocked for 1.5 s, longer
+    than the 1 s time-out; once the backlog is in, it has never been timed out."""
+    listener = SlimeVrListener(lambda _s: None, port=0)
+    port = await listener.start()
+    runner = asyncio.create_task(listener.run())
+    loop = asyncio.get_running_loop()
+    tracker = await loop.run_in_executor(None, _tracker, port, "0A:00:00:00:00:01")
+    try:
+        while sum(len(t.sensors) for t in listener.server.trackers.values()) < 1:
+            await asyncio.sleep(0.01)
+        sent = 0
+
+        def send_for(seconds: float) -> None:
+            nonlocal sent
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                sent += 1
+                tracker.sendto(encode_packet(Rotation(0, (1.0, 0.0, 0.0, 0.0)), 1 + sent), ("127.0.0.1", port))
+                time.sleep(0.0025)
+
+        sender = loop.run_in_executor(None, send_for, 1.5)
+        time.sleep(1.5)  # the event loop is blocked: the receive thread queues everything
+        await sender
+        t = listener.server.trackers["0A:00:00:00:00:01"]
+        while t.packets < sent + 1:
+            await asyncio.sleep(0.005)
+        assert listener.status()["receiver"]["largest_batch"] > DRAIN_SLICE  # handed over in several slices
+        assert t.timeouts == 0 and listener.server.counters.timeouts == 0
+    finally:
+        tracker.close()
+        listener.close()
+        await asyncio.wait_for(runner, 2)

@@ -370,9 +370,14 @@ class SlimeVrServer:
         for index, rot in rotations.items():
             self._sample(tracker, index, rot, accelerations.get(index), now_ns)
 
-    def tick(self, now_ns: int) -> None:
-        """Heartbeats, pings, time-outs and held orientations due at ``now_ns``."""
+    def tick(self, now_ns: int, heard_until_ns: int | None = None) -> None:
+        """Heartbeats, pings, time-outs and held orientations due at ``now_ns``.
+
+        ``heard_until_ns``: the arrival time of the oldest datagram received but not yet handed to
+        :meth:`receive_datagram` (a backlog handed over in slices): a tracker is timed out only by silence before
+        it, never for datagrams that wait in the caller's queue."""
         o = self.options
+        heard = now_ns if heard_until_ns is None else min(now_ns, heard_until_ns)
         for t in self.trackers.values():
             if now_ns >= t.next_keepalive_ns:
                 t.next_keepalive_ns = now_ns + o.heartbeat_interval_ns
@@ -382,7 +387,7 @@ class SlimeVrServer:
                 if len(t.pings) > 8:
                     del t.pings[next(iter(t.pings))]
                 self._out.append((encode_ping(self._ping_counter), t.address))
-            if not t.timed_out and now_ns - t.last_packet_ns > o.timeout_ns:
+            if not t.timed_out and heard - t.last_packet_ns > o.timeout_ns:
                 t.timed_out = True
                 self._no_room.clear()
                 t.timeouts += 1
