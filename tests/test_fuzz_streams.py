@@ -290,6 +290,172 @@ def test_silent_trackers_free_the_sensor_budget_over_udp() -> None:
     assert status["sensors_total"] == 128 - 16 + 1
 
 
+def test_a_swarm_that_only_heartbeats_cannot_lock_a_real_tracker_out_over_udp() -> None:
+    """Issue 45 (the soak): a swarm of SlimeVR trackers (handshakes, sensor infos, then heartbeats only) filled the
+    table (64 trackers, 128 sensors) before a real tracker announced itself, and kept it: the swarm never times
+    out, so the newcomer's handshake was refused for ever. Now a tracker that has delivered no rotation for the
+    grace period makes room: the newcomer is answered, its sensor acknowledged, its first rotation reaches the
+    daemon, and the two trackers that were streaming before the swarm keep their places and stream on. The
+    swarm's time-out is a minute here, so that a stall of this test cannot time it out and let the old code's
+    replacement of timed-out trackers through: on the old code the newcomer is never answered (the guard fails)."""
+    import asyncio
+
+    from mocapd.io.slimevr import SlimeVrListener
+    from mocapd.protocols.slimevr import HANDSHAKE_REPLY, Rx
+
+    samples: dict[str, int] = {}
+    options = ServerOptions(timeout_ns=60_000_000_000)
+    good = ["0B:00:00:00:00:01", "0B:00:00:00:00:02"]
+    newcomer = "0C:00:00:00:00:01"
+    quat = (1.0, 0.0, 0.0, 0.0)
+
+    def sample(s: Any) -> None:
+        samples[s.sensor] = samples.get(s.sensor, 0) + 1
+
+    def replies(sock: socket.socket) -> list[bytes]:
+        out = []
+        while True:
+            try:
+                out.append(sock.recv(2048))
+            except BlockingIOError:
+                return out
+
+    async def scenario() -> dict[str, Any]:
+        listener = SlimeVrListener(sample, port=0, options=options)
+        port = await listener.start()
+        to = ("127.0.0.1", port)
+        runner = asyncio.create_task(listener.run())
+        socks: list[socket.socket] = []
+
+        def udp() -> socket.socket:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            sock.bind(("127.0.0.1", 0))
+            sock.setblocking(False)
+            socks.append(sock)
+            return sock
+
+        async def stream(sock: socket.socket, stop: asyncio.Event) -> None:
+            n = 1
+            while not stop.is_set():
+                n += 1
+                sock.sendto(encode_packet(Rotation(0, quat), n), to)
+                await asyncio.sleep(0.02)
+
+        stop = asyncio.Event()
+        try:
+            streaming = []
+            for mac in good:  # two trackers of a real suit, streaming before the swarm comes
+                sock = udp()
+                sock.sendto(encode_packet(Handshake(2, 3, 2, 22, "fw", mac), 0), to)
+                sock.sendto(encode_packet(SensorInfo(0, 1, 3), 1), to)
+                streaming.append(asyncio.create_task(stream(sock, stop)))
+            async with asyncio.timeout(30):
+                while not all(samples.get(f"{mac}/0") for mac in good):
+                    await asyncio.sleep(0.01)
+            swarm = [udp() for _ in range(62)]  # the rest of the table, and the sensor budget
+            for k, sock in enumerate(swarm):
+                sock.sendto(encode_packet(Handshake(2, 3, 2, 22, "swarm", _mac(k)), 0), to)
+                sock.sendto(encode_bundle([SensorInfo(i, 1, 3) for i in range(16)], 1, compact=True), to)
+
+            async def heartbeats() -> None:
+                n = 1
+                while not stop.is_set():
+                    n += 1
+                    for sock in swarm:
+                        sock.sendto(encode_packet(Heartbeat(), n), to)
+                    await asyncio.sleep(0.2)
+
+            beating = asyncio.create_task(heartbeats())
+            async with asyncio.timeout(30):
+                while listener.server.counters.datagrams < 2 + 4 + 2 * 62:
+                    await asyncio.sleep(0.01)
+            full = listener.status()
+            assert full["trackers_total"] == 64 and full["sensors_total"] == 128
+            # The newcomer shakes hands until answered (as firmware does, every 0.2 s here), then announces its
+            # sensor until acknowledged, then sends one rotation: each step waits for the server's answer.
+            late = udp()
+            handshakes = 0
+            async with asyncio.timeout(60):
+                while True:
+                    handshakes += 1
+                    late.sendto(encode_packet(Handshake(2, 3, 2, 22, "fw", newcomer), 0), to)
+                    await asyncio.sleep(0.2)
+                    if HANDSHAKE_REPLY in replies(late):
+                        break
+                n = 0
+                while True:
+                    n += 1
+                    late.sendto(encode_packet(SensorInfo(0, 1, 3), n), to)
+                    await asyncio.sleep(0.05)
+                    if any(int.from_bytes(r[:4], "big") == Rx.SENSOR_INFO for r in replies(late)):
+                        break
+                before = {mac: samples[f"{mac}/0"] for mac in good}
+                late.sendto(encode_packet(Rotation(0, quat), n + 1), to)  # one rotation: it must arrive
+                while not samples.get(f"{newcomer}/0"):
+                    await asyncio.sleep(0.01)
+                while not all(samples[f"{mac}/0"] > before[mac] + 10 for mac in good):
+                    await asyncio.sleep(0.01)
+            stop.set()
+            await asyncio.gather(beating, *streaming)
+            rotations = {k: t.sensors[0].rotations for k, t in listener.server.trackers.items() if 0 in t.sensors}
+            return {"status": listener.status(), "handshakes": handshakes, "rotations": rotations}
+        finally:
+            stop.set()
+            listener.close()
+            await runner
+            for sock in socks:
+                sock.close()
+
+    got = asyncio.run(scenario())
+    status = got["status"]
+    assert got["rotations"][newcomer] == 1  # the one rotation it sent after the acknowledgement (then held)
+    assert all(got["rotations"].get(mac, 0) > 10 for mac in good)  # the streaming trackers kept their places
+    assert status["evicted_trackers"] >= 1 and status["replaced_trackers"] == 0 and status["timeouts"] == 0
+    assert status["trackers_total"] == 64 and status["sensors_total"] <= 128
+
+
+def test_a_swarm_churning_through_the_table_is_said_in_one_line_not_one_per_tracker(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Issue 45: evicting idle trackers for newcomers must not become a log flood. A swarm that keeps shaking hands
+    with new MACs evicts one of its own each time; the first eviction is said (with the count so far), the rest
+    within 10 s only counted (``evicted_trackers``). Real UDP: 30 trackers into a table of 2 whose grace is 1 ns."""
+    import asyncio
+    import logging
+
+    from mocapd.io.slimevr import SlimeVrListener
+
+    options = ServerOptions(max_trackers=2, idle_grace_ns=1, timeout_ns=60_000_000_000)
+
+    async def churn() -> int:
+        listener = SlimeVrListener(lambda _s: None, port=0, options=options)
+        port = await listener.start()
+        runner = asyncio.create_task(listener.run())
+        socks = []
+        try:
+            for k in range(30):
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                sock.bind(("127.0.0.1", 0))
+                socks.append(sock)
+                sock.sendto(encode_packet(Handshake(2, 3, 2, 22, "swarm", _mac(k)), 0), ("127.0.0.1", port))
+            async with asyncio.timeout(30):
+                while listener.server.counters.evicted_trackers < 28:
+                    await asyncio.sleep(0.01)
+            await asyncio.sleep(0.05)  # the last events are flushed
+            return listener.server.counters.evicted_trackers
+        finally:
+            listener.close()
+            await runner
+            for sock in socks:
+                sock.close()
+
+    with caplog.at_level(logging.WARNING, logger="mocapd.io.slimevr"):
+        evicted = asyncio.run(churn())
+    said = [r.getMessage() for r in caplog.records if "evicted for a newcomer" in r.getMessage()]
+    assert evicted == 28 and len(said) == 1, said
+    assert "evicted so far" in said[0]  # with the count the server had when it was said
+
+
 # ---------------------------------------------------------------------------------------------- Zenoh, sans I/O
 RIG = "rig"
 SIZE = (640, 480)

@@ -7,14 +7,15 @@ from __future__ import annotations
 import asyncio
 import socket
 import time
+from typing import Any
 
 import numpy as np
 import pytest
 
 from mocapd.io.recvmmsg import BatchReader
-from mocapd.io.slimevr import SlimeVrListener
+from mocapd.io.slimevr import DRAIN_SLICE, SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample
-from mocapd.protocols.slimevr import HANDSHAKE_REPLY, Handshake, Rotation, SensorInfo, encode_packet
+from mocapd.protocols.slimevr import HANDSHAKE_REPLY, Handshake, Rotation, SensorInfo, encode_bundle, encode_packet
 
 MS = 1_000_000
 
@@ -118,3 +119,125 @@ def _held(s: ImuSample) -> bool:
     """The server repeats a quiet tracker's orientation, without the acceleration (0.5 m/s² along x here) that the
     tracker sent: those are stamped when repeated, not received."""
     return s.acc is None or s.acc[0] == 0.0
+
+
+@pytest.mark.asyncio
+async def test_a_burst_is_handed_to_the_server_in_slices_with_the_event_loop_running_between() -> None:
+    """Issue 45 (the soak's output rate): every 10 s the soak's swarm of 64 trackers shook hands and sent 128
+    bundles of 128 sensor infos at once (~0.9 ms of decoding each), and the listener handed the whole backlog to
+    the server in one event-loop callback: a tenth of a second in which no output tick could run. Now one callback
+    takes at most DRAIN_SLICE datagrams (or 2 ms of work) and schedules the rest behind whatever else is ready: a
+    callback that runs on every turn of the loop sees the server's count between the burst's first and last
+    datagram (on the old code it sees only before and after)."""
+    listener = SlimeVrListener(lambda _s: None, port=0)
+    port = await listener.start()
+    runner = asyncio.create_task(listener.run())
+    loop = asyncio.get_running_loop()
+    trackers = [await loop.run_in_executor(None, _tracker, port, f"0A:00:00:00:00:0{k}") for k in range(8)]
+    counts: list[int] = []
+    running = True
+
+    def every_turn() -> None:
+        counts.append(listener.server.counters.datagrams)
+        if running:
+            loop.call_soon(every_turn)
+
+    try:
+        while len(listener.server.trackers) < 8:
+            await asyncio.sleep(0.01)
+        bundle = [SensorInfo(i, 1, 3) for i in range(128)]
+        start = listener.server.counters.datagrams
+        burst = 5 * DRAIN_SLICE
+        for n in range(burst // 8):
+            for t in trackers:
+                t.sendto(encode_bundle(list(bundle), 2 + n, compact=True), ("127.0.0.1", port))
+        time.sleep(0.3)  # the event loop is blocked while the receive thread queues the burst
+        every_turn()
+        while listener.server.counters.datagrams < start + burst:
+            await asyncio.sleep(0.001)
+        running = False
+        await asyncio.sleep(0)
+        assert listener.status()["receiver"]["largest_batch"] >= burst // 2  # queued while the loop was blocked
+        between = [c for c in counts if start < c < start + burst]
+        assert len(set(between)) >= 2, counts[:20]
+    finally:
+        running = False
+        for t in trackers:
+            t.close()
+        listener.close()
+        await asyncio.wait_for(runner, 2)
+
+
+@pytest.mark.asyncio
+async def test_the_listener_ticks_without_making_a_task_each_time() -> None:
+    """Issue 45 (the soak's cost): between its 10 ms ticks the listener waited on its stop event with ``wait_for``,
+    which made a task and cancelled it every tick: ~18 ms of the event loop's CPU a second with no tracker at all.
+    It sleeps now (a stop ends it within a tick). Counted: tasks made while it ticks 20 times (its clock is read
+    once a tick)."""
+    ticks = 0
+
+    def clock() -> int:
+        nonlocal ticks
+        ticks += 1
+        return time.monotonic_ns()
+
+    listener = SlimeVrListener(lambda _s: None, port=0, clock=clock)
+    await listener.start()
+    loop = asyncio.get_running_loop()
+    made = 0
+    default = loop.get_task_factory()
+
+    def factory(loop: asyncio.AbstractEventLoop, coro: Any, **kwargs: Any) -> asyncio.Task[Any]:
+        nonlocal made
+        made += 1
+        return asyncio.Task(coro, loop=loop, **kwargs)
+
+    loop.set_task_factory(factory)
+    try:
+        runner = asyncio.create_task(listener.run())
+        while ticks < 20:
+            await asyncio.sleep(0.005)
+        listener.stop()
+        await asyncio.wait_for(runner, 2)
+    finally:
+        loop.set_task_factory(default)
+        listener.close()
+    assert made == 1, made  # the runner itself; the old code made one more every tick
+
+
+@pytest.mark.asyncio
+async def test_a_tracker_whose_datagrams_wait_in_the_backlog_is_not_timed_out() -> None:
+    """The backlog of a blocked event loop is handed to the server in slices, and the listener ticks between them:
+    a tick must not time out a tracker whose datagrams are still queued (its time-out counts silence before the
+    oldest queued datagram). A tracker streams 400 datagrams a second while the loop is blocked for 1.5 s, longer
+    than the 1 s time-out; once the backlog is in, it has never been timed out."""
+    listener = SlimeVrListener(lambda _s: None, port=0)
+    port = await listener.start()
+    runner = asyncio.create_task(listener.run())
+    loop = asyncio.get_running_loop()
+    tracker = await loop.run_in_executor(None, _tracker, port, "0A:00:00:00:00:01")
+    try:
+        while sum(len(t.sensors) for t in listener.server.trackers.values()) < 1:
+            await asyncio.sleep(0.01)
+        sent = 0
+
+        def send_for(seconds: float) -> None:
+            nonlocal sent
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                sent += 1
+                tracker.sendto(encode_packet(Rotation(0, (1.0, 0.0, 0.0, 0.0)), 1 + sent), ("127.0.0.1", port))
+                time.sleep(0.0025)
+
+        sender = loop.run_in_executor(None, send_for, 1.5)
+        time.sleep(1.5)  # the event loop is blocked: the receive thread queues everything
+        await sender
+        t = listener.server.trackers["0A:00:00:00:00:01"]
+        while t.packets < sent + 1:
+            await asyncio.sleep(0.005)
+        assert listener.status()["receiver"]["largest_batch"] > DRAIN_SLICE  # handed over in several slices
+        assert t.timeouts == 0 and listener.server.counters.timeouts == 0
+    finally:
+        tracker.close()
+        listener.close()
+        await asyncio.wait_for(runner, 2)

@@ -4,6 +4,7 @@ holding quiet sensors, acceleration as specific force, and hostile input."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from hypothesis import given, settings
@@ -16,6 +17,7 @@ from mocapd.protocols.slimevr import (
     Battery,
     FeatureFlags,
     Handshake,
+    Heartbeat,
     Packet,
     PingPong,
     Rotation,
@@ -37,6 +39,7 @@ from mocapd.protocols.slimevr_server import (
     ServerOptions,
     SlimeVrServer,
     TrackerConnected,
+    TrackerEvicted,
     TrackerRefused,
     TrackerTimedOut,
 )
@@ -266,3 +269,111 @@ def test_the_table_of_trackers_is_bounded_and_a_live_tracker_is_never_pushed_out
     assert s.counters.refused_trackers == 7 and len(s.trackers) == 4
     s.receive_datagram(encode_packet(SensorInfo(0, 1, 3), 2), ("127.0.0.1", 41000), 1800 * MS)  # forgotten
     assert s.counters.unknown_source == 1
+
+
+def test_a_full_table_admits_a_newcomer_in_place_of_the_tracker_that_delivered_nothing_longest() -> None:
+    """Issue 45 (the soak): trackers that only heartbeat held every place for ever. With the table full, a newcomer
+    takes the place of a tracker that has delivered no rotation for the grace period: first one that never sent
+    one (the earliest connected), then the one whose last rotation is oldest; a tracker streaming, or one within
+    its grace since its handshake, is never evicted, and a handover does not restart the grace."""
+    o = ServerOptions(max_trackers=4, max_sensors=4, timeout_ns=60_000 * MS, idle_grace_ns=1000 * MS)
+    s = SlimeVrServer(o)
+    addr = [("127.0.0.1", 42000 + k) for k in range(10)]
+    mac = [f"0A:00:00:00:00:{k:02X}" for k in range(10)]
+    number = [0] * 10
+
+    def send(k: int, data: bytes, at_ms: int) -> None:
+        s.receive_datagram(data, addr[k], at_ms * MS)
+
+    def hello(k: int, at_ms: int) -> None:
+        send(k, encode_packet(Handshake(2, 3, 2, 22, "fw", mac[k]), 0), at_ms)
+        number[k] = 0
+
+    def nxt(k: int) -> int:
+        number[k] += 1
+        return number[k]
+
+    for k in range(4):  # 0 and 1 stream rotations; 2 and 3 announce a sensor each, then only heartbeat
+        hello(k, 10 * k)
+        send(k, encode_packet(SensorInfo(0, 1, 3), nxt(k)), 10 * k)
+    for t in range(0, 3000, 100):
+        for k in (0, 1):
+            send(k, encode_packet(Rotation(0, IDENTITY), nxt(k)), t)
+        for k in (2, 3):
+            send(k, encode_packet(Heartbeat(), nxt(k)), t)
+        if t == 500:
+            hello(4, t)  # within everyone's grace: refused
+            assert mac[4] not in s.trackers and s.counters.refused_trackers == 1
+        if t == 900:
+            hello(3, t)  # a handover: tracker 3 keeps its place and its first handshake's time
+    assert not any(t.timed_out for t in s.trackers.values())
+    s.events_received()
+    hello(4, 3000)  # 2 and 3 delivered nothing for 3 s: 2, connected first, goes
+    assert sorted(s.trackers) == sorted([mac[0], mac[1], mac[3], mac[4]])
+    gone = [e for e in s.events_received() if isinstance(e, TrackerEvicted)]
+    assert gone == [TrackerEvicted(mac[2], addr[2], 3000 * MS - 20 * MS, 1)]
+    send(4, encode_packet(SensorInfo(0, 1, 3), nxt(4)), 3000)  # the freed sensor
+    send(4, encode_packet(SensorInfo(1, 1, 3), nxt(4)), 3000)  # the budget is full: 3 holds one and idles
+    assert mac[3] not in s.trackers and len(s.trackers[mac[4]].sensors) == 2
+    hello(5, 3010)  # the sensor budget's eviction freed a place too
+    hello(6, 3020)  # 4 and 5 are within their grace, 0 and 1 stream: refused
+    send(4, encode_packet(SensorInfo(2, 1, 3), nxt(4)), 3020)  # 0 and 1 hold the other sensors: refused
+    assert mac[5] in s.trackers and mac[6] not in s.trackers
+    assert s.counters.refused_trackers == 2 and s.counters.refused_sensors == 1
+    assert s.counters.evicted_trackers == 2 and s.status()["evicted_trackers"] == 2
+    for t in range(3100, 4200, 100):  # 0 and 4 stream; 1 stops (its last rotation at 2900 ms); 5 heartbeats
+        for k in (0, 4):
+            send(k, encode_packet(Rotation(0, IDENTITY), nxt(k)), t)
+        for k in (1, 5):
+            send(k, encode_packet(Heartbeat(), nxt(k)), t)
+    hello(6, 4100)  # 1 and 5 delivered nothing for more than 1 s: 5, which never delivered, goes first
+    hello(7, 4150)  # then 1; never the streaming 0 and 4
+    assert sorted(s.trackers) == [mac[0], mac[4], mac[6], mac[7]]
+    assert s.counters.evicted_trackers == 4 and s.counters.replaced_trackers == 0
+
+
+def test_a_datagram_from_an_address_that_has_not_shaken_hands_is_refused_before_it_is_decoded() -> None:
+    """Issue 45 (the soak's cost): a datagram from an address that has not shaken hands was decoded before it was
+    dropped (a bundle of 128 sensor infos: ~0.8 ms), so garbage from fresh ports counted as bad and as unknown.
+    Now it is counted once, as unknown_source, from its header alone; only a header too short to say is bad."""
+    s = SlimeVrServer()
+    s.receive_datagram(b"\xff" * 40, A, 0)  # an unknown packet type: decoded, a bad datagram as well
+    s.receive_datagram(encode_bundle([SensorInfo(i, 1, 3) for i in range(128)], 1, compact=True), A, 0)
+    s.receive_datagram(bytes(5), A, 0)  # shorter than the header
+    c = s.counters
+    assert (c.datagrams, c.unknown_source, c.bad_datagrams) == (3, 2, 1)
+    connect(s, sensors=1)  # a handshake from the same address is still heard
+    s.receive_datagram(b"\xff" * 40, A, 0)
+    assert (c.unknown_source, c.bad_datagrams) == (2, 2)
+
+
+class _CountingTable(dict[str, object]):
+    """The server's table of trackers, counting the walks over it (the cost of a search for room)."""
+
+    walks = 0
+
+    def values(self) -> Any:
+        self.walks += 1
+        return super().values()
+
+
+def test_a_bundle_of_refused_sensor_infos_searches_the_table_for_room_once() -> None:
+    """Issue 45 (the soak's cost): each of the 128 sensor infos of a swarm tracker's bundle, refused because the
+    budget was full, searched the whole table for a tracker to make room (1.4 ms a bundle). A failed search is
+    remembered until the table changes: one search a bundle, and the room is found again once there is some."""
+    o = ServerOptions(timeout_ns=60_000 * MS, idle_grace_ns=1000 * MS)
+    s = SlimeVrServer(o)
+    table = _CountingTable()
+    s.trackers = table  # type: ignore[assignment]
+    for k in range(64):
+        addr = ("127.0.0.1", 43000 + k)
+        s.receive_datagram(encode_packet(Handshake(2, 3, 2, 22, "fw", f"0A:00:00:00:00:{k:02X}"), 0), addr, 0)
+        s.receive_datagram(encode_bundle([SensorInfo(i, 1, 3) for i in range(16)], 1, compact=True), addr, 0)
+    assert s.status()["sensors_total"] == 128
+    table.walks = 0
+    late = ("127.0.0.1", 43063)  # holds no sensor: every one of its 128 is refused
+    s.receive_datagram(encode_bundle([SensorInfo(i, 1, 3) for i in range(16, 144)], 2, compact=True), late, 500 * MS)
+    assert s.counters.refused_sensors == 64 * 16 - 128 + 128
+    assert table.walks <= 2, table.walks
+    s.receive_datagram(encode_bundle([SensorInfo(0, 1, 3)], 3, compact=True), late, 1500 * MS)  # past the grace
+    assert len(s.trackers["0A:00:00:00:00:3F"].sensors) == 1 and s.counters.evicted_trackers == 1

@@ -17,7 +17,10 @@ every door at once:
 - a SlimeVR swarm (issue 34): 64 trackers that each announce sensor ids 0..255 (again every 10 s, as firmware
   repeats unacknowledged sensor infos) and then send only heartbeats, every one of them now and then a datagram
   numbered 2⁶⁴−1; beside them one well-behaved tracker streaming sensor 0 at 100 Hz that also sends a 2⁶⁴−1
-  every 10 s: its rotations per second (``slimevr_good_hz``) show whether it is locked out;
+  every 10 s: its rotations per second (``slimevr_good_hz``) show whether it is locked out. The swarm fills the
+  table (64 trackers, 128 sensors) before the good tracker is answered; since issue 45 a tracker that delivers no
+  rotation for 5 s gives its place to a newcomer, so the good one gets in (``good_connected``: in the table and
+  not timed out, false when refused or evicted; ``good_in_table``; ``evicted_trackers``);
 - Zenoh (issue 34): the soak process receives one remote camera (``zcam`` of host ``hostZ``: the door's
   :class:`~mocapd.pipeline.remote_cameras.RemoteRig` and keypoint source on the daemon's event loop, counting what
   they deliver) over a real Zenoh session on loopback; the attacker process runs the real host (status, clock
@@ -44,10 +47,16 @@ while this process unplugs one simulated IMU (its pseudo-terminal goes away, as 
 client saw, frames the daemon published, missed ticks, RSS, open fds, the rejection counters of every door, the
 WebSocket close codes the churn clients got, how many log records of level ERROR or above (and how many with
 a traceback) the daemon wrote, and how many log lines of any level it wrote that minute (through the daemon's
-repeat filter, :mod:`mocapd.io.log_throttle`, installed as ``mocapd run`` installs it). The last line is the
-whole run's summary.
+repeat filter, :mod:`mocapd.io.log_throttle`, installed as ``mocapd run`` installs it) and the CPU seconds this
+process used per second (``daemon_cpu_s_per_s``: the daemon and the simulated suit; on a shared machine the
+output rate is the share of the cores the daemon got, this what it spent). The last JSON line is the whole run's
+summary; then verdict lines say what was measured against what is needed: the output rate the client saw in
+every interval against the configured rate (``--rate-tolerance``, 5 %), whether the well-behaved SlimeVR tracker
+was connected, whether a web attack got through. What each attacker costs the daemon per operation:
+``tools/bench_attack_cost.py``.
 
     .venv/bin/python tools/soak.py [--minutes 30] [--interval 60] [--seed 0] [--out soak.jsonl]
+        [--rate-tolerance 0.05]
 """
 
 from __future__ import annotations
@@ -694,7 +703,13 @@ def _free_tcp_port() -> int:
 
 
 async def soak(
-    minutes: float, interval_s: float, seed: int, unplug_every_s: float, cli_every_s: float, out: Any
+    minutes: float,
+    interval_s: float,
+    seed: int,
+    unplug_every_s: float,
+    cli_every_s: float,
+    out: Any,
+    rate_tolerance: float = 0.05,
 ) -> dict[str, Any]:
     import psutil
 
@@ -744,6 +759,7 @@ async def soak(
         ws = next(s for s in d.sinks if isinstance(s, WebSocketStreamServer))
         assert d.imu.bridge is not None and d.imu.slimevr is not None
         zenoh_task = asyncio.create_task(zcam.run(lambda *_: None))  # delivered frames counted by the source
+        rate_hz = float(ws.description.rate_hz)  # the configured output rate the client should see
         ports = {"http": d.http.port, "ws": int(ws.port), "bridge": d.imu.bridge.port, "slimevr": d.imu.slimevr.port,
                  "zenoh": zport}  # fmt: skip
         cmd = ["nice", "-n", "5", sys.executable, __file__, "--attack", json.dumps(ports),
@@ -798,9 +814,15 @@ async def soak(
                     "timeouts": slime.get("timeouts"),
                     # the well-behaved tracker, read from the server (/status lists only some trackers)
                     "good_rotations": sum(x.rotations for x in good_t.sensors.values()) if good_t else 0,
-                    "good_connected": None if good_t is None else not good_t.timed_out,
+                    # in the table and not timed out (False, not null, when it is not in the table at all:
+                    # refused or evicted; good_in_table says which)
+                    "good_connected": good_t is not None and not good_t.timed_out,
+                    "good_in_table": good_t is not None,
                     "good_reordered": None if good_t is None else good_t.reordered,
                     "good_lost": None if good_t is None else good_t.lost,
+                    "refused_trackers": slime.get("refused_trackers"),
+                    "evicted_trackers": slime.get("evicted_trackers"),
+                    "replaced_trackers": slime.get("replaced_trackers"),
                 },
                 "zenoh": {
                     "received": zst["received"],
@@ -813,6 +835,7 @@ async def soak(
                     "round_trips": zhost.get("round_trips"),
                 },
                 "log_lines": lines_out.lines,
+                "cpu_s": sum(proc_info.cpu_times()[:2]),  # this process: the daemon (and the simulated suit)
                 "cli": dict(cli_counts),
                 "frames_published": st["output"]["frames"],
                 "missed_ticks": st["output"]["missed_ticks"],
@@ -854,6 +877,7 @@ async def soak(
                 "output_hz_client": round((cur["good_frames"] - prev["good_frames"]) / dt, 2),
                 "published_hz": round((cur["frames_published"] - prev["frames_published"]) / dt, 2),
                 "missed_ticks": cur["missed_ticks"] - prev["missed_ticks"],
+                "daemon_cpu_s_per_s": round((cur["cpu_s"] - prev["cpu_s"]) / dt, 3),
                 "rss_mib": round(proc_info.memory_info().rss / 2**20, 1),
                 "fds": _fds(),
                 "rejected": cur["rejected"],
@@ -912,6 +936,12 @@ async def soak(
         "log_lines_per_min_median": _median([x["log_lines_per_min"] for x in lines]),
         "log_lines_per_min_max": max((x["log_lines_per_min"] for x in lines), default=None),
         "slimevr_good_hz_min": min((x["slimevr_good_hz"] for x in lines), default=None),
+        "slimevr_good_connected_end": lines[-1]["slimevr"]["good_connected"] if lines else None,
+        "slimevr_good_in_table_end": lines[-1]["slimevr"]["good_in_table"] if lines else None,
+        "slimevr_good_connected_minutes": sum(x["slimevr"]["good_connected"] for x in lines),
+        "slimevr_evicted_trackers": lines[-1]["slimevr"]["evicted_trackers"] if lines else None,
+        "output_rate_hz": rate_hz,
+        "daemon_cpu_s_per_s_median": _median([x["daemon_cpu_s_per_s"] for x in lines]),
         "zenoh_delivered_hz_min": min((x["zenoh_delivered_hz"] for x in lines), default=None),
         "web_breaches": lines[-1]["web"]["breaches"] if lines else None,
         "web_resets_per_min_max": max((x["web"]["resets_per_min"] for x in lines), default=None),
@@ -924,7 +954,33 @@ async def soak(
     }
     shutil.rmtree(cli_folder, ignore_errors=True)
     emit(summary)
+    for verdict in verdicts(summary, rate_tolerance):
+        print(verdict, flush=True)
     return summary
+
+
+def verdicts(summary: dict[str, Any], rate_tolerance: float) -> list[str]:
+    """The run's verdict lines: what was measured against what is needed (the output rate first)."""
+    rate = summary["output_rate_hz"]
+    need = rate * (1.0 - rate_tolerance)
+    low, median = summary["output_hz_client_min"], summary["output_hz_client_median"]
+    held = low is not None and low >= need
+    good_min, good_end = summary["slimevr_good_hz_min"], summary["slimevr_good_connected_end"]
+    # Let in but timed out: its sender (the attacker process) fell silent for a second, as on a starved machine.
+    good = "CONNECTED" if good_end else "TIMED OUT" if summary.get("slimevr_good_in_table_end") else "LOCKED OUT"
+    breaches = summary["web_breaches"]
+    return [
+        f"verdict: output rate {'HELD' if held else 'NOT HELD'}: the well-behaved client received {median} Hz "
+        f"(median of the report intervals), {low} Hz at the lowest, {summary['missed_ticks_total']} missed ticks; "
+        f"needed >= {need:.1f} Hz in every interval ({rate:g} Hz configured, {rate_tolerance:.0%} tolerance); "
+        f"the daemon's process used {summary['daemon_cpu_s_per_s_median']} CPU s per s (median)",
+        f"verdict: SlimeVR tracker {good}: the well-behaved tracker was connected at the end: {good_end} (in the "
+        f"table: {summary.get('slimevr_good_in_table_end')}), in {summary['slimevr_good_connected_minutes']} of the "
+        "report intervals, "
+        f"its rotations {good_min} Hz at the lowest (it sends 100); "
+        f"{summary['slimevr_evicted_trackers']} idle swarm trackers evicted",
+        f"verdict: web surface {'HELD' if breaches == 0 else 'BREACHED'}: {breaches} web attacks got through",
+    ]
 
 
 def _median(values: list[float]) -> float | None:
@@ -940,6 +996,9 @@ def main() -> None:
     ap.add_argument("--cli-every", type=float, default=300.0,
                     help="seconds between rounds of hostile file commands (default 300)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=None, help="also append the JSON lines to this file")
+    ap.add_argument("--rate-tolerance", type=float, default=0.05,
+                    help="the output rate is held when every interval's client rate is within this share of the "
+                         "configured rate (default 0.05)")  # fmt: skip
     ap.add_argument("--attack", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--seconds", type=float, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -949,7 +1008,8 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     with contextlib.ExitStack() as stack:
         out = stack.enter_context(a.out.open("a")) if a.out is not None else None
-        summary = asyncio.run(soak(a.minutes, a.interval, a.seed, a.unplug_every, a.cli_every, out))
+        summary = asyncio.run(soak(a.minutes, a.interval, a.seed, a.unplug_every, a.cli_every, out,
+                                   a.rate_tolerance))  # fmt: skip
     sys.exit(0 if summary["daemon_alive_to_the_end"] and summary["exit_code"] == 0 else 1)
 
 

@@ -24,10 +24,21 @@ What mocapd adds at the door (issue 34), because anyone on the network can send 
   such numbers in a row that follow each other resynchronise the connection (``number_resyncs``);
 - sensors are bounded per tracker (``max_sensors_per_tracker``, 16: a SlimeVR glove has 10) and in total
   (``max_sensors``): a sensor info beyond either is refused, counted (``refused_sensors``) and not acknowledged,
-  unless timed-out trackers hold the sensors in all: the longest silent of them (one that never sent an orientation
-  first) is then forgotten and its sensors freed (issue 45: silent trackers held the budget until a restart);
-  64 trackers announcing 256 sensors each had held the daemon's loop busy enough to drop the output rate by a
-  third;
+  unless another tracker holding sensors can make room (below; issue 45: silent trackers held the budget until a
+  restart); 64 trackers announcing 256 sensors each had held the daemon's loop busy enough to drop the output rate
+  by a third;
+- **admission by delivered data** (issue 45): when the table of trackers or the sensor budget is full, a newcomer
+  (a handshake of a new tracker, a sensor info beyond the budget) takes the place of the tracker that has
+  delivered no rotation for the longest time: a timed-out tracker (``replaced_trackers``), or a connected one that
+  has delivered none for ``idle_grace_ns`` since its last rotation or, never having sent one, since it first shook
+  hands (``evicted_trackers``, a :class:`TrackerEvicted` event). A swarm that handshakes, announces sensors and then
+  only heartbeats delivers nothing a user needs and no longer holds the places a real suit arriving after it
+  needs; a tracker streaming rotations is never evicted for a newcomer. A handover (the same MAC shaking hands
+  again) does not restart the grace. Arrival order no longer decides who is served: a place is held by
+  delivering rotations, not by talking. A sender streaming rotations from 64 trackers is a suit as far as the
+  protocol can tell (it has no authentication) and keeps its places. No share per source address: UDP source
+  addresses are not checked (a sender on the network can use any, the real trackers' too) and one address
+  legitimately carries many trackers (emulators, the tests);
 - :meth:`SlimeVrServer.status` lists at most ``max_listed_trackers`` trackers (connected ones first, then the
   most recently heard) beside counts of all of them, so ``/status`` stays a few tens of KB however many trackers
   a sender invents; time-outs are counted per tracker and in total.
@@ -105,10 +116,15 @@ class ServerOptions:
     """A separate acceleration packet applies to rotations up to this much later."""
     gravity: float = STANDARD_GRAVITY
     max_trackers: int = 64
-    """Trackers known at once. A handshake from a new tracker beyond this replaces a timed-out tracker (one that
-    never sent an orientation first, then the one silent longest); with none timed out it is refused (counted): a
-    sender cycling through source ports or MACs cannot grow the table, and cannot push out a tracker that is
-    talking."""
+    """Trackers known at once. A handshake from a new tracker beyond this takes the place of the one that has
+    delivered no rotation for longest (a timed-out one, or one idle for ``idle_grace_ns``); with none such it is
+    refused (counted): a sender cycling through source ports or MACs cannot grow the table, and cannot push out a
+    tracker that streams."""
+    idle_grace_ns: int = 5_000_000_000
+    """A connected tracker that has delivered no rotation for this long (since its last one, or since it first
+    shook hands) may be evicted for a newcomer when the table or the sensor budget is full. Firmware streams within
+    a fraction of a second of its handshake; a still tracker sends nothing (it sends on change) and, evicted, shakes
+    hands again within 3 s of hearing nothing, as after any loss."""
     max_sensors_per_tracker: int = 16
     """Sensors one tracker may announce (the firmware's MAX_SENSORS_COUNT: 1-2 on a tracker, 10 on a glove)."""
     max_sensors: int = 128
@@ -122,8 +138,8 @@ class ServerOptions:
 
     def __post_init__(self) -> None:
         for name in ("heartbeat_interval_ns", "timeout_ns", "hold_after_ns", "acc_max_age_ns", "max_trackers",
-                     "max_sensors_per_tracker", "max_sensors", "max_number_step", "max_number_behind",
-                     "max_listed_trackers"):  # fmt: skip
+                     "idle_grace_ns", "max_sensors_per_tracker", "max_sensors", "max_number_step",
+                     "max_number_behind", "max_listed_trackers"):  # fmt: skip
             if getattr(self, name) <= 0:
                 raise ValueError(f"ServerOptions.{name} must be > 0, got {getattr(self, name)}")
 
@@ -172,6 +188,12 @@ class TrackerState:
     firmware_features: bytes | None = None
     errors: int = 0
     sensors: dict[int, SensorState] = field(default_factory=dict)
+    last_rotation_ns: int | None = None  # the last rotation delivered (a sample), None before the first
+
+    @property
+    def delivered_ns(self) -> int:
+        """Since when it has delivered nothing: its last rotation, or its first handshake before one."""
+        return self.connected_ns if self.last_rotation_ns is None else self.last_rotation_ns
 
     def sensor_id(self, index: int) -> str:
         return f"{self.key}/{index}"
@@ -223,6 +245,17 @@ class TrackerRefused:
 
 
 @dataclass(frozen=True, slots=True)
+class TrackerEvicted:
+    """A connected tracker that had delivered no rotation for ``idle_ns`` was forgotten to make room for a
+    newcomer (the table of trackers or the sensor budget was full)."""
+
+    key: str
+    address: Address
+    idle_ns: int
+    sensors: int
+
+
+@dataclass(frozen=True, slots=True)
 class TrackerGesture:
     """The wearer asked for a heading reset on a tracker: a double tap its firmware detected (packet 13, then
     ``sensor`` is the tapped sensor's id), or a reset asked with its button (packet 21: ``kind`` "yaw reset" or
@@ -233,7 +266,7 @@ class TrackerGesture:
     kind: str
 
 
-Event = SensorSample | TrackerConnected | TrackerTimedOut | TrackerRefused | TrackerGesture
+Event = SensorSample | TrackerConnected | TrackerTimedOut | TrackerRefused | TrackerEvicted | TrackerGesture
 
 
 @dataclass(slots=True)
@@ -246,9 +279,11 @@ class ServerCounters:
     unannounced_sensor: int = 0
     """Orientations of a sensor that sent no sensor info (dropped, as the SlimeVR server does)."""
     refused_trackers: int = 0
-    """Handshakes of new trackers refused because ``max_trackers`` live trackers are known."""
+    """Handshakes of new trackers refused: ``max_trackers`` trackers are known and all deliver rotations."""
     replaced_trackers: int = 0
     """Timed-out trackers forgotten to make room for a new one."""
+    evicted_trackers: int = 0
+    """Connected trackers that had delivered no rotation for ``idle_grace_ns``, forgotten for a newcomer."""
     refused_sensors: int = 0
     """Sensor infos refused: the tracker has ``max_sensors_per_tracker`` sensors, or all have ``max_sensors``."""
     number_jumps: int = 0
@@ -277,6 +312,9 @@ class SlimeVrServer:
         self._events: list[Event] = []
         self._ping_counter = 0
         self._sensors = 0  # sensors of all trackers
+        #: (for sensors, asking tracker) -> the time before which no tracker can make room for it (a cache of a
+        #: failed search, cleared when the table changes or a tracker times out)
+        self._no_room: dict[tuple[bool, str | None], int] = {}
 
     # ------------------------------------------------------------------------------------------ I/O boundary
     def datagrams_to_send(self) -> list[tuple[bytes, Address]]:
@@ -291,6 +329,12 @@ class SlimeVrServer:
         """Process one datagram received from ``address`` at host time ``now_ns``."""
         c = self.counters
         c.datagrams += 1
+        # Refused before it is decoded: a datagram that is no handshake from an address that has not shaken hands
+        # (a bundle of 128 sensor infos costs ~0.8 ms to decode; garbage from fresh ports, a forgotten swarm).
+        if (len(data) >= 12 and int.from_bytes(data[:4], "big") != Tx.HANDSHAKE
+                and address not in self._by_address):  # fmt: skip
+            c.unknown_source += 1
+            return
         decoded = decode_datagram(data)
         if decoded.error is not None:
             self._bad(decoded.error)
@@ -326,9 +370,14 @@ class SlimeVrServer:
         for index, rot in rotations.items():
             self._sample(tracker, index, rot, accelerations.get(index), now_ns)
 
-    def tick(self, now_ns: int) -> None:
-        """Heartbeats, pings, time-outs and held orientations due at ``now_ns``."""
+    def tick(self, now_ns: int, heard_until_ns: int | None = None) -> None:
+        """Heartbeats, pings, time-outs and held orientations due at ``now_ns``.
+
+        ``heard_until_ns``: the arrival time of the oldest datagram received but not yet handed to
+        :meth:`receive_datagram` (a backlog handed over in slices): a tracker is timed out only by silence before
+        it, never for datagrams that wait in the caller's queue."""
         o = self.options
+        heard = now_ns if heard_until_ns is None else min(now_ns, heard_until_ns)
         for t in self.trackers.values():
             if now_ns >= t.next_keepalive_ns:
                 t.next_keepalive_ns = now_ns + o.heartbeat_interval_ns
@@ -338,8 +387,9 @@ class SlimeVrServer:
                 if len(t.pings) > 8:
                     del t.pings[next(iter(t.pings))]
                 self._out.append((encode_ping(self._ping_counter), t.address))
-            if not t.timed_out and now_ns - t.last_packet_ns > o.timeout_ns:
+            if not t.timed_out and heard - t.last_packet_ns > o.timeout_ns:
                 t.timed_out = True
+                self._no_room.clear()
                 t.timeouts += 1
                 self.counters.timeouts += 1
                 self._events.append(TrackerTimedOut(t.key))
@@ -375,7 +425,7 @@ class SlimeVrServer:
             old.timed_out = False
             tracker = old
         else:
-            if len(self.trackers) >= self.options.max_trackers and not self._make_room():
+            if len(self.trackers) >= self.options.max_trackers and not self._make_room(now_ns):
                 self.counters.refused_trackers += 1
                 self._events.append(TrackerRefused(address))
                 return
@@ -384,28 +434,55 @@ class SlimeVrServer:
                                    connected_ns=now_ns, last_packet_ns=now_ns, next_keepalive_ns=now_ns,
                                    numbers=SequenceNumbers(o.max_number_step, o.max_number_behind, last=0))  # fmt: skip
             self.trackers[key] = tracker
+            self._no_room.clear()
             if h.protocol_version < 9:  # old firmware announces no sensors: sensor 0 exists from the start
-                self._add_sensor(tracker, 0, h.imu)
+                self._add_sensor(tracker, 0, h.imu, now_ns)
         self._by_address[address] = tracker
         self._out.append((HANDSHAKE_REPLY, address))
         self._events.append(TrackerConnected(tracker.key, address, handover=old is not None))
 
-    def _make_room(self, keep: TrackerState | None = None, *, for_sensors: bool = False) -> bool:
-        """Forget a timed-out tracker (not ``keep``; with ``for_sensors``, one that holds sensors): one that never
-        sent an orientation first (it gave the solve nothing: a sender that fills the table with handshakes and
-        heartbeats cannot push out a real tracker that missed a second), then the one silent longest; False when
-        every such tracker is live."""
-        quiet = [t for t in self.trackers.values()
-                 if t.timed_out and t is not keep and (t.sensors or not for_sensors)]  # fmt: skip
-        if not quiet:
+    def _make_room(self, now_ns: int, keep: TrackerState | None = None, *, for_sensors: bool = False) -> bool:
+        """Forget the tracker (not ``keep``; with ``for_sensors``, one that holds sensors) that has delivered no
+        rotation for longest, if it is timed out or has delivered none for ``idle_grace_ns``: one that never sent a
+        rotation first (it gave the solve nothing: a sender that fills the table with handshakes and heartbeats
+        cannot push out a real tracker that missed a second), then the one whose last rotation is oldest. False
+        when every other tracker streams (or is within its grace)."""
+        memo = (for_sensors, None if keep is None else keep.key)
+        if now_ns < self._no_room.get(memo, -1):  # a bundle of 128 sensor infos asks 128 times at one instant
             return False
-        gone = min(quiet, key=lambda t: (any(s.rotations for s in t.sensors.values()), t.last_packet_ns))
+        grace = self.options.idle_grace_ns
+        gone: TrackerState | None = None
+        best = (True, 0)
+        until = now_ns + grace  # the earliest another tracker can become evictable (timeouts clear the memo)
+        for t in self.trackers.values():
+            if t is keep or (for_sensors and not t.sensors):
+                continue
+            since = t.delivered_ns
+            if t.timed_out or now_ns - since > grace:
+                rank = (t.last_rotation_ns is not None, since)
+                if gone is None or rank < best:
+                    gone, best = t, rank
+            else:
+                until = min(until, since + grace + 1)
+        if gone is None:
+            if len(self._no_room) >= 4 * self.options.max_trackers:
+                self._no_room.clear()
+            self._no_room[memo] = until
+            return False
+        self._forget(gone)
+        if gone.timed_out:
+            self.counters.replaced_trackers += 1
+        else:
+            self.counters.evicted_trackers += 1
+            self._events.append(TrackerEvicted(gone.key, gone.address, now_ns - gone.delivered_ns, len(gone.sensors)))
+        return True
+
+    def _forget(self, gone: TrackerState) -> None:
         del self.trackers[gone.key]
         self._sensors -= len(gone.sensors)
         if self._by_address.get(gone.address) is gone:
             del self._by_address[gone.address]
-        self.counters.replaced_trackers += 1
-        return True
+        self._no_room.clear()
 
     def _packet(self, t: TrackerState, p: Packet, now_ns: int, rotations: dict[int, Rotation],
                 accelerations: dict[int, Vec3]) -> None:  # fmt: skip
@@ -426,7 +503,7 @@ class SlimeVrServer:
             s.acc, s.acc_ns = self._acc(t, p.acc), now_ns
             accelerations[p.sensor] = s.acc
         elif isinstance(p, SensorInfo):
-            s = t.sensors.get(p.sensor) or self._add_sensor(t, p.sensor, p.imu_type)
+            s = t.sensors.get(p.sensor) or self._add_sensor(t, p.sensor, p.imu_type, now_ns)
             if s is None:  # not acknowledged: the firmware repeats it, each refusal counted
                 return
             s.status, s.imu_type = p.status, p.imu_type
@@ -469,19 +546,21 @@ class SlimeVrServer:
         else:  # a second handshake inside a bundle is refused by the decoder; nothing else is left
             self.counters.ignored[type(p).__name__] += 1
 
-    def _add_sensor(self, t: TrackerState, index: int, imu_type: int) -> SensorState | None:
+    def _add_sensor(self, t: TrackerState, index: int, imu_type: int, now_ns: int) -> SensorState | None:
         """A new sensor of ``t``, or None (counted) when the tracker or the server has all it may hold."""
         o = self.options
         if len(t.sensors) >= o.max_sensors_per_tracker:
             self.counters.refused_sensors += 1
             return None
-        # The budget of all trackers is full: a timed-out tracker's sensors are freed (it is forgotten, as for a
-        # handshake beyond max_trackers). Issue 45: 8 handshakes and 128 sensor infos, then silence, held the
-        # budget for ever and every later tracker's sensors were refused until a restart.
+        # The budget of all trackers is full: the sensors of a tracker that delivers nothing are freed (it is
+        # forgotten, as for a handshake beyond max_trackers). Issue 45: 8 handshakes and 128 sensor infos, then
+        # silence (or heartbeats only), held the budget for ever and every later tracker's sensors were refused.
         while self._sensors >= o.max_sensors:
-            if not self._make_room(t, for_sensors=True):
+            if not self._make_room(now_ns, t, for_sensors=True):
                 self.counters.refused_sensors += 1
                 return None
+        if not t.sensors:
+            self._no_room.clear()  # a tracker with sensors can make room for sensors: the memo is stale
         s = t.sensors[index] = SensorState(index, imu_type=imu_type)
         self._sensors += 1
         return s
@@ -512,6 +591,7 @@ class SlimeVrServer:
         s.quat = rot.quat
         s.rotations += 1
         s.last_sample_ns = now_ns
+        t.last_rotation_ns = now_ns
         if s.status == 0:
             s.status = 1  # data from a sensor reported offline: it is working (as the SlimeVR server does)
         self._events.append(SensorSample(t.sensor_id(index), now_ns, rot.quat, self._specific_force(rot.quat, acc)))
@@ -531,6 +611,7 @@ class SlimeVrServer:
             "unannounced_sensor": c.unannounced_sensor,
             "refused_trackers": c.refused_trackers,
             "replaced_trackers": c.replaced_trackers,
+            "evicted_trackers": c.evicted_trackers,
             "refused_sensors": c.refused_sensors,
             "number_jumps": c.number_jumps,
             "number_resyncs": c.number_resyncs,
