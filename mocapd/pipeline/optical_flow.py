@@ -1,0 +1,98 @@
+"""Sparse optical flow on image pyramids built once per frame (pyramidal Lucas-Kanade, as OpenCV computes it).
+
+The keypoint tracker (:mod:`mocapd.pipeline.keypoint_tracker`) tracks every frame to the next and back, and a late
+detection's keypoints through the frames kept since: each frame takes part in two to four flow computations.
+``cv2.calcOpticalFlowPyrLK`` given images builds both pyramids (and the first one's derivatives over the whole
+image) in every call, and OpenCV 5's Python binding refuses prebuilt pyramids. :func:`build_pyramid` builds a
+frame's pyramid once (``cv2.pyrDown``, padded as OpenCV pads it); :func:`track` runs OpenCV's Lucas-Kanade
+iteration on two of them (:mod:`mocapd.core._lk_kernel`), computing derivatives only under the points' windows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core import _lk_kernel
+from mocapd.errors import InputError
+
+MIN_EIGEN = 1e-4  # OpenCV's default minEigThreshold
+
+
+@dataclass(frozen=True)
+class LKOptions:
+    """Lucas-Kanade parameters (``cv2.calcOpticalFlowPyrLK``'s ``winSize``, ``maxLevel`` and criteria)."""
+
+    window_px: int = 15
+    """Window side (odd)."""
+    levels: int = 3
+    """Pyramid levels above the image."""
+    max_iterations: int = 30
+    epsilon_px: float = 0.01
+    """A level's iterations stop when a step is at most this long."""
+
+
+@dataclass(frozen=True)
+class Pyramid:
+    """One image's pyramid: its levels padded by ``pad`` px (reflected) in one flat buffer.
+
+    Attributes
+    ----------
+    buffer : ndarray of uint8, shape (N,)
+    meta : ndarray of int64, shape (levels + 1, 3)
+        Each level's offset in ``buffer``, rows and columns (unpadded).
+    pad : int
+    shape : (rows, columns)
+        The image's.
+    """
+
+    buffer: NDArray[np.uint8]
+    meta: NDArray[np.int64]
+    pad: int
+    shape: tuple[int, int]
+
+    @property
+    def levels(self) -> int:
+        """Levels above the image."""
+        return int(self.meta.shape[0]) - 1
+
+
+def build_pyramid(gray: NDArray[np.uint8], options: LKOptions) -> Pyramid:
+    """The pyramid of a gray image (h, w), uint8, for :func:`track` with ``options``: as many levels as
+    ``options.levels`` and the image allow (OpenCV stops before a level no larger than the window)."""
+    if gray.ndim != 2 or gray.dtype != np.uint8:
+        raise InputError(f"optical flow: a 2-D uint8 image is needed, got {gray.dtype} {gray.shape}")
+    win = options.window_px
+    levels = [np.ascontiguousarray(gray)]
+    for _ in range(options.levels):
+        h, w = levels[-1].shape
+        size = ((w + 1) // 2, (h + 1) // 2)
+        if size[0] <= win or size[1] <= win:
+            break
+        levels.append(np.asarray(cv2.pyrDown(levels[-1], dstsize=size), np.uint8))
+    padded = [cv2.copyMakeBorder(lv, win, win, win, win, cv2.BORDER_REFLECT_101) for lv in levels]
+    sizes = [p.size for p in padded]
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    meta = np.array([[o, lv.shape[0], lv.shape[1]] for o, lv in zip(offsets, levels, strict=True)], np.int64)
+    buffer = np.concatenate([p.ravel() for p in padded])
+    return Pyramid(buffer, meta, win, (int(gray.shape[0]), int(gray.shape[1])))
+
+
+def track(
+    a: Pyramid, b: Pyramid, points: NDArray[np.float32], options: LKOptions
+) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
+    """Points ``points`` (n, 2) of image ``a`` found in image ``b``: positions (n, 2) and status (n,), 1 where
+    found (``cv2.calcOpticalFlowPyrLK``'s result on the two images, to ~1e-3 px)."""
+    if a.shape != b.shape or a.pad != options.window_px or b.pad != options.window_px:
+        raise InputError(f"optical flow: pyramids of {a.shape} and {b.shape} for a {options.window_px} px window")
+    pts = np.ascontiguousarray(points, np.float32).reshape(-1, 2)
+    out = np.empty_like(pts)
+    status = np.empty(pts.shape[0], np.uint8)
+    if pts.shape[0]:
+        _lk_kernel.track(a.buffer, a.meta, b.buffer, b.meta, a.pad, pts, options.window_px,
+                         min(a.levels, b.levels, options.levels), options.max_iterations, options.epsilon_px,
+                         MIN_EIGEN, out, status)  # fmt: skip
+    return out, status
