@@ -245,3 +245,33 @@ def track(
                     break
                 pdx = ddx
                 pdy = ddy
+
+
+@nb.njit(cache=True, nogil=True)
+def forward_backward(
+    a_buf: NDArray[np.uint8],
+    a_meta: NDArray[np.int64],
+    b_buf: NDArray[np.uint8],
+    b_meta: NDArray[np.int64],
+    pad: int,
+    pts: NDArray[np.float32],
+    win: int,
+    max_level: int,
+    max_count: int,
+    epsilon: float,
+    min_eig: float,
+    out: NDArray[np.float32],
+    fb: NDArray[np.float64],
+    status: NDArray[np.uint8],
+) -> None:
+    """:func:`track` from image a to b (``out``) and back from there: ``fb`` (n,) the distance from the start
+    of each point tracked forward and back, ``status`` 1 where both directions found the point. One call: the
+    tracker's forward-backward check without a second dispatch and the numpy steps between."""
+    n = pts.shape[0]
+    back = np.empty((n, 2), np.float32)
+    status_back = np.empty(n, np.uint8)
+    track(a_buf, a_meta, b_buf, b_meta, pad, pts, win, max_level, max_count, epsilon, min_eig, out, status)
+    track(b_buf, b_meta, a_buf, a_meta, pad, out, win, max_level, max_count, epsilon, min_eig, back, status_back)
+    for k in range(n):
+        status[k] &= status_back[k]
+        fb[k] = math.hypot(float(back[k, 0]) - float(pts[k, 0]), float(back[k, 1]) - float(pts[k, 1]))

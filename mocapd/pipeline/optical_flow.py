@@ -81,6 +81,11 @@ def build_pyramid(gray: NDArray[np.uint8], options: LKOptions) -> Pyramid:
     return Pyramid(buffer, meta, win, (int(gray.shape[0]), int(gray.shape[1])))
 
 
+def _check(a: Pyramid, b: Pyramid, options: LKOptions) -> None:
+    if a.shape != b.shape or a.pad != options.window_px or b.pad != options.window_px:
+        raise InputError(f"optical flow: pyramids of {a.shape} and {b.shape} for a {options.window_px} px window")
+
+
 def track(
     a: Pyramid, b: Pyramid, points: NDArray[np.float32], options: LKOptions
 ) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
@@ -96,3 +101,29 @@ def track(
                          min(a.levels, b.levels, options.levels), options.max_iterations, options.epsilon_px,
                          MIN_EIGEN, out, status)  # fmt: skip
     return out, status
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the flow kernel before the first tracked frame: a first compile takes
+    seconds, which on a capture thread would be seconds of frames not tracked."""
+    opts = LKOptions(5, 0)
+    pyr = build_pyramid(np.zeros((8, 8), np.uint8), opts)
+    track(pyr, pyr, np.full((1, 2), 4.0, np.float32), opts)
+
+
+def forward_backward(
+    a: Pyramid, b: Pyramid, points: NDArray[np.float32], options: LKOptions
+) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float64]]:
+    """Points ``points`` (n, 2) of image ``a`` tracked to image ``b`` and back (:func:`track` both ways, in one
+    compiled call): the positions in ``b`` (n, 2), whether both directions found each (n,), and how far from its
+    start each came back (n,), px of the images."""
+    _check(a, b, options)
+    pts = np.ascontiguousarray(points, np.float32).reshape(-1, 2)
+    out = np.empty_like(pts)
+    fb = np.empty(pts.shape[0], np.float64)
+    status = np.empty(pts.shape[0], np.uint8)
+    if pts.shape[0]:
+        _lk_kernel.forward_backward(a.buffer, a.meta, b.buffer, b.meta, a.pad, pts, options.window_px,
+                                    min(a.levels, b.levels, options.levels), options.max_iterations,
+                                    options.epsilon_px, MIN_EIGEN, out, fb, status)  # fmt: skip
+    return out, status.astype(np.bool_), fb
