@@ -66,19 +66,26 @@ def build_pyramid(gray: NDArray[np.uint8], options: LKOptions) -> Pyramid:
     if gray.ndim != 2 or gray.dtype != np.uint8:
         raise InputError(f"optical flow: a 2-D uint8 image is needed, got {gray.dtype} {gray.shape}")
     win = options.window_px
-    levels = [np.ascontiguousarray(gray)]
+    sizes = [(int(gray.shape[0]), int(gray.shape[1]))]  # (rows, columns) of each level
     for _ in range(options.levels):
-        h, w = levels[-1].shape
-        size = ((w + 1) // 2, (h + 1) // 2)
-        if size[0] <= win or size[1] <= win:
+        h, w = (sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2
+        if w <= win or h <= win:
             break
-        levels.append(np.asarray(cv2.pyrDown(levels[-1], dstsize=size), np.uint8))
-    padded = [cv2.copyMakeBorder(lv, win, win, win, win, cv2.BORDER_REFLECT_101) for lv in levels]
-    sizes = [p.size for p in padded]
-    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    meta = np.array([[o, lv.shape[0], lv.shape[1]] for o, lv in zip(offsets, levels, strict=True)], np.int64)
-    buffer = np.concatenate([p.ravel() for p in padded])
-    return Pyramid(buffer, meta, win, (int(gray.shape[0]), int(gray.shape[1])))
+        sizes.append((h, w))
+    padded = [(h + 2 * win) * (w + 2 * win) for h, w in sizes]
+    offsets = np.cumsum([0, *padded])
+    meta = np.array([[o, h, w] for o, (h, w) in zip(offsets, sizes, strict=False)], np.int64)
+    # Each level written in place into the one buffer: padded around the level below it, then the next level
+    # made from this one's inside (no list of arrays, no copy into the buffer afterwards).
+    buffer = np.empty(int(offsets[-1]), np.uint8)
+    level = gray
+    for k, (h, w) in enumerate(sizes):
+        dst = buffer[offsets[k] : offsets[k + 1]].reshape(h + 2 * win, w + 2 * win)
+        cv2.copyMakeBorder(level, win, win, win, win, cv2.BORDER_REFLECT_101, dst=dst)
+        if k + 1 < len(sizes):
+            nh, nw = sizes[k + 1]
+            level = np.asarray(cv2.pyrDown(dst[win : win + h, win : win + w], dstsize=(nw, nh)), np.uint8)
+    return Pyramid(buffer, meta, win, sizes[0])
 
 
 def _check(a: Pyramid, b: Pyramid, options: LKOptions) -> None:
@@ -91,8 +98,7 @@ def track(
 ) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
     """Points ``points`` (n, 2) of image ``a`` found in image ``b``: positions (n, 2) and status (n,), 1 where
     found (``cv2.calcOpticalFlowPyrLK``'s result on the two images, to ~1e-3 px)."""
-    if a.shape != b.shape or a.pad != options.window_px or b.pad != options.window_px:
-        raise InputError(f"optical flow: pyramids of {a.shape} and {b.shape} for a {options.window_px} px window")
+    _check(a, b, options)
     pts = np.ascontiguousarray(points, np.float32).reshape(-1, 2)
     out = np.empty_like(pts)
     status = np.empty(pts.shape[0], np.uint8)
