@@ -14,7 +14,7 @@ from mocapd.io.pixels import bayer_gray, from_rgb, pixel_format
 from mocapd.io.pose2sim_demo import demo_video
 from mocapd.pipeline.detector_config import TrackingConfig
 from mocapd.pipeline.keypoint_tracker import KeypointTracker
-from mocapd.pipeline.optical_flow import LKOptions, build_pyramid, track
+from mocapd.pipeline.optical_flow import LKOptions, build_pyramid, forward_backward, track
 from mocapd.sim.fake_gige import load_video_rgb
 
 SIZE = (544, 960)  # the camera demo's frames (width, height)
@@ -64,6 +64,21 @@ def test_positions_and_status_are_opencvs_on_real_frames(
     assert d.size > 1500  # most points found
     # OpenCV sums in float32, this in float64: the same positions to a few thousandths of a pixel.
     assert np.median(d) < 0.002 and np.percentile(d, 99) < 0.05, np.percentile(d, (50, 99, 100))
+
+
+def test_forward_backward_is_the_two_directions_and_their_round_trip(grays: list[NDArray[np.uint8]]) -> None:
+    opts = LKOptions()
+    a, b = build_pyramid(grays[3], opts), build_pyramid(grays[4], opts)
+    pts = _points(grays[3], 3)
+    found, both, fb = forward_backward(a, b, pts, opts)
+    fwd, st1 = track(a, b, pts, opts)
+    back, st2 = track(b, a, fwd, opts)
+    assert np.array_equal(found, fwd)
+    assert np.array_equal(both, (st1 == 1) & (st2 == 1))
+    assert np.allclose(fb, np.linalg.norm(back - pts, axis=1), atol=1e-9)
+    assert 0.3 < np.mean(both) < 1.0 and np.median(fb[both]) < 0.05  # flat background lost, corners come back
+    empty = forward_backward(a, b, np.zeros((0, 2), np.float32), opts)
+    assert [x.shape for x in empty] == [(0, 2), (0,), (0,)]
 
 
 def test_pyramid_levels_stop_where_opencvs_do() -> None:
