@@ -79,6 +79,9 @@ def test_forward_backward_is_the_two_directions_and_their_round_trip(grays: list
     assert 0.3 < np.mean(both) < 1.0 and np.median(fb[both]) < 0.05  # flat background lost, corners come back
     empty = forward_backward(a, b, np.zeros((0, 2), np.float32), opts)
     assert [x.shape for x in empty] == [(0, 2), (0,), (0,)]
+    # Points no image holds are not found (no crash, no position made up).
+    bad = np.array([[np.nan, 5.0], [np.inf, 3.0], [-np.inf, -np.inf], [1e30, 1e30]], np.float32)
+    assert not forward_backward(a, b, bad, opts)[1].any()
 
 
 def test_pyramid_levels_stop_where_opencvs_do() -> None:
