@@ -14,7 +14,7 @@ from mocapd.io.pixels import bayer_gray, from_rgb, pixel_format
 from mocapd.io.pose2sim_demo import demo_video
 from mocapd.pipeline.detector_config import TrackingConfig
 from mocapd.pipeline.keypoint_tracker import KeypointTracker
-from mocapd.pipeline.optical_flow import LKOptions, build_pyramid, forward_backward, track
+from mocapd.pipeline.optical_flow import LKOptions, Pyramid, build_pyramid, carry_keypoints, forward_backward, track
 from mocapd.sim.fake_gige import load_video_rgb
 
 SIZE = (544, 960)  # the camera demo's frames (width, height)
@@ -82,6 +82,59 @@ def test_forward_backward_is_the_two_directions_and_their_round_trip(grays: list
     # Points no image holds are not found (no crash, no position made up).
     bad = np.array([[np.nan, 5.0], [np.inf, 3.0], [-np.inf, -np.inf], [1e30, 1e30]], np.float32)
     assert not forward_backward(a, b, bad, opts)[1].any()
+
+
+def _carry_numpy(
+    a: Pyramid,
+    b: Pyramid,
+    kp: NDArray[np.float64],
+    alive: NDArray[np.bool_],
+    coasting: NDArray[np.bool_],
+    f: int,
+    max_fb: float,
+    opts: LKOptions,
+) -> int:
+    """The tracker's carry step as numpy steps (what the compiled one replaces), in place; the keypoints lost."""
+    idx = np.flatnonzero(alive.ravel())
+    u0 = ((kp.reshape(-1, 2)[idx] - (f - 1) / 2) / f).astype(np.float32)
+    u1, found, fb = forward_backward(a, b, u0, opts)
+    p1 = u1.astype(np.float64)
+    h, w = b.shape
+    inside = (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] <= h - 1)
+    ok = found & (fb * f <= max_fb) & inside
+    flat = kp.reshape(-1, 2)
+    moved = p1[ok] * f + (f - 1) / 2 - flat[idx[ok]]
+    flat[idx[ok]] = p1[ok] * f + (f - 1) / 2
+    was = alive.copy()
+    alive.reshape(-1)[idx[~ok]] = False
+    coasting |= was & ~alive
+    person = idx[ok] // alive.shape[1]
+    for p in np.flatnonzero(coasting.any(axis=1)):
+        if np.any(person == p):
+            kp[p, coasting[p]] += np.median(moved[person == p], axis=0)
+    return int((~ok).sum())
+
+
+def test_carrying_keypoints_is_the_numpy_steps_it_replaces(grays: list[NDArray[np.uint8]]) -> None:
+    """Keypoints of 4 "people" on real frames (corners, which track, and flat background, which the round trip
+    loses and which then coast with their person), carried frame to frame: the compiled step leaves the same
+    positions, alive and coasting flags as the numpy steps, bit for bit."""
+    opts = LKOptions()
+    pyramids = [build_pyramid(g, opts) for g in grays]
+    pts = _points(grays[0], 5)[:112].astype(np.float64) * 2 + 0.5  # camera pixels
+    kp = pts.reshape(4, 28, 2)
+    alive = np.ones((4, 28), np.bool_)
+    alive[1, :3] = False  # lost before this run: coasting
+    coasting = ~alive
+    ref = (kp.copy(), alive.copy(), coasting.copy())
+    lost, ref_lost = 0, 0
+    for i in range(len(grays) - 1):
+        lost += carry_keypoints(pyramids[i], pyramids[i + 1], kp, alive, coasting, 2, 1.0, True, opts)
+        ref_lost += _carry_numpy(pyramids[i], pyramids[i + 1], *ref, 2, 1.0, opts)
+        assert np.array_equal(kp, ref[0]) and np.array_equal(alive, ref[1]) and np.array_equal(coasting, ref[2]), i
+    assert lost == ref_lost > 0 and alive.sum() > 40  # some lost (flat background), most kept
+    with pytest.raises(InputError, match="keypoints"):
+        carry_keypoints(pyramids[0], pyramids[1], kp[:, :3], alive, coasting, 2, 1.0, True, opts)
 
 
 def test_pyramid_levels_stop_where_opencvs_do() -> None:

@@ -49,7 +49,7 @@ from scipy.optimize import linear_sum_assignment
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import InputError
 from mocapd.pipeline.detector_config import TrackingConfig
-from mocapd.pipeline.optical_flow import LKOptions, Pyramid, build_pyramid, forward_backward
+from mocapd.pipeline.optical_flow import LKOptions, Pyramid, build_pyramid, carry_keypoints
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -282,44 +282,23 @@ class KeypointTracker:
 
     def _carry(self, people: _People, g0: Pyramid, g1: Pyramid) -> _People:
         """``people`` tracked from image ``g0`` to ``g1`` (their pyramids): forward and back; lost where the two
-        disagree."""
-        out = _People(people.keypoints.copy(), people.alive.copy(), people.confidence, people.t_det_ns,
-                      people.coasting.copy())  # fmt: skip
-        idx = np.flatnonzero(out.alive.ravel())
-        if idx.size == 0:
-            return out
-        f = self.factor
-        pts = out.keypoints.reshape(-1, 2)[idx]
-        # Block means: pixel j of the downsampled image is the mean of camera pixels j*f .. j*f + f - 1.
-        u0 = ((pts - (f - 1) / 2) / f).astype(np.float32)
-        u1, found, fb = forward_backward(g0, g1, u0, self._lk_options)
-        self.counters["lk_calls"] += 2
-        h, w = g1.shape
-        p1 = u1.astype(np.float64)
-        # (NaN compares False: a non-finite position is not inside.)
-        inside = (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] <= h - 1)
-        ok = found & (fb * f <= self.options.max_fb_px) & inside
-        flat_kp = out.keypoints.reshape(-1, 2)
-        moved = p1[ok] * f + (f - 1) / 2 - flat_kp[idx[ok]]
-        flat_kp[idx[ok]] = p1[ok] * f + (f - 1) / 2
-        flat_alive = out.alive.reshape(-1)
-        flat_alive[idx[~ok]] = False
-        self.counters["keypoints_lost"] += int((~ok).sum())
-        if self.options.lost_confidence > 0:
-            self._coast(out, people.alive, idx[ok] // self.n_kp, moved)
-        return out
+        disagree (or the keypoint left the image).
 
-    def _coast(self, out: _People, was_alive: BoolArray, person_of: NDArray[np.int64], moved: FloatArray) -> None:
-        """Keypoints the tracker lost (now or before) follow their person: each moves by the median motion of the
+        Keypoints the tracker lost (now or before) follow their person: each moves by the median motion of the
         person's keypoints tracked this step (none: they stay). A person seen in fewer views than the sorting
         needs is lost to the solve, and the detector's next answer for a lost keypoint is a few pixels from where
         its person's motion carries it (tools/track_quality.py): better there, less trusted
-        (``lost_confidence``), than missing until the next detection."""
-        out.coasting |= was_alive & ~out.alive
-        for p in np.flatnonzero(out.coasting.any(axis=1)):
-            own = moved[person_of == p]
-            if own.shape[0]:
-                out.keypoints[p, out.coasting[p]] += _median_rows(own)
+        (``lost_confidence``), than missing until the next detection. All of it one compiled call
+        (:func:`~mocapd.pipeline.optical_flow.carry_keypoints`)."""
+        out = _People(people.keypoints.copy(), people.alive.copy(), people.confidence, people.t_det_ns,
+                      people.coasting.copy())  # fmt: skip
+        if not out.alive.any():
+            return out
+        lost = carry_keypoints(g0, g1, out.keypoints, out.alive, out.coasting, self.factor, self.options.max_fb_px,
+                               self.options.lost_confidence > 0, self._lk_options)  # fmt: skip
+        self.counters["lk_calls"] += 2
+        self.counters["keypoints_lost"] += lost
+        return out
 
     def _prune(self, people: _People, t_ns: int) -> _People:
         """Drop everyone once the detection is ``max_age_s`` old, and people with too few keypoints left."""
@@ -478,15 +457,6 @@ class KeypointTracker:
             "error_vs_detection_px": error_summary(err, group, age),
         }  # fmt: skip
         return out
-
-
-def _median_rows(a: FloatArray) -> FloatArray:
-    """``np.median(a, axis=0)`` of an (n >= 1, 2) array, without np.median's call overhead (~20 us, per coasting
-    person and tracked frame)."""
-    s = np.sort(a, axis=0)
-    n = s.shape[0]
-    mid: FloatArray = s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
-    return mid
 
 
 def _pct(values: NDArray[np.float32]) -> dict[str, float | int | None]:

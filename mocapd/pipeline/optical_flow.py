@@ -115,6 +115,8 @@ def warm_up() -> None:
     opts = LKOptions(5, 0)
     pyr = build_pyramid(np.zeros((8, 8), np.uint8), opts)
     track(pyr, pyr, np.full((1, 2), 4.0, np.float32), opts)
+    alive = np.ones((1, 1), np.bool_)
+    carry_keypoints(pyr, pyr, np.full((1, 1, 2), 4.0), alive, ~alive, 1, 1.0, True, opts)
 
 
 def forward_backward(
@@ -133,3 +135,27 @@ def forward_backward(
                                     min(a.levels, b.levels, options.levels), options.max_iterations,
                                     options.epsilon_px, MIN_EIGEN, out, fb, status)  # fmt: skip
     return out, status.astype(np.bool_), fb
+
+
+def carry_keypoints(
+    a: Pyramid,
+    b: Pyramid,
+    keypoints: NDArray[np.float64],
+    alive: NDArray[np.bool_],
+    coasting: NDArray[np.bool_],
+    factor: int,
+    max_fb_px: float,
+    coast: bool,
+    options: LKOptions,
+) -> int:
+    """People's keypoints (P, K, 2) carried from image ``a`` to ``b`` in place, ``alive`` and ``coasting`` (P, K)
+    updated; returns the keypoints lost. The keypoint tracker's step (:meth:`~mocapd.pipeline.keypoint_tracker.
+    KeypointTracker._carry` says what it does) in one compiled call: :func:`mocapd.core._lk_kernel.carry_keypoints`."""
+    _check(a, b, options)
+    if keypoints.shape != (*alive.shape, 2) or coasting.shape != alive.shape:
+        raise InputError(f"optical flow: keypoints {keypoints.shape}, alive {alive.shape}, coasting {coasting.shape}")
+    lost = _lk_kernel.carry_keypoints(a.buffer, a.meta, b.buffer, b.meta, a.pad, options.window_px,
+                                      min(a.levels, b.levels, options.levels), options.max_iterations,
+                                      options.epsilon_px, MIN_EIGEN, factor, max_fb_px, coast, keypoints, alive,
+                                      coasting)  # fmt: skip
+    return int(lost)
