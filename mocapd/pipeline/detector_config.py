@@ -194,8 +194,9 @@ class TrackingConfig:
     min_keypoints: int = 4
     """A person with fewer of their confidently detected keypoints still tracked is dropped."""
     history_s: float = 1.0
-    """Tracked frames kept (gray images) to carry a detection from its frame to the newest one; a detection older
-    than that is counted late and only re-seeds the tracking at the next detection."""
+    """Tracked frames kept (their image pyramids, ~0.2 MB a frame at 272x480) to carry a detection from its frame to
+    the newest one; a detection older than that is counted late and only re-seeds the tracking at the next
+    detection."""
     thread: str = "capture"
     """Where tracking runs: "capture" (each camera's capture thread, right after the frame arrives) or "pool"
     (worker threads fed from the event loop)."""

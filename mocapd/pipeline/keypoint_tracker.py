@@ -9,8 +9,9 @@ and follows the people in between: the latency then covers one frame's tracking.
 How, per camera (:class:`KeypointTracker`, thread-safe; the caller decides which thread runs it):
 
 * :meth:`KeypointTracker.step` with each tracked frame (a gray image, downsampled by :attr:`~KeypointTracker.factor`)
-  carries every tracked keypoint from the previous tracked frame with ``cv2.calcOpticalFlowPyrLK``, then back
-  again; a keypoint whose forward-backward error exceeds ``max_fb_px`` (or that LK loses) is lost for good until
+  carries every tracked keypoint from the previous tracked frame with pyramidal Lucas-Kanade (OpenCV's
+  ``calcOpticalFlowPyrLK`` arithmetic on pyramids built once per frame, :mod:`mocapd.pipeline.optical_flow`), then
+  back again; a keypoint whose forward-backward error exceeds ``max_fb_px`` (or that LK loses) is lost for good until
   the next detection. On the Pose2Sim demo (544x960) a lost keypoint was 9-23 px from the detector's next answer
   (median), a kept one 2-3 px (``tools/track_quality.py``).
 * :meth:`KeypointTracker.detected` with a detection of frame ``N`` (its gray image, from the detector's own copy
@@ -41,7 +42,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
@@ -49,6 +49,7 @@ from scipy.optimize import linear_sum_assignment
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import InputError
 from mocapd.pipeline.detector_config import TrackingConfig
+from mocapd.pipeline.optical_flow import LKOptions, Pyramid, build_pyramid, carry_keypoints
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -125,11 +126,12 @@ class _People:
 
 @dataclass
 class _Frame:
-    """A tracked frame: its gray image and the people on it (None before the first detection)."""
+    """A tracked frame: its gray image's pyramid (built once, for every flow computation the frame takes part
+    in) and the people on it (None before the first detection)."""
 
     seq: int
     t_ns: int
-    gray: Gray
+    pyramid: Pyramid
     people: _People | None
 
 
@@ -139,6 +141,7 @@ class _Pending:
     t_ns: int
     detections: Detections2D
     gray: Gray
+    pyramid: Pyramid | None = None
 
 
 class KeypointTracker:
@@ -176,7 +179,8 @@ class KeypointTracker:
         self._groups = np.array([JOINT_GROUPS.index(joint_group(n)) for n in names] if names else
                                 [JOINT_GROUPS.index("other")] * n_kp, np.int8)  # fmt: skip
         self._cpu = cpu_clock
-        self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        # OpenCV's calcOpticalFlowPyrLK with the criteria (count 30, epsilon 0.01) this tracker always used.
+        self._lk_options = LKOptions(o.window_px, o.levels, 30, 0.01)
         self._lock = threading.Lock()
         self._pending_lock = threading.Lock()
         self._history: list[_Frame] = []  # tracked frames in seq order, the last history_s of them
@@ -188,8 +192,9 @@ class KeypointTracker:
         self._err_age = np.zeros(ERROR_WINDOW, np.float32)
         self._n_err = 0
         self.counters = dict.fromkeys(
-            ("steps", "frames_skipped", "people_steps", "lk_calls", "keypoints_lost", "detections", "detections_late",
-             "retracked_frames", "people_dropped_age", "people_dropped_keypoints", "people_kept_missed"),
+            ("steps", "frames_skipped", "people_steps", "lk_calls", "pyramids_built", "keypoints_lost", "detections",
+             "detections_late", "retracked_frames", "people_dropped_age", "people_dropped_keypoints",
+             "people_kept_missed"),
             0)  # fmt: skip
         self.cpu_ns = 0
         self.people_now = 0
@@ -241,9 +246,10 @@ class KeypointTracker:
             self.counters["frames_skipped"] += 1
             return None
         people = None
+        pyramid = self._pyramid(gray)
         if last is not None and last.people is not None:
-            people = self._carry(last.people, last.gray, gray)
-        frame = _Frame(seq, t_ns, gray, people)
+            people = self._carry(last.people, last.pyramid, pyramid)
+        frame = _Frame(seq, t_ns, pyramid, people)
         self._history.append(frame)
         self._trim(t_ns)
         self.counters["steps"] += 1
@@ -269,54 +275,30 @@ class KeypointTracker:
         self._shape = shape
 
     # ------------------------------------------------------------------------------------------------- tracking
-    def _carry(self, people: _People, g0: Gray, g1: Gray) -> _People:
-        """``people`` tracked from image ``g0`` to ``g1``: forward and back; lost where the two disagree."""
-        out = _People(people.keypoints.copy(), people.alive.copy(), people.confidence, people.t_det_ns,
-                      people.coasting.copy())  # fmt: skip
-        idx = np.flatnonzero(out.alive.ravel())
-        if idx.size == 0:
-            return out
-        f = self.factor
-        pts = out.keypoints.reshape(-1, 2)[idx]
-        # Block means: pixel j of the downsampled image is the mean of camera pixels j*f .. j*f + f - 1.
-        u0 = ((pts - (f - 1) / 2) / f).astype(np.float32).reshape(-1, 1, 2)
-        u1, st1 = self._lk(g0, g1, u0)
-        back, st2 = self._lk(g1, g0, u1)
-        self.counters["lk_calls"] += 2
-        fb = np.linalg.norm((back - u0).reshape(-1, 2), axis=1) * f
-        h, w = g1.shape
-        p1 = u1.reshape(-1, 2).astype(np.float64)
-        inside = (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] <= h - 1)
-        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= self.options.max_fb_px) & inside
-        ok &= np.all(np.isfinite(p1), axis=1)
-        flat_kp = out.keypoints.reshape(-1, 2)
-        moved = p1[ok] * f + (f - 1) / 2 - flat_kp[idx[ok]]
-        flat_kp[idx[ok]] = p1[ok] * f + (f - 1) / 2
-        flat_alive = out.alive.reshape(-1)
-        flat_alive[idx[~ok]] = False
-        self.counters["keypoints_lost"] += int((~ok).sum())
-        if self.options.lost_confidence > 0:
-            self._coast(out, people.alive, idx[ok] // self.n_kp, moved)
-        return out
+    def _pyramid(self, gray: Gray) -> Pyramid:
+        """The image pyramid of a frame, built once whatever number of flow computations it takes part in."""
+        self.counters["pyramids_built"] += 1
+        return build_pyramid(gray, self._lk_options)
 
-    def _coast(self, out: _People, was_alive: BoolArray, person_of: NDArray[np.int64], moved: FloatArray) -> None:
-        """Keypoints the tracker lost (now or before) follow their person: each moves by the median motion of the
+    def _carry(self, people: _People, g0: Pyramid, g1: Pyramid) -> _People:
+        """``people`` tracked from image ``g0`` to ``g1`` (their pyramids): forward and back; lost where the two
+        disagree (or the keypoint left the image).
+
+        Keypoints the tracker lost (now or before) follow their person: each moves by the median motion of the
         person's keypoints tracked this step (none: they stay). A person seen in fewer views than the sorting
         needs is lost to the solve, and the detector's next answer for a lost keypoint is a few pixels from where
         its person's motion carries it (tools/track_quality.py): better there, less trusted
-        (``lost_confidence``), than missing until the next detection."""
-        out.coasting |= was_alive & ~out.alive
-        for p in np.flatnonzero(out.coasting.any(axis=1)):
-            own = moved[person_of == p]
-            if own.shape[0]:
-                out.keypoints[p, out.coasting[p]] += np.median(own, axis=0)
-
-    def _lk(self, a: Gray, b: Gray, pts: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:
-        """Points ``pts`` (n, 1, 2) of image ``a`` found in image ``b``, and whether each was found."""
-        o = self.options
-        found, status, _ = cv2.calcOpticalFlowPyrLK(a, b, pts, pts.copy(), winSize=(o.window_px, o.window_px),
-                                                    maxLevel=o.levels, criteria=self._criteria)  # fmt: skip
-        return np.asarray(found, np.float32), np.asarray(status, np.uint8)
+        (``lost_confidence``), than missing until the next detection. All of it one compiled call
+        (:func:`~mocapd.pipeline.optical_flow.carry_keypoints`)."""
+        out = _People(people.keypoints.copy(), people.alive.copy(), people.confidence, people.t_det_ns,
+                      people.coasting.copy())  # fmt: skip
+        if not out.alive.any():
+            return out
+        lost = carry_keypoints(g0, g1, out.keypoints, out.alive, out.coasting, self.factor, self.options.max_fb_px,
+                               self.options.lost_confidence > 0, self._lk_options)  # fmt: skip
+        self.counters["lk_calls"] += 2
+        self.counters["keypoints_lost"] += lost
+        return out
 
     def _prune(self, people: _People, t_ns: int) -> _People:
         """Drop everyone once the detection is ``max_age_s`` old, and people with too few keypoints left."""
@@ -365,7 +347,10 @@ class KeypointTracker:
             return None
         before = self._history[i]
         assert before.people is not None
-        tracked = before.people if before.seq == p.seq else self._carry(before.people, before.gray, p.gray)
+        if before.seq == p.seq:
+            tracked = before.people
+        else:
+            tracked = self._carry(before.people, before.pyramid, self._pending_pyramid(p))
         tracked = self._prune(tracked, p.t_ns)
         if len(tracked) == 0 or len(p.detections) == 0:
             return tracked
@@ -389,6 +374,12 @@ class KeypointTracker:
             k = self._n_err % ERROR_WINDOW
             self._err[k], self._err_group[k], self._err_age[k] = e, g, age_ms
             self._n_err += 1
+
+    def _pending_pyramid(self, p: _Pending) -> Pyramid:
+        """The pyramid of a detection's frame (built by :meth:`_measure` already, or now)."""
+        if p.pyramid is None:
+            p.pyramid = self._pyramid(p.gray)
+        return p.pyramid
 
     def _missed(self, tracked: _People, fresh: _People) -> _People:
         """The tracked people a detection did not find that tracking keeps: those found by the camera's previous
@@ -423,7 +414,7 @@ class KeypointTracker:
         self._silent = False
         seqs = [f.seq for f in self._history]
         if not self._history or p.seq > seqs[-1]:
-            self._history.append(_Frame(p.seq, p.t_ns, p.gray, fresh))
+            self._history.append(_Frame(p.seq, p.t_ns, self._pending_pyramid(p), fresh))
             return
         if p.seq < seqs[0]:
             self.counters["detections_late"] += 1  # older than every kept frame: cannot be carried forward
@@ -432,11 +423,11 @@ class KeypointTracker:
         if seqs[i] == p.seq:
             self._history[i].people = fresh
         else:
-            self._history.insert(i, _Frame(p.seq, p.t_ns, p.gray, fresh))
+            self._history.insert(i, _Frame(p.seq, p.t_ns, self._pending_pyramid(p), fresh))
         for j in range(i + 1, len(self._history)):
             prev, cur = self._history[j - 1], self._history[j]
             assert prev.people is not None
-            cur.people = self._prune(self._carry(prev.people, prev.gray, cur.gray), cur.t_ns)
+            cur.people = self._prune(self._carry(prev.people, prev.pyramid, cur.pyramid), cur.t_ns)
             self.counters["retracked_frames"] += 1
 
     # ------------------------------------------------------------------------------------------------- report

@@ -60,6 +60,7 @@ from mocapd.pipeline.hands import HandStage
 from mocapd.pipeline.keypoint_source import KeypointSource
 from mocapd.pipeline.landmark_auto import LandmarkFront, has_auto, shed_landmarks, status_field
 from mocapd.pipeline.mattes import MatteSource, RingMattes
+from mocapd.pipeline.optical_flow import warm_up as warm_up_optical_flow
 from mocapd.pipeline.scheduler import (
     READ_WAIT_S,
     FixedLatencyScheduler,
@@ -605,6 +606,7 @@ class Daemon:
                             keypoint_names=self.rig.targets.names).warm_up(n_kp)  # fmt: skip
             warm_up_flip_search(self.rig.cameras, n_kp)
         warm_up_undistortion()  # every keypoint set arriving is undistorted by it, on the event loop
+        warm_up_optical_flow()  # the keypoint tracker's, on the capture threads
         # The offset estimates of the status loop, once: their first run, 10 s after READY, imported SciPy's signal
         # package (~200 modules) while the tick ran, and the imports' allocations set off full garbage collections
         # of the whole start-up heap: a second of 26-49 Hz output in every run. With the imports done here and
