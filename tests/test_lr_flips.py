@@ -154,3 +154,17 @@ def test_the_compiled_search_decides_as_the_numpy_reference() -> None:
         assert np.allclose(fast.gain_px, slow.gain_px, atol=1e-6), trial
         swapped += fast.count
     assert swapped > 50  # the scenes exercised swaps, not only no-ops
+
+
+def test_the_warm_up_compiles_what_the_tick_runs() -> None:
+    """The daemon's warm-up compiles the flip search before the first tick; a tick that then met another array
+    layout compiled a second signature inside itself (~10 s of the tick thread on a fresh machine: issue 39)."""
+    from mocapd.core import _flip_kernel, lr_flips
+
+    cams = ring_rig(4)
+    lr_flips.warm_up(cams, 17)
+    compiled = len(_flip_kernel.best_hypotheses.signatures)
+    rng = np.random.default_rng(0)
+    P, und = lr_flips.undistorted(cams, rng.uniform(100, 500, (4, 17, 2)))
+    lr_flips.choose_swaps(P, und, rng.uniform(0.3, 1.0, (4, 17)), lr_flips.COCO17_LR_PAIRS)
+    assert len(_flip_kernel.best_hypotheses.signatures) == compiled

@@ -193,7 +193,7 @@ def _best_hypotheses_compiled(
     P: FloatArray, uv: FloatArray, conf: FloatArray, ok: BoolArray, o: FlipOptions
 ) -> tuple[list[tuple[bool, ...] | None], FloatArray, FloatArray]:
     """:func:`_best_hypotheses` by the compiled kernel (same arguments and results)."""
-    w = np.where(ok & np.isfinite(uv).all(axis=-1), conf, 0.0)
+    w = np.ascontiguousarray(np.where(ok & np.isfinite(uv).all(axis=-1), conf, 0.0))
     uv_c = np.ascontiguousarray(np.where(w[..., None] > 0, uv, 0.0))
     k, gain, X = _flip_kernel.best_hypotheses(np.ascontiguousarray(P), uv_c, w, float(o.cap_px), float(o.margin_px))
     hyps = _hypotheses(uv.shape[0])
