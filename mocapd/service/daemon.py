@@ -662,7 +662,8 @@ class Daemon:
             skipped = plan.advance(self.clock())
             if self.governor is not None:
                 self.governor.observe(published - frame.tick_ns, skipped)
-                if self.governor.step(published):
+                # The process's CPU clock: the governor's cause test (did a step take work away?) needs it.
+                if self.governor.step(published, time.process_time_ns()):
                     self._apply_governor()
 
     def _landmark_fronts(self) -> list[LandmarkFront]:
