@@ -19,6 +19,11 @@ the live daemon: it updates the tracker every output tick, not every detection f
 pass counts as many sightings (docs/tracking.md); sessions of imported keypoints tick once per frame and enrol
 after 0.1 s (:mod:`mocapd.service.session.keypoint_import`).
 
+A candidate no subject took may be a subject's *other views*: one person whose views disagree (two cameras'
+keypoints against the other two's) comes out of the sorter as two candidates, each seen by its own pair of cameras.
+Such a candidate joins the subject's detections rather than being enrolled as someone new (the rule:
+:meth:`SubjectTracker._hold_other_views`; issue 39, the camera demo's third identity).
+
 Everyone else is a bystander. A subject not seen for ``grace_period_s`` is released. Time is passed in (int64
 nanoseconds); nothing here reads a clock.
 """
@@ -30,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.camera import Camera
 from mocapd.core.sorting import Candidate, Detections2D, DetectionSorter, mean_keypoint_distance
 from mocapd.errors import InputError
 
@@ -138,9 +144,46 @@ class SubjectTracker:
                 s.detections = dict(c.sources)
         events = self._release(t_ns)
         free = [c for c, used in zip(cands, self._used_mask(cands, taken), strict=True) if not used]
-        enrolled = self._enrol(t_ns, free)
+        free = [c for c in free if not self._hold_other_views(c, detections)]
+        enrolled, held = self._enrol(t_ns, free, detections)
         events += enrolled
-        return FrameAssignment(list(self.subjects), len(free) - len(enrolled), events)
+        return FrameAssignment(list(self.subjects), len(free) - len(enrolled) - held, events)
+
+    def _hold_other_views(self, c: Candidate, detections: list[Detections2D]) -> bool:
+        """Whether ``c`` is a seen subject's other views, which it then takes (its detections join the subject's).
+
+        The sorter clusters pairs of views by the distance of their triangulations (``same_person_distance``); a
+        person whose views disagree (a camera's keypoints older than the others', a detector's bias in a few
+        views) can come out as two candidates, each seen by its own pair of cameras: on the camera demo one
+        person's pairs of views triangulated 0.3-0.6 m apart for seconds on end. The subject takes one; the other
+        used to be enrolled as a second person after ``enrol_after_s``. It is the subject's when: no camera of
+        ``c`` holds the subject this frame (one camera sees a person once: a different 2D person in a shared
+        camera is a different person), the subject is the seen subject nearest to ``c`` and within
+        ``max_interframe_movement`` (the reach :meth:`DetectionSorter.assign` gives it), and in every camera of
+        either, the other's keypoints project nearest to the detection the first holds there: a second person
+        that close would be a detection of its own in the subject's cameras. Absolute reprojection limits do not
+        separate the two cases (such a subject's points reproject 20-35 px from its other views' detections in
+        272-px images, where the other person's lie 20-100 px away), the nearest detection does.
+        """
+        seen = [s for s in self.subjects if s.seen and not (s.detections.keys() & c.sources.keys())]
+        if not seen:
+            return False
+        dist = [mean_keypoint_distance(c.points, s.last_points) for s in seen]
+        k = int(np.argmin(dist))
+        s = seen[k]
+        nearest_all = min(mean_keypoint_distance(c.points, o.last_points) for o in self.subjects if o.seen)
+        if dist[k] >= self.sorter.options.max_interframe_movement or dist[k] > nearest_all:
+            return False
+        partner = self.sorter._partner(c.points.shape[0])
+        cams, min_cf = self.sorter.cameras, self.sorter.options.min_confidence
+        checked = [_nearest_is(cams[cam], c.points, detections[cam], p, partner, min_cf)
+                   for cam, p in s.detections.items()]  # fmt: skip
+        checked += [_nearest_is(cams[cam], s.last_points, detections[cam], p, partner, min_cf)
+                    for cam, p in c.sources.items()]  # fmt: skip
+        if False in checked or checked.count(True) < 2:
+            return False
+        s.detections.update(c.sources)
+        return True
 
     @staticmethod
     def _used_mask(cands: list[Candidate], taken: list[Candidate | None]) -> list[bool]:
@@ -172,13 +215,21 @@ class SubjectTracker:
                 return i
         return -1
 
-    def _enrol(self, t_ns: int, free: list[Candidate]) -> list[TrackingEvent]:
+    def _enrol(
+        self, t_ns: int, free: list[Candidate], detections: list[Detections2D]
+    ) -> tuple[list[TrackingEvent], int]:
+        """Tentative people followed, confirmed ones enrolled: the enrolment events, and how many of ``free`` were
+        the other views of a person enrolled in this frame (:meth:`_hold_other_views`)."""
         o = self.options
         gap = o.tentative_gap_s * _NS
         self._tentative = [t for t in self._tentative if t_ns - t.last_ns <= gap]
         events: list[TrackingEvent] = []
         matched: set[int] = set()
+        held = 0
         for c in free:
+            if events and self._hold_other_views(c, detections):
+                held += 1  # the other views of a person enrolled a moment ago, in this frame
+                continue
             eligible = self._inside(c)
             if o.start_positions:  # at a free start position, or still standing where a tentative one began
                 near = any(mean_keypoint_distance(t.points, c.points) < o.start_radius for t in self._tentative)
@@ -206,4 +257,30 @@ class SubjectTracker:
                 self.subjects.append(s)
                 self._tentative = [t for t in self._tentative if t is not best]
                 events.append(TrackingEvent(t_ns, "enrolled", s.id))
-        return events
+        return events, held
+
+
+def _nearest_is(
+    camera: Camera,
+    points: FloatArray,
+    detections: Detections2D,
+    person: int,
+    partner: NDArray[np.int64],
+    min_confidence: float,
+) -> bool | None:
+    """Whether ``points`` (n_kp, 3) project nearest to 2D person ``person`` of ``detections`` (median distance over
+    the keypoints confident in the detection that ``points`` has, a left/right pair as labelled or exchanged: a view
+    may be flipped); None when fewer than 5 keypoints project into the image (no evidence either way)."""
+    uv = camera.project(points)
+    inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width)
+    inside &= (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    if inside.sum() < 5:
+        return None
+    kp, cf = detections.keypoints, detections.confidences
+    d = np.minimum(np.linalg.norm(kp - uv, axis=-1), np.linalg.norm(kp - uv[partner], axis=-1))  # (n_people, n_kp)
+    d = np.where(inside & (cf >= min_confidence) & np.isfinite(d), d, np.nan)
+    ok = np.isfinite(d).sum(axis=1) >= 5
+    if not ok[person]:
+        return None
+    med = np.where(ok, np.nanmedian(np.where(ok[:, None], d, 0.0), axis=1), np.inf)
+    return bool(int(np.argmin(med)) == person)

@@ -40,6 +40,14 @@ It sheds one step when the tick's p95 exceeds ``shed_above`` of the period or mo
 window's ticks were missed, and restores one step only after ``hold_s`` in which the p95 stayed below
 ``restore_below`` of the period with no tick missed (hysteresis: a step is not taken back the moment it helped).
 
+A cause test before the next step. Shedding helps only when the lateness is this process's work: on a machine
+loaded by other programs (load 15-20 on 2 cores) the tick's p95 stayed at 45-60 ms while the governor walked down
+the whole ladder in 10 s. So the window after a step judges it: it *helped* when the p95 fell by ``helped_by`` or
+the missed ticks by half (or the tick fits again). When it did not, and it took work away (the daemon's process
+CPU per second, passed to :meth:`Governor.step`, fell by ``bite`` or more), the lateness is not ours: the step is
+taken back and nothing more is shed for ``retry_s`` (doubling, up to 4 x, while retries keep failing). A step that
+took no measurable CPU away (a landmark model that was not running) proves nothing either way: the next may follow.
+
 Pure state: times are arguments; the daemon feeds it (:meth:`Governor.observe` per tick, :meth:`Governor.step` once
 a window) and applies :attr:`Governor.level`'s settings to the keypoint sources and the scheduler.
 """
@@ -94,6 +102,38 @@ class GovernorOptions:
     """... for this long (and at least this long after the last change)."""
     settle_s: float = 5.0
     """Nothing is shed in the first seconds after the start (models and caches warming up, people enrolling)."""
+    helped_by: float = 0.1
+    """A step helped when the next window's p95 was at least this share lower (or its missed ticks half as many)."""
+    bite: float = 0.05
+    """A step took work away when the process's CPU per second fell by at least this share."""
+    retry_s: float = 30.0
+    """After a step that took work away without bringing the lateness down: nothing shed for this long (doubled
+    for each further such step in a row, up to 4 x)."""
+
+
+@dataclass(frozen=True)
+class _Window:
+    """What one window measured."""
+
+    p95_ns: float
+    missed: int
+    ticks: int
+    cpu_rate: float | None  # the process's CPU seconds per wall second (None: not measured)
+
+    @property
+    def missed_share(self) -> float:
+        return self.missed / self.ticks if self.ticks else 0.0
+
+    def cpu_text(self) -> str:
+        return "" if self.cpu_rate is None else f", process CPU {self.cpu_rate:.2f} s/s"
+
+
+@dataclass(frozen=True)
+class _Trial:
+    """A step just taken: the step it left and the window that made it."""
+
+    from_index: int
+    before: _Window
 
 
 class Governor:
@@ -119,6 +159,10 @@ class Governor:
         self.changes = 0
         self.last_reason = "start"
         self.last_p95_ms: float | None = None
+        self._cpu_at: tuple[int, int] | None = None  # (wall, process CPU) at the window's start
+        self._trial: _Trial | None = None  # the step taken at the end of the previous window, to be judged
+        self._no_shed_until = start_ns
+        self._futile = 0  # steps in a row that took work away and did not help
 
     @property
     def level(self) -> Level:
@@ -130,41 +174,96 @@ class Governor:
         self._durations.append(tick_ns)
         self._missed += missed
 
-    def step(self, now_ns: int) -> bool:
+    def step(self, now_ns: int, cpu_ns: int | None = None) -> bool:
         """At the end of a window (call often; it acts once ``window_s`` has passed): shed or restore a step.
-        Returns True when the level changed."""
-        o = self.options
-        if now_ns - self._window_start < o.window_s * 1e9:
+        ``cpu_ns``: the daemon's process CPU time now (any origin; None: not measured, then a step that did not
+        help is taken back as one that took work away). Returns True when the level changed."""
+        measured = self._close_window(now_ns, cpu_ns)
+        if measured is None:
             return False
+        window, began = measured
+        o = self.options
+        share = window.p95_ns / self.period_ns
+        overrun = share > o.shed_above or window.missed_share > o.max_missed
+        trial, self._trial = self._trial, None
+        if trial is not None and self._judge(trial, window, overrun, now_ns):
+            return True
+        if overrun:
+            return self._shed(window, now_ns)
+        if share < o.restore_below and window.missed == 0:
+            return self._restore(window, began, now_ns)
+        self._calm_since = None
+        return False
+
+    def _close_window(self, now_ns: int, cpu_ns: int | None) -> tuple[_Window, int] | None:
+        """The window's measurements and its start, once ``window_s`` has passed and the start settled."""
+        o = self.options
+        if cpu_ns is not None and self._cpu_at is None:
+            self._cpu_at = (now_ns, cpu_ns)
+        if now_ns - self._window_start < o.window_s * 1e9:
+            return None
         durations, missed, began = self._durations, self._missed, self._window_start
         self._durations, self._missed, self._window_start = [], 0, now_ns
-        ticks = len(durations) + missed
+        cpu_rate = None
+        if cpu_ns is not None and self._cpu_at is not None and now_ns > self._cpu_at[0]:
+            cpu_rate = (cpu_ns - self._cpu_at[1]) / (now_ns - self._cpu_at[0])
+            self._cpu_at = (now_ns, cpu_ns)
         if not durations or now_ns - self._start_ns < o.settle_s * 1e9:
-            return False
+            return None
         p95 = float(np.percentile(durations, 95))
         self.last_p95_ms = round(p95 / 1e6, 2)
-        share = p95 / self.period_ns
-        missed_share = missed / ticks if ticks else 0.0
-        if share > o.shed_above or missed_share > o.max_missed:
-            self._calm_since = None
-            if self.step_index + 1 < len(self.ladder):
-                self.step_index += 1
-                self._changed(now_ns, f"tick p95 {p95 / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
-                              f"{missed} of {ticks} ticks missed")  # fmt: skip
-                return True
+        return _Window(p95, missed, len(durations) + missed, cpu_rate), began
+
+    def _shed(self, w: _Window, now_ns: int) -> bool:
+        """One more step, unless at the last or waiting after a step that was taken back."""
+        self._calm_since = None
+        if self.step_index + 1 >= len(self.ladder) or now_ns < self._no_shed_until:
             return False
-        if share < o.restore_below and missed == 0:
-            if self._calm_since is None:
-                self._calm_since = began  # calm since this window began
-            calm_for = now_ns - max(self._calm_since, self._changed_ns)
-            if self.step_index > 0 and calm_for >= o.hold_s * 1e9:
-                self.step_index -= 1
-                self._calm_since = now_ns
-                self._changed(now_ns, f"tick p95 {p95 / 1e6:.1f} ms, no tick missed for {o.hold_s:g} s")
-                return True
-        else:
-            self._calm_since = None
+        self._trial = _Trial(self.step_index, w)
+        self.step_index += 1
+        self._changed(now_ns, f"tick p95 {w.p95_ns / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
+                      f"{w.missed} of {w.ticks} ticks missed{w.cpu_text()}")  # fmt: skip
+        return True
+
+    def _restore(self, w: _Window, began: int, now_ns: int) -> bool:
+        """A calm window: one step back after ``hold_s`` of calm."""
+        o = self.options
+        if self._calm_since is None:
+            self._calm_since = began  # calm since this window began
+        calm_for = now_ns - max(self._calm_since, self._changed_ns)
+        if self.step_index > 0 and calm_for >= o.hold_s * 1e9:
+            self.step_index -= 1
+            self._calm_since = now_ns
+            self._changed(now_ns, f"tick p95 {w.p95_ns / 1e6:.1f} ms, no tick missed for {o.hold_s:g} s")
+            return True
         return False
+
+    def _judge(self, trial: _Trial, after: _Window, overrun: bool, now_ns: int) -> bool:
+        """The cause test of the step taken at the end of the previous window (see the module docstring): True when
+        it was taken back."""
+        o, before = self.options, trial.before
+        fewer_missed = before.missed_share > o.max_missed and after.missed_share <= before.missed_share / 2
+        if not overrun or after.p95_ns <= (1.0 - o.helped_by) * before.p95_ns or fewer_missed:
+            self._futile = 0
+            return False
+        took_work = (
+            before.cpu_rate is None or after.cpu_rate is None or after.cpu_rate <= (1.0 - o.bite) * before.cpu_rate
+        )
+        what = (f"step {trial.from_index + 1} ({self.ladder[trial.from_index + 1].name}) did not help: tick p95 "
+                f"{before.p95_ns / 1e6:.1f} -> {after.p95_ns / 1e6:.1f} ms, missed {before.missed} of {before.ticks} "
+                f"-> {after.missed} of {after.ticks}")  # fmt: skip
+        if before.cpu_rate is not None and after.cpu_rate is not None:
+            what += f", process CPU {before.cpu_rate:.2f} -> {after.cpu_rate:.2f} s/s"
+        if not took_work:  # it shed nothing measurable: no evidence either way, the next step may follow
+            self.last_reason = f"{what}: it took no CPU away"
+            return False
+        wait = o.retry_s * min(2**self._futile, 4)
+        self._futile += 1
+        self.step_index = trial.from_index
+        self._no_shed_until = now_ns + round(wait * 1e9)
+        self._changed(now_ns, f"{what}: the lateness is not this process's work; taken back, nothing shed for "
+                      f"{wait:g} s")  # fmt: skip
+        return True
 
     def _changed(self, now_ns: int, reason: str) -> None:
         self._changed_ns = now_ns

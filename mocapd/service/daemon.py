@@ -672,7 +672,8 @@ class Daemon:
                 self._apply_camera_proposals()  # between two ticks: the next one solves with the new camera
             if self.governor is not None:
                 self.governor.observe(published - frame.tick_ns, skipped)
-                if self.governor.step(published):
+                # The process's CPU clock: the governor's cause test (did a step take work away?) needs it.
+                if self.governor.step(published, time.process_time_ns()):
                     self._apply_governor()
 
     def replace_camera(

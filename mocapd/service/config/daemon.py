@@ -70,7 +70,7 @@ class DaemonConfig(Section):
     beyond the first, at most 4; 1: people one after another on the tick's thread)."""
     tick_thread: bool = False
     """Solve each tick on the daemon's tick thread, off the event loop (issue 39); off: on the loop, as before."""
-    governor: bool = False
+    governor: bool = True
     """Shed work (keypoint tracking rate, detector duty) when the tick does not fit its
     period, in the order of docs/daemon.md "Real time on a slow machine"; never the output tick itself."""
     switch_interval_ms: float = Field(1.0, ge=0.1, le=50.0)
