@@ -1,5 +1,7 @@
 """What each attacker of the soak costs the daemon: CPU seconds per attack operation (a developer tool).
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 The synthetic daemon is assembled in this process as ``tools/soak.py`` assembles it (the one assembly path, the
 SlimeVR server on loopback), and its doors are started as the daemon starts them (the status server, the SlimeVR
 server, the WebSocket stream) but not its tick: on a machine shared with other work the tick takes whatever share

@@ -1,5 +1,7 @@
 """A camera knocked mid-take in the running daemon, on the synthetic rig (issue 43, "cameras that stay calibrated").
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 The real daemon (``mocapd demo --synthetic``'s assembly, suits off, recording a session) runs until every camera
 has a baseline; then one camera of the simulated world is turned on its mount (:meth:`SyntheticWorld.bump`; the
 rig's calibration unchanged) and the take goes on until the camera watch has named it, re-estimated it, applied

@@ -1,5 +1,7 @@
 """CPU of the keypoint tracking per camera frame, and of its parts, on the camera demo's frames (issue 39).
 
+Developer benchmark, not a ``mocapd bench`` verb (those are the benchmarks a user runs).
+
 The Pose2Sim multi-person demo at the camera demo's size (``--scale`` of 1088x1920: 544x960), each frame mosaicked as
 the fake cameras send it (BayerRG8) and read as the daemon reads it (the mosaic's 2x2-cell gray image, 272x480);
 the shipped detector on every ``--interval``-th frame, its detections reaching the tracker ``--delay`` frames later,
