@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import itertools
 
-from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions
+from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions, ladder
 
 PERIOD = 16_666_667
 S = 1_000_000_000
@@ -146,3 +146,15 @@ def test_a_step_that_took_no_cpu_away_proves_nothing_and_the_next_follows() -> N
     assert p.window(50.0, 1.6) == 1
     assert p.window(50.0, 1.6) == 2 and "it took no CPU away" not in str(g.status()["reason"])
     assert p.window(50.0, 1.2) == 1 and "step 2" in str(g.status()["reason"])
+
+
+def test_the_ladder_has_only_steps_that_shed_something_the_daemon_runs() -> None:
+    names = [
+        [lv.name for lv in ladder(*run)] for run in ((True, True, True), (False, True, True), (False, False, True))
+    ]
+    assert names[0] == [lv.name for lv in LADDER]
+    assert names[1] == [lv.name for lv in LADDER if lv.name != "landmark model off"]
+    assert names[2] == ["nothing shed", "detector at 75 % duty", "detector at 50 % duty", "detector at 35 % duty"]
+    assert [lv.tracking_rate for lv in ladder(False, False, True)] == [1.0] * 4
+    assert ladder(False, False, False) == (LADDER[0],)  # the synthetic rig: nothing to shed
+    assert [lv.name for lv in ladder(False, True, False)] == ["nothing shed", "keypoint tracking at half rate"]

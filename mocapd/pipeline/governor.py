@@ -79,10 +79,21 @@ LADDER: tuple[Level, ...] = (
 )
 
 
-def ladder(landmarks: bool) -> tuple[Level, ...]:
-    """:data:`LADDER` for a daemon whose detector runs ``landmarks = "auto"``, else without the landmark step (it
-    would shed nothing there, and cost a window before the tracking rate is shed)."""
-    return LADDER if landmarks else tuple(lv for lv in LADDER if lv.name != "landmark model off")
+def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tuple[Level, ...]:
+    """:data:`LADDER` with only the steps that shed something this daemon runs: the landmark step where a detector
+    runs ``landmarks = "auto"``, the tracking step where keypoint tracking runs, the detector's duty steps where a
+    detector of its own runs (the synthetic rig's simulated detections have none of these: its ladder is step 0
+    alone). A step that sheds nothing would cost a window, and say it shed what is not there."""
+    steps = [LADDER[0]]
+    if landmarks:
+        steps.append(LADDER[1])
+    if tracking:
+        steps.append(LADDER[2])
+    if detector:
+        prefix = f"{LADDER[2].name}, "
+        steps.extend(lv if tracking else Level(lv.name.removeprefix(prefix), 1.0, lv.detector_duty, False)
+                     for lv in LADDER[3:])  # fmt: skip
+    return tuple(steps)
 
 
 @dataclass(frozen=True)
@@ -271,7 +282,7 @@ class Governor:
         self.last_reason = reason
 
     def status(self) -> dict[str, object]:
-        """JSON-able: the step, what it sheds, why, and the last window's tick p95."""
+        """JSON-able: the step, what it sheds, why, the last window's tick p95, and the ladder's steps."""
         return {
             "step": self.step_index,
             "shed": self.level.name,
@@ -281,4 +292,5 @@ class Governor:
             "reason": self.last_reason,
             "changes": self.changes,
             "tick_p95_ms": self.last_p95_ms,
+            "ladder": [lv.name for lv in self.ladder],
         }

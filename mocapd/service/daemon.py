@@ -320,8 +320,12 @@ class Daemon:
                                                initargs=("mocapd-solve",)) if threads > 1 else None)  # fmt: skip
         self.scheduler.pool = self._solve_pool
         #: sheds work when the tick does not fit its period (None: ``[daemon] governor = false``)
-        self.governor = (Governor(self.scheduler.options.period_ns, start_ns=clock(),
-                                  steps=ladder(has_auto(self._landmark_fronts()))) if d.governor else None)  # fmt: skip
+        sources = self.rig.sources
+        steps = ladder(has_auto(self._landmark_fronts()), any(hasattr(s, "tracking_rate_scale") for s in sources),
+                       any(hasattr(getattr(s, "group", None), "duty") for s in sources))  # fmt: skip
+        self.governor = (
+            Governor(self.scheduler.options.period_ns, start_ns=clock(), steps=steps) if d.governor else None
+        )
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
         self.actions: dict[str, Callable[[dict[str, str], str], Any]] = {
