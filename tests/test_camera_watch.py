@@ -242,6 +242,32 @@ def test_a_passing_re_estimate_is_handed_out_applied_and_the_camera_rejoins() ->
     assert [w for _, c, w, _ in watch.events] == ["bumped", "re-estimated"]
 
 
+def test_a_camera_whose_re_estimates_keep_being_refused_is_put_back_and_the_others_re_examined() -> None:
+    """A 2° roll of cam1 on the ring of four (about 10 px at the image's edge, against 9 px of detector noise): the
+    watch names a camera whose re-estimates are all refused. After three in a row it is put back in the solve
+    (released: back to ok, said in /status) and not named again for baseline_s, while the others are judged without
+    it; on this take cam1 is named first and released, then cam3 (its opposite, the one witness of its depth), and
+    released in turn: neither is held out of the solve for good."""
+    truth = ring_rig(4)
+    moved = [bumped(c, 2.0, (0.0, 0.0, 1.0)) if i == 1 else c for i, c in enumerate(truth)]
+    watch, weights = watched(truth, take(truth, 60.0, seed=2, bump_at=20.0, moved=moved))
+    said = [(round(t / 1e9, 1), cam, what) for t, cam, what, _ in watch.events]
+    released = [(t, cam) for t, cam, what in said if what == "released"]
+    assert [cam for _, cam in released] == ["cam1", "cam3"], said
+    for t_rel, cam in released:
+        refused = [w for t, c, w, d in watch.events if c == cam and w == "re-estimated" and t / 1e9 <= t_rel]
+        assert len(refused) == 3, said
+        i = int(cam[3:])
+        # back in the solve from the next moment on, until named again (not before baseline_s)
+        later = [w for t, w in weights if t_rel * 1e9 < t <= t_rel * 1e9 + 5e9]
+        assert later and all(w[i] == 1.0 for w in later), cam
+    st = watch.status()
+    assert st["cam1"]["released"] == 1 and st["cam3"]["released"] == 1 and st["cam3"]["re_examining"], st
+    assert watch.states() == ["ok"] * 4 and not watch.in_doubt().any()
+    release = next(d for _, c, w, d in watch.events if w == "released")
+    assert release["refused"] == 3 and "improve too little" in str(release["reason"]), release
+
+
 def test_a_re_estimate_is_refused_unless_it_fits_well_turns_little_and_most_matches_agree() -> None:
     cam = ring_rig(4)[0]
     o = WatchOptions()

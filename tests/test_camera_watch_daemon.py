@@ -228,3 +228,10 @@ def test_a_refused_re_estimate_is_said_once_a_bump(caplog: pytest.LogCaptureFixt
         events += [(5, "cam0", "ok", named), (6, "cam0", "bumped", named), (7, "cam0", "re-estimated", refused)]
         d._say_camera_events()
         assert len([r for r in caplog.records if "re-estimated" in r.getMessage()]) == 2  # a new bump: said again
+        # Three refused in a row: put back in the solve, the others re-examined without it (said, and why).
+        events += [(8, "cam0", "released", {"refused": 3, "reason": "too little", "re_examine_s": 20.0})]
+        d._say_camera_events()
+        back = [r.getMessage() for r in caplog.records if "back in the solve" in r.getMessage()]
+        assert back == ["camera cam0 back in the solve: 3 re-estimates in a row refused (the last: too little); it may "
+                        "not be the camera that moved: the others are re-examined without it for 20 s (/status "
+                        "camera_watch.cam0.re_examining)"], back  # fmt: skip

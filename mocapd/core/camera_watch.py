@@ -40,7 +40,9 @@ what it was and back near the camera's baseline, the turn be one a knock gives).
 handed to the caller (:meth:`CameraWatch.pending`), which swaps the camera in everything that holds it (the
 scheduler's :meth:`~mocapd.pipeline.scheduler.FixedLatencyScheduler.replace_camera`) and tells the watch
 (:meth:`CameraWatch.apply`: the camera is judged against the new pose from a new baseline, back in the solve). One
-that fails is shown with the reason and the matches are gathered again.
+that fails is shown with the reason and the matches are gathered again. A camera whose re-estimates are refused
+:data:`RELEASE_AFTER` times in a row is put back in the solve (*released*: it may not be the camera that moved) and
+not named again for ``baseline_s`` while the others are judged without it.
 
 Time is the solve time passed in (ns); nothing here reads a clock or locks (the pipeline's adapter does).
 """
@@ -130,6 +132,11 @@ SCREEN_FACTOR = 1.5
 """A person's all-in residuals pass the screen for the at-once flag on a rise this many times the suspect one (a
 turned camera pulls the all-in points its way, so its all-in rise is a half to three quarters of its left-out one;
 1.5 lets every moment of a 2° knock through to the exact check, and one moment in ten of clean walking)."""
+RELEASE_AFTER = 3
+"""A bumped camera whose re-estimates were refused this many times in a row is put back in the solve (*released*)
+and the others re-examined without it for ``baseline_s``: the wrong camera may have been named (a roll of one camera
+of a ring of four named its neighbour, whose re-estimates then improved nothing), and a camera held out for good is
+a camera fewer for every person."""
 COHERENCE = 0.6
 """... and only when its keypoints are off the same way: the median offset at least this share of the median
 distance (a 1-2° tilt or pan: 0.9 and more; a bad detection that passes the rest: mostly under 0.5)."""
@@ -176,6 +183,9 @@ class _Camera:
     n_matches: int = 0
     proposal: Proposal | None = None  # the latest re-estimate (one that was refused: the matches gathered again)
     applied: int = 0  # re-estimates applied to this camera so far
+    refusals: int = 0  # re-estimates refused in a row since it was named
+    released: int = 0  # times it was put back after RELEASE_AFTER refusals
+    barred_until_ns: int | None = None  # released: not named again before then (the others re-examined)
 
 
 def residuals_left_out(
@@ -439,7 +449,7 @@ class CameraWatch:
         o = self.options
         if any(c.state != "ok" for c in self._cams):
             return None  # learning (no baseline), or a camera already in doubt: the state machine has it
-        rise = res - base
+        rise = np.where(self._barred(self._last_ns), np.nan, res - base)
         finite = np.isfinite(rise)
         if finite.sum() < 3:
             return None
@@ -470,6 +480,12 @@ class CameraWatch:
     def _rise(self, cam: _Camera) -> float:
         return cam.current - cam.baseline if np.isfinite(cam.current) and np.isfinite(cam.baseline) else float("nan")
 
+    def _barred(self, t_ns: int | None) -> NDArray[np.bool_]:
+        """Per camera: released and still being re-examined (not named, nor flagged, and no measure of the others)."""
+        if t_ns is None:
+            return np.zeros(len(self._cams), dtype=bool)
+        return np.array([c.barred_until_ns is not None and t_ns < c.barred_until_ns for c in self._cams], dtype=bool)
+
     def _high(self, cam: _Camera) -> bool:
         rise = self._rise(cam)
         return bool(np.isfinite(rise) and rise > max(self.options.margin_px, self.options.ratio * cam.baseline))
@@ -478,7 +494,9 @@ class CameraWatch:
         o = self.options
         self._levels(t_ns)
         hold = round(o.hold_s * 1e9)
-        rises = np.array([self._rise(c) for c in self._cams])
+        barred = self._barred(t_ns)
+        # A released camera's rise is left out of the comparisons: the others are re-examined without it.
+        rises = np.array([np.nan if b else self._rise(c) for c, b in zip(self._cams, barred, strict=True)])
         doubt = bool(np.array([c.state == "bumped" for c in self._cams]).any())
         finite = np.sort(rises[np.isfinite(rises)])
         # Two cameras rising alike cannot be told apart (opposite cameras that are each other's only witness of
@@ -546,6 +564,22 @@ class CameraWatch:
             return  # too few matches agree: gather again
         cam.proposal = replace(prop, refused=judge_proposal(prop, cam.baseline, self.options))
         self.events.append((t_ns, self.cameras[c].name, "re-estimated", _proposal_json(cam.proposal)))
+        cam.refusals = cam.refusals + 1 if cam.proposal.refused is not None else 0
+        if cam.refusals >= RELEASE_AFTER and cam.state == "bumped":
+            self._release(t_ns, c)
+
+    def _release(self, t_ns: int, c: int) -> None:
+        """Bumped camera ``c``, whose re-estimates keep being refused, back in the solve; not named again for
+        ``baseline_s`` while the others are judged without it (:data:`RELEASE_AFTER`)."""
+        cam = self._cams[c]
+        reason = cam.proposal.refused if cam.proposal is not None else None
+        details = {"refused": cam.refusals, "reason": reason, "re_examine_s": self.options.baseline_s}
+        self.events.append((t_ns, self.cameras[c].name, "released", details))
+        self._clear(cam)
+        cam.refusals = 0
+        cam.released += 1
+        cam.barred_until_ns = t_ns + round(self.options.baseline_s * 1e9)
+        cam.state, cam.since_ns = "ok", t_ns
 
     # ------------------------------------------------------------------------------------------ output
     def proposal(self, camera: int) -> Proposal | None:
@@ -584,10 +618,11 @@ class CameraWatch:
         return {
             cam.name: {
                 "state": c.state, "residual_px": _r(c.current), "baseline_px": _r(c.baseline), "bumps": c.bumps,
-                "applied": c.applied, "samples": len(c.samples),
+                "applied": c.applied, "samples": len(c.samples), "released": c.released,
+                "re_examining": bool(self._barred(self._last_ns)[i]),
                 "proposal": None if c.proposal is None else _proposal_json(c.proposal),
             }
-            for cam, c in zip(self.cameras, self._cams, strict=True)
+            for i, (cam, c) in enumerate(zip(self.cameras, self._cams, strict=True))
         }  # fmt: skip
 
 

@@ -849,6 +849,11 @@ class Daemon:
                 log.warning("camera %s re-estimated from the people, the others held: turned %.2f deg, %s -> %s px "
                             "(/status camera_watch.%s.proposal; %s%s)", name, d["rotation_deg"],
                             d["median_px_before"], d["median_px_after"], name, why, again)  # fmt: skip
+            elif what == "released":
+                log.warning("camera %s back in the solve: %d re-estimates in a row refused (the last: %s); it may not "
+                            "be the camera that moved: the others are re-examined without it for %g s (/status "
+                            "camera_watch.%s.re_examining)", name, d["refused"], d["reason"], d["re_examine_s"],
+                            name)  # fmt: skip
             else:
                 log.warning("camera %s agrees with the others again (%s px)", name, d["residual_px"])
 
