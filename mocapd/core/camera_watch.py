@@ -352,13 +352,19 @@ class CameraWatch:
         if uv.shape[:1] != (n,) or conf.shape != uv.shape[:2]:
             raise InputError(f"camera watch: keypoints {uv.shape} / confidences {conf.shape} for {n} cameras")
         o = self.options
-        quick = residuals_all_in(self._P, uv, conf, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
-        if self._due(t_ns):
+        due = self._due(t_ns)
+        # The all-in residuals: recorded on the checked ticks (their baselines), screened on every tick while every
+        # camera agrees (otherwise the state machine has it and nothing is flagged at once: not computed).
+        all_ok = all(c.state == "ok" for c in self._cams)
+        quick = (residuals_all_in(self._P, uv, conf, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
+                 if due or all_ok else None)  # fmt: skip
+        if due:
+            assert quick is not None
             self._check(t_ns, uv, conf, quick)
         elif self._votes is not None:
             self._settle_flags()  # the checked tick is complete: its people's verdicts hold until the next check
         doubt = self.in_doubt() | self._flagged
-        at_once = self._at_once(uv, conf, quick)
+        at_once = self._at_once(uv, conf, quick) if quick is not None and all_ok else None
         if at_once is not None:
             doubt[at_once] = True  # this person's own views put it off alone: out of this solve
         if not doubt.any():
