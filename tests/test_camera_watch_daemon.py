@@ -9,21 +9,26 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import sys
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from mocapd.core.rotations import matrix_from_rotvec
-from mocapd.io.calibration_files import read_any
+from mocapd.io.calibration_files import CalibrationSet, CameraCalibration, read_any, write_mocapd_toml
 from mocapd.io.session import open_session
 from mocapd.io.ws_server import WebSocketStreamServer
 from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import load_config
+from mocapd.service.daemon import Daemon
 from mocapd.service.demo.synthetic import synthetic_config
 from tests.cdp import chromium_page
 from tests.test_daemon import Recorder, http_get, wait_for
 from tests.test_fuzz_files import run_cli
+from tests.test_heading_reset import ASK
 from tests.test_web_viewer import free_port
 from tools.bench_camera_bump import bump_config, bumped_take, report
 
@@ -117,7 +122,36 @@ async def test_a_camera_turned_mid_run_is_re_estimated_applied_recorded_and_reso
     caplog.set_level(logging.WARNING, logger="mocapd.service.daemon")
     config = bump_config(apply=True)
     assert config.calibration.watch.apply
-    take = await bumped_take(config, camera=1, degrees=2.0, axis="x", after_s=9.0, record=tmp_path / "session")
+    calib = tmp_path / "calib" / "rig.toml"
+    config = config.model_copy(update={"calibration": config.calibration.model_copy(update={"save_to": str(calib)})})
+    saves: dict[str, Any] = {}
+
+    async def save(d: Daemon) -> None:
+        """The running daemon asked to save its cameras over a calibration file it would start from."""
+        calib.parent.mkdir()
+        old = [CameraCalibration(c.name, (c.width, c.height), c.K, c.dist, c.R, c.t) for c in d.rig.cameras]
+        old[1] = replace(old[1], R=old[0].R)  # cam1 not as the daemon has it now
+        spare = replace(old[0], name="spare")  # a camera of the file the rig does not use
+        write_mocapd_toml(CalibrationSet((*old, spare), source="before"), calib)
+        saves["old"] = calib.read_bytes()
+        port = d.http.port
+        # The same protections as every state change: no X-Mocapd-Request header, or another site's Origin: 403.
+        saves["no header"] = (await http_get(port, "/calibration/save", method="POST"))[0]
+        foreign = {**ASK, "Origin": "http://evil.example"}
+        saves["foreign"] = (await http_get(port, "/calibration/save", method="POST", headers=foreign))[0]
+        saves["untouched"] = calib.read_bytes() == saves["old"] and list(calib.parent.iterdir()) == [calib]
+        code, _, body = await http_get(port, "/calibration/save", method="POST", headers=ASK)
+        saves["http"] = (code, json.loads(body))
+        saves["first"] = calib.read_bytes()
+        # ... and from the command line (another process), which asks the daemon the same way.
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "mocapd", "calibrate", "save", "--http-port", str(port),
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)  # fmt: skip
+        out, err = await asyncio.wait_for(proc.communicate(), 120)
+        saves["cli"] = (proc.returncode, out.decode(), err.decode())
+
+    take = await bumped_take(config, camera=1, degrees=2.0, axis="x", after_s=9.0, record=tmp_path / "session",
+                             at_end=save)  # fmt: skip
     r = report(take, camera=1)
     assert r["noticed_s"] is not None and r["noticed_s"] <= 15.0, r  # 1.9 s at the watch's 10 checks a second
     assert r["re_estimated_s"] is not None and r["applied_s"] is not None and r["applied_s"] >= r["re_estimated_s"]
@@ -156,6 +190,23 @@ async def test_a_camera_turned_mid_run_is_re_estimated_applied_recorded_and_reso
     manifest = open_session(tmp_path / "session").manifest["cameras"]
     assert all(np.allclose(saved[f"cam{i}"].R, manifest[i]["R"]) for i in (0, 2, 3))
     assert not np.allclose(saved["cam1"].R, manifest[1]["R"])
+    # Saved live (POST /calibration/save, mocapd calibrate save): the running cameras over the file, atomically,
+    # the old file kept beside it, the spare camera kept; logged.
+    assert saves["no header"] == 403 and saves["foreign"] == 403 and saves["untouched"], saves
+    code, answer = saves["http"]
+    assert code == 200 and answer["file"] == str(calib) and answer["changed"] == ["cam1"], answer
+    assert answer["cameras"] == [f"cam{i}" for i in range(4)] and answer["kept"] == ["spare"], answer
+    assert Path(answer["backup"]).read_bytes() == saves["old"] and Path(answer["backup"]).parent == calib.parent
+    live = read_any(calib)
+    assert live.names == [*(f"cam{i}" for i in range(4)), "spare"]
+    assert np.allclose(live["cam1"].R, change["R"], atol=1e-8) and np.allclose(live["cam0"].R, saved["cam0"].R)
+    assert any(f"calibration saved to {calib}" in x.getMessage() and "changed while running: cam1" in x.getMessage()
+               for x in caplog.records)  # fmt: skip
+    rc, out, err = saves["cli"]
+    assert rc == 0 and json.loads(out)["backup"] != answer["backup"], (out, err)
+    backups = sorted(p for p in calib.parent.iterdir() if p != calib)
+    assert len(backups) == 2 and backups[1].read_bytes() == saves["first"]  # the second save kept the first's file
+    assert not [p for p in calib.parent.iterdir() if p.name.startswith(".")]  # no temporary file left
 
 
 def test_a_refused_re_estimate_is_said_once_a_bump(caplog: pytest.LogCaptureFixture) -> None:
@@ -177,3 +228,10 @@ def test_a_refused_re_estimate_is_said_once_a_bump(caplog: pytest.LogCaptureFixt
         events += [(5, "cam0", "ok", named), (6, "cam0", "bumped", named), (7, "cam0", "re-estimated", refused)]
         d._say_camera_events()
         assert len([r for r in caplog.records if "re-estimated" in r.getMessage()]) == 2  # a new bump: said again
+        # Three refused in a row: put back in the solve, the others re-examined without it (said, and why).
+        events += [(8, "cam0", "released", {"refused": 3, "reason": "too little", "re_examine_s": 20.0})]
+        d._say_camera_events()
+        back = [r.getMessage() for r in caplog.records if "back in the solve" in r.getMessage()]
+        assert back == ["camera cam0 back in the solve: 3 re-estimates in a row refused (the last: too little); it may "
+                        "not be the camera that moved: the others are re-examined without it for 20 s (/status "
+                        "camera_watch.cam0.re_examining)"], back  # fmt: skip

@@ -23,6 +23,7 @@ import asyncio
 import json
 import shutil
 import tempfile
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from mocapd.pipeline.scheduler import PoseFrame
 from mocapd.protocols.session_format import PoseRecord
 from mocapd.service.assembly import RunOptions, assembled
 from mocapd.service.config import Config, load_config
+from mocapd.service.daemon import Daemon
 from mocapd.service.demo.synthetic import synthetic_config
 from mocapd.service.session.solve import ResolveOptions, resolve
 from mocapd.sim.world import SyntheticWorld
@@ -111,10 +113,11 @@ async def bumped_take(
     after_s: float = 8.0,
     record: Path | None = None,
     timeout_s: float = 120.0,
+    at_end: Callable[[Daemon], Awaitable[None]] | None = None,
 ) -> BumpedTake:
     """Run the daemon of ``config`` (a synthetic rig), turn ``camera`` by ``degrees`` about ``axis`` once every
     camera has a baseline, and go on until the change is applied (or, with ``apply`` off, re-estimated) and then
-    ``after_s`` more seconds."""
+    ``after_s`` more seconds; then ``at_end`` (the daemon still running), if given."""
     frames = Frames()
     with assembled(config, RunOptions(sinks=[frames], record=record)) as demo:
         d = demo.daemon
@@ -153,6 +156,8 @@ async def bumped_take(
             states = watch.states()
             events = list(watch.events)
             status = d.camera_watch.status()
+            if at_end is not None:
+                await at_end(d)
         finally:
             d.request_stop()
             await asyncio.wait_for(task, 30)

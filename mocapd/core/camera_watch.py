@@ -20,6 +20,12 @@ window to rise, so a check's people alone also put a camera in doubt for the sol
 (*flagged*: every person of the check that the camera sees puts it off alone, by the same rule on that person's
 residuals against the baselines; one bad detection does not): the solve leaves a knocked camera out from the tick
 after the first check that sees the knock, about 0.1 s, not half a second later. A flag is no state, names nobody.
+Between the checks (the daemon solves 60 times a second, checks 10) each person's own views leave a knocked camera
+out of that person's solve in the very moment of the knock: its *all-in* residuals (the keypoints triangulated
+from every camera at once, :func:`residuals_all_in`: one triangulation, cheap enough for every solve) screen for a
+camera off alone with half the flag's rise; only then are its left-out residuals taken and judged by the flag's
+rule, and the camera is left out when its keypoints are off the same way (:data:`COHERENCE`: a knock turns the
+whole view; a bad detection is off every which way).
 A bumped camera whose level falls back to its baseline for ``hold_s`` (put back, or a passing disturbance) is *ok*
 again.
 
@@ -34,7 +40,9 @@ what it was and back near the camera's baseline, the turn be one a knock gives).
 handed to the caller (:meth:`CameraWatch.pending`), which swaps the camera in everything that holds it (the
 scheduler's :meth:`~mocapd.pipeline.scheduler.FixedLatencyScheduler.replace_camera`) and tells the watch
 (:meth:`CameraWatch.apply`: the camera is judged against the new pose from a new baseline, back in the solve). One
-that fails is shown with the reason and the matches are gathered again.
+that fails is shown with the reason and the matches are gathered again. A camera whose re-estimates are refused
+:data:`RELEASE_AFTER` times in a row is put back in the solve (*released*: it may not be the camera that moved) and
+not named again for ``baseline_s`` while the others are judged without it.
 
 Time is the solve time passed in (ns); nothing here reads a clock or locks (the pipeline's adapter does).
 """
@@ -120,6 +128,18 @@ FLAG_FACTOR = 3.0
 """A check's people flag a camera (left out until the next check) on a rise this many times the one that makes it
 suspect: one moment's residuals are noisier than a window's median (2: two or three flags a minute on the
 synthetic detector-like noise of tests/test_camera_watch.py; 3: none, and a 2° knock still flagged at once)."""
+SCREEN_FACTOR = 1.5
+"""A person's all-in residuals pass the screen for the at-once flag on a rise this many times the suspect one (a
+turned camera pulls the all-in points its way, so its all-in rise is a half to three quarters of its left-out one;
+1.5 lets every moment of a 2° knock through to the exact check, and one moment in ten of clean walking)."""
+RELEASE_AFTER = 3
+"""A bumped camera whose re-estimates were refused this many times in a row is put back in the solve (*released*)
+and the others re-examined without it for ``baseline_s``: the wrong camera may have been named (a roll of one camera
+of a ring of four named its neighbour, whose re-estimates then improved nothing), and a camera held out for good is
+a camera fewer for every person."""
+COHERENCE = 0.6
+"""... and only when its keypoints are off the same way: the median offset at least this share of the median
+distance (a 1-2° tilt or pan: 0.9 and more; a bad detection that passes the rest: mostly under 0.5)."""
 IMPROVEMENT = 0.5
 """An applied re-estimate's matches reproject at most this share of their error with the old pose."""
 MIN_INLIER_SHARE = 0.5
@@ -149,6 +169,8 @@ class _Camera:
     """One camera's record: (solve time ns, residual px) samples, its state and what the state came from."""
 
     samples: deque[tuple[int, float]] = field(default_factory=deque)
+    quick: deque[tuple[int, float]] = field(default_factory=deque)  # (solve time ns, all-in residual px), checked
+    quick_baseline: float = float("nan")  # the all-in residual's median over the baseline span
     state: str = "learning"
     since_ns: int = 0  # when the state was entered
     doubt_ns: int | None = None  # when it was last put in doubt after agreeing: flagged, then suspect
@@ -161,6 +183,9 @@ class _Camera:
     n_matches: int = 0
     proposal: Proposal | None = None  # the latest re-estimate (one that was refused: the matches gathered again)
     applied: int = 0  # re-estimates applied to this camera so far
+    refusals: int = 0  # re-estimates refused in a row since it was named
+    released: int = 0  # times it was put back after RELEASE_AFTER refusals
+    barred_until_ns: int | None = None  # released: not named again before then (the others re-examined)
 
 
 def residuals_left_out(
@@ -210,6 +235,41 @@ def residuals_left_out(
     return out, matches
 
 
+def residuals_all_in(
+    P: FloatArray, uv: FloatArray, conf: FloatArray, *, min_confidence: float, min_keypoints: int
+) -> FloatArray:
+    """Per camera: the median distance (px) between one person's keypoints it detected and the same keypoints
+    triangulated from *all* cameras (itself included), projected into it: one triangulation for the rig instead of
+    one per camera (:func:`residuals_left_out`), cheap enough for every tick. Only keypoints seen by three cameras
+    or more count (with two, both views share any error alike). A turned camera pulls the points towards itself by
+    its share of the views, so its rise is smaller than the left-out one, and leaks into the others by that share.
+
+    Parameters
+    ----------
+    P : array, shape (n_cams, 3, 4)
+    uv : array, shape (n_cams, n_kp, 2)
+    conf : array, shape (n_cams, n_kp)
+
+    Returns
+    -------
+    residual : array, shape (n_cams,)
+        NaN where the camera sees fewer than ``min_keypoints`` of those keypoints.
+    """
+    w = np.where((conf >= min_confidence) & np.all(np.isfinite(uv), axis=-1), conf, 0.0)
+    out = np.full(P.shape[0], np.nan)
+    X, ok = triangulate_projections(P, uv, w, min_views=3, normal_equations=True)
+    if ok.sum() < min_keypoints:
+        return out
+    h = P[:, None, :, :3] @ X[ok][None, :, :, None] + P[:, None, :, 3:]  # (n_cams, n_ok, 3, 1)
+    front = h[..., 2, 0] > 1e-9
+    d = h[..., :2, 0] / np.where(front, h[..., 2, 0], 1.0)[..., None] - uv[:, ok]
+    err = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+    use = front & (w[:, ok] > 0)
+    for c in np.flatnonzero(use.sum(axis=1) >= min_keypoints):
+        out[c] = float(np.median(err[c, use[c]]))  # np.median per camera: a tenth of np.nanmedian's cost here
+    return out
+
+
 def reestimate_pose(
     camera: Camera, X: FloatArray, uv: FloatArray, threshold_px: float = 20.0, iterations: int = 5
 ) -> Proposal | None:
@@ -243,6 +303,13 @@ def reestimate_pose(
     turn = float(np.degrees(np.arccos(np.clip((np.trace(new.R @ camera.R.T) - 1.0) / 2.0, -1.0, 1.0))))
     return Proposal(new, round(turn, 3), len(X), int(keep.sum()), round(float(np.median(before)), 2),
                     round(float(np.median(after)), 2))  # fmt: skip
+
+
+def _offsets(camera: Camera, X: FloatArray, uv: FloatArray) -> FloatArray:
+    """Undistorted-pixel offsets (n, 2) of points ``X`` (n, 3) projected by ``camera`` from ``uv`` (n, 2)."""
+    h = np.c_[X, np.ones(len(X))] @ camera.projection_matrix.T
+    d: FloatArray = h[:, :2] / h[:, 2:3] - uv
+    return d
 
 
 def _errors(camera: Camera, X: FloatArray, uv: FloatArray) -> FloatArray:
@@ -284,11 +351,22 @@ class CameraWatch:
         n = len(self.cameras)
         if uv.shape[:1] != (n,) or conf.shape != uv.shape[:2]:
             raise InputError(f"camera watch: keypoints {uv.shape} / confidences {conf.shape} for {n} cameras")
-        if self._due(t_ns):
-            self._check(t_ns, uv, conf)
+        o = self.options
+        due = self._due(t_ns)
+        # The all-in residuals: recorded on the checked ticks (their baselines), screened on every tick while every
+        # camera agrees (otherwise the state machine has it and nothing is flagged at once: not computed).
+        all_ok = all(c.state == "ok" for c in self._cams)
+        quick = (residuals_all_in(self._P, uv, conf, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
+                 if due or all_ok else None)  # fmt: skip
+        if due:
+            assert quick is not None
+            self._check(t_ns, uv, conf, quick)
         elif self._votes is not None:
             self._settle_flags()  # the checked tick is complete: its people's verdicts hold until the next check
         doubt = self.in_doubt() | self._flagged
+        at_once = self._at_once(uv, conf, quick) if quick is not None and all_ok else None
+        if at_once is not None:
+            doubt[at_once] = True  # this person's own views put it off alone: out of this solve
         if not doubt.any():
             return conf
         return conf * np.where(doubt, self.options.down_weight, 1.0)[:, None]
@@ -310,7 +388,26 @@ class CameraWatch:
         self._votes = []
         return True
 
-    def _check(self, t_ns: int, uv: FloatArray, conf: FloatArray) -> None:
+    def _at_once(self, uv: FloatArray, conf: FloatArray, quick: FloatArray) -> int | None:
+        """The camera this person's own views put off alone, now: screened on the all-in residuals ``quick``
+        (n_cams,) with half the flag's rise (:data:`SCREEN_FACTOR`: one triangulation, every moment), confirmed on
+        the person's left-out residuals by the flag's own rule (:data:`FLAG_FACTOR`; a triangulation per camera,
+        only on the moments the screen passes). None while a camera is in doubt, or any camera has no baseline."""
+        if self._off_alone(quick, np.array([c.quick_baseline for c in self._cams]), SCREEN_FACTOR) is None:
+            return None
+        o = self.options
+        res, matches = residuals_left_out(self._P, uv, conf, min_confidence=o.min_confidence,
+                                          min_keypoints=o.min_keypoints)  # fmt: skip
+        off = self._off_alone(res, np.array([c.baseline for c in self._cams]))
+        if off is None:
+            return None
+        # A knock turns the whole view: its keypoints are off the same way. A bad detection (limbs swapped, a
+        # few outliers) is off every which way: the median offset is a small part of the median distance.
+        X, seen = matches[off]
+        shift = float(np.linalg.norm(np.median(_offsets(self.cameras[off], X, seen), axis=0)))
+        return off if shift >= COHERENCE * res[off] else None
+
+    def _check(self, t_ns: int, uv: FloatArray, conf: FloatArray, quick: FloatArray) -> None:
         o = self.options
         res, matches = residuals_left_out(self._P, uv, conf, min_confidence=o.min_confidence,
                                           min_keypoints=o.min_keypoints)  # fmt: skip
@@ -320,8 +417,11 @@ class CameraWatch:
         for c, cam in enumerate(self._cams):
             if np.isfinite(res[c]):
                 cam.samples.append((t_ns, float(res[c])))
-            while cam.samples and cam.samples[0][0] < t_ns - keep_ns:
-                cam.samples.popleft()
+            if np.isfinite(quick[c]):
+                cam.quick.append((t_ns, float(quick[c])))
+            for kept in (cam.samples, cam.quick):
+                while kept and kept[0][0] < t_ns - keep_ns:
+                    kept.popleft()
             gathering = cam.proposal is None or cam.proposal.refused is not None
             if cam.state == "bumped" and o.reestimate_points > 0 and gathering and len(matches[c][0]):
                 cam.matches.append(matches[c])
@@ -339,7 +439,7 @@ class CameraWatch:
             seen = np.isfinite(res).any(axis=0)
             pooled = np.full(len(self._cams), np.nan)
             pooled[seen] = np.nanmedian(res[:, seen], axis=0)
-            off = self._off_alone(pooled)
+            off = self._off_alone(pooled, np.array([c.baseline for c in self._cams]))
             if off is not None:
                 self._flagged[off] = True
         for c, flagged in enumerate(self._flagged):
@@ -348,15 +448,14 @@ class CameraWatch:
             elif self._flag_since[c] is None:
                 self._flag_since[c] = self._tick_ns
 
-    def _off_alone(self, res: FloatArray) -> int | None:
+    def _off_alone(self, res: FloatArray, base: FloatArray, factor: float = FLAG_FACTOR) -> int | None:
         """The camera one check's residuals ``res`` (n_cams,) put off alone, by the rule that makes a camera
-        suspect with a rise :data:`FLAG_FACTOR` times larger (against the baselines; none while a camera is in doubt
-        or without baselines), or None."""
+        suspect with a rise ``factor`` times larger (against the baselines ``base`` (n_cams,); none while a camera
+        is in doubt or without baselines), or None."""
         o = self.options
         if any(c.state != "ok" for c in self._cams):
             return None  # learning (no baseline), or a camera already in doubt: the state machine has it
-        base = np.array([c.baseline for c in self._cams])
-        rise = res - base
+        rise = np.where(self._barred(self._last_ns), np.nan, res - base)
         finite = np.isfinite(rise)
         if finite.sum() < 3:
             return None
@@ -364,7 +463,7 @@ class CameraWatch:
         ranked = np.sort(rise[finite])
         others = np.delete(rise, i)
         others = others[np.isfinite(others)]
-        if not (rise[i] > FLAG_FACTOR * max(o.margin_px, o.ratio * base[i]) and ranked[-2] < o.tie_ratio * rise[i]):
+        if not (rise[i] > factor * max(o.margin_px, o.ratio * base[i]) and ranked[-2] < o.tie_ratio * rise[i]):
             return None
         return i if float(np.median(others)) < o.others_ratio * rise[i] else None
 
@@ -372,6 +471,9 @@ class CameraWatch:
         o = self.options
         split = t_ns - round(o.window_s * 1e9)
         for cam in self._cams:
+            quick = [r for t, r in cam.quick if t < split]
+            quick_span = (split - cam.quick[0][0]) / 1e9 if quick else 0.0
+            cam.quick_baseline = float(np.median(quick)) if quick_span >= o.min_baseline_s else float("nan")
             old = [r for t, r in cam.samples if t < split]
             new = [r for t, r in cam.samples if t >= split]
             span = (split - cam.samples[0][0]) / 1e9 if old else 0.0
@@ -384,6 +486,12 @@ class CameraWatch:
     def _rise(self, cam: _Camera) -> float:
         return cam.current - cam.baseline if np.isfinite(cam.current) and np.isfinite(cam.baseline) else float("nan")
 
+    def _barred(self, t_ns: int | None) -> NDArray[np.bool_]:
+        """Per camera: released and still being re-examined (not named, nor flagged, and no measure of the others)."""
+        if t_ns is None:
+            return np.zeros(len(self._cams), dtype=bool)
+        return np.array([c.barred_until_ns is not None and t_ns < c.barred_until_ns for c in self._cams], dtype=bool)
+
     def _high(self, cam: _Camera) -> bool:
         rise = self._rise(cam)
         return bool(np.isfinite(rise) and rise > max(self.options.margin_px, self.options.ratio * cam.baseline))
@@ -392,7 +500,9 @@ class CameraWatch:
         o = self.options
         self._levels(t_ns)
         hold = round(o.hold_s * 1e9)
-        rises = np.array([self._rise(c) for c in self._cams])
+        barred = self._barred(t_ns)
+        # A released camera's rise is left out of the comparisons: the others are re-examined without it.
+        rises = np.array([np.nan if b else self._rise(c) for c, b in zip(self._cams, barred, strict=True)])
         doubt = bool(np.array([c.state == "bumped" for c in self._cams]).any())
         finite = np.sort(rises[np.isfinite(rises)])
         # Two cameras rising alike cannot be told apart (opposite cameras that are each other's only witness of
@@ -460,6 +570,22 @@ class CameraWatch:
             return  # too few matches agree: gather again
         cam.proposal = replace(prop, refused=judge_proposal(prop, cam.baseline, self.options))
         self.events.append((t_ns, self.cameras[c].name, "re-estimated", _proposal_json(cam.proposal)))
+        cam.refusals = cam.refusals + 1 if cam.proposal.refused is not None else 0
+        if cam.refusals >= RELEASE_AFTER and cam.state == "bumped":
+            self._release(t_ns, c)
+
+    def _release(self, t_ns: int, c: int) -> None:
+        """Bumped camera ``c``, whose re-estimates keep being refused, back in the solve; not named again for
+        ``baseline_s`` while the others are judged without it (:data:`RELEASE_AFTER`)."""
+        cam = self._cams[c]
+        reason = cam.proposal.refused if cam.proposal is not None else None
+        details = {"refused": cam.refusals, "reason": reason, "re_examine_s": self.options.baseline_s}
+        self.events.append((t_ns, self.cameras[c].name, "released", details))
+        self._clear(cam)
+        cam.refusals = 0
+        cam.released += 1
+        cam.barred_until_ns = t_ns + round(self.options.baseline_s * 1e9)
+        cam.state, cam.since_ns = "ok", t_ns
 
     # ------------------------------------------------------------------------------------------ output
     def proposal(self, camera: int) -> Proposal | None:
@@ -498,10 +624,11 @@ class CameraWatch:
         return {
             cam.name: {
                 "state": c.state, "residual_px": _r(c.current), "baseline_px": _r(c.baseline), "bumps": c.bumps,
-                "applied": c.applied, "samples": len(c.samples),
+                "applied": c.applied, "samples": len(c.samples), "released": c.released,
+                "re_examining": bool(self._barred(self._last_ns)[i]),
                 "proposal": None if c.proposal is None else _proposal_json(c.proposal),
             }
-            for cam, c in zip(self.cameras, self._cams, strict=True)
+            for i, (cam, c) in enumerate(zip(self.cameras, self._cams, strict=True))
         }  # fmt: skip
 
 

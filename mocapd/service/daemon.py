@@ -71,6 +71,7 @@ from mocapd.pipeline.scheduler import (
     imu_offset_steps,
 )
 from mocapd.pipeline.time_alignment import Steps, estimate_imu_lag, estimate_lag
+from mocapd.service.calibration_save import save_cameras
 from mocapd.service.config import Config
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.http_status import StatusServer
@@ -332,6 +333,7 @@ class Daemon:
             "/heading/reset": lambda q, who: self.reset_heading(q.get("suit") or None, who, remote=True),
             "/imu/calibrate": lambda q, who: self.calibrate_imu(q.get("suit") or None, q.get("pose") or None, who,
                                                                 cancel=q.get("cancel") in ("1", "true")),
+            "/calibration/save": lambda q, who: self.save_calibration(who),
         }  # fmt: skip
         #: the guided IMU calibrations asked of this daemon (docs/imu.md "Calibrating a suit live")
         self.live_calibration = LiveCalibrations(
@@ -702,6 +704,34 @@ class Daemon:
             tap(change)
         return change
 
+    def save_calibration(self, source: str = "request") -> dict[str, Any]:
+        """The cameras this daemon runs with now (the camera watch's changes applied) written to ``[calibration]
+        save_to``, else the calibration file (:func:`mocapd.service.calibration_save.save_cameras`: atomically, the
+        old file backed up beside it), so the next start has them. Logged as a warning (it changes a file the next
+        start reads); returns what was written.
+
+        Raises
+        ------
+        InputError
+            No file to write (a synthetic rig without ``save_to``), a name that is not ``.toml``, an unreadable old
+            file.
+        OutputError
+            The file or its backup cannot be written.
+        """
+        cal = self.config.calibration
+        target = cal.save_to or cal.file
+        if not target:
+            raise InputError("nowhere to save the cameras: [calibration] file is not set (a synthetic rig); set "
+                             "[calibration] save_to")  # fmt: skip
+        changed = sorted({c.camera.name for c in self.camera_changes})
+        saved = save_cameras(self.rig.cameras, Path(target), source=f"mocapd daemon ({source})",
+                             world_up=None if cal.world_up == "auto" else cal.world_up)  # fmt: skip
+        log.warning("calibration saved to %s on %s: %d camera(s)%s%s", saved.file, source, len(saved.cameras),
+                    f", changed while running: {', '.join(changed)}" if changed else ", none changed while running",
+                    f"; the old file kept as {saved.backup}" if saved.backup else "")  # fmt: skip
+        return {"file": str(saved.file), "backup": None if saved.backup is None else str(saved.backup),
+                "cameras": list(saved.cameras), "kept": list(saved.kept), "changed": changed}  # fmt: skip
+
     def _apply_camera_proposals(self) -> None:
         """The camera watch's re-estimates that passed their checks, applied (``[calibration.watch] apply``)."""
         assert self.camera_watch is not None
@@ -823,6 +853,11 @@ class Daemon:
                 log.warning("camera %s re-estimated from the people, the others held: turned %.2f deg, %s -> %s px "
                             "(/status camera_watch.%s.proposal; %s%s)", name, d["rotation_deg"],
                             d["median_px_before"], d["median_px_after"], name, why, again)  # fmt: skip
+            elif what == "released":
+                log.warning("camera %s back in the solve: %d re-estimates in a row refused (the last: %s); it may not "
+                            "be the camera that moved: the others are re-examined without it for %g s (/status "
+                            "camera_watch.%s.re_examining)", name, d["refused"], d["reason"], d["re_examine_s"],
+                            name)  # fmt: skip
             else:
                 log.warning("camera %s agrees with the others again (%s px)", name, d["residual_px"])
 

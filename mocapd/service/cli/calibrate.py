@@ -237,6 +237,12 @@ def session_calibration(path: Path) -> CalibrationSet:
                                 for c in cameras), source=f"session:{path}")  # fmt: skip
 
 
+def _run_save(args: argparse.Namespace) -> int:
+    from mocapd.service.cli.daemon import cmd_save_calibration
+
+    return cmd_save_calibration(args)
+
+
 def _run_convert(args: argparse.Namespace) -> int:
     try:
         check_output_file(args.output, inputs=[args.input], overwrite=args.force)
@@ -380,3 +386,9 @@ def register(subparsers: Any) -> None:
     conv.add_argument("--scale", type=number(0.01, 100.0), default=1.0,
                       help="for images resized by this factor (0.5: half-size, or 2x2 binning); default 1")  # fmt: skip
     conv.set_defaults(func=_run_convert)
+    save = sub.add_parser(
+        "save", help="ask the running daemon to write the cameras it runs with (the camera watch's changes applied) "
+        "to its calibration file ([calibration] save_to, else file; the old one kept as NAME.<time>.bak)")  # fmt: skip
+    save.add_argument("--config", type=Path, default=None, help="the daemon's config file (for its http_port)")
+    save.add_argument("--http-port", type=int, default=None, help="the daemon's status port (default: the config's)")
+    save.set_defaults(func=_run_save)

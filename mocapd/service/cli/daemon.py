@@ -272,8 +272,26 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_reset_heading(args: argparse.Namespace) -> int:
     """``mocapd reset-heading``: ask the running daemon (``POST /heading/reset``) for a heading reset."""
     import time
-    import urllib.error
     import urllib.parse
+
+    query = f"?{urllib.parse.urlencode({'suit': args.suit})}" if args.suit else ""
+    if args.delay > 0:
+        print(f"stand straight, facing forward (the way you faced at calibration): reset in {args.delay:g} s",
+              flush=True)  # fmt: skip
+        time.sleep(args.delay)
+    return ask_daemon(args, "/heading/reset" + query, "mocapd reset-heading")
+
+
+def cmd_save_calibration(args: argparse.Namespace) -> int:
+    """``mocapd calibrate save``: ask the running daemon (``POST /calibration/save``) to write the cameras it runs
+    with to its calibration file (``[calibration] save_to``, else ``file``; the old one backed up)."""
+    return ask_daemon(args, "/calibration/save", "mocapd calibrate save")
+
+
+def ask_daemon(args: argparse.Namespace, target: str, client: str) -> int:
+    """POST ``target`` to the daemon of ``args.config`` / ``args.http_port``; print its JSON answer (0) or its
+    words on a refusal, or that no daemon answers (2)."""
+    import urllib.error
     import urllib.request
 
     from mocapd.protocols.web_access import REQUEST_HEADER
@@ -285,18 +303,13 @@ def cmd_reset_heading(args: argparse.Namespace) -> int:
         _print_config_error(path, exc)
         return 2
     d = cfg.daemon
-    url = f"http://{d.http_host}:{d.http_port}/heading/reset" + (
-        f"?{urllib.parse.urlencode({'suit': args.suit})}" if args.suit else "")  # fmt: skip
-    if args.delay > 0:
-        print(f"stand straight, facing forward (the way you faced at calibration): reset in {args.delay:g} s",
-              flush=True)  # fmt: skip
-        time.sleep(args.delay)
+    url = f"http://{d.http_host}:{d.http_port}{target}"
     try:
         # The header a web page cannot send (docs/reliability.md "The web surface"); its value names us in the log.
-        request = urllib.request.Request(url, method="POST", headers={REQUEST_HEADER: "mocapd reset-heading"})
+        request = urllib.request.Request(url, method="POST", headers={REQUEST_HEADER: client})
         with urllib.request.urlopen(request, timeout=10) as r:
             result = json.loads(r.read())
-    except urllib.error.HTTPError as exc:  # a 400 (no such suit), a 429 (too many resets): the daemon's words
+    except urllib.error.HTTPError as exc:  # a 400 (no such suit, nowhere to save), a 429 (too many): its words
         body = exc.read()
         try:
             said = json.loads(body).get("error", exc)

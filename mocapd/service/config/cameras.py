@@ -231,6 +231,9 @@ class CalibrationConfig(Section):
     delivers. "" = none (only a synthetic rig needs none)."""
     world_up: Literal["auto", "y", "z"] = "auto"
     """The file's world up axis: auto = the format's (Z for Qualisys/Pose2Sim, Y for mocapd/OpenCV)."""
+    save_to: PathStr = ""
+    """Where ``POST /calibration/save`` (``mocapd calibrate save``) writes the cameras the daemon runs with, as
+    mocapd's calibration TOML (a .toml name; the old file backed up beside it). "" = the calibration file."""
     watch: CameraWatchConfig = Field(default_factory=CameraWatchConfig)
     """The bumped-camera watch: per camera, the people's reprojection residuals against the other cameras."""
 
