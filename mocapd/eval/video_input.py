@@ -18,6 +18,7 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from tokenize import TokenError  # numpy's header parser raises it for a damaged .npy header
 from typing import Any
 
 import cv2
@@ -266,7 +267,7 @@ def load_detections(path: Path, n_cams: int) -> TakeDetections | None:
         with np.load(path, allow_pickle=False) as z:
             counts, kp, cf = z["counts"], z["keypoints"], z["confidences"]
             key, meta = str(z["key"]), json.loads(str(z["meta"]))
-    except (OSError, ValueError, KeyError, json.JSONDecodeError):
+    except (OSError, ValueError, KeyError, json.JSONDecodeError, TokenError):
         return None
     if counts.ndim != 2 or counts.shape[1] != n_cams or int(counts.sum()) != kp.shape[0] or kp.shape[:2] != cf.shape:
         return None

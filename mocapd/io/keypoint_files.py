@@ -28,6 +28,7 @@ import tomllib
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from tokenize import TokenError  # numpy's header parser raises it for a damaged .npy header
 
 import numpy as np
 
@@ -147,7 +148,7 @@ def read_freemocap(path: Path, keypoint_set: str | None = None) -> list[ParsedFr
     data = read_input_bytes(path, "FreeMoCap 2D array", max_bytes=MAX_VIDEO_FILE_BYTES)
     try:
         arr = np.load(io.BytesIO(data), allow_pickle=False)
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, TokenError) as exc:
         raise InputError(f"{path}: not a numpy array file: {exc}") from None
     if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiu":
         raise InputError(f"{path}: expected an array of numbers")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
+from tokenize import TokenError  # numpy's header parser raises it for a damaged .npy header
 from typing import Any
 
 import numpy as np
@@ -82,7 +83,7 @@ def _npz(path: Path, intrinsics: Path | None, fps: float) -> PeopleInput:
     try:
         with np.load(path, allow_pickle=False) as z:
             names = json.loads(str(z["meta"])).get("cameras")
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, KeyError, json.JSONDecodeError, TokenError) as exc:
         raise InputError(f"{path}: not a detections file ({exc})") from None
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise InputError(f"{path}: its meta names no cameras")

@@ -39,6 +39,7 @@ from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from tokenize import TokenError  # numpy's header parser raises it for a damaged .npy header
 from typing import Any
 
 import numpy as np
@@ -168,7 +169,7 @@ def _prior(path: Path) -> PcaPrior:
     try:
         with np.load(path, allow_pickle=False) as z:
             return PcaPrior(z["M"], z["mu"], z["sigma"])
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, ModelError) as exc:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, ModelError, TokenError) as exc:
         raise InputError(f"{path}: cannot read the session's pose prior (damaged?): {exc}") from None
 
 
