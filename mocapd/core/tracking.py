@@ -11,13 +11,14 @@ Each frame the :class:`~mocapd.core.sorting.DetectionSorter` gives 3D candidates
   triangulation: the same 3D person, not views that paired up once), no gap longer than ``tentative_gap_s``, and
   for at least ``enrol_after_s``.
 
-The evidence rule (issue 41): with ``enrol_after_s`` = 0.1 a person is published at their 4th frame. One frame's
-candidate can be two people's views paired up
-across a near-degenerate camera pair, or a false-positive detection matched by chance, but such a pairing does not
-hold its place frame after frame; a real person does from their first frames. The shipped default stays 1 s for
-the live daemon: it updates the tracker every output tick, not every detection frame, so a slow detector's one
-pass counts as many sightings (docs/tracking.md); sessions of imported keypoints tick once per frame and enrol
-after 0.1 s (:mod:`mocapd.service.session.keypoint_import`).
+The evidence rule (issue 41): a person is published at their 3rd agreeing frame, once ``enrol_after_s`` has passed.
+One frame's candidate can be two people's views paired up across a near-degenerate camera pair, or a
+false-positive detection matched by chance, but such a pairing does not hold its place frame after frame; a real
+person does from their first frames. A *frame* is an observation, not an update: the live daemon updates the
+tracker on every output tick (60 Hz) from detections its timelines hold or interpolate between detector passes, so
+it passes, per camera, the detection frame each camera's detections come from (``frames`` of :meth:`update`). A
+sighting counts as a new frame only when at least ``enrol_views`` of its cameras show a frame none of them showed
+at the person's last counted sighting: ticks that replay one detector pass are one sighting, however many.
 
 A candidate no subject took may be a subject's *other views*: one person whose views disagree (two cameras'
 keypoints against the other two's) comes out of the sorter as two candidates, each seen by its own pair of cameras.
@@ -30,6 +31,7 @@ nanoseconds); nothing here reads a clock.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -88,7 +90,8 @@ class _Tentative:
     first_ns: int
     last_ns: int
     start_index: int  # designated start position it stands at, or -1
-    sightings: int = 0  # frames seen by enough views
+    sightings: int = 0  # distinct frames seen by enough views
+    counted: dict[int, int] = field(default_factory=dict)  # camera -> its frame at the last counted sighting
 
 
 @dataclass(frozen=True)
@@ -130,9 +133,19 @@ class SubjectTracker:
         self.subjects: list[Subject] = []
         self._tentative: list[_Tentative] = []
         self._next_id = 1
+        self._frames: list[int] = []  # this update's frame per camera (see update)
 
-    def update(self, t_ns: int, detections: list[Detections2D]) -> FrameAssignment:
-        """Process one frame's detections (one :class:`Detections2D` per camera) at time ``t_ns``."""
+    def update(self, t_ns: int, detections: list[Detections2D], frames: Sequence[int] | None = None) -> FrameAssignment:
+        """Process one frame's detections (one :class:`Detections2D` per camera) at time ``t_ns``.
+
+        ``frames`` names, per camera, the observation its detections come from (the live daemon: the capture time
+        of the detection frame sampled, :attr:`~mocapd.pipeline.keypoint_timeline.TimelineSample.frame_ns`); two
+        updates with the same value for a camera saw the same frame of it, which counts once towards enrolment.
+        None: every update is a new frame of every camera (a caller that updates once per detection frame).
+        """
+        if frames is not None and len(frames) != len(detections):
+            raise InputError(f"{len(frames)} frame times for {len(detections)} cameras")
+        self._frames = [t_ns] * len(detections) if frames is None else list(frames)
         cands = self.sorter.candidates(detections)
         for s in self.subjects:
             s.seen = False
@@ -249,7 +262,7 @@ class SubjectTracker:
                 self._tentative.append(_Tentative(c.points, t_ns, t_ns, start))
                 matched.add(id(self._tentative[-1]))
                 best = self._tentative[-1]
-            best.sightings += int(len(c.sources) >= min(o.enrol_views, len(self.sorter.cameras)))
+            best.sightings += self._new_sighting(best, c)
             confirmed = best.sightings >= o.enrol_frames and best.last_ns - best.first_ns >= o.enrol_after_s * _NS
             if confirmed and len(self.subjects) < o.max_subjects:
                 s = Subject(self._next_id, c.points, t_ns, t_ns, dict(c.sources), True)
@@ -258,6 +271,17 @@ class SubjectTracker:
                 self._tentative = [t for t in self._tentative if t is not best]
                 events.append(TrackingEvent(t_ns, "enrolled", s.id))
         return events, held
+
+    def _new_sighting(self, t: _Tentative, c: Candidate) -> bool:
+        """Whether ``c`` is new evidence of ``t``: seen by ``enrol_views`` cameras (every camera of a smaller rig)
+        that each show a frame other than the one they showed at ``t``'s last counted sighting. Interpolated or
+        held ticks of one detector pass show the same frames: one sighting."""
+        need = min(self.options.enrol_views, len(self.sorter.cameras))
+        fresh = [cam for cam in c.sources if t.counted.get(cam) != self._frames[cam]]
+        if len(c.sources) < need or len(fresh) < need:
+            return False
+        t.counted.update({cam: self._frames[cam] for cam in c.sources})
+        return True
 
 
 def _nearest_is(
