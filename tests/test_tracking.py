@@ -211,6 +211,26 @@ def test_enrolment_counts_distinct_frames_of_each_camera() -> None:
     assert not tracker.subjects
 
 
+@pytest.mark.parametrize(("height", "enrolled"), [(0.7, False), (1.1, True), (1.75, True), (2.1, True)])
+def test_only_a_human_sized_body_is_evidence(height: float, enrolled: bool) -> None:
+    """The camera demo's third identity with the frame rule (issue 41): two cameras' detections of two far-away
+    people met inside the volume in a body 0.4 m from nose to knees, the same place pass after pass. A body at 0.4
+    of an adult's size is never a sighting; a 1.1 m child and a 2.1 m adult are."""
+    from mocapd.core.body_size import COCO17_NAMES
+    from mocapd.core.tracking import body_scale
+
+    sk = Skeleton.from_height(height)
+    cams = ring_rig(4, radius=4.5)
+    person = walking_path(sk, 12, (0.0, 0.0), (0.2, 0.2), seed=1, fps=FPS)
+    dets, _ = scene_detections(cams, coco17_targets(sk), sk, [person], np.random.default_rng(0), 1.0)
+    tracker = SubjectTracker(DetectionSorter(cams), TrackingOptions(enrol_after_s=0.1))
+    for f in range(12):
+        tracker.update(f * NS, dets[f])
+    assert bool(tracker.subjects) == enrolled
+    scale = body_scale(tracker.sorter.candidates(dets[0])[0].points, COCO17_NAMES)
+    assert scale == pytest.approx(height / 1.75, rel=0.15)
+
+
 def test_enrolment_options_checked() -> None:
     with pytest.raises(InputError, match="non-negative"):
         SubjectTracker(DetectionSorter([]), TrackingOptions(enrol_frames=-1))
