@@ -17,11 +17,12 @@ false-positive detection matched by chance, but such a pairing does not hold its
 person does from their first frames. A *frame* is an observation, not an update: the live daemon updates the
 tracker on every output tick (60 Hz) from detections its timelines hold or interpolate between detector passes, so
 it passes, per camera, the detection frame each camera's detections come from (``frames`` of :meth:`update`). A
-sighting counts as a new frame only when at least ``enrol_views`` of its cameras show a frame none of them showed
-at the person's last counted sighting: ticks that replay one detector pass are one sighting, however many. And a
-sighting counts only when its triangulated body is human-sized (:func:`body_scale`): two cameras' detections of
-two different people far away can meet in a consistent but tiny "person" inside the volume, pass after pass (the
-camera demo's third identity with this rule: nose to knees 0.4 m, limbs at 0.37 of an adult's).
+sighting counts as a new frame only when at least ``enrol_views`` of its cameras each show another frame than the
+one they showed at the person's last counted sighting: ticks that replay one detector pass are one sighting,
+however many. And a sighting counts only when its triangulated body is human-sized (:func:`body_scale`): two
+cameras' detections of two different people far away can meet in a consistent but tiny "person" inside the
+volume, pass after pass (the camera demo's third identity with this rule: nose to knees 0.4 m, limbs at 0.37 of
+an adult's).
 
 A candidate no subject took may be a subject's *other views*: one person whose views disagree (two cameras'
 keypoints against the other two's) comes out of the sorter as two candidates, each seen by its own pair of cameras.
