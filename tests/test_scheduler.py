@@ -311,3 +311,46 @@ def test_imu_orientations_are_slerped_and_accelerations_taken_from_the_previous_
     late = sched._sample_suit(suit, 200 * MS)  # after the newest sample: not extrapolated
     assert not late.mask[0]
     assert sched.imu_status["S1"] == {"ok": 2, "empty": 0, "before": 0, "after": 1, "gap": 0}
+
+
+def _slow_detector_scheduler() -> tuple[FixedLatencyScheduler, list[list[Detections2D]]]:
+    """A 60 Hz scheduler over a 4-camera ring whose detector holds a frame for up to a second (a slow detector, as
+    on the camera demo), with the enrolment's evidence rule (3 frames, 0.05 s); one person walking, detected at
+    30 fps."""
+    from mocapd.core.keypoints import coco17_targets
+    from mocapd.core.synthetic import ring_rig, scene_detections, walking_path
+
+    sk = Skeleton.from_height(1.75)
+    cams = ring_rig(4, radius=4.5)
+    targets = coco17_targets(sk)
+    person = walking_path(sk, 30, (-0.5, -0.5), (0.5, 0.5), seed=1, fps=30.0)
+    dets, _ = scene_detections(cams, targets, sk, [person], np.random.default_rng(0), 1.0)
+    tracker = PeopleTracker(SubjectTracker(DetectionSorter(cams), TrackingOptions(enrol_after_s=0.05)))
+    opts = SchedulerOptions(rate_hz=60.0, latency_ns=0, keypoint_max_age_ns=S, keypoint_max_gap_ns=S)
+    return FixedLatencyScheduler(cams, sk, targets, tracker, options=opts), dets
+
+
+def test_enrolment_counts_detection_frames_not_ticks() -> None:
+    """Issue 41: the tracker is updated every tick, but enrolment evidence is distinct detection frames. One
+    detector pass held for a second (60 ticks of the same frame) is one sighting: nobody is enrolled (the code
+    before counted every tick and enrolled the person at the 4th tick of one pass). Three distinct frames from two
+    cameras enrol the person at the third frame's tick, well before a second."""
+    sched, dets = _slow_detector_scheduler()
+    for c in range(4):
+        sched.add_detections(c, 0, dets[0][c], 0)
+    published = [len(sched.tick(k * S // 60).people) for k in range(60)]
+    assert published == [0] * 60
+    assert not sched.people.tracker.subjects
+
+    sched, dets = _slow_detector_scheduler()
+    frame_ns = S // 30
+    first = None
+    for k in range(60):
+        t = k * S // 60
+        f = t // frame_ns
+        if t % frame_ns == 0 and f < 3:  # three detector passes, from cameras 0 and 1 only
+            for c in (0, 1):
+                sched.add_detections(c, t, dets[f][c], t)
+        if sched.tick(t).people and first is None:
+            first = t
+    assert first == 2 * frame_ns  # the 3rd frame's tick (67 ms)

@@ -182,6 +182,55 @@ def test_default_enrolment_on_evidence_within_a_fifth_of_a_second() -> None:
     assert not ghost.subjects
 
 
+def test_enrolment_counts_distinct_frames_of_each_camera() -> None:
+    """Issue 41, live: the tracker is updated every 60 Hz tick from detections its timelines hold or interpolate,
+    so ticks are not evidence; the frames they come from are. One detection frame replayed for a second never
+    enrols; three frames of two unsynchronised cameras enrol the person at the tick that shows the third frame of
+    both; a third camera's new frames alone (the other two held) add nothing."""
+    cams, dets, labels = _scene(12)
+    one = [_only(dets[0][c], labels[0][c], {0})[0] for c in range(4)]
+    rule = TrackingOptions(enrol_after_s=0.05)
+    tracker = SubjectTracker(DetectionSorter(cams), rule)
+    for k in range(60):
+        out = tracker.update(k * TICK, one, [0, 0, 0, 0])
+    assert not out.subjects and tracker._tentative[0].sightings == 1
+    # Cameras 0 and 1 at 30 fps, camera 1 half a frame later; cameras 2 and 3 see nobody.
+    tracker = SubjectTracker(DetectionSorter(cams), rule)
+    enrolled_at = None
+    for k in range(12):
+        f0, f1 = k // 2, max(0, (k - 1) // 2)
+        frame = [dets[f0][0], dets[f1][1], Detections2D.empty(17), Detections2D.empty(17)]
+        out = tracker.update(k * TICK, frame, [f0, f1, -1, -1])
+        if out.subjects and enrolled_at is None:
+            enrolled_at = k
+    assert enrolled_at == 5  # camera 0's 3rd frame at tick 4, camera 1's at tick 5 (0.083 s)
+    # Three cameras, 2 and 3 held at one frame: camera 0's new frames alone are one view of new evidence.
+    tracker = SubjectTracker(DetectionSorter(cams), rule)
+    for k in range(12):
+        tracker.update(k * TICK, [dets[k][0], Detections2D.empty(17), dets[0][2], dets[0][3]], [k, -1, 0, 0])
+    assert not tracker.subjects
+
+
+@pytest.mark.parametrize(("height", "enrolled"), [(0.7, False), (1.1, True), (1.75, True), (2.1, True)])
+def test_only_a_human_sized_body_is_evidence(height: float, enrolled: bool) -> None:
+    """The camera demo's third identity with the frame rule (issue 41): two cameras' detections of two far-away
+    people met inside the volume in a body 0.4 m from nose to knees, the same place pass after pass. A body at 0.4
+    of an adult's size is never a sighting; a 1.1 m child and a 2.1 m adult are."""
+    from mocapd.core.body_size import COCO17_NAMES
+    from mocapd.core.tracking import body_scale
+
+    sk = Skeleton.from_height(height)
+    cams = ring_rig(4, radius=4.5)
+    person = walking_path(sk, 12, (0.0, 0.0), (0.2, 0.2), seed=1, fps=FPS)
+    dets, _ = scene_detections(cams, coco17_targets(sk), sk, [person], np.random.default_rng(0), 1.0)
+    tracker = SubjectTracker(DetectionSorter(cams), TrackingOptions(enrol_after_s=0.1))
+    for f in range(12):
+        tracker.update(f * NS, dets[f])
+    assert bool(tracker.subjects) == enrolled
+    scale = body_scale(tracker.sorter.candidates(dets[0])[0].points, COCO17_NAMES)
+    assert scale == pytest.approx(height / 1.75, rel=0.15)
+
+
 def test_enrolment_options_checked() -> None:
     with pytest.raises(InputError, match="non-negative"):
         SubjectTracker(DetectionSorter([]), TrackingOptions(enrol_frames=-1))

@@ -65,12 +65,13 @@ def replay(path: str, settings: list[str]) -> dict[str, Any]:
             k = sets[i]
             timelines[k.camera].push(k.capture_ns, Detections2D(k.keypoints, k.confidences))
             i += 1
-        detections = []
+        detections, frames = [], []
         for tl in timelines:
             s = tl.sample(frame.t_solve_ns)
             statuses[s.status.value] += 1
             detections.append(s.detections if s.status in USABLE else Detections2D.empty(n_kp))
-        found = people.update(frame.t_solve_ns, detections)
+            frames.append(s.frame_ns)
+        found = people.update(frame.t_solve_ns, detections, frames=frames)
         counts.append(len(found.people))
         events += [(round((e.t_ns - poses[0].t_solve_ns) / 1e9, 2), e.kind, e.subject) for e in found.tracking_events]
         if len(found.people) < len(people.tracker.subjects):

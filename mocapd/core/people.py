@@ -8,6 +8,7 @@ A track without a suit keeps the tracker's identity (``track:<id>``).
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,10 +52,15 @@ class PeopleTracker:
         self._bystanders = 0
 
     def update(
-        self, t_ns: int, detections: list[Detections2D], suits: dict[str, dict[str, FloatArray]] | None = None
+        self,
+        t_ns: int,
+        detections: list[Detections2D],
+        suits: dict[str, dict[str, FloatArray]] | None = None,
+        frames: Sequence[int] | None = None,
     ) -> PeopleFrame:
-        """One frame: per-camera detections and, per streaming suit, its measured global bone orientations."""
-        frame = self.tracker.update(t_ns, detections)
+        """One frame: per-camera detections and, per streaming suit, its measured global bone orientations;
+        ``frames``, per camera, the detection frame the detections come from (:meth:`SubjectTracker.update`)."""
+        frame = self.tracker.update(t_ns, detections, frames)
         seen = {s.id: s for s in frame.subjects if s.seen}
         binding_events: list[BindingEvent] = []
         suit_of: dict[int, str] = {}

@@ -11,13 +11,18 @@ Each frame the :class:`~mocapd.core.sorting.DetectionSorter` gives 3D candidates
   triangulation: the same 3D person, not views that paired up once), no gap longer than ``tentative_gap_s``, and
   for at least ``enrol_after_s``.
 
-The evidence rule (issue 41): with ``enrol_after_s`` = 0.1 a person is published at their 4th frame. One frame's
-candidate can be two people's views paired up
-across a near-degenerate camera pair, or a false-positive detection matched by chance, but such a pairing does not
-hold its place frame after frame; a real person does from their first frames. The shipped default stays 1 s for
-the live daemon: it updates the tracker every output tick, not every detection frame, so a slow detector's one
-pass counts as many sightings (docs/tracking.md); sessions of imported keypoints tick once per frame and enrol
-after 0.1 s (:mod:`mocapd.service.session.keypoint_import`).
+The evidence rule (issue 41): a person is published at their 3rd agreeing frame, once ``enrol_after_s`` has passed.
+One frame's candidate can be two people's views paired up across a near-degenerate camera pair, or a
+false-positive detection matched by chance, but such a pairing does not hold its place frame after frame; a real
+person does from their first frames. A *frame* is an observation, not an update: the live daemon updates the
+tracker on every output tick (60 Hz) from detections its timelines hold or interpolate between detector passes, so
+it passes, per camera, the detection frame each camera's detections come from (``frames`` of :meth:`update`). A
+sighting counts as a new frame only when at least ``enrol_views`` of its cameras each show another frame than the
+one they showed at the person's last counted sighting: ticks that replay one detector pass are one sighting,
+however many. And a sighting counts only when its triangulated body is human-sized (:func:`body_scale`): two
+cameras' detections of two different people far away can meet in a consistent but tiny "person" inside the
+volume, pass after pass (the camera demo's third identity with this rule: nose to knees 0.4 m, limbs at 0.37 of
+an adult's).
 
 A candidate no subject took may be a subject's *other views*: one person whose views disagree (two cameras'
 keypoints against the other two's) comes out of the sorter as two candidates, each seen by its own pair of cameras.
@@ -30,11 +35,13 @@ nanoseconds); nothing here reads a clock.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.body_size import COCO17_NAMES
 from mocapd.core.camera import Camera
 from mocapd.core.sorting import Candidate, Detections2D, DetectionSorter, mean_keypoint_distance
 from mocapd.errors import InputError
@@ -42,6 +49,15 @@ from mocapd.errors import InputError
 FloatArray = NDArray[np.float64]
 
 _NS = 1_000_000_000
+
+# Segments of a standing adult as fractions of the height (Winter, Biomechanics and Motor Control of Human
+# Movement, 4th ed., fig. 4.1), each left and right: upper arm, forearm, thigh, shank, shoulder to hip.
+_SEGMENTS = (("shoulder", "elbow", 0.186), ("elbow", "wrist", 0.146), ("hip", "knee", 0.245),
+             ("knee", "ankle", 0.246), ("shoulder", "hip", 0.288))  # fmt: skip
+_ADULT_M = 1.75
+HUMAN_SCALE = (0.55, 1.6)
+"""A sighting's :func:`body_scale` must lie in this range (a 0.96 m child to a 2.8 m giant): a person, not the
+meeting point of two far-away people's rays."""
 
 
 @dataclass(frozen=True)
@@ -54,10 +70,10 @@ class TrackingOptions:
     """Capture volume, floor rectangle (x, z) minimum corner (m). People outside it are never enrolled."""
     volume_max: tuple[float, float] = (2.5, 2.5)
     """Capture volume (x, z) maximum corner (m)."""
-    enrol_after_s: float = 1.0
+    enrol_after_s: float = 0.1
     """A person must be seen at least this long (inside the volume / at a start position) to become a subject."""
     enrol_frames: int = 3
-    """...and in this many frames (sightings that agree, see the module docstring)."""
+    """...and in this many distinct detection frames (sightings that agree, see the module docstring)."""
     enrol_views: int = 2
     """A sighting counts when this many cameras see the person (or every camera of a smaller rig)."""
     tentative_gap_s: float = 0.3
@@ -88,7 +104,8 @@ class _Tentative:
     first_ns: int
     last_ns: int
     start_index: int  # designated start position it stands at, or -1
-    sightings: int = 0  # frames seen by enough views
+    sightings: int = 0  # distinct frames seen by enough views
+    counted: dict[int, int] = field(default_factory=dict)  # camera -> its frame at the last counted sighting
 
 
 @dataclass(frozen=True)
@@ -130,9 +147,19 @@ class SubjectTracker:
         self.subjects: list[Subject] = []
         self._tentative: list[_Tentative] = []
         self._next_id = 1
+        self._frames: list[int] = []  # this update's frame per camera (see update)
 
-    def update(self, t_ns: int, detections: list[Detections2D]) -> FrameAssignment:
-        """Process one frame's detections (one :class:`Detections2D` per camera) at time ``t_ns``."""
+    def update(self, t_ns: int, detections: list[Detections2D], frames: Sequence[int] | None = None) -> FrameAssignment:
+        """Process one frame's detections (one :class:`Detections2D` per camera) at time ``t_ns``.
+
+        ``frames`` names, per camera, the observation its detections come from (the live daemon: the capture time
+        of the detection frame sampled, :attr:`~mocapd.pipeline.keypoint_timeline.TimelineSample.frame_ns`); two
+        updates with the same value for a camera saw the same frame of it, which counts once towards enrolment.
+        None: every update is a new frame of every camera (a caller that updates once per detection frame).
+        """
+        if frames is not None and len(frames) != len(detections):
+            raise InputError(f"{len(frames)} frame times for {len(detections)} cameras")
+        self._frames = [t_ns] * len(detections) if frames is None else list(frames)
         cands = self.sorter.candidates(detections)
         for s in self.subjects:
             s.seen = False
@@ -249,7 +276,7 @@ class SubjectTracker:
                 self._tentative.append(_Tentative(c.points, t_ns, t_ns, start))
                 matched.add(id(self._tentative[-1]))
                 best = self._tentative[-1]
-            best.sightings += int(len(c.sources) >= min(o.enrol_views, len(self.sorter.cameras)))
+            best.sightings += self._human_sized(c) and self._new_sighting(best, c)
             confirmed = best.sightings >= o.enrol_frames and best.last_ns - best.first_ns >= o.enrol_after_s * _NS
             if confirmed and len(self.subjects) < o.max_subjects:
                 s = Subject(self._next_id, c.points, t_ns, t_ns, dict(c.sources), True)
@@ -258,6 +285,43 @@ class SubjectTracker:
                 self._tentative = [t for t in self._tentative if t is not best]
                 events.append(TrackingEvent(t_ns, "enrolled", s.id))
         return events, held
+
+    def _human_sized(self, c: Candidate) -> bool:
+        """Whether ``c`` may be a person by its size (:func:`body_scale`; True when its keypoints are not named
+        or too few segments were triangulated: no verdict)."""
+        n_kp = c.points.shape[0]
+        names = self.sorter.keypoint_names
+        if len(names) != n_kp:
+            names = COCO17_NAMES if n_kp == len(COCO17_NAMES) else ()
+        scale = body_scale(c.points, names)
+        return scale is None or HUMAN_SCALE[0] <= scale <= HUMAN_SCALE[1]
+
+    def _new_sighting(self, t: _Tentative, c: Candidate) -> bool:
+        """Whether ``c`` is new evidence of ``t``: seen by ``enrol_views`` cameras (every camera of a smaller rig)
+        that each show a frame other than the one they showed at ``t``'s last counted sighting. Interpolated or
+        held ticks of one detector pass show the same frames: one sighting."""
+        need = min(self.options.enrol_views, len(self.sorter.cameras))
+        fresh = [cam for cam in c.sources if t.counted.get(cam) != self._frames[cam]]
+        if len(c.sources) < need or len(fresh) < need:
+            return False
+        t.counted.update({cam: self._frames[cam] for cam in c.sources})
+        return True
+
+
+def body_scale(points: FloatArray, names: tuple[str, ...]) -> float | None:
+    """How large the triangulated body ``points`` (n_kp, 3), keypoints named ``names``, is next to a 1.75 m adult:
+    the median over the measured limb and trunk segments (:data:`_SEGMENTS`, left and right) of length / the
+    adult's; None with fewer than 3 segments measured (no verdict)."""
+    index = {n: i for i, n in enumerate(names)}
+    ratios = []
+    for a, b, fraction in _SEGMENTS:
+        for side in ("left", "right"):
+            i, j = index.get(f"{side}_{a}"), index.get(f"{side}_{b}")
+            if i is not None and j is not None:
+                d = float(np.linalg.norm(points[i] - points[j]))
+                if np.isfinite(d):
+                    ratios.append(d / (fraction * _ADULT_M))
+    return float(np.median(ratios)) if len(ratios) >= 3 else None
 
 
 def _nearest_is(

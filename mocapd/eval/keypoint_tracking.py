@@ -342,7 +342,8 @@ def people_replay(
         t = k - latency_frames
         if t < 0:
             continue
-        frame = tracker.update(round(t * ns), [tl.sample(round(t * ns)).detections for tl in timelines])
+        samples = [tl.sample(round(t * ns)) for tl in timelines]
+        frame = tracker.update(round(t * ns), [s.detections for s in samples], frames=[s.frame_ns for s in samples])
         identities.update(p.identity for p in frame.people)
         if k >= start:
             counts.append(len(frame.people))

@@ -48,12 +48,19 @@ USABLE = frozenset({SampleStatus.INTERPOLATED, SampleStatus.EXACT, SampleStatus.
 
 @dataclass(frozen=True, slots=True)
 class TimelineSample:
-    """Detections at the requested time (empty unless the status is usable) and the frame times used."""
+    """Detections at the requested time (empty unless the status is usable) and the frame times used.
+
+    ``frame_ns`` names the observation the detections come from: the capture time of the frame they are (held,
+    exact, nearest), or of the nearer of the two frames they are interpolated between (whose people are the ones
+    passed through); -1 when none is usable. Ticks between two detector passes carry the same few frames, so the
+    tracker counts evidence per frame, not per tick (:class:`~mocapd.core.tracking.SubjectTracker`, issue 41).
+    """
 
     status: SampleStatus
     detections: Detections2D
     t_before: int
     t_after: int
+    frame_ns: int = -1
 
 
 class DetectionTimeline:
@@ -119,13 +126,13 @@ class DetectionTimeline:
         last_t, last = self._frames[-1]
         if t_ns >= last_t:
             if t_ns == last_t:
-                return TimelineSample(SampleStatus.EXACT, last, last_t, last_t)
+                return TimelineSample(SampleStatus.EXACT, last, last_t, last_t, last_t)
             if t_ns - last_t <= self.max_age_ns:
-                return TimelineSample(SampleStatus.HELD, last, last_t, last_t)
+                return TimelineSample(SampleStatus.HELD, last, last_t, last_t, last_t)
             return TimelineSample(SampleStatus.STALE, empty, last_t, last_t)
         if t_ns < first_t:
             if first_t - t_ns <= self.max_age_ns:
-                return TimelineSample(SampleStatus.NEAREST, first, first_t, first_t)
+                return TimelineSample(SampleStatus.NEAREST, first, first_t, first_t, first_t)
             return TimelineSample(SampleStatus.STALE, empty, first_t, first_t)
         # Newest first: the scheduler looks a fixed latency back, so the bracket is near the end.
         k = len(self._frames) - 2
@@ -134,14 +141,15 @@ class DetectionTimeline:
         t0, a = self._frames[k]
         t1, b = self._frames[k + 1]
         if t0 == t_ns:
-            return TimelineSample(SampleStatus.EXACT, a, t0, t0)
+            return TimelineSample(SampleStatus.EXACT, a, t0, t0, t0)
         if t1 - t0 > self.max_gap_ns:
             near_t, near = (t0, a) if t_ns - t0 <= t1 - t_ns else (t1, b)
             if abs(t_ns - near_t) <= self.max_age_ns:
-                return TimelineSample(SampleStatus.NEAREST, near, t0, t1)
+                return TimelineSample(SampleStatus.NEAREST, near, t0, t1, near_t)
             return TimelineSample(SampleStatus.STALE, empty, t0, t1)
         alpha = (t_ns - t0) / (t1 - t0)
-        return TimelineSample(SampleStatus.INTERPOLATED, interpolate_people(a, b, alpha, self.match_px), t0, t1)
+        people = interpolate_people(a, b, alpha, self.match_px)
+        return TimelineSample(SampleStatus.INTERPOLATED, people, t0, t1, t0 if alpha <= 0.5 else t1)
 
 
 def person_distances(a: Detections2D, b: Detections2D, min_confidence: float = 0.0) -> FloatArray:

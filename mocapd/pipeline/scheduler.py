@@ -239,6 +239,7 @@ class TickInputs:
     detections: list[Detections2D]  # per camera, at t_solve_ns
     missing: int  # cameras without usable keypoints
     suits: dict[str, SuitSample]  # per suit, at t_solve_ns
+    frames: list[int] = field(default_factory=list)  # per camera, the detection frame sampled (its capture time)
 
 
 PERSON_STAGES = ("unflip", "solve", "size", "total")
@@ -492,10 +493,10 @@ class FixedLatencyScheduler:
             self.latency_ns = self.auto_latency.update(now_ns, idle=self.counters["person_solves"] == 0)
         t = now_ns - self.latency_ns
         w0, c0 = self._wall(), self._cpu()
-        detections, missing = self._sample_cameras(t)
+        detections, missing, frames = self._sample_cameras(t)
         suits = {sid: self._sample_suit(suit, t) for sid, suit in self.suits.items()}
         self._stage("sample", w0, c0)
-        return TickInputs(now_ns, t, detections, missing, suits)
+        return TickInputs(now_ns, t, detections, missing, suits, frames)
 
     def solve(self, inputs: TickInputs) -> PoseFrame:
         """The second half of a tick, on any one thread at a time (the daemon's tick worker): sort the sampled
@@ -513,7 +514,8 @@ class FixedLatencyScheduler:
             sid: {suit.mounts[i].bone: s.orientations[i] for i in range(len(suit.mounts)) if s.mask[i]}
             for sid, (suit, s) in ((k, (self.suits[k], v)) for k, v in suits.items())
         }
-        frame = self.people.update(t, detections, {k: v for k, v in suit_bones.items() if v})
+        # The tracker counts enrolment evidence per detection frame, not per tick (issue 41): the frames sampled.
+        frame = self.people.update(t, detections, {k: v for k, v in suit_bones.items() if v}, inputs.frames or None)
         w2, c2 = self._stage("sort", w1, c1)
         self._seen_suits.clear()
         self._tick_mattes = None
@@ -580,8 +582,10 @@ class FixedLatencyScheduler:
         self.cpu_ns[name] += c - c0
         return w, c
 
-    def _sample_cameras(self, t: int) -> tuple[list[Detections2D], int]:
-        out = []
+    def _sample_cameras(self, t: int) -> tuple[list[Detections2D], int, list[int]]:
+        """Every camera's detections at ``t``, how many cameras have none usable, and per camera the frame they
+        come from (:attr:`TimelineSample.frame_ns`)."""
+        out, frames = [], []
         missing = 0
         for c, tl in enumerate(self.timelines):
             s = tl.sample(t)
@@ -589,7 +593,8 @@ class FixedLatencyScheduler:
             if s.status not in USABLE:
                 missing += 1
             out.append(s.detections)
-        return out, missing
+            frames.append(s.frame_ns)
+        return out, missing, frames
 
     def _sample_suit(self, suit: Suit, t: int) -> SuitSample:
         """Bone orientations at ``t`` (slerp) and accelerations at ``t - dt`` (kept from the previous tick when

@@ -156,9 +156,9 @@ def keypoints_manifest(take: KeypointTake, *, fps: float, height: float, source:
     raw.setdefault("detector", {}).setdefault("model", {})["keypoint_format"] = take.keypoint_format
     raw.setdefault("daemon", {}).update({"output_rate_hz": float(fps), "latency_s": LATENCY_S})
     raw.setdefault("imu", {}).setdefault("body", {})["height_m"] = height
-    # Every tick of an imported take is a detection frame: the enrolment's evidence rule (enrol_frames agreeing
-    # frames) counts real frames, so a person is published at their 4th frame rather than after the live default's
-    # second (docs/tracking.md).
+    # Every tick of an imported take is a detection frame: a person is published at their 4th frame (the evidence
+    # rule, docs/tracking.md; the live default is the same 0.1 s since the tracker counts detection frames, written
+    # here so a take keeps it whatever the config it was imported with says).
     raw.setdefault("tracking", {}).setdefault("enrolment", {})["enrol_after_s"] = IMPORT_ENROL_AFTER_S
     o = cfg.daemon.model_copy(update={"output_rate_hz": float(fps), "latency_s": LATENCY_S}).scheduler_options(
         [c.name for c in take.cameras])  # fmt: skip
