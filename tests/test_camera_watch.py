@@ -221,7 +221,7 @@ def test_a_passing_re_estimate_is_handed_out_applied_and_the_camera_rejoins() ->
     moved = [bumped(c, 2.0, (1.0, 0.0, 0.0)) if i == 1 else c for i, c in enumerate(truth)]
     moments = take(truth, 40.0, seed=1, bump_at=20.0, moved=moved)
     off = CameraWatch(truth, WatchOptions(apply=False))
-    watch = CameraWatch(truth)
+    watch = CameraWatch(truth, WatchOptions(apply=True))
     applied_at, weights = None, []
     for t, uv, cf in moments:
         off.observe(t, uv, cf)
