@@ -70,7 +70,7 @@ class TrackingOptions:
     """Capture volume, floor rectangle (x, z) minimum corner (m). People outside it are never enrolled."""
     volume_max: tuple[float, float] = (2.5, 2.5)
     """Capture volume (x, z) maximum corner (m)."""
-    enrol_after_s: float = 0.1
+    enrol_after_s: float = 1.0
     """A person must be seen at least this long (inside the volume / at a start position) to become a subject."""
     enrol_frames: int = 3
     """...and in this many distinct detection frames (sightings that agree, see the module docstring)."""
