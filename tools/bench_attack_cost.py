@@ -200,19 +200,10 @@ async def _attack(kind: str, ports: dict[str, int], seconds: float, rate: float)
 async def bench(kinds: list[str], phase_s: float, repeats: int) -> dict[str, Any]:
     from mocapd.io.ws_server import WebSocketStreamServer
     from mocapd.service.assembly import assembled
-    from mocapd.service.config import load_config
     from mocapd.service.demo.synthetic import synthetic_config
+    from tools.soak import soak_config
 
-    cfg = load_config()
-    imu = cfg.imu.model_copy(update={
-        "bridge": cfg.imu.bridge.model_copy(update={"enabled": True, "port": _free_udp_port()}),
-        "slimevr": cfg.imu.slimevr.model_copy(update={"enabled": True, "port": 0}),
-    })  # fmt: skip
-    cfg = cfg.model_copy(update={
-        "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
-        "websocket": cfg.websocket.model_copy(update={"port": 0}),
-        "imu": imu,
-    })  # fmt: skip
+    cfg = soak_config()
     results: dict[str, Any] = {}
     with assembled(synthetic_config(cfg)) as demo:
         d = demo.daemon
@@ -276,12 +267,6 @@ async def bench(kinds: list[str], phase_s: float, repeats: int) -> dict[str, Any
         d.imu.bridge.close()
         await d.http.close()
     return results
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _thread_cpu(tid: int | None) -> float:

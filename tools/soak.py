@@ -76,7 +76,10 @@ import tempfile
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from mocapd.service.config import Config
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
@@ -692,6 +695,23 @@ def _free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
+def soak_config() -> Config:
+    """The shipped config with every door the soak attacks open on free loopback ports: the IMU bridge, the SlimeVR
+    server, the status server and the WebSocket stream (``synthetic_config`` of it is the daemon soaked)."""
+    from mocapd.service.config import load_config
+
+    cfg = load_config()
+    imu = cfg.imu.model_copy(update={
+        "bridge": cfg.imu.bridge.model_copy(update={"enabled": True, "port": _free_udp_port()}),
+        "slimevr": cfg.imu.slimevr.model_copy(update={"enabled": True, "port": 0}),
+    })  # fmt: skip
+    return cfg.model_copy(update={
+        "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
+        "websocket": cfg.websocket.model_copy(update={"port": 0}),
+        "imu": imu,
+    })  # fmt: skip
+
+
 def _fds() -> int:
     return len(os.listdir("/proc/self/fd"))
 
@@ -717,19 +737,10 @@ async def soak(
     from mocapd.io.ws_server import WebSocketStreamServer
     from mocapd.pipeline.remote_cameras import RemoteRig, ZenohKeypointSource
     from mocapd.service.assembly import assembled
-    from mocapd.service.config import load_config, parse_config
+    from mocapd.service.config import parse_config
     from mocapd.service.demo.synthetic import synthetic_config
 
-    cfg = load_config()
-    imu = cfg.imu.model_copy(update={
-        "bridge": cfg.imu.bridge.model_copy(update={"enabled": True, "port": _free_udp_port()}),
-        "slimevr": cfg.imu.slimevr.model_copy(update={"enabled": True, "port": 0}),
-    })  # fmt: skip
-    cfg = cfg.model_copy(update={
-        "daemon": cfg.daemon.model_copy(update={"http_port": 0}),
-        "websocket": cfg.websocket.model_copy(update={"port": 0}),
-        "imu": imu,
-    })  # fmt: skip
+    cfg = soak_config()
     logs = _LogCounter()
     lines_out = _LineCounter()
     logging.getLogger().addHandler(logs)
