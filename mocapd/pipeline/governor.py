@@ -54,9 +54,11 @@ a window) and applies :attr:`Governor.level`'s settings to the keypoint sources 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import bdtr
 
 
 @dataclass(frozen=True)
@@ -114,7 +116,14 @@ class GovernorOptions:
     settle_s: float = 5.0
     """Nothing is shed in the first seconds after the start (models and caches warming up, people enrolling)."""
     helped_by: float = 0.1
-    """A step helped when the next window's p95 was at least this share lower (or its missed ticks half as many)."""
+    """A step helped when the median of the windows' p95 after it was at least this share lower than before it (or
+    its missed ticks significantly fewer, or the tick fits again)."""
+    judge_windows: int = 3
+    """A step is judged on this many windows after it (no further step meanwhile), against up to this many before
+    it at the level it left: medians, so that one window's noise decides nothing."""
+    significance: float = 0.05
+    """Fewer missed ticks after a step count as help when a one-sided binomial test on the pooled counts (before
+    against after, in proportion to their ticks) gives a p-value below this."""
     bite: float = 0.05
     """A step took work away when the process's CPU per second fell by at least this share."""
     retry_s: float = 30.0
@@ -124,7 +133,7 @@ class GovernorOptions:
 
 @dataclass(frozen=True)
 class _Window:
-    """What one window measured."""
+    """What one window measured (or several pooled: :func:`_pooled`)."""
 
     p95_ns: float
     missed: int
@@ -139,12 +148,36 @@ class _Window:
         return "" if self.cpu_rate is None else f", process CPU {self.cpu_rate:.2f} s/s"
 
 
-@dataclass(frozen=True)
+def _pooled(windows: Sequence[_Window]) -> _Window:
+    """Windows as one: the median of their p95s and of their CPU rates (one noisy window moves neither), their
+    missed ticks and ticks summed."""
+    rates = [w.cpu_rate for w in windows]
+    return _Window(
+        float(np.median([w.p95_ns for w in windows])),
+        sum(w.missed for w in windows),
+        sum(w.ticks for w in windows),
+        None if any(r is None for r in rates) else float(np.median([r for r in rates if r is not None])),
+    )
+
+
+def fewer_missed(before: _Window, after: _Window, significance: float) -> bool:
+    """Whether ``after`` missed significantly fewer ticks than ``before``, for their numbers of ticks: a one-sided
+    binomial test of the missed ticks' split between the two, against the split of their ticks (a Poisson rate
+    comparison: what a halving of 3 missed ticks to 1 cannot show, 40 to 20 does)."""
+    total = before.missed + after.missed
+    if total == 0 or after.missed_share >= before.missed_share:
+        return False
+    share = after.ticks / (after.ticks + before.ticks)
+    return float(bdtr(after.missed, total, share)) < significance  # P(at most after.missed of them after)
+
+
+@dataclass
 class _Trial:
-    """A step just taken: the step it left and the window that made it."""
+    """A step just taken: the step it left, the windows before it (at the level it left) and those since."""
 
     from_index: int
-    before: _Window
+    before: tuple[_Window, ...]
+    after: list[_Window] = field(default_factory=list)
 
 
 class Governor:
@@ -156,22 +189,34 @@ class Governor:
         options: GovernorOptions | None = None,
         start_ns: int = 0,
         steps: tuple[Level, ...] = LADDER,
+        pin: int | None = None,
     ) -> None:
+        """``pin``: hold the level at this step of ``steps`` (a developer's way to measure what a step saves,
+        ``[daemon] governor_pin_step``); it still measures the windows. Raises ValueError when the ladder has no
+        such step."""
         self.options = options if options is not None else GovernorOptions()
-        self.ladder = steps  # LADDER, or :func:`ladder` without the landmark step
+        self.ladder = steps  # LADDER, or :func:`ladder`'s steps for what the rig runs
         self.period_ns = period_ns
-        self.step_index = 0
+        if pin is not None and not 0 <= pin < len(steps):
+            raise ValueError(f"step {pin} is not on this rig's ladder (steps 0..{len(steps) - 1}: "
+                             f"{', '.join(lv.name for lv in steps)})")  # fmt: skip
+        self.pinned = pin is not None
+        self.step_index = pin or 0
         self._start_ns = start_ns
         self._window_start = start_ns
+        self._first_tick: int | None = None  # the first published tick's instant: settling counts from it
         self._calm_since: int | None = start_ns
         self._changed_ns = start_ns
         self._durations: list[int] = []
         self._missed = 0
         self.changes = 0
-        self.last_reason = "start"
+        self.last_reason = "start" if pin is None else f"pinned at step {pin} ([daemon] governor_pin_step)"
         self.last_p95_ms: float | None = None
+        #: the last changes: (seconds since the first tick, step, reason), oldest first
+        self.history: list[tuple[float, int, str]] = []
         self._cpu_at: tuple[int, int] | None = None  # (wall, process CPU) at the window's start
-        self._trial: _Trial | None = None  # the step taken at the end of the previous window, to be judged
+        self._level_windows: list[_Window] = []  # the windows since the level last changed (the last few)
+        self._trial: _Trial | None = None  # the step taken last, until it is judged
         self._no_shed_until = start_ns
         self._futile = 0  # steps in a row that took work away and did not help
 
@@ -186,25 +231,45 @@ class Governor:
         self._missed += missed
 
     def step(self, now_ns: int, cpu_ns: int | None = None) -> bool:
-        """At the end of a window (call often; it acts once ``window_s`` has passed): shed or restore a step.
+        """After each published tick (it acts once a window ``window_s`` has passed): shed or restore a step.
         ``cpu_ns``: the daemon's process CPU time now (any origin; None: not measured, then a step that did not
         help is taken back as one that took work away). Returns True when the level changed."""
-        measured = self._close_window(now_ns, cpu_ns)
-        if measured is None:
+        started = self._first_tick is not None
+        measured = self._close_window(now_ns, cpu_ns) if started else self._start(now_ns, cpu_ns)
+        if measured is None or self.pinned:
             return False
         window, began = measured
         o = self.options
-        share = window.p95_ns / self.period_ns
-        overrun = share > o.shed_above or window.missed_share > o.max_missed
-        trial, self._trial = self._trial, None
-        if trial is not None and self._judge(trial, window, overrun, now_ns):
-            return True
-        if overrun:
-            return self._shed(window, now_ns)
-        if share < o.restore_below and window.missed == 0:
-            return self._restore(window, began, now_ns)
-        self._calm_since = None
+        self._level_windows = [*self._level_windows, window][-o.judge_windows :]
+        calm = window.p95_ns < o.restore_below * self.period_ns and window.missed == 0
+        if self._calm_since is None and calm:
+            self._calm_since = began  # calm since this window began
+        elif not calm:
+            self._calm_since = None
+        trial = self._trial
+        if trial is not None:
+            trial.after.append(window)
+            if len(trial.after) < o.judge_windows:
+                return False  # a step on trial: no other change until it is judged
+            self._trial = None
+            if self._judge(trial, now_ns):
+                return True
+        if self._overran(window) and len(self._level_windows) >= 2 and self._overran(self._level_windows[-2]):
+            return self._shed(now_ns)  # two windows in a row: one slow window (a start-up burst) sheds nothing
+        if calm:
+            return self._restore(window, now_ns)
         return False
+
+    def _start(self, now_ns: int, cpu_ns: int | None) -> None:
+        """The first tick: the governor's time starts here, not at the daemon's construction (opening the cameras
+        and loading the models can take longer than the settling time); what was observed before is dropped."""
+        self._first_tick = self._start_ns = self._window_start = self._changed_ns = now_ns
+        self._calm_since = self._no_shed_until = now_ns
+        self._durations, self._missed = [], 0
+        self._cpu_at = None if cpu_ns is None else (now_ns, cpu_ns)
+
+    def _overran(self, w: _Window) -> bool:
+        return w.p95_ns > self.options.shed_above * self.period_ns or w.missed_share > self.options.max_missed
 
     def _close_window(self, now_ns: int, cpu_ns: int | None) -> tuple[_Window, int] | None:
         """The window's measurements and its start, once ``window_s`` has passed and the start settled."""
@@ -219,50 +284,58 @@ class Governor:
         if cpu_ns is not None and self._cpu_at is not None and now_ns > self._cpu_at[0]:
             cpu_rate = (cpu_ns - self._cpu_at[1]) / (now_ns - self._cpu_at[0])
             self._cpu_at = (now_ns, cpu_ns)
-        if not durations or now_ns - self._start_ns < o.settle_s * 1e9:
+        if not durations:
             return None
         p95 = float(np.percentile(durations, 95))
         self.last_p95_ms = round(p95 / 1e6, 2)
+        if now_ns - self._start_ns < o.settle_s * 1e9:
+            return None
         return _Window(p95, missed, len(durations) + missed, cpu_rate), began
 
-    def _shed(self, w: _Window, now_ns: int) -> bool:
+    def _shed(self, now_ns: int) -> bool:
         """One more step, unless at the last or waiting after a step that was taken back."""
-        self._calm_since = None
         if self.step_index + 1 >= len(self.ladder) or now_ns < self._no_shed_until:
             return False
-        self._trial = _Trial(self.step_index, w)
+        before = tuple(self._level_windows)
+        w = before[-1]
         self.step_index += 1
         self._changed(now_ns, f"tick p95 {w.p95_ns / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
                       f"{w.missed} of {w.ticks} ticks missed{w.cpu_text()}")  # fmt: skip
+        self._trial = _Trial(self.step_index - 1, before)
         return True
 
-    def _restore(self, w: _Window, began: int, now_ns: int) -> bool:
+    def _restore(self, w: _Window, now_ns: int) -> bool:
         """A calm window: one step back after ``hold_s`` of calm."""
         o = self.options
-        if self._calm_since is None:
-            self._calm_since = began  # calm since this window began
+        assert self._calm_since is not None
         calm_for = now_ns - max(self._calm_since, self._changed_ns)
         if self.step_index > 0 and calm_for >= o.hold_s * 1e9:
             self.step_index -= 1
-            self._calm_since = now_ns
             self._changed(now_ns, f"tick p95 {w.p95_ns / 1e6:.1f} ms, no tick missed for {o.hold_s:g} s")
+            self._calm_since = now_ns
             return True
         return False
 
-    def _judge(self, trial: _Trial, after: _Window, overrun: bool, now_ns: int) -> bool:
-        """The cause test of the step taken at the end of the previous window (see the module docstring): True when
-        it was taken back."""
-        o, before = self.options, trial.before
-        fewer_missed = before.missed_share > o.max_missed and after.missed_share <= before.missed_share / 2
-        if not overrun or after.p95_ns <= (1.0 - o.helped_by) * before.p95_ns or fewer_missed:
+    def _judge(self, trial: _Trial, now_ns: int) -> bool:
+        """The cause test of the step on trial, on the medians of its windows before and after (see the module
+        docstring): True when it was taken back."""
+        o = self.options
+        before, after = _pooled(trial.before), _pooled(trial.after)
+        helped = (
+            not self._overran(after)
+            or after.p95_ns <= (1.0 - o.helped_by) * before.p95_ns
+            or fewer_missed(before, after, o.significance)
+        )
+        if helped:
             self._futile = 0
             return False
         took_work = (
             before.cpu_rate is None or after.cpu_rate is None or after.cpu_rate <= (1.0 - o.bite) * before.cpu_rate
         )
         what = (f"step {trial.from_index + 1} ({self.ladder[trial.from_index + 1].name}) did not help: tick p95 "
-                f"{before.p95_ns / 1e6:.1f} -> {after.p95_ns / 1e6:.1f} ms, missed {before.missed} of {before.ticks} "
-                f"-> {after.missed} of {after.ticks}")  # fmt: skip
+                f"{before.p95_ns / 1e6:.1f} -> {after.p95_ns / 1e6:.1f} ms (medians of {len(trial.before)} -> "
+                f"{len(trial.after)} windows), missed {before.missed} of {before.ticks} -> {after.missed} of "
+                f"{after.ticks}")  # fmt: skip
         if before.cpu_rate is not None and after.cpu_rate is not None:
             what += f", process CPU {before.cpu_rate:.2f} -> {after.cpu_rate:.2f} s/s"
         if not took_work:  # it shed nothing measurable: no evidence either way, the next step may follow
@@ -278,11 +351,15 @@ class Governor:
 
     def _changed(self, now_ns: int, reason: str) -> None:
         self._changed_ns = now_ns
+        self._level_windows = []
         self.changes += 1
         self.last_reason = reason
+        since = 0.0 if self._first_tick is None else (now_ns - self._first_tick) / 1e9
+        self.history = [*self.history[-9:], (round(since, 1), self.step_index, reason)]
 
     def status(self) -> dict[str, object]:
-        """JSON-able: the step, what it sheds, why, the last window's tick p95, and the ladder's steps."""
+        """JSON-able: the step, what it sheds, why, the last window's tick p95, the ladder's steps and the last
+        changes (seconds since the first tick, step, reason)."""
         return {
             "step": self.step_index,
             "shed": self.level.name,
@@ -291,6 +368,8 @@ class Governor:
             "landmarks": self.level.landmarks,
             "reason": self.last_reason,
             "changes": self.changes,
+            "pinned": self.pinned,
             "tick_p95_ms": self.last_p95_ms,
             "ladder": [lv.name for lv in self.ladder],
+            "history": [{"t_s": t, "step": k, "reason": r} for t, k, r in self.history],
         }

@@ -324,9 +324,14 @@ class Daemon:
         sources = self.rig.sources
         steps = ladder(has_auto(self._landmark_fronts()), any(hasattr(s, "tracking_rate_scale") for s in sources),
                        any(hasattr(getattr(s, "group", None), "duty") for s in sources))  # fmt: skip
-        self.governor = (
-            Governor(self.scheduler.options.period_ns, start_ns=clock(), steps=steps) if d.governor else None
-        )
+        pin = None if d.governor_pin_step < 0 else d.governor_pin_step
+        try:
+            self.governor = (Governor(self.scheduler.options.period_ns, start_ns=clock(), steps=steps, pin=pin)
+                             if d.governor else None)  # fmt: skip
+        except ValueError as exc:  # a pinned step this rig's ladder does not have
+            raise ConfigError(f"daemon.governor_pin_step: {exc}") from None
+        if self.governor is not None and self.governor.pinned:
+            self._apply_governor()
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
         self.actions: dict[str, Callable[[dict[str, str], str], Any]] = {
