@@ -1,9 +1,14 @@
 """The governor (mocapd.pipeline.governor): sheds work one step at a time when the tick does not fit its period,
-restores it only after a calm hold, never before the settling time."""
+restores it only after a calm hold, never before the settling time; judges each step on the medians of several
+windows before taking it back."""
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
+
+import numpy as np
+import pytest
 
 from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions, ladder
 
@@ -11,130 +16,131 @@ PERIOD = 16_666_667
 S = 1_000_000_000
 
 
-def _window(g: Governor, t0: int, tick_ms: float, missed_every: int = 0) -> int:
-    """Two seconds of 60 Hz ticks taking ``tick_ms`` each (one missed every ``missed_every``); the next t."""
-    t = t0
-    for k in range(120):
-        g.observe(round(tick_ms * 1e6), 1 if missed_every and k % missed_every == 0 else 0)
-        t += PERIOD
-    g.step(t)
-    return t
-
-
-def test_a_tick_that_fits_sheds_nothing() -> None:
-    g = Governor(PERIOD)
-    t = 0
-    for _ in range(20):
-        t = _window(g, t, 3.0)
-    assert g.step_index == 0 and g.level is LADDER[0] and g.changes == 0
-
-
-def test_an_overrun_sheds_one_step_per_window_in_the_ladders_order_and_never_the_tick() -> None:
-    g = Governor(PERIOD)
-    t = _window(g, 0, 3.0)
-    t = _window(g, t, 3.0)
-    t = _window(g, t, 3.0)  # past the settling time: 6 s
-    seen = []
-    for k in range(len(LADDER) + 2):
-        t = _window(g, t, 200.0 * 0.85**k)  # p95 12 periods, each step helping (15 % less), still above 2.5
-        seen.append(g.step_index)
-    assert seen == [min(k + 1, len(LADDER) - 1) for k in range(len(seen))]
-    assert g.level.tracking_rate == 0.5 and g.level.detector_duty == 0.35 and not g.level.landmarks
-    # The landmark model first (the detector's costliest part, issue 40), then the tracking's rate, then the
-    # detector; tracking itself never (detections alone came too far apart: people lost and re-enrolled), the tick
-    # never; each step sheds more than the one before.
-    assert [lv.name for lv in LADDER[1:4]] == ["landmark model off", "keypoint tracking at half rate",
-                                              "keypoint tracking at half rate, detector at 75 % duty"]  # fmt: skip
-    for a, b in itertools.pairwise(LADDER):
-        assert b.tracking_rate <= a.tracking_rate and b.detector_duty <= a.detector_duty and a != b
-    assert all(lv.tracking_rate > 0 for lv in LADDER)
-    assert "of a 16.7 ms period" in str(g.status()["reason"])
-
-
-def test_missed_ticks_shed_even_when_the_ticks_that_ran_were_quick() -> None:
-    g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
-    _window(g, 0, 2.0, missed_every=20)  # 5 % missed
-    assert g.step_index == 1
-
-
-def test_nothing_is_shed_while_settling() -> None:
-    g = Governor(PERIOD, GovernorOptions(settle_s=5.0))
-    t = _window(g, 0, 60.0)
-    t = _window(g, t, 60.0)
-    assert g.step_index == 0
-    _window(g, t, 60.0)
-    assert g.step_index == 1
-
-
-def test_work_comes_back_only_after_a_calm_hold() -> None:
-    o = GovernorOptions(settle_s=0.0, hold_s=6.0)
-    g = Governor(PERIOD, o)
-    t = _window(g, 0, 60.0)
-    t = _window(g, t, 50.0)  # the first step helped (p95 down 17 %), not enough: a second
-    assert g.step_index == 2
-    steps = []
-    for _ in range(8):  # calm: p95 18 % of the period (below 60 %)
-        t = _window(g, t, 3.0)
-        steps.append(g.step_index)
-    # 6 s of calm (three windows) before each step back, not one step per window.
-    assert steps == [2, 2, 1, 1, 1, 0, 0, 0]
-    # In between (neither calm nor overrun): held where it is.
-    g2 = Governor(PERIOD, o)
-    t = _window(g2, 0, 50.0)
-    for _ in range(6):
-        t = _window(g2, t, 20.0)  # 1.2 periods: below shedding, above restoring
-    assert g2.step_index == 1
-
-
 class _Process:
     """Injected measurements: 60 Hz ticks of a given p95 and the daemon's process CPU at a given rate, two seconds
-    (one governor window) at a time."""
+    (one governor window) at a time, the governor stepped after each tick as the daemon does."""
 
-    def __init__(self, g: Governor) -> None:
-        self.g, self.t, self.cpu = g, 0, 0
+    def __init__(self, g: Governor, t0: int = 0) -> None:
+        self.g, self.t, self.cpu = g, t0, 0
+        g.observe(0)
+        g.step(t0, 0)  # the first tick: the governor's time starts here
 
-    def window(self, tick_ms: float, cpu_s_per_s: float, missed_every: int = 0) -> int:
+    def window(self, tick_ms: float, cpu_s_per_s: float = 1.0, missed_every: int = 0, missed: int = -1) -> int:
+        """``missed``: this many of the window's 120 ticks missed (``missed_every``: one every so many)."""
         for k in range(120):
-            self.g.observe(round(tick_ms * 1e6), 1 if missed_every and k % missed_every == 0 else 0)
+            skip = int(k < missed) if missed >= 0 else int(bool(missed_every) and k % missed_every == 0)
+            self.g.observe(round(tick_ms * 1e6), skip)
             self.t += PERIOD
             self.cpu += round(cpu_s_per_s * PERIOD)
             self.g.step(self.t, self.cpu)
         return self.g.step_index
 
 
+def test_a_tick_that_fits_sheds_nothing() -> None:
+    g = Governor(PERIOD)
+    p = _Process(g)
+    assert {p.window(3.0) for _ in range(20)} == {0} and g.level is LADDER[0] and g.changes == 0
+
+
+def test_an_overrun_sheds_in_the_ladders_order_one_step_per_judgement_and_never_the_tick() -> None:
+    g = Governor(PERIOD)
+    p = _Process(g)
+    for _ in range(3):
+        p.window(3.0)  # past the settling time: 6 s
+    seen = [p.window(200.0 * 0.85**g.step_index) for _ in range(3 * len(LADDER) + 3)]  # each step 15 % better
+    # Two late windows shed the first step; each step is then on trial for three windows (nothing else changes),
+    # helped (its windows' median p95 fell), and the next follows; the last step stays.
+    assert seen == [0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4, 5, 5, 5, 5, 5, 5, 5, 5], seen
+    assert g.level.tracking_rate == 0.5 and g.level.detector_duty == 0.35 and not g.level.landmarks
+    # The landmark model first (the detector's costliest part, issue 40), then the detector's duty, then the
+    # tracking's rate last (it costs the 30 Hz keypoints and saves least, docs/daemon.md); tracking itself never
+    # (detections alone came too far apart: people lost and re-enrolled), the tick never; each step sheds more
+    # than the one before.
+    assert [lv.name for lv in LADDER[1:]] == ["landmark model off", "detector at 75 % duty", "detector at 50 % duty",
+                                              "detector at 35 % duty",
+                                              "detector at 35 % duty, keypoint tracking at half rate"]  # fmt: skip
+    for a, b in itertools.pairwise(LADDER):
+        assert b.tracking_rate <= a.tracking_rate and b.detector_duty <= a.detector_duty and a != b
+    assert all(lv.tracking_rate > 0 for lv in LADDER)
+    assert [h[1] for h in g.history] == [1, 2, 3, 4, 5] and "of a 16.7 ms period" in str(g.status()["reason"])
+
+
+def test_missed_ticks_shed_even_when_the_ticks_that_ran_were_quick() -> None:
+    g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
+    p = _Process(g)
+    assert [p.window(2.0, missed_every=20) for _ in range(2)] == [0, 1]  # 5 % missed, two windows in a row
+
+
+def test_nothing_is_shed_while_settling_which_counts_from_the_first_tick() -> None:
+    """The daemon builds its governor before the cameras open and the models load (which took longer than the
+    settling time): the start-up ticks (people enrolling, first solves: 95 of 142 ticks missed in the camera
+    demo's first window) are not the machine's speed. On the old code the settling time ran from construction and
+    the first window shed a step."""
+    g = Governor(PERIOD, GovernorOptions(settle_s=5.0), start_ns=0)
+    p = _Process(g, t0=60 * S)  # the first tick a minute after the governor was made
+    assert [p.window(60.0, missed_every=2), p.window(60.0)] == [0, 0]
+    assert [p.window(60.0), p.window(60.0)] == [0, 1]  # 6 and 8 s after the first tick
+
+
+def test_one_slow_window_sheds_nothing() -> None:
+    """A burst (a window's p95 at 4 periods, 30 of its ticks missed) between windows that fit is no reason to shed:
+    two late windows in a row are. On the old code the one window shed a step."""
+    g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
+    p = _Process(g)
+    steps = [p.window(t, missed=m) for t, m in [(8.0, 0), (70.0, 30), (8.0, 0), (8.0, 0), (70.0, 0), (70.0, 0)]]
+    assert steps == [0, 0, 0, 0, 0, 1], steps
+
+
+def test_work_comes_back_only_after_a_calm_hold() -> None:
+    o = GovernorOptions(settle_s=0.0, hold_s=6.0)
+    g = Governor(PERIOD, o)
+    p = _Process(g)
+    assert [p.window(60.0), p.window(60.0), p.window(50.0), p.window(50.0), p.window(50.0)] == [0, 1, 1, 1, 2]
+    steps = [p.window(3.0) for _ in range(8)]  # calm: p95 18 % of the period (below 60 %)
+    # 6 s of calm (three windows) before each step back, not one step per window.
+    assert steps == [2, 2, 1, 1, 1, 0, 0, 0], steps
+    # In between (neither calm nor overrun): held where it is.
+    g2 = Governor(PERIOD, o)
+    p2 = _Process(g2)
+    p2.window(50.0)
+    p2.window(50.0)
+    assert {p2.window(20.0) for _ in range(6)} == {1}  # 1.2 periods: below shedding, above restoring
+
+
 def test_lateness_that_is_not_ours_sheds_one_step_takes_it_back_and_waits() -> None:
     """Issue 39's cause test: on a machine loaded by other programs the tick's p95 stays at 50 ms whatever is
-    shed. The first step takes CPU away (1.6 -> 1.2 s/s) and the p95 does not move: it is taken back, nothing is
-    shed for 30 s, then one retry, taken back again, and 60 s of waiting. Before: the whole ladder in 10 s."""
+    shed. The first step takes CPU away (1.6 -> 1.2 s/s) and the p95 does not move over its three windows: it is
+    taken back, nothing is shed for 30 s, then one retry, taken back again, and 60 s of waiting. Before the cause
+    test: the whole ladder in 10 s."""
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
     p = _Process(g)
     steps = [p.window(50.0, 1.6 if g.step_index == 0 else 1.2) for _ in range(60)]  # two minutes
-    assert steps[:2] == [1, 0] and max(steps) == 1, steps
+    assert max(steps) == 1, steps
     reason = str(g.status()["reason"])
-    assert "step 1 (landmark model off) did not help: tick p95 50.0 -> 50.0 ms" in reason, reason
+    assert "step 1 (landmark model off) did not help: tick p95 50.0 -> 50.0 ms (medians of 3 -> 3 windows)" in reason
     assert "process CPU 1.60 -> 1.20 s/s" in reason and "not this process's work" in reason, reason
-    ones = [k for k, s in enumerate(steps) if s == 1]
-    assert ones == [0, 16, 47], steps  # 30 s (15 windows) after the first, 60 s after the retry, then 120 s
+    # shed at 4 s, taken back at 10 s; again at 40 s (30 s on), back at 46; again at 106 s (60 s on), back at 112
+    assert [(t, k) for t, k, _ in g.history] == [(4.0, 1), (10.0, 0), (40.0, 1), (46.0, 0), (106.0, 1), (112.0, 0)]
     assert "nothing shed for 120 s" in reason and g.changes == 6
 
 
 def test_a_step_that_helps_lets_the_next_follow_and_resets_the_wait() -> None:
-    """Our own lateness: each step takes CPU away and the p95 falls with it (here by 17 %, or the missed ticks by
-    half while the p95 wobbles up), so the ladder is walked as before; a step that did not help is taken back to
-    the last one that did, and a step that helps again ends the doubling of the wait."""
+    """Our own lateness: each step takes CPU away and the p95 falls with it (here by 17 %, or the missed ticks
+    significantly while the p95 wobbles up), so the ladder is walked; a step that did not help is taken back to the
+    last one that did, and a step that helps again ends the doubling of the wait."""
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
     p = _Process(g)
-    assert p.window(120.0, 1.9) == 1
-    assert p.window(100.0, 1.7) == 2  # p95 -17 %
-    assert p.window(105.0, 1.5, missed_every=20) == 1  # p95 up, 5 % missed: step 2 did not help, it took CPU away
+    assert [p.window(120.0, 1.9), p.window(120.0, 1.9)] == [0, 1]
+    assert [p.window(100.0, 1.7) for _ in range(3)] == [1, 1, 2]  # p95 -17 %: helped, still late: the next
+    assert [p.window(105.0, 1.5, missed_every=20) for _ in range(3)] == [2, 2, 1]  # up, 5 % missed, CPU less: back
     assert {p.window(105.0, 1.7, missed_every=20) for _ in range(14)} == {1}  # for 30 s nothing is shed
     assert p.window(105.0, 1.7, missed_every=20) == 2  # the retry
-    assert p.window(80.0, 1.5) == 3 and g._futile == 0  # it helped: the next follows, the wait is back to 30 s
+    assert [p.window(80.0, 1.5) for _ in range(3)] == [2, 2, 3] and g._futile == 0  # it helped: the wait is reset
     g2 = Governor(PERIOD, GovernorOptions(settle_s=0.0))
     p2 = _Process(g2)
-    assert p2.window(60.0, 1.9, missed_every=10) == 1  # 10 % missed
-    assert p2.window(65.0, 1.7, missed_every=40) == 2  # the p95 wobbled up, the missed ticks fell by 3 x: helped
-    assert p2.window(55.0, 1.5, missed_every=40) == 3  # p95 -15 %
+    assert [p2.window(60.0, 1.9, missed_every=10) for _ in range(2)] == [0, 1]  # 10 % missed
+    # the p95 wobbled up, the missed ticks fell from 24 of 240 to 9 of 360 (one-sided p < 0.001): it helped
+    assert [p2.window(65.0, 1.7, missed_every=40) for _ in range(3)] == [1, 1, 2]
 
 
 def test_a_step_that_took_no_cpu_away_proves_nothing_and_the_next_follows() -> None:
@@ -143,9 +149,77 @@ def test_a_step_that_took_no_cpu_away_proves_nothing_and_the_next_follows() -> N
     which takes CPU away to no effect, is taken back to it."""
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
     p = _Process(g)
-    assert p.window(50.0, 1.6) == 1
-    assert p.window(50.0, 1.6) == 2 and "it took no CPU away" not in str(g.status()["reason"])
-    assert p.window(50.0, 1.2) == 1 and "step 2" in str(g.status()["reason"])
+    assert [p.window(50.0, 1.6) for _ in range(5)] == [0, 1, 1, 1, 2]
+    assert "step 1 (landmark model off) did not help" in str(g.status()["reason"])
+    assert "it took no CPU away" in str(g.status()["reason"])
+    assert [p.window(50.0, 1.2) for _ in range(3)] == [2, 2, 1] and "step 2" in str(g.status()["reason"])
+
+
+def _noisy_run(g: Governor, before: Sequence[tuple[float, int]], after: Sequence[tuple[float, int]],
+               windows: int) -> list[int]:  # fmt: skip
+    """``windows`` windows of ticks whose p95 and missed ticks come from ``before`` while nothing is shed and from
+    ``after`` once a step is (both in turn); the process's CPU falls by a fifth with the step."""
+    p = _Process(g)
+    seen, k = [], {0: 0, 1: 0}
+    for _ in range(windows):
+        shed = min(g.step_index, 1)
+        tick_ms, missed = (before, after)[shed][k[shed] % len((before, after)[shed])]
+        k[shed] += 1
+        seen.append(p.window(tick_ms, 1.6 - 0.3 * shed, missed=missed))
+    return seen
+
+
+def test_a_step_that_helps_on_average_is_kept_through_a_noisy_window() -> None:
+    """The quiet camera demo of the third session: the first window after a step (p95 60.9 -> 79.9 ms, missed 9
+    -> 26 of ~120, process CPU 1.66 -> 1.53 s/s) took a step back that helped on average: the windows after it
+    were ~20 % better. Judged on the medians of three windows, the step is kept; on the old code, which judged the
+    one window after the step, it was taken back at once."""
+    g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
+    before = [(60.9, 9), (58.0, 7), (63.0, 11)]
+    after = [(79.9, 26), (44.0, 2), (49.0, 4), (47.0, 3), (55.0, 6), (46.0, 3)]  # mean 53.6 ms, median 48 ms
+    seen = _noisy_run(g, before, after, 30)
+    first = seen.index(1)
+    assert min(seen[first:]) >= 1, (seen, g.last_reason)  # never taken back to nothing shed
+    assert not any("not this process's work" in r and k == 0 for _, k, r in g.history), g.history
+
+
+def _bursty(rng: np.random.Generator, p95_ms: float, missed: float) -> list[tuple[float, int]]:
+    """Six windows' (p95 ms, missed ticks): the p95 varying by 10 % (one standard deviation), one window in five a
+    burst 35 % slower, the missed ticks Poisson."""
+    return [(p95_ms * (1 + 0.1 * rng.standard_normal() + (0.35 if rng.random() < 0.2 else 0.0)),
+             int(rng.poisson(missed))) for _ in range(6)]  # fmt: skip
+
+
+@pytest.mark.parametrize(("effect", "kept"), [(0.2, (0.9, 1.0)), (0.0, (0.0, 0.6))])
+def test_the_judgement_over_many_noisy_runs(effect: float, kept: tuple[float, float]) -> None:
+    """Windows as the quiet 2-core camera demo's: the p95 varies by 10 % (one standard deviation) and one window in
+    five is a burst 35 % slower (the 79.9 ms among ~60 ms windows), missed ticks Poisson. A step that brings the
+    p95 and the missed ticks down by 20 % is kept in at least 90 % of 200 seeded runs (the old code's one-window
+    test kept it in 75 %: a burst in the one window after the step took it back); a step that brings nothing (the
+    lateness is other programs') is taken back in at least 40 % (the rest go on to the next step, judged in turn;
+    the old code: 65 %). Seeded: the same numbers every run."""
+    n_kept = 0
+    for seed in range(200):
+        rng = np.random.default_rng(seed)
+        before, after = _bursty(rng, 60.0, 8.0), _bursty(rng, 60.0 * (1 - effect), 8.0 * (1 - effect))
+        g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
+        seen = _noisy_run(g, before, after, 8)  # shed at the 2nd window, judged at the 5th
+        n_kept += min(seen[seen.index(1) :]) >= 1
+    assert kept[0] * 200 <= n_kept <= kept[1] * 200, n_kept
+
+
+def test_a_pinned_governor_holds_its_step_and_still_measures() -> None:
+    """``[daemon] governor_pin_step``: the level stays (a developer measures what the step saves) while the windows
+    are still measured; a step the rig's ladder does not have is refused."""
+    steps = ladder(False, True, True)
+    g = Governor(PERIOD, GovernorOptions(settle_s=0.0), steps=steps, pin=2)
+    p = _Process(g)
+    assert {p.window(80.0, missed_every=5) for _ in range(5)} | {p.window(2.0) for _ in range(8)} == {2}
+    st = g.status()
+    assert st["pinned"] is True and st["shed"] == "detector at 50 % duty" and st["tick_p95_ms"] == 2.0
+    assert g.changes == 0 and "governor_pin_step" in str(st["reason"])
+    with pytest.raises(ValueError, match="step 5 is not on this rig's ladder"):
+        Governor(PERIOD, steps=steps, pin=5)
 
 
 def test_the_ladder_has_only_steps_that_shed_something_the_daemon_runs() -> None:

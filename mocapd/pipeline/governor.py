@@ -74,27 +74,27 @@ class Level:
 LADDER: tuple[Level, ...] = (
     Level("nothing shed", 1.0, 1.0),
     Level("landmark model off", 1.0, 1.0, False),
-    Level("keypoint tracking at half rate", 0.5, 1.0, False),
-    Level("keypoint tracking at half rate, detector at 75 % duty", 0.5, 0.75, False),
-    Level("keypoint tracking at half rate, detector at 50 % duty", 0.5, 0.5, False),
-    Level("keypoint tracking at half rate, detector at 35 % duty", 0.5, 0.35, False),
+    Level("detector at 75 % duty", 1.0, 0.75, False),
+    Level("detector at 50 % duty", 1.0, 0.5, False),
+    Level("detector at 35 % duty", 1.0, 0.35, False),
+    Level("detector at 35 % duty, keypoint tracking at half rate", 0.5, 0.35, False),
 )
+#: the tracking step alone, for a rig whose keypoint tracking runs without a detector of its own to rest
+TRACKING_ALONE = Level("keypoint tracking at half rate", 0.5, 1.0, False)
 
 
 def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tuple[Level, ...]:
     """:data:`LADDER` with only the steps that shed something this daemon runs: the landmark step where a detector
-    runs ``landmarks = "auto"``, the tracking step where keypoint tracking runs, the detector's duty steps where a
-    detector of its own runs (the synthetic rig's simulated detections have none of these: its ladder is step 0
-    alone). A step that sheds nothing would cost a window, and say it shed what is not there."""
+    runs ``landmarks = "auto"``, the detector's duty steps where a detector of its own runs, the tracking step where
+    keypoint tracking runs (the synthetic rig's simulated detections have none of these: its ladder is step 0
+    alone). A step that sheds nothing would cost a trial, and say it shed what is not there."""
     steps = [LADDER[0]]
     if landmarks:
         steps.append(LADDER[1])
-    if tracking:
-        steps.append(LADDER[2])
     if detector:
-        prefix = f"{LADDER[2].name}, "
-        steps.extend(lv if tracking else Level(lv.name.removeprefix(prefix), 1.0, lv.detector_duty, False)
-                     for lv in LADDER[3:])  # fmt: skip
+        steps.extend(LADDER[2:5])
+    if tracking:
+        steps.append(LADDER[5] if detector else TRACKING_ALONE)
     return tuple(steps)
 
 
@@ -115,9 +115,11 @@ class GovernorOptions:
     """... for this long (and at least this long after the last change)."""
     settle_s: float = 5.0
     """Nothing is shed in the first seconds after the start (models and caches warming up, people enrolling)."""
-    helped_by: float = 0.1
+    helped_by: float = 0.05
     """A step helped when the median of the windows' p95 after it was at least this share lower than before it (or
-    its missed ticks significantly fewer, or the tick fits again)."""
+    its missed ticks significantly fewer, or the tick fits again). Half the 10 % a step must bring to count: the
+    threshold between no effect and an effect worth its cost, so that window-to-window noise (~17 % of a window's
+    p95 on the quiet 2-core camera demo) errs as often either way."""
     judge_windows: int = 3
     """A step is judged on this many windows after it (no further step meanwhile), against up to this many before
     it at the level it left: medians, so that one window's noise decides nothing."""
@@ -217,6 +219,7 @@ class Governor:
         self._cpu_at: tuple[int, int] | None = None  # (wall, process CPU) at the window's start
         self._level_windows: list[_Window] = []  # the windows since the level last changed (the last few)
         self._trial: _Trial | None = None  # the step taken last, until it is judged
+        self._verdict = ""  # the judgement of the last step on trial, said with the next step shed in its window
         self._no_shed_until = start_ns
         self._futile = 0  # steps in a row that took work away and did not help
 
@@ -234,8 +237,11 @@ class Governor:
         """After each published tick (it acts once a window ``window_s`` has passed): shed or restore a step.
         ``cpu_ns``: the daemon's process CPU time now (any origin; None: not measured, then a step that did not
         help is taken back as one that took work away). Returns True when the level changed."""
-        started = self._first_tick is not None
-        measured = self._close_window(now_ns, cpu_ns) if started else self._start(now_ns, cpu_ns)
+        measured = None
+        if self._first_tick is None:
+            self._start(now_ns, cpu_ns)
+        else:
+            measured = self._close_window(now_ns, cpu_ns)
         if measured is None or self.pinned:
             return False
         window, began = measured
@@ -246,7 +252,7 @@ class Governor:
             self._calm_since = began  # calm since this window began
         elif not calm:
             self._calm_since = None
-        trial = self._trial
+        self._verdict, trial = "", self._trial
         if trial is not None:
             trial.after.append(window)
             if len(trial.after) < o.judge_windows:
@@ -299,8 +305,9 @@ class Governor:
         before = tuple(self._level_windows)
         w = before[-1]
         self.step_index += 1
+        verdict = f"; {self._verdict}" if self._verdict else ""  # the step before it, judged in this window
         self._changed(now_ns, f"tick p95 {w.p95_ns / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
-                      f"{w.missed} of {w.ticks} ticks missed{w.cpu_text()}")  # fmt: skip
+                      f"{w.missed} of {w.ticks} ticks missed{w.cpu_text()}{verdict}")  # fmt: skip
         self._trial = _Trial(self.step_index - 1, before)
         return True
 
@@ -328,6 +335,9 @@ class Governor:
         )
         if helped:
             self._futile = 0
+            self._verdict = (f"step {trial.from_index + 1} helped: tick p95 {before.p95_ns / 1e6:.1f} -> "
+                             f"{after.p95_ns / 1e6:.1f} ms, missed {before.missed} of {before.ticks} -> "
+                             f"{after.missed} of {after.ticks}")  # fmt: skip
             return False
         took_work = (
             before.cpu_rate is None or after.cpu_rate is None or after.cpu_rate <= (1.0 - o.bite) * before.cpu_rate
@@ -339,7 +349,7 @@ class Governor:
         if before.cpu_rate is not None and after.cpu_rate is not None:
             what += f", process CPU {before.cpu_rate:.2f} -> {after.cpu_rate:.2f} s/s"
         if not took_work:  # it shed nothing measurable: no evidence either way, the next step may follow
-            self.last_reason = f"{what}: it took no CPU away"
+            self.last_reason = self._verdict = f"{what}: it took no CPU away"
             return False
         wait = o.retry_s * min(2**self._futile, 4)
         self._futile += 1
