@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
+from mocapd.errors import ConfigError
 from mocapd.io.pose2sim_demo import demo_video
 from mocapd.pipeline.detector_config import DetectorConfig, PackingConfig
 from mocapd.pipeline.detector_pool import PooledDetector, detector_status, landmark_fronts, make_detector
@@ -26,7 +27,7 @@ from mocapd.pipeline.landmarks import LandmarkRunner
 from mocapd.protocols.ws_stream import health_subset
 from mocapd.service.assembly import assembled
 from mocapd.service.config import load_config
-from tests.rigs import video_rig_toml, write
+from tests.rigs import synthetic_toml, video_rig_toml, write
 
 EXTRA = [BLAZEPOSE33.index(n) for n in ("left_heel", "right_foot_index", "left_pinky", "right_thumb")]
 
@@ -81,11 +82,15 @@ def test_the_governors_ladder_sheds_the_landmark_model_first_and_keeps_it_off_af
     assert all(not lv.landmarks for lv in LADDER[1:])
     assert (LADDER[1].tracking_rate, LADDER[1].detector_duty) == (1.0, 1.0)
     g = Governor(16_666_667, GovernorOptions(settle_s=0.0))
-    for _ in range(120):
-        g.observe(50_000_000)  # three periods a tick
-    assert g.step(2_000_000_000) and g.step_index == 1 and g.status()["landmarks"] is False
-    # A daemon without "auto" has no landmark step: its first step sheds the tracking rate, as before.
-    assert ladder(False)[1].name == "keypoint tracking at half rate" and len(ladder(False)) == len(LADDER) - 1
+    g.observe(0)
+    g.step(0)  # the first tick
+    changed = []
+    for k in range(240):  # two windows of ticks taking three periods each
+        g.observe(50_000_000)
+        changed.append(g.step((k + 1) * 16_666_667))
+    assert changed.count(True) == 1 and g.step_index == 1 and g.status()["landmarks"] is False
+    # A daemon without "auto" has no landmark step: its first step rests the detector.
+    assert ladder(False)[1].name == "detector at 75 % duty" and len(ladder(False)) == len(LADDER) - 1
 
 
 @pytest.fixture(scope="module")
@@ -156,3 +161,33 @@ def test_the_daemons_governor_applies_the_landmark_step_to_the_cameras_detector(
         daemon.governor.step_index = 0
         daemon._apply_governor()
         assert all(isinstance(f, AutoLandmarks) and f.shed is None for f in fronts)
+
+
+def test_a_pinned_governor_step_is_applied_from_the_start_and_one_the_ladder_lacks_is_refused(tmp_path: Path) -> None:
+    """``[daemon] governor_pin_step`` (a developer measures what a step saves): the daemon runs at that step from
+    its first tick, says so in ``/status``, and never moves; a step the rig's ladder does not have (the synthetic
+    rig's ladder is step 0 alone) is refused with the ladder named."""
+    text = video_rig_toml('[detector]\nlandmarks = "auto"\nintra_op_threads = 1\n')
+    text = text.replace("[daemon]\nhttp_port = 0\n", "[daemon]\nhttp_port = 0\ngovernor_pin_step = 3\n")
+    with assembled(load_config(write(tmp_path / "config.toml", text))) as built:
+        daemon = built.daemon
+        assert daemon.governor is not None and daemon.governor.pinned and daemon.governor.step_index == 3
+        assert all(
+            isinstance(f, AutoLandmarks) and "pinned at step 3" in str(f.shed) for f in daemon._landmark_fronts()
+        )
+        groups = {id(g): g for s in daemon.rig.sources if (g := getattr(s, "group", None)) is not None}
+        assert groups and all(g.duty == 0.5 for g in groups.values())  # step 3: the detector at 50 % duty
+        st = daemon.status()["governor"]
+        assert st["pinned"] is True and st["shed"] == "detector at 50 % duty" and "governor_pin_step" in st["reason"]
+    bad = write(
+        tmp_path / "synthetic.toml",
+        synthetic_toml(2, "").replace("http_port = 0\n", "http_port = 0\ngovernor_pin_step = 1\n"),
+    )
+    with (
+        pytest.raises(
+            ConfigError,
+            match=r"daemon.governor_pin_step: step 1 is not on this rig's ladder \(steps 0..0: nothing shed\)",
+        ),
+        assembled(load_config(bad)),
+    ):
+        pass
