@@ -6,50 +6,63 @@ not be the tick. The governor measures, every ``window_s``, how long the tick to
 instant to its publication, p95 over the window, which includes the CPU it did not get) and how many ticks were
 missed, and moves one step along a fixed ladder of work to leave out:
 
-====  ===================================  ========================================================================
-step  what is shed                         what it costs
-====  ===================================  ========================================================================
-0     nothing                              —
-1     landmark model off                   with ``[detector] landmarks = "auto"``: YOLO's keypoints alone, no feet
-                                           or hand points (the landmark model is the detector's costliest part on
-                                           a CPU: 16-272 ms a crop); a model named in the config keeps running;
-                                           without "auto" the step is left out (:func:`ladder`)
-2     keypoint tracking 60 -> 30 Hz        each camera's keypoints between detections at half the rate (the
-                                           scheduler interpolates between them; ``latency_s = "auto"`` covers one
-                                           more frame interval). The cheapest big step: on the 2-core camera demo
-                                           the tracking's optical flow cost ~0.5 of a core at 60 Hz
-3     detector at 75 % duty                each detector worker rests a third of a pass after each pass (at most
-                                           0.3 s, none while a camera has gone a second without a detection):
-                                           fewer detections (tracking carries the people between them), the CPU
-                                           (or the CPU budget's quota) and the interpreter left to the tick
-4     detector at 50 % duty
-5     detector at 35 % duty
-====  ===================================  ========================================================================
+====  =====================================  ======================================================================
+step  what is shed                           what it costs
+====  =====================================  ======================================================================
+0     nothing                                —
+1     landmark model off                     with ``[detector] landmarks = "auto"``: YOLO's keypoints alone, no
+                                             feet or hand points (the landmark model is the detector's costliest
+                                             part on a CPU: 16-272 ms a crop); a model named in the config keeps
+                                             running; without "auto" the step is left out (:func:`ladder`)
+2     detector at 75 % duty                  each detector worker rests a third of a pass after each pass (at most
+                                             0.3 s, none while a camera has gone a second without a detection):
+                                             fewer detections (tracking carries the people between them), the CPU
+                                             (or the CPU budget's quota) and the interpreter left to the tick
+3     detector at 50 % duty
+4     detector at 35 % duty
+5     ... and keypoint tracking 60 -> 36 Hz  each camera's keypoints between detections at 60 % of the rate (the
+                                             scheduler interpolates between them; ``latency_s = "auto"`` covers a
+                                             longer frame interval): still above the 30 Hz a camera and person
+6     ... and keypoint tracking 60 -> 30 Hz  at half the rate: below 30 Hz once a frame is lost (28-29 Hz
+                                             measured); the last step, for a machine that cannot hold the tick
+                                             otherwise
+====  =====================================  ======================================================================
 
-Why this order, and why it ends there. The latency a user feels is the tracking's: between two detections the
-keypoints come from tracking, one frame after capture; the detector only re-anchors them. Half the tracking rate
-keeps 30 keypoint sets a second per camera and person; the detector gives next. Tracking is never shed: a starved
-detector delivers a camera's keypoints 1-3 times a second, too far apart for the scheduler to interpolate
-(``keypoint_max_gap_s``), so people dropped out of the solve and came back as new identities (the camera demo's
-test, 2 runs of 6 with a last step "tracking off"), and the latency became the detector's (1-2 s). The left/right
-flip search is not on the ladder either: compiled, it costs ~0.15 ms a person a tick (``person_cpu_ms.unflip`` in
-``/status``), and reusing a decision on ticks between searches swapped a view's limbs whenever the detector had
-re-labelled it meanwhile (a demo person's arms sized 25 % long).
+Why this order, and why it ends there. Each step is placed by what it saved, measured with the step pinned
+(``[daemon] governor_pin_step``) on the 2-core camera demo, against what it costs the user (docs/daemon.md, "The
+ladder's order, measured"). The tracking rate went first while the tracking's optical flow cost ~0.5 of a core;
+compiled, four 60 fps cameras' tracking costs ~0.27 of a core, so halving it saves little, and it costs the keypoint
+rate itself (28-29 Hz a camera and person at half rate, below the 30 Hz target) and a frame interval of latency.
+The detector's duty costs only how often the tracked keypoints are re-anchored (the tracking carries the people
+between detections, one frame after capture: the latency a user feels is the tracking's): it goes first, the
+tracking rate last. Tracking itself is never shed: a starved detector delivers a camera's keypoints 1-3 times a
+second, too far apart for the scheduler to interpolate (``keypoint_max_gap_s``), so people dropped out of the solve
+and came back as new identities (the camera demo's test, 2 runs of 6 with a last step "tracking off"), and the
+latency became the detector's (1-2 s). The left/right flip search is not on the ladder either: compiled, it costs
+~0.15 ms a person a tick (``person_cpu_ms.unflip`` in ``/status``), and reusing a decision on ticks between searches
+swapped a view's limbs whenever the detector had re-labelled it meanwhile (a demo person's arms sized 25 % long).
 
-It sheds one step when the tick's p95 exceeds ``shed_above`` of the period or more than ``max_missed`` of the
-window's ticks were missed, and restores one step only after ``hold_s`` in which the p95 stayed below
-``restore_below`` of the period with no tick missed (hysteresis: a step is not taken back the moment it helped).
+It sheds one step when, in two windows in a row, the tick's p95 exceeded ``shed_above`` of the period or more than
+``max_missed`` of the window's ticks were missed (one slow window, a start-up burst, is no reason), and restores one
+step only after ``hold_s`` in which the p95 stayed below ``restore_below`` of the period with no tick missed
+(hysteresis: a step is not taken back the moment it helped). Its time starts at the first published tick, not when
+the daemon is built: opening the cameras and loading the models can outlast the ``settle_s`` in which nothing is
+shed.
 
 A cause test before the next step. Shedding helps only when the lateness is this process's work: on a machine
 loaded by other programs (load 15-20 on 2 cores) the tick's p95 stayed at 45-60 ms while the governor walked down
-the whole ladder in 10 s. So the window after a step judges it: it *helped* when the p95 fell by ``helped_by`` or
-the missed ticks by half (or the tick fits again). When it did not, and it took work away (the daemon's process
-CPU per second, passed to :meth:`Governor.step`, fell by ``bite`` or more), the lateness is not ours: the step is
-taken back and nothing more is shed for ``retry_s`` (doubling, up to 4 x, while retries keep failing). A step that
-took no measurable CPU away (a landmark model that was not running) proves nothing either way: the next may follow.
+the whole ladder in 10 s. So each step is on trial for ``judge_windows`` windows (nothing else changes meanwhile)
+and judged against the windows before it at the level it left, on medians and pooled counts, never on one window:
+a window's p95 varies by ~17 % on a quiet machine, and the first window after a useful step was once 30 % worse
+(60.9 -> 79.9 ms) and took the step back. The step *helped* when the median p95 fell by ``helped_by``, or the
+pooled missed ticks fell significantly (a one-sided binomial test at ``significance``), or the tick fits again:
+the next step may follow. When it did not, and it took work away (the median of the daemon's process CPU per
+second, passed to :meth:`Governor.step`, fell by ``bite`` or more), the lateness is not ours: the step is taken back
+and nothing more is shed for ``retry_s`` (doubling, up to 4 x, while retries keep failing). A step that took no
+measurable CPU away (a landmark model that was not running) proves nothing either way: the next may follow.
 
-Pure state: times are arguments; the daemon feeds it (:meth:`Governor.observe` per tick, :meth:`Governor.step` once
-a window) and applies :attr:`Governor.level`'s settings to the keypoint sources and the scheduler.
+Pure state: times are arguments; the daemon feeds it (:meth:`Governor.observe` and :meth:`Governor.step` per
+tick) and applies :attr:`Governor.level`'s settings to the keypoint sources and the scheduler.
 """
 
 from __future__ import annotations
@@ -77,15 +90,17 @@ LADDER: tuple[Level, ...] = (
     Level("detector at 75 % duty", 1.0, 0.75, False),
     Level("detector at 50 % duty", 1.0, 0.5, False),
     Level("detector at 35 % duty", 1.0, 0.35, False),
+    Level("detector at 35 % duty, keypoint tracking at 60 % rate", 0.6, 0.35, False),
     Level("detector at 35 % duty, keypoint tracking at half rate", 0.5, 0.35, False),
 )
-#: the tracking step alone, for a rig whose keypoint tracking runs without a detector of its own to rest
-TRACKING_ALONE = Level("keypoint tracking at half rate", 0.5, 1.0, False)
+#: the tracking steps alone, for a rig whose keypoint tracking runs without a detector of its own to rest
+TRACKING_ALONE = (Level("keypoint tracking at 60 % rate", 0.6, 1.0, False),
+                  Level("keypoint tracking at half rate", 0.5, 1.0, False))  # fmt: skip
 
 
 def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tuple[Level, ...]:
     """:data:`LADDER` with only the steps that shed something this daemon runs: the landmark step where a detector
-    runs ``landmarks = "auto"``, the detector's duty steps where a detector of its own runs, the tracking step where
+    runs ``landmarks = "auto"``, the detector's duty steps where a detector of its own runs, the tracking steps where
     keypoint tracking runs (the synthetic rig's simulated detections have none of these: its ladder is step 0
     alone). A step that sheds nothing would cost a trial, and say it shed what is not there."""
     steps = [LADDER[0]]
@@ -94,7 +109,7 @@ def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tup
     if detector:
         steps.extend(LADDER[2:5])
     if tracking:
-        steps.append(LADDER[5] if detector else TRACKING_ALONE)
+        steps.extend(LADDER[5:] if detector else TRACKING_ALONE)
     return tuple(steps)
 
 
