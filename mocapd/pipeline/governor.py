@@ -129,7 +129,7 @@ class GovernorOptions:
     hold_s: float = 6.0
     """... for this long (and at least this long after the last change)."""
     settle_s: float = 5.0
-    """Nothing is shed in the first seconds after the start (models and caches warming up, people enrolling)."""
+    """Nothing is shed in the first seconds after the first tick (caches warming up, people enrolling)."""
     helped_by: float = 0.05
     """A step helped when the median of the windows' p95 after it was at least this share lower than before it (or
     its missed ticks significantly fewer, or the tick fits again). Half the 10 % a step must bring to count: the
