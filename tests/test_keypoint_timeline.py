@@ -33,6 +33,25 @@ def test_linear_interpolation_between_frames_matches_people_in_any_order() -> No
     assert (s.t_before, s.t_after) == (0, 40 * MS)
 
 
+def test_the_people_of_a_bracket_are_matched_once_for_every_tick_that_samples_it() -> None:
+    # 60 Hz ticks between 30 Hz frames: two ticks or more blend the same two frames; who is who does not depend on
+    # where between them the tick falls, so it is matched once per bracket (issue 39: per-tick work on the loop).
+    tl = DetectionTimeline(17)
+    frames = [_frame((100, 100), (500, 300)), _frame((520, 300), (140, 100)), _frame((150, 100), (530, 300))]
+    for k, f in enumerate(frames):
+        assert tl.push(k * 40 * MS, f)
+    ticks = [5, 15, 25, 35, 45, 55, 65]  # ms: four in the first bracket, three in the second
+    for t in ticks:
+        s = tl.sample(t * MS)
+        assert s.status is SampleStatus.INTERPOLATED
+        k = t // 40
+        alpha = (t - 40 * k) / 40
+        direct = interpolate_people(frames[k], frames[k + 1], alpha, tl.match_px)  # matched on every call
+        np.testing.assert_array_equal(s.detections.keypoints, direct.keypoints)
+        np.testing.assert_array_equal(s.detections.confidences, direct.confidences)
+    assert tl.matchings == 2
+
+
 def test_keypoint_missing_in_one_frame_keeps_the_other_with_lower_confidence() -> None:
     a, b = _frame((100, 100)), _frame((120, 100))
     b.confidences[0, 3] = 0.0

@@ -22,7 +22,7 @@ from mocapd.core._kernel import cholesky_solve
 FloatArray = NDArray[np.float64]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _rot(a: FloatArray, angle: float, out: FloatArray) -> None:
     c, s = math.cos(angle), math.sin(angle)
     t = 1.0 - c
@@ -32,7 +32,7 @@ def _rot(a: FloatArray, angle: float, out: FloatArray) -> None:
     out[2, 0], out[2, 1], out[2, 2] = t * x * z - s * y, t * y * z + s * x, c + t * z * z
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _mm(a: FloatArray, b: FloatArray, out: FloatArray) -> None:
     """out = a @ b for 3x3 (numba's @ goes through BLAS: slow for 3x3)."""
     for i in range(3):
@@ -40,13 +40,13 @@ def _mm(a: FloatArray, b: FloatArray, out: FloatArray) -> None:
             out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _mv(a: FloatArray, v: FloatArray, out: FloatArray) -> None:
     for i in range(3):
         out[i] = a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def local_rotations(angles: FloatArray, axes: FloatArray, slots: NDArray[np.intp], prefix: FloatArray) -> None:
     """Each bone's products of its first k hinges, ``prefix`` (15, 4, 3, 3); ``prefix[:, 3]`` the local rotation."""
     nh = angles.shape[0]
@@ -60,7 +60,7 @@ def local_rotations(angles: FloatArray, axes: FloatArray, slots: NDArray[np.intp
             _mm(prefix[b, k], H[slots[b, k]], prefix[b, k + 1])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def apply_step(
     angles: FloatArray, rotation: FloatArray, wrist: FloatArray, step: FloatArray, lower: FloatArray, upper: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -80,7 +80,7 @@ def apply_step(
     return new_angles, new_rotation, new_wrist
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def evaluate(
     angles: FloatArray,  # (21,)
     rotation: FloatArray,  # (3, 3)
@@ -262,7 +262,7 @@ def evaluate(
     return cost
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def solve_lm(
     angles: FloatArray,
     rotation: FloatArray,

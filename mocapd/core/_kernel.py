@@ -12,7 +12,9 @@ bones). Each row's 3×3 Gauss–Newton block is first summed over all its residu
 spread into the 66×66 matrix once, using only those columns.
 
 Compiled with ``cache=True``: the first call in a fresh environment compiles (seconds, reported by
-:func:`warm_up`); later processes load the cache.
+:func:`warm_up`); later processes load the cache. And with ``nogil=True``, as every kernel of
+``mocapd/core/_*kernel.py`` (tests/test_kernels_nogil.py): a solve on the tick thread or the solve pool leaves the
+interpreter lock to the event loop while it runs.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ T_POSITION, T_ORIENTATION, T_ACCELERATION, T_PRIOR_PROJECTION, T_PRIOR_DEVIATION
 _MIN_DEPTH = 1e-3  # keep equal to camera.MIN_DEPTH
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _loss(code: int, scale: float, s: float) -> tuple[float, float, float]:
     if code == LOSS_CAUCHY:
         b = scale * scale
@@ -51,7 +53,7 @@ def _loss(code: int, scale: float, s: float) -> tuple[float, float, float]:
     return s, 1.0, 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _corrector(s: float, rho1: float, rho2: float) -> tuple[float, float]:
     """(w, beta) of Ceres's corrector: J~ᵀJ~ = w (JᵀJ - beta (Jᵀf)(Jᵀf)ᵀ), J~ᵀf~ = w Jᵀf."""
     if s > 0.0 and rho2 > 0.0:
@@ -61,7 +63,7 @@ def _corrector(s: float, rho1: float, rho2: float) -> tuple[float, float]:
     return rho1, 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _rodrigues(r: FloatArray, R: FloatArray, Jr: FloatArray, need_jr: bool) -> None:
     x, y, z = r[0], r[1], r[2]
     t2 = x * x + y * y + z * z
@@ -101,7 +103,7 @@ def _rodrigues(r: FloatArray, R: FloatArray, Jr: FloatArray, need_jr: bool) -> N
         Jr[2, 2] = 1.0 + c2 * (z * z - t2)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _quat_from_matrix(M: FloatArray, q: FloatArray) -> None:
     tr = M[0, 0] + M[1, 1] + M[2, 2]
     if tr >= M[0, 0] and tr >= M[1, 1] and tr >= M[2, 2]:
@@ -134,7 +136,7 @@ def _quat_from_matrix(M: FloatArray, q: FloatArray) -> None:
         q[i] *= sg
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _accumulate_block(
     H3: FloatArray, g3: FloatArray, row: int, G: FloatArray, f: FloatArray, k: int, w: float, beta: float
 ) -> None:
@@ -156,7 +158,7 @@ def _accumulate_block(
             H3[row, i, j] += w * (acc - beta * gp[i] * gp[j])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _joint_axes(Q: FloatArray, Jr: FloatArray) -> FloatArray:
     """Each joint's rotation-vector Jacobian in world axes, Q_b · Jr_b (nb, 3, 3): the columns a row's derivative
     is spread along (:func:`_spread_row`)."""
@@ -169,7 +171,7 @@ def _joint_axes(Q: FloatArray, Jr: FloatArray) -> FloatArray:
     return axes
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _spread_row(
     H: FloatArray,
     g: FloatArray,
@@ -226,7 +228,7 @@ def _spread_row(
             H[ci, int(cols[j])] += J[0, i] * M[0, j] + J[1, i] * M[1, j] + J[2, i] * M[2, j]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _forward(
     theta: FloatArray,
     parents: FloatArray,
@@ -257,7 +259,7 @@ def _forward(
                     Q[b, i, j] = Q[p, i, 0] * Rl[b, 0, j] + Q[p, i, 1] * Rl[b, 1, j] + Q[p, i, 2] * Rl[b, 2, j]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _attach(Q: FloatArray, X: FloatArray, bones: FloatArray, point_offsets: FloatArray) -> FloatArray:
     """World positions of points ``(bone, offset)``: X_b + Q_b c, shape (n, 3)."""
     out = np.empty((bones.shape[0], 3))
@@ -273,7 +275,7 @@ def _attach(Q: FloatArray, X: FloatArray, bones: FloatArray, point_offsets: Floa
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def evaluate(
     theta: FloatArray,
     jac: bool,
@@ -519,7 +521,7 @@ def evaluate(
     return cost
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def cholesky_solve(A: FloatArray, b: FloatArray) -> tuple[FloatArray, bool]:
     """x with A x = b for symmetric positive definite A (n small); False when A is not (the body's LM step and
     the hand solve's, :mod:`mocapd.core._hand_kernel`)."""
@@ -552,7 +554,7 @@ def cholesky_solve(A: FloatArray, b: FloatArray) -> tuple[FloatArray, bool]:
     return x, True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def lm_step(
     H: FloatArray, g: FloatArray, radius: float, min_diag: float, max_diag: float
 ) -> tuple[FloatArray, float, bool]:
@@ -578,7 +580,7 @@ def lm_step(
     return x, red, True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def skeleton_points(
     theta: FloatArray, parents: FloatArray, offsets: FloatArray, bones: FloatArray, point_offsets: FloatArray
 ) -> FloatArray:

@@ -20,7 +20,7 @@ from mocapd.core._kernel import _corrector, _forward, _joint_axes, _loss, _sprea
 FloatArray = NDArray[np.float64]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def learned_term(
     theta: FloatArray,
     jac: bool,

@@ -53,7 +53,7 @@ OPTION_FIELDS = (
 )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _finite(a: FloatArray) -> bool:
     for v in a.flat:  # noqa: SIM110  # a loop: numba compiles it, not all() over a generator
         if not math.isfinite(v):
@@ -61,7 +61,7 @@ def _finite(a: FloatArray) -> bool:
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _norm(a: FloatArray) -> float:
     s = 0.0
     for v in a:

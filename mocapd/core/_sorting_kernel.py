@@ -20,7 +20,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _undistort(K: FloatArray, dist: FloatArray, u: float, v: float) -> tuple[float, float]:
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     xd = (u - K[0, 2]) / K[0, 0]
@@ -36,7 +36,7 @@ def _undistort(K: FloatArray, dist: FloatArray, u: float, v: float) -> tuple[flo
     return x, y
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, nogil=True, inline="always")
 def _pair_point(
     rays: FloatArray,
     centres: FloatArray,
@@ -86,7 +86,7 @@ def _pair_point(
     return True, e[0], e[1]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def candidate_pairs(
     keypoints: FloatArray,
     usable: NDArray[np.bool_],

@@ -96,6 +96,11 @@ class DetectionTimeline:
         self._frames: deque[tuple[int, Detections2D]] = deque(maxlen=capacity)
         self.rejected_out_of_order = 0
         self.frames_received = 0
+        #: the last bracket's two frames and who in one is who in the other: at 60 Hz ticks and 30 Hz cameras
+        #: consecutive ticks blend the same two frames at another ``alpha``, and the matching does not depend on it
+        self._matched: tuple[Detections2D, Detections2D, list[tuple[int, int]]] | None = None
+        #: people matchings computed (one per bracket sampled, however many ticks sample it)
+        self.matchings = 0
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -148,7 +153,11 @@ class DetectionTimeline:
                 return TimelineSample(SampleStatus.NEAREST, near, t0, t1, near_t)
             return TimelineSample(SampleStatus.STALE, empty, t0, t1)
         alpha = (t_ns - t0) / (t1 - t0)
-        people = interpolate_people(a, b, alpha, self.match_px)
+        m = self._matched
+        if m is None or m[0] is not a or m[1] is not b:
+            m = self._matched = (a, b, match_people(a, b, self.match_px))
+            self.matchings += 1
+        people = interpolate_people(a, b, alpha, self.match_px, pairs=m[2])
         return TimelineSample(SampleStatus.INTERPOLATED, people, t0, t1, t0 if alpha <= 0.5 else t1)
 
 
@@ -164,19 +173,29 @@ def person_distances(a: Detections2D, b: Detections2D, min_confidence: float = 0
     return np.where(n > 0, total / np.maximum(n, 1), np.inf)
 
 
-def interpolate_people(a: Detections2D, b: Detections2D, alpha: float, match_px: float) -> Detections2D:
+def match_people(a: Detections2D, b: Detections2D, match_px: float) -> list[tuple[int, int]]:
+    """Who in frame ``a`` is who in frame ``b``: (index in a, index in b) of the assignment with the least total
+    mean keypoint distance, pairs farther than ``match_px`` apart left out."""
+    d = person_distances(a, b)
+    if not d.size:
+        return []
+    rows, cols = linear_sum_assignment(np.where(np.isfinite(d), d, 1e12))
+    return [(int(i), int(j)) for i, j in zip(rows, cols, strict=True) if d[i, j] <= match_px]
+
+
+def interpolate_people(
+    a: Detections2D, b: Detections2D, alpha: float, match_px: float, *, pairs: list[tuple[int, int]] | None = None
+) -> Detections2D:
     """People of two frames blended at ``alpha`` in [0, 1] (0 = ``a``).
 
     Matched people: keypoints seen in both frames are blended linearly, with blended confidence; a keypoint seen
     in one frame only keeps that frame's position with its confidence scaled by that frame's weight. Unmatched
-    people of the nearer frame are passed through; those of the farther frame are left out.
+    people of the nearer frame are passed through; those of the farther frame are left out. ``pairs``: the
+    frames' :func:`match_people` when the caller has it already (it does not depend on ``alpha``).
     """
     near = a if alpha <= 0.5 else b
-    d = person_distances(a, b)
-    pairs: list[tuple[int, int]] = []
-    if d.size:
-        rows, cols = linear_sum_assignment(np.where(np.isfinite(d), d, 1e12))
-        pairs = [(int(i), int(j)) for i, j in zip(rows, cols, strict=True) if d[i, j] <= match_px]
+    if pairs is None:
+        pairs = match_people(a, b, match_px)
     # The undistorted copies (made once per frame as it arrived) are blended like the pixels: the lens map is
     # smooth over the few pixels a keypoint moves between two frames.
     with_und = a.undistorted is not None and b.undistorted is not None

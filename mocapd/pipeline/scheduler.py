@@ -609,7 +609,9 @@ class FixedLatencyScheduler:
         alpha = np.zeros(n)
         mask = np.zeros(n, dtype=bool)
         for i, sid in enumerate(suit.sensors):
-            counts = self.imu_status.setdefault(sid, dict.fromkeys((s.value for s in LookupStatus), 0))
+            counts = self.imu_status.get(sid)
+            if counts is None:  # not setdefault: its default would be built for every sensor on every tick
+                counts = self.imu_status[sid] = dict.fromkeys((s.value for s in LookupStatus), 0)
             stream = self.ingest.streams.get(sid)
             if stream is None:
                 counts[LookupStatus.EMPTY.value] += 1

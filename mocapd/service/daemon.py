@@ -21,6 +21,7 @@ import os
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -353,9 +354,9 @@ class Daemon:
         self.started_ns = clock()
         self.ready = asyncio.Event()
         self._stop = asyncio.Event()
-        self._rate_window: list[int] = []  # tick times of the last second, for the achieved rate
+        self._rate_window: deque[int] = deque()  # tick times of the last second, for the achieved rate
         #: with fingers on: each published frame of the last second, its time and who had which hand solved
-        self._hand_window: list[tuple[int, dict[str, tuple[bool, bool]]]] = []
+        self._hand_window: deque[tuple[int, dict[str, tuple[bool, bool]]]] = deque()
         self.stopping = False
         self._startup_error: StartupError | None = None
         #: run() installs SIGINT/SIGTERM/SIGHUP handlers (False: the caller owns signals, see lifecycle.stop_event)
@@ -669,11 +670,16 @@ class Daemon:
             self.latest = frame
             published = self.clock()
             self.scheduler.record_publish(frame, w0, c0, published)
-            self._rate_window = [t for t in self._rate_window if t > published - 1_000_000_000] + [published]
+            # The last second's windows trimmed from their old end (no list rebuilt per tick: the times only grow).
+            second_ago = published - 1_000_000_000
+            while self._rate_window and self._rate_window[0] <= second_ago:
+                self._rate_window.popleft()
+            self._rate_window.append(published)
             if self.scheduler.hands is not None:
                 seen = {p.identity: (bool(p.hands.present[0]), bool(p.hands.present[1]))
                         for p in frame.people if p.hands is not None}  # fmt: skip
-                self._hand_window = [w for w in self._hand_window if w[0] > published - 1_000_000_000]
+                while self._hand_window and self._hand_window[0][0] <= second_ago:
+                    self._hand_window.popleft()
                 self._hand_window.append((published, seen))
             if watchdog_every is not None and published - last_ping > watchdog_every * 1e9:
                 self.notifier.notify("WATCHDOG=1")
