@@ -56,6 +56,7 @@ from mocapd.core.imu_calibration import (
     parse_person_assignment,
     stillest_common_window,
 )
+from mocapd.core.knee_extension import refine_knee_extension
 from mocapd.core.plausibility import HingeEvents
 from mocapd.core.stance_calibration import refine_from_stances
 from mocapd.errors import CalibrationError, ConfigError
@@ -109,6 +110,9 @@ class SessionCalibration:
     functional: dict[str, dict[str, object]] = field(default_factory=dict)
     """Per hinge, what the take's motion showed and whether it refined the mountings
     (:func:`mocapd.core.functional_calibration.refine_mountings`); empty with ``motion`` off."""
+    knee_extension: dict[str, dict[str, object]] = field(default_factory=dict)
+    """Per knee, how straight the take's knee came and whether the standing bend was raised
+    (:func:`mocapd.core.knee_extension.refine_knee_extension`); empty with ``motion`` off."""
     stances: dict[str, dict[str, object]] = field(default_factory=dict)
     """Per sensor, what gravity in the take's stances showed and whether it refined the mounting
     (:func:`mocapd.core.stance_calibration.refine_from_stances`); empty with ``motion`` off or no foot sensor."""
@@ -260,13 +264,16 @@ def calibrate_session(
                 calibration_hinges(samples, calibrate(facing_heading_deg, facing_from, hint)[0]))), None)  # fmt: skip
         raise CalibrationError(_refusal(hinges, source, facing_from, facing_heading_deg, works, posture, pose))
     functional: dict[str, dict[str, object]] = {}
+    extension: dict[str, dict[str, object]] = {}
     stances: dict[str, dict[str, object]] = {}
     if motion:
         refined = refine_from_recording(calib, samples, window)
         calib, functional = refined.calibration, refined.hinges
+        extended = refine_knee_extension(calib, samples, window)
+        calib, extension = extended.calibration, extended.knees
         by_stances = refine_from_stances(calib, samples, window)
         calib, stances = by_stances.calibration, by_stances.sensors
-    return SessionCalibration(calib, window, pose, source, hinges, functional, stances)
+    return SessionCalibration(calib, window, pose, source, hinges, functional, extension, stances)
 
 
 ARMS_THROUGH_BODY_S = 1.0
