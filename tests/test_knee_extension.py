@@ -126,28 +126,29 @@ def test_calibrate_imu_from_a_take_says_how_far_the_knees_bend_backwards(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Through the commands a suit owner runs: with the take's motion each knee's straightest flexion and shortfall
-    are printed (the still window's shrunk bend: ~5° backwards), the mountings kept; --no-motion looks at none."""
+    are printed (the still window's shrunk bend: ~5° backwards), the mountings kept; --knee-extension applies it
+    (the written calibration's knees match the walk's); --no-motion looks at none."""
     samples, bones, knees = _take(stand_bend_deg=8.0)
     files = _write_mt_exports(tmp_path, samples)
     session = tmp_path / "take"
     assign = [a for sid, bone in bones.items() for a in ("--assign", f"{sid}={bone}")]
     assert main(["import", "mtw", *files, "-o", str(session), *assign]) == 0
-    errors = {}
-    for extra in ([], ["--no-motion"]):
+    errors, said = {}, {}
+    for extra in ("", "--no-motion", "--knee-extension"):
         capsys.readouterr()
-        out = tmp_path / f"cal{len(extra)}.json"
+        out = tmp_path / f"cal{extra}.json"
         assert main(["calibrate", "imu", "--from", str(session), "--facing-heading", "0", "--window", "0:2",
-                     "--out", str(out), *extra]) == 0  # fmt: skip
-        said = json.loads(capsys.readouterr().out)
-        written = ImuCalibration.from_json_dict(json.loads(out.read_text()))
-        errors[bool(extra)] = _knee_error(written, samples, knees)
-        if extra:
-            assert said["knee_extension"] == {}
-        else:
-            assert set(said["knee_extension"]) == {"left_knee", "right_knee"}, said
-            for name, entry in said["knee_extension"].items():
-                assert entry["used"] is False and "not applied" in entry["reason"], entry
-                assert entry["straightest_deg"] < -4.0, entry
-                assert entry["shortfall_deg"] == pytest.approx(-errors[False][name], abs=0.7), (entry, errors)
-    assert all(e < -4.0 for e in errors[True].values()), errors
-    assert errors[False] == pytest.approx(errors[True], abs=0.5)
+                     "--out", str(out), *([extra] if extra else [])]) == 0  # fmt: skip
+        said[extra] = json.loads(capsys.readouterr().out)
+        errors[extra] = _knee_error(ImuCalibration.from_json_dict(json.loads(out.read_text())), samples, knees)
+    assert said["--no-motion"]["knee_extension"] == {}
+    assert all(e < -4.0 for e in errors["--no-motion"].values()), errors
+    assert set(said[""]["knee_extension"]) == {"left_knee", "right_knee"}, said[""]
+    for name, entry in said[""]["knee_extension"].items():
+        assert entry["used"] is False and "not applied" in entry["reason"], entry
+        assert entry["straightest_deg"] < -4.0, entry
+        assert entry["shortfall_deg"] == pytest.approx(-errors[""][name], abs=0.7), (entry, errors)
+    assert errors[""] == pytest.approx(errors["--no-motion"], abs=0.5)
+    assert all(e["used"] is True for e in said["--knee-extension"]["knee_extension"].values()), said
+    assert all(abs(e) < 0.7 for e in errors["--knee-extension"].values()), errors
+    assert said["--knee-extension"]["posture_deg"]["left_knee_bend"] == pytest.approx(8.0, abs=0.7)

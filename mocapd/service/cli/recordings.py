@@ -221,6 +221,7 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
             max_turn_deg=args.max_turn,
             max_acc_std=args.max_acc_std,
             motion=not (args.no_motion or args.pose_exact),  # exact: the hint held, every mounting error kept
+            knee_extension=args.knee_extension,
         )
         calib: ImuCalibration = result.calibration
         info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,

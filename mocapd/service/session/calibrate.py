@@ -158,6 +158,7 @@ def calibrate_session(
     max_turn_deg: float = MAX_TURN_DEG,
     max_acc_std: float = MAX_ACC_STD,
     motion: bool = True,
+    knee_extension: bool = False,
 ) -> SessionCalibration:
     """Calibrate the session's assigned sensors (see the module docstring).
 
@@ -165,6 +166,8 @@ def calibrate_session(
     mountings (:func:`~mocapd.core.functional_calibration.refine_from_recording`: each hinge's axis as its sensors
     see it), then gravity in its stances the trunk's and legs' (:func:`~mocapd.core.stance_calibration.
     refine_from_stances`, where consistent); the plausibility checks run on the still window's calibration before.
+    The knees' extension over the take (:func:`~mocapd.core.knee_extension.refine_knee_extension`) is measured, and
+    with ``knee_extension`` applied.
 
     ``assignment`` defaults to the session's ``[imu.assignment]`` (an imported session has it); where the session's
     config has one table per person (``[imu.assignment.alice]``), ``suit``'s table (default ``person``'s). At most
@@ -269,7 +272,7 @@ def calibrate_session(
     if motion:
         refined = refine_from_recording(calib, samples, window)
         calib, functional = refined.calibration, refined.hinges
-        extended = refine_knee_extension(calib, samples, window)
+        extended = refine_knee_extension(calib, samples, window, apply=knee_extension)
         calib, extension = extended.calibration, extended.knees
         by_stances = refine_from_stances(calib, samples, window)
         calib, stances = by_stances.calibration, by_stances.sensors
