@@ -40,6 +40,7 @@ from mocapd.core.imu_calibration import (
     stillest_common_window,
     window_samples,
 )
+from mocapd.core.knee_extension import refine_knee_extension
 from mocapd.core.rotations import quat_angle, quat_conjugate, quat_multiply
 from mocapd.core.stance_calibration import refine_from_stances
 from mocapd.errors import CalibrationError, ConfigError
@@ -287,11 +288,12 @@ class CalibrationRoutine:
             self._fail(now_s, str(exc))
             return
         refined = refine_from_recording(calib, samples, window)
-        by_stances = refine_from_stances(refined.calibration, samples, window)
+        extended = refine_knee_extension(refined.calibration, samples, window)
+        by_stances = refine_from_stances(extended.calibration, samples, window)
         self.calibration = by_stances.calibration
         self.report = {"facing_heading_deg": round(heading, 1), "window_s": [round(v, 2) for v in window],
-                       "hinge_axes": refined.hinges, "stance_gravity": by_stances.sensors,
-                       **self.calibration.summary()}  # fmt: skip
+                       "hinge_axes": refined.hinges, "knee_extension": extended.knees,
+                       "stance_gravity": by_stances.sensors, **self.calibration.summary()}  # fmt: skip
         worst = self.calibration.summary()["worst"]
         tail = f", worst residual {worst['residual_deg']} deg ({worst['bone']})" if isinstance(worst, dict) else ""
         self._say(now_s, f"done: facing {heading:.0f} deg from the steps{tail}")

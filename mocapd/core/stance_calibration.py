@@ -93,7 +93,9 @@ REFINE_LEGS = False
 """Whether the legs' stances turn their mountings (else their gravity misfit is measured and kept only): a walk's
 foot-flat rolls the leg over the ankle, so the stances' mean leg lean is a few degrees off the model (the development
 walks: 1-4°; the real MTw walk's 2-3°), the size of the errors it would fix. Applied, it made the real MTw walk's path
-−3.0 → −3.5 % and its hip RMSE 8.7 → 9.2° (docs/imu.md)."""
+−3.0 → −3.5 % and its hip RMSE 8.7 → 9.2° (docs/imu.md). No other instant of the stance does better: the true leg
+lean at the foot-flat's middle, the shank's slowest turn, the top of the pelvis's vault, the knee's straightest moves
+by 2-7° from walker to walker (``tools/stance_leg_lean.py``, docs/imu.md "The legs in the stances")."""
 TRUNK = ("Hips", "Spine3")
 """Trunk bones whose sensors the stances refine (upright in every stance)."""
 LEGS = {"Left": ("LeftUpperLeg", "LeftLowerLeg", "LeftFoot"), "Right": ("RightUpperLeg", "RightLowerLeg", "RightFoot")}
@@ -332,11 +334,11 @@ def refine_from_stances(
         return StanceResult(replace(calib, gravity_misfit_deg=misfit), report, counts)
     refined = replace(calib, q_ib=q_ib, gravity_misfit_deg=misfit)
     if still_window is not None and calib.posture:
-        refined = replace(refined, posture=_posture_again(refined, samples, still_window))
+        refined = replace(refined, posture=posture_in_window(refined, samples, still_window))
     return StanceResult(refined, report, counts)
 
 
-def _posture_again(calib: ImuCalibration, samples: Samples, window: tuple[float, float]) -> dict[str, float]:
+def posture_in_window(calib: ImuCalibration, samples: Samples, window: tuple[float, float]) -> dict[str, float]:
     """The still window's posture measured with ``calib``'s mountings (``R_pose = S · M⁻¹``, ``S`` its mean)."""
     sensors = sorted(sid for sid in calib.bones if sid in samples)
     t, q = common_grid(samples, sensors)

@@ -56,6 +56,7 @@ from mocapd.core.imu_calibration import (
     window_samples,
 )
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.knee_extension import refine_knee_extension
 from mocapd.core.plausibility import hinge_angles
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import quat_angle, quat_from_matrix, quat_from_rotvec, quat_multiply
@@ -87,15 +88,18 @@ WALKS = (
 )
 """The development split's walks (``--clip WALKS``): the takes with stances, for gravity from stances."""
 METHODS = {
-    "before: T-pose assumed": ("t-pose", False, False, False),
-    "after: --pose a-pose (estimated)": ("a-pose", True, False, False),
-    "after: --pose t-pose (estimated)": ("t-pose", True, False, False),
-    "after: --pose a-pose + hinge axes from the motion": ("a-pose", True, True, False),
-    "after: --pose a-pose + hinge axes + gravity from stances": ("a-pose", True, True, True),
+    "before: T-pose assumed": ("t-pose", False, False, False, False),
+    "after: --pose a-pose (estimated)": ("a-pose", True, False, False, False),
+    "after: --pose t-pose (estimated)": ("t-pose", True, False, False, False),
+    "after: --pose a-pose + hinge axes from the motion": ("a-pose", True, True, False, False),
+    "after: --pose a-pose + hinge axes + gravity from stances": ("a-pose", True, True, False, True),
+    "not done: --pose a-pose + hinge axes + knee extension applied + stances": ("a-pose", True, True, True, True),
 }
 """Label -> (posture hint, posture estimated from the still window, mountings refined by the take's hinge axes:
-:func:`mocapd.core.functional_calibration.refine_mountings`, and by gravity in its stances:
-:func:`mocapd.core.stance_calibration.refine_from_stances`; what ``calibrate imu --from`` does with a take)."""
+:func:`mocapd.core.functional_calibration.refine_mountings`, by the knees' extension over it:
+:func:`mocapd.core.knee_extension.refine_knee_extension`, and by gravity in its stances:
+:func:`mocapd.core.stance_calibration.refine_from_stances`; the row before the last is what ``calibrate imu --from``
+does with a take; the last applies the knees' extension, which ``calibrate imu --from`` measures only)."""
 GROUPS = {
     "legs": [b for b in BONE_NAMES if "Leg" in b or "Foot" in b or "Toes" in b],
     "trunk_head": ["Spine", "Spine1", "Spine2", "Spine3", "Neck", "Head"],
@@ -237,7 +241,8 @@ def run(
         samples, bones, truth, angles, true_mounts = simulate_take(clip.skeleton, motion, rng, sway_deg)
         hinge_rows: dict[str, Any] = {}
         stance_rows: dict[str, Any] = {}
-        for label, (pose, estimate, functional, stances) in METHODS.items():
+        knee_rows: dict[str, Any] = {}
+        for label, (pose, estimate, functional, extension, stances) in METHODS.items():
             calib, window = calibrate_recording("sim", samples, bones, facing_heading_deg=0.0, span=(0.0, STILL_S),
                                                 window_s=1.0, pose=pose, estimate_posture=estimate)  # fmt: skip
             if functional:
@@ -246,6 +251,9 @@ def run(
                 refined = refine_mountings(calib, orientations,
                                            still_orientations(orientations, window_samples(t, *window)))  # fmt: skip
                 calib, hinge_rows = refined.calibration, refined.hinges
+            if extension:
+                extended = refine_knee_extension(calib, samples, window, apply=True)
+                calib, knee_rows = extended.calibration, extended.knees
             if stances:
                 by_stances = refine_from_stances(calib, samples, window)
                 calib, stance_rows = by_stances.calibration, by_stances.sensors
@@ -262,11 +270,14 @@ def run(
             row = {"clip": Path(path).stem, **measure(theta, truth, clip.skeleton),
                    **{f"mount_{k}_deg": v for k, v in mounting_errors(calib, true_mounts).items()}}  # fmt: skip
             rows[label].append(
-                row | ({"hinges": hinge_rows} if functional else {}) | ({"stances": stance_rows} if stances else {})
+                row
+                | ({"hinges": hinge_rows} if functional else {})
+                | ({"knees": knee_rows} if extension else {})
+                | ({"stances": stance_rows} if stances else {})
             )
     summary = {}
     for label, rs in rows.items():
-        keys = [k for k in rs[0] if k not in ("clip", "hinges", "stances")]
+        keys = [k for k in rs[0] if k not in ("clip", "hinges", "knees", "stances")]
         pe = np.array(posture_err[label])
         summary[label] = {k: round(float(np.mean([r[k] for r in rs])), 1) for k in keys} | {
             "posture_error_rms_deg": round(float(np.sqrt(np.mean(pe**2))), 1)

@@ -108,6 +108,13 @@ def register(subparsers: Any) -> None:
         "bend enough about one axis, refine them: docs/imu.md, 'Hinge axes from motion')",
     )
     p.add_argument(
+        "--knee-extension",
+        action="store_true",
+        help="with --from: raise each knee's standing bend by how far the take's straightest knee reads bent "
+        "backwards (by default measured and printed only: a knee may hyperextend; docs/imu.md, 'The knees' "
+        "extension from motion')",
+    )
+    p.add_argument(
         "--max-turn",
         type=number(0.1, 45.0),
         default=MAX_TURN_DEG,

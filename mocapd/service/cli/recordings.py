@@ -221,6 +221,7 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
             max_turn_deg=args.max_turn,
             max_acc_std=args.max_acc_std,
             motion=not (args.no_motion or args.pose_exact),  # exact: the hint held, every mounting error kept
+            knee_extension=args.knee_extension,
         )
         calib: ImuCalibration = result.calibration
         info = {"window_s": [round(v, 3) for v in result.window_s], "pose": result.pose,
@@ -230,6 +231,7 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
                 "hinges": {name: h.as_dict() for name, h in result.hinges.items()},
                 "hinge_misfit_deg": {s: round(v, 1) for s, v in calib.hinge_misfit_deg.items()},
                 "hinge_axes": result.functional,
+                "knee_extension": result.knee_extension,
                 "gravity_misfit_deg": {s: round(v, 1) for s, v in calib.gravity_misfit_deg.items()},
                 "stance_gravity": result.stances}  # fmt: skip
         store_in_session(session, suit, calib, info)
@@ -250,6 +252,7 @@ def calibrate_from_session(args: argparse.Namespace) -> int:
                       "mount_residual_deg": {s: round(v, 1) for s, v in calib.residual_deg.items()},
                       "hinge_axes": result.functional,
                       "hinge_misfit_deg": info["hinge_misfit_deg"],
+                      "knee_extension": result.knee_extension,
                       "stance_gravity": result.stances,
                       "gravity_misfit_deg": info["gravity_misfit_deg"],
                       "next": f"mocapd resolve {session.path}"}, indent=2))  # fmt: skip

@@ -56,6 +56,7 @@ from mocapd.core.imu_calibration import (
     parse_person_assignment,
     stillest_common_window,
 )
+from mocapd.core.knee_extension import refine_knee_extension
 from mocapd.core.plausibility import HingeEvents
 from mocapd.core.stance_calibration import refine_from_stances
 from mocapd.errors import CalibrationError, ConfigError
@@ -109,6 +110,9 @@ class SessionCalibration:
     functional: dict[str, dict[str, object]] = field(default_factory=dict)
     """Per hinge, what the take's motion showed and whether it refined the mountings
     (:func:`mocapd.core.functional_calibration.refine_mountings`); empty with ``motion`` off."""
+    knee_extension: dict[str, dict[str, object]] = field(default_factory=dict)
+    """Per knee, how straight the take's knee came and whether the standing bend was raised
+    (:func:`mocapd.core.knee_extension.refine_knee_extension`); empty with ``motion`` off."""
     stances: dict[str, dict[str, object]] = field(default_factory=dict)
     """Per sensor, what gravity in the take's stances showed and whether it refined the mounting
     (:func:`mocapd.core.stance_calibration.refine_from_stances`); empty with ``motion`` off or no foot sensor."""
@@ -154,6 +158,7 @@ def calibrate_session(
     max_turn_deg: float = MAX_TURN_DEG,
     max_acc_std: float = MAX_ACC_STD,
     motion: bool = True,
+    knee_extension: bool = False,
 ) -> SessionCalibration:
     """Calibrate the session's assigned sensors (see the module docstring).
 
@@ -161,6 +166,8 @@ def calibrate_session(
     mountings (:func:`~mocapd.core.functional_calibration.refine_from_recording`: each hinge's axis as its sensors
     see it), then gravity in its stances the trunk's and legs' (:func:`~mocapd.core.stance_calibration.
     refine_from_stances`, where consistent); the plausibility checks run on the still window's calibration before.
+    The knees' extension over the take (:func:`~mocapd.core.knee_extension.refine_knee_extension`) is measured, and
+    with ``knee_extension`` applied.
 
     ``assignment`` defaults to the session's ``[imu.assignment]`` (an imported session has it); where the session's
     config has one table per person (``[imu.assignment.alice]``), ``suit``'s table (default ``person``'s). At most
@@ -260,13 +267,16 @@ def calibrate_session(
                 calibration_hinges(samples, calibrate(facing_heading_deg, facing_from, hint)[0]))), None)  # fmt: skip
         raise CalibrationError(_refusal(hinges, source, facing_from, facing_heading_deg, works, posture, pose))
     functional: dict[str, dict[str, object]] = {}
+    extension: dict[str, dict[str, object]] = {}
     stances: dict[str, dict[str, object]] = {}
     if motion:
         refined = refine_from_recording(calib, samples, window)
         calib, functional = refined.calibration, refined.hinges
+        extended = refine_knee_extension(calib, samples, window, apply=knee_extension)
+        calib, extension = extended.calibration, extended.knees
         by_stances = refine_from_stances(calib, samples, window)
         calib, stances = by_stances.calibration, by_stances.sensors
-    return SessionCalibration(calib, window, pose, source, hinges, functional, stances)
+    return SessionCalibration(calib, window, pose, source, hinges, functional, extension, stances)
 
 
 ARMS_THROUGH_BODY_S = 1.0
