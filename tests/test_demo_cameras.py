@@ -162,8 +162,7 @@ def test_daemon_survives_unplugging_a_camera_and_gets_it_back(demo: DemoProcess)
     victim = st["fake_cameras"][1]
     name, others = victim["name"], [c["name"] for c in st["cameras"] if c["name"] != victim["name"]]
     os.kill(victim["pid"], signal.SIGKILL)  # the cable is pulled: no goodbye on the wire
-    # Reported lost: the failure counted and the camera down, in one answer (the capture thread counts the failure
-    # a moment before it marks the device closed, so an answer may show both a failure and "up" for that moment).
+    # Reported lost: the failure counted and the camera down, in one answer, while its server is still out.
     down = demo.wait_status(
         lambda s: _capture(s, name)["failures"] >= 1 and not _capture(s, name)["up"], 30, f"{name} reported lost"
     )
