@@ -26,8 +26,9 @@ lint:
 typecheck:
 	$(BIN)/mypy
 
+# --durations: every run (CI's included) ends with its 40 slowest tests, the numbers to act on when the suite slows.
 unit:
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q --durations=40
 
 bench: setup-demo
 	$(BIN)/mocapd bench solver

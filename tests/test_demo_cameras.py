@@ -49,6 +49,11 @@ MOCAPD = ROOT / ".venv" / "bin" / "mocapd"
 SECONDS = 75.0
 SPEED = 0.05  # video playback speed (3 fps): see the module docstring
 GRACE_S = 10.0  # tracking.enrolment.grace_period_s for a detector that stalls under load
+# The unplugged camera's server is started again after this long (the demo's default is 3 s). It is declared lost
+# after 2 s of silence and reopened at once when its server is back: with 3 s it was reported down for about 4 s,
+# and one /status answer took up to 4.7 s on the loaded 2-core machine, so a poll could miss the outage.
+REPLUG_AFTER_S = 10.0
+START_TIMEOUT_S = 300.0  # models loaded, four cameras streaming: 28-150 s on the loaded 2-core machine
 
 
 @dataclass
@@ -111,7 +116,8 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DemoProcess]:
     session = tmp / "session"
     proc = subprocess.Popen(
         [str(MOCAPD), "demo", "--seconds", str(SECONDS), "--scale", "0.25", "--latency", "2.0", "--http-port", "0",
-         "--speed", str(SPEED), "--packed", "--config", str(config), "--record", str(session)],
+         "--speed", str(SPEED), "--packed", "--replug-after", str(REPLUG_AFTER_S), "--config", str(config),
+         "--record", str(session)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     d = DemoProcess(proc, udp, session)
@@ -123,16 +129,18 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DemoProcess]:
             d.lines.append(line)
 
     threading.Thread(target=pump, daemon=True).start()
-    deadline = time.monotonic() + 30
-    while not d.url and time.monotonic() < deadline:
-        for line in list(d.lines):
-            if line.startswith("status: http://127.0.0.1:"):
-                d.url = line.split()[1].rsplit("/status", 1)[0]
-            if line.startswith("viewer: http://127.0.0.1:"):
-                d.viewer = line.split()[1]
-        time.sleep(0.1)
-    assert d.url and d.viewer, "".join(d.lines)
+    # The first lines come once mocapd has imported and bound its sockets: 1-2 s alone, over 30 s under a load of 27
+    # on 2 cores. A demo that ends instead says why in its output.
+    deadline = time.monotonic() + START_TIMEOUT_S
     try:
+        while not (d.url and d.viewer) and time.monotonic() < deadline and proc.poll() is None:
+            for line in list(d.lines):
+                if line.startswith("status: http://127.0.0.1:"):
+                    d.url = line.split()[1].rsplit("/status", 1)[0]
+                if line.startswith("viewer: http://127.0.0.1:"):
+                    d.viewer = line.split()[1]
+            time.sleep(0.1)
+        assert d.url and d.viewer, "".join(d.lines)
         yield d
     finally:
         udp.close()
@@ -148,15 +156,19 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DemoProcess]:
 def test_daemon_survives_unplugging_a_camera_and_gets_it_back(demo: DemoProcess) -> None:
     st = demo.wait_status(
         lambda s: s["ready"] and all(_capture(s, c["name"])["frames"] >= 10 for c in s["cameras"]),
-        120, "the four cameras streaming",
+        START_TIMEOUT_S, "the four cameras streaming",
     )  # fmt: skip
     assert len(st["cameras"]) == 4 and len(st["fake_cameras"]) == 4
     victim = st["fake_cameras"][1]
     name, others = victim["name"], [c["name"] for c in st["cameras"] if c["name"] != victim["name"]]
     os.kill(victim["pid"], signal.SIGKILL)  # the cable is pulled: no goodbye on the wire
-    down = demo.wait_status(lambda s: _capture(s, name)["failures"] >= 1, 30, f"{name} reported lost")
+    # Reported lost: the failure counted and the camera down, in one answer, while its server is still out.
+    down = demo.wait_status(
+        lambda s: _capture(s, name)["failures"] >= 1 and not _capture(s, name)["up"], 30, f"{name} reported lost"
+    )
     cap = _capture(down, name)
-    assert not cap["up"] and cap["last_error"], cap
+    assert cap["last_error"] and cap["state"] in ("waiting to reopen", "opening"), cap
+    assert next(f for f in down["fake_cameras"] if f["name"] == name)["starts"] == 1  # not plugged back in yet
     before = {c["name"]: c for c in down["cameras"]}
     solves_before, frames_before = down["counters"]["person_solves"], down["output"]["frames"]
     # While it is out, the daemon keeps capturing, detecting and solving with the three others.

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import http.server
 import json
+import socket
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
@@ -394,3 +395,41 @@ async def test_the_web_section_reaches_the_servers() -> None:
     finally:
         await server.aclose()
     assert server.refused["host"] == 1 and server.refused["origin"] == 1
+
+
+@pytest.mark.asyncio
+async def test_the_status_server_on_an_inherited_socket_is_built_as_the_daemons_own() -> None:
+    """The camera demo's daemon serves ``/status`` on a listening socket its parent bound in the host's network
+    namespace (``RunOptions.sockets``). That server is built as the daemon's own: ``[web]`` reaches it (its
+    configured name and page origin are served), foreign names and origins are refused, a POST needs the header.
+    Before, it was built without ``[web]``: the configured name was refused with 421."""
+    from mocapd.service.assembly import RunOptions, Sockets, assembled
+    from mocapd.service.config import parse_config
+
+    web = {"allowed_hosts": ["studio.local"], "allowed_origins": ["http://localhost:3000"]}
+    cfg = parse_config({"imu": {"slimevr": {"enabled": True, "port": 0}}, "daemon": {"http_port": 0},
+                        "websocket": {"enabled": False}, "web": web})  # fmt: skip
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    with assembled(cfg, RunOptions(sockets=Sockets(http=listener))) as built:
+        server = built.daemon.http
+        assert await server.start() == port  # it serves on the inherited socket, not on a port of its own
+
+        async def get(host: str, origin: str | None = None) -> int:
+            extra = f"Origin: {origin}\r\n" if origin else ""
+            return (await raw(port, f"GET /nothing HTTP/1.1\r\nHost: {host}\r\n{extra}\r\n"))[0]
+
+        try:
+            # Served (404: past the Host and Origin checks, to the path): its own names, the configured ones.
+            assert await get(f"127.0.0.1:{port}") == 404
+            assert await get(f"localhost:{port}", f"http://localhost:{port}") == 404
+            assert await get(f"studio.local:{port}") == 404
+            assert await get(f"127.0.0.1:{port}", "http://localhost:3000") == 404
+            # Refused: a foreign name (DNS rebinding), foreign pages, a simple POST.
+            assert await get(f"{EVIL}:{port}") == 421
+            assert await get(f"127.0.0.1:{port}", f"http://{EVIL}:{port}") == 403
+            assert await get(f"127.0.0.1:{port}", "http://localhost:3001") == 403
+            assert (await raw(port, post(port, "Content-Type: text/plain\r\n", "reset")))[0] == 403
+        finally:
+            await server.close()
+    assert server.refused.as_dict() == {"host": 1, "origin": 2, "csrf": 1}

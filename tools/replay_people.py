@@ -48,9 +48,13 @@ def replay(path: str, settings: list[str]) -> dict[str, Any]:
     session = open_session(path)
     rig = session_rig(session)
     cfg, o = rig.config, rig.options
-    sorter = DetectionSorter(rig.cameras, sorting_options(cfg.tracking.sorting.options(), settings))
+    # Every recorded column, as the live daemon sampled and sorted them: the targets', then both hands' when the
+    # rig detected hands (the manifest's keypoint_columns; the sorter pairs left and right by these names).
+    columns = rig.keypoint_columns or rig.targets.names
+    options = sorting_options(cfg.tracking.sorting.options(), settings)
+    sorter = DetectionSorter(rig.cameras, options, keypoint_names=columns)
     people = PeopleTracker(SubjectTracker(sorter, cfg.tracking.enrolment.options()))
-    n_kp = len(rig.targets)
+    n_kp = len(columns)
     timelines = [DetectionTimeline(n_kp, max_age_ns=o.keypoint_max_age_ns, max_gap_ns=o.keypoint_max_gap_ns,
                                    match_px=o.match_px) for _ in rig.cameras]  # fmt: skip
     sets = sorted(session.keypoints(), key=lambda k: (k.arrival_ns, k.camera))

@@ -183,8 +183,10 @@ class ThreadedSource(abc.ABC):
                     if hook is not None:
                         hook(ref)
         except DeviceError as exc:
-            # Count and report at once: closing a vanished device can take seconds of protocol time-outs.
+            # Count and report at once: closing a vanished device can take seconds of protocol time-outs. Marked
+            # down first: a /status answer read between the two would say "up" with the failure already counted.
             result = exc
+            self.opened.clear()
             self.counters.failures += 1
             self.counters.last_error = str(exc)
             log.warning("camera %s failed: %s", self.name, exc)

@@ -30,8 +30,6 @@ from mocapd.pipeline.mattes import MatteSource, RingMattes
 from mocapd.service.config import Config
 from mocapd.service.config.udp import describe_streams
 from mocapd.service.daemon import Daemon, PoseSink, in_daemon_thread
-from mocapd.service.http_status import StatusServer
-from mocapd.service.metrics import render_metrics
 from mocapd.service.outputs.recorder import SessionRecorder, attach_recorder, synthetic_extra
 from mocapd.service.outputs.udp import build_udp_sinks
 from mocapd.service.outputs.websocket import build_websocket_sinks
@@ -107,7 +105,7 @@ def assemble(
                         status_line=options.status_line, mattes=rig_mattes(config, built))  # fmt: skip
         daemon.handle_signals = False  # run() below owns them, from before the daemon exists to after it ends
         if options.sockets.http is not None:
-            daemon.http = StatusServer(daemon.status, render_metrics, sock=options.sockets.http, actions=daemon.actions)
+            daemon.http = daemon.status_server(options.sockets.http)
         if built.remote is not None:
             daemon.status_extras["remote_hosts"] = built.remote.status
             daemon.status_extras["zenoh_links"] = built.remote.links

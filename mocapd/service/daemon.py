@@ -18,6 +18,7 @@ import contextlib
 import gc
 import logging
 import os
+import socket
 import sys
 import threading
 import time
@@ -346,9 +347,7 @@ class Daemon:
             Path(self.imu.config.calibration_dir), rig.skeleton,
             lambda suit: install_suit(self.scheduler, self.rig.suits, suit),
         )  # fmt: skip
-        self.http = StatusServer(self.status, render_metrics, d.http_host, d.http_port, actions=self.actions,
-                                 allowed_hosts=config.web.allowed_hosts,
-                                 allowed_origins=config.web.allowed_origins)  # fmt: skip
+        self.http = self.status_server()
         self.plan: TickPlan | None = None
         self.latest: PoseFrame | None = None
         self.started_ns = clock()
@@ -363,6 +362,15 @@ class Daemon:
         self.handle_signals = True
 
     # ------------------------------------------------------------------------------------------ control
+    def status_server(self, sock: socket.socket | None = None) -> StatusServer:
+        """The status server of this daemon: on ``[daemon] http_host:http_port``, or on ``sock``, a listening socket
+        a parent bound for it (the camera demo's daemon runs in a private network namespace). Either way with the
+        same actions and the same ``[web]`` Host and Origin rules: one place builds it, so a server on an inherited
+        socket cannot miss a protection the other gets."""
+        d, web = self.config.daemon, self.config.web
+        return StatusServer(self.status, render_metrics, d.http_host, d.http_port, sock=sock, actions=self.actions,
+                            allowed_hosts=web.allowed_hosts, allowed_origins=web.allowed_origins)  # fmt: skip
+
     def request_stop(self) -> None:
         """Begin a clean shutdown (signal handlers call this)."""
         self._stop.set()

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from mocapd.errors import ConfigError, MocapdError
 from mocapd.io import cpu_budget, lifecycle
+from mocapd.service.cli.numbers import number
 from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
 from mocapd.service.config.cameras import AravisCamera, ImagesCamera, UvcCamera, VideoCamera, describe
 
@@ -365,7 +366,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         from mocapd.service.demo import cameras
 
         opts = cameras.CameraDemoOptions(scale=args.scale, latency_s=args.latency, speed=args.speed,
-                                         packed=_packed(args), cpu_budget=args.cpu_budget)  # fmt: skip
+                                         packed=_packed(args), cpu_budget=args.cpu_budget,
+                                         replug_after_s=args.replug_after)  # fmt: skip
         return cameras.run(args.config, cfg, None if args.seconds <= 0 else args.seconds, opts=opts,
                            record=args.record)  # fmt: skip
     except MocapdError as exc:  # bad config, a port in use, a session that exists, a device that did not open
@@ -474,6 +476,9 @@ def register(subparsers: Any) -> None:
     demo.add_argument("--cpu-budget", type=float, default=None, metavar="CORES", help=_BUDGET_HELP)
     demo.add_argument("--speed", type=float, default=1.0,
                       help="camera rig: video playback speed (default 1, their pace; < 1: slow motion)")  # fmt: skip
+    demo.add_argument("--replug-after", type=number(0.0, 3600.0), default=3.0, metavar="S",
+                      help="camera rig: a fake camera whose process ends (kill one to pull its cable) is started "
+                      "again after S seconds (default 3)")  # fmt: skip
     demo.set_defaults(func=cmd_demo, fast_exit=True)
 
     reset = subparsers.add_parser(
