@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import shutil
 import tarfile
 from pathlib import Path
@@ -14,10 +15,11 @@ import cv2
 import numpy as np
 import pytest
 
-from mocapd.core.hand_roi import hand_rois
+from mocapd.core.hand_roi import HAND_INPUT_SIZE, decode_hands, hand_rois
 from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
 from mocapd.core.keypoints import BLAZEPOSE33_HANDS_FORMAT, HANDS42
 from mocapd.core.keypoints import COCO17_FORMAT as COCO17
+from mocapd.core.landmark_roi import LandmarkRoi
 from mocapd.core.pose2d import PoseDetections
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import ConfigError, ModelError
@@ -31,7 +33,14 @@ from mocapd.io.video_source import VideoFileSource
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig, ModelSpec, PackingConfig
 from mocapd.pipeline.detector_pool import PooledDetector, detector_status, make_detector, target_columns
-from mocapd.pipeline.hand_landmarks import MIN_HAND_CONFIDENCE, HandRates, HandRunner, rates_status, with_hand_landmarks
+from mocapd.pipeline.hand_landmarks import (
+    MIN_HAND_CONFIDENCE,
+    HandRates,
+    HandRunner,
+    crop_hand,
+    rates_status,
+    with_hand_landmarks,
+)
 from mocapd.pipeline.landmarks import LandmarkRunner
 from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.service.cli import main
@@ -298,3 +307,27 @@ def test_model_fetch_hands_is_a_no_op_when_current(capsys: pytest.CaptureFixture
     assert main(["model", "fetch", "--size", "640", "--hands"]) == 0
     out = capsys.readouterr().out
     assert "hand_landmark_full.tflite" in out and "hand_landmark_lite.tflite" in out and "wrote" not in out
+
+
+@pytest.mark.parametrize("rotation", [0.0, 0.5, math.pi / 2, 2.5, -2.0])
+def test_a_rotated_hand_crop_round_trips_to_the_source_pixel(rotation: float) -> None:
+    # A blue dot in a BGR frame: crop_hand turns and scales it into the model's RGB input, and decode_hands maps the
+    # dot's place in the crop back onto the frame's dot (the crop's sampling, its channel order and the decoding
+    # agree, whatever the turn).
+    spike = np.zeros((400, 600), np.float32)
+    spike[190, 310] = 1.0
+    blue = cv2.GaussianBlur(spike, (0, 0), 3.0)
+    frame = np.zeros((400, 600, 3), np.uint8)
+    frame[..., 0] = np.round(255.0 * blue / blue.max()).astype(np.uint8)
+    dot = np.array([310.5, 190.5])  # the centre of pixel (310, 190)
+    roi = LandmarkRoi(300.0, 200.0, 80.0, rotation)  # 80 source px on the model's 224
+    crop = crop_hand(frame, roi)
+    assert crop.shape == (HAND_INPUT_SIZE, HAND_INPUT_SIZE, 3) and crop.dtype == np.float32
+    assert crop[..., 0].max() == 0.0 and crop[..., 2].max() > 0.9  # BGR in, RGB out, in [0, 1]
+    ys, xs = np.mgrid[0:HAND_INPUT_SIZE, 0:HAND_INPUT_SIZE]
+    w = crop[..., 2] / crop[..., 2].sum()
+    found = np.array([(w * (xs + 0.5)).sum(), (w * (ys + 0.5)).sum()])
+    marks = np.zeros((1, 63))
+    marks[0, :2] = found  # the model's wrist where the dot is
+    back = decode_hands(marks, np.array([1.0]), [roi])[0, 0, :2]
+    np.testing.assert_allclose(back, dot, atol=0.05)

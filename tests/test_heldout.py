@@ -12,7 +12,7 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D
 from mocapd.core.synthetic import moving_sequence, ring_rig
 from mocapd.errors import InputError
-from mocapd.eval.heldout import COCO17_COMPARED, COCO17_GROUPS, held_out_errors, summarize
+from mocapd.eval.heldout import COCO17_COMPARED, COCO17_GROUPS, camera_offsets, held_out_errors, summarize
 from mocapd.eval.video_metrics import (
     accelerations,
     accepted_flips,
@@ -139,3 +139,28 @@ def test_flips_found_and_accepted() -> None:
         follower[:, [left, right]] = a[:, [right, left]]
     _, accepted = accepted_flips(cams, frames, [follower], matched_detections(cams, frames, [follower]))
     assert accepted[2] == found[2]
+
+
+def test_camera_offsets_split_a_constant_shift_per_camera_from_the_rest() -> None:
+    # Three cameras; camera 0's errors are a constant (12, -5) px shift plus 2 px noise, camera 1's noise alone,
+    # camera 2 has none. The decomposition finds the shift and what the noise leaves.
+    rng = np.random.default_rng(3)
+    noise = rng.normal(0.0, 2.0, (400, 21, 2))
+    cams = np.repeat([0, 1], 200)
+    signed = noise + np.where(cams[:, None, None] == 0, np.array([12.0, -5.0]), 0.0)
+    signed[5, 3] = np.nan  # not compared: ignored
+    off = camera_offsets(signed, cams, 3)
+    np.testing.assert_allclose(off.mean[0], (12.0, -5.0), atol=0.15)
+    np.testing.assert_allclose(off.mean[1], (0.0, 0.0), atol=0.15)
+    assert np.isnan(off.mean[2]).all() and np.isnan(off.median[2])
+    assert off.median[0] == pytest.approx(13.0, abs=0.3)  # |(12, -5)| = 13 dominates
+    # The noise alone: a 2-D Gaussian's median radius is 2 * sqrt(2 ln 2) = 2.35 px, shift removed or not there.
+    assert off.median_less_mean[0] == pytest.approx(2.35, abs=0.15)
+    assert off.median_less_mean[1] == pytest.approx(off.median[1], abs=0.05)
+    less = off.less_mean(signed, cams)
+    assert less.shape == (400, 21) and np.isnan(less[5, 3])
+    assert np.nanmedian(less[cams == 0]) == pytest.approx(off.median_less_mean[0])
+    with pytest.raises(InputError, match="camera indices"):
+        camera_offsets(signed, cams + 2, 3)
+    with pytest.raises(InputError, match="one camera per row"):
+        camera_offsets(signed[..., 0], cams, 3)

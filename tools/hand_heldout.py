@@ -32,10 +32,11 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mocapd.core.camera import Camera, triangulate_projections
-from mocapd.core.hand_roi import hand_roi_from_blazepose
+from mocapd.core.hand_roi import hand_roi_from_blazepose, hand_roi_from_hand
 from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
 from mocapd.core.keypoints import FINGERS, HAND21, HAND_SIDES
 from mocapd.core.landmark_roi import LandmarkRoi
+from mocapd.eval.heldout import camera_offsets
 from mocapd.eval.video_input import pose2sim_take
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import ModelSpec
@@ -46,6 +47,9 @@ MIN_CONFIDENCE = 0.5
 MATCH_PX = 40.0
 MAX_PEOPLE = 4
 GROUPS = {"wrist": ("wrist",), **FINGERS}
+PALM = ("wrist", "thumb_cmc", "index_finger_mcp", "middle_finger_mcp", "ring_finger_mcp", "pinky_mcp")
+"""The points of the palm (the wrist and the five first joints), against the fingertips (the hardest to place)."""
+TIPS = ("thumb_tip", "index_finger_tip", "middle_finger_tip", "ring_finger_tip", "pinky_tip")
 _BODY_JOINTS = [BLAZEPOSE33.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip",
                                                "left_elbow", "right_elbow", "left_knee", "right_knee")]  # fmt: skip
 _HAND_POINTS = {s: [BLAZEPOSE33.index(f"{s}_{n}") for n in ("wrist", "index", "pinky")] for s in HAND_SIDES}
@@ -141,10 +145,17 @@ def _rois(body: np.ndarray, scale: float, shift: float) -> list[LandmarkRoi | No
 
 
 def hands(
-    demo: str, body: np.ndarray, placements: list[tuple[float, float]], variant: str, side_check: bool, refine: bool
+    demo: str,
+    body: np.ndarray,
+    placements: list[tuple[float, float]],
+    variant: str,
+    side_check: bool,
+    refine: bool,
+    given: dict[tuple[int, int, int, int], LandmarkRoi] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[float]]:
     """Hands per placement, shape (P, F, C, MAX_PEOPLE, 2, 21, 3), whether a crop was placed (F, C, MAX_PEOPLE, 2),
-    and the model's time per crop (s) of each call."""
+    and the model's time per crop (s) of each call. With ``given`` (crops by frame, camera, person and side) those
+    crops instead of the body's, as one placement."""
     take = pose2sim_take(demo)
     runner = HandRunner(BLAZEPOSE33.keypoints, variant, side_check=side_check, refine=refine)
     caps = [cv2.VideoCapture(str(v)) for v in take.videos]
@@ -162,6 +173,8 @@ def hands(
         for k, (scale, shift) in enumerate(placements):
             spots = [(c, p, s, r) for c in range(n_c) for p in range(MAX_PEOPLE) if body[f, c, p, :, 2].any()
                      for s, r in enumerate(_rois(body[f, c, p], scale, shift)) if r]  # fmt: skip
+            if given is not None:
+                spots = [(c, p, s, given[(f, c, p, s)]) for c, p, s, _ in spots if (f, c, p, s) in given]
             if not spots:
                 continue
             t0 = time.perf_counter()
@@ -175,6 +188,35 @@ def hands(
     return out, placed, per_crop
 
 
+def consensus_rois(
+    cameras: list[Camera], body: np.ndarray, hand: np.ndarray
+) -> dict[tuple[int, int, int, int], LandmarkRoi]:
+    """The crops all views agree on: each matched hand triangulated from every view that found it (>= 2), projected
+    into each view of that person and cropped there as MediaPipe's tracking places a crop from a hand's own points
+    (:func:`~mocapd.core.hand_roi.hand_roi_from_hand`). The best a crop placed from the body could do, short of the
+    rig's own error: how much of the held-out error the crop placement explains."""
+    n_f, n_c = body.shape[:2]
+    P = np.stack([c.projection_matrix for c in cameras])
+    out: dict[tuple[int, int, int, int], LandmarkRoi] = {}
+    for f in range(n_f):
+        und_body = np.stack([cam.undistort_points(body[f, c, :, :, :2]) for c, cam in enumerate(cameras)])
+        for cl in associate(cameras, body[f], und_body):
+            for s in range(2):
+                kp = np.stack([hand[f, c, cl[c], s] if cl[c] >= 0 else np.zeros((21, 3)) for c in range(n_c)])
+                w = np.where(kp[..., 2] >= MIN_CONFIDENCE, kp[..., 2], 0.0)
+                if np.count_nonzero(w[:, 0]) < 2:
+                    continue
+                und = np.stack([cam.undistort_points(kp[c, :, :2]) for c, cam in enumerate(cameras)])
+                X, ok = triangulate_projections(P, und, w)
+                if not ok.all():
+                    continue
+                for c in range(n_c):
+                    roi = hand_roi_from_hand(cameras[c].project(X)) if cl[c] >= 0 else None
+                    if roi is not None:
+                        out[(f, c, int(cl[c]), s)] = roi
+    return out
+
+
 def _hand_length(body: np.ndarray, side: int) -> float:
     """The hand's length in one view as the body sees it: MediaPipe's pose-derived hand box, twice the wrist →
     middle-knuckle distance (``(2 index + pinky) / 3``), independent of the hand model's own points."""
@@ -183,13 +225,13 @@ def _hand_length(body: np.ndarray, side: int) -> float:
 
 
 def held_out(cameras: list[Camera], body: np.ndarray, hand: np.ndarray, min_span: float) -> tuple[
-    np.ndarray, np.ndarray
+    np.ndarray, np.ndarray, np.ndarray
 ]:  # fmt: skip
-    """Held-out errors (n, 21) (NaN where not compared) and each row's held-out hand length (n,), over every frame,
-    matched person, side and held-out camera."""
+    """Signed held-out errors (n, 21, 2) (detected - predicted px, NaN where not compared), each row's held-out
+    hand length (n,) and held-out camera (n,), over every frame, matched person, side and held-out camera."""
     n_f, n_c = body.shape[:2]
     P = np.stack([c.projection_matrix for c in cameras])
-    rows, spans = [], []
+    rows, spans, held = [], [], []
     for f in range(n_f):
         und_body = np.stack([cam.undistort_points(body[f, c, :, :, :2]) for c, cam in enumerate(cameras)])
         for cl in associate(cameras, body[f], und_body):
@@ -208,11 +250,11 @@ def held_out(cameras: list[Camera], body: np.ndarray, hand: np.ndarray, min_span
                         continue
                     keep = [c for c in range(n_c) if c != k]
                     X, ok = triangulate_projections(P[keep], und[keep], w[keep])
-                    uv = cameras[k].project(X)
-                    e = np.linalg.norm(uv - kp[k, :, :2], axis=1)
-                    rows.append(np.where(ok, e, np.nan))
+                    e = kp[k, :, :2] - cameras[k].project(X)
+                    rows.append(np.where(ok[:, None], e, np.nan))
                     spans.append(span)
-    return np.array(rows).reshape(-1, 21), np.array(spans)
+                    held.append(k)
+    return np.array(rows).reshape(-1, 21, 2), np.array(spans), np.array(held, dtype=np.int64)
 
 
 def body_reference(cameras: list[Camera], body: np.ndarray, min_span: float) -> dict[str, Any]:
@@ -222,6 +264,7 @@ def body_reference(cameras: list[Camera], body: np.ndarray, min_span: float) -> 
     n_f, n_c = body.shape[:2]
     P = np.stack([c.projection_matrix for c in cameras])
     rows: list[np.ndarray] = []
+    held: list[int] = []
     for f in range(n_f):
         und_body = np.stack([cam.undistort_points(body[f, c, :, :, :2]) for c, cam in enumerate(cameras)])
         for cl in associate(cameras, body[f], und_body):
@@ -238,10 +281,12 @@ def body_reference(cameras: list[Camera], body: np.ndarray, min_span: float) -> 
                         continue
                     keep = [c for c in range(n_c) if c != k]
                     X, ok = triangulate_projections(P[keep], und[keep], w[keep])
-                    e = np.linalg.norm(cameras[k].project(X) - kp[k, :, :2], axis=1)
-                    rows.append(np.where(ok & (w[k] > 0), e, np.nan))
-    err = np.array(rows).reshape(-1, len(names))
-    out: dict[str, Any] = {}
+                    e = kp[k, :, :2] - cameras[k].project(X)
+                    rows.append(np.where((ok & (w[k] > 0))[:, None], e, np.nan))
+                    held.append(k)
+    signed = np.array(rows).reshape(-1, len(names), 2)
+    err = np.linalg.norm(signed, axis=-1)
+    out: dict[str, Any] = {"per camera": _offsets(signed, np.array(held, dtype=np.int64), n_c)}
     for j, n in (*enumerate(names), (-1, "all")):
         e = err if j < 0 else err[:, j]
         e = e[np.isfinite(e)]
@@ -251,9 +296,20 @@ def body_reference(cameras: list[Camera], body: np.ndarray, min_span: float) -> 
     return out
 
 
+def _offsets(signed: np.ndarray, held: np.ndarray, n_cameras: int) -> dict[str, Any]:
+    """Per held-out camera: the median error, the mean signed error (the camera's constant shift) and the median
+    with that shift taken out (:func:`mocapd.eval.heldout.camera_offsets`)."""
+    off = camera_offsets(signed, held, n_cameras)
+    return {
+        "median px": [round(float(v), 1) for v in off.median],
+        "mean signed px (x, y)": [[round(float(v), 1) for v in m] for m in off.mean],
+        "median px less the camera's mean": [round(float(v), 1) for v in off.median_less_mean],
+    }
+
+
 def summary(err: np.ndarray) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    for g, names in (("all", HAND21), *GROUPS.items()):
+    for g, names in (("all", HAND21), *GROUPS.items(), ("palm", PALM), ("fingertips", TIPS)):
         e = err[:, [HAND21.index(n) for n in names]]
         e = e[np.isfinite(e)]
         out[g] = {"n": int(e.size)} if e.size == 0 else {
@@ -274,6 +330,7 @@ def main() -> None:
     ap.add_argument("--side-check", action="store_true", help="confidence x the model's agreement with the side")
     ap.add_argument("--refine", action="store_true", help="a second pass on the crop each found hand's points place")
     ap.add_argument("--reference-only", action="store_true", help="only BlazePose's own hand points (no hand model)")
+    ap.add_argument("--consensus", action="store_true", help="also a second pass on the crops all views agree on")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/mocapd-hand-heldout"))
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
@@ -293,19 +350,33 @@ def main() -> None:
         return
     placements = [(a, b) for a in (args.scales or [BLAZEPOSE_SCALE]) for b in (args.shifts or [BLAZEPOSE_SHIFT])]
     found, placed, per_crop = hands(args.demo, body, placements, args.hand, args.side_check, args.refine)
+    labels = [f"scale {a}, shift {b}" for a, b in placements]
+    if args.consensus:
+        # A second pass on the crops every view's hands agree on, from the first placement's hands.
+        given = consensus_rois(take.cameras, body, found[0])
+        again, _, _ = hands(args.demo, body, placements[:1], args.hand, args.side_check, False, given)
+        found = np.concatenate([found, again])
+        placements.append(placements[0])
+        labels.append("consensus crop")
     result: dict[str, Any] = {"demo": args.demo, "frames": n, "body": args.body, "hand": args.hand,
                               "side_check": args.side_check, "refine": args.refine, "min_span_px": args.min_span,
                               "blazepose hand points held-out px": reference, "placements": []}  # fmt: skip
     for k, (scale, shift) in enumerate(placements):
-        all_err, all_spans = held_out(take.cameras, body, found[k], 0.0)
-        err, spans = all_err[all_spans >= args.min_span], all_spans[all_spans >= args.min_span]
+        all_signed, all_spans, all_held = held_out(take.cameras, body, found[k], 0.0)
+        all_err = np.linalg.norm(all_signed, axis=-1)
+        big = all_spans >= args.min_span
+        err, spans = all_err[big], all_spans[big]
         hit = found[k][..., 0, 2] >= MIN_CONFIDENCE
+        offsets = camera_offsets(all_signed[big], all_held[big], len(take.cameras))
         row: dict[str, Any] = {
+            "crop": labels[k],
             "scale": scale,
             "shift": shift,
             "hands compared": len(spans),
             "hands compared, any size": len(all_spans),
             "held-out px": summary(err),
+            "per held-out camera": _offsets(all_signed[big], all_held[big], len(take.cameras)),
+            "held-out px less each camera's mean": summary(offsets.less_mean(all_signed[big], all_held[big])),
             "hands found per camera (of crops placed)": [
                 round(float(hit[:, c].sum() / max(1, placed[:, c].sum())), 3) for c in range(placed.shape[1])
             ],

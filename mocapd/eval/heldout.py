@@ -152,3 +152,63 @@ def summarize(
             else {"median": float("nan"), "p90": float("nan"), "n": 0}
         )
     return out
+
+
+@dataclass(frozen=True)
+class CameraOffsets:
+    """The part of held-out errors that is one constant image shift per camera, and what is left without it.
+
+    A calibration's error (a camera turned or its principal point off by a fraction of a degree), or a camera whose
+    exposures lag the others' while the subject moves steadily, moves *every* keypoint the other views predict in
+    that camera by about the same pixels; a keypoint model's own cross-view disagreement does not (its bias turns
+    with the view of the body part). Splitting the two tells a footage floor from a model's error.
+
+    Attributes
+    ----------
+    mean : array, shape (n_cameras, 2)
+        Per held-out camera, the mean signed error (detected - predicted, px); NaN for a camera with none.
+    median : array, shape (n_cameras,)
+        Per camera, the median error (px).
+    median_less_mean : array, shape (n_cameras,)
+        Per camera, the median of ``|error - mean|`` (px): the error were that camera's constant shift removed.
+    """
+
+    mean: FloatArray
+    median: FloatArray
+    median_less_mean: FloatArray
+
+    def less_mean(self, signed: FloatArray, cameras: IntArray) -> FloatArray:
+        """``|signed - mean[camera]|`` per error (px): ``signed`` (n, ..., 2), ``cameras`` (n,); NaN kept."""
+        s = np.asarray(signed, dtype=np.float64)
+        shift = self.mean[np.asarray(cameras)].reshape((len(s),) + (1,) * (s.ndim - 2) + (2,))
+        return np.asarray(np.linalg.norm(s - shift, axis=-1), dtype=np.float64)
+
+
+def camera_offsets(signed: FloatArray, cameras: IntArray, n_cameras: int) -> CameraOffsets:
+    """Each held-out camera's constant shift of the held-out errors (:class:`CameraOffsets`).
+
+    Parameters
+    ----------
+    signed : array, shape (n, ..., 2)
+        Signed held-out errors (detected - predicted, px), any number of keypoints per row; NaN where not compared.
+    cameras : int array, shape (n,)
+        The held-out camera of each row, in ``0 .. n_cameras - 1``.
+    n_cameras : int
+    """
+    s = np.asarray(signed, dtype=np.float64)
+    cams = np.asarray(cameras, dtype=np.int64)
+    if s.ndim < 2 or s.shape[-1] != 2 or cams.shape != (len(s),):
+        raise InputError(f"signed errors must be (n, ..., 2) with one camera per row, got {s.shape}, {cams.shape}")
+    if len(cams) and not (cams.min() >= 0 and cams.max() < n_cameras):
+        raise InputError(f"camera indices must be in 0..{n_cameras - 1}")
+    mean = np.full((n_cameras, 2), np.nan)
+    median = np.full(n_cameras, np.nan)
+    less = np.full(n_cameras, np.nan)
+    for k in range(n_cameras):
+        v = s[cams == k].reshape(-1, 2)
+        v = v[np.isfinite(v).all(axis=1)]
+        if len(v):
+            mean[k] = v.mean(axis=0)
+            median[k] = np.median(np.linalg.norm(v, axis=1))
+            less[k] = np.median(np.linalg.norm(v - mean[k], axis=1))
+    return CameraOffsets(mean, median, less)
