@@ -330,3 +330,31 @@ def test_a_person_s_memo_changes_no_decision_and_searches_only_the_pairs_that_ch
     assert memo.reused == 0 and memo.searched > 0
     choose_swaps(P * 1.0000001, und, conf, memo=memo, options=FlipOptions(cap_px=79.0))
     assert memo.reused == 0 and memo.searched > 0
+
+
+def _exchange_in_order(
+    kp: FloatArray, conf: FloatArray, swaps: np.ndarray, pairs: tuple[tuple[int, int], ...]
+) -> tuple[FloatArray, FloatArray]:
+    """The exchanges made pair after pair (apply_swaps as it was written first): the reference."""
+    kp, conf = kp.copy(), conf.copy()
+    for p, (left, right) in enumerate(pairs):
+        views = np.flatnonzero(swaps[:, p])
+        kp[views, left], kp[views, right] = kp[views, right].copy(), kp[views, left].copy()
+        conf[views, left], conf[views, right] = conf[views, right].copy(), conf[views, left].copy()
+    return kp, conf
+
+
+def test_apply_swaps_exchanges_the_flagged_pairs_as_one_after_another_would() -> None:
+    """apply_swaps gathers every exchange at once: the arrays are those of exchanging pair after pair, for the
+    COCO-17 pairs, for pairs sharing a keypoint (made in order) and with no pair at all; the inputs are not
+    touched."""
+    rng = np.random.default_rng(9)
+    for pairs in (COCO17_LR_PAIRS, ((1, 2), (2, 3), (5, 6)), ()):
+        for _ in range(50):
+            kp, conf = rng.normal(size=(4, 17, 2)), rng.random((4, 17))
+            kp_in, conf_in = kp.copy(), conf.copy()
+            swaps = rng.random((4, len(pairs))) < 0.4
+            got = apply_swaps(kp, conf, swaps, pairs)
+            want = _exchange_in_order(kp, conf, swaps, pairs)
+            assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+            assert np.array_equal(kp, kp_in) and np.array_equal(conf, conf_in)
