@@ -21,6 +21,7 @@ from mocapd.core.lr_flips import (
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D, DetectionSorter, SortingOptions
 from mocapd.core.synthetic import moving_sequence, ring_rig
+from mocapd.errors import InputError
 
 FloatArray = np.ndarray
 
@@ -358,3 +359,16 @@ def test_apply_swaps_exchanges_the_flagged_pairs_as_one_after_another_would() ->
             want = _exchange_in_order(kp, conf, swaps, pairs)
             assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
             assert np.array_equal(kp, kp_in) and np.array_equal(conf, conf_in)
+
+
+def test_no_pairs_and_a_short_previous_pose_are_answered_clearly() -> None:
+    """No pair to search: nothing swapped (with a previous pose too); a previous pose without a point for every
+    paired keypoint is refused with a clear message, compiled or not (it would be read past its end)."""
+    cams, X, uv = _person()
+    P, und = undistorted(cams, uv)
+    conf = np.full(uv.shape[:2], 0.9)
+    for compiled in (True, False):
+        none = choose_swaps(P, und, conf, (), X, compiled=compiled)
+        assert none.swaps.shape == (4, 0) and none.gain_px.shape == (0,)
+        with pytest.raises(InputError, match="every keypoint paired"):
+            choose_swaps(P, und, conf, reference=X[:10], compiled=compiled)

@@ -164,7 +164,9 @@ def choose_swaps(
     if uv.shape[:2] != conf.shape or uv.shape[0] != n_cams:
         raise InputError(f"uv {uv.shape} and conf {conf.shape} must cover the {n_cams} cameras")
     if reference is not None and (
-        np.ndim(reference) != 2 or np.shape(reference)[1] != 3 or np.shape(reference)[0] <= max(max(p) for p in pairs)
+        np.ndim(reference) != 2
+        or np.shape(reference)[1] != 3
+        or np.shape(reference)[0] <= max((max(p) for p in pairs), default=-1)
     ):
         raise InputError(f"reference {np.shape(reference)} must hold a 3D point for every keypoint paired")
     if not o.enabled:
