@@ -6,11 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocapd.core.camera import Camera
+from mocapd.core.camera import Camera, triangulate_projections
 from mocapd.core.keypoints import COCO17, coco17_targets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.lr_flips import (
     COCO17_LR_PAIRS,
+    FlipMemo,
     FlipOptions,
     apply_swaps,
     choose_swaps,
@@ -20,6 +21,7 @@ from mocapd.core.lr_flips import (
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D, DetectionSorter, SortingOptions
 from mocapd.core.synthetic import moving_sequence, ring_rig
+from mocapd.errors import InputError
 
 FloatArray = np.ndarray
 
@@ -163,8 +165,210 @@ def test_the_warm_up_compiles_what_the_tick_runs() -> None:
 
     cams = ring_rig(4)
     lr_flips.warm_up(cams, 17)
-    compiled = len(_flip_kernel.best_hypotheses.signatures)
+    compiled = len(_flip_kernel.choose_swaps.signatures)
     rng = np.random.default_rng(0)
     P, und = lr_flips.undistorted(cams, rng.uniform(100, 500, (4, 17, 2)))
-    lr_flips.choose_swaps(P, und, rng.uniform(0.3, 1.0, (4, 17)), lr_flips.COCO17_LR_PAIRS)
-    assert len(_flip_kernel.best_hypotheses.signatures) == compiled
+    conf = rng.uniform(0.3, 1.0, (4, 17))
+    lr_flips.choose_swaps(P, und, conf, lr_flips.COCO17_LR_PAIRS)
+    # as the scheduler calls it (a person's memo, their previous pose), and with Fortran-ordered and strided inputs
+    memo = lr_flips.FlipMemo(4, len(lr_flips.COCO17_LR_PAIRS))
+    ref = rng.uniform(-1.0, 1.0, (17, 3))
+    lr_flips.choose_swaps(P, und, conf, lr_flips.COCO17_LR_PAIRS, ref, memo=memo)
+    lr_flips.choose_swaps(P[:, :, :], np.asfortranarray(und), conf.T.copy().T, lr_flips.COCO17_LR_PAIRS, ref)
+    assert len(_flip_kernel.choose_swaps.signatures) == compiled == 1
+
+
+def _random_scene(rng: np.random.Generator) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    """Projections, undistorted pixels, confidences and maybe a previous pose of a random walking person seen by 2
+    to 4 views of a ring: noise, flipped views, missing and NaN keypoints, confidences around the threshold."""
+    cams, X, uv = _person(frame=int(rng.integers(0, 60)))
+    n = int(rng.integers(2, 5))
+    views = rng.permutation(4)[:n]
+    seen = uv[views] + rng.normal(0.0, rng.uniform(0.5, 15.0), (n, *uv.shape[1:]))
+    for view in range(n):
+        if rng.random() < 0.3:
+            seen = _flip(seen, view)
+    conf = rng.uniform(0.0, 1.0, seen.shape[:2])
+    conf[rng.random(conf.shape) < 0.2] = 0.0
+    P, und = undistorted([cams[v] for v in views], seen)
+    und[rng.random(und.shape[:2]) < 0.05] = np.nan  # keypoints nobody saw
+    reference = None if rng.random() < 0.35 else X + rng.normal(0.0, 0.05, X.shape)
+    if reference is not None and rng.random() < 0.1:
+        reference[rng.integers(0, 17)] = np.nan  # a joint the previous solve did not place
+    return P, und, conf, reference
+
+
+def _same_decision(P: FloatArray, und: FloatArray, conf: FloatArray, ref: FloatArray | None, **kw: object) -> int:
+    """The compiled decision is the numpy reference's: every swap flag, every gain (round-off of the two eigen
+    solvers aside); returns the swaps made."""
+    fast = choose_swaps(P, und, conf, reference=ref, **kw)  # type: ignore[arg-type]
+    slow = choose_swaps(P, und, conf, reference=ref, compiled=False, **kw)  # type: ignore[arg-type]
+    assert np.array_equal(fast.swaps, slow.swaps)
+    assert np.allclose(fast.gain_px, slow.gain_px, rtol=0.0, atol=1e-6)
+    assert fast.swaps.dtype == bool and fast.gain_px.dtype == np.float64
+    return fast.count
+
+
+def test_the_compiled_decision_is_the_numpy_reference_on_random_scenes() -> None:
+    """The whole decision compiled (grouping, search, mirror choice) against the numpy reference on 600 random
+    scenes, with the options varied (confidence floors, few views searched, other margins and caps)."""
+    rng = np.random.default_rng(23)
+    swapped = 0
+    for trial in range(600):
+        P, und, conf, ref = _random_scene(rng)
+        o = FlipOptions(
+            # not 0: a view seeing neither keypoint would then take part with no weight, and a hypothesis that swaps
+            # it ties exactly with one that does not, a tie the two eigen solvers' round-off breaks either way
+            min_confidence=float(rng.choice([0.05, 0.3, 0.6])),
+            margin_px=float(rng.choice([0.0, 4.0, 12.0])),
+            cap_px=float(rng.choice([30.0, 80.0])),
+            max_views=int(rng.choice([2, 3, 10])),
+        )
+        swapped += _same_decision(P, und, conf, ref, options=o)
+        assert trial >= 0
+    assert swapped > 200  # the scenes exercised swaps, not only no-ops
+
+
+def test_ties_of_the_mirror_choice_are_broken_as_numpy_sums() -> None:
+    """Without a previous pose, equal counts of swapped views are decided by comparing two confidence sums: the
+    kernel sums in numpy's pairwise order, so even sums that differ in the last bit compare the same way."""
+    from mocapd.core import _flip_kernel
+
+    rng = np.random.default_rng(5)
+    for n in (*range(0, 20), 63, 64, 127, 128, 129, 200, 517, 1000):
+        a = rng.standard_normal(n) * 10.0 ** rng.integers(-6, 6, n)
+        assert _flip_kernel._pairwise_sum(a, 0, n) == a.sum(), n
+    cams, _, uv = _person()
+    P, und = undistorted(cams, _flip(_flip(uv, 1), 2))
+    conf = np.full(uv.shape[:2], 0.9)
+    for _ in range(50):  # two views of four flipped, no previous pose: the less confident pair of views swaps
+        c = conf + rng.normal(0.0, 1e-12, conf.shape)
+        _same_decision(P, und, c, None)
+
+
+@pytest.fixture(scope="module")
+def demo_frames() -> tuple[list[Camera], list[tuple[FloatArray, FloatArray]]]:
+    """The single-person Pose2Sim demo as the real detector sees it (first 40 frames, the most confident person
+    of every view): its cameras and, per frame, the (4, 17, 2) pixels and (4, 17) confidences."""
+    from mocapd.eval.video_input import detect_take, pose2sim_take
+    from mocapd.pipeline.detector import OnnxPoseDetector
+    from mocapd.pipeline.detector_config import ModelSpec
+
+    take = pose2sim_take("Demo_SinglePerson")
+    dets = detect_take(take, lambda: OnnxPoseDetector(ModelSpec(), intra_op_threads=2), n_frames=40)
+    frames = []
+    for row in dets.frames:
+        kp = np.full((len(row), 17, 2), np.nan)
+        cf = np.zeros((len(row), 17))
+        for c, d in enumerate(row):
+            if len(d.keypoints):
+                i = int(np.argmax(d.confidences.sum(axis=1)))
+                kp[c], cf[c] = d.keypoints[i], d.confidences[i]
+        frames.append((kp, cf))
+    return take.cameras, frames
+
+
+def test_the_compiled_decision_is_the_numpy_reference_on_the_demo(
+    demo_frames: tuple[list[Camera], list[tuple[FloatArray, FloatArray]]],
+) -> None:
+    """Real detections (the Pose2Sim demo), as detected and with views flipped and keypoints dropped at random,
+    with the triangulated previous frame as the previous pose or none: compiled and numpy decide the same."""
+    cams, frames = demo_frames
+    rng = np.random.default_rng(3)
+    swapped = 0
+    previous = None
+    for kp, cf in frames:
+        for variant in range(4):
+            seen, conf = kp.copy(), cf.copy()
+            if variant:
+                for view in range(4):
+                    if rng.random() < 0.35:
+                        seen = _flip(seen, view)
+                conf[rng.random(conf.shape) < 0.1] = 0.0
+            P, und = undistorted(cams, seen)
+            swapped += _same_decision(P, und, conf, previous if variant % 2 else None)
+        P, und = undistorted(cams, kp)
+        X, _ = triangulate_projections(P, und, np.where(cf >= 0.3, cf, 0.0))
+        previous = X
+    assert swapped > 50
+
+
+def test_a_person_s_memo_changes_no_decision_and_searches_only_the_pairs_that_changed() -> None:
+    """With a person's memo, pairs whose inputs are bit-for-bit those of the previous call take the previous
+    search result (the mirror choice is made again: the previous pose moves); the decisions over a sequence of
+    held, nudged and flipped frames are those without the memo."""
+    rng = np.random.default_rng(17)
+    cams, X, uv = _person()
+    P, und0 = undistorted(cams, _flip(uv + rng.normal(0.0, 1.0, uv.shape), 2))
+    conf0 = np.full(uv.shape[:2], 0.9)
+    memo = FlipMemo(4, len(COCO17_LR_PAIRS))
+    searched = reused = 0
+    und, conf = und0.copy(), conf0.copy()
+    for step in range(200):
+        change = rng.random()
+        if change < 0.3:  # one keypoint of one view moves: its pair alone is searched again
+            und = und.copy()
+            und[rng.integers(0, 4), rng.integers(0, 17)] += rng.normal(0.0, 3.0, 2)
+        elif change < 0.4:  # a view flips
+            und = _flip(und, int(rng.integers(0, 4)))
+        elif change < 0.5:  # a confidence crosses the threshold
+            conf = conf.copy()
+            conf[rng.integers(0, 4), rng.integers(0, 17)] = rng.choice([0.1, 0.9])
+        elif change < 0.55:
+            und, conf = und0.copy(), conf0.copy()
+        ref = None if step % 5 == 0 else X + rng.normal(0.0, 0.3, X.shape)  # sometimes nearer the mirror
+        with_memo = choose_swaps(P, und, conf, reference=ref, memo=memo)
+        without = choose_swaps(P, und, conf, reference=ref)
+        assert np.array_equal(with_memo.swaps, without.swaps), step
+        assert np.array_equal(with_memo.gain_px, without.gain_px), step  # the same arithmetic, to the bit
+        searched += memo.searched
+        reused += memo.reused
+    assert reused > 3 * searched > 0
+    # Other projection matrices (a recalibration) or options: nothing is reused.
+    choose_swaps(P, und, conf, memo=memo)
+    assert memo.searched == 0
+    choose_swaps(P * 1.0000001, und, conf, memo=memo)
+    assert memo.reused == 0 and memo.searched > 0
+    choose_swaps(P * 1.0000001, und, conf, memo=memo, options=FlipOptions(cap_px=79.0))
+    assert memo.reused == 0 and memo.searched > 0
+
+
+def _exchange_in_order(
+    kp: FloatArray, conf: FloatArray, swaps: np.ndarray, pairs: tuple[tuple[int, int], ...]
+) -> tuple[FloatArray, FloatArray]:
+    """The exchanges made pair after pair (apply_swaps as it was written first): the reference."""
+    kp, conf = kp.copy(), conf.copy()
+    for p, (left, right) in enumerate(pairs):
+        views = np.flatnonzero(swaps[:, p])
+        kp[views, left], kp[views, right] = kp[views, right].copy(), kp[views, left].copy()
+        conf[views, left], conf[views, right] = conf[views, right].copy(), conf[views, left].copy()
+    return kp, conf
+
+
+def test_apply_swaps_exchanges_the_flagged_pairs_as_one_after_another_would() -> None:
+    """apply_swaps gathers every exchange at once: the arrays are those of exchanging pair after pair, for the
+    COCO-17 pairs, for pairs sharing a keypoint (made in order) and with no pair at all; the inputs are not
+    touched."""
+    rng = np.random.default_rng(9)
+    for pairs in (COCO17_LR_PAIRS, ((1, 2), (2, 3), (5, 6)), ()):
+        for _ in range(50):
+            kp, conf = rng.normal(size=(4, 17, 2)), rng.random((4, 17))
+            kp_in, conf_in = kp.copy(), conf.copy()
+            swaps = rng.random((4, len(pairs))) < 0.4
+            got = apply_swaps(kp, conf, swaps, pairs)
+            want = _exchange_in_order(kp, conf, swaps, pairs)
+            assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+            assert np.array_equal(kp, kp_in) and np.array_equal(conf, conf_in)
+
+
+def test_no_pairs_and_a_short_previous_pose_are_answered_clearly() -> None:
+    """No pair to search: nothing swapped (with a previous pose too); a previous pose without a point for every
+    paired keypoint is refused with a clear message, compiled or not (it would be read past its end)."""
+    cams, X, uv = _person()
+    P, und = undistorted(cams, uv)
+    conf = np.full(uv.shape[:2], 0.9)
+    for compiled in (True, False):
+        none = choose_swaps(P, und, conf, (), X, compiled=compiled)
+        assert none.swaps.shape == (4, 0) and none.gain_px.shape == (0,)
+        with pytest.raises(InputError, match="every keypoint paired"):
+            choose_swaps(P, und, conf, reference=X[:10], compiled=compiled)

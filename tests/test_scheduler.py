@@ -253,6 +253,38 @@ def test_a_view_that_confuses_left_and_right_is_undone_before_the_solve(prior: P
     assert err["undone"] < 1.1 * err["clean"] and err["left in"] > 2.0 * err["undone"], err
 
 
+def test_a_person_s_views_that_did_not_change_are_not_searched_for_flips_again(prior: PcaPrior) -> None:
+    """The scheduler keeps each person's flip memo: a tick that samples the same keypoints as the previous one (a
+    held frame) reuses every pair's search and decides the same; other keypoints, or no identity, search again."""
+    ls = _lockstep(prior, 1, 0, SchedulerOptions(), [0, 0, 0, 0])
+    ls.run(1.0)
+    sched = ls.scheduler
+    identity, solver = next(iter(sched.solvers.items()))
+    X = solver.keypoint_positions(solver.theta)
+    kp = np.stack([c.project(X) for c in sched.cameras])
+    for left, right in COCO17_LR_PAIRS:  # camera 2 confuses left and right
+        kp[2, [left, right]] = kp[2, [right, left]]
+    und = np.stack([c.undistort_points(k) for c, k in zip(sched.cameras, kp, strict=True)])
+    conf = np.full(kp.shape[:2], 0.9)
+
+    def unflip(identity: str | None = identity) -> tuple[Any, ...]:
+        before = dict(sched.counters)
+        out = sched._unflip(solver, kp, und, conf, len(sched.cameras), None, identity)
+        after = sched.counters
+        return (*out, after["lr_pairs_searched"] - before["lr_pairs_searched"],
+                after["lr_pairs_reused"] - before["lr_pairs_reused"])  # fmt: skip
+
+    first, again, alone = unflip(), unflip(), unflip(None)
+    n_pairs = len(COCO17_LR_PAIRS)
+    assert first[3:] == (n_pairs, 0) and again[3:] == (0, n_pairs) and alone[3:] == (0, 0)
+    for a, b, c in zip(first[:3], again[:3], alone[:3], strict=True):
+        assert np.array_equal(a, b) and np.array_equal(a, c)
+    assert not np.array_equal(first[0], kp)  # camera 2's flip was undone
+    kp[0, 9] += 3.0  # the left wrist moves in camera 0: the wrists' pair alone is searched again
+    und[0, 9] = sched.cameras[0].undistort_points(kp[0, 9:10])[0]
+    assert unflip()[3:] == (1, n_pairs - 1)
+
+
 def test_tick_plan_counts_missed_ticks_instead_of_bursting() -> None:
     plan = TickPlan(period_ns=10, start_ns=100)
     assert plan.advance(now_ns=105) == 0 and plan.next_ns == 110

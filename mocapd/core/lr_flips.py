@@ -14,8 +14,9 @@ elsewhere: the person's previous pose where there is one (the label assignment w
 previous left and right points), else the views themselves (the assignment that swaps fewer of them; the detector
 is right more often than not).
 
-The hypothesis search is compiled (:mod:`mocapd.core._flip_kernel`; the numpy reference beside it);
-:func:`choose_swaps` returns the decision, :func:`apply_swaps` applies it to the keypoints.
+The whole decision is one compiled call (:mod:`mocapd.core._flip_kernel`; the numpy reference beside it), and
+incremental with a person's :class:`FlipMemo`: a pair whose inputs are bit-for-bit those of the previous tick is not
+searched again. :func:`choose_swaps` returns the decision, :func:`apply_swaps` applies it to the keypoints.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
 
 COCO17_LR_PAIRS: tuple[tuple[int, int], ...] = ((1, 2), (3, 4), (5, 6), (7, 8), (9, 10), (11, 12), (13, 14), (15, 16))
 """(left, right) keypoint indices of COCO-17: eyes, ears, shoulders, elbows, wrists, hips, knees, ankles."""
@@ -85,6 +87,30 @@ class SwapDecision:
         return int(np.count_nonzero(self.swaps))
 
 
+class FlipMemo:
+    """One person's flip-search results, kept between ticks (:func:`choose_swaps` reads and updates it).
+
+    Per pair: the inputs the search read (which views see each keypoint, their weights and pixels; the projection
+    matrices and options for all pairs) and what it found. Only bit-for-bit equal inputs reuse a result, so a
+    decision with the memo is the decision without it. Not shared between threads: one per person, and a person
+    is solved by one thread at a time.
+    """
+
+    def __init__(self, n_cams: int, n_pairs: int) -> None:
+        self.ctx = np.full(n_cams * 12 + _flip_kernel.MEMO_OPTIONS, np.nan)
+        self.key = np.zeros((n_cams, n_pairs, _flip_kernel.MEMO_KEY))
+        self.best = np.full(n_pairs, -1, dtype=np.int64)
+        self.gain = np.zeros(n_pairs)
+        self.X = np.zeros((n_pairs, 2, 3))
+        self.searched = 0
+        """Pairs searched by the last call."""
+        self.reused = 0
+        """Pairs whose search result the last call took from the memo (their inputs had not changed)."""
+
+    def fits(self, n_cams: int, n_pairs: int) -> bool:
+        return self.key.shape[:2] == (n_cams, n_pairs)
+
+
 def undistorted(cameras: list[Camera], uv: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Projection matrices (n_cams, 3, 4) and undistorted pixels (n_cams, n_kp, 2) of distorted ``uv``."""
     P = np.stack([c.projection_matrix for c in cameras])
@@ -108,6 +134,7 @@ def choose_swaps(
     options: FlipOptions | None = None,
     *,
     compiled: bool = True,
+    memo: FlipMemo | None = None,
 ) -> SwapDecision:
     """The per-view left/right labelling of each keypoint pair that the views agree on best.
 
@@ -124,8 +151,11 @@ def choose_swaps(
         The person's keypoints a moment ago (world): decides which of the two mirror-image labellings is right.
     options : FlipOptions
     compiled : bool
-        Search the hypotheses with the compiled kernel (:mod:`mocapd.core._flip_kernel`); False: the numpy
-        reference, the same decisions at several times the cost.
+        Decide in the compiled kernel (:mod:`mocapd.core._flip_kernel`); False: the numpy reference, the same
+        decisions at many times the cost.
+    memo : FlipMemo, optional
+        The person's results of the previous call (compiled only): pairs whose inputs did not change are not
+        searched again; updated in place.
     """
     o = options if options is not None else FlipOptions()
     uv = np.asarray(uv, dtype=np.float64)
@@ -133,10 +163,18 @@ def choose_swaps(
     n_cams = P.shape[0]
     if uv.shape[:2] != conf.shape or uv.shape[0] != n_cams:
         raise InputError(f"uv {uv.shape} and conf {conf.shape} must cover the {n_cams} cameras")
+    if reference is not None and (
+        np.ndim(reference) != 2
+        or np.shape(reference)[1] != 3
+        or np.shape(reference)[0] <= max((max(p) for p in pairs), default=-1)
+    ):
+        raise InputError(f"reference {np.shape(reference)} must hold a 3D point for every keypoint paired")
+    if not o.enabled:
+        return SwapDecision(np.zeros((n_cams, len(pairs)), dtype=bool), np.zeros(len(pairs)))
+    if compiled:
+        return _choose_swaps_compiled(P, uv, conf, pairs, reference, o, memo)
     swaps = np.zeros((n_cams, len(pairs)), dtype=bool)
     gains = np.zeros(len(pairs))
-    if not o.enabled:
-        return SwapDecision(swaps, gains)
     ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
     # The pairs seen by the same views are searched together, in one batch (one DLT, one projection): per pair
     # and hypothesis the arithmetic is tiny, so numpy's per-call overhead is what costs (the scheduler runs this
@@ -151,8 +189,7 @@ def choose_swaps(
         views = np.array(key, dtype=np.intp)
         cols = np.array([pairs[p] for p in members], dtype=np.intp)  # (K, 2)
         uv_v, conf_v, ok_v = uv[views][:, cols], conf[views][:, cols], ok[views][:, cols]
-        search = _best_hypotheses_compiled if compiled else _best_hypotheses
-        best, gain, X = search(P[views], uv_v, conf_v, ok_v, o)
+        best, gain, X = _best_hypotheses(P[views], uv_v, conf_v, ok_v, o)
         # Which of the two mirror labellings lies nearer the previous pose, where there is one: (K,) flags.
         known = np.zeros(len(members), dtype=bool)
         take_mirror = np.zeros(len(members), dtype=bool)
@@ -189,16 +226,51 @@ def _hypotheses(n: int) -> BoolArray:
     return hyps
 
 
-def _best_hypotheses_compiled(
-    P: FloatArray, uv: FloatArray, conf: FloatArray, ok: BoolArray, o: FlipOptions
-) -> tuple[list[tuple[bool, ...] | None], FloatArray, FloatArray]:
-    """:func:`_best_hypotheses` by the compiled kernel (same arguments and results)."""
-    w = np.ascontiguousarray(np.where(ok & np.isfinite(uv).all(axis=-1), conf, 0.0))
-    uv_c = np.ascontiguousarray(np.where(w[..., None] > 0, uv, 0.0))
-    k, gain, X = _flip_kernel.best_hypotheses(np.ascontiguousarray(P), uv_c, w, float(o.cap_px), float(o.margin_px))
-    hyps = _hypotheses(uv.shape[0])
-    best = [tuple(bool(v) for v in hyps[j]) if j else None for j in k]
-    return best, gain, X
+@cache
+def _pairs_array(pairs: tuple[tuple[int, int], ...]) -> IntArray:
+    """The pairs as the kernel takes them, (n_pairs, 2) int64, built once per pair set (read-only)."""
+    out = np.array(pairs, dtype=np.int64).reshape(len(pairs), 2)
+    out.setflags(write=False)
+    return out
+
+
+_NO_REFERENCE = np.zeros((0, 3))
+_NO_MEMO = FlipMemo(0, 0)
+
+
+def _choose_swaps_compiled(
+    P: FloatArray,
+    uv: FloatArray,
+    conf: FloatArray,
+    pairs: tuple[tuple[int, int], ...],
+    reference: FloatArray | None,
+    o: FlipOptions,
+    memo: FlipMemo | None,
+) -> SwapDecision:
+    """:func:`choose_swaps` in one compiled call. The arrays go in C-contiguous float64 (int64 pairs), whatever
+    the caller passed, so the kernel runs the one signature :func:`warm_up` compiled."""
+    n_cams, n_pairs = P.shape[0], len(pairs)
+    if memo is not None and not memo.fits(n_cams, n_pairs):
+        raise InputError(f"the flip memo is for {memo.key.shape[:2]} cameras and pairs, not ({n_cams}, {n_pairs})")
+    m = memo if memo is not None else _NO_MEMO  # no memo: empty arrays, never written
+    options = np.array([o.min_confidence, o.cap_px, o.margin_px, float(o.max_views)])
+    ref = _NO_REFERENCE if reference is None else np.ascontiguousarray(reference, dtype=np.float64)
+    swaps, gains, searched, reused = _flip_kernel.choose_swaps(
+        np.ascontiguousarray(P, dtype=np.float64),
+        np.ascontiguousarray(uv),
+        np.ascontiguousarray(conf),
+        _pairs_array(tuple(pairs)),
+        ref,
+        options,
+        m.ctx,
+        m.key,
+        m.best,
+        m.gain,
+        m.X,
+    )
+    if memo is not None:
+        memo.searched, memo.reused = int(searched), int(reused)
+    return SwapDecision(swaps, gains)
 
 
 def _best_hypotheses(
@@ -255,18 +327,45 @@ def warm_up(cameras: list[Camera], n_kp: int) -> None:
     """Load (or compile, the first time on a machine) the compiled search for these cameras, with the arrays the
     scheduler passes: a first compile inside a live tick would hold it for seconds."""
     P, und = undistorted(cameras, np.full((len(cameras), max(n_kp, 2), 2), 100.0))
-    choose_swaps(P, und, np.ones(und.shape[:2]), ((0, 1),))  # one pair compiles what every pair runs
+    conf = np.ones(und.shape[:2])
+    choose_swaps(P, und, conf, ((0, 1),))  # one pair compiles what every pair runs
+    choose_swaps(P, und, conf, ((0, 1),), np.zeros((und.shape[1], 3)), memo=FlipMemo(len(cameras), 1))
 
 
 def apply_swaps(
     kp: FloatArray, conf: FloatArray, swaps: BoolArray, pairs: tuple[tuple[int, int], ...] = COCO17_LR_PAIRS
 ) -> tuple[FloatArray, FloatArray]:
-    """Keypoints (n_cams, n_kp, 2) and confidences (n_cams, n_kp) with each view's flagged pairs exchanged."""
-    kp = np.array(kp, dtype=np.float64, copy=True)
-    conf = np.array(conf, dtype=np.float64, copy=True)
-    for p, (left, right) in enumerate(pairs):
-        views = np.flatnonzero(swaps[:, p])
-        if views.size:
-            kp[views, left], kp[views, right] = kp[views, right].copy(), kp[views, left].copy()
-            conf[views, left], conf[views, right] = conf[views, right].copy(), conf[views, left].copy()
-    return kp, conf
+    """Keypoints (n_cams, n_kp, 2) and confidences (n_cams, n_kp) with each view's flagged pairs exchanged (new
+    arrays)."""
+    kp = np.asarray(kp, dtype=np.float64)
+    conf = np.asarray(conf, dtype=np.float64)
+    if not _disjoint(tuple(pairs)):  # a keypoint in two pairs: exchanged pair after pair, in order
+        kp, conf = kp.copy(), conf.copy()
+        for p, (left, right) in enumerate(pairs):
+            views = np.flatnonzero(swaps[:, p])
+            if views.size:
+                kp[views, left], kp[views, right] = kp[views, right].copy(), kp[views, left].copy()
+                conf[views, left], conf[views, right] = conf[views, right].copy(), conf[views, left].copy()
+        return kp, conf
+    # One gather per array: the eight-pair loop of fancy-indexed exchanges cost ~85 µs a call, as much as the
+    # compiled search itself, and the scheduler ran it twice a person a tick.
+    perm = swap_permutation(swaps, pairs, kp.shape[1])
+    return np.take_along_axis(kp, perm[..., None], axis=1), np.take_along_axis(conf, perm, axis=1)
+
+
+def swap_permutation(swaps: BoolArray, pairs: tuple[tuple[int, int], ...], n_kp: int) -> NDArray[np.intp]:
+    """Per view, the keypoint each column takes after the flagged (disjoint) pairs are exchanged, (n_cams, n_kp)."""
+    lr = _pairs_array(tuple(pairs))
+    perm = np.broadcast_to(np.arange(n_kp, dtype=np.intp), (swaps.shape[0], n_kp)).copy()
+    if len(lr):
+        left, right = lr[:, 0], lr[:, 1]
+        perm[:, left] = np.where(swaps, right, left)
+        perm[:, right] = np.where(swaps, left, right)
+    return perm
+
+
+@cache
+def _disjoint(pairs: tuple[tuple[int, int], ...]) -> bool:
+    """Whether no keypoint is in two pairs (so every exchange can be made at once)."""
+    flat = [k for pair in pairs for k in pair]
+    return len(flat) == len(set(flat))

@@ -58,7 +58,7 @@ from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.imu_start import initial_pose_from_imus
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.lr_flips import FlipOptions, apply_swaps, choose_swaps, lr_pairs
+from mocapd.core.lr_flips import FlipMemo, FlipOptions, apply_swaps, choose_swaps, lr_pairs
 from mocapd.core.people import PeopleTracker, Person
 from mocapd.core.per_skeleton import PerSkeleton
 from mocapd.core.plausibility import PlausibilityMonitor
@@ -350,8 +350,12 @@ class FixedLatencyScheduler:
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
                          "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0,
+                         "lr_pairs_searched": 0, "lr_pairs_reused": 0,
                          "learned_observations": 0, "predictions_skipped": 0}  # fmt: skip
         self._lr_pairs = lr_pairs(list(getattr(targets, "names", ())))
+        #: per identity, the flip search's results of the previous tick (pairs whose inputs did not change are not
+        #: searched again, :class:`~mocapd.core.lr_flips.FlipMemo`)
+        self._flip_memos: dict[str, FlipMemo] = {}
         # The hands follow the wrists' labels (the detector placed each hand's crop from its arm)
         target_names = tuple(getattr(targets, "names", ()))
         wrists = [p for p, (left, _) in enumerate(self._lr_pairs) if target_names[left] == "left_wrist"]
@@ -694,7 +698,7 @@ class FixedLatencyScheduler:
         views = None if self.hands is None else {
             cam: (self._undistorted(cam, detections[cam])[idx], detections[cam].confidences[idx])
             for cam, idx in person.detections.items()}  # fmt: skip
-        kp, und, conf = self._unflip(solver, kp, und, conf, len(person.detections), views)
+        kp, und, conf = self._unflip(solver, kp, und, conf, len(person.detections), views, person.identity)
         if self.observation_hook is not None and len(person.detections) >= 2:
             conf = self.observation_hook(t, und, conf)
         c1 = self._cpu()
@@ -769,12 +773,13 @@ class FixedLatencyScheduler:
         conf: FloatArray,
         views: int,
         hand_views: dict[int, tuple[FloatArray, FloatArray]] | None = None,
+        identity: str | None = None,
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """The person's keypoints with each view's left/right labels as the views agree on them
         (:mod:`mocapd.core.lr_flips`); which of the mirror labellings is right comes from the previous solve.
         ``und``: the same keypoints undistorted. ``hand_views`` (camera -> every column's undistorted pixels and
         confidences, for the finger solve): a view whose wrists are swapped gets its two hands swapped too, in
-        place."""
+        place. ``identity``: whose flip memo to search with (:class:`~mocapd.core.lr_flips.FlipMemo`)."""
         o = self.options.flips
         if not o.enabled or not self._lr_pairs or views < 2:
             return kp, und, conf
@@ -783,10 +788,17 @@ class FixedLatencyScheduler:
             reference = solver.keypoint_positions(solver.theta)
         elif views < o.min_views_alone:
             return kp, und, conf
-        decision = choose_swaps(self._projections, und, conf, self._lr_pairs, reference, o)
-        if decision.count:
-            with self._count_lock:
-                self.counters["lr_swaps"] += decision.count
+        memo = None
+        if identity is not None:
+            memo = self._flip_memos.get(identity)
+            if memo is None or not memo.fits(len(self.cameras), len(self._lr_pairs)):
+                memo = self._flip_memos[identity] = FlipMemo(len(self.cameras), len(self._lr_pairs))
+        decision = choose_swaps(self._projections, und, conf, self._lr_pairs, reference, o, memo=memo)
+        with self._count_lock:
+            self.counters["lr_swaps"] += decision.count
+            if memo is not None:
+                self.counters["lr_pairs_searched"] += memo.searched
+                self.counters["lr_pairs_reused"] += memo.reused
         if not decision.swaps.any():
             return kp, und, conf
         kp, swapped_conf = apply_swaps(kp, conf, decision.swaps, self._lr_pairs)
@@ -979,6 +991,8 @@ class FixedLatencyScheduler:
         for identity in list(self.solvers):
             if identity not in known and identity not in seen:
                 del self.solvers[identity]
+        for identity in [k for k in self._flip_memos if k not in self.solvers]:
+            del self._flip_memos[identity]
         for identity in [k for k in self.plausibility if k not in known and k not in seen]:
             del self.plausibility[identity]
         tracks = {s.id for s in self.people.tracker.subjects}
