@@ -20,7 +20,7 @@ The hypothesis search is compiled (:mod:`mocapd.core._flip_kernel`; the numpy re
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cache
 from itertools import product
 
@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 
 from mocapd.core import _flip_kernel
 from mocapd.core.camera import Camera, triangulate_projections
+from mocapd.core.lr_collapse import CollapseOptions
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -63,6 +64,8 @@ class FlipOptions:
     min_views_alone: int = 3
     """Without the person's previous pose, at least this many views must see them (two views cannot say which of
     them is flipped)."""
+    collapse: CollapseOptions = field(default_factory=CollapseOptions)
+    """When a view's pair collapsed onto one limb sits out (:mod:`mocapd.core.lr_collapse`): run with the flips."""
 
 
 @dataclass(frozen=True)
