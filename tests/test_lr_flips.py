@@ -9,6 +9,7 @@ import pytest
 from mocapd.core.camera import Camera, triangulate_projections
 from mocapd.core.keypoints import COCO17, coco17_targets
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs, drop_collapsed
 from mocapd.core.lr_flips import (
     COCO17_LR_PAIRS,
     FlipMemo,
@@ -372,3 +373,43 @@ def test_no_pairs_and_a_short_previous_pose_are_answered_clearly() -> None:
         assert none.swaps.shape == (4, 0) and none.gain_px.shape == (0,)
         with pytest.raises(InputError, match="every keypoint paired"):
             choose_swaps(P, und, conf, reference=X[:10], compiled=compiled)
+
+
+def test_a_view_that_puts_both_wrists_on_one_arm_is_found_and_a_true_overlap_kept() -> None:
+    """Issue 41: two views of four put the right elbow and wrist on the left ones. Those two views' elbow and wrist
+    pairs are collapsed (the two other views triangulate them apart); nothing else is, and a view whose pair really
+    projects onto itself (the arms along its line of sight) is left alone."""
+    cams, X, uv = _person(arms_out=True)
+    conf = np.full(uv.shape[:2], 0.9)
+    bad = uv.copy()
+    for c in (0, 2):
+        bad[c, [8, 10]] = bad[c, [7, 9]] + 1.5
+    P, und = undistorted(cams, bad)
+    got = collapsed_pairs(P, und, conf, COCO17_LR_PAIRS)
+    elbows, wrists = COCO17_LR_PAIRS.index((7, 8)), COCO17_LR_PAIRS.index((9, 10))
+    expected = np.zeros_like(got)
+    expected[[0, 2], elbows] = expected[[0, 2], wrists] = True
+    np.testing.assert_array_equal(got, expected)
+    dropped = drop_collapsed(conf, got, COCO17_LR_PAIRS)
+    assert (dropped[[0, 2]][:, [7, 8, 9, 10]] == 0).all() and (dropped[[1, 3]] == 0.9).all()
+    # The same with only the previous pose to say where the pair lies (one other view sees it).
+    one_other = conf.copy()
+    one_other[3] = 0.0
+    assert collapsed_pairs(P, und, one_other, COCO17_LR_PAIRS)[[0, 2]].sum() == 0  # nothing to judge by
+    assert collapsed_pairs(P, und, one_other, COCO17_LR_PAIRS, reference=X)[[0, 2]][:, [elbows, wrists]].all()
+    # Clean views: nothing collapsed, also where two keypoints of a pair lie close (the eyes of a small person).
+    P, und = undistorted(cams, uv)
+    assert not collapsed_pairs(P, und, conf, COCO17_LR_PAIRS).any()
+    # A true overlap: the right wrist on camera 1's line of sight through the left one, 30 cm further. View 1 sees
+    # the two wrists on top of each other and the other views triangulate them so: kept.
+    Y = X.copy()
+    centre = -cams[1].R.T @ cams[1].t
+    ray = (X[9] - centre) / np.linalg.norm(X[9] - centre)
+    Y[10] = X[9] + 0.3 * ray
+    uv_y = np.stack([c.project(Y) for c in cams])
+    P, und = undistorted(cams, uv_y)
+    assert np.linalg.norm(und[1, 9] - und[1, 10]) < 2.0  # they overlap in view 1
+    assert not collapsed_pairs(P, und, conf, COCO17_LR_PAIRS)[:, wrists].any()
+    # Disabled: nothing.
+    P, und = undistorted(cams, bad)
+    assert not collapsed_pairs(P, und, conf, COCO17_LR_PAIRS, options=CollapseOptions(enabled=False)).any()

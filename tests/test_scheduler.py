@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.lr_collapse import CollapseOptions
 from mocapd.core.lr_flips import COCO17_LR_PAIRS, FlipOptions
 from mocapd.core.people import PeopleTracker
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import quat_rotate
-from mocapd.core.skeleton import Skeleton
+from mocapd.core.skeleton import BONE_NAMES, Skeleton
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
@@ -53,6 +54,7 @@ class Lockstep:
     dead_after_ns: dict[int, int] = field(default_factory=dict)
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     flipped: set[int] = field(default_factory=set)  # cameras whose detector confuses left and right
+    collapsed: set[int] = field(default_factory=set)  # cameras whose detector puts the right arm on the left one
 
     def __post_init__(self) -> None:
         n = len(self.world.cameras)
@@ -85,6 +87,8 @@ class Lockstep:
                     dets = self.world.detections(c, t / 1e9, self.rng)
                     if c in self.flipped:
                         dets = _mirror_labels(dets)
+                    if c in self.collapsed:
+                        dets = _collapse_arms(dets)
                     self.pending.append((t + 50 * MS, c, t + self.camera_shift_ns[c], dets))
                 self.next_cam[c] += S // 30
         for p in sorted(self.pending, key=lambda p: p[0]):
@@ -107,6 +111,13 @@ def _mirror_labels(dets: Detections2D) -> Detections2D:
         kp[:, [left, right]] = kp[:, [right, left]]
         cf[:, [left, right]] = cf[:, [right, left]]
     return Detections2D(kp, cf)
+
+
+def _collapse_arms(dets: Detections2D) -> Detections2D:
+    """The right elbow and wrist put on the left ones (as YOLO did to the acrobat of the Pose2Sim demo)."""
+    kp = dets.keypoints.copy()
+    kp[:, [8, 10]] = kp[:, [7, 9]] + 2.0
+    return Detections2D(kp, dets.confidences.copy())
 
 
 def _lockstep(prior: PcaPrior, n_people: int, n_suits: int, options: SchedulerOptions, shift: list[int]) -> Lockstep:
@@ -283,6 +294,30 @@ def test_a_person_s_views_that_did_not_change_are_not_searched_for_flips_again(p
     kp[0, 9] += 3.0  # the left wrist moves in camera 0: the wrists' pair alone is searched again
     und[0, 9] = sched.cameras[0].undistort_points(kp[0, 9:10])[0]
     assert unflip()[3:] == (1, n_pairs - 1)
+
+
+def test_views_that_put_both_arms_on_one_sit_that_pair_out(prior: PcaPrior) -> None:
+    """Issue 41's fast forearms: two cameras of four put the right elbow and wrist on the left ones (two views say
+    "one arm", two say "two arms"; a swap cannot mend it). With the collapsed pairs left out of those views the right
+    forearm is solved from the two views that see it, as well as from four clean ones; left in, the two collapsed
+    views pull it onto the left arm."""
+    kin_names = list(BONE_NAMES)
+    ends = [kin_names.index("RightLowerArm"), kin_names.index("RightHand")]  # joints: the elbow and the wrist
+    err, collapsed = {}, {}
+    for case, cams, on in (("clean", set(), True), ("left out", {0, 2}, True), ("left in", {0, 2}, False)):
+        opts = FlipOptions(collapse=CollapseOptions(enabled=on))
+        ls = _lockstep(prior, 1, 0, SchedulerOptions(flips=opts), [0, 0, 0, 0])
+        ls.collapsed = cams
+        out = ls.run(2.0)
+        e = [
+            float(np.linalg.norm(p.joints[ends] - ls.world.joints_at(0, f.t_solve_ns / 1e9)[ends], axis=1).max())
+            for f, _ in out[60:]
+            for p in f.people
+        ]
+        err[case] = float(np.median(e))
+        collapsed[case] = ls.scheduler.counters["lr_collapsed"]
+    assert collapsed["left out"] > 100 and collapsed["clean"] < 5 and collapsed["left in"] == 0, collapsed
+    assert err["left out"] < 0.03 and err["left in"] > 3.0 * err["left out"], err
 
 
 def test_tick_plan_counts_missed_ticks_instead_of_bursting() -> None:

@@ -21,7 +21,7 @@ searched again. :func:`choose_swaps` returns the decision, :func:`apply_swaps` a
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cache
 from itertools import product
 
@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from mocapd.core import _flip_kernel
 from mocapd.core.camera import Camera, triangulate_projections
+from mocapd.core.lr_collapse import CollapseOptions
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -65,6 +66,8 @@ class FlipOptions:
     min_views_alone: int = 3
     """Without the person's previous pose, at least this many views must see them (two views cannot say which of
     them is flipped)."""
+    collapse: CollapseOptions = field(default_factory=CollapseOptions)
+    """When a view's pair collapsed onto one limb sits out (:mod:`mocapd.core.lr_collapse`): run with the flips."""
 
 
 @dataclass(frozen=True)

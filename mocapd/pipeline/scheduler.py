@@ -58,6 +58,7 @@ from mocapd.core.imu_calibration import ImuCalibration
 from mocapd.core.imu_start import initial_pose_from_imus
 from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.lr_collapse import collapsed_pairs, drop_collapsed
 from mocapd.core.lr_flips import FlipMemo, FlipOptions, apply_swaps, choose_swaps, lr_pairs
 from mocapd.core.people import PeopleTracker, Person
 from mocapd.core.per_skeleton import PerSkeleton
@@ -349,7 +350,7 @@ class FixedLatencyScheduler:
         self.keypoint_status = [dict.fromkeys((s.value for s in SampleStatus), 0) for _ in cameras]
         self.imu_status: dict[str, dict[str, int]] = {}
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
-                         "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0,
+                         "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0, "lr_collapsed": 0,
                          "lr_pairs_searched": 0, "lr_pairs_reused": 0,
                          "learned_observations": 0, "predictions_skipped": 0}  # fmt: skip
         self._lr_pairs = lr_pairs(list(getattr(targets, "names", ())))
@@ -799,15 +800,21 @@ class FixedLatencyScheduler:
             if memo is not None:
                 self.counters["lr_pairs_searched"] += memo.searched
                 self.counters["lr_pairs_reused"] += memo.reused
-        if not decision.swaps.any():
-            return kp, und, conf
-        kp, swapped_conf = apply_swaps(kp, conf, decision.swaps, self._lr_pairs)
-        und, _ = apply_swaps(und, conf, decision.swaps, self._lr_pairs)
-        if hand_views is not None and self.hands is not None and self._wrist_pair is not None:
-            for cam in np.flatnonzero(decision.swaps[:, self._wrist_pair]):
-                if int(cam) in hand_views:
-                    hand_views[int(cam)] = self.hands.swapped(*hand_views[int(cam)])
-        return kp, und, swapped_conf
+        if decision.swaps.any():
+            kp, swapped_conf = apply_swaps(kp, conf, decision.swaps, self._lr_pairs)
+            und, _ = apply_swaps(und, conf, decision.swaps, self._lr_pairs)
+            conf = swapped_conf
+            if hand_views is not None and self.hands is not None and self._wrist_pair is not None:
+                for cam in np.flatnonzero(decision.swaps[:, self._wrist_pair]):
+                    if int(cam) in hand_views:
+                        hand_views[int(cam)] = self.hands.swapped(*hand_views[int(cam)])
+        # A view that put both keypoints of a pair on one limb (issue 41's fast forearms) sits that pair out.
+        collapsed = collapsed_pairs(self._projections, und, conf, self._lr_pairs, reference, o.collapse)
+        if collapsed.any():
+            with self._count_lock:
+                self.counters["lr_collapsed"] += int(np.count_nonzero(collapsed))
+            conf = drop_collapsed(conf, collapsed, self._lr_pairs)
+        return kp, und, conf
 
     def _undistorted(self, camera: int, dets: Detections2D) -> FloatArray:
         """A camera's sampled keypoints undistorted (n_people, n_kp, 2): from the undistorted copies the timeline

@@ -83,7 +83,8 @@ class DaemonConfig(Section):
     body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
     """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
     lr_flips: bool = True
-    """Undo each view's left/right confusions before the solve (:mod:`mocapd.core.lr_flips`)."""
+    """Undo each view's left/right confusions before the solve (:mod:`mocapd.core.lr_flips`), and leave a pair out of
+    a view that put both of its keypoints on one limb (:mod:`mocapd.core.lr_collapse`)."""
     keypoint_max_age_s: float = Field(0.1, ge=0.0, le=2.0)
     keypoint_max_gap_s: float = Field(0.25, ge=0.0, le=5.0)
     match_px: float = Field(80.0, ge=1.0, le=10000.0)

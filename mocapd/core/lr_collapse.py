@@ -1,0 +1,141 @@
+"""Collapsed left/right pairs of 2D detections: both wrists (elbows, knees, ...) put on one limb in one view.
+
+Besides swapping a person's sides (:mod:`mocapd.core.lr_flips`), 2D pose networks put the left *and* the right
+keypoint of a pair on the same limb, with high confidence, when the person turns fast or one limb hides the other:
+on the Pose2Sim multi-person demo the acrobat's two wrists and elbows lie within 5-16 % of his size of each other in
+cam01 (frames 36, 45-54) and cam03 (48-99), where the two other cameras see them 50-80 % apart. A swap cannot mend
+that (either labelling puts both points on one arm), and the robust reprojection term cannot tell which views are
+wrong when two say "one arm" and two say "both arms": the live solve followed the collapsed views and held both
+arms up while one hung down (elbows and wrists 200-500 px off in the other views, the wrists' p90 of the held-out
+error 364 px for that performer against 123 for the other).
+
+A view's pair is *collapsed* when its two keypoints lie closer than :attr:`CollapseOptions.collapsed` × the person's
+size in that view while the pair, seen from the views that do not collapse it (two or more: their triangulation),
+else the person's previous pose, projects at least :attr:`CollapseOptions.apart` × the size apart there. Such a view
+says nothing about which of the two points is where: both are left out of that view's solve (the others decide). A
+pair that really projects onto itself (arms along the camera's line of sight) projects close together from the
+other views too, and is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.camera import triangulate_projections
+from mocapd.errors import InputError
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class CollapseOptions:
+    """When a view's left/right pair counts as collapsed."""
+
+    enabled: bool = True
+    min_confidence: float = 0.3
+    """A keypoint takes part when its detector confidence is at least this."""
+    collapsed: float = 0.15
+    """The pair's two detected keypoints closer than this fraction of the person's size in the view (the largest
+    extent of their confident keypoints) is a candidate. On the Pose2Sim demos the collapsed wrists lie 3-16 %
+    apart, the others 33-97 %."""
+    apart: float = 0.3
+    """... and a collapse when the other views (or the previous pose) place the pair at least this fraction of the
+    size apart in that view."""
+    min_keypoints: int = 4
+    """A view with fewer confident keypoints has no size to judge by: left alone."""
+
+
+def collapsed_pairs(
+    P: FloatArray,
+    uv: FloatArray,
+    conf: FloatArray,
+    pairs: tuple[tuple[int, int], ...],
+    reference: FloatArray | None = None,
+    options: CollapseOptions | None = None,
+) -> BoolArray:
+    """Per view and pair: whether the view collapsed the pair onto one limb (see the module docstring).
+
+    Parameters
+    ----------
+    P : array, shape (n_cams, 3, 4)
+        Projection matrices (undistorted pixels).
+    uv : array, shape (n_cams, n_kp, 2)
+        Undistorted pixels of one person's detections (any value where the confidence is 0).
+    conf : array, shape (n_cams, n_kp)
+        Detector confidence; 0 where the view did not see the person.
+    pairs : sequence of (left, right) keypoint indices
+    reference : array, shape (n_kp, 3), optional
+        The person's keypoints a moment ago (world): the pair's separation where fewer than two other views have it.
+    options : CollapseOptions
+
+    Returns
+    -------
+    bool array, shape (n_cams, n_pairs)
+    """
+    o = options if options is not None else CollapseOptions()
+    uv = np.asarray(uv, dtype=np.float64)
+    conf = np.asarray(conf, dtype=np.float64)
+    n_cams = P.shape[0]
+    if uv.shape[:2] != conf.shape or uv.shape[0] != n_cams:
+        raise InputError(f"uv {uv.shape} and conf {conf.shape} must cover the {n_cams} cameras")
+    out = np.zeros((n_cams, len(pairs)), dtype=bool)
+    if not o.enabled or not pairs:
+        return out
+    ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
+    size = np.zeros(n_cams)
+    for c in range(n_cams):
+        if np.count_nonzero(ok[c]) >= o.min_keypoints:
+            size[c] = float(np.ptp(uv[c, ok[c]], axis=0).max())
+    lr = np.array(pairs, dtype=np.intp)  # (n_pairs, 2)
+    both = ok[:, lr[:, 0]] & ok[:, lr[:, 1]] & (size[:, None] > 0)  # (n_cams, n_pairs)
+    gap = np.linalg.norm(uv[:, lr[:, 0]] - uv[:, lr[:, 1]], axis=-1)
+    candidate = both & (gap < o.collapsed * size[:, None])
+    if not candidate.any():
+        return out  # the common case: nothing to check, no triangulation
+    for c, p in zip(*np.nonzero(candidate), strict=True):
+        sep = _expected_gap(P, uv, conf, ok, candidate[:, p], lr[p], int(c), reference)
+        out[c, p] = bool(np.isfinite(sep) and sep >= o.apart * size[c])
+    return out
+
+
+def _expected_gap(
+    P: FloatArray,
+    uv: FloatArray,
+    conf: FloatArray,
+    ok: BoolArray,
+    collapsed_views: BoolArray,
+    pair: NDArray[np.intp],
+    view: int,
+    reference: FloatArray | None,
+) -> float:
+    """The pair's separation in ``view`` (px) as the views that do not collapse it triangulate it, else as the
+    reference projects it; NaN when neither can say."""
+    others = ~collapsed_views & ok[:, pair].all(axis=1)
+    others[view] = False
+    X: FloatArray | None = None
+    if np.count_nonzero(others) >= 2:
+        w = np.where(others[:, None], conf[:, pair], 0.0)
+        pts, good = triangulate_projections(P, uv[:, pair], w)
+        if good.all():
+            X = pts
+    if X is None and reference is not None and np.isfinite(reference[pair]).all():
+        X = np.asarray(reference[pair], dtype=np.float64)
+    if X is None:
+        return float("nan")
+    h = P[view, :, :3] @ X.T + P[view, :, 3:4]  # (3, 2)
+    if np.any(h[2] <= 1e-6):
+        return float("nan")
+    px = h[:2] / h[2]
+    return float(np.linalg.norm(px[:, 0] - px[:, 1]))
+
+
+def drop_collapsed(conf: FloatArray, collapsed: BoolArray, pairs: tuple[tuple[int, int], ...]) -> FloatArray:
+    """``conf`` (n_cams, n_kp) with both keypoints of every collapsed (view, pair) at confidence 0."""
+    out = np.array(conf, dtype=np.float64, copy=True)
+    for c, p in zip(*np.nonzero(collapsed), strict=True):
+        out[c, list(pairs[p])] = 0.0
+    return out
