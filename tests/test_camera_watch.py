@@ -18,6 +18,7 @@ from mocapd.core.camera_watch import (
     reestimate_pose,
     residuals_all_in,
     residuals_left_out,
+    rig_residuals,
 )
 from mocapd.core.keypoints import coco17_targets
 from mocapd.core.rotations import matrix_from_rotvec
@@ -244,26 +245,24 @@ def test_a_passing_re_estimate_is_handed_out_applied_and_the_camera_rejoins() ->
 
 def test_a_camera_whose_re_estimates_keep_being_refused_is_put_back_and_the_others_re_examined() -> None:
     """A 2° roll of cam1 on the ring of four (about 10 px at the image's edge, against 9 px of detector noise): the
-    watch names a camera whose re-estimates are all refused. After three in a row it is put back in the solve
-    (released: back to ok, said in /status) and not named again for baseline_s, while the others are judged without
-    it; on this take cam1 is named first and released, then cam3 (its opposite, the one witness of its depth), and
-    released in turn: neither is held out of the solve for good."""
+    watch names cam1, whose re-estimates are all refused (a roll's matches improve too little). After three in a row
+    it is put back in the solve (released: back to ok, said in /status) and not named again for baseline_s, while the
+    others are judged without it. No other camera is named on this take (before the level's own spread counted,
+    its opposite cam3, the one witness of its depth, was named next and released in turn)."""
     truth = ring_rig(4)
     moved = [bumped(c, 2.0, (0.0, 0.0, 1.0)) if i == 1 else c for i, c in enumerate(truth)]
     watch, weights = watched(truth, take(truth, 60.0, seed=2, bump_at=20.0, moved=moved))
     said = [(round(t / 1e9, 1), cam, what) for t, cam, what, _ in watch.events]
-    released = [(t, cam) for t, cam, what in said if what == "released"]
-    assert [cam for _, cam in released] == ["cam1", "cam3"], said
-    for t_rel, cam in released:
-        refused = [w for t, c, w, d in watch.events if c == cam and w == "re-estimated" and t / 1e9 <= t_rel]
-        assert len(refused) == 3, said
-        i = int(cam[3:])
-        # back in the solve from the next moment on, until named again (not before baseline_s)
-        later = [w for t, w in weights if t_rel * 1e9 < t <= t_rel * 1e9 + 5e9]
-        assert later and all(w[i] == 1.0 for w in later), cam
+    assert {cam for _, cam, what in said if what == "bumped"} == {"cam1"}, said
+    t_rel = next(t for t, cam, what in said if what == "released")
+    refused = [d for t, c, w, d in watch.events if w == "re-estimated" and t / 1e9 <= t_rel]
+    assert len(refused) == 3 and all(d["refused"] for d in refused), said
+    # back in the solve from the next moment on, and not named again for baseline_s
+    later = [w for t, w in weights if t_rel * 1e9 < t <= t_rel * 1e9 + 5e9]
+    assert later and all(w[1] == 1.0 for w in later)
+    assert all(t >= t_rel + WatchOptions().baseline_s for t, cam, what in said if what == "bumped" and t > t_rel), said
     st = watch.status()
-    assert st["cam1"]["released"] == 1 and st["cam3"]["released"] == 1 and st["cam3"]["re_examining"], st
-    assert watch.states() == ["ok"] * 4 and not watch.in_doubt().any()
+    assert st["cam1"]["released"] >= 1 and all(st[c]["released"] == 0 for c in ("cam0", "cam2", "cam3")), st
     release = next(d for _, c, w, d in watch.events if w == "released")
     assert release["refused"] == 3 and "improve too little" in str(release["reason"]), release
 
@@ -277,5 +276,50 @@ def test_a_re_estimate_is_refused_unless_it_fits_well_turns_little_and_most_matc
     assert "max_turn_deg" in str(judge_proposal(replace(good, rotation_deg=12.0), 9.0, o))
     assert "improve too little" in str(judge_proposal(replace(good, median_px_after=30.0), 9.0, o))
     assert "before the bump" in str(judge_proposal(good, 2.0, o))  # 10 px: more than its 2 px + margin_px 6
+    # every other camera's people: closer with it (a knocked camera set right), or no more than 5 % farther
+    assert judge_proposal(replace(good, rig=(("cam1", 30.0, 11.0), ("cam2", 9.0, 9.3))), 9.0, o) is None
+    worse = judge_proposal(replace(good, rig=(("cam1", 30.0, 11.0), ("cam2", 9.0, 12.0))), 9.0, o)
+    assert worse == "it leaves cam2's people at 12.0 px against 9.0", worse
     with pytest.raises(InputError, match="max_turn_deg"):
         WatchOptions(max_turn_deg=0.0)
+
+
+def test_a_re_estimate_that_pulls_the_other_cameras_away_is_refused() -> None:
+    """cam1 panned 2° on the ring of four; cam3 (its opposite, the one witness of its depth: the tie of
+    docs/cameras.md, which the noise can tip to it) re-estimated from its matches as the watch gathers them while it
+    is named: they were triangulated with the panned cam1, so a turn of cam3 that never moved fits them, by more than
+    half and back near its baseline: judged on its matches alone (as before) it passes and would be applied. Judged
+    on every camera's people (the same people, with cam3 as it is and as proposed) it is refused: cam0's and cam2's
+    people reproject farther. cam1's own re-estimate brings every other camera's people closer and passes."""
+    truth = ring_rig(4)
+    moved = [bumped(c, 2.0, (0.0, 1.0, 0.0)) if i == 1 else c for i, c in enumerate(truth)]
+    P = np.stack([c.projection_matrix for c in truth])
+    o = WatchOptions()
+    people, base3, after_bump = [], [], []
+    for t, uv, cf in take(truth, 24.0, seed=1, bump_at=20.0, moved=moved):
+        res, matches = residuals_left_out(P, uv, cf, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
+        if t < 20e9:
+            base3.append(res[3])
+        else:
+            people.append((uv, cf))
+            after_bump.append(matches)
+    baseline = float(np.nanmedian(base3))
+
+    def proposal(c: int) -> Proposal:
+        X = np.concatenate([m[c][0] for m in after_bump])
+        uv = np.concatenate([m[c][1] for m in after_bump])
+        p = reestimate_pose(truth[c], X, uv)
+        assert p is not None
+        Pn = P.copy()
+        Pn[c] = p.camera.projection_matrix
+        before = rig_residuals(P, people, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
+        after = rig_residuals(Pn, people, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
+        return replace(p, rig=tuple((f"cam{k}", float(before[k]), float(after[k])) for k in range(4) if k != c))
+
+    wrong = proposal(3)
+    assert judge_proposal(replace(wrong, rig=()), baseline, o) is None, wrong  # its own matches: it would pass
+    refused = judge_proposal(wrong, baseline, o)
+    assert refused is not None and ("cam0's people" in refused or "cam2's people" in refused), (refused, wrong.rig)
+    right = proposal(1)
+    assert judge_proposal(right, float("nan"), o) is None, right
+    assert all(a < b for _, b, a in right.rig if a is not None and b is not None), right.rig

@@ -9,10 +9,13 @@ px) over time:
   in doubt, so a bump does not become the new normal);
 * its **current** level: the median over the last ``window_s``.
 
-A camera whose current level rises above its baseline by ``margin_px`` and by ``ratio`` of the baseline, while the
-other cameras' median rise stays under ``others_ratio`` of its own, none rose more and the runner-up rose less than
-``tie_ratio`` of it (a bump moves one camera and leaks into the others' checks by less; a flood of bad detections,
-a person half out of view or the sync drifting raise them all), is *suspect*; suspect for ``hold_s`` it is
+A camera whose current level rises above its baseline by ``margin_px``, by ``ratio`` of the baseline and by
+:data:`SPREAD_FACTOR` times the level's own spread over the baseline span (on real detections a camera that
+disagrees with the others by a degree swings with where the people stand), while every camera has a level (one that
+sees nobody leaves the others' checks with fewer witnesses than their baselines had), the other cameras' median
+rise stays under ``others_ratio`` of its own, none rose more and the runner-up rose less than ``tie_ratio`` of it (a
+bump moves one camera and leaks into the others' checks by less; a flood of bad detections, a person half out of
+view or the sync drifting raise them all), is *suspect*; suspect for ``hold_s`` it is
 *bumped*. One camera is bumped at a time (a second is named once the first is set right or back). A suspect or
 bumped camera's confidences are scaled by ``down_weight`` in the solve (:meth:`CameraWatch.observe` returns them),
 so the poses published while it is in doubt come from the cameras that agree. The window's median takes half a
@@ -36,13 +39,14 @@ tie rule names neither while they rise alike; the noise can still tip it to the 
 While a camera is bumped the watch gathers its 2D-3D matches (the others' triangulations and its own detections)
 and, from ``reestimate_points`` of them, re-estimates its orientation with the other cameras held
 (:func:`reestimate_pose`): a *proposal*, judged by :func:`judge_proposal` (its matches' error must fall well below
-what it was and back near the camera's baseline, the turn be one a knock gives). With ``apply`` one that passes is
-handed to the caller (:meth:`CameraWatch.pending`), which swaps the camera in everything that holds it (the
-scheduler's :meth:`~mocapd.pipeline.scheduler.FixedLatencyScheduler.replace_camera`) and tells the watch
-(:meth:`CameraWatch.apply`: the camera is judged against the new pose from a new baseline, back in the solve). One
-that fails is shown with the reason and the matches are gathered again. A camera whose re-estimates are refused
-:data:`RELEASE_AFTER` times in a row is put back in the solve (*released*: it may not be the camera that moved) and
-not named again for ``baseline_s`` while the others are judged without it.
+what it was and back near the camera's baseline, no other camera's people may reproject farther with it than
+without (:func:`rig_residuals` over the people the matches came from), the turn be one a knock gives). With
+``apply`` one that passes is handed to the caller (:meth:`CameraWatch.pending`), which swaps the camera in
+everything that holds it (the scheduler's :meth:`~mocapd.pipeline.scheduler.FixedLatencyScheduler.replace_camera`)
+and tells the watch (:meth:`CameraWatch.apply`: the camera is judged against the new pose from a new baseline, back
+in the solve). One that fails is shown with the reason and the matches are gathered again. A camera whose
+re-estimates are refused :data:`RELEASE_AFTER` times in a row is put back in the solve (*released*: it may not be the
+camera that moved) and not named again for ``baseline_s`` while the others are judged without it.
 
 Time is the solve time passed in (ns); nothing here reads a clock or locks (the pipeline's adapter does).
 """
@@ -124,6 +128,9 @@ class Proposal:
     median_px_before: float  # the matches' reprojection error with the configured pose
     median_px_after: float  # ... and with the proposed one
     refused: str | None = None  # why it may not be applied (judge_proposal); None: it passed
+    rig: tuple[tuple[str, float | None, float | None], ...] = ()
+    """The other cameras' median residual (px) over the people the matches came from, with the camera as it was
+    and as proposed: (name, before, after) each (None: none of them seen by that camera and two others)."""
 
 
 FLAG_FACTOR = 3.0
@@ -139,11 +146,23 @@ RELEASE_AFTER = 3
 and the others re-examined without it for ``baseline_s``: the wrong camera may have been named (a roll of one camera
 of a ring of four named its neighbour, whose re-estimates then improved nothing), and a camera held out for good is
 a camera fewer for every person."""
+SPREAD_FACTOR = 3.0
+"""A rise must also be this many times the camera's level's own spread over the baseline span (:func:`_level_spread`):
+on real detections a camera whose calibration disagrees with the others by a degree or two has a level that swings
+with where the people stand (cam01 of the camera demo: 13 to 25 px around a 17 px baseline, named in one run of
+five with margin_px and ratio alone); on the synthetic rig the spread is a fraction of margin_px, and a knock
+is named as fast as before."""
 COHERENCE = 0.6
 """... and only when its keypoints are off the same way: the median offset at least this share of the median
 distance (a 1-2° tilt or pan: 0.9 and more; a bad detection that passes the rest: mostly under 0.5)."""
 IMPROVEMENT = 0.5
 """An applied re-estimate's matches reproject at most this share of their error with the old pose."""
+WORSEN = 0.05
+WORSEN_PX = 0.2
+"""... and no other camera's people reproject worse with it than with the old pose by more than :data:`WORSEN` of
+their error and :data:`WORSEN_PX` px (the same people, both ways: only the camera differs). A knocked camera set right
+brings every other camera's people closer; a camera that did not move, turned to fit its matches, pulls the others'
+triangulations away from what they see."""
 MIN_INLIER_SHARE = 0.5
 """... and at least this share of its matches agree with it (the others: the detector's outliers)."""
 
@@ -152,14 +171,18 @@ def judge_proposal(p: Proposal, baseline_px: float, options: WatchOptions) -> st
     """Why proposal ``p`` may not be applied, or None when it may: its matches' median error must fall to at most
     :data:`IMPROVEMENT` of what it was, and to within ``margin_px`` of the camera's baseline from before the bump
     (``baseline_px``: where a camera that agrees with the others sits; a re-estimate of the wrong camera, or of a
-    camera that moved rather than turned, stays above it), at least :data:`MIN_INLIER_SHARE` of the matches must
-    agree, and the turn must be at most ``max_turn_deg``."""
+    camera that moved rather than turned, stays above it), no other camera's people may reproject farther with it
+    (``p.rig``, :data:`WORSEN`), at least :data:`MIN_INLIER_SHARE` of the matches must agree, and the turn must be
+    at most ``max_turn_deg``."""
     if p.inliers < MIN_INLIER_SHARE * p.matches:
         return f"only {p.inliers} of {p.matches} matches agree with it"
     if p.rotation_deg > options.max_turn_deg:
         return f"a turn of {p.rotation_deg:.1f} deg is more than max_turn_deg {options.max_turn_deg:g}"
     if not p.median_px_after <= IMPROVEMENT * p.median_px_before:
         return f"its matches improve too little ({p.median_px_before} -> {p.median_px_after} px)"
+    for name, before, after in p.rig:
+        if before is not None and after is not None and after > before * (1.0 + WORSEN) + WORSEN_PX:
+            return f"it leaves {name}'s people at {after} px against {before}"
     if np.isfinite(baseline_px) and not p.median_px_after <= baseline_px + options.margin_px:
         return (f"its matches stay {p.median_px_after} px off, more than the camera's {baseline_px:.1f} px before "
                 f"the bump + margin_px")  # fmt: skip
@@ -179,9 +202,12 @@ class _Camera:
     frozen_baseline: float | None = None  # the baseline held while in doubt
     calm_since_ns: int | None = None  # bumped and back at its baseline since then
     baseline: float = float("nan")
+    spread: float = float("nan")  # how much its level varies by itself over the baseline span (_level_spread)
     current: float = float("nan")
     bumps: int = 0
     matches: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)  # (X (n, 3), uv (n, 2)) while bumped
+    # ... and the people they came from, (uv, conf) each: every camera's residuals judge the re-estimate
+    people: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)
     n_matches: int = 0
     proposal: Proposal | None = None  # the latest re-estimate (one that was refused: the matches gathered again)
     applied: int = 0  # re-estimates applied to this camera so far
@@ -307,6 +333,37 @@ def reestimate_pose(
                     round(float(np.median(after)), 2))  # fmt: skip
 
 
+def rig_residuals(
+    P: FloatArray, people: list[tuple[FloatArray, FloatArray]], *, min_confidence: float, min_keypoints: int
+) -> FloatArray:
+    """Per camera: the median over ``people`` ((uv (n_cams, n_kp, 2), conf (n_cams, n_kp)) each) of their
+    :func:`residuals_left_out` with the projections ``P`` (n_cams, 3, 4); NaN where none was measured."""
+    res = np.full((max(len(people), 1), P.shape[0]), np.nan)
+    for j, (uv, conf) in enumerate(people):
+        res[j], _ = residuals_left_out(P, uv, conf, min_confidence=min_confidence, min_keypoints=min_keypoints)
+    seen = np.isfinite(res).any(axis=0)
+    out = np.full(P.shape[0], np.nan)
+    out[seen] = np.nanmedian(res[:, seen], axis=0)
+    return out
+
+
+def _level_spread(samples: deque[tuple[int, float]], split_ns: int, window_s: float) -> float:
+    """How much a camera's level (the median residual over ``window_s``) varies by itself over the baseline span
+    (the ``samples`` before ``split_ns``): the standard deviation of the medians of its ``window_s`` stretches (those
+    with 3 samples or more), px; NaN with fewer than 3 stretches. Not a robust scale: a level that spent two of its
+    five first seconds 8 px below the others (the camera demo's cam01, the people where its error is small) has a
+    median absolute deviation of 2 px and is named when they walk back."""
+    t = np.array([s[0] for s in samples if s[0] < split_ns], dtype=np.int64)
+    r = np.array([s[1] for s in samples if s[0] < split_ns])
+    if not len(t):
+        return float("nan")
+    stretch = (split_ns - t) // round(window_s * 1e9)
+    levels = [float(np.median(r[stretch == k])) for k in np.unique(stretch) if np.count_nonzero(stretch == k) >= 3]
+    if len(levels) < 3:
+        return float("nan")
+    return float(np.std(levels, ddof=1))
+
+
 def _offsets(camera: Camera, X: FloatArray, uv: FloatArray) -> FloatArray:
     """Undistorted-pixel offsets (n, 2) of points ``X`` (n, 3) projected by ``camera`` from ``uv`` (n, 2)."""
     h = np.c_[X, np.ones(len(X))] @ camera.projection_matrix.T
@@ -427,6 +484,7 @@ class CameraWatch:
             gathering = cam.proposal is None or cam.proposal.refused is not None
             if cam.state == "bumped" and o.reestimate_points > 0 and gathering and len(matches[c][0]):
                 cam.matches.append(matches[c])
+                cam.people.append((uv.copy(), conf.copy()))
                 cam.n_matches += len(matches[c][0])
                 if cam.n_matches >= o.reestimate_points:
                     self._reestimate(t_ns, c)
@@ -465,7 +523,7 @@ class CameraWatch:
         ranked = np.sort(rise[finite])
         others = np.delete(rise, i)
         others = others[np.isfinite(others)]
-        if not (rise[i] > factor * max(o.margin_px, o.ratio * base[i]) and ranked[-2] < o.tie_ratio * rise[i]):
+        if not (rise[i] > factor * self._threshold(i, base[i]) and ranked[-2] < o.tie_ratio * rise[i]):
             return None
         return i if float(np.median(others)) < o.others_ratio * rise[i] else None
 
@@ -481,9 +539,10 @@ class CameraWatch:
             span = (split - cam.samples[0][0]) / 1e9 if old else 0.0
             cam.current = float(np.median(new)) if len(new) >= 3 else float("nan")
             if cam.frozen_baseline is not None:
-                cam.baseline = cam.frozen_baseline
+                cam.baseline = cam.frozen_baseline  # and its spread, as it was
             else:
                 cam.baseline = float(np.median(old)) if span >= o.min_baseline_s else float("nan")
+                cam.spread = _level_spread(cam.samples, split, o.window_s) if np.isfinite(cam.baseline) else np.nan
 
     def _rise(self, cam: _Camera) -> float:
         return cam.current - cam.baseline if np.isfinite(cam.current) and np.isfinite(cam.baseline) else float("nan")
@@ -494,9 +553,18 @@ class CameraWatch:
             return np.zeros(len(self._cams), dtype=bool)
         return np.array([c.barred_until_ns is not None and t_ns < c.barred_until_ns for c in self._cams], dtype=bool)
 
-    def _high(self, cam: _Camera) -> bool:
-        rise = self._rise(cam)
-        return bool(np.isfinite(rise) and rise > max(self.options.margin_px, self.options.ratio * cam.baseline))
+    def _high(self, i: int) -> bool:
+        rise = self._rise(self._cams[i])
+        return bool(np.isfinite(rise) and rise > self._threshold(i))
+
+    def _threshold(self, i: int, baseline: float | None = None) -> float:
+        """The rise (px) that makes camera ``i`` suspect: ``margin_px``, ``ratio`` of its baseline (``baseline``
+        where given: the all-in one) and :data:`SPREAD_FACTOR` times its level's own spread over the baseline span,
+        the largest."""
+        o, cam = self.options, self._cams[i]
+        base = cam.baseline if baseline is None else baseline
+        spread = SPREAD_FACTOR * cam.spread if np.isfinite(cam.spread) else 0.0
+        return max(o.margin_px, o.ratio * base if np.isfinite(base) else 0.0, spread)
 
     def _judge(self, t_ns: int) -> None:
         o = self.options
@@ -507,6 +575,10 @@ class CameraWatch:
         rises = np.array([np.nan if b else self._rise(c) for c, b in zip(self._cams, barred, strict=True)])
         doubt = bool(np.array([c.state == "bumped" for c in self._cams]).any())
         finite = np.sort(rises[np.isfinite(rises)])
+        # Nobody is named while a camera has no level to compare (it sees nobody now): the others' checks then come
+        # from fewer witnesses than their baselines did (a person seen by two cameras instead of three), and the
+        # rise of one may be that, not a knock (the camera demo: cam01 named the moment cam02 saw nobody).
+        complete = finite.size == int((~barred).sum())
         # Two cameras rising alike cannot be told apart (opposite cameras that are each other's only witness of
         # an axis see one's bump as the other's): neither is named.
         tied = finite.size >= 2 and finite[-2] >= o.tie_ratio * finite[-1]
@@ -515,7 +587,7 @@ class CameraWatch:
             others = others[np.isfinite(others)]
             # The camera that rose most, and alone: a bump of one camera leaks into the others' checks (it takes
             # part in their triangulations) by less than it shows in its own.
-            alone = (self._high(cam) and rises[i] >= np.nanmax(rises) and not tied and not doubt
+            alone = (self._high(i) and complete and rises[i] >= np.nanmax(rises) and not tied and not doubt
                      and (others.size == 0 or float(np.median(others)) < o.others_ratio * rises[i]))  # fmt: skip
             if cam.state == "learning":
                 if np.isfinite(cam.baseline):
@@ -527,7 +599,7 @@ class CameraWatch:
                     cam.doubt_ns = t_ns if since is None else min(since, t_ns)
                     self._enter(cam, i, "suspect", t_ns)
             elif cam.state == "suspect":
-                up = np.isfinite(rises[i]) and rises[i] > 0.5 * max(o.margin_px, o.ratio * cam.baseline)
+                up = np.isfinite(rises[i]) and rises[i] > 0.5 * self._threshold(i)
                 if not up or rises[i] < np.nanmax(rises) or tied:
                     # well back down (half the threshold: a level hovering at it does not flicker in and out), or
                     # another camera rose as much or more: this one's rise may be that camera's leaking into it
@@ -537,7 +609,7 @@ class CameraWatch:
                     cam.bumps += 1
                     self._enter(cam, i, "bumped", t_ns)
             elif cam.state == "bumped":
-                calm = np.isfinite(rises[i]) and rises[i] < 0.5 * max(o.margin_px, o.ratio * cam.baseline)
+                calm = np.isfinite(rises[i]) and rises[i] < 0.5 * self._threshold(i)
                 if not calm:
                     cam.calm_since_ns = None
                 elif cam.calm_since_ns is None:
@@ -558,6 +630,7 @@ class CameraWatch:
         cam.frozen_baseline = None
         cam.calm_since_ns = None
         cam.matches.clear()
+        cam.people.clear()
         cam.n_matches = 0
         cam.proposal = None
 
@@ -565,11 +638,22 @@ class CameraWatch:
         cam = self._cams[c]
         X = np.concatenate([m[0] for m in cam.matches])
         uv = np.concatenate([m[1] for m in cam.matches])
+        people = list(cam.people)
         cam.matches.clear()
+        cam.people.clear()
         cam.n_matches = 0
         prop = reestimate_pose(self.cameras[c], X, uv)
         if prop is None:
             return  # too few matches agree: gather again
+        # Every camera's people, with the camera as it is and as proposed: a turn that fits its own matches better
+        # may still pull the others' triangulations (it takes part in them) away from what they see.
+        o = self.options
+        P = self._P.copy()
+        P[c] = prop.camera.projection_matrix
+        before = rig_residuals(self._P, people, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
+        after = rig_residuals(P, people, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
+        rig = tuple((self.cameras[k].name, _r(before[k]), _r(after[k])) for k in range(len(self.cameras)) if k != c)
+        prop = replace(prop, rig=rig)
         cam.proposal = replace(prop, refused=judge_proposal(prop, cam.baseline, self.options))
         self.events.append((t_ns, self.cameras[c].name, "re-estimated", _proposal_json(cam.proposal)))
         cam.refusals = cam.refusals + 1 if cam.proposal.refused is not None else 0
@@ -635,12 +719,13 @@ class CameraWatch:
 
 
 def _r(x: float) -> float | None:
-    return round(x, 2) if np.isfinite(x) else None
+    return round(float(x), 2) if np.isfinite(x) else None
 
 
 def _proposal_json(p: Proposal) -> dict[str, Any]:
     return {
         "rotation_deg": p.rotation_deg, "matches": p.matches, "inliers": p.inliers,
         "median_px_before": p.median_px_before, "median_px_after": p.median_px_after,
+        "rig": {name: {"before": b, "after": a} for name, b, a in p.rig},
         "R": np.round(p.camera.R, 9).tolist(), "t": np.round(p.camera.t, 6).tolist(), "refused": p.refused,
     }  # fmt: skip

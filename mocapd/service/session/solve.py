@@ -210,7 +210,8 @@ def _session_rig(session: Session, prior: PcaPrior | None) -> SessionRig:
     return SessionRig(config, cameras, skeleton, targets, prior, suits, options, tuple(columns))
 
 
-def _scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencyScheduler, ImuIngest]:
+def session_scheduler(rig: SessionRig, opts: ResolveOptions) -> tuple[FixedLatencyScheduler, ImuIngest]:
+    """The scheduler the daemon ran (tracker, suits, fingers) rebuilt from ``rig``, with ``opts``' LM budget."""
     cfg = rig.config
     lm = replace(cfg.solver.lm.options(), max_iterations=opts.max_iterations, function_tolerance=opts.tolerance,
                  parameter_tolerance=opts.tolerance)  # fmt: skip
@@ -413,7 +414,7 @@ def forward_resolve(
     recalibrated while recording replaced at their instants (:func:`camera_changes`); ``progress`` is called with 1
     after each frame."""
     rig = session_rig(session)
-    sched, ingest = _scheduler(rig, opts)
+    sched, ingest = session_scheduler(rig, opts)
     changes = camera_changes(session, rig.cameras)
     ic = 0
     o = rig.options
