@@ -98,8 +98,9 @@ def test_bench_latency_holds_the_daemon_to_a_cpu_budget() -> None:
     gov = r["governor"]  # on in the shipped config: what it sheds now, and why
     assert gov is not None and {"step", "shed", "reason"} <= set(gov) and r["solve_threads"] >= 1, gov
     # The synthetic rig's detections are simulated: no tracking, no detector, no landmark model to shed, so its
-    # ladder is step 0 alone (it walked to "detector at 35 % duty", shedding nothing, and said so).
-    assert gov["ladder"] == ["nothing shed"] and gov["step"] == 0, gov
+    # ladder is step 0 and the people solved at half rate (it walked to "detector at 35 % duty", shedding nothing,
+    # and said so); held to 0.8 of a core it may take that step.
+    assert gov["ladder"] == ["nothing shed", "people solved at half rate"] and gov["step"] in (0, 1), gov
 
 
 def test_bench_latency_on_the_suit_alone_reports_the_imu_only_rig(capsys: pytest.CaptureFixture[str]) -> None:

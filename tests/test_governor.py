@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
-from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions, ladder
+from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions, Level, ladder
 
 PERIOD = 16_666_667
 S = 1_000_000_000
@@ -50,8 +50,9 @@ def test_an_overrun_sheds_in_the_ladders_order_one_step_per_judgement_and_never_
     seen = [p.window(200.0 * 0.85**g.step_index) for _ in range(3 * len(LADDER) + 3)]  # each step 15 % better
     # Two late windows shed the first step; each step is then on trial for three windows (nothing else changes),
     # helped (its windows' median p95 fell), and the next follows; the last step stays.
-    assert seen == [0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4, 5, 5, 5, 6, 6, 6, 6, 6, 6, 6, 6], seen
+    assert seen == [0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4, 5, 5, 5, 6, 6, 6, 7, 7, 7, 7, 7, 7, 7, 7], seen
     assert g.level.tracking_rate == 0.5 and g.level.detector_duty == 0.35 and not g.level.landmarks
+    assert g.level.solve_every == 2 and all(lv.solve_every == 1 for lv in LADDER[:-1])  # the solve halved last
     # The landmark model first (the detector's costliest part, issue 40), then the detector's duty, then the
     # tracking's rate last (alone it saved least, and at half rate it costs the 30 Hz keypoints, docs/daemon.md);
     # tracking itself never (detections alone came too far apart: people lost and re-enrolled), the tick never;
@@ -59,11 +60,13 @@ def test_an_overrun_sheds_in_the_ladders_order_one_step_per_judgement_and_never_
     assert [lv.name for lv in LADDER[1:]] == ["landmark model off", "detector at 75 % duty", "detector at 50 % duty",
                                               "detector at 35 % duty",
                                               "detector at 35 % duty, keypoint tracking at 60 % rate",
-                                              "detector at 35 % duty, keypoint tracking at half rate"]  # fmt: skip
+                                              "detector at 35 % duty, keypoint tracking at half rate",
+                                              "detector at 35 % duty, keypoint tracking at half rate, people solved "
+                                              "at half rate"]  # fmt: skip
     for a, b in itertools.pairwise(LADDER):
         assert b.tracking_rate <= a.tracking_rate and b.detector_duty <= a.detector_duty and a != b
     assert all(lv.tracking_rate > 0 for lv in LADDER)
-    assert [h[1] for h in g.history] == [1, 2, 3, 4, 5, 6] and "of a 16.7 ms period" in str(g.status()["reason"])
+    assert [h[1] for h in g.history] == [1, 2, 3, 4, 5, 6, 7] and "of a 16.7 ms period" in str(g.status()["reason"])
 
 
 def test_missed_ticks_shed_even_when_the_ticks_that_ran_were_quick() -> None:
@@ -219,8 +222,8 @@ def test_a_pinned_governor_holds_its_step_and_still_measures() -> None:
     st = g.status()
     assert st["pinned"] is True and st["shed"] == "detector at 50 % duty" and st["tick_p95_ms"] == 2.0
     assert g.changes == 0 and "governor_pin_step" in str(st["reason"])
-    with pytest.raises(ValueError, match="step 6 is not on this rig's ladder"):
-        Governor(PERIOD, steps=steps, pin=6)
+    with pytest.raises(ValueError, match="step 7 is not on this rig's ladder"):
+        Governor(PERIOD, steps=steps, pin=7)
 
 
 def test_the_ladder_has_only_steps_that_shed_something_the_daemon_runs() -> None:
@@ -229,8 +232,13 @@ def test_the_ladder_has_only_steps_that_shed_something_the_daemon_runs() -> None
     ]
     assert names[0] == [lv.name for lv in LADDER]
     assert names[1] == [lv.name for lv in LADDER if lv.name != "landmark model off"]
-    assert names[2] == ["nothing shed", "detector at 75 % duty", "detector at 50 % duty", "detector at 35 % duty"]
-    assert [lv.tracking_rate for lv in ladder(False, False, True)] == [1.0] * 4
-    assert ladder(False, False, False) == (LADDER[0],)  # the synthetic rig: nothing to shed
+    assert names[2] == ["nothing shed", "detector at 75 % duty", "detector at 50 % duty", "detector at 35 % duty",
+                        "detector at 35 % duty, people solved at half rate"]  # fmt: skip
+    assert [lv.tracking_rate for lv in ladder(False, False, True)] == [1.0] * 5
+    # the synthetic rig: nothing else to shed, the solve at half rate alone (it runs a solve like every rig)
+    assert ladder(False, False, False) == (LADDER[0], Level("people solved at half rate", 1.0, 1.0, True, 2))
     assert [lv.name for lv in ladder(False, True, False)] == ["nothing shed", "keypoint tracking at 60 % rate",
-                                                              "keypoint tracking at half rate"]  # fmt: skip
+                                                              "keypoint tracking at half rate",
+                                                              "keypoint tracking at half rate, people solved at half "
+                                                              "rate"]  # fmt: skip
+    assert [lv.solve_every for lv in ladder(False, True, False)] == [1, 1, 1, 2]

@@ -166,7 +166,7 @@ def test_the_daemons_governor_applies_the_landmark_step_to_the_cameras_detector(
 def test_a_pinned_governor_step_is_applied_from_the_start_and_one_the_ladder_lacks_is_refused(tmp_path: Path) -> None:
     """``[daemon] governor_pin_step`` (a developer measures what a step saves): the daemon runs at that step from
     its first tick, says so in ``/status``, and never moves; a step the rig's ladder does not have (the synthetic
-    rig's ladder is step 0 alone) is refused with the ladder named."""
+    rig's ladder is step 0 and the half-rate solve) is refused with the ladder named."""
     text = video_rig_toml('[detector]\nlandmarks = "auto"\nintra_op_threads = 1\n')
     text = text.replace("[daemon]\nhttp_port = 0\n", "[daemon]\nhttp_port = 0\ngovernor_pin_step = 3\n")
     with assembled(load_config(write(tmp_path / "config.toml", text))) as built:
@@ -179,14 +179,23 @@ def test_a_pinned_governor_step_is_applied_from_the_start_and_one_the_ladder_lac
         assert groups and all(g.duty == 0.5 for g in groups.values())  # step 3: the detector at 50 % duty
         st = daemon.status()["governor"]
         assert st["pinned"] is True and st["shed"] == "detector at 50 % duty" and "governor_pin_step" in st["reason"]
+    # The synthetic rig's ladder: step 0 and the people solved at half rate, which the scheduler is told.
+    half = write(
+        tmp_path / "half.toml",
+        synthetic_toml(2, "").replace("http_port = 0\n", "http_port = 0\ngovernor_pin_step = 1\n"),
+    )
+    with assembled(load_config(half)) as built:
+        assert built.daemon.scheduler.solve_every == 2
+        assert built.daemon.status()["governor"]["shed"] == "people solved at half rate"
     bad = write(
         tmp_path / "synthetic.toml",
-        synthetic_toml(2, "").replace("http_port = 0\n", "http_port = 0\ngovernor_pin_step = 1\n"),
+        synthetic_toml(2, "").replace("http_port = 0\n", "http_port = 0\ngovernor_pin_step = 2\n"),
     )
     with (
         pytest.raises(
             ConfigError,
-            match=r"daemon.governor_pin_step: step 1 is not on this rig's ladder \(steps 0..0: nothing shed\)",
+            match=r"daemon.governor_pin_step: step 2 is not on this rig's ladder \(steps 0..1: nothing shed, "
+            r"people solved at half rate\)",
         ),
         assembled(load_config(bad)),
     ):

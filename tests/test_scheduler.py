@@ -3,6 +3,7 @@ IMUs give poses with bounded error; late or missing cameras are counted and drop
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,6 +17,7 @@ from mocapd.core.people import PeopleTracker
 from mocapd.core.prior import PcaPrior
 from mocapd.core.rotations import quat_rotate
 from mocapd.core.skeleton import BONE_NAMES, Skeleton
+from mocapd.core.solver import Observations
 from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.suit_binding import SuitBinder
 from mocapd.core.tracking import SubjectTracker, TrackingOptions
@@ -421,3 +423,54 @@ def test_enrolment_counts_detection_frames_not_ticks() -> None:
         if sched.tick(t).people and first is None:
             first = t
     assert first == 2 * frame_ns  # the 3rd frame's tick (67 ms)
+
+
+def _noting_dt(solve: Callable[..., Any], seen: list[float]) -> Callable[..., Any]:
+    def noted(obs: Observations, *args: Any, **kwargs: Any) -> Any:
+        seen.append(obs.dt)
+        return solve(obs, *args, **kwargs)
+
+    return noted
+
+
+def test_people_solved_at_half_rate_are_carried_on_the_ticks_between(prior: PcaPrior) -> None:
+    """The governor's last step (``solve_every = 2``): one frame a tick still, the people solved on every other
+    tick and carried on the ticks between at the velocity of their last two solves: nearer the truth than holding
+    the last solve, and the suit's accelerations still reach the solves (taken two periods back)."""
+    ls = _lockstep(prior, 2, 1, SchedulerOptions(), [0, 0, 0, 0])
+    before = ls.run(1.0)  # enrolment and pairing at the full rate
+    sched = ls.scheduler
+    solves0, frame0 = sched.counters["person_solves"], sched.frame
+    sched.solve_every = 2
+    seen_dt: list[float] = []
+    for solver in sched.solvers.values():  # the real solve, with the interval it is given noted
+        solver.solve = _noting_dt(solver.solve, seen_dt)  # type: ignore[method-assign]
+    frames, carried_err, held_err, accelerations = [], [], [], []
+    last_solved = {p.identity: p.joints for p in before[-1][0].people}
+    for k in range(60):
+        now = S + (60 + k) * S // 60
+        ls._feed(now)
+        frame = sched.tick(now)
+        frames.append(frame)
+        t = frame.t_solve_ns / 1e9
+        for p in frame.people:
+            truth = min((ls.world.joints_at(q, t) for q in range(2)), key=lambda j: np.abs(j - p.joints).mean())
+            if p.filled:
+                carried_err.append(float(np.linalg.norm(p.joints - truth, axis=1).mean()))
+                held_err.append(float(np.linalg.norm(last_solved[p.identity] - truth, axis=1).mean()))
+            else:
+                last_solved[p.identity] = p.joints
+        if not frame.people[0].filled:
+            accelerations.append(sched._suit_samples["suit0"].has_acceleration)
+    assert [f.frame for f in frames] == list(range(frame0 + 1, frame0 + 61))  # one frame a tick
+    assert all(len(f.people) == 2 for f in frames)
+    assert [f.people[0].filled for f in frames] == [k % 2 == 0 for k in range(60)]  # carried, then solved
+    assert sched.counters["person_solves"] - solves0 == 2 * 30  # two people, half the ticks
+    assert (sched.counters["ticks_filled"], sched.status()["solve_every"]) == (30, 2)
+    assert seen_dt == [pytest.approx(2 / 60)] * 60  # the solver's motion terms: solves 2 periods apart
+    assert np.median(carried_err) < 0.02 and max(carried_err) < 0.06  # metres, mean over joints
+    assert np.median(carried_err) < 0.8 * np.median(held_err)  # carried on, not held
+    assert all(accelerations[1:])  # the previous solve's accelerations, two periods back
+    sched.solve_every = 1
+    frame = sched.tick(S + 120 * S // 60)
+    assert not any(p.filled for p in frame.people)

@@ -24,8 +24,15 @@ step  what is shed                           what it costs
                                              scheduler interpolates between them; ``latency_s = "auto"`` covers a
                                              longer frame interval): still above the 30 Hz a camera and person
 6     ... and keypoint tracking 60 -> 30 Hz  at half the rate: below 30 Hz once a frame is lost (28-29 Hz
-                                             measured); the last step, for a machine that cannot hold the tick
-                                             otherwise
+                                             measured)
+7     ... and people solved at half rate     the scheduler solves people on every other tick only; on the ticks
+                                             between, each person is their last solve carried one period on at
+                                             the velocity of their last two (:mod:`mocapd.core.carry`, marked
+                                             ``filled``): the output keeps its rate, the solves (the tick's
+                                             costliest part) halve. The last step, on every rig (the synthetic
+                                             rig's ladder is step 0 and this), for a machine that cannot hold the
+                                             tick otherwise: a filled frame guesses, and misses a turn of motion
+                                             until the next solve
 ====  =====================================  ======================================================================
 
 Why this order, and why it ends there. Each step is placed by what it saved, measured with the step pinned
@@ -62,7 +69,8 @@ and nothing more is shed for ``retry_s`` (doubling, up to 4 x, while retries kee
 measurable CPU away (a landmark model that was not running) proves nothing either way: the next may follow.
 
 Pure state: times are arguments; the daemon feeds it (:meth:`Governor.observe` and :meth:`Governor.step` per
-tick) and applies :attr:`Governor.level`'s settings to the keypoint sources and the scheduler.
+tick) and applies :attr:`Governor.level`'s settings to the keypoint sources, the detectors and the scheduler
+(``solve_every``).
 """
 
 from __future__ import annotations
@@ -82,6 +90,7 @@ class Level:
     tracking_rate: float  # keypoint tracking's rate as a share of its configured rate (0: off)
     detector_duty: float  # the share of wall time each detector worker may spend in passes
     landmarks: bool = True  # landmarks = "auto" may run a landmark model (False: YOLO's keypoints alone)
+    solve_every: int = 1  # the scheduler solves people on every n-th tick, carrying them on the ticks between
 
 
 LADDER: tuple[Level, ...] = (
@@ -92,7 +101,9 @@ LADDER: tuple[Level, ...] = (
     Level("detector at 35 % duty", 1.0, 0.35, False),
     Level("detector at 35 % duty, keypoint tracking at 60 % rate", 0.6, 0.35, False),
     Level("detector at 35 % duty, keypoint tracking at half rate", 0.5, 0.35, False),
+    Level("detector at 35 % duty, keypoint tracking at half rate, people solved at half rate", 0.5, 0.35, False, 2),
 )
+PEOPLE_AT_HALF_RATE = "people solved at half rate"
 #: the tracking steps alone, for a rig whose keypoint tracking runs without a detector of its own to rest
 TRACKING_ALONE = (Level("keypoint tracking at 60 % rate", 0.6, 1.0, False),
                   Level("keypoint tracking at half rate", 0.5, 1.0, False))  # fmt: skip
@@ -101,16 +112,23 @@ TRACKING_ALONE = (Level("keypoint tracking at 60 % rate", 0.6, 1.0, False),
 def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tuple[Level, ...]:
     """:data:`LADDER` with only the steps that shed something this daemon runs: the landmark step where a detector
     runs ``landmarks = "auto"``, the detector's duty steps where a detector of its own runs, the tracking steps where
-    keypoint tracking runs (the synthetic rig's simulated detections have none of these: its ladder is step 0
-    alone). A step that sheds nothing would cost a trial, and say it shed what is not there."""
+    keypoint tracking runs, and last, on every rig, people solved at half rate (the synthetic rig's simulated
+    detections have none of the others: its ladder is step 0 and that). A step that sheds nothing would cost a
+    trial, and say it shed what is not there."""
     steps = [LADDER[0]]
     if landmarks:
         steps.append(LADDER[1])
     if detector:
         steps.extend(LADDER[2:5])
     if tracking:
-        steps.extend(LADDER[5:] if detector else TRACKING_ALONE)
-    return tuple(steps)
+        steps.extend(LADDER[5:7] if detector else TRACKING_ALONE)
+    return (*steps, half_solve(steps[-1]))
+
+
+def half_solve(level: Level) -> Level:
+    """``level`` with people solved on every other tick: the ladder's last step, whatever came before it."""
+    shed = PEOPLE_AT_HALF_RATE if level is LADDER[0] else f"{level.name}, {PEOPLE_AT_HALF_RATE}"
+    return Level(shed, level.tracking_rate, level.detector_duty, level.landmarks, 2)
 
 
 @dataclass(frozen=True)
@@ -391,6 +409,7 @@ class Governor:
             "tracking_rate": self.level.tracking_rate,
             "detector_duty": self.level.detector_duty,
             "landmarks": self.level.landmarks,
+            "solve_every": self.level.solve_every,
             "reason": self.last_reason,
             "changes": self.changes,
             "pinned": self.pinned,

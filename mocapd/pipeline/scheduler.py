@@ -23,6 +23,13 @@ Two things happen around the solve for people wearing a suit:
   the published person carries that instant (``t_pose_ns``) and the solve it came from (``solved``). People
   without a suit keep the delayed pose.
 
+**Solving at half rate** (the governor's last step, :mod:`mocapd.pipeline.governor`): with
+:attr:`~FixedLatencyScheduler.solve_every` at 2 the people are solved on every other tick only; the ticks between
+still publish a frame, each person of the last solve carried on to the tick's solve time at the velocity of their
+last two solves (:mod:`mocapd.core.carry`, ``PersonPose.filled``; counted in ``ticks_solved`` / ``ticks_filled``).
+The solver's motion terms and the suits' accelerations then see the true interval between a person's solves
+(:attr:`~FixedLatencyScheduler.solve_dt`).
+
 In the daemon a tick is split in two: :meth:`FixedLatencyScheduler.sample` (step 1) on the event loop, which owns
 the buffers, and :meth:`FixedLatencyScheduler.solve` (steps 2-4) on the daemon's tick thread, the people of a tick
 on a pool of solve threads where there are cores for it; :meth:`FixedLatencyScheduler.tick` runs both in one thread
@@ -51,6 +58,7 @@ from mocapd.core import _kernel
 from mocapd.core.body_size import can_size, estimate_skeleton
 from mocapd.core.camera import Camera, triangulate_projections
 from mocapd.core.camera_mounting import CameraMountingEstimator, MountingOptions
+from mocapd.core.carry import carry_pose
 from mocapd.core.hand_skeleton import HandPose
 from mocapd.core.heading import BoneVectors, HeadingEstimator, HeadingOptions, bone_vectors, observe_headings, yaw_quat
 from mocapd.core.imu import ImuMount
@@ -182,6 +190,7 @@ class PersonPose:
     t_pose_ns: int | None = None  # the instant the pose is for (None: the frame's t_solve_ns)
     solved: PersonPose | None = None  # a predicted pose: the delayed solve it was carried from (else None)
     hands: HandPose | None = None  # the fingers (mocapd.core.hand_skeleton), when hand keypoints were solved
+    filled: bool = False  # not solved this tick: the last solve carried on (solve_every > 1, mocapd.core.carry)
 
 
 @dataclass(frozen=True)
@@ -241,6 +250,7 @@ class TickInputs:
     missing: int  # cameras without usable keypoints
     suits: dict[str, SuitSample]  # per suit, at t_solve_ns
     frames: list[int] = field(default_factory=list)  # per camera, the detection frame sampled (its capture time)
+    fill: bool = False  # a tick between two solves (solve_every > 1): the people are carried, not solved
 
 
 PERSON_STAGES = ("unflip", "solve", "size", "total")
@@ -352,7 +362,14 @@ class FixedLatencyScheduler:
         self.counters = {"ticks": 0, "person_solves": 0, "not_converged": 0, "detections_rejected": 0,
                          "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0, "lr_collapsed": 0,
                          "lr_pairs_searched": 0, "lr_pairs_reused": 0,
-                         "learned_observations": 0, "predictions_skipped": 0}  # fmt: skip
+                         "learned_observations": 0, "predictions_skipped": 0,
+                         "ticks_solved": 0, "ticks_filled": 0}  # fmt: skip
+        #: people are solved on every ``solve_every``-th tick (the governor's last step sets 2); on the ticks between,
+        #: each is their last solve carried on at the velocity of their last two (:mod:`mocapd.core.carry`)
+        self.solve_every = 1
+        self._since_solve = 0  # ticks sampled since the last solving one
+        # Per identity: its last solve (instant, pose) and the θ and instant of the one before (None: none).
+        self._solved: dict[str, tuple[int, PersonPose, FloatArray | None, int]] = {}
         self._lr_pairs = lr_pairs(list(getattr(targets, "names", ())))
         #: per identity, the flip search's results of the previous tick (pairs whose inputs did not change are not
         #: searched again, :class:`~mocapd.core.lr_flips.FlipMemo`)
@@ -474,6 +491,12 @@ class FixedLatencyScheduler:
                 listener(index, camera)
 
     @property
+    def solve_dt(self) -> float:
+        """Seconds between a person's solves: a period times :attr:`solve_every` (the solver's motion terms, its
+        smoothness and the IMU accelerations, difference the solves at this interval)."""
+        return self.options.dt * self.solve_every
+
+    @property
     def last_solve_ns(self) -> int:
         """The solve time of the latest tick (a camera replaced now is used from the tick after it)."""
         return self._tick_t
@@ -498,10 +521,13 @@ class FixedLatencyScheduler:
             self.latency_ns = self.auto_latency.update(now_ns, idle=self.counters["person_solves"] == 0)
         t = now_ns - self.latency_ns
         w0, c0 = self._wall(), self._cpu()
+        # Solving every n-th tick: the ticks between carry the last solve on (none before the first solve).
+        fill = 0 < self._since_solve < self.solve_every and self.counters["ticks_solved"] > 0
+        self._since_solve = self._since_solve + 1 if fill else 1
         detections, missing, frames = self._sample_cameras(t)
-        suits = {sid: self._sample_suit(suit, t) for sid, suit in self.suits.items()}
+        suits = {sid: self._sample_suit(suit, t, keep=not fill) for sid, suit in self.suits.items()}
         self._stage("sample", w0, c0)
-        return TickInputs(now_ns, t, detections, missing, suits, frames)
+        return TickInputs(now_ns, t, detections, missing, suits, frames, fill)
 
     def solve(self, inputs: TickInputs) -> PoseFrame:
         """The second half of a tick, on any one thread at a time (the daemon's tick worker): sort the sampled
@@ -509,7 +535,42 @@ class FixedLatencyScheduler:
         :attr:`lock` throughout, so readers of the scheduler's state on other threads (:meth:`status`) see it
         between ticks, never half-updated."""
         with self.lock:
+            if inputs.fill:
+                return self._fill_tick(inputs)
             return self._solve_tick(inputs)
+
+    def _fill_tick(self, inputs: TickInputs) -> PoseFrame:
+        """A tick between two solves: every person of the last solve carried on to this tick's solve time
+        (:func:`~mocapd.core.carry.carry_pose`: root and bones at the velocity of their last two solves, joints from
+        the carried θ, hands as solved), marked ``filled``."""
+        t = inputs.t_solve_ns
+        w0, c0 = self._wall(), self._cpu()
+        people = []
+        for t_last, pose, theta_prev, t_prev in self._solved.values():
+            theta = carry_pose(pose.theta, t_last, t, theta_prev, t_prev)
+            solver = self.solvers.get(pose.identity)
+            if solver is not None:
+                joints = self._joints(solver, theta)
+            else:  # re-sized by its last solve: the solver is rebuilt at the next solve
+                joints = Kinematics(pose.skeleton or self.skeleton).forward(theta).positions
+            people.append(replace(pose, theta=theta, joints=joints, t_pose_ns=None, solved=None, filled=True))
+        self._stage("solve", w0, c0)
+        self._tick_t = t
+        self.frame += 1
+        self.counters["ticks"] += 1
+        self.counters["ticks_filled"] += 1
+        self._suit_samples = inputs.suits
+        return PoseFrame(self.frame, t, inputs.now_ns, people, inputs.missing, self.options.prediction.output)
+
+    def _remember_solves(self, t: int, poses: list[PersonPose]) -> None:
+        """The people solved at ``t``, with the θ and instant of each one's solve before (what a fill carries)."""
+        previous = self._solved
+        self._solved = {}
+        for pose in poses:
+            before = previous.get(pose.identity)
+            self._solved[pose.identity] = (
+                (t, pose, None, 0) if before is None else (t, pose, before[1].theta, before[0])
+            )
 
     def _solve_tick(self, inputs: TickInputs) -> PoseFrame:
         t, suits, detections = inputs.t_solve_ns, inputs.suits, inputs.detections
@@ -548,8 +609,10 @@ class FixedLatencyScheduler:
             self.fusion.forget(set(self.solvers))
         self._stage("solve", w2, c2)
         self.cpu_ns["solve"] += self._pool_cpu_ns  # the person jobs the pool ran, on its own threads' clocks
+        self._remember_solves(t, poses)
         self.frame += 1
         self.counters["ticks"] += 1
+        self.counters["ticks_solved"] += 1
         self._suit_samples = suits
         return PoseFrame(self.frame, t, inputs.now_ns, poses, inputs.missing, self.options.prediction.output)
 
@@ -601,9 +664,10 @@ class FixedLatencyScheduler:
             frames.append(s.frame_ns)
         return out, missing, frames
 
-    def _sample_suit(self, suit: Suit, t: int) -> SuitSample:
-        """Bone orientations at ``t`` (slerp) and accelerations at ``t - dt`` (kept from the previous tick when
-        it was exactly one period earlier, else left out this frame), for the sensors whose buffers cover ``t``.
+    def _sample_suit(self, suit: Suit, t: int, keep: bool = True) -> SuitSample:
+        """Bone orientations at ``t`` (slerp) and accelerations at ``t - dt`` (kept from the previous solving tick
+        when it was exactly ``dt`` earlier, :attr:`solve_dt`, else left out this frame), for the sensors whose
+        buffers cover ``t``. ``keep``: this tick solves, its accelerations are the next solve's previous frame's.
 
         The look-ups follow :meth:`RingBuffer.sample`'s rules; the blending is done for all sensors at once.
         """
@@ -634,9 +698,11 @@ class FixedLatencyScheduler:
         q = quat_multiply(turn, raw)
         acc = np.einsum("nij,nj->ni", matrix_from_quat(q_gi), acc_s) - np.array([0.0, GRAVITY, 0.0])
         prev = self._previous_acc.get(suit.id)
-        self._previous_acc[suit.id] = (t, acc, mask)
+        if keep:
+            self._previous_acc[suit.id] = (t, acc, mask)
         period = self.options.period_ns
-        if prev is not None and abs(t - period - prev[0]) <= period // 4 and np.all(prev[2][mask]):
+        step = period * self.solve_every  # the solver's previous frame: the previous solve
+        if prev is not None and abs(t - step - prev[0]) <= period // 4 and np.all(prev[2][mask]):
             return SuitSample(q, raw, q_i, prev[1], mask, True)
         return SuitSample(q, raw, q_i, acc, mask, False)  # no previous frame: the acceleration term sits this one out
 
@@ -733,7 +799,7 @@ class FixedLatencyScheduler:
             self._mounting_at[suit.id] = t
             with self._count_lock:
                 self._observe_mounting(suit, suit_sample, solver.skeleton, und, conf, t)
-        obs = Observations(keypoints=kp, confidences=conf, dt=self.options.dt, **imu_kw)
+        obs = Observations(keypoints=kp, confidences=conf, dt=self.solve_dt, **imu_kw)
         if self.fusion is not None:
             obs = self._fused_observations(person, solver, suit, obs, kp, conf)
         result = solver.solve(obs)
@@ -844,15 +910,13 @@ class FixedLatencyScheduler:
         imu = None
         if suit is not None and obs.imu_orientations is not None:
             imu = (suit.mounts, replace(obs, keypoints=None, confidences=None))
-        learned = self.fusion.step(
-            person.identity, solver.skeleton, solver.theta, kp, conf, mattes, self.options.dt, imu
-        )
+        learned = self.fusion.step(person.identity, solver.skeleton, solver.theta, kp, conf, mattes, self.solve_dt, imu)
         if learned is not None:
             self.counters["learned_observations"] += 1
         if self.fusion_mode == "both":
             return obs if learned is None else replace(obs, joint_positions=learned.joints)
         joints = learned.joints if learned is not None else self.fusion.extrapolated(person.identity)
-        return Observations(joint_positions=joints, dt=self.options.dt)
+        return Observations(joint_positions=joints, dt=self.solve_dt)
 
     def _observe_heading(
         self, suit: Suit, sample: SuitSample, skeleton: Skeleton, und: FloatArray, conf: FloatArray, t: int
@@ -1055,6 +1119,7 @@ class FixedLatencyScheduler:
             "frame": self.frame,
             "published": self.published,
             "counters": dict(self.counters),
+            "solve_every": self.solve_every,
             "body_heights_m": {str(k): round(v.height, 3) for k, v in self.skeletons.items()},
             "latency_ms": {k: v.summary() for k, v in self.latency.items()},
             "cpu_s": {k: round(v / 1e9, 3) for k, v in self.cpu_ns.items()},

@@ -774,8 +774,8 @@ class Daemon:
         return out
 
     def _apply_governor(self) -> None:
-        """The governor's level to the keypoint sources (tracking rate) and the scheduler (flip search), said in the
-        log: what is shed now and why."""
+        """The governor's level to the keypoint sources (tracking rate), the detectors (duty), the landmark model and
+        the scheduler (people solved every n-th tick), said in the log: what is shed now and why."""
         assert self.governor is not None
         level = self.governor.level
         for src in self.rig.sources:
@@ -784,6 +784,7 @@ class Daemon:
             group = getattr(src, "group", None)  # a packed detection group (shared by its cameras)
             if group is not None and hasattr(group, "duty"):
                 group.duty = level.detector_duty
+        self.scheduler.solve_every = level.solve_every  # the last step: people solved on every other tick
         # landmarks = "auto": the landmark model off from step 1 on
         shed_landmarks(self._landmark_fronts(), None if level.landmarks else f"step {self.governor.step_index}, "
                        f"{self.governor.last_reason}")  # fmt: skip
