@@ -815,11 +815,60 @@ def stillest_common_window(
     Searched in steps of :data:`WINDOW_STEP_S` (at most a quarter window) over ``span`` (default: where every sensor
     recorded); the span's bounds are exact (a 1 s span holds a 1 s window).
 
+    Every window is scored at once (:func:`_batched_scores`), with a bound on how far each score can be from the
+    one :func:`_window_worst` computes; only the windows that can be the stillest by those bounds are scored again
+    by :func:`_window_worst`, so the window chosen is exactly that of scoring every window one by one
+    (:func:`_stillest_common_window_reference`), at a small part of its time.
+
     Raises
     ------
     CalibrationError
         The span is shorter than the window.
     """
+    starts = _window_starts(samples, window_s, span)
+    if not _batchable(samples, max_turn_deg, max_acc_std):
+        return _stillest_common_window_reference(samples, window_s, span, max_turn_deg=max_turn_deg,
+                                                 max_acc_std=max_acc_std)  # fmt: skip
+    score = np.zeros(len(starts))
+    bound = np.zeros(len(starts))
+    for t, q, a in samples.values():
+        s, b = _batched_scores(t, q, a, starts, window_s, max_turn_deg, max_acc_std)
+        bound = np.maximum(bound, np.where(np.isfinite(s), b, 0.0))  # |max_k s_k - max_k s'_k| <= max_k b_k
+        score = np.maximum(score, s)
+    bound = np.where(np.isinf(score), 0.0, 2.0 * bound + 8.0 * _EPS * score)
+    best_possible = float(np.min(score + bound))
+    best: tuple[float, float] | None = None
+    for start in starts[score - bound <= best_possible]:  # every window that can score the minimum, in order
+        worst = _window_worst(samples, start, window_s, max_turn_deg, max_acc_std)
+        if best is None or worst < best[0]:
+            best = (worst, float(start))
+    assert best is not None
+    return best[1], best[1] + window_s
+
+
+def _stillest_common_window_reference(
+    samples: Samples,
+    window_s: float,
+    span: tuple[float, float] | None,
+    *,
+    max_turn_deg: float = MAX_TURN_DEG,
+    max_acc_std: float = MAX_ACC_STD,
+) -> tuple[float, float]:
+    """:func:`stillest_common_window` by scoring every window one by one with :func:`_window_worst` (the definition
+    the batched search must agree with exactly; also its path for inputs it does not bound: non-finite values,
+    quaternions far from unit length, arrays not float64)."""
+    starts = _window_starts(samples, window_s, span)
+    best: tuple[float, float] | None = None
+    for start in starts:
+        worst = _window_worst(samples, start, window_s, max_turn_deg, max_acc_std)
+        if best is None or worst < best[0]:
+            best = (worst, float(start))
+    assert best is not None
+    return best[1], best[1] + window_s
+
+
+def _window_starts(samples: Samples, window_s: float, span: tuple[float, float] | None) -> FloatArray:
+    """The window starts searched (s, shape (n,)); raises :class:`CalibrationError` if the span is too short."""
     t_begin = max(float(t[0]) for t, _, _ in samples.values())
     t_end = min(float(t[-1]) for t, _, _ in samples.values())
     lo, hi = (t_begin, t_end) if span is None else (max(t_begin, span[0]), min(t_end, span[1]))
@@ -831,21 +880,83 @@ def stillest_common_window(
     step = min(WINDOW_STEP_S, window_s / 4)
     starts = lo + step * np.arange(int(np.floor((hi - window_s - lo) / step + _TIME_EPS)) + 1)
     starts[-1] = min(starts[-1], hi - window_s)
-    best: tuple[float, float] | None = None
-    for start in starts:
-        worst = 0.0
-        for t, q, a in samples.values():
-            i, j = np.searchsorted(t, [start - _TIME_EPS, start + window_s - _TIME_EPS])
-            if j - i < 2:
-                worst = np.inf
-                break
-            turn = float(np.degrees(quat_angle(q[i:j], quat_average(q[i:j])).max()))
-            acc = float(np.std(np.linalg.norm(a[i:j], axis=1)))
-            worst = max(worst, turn / max_turn_deg, acc / max_acc_std if np.isfinite(acc) else 0.0)
-        if best is None or worst < best[0]:
-            best = (worst, float(start))
-    assert best is not None
-    return best[1], best[1] + window_s
+    return np.asarray(starts, dtype=np.float64)
+
+
+def _window_worst(samples: Samples, start: float, window_s: float, max_turn_deg: float, max_acc_std: float) -> float:
+    """The score of the window at ``start``: the worst ratio of a sensor's turn or |acc| std to its limit (inf
+    where a sensor has fewer than two samples in it)."""
+    worst = 0.0
+    for t, q, a in samples.values():
+        i, j = np.searchsorted(t, [start - _TIME_EPS, start + window_s - _TIME_EPS])
+        if j - i < 2:
+            return np.inf
+        turn = float(np.degrees(quat_angle(q[i:j], quat_average(q[i:j])).max()))
+        acc = float(np.std(np.linalg.norm(a[i:j], axis=1)))
+        worst = max(worst, turn / max_turn_deg, acc / max_acc_std if np.isfinite(acc) else 0.0)
+    return worst
+
+
+_EPS = float(np.finfo(np.float64).eps)
+_BATCH = 512
+"""Windows scored together by :func:`_batched_scores` (bounds its memory: 512 windows of 1 s at 100 Hz)."""
+
+
+def _batchable(samples: Samples, max_turn_deg: float, max_acc_std: float) -> bool:
+    """Whether :func:`_batched_scores` bounds its error on these inputs: float64 arrays, finite values, quaternions
+    near unit length and finite positive limits."""
+    if not (np.isfinite(max_turn_deg) and max_turn_deg > 0 and np.isfinite(max_acc_std) and max_acc_std > 0):
+        return False
+    for t, q_in, a_in in samples.values():
+        q, a = np.asarray(q_in), np.asarray(a_in)
+        if q.dtype != np.float64 or a.dtype != np.float64 or q.ndim != 2 or a.ndim != 2 or len(q) != len(t):
+            return False
+        if len(a) != len(t) or not (np.isfinite(q).all() and np.isfinite(a).all()):
+            return False
+        if np.any(np.abs(np.linalg.norm(q, axis=1) - 1.0) > 0.1) or np.any(np.abs(a) > 1e6):
+            return False
+    return True
+
+
+def _batched_scores(
+    t: FloatArray, q: FloatArray, a: FloatArray, starts: FloatArray, window_s: float, max_turn_deg: float,
+    max_acc_std: float,
+) -> tuple[FloatArray, FloatArray]:  # fmt: skip
+    """One sensor's score (as in :func:`_window_worst`) of every window, computed together, and a bound on its
+    difference from :func:`_window_worst`'s (floating point: other summation orders).
+
+    Returns scores and bounds, each shape (len(starts),); a window with fewer than two samples scores inf (bound 0).
+    The mean orientation is the top eigenvector of Σ q qᵀ (:func:`quat_average`); by Davis-Kahan it moves by at
+    most ‖ΔM‖ / gap (gap: its eigenvalue minus the next), which bounds the cosine of each turn and through
+    arccos's modulus of continuity the turn; the |acc| std moves by at most the error of its mean.
+    """
+    i_all = np.searchsorted(t, starts - _TIME_EPS)
+    j_all = np.searchsorted(t, starts + window_s - _TIME_EPS)
+    score, bound = np.empty(len(starts)), np.empty(len(starts))
+    acc_norm = np.linalg.norm(a, axis=1)
+    unit = q / np.linalg.norm(q, axis=1)[:, None]
+    for k in range(0, len(starts), _BATCH):
+        i, n = i_all[k : k + _BATCH], (j_all - i_all)[k : k + _BATCH]
+        width = max(int(n.max()), 2)
+        idx = np.minimum(i[:, None] + np.arange(width), len(t) - 1)  # (w, width)
+        inside = np.arange(width) < n[:, None]
+        qw = np.where(inside[..., None], q[idx], 0.0)  # (w, width, 4)
+        vals, vecs = np.linalg.eigh(np.swapaxes(qw, 1, 2) @ qw)
+        mean = vecs[..., -1]  # (w, 4), unit
+        cos = np.where(inside, np.abs(np.einsum("wki,wi->wk", unit[idx], mean)), 1.0).min(axis=1)
+        turn = np.degrees(2.0 * np.arccos(np.clip(cos, 0.0, 1.0)))  # the largest turn: arccos decreases
+        gap = vals[:, -1] - vals[:, -2]
+        with np.errstate(divide="ignore", invalid="ignore"):  # 0/0 only in windows of no samples
+            d_cos = 64.0 * _EPS + 64.0 * (width + 16) * _EPS * np.abs(vals[:, -1]) / np.where(gap > 0, gap, 0.0)
+        d_turn = np.where(d_cos < 1.0, np.degrees(2.0 * np.arccos(np.clip(1.0 - d_cos, -1.0, 1.0))), np.inf)
+        x = np.where(inside, acc_norm[idx], 0.0)
+        m = x.sum(axis=1) / np.maximum(n, 1)
+        std = np.sqrt(np.where(inside, (x - m[:, None]) ** 2, 0.0).sum(axis=1) / np.maximum(n, 1))
+        d_std = 4.0 * (width + 16) * _EPS * np.abs(x).max(axis=1)
+        short = n < 2
+        score[k : k + _BATCH] = np.where(short, np.inf, np.maximum(turn / max_turn_deg, std / max_acc_std))
+        bound[k : k + _BATCH] = np.where(short, 0.0, np.maximum(d_turn / max_turn_deg, d_std / max_acc_std))
+    return score, bound
 
 
 _TIME_EPS = 1e-6
