@@ -242,3 +242,18 @@ def test_the_ladder_has_only_steps_that_shed_something_the_daemon_runs() -> None
                                                               "keypoint tracking at half rate, people solved at half "
                                                               "rate"]  # fmt: skip
     assert [lv.solve_every for lv in ladder(False, True, False)] == [1, 1, 1, 2]
+
+
+def test_a_window_that_loses_most_of_its_ticks_sheds_at_once_without_waiting_for_a_trial() -> None:
+    """`mocapd demo` on the 2-core machine lost a third of its ticks for 31 s while each of seven steps waited for two
+    late windows and a three-window trial: a window missing at least ``severe_missed`` of its ticks sheds the next
+    step at once (one step a window, each kept unjudged); below that share a late window waits as before."""
+    g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
+    p = _Process(g)
+    seen = [p.window(60.0, missed=60) for _ in range(len(LADDER) + 1)]  # a third of every window's ticks missed
+    assert seen == [1, 2, 3, 4, 5, 6, 7, 7, 7], seen
+    assert "kept unjudged: 60 of 180 ticks missed" in g.history[-1][2]
+    # 10 % missed: late, not severe: two windows before the first step, then a trial of three windows.
+    g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
+    p = _Process(g)
+    assert [p.window(60.0, missed=12) for _ in range(5)] == [0, 1, 1, 1, 2]

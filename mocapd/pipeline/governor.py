@@ -50,7 +50,9 @@ latency became the detector's (1-2 s). The left/right flip search is not on the 
 swapped a view's limbs whenever the detector had re-labelled it meanwhile (a demo person's arms sized 25 % long).
 
 It sheds one step when, in two windows in a row, the tick's p95 exceeded ``shed_above`` of the period or more than
-``max_missed`` of the window's ticks were missed (one slow window, a start-up burst, is no reason), and restores one
+``max_missed`` of the window's ticks were missed (one slow window, a start-up burst, is no reason; but one window
+that missed ``severe_missed`` of its ticks, a quarter, sheds at once, without waiting for the step before to be
+judged: most of the output is being lost), and restores one
 step only after ``hold_s`` in which the p95 stayed below ``restore_below`` of the period with no tick missed
 (hysteresis: a step is not taken back the moment it helped). Its time starts at the first published tick, not when
 the daemon is built: opening the cameras and loading the models can outlast the ``settle_s`` in which nothing is
@@ -156,6 +158,11 @@ class GovernorOptions:
     judge_windows: int = 3
     """A step is judged on this many windows after it (no further step meanwhile), against up to this many before
     it at the level it left: medians, so that one window's noise decides nothing."""
+    severe_missed: float = 0.25
+    """A window that missed at least this share of its ticks sheds the next step at once: the step before is not
+    kept on trial and one such window is enough. With seven steps judged over three windows each, walking the ladder
+    took 31 s of 23-34 Hz output in `mocapd demo` on the 2-core machine (docs/daemon.md); below this share the cause
+    test judges each step as before."""
     significance: float = 0.05
     """Fewer missed ticks after a step count as help when a one-sided binomial test on the pooled counts (before
     against after, in proportion to their ticks) gives a p-value below this."""
@@ -286,14 +293,20 @@ class Governor:
         elif not calm:
             self._calm_since = None
         self._verdict, trial = "", self._trial
+        severe = window.missed_share >= o.severe_missed
         if trial is not None:
             trial.after.append(window)
-            if len(trial.after) < o.judge_windows:
+            if len(trial.after) < o.judge_windows and not severe:
                 return False  # a step on trial: no other change until it is judged
             self._trial = None
-            if self._judge(trial, now_ns):
+            if severe:  # most of the output is lost: no time for a trial, the step stays and the next follows
+                self._verdict = (f"step {trial.from_index + 1} kept unjudged: {window.missed} of {window.ticks} "
+                                 f"ticks missed in the window after it")  # fmt: skip
+            elif self._judge(trial, now_ns):
                 return True
-        if self._overran(window) and len(self._level_windows) >= 2 and self._overran(self._level_windows[-2]):
+        if self._overran(window) and (
+            severe or (len(self._level_windows) >= 2 and self._overran(self._level_windows[-2]))
+        ):
             return self._shed(now_ns)  # two windows in a row: one slow window (a start-up burst) sheds nothing
         if calm:
             return self._restore(window, now_ns)
