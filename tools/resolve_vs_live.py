@@ -20,10 +20,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.keypoints import TrackTargets
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.per_skeleton import PerSkeleton
-from mocapd.core.skeleton import Skeleton
 from mocapd.eval.heldout import COCO17_GROUPS, held_out_errors
 from mocapd.eval.video_input import Take, TakeDetections, detect_take, eval_detector_config, pose2sim_take
 from mocapd.io.pose2sim_demo import DEMOS
@@ -31,7 +29,7 @@ from mocapd.io.session import Session
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.protocols.session_format import PoseRecord
 from mocapd.service.config import load_config
-from mocapd.service.session.solve import ResolveOptions, resolve
+from mocapd.service.session.solve import ResolveOptions, manifest_skeleton, resolve
 from mocapd.service.video_systems import _keypoints
 
 FloatArray = NDArray[np.float64]
@@ -47,11 +45,7 @@ PAIRS = ((7, 8), (9, 10), (13, 14), (15, 16))
 
 
 def _points(frames: list[PoseRecord], session: Session, n: int, fps: float) -> dict[str, FloatArray]:
-    m = session.manifest
-    sk = m["skeleton"]
-    skeleton = Skeleton(np.array(sk["offsets"]), root_height=float(sk["root_height"]), height=float(sk["height"]))
-    t = m["targets"]
-    targets = TrackTargets(tuple(t["names"]), np.array(t["bones"], dtype=np.intp), np.array(t["offsets"]))
+    skeleton, targets = manifest_skeleton(session.manifest)
     kins = PerSkeleton(Kinematics(skeleton), Kinematics)
     out: dict[str, FloatArray] = {}
     for fr in frames:

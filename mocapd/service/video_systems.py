@@ -40,7 +40,7 @@ from mocapd.io.session import Session
 from mocapd.service.config import Config
 from mocapd.service.daemon import Daemon, Rig
 from mocapd.service.outputs.recorder import FrameRecordOptions, attach_recorder
-from mocapd.service.session.solve import ResolveOptions, resolve
+from mocapd.service.session.solve import ResolveOptions, manifest_skeleton, resolve
 
 FloatArray = NDArray[np.float64]
 
@@ -168,11 +168,7 @@ def run_resolve(
     """``mocapd resolve`` of a session :func:`run_live` recorded: per identity, keypoints per frame."""
     session = Session(session_dir)
     frames, _ = resolve(session, ResolveOptions(), progress)
-    m = session.manifest
-    sk = m["skeleton"]
-    skeleton = Skeleton(np.array(sk["offsets"]), root_height=float(sk["root_height"]), height=float(sk["height"]))
-    t = m["targets"]
-    targets = TrackTargets(tuple(t["names"]), np.array(t["bones"], dtype=np.intp), np.array(t["offsets"]))
+    skeleton, targets = manifest_skeleton(session.manifest)
     kins = PerSkeleton(Kinematics(skeleton), Kinematics)
     t0 = min(fr.t_solve_ns for fr in frames) if frames else 0
     points: dict[str, FloatArray] = {}

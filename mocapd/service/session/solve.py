@@ -36,7 +36,7 @@ import itertools
 import zipfile
 import zlib
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from tokenize import TokenError  # numpy's header parser raises it for a damaged .npy header
@@ -173,14 +173,21 @@ def _prior(path: Path) -> PcaPrior:
         raise InputError(f"{path}: cannot read the session's pose prior (damaged?): {exc}") from None
 
 
+def manifest_skeleton(manifest: Mapping[str, Any]) -> tuple[Skeleton, TrackTargets]:
+    """The rig's skeleton and the keypoints' track targets a session recorded (its manifest's ``skeleton`` and
+    ``targets``): what a re-solve, or a reader turning recorded poses into keypoints, solves on."""
+    sk = manifest["skeleton"]
+    skeleton = Skeleton(np.array(sk["offsets"]), root_height=float(sk["root_height"]), height=float(sk["height"]))
+    t = manifest["targets"]
+    targets = TrackTargets(tuple(t["names"]), np.array(t["bones"], dtype=np.intp), np.array(t["offsets"]))
+    return skeleton, targets
+
+
 def _session_rig(session: Session, prior: PcaPrior | None) -> SessionRig:
     m = session.manifest
     config = parse_config(m["config"])
     cameras = [camera_from_dict(c) for c in m["cameras"]]
-    sk = m["skeleton"]
-    skeleton = Skeleton(np.array(sk["offsets"]), root_height=float(sk["root_height"]), height=float(sk["height"]))
-    t = m["targets"]
-    targets = TrackTargets(tuple(t["names"]), np.array(t["bones"], dtype=np.intp), np.array(t["offsets"]))
+    skeleton, targets = manifest_skeleton(m)
     suits = [
         Suit.from_calibration(s["id"], ImuCalibration.from_json_dict(s["calibration"]), skeleton) for s in m["suits"]
     ]
