@@ -40,6 +40,7 @@ from mocapd.core.camera_watch import CameraWatch, WatchOptions
 from mocapd.core.sorting import Detections2D
 from mocapd.io.session import open_session
 from mocapd.service.session.solve import ResolveOptions, session_rig, session_scheduler
+from tools.replay_people import with_settings
 
 FloatArray = NDArray[np.float64]
 
@@ -119,23 +120,11 @@ def watch_over(cameras: list[Camera], obs: Observations, options: WatchOptions) 
     return watch
 
 
-def watch_options(base: WatchOptions, settings: list[str]) -> WatchOptions:
-    """``base`` with ``name=value`` settings (each field's own type)."""
-    out = base
-    for kv in settings:
-        name, _, value = kv.partition("=")
-        if name not in {f.name for f in dataclasses.fields(WatchOptions)}:
-            raise SystemExit(f"unknown watch option {name!r}")
-        kind = type(getattr(base, name))
-        out = dataclasses.replace(out, **{name: value == "true" if kind is bool else kind(float(value))})
-    return out
-
-
 def replay(path: str, cache: Path | None, settings: list[str]) -> dict[str, Any]:
     session = open_session(path)
     rig = session_rig(session)
     obs = cached(path, cache)
-    options = watch_options(dataclasses.replace(rig.config.calibration.watch.options(), apply=True), settings)
+    options = with_settings(dataclasses.replace(rig.config.calibration.watch.options(), apply=True), settings, "watch")
     watch = watch_over(rig.cameras, obs, options)
     t0 = int(obs.t_ns[0]) if len(obs.t_ns) else 0
     events = [{"t_s": round((t - t0) / 1e9, 2), "camera": cam, "what": what,

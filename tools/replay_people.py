@@ -20,27 +20,33 @@ import argparse
 import collections
 import dataclasses
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from mocapd.core.people import PeopleTracker
-from mocapd.core.sorting import Detections2D, DetectionSorter, SortingOptions
+from mocapd.core.sorting import Detections2D, DetectionSorter
 from mocapd.core.tracking import SubjectTracker
 from mocapd.io.session import open_session
 from mocapd.pipeline.keypoint_timeline import USABLE, DetectionTimeline
 from mocapd.service.session.solve import session_rig
 
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
-def sorting_options(base: SortingOptions, settings: list[str]) -> SortingOptions:
-    """``base`` with ``name=value`` settings (each field's own type)."""
+Options = TypeVar("Options", bound="DataclassInstance")
+
+
+def with_settings(base: Options, settings: list[str], what: str) -> Options:
+    """``base`` (a dataclass of options) with ``name=value`` settings, each in its field's own type; an unknown name
+    stops the tool, naming it as one of ``what``'s."""
     out = base
     for kv in settings:
         name, _, value = kv.partition("=")
-        if name not in {f.name for f in dataclasses.fields(SortingOptions)}:
-            raise SystemExit(f"unknown sorting option {name!r}")
+        if name not in {f.name for f in dataclasses.fields(base)}:
+            raise SystemExit(f"unknown {what} option {name!r}")
         kind = type(getattr(base, name))
-        out = dataclasses.replace(out, **{name: kind(value == "true") if kind is bool else kind(float(value))})
+        out = dataclasses.replace(out, **{name: value == "true" if kind is bool else kind(float(value))})
     return out
 
 
@@ -51,7 +57,7 @@ def replay(path: str, settings: list[str]) -> dict[str, Any]:
     # Every recorded column, as the live daemon sampled and sorted them: the targets', then both hands' when the
     # rig detected hands (the manifest's keypoint_columns; the sorter pairs left and right by these names).
     columns = rig.keypoint_columns or rig.targets.names
-    options = sorting_options(cfg.tracking.sorting.options(), settings)
+    options = with_settings(cfg.tracking.sorting.options(), settings, "sorting")
     sorter = DetectionSorter(rig.cameras, options, keypoint_names=columns)
     people = PeopleTracker(SubjectTracker(sorter, cfg.tracking.enrolment.options()))
     n_kp = len(columns)
