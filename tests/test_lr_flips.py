@@ -257,16 +257,7 @@ def demo_frames() -> tuple[list[Camera], list[tuple[FloatArray, FloatArray]]]:
 
     take = pose2sim_take("Demo_SinglePerson")
     dets = detect_take(take, lambda: OnnxPoseDetector(ModelSpec(), intra_op_threads=2), n_frames=40)
-    frames = []
-    for row in dets.frames:
-        kp = np.full((len(row), 17, 2), np.nan)
-        cf = np.zeros((len(row), 17))
-        for c, d in enumerate(row):
-            if len(d.keypoints):
-                i = int(np.argmax(d.confidences.sum(axis=1)))
-                kp[c], cf[c] = d.keypoints[i], d.confidences[i]
-        frames.append((kp, cf))
-    return take.cameras, frames
+    return take.cameras, dets.most_confident()
 
 
 def test_the_compiled_decision_is_the_numpy_reference_on_the_demo(

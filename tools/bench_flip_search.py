@@ -38,18 +38,12 @@ def inputs(frames: int, seed: int = 0) -> list[Call]:
         dets = detect_take(take, lambda: OnnxPoseDetector(ModelSpec(), intra_op_threads=2), n_frames=frames)
         P = np.stack([c.projection_matrix for c in take.cameras])
         previous = None
-        for row in dets.frames:
-            kp = np.full((len(row), 17, 2), np.nan)
-            cf = np.zeros((len(row), 17))
-            for c, d in enumerate(row):
-                if len(d.keypoints):
-                    i = int(np.argmax(d.confidences.sum(axis=1)))
-                    kp[c], cf[c] = d.keypoints[i], d.confidences[i]
+        for kp, cf in dets.most_confident():
             _, und = lr_flips.undistorted(take.cameras, kp)
             und = np.where(np.isfinite(kp), und, np.nan)
             out.append((P, und, cf, previous))
             flipped = und.copy()
-            for view in range(len(row)):
+            for view in range(len(kp)):
                 if rng.random() < 0.3:
                     for left, right in lr_flips.COCO17_LR_PAIRS:
                         flipped[view, [left, right]] = und[view, [right, left]]

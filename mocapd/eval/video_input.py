@@ -137,6 +137,20 @@ class TakeDetections:
         """Every frame's detections with camera ``camera`` left out."""
         return [[d for c, d in enumerate(row) if c != camera] for row in self.frames]
 
+    def most_confident(self, n_kp: int = 17) -> list[tuple[FloatArray, FloatArray]]:
+        """Per frame, each camera's most confident person (the largest sum of keypoint confidences): pixels
+        (n_cams, n_kp, 2), NaN where a camera saw nobody, and confidences (n_cams, n_kp), 0 there."""
+        out = []
+        for row in self.frames:
+            kp = np.full((len(row), n_kp, 2), np.nan)
+            cf = np.zeros((len(row), n_kp))
+            for c, d in enumerate(row):
+                if len(d.keypoints):
+                    i = int(np.argmax(d.confidences.sum(axis=1)))
+                    kp[c], cf[c] = d.keypoints[i], d.confidences[i]
+            out.append((kp, cf))
+        return out
+
 
 def _sha256(path: Path) -> str:
     h = hashlib.sha256()
