@@ -49,6 +49,11 @@ MOCAPD = ROOT / ".venv" / "bin" / "mocapd"
 SECONDS = 75.0
 SPEED = 0.05  # video playback speed (3 fps): see the module docstring
 GRACE_S = 10.0  # tracking.enrolment.grace_period_s for a detector that stalls under load
+# [daemon] body_size_s: the shipped 2 s sizes a person from 120 ticks of motion at a rig's own pace; in slow motion
+# they hold 6 video frames (one or two detections per camera on a loaded machine), from which CI measured an arm
+# 20 % long (forearm 0.271 m against 0.209 triangulated) and a quiet run both of one person's arm segments 13-17 %
+# short. 15 s here is 45 video frames, as many distinct postures as 1.5 s at 30 keypoint sets a second.
+BODY_SIZE_S = 15.0
 # The unplugged camera's server is started again after this long (the demo's default is 3 s). It is declared lost
 # after 2 s of silence and reopened at once when its server is back: with 3 s it was reported down for about 4 s,
 # and one /status answer took up to 4.7 s on the loaded 2-core machine, so a poll could miss the outage.
@@ -111,6 +116,9 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DemoProcess]:
     grace = "grace_period_s = 2.0 "
     assert grace in text
     text = text.replace(grace, f"grace_period_s = {GRACE_S} ", 1)
+    body_size = "body_size_s = 2.0 "
+    assert body_size in text
+    text = text.replace(body_size, f"body_size_s = {BODY_SIZE_S} ", 1)
     config = tmp / "config.toml"
     config.write_text(text, encoding="utf-8")
     session = tmp / "session"
