@@ -123,6 +123,8 @@ async def reconnect(video: Path) -> dict[str, Any]:
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        for source in sources:
+            source.release()  # while its server still answers (AravisSource.release)
         for s in servers:
             s.terminate()
             s.wait()
@@ -158,6 +160,7 @@ async def one_format(video: Path, fmt_name: str) -> dict[str, Any]:
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
+        source.release()  # while its server still answers (AravisSource.release)
         server.terminate()
         server.wait()
     matches = [any(np.array_equal(g, e) for e in expected) for g in got]
@@ -218,6 +221,7 @@ async def lazy(video: Path, fmt_name: str, read_every: int = 3, frames_wanted: i
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
+        source.release()  # while its server still answers (AravisSource.release)
         server.terminate()
         server.wait()
     out["conversions"] = ring.conversions
