@@ -89,6 +89,19 @@ def test_reference_images_keep_the_source_colours(pose2sim_demo: Path) -> None:
     assert np.abs(grey - src @ np.array([0.299, 0.587, 0.114])).max() <= 1.0
 
 
+def test_the_colour_check_measures_the_mean_absolute_difference() -> None:
+    """tools/camera_scenarios.py's mean absolute difference (the Bayer check's oracle) is the plain numpy one, to
+    the bit, on images that differ anywhere from 0 to 255 and on a view with red and blue swapped."""
+    from tools.camera_scenarios import mean_abs_difference
+
+    rng = np.random.default_rng(0)
+    a, b = rng.integers(0, 256, size=(2, 64, 48, 3), dtype=np.uint8)
+    b[:8] = a[:8]
+    for x, y in ((a, b), (a[..., ::-1], b), (b, a), (a, a)):
+        assert mean_abs_difference(x, y) == float(np.abs(x.astype(int) - y.astype(int)).mean())
+    assert mean_abs_difference(np.zeros((2, 2, 3), np.uint8), np.full((2, 2, 3), 255, np.uint8)) == 255.0
+
+
 def test_bayer_capture_is_demosaiced_in_rgb_order(pose2sim_demo: Path) -> None:
     video = str(pose2sim_demo / "Demo_MultiPerson" / "videos" / "cam02.mp4")
     for fmt in ("BayerRG8", "BayerGB8"):

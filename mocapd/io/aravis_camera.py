@@ -414,6 +414,13 @@ class AravisSource(ThreadedSource):
         self._stream_base = (0, 0)  # counters before this opening, added to the stream's own
         self._success = load_aravis().BufferStatus.SUCCESS  # looked up once, not per frame
 
+    def release(self) -> None:
+        """Free the camera and stream of the last opening now, once :meth:`run` has returned, rather than at the
+        next opening or when this source is freed. Freeing a GigE camera tells it that it is no longer controlled,
+        and Aravis waits out its GVCP time-outs (about 5 s) for the answer of a camera that is gone: a program that
+        stops the cameras itself (the fake ones of mocapd.sim.fake_rig) releases its sources first."""
+        self._retired = ()
+
     def _open(self) -> None:
         self._retired = ()  # the last opening's camera and stream end here, on the capture thread
         with _OPEN_LOCK:

@@ -237,10 +237,11 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
     for i, (video, address) in enumerate(zip(args.videos, addresses, strict=True)):
         cmd = server_command(video, address, args.max_frames, args.format, f"FAKE{i + 1:02d}", args.size or None)
         servers.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True))
+    sources: list[AravisSource] = []
     try:
         infos = [json.loads(s.stdout.readline()) for s in servers if s.stdout is not None]
         fmt = pixel_format(args.format)
-        sources, checks = [], []
+        checks = []
         for i, (video, info) in enumerate(zip(args.videos, infos, strict=True)):
             w, h = info["width"], info["height"]
             config = AravisCameraConfig(
@@ -298,6 +299,8 @@ def run_rig(args: argparse.Namespace) -> dict[str, Any]:
         process_cpu = time.process_time() - cpu0
         server_cpu = [(cpu_seconds(p.pid) - c) / wall for p, c in zip(servers, server_cpu0, strict=True)]
     finally:
+        for source in sources:
+            source.release()  # while its server still answers (AravisSource.release)
         for proc in servers:
             proc.terminate()
         for proc in servers:
