@@ -37,7 +37,7 @@ from mocapd.core.keypoints import BLAZEPOSE33_FORMAT as BLAZEPOSE33
 from mocapd.core.keypoints import FINGERS, HAND21, HAND_SIDES
 from mocapd.core.landmark_roi import LandmarkRoi
 from mocapd.eval.heldout import camera_offsets
-from mocapd.eval.video_input import pose2sim_take
+from mocapd.eval.video_input import pose2sim_take, with_calibration
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import ModelSpec
 from mocapd.pipeline.hand_landmarks import HandRunner, Image
@@ -331,12 +331,15 @@ def main() -> None:
     ap.add_argument("--refine", action="store_true", help="a second pass on the crop each found hand's points place")
     ap.add_argument("--reference-only", action="store_true", help="only BlazePose's own hand points (no hand model)")
     ap.add_argument("--consensus", action="store_true", help="also a second pass on the crops all views agree on")
+    ap.add_argument("--calibration", type=Path, help="score with this calibration file's cameras (default: the demo's)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/mocapd-hand-heldout"))
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     from mocapd.core.hand_roi import BLAZEPOSE_SCALE, BLAZEPOSE_SHIFT
 
     take = pose2sim_take(args.demo)
+    if args.calibration is not None:
+        take = with_calibration(take, args.calibration)
     n = min(args.frames, take.n_frames)
     body = bodies(args.demo, n, args.body, args.cache)
     reference = body_reference(take.cameras, body, args.min_span)
@@ -358,7 +361,8 @@ def main() -> None:
         found = np.concatenate([found, again])
         placements.append(placements[0])
         labels.append("consensus crop")
-    result: dict[str, Any] = {"demo": args.demo, "frames": n, "body": args.body, "hand": args.hand,
+    result: dict[str, Any] = {"demo": args.demo, "frames": n, "calibration": str(take.calibration),
+                              "body": args.body, "hand": args.hand,
                               "side_check": args.side_check, "refine": args.refine, "min_span_px": args.min_span,
                               "blazepose hand points held-out px": reference, "placements": []}  # fmt: skip
     for k, (scale, shift) in enumerate(placements):

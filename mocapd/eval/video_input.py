@@ -28,8 +28,8 @@ from numpy.typing import NDArray
 from mocapd.core.camera import Camera
 from mocapd.core.keypoints import BLAZEPOSE33_FORMAT, COCO17_FORMAT
 from mocapd.core.sorting import Detections2D
-from mocapd.errors import InputError
-from mocapd.io.calibration_files import core_cameras, read_qca
+from mocapd.errors import CalibrationError, InputError
+from mocapd.io.calibration_files import core_cameras, read_any, read_qca
 from mocapd.io.media_files import open_video
 from mocapd.io.model_cache import cache_dir
 from mocapd.io.model_quant import model_path
@@ -101,6 +101,25 @@ def pose2sim_take(demo: str) -> Take:
         name=demo, cameras=cams, videos=videos, fps=fps, n_frames=n, subjects=1 if "Single" in demo else 2,
         calibration=calib, sizes=sizes, source=f"Pose2Sim {demo} (pose2sim wheel, BSD-3-Clause; {demo_root()})",
     )  # fmt: skip
+
+
+def with_calibration(take: Take, path: Path) -> Take:
+    """``take`` with the cameras of another calibration file (any format ``mocapd calibrate convert`` reads), matched
+    by name: e.g. one ``mocapd calibrate cameras --from-people`` made, to score it against the take's own.
+
+    Raises
+    ------
+    InputError
+        The file cannot be read, or lacks one of the take's cameras.
+    """
+    try:
+        given = {c.name: c for c in core_cameras(read_any(path))}
+    except CalibrationError as exc:
+        raise InputError(f"cannot read the calibration {path}: {exc}") from None
+    missing = [n for n in take.camera_names if n not in given]
+    if missing:
+        raise InputError(f"{path}: camera(s) {missing} of {take.name} are not in it (it has {sorted(given)})")
+    return replace(take, cameras=[given[n] for n in take.camera_names], calibration=path)
 
 
 def _video_info(videos: list[Path]) -> tuple[float, int, list[tuple[int, int]]]:

@@ -20,9 +20,17 @@ from typing import Any
 import numpy as np
 
 from mocapd.core.sorting import Detections2D
+from mocapd.errors import InputError
 from mocapd.eval.pose2sim_system import POSE2SIM_VERSION, pose2sim_missing, run_pose2sim
 from mocapd.eval.video import ALL, DLT, LIVE, P2S, P2S_FILT, RESOLVE, SYSTEMS, TakeRun, take_results, variant_names
-from mocapd.eval.video_input import Take, TakeDetections, detect_take, eval_detector_config, pose2sim_take
+from mocapd.eval.video_input import (
+    Take,
+    TakeDetections,
+    detect_take,
+    eval_detector_config,
+    pose2sim_take,
+    with_calibration,
+)
 from mocapd.io.pose2sim_demo import DEMOS
 from mocapd.io.progress import Progress
 from mocapd.pipeline.landmarks import LandmarkRunner
@@ -47,6 +55,9 @@ class VideoEvalOptions:
     """Frames per camera drawn with every system's held-out projection (0: no pictures)."""
     use_cache: bool = True
     progress: bool = True
+    calibration: Path | None = None
+    """Score the takes with this calibration file's cameras instead of the demos' own (e.g. one from ``mocapd
+    calibrate cameras --from-people``); Pose2Sim converts only the demos' own Qualisys file, so it is left out."""
 
 
 def _subset(frames: list[list[Detections2D]], keep: list[int]) -> list[list[Detections2D]]:
@@ -97,8 +108,12 @@ def run_video_eval(opts: VideoEvalOptions, out: Path) -> dict[str, Any]:
     started = time.monotonic()
     load = _loadavg()
     config = load_config(opts.config)
+    if opts.calibration is not None and opts.pose2sim:
+        raise InputError("Pose2Sim runs on the demos' own calibration only: with --calibration give --no-pose2sim")
     missing = pose2sim_missing() if opts.pose2sim else "not asked for (--no-pose2sim)"
     takes = [pose2sim_take(t) for t in opts.takes]
+    if opts.calibration is not None:
+        takes = [with_calibration(t, opts.calibration) for t in takes]
     out.mkdir(parents=True, exist_ok=True)
     work = out / "work"
     det_cfg = eval_detector_config(config.detector.options(), opts.precision)
@@ -135,6 +150,7 @@ def run_video_eval(opts: VideoEvalOptions, out: Path) -> dict[str, Any]:
         "precision": opts.precision,
         "landmarks": det_cfg.landmark_model or "off",
         "max_frames": opts.max_frames,
+        "calibration": str(opts.calibration) if opts.calibration else "each demo's own (Qualisys)",
         "pose2sim": POSE2SIM_VERSION if missing is None else f"not run: {missing}",
         "wall_s": round(time.monotonic() - started, 1),
         "machine": {"python": platform.python_version(), "loadavg_start": load, "loadavg_end": _loadavg()},

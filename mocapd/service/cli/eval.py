@@ -54,6 +54,9 @@ def register(sub: Any) -> None:
                    help="frames per camera drawn (default 3, 0: none)")  # fmt: skip
     v.add_argument("--no-cache", action="store_true", help="detect again even when the detections are cached")
     v.add_argument("--no-progress", action="store_true", help="no progress bar (it is drawn only on a terminal)")
+    v.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                   help="score with this calibration's cameras instead of the demos' own (e.g. one from `mocapd "
+                   "calibrate cameras --from-people`; needs --no-pose2sim)")  # fmt: skip
     v.set_defaults(func=_run_video)
     k = sub.add_parser("keypoints", help="multi-person benchmark through import keypoints + resolve (docs/accuracy.md)")
     k.add_argument("--people", type=int, default=3, help="people in the scene, 2 to 4 (default 3)")
@@ -93,7 +96,7 @@ def _run_video(args: argparse.Namespace) -> int:
     opts = VideoEvalOptions(
         takes=tuple(args.take) if args.take else DEMOS, max_frames=args.max_frames, config=args.config,
         precision=args.precision, pose2sim=not args.no_pose2sim, images=args.images, use_cache=not args.no_cache,
-        progress=not args.no_progress,
+        progress=not args.no_progress, calibration=args.calibration,
     )  # fmt: skip
     try:
         res = run_video_eval(opts, args.out)
