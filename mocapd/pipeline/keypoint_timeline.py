@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 
+from mocapd.core.assignment import linear_sum_assignment
 from mocapd.core.sorting import Detections2D
 
 FloatArray = NDArray[np.float64]
