@@ -474,3 +474,28 @@ def test_people_solved_at_half_rate_are_carried_on_the_ticks_between(prior: PcaP
     sched.solve_every = 1
     frame = sched.tick(S + 120 * S // 60)
     assert not any(p.filled for p in frame.people)
+
+
+def test_ticks_that_carry_people_take_only_the_cameras_statuses(prior: PcaPrior) -> None:
+    """A fill tick of the half-rate step needs nothing from the cameras but how many are missing: it neither
+    matches nor blends the people of the two frames around it (issue 39: ~1 ms a tick on the event loop), and
+    still counts every camera's status."""
+    ls = _lockstep(prior, 2, 1, SchedulerOptions(), [0, 0, 0, 0])
+    ls.run(1.0)
+    sched = ls.scheduler
+    sched.solve_every = 2
+    matchings0 = sum(tl.matchings for tl in sched.timelines)
+    interpolated = {"solved": 0, "filled": 0}
+    for k in range(30):  # ticks at the cameras' 30 Hz: each samples a new pair of frames
+        now = 2 * S + k * S // 30
+        ls._feed(now)
+        before = [dict(st) for st in sched.keypoint_status]
+        frame = sched.tick(now)
+        counted = [{key: st[key] - b[key] for key in st} for st, b in zip(sched.keypoint_status, before, strict=True)]
+        assert all(sum(c.values()) == 1 for c in counted)  # every camera's status counted on every tick
+        assert frame.missing_cameras == 0 and len(frame.people) == 2
+        kind = "filled" if frame.people[0].filled else "solved"
+        interpolated[kind] += sum(c["interpolated"] for c in counted)
+    assert interpolated["filled"] >= 30  # the fill ticks fell between two frames in most cameras...
+    # ... and matched nobody there: the solved ticks did, once each (on the old code once per tick)
+    assert sum(tl.matchings for tl in sched.timelines) - matchings0 == interpolated["solved"]

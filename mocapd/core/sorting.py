@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 
 from mocapd.core import _sorting_kernel
+from mocapd.core.assignment import linear_sum_assignment
 from mocapd.core.camera import MIN_DEPTH, Camera, stack_cameras
 from mocapd.core.lr_flips import COCO17_LR_PAIRS, lr_pairs
 from mocapd.errors import InputError

@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 
+from mocapd.core.assignment import linear_sum_assignment
 from mocapd.core.keypoints import COCO17
 from mocapd.core.rotations import quat_rotate
 from mocapd.core.skeleton import BONE_INDEX, Skeleton

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 
+from mocapd.core.assignment import linear_sum_assignment
 from mocapd.core.sorting import Detections2D
 
 FloatArray = NDArray[np.float64]
@@ -122,8 +122,10 @@ class DetectionTimeline:
     def newest_ns(self) -> int | None:
         return self._frames[-1][0] if self._frames else None
 
-    def sample(self, t_ns: int) -> TimelineSample:  # noqa: PLR0911 (one return per documented outcome)
-        """The detections at ``t_ns`` (see the module docstring for the rules)."""
+    def sample(self, t_ns: int, with_people: bool = True) -> TimelineSample:  # noqa: PLR0911 (one per outcome)
+        """The detections at ``t_ns`` (see the module docstring for the rules). ``with_people=False``: the status and
+        frames only, for a caller that needs nothing else (a tick that carries its people on instead of solving
+        them): between two frames the people are then neither matched nor blended, and the detections are empty."""
         empty = Detections2D.empty(self.n_kp)
         if not self._frames:
             return TimelineSample(SampleStatus.EMPTY, empty, 0, 0)
@@ -153,6 +155,8 @@ class DetectionTimeline:
                 return TimelineSample(SampleStatus.NEAREST, near, t0, t1, near_t)
             return TimelineSample(SampleStatus.STALE, empty, t0, t1)
         alpha = (t_ns - t0) / (t1 - t0)
+        if not with_people:
+            return TimelineSample(SampleStatus.INTERPOLATED, empty, t0, t1, t0 if alpha <= 0.5 else t1)
         m = self._matched
         if m is None or m[0] is not a or m[1] is not b:
             m = self._matched = (a, b, match_people(a, b, self.match_px))

@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 
+from mocapd.core.assignment import linear_sum_assignment
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import InputError
 from mocapd.pipeline.detector_config import TrackingConfig

@@ -32,6 +32,7 @@ from typing import Any, Protocol, TypeVar, runtime_checkable
 import numpy as np
 
 from mocapd.core._undistort_kernel import warm_up as warm_up_undistortion
+from mocapd.core.assignment import warm_up as warm_up_assignment
 from mocapd.core.camera import Camera
 from mocapd.core.heading import yaw_quat
 from mocapd.core.heading_reset import ResetHistory, enu_turn, reset_yaws
@@ -625,6 +626,7 @@ class Daemon:
             DetectionSorter(self.rig.cameras, self.config.tracking.sorting.options(),
                             keypoint_names=self.rig.targets.names).warm_up(n_kp)  # fmt: skip
             warm_up_flip_search(self.rig.cameras, n_kp)
+        warm_up_assignment()  # SciPy's, imported on first use: here, not in the first tick that matches people
         warm_up_undistortion()  # every keypoint set arriving is undistorted by it, on the event loop
         warm_up_optical_flow()  # the keypoint tracker's, on the capture threads
         # The offset estimates of the status loop, once: their first run, 10 s after READY, imported SciPy's signal
