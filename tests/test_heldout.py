@@ -12,7 +12,14 @@ from mocapd.core.skeleton import Skeleton
 from mocapd.core.sorting import Detections2D
 from mocapd.core.synthetic import moving_sequence, ring_rig
 from mocapd.errors import InputError
-from mocapd.eval.heldout import COCO17_COMPARED, COCO17_GROUPS, camera_offsets, held_out_errors, summarize
+from mocapd.eval.heldout import (
+    COCO17_COMPARED,
+    COCO17_GROUPS,
+    camera_offsets,
+    held_out_errors,
+    quantile_difference,
+    summarize,
+)
 from mocapd.eval.video_metrics import (
     accelerations,
     accepted_flips,
@@ -164,3 +171,35 @@ def test_camera_offsets_split_a_constant_shift_per_camera_from_the_rest() -> Non
         camera_offsets(signed, cams + 2, 3)
     with pytest.raises(InputError, match="one camera per row"):
         camera_offsets(signed[..., 0], cams, 3)
+
+
+def test_a_difference_of_medians_is_called_worse_only_beyond_what_the_frames_scatter() -> None:
+    """``resolve`` against live on the demos: medians 0.3 px apart were read as "worse" (issue 41). A system 2 px
+    worse on every keypoint is worse; one whose frames scatter (each frame's solve a few px off as a whole, the way
+    one pose moves all its keypoints) is not, though its median differs by more than 0.3 px: the interval
+    resamples frames, not keypoints (a keypoint bootstrap calls that scatter certain)."""
+    rng = np.random.default_rng(3)
+    err = rng.gamma(4.0, 8.0, size=(100, 13))  # ~30 px held-out errors, 100 frames of 13 keypoints
+    worse = quantile_difference(err, err + 2.0)
+    assert abs(worse.value - 2.0) < 1e-9 and worse.worse and worse.low > 1.0 and worse.n == 1300
+    better = quantile_difference(err + 2.0, err)
+    assert not better.worse and better.high < 0.0
+    shaken = np.maximum(err + rng.normal(0.0, 4.0, size=(100, 1)), 0.0)  # whole frames moved
+    d = quantile_difference(err, shaken)
+    assert abs(d.value) > 0.3 and d.low < 0.0 < d.high and not d.worse
+    flat = shaken.reshape(-1)  # the same numbers with every keypoint its own "frame": too sure
+    k = quantile_difference(err.reshape(-1, 1), flat.reshape(-1, 1))
+    assert k.high - k.low < d.high - d.low
+
+
+def test_a_difference_is_taken_on_the_keypoints_both_were_compared_on() -> None:
+    a = np.full((10, 2), 10.0)
+    b = np.full((10, 2), 12.0)
+    b[:, 1] = np.nan  # other never compared on the second keypoint
+    a[0, 0] = np.nan
+    d = quantile_difference(a, b, q=90.0, n_boot=50)
+    assert d.value == 2.0 and d.n == 9 and d.low == d.high == 2.0
+    none = quantile_difference(a[:, 1:], b[:, 1:])
+    assert none.n == 0 and np.isnan(none.value) and not none.worse
+    with pytest.raises(InputError):
+        quantile_difference(a, b[:, :1])

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from mocapd.core.kinematics import Kinematics
+from mocapd.core.lm import LMOptions
 from mocapd.core.lr_collapse import CollapseOptions
 from mocapd.core.lr_flips import COCO17_LR_PAIRS, FlipOptions
 from mocapd.core.people import PeopleTracker
@@ -499,3 +500,36 @@ def test_ticks_that_carry_people_take_only_the_cameras_statuses(prior: PcaPrior)
     assert interpolated["filled"] >= 30  # the fill ticks fell between two frames in most cameras...
     # ... and matched nobody there: the solved ticks did, once each (on the old code once per tick)
     assert sum(tl.matchings for tl in sched.timelines) - matchings0 == interpolated["solved"]
+
+
+def test_a_reference_pose_is_kept_only_where_the_objective_prefers_it(prior: PcaPrior) -> None:
+    """``resolve`` gives the re-solve's scheduler the live poses (issue 41). With the live budget the re-solve is
+    live again and keeps none (a tie is not a reason to swap); with a one-iteration budget it keeps the live pose
+    wherever the objective rates it lower, and never one solved on another skeleton."""
+    live = _lockstep(prior, 1, 0, SchedulerOptions(), [0, 0, 0, 0])
+    frames = live.run(1.5)
+    poses = {(f.t_solve_ns, p.identity): (p.theta, p.skeleton) for f, _ in frames for p in f.people}
+    assert len(poses) > 30
+
+    again = _lockstep(prior, 1, 0, SchedulerOptions(), [0, 0, 0, 0])
+    again.scheduler.reference_pose = lambda t, identity: poses.get((t, identity))
+    same = again.run(1.5)
+    assert again.scheduler.counters["reference_kept"] == 0
+    assert all(np.array_equal(p.theta, poses[(f.t_solve_ns, p.identity)][0]) for f, _ in same for p in f.people)
+
+    short = _lockstep(prior, 1, 0, SchedulerOptions(), [0, 0, 0, 0])
+    short.scheduler.lm = LMOptions(max_iterations=1)
+    short.scheduler.reference_pose = lambda t, identity: poses.get((t, identity))
+    out = short.run(1.5)
+    kept = short.scheduler.counters["reference_kept"]
+    assert kept > 0
+    assert sum(np.array_equal(p.theta, poses[(f.t_solve_ns, p.identity)][0]) for f, _ in out for p in f.people) >= kept
+
+    taller = Skeleton.from_height(2.0)
+    other = _lockstep(prior, 1, 0, SchedulerOptions(), [0, 0, 0, 0])
+    other.scheduler.lm = LMOptions(max_iterations=1)
+    other.scheduler.reference_pose = lambda t, identity: (
+        (poses[(t, identity)][0], taller) if (t, identity) in poses else None
+    )
+    other.run(1.5)
+    assert other.scheduler.counters["reference_kept"] == 0

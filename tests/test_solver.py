@@ -333,3 +333,27 @@ def test_acceleration_term_needs_an_absolute_position_reference(scene: Scene) ->
     assert "acceleration" in always.solve(imu_only, theta0=scene.truth[frame]).summary.term_costs
     seen = _with_history(_solver(scene), scene, frame)
     assert "acceleration" in seen.solve(scene.observations[frame], theta0=scene.truth[frame]).summary.term_costs
+
+
+def test_a_pose_solved_before_is_kept_where_the_objective_rates_it_lower(scene: Scene) -> None:
+    """``resolve``'s guard (issue 41): LM ends in the minimum nearest its warm start, and a re-solve that started
+    elsewhere than live can end in a worse one (Demo_MultiPerson: 16 of 1112 solves). Given the pose solved before
+    for the same observations, the solve keeps it where the objective is lower there, and warm-starts the next
+    frame from it; a worse alternative changes nothing."""
+    frame = 20
+    o = scene.observations[frame]
+    obs = Observations(keypoints=o.keypoints, confidences=o.confidences, dt=o.dt)
+    start = perturb_pose(scene.truth[frame], np.random.default_rng(5), 25.0)
+    short = LMOptions(max_iterations=2)  # a solve stopped far from its minimum: the truth's objective is lower
+    plain = _solver(scene, imus=(), lm=short).solve(obs, theta0=start)
+    solver = _solver(scene, imus=(), lm=short)
+    kept = solver.solve(obs, theta0=start, alternative=scene.truth[frame])
+    assert kept.summary.kept_alternative and not plain.summary.kept_alternative
+    np.testing.assert_allclose(kept.theta, scene.truth[frame], atol=1e-12)
+    np.testing.assert_allclose(solver.theta, scene.truth[frame], atol=1e-12)  # the next warm start
+    assert kept.summary.final_cost == pytest.approx(solver.cost(scene.truth[frame], obs)[0])
+    assert kept.summary.final_cost < plain.summary.final_cost
+    assert _joint_errors_mm(scene, plain.theta, frame).mean() > 5.0 * _joint_errors_mm(scene, kept.theta, frame).mean()
+    worse = _solver(scene, imus=(), lm=short).solve(obs, theta0=start, alternative=start)
+    assert not worse.summary.kept_alternative
+    np.testing.assert_array_equal(worse.theta, plain.theta)

@@ -8,8 +8,13 @@ joint group, and elbows and wrists per performer (the live run's identities). ``
 held-out detections whose left/right elbows, wrists, knees or ankles lie within 15 % of the person's size of each
 other (the detector put both on one limb: no solve can match both).
 
+Then each stream against live: the difference of the median and of the p90 per joint group with its 95 % interval
+over the take's frames (:func:`~mocapd.eval.heldout.quantile_difference`; ``worse`` where the whole interval is
+above zero). ``--frames A:B`` scores frames A to B-1 only: issue 41's split of the demos (which are not a
+held-back set) by take halves, frames 0-49 for development and 50-99 for evaluation (docs/accuracy-video.md).
+
     PYTHONPATH=$PWD .venv/bin/mocapd eval video --config presets/eval-video.toml --no-pose2sim --images 0 --out R
-    PYTHONPATH=$PWD .venv/bin/python tools/resolve_vs_live.py R
+    PYTHONPATH=$PWD .venv/bin/python tools/resolve_vs_live.py R --frames 0:50
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.per_skeleton import PerSkeleton
-from mocapd.eval.heldout import COCO17_GROUPS, held_out_errors
+from mocapd.eval.heldout import COCO17_GROUPS, Difference, held_out_errors, quantile_difference
 from mocapd.eval.video_input import Take, TakeDetections, detect_take, eval_detector_config, pose2sim_take
 from mocapd.io.pose2sim_demo import DEMOS
 from mocapd.io.session import Session
@@ -87,12 +92,22 @@ def _cell(values: FloatArray) -> str:
     return f"{np.median(values):.1f} / {np.percentile(values, 90):.0f}" if values.size else "-"
 
 
+def _diff(d: Difference) -> str:
+    return f"{d.value:+.1f} [{d.low:+.1f}, {d.high:+.1f}]{' worse' if d.worse else ''}" if d.n else "-"
+
+
+def _frames(text: str) -> slice:
+    a, _, b = text.partition(":")
+    return slice(int(a) if a else None, int(b) if b else None)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("results", type=Path, help="a `mocapd eval video` results directory (its work/ sessions)")
     ap.add_argument("--config", type=Path, default=Path("presets/eval-video.toml"), help="the run's config")
     ap.add_argument("--take", action="append", choices=DEMOS, help="default: both")
     ap.add_argument("--skip-collapsed", action="store_true", help="see the module docstring")
+    ap.add_argument("--frames", type=_frames, default=slice(None), help="A:B, frames A to B-1 only (default: all)")
     args = ap.parse_args()
     cfg = load_config(args.config)
     detector: list[OnnxPoseDetector] = []
@@ -114,7 +129,8 @@ def main() -> None:
         for stream, opts in STREAMS.items():
             people = {c: _points(list(s.poses()) if opts is None else resolve(s, opts)[0], s, n, take.fps)
                       for c, s in sessions.items()}  # fmt: skip
-            grids[stream] = _grid(take, dets, people, args.skip_collapsed)
+            g, who = _grid(take, dets, people, args.skip_collapsed)
+            grids[stream] = (g[:, args.frames], who[:, args.frames])
         common = np.logical_and.reduce([np.isfinite(g) for g, _ in grids.values()])
         print(f"\n{name}: held-out median / p90 px (keypoints every stream was compared on)\n")
         print("| stream | " + " | ".join(groups) + " |\n|---|" + "---|" * len(groups))
@@ -130,6 +146,18 @@ def main() -> None:
                 for gr in ("elbows", "wrists"):
                     cells.append(_cell(g[..., cols[gr]][sel][common[..., cols[gr]][sel]]))
             print(f"| {stream} | " + " | ".join(cells) + " |")
+        base = next(iter(grids.values()))[0]
+        for q in (50.0, 90.0):
+            print(f"\n{'median' if q == 50 else 'p90'} minus live's, px [95 % interval over frames]\n")
+            print("| stream | " + " | ".join(groups) + " |\n|---|" + "---|" * len(groups))
+            for stream, (g, _) in list(grids.items())[1:]:
+                cells = [
+                    _diff(quantile_difference(
+                        np.moveaxis(np.where(common, base, np.nan)[..., cols[gr]], 1, 0),
+                        np.moveaxis(np.where(common, g, np.nan)[..., cols[gr]], 1, 0), q))
+                    for gr in groups
+                ]  # fmt: skip
+                print(f"| {stream} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

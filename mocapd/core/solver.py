@@ -86,6 +86,8 @@ class SolveSummary:
     termination: Termination
     message: str = ""
     term_costs: dict[str, float] = field(default_factory=dict)
+    kept_alternative: bool = False
+    """The objective rated the ``alternative`` pose given to :meth:`PoseSolver.solve` lower: it is the result."""
 
     @property
     def converged(self) -> bool:
@@ -777,7 +779,13 @@ class PoseSolver:
         ev = self._evaluate(theta, v, self._enabled(v))
         return ev.cost, ev.term_costs
 
-    def solve(self, obs: Observations, theta0: FloatArray | None = None, update_state: bool = True) -> SolveResult:
+    def solve(
+        self,
+        obs: Observations,
+        theta0: FloatArray | None = None,
+        update_state: bool = True,
+        alternative: FloatArray | None = None,
+    ) -> SolveResult:
         """Solve one frame.
 
         Parameters
@@ -787,6 +795,11 @@ class PoseSolver:
             Start pose; default the previous solution (warm start).
         update_state : bool
             Keep the result as the next warm start and push it into the acceleration history.
+        alternative : array, shape (66,), optional
+            A pose solved for this frame before (``resolve``: the live solve of the same observations). Where the
+            objective rates it lower than the pose LM converged to from ``theta0``, it is the result (and the next
+            warm start): LM descends to the nearest minimum of its start, so a longer solve that started elsewhere
+            can end in a worse one. :attr:`SolveSummary.final_cost` is then the alternative's.
         """
         v = ValidatedObservations(obs, self.n_cams, self.n_kp, self.n_imu)
         start = self._prediction() if theta0 is None else _check_theta(theta0)
@@ -797,6 +810,8 @@ class PoseSolver:
             if theta0 is None:
                 start = self._recentre(start, v)
         result = self._minimize(start.copy(), v)
+        if alternative is not None and result.summary.converged:
+            result = self._better_of(result, _check_theta(alternative), v)
         theta = principal_pose(result.theta)
         published = theta
         if self.ground is not None and result.summary.converged:
@@ -823,6 +838,18 @@ class PoseSolver:
             self.theta = theta
             self.push_history(theta)
         return SolveResult(published, result.summary)
+
+    def _better_of(self, result: SolveResult, alternative: FloatArray, v: ValidatedObservations) -> SolveResult:
+        """``result``, or ``alternative`` where the objective (the terms the solve minimised) is lower there."""
+        on = self._enabled(v)
+        mine = self._evaluate(result.theta, v, on).cost
+        other = self._evaluate(alternative, v, on)
+        if not other.cost < mine:
+            return result
+        summary = replace(
+            result.summary, final_cost=other.cost, term_costs=dict(other.term_costs), kept_alternative=True
+        )
+        return SolveResult(alternative.copy(), summary)
 
     def _minimize(self, x: FloatArray, v: ValidatedObservations) -> SolveResult:
         on = self._enabled(v)

@@ -363,7 +363,7 @@ class FixedLatencyScheduler:
                          "bodies_sized": 0, "body_size_failed": 0, "lr_swaps": 0, "lr_collapsed": 0,
                          "lr_pairs_searched": 0, "lr_pairs_reused": 0,
                          "learned_observations": 0, "predictions_skipped": 0,
-                         "ticks_solved": 0, "ticks_filled": 0}  # fmt: skip
+                         "ticks_solved": 0, "ticks_filled": 0, "reference_kept": 0}  # fmt: skip
         #: people are solved on every ``solve_every``-th tick (the governor's last step sets 2); on the ticks between,
         #: each is their last solve carried on at the velocity of their last two (:mod:`mocapd.core.carry`)
         self.solve_every = 1
@@ -430,6 +430,10 @@ class FixedLatencyScheduler:
         #: person seen by two or more cameras, before the solve; returns the confidences to solve with (the
         #: bumped-camera watch, :mod:`mocapd.pipeline.camera_watch`). Called from the solve threads.
         self.observation_hook: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
+        #: (solve time, identity) -> a pose solved before for that person at that instant and the skeleton it is on
+        #: (None: the rig's), or None: ``resolve`` gives the live solve, kept where the objective rates it lower
+        #: than the re-solve's (:meth:`PoseSolver.solve`'s ``alternative``; counted as ``reference_kept``)
+        self.reference_pose: Callable[[int, str], tuple[FloatArray, Skeleton | None] | None] | None = None
         #: told (camera index, new camera) by :meth:`replace_camera`, under the lock, after the scheduler's own
         #: holders of the camera have it (the bumped-camera watch)
         self.camera_listeners: list[Callable[[int, Camera], None]] = []
@@ -804,10 +808,11 @@ class FixedLatencyScheduler:
         obs = Observations(keypoints=kp, confidences=conf, dt=self.solve_dt, **imu_kw)
         if self.fusion is not None:
             obs = self._fused_observations(person, solver, suit, obs, kp, conf)
-        result = solver.solve(obs)
+        result = solver.solve(obs, alternative=self._reference(person.identity, solver, t))
         c2 = self._cpu()
         with self._count_lock:
             self.counters["person_solves"] += 1
+            self.counters["reference_kept"] += int(result.summary.kept_alternative)
             if not result.summary.converged:
                 self.counters["not_converged"] += 1
         if person.track >= 0 and len(person.detections) >= 2:
@@ -833,6 +838,18 @@ class FixedLatencyScheduler:
             result.summary.iterations, result.summary.converged,
             solver.skeleton if solver.skeleton is not self.skeleton else None, hands=hands,
         )  # fmt: skip
+
+    def _reference(self, identity: str, solver: PoseSolver, t: int) -> FloatArray | None:
+        """:attr:`reference_pose`'s pose for this solve, where it is on the skeleton the solver solves on."""
+        ref = None if self.reference_pose is None else self.reference_pose(t, identity)
+        if ref is None:
+            return None
+        theta, skeleton = ref
+        sk = skeleton or self.skeleton
+        same = abs(sk.root_height - solver.skeleton.root_height) < 1e-6 and np.allclose(
+            sk.offsets, solver.skeleton.offsets, rtol=0.0, atol=1e-6
+        )  # a recorded skeleton is stored in single precision (within 1e-7 m of the solver's)
+        return theta if same else None
 
     def _unflip(
         self,

@@ -8,7 +8,8 @@ Two passes over the recorded raw inputs:
    at every output tick of the recording (those the live daemon missed included), with a much larger LM budget
    (:attr:`ResolveOptions.max_iterations`, tighter tolerances), the IMU samples re-timed by one clock fit over
    the whole session (:func:`imu_times`). Offline nothing arrives late, so every solve sees the
-   detections on both sides of its time.
+   detections on both sides of its time. Where the objective rates the recorded live pose of a frame lower than
+   the re-solve's, the live pose is kept (:attr:`ResolveOptions.keep_live`).
 2. **Forward-backward smoothing.** Per subject, a Rauch–Tung–Striebel smoother (a Kalman filter forward, then
    the RTS pass backward) with a constant-velocity model over the root translation and over each bone's local
    rotation as a sign-continuous quaternion (renormalised after smoothing). The per-frame solves are the
@@ -99,6 +100,14 @@ class ResolveOptions:
     """A segment shorter than this is left as solved. A constant-velocity smoother needs frames to learn a velocity
     from, and the short segments are a track's first frames (before body sizing gives the person their skeleton),
     where the solve still converges from the warm start: smoothing them averages the convergence, not noise."""
+    keep_live: bool = True
+    """Where the session recorded a live pose for a person at a solve's instant (on the same skeleton), the
+    forward pass keeps it wherever the solve's own objective (reprojection, priors, IMU terms) rates it lower than
+    the re-solve's pose, and warm-starts the next frame from it: the longer LM descends to the minimum nearest its
+    own warm start, which can be worse than live's (the Pose2Sim demos without the guard: 16 of 1112 solves, the
+    acrobat 15-20 px further from the held-out camera in frames 79-80; with it 10 live poses are kept, and the
+    frames after them follow live's minimum). The re-solve is then never worse than live by its objective, frame by
+    frame (``docs/accuracy-video.md``)."""
     refit_imu_clock: bool = True
     """Re-map every IMU sample's device time to the host clock with one fit over the whole session, instead of
     the buffer time the live (causal) clock map gave it."""
@@ -414,14 +423,32 @@ def camera_changes(session: Session, cameras: list[Camera]) -> list[tuple[int, i
     return sorted(out, key=lambda x: x[0])
 
 
+def live_poses(session: Session) -> dict[tuple[int, str], tuple[FloatArray, Skeleton | None]]:
+    """(solve time ns, identity) -> (θ, skeleton: None for the rig's) of every pose the session recorded live for
+    its solve's own instant (a predicted pose, for a later instant, is left out)."""
+    return {
+        (f.t_solve_ns, p.identity): (p.theta, p.skeleton)
+        for f in session.poses()
+        for p in f.people
+        if p.t_pose_ns is None or p.t_pose_ns == f.t_solve_ns
+    }
+
+
 def forward_resolve(
-    session: Session, opts: ResolveOptions, progress: Callable[[int], None] | None = None
+    session: Session,
+    opts: ResolveOptions,
+    progress: Callable[[int], None] | None = None,
+    counters: dict[str, int] | None = None,
 ) -> list[PoseRecord]:
     """Pass 1: every recorded input through the daemon's scheduler at the recorded solve times, the cameras
-    recalibrated while recording replaced at their instants (:func:`camera_changes`); ``progress`` is called with 1
-    after each frame."""
+    recalibrated while recording replaced at their instants (:func:`camera_changes`), the live poses kept where
+    the objective prefers them (:attr:`ResolveOptions.keep_live`); ``progress`` is called with 1 after each frame;
+    ``counters`` is updated with the scheduler's at the end."""
     rig = session_rig(session)
     sched, ingest = session_scheduler(rig, opts)
+    if opts.keep_live:
+        live = live_poses(session)
+        sched.reference_pose = lambda t, identity: live.get((t, identity))
     changes = camera_changes(session, rig.cameras)
     ic = 0
     o = rig.options
@@ -453,6 +480,8 @@ def forward_resolve(
         out.append(PoseRecord(frame.frame, frame.t_solve_ns, frame.tick_ns, frame.missing_cameras, people))
         if progress is not None:
             progress(1)
+    if counters is not None:
+        counters.update(sched.counters)
     return out
 
 
@@ -593,7 +622,8 @@ def resolve(
     """Both passes; returns the frames and a summary (frames, people solves, inputs used). ``progress`` is called
     with 1 per frame of the forward pass."""
     opts = opts or ResolveOptions()
-    frames = forward_resolve(session, opts, progress)
+    counters: dict[str, int] = {}
+    frames = forward_resolve(session, opts, progress, counters)
     rig = session_rig(session)
     if opts.smooth:
         frames = smooth_frames(frames, rig.skeleton, opts)
@@ -601,6 +631,7 @@ def resolve(
     summary = {
         "frames": len(frames),
         "person_solves": sum(len(f.people) for f in frames),
+        "live_poses_kept": counters.get("reference_kept", 0),
         "keypoint_frames": session.reports["keypoints"].records - 1 if "keypoints" in session.reports else 0,
         "imu_samples": session.reports["imu"].records - 1 if "imu" in session.reports else 0,
         "camera_changes": [{"camera": c.name, "t_ns": t} for t, _, c in camera_changes(session, rig.cameras)],
