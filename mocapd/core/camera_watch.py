@@ -53,7 +53,6 @@ Time is the solve time passed in (ns); nothing here reads a clock or locks (the 
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -189,12 +188,51 @@ def judge_proposal(p: Proposal, baseline_px: float, options: WatchOptions) -> st
     return None
 
 
+class _Series:
+    """(solve time ns, residual px) samples in time order (the checked ticks': their times never go back), in two
+    arrays: a check reads its windows as slices (one binary search each) instead of lists built from tuples."""
+
+    __slots__ = ("_end", "_r", "_start", "_t")
+
+    def __init__(self) -> None:
+        self._t = np.empty(64, dtype=np.int64)
+        self._r = np.empty(64)
+        self._start = self._end = 0  # the live samples: [_start, _end)
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, t_ns: int, value: float) -> None:
+        """One sample at ``t_ns``, not before the newest one."""
+        if self._end == len(self._t):
+            n = len(self)
+            size = len(self._t) * (2 if 2 * n > len(self._t) else 1)  # grown only while more than half is live
+            t, r = np.empty(size, dtype=np.int64), np.empty(size)
+            t[:n], r[:n] = self._t[self._start : self._end], self._r[self._start : self._end]
+            self._t, self._r, self._start, self._end = t, r, 0, n
+        self._t[self._end] = t_ns
+        self._r[self._end] = value
+        self._end += 1
+
+    def drop_before(self, t_ns: int) -> None:
+        """Forget the samples older than ``t_ns``."""
+        self._start += int(np.searchsorted(self.times(), t_ns, side="left"))
+
+    def times(self) -> NDArray[np.int64]:
+        """Sample times, oldest first (a view), shape (n,)."""
+        return self._t[self._start : self._end]
+
+    def values(self) -> FloatArray:
+        """Residuals (px), oldest first (a view), shape (n,)."""
+        return self._r[self._start : self._end]
+
+
 @dataclass
 class _Camera:
     """One camera's record: (solve time ns, residual px) samples, its state and what the state came from."""
 
-    samples: deque[tuple[int, float]] = field(default_factory=deque)
-    quick: deque[tuple[int, float]] = field(default_factory=deque)  # (solve time ns, all-in residual px), checked
+    samples: _Series = field(default_factory=_Series)
+    quick: _Series = field(default_factory=_Series)  # (solve time ns, all-in residual px), checked
     quick_baseline: float = float("nan")  # the all-in residual's median over the baseline span
     state: str = "learning"
     since_ns: int = 0  # when the state was entered
@@ -347,20 +385,28 @@ def rig_residuals(
     return out
 
 
-def _level_spread(samples: deque[tuple[int, float]], split_ns: int, window_s: float) -> float:
+def _level_spread(t: NDArray[np.int64], r: FloatArray, split_ns: int, window_s: float) -> float:
     """How much a camera's level (the median residual over ``window_s``) varies by itself over the baseline span
-    (the ``samples`` before ``split_ns``): the standard deviation of the medians of its ``window_s`` stretches (those
-    with 3 samples or more), px; NaN with fewer than 3 stretches. Not a robust scale: a level that spent two of its
-    five first seconds 8 px below the others (the camera demo's cam01, the people where its error is small) has a
-    median absolute deviation of 2 px and is named when they walk back."""
-    t = np.array([s[0] for s in samples if s[0] < split_ns], dtype=np.int64)
-    r = np.array([s[1] for s in samples if s[0] < split_ns])
+    (the samples at times ``t`` (n,), residuals ``r`` (n,), all before ``split_ns``): the standard deviation of the
+    medians of its ``window_s`` stretches (those with 3 samples or more), px; NaN with fewer than 3 stretches. Not a
+    robust scale: a level that spent two of its five first seconds 8 px below the others (the camera demo's cam01,
+    the people where its error is small) has a median absolute deviation of 2 px and is named when they walk back.
+
+    Every stretch's median from one sort, in the order ``np.unique`` gives the stretches (nearest to ``split_ns``
+    first): the middle value, or the two middle values' ``(a + b) / 2``, which is what ``np.median`` computes
+    (``np.mean`` of them), so the result is ``np.median`` per stretch to the bit."""
     if not len(t):
         return float("nan")
     stretch = (split_ns - t) // round(window_s * 1e9)
-    levels = [float(np.median(r[stretch == k])) for k in np.unique(stretch) if np.count_nonzero(stretch == k) >= 3]
-    if len(levels) < 3:
+    order = np.lexsort((r, stretch))  # by stretch, then by value within it
+    stretch, r = stretch[order], r[order]
+    starts = np.flatnonzero(np.r_[True, stretch[1:] != stretch[:-1]])
+    counts = np.diff(np.r_[starts, len(stretch)])
+    starts, counts = starts[counts >= 3], counts[counts >= 3]
+    if len(starts) < 3:
         return float("nan")
+    mid = starts + counts // 2
+    levels = np.where(counts % 2 == 1, r[mid], (r[mid - 1] + r[mid]) / 2.0)
     return float(np.std(levels, ddof=1))
 
 
@@ -475,12 +521,11 @@ class CameraWatch:
         keep_ns = round((o.baseline_s + o.window_s) * 1e9)
         for c, cam in enumerate(self._cams):
             if np.isfinite(res[c]):
-                cam.samples.append((t_ns, float(res[c])))
+                cam.samples.append(t_ns, float(res[c]))
             if np.isfinite(quick[c]):
-                cam.quick.append((t_ns, float(quick[c])))
-            for kept in (cam.samples, cam.quick):
-                while kept and kept[0][0] < t_ns - keep_ns:
-                    kept.popleft()
+                cam.quick.append(t_ns, float(quick[c]))
+            cam.samples.drop_before(t_ns - keep_ns)
+            cam.quick.drop_before(t_ns - keep_ns)
             gathering = cam.proposal is None or cam.proposal.refused is not None
             if cam.state == "bumped" and o.reestimate_points > 0 and gathering and len(matches[c][0]):
                 cam.matches.append(matches[c])
@@ -531,18 +576,20 @@ class CameraWatch:
         o = self.options
         split = t_ns - round(o.window_s * 1e9)
         for cam in self._cams:
-            quick = [r for t, r in cam.quick if t < split]
-            quick_span = (split - cam.quick[0][0]) / 1e9 if quick else 0.0
-            cam.quick_baseline = float(np.median(quick)) if quick_span >= o.min_baseline_s else float("nan")
-            old = [r for t, r in cam.samples if t < split]
-            new = [r for t, r in cam.samples if t >= split]
-            span = (split - cam.samples[0][0]) / 1e9 if old else 0.0
-            cam.current = float(np.median(new)) if len(new) >= 3 else float("nan")
+            # The samples are in time order: those before the split are a prefix, found by one binary search.
+            t, r = cam.quick.times(), cam.quick.values()
+            k = int(np.searchsorted(t, split, side="left"))
+            quick_span = (split - int(t[0])) / 1e9 if k else 0.0
+            cam.quick_baseline = float(np.median(r[:k])) if quick_span >= o.min_baseline_s else float("nan")
+            t, r = cam.samples.times(), cam.samples.values()
+            k = int(np.searchsorted(t, split, side="left"))
+            span = (split - int(t[0])) / 1e9 if k else 0.0
+            cam.current = float(np.median(r[k:])) if len(r) - k >= 3 else float("nan")
             if cam.frozen_baseline is not None:
                 cam.baseline = cam.frozen_baseline  # and its spread, as it was
             else:
-                cam.baseline = float(np.median(old)) if span >= o.min_baseline_s else float("nan")
-                cam.spread = _level_spread(cam.samples, split, o.window_s) if np.isfinite(cam.baseline) else np.nan
+                cam.baseline = float(np.median(r[:k])) if span >= o.min_baseline_s else float("nan")
+                cam.spread = _level_spread(t[:k], r[:k], split, o.window_s) if np.isfinite(cam.baseline) else np.nan
 
     def _rise(self, cam: _Camera) -> float:
         return cam.current - cam.baseline if np.isfinite(cam.current) and np.isfinite(cam.baseline) else float("nan")

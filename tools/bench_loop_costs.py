@@ -1,0 +1,121 @@
+"""Per-function cost of the synthetic rig's event-loop work against a git revision's code, in one process.
+
+The whole pipeline's rate on a shared machine is noise; this times each piece of the loop's own work on the same
+input with the revision's module and the working tree's, alternately (``--rounds`` rounds, each timing both once),
+and prints the median of each and their ratio, with the CPU it ran on. The revision's modules are loaded from
+``git show REV:path`` under another name, beside the working tree's. Pieces:
+
+* ``watch``: :class:`~mocapd.core.camera_watch.CameraWatch` over 20 s of two people at 60 solves a second (a
+  check 10 times a second), per ``observe`` call; ``levels``: its per-check ``_levels`` alone.
+
+Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def module_at(rev: str, path: str, name: str) -> ModuleType:
+    """The module at ``path`` (relative to the repository) as it is at git revision ``rev``, as ``name``."""
+    source = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, check=True, capture_output=True).stdout
+    spec = importlib.util.spec_from_loader(name, loader=None)
+    assert spec is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up by name
+    exec(compile(source, f"{rev}:{path}", "exec"), module.__dict__)
+    return module
+
+
+def cpu_model() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return "unknown"
+
+
+def alternate(runs: dict[str, Callable[[], float]], rounds: int) -> dict[str, Any]:
+    """Each run (returning seconds per call) once per round, in turn; the median of each and new/old."""
+    times: dict[str, list[float]] = {k: [] for k in runs}
+    for _ in range(rounds):
+        for k, run in runs.items():
+            times[k].append(run())
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {"median_us": {k: round(1e6 * v, 2) for k, v in med.items()},
+            "new_over_old": round(med["new"] / med["old"], 3)}  # fmt: skip
+
+
+def _watch_take(seconds: float) -> tuple[list[Any], list[tuple[int, Any, Any]]]:
+    sys.path.insert(0, str(ROOT))
+    from mocapd.core.synthetic import ring_rig
+    from tests.test_camera_watch import take
+
+    truth = ring_rig(4)
+    return truth, take(truth, seconds, seed=3, fps=60.0)
+
+
+def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
+    from mocapd.core import camera_watch as new
+
+    old = module_at(rev, "mocapd/core/camera_watch.py", "_old_camera_watch")
+    truth, moments = _watch_take(20.0)
+    out: dict[str, Any] = {}
+
+    def observe_all(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            w = mod.CameraWatch(truth)
+            t0 = time.thread_time()
+            for t, uv, cf in moments:
+                w.observe(t, uv, cf)
+            return (time.thread_time() - t0) / len(moments)
+
+        return run
+
+    def levels(mod: ModuleType) -> Callable[[], float]:
+        w = mod.CameraWatch(truth)
+        for t, uv, cf in moments:
+            w.observe(t, uv, cf)
+        t_last = moments[-1][0]
+
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(50):
+                w._levels(t_last)
+            return (time.thread_time() - t0) / 50
+
+        return run
+
+    if "watch" in only:
+        out["watch_observe"] = alternate({"old": observe_all(old), "new": observe_all(new)}, rounds)
+    if "levels" in only:
+        out["watch_levels"] = alternate({"old": levels(old), "new": levels(new)}, rounds)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
+    ap.add_argument("--rounds", type=int, default=15)
+    ap.add_argument("--only", default="watch,levels", help="comma-separated pieces (default: all)")
+    args = ap.parse_args()
+    only = set(args.only.split(","))
+    report: dict[str, Any] = {"cpu": cpu_model(), "rev": args.rev, "rounds": args.rounds, "clock": "thread CPU"}
+    report.update(bench_watch(args.rev, args.rounds, only))
+    print(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()
