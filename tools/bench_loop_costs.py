@@ -6,7 +6,8 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 ``git show REV:path`` under another name, beside the working tree's. Pieces:
 
 * ``watch``: :class:`~mocapd.core.camera_watch.CameraWatch` over 20 s of two people at 60 solves a second (a
-  check 10 times a second), per ``observe`` call; ``levels``: its per-check ``_levels`` alone.
+  check 10 times a second), per ``observe`` call; ``levels``: its per-check ``_levels`` alone; ``left_out``,
+  ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments.
 
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
@@ -98,6 +99,24 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
 
         return run
 
+    def per_moment(fn: Callable[..., Any]) -> Callable[[], float]:
+        def run() -> float:
+            P = np.stack([c.projection_matrix for c in truth])
+            t0 = time.thread_time()
+            for _, uv, cf in moments[::10]:
+                fn(P, uv, cf, min_confidence=0.3, min_keypoints=6)
+            return (time.thread_time() - t0) / len(moments[::10])
+
+        return run
+
+    if "left_out" in only:
+        out["residuals_left_out"] = alternate(
+            {"old": per_moment(old.residuals_left_out), "new": per_moment(new.residuals_left_out)}, rounds
+        )
+    if "all_in" in only:
+        out["residuals_all_in"] = alternate(
+            {"old": per_moment(old.residuals_all_in), "new": per_moment(new.residuals_all_in)}, rounds
+        )
     if "watch" in only:
         out["watch_observe"] = alternate({"old": observe_all(old), "new": observe_all(new)}, rounds)
     if "levels" in only:
@@ -109,7 +128,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
-    ap.add_argument("--only", default="watch,levels", help="comma-separated pieces (default: all)")
+    ap.add_argument("--only", default="watch,levels,left_out,all_in", help="comma-separated pieces (default: all)")
     args = ap.parse_args()
     only = set(args.only.split(","))
     report: dict[str, Any] = {"cpu": cpu_model(), "rev": args.rev, "rounds": args.rounds, "clock": "thread CPU"}
