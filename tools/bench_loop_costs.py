@@ -8,6 +8,9 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 * ``watch``: :class:`~mocapd.core.camera_watch.CameraWatch` over 20 s of two people at 60 solves a second (a
   check 10 times a second), per ``observe`` call; ``levels``: its per-check ``_levels`` alone; ``left_out``,
   ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments.
+* ``mtdata2``: :func:`~mocapd.protocols.mtdata2.decode_mtdata2` per message, on an MTw-like stream (packet
+  counter, sample time, quaternion, acceleration: the simulated suit's) and on the real MTi captures in
+  ``tests/data/xbus_einride`` (with UTC time and GNSS outputs).
 
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
@@ -124,15 +127,55 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
     return out
 
 
+def bench_mtdata2(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.protocols import mtdata2 as new
+    from mocapd.protocols.xbus import MID, XbusParser
+
+    old = module_at(rev, "mocapd/protocols/mtdata2.py", "_old_mtdata2")
+    rng = np.random.default_rng(0)
+    mtw = []
+    for k in range(1300):
+        q = rng.normal(size=4)
+        mtw.append(
+            new.encode_packet(new.DataId.PACKET_COUNTER, k)
+            + new.encode_packet(new.DataId.SAMPLE_TIME_FINE, 100 * k)
+            + new.encode_packet(new.DataId.QUATERNION, tuple(q / np.linalg.norm(q)))
+            + new.encode_packet(new.DataId.ACCELERATION, tuple(rng.normal(0.0, 9.81, 3)))
+        )
+    parser = XbusParser()
+    for i in range(1, 6):
+        parser.receive_data((ROOT / "tests" / "data" / "xbus_einride" / str(i) / "output.bin").read_bytes())
+    real = [m.payload for m in parser.events_received() if m.mid == MID.MTDATA2]
+
+    def decode(mod: ModuleType, payloads: list[bytes]) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(5):
+                for p in payloads:
+                    mod.decode_mtdata2(p)
+            return (time.thread_time() - t0) / (5 * len(payloads))
+
+        return run
+
+    return {
+        "mtdata2_mtw": alternate({"old": decode(old, mtw), "new": decode(new, mtw)}, rounds),
+        "mtdata2_real_mti": alternate({"old": decode(old, real), "new": decode(new, real)}, rounds),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
-    ap.add_argument("--only", default="watch,levels,left_out,all_in", help="comma-separated pieces (default: all)")
+    ap.add_argument(
+        "--only", default="watch,levels,left_out,all_in,mtdata2", help="comma-separated pieces (default: all)"
+    )
     args = ap.parse_args()
     only = set(args.only.split(","))
     report: dict[str, Any] = {"cpu": cpu_model(), "rev": args.rev, "rounds": args.rounds, "clock": "thread CPU"}
     report.update(bench_watch(args.rev, args.rounds, only))
+    if "mtdata2" in only:
+        report.update(bench_mtdata2(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
 
 
