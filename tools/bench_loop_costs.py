@@ -11,6 +11,8 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 * ``mtdata2``: :func:`~mocapd.protocols.mtdata2.decode_mtdata2` per message, on an MTw-like stream (packet
   counter, sample time, quaternion, acceleration: the simulated suit's) and on the real MTi captures in
   ``tests/data/xbus_einride`` (with UTC time and GNSS outputs).
+* ``heading``: :func:`~mocapd.core.heading.observe_headings` per observation of a 13-sensor suit (COCO-17
+  keypoints of a posed body).
 
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
@@ -163,17 +165,42 @@ def bench_mtdata2(rev: str, rounds: int) -> dict[str, Any]:
     }
 
 
+def bench_heading(rev: str, rounds: int) -> dict[str, Any]:
+    sys.path.insert(0, str(ROOT))
+    from mocapd.core import heading as new
+    from mocapd.core.imu import IMU_SET_13
+    from tests.test_heading import _posed
+
+    old = module_at(rev, "mocapd/core/heading.py", "_old_heading")
+    skeleton, targets, q_true, points = _posed(3, "coco17")
+    vectors = new.bone_vectors(skeleton, targets, IMU_SET_13)  # type: ignore[arg-type]
+    ok = np.ones(len(points), dtype=bool)
+
+    def observe(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(200):
+                mod.observe_headings(q_true, vectors, points, ok)
+            return (time.thread_time() - t0) / 200
+
+        return run
+
+    return {"observe_headings": alternate({"old": observe(old), "new": observe(new)}, rounds)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
-        "--only", default="watch,levels,left_out,all_in,mtdata2", help="comma-separated pieces (default: all)"
+        "--only", default="watch,levels,left_out,all_in,mtdata2,heading", help="comma-separated pieces (default: all)"
     )
     args = ap.parse_args()
     only = set(args.only.split(","))
     report: dict[str, Any] = {"cpu": cpu_model(), "rev": args.rev, "rounds": args.rounds, "clock": "thread CPU"}
     report.update(bench_watch(args.rev, args.rounds, only))
+    if "heading" in only:
+        report.update(bench_heading(args.rev, args.rounds))
     if "mtdata2" in only:
         report.update(bench_mtdata2(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
