@@ -12,7 +12,8 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   counter, sample time, quaternion, acceleration: the simulated suit's) and on the real MTi captures in
   ``tests/data/xbus_einride`` (with UTC time and GNSS outputs).
 * ``heading``: :func:`~mocapd.core.heading.observe_headings` per observation of a 13-sensor suit (COCO-17
-  keypoints of a posed body).
+  keypoints of a posed body); ``estimator``: :meth:`~mocapd.core.heading.HeadingEstimator.observe` of its 13
+  sensors with full 4 s windows (80 samples each).
 
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
@@ -185,7 +186,30 @@ def bench_heading(rev: str, rounds: int) -> dict[str, Any]:
 
         return run
 
-    return {"observe_headings": alternate({"old": observe(old), "new": observe(new)}, rounds)}
+    def estimator(mod: ModuleType) -> Callable[[], float]:
+        rng = np.random.default_rng(0)
+        est = mod.HeadingEstimator(mod.HeadingOptions())
+        sensors = [f"s{i}" for i in range(13)]
+        t = 0
+        for _ in range(100):  # full windows
+            t += 50_000_000
+            est.observe(t, sensors, rng.normal(0.0, 0.1, 13), np.full(13, 0.05))
+        yaws = rng.normal(0.0, 0.1, (100, 13))
+
+        def run() -> float:
+            nonlocal t
+            t0 = time.thread_time()
+            for y in yaws:
+                t += 50_000_000
+                est.observe(t, sensors, y, np.full(13, 0.05))
+            return (time.thread_time() - t0) / len(yaws)
+
+        return run
+
+    return {
+        "observe_headings": alternate({"old": observe(old), "new": observe(new)}, rounds),
+        "heading_estimator_observe": alternate({"old": estimator(old), "new": estimator(new)}, rounds),
+    }
 
 
 def main() -> None:
