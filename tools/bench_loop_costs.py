@@ -7,7 +7,8 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 
 * ``watch``: :class:`~mocapd.core.camera_watch.CameraWatch` over 20 s of two people at 60 solves a second (a
   check 10 times a second), per ``observe`` call; ``levels``: its per-check ``_levels`` alone; ``left_out``,
-  ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments.
+  ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments;
+  ``pool``: a check's people pooled per camera (``np.nanmedian`` of 2 people x 4 cameras before, per check).
 * ``mtdata2``: :func:`~mocapd.protocols.mtdata2.decode_mtdata2` per message, on an MTw-like stream (packet
   counter, sample time, quaternion, acceleration: the simulated suit's) and on the real MTi captures in
   ``tests/data/xbus_einride`` (with UTC time and GNSS outputs).
@@ -123,6 +124,21 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
         out["residuals_all_in"] = alternate(
             {"old": per_moment(old.residuals_all_in), "new": per_moment(new.residuals_all_in)}, rounds
         )
+    if "pool" in only:
+        res = np.array([[8.1, np.nan, 9.3, 7.7], [8.4, 10.2, np.nan, 7.9]])
+
+        def pool(fn: Callable[[Any], Any]) -> Callable[[], float]:
+            def run() -> float:
+                t0 = time.thread_time()
+                for _ in range(500):
+                    fn(res)
+                return (time.thread_time() - t0) / 500
+
+            return run
+
+        out["pool_people"] = alternate(
+            {"old": pool(lambda r: np.nanmedian(r, axis=0)), "new": pool(new._column_nanmedians)}, rounds
+        )
     if "watch" in only:
         out["watch_observe"] = alternate({"old": observe_all(old), "new": observe_all(new)}, rounds)
     if "levels" in only:
@@ -217,7 +233,9 @@ def main() -> None:
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
-        "--only", default="watch,levels,left_out,all_in,mtdata2,heading", help="comma-separated pieces (default: all)"
+        "--only",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading",
+        help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
     only = set(args.only.split(","))

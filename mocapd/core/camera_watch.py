@@ -392,6 +392,13 @@ def residuals_all_in(
     return out
 
 
+def _column_nanmedians(values: FloatArray) -> FloatArray:
+    """``np.nanmedian(values, axis=0)`` for a few rows (people) by columns (cameras), each column with a value that is
+    not NaN, to the bit (:func:`_row_medians` of the values that are not NaN): numpy takes small arrays through
+    masked arrays, ~40 times slower here."""
+    return _row_medians(values.T, ~np.isnan(values.T))
+
+
 def _row_medians(values: FloatArray, use: NDArray[np.bool_]) -> FloatArray:
     """Per row of ``values`` (n, m), the median of the entries ``use`` (n, m) marks (NaN for none), as
     ``np.median`` gives it to the bit: the middle one, or ``(a + b) / 2`` of the two middle ones (``np.median`` takes
@@ -456,7 +463,7 @@ def rig_residuals(
         res[j], _ = residuals_left_out(P, uv, conf, min_confidence=min_confidence, min_keypoints=min_keypoints)
     seen = np.isfinite(res).any(axis=0)
     out = np.full(P.shape[0], np.nan)
-    out[seen] = np.nanmedian(res[:, seen], axis=0)
+    out[seen] = _column_nanmedians(res[:, seen])
     return out
 
 
@@ -618,7 +625,7 @@ class CameraWatch:
             res = np.stack(votes)
             seen = np.isfinite(res).any(axis=0)
             pooled = np.full(len(self._cams), np.nan)
-            pooled[seen] = np.nanmedian(res[:, seen], axis=0)
+            pooled[seen] = _column_nanmedians(res[:, seen])
             off = self._off_alone(pooled, np.array([c.baseline for c in self._cams]))
             if off is not None:
                 self._flagged[off] = True
