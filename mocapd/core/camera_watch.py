@@ -53,7 +53,7 @@ Time is the solve time passed in (ns); nothing here reads a clock or locks (the 
 
 from __future__ import annotations
 
-from collections import deque
+import functools
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -189,12 +189,51 @@ def judge_proposal(p: Proposal, baseline_px: float, options: WatchOptions) -> st
     return None
 
 
+class _Series:
+    """(solve time ns, residual px) samples in time order (the checked ticks': their times never go back), in two
+    arrays: a check reads its windows as slices (one binary search each) instead of lists built from tuples."""
+
+    __slots__ = ("_end", "_r", "_start", "_t")
+
+    def __init__(self) -> None:
+        self._t = np.empty(64, dtype=np.int64)
+        self._r = np.empty(64)
+        self._start = self._end = 0  # the live samples: [_start, _end)
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, t_ns: int, value: float) -> None:
+        """One sample at ``t_ns``, not before the newest one."""
+        if self._end == len(self._t):
+            n = len(self)
+            size = len(self._t) * (2 if 2 * n > len(self._t) else 1)  # grown only while more than half is live
+            t, r = np.empty(size, dtype=np.int64), np.empty(size)
+            t[:n], r[:n] = self._t[self._start : self._end], self._r[self._start : self._end]
+            self._t, self._r, self._start, self._end = t, r, 0, n
+        self._t[self._end] = t_ns
+        self._r[self._end] = value
+        self._end += 1
+
+    def drop_before(self, t_ns: int) -> None:
+        """Forget the samples older than ``t_ns``."""
+        self._start += int(np.searchsorted(self.times(), t_ns, side="left"))
+
+    def times(self) -> NDArray[np.int64]:
+        """Sample times, oldest first (a view), shape (n,)."""
+        return self._t[self._start : self._end]
+
+    def values(self) -> FloatArray:
+        """Residuals (px), oldest first (a view), shape (n,)."""
+        return self._r[self._start : self._end]
+
+
 @dataclass
 class _Camera:
     """One camera's record: (solve time ns, residual px) samples, its state and what the state came from."""
 
-    samples: deque[tuple[int, float]] = field(default_factory=deque)
-    quick: deque[tuple[int, float]] = field(default_factory=deque)  # (solve time ns, all-in residual px), checked
+    samples: _Series = field(default_factory=_Series)
+    quick: _Series = field(default_factory=_Series)  # (solve time ns, all-in residual px), checked
     quick_baseline: float = float("nan")  # the all-in residual's median over the baseline span
     state: str = "learning"
     since_ns: int = 0  # when the state was entered
@@ -242,15 +281,13 @@ def residuals_left_out(
     w = np.where((conf >= min_confidence) & np.all(np.isfinite(uv), axis=-1), conf, 0.0)
     out = np.full(n_cams, np.nan)
     matches: list[tuple[FloatArray, FloatArray]] = []
+    X_left, ok_left = triangulate_left_out(P, uv, w) if n_cams >= 3 else (None, None)
     for c in range(n_cams):
-        others = np.ones(n_cams, dtype=bool)
-        others[c] = False
         seen = w[c] > 0
-        if others.sum() < 2 or seen.sum() < min_keypoints:
+        if X_left is None or ok_left is None or seen.sum() < min_keypoints:
             matches.append((np.zeros((0, 3)), np.zeros((0, 2))))
             continue
-        X, ok = triangulate_projections(P[others], uv[others], w[others])
-        ok &= seen
+        X, ok = X_left[c], ok_left[c] & seen
         if ok.sum() < min_keypoints:
             matches.append((np.zeros((0, 3)), np.zeros((0, 2))))
             continue
@@ -261,6 +298,63 @@ def residuals_left_out(
         out[c] = float(np.median(err))
         matches.append((X[ok][front], uv[c, ok][front]))
     return out, matches
+
+
+def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Per camera, the points triangulated from the *other* cameras: what
+    :func:`~mocapd.core.camera.triangulate_projections` gives for ``P[others], uv[others], weights[others]``
+    (two views or more), to the bit, for every camera in one SVD call instead of one call each.
+
+    Its rows are the DLT rows of :func:`~mocapd.core.camera.triangulate_projections` (each a camera's, unit-normed,
+    times its weight: the same floats whichever cameras are in), and each camera's systems leave out its two rows;
+    the SVD of a stack solves each system on its own, so the points are the same.
+
+    Parameters
+    ----------
+    P : array, shape (n_cams, 3, 4)
+    uv : array, shape (n_cams, n_pts, 2)
+    weights : array, shape (n_cams, n_pts)
+
+    Returns
+    -------
+    X : array, shape (n_cams, n_pts, 3)
+        ``X[c]``: the points from every camera but ``c``; NaN where not triangulated.
+    ok : bool array, shape (n_cams, n_pts)
+    """
+    P = np.asarray(P, dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64)
+    weights = np.asarray(weights, dtype=np.float64)
+    n_cams, n_pts = uv.shape[:2]
+    finite = np.all(np.isfinite(uv), axis=-1) & np.isfinite(weights) & (weights > 0)
+    w = np.where(finite, weights, 0.0)
+    uv = np.where(finite[..., None], uv, 0.0)
+    r1 = uv[..., 0, None] * P[:, None, 2, :] - P[:, None, 0, :]
+    r2 = uv[..., 1, None] * P[:, None, 2, :] - P[:, None, 1, :]
+    A = np.concatenate((r1, r2), axis=0).transpose(1, 0, 2)  # (n_pts, 2 * n_cams, 4): every camera's rows
+    norms = np.linalg.norm(A, axis=-1, keepdims=True)
+    A = A / np.where(norms > 0, norms, 1.0) * np.concatenate((w, w), axis=0).T[..., None]
+    A_left = A[:, _left_out_rows(n_cams)].transpose(1, 0, 2, 3)  # (n_cams, n_pts, 2 n - 2, 4)
+    views = np.sum(w > 0, axis=0)
+    ok = (views[None, :] - (w > 0)) >= 2  # seen by two of the others
+    X = np.full((n_cams, n_pts, 3), np.nan)
+    if np.any(ok):
+        h = np.linalg.svd(A_left[ok])[2][:, -1, :]
+        good = np.abs(h[:, 3]) > 1e-12
+        Xo = np.full((h.shape[0], 3), np.nan)
+        Xo[good] = h[good, :3] / h[good, 3:4]
+        X[ok] = Xo
+        ok = ok & np.all(np.isfinite(X), axis=-1)
+    return X, ok
+
+
+@functools.lru_cache(maxsize=16)
+def _left_out_rows(n_cams: int) -> NDArray[np.intp]:
+    """Per camera, the DLT rows of the others (their u rows, then their v rows, as
+    :func:`~mocapd.core.camera.triangulate_projections` stacks them), shape (n_cams, 2 n_cams - 2); read-only."""
+    cams = np.arange(n_cams)
+    rows = np.array([np.r_[np.delete(cams, c), n_cams + np.delete(cams, c)] for c in cams], dtype=np.intp)
+    rows.flags.writeable = False
+    return rows
 
 
 def residuals_all_in(
@@ -293,8 +387,34 @@ def residuals_all_in(
     d = h[..., :2, 0] / np.where(front, h[..., 2, 0], 1.0)[..., None] - uv[:, ok]
     err = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
     use = front & (w[:, ok] > 0)
-    for c in np.flatnonzero(use.sum(axis=1) >= min_keypoints):
-        out[c] = float(np.median(err[c, use[c]]))  # np.median per camera: a tenth of np.nanmedian's cost here
+    counted = use.sum(axis=1) >= min_keypoints
+    out[counted] = _row_medians(err[counted], use[counted])
+    return out
+
+
+def _column_nanmedians(values: FloatArray) -> FloatArray:
+    """``np.nanmedian(values, axis=0)`` for a few rows (people) by columns (cameras), each column with a value that is
+    not NaN, to the bit (:func:`_row_medians` of the values that are not NaN): numpy takes small arrays through
+    masked arrays, ~40 times slower here."""
+    return _row_medians(values.T, ~np.isnan(values.T))
+
+
+def _row_medians(values: FloatArray, use: NDArray[np.bool_]) -> FloatArray:
+    """Per row of ``values`` (n, m), the median of the entries ``use`` (n, m) marks (NaN for none), as
+    ``np.median`` gives it to the bit: the middle one, or ``(a + b) / 2`` of the two middle ones (``np.median`` takes
+    ``np.mean`` of them), from one sort of all rows instead of one ``np.median`` call each. A row holding NaN
+    goes to ``np.median`` itself (it sorts NaN last, where the padding is)."""
+    n = use.sum(axis=1)
+    if values.shape[1] == 0:
+        return np.full(len(n), np.nan)
+    srt = np.sort(np.where(use, values, np.inf), axis=1)  # the used entries first, in order
+    rows = np.arange(len(n))
+    hi = srt[rows, np.minimum(n // 2, values.shape[1] - 1)]
+    lo = srt[rows, np.maximum(n // 2 - 1, 0)]
+    out: FloatArray = np.where(n % 2 == 1, hi, (lo + hi) / 2.0)
+    out[n == 0] = np.nan  # np.median of nothing
+    for i in np.flatnonzero(np.isnan(np.where(use, values, 0.0)).any(axis=1)):
+        out[i] = float(np.median(values[i, use[i]]))
     return out
 
 
@@ -343,24 +463,32 @@ def rig_residuals(
         res[j], _ = residuals_left_out(P, uv, conf, min_confidence=min_confidence, min_keypoints=min_keypoints)
     seen = np.isfinite(res).any(axis=0)
     out = np.full(P.shape[0], np.nan)
-    out[seen] = np.nanmedian(res[:, seen], axis=0)
+    out[seen] = _column_nanmedians(res[:, seen])
     return out
 
 
-def _level_spread(samples: deque[tuple[int, float]], split_ns: int, window_s: float) -> float:
+def _level_spread(t: NDArray[np.int64], r: FloatArray, split_ns: int, window_s: float) -> float:
     """How much a camera's level (the median residual over ``window_s``) varies by itself over the baseline span
-    (the ``samples`` before ``split_ns``): the standard deviation of the medians of its ``window_s`` stretches (those
-    with 3 samples or more), px; NaN with fewer than 3 stretches. Not a robust scale: a level that spent two of its
-    five first seconds 8 px below the others (the camera demo's cam01, the people where its error is small) has a
-    median absolute deviation of 2 px and is named when they walk back."""
-    t = np.array([s[0] for s in samples if s[0] < split_ns], dtype=np.int64)
-    r = np.array([s[1] for s in samples if s[0] < split_ns])
+    (the samples at times ``t`` (n,), residuals ``r`` (n,), all before ``split_ns``): the standard deviation of the
+    medians of its ``window_s`` stretches (those with 3 samples or more), px; NaN with fewer than 3 stretches. Not a
+    robust scale: a level that spent two of its five first seconds 8 px below the others (the camera demo's cam01,
+    the people where its error is small) has a median absolute deviation of 2 px and is named when they walk back.
+
+    Every stretch's median from one sort, in the order ``np.unique`` gives the stretches (nearest to ``split_ns``
+    first): the middle value, or the two middle values' ``(a + b) / 2``, which is what ``np.median`` computes
+    (``np.mean`` of them), so the result is ``np.median`` per stretch to the bit."""
     if not len(t):
         return float("nan")
     stretch = (split_ns - t) // round(window_s * 1e9)
-    levels = [float(np.median(r[stretch == k])) for k in np.unique(stretch) if np.count_nonzero(stretch == k) >= 3]
-    if len(levels) < 3:
+    order = np.lexsort((r, stretch))  # by stretch, then by value within it
+    stretch, r = stretch[order], r[order]
+    starts = np.flatnonzero(np.r_[True, stretch[1:] != stretch[:-1]])
+    counts = np.diff(np.r_[starts, len(stretch)])
+    starts, counts = starts[counts >= 3], counts[counts >= 3]
+    if len(starts) < 3:
         return float("nan")
+    mid = starts + counts // 2
+    levels = np.where(counts % 2 == 1, r[mid], (r[mid - 1] + r[mid]) / 2.0)
     return float(np.std(levels, ddof=1))
 
 
@@ -475,12 +603,11 @@ class CameraWatch:
         keep_ns = round((o.baseline_s + o.window_s) * 1e9)
         for c, cam in enumerate(self._cams):
             if np.isfinite(res[c]):
-                cam.samples.append((t_ns, float(res[c])))
+                cam.samples.append(t_ns, float(res[c]))
             if np.isfinite(quick[c]):
-                cam.quick.append((t_ns, float(quick[c])))
-            for kept in (cam.samples, cam.quick):
-                while kept and kept[0][0] < t_ns - keep_ns:
-                    kept.popleft()
+                cam.quick.append(t_ns, float(quick[c]))
+            cam.samples.drop_before(t_ns - keep_ns)
+            cam.quick.drop_before(t_ns - keep_ns)
             gathering = cam.proposal is None or cam.proposal.refused is not None
             if cam.state == "bumped" and o.reestimate_points > 0 and gathering and len(matches[c][0]):
                 cam.matches.append(matches[c])
@@ -498,7 +625,7 @@ class CameraWatch:
             res = np.stack(votes)
             seen = np.isfinite(res).any(axis=0)
             pooled = np.full(len(self._cams), np.nan)
-            pooled[seen] = np.nanmedian(res[:, seen], axis=0)
+            pooled[seen] = _column_nanmedians(res[:, seen])
             off = self._off_alone(pooled, np.array([c.baseline for c in self._cams]))
             if off is not None:
                 self._flagged[off] = True
@@ -531,18 +658,20 @@ class CameraWatch:
         o = self.options
         split = t_ns - round(o.window_s * 1e9)
         for cam in self._cams:
-            quick = [r for t, r in cam.quick if t < split]
-            quick_span = (split - cam.quick[0][0]) / 1e9 if quick else 0.0
-            cam.quick_baseline = float(np.median(quick)) if quick_span >= o.min_baseline_s else float("nan")
-            old = [r for t, r in cam.samples if t < split]
-            new = [r for t, r in cam.samples if t >= split]
-            span = (split - cam.samples[0][0]) / 1e9 if old else 0.0
-            cam.current = float(np.median(new)) if len(new) >= 3 else float("nan")
+            # The samples are in time order: those before the split are a prefix, found by one binary search.
+            t, r = cam.quick.times(), cam.quick.values()
+            k = int(np.searchsorted(t, split, side="left"))
+            quick_span = (split - int(t[0])) / 1e9 if k else 0.0
+            cam.quick_baseline = float(np.median(r[:k])) if quick_span >= o.min_baseline_s else float("nan")
+            t, r = cam.samples.times(), cam.samples.values()
+            k = int(np.searchsorted(t, split, side="left"))
+            span = (split - int(t[0])) / 1e9 if k else 0.0
+            cam.current = float(np.median(r[k:])) if len(r) - k >= 3 else float("nan")
             if cam.frozen_baseline is not None:
                 cam.baseline = cam.frozen_baseline  # and its spread, as it was
             else:
-                cam.baseline = float(np.median(old)) if span >= o.min_baseline_s else float("nan")
-                cam.spread = _level_spread(cam.samples, split, o.window_s) if np.isfinite(cam.baseline) else np.nan
+                cam.baseline = float(np.median(r[:k])) if span >= o.min_baseline_s else float("nan")
+                cam.spread = _level_spread(t[:k], r[:k], split, o.window_s) if np.isfinite(cam.baseline) else np.nan
 
     def _rise(self, cam: _Camera) -> float:
         return cam.current - cam.baseline if np.isfinite(cam.current) and np.isfinite(cam.baseline) else float("nan")

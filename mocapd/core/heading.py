@@ -30,7 +30,6 @@ into bone orientations (the scheduler for suits: Xsens, the IMU bridge, SlimeVR 
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -181,16 +180,31 @@ def observe_headings(
         raise InputError(f"q_gb must have shape ({n}, 4) for {n} bones, got {q_gb.shape}")
     yaw = np.full(n, np.nan)
     evidence = np.zeros(n)
-    for k, bv in enumerate(vectors):
-        use = ok[bv.first] & ok[bv.second]
-        if not use.any() or not np.all(np.isfinite(q_gb[k])):
-            continue
-        a = quat_rotate(q_gb[k][None], bv.vectors[use])
-        o = points[bv.second[use]] - points[bv.first[use]]
-        c = float(np.sum(a[:, 0] * o[:, 0] + a[:, 2] * o[:, 2]))
-        s = float(np.sum(a[:, 2] * o[:, 0] - a[:, 0] * o[:, 2]))
-        evidence[k] = np.hypot(c, s)
-        yaw[k] = np.arctan2(s, c)
+    if n == 0:
+        return yaw, evidence
+    # Every bone's pairs at once (the daemon observes 13 sensors 20 times a second on its event loop): each pair's
+    # products as one bone at a time gave them, then each bone's two sums by np.sum over its own contiguous run of
+    # them, as over the bone's own array before (np.add.reduceat adds in another order: not the same floats).
+    lengths = np.array([len(bv.first) for bv in vectors], dtype=np.intp)
+    owner = np.repeat(np.arange(n), lengths)
+    first = np.concatenate([bv.first for bv in vectors]).astype(np.intp, copy=False)
+    second = np.concatenate([bv.second for bv in vectors]).astype(np.intp, copy=False)
+    vec = np.concatenate([np.reshape(bv.vectors, (-1, 3)) for bv in vectors])
+    use = ok[first] & ok[second] & np.all(np.isfinite(q_gb), axis=1)[owner]
+    counts = np.bincount(owner[use], minlength=n)
+    seen = counts > 0
+    if not seen.any():
+        return yaw, evidence
+    a = quat_rotate(q_gb[owner[use]], vec[use])
+    o = points[second[use]] - points[first[use]]
+    pc = a[:, 0] * o[:, 0] + a[:, 2] * o[:, 2]
+    ps = a[:, 2] * o[:, 0] - a[:, 0] * o[:, 2]
+    ends = np.cumsum(counts)[seen].tolist()
+    starts = (np.cumsum(counts) - counts)[seen].tolist()
+    c = np.array([np.sum(pc[i:j]) for i, j in zip(starts, ends, strict=True)])
+    s = np.array([np.sum(ps[i:j]) for i, j in zip(starts, ends, strict=True)])
+    evidence[seen] = np.hypot(c, s)
+    yaw[seen] = np.arctan2(s, c)
     return yaw, evidence
 
 
@@ -217,11 +231,56 @@ def weighted_median(values: FloatArray, weights: FloatArray) -> float:
 
 
 # ------------------------------------------------------------------------------------------- estimation
+class _Window:
+    """One sensor's (t_ns, yaw, evidence) samples, oldest first, in three arrays: the robust estimate reads them as
+    they are instead of building an array from tuples at every observation."""
+
+    __slots__ = ("_e", "_end", "_start", "_t", "_y")
+
+    def __init__(self) -> None:
+        self._t = np.empty(32, dtype=np.int64)
+        self._y = np.empty(32)
+        self._e = np.empty(32)
+        self._start = self._end = 0  # the live samples: [_start, _end)
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, t_ns: int, yaw: float, evidence: float) -> None:
+        if self._end == len(self._t):
+            n = len(self)
+            size = len(self._t) * (2 if 2 * n > len(self._t) else 1)  # grown only while more than half is live
+            for name in ("_t", "_y", "_e"):
+                old = getattr(self, name)
+                new = np.empty(size, dtype=old.dtype)
+                new[:n] = old[self._start : self._end]
+                setattr(self, name, new)
+            self._start, self._end = 0, n
+        self._t[self._end], self._y[self._end], self._e[self._end] = t_ns, yaw, evidence
+        self._end += 1
+
+    def drop_older(self, t_ns: int) -> None:
+        """Drop samples from the oldest on while they are older than ``t_ns`` (as a deque's popleft would)."""
+        newer = self._t[self._start : self._end] >= t_ns
+        self._start = self._start + int(np.argmax(newer)) if newer.any() else self._end
+
+    def clear(self) -> None:
+        self._start = self._end = 0
+
+    def yaw(self) -> FloatArray:
+        """Yaw samples (radians), oldest first (a view), shape (n,)."""
+        return self._y[self._start : self._end]
+
+    def evidence(self) -> FloatArray:
+        """Their evidence (m²), shape (n,)."""
+        return self._e[self._start : self._end]
+
+
 @dataclass
 class SensorHeading:
     """One sensor's state (JSON-able through :meth:`HeadingEstimator.status`)."""
 
-    samples: deque[tuple[int, float, float]] = field(default_factory=deque)  # (t_ns, yaw, evidence)
+    samples: _Window = field(default_factory=_Window)  # (t_ns, yaw, evidence)
     estimate: float | None = None
     """Robust estimate over the window (radians), None until there are enough samples."""
     applied: float = 0.0
@@ -261,11 +320,10 @@ class HeadingEstimator:
         for sid, y, e in zip(sensors, yaw, evidence, strict=True):
             s = self.sensors.setdefault(sid, SensorHeading())
             if np.isfinite(y) and e >= o.min_evidence_m2:
-                s.samples.append((t_ns, float(y), float(e)))
-            while s.samples and s.samples[0][0] < t_ns - window_ns:
-                s.samples.popleft()
+                s.samples.append(t_ns, float(y), float(e))
+            s.samples.drop_older(t_ns - window_ns)
             if len(s.samples) >= o.min_samples:
-                s.estimate, s.inliers, s.rejected = self._robust(s.samples)
+                s.estimate, s.inliers, s.rejected = self._robust(s.samples.yaw(), s.samples.evidence())
             if s.estimate is not None and s.observed_ns is not None:
                 step = np.radians(o.max_rate_deg_s) * max(0, t_ns - s.observed_ns) / 1e9
                 s.applied = float(wrap(s.applied + np.clip(wrap(s.estimate - s.applied), -step, step)))
@@ -289,11 +347,10 @@ class HeadingEstimator:
                 s.samples.clear()
                 s.estimate = None
 
-    def _robust(self, samples: deque[tuple[int, float, float]]) -> tuple[float, int, int]:
-        """Weighted median, outliers (beyond ``outlier_mads`` MADs) rejected, inliers' weighted mean."""
+    def _robust(self, y: FloatArray, w: FloatArray) -> tuple[float, int, int]:
+        """Weighted median of the yaws ``y`` (n,) with evidence ``w`` (n,), outliers (beyond ``outlier_mads`` MADs)
+        rejected, inliers' weighted mean."""
         o = self.options
-        arr = np.array(samples)
-        y, w = arr[:, 1], arr[:, 2]
         # Unwrapped around the circular mean: a window near ±180° stays in one piece.
         ref = float(np.arctan2(np.sum(w * np.sin(y)), np.sum(w * np.cos(y))))
         d = wrap(y - ref)

@@ -25,6 +25,7 @@ does not match their identifier are skipped and counted (``MtData2.malformed``).
 from __future__ import annotations
 
 import enum
+import operator
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -343,11 +344,97 @@ _SPECS: dict[int, _Spec | None] = {}
 _HEADER = struct.Struct(">HB")
 
 
+class _Layout(NamedTuple):
+    """A payload's packets when each is a known output of the right size (a device streams the same outputs in
+    every message): their header bytes, one struct for the whole payload (headers and the special outputs' bytes
+    skipped) and, per packet, how to make its item: from its run of the unpacked values, or (UTC time, GNSS, Awinda
+    snapshot) its own decoder on its bytes."""
+
+    header_at: Callable[[bytes | memoryview], tuple[int, ...]]  # the header bytes (id high, id low, size) of each
+    header: tuple[int, ...]
+    whole: struct.Struct
+    packets: tuple[tuple[int, int, int, int, int, CoordFrame | None, Precision | None, int, int], ...]
+    # (type id, data id, kind, first value, value count, frame, precision, data start, data end)
+
+
+_LAYOUTS: dict[int, _Layout] = {}  # by payload length: the last layout decoded at that length
+_MAX_LAYOUTS = 64  # a stream of ever new lengths (garbage) does not grow the cache without bound
+
+
 def decode_mtdata2(payload: bytes | memoryview) -> MtData2:
     """Decode an MTData2 payload. Never raises; unknown or malformed packets are counted and skipped.
 
     A truncated trailing packet counts as malformed.
+
+    A payload laid out as the last one of its length (every header byte the same: the packets' walk reads nothing
+    else, so it finds the same packets) is unpacked with one struct call (:class:`_Layout`); each value is the one
+    the packet's own struct gives (the same big-endian codes in one format), so the items are the same.
     """
+    layout = _LAYOUTS.get(len(payload))
+    if layout is not None and layout.header_at(payload) == layout.header:
+        return _decode_laid_out(payload, layout)
+    out = _decode_walk(payload)
+    if not out.unknown and not out.malformed and (len(payload) in _LAYOUTS or len(_LAYOUTS) < _MAX_LAYOUTS):
+        found = _layout_of(payload)
+        if found is not None:
+            _LAYOUTS[len(payload)] = found
+    return out
+
+
+def _decode_laid_out(payload: bytes | memoryview, layout: _Layout) -> MtData2:
+    values = layout.whole.unpack_from(payload)
+    out = MtData2()
+    items = out.items
+    new_item = tuple.__new__
+    for type_id, data_id, kind, first, count, frame, precision, start, end in layout.packets:
+        value: Value | None
+        if kind == _SPECIAL_KIND:
+            value = _SPECIAL[type_id](payload[start:end], data_id)
+            if value is None:
+                return _decode_walk(payload)  # malformed this time: the walk counts it
+        elif kind == _SCALAR:
+            value = values[first]
+        else:
+            raw = values[first : first + count]
+            if kind == _FIXED1220:
+                value = tuple(v * _FP1220_SCALE for v in raw)
+            elif kind == _FIXED1632:
+                value = tuple(raw[i + 1] + raw[i] * _FP1632_SCALE for i in range(0, len(raw), 2))
+            else:
+                value = raw
+        items[type_id] = new_item(DataItem, (data_id, value, frame, precision))
+    return out
+
+
+def _layout_of(payload: bytes | memoryview) -> _Layout | None:
+    """The layout of a payload that decoded without unknown or malformed packets (None for an empty one)."""
+    n = len(payload)
+    pos = 0
+    header_pos: list[int] = []
+    fmt = ">"
+    packets = []
+    first = 0
+    while pos < n:
+        data_id = (payload[pos] << 8) | payload[pos + 1]
+        size = payload[pos + 2]
+        spec = _SPECS.get(data_id)
+        if spec is None:
+            return None
+        type_id, kind, st, _, frame, precision = spec
+        header_pos += [pos, pos + 1, pos + 2]
+        count = 0 if st is None else len(st.unpack_from(payload, pos + 3))
+        fmt += f"3x{size}x" if st is None else "3x" + st.format.lstrip(">")
+        packets.append((type_id, data_id, kind, first, count, frame, precision, pos + 3, pos + 3 + size))
+        first += count
+        pos += 3 + size
+    if not packets:
+        return None  # nothing to unpack (an empty payload)
+    header_at = operator.itemgetter(*header_pos)  # three or more positions: a tuple of the bytes there
+    return _Layout(header_at, header_at(payload), struct.Struct(fmt), tuple(packets))
+
+
+def _decode_walk(payload: bytes | memoryview) -> MtData2:
+    """Every packet in turn (the general case: any layout, unknown and malformed packets counted)."""
     out = MtData2()
     items = out.items
     n = len(payload)

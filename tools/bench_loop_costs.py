@@ -1,0 +1,252 @@
+"""Per-function cost of the synthetic rig's event-loop work against a git revision's code, in one process.
+
+The whole pipeline's rate on a shared machine is noise; this times each piece of the loop's own work on the same
+input with the revision's module and the working tree's, alternately (``--rounds`` rounds, each timing both once),
+and prints the median of each and their ratio, with the CPU it ran on. The revision's modules are loaded from
+``git show REV:path`` under another name, beside the working tree's. Pieces:
+
+* ``watch``: :class:`~mocapd.core.camera_watch.CameraWatch` over 20 s of two people at 60 solves a second (a
+  check 10 times a second), per ``observe`` call; ``levels``: its per-check ``_levels`` alone; ``left_out``,
+  ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments;
+  ``pool``: a check's people pooled per camera (``np.nanmedian`` of 2 people x 4 cameras before, per check).
+* ``mtdata2``: :func:`~mocapd.protocols.mtdata2.decode_mtdata2` per message, on an MTw-like stream (packet
+  counter, sample time, quaternion, acceleration: the simulated suit's) and on the real MTi captures in
+  ``tests/data/xbus_einride`` (with UTC time and GNSS outputs).
+* ``heading``: :func:`~mocapd.core.heading.observe_headings` per observation of a 13-sensor suit (COCO-17
+  keypoints of a posed body); ``estimator``: :meth:`~mocapd.core.heading.HeadingEstimator.observe` of its 13
+  sensors with full 4 s windows (80 samples each).
+
+Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def module_at(rev: str, path: str, name: str) -> ModuleType:
+    """The module at ``path`` (relative to the repository) as it is at git revision ``rev``, as ``name``."""
+    source = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, check=True, capture_output=True).stdout
+    spec = importlib.util.spec_from_loader(name, loader=None)
+    assert spec is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up by name
+    exec(compile(source, f"{rev}:{path}", "exec"), module.__dict__)
+    return module
+
+
+def cpu_model() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return "unknown"
+
+
+def alternate(runs: dict[str, Callable[[], float]], rounds: int) -> dict[str, Any]:
+    """Each run (returning seconds per call) once per round, in turn; the median of each and new/old."""
+    times: dict[str, list[float]] = {k: [] for k in runs}
+    for _ in range(rounds):
+        for k, run in runs.items():
+            times[k].append(run())
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return {"median_us": {k: round(1e6 * v, 2) for k, v in med.items()},
+            "new_over_old": round(med["new"] / med["old"], 3)}  # fmt: skip
+
+
+def _watch_take(seconds: float) -> tuple[list[Any], list[tuple[int, Any, Any]]]:
+    sys.path.insert(0, str(ROOT))
+    from mocapd.core.synthetic import ring_rig
+    from tests.test_camera_watch import take
+
+    truth = ring_rig(4)
+    return truth, take(truth, seconds, seed=3, fps=60.0)
+
+
+def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
+    from mocapd.core import camera_watch as new
+
+    old = module_at(rev, "mocapd/core/camera_watch.py", "_old_camera_watch")
+    truth, moments = _watch_take(20.0)
+    out: dict[str, Any] = {}
+
+    def observe_all(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            w = mod.CameraWatch(truth)
+            t0 = time.thread_time()
+            for t, uv, cf in moments:
+                w.observe(t, uv, cf)
+            return (time.thread_time() - t0) / len(moments)
+
+        return run
+
+    def levels(mod: ModuleType) -> Callable[[], float]:
+        w = mod.CameraWatch(truth)
+        for t, uv, cf in moments:
+            w.observe(t, uv, cf)
+        t_last = moments[-1][0]
+
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(50):
+                w._levels(t_last)
+            return (time.thread_time() - t0) / 50
+
+        return run
+
+    def per_moment(fn: Callable[..., Any]) -> Callable[[], float]:
+        def run() -> float:
+            P = np.stack([c.projection_matrix for c in truth])
+            t0 = time.thread_time()
+            for _, uv, cf in moments[::10]:
+                fn(P, uv, cf, min_confidence=0.3, min_keypoints=6)
+            return (time.thread_time() - t0) / len(moments[::10])
+
+        return run
+
+    if "left_out" in only:
+        out["residuals_left_out"] = alternate(
+            {"old": per_moment(old.residuals_left_out), "new": per_moment(new.residuals_left_out)}, rounds
+        )
+    if "all_in" in only:
+        out["residuals_all_in"] = alternate(
+            {"old": per_moment(old.residuals_all_in), "new": per_moment(new.residuals_all_in)}, rounds
+        )
+    if "pool" in only:
+        res = np.array([[8.1, np.nan, 9.3, 7.7], [8.4, 10.2, np.nan, 7.9]])
+
+        def pool(fn: Callable[[Any], Any]) -> Callable[[], float]:
+            def run() -> float:
+                t0 = time.thread_time()
+                for _ in range(500):
+                    fn(res)
+                return (time.thread_time() - t0) / 500
+
+            return run
+
+        out["pool_people"] = alternate(
+            {"old": pool(lambda r: np.nanmedian(r, axis=0)), "new": pool(new._column_nanmedians)}, rounds
+        )
+    if "watch" in only:
+        out["watch_observe"] = alternate({"old": observe_all(old), "new": observe_all(new)}, rounds)
+    if "levels" in only:
+        out["watch_levels"] = alternate({"old": levels(old), "new": levels(new)}, rounds)
+    return out
+
+
+def bench_mtdata2(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.protocols import mtdata2 as new
+    from mocapd.protocols.xbus import MID, XbusParser
+
+    old = module_at(rev, "mocapd/protocols/mtdata2.py", "_old_mtdata2")
+    rng = np.random.default_rng(0)
+    mtw = []
+    for k in range(1300):
+        q = rng.normal(size=4)
+        mtw.append(
+            new.encode_packet(new.DataId.PACKET_COUNTER, k)
+            + new.encode_packet(new.DataId.SAMPLE_TIME_FINE, 100 * k)
+            + new.encode_packet(new.DataId.QUATERNION, tuple(q / np.linalg.norm(q)))
+            + new.encode_packet(new.DataId.ACCELERATION, tuple(rng.normal(0.0, 9.81, 3)))
+        )
+    parser = XbusParser()
+    for i in range(1, 6):
+        parser.receive_data((ROOT / "tests" / "data" / "xbus_einride" / str(i) / "output.bin").read_bytes())
+    real = [m.payload for m in parser.events_received() if m.mid == MID.MTDATA2]
+
+    def decode(mod: ModuleType, payloads: list[bytes]) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(5):
+                for p in payloads:
+                    mod.decode_mtdata2(p)
+            return (time.thread_time() - t0) / (5 * len(payloads))
+
+        return run
+
+    return {
+        "mtdata2_mtw": alternate({"old": decode(old, mtw), "new": decode(new, mtw)}, rounds),
+        "mtdata2_real_mti": alternate({"old": decode(old, real), "new": decode(new, real)}, rounds),
+    }
+
+
+def bench_heading(rev: str, rounds: int) -> dict[str, Any]:
+    sys.path.insert(0, str(ROOT))
+    from mocapd.core import heading as new
+    from mocapd.core.imu import IMU_SET_13
+    from tests.test_heading import _posed
+
+    old = module_at(rev, "mocapd/core/heading.py", "_old_heading")
+    skeleton, targets, q_true, points = _posed(3, "coco17")
+    vectors = new.bone_vectors(skeleton, targets, IMU_SET_13)  # type: ignore[arg-type]
+    ok = np.ones(len(points), dtype=bool)
+
+    def observe(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(200):
+                mod.observe_headings(q_true, vectors, points, ok)
+            return (time.thread_time() - t0) / 200
+
+        return run
+
+    def estimator(mod: ModuleType) -> Callable[[], float]:
+        rng = np.random.default_rng(0)
+        est = mod.HeadingEstimator(mod.HeadingOptions())
+        sensors = [f"s{i}" for i in range(13)]
+        t = 0
+        for _ in range(100):  # full windows
+            t += 50_000_000
+            est.observe(t, sensors, rng.normal(0.0, 0.1, 13), np.full(13, 0.05))
+        yaws = rng.normal(0.0, 0.1, (100, 13))
+
+        def run() -> float:
+            nonlocal t
+            t0 = time.thread_time()
+            for y in yaws:
+                t += 50_000_000
+                est.observe(t, sensors, y, np.full(13, 0.05))
+            return (time.thread_time() - t0) / len(yaws)
+
+        return run
+
+    return {
+        "observe_headings": alternate({"old": observe(old), "new": observe(new)}, rounds),
+        "heading_estimator_observe": alternate({"old": estimator(old), "new": estimator(new)}, rounds),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
+    ap.add_argument("--rounds", type=int, default=15)
+    ap.add_argument(
+        "--only",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading",
+        help="comma-separated pieces (default: all)",
+    )
+    args = ap.parse_args()
+    only = set(args.only.split(","))
+    report: dict[str, Any] = {"cpu": cpu_model(), "rev": args.rev, "rounds": args.rounds, "clock": "thread CPU"}
+    report.update(bench_watch(args.rev, args.rounds, only))
+    if "heading" in only:
+        report.update(bench_heading(args.rev, args.rounds))
+    if "mtdata2" in only:
+        report.update(bench_mtdata2(args.rev, args.rounds))
+    print(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()
