@@ -77,6 +77,7 @@ from numpy.typing import NDArray
 from mocapd.core.camera import Camera
 from mocapd.core.names import check_name
 from mocapd.errors import CalibrationError
+from mocapd.io.calibration_units import UNITS
 from mocapd.io.input_files import open_input, read_input_bytes
 from mocapd.io.output_files import atomic_path, write_text_atomic
 
@@ -773,10 +774,6 @@ def scale_calibration(calib: CalibrationSet, scale: float) -> CalibrationSet:
         out.append(CameraCalibration(c.name, size, K, c.dist, c.R, c.t, c.error_px))
     source = f"{calib.source} scaled by {scale:g}" if calib.source else f"scaled by {scale:g}"
     return CalibrationSet(tuple(out), source=source)
-
-
-UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
-"""Length units a calibration's translations may be in (metres per unit)."""
 
 
 def in_metres(calib: CalibrationSet, unit: str) -> CalibrationSet:

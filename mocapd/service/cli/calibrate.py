@@ -28,23 +28,18 @@ import json
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mocapd.errors import CalibrationError, ConfigError, InputError, MocapdError, ModelError, OutputError
 from mocapd.io import lifecycle
-from mocapd.io.board_calibration import Board, calibrate_intrinsics, detect_in_files
-from mocapd.io.calibration_files import (
-    CalibrationSet,
-    CameraCalibration,
-    read_any,
-    scale_calibration,
-    write_mocapd_toml,
-    write_opencv_yaml,
-    write_pose2sim_toml,
-)
 from mocapd.io.output_files import check_output_file
-from mocapd.io.rig_calibration import Intrinsics, Observation, calibrate_rig
 from mocapd.service.cli.numbers import number
+
+# The parser is built for every command: OpenCV, NumBa and SciPy (the board detection, the undistortion kernel, the
+# bundle adjustment) are imported by the commands that calibrate, not by `mocapd --help` (issue 47).
+if TYPE_CHECKING:
+    from mocapd.io.board_calibration import Board
+    from mocapd.io.calibration_files import CalibrationSet
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 
@@ -83,6 +78,10 @@ def calibrate_cameras(
     fix_k3: bool = False,
 ) -> tuple[CalibrationSet, dict[str, Any]]:
     """Run the calibration described in the module docstring; returns the calibration and the report."""
+    from mocapd.io.board_calibration import calibrate_intrinsics, detect_in_files
+    from mocapd.io.calibration_files import CalibrationSet, CameraCalibration, read_any
+    from mocapd.io.rig_calibration import Intrinsics, Observation, calibrate_rig
+
     report: dict[str, Any] = {"intrinsics": {}, "extrinsics": None}
     intr: dict[str, Intrinsics] = {}
     if intrinsics_from is not None:
@@ -135,6 +134,8 @@ def calibrate_cameras(
 
 
 def _board(args: argparse.Namespace) -> Board:
+    from mocapd.io.board_calibration import Board
+
     return Board(args.board, args.cols, args.rows, args.square_mm / 1000.0, args.marker_mm / 1000.0, args.dictionary)
 
 
@@ -177,6 +178,7 @@ def _run_board(args: argparse.Namespace) -> int:
 
 def _run_from_people(args: argparse.Namespace) -> int:
     from mocapd.core.self_calibration import SelfCalibrationOptions
+    from mocapd.io.calibration_files import read_any
     from mocapd.service import people_calibration as pc
 
     try:
@@ -210,6 +212,8 @@ def _run_from_people(args: argparse.Namespace) -> int:
 
 def _write_and_report(calib: CalibrationSet, output: Path, report: str) -> int:
     """Write the calibration either path computed, then print its report; exit 2 when it cannot be written."""
+    from mocapd.io.calibration_files import write_mocapd_toml
+
     try:
         write_mocapd_toml(calib, output)
     except OutputError as exc:
@@ -222,6 +226,7 @@ def _write_and_report(calib: CalibrationSet, output: Path, report: str) -> int:
 def session_calibration(path: Path) -> CalibrationSet:
     """The cameras a recorded session ended with: its manifest's, each replaced by the last camera the daemon
     recalibrated it to while recording (the session's camera events)."""
+    from mocapd.io.calibration_files import CalibrationSet, CameraCalibration
     from mocapd.io.session import open_session
     from mocapd.service.outputs.recorder import camera_from_dict
     from mocapd.service.session.solve import camera_changes
@@ -244,6 +249,14 @@ def _run_save(args: argparse.Namespace) -> int:
 
 
 def _run_convert(args: argparse.Namespace) -> int:
+    from mocapd.io.calibration_files import (
+        read_any,
+        scale_calibration,
+        write_mocapd_toml,
+        write_opencv_yaml,
+        write_pose2sim_toml,
+    )
+
     try:
         check_output_file(args.output, inputs=[args.input], overwrite=args.force)
     except OutputError as exc:

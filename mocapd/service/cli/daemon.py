@@ -16,11 +16,13 @@ from typing import TYPE_CHECKING, Any, Literal
 from mocapd.errors import ConfigError, MocapdError
 from mocapd.io import cpu_budget, lifecycle
 from mocapd.service.cli.numbers import number
-from mocapd.service.config import DEFAULT_CONFIG, Config, load_config
-from mocapd.service.config.cameras import AravisCamera, ImagesCamera, UvcCamera, VideoCamera, describe
 
+# The parser is built for every command: the config schema (pydantic, and through its defaults the detector's and
+# the rig's modules: NumPy, SciPy, NumBa, onnxruntime, OpenCV) is imported by the commands that read a config, not
+# by `mocapd --help` (issue 47).
 if TYPE_CHECKING:
     from mocapd.service import assembly
+    from mocapd.service.config import Config
     from mocapd.service.rig import RigPlan
 
 
@@ -34,6 +36,8 @@ def _subcommand_group(subparsers: Any, name: str) -> Any:
 
 
 def _load(path: Path | None, http_port: int | None = None) -> Config:
+    from mocapd.service.config import load_config
+
     cfg = load_config(path)
     if http_port is not None:
         cfg = cfg.model_copy(update={"daemon": cfg.daemon.model_copy(update={"http_port": http_port})})
@@ -44,6 +48,7 @@ def check(cfg: Config) -> RigPlan:
     """Everything ``mocapd run`` checks before it opens a device: the rig against its calibration and files, and
     the IMU suits' calibration files."""
     from mocapd.io.tls_files import check_tls_files
+    from mocapd.service.config.cameras import AravisCamera, ImagesCamera, UvcCamera, VideoCamera
     from mocapd.service.rig import plan_rig
 
     plan = plan_rig(cfg)
@@ -91,6 +96,8 @@ def _latency_text(latency_s: float | str) -> str:
 
 
 def _rig_summary(cfg: Config) -> str:
+    from mocapd.service.config.cameras import describe
+
     d = cfg.daemon
     if cfg.cameras:
         cams = "; ".join(f"{c.name} ({describe(c)})" for c in cfg.cameras)
@@ -207,6 +214,8 @@ def _print_config_error(path: object, exc: ConfigError) -> None:
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
+    from mocapd.service.config import DEFAULT_CONFIG, load_config
+
     path = args.path if args.path is not None else DEFAULT_CONFIG
     try:
         cfg = load_config(path)
@@ -232,6 +241,8 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from mocapd.service.config import DEFAULT_CONFIG
+
     path = args.config if args.config is not None else DEFAULT_CONFIG
     try:
         cfg = _load(args.config, args.http_port)
@@ -296,6 +307,7 @@ def ask_daemon(args: argparse.Namespace, target: str, client: str) -> int:
     import urllib.request
 
     from mocapd.protocols.web_access import REQUEST_HEADER
+    from mocapd.service.config import DEFAULT_CONFIG
 
     path = args.config if args.config is not None else DEFAULT_CONFIG
     try:
@@ -379,6 +391,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_bench_latency(args: argparse.Namespace) -> int:
     if args.rig == "cameras":
         from mocapd.service.bench import cameras
+        from mocapd.service.config import load_config
         from mocapd.service.demo.cameras import CameraDemoOptions
 
         if args.config is not None:

@@ -13,17 +13,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mocapd.io.gige_discovery import DEFAULT_TIMEOUT_S
-from mocapd.service.inventory import (
-    Inventory,
-    InventoryOptions,
-    config_snippet,
-    inventory_json,
-    printable,
-    take_inventory,
-)
+
+# The parser is built for every command: the inventory (OpenCV for the UVC cameras, NumPy) is imported when
+# `mocapd devices` runs, not by `mocapd --help` (issue 47).
+if TYPE_CHECKING:
+    from mocapd.service.inventory import Inventory
 
 
 def register(subparsers: Any) -> None:
@@ -58,6 +55,8 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from mocapd.service.inventory import InventoryOptions, config_snippet, inventory_json, take_inventory
+
     if args.timeout <= 0:
         print(f"error: --timeout must be > 0, got {args.timeout}", file=sys.stderr)
         return 2
@@ -79,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _table(headers: list[str], rows: list[list[str]]) -> list[str]:
+    from mocapd.service.inventory import printable
+
     rows = [[printable(cell) for cell in row] for row in rows]  # what devices say about themselves
     widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(headers)]
     fmt = "  ".join(f"{{:<{w}}}" for w in widths)

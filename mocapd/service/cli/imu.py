@@ -19,7 +19,7 @@ import json
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,9 +42,12 @@ from mocapd.io.output_files import check_output_file, write_text_atomic
 from mocapd.io.slimevr import SlimeVrListener
 from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
 from mocapd.service.cli.numbers import number
-from mocapd.service.config import load_config
-from mocapd.service.config.imu import ImuConfig
-from mocapd.service.config.schema import validate
+
+# The parser is built for every command: the config schema (pydantic, and through its defaults the detector's and
+# the rig's modules) is imported when a calibration runs, not by `mocapd --help` (issue 47). NumPy and the core's
+# IMU calibration stay: the parser's choices and defaults are theirs (CALIBRATION_POSES, MAX_TURN_DEG, MAX_ACC_STD).
+if TYPE_CHECKING:
+    from mocapd.service.config.imu import ImuConfig
 
 
 def _subcommand_group(subparsers: Any, name: str, help_text: str, dest: str) -> Any:
@@ -295,6 +298,10 @@ async def guided(config: ImuConfig, routine: CalibrationRoutine, connect_timeout
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Entry point of ``mocapd calibrate imu``; returns the process exit status."""
+    from mocapd.service.config import load_config
+    from mocapd.service.config.imu import ImuConfig
+    from mocapd.service.config.schema import validate
+
     if args.from_session is not None:
         from mocapd.service.cli.recordings import calibrate_from_session
 
@@ -362,6 +369,10 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
 def _run_guided(args: argparse.Namespace) -> int:
     """``mocapd calibrate imu --guided``: the routine on the live sensors (stand, walk, elbows), then the file."""
+    from mocapd.service.config import load_config
+    from mocapd.service.config.imu import ImuConfig
+    from mocapd.service.config.schema import validate
+
     try:
         if args.pose == "auto":
             raise ConfigError("--guided: say the stand's posture with --pose t-pose, a-pose or n-pose (not auto)")

@@ -383,7 +383,7 @@ def register(subparsers: Any) -> None:
 
 def _register_keypoints(what: Any) -> None:
     from mocapd.core.keypoint_sets import SETS
-    from mocapd.io.calibration_files import UNITS
+    from mocapd.io.calibration_units import UNITS
     from mocapd.io.keypoint_files import FORMATS, MAX_FPS, MIN_FPS
 
     kp = what.add_parser(

@@ -8,21 +8,24 @@ import json
 import sys
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from mocapd.core.skeleton import Skeleton
 from mocapd.errors import InputError, MocapdError
 from mocapd.io import lifecycle
 from mocapd.io.output_files import check_distinct, check_output_file
-from mocapd.io.session import FRAMES, MANIFEST, RESOLVED, STREAMS, SUFFIX, Session, open_session
-from mocapd.io.session_export import SubjectTrack
-from mocapd.pipeline.camera_views import CameraViews
-from mocapd.pipeline.scheduler import PoseFrame
-from mocapd.protocols.session_format import PoseRecord
 from mocapd.service.cli.numbers import number
-from mocapd.service.config import Config, load_config
-from mocapd.service.config.udp import describe_streams
-from mocapd.service.daemon import PoseSink
+
+# The parser is built for every command: the session files, the pipeline and the config schema (NumPy, SciPy,
+# NumBa, onnxruntime, OpenCV, pydantic) are imported by the command that runs, not by `mocapd --help` (issue 47).
+if TYPE_CHECKING:
+    from mocapd.core.skeleton import Skeleton
+    from mocapd.io.session import Session
+    from mocapd.io.session_export import SubjectTrack
+    from mocapd.pipeline.camera_views import CameraViews
+    from mocapd.pipeline.scheduler import PoseFrame
+    from mocapd.protocols.session_format import PoseRecord
+    from mocapd.service.config import Config
+    from mocapd.service.daemon import PoseSink
 
 
 def stream_sinks(
@@ -39,16 +42,22 @@ def stream_sinks(
 
 def session_files(session: Path) -> list[Path]:
     """The files of a session that its commands read (an output must be none of them)."""
+    from mocapd.io.session import FRAMES, MANIFEST, RESOLVED, STREAMS, SUFFIX
+
     return [session / MANIFEST, session / "prior.npz",
             *(session / f"{name}{SUFFIX}" for name in (*STREAMS, RESOLVED, FRAMES))]  # fmt: skip
 
 
 def resolved_path(out: Path) -> Path:
     """Where ``resolve -o OUT`` writes (:func:`~mocapd.service.session.solve.write_resolved`: a ``.mcs`` file)."""
+    from mocapd.io.session import SUFFIX
+
     return out.parent / f"{out.name.removesuffix(SUFFIX)}{SUFFIX}"
 
 
 def _open(path: Path) -> Session:
+    from mocapd.io.session import open_session
+
     session = open_session(path)
     session.check()
     for line in session.recovery_lines():
@@ -71,6 +80,8 @@ def _poses(session: Session, args: argparse.Namespace, again: str) -> list[PoseR
     """The frames to replay or export: the live ``poses``, the resolved ones (``--resolved``), or a stream file
     ``mocapd resolve -o FILE`` wrote (``--poses FILE``). A session whose live stream holds no pose but which is
     resolved (an imported take always is so) names the command that reads the resolved poses."""
+    from mocapd.io.session import RESOLVED
+
     if args.poses is not None:
         return session.require_poses_file(args.poses)
     if args.resolved:
@@ -96,6 +107,8 @@ def _again(command: str, args: argparse.Namespace, options: tuple[str, ...]) -> 
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    from mocapd.service.config import load_config
+    from mocapd.service.config.udp import describe_streams
     from mocapd.service.session.replay import ReplayStats, replay, replay_camera_views
     from mocapd.service.session.solve import session_rig
 
