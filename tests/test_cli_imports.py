@@ -1,4 +1,4 @@
-"""The command line's parser imports no command's implementation (issue 47).
+"""The command line's parser imports no command's implementation.
 
 Every ``mocapd`` command builds the whole parser first: ``mocapd --help`` or ``mocapd reset-heading`` used to import
 the daemon's assembly, the config schema, OpenCV, NumBa, SciPy and onnxruntime on the way (3.4 s of CPU on a loaded

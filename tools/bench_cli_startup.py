@@ -1,4 +1,4 @@
-"""CPU seconds of starting ``mocapd`` commands, this checkout against another (issue 47).
+"""CPU seconds of starting ``mocapd`` commands, this checkout against another.
 
 Developer benchmark, not a ``mocapd bench`` verb. For each round, in alternating order, runs ``mocapd --help``,
 ``mocapd run --help`` and ``mocapd check-config`` and takes each child's CPU (user + system, ``getrusage`` of the

@@ -1,7 +1,7 @@
 """The length units a calibration file's translations may be in.
 
 Apart from :mod:`mocapd.io.calibration_files` (which reads the files, and imports the camera model and its NumBa
-kernel) so that the command line's parser can offer them as choices without that import (issue 47).
+kernel) so that the command line's parser can offer them as choices without that import.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ from mocapd.io.output_files import check_output_file
 from mocapd.service.cli.numbers import number
 
 # The parser is built for every command: OpenCV, NumBa and SciPy (the board detection, the undistortion kernel, the
-# bundle adjustment) are imported by the commands that calibrate, not by `mocapd --help` (issue 47).
+# bundle adjustment) are imported by the commands that calibrate, not by `mocapd --help`.
 if TYPE_CHECKING:
     from mocapd.io.board_calibration import Board
     from mocapd.io.calibration_files import CalibrationSet

@@ -19,7 +19,7 @@ from mocapd.service.cli.numbers import number
 
 # The parser is built for every command: the config schema (pydantic, and through its defaults the detector's and
 # the rig's modules: NumPy, SciPy, NumBa, onnxruntime, OpenCV) is imported by the commands that read a config, not
-# by `mocapd --help` (issue 47).
+# by `mocapd --help`.
 if TYPE_CHECKING:
     from mocapd.service import assembly
     from mocapd.service.config import Config

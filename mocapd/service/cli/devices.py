@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from mocapd.io.gige_discovery import DEFAULT_TIMEOUT_S
 
 # The parser is built for every command: the inventory (OpenCV for the UVC cameras, NumPy) is imported when
-# `mocapd devices` runs, not by `mocapd --help` (issue 47).
+# `mocapd devices` runs, not by `mocapd --help`.
 if TYPE_CHECKING:
     from mocapd.service.inventory import Inventory
 

@@ -44,7 +44,7 @@ from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
 from mocapd.service.cli.numbers import number
 
 # The parser is built for every command: the config schema (pydantic, and through its defaults the detector's and
-# the rig's modules) is imported when a calibration runs, not by `mocapd --help` (issue 47). NumPy and the core's
+# the rig's modules) is imported when a calibration runs, not by `mocapd --help`. NumPy and the core's
 # IMU calibration stay: the parser's choices and defaults are theirs (CALIBRATION_POSES, MAX_TURN_DEG, MAX_ACC_STD).
 if TYPE_CHECKING:
     from mocapd.service.config.imu import ImuConfig

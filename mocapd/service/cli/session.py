@@ -16,7 +16,7 @@ from mocapd.io.output_files import check_distinct, check_output_file
 from mocapd.service.cli.numbers import number
 
 # The parser is built for every command: the session files, the pipeline and the config schema (NumPy, SciPy,
-# NumBa, onnxruntime, OpenCV, pydantic) are imported by the command that runs, not by `mocapd --help` (issue 47).
+# NumBa, onnxruntime, OpenCV, pydantic) are imported by the command that runs, not by `mocapd --help`.
 if TYPE_CHECKING:
     from mocapd.core.skeleton import Skeleton
     from mocapd.io.session import Session
