@@ -1,8 +1,10 @@
 """Compile every numba kernel of ``mocapd/core/_*kernel.py`` into numba's on-disk cache, once, before the tests.
 
 On a clean checkout (CI) the cache is empty and each kernel compiled inside whichever test first reached it: a
-cold compile of all of them costs about a minute of CPU, spread over the suite on the critical path. ``make test``
-runs this beside mypy (which uses one core of two) so the tests only load the compiled code. Each kernel is called
+cold compile of all of them costs 133-141 s of CPU (this script with an empty ``NUMBA_CACHE_DIR``; 2.5 s warm),
+spread over the suite on its critical path (tests/test_lr_flips.py, test_hand_solver.py and test_optical_flow.py:
+94.9 s of CPU cold, 10.9 s after this script). ``make test`` runs it beside mypy (which uses one core of two) so
+the tests only load the compiled code. Each kernel is called
 once with small made-up inputs of the dtypes, dimensions, layouts and read-only flags the daemon and the tests pass
 (a numba signature differs for each); where a warm-up of the daemon exists it is the one called.
 ``tests/test_warm_kernels.py`` checks every kernel of those modules gets a signature here.
