@@ -6,7 +6,7 @@
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup setup-demo demo test lint typecheck unit bench clean
+.PHONY: setup setup-demo demo test lint typecheck typecheck-and-warm unit bench clean
 
 setup:
 	@bash setup/setup.sh test
@@ -17,7 +17,7 @@ setup-demo:
 demo: setup-demo
 	$(BIN)/mocapd demo
 
-test: setup lint typecheck unit
+test: setup lint typecheck-and-warm unit
 
 lint:
 	$(BIN)/ruff check .
@@ -25,6 +25,14 @@ lint:
 
 typecheck:
 	$(BIN)/mypy
+
+# mypy uses one core; on the other, every numba kernel compiles into its on-disk cache (tools/warm_kernels.py:
+# ~130 s of CPU on a clean checkout, which the tests paid one kernel at a time). A failure of either fails it.
+typecheck-and-warm:
+	@$(BIN)/python -m tools.warm_kernels & warm=$$!; \
+	$(BIN)/mypy; rc=$$?; \
+	wait $$warm || rc=1; \
+	exit $$rc
 
 # --durations: every run (CI's included) ends with its 40 slowest tests, the numbers to act on when the suite slows.
 unit:
