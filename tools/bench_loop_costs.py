@@ -1,5 +1,7 @@
 """Per-function cost of the synthetic rig's event-loop work against a git revision's code, in one process.
 
+Developer benchmark, not a ``mocapd bench`` verb.
+
 The whole pipeline's rate on a shared machine is noise; this times each piece of the loop's own work on the same
 input with the revision's module and the working tree's, alternately (``--rounds`` rounds, each timing both once),
 and prints the median of each and their ratio, with the CPU it ran on. The revision's modules are loaded from
