@@ -16,6 +16,10 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   keypoints of a posed body); ``estimator``: :meth:`~mocapd.core.heading.HeadingEstimator.observe` of its 13
   sensors with full 4 s windows (80 samples each).
 
+* ``imu_inputs``: :meth:`~mocapd.service.imu_inputs.ImuInputs.on_sample` per sample of a sensor with a device
+  heading (every suit sensor once the heading estimator has turned it), on the real MTw recording of
+  ``tests/data/opensense_mtw`` as a simulated MTw's bytes decode to (600 samples).
+
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
 
@@ -228,13 +232,40 @@ def bench_heading(rev: str, rounds: int) -> dict[str, Any]:
     }
 
 
+def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
+    sys.path.insert(0, str(ROOT))
+    from mocapd.service import imu_inputs as new_inputs
+    from mocapd.service.config.imu import ImuConfig
+    from tests.test_imu_sample_path import MTW, device_samples, real_mtw_reads
+
+    streaming, reads = real_mtw_reads(sorted(MTW.glob("*.txt"))[0])
+    samples = device_samples(streaming, reads)
+    out: dict[str, Any] = {}
+
+    def on_sample(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            inputs = mod.ImuInputs(ImuConfig())
+            inputs.turn_headings({samples[0].sensor: np.array([np.cos(0.35), 0.0, 0.0, np.sin(0.35)])})
+            t0 = time.thread_time()
+            for s in samples:
+                inputs.on_sample(s)
+            return (time.thread_time() - t0) / len(samples)
+
+        return run
+
+    if "imu_inputs" in only:
+        old = module_at(rev, "mocapd/service/imu_inputs.py", "_old_imu_inputs")
+        out["imu_inputs_on_sample"] = alternate({"old": on_sample(old), "new": on_sample(new_inputs)}, rounds)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -245,6 +276,7 @@ def main() -> None:
         report.update(bench_heading(args.rev, args.rounds))
     if "mtdata2" in only:
         report.update(bench_mtdata2(args.rev, args.rounds))
+    report.update(bench_imu(args.rev, args.rounds, only))
     print(json.dumps(report, indent=1))
 
 
