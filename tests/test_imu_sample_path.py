@@ -15,12 +15,15 @@ import numpy as np
 from mocapd.core.rotations import quat_multiply, quat_multiply_floats
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
 from mocapd.pipeline.imu_ingest import ImuIngest
-from mocapd.protocols.xsens_session import State, Streaming, XsensSession, output_settings
+from mocapd.protocols.mtdata2 import DataId, MtData2, decode_mtdata2
+from mocapd.protocols.xbus import MID, XbusParser
+from mocapd.protocols.xsens_session import Sample, State, Streaming, XsensSession, output_settings
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.imu_inputs import ImuInputs
 from mocapd.sim import xsens as xsens_sim
 
-MTW = Path(__file__).parent / "data" / "opensense_mtw"
+DATA = Path(__file__).parent / "data"
+MTW = DATA / "opensense_mtw"
 
 
 def real_mtw_reads(path: Path, n: int = 600) -> tuple[Streaming, list[tuple[int, bytes]]]:
@@ -111,3 +114,67 @@ def test_headed_samples_are_buffered_as_the_numpy_product_gave_them() -> None:
     raw = np.array([s.quat for s in device_samples(*streams[0])])
     turned = inputs.ingest.streams[sensors[0]].buffer.rows()[:, 0:4]
     assert not np.allclose(turned, raw[-len(turned) :], atol=0.1)  # the heading was applied
+
+
+def accessor_fields(d: MtData2) -> tuple[object, ...]:
+    """What the device read of a message before :meth:`MtData2.imu_fields`: the properties, one by one."""
+    quat_item = d.items.get(DataId.QUATERNION)
+    return (
+        d.packet_counter,
+        d.sample_time_fine,
+        d.quaternion,
+        d.acceleration,
+        quat_item.frame if quat_item is not None else None,
+    )
+
+
+def test_imu_fields_are_the_accessors_on_real_captures() -> None:
+    payloads: list[bytes] = []
+    for i in range(1, 6):  # real MTi captures: counter, time, acceleration, no quaternion, other outputs
+        parser = XbusParser()
+        parser.receive_data((DATA / "xbus_einride" / str(i) / "output.bin").read_bytes())
+        payloads += [m.payload for m in parser.events_received() if m.mid == MID.MTDATA2]
+    _, reads = real_mtw_reads(sorted(MTW.glob("*.txt"))[0], n=200)
+    parser = XbusParser()
+    parser.receive_data(b"".join(data for _, data in reads))
+    payloads += [m.payload for m in parser.events_received() if m.mid == MID.MTDATA2]
+    assert len(payloads) == 700
+    for p in payloads:
+        d = decode_mtdata2(p)
+        fields = d.imu_fields()
+        assert fields == accessor_fields(d)
+        assert all(a is b or (a == b and type(a) is type(b)) for a, b in zip(fields, accessor_fields(d), strict=True))
+
+
+def test_device_samples_are_those_the_accessors_built() -> None:
+    streaming, reads = real_mtw_reads(sorted(MTW.glob("*.txt"))[1])
+    samples = device_samples(streaming, reads)
+    expected: list[ImuSample] = []
+    session = XsensSession(output_settings(100))
+    session.state = State.MEASURING
+    for now, data in reads:
+        session.receive_data(data, now)
+        for ev in session.events_received():
+            assert isinstance(ev, Sample)
+            c, t, q, a, frame = accessor_fields(ev.data)
+            expected.append(ImuSample(streaming.info.serial, now, t, c, q, a, frame))  # type: ignore[arg-type]
+    assert samples == expected
+    assert {s.sensor for s in samples} == {f"{streaming.info.device_id:08X}"}
+
+
+def test_the_sensor_id_follows_the_device_brought_up() -> None:
+    got: list[ImuSample] = []
+    device = XsensSerialDevice(XsensPortConfig("/dev/ttyMTW"), got.append)
+    streams = [real_mtw_reads(p, n=20) for p in sorted(MTW.glob("*.txt"))]
+    session = XsensSession(output_settings(100))
+    session.state = State.MEASURING
+    for streaming, reads in streams:  # a different device on the same port after a reconnect
+        session._events.append(streaming)
+        for now, data in reads:
+            session.receive_data(data, now)
+            device._dispatch(session, [], now)
+    assert [s.sensor for s in got] == [s.info.serial for s, r in streams for _ in range(20)]
+    device.info = None
+    session.receive_data(streams[0][1][0][1], 0)
+    device._dispatch(session, [], 0)
+    assert got[-1].sensor == "/dev/ttyMTW"

@@ -18,7 +18,9 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 
 * ``imu_inputs``: :meth:`~mocapd.service.imu_inputs.ImuInputs.on_sample` per sample of a sensor with a device
   heading (every suit sensor once the heading estimator has turned it), on the real MTw recording of
-  ``tests/data/opensense_mtw`` as a simulated MTw's bytes decode to (600 samples).
+  ``tests/data/opensense_mtw`` as a simulated MTw's bytes decode to (600 samples); ``dispatch``: the same bytes
+  through the session and :class:`~mocapd.io.xsens_serial.XsensSerialDevice`'s dispatch to its callback, per
+  sample (1 to 4 messages a read).
 
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
@@ -253,6 +255,28 @@ def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
 
         return run
 
+    def dispatch(mod: ModuleType) -> Callable[[], float]:
+        from mocapd.protocols.xsens_session import State, XsensSession, output_settings
+
+        def run() -> float:
+            device = mod.XsensSerialDevice(mod.XsensPortConfig("/dev/ttyMTW"), lambda s: None)
+            session = XsensSession(output_settings(100))
+            session.state = State.MEASURING
+            session._events.append(streaming)
+            device._dispatch(session, [], 0)
+            t0 = time.thread_time()
+            for now, data in reads:
+                session.receive_data(data, now)
+                device._dispatch(session, [], now)
+            return (time.thread_time() - t0) / len(samples)
+
+        return run
+
+    if "dispatch" in only:
+        from mocapd.io import xsens_serial as new_serial
+
+        old_serial = module_at(rev, "mocapd/io/xsens_serial.py", "_old_xsens_serial")
+        out["xsens_dispatch"] = alternate({"old": dispatch(old_serial), "new": dispatch(new_serial)}, rounds)
     if "imu_inputs" in only:
         old = module_at(rev, "mocapd/service/imu_inputs.py", "_old_imu_inputs")
         out["imu_inputs_on_sample"] = alternate({"old": on_sample(old), "new": on_sample(new_inputs)}, rounds)
@@ -265,7 +289,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
