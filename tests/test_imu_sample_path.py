@@ -8,9 +8,11 @@ accelerations of ``tests/data/opensense_mtw``, several messages per read as the 
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mocapd.core.rotations import quat_multiply, quat_multiply_floats
 from mocapd.io.xsens_serial import ImuSample, XsensPortConfig, XsensSerialDevice
@@ -178,3 +180,77 @@ def test_the_sensor_id_follows_the_device_brought_up() -> None:
     session.receive_data(streams[0][1][0][1], 0)
     device._dispatch(session, [], 0)
     assert got[-1].sensor == "/dev/ttyMTW"
+
+
+def reference_add(ingest: ImuIngest, s: ImuSample) -> int | None:
+    """:meth:`ImuIngest.add` as it was: the newest time from ``time_range``, the row written field by field."""
+    stream = ingest.stream(s.sensor)
+    stream.last_host_ns = s.host_ns
+    if s.quat is None or s.acc is None:
+        stream.incomplete += 1
+        return None
+    if s.packet_counter is not None:
+        if stream.last_counter is not None and s.packet_counter != (stream.last_counter + 1) & 0xFFFF:
+            stream.counter_gaps += 1
+        stream.last_counter = s.packet_counter
+    t = s.host_ns
+    device_s = np.nan
+    if s.device_ticks is not None:
+        stream.clock.update(s.device_ticks, s.host_ns)
+        mapped = stream.clock.to_host_ns(s.device_ticks)
+        t = mapped if mapped is not None else s.host_ns
+        device_s = s.device_ticks / 10_000.0
+    newest = stream.buffer.time_range()
+    if newest is not None and t <= newest[1]:
+        stream.clock_steps_back += 1
+        t = newest[1] + 1
+    values = {"quat": s.quat, "acc": s.acc, "device_time_s": [device_s]}
+    values["packet_counter"] = [np.nan if s.packet_counter is None else s.packet_counter]
+    return t if stream.buffer.push_fields(t, values) else None
+
+
+def test_ingest_buffers_what_the_field_by_field_code_did() -> None:
+    new, old = ImuIngest(capacity=256), ImuIngest(capacity=256)
+    for path in sorted(MTW.glob("*.txt")):
+        streaming, reads = real_mtw_reads(path)
+        samples = device_samples(streaming, reads)
+        # host stamps that step back and a device clock that resets: the clamped and re-fitted branches too
+        samples[300:310] = [replace(s, host_ns=s.host_ns - 40_000_000) for s in samples[300:310]]
+        samples[400:] = [replace(s, device_ticks=(s.device_ticks or 0) // 7) for s in samples[400:]]
+        samples[450] = replace(samples[450], quat=None)
+        samples[451] = replace(samples[451], packet_counter=None, device_ticks=None)
+        for s in samples:
+            assert new.add(
+                s.sensor,
+                s.host_ns,
+                device_ticks=s.device_ticks,
+                packet_counter=s.packet_counter,
+                quat=s.quat,
+                acc=s.acc,
+            ) == reference_add(old, s)
+    assert new.streams.keys() == old.streams.keys()
+    for sensor, a in new.streams.items():
+        b = old.streams[sensor]
+        assert a.buffer.times().tobytes() == b.buffer.times().tobytes()
+        assert a.buffer.rows().tobytes() == b.buffer.rows().tobytes()
+        counts = ("incomplete", "counter_gaps", "clock_steps_back", "last_counter", "last_host_ns")
+        assert [getattr(a, k) for k in counts] == [getattr(b, k) for k in counts]
+        assert a.buffer.rejected_out_of_order == b.buffer.rejected_out_of_order
+        assert a.clock_steps_back > 0 and a.incomplete == 1
+
+
+def test_a_cleared_buffer_takes_any_time_and_then_only_later_ones() -> None:
+    ingest = ImuIngest(capacity=8)
+    buffer = ingest.stream("S").buffer
+    row = np.arange(9.0)
+    assert buffer.newest_ns() is None
+    assert buffer.push(100, row) and buffer.push(200, row) and not buffer.push(200, row)
+    assert buffer.newest_ns() == 200
+    buffer.clear()
+    assert buffer.newest_ns() is None
+    assert buffer.push(50, row) and not buffer.push(40, row) and buffer.newest_ns() == 50
+    for t in range(60, 200, 10):  # wraps the ring
+        assert buffer.push(t, row)
+    assert buffer.newest_ns() == buffer.time_range()[1] == 190  # type: ignore[index]
+    with pytest.raises(ValueError):
+        ingest.add("S", 0, device_ticks=None, packet_counter=None, quat=(1.0, 0.0, 0.0), acc=(0.0, 0.0, 9.8, 1.0))

@@ -20,7 +20,8 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   heading (every suit sensor once the heading estimator has turned it), on the real MTw recording of
   ``tests/data/opensense_mtw`` as a simulated MTw's bytes decode to (600 samples); ``dispatch``: the same bytes
   through the session and :class:`~mocapd.io.xsens_serial.XsensSerialDevice`'s dispatch to its callback, per
-  sample (1 to 4 messages a read).
+  sample (1 to 4 messages a read); ``ingest``: :meth:`~mocapd.pipeline.imu_ingest.ImuIngest.add` of those samples
+  (clock map, ring buffer), the revision's ring buffer with the revision's ingest.
 
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
@@ -272,6 +273,30 @@ def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
 
         return run
 
+    def ingest(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            ing = mod.ImuIngest(capacity=512)
+            t0 = time.thread_time()
+            for s in samples:
+                ing.add(
+                    s.sensor,
+                    s.host_ns,
+                    device_ticks=s.device_ticks,
+                    packet_counter=s.packet_counter,
+                    quat=s.quat,
+                    acc=s.acc,
+                )
+            return (time.thread_time() - t0) / len(samples)
+
+        return run
+
+    if "ingest" in only:
+        from mocapd.pipeline import imu_ingest as new_ingest
+
+        old_ring = module_at(rev, "mocapd/pipeline/ringbuffer.py", "_old_ringbuffer")
+        old_ingest = module_at(rev, "mocapd/pipeline/imu_ingest.py", "_old_imu_ingest")
+        old_ingest.__dict__.update(RingBuffer=old_ring.RingBuffer, IMU_FIELDS=old_ring.IMU_FIELDS)
+        out["imu_ingest_add"] = alternate({"old": ingest(old_ingest), "new": ingest(new_ingest)}, rounds)
     if "dispatch" in only:
         from mocapd.io import xsens_serial as new_serial
 
@@ -289,7 +314,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
