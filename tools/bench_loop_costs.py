@@ -18,6 +18,14 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   keypoints of a posed body); ``estimator``: :meth:`~mocapd.core.heading.HeadingEstimator.observe` of its 13
   sensors with full 4 s windows (80 samples each).
 
+* ``imu_inputs``: :meth:`~mocapd.service.imu_inputs.ImuInputs.on_sample` per sample of a sensor with a device
+  heading (every suit sensor once the heading estimator has turned it), on the real MTw recording of
+  ``tests/data/opensense_mtw`` as a simulated MTw's bytes decode to (600 samples); ``dispatch``: the same bytes
+  through the session and :class:`~mocapd.io.xsens_serial.XsensSerialDevice`'s dispatch to its callback, per
+  sample (1 to 4 messages a read); ``ingest``: :meth:`~mocapd.pipeline.imu_ingest.ImuIngest.add` of those samples
+  (clock map, ring buffer), the revision's ring buffer with the revision's ingest; ``imu_path``: all of it, bytes
+  to buffer through the device's dispatch and ``on_sample`` with a device heading (each side its own modules).
+
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
 
@@ -230,13 +238,116 @@ def bench_heading(rev: str, rounds: int) -> dict[str, Any]:
     }
 
 
+def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
+    sys.path.insert(0, str(ROOT))
+    from mocapd.service import imu_inputs as new_inputs
+    from mocapd.service.config.imu import ImuConfig
+    from tests.test_imu_sample_path import MTW, device_samples, real_mtw_reads
+
+    streaming, reads = real_mtw_reads(sorted(MTW.glob("*.txt"))[0])
+    samples = device_samples(streaming, reads)
+    out: dict[str, Any] = {}
+
+    def on_sample(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            inputs = mod.ImuInputs(ImuConfig())
+            inputs.turn_headings({samples[0].sensor: np.array([np.cos(0.35), 0.0, 0.0, np.sin(0.35)])})
+            t0 = time.thread_time()
+            for s in samples:
+                inputs.on_sample(s)
+            return (time.thread_time() - t0) / len(samples)
+
+        return run
+
+    def dispatch(mod: ModuleType) -> Callable[[], float]:
+        from mocapd.protocols.xsens_session import State, XsensSession, output_settings
+
+        def run() -> float:
+            device = mod.XsensSerialDevice(mod.XsensPortConfig("/dev/ttyMTW"), lambda s: None)
+            session = XsensSession(output_settings(100))
+            session.state = State.MEASURING
+            session._events.append(streaming)
+            device._dispatch(session, [], 0)
+            t0 = time.thread_time()
+            for now, data in reads:
+                session.receive_data(data, now)
+                device._dispatch(session, [], now)
+            return (time.thread_time() - t0) / len(samples)
+
+        return run
+
+    def ingest(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            ing = mod.ImuIngest(capacity=512)
+            t0 = time.thread_time()
+            for s in samples:
+                ing.add(
+                    s.sensor,
+                    s.host_ns,
+                    device_ticks=s.device_ticks,
+                    packet_counter=s.packet_counter,
+                    quat=s.quat,
+                    acc=s.acc,
+                )
+            return (time.thread_time() - t0) / len(samples)
+
+        return run
+
+    if "ingest" in only:
+        from mocapd.pipeline import imu_ingest as new_ingest
+
+        old_ring = module_at(rev, "mocapd/pipeline/ringbuffer.py", "_old_ringbuffer")
+        old_ingest = module_at(rev, "mocapd/pipeline/imu_ingest.py", "_old_imu_ingest")
+        old_ingest.__dict__.update(RingBuffer=old_ring.RingBuffer, IMU_FIELDS=old_ring.IMU_FIELDS)
+        out["imu_ingest_add"] = alternate({"old": ingest(old_ingest), "new": ingest(new_ingest)}, rounds)
+
+    def path(serial: ModuleType, inputs_mod: ModuleType) -> Callable[[], float]:
+        from mocapd.protocols.xsens_session import State, XsensSession, output_settings
+
+        def run() -> float:
+            inputs = inputs_mod.ImuInputs(ImuConfig())
+            inputs.turn_headings({samples[0].sensor: np.array([np.cos(0.35), 0.0, 0.0, np.sin(0.35)])})
+            device = serial.XsensSerialDevice(serial.XsensPortConfig("/dev/ttyMTW"), inputs.on_sample)
+            session = XsensSession(output_settings(100))
+            session.state = State.MEASURING
+            session._events.append(streaming)
+            device._dispatch(session, [], 0)
+            t0 = time.thread_time()
+            for now, data in reads:
+                session.receive_data(data, now)
+                device._dispatch(session, [], now)
+            return (time.thread_time() - t0) / len(samples)
+
+        return run
+
+    if "imu_path" in only:
+        from mocapd.io import xsens_serial as new_serial
+
+        old_serial = module_at(rev, "mocapd/io/xsens_serial.py", "_old_xsens_serial")
+        old_ring = module_at(rev, "mocapd/pipeline/ringbuffer.py", "_old_ringbuffer")
+        old_ingest = module_at(rev, "mocapd/pipeline/imu_ingest.py", "_old_imu_ingest")
+        old_ingest.__dict__.update(RingBuffer=old_ring.RingBuffer, IMU_FIELDS=old_ring.IMU_FIELDS)
+        old_inputs = module_at(rev, "mocapd/service/imu_inputs.py", "_old_imu_inputs")
+        old_inputs.__dict__.update(ImuIngest=old_ingest.ImuIngest)
+        out["imu_path"] = alternate({"old": path(old_serial, old_inputs), "new": path(new_serial, new_inputs)}, rounds)
+    if "dispatch" in only:
+        from mocapd.io import xsens_serial as new_serial
+
+        old_serial = module_at(rev, "mocapd/io/xsens_serial.py", "_old_xsens_serial")
+        out["xsens_dispatch"] = alternate({"old": dispatch(old_serial), "new": dispatch(new_serial)}, rounds)
+    if "imu_inputs" in only:
+        old = module_at(rev, "mocapd/service/imu_inputs.py", "_old_imu_inputs")
+        out["imu_inputs_on_sample"] = alternate({"old": on_sample(old), "new": on_sample(new_inputs)}, rounds)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -247,6 +358,7 @@ def main() -> None:
         report.update(bench_heading(args.rev, args.rounds))
     if "mtdata2" in only:
         report.update(bench_mtdata2(args.rev, args.rounds))
+    report.update(bench_imu(args.rev, args.rounds, only))
     print(json.dumps(report, indent=1))
 
 

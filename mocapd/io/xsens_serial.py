@@ -159,7 +159,8 @@ class XsensSerialDevice:
         self._on_sample = on_sample
         self._clock = clock
         self.stats = DeviceStats()
-        self.info: DeviceInfo | None = None
+        self._info: DeviceInfo | None = None
+        self._sensor = config.path
         self.last_error: str | None = None
         self.streaming = asyncio.Event()
         self._stopping = False
@@ -167,6 +168,17 @@ class XsensSerialDevice:
         self._proto: _SessionProtocol | None = None
         #: the current (or last) session, for its parser and session counters
         self.session: XsensSession | None = None
+
+    @property
+    def info(self) -> DeviceInfo | None:
+        """What the device said about itself at its latest bring-up (None before the first)."""
+        return self._info
+
+    @info.setter
+    def info(self, info: DeviceInfo | None) -> None:
+        self._info = info
+        # The sensor id every sample carries, worked out once per bring-up rather than per sample.
+        self._sensor = info.serial if info is not None else self.config.path
 
     def open_state(self) -> OpenState:
         """Whether the device has streamed yet, or its first connection failed (with the reason)."""
@@ -287,14 +299,8 @@ class XsensSerialDevice:
                 if self._integrator is not None:
                     self._snapshot_samples(ev.data, now)
                     continue
-                d = ev.data
-                sensor = self.info.serial if self.info is not None else self.config.path
-                quat_item = d.items.get(DataId.QUATERNION)
-                frame = quat_item.frame if quat_item is not None else None
-                sample = ImuSample(
-                    sensor, now, d.sample_time_fine, d.packet_counter, d.quaternion, d.acceleration, frame
-                )
-                self._on_sample(sample)
+                counter, ticks, quat, acc, frame = ev.data.imu_fields()
+                self._on_sample(ImuSample(self._sensor, now, ticks, counter, quat, acc, frame))
             elif isinstance(ev, Streaming):
                 self.info = ev.info
                 self.last_error = None

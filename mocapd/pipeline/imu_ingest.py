@@ -124,16 +124,18 @@ class ImuIngest:
             mapped = s.clock.to_host_ns(device_ticks)
             t = mapped if mapped is not None else host_ns
             device_s = device_ticks / TICK_HZ
-        newest = s.buffer.time_range()
-        if newest is not None and t <= newest[1]:
+        newest = s.buffer.newest_ns()
+        if newest is not None and t <= newest:
             # Keep the buffer time monotonic: a refit may step the map back by a fraction of a sample period.
             s.clock_steps_back += 1
-            t = newest[1] + 1
+            t = newest + 1
         row = self._row
-        row[0:4] = quat
-        row[4:7] = acc
-        row[7] = device_s
-        row[8] = np.nan if packet_counter is None else packet_counter
+        counter = np.nan if packet_counter is None else packet_counter
+        if len(quat) == 4 and len(acc) == 3:
+            row[:] = (*quat, *acc, device_s, counter)  # one numpy write per sample, not four
+        else:  # refused as before, by the field's width
+            row[0:4] = quat
+            row[4:7] = acc
         if not s.buffer.push(t, row):
             return None
         return t

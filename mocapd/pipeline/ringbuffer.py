@@ -96,6 +96,7 @@ class RingBuffer:
         self._rows = np.full((2 * capacity, offset), np.nan)
         self._start = 0  # physical index of the oldest sample
         self._count = 0
+        self._newest_ns = 0  # the newest time as a Python int (valid while _count): no numpy read per push
         self.rejected_out_of_order = 0
         self.overwritten = 0
         self._linear = [self.slices[f.name] for f in fields if f.interp == "linear"]
@@ -107,7 +108,7 @@ class RingBuffer:
 
     def push(self, t_ns: int, row: FloatArray | Sequence[float]) -> bool:
         """Append one sample. Returns False (and counts it) if ``t_ns`` is not after the newest sample."""
-        if self._count and t_ns <= self._t[self._start + self._count - 1]:
+        if self._count and t_ns <= self._newest_ns:
             self.rejected_out_of_order += 1
             return False
         if self._count == self.capacity:
@@ -120,6 +121,7 @@ class RingBuffer:
         self._rows[i] = row
         self._rows[i + self.capacity] = row
         self._count += 1
+        self._newest_ns = int(t_ns)
         return True
 
     def push_fields(self, t_ns: int, values: Mapping[str, FloatArray | Sequence[float]]) -> bool:
@@ -161,6 +163,10 @@ class RingBuffer:
         if not self._count:
             return None
         return int(self._t[self._start]), int(self._t[self._start + self._count - 1])
+
+    def newest_ns(self) -> int | None:
+        """The newest sample's time, or None if empty (:meth:`time_range`'s second half, without its tuple)."""
+        return self._newest_ns if self._count else None
 
     def sample(self, t_ns: int) -> Lookup:
         """Interpolate every field at ``t_ns`` (see :class:`LookupStatus` for the outcomes)."""

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocapd.core.imu_calibration import ImuCalibration, bone_orientation, quat_to_enu
-from mocapd.core.rotations import quat_multiply
+from mocapd.core.rotations import quat_multiply, quat_multiply_floats
 from mocapd.core.taps import TapDetector, TapOptions, linear_norm
 from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.slimevr import SlimeVrListener
@@ -53,9 +53,9 @@ class ImuInputs:
         )
         sv = config.slimevr
         self.slimevr = SlimeVrListener(self.on_sample, host=sv.host, port=sv.port) if sv.enabled else None
-        #: per-sensor device headings (``Rz(δ)``, from the suits' calibrations) applied to each sample before it
-        #: is buffered: sensors without a shared heading reference (SlimeVR trackers)
-        self.device_headings: dict[str, np.ndarray] = {}
+        #: per-sensor device headings (``Rz(δ)`` as (w, x, y, z) floats, from the suits' calibrations) applied to
+        #: each sample before it is buffered: sensors without a shared heading reference (SlimeVR trackers)
+        self.device_headings: dict[str, tuple[float, ...]] = {}
         #: observers of every sample (the sample, its quaternion in ENU, its buffer time or None when it was
         #: dropped), e.g. the session recorder; called where samples arrive, so they must not block
         self.taps: list[Callable[[ImuSample, tuple[float, ...] | None, int | None], None]] = []
@@ -72,7 +72,8 @@ class ImuInputs:
             quat = tuple(quat_to_enu(np.array(quat), s.frame.name))
         heading = self.device_headings.get(s.sensor)
         if quat is not None and heading is not None:
-            quat = tuple(float(v) for v in quat_multiply(heading, np.array(quat)))
+            # Plain floats, not numpy: one quaternion per sample, 1300 a second for a suit (bit-identical).
+            quat = quat_multiply_floats(heading, quat)
         if s.sensor in self._tap_norms and quat is not None and s.acc is not None:
             self._tap_sample(s.sensor, s.host_ns, quat, s.acc)
         t = self.ingest.add(
@@ -88,14 +89,14 @@ class ImuInputs:
 
     def use_calibrations(self, calibrations: list[ImuCalibration]) -> None:
         """Apply the device headings of these calibrations to their sensors' samples from now on."""
-        self.device_headings = {sid: q for c in calibrations for sid, q in c.device_heading_quats().items()}
+        self.device_headings = {sid: _floats(q) for c in calibrations for sid, q in c.device_heading_quats().items()}
 
     def turn_headings(self, turns: dict[str, np.ndarray]) -> None:
         """Turn these sensors' device headings by ``turns[sensor]`` (a quaternion about the device frame's up, from
         now on and for every sample already buffered, so that the solve sees no step): a heading reset."""
         for sid, turn in turns.items():
             old = self.device_headings.get(sid)
-            self.device_headings[sid] = turn if old is None else quat_multiply(turn, old)
+            self.device_headings[sid] = _floats(turn if old is None else quat_multiply(turn, np.asarray(old)))
             stream = self.ingest.streams.get(sid)
             if stream is not None:
                 stream.buffer.transform("quat", _turned_by(turn))
@@ -230,6 +231,11 @@ class ImuInputs:
             q_i = stream.buffer.field(r.row, "quat")
             out.append(BoneSample(bone, sid, r.status, bone_orientation(calibration.q_ig, q_i, calibration.q_ib[sid])))
         return out
+
+
+def _floats(q: np.ndarray) -> tuple[float, ...]:
+    """A quaternion as plain Python floats (exact: each float64 as it is)."""
+    return tuple(float(v) for v in q)
 
 
 def _turned_by(turn: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
