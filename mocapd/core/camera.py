@@ -283,16 +283,7 @@ def triangulate_projections(
     if w.shape != uv.shape[:2]:
         raise InputError(f"weights must have shape {uv.shape[:2]}, got {w.shape}")
     n_pts = uv.shape[1]
-    finite = np.all(np.isfinite(uv), axis=-1) & np.isfinite(w) & (w > 0)
-    w = np.where(finite, w, 0.0)
-    uv = np.where(finite[..., None], uv, 0.0)
-    # rows: (n_pts, 2 * n_cams, 4)
-    r1 = uv[..., 0, None] * P[:, None, 2, :] - P[:, None, 0, :]
-    r2 = uv[..., 1, None] * P[:, None, 2, :] - P[:, None, 1, :]
-    A = np.concatenate((r1, r2), axis=0).transpose(1, 0, 2)
-    # Unit-norm rows first (conditioning: pixel-sized rows would dominate), then the confidence weight.
-    norms = np.linalg.norm(A, axis=-1, keepdims=True)
-    A = A / np.where(norms > 0, norms, 1.0) * np.concatenate((w, w), axis=0).T[..., None]
+    A, w = weighted_dlt_rows(P, uv, w)
     ok = np.sum(w > 0, axis=0) >= min_views
     X = np.full((n_pts, 3), np.nan)
     if np.any(ok):
@@ -301,12 +292,46 @@ def triangulate_projections(
             h = np.linalg.eigh(Ao.transpose(0, 2, 1) @ Ao)[1][:, :, 0]  # eigenvalues ascending
         else:
             h = np.linalg.svd(A[ok])[2][:, -1, :]
-        good = np.abs(h[:, 3]) > 1e-12
-        Xo = np.full((h.shape[0], 3), np.nan)
-        Xo[good] = h[good, :3] / h[good, 3:4]
-        X[ok] = Xo
+        X[ok] = dehomogenized(h)
         ok = ok & np.all(np.isfinite(X), axis=-1)
     return X, ok
+
+
+def weighted_dlt_rows(P: FloatArray, uv: FloatArray, weights: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The DLT system of every point: each camera's two rows, unit-normed, times its weight (0 where the weight
+    is not positive or the pixel not finite).
+
+    Parameters
+    ----------
+    P : array, shape (n_cams, 3, 4)
+    uv : array, shape (n_cams, n_pts, 2)
+    weights : array, shape (n_cams, n_pts)
+
+    Returns
+    -------
+    A : array, shape (n_pts, 2 * n_cams, 4)
+        Every camera's u rows, then every camera's v rows.
+    w : array, shape (n_cams, n_pts)
+        The weights used (0 for an excluded view).
+    """
+    finite = np.all(np.isfinite(uv), axis=-1) & np.isfinite(weights) & (weights > 0)
+    w = np.where(finite, weights, 0.0)
+    uv = np.where(finite[..., None], uv, 0.0)
+    r1 = uv[..., 0, None] * P[:, None, 2, :] - P[:, None, 0, :]
+    r2 = uv[..., 1, None] * P[:, None, 2, :] - P[:, None, 1, :]
+    A = np.concatenate((r1, r2), axis=0).transpose(1, 0, 2)
+    # Unit-norm rows first (conditioning: pixel-sized rows would dominate), then the confidence weight.
+    norms = np.linalg.norm(A, axis=-1, keepdims=True)
+    A = A / np.where(norms > 0, norms, 1.0) * np.concatenate((w, w), axis=0).T[..., None]
+    return A, w
+
+
+def dehomogenized(h: FloatArray) -> FloatArray:
+    """Points (m, 3) from homogeneous solutions ``h`` (m, 4); NaN where the scale is (nearly) zero."""
+    good = np.abs(h[:, 3]) > 1e-12
+    X = np.full((h.shape[0], 3), np.nan)
+    X[good] = h[good, :3] / h[good, 3:4]
+    return X
 
 
 def look_at(

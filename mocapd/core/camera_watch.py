@@ -60,7 +60,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.camera import Camera, triangulate_projections
+from mocapd.core.camera import Camera, dehomogenized, triangulate_projections, weighted_dlt_rows
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -305,8 +305,9 @@ def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> 
     :func:`~mocapd.core.camera.triangulate_projections` gives for ``P[others], uv[others], weights[others]``
     (two views or more), to the bit, for every camera in one SVD call instead of one call each.
 
-    Its rows are the DLT rows of :func:`~mocapd.core.camera.triangulate_projections` (each a camera's, unit-normed,
-    times its weight: the same floats whichever cameras are in), and each camera's systems leave out its two rows;
+    Its rows are the DLT rows of :func:`~mocapd.core.camera.triangulate_projections`
+    (:func:`~mocapd.core.camera.weighted_dlt_rows`: each a camera's, unit-normed, times its weight: the same floats
+    whichever cameras are in), and each camera's systems leave out its two rows;
     the SVD of a stack solves each system on its own, so the points are the same.
 
     Parameters
@@ -325,24 +326,13 @@ def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> 
     uv = np.asarray(uv, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     n_cams, n_pts = uv.shape[:2]
-    finite = np.all(np.isfinite(uv), axis=-1) & np.isfinite(weights) & (weights > 0)
-    w = np.where(finite, weights, 0.0)
-    uv = np.where(finite[..., None], uv, 0.0)
-    r1 = uv[..., 0, None] * P[:, None, 2, :] - P[:, None, 0, :]
-    r2 = uv[..., 1, None] * P[:, None, 2, :] - P[:, None, 1, :]
-    A = np.concatenate((r1, r2), axis=0).transpose(1, 0, 2)  # (n_pts, 2 * n_cams, 4): every camera's rows
-    norms = np.linalg.norm(A, axis=-1, keepdims=True)
-    A = A / np.where(norms > 0, norms, 1.0) * np.concatenate((w, w), axis=0).T[..., None]
+    A, w = weighted_dlt_rows(P, uv, weights)  # (n_pts, 2 * n_cams, 4): every camera's rows
     A_left = A[:, _left_out_rows(n_cams)].transpose(1, 0, 2, 3)  # (n_cams, n_pts, 2 n - 2, 4)
     views = np.sum(w > 0, axis=0)
     ok = (views[None, :] - (w > 0)) >= 2  # seen by two of the others
     X = np.full((n_cams, n_pts, 3), np.nan)
     if np.any(ok):
-        h = np.linalg.svd(A_left[ok])[2][:, -1, :]
-        good = np.abs(h[:, 3]) > 1e-12
-        Xo = np.full((h.shape[0], 3), np.nan)
-        Xo[good] = h[good, :3] / h[good, 3:4]
-        X[ok] = Xo
+        X[ok] = dehomogenized(np.linalg.svd(A_left[ok])[2][:, -1, :])
         ok = ok & np.all(np.isfinite(X), axis=-1)
     return X, ok
 
