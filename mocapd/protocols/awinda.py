@@ -26,6 +26,7 @@ import math
 import struct
 from dataclasses import dataclass, field
 
+from mocapd.core.rotations import quat_multiply_floats
 from mocapd.errors import ConfigError
 from mocapd.protocols.mtdata2 import AwindaSnapshot
 from mocapd.protocols.xbus import MID
@@ -111,24 +112,11 @@ class SnapshotIntegrator:
         track.last_frame = snap.frame_number
         vx, vy, vz = (v * self.delta_q_scale for v in snap.delta_q)
         w = math.sqrt(max(0.0, 1.0 - (vx * vx + vy * vy + vz * vz)))
-        track.quat = _normalize(_multiply(track.quat, (w, vx, vy, vz)))
+        track.quat = _normalize(quat_multiply_floats(track.quat, (w, vx, vy, vz)))
         dt = frames / self.rate_hz
         ax, ay, az = (v * self.delta_v_scale / dt for v in snap.delta_v)
         ticks = round(snap.frame_number * 10_000 / self.rate_hz) & 0xFFFFFFFF
         return IntegratedSample(f"{snap.device_id:08X}", snap.frame_number, ticks, track.quat, (ax, ay, az))
-
-
-def _multiply(
-    a: tuple[float, float, float, float], b: tuple[float, float, float, float]
-) -> tuple[float, float, float, float]:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
 
 
 def _normalize(q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
