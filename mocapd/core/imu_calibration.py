@@ -825,10 +825,10 @@ def stillest_common_window(
     CalibrationError
         The span is shorter than the window.
     """
-    starts = _window_starts(samples, window_s, span)
     if not _batchable(samples, max_turn_deg, max_acc_std):
         return _stillest_common_window_reference(samples, window_s, span, max_turn_deg=max_turn_deg,
                                                  max_acc_std=max_acc_std)  # fmt: skip
+    starts = _window_starts(samples, window_s, span)
     score = np.zeros(len(starts))
     bound = np.zeros(len(starts))
     for t, q, a in samples.values():
