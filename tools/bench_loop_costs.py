@@ -259,11 +259,12 @@ def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
 
         return run
 
-    def dispatch(mod: ModuleType) -> Callable[[], float]:
+    def streamed(serial: ModuleType, make_inputs: Callable[[], Callable[[Any], None]]) -> Callable[[], float]:
+        """The real MTw reads through a measuring session and ``serial``'s device, into ``make_inputs()``."""
         from mocapd.protocols.xsens_session import State, XsensSession, output_settings
 
         def run() -> float:
-            device = mod.XsensSerialDevice(mod.XsensPortConfig("/dev/ttyMTW"), lambda s: None)
+            device = serial.XsensSerialDevice(serial.XsensPortConfig("/dev/ttyMTW"), make_inputs())
             session = XsensSession(output_settings(100))
             session.state = State.MEASURING
             session._events.append(streaming)
@@ -275,6 +276,15 @@ def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
             return (time.thread_time() - t0) / len(samples)
 
         return run
+
+    def dispatch(mod: ModuleType) -> Callable[[], float]:
+        return streamed(mod, lambda: lambda s: None)
+
+    def old_ingest_module() -> ModuleType:
+        old_ring = module_at(rev, "mocapd/pipeline/ringbuffer.py", "_old_ringbuffer")
+        old_ingest = module_at(rev, "mocapd/pipeline/imu_ingest.py", "_old_imu_ingest")
+        old_ingest.__dict__.update(RingBuffer=old_ring.RingBuffer, IMU_FIELDS=old_ring.IMU_FIELDS)
+        return old_ingest
 
     def ingest(mod: ModuleType) -> Callable[[], float]:
         def run() -> float:
@@ -296,37 +306,22 @@ def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
     if "ingest" in only:
         from mocapd.pipeline import imu_ingest as new_ingest
 
-        old_ring = module_at(rev, "mocapd/pipeline/ringbuffer.py", "_old_ringbuffer")
-        old_ingest = module_at(rev, "mocapd/pipeline/imu_ingest.py", "_old_imu_ingest")
-        old_ingest.__dict__.update(RingBuffer=old_ring.RingBuffer, IMU_FIELDS=old_ring.IMU_FIELDS)
-        out["imu_ingest_add"] = alternate({"old": ingest(old_ingest), "new": ingest(new_ingest)}, rounds)
+        out["imu_ingest_add"] = alternate({"old": ingest(old_ingest_module()), "new": ingest(new_ingest)}, rounds)
 
     def path(serial: ModuleType, inputs_mod: ModuleType) -> Callable[[], float]:
-        from mocapd.protocols.xsens_session import State, XsensSession, output_settings
-
-        def run() -> float:
+        def make_inputs() -> Callable[[Any], None]:
             inputs = inputs_mod.ImuInputs(ImuConfig())
             inputs.turn_headings({samples[0].sensor: np.array([np.cos(0.35), 0.0, 0.0, np.sin(0.35)])})
-            device = serial.XsensSerialDevice(serial.XsensPortConfig("/dev/ttyMTW"), inputs.on_sample)
-            session = XsensSession(output_settings(100))
-            session.state = State.MEASURING
-            session._events.append(streaming)
-            device._dispatch(session, [], 0)
-            t0 = time.thread_time()
-            for now, data in reads:
-                session.receive_data(data, now)
-                device._dispatch(session, [], now)
-            return (time.thread_time() - t0) / len(samples)
+            on: Callable[[Any], None] = inputs.on_sample
+            return on
 
-        return run
+        return streamed(serial, make_inputs)
 
     if "imu_path" in only:
         from mocapd.io import xsens_serial as new_serial
 
         old_serial = module_at(rev, "mocapd/io/xsens_serial.py", "_old_xsens_serial")
-        old_ring = module_at(rev, "mocapd/pipeline/ringbuffer.py", "_old_ringbuffer")
-        old_ingest = module_at(rev, "mocapd/pipeline/imu_ingest.py", "_old_imu_ingest")
-        old_ingest.__dict__.update(RingBuffer=old_ring.RingBuffer, IMU_FIELDS=old_ring.IMU_FIELDS)
+        old_ingest = old_ingest_module()
         old_inputs = module_at(rev, "mocapd/service/imu_inputs.py", "_old_imu_inputs")
         old_inputs.__dict__.update(ImuIngest=old_ingest.ImuIngest)
         out["imu_path"] = alternate({"old": path(old_serial, old_inputs), "new": path(new_serial, new_inputs)}, rounds)
