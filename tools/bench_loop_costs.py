@@ -26,6 +26,11 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   (clock map, ring buffer), the revision's ring buffer with the revision's ingest; ``imu_path``: all of it, bytes
   to buffer through the device's dispatch and ``on_sample`` with a device heading (each side its own modules).
 
+* ``speed``: :func:`~mocapd.pipeline.time_alignment.keypoint_speed` of one camera's kept frames (256 frames of a
+  synthetic 4-camera rig's 30 Hz detections of 2 people, what a timeline keeps), per call; ``offsets``: the
+  cameras' whole offset estimate (:func:`~mocapd.pipeline.scheduler.estimate_camera_offsets` of the 4 cameras:
+  their speeds, then the lag searches), per call, the speeds the revision's or the working tree's.
+
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
 
@@ -336,13 +341,60 @@ def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
     return out
 
 
+def _old_time_alignment(rev: str) -> ModuleType:
+    """The revision's ``time_alignment``, with the revision's ``person_distances``."""
+    old_timeline = module_at(rev, "mocapd/pipeline/keypoint_timeline.py", "_old_keypoint_timeline")
+    old = module_at(rev, "mocapd/pipeline/time_alignment.py", "_old_time_alignment")
+    old.__dict__.update(person_distances=old_timeline.person_distances)
+    return old
+
+
+def bench_offsets(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
+    sys.path.insert(0, str(ROOT))
+    from mocapd.pipeline import scheduler
+    from mocapd.pipeline import time_alignment as new
+    from tools.bench_offset_estimate import recorded_frames
+
+    old = _old_time_alignment(rev)
+    names, frames = recorded_frames(256 / 30)
+    out: dict[str, Any] = {}
+
+    def speed(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for times, dets in frames:
+                mod.keypoint_speed(np.asarray(times, dtype=np.int64), dets)
+            return (time.thread_time() - t0) / len(frames)
+
+        return run
+
+    def offsets(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            real = scheduler.__dict__["keypoint_speed_steps"]
+            scheduler.__dict__["keypoint_speed_steps"] = mod.keypoint_speed_steps  # the estimate's speeds: the module's
+            try:
+                t0 = time.thread_time()
+                scheduler.estimate_camera_offsets(names, frames, ())
+                return time.thread_time() - t0
+            finally:
+                scheduler.__dict__["keypoint_speed_steps"] = real
+
+        return run
+
+    if "speed" in only:
+        out["keypoint_speed_256_frames"] = alternate({"old": speed(old), "new": speed(new)}, rounds)
+    if "offsets" in only:
+        out["camera_offset_estimate"] = alternate({"old": offsets(old), "new": offsets(new)}, rounds)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -354,6 +406,7 @@ def main() -> None:
     if "mtdata2" in only:
         report.update(bench_mtdata2(args.rev, args.rounds))
     report.update(bench_imu(args.rev, args.rounds, only))
+    report.update(bench_offsets(args.rev, args.rounds, only))
     print(json.dumps(report, indent=1))
 
 
