@@ -359,7 +359,9 @@ def test_the_offset_estimate_runs_between_ticks_in_steps() -> None:
         return waited, count[0], result
 
     waited, steps, result = asyncio.run(main())
-    assert steps > 100 and result == expected
+    # many steps: each camera's keypoint speeds in FRAMES_PER_STEP frame pairs (4 steps for 256 frames), then
+    # its lag search a few candidate lags at a time
+    assert steps > 60 and result == expected
     # A due timer waited one step at most (the first was set before the work's first step, which runs before the
     # work first gives the loop back).
     assert len(waited) > 50 and max(waited[1:]) <= 1, waited
