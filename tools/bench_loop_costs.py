@@ -31,6 +31,10 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   cameras' whole offset estimate (:func:`~mocapd.pipeline.scheduler.estimate_camera_offsets` of the 4 cameras:
   their speeds, then the lag searches), per call, the speeds the revision's or the working tree's.
 
+* ``arrive``: :meth:`~mocapd.pipeline.scheduler.FixedLatencyScheduler.add_detections` per keypoint set (2 people of
+  the synthetic ring seen by 4 cameras with lens distortion, the delay following the detector), the revision's
+  scheduler with the revision's latency accounting.
+
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
 
@@ -388,13 +392,58 @@ def bench_offsets(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
     return out
 
 
+def _scheduler(sched_mod: ModuleType, world: Any) -> Any:
+    """``sched_mod``'s scheduler over ``world``'s people, its cameras given lens distortion, latency "auto"."""
+    import dataclasses
+
+    from mocapd.core.people import PeopleTracker
+    from mocapd.core.sorting import DetectionSorter
+    from mocapd.core.suit_binding import SuitBinder
+    from mocapd.core.tracking import SubjectTracker, TrackingOptions
+    from mocapd.pipeline.latency import AutoLatencyOptions
+
+    cameras = [dataclasses.replace(c, dist=np.array([-0.21, 0.08, 0.0012, -0.0007, -0.012])) for c in world.cameras]
+    tracker = PeopleTracker(SubjectTracker(DetectionSorter(cameras), TrackingOptions()),
+                            SuitBinder(world.skeleton, names=world.targets.names))  # fmt: skip
+    options = sched_mod.SchedulerOptions(auto_latency=AutoLatencyOptions())
+    return sched_mod.FixedLatencyScheduler(cameras, world.skeleton, world.targets, tracker, options=options)
+
+
+def bench_arrival(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.pipeline import scheduler as new
+    from mocapd.sim.world import SyntheticWorld
+
+    old_latency = module_at(rev, "mocapd/pipeline/latency.py", "_old_latency")
+    old = module_at(rev, "mocapd/pipeline/scheduler.py", "_old_scheduler")
+    old.__dict__.update(LatencyStats=old_latency.LatencyStats, AutoLatency=old_latency.AutoLatency)
+    world = SyntheticWorld(4, 2, 0, seed=3)
+    rng = np.random.default_rng(0)
+    sets = [(c, world.detections(c, k / 30, rng)) for k in range(150) for c in range(4)]
+
+    def arrive(mod: ModuleType) -> Callable[[], float]:
+        sched = _scheduler(mod, world)
+        t = 10**12
+
+        def run() -> float:
+            nonlocal t
+            t0 = time.thread_time()
+            for c, dets in sets:
+                t += 8_000_000
+                sched.add_detections(c, t, dets, t + 30_000_000)
+            return (time.thread_time() - t0) / len(sets)
+
+        return run
+
+    return {"add_detections": alternate({"old": arrive(old), "new": arrive(new)}, rounds)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -407,6 +456,8 @@ def main() -> None:
         report.update(bench_mtdata2(args.rev, args.rounds))
     report.update(bench_imu(args.rev, args.rounds, only))
     report.update(bench_offsets(args.rev, args.rounds, only))
+    if "arrive" in only:
+        report.update(bench_arrival(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
 
 

@@ -89,6 +89,18 @@ class Detections2D:
         object.__setattr__(self, "keypoints", kp)
         object.__setattr__(self, "confidences", cf)
 
+    def with_undistorted(self, undistorted: FloatArray) -> Detections2D:
+        """These detections with their undistorted copy: :func:`dataclasses.replace` without converting and
+        checking the keypoints and confidences again (done when these were made; once per keypoint set arriving
+        on the event loop, issue 39)."""
+        if np.shape(undistorted) != self.keypoints.shape:
+            raise InputError(f"detections: undistorted keypoints {np.shape(undistorted)} for {self.keypoints.shape}")
+        out = object.__new__(Detections2D)
+        object.__setattr__(out, "keypoints", self.keypoints)
+        object.__setattr__(out, "confidences", self.confidences)
+        object.__setattr__(out, "undistorted", undistorted)
+        return out
+
     @classmethod
     def empty(cls, n_kp: int) -> Detections2D:
         return cls(np.zeros((0, n_kp, 2)), np.zeros((0, n_kp)))

@@ -9,6 +9,7 @@ clock. Memory is fixed: the histogram has fixed buckets and the windows are prea
 
 from __future__ import annotations
 
+from bisect import bisect_left
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,7 +32,7 @@ class LatencyStats:
     """
 
     def __init__(self, window: int = 4096) -> None:
-        self._bounds_ns = np.array([b * 1e6 for b in BUCKETS_MS])
+        self._bounds_ns = [b * 1e6 for b in BUCKETS_MS]  # a list: bisect on it is a tenth of searchsorted's call
         self.bucket_counts = np.zeros(len(BUCKETS_MS) + 1, dtype=np.int64)  # last: +Inf
         self.count = 0
         self.sum_ns = 0
@@ -41,7 +42,7 @@ class LatencyStats:
 
     def add(self, value_ns: int) -> None:
         """Record one duration (ns)."""
-        self.bucket_counts[int(np.searchsorted(self._bounds_ns, value_ns, side="left"))] += 1
+        self.bucket_counts[bisect_left(self._bounds_ns, value_ns)] += 1
         self.count += 1
         self.sum_ns += int(value_ns)
         self._recent[self._i] = value_ns

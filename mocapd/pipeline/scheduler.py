@@ -448,7 +448,7 @@ class FixedLatencyScheduler:
         if detections.undistorted is None and len(detections):
             # Undistorted once, here, for every tick that samples this frame (the flip search, body sizing and
             # heading triangulate in undistorted pixels).
-            detections = replace(detections, undistorted=self._undistort(camera, detections.keypoints))
+            detections = detections.with_undistorted(self._undistort(camera, detections.keypoints))
         if not self.timelines[camera].push(t, detections):
             self.counters["detections_rejected"] += 1
             return False
@@ -910,6 +910,8 @@ class FixedLatencyScheduler:
 
     def _undistort(self, camera: int, uv: FloatArray) -> FloatArray:
         """Pixels (..., 2) of ``camera`` undistorted; NaN stays NaN (a keypoint nobody saw)."""
+        if np.isfinite(uv).all():  # the usual set (unseen keypoints are zeros with confidence 0): as it is
+            return self.cameras[camera].undistort_points(uv)
         und = self.cameras[camera].undistort_points(np.nan_to_num(uv))
         return np.where(np.isfinite(uv), und, np.nan)
 
