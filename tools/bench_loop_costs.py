@@ -35,6 +35,11 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   the synthetic ring seen by 4 cameras with lens distortion, the delay following the detector), the revision's
   scheduler with the revision's latency accounting.
 
+* ``sample``: :meth:`~mocapd.pipeline.keypoint_timeline.DetectionTimeline.sample` per look-up, 60 Hz look-ups
+  between one camera's 30 Hz frames of 2 people (with their undistorted copies; a matching per bracket, a blend
+  per look-up), the revision's timeline module, and at 60 Hz frames (a matching and a blend per look-up); ``blend``: its
+  :func:`~mocapd.pipeline.keypoint_timeline.interpolate_people` alone, pairs given.
+
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
 
@@ -437,13 +442,75 @@ def bench_arrival(rev: str, rounds: int) -> dict[str, Any]:
     return {"add_detections": alternate({"old": arrive(old), "new": arrive(new)}, rounds)}
 
 
+def bench_sample(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core.sorting import Detections2D
+    from mocapd.pipeline import keypoint_timeline as new
+    from mocapd.sim.world import SyntheticWorld
+
+    old = module_at(rev, "mocapd/pipeline/keypoint_timeline.py", "_old_keypoint_timeline")
+    world = SyntheticWorld(4, 2, 0, seed=3)
+    rng = np.random.default_rng(0)
+    period = round(1e9 / 30)
+    frames = []
+    for k in range(120):
+        d = world.detections(0, k / 30, rng)
+        frames.append((k * period, Detections2D(d.keypoints, d.confidences, d.keypoints * 0.98 + 3.0)))
+    looks = list(range(frames[1][0], frames[-1][0], round(1e9 / 60)))
+
+    def sample(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            tl = mod.DetectionTimeline(frames[0][1].keypoints.shape[1])
+            for t, d in frames:
+                tl.push(t, d)
+            t0 = time.thread_time()
+            for t in looks:
+                tl.sample(t)
+            return (time.thread_time() - t0) / len(looks)
+
+        return run
+
+    a, b = frames[10][1], frames[11][1]
+    pairs = new.match_people(a, b, 80.0)
+
+    def blend(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for k in range(300):
+                mod.interpolate_people(a, b, k / 300, 80.0, pairs=pairs)
+            return (time.thread_time() - t0) / 300
+
+        return run
+
+    def sample_new_brackets(mod: ModuleType) -> Callable[[], float]:
+        """Frames at 60 Hz (tracked keypoints), look-ups between each two: a matching and a blend per look-up."""
+
+        def run() -> float:
+            tl = mod.DetectionTimeline(frames[0][1].keypoints.shape[1])
+            for t, d in frames:
+                tl.push(t // 2, d)
+            t0 = time.thread_time()
+            for t, _ in frames[1:-1]:
+                tl.sample(t // 2 + period // 4)
+            return (time.thread_time() - t0) / (len(frames) - 2)
+
+        return run
+
+    return {
+        "timeline_sample": alternate({"old": sample(old), "new": sample(new)}, rounds),
+        "timeline_sample_new_brackets": alternate(
+            {"old": sample_new_brackets(old), "new": sample_new_brackets(new)}, rounds
+        ),
+        "interpolate_people": alternate({"old": blend(old), "new": blend(new)}, rounds),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -458,6 +525,8 @@ def main() -> None:
     report.update(bench_offsets(args.rev, args.rounds, only))
     if "arrive" in only:
         report.update(bench_arrival(args.rev, args.rounds))
+    if "sample" in only:
+        report.update(bench_sample(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
 
 

@@ -98,7 +98,7 @@ class DetectionTimeline:
         self.frames_received = 0
         #: the last bracket's two frames and who in one is who in the other: at 60 Hz ticks and 30 Hz cameras
         #: consecutive ticks blend the same two frames at another ``alpha``, and the matching does not depend on it
-        self._matched: tuple[Detections2D, Detections2D, list[tuple[int, int]]] | None = None
+        self._matched: tuple[Detections2D, Detections2D, Bracket] | None = None
         #: people matchings computed (one per bracket sampled, however many ticks sample it)
         self.matchings = 0
 
@@ -126,9 +126,8 @@ class DetectionTimeline:
         """The detections at ``t_ns`` (see the module docstring for the rules). ``with_people=False``: the status and
         frames only, for a caller that needs nothing else (a tick that carries its people on instead of solving
         them): between two frames the people are then neither matched nor blended, and the detections are empty."""
-        empty = Detections2D.empty(self.n_kp)
         if not self._frames:
-            return TimelineSample(SampleStatus.EMPTY, empty, 0, 0)
+            return TimelineSample(SampleStatus.EMPTY, self._empty(), 0, 0)
         first_t, first = self._frames[0]
         last_t, last = self._frames[-1]
         if t_ns >= last_t:
@@ -136,11 +135,11 @@ class DetectionTimeline:
                 return TimelineSample(SampleStatus.EXACT, last, last_t, last_t, last_t)
             if t_ns - last_t <= self.max_age_ns:
                 return TimelineSample(SampleStatus.HELD, last, last_t, last_t, last_t)
-            return TimelineSample(SampleStatus.STALE, empty, last_t, last_t)
+            return TimelineSample(SampleStatus.STALE, self._empty(), last_t, last_t)
         if t_ns < first_t:
             if first_t - t_ns <= self.max_age_ns:
                 return TimelineSample(SampleStatus.NEAREST, first, first_t, first_t, first_t)
-            return TimelineSample(SampleStatus.STALE, empty, first_t, first_t)
+            return TimelineSample(SampleStatus.STALE, self._empty(), first_t, first_t)
         # Newest first: the scheduler looks a fixed latency back, so the bracket is near the end.
         k = len(self._frames) - 2
         while self._frames[k][0] > t_ns:
@@ -153,16 +152,20 @@ class DetectionTimeline:
             near_t, near = (t0, a) if t_ns - t0 <= t1 - t_ns else (t1, b)
             if abs(t_ns - near_t) <= self.max_age_ns:
                 return TimelineSample(SampleStatus.NEAREST, near, t0, t1, near_t)
-            return TimelineSample(SampleStatus.STALE, empty, t0, t1)
+            return TimelineSample(SampleStatus.STALE, self._empty(), t0, t1)
         alpha = (t_ns - t0) / (t1 - t0)
         if not with_people:
-            return TimelineSample(SampleStatus.INTERPOLATED, empty, t0, t1, t0 if alpha <= 0.5 else t1)
+            return TimelineSample(SampleStatus.INTERPOLATED, self._empty(), t0, t1, t0 if alpha <= 0.5 else t1)
         m = self._matched
         if m is None or m[0] is not a or m[1] is not b:
-            m = self._matched = (a, b, match_people(a, b, self.match_px))
+            m = self._matched = (a, b, Bracket(a, b, match_people(a, b, self.match_px)))
             self.matchings += 1
-        people = interpolate_people(a, b, alpha, self.match_px, pairs=m[2])
+        people = m[2].at(alpha)
         return TimelineSample(SampleStatus.INTERPOLATED, people, t0, t1, t0 if alpha <= 0.5 else t1)
+
+    def _empty(self) -> Detections2D:
+        """Nobody (made only where a look-up answers with nobody: most ticks do not)."""
+        return Detections2D.empty(self.n_kp)
 
 
 def person_distances(a: Detections2D, b: Detections2D, min_confidence: float = 0.0) -> FloatArray:
@@ -197,38 +200,73 @@ def interpolate_people(
     people of the nearer frame are passed through; those of the farther frame are left out. ``pairs``: the
     frames' :func:`match_people` when the caller has it already (it does not depend on ``alpha``).
     """
-    near = a if alpha <= 0.5 else b
     if pairs is None:
         pairs = match_people(a, b, match_px)
-    # The undistorted copies (made once per frame as it arrived) are blended like the pixels: the lens map is
-    # smooth over the few pixels a keypoint moves between two frames.
-    with_und = a.undistorted is not None and b.undistorted is not None
-    kps: list[FloatArray] = []
-    cfs: list[FloatArray] = []
-    unds: list[FloatArray] = []
-    for i, j in pairs:
-        ca, cb = a.confidences[i], b.confidences[j]
-        both = (ca > 0) & (cb > 0)
-        kps.append(_blend(a.keypoints[i], b.keypoints[j], both, ca > 0, alpha))
-        cfs.append(np.where(both, ca + alpha * (cb - ca), np.where(ca > 0, ca * (1.0 - alpha), cb * alpha)))
+    return Bracket(a, b, pairs).at(alpha)
+
+
+class Bracket:
+    """Two frames' people, matched (``pairs``: :func:`match_people`), ready to blend at any ``alpha``
+    (:func:`interpolate_people`'s rules).
+
+    What does not depend on ``alpha`` is worked out once, when the bracket is first sampled: the matched people's
+    rows, which keypoints each pair saw in both frames or in one, the steps between the frames, and the nearer
+    frame's unmatched people. At 60 Hz ticks and 30 Hz cameras two ticks blend each bracket, so a tick only blends
+    (a few element-wise operations for every pair at once, issue 39). The arithmetic is the pair-by-pair loop's,
+    element by element: the same floats (``tests/test_timeline_bitwise.py``). The undistorted copies (made once per
+    frame as it arrived) are blended like the pixels: the lens map is smooth over the few pixels a keypoint moves
+    between two frames.
+    """
+
+    def __init__(self, a: Detections2D, b: Detections2D, pairs: list[tuple[int, int]]) -> None:
+        self.n_kp = a.keypoints.shape[1]
+        ia, jb = np.array(pairs, dtype=np.intp).reshape(-1, 2).T
+        ca, cb = a.confidences[ia], b.confidences[jb]
+        in_a = ca > 0
+        self._both = in_a & (cb > 0)
+        self._ca, self._cb, self._dc, self._in_a = ca, cb, cb - ca, in_a
+        self._points = [self._pair_points(a.keypoints[ia], b.keypoints[jb], in_a)]
+        if a.undistorted is not None and b.undistorted is not None:
+            self._points.append(self._pair_points(a.undistorted[ia], b.undistorted[jb], in_a))
+        #: per nearer frame (a, b): its people no pair holds, in their order (None: everyone is matched)
+        self._rest = [self._unmatched(a, ia, len(self._points) > 1), self._unmatched(b, jb, len(self._points) > 1)]
+
+    @staticmethod
+    def _pair_points(pa: FloatArray, pb: FloatArray, in_a: BoolArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(a's points, the step to b's, the one frame's points where only one saw them), shapes (pairs, n_kp, 2)."""
+        return pa, pb - pa, np.where(in_a[..., None], pa, pb)
+
+    @staticmethod
+    def _unmatched(frame: Detections2D, matched: NDArray[np.intp], with_und: bool) -> list[FloatArray] | None:
+        if len(matched) == frame.keypoints.shape[0]:  # the usual bracket: nobody left over, nothing to append
+            return None
+        rest = np.ones(frame.keypoints.shape[0], dtype=bool)
+        rest[matched] = False
+        out = [frame.keypoints[rest], frame.confidences[rest]]
         if with_und:
-            assert a.undistorted is not None and b.undistorted is not None
-            unds.append(_blend(a.undistorted[i], b.undistorted[j], both, ca > 0, alpha))
-    matched_near = {i for i, _ in pairs} if near is a else {j for _, j in pairs}
-    for p in range(near.keypoints.shape[0]):
-        if p not in matched_near:
-            kps.append(near.keypoints[p])
-            cfs.append(near.confidences[p])
-            if with_und:
-                assert near.undistorted is not None
-                unds.append(near.undistorted[p])
-    n_kp = a.keypoints.shape[1]
-    if not kps:
-        return Detections2D.empty(n_kp)
-    return Detections2D(np.stack(kps), np.stack(cfs), np.stack(unds) if with_und else None)
+            assert frame.undistorted is not None
+            out.append(frame.undistorted[rest])
+        return out
+
+    def at(self, alpha: float) -> Detections2D:
+        """The people at ``alpha`` in [0, 1] (0 = frame a): matched pairs blended, then the unmatched people of the
+        nearer frame passed through (those of the farther one left out)."""
+        rest = self._rest[0 if alpha <= 0.5 else 1]
+        if not len(self._ca) and rest is None:
+            return Detections2D.empty(self.n_kp)
+        in_a, ca, cb, both = self._in_a, self._ca, self._cb, self._both
+        cf = np.where(both, ca + alpha * self._dc, np.where(in_a, ca * (1.0 - alpha), cb * alpha))
+        both_xy = both[..., None]
+        blended = [np.where(both_xy, pa + alpha * step, one) for pa, step, one in self._points]
+        und = blended[1] if len(blended) > 1 else None
+        if rest is None:
+            return Detections2D(blended[0], cf, und)
+        if und is not None:
+            und = np.concatenate((und, rest[2]))
+        return Detections2D(np.concatenate((blended[0], rest[0])), np.concatenate((cf, rest[1])), und)
 
 
 def _blend(pa: FloatArray, pb: FloatArray, both: BoolArray, in_a: BoolArray, alpha: float) -> FloatArray:
-    """Points (n_kp, 2) of two frames at ``alpha``: blended where both saw them, else the one that did."""
-    out: FloatArray = np.where(both[:, None], pa + alpha * (pb - pa), np.where(in_a[:, None], pa, pb))
+    """Points (..., n_kp, 2) of two frames at ``alpha``: blended where both saw them, else the one that did."""
+    out: FloatArray = np.where(both[..., None], pa + alpha * (pb - pa), np.where(in_a[..., None], pa, pb))
     return out
