@@ -40,6 +40,9 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   per look-up), the revision's timeline module, and at 60 Hz frames (a matching and a blend per look-up); ``blend``: its
   :func:`~mocapd.pipeline.keypoint_timeline.interpolate_people` alone, pairs given.
 
+* ``collapse``: :func:`~mocapd.core.lr_collapse.collapsed_pairs` per person solve (a walking person seen by 4
+  cameras, one view with the right arm put on the left one, the previous pose given), the revision's module.
+
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
 
@@ -504,13 +507,46 @@ def bench_sample(rev: str, rounds: int) -> dict[str, Any]:
     }
 
 
+def bench_collapse(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core import lr_collapse as new
+    from mocapd.core.keypoints import coco17_targets
+    from mocapd.core.kinematics import Kinematics
+    from mocapd.core.lr_flips import COCO17_LR_PAIRS, undistorted
+    from mocapd.core.skeleton import Skeleton
+    from mocapd.core.synthetic import moving_sequence, ring_rig
+
+    old = module_at(rev, "mocapd/core/lr_collapse.py", "_old_lr_collapse")
+    sk = Skeleton.from_height(1.75)
+    kin, targets = Kinematics(sk), coco17_targets(sk)
+    cams = ring_rig(4, radius=4.5)
+    rng = np.random.default_rng(0)
+    people = []
+    for theta in moving_sequence(sk, 40, seed=3):
+        X = kin.targets(kin.forward(theta), targets.bones, targets.offsets)
+        uv = np.stack([c.project(X) for c in cams]) + rng.normal(0.0, 1.0, (4, 17, 2))
+        uv[1, [8, 10]] = uv[1, [7, 9]] + 1.5
+        P, und = undistorted(cams, uv)
+        people.append((P, und, np.full((4, 17), 0.9), X))
+
+    def collapse(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for P, und, conf, X in people:
+                mod.collapsed_pairs(P, und, conf, COCO17_LR_PAIRS, X)
+            return (time.thread_time() - t0) / len(people)
+
+        return run
+
+    return {"collapsed_pairs": alternate({"old": collapse(old), "new": collapse(new)}, rounds)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -527,6 +563,8 @@ def main() -> None:
         report.update(bench_arrival(args.rev, args.rounds))
     if "sample" in only:
         report.update(bench_sample(args.rev, args.rounds))
+    if "collapse" in only:
+        report.update(bench_collapse(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
 
 

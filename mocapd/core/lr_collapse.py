@@ -96,41 +96,64 @@ def collapsed_pairs(
     candidate = both & (gap < o.collapsed * size[:, None])
     if not candidate.any():
         return out  # the common case: nothing to check, no triangulation
-    for c, p in zip(*np.nonzero(candidate), strict=True):
-        sep = _expected_gap(P, uv, conf, ok, candidate[:, p], lr[p], int(c), reference)
-        out[c, p] = bool(np.isfinite(sep) and sep >= o.apart * size[c])
+    views, which = np.nonzero(candidate)
+    sep = expected_gaps(P, uv, conf, ok, candidate, lr, views, which, reference)
+    out[views, which] = np.isfinite(sep) & (sep >= o.apart * size[views])
     return out
 
 
-def _expected_gap(
+def expected_gaps(
     P: FloatArray,
     uv: FloatArray,
     conf: FloatArray,
     ok: BoolArray,
-    collapsed_views: BoolArray,
-    pair: NDArray[np.intp],
-    view: int,
+    candidate: BoolArray,
+    lr: NDArray[np.intp],
+    views: NDArray[np.intp],
+    which: NDArray[np.intp],
     reference: FloatArray | None,
-) -> float:
-    """The pair's separation in ``view`` (px) as the views that do not collapse it triangulate it, else as the
-    reference projects it; NaN when neither can say."""
-    others = ~collapsed_views & ok[:, pair].all(axis=1)
-    others[view] = False
-    X: FloatArray | None = None
-    if np.count_nonzero(others) >= 2:
-        w = np.where(others[:, None], conf[:, pair], 0.0)
-        pts, good = triangulate_projections(P, uv[:, pair], w)
-        if good.all():
-            X = pts
-    if X is None and reference is not None and np.isfinite(reference[pair]).all():
-        X = np.asarray(reference[pair], dtype=np.float64)
-    if X is None:
-        return float("nan")
-    h = P[view, :, :3] @ X.T + P[view, :, 3:4]  # (3, 2)
-    if np.any(h[2] <= 1e-6):
-        return float("nan")
-    px = h[:2] / h[2]
-    return float(np.linalg.norm(px[:, 0] - px[:, 1]))
+) -> FloatArray:
+    """Per candidate (``views[k]``, pair ``which[k]``): the pair's separation in that view (px) as the views that
+    do not collapse it triangulate it, else as ``reference`` projects it; NaN when neither can say.
+
+    Every candidate at once: the eyes and ears are candidates in every view on every solve (they lie a few per
+    cent of a person's size apart), so one triangulation per candidate was ~17 small NumPy triangulations a person
+    and tick (issue 39). The DLT rows are :func:`~mocapd.core.camera.weighted_dlt_rows`' (element-wise, the same
+    floats whichever points share the call), the SVD of the stack solves each system on its own, and the
+    projections are a stack of the same matrix products: the same floats as one candidate at a time
+    (``tests/test_lr_collapse_bitwise.py``).
+
+    Returns
+    -------
+    array, shape (n_candidates,)
+    """
+    n = views.size
+    pair = lr[which]  # (n, 2) keypoint indices
+    others = ~candidate[:, which].T & ok[:, pair].all(axis=2).T  # (n, n_cams): views that see both, not collapsing
+    others[np.arange(n), views] = False
+    X = np.full((n, 2, 3), np.nan)
+    by_views = np.count_nonzero(others, axis=1) >= 2
+    if by_views.any():
+        k = np.flatnonzero(by_views)
+        # (n_cams, 2 k): each candidate's two keypoints as points of one triangulation call
+        uv_k = uv[:, pair[k].ravel()]
+        w_k = np.where(others[k].repeat(2, axis=0).T, conf[:, pair[k].ravel()], 0.0)
+        pts, good = triangulate_projections(P, uv_k, w_k)
+        both_good = good.reshape(-1, 2).all(axis=1)
+        X[k[both_good]] = pts.reshape(-1, 2, 3)[both_good]
+    if reference is not None:
+        fall_back = np.isnan(X).any(axis=(1, 2)) & np.isfinite(reference[pair]).all(axis=(1, 2))
+        X[fall_back] = reference[pair[fall_back]]
+    sep = np.full(n, np.nan)
+    known = np.flatnonzero(~np.isnan(X).any(axis=(1, 2)))
+    Pv = P[views[known]]
+    h = Pv[:, :, :3] @ X[known].transpose(0, 2, 1) + Pv[:, :, 3:4]  # (known, 3, 2)
+    front = ~np.any(h[:, 2] <= 1e-6, axis=1)
+    px = h[front, :2] / h[front, 2:3]
+    d = px[:, :, 0] - px[:, :, 1]
+    # the norm of a vector as np.linalg.norm takes it: sqrt of its dot product with itself (a dot per candidate)
+    sep[known[front]] = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])
+    return sep
 
 
 def drop_collapsed(conf: FloatArray, collapsed: BoolArray, pairs: tuple[tuple[int, int], ...]) -> FloatArray:

@@ -1,0 +1,112 @@
+"""Collapsed left/right pairs judged for every candidate at once (issue 39) give what one candidate at a time
+gave (the old loop and ``_expected_gap``, kept here verbatim as the oracle): the same separations, bit for bit, so
+the same pairs dropped."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mocapd.core.camera import triangulate_projections
+from mocapd.core.keypoints import coco17_targets
+from mocapd.core.kinematics import Kinematics
+from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs, expected_gaps
+from mocapd.core.lr_flips import COCO17_LR_PAIRS, undistorted
+from mocapd.core.skeleton import Skeleton
+from mocapd.core.synthetic import moving_sequence, ring_rig
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+def old_expected_gap(
+    P: FloatArray,
+    uv: FloatArray,
+    conf: FloatArray,
+    ok: BoolArray,
+    collapsed_views: BoolArray,
+    pair: NDArray[np.intp],
+    view: int,
+    reference: FloatArray | None,
+) -> float:
+    """``lr_collapse._expected_gap`` before issue 39, verbatim."""
+    others = ~collapsed_views & ok[:, pair].all(axis=1)
+    others[view] = False
+    X: FloatArray | None = None
+    if np.count_nonzero(others) >= 2:
+        w = np.where(others[:, None], conf[:, pair], 0.0)
+        pts, good = triangulate_projections(P, uv[:, pair], w)
+        if good.all():
+            X = pts
+    if X is None and reference is not None and np.isfinite(reference[pair]).all():
+        X = np.asarray(reference[pair], dtype=np.float64)
+    if X is None:
+        return float("nan")
+    h = P[view, :, :3] @ X.T + P[view, :, 3:4]  # (3, 2)
+    if np.any(h[2] <= 1e-6):
+        return float("nan")
+    px = h[:2] / h[2]
+    return float(np.linalg.norm(px[:, 0] - px[:, 1]))
+
+
+def _candidates(uv: FloatArray, conf: FloatArray, o: CollapseOptions) -> tuple[BoolArray, BoolArray, FloatArray]:
+    """``collapsed_pairs``' candidates (unchanged by issue 39): ok keypoints, candidates, sizes."""
+    ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
+    size = np.zeros(uv.shape[0])
+    for c in range(uv.shape[0]):
+        if np.count_nonzero(ok[c]) >= o.min_keypoints:
+            size[c] = float(np.ptp(uv[c, ok[c]], axis=0).max())
+    lr = np.array(COCO17_LR_PAIRS, dtype=np.intp)
+    both = ok[:, lr[:, 0]] & ok[:, lr[:, 1]] & (size[:, None] > 0)
+    gap = np.linalg.norm(uv[:, lr[:, 0]] - uv[:, lr[:, 1]], axis=-1)
+    return ok, both & (gap < o.collapsed * size[:, None]), size
+
+
+def _scenes(rng: np.random.Generator) -> list[tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]]:
+    """People of a 4- and a 6-camera ring walking, some views with arms collapsed, keypoints missing, low
+    confidence, NaN; with and without the previous pose (which may be partly NaN)."""
+    sk = Skeleton.from_height(1.75)
+    kin, targets = Kinematics(sk), coco17_targets(sk)
+    thetas = moving_sequence(sk, 60, seed=3)
+    out = []
+    for n_cams in (4, 6):
+        cams = ring_rig(n_cams, radius=4.5)
+        for frame in range(0, 60, 3):
+            theta = thetas[frame].copy()
+            theta[3:6] = rng.normal(0.0, 0.4, 3)
+            X = kin.targets(kin.forward(theta), targets.bones, targets.offsets)
+            uv = np.stack([c.project(X) for c in cams]) + rng.normal(0.0, 1.0, (n_cams, 17, 2))
+            for c in rng.choice(n_cams, int(rng.integers(0, 3)), replace=False):
+                uv[c, [8, 10]] = uv[c, [7, 9]] + rng.normal(0.0, 2.0, (2, 2))  # right arm put on the left one
+            conf = rng.uniform(0.2, 1.0, (n_cams, 17))
+            conf[rng.random((n_cams, 17)) < 0.1] = 0.0
+            if rng.random() < 0.3:
+                conf[int(rng.integers(0, n_cams))] = 0.0  # a view without the person
+            if rng.random() < 0.2:
+                uv[0, 3] = np.nan
+            P, und = undistorted(cams, uv)
+            ref = X + rng.normal(0.0, 0.02, X.shape)
+            if rng.random() < 0.3:
+                ref[int(rng.integers(0, 17))] = np.nan
+            out += [(P, und, conf, None), (P, und, conf, ref)]
+    return out
+
+
+def test_every_candidates_separation_is_the_old_one() -> None:
+    rng = np.random.default_rng(5)
+    o = CollapseOptions()
+    lr = np.array(COCO17_LR_PAIRS, dtype=np.intp)
+    seen = 0
+    for P, und, conf, ref in _scenes(rng):
+        ok, candidate, size = _candidates(und, conf, o)
+        views, which = np.nonzero(candidate)
+        new = expected_gaps(P, und, conf, ok, candidate, lr, views, which, ref)
+        old = np.array([old_expected_gap(P, und, conf, ok, candidate[:, p], lr[p], int(c), ref)
+                        for c, p in zip(views, which, strict=True)])  # fmt: skip
+        assert new.tobytes() == old.tobytes()
+        expected = np.zeros(candidate.shape, dtype=bool)
+        for k, (c, p) in enumerate(zip(views, which, strict=True)):
+            expected[c, p] = bool(np.isfinite(old[k]) and old[k] >= o.apart * size[c])
+        assert np.array_equal(collapsed_pairs(P, und, conf, COCO17_LR_PAIRS, ref), expected)
+        seen += int(expected.sum())
+    assert seen > 20  # collapsed views were found, not only the eyes' and ears' candidates kept
