@@ -7,16 +7,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.sorting import Detections2D
-from mocapd.pipeline.keypoint_timeline import (
-    DetectionTimeline,
-    SampleStatus,
-    _blend,
-    interpolate_people,
-    match_people,
-)
+from mocapd.pipeline.keypoint_timeline import DetectionTimeline, SampleStatus, interpolate_people, match_people
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 MS = 1_000_000
+
+
+def _blend(pa: FloatArray, pb: FloatArray, both: BoolArray, in_a: BoolArray, alpha: float) -> FloatArray:
+    """``keypoint_timeline._blend`` before issue 39, verbatim."""
+    out: FloatArray = np.where(both[:, None], pa + alpha * (pb - pa), np.where(in_a[:, None], pa, pb))
+    return out
 
 
 def old_interpolate_people(

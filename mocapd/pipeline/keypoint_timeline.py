@@ -238,6 +238,7 @@ class Bracket:
 
     @staticmethod
     def _unmatched(frame: Detections2D, matched: NDArray[np.intp], with_und: bool) -> list[FloatArray] | None:
+        """``frame``'s people not in ``matched``: [keypoints, confidences(, undistorted)]; None when there are none."""
         if len(matched) == frame.keypoints.shape[0]:  # the usual bracket: nobody left over, nothing to append
             return None
         rest = np.ones(frame.keypoints.shape[0], dtype=bool)
@@ -264,9 +265,3 @@ class Bracket:
         if und is not None:
             und = np.concatenate((und, rest[2]))
         return Detections2D(np.concatenate((blended[0], rest[0])), np.concatenate((cf, rest[1])), und)
-
-
-def _blend(pa: FloatArray, pb: FloatArray, both: BoolArray, in_a: BoolArray, alpha: float) -> FloatArray:
-    """Points (..., n_kp, 2) of two frames at ``alpha``: blended where both saw them, else the one that did."""
-    out: FloatArray = np.where(both[..., None], pa + alpha * (pb - pa), np.where(in_a[..., None], pa, pb))
-    return out
