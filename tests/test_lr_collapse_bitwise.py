@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from mocapd.core.camera import triangulate_projections
 from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs, expected_gaps
+from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs, expected_gaps, view_sizes
 from mocapd.core.lr_flips import COCO17_LR_PAIRS, undistorted
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.synthetic import moving_sequence, ring_rig
@@ -50,7 +50,8 @@ def old_expected_gap(
 
 
 def _candidates(uv: FloatArray, conf: FloatArray, o: CollapseOptions) -> tuple[BoolArray, BoolArray, FloatArray]:
-    """``collapsed_pairs``' candidates (unchanged by issue 39): ok keypoints, candidates, sizes."""
+    """``collapsed_pairs``' candidates before issue 39, verbatim: ok keypoints, candidates, sizes (one view at a
+    time)."""
     ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
     size = np.zeros(uv.shape[0])
     for c in range(uv.shape[0]):
@@ -99,6 +100,7 @@ def test_every_candidates_separation_is_the_old_one() -> None:
     seen = 0
     for P, und, conf, ref in _scenes(rng):
         ok, candidate, size = _candidates(und, conf, o)
+        assert view_sizes(und, ok, o.min_keypoints).tobytes() == size.tobytes()
         views, which = np.nonzero(candidate)
         new = expected_gaps(P, und, conf, ok, candidate, lr, views, which, ref)
         old = np.array([old_expected_gap(P, und, conf, ok, candidate[:, p], lr[p], int(c), ref)

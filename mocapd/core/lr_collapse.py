@@ -86,10 +86,7 @@ def collapsed_pairs(
     if not o.enabled or not pairs:
         return out
     ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
-    size = np.zeros(n_cams)
-    for c in range(n_cams):
-        if np.count_nonzero(ok[c]) >= o.min_keypoints:
-            size[c] = float(np.ptp(uv[c, ok[c]], axis=0).max())
+    size = view_sizes(uv, ok, o.min_keypoints)
     lr = np.array(pairs, dtype=np.intp)  # (n_pairs, 2)
     both = ok[:, lr[:, 0]] & ok[:, lr[:, 1]] & (size[:, None] > 0)  # (n_cams, n_pairs)
     gap = np.linalg.norm(uv[:, lr[:, 0]] - uv[:, lr[:, 1]], axis=-1)
@@ -100,6 +97,25 @@ def collapsed_pairs(
     sep = expected_gaps(P, uv, conf, ok, candidate, lr, views, which, reference)
     out[views, which] = np.isfinite(sep) & (sep >= o.apart * size[views])
     return out
+
+
+def view_sizes(uv: FloatArray, ok: BoolArray, min_keypoints: int) -> FloatArray:
+    """Per view, the person's size there: the larger extent (px) of the keypoints ``ok`` holds; 0 with fewer than
+    ``min_keypoints`` of them. Every view at once (maxima and minima are exact: the floats of one view at a time).
+
+    Parameters
+    ----------
+    uv : array, shape (n_cams, n_kp, 2)
+    ok : bool array, shape (n_cams, n_kp)
+
+    Returns
+    -------
+    array, shape (n_cams,)
+    """
+    hi = np.where(ok[..., None], uv, -np.inf).max(axis=1)  # (n_cams, 2)
+    lo = np.where(ok[..., None], uv, np.inf).min(axis=1)
+    extent = (hi - lo).max(axis=1)
+    return np.where(np.count_nonzero(ok, axis=1) >= min_keypoints, extent, 0.0)
 
 
 def expected_gaps(
