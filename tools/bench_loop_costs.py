@@ -1,4 +1,4 @@
-"""Per-function cost of the synthetic rig's event-loop work against a git revision's code, in one process.
+"""Per-function cost of the event loop's work (synthetic and camera rigs) against a git revision's code, in one process.
 
 Developer benchmark, not a ``mocapd bench`` verb.
 
