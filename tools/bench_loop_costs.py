@@ -43,6 +43,9 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 * ``collapse``: :func:`~mocapd.core.lr_collapse.collapsed_pairs` per person solve (a walking person seen by 4
   cameras, one view with the right arm put on the left one, the previous pose given), the revision's module.
 
+* ``validate``: :class:`~mocapd.core.observations.ValidatedObservations` per person solve (4 cameras' 17 keypoints,
+  no IMU: the camera rig's), the revision's module.
+
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
 
@@ -540,13 +543,34 @@ def bench_collapse(rev: str, rounds: int) -> dict[str, Any]:
     return {"collapsed_pairs": alternate({"old": collapse(old), "new": collapse(new)}, rounds)}
 
 
+def bench_validate(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core import observations as new
+
+    old = module_at(rev, "mocapd/core/observations.py", "_old_observations")
+    rng = np.random.default_rng(0)
+    kp, conf = rng.uniform(0.0, 1000.0, (4, 17, 2)), rng.uniform(0.0, 1.0, (4, 17))
+
+    def validate(mod: ModuleType) -> Callable[[], float]:
+        obs = mod.Observations(keypoints=kp, confidences=conf, dt=1 / 30)
+
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(300):
+                mod.ValidatedObservations(obs, 4, 17, 0)
+            return (time.thread_time() - t0) / 300
+
+        return run
+
+    return {"validated_observations": alternate({"old": validate(old), "new": validate(new)}, rounds)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -565,6 +589,8 @@ def main() -> None:
         report.update(bench_sample(args.rev, args.rounds))
     if "collapse" in only:
         report.update(bench_collapse(args.rev, args.rounds))
+    if "validate" in only:
+        report.update(bench_validate(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
 
 

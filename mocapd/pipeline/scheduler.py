@@ -767,7 +767,8 @@ class FixedLatencyScheduler:
         for cam, idx in person.detections.items():  # the body's columns (hand keypoints, if any, come after them)
             kp[cam] = detections[cam].keypoints[idx, :n_kp]
             und[cam] = self._undistorted(cam, detections[cam])[idx, :n_kp]
-            conf[cam] = np.clip(detections[cam].confidences[idx, :n_kp], 0.0, 1.0)
+            conf[cam] = detections[cam].confidences[idx, :n_kp]
+        np.clip(conf, 0.0, 1.0, out=conf)  # every view at once (the unseen views' zeros stay zeros)
         views = None if self.hands is None else {
             cam: (self._undistorted(cam, detections[cam])[idx], detections[cam].confidences[idx])
             for cam, idx in person.detections.items()}  # fmt: skip
