@@ -60,7 +60,8 @@ class MountingOptions:
     enabled: bool = True
     """Refine each suit's mountings once from the cameras' first seconds of its wearer (False: never)."""
     seconds: float = 3.0
-    """Observations gathered per suit (seconds from the first frame that saw the wearer) before the fit."""
+    """Observations gathered per suit (seconds from the first frame that saw the wearer, and at least
+    :attr:`min_frames` frames) before the fit."""
     min_frames: int = 20
     """Frames in which a sensor's bone was observed that its fit needs."""
     min_vector_m: float = 0.05
@@ -274,9 +275,15 @@ class CameraMountingEstimator:
         g.frames += 1
 
     def ready(self, suit: str, t_ns: int) -> bool:
-        """Whether ``suit``'s observations span :attr:`MountingOptions.seconds` and await :meth:`fit`."""
+        """Whether ``suit``'s observations span :attr:`MountingOptions.seconds` and number at least
+        :attr:`MountingOptions.min_frames`, and await :meth:`fit`.
+
+        The frames as well as the seconds: a loaded machine observes the wearer less often than every 50 ms, and a fit
+        made once, from fewer frames than it needs, would keep every calibration's mounting for good."""
         g = self._gathering.get(suit)
-        return g is not None and self.wants(suit) and (t_ns - g.since_ns) / 1e9 >= self.options.seconds
+        if g is None or not self.wants(suit):
+            return False
+        return (t_ns - g.since_ns) / 1e9 >= self.options.seconds and g.frames >= self.options.min_frames
 
     def fit(self, suit: str, q_ib: Mapping[str, FloatArray]) -> dict[str, MountingFit]:
         """Fit every sensor of ``suit`` (id -> its calibration's mounting (4,)) from what was gathered; once."""

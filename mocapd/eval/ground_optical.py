@@ -30,6 +30,13 @@ Measures, over the whole take:
   flexion, during the walk: RMS error, and RMS error with each series' mean difference removed (a constant offset
   is the calibration posture against Plug-in-Gait's anatomical frames, not motion). The series are aligned in time by
   the lag that correlates the knee angles best (MVN's BVH starts 7 frames off).
+- **the facing** (issue 42, friction 8: the facing found from the steps): each leg of the walk out and back, its
+  direction from the standing pelvis's facing (mocapd: the hips bone's forward; Vicon: the ASIS midpoint from the
+  PSIS midpoint), against Vicon's (:func:`walk_directions`): a facing δ off turns the solved walk by δ.
+
+``mocapd eval ground --parts optical`` also runs the take through the commands a suit owner types (import mtw ->
+calibrate imu --from -> resolve -> export, at 1.70 m: :mod:`mocapd.service.cli.optical_walk`) and measures it the same
+way, beside these library rows.
 """
 
 from __future__ import annotations
@@ -94,6 +101,7 @@ class Vicon:
     knee: dict[str, FloatArray]  # "left"/"right" -> (n,)
     hip_flexion: dict[str, FloatArray]
     legs: dict[str, float]  # thigh, shank, hip_width, ankle_height (m)
+    facing: FloatArray  # (n, 2), the pelvis's horizontal forward (its ASIS midpoint from its PSIS midpoint), X and Y
 
 
 def read_vicon(path: Path) -> Vicon:
@@ -128,6 +136,7 @@ def read_vicon(path: Path) -> Vicon:
         knee={"left": mm["L_Femur_L_Tibia"], "right": mm["R_Femur_R_Tibia"]},
         hip_flexion={"left": mm["Root_L_Femur"][:, 0], "right": mm["Root_R_Femur"][:, 0]},
         legs=legs,
+        facing=((mm["LASI"] + mm["RASI"]) / 2 - (mm["LPSI"] + mm["RPSI"]) / 2)[:, :2] / 1000.0,
     )
 
 
@@ -170,6 +179,28 @@ def _shift(x: FloatArray, k: int, n: int) -> FloatArray:
     return np.asarray(x[np.clip(np.arange(n) + k, 0, len(x) - 1)])
 
 
+def _left_of(facing: FloatArray, d: FloatArray) -> float:
+    """Degrees from the horizontal direction ``facing`` (2,) to ``d`` (2,), counter-clockwise seen from above (to
+    the left) positive; both in a right-handed pair of horizontal axes."""
+    return float(np.degrees(np.arctan2(facing[0] * d[1] - facing[1] * d[0], facing @ d)))
+
+
+def walk_directions(pos: FloatArray, facing: FloatArray, rate_hz: float) -> dict[str, float]:
+    """Which way a walk out and back went from the facing held standing (friction 8's check of the facing): the
+    path's start (its first second), its farthest point from there and its end (its last second), each leg's
+    direction in degrees to the left of the first second's mean facing. ``pos`` and ``facing`` (n, 2): horizontal
+    positions and forward directions in a right-handed pair of horizontal axes."""
+    still = max(1, round(rate_hz))
+    start, end = pos[:still].mean(axis=0), pos[-still:].mean(axis=0)
+    far = pos[int(np.argmax(np.linalg.norm(pos - start, axis=1)))]
+    f = facing[:still].mean(axis=0)
+    return {"out_deg": _left_of(f, far - start), "back_deg": _left_of(f, end - far)}
+
+
+def _wrap(deg: float) -> float:
+    return (deg + 180.0) % 360.0 - 180.0
+
+
 def measure(theta: FloatArray, skeleton: Skeleton, vicon: Vicon, rate_hz: float = RATE_HZ) -> dict[str, Any]:
     """Path, root height and flexion errors of poses θ (n, 66), in the Vicon trial's frames."""
     n = len(vicon.pelvis)
@@ -194,6 +225,13 @@ def measure(theta: FloatArray, skeleton: Skeleton, vicon: Vicon, rate_hz: float 
         e0 = np.concatenate([(ours[s] - truth[s])[walk] - (ours[s] - truth[s])[walk].mean() for s in ("left", "right")])
         angles[name] = {"rms_deg": round(float(np.sqrt(np.mean(e**2))), 1),
                         "rms_without_offset_deg": round(float(np.sqrt(np.mean(e0**2))), 1)}  # fmt: skip
+    # The facing the calibration gave, against Vicon's pelvis: mocapd's world is Y up with its horizontal axes (Z, X)
+    # a right-handed pair seen from above, Vicon's Z up with (X, Y); each walk leg's direction from the standing
+    # facing, in both, differs by how far the facing was off (friction 8: the facing from the steps).
+    forward = matrix_from_rotvec(th[:, 3:6])[:, :, 2]  # the hips bone's +Z in the world
+    solved_legs = walk_directions(th[:, [2, 0]], forward[:, [2, 0]], rate_hz)
+    vicon_legs = walk_directions(vicon.pelvis[:, :2], vicon.facing, rate_hz)
+    facing = {k: round(_wrap(solved_legs[k] - vicon_legs[k]), 1) for k in ("out_deg", "back_deg")}
     return {
         "lag_frames": lag,
         "path_m": round(path, 2),
@@ -203,6 +241,7 @@ def measure(theta: FloatArray, skeleton: Skeleton, vicon: Vicon, rate_hz: float 
         "root_height_error_max_cm": round(100 * float(np.abs(dy).max()), 1),
         "knee_flexion": angles["knee"],
         "hip_flexion": angles["hip"],
+        "facing_vs_vicon": facing,
     }
 
 
@@ -255,4 +294,4 @@ def run_optical(prior: PcaPrior | None, directory: Path) -> dict[str, Any]:
     return out
 
 
-__all__ = ["SENSORS", "measure", "missing_message", "run_optical", "solve_take"]
+__all__ = ["SENSORS", "measure", "missing_message", "run_optical", "solve_take", "walk_directions"]

@@ -31,6 +31,7 @@ from mocapd.io.output_files import check_output_dir, check_output_file, write_te
 from mocapd.service.cli.numbers import number
 
 if TYPE_CHECKING:
+    from mocapd.eval.ground import GroundEvalOptions
     from mocapd.io.mvnx import MvnBody
 
 
@@ -300,8 +301,26 @@ def cmd_eval_ground(args: argparse.Namespace) -> int:
         raise MocapdError(f"--parts: unknown {unknown}; choose from {', '.join(GROUND_PARTS)}")
     opts = GroundEvalOptions(seed=args.seed, split=args.split, parts=parts, standing_s=args.standing_seconds,
                              optical_dir=args.optical_data)  # fmt: skip
-    print(json.dumps(run(opts, args.data_root), indent=2))
+    out = run(opts, args.data_root)
+    if "optical" in parts:
+        out["optical"].update(_optical_through_commands(opts, args.data_root))
+    print(json.dumps(out, indent=2))
     return 0
+
+
+def _optical_through_commands(opts: GroundEvalOptions, data_root: Path | None) -> dict[str, Any]:
+    """The optical walk as a suit owner runs it (import mtw -> calibrate imu --from -> resolve -> export), measured
+    as the library path's rows are (issue 42: "``eval ground`` measures exactly that path"); in a scratch folder."""
+    import tempfile
+
+    from mocapd.eval.data import default_data_root
+    from mocapd.eval.ground_optical import HEIGHT_M, default_dir
+    from mocapd.service.cli.optical_walk import through_commands
+
+    directory = opts.optical_dir or default_dir(default_data_root() if data_root is None else Path(data_root))
+    with tempfile.TemporaryDirectory(prefix="mocapd-optical-") as work:
+        row = through_commands(directory, Path(work) / "walk", HEIGHT_M, [])
+    return {f"mocapd through the commands, height {HEIGHT_M} m": row}
 
 
 def register(subparsers: Any) -> None:
