@@ -18,6 +18,10 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   keypoints of a posed body); ``estimator``: :meth:`~mocapd.core.heading.HeadingEstimator.observe` of its 13
   sensors with full 4 s windows (80 samples each).
 
+* ``collapse``: :func:`~mocapd.core.lr_collapse.collapsed_pairs` per person and solve, on the camera watch's
+  take (two people walking, detector-like noise and limb swaps), with no previous pose; the candidates (view and
+  pair) a call checks are reported beside it.
+
 * ``imu_inputs``: :meth:`~mocapd.service.imu_inputs.ImuInputs.on_sample` per sample of a sensor with a device
   heading (every suit sensor once the heading estimator has turned it), on the real MTw recording of
   ``tests/data/opensense_mtw`` as a simulated MTw's bytes decode to (600 samples); ``dispatch``: the same bytes
@@ -336,13 +340,46 @@ def bench_imu(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
     return out
 
 
+def bench_collapse(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core import lr_collapse as new
+    from mocapd.core.lr_flips import COCO17_LR_PAIRS
+
+    old = module_at(rev, "mocapd/core/lr_collapse.py", "_old_lr_collapse")
+    truth, moments = _watch_take(10.0)
+    P = np.stack([c.projection_matrix for c in truth])
+    people = [(uv, cf) for _, uv, cf in moments[::3]]
+
+    def per_person(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for uv, cf in people:
+                mod.collapsed_pairs(P, uv, cf, COCO17_LR_PAIRS)
+            return (time.thread_time() - t0) / len(people)
+
+        return run
+
+    o = new.CollapseOptions()
+    lr = np.array(COCO17_LR_PAIRS)
+    candidates = []
+    for uv, cf in people:  # the module's own candidate test, as numbers
+        ok = (cf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
+        size = np.array([np.ptp(uv[c, ok[c]], axis=0).max() if ok[c].sum() >= o.min_keypoints else 0.0
+                         for c in range(len(truth))])  # fmt: skip
+        gap = np.linalg.norm(uv[:, lr[:, 0]] - uv[:, lr[:, 1]], axis=-1)
+        both = ok[:, lr[:, 0]] & ok[:, lr[:, 1]] & (size[:, None] > 0)
+        candidates.append(int((both & (gap < o.collapsed * size[:, None])).sum()))
+    result = alternate({"old": per_person(old), "new": per_person(new)}, rounds)
+    result["candidates_per_call_mean"] = round(float(np.mean(candidates)), 2)
+    return {"collapsed_pairs": result}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,collapse",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -354,6 +391,8 @@ def main() -> None:
     if "mtdata2" in only:
         report.update(bench_mtdata2(args.rev, args.rounds))
     report.update(bench_imu(args.rev, args.rounds, only))
+    if "collapse" in only:
+        report.update(bench_collapse(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
 
 

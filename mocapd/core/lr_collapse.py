@@ -19,6 +19,7 @@ other views too, and is kept.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,41 +97,60 @@ def collapsed_pairs(
     candidate = both & (gap < o.collapsed * size[:, None])
     if not candidate.any():
         return out  # the common case: nothing to check, no triangulation
-    for c, p in zip(*np.nonzero(candidate), strict=True):
-        sep = _expected_gap(P, uv, conf, ok, candidate[:, p], lr[p], int(c), reference)
-        out[c, p] = bool(np.isfinite(sep) and sep >= o.apart * size[c])
+    views, pair_idx = np.nonzero(candidate)
+    seps = _expected_gaps(P, uv, conf, ok, candidate, lr, views, pair_idx, reference)
+    out[views, pair_idx] = np.isfinite(seps) & (seps >= o.apart * size[views])
     return out
 
 
-def _expected_gap(
+def _expected_gaps(
     P: FloatArray,
     uv: FloatArray,
     conf: FloatArray,
     ok: BoolArray,
-    collapsed_views: BoolArray,
-    pair: NDArray[np.intp],
-    view: int,
+    candidate: BoolArray,
+    lr: NDArray[np.intp],
+    views: NDArray[np.intp],
+    pair_idx: NDArray[np.intp],
     reference: FloatArray | None,
-) -> float:
-    """The pair's separation in ``view`` (px) as the views that do not collapse it triangulate it, else as the
-    reference projects it; NaN when neither can say."""
-    others = ~collapsed_views & ok[:, pair].all(axis=1)
-    others[view] = False
-    X: FloatArray | None = None
-    if np.count_nonzero(others) >= 2:
-        w = np.where(others[:, None], conf[:, pair], 0.0)
-        pts, good = triangulate_projections(P, uv[:, pair], w)
-        if good.all():
-            X = pts
-    if X is None and reference is not None and np.isfinite(reference[pair]).all():
-        X = np.asarray(reference[pair], dtype=np.float64)
-    if X is None:
-        return float("nan")
-    h = P[view, :, :3] @ X.T + P[view, :, 3:4]  # (3, 2)
-    if np.any(h[2] <= 1e-6):
-        return float("nan")
-    px = h[:2] / h[2]
-    return float(np.linalg.norm(px[:, 0] - px[:, 1]))
+) -> FloatArray:
+    """Each candidate's pair separation in its view (px, one per ``views[k]``, ``pair_idx[k]``) as the views that do
+    not collapse the pair triangulate it, else as the reference projects it; NaN when neither can say.
+
+    Every candidate's triangulation is one DLT system of its own (its pair's two points, weighted by the views
+    that see the pair without collapsing it, the candidate's view left out): they are solved in one
+    :func:`~mocapd.core.camera.triangulate_projections` call, whose rows and SVD are computed per point, so each
+    point is the float its own call would give (``tests/test_lr_collapse_bitwise.py``); a call per candidate
+    cost the synthetic rig's tick ~0.1 ms each, several per person (a small person's eyes and ears are always
+    close).
+    """
+    n = len(views)
+    pairs = lr[pair_idx]  # (n, 2)
+    # others[k, c]: camera c sees candidate k's pair and does not collapse it; never the candidate's own view
+    others = (~candidate[:, pair_idx] & ok[:, pairs].all(axis=2)).T
+    others[np.arange(n), views] = False
+    tri = np.count_nonzero(others, axis=1) >= 2
+    X = np.full((n, 2, 3), np.nan)
+    found = np.zeros(n, dtype=bool)
+    if tri.any():
+        cols = pairs[tri].reshape(-1)  # two points per triangulated candidate
+        w = np.where(np.repeat(others[tri].T, 2, axis=1), conf[:, cols], 0.0)
+        pts, good = triangulate_projections(P, uv[:, cols], w)
+        found[tri] = good.reshape(-1, 2).all(axis=1)
+        X[tri] = pts.reshape(-1, 2, 3)
+    if reference is not None:
+        fallback = ~found & np.isfinite(reference[pairs]).all(axis=(1, 2))
+        X[fallback] = reference[pairs[fallback]]
+        found |= fallback
+    # Each candidate's pair projected into its view: (n, 3, 2), one 3x3 by 3x2 product per candidate as before
+    Pv = P[views]
+    h = Pv[:, :, :3] @ X.transpose(0, 2, 1) + Pv[:, :, 3:4]
+    found &= ~np.any(h[:, 2] <= 1e-6, axis=1)
+    d = h[:, :2, 0] / h[:, 2:3, 0] - h[:, :2, 1] / h[:, 2:3, 1]  # (n, 2)
+    seps = np.full(n, np.nan)
+    for k in np.flatnonzero(found):  # each 2-vector's norm as np.linalg.norm takes it: the root of its dot product
+        seps[k] = math.sqrt(d[k].dot(d[k]))
+    return seps
 
 
 def drop_collapsed(conf: FloatArray, collapsed: BoolArray, pairs: tuple[tuple[int, int], ...]) -> FloatArray:
