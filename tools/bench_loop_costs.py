@@ -22,6 +22,9 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   take (two people walking, detector-like noise and limb swaps), with no previous pose; the candidates (view and
   pair) a call checks are reported beside it.
 
+* ``sim``: :meth:`~mocapd.sim.xsens.SimDevice.next_message` per message, the simulated suit's stored outputs
+  (packet counter, fine sample time, quaternion, acceleration at 100 Hz), the motion's packets cached.
+
 * ``imu_inputs``: :meth:`~mocapd.service.imu_inputs.ImuInputs.on_sample` per sample of a sensor with a device
   heading (every suit sensor once the heading estimator has turned it), on the real MTw recording of
   ``tests/data/opensense_mtw`` as a simulated MTw's bytes decode to (600 samples); ``dispatch``: the same bytes
@@ -373,13 +376,35 @@ def bench_collapse(rev: str, rounds: int) -> dict[str, Any]:
     return {"collapsed_pairs": result}
 
 
+def bench_sim(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.sim import xsens as new
+
+    old = module_at(rev, "mocapd/sim/xsens.py", "_old_sim_xsens")
+
+    def per_message(mod: ModuleType) -> Callable[[], float]:
+        device = mod.SimDevice(mod.synthetic_motion(n=600))
+        device.due_ns(0)
+        for _ in range(600):  # every motion packet cached, as in a running suit
+            device.next_message(device._next_ns)
+
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(2000):
+                device.next_message(device._next_ns)
+            return (time.thread_time() - t0) / 2000
+
+        return run
+
+    return {"sim_next_message": alternate({"old": per_message(old), "new": per_message(new)}, rounds)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,collapse",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,collapse,sim",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -393,6 +418,8 @@ def main() -> None:
     report.update(bench_imu(args.rev, args.rounds, only))
     if "collapse" in only:
         report.update(bench_collapse(args.rev, args.rounds))
+    if "sim" in only:
+        report.update(bench_sim(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
 
 
