@@ -2,18 +2,18 @@
 
 Developer benchmark, not a ``mocapd bench`` verb.
 
-The soak's output rate (``tools/soak.py``) says whether the event loop kept up, not what it spent its time on, and
-a sampling profiler on a shared machine over-counts the system calls where a starved process is preempted. This
+The soak's output rate (``tools/soak.py``) says whether the event loop kept up, not what it spent its time on, and a
+sampling profiler on a shared machine over-counts the system calls where a starved process is preempted. This
 assembles the synthetic daemon as the soak does (the one assembly path, every door open on loopback), optionally
 starts the soak's attacker process (``--attack``, the same attacks at the same rates), and wraps the pieces of the
-daemon's own work (the tick's stages, a person's solve and its parts, the camera watch, the IMU path, the
-simulated suit's thread, the synthetic cameras, the doors) with a thread-CPU counter. After ``--warm`` seconds
-it counts for ``--seconds`` and prints one JSON line (process and thread CPU a second, the output rate, the
-scheduler's CPU per tick and stage, the person stages) and then per piece: calls a second, CPU per call (µs)
-and CPU a second (ms). On a machine shared with other work the calls a second follow the share of the cores the
-daemon got; the CPU per call is what each piece costs, and times the quiet machine's rates (60 ticks, 30 solves
-of two people with the governor's half rate, 1300 IMU samples, 120 camera frames a second) it is the loop's
-budget. The counters add a few microseconds per call.
+daemon's own work (the tick's stages, a person's solve and its parts, the camera watch, the IMU path, the simulated
+suit's thread, the synthetic cameras, the doors, the offset estimate's steps) with a thread-CPU counter. After
+``--warm`` seconds it counts for ``--seconds`` and prints one JSON line (process and thread CPU a second, the output
+rate, the scheduler's CPU per tick and stage, the person stages) and then per piece: calls a second, CPU per call
+(µs) and CPU a second (ms). On a machine shared with other work the calls a second follow the share of the cores the
+daemon got; the CPU per call is what each piece costs, and times the quiet machine's rates (60 ticks, 30 solves of
+two people with the governor's half rate, 1300 IMU samples, 120 camera frames a second) it is the loop's budget. The
+counters add a few microseconds per call.
 
     PYTHONPATH=$PWD nice -n 19 .venv/bin/python tools/bench_soak_loop.py [--seconds 40] [--warm 8] [--attack]
 """
@@ -106,6 +106,36 @@ def install() -> None:
     _wrap(XsensSimulator, "emit_due")
     _wrap(_WorldClockedDevice, "next_message")
     _wrap(SyntheticWorld, "detections")
+    _count_offset_estimate()
+
+
+def _count_offset_estimate() -> None:
+    """The offset estimate of the status loop (every 10 s, in steps between ticks): each step counted, and each
+    whole estimate (its steps' CPU together) under its own label."""
+    from mocapd.service import daemon as daemon_module
+
+    step, whole = "offset estimate, a step", "offset estimate, cameras or IMUs, whole"
+    COUNTS[step] = [0, 0]
+    COUNTS[whole] = [0, 0]
+
+    async def counted(steps: Any) -> Any:
+        total = 0
+        while True:
+            c0 = time.thread_time_ns()
+            try:
+                next(steps)
+            except StopIteration as done:
+                COUNTS[whole][0] += total + time.thread_time_ns() - c0
+                COUNTS[whole][1] += 1
+                return done.value
+            finally:
+                ns = time.thread_time_ns() - c0
+                COUNTS[step][0] += ns
+                COUNTS[step][1] += 1
+            total += ns
+            await asyncio.sleep(0)
+
+    daemon_module.run_in_steps = counted
 
 
 def _thread_cpu_s() -> dict[str, float]:
