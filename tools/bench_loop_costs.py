@@ -18,6 +18,16 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   keypoints of a posed body); ``estimator``: :meth:`~mocapd.core.heading.HeadingEstimator.observe` of its 13
   sensors with full 4 s windows (80 samples each).
 
+* ``collapse``: :func:`~mocapd.core.lr_collapse.collapsed_pairs` per person and solve, on the camera watch's
+  take (two people walking, detector-like noise and limb swaps), with no previous pose; the candidates (view and
+  pair) a call checks are reported beside it.
+
+* ``sim``: :meth:`~mocapd.sim.xsens.SimDevice.next_message` per message, the simulated suit's stored outputs
+  (packet counter, fine sample time, quaternion, acceleration at 100 Hz), the motion's packets cached.
+
+* ``frames``: :meth:`~mocapd.sim.world.SyntheticWorld.detections` per camera frame of the demo's world (the
+  shipped ``[synthetic]`` people and motion, four cameras).
+
 * ``imu_inputs``: :meth:`~mocapd.service.imu_inputs.ImuInputs.on_sample` per sample of a sensor with a device
   heading (every suit sensor once the heading estimator has turned it), on the real MTw recording of
   ``tests/data/opensense_mtw`` as a simulated MTw's bytes decode to (600 samples); ``dispatch``: the same bytes
@@ -564,13 +574,58 @@ def bench_validate(rev: str, rounds: int) -> dict[str, Any]:
     return {"validated_observations": alternate({"old": validate(old), "new": validate(new)}, rounds)}
 
 
+def bench_sim(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.sim import xsens as new
+
+    old = module_at(rev, "mocapd/sim/xsens.py", "_old_sim_xsens")
+
+    def per_message(mod: ModuleType) -> Callable[[], float]:
+        device = mod.SimDevice(mod.synthetic_motion(n=600))
+        device.due_ns(0)
+        for _ in range(600):  # every motion packet cached, as in a running suit
+            device.next_message(device._next_ns)
+
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(2000):
+                device.next_message(device._next_ns)
+            return (time.thread_time() - t0) / 2000
+
+        return run
+
+    return {"sim_next_message": alternate({"old": per_message(old), "new": per_message(new)}, rounds)}
+
+
+def bench_frames(rev: str, rounds: int) -> dict[str, Any]:
+    sys.path.insert(0, str(ROOT))
+    from mocapd.service.config import load_config
+    from mocapd.sim import world as new
+
+    old = module_at(rev, "mocapd/sim/world.py", "_old_sim_world")
+    syn = load_config().synthetic
+
+    def per_frame(mod: ModuleType) -> Callable[[], float]:
+        w = mod.SyntheticWorld(4, syn.people, syn.suits, seed=syn.seed, motion=syn.motion)
+        rng = np.random.default_rng(0)
+
+        def run() -> float:
+            t0 = time.thread_time()
+            for k in range(400):
+                w.detections(k % 4, k / 120.0, rng, syn.noise_px)
+            return (time.thread_time() - t0) / 400
+
+        return run
+
+    return {"synthetic_frame": alternate({"old": per_frame(old), "new": per_frame(new)}, rounds)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rev", default="main", help="the git revision to compare against (default main)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate,sim,frames",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -591,6 +646,10 @@ def main() -> None:
         report.update(bench_collapse(args.rev, args.rounds))
     if "validate" in only:
         report.update(bench_validate(args.rev, args.rounds))
+    if "sim" in only:
+        report.update(bench_sim(args.rev, args.rounds))
+    if "frames" in only:
+        report.update(bench_frames(args.rev, args.rounds))
     print(json.dumps(report, indent=1))
 
 

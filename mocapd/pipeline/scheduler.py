@@ -530,7 +530,15 @@ class FixedLatencyScheduler:
         self._since_solve = self._since_solve + 1 if fill else 1
         # A fill tick needs only how many cameras are missing: no people matched and blended for it (~1 ms).
         detections, missing, frames = self._sample_cameras(t, people=not fill)
-        suits = {sid: self._sample_suit(suit, t, keep=not fill) for sid, suit in self.suits.items()}
+        if fill and not self.options.prediction.predicted:
+            # Likewise a fill tick in delayed output uses no IMU sample (it carries the last solve; predicted
+            # output carries the wearers from them): every sensor's look-up is counted, nothing is blended (~0.5 ms
+            # a tick for a 13-sensor suit).
+            suits: dict[str, SuitSample] = {}
+            for suit in self.suits.values():
+                self._look_up_suit(suit, t)
+        else:
+            suits = {sid: self._sample_suit(suit, t, keep=not fill) for sid, suit in self.suits.items()}
         self._stage("sample", w0, c0)
         return TickInputs(now_ns, t, detections, missing, suits, frames, fill)
 
@@ -677,23 +685,7 @@ class FixedLatencyScheduler:
 
         The look-ups follow :meth:`RingBuffer.sample`'s rules; the blending is done for all sensors at once.
         """
-        assert self.ingest is not None
-        n = len(suit.mounts)
-        a = np.zeros((n, self._imu_width))
-        b = np.zeros((n, self._imu_width))
-        alpha = np.zeros(n)
-        mask = np.zeros(n, dtype=bool)
-        for i, sid in enumerate(suit.sensors):
-            counts = self.imu_status.get(sid)
-            if counts is None:  # not setdefault: its default would be built for every sensor on every tick
-                counts = self.imu_status[sid] = dict.fromkeys((s.value for s in LookupStatus), 0)
-            stream = self.ingest.streams.get(sid)
-            if stream is None:
-                counts[LookupStatus.EMPTY.value] += 1
-                continue
-            status = _bracket(stream.buffer, t + self.options.imu_offsets_ns.get(sid, 0), a[i], b[i], alpha, i)
-            counts[status.value] += 1
-            mask[i] = status is LookupStatus.OK
+        a, b, alpha, mask = self._look_up_suit(suit, t)
         a[~mask, 0], b[~mask, 0] = 1.0, 1.0  # identity rows where nothing was measured (masked out below)
         q_i = quat_slerp(quat_normalize(a[:, 0:4]), quat_normalize(b[:, 0:4]), alpha)
         acc_s = a[:, 4:7] + alpha[:, None] * (b[:, 4:7] - a[:, 4:7])
@@ -711,6 +703,29 @@ class FixedLatencyScheduler:
         if prev is not None and abs(t - step - prev[0]) <= period // 4 and np.all(prev[2][mask]):
             return SuitSample(q, raw, q_i, prev[1], mask, True)
         return SuitSample(q, raw, q_i, acc, mask, False)  # no previous frame: the acceleration term sits this one out
+
+    def _look_up_suit(self, suit: Suit, t: int) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Every sensor of ``suit``'s two buffered samples around ``t`` (rows of ``a`` and ``b``, each
+        (n_imu, width)), the blend weight (``alpha``, (n_imu,)) and whether it has them (``mask``); each look-up's
+        outcome counted in :attr:`imu_status`."""
+        assert self.ingest is not None
+        n = len(suit.mounts)
+        a = np.zeros((n, self._imu_width))
+        b = np.zeros((n, self._imu_width))
+        alpha = np.zeros(n)
+        mask = np.zeros(n, dtype=bool)
+        for i, sid in enumerate(suit.sensors):
+            counts = self.imu_status.get(sid)
+            if counts is None:  # not setdefault: its default would be built for every sensor on every tick
+                counts = self.imu_status[sid] = dict.fromkeys((s.value for s in LookupStatus), 0)
+            stream = self.ingest.streams.get(sid)
+            if stream is None:
+                counts[LookupStatus.EMPTY.value] += 1
+                continue
+            status = _bracket(stream.buffer, t + self.options.imu_offsets_ns.get(sid, 0), a[i], b[i], alpha, i)
+            counts[status.value] += 1
+            mask[i] = status is LookupStatus.OK
+        return a, b, alpha, mask
 
     def _imu_only_people(self, seen: list[Person], suits: dict[str, SuitSample]) -> list[Person]:
         """Suits streaming without a person the cameras see: solved from their IMUs alone (the solver keeps their

@@ -258,13 +258,16 @@ class SimDevice:
 
     def next_message(self, now_ns: int) -> bytes:
         """The bytes of the sample due now (possibly with injected faults); advances the motion."""
-        period_ns = round(1e9 / self.rate_hz)
+        # The rate once a message (a scan of the settings): the simulator thread streams 13 devices at 100 Hz
+        # beside the daemon's event loop, and holds the interpreter lock while it builds a message.
+        rate = self.rate_hz
+        period_ns = round(1e9 / rate)
         assert self._next_ns is not None
         self._next_ns += period_ns
         i = self.index % len(self.motion.quat)
         self.index += 1
         self.counter = (self.counter + 1) & 0xFFFF
-        ticks = (self._ticks0 + (self.index * TICK_HZ) // self.rate_hz) & 0xFFFFFFFF
+        ticks = (self._ticks0 + (self.index * TICK_HZ) // rate) & 0xFFFFFFFF
         frame = self._build_frame(i, ticks)
         f = self.faults
         if f.dropout and self.rng.random() < f.dropout:
@@ -291,13 +294,12 @@ class SimDevice:
         if self.heading is not None and kind in (DataId.QUATERNION, DataId.ROTATION_MATRIX, DataId.EULER_ANGLES):
             # Sample index = samples since the device started: the error keeps drifting over motion loops.
             return self._faulty_packet(data_id, kind, i, float(self.heading.angle_rad((self.index - 1) / self.rate_hz)))
-        counters: dict[int, int] = {
-            DataId.PACKET_COUNTER: self.counter,
-            DataId.SAMPLE_TIME_FINE: ticks,
-            DataId.SAMPLE_TIME_COARSE: ticks // TICK_HZ,
-        }
-        if kind in counters:
-            return encode_packet(data_id, counters[kind])
+        if kind == DataId.PACKET_COUNTER:
+            return encode_packet(data_id, self.counter)
+        if kind == DataId.SAMPLE_TIME_FINE:
+            return encode_packet(data_id, ticks)
+        if kind == DataId.SAMPLE_TIME_COARSE:
+            return encode_packet(data_id, ticks // TICK_HZ)
         # Motion packets depend only on (output, row): encode each once, the motion repeats in a loop.
         key = (data_id, i)
         cached = self._packet_cache.get(key)
