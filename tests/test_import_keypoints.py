@@ -282,6 +282,16 @@ def test_import_refusals(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert not (tmp_path / "s").exists()
     inputs = read_keypoint_inputs([str(f) for f in folders])
     assert inputs.layout == "openpose" and all(len(c.parsed.frames) == 3 for c in inputs.cameras)
+    # A Pose2Sim project as its demos ship (Config.toml, calibration/, videos/) has no keypoints until Pose2Sim's
+    # pose estimation writes pose/: said in one line (the old reader took it for an MMPose folder: "no .json
+    # keypoint files").
+    project = tmp_path / "Demo_MultiPerson"
+    (project / "calibration").mkdir(parents=True)
+    (project / "videos").mkdir()
+    (project / "Config.toml").write_text("[project]\nframe_rate = 60\n")
+    assert main(["import", "keypoints", str(project), "-o", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert "a Pose2Sim project without keypoints (no pose/ folder)" in err and err.count("\n") == 1
 
 
 def test_following_a_folder_reads_only_new_whole_files(tmp_path: Path) -> None:
