@@ -56,7 +56,8 @@ def test_detector_errors_are_there() -> None:
 def test_eval_keypoints_through_import_and_resolve(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Two people, 2 s: OpenPose folders + calibration -> ``import keypoints`` -> ``resolve``. Each person is one
     track published within 0.2 s (the evidence rule of ``[tracking.enrolment]``; the former fixed second missed every
-    frame of a person's first second), no false-positive track, no identity switch."""
+    frame of a person's first second), no false-positive track, no identity switch; Pose2Sim scored beside them on
+    the same files (the old evaluation had no Pose2Sim row)."""
     out = tmp_path / "bench"
     assert main(["eval", "keypoints", "--people", "2", "--seconds", "2", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
@@ -71,6 +72,14 @@ def test_eval_keypoints_through_import_and_resolve(tmp_path: Path, capsys: pytes
         assert all(a["first_published_s"] <= 0.2 for a in s["actors"]), s
         assert s["pcp_average"] >= 85.0 and s["mpjpe_mm"] < 45.0, s
     assert report["systems"]["DLT, truth-associated views"]["misses"] == 0
+    # Pose2Sim (installed by the set-up, never skipped) on the same OpenPose folders and calibration: its own
+    # association finds both people, in mocapd's world (a wrong axis or unit would put every limb off).
+    assert report["benchmark"]["pose2sim"] == "0.10.49" and printed["pose2sim"] == "0.10.49"
+    p2s = report["systems"]["Pose2Sim (its association, triangulation, filter)"]
+    assert p2s["tracks"] >= 2 and p2s["pcp_average"] >= 80.0 and p2s["mpjpe_mm"] < 60.0, p2s
+    assert (out / "pose2sim" / "Calib.toml").is_file() and "| Pose2Sim (its association" in (
+        out / "keypoints.md"
+    ).read_text()
     assert main(["eval", "keypoints", "--people", "5", "--out", str(tmp_path / "x")]) == 2
     assert "--people 5" in capsys.readouterr().err
 
