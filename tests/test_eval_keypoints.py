@@ -63,6 +63,7 @@ def test_eval_keypoints_through_import_and_resolve(tmp_path: Path, capsys: pytes
     printed = json.loads(capsys.readouterr().out)
     report = json.loads((out / "keypoints.json").read_text())
     assert printed["systems"]["mocapd resolve"]["pcp_average"] == report["systems"]["mocapd resolve"]["pcp_average"]
+    assert printed["commands"] == report["commands"] and printed["commands"][0].startswith("mocapd import keypoints")
     assert sorted(p.name for p in (out / "input" / "openpose").iterdir()) == [f"cam{i}_json" for i in range(1, 6)]
     assert "| mocapd resolve |" in (out / "keypoints.md").read_text()
     for name in ("mocapd forward (live scheduler)", "mocapd resolve"):

@@ -86,7 +86,8 @@ def _run_keypoints(args: argparse.Namespace) -> int:
     summary = {name: {key: s[key] for key in ("pcp_average", "mpjpe_mm", "misses", "misses_after_first_0.2s",
                                               "identity_switches", "tracks", "false_positive_tracks")}
                for name, s in report["systems"].items()}  # fmt: skip
-    print(json.dumps({"out": str(args.out), "pose2sim": report["benchmark"]["pose2sim"], "systems": summary}, indent=2))
+    print(json.dumps({"out": str(args.out), "pose2sim": report["benchmark"]["pose2sim"], "systems": summary,
+                      "commands": report["commands"]}, indent=2))  # fmt: skip
     return 0
 
 
