@@ -498,3 +498,30 @@ def test_freemocap_array_import(tmp_path: Path, capsys: pytest.CaptureFixture[st
     # the hand and toe points kept (onto Halpe-26 they were dropped or renamed)
     for k in (17, 19, 21, 31):  # left_pinky, left_index, left_thumb, left_foot_index
         assert rec.keypoints[0, names.index(BLAZEPOSE33[k])][0] == pytest.approx(arr[2, 4, k, 0])
+
+
+def test_up_and_floor_measured_on_the_people(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--up auto``: a calibration whose world is turned off every axis (70 deg about x, 15 about z) and shifted is
+    levelled by the people (upright on average, their ankles low): up within 6 deg (4.0 measured: the walkers
+    lean), the floor within 0.15 m (7.8 cm: that lean over the people's distance from the origin), the cameras'
+    heights within 0.4 m of the truth. The old CLI had no auto (exit 2)."""
+    from scipy.spatial.transform import Rotation
+
+    world = _world("body25")
+    folders = _write_openpose(world, tmp_path, seconds=2.5)
+    turn = Rotation.from_euler("xz", [-70.0, 15.0], degrees=True).as_matrix()  # X_file = turn X + shift
+    shift = np.array([0.3, -0.2, 0.5])
+    tilted = CalibrationSet(tuple(CameraCalibration(c.name, (c.width, c.height), c.K, c.dist, c.R @ turn.T,
+                                                    c.t - c.R @ turn.T @ shift) for c in world.cameras))  # fmt: skip
+    write_mocapd_toml(tilted, tmp_path / "tilted.toml")
+    args = ["import", "keypoints", *map(str, folders), "--calibration", str(tmp_path / "tilted.toml"), "--fps", "25"]
+    assert main([*args, "-o", str(tmp_path / "s"), "--up", "auto"]) == 0
+    found = json.loads(capsys.readouterr().out)["world"]
+    up = turn @ [0.0, 1.0, 0.0]
+    assert np.degrees(np.arccos(np.clip(np.dot(found["up"], up), -1, 1))) < 6.0, found
+    assert abs(found["floor_m"] - shift @ up) < 0.15 and found["person_instants"] >= 100, found
+    for cam, truth in zip(open_session(tmp_path / "s").manifest["cameras"], world.cameras, strict=True):
+        centre = -np.array(cam["R"]).T @ np.array(cam["t"])
+        assert abs(centre[1] - (-truth.R.T @ truth.t)[1]) < 0.4, (cam["name"], centre)
+    assert main([*args, "-o", str(tmp_path / "s2"), "--up", "auto", "--floor", "1"]) == 2
+    assert "leave --floor out" in capsys.readouterr().err

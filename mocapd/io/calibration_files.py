@@ -750,6 +750,14 @@ def on_floor(calib: CalibrationSet, floor_m: float) -> CalibrationSet:
     return CalibrationSet(cams, source=f"{calib.source} (floor at {floor_m:g} m)" if calib.source else "")
 
 
+def turned(calib: CalibrationSet, rotation: FloatArray) -> CalibrationSet:
+    """The same cameras in a world turned by ``rotation`` (3x3): a point ``X`` of the old world is ``rotation @ X``
+    in the new one (``mocapd import keypoints --up auto`` levels the world with it)."""
+    rot = np.asarray(rotation, dtype=np.float64)
+    cams = tuple(replace(c, R=c.R @ rot.T) for c in calib.cameras)
+    return CalibrationSet(cams, source=f"{calib.source} (levelled)" if calib.source else "")
+
+
 def read_any(path: Path, world_up: WorldUp | None = None, units: str | None = None) -> CalibrationSet:
     """Read a calibration in any supported format, chosen from its name and content.
 
