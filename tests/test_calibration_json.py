@@ -1,11 +1,13 @@
 """Calibration files of public multi-view datasets and tools, written here in each one's layout and conventions
 from known cameras: 4D association's and VoxelPose's Shelf/Campus JSON, CMU Panoptic's JSON, EasyMocap's
-intri/extri YAML, Anipose's TOML; every one must read back as the same cameras in mocapd's +Y-up world (metres)."""
+intri/extri YAML, Anipose's and caliscope's TOML; every one must read back as the same cameras in mocapd's +Y-up
+world (metres)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -157,6 +159,55 @@ def test_anipose_toml_in_mm(tmp_path: Path) -> None:
     lines += ["[metadata]", "adjusted = false", "error = 0.4"]
     (tmp_path / "calibration.toml").write_text("\n".join(lines) + "\n")
     _same(read_any(tmp_path / "calibration.toml", units="mm"), ["A", "B", "C"], atol=1e-9)
+
+
+def _caliscope_camera(c: Any, rotation: list[Any], **extra: object) -> list[str]:
+    _, t = _z_up(c.R, c.t)
+    rows = [f"size = [{c.width}, {c.height}]", "rotation_count = 0", "error = 0.4", f"matrix = {c.K.tolist()}",
+            f"distortions = {DIST.tolist()}", f"translation = {t.tolist()}", f"rotation = {rotation}",
+            "exposure = -6", "grid_count = 30", "verified_resolutions = [[640, 480], [1280, 720]]"]  # fmt: skip
+    return rows + [f"{k} = {str(v).lower() if isinstance(v, bool) else v}" for k, v in extra.items()]
+
+
+def test_caliscope_toml(tmp_path: Path) -> None:
+    """caliscope's camera_array.toml ([cameras.N], the rotation a 3x3 matrix in files before 2025, a Rodrigues vector
+    since) and its older config.toml ([cam_N] with port, beside its [charuco] board and [capture_volume]): cameras
+    named cam_N as its own Anipose export names them, an ignored or unposed camera left out, world Z-up, metres.
+    The old reader refused the 3x3 rotation ("K and R must be 3x3") and named the cameras 0, 1, 2."""
+    cams = _cams()
+    lines = []
+    for i, c in enumerate(cams):
+        R, _ = _z_up(c.R, c.t)
+        rotation = R.tolist() if i != 1 else cv2.Rodrigues(R)[0].ravel().tolist()
+        lines += [f"[cameras.{i}]", f"cam_id = {i}", *_caliscope_camera(c, rotation, ignore=False), ""]
+    # camera 3 has intrinsics only (not posed), camera 4 is ignored
+    lines += ["[cameras.3]", "cam_id = 3", "size = [640, 480]", f"matrix = {cams[0].K.tolist()}",
+              f"distortions = {DIST.tolist()}", "ignore = false", ""]  # fmt: skip
+    lines += ["[cameras.4]", "cam_id = 4", *_caliscope_camera(cams[0], cv2.Rodrigues(cams[0].R)[0].ravel().tolist(),
+              ignore=True), ""]  # fmt: skip
+    (tmp_path / "camera_array.toml").write_text("\n".join(lines))
+    calib = read_any(tmp_path / "camera_array.toml")
+    _same(calib, ["cam_0", "cam_1", "cam_2"])
+    np.testing.assert_allclose(calib.cameras[2].dist, DIST)
+    lines = ["CreationDate = 2023-05-06T11:12:27.631355", "fps_recording = 24", ""]
+    for i, c in enumerate(cams):
+        R, _ = _z_up(c.R, c.t)
+        lines += [f"[cam_{i}]", f"port = {i}", *_caliscope_camera(c, R.tolist(), ignore=False), ""]
+    lines += ["[capture_volume]", "stage = 2", "", "[charuco]", "columns = 4", "rows = 5", 'units = "inch"', ""]
+    (tmp_path / "config.toml").write_text("\n".join(lines))
+    _same(read_any(tmp_path / "config.toml"), ["cam_0", "cam_1", "cam_2"])
+    (tmp_path / "none.toml").write_text(
+        "[cameras.0]\ncam_id = 0\nsize = [640, 480]\nmatrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]\n"
+    )
+    with pytest.raises(CalibrationError, match="no camera table with a posed camera"):
+        read_any(tmp_path / "none.toml")
+    bad = (
+        "[cam_0]\nname = 'a'\nsize = [640, 480]\nmatrix = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]\n"
+        "distortions = [0, 0, 0, 0]\nrotation = [1, 2]\ntranslation = [0, 0, 1]\n"
+    )
+    (tmp_path / "bad.toml").write_text(bad)
+    with pytest.raises(CalibrationError, match="Rodrigues vector"):
+        read_any(tmp_path / "bad.toml")
 
 
 def test_floor_and_refusals(tmp_path: Path) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mocapd.core.keypoints import BODY25_FORMAT
-from mocapd.eval.keypoint_bench import LIMBS, Estimates, Noise, build_scene, detect, score, visible
+from mocapd.eval.keypoint_bench import LIMBS, MIN_APART_M, Estimates, Noise, build_scene, detect, score, visible
 from mocapd.service.cli import main
 
 NAMES = BODY25_FORMAT.keypoints
@@ -56,12 +56,14 @@ def test_detector_errors_are_there() -> None:
 def test_eval_keypoints_through_import_and_resolve(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Two people, 2 s: OpenPose folders + calibration -> ``import keypoints`` -> ``resolve``. Each person is one
     track published within 0.2 s (the evidence rule of ``[tracking.enrolment]``; the former fixed second missed every
-    frame of a person's first second), no false-positive track, no identity switch."""
+    frame of a person's first second), no false-positive track, no identity switch; Pose2Sim scored beside them on
+    the same files (the old evaluation had no Pose2Sim row)."""
     out = tmp_path / "bench"
     assert main(["eval", "keypoints", "--people", "2", "--seconds", "2", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
     report = json.loads((out / "keypoints.json").read_text())
     assert printed["systems"]["mocapd resolve"]["pcp_average"] == report["systems"]["mocapd resolve"]["pcp_average"]
+    assert printed["commands"] == report["commands"] and printed["commands"][0].startswith("mocapd import keypoints")
     assert sorted(p.name for p in (out / "input" / "openpose").iterdir()) == [f"cam{i}_json" for i in range(1, 6)]
     assert "| mocapd resolve |" in (out / "keypoints.md").read_text()
     for name in ("mocapd forward (live scheduler)", "mocapd resolve"):
@@ -71,5 +73,25 @@ def test_eval_keypoints_through_import_and_resolve(tmp_path: Path, capsys: pytes
         assert all(a["first_published_s"] <= 0.2 for a in s["actors"]), s
         assert s["pcp_average"] >= 85.0 and s["mpjpe_mm"] < 45.0, s
     assert report["systems"]["DLT, truth-associated views"]["misses"] == 0
+    # Pose2Sim (installed by the set-up, never skipped) on the same OpenPose folders and calibration: its own
+    # association finds both people, in mocapd's world (a wrong axis or unit would put every limb off).
+    assert report["benchmark"]["pose2sim"] == "0.10.49" and printed["pose2sim"] == "0.10.49"
+    p2s = report["systems"]["Pose2Sim (its association, triangulation, filter)"]
+    assert p2s["tracks"] >= 2 and p2s["pcp_average"] >= 80.0 and p2s["mpjpe_mm"] < 60.0, p2s
+    assert (out / "pose2sim" / "Calib.toml").is_file() and "| Pose2Sim (its association" in (
+        out / "keypoints.md"
+    ).read_text()
     assert main(["eval", "keypoints", "--people", "5", "--out", str(tmp_path / "x")]) == 2
     assert "--people 5" in capsys.readouterr().err
+
+
+def test_people_never_stand_inside_each_other() -> None:
+    """Every pair of the 4 people keeps its hips at least MIN_APART_M apart in every frame (at the former fourth
+    place the walk went through the bow: hips 0.10 m apart, two bodies in one place, and the 4-person run's identity
+    switches were all there)."""
+    scene = build_scene(4, 10.0)
+    hips = [np.asarray(j)[:, 0][:, [0, 2]] for j in scene.joints]
+    for a in range(4):
+        for b in range(a + 1, 4):
+            closest = float(np.linalg.norm(hips[a] - hips[b], axis=1).min())
+            assert closest >= MIN_APART_M, (a + 1, b + 1, closest)

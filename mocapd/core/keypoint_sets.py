@@ -1,11 +1,13 @@
 """Keypoint sets of other 2D detectors, by name, and their conversion onto the sets mocapd solves with.
 
-mocapd's solver knows three keypoint formats (:mod:`mocapd.core.keypoints`: ``coco17``, ``body25``, ``halpe26``).
+mocapd's solver knows four keypoint formats (:mod:`mocapd.core.keypoints`: ``coco17``, ``body25``, ``halpe26``,
+``blazepose33``).
 Detectors in the wild write more: OpenPose's COCO-18, COCO-WholeBody's 133 points (RTMW, MMPose's wholebody
 models), MediaPipe BlazePose's 33 landmarks (also FreeMoCap's). Each set here is its keypoint names in output
 order; :func:`convert` moves a detection onto one of mocapd's formats *by name* (a keypoint the target has that
 the source lacks gets confidence 0, which every consumer reads as "not seen"), and :data:`SOLVE_FORMAT` says which
-of mocapd's formats a set goes onto without losing any point the solver can use (feet included).
+of mocapd's formats a set goes onto without losing any point the solver can use (feet and BlazePose's hand points
+included).
 
 Names are COCO's (``left_shoulder``); a set's own spelling is translated by :data:`ALIASES` (BlazePose's
 ``left_foot_index``, the tip of the second toe, stands for the big toe: 1-2 cm apart, within the solver's
@@ -67,14 +69,21 @@ SOLVE_FORMAT: Mapping[str, str] = {
     "body25": "body25",
     "halpe26": "halpe26",
     "wholebody133": "halpe26",  # body + feet; hands and face have no target yet
-    "blazepose33": "halpe26",  # heels and toes kept; halpe26's head, neck and hip points stay unseen
+    # every landmark: the heels and foot_index on Foot and Toes, pinky, index and thumb on Hand (halpe26 had no hand
+    # point: hand local rotation median 11-14 -> 8 deg on the synthetic rig, tests/test_import_keypoints.py)
+    "blazepose33": "blazepose33",
 }
 """The mocapd format (:data:`mocapd.core.keypoints.FORMATS`) each set is solved in."""
 
 ALIASES: Mapping[str, Mapping[str, str]] = {
-    "blazepose33": {"left_foot_index": "left_big_toe", "right_foot_index": "right_big_toe"},
+    "blazepose33": {
+        "left_foot_index": "left_big_toe",
+        "right_foot_index": "right_big_toe",
+        "mouth_left": "left_mouth",
+        "mouth_right": "right_mouth",
+    },
 }
-"""A set's own name -> mocapd's name for the same point."""
+"""A set's own name -> mocapd's name for the same point (a target that has the set's own name gets it by that)."""
 
 
 def keypoint_set(name: str) -> tuple[str, ...]:
@@ -98,7 +107,9 @@ def conversion_index(source: str, target: Sequence[str]) -> tuple[list[int], lis
     """Where each of ``target``'s names is in set ``source``: (target positions, source positions), names only in
     one of them left out."""
     alias = ALIASES.get(source, {})
-    where = {alias.get(n, n): i for i, n in enumerate(keypoint_set(source))}
+    names = keypoint_set(source)
+    # By the set's own name first (mocapd's blazepose33 format keeps foot_index), else by its alias (big_toe).
+    where = {**{alias[n]: i for i, n in enumerate(names) if n in alias}, **{n: i for i, n in enumerate(names)}}
     pairs = [(j, where[n]) for j, n in enumerate(target) if n in where]
     return [j for j, _ in pairs], [i for _, i in pairs]
 

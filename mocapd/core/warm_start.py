@@ -1,8 +1,7 @@
 """The first pose of a new person: a warm start for the solver from their triangulated keypoints, any keypoint set.
 
-The pipeline's scheduler places a new person with this (``pipeline/scheduler.py``'s own COCO-17-only copy is to be
-replaced by it); the keypoints are looked up by name, so BODY_25, Halpe-26, COCO-WholeBody and BlazePose start a
-person as COCO-17 does.
+The pipeline's scheduler places a new person with this; the keypoints are looked up by name, so BODY_25, Halpe-26,
+COCO-WholeBody and BlazePose start a person as COCO-17 does.
 """
 
 from __future__ import annotations

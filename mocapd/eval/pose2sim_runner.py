@@ -3,8 +3,9 @@
 ``python -m mocapd.eval.pose2sim_runner JOB.json`` runs, for each project of the job, Pose2Sim 0.10.49's Python API
 (``Pose2Sim.calibration``, ``personAssociation``, ``triangulation``, ``filtering``) with the demo's own
 ``Config.toml`` and the overrides the job gives, then writes ``result.npz`` into the project: for every person
-Pose2Sim output, ``raw_<i>`` (its triangulation) and ``filt_<i>`` (after its filtering), shape (n_frames, 17, 3),
-COCO-17 keypoint order, mocapd's world (metres, +Y up), NaN where Pose2Sim gave nothing (keypoints it does not
+Pose2Sim output, ``raw_<i>`` (its triangulation) and ``filt_<i>`` (after its filtering), shape (n_frames, K, 3),
+the detector's keypoint order (the job's ``pose_model``: ``COCO_17``, K = 17, by default; ``BODY_25``, K = 25),
+mocapd's world (metres, +Y up), NaN where Pose2Sim gave nothing (keypoints it does not
 triangulate, frames outside the range it kept).
 
 Why a child process: Pose2Sim configures the root logger, sets numpy's print options at import, picks a
@@ -12,9 +13,10 @@ matplotlib backend and reads its project layout from the working tree; none of t
 also an optional dependency (``pip install mocapd[eval]`` plus ``pose2sim --no-deps``, see
 ``setup/steps/24-pose2sim.sh``): mocapd itself never imports it.
 
-The job file (JSON): ``{"calibration": <Calib.qca.txt>, "config": <the demo's Config.toml>, "overrides": {...},
-"projects": [{"dir": <project folder with pose/<cam>_json/>, "cameras": [names kept]}, ...]}``. Each project's
-calibration is Pose2Sim's own conversion of the Qualisys file, with the cameras not kept removed.
+The job file (JSON): ``{"calibration": <Calib.qca.txt or a Pose2Sim Calib.toml>, "config": <the demo's Config.toml>,
+"overrides": {...}, "pose_model": "COCO_17", "projects": [{"dir": <project folder with pose/<cam>_json/>, "cameras":
+[names kept]}, ...]}``. Each project's calibration is Pose2Sim's own conversion of the Qualisys file (a ``.toml`` is
+taken as it is), with the cameras not kept removed.
 """
 
 from __future__ import annotations
@@ -46,22 +48,27 @@ def _update(base: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
     return base
 
 
-def _coco_columns() -> tuple[list[str], list[int]]:
-    """Names and COCO-17 indices of the keypoints Pose2Sim's COCO_17 model triangulates, in its trc order."""
+def _model_columns(model: str = "COCO_17") -> tuple[list[str], list[int], int]:
+    """Names and detector indices of the keypoints Pose2Sim's ``model`` (a tree of ``Pose2Sim.skeletons``:
+    ``COCO_17``, ``BODY_25``) triangulates, in its trc order, and the detector's keypoint count."""
     from anytree import RenderTree
-    from Pose2Sim.skeletons import COCO_17
+    from Pose2Sim import skeletons
 
-    nodes = [node for _, _, node in RenderTree(COCO_17) if node.id is not None]
-    return [n.name for n in nodes], [int(n.id) for n in nodes]
+    counts = {"COCO_17": 17, "BODY_25": 25}
+    if model not in counts:
+        raise ValueError(f"pose model {model!r}: one of {sorted(counts)}")
+    nodes = [node for _, _, node in RenderTree(getattr(skeletons, model)) if node.id is not None]
+    return [n.name for n in nodes], [int(n.id) for n in nodes], counts[model]
 
 
-def _read_trc(path: Path, n_frames: int, columns: list[int]) -> FloatArray:
-    """A Pose2Sim trc file as (n_frames, 17, 3) in mocapd's world; NaN outside its frame range."""
+def _read_trc(path: Path, n_frames: int, columns: list[int], width: int = 17) -> FloatArray:
+    """A Pose2Sim trc file as (n_frames, width, 3) in mocapd's world (the detector's keypoint order); NaN outside
+    its frame range and for keypoints it does not triangulate."""
     from Pose2Sim.common import read_trc
 
     q, frames, _, _, _ = read_trc(str(path))
     xyz = q.to_numpy(dtype=np.float64).reshape(len(frames), -1, 3) @ TRC_TO_MOCAPD.T
-    out = np.full((n_frames, 17, 3), np.nan)
+    out = np.full((n_frames, width, 3), np.nan)
     for row, f in enumerate(frames.to_numpy()):
         if 0 <= int(f) < n_frames:
             out[int(f), columns] = xyz[row]
@@ -69,7 +76,8 @@ def _read_trc(path: Path, n_frames: int, columns: list[int]) -> FloatArray:
 
 
 def _calibration(project: Path, qca: Path, keep: list[str], cfg: dict[str, Any]) -> None:
-    """Pose2Sim's own conversion of the Qualisys file into ``project/calibration``, then only the kept cameras."""
+    """Pose2Sim's own conversion of the Qualisys file into ``project/calibration`` (a Pose2Sim ``.toml`` is taken as
+    it is), then only the kept cameras."""
     import rtoml
     from Pose2Sim import Pose2Sim
 
@@ -78,7 +86,8 @@ def _calibration(project: Path, qca: Path, keep: list[str], cfg: dict[str, Any])
         shutil.rmtree(calib)
     calib.mkdir(parents=True)
     shutil.copy(qca, calib / qca.name)
-    Pose2Sim.calibration(cfg)
+    if qca.suffix.lower() != ".toml":
+        Pose2Sim.calibration(cfg)
     tomls = list(calib.glob("*.toml"))
     if len(tomls) != 1:
         raise RuntimeError(f"Pose2Sim's calibration conversion wrote {len(tomls)} .toml files in {calib}")
@@ -117,17 +126,17 @@ def run_project(job: dict[str, Any], project: dict[str, Any]) -> dict[str, Any]:
         os.chdir(cwd)
         logging.getLogger().removeHandler(log)
         log.close()
-    names, columns = _coco_columns()
+    names, columns, width = _model_columns(str(job.get("pose_model", "COCO_17")))
     n = int(job["n_frames"])
     raw = sorted(p for p in (root / "pose-3d").glob("*.trc") if "filt" not in p.name)
     arrays: dict[str, FloatArray] = {}
     for i, path in enumerate(raw):
-        arrays[f"raw_{i}"] = _read_trc(path, n, columns)
+        arrays[f"raw_{i}"] = _read_trc(path, n, columns, width)
         stem = path.name.rsplit("_", 1)[0]
         filt = sorted((root / "pose-3d").glob(f"{stem}_*filt*.trc"))
         if len(filt) != 1:
             raise RuntimeError(f"{path.name}: {len(filt)} filtered files")
-        arrays[f"filt_{i}"] = _read_trc(filt[0], n, columns)
+        arrays[f"filt_{i}"] = _read_trc(filt[0], n, columns, width)
     np.savez(root / "result.npz", **arrays)  # type: ignore[arg-type]
     return {"dir": str(root), "people": len(raw), "trc": [p.name for p in raw], "keypoints": names}
 

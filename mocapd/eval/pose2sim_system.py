@@ -90,7 +90,8 @@ def write_openpose(folder: Path, camera: str, frames: list[Detections2D]) -> Non
 
 @dataclass
 class Pose2SimOutput:
-    """Pose2Sim's people of one project: per person (n_frames, 17, 3), NaN where it gave nothing."""
+    """Pose2Sim's people of one project: per person (n_frames, K, 3) (K = 17 for COCO-17 detections, 25 for BODY_25),
+    NaN where it gave nothing."""
 
     raw: list[FloatArray]
     filtered: list[FloatArray]
@@ -122,6 +123,11 @@ def run_pose2sim(
     overrides["project"] = {"frame_rate": round(take.fps), "multi_person": multi}
     job = {"calibration": str(take.calibration), "config": str(demo_config_file(take)), "overrides": overrides,
            "projects": projects, "n_frames": len(frames)}  # fmt: skip
+    return _run_job(job, work, list(variants), timeout_s)
+
+
+def _run_job(job: dict[str, Any], work: Path, names: list[str], timeout_s: float) -> dict[str, Pose2SimOutput]:
+    """The runner in a child process on ``job`` (written to ``work/job.json``); each project's people read back."""
     work.mkdir(parents=True, exist_ok=True)
     (work / "job.json").write_text(json.dumps(job, indent=2))
     proc = subprocess.run(  # ends with this process, also when it is killed (lifecycle.guarded_command)
@@ -133,7 +139,7 @@ def run_pose2sim(
         tail = "\n".join((proc.stderr or proc.stdout).strip().splitlines()[-12:])
         raise MocapdError(f"Pose2Sim failed (exit {proc.returncode}; {work / 'runner.log'}):\n{tail}")
     out = {}
-    for name in variants:
+    for name in names:
         with np.load(work / name / "result.npz") as z:
             n = len([k for k in z.files if k.startswith("raw_")])
             raw = [np.asarray(z[f"raw_{i}"]) for i in range(n)]
@@ -141,3 +147,31 @@ def run_pose2sim(
         log = (work / name / "pose2sim.log").read_text() if (work / name / "pose2sim.log").is_file() else ""
         out[name] = Pose2SimOutput(raw, filt, log)
     return out
+
+
+def run_pose2sim_openpose(
+    folders: list[Path], calibration_toml: Path, fps: float, n_frames: int, work: Path, timeout_s: float = 3600.0
+) -> Pose2SimOutput:
+    """Pose2Sim (multi-person) on OpenPose BODY_25 folders (``<camera>_json``, one per camera of
+    ``calibration_toml``, a Pose2Sim TOML): its demo's ``Config.toml`` (Demo_MultiPerson) with :data:`OVERRIDES`, the
+    pose model BODY_25 (what the files hold) and ``fps``; people (n_frames, 25, 3) in BODY_25's order, mocapd's world
+    (``mocapd eval keypoints``)."""
+    import Pose2Sim
+
+    missing = pose2sim_missing()
+    if missing is not None:
+        raise MocapdError(missing)
+    root = work / "project"
+    if root.exists():
+        shutil.rmtree(root)
+    (root / "pose").mkdir(parents=True)
+    for folder in folders:
+        shutil.copytree(folder, root / "pose" / folder.name)
+    config = Path(Pose2Sim.__file__).parent / "Demo_MultiPerson" / "Config.toml"
+    overrides = json.loads(json.dumps(OVERRIDES))
+    overrides["pose"]["pose_model"] = "BODY_25"
+    overrides["project"] = {"frame_rate": int(fps) if float(fps).is_integer() else fps, "multi_person": True}
+    project = {"dir": str(root), "cameras": [f.name.removesuffix("_json") for f in folders]}
+    job = {"calibration": str(calibration_toml), "config": str(config), "overrides": overrides,
+           "pose_model": "BODY_25", "projects": [project], "n_frames": n_frames}  # fmt: skip
+    return _run_job(job, work, ["project"], timeout_s)["project"]

@@ -49,6 +49,10 @@ Foreign conventions handled on import/export:
     HD cameras only (``type = "hd"``: the 480 VGA and 10 Kinect cameras are left out);
   - any list ``[{"name", "K", "R", "t", "dist", "size"}, ...]`` or object of such cameras (metres, +Y up).
 
+* caliscope's ``camera_array.toml`` (``[cameras.N]``) or ``config.toml`` (``[cam_N]`` with ``port``, beside its
+  board's tables): Pose2Sim's keys without ``name``, the rotation a 3x3 matrix (files before 2025) or a Rodrigues
+  vector, metres, world Z-up; cameras named ``cam_N``, ignored and unposed ones left out.
+
 * EasyMocap's ``intri.yml`` + ``extri.yml`` (OpenCV YAML, one beside the other; either may be named): ``names``,
   ``K_<name>``, ``dist_<name>`` and ``Rot_<name>`` (3x3) or ``R_<name>`` (Rodrigues), ``T_<name>``; metres, world
   Z-up (a board on the floor).
@@ -315,20 +319,57 @@ def read_mocapd_toml(path: Path) -> CalibrationSet:
 # -- Pose2Sim TOML ------------------------------------------------------------------------------------------------
 
 
-def read_pose2sim_toml(path: Path, world_up: WorldUp = "z") -> CalibrationSet:
-    """Read a Pose2Sim (OpenCV convention) calibration TOML; its world is Z-up unless ``world_up='y'``."""
-    data = _load_toml(path)
-    if "cameras" in data and isinstance(data["cameras"], dict):
-        data = data["cameras"]
-    cams = []
-    for key, c in data.items():
+_CALISCOPE_KEYS = frozenset({"port", "cam_id", "grid_count", "rotation_count", "verified_resolutions"})
+"""Keys only caliscope writes in a camera's table (its ``camera_array.toml`` / ``config.toml``)."""
+
+
+def _rotation(value: object) -> FloatArray:
+    """A world->camera rotation given as a Rodrigues vector (Pose2Sim, Anipose, caliscope since 2025) or as a 3x3
+    matrix (caliscope's ``config.toml`` and older ``camera_array.toml``)."""
+    r = np.array(value, np.float64)
+    if r.shape == (3, 3):
+        return r
+    if r.size != 3:
+        raise CalibrationError(f"rotation: a Rodrigues vector (3) or a 3x3 matrix expected, got shape {r.shape}")
+    R, _ = cv2.Rodrigues(r.reshape(3))
+    return np.asarray(R, np.float64)
+
+
+def _toml_cameras(data: dict[str, Any]) -> tuple[list[tuple[str, dict[str, Any]]], bool]:
+    """The camera tables of a Pose2Sim/Anipose or caliscope TOML (name, table) and whether it is caliscope's.
+
+    caliscope keeps its cameras under ``[cameras.N]`` (``camera_array.toml``) or as ``[cam_N]`` beside its charuco
+    board and capture-volume tables (``config.toml``), named by number: they are named ``cam_N`` here, as caliscope's
+    own Anipose export names them; a camera it marks ``ignore`` or has not posed (no rotation) is left out."""
+    nested = isinstance(data.get("cameras"), dict)
+    tables = data["cameras"] if nested else data
+    caliscope = nested or any(isinstance(c, dict) and _CALISCOPE_KEYS & set(c) for c in tables.values())
+    out = []
+    for key, c in tables.items():
         if key == "metadata" or not isinstance(c, dict):
             continue
+        if caliscope:
+            if "matrix" not in c or c.get("ignore") is True or "rotation" not in c or "translation" not in c:
+                continue  # the board, the capture volume, an ignored or unposed camera
+            name = f"cam_{key}" if nested else str(key)
+        else:
+            name = str(c.get("name", key))
+        out.append((name, c))
+    return out, caliscope
+
+
+def read_pose2sim_toml(path: Path, world_up: WorldUp = "z") -> CalibrationSet:
+    """Read a Pose2Sim, Anipose or caliscope (OpenCV convention) calibration TOML; its world is Z-up unless
+    ``world_up`` says otherwise."""
+    data = _load_toml(path)
+    tables, caliscope = _toml_cameras(data)
+    cams = []
+    for key, c in tables:
         try:
-            R, _ = cv2.Rodrigues(np.array(c["rotation"], np.float64))
+            R = _rotation(c["rotation"])
             cams.append(
                 CameraCalibration(
-                    str(c.get("name", key)),
+                    key,
                     (round(c["size"][0]), round(c["size"][1])),
                     np.array(c["matrix"], np.float64),
                     np.array(c["distortions"], np.float64),
@@ -339,8 +380,9 @@ def read_pose2sim_toml(path: Path, world_up: WorldUp = "z") -> CalibrationSet:
         except KeyError as exc:
             raise CalibrationError(f"{path}: camera [{key}] lacks key {exc}") from exc
     if not cams:
-        raise CalibrationError(f"{path} holds no camera table")
-    return CalibrationSet(_to_y_up(cams, world_up), f"pose2sim-toml:{Path(path).name}")
+        raise CalibrationError(f"{path} holds no camera table" + (" with a posed camera" if caliscope else ""))
+    kind = "caliscope-toml" if caliscope else "pose2sim-toml"
+    return CalibrationSet(_to_y_up(cams, world_up), f"{kind}:{Path(path).name}")
 
 
 def write_pose2sim_toml(calib: CalibrationSet, path: Path, world_up: WorldUp = "z") -> None:
@@ -706,6 +748,14 @@ def on_floor(calib: CalibrationSet, floor_m: float) -> CalibrationSet:
     lift = np.array([0.0, floor_m, 0.0])
     cams = tuple(replace(c, t=c.t + c.R @ lift) for c in calib.cameras)  # X_new = X - lift
     return CalibrationSet(cams, source=f"{calib.source} (floor at {floor_m:g} m)" if calib.source else "")
+
+
+def turned(calib: CalibrationSet, rotation: FloatArray) -> CalibrationSet:
+    """The same cameras in a world turned by ``rotation`` (3x3): a point ``X`` of the old world is ``rotation @ X``
+    in the new one (``mocapd import keypoints --up auto`` levels the world with it)."""
+    rot = np.asarray(rotation, dtype=np.float64)
+    cams = tuple(replace(c, R=c.R @ rot.T) for c in calib.cameras)
+    return CalibrationSet(cams, source=f"{calib.source} (levelled)" if calib.source else "")
 
 
 def read_any(path: Path, world_up: WorldUp | None = None, units: str | None = None) -> CalibrationSet:

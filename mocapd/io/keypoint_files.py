@@ -158,8 +158,8 @@ def read_freemocap(path: Path, keypoint_set: str | None = None) -> list[ParsedFr
 def _layout(path: Path, layout: str) -> str:
     if layout != "auto":
         return layout
-    if path.is_dir() and (path / "pose").is_dir():
-        return "pose2sim"
+    if path.is_dir() and ((path / "pose").is_dir() or (path / "Config.toml").is_file()):
+        return "pose2sim"  # a project: its keypoints in pose/ once Pose2Sim's pose estimation has run
     if path.suffix.lower() == ".npy":
         return "freemocap"
     if path.is_file():
@@ -255,6 +255,9 @@ def read_new_frames(cam: CameraKeypoints, layout: str, keypoint_set: str | None,
 def read_pose2sim_project(project: Path, keypoint_set: str | None = None) -> KeypointInput:
     """A Pose2Sim project folder (see the module docstring); the frame rate when ``Config.toml`` gives a number."""
     pose = project / "pose"
+    if not pose.is_dir():
+        raise InputError(f"{project}: a Pose2Sim project without keypoints (no pose/ folder): run Pose2Sim's pose "
+                         "estimation first, or give another detector's files")  # fmt: skip
     folders = sorted(f for f in pose.iterdir() if f.is_dir())
     if not folders:
         raise InputError(f"{pose}: no camera folders (<camera>_json/ of OpenPose-style files: run Pose2Sim's pose "

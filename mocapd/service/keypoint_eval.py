@@ -6,7 +6,9 @@ The scene's detections are written as OpenPose BODY_25 folders and a calibration
 forward pass: the live daemon's scheduler, tracker and per-person solver over every frame, as live) and the
 default (forward pass + RTS smoothing). Both, and the naive DLT of the truth-associated detections, are scored
 (PCP per actor and limb, MPJPE, misses, false-positive tracks, identity switches) into ``OUT/keypoints.json`` and
-``OUT/keypoints.md``.
+``OUT/keypoints.md``, beside Pose2Sim on the same OpenPose folders and calibration (its own multi-person
+association, triangulation and filtering, :func:`mocapd.eval.pose2sim_system.run_pose2sim_openpose`, in
+``OUT/pose2sim``) when it is installed and not left out.
 """
 
 from __future__ import annotations
@@ -64,6 +66,26 @@ def _estimates(frames: list[PoseRecord], n_frames: int, rig: Skeleton) -> Estima
     return Estimates(out)
 
 
+def _pose2sim_estimates(people: list[FloatArray], n_frames: int) -> Estimates:
+    """Pose2Sim's filtered people (each (n_frames, 25, 3), BODY_25's order) by frame, a person where it has a point."""
+    out: list[list[tuple[str, FloatArray]]] = [[] for _ in range(n_frames)]
+    for i, pts in enumerate(people):
+        for f in range(min(n_frames, len(pts))):
+            if np.isfinite(pts[f]).any():
+                out[f].append((f"pose2sim:{i}", np.asarray(pts[f])))
+    return Estimates(out)
+
+
+def _run_pose2sim(folders: list[Path], inp: Path, out: Path, n_frames: int) -> list[FloatArray]:
+    from mocapd.eval.pose2sim_system import run_pose2sim_openpose
+    from mocapd.io.calibration_files import read_any, write_pose2sim_toml
+
+    work = out / "pose2sim"
+    work.mkdir(parents=True, exist_ok=True)
+    write_pose2sim_toml(read_any(inp / "calibration.toml"), work / "Calib.toml")  # Pose2Sim's Z-up world
+    return run_pose2sim_openpose(folders, work / "Calib.toml", FPS, n_frames, work).filtered
+
+
 def _cli(argv: list[str]) -> None:
     from mocapd.errors import MocapdError
     from mocapd.service.cli import main
@@ -75,8 +97,12 @@ def _cli(argv: list[str]) -> None:
 
 
 def run_keypoint_eval(out: Path, n_people: int = 3, seconds: float = 10.0, seed: int = 0,
-                      noise: Noise | None = None, data_root: Path | None = None) -> dict[str, Any]:  # fmt: skip
+                      noise: Noise | None = None, data_root: Path | None = None,
+                      pose2sim: bool = True) -> dict[str, Any]:  # fmt: skip
     """Build, write, import, resolve and score the benchmark (see the module docstring); returns the report."""
+    from mocapd.eval.pose2sim_system import POSE2SIM_VERSION, pose2sim_missing
+
+    missing = pose2sim_missing() if pose2sim else "not asked for (--no-pose2sim)"
     noise = noise if noise is not None else Noise()
     scene = build_scene(n_people, seconds, data_root)
     det = detect(scene, noise, seed)
@@ -99,12 +125,17 @@ def run_keypoint_eval(out: Path, n_people: int = 3, seconds: float = 10.0, seed:
         "mocapd resolve": score(scene.keypoints, _estimates(s.require_poses(RESOLVED), n, rig), vis, names, LIMBS),
         "DLT, truth-associated views": score(scene.keypoints, dlt_baseline(scene, det), vis, names, LIMBS),
     }  # fmt: skip
+    if missing is None:
+        people = _run_pose2sim(folders, inp, out, n)
+        systems["Pose2Sim (its association, triangulation, filter)"] = score(
+            scene.keypoints, _pose2sim_estimates(people, n), vis, names, LIMBS)  # fmt: skip
     report = {
         "benchmark": {"people": n_people, "clips": scene.clips, "seconds": seconds, "fps": FPS, "seed": seed,
                       "cameras": len(scene.cameras), "image": [scene.cameras[0].width, scene.cameras[0].height],
                       "noise": noise.__dict__, "flipped_views": det.flips, "occluded_keypoints": det.occluded,
                       "false_positive_detections": det.false_positives,
-                      "visible_person_frames": int(vis.sum())},
+                      "visible_person_frames": int(vis.sum()),
+                      "pose2sim": POSE2SIM_VERSION if missing is None else f"not run: {missing}"},
         "commands": [f"mocapd import keypoints {inp}/openpose/cam*_json -o {session} --calibration "
                      f"{inp}/calibration.toml --fps {FPS:g}", f"mocapd resolve {session} --no-smooth -o {forward_file}",
                      f"mocapd resolve {session}"],
@@ -122,7 +153,8 @@ def markdown(report: dict[str, Any]) -> str:
              f"{b['cameras']} cameras {b['image'][0]}x{b['image'][1]}", "",
              f"Clips: {', '.join(b['clips'])}. Detector errors: {b['flipped_views']} flipped views, "
              f"{b['occluded_keypoints']} occluded keypoints, {b['false_positive_detections']} false-positive "
-             f"detections; {b['visible_person_frames']} visible person-frames.", "",
+             f"detections; {b['visible_person_frames']} visible person-frames. Pose2Sim: {b.get('pose2sim', '-')}.",
+             "",
              "| system | PCP per actor → average | MPJPE | misses (after 0.2 s) | first published (s) | ID switches "
              "| tracks (false positive) |", "|---|---|---|---|---|---|---|"]  # fmt: skip
     for name, s in report["systems"].items():

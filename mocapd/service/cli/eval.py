@@ -69,6 +69,7 @@ def register(sub: Any) -> None:
         help="results directory: input/, session/, keypoints.json, keypoints.md (must not hold a session)",
     )
     k.add_argument("--data-root", type=Path, default=None, help="shared data root (default ../shared/data)")
+    k.add_argument("--no-pose2sim", action="store_true", help="leave Pose2Sim out (it is an optional install)")
     k.set_defaults(func=_run_keypoints)
 
 
@@ -77,14 +78,16 @@ def _run_keypoints(args: argparse.Namespace) -> int:
     from mocapd.service.keypoint_eval import run_keypoint_eval
 
     try:
-        report = run_keypoint_eval(args.out, args.people, args.seconds, args.seed, data_root=args.data_root)
+        report = run_keypoint_eval(args.out, args.people, args.seconds, args.seed, data_root=args.data_root,
+                                   pose2sim=not args.no_pose2sim)  # fmt: skip
     except MocapdError as exc:  # a bad option, the data root missing, an OUT that already holds a session
         print(f"error: {exc}", file=sys.stderr)
         return 2
     summary = {name: {key: s[key] for key in ("pcp_average", "mpjpe_mm", "misses", "misses_after_first_0.2s",
                                               "identity_switches", "tracks", "false_positive_tracks")}
                for name, s in report["systems"].items()}  # fmt: skip
-    print(json.dumps({"out": str(args.out), "systems": summary}, indent=2))
+    print(json.dumps({"out": str(args.out), "pose2sim": report["benchmark"]["pose2sim"], "systems": summary,
+                      "commands": report["commands"]}, indent=2))  # fmt: skip
     return 0
 
 

@@ -72,7 +72,8 @@ def register(subparsers: Any) -> None:
                     help="the files' keypoint set (default: told from their length or metadata)")  # fmt: skip
     kp.add_argument("--solve-format", default=None, choices=tuple(SOLVE_FORMATS),
                     help="the daemon's [detector.model] keypoint_format (default: the one the set is solved in: "
-                    "body25 for BODY_25, halpe26 for Halpe-26, WholeBody and BlazePose, coco17 for COCO)")  # fmt: skip
+                    "body25 for BODY_25, halpe26 for Halpe-26 and WholeBody, blazepose33 for BlazePose, coco17 for "
+                    "COCO)")  # fmt: skip
     kp.add_argument(
         "--latency",
         type=number(0.0, 10.0),

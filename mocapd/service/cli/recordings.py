@@ -436,10 +436,12 @@ def _register_keypoints(what: Any) -> None:
         choices=tuple(SETS),
         help="the keypoint set of the files (default: told from their length or their metadata)",
     )
-    kp.add_argument("--up", default=None, choices=("y", "z", "-y"),
+    kp.add_argument("--up", default=None, choices=("y", "z", "-y", "auto"),
                     help="the calibration world's up axis (default: the format's: z for Pose2Sim TOML, Qualisys, "
                     "EasyMocap and the Shelf/Campus JSON, -y for CMU Panoptic (write --up=-y), y for mocapd and OpenCV "
-                    "files); a Z-up world's floor z = 0 becomes mocapd's y = 0")  # fmt: skip
+                    "files); a Z-up world's floor z = 0 becomes mocapd's y = 0; auto: up and the floor measured "
+                    "on the people (upright on average, their ankles low), for a world whose up is unknown or "
+                    "tilted")  # fmt: skip
     kp.add_argument("--units", default=None, choices=tuple(UNITS),
                     help="the calibration's translation unit (default: the format's: mm for VoxelPose's JSON, cm for "
                     "CMU Panoptic, else m)")  # fmt: skip
@@ -481,7 +483,13 @@ def cmd_import_keypoints(args: argparse.Namespace) -> int:
         fps = median_rate(timestamps)
     if fps is None:
         raise MocapdError("give the keypoints' frame rate (--fps HZ) or their times (--timestamps FILE)")
-    calib = on_floor(read_any(calib_path, world_up=args.up, units=args.units), args.floor)
+    if args.up == "auto":
+        if args.floor != 0.0:
+            raise MocapdError("--up auto measures the floor on the people: leave --floor out")
+        calib, world = _levelled(read_any(calib_path, world_up="y", units=args.units), inp, fps, timestamps,
+                                 args.height)  # fmt: skip
+    else:
+        calib, world = on_floor(read_any(calib_path, world_up=args.up, units=args.units), args.floor), None
     take = keypoint_take(inp, calib, fps, timestamps)
     manifest = keypoints_manifest(take, fps=fps, height=args.height, source=", ".join(args.inputs),
                                   layout=inp.layout, calibration=str(calib_path))  # fmt: skip
@@ -491,5 +499,21 @@ def cmd_import_keypoints(args: argparse.Namespace) -> int:
                       "solved_as": take.keypoint_format, "fps": fps, "calibration": str(calib_path),
                       "cameras": {c.name: {"input": str(i.source), "frames": take.frames[i.name]}
                                   for c, i in zip(take.cameras, inp.cameras, strict=True)},
-                      "duration_s": imp["duration_s"], "next": f"mocapd resolve {path}"}, indent=2))  # fmt: skip
+                      "duration_s": imp["duration_s"], **({"world": world} if world else {}),
+                      "next": f"mocapd resolve {path}"}, indent=2))  # fmt: skip
     return 0
+
+
+def _levelled(calib: Any, inp: Any, fps: float, timestamps: Any, height: float) -> tuple[Any, dict[str, Any]]:
+    """``--up auto``: the calibration's world turned so that the people's up is +Y and moved so that their floor
+    is y = 0 (:mod:`mocapd.core.people_up`), with what was measured."""
+    from mocapd.core.keypoints import keypoint_format
+    from mocapd.core.people_up import level_rotation, up_and_floor
+    from mocapd.io.calibration_files import on_floor, turned
+    from mocapd.service.session.keypoint_import import keypoint_take, people_in_take
+
+    take = keypoint_take(inp, calib, fps, timestamps)
+    up, floor, used = up_and_floor(people_in_take(take), keypoint_format(take.keypoint_format).keypoints, height)
+    world = {"up": [round(float(v), 4) for v in up], "floor_m": round(floor, 3), "from": "people",
+             "person_instants": used}  # fmt: skip
+    return on_floor(turned(calib, level_rotation(up)), floor), world

@@ -115,6 +115,23 @@ def keypoint_take(
     return KeypointTake(cameras, fmt.name, source, records, frames, first, last, timed)
 
 
+def people_in_take(take: KeypointTake, max_instants: int = 400) -> np.ndarray:
+    """The take's people triangulated at up to ``max_instants`` instants spread over it (the association the
+    scheduler starts from, :class:`~mocapd.core.sorting.DetectionSorter`), shape (n, n_kp, 3), NaN where not
+    triangulated: what ``--up auto`` measures the world's up and floor on."""
+    from mocapd.core.sorting import Detections2D, DetectionSorter
+
+    n_kp = keypoint_format(take.keypoint_format).n_keypoints
+    sorter = DetectionSorter(take.cameras, keypoint_names=keypoint_format(take.keypoint_format).keypoints)
+    by_time: dict[int, list[Detections2D]] = {}
+    for t, ci, kp, cf in take.records:
+        by_time.setdefault(t, [Detections2D.empty(n_kp) for _ in take.cameras])[ci] = Detections2D(kp, cf)
+    times = sorted(by_time)
+    pick = np.unique(np.linspace(0, len(times) - 1, min(max_instants, len(times))).round().astype(int))
+    people = [c.points for i in pick.tolist() for c in sorter.candidates(by_time[times[i]])]
+    return np.asarray(people, dtype=np.float64).reshape(-1, n_kp, 3)
+
+
 def median_rate(timestamps: dict[str | None, dict[int, float]]) -> float:
     """The frame rate of timestamps (1 / the median time between consecutive frames), within the accepted rates."""
     steps = [(ts[b] - ts[a]) / (b - a) for ts in timestamps.values() for a, b in itertools.pairwise(sorted(ts))]
