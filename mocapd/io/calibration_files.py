@@ -18,6 +18,7 @@ mocapd calibration TOML (``format = "mocapd-calibration"``, ``version = 1``)::
     R = [[...], [...], [...]]            # world -> camera rotation
     t = [tx, ty, tz]                     # world -> camera translation, metres
     reprojection_error_px = 0.41         # optional: RMS from the calibration that produced it
+    time_offset_s = 0.067                # optional: frames this late, s ([daemon.offsets] cameras convention)
 
 Foreign conventions handled on import/export:
 
@@ -127,6 +128,10 @@ class CameraCalibration:
         World→camera translation in metres.
     error_px : float or None
         RMS reprojection error of the calibration that produced it.
+    time_offset_s : float or None
+        How far the camera's time stamps run ahead of the rig's (its frames show the scene this late), seconds, in
+        the convention of ``[daemon.offsets] cameras``; where a calibration estimated it (``mocapd calibrate
+        cameras --from-people``), None where nothing did. The daemon applies only the config's offsets.
     """
 
     name: str
@@ -136,6 +141,7 @@ class CameraCalibration:
     R: FloatArray = field(default_factory=lambda: np.eye(3))
     t: FloatArray = field(default_factory=lambda: np.zeros(3))
     error_px: float | None = None
+    time_offset_s: float | None = None
 
     def __post_init__(self) -> None:
         check_name(self.name, "camera name", CalibrationError)  # the config's rule: the name must match one there
@@ -162,6 +168,11 @@ class CameraCalibration:
             )
         if self.error_px is not None and not (math.isfinite(self.error_px) and self.error_px >= 0):
             raise CalibrationError(f"camera {self.name!r}: reprojection error {self.error_px!r}; allowed: >= 0 px")
+        if self.time_offset_s is not None and not (
+            isinstance(self.time_offset_s, int | float) and math.isfinite(self.time_offset_s)
+            and abs(self.time_offset_s) <= 1.0
+        ):  # fmt: skip
+            raise CalibrationError(f"camera {self.name!r}: time offset {self.time_offset_s!r}; allowed: -1..1 s")
         if abs(np.linalg.det(R) - 1.0) > 1e-3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
             raise CalibrationError(f"camera {self.name!r}: R is not a rotation matrix (det={np.linalg.det(R):.4f})")
         object.__setattr__(self, "K", K)
@@ -261,6 +272,8 @@ def write_mocapd_toml(calib: CalibrationSet, path: Path) -> None:
         ]
         if cam.error_px is not None:
             lines.append(f"reprojection_error_px = {cam.error_px!r}")
+        if cam.time_offset_s is not None:
+            lines.append(f"time_offset_s = {cam.time_offset_s!r}  # as [daemon.offsets] cameras: frames this late")
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 
@@ -307,6 +320,7 @@ def read_mocapd_toml(path: Path) -> CalibrationSet:
                     np.array(c["R"]),
                     np.array(c["t"]),
                     c.get("reprojection_error_px"),
+                    c.get("time_offset_s"),
                 )
             )
         except KeyError as exc:
