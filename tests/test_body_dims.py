@@ -9,7 +9,7 @@ from mocapd.core.body_dims import SEGMENTS, BodySpec, default_lengths, segment_l
 from mocapd.core.skeleton import BONE_INDEX, Skeleton
 from mocapd.errors import InputError
 from mocapd.service.config import parse_config
-from mocapd.service.rig import rig_skeleton
+from mocapd.service.rig_plan import rig_skeleton
 
 
 def test_the_default_proportions_are_the_height_s_and_each_segment_given_is_that_long() -> None:

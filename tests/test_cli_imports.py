@@ -63,3 +63,40 @@ def test_building_the_parser_imports_no_commands_implementation() -> None:
     assert not implementation, implementation
     # The parts of the core the parser reads constants from, never the solver's or the cameras' models.
     assert not [m for m in modules if m in ("mocapd.core.solver", "mocapd.core.camera", "mocapd.core.assignment")]
+
+
+# `mocapd check-config` on the shipped file, in a fresh interpreter: the schema's defaults used to import the
+# solver's, the cameras' and the learned fusion's modules, and the rig's check the detector's, the scheduler's and
+# the daemon's (NumBa, onnxruntime, OpenCV, SciPy: 2.9 s of CPU per check, and as much again in every one of the
+# test suite's daemons before its config was validated). They are imported where a default the file leaves out or
+# a part of the rig needs them.
+_CHECK_CONFIG = """
+import json, sys
+from mocapd.service.cli import main
+code = main(["check-config"])
+print(json.dumps([code, sorted(sys.modules)]))
+"""
+
+#: what checking the shipped config may not import: the rig's implementation (a config check opens no device)
+RIG_IMPLEMENTATION = (
+    "mocapd.core.solver",
+    "mocapd.core.camera",
+    "mocapd.pipeline.detector",
+    "mocapd.pipeline.detector_pool",
+    "mocapd.pipeline.scheduler",
+    "mocapd.pipeline.fusion",
+    "mocapd.service.rig",
+    "mocapd.service.daemon",
+    "mocapd.service.assembly",
+)
+
+
+def test_checking_the_shipped_config_imports_no_detector_solver_or_daemon() -> None:
+    out = subprocess.run([sys.executable, "-c", _CHECK_CONFIG], capture_output=True, text=True, check=True,
+                         timeout=600)  # fmt: skip
+    code, modules = json.loads(out.stdout.strip().splitlines()[-1])
+    assert code == 0, out  # the shipped file is valid (and describes no rig)
+    assert "mocapd.service.config" in modules  # the file was read (and checked: the rig's check is the last step)
+    heavy = sorted({m.split(".")[0] for m in modules} & {"numba", "llvmlite", "onnxruntime", "onnx", "cv2", "scipy"})
+    assert not heavy, heavy
+    assert not [m for m in RIG_IMPLEMENTATION if m in modules]

@@ -29,7 +29,8 @@ from mocapd.pipeline.scheduler import FixedLatencyScheduler
 from mocapd.service.cli import main
 from mocapd.service.config import load_config
 from mocapd.service.demo.imu_only import IMU_RATE_HZ, simulated_suit, suit_rig_config
-from mocapd.service.rig import build_rig, plan_rig
+from mocapd.service.rig import build_rig
+from mocapd.service.rig_plan import plan_rig
 from mocapd.sim.world import SyntheticWorld
 from tests.test_run_rig import RunProcess
 from tools.slimevr_rig import emulated_trackers, slimevr_calibration

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mocapd.core.bundle_adjustment import adjust
+from mocapd.core.bundle_adjustment import _sum_by, adjust
 from mocapd.core.camera import Camera, triangulate
 from mocapd.core.rotations import matrix_from_rotvec
 from mocapd.core.self_calibration import SelfCalibrationOptions, calibrate_from_people, compare_calibrations
@@ -99,6 +99,20 @@ def test_bundle_adjustment_pulls_perturbed_cameras_back() -> None:
     assert after.relative_rotation_deg < 0.05, after
     assert float(np.median(res.errors_px)) < 1.0
     assert res.cost_after < res.cost_before
+
+
+def test_the_adjustments_sums_by_point_are_np_add_at_to_the_bit() -> None:
+    """The normal equations' per-point and per-camera sums (``np.bincount`` per component, for speed) are the
+    additions ``np.add.at`` into zeros makes, in its order: the same floats, so the calibration is unchanged."""
+    rng = np.random.default_rng(5)
+    index = rng.integers(0, 40, 3000)
+    for shape in ((3000, 3, 3), (3000, 3), (3000, 9, 9)):
+        values = rng.normal(size=shape) * 10.0 ** rng.integers(-8, 8, size=shape)
+        expected = np.zeros((40, *shape[1:]))
+        np.add.at(expected, index, values)
+        got = _sum_by(index, values, 40)
+        assert got.shape == expected.shape and got.dtype == np.float64
+        assert np.array_equal(got, expected)
 
 
 def test_too_little_input_is_a_clear_error() -> None:

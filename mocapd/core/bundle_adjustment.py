@@ -49,6 +49,28 @@ def _residuals(
     return r, (None if J is None else J[:, 0]), proj[:, 0]
 
 
+def _sum_by(index: IntArray, values: FloatArray, n: int) -> FloatArray:
+    """The rows of ``values`` summed by ``index``: ``out[k] = Σ values[i] over i with index[i] = k``.
+
+    Parameters
+    ----------
+    index : int array, shape (m,)
+        Row of the output each value goes to (0 <= index < n).
+    values : array, shape (m, ...)
+    n : int
+        Rows of the output.
+
+    Returns
+    -------
+    array, shape (n, ...)
+        ``np.add.at`` into zeros, with the same additions in the same order (so the same floats): one
+        ``np.bincount`` per component, several times faster than ``np.add.at`` on these (m, 3, 3) blocks.
+    """
+    flat = values.reshape(len(values), -1)
+    sums = [np.bincount(index, weights=flat[:, k], minlength=n) for k in range(flat.shape[1])]
+    return np.asarray(np.stack(sums, axis=1).reshape(n, *values.shape[1:]), dtype=np.float64)
+
+
 def _cost(r: FloatArray, w: FloatArray, sigma: float) -> float:
     s = np.sum(r * r, axis=1) / sigma**2
     return float(np.sum(w * sigma**2 * 2.0 * (np.sqrt(1.0 + s) - 1.0)))
@@ -115,14 +137,10 @@ def adjust(
         Jcam = np.concatenate(parts, axis=2)  # (m, 2, D)
         JtW = np.swapaxes(J, 1, 2) * W[:, None, None]  # (m, 3, 2)
         JcW = np.swapaxes(Jcam, 1, 2) * W[:, None, None]  # (m, D, 2)
-        Hpp = np.zeros((n_pts, 3, 3))
-        np.add.at(Hpp, point, JtW @ J)
-        gp = np.zeros((n_pts, 3))
-        np.add.at(gp, point, (JtW @ r[:, :, None])[:, :, 0])
-        Hcc = np.zeros((n_cams, D, D))
-        np.add.at(Hcc, cam, JcW @ Jcam)
-        gc = np.zeros((n_cams, D))
-        np.add.at(gc, cam, (JcW @ r[:, :, None])[:, :, 0])
+        Hpp = _sum_by(point, JtW @ J, n_pts)
+        gp = _sum_by(point, (JtW @ r[:, :, None])[:, :, 0], n_pts)
+        Hcc = _sum_by(cam, JcW @ Jcam, n_cams)
+        gc = _sum_by(cam, (JcW @ r[:, :, None])[:, :, 0], n_cams)
         Hcp = JcW @ J  # (m, D, 3)
         while True:
             Hpp_d = Hpp + lam * Hpp * np.eye(3) + 1e-9 * np.eye(3)
@@ -146,8 +164,7 @@ def adjust(
             S_flat[hold, hold] = 1.0
             rhs_flat[hold] = 0.0
             dc = _solve(S_flat, rhs_flat).reshape(n_cams, D)
-            back = np.zeros((n_pts, 3))
-            np.add.at(back, point, (np.swapaxes(Hcp, 1, 2) @ dc[cam][:, :, None])[:, :, 0])
+            back = _sum_by(point, (np.swapaxes(Hcp, 1, 2) @ dc[cam][:, :, None])[:, :, 0], n_pts)
             dp = (Hpp_inv @ (-gp - back)[:, :, None])[:, :, 0]
             trial = _step(cams, dc, intrinsics)
             Xt = X + dp

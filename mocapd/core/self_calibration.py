@@ -299,7 +299,10 @@ def _essential(
     if len(x1) < 15:
         return None
     cv2.setRNGSeed(int(rng.integers(1 << 30)))
-    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=0.9999, threshold=thr, maxIters=1000)
+    # prob 0.999, not 0.9999: below ~35 % inliers maxIters binds either way; above, 0.9999 only adds iterations of the
+    # five-point solver (its cost, not the points') to runs that already found the model, six runs per camera pair.
+    # The synthetic rig: the same calibration to 0.001° and 0.1 mm, findEssentialMat 11.8 -> 9.2 s of CPU.
+    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=thr, maxIters=1000)
     if E is None or E.shape != (3, 3):
         return None
     n, R, t, _ = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())

@@ -33,7 +33,8 @@ from mocapd.service.daemon import Daemon, PoseSink, in_daemon_thread
 from mocapd.service.outputs.recorder import SessionRecorder, attach_recorder, synthetic_extra
 from mocapd.service.outputs.udp import build_udp_sinks
 from mocapd.service.outputs.websocket import build_websocket_sinks
-from mocapd.service.rig import BuiltRig, RigPlan, build_rig, plan_rig
+from mocapd.service.rig import BuiltRig, build_rig
+from mocapd.service.rig_plan import RigPlan, plan_rig
 from mocapd.service.suits import calibration_line
 from mocapd.sim.silhouettes import SyntheticMattes
 from mocapd.sim.truth import TruthError
@@ -94,7 +95,7 @@ def assemble(
     Raises
     ------
     ConfigError
-        The rig does not check out against its calibration or files (see :func:`~mocapd.service.rig.plan_rig`).
+        The rig does not check out against its calibration or files (see :func:`~mocapd.service.rig_plan.plan_rig`).
     ModelError
         The detector model or the pose prior cannot be loaded.
     """

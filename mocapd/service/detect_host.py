@@ -159,7 +159,8 @@ def _sink(publisher: DetectionPublisher, index: int) -> Callable[[int, int, Dete
 def run(config: Config, *, seconds: float | None = None, on_ready: Callable[[str], None] | None = None) -> int:
     """``mocapd detect-host``: build the config's cameras and detector, publish until SIGINT/SIGTERM."""
     from mocapd.io.tls_files import check_tls_files
-    from mocapd.service.rig import build_rig, plan_rig
+    from mocapd.service.rig import build_rig
+    from mocapd.service.rig_plan import plan_rig
 
     remote = [c.name for c in config.cameras if isinstance(c, ZenohCamera)]
     if remote:

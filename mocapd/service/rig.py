@@ -1,22 +1,14 @@
-"""The rig a config describes, checked and then built: calibrated cameras, their frame and keypoint sources, the
-detector they share, the people's model, the IMU suits — and for a synthetic rig, the simulated world with its
-simulated devices.
+"""The rig a config describes, built: calibrated cameras, their frame and keypoint sources, the detector they share,
+the people's model, the IMU suits — and for a synthetic rig, the simulated world with its simulated devices.
 
 Two steps, so that ``mocapd check-config`` says everything that can be said without touching a device:
-
-* :func:`plan_rig` reads the calibration and the files the cameras replay and checks the rig against them: at
-  least one camera or one IMU source (a rig of IMUs alone, an Xsens suit or SlimeVR trackers, has no cameras,
-  no calibration file and no detector); every camera in the calibration file; the image size each camera will
-  deliver (an Aravis ``region``, a webcam's ``width``/``height``, a video's or an image folder's first frame)
-  equal to its calibration's; readable videos and image folders. Each problem is one line naming the key and
-  its value.
-* :func:`build_rig` makes the sources (nothing is opened yet: the daemon opens every device before it reports
-  READY, and names the one that fails).
+:func:`~mocapd.service.rig_plan.plan_rig` (its own module, which imports no detector) checks the rig against its
+calibration and files, then :func:`build_rig` makes the sources (nothing is opened yet: the daemon opens every
+device before it reports READY, and names the one that fails).
 """
 
 from __future__ import annotations
 
-import socket
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -26,18 +18,14 @@ from pathlib import Path
 from mocapd.core.camera import Camera
 from mocapd.core.keypoints import hand_keypoint_names, keypoint_format
 from mocapd.core.prior import PcaPrior
-from mocapd.core.skeleton import Skeleton
-from mocapd.core.synthetic import named_ring_rig
-from mocapd.errors import CalibrationError, ConfigError, InputError
+from mocapd.errors import ConfigError
 from mocapd.io.aravis_camera import AravisCameraConfig, AravisSource
-from mocapd.io.calibration_files import core_cameras, read_any
 from mocapd.io.frame_source import ThreadedSource
-from mocapd.io.media_files import check_declared_size, open_video, picture_size, read_image
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.pixels import capture_ring, pixel_format
 from mocapd.io.prior import resolve_prior
 from mocapd.io.uvc_source import UvcCameraConfig, UvcSource
-from mocapd.io.video_source import IMAGE_SUFFIXES, ImageFolderSource, VideoFileSource
+from mocapd.io.video_source import ImageFolderSource, VideoFileSource
 from mocapd.pipeline.clocksync import ClockSync
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.detector_pool import AnyDetector, make_detector, target_columns
@@ -52,145 +40,19 @@ from mocapd.service.config.cameras import (
     AravisCamera,
     CameraConfig,
     ImagesCamera,
-    SyntheticCamera,
     UvcCamera,
     VideoCamera,
     ZenohCamera,
 )
 from mocapd.service.config.imu import ImuConfig
 from mocapd.service.daemon import Rig
+from mocapd.service.rig_plan import RigPlan, rig_skeleton
 from mocapd.service.suits import load_suits
 from mocapd.sim.suits import SimulatedSuits
 from mocapd.sim.world import SyntheticKeypointSource, SyntheticWorld
 
-NO_RIG = (
-    "no cameras and no IMU source: add [[cameras]] tables or an IMU source ([imu] ports, [imu.slimevr] enabled, "
-    "[imu.bridge] enabled); `mocapd devices` prints them for what is plugged in; or try `mocapd demo` "
-    "(`mocapd demo --imu-only`: a simulated suit alone)"
-)
 TRACK_THREAD = "mocapd-track"  # the tracking pool's threads, by this OS name in per-thread CPU accounting
 DEFAULT_HEIGHT_M = 1.75  # the skeleton people start with, until body sizing gives each their own
-
-
-@dataclass(frozen=True)
-class RigPlan:
-    """The rig as checked: every camera calibrated at the size it will deliver, in ``[[cameras]]`` order."""
-
-    cameras: list[Camera]
-    synthetic: bool
-
-
-def plan_rig(config: Config) -> RigPlan:
-    """Check the rig of ``config`` against its calibration and files (no device is opened).
-
-    Raises
-    ------
-    ConfigError
-        One line per rule broken, naming the key and its value.
-    """
-    cams = config.cameras
-    if not cams:
-        if not config.imu.sources():
-            raise ConfigError(NO_RIG)
-        config.daemon.scheduler_options([])  # daemon.offsets.cameras must be empty
-        return RigPlan([], synthetic=False)  # an IMU-only rig: a suit (Xsens, SlimeVR, bridge) solved alone
-    names = [c.name for c in cams]
-    config.daemon.scheduler_options(names)  # daemon.offsets.cameras must name cameras of the rig
-    if all(isinstance(c, SyntheticCamera) for c in cams):
-        if config.calibration.file:
-            raise ConfigError(
-                f"calibration.file = {config.calibration.file!r}: a synthetic rig is calibrated by its simulation"
-            )
-        return RigPlan(named_ring_rig(names), synthetic=True)
-    calibrated = _calibration(config)
-    problems: list[str] = []
-    cameras: list[Camera] = []
-    for i, cam in enumerate(cams):
-        where = f"cameras[{i}]"
-        found = calibrated.get(cam.name)
-        if found is None:
-            problems.append(
-                f"{where}.name = {cam.name!r}: not in the calibration {config.calibration.file} "
-                f"(it has {', '.join(sorted(calibrated)) or 'no camera'})"
-            )
-            continue
-        if isinstance(cam, AravisCamera) and cam.interface and cam.interface not in _interfaces():
-            problems.append(
-                f"{where}.interface = {cam.interface!r}: no such network interface on this machine "
-                f"(it has {', '.join(sorted(_interfaces()))})"
-            )
-            continue
-        try:
-            size = expected_size(cam)
-        except (ConfigError, InputError) as exc:
-            problems.append(f"{where}: {exc}")
-            continue
-        if size is not None and size != (found.width, found.height):
-            problems.append(
-                f"{where} ({cam.name}) delivers {size[0]}x{size[1]} images, but the calibration has it at "
-                f"{found.width}x{found.height}"
-            )
-        cameras.append(found)
-    if problems:
-        raise ConfigError("\n".join(problems))
-    return RigPlan(cameras, synthetic=False)
-
-
-def _interfaces() -> set[str]:
-    """The network interfaces of this machine (names only; nothing is sent)."""
-    return {name for _, name in socket.if_nameindex()}
-
-
-def _calibration(config: Config) -> dict[str, Camera]:
-    path = config.calibration.file
-    if not path:
-        raise ConfigError("calibration.file is not set: real cameras need their calibration (docs/cameras.md)")
-    world_up = None if config.calibration.world_up == "auto" else config.calibration.world_up
-    try:
-        cameras = core_cameras(read_any(Path(path), world_up=world_up))
-    except (OSError, CalibrationError, ValueError) as exc:
-        raise ConfigError(f"calibration.file = {path!r}: {exc}") from exc
-    return {c.name: c for c in cameras}
-
-
-def expected_size(cam: CameraConfig) -> tuple[int, int] | None:
-    """(width, height) the camera will deliver, when the config or its files say (None: known once opened)."""
-    if isinstance(cam, AravisCamera):
-        return (cam.region[2], cam.region[3]) if cam.region is not None else None
-    if isinstance(cam, UvcCamera):
-        return (cam.width, cam.height) if cam.width is not None and cam.height is not None else None
-    if isinstance(cam, VideoCamera):
-        return _video_size(cam.path)
-    if isinstance(cam, ImagesCamera):
-        return _images_size(cam.path)
-    return None
-
-
-def _video_size(path: str) -> tuple[int, int]:
-    cap = open_video(path, "video (path)")  # a FIFO, a device, a folder: one line, not a wait (issue 34)
-    try:
-        ok, frame = cap.read()
-    finally:
-        cap.release()
-    if not ok or frame is None:
-        raise InputError(f"path = {path!r}: cannot decode a frame (not a video OpenCV/FFmpeg reads?)")
-    return int(frame.shape[1]), int(frame.shape[0])
-
-
-def _images_size(path: str) -> tuple[int, int]:
-    folder = Path(path)
-    if not folder.is_dir():
-        raise InputError(f"path = {path!r}: no such folder")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if not files:
-        raise InputError(f"path = {path!r}: holds no image ({', '.join(IMAGE_SUFFIXES)})")
-    image = read_image(files[0], "image (path)")
-    size = int(image.shape[1]), int(image.shape[0])
-    # Every other picture's header, as the source checks each before decoding it: a decompression bomb, a FIFO or a
-    # picture of another size further down the folder is said now, not when `run` reaches it (issue 45).
-    for file in files[1:]:
-        check_declared_size(picture_size(file, "image (path)"), file, "image (path)", size=size)
-    return size
 
 
 @dataclass
@@ -226,12 +88,6 @@ class BuiltRig:
         if self.simulated is not None:
             self.simulated.close()
             self.simulated = None
-
-
-def rig_skeleton(config: Config) -> Skeleton:
-    """The skeleton every person starts with (until body sizing from the cameras gives each their own), and the one
-    a suit alone is solved on: ``[imu.body]`` (a height, 1.75 m by default, and any segment lengths given)."""
-    return config.imu.body.spec().skeleton()
 
 
 def detection_columns(cfg: DetectorConfig, targets: tuple[str, ...], remote: bool) -> tuple[str, ...]:

@@ -23,7 +23,7 @@ from mocapd.service.cli.numbers import number
 if TYPE_CHECKING:
     from mocapd.service import assembly
     from mocapd.service.config import Config
-    from mocapd.service.rig import RigPlan
+    from mocapd.service.rig_plan import RigPlan
 
 
 def _subcommand_group(subparsers: Any, name: str) -> Any:
@@ -49,7 +49,7 @@ def check(cfg: Config) -> RigPlan:
     the IMU suits' calibration files."""
     from mocapd.io.tls_files import check_tls_files
     from mocapd.service.config.cameras import AravisCamera, ImagesCamera, UvcCamera, VideoCamera
-    from mocapd.service.rig import plan_rig
+    from mocapd.service.rig_plan import plan_rig
 
     plan = plan_rig(cfg)
     check_tls_files(cfg.zenoh.tls_root_ca, cfg.zenoh.tls_cert, cfg.zenoh.tls_key)  # Zenoh would fail in silence
@@ -85,7 +85,7 @@ def _model_file(path: str, key: str) -> None:
 
 
 def _suits(cfg: Config) -> list[Any]:
-    from mocapd.service.rig import rig_skeleton
+    from mocapd.service.rig_plan import rig_skeleton
     from mocapd.service.suits import load_suits
 
     return load_suits(cfg.imu, rig_skeleton(cfg))

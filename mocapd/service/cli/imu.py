@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mocapd.core.calibration_routine import CalibrationRoutine, RoutineOptions
 from mocapd.core.imu_calibration import (
     CALIBRATION_POSES,
     MAX_ACC_STD,
@@ -37,16 +36,17 @@ from mocapd.core.imu_calibration import (
 )
 from mocapd.core.names import check_name
 from mocapd.errors import ConfigError, DeviceTimeout, MocapdError, OutputError
-from mocapd.io.imu_bridge import ImuBridgeListener
 from mocapd.io.output_files import check_output_file, write_text_atomic
-from mocapd.io.slimevr import SlimeVrListener
-from mocapd.io.xsens_serial import ImuSample, XsensSerialDevice
 from mocapd.service.cli.numbers import number
 
 # The parser is built for every command: the config schema (pydantic, and through its defaults the detector's and
 # the rig's modules) is imported when a calibration runs, not by `mocapd --help`. NumPy and the core's
 # IMU calibration stay: the parser's choices and defaults are theirs (CALIBRATION_POSES, MAX_TURN_DEG, MAX_ACC_STD).
+# The devices' modules (asyncio's streams, the serial and SlimeVR protocols) and the guided routine are imported
+# when a calibration streams.
 if TYPE_CHECKING:
+    from mocapd.core.calibration_routine import CalibrationRoutine
+    from mocapd.io.xsens_serial import ImuSample
     from mocapd.service.config.imu import ImuConfig
 
 
@@ -195,6 +195,10 @@ async def streaming(
     """Stream from every configured input until each of ``sensors`` (default: every assigned sensor) streams, then
     keep their samples while ``body`` runs; ``body`` gets a function that returns the samples kept since its last
     call. Returns every sample kept."""
+    from mocapd.io.imu_bridge import ImuBridgeListener
+    from mocapd.io.slimevr import SlimeVrListener
+    from mocapd.io.xsens_serial import XsensSerialDevice
+
     samples: dict[str, list[ImuSample]] = {}
     taken: dict[str, int] = {}
     seen: set[str] = set()
@@ -369,6 +373,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
 def _run_guided(args: argparse.Namespace) -> int:
     """``mocapd calibrate imu --guided``: the routine on the live sensors (stand, walk, elbows), then the file."""
+    from mocapd.core.calibration_routine import CalibrationRoutine, RoutineOptions
     from mocapd.service.config import load_config
     from mocapd.service.config.imu import ImuConfig
     from mocapd.service.config.schema import validate

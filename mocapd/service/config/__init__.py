@@ -12,17 +12,16 @@ the rig are resolved from the config file's folder when it is read (:func:`resol
 
 from __future__ import annotations
 
+import functools
 import stat
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal, Self
+from typing import TYPE_CHECKING, Any, Literal, Self
 
 from pydantic import Field, model_validator
 
 from mocapd.core.loss import CauchyLoss, HuberLoss, Loss, TrivialLoss
-from mocapd.core.solver import TERM_NAMES, LMOptions
-from mocapd.core.terms import CostOptions
 from mocapd.errors import ConfigError
 from mocapd.service.config.cameras import (
     CalibrationConfig,
@@ -45,6 +44,12 @@ from mocapd.service.config.udp import UdpConfig
 from mocapd.service.config.web import WebConfig
 from mocapd.service.config.websocket import WebSocketConfig, is_loopback
 from mocapd.service.config.zenoh import ZenohConfig, is_loopback_endpoint
+
+# The solver's modules load NumBa and its kernels (a second of CPU): they are imported where a default the file left
+# out or an option is built, not by reading the schema (`mocapd check-config`, and every `mocapd` command).
+if TYPE_CHECKING:
+    from mocapd.core.lm import LMOptions
+    from mocapd.core.terms import CostOptions
 
 DEFAULT_CONFIG = Path(str(resources.files("mocapd").joinpath("config.toml")))
 """The shipped config.toml (inside the package, so an installed wheel has it): every key, documented."""
@@ -81,10 +86,24 @@ TUNED_WEIGHTS = {"orientation": 100.0, "acceleration": 1e-4}
 defaults, where ``CostOptions`` keeps the seed's values (with which the solver is worse than triangulation)."""
 
 
+@functools.cache
+def _cost() -> CostOptions:
+    from mocapd.core.terms import CostOptions
+
+    return CostOptions()
+
+
+@functools.cache
+def _lm() -> LMOptions:
+    from mocapd.core.lm import LMOptions
+
+    return LMOptions()
+
+
 def _term_defaults(name: str) -> dict[str, Any]:
     """The keys of ``[solver.terms.<name>]`` when the file leaves them out: ``CostOptions``' defaults but the
     tuned weights (the shipped config.toml's values)."""
-    d = CostOptions()
+    d = _cost()
     loss = getattr(d, f"loss_{name}")
     kind = next(k for k, cls in _LOSSES.items() if isinstance(loss, cls))
     return {
@@ -115,8 +134,10 @@ class TermsConfig(Section):
         """A term's table that leaves keys out gets that term's defaults, not the generic TermConfig ones."""
         if not isinstance(data, dict):
             return data
+        every = TermConfig.model_fields.keys()  # a table that gives them all needs no default (nor the solver)
         return {
-            k: {**_term_defaults(k), **v} if k in TERM_NAMES and isinstance(v, dict) else v for k, v in data.items()
+            k: {**_term_defaults(k), **v} if k in cls.model_fields and isinstance(v, dict) and v.keys() < every else v
+            for k, v in data.items()
         }
 
 
@@ -129,18 +150,22 @@ class LmConfig(Section):
         ("min_lm_diagonal", "<=", "max_lm_diagonal"),
     )
 
-    max_iterations: int = Field(LMOptions.max_iterations, ge=1, le=1000)
-    function_tolerance: float = Field(LMOptions.function_tolerance, ge=0.0, le=1.0)
-    gradient_tolerance: float = Field(LMOptions.gradient_tolerance, ge=0.0, le=1e6)
-    parameter_tolerance: float = Field(LMOptions.parameter_tolerance, ge=0.0, le=1.0)
-    initial_trust_region_radius: float = Field(LMOptions.initial_trust_region_radius, gt=0.0, le=1e32)
-    max_trust_region_radius: float = Field(LMOptions.max_trust_region_radius, gt=0.0, le=1e32)
-    min_trust_region_radius: float = Field(LMOptions.min_trust_region_radius, ge=0.0, le=1e32)
-    min_relative_decrease: float = Field(LMOptions.min_relative_decrease, ge=0.0, lt=1.0)
-    min_lm_diagonal: float = Field(LMOptions.min_lm_diagonal, ge=0.0, le=1e64)
-    max_lm_diagonal: float = Field(LMOptions.max_lm_diagonal, gt=0.0, le=1e64)
+    max_iterations: int = Field(default_factory=lambda: _lm().max_iterations, ge=1, le=1000)
+    function_tolerance: float = Field(default_factory=lambda: _lm().function_tolerance, ge=0.0, le=1.0)
+    gradient_tolerance: float = Field(default_factory=lambda: _lm().gradient_tolerance, ge=0.0, le=1e6)
+    parameter_tolerance: float = Field(default_factory=lambda: _lm().parameter_tolerance, ge=0.0, le=1.0)
+    initial_trust_region_radius: float = Field(
+        default_factory=lambda: _lm().initial_trust_region_radius, gt=0.0, le=1e32
+    )
+    max_trust_region_radius: float = Field(default_factory=lambda: _lm().max_trust_region_radius, gt=0.0, le=1e32)
+    min_trust_region_radius: float = Field(default_factory=lambda: _lm().min_trust_region_radius, ge=0.0, le=1e32)
+    min_relative_decrease: float = Field(default_factory=lambda: _lm().min_relative_decrease, ge=0.0, lt=1.0)
+    min_lm_diagonal: float = Field(default_factory=lambda: _lm().min_lm_diagonal, ge=0.0, le=1e64)
+    max_lm_diagonal: float = Field(default_factory=lambda: _lm().max_lm_diagonal, gt=0.0, le=1e64)
 
     def options(self) -> LMOptions:
+        from mocapd.core.lm import LMOptions
+
         return self.build(LMOptions)
 
 
@@ -148,11 +173,11 @@ class SolverConfig(Section):
     """The ``[solver]`` section."""
 
     backend: Literal["compiled", "numpy"] = "compiled"
-    floor_radius: float = Field(CostOptions.floor_radius, ge=0.0, le=1.0)
+    floor_radius: float = Field(default_factory=lambda: _cost().floor_radius, ge=0.0, le=1.0)
     """Collision radius of the floor term's targets (m)."""
-    floor_height: float = Field(CostOptions.floor_height, ge=-100.0, le=100.0)
+    floor_height: float = Field(default_factory=lambda: _cost().floor_height, ge=-100.0, le=100.0)
     """World y of the floor (m)."""
-    acceleration_min_views: int = Field(CostOptions.acceleration_min_views, ge=0, le=64)
+    acceleration_min_views: int = Field(default_factory=lambda: _cost().acceleration_min_views, ge=0, le=64)
     prior: PathStr = Field("default", min_length=1)
     """Pose prior: "default" (the shipped CMU prior, mocapd/data/prior_cmu.npz), "none" or a .npz path."""
     terms: TermsConfig = Field(default_factory=TermsConfig)
@@ -161,6 +186,9 @@ class SolverConfig(Section):
     @property
     def cost(self) -> CostOptions:
         """The cost terms' weights, losses and switches as the solver takes them."""
+        from mocapd.core.solver import TERM_NAMES
+        from mocapd.core.terms import CostOptions
+
         per_term: dict[str, Any] = {}
         for name in TERM_NAMES:
             term: TermConfig = getattr(self.terms, name)

@@ -16,23 +16,32 @@ and ``images`` (replaying footage through the live pipeline), ``synthetic`` (the
 
 This module checks what can be checked from the file alone (types, ranges, one way of opening each camera, unique
 names). What needs the file system or the calibration (a camera missing from the calibration, an image size that
-disagrees with it, an unreadable video) is checked by :mod:`mocapd.service.rig`, which ``mocapd check-config``
+disagrees with it, an unreadable video) is checked by :mod:`mocapd.service.rig_plan`, which ``mocapd check-config``
 and ``mocapd run`` both call.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import re
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field, PlainValidator, model_validator
 
-from mocapd.core.camera_watch import WatchOptions
 from mocapd.errors import ConfigError
 from mocapd.service.config.schema import MAX_TEXT, PathStr, Section, Seq, Text, validate
 
-_W = WatchOptions()
+if TYPE_CHECKING:  # the watch's module loads the cameras' model (NumBa): imported for a default or its options
+    from mocapd.core.camera_watch import WatchOptions
+
+
+@functools.cache
+def _watch() -> WatchOptions:
+    from mocapd.core.camera_watch import WatchOptions
+
+    return WatchOptions()
+
 
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,32}$")
 
@@ -202,23 +211,25 @@ class CameraWatchConfig(Section):
     ordered = (("window_s", "<", "baseline_s"),)
 
     enabled: bool = True
-    rate_hz: float = Field(_W.rate_hz, gt=0.0, le=240.0)
-    window_s: float = Field(_W.window_s, gt=0.0, le=60.0)
-    baseline_s: float = Field(_W.baseline_s, gt=0.0, le=3600.0)
-    min_baseline_s: float = Field(_W.min_baseline_s, ge=0.0, le=3600.0)
-    hold_s: float = Field(_W.hold_s, gt=0.0, le=60.0)
-    margin_px: float = Field(_W.margin_px, ge=0.0, le=1000.0)
-    ratio: float = Field(_W.ratio, ge=0.0, le=10.0)
-    others_ratio: float = Field(_W.others_ratio, gt=0.0, le=1.0)
-    tie_ratio: float = Field(_W.tie_ratio, gt=0.0, le=1.0)
-    min_confidence: float = Field(_W.min_confidence, ge=0.0, le=1.0)
-    min_keypoints: int = Field(_W.min_keypoints, ge=3, le=1000)
-    down_weight: float = Field(_W.down_weight, ge=0.0, le=1.0)
-    reestimate_points: int = Field(_W.reestimate_points, ge=0, le=1_000_000)
-    apply: bool = _W.apply
-    max_turn_deg: float = Field(_W.max_turn_deg, gt=0.0, le=180.0)
+    rate_hz: float = Field(default_factory=lambda: _watch().rate_hz, gt=0.0, le=240.0)
+    window_s: float = Field(default_factory=lambda: _watch().window_s, gt=0.0, le=60.0)
+    baseline_s: float = Field(default_factory=lambda: _watch().baseline_s, gt=0.0, le=3600.0)
+    min_baseline_s: float = Field(default_factory=lambda: _watch().min_baseline_s, ge=0.0, le=3600.0)
+    hold_s: float = Field(default_factory=lambda: _watch().hold_s, gt=0.0, le=60.0)
+    margin_px: float = Field(default_factory=lambda: _watch().margin_px, ge=0.0, le=1000.0)
+    ratio: float = Field(default_factory=lambda: _watch().ratio, ge=0.0, le=10.0)
+    others_ratio: float = Field(default_factory=lambda: _watch().others_ratio, gt=0.0, le=1.0)
+    tie_ratio: float = Field(default_factory=lambda: _watch().tie_ratio, gt=0.0, le=1.0)
+    min_confidence: float = Field(default_factory=lambda: _watch().min_confidence, ge=0.0, le=1.0)
+    min_keypoints: int = Field(default_factory=lambda: _watch().min_keypoints, ge=3, le=1000)
+    down_weight: float = Field(default_factory=lambda: _watch().down_weight, ge=0.0, le=1.0)
+    reestimate_points: int = Field(default_factory=lambda: _watch().reestimate_points, ge=0, le=1_000_000)
+    apply: bool = Field(default_factory=lambda: _watch().apply)
+    max_turn_deg: float = Field(default_factory=lambda: _watch().max_turn_deg, gt=0.0, le=180.0)
 
     def options(self) -> WatchOptions:
+        from mocapd.core.camera_watch import WatchOptions
+
         return self.build(WatchOptions)
 
 

@@ -4,19 +4,16 @@ supervision, device opening."""
 from __future__ import annotations
 
 import re
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import AfterValidator, Field
 
-from mocapd.core.camera_mounting import MountingOptions
-from mocapd.core.heading import HeadingOptions
-from mocapd.core.lr_flips import FlipOptions
 from mocapd.errors import ConfigError
-from mocapd.pipeline.latency import AutoLatencyOptions
-from mocapd.pipeline.prediction import PredictionOptions
-from mocapd.pipeline.scheduler import SchedulerOptions
 from mocapd.service.config.cameras import Name
 from mocapd.service.config.schema import Allowed, Section
+
+if TYPE_CHECKING:  # the scheduler's modules (the solver's, NumBa's): imported when its options are built
+    from mocapd.pipeline.scheduler import SchedulerOptions
 
 _SENSOR_ID = re.compile(r"[0-9A-Fa-f]{8}")
 
@@ -118,11 +115,22 @@ class DaemonConfig(Section):
             return self.solve_threads
         return max(1, min(4, (cores or 1) - 1))
 
-    def scheduler_options(self, camera_names: list[str]) -> SchedulerOptions:
-        """Scheduler options for a rig whose cameras have these names (offsets looked up by name)."""
+    def check_offsets(self, camera_names: list[str]) -> None:
+        """Refuse ``[daemon.offsets] cameras`` that name no camera of a rig whose cameras have these names."""
         unknown = sorted(set(self.offsets.cameras) - set(camera_names))
         if unknown:
             raise ConfigError(f"daemon.offsets.cameras: unknown camera(s) {unknown}; the rig has {camera_names}")
+
+    def scheduler_options(self, camera_names: list[str]) -> SchedulerOptions:
+        """Scheduler options for a rig whose cameras have these names (offsets looked up by name)."""
+        from mocapd.core.camera_mounting import MountingOptions
+        from mocapd.core.heading import HeadingOptions
+        from mocapd.core.lr_flips import FlipOptions
+        from mocapd.pipeline.latency import AutoLatencyOptions
+        from mocapd.pipeline.prediction import PredictionOptions
+        from mocapd.pipeline.scheduler import SchedulerOptions
+
+        self.check_offsets(camera_names)
         # "auto" follows the detector; a rig without cameras has none: its IMUs need a short fixed delay.
         auto = self.latency_s == "auto" and bool(camera_names)
         fixed = IMU_ONLY_LATENCY_S if self.latency_s == "auto" else self.latency_s

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import ipaddress
 from collections.abc import Mapping
-from typing import Annotated, Literal, Self
+from typing import TYPE_CHECKING, Annotated, Literal, Self
 
 from pydantic import AfterValidator, Field, model_validator
 
@@ -14,12 +14,14 @@ from mocapd.core.body_dims import LIMITS, BodySpec
 from mocapd.core.imu_calibration import MAX_SUIT_SENSORS, is_per_person, parse_assignment, parse_person_assignment
 from mocapd.core.skeleton import REFERENCE_HEIGHT
 from mocapd.errors import ConfigError
-from mocapd.io.slimevr import SlimeVrConfig
-from mocapd.io.xsens_serial import XsensPortConfig
 from mocapd.protocols.awinda import AwindaConfig
 from mocapd.protocols.slimevr import PORT
 from mocapd.protocols.xsens_session import MAX_RATE_HZ, MIN_RATE_HZ
 from mocapd.service.config.schema import PathStr, RuleError, Section, Seq, Text, unique
+
+if TYPE_CHECKING:  # the devices' modules (asyncio, serial ports, sockets): imported when their options are built
+    from mocapd.io.slimevr import SlimeVrConfig
+    from mocapd.io.xsens_serial import XsensPortConfig
 
 MAX_PORTS = 64
 """Serial devices one daemon opens at most (4 suits of 13 sensors, cabled, and then some)."""
@@ -150,6 +152,8 @@ class SlimeVrSection(Section):
     """A reset asked on a tracker (taps, its button) happens this long after: the hand goes back down first."""
 
     def options(self) -> SlimeVrConfig:
+        from mocapd.io.slimevr import SlimeVrConfig
+
         return SlimeVrConfig(enabled=self.enabled, host=self.host, port=self.port, assignment=self.sensors)
 
     @property
@@ -294,6 +298,8 @@ class ImuConfig(Section):
 
     def port_configs(self) -> tuple[XsensPortConfig, ...]:
         """One :class:`XsensPortConfig` per entry of ``ports``, each with this section's settings."""
+        from mocapd.io.xsens_serial import XsensPortConfig
+
         return tuple(
             XsensPortConfig(
                 path=p,
