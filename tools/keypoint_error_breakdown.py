@@ -30,10 +30,7 @@ Usage (after ``mocapd eval keypoints --people 3 --seconds 6 --seed 0 --out /tmp/
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
-import shutil
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -44,10 +41,9 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.signal import butter, filtfilt
 
-from mocapd.core import body_size
 from mocapd.core.keypoints import BODY25_FORMAT
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.skeleton import BONE_INDEX, REFERENCE_HEIGHT, Skeleton
+from mocapd.core.skeleton import Skeleton
 from mocapd.eval.keypoint_bench import (
     CLIPS,
     FPS,
@@ -72,10 +68,6 @@ NAMES = BODY25_FORMAT.keypoints
 IDX = {n: i for i, n in enumerate(NAMES)}
 USED = sorted({IDX[k] for pair in LIMBS.values() for k in pair})
 """The 14 keypoints the benchmark scores (BODY_25 indices)."""
-_SHIPPED_FIT = body_size._fit_torso
-_UPPER_LEGS = [BONE_INDEX["LeftUpperLeg"], BONE_INDEX["RightUpperLeg"]]
-_UPPER_ARMS = [BONE_INDEX["LeftUpperArm"], BONE_INDEX["RightUpperArm"]]
-_NECK, _HEAD = BONE_INDEX["Neck"], BONE_INDEX["Head"]
 BUTTER_ORDER, BUTTER_HZ, HAMPEL_WINDOW, HAMPEL_SIGMAS = 4, 6.0, 7, 2.0
 """Pose2Sim 0.10.49's Demo_MultiPerson filtering: Hampel outlier rejection, then a Butterworth low-pass."""
 
@@ -322,55 +314,6 @@ def rts_options(spec: str) -> ResolveOptions:
     )
 
 
-def _trunk_fit(skeleton: Skeleton, kp: FloatArray, at: dict[str, int]) -> Skeleton:
-    """What-if body sizing (``--trunk-sizing``): with a neck, mid-hip and nose among the keypoints, also measure
-    where the neck sits above the shoulders' midpoint and the mid-hip above the hip joints' (medians along the
-    trunk's axis) and the neck-nose distance, and place the Neck and Head joints and the hip joints so; the rest
-    as :func:`mocapd.core.body_size._fit_torso` (which shipped sizing leaves at the height-scaled default)."""
-    if not {"neck", "mid_hip", "nose"} <= set(at):
-        return _SHIPPED_FIT(skeleton, kp, at)
-    mid_sh = 0.5 * (kp[:, at["left_shoulder"]] + kp[:, at["right_shoulder"]])
-    mid_hj = 0.5 * (kp[:, at["left_hip"]] + kp[:, at["right_hip"]])
-    up = (mid_sh - mid_hj) / np.linalg.norm(mid_sh - mid_hj, axis=1, keepdims=True)
-    neck_up = float(np.nanmedian(np.sum((kp[:, at["neck"]] - mid_sh) * up, axis=1)))
-    pelvis_up = float(np.nanmedian(np.sum((kp[:, at["mid_hip"]] - mid_hj) * up, axis=1)))
-    nose = float(np.nanmedian(np.linalg.norm(kp[:, at["nose"]] - kp[:, at["neck"]], axis=1)))
-    off = skeleton.offsets.copy()
-    if np.isfinite(pelvis_up):  # before the torso fit, which measures the spine from the hip joints up
-        off[_UPPER_LEGS, 1] = -pelvis_up
-    sk = _SHIPPED_FIT(Skeleton(offsets=off, root_height=skeleton.root_height, height=skeleton.height), kp, at)
-    off, s = sk.offsets.copy(), sk.height / REFERENCE_HEIGHT
-    if np.isfinite(neck_up):
-        off[_NECK, 1] = off[_UPPER_ARMS, 1].mean() + neck_up
-    if np.isfinite(nose) and nose > 0.11 * s:  # the nose target is (0, 0.06, 0.10) s on Head, Head (0, y, 0.01 s)
-        off[_HEAD, 1] = np.sqrt(nose**2 - (0.11 * s) ** 2) - 0.06 * s
-    return Skeleton(offsets=off, root_height=sk.root_height, height=sk.height)
-
-
-def resolve_with_trunk_sizing(src: Path, dst: Path) -> None:
-    """Copy ``src``'s session (and Pose2Sim's result) to ``dst`` and re-run both resolves there with
-    :func:`_trunk_fit` in place of the shipped torso fit (for this process only)."""
-    from mocapd.service.cli import main as cli
-
-    if dst.exists():
-        raise SystemExit(f"{dst} exists: give --trunk-sizing a new directory")
-    shutil.copytree(src / "session", dst / "session")
-    (dst / "session" / "poses-resolved.mcs").unlink(missing_ok=True)
-    shutil.copy(src / "keypoints.json", dst / "keypoints.json")
-    if (src / "pose2sim" / "project" / "result.npz").is_file():
-        (dst / "pose2sim" / "project").mkdir(parents=True)
-        shutil.copy(src / "pose2sim" / "project" / "result.npz", dst / "pose2sim" / "project" / "result.npz")
-    body_size._fit_torso = _trunk_fit
-    try:
-        with contextlib.redirect_stdout(io.StringIO()):
-            for argv in (["resolve", str(dst / "session"), "--no-smooth", "-o", str(dst / "forward.mcs")],
-                         ["resolve", str(dst / "session")]):  # fmt: skip
-                if cli(argv) != 0:
-                    raise SystemExit(f"`mocapd {' '.join(argv)}` failed")
-    finally:
-        body_size._fit_torso = _SHIPPED_FIT
-
-
 def pcp(out: Path, truth: Truth, vis: NDArray[np.bool_], rig: Skeleton) -> dict[str, Any]:
     """The benchmark's own PCP and MPJPE of the forward pass and ``resolve`` (as ``mocapd eval keypoints``)."""
     from mocapd.eval.keypoint_bench import score
@@ -396,13 +339,7 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="rot_sigma,rot_accel,root_sigma_m,root_accel: the smoother re-run with these",
     )
-    ap.add_argument("--trunk-sizing", type=Path, metavar="DIR",
-                    help="what-if: re-run both resolves on a copy in DIR with the neck, mid-hip and nose measured "
-                    "by body sizing (see _trunk_fit), and break DIR down instead")  # fmt: skip
     args = ap.parse_args(argv)
-    if args.trunk_sizing is not None:
-        resolve_with_trunk_sizing(args.out, args.trunk_sizing)
-        args.out = args.trunk_sizing
     bench = json.loads((args.out / "keypoints.json").read_text())["benchmark"]
     truth = build_truth(bench["people"], bench["seconds"], args.data_root)
     n = truth.thetas[0].shape[0]
@@ -448,7 +385,6 @@ def main(argv: list[str] | None = None) -> int:
         systems[f"mocapd forward + RTS {spec}"] = per_actor(truth.keypoints, pts)
     report = {
         "benchmark_scores": pcp(args.out, truth, vis, rig),
-        "trunk_sizing": args.trunk_sizing is not None,
         "benchmark": {k: bench[k] for k in ("people", "seconds", "seed", "clips")},
         "pose2sim_filter": {
             "hampel_window": HAMPEL_WINDOW,
