@@ -68,7 +68,9 @@ def test_torso_length_is_measured_not_assumed() -> None:
 @pytest.mark.parametrize("fmt", ["body25", "halpe26"])
 def test_any_keypoint_set_is_sized_by_names(fmt: str) -> None:
     """BODY_25 and Halpe-26 (and any set naming the limbs' joints) give the skeleton COCO-17 gives from the same
-    people: the joints are looked up by name, not by COCO-17's positions."""
+    people: the joints are looked up by name, not by COCO-17's positions. (BODY_25's neck, mid-hip and nose also
+    place the trunk's other joints, :func:`test_body25_trunk_is_measured_neck_hips_and_head`: there only the limbs,
+    widths and height are COCO-17's.)"""
     from mocapd.core.body_size import COCO17_NAMES, can_size
     from mocapd.core.keypoint_sets import BLAZEPOSE33, convert
     from mocapd.core.keypoints import keypoint_format
@@ -81,7 +83,10 @@ def test_any_keypoint_set_is_sized_by_names(fmt: str) -> None:
     other = keypoint_format(fmt).track_targets(truth)
     ref = estimate_skeleton(kin.targets(fk, coco.bones, coco.offsets))
     est = estimate_skeleton(kin.targets(fk, other.bones, other.offsets), names=other.names)
-    np.testing.assert_allclose(est.offsets, ref.offsets, atol=1e-9)
+    limbs = [BONE_INDEX[f"{side}{b}"] for side in ("Left", "Right") for b in ("LowerArm", "Hand", "LowerLeg", "Foot")]
+    same = (slice(None), slice(None)) if fmt == "halpe26" else (limbs, slice(None))
+    np.testing.assert_allclose(est.offsets[same], ref.offsets[same], atol=1e-9)
+    np.testing.assert_allclose(est.offsets[:, 0], ref.offsets[:, 0], atol=1e-9)  # shoulder and hip widths
     assert est.height == pytest.approx(ref.height)
     assert can_size(other.names) and can_size(BLAZEPOSE33) and not can_size(COCO17_NAMES[:11])
     # BlazePose's 33 landmarks, put onto halpe26 by name, size the same person too
@@ -109,3 +114,68 @@ def test_initial_pose_by_names() -> None:
     np.testing.assert_allclose(start, same, atol=1e-12)
     assert start[4] == pytest.approx(0.7) and start[0] == pytest.approx(0.4)
     assert np.array_equal(initial_pose(sk, np.full((25, 3), np.nan), body25.names), sk.rest_pose())
+
+
+def test_body25_trunk_is_measured_neck_hips_and_head() -> None:
+    """A person whose Neck joint sits 4 cm higher above the shoulders, whose Hips joint sits 5 cm higher above the
+    hip joints and whose head is 3 cm longer than the default proportions: sized from BODY_25 detections (neck,
+    mid-hip and nose among them), the sized skeleton's Neck, Hips and nose sites are within a few mm of the truth
+    (the old sizing, which left these at the height-scaled default, missed them by 3 to 5 cm)."""
+    from mocapd.core.keypoints import BODY25_FORMAT
+
+    base = Skeleton.from_height(1.8)
+    off = base.offsets.copy()
+    off[BONE_INDEX["Neck"], 1] += 0.04
+    off[BONE_INDEX["Head"], 1] += 0.03
+    for leg in ("LeftUpperLeg", "RightUpperLeg"):
+        off[BONE_INDEX[leg], 1] -= 0.05  # the hip joints 5 cm further below the Hips joint
+    person = Skeleton(offsets=off, root_height=base.root_height + 0.05, height=1.8)
+    kin = Kinematics(person)
+    targets = BODY25_FORMAT.track_targets(person)
+    kp = kin.targets(kin.forward(moving_sequence(person, 80, seed=3)), targets.bones, targets.offsets)
+    kp = kp + np.random.default_rng(1).normal(scale=0.005, size=kp.shape)
+    sized = estimate_skeleton(kp, names=targets.names)
+
+    def sites(sk: Skeleton) -> np.ndarray:  # rest pose, hip joints' midpoint at the origin
+        kin, tg = Kinematics(sk), BODY25_FORMAT.track_targets(sk)
+        x = np.asarray(kin.targets(kin.forward(sk.rest_pose()), tg.bones, tg.offsets), dtype=np.float64)
+        return np.asarray(x - 0.5 * (x[targets.names.index("left_hip")] + x[targets.names.index("right_hip")]))
+
+    truth, est = sites(person), sites(sized)
+    for name in ("neck", "mid_hip", "nose", "left_shoulder", "right_shoulder"):
+        i = targets.names.index(name)
+        assert np.linalg.norm(est[i] - truth[i]) < 0.005, name
+    assert sized.root_height == pytest.approx(person.root_height, abs=0.01)  # the rest pose still stands on the floor
+    # what the default proportions (the old sizing) give: centimetres off
+    old = sites(Skeleton.from_height(sized.height))
+    for name in ("neck", "mid_hip", "nose"):
+        i = targets.names.index(name)
+        assert np.linalg.norm(old[i] - truth[i]) > 0.02, name
+
+
+def test_coco17_sizing_is_unchanged_by_the_trunk_fit() -> None:
+    """COCO-17 (no neck, no mid-hip) is sized bit for bit as before the trunk fit (values from commit 71b7a47's
+    sizing of the same input; the input is built without trigonometry, so it is the same on any CPU)."""
+    base = Skeleton.from_bone_lengths({"LeftLowerLeg": 0.44, "RightLowerLeg": 0.44, "LeftFoot": 0.40,
+                                       "RightFoot": 0.40, "LeftLowerArm": 0.27, "RightLowerArm": 0.27},
+                                      height=1.7)  # fmt: skip
+    kin, tg = Kinematics(base), coco17_targets(base)
+    rest = np.asarray(kin.targets(kin.forward(np.zeros(66)), tg.bones, tg.offsets))
+    rng = np.random.default_rng(7)
+    kp = rest[None] + rng.normal(scale=0.02, size=(40, 17, 3))
+    kp[rng.uniform(size=kp.shape[:2]) < 0.1] = np.nan
+    sized = estimate_skeleton(kp)
+    before = np.array([
+        [0.0, 0.0, 0.0], [0.0, 0.08626439651199401, -0.009584932945777114], [0.0, 0.10543426240354825, 0.0],
+        [0.0, 0.10543426240354825, 0.0], [0.0, 0.10543426240354825, 0.0], [0.0, 0.0985025215786319, 0.0],
+        [0.0, 0.0985025215786319, 0.00985025215786319], [0.1774587730897294, 0.05755962431029835, 0.0],
+        [0.27156937808412474, 0.0, 0.0], [0.2403301953706179, 0.0, 0.0],
+        [-0.1774587730897294, 0.05755962431029835, 0.0], [-0.27156937808412474, 0.0, 0.0],
+        [-0.2403301953706179, 0.0, 0.0], [0.09053388431014925, -0.050296602394527365, 0.0],
+        [0.0, -0.4489694598278173, 0.0], [0.0, -0.39815222574841713, 0.0],
+        [0.0, -0.01970050431572638, 0.13790353021008467], [-0.09053388431014925, -0.050296602394527365, 0.0],
+        [0.0, -0.4489694598278173, 0.0], [0.0, -0.39815222574841713, 0.0],
+        [0.0, -0.01970050431572638, 0.13790353021008467],
+    ])  # fmt: skip
+    np.testing.assert_array_equal(sized.offsets, before)
+    assert sized.root_height == 0.966370053075804 and sized.height == 1.7237941276260582
