@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
+import sys
 from typing import Any
 
-from tools.soak import verdicts
+import pytest
+
+from tools.soak import first_good_frame, verdicts
 
 
 def _summary(**over: Any) -> dict[str, Any]:
@@ -40,3 +44,27 @@ def test_the_slimevr_verdict_says_whether_the_well_behaved_tracker_was_locked_ou
     assert silent.startswith("verdict: SlimeVR tracker TIMED OUT") and "(in the table: True)" in silent
     assert verdicts(_summary(), 0.05)[1].startswith("verdict: SlimeVR tracker CONNECTED")
     assert verdicts(_summary(web_breaches=2), 0.05)[2].startswith("verdict: web surface BREACHED")
+
+
+@pytest.mark.asyncio
+async def test_the_intervals_start_at_the_good_client_s_first_frame() -> None:
+    """The first interval counted from `ready`, seconds before the attacker process (which hosts the well-behaved
+    client) was up: 56.3 Hz in a first minute in which the daemon published 58.3. The soak now waits for the
+    client's first frame, and refuses to measure when the process ended first or no frame came."""
+    loop = asyncio.get_running_loop()
+    proc = await asyncio.create_subprocess_exec(sys.executable, "-c", "import time; time.sleep(30)")
+    try:
+        latest: dict[str, int] = {"good_connects": 1}
+        loop.call_later(0.3, latest.update, {"good_frames": 4})
+        t0 = loop.time()
+        await first_good_frame(latest, proc, 10.0)
+        assert loop.time() - t0 >= 0.25 and latest["good_frames"] == 4
+        with pytest.raises(RuntimeError, match=r"no frame in 0\.2 s"):
+            await first_good_frame({}, proc, 0.2)
+    finally:
+        proc.kill()
+        await proc.wait()
+    ended = await asyncio.create_subprocess_exec(sys.executable, "-c", "raise SystemExit(3)")
+    await ended.wait()
+    with pytest.raises(RuntimeError, match=r"ended \(exit 3\) before its client got a frame"):
+        await first_good_frame({}, ended, 10.0)
