@@ -10,7 +10,7 @@ from mocapd.core.sorting import Detections2D
 from mocapd.pipeline.keypoint_timeline import person_distances
 from mocapd.pipeline.scheduler import estimate_camera_offsets
 from mocapd.pipeline.time_alignment import FRAMES_PER_STEP, estimate_lag, keypoint_speed, keypoint_speed_steps
-from mocapd.sim.world import SyntheticWorld
+from tools.bench_offset_estimate import recorded_frames
 
 MS = 1_000_000
 
@@ -45,24 +45,9 @@ def _same(new: tuple[np.ndarray, np.ndarray], old: tuple[np.ndarray, np.ndarray]
     assert new[1].tobytes() == old[1].tobytes()  # bit for bit (NaN and the sign of zero included)
 
 
-def _world_frames(
-    seconds: float, people: int, seed: int
-) -> tuple[list[str], list[tuple[list[int], list[Detections2D]]]]:
-    world = SyntheticWorld(4, people, 0, seed=seed)
-    rng = np.random.default_rng(seed)
-    period = round(1e9 / 30)
-    frames: list[tuple[list[int], list[Detections2D]]] = [([], []) for _ in range(4)]
-    for k in range(round(seconds * 30)):
-        for c in range(4):
-            t = k * period + c * period // 4
-            frames[c][0].append(t)
-            frames[c][1].append(world.detections(c, t / 1e9, rng))
-    return [c.name for c in world.cameras], frames
-
-
 def test_synthetic_people_give_the_same_floats() -> None:
     for people, seed in ((1, 0), (2, 3), (3, 5)):
-        _, frames = _world_frames(6.0, people, seed)
+        _, frames = recorded_frames(6.0, people, seed, noise_seed=seed)
         for times, dets in frames:
             t = np.asarray(times, dtype=np.int64)
             _same(keypoint_speed(t, dets), old_keypoint_speed(t, dets))
@@ -104,7 +89,7 @@ def test_nobody_in_any_frame_and_no_frames() -> None:
 def test_the_steps_are_bounded_and_the_estimate_unchanged() -> None:
     """The speeds come in steps of FRAMES_PER_STEP frame pairs (one step per FRAMES_PER_STEP
     pairs, not per 8 frames as before); the cameras' estimate built on them is the old speeds' estimate."""
-    names, frames = _world_frames(10.0, 2, 3)
+    names, frames = recorded_frames(10.0, 2, 3, noise_seed=3)
     t = np.asarray(frames[0][0], dtype=np.int64)
     steps = keypoint_speed_steps(t, frames[0][1])
     yields = 0

@@ -50,10 +50,11 @@ CYCLE = ("thread", "none", "steps", "none")  # an estimate that outlasts its win
 Frames = list[tuple[list[int], list[Detections2D]]]
 
 
-def recorded_frames(seconds: float) -> tuple[list[str], Frames]:
-    """``seconds`` of a synthetic 4-camera rig's 30 Hz detections of 2 people, per camera (times, frames)."""
-    world = SyntheticWorld(4, 2, 0, seed=3)
-    rng = np.random.default_rng(0)
+def recorded_frames(seconds: float, people: int = 2, seed: int = 3, noise_seed: int = 0) -> tuple[list[str], Frames]:
+    """``seconds`` of a synthetic 4-camera rig's 30 Hz detections of ``people`` (the world's ``seed``, the
+    detection noise's ``noise_seed``), per camera (times, frames); the cameras' names beside them."""
+    world = SyntheticWorld(4, people, 0, seed=seed)
+    rng = np.random.default_rng(noise_seed)
     period = round(1e9 / 30)
     frames: Frames = [([], []) for _ in range(4)]
     for k in range(round(seconds * 30)):
