@@ -38,22 +38,19 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 from scipy.signal import butter, filtfilt
 
 from mocapd.core.keypoints import BODY25_FORMAT
 from mocapd.core.kinematics import Kinematics
 from mocapd.core.skeleton import Skeleton
 from mocapd.eval.keypoint_bench import (
-    CLIPS,
     FPS,
     LIMBS,
-    MATCH_M,
-    PLACES,
     Noise,
-    _ping_pong,
+    build_scene,
     detect,
     dlt_baseline,
+    match_people,
     visible,
 )
 from mocapd.io.imu_recordings import T0_NS
@@ -83,19 +80,8 @@ class Truth:
 
 def build_truth(n_people: int, seconds: float, data_root: Path | None) -> Truth:
     """The scene of :func:`mocapd.eval.keypoint_bench.build_scene`, with each actor's skeleton and θ kept."""
-    from mocapd.eval.data import load_clip, load_splits
-
-    files = {p.name: p for p in load_splits(data_root)["development"]}
-    n = round(seconds * FPS)
-    sks, thetas, kps = [], [], []
-    for i in range(n_people):
-        clip = load_clip(files[CLIPS[i]], fps=FPS)
-        theta = _ping_pong(clip.theta, n).copy()
-        theta[:, [0, 2]] += np.asarray(PLACES[i]) - clip.theta[:, [0, 2]].mean(axis=0)
-        sks.append(clip.skeleton)
-        thetas.append(theta)
-        kps.append(keypoints_of(clip.skeleton, theta))
-    return Truth(sks, thetas, kps)
+    scene = build_scene(n_people, seconds, data_root)
+    return Truth(scene.skeletons, scene.thetas, scene.keypoints)
 
 
 def keypoints_of(sk: Skeleton, theta: FloatArray) -> FloatArray:
@@ -106,20 +92,11 @@ def keypoints_of(sk: Skeleton, theta: FloatArray) -> FloatArray:
 
 
 def assign(truth: list[FloatArray], people: list[list[FloatArray]]) -> list[dict[int, int]]:
-    """Per actor, frame -> index of the estimate matched to it (Hungarian on the mean distance, under MATCH_M)."""
+    """Per actor, frame -> index of the estimate matched to it (:func:`~mocapd.eval.keypoint_bench.match_people`)."""
     out: list[dict[int, int]] = [{} for _ in truth]
     for f, row in enumerate(people):
-        if not row:
-            continue
-        cost = np.full((len(row), len(truth)), 1e6)
-        for i, pts in enumerate(row):
-            for a, g in enumerate(truth):
-                d = np.linalg.norm(pts[USED] - g[f][USED], axis=1)
-                if np.any(np.isfinite(d)):
-                    cost[i, a] = float(np.nanmean(d))
-        for i, a in zip(*linear_sum_assignment(cost), strict=True):
-            if cost[i, a] < MATCH_M:
-                out[int(a)][f] = int(i)
+        for i, a in match_people(row, [g[f] for g in truth], USED).items():
+            out[a][f] = i
     return out
 
 

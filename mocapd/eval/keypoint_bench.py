@@ -101,12 +101,15 @@ class Noise:
 
 @dataclass
 class Scene:
-    """A benchmark scene: cameras, per-person truth (frames, 21, 3) joints and (frames, 25, 3) keypoints."""
+    """A benchmark scene: cameras, per-person truth (frames, 21, 3) joints and (frames, 25, 3) keypoints, and each
+    person's skeleton and θ (frames, 66) they come from."""
 
     cameras: list[Camera]
     joints: list[FloatArray]
     keypoints: list[FloatArray]
     clips: list[str]
+    skeletons: list[Skeleton]
+    thetas: list[FloatArray]
 
     @property
     def n_frames(self) -> int:
@@ -153,7 +156,7 @@ def build_scene(n_people: int = 3, seconds: float = 10.0, data_root: Path | None
         raise InputError(f"--seconds {seconds}: allowed 1 to 120")
     files = {p.name: p for p in load_splits(data_root)["development"]}
     n = round(seconds * FPS)
-    joints, keypoints = [], []
+    joints, keypoints, skeletons, thetas = [], [], [], []
     targets_of = BODY25_FORMAT
     for i in range(n_people):
         clip = load_clip(files[CLIPS[i]], fps=FPS)
@@ -165,7 +168,9 @@ def build_scene(n_people: int = 3, seconds: float = 10.0, data_root: Path | None
         tg = targets_of.track_targets(sk)
         joints.append(np.asarray(state.positions))
         keypoints.append(np.asarray(kin.targets(state, tg.bones, tg.offsets)))
-    return Scene(shelf_rig(), joints, keypoints, list(CLIPS[:n_people]))
+        skeletons.append(sk)
+        thetas.append(theta)
+    return Scene(shelf_rig(), joints, keypoints, list(CLIPS[:n_people]), skeletons, thetas)
 
 
 _SWAP = [BODY25_FORMAT.keypoints.index(k.replace("left_", "@").replace("right_", "left_").replace("@", "right_"))
@@ -305,6 +310,19 @@ def dlt_baseline(scene: Scene, det: Detected, min_confidence: float = 0.3) -> Es
     return Estimates(frames)
 
 
+def match_people(points: list[FloatArray], truth: list[FloatArray], used: list[int]) -> dict[int, int]:
+    """One frame's estimates matched to the actors: estimate index -> actor, by the Hungarian method on the mean
+    distance of the ``used`` points ``points[i]`` (n_points, 3) and ``truth[a]`` (n_points, 3), under MATCH_M."""
+    cost = np.full((len(points), len(truth)), 1e6)
+    for i, pts in enumerate(points):
+        for a, g in enumerate(truth):
+            d = np.linalg.norm(pts[used] - g[used], axis=1)
+            if np.any(np.isfinite(d)):
+                cost[i, a] = float(np.nanmean(d))
+    rows, cols = linear_sum_assignment(cost) if points else ([], [])
+    return {int(i): int(a) for i, a in zip(rows, cols, strict=True) if cost[i, a] < MATCH_M}
+
+
 def score(truth: list[FloatArray], est: Estimates, vis: NDArray[np.bool_], names: tuple[str, ...],
           limbs: dict[str, tuple[str, str]]) -> dict[str, Any]:  # fmt: skip
     """PCP, MPJPE, misses, false-positive tracks and identity switches of ``est`` against ``truth`` (per actor
@@ -317,18 +335,9 @@ def score(truth: list[FloatArray], est: Estimates, vis: NDArray[np.bool_], names
     follows: dict[str, list[tuple[int, int | None]]] = {}
     for f in range(n_frames):
         people = est.frames[f] if f < len(est.frames) else []
-        cost = np.full((len(people), n_actors), 1e6)
-        for i, (_, pts) in enumerate(people):
-            for a in range(n_actors):
-                d = np.linalg.norm(pts[used] - truth[a][f][used], axis=1)
-                if np.any(np.isfinite(d)):
-                    cost[i, a] = float(np.nanmean(d))
-        rows, cols = linear_sum_assignment(cost) if people else ([], [])
-        taken = {}
-        for i, a in zip(rows, cols, strict=True):
-            if cost[i, a] < MATCH_M:
-                taken[i] = int(a)
-                matched[(f, int(a))] = people[i]
+        taken = match_people([pts for _, pts in people], [t[f] for t in truth], used)
+        for i, a in taken.items():
+            matched[(f, a)] = people[i]
         for i, (ident, _) in enumerate(people):
             follows.setdefault(ident, []).append((f, taken.get(i)))
     fp_tracks = [ident for ident, seq in follows.items() if sum(a is not None for _, a in seq) < 0.5 * len(seq)]
