@@ -20,10 +20,10 @@ from mocapd.core.camera_watch import (
     WatchOptions,
     _column_nanmedians,
     _level_spread,
-    _row_medians,
     _Series,
     residuals_all_in,
     residuals_left_out,
+    row_medians,
     triangulate_left_out,
 )
 from mocapd.core.synthetic import ring_rig
@@ -263,7 +263,7 @@ def test_row_medians_are_np_median_to_the_bit() -> None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # np.median of nothing warns (and gives NaN)
             want = np.array([np.median(values[i, use[i]]) for i in range(n)])
-        assert _same(_row_medians(values, use), want)
+        assert _same(row_medians(values, use), want)
 
 
 def test_column_nanmedians_are_np_nanmedian_to_the_bit() -> None:

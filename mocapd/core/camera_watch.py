@@ -283,7 +283,7 @@ def residuals_left_out(
     matches: list[tuple[FloatArray, FloatArray]] = []
     X_left, ok_left = triangulate_left_out(P, uv, w) if n_cams >= 3 else (None, None)
     # Each camera's errors in a row of its own (the keypoints it measured marked), their medians from one sort
-    # (_row_medians: np.median's to the bit); the homogeneous points built by concatenation, not np.c_ (the same
+    # (row_medians: np.median's to the bit); the homogeneous points built by concatenation, not np.c_ (the same
     # array, without its index machinery): the check runs 10 times a second per person on the event loop.
     errs = np.zeros((n_cams, uv.shape[1]))
     measured = np.zeros((n_cams, uv.shape[1]), dtype=bool)
@@ -305,7 +305,7 @@ def residuals_left_out(
         matches.append((X[ok][front], uv[c, ok][front]))
     rows = measured.any(axis=1)
     if rows.any():
-        out[rows] = _row_medians(errs[rows], measured[rows])
+        out[rows] = row_medians(errs[rows], measured[rows])
     return out, matches
 
 
@@ -387,18 +387,18 @@ def residuals_all_in(
     err = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
     use = front & (w[:, ok] > 0)
     counted = use.sum(axis=1) >= min_keypoints
-    out[counted] = _row_medians(err[counted], use[counted])
+    out[counted] = row_medians(err[counted], use[counted])
     return out
 
 
 def _column_nanmedians(values: FloatArray) -> FloatArray:
     """``np.nanmedian(values, axis=0)`` for a few rows (people) by columns (cameras), each column with a value that is
-    not NaN, to the bit (:func:`_row_medians` of the values that are not NaN): numpy takes small arrays through
+    not NaN, to the bit (:func:`row_medians` of the values that are not NaN): numpy takes small arrays through
     masked arrays, ~40 times slower here."""
-    return _row_medians(values.T, ~np.isnan(values.T))
+    return row_medians(values.T, ~np.isnan(values.T))
 
 
-def _row_medians(values: FloatArray, use: NDArray[np.bool_]) -> FloatArray:
+def row_medians(values: FloatArray, use: NDArray[np.bool_]) -> FloatArray:
     """Per row of ``values`` (n, m), the median of the entries ``use`` (n, m) marks (NaN for none), as
     ``np.median`` gives it to the bit: the middle one, or ``(a + b) / 2`` of the two middle ones (``np.median`` takes
     ``np.mean`` of them), from one sort of all rows instead of one ``np.median`` call each. A row holding NaN

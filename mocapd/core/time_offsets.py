@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.assignment import linear_sum_assignment
 from mocapd.core.camera import Camera, normalized_from_pixels, triangulate_projections
+from mocapd.core.camera_watch import row_medians
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import InputError
 
@@ -173,13 +174,11 @@ def _views(
 
 
 def _nanmedian(d: FloatArray) -> FloatArray:
-    """Median over the last axis of the finite values (NaN where none): sorting puts NaN last (``np.nanmedian``
-    takes a slow masked path on small slices, and this runs per frame and shift)."""
-    n = np.sum(np.isfinite(d), axis=-1)
-    srt = np.sort(d, axis=-1)
-    lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[..., None], axis=-1)[..., 0]
-    hi = np.take_along_axis(srt, np.maximum(n // 2, 0)[..., None], axis=-1)[..., 0]
-    return np.asarray(np.where(n > 0, 0.5 * (lo + hi), np.nan))
+    """Median over the last axis of the finite values (NaN where none): :func:`~mocapd.core.camera_watch.row_medians`
+    of every slice at once (``np.nanmedian`` takes a slow masked path on small slices, and this runs per frame and
+    shift)."""
+    rows = (int(np.prod(d.shape[:-1])), d.shape[-1])
+    return row_medians(d.reshape(rows), np.isfinite(d).reshape(rows)).reshape(d.shape[:-1])
 
 
 def _median_dist(a: FloatArray, b: FloatArray) -> FloatArray:
