@@ -53,6 +53,7 @@ from mocapd.core.yaw_drift import StillDrift
 from mocapd.errors import ConfigError, DeviceError, InputError, RateLimitError
 from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
+from mocapd.io.gc_watch import GcWatch
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.camera_watch import CameraChange, LiveCameraWatch, turn_deg
@@ -361,6 +362,8 @@ class Daemon:
         self._startup_error: StartupError | None = None
         #: run() installs SIGINT/SIGTERM/SIGHUP handlers (False: the caller owns signals, see lifecycle.stop_event)
         self.handle_signals = True
+        #: the garbage collections while it runs (counts and pauses per generation; ``gc`` in /status)
+        self.gc_watch = GcWatch()
 
     # ------------------------------------------------------------------------------------------ control
     def status_server(self, sock: socket.socket | None = None) -> StatusServer:
@@ -500,6 +503,7 @@ class Daemon:
         # up in every compiled kernel and would wait this long to get it back while the capture, tracking and
         # detector threads run Python (CPython's default 5 ms is a third of a 60 Hz period).
         sys.setswitchinterval(self.config.daemon.switch_interval_ms / 1000.0)
+        self.gc_watch.install()
         signals = lifecycle.STOP_SIGNALS if self.handle_signals else ()
         for sig in signals:
             # add_signal_handler raises RuntimeError off the main thread: then signals are the caller's job.
@@ -532,6 +536,7 @@ class Daemon:
             log.error("shutdown: tasks still running after %.1f s, abandoned: %s",
                       self.config.daemon.shutdown_timeout_s, ", ".join(sorted(pending)))  # fmt: skip
         finally:
+            self.gc_watch.uninstall()
             self._tick_executor.shutdown(wait=False, cancel_futures=True)
             if self._solve_pool is not None:
                 self._solve_pool.shutdown(wait=False, cancel_futures=True)
@@ -956,6 +961,7 @@ class Daemon:
             "latency_ms": s["latency_ms"],
             "latency_histograms": latency_snapshot(self.scheduler.latency),
             "cpu_s": s["cpu_s"],
+            "gc": self.gc_watch.status(),  # collections and their pauses per generation since start
             "person_cpu_ms": s["person_cpu_ms"],
             "hands": self.hand_status(),
             "governor": None if self.governor is None else self.governor.status(),
