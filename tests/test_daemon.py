@@ -118,6 +118,12 @@ async def test_synthetic_daemon_serves_poses_status_and_survives_an_imu_unplug()
         assert code == 200 and headers["Content-Type"] == "application/json"
         st = json.loads(body)
         assert st["ready"] and st["output"]["configured_hz"] == 60.0
+        # The garbage collections since start, per generation (the soak's per-second trace reads them): seconds of
+        # a daemon allocating every tick have had young collections, each timed.
+        generations = st["gc"]["generations"]
+        assert len(generations) == 3 and generations[0]["collections"] > 0
+        assert generations[0]["pause_ms"] >= generations[0]["max_pause_ms"] > 0
+        assert st["gc"]["frozen"] > 0  # the start-up heap, frozen at READY
         assert sum(1 for x in st["imu"]["devices"] if x["streaming"]) == 13
         assert st["tasks"]["keypoints:cam1"]["failures"] == 1  # the flaky camera failed, was restarted
         assert st["tasks"]["keypoints:cam1"]["running"] and st["cameras"][1]["frames"] > 0
