@@ -55,8 +55,16 @@ every interval against the configured rate (``--rate-tolerance``, 5 %), whether 
 was connected, whether a web attack got through. What each attacker costs the daemon per operation:
 ``tools/bench_attack_cost.py``.
 
+Beside the minute lines, a trace line every second (:mod:`tools.soak_trace`; ``--trace``, by default beside
+``--out`` as its name + ``.trace.jsonl``): the daemon's missed and late ticks, the rate the client received, the CPU
+of the daemon's process, the attacker process and the other processes, RSS, garbage collections and their pauses
+per generation (``/status`` ``gc``), how late the event loop woke the tracer, the tick's CPU by stage, which attacks
+ran, the CLI command running, IMU unplugs, SlimeVR evictions, offset estimates, governor changes, log lines by
+logger. A minute below the needed rate gets its worst seconds and what co-occurred with them (in its JSON line,
+``worst_seconds``, and in the per-minute table printed after the verdicts).
+
     .venv/bin/python tools/soak.py [--minutes 30] [--interval 60] [--seed 0] [--out soak.jsonl]
-        [--rate-tolerance 0.05]
+        [--rate-tolerance 0.05] [--trace soak.jsonl.trace.jsonl]
 """
 
 from __future__ import annotations
@@ -75,6 +83,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -209,6 +218,8 @@ async def _attack(ports: dict[str, int], seconds: float, seed: int) -> None:
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
     from websockets.typing import Origin
+
+    from tools.soak_trace import REPORT_EVERY_S, REPORT_T
 
     rng = random.Random(seed)
     c: Counter[str] = Counter()
@@ -357,9 +368,11 @@ async def _attack(ports: dict[str, int], seconds: float, seed: int) -> None:
         await asyncio.gather(*tasks, return_exceptions=True)
 
     async def report() -> None:
+        # Twice a second, with the time of the report (CLOCK_MONOTONIC is the machine's: the soak process reads it
+        # too): the trace's per-second client rate is the frames between two reports over the time between them.
         while time.monotonic() < end:
-            await asyncio.sleep(1.0)
-            print(json.dumps(dict(c)), flush=True)
+            await asyncio.sleep(REPORT_EVERY_S)
+            print(json.dumps({**c, REPORT_T: time.monotonic()}), flush=True)
 
     zenoh_side = _ZenohAttack(ports["zenoh"], rng, c) if "zenoh" in ports else None
     try:
@@ -381,7 +394,7 @@ async def _attack(ports: dict[str, int], seconds: float, seed: int) -> None:
     finally:
         if zenoh_side is not None:
             zenoh_side.close()
-    print(json.dumps(dict(c)), flush=True)
+    print(json.dumps({**c, REPORT_T: time.monotonic()}), flush=True)
 
 
 SWARM_TRACKERS = 64
@@ -635,8 +648,15 @@ def _limit_memory() -> None:
     resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
 
 
-async def _run_cli_attacks(folder: Path, counts: Counter[str], failures: list[str]) -> None:
+async def _run_cli_attacks(
+    folder: Path, counts: Counter[str], failures: list[str], now: dict[str, Any] | None = None
+) -> None:
+    """Run the hostile file commands one after the other; ``now`` (the trace's) says which is running
+    (``running``, None between them) and how many were started (``started``)."""
+    now = {} if now is None else now
     for name, argv in _cli_attacks(folder):
+        now["running"] = name
+        now["started"] = now.get("started", 0) + 1
         proc = await asyncio.create_subprocess_exec("nice", "-n", "10", sys.executable, "-m", "mocapd", *argv,
                                                     stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE,
                                                     cwd=REPO, preexec_fn=_limit_memory)  # fmt: skip
@@ -647,6 +667,7 @@ async def _run_cli_attacks(folder: Path, counts: Counter[str], failures: list[st
             failures.append(f"{name}: no answer within 60 s")
             continue
         finally:
+            now["running"] = None
             if proc.returncode is None:  # timed out, or the soak ended (cancelled) while it ran: never an orphan
                 proc.kill()
                 await asyncio.shield(proc.wait())
@@ -662,14 +683,17 @@ async def _run_cli_attacks(folder: Path, counts: Counter[str], failures: list[st
 
 
 class _LineCounter(logging.Handler):
-    """Counts the log lines the daemon writes (level WARNING and above, after the repeat filter)."""
+    """Counts the log lines the daemon writes (level WARNING and above, after the repeat filter), in all and by
+    logger (the trace's ``log_lines``)."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
         self.lines = 0
+        self.by_logger: Counter[str] = Counter()
 
     def emit(self, record: logging.LogRecord) -> None:
         self.lines += 1
+        self.by_logger[record.name.removeprefix("mocapd.")] += 1
 
 
 class _LogCounter(logging.Handler):
@@ -730,6 +754,7 @@ async def soak(
     cli_every_s: float,
     out: Any,
     rate_tolerance: float = 0.05,
+    trace_out: Any = None,
 ) -> dict[str, Any]:
     import psutil
 
@@ -739,6 +764,7 @@ async def soak(
     from mocapd.service.assembly import assembled
     from mocapd.service.config import parse_config
     from mocapd.service.demo.synthetic import synthetic_config
+    from tools.soak_trace import REPORT_T, Sample, machine_cpu_s, minute_findings, minute_table, trace_second
 
     cfg = soak_config()
     logs = _LogCounter()
@@ -751,6 +777,7 @@ async def soak(
     zcam = ZenohKeypointSource(0, "zcam", "hostZ", zrig, (640, 480), 17, 300_000_000)
     cli_counts: Counter[str] = Counter()
     cli_failures: list[str] = []
+    cli_now: dict[str, Any] = {}
     cli_folder = Path(tempfile.mkdtemp(prefix="mocapd-soak-"))
     proc_info = psutil.Process()
     rng = random.Random(seed)
@@ -771,6 +798,7 @@ async def soak(
         assert d.imu.bridge is not None and d.imu.slimevr is not None
         zenoh_task = asyncio.create_task(zcam.run(lambda *_: None))  # delivered frames counted by the source
         rate_hz = float(ws.description.rate_hz)  # the configured output rate the client should see
+        need_hz = rate_hz * (1.0 - rate_tolerance)
         ports = {"http": d.http.port, "ws": int(ws.port), "bridge": d.imu.bridge.port, "slimevr": d.imu.slimevr.port,
                  "zenoh": zport}  # fmt: skip
         # The attackers run past the last interval (terminated after it): the intervals start only once the
@@ -778,7 +806,7 @@ async def soak(
         cmd = ["nice", "-n", "5", sys.executable, __file__, "--attack", json.dumps(ports),
                "--seconds", str(seconds + 60.0), "--seed", str(seed)]  # fmt: skip
         attacker = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE)
-        latest: dict[str, int] = {}
+        latest: dict[str, float] = {}
 
         async def read_attacker() -> None:
             assert attacker.stdout is not None
@@ -788,10 +816,10 @@ async def soak(
 
         reader = asyncio.create_task(read_attacker())
         sims = demo.built.simulated.simulators if demo.built.simulated is not None else []
-        unplugs = 0
+        unplugs = replugs = 0
 
         async def unplugger() -> None:
-            nonlocal unplugs
+            nonlocal unplugs, replugs
             while sims:
                 await asyncio.sleep(unplug_every_s)
                 sim = rng.choice(sims)
@@ -799,16 +827,63 @@ async def soak(
                 unplugs += 1
                 await asyncio.sleep(5.0)
                 sim.replug()
+                replugs += 1
 
         plugging = asyncio.create_task(unplugger())
 
         async def cli_attacker() -> None:
             await _cli_setup(cli_folder)
             while True:
-                await _run_cli_attacks(cli_folder, cli_counts, cli_failures)
+                await _run_cli_attacks(cli_folder, cli_counts, cli_failures, cli_now)
                 await asyncio.sleep(cli_every_s)
 
         cli = asyncio.create_task(cli_attacker())
+        estimates = _count_offset_estimates(d)
+        attacker_info = psutil.Process(attacker.pid)  # `nice` execs the interpreter: the same process
+
+        def sample(loop_late_ms: float) -> Sample:
+            """The trace's reading: the counters /status reports, read in-process (building the whole /status
+            document once a second would be milliseconds of the loop's time a second)."""
+            busy, steal = machine_cpu_s()
+            try:
+                attacker_cpu = sum(attacker_info.cpu_times()[:2])
+            except psutil.Error:  # ended (the soak's end)
+                attacker_cpu = 0.0
+            gov, slime, frame = d.governor, d.imu.slimevr, d.latest
+            return Sample(
+                t=time.monotonic(), missed=d.plan.missed if d.plan else 0, late=d.plan.late if d.plan else 0,
+                published=d.scheduler.published, good_frames=latest.get("good_frames", 0),
+                report_t=latest.get(REPORT_T), daemon_cpu_s=sum(proc_info.cpu_times()[:2]), machine_busy_s=busy,
+                machine_steal_s=steal, attacker_cpu_s=attacker_cpu, rss_mib=proc_info.memory_info().rss / 2**20,
+                gc_collections=list(d.gc_watch.collections), gc_pause_ms=[p / 1e6 for p in d.gc_watch.pause_ns],
+                attacker=dict(latest), log_lines=dict(lines_out.by_logger),
+                evictions=slime.server.counters.evicted_trackers if slime is not None else 0,
+                offset_estimates=int(estimates["count"]), offset_estimate_ms=estimates["ms"], unplugs=unplugs,
+                replugs=replugs, cli_started=cli_now.get("started", 0), cli_running=cli_now.get("running"),
+                governor_step=None if gov is None else gov.step_index, governor_changes=0 if gov is None else
+                gov.changes, loop_late_ms=loop_late_ms,
+                stage_cpu_ms={k: v / 1e6 for k, v in d.scheduler.cpu_ns.items()},
+                people=0 if frame is None else len(frame.people),
+                iterations=0 if frame is None else sum(p.iterations for p in frame.people),
+                ws_clients=len(ws.clients), hello_skeletons=len(ws.description.skeletons),
+            )  # fmt: skip
+
+        async def tracer() -> None:
+            """A trace line a second (:mod:`tools.soak_trace`), on the daemon's event loop: how late it wakes is
+            how long the loop was busy with something else."""
+            prev = sample(0.0)
+            due = prev.t + 1.0
+            while True:
+                await asyncio.sleep(max(0.0, due - time.monotonic()))
+                woke = time.monotonic()
+                cur = sample((woke - due) * 1000.0)
+                second = trace_second(prev, cur, t_start, interval_s)
+                trace.append(second)
+                if trace_out is not None:
+                    trace_out.write(json.dumps(second) + "\n")
+                    trace_out.flush()
+                prev = cur
+                due = due + 1.0 if woke - due < 1.0 else woke + 1.0  # a loop stalled > 1 s: on from now
 
         def counters() -> dict[str, Any]:
             st = d.status()
@@ -852,6 +927,7 @@ async def soak(
                 "cli": dict(cli_counts),
                 "frames_published": st["output"]["frames"],
                 "missed_ticks": st["output"]["missed_ticks"],
+                "late_ticks": st["output"]["late_ticks"],
                 "good_frames": latest.get("good_frames", 0),
                 "rejected": {
                     "http_bad_requests": d.http.bad_requests,
@@ -877,6 +953,8 @@ async def soak(
         # into a first minute in which the daemon published 58.3 Hz.
         await first_good_frame(latest, attacker, FIRST_FRAME_TIMEOUT_S)
         t_start = time.monotonic()
+        trace: list[dict[str, Any]] = []
+        tracing = asyncio.create_task(tracer(), name="soak trace")
         prev = counters()
         prev_t = t_start
         rss0 = proc_info.memory_info().rss
@@ -894,6 +972,7 @@ async def soak(
                 "output_hz_client": round((cur["good_frames"] - prev["good_frames"]) / dt, 2),
                 "published_hz": round((cur["frames_published"] - prev["frames_published"]) / dt, 2),
                 "missed_ticks": cur["missed_ticks"] - prev["missed_ticks"],
+                "late_ticks": cur["late_ticks"] - prev["late_ticks"],
                 "daemon_cpu_s_per_s": round((cur["cpu_s"] - prev["cpu_s"]) / dt, 3),
                 "rss_mib": round(proc_info.memory_info().rss / 2**20, 1),
                 "fds": _fds(),
@@ -921,9 +1000,13 @@ async def soak(
                 "log_tracebacks": logs.tracebacks,
                 "attacker": dict(latest),
             }
+            # a minute below the rate: its worst seconds from the trace, and what co-occurred with them
+            in_it = [x for x in trace if prev_t - t_start < x["t_s"] <= now - t_start + 0.5]
+            line.update(minute_findings(line, in_it, need_hz))
             lines.append(line)
             emit(line)
             prev, prev_t = cur, now
+        tracing.cancel()
         plugging.cancel()
         cli.cancel()
         zenoh_task.cancel()
@@ -968,11 +1051,18 @@ async def soak(
         "log_errors": logs.errors,
         "log_tracebacks": logs.tracebacks,
         "first_errors": logs.first,
+        "trace_seconds": len(trace),
+        "trace_missed_ticks": sum(x["missed"] for x in trace),
+        "trace_gc2_collections": sum(x["gc_collections"][2] for x in trace),
+        "trace_gc2_pause_ms_max": max((x["gc_pause_ms"][2] for x in trace), default=None),
+        "trace_loop_late_ms_max": max((x["loop_late_ms"] for x in trace), default=None),
     }
     shutil.rmtree(cli_folder, ignore_errors=True)
     emit(summary)
     for verdict in verdicts(summary, rate_tolerance):
         print(verdict, flush=True)
+    for row in minute_table(lines, need_hz):
+        print(row, flush=True)
     return summary
 
 
@@ -980,7 +1070,25 @@ async def soak(
 FIRST_FRAME_TIMEOUT_S = 60.0
 
 
-async def first_good_frame(latest: dict[str, int], attacker: asyncio.subprocess.Process, timeout_s: float) -> None:
+def _count_offset_estimates(d: Any) -> dict[str, float]:
+    """Count the daemon's offset estimates (every 10 s, on its event loop in steps) and their wall time: its
+    ``estimate_offsets`` wrapped on this instance (the daemon keeps no count of them)."""
+    done = {"count": 0.0, "ms": 0.0}
+    estimate = d.estimate_offsets
+
+    async def counted(names: list[str]) -> None:
+        t0 = time.monotonic()
+        try:
+            await estimate(names)
+        finally:
+            done["count"] += 1
+            done["ms"] += (time.monotonic() - t0) * 1000.0
+
+    d.estimate_offsets = counted
+    return done
+
+
+async def first_good_frame(latest: Mapping[str, float], attacker: asyncio.subprocess.Process, timeout_s: float) -> None:
     """Return once the attacker process has reported a frame received by its well-behaved client (``latest``, its
     counters as the reader task updates them); raise :class:`RuntimeError` when the process ended first or no frame
     came within ``timeout_s``."""
@@ -1017,6 +1125,11 @@ def verdicts(summary: dict[str, Any], rate_tolerance: float) -> list[str]:
     ]
 
 
+def trace_beside(out: Path) -> Path:
+    """Where the per-second trace goes by default: beside the soak's ``--out`` file, its name + ``.trace.jsonl``."""
+    return out.with_name(out.name + ".trace.jsonl")
+
+
 def _median(values: list[float]) -> float | None:
     return sorted(values)[len(values) // 2] if values else None
 
@@ -1030,6 +1143,9 @@ def main() -> None:
     ap.add_argument("--cli-every", type=float, default=300.0,
                     help="seconds between rounds of hostile file commands (default 300)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=None, help="also append the JSON lines to this file")
+    ap.add_argument("--trace", type=Path, default=None,
+                    help="write the per-second trace (JSON lines, tools/soak_trace.py) to this file (default: beside "
+                         "--out, its name + .trace.jsonl; none without --out)")  # fmt: skip
     ap.add_argument("--rate-tolerance", type=float, default=0.05,
                     help="the output rate is held when every interval's client rate is within this share of the "
                          "configured rate (default 0.05)")  # fmt: skip
@@ -1042,8 +1158,10 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     with contextlib.ExitStack() as stack:
         out = stack.enter_context(a.out.open("a")) if a.out is not None else None
+        trace_path = a.trace if a.trace is not None else None if a.out is None else trace_beside(a.out)
+        trace = stack.enter_context(trace_path.open("w")) if trace_path is not None else None
         summary = asyncio.run(soak(a.minutes, a.interval, a.seed, a.unplug_every, a.cli_every, out,
-                                   a.rate_tolerance))  # fmt: skip
+                                   a.rate_tolerance, trace))  # fmt: skip
     sys.exit(0 if summary["daemon_alive_to_the_end"] and summary["exit_code"] == 0 else 1)
 
 
