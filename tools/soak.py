@@ -81,6 +81,7 @@ import shutil
 import socket
 import sys
 import tempfile
+import threading
 import time
 from collections import Counter
 from collections.abc import Mapping
@@ -866,6 +867,7 @@ async def soak(
                 people=0 if frame is None else len(frame.people),
                 iterations=0 if frame is None else sum(p.iterations for p in frame.people),
                 ws_clients=len(ws.clients), hello_skeletons=len(ws.description.skeletons),
+                threads=threading.active_count(), fds=_fds(),
             )  # fmt: skip
 
         async def tracer() -> None:

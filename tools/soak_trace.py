@@ -88,6 +88,10 @@ class Sample:
     """WebSocket clients connected (this reading)."""
     hello_skeletons: int = 0
     """Skeletons in the WebSocket hello every new client gets (this reading; per-person ones join as they appear)."""
+    threads: int = 0
+    """Python threads of the daemon's process (this reading)."""
+    fds: int = 0
+    """Its open file descriptors (this reading)."""
 
 
 def machine_cpu_s() -> tuple[float, float]:
@@ -157,6 +161,8 @@ def trace_second(prev: Sample, cur: Sample, t_start: float, interval_s: float) -
         "iterations": cur.iterations,
         "ws_clients": cur.ws_clients,
         "hello_skeletons": cur.hello_skeletons,
+        "threads": cur.threads,
+        "fds": cur.fds,
     }
 
 
