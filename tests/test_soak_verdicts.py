@@ -141,7 +141,8 @@ def test_the_trace_names_a_slow_minute_s_worst_seconds_and_what_co_occurred() ->
         "ms late; 1 generation-2 collections"
     )
     assert "longest run of seconds with missed ticks: 3 s from t = 41 s" in table[4]
-    assert table[5].startswith("        t = 42 s: 30 missed, client 30.0 Hz; with: other processes 1.10 cores")
+    assert "other_cpu 0.20 / 0.20" in table[5] and "missed 9.00 / 0.00" in table[5]  # the run against the rest
+    assert table[6].startswith("        t = 42 s: 30 missed, client 30.0 Hz; with: other processes 1.10 cores")
     unexplained = minute_table([{**minute, "worst_seconds": []}], 57.0)
     assert "no second of it in the trace missed a tick" in unexplained[2]
 

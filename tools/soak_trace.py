@@ -251,6 +251,8 @@ def minute_findings(minute: dict[str, Any], seconds: list[dict[str, Any]], need_
     if minute["output_hz_client"] >= need_hz or not seconds:
         return {}
     run, run_t = longest_run(seconds)
+    in_run = [s for s in seconds if run_t is not None and run_t <= s["t_s"] and s["missed"] > 0][:run]
+    rest = [s for s in seconds if s not in in_run]
     return {
         # the minute as a whole (its median second): a machine loaded all minute long stands out in no one second
         "median_second": {
@@ -264,6 +266,11 @@ def minute_findings(minute: dict[str, Any], seconds: list[dict[str, Any]], need_
         ],
         "longest_missing_run_s": run,
         "longest_missing_run_from_t_s": run_t,
+        # a dip of many seconds: the run's median second against the rest of the minute's
+        "run_against_rest": {
+            k: [_median(float(s[k]) for s in in_run), _median(float(s[k]) for s in rest)]
+            for k in ("missed", "other_cpu", "daemon_cpu", "attacker_cpu", "loop_late_ms")
+        },
     }
 
 
@@ -289,6 +296,10 @@ def minute_table(minutes: list[dict[str, Any]], need_hz: float) -> list[str]:
         if m.get("longest_missing_run_s"):
             out.append(f"        longest run of seconds with missed ticks: {m['longest_missing_run_s']} s from "
                        f"t = {m['longest_missing_run_from_t_s']:.0f} s")  # fmt: skip
+            ra = m.get("run_against_rest")
+            if ra:
+                out.append("          its median second against the rest of the minute's: " + ", ".join(
+                    f"{k} {a:.2f} / {b:.2f}" for k, (a, b) in ra.items()))  # fmt: skip
         for s in m["worst_seconds"]:
             said = "; ".join(s["with"]) or "nothing unusual recorded beside it"
             out.append(f"        t = {s['t_s']:.0f} s: {s['missed']} missed, client {s['client_hz']} Hz; with: {said}")
