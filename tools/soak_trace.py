@@ -213,7 +213,7 @@ def co_occurred(second: dict[str, Any], minute: list[dict[str, Any]]) -> list[st
         out.append(f"RSS +{second['rss_delta_mib']:.1f} MiB")
     lines = sum(second["log_lines"].values())
     typical = _median(sum(s["log_lines"].values()) for s in minute)
-    if lines >= 2 * typical + 2:
+    if lines >= 2 * typical + 3:
         top = max(second["log_lines"], key=second["log_lines"].__getitem__)
         out.append(f"{lines} log lines (median {typical:.0f}; most {top})")
     for stage, ms in sorted(second["stage_cpu_ms"].items()):
@@ -222,7 +222,7 @@ def co_occurred(second: dict[str, Any], minute: list[dict[str, Any]]) -> list[st
             out.append(f"tick stage {stage} {ms:.0f} ms CPU (median {usual:.0f})")
     if second["people"] != _median(s["people"] for s in minute):
         out.append(
-            f"{second['people']} people in the latest frame (usually {_median(s['people'] for s in minute):.0f})"
+            f"people in the latest frame: {second['people']} (usually {_median(s['people'] for s in minute):.0f})"
         )
     # attacks per second of the line (a line after a stalled loop spans more than a second)
     for name, count in sorted(second["attacks"].items()):
