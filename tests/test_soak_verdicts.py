@@ -143,6 +143,9 @@ def test_the_trace_names_a_slow_minute_s_worst_seconds_and_what_co_occurred() ->
     assert "longest run of seconds with missed ticks: 3 s from t = 41 s" in table[4]
     assert "other_cpu 0.20 / 0.20" in table[5] and "missed 9.00 / 0.00" in table[5]  # the run against the rest
     assert table[6].startswith("        t = 42 s: 30 missed, client 30.0 Hz; with: other processes 1.10 cores")
+    all_missed = [{**x, "missed": 1} for x in seconds]  # a minute missing ticks in every second: no rest to compare
+    assert "(every second of the minute missed ticks)" in minute_table([{**minute, **minute_findings(minute,
+                                                                      all_missed, 57.0)}], 57.0)[4]  # fmt: skip
     unexplained = minute_table([{**minute, "worst_seconds": []}], 57.0)
     assert "no second of it in the trace missed a tick" in unexplained[2]
 

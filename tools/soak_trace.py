@@ -268,7 +268,7 @@ def minute_findings(minute: dict[str, Any], seconds: list[dict[str, Any]], need_
         "longest_missing_run_from_t_s": run_t,
         # a dip of many seconds: the run's median second against the rest of the minute's
         "run_against_rest": {
-            k: [_median(float(s[k]) for s in in_run), _median(float(s[k]) for s in rest)]
+            k: [_median(float(s[k]) for s in in_run), _median(float(s[k]) for s in rest) if rest else None]
             for k in ("missed", "other_cpu", "daemon_cpu", "attacker_cpu", "loop_late_ms")
         },
     }
@@ -297,7 +297,9 @@ def minute_table(minutes: list[dict[str, Any]], need_hz: float) -> list[str]:
             out.append(f"        longest run of seconds with missed ticks: {m['longest_missing_run_s']} s from "
                        f"t = {m['longest_missing_run_from_t_s']:.0f} s")  # fmt: skip
             ra = m.get("run_against_rest")
-            if ra:
+            if ra and next(iter(ra.values()))[1] is None:
+                out.append("          (every second of the minute missed ticks)")
+            elif ra:
                 out.append("          its median second against the rest of the minute's: " + ", ".join(
                     f"{k} {a:.2f} / {b:.2f}" for k, (a, b) in ra.items()))  # fmt: skip
         for s in m["worst_seconds"]:
