@@ -878,8 +878,10 @@ async def soak(
             while True:
                 await asyncio.sleep(max(0.0, due - time.monotonic()))
                 woke = time.monotonic()
+                cpu0 = time.thread_time()
                 cur = sample((woke - due) * 1000.0)
                 second = trace_second(prev, cur, t_start, interval_s)
+                second["tracer_cpu_ms"] = round((time.thread_time() - cpu0) * 1000.0, 2)  # its own cost on the loop
                 trace.append(second)
                 if trace_out is not None:
                     trace_out.write(json.dumps(second) + "\n")
