@@ -52,11 +52,12 @@ swapped a view's limbs whenever the detector had re-labelled it meanwhile (a dem
 It sheds one step when, in two windows in a row, the tick's p95 exceeded ``shed_above`` of the period or more than
 ``max_missed`` of the window's ticks were missed (one slow window, a start-up burst, is no reason; but one window
 that missed ``severe_missed`` of its ticks, a quarter, sheds at once, without waiting for the step before to be
-judged: most of the output is being lost), and restores one
-step only after ``hold_s`` in which the p95 stayed below ``restore_below`` of the period with no tick missed
-(hysteresis: a step is not taken back the moment it helped). Its time starts at the first published tick, not when
-the daemon is built: opening the cameras and loading the models can outlast the ``settle_s`` in which nothing is
-shed.
+judged: most of the output is being lost; and a step on trial is kept at once, the next shed, after a window that
+missed ``hurry_missed`` of its ticks, a tenth, while the other programs used under ``others_share`` of the machine:
+below, the cause test), and restores one step only after ``hold_s`` in which the p95 stayed below
+``restore_below`` of the period with no tick missed (hysteresis: a step is not taken back the moment it helped).
+Its time starts at the first published tick, not when the daemon is built: opening the cameras and loading the
+models can outlast the ``settle_s`` in which nothing is shed.
 
 A cause test before the next step. Shedding helps only when the lateness is this process's work: on a machine
 loaded by other programs (load 15-20 on 2 cores) the tick's p95 stayed at 45-60 ms while the governor walked down
@@ -174,6 +175,12 @@ class GovernorOptions:
     kept on trial and one such window is enough. With seven steps judged over three windows each, walking the ladder
     took 31 s of 23-34 Hz output in `mocapd demo` on the 2-core machine (docs/daemon.md); below this share the cause
     test judges each step as before."""
+    hurry_missed: float = 0.10
+    """A step on trial whose window missed at least this share of its ticks while the other programs used under
+    ``others_share`` of the machine in it is kept at once and the next step follows (as after a ``severe_missed``
+    window): with the machine loaded by nobody else the trial's verdict can only be to keep the step (the lateness
+    is ours), and in `mocapd demo`'s first 15-25 s on the 2-core machine each of its windows lost 15-35 % of 120
+    ticks. Where the others' CPU is high or not measured, the trial runs as before."""
     significance: float = 0.05
     """Fewer missed ticks after a step count as help when a one-sided binomial test on the pooled counts (before
     against after, in proportion to their ticks) gives a p-value below this."""
@@ -331,18 +338,27 @@ class Governor:
             self._calm_since = None
         self._verdict, trial = "", self._trial
         severe = window.missed_share >= o.severe_missed
+        hurried = False
         if trial is not None:
             trial.after.append(window)
-            if len(trial.after) < o.judge_windows and not severe:
+            # Many ticks lost while nobody else loads the machine: the trial could only keep the step (the
+            # lateness is ours), so it ends here rather than lose more windows' ticks to its verdict.
+            hurried = (not severe and len(trial.after) < o.judge_windows and window.missed_share >= o.hurry_missed
+                       and self._ours(window))  # fmt: skip
+            if len(trial.after) < o.judge_windows and not (severe or hurried):
                 return False  # a step on trial: no other change until it is judged
             self._trial = None
             if severe:  # most of the output is lost: no time for a trial, the step stays and the next follows
                 self._verdict = (f"step {trial.from_index + 1} kept unjudged: {window.missed} of {window.ticks} "
                                  f"ticks missed in the window after it")  # fmt: skip
+            elif hurried:
+                self._verdict = (f"step {trial.from_index + 1} kept unjudged: {window.missed} of {window.ticks} "
+                                 f"ticks missed in the window after it while the others used under "
+                                 f"{o.others_share * 100:g} % of the machine (the lateness is ours)")  # fmt: skip
             elif self._judge(trial, now_ns):
                 return True
         if self._overran(window) and (
-            severe or (len(self._level_windows) >= 2 and self._overran(self._level_windows[-2]))
+            severe or hurried or (len(self._level_windows) >= 2 and self._overran(self._level_windows[-2]))
         ):
             return self._shed(now_ns)  # two windows in a row: one slow window (a start-up burst) sheds nothing
         if calm:
@@ -364,6 +380,11 @@ class Governor:
         if cpu_ns is not None and machine is not None:
             self._machine_at = (now_ns, cpu_ns, machine.busy_ns)
             self.cpus = machine.cpus
+
+    def _ours(self, w: _Window) -> bool:
+        """Whether the other programs used under ``others_share`` of the machine in ``w`` (False: not measured)."""
+        cpus = self.cpus or 0
+        return w.others_rate is not None and cpus > 0 and w.others_rate < self.options.others_share * cpus
 
     def _overran(self, w: _Window) -> bool:
         return w.p95_ns > self.options.shed_above * self.period_ns or w.missed_share > self.options.max_missed
