@@ -52,12 +52,12 @@ swapped a view's limbs whenever the detector had re-labelled it meanwhile (a dem
 It sheds one step when, in two windows in a row, the tick's p95 exceeded ``shed_above`` of the period or more than
 ``max_missed`` of the window's ticks were missed (one slow window, a start-up burst, is no reason; but one window
 that missed ``severe_missed`` of its ticks, a quarter, sheds at once, without waiting for the step before to be
-judged: most of the output is being lost; and a step on trial is kept at once, the next shed, after a window that
-missed ``hurry_missed`` of its ticks, a tenth, while the other programs used under ``others_share`` of the machine:
-below, the cause test), and restores one step only after ``hold_s`` in which the p95 stayed below
-``restore_below`` of the period with no tick missed (hysteresis: a step is not taken back the moment it helped).
-Its time starts at the first published tick, not when the daemon is built: opening the cameras and loading the
-models can outlast the ``settle_s`` in which nothing is shed.
+judged: most of the output is being lost; so does, after a step, a window that missed ``hurry_missed`` of its
+ticks, a tenth, while the other programs used under ``others_share`` of the machine: see the cause test below),
+and restores one step only after ``hold_s`` in which the p95 stayed below ``restore_below`` of the period with no
+tick missed (hysteresis: a step is not taken back the moment it helped). Its time starts at the first published
+tick, not when the daemon is built: opening the cameras and loading the models can outlast the ``settle_s`` in
+which nothing is shed.
 
 A cause test before the next step. Shedding helps only when the lateness is this process's work: on a machine
 loaded by other programs (load 15-20 on 2 cores) the tick's p95 stayed at 45-60 ms while the governor walked down
@@ -473,7 +473,6 @@ class Governor:
         if others is not None:
             was = "" if before.others_rate is None else f"{before.others_rate:.2f} -> "
             what += f", others' CPU {was}{others:.2f} s/s of {cpus} cores ({others / cpus * 100:.0f} % of the machine)"
-
         if not took_work:  # it shed nothing measurable: no evidence either way, the next step may follow
             self.last_reason = self._verdict = f"{what}: it took no CPU away"
             return False
