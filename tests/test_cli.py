@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -101,6 +102,10 @@ def test_bench_latency_holds_the_daemon_to_a_cpu_budget() -> None:
     # ladder is step 0 and the people solved at half rate (it walked to "detector at 35 % duty", shedding nothing,
     # and said so); held to 0.8 of a core it may take that step.
     assert gov["ladder"] == ["nothing shed", "people solved at half rate"] and gov["step"] in (0, 1), gov
+    # The cause test's CPU figures, from the last 2 s window: this process's and the other programs' (the machine's
+    # busy time from /proc/stat less this process's), and the machine's CPUs.
+    assert gov["machine_cpus"] == os.cpu_count() and gov["others_cpu_s_per_s"] is not None, gov
+    assert 0.0 < gov["process_cpu_s_per_s"] <= 1.0, gov  # held to 0.8 of a core (and the clock's rounding)
 
 
 def test_bench_latency_on_the_suit_alone_reports_the_imu_only_rig(capsys: pytest.CaptureFixture[str]) -> None:

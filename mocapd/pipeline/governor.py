@@ -52,11 +52,12 @@ swapped a view's limbs whenever the detector had re-labelled it meanwhile (a dem
 It sheds one step when, in two windows in a row, the tick's p95 exceeded ``shed_above`` of the period or more than
 ``max_missed`` of the window's ticks were missed (one slow window, a start-up burst, is no reason; but one window
 that missed ``severe_missed`` of its ticks, a quarter, sheds at once, without waiting for the step before to be
-judged: most of the output is being lost), and restores one
-step only after ``hold_s`` in which the p95 stayed below ``restore_below`` of the period with no tick missed
-(hysteresis: a step is not taken back the moment it helped). Its time starts at the first published tick, not when
-the daemon is built: opening the cameras and loading the models can outlast the ``settle_s`` in which nothing is
-shed.
+judged: most of the output is being lost; so does, after a step, a window that missed ``hurry_missed`` of its
+ticks, a tenth, while the other programs used under ``others_share`` of the machine: see the cause test below),
+and restores one step only after ``hold_s`` in which the p95 stayed below ``restore_below`` of the period with no
+tick missed (hysteresis: a step is not taken back the moment it helped). Its time starts at the first published
+tick, not when the daemon is built: opening the cameras and loading the models can outlast the ``settle_s`` in
+which nothing is shed.
 
 A cause test before the next step. Shedding helps only when the lateness is this process's work: on a machine
 loaded by other programs (load 15-20 on 2 cores) the tick's p95 stayed at 45-60 ms while the governor walked down
@@ -66,9 +67,18 @@ a window's p95 varies by ~17 % on a quiet machine, and the first window after a 
 (60.9 -> 79.9 ms) and took the step back. The step *helped* when the median p95 fell by ``helped_by``, or the
 pooled missed ticks fell significantly (a one-sided binomial test at ``significance``), or the tick fits again:
 the next step may follow. When it did not, and it took work away (the median of the daemon's process CPU per
-second, passed to :meth:`Governor.step`, fell by ``bite`` or more), the lateness is not ours: the step is taken back
-and nothing more is shed for ``retry_s`` (doubling, up to 4 x, while retries keep failing). A step that took no
-measurable CPU away (a landmark model that was not running) proves nothing either way: the next may follow.
+second, passed to :meth:`Governor.step`, fell by ``bite`` or more), whose lateness it is depends on what the
+other programs on the machine used in its trial (the machine's busy CPU time less this process's, per second, over
+the same windows: :mod:`mocapd.io.machine_cpu`, passed to :meth:`Governor.step`). When they used ``others_share`` of
+the machine's CPUs or more (a VR game takes a core or more), the lateness is not ours: the step is taken back and
+nothing more is shed for ``retry_s`` (doubling, up to 4 x, while retries keep failing). When they used less, nobody
+else was loading the machine, so the lateness is ours and the step was the wrong one to help it: the step is kept
+and the next may follow. On the quiet 2-core ``mocapd demo`` the daemon used ~1.35-1.6 cores, its fake cameras
+~0.24 together, nothing else ran, and the tick thread waited for a core 15 % of the time: the old rule took a
+useful ladder back there in about half the runs ("did not help: tick p95 70.8 -> 71.0 ms ... process CPU 1.61 ->
+1.51 s/s") and the run lost 300-700 ticks. Where the machine's CPU cannot be read (no ``/proc/stat``: not Linux),
+the old rule stands: a step that took CPU away without helping is taken back. A step that took no measurable CPU
+away (a landmark model that was not running) proves nothing either way: the next may follow.
 
 Pure state: times are arguments; the daemon feeds it (:meth:`Governor.observe` and :meth:`Governor.step` per
 tick) and applies :attr:`Governor.level`'s settings to the keypoint sources, the detectors and the scheduler
@@ -82,6 +92,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import bdtr
+
+from mocapd.io.machine_cpu import MachineCpu
 
 
 @dataclass(frozen=True)
@@ -163,6 +175,12 @@ class GovernorOptions:
     kept on trial and one such window is enough. With seven steps judged over three windows each, walking the ladder
     took 31 s of 23-34 Hz output in `mocapd demo` on the 2-core machine (docs/daemon.md); below this share the cause
     test judges each step as before."""
+    hurry_missed: float = 0.10
+    """A step on trial whose window missed at least this share of its ticks while the other programs used under
+    ``others_share`` of the machine in it is kept at once and the next step follows (as after a ``severe_missed``
+    window): with the machine loaded by nobody else the trial's verdict can only be to keep the step (the lateness
+    is ours), and in `mocapd demo`'s first 15-25 s on the 2-core machine each of its windows lost 15-35 % of 120
+    ticks. Where the others' CPU is high or not measured, the trial runs as before."""
     significance: float = 0.05
     """Fewer missed ticks after a step count as help when a one-sided binomial test on the pooled counts (before
     against after, in proportion to their ticks) gives a p-value below this."""
@@ -171,6 +189,11 @@ class GovernorOptions:
     retry_s: float = 30.0
     """After a step that took work away without bringing the lateness down: nothing shed for this long (doubled
     for each further such step in a row, up to 4 x)."""
+    others_share: float = 0.25
+    """A step that took work away without helping is taken back only when the other programs on the machine used
+    at least this share of its CPUs in the trial (the median of its windows; below it the lateness is this
+    process's own and the step stays). A quarter: on the quiet 2-core demo the fake cameras, the only other
+    programs, used ~0.24 of a core (12 %), a VR game takes a core or more (50 % of 2 cores)."""
 
 
 @dataclass(frozen=True)
@@ -181,24 +204,34 @@ class _Window:
     missed: int
     ticks: int
     cpu_rate: float | None  # the process's CPU seconds per wall second (None: not measured)
+    others_rate: float | None = None  # the other programs' CPU seconds per wall second (None: not measured)
 
     @property
     def missed_share(self) -> float:
         return self.missed / self.ticks if self.ticks else 0.0
 
-    def cpu_text(self) -> str:
-        return "" if self.cpu_rate is None else f", process CPU {self.cpu_rate:.2f} s/s"
+    def cpu_text(self, cpus: int | None) -> str:
+        text = "" if self.cpu_rate is None else f", process CPU {self.cpu_rate:.2f} s/s"
+        if self.others_rate is not None and cpus:
+            text += f", others' CPU {self.others_rate:.2f} s/s of {cpus} cores"
+        return text
+
+
+def _median(values: Sequence[float | None]) -> float | None:
+    """The median, or None when any is None (not measured in every window)."""
+    known = [v for v in values if v is not None]
+    return float(np.median(known)) if known and len(known) == len(values) else None
 
 
 def _pooled(windows: Sequence[_Window]) -> _Window:
-    """Windows as one: the median of their p95s and of their CPU rates (one noisy window moves neither), their
-    missed ticks and ticks summed."""
-    rates = [w.cpu_rate for w in windows]
+    """Windows as one: the median of their p95s and of their CPU rates, ours and the others' (one noisy window moves
+    none of them), their missed ticks and ticks summed."""
     return _Window(
         float(np.median([w.p95_ns for w in windows])),
         sum(w.missed for w in windows),
         sum(w.ticks for w in windows),
-        None if any(r is None for r in rates) else float(np.median([r for r in rates if r is not None])),
+        _median([w.cpu_rate for w in windows]),
+        _median([w.others_rate for w in windows]),
     )
 
 
@@ -257,6 +290,10 @@ class Governor:
         #: the last changes: (seconds since the first tick, step, reason), oldest first
         self.history: list[tuple[float, int, str]] = []
         self._cpu_at: tuple[int, int] | None = None  # (wall, process CPU) at the window's start
+        #: (wall, process CPU, the machine's busy CPU) at the window's start, where the machine's is measured
+        self._machine_at: tuple[int, int, int] | None = None
+        self.cpus: int | None = None  # the machine's CPUs (None: its CPU not measured)
+        self._last: _Window | None = None  # the last window closed (for /status)
         self._level_windows: list[_Window] = []  # the windows since the level last changed (the last few)
         self._trial: _Trial | None = None  # the step taken last, until it is judged
         self._verdict = ""  # the judgement of the last step on trial, said with the next step shed in its window
@@ -273,15 +310,22 @@ class Governor:
         self._durations.append(tick_ns)
         self._missed += missed
 
-    def step(self, now_ns: int, cpu_ns: int | None = None) -> bool:
+    def due(self, now_ns: int) -> bool:
+        """Whether :meth:`step` at ``now_ns`` starts the governor or closes a window: the instants it needs the
+        machine's CPU at (reading it on every tick would cost the tick for nothing)."""
+        return self._first_tick is None or now_ns - self._window_start >= self.options.window_s * 1e9
+
+    def step(self, now_ns: int, cpu_ns: int | None = None, machine: MachineCpu | None = None) -> bool:
         """After each published tick (it acts once a window ``window_s`` has passed): shed or restore a step.
         ``cpu_ns``: the daemon's process CPU time now (any origin; None: not measured, then a step that did not
-        help is taken back as one that took work away). Returns True when the level changed."""
+        help is taken back as one that took work away). ``machine``: the machine's CPU counters now, needed only
+        where :meth:`due` (None: not read now; never given: not measured, then the others' share is unknown and
+        such a step is taken back as before). Returns True when the level changed."""
         measured = None
         if self._first_tick is None:
-            self._start(now_ns, cpu_ns)
+            self._start(now_ns, cpu_ns, machine)
         else:
-            measured = self._close_window(now_ns, cpu_ns)
+            measured = self._close_window(now_ns, cpu_ns, machine)
         if measured is None or self.pinned:
             return False
         window, began = measured
@@ -294,36 +338,58 @@ class Governor:
             self._calm_since = None
         self._verdict, trial = "", self._trial
         severe = window.missed_share >= o.severe_missed
+        hurried = False
         if trial is not None:
             trial.after.append(window)
-            if len(trial.after) < o.judge_windows and not severe:
+            # Many ticks lost while nobody else loads the machine: the trial could only keep the step (the
+            # lateness is ours), so it ends here rather than lose more windows' ticks to its verdict.
+            hurried = (not severe and len(trial.after) < o.judge_windows and window.missed_share >= o.hurry_missed
+                       and self._ours(window))  # fmt: skip
+            if len(trial.after) < o.judge_windows and not (severe or hurried):
                 return False  # a step on trial: no other change until it is judged
             self._trial = None
             if severe:  # most of the output is lost: no time for a trial, the step stays and the next follows
                 self._verdict = (f"step {trial.from_index + 1} kept unjudged: {window.missed} of {window.ticks} "
                                  f"ticks missed in the window after it")  # fmt: skip
+            elif hurried:
+                self._verdict = (f"step {trial.from_index + 1} kept unjudged: {window.missed} of {window.ticks} "
+                                 f"ticks missed in the window after it while the others used under "
+                                 f"{o.others_share * 100:g} % of the machine (the lateness is ours)")  # fmt: skip
             elif self._judge(trial, now_ns):
                 return True
         if self._overran(window) and (
-            severe or (len(self._level_windows) >= 2 and self._overran(self._level_windows[-2]))
+            severe or hurried or (len(self._level_windows) >= 2 and self._overran(self._level_windows[-2]))
         ):
             return self._shed(now_ns)  # two windows in a row: one slow window (a start-up burst) sheds nothing
         if calm:
             return self._restore(window, now_ns)
         return False
 
-    def _start(self, now_ns: int, cpu_ns: int | None) -> None:
+    def _start(self, now_ns: int, cpu_ns: int | None, machine: MachineCpu | None) -> None:
         """The first tick: the governor's time starts here, not at the daemon's construction (opening the cameras
         and loading the models can take longer than the settling time); what was observed before is dropped."""
         self._first_tick = self._start_ns = self._window_start = self._changed_ns = now_ns
         self._calm_since = self._no_shed_until = now_ns
         self._durations, self._missed = [], 0
         self._cpu_at = None if cpu_ns is None else (now_ns, cpu_ns)
+        self._machine_at = None
+        self._mark_machine(now_ns, cpu_ns, machine)
+
+    def _mark_machine(self, now_ns: int, cpu_ns: int | None, machine: MachineCpu | None) -> None:
+        """The machine's counters at a window's start (with the process's CPU at the same instant)."""
+        if cpu_ns is not None and machine is not None:
+            self._machine_at = (now_ns, cpu_ns, machine.busy_ns)
+            self.cpus = machine.cpus
+
+    def _ours(self, w: _Window) -> bool:
+        """Whether the other programs used under ``others_share`` of the machine in ``w`` (False: not measured)."""
+        cpus = self.cpus or 0
+        return w.others_rate is not None and cpus > 0 and w.others_rate < self.options.others_share * cpus
 
     def _overran(self, w: _Window) -> bool:
         return w.p95_ns > self.options.shed_above * self.period_ns or w.missed_share > self.options.max_missed
 
-    def _close_window(self, now_ns: int, cpu_ns: int | None) -> tuple[_Window, int] | None:
+    def _close_window(self, now_ns: int, cpu_ns: int | None, machine: MachineCpu | None) -> tuple[_Window, int] | None:
         """The window's measurements and its start, once ``window_s`` has passed and the start settled."""
         o = self.options
         if cpu_ns is not None and self._cpu_at is None:
@@ -332,17 +398,25 @@ class Governor:
             return None
         durations, missed, began = self._durations, self._missed, self._window_start
         self._durations, self._missed, self._window_start = [], 0, now_ns
-        cpu_rate = None
+        cpu_rate = others_rate = None
         if cpu_ns is not None and self._cpu_at is not None and now_ns > self._cpu_at[0]:
             cpu_rate = (cpu_ns - self._cpu_at[1]) / (now_ns - self._cpu_at[0])
             self._cpu_at = (now_ns, cpu_ns)
+        at = self._machine_at
+        if cpu_ns is not None and machine is not None and at is not None and now_ns > at[0]:
+            # The machine's busy time counts in clock ticks (10 ms) and ours exactly: a small negative is rounding.
+            others_rate = max(0.0, ((machine.busy_ns - at[2]) - (cpu_ns - at[1])) / (now_ns - at[0]))
+        self._machine_at = None
+        self._mark_machine(now_ns, cpu_ns, machine)
         if not durations:
             return None
         p95 = float(np.percentile(durations, 95))
         self.last_p95_ms = round(p95 / 1e6, 2)
+        window = _Window(p95, missed, len(durations) + missed, cpu_rate, others_rate)
+        self._last = window
         if now_ns - self._start_ns < o.settle_s * 1e9:
             return None
-        return _Window(p95, missed, len(durations) + missed, cpu_rate), began
+        return window, began
 
     def _shed(self, now_ns: int) -> bool:
         """One more step, unless at the last or waiting after a step that was taken back."""
@@ -353,7 +427,7 @@ class Governor:
         self.step_index += 1
         verdict = f"; {self._verdict}" if self._verdict else ""  # the step before it, judged in this window
         self._changed(now_ns, f"tick p95 {w.p95_ns / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
-                      f"{w.missed} of {w.ticks} ticks missed{w.cpu_text()}{verdict}")  # fmt: skip
+                      f"{w.missed} of {w.ticks} ticks missed{w.cpu_text(self.cpus)}{verdict}")  # fmt: skip
         self._trial = _Trial(self.step_index - 1, before)
         return True
 
@@ -394,15 +468,28 @@ class Governor:
                 f"{after.ticks}")  # fmt: skip
         if before.cpu_rate is not None and after.cpu_rate is not None:
             what += f", process CPU {before.cpu_rate:.2f} -> {after.cpu_rate:.2f} s/s"
+        cpus = self.cpus or 0
+        others = after.others_rate if cpus else None  # the other programs' CPU in the trial (None: not measured)
+        if others is not None:
+            was = "" if before.others_rate is None else f"{before.others_rate:.2f} -> "
+            what += f", others' CPU {was}{others:.2f} s/s of {cpus} cores ({others / cpus * 100:.0f} % of the machine)"
         if not took_work:  # it shed nothing measurable: no evidence either way, the next step may follow
             self.last_reason = self._verdict = f"{what}: it took no CPU away"
+            return False
+        if others is not None and others < o.others_share * cpus:
+            # Nobody else loads the machine: the lateness is ours, and this step did not relieve it; the next may.
+            self.last_reason = self._verdict = (f"{what}: the others used under {o.others_share * 100:g} % of the "
+                                                f"machine, so the lateness is this process's work; kept, the next "
+                                                f"step may follow")  # fmt: skip
             return False
         wait = o.retry_s * min(2**self._futile, 4)
         self._futile += 1
         self.step_index = trial.from_index
         self._no_shed_until = now_ns + round(wait * 1e9)
-        self._changed(now_ns, f"{what}: the lateness is not this process's work; taken back, nothing shed for "
-                      f"{wait:g} s")  # fmt: skip
+        why = ("the others' CPU not measured" if others is None
+               else f"the others used {o.others_share * 100:g} % of the machine or more")  # fmt: skip
+        self._changed(now_ns, f"{what}: {why}, the lateness is not this process's work; taken back, nothing shed "
+                      f"for {wait:g} s")  # fmt: skip
         return True
 
     def _changed(self, now_ns: int, reason: str) -> None:
@@ -414,8 +501,9 @@ class Governor:
         self.history = [*self.history[-9:], (round(since, 1), self.step_index, reason)]
 
     def status(self) -> dict[str, object]:
-        """JSON-able: the step, what it sheds, why, the last window's tick p95, the ladder's steps and the last
-        changes (seconds since the first tick, step, reason)."""
+        """JSON-able: the step, what it sheds, why, the last window's tick p95 and CPU per second (this process's,
+        the other programs' and the machine's CPUs), the ladder's steps and the last changes (seconds since the
+        first tick, step, reason)."""
         return {
             "step": self.step_index,
             "shed": self.level.name,
@@ -427,6 +515,14 @@ class Governor:
             "changes": self.changes,
             "pinned": self.pinned,
             "tick_p95_ms": self.last_p95_ms,
+            # the last window's CPU per second: this process's and the other programs' (None: not measured)
+            "process_cpu_s_per_s": None
+            if self._last is None or self._last.cpu_rate is None
+            else round(self._last.cpu_rate, 3),
+            "others_cpu_s_per_s": None
+            if self._last is None or self._last.others_rate is None
+            else round(self._last.others_rate, 3),
+            "machine_cpus": self.cpus,
             "ladder": [lv.name for lv in self.ladder],
             "history": [{"t_s": t, "step": k, "reason": r} for t, k, r in self.history],
         }

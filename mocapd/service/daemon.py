@@ -54,6 +54,7 @@ from mocapd.errors import ConfigError, DeviceError, InputError, RateLimitError
 from mocapd.io import lifecycle
 from mocapd.io.device_state import OpenState
 from mocapd.io.gc_watch import GcWatch
+from mocapd.io.machine_cpu import MachineCpuReader
 from mocapd.io.os_threads import worker_thread_setup
 from mocapd.io.sd_notify import SdNotifier
 from mocapd.pipeline.camera_watch import CameraChange, LiveCameraWatch, turn_deg
@@ -336,6 +337,7 @@ class Daemon:
             raise ConfigError(f"daemon.governor_pin_step: {exc}") from None
         if self.governor is not None and self.governor.pinned:
             self._apply_governor()
+        self._machine_cpu = MachineCpuReader()  # the machine's busy CPU for the governor (None where not Linux)
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
         self.actions: dict[str, Callable[[dict[str, str], str], Any]] = {
@@ -704,8 +706,10 @@ class Daemon:
                 self._apply_camera_proposals()  # between two ticks: the next one solves with the new camera
             if self.governor is not None:
                 self.governor.observe(published - frame.tick_ns, skipped)
-                # The process's CPU clock: the governor's cause test (did a step take work away?) needs it.
-                if self.governor.step(published, time.process_time_ns()):
+                # The process's CPU clock and, at a window's edge, the machine's: the governor's cause test (did a
+                # step take work away? did other programs load the machine meanwhile?) needs them.
+                machine = self._machine_cpu.read() if self.governor.due(published) else None
+                if self.governor.step(published, time.process_time_ns(), machine):
                     self._apply_governor()
 
     def replace_camera(
