@@ -1,10 +1,11 @@
 """The tracker's per-tick update made cheaper (issue 39: it runs on every output tick on the event loop) sorts and
 tracks as before: the sorting and tracking code before issue 39 (kept here verbatim as the oracle: the candidates'
 glue, claims, assignment, the keypoint distance, a candidate's centre, the other-views rule and enrolment) and the
-new code update two trackers on the same detections, tick after tick, and give the same candidates (points, views
-and errors bit for bit), subjects, detections, bystanders and events; on several people walking among four
-cameras with people missing from views, a left/right-swapped view, a stray detection, low-confidence keypoints and
-people leaving and coming back."""
+new code (its pairing kernel giving up early on pairs that cannot pass) update two trackers on the same
+detections, tick after tick, and give the same candidates (points, views and errors bit for bit), subjects,
+detections, bystanders and events; on several people walking among four cameras with people missing from views,
+a left/right-swapped view, a stray detection, low-confidence and NaN keypoints, and people leaving and coming
+back."""
 
 from __future__ import annotations
 
@@ -64,7 +65,8 @@ def old_resolve_claims(cands: list[Candidate]) -> list[Candidate]:
 
 
 class OldSorter(DetectionSorter):
-    """``DetectionSorter`` before issue 39: ``_partner``, ``candidates`` and ``assign`` verbatim."""
+    """``DetectionSorter`` before issue 39: ``_partner``, ``candidates`` and ``assign`` verbatim, but for the
+    kernel's ``prune`` argument, False: the kernel's code before issue 39 (the pruning is one skipped branch)."""
 
     def _partner(self, n_kp: int) -> NDArray[np.int64]:
         partner = np.arange(n_kp, dtype=np.int64)
@@ -91,7 +93,7 @@ class OldSorter(DetectionSorter):
         points, members, member_errors = _sorting_kernel.candidate_pairs(
             np.ascontiguousarray(kp), usable, camera_of, person_of, self._K, self._dist, self._R, self._t,
             self._widths, o.max_reprojection_error, o.min_shared_keypoints, o.same_person_distance, MIN_DEPTH,
-            self._partner(n_kp), o.flip_aware,
+            self._partner(n_kp), o.flip_aware, False,
         )  # fmt: skip
         cands = []
         for q in range(points.shape[0]):
@@ -219,7 +221,7 @@ def _same_frames(a: FrameAssignment, b: FrameAssignment) -> None:
 
 def _ticks(seed: int, n_people: int, n_ticks: int) -> list[list[Detections2D]]:
     """60 Hz ticks of a 4-camera rig (lens distortion on), with views missing people, a view's left and right
-    exchanged, a stray detection, keypoints of low confidence, and everyone gone for a while."""
+    exchanged, a stray detection, keypoints of low confidence, a NaN keypoint, and everyone gone for a while."""
     world = SyntheticWorld(4, n_people, 0, seed=seed)
     rng = np.random.default_rng(seed)
     out = []
@@ -237,6 +239,8 @@ def _ticks(seed: int, n_people: int, n_ticks: int) -> list[list[Detections2D]]:
                 kp = np.concatenate([kp, rng.uniform(0.0, 600.0, (1, 17, 2))])
                 cf = np.concatenate([cf, rng.uniform(0.2, 0.9, (1, 17))])
             cf = np.where(rng.random(cf.shape) < 0.1, 0.1, cf)
+            if len(kp) and rng.random() < 0.05:  # a keypoint not a number (the kernel then does not prune)
+                kp[rng.integers(len(kp)), rng.integers(17)] = np.nan
             if 400 <= k < 560:  # everyone gone: subjects released after the grace period
                 kp, cf = kp[:0], cf[:0]
             ticks.append(Detections2D(kp, cf))

@@ -63,7 +63,7 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 
 * ``track``: :meth:`~mocapd.core.tracking.SubjectTracker.update` per output tick (the scheduler's sort stage): the
   demo's two people seen by 4 cameras with lens distortion at 60 Hz, two ticks a detector pass, both enrolled;
-  the revision's tracking module with the revision's sorting module.
+  the revision's tracking module with the revision's sorting module (and the pairing kernel without pruning).
 
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
@@ -615,7 +615,10 @@ def bench_plausibility(rev: str, rounds: int) -> dict[str, Any]:
 
 def bench_track(rev: str, rounds: int) -> dict[str, Any]:
     import dataclasses
+    import inspect
+    from types import SimpleNamespace
 
+    from mocapd.core import _sorting_kernel
     from mocapd.core import sorting as new_sorting
     from mocapd.core import tracking as new_tracking
     from mocapd.service.config import load_config
@@ -625,6 +628,13 @@ def bench_track(rev: str, rounds: int) -> dict[str, Any]:
     old_tracking = module_at(rev, "mocapd/core/tracking.py", "_old_tracking")
     names = ("Candidate", "Detections2D", "DetectionSorter", "mean_keypoint_distance")
     old_tracking.__dict__.update({k: getattr(old_sorting, k) for k in names})
+    if "prune" in inspect.signature(_sorting_kernel.candidate_pairs.py_func).parameters:  # the old kernel's path
+        kernel: Callable[..., Any] = _sorting_kernel.candidate_pairs
+
+        def unpruned(*args: Any) -> Any:
+            return kernel(*args, False)
+
+        old_sorting.__dict__["_sorting_kernel"] = SimpleNamespace(candidate_pairs=unpruned)
     syn = load_config().synthetic
     world = SyntheticWorld(4, syn.people, 0, seed=syn.seed, motion=syn.motion)
     cams = [dataclasses.replace(c, dist=np.array([-0.21, 0.08, 0.0012, -0.0007, -0.012])) for c in world.cameras]

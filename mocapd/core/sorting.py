@@ -268,7 +268,7 @@ class DetectionSorter:
         points, members, member_errors = _sorting_kernel.candidate_pairs(
             np.ascontiguousarray(kp), usable, camera_of, person_of, self._K, self._dist, self._R, self._t,
             self._widths, o.max_reprojection_error, o.min_shared_keypoints, o.same_person_distance, MIN_DEPTH,
-            self._partner(n_kp), o.flip_aware,
+            self._partner(n_kp), o.flip_aware, True,
         )  # fmt: skip
         cands = []
         for q, (row, errs) in enumerate(zip(members.tolist(), member_errors.tolist(), strict=True)):
