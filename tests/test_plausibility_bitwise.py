@@ -145,6 +145,10 @@ def test_poses_within_ulps_of_the_thresholds_count_the_same() -> None:
     assert {float(_flexion(matrix_from_rotvec(p[3 + 3 * BONE_INDEX["LeftLowerLeg"] :][:3]), "left_knee"))
             for p in poses} != {base}  # fmt: skip
     _same_after_every_step(poses, np.arange(len(poses)) / 60.0)
+    # A knee folded to ±180° (atan2's cut: the sign of an entry ~1e-16 decides between no event and the worst bend).
+    folded = np.stack([_knee_at(a) for a in np.repeat([180.0 + k * 1e-14 for k in range(-6, 7)], 20)])
+    folded[:, 3 + 3 * BONE_INDEX["LeftLowerLeg"] :][:, 1:3] = rng.normal(0.0, 1e-15, (len(folded), 2))
+    assert _same_after_every_step(folded, np.arange(len(folded)) / 60.0).events["left_knee"] > 0
     # The root travelling at the speed limit, and the pelvis at the backwards angle, to a few ulps.
     n = 400
     th = np.zeros((n, POSE_DIM))

@@ -334,8 +334,8 @@ class PlausibilityMonitor:
     This runs per person and output tick on the daemon's event loop (issue 39), so a step decides in plain floats
     (a flexion not near its threshold, a pelvis not near facing backwards: nearly every frame) and computes a
     hinge's flexion or the pelvis check with the arrays only when the pose is bent the wrong way (the worst bend
-    reported is the array value) or within :data:`_MARGIN` of a threshold: the counts, seconds and worst bends
-    are the array arithmetic's (``tests/test_plausibility_bitwise.py``).
+    reported is the array value), folded to near ±180° or within :data:`_MARGIN` of a threshold: the counts,
+    seconds and worst bends are the array arithmetic's (``tests/test_plausibility_bitwise.py``).
     """
 
     options: PlausibilityOptions = field(default_factory=PlausibilityOptions)
@@ -359,7 +359,8 @@ class PlausibilityMonitor:
             R = _rotation(v[k], v[k + 1], v[k + 2])
             y, x = sign * R[num], R[den]
             a = math.degrees(math.atan2(y, x))
-            if not (a - _MARGIN > limit and x * x + y * y > 1e-6):  # bent the wrong way, or too near to tell
+            # Bent the wrong way, near the threshold, or folded near ±180° (where rounding picks the sign): exact.
+            if not (limit + _MARGIN < a < 180.0 - _MARGIN and x * x + y * y > 1e-6):
                 exact = _monitored_rotations(th) if exact is None else exact
                 a = float(_flexion(exact[HINGES[name][1]], name))
             self._advance(name, t_s, dt, a < limit, -a, o.min_duration_s)
