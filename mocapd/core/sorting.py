@@ -164,8 +164,8 @@ def _finite_mean(d: FloatArray) -> float:
 
 def _mean_error(errors: dict[int, float]) -> float:
     """``np.mean`` of a candidate's per-camera errors: for fewer than 8 values numpy adds them in order, as this
-    loop does (beyond, its pairwise sum)."""
-    if len(errors) >= 8:
+    loop does (beyond, its pairwise sum; none: NaN, as ``np.mean`` gives)."""
+    if len(errors) >= 8 or not errors:
         return float(np.mean(list(errors.values())))
     total = 0.0
     for e in errors.values():
