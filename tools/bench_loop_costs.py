@@ -56,6 +56,15 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 * ``validate``: :class:`~mocapd.core.observations.ValidatedObservations` per person solve (4 cameras' 17 keypoints,
   no IMU: the camera rig's), the revision's module.
 
+* ``plausibility``: :meth:`~mocapd.core.plausibility.PlausibilityMonitor.step` per solved pose, the revision's
+  module: the demo's two people (the shipped ``[synthetic]`` motion) at 60 Hz, and a person walking a circle
+  (:func:`~mocapd.core.synthetic.moving_sequence`, whose elbows bend the wrong way a third of the time: the
+  monitor's slower path).
+
+* ``track``: :meth:`~mocapd.core.tracking.SubjectTracker.update` per output tick (the scheduler's sort stage): the
+  demo's two people seen by 4 cameras with lens distortion at 60 Hz, two ticks a detector pass, both enrolled;
+  the revision's tracking module with the revision's sorting module (and the pairing kernel without pruning).
+
 Run: ``PYTHONPATH=$PWD python tools/bench_loop_costs.py --rev main [--rounds 15] [--only watch,levels]``.
 """
 
@@ -574,6 +583,84 @@ def bench_validate(rev: str, rounds: int) -> dict[str, Any]:
     return {"validated_observations": alternate({"old": validate(old), "new": validate(new)}, rounds)}
 
 
+def bench_plausibility(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core import plausibility as new
+    from mocapd.core.skeleton import Skeleton
+    from mocapd.core.synthetic import moving_sequence
+    from mocapd.service.config import load_config
+    from mocapd.sim.world import SyntheticWorld
+
+    old = module_at(rev, "mocapd/core/plausibility.py", "_old_plausibility")
+    syn = load_config().synthetic
+    world = SyntheticWorld(4, syn.people, syn.suits, seed=syn.seed, motion=syn.motion)
+    demo = [[world.theta_at(p, k / 60.0) for k in range(600)] for p in range(syn.people)]
+    circle = [list(moving_sequence(Skeleton.from_height(1.75), 600, seed=3))]
+
+    def step(mod: ModuleType, people: list[list[Any]]) -> Callable[[], float]:
+        def run() -> float:
+            monitors = [mod.PlausibilityMonitor() for _ in people]
+            t0 = time.thread_time()
+            for m, poses in zip(monitors, people, strict=True):
+                for k, th in enumerate(poses):
+                    m.step(k / 60.0, th)
+            return (time.thread_time() - t0) / sum(len(p) for p in people)
+
+        return run
+
+    return {
+        "plausibility_step_demo": alternate({"old": step(old, demo), "new": step(new, demo)}, rounds),
+        "plausibility_step_circle": alternate({"old": step(old, circle), "new": step(new, circle)}, rounds),
+    }
+
+
+def bench_track(rev: str, rounds: int) -> dict[str, Any]:
+    import dataclasses
+    import inspect
+    from types import SimpleNamespace
+
+    from mocapd.core import _sorting_kernel
+    from mocapd.core import sorting as new_sorting
+    from mocapd.core import tracking as new_tracking
+    from mocapd.service.config import load_config
+    from mocapd.sim.world import SyntheticWorld
+
+    old_sorting = module_at(rev, "mocapd/core/sorting.py", "_old_sorting")
+    old_tracking = module_at(rev, "mocapd/core/tracking.py", "_old_tracking")
+    names = ("Candidate", "Detections2D", "DetectionSorter", "mean_keypoint_distance")
+    old_tracking.__dict__.update({k: getattr(old_sorting, k) for k in names})
+    if "prune" in inspect.signature(_sorting_kernel.candidate_pairs.py_func).parameters:  # the old kernel's path
+        kernel: Callable[..., Any] = _sorting_kernel.candidate_pairs
+
+        def unpruned(*args: Any) -> Any:
+            return kernel(*args, False)
+
+        old_sorting.__dict__["_sorting_kernel"] = SimpleNamespace(candidate_pairs=unpruned)
+    syn = load_config().synthetic
+    world = SyntheticWorld(4, syn.people, 0, seed=syn.seed, motion=syn.motion)
+    cams = [dataclasses.replace(c, dist=np.array([-0.21, 0.08, 0.0012, -0.0007, -0.012])) for c in world.cameras]
+    rng = np.random.default_rng(0)
+    ticks = [[world.detections(c, k / 60.0, rng, syn.noise_px) for c in range(4)] for k in range(360)]
+
+    def update(sorting: ModuleType, tracking: ModuleType) -> Callable[[], float]:
+        tracker = tracking.SubjectTracker(sorting.DetectionSorter(cams), tracking.TrackingOptions())
+        for k, dets in enumerate(ticks[:120]):  # both people enrolled
+            tracker.update(k * 16_666_667, dets, [k // 2] * 4)
+        t = 120
+
+        def run() -> float:
+            nonlocal t
+            t0 = time.thread_time()
+            for dets in ticks[120:]:
+                tracker.update(t * 16_666_667, dets, [t // 2] * 4)
+                t += 1
+            return (time.thread_time() - t0) / (len(ticks) - 120)
+
+        return run
+
+    return {"tracker_update": alternate({"old": update(old_sorting, old_tracking),
+                                         "new": update(new_sorting, new_tracking)}, rounds)}  # fmt: skip
+
+
 def bench_sim(rev: str, rounds: int) -> dict[str, Any]:
     from mocapd.sim import xsens as new
 
@@ -625,7 +712,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate,sim,frames",
+        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate,sim,frames,plausibility,track",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -646,6 +733,10 @@ def main() -> None:
         report.update(bench_collapse(args.rev, args.rounds))
     if "validate" in only:
         report.update(bench_validate(args.rev, args.rounds))
+    if "plausibility" in only:
+        report.update(bench_plausibility(args.rev, args.rounds))
+    if "track" in only:
+        report.update(bench_track(args.rev, args.rounds))
     if "sim" in only:
         report.update(bench_sim(args.rev, args.rounds))
     if "frames" in only:

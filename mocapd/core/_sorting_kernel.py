@@ -103,6 +103,7 @@ def candidate_pairs(
     min_depth: float,
     partner: IntArray,
     flips: bool,
+    prune: bool,
 ) -> tuple[FloatArray, IntArray, FloatArray]:
     """All viable cross-view pairs of 2D people, clustered into 3D person candidates.
 
@@ -113,7 +114,12 @@ def candidate_pairs(
     K, dist, R, t : stacked cameras; widths : (n_cams,) image widths;
     partner : (k,) each keypoint's left/right counterpart (itself where it has none);
     flips : pair a left/right pair of keypoints with the second view's labels exchanged where that fits better
-    (a view that confused the person's left and right still pairs with the others).
+    (a view that confused the person's left and right still pairs with the others);
+    prune : stop triangulating a pair of 2D people once its mean reprojection error must fail the limit however
+    the keypoints left turn out (the sum so far over as many keypoints as could still be shared: errors are not
+    negative, and rounding is monotone, so the final mean cannot come in under it); only where both people's
+    keypoints are finite (a NaN error would make the final mean NaN, which passes). Pairs of two different people
+    stop after a few keypoints (issue 39: this runs on every output tick); the result is the same as without.
 
     Returns
     -------
@@ -138,6 +144,9 @@ def candidate_pairs(
             xy[p, j, 1] = y
             for i in range(3):  # Rᵀ (x, y, 1)
                 rays[p, j, i] = R[c, 0, i] * x + R[c, 1, i] * y + R[c, 2, i]
+    finite = np.empty(n, dtype=np.bool_)  # every keypoint of the 2D person finite (undistorted)
+    for p in range(n):
+        finite[p] = np.isfinite(xy[p]).all()
     m_max = n * n
     points = np.full((m_max, k, 3), np.nan)
     sources = np.empty((m_max, 4), dtype=np.int64)
@@ -160,7 +169,12 @@ def candidate_pairs(
             ea = 0.0
             eb = 0.0
             limit = max_error_fraction * 0.5 * (widths[a] + widths[b])
+            can_prune = prune and finite[pa] and finite[pb]
+            hopeless = False
             for j in range(k):
+                if can_prune and shared > 0 and 0.5 * (ea + eb) / (shared + k - j) >= limit:
+                    hopeless = True  # at most k - j more keypoints: the mean cannot come under the limit
+                    break
                 q = partner[j] if flips else j
                 if q < j:
                     continue  # done with its left/right partner
@@ -206,7 +220,7 @@ def candidate_pairs(
                         eb += cand_e[h, 1]
                         for i in range(3):
                             points[m, jj, i] = cand[h, i]
-            if shared < min_shared or 0.5 * (ea + eb) / shared >= limit:
+            if hopeless or shared < min_shared or 0.5 * (ea + eb) / shared >= limit:
                 for j in range(k):
                     points[m, j, 0] = np.nan
                     points[m, j, 1] = np.nan

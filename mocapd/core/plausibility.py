@@ -34,6 +34,7 @@ calibration), without a solve: what ``calibrate imu --from`` checks a facing dir
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -272,6 +273,46 @@ def facing_from_knees(
 # --------------------------------------------------------------------------------------- the live monitor
 _MONITORED = ("Hips", "LeftUpperLeg", "RightUpperLeg", *(bone for _, bone in HINGES.values()))
 _MONITORED_IDX = np.array([BONE_INDEX[b] for b in _MONITORED], dtype=np.intp)
+_HINGE_ENTRIES = tuple(
+    (
+        name,
+        3 + 3 * BONE_INDEX[bone],
+        *((7, 4, 1.0) if name.endswith("knee") else (6, 0, 1.0 if "left" in name else -1.0)),
+    )
+    for name, (_, bone) in HINGES.items()
+)
+"""Per hinge: its name, its bone's first value in θ, and the entries (row-major) of the bone's rotation ``R`` whose
+``atan2(sign·R[num], R[den])`` is :func:`_flexion`'s angle (num, den, sign): a knee's ``atan2(−d_z, −d_y)`` of
+``d = −R[:, 1]``, an elbow's ``atan2(d_z, s·d_x)`` of ``d = s·R[:, 0]``."""
+_THIGHS = (3 + 3 * BONE_INDEX["LeftUpperLeg"], 3 + 3 * BONE_INDEX["RightUpperLeg"])
+"""The thighs' first values in θ (the pelvis check's legs)."""
+_MARGIN = 1e-9
+"""How close (relative, or degrees for a flexion) to a check's threshold the monitor's plain-float arithmetic
+leaves the decision to the array arithmetic: the two round differently (numpy's BLAS dots fuse multiply and add,
+its sine and cosine are other routines than :mod:`math`'s), by ~1e-13 at most."""
+
+
+def _rotation(x: float, y: float, z: float) -> tuple[float, ...]:
+    """:func:`~mocapd.core.rotations.matrix_from_rotvec` of one rotation vector in plain floats, row-major 9
+    entries: ``I + a K + b K²`` with ``K² = r rᵀ − θ² I`` (equal to the array version to rounding); NaN when the
+    vector is not finite."""
+    t2 = x * x + y * y + z * z
+    if not math.isfinite(t2):
+        return (math.nan,) * 9
+    if t2 < 1e-12:  # theta < 1e-6, the array version's series branch
+        a, b = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0
+    else:
+        t = math.sqrt(t2)
+        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
+    d = 1.0 - b * t2
+    return (d + b * x * x, b * x * y - a * z, b * x * z + a * y,
+            b * x * y + a * z, d + b * y * y, b * y * z - a * x,
+            b * x * z - a * y, b * y * z + a * x, d + b * z * z)  # fmt: skip
+
+
+def _monitored_rotations(th: FloatArray) -> dict[str, FloatArray]:
+    """The monitored bones' rotation matrices in the array arithmetic (one conversion for all)."""
+    return dict(zip(_MONITORED, matrix_from_rotvec(th[3:].reshape(N_BONES, 3)[_MONITORED_IDX]), strict=True))
 
 
 @dataclass
@@ -289,6 +330,12 @@ class PlausibilityMonitor:
 
     Call :meth:`step` with each solved pose in time order; :meth:`status` gives, per hinge and for the pelvis, the
     events counted, their total seconds, the worst bend and whether one is going on now.
+
+    This runs per person and output tick on the daemon's event loop (issue 39), so a step decides in plain floats
+    (a flexion not near its threshold, a pelvis not near facing backwards: nearly every frame) and computes a
+    hinge's flexion or the pelvis check with the arrays only when the pose is bent the wrong way (the worst bend
+    reported is the array value), folded to near ±180° or within :data:`_MARGIN` of a threshold: the counts,
+    seconds and worst bends are the array arithmetic's (``tests/test_plausibility_bitwise.py``).
     """
 
     options: PlausibilityOptions = field(default_factory=PlausibilityOptions)
@@ -296,7 +343,7 @@ class PlausibilityMonitor:
     seconds: dict[str, float] = field(default_factory=dict)
     worst_deg: dict[str, float] = field(default_factory=dict)
     _runs: dict[str, _Run] = field(default_factory=dict)
-    _roots: list[tuple[float, FloatArray]] = field(default_factory=list)
+    _roots: deque[tuple[float, float, float]] = field(default_factory=deque)  # (t_s, x, z) of the root
     _last_s: float | None = None
 
     def step(self, t_s: float, theta: FloatArray) -> None:
@@ -304,26 +351,62 @@ class PlausibilityMonitor:
         th = np.asarray(theta, dtype=np.float64)
         dt = 0.0 if self._last_s is None else max(0.0, t_s - self._last_s)
         self._last_s = t_s
-        # One conversion for every bone the checks read (this runs per person and tick in the daemon).
-        R = dict(zip(_MONITORED, matrix_from_rotvec(th[3:].reshape(N_BONES, 3)[_MONITORED_IDX]), strict=True))
-        for name, (_, bone) in HINGES.items():
-            a = float(_flexion(R[bone], name))
-            self._advance(name, t_s, dt, a < -self.options.wrong_way_deg, -a, self.options.min_duration_s)
-        self._advance("pelvis_backwards", t_s, dt, self._pelvis_backwards(t_s, th, R), 0.0, self.options.backwards_s)
-
-    def _pelvis_backwards(self, t_s: float, th: FloatArray, R: dict[str, FloatArray]) -> bool:
+        v = th.tolist()
         o = self.options
-        self._roots.append((t_s, th[:3].copy()))
+        limit = -o.wrong_way_deg
+        exact: dict[str, FloatArray] | None = None
+        for name, k, num, den, sign in _HINGE_ENTRIES:
+            R = _rotation(v[k], v[k + 1], v[k + 2])
+            y, x = sign * R[num], R[den]
+            a = math.degrees(math.atan2(y, x))
+            # Bent the wrong way, near the threshold, or folded near ±180° (where rounding picks the sign): exact.
+            if not (limit + _MARGIN < a < 180.0 - _MARGIN and x * x + y * y > 1e-6):
+                exact = _monitored_rotations(th) if exact is None else exact
+                a = float(_flexion(exact[HINGES[name][1]], name))
+            self._advance(name, t_s, dt, a < limit, -a, o.min_duration_s)
+        self._advance("pelvis_backwards", t_s, dt, self._pelvis_backwards(t_s, v, th), 0.0, o.backwards_s)
+
+    def _pelvis_backwards(self, t_s: float, v: list[float], th: FloatArray) -> bool:
+        o = self.options
+        x, z = v[0], v[2]
+        self._roots.append((t_s, x, z))
         while self._roots and self._roots[0][0] < t_s - o.travel_window_s:
-            self._roots.pop(0)
-        t0, r0 = self._roots[0]
+            self._roots.popleft()
+        t0, x0, z0 = self._roots[0]
         if t_s - t0 < 0.5 * o.travel_window_s:
             return False
-        v = (th[:3] - r0) / (t_s - t0)
-        travel = np.array([v[0], v[2]])
+        vx, vz = (x - x0) / (t_s - t0), (z - z0) / (t_s - t0)  # as the arrays divide: the same floats
+        speed = math.sqrt(vx * vx + vz * vz)
+        if speed < o.min_speed * (1.0 - _MARGIN):
+            return False
+        hips = _rotation(v[3], v[4], v[5])
+        legs = [0.0, 0.0]
+        for k in _THIGHS:
+            Rb = _rotation(v[k], v[k + 1], v[k + 2])
+            for n, i in enumerate((0, 6)):  # rows 0 and 2 of hips @ Rb, column 2
+                legs[n] += hips[i] * Rb[2] + hips[i + 1] * Rb[5] + hips[i + 2] * Rb[8]
+        cos_max = math.cos(math.radians(o.backwards_deg))
+
+        def cos(ax: float, az: float) -> float | None:
+            """The cosine to the direction of travel; None when too near a threshold to tell in plain floats."""
+            n = math.sqrt(ax * ax + az * az)
+            if not math.isfinite(n * speed) or abs(n - 1e-6) <= _MARGIN or speed <= o.min_speed * (1.0 + _MARGIN):
+                return None
+            c = (ax * vx + az * vz) / (n * speed) if n > 1e-6 else 0.0
+            return None if min(abs(c - cos_max), abs(c + cos_max)) <= _MARGIN else c
+
+        facing, walking = cos(hips[2], hips[8]), cos(legs[0], legs[1])
+        if facing is None or walking is None:
+            return self._pelvis_backwards_arrays(th, np.array([vx, vz]))
+        return facing < cos_max and walking > -cos_max
+
+    def _pelvis_backwards_arrays(self, th: FloatArray, travel: FloatArray) -> bool:
+        """The pelvis check in the array arithmetic (``travel`` the root's horizontal velocity)."""
+        o = self.options
         speed = float(np.linalg.norm(travel))
         if speed < o.min_speed:
             return False
+        R = _monitored_rotations(th)
         hips = R["Hips"]
         facing = hips[[0, 2], 2]
         legs = np.zeros(2)

@@ -119,14 +119,58 @@ class Candidate:
 
     @property
     def centre(self) -> FloatArray:
-        return np.asarray(np.nanmean(self.points, axis=0))
+        """``np.nanmean(points, axis=0)`` without its Python layers (the same sums and division; NaN where no
+        keypoint has the coordinate, without nanmean's warning)."""
+        nan = np.isnan(self.points)
+        with np.errstate(invalid="ignore"):
+            return np.asarray(np.add.reduce(np.where(nan, 0.0, self.points), axis=0)
+                              / np.add.reduce(~nan, axis=0, dtype=np.intp))  # fmt: skip
 
 
 def mean_keypoint_distance(a: FloatArray, b: FloatArray) -> float:
-    """Mean distance over keypoints present in both (inf when none are)."""
-    d = np.linalg.norm(a - b, axis=-1)
-    ok = np.isfinite(d)
-    return float(d[ok].mean()) if np.any(ok) else np.inf
+    """Mean distance over keypoints present in both (inf when none are).
+
+    The sum and mean :func:`numpy.linalg.norm` and :meth:`numpy.ndarray.mean` take, without their Python layers
+    (the same floats; this runs several times a tick on the event loop, issue 39)."""
+    x = a - b
+    return _finite_mean(np.sqrt(np.add.reduce(x * x, axis=-1)))
+
+
+def mean_keypoint_distances(a: FloatArray, b: FloatArray) -> FloatArray:
+    """:func:`mean_keypoint_distance` of every ``a[i]`` and ``b[j]``: one subtraction and norm for all pairs.
+
+    Parameters
+    ----------
+    a : array, shape (m, n_kp, 3)
+    b : array, shape (n, n_kp, 3)
+
+    Returns
+    -------
+    array, shape (m, n)
+    """
+    x = a[:, None] - b[None]
+    d = np.sqrt(np.add.reduce(x * x, axis=-1))  # (m, n, n_kp)
+    out = np.empty(d.shape[:2])
+    for i in range(d.shape[0]):
+        for j in range(d.shape[1]):
+            out[i, j] = _finite_mean(d[i, j])  # per pair: the same summation order as one pair's mean
+    return out
+
+
+def _finite_mean(d: FloatArray) -> float:
+    d = d[np.isfinite(d)]
+    return float(np.add.reduce(d) / d.size) if d.size else np.inf
+
+
+def _mean_error(errors: dict[int, float]) -> float:
+    """``np.mean`` of a candidate's per-camera errors: for fewer than 8 values numpy adds them in order, as this
+    loop does (beyond, its pairwise sum; none: NaN, as ``np.mean`` gives)."""
+    if len(errors) >= 8 or not errors:
+        return float(np.mean(list(errors.values())))
+    total = 0.0
+    for e in errors.values():
+        total += e
+    return total / len(errors)
 
 
 def _resolve_claims(cands: list[Candidate]) -> list[Candidate]:
@@ -136,12 +180,8 @@ def _resolve_claims(cands: list[Candidate]) -> list[Candidate]:
     view pair (e.g. two cameras facing each other) into a spurious 2-view candidate. A real person is supported by
     every view that sees them, so support decides; candidates left with fewer than two views are dropped.
     """
-
-    def rank(c: Candidate) -> tuple[int, float]:
-        return (-len(c.sources), float(np.mean(list(c.errors.values()))))
-
     owner: dict[tuple[int, int], int] = {}
-    order = sorted(range(len(cands)), key=lambda k: rank(cands[k]))
+    order = sorted(range(len(cands)), key=lambda k: (-len(cands[k].sources), _mean_error(cands[k].errors)))
     kept: list[Candidate] = []
     for k in order:
         c = cands[k]
@@ -175,6 +215,8 @@ class DetectionSorter:
         self._K, self._dist, self._R, self._t = (np.ascontiguousarray(a) for a in stack_cameras(self.cameras))
         self._widths = np.array([c.width for c in cameras], dtype=np.float64)
         self.keypoint_names = tuple(keypoint_names)
+        self._partners: dict[tuple[int, tuple[str, ...]], NDArray[np.int64]] = {}
+        self._owners: dict[tuple[int, ...], tuple[NDArray[np.int64], NDArray[np.int64]]] = {}
 
     def set_camera(self, index: int, camera: Camera) -> None:
         """Camera ``index`` is ``camera`` from the next frame on (a recalibrated camera)."""
@@ -186,7 +228,15 @@ class DetectionSorter:
 
     def _partner(self, n_kp: int) -> NDArray[np.int64]:
         """Each keypoint's left/right counterpart (itself where it has none): from the keypoint names, COCO-17's
-        when none were given and detections have 17 keypoints."""
+        when none were given and detections have 17 keypoints. Worked out once per keypoint count: not to be
+        written to (left writable: numba compiles another kernel for a read-only array)."""
+        key = (n_kp, self.keypoint_names)
+        partner = self._partners.get(key)
+        if partner is None:
+            partner = self._partners[key] = self._make_partner(n_kp)
+        return partner
+
+    def _make_partner(self, n_kp: int) -> NDArray[np.int64]:
         partner = np.arange(n_kp, dtype=np.int64)
         if len(self.keypoint_names) == n_kp:
             pairs = lr_pairs(self.keypoint_names)
@@ -214,19 +264,31 @@ class DetectionSorter:
         n_kp = detections[0].keypoints.shape[1]
         kp = np.concatenate([d.keypoints for d in detections]).reshape(-1, n_kp, 2)
         usable = np.concatenate([d.confidences for d in detections]).reshape(-1, n_kp) >= o.min_confidence
-        camera_of = np.repeat(np.arange(len(counts)), counts).astype(np.int64)
-        person_of = np.concatenate([np.arange(n) for n in counts]).astype(np.int64)
+        camera_of, person_of = self._owner_indices(counts)
         points, members, member_errors = _sorting_kernel.candidate_pairs(
             np.ascontiguousarray(kp), usable, camera_of, person_of, self._K, self._dist, self._R, self._t,
             self._widths, o.max_reprojection_error, o.min_shared_keypoints, o.same_person_distance, MIN_DEPTH,
-            self._partner(n_kp), o.flip_aware,
+            self._partner(n_kp), o.flip_aware, True,
         )  # fmt: skip
         cands = []
-        for q in range(points.shape[0]):
-            cams = np.flatnonzero(members[q] >= 0)
-            cands.append(Candidate(points[q], {int(c): int(members[q, c]) for c in cams},
-                                   {int(c): float(member_errors[q, c]) for c in cams}))  # fmt: skip
+        for q, (row, errs) in enumerate(zip(members.tolist(), member_errors.tolist(), strict=True)):
+            cams = [c for c, p in enumerate(row) if p >= 0]
+            cands.append(Candidate(points[q], {c: row[c] for c in cams}, {c: errs[c] for c in cams}))
         return _resolve_claims(cands)
+
+    def _owner_indices(self, counts: list[int]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Per 2D person of a frame with ``counts`` people per camera, its camera and its index in that camera
+        (the kernel's ``camera_of``, ``person_of``), kept per distinct ``counts`` (a handful in a session; not to be
+        written to, left writable as :meth:`_partner`'s)."""
+        key = tuple(counts)
+        found = self._owners.get(key)
+        if found is None:
+            camera_of = np.repeat(np.arange(len(counts)), counts).astype(np.int64)
+            person_of = np.concatenate([np.arange(n) for n in counts]).astype(np.int64)
+            found = self._owners[key] = (camera_of, person_of)
+            if len(self._owners) > 256:  # bounded: people coming and going give new counts
+                self._owners.pop(next(iter(self._owners)))
+        return found
 
     # -- assignment ----------------------------------------------------------------------------------------
     def assign(self, cands: list[Candidate], last_positions: list[FloatArray | None]) -> list[Candidate | None]:
@@ -245,10 +307,10 @@ class DetectionSorter:
             return out
         limit = self.options.max_interframe_movement
         dist = np.full((len(last_positions), len(cands)), np.inf)
-        for i, last in enumerate(last_positions):
-            if last is not None:
-                for j, c in enumerate(cands):
-                    dist[i, j] = mean_keypoint_distance(c.points, last)
+        known = [(i, last) for i, last in enumerate(last_positions) if last is not None]
+        if known:
+            lasts = np.stack([last for _, last in known])
+            dist[[i for i, _ in known]] = mean_keypoint_distances(lasts, np.stack([c.points for c in cands]))
         usable = dist < limit
         rows, cols = linear_sum_assignment(np.where(usable, dist, 1e6))
         for i, j in zip(rows, cols, strict=True):

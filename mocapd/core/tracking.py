@@ -195,10 +195,11 @@ class SubjectTracker:
         seen = [s for s in self.subjects if s.seen and not (s.detections.keys() & c.sources.keys())]
         if not seen:
             return False
-        dist = [mean_keypoint_distance(c.points, s.last_points) for s in seen]
+        to = {id(o): mean_keypoint_distance(c.points, o.last_points) for o in self.subjects if o.seen}
+        dist = [to[id(s)] for s in seen]
         k = int(np.argmin(dist))
         s = seen[k]
-        nearest_all = min(mean_keypoint_distance(c.points, o.last_points) for o in self.subjects if o.seen)
+        nearest_all = min(to.values())
         if dist[k] >= self.sorter.options.max_interframe_movement or dist[k] > nearest_all:
             return False
         partner = self.sorter._partner(c.points.shape[0])
