@@ -73,8 +73,8 @@ async def test_a_camera_turned_mid_run_is_named_left_out_and_re_estimated_not_ap
         seen: list[np.ndarray] = []
         hook = d.scheduler.observation_hook
 
-        def spy(t: int, uv: np.ndarray, conf: np.ndarray) -> np.ndarray:
-            out = hook(t, uv, conf)
+        def spy(t: int, uv: np.ndarray, conf: np.ndarray, person: str) -> np.ndarray:
+            out = hook(t, uv, conf, person)
             seen.append(out)
             return out
 

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from mocapd.core.camera import triangulate_projections
 from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs, expected_gaps, view_sizes
+from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs, expected_gaps, pair_gaps, view_sizes
 from mocapd.core.lr_flips import COCO17_LR_PAIRS, undistorted
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.synthetic import moving_sequence, ring_rig
@@ -112,3 +112,17 @@ def test_every_candidates_separation_is_the_old_one() -> None:
         assert np.array_equal(collapsed_pairs(P, und, conf, COCO17_LR_PAIRS, ref), expected)
         seen += int(expected.sum())
     assert seen > 20  # collapsed views were found, not only the eyes' and ears' candidates kept
+
+
+def test_the_pairs_gaps_are_numpys_norms_to_the_bit() -> None:
+    """``pair_gaps`` (the candidates' test on every person solve) gives ``np.linalg.norm``'s floats, the code it
+    replaced, on pixels of every scale, with NaN and inf, for COCO-17's pairs and any others."""
+    rng = np.random.default_rng(11)
+    lr = np.array(COCO17_LR_PAIRS, dtype=np.intp)
+    for scale in (1e-3, 1.0, 640.0, 1e6):
+        uv = rng.normal(0.0, scale, (6, 17, 2))
+        uv[rng.random((6, 17, 2)) < 0.05] = np.nan
+        uv[rng.random((6, 17, 2)) < 0.02] = np.inf
+        for pairs in (lr, rng.integers(0, 17, (5, 2))):
+            old = np.linalg.norm(uv[:, pairs[:, 0]] - uv[:, pairs[:, 1]], axis=-1)
+            assert pair_gaps(uv, pairs).tobytes() == old.tobytes()

@@ -140,8 +140,8 @@ async def bumped_take(
             hook = d.scheduler.observation_hook
             assert hook is not None
 
-            def spy(t: int, uv: Any, conf: Any) -> Any:
-                out = hook(t, uv, conf)
+            def spy(t: int, uv: Any, conf: Any, person: str) -> Any:
+                out = hook(t, uv, conf, person)
                 if np.any(conf[camera] > 0):
                     (doubt if np.all(out[camera] == 0) else used).append(t)
                 return out

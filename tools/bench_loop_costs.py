@@ -8,7 +8,10 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 ``git show REV:path`` under another name, beside the working tree's. Pieces:
 
 * ``watch``: :class:`~mocapd.core.camera_watch.CameraWatch` over 20 s of two people at 60 solves a second (a
-  check 10 times a second), per ``observe`` call; ``levels``: its per-check ``_levels`` alone; ``left_out``,
+  check 10 times a second), per ``observe`` call; ``screen``: the same with each person named as the daemon names
+  them (their solves screened ``screen_hz`` times a second) against the revision's, and the working tree's at
+  screening rates of 60 to 10 Hz (median of a third of the rounds, µs per call); ``levels``: its per-check
+  ``_levels`` alone; ``left_out``,
   ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments;
   ``pool``: a check's people pooled per camera (``np.nanmedian`` of 2 people x 4 cameras before, per check).
 * ``mtdata2``: :func:`~mocapd.protocols.mtdata2.decode_mtdata2` per message, on an MTw-like stream (packet
@@ -131,12 +134,15 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
     truth, moments = _watch_take(20.0)
     out: dict[str, Any] = {}
 
-    def observe_all(mod: ModuleType) -> Callable[[], float]:
+    def observe_all(mod: ModuleType, named: bool = False, screen_hz: float | None = None) -> Callable[[], float]:
         def run() -> float:
-            w = mod.CameraWatch(truth)
+            w = mod.CameraWatch(truth, None if screen_hz is None else mod.WatchOptions(screen_hz=screen_hz))
             t0 = time.thread_time()
-            for t, uv, cf in moments:
-                w.observe(t, uv, cf)
+            for k, (t, uv, cf) in enumerate(moments):
+                if named:  # the two people named, as the daemon's hook names them
+                    w.observe(t, uv, cf, f"track:{k % 2}")
+                else:
+                    w.observe(t, uv, cf)
             return (time.thread_time() - t0) / len(moments)
 
         return run
@@ -190,6 +196,14 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
         )
     if "watch" in only:
         out["watch_observe"] = alternate({"old": observe_all(old), "new": observe_all(new)}, rounds)
+    if "screen" in only:
+        # The daemon's hook as it is now (each person named: screened screen_hz times a second) against the
+        # revision's (every solve screened), then the working tree's at other screening rates.
+        out["watch_observe_people"] = alternate({"old": observe_all(old), "new": observe_all(new, True)}, rounds)
+        rates = {f"{hz:g}": observe_all(new, True, hz) for hz in (60.0, 30.0, 20.0, 15.0, 10.0)}
+        out["watch_observe_by_screen_hz"] = {
+            k: round(1e6 * float(np.median([run() for _ in range(max(rounds // 3, 3))])), 2) for k, run in rates.items()
+        }
     if "levels" in only:
         out["watch_levels"] = alternate({"old": levels(old), "new": levels(new)}, rounds)
     return out
@@ -712,7 +726,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate,sim,frames,plausibility,track",
+        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate,sim,frames,plausibility,track",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()

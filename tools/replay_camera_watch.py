@@ -73,7 +73,7 @@ def observe(path: str | Path) -> Observations:
                                                      tolerance=lm.function_tolerance))  # fmt: skip
     kept: list[tuple[int, FloatArray, FloatArray]] = []
 
-    def hook(t: int, uv: FloatArray, conf: FloatArray) -> FloatArray:
+    def hook(t: int, uv: FloatArray, conf: FloatArray, person: str) -> FloatArray:
         kept.append((t, uv.copy(), conf.copy()))
         return conf
 

@@ -24,11 +24,14 @@ window to rise, so a check's people alone also put a camera in doubt for the sol
 residuals against the baselines; one bad detection does not): the solve leaves a knocked camera out from the tick
 after the first check that sees the knock, about 0.1 s, not half a second later. A flag is no state, names nobody.
 Between the checks (the daemon solves 60 times a second, checks 10) each person's own views leave a knocked camera
-out of that person's solve in the very moment of the knock: its *all-in* residuals (the keypoints triangulated
-from every camera at once, :func:`residuals_all_in`: one triangulation, cheap enough for every solve) screen for a
-camera off alone with half the flag's rise; only then are its left-out residuals taken and judged by the flag's
+out of that person's solve within ``1 / screen_hz`` of the knock (50 ms, three solves at 60 Hz): their *all-in*
+residuals (the keypoints triangulated from every camera at once, :func:`residuals_all_in`: one triangulation)
+screen for a camera off alone with half the flag's rise, ``screen_hz`` times a second per person (every solve when
+the caller does not say who the person is); only then are its left-out residuals taken and judged by the flag's
 rule, and the camera is left out when its keypoints are off the same way (:data:`COHERENCE`: a knock turns the
-whole view; a bad detection is off every which way).
+whole view; a bad detection is off every which way). A clean screen holds for the person's solves until their
+next; one that puts a camera off is repeated on their next solve (the knocked camera stays out of every solve, a
+false alarm lasts one).
 A bumped camera whose level falls back to its baseline for ``hold_s`` (put back, or a passing disturbance) is *ok*
 again.
 
@@ -54,6 +57,7 @@ Time is the solve time passed in (ns); nothing here reads a clock or locks (the 
 from __future__ import annotations
 
 import functools
+from collections.abc import Hashable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -75,6 +79,12 @@ class WatchOptions:
 
     rate_hz: float = 10.0
     """Ticks a second whose people are checked (the others are passed through untouched)."""
+    screen_hz: float = 20.0
+    """Solves a second of each person screened for a camera off alone between the checks (:meth:`CameraWatch.observe`
+    given the person; the checked ticks count): a clean screen holds for that person's solves for ``1 /
+    screen_hz``; one that puts a camera off is repeated on their next solve. A knock is then left out of the
+    person's solve within ``1 / screen_hz`` instead of at once (the first check's flag leaves it out within ``1 /
+    rate_hz`` either way); the states, names and re-estimates come from the checks alone and do not depend on it."""
     window_s: float = 1.0
     """The current level: the median residual over this window."""
     baseline_s: float = 20.0
@@ -109,8 +119,11 @@ class WatchOptions:
     the same people (a camera that far off is recalibrated)."""
 
     def __post_init__(self) -> None:
-        if not (self.rate_hz > 0 and self.window_s > 0 and self.hold_s > 0 and self.baseline_s > self.window_s):
-            raise InputError("camera watch: rate_hz, window_s and hold_s must be positive, baseline_s > window_s")
+        if not (self.rate_hz > 0 and self.screen_hz > 0 and self.window_s > 0 and self.hold_s > 0
+                and self.baseline_s > self.window_s):  # fmt: skip
+            raise InputError(
+                "camera watch: rate_hz, screen_hz, window_s and hold_s must be positive, baseline_s > window_s"
+            )
         if not (0.0 <= self.down_weight <= 1.0):
             raise InputError(f"camera watch: down_weight {self.down_weight} outside [0, 1]")
         if not self.max_turn_deg > 0:
@@ -526,31 +539,50 @@ class CameraWatch:
         self._votes: list[FloatArray] | None = None  # this check's people's residuals (n_cams,) each
         self._flag_since: list[int | None] = [None] * len(cameras)  # the check that began each flagged run
         self._last_ns: int | None = None  # the last tick checked
+        # Per person (observe's key): the solve time of their last screen and its verdict (the camera their own
+        # views put off alone, or None: clean, not screened again for 1 / screen_hz).
+        self._screens: dict[Hashable, tuple[int, int | None]] = {}
+        self._screen_ns = round(1e9 / self.options.screen_hz * 0.999)  # as the checks' period: rounding's slack
+        self.screened = 0  #: all-in screens so far (the per-solve cost between the checks)
         #: what happened, newest last: (solve time ns, camera name, event, details) for the log and the session
         self.events: list[tuple[int, str, str, dict[str, Any]]] = []
 
     # ------------------------------------------------------------------------------------------ input
-    def observe(self, t_ns: int, uv: FloatArray, conf: FloatArray) -> FloatArray:
+    def observe(self, t_ns: int, uv: FloatArray, conf: FloatArray, person: Hashable | None = None) -> FloatArray:
         """One solved person at solve time ``t_ns``: ``uv`` (n_cams, n_kp, 2) undistorted keypoints and ``conf``
         (n_cams, n_kp). Checks the cameras on ``rate_hz`` of the ticks; returns the confidences the solve should
-        use (a camera in doubt scaled by ``down_weight``)."""
+        use (a camera in doubt scaled by ``down_weight``). ``person``: who this is (any key that stays the same from
+        solve to solve), so that their solves between the checks are screened at most ``screen_hz`` times a second;
+        None: every solve is screened."""
         n = len(self.cameras)
         if uv.shape[:1] != (n,) or conf.shape != uv.shape[:2]:
             raise InputError(f"camera watch: keypoints {uv.shape} / confidences {conf.shape} for {n} cameras")
         o = self.options
         due = self._due(t_ns)
-        # The all-in residuals: recorded on the checked ticks (their baselines), screened on every tick while every
-        # camera agrees (otherwise the state machine has it and nothing is flagged at once: not computed).
+        # The all-in residuals: recorded on the checked ticks (their baselines), screened between them while every
+        # camera agrees (otherwise the state machine has it and nothing is flagged at once: not computed), at most
+        # screen_hz times a second per person: a knock is a slow event next to the 60 Hz solves.
         all_ok = all(c.state == "ok" for c in self._cams)
+        # A person whose last screen put a camera off is screened again on every solve until one clears it: a knock
+        # stays out of each of their solves, a false alarm (one moment of noise) lasts one solve, as unbounded.
+        held = self._screens.get(person) if person is not None and all_ok and not due else None
+        screen = due or (all_ok and (held is None or held[1] is not None or t_ns - held[0] >= self._screen_ns))
         quick = (residuals_all_in(self._P, uv, conf, min_confidence=o.min_confidence, min_keypoints=o.min_keypoints)
-                 if due or all_ok else None)  # fmt: skip
+                 if screen else None)  # fmt: skip
+        if quick is not None:
+            self.screened += 1
         if due:
             assert quick is not None
             self._check(t_ns, uv, conf, quick)
         elif self._votes is not None:
             self._settle_flags()  # the checked tick is complete: its people's verdicts hold until the next check
         doubt = self.in_doubt() | self._flagged
-        at_once = self._at_once(uv, conf, quick) if quick is not None and all_ok else None
+        if quick is not None and all_ok:
+            at_once = self._at_once(uv, conf, quick)
+            if person is not None:
+                self._screens[person] = (t_ns, at_once)
+        else:
+            at_once = None  # screened clean within 1 / screen_hz (or a camera in doubt: the state machine has it)
         if at_once is not None:
             doubt[at_once] = True  # this person's own views put it off alone: out of this solve
         if not doubt.any():
@@ -572,6 +604,9 @@ class CameraWatch:
                 self._settle_flags()
         self._tick_ns = self._last_ns = t_ns
         self._votes = []
+        # People not screened for a second are gone (or their verdict stale): forgotten, so the record stays small.
+        if self._screens:
+            self._screens = {k: v for k, v in self._screens.items() if t_ns - v[0] < 1_000_000_000}
         return True
 
     def _at_once(self, uv: FloatArray, conf: FloatArray, quick: FloatArray) -> int | None:
@@ -827,6 +862,7 @@ class CameraWatch:
         self._flagged[:] = False
         self._votes = None
         self._flag_since = [None] * len(self.cameras)
+        self._screens.clear()  # verdicts against the old pose
         old = self._cams[camera]
         self._cams[camera] = _Camera(bumps=old.bumps, applied=old.applied + (old.state == "bumped"))
 

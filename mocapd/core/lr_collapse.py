@@ -19,12 +19,13 @@ other views too, and is kept.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.camera import triangulate_projections
+from mocapd.core.camera import dehomogenized, weighted_dlt_rows
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -87,16 +88,33 @@ def collapsed_pairs(
         return out
     ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
     size = view_sizes(uv, ok, o.min_keypoints)
-    lr = np.array(pairs, dtype=np.intp)  # (n_pairs, 2)
+    lr = _pair_index(tuple(pairs))  # (n_pairs, 2)
     both = ok[:, lr[:, 0]] & ok[:, lr[:, 1]] & (size[:, None] > 0)  # (n_cams, n_pairs)
-    gap = np.linalg.norm(uv[:, lr[:, 0]] - uv[:, lr[:, 1]], axis=-1)
-    candidate = both & (gap < o.collapsed * size[:, None])
+    candidate = both & (pair_gaps(uv, lr) < o.collapsed * size[:, None])
     if not candidate.any():
         return out  # the common case: nothing to check, no triangulation
     views, which = np.nonzero(candidate)
     sep = expected_gaps(P, uv, conf, ok, candidate, lr, views, which, reference)
     out[views, which] = np.isfinite(sep) & (sep >= o.apart * size[views])
     return out
+
+
+@functools.lru_cache(maxsize=16)
+def _pair_index(pairs: tuple[tuple[int, int], ...]) -> NDArray[np.intp]:
+    """The pairs as an index array (n_pairs, 2), made once per pair list (every person solve asks); read-only."""
+    lr = np.array(pairs, dtype=np.intp).reshape(-1, 2)
+    lr.flags.writeable = False
+    return lr
+
+
+def pair_gaps(uv: FloatArray, lr: NDArray[np.intp]) -> FloatArray:
+    """Per view and pair, the distance (px) between the pair's two keypoints, shape (n_cams, n_pairs):
+    ``np.linalg.norm(uv[:, lr[:, 0]] - uv[:, lr[:, 1]], axis=-1)`` to the bit (numpy takes a 2-vector's norm as the
+    square root of ``x * x + y * y``), without its wrapper: every person solve asks."""
+    d = uv[:, lr[:, 0]] - uv[:, lr[:, 1]]
+    x, y = d[..., 0], d[..., 1]
+    gap: FloatArray = np.sqrt(x * x + y * y)
+    return gap
 
 
 def view_sizes(uv: FloatArray, ok: BoolArray, min_keypoints: int) -> FloatArray:
@@ -152,9 +170,10 @@ def expected_gaps(
     if by_views.any():
         k = np.flatnonzero(by_views)
         # (n_cams, 2 k): each candidate's two keypoints as points of one triangulation call
-        uv_k = uv[:, pair[k].ravel()]
-        w_k = np.where(others[k].repeat(2, axis=0).T, conf[:, pair[k].ravel()], 0.0)
-        pts, good = triangulate_projections(P, uv_k, w_k)
+        cols = pair[k].ravel()
+        uv_k = uv[:, cols]
+        w_k = np.where(others[k].repeat(2, axis=0).T, conf[:, cols], 0.0)
+        pts, good = _triangulated(P, uv_k, w_k)
         both_good = good.reshape(-1, 2).all(axis=1)
         X[k[both_good]] = pts.reshape(-1, 2, 3)[both_good]
     if reference is not None:
@@ -170,6 +189,31 @@ def expected_gaps(
     # the norm of a vector as np.linalg.norm takes it: sqrt of its dot product with itself (a dot per candidate)
     sep[known[front]] = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])
     return sep
+
+
+def _triangulated(P: FloatArray, uv: FloatArray, w: FloatArray) -> tuple[FloatArray, BoolArray]:
+    """:func:`~mocapd.core.camera.triangulate_projections` (two views or more, by SVD) of arrays already checked:
+    the same calls on the same floats (:func:`~mocapd.core.camera.weighted_dlt_rows`, the SVD of the stack,
+    :func:`~mocapd.core.camera.dehomogenized`), without its conversions and shape checks.
+
+    Parameters
+    ----------
+    P : array, shape (n_cams, 3, 4)
+    uv : array, shape (n_cams, n_pts, 2)
+    w : array, shape (n_cams, n_pts)
+
+    Returns
+    -------
+    X : array, shape (n_pts, 3)
+    ok : bool array, shape (n_pts,)
+    """
+    A, w = weighted_dlt_rows(P, uv, w)
+    ok = np.sum(w > 0, axis=0) >= 2
+    X = np.full((uv.shape[1], 3), np.nan)
+    if np.any(ok):
+        X[ok] = dehomogenized(np.linalg.svd(A[ok])[2][:, -1, :])
+        ok = ok & np.all(np.isfinite(X), axis=-1)
+    return X, ok
 
 
 def drop_collapsed(conf: FloatArray, collapsed: BoolArray, pairs: tuple[tuple[int, int], ...]) -> FloatArray:

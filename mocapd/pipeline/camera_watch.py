@@ -4,7 +4,8 @@ the scheduler's solve threads through :attr:`FixedLatencyScheduler.observation_h
 told of a camera replaced as one of the scheduler's camera listeners (:meth:`LiveCameraWatch.camera_replaced`).
 
 The people of a tick are solved in parallel, so every call takes the watch's lock; a call costs a few
-triangulations on the checked ticks (``rate_hz``) and nothing on the others.
+triangulations on the checked ticks (``rate_hz``), one on a person's screened solves (``screen_hz``) and nothing on
+the others.
 """
 
 from __future__ import annotations
@@ -49,11 +50,12 @@ class LiveCameraWatch:
         self._lock = threading.Lock()
         self._said = 0  # events already handed out
 
-    def observe(self, t_ns: int, uv: FloatArray, conf: FloatArray) -> FloatArray:
-        """The scheduler's hook: one solved person's undistorted keypoints and confidences; the confidences the
-        solve uses back (a camera in doubt down-weighted)."""
+    def observe(self, t_ns: int, uv: FloatArray, conf: FloatArray, person: str) -> FloatArray:
+        """The scheduler's hook: one solved person's undistorted keypoints and confidences, and who they are (their
+        solves screened ``screen_hz`` times a second); the confidences the solve uses back (a camera in doubt
+        down-weighted)."""
         with self._lock:
-            return self.watch.observe(t_ns, uv, conf)
+            return self.watch.observe(t_ns, uv, conf, person)
 
     def pending(self) -> list[tuple[int, Proposal]]:
         """Re-estimates that passed their checks, to apply (``[calibration.watch] apply``)."""

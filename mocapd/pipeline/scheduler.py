@@ -426,10 +426,10 @@ class FixedLatencyScheduler:
         self._pool_cpu_ns = 0  # CPU of the person jobs run on the pool this tick (not the tick thread's)
         self._tick_thread = threading.current_thread()  # the thread running the tick now
         self._last_status: dict[str, Any] = {}  # status() while a tick holds the lock
-        #: called with (solve time, undistorted keypoints (n_cams, n_kp, 2), confidences (n_cams, n_kp)) of each
-        #: person seen by two or more cameras, before the solve; returns the confidences to solve with (the
+        #: called with (solve time, undistorted keypoints (n_cams, n_kp, 2), confidences (n_cams, n_kp), identity)
+        #: of each person seen by two or more cameras, before the solve; returns the confidences to solve with (the
         #: bumped-camera watch, :mod:`mocapd.pipeline.camera_watch`). Called from the solve threads.
-        self.observation_hook: Callable[[int, FloatArray, FloatArray], FloatArray] | None = None
+        self.observation_hook: Callable[[int, FloatArray, FloatArray, str], FloatArray] | None = None
         #: (solve time, identity) -> a pose solved before for that person at that instant and the skeleton it is on
         #: (None: the rig's), or None: ``resolve`` gives the live solve, kept where the objective rates it lower
         #: than the re-solve's (:meth:`PoseSolver.solve`'s ``alternative``; counted as ``reference_kept``)
@@ -789,7 +789,7 @@ class FixedLatencyScheduler:
             for cam, idx in person.detections.items()}  # fmt: skip
         kp, und, conf = self._unflip(solver, kp, und, conf, len(person.detections), views, person.identity)
         if self.observation_hook is not None and len(person.detections) >= 2:
-            conf = self.observation_hook(t, und, conf)
+            conf = self.observation_hook(t, und, conf, person.identity)
         c1 = self._cpu()
         imu_kw: dict[str, Any] = {}
         n_imu = 0

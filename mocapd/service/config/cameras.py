@@ -212,6 +212,7 @@ class CameraWatchConfig(Section):
 
     enabled: bool = True
     rate_hz: float = Field(default_factory=lambda: _watch().rate_hz, gt=0.0, le=240.0)
+    screen_hz: float = Field(default_factory=lambda: _watch().screen_hz, gt=0.0, le=240.0)
     window_s: float = Field(default_factory=lambda: _watch().window_s, gt=0.0, le=60.0)
     baseline_s: float = Field(default_factory=lambda: _watch().baseline_s, gt=0.0, le=3600.0)
     min_baseline_s: float = Field(default_factory=lambda: _watch().min_baseline_s, ge=0.0, le=3600.0)
