@@ -100,3 +100,39 @@ def test_checking_the_shipped_config_imports_no_detector_solver_or_daemon() -> N
     heavy = sorted({m.split(".")[0] for m in modules} & {"numba", "llvmlite", "onnxruntime", "onnx", "cv2", "scipy"})
     assert not heavy, heavy
     assert not [m for m in RIG_IMPLEMENTATION if m in modules]
+
+
+# The daemon's warm-up (every `mocapd run` and `demo` before READY) and its IMU offset estimate, in a fresh
+# interpreter: the estimate's band-pass was SciPy's (`butter`, `sosfiltfilt`), and the warm-up ran it once so that its
+# import (~1 s of CPU: SciPy's signal and stats packages) fell before READY, not in a tick. The band-pass is NumPy's
+# now (mocapd.core.band_pass); nothing the daemon runs imports that package.
+_WARM_UP = """
+import json, sys
+import numpy as np
+from mocapd.pipeline.scheduler import Suit, estimate_imu_offsets
+from mocapd.service.bench.solver import synthetic_prior
+from mocapd.service.config import load_config
+from mocapd.service.daemon import Daemon, Rig
+from mocapd.pipeline.time_alignment import estimate_imu_lag
+from mocapd.sim.world import SyntheticWorld
+
+world = SyntheticWorld(2, 1, 0, seed=3)
+suits = [Suit.from_calibration(s.id, world.calibration(s), world.skeleton) for s in world.suits]
+daemon = Daemon(load_config(), Rig(world.cameras, [], world.skeleton, world.targets, synthetic_prior(), suits))
+daemon._warm_up()
+after_warm_up = sorted(sys.modules)
+t = np.arange(0, 6_000_000_000, 10_000_000, dtype=np.int64)
+height = 0.05 * np.sin(t / 1e9 * 2 * np.pi)
+acc = -0.05 * (2 * np.pi) ** 2 * np.sin((t - 40_000_000) / 1e9 * 2 * np.pi)  # the IMU's stamps 40 ms ahead
+est = estimate_imu_lag(t, height, t, acc)
+print(json.dumps([after_warm_up, sorted(sys.modules), est.lag_ns if est else None]))
+"""
+
+
+def test_the_daemons_warm_up_and_imu_offset_estimate_import_no_scipy_signal() -> None:
+    out = subprocess.run([sys.executable, "-c", _WARM_UP], capture_output=True, text=True, check=True, timeout=600)
+    after_warm_up, after_estimate, lag_ns = json.loads(out.stdout.strip().splitlines()[-1])
+    assert "mocapd.service.daemon" in after_warm_up  # the import above did run
+    assert lag_ns is not None and abs(lag_ns - 40_000_000) < 2_000_000  # a real estimate
+    for modules in (after_warm_up, after_estimate):
+        assert not [m for m in modules if m == "scipy.signal" or m.startswith("scipy.signal.")]

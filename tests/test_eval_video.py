@@ -162,3 +162,67 @@ def test_a_calibration_without_the_takes_cameras_or_with_pose2sim_is_refused(
     assert main([*args, "--no-pose2sim"]) == 2
     err = capsys.readouterr().err
     assert "camera(s) ['cam01'] of Demo_SinglePerson are not in it" in err and err.count("\n") == 1
+
+
+def _walking(n: int, n_cams: int) -> list[list[Detections2D]]:
+    """One person per camera moving 10 px a frame to the right (camera c's person 100 px further down)."""
+    kp = np.stack([np.arange(17.0) * 5.0, np.full(17, 300.0)], axis=-1)
+    return [[Detections2D((kp + np.array([10.0 * f, 100.0 * c]))[None], np.ones((1, 17))) for c in range(n_cams)]
+            for f in range(n)]  # fmt: skip
+
+
+def test_a_cameras_time_offset_moves_its_frames_to_the_others_time() -> None:
+    # `time_offset_s` (the [daemon.offsets] convention): a camera 2 frames late shows in frame f + 2 what the others
+    # show in frame f, so its aligned frame f is its frame f + 2; 1.5 frames late, halfway between f + 1 and f + 2;
+    # past its last frame it sees nobody (never held). A camera without an offset is left as it is.
+    from mocapd.core.camera import Camera
+    from mocapd.eval.video_input import Take, time_aligned
+
+    n, fps = 10, 60.0
+    frames = _walking(n, 3)
+    cameras = [Camera(f"cam{k}", 1920, 1080, np.diag([1e3, 1e3, 1.0]), np.eye(3), np.zeros(3)) for k in range(3)]
+    take = Take("synthetic", cameras, [], fps, n, 1, Path("none"), [], time_offsets_s=(0.0, 2 / fps, -1.5 / fps))
+    aligned = time_aligned(take, TakeDetections(frames, "key"))
+    assert aligned.meta["time_offsets_s"] == {"cam0": 0.0, "cam1": 2 / fps, "cam2": -1.5 / fps}
+    for f in range(n):
+        assert aligned.frames[f][0] is frames[f][0]
+        if f + 2 < n:
+            assert aligned.frames[f][1] is frames[f + 2][1]
+        else:
+            assert len(aligned.frames[f][1]) == 0
+        if f - 1.5 >= 0:  # halfway between frames f - 2 and f - 1: the person at x + 10 (f - 1.5)
+            assert np.allclose(
+                aligned.frames[f][2].keypoints, frames[0][2].keypoints + np.array([10.0 * (f - 1.5), 0.0])
+            )
+        else:
+            assert len(aligned.frames[f][2]) == 0
+    assert time_aligned(replace(take, time_offsets_s=()), TakeDetections(frames, "key")).frames is frames
+
+
+def test_the_calibrations_time_offsets_are_applied_and_said(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # `mocapd eval video --calibration FILE` with the file's `time_offset_s` (written by `mocapd calibrate cameras
+    # --from-people`): the demo's own cameras, cam03's frames 12 frames early (its aligned frames fall before the
+    # take: nothing of cam03 is left to score) and cam02's half a frame late (blended: still scored). The old code
+    # read the cameras and dropped the offsets: cam03 was scored on every frame.
+    from mocapd.eval.video_input import pose2sim_take, with_calibration
+    from mocapd.service.cli import main
+
+    demo_root()
+    take = pose2sim_take("Demo_SinglePerson")
+    offsets = {"cam02": 0.5 / take.fps, "cam03": -12 / take.fps}
+    calib = read_any(take.calibration)
+    path = tmp_path / "offsets.toml"
+    write_mocapd_toml(CalibrationSet(tuple(replace(c, time_offset_s=offsets.get(c.name)) for c in calib.cameras),
+                                     "the demo's, with time offsets"), path)  # fmt: skip
+    out = tmp_path / "out"
+    assert main(["eval", "video", "--take", "Demo_SinglePerson", "--max-frames", "10", "--config",
+                 str(REPO / "presets" / "eval-video.toml"), "--images", "0", "--no-progress", "--no-pose2sim",
+                 "--calibration", str(path), "--out", str(out)]) == 0  # fmt: skip
+    err = capsys.readouterr().err
+    assert "time offsets applied" in err and "cam02 +8.3 ms (+0.50 frames), cam03 -200.0 ms (-12.00 frames)" in err
+    res = json.loads((out / "results.json").read_text())["takes"]["Demo_SinglePerson"]
+    assert res["time_offsets_s"] == {"cam01": 0.0, "cam02": offsets["cam02"], "cam03": offsets["cam03"], "cam04": 0.0}
+    per_camera = res["systems"]["naive DLT"]["held_out"]["per_camera"]
+    assert per_camera["cam03"]["n"] == 0, per_camera
+    assert all(per_camera[c]["n"] > 0 for c in ("cam01", "cam02", "cam04")), per_camera
+    assert with_calibration(take, path).time_offsets_s == (0.0, offsets["cam02"], offsets["cam03"], 0.0)

@@ -6,10 +6,10 @@ Limb lengths are the medians of keypoint distances over the frames (robust to mi
 (shoulder–elbow), forearm (elbow–wrist), thigh (hip–knee), shank (knee–ankle), averaged over left and right;
 shoulder and hip widths scale the lateral offsets; the spine chain is scaled to the measured hip-to-shoulder
 distance. The height, used for everything not measured, is the default proportion of the leg length (the most
-reliable measurement). A set that also names a neck, a mid-hip and a nose (:data:`TRUNK_KEYPOINTS`: BODY_25) has
-the rest of the trunk measured too: where the Neck joint sits above the shoulders, where the Hips joint sits above
-the hip joints, and the head's length; other sets (COCO-17, Halpe-26, BlazePose) keep those at the height-scaled
-default proportions.
+reliable measurement). A set that also names a neck, a mid-hip and a nose (:data:`TRUNK_KEYPOINTS`: BODY_25, and
+Halpe-26, whose mid-hip is ``hip``) has the rest of the trunk measured too: where the Neck joint sits above the
+shoulders, where the Hips joint sits above the hip joints, and the head's length; other sets (COCO-17, BlazePose)
+keep those at the height-scaled default proportions.
 """
 
 from __future__ import annotations
@@ -99,7 +99,11 @@ _UPPER_ARMS = [BONE_INDEX["LeftUpperArm"], BONE_INDEX["RightUpperArm"]]
 _UPPER_LEGS = [BONE_INDEX["LeftUpperLeg"], BONE_INDEX["RightUpperLeg"]]
 _NECK, _HEAD = BONE_INDEX["Neck"], BONE_INDEX["Head"]
 TRUNK_KEYPOINTS: tuple[str, ...] = ("neck", "mid_hip", "nose")
-"""With all of these (BODY_25), sizing also places the Neck, Hips and Head joints (:func:`_fit_trunk`)."""
+"""With all of these (BODY_25; Halpe-26 through :data:`TRUNK_ALIASES`), sizing also places the Neck, Hips and Head
+joints (:func:`_fit_trunk`)."""
+TRUNK_ALIASES: dict[str, str] = {"hip": "mid_hip"}
+"""Other sets' names of a trunk keypoint: Halpe-26's ``hip`` is its mid-hip (the Hips joint's target, as BODY_25's
+``mid_hip``: :data:`mocapd.core.keypoints.HALPE26_FORMAT`)."""
 _NOSE_ON_HEAD = (0.06, 0.10 + 0.01)
 """The nose target's height above the Head joint and its distance in front of the Neck joint, at the reference
 height (COCO-17's nose offset on Head plus the Head joint's own forward offset)."""
@@ -136,6 +140,7 @@ def _fit_trunk(skeleton: Skeleton, kp: FloatArray, at: dict[str, int]) -> Skelet
 
     Any other set is sized exactly as :func:`_fit_torso` sizes it.
     """
+    at = {**{name: at[alias] for alias, name in TRUNK_ALIASES.items() if alias in at}, **at}
     if not set(TRUNK_KEYPOINTS) <= set(at):
         return _fit_torso(skeleton, kp, at)
     mid_sh = 0.5 * (kp[:, at["left_shoulder"]] + kp[:, at["right_shoulder"]])

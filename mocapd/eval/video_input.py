@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -36,12 +37,17 @@ from mocapd.io.model_quant import model_path
 from mocapd.io.pose2sim_demo import CAMERAS, DEMOS, demo_calibration, demo_root, demo_video
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
+from mocapd.pipeline.keypoint_timeline import interpolate_people
 from mocapd.pipeline.landmarks import LandmarkRunner, with_landmarks
 
 FloatArray = NDArray[np.float64]
 
 #: The COCO-17 keypoints' columns among BlazePose's 33 landmarks.
 _COCO17_IN_BLAZEPOSE33 = np.array([BLAZEPOSE33_FORMAT.index(n) for n in COCO17_FORMAT.keypoints], dtype=np.intp)
+
+MATCH_PX = 80.0
+"""Largest mean keypoint distance (px) at which a person of one frame is the same as one of the next, blending a
+camera's frames to its time offset (the daemon's ``match_px``)."""
 
 CACHE_VERSION = 1
 """Bumped when the cache layout or what is stored changes."""
@@ -69,6 +75,10 @@ class Take:
         (width, height) of each video's frames (may differ from the calibration's by a few pixels).
     source : str
         Where the footage comes from, with its licence.
+    time_offsets_s : tuple of float
+        Per camera, how late its frames run (s, the ``[daemon.offsets] cameras`` convention: frame ``f`` shows the
+        scene the others show at ``f - offset * fps``), from the calibration file's ``time_offset_s``; empty: none
+        given. :func:`time_aligned` takes them out of the detections.
     """
 
     name: str
@@ -80,6 +90,7 @@ class Take:
     calibration: Path
     sizes: list[tuple[int, int]]
     source: str = ""
+    time_offsets_s: tuple[float, ...] = ()
 
     @property
     def camera_names(self) -> list[str]:
@@ -113,13 +124,50 @@ def with_calibration(take: Take, path: Path) -> Take:
         The file cannot be read, or lacks one of the take's cameras.
     """
     try:
-        given = {c.name: c for c in core_cameras(read_any(path))}
+        calib = read_any(path)
     except CalibrationError as exc:
         raise InputError(f"cannot read the calibration {path}: {exc}") from None
+    given = {c.name: c for c in core_cameras(calib)}
     missing = [n for n in take.camera_names if n not in given]
     if missing:
         raise InputError(f"{path}: camera(s) {missing} of {take.name} are not in it (it has {sorted(given)})")
-    return replace(take, cameras=[given[n] for n in take.camera_names], calibration=path)
+    # `--from-people` writes each camera's time offset beside it (issue 43); a camera without one is on time.
+    offsets = {c.name: c.time_offset_s or 0.0 for c in calib.cameras}
+    names = take.camera_names
+    times = tuple(offsets[n] for n in names) if any(offsets[n] for n in names) else ()
+    return replace(take, cameras=[given[n] for n in names], calibration=path, time_offsets_s=times)
+
+
+def time_aligned(take: Take, dets: TakeDetections) -> TakeDetections:
+    """``dets`` with each camera's time offset (``take.time_offsets_s``) taken out: frame ``f`` of a camera whose
+    frames run ``d`` s late becomes its people at ``f + d * fps``, blended between the two frames around it as the
+    daemon's timelines blend them (:func:`~mocapd.pipeline.keypoint_timeline.interpolate_people`: people matched
+    by keypoint distance, the nearer frame's unmatched ones passed through), so that every camera's frame ``f``
+    shows one moment. Where ``f + d * fps`` falls outside the camera's frames it sees nobody (never held or
+    extrapolated). The evaluated systems match the cameras' frames by index; the offsets go nowhere else."""
+    if not any(take.time_offsets_s):
+        return dets
+    n = dets.n_frames
+    n_kp = next((d.keypoints.shape[1] for row in dets.frames for d in row), 17)
+    frames = [list(row) for row in dets.frames]
+    for c, offset_s in enumerate(take.time_offsets_s):
+        if offset_s == 0.0:
+            continue
+        for f in range(n):
+            frames[f][c] = _camera_at(dets.frames, c, f + offset_s * take.fps, n_kp)
+    meta = {**dets.meta, "time_offsets_s": dict(zip(take.camera_names, take.time_offsets_s, strict=True))}
+    return TakeDetections(frames, dets.key, meta, dets.from_cache)
+
+
+def _camera_at(frames: list[list[Detections2D]], camera: int, x: float, n_kp: int) -> Detections2D:
+    """Camera ``camera``'s people at fractional frame ``x`` (nobody outside its frames)."""
+    k = math.floor(x + 1e-9)  # a whole frame given as 1.9999999999 is that frame
+    alpha = max(0.0, x - k)
+    if k < 0 or k >= len(frames) or (alpha > 1e-9 and k + 1 >= len(frames)):
+        return Detections2D.empty(n_kp)
+    if alpha <= 1e-9:
+        return frames[k][camera]
+    return interpolate_people(frames[k][camera], frames[k + 1][camera], alpha, MATCH_PX)
 
 
 def _video_info(videos: list[Path]) -> tuple[float, int, list[tuple[int, int]]]:

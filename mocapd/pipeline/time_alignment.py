@@ -25,6 +25,7 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.band_pass import band_pass
 from mocapd.core.sorting import Detections2D
 
 FloatArray = NDArray[np.float64]
@@ -228,14 +229,6 @@ def estimate_lag_steps(
     return LagEstimate(round(float(lags[k]) + frac * step_ns), float(scores[k]))
 
 
-def _band_pass(x: FloatArray, rate_hz: float, low_hz: float, high_hz: float) -> FloatArray:
-    """Zero-phase (forward-backward) 2nd-order Butterworth band-pass: no delay, so no bias in the lag."""
-    from scipy.signal import butter, sosfiltfilt
-
-    sos = butter(2, [low_hz, high_hz], btype="bandpass", fs=rate_hz, output="sos")
-    return np.asarray(sosfiltfilt(sos, x))
-
-
 def estimate_imu_lag(
     cam_t_ns: IntArray,
     height_m: FloatArray,
@@ -295,9 +288,9 @@ def estimate_imu_lag_steps(
     a_imu = np.interp(grid, imu_t_ns, vertical_acc)
     # Trapezoidal, not a running sum: a running sum is half a sample (5 ms at 100 Hz) late.
     v_imu = np.concatenate([[0.0], np.cumsum(0.5 * (a_imu[1:] + a_imu[:-1]))]) * (step / 1e9)
-    v_cam = _band_pass(v_cam, rate_hz, *band_hz)
+    v_cam = band_pass(v_cam, rate_hz, *band_hz)
     yield
-    v_imu = _band_pass(v_imu, rate_hz, *band_hz)
+    v_imu = band_pass(v_imu, rate_hz, *band_hz)
     if v_cam.std() < 1e-3 or v_imu.std() < 1e-3:  # under 1 mm/s: nobody is moving, any lag would fit
         return None
     yield

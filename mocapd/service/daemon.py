@@ -638,8 +638,10 @@ class Daemon:
         warm_up_optical_flow()  # the keypoint tracker's, on the capture threads
         # The offset estimates of the status loop, once: their first run, 10 s after READY, imported SciPy's signal
         # package (~200 modules) while the tick ran, and the imports' allocations set off full garbage collections
-        # of the whole start-up heap: a second of 26-49 Hz output in every run. With the imports done here and
-        # the start-up heap frozen at READY (gc.freeze: out of every later collection), it is gone.
+        # of the whole start-up heap: a second of 26-49 Hz output in every run. The IMU estimate's band-pass is
+        # NumPy's now (mocapd.core.band_pass: no SciPy signal package to import, here or later, ~1 s of CPU off
+        # every start); the first runs here still do whatever the estimates import first, and the start-up heap is
+        # frozen at READY (gc.freeze: out of every later collection).
         t = np.arange(0, 4_000_000_000, 10_000_000, dtype=np.int64)
         wave = np.sin(t / 1e9 * 2 * np.pi)
         estimate_imu_lag(t, wave, t, wave)

@@ -29,6 +29,7 @@ from mocapd.eval.video_input import (
     detect_take,
     eval_detector_config,
     pose2sim_take,
+    time_aligned,
     with_calibration,
 )
 from mocapd.io.pose2sim_demo import DEMOS
@@ -100,8 +101,9 @@ def run_systems(
     return run
 
 
-def run_video_eval(opts: VideoEvalOptions, out: Path) -> dict[str, Any]:
-    """The whole evaluation; writes ``results.json``, ``report.md`` and the pictures into ``out``."""
+def run_video_eval(opts: VideoEvalOptions, out: Path, say: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """The whole evaluation; writes ``results.json``, ``report.md`` and the pictures into ``out``. ``say``: one line
+    per take whose calibration's time offsets are applied (:func:`time_offsets_line`)."""
     from mocapd.eval.video_report import draw_held_out, write_report
     from mocapd.pipeline.detector import OnnxPoseDetector
 
@@ -137,11 +139,16 @@ def run_video_eval(opts: VideoEvalOptions, out: Path) -> dict[str, Any]:
             dets = detect_take(take, make_detector, n, bar, opts.use_cache, landmarks)
             if dets.from_cache:
                 bar(n * len(take.cameras))
+            dets = time_aligned(take, dets)
+            if take.time_offsets_s and say is not None:
+                say(time_offsets_line(take))
             run = run_systems(take, dets, config, work, missing is None, bar)
         if missing is not None:
             run.notes[P2S] = f"not run: {missing}"
         res = take_results(run)
         res["detections"] = {"cache_key": dets.key, "from_cache": dets.from_cache, **dets.meta}
+        res["time_offsets_s"] = dict(zip(take.camera_names, take.time_offsets_s or [0.0] * len(take.cameras),
+                                         strict=True))  # fmt: skip
         if opts.images > 0:
             res["images"] = [str(p.relative_to(out)) for p in draw_held_out(run, out / "images", opts.images)]
         results["takes"][take.name] = res
@@ -158,6 +165,16 @@ def run_video_eval(opts: VideoEvalOptions, out: Path) -> dict[str, Any]:
     (out / "results.json").write_text(json.dumps(_clean(results), indent=2))
     write_report(results, out / "report.md")
     return results
+
+
+def time_offsets_line(take: Take) -> str:
+    """What :func:`~mocapd.eval.video_input.time_aligned` did to ``take``'s detections, in one line."""
+    moved = ", ".join(f"{name} {s * 1e3:+.1f} ms ({s * take.fps:+.2f} frames)"
+                      for name, s in zip(take.camera_names, take.time_offsets_s, strict=True) if s)  # fmt: skip
+    return (
+        f"{take.name}: the calibration's time offsets applied (time_offset_s; each camera's frames blended to the "
+        f"others' time): {moved}"
+    )
 
 
 def _loadavg() -> list[float]:

@@ -56,7 +56,7 @@ def register(sub: Any) -> None:
     v.add_argument("--no-progress", action="store_true", help="no progress bar (it is drawn only on a terminal)")
     v.add_argument("--calibration", type=Path, default=None, metavar="FILE",
                    help="score with this calibration's cameras instead of the demos' own (e.g. one from `mocapd "
-                   "calibrate cameras --from-people`; needs --no-pose2sim)")  # fmt: skip
+                   "calibrate cameras --from-people`; needs --no-pose2sim) and its time_offset_s")  # fmt: skip
     v.set_defaults(func=_run_video)
     k = sub.add_parser("keypoints", help="multi-person benchmark through import keypoints + resolve (docs/accuracy.md)")
     k.add_argument("--people", type=int, default=3, help="people in the scene, 2 to 4 (default 3)")
@@ -102,7 +102,7 @@ def _run_video(args: argparse.Namespace) -> int:
         progress=not args.no_progress, calibration=args.calibration,
     )  # fmt: skip
     try:
-        res = run_video_eval(opts, args.out)
+        res = run_video_eval(opts, args.out, say=lambda line: print(f"mocapd eval video: {line}", file=sys.stderr))
     except (ConfigError, InputError) as exc:  # an unknown take, a config that is none: the arguments' fault
         print(f"mocapd eval video: {exc}", file=sys.stderr)
         return 2
