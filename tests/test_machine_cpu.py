@@ -1,18 +1,21 @@
-"""The machine's CPU counters (mocapd.io.machine_cpu): ``/proc/stat`` read on this machine, its busy time growing with
-this process's work, and texts it does not understand (or no file) read as "not measured"."""
+"""The machine's CPU counters (mocapd.io.machine_cpu): psutil's CPU times read on this machine, their busy time growing
+with this process's work, the busy fields of each platform, and a machine whose CPU cannot be read read as "not
+measured"."""
 
 from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
+from collections import namedtuple
 
-from mocapd.io.machine_cpu import MachineCpu, MachineCpuReader, parse_proc_stat
+import psutil
+
+from mocapd.io.machine_cpu import MachineCpuReader, busy_ns
 
 
-def test_the_real_proc_stat_counts_this_processs_work_among_the_machines() -> None:
+def test_the_real_machines_busy_time_counts_this_processs_work() -> None:
     """Half a second of this process's CPU shows in the machine's busy time (which also holds everyone else's: it
-    is at least ours, within the kernel's 10 ms clock ticks), and the CPUs are the machine's online ones."""
+    is at least ours, within the kernel's 10 ms clock ticks), and the CPUs are the machine's."""
     reader = MachineCpuReader()
     first, cpu0 = reader.read(), time.process_time_ns()
     assert first is not None, reader.unavailable
@@ -27,29 +30,31 @@ def test_the_real_proc_stat_counts_this_processs_work_among_the_machines() -> No
     assert reader.unavailable is None
 
 
-def test_the_busy_fields_and_the_online_cpus_of_a_proc_stat_text() -> None:
-    """user + nice + system + irq + softirq + steal (idle and iowait are not; guest is already in user), in clock
-    ticks; the CPUs are the cpuN lines."""
-    text = (
-        "cpu  100 20 30 5000 40 5 6 7 50 0\n"
-        "cpu0 50 10 15 2500 20 3 3 4 25 0\n"
-        "cpu1 50 10 15 2500 20 2 3 3 25 0\n"
-        "intr 12345 0 0\nctxt 999\nprocs_running 3\n"
-    )
-    assert parse_proc_stat(text, 100) == MachineCpu((100 + 20 + 30 + 5 + 6 + 7) * 10_000_000, 2)
+def test_the_busy_fields_of_each_platform() -> None:
+    """Linux: user + nice + system + irq + softirq + steal (idle and iowait are not; guest is already in user);
+    Windows: user + system + interrupt + dpc; macOS: user + nice + system; this machine's psutil fields too."""
+    linux = namedtuple("linux", "user nice system idle iowait irq softirq steal guest guest_nice")
+    assert busy_ns(linux(1.0, 0.2, 0.3, 50.0, 0.4, 0.05, 0.06, 0.07, 0.5, 0.0)) == round(1.68e9)
+    windows = namedtuple("windows", "user system idle interrupt dpc")
+    assert busy_ns(windows(2.0, 1.0, 40.0, 0.25, 0.125)) == round(3.375e9)
+    mac = namedtuple("mac", "user nice system idle")
+    assert busy_ns(mac(1.5, 0.5, 1.0, 9.0)) == 3_000_000_000
+    here = psutil.cpu_times()
+    rest = sum(here) - here.idle - getattr(here, "iowait", 0.0) - getattr(here, "guest", 0.0)
+    assert abs(busy_ns(here) - (rest - getattr(here, "guest_nice", 0.0)) * 1e9) < 1e3  # summed in another order
 
 
-def test_what_the_reader_does_not_understand_is_not_measured(tmp_path: Path) -> None:
-    """No file (not Linux), a kernel before ``steal``, or no cpuN line: None, and the reader says why once and
-    stops opening the file."""
-    assert parse_proc_stat("cpu  1 2 3 4\ncpu0 1 2 3 4\n", 100) is None  # four fields: before 2.6.11
-    assert parse_proc_stat("cpu  1 2 3 4 5 6 7 8\n", 100) is None  # no cpuN line
-    assert parse_proc_stat("cpu  1 2 3 4 5 6 7 x\ncpu0 1 2 3 4 5 6 7 8\n", 100) is None
-    missing = MachineCpuReader(str(tmp_path / "stat"))
-    assert missing.read() is None and "not readable" in str(missing.unavailable)
-    (tmp_path / "stat").write_text("cpu  1 2 3 4 5 6 7 8\ncpu0 1 2 3 4 5 6 7 8\n")
-    assert missing.read() is None  # once unavailable, not read again every window
-    odd = tmp_path / "odd"
-    odd.write_text("intr 1\n")
-    reader = MachineCpuReader(str(odd))
-    assert reader.read() is None and "no aggregate cpu line" in str(reader.unavailable)
+def test_a_machine_whose_cpu_cannot_be_read_is_not_measured() -> None:
+    """psutil failing (a system it cannot read) or no CPU count: None, said once, and not tried again every
+    window."""
+    calls = []
+
+    def failing() -> object:
+        calls.append(1)
+        raise OSError("no such file: /proc/stat")
+
+    reader = MachineCpuReader(cpu_times=failing)
+    assert reader.read() is None and "psutil.cpu_times failed" in str(reader.unavailable)
+    assert reader.read() is None and len(calls) == 1
+    uncounted = MachineCpuReader(cpu_count=lambda: None)
+    assert uncounted.read() is None and "CPU count" in str(uncounted.unavailable)

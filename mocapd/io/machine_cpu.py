@@ -4,28 +4,31 @@ The governor (:mod:`mocapd.pipeline.governor`) puts each step it sheds on trial;
 process without bringing the tick's lateness down is taken back only when *other* programs used a substantial share
 of the machine meanwhile (a VR game beside the daemon): on a machine only the daemon loads, the lateness is its own
 and the next step follows. What the others used is the machine's busy time less this process's CPU time, both read
-at the same instants; this module reads the first.
+at the same instants; this module reads the first, through ``psutil.cpu_times()`` (a dependency already: on Linux it
+reads ``/proc/stat``'s aggregate ``cpu`` line, in the kernel's 10 ms clock ticks).
 
-Linux: ``/proc/stat``'s aggregate ``cpu`` line (proc(5)), in clock ticks (``SC_CLK_TCK``, 100 a second). Busy is
-``user + nice + system + irq + softirq + steal``: ``idle`` and ``iowait`` are idle time; ``guest`` and
-``guest_nice`` are already inside ``user`` and ``nice``; ``steal`` (a hypervisor running another machine on this
-one's CPUs) is CPU this machine's programs did not get, so it counts as the others' too. The CPUs are the
-``cpuN`` lines (the online ones). Elsewhere (no ``/proc/stat``), or on text this does not understand, the reading is
-None and the governor keeps its older rule (docs/daemon.md, "A cause test before the next step").
+Busy is every field but idle time: ``user + nice + system + irq + softirq + steal`` on Linux (``idle`` and ``iowait``
+are idle; ``guest`` and ``guest_nice`` are already inside ``user`` and ``nice``; ``steal``, a hypervisor running
+another machine on this one's CPUs, is CPU this machine's programs did not get, so it counts as the others' too),
+``interrupt + dpc`` beside user and system on Windows, user, nice and system on macOS. The CPUs are the logical ones
+(``psutil.cpu_count()``). Where psutil cannot read them the reading is None and the governor keeps its older rule
+(docs/daemon.md, "A cause test before the next step").
 """
 
 from __future__ import annotations
 
 import logging
-import os
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
+
+import psutil
 
 log = logging.getLogger(__name__)
 
-PROC_STAT = "/proc/stat"
-#: the ``cpu`` line's fields counted as busy, by position after the label (proc(5): user nice system idle iowait
-#: irq softirq steal guest guest_nice)
-_BUSY_FIELDS = (0, 1, 2, 5, 6, 7)
+BUSY_FIELDS = ("user", "nice", "system", "irq", "softirq", "steal", "interrupt", "dpc")
+"""``psutil.cpu_times()`` fields counted as busy, where the platform has them (idle, iowait and guest time are not:
+guest time is already inside user and nice)."""
 
 
 @dataclass(frozen=True)
@@ -35,62 +38,38 @@ class MachineCpu:
     busy_ns: int
     """CPU time spent busy since boot, summed over the machine's CPUs (ns)."""
     cpus: int
-    """The CPUs counted (online)."""
+    """The CPUs counted (logical)."""
 
 
-def parse_proc_stat(text: str, clock_ticks: int) -> MachineCpu | None:
-    """The reading in a ``/proc/stat`` text, its counters in units of ``1 / clock_ticks`` s; None when the text has
-    no aggregate ``cpu`` line with at least the eight fields up to ``steal`` (kernels before 2.6.11) or no
-    ``cpuN`` line."""
-    busy: int | None = None
-    cpus = 0
-    for line in text.splitlines():
-        label, _, rest = line.partition(" ")
-        if label == "cpu":
-            fields = rest.split()
-            if len(fields) < 8 or not all(f.isdigit() for f in fields[:8]):
-                return None
-            busy = sum(int(fields[k]) for k in _BUSY_FIELDS)
-        elif label.startswith("cpu") and label[3:].isdigit():
-            cpus += 1
-    if busy is None or cpus == 0 or clock_ticks <= 0:
-        return None
-    return MachineCpu(busy * 1_000_000_000 // clock_ticks, cpus)
+def busy_ns(times: Any) -> int:
+    """The busy time in a ``psutil.cpu_times()`` result (seconds as floats, the fields its platform has), in ns."""
+    return round(sum(float(getattr(times, name, 0.0)) for name in BUSY_FIELDS) * 1e9)
 
 
 class MachineCpuReader:
-    """Reads :class:`MachineCpu` from ``/proc/stat``; :meth:`read` gives None where that cannot be read (said once in
-    the log, with why)."""
+    """Reads :class:`MachineCpu`; :meth:`read` gives None where the machine's CPU cannot be read (said once in the
+    log, with why). ``cpu_times`` and ``cpu_count`` are psutil's (a test gives others)."""
 
-    def __init__(self, path: str = PROC_STAT) -> None:
-        self.path = path
-        self._clock_ticks = _clock_ticks()
+    def __init__(self, cpu_times: Callable[[], Any] = psutil.cpu_times,
+                 cpu_count: Callable[[], int | None] = psutil.cpu_count) -> None:  # fmt: skip
+        self._cpu_times, self._cpu_count = cpu_times, cpu_count
         #: why the machine's CPU cannot be read (None: it could, so far)
         self.unavailable: str | None = None
 
     def read(self) -> MachineCpu | None:
         """The counters now, or None (and :attr:`unavailable` says why)."""
         if self.unavailable is not None:
-            return None  # it will not appear later: no file opened every window in vain
+            return None  # it will not appear later: not tried again every window in vain
         try:
-            with open(self.path, encoding="ascii") as fh:
-                text = fh.read()
-        except (OSError, UnicodeDecodeError) as exc:
-            self._unavailable(f"{self.path} not readable ({exc.__class__.__name__}: {exc})")
+            times, cpus = self._cpu_times(), self._cpu_count()
+        except (OSError, RuntimeError, NotImplementedError) as exc:  # psutil's errors on a system it cannot read
+            self._unavailable(f"psutil.cpu_times failed ({exc.__class__.__name__}: {exc})")
             return None
-        reading = parse_proc_stat(text, self._clock_ticks)
-        if reading is None:
-            self._unavailable(f"{self.path} has no aggregate cpu line this reader understands")
-        return reading
+        if not cpus or cpus < 1:
+            self._unavailable("psutil does not know the machine's CPU count")
+            return None
+        return MachineCpu(busy_ns(times), int(cpus))
 
     def _unavailable(self, why: str) -> None:
         self.unavailable = why
         log.info("the machine's CPU cannot be read (%s): the governor's cause test does without the others' CPU", why)
-
-
-def _clock_ticks() -> int:
-    """The kernel's clock ticks a second (``/proc/stat``'s unit); 0 where the system has no such setting."""
-    try:
-        return int(os.sysconf("SC_CLK_TCK"))
-    except (AttributeError, ValueError, OSError):  # not POSIX (Windows has no os.sysconf)
-        return 0

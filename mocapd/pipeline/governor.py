@@ -76,7 +76,7 @@ else was loading the machine, so the lateness is ours and the step was the wrong
 and the next may follow. On the quiet 2-core ``mocapd demo`` the daemon used ~1.35-1.6 cores, its fake cameras
 ~0.24 together, nothing else ran, and the tick thread waited for a core 15 % of the time: the old rule took a
 useful ladder back there in about half the runs ("did not help: tick p95 70.8 -> 71.0 ms ... process CPU 1.61 ->
-1.51 s/s") and the run lost 300-700 ticks. Where the machine's CPU cannot be read (no ``/proc/stat``: not Linux),
+1.51 s/s") and the run lost 300-700 ticks. Where the machine's CPU cannot be read (psutil cannot read its CPU times),
 the old rule stands: a step that took CPU away without helping is taken back. A step that took no measurable CPU
 away (a landmark model that was not running) proves nothing either way: the next may follow.
 

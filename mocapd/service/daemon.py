@@ -337,7 +337,7 @@ class Daemon:
             raise ConfigError(f"daemon.governor_pin_step: {exc}") from None
         if self.governor is not None and self.governor.pinned:
             self._apply_governor()
-        self._machine_cpu = MachineCpuReader()  # the machine's busy CPU for the governor (None where not Linux)
+        self._machine_cpu = MachineCpuReader()  # the machine's busy CPU for the governor (None where unreadable)
         self.supervisor = Supervisor(d.restart_min_s, d.restart_max_s)
         #: what ``POST <path>`` does on the status server (and the WebSocket's requests of the same name)
         self.actions: dict[str, Callable[[dict[str, str], str], Any]] = {
