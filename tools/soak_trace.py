@@ -16,10 +16,13 @@ swarm evictions, the daemon's offset estimates and governor changes, and the log
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
+
+import psutil
+
+from mocapd.io.machine_cpu import busy_ns
 
 REPORT_EVERY_S = 0.5
 """Seconds between the attacker process's counter reports."""
@@ -95,18 +98,11 @@ class Sample:
 
 
 def machine_cpu_s() -> tuple[float, float]:
-    """The machine's non-idle and steal CPU seconds since boot, all CPUs summed (``/proc/stat``'s first line);
-    (0, 0) where there is no ``/proc/stat``."""
-    try:
-        with open("/proc/stat", encoding="ascii") as f:
-            fields = f.readline().split()
-    except OSError:
-        return 0.0, 0.0
-    # cpu user nice system idle iowait irq softirq steal guest guest_nice (guest time is inside user already)
-    ticks = [int(x) for x in fields[1:9]]
-    hz = os.sysconf("SC_CLK_TCK")
-    busy = ticks[0] + ticks[1] + ticks[2] + ticks[5] + ticks[6]
-    return busy / hz, ticks[7] / hz
+    """The machine's non-idle CPU seconds other than steal, and its steal seconds, since boot, all CPUs summed
+    (``psutil.cpu_times()``: on Linux ``/proc/stat``'s first line; guest time is inside user already)."""
+    t = psutil.cpu_times()
+    steal = float(getattr(t, "steal", 0.0))
+    return busy_ns(t) / 1e9 - steal, steal
 
 
 def _delta_counts(cur: Mapping[str, float], prev: Mapping[str, float]) -> dict[str, float]:
