@@ -282,10 +282,18 @@ def triangulate_projections(
         raise InputError(f"P must be (n_cams, 3, 4) and uv (n_cams, n_pts, 2), got {P.shape} and {uv.shape}")
     if w.shape != uv.shape[:2]:
         raise InputError(f"weights must have shape {uv.shape[:2]}, got {w.shape}")
-    n_pts = uv.shape[1]
+    return triangulate_arrays(P, uv, w, min_views, normal_equations=normal_equations)
+
+
+def triangulate_arrays(
+    P: FloatArray, uv: FloatArray, w: FloatArray, min_views: int = 2, *, normal_equations: bool = False
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """:func:`triangulate_projections` of float64 arrays already of its shapes, without its conversions and checks
+    (callers on the solve's hot path that built the arrays themselves: :mod:`mocapd.core.lr_collapse`). The same
+    parameters and results."""
     A, w = weighted_dlt_rows(P, uv, w)
     ok = np.sum(w > 0, axis=0) >= min_views
-    X = np.full((n_pts, 3), np.nan)
+    X = np.full((uv.shape[1], 3), np.nan)
     if np.any(ok):
         if normal_equations:
             Ao = A[ok]

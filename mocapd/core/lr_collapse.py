@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.camera import dehomogenized, weighted_dlt_rows
+from mocapd.core.camera import triangulate_arrays
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -173,7 +173,7 @@ def expected_gaps(
         cols = pair[k].ravel()
         uv_k = uv[:, cols]
         w_k = np.where(others[k].repeat(2, axis=0).T, conf[:, cols], 0.0)
-        pts, good = _triangulated(P, uv_k, w_k)
+        pts, good = triangulate_arrays(P, uv_k, w_k)
         both_good = good.reshape(-1, 2).all(axis=1)
         X[k[both_good]] = pts.reshape(-1, 2, 3)[both_good]
     if reference is not None:
@@ -189,31 +189,6 @@ def expected_gaps(
     # the norm of a vector as np.linalg.norm takes it: sqrt of its dot product with itself (a dot per candidate)
     sep[known[front]] = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])
     return sep
-
-
-def _triangulated(P: FloatArray, uv: FloatArray, w: FloatArray) -> tuple[FloatArray, BoolArray]:
-    """:func:`~mocapd.core.camera.triangulate_projections` (two views or more, by SVD) of arrays already checked:
-    the same calls on the same floats (:func:`~mocapd.core.camera.weighted_dlt_rows`, the SVD of the stack,
-    :func:`~mocapd.core.camera.dehomogenized`), without its conversions and shape checks.
-
-    Parameters
-    ----------
-    P : array, shape (n_cams, 3, 4)
-    uv : array, shape (n_cams, n_pts, 2)
-    w : array, shape (n_cams, n_pts)
-
-    Returns
-    -------
-    X : array, shape (n_pts, 3)
-    ok : bool array, shape (n_pts,)
-    """
-    A, w = weighted_dlt_rows(P, uv, w)
-    ok = np.sum(w > 0, axis=0) >= 2
-    X = np.full((uv.shape[1], 3), np.nan)
-    if np.any(ok):
-        X[ok] = dehomogenized(np.linalg.svd(A[ok])[2][:, -1, :])
-        ok = ok & np.all(np.isfinite(X), axis=-1)
-    return X, ok
 
 
 def drop_collapsed(conf: FloatArray, collapsed: BoolArray, pairs: tuple[tuple[int, int], ...]) -> FloatArray:
