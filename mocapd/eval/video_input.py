@@ -39,15 +39,16 @@ from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.keypoint_timeline import interpolate_people
 from mocapd.pipeline.landmarks import LandmarkRunner, with_landmarks
+from mocapd.pipeline.scheduler import SchedulerOptions
 
 FloatArray = NDArray[np.float64]
 
 #: The COCO-17 keypoints' columns among BlazePose's 33 landmarks.
 _COCO17_IN_BLAZEPOSE33 = np.array([BLAZEPOSE33_FORMAT.index(n) for n in COCO17_FORMAT.keypoints], dtype=np.intp)
 
-MATCH_PX = 80.0
+MATCH_PX: float = SchedulerOptions.match_px
 """Largest mean keypoint distance (px) at which a person of one frame is the same as one of the next, blending a
-camera's frames to its time offset (the daemon's ``match_px``)."""
+camera's frames to its time offset: the daemon's (``SchedulerOptions.match_px``)."""
 
 CACHE_VERSION = 1
 """Bumped when the cache layout or what is stored changes."""
