@@ -45,10 +45,14 @@ class _Process:
         return self.g.step_index
 
 
-def test_a_tick_that_fits_sheds_nothing() -> None:
+@pytest.mark.parametrize("cpus", [None, 2])
+def test_a_tick_that_fits_sheds_nothing(cpus: int | None) -> None:
+    """A fast machine: with the machine's CPU measured and nobody else loading it (the case in which a late window
+    sheds at once) a tick that fits still sheds nothing, in the settling time or after it."""
     g = Governor(PERIOD)
-    p = _Process(g)
-    assert {p.window(3.0) for _ in range(20)} == {0} and g.level is LADDER[0] and g.changes == 0
+    p = _Process(g, cpus=cpus)
+    assert {p.window(3.0, others=0.1) for _ in range(20)} == {0} and g.level is LADDER[0] and g.changes == 0
+    assert {p.window(20.0, missed=1, others=0.1) for _ in range(10)} == {0}  # 1.2 periods, 1 of 121: not late
 
 
 def test_an_overrun_sheds_in_the_ladders_order_one_step_per_judgement_and_never_the_tick() -> None:
@@ -59,9 +63,9 @@ def test_an_overrun_sheds_in_the_ladders_order_one_step_per_judgement_and_never_
     seen = [p.window(200.0 * 0.85**g.step_index) for _ in range(3 * len(LADDER) + 3)]  # each step 15 % better
     # Two late windows shed the first step; each step is then on trial for three windows (nothing else changes),
     # helped (its windows' median p95 fell), and the next follows; the last step stays.
-    assert seen == [0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4, 5, 5, 5, 6, 6, 6, 7, 7, 7, 7, 7, 7, 7, 7], seen
-    assert g.level.tracking_rate == 0.5 and g.level.detector_duty == 0.35 and not g.level.landmarks
-    assert g.level.solve_every == 2 and all(lv.solve_every == 1 for lv in LADDER[:-1])  # the solve halved last
+    assert seen == [0, *(k for k in range(1, 9) for _ in range(3)), *[9] * 8], seen
+    assert g.level.tracking_rate == pytest.approx(1 / 3) and g.level.detector_duty == 0.35 and not g.level.landmarks
+    assert g.level.solve_every == 3 and [lv.solve_every for lv in LADDER] == [1] * 7 + [2, 2, 3]
     # The landmark model first (the detector's costliest part, issue 40), then the detector's duty, then the
     # tracking's rate last (alone it saved least, and at half rate it costs the 30 Hz keypoints, docs/daemon.md);
     # tracking itself never (detections alone came too far apart: people lost and re-enrolled), the tick never;
@@ -71,11 +75,16 @@ def test_an_overrun_sheds_in_the_ladders_order_one_step_per_judgement_and_never_
                                               "detector at 35 % duty, keypoint tracking at 60 % rate",
                                               "detector at 35 % duty, keypoint tracking at half rate",
                                               "detector at 35 % duty, keypoint tracking at half rate, people solved "
-                                              "at half rate"]  # fmt: skip
+                                              "at half rate",
+                                              # the deeper rungs, for a CPU budget (docs/daemon.md)
+                                              "detector at 35 % duty, keypoint tracking at a third of its rate, "
+                                              "people solved at half rate",
+                                              "detector at 35 % duty, keypoint tracking at a third of its rate, "
+                                              "people solved on every third tick"]  # fmt: skip
     for a, b in itertools.pairwise(LADDER):
         assert b.tracking_rate <= a.tracking_rate and b.detector_duty <= a.detector_duty and a != b
     assert all(lv.tracking_rate > 0 for lv in LADDER)
-    assert [h[1] for h in g.history] == [1, 2, 3, 4, 5, 6, 7] and "of a 16.7 ms period" in str(g.status()["reason"])
+    assert [h[1] for h in g.history] == list(range(1, 10)) and "of a 16.7 ms period" in str(g.status()["reason"])
 
 
 def test_missed_ticks_shed_even_when_the_ticks_that_ran_were_quick() -> None:
@@ -171,14 +180,14 @@ def test_on_a_machine_only_we_load_a_step_that_did_not_help_is_kept_and_the_next
     ticks fell but not significantly (60 of 360 -> 51 of 366). The old rule called that "not this process's work",
     took the step back and shed nothing for 30 s (the run lost 300-700 ticks); nobody else loaded the machine, so
     the lateness is ours: the step stays and the next follows, down the ladder. (Each trial runs its three windows
-    here: ``hurry_missed`` off, the next test has it.)"""
+    here: ``hurry_missed`` at a whole window, so that no late window ends a trial; the next test has it.)"""
     steps = ladder(False, True, True)  # the demo's: no landmark step
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0, hurry_missed=1.0), steps=steps)
     p = _Process(g, cpus=2)
     p95 = {0: 70.8, 1: 70.8, 2: 71.0}
     seen = [p.window(p95.get(g.step_index, 71.0), 1.71 - 0.1 * g.step_index, missed=20 if g.step_index < 2 else 17,
                      others=0.24) for _ in range(2 + 3 * (len(steps) - 1))]  # fmt: skip
-    assert seen == [0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4, 5, 5, 5, 6, 6, 6, 6], seen
+    assert seen == [0, *(k for k in range(1, len(steps)) for _ in range(3)), len(steps) - 1], seen
     kept = g.history[2][2]  # step 3, shed with the verdict on step 2
     assert "step 2 (detector at 50 % duty) did not help: tick p95 70.8 -> 71.0 ms (medians of 3 -> 3 windows), " \
            "missed 60 of 420 -> 51 of 411, process CPU 1.61 -> 1.51 s/s, others' CPU 0.24 -> 0.24 s/s of 2 cores " \
@@ -188,38 +197,47 @@ def test_on_a_machine_only_we_load_a_step_that_did_not_help_is_kept_and_the_next
     assert not any("taken back" in r for _, _, r in g.history) and g.history[-1][1] == len(steps) - 1
 
 
-@pytest.mark.parametrize("others", [0.24, 1.1, None])
-def test_many_ticks_lost_on_a_machine_only_we_load_end_a_trial_at_once(others: float | None) -> None:
-    """`mocapd demo`'s first 15-25 s on the 2-core machine: windows missing 15-35 % of their ticks while the
-    governor walks its ladder, each step after a three-window trial unless a window missed a quarter. With the
-    others at 0.24 of 2 cores, a window that misses a tenth (here 20 of 140) ends the trial at once: the step is
-    kept (the trial could only keep it) and the next is shed, one step a window after the first. With the others at
-    1.1 cores, or not measured, every step is judged over its three windows as before, and taken back."""
+@pytest.mark.parametrize("others", [0.2, 0.24, 0.8, 1.1, None])
+def test_late_windows_on_a_machine_only_we_load_walk_one_step_a_window(others: float | None) -> None:
+    """`mocapd demo` on the quiet 2-core machine (eighth session): after the first steps each trial's windows
+    missed 5-9 of ~120 ticks (4-7.5 %) with the process at 1.24-1.66 s/s and the fake cameras at 0.20-0.22 s/s of
+    2 cores, and every step waited for its three-window verdict, which could only keep it (helped, or took CPU and
+    the lateness is ours, or took no CPU): most of a run's missed ticks fell in those ~24 s. With the others under a
+    quarter of the machine (0.2 or 0.24 of 2 cores) a window still late ends the trial at once: one step a window,
+    each kept unjudged, to the ladder's last. With the others at 0.8 or 1.1 of 2 cores (40 %, 55 %), or not
+    measured, each step waits for its three-window trial, and a step that took CPU without helping is taken back.
+    On the old code (a tenth of the window missed to end a trial) the 5 % trace waited for every trial."""
     steps = ladder(False, True, True)
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0), steps=steps)
     p = _Process(g, cpus=None if others is None else 2)
-    seen = [p.window(71.0, 1.71 - 0.1 * g.step_index, missed=20, others=others or 0.0) for _ in range(8)]
+    seen = [p.window(60.0, 1.71 - 0.1 * g.step_index, missed=6, others=others or 0.0) for _ in range(12)]
     if others is not None and others < 0.5:
-        assert seen == [0, 1, 2, 3, 4, 5, 6, 6], seen
-        assert "step 1 kept unjudged: 20 of 140 ticks missed in the window after it while the others used under 25 % " \
-               "of the machine (the lateness is ours)" in g.history[1][2], g.history  # fmt: skip
+        assert seen == [*range(len(steps)), *[len(steps) - 1] * (12 - len(steps))], seen
+        assert "step 1 kept unjudged: the window after it was still late while the others used under 25 % of the " \
+               "machine (the lateness is ours)" in g.history[1][2], g.history  # fmt: skip
+        assert "6 of 126 ticks missed, process CPU 1.61 s/s, others' CPU" in g.history[1][2]  # the window said
     else:
-        assert seen == [0, 1, 1, 1, 0, 0, 0, 0], seen
-        assert "taken back" in g.history[-1][2]
-    # A tenth is the line: 12 of 132 (9 %) a window waits for the trial's verdict.
-    g = Governor(PERIOD, GovernorOptions(settle_s=0.0), steps=steps)
+        assert seen[:5] == [0, 1, 1, 1, 0], seen  # judged over its trial: took CPU, did not help, taken back
+        assert "taken back" in g.history[1][2] and max(seen) == 1
+
+
+def test_a_step_kept_at_once_is_still_given_back_after_a_calm_hold() -> None:
+    """Restoring is unchanged by the fast walk: a machine shed too far (the ladder walked in a late start-up on a
+    machine only we load) gets a step back after each ``hold_s`` of calm."""
+    g = Governor(PERIOD, GovernorOptions(settle_s=0.0, hold_s=6.0))
     p = _Process(g, cpus=2)
-    assert [p.window(71.0, 1.71 - 0.1 * g.step_index, missed=12, others=0.24) for _ in range(5)] == [0, 1, 1, 1, 2]
+    assert [p.window(60.0, missed=6, others=0.2) for _ in range(4)] == [0, 1, 2, 3]
+    assert [p.window(3.0, others=0.2) for _ in range(7)] == [3, 3, 2, 2, 2, 1, 1]
 
 
 @pytest.mark.parametrize(("others", "back"), [(0.45, False), (0.55, True)])
 def test_the_others_share_decides_at_a_quarter_of_the_machine(others: float, back: bool) -> None:
-    """``others_share``: 0.45 of 2 cores (22 %) is not a load that makes the lateness someone else's; 0.55 (28 %)
-    is."""
+    """``others_share``: 0.45 of 2 cores (22 %) is not a load that makes the lateness someone else's (each late
+    window after a step sheds the next at once); 0.55 (28 %) is (the step is judged over its trial, taken back)."""
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
     p = _Process(g, cpus=2)
     seen = [p.window(50.0, 1.6 if g.step_index == 0 else 1.2, others=others) for _ in range(5)]
-    assert seen == ([0, 1, 1, 1, 0] if back else [0, 1, 1, 1, 2]), seen
+    assert seen == ([0, 1, 1, 1, 0] if back else [0, 1, 2, 3, 4]), seen
 
 
 def test_a_step_that_helps_lets_the_next_follow_and_resets_the_wait() -> None:
@@ -323,8 +341,8 @@ def test_a_pinned_governor_holds_its_step_and_still_measures() -> None:
     st = g.status()
     assert st["pinned"] is True and st["shed"] == "detector at 50 % duty" and st["tick_p95_ms"] == 2.0
     assert g.changes == 0 and "governor_pin_step" in str(st["reason"])
-    with pytest.raises(ValueError, match="step 7 is not on this rig's ladder"):
-        Governor(PERIOD, steps=steps, pin=7)
+    with pytest.raises(ValueError, match="step 9 is not on this rig's ladder"):
+        Governor(PERIOD, steps=steps, pin=9)
 
 
 def test_the_ladder_has_only_steps_that_shed_something_the_daemon_runs() -> None:
@@ -334,15 +352,28 @@ def test_the_ladder_has_only_steps_that_shed_something_the_daemon_runs() -> None
     assert names[0] == [lv.name for lv in LADDER]
     assert names[1] == [lv.name for lv in LADDER if lv.name != "landmark model off"]
     assert names[2] == ["nothing shed", "detector at 75 % duty", "detector at 50 % duty", "detector at 35 % duty",
-                        "detector at 35 % duty, people solved at half rate"]  # fmt: skip
-    assert [lv.tracking_rate for lv in ladder(False, False, True)] == [1.0] * 5
-    # the synthetic rig: nothing else to shed, the solve at half rate alone (it runs a solve like every rig)
-    assert ladder(False, False, False) == (LADDER[0], Level("people solved at half rate", 1.0, 1.0, True, 2))
+                        "detector at 35 % duty, people solved at half rate",
+                        "detector at 35 % duty, people solved on every third tick"]  # fmt: skip
+    assert [lv.tracking_rate for lv in ladder(False, False, True)] == [1.0] * 6
+    # the synthetic rig: nothing else to shed, the solve at half rate and a third alone (it solves like every rig)
+    assert ladder(False, False, False) == (LADDER[0], Level("people solved at half rate", 1.0, 1.0, True, 2),
+                                           Level("people solved on every third tick", 1.0, 1.0, True, 3))  # fmt: skip
     assert [lv.name for lv in ladder(False, True, False)] == ["nothing shed", "keypoint tracking at 60 % rate",
                                                               "keypoint tracking at half rate",
                                                               "keypoint tracking at half rate, people solved at half "
-                                                              "rate"]  # fmt: skip
-    assert [lv.solve_every for lv in ladder(False, True, False)] == [1, 1, 1, 2]
+                                                              "rate",
+                                                              "keypoint tracking at a third of its rate, people "
+                                                              "solved at half rate",
+                                                              "keypoint tracking at a third of its rate, people "
+                                                              "solved on every third tick"]  # fmt: skip
+    assert [lv.solve_every for lv in ladder(False, True, False)] == [1, 1, 1, 2, 2, 3]
+    # Every rig's ladder: each step sheds at least what the one before did, and the people on every third tick last.
+    for run in itertools.product((True, False), repeat=3):
+        steps = ladder(*run)
+        assert steps[-1].solve_every == 3 and len({lv.name for lv in steps}) == len(steps)
+        for a, b in itertools.pairwise(steps):
+            assert b.tracking_rate <= a.tracking_rate and b.detector_duty <= a.detector_duty
+            assert b.solve_every >= a.solve_every and b.tracking_rate > 0
 
 
 def test_a_window_that_loses_most_of_its_ticks_sheds_at_once_without_waiting_for_a_trial() -> None:
@@ -352,7 +383,7 @@ def test_a_window_that_loses_most_of_its_ticks_sheds_at_once_without_waiting_for
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0))
     p = _Process(g)
     seen = [p.window(60.0, missed=60) for _ in range(len(LADDER) + 1)]  # a third of every window's ticks missed
-    assert seen == [1, 2, 3, 4, 5, 6, 7, 7, 7], seen
+    assert seen == [*range(1, len(LADDER)), 9, 9], seen
     assert "kept unjudged: 60 of 180 ticks missed" in g.history[-1][2]
     # 10 % missed: late, not severe: two windows before the first step, then a trial of three windows.
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0))

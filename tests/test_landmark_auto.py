@@ -189,13 +189,13 @@ def test_a_pinned_governor_step_is_applied_from_the_start_and_one_the_ladder_lac
         assert built.daemon.status()["governor"]["shed"] == "people solved at half rate"
     bad = write(
         tmp_path / "synthetic.toml",
-        synthetic_toml(2, "").replace("http_port = 0\n", "http_port = 0\ngovernor_pin_step = 2\n"),
+        synthetic_toml(2, "").replace("http_port = 0\n", "http_port = 0\ngovernor_pin_step = 3\n"),
     )
     with (
         pytest.raises(
             ConfigError,
-            match=r"daemon.governor_pin_step: step 2 is not on this rig's ladder \(steps 0..1: nothing shed, "
-            r"people solved at half rate\)",
+            match=r"daemon.governor_pin_step: step 3 is not on this rig's ladder \(steps 0..2: nothing shed, "
+            r"people solved at half rate, people solved on every third tick\)",
         ),
         assembled(load_config(bad)),
     ):

@@ -435,15 +435,17 @@ def _noting_dt(solve: Callable[..., Any], seen: list[float]) -> Callable[..., An
     return noted
 
 
-def test_people_solved_at_half_rate_are_carried_on_the_ticks_between(prior: PcaPrior) -> None:
-    """The governor's last step (``solve_every = 2``): one frame a tick still, the people solved on every other
-    tick and carried on the ticks between at the velocity of their last two solves: nearer the truth than holding
-    the last solve, and the suit's accelerations still reach the solves (taken two periods back)."""
+@pytest.mark.parametrize("every", [2, 3])
+def test_people_solved_at_half_rate_are_carried_on_the_ticks_between(prior: PcaPrior, every: int) -> None:
+    """The governor's solve steps (``solve_every = 2``, and 3 at the ladder's last): one frame a tick still, the
+    people solved on every n-th tick and carried on the ticks between (one and two periods on) at the velocity of
+    their last two solves, marked filled: nearer the truth than holding the last solve, and the suit's
+    accelerations still reach the solves (taken n periods back)."""
     ls = _lockstep(prior, 2, 1, SchedulerOptions(), [0, 0, 0, 0])
     before = ls.run(1.0)  # enrolment and pairing at the full rate
     sched = ls.scheduler
     solves0, frame0 = sched.counters["person_solves"], sched.frame
-    sched.solve_every = 2
+    sched.solve_every = every
     seen_dt: list[float] = []
     for solver in sched.solvers.values():  # the real solve, with the interval it is given noted
         solver.solve = _noting_dt(solver.solve, seen_dt)  # type: ignore[method-assign]
@@ -466,13 +468,13 @@ def test_people_solved_at_half_rate_are_carried_on_the_ticks_between(prior: PcaP
             accelerations.append(sched._suit_samples["suit0"].has_acceleration)
     assert [f.frame for f in frames] == list(range(frame0 + 1, frame0 + 61))  # one frame a tick
     assert all(len(f.people) == 2 for f in frames)
-    assert [f.people[0].filled for f in frames] == [k % 2 == 0 for k in range(60)]  # carried, then solved
-    assert sched.counters["person_solves"] - solves0 == 2 * 30  # two people, half the ticks
-    assert (sched.counters["ticks_filled"], sched.status()["solve_every"]) == (30, 2)
-    assert seen_dt == [pytest.approx(2 / 60)] * 60  # the solver's motion terms: solves 2 periods apart
+    assert [f.people[0].filled for f in frames] == [k % every != every - 1 for k in range(60)]  # carried, solved
+    assert sched.counters["person_solves"] - solves0 == 2 * 60 // every  # two people, one tick in n
+    assert (sched.counters["ticks_filled"], sched.status()["solve_every"]) == (60 - 60 // every, every)
+    assert seen_dt == [pytest.approx(every / 60)] * (120 // every)  # the motion terms: solves n periods apart
     assert np.median(carried_err) < 0.02 and max(carried_err) < 0.06  # metres, mean over joints
     assert np.median(carried_err) < 0.8 * np.median(held_err)  # carried on, not held
-    assert all(accelerations[1:])  # the previous solve's accelerations, two periods back
+    assert all(accelerations[1:])  # the previous solve's accelerations, n periods back
     sched.solve_every = 1
     frame = sched.tick(S + 120 * S // 60)
     assert not any(p.filled for p in frame.people)

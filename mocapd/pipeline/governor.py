@@ -29,31 +29,41 @@ step  what is shed                           what it costs
                                              between, each person is their last solve carried one period on at
                                              the velocity of their last two (:mod:`mocapd.core.carry`, marked
                                              ``filled``): the output keeps its rate, the solves (the tick's
-                                             costliest part) halve. The last step, on every rig (the synthetic
-                                             rig's ladder is step 0 and this), for a machine that cannot hold the
-                                             tick otherwise: a filled frame guesses, and misses a turn of motion
-                                             until the next solve
+                                             costliest part) halve. On every rig (the synthetic rig's ladder is
+                                             step 0, this and step 9): a filled frame guesses, and misses a turn
+                                             of motion until the next solve
+8     ... keypoint tracking at a third       the deeper rungs, for a machine (or a CPU budget: 0.8 of a core) that
+                                             the steps above leave late: 20 Hz a 60 fps camera, keypoints 50 ms
+                                             apart, interpolated (below the 30 Hz target)
+9     ... people solved on every third tick  ``solve_every = 3``: two ticks of three carried (the carry covers one
+                                             and two periods alike); the last step, on every rig
 ====  =====================================  ======================================================================
 
-Why this order, and why it ends there. Each step is placed by what it saved, measured with the step pinned
-(``[daemon] governor_pin_step``) on the 2-core camera demo, against what it costs the user (docs/daemon.md, "The
-ladder's order, measured"). The tracking rate went first while the tracking's optical flow cost ~0.5 of a core;
-compiled, four 60 fps cameras' tracking costs ~0.27 of a core, so halving it saves little, and it costs the keypoint
-rate itself (28-29 Hz a camera and person at half rate, below the 30 Hz target) and a frame interval of latency.
-The detector's duty costs only how often the tracked keypoints are re-anchored (the tracking carries the people
-between detections, one frame after capture: the latency a user feels is the tracking's): it goes first, the
-tracking rate last. Tracking itself is never shed: a starved detector delivers a camera's keypoints 1-3 times a
-second, too far apart for the scheduler to interpolate (``keypoint_max_gap_s``), so people dropped out of the solve
-and came back as new identities (the camera demo's test, 2 runs of 6 with a last step "tracking off"), and the
-latency became the detector's (1-2 s). The left/right flip search is not on the ladder either: compiled, it costs
-~0.15 ms a person a tick (``person_cpu_ms.unflip`` in ``/status``), and reusing a decision on ticks between searches
-swapped a view's limbs whenever the detector had re-labelled it meanwhile (a demo person's arms sized 25 % long).
+Why this order, and why it ends there. Steps 8 and 9 come after the half-rate solve because each costs the user more
+than any step above it (keypoints below 30 Hz, two guessed frames of three): they are for a machine the first seven
+leave late; tracking goes first of the two, having saved more CPU at 0.8 of a core (docs/daemon.md, "The deeper
+rungs"). The detector at a duty below 35 % is not on the ladder: at 20 % it took no CPU away, on the 2-core demo or
+at 0.8 of a core, because its passes already leave some camera a second without a detection there, and then it does
+not rest (a rest would age that camera's tracked people out). Each of the first seven steps is placed by what it
+saved, measured with the step pinned (``[daemon] governor_pin_step``) on the 2-core camera demo, against what it
+costs the user (docs/daemon.md, "The ladder's order, measured"). The tracking rate went first while the tracking's
+optical flow cost ~0.5 of a core; compiled, four 60 fps cameras' tracking costs ~0.27 of a core, so halving it saves
+little, and it costs the keypoint rate itself (28-29 Hz a camera and person at half rate, below the 30 Hz target)
+and a frame interval of latency. The detector's duty costs only how often the tracked keypoints are re-anchored (the
+tracking carries the people between detections, one frame after capture: the latency a user feels is the
+tracking's): it goes first, the tracking rate last. Tracking itself is never shed: a starved detector delivers a
+camera's keypoints 1-3 times a second, too far apart for the scheduler to interpolate (``keypoint_max_gap_s``), so
+people dropped out of the solve and came back as new identities (the camera demo's test, 2 runs of 6 with a last
+step "tracking off"), and the latency became the detector's (1-2 s). The left/right flip search is not on the ladder
+either: compiled, it costs ~0.15 ms a person a tick (``person_cpu_ms.unflip`` in ``/status``), and reusing a
+decision on ticks between searches swapped a view's limbs whenever the detector had re-labelled it meanwhile (a demo
+person's arms sized 25 % long).
 
 It sheds one step when, in two windows in a row, the tick's p95 exceeded ``shed_above`` of the period or more than
 ``max_missed`` of the window's ticks were missed (one slow window, a start-up burst, is no reason; but one window
 that missed ``severe_missed`` of its ticks, a quarter, sheds at once, without waiting for the step before to be
-judged: most of the output is being lost; so does, after a step, a window that missed ``hurry_missed`` of its
-ticks, a tenth, while the other programs used under ``others_share`` of the machine: see the cause test below),
+judged: most of the output is being lost; so does, after a step, a window that was still late by the same rule
+while the other programs used under ``others_share`` of the machine: see "Fast when the lateness is ours" below),
 and restores one step only after ``hold_s`` in which the p95 stayed below ``restore_below`` of the period with no
 tick missed (hysteresis: a step is not taken back the moment it helped). Its time starts at the first published
 tick, not when the daemon is built: opening the cameras and loading the models can outlast the ``settle_s`` in
@@ -79,6 +89,18 @@ useful ladder back there in about half the runs ("did not help: tick p95 70.8 ->
 1.51 s/s") and the run lost 300-700 ticks. Where the machine's CPU cannot be read (psutil cannot read its CPU times),
 the old rule stands: a step that took CPU away without helping is taken back. A step that took no measurable CPU
 away (a landmark model that was not running) proves nothing either way: the next may follow.
+
+Fast when the lateness is ours. While the other programs use under ``others_share`` of the machine, every
+verdict a trial can reach keeps the step and lets the next follow: it helped (the next follows), it did not help
+but took CPU (kept: the lateness is ours), it took no CPU (proves nothing: the next follows). Waiting for the
+verdict then only costs windows of missed ticks: on the quiet 2-core `mocapd demo` each of the trials' windows
+missed 5-9 of ~120 ticks while the ladder was walked, below the tenth a window had to miss to end its trial early,
+and most of a run's missed ticks fell in those ~24 s. So a step on trial whose window was still late (p95 over
+``shed_above`` periods or more than ``max_missed`` missed) while the others used under ``others_share`` is kept at
+once, unjudged, and the next step is shed in the same window ("step 2 kept unjudged: the window after it was still
+late while the others used under 25 % of the machine (the lateness is ours)"). Where the others used more, or
+their CPU is not measured, each step is judged over its trial as before. Restoring is unchanged: a machine shed
+too far gets a step back after ``hold_s`` of calm.
 
 Pure state: times are arguments; the daemon feeds it (:meth:`Governor.observe` and :meth:`Governor.step` per
 tick) and applies :attr:`Governor.level`'s settings to the keypoint sources, the detectors and the scheduler
@@ -107,28 +129,48 @@ class Level:
     solve_every: int = 1  # the scheduler solves people on every n-th tick, carrying them on the ticks between
 
 
+def _named(tracking_rate: float, detector_duty: float, landmarks: bool = False, solve_every: int = 1) -> Level:
+    """A level named by what it sheds, in the ladder's words (the landmark model is named only where nothing else
+    is shed: every later step keeps it off)."""
+    shed = []
+    if detector_duty < 1.0:
+        shed.append(f"detector at {detector_duty * 100:g} % duty")
+    if tracking_rate < 1.0:
+        shed.append(f"keypoint tracking at {_TRACKING_RATES.get(tracking_rate, f'{tracking_rate * 100:g} % rate')}")
+    if solve_every > 1:
+        shed.append(_SOLVES.get(solve_every, f"people solved on every {solve_every}th tick"))
+    name = ", ".join(shed) or ("nothing shed" if landmarks else "landmark model off")
+    return Level(name, tracking_rate, detector_duty, landmarks, solve_every)
+
+
+_TRACKING_RATES = {0.6: "60 % rate", 0.5: "half rate", 1 / 3: "a third of its rate"}
+_SOLVES = {2: "people solved at half rate", 3: "people solved on every third tick"}
+THIRD = 1 / 3  # keypoint tracking's rate at the deepest tracking step
+
 LADDER: tuple[Level, ...] = (
-    Level("nothing shed", 1.0, 1.0),
-    Level("landmark model off", 1.0, 1.0, False),
-    Level("detector at 75 % duty", 1.0, 0.75, False),
-    Level("detector at 50 % duty", 1.0, 0.5, False),
-    Level("detector at 35 % duty", 1.0, 0.35, False),
-    Level("detector at 35 % duty, keypoint tracking at 60 % rate", 0.6, 0.35, False),
-    Level("detector at 35 % duty, keypoint tracking at half rate", 0.5, 0.35, False),
-    Level("detector at 35 % duty, keypoint tracking at half rate, people solved at half rate", 0.5, 0.35, False, 2),
+    _named(1.0, 1.0, True),
+    _named(1.0, 1.0),
+    _named(1.0, 0.75),
+    _named(1.0, 0.5),
+    _named(1.0, 0.35),
+    _named(0.6, 0.35),
+    _named(0.5, 0.35),
+    _named(0.5, 0.35, solve_every=2),
+    # The deeper rungs, for a daemon held to a CPU budget (0.8 of a core): docs/daemon.md, "The deeper rungs".
+    _named(THIRD, 0.35, solve_every=2),
+    _named(THIRD, 0.35, solve_every=3),
 )
-PEOPLE_AT_HALF_RATE = "people solved at half rate"
 #: the tracking steps alone, for a rig whose keypoint tracking runs without a detector of its own to rest
-TRACKING_ALONE = (Level("keypoint tracking at 60 % rate", 0.6, 1.0, False),
-                  Level("keypoint tracking at half rate", 0.5, 1.0, False))  # fmt: skip
+TRACKING_ALONE = (_named(0.6, 1.0), _named(0.5, 1.0))
 
 
 def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tuple[Level, ...]:
     """:data:`LADDER` with only the steps that shed something this daemon runs: the landmark step where a detector
     runs ``landmarks = "auto"``, the detector's duty steps where a detector of its own runs, the tracking steps where
-    keypoint tracking runs, and last, on every rig, people solved at half rate (the synthetic rig's simulated
-    detections have none of the others: its ladder is step 0 and that). A step that sheds nothing would cost a
-    trial, and say it shed what is not there."""
+    keypoint tracking runs, then, on every rig, people solved at half rate; past it, where keypoint tracking runs,
+    tracking at a third of its rate, and last, on every rig, people solved on every third tick (the synthetic rig's
+    simulated detections have none of the others: its ladder is step 0 and the two solve steps). A step that
+    sheds nothing would cost a trial, and say it shed what is not there."""
     steps = [LADDER[0]]
     if landmarks:
         steps.append(LADDER[1])
@@ -136,13 +178,13 @@ def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tup
         steps.extend(LADDER[2:5])
     if tracking:
         steps.extend(LADDER[5:7] if detector else TRACKING_ALONE)
-    return (*steps, half_solve(steps[-1]))
-
-
-def half_solve(level: Level) -> Level:
-    """``level`` with people solved on every other tick: the ladder's last step, whatever came before it."""
-    shed = PEOPLE_AT_HALF_RATE if level is LADDER[0] else f"{level.name}, {PEOPLE_AT_HALF_RATE}"
-    return Level(shed, level.tracking_rate, level.detector_duty, level.landmarks, 2)
+    last = steps[-1]
+    steps.append(_named(last.tracking_rate, last.detector_duty, last.landmarks, 2))
+    if tracking:
+        steps.append(_named(THIRD, last.detector_duty, False, 2))
+    last = steps[-1]
+    steps.append(_named(last.tracking_rate, last.detector_duty, last.landmarks, 3))
+    return tuple(steps)
 
 
 @dataclass(frozen=True)
@@ -179,12 +221,14 @@ class GovernorOptions:
     kept on trial and one such window is enough. With seven steps judged over three windows each, walking the ladder
     took 31 s of 23-34 Hz output in `mocapd demo` on the 2-core machine (docs/daemon.md); below this share the cause
     test judges each step as before."""
-    hurry_missed: float = 0.10
-    """A step on trial whose window missed at least this share of its ticks while the other programs used under
-    ``others_share`` of the machine in it is kept at once and the next step follows (as after a ``severe_missed``
-    window): with the machine loaded by nobody else the trial's verdict can only be to keep the step (the lateness
-    is ours), and in `mocapd demo`'s first 15-25 s on the 2-core machine each of its windows lost 15-35 % of 120
-    ticks. Where the others' CPU is high or not measured, the trial runs as before."""
+    hurry_missed: float = 0.0
+    """A step on trial whose window was still late (by the rule that sheds: p95 over ``shed_above`` periods or more
+    than ``max_missed`` missed) and missed at least this share of its ticks, while the other programs used under
+    ``others_share`` of the machine in it, is kept at once and the next step follows (as after a
+    ``severe_missed`` window): with nobody else loading the machine every verdict of the trial keeps the step (the
+    lateness is ours). 0: any late window. It was a tenth until the eighth session, and on the quiet 2-core `mocapd
+    demo` the trials' windows missed 5-9 of ~120 ticks, under it, while most of a run's missed ticks fell in the
+    ~24 s the ladder took. Where the others' CPU is high or not measured, the trial runs as before."""
     significance: float = 0.05
     """Fewer missed ticks after a step count as help when a one-sided binomial test on the pooled counts (before
     against after, in proportion to their ticks) gives a p-value below this."""
@@ -345,10 +389,10 @@ class Governor:
         hurried = False
         if trial is not None:
             trial.after.append(window)
-            # Many ticks lost while nobody else loads the machine: the trial could only keep the step (the
-            # lateness is ours), so it ends here rather than lose more windows' ticks to its verdict.
-            hurried = (not severe and len(trial.after) < o.judge_windows and window.missed_share >= o.hurry_missed
-                       and self._ours(window))  # fmt: skip
+            # Still late while nobody else loads the machine: every verdict the trial could reach keeps the step
+            # (the lateness is ours), so it ends here rather than lose more windows' ticks to its verdict.
+            hurried = (not severe and len(trial.after) < o.judge_windows and self._overran(window)
+                       and window.missed_share >= o.hurry_missed and self._ours(window))  # fmt: skip
             if len(trial.after) < o.judge_windows and not (severe or hurried):
                 return False  # a step on trial: no other change until it is judged
             self._trial = None
@@ -356,9 +400,9 @@ class Governor:
                 self._verdict = (f"step {trial.from_index + 1} kept unjudged: {window.missed} of {window.ticks} "
                                  f"ticks missed in the window after it")  # fmt: skip
             elif hurried:
-                self._verdict = (f"step {trial.from_index + 1} kept unjudged: {window.missed} of {window.ticks} "
-                                 f"ticks missed in the window after it while the others used under "
-                                 f"{o.others_share * 100:g} % of the machine (the lateness is ours)")  # fmt: skip
+                self._verdict = (f"step {trial.from_index + 1} kept unjudged: the window after it was still late "
+                                 f"while the others used under {o.others_share * 100:g} % of the machine (the "
+                                 f"lateness is ours)")  # fmt: skip
             elif self._judge(trial, now_ns):
                 return True
         if self._overran(window) and (
@@ -511,7 +555,7 @@ class Governor:
         return {
             "step": self.step_index,
             "shed": self.level.name,
-            "tracking_rate": self.level.tracking_rate,
+            "tracking_rate": round(self.level.tracking_rate, 3),
             "detector_duty": self.level.detector_duty,
             "landmarks": self.level.landmarks,
             "solve_every": self.level.solve_every,

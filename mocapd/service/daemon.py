@@ -797,7 +797,7 @@ class Daemon:
             group = getattr(src, "group", None)  # a packed detection group (shared by its cameras)
             if group is not None and hasattr(group, "duty"):
                 group.duty = level.detector_duty
-        self.scheduler.solve_every = level.solve_every  # the last step: people solved on every other tick
+        self.scheduler.solve_every = level.solve_every  # the deepest steps: people solved on every 2nd or 3rd tick
         # landmarks = "auto": the landmark model off from step 1 on
         shed_landmarks(self._landmark_fronts(), None if level.landmarks else f"step {self.governor.step_index}, "
                        f"{self.governor.last_reason}")  # fmt: skip
