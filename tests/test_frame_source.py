@@ -1,17 +1,22 @@
 """The capture supervision of :class:`~mocapd.io.frame_source.ThreadedSource`: a device that fails while
 streaming is reported down no later than its failure is counted and logged, so no ``capture_status()`` (what
 ``/status`` shows of a camera) says "up" beside a counted failure. A source whose device streams one frame, then
-fails (what a pulled cable does to an Aravis camera), read at the moment the failure is logged."""
+fails (what a pulled cable does to an Aravis camera), read at the moment the failure is logged.
+
+And the frames' crossing to the loop: the frames captured while the loop is busy wake it once between them, not once
+each, and all arrive in order."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from typing import Any
 
 from mocapd.errors import DeviceError
 from mocapd.io.frame_source import ThreadedSource
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
+from tests.loop_spy import spy_wakeups
 
 
 class _OneFrameThenGone(ThreadedSource):
@@ -71,3 +76,52 @@ def test_a_failed_device_is_down_when_its_failure_is_counted() -> None:
     assert len(frames) == 1
     assert [(s["failures"], s["up"]) for s in handler.seen[:2]] == [(1, False), (2, False)], handler.seen
     assert handler.seen[0]["last_error"] == "camera 'cam0' stopped answering"
+
+
+class _Burst(ThreadedSource):
+    """Publishes ``n`` frames as fast as it can, then ends (a replay at the end of its file)."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__("cam0", FrameRing("cam0", 4, 4, 4, 1))
+        self.n = n
+        self.grabs = 0
+
+    def _open(self) -> None:
+        pass
+
+    def _grab(self) -> FrameRef | bool | None:
+        self.grabs += 1
+        if self.grabs > self.n:
+            return False
+        self.ring.next_slot()[:] = 0
+        return self.ring.publish(self.grabs, self.grabs, self.grabs)
+
+    def _close(self) -> None:
+        pass
+
+
+def test_frames_captured_while_the_loop_is_busy_wake_it_once_between_them() -> None:
+    """The loop is busy with the first frame until the capture thread has published all 200 and ended. With
+    ``call_soon_threadsafe`` per frame (the old code) each frame wrote the loop's self-pipe: 200 wake-ups and one
+    for the end. Through the loop's mailbox: one for the first frame, one for everything queued behind it."""
+    n = 200
+    source = _Burst(n)
+    got: list[int] = []
+
+    async def main() -> list[str]:
+        wakeups = spy_wakeups(asyncio.get_running_loop())
+
+        def on_frame(ref: FrameRef) -> None:
+            if not got:  # the first frame keeps the loop busy until the thread has captured every frame and ended
+                deadline = time.monotonic() + 30
+                while source.grabs <= n and time.monotonic() < deadline:
+                    time.sleep(0.001)
+            got.append(ref.seq)
+
+        await asyncio.wait_for(source.run(on_frame), 60)
+        return wakeups
+
+    wakeups = asyncio.run(main())
+    assert got == list(range(n))  # every frame, in order, before the end of the source was seen
+    crossings = [name for name in wakeups if name in ("on_frame", "_resolve", "_drain")]
+    assert len(crossings) <= 2, crossings  # the old code: 201

@@ -1,9 +1,11 @@
 """Packed detection for free-running cameras: two real video replays (the Pose2Sim multi-person demo) share one
-PackedDetector pass per detection round, each camera's detections stamped with its own frames' capture times."""
+PackedDetector pass per detection round, each camera's detections stamped with its own frames' capture times. A
+pass's results cross to the loop through its mailbox: those of passes done while the loop is busy wake it once."""
 
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -19,6 +21,7 @@ from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.frame_ring import FrameRef
 from mocapd.pipeline.packed_source import MAX_REST_NS, PackedDetectionGroup, PackedKeypointSource, Session
 from mocapd.pipeline.packing import detectors_from_config, packed_detector_from_config
+from tests.loop_spy import spy_wakeups
 
 
 @pytest.mark.asyncio
@@ -249,3 +252,41 @@ def test_a_rest_never_ages_the_tracked_people_out() -> None:
         assert group.rested_ns == MAX_REST_NS + 100_000_000  # a short pass rests its duty's share
     finally:
         group.close()
+
+
+@pytest.mark.asyncio
+async def test_the_results_of_passes_done_while_the_loop_is_busy_wake_it_once() -> None:
+    """Each pass's results crossed to the loop with their own ``call_soon_threadsafe`` (the old code: 10 wake-ups
+    for 10 passes); through the loop's mailbox the passes done while the loop is busy share one, and they are still
+    handed over in order (each camera ends with the newest pass's result, the 9 before it counted as replaced)."""
+    group = PackedDetectionGroup(packed_detector_from_config(DetectorConfig(intra_op_threads=1), [(544, 960)] * 2),
+                                 ThreadPoolExecutor(1))  # fmt: skip
+    for cam in range(2):
+        group.add(_Replay(cam, []))  # type: ignore[arg-type]  # always a new frame; the pass below reads none
+    passes: list[int] = []
+    release = threading.Event()
+
+    def quick_pass(plan: object = None, worker: int = 0) -> dict[int, tuple[FrameRef, Detections2D]] | None:
+        n = len(passes) + 1
+        passes.append(n)
+        if n > 10:  # ten passes, then the worker waits (no result, nothing posted) until the test ends
+            release.wait(30)
+            return None
+        return {cam: (FrameRef(f"cam{cam}", n, n, n, n), Detections2D(np.zeros((1, 17, 2)), np.ones((1, 17))))
+                for cam in (0, 1)}  # fmt: skip
+
+    group._run_pass = quick_pass  # type: ignore[method-assign]
+    wakeups = spy_wakeups(asyncio.get_running_loop())
+    group.poke()
+    try:
+        deadline = time.monotonic() + 30
+        while len(passes) <= 10 and time.monotonic() < deadline:  # the loop is busy here while the passes deliver
+            time.sleep(0.001)
+        await asyncio.sleep(0.05)
+        crossings = [name for name in wakeups if name in ("_deliver", "_drain")]
+        results = {cam: group._results[cam][0].seq for cam in (0, 1)}
+    finally:
+        release.set()
+        group.close()
+    assert len(passes) == 11 and results == {0: 10, 1: 10} and group.replaced == 18
+    assert crossings == ["_drain"], crossings  # the old code: ten "_deliver"

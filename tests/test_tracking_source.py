@@ -21,6 +21,7 @@ from mocapd.pipeline.keypoint_source import DetectorKeypointSource
 from mocapd.pipeline.keypoint_tracker import KeypointTracker
 from mocapd.pipeline.packed_source import PackedDetectionGroup, PackedKeypointSource
 from mocapd.pipeline.packing import packed_detector_from_config
+from tests.loop_spy import spy_wakeups
 
 W, H, N_FRAMES = 320, 240, 90
 VELOCITY = np.array([1.3, 0.6])  # px per frame
@@ -152,3 +153,37 @@ async def test_tracking_steps_back_when_the_detector_is_later_than_it_can_carry(
     assert not st["active"] and st["steps_back"] == 1 and st["keypoint_sets"] == 0, st
     assert src.detected >= 3 and st["detections_delivered"] == src.detected == len(got)
     assert all(arrival - t >= 0.12e9 and len(d) == 1 for _, t, d, arrival in got)  # the detections themselves
+
+
+@pytest.mark.asyncio
+async def test_frames_and_tracked_keypoints_of_a_busy_loop_wake_it_once_between_them(tmp_path: Path) -> None:
+    """Each frame, and each frame's tracked keypoints, crossed from the capture thread to the loop with its own
+    ``call_soon_threadsafe`` (a self-pipe write and a wake-up each): with the loop busy in the sink while 4 more
+    frames are captured and tracked, the old code woke it once per crossing. Through the loop's mailbox, the
+    crossings queued while it is busy share one wake-up; every set still arrives, in order, with the arrival stamp
+    the capture thread took when tracking finished (before the loop got to it)."""
+    for k in range(N_FRAMES):
+        cv2.imwrite(str(tmp_path / f"{k:03d}.png"), np.repeat(_scene(k)[..., None], 3, axis=2))
+    frames = ImageFolderSource("cam0", tmp_path, fps=30.0)
+    src = DetectorKeypointSource(0, frames, _ShiftDetector(), tracker=KeypointTracker(6, TrackingConfig(rate_hz=30.0)))
+    wakeups = spy_wakeups(asyncio.get_running_loop())
+    got: list[tuple[int, int]] = []  # (stamp, arrival)
+    busy_until: list[int] = []
+
+    def sink(cam: int, t: int, d: Detections2D, arrival: int) -> None:
+        got.append((t, arrival))
+        if not busy_until:  # the first set keeps the loop busy until 4 more frames were tracked
+            deadline, seen = time.monotonic() + 30, src.tracking["frames"]
+            while src.tracking["frames"] < seen + 4 and time.monotonic() < deadline:
+                time.sleep(0.001)
+            busy_until.append(time.monotonic_ns())
+
+    await src.run(sink)
+    st = src.status()["tracking"]
+    assert st["keypoint_sets"] == len(got) >= 10 and src.captured == N_FRAMES
+    stamps = [t for t, _ in got]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    assert any(arrival < busy_until[0] for _, arrival in got[1:])  # stamped by the capture thread, not on delivery
+    crossings = [name for name in wakeups if name in ("on_frame", "_deliver_tracked", "_resolve", "_drain")]
+    # The old code: one per frame, one per tracked set, one for the end (at least 90 + len(got) + 1).
+    assert len(crossings) < src.captured + len(got), (len(crossings), src.captured, len(got))

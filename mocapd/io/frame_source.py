@@ -3,7 +3,9 @@
 A source owns a :class:`~mocapd.pipeline.frame_ring.FrameRing` and one capture thread. The thread blocks in the
 device or decoder (both release the GIL), puts each frame once into the ring's next slot (raw, when the ring is
 lazy: the conversion is left to whoever reads the frame), publishes it and hands the
-:class:`~mocapd.pipeline.frame_ring.FrameRef` to the asyncio loop with ``call_soon_threadsafe``.
+:class:`~mocapd.pipeline.frame_ring.FrameRef` to the asyncio loop through the loop's
+:class:`~mocapd.io.loop_mailbox.LoopMailbox` (one wake-up of the loop for the frames of every camera that arrive
+while it is busy, not one each).
 
 A consumer that must see every frame at once, on the capture thread itself (the keypoint tracker), sets
 :attr:`ThreadedSource.frame_hook`: it is called there right after the frame is handed to the loop.
@@ -28,6 +30,7 @@ from numpy.typing import NDArray
 
 from mocapd.errors import DeviceError
 from mocapd.io.device_state import OpenState
+from mocapd.io.loop_mailbox import loop_mailbox
 from mocapd.io.os_threads import CAPTURE_THREAD, worker_thread_setup
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing
 
@@ -167,6 +170,7 @@ class ThreadedSource(abc.ABC):
     ) -> None:
         result: DeviceError | BaseException | None = None
         self.thread_id = threading.get_native_id()
+        mailbox = loop_mailbox(loop)
         try:
             self._open()
             self.ever_opened = True
@@ -178,7 +182,8 @@ class ThreadedSource(abc.ABC):
                 if ref is False:
                     break
                 if isinstance(ref, FrameRef):
-                    loop.call_soon_threadsafe(on_frame, ref)
+                    if not mailbox.post(on_frame, ref):
+                        break  # the loop closed (its tasks were not stopped first): nobody to hand frames to
                     hook = self.frame_hook
                     if hook is not None:
                         hook(ref)
@@ -197,8 +202,7 @@ class ThreadedSource(abc.ABC):
         finally:
             self.opened.clear()
             self._close()
-            if not loop.is_closed():
-                loop.call_soon_threadsafe(_resolve, done, result)
+            mailbox.post(_resolve, done, result)  # after this thread's frames (dropped once the loop is closed)
 
     async def run(self, on_frame: FrameCallback) -> None:
         """Capture until the source ends or the task is cancelled, reopening after failures.

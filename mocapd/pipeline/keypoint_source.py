@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from mocapd.core.sorting import Detections2D
 from mocapd.errors import InputError
 from mocapd.io.device_state import OpenState
+from mocapd.io.loop_mailbox import LoopMailbox, loop_mailbox
 from mocapd.pipeline.clocksync import ClockSync
 from mocapd.pipeline.frame_ring import FrameRef, FrameRing, image_gray
 from mocapd.pipeline.keypoint_tracker import KeypointTracker
@@ -148,7 +149,7 @@ class DetectorKeypointSource:
         self._last_sent_ns = -(2**62)  # stamp of the newest keypoint set sent (tracked, or a detection)
         self._last_frame_ns: tuple[int, int] | None = None  # (device, host) time of the last frame offered
         self._tokens = 0.0  # frames the tracker may take now (rate_hz token bucket)
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self._mailbox: LoopMailbox | None = None  # the loop's: tracked keypoints cross to it there
         self._sink: KeypointSink | None = None
         self._grays: dict[int, NDArray[np.uint8]] = {}  # gray images of the frames the detector took, by seq
         self._grays_lock = threading.Lock()
@@ -156,7 +157,7 @@ class DetectorKeypointSource:
     async def run(self, sink: KeypointSink) -> None:
         loop = asyncio.get_running_loop()
         wake = asyncio.Event()
-        self._loop, self._sink = loop, sink
+        self._mailbox, self._sink = loop_mailbox(loop), sink
         pool = self.tracking_pool
         in_capture = self.tracker is not None and pool is None and hasattr(self.frames, "frame_hook")
         if self.tracker is not None and pool is None and not in_capture:
@@ -261,8 +262,8 @@ class DetectorKeypointSource:
 
     def _track(self, ref: FrameRef) -> None:
         """Track frame ``ref`` (capture thread or tracking pool) and hand its keypoints to the event loop."""
-        tracker, loop = self.tracker, self._loop
-        assert tracker is not None and loop is not None
+        tracker, mailbox = self.tracker, self._mailbox
+        assert tracker is not None and mailbox is not None
         c0 = self._cpu()
         try:
             gray = self.frames.ring.gray(ref.seq, tracker.factor)
@@ -271,10 +272,11 @@ class DetectorKeypointSource:
                 return
             people = tracker.step(ref.seq, ref.host_ns, gray)
             self.tracking["frames"] += 1
-            if people is not None and not loop.is_closed():
+            if people is not None:
                 # Arrival = now, when the keypoints exist: the loop runs the queued delivery before any tick due
-                # later, so a stalled loop delays the ticks too and is no reason for a longer latency.
-                loop.call_soon_threadsafe(self._deliver_tracked, ref, people, self.clock())
+                # later, so a stalled loop delays the ticks too and is no reason for a longer latency. (Dropped
+                # once the loop is closed.)
+                mailbox.post(self._deliver_tracked, ref, people, self.clock())
         except (cv2.error, InputError):
             self.tracking["errors"] += 1
             log.exception("camera %s: tracking frame %d failed", self.name, ref.seq)

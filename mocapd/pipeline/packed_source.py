@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from mocapd.core.pose2d import PoseDetections
 from mocapd.core.sorting import Detections2D
+from mocapd.io.loop_mailbox import LoopMailbox, loop_mailbox
 from mocapd.pipeline.detection_mode import ModeChooser, PassCost
 from mocapd.pipeline.detector import OnnxPoseDetector
 from mocapd.pipeline.frame_ring import FrameRef
@@ -87,8 +88,8 @@ class PackedDetectionGroup:
     Each worker loops on its own thread with its own session: as soon as a pass ends it starts the next one if a
     camera no other pass holds has a frame it has not detected yet (waiting on the event loop to start a pass would
     leave the detector idle while the loop solves a tick), and otherwise sleeps until a camera captures one.
-    Results go to the event loop with ``call_soon_threadsafe``; each camera keeps its newest uncollected result (a
-    newer one replaces it, counted).
+    Results go to the event loop through its :class:`~mocapd.io.loop_mailbox.LoopMailbox`; each camera keeps its
+    newest uncollected result (a newer one replaces it, counted).
 
     With a :class:`~mocapd.pipeline.detection_mode.ModeChooser` (``[detector.packing] enabled = "auto"``) each
     pass is either packed (the newest frames of the cameras that share a canvas, see :meth:`_packed_pass`) or
@@ -150,7 +151,7 @@ class PackedDetectionGroup:
         self._held: set[int] = set()  # cameras of the passes in flight
         self._in_flight = 0
         self._stop = False
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self._mailbox: LoopMailbox | None = None  # the event loop's: results cross to it there
         self._workers: list[Future[None]] = []
         #: the share of wall time each worker may spend in passes (the governor's; 1: passes back to back). A
         #: worker rests ``pass × (1/duty − 1)`` after each pass: on a machine (or a CPU budget) too small for
@@ -169,7 +170,7 @@ class PackedDetectionGroup:
     def poke(self) -> None:
         """A camera captured a frame (on the event loop): wake the workers, starting them the first time."""
         if not self._workers and not self._stop:
-            self._loop = asyncio.get_running_loop()
+            self._mailbox = loop_mailbox(asyncio.get_running_loop())
             self._workers = [self.executor.submit(self._work, i) for i in range(len(self.sessions))]
         with self._cond:
             self._cond.notify_all()
@@ -215,13 +216,13 @@ class PackedDetectionGroup:
                     self._held.difference_update(plan.cameras)
                     self._in_flight -= 1
                     self._cond.notify_all()  # its cameras are free again, and more frames came meanwhile
-            loop = self._loop
+            mailbox = self._mailbox
             done = self.clock()
             if found:
                 for cam in found:
                     self._detected_ns[cam] = done
-            if found and loop is not None and not loop.is_closed():
-                loop.call_soon_threadsafe(self._deliver, found)
+            if found and mailbox is not None:
+                mailbox.post(self._deliver, found)  # dropped once the loop is closed
             self._rest(done - t0)
 
     def _rest(self, took_ns: int) -> None:

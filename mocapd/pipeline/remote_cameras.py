@@ -63,6 +63,7 @@ import zenoh
 from mocapd.core.clock_offset import ClockOffsetEstimator
 from mocapd.errors import DeviceError, MocapdError
 from mocapd.io.device_state import OpenState
+from mocapd.io.loop_mailbox import loop_mailbox
 from mocapd.io.zenoh_link import (
     ZenohConfig,
     clock_key,
@@ -409,12 +410,12 @@ class ZenohKeypointSource:
     async def run(self, sink: KeypointSink) -> None:
         loop = asyncio.get_running_loop()
         session = await loop.run_in_executor(None, self.rig.start)
+        mailbox = loop_mailbox(loop)  # the frames of every camera that arrive while the loop is busy: one wake-up
 
         def on_sample(sample: zenoh.Sample) -> None:  # a Zenoh thread: stamp now, hand over to the loop
             arrival = self.clock()
             data = sample.payload.to_bytes()
-            with contextlib.suppress(RuntimeError):  # the loop closed: the daemon is gone
-                loop.call_soon_threadsafe(self.receive, sink, data, arrival)
+            mailbox.post(self.receive, sink, data, arrival)  # dropped once the loop is closed: the daemon is gone
 
         try:
             subscriber = session.declare_subscriber(detections_key(self.rig.z.rig, self.name), on_sample)
