@@ -56,6 +56,11 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 * ``collapse``: :func:`~mocapd.core.lr_collapse.collapsed_pairs` per person solve (a walking person seen by 4
   cameras, one view with the right arm put on the left one, the previous pose given), the revision's module.
 
+* ``triangulate``: :func:`~mocapd.core.camera.weighted_dlt_rows` (4 cameras, 17 points: a left-out check's) and
+  :func:`~mocapd.core.camera.triangulate_arrays` of 4 points (two candidates of the collapse check) and of 17 by the
+  normal equations (a camera watch screen's), per call, the revision's camera module; ``collapse`` then runs the
+  revision's collapse check with the revision's triangulation.
+
 * ``validate``: :class:`~mocapd.core.observations.ValidatedObservations` per person solve (4 cameras' 17 keypoints,
   no IMU: the camera rig's), the revision's module.
 
@@ -552,6 +557,9 @@ def bench_collapse(rev: str, rounds: int) -> dict[str, Any]:
     from mocapd.core.synthetic import moving_sequence, ring_rig
 
     old = module_at(rev, "mocapd/core/lr_collapse.py", "_old_lr_collapse")
+    old_camera = module_at(rev, "mocapd/core/camera.py", "_old_camera")
+    if "triangulate_arrays" in old.__dict__:  # the revision's triangulation with the revision's collapse check
+        old.__dict__["triangulate_arrays"] = old_camera.triangulate_arrays
     sk = Skeleton.from_height(1.75)
     kin, targets = Kinematics(sk), coco17_targets(sk)
     cams = ring_rig(4, radius=4.5)
@@ -574,6 +582,42 @@ def bench_collapse(rev: str, rounds: int) -> dict[str, Any]:
         return run
 
     return {"collapsed_pairs": alternate({"old": collapse(old), "new": collapse(new)}, rounds)}
+
+
+def bench_triangulate(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core import camera as new
+    from mocapd.core.synthetic import ring_rig
+
+    old = module_at(rev, "mocapd/core/camera.py", "_old_camera")
+    cams = ring_rig(4, radius=4.5)
+    P = np.stack([c.projection_matrix for c in cams])
+    rng = np.random.default_rng(0)
+    X = rng.normal(0.0, 0.5, (17, 3)) + np.array([0.0, 1.0, 0.0])
+    h = P[:, None, :, :3] @ X[None, :, :, None] + P[:, None, :, 3:]
+    uv = h[..., :2, 0] / h[..., 2:, 0] + rng.normal(0.0, 1.0, (4, 17, 2))
+    w = rng.uniform(0.3, 1.0, (4, 17))
+    w[1, 2:6] = 0.0
+    few = (uv[:, :4], np.where(np.arange(4)[:, None] == 1, 0.0, w[:, :4]))  # the collapse check's 2 candidates
+
+    def per_call(fn: Callable[[], Any]) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(300):
+                fn()
+            return (time.thread_time() - t0) / 300
+
+        return run
+
+    def tri(mod: ModuleType, u: Any, ww: Any, normal: bool = False) -> Callable[[], float]:
+        return per_call(lambda: mod.triangulate_arrays(P, u, ww, 3 if normal else 2, normal_equations=normal))
+
+    return {
+        "weighted_dlt_rows_17": alternate({"old": per_call(lambda: old.weighted_dlt_rows(P, uv, w)),
+                                           "new": per_call(lambda: new.weighted_dlt_rows(P, uv, w))}, rounds),
+        "triangulate_arrays_4": alternate({"old": tri(old, *few), "new": tri(new, *few)}, rounds),
+        "triangulate_arrays_17_normal": alternate({"old": tri(old, uv, w, True), "new": tri(new, uv, w, True)},
+                                                  rounds),
+    }  # fmt: skip
 
 
 def bench_validate(rev: str, rounds: int) -> dict[str, Any]:
@@ -726,7 +770,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate,sim,frames,plausibility,track",
+        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,triangulate,validate,sim,frames,plausibility,track",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -745,6 +789,8 @@ def main() -> None:
         report.update(bench_sample(args.rev, args.rounds))
     if "collapse" in only:
         report.update(bench_collapse(args.rev, args.rounds))
+    if "triangulate" in only:
+        report.update(bench_triangulate(args.rev, args.rounds))
     if "validate" in only:
         report.update(bench_validate(args.rev, args.rounds))
     if "plausibility" in only:
