@@ -61,6 +61,10 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   normal equations (a camera watch screen's), per call, the revision's camera module; ``collapse`` then runs the
   revision's collapse check with the revision's triangulation.
 
+* ``solve``: :meth:`~mocapd.core.solver.PoseSolver.solve` per call, a walking person seen by 4 cameras (no IMU: the
+  camera rig's, the compiled LM loop), the revision's solver with the revision's observations and rotations; its
+  glue alone: ``push_history`` (the IMU sites of a camera-only person) and ``principal_pose``.
+
 * ``validate``: :class:`~mocapd.core.observations.ValidatedObservations` per person solve (4 cameras' 17 keypoints,
   no IMU: the camera rig's), the revision's module.
 
@@ -620,6 +624,61 @@ def bench_triangulate(rev: str, rounds: int) -> dict[str, Any]:
     }  # fmt: skip
 
 
+def bench_solve(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core import solver as new
+    from mocapd.core.keypoints import coco17_targets
+    from mocapd.core.kinematics import Kinematics
+    from mocapd.core.skeleton import Skeleton
+    from mocapd.core.synthetic import moving_sequence, ring_rig
+
+    old = module_at(rev, "mocapd/core/solver.py", "_old_solver")
+    old_obs = module_at(rev, "mocapd/core/observations.py", "_old_observations")
+    old_rot = module_at(rev, "mocapd/core/rotations.py", "_old_rotations")
+    old.__dict__.update(ValidatedObservations=old_obs.ValidatedObservations, rotvec_principal=old_rot.rotvec_principal)
+    sk = Skeleton.from_height(1.75)
+    kin, targets = Kinematics(sk), coco17_targets(sk)
+    cams = ring_rig(4, radius=4.5)
+    rng = np.random.default_rng(0)
+    thetas = moving_sequence(sk, 120, seed=3)
+    frames = []
+    for th in thetas:
+        X = kin.targets(kin.forward(th), targets.bones, targets.offsets)
+        uv = np.stack([c.project(X) for c in cams]) + rng.normal(0.0, 1.0, (4, 17, 2))
+        frames.append(new.Observations(keypoints=uv, confidences=np.full((4, 17), 0.9), dt=1 / 30))
+
+    def solve(mod: ModuleType) -> Callable[[], float]:
+        s = mod.PoseSolver(sk, cams, targets)
+        s.reset(thetas[0])
+
+        def run() -> float:
+            s.reset(thetas[0])
+            t0 = time.thread_time()
+            for obs in frames:
+                s.solve(obs)
+            return (time.thread_time() - t0) / len(frames)
+
+        return run
+
+    def glue(mod: ModuleType, fn: str) -> Callable[[], float]:
+        s = mod.PoseSolver(sk, cams, targets)
+        theta = thetas[5]
+        call = {"imu_sites": lambda: s.push_history(theta), "principal_pose": lambda: mod.principal_pose(theta)}[fn]
+
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(500):
+                call()
+            return (time.thread_time() - t0) / 500
+
+        return run
+
+    return {
+        "pose_solver_solve_cameras": alternate({"old": solve(old), "new": solve(new)}, rounds),
+        "push_history_cameras": alternate({"old": glue(old, "imu_sites"), "new": glue(new, "imu_sites")}, rounds),
+        "principal_pose": alternate({"old": glue(old, "principal_pose"), "new": glue(new, "principal_pose")}, rounds),
+    }
+
+
 def bench_validate(rev: str, rounds: int) -> dict[str, Any]:
     from mocapd.core import observations as new
 
@@ -770,7 +829,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,triangulate,validate,sim,frames,plausibility,track",
+        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,triangulate,solve,validate,sim,frames,plausibility,track",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -791,6 +850,8 @@ def main() -> None:
         report.update(bench_collapse(args.rev, args.rounds))
     if "triangulate" in only:
         report.update(bench_triangulate(args.rev, args.rounds))
+    if "solve" in only:
+        report.update(bench_solve(args.rev, args.rounds))
     if "validate" in only:
         report.update(bench_validate(args.rev, args.rounds))
     if "plausibility" in only:
