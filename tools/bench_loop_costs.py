@@ -10,7 +10,8 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 * ``watch``: :class:`~mocapd.core.camera_watch.CameraWatch` over 20 s of two people at 60 solves a second (a
   check 10 times a second), per ``observe`` call; ``screen``: the same with each person named as the daemon names
   them (their solves screened ``screen_hz`` times a second) against the revision's, and the working tree's at
-  screening rates of 60 to 10 Hz (median of a third of the rounds, µs per call); ``levels``: its per-check
+  screening rates of 60 to 10 Hz (median of a third of the rounds, µs per call); ``people``: both sides with
+  the people named; ``levels``: its per-check
   ``_levels`` alone; ``left_out``,
   ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments;
   ``pool``: a check's people pooled per camera (``np.nanmedian`` of 2 people x 4 cameras before, per check).
@@ -140,6 +141,10 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
     from mocapd.core import camera_watch as new
 
     old = module_at(rev, "mocapd/core/camera_watch.py", "_old_camera_watch")
+    old_camera = module_at(rev, "mocapd/core/camera.py", "_old_camera")
+    for name in ("triangulate_projections", "triangulate_arrays", "weighted_dlt_rows", "dehomogenized"):
+        if name in old.__dict__:  # the revision's watch with the revision's triangulation
+            old.__dict__[name] = getattr(old_camera, name)
     truth, moments = _watch_take(20.0)
     out: dict[str, Any] = {}
 
@@ -213,6 +218,8 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
         out["watch_observe_by_screen_hz"] = {
             k: round(1e6 * float(np.median([run() for _ in range(max(rounds // 3, 3))])), 2) for k, run in rates.items()
         }
+    if "people" in only:  # both sides as the daemon calls them now (each person named)
+        out["watch_observe_named"] = alternate({"old": observe_all(old, True), "new": observe_all(new, True)}, rounds)
     if "levels" in only:
         out["watch_levels"] = alternate({"old": levels(old), "new": levels(new)}, rounds)
     return out

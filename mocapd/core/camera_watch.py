@@ -64,7 +64,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.camera import Camera, dehomogenized, triangulate_projections, weighted_dlt_rows
+from mocapd.core.camera import Camera, dehomogenized, triangulate_arrays, weighted_dlt_rows
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -310,10 +310,14 @@ def residuals_left_out(
         if m < min_keypoints:
             matches.append((np.zeros((0, 3)), np.zeros((0, 2))))
             continue
-        h = np.concatenate((X[ok], np.ones((m, 1))), axis=1) @ P[c].T
+        Xh = np.empty((m, 4))  # [X, 1] row by row: the array np.concatenate made, without its temporaries
+        Xh[:, :3] = X[ok]
+        Xh[:, 3] = 1.0
+        h = Xh @ P[c].T
         front = h[:, 2] > 1e-9
-        proj = h[:, :2] / np.where(front, h[:, 2], 1.0)[:, None]
-        errs[c, :m] = np.where(front, np.linalg.norm(proj - uv[c, ok], axis=1), np.inf)
+        d = h[:, :2] / np.where(front, h[:, 2], 1.0)[:, None] - uv[c, ok]
+        # np.linalg.norm's sum of squares (the same floats) without its wrapper
+        errs[c, :m] = np.where(front, np.sqrt(np.add.reduce(d * d, axis=1)), np.inf)
         measured[c, :m] = True
         matches.append((X[ok][front], uv[c, ok][front]))
     rows = measured.any(axis=1)
@@ -389,10 +393,13 @@ def residuals_all_in(
     residual : array, shape (n_cams,)
         NaN where the camera sees fewer than ``min_keypoints`` of those keypoints.
     """
-    w = np.where((conf >= min_confidence) & np.all(np.isfinite(uv), axis=-1), conf, 0.0)
+    P = np.asarray(P, dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64)
+    w = np.where((conf >= min_confidence) & np.isfinite(uv).all(axis=-1), conf, 0.0)
     out = np.full(P.shape[0], np.nan)
-    X, ok = triangulate_projections(P, uv, w, min_views=3, normal_equations=True)
-    if ok.sum() < min_keypoints:
+    # triangulate_projections' work without its checks (the watch's own arrays, of its shapes): every screen
+    X, ok = triangulate_arrays(P, uv, w, 3, normal_equations=True)
+    if np.count_nonzero(ok) < min_keypoints:
         return out
     h = P[:, None, :, :3] @ X[ok][None, :, :, None] + P[:, None, :, 3:]  # (n_cams, n_ok, 3, 1)
     front = h[..., 2, 0] > 1e-9
@@ -425,7 +432,7 @@ def row_medians(values: FloatArray, use: NDArray[np.bool_]) -> FloatArray:
     lo = srt[rows, np.maximum(n // 2 - 1, 0)]
     out: FloatArray = np.where(n % 2 == 1, hi, (lo + hi) / 2.0)
     out[n == 0] = np.nan  # np.median of nothing
-    for i in np.flatnonzero(np.isnan(np.where(use, values, 0.0)).any(axis=1)):
+    for i in np.flatnonzero(np.isnan(srt[:, -1])):  # a used NaN sorts last, past the infinite padding
         out[i] = float(np.median(values[i, use[i]]))
     return out
 
@@ -494,8 +501,8 @@ def _level_spread(t: NDArray[np.int64], r: FloatArray, split_ns: int, window_s: 
     stretch = (split_ns - t) // round(window_s * 1e9)
     order = np.lexsort((r, stretch))  # by stretch, then by value within it
     stretch, r = stretch[order], r[order]
-    starts = np.flatnonzero(np.r_[True, stretch[1:] != stretch[:-1]])
-    counts = np.diff(np.r_[starts, len(stretch)])
+    starts = np.flatnonzero(np.concatenate(([True], stretch[1:] != stretch[:-1])))  # np.r_'s arrays, not its parser
+    counts = np.diff(np.concatenate((starts, [len(stretch)])))
     starts, counts = starts[counts >= 3], counts[counts >= 3]
     if len(starts) < 3:
         return float("nan")
