@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core import _collapse_kernel
 from mocapd.core.camera import triangulate_arrays
 from mocapd.errors import InputError
 
@@ -86,13 +87,16 @@ def collapsed_pairs(
     out = np.zeros((n_cams, len(pairs)), dtype=bool)
     if not o.enabled or not pairs:
         return out
-    ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
-    size = view_sizes(uv, ok, o.min_keypoints)
     lr = _pair_index(tuple(pairs))  # (n_pairs, 2)
-    both = ok[:, lr[:, 0]] & ok[:, lr[:, 1]] & (size[:, None] > 0)  # (n_cams, n_pairs)
-    candidate = both & (pair_gaps(uv, lr) < o.collapsed * size[:, None])
-    if not candidate.any():
-        return out  # the common case: nothing to check, no triangulation
+    # The keypoints taking part, each view's size (view_sizes) and the candidates (both keypoints in, a size, a gap
+    # (pair_gaps) under `collapsed` of it), in one compiled call: the same arithmetic as those NumPy references
+    ok = np.empty(conf.shape, dtype=bool)
+    size = np.empty(n_cams)
+    candidate = np.empty(out.shape, dtype=bool)
+    if not _collapse_kernel.screen(np.ascontiguousarray(uv), np.ascontiguousarray(conf), lr[:, 0], lr[:, 1],
+                                   float(o.min_confidence), int(o.min_keypoints), float(o.collapsed), ok, size,
+                                   candidate):  # fmt: skip
+        return out  # nothing to check, no triangulation
     views, which = np.nonzero(candidate)
     sep = expected_gaps(P, uv, conf, ok, candidate, lr, views, which, reference)
     out[views, which] = np.isfinite(sep) & (sep >= o.apart * size[views])
@@ -101,8 +105,9 @@ def collapsed_pairs(
 
 @functools.lru_cache(maxsize=16)
 def _pair_index(pairs: tuple[tuple[int, int], ...]) -> NDArray[np.intp]:
-    """The pairs as an index array (n_pairs, 2), made once per pair list (every person solve asks); read-only."""
-    lr = np.array(pairs, dtype=np.intp).reshape(-1, 2)
+    """The pairs as an index array (n_pairs, 2), made once per pair list (every person solve asks); read-only,
+    Fortran-ordered (its two columns contiguous: the compiled screen's left and right)."""
+    lr = np.asfortranarray(np.array(pairs, dtype=np.intp).reshape(-1, 2))
     lr.flags.writeable = False
     return lr
 
