@@ -26,6 +26,10 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   take (two people walking, detector-like noise and limb swaps), with no previous pose; the candidates (view and
   pair) a call checks are reported beside it.
 
+* ``nearest``: the tracker's other-views check of one camera (``tracking._nearest_is``: a subject's keypoints
+  projected and compared with a view's people) per call, the demo's people seen by 4 distorted cameras, the
+  revision's tracking module.
+
 * ``sim``: :meth:`~mocapd.sim.xsens.SimDevice.next_message` per message, the simulated suit's stored outputs
   (packet counter, fine sample time, quaternion, acceleration at 100 Hz), the motion's packets cached.
 
@@ -785,6 +789,35 @@ def bench_track(rev: str, rounds: int) -> dict[str, Any]:
                                          "new": update(new_sorting, new_tracking)}, rounds)}  # fmt: skip
 
 
+def bench_nearest(rev: str, rounds: int) -> dict[str, Any]:
+    import dataclasses
+
+    from mocapd.core import tracking as new
+    from mocapd.core.sorting import DetectionSorter
+    from mocapd.service.config import load_config
+    from mocapd.sim.world import SyntheticWorld
+
+    old = module_at(rev, "mocapd/core/tracking.py", "_old_tracking")
+    syn = load_config().synthetic
+    world = SyntheticWorld(4, syn.people, 0, seed=syn.seed, motion=syn.motion)
+    cams = [dataclasses.replace(c, dist=np.array([-0.21, 0.08, 0.0012, -0.0007, -0.012])) for c in world.cameras]
+    partner = DetectionSorter(cams)._partner(17)
+    rng = np.random.default_rng(0)
+    calls = [(cams[k % 4], world.sites_at(0, k / 60.0), world.detections(k % 4, k / 60.0, rng, syn.noise_px))
+             for k in range(200)]  # fmt: skip
+
+    def nearest(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for cam, points, dets in calls:
+                mod._nearest_is(cam, points, dets, 0, partner, 0.3)
+            return (time.thread_time() - t0) / len(calls)
+
+        return run
+
+    return {"tracker_nearest_is": alternate({"old": nearest(old), "new": nearest(new)}, rounds)}
+
+
 def bench_sim(rev: str, rounds: int) -> dict[str, Any]:
     from mocapd.sim import xsens as new
 
@@ -836,7 +869,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,triangulate,solve,validate,sim,frames,plausibility,track",
+        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,triangulate,solve,validate,sim,frames,plausibility,track,nearest",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -865,6 +898,8 @@ def main() -> None:
         report.update(bench_plausibility(args.rev, args.rounds))
     if "track" in only:
         report.update(bench_track(args.rev, args.rounds))
+    if "nearest" in only:
+        report.update(bench_nearest(args.rev, args.rounds))
     if "sim" in only:
         report.update(bench_sim(args.rev, args.rounds))
     if "frames" in only:

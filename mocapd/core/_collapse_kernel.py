@@ -68,9 +68,3 @@ def screen(
             candidate[c, p] = is_candidate
             found = found or is_candidate
     return found
-
-
-def warm_up() -> None:
-    """Compile (or load from numba's cache) before the first live call."""
-    screen(np.zeros((2, 4, 2)), np.ones((2, 4)), np.zeros(1, dtype=np.intp), np.ones(1, dtype=np.intp), 0.3, 4, 0.15,
-           np.zeros((2, 4), dtype=np.bool_), np.zeros(2), np.zeros((2, 1), dtype=np.bool_))  # fmt: skip
