@@ -673,7 +673,11 @@ def bench_solve(rev: str, rounds: int) -> dict[str, Any]:
     def glue(mod: ModuleType, fn: str) -> Callable[[], float]:
         s = mod.PoseSolver(sk, cams, targets)
         theta = thetas[5]
-        call = {"imu_sites": lambda: s.push_history(theta), "principal_pose": lambda: mod.principal_pose(theta)}[fn]
+        calls: dict[str, Callable[[], Any]] = {
+            "imu_sites": lambda: s.push_history(theta),
+            "principal_pose": lambda: mod.principal_pose(theta),
+        }
+        call = calls[fn]
 
         def run() -> float:
             t0 = time.thread_time()
