@@ -13,7 +13,8 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
   screening rates of 60 to 10 Hz (median of a third of the rounds, µs per call); ``people``: both sides with
   the people named; ``levels``: its per-check
   ``_levels`` alone; ``left_out``,
-  ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments;
+  ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments,
+  and ``residuals_left_out`` of people roughed up (40 % of the keypoints unseen or under the confidence floor);
   ``pool``: a check's people pooled per camera (``np.nanmedian`` of 2 people x 4 cameras before, per check).
 * ``mtdata2``: :func:`~mocapd.protocols.mtdata2.decode_mtdata2` per message, on an MTw-like stream (packet
   counter, sample time, quaternion, acceleration: the simulated suit's) and on the real MTi captures in
@@ -193,6 +194,21 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
         out["residuals_left_out"] = alternate(
             {"old": per_moment(old.residuals_left_out), "new": per_moment(new.residuals_left_out)}, rounds
         )
+    if "left_out" in only:  # people roughed up (tests/test_camera_watch_bitwise: keypoints unseen, under the floor)
+        from tests.test_camera_watch_bitwise import _people
+
+        rough = _people(4, seed=4)
+
+        def left_out_rough(mod: ModuleType) -> Callable[[], float]:
+            def run() -> float:
+                t0 = time.thread_time()
+                for P, uv, cf in rough:
+                    mod.residuals_left_out(P, uv, cf, min_confidence=0.3, min_keypoints=6)
+                return (time.thread_time() - t0) / len(rough)
+
+            return run
+
+        out["residuals_left_out_rough"] = alternate({"old": left_out_rough(old), "new": left_out_rough(new)}, rounds)
     if "all_in" in only:
         out["residuals_all_in"] = alternate(
             {"old": per_moment(old.residuals_all_in), "new": per_moment(new.residuals_all_in)}, rounds

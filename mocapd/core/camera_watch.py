@@ -294,7 +294,9 @@ def residuals_left_out(
     w = np.where((conf >= min_confidence) & np.all(np.isfinite(uv), axis=-1), conf, 0.0)
     out = np.full(n_cams, np.nan)
     matches: list[tuple[FloatArray, FloatArray]] = []
-    X_left, ok_left = triangulate_left_out(P, uv, w) if n_cams >= 3 else (None, None)
+    # Only the keypoints each camera measured: the others' points are not used (fewer SVDs where a view misses
+    # keypoints, the same points where it does not)
+    X_left, ok_left = triangulate_left_out(P, uv, w, w > 0) if n_cams >= 3 else (None, None)
     # Each camera's errors in a row of its own (the keypoints it measured marked), their medians from one sort
     # (row_medians: np.median's to the bit); the homogeneous points built by concatenation, not np.c_ (the same
     # array, without its index machinery): the check runs 10 times a second per person on the event loop.
@@ -326,7 +328,9 @@ def residuals_left_out(
     return out, matches
 
 
-def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+def triangulate_left_out(
+    P: FloatArray, uv: FloatArray, weights: FloatArray, need: NDArray[np.bool_] | None = None
+) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Per camera, the points triangulated from the *other* cameras: what
     :func:`~mocapd.core.camera.triangulate_projections` gives for ``P[others], uv[others], weights[others]``
     (two views or more), to the bit, for every camera in one SVD call instead of one call each.
@@ -341,6 +345,9 @@ def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> 
     P : array, shape (n_cams, 3, 4)
     uv : array, shape (n_cams, n_pts, 2)
     weights : array, shape (n_cams, n_pts)
+    need : bool array, shape (n_cams, n_pts), optional
+        Only these points are triangulated (the others NaN, not ok): each system is solved on its own, so the
+        points solved are the same floats as without it.
 
     Returns
     -------
@@ -356,6 +363,8 @@ def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> 
     A_left = A[:, _left_out_rows(n_cams)].transpose(1, 0, 2, 3)  # (n_cams, n_pts, 2 n - 2, 4)
     views = np.sum(w > 0, axis=0)
     ok = (views[None, :] - (w > 0)) >= 2  # seen by two of the others
+    if need is not None:
+        ok &= need
     X = np.full((n_cams, n_pts, 3), np.nan)
     if np.any(ok):
         X[ok] = dehomogenized(np.linalg.svd(A_left[ok])[2][:, -1, :])
