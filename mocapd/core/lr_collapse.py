@@ -170,7 +170,10 @@ def expected_gaps(
     pair = lr[which]  # (n, 2) keypoint indices
     others = ~candidate[:, which].T & ok[:, pair].all(axis=2).T  # (n, n_cams): views that see both, not collapsing
     others[np.arange(n), views] = False
-    X = np.full((n, 2, 3), np.nan)
+    # Each candidate's two points where known (rows of X not known are never read): triangulated points are
+    # finite (triangulate_arrays' ok), the previous pose's are taken only where finite
+    X = np.empty((n, 2, 3))
+    known = np.zeros(n, dtype=bool)
     by_views = np.count_nonzero(others, axis=1) >= 2
     if by_views.any():
         k = np.flatnonzero(by_views)
@@ -181,18 +184,20 @@ def expected_gaps(
         pts, good = triangulate_arrays(P, uv_k, w_k)
         both_good = good.reshape(-1, 2).all(axis=1)
         X[k[both_good]] = pts.reshape(-1, 2, 3)[both_good]
+        known[k[both_good]] = True
     if reference is not None:
-        fall_back = np.isnan(X).any(axis=(1, 2)) & np.isfinite(reference[pair]).all(axis=(1, 2))
+        fall_back = ~known & np.isfinite(reference[pair]).all(axis=(1, 2))
         X[fall_back] = reference[pair[fall_back]]
+        known |= fall_back
     sep = np.full(n, np.nan)
-    known = np.flatnonzero(~np.isnan(X).any(axis=(1, 2)))
-    Pv = P[views[known]]
-    h = Pv[:, :, :3] @ X[known].transpose(0, 2, 1) + Pv[:, :, 3:4]  # (known, 3, 2)
-    front = ~np.any(h[:, 2] <= 1e-6, axis=1)
+    known_at = np.flatnonzero(known)
+    Pv = P[views[known_at]]
+    h = Pv[:, :, :3] @ X[known_at].transpose(0, 2, 1) + Pv[:, :, 3:4]  # (known, 3, 2)
+    front = ~(h[:, 2] <= 1e-6).any(axis=1)
     px = h[front, :2] / h[front, 2:3]
     d = px[:, :, 0] - px[:, :, 1]
     # the norm of a vector as np.linalg.norm takes it: sqrt of its dot product with itself (a dot per candidate)
-    sep[known[front]] = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])
+    sep[known_at[front]] = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])
     return sep
 
 
