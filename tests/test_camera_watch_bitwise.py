@@ -234,6 +234,23 @@ def test_the_left_out_triangulations_are_each_cameras_own_call_to_the_bit() -> N
     assert compared > 1500
 
 
+def test_the_left_out_points_needed_are_those_of_the_whole_call_to_the_bit() -> None:
+    """``triangulate_left_out`` with ``need`` (the residuals' own keypoints, or any mask) solves only those systems:
+    the points it solves are the whole call's, bit for bit, and the others are NaN and not ok."""
+    solved = 0
+    for n_cams in (3, 4, 6):
+        rng = np.random.default_rng(20 + n_cams)
+        for P, uv, cf in _people(n_cams, seed=20 + n_cams):
+            w = np.where((cf >= 0.3) & np.all(np.isfinite(uv), axis=-1), cf, 0.0)
+            X, ok = triangulate_left_out(P, uv, w)
+            for need in (w > 0, rng.random(w.shape) < 0.5):
+                X_n, ok_n = triangulate_left_out(P, uv, w, need)
+                assert np.array_equal(ok_n, ok & need)
+                assert X_n[ok_n].tobytes() == X[ok_n].tobytes() and np.isnan(X_n[~(ok & need)]).all()
+                solved += int(ok_n.sum())
+    assert solved > 5000
+
+
 def test_the_all_in_residuals_are_the_per_camera_medians_to_the_bit() -> None:
     """On 3 to 6 cameras, roughed-up people, any ``min_keypoints`` (0: cameras that see nothing get NaN)."""
     compared = 0

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core import _collapse_kernel
 from mocapd.core.camera import triangulate_projections
 from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
@@ -127,3 +128,59 @@ def test_the_pairs_gaps_are_numpys_norms_to_the_bit() -> None:
             with np.errstate(invalid="ignore"):  # inf - inf is NaN in both, as in numpy's norm
                 old = np.linalg.norm(uv[:, pairs[:, 0]] - uv[:, pairs[:, 1]], axis=-1)
                 assert pair_gaps(uv, pairs).tobytes() == old.tobytes()
+
+
+def numpy_screen(
+    uv: FloatArray, conf: FloatArray, lr: NDArray[np.intp], o: CollapseOptions
+) -> tuple[BoolArray, FloatArray, BoolArray]:
+    """``collapsed_pairs``' screen before the compiled one (issue 39, eighth session), verbatim: ok keypoints,
+    sizes, candidates."""
+    ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
+    size = view_sizes(uv, ok, o.min_keypoints)
+    both = ok[:, lr[:, 0]] & ok[:, lr[:, 1]] & (size[:, None] > 0)  # (n_cams, n_pairs)
+    candidate = both & (pair_gaps(uv, lr) < o.collapsed * size[:, None])
+    return ok, size, candidate
+
+
+def test_the_compiled_screen_is_the_numpy_one_to_the_bit() -> None:
+    """The compiled screen gives the NumPy screen's keypoint mask, sizes and candidates on 2 to 8 views of pixels of
+    every scale, with NaN and infinite pixels and confidences, confidences at the threshold, views of fewer keypoints
+    than a size needs or all on one pixel (size 0), gaps near the limit, COCO-17's pairs and overlapping others, and
+    every option's edge; and the whole check then decides as the NumPy screen's check did."""
+    rng = np.random.default_rng(12)
+    compared = candidates = 0
+    for trial in range(3000):
+        n_cams, n_kp = int(rng.integers(2, 9)), int(rng.choice([5, 17, 26]))
+        scale = float(rng.choice([1e-3, 1.0, 640.0, 1e5]))
+        uv = rng.normal(0.0, scale, (n_cams, n_kp, 2))
+        conf = rng.uniform(0.0, 1.0, (n_cams, n_kp))
+        o = CollapseOptions(min_confidence=float(rng.choice([0.0, 0.3, 0.9])),
+                            collapsed=float(rng.choice([0.15, 0.6, 2.0])),
+                            min_keypoints=int(rng.choice([0, 1, 4, 9])))  # fmt: skip
+        conf[rng.random(conf.shape) < 0.1] = o.min_confidence  # at the threshold: in
+        conf[rng.random(conf.shape) < 0.03] = np.nan
+        conf[rng.random(conf.shape) < 0.02] = np.inf
+        uv[rng.random(uv.shape) < 0.03] = np.nan
+        uv[rng.random(uv.shape) < 0.02] = -np.inf
+        if trial % 7 == 0:
+            uv[0] = uv[0, 0]  # every keypoint on one pixel: size 0
+        pairs = np.array(COCO17_LR_PAIRS, dtype=np.intp) if n_kp == 17 and trial % 2 else rng.integers(0, n_kp, (6, 2))
+        if trial % 5 == 0:  # the right keypoint near the limit from the left one
+            size = view_sizes(uv, (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1), o.min_keypoints)
+            step = o.collapsed * size[:, None] * rng.choice([1.0, 1 - 2e-16, 1 + 2e-16], (n_cams, len(pairs)))
+            step = np.where(np.isfinite(step), step, 0.0)
+            angle = rng.uniform(0.0, 2 * np.pi, step.shape)  # on a slant: the sum of squares rounds
+            uv[:, pairs[:, 1], 0] = uv[:, pairs[:, 0], 0] + step * np.cos(angle)
+            uv[:, pairs[:, 1], 1] = uv[:, pairs[:, 0], 1] + step * np.sin(angle)
+        with np.errstate(invalid="ignore"):
+            want = numpy_screen(uv, conf, pairs, o)
+        lr = np.asfortranarray(pairs)
+        got = (np.empty(conf.shape, dtype=bool), np.empty(n_cams), np.empty(want[2].shape, dtype=bool))
+        found = _collapse_kernel.screen(uv, conf, lr[:, 0], lr[:, 1], o.min_confidence, o.min_keypoints, o.collapsed,
+                                        *got)  # fmt: skip
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[2], want[2])
+        assert got[1].tobytes() == want[1].tobytes()
+        assert found == bool(want[2].any())
+        compared += 1
+        candidates += int(want[2].sum())
+    assert compared == 3000 and candidates > 1000

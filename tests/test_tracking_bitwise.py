@@ -10,13 +10,14 @@ back."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core import _sorting_kernel
 from mocapd.core.assignment import linear_sum_assignment
-from mocapd.core.camera import MIN_DEPTH
+from mocapd.core.camera import MIN_DEPTH, Camera
 from mocapd.core.lr_flips import COCO17_LR_PAIRS, lr_pairs
 from mocapd.core.sorting import Candidate, Detections2D, DetectionSorter, mean_keypoint_distance
 from mocapd.core.tracking import (
@@ -120,6 +121,30 @@ class OldSorter(DetectionSorter):
         return out
 
 
+def old_nearest_is(
+    camera: Camera,
+    points: FloatArray,
+    detections: Detections2D,
+    person: int,
+    partner: NDArray[np.int64],
+    min_confidence: float,
+) -> bool | None:
+    """``tracking._nearest_is`` before the eighth session (``np.nanmedian``), verbatim."""
+    uv = camera.project(points)
+    inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width)
+    inside &= (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    if inside.sum() < 5:
+        return None
+    kp, cf = detections.keypoints, detections.confidences
+    d = np.minimum(np.linalg.norm(kp - uv, axis=-1), np.linalg.norm(kp - uv[partner], axis=-1))  # (n_people, n_kp)
+    d = np.where(inside & (cf >= min_confidence) & np.isfinite(d), d, np.nan)
+    ok = np.isfinite(d).sum(axis=1) >= 5
+    if not ok[person]:
+        return None
+    med = np.where(ok, np.nanmedian(np.where(ok[:, None], d, 0.0), axis=1), np.inf)
+    return bool(int(np.argmin(med)) == person)
+
+
 class OldTracker(SubjectTracker):
     """``SubjectTracker`` before issue 39: the methods that read distances and centres, verbatim (with the old
     distance and centre)."""
@@ -136,9 +161,9 @@ class OldTracker(SubjectTracker):
             return False
         partner = self.sorter._partner(c.points.shape[0])
         cams, min_cf = self.sorter.cameras, self.sorter.options.min_confidence
-        checked = [_nearest_is(cams[cam], c.points, detections[cam], p, partner, min_cf)
+        checked = [old_nearest_is(cams[cam], c.points, detections[cam], p, partner, min_cf)
                    for cam, p in s.detections.items()]  # fmt: skip
-        checked += [_nearest_is(cams[cam], s.last_points, detections[cam], p, partner, min_cf)
+        checked += [old_nearest_is(cams[cam], s.last_points, detections[cam], p, partner, min_cf)
                     for cam, p in c.sources.items()]  # fmt: skip
         if False in checked or checked.count(True) < 2:
             return False
@@ -285,3 +310,41 @@ def test_the_keypoint_distance_and_centre_as_before() -> None:
         assert np.array_equal(c.centre, old_centre(c), equal_nan=True)
     none = np.full((17, 3), np.nan)
     assert mean_keypoint_distance(none, none) == old_mean_keypoint_distance(none, none) == np.inf
+
+
+def test_the_nearest_detection_is_judged_as_before() -> None:
+    """``_nearest_is`` (each other-views check of a split person) decides as with ``np.nanmedian``: 1 to 4 people in
+    the view, points partly outside the image, behind the camera or NaN, low confidences, NaN keypoints, people with
+    fewer than 5 usable keypoints, flipped views, the partner exchanged or not."""
+    rng = np.random.default_rng(8)
+    world = SyntheticWorld(4, 3, 0, seed=2)
+    cams = [dataclasses.replace(c, dist=np.array([-0.21, 0.08, 0.0012, -0.0007, -0.012])) for c in world.cameras]
+    partner = DetectionSorter(cams)._partner(17)
+    decided = {True: 0, False: 0, None: 0}
+    for k in range(600):
+        cam: Camera = cams[k % 4]
+        dets = world.detections(k % 4, k / 60.0, rng, 2.0)
+        n = int(rng.integers(1, 5))
+        kp = rng.normal(0.0, 1.0, (n, 17, 2)) * 40.0 + rng.uniform(0.0, 600.0, (n, 1, 2))
+        m = min(n, len(dets.keypoints))
+        kp[:m] = dets.keypoints[:m] + rng.normal(0.0, 3.0, (m, 17, 2))
+        cf = rng.uniform(0.0, 1.0, (n, 17))
+        cf[rng.random((n, 17)) < 0.1] = 0.0
+        kp[rng.random((n, 17)) < 0.05] = np.nan
+        if k % 9 == 0:
+            cf[0, 5:] = 0.0  # fewer than 5 usable
+        points = world.sites_at(int(rng.integers(0, 3)), k / 60.0) + rng.normal(0.0, 0.05, (17, 3))
+        if k % 7 == 0:
+            points[rng.random(17) < 0.4] = np.nan
+        if k % 11 == 0:
+            points += 3.0 * (cam.center - points.mean(axis=0))  # much of it behind the camera or outside the image
+        d = Detections2D(kp, cf)
+        for person in range(n):
+            for min_cf in (0.0, 0.3):
+                with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # np.nanmedian of an all-NaN row warns
+                    want = old_nearest_is(cam, points, d, person, partner, min_cf)
+                got = _nearest_is(cam, points, d, person, partner, min_cf)
+                assert got is want, (k, person)
+                decided[want] += 1
+    assert min(decided.values()) > 50, decided

@@ -10,9 +10,11 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 * ``watch``: :class:`~mocapd.core.camera_watch.CameraWatch` over 20 s of two people at 60 solves a second (a
   check 10 times a second), per ``observe`` call; ``screen``: the same with each person named as the daemon names
   them (their solves screened ``screen_hz`` times a second) against the revision's, and the working tree's at
-  screening rates of 60 to 10 Hz (median of a third of the rounds, µs per call); ``levels``: its per-check
+  screening rates of 60 to 10 Hz (median of a third of the rounds, µs per call); ``people``: both sides with
+  the people named; ``levels``: its per-check
   ``_levels`` alone; ``left_out``,
-  ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments;
+  ``all_in``: ``residuals_left_out`` (per person and check) and ``residuals_all_in`` (per solve) over its moments,
+  and ``residuals_left_out`` of people roughed up (40 % of the keypoints unseen or under the confidence floor);
   ``pool``: a check's people pooled per camera (``np.nanmedian`` of 2 people x 4 cameras before, per check).
 * ``mtdata2``: :func:`~mocapd.protocols.mtdata2.decode_mtdata2` per message, on an MTw-like stream (packet
   counter, sample time, quaternion, acceleration: the simulated suit's) and on the real MTi captures in
@@ -24,6 +26,10 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 * ``collapse``: :func:`~mocapd.core.lr_collapse.collapsed_pairs` per person and solve, on the camera watch's
   take (two people walking, detector-like noise and limb swaps), with no previous pose; the candidates (view and
   pair) a call checks are reported beside it.
+
+* ``nearest``: the tracker's other-views check of one camera (``tracking._nearest_is``: a subject's keypoints
+  projected and compared with a view's people) per call, the demo's people seen by 4 distorted cameras, the
+  revision's tracking module.
 
 * ``sim``: :meth:`~mocapd.sim.xsens.SimDevice.next_message` per message, the simulated suit's stored outputs
   (packet counter, fine sample time, quaternion, acceleration at 100 Hz), the motion's packets cached.
@@ -55,6 +61,15 @@ and prints the median of each and their ratio, with the CPU it ran on. The revis
 
 * ``collapse``: :func:`~mocapd.core.lr_collapse.collapsed_pairs` per person solve (a walking person seen by 4
   cameras, one view with the right arm put on the left one, the previous pose given), the revision's module.
+
+* ``triangulate``: :func:`~mocapd.core.camera.weighted_dlt_rows` (4 cameras, 17 points: a left-out check's) and
+  :func:`~mocapd.core.camera.triangulate_arrays` of 4 points (two candidates of the collapse check) and of 17 by the
+  normal equations (a camera watch screen's), per call, the revision's camera module; ``collapse`` then runs the
+  revision's collapse check with the revision's triangulation.
+
+* ``solve``: :meth:`~mocapd.core.solver.PoseSolver.solve` per call, a walking person seen by 4 cameras (no IMU: the
+  camera rig's, the compiled LM loop), the revision's solver with the revision's observations and rotations; its
+  glue alone: ``push_history`` (the IMU sites of a camera-only person) and ``principal_pose``.
 
 * ``validate``: :class:`~mocapd.core.observations.ValidatedObservations` per person solve (4 cameras' 17 keypoints,
   no IMU: the camera rig's), the revision's module.
@@ -131,6 +146,10 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
     from mocapd.core import camera_watch as new
 
     old = module_at(rev, "mocapd/core/camera_watch.py", "_old_camera_watch")
+    old_camera = module_at(rev, "mocapd/core/camera.py", "_old_camera")
+    for name in ("triangulate_projections", "triangulate_arrays", "weighted_dlt_rows", "dehomogenized"):
+        if name in old.__dict__:  # the revision's watch with the revision's triangulation
+            old.__dict__[name] = getattr(old_camera, name)
     truth, moments = _watch_take(20.0)
     out: dict[str, Any] = {}
 
@@ -175,6 +194,21 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
         out["residuals_left_out"] = alternate(
             {"old": per_moment(old.residuals_left_out), "new": per_moment(new.residuals_left_out)}, rounds
         )
+    if "left_out" in only:  # people roughed up (tests/test_camera_watch_bitwise: keypoints unseen, under the floor)
+        from tests.test_camera_watch_bitwise import _people
+
+        rough = _people(4, seed=4)
+
+        def left_out_rough(mod: ModuleType) -> Callable[[], float]:
+            def run() -> float:
+                t0 = time.thread_time()
+                for P, uv, cf in rough:
+                    mod.residuals_left_out(P, uv, cf, min_confidence=0.3, min_keypoints=6)
+                return (time.thread_time() - t0) / len(rough)
+
+            return run
+
+        out["residuals_left_out_rough"] = alternate({"old": left_out_rough(old), "new": left_out_rough(new)}, rounds)
     if "all_in" in only:
         out["residuals_all_in"] = alternate(
             {"old": per_moment(old.residuals_all_in), "new": per_moment(new.residuals_all_in)}, rounds
@@ -204,6 +238,8 @@ def bench_watch(rev: str, rounds: int, only: set[str]) -> dict[str, Any]:
         out["watch_observe_by_screen_hz"] = {
             k: round(1e6 * float(np.median([run() for _ in range(max(rounds // 3, 3))])), 2) for k, run in rates.items()
         }
+    if "people" in only:  # both sides as the daemon calls them now (each person named)
+        out["watch_observe_named"] = alternate({"old": observe_all(old, True), "new": observe_all(new, True)}, rounds)
     if "levels" in only:
         out["watch_levels"] = alternate({"old": levels(old), "new": levels(new)}, rounds)
     return out
@@ -552,6 +588,9 @@ def bench_collapse(rev: str, rounds: int) -> dict[str, Any]:
     from mocapd.core.synthetic import moving_sequence, ring_rig
 
     old = module_at(rev, "mocapd/core/lr_collapse.py", "_old_lr_collapse")
+    old_camera = module_at(rev, "mocapd/core/camera.py", "_old_camera")
+    if "triangulate_arrays" in old.__dict__:  # the revision's triangulation with the revision's collapse check
+        old.__dict__["triangulate_arrays"] = old_camera.triangulate_arrays
     sk = Skeleton.from_height(1.75)
     kin, targets = Kinematics(sk), coco17_targets(sk)
     cams = ring_rig(4, radius=4.5)
@@ -574,6 +613,101 @@ def bench_collapse(rev: str, rounds: int) -> dict[str, Any]:
         return run
 
     return {"collapsed_pairs": alternate({"old": collapse(old), "new": collapse(new)}, rounds)}
+
+
+def bench_triangulate(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core import camera as new
+    from mocapd.core.synthetic import ring_rig
+
+    old = module_at(rev, "mocapd/core/camera.py", "_old_camera")
+    cams = ring_rig(4, radius=4.5)
+    P = np.stack([c.projection_matrix for c in cams])
+    rng = np.random.default_rng(0)
+    X = rng.normal(0.0, 0.5, (17, 3)) + np.array([0.0, 1.0, 0.0])
+    h = P[:, None, :, :3] @ X[None, :, :, None] + P[:, None, :, 3:]
+    uv = h[..., :2, 0] / h[..., 2:, 0] + rng.normal(0.0, 1.0, (4, 17, 2))
+    w = rng.uniform(0.3, 1.0, (4, 17))
+    w[1, 2:6] = 0.0
+    few = (uv[:, :4], np.where(np.arange(4)[:, None] == 1, 0.0, w[:, :4]))  # the collapse check's 2 candidates
+
+    def per_call(fn: Callable[[], Any]) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(300):
+                fn()
+            return (time.thread_time() - t0) / 300
+
+        return run
+
+    def tri(mod: ModuleType, u: Any, ww: Any, normal: bool = False) -> Callable[[], float]:
+        return per_call(lambda: mod.triangulate_arrays(P, u, ww, 3 if normal else 2, normal_equations=normal))
+
+    return {
+        "weighted_dlt_rows_17": alternate({"old": per_call(lambda: old.weighted_dlt_rows(P, uv, w)),
+                                           "new": per_call(lambda: new.weighted_dlt_rows(P, uv, w))}, rounds),
+        "triangulate_arrays_4": alternate({"old": tri(old, *few), "new": tri(new, *few)}, rounds),
+        "triangulate_arrays_17_normal": alternate({"old": tri(old, uv, w, True), "new": tri(new, uv, w, True)},
+                                                  rounds),
+    }  # fmt: skip
+
+
+def bench_solve(rev: str, rounds: int) -> dict[str, Any]:
+    from mocapd.core import solver as new
+    from mocapd.core.keypoints import coco17_targets
+    from mocapd.core.kinematics import Kinematics
+    from mocapd.core.skeleton import Skeleton
+    from mocapd.core.synthetic import moving_sequence, ring_rig
+
+    old = module_at(rev, "mocapd/core/solver.py", "_old_solver")
+    old_obs = module_at(rev, "mocapd/core/observations.py", "_old_observations")
+    old_rot = module_at(rev, "mocapd/core/rotations.py", "_old_rotations")
+    old.__dict__.update(ValidatedObservations=old_obs.ValidatedObservations, rotvec_principal=old_rot.rotvec_principal)
+    sk = Skeleton.from_height(1.75)
+    kin, targets = Kinematics(sk), coco17_targets(sk)
+    cams = ring_rig(4, radius=4.5)
+    rng = np.random.default_rng(0)
+    thetas = moving_sequence(sk, 120, seed=3)
+    frames = []
+    for th in thetas:
+        X = kin.targets(kin.forward(th), targets.bones, targets.offsets)
+        uv = np.stack([c.project(X) for c in cams]) + rng.normal(0.0, 1.0, (4, 17, 2))
+        frames.append(new.Observations(keypoints=uv, confidences=np.full((4, 17), 0.9), dt=1 / 30))
+
+    def solve(mod: ModuleType) -> Callable[[], float]:
+        s = mod.PoseSolver(sk, cams, targets)
+        s.reset(thetas[0])
+
+        def run() -> float:
+            s.reset(thetas[0])
+            t0 = time.thread_time()
+            for obs in frames:
+                s.solve(obs)
+            return (time.thread_time() - t0) / len(frames)
+
+        return run
+
+    def glue(mod: ModuleType, fn: str) -> Callable[[], float]:
+        s = mod.PoseSolver(sk, cams, targets)
+        theta = thetas[5]
+        calls: dict[str, Callable[[], Any]] = {
+            "imu_sites": lambda: s.push_history(theta),
+            "principal_pose": lambda: mod.principal_pose(theta),
+        }
+        call = calls[fn]
+
+        def run() -> float:
+            t0 = time.thread_time()
+            for _ in range(500):
+                call()
+            return (time.thread_time() - t0) / 500
+
+        return run
+
+    return {
+        "pose_solver_solve_cameras": alternate({"old": solve(old), "new": solve(new)}, rounds),
+        "push_history_cameras": alternate({"old": glue(old, "imu_sites"), "new": glue(new, "imu_sites")}, rounds),
+        "principal_pose": alternate({"old": glue(old, "principal_pose"), "new": glue(new, "principal_pose")}, rounds),
+    }
 
 
 def bench_validate(rev: str, rounds: int) -> dict[str, Any]:
@@ -675,6 +809,35 @@ def bench_track(rev: str, rounds: int) -> dict[str, Any]:
                                          "new": update(new_sorting, new_tracking)}, rounds)}  # fmt: skip
 
 
+def bench_nearest(rev: str, rounds: int) -> dict[str, Any]:
+    import dataclasses
+
+    from mocapd.core import tracking as new
+    from mocapd.core.sorting import DetectionSorter
+    from mocapd.service.config import load_config
+    from mocapd.sim.world import SyntheticWorld
+
+    old = module_at(rev, "mocapd/core/tracking.py", "_old_tracking")
+    syn = load_config().synthetic
+    world = SyntheticWorld(4, syn.people, 0, seed=syn.seed, motion=syn.motion)
+    cams = [dataclasses.replace(c, dist=np.array([-0.21, 0.08, 0.0012, -0.0007, -0.012])) for c in world.cameras]
+    partner = DetectionSorter(cams)._partner(17)
+    rng = np.random.default_rng(0)
+    calls = [(cams[k % 4], world.sites_at(0, k / 60.0), world.detections(k % 4, k / 60.0, rng, syn.noise_px))
+             for k in range(200)]  # fmt: skip
+
+    def nearest(mod: ModuleType) -> Callable[[], float]:
+        def run() -> float:
+            t0 = time.thread_time()
+            for cam, points, dets in calls:
+                mod._nearest_is(cam, points, dets, 0, partner, 0.3)
+            return (time.thread_time() - t0) / len(calls)
+
+        return run
+
+    return {"tracker_nearest_is": alternate({"old": nearest(old), "new": nearest(new)}, rounds)}
+
+
 def bench_sim(rev: str, rounds: int) -> dict[str, Any]:
     from mocapd.sim import xsens as new
 
@@ -726,7 +889,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument(
         "--only",
-        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,validate,sim,frames,plausibility,track",
+        default="watch,screen,levels,left_out,all_in,pool,mtdata2,heading,imu_inputs,dispatch,ingest,imu_path,speed,offsets,arrive,sample,collapse,triangulate,solve,validate,sim,frames,plausibility,track,nearest",
         help="comma-separated pieces (default: all)",
     )
     args = ap.parse_args()
@@ -745,12 +908,18 @@ def main() -> None:
         report.update(bench_sample(args.rev, args.rounds))
     if "collapse" in only:
         report.update(bench_collapse(args.rev, args.rounds))
+    if "triangulate" in only:
+        report.update(bench_triangulate(args.rev, args.rounds))
+    if "solve" in only:
+        report.update(bench_solve(args.rev, args.rounds))
     if "validate" in only:
         report.update(bench_validate(args.rev, args.rounds))
     if "plausibility" in only:
         report.update(bench_plausibility(args.rev, args.rounds))
     if "track" in only:
         report.update(bench_track(args.rev, args.rounds))
+    if "nearest" in only:
+        report.update(bench_nearest(args.rev, args.rounds))
     if "sim" in only:
         report.update(bench_sim(args.rev, args.rounds))
     if "frames" in only:

@@ -292,16 +292,16 @@ def triangulate_arrays(
     (callers on the solve's hot path that built the arrays themselves: :mod:`mocapd.core.lr_collapse`). The same
     parameters and results."""
     A, w = weighted_dlt_rows(P, uv, w)
-    ok = np.sum(w > 0, axis=0) >= min_views
+    ok = np.count_nonzero(w > 0, axis=0) >= min_views
     X = np.full((uv.shape[1], 3), np.nan)
-    if np.any(ok):
+    if ok.any():
         if normal_equations:
             Ao = A[ok]
             h = np.linalg.eigh(Ao.transpose(0, 2, 1) @ Ao)[1][:, :, 0]  # eigenvalues ascending
         else:
             h = np.linalg.svd(A[ok])[2][:, -1, :]
         X[ok] = dehomogenized(h)
-        ok = ok & np.all(np.isfinite(X), axis=-1)
+        ok &= np.isfinite(X).all(axis=1)
     return X, ok
 
 
@@ -322,23 +322,30 @@ def weighted_dlt_rows(P: FloatArray, uv: FloatArray, weights: FloatArray) -> tup
     w : array, shape (n_cams, n_pts)
         The weights used (0 for an excluded view).
     """
-    finite = np.all(np.isfinite(uv), axis=-1) & np.isfinite(weights) & (weights > 0)
+    # Every step the element-wise operation it was (the same floats), written into one array instead of a
+    # temporary each, and the rows' norms as np.linalg.norm takes them (the square root of the sum of squares, each
+    # row's four in order) without its wrapper: the collapse check and the camera watch build these rows on every
+    # person solve (issue 39).
+    finite = np.isfinite(uv).all(axis=-1) & np.isfinite(weights) & (weights > 0)
     w = np.where(finite, weights, 0.0)
     uv = np.where(finite[..., None], uv, 0.0)
-    r1 = uv[..., 0, None] * P[:, None, 2, :] - P[:, None, 0, :]
-    r2 = uv[..., 1, None] * P[:, None, 2, :] - P[:, None, 1, :]
-    A = np.concatenate((r1, r2), axis=0).transpose(1, 0, 2)
+    n_cams = w.shape[0]
+    A = np.empty((2 * n_cams, w.shape[1], 4))
+    for k, rows in ((0, A[:n_cams]), (1, A[n_cams:])):
+        np.multiply(uv[..., k, None], P[:, None, 2, :], out=rows)
+        np.subtract(rows, P[:, None, k, :], out=rows)
     # Unit-norm rows first (conditioning: pixel-sized rows would dominate), then the confidence weight.
-    norms = np.linalg.norm(A, axis=-1, keepdims=True)
-    A = A / np.where(norms > 0, norms, 1.0) * np.concatenate((w, w), axis=0).T[..., None]
-    return A, w
+    norms = np.sqrt(np.add.reduce(A * A, axis=-1, keepdims=True))
+    np.divide(A, np.where(norms > 0, norms, 1.0), out=A)
+    np.multiply(A, np.concatenate((w, w), axis=0)[..., None], out=A)
+    return A.transpose(1, 0, 2), w
 
 
 def dehomogenized(h: FloatArray) -> FloatArray:
     """Points (m, 3) from homogeneous solutions ``h`` (m, 4); NaN where the scale is (nearly) zero."""
     good = np.abs(h[:, 3]) > 1e-12
     X = np.full((h.shape[0], 3), np.nan)
-    X[good] = h[good, :3] / h[good, 3:4]
+    np.divide(h[:, :3], h[:, 3:4], out=X, where=good[:, None])  # the same divisions, not the others
     return X
 
 

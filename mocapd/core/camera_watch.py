@@ -64,7 +64,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mocapd.core.camera import Camera, dehomogenized, triangulate_projections, weighted_dlt_rows
+from mocapd.core.camera import Camera, dehomogenized, triangulate_arrays, weighted_dlt_rows
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -294,7 +294,9 @@ def residuals_left_out(
     w = np.where((conf >= min_confidence) & np.all(np.isfinite(uv), axis=-1), conf, 0.0)
     out = np.full(n_cams, np.nan)
     matches: list[tuple[FloatArray, FloatArray]] = []
-    X_left, ok_left = triangulate_left_out(P, uv, w) if n_cams >= 3 else (None, None)
+    # Only the keypoints each camera measured: the others' points are not used (fewer SVDs where a view misses
+    # keypoints, the same points where it does not)
+    X_left, ok_left = triangulate_left_out(P, uv, w, w > 0) if n_cams >= 3 else (None, None)
     # Each camera's errors in a row of its own (the keypoints it measured marked), their medians from one sort
     # (row_medians: np.median's to the bit); the homogeneous points built by concatenation, not np.c_ (the same
     # array, without its index machinery): the check runs 10 times a second per person on the event loop.
@@ -310,10 +312,14 @@ def residuals_left_out(
         if m < min_keypoints:
             matches.append((np.zeros((0, 3)), np.zeros((0, 2))))
             continue
-        h = np.concatenate((X[ok], np.ones((m, 1))), axis=1) @ P[c].T
+        Xh = np.empty((m, 4))  # [X, 1] row by row: the array np.concatenate made, without its temporaries
+        Xh[:, :3] = X[ok]
+        Xh[:, 3] = 1.0
+        h = Xh @ P[c].T
         front = h[:, 2] > 1e-9
-        proj = h[:, :2] / np.where(front, h[:, 2], 1.0)[:, None]
-        errs[c, :m] = np.where(front, np.linalg.norm(proj - uv[c, ok], axis=1), np.inf)
+        d = h[:, :2] / np.where(front, h[:, 2], 1.0)[:, None] - uv[c, ok]
+        # np.linalg.norm's sum of squares (the same floats) without its wrapper
+        errs[c, :m] = np.where(front, np.sqrt(np.add.reduce(d * d, axis=1)), np.inf)
         measured[c, :m] = True
         matches.append((X[ok][front], uv[c, ok][front]))
     rows = measured.any(axis=1)
@@ -322,7 +328,9 @@ def residuals_left_out(
     return out, matches
 
 
-def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+def triangulate_left_out(
+    P: FloatArray, uv: FloatArray, weights: FloatArray, need: NDArray[np.bool_] | None = None
+) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Per camera, the points triangulated from the *other* cameras: what
     :func:`~mocapd.core.camera.triangulate_projections` gives for ``P[others], uv[others], weights[others]``
     (two views or more), to the bit, for every camera in one SVD call instead of one call each.
@@ -337,6 +345,9 @@ def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> 
     P : array, shape (n_cams, 3, 4)
     uv : array, shape (n_cams, n_pts, 2)
     weights : array, shape (n_cams, n_pts)
+    need : bool array, shape (n_cams, n_pts), optional
+        Only these points are triangulated (the others NaN, not ok): each system is solved on its own, so the
+        points solved are the same floats as without it.
 
     Returns
     -------
@@ -352,6 +363,8 @@ def triangulate_left_out(P: FloatArray, uv: FloatArray, weights: FloatArray) -> 
     A_left = A[:, _left_out_rows(n_cams)].transpose(1, 0, 2, 3)  # (n_cams, n_pts, 2 n - 2, 4)
     views = np.sum(w > 0, axis=0)
     ok = (views[None, :] - (w > 0)) >= 2  # seen by two of the others
+    if need is not None:
+        ok &= need
     X = np.full((n_cams, n_pts, 3), np.nan)
     if np.any(ok):
         X[ok] = dehomogenized(np.linalg.svd(A_left[ok])[2][:, -1, :])
@@ -389,10 +402,13 @@ def residuals_all_in(
     residual : array, shape (n_cams,)
         NaN where the camera sees fewer than ``min_keypoints`` of those keypoints.
     """
-    w = np.where((conf >= min_confidence) & np.all(np.isfinite(uv), axis=-1), conf, 0.0)
+    P = np.asarray(P, dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64)
+    w = np.where((conf >= min_confidence) & np.isfinite(uv).all(axis=-1), conf, 0.0)
     out = np.full(P.shape[0], np.nan)
-    X, ok = triangulate_projections(P, uv, w, min_views=3, normal_equations=True)
-    if ok.sum() < min_keypoints:
+    # triangulate_projections' work without its checks (the watch's own arrays, of its shapes): every screen
+    X, ok = triangulate_arrays(P, uv, w, 3, normal_equations=True)
+    if np.count_nonzero(ok) < min_keypoints:
         return out
     h = P[:, None, :, :3] @ X[ok][None, :, :, None] + P[:, None, :, 3:]  # (n_cams, n_ok, 3, 1)
     front = h[..., 2, 0] > 1e-9
@@ -425,7 +441,7 @@ def row_medians(values: FloatArray, use: NDArray[np.bool_]) -> FloatArray:
     lo = srt[rows, np.maximum(n // 2 - 1, 0)]
     out: FloatArray = np.where(n % 2 == 1, hi, (lo + hi) / 2.0)
     out[n == 0] = np.nan  # np.median of nothing
-    for i in np.flatnonzero(np.isnan(np.where(use, values, 0.0)).any(axis=1)):
+    for i in np.flatnonzero(np.isnan(srt[:, -1])):  # a used NaN sorts last, past the infinite padding
         out[i] = float(np.median(values[i, use[i]]))
     return out
 
@@ -494,8 +510,8 @@ def _level_spread(t: NDArray[np.int64], r: FloatArray, split_ns: int, window_s: 
     stretch = (split_ns - t) // round(window_s * 1e9)
     order = np.lexsort((r, stretch))  # by stretch, then by value within it
     stretch, r = stretch[order], r[order]
-    starts = np.flatnonzero(np.r_[True, stretch[1:] != stretch[:-1]])
-    counts = np.diff(np.r_[starts, len(stretch)])
+    starts = np.flatnonzero(np.concatenate(([True], stretch[1:] != stretch[:-1])))  # np.r_'s arrays, not its parser
+    counts = np.diff(np.concatenate((starts, [len(stretch)])))
     starts, counts = starts[counts >= 3], counts[counts >= 3]
     if len(starts) < 3:
         return float("nan")

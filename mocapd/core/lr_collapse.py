@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core import _collapse_kernel
 from mocapd.core.camera import triangulate_arrays
 from mocapd.errors import InputError
 
@@ -86,13 +87,16 @@ def collapsed_pairs(
     out = np.zeros((n_cams, len(pairs)), dtype=bool)
     if not o.enabled or not pairs:
         return out
-    ok = (conf >= o.min_confidence) & np.all(np.isfinite(uv), axis=-1)
-    size = view_sizes(uv, ok, o.min_keypoints)
     lr = _pair_index(tuple(pairs))  # (n_pairs, 2)
-    both = ok[:, lr[:, 0]] & ok[:, lr[:, 1]] & (size[:, None] > 0)  # (n_cams, n_pairs)
-    candidate = both & (pair_gaps(uv, lr) < o.collapsed * size[:, None])
-    if not candidate.any():
-        return out  # the common case: nothing to check, no triangulation
+    # The keypoints taking part, each view's size (view_sizes) and the candidates (both keypoints in, a size, a gap
+    # (pair_gaps) under `collapsed` of it), in one compiled call: the same arithmetic as those NumPy references
+    ok = np.empty(conf.shape, dtype=bool)
+    size = np.empty(n_cams)
+    candidate = np.empty(out.shape, dtype=bool)
+    if not _collapse_kernel.screen(np.ascontiguousarray(uv), np.ascontiguousarray(conf), lr[:, 0], lr[:, 1],
+                                   float(o.min_confidence), int(o.min_keypoints), float(o.collapsed), ok, size,
+                                   candidate):  # fmt: skip
+        return out  # nothing to check, no triangulation
     views, which = np.nonzero(candidate)
     sep = expected_gaps(P, uv, conf, ok, candidate, lr, views, which, reference)
     out[views, which] = np.isfinite(sep) & (sep >= o.apart * size[views])
@@ -101,8 +105,9 @@ def collapsed_pairs(
 
 @functools.lru_cache(maxsize=16)
 def _pair_index(pairs: tuple[tuple[int, int], ...]) -> NDArray[np.intp]:
-    """The pairs as an index array (n_pairs, 2), made once per pair list (every person solve asks); read-only."""
-    lr = np.array(pairs, dtype=np.intp).reshape(-1, 2)
+    """The pairs as an index array (n_pairs, 2), made once per pair list (every person solve asks); read-only,
+    Fortran-ordered (its two columns contiguous: the compiled screen's left and right)."""
+    lr = np.asfortranarray(np.array(pairs, dtype=np.intp).reshape(-1, 2))
     lr.flags.writeable = False
     return lr
 
@@ -165,7 +170,10 @@ def expected_gaps(
     pair = lr[which]  # (n, 2) keypoint indices
     others = ~candidate[:, which].T & ok[:, pair].all(axis=2).T  # (n, n_cams): views that see both, not collapsing
     others[np.arange(n), views] = False
-    X = np.full((n, 2, 3), np.nan)
+    # Each candidate's two points where known (rows of X not known are never read): triangulated points are
+    # finite (triangulate_arrays' ok), the previous pose's are taken only where finite
+    X = np.empty((n, 2, 3))
+    known = np.zeros(n, dtype=bool)
     by_views = np.count_nonzero(others, axis=1) >= 2
     if by_views.any():
         k = np.flatnonzero(by_views)
@@ -176,18 +184,20 @@ def expected_gaps(
         pts, good = triangulate_arrays(P, uv_k, w_k)
         both_good = good.reshape(-1, 2).all(axis=1)
         X[k[both_good]] = pts.reshape(-1, 2, 3)[both_good]
+        known[k[both_good]] = True
     if reference is not None:
-        fall_back = np.isnan(X).any(axis=(1, 2)) & np.isfinite(reference[pair]).all(axis=(1, 2))
+        fall_back = ~known & np.isfinite(reference[pair]).all(axis=(1, 2))
         X[fall_back] = reference[pair[fall_back]]
+        known |= fall_back
     sep = np.full(n, np.nan)
-    known = np.flatnonzero(~np.isnan(X).any(axis=(1, 2)))
-    Pv = P[views[known]]
-    h = Pv[:, :, :3] @ X[known].transpose(0, 2, 1) + Pv[:, :, 3:4]  # (known, 3, 2)
-    front = ~np.any(h[:, 2] <= 1e-6, axis=1)
+    known_at = np.flatnonzero(known)
+    Pv = P[views[known_at]]
+    h = Pv[:, :, :3] @ X[known_at].transpose(0, 2, 1) + Pv[:, :, 3:4]  # (known, 3, 2)
+    front = ~(h[:, 2] <= 1e-6).any(axis=1)
     px = h[front, :2] / h[front, 2:3]
     d = px[:, :, 0] - px[:, :, 1]
     # the norm of a vector as np.linalg.norm takes it: sqrt of its dot product with itself (a dot per candidate)
-    sep[known[front]] = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])
+    sep[known_at[front]] = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])
     return sep
 
 

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from mocapd.core import _flip_kernel
 from mocapd.core.camera import Camera, triangulate_projections
-from mocapd.core.lr_collapse import CollapseOptions
+from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -327,12 +327,13 @@ def _best_hypotheses(
 
 
 def warm_up(cameras: list[Camera], n_kp: int) -> None:
-    """Load (or compile, the first time on a machine) the compiled search for these cameras, with the arrays the
-    scheduler passes: a first compile inside a live tick would hold it for seconds."""
+    """Load (or compile, the first time on a machine) the compiled search and the collapse check's screen for these
+    cameras, with the arrays the scheduler passes: a first compile inside a live tick would hold it for seconds."""
     P, und = undistorted(cameras, np.full((len(cameras), max(n_kp, 2), 2), 100.0))
     conf = np.ones(und.shape[:2])
     choose_swaps(P, und, conf, ((0, 1),))  # one pair compiles what every pair runs
     choose_swaps(P, und, conf, ((0, 1),), np.zeros((und.shape[1], 3)), memo=FlipMemo(len(cameras), 1))
+    collapsed_pairs(P, und, conf, ((0, 1),))  # the collapse check's compiled screen, which every solve then runs
 
 
 def apply_swaps(

@@ -71,13 +71,12 @@ class ValidatedObservations:
             conf = _array("confidences", obs.confidences, (n_cams, n_kp))
             if not ((conf >= 0.0) & (conf <= 1.0)).all():  # NaN fails both: one pass for finite and in range
                 raise InputError("observations: confidences must be finite and within [0, 1]")
-            used = conf > 0
-            if not np.all(np.isfinite(uv[used])):
+            self.uv = np.where((conf > 0)[..., None], uv, 0.0)
+            if not np.isfinite(self.uv).all():  # the keypoints used (the others are 0 here)
                 raise InputError(
                     "observations: keypoints with confidence > 0 must be finite (use confidence 0 "
                     "for missing keypoints)"
                 )
-            self.uv = np.where(used[..., None], uv, 0.0)
             self.conf = conf
         mask = np.ones(n_imu, dtype=bool) if obs.imu_mask is None else _bool_array("imu_mask", obs.imu_mask, (n_imu,))
         self.has_orientation = obs.imu_orientations is not None and n_imu > 0

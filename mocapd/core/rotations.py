@@ -227,7 +227,10 @@ def rotvec_principal(r: FloatArray) -> FloatArray:
     vector already in range bit for bit unchanged.
     """
     r = np.asarray(r, dtype=np.float64)
-    angle = np.linalg.norm(r, axis=-1, keepdims=True)
+    # np.linalg.norm's sum of squares without its wrapper (the same floats): every person solve winds its pose
+    angle = np.sqrt(np.add.reduce(r * r, axis=-1, keepdims=True))
+    if not (angle >= np.pi).any():  # nothing wound (angle - π < 0 exactly when angle < π): every scale 1.0
+        return r * 1.0
     turns = np.floor((angle - np.pi) / (2.0 * np.pi)) + 1.0  # 0 while angle < π
     wound = turns > 0.0
     scale = np.where(wound, 1.0 - 2.0 * np.pi * turns / np.where(wound, angle, 1.0), 1.0)

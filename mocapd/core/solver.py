@@ -222,6 +222,7 @@ class PoseSolver:
         )
         self.theta = skeleton.rest_pose()
         self._history: list[FloatArray] = []  # solved IMU sites at t-1 (last) and t-2
+        self._lm_options: tuple[LMOptions, FloatArray] | None = None  # self.lm as the compiled loop takes it
         self._prev_root: FloatArray | None = None  # root translation of the solve before the last one
         self._has_solved = False
         self._had_reference = False  # the last solve had an absolute position reference (enough cameras)
@@ -548,6 +549,8 @@ class PoseSolver:
 
     def imu_sites(self, theta: FloatArray) -> FloatArray:
         """World positions of the IMU sites for θ, shape (n_imu, 3)."""
+        if not self.n_imu:  # a camera-only person (every solve pushes its history): no kernel call for no points
+            return np.zeros((0, 3))
         return self.points(theta, self._imu_bones, self._point_offsets[self._sl_imu])
 
     def push_history(self, theta: FloatArray) -> None:
@@ -576,9 +579,7 @@ class PoseSolver:
 
     def _views(self, v: ValidatedObservations) -> int:
         """Cameras that see the person (at least one keypoint with confidence > 0) this frame."""
-        return (
-            int(np.count_nonzero(np.any(v.conf > 0, axis=1))) if self.n_cams and self.cost_options.use_position else 0
-        )
+        return int(np.count_nonzero((v.conf > 0).any(axis=1))) if self.n_cams and self.cost_options.use_position else 0
 
     def _losses(self) -> dict[str, Loss]:
         o = self.cost_options
@@ -885,7 +886,10 @@ class PoseSolver:
         prev1 = self._history[0] if len(self._history) == 2 else zeros
         prev2 = self._history[1] if len(self._history) == 2 else zeros
         enabled = np.array([on[n] for n in TERM_NAMES], dtype=np.float64)
-        options = np.array([getattr(self.lm, f) for f in _lm_kernel.OPTION_FIELDS], dtype=np.float64)
+        if self._lm_options is None or self._lm_options[0] is not self.lm:  # LMOptions is frozen: once per object
+            self._lm_options = (self.lm, np.array([getattr(self.lm, f) for f in _lm_kernel.OPTION_FIELDS],
+                                                  dtype=np.float64))  # fmt: skip
+        options = self._lm_options[1]
         out = np.empty(POSE_DIM)
         stats = np.empty(6)
         _lm_kernel.lm_solve(
@@ -894,7 +898,7 @@ class PoseSolver:
             v.mask.astype(np.float64), prev1, prev2, v.dt, kp.mu, kp.A_pp, kp.A_pd, kp.AtA_pp, kp.AtA_pd,
             kp.lambdas, kp.loss_codes, kp.loss_scales, enabled, kp.floor_radius, kp.floor_height, out, self._tc, stats,
         )  # fmt: skip
-        termination = Termination(_lm_kernel.TERMINATIONS[int(stats[4])])
+        termination = _TERMINATIONS[int(stats[4])]
         failed = termination is Termination.NUMERICAL_FAILURE
         message = _lm_kernel.FAILURE_MESSAGES[int(stats[5])] or ("non-finite point" if failed else "")
         summary = SolveSummary(
@@ -907,6 +911,10 @@ class PoseSolver:
             term_costs={} if failed else self._term_dict(on),
         )
         return SolveResult(self.theta.copy() if failed else out, summary)
+
+
+_TERMINATIONS = tuple(Termination(name) for name in _lm_kernel.TERMINATIONS)
+"""The compiled loop's termination codes as :class:`~mocapd.core.lm.Termination` members, looked up once."""
 
 
 def _legs_measured(imus: tuple[ImuMount, ...]) -> bool:
