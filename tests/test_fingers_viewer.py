@@ -57,8 +57,10 @@ async def test_the_viewer_draws_bent_fingers(tmp_path: Path) -> None:
             pause_bent = (
                 "(() => { const s = mocapdViewer.state.shown; const h = s && s.subjects[0].hands;"
                 " const ok = h && h.joints && mocapdViewer.state.hello.finger_bones &&"
-                " Math.abs(h.rot[4 * 4]) < 0.75; if (ok) mocapdViewer.pause(true); return !!ok; })()"
-            )  # the left index proximal's w below cos(41°): bent more than 80°·0.5
+                " Math.abs(h.rot[4 * 4]) < 0.7; if (ok) mocapdViewer.pause(true); return !!ok; })()"
+            )  # the left index's middle joint's w below cos(45.6°): bent more than 91° of the fist's 100° (closure
+            # over 0.91); at 0.75 (closure 0.83) a run that paused on the first such frame saw the tip only 19.6 px
+            # below the knuckle, under the 20 px asked below
             await page.wait_for(pause_bent, 30, "a frame with bent fingers")
             await page.evaluate(
                 "(() => { const v = mocapdViewer, s = v.state.shown.subjects[0], j = s.joints;"
