@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core._undistort_kernel import normalize_points
+from mocapd.core.norms import norms
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -323,9 +324,8 @@ def weighted_dlt_rows(P: FloatArray, uv: FloatArray, weights: FloatArray) -> tup
         The weights used (0 for an excluded view).
     """
     # Every step the element-wise operation it was (the same floats), written into one array instead of a
-    # temporary each, and the rows' norms as np.linalg.norm takes them (the square root of the sum of squares, each
-    # row's four in order) without its wrapper: the collapse check and the camera watch build these rows on every
-    # person solve (issue 39).
+    # temporary each, and the rows' norms as np.linalg.norm takes them (mocapd.core.norms): the collapse check and
+    # the camera watch build these rows on every person solve (issue 39).
     finite = np.isfinite(uv).all(axis=-1) & np.isfinite(weights) & (weights > 0)
     w = np.where(finite, weights, 0.0)
     uv = np.where(finite[..., None], uv, 0.0)
@@ -335,8 +335,8 @@ def weighted_dlt_rows(P: FloatArray, uv: FloatArray, weights: FloatArray) -> tup
         np.multiply(uv[..., k, None], P[:, None, 2, :], out=rows)
         np.subtract(rows, P[:, None, k, :], out=rows)
     # Unit-norm rows first (conditioning: pixel-sized rows would dominate), then the confidence weight.
-    norms = np.sqrt(np.add.reduce(A * A, axis=-1, keepdims=True))
-    np.divide(A, np.where(norms > 0, norms, 1.0), out=A)
+    row_norms = norms(A, keepdims=True)
+    np.divide(A, np.where(row_norms > 0, row_norms, 1.0), out=A)
     np.multiply(A, np.concatenate((w, w), axis=0)[..., None], out=A)
     return A.transpose(1, 0, 2), w
 

@@ -65,6 +65,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mocapd.core.camera import Camera, dehomogenized, triangulate_arrays, weighted_dlt_rows
+from mocapd.core.norms import norms
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -318,8 +319,7 @@ def residuals_left_out(
         h = Xh @ P[c].T
         front = h[:, 2] > 1e-9
         d = h[:, :2] / np.where(front, h[:, 2], 1.0)[:, None] - uv[c, ok]
-        # np.linalg.norm's sum of squares (the same floats) without its wrapper
-        errs[c, :m] = np.where(front, np.sqrt(np.add.reduce(d * d, axis=1)), np.inf)
+        errs[c, :m] = np.where(front, norms(d, axis=1), np.inf)
         measured[c, :m] = True
         matches.append((X[ok][front], uv[c, ok][front]))
     rows = measured.any(axis=1)

@@ -18,6 +18,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from mocapd.core.norms import norms
+
 FloatArray = NDArray[np.float64]
 
 # Below this angle (radians) the closed forms lose precision and the Taylor series take over.
@@ -227,8 +229,7 @@ def rotvec_principal(r: FloatArray) -> FloatArray:
     vector already in range bit for bit unchanged.
     """
     r = np.asarray(r, dtype=np.float64)
-    # np.linalg.norm's sum of squares without its wrapper (the same floats): every person solve winds its pose
-    angle = np.sqrt(np.add.reduce(r * r, axis=-1, keepdims=True))
+    angle = norms(r, keepdims=True)  # np.linalg.norm's floats: every person solve winds its pose
     if not (angle >= np.pi).any():  # nothing wound (angle - π < 0 exactly when angle < π): every scale 1.0
         return r * 1.0
     turns = np.floor((angle - np.pi) / (2.0 * np.pi)) + 1.0  # 0 while angle < π

@@ -31,6 +31,7 @@ from mocapd.core import _sorting_kernel
 from mocapd.core.assignment import linear_sum_assignment
 from mocapd.core.camera import MIN_DEPTH, Camera, stack_cameras
 from mocapd.core.lr_flips import COCO17_LR_PAIRS, lr_pairs
+from mocapd.core.norms import norms
 from mocapd.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -133,7 +134,7 @@ def mean_keypoint_distance(a: FloatArray, b: FloatArray) -> float:
     The sum and mean :func:`numpy.linalg.norm` and :meth:`numpy.ndarray.mean` take, without their Python layers
     (the same floats; this runs several times a tick on the event loop, issue 39)."""
     x = a - b
-    return _finite_mean(np.sqrt(np.add.reduce(x * x, axis=-1)))
+    return _finite_mean(norms(x))
 
 
 def mean_keypoint_distances(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -149,7 +150,7 @@ def mean_keypoint_distances(a: FloatArray, b: FloatArray) -> FloatArray:
     array, shape (m, n)
     """
     x = a[:, None] - b[None]
-    d = np.sqrt(np.add.reduce(x * x, axis=-1))  # (m, n, n_kp)
+    d = norms(x)  # (m, n, n_kp)
     out = np.empty(d.shape[:2])
     for i in range(d.shape[0]):
         for j in range(d.shape[1]):

@@ -44,6 +44,7 @@ from numpy.typing import NDArray
 from mocapd.core.body_size import COCO17_NAMES
 from mocapd.core.camera import Camera
 from mocapd.core.camera_watch import row_medians
+from mocapd.core.norms import norms
 from mocapd.core.sorting import Candidate, Detections2D, DetectionSorter, mean_keypoint_distance
 from mocapd.errors import InputError
 
@@ -343,9 +344,7 @@ def _nearest_is(
     if inside.sum() < 5:
         return None
     kp, cf = detections.keypoints, detections.confidences
-    # the distances as np.linalg.norm takes them (the square root of the sum of squares) without its wrapper
-    a, b = kp - uv, kp - uv[partner]
-    d = np.minimum(np.sqrt(np.add.reduce(a * a, axis=-1)), np.sqrt(np.add.reduce(b * b, axis=-1)))  # (n_people, n_kp)
+    d = np.minimum(norms(kp - uv), norms(kp - uv[partner]))  # (n_people, n_kp)
     use = inside & (cf >= min_confidence) & np.isfinite(d)
     ok = use.sum(axis=1) >= 5
     if not ok[person]:
