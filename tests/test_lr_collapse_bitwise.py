@@ -11,13 +11,46 @@ from mocapd.core import _collapse_kernel
 from mocapd.core.camera import triangulate_projections
 from mocapd.core.keypoints import coco17_targets
 from mocapd.core.kinematics import Kinematics
-from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs, expected_gaps, pair_gaps, view_sizes
+from mocapd.core.lr_collapse import CollapseOptions, collapsed_pairs, expected_gaps
 from mocapd.core.lr_flips import COCO17_LR_PAIRS, undistorted
 from mocapd.core.skeleton import Skeleton
 from mocapd.core.synthetic import moving_sequence, ring_rig
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+
+
+# The NumPy screen the compiled one (mocapd.core._collapse_kernel.screen) must equal, bit for bit: the collapse
+# check's code before it was compiled.
+
+
+def pair_gaps(uv: FloatArray, lr: NDArray[np.intp]) -> FloatArray:
+    """Per view and pair, the distance (px) between the pair's two keypoints, shape (n_cams, n_pairs):
+    ``np.linalg.norm(uv[:, lr[:, 0]] - uv[:, lr[:, 1]], axis=-1)`` to the bit (numpy takes a 2-vector's norm as the
+    square root of ``x * x + y * y``), without its wrapper: every person solve asks."""
+    d = uv[:, lr[:, 0]] - uv[:, lr[:, 1]]
+    x, y = d[..., 0], d[..., 1]
+    gap: FloatArray = np.sqrt(x * x + y * y)
+    return gap
+
+
+def view_sizes(uv: FloatArray, ok: BoolArray, min_keypoints: int) -> FloatArray:
+    """Per view, the person's size there: the larger extent (px) of the keypoints ``ok`` holds; 0 with fewer than
+    ``min_keypoints`` of them. Every view at once (maxima and minima are exact: the floats of one view at a time).
+
+    Parameters
+    ----------
+    uv : array, shape (n_cams, n_kp, 2)
+    ok : bool array, shape (n_cams, n_kp)
+
+    Returns
+    -------
+    array, shape (n_cams,)
+    """
+    hi = np.where(ok[..., None], uv, -np.inf).max(axis=1)  # (n_cams, 2)
+    lo = np.where(ok[..., None], uv, np.inf).min(axis=1)
+    extent = (hi - lo).max(axis=1)
+    return np.where(np.count_nonzero(ok, axis=1) >= min_keypoints, extent, 0.0)
 
 
 def old_expected_gap(

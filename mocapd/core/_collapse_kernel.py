@@ -1,15 +1,14 @@
 """Compiled (numba) screen of the collapse check (:func:`mocapd.core.lr_collapse.collapsed_pairs`): which keypoints
 take part, each view's person size and which (view, pair) are candidates, in one call.
 
-Why compiled. The check runs on every person solve; its screen was ~25 NumPy calls on arrays of a few dozen
-numbers (the keypoints' mask, the sizes' masked maxima and minima, the pairs' gaps), each a microsecond or two of
-interpreter and wrapper around nanoseconds of arithmetic (issue 39: the collapse check was 12 % of the camera demo's
-event loop). The arithmetic is the reference's, operation for operation, so the results are the same to the bit
-(``tests/test_lr_collapse_bitwise.py`` compares them with the NumPy screen, which stays beside it as
-:func:`~mocapd.core.lr_collapse.view_sizes` and :func:`~mocapd.core.lr_collapse.pair_gaps`): maxima and minima
-and their difference are exact whatever the order; a gap is ``sqrt(x * x + y * y)`` with each product and the sum
-rounded on its own (numba emits no fused multiply-add without fastmath), the square root correctly rounded as
-NumPy's.
+Why compiled. The check runs on every person solve; its screen was ~25 NumPy calls on arrays of a few dozen numbers (the
+keypoints' mask, the sizes' masked maxima and minima, the pairs' gaps), each a microsecond or two of interpreter and
+wrapper around nanoseconds of arithmetic (issue 39: the collapse check was 12 % of the camera demo's event loop). The
+arithmetic is the reference's, operation for operation, so the results are the same to the bit
+(``tests/test_lr_collapse_bitwise.py`` compares them with the NumPy screen, kept there as ``view_sizes`` and
+``pair_gaps``): maxima and minima and their difference are exact whatever the order; a gap is ``sqrt(x * x + y * y)``
+with each product and the sum rounded on its own (numba emits no fused multiply-add without fastmath), the square root
+correctly rounded as NumPy's.
 """
 
 from __future__ import annotations

@@ -88,8 +88,9 @@ def collapsed_pairs(
     if not o.enabled or not pairs:
         return out
     lr = _pair_index(tuple(pairs))  # (n_pairs, 2)
-    # The keypoints taking part, each view's size (view_sizes) and the candidates (both keypoints in, a size, a gap
-    # (pair_gaps) under `collapsed` of it), in one compiled call: the same arithmetic as those NumPy references
+    # The keypoints taking part, each view's size and the candidates (both keypoints in, a size, a gap under
+    # `collapsed` of it), in one compiled call: the NumPy screen's arithmetic (kept as the reference in
+    # tests/test_lr_collapse_bitwise.py)
     ok = np.empty(conf.shape, dtype=bool)
     size = np.empty(n_cams)
     candidate = np.empty(out.shape, dtype=bool)
@@ -110,35 +111,6 @@ def _pair_index(pairs: tuple[tuple[int, int], ...]) -> NDArray[np.intp]:
     lr = np.asfortranarray(np.array(pairs, dtype=np.intp).reshape(-1, 2))
     lr.flags.writeable = False
     return lr
-
-
-def pair_gaps(uv: FloatArray, lr: NDArray[np.intp]) -> FloatArray:
-    """Per view and pair, the distance (px) between the pair's two keypoints, shape (n_cams, n_pairs):
-    ``np.linalg.norm(uv[:, lr[:, 0]] - uv[:, lr[:, 1]], axis=-1)`` to the bit (numpy takes a 2-vector's norm as the
-    square root of ``x * x + y * y``), without its wrapper: every person solve asks."""
-    d = uv[:, lr[:, 0]] - uv[:, lr[:, 1]]
-    x, y = d[..., 0], d[..., 1]
-    gap: FloatArray = np.sqrt(x * x + y * y)
-    return gap
-
-
-def view_sizes(uv: FloatArray, ok: BoolArray, min_keypoints: int) -> FloatArray:
-    """Per view, the person's size there: the larger extent (px) of the keypoints ``ok`` holds; 0 with fewer than
-    ``min_keypoints`` of them. Every view at once (maxima and minima are exact: the floats of one view at a time).
-
-    Parameters
-    ----------
-    uv : array, shape (n_cams, n_kp, 2)
-    ok : bool array, shape (n_cams, n_kp)
-
-    Returns
-    -------
-    array, shape (n_cams,)
-    """
-    hi = np.where(ok[..., None], uv, -np.inf).max(axis=1)  # (n_cams, 2)
-    lo = np.where(ok[..., None], uv, np.inf).min(axis=1)
-    extent = (hi - lo).max(axis=1)
-    return np.where(np.count_nonzero(ok, axis=1) >= min_keypoints, extent, 0.0)
 
 
 def expected_gaps(
