@@ -31,6 +31,13 @@ def test_a_save_writes_the_cameras_and_keeps_the_old_file(tmp_path: Path) -> Non
     assert np.allclose(read_any(target)["cam2"].R, rig[0].R)
     now = datetime.datetime(2026, 11, 29, 7, 55, 0)
     assert backup_path(target, now).name == "rig.toml.20261129T075500.bak"
+    # Saves within one second: the names still list in the order they were made (CI once saved twice in a second).
+    made = []
+    for _ in range(3):
+        made.append(backup_path(target, now))
+        made[-1].write_bytes(b"")
+    assert [p.name for p in made] == [f"rig.toml.20261129T075500{s}.bak" for s in ("", "_2", "_3")]
+    assert sorted(made) == made
 
 
 def test_a_save_is_refused_where_the_next_start_could_not_read_it(tmp_path: Path) -> None:

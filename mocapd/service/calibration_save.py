@@ -39,12 +39,15 @@ class Saved:
 
 
 def backup_path(target: Path, now: datetime.datetime) -> Path:
-    """``calib.toml`` -> ``calib.toml.20261129T075500.bak`` beside it (a second save in the same second: ``-2``...)."""
+    """``calib.toml`` -> ``calib.toml.20261129T075500.bak`` beside it (a second save in the same second: ``_2``...).
+
+    The names list in the order they were made (``_`` sorts after the ``.`` of ``.bak``; up to nine in one second).
+    """
     stamp = now.strftime("%Y%m%dT%H%M%S")
     path = target.with_name(f"{target.name}.{stamp}.bak")
     n = 2
     while path.exists():
-        path = target.with_name(f"{target.name}.{stamp}-{n}.bak")
+        path = target.with_name(f"{target.name}.{stamp}_{n}.bak")
         n += 1
     return path
 
