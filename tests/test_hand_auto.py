@@ -12,7 +12,7 @@ from mocapd.core.pose2d import PoseDetections
 from mocapd.pipeline.detector_config import DetectorConfig
 from mocapd.pipeline.hand_auto import AutoHands, HandCosts, choose_hands, front_status, hand_stage
 from mocapd.pipeline.hand_landmarks import HandRunner
-from mocapd.pipeline.landmark_auto import AutoLandmarks, LandmarkCosts, choose_landmarks
+from mocapd.pipeline.landmark_auto import REPROBE_NS, AutoLandmarks, LandmarkCosts, choose_landmarks
 
 MS = 1_000_000
 
@@ -64,8 +64,12 @@ def person() -> PoseDetections:
 def test_auto_hands_measure_their_cost_and_go_off_first_when_the_body_takes_the_budget() -> None:
     image = np.full((480, 640, 3), 128, np.uint8)
     auto = AutoHands(HandRunner(COCO17.keypoints), clock=StepClock())
+    hand_stage(auto, [image], [person()], [0], 60 * MS, 10 * MS)
+    # The model's first run loaded it: not counted as its cost; the next pass measures it.
+    assert auto.runner.crops_run == 2 and auto.costs().hand_ms is None
+    assert auto.decide().reason == "measuring the hand model's cost per crop"
     runs = []
-    for _ in range(6):  # YOLO 60 ms, body landmarks 10 ms: 20 ms left, the hands' 2 x 10 ms fit every pass
+    for _ in range(5):  # YOLO 60 ms, body landmarks 10 ms: 20 ms left, the hands' 2 x 10 ms fit every pass
         (out,) = hand_stage(auto, [image], [person()], [0], 60 * MS, 10 * MS)
         assert out.keypoints.shape == (1, 17 + 42, 3)
         runs.append(auto.choice.run and auto.choice.every == 1)
@@ -81,6 +85,13 @@ def test_auto_hands_measure_their_cost_and_go_off_first_when_the_body_takes_the_
     np.testing.assert_array_equal(out.keypoints[0, :17], person().keypoints[0])
     status = front_status((True, "auto"), "auto", [auto])
     assert status["auto"]["running"] == "off" and status["auto"]["passes"] == 37  # type: ignore[index]
+    # Off, the model still runs once every REPROBE_NS to measure itself again (its last run moved 20 s back).
+    assert auto._ran_ns is not None
+    auto._ran_ns -= REPROBE_NS
+    (out,) = hand_stage(auto, [image], [person()], [0], 60 * MS, 40 * MS)
+    assert auto.runner.crops_run == before + 2 and not auto.choice.run
+    hand_stage(auto, [image], [person()], [0], 60 * MS, 40 * MS)
+    assert auto.runner.crops_run == before + 2
 
 
 def test_the_governor_shedding_the_body_landmarks_turns_the_hands_off() -> None:

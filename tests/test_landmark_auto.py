@@ -16,6 +16,7 @@ from mocapd.pipeline.detector_config import DetectorConfig, PackingConfig
 from mocapd.pipeline.detector_pool import PooledDetector, detector_status, landmark_fronts, make_detector
 from mocapd.pipeline.governor import LADDER, Governor, GovernorOptions, ladder
 from mocapd.pipeline.landmark_auto import (
+    REPROBE_NS,
     AutoLandmarks,
     LandmarkBudget,
     LandmarkCosts,
@@ -112,16 +113,30 @@ def test_auto_with_the_real_models_picks_reports_and_is_shed(frame: np.ndarray) 
         assert first.keypoints.shape[1:] == (33, 2) and first.confidences[:, EXTRA].max() > 0.3
         st = detector_status(det)["landmarks"]
         assert isinstance(st, dict) and st["asked"] == "auto" and st["landmark_passes"] == {"heavy": 0, "full": 1}
-        assert st["costs"]["landmark_ms_per_crop"]["full"] > 0 and st["crops"] >= 1
+        # Its first run loaded the model: not its cost (a fresh daemon measured full at several times its cost on
+        # that run, chose off, and never ran it again). The next pass measures it.
+        assert st["costs"]["landmark_ms_per_crop"]["full"] is None and st["crops"] >= 1
+        assert front.decide().reason == "measuring full's cost per crop"
+        det(frame)
+        st = detector_status(det)["landmarks"]
+        assert isinstance(st, dict) and st["landmark_passes"] == {"heavy": 0, "full": 2}
+        assert st["costs"]["landmark_ms_per_crop"]["full"] > 0
         # Injected costs (no wall clock decides): full dearer than any pass may take → off, YOLO's points alone.
         front._per_crop["full"].value = front._per_crop["heavy"].value = 10_000.0
         off = det(frame)
         assert front.choice.variant is None and "no model fits" in front.choice.reason
         assert off.confidences[:, EXTRA].max() == 0.0 and off.confidences[:, BLAZEPOSE33.index("left_hip")].max() > 0.3
+        # Off by its costs, the cheapest model still runs once every REPROBE_NS to measure itself again (here: its
+        # last run moved 20 s back), and only once.
+        front._ran_ns["full"] -= REPROBE_NS
+        probe = det(frame)
+        assert probe.confidences[:, EXTRA].max() > 0.3 and front.landmark_passes["full"] == 3
+        assert front._per_crop["full"].value < 10_000.0 and front.choice.variant is None
+        assert det(frame).confidences[:, EXTRA].max() == 0.0 and front.landmark_passes["full"] == 3
         # Cheap and an idle detector → heavy every pass, with its points.
         front._per_crop["full"].value, front._per_crop["heavy"].value = 1.0, 2.0
         front._idle.value = 1_000.0
-        heavy = det(frame)
+        heavy = det(frame)  # heavy's first run: loads it, not counted (its injected cost stays)
         chosen = front.current()
         assert (chosen.variant, chosen.every) == ("heavy", 1) and heavy.confidences[:, EXTRA].max() > 0.3
         # The governor's hook holds it off, with its reason, and gives it back.
@@ -133,8 +148,8 @@ def test_auto_with_the_real_models_picks_reports_and_is_shed(frame: np.ndarray) 
         front._per_crop["full"].value, front._per_crop["heavy"].value = 1.0, 2.0  # heavy's real run measured it
         det(frame)
         st = detector_status(det)["landmarks"]
-        assert isinstance(st, dict) and st["running"] == "heavy" and st["passes"] == 5
-        assert st["landmark_passes"] == {"heavy": 2, "full": 1}
+        assert isinstance(st, dict) and st["running"] == "heavy" and st["passes"] == 8
+        assert st["landmark_passes"] == {"heavy": 2, "full": 3}
         assert set(st["cameras"]["all"]) == {"detect_hz", "landmark_hz"}
         line = status_field(landmark_fronts(det))
         assert line is not None and line.startswith("landmarks heavy (")

@@ -7,14 +7,15 @@ again to a detector that the body landmarks may already have stretched. "auto" w
 * ``yolo_ms``: the detector's time of a pass, ``idle_ms``: the wait between passes,
 * ``body_ms``: the body landmark stage's time per pass (its average: 0 on the passes it skips),
 * ``crops``: the hand crops of a pass (two per person), ``hand_ms``: the hand model's time per crop, measured when
-  it ran (scaled by YOLO's change since, as the body's),
+  it ran (scaled by YOLO's change since, as the body's; its first run, which loads the model, not counted),
 
 and :func:`choose_hands` (pure) turns them into a rate: the hands get what the body landmarks left of the same
 allowance (:class:`~mocapd.pipeline.landmark_auto.LandmarkBudget`: ``share`` of a YOLO pass plus the idle time), on
 every ``every``-th pass, the smallest that fits; off when nothing is left, when a pass of hands would take longer
 than ``max_pass_ms`` or run rarer than every ``max_every``-th pass. So when the budget is short the hands go off
 first and the body keeps its landmarks. The passes without hands give every person's 42 hand keypoints at
-confidence 0 ("not seen"), so the keypoint set (``<body>_hands``) never changes.
+confidence 0 ("not seen"), so the keypoint set (``<body>_hands``) never changes. While off, the hand model still runs
+on one pass every :data:`~mocapd.pipeline.landmark_auto.REPROBE_NS` to measure itself again, as the body's does.
 
 The budget governor sheds the body landmarks (``[daemon] governor``, :func:`~mocapd.pipeline.landmark_auto.
 shed_landmarks`); while it does, the hands are off too (their crops are placed from the body landmarks' hand points).
@@ -34,7 +35,7 @@ from mocapd.core.hand_roi import N_HAND
 from mocapd.core.keypoints import HAND_SIDES
 from mocapd.core.pose2d import PoseDetections
 from mocapd.pipeline.hand_landmarks import HandRunner, hand_status, with_hand_landmarks
-from mocapd.pipeline.landmark_auto import AutoLandmarks, LandmarkBudget, LandmarkFront, _Mean
+from mocapd.pipeline.landmark_auto import REPROBE_NS, AutoLandmarks, LandmarkBudget, LandmarkFront, _Mean
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,8 @@ class AutoHands:
         self.choice = HandChoice(False, 1, "no pass yet")
         self._yolo, self._idle, self._body, self._crops, self._per_crop = _Mean(), _Mean(), _Mean(), _Mean(), _Mean()
         self._yolo_then = 0.0
+        self._warm = False  # the model has run once (its first run, loading it, is not counted as its cost)
+        self._ran_ns: int | None = None  # when the model last ran
         self._since = 0
         self._last_end: int | None = None
         self._lock = threading.Lock()
@@ -157,12 +160,18 @@ class AutoHands:
             self._crops.add(2.0 * n_people)
         self.choice = choice = self.decide()
         self._since += 1
-        ran = choice.run and n_people > 0 and self._since >= choice.every
+        shed = isinstance(self.body, AutoLandmarks) and self.body.shed is not None
+        reprobe = (not choice.run and not shed and self._ran_ns is not None
+                   and start - self._ran_ns >= REPROBE_NS)  # fmt: skip
+        ran = n_people > 0 and ((choice.run and self._since >= choice.every) or reprobe)
         if ran:
             before, t0 = self.runner.crops_run, self.clock()
             out = with_hand_landmarks(self.runner, images, people, cameras)
             crops = self.runner.crops_run - before
-            if crops:
+            self._ran_ns = t0
+            if crops and not self._warm:
+                self._warm = True  # loading and first allocations: not what a pass costs
+            elif crops:
                 self._per_crop.add((self.clock() - t0) / 1e6 / crops)
                 self._yolo_then = self._yolo.value or 0.0
             self._since = 0

@@ -10,7 +10,9 @@ carry the people for longer. "auto" therefore picks, per pass, from costs measur
   never does),
 * ``crops``: the people of a pass's views (each one crop),
 * ``landmark_ms``: each model's time per crop, measured when it ran (heavy is estimated as
-  :data:`HEAVY_OVER_FULL` times full until it has run once),
+  :data:`HEAVY_OVER_FULL` times full until it has run once); a model's first run is not counted: it loads the model
+  and allocates its tensors (a fresh daemon measured full at several times its cost on that run, chose off, and never
+  ran full again to see its mistake),
 
 and :func:`choose_landmarks` (pure) turns them into a model and a rate: run the model on every ``every``-th pass,
 where ``every`` is the smallest that keeps the landmarks' average cost per pass within the allowance
@@ -18,7 +20,9 @@ where ``every`` is the smallest that keeps the landmarks' average cost per pass 
 full would, full otherwise, and off (YOLO's keypoints with tracking between, the floor) when a single landmark
 pass would take longer than ``max_pass_ms`` or run rarer than every ``max_every``-th pass. The passes between give
 YOLO's 17 points in the 33-point layout (the feet and hand points at confidence 0, "not seen"), so the keypoint
-set the solver receives never changes.
+set the solver receives never changes. While the costs hold it off, the cheapest model still runs on one pass every
+:data:`REPROBE_NS` to measure itself again: a cost is otherwise measured only when the model runs, and one measured
+under a load that has passed (beyond what YOLO's own time tells, below) would keep "auto" off for good.
 
 The governor (:mod:`mocapd.pipeline.governor`, ``[daemon] governor``) sheds the landmark model as one step of its
 ladder: :attr:`AutoLandmarks.shed` then holds the choice at off, with the governor's reason, until it restores
@@ -53,6 +57,10 @@ loaded, 49-60 against 16-19 ms quieter; :mod:`mocapd.pipeline.landmarks`)."""
 
 RATE_WINDOW_NS = 2_000_000_000
 """The per-camera rates in ``/status`` count this much of the run."""
+
+REPROBE_NS = 20_000_000_000
+"""While the measured costs hold the landmarks off, the cheapest model runs on one pass this often to measure itself
+again (one pass's landmarks every 20 s: at most ``max_pass_ms``-ish late detections that often)."""
 
 #: Where YOLO's COCO-17 points go in the 33-point layout (passes without landmarks).
 _COCO_IN_33 = np.array([BLAZEPOSE33_FORMAT.index(n) for n in COCO17_FORMAT.keypoints], dtype=np.intp)
@@ -184,6 +192,8 @@ class AutoLandmarks:
         self._yolo, self._idle, self._crops = _Mean(), _Mean(), _Mean()
         self._per_crop: dict[str, _Mean] = {v: _Mean() for v in self.runners}
         self._yolo_then: dict[str, float] = {}  # YOLO's pass time when each model's cost was last measured
+        self._warm: set[str] = set()  # the models that have run once (their first run is not counted as their cost)
+        self._ran_ns: dict[str, int] = {}  # when each model last ran
         self._since = 0  # passes since the last one with landmarks
         self._last_end: int | None = None
         self.passes = 0
@@ -246,13 +256,18 @@ class AutoLandmarks:
         self.choice = choice = self.decide()
         self._since += 1
         out = [as_33(p) for p in people]
-        variant = choice.variant
+        variant = choice.variant if self._since >= choice.every else None
+        if choice.variant is None and self.shed is None:
+            variant = self._reprobe(start)
         ran = False
-        if variant is not None and n_people and self._since >= choice.every:
+        if variant is not None and n_people:
             t0 = self.clock()
             found = self.runners[variant].run(images, [p.keypoints for p in people])
             crops = sum(r is not None for lm in found for r in lm.rois)
-            if crops:
+            self._ran_ns[variant] = t0
+            if crops and variant not in self._warm:
+                self._warm.add(variant)  # loading and first allocations: not what a pass costs
+            elif crops:
                 self._per_crop[variant].add((self.clock() - t0) / 1e6 / crops)
                 self._yolo_then[variant] = self._yolo.value or 0.0
             for i, lm in enumerate(found):
@@ -273,6 +288,16 @@ class AutoLandmarks:
                 if ran:
                     self._window(self._marked, cam, end)
         return out
+
+    def _reprobe(self, now: int) -> str | None:
+        """While the costs hold the landmarks off: the cheapest measured model, when it last ran
+        :data:`REPROBE_NS` or more before ``now`` (None otherwise)."""
+        c = self.costs().landmark_ms
+        measured = [v for v in self.runners if c.get(v) is not None]
+        if not measured:
+            return None
+        cheapest = min(measured, key=lambda v: c[v] or 0.0)
+        return cheapest if now - self._ran_ns.get(cheapest, now) >= REPROBE_NS else None
 
     @staticmethod
     def _window(times: dict[int, deque[int]], cam: int, now: int) -> None:
