@@ -241,11 +241,16 @@ async def test_predicted_output_publishes_the_suit_wearer_at_imu_latency() -> No
     others = [(f, p) for f in frames for p in f.people if p.suit is None]
     assert others and all(p.solved is None and f.pose_time_ns(p) == f.t_solve_ns for f, p in others)
     ahead = [(f.pose_time_ns(p) - f.t_solve_ns) / 1e6 for f, p in suited if p.solved is not None]
-    assert len(ahead) >= 0.9 * len(suited) and np.median(ahead) > 100.0  # of the 150 ms fixed latency
+    # Carried from the solve instant (the latency behind the tick: "auto", ~100 ms on a fast machine, more on a slow
+    # one) to the IMUs' newest sample, a few ms before the tick: ahead by most of the latency, whatever it is.
+    behind = [(f.tick_ns - f.pose_time_ns(p)) / 1e6 for f, p in suited if p.solved is not None]
+    latency = float(np.median([(f.tick_ns - f.t_solve_ns) / 1e6 for f, _ in suited]))
+    assert len(ahead) >= 0.9 * len(suited) and latency > 50.0 and np.median(ahead) > 0.7 * latency, (latency, ahead)
+    assert np.median(behind) < 0.3 * latency, behind
     measured = dict(zip((id(f) for f in rec.frames), rec.newest_ns, strict=True))
     assert all(f.pose_time_ns(p) <= measured[id(f)] for f, p in suited)  # never past what was measured
     lat = st["latency_ms"]
-    assert lat["imu_to_publish"]["p50"] < lat["end_to_end"]["p50"] - 100.0
+    assert lat["imu_to_publish"]["p50"] < 0.3 * lat["end_to_end"]["p50"], lat
 
 
 @pytest.mark.asyncio
