@@ -48,10 +48,10 @@ step  what is shed                           what it costs
                                              frame, the keypoints ~1.5 % of the image height from full-scale
                                              tiles'. For a CPU budget of 0.4 of a core on the 2-core EPYC (0.8
                                              of one on the issue's slower CPU; docs/daemon.md, "The paced
-                                             detector")
-11    ... the detector paced every 1.5 s     the tracking carries the people 1.5 s between detections (its
+                                             detector"). The tracking carries the people between detections (its
                                              ``max_age_s``, 2 s, bounds the pace: the daemon paces at most 3/4 of
-                                             it)
+                                             it; paced at 1.5 s, a camera's people were lost and came back as new
+                                             identities)
 ====  =====================================  ======================================================================
 
 Why this order, and why it ends there. Steps 8 and 9 come after the half-rate solve because each costs the user more
@@ -64,9 +64,9 @@ keypoints a camera and person; at 0.8 of a core the tracking at a third saved mo
 demo or at 0.8 of a core, because its passes already leave some camera a second without a detection there, and then it
 does not rest (a rest would age that camera's tracked people out). Under a CPU budget a pass's wall time is mostly the
 quota's throttling, and a duty's rest is a multiple of that wall time: at 20 % duty, with the guard lengthened to
-1.6 s, the detector still took 0.09 s/s of a 0.4-core budget. The last two steps pace it instead (a rest until the
+1.6 s, the detector still took 0.09 s/s of a 0.4-core budget. The last step paces it instead (a rest until the
 camera detected longest ago is due, whatever a pass took) on half-scale tiles: 0.035-0.045 s/s, and the ticks held
-(docs/daemon.md, "The paced detector"). They come last because each detection is coarser (a network pixel is twice
+(docs/daemon.md, "The paced detector"). It comes last because each detection is coarser (a network pixel is twice
 the source pixels) and a camera's people are carried by the tracking alone for a second or more.
 
 Each of the first seven steps is placed by what it saved, measured with the step pinned (``[daemon] governor_pin_step``)
@@ -184,10 +184,11 @@ NEAR_HALF = 0.55
 _TRACKING_RATES = {0.6: "60 % rate", NEAR_HALF: "55 % rate", 1 / 3: "a third of its rate"}
 _SOLVES = {2: "people solved at half rate", 3: "people solved on every third tick"}
 THIRD = 1 / 3  # keypoint tracking's rate at the deepest tracking step
-#: the deepest steps (issue 39, a CPU budget of 0.8 of a core on the issue's slower CPU): the detector's passes
-#: paced, one detection a camera every so many seconds (the tracking carries the people between; its ``max_age_s``
-#: of 2 s bounds it), on packed tiles at half their whole-frame scale (a pass of half the CPU)
-PACES_S = (1.0, 1.5)
+#: the deepest step (issue 39, a CPU budget of 0.8 of a core on the issue's slower CPU): the detector's passes
+#: paced, one detection a camera a second (the tracking carries the people between; its ``max_age_s`` of 2 s bounds
+#: it: at 1.5 s a camera's people were lost and re-enrolled, docs/daemon.md), on packed tiles at half their
+#: whole-frame scale (a pass of half the CPU)
+PACE_S = 1.0
 HALF_SCALE = 0.5
 
 LADDER: tuple[Level, ...] = (
@@ -205,7 +206,7 @@ LADDER: tuple[Level, ...] = (
     _named(THIRD, 0.35, solve_every=3),
     # The detector paced on half-scale tiles, where a packed detector and keypoint tracking run: docs/daemon.md,
     # "The paced detector".
-    *(_named(THIRD, 0.35, solve_every=3, pace_s=pace, tile_ratio=HALF_SCALE) for pace in PACES_S),
+    _named(THIRD, 0.35, solve_every=3, pace_s=PACE_S, tile_ratio=HALF_SCALE),
 )
 #: the tracking steps alone, for a rig whose keypoint tracking runs without a detector of its own to rest
 TRACKING_ALONE = (_named(0.6, 1.0), _named(NEAR_HALF, 1.0))
@@ -231,7 +232,7 @@ def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tup
     if tracking:
         steps.append(_named(THIRD, last.detector_duty, False, 3))
         if detector:  # the detector paced: the tracking carries each camera's people between its detections
-            steps.extend(LADDER[10:])
+            steps.append(LADDER[10])
     return tuple(steps)
 
 
