@@ -62,11 +62,13 @@ def test_an_overrun_sheds_in_the_ladders_order_one_step_per_judgement_and_never_
         p.window(3.0)  # past the settling time: 6 s
     seen = [p.window(300.0 * 0.85**g.step_index) for _ in range(3 * len(LADDER) + 3)]  # each step 15 % better
     # Two late windows shed the first step; each step is then on trial for three windows (nothing else changes),
-    # helped (its windows' median p95 fell), and the next follows; the last step stays.
-    assert seen == [0, *(k for k in range(1, 10) for _ in range(3)), *[10] * 8], seen
+    # helped (its windows' median p95 fell), and the next follows; the last step stays. A late p95 alone, no tick
+    # missed, never paces the detector (the last step: its own test).
+    assert seen == [0, *(k for k in range(1, 10) for _ in range(3)), *[9] * 8], seen
+    assert g.level is LADDER[9] and g.level.pace_s == 0.0
     assert g.level.tracking_rate == pytest.approx(1 / 3) and g.level.detector_duty == 0.35 and not g.level.landmarks
     assert g.level.solve_every == 3 and [lv.solve_every for lv in LADDER] == [1] * 7 + [2, 3, 3, 3]
-    assert g.level.pace_s == 1.0 and g.level.tile_ratio == 0.5
+    assert LADDER[-1].pace_s == 1.0 and LADDER[-1].tile_ratio == 0.5
     # The landmark model first (the detector's costliest part, issue 40), then the detector's duty, then the
     # tracking's rate last (alone it saved least, and below 55 % it costs the 30 Hz keypoints, docs/daemon.md);
     # tracking itself never (detections alone came too far apart: people lost and re-enrolled), the tick never;
@@ -90,7 +92,7 @@ def test_an_overrun_sheds_in_the_ladders_order_one_step_per_judgement_and_never_
     for a, b in itertools.pairwise(LADDER):
         assert b.tracking_rate <= a.tracking_rate and b.detector_duty <= a.detector_duty and a != b
     assert all(lv.tracking_rate > 0 for lv in LADDER)
-    assert [h[1] for h in g.history] == list(range(1, 11)) and "of a 16.7 ms period" in str(g.status()["reason"])
+    assert [h[1] for h in g.history] == list(range(1, 10)) and "of a 16.7 ms period" in str(g.status()["reason"])
 
 
 def test_missed_ticks_shed_even_when_the_ticks_that_ran_were_quick() -> None:
@@ -210,7 +212,8 @@ def test_late_windows_on_a_machine_only_we_load_walk_one_step_a_window(others: f
     2 cores, and every step waited for its three-window verdict, which could only keep it (helped, or took CPU and
     the lateness is ours, or took no CPU): most of a run's missed ticks fell in those ~24 s. With the others under a
     quarter of the machine (0.2 or 0.24 of 2 cores) a window still late ends the trial at once: one step a window,
-    each kept unjudged, to the ladder's last. With the others at 0.8 or 1.1 of 2 cores (40 %, 55 %), or not
+    each kept unjudged, to the last step before the paced detector (which waits for a window that missed 6 %: its
+    own test). With the others at 0.8 or 1.1 of 2 cores (40 %, 55 %), or not
     measured, each step waits for its three-window trial, and a step that took CPU without helping is taken back.
     On the old code (a tenth of the window missed to end a trial) the 5 % trace waited for every trial."""
     steps = ladder(False, True, True)
@@ -218,7 +221,8 @@ def test_late_windows_on_a_machine_only_we_load_walk_one_step_a_window(others: f
     p = _Process(g, cpus=None if others is None else 2)
     seen = [p.window(60.0, 1.71 - 0.1 * g.step_index, missed=6, others=others or 0.0) for _ in range(12)]
     if others is not None and others < 0.5:
-        assert seen == [*range(len(steps)), *[len(steps) - 1] * (12 - len(steps))], seen
+        last = len(steps) - 2
+        assert seen == [*range(last + 1), *[last] * (11 - last)], seen
         assert "step 1 kept unjudged: the window after it was still late while the others used under 25 % of the " \
                "machine (the lateness is ours)" in g.history[1][2], g.history  # fmt: skip
         assert "6 of 126 ticks missed, process CPU 1.61 s/s, others' CPU" in g.history[1][2]  # the window said
@@ -416,24 +420,30 @@ def test_the_deepest_step_paces_the_detector_on_half_scale_tiles_after_the_steps
     ]
     for run in ((False, True, False), (False, False, True), (False, False, False), (True, False, True)):
         assert all(lv.pace_s == 0.0 and lv.tile_ratio == 1.0 for lv in ladder(*run)), run
-    # Still late at step 8 with nobody else loading the machine: on to the paced steps, said in /status.
+    # Far behind at step 8 (at 0.4 of a core its windows missed 7-18 %) with nobody else loading the machine: on to
+    # the paced step, said in /status.
     g = Governor(PERIOD, GovernorOptions(settle_s=0.0), steps=demo)
     p = _Process(g, cpus=2)
-    seen = [p.window(60.0, 0.4, missed=6, others=0.2) for _ in range(12)]
+    seen = [p.window(60.0, 0.4, missed=12, others=0.2) for _ in range(12)]
     assert seen == [*range(10), 9, 9], seen
     st = g.status()
     assert st["detector_pace_s"] == 1.0 and st["tile_ratio"] == 0.5 and str(st["shed"]).startswith("detector paced")
 
 
 def test_a_machine_whose_ticks_fit_at_step_8_never_paces_the_detector() -> None:
-    """The steps above are as they were on a machine that does not need the new ones: ticks that fit again at step
-    8 keep it there (and a calm hold gives steps back), the detector never paced."""
-    g = Governor(PERIOD, GovernorOptions(settle_s=0.0), steps=ladder(False, True, True))
-    p = _Process(g, cpus=2)
-    seen = [p.window(60.0 if g.step_index < 8 else 20.0, 0.4, missed=6 if g.step_index < 8 else 0, others=0.2)
-            for _ in range(20)]  # fmt: skip
-    assert max(seen) == 8 and seen[-1] == 8, seen
-    assert g.level.pace_s == 0.0 and g.level.tile_ratio == 1.0
+    """The steps above are as they were on a machine that does not need the new one: ticks that fit again at step
+    8 keep it there, and windows that miss under ``pace_missed`` (6 %) of their ticks there, as the quiet 2-core
+    demo's did at its last step (2-6 of ~120, eighth session), do not pace the detector either: it costs coarser
+    detections, for a machine far behind."""
+    for late in (0, 2, 6):
+        g = Governor(PERIOD, GovernorOptions(settle_s=0.0), steps=ladder(False, True, True))
+        p = _Process(g, cpus=2)
+        seen = [p.window(60.0 if g.step_index < 8 else 30.0, 1.4, missed=12 if g.step_index < 8 else late,
+                         others=0.2) for _ in range(20)]  # fmt: skip
+        assert max(seen) == 8 and seen[-1] == 8, (late, seen)
+        assert g.level.pace_s == 0.0 and g.level.tile_ratio == 1.0
+    seen.append(p.window(30.0, 1.4, missed=8, others=0.2))  # 8 of 128: far enough behind
+    assert seen[-1] == 9 and g.level.pace_s == 1.0
 
 
 def test_a_window_that_loses_most_of_its_ticks_sheds_at_once_without_waiting_for_a_trial() -> None:

@@ -51,7 +51,9 @@ step  what is shed                           what it costs
                                              detector"). The tracking carries the people between detections (its
                                              ``max_age_s``, 2 s, bounds the pace: the daemon paces at most 3/4 of
                                              it; paced at 1.5 s, a camera's people were lost and came back as new
-                                             identities)
+                                             identities). Shed into only from a window that missed
+                                             ``pace_missed`` (6 %) of its ticks: the quiet 2-core demo's windows
+                                             at step 9 missed 2-6 of ~120 and it held its ticks there
 ====  =====================================  ======================================================================
 
 Why this order, and why it ends there. Steps 8 and 9 come after the half-rate solve because each costs the user more
@@ -286,6 +288,11 @@ class GovernorOptions:
     retry_s: float = 30.0
     """After a step that took work away without bringing the lateness down: nothing shed for this long (doubled
     for each further such step in a row, up to 4 x)."""
+    pace_missed: float = 0.06
+    """The detector is paced (the last step) only after a window that missed at least this share of its ticks: on
+    the quiet 2-core `mocapd demo` the windows at the step before missed 2-6 of ~120 ticks (the lateness the fast
+    walk sheds on) and it held its ticks there (0.6-1.1 % missed, eighth session), where the paced step would cost
+    coarser detections for nothing; at a CPU budget of 0.4 of a core on the 2-core EPYC they missed 7-18 %."""
     others_share: float = 0.25
     """A step that took work away without helping is taken back only when the other programs on the machine used
     at least this share of its CPUs in the trial (the median of its windows; below it the lateness is this
@@ -521,6 +528,8 @@ class Governor:
             return False
         before = tuple(self._level_windows)
         w = before[-1]
+        if self.ladder[self.step_index + 1].pace_s > 0.0 and w.missed_share < self.options.pace_missed:
+            return False  # the paced detector is for a machine far behind (see ``pace_missed``)
         self.step_index += 1
         verdict = f"; {self._verdict}" if self._verdict else ""  # the step before it, judged in this window
         self._changed(now_ns, f"tick p95 {w.p95_ns / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
