@@ -620,3 +620,43 @@ def test_sessions_share_the_cores_of_the_process() -> None:
     assert (concrete.workers, concrete.intra_op_threads) == (4, 2)
     with pytest.raises(ConfigError, match="workers"):
         DetectorConfig(workers=0)
+
+
+def test_half_scale_tiles_put_four_cameras_on_one_canvas_and_find_the_same_people(
+    detector: OnnxPoseDetector,
+) -> None:
+    """The governor's deepest steps (issue 39) pack every tile at half its whole-frame scale
+    (``PackedDetector.tile_ratio``): the four multi-person demo cameras' people then share one canvas, a pass of at
+    most half the network pixels of full-scale tiles, and each camera's people are found where full-scale tiles find
+    them: the same number, their confident keypoints' median distance within 1.5 % of the image height (17-20 px of
+    these 1920-px frames, a network pixel being 6 of them at half scale; the tracking carries the people between
+    these detections, which re-anchor it)."""
+    caps = [cv2.VideoCapture(str(demo_video("Demo_MultiPerson", c))) for c in CAMERAS]
+    images: list[Image] = []
+    for cap in caps:
+        ok, img = cap.read()
+        assert ok
+        images.append(np.asarray(img, np.uint8))
+    sizes = [(im.shape[1], im.shape[0]) for im in images]
+    packer = PackedDetector(detector, sizes, PackingConfig(refresh_every=0))
+    packer.detect([images])  # whole frames: the ROIs go around the people
+    cams = list(range(len(images)))
+    rois = [list(r) for r in packer.rois]
+    full_inputs: list[tuple[int, int]] = []
+    (full,) = packer.detect([images], inputs=full_inputs)
+    packer.rois = [list(r) for r in rois]
+    packer.tile_ratio = 0.5
+    assert packer.canvases_for(cams) == 1 < len(full_inputs)
+    half_inputs: list[tuple[int, int]] = []
+    (half,) = packer.detect([images], inputs=half_inputs)
+    assert len(half_inputs) == 1
+    assert sum(w * h for w, h in half_inputs) <= 0.5 * sum(w * h for w, h in full_inputs), (half_inputs, full_inputs)
+    for cam in cams:
+        assert len(half[cam]) == len(full[cam]) >= 2, (cam, len(full[cam]), len(half[cam]))
+        dists = []
+        for i in range(len(full[cam])):
+            j = int(np.argmin(np.linalg.norm(half[cam].boxes[:, :2] - full[cam].boxes[i, :2], axis=1)))
+            both = (full[cam].keypoints[i, :, 2] > 0.5) & (half[cam].keypoints[j, :, 2] > 0.5)
+            dists.append(np.linalg.norm(full[cam].keypoints[i, both, :2] - half[cam].keypoints[j, both, :2], axis=1))
+        bound = 0.015 * images[cam].shape[0]
+        assert float(np.median(np.concatenate(dists))) < bound, (cam, [np.median(d) for d in dists])

@@ -290,3 +290,37 @@ async def test_the_results_of_passes_done_while_the_loop_is_busy_wake_it_once() 
         group.close()
     assert len(passes) == 11 and results == {0: 10, 1: 10} and group.replaced == 18
     assert crossings == ["_drain"], crossings  # the old code: ten "_deliver"
+
+
+def test_a_paced_detector_rests_until_its_oldest_camera_is_due() -> None:
+    """The governor's deepest steps (issue 39): paced, a worker rests after a pass until the camera detected
+    longest ago is a pace past its detection, whatever the duty and however long the pass took (at 0.4 of a core the
+    duty's rest, a multiple of a throttled pass's wall time, took no CPU away); not at all while a camera has no
+    detection yet or is already a pace past it (the starvation guard built in); /status says the pace."""
+    cams = [VideoFileSource(f"cam0{i}", demo_video("Demo_MultiPerson", f"cam0{i}")) for i in (1, 2)]
+    sizes = [(c.ring.shape[1], c.ring.shape[0]) for c in cams]
+    group = PackedDetectionGroup(packed_detector_from_config(DetectorConfig(intra_op_threads=1), sizes),
+                                 ThreadPoolExecutor(1))  # fmt: skip
+    sources = [PackedKeypointSource(i, c, group) for i, c in enumerate(cams)]
+    now = 50_000_000_000
+    group.clock = lambda: now
+    try:
+        group.duty, group.pace_ns = 0.35, 200_000_000
+        group._detected_ns[0] = now
+        group._rest(2_000_000_000)  # cam02 never detected: no rest at all
+        assert group.rested_ns == 0 and group.rests_skipped == 1
+        group._detected_ns.update({0: now - 50_000_000, 1: now - 150_000_000})
+        group._rest(2_000_000_000)  # a 2 s pass at 35 % duty: the duty would rest MAX_REST_NS
+        assert group.rested_ns == 50_000_000  # until cam02, detected 150 ms ago, is 200 ms past it
+        group._detected_ns[1] = now - 300_000_000
+        group._rest(10_000_000)  # cam02 is past its pace already
+        assert group.rested_ns == 50_000_000 and group.rests_skipped == 2
+        group.pace_ns = 0  # not paced: the duty as before
+        group._detected_ns.update({0: now, 1: now})
+        group._rest(2_000_000_000)
+        assert group.rested_ns == 50_000_000 + MAX_REST_NS
+        group.pace_ns = 200_000_000
+        st = sources[0].status()["packing"]
+        assert st["pace_s"] == 0.2 and st["tile_ratio"] == 1.0
+    finally:
+        group.close()

@@ -38,7 +38,22 @@ step  what is shed                           what it costs
                                              ticks of three carried (the carry covers one and two periods alike);
                                              on every rig
 9     ... keypoint tracking at a third       20 Hz a 60 fps camera, keypoints 50 ms apart, interpolated: below the
-                                             30 Hz target, so last, where keypoint tracking runs
+                                             30 Hz target, so last of the steps that keep the detector's duty,
+                                             where keypoint tracking runs
+10    ... the detector paced (each camera    where a packed detector and keypoint tracking run: no duty; after each
+      every 1 s) on half-scale tiles         pass the worker rests until the camera detected longest ago is 1 s
+                                             past its detection, and every packed tile is at half its whole-frame
+                                             scale (``PackedDetector.tile_ratio``; passes all packed), so that one
+                                             canvas takes the four demo cameras' people: half the CPU a camera
+                                             frame, the keypoints ~1.5 % of the image height from full-scale
+                                             tiles'. For a CPU budget of 0.4 of a core on the 2-core EPYC (0.8
+                                             of one on the issue's slower CPU; docs/daemon.md, "The paced
+                                             detector"). The tracking carries the people between detections (its
+                                             ``max_age_s``, 2 s, bounds the pace: the daemon paces at most 3/4 of
+                                             it; paced at 1.5 s, a camera's people were lost and came back as new
+                                             identities). Shed into only from a window that missed
+                                             ``pace_missed`` (6 %) of its ticks: the quiet 2-core demo's windows
+                                             at step 9 missed 2-6 of ~120 and it held its ticks there
 ====  =====================================  ======================================================================
 
 Why this order, and why it ends there. Steps 8 and 9 come after the half-rate solve because each costs the user more
@@ -49,19 +64,26 @@ order (its windows at step 8 still missed 2-6 of ~120 ticks) and holds its ticks
 keypoints a camera and person; at 0.8 of a core the tracking at a third saved more CPU than the solves (docs/daemon.md,
 "The deeper rungs"). The detector at a duty below 35 % is not on the ladder: at 20 % it took no CPU away, on the 2-core
 demo or at 0.8 of a core, because its passes already leave some camera a second without a detection there, and then it
-does not rest (a rest would age that camera's tracked people out). Each of the first seven steps is placed by what it
-saved, measured with the step pinned (``[daemon] governor_pin_step``) on the 2-core camera demo, against what it costs
-the user (docs/daemon.md, "The ladder's order, measured"). The tracking rate went first while the tracking's optical
-flow cost ~0.5 of a core; compiled, four 60 fps cameras' tracking costs ~0.27 of a core, so halving it saves little, and
-it costs the keypoint rate itself (28-29 Hz a camera and person at half rate, below the 30 Hz target) and a frame
-interval of latency. The detector's duty costs only how often the tracked keypoints are re-anchored (the tracking
-carries the people between detections, one frame after capture: the latency a user feels is the tracking's): it goes
-first, the tracking rate last. Tracking itself is never shed: a starved detector delivers a camera's keypoints 1-3 times
-a second, too far apart for the scheduler to interpolate (``keypoint_max_gap_s``), so people dropped out of the solve
-and came back as new identities (the camera demo's test, 2 runs of 6 with a last step "tracking off"), and the latency
-became the detector's (1-2 s). The left/right flip search is not on the ladder either: compiled, it costs ~0.15 ms a
-person a tick (``person_cpu_ms.unflip`` in ``/status``), and reusing a decision on ticks between searches swapped a
-view's limbs whenever the detector had re-labelled it meanwhile (a demo person's arms sized 25 % long).
+does not rest (a rest would age that camera's tracked people out). Under a CPU budget a pass's wall time is mostly the
+quota's throttling, and a duty's rest is a multiple of that wall time: at 20 % duty, with the guard lengthened to
+1.6 s, the detector still took 0.09 s/s of a 0.4-core budget. The last step paces it instead (a rest until the
+camera detected longest ago is due, whatever a pass took) on half-scale tiles: 0.035-0.045 s/s, and the ticks held
+(docs/daemon.md, "The paced detector"). It comes last because each detection is coarser (a network pixel is twice
+the source pixels) and a camera's people are carried by the tracking alone for a second or more.
+
+Each of the first seven steps is placed by what it saved, measured with the step pinned (``[daemon] governor_pin_step``)
+on the 2-core camera demo, against what it costs the user (docs/daemon.md, "The ladder's order, measured"). The tracking
+rate went first while the tracking's optical flow cost ~0.5 of a core; compiled, four 60 fps cameras' tracking costs
+~0.27 of a core, so halving it saves little, and it costs the keypoint rate itself (28-29 Hz a camera and person at half
+rate, below the 30 Hz target) and a frame interval of latency. The detector's duty costs only how often the tracked
+keypoints are re-anchored (the tracking carries the people between detections, one frame after capture: the latency a
+user feels is the tracking's): it goes first, the tracking rate last. Tracking itself is never shed: a starved detector
+delivers a camera's keypoints 1-3 times a second, too far apart for the scheduler to interpolate
+(``keypoint_max_gap_s``), so people dropped out of the solve and came back as new identities (the camera demo's test, 2
+runs of 6 with a last step "tracking off"), and the latency became the detector's (1-2 s). The left/right flip search is
+not on the ladder either: compiled, it costs ~0.15 ms a person a tick (``person_cpu_ms.unflip`` in ``/status``), and
+reusing a decision on ticks between searches swapped a view's limbs whenever the detector had re-labelled it meanwhile
+(a demo person's arms sized 25 % long).
 
 It sheds one step when, in two windows in a row, the tick's p95 exceeded ``shed_above`` of the period or more than
 ``max_missed`` of the window's ticks were missed (one slow window, a start-up burst, is no reason; but one window
@@ -131,20 +153,31 @@ class Level:
     detector_duty: float  # the share of wall time each detector worker may spend in passes
     landmarks: bool = True  # landmarks = "auto" may run a landmark model (False: YOLO's keypoints alone)
     solve_every: int = 1  # the scheduler solves people on every n-th tick, carrying them on the ticks between
+    pace_s: float = 0.0  # > 0: the detector's passes paced (not by duty): each camera detected about this often
+    tile_ratio: float = 1.0  # packed tiles at most this multiple of their camera's whole-frame scale
 
 
-def _named(tracking_rate: float, detector_duty: float, landmarks: bool = False, solve_every: int = 1) -> Level:
+def _named(
+    tracking_rate: float,
+    detector_duty: float,
+    landmarks: bool = False,
+    solve_every: int = 1,
+    pace_s: float = 0.0,
+    tile_ratio: float = 1.0,
+) -> Level:
     """A level named by what it sheds, in the ladder's words (the landmark model is named only where nothing else
     is shed: every later step keeps it off)."""
     shed = []
-    if detector_duty < 1.0:
+    if pace_s > 0.0:
+        shed.append(f"detector paced (each camera every {pace_s:g} s, packed tiles at {tile_ratio:g} scale)")
+    elif detector_duty < 1.0:
         shed.append(f"detector at {detector_duty * 100:g} % duty")
     if tracking_rate < 1.0:
         shed.append(f"keypoint tracking at {_TRACKING_RATES.get(tracking_rate, f'{tracking_rate * 100:g} % rate')}")
     if solve_every > 1:
         shed.append(_SOLVES.get(solve_every, f"people solved on every {solve_every}th tick"))
     name = ", ".join(shed) or ("nothing shed" if landmarks else "landmark model off")
-    return Level(name, tracking_rate, detector_duty, landmarks, solve_every)
+    return Level(name, tracking_rate, detector_duty, landmarks, solve_every, pace_s, tile_ratio)
 
 
 #: keypoint tracking's rate at steps 6-8: 33 Hz of a 60 fps camera, so that the keypoints stay at 30 Hz or more a
@@ -153,6 +186,12 @@ NEAR_HALF = 0.55
 _TRACKING_RATES = {0.6: "60 % rate", NEAR_HALF: "55 % rate", 1 / 3: "a third of its rate"}
 _SOLVES = {2: "people solved at half rate", 3: "people solved on every third tick"}
 THIRD = 1 / 3  # keypoint tracking's rate at the deepest tracking step
+#: the deepest step (issue 39, a CPU budget of 0.8 of a core on the issue's slower CPU): the detector's passes
+#: paced, one detection a camera a second (the tracking carries the people between; its ``max_age_s`` of 2 s bounds
+#: it: at 1.5 s a camera's people were lost and re-enrolled, docs/daemon.md), on packed tiles at half their
+#: whole-frame scale (a pass of half the CPU)
+PACE_S = 1.0
+HALF_SCALE = 0.5
 
 LADDER: tuple[Level, ...] = (
     _named(1.0, 1.0, True),
@@ -167,6 +206,9 @@ LADDER: tuple[Level, ...] = (
     # core): docs/daemon.md, "The deeper rungs".
     _named(NEAR_HALF, 0.35, solve_every=3),
     _named(THIRD, 0.35, solve_every=3),
+    # The detector paced on half-scale tiles, where a packed detector and keypoint tracking run: docs/daemon.md,
+    # "The paced detector".
+    _named(THIRD, 0.35, solve_every=3, pace_s=PACE_S, tile_ratio=HALF_SCALE),
 )
 #: the tracking steps alone, for a rig whose keypoint tracking runs without a detector of its own to rest
 TRACKING_ALONE = (_named(0.6, 1.0), _named(NEAR_HALF, 1.0))
@@ -191,6 +233,8 @@ def ladder(landmarks: bool, tracking: bool = True, detector: bool = True) -> tup
     steps.append(_named(last.tracking_rate, last.detector_duty, last.landmarks, 3))
     if tracking:
         steps.append(_named(THIRD, last.detector_duty, False, 3))
+        if detector:  # the detector paced: the tracking carries each camera's people between its detections
+            steps.append(LADDER[10])
     return tuple(steps)
 
 
@@ -244,6 +288,11 @@ class GovernorOptions:
     retry_s: float = 30.0
     """After a step that took work away without bringing the lateness down: nothing shed for this long (doubled
     for each further such step in a row, up to 4 x)."""
+    pace_missed: float = 0.06
+    """The detector is paced (the last step) only after a window that missed at least this share of its ticks: on
+    the quiet 2-core `mocapd demo` the windows at the step before missed 2-6 of ~120 ticks (the lateness the fast
+    walk sheds on) and it held its ticks there (0.6-1.1 % missed, eighth session), where the paced step would cost
+    coarser detections for nothing; at a CPU budget of 0.4 of a core on the 2-core EPYC they missed 7-18 %."""
     others_share: float = 0.25
     """A step that took work away without helping is taken back only when the other programs on the machine used
     at least this share of its CPUs in the trial (the median of its windows; below it the lateness is this
@@ -479,6 +528,8 @@ class Governor:
             return False
         before = tuple(self._level_windows)
         w = before[-1]
+        if self.ladder[self.step_index + 1].pace_s > 0.0 and w.missed_share < self.options.pace_missed:
+            return False  # the paced detector is for a machine far behind (see ``pace_missed``)
         self.step_index += 1
         verdict = f"; {self._verdict}" if self._verdict else ""  # the step before it, judged in this window
         self._changed(now_ns, f"tick p95 {w.p95_ns / 1e6:.1f} ms of a {self.period_ns / 1e6:.1f} ms period, "
@@ -566,6 +617,8 @@ class Governor:
             "detector_duty": self.level.detector_duty,
             "landmarks": self.level.landmarks,
             "solve_every": self.level.solve_every,
+            "detector_pace_s": self.level.pace_s,
+            "tile_ratio": self.level.tile_ratio,
             "reason": self.last_reason,
             "changes": self.changes,
             "pinned": self.pinned,

@@ -137,6 +137,10 @@ class PackedDetector:
         self.last_packings: list[Packing] = []
         self.last_tile_images: list[Image] = []
         self._lock = threading.RLock()  # ROI state, refresh bookkeeping and counters (passes may run at once)
+        #: every tile at most this multiple of its camera's whole-frame letterbox scale, with ``align_stride`` > 0
+        #: (the default): the governor's deepest steps set 0.5, so that the four demo cameras' people share one
+        #: canvas crop and a camera frame costs half the CPU (:meth:`_aligned`)
+        self.tile_ratio = 1.0
 
     @property
     def n_cameras(self) -> int:
@@ -301,7 +305,8 @@ class PackedDetector:
         """How one ROI goes on a canvas: its whole-frame letterbox transform, or its own smaller scale.
 
         A refresh tile is scaled by ``refresh_scale_ratio``; a person ROI taller than ``max_tile_height`` of the
-        canvas is scaled down to that height. Either is placed on the stride grid (phase 0): with a scale of
+        canvas is scaled down to that height; every tile is at most :attr:`tile_ratio` of the whole-frame scale
+        (1 but at the governor's deepest steps). Either is placed on the stride grid (phase 0): with a scale of
         its own, no placement reproduces the whole-frame pixels, so alignment buys nothing there.
         """
         lb = self._letterboxes[cam]
@@ -311,6 +316,7 @@ class PackedDetector:
         elif self.cfg.max_tile_height > 0 and not self._is_full(cam, roi):
             cap = self.cfg.max_tile_height * self.canvas_detector.input_size[1]
             ratio = min(1.0, cap / (roi.height * lb.sy))
+        ratio = min(ratio, self.tile_ratio)
         if ratio >= 1.0:
             return AlignedRoi(roi, lb.sx, lb.sy, lb.pad_x, lb.pad_y)
         sx, sy = lb.sx * ratio, lb.sy * ratio

@@ -791,12 +791,18 @@ class Daemon:
         the scheduler (people solved every n-th tick), said in the log: what is shed now and why."""
         assert self.governor is not None
         level = self.governor.level
+        # A paced detector leaves a camera's people to the tracking for a pace: never past their age limit (the
+        # pace's pass and delivery on top, a quarter of it).
+        ages = [t.options.max_age_s for s in self.rig.sources if (t := getattr(s, "tracker", None)) is not None]
+        pace_s = min([level.pace_s, *(0.75 * a for a in ages)])
         for src in self.rig.sources:
             if hasattr(src, "tracking_rate_scale"):
                 src.tracking_rate_scale = level.tracking_rate
             group = getattr(src, "group", None)  # a packed detection group (shared by its cameras)
             if group is not None and hasattr(group, "duty"):
                 group.duty = level.detector_duty
+                group.pace_ns = round(pace_s * 1e9)  # the deepest steps: paced, on half-scale tiles
+                group.packer.tile_ratio = level.tile_ratio
         self.scheduler.solve_every = level.solve_every  # the deepest steps: people solved on every 2nd or 3rd tick
         # landmarks = "auto": the landmark model off from step 1 on
         shed_landmarks(self._landmark_fronts(), None if level.landmarks else f"step {self.governor.step_index}, "

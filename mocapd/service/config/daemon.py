@@ -70,7 +70,7 @@ class DaemonConfig(Section):
     governor: bool = True
     """Shed work (the detector's duty, then the keypoint tracking rate) when the tick does not fit its
     period, in the order of docs/daemon.md "Real time on a slow machine"; never the output tick itself."""
-    governor_pin_step: int = Field(-1, ge=-1, le=9)
+    governor_pin_step: int = Field(-1, ge=-1, le=10)
     """A developer's key: hold the governor at this step of the rig's ladder (``/status`` ``governor.ladder``) to
     measure what the step saves; -1: the governor decides. Ignored with ``governor = false``."""
     switch_interval_ms: float = Field(1.0, ge=0.1, le=50.0)
