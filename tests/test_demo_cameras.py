@@ -363,6 +363,21 @@ def test_the_closing_line_says_keypoint_and_detection_rates_and_latency() -> Non
     assert bare == "done: 3 frames, 0 with people solved (at most 0 at once: nobody)"
 
 
+def test_the_closing_lines_rates_count_the_output_seconds_not_the_start_up() -> None:
+    """The rates divide by the seconds from the first published frame to the last: a daemon that took 35 s to start
+    (a fresh checkout compiling its kernels) and then ran 50 s reports its cameras' rates over the 50 s."""
+    from mocapd.pipeline.scheduler import PoseFrame
+    from mocapd.service.demo.cameras import PeopleCount
+
+    now = [35.0]
+    count = PeopleCount(clock=lambda: now[0])
+    assert count.seconds() == 0.0
+    for k in range(3001):
+        now[0] = 35.0 + k / 60.0
+        count.publish(PoseFrame(frame=k, t_solve_ns=k, tick_ns=k, people=[], missing_cameras=0))
+    assert count.seconds() == pytest.approx(50.0) and count.frames == 3001
+
+
 def test_the_recorded_keypoint_sets_replay_to_the_live_people_count(demo: DemoProcess) -> None:
     """``tools/replay_people.py`` on the recorded session (its keypoint sets through the people sorting at their
     live arrival times) finds the people the live daemon solved, tick by tick on average, and its two subjects."""
