@@ -247,11 +247,7 @@ class PackedDetectionGroup:
         # Capped: a pass a starved detector takes a second for would rest 2 s at 35 % duty, and a camera's
         # detections that far apart age its tracked people out (``[detector.tracking] max_age_s``) -- they left
         # the solve and came back as new identities on the loaded 2-core camera demo.
-        rest_ns = min(round(took_ns * (1.0 / max(duty, 0.05) - 1.0)), self.max_rest_ns)
-        with self._cond:
-            if not self._stop:
-                self._cond.wait_for(lambda: self._stop, rest_ns / 1e9)
-        self.rested_ns += rest_ns
+        self._sleep(min(round(took_ns * (1.0 / max(duty, 0.05) - 1.0)), self.max_rest_ns))
 
     def _paced_rest(self) -> None:
         """Rest until the camera detected longest ago is :attr:`pace_ns` past its last detection (not at all while
@@ -269,6 +265,10 @@ class PackedDetectionGroup:
         if rest_ns <= 0:
             self.rests_skipped += 1
             return
+        self._sleep(rest_ns)
+
+    def _sleep(self, rest_ns: int) -> None:
+        """Rest ``rest_ns`` (cut short by :meth:`close`), counted in :attr:`rested_ns`."""
         with self._cond:
             if not self._stop:
                 self._cond.wait_for(lambda: self._stop, rest_ns / 1e9)
