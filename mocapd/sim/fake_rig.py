@@ -47,11 +47,21 @@ CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 
 def cpu_seconds(pid: int, tid: int | None = None) -> float:
-    """User + system CPU time of a process (or one of its threads) from /proc, in seconds (NaN if gone)."""
-    path = f"/proc/{pid}/task/{tid}/stat" if tid is not None else f"/proc/{pid}/stat"
+    """CPU time of a process (or one of its threads) from /proc, in seconds (NaN if gone).
+
+    ``schedstat``'s time on a CPU is in nanoseconds; ``stat``'s user + system time is in clock ticks (10 ms), which
+    reads a thread that ran 9 ms in the window as 0 (an Aravis stream thread at 10 fps on a fast machine did). The
+    ticks are the fallback for a kernel built without schedstat.
+    """
+    base = f"/proc/{pid}/task/{tid}" if tid is not None else f"/proc/{pid}"
     try:
-        fields = Path(path).read_text().rsplit(")", 1)[1].split()
-    except FileNotFoundError:  # the thread ended (camera reopened): no figure rather than a wrong one
+        return int(Path(f"{base}/schedstat").read_text().split()[0]) / 1e9
+    except FileNotFoundError:
+        if not Path(base).exists():  # the thread ended (camera reopened): no figure rather than a wrong one
+            return float("nan")
+    try:
+        fields = Path(f"{base}/stat").read_text().rsplit(")", 1)[1].split()
+    except FileNotFoundError:
         return float("nan")
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
