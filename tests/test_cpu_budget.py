@@ -70,8 +70,23 @@ def test_the_process_is_held_its_children_exempted_and_the_cgroup_removed() -> N
     assert any(line.endswith(name) for line in r["born"])  # a child starts inside it ...
     assert not any(line.endswith(name) for line in r["exempted"])  # ... until exempted
     assert not any(line.endswith(name) for line in r["after"]) and r["removed"]
-    # A second of spinning at 10 % of a core: the kernel ran it in 10 ms periods and throttled most of them.
-    assert r["report"]["periods"] >= 1 and r["report"]["throttled_periods"] >= 1, r["report"]
+    # A second of spinning at 10 % of a core: the kernel ran it in its periods and throttled most of them; the
+    # quota holds two of the kernel's slices (a 100 ms period for the default 5 ms slice).
+    report = r["report"]
+    assert report["periods"] >= 1 and report["throttled_periods"] >= 1, report
+    assert report["quota_us"] == round(0.1 * report["period_us"]) >= 2 * report["slice_us"], report
+
+
+def test_the_period_is_10_ms_unless_the_quota_would_hold_under_two_bandwidth_slices(tmp_path: Path) -> None:
+    from mocapd.io.cpu_budget import bandwidth_slice_us, period_for
+
+    assert period_for(2.0, 5000) == period_for(1.0, 5000) == 10_000  # a 10 ms quota: two 5 ms slices
+    assert period_for(0.8, 5000) == 12_500 and period_for(0.4, 5000) == 25_000  # 10 ms quotas
+    assert period_for(0.4, 1000) == 10_000 and period_for(0.1, 1000) == 20_000
+    knob = tmp_path / "sched_cfs_bandwidth_slice_us"
+    knob.write_text("3000\n")
+    assert bandwidth_slice_us(knob) == 3000
+    assert bandwidth_slice_us(tmp_path / "absent") == 5000  # the kernel's default where it cannot be read
 
 
 def test_the_quota_a_process_runs_under_is_read_from_its_cgroup(tmp_path: Path) -> None:

@@ -6,6 +6,16 @@ and share their CPU with a VR game (issue 39). ``mocapd demo --cpu-budget 0.8`` 
 threads run at most ``cores x period`` of CPU time per ``period``, then throttles them until the next period, as
 a machine with less CPU would. The period is 10 ms (the kernel's default is 100 ms): two threads exhaust a 0.8-core
 quota in 40 ms of a 100 ms period and the whole process then stands still for 60 ms, which no slower CPU does.
+
+The period is longer where the quota would be under two of the kernel's bandwidth slices
+(``/proc/sys/kernel/sched_cfs_bandwidth_slice_us``, 5 ms by default): :func:`period_for`. The kernel hands a
+quota out to the CPUs in slices, so a 4 ms quota (0.4 of a core in 10 ms) went whole to the first CPU that asked
+and the process's threads on the other CPU stood throttled, waiting for the slack timer, while its budget was not
+spent: a budget that runs the process on one CPU at a time, which no 2-core machine does. Measured with ``mocapd
+demo --cpu-budget 0.4`` on a 2-core AMD EPYC (docs/daemon.md, "The budget's period"): 88-93 % of the 10 ms periods
+throttled, 10-18 % of the output ticks missed; with the same quota in 1 ms slices (the sysctl set for the test)
+2.2 %; in a 25 ms period (two 5 ms slices in its 10 ms quota) 3.1-3.8 %. The price is longer stands: up to
+``period - quota`` (15 ms at 0.4 of a core), still shorter than a 60 Hz tick.
 The fake cameras (and anything a demo spawns to stand in for hardware) are exempt: real cameras encode on their own.
 
 Mechanisms, the first that works:
@@ -30,6 +40,8 @@ from pathlib import Path
 from mocapd.errors import ConfigError
 
 PERIOD_US = 10_000  # 10 ms: a slower CPU is slower all the time, not frozen for most of every 100 ms period
+SLICES = 2  # the quota holds at least this many of the kernel's bandwidth slices: one for each of two CPUs
+DEFAULT_SLICE_US = 5_000  # the kernel's sched_cfs_bandwidth_slice_us where it cannot be read
 MIN_CORES = 0.1  # the kernel wants a quota of at least 1 ms: 0.1 of the 10 ms period
 _held: list[CpuBudget] = []  # the process-wide budget (one at most): what exempt() refers to
 
@@ -78,6 +90,20 @@ def find_hierarchies(proc_cgroup: str, mountinfo: str) -> list[_Hierarchy]:
     return out
 
 
+def bandwidth_slice_us(path: Path = Path("/proc/sys/kernel/sched_cfs_bandwidth_slice_us")) -> int:
+    """The kernel's CFS bandwidth slice (µs): how much of a quota a CPU takes at a time."""
+    try:
+        return int(path.read_text())
+    except (OSError, ValueError):
+        return DEFAULT_SLICE_US
+
+
+def period_for(cores: float, slice_us: int) -> int:
+    """The CFS period (µs) for a budget of ``cores``: :data:`PERIOD_US`, or longer where that period's quota would
+    hold fewer than :data:`SLICES` bandwidth slices of ``slice_us`` (the module's docstring says why)."""
+    return max(PERIOD_US, round(SLICES * slice_us / cores))
+
+
 class CpuBudget:
     """This process (all its threads, and the children it starts unless :meth:`exempt`) held to ``cores`` CPUs.
 
@@ -88,7 +114,7 @@ class CpuBudget:
         instead).
     """
 
-    def __init__(self, cores: float, *, pid: int | None = None, period_us: int = PERIOD_US) -> None:
+    def __init__(self, cores: float, *, pid: int | None = None, period_us: int | None = None) -> None:
         if not MIN_CORES <= cores <= (os.cpu_count() or 1):
             raise ConfigError(
                 f"--cpu-budget {cores:g}: allowed {MIN_CORES:g} .. {os.cpu_count()} (this machine's cores)"
@@ -97,12 +123,15 @@ class CpuBudget:
         if not found:
             raise ConfigError(_unavailable("no cgroup file system with a cpu controller is mounted"))
         self.cores = cores
+        self.slice_us = bandwidth_slice_us()
+        self.period_us = period_for(cores, self.slice_us) if period_us is None else period_us
+        self.quota_us = round(cores * self.period_us)
         errors = []
         for h in found:
             self.version, self.parent = h.version, h.parent
             self.path = h.parent / f"mocapd-budget-{os.getpid()}"
             try:
-                self._enter(round(cores * period_us), period_us, pid if pid is not None else os.getpid())
+                self._enter(self.quota_us, self.period_us, pid if pid is not None else os.getpid())
                 return
             except OSError as exc:
                 errors.append(f"{self.path}: {exc.strerror or exc}")
@@ -143,6 +172,7 @@ class CpuBudget:
         """JSON-able: the budget and how it is held (for benchmark reports)."""
         knob = "cpu.max" if self.version == 2 else "cpu.cfs_quota_us"
         return {"cores": self.cores, "mechanism": f"cgroup v{self.version} {knob}", "cgroup": str(self.path),
+                "quota_us": self.quota_us, "period_us": self.period_us, "slice_us": self.slice_us,
                 **self.throttling()}  # fmt: skip
 
     def close(self) -> None:
