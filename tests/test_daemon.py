@@ -8,6 +8,7 @@ import json
 from collections.abc import Callable
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
@@ -291,10 +292,15 @@ async def test_auto_latency_follows_the_synthetic_detector_through_the_assembly_
         "synthetic": cfg.synthetic.model_copy(update={"camera_rate_hz": 10.0, "detection_delay_s": 0.2}),
     })  # fmt: skip
     rec = Recorder()
+    opencv_before = cv2.getNumThreads()
+    cv2.setNumThreads(3)  # a pool, as OpenCV starts with on a multi-core machine: the daemon turns it off
     with assembled(synthetic_config(cfg), RunOptions(sinks=[rec])) as demo:
         d = demo.daemon
         task = asyncio.create_task(d.run())
         await asyncio.wait_for(d.ready.wait(), 120)
+        opencv_threads = cv2.getNumThreads()
+        cv2.setNumThreads(opencv_before)
+        assert opencv_threads == 1  # [daemon] opencv_threads as shipped: OpenCV's calls on their callers' threads
         auto = d.scheduler.auto_latency
         assert auto is not None and d.scheduler.latency_ns == 500_000_000  # measured nothing yet: the start
 

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
+import cv2
 import numpy as np
 
 from mocapd.core._undistort_kernel import warm_up as warm_up_undistortion
@@ -505,6 +506,9 @@ class Daemon:
         # up in every compiled kernel and would wait this long to get it back while the capture, tracking and
         # detector threads run Python (CPython's default 5 ms is a third of a 60 Hz period).
         sys.setswitchinterval(self.config.daemon.switch_interval_ms / 1000.0)
+        # OpenCV's worker pool, process-wide: none by default (the capture threads are the parallelism); its idle
+        # workers spin (sched_yield) after each parallel call, CPU a budget or a game on the laptop pays for.
+        cv2.setNumThreads(self.config.daemon.opencv_threads)
         self.gc_watch.install()
         signals = lifecycle.STOP_SIGNALS if self.handle_signals else ()
         for sig in signals:
