@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import gc
 
+import pytest
+
 from mocapd.io.gc_watch import GcWatch
 
 
@@ -29,3 +31,21 @@ def test_each_collection_is_counted_in_its_generation_with_its_pause() -> None:
     gc.collect(2)  # uninstalled: no longer counted
     assert watch.status()["generations"][2]["collections"] == after[2]["collections"]
     assert watch._callback not in gc.callbacks
+
+
+def test_the_frozen_objects_are_counted_at_the_freeze_not_at_every_status(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``gc.get_freeze_count`` walks the whole frozen list: ~14 ms of the daemon's event loop at every ``/status``
+    snapshot (issue 39's camera demo with the viewer open). The count is taken once, at the freeze."""
+    watch = GcWatch()
+    kept = [[i] for i in range(1000)]
+    try:
+        watch.freeze()
+        assert watch.frozen >= len(kept)
+
+        def walked() -> int:
+            raise AssertionError("status() walked the frozen list")
+
+        monkeypatch.setattr(gc, "get_freeze_count", walked)
+        assert watch.status()["frozen"] == watch.frozen
+    finally:
+        gc.unfreeze()

@@ -39,11 +39,24 @@ class GcWatch:
         self.max_pause_ns = [0] * GENERATIONS
         self.collected = [0] * GENERATIONS
         self._started_ns: int | None = None
+        #: objects :meth:`freeze` took out of every collection (counted then: see :meth:`freeze`)
+        self.frozen = 0
 
     def install(self) -> None:
         """Start counting (idempotent)."""
         if self._callback not in gc.callbacks:
             gc.callbacks.append(self._callback)
+
+    def freeze(self) -> None:
+        """:func:`gc.freeze`: every object alive now out of every later collection, and how many there were.
+
+        Counted here, once: :func:`gc.get_freeze_count` walks the whole frozen list each call, and in the daemon
+        (~180 000 start-up objects, scattered over the heap by then) that took ~14 ms of the event loop each
+        ``/status`` snapshot, once a second while the web viewer was open (py-spy, issue 39's camera demo): a
+        tick or two missed every second on a slow machine.
+        """
+        gc.freeze()
+        self.frozen = gc.get_freeze_count()
 
     def uninstall(self) -> None:
         """Stop counting (the counts stay)."""
@@ -67,12 +80,12 @@ class GcWatch:
 
     def status(self) -> dict[str, Any]:
         """The counts for ``/status``: per generation ``collections``, ``pause_ms`` (the sum), ``max_pause_ms``,
-        ``collected`` (objects freed), and ``frozen``, the objects :func:`gc.freeze` took out of every collection."""
+        ``collected`` (objects freed), and ``frozen``, the objects :meth:`freeze` took out of every collection."""
         return {
             "generations": [
                 {"collections": self.collections[g], "pause_ms": round(self.pause_ns[g] / 1e6, 3),
                  "max_pause_ms": round(self.max_pause_ns[g] / 1e6, 3), "collected": self.collected[g]}
                 for g in range(GENERATIONS)
             ],
-            "frozen": gc.get_freeze_count(),
+            "frozen": self.frozen,
         }  # fmt: skip

@@ -571,7 +571,7 @@ class Daemon:
                     tasks.append(tg.create_task(self.supervisor.supervise("mattes", self._matte_loop), name="mattes"))
                 tasks.append(tg.create_task(self.supervisor.supervise("scheduler", self._tick_loop), name="scheduler"))
                 tasks.append(tg.create_task(self.supervisor.supervise("status", self._status_loop), name="status"))
-                gc.freeze()  # the start-up heap out of every later collection (see _warm_up)
+                self.gc_watch.freeze()  # the start-up heap out of every later collection (see _warm_up)
                 lifecycle.enter_phase("running")
                 self.notifier.notify("READY=1", f"STATUS=serving {self.http.url}/status")
                 self.ready.set()
