@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import hashlib
 import json
 import math
@@ -47,21 +48,21 @@ CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 
 def cpu_seconds(pid: int, tid: int | None = None) -> float:
-    """CPU time of a process (or one of its threads) from /proc, in seconds (NaN if gone).
+    """CPU time of a process (all its threads) or of one of its threads, from /proc, in seconds (NaN if gone).
 
-    ``schedstat``'s time on a CPU is in nanoseconds; ``stat``'s user + system time is in clock ticks (10 ms), which
-    reads a thread that ran 9 ms in the window as 0 (an Aravis stream thread at 10 fps on a fast machine did). The
-    ticks are the fallback for a kernel built without schedstat.
+    A thread's from its ``schedstat`` (time on a CPU, nanoseconds): ``stat``'s user + system time is in whole clock
+    ticks (10 ms), and read a thread that ran 9 ms in a window as 0 (an Aravis stream thread at 10 fps on a fast
+    machine did). A process's from its ``stat``, which sums every thread, ended ones included (its ``schedstat`` is
+    its main thread's alone); likewise a thread's where the kernel has no schedstat.
     """
     base = f"/proc/{pid}/task/{tid}" if tid is not None else f"/proc/{pid}"
+    gone = (FileNotFoundError, ProcessLookupError)
     try:
-        return int(Path(f"{base}/schedstat").read_text().split()[0]) / 1e9
-    except FileNotFoundError:
-        if not Path(base).exists():  # the thread ended (camera reopened): no figure rather than a wrong one
-            return float("nan")
-    try:
+        if tid is not None:
+            with contextlib.suppress(*gone):  # ended, or no schedstat: the stat below says which
+                return int(Path(f"{base}/schedstat").read_text().split()[0]) / 1e9
         fields = Path(f"{base}/stat").read_text().rsplit(")", 1)[1].split()
-    except FileNotFoundError:
+    except gone:  # the thread ended (camera reopened): no figure rather than a wrong one
         return float("nan")
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 

@@ -29,6 +29,7 @@ import argparse
 import asyncio
 import dataclasses
 import json
+import math
 import os
 import sys
 import threading
@@ -58,8 +59,8 @@ from mocapd.service.config import Config, load_config
 from mocapd.service.daemon import Daemon
 from mocapd.service.demo.cameras import CameraDemoOptions, in_private_netns, run_camera_demo
 from mocapd.sim.fake_gige import load_video_rgb
+from mocapd.sim.fake_rig import cpu_seconds
 
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 WARM_UP_S = 20.0  # model sessions, numba kernel and every ring / buffer pool touched once
 ALONE_PASSES = 20  # detector-alone passes (each: one frame of every camera), after ALONE_WARM_UP untimed ones
 ALONE_WARM_UP = 2
@@ -71,12 +72,10 @@ def _rss_mb() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def _cpu_s(stat_path: str) -> float:
-    try:
-        fields = Path(stat_path).read_text().rsplit(")", 1)[1].split()
-    except (FileNotFoundError, ProcessLookupError):
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+def _cpu_s(pid: int, tid: int | None = None) -> float:
+    """:func:`~mocapd.sim.fake_rig.cpu_seconds`, 0 for a thread or process that is gone."""
+    seconds = cpu_seconds(pid, tid)
+    return 0.0 if math.isnan(seconds) else seconds
 
 
 def thread_cpu_by_kind(capture_tids: set[int]) -> dict[str, float]:
@@ -106,7 +105,7 @@ def thread_cpu_by_kind(capture_tids: set[int]) -> dict[str, float]:
             kind = "aravis"
         else:
             kind = "other"
-        out[kind] = out.get(kind, 0.0) + _cpu_s(str(task / "stat"))
+        out[kind] = out.get(kind, 0.0) + _cpu_s(os.getpid(), tid)
     return out
 
 
@@ -201,7 +200,7 @@ class Measure:
         st = daemon.status()
         frames = [getattr(s, "frames", None) for s in daemon.rig.sources]  # DetectorKeypointSource's capture
         tids = {t for f in frames if isinstance(t := getattr(f, "thread_id", None), int)}
-        servers = {f["name"]: _cpu_s(f"/proc/{f['pid']}/stat") for f in st["fake_cameras"] if f["pid"]}
+        servers = {f["name"]: _cpu_s(f["pid"]) for f in st["fake_cameras"] if f["pid"]}
         trackers = [t for s in daemon.rig.sources if (t := getattr(s, "tracker", None)) is not None]
         return {"t": time.monotonic(), "status": st, "threads": thread_cpu_by_kind(tids),
                 "process_cpu": time.process_time(), "servers": servers, "trackers": trackers,
