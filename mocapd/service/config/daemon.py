@@ -79,8 +79,8 @@ class DaemonConfig(Section):
     opencv_threads: int = Field(1, ge=0, le=64)
     """OpenCV's own worker threads (``cv2.setNumThreads``; 0 and 1: none, each call runs on its caller's thread).
     The daemon calls OpenCV from many threads at once already (every camera's capture thread tracks, the detector
-    converts frames); a pool beside them spun waiting for work between calls (``sched_yield``) and cost a tenth of
-    a core on the 4-camera demo (docs/daemon.md "OpenCV's worker threads")."""
+    converts frames); a pool beside them spun waiting for work between calls (``sched_yield``) and cost ~0.03 s of
+    CPU a second on the 4-camera demo (docs/daemon.md "OpenCV's worker threads")."""
     body_size_s: float = Field(2.0, ge=0.0, le=60.0)
     body_size_first_s: float = Field(0.25, ge=0.0, le=60.0)
     """A provisional body size from this much of a person's keypoints, before ``body_size_s`` (0: none)."""
